@@ -1,0 +1,73 @@
+"""The `cell` command line. Every CellError becomes one line on stderr and its exit code:
+0 done, 1 goal not reached, 2 bad input, 3 device fault."""
+import argparse
+import importlib
+import sys
+
+from cell.errors import CellError
+
+# sub-command -> module implementing `command(args) -> int`
+COMMANDS = {
+    "check": "cell.loader",
+    "fit-brdf": "cell.fit",
+    "plan": "cell.planner",
+    "run": "cell.loop",
+    "bench": "cell.bench",
+    "calibrate": "cell.calibrate",
+}
+
+
+def build_parser():
+    parser = argparse.ArgumentParser(prog="cell", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("check", help="load a task and everything it references, print a summary")
+    p.add_argument("task")
+
+    p = sub.add_parser("fit-brdf", help="fit the BRDF of eq. (6)-(7) to goniometer data per phase angle")
+    p.add_argument("data", help="CSV with theta_i_deg,theta_e_deg,phase_deg,reflectance")
+    p.add_argument("--out", help="material YAML to write")
+    p.add_argument("--name", help="material name (default: the CSV's stem)")
+    p.add_argument("--json", action="store_true", help="print the material as JSON")
+
+    p = sub.add_parser("plan", help="plan lamp position, shutter, f-number and focus for a task")
+    p.add_argument("task")
+    p.add_argument("--out", help="folder for plan.json and the pictures (default runs/<task>-plan)")
+    p.add_argument("--json", action="store_true", help="print plan.json to stdout")
+
+    p = sub.add_parser("run", help="plan, drive the cell, capture, measure and correct in a closed loop")
+    p.add_argument("task")
+    p.add_argument("--backend", choices=("sim", "hw"), help="override the task's cell.backend")
+    p.add_argument("--out", help="run folder (default runs/<task>-<time>)")
+    p.add_argument("--max-iterations", type=int, default=6)
+    p.add_argument("--yes", action="store_true", help="confirm operator prompts (manual lamp radius)")
+
+    p = sub.add_parser("bench", help="what accuracy costs in time; kernel throughput")
+    p.add_argument("tasks", nargs="*", help="default: tasks/hinge.yaml tasks/conrod.yaml")
+    p.add_argument("--quick", action="store_true", help="small sweep (< 1 min) for smoke tests")
+    p.add_argument("--out", help="folder for bench.json and bench.png (default runs/bench)")
+    p.add_argument("--json", action="store_true", help="print bench.json to stdout")
+
+    p = sub.add_parser("calibrate", help="operator routine: estimate the camera constant c")
+    p.add_argument("task")
+    p.add_argument("--backend", choices=("sim", "hw"))
+    p.add_argument("--out", help="folder for calibration.json")
+    p.add_argument("--yes", action="store_true")
+    return parser
+
+
+def main(argv=None):
+    args = build_parser().parse_args(argv)
+    try:
+        module = importlib.import_module(COMMANDS[args.command])
+        return int(module.command(args) or 0)
+    except CellError as err:
+        print(f"cell {args.command}: {err}", file=sys.stderr, flush=True)
+        return err.exit_code
+    except KeyboardInterrupt:
+        print(f"cell {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

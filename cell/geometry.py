@@ -1,0 +1,80 @@
+"""Poses named by frames (T_a_b maps b coordinates into a) and the direction conventions
+of the physics notes (azimuth/elevation with elevation as latitude)."""
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def transform(rotation=None, translation=(0.0, 0.0, 0.0)):
+    """4x4 homogeneous transform from a 3x3 rotation and a translation."""
+    T = np.eye(4)
+    if rotation is not None:
+        T[:3, :3] = rotation
+    T[:3, 3] = translation
+    return T
+
+
+def from_rpy(rpy_rad, translation=(0.0, 0.0, 0.0)):
+    """Extrinsic x-y-z roll/pitch/yaw (task files' `rpy_deg`, converted) to a transform."""
+    return transform(Rotation.from_euler("xyz", rpy_rad).as_matrix(), translation)
+
+
+def from_ur_pose(pose):
+    """UR wire pose [x, y, z, rx, ry, rz] (metres, rotation vector) to a transform."""
+    pose = np.asarray(pose, dtype=float)
+    return transform(Rotation.from_rotvec(pose[3:]).as_matrix(), pose[:3])
+
+
+def to_ur_pose(T):
+    """Transform to the UR wire pose [x, y, z, rx, ry, rz]."""
+    return np.concatenate([T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_rotvec()])
+
+
+def apply(T, points):
+    """Map points (..., 3) through T."""
+    points = np.asarray(points, dtype=float)
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def rotate(T, vectors):
+    """Map directions (..., 3) through T's rotation."""
+    return np.asarray(vectors, dtype=float) @ T[:3, :3].T
+
+
+def unit(v, axis=-1):
+    """v / |v| along axis."""
+    v = np.asarray(v, dtype=float)
+    return v / np.linalg.norm(v, axis=axis, keepdims=True)
+
+
+def frame_from_normal(normal, reference=(1.0, 0.0, 0.0)):
+    """3x3 rotation whose columns are (x, y, z) of a frame with +z = normal; x is the
+    reference projected into the tangent plane (any fixed axis when they are parallel)."""
+    z = unit(normal)
+    ref = np.asarray(reference, dtype=float)
+    if abs(np.dot(ref, z)) > 0.99:
+        ref = np.array([0.0, 1.0, 0.0]) if abs(z[1]) < 0.9 else np.array([0.0, 0.0, 1.0])
+    x = unit(ref - np.dot(ref, z) * z)
+    return np.column_stack([x, np.cross(z, x), z])
+
+
+def direction_from_angles(azimuth, elevation):
+    """Unit vector(s) (..., 3) for azimuth phi in [-pi, pi) and elevation (latitude) theta."""
+    azimuth, elevation = np.broadcast_arrays(np.asarray(azimuth, float), np.asarray(elevation, float))
+    ce = np.cos(elevation)
+    return np.stack([ce * np.cos(azimuth), ce * np.sin(azimuth), np.sin(elevation)], axis=-1)
+
+
+def angles_from_direction(d):
+    """(azimuth in [-pi, pi), elevation in [-pi/2, pi/2]) of direction(s) (..., 3)."""
+    d = unit(d)
+    az = np.arctan2(d[..., 1], d[..., 0])
+    az = np.where(az >= np.pi, az - 2 * np.pi, az)
+    return az, np.arcsin(np.clip(d[..., 2], -1.0, 1.0))
+
+
+def haversine_distance(az1, el1, az2, el2):
+    """Great-circle angle of eq. (2)-(3): d = 2 atan2(sqrt a, sqrt(1 - a)),
+    a = h(el2 - el1) + cos el1 cos el2 h(az2 - az1), h(x) = sin^2(x / 2)."""
+    a = np.sin(0.5 * (el2 - el1)) ** 2 + np.cos(el1) * np.cos(el2) * np.sin(0.5 * (az2 - az1)) ** 2
+    a = np.clip(a, 0.0, 1.0)
+    return 2.0 * np.arctan2(np.sqrt(a), np.sqrt(1.0 - a))

@@ -1,0 +1,1 @@
+"""Readable NumPy reference of the paper's physics, one equation family per module."""

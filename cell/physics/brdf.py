@@ -1,0 +1,95 @@
+"""BRDF of eq. (6)-(7) (Nayar-style diffuse + lobe + spike) and its Jacobian, eq. (8)-(9).
+
+Directions point away from the surface point: n normal, s to the lamp, v to the camera.
+R = rho (cos ti + sigma1 <v,r>^m1 + sigma2 <v,r>^m2), r = 2<n,s>n - s, and
+<v,r> = 2 cos te cos ti - cos alpha (alpha: phase angle between s and v).
+Clamps (physics notes): R = 0 if <n,s> <= 0 or <n,v> <= 0; lobe and spike are 0 if <v,r> <= 0.
+"""
+import numpy as np
+
+DIFFUSE, LOBE, SPIKE = 0, 1, 2
+TERM_NAMES = ("diffuse", "lobe", "spike")
+OCCLUDED = -1
+
+
+def stable_power(base, exponent):
+    """base**exponent for base in [0, 1], exponent up to ~1e5; 0 where base <= 0.
+
+    Computed as exp(m log1p(b - 1)) so that b near 1 with m ~ 1e4 keeps its accuracy
+    and nothing under/overflows to NaN.
+    """
+    base = np.asarray(base, dtype=float)
+    exponent = np.asarray(exponent, dtype=float)
+    b = np.minimum(base, 1.0)
+    positive = b > 0.0
+    log_b = np.log1p(np.where(positive, b, 1.0) - 1.0)
+    return np.where(positive, np.exp(exponent * log_b), 0.0)
+
+
+def mirror_cosine(cos_i, cos_e, cos_alpha):
+    """<v,r> = 2 cos te cos ti - cos alpha (eq. 7), the cosine between camera and mirror direction."""
+    return 2.0 * np.asarray(cos_e) * np.asarray(cos_i) - np.asarray(cos_alpha)
+
+
+def brdf_terms(cos_i, cos_e, cos_alpha, sigma1, m1, sigma2, m2):
+    """The three bracketed terms of eq. (6): (cos ti, s1 c^m1, s2 c^m2), each clamped to 0 behind."""
+    cos_i = np.asarray(cos_i, dtype=float)
+    cos_e = np.asarray(cos_e, dtype=float)
+    front = (cos_i > 0.0) & (cos_e > 0.0)
+    c = mirror_cosine(cos_i, cos_e, cos_alpha)
+    diffuse = np.where(front, cos_i, 0.0)
+    lobe = np.where(front, sigma1 * stable_power(c, m1), 0.0)
+    spike = np.where(front, sigma2 * stable_power(c, m2), 0.0)
+    return diffuse, lobe, spike
+
+
+def reflectance(cos_i, cos_e, cos_alpha, rho, sigma1, m1, sigma2, m2):
+    """R of eq. (7) [1/sr-like, as the paper uses it]; finite and >= 0 for any valid input."""
+    diffuse, lobe, spike = brdf_terms(cos_i, cos_e, cos_alpha, sigma1, m1, sigma2, m2)
+    return rho * (diffuse + lobe + spike)
+
+
+def dominant_term(cos_i, cos_e, cos_alpha, sigma1, m1, sigma2, m2):
+    """Sec. 5.2: index of the largest term (DIFFUSE, LOBE, SPIKE); OCCLUDED where R is clamped to 0."""
+    terms = np.stack(np.broadcast_arrays(*brdf_terms(cos_i, cos_e, cos_alpha, sigma1, m1, sigma2, m2)))
+    front = (np.asarray(cos_i) > 0.0) & (np.asarray(cos_e) > 0.0)
+    return np.where(front, np.argmax(terms, axis=0), OCCLUDED)
+
+
+def reflectance_jacobian(cos_i, cos_e, cos_alpha, rho, sigma1, m1, sigma2, m2):
+    """dR/d(rho, sigma1, m1, sigma2, m2), eq. (8)-(9) with the factor rho the paper drops.
+
+    dR/dsigma_k = rho c^mk; dR/dm_k = rho sigma_k c^mk ln c (0 where c <= 0, since the term is 0).
+    Returns an array of shape (..., 5).
+    """
+    cos_i = np.asarray(cos_i, dtype=float)
+    cos_e = np.asarray(cos_e, dtype=float)
+    front = (cos_i > 0.0) & (cos_e > 0.0)
+    c = mirror_cosine(cos_i, cos_e, cos_alpha)
+    positive = front & (c > 0.0)
+    log_c = np.where(positive, np.log1p(np.minimum(np.where(positive, c, 1.0), 1.0) - 1.0), 0.0)
+    p1 = np.where(positive, stable_power(c, m1), 0.0)
+    p2 = np.where(positive, stable_power(c, m2), 0.0)
+    d_rho = np.where(front, cos_i, 0.0) + sigma1 * p1 + sigma2 * p2
+    return np.stack(np.broadcast_arrays(
+        d_rho, rho * p1, rho * sigma1 * p1 * log_c, rho * p2, rho * sigma2 * p2 * log_c), axis=-1)
+
+
+def reflectance_vectors(n, s, v, material):
+    """R for unit vectors (..., 3): n normal, s to lamp, v to camera; material params at the phase angle."""
+    n, s, v = (np.asarray(a, dtype=float) for a in (n, s, v))
+    cos_i = np.sum(n * s, axis=-1)
+    cos_e = np.sum(n * v, axis=-1)
+    cos_alpha = np.clip(np.sum(s * v, axis=-1), -1.0, 1.0)
+    p = material.at(np.arccos(cos_alpha))
+    return reflectance(cos_i, cos_e, cos_alpha, p.rho, p.sigma1, p.m1, p.sigma2, p.m2)
+
+
+def dominant_term_vectors(n, s, v, material):
+    """dominant_term() for unit vectors, with the material at the phase angle."""
+    n, s, v = (np.asarray(a, dtype=float) for a in (n, s, v))
+    cos_i = np.sum(n * s, axis=-1)
+    cos_e = np.sum(n * v, axis=-1)
+    cos_alpha = np.clip(np.sum(s * v, axis=-1), -1.0, 1.0)
+    p = material.at(np.arccos(cos_alpha))
+    return dominant_term(cos_i, cos_e, cos_alpha, p.sigma1, p.m1, p.sigma2, p.m2)

@@ -1,0 +1,55 @@
+"""Requirement costs of sec. 2.1 / 5 and the log-sum-exp objective (eq. 1, 22-23), with the
+erratum of eq. (25): feasibility is max_i f_i <= 1 over the requirement values themselves."""
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def f_max(x, x_max):
+    """Eq. (1): exp(x / x_max - 1); <= 1 iff x <= x_max (x_max > 0)."""
+    return np.exp(np.asarray(x, dtype=float) / x_max - 1.0)
+
+
+def f_min(x, x_min):
+    """Eq. (1): exp(-x / x_min + 1); <= 1 iff x >= x_min (x_min > 0)."""
+    return np.exp(-np.asarray(x, dtype=float) / x_min + 1.0)
+
+
+def log_sum_exp(x, axis=-1):
+    """Eq. (22) ln sum exp(x_i) with the max shifted out; max <= lse <= max + ln N (eq. 23)."""
+    x = np.asarray(x, dtype=float)
+    m = np.max(x, axis=axis, keepdims=True)
+    m = np.where(np.isfinite(m), m, 0.0)
+    out = m + np.log(np.sum(np.exp(x - m), axis=axis, keepdims=True))
+    return np.squeeze(out, axis=axis)
+
+
+@dataclass(frozen=True)
+class Requirement:
+    """One requirement's value f_i (met when <= 1) and a sentence a person can act on."""
+
+    name: str
+    value: float
+    detail: str = ""
+
+    @property
+    def met(self):
+        return bool(self.value <= 1.0)
+
+
+@dataclass(frozen=True)
+class Verdict:
+    feasible: bool
+    binding: str
+    miss: float          # max_i f_i - 1: how far the binding requirement misses (<= 0 when met)
+    objective: float     # eq. (22) over the log-values ln f_i
+
+
+def verdict(requirements):
+    """Feasibility from max_i f_i <= 1 (erratum eq. 25), the binding (largest) requirement and
+    the smooth objective lse(ln f_i) that the optimizer minimises."""
+    values = np.array([r.value for r in requirements], dtype=float)
+    worst = int(np.argmax(values))
+    logs = np.log(np.maximum(values, np.finfo(float).tiny))
+    return Verdict(feasible=bool(values[worst] <= 1.0), binding=requirements[worst].name,
+                   miss=float(values[worst] - 1.0), objective=float(log_sum_exp(logs)))

@@ -1,0 +1,54 @@
+"""Depth of field of sec. 4.3 with a positive object distance u (physics notes' erratum of
+eq. 20-21, which use the German convention g = -u). f focal length, kappa f-number, sigma
+circle of confusion, all in metres."""
+import numpy as np
+
+
+def near_limit(u, f, kappa, sigma):
+    """near = u f^2 / (f^2 + kappa sigma (u - f))."""
+    return u * f**2 / (f**2 + kappa * sigma * (u - f))
+
+
+def far_limit(u, f, kappa, sigma):
+    """far = u f^2 / (f^2 - kappa sigma (u - f)); inf at or beyond the hyperfocal distance."""
+    den = f**2 - kappa * sigma * (u - f)
+    with np.errstate(divide="ignore"):
+        return np.where(den > 0.0, u * f**2 / np.where(den > 0.0, den, 1.0), np.inf)
+
+
+def hyperfocal_distance(f, kappa, sigma):
+    """Focus distance whose far limit is infinite: u_h = f + f^2 / (kappa sigma)."""
+    return f + f**2 / (kappa * sigma)
+
+
+def depth_of_field(u, f, kappa, sigma):
+    """far - near [m] (inf beyond the hyperfocal distance)."""
+    return far_limit(u, f, kappa, sigma) - near_limit(u, f, kappa, sigma)
+
+
+def f_number_for_depth(u, f, sigma, depth_m):
+    """Smallest kappa whose depth of field at focus u is depth_m.
+
+    With x = kappa sigma (u - f): far - near = 2 u f^2 x / (f^4 - x^2) = D, so
+    x = f^2 (sqrt(u^2 + D^2) - u) / D; kappa -> 0 as D -> 0.
+    """
+    if depth_m <= 0.0:
+        return 0.0
+    x = f**2 * (np.hypot(u, depth_m) - u) / depth_m
+    return float(x / (sigma * (u - f)))
+
+
+def focus_for_range(near_m, far_m):
+    """Focus distance whose near/far limits are near_m/far_m: the harmonic mean 2 n f / (n + f)
+    (exact for the thin-lens limits above when u >> f)."""
+    return 2.0 * near_m * far_m / (near_m + far_m)
+
+
+def near_limit_german(g, f, kappa, sigma):
+    """The paper's eq. (20), d_n = f^2 g / (f^2 - kappa sigma (g + f)), with g = -u < 0: returns -near."""
+    return f**2 * g / (f**2 - kappa * sigma * (g + f))
+
+
+def far_limit_german(g, f, kappa, sigma):
+    """The paper's eq. (21), d_f = f^2 g / (f^2 + kappa sigma (g + f)), with g = -u < 0: returns -far."""
+    return f**2 * g / (f**2 + kappa * sigma * (g + f))

@@ -1,0 +1,41 @@
+"""Radiometry of sec. 4: lamp irradiance (eq. 11), pixel power (eq. 17), gray value (eq. 10),
+and the corrected inverse (erratum eq. 18-19). SI units: W, m, s, rad."""
+import numpy as np
+
+
+def cone_irradiance(power_w, cone_angle_rad, distance_m, off_axis_rad=0.0):
+    """Eq. (11): Phi = P_L / (2 pi (1 - cos(gamma/2)) d^2) [W/m^2]; 0 outside the cone."""
+    distance_m = np.asarray(distance_m, dtype=float)
+    inside = np.abs(np.asarray(off_axis_rad, dtype=float)) <= 0.5 * cone_angle_rad
+    solid_angle = 2.0 * np.pi * (1.0 - np.cos(0.5 * cone_angle_rad))
+    return np.where(inside, power_w / (solid_angle * distance_m**2), 0.0)
+
+
+def pixel_power(pixel_area_m2, irradiance, reflectance, f_number):
+    """Eq. (17): P_pixel = A_pixel Phi R / (8 kappa^2) [W]."""
+    return pixel_area_m2 * irradiance * reflectance / (8.0 * np.asarray(f_number, dtype=float) ** 2)
+
+
+def gray_value(camera_constant, pixel_power_w, shutter_s, bit_depth=None):
+    """Eq. (10): G = c P_pixel t; clipped to [0, 2^bits - 1] when a bit depth is given."""
+    gray = camera_constant * np.asarray(pixel_power_w, dtype=float) * shutter_s
+    return gray if bit_depth is None else np.clip(gray, 0.0, 2.0**bit_depth - 1.0)
+
+
+def reflectance_from_gray(gray, camera_constant, shutter_s, f_number, pixel_area_m2, irradiance):
+    """Corrected eq. (18): R = 8 kappa^2 P_pixel / (A_pixel Phi), P_pixel = G / (c t)."""
+    p_pixel = np.asarray(gray, dtype=float) / (camera_constant * shutter_s)
+    return 8.0 * f_number**2 * p_pixel / (pixel_area_m2 * irradiance)
+
+
+def albedo_from_gray(gray, camera_constant, shutter_s, f_number, pixel_area_m2, irradiance,
+                     phase_angle_rad, sigma1, sigma2):
+    """Corrected eq. (19), at the mirror geometry (theta_r = 0, theta_i = alpha/2):
+    rho = 8 kappa^2 P_pixel / (A_pixel Phi (cos(alpha/2) + sigma1 + sigma2))."""
+    r = reflectance_from_gray(gray, camera_constant, shutter_s, f_number, pixel_area_m2, irradiance)
+    return r / (np.cos(0.5 * phase_angle_rad) + sigma1 + sigma2)
+
+
+def gray_per_exposure(camera_constant, pixel_area_m2, irradiance, reflectance):
+    """G / (t / kappa^2) = c A_pixel Phi R / 8: gray is proportional to t / kappa^2 (sec. 5.4)."""
+    return camera_constant * pixel_area_m2 * np.asarray(irradiance) * np.asarray(reflectance) / 8.0

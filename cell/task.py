@@ -1,0 +1,111 @@
+"""Typed inspection task (task-format.md), SI units inside. The loader lives in cell.loader."""
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from cell.material import Material
+
+
+@dataclass(frozen=True)
+class Part:
+    mesh_path: Path
+    mesh: trimesh.Trimesh          # in metres, part frame
+    T_cell_part: np.ndarray        # 4x4
+    material: Material
+
+
+@dataclass(frozen=True)
+class Feature:
+    center_m: np.ndarray           # part frame, on the surface (snapped to the closest point)
+    normal: np.ndarray             # part frame, unit, outward
+    radius_m: float
+    samples: int
+
+
+@dataclass(frozen=True)
+class Requirements:
+    gray_band: tuple               # (low, high) gray levels
+    reflection: str                # diffuse | lobe | spike | any
+    region_margin_rad: float
+    lamp_tolerance_rad: float
+    depth_of_field_m: float = 0.0  # wanted depth of field beyond the feature's own depth range
+
+
+@dataclass(frozen=True)
+class Sensor:
+    width_px: int
+    height_px: int
+    pixel_pitch_m: float
+    bit_depth: int
+    camera_constant: float         # c of eq. (10) [1/(W s)]
+
+    @property
+    def pixel_area_m2(self):
+        return self.pixel_pitch_m**2
+
+
+@dataclass(frozen=True)
+class Lens:
+    focal_length_m: float
+    f_number_range: tuple
+    circle_of_confusion_m: float
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    distance_m: float
+    view_direction: np.ndarray     # part frame, unit, from feature to camera
+    sensor: Sensor
+    lens: Lens
+    shutter_range_s: tuple
+
+
+@dataclass(frozen=True)
+class LampRig:
+    pivot_m: np.ndarray            # cell frame
+    pan_range_rad: tuple
+    tilt_range_rad: tuple
+    radius_range_m: tuple
+    radius_axis: str               # manual | servo
+
+
+@dataclass(frozen=True)
+class Lamp:
+    power_w: float
+    cone_angle_rad: float          # full opening angle gamma
+    rig: LampRig
+
+
+@dataclass(frozen=True)
+class Truth:
+    albedo_scale: float = 1.0
+    camera_constant_scale: float = 1.0
+    lamp_direction_error_rad: float = 0.0
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    seed: int = 1
+    effects: tuple = ()
+    truth: Truth = Truth()
+
+
+@dataclass(frozen=True)
+class CellConfig:
+    backend: str = "sim"
+    devices: dict = field(default_factory=dict)   # arm / pan_tilt / camera settings (README)
+
+
+@dataclass(frozen=True)
+class Task:
+    path: Path
+    name: str
+    part: Part
+    feature: Feature
+    requirements: Requirements
+    camera: CameraModel
+    lamp: Lamp
+    cell: CellConfig
+    sim: SimConfig
