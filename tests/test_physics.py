@@ -1,0 +1,170 @@
+"""The physics core against the worked values of the physics notes and stability properties."""
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cell.physics import brdf, costs, depth_of_field as dof, radiometry
+
+PITCH = 4.65e-6
+A_PIXEL = PITCH**2
+C_CAMERA = 1.5e16
+P_LAMP = 0.23043
+GAMMA = math.radians(12.0)
+
+
+def test_rod_irradiance_at_040_m_is_41_84():
+    assert radiometry.cone_irradiance(P_LAMP, GAMMA, 0.40) == pytest.approx(41.84, abs=0.005)
+
+
+def test_hinge_irradiance_at_0258_m_is_100_57():
+    assert radiometry.cone_irradiance(P_LAMP, GAMMA, 0.258) == pytest.approx(100.57, abs=0.005)
+
+
+@pytest.mark.parametrize("distance, f_number, shutter, gray, expected_r", [
+    (0.40, 6.2, 11.7e-3, 130.0, 0.252),     # connecting rod
+    (0.258, 5.6, 11.6e-3, 120.0, 0.0796),   # hinge
+])
+def test_corrected_inverse_gives_the_papers_reflectance(distance, f_number, shutter, gray, expected_r):
+    phi = radiometry.cone_irradiance(P_LAMP, GAMMA, distance)
+    r = radiometry.reflectance_from_gray(gray, C_CAMERA, shutter, f_number, A_PIXEL, phi)
+    assert r == pytest.approx(expected_r, rel=2e-3)
+    # and forward again: eq. (17) then eq. (10) reproduce the gray value
+    p = radiometry.pixel_power(A_PIXEL, phi, r, f_number)
+    assert radiometry.gray_value(C_CAMERA, p, shutter) == pytest.approx(gray, rel=1e-12)
+
+
+def test_gray_is_proportional_to_shutter_over_f_number_squared():
+    per_exposure = radiometry.gray_per_exposure(C_CAMERA, A_PIXEL, 100.57, 0.0796)
+    assert per_exposure * 11.6e-3 / 5.6**2 == pytest.approx(120.0, rel=2e-3)
+
+
+def test_albedo_inverse_at_the_mirror_geometry():
+    alpha = math.radians(30.0)
+    rho, s1, s2 = 0.05, 2.0, 10.0
+    # at the mirror geometry <v,r> = 1: R = rho (cos(alpha/2) + s1 + s2)
+    r = brdf.reflectance(math.cos(alpha / 2), math.cos(alpha / 2), math.cos(alpha), rho, s1, 5.0, s2, 500.0)
+    phi = 60.0
+    gray = radiometry.gray_value(C_CAMERA, radiometry.pixel_power(A_PIXEL, phi, r, 4.0), 5e-3)
+    est = radiometry.albedo_from_gray(gray, C_CAMERA, 5e-3, 4.0, A_PIXEL, phi, alpha, s1, s2)
+    assert est == pytest.approx(rho, rel=1e-12)
+
+
+def test_irradiance_is_zero_outside_the_cone():
+    assert radiometry.cone_irradiance(P_LAMP, GAMMA, 0.3, math.radians(6.01)) == 0.0
+    assert radiometry.cone_irradiance(P_LAMP, GAMMA, 0.3, math.radians(5.99)) > 0.0
+
+
+def test_depth_of_field_worked_values():
+    u, f, sigma = 0.35, 0.025, 5.015e-6
+    assert dof.near_limit(u, f, 6.2, sigma) == pytest.approx(0.3444, abs=5e-5)
+    assert dof.far_limit(u, f, 6.2, sigma) == pytest.approx(0.3558, abs=5e-5)
+
+
+@pytest.mark.parametrize("u", [0.1, 0.35, 0.5, 2.0])
+@pytest.mark.parametrize("kappa", [1.4, 6.2, 16.0])
+def test_german_sign_convention_is_equivalent(u, kappa):
+    f, sigma = 0.025, 5.015e-6
+    assert -dof.near_limit_german(-u, f, kappa, sigma) == pytest.approx(dof.near_limit(u, f, kappa, sigma), rel=1e-12)
+    far = dof.far_limit(u, f, kappa, sigma)
+    assert -dof.far_limit_german(-u, f, kappa, sigma) == pytest.approx(far, rel=1e-12)
+
+
+def test_far_limit_is_infinite_beyond_hyperfocal():
+    f, kappa, sigma = 0.025, 8.0, 5.015e-6
+    h = dof.hyperfocal_distance(f, kappa, sigma)
+    assert np.isinf(dof.far_limit(h * 1.01, f, kappa, sigma))
+    assert np.isfinite(dof.far_limit(h * 0.99, f, kappa, sigma))
+
+
+@pytest.mark.parametrize("depth", [1e-4, 0.0114, 0.021, 0.2])
+def test_f_number_for_depth_inverts_depth_of_field(depth):
+    u, f, sigma = 0.35, 0.025, 5.015e-6
+    kappa = dof.f_number_for_depth(u, f, sigma, depth)
+    assert dof.depth_of_field(u, f, kappa, sigma) == pytest.approx(depth, rel=1e-9)
+
+
+def test_paper_rod_f_number_gives_its_depth():
+    # f/6.2 at 0.35 m spans 0.3444..0.3558 m: asking for that span returns ~6.2
+    kappa = dof.f_number_for_depth(0.35, 0.025, 5.015e-6, 0.3558 - 0.3444)
+    assert kappa == pytest.approx(6.2, abs=0.05)
+
+
+def test_cost_functions_are_one_at_their_limits():
+    assert costs.f_max(10.0, 10.0) == pytest.approx(1.0)
+    assert costs.f_min(10.0, 10.0) == pytest.approx(1.0)
+    assert costs.f_max(9.0, 10.0) < 1.0 < costs.f_max(11.0, 10.0)
+    assert costs.f_min(11.0, 10.0) < 1.0 < costs.f_min(9.0, 10.0)
+
+
+def test_feasibility_uses_the_max_not_lse_minus_ln_n():
+    # three requirements at 0.9, 0.9 and 1.05: lse - ln 3 < 1 would wrongly accept (eq. 25 erratum)
+    reqs = [costs.Requirement("a", 0.9), costs.Requirement("gray_max", 1.05), costs.Requirement("c", 0.9)]
+    v = costs.verdict(reqs)
+    assert math.log(sum(r.value for r in reqs)) - math.log(3) < 1.0
+    assert not v.feasible and v.binding == "gray_max" and v.miss == pytest.approx(0.05)
+
+
+def test_dominant_term_regions():
+    # camera on the normal: near the mirror the spike wins, a bit off the lobe, far off the diffuse term
+    s1, m1, s2, m2 = 4.0, 6.0, 30.0, 400.0
+    def term(alpha_deg):
+        a = math.radians(alpha_deg)
+        return int(brdf.dominant_term(math.cos(a), 1.0, math.cos(a), s1, m1, s2, m2))
+    assert term(2.0) == brdf.SPIKE
+    assert term(28.9) == brdf.LOBE
+    assert term(70.0) == brdf.DIFFUSE
+    assert int(brdf.dominant_term(-0.1, 1.0, 0.0, s1, m1, s2, m2)) == brdf.OCCLUDED
+
+
+def test_stable_power_matches_exact_values():
+    c = 1.0 - 1e-6
+    assert brdf.stable_power(c, 1e4) == pytest.approx(math.exp(1e4 * math.log1p(-1e-6)), rel=1e-12)
+    assert brdf.stable_power(0.5, 3.0) == pytest.approx(0.125, rel=1e-14)
+    assert brdf.stable_power(-0.5, 3.0) == 0.0
+    assert brdf.stable_power(0.0, 1e5) == 0.0
+
+
+def test_jacobian_matches_finite_differences():
+    args = (math.cos(0.3), math.cos(0.2), math.cos(0.45))
+    p = np.array([0.05, 3.0, 7.0, 20.0, 300.0])
+    jac = brdf.reflectance_jacobian(*args, *p)
+    for k in range(5):
+        h = 1e-6 * max(1.0, abs(p[k]))
+        up, dn = p.copy(), p.copy()
+        up[k] += h
+        dn[k] -= h
+        fd = (brdf.reflectance(*args, *up) - brdf.reflectance(*args, *dn)) / (2 * h)
+        assert jac[k] == pytest.approx(fd, rel=1e-5, abs=1e-12)
+
+
+unit_cos = st.floats(-1.0, 1.0)
+angle = st.floats(0.0, math.pi)
+
+
+@settings(max_examples=300, deadline=None)
+@given(ti=angle, te=angle, az=st.floats(-math.pi, math.pi),
+       rho=st.floats(1e-4, 10.0), s1=st.floats(0.0, 100.0), m1=st.floats(1e-3, 1e3),
+       s2=st.floats(0.0, 1e3), dm=st.floats(1e-3, 1e5))
+def test_reflectance_is_finite_and_non_negative(ti, te, az, rho, s1, m1, s2, dm):
+    """Any valid parameters and directions (exponents up to 1e5, grazing, behind): finite R >= 0."""
+    n = np.array([0.0, 0.0, 1.0])
+    s = np.array([math.sin(ti), 0.0, math.cos(ti)])
+    v = np.array([math.sin(te) * math.cos(az), math.sin(te) * math.sin(az), math.cos(te)])
+    cos_alpha = float(np.clip(s @ v, -1, 1))
+    r = brdf.reflectance(s @ n, v @ n, cos_alpha, rho, s1, m1, s2, m1 + dm)
+    jac = brdf.reflectance_jacobian(s @ n, v @ n, cos_alpha, rho, s1, m1, s2, m1 + dm)
+    assert np.isfinite(r) and r >= 0.0
+    assert np.all(np.isfinite(jac))
+    if s @ n <= 0 or v @ n <= 0:
+        assert r == 0.0
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(-1e4, 1e4), min_size=1, max_size=50))
+def test_log_sum_exp_is_finite_and_within_ln_n_of_the_max(xs):
+    lse = costs.log_sum_exp(xs)
+    assert np.isfinite(lse)
+    assert max(xs) - 1e-9 <= lse <= max(xs) + math.log(len(xs)) + 1e-9
