@@ -1,0 +1,24 @@
+"""Lamp rig geometry: the lamp moves on a sphere around the pivot and aims at it; pan about
+the cell's +z axis, tilt is the elevation above the cell's xy plane (hardware notes)."""
+import numpy as np
+
+
+def lamp_position(pivot, pan, tilt, radius):
+    """p = pivot + r (cos t cos p, cos t sin p, sin t); broadcasts over pan/tilt/radius arrays."""
+    pan, tilt, radius = np.broadcast_arrays(np.asarray(pan, float), np.asarray(tilt, float),
+                                            np.asarray(radius, float))
+    offset = np.stack([np.cos(tilt) * np.cos(pan), np.cos(tilt) * np.sin(pan), np.sin(tilt)], axis=-1)
+    return np.asarray(pivot, float) + radius[..., None] * offset
+
+
+def lamp_aim(pivot, position):
+    """Unit aim direction of a lamp at `position` pointing at the pivot."""
+    d = np.asarray(pivot, float) - np.asarray(position, float)
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def lamp_joints(pivot, position):
+    """(pan, tilt, radius) that put the lamp at `position` (inverse of lamp_position)."""
+    d = np.asarray(position, float) - np.asarray(pivot, float)
+    radius = np.linalg.norm(d, axis=-1)
+    return np.arctan2(d[..., 1], d[..., 0]), np.arcsin(np.clip(d[..., 2] / radius, -1, 1)), radius

@@ -1,0 +1,75 @@
+"""The task's geometry in the cell frame: part mesh, feature samples, camera pose.
+
+Shared by the planner, the simulated camera and the closed loop so they all see one scene.
+"""
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+import trimesh
+
+from cell import geometry
+
+GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
+
+
+def look_at(position, target, up=(0.0, 0.0, 1.0)):
+    """T_cell_cam for a camera at `position` looking at `target` (OpenCV axes: z forward,
+    x right, y down in the image)."""
+    z = geometry.unit(np.asarray(target, float) - np.asarray(position, float))
+    up = np.asarray(up, dtype=float)
+    if abs(np.dot(up, z)) > 0.99:
+        up = np.array([0.0, 1.0, 0.0])
+    x = geometry.unit(np.cross(z, up))
+    y = np.cross(z, x)
+    return geometry.transform(np.column_stack([x, y, z]), position)
+
+
+def sunflower_disk(n, radius):
+    """n points spread evenly over a disk (Vogel's sunflower), shape (n, 2)."""
+    i = np.arange(n)
+    r = radius * np.sqrt((i + 0.5) / n)
+    return np.column_stack([r * np.cos(i * GOLDEN_ANGLE), r * np.sin(i * GOLDEN_ANGLE)])
+
+
+@dataclass(frozen=True)
+class Scene:
+    mesh: trimesh.Trimesh        # cell frame, metres
+    center: np.ndarray           # feature centre, cell frame
+    normal: np.ndarray           # feature normal, cell frame
+    frame: np.ndarray            # 3x3, columns x, y, z of the feature frame (z = normal)
+    points: np.ndarray           # (P, 3) feature samples on the surface
+    normals: np.ndarray          # (P, 3) surface normals at the samples
+    T_cell_cam: np.ndarray       # the camera pose the planner assumes
+
+    @property
+    def camera_position(self):
+        return self.T_cell_cam[:3, 3]
+
+    @cached_property
+    def warp_mesh(self):
+        from kernels.mesh import WarpMesh
+        return WarpMesh(self.mesh.vertices, self.mesh.faces)
+
+    def sample_depths(self):
+        """Distances camera -> samples along the optical axis [m]."""
+        return (self.points - self.camera_position) @ self.T_cell_cam[:3, 2]
+
+
+def build_scene(task, samples=None):
+    """Scene of a task: mesh and feature in the cell frame, `samples` points over the feature
+    patch (default: the task's), projected onto the surface."""
+    T = task.part.T_cell_part
+    mesh = task.part.mesh.copy()
+    mesh.apply_transform(T)
+    center = geometry.apply(T, task.feature.center_m)
+    normal = geometry.unit(geometry.rotate(T, task.feature.normal))
+    frame = geometry.frame_from_normal(normal)
+    n = samples or task.feature.samples
+    disk = sunflower_disk(n, task.feature.radius_m)
+    guesses = center + disk[:, :1] * frame[:, 0] + disk[:, 1:] * frame[:, 1]
+    points, _, faces = trimesh.proximity.closest_point(mesh, guesses)
+    normals = mesh.face_normals[faces]
+    cam = center + task.camera.distance_m * geometry.unit(geometry.rotate(T, task.camera.view_direction))
+    return Scene(mesh=mesh, center=center, normal=normal, frame=frame, points=points,
+                 normals=normals, T_cell_cam=look_at(cam, center))
