@@ -1,0 +1,36 @@
+"""NumPy <-> Warp conversions shared by the wrappers (CPU: zero-copy where possible)."""
+import numpy as np
+import warp as wp
+
+
+def vec3d(a, name):
+    """(N, 3) float64 -> wp.array(vec3d)."""
+    a = np.ascontiguousarray(a, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (N, 3), got {a.shape}")
+    return wp.array(a, dtype=wp.vec3d, device="cpu")
+
+
+def unit_rows(a, name):
+    """Rows of (N, 3) scaled to unit length (float64)."""
+    a = np.asarray(a, dtype=np.float64).reshape(-1, 3)
+    norm = np.linalg.norm(a, axis=1, keepdims=True)
+    if np.any(norm == 0.0):
+        raise ValueError(f"{name} has a zero-length row")
+    return a / norm
+
+
+def table2d(table):
+    """Material table (K, 6) [phase_rad, rho, sigma1, m1, sigma2, m2], ascending phase."""
+    t = np.ascontiguousarray(table, dtype=np.float64)
+    if t.ndim != 2 or t.shape[1] != 6 or len(t) < 1:
+        raise ValueError(f"material table must have shape (K, 6), got {t.shape}")
+    if np.any(np.diff(t[:, 0]) <= 0.0):
+        raise ValueError("material table phase angles must be strictly ascending")
+    return wp.array(t, dtype=wp.float64, device="cpu")
+
+
+def output(shape, dtype, wp_dtype):
+    """A NumPy output array and a zero-copy Warp view of it (NumPy owns the memory)."""
+    out = np.empty(shape, dtype=dtype)
+    return out, wp.array(out, dtype=wp_dtype, device="cpu", copy=False)

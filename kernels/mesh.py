@@ -1,0 +1,41 @@
+"""A triangle mesh as a Warp BVH (wp.Mesh), for the ray-casting kernels."""
+import numpy as np
+import warp as wp
+
+from .runtime import ensure_init
+
+
+class WarpMesh:
+    """wp.Mesh of vertices (V, 3) [m] and faces (F, 3), holding its Warp arrays alive.
+
+    Warp stores float32 vertices; `vertices` is that float32 geometry as float64, so a NumPy
+    reference can cast rays against exactly what the kernels see. Building is cheap
+    (a BVH over F triangles): rebuild rather than mutate.
+    """
+
+    def __init__(self, vertices, faces):
+        device = ensure_init()
+        points = np.ascontiguousarray(vertices, dtype=np.float32).reshape(-1, 3)
+        faces = np.ascontiguousarray(faces, dtype=np.int32).reshape(-1, 3)
+        if len(faces) == 0:
+            raise ValueError("WarpMesh needs at least one triangle")
+        if faces.min() < 0 or faces.max() >= len(points):
+            raise ValueError("WarpMesh: face index out of range")
+        self.vertices = points.astype(np.float64)
+        self.faces = faces.astype(np.int64)
+        self._points = wp.array(points, dtype=wp.vec3, device=device)
+        self._indices = wp.array(faces.ravel(), dtype=wp.int32, device=device)
+        self.mesh = wp.Mesh(points=self._points, indices=self._indices)
+
+    @classmethod
+    def from_trimesh(cls, mesh):
+        """From anything with .vertices and .faces (a trimesh.Trimesh)."""
+        return cls(mesh.vertices, mesh.faces)
+
+    @property
+    def id(self):
+        """The wp.uint64 handle kernels take."""
+        return self.mesh.id
+
+    def __repr__(self):
+        return f"WarpMesh({len(self.vertices)} vertices, {len(self.faces)} faces)"

@@ -1,0 +1,136 @@
+"""NumPy references of the kernels, for the tests and `cell bench`.
+
+Physics from cell.physics (brdf, radiometry) and cell.material; rays by brute-force
+Moller-Trumbore over every triangle in float64 (trimesh's ray module would need the optional
+`rtree` package, which the project does not depend on). Slow, readable, independent of Warp.
+`mesh` is anything with .vertices (V, 3) and .faces (F, 3): a WarpMesh (its float32
+geometry, exactly what the kernels see) or a trimesh.Trimesh.
+"""
+import numpy as np
+
+from cell import geometry
+from cell.material import Material
+from cell.physics import brdf, radiometry
+
+from .gray import GrayResult
+from .render import RenderResult
+
+TANGENT_EPS = 1e-9          # as kernels.funcs.TANGENT_EPS
+_CHUNK = 1 << 19            # rays x triangles per NumPy batch
+
+
+def _triangles(mesh):
+    tri = np.asarray(mesh.vertices, dtype=np.float64)[np.asarray(mesh.faces)]
+    v0 = tri[:, 0]
+    return v0, tri[:, 1] - v0, tri[:, 2] - v0
+
+
+def _ray_triangle_t(v0, e1, e2, origins, dirs):
+    """(R, F) distance along each unit ray to each triangle, inf where it misses."""
+    pvec = np.cross(dirs[:, None, :], e2[None])
+    det = np.einsum("fk,rfk->rf", e1, pvec)
+    scale = np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1)
+    ok = np.abs(det) > 1e-14 * scale[None]
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    tvec = origins[:, None, :] - v0[None]
+    u = np.einsum("rfk,rfk->rf", tvec, pvec) * inv
+    qvec = np.cross(tvec, e1[None])
+    w = np.einsum("rk,rfk->rf", dirs, qvec) * inv
+    t = np.einsum("fk,rfk->rf", e2, qvec) * inv
+    ok &= (u >= 0.0) & (w >= 0.0) & (u + w <= 1.0) & (t > 0.0)
+    return np.where(ok, t, np.inf)
+
+
+def ray_first_hit(mesh, origins, dirs, max_dist=np.inf):
+    """Closest hit of each ray (R, 3) along unit dirs: (t (R,), face (R,)); inf / -1 on a miss."""
+    v0, e1, e2 = _triangles(mesh)
+    origins = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+    dirs = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
+    t_out = np.full(len(origins), np.inf)
+    face = np.full(len(origins), -1)
+    step = max(1, _CHUNK // len(v0))
+    for i in range(0, len(origins), step):
+        t = _ray_triangle_t(v0, e1, e2, origins[i:i + step], dirs[i:i + step])
+        k = np.argmin(t, axis=1)
+        best = t[np.arange(len(t)), k]
+        hit = best < max_dist
+        t_out[i:i + step] = np.where(hit, best, np.inf)
+        face[i:i + step] = np.where(hit, k, -1)
+    return t_out, face
+
+
+def ray_hits_any(mesh, origins, dirs, max_dist):
+    """bool (R,): a triangle lies within max_dist (scalar or (R,)) along each unit ray."""
+    t, _ = ray_first_hit(mesh, origins, dirs)
+    return t < max_dist
+
+
+def _material(table):
+    t = np.asarray(table, dtype=np.float64)
+    return Material("table", "kernels.reference", *t.T)
+
+
+def gray_per_exposure(mesh, points, normals, camera_pos, lamp_pos, lamp_axis, power_w,
+                      cone_angle_rad, table, camera_constant, pixel_area_m2,
+                      shadows=True, cone=True, offset_m=1e-5):
+    """NumPy version of kernels.gray.gray_per_exposure (same arguments, same GrayResult)."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    n = geometry.unit(np.asarray(normals, dtype=np.float64).reshape(-1, 3))
+    lamps = np.asarray(lamp_pos, dtype=np.float64).reshape(-1, 3)
+    axis = geometry.unit(np.broadcast_to(np.asarray(lamp_axis, dtype=np.float64), lamps.shape))
+    to_lamp = lamps[:, None, :] - points[None]                      # (C, P, 3)
+    d = np.linalg.norm(to_lamp, axis=-1)
+    s = to_lamp / d[..., None]
+    v = geometry.unit(np.asarray(camera_pos, dtype=np.float64) - points)[None]
+    material = _material(table)
+    reflectance = brdf.reflectance_vectors(n[None], s, v, material)
+    dominant = brdf.dominant_term_vectors(n[None], s, v, material).astype(np.int8)
+    off_axis = np.arccos(np.clip(np.sum(axis[:, None, :] * -s, axis=-1), -1.0, 1.0))
+    irradiance = radiometry.cone_irradiance(power_w, cone_angle_rad, d, off_axis if cone else 0.0)
+    shadowed = np.sum(n[None] * s, axis=-1) <= 0.0                  # attached shadow
+    if shadows and mesh is not None:
+        c, p = np.nonzero(~shadowed)
+        shadowed[c, p] = ray_hits_any(mesh, points[p] + offset_m * n[p], s[c, p], d[c, p])
+    value = radiometry.gray_per_exposure(camera_constant, pixel_area_m2, irradiance, reflectance)
+    return GrayResult(np.where(shadowed, 0.0, value), shadowed, off_axis, dominant)
+
+
+def feature_directions(frame, azimuth, elevation):
+    """(E, A, 3) unit directions of the azimuth/elevation grid, in the mesh's frame."""
+    local = geometry.direction_from_angles(np.asarray(azimuth, float)[None, :],
+                                           np.asarray(elevation, float)[:, None])
+    return local @ np.asarray(frame, dtype=np.float64).T
+
+
+def visibility_maps(mesh, points, normals, frame, azimuth, elevation, offset_m=1e-5, max_dist=10.0):
+    """NumPy version of kernels.visibility.visibility_maps: bool (P, E, A)."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    n = geometry.unit(np.asarray(normals, dtype=np.float64).reshape(-1, 3))
+    dirs = feature_directions(frame, azimuth, elevation)
+    shape = (len(points),) + dirs.shape[:2]
+    d = np.broadcast_to(dirs[None], shape + (3,))
+    above = np.einsum("peak,pk->pea", d, n) > TANGENT_EPS
+    visible = np.zeros(shape, dtype=bool)
+    p, e, a = np.nonzero(above)
+    visible[p, e, a] = ~ray_hits_any(mesh, points[p] + offset_m * n[p], d[p, e, a], max_dist)
+    return visible
+
+
+def render(mesh, origin, ray_dirs, lamp_pos, lamp_axis, power_w, cone_angle_rad, table,
+           camera_constant, pixel_area_m2, shadows=True, cone=True, offset_m=1e-5, max_dist=10.0):
+    """NumPy version of kernels.render.render (same arguments, same RenderResult)."""
+    origin = np.asarray(origin, dtype=np.float64)
+    dirs = geometry.unit(np.asarray(ray_dirs, dtype=np.float64).reshape(-1, 3))
+    t, face = ray_first_hit(mesh, np.broadcast_to(origin, dirs.shape), dirs, max_dist)
+    hit = face >= 0
+    v0, e1, e2 = _triangles(mesh)
+    normal = np.zeros_like(dirs)
+    normal[hit] = geometry.unit(np.cross(e1[face[hit]], e2[face[hit]]))
+    value = np.zeros(len(dirs))
+    if hit.any():
+        g = gray_per_exposure(mesh if shadows else None, origin + t[hit, None] * dirs[hit],
+                              normal[hit], origin, lamp_pos, lamp_axis, power_w,
+                              cone_angle_rad, table, camera_constant, pixel_area_m2,
+                              shadows=shadows, cone=cone, offset_m=offset_m)
+        value[hit] = g.value[0]
+    return RenderResult(value, hit, t, normal)

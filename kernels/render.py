@@ -1,0 +1,77 @@
+"""The simulator's camera: one primary ray per pixel, shaded with the planner's own funcs."""
+from typing import NamedTuple
+
+import numpy as np
+import warp as wp
+
+from . import funcs
+from ._arrays import output, table2d, unit_rows, vec3d
+from .runtime import ensure_init
+
+
+class RenderResult(NamedTuple):
+    """Per ray (N,): gray per exposure c A Phi R / 8 (0 on a miss), hit, depth [m] along the
+    ray (inf on a miss) and the hit face's outward normal (N, 3) (0 on a miss)."""
+
+    value: np.ndarray
+    hit: np.ndarray
+    depth: np.ndarray
+    normal: np.ndarray
+
+
+@wp.kernel
+def render_kernel(mesh_id: wp.uint64, origin: wp.vec3d, ray_dirs: wp.array(dtype=wp.vec3d),
+                  max_dist: wp.float64, shadows: wp.int32, cone: wp.int32, offset_m: wp.float64,
+                  lamp: wp.vec3d, lamp_axis: wp.vec3d, power_w: wp.float64,
+                  cone_angle_rad: wp.float64, table: wp.array2d(dtype=wp.float64),
+                  camera_constant: wp.float64, pixel_area_m2: wp.float64,
+                  value: wp.array(dtype=wp.float64), hit: wp.array(dtype=wp.bool),
+                  depth: wp.array(dtype=wp.float64), normal: wp.array(dtype=wp.vec3d)):
+    """One thread per pixel ray."""
+    i = wp.tid()
+    d = ray_dirs[i]
+    q = wp.mesh_query_ray(mesh_id, wp.vec3(origin), wp.vec3(d), wp.float32(max_dist))
+    if not q.result:
+        value[i] = wp.float64(0.0)
+        hit[i] = False
+        depth[i] = wp.float64(wp.inf)
+        normal[i] = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+        return
+    t = wp.float64(q.t)
+    n = wp.vec3d(q.normal)
+    sh = funcs.shade_point(mesh_id, shadows, cone, offset_m, origin + t * d, n, origin,
+                           lamp, lamp_axis, power_w, cone_angle_rad, table,
+                           camera_constant, pixel_area_m2)
+    value[i] = sh.value
+    hit[i] = True
+    depth[i] = t
+    normal[i] = n
+
+
+def render(mesh, origin, ray_dirs, lamp_pos, lamp_axis, power_w, cone_angle_rad, table,
+           camera_constant, pixel_area_m2, shadows=True, cone=True, offset_m=1e-5, max_dist=10.0):
+    """Shade the first hit of each ray from `origin` (the camera centre) along unit
+    `ray_dirs` (N, 3), lit by one lamp: RenderResult(value, hit, depth, normal).
+
+    The hit point is origin + depth * dir (float64 from the float32 hit distance); its normal
+    is the mesh's outward face normal (a back face gives cos te <= 0, so R = 0). The shading
+    is kernels.funcs.shade_point, the same as gray_per_exposure at that point and normal.
+    """
+    device = ensure_init()
+    dirs = unit_rows(ray_dirs, "ray_dirs")
+    n = len(dirs)
+    value, value_wp = output(n, np.float64, wp.float64)
+    hit, hit_wp = output(n, np.bool_, wp.bool)
+    depth, depth_wp = output(n, np.float64, wp.float64)
+    normal, normal_wp = output((n, 3), np.float64, wp.vec3d)
+    if n == 0:
+        return RenderResult(value, hit, depth, normal)
+    axis = np.asarray(lamp_axis, dtype=np.float64)
+    wp.launch(render_kernel, dim=n, device=device, inputs=[
+        mesh.id, wp.vec3d(*np.asarray(origin, dtype=np.float64)), vec3d(dirs, "ray_dirs"),
+        float(max_dist), int(bool(shadows)), int(bool(cone)), float(offset_m),
+        wp.vec3d(*np.asarray(lamp_pos, dtype=np.float64)), wp.vec3d(*(axis / np.linalg.norm(axis))),
+        float(power_w), float(cone_angle_rad), table2d(table), float(camera_constant),
+        float(pixel_area_m2),
+    ], outputs=[value_wp, hit_wp, depth_wp, normal_wp])
+    return RenderResult(value, hit, depth, normal)

@@ -1,0 +1,60 @@
+"""Visibility maps (sec. 2.2): which azimuth/elevation directions escape the part from each
+sample point, by ray casting the mesh."""
+import numpy as np
+import warp as wp
+
+from . import funcs
+from ._arrays import output, unit_rows, vec3d
+from .runtime import ensure_init
+
+
+@wp.kernel
+def visibility_kernel(mesh_id: wp.uint64, points: wp.array(dtype=wp.vec3d),
+                      normals: wp.array(dtype=wp.vec3d), frame: wp.mat33d,
+                      azimuth: wp.array(dtype=wp.float64), elevation: wp.array(dtype=wp.float64),
+                      offset_m: wp.float64, max_dist: wp.float64,
+                      visible: wp.array3d(dtype=wp.bool)):
+    """One thread per (point p, elevation e, azimuth a)."""
+    p, e, a = wp.tid()
+    d = wp.mul(frame, funcs.direction_from_angles(azimuth[a], elevation[e]))
+    n = normals[p]
+    ok = False
+    if wp.dot(d, n) > funcs.TANGENT_EPS:
+        ok = not funcs.ray_blocked(mesh_id, points[p] + offset_m * n, d, max_dist)
+    visible[p, e, a] = ok
+
+
+def visibility_maps(mesh, points, normals, frame, azimuth, elevation, offset_m=1e-5, max_dist=10.0):
+    """bool (P, E, A): True where the ray from point + offset_m * normal along the direction
+    (azimuth a, elevation e) escapes the mesh within max_dist [m].
+
+    Directions are (cos e cos a, cos e sin a, sin e) in the feature frame, whose columns
+    (3x3 `frame`) are its x, y, z axes in the mesh's frame. Directions at or below a point's
+    tangent plane (<d, n> <= 1e-9) are False: the part hides them itself.
+    The feature's combined map is `combined_map(maps)`: visible from every sample.
+    """
+    device = ensure_init()
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    normals = unit_rows(normals, "normals")
+    azimuth = np.ascontiguousarray(azimuth, dtype=np.float64).ravel()
+    elevation = np.ascontiguousarray(elevation, dtype=np.float64).ravel()
+    frame = np.asarray(frame, dtype=np.float64)
+    if frame.shape != (3, 3):
+        raise ValueError(f"frame must be 3x3, got {frame.shape}")
+    if len(normals) != len(points):
+        raise ValueError(f"{len(points)} points but {len(normals)} normals")
+    shape = (len(points), len(elevation), len(azimuth))
+    visible, visible_wp = output(shape, np.bool_, wp.bool)
+    if visible.size == 0:
+        return visible
+    wp.launch(visibility_kernel, dim=shape, device=device, inputs=[
+        mesh.id, vec3d(points, "points"), vec3d(normals, "normals"), wp.mat33d(*frame.ravel()),
+        wp.array(azimuth, dtype=wp.float64, device=device),
+        wp.array(elevation, dtype=wp.float64, device=device), float(offset_m), float(max_dist),
+    ], outputs=[visible_wp])
+    return visible
+
+
+def combined_map(maps):
+    """The feature's map (E, A): a direction is visible if it is visible from every sample."""
+    return np.asarray(maps).all(axis=0)

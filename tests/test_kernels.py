@@ -1,0 +1,305 @@
+"""The Warp kernels against their NumPy references (kernels.reference, cell.physics).
+
+Gray values agree to 1e-5 relative with an identical zero pattern; visibility and shadows
+agree except for rays that graze an edge, and those must be few and provably ambiguous
+(a 1e-4 rad tilt of the reference ray flips its answer)."""
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cell import geometry
+from kernels import reference as ref
+from kernels.gray import gray_per_exposure
+from kernels.mesh import WarpMesh
+from kernels.proximity import closest_points
+from kernels.render import render
+from kernels.visibility import combined_map, visibility_maps
+
+ROOT = Path(__file__).resolve().parents[1]
+C_CAMERA = 1.5e16
+A_PIXEL = 4.65e-6**2
+P_LAMP = 0.23043
+GAMMA = math.radians(12.0)
+RTOL = 1e-5
+
+# [phase_rad, rho, sigma1, m1, sigma2, m2]: phase-dependent, spike exponents into the thousands
+METAL = np.array([
+    [0.00, 0.040, 4.0, 20.0, 30.0, 1000.0],
+    [0.30, 0.036, 3.0, 60.0, 20.0, 4000.0],
+    [0.70, 0.030, 2.0, 150.0, 10.0, 10000.0],
+    [1.20, 0.025, 1.0, 400.0, 5.0, 10000.0],
+])
+ALUMINIUM = np.column_stack([np.radians([0, 10, 20, 30, 40, 60, 80]),
+                             [0.0340, 0.0325, 0.0310, 0.02959, 0.0282, 0.0260, 0.0240],
+                             np.full(7, 4.0), np.full(7, 6.0), np.full(7, 30.0), np.full(7, 400.0)])
+
+
+def box(extents, center):
+    return trimesh.creation.box(extents=extents, transform=trimesh.transformations.translation_matrix(center))
+
+
+@pytest.fixture(scope="module")
+def blocks():
+    """A slab 100 x 100 x 20 mm (top face z = 10 mm) with a 100 mm tall wall along its +x side."""
+    return WarpMesh.from_trimesh(trimesh.util.concatenate([
+        box((0.10, 0.10, 0.02), (0.0, 0.0, 0.0)), box((0.02, 0.10, 0.10), (0.06, 0.0, 0.04))]))
+
+
+@pytest.fixture(scope="module")
+def hinge():
+    mesh = trimesh.load(ROOT / "tasks" / "parts" / "hinge.stl")
+    mesh.apply_scale(1e-3)                         # the task file says mm
+    return WarpMesh.from_trimesh(mesh), mesh
+
+
+def lamps_around(rng, center, count, radius=(0.1, 0.5), min_elevation=-0.3, aim_spread=0.03):
+    """Random lamp positions around `center` and aims at points near it (so cones cut)."""
+    az = rng.uniform(-np.pi, np.pi, count)
+    el = rng.uniform(min_elevation, 1.4, count)
+    pos = center + geometry.direction_from_angles(az, el) * rng.uniform(*radius, (count, 1))
+    target = center + rng.uniform(-aim_spread, aim_spread, (count, 3))
+    return pos, geometry.unit(target - pos)
+
+
+def ambiguous_rays(mesh, origins, dirs, max_dist, normals, eps=1e-4):
+    """Rays whose hit/miss flips when tilted by eps rad (they graze an edge), or that run
+    within eps of their point's tangent plane."""
+    dirs = geometry.unit(dirs)
+    base = ref.ray_hits_any(mesh, origins, dirs, max_dist)
+    helper = np.where(np.abs(dirs[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    a = geometry.unit(np.cross(dirs, helper))
+    b = np.cross(dirs, a)
+    flips = np.zeros(len(dirs), dtype=bool)
+    for tilt in (a, -a, b, -b):
+        flips |= ref.ray_hits_any(mesh, origins, geometry.unit(dirs + eps * tilt), max_dist) != base
+    return flips | (np.abs(np.sum(dirs * normals, axis=1)) < eps)
+
+
+def assert_gray_agrees(mesh, points, normals, lamps, warp, numpy, offset_m=1e-5):
+    """Identical shadows except ambiguous grazing rays; identical zero pattern, dominant
+    terms and off-axis angles; gray within RTOL where the reference is lit."""
+    c, p = np.nonzero(warp.shadowed != numpy.shadowed)
+    assert len(c) <= max(2, 1e-3 * warp.value.size), f"{len(c)} shadow mismatches"
+    if len(c):
+        n = geometry.unit(normals[p])
+        assert ambiguous_rays(mesh, points[p] + offset_m * n, lamps[c] - points[p],
+                              np.linalg.norm(lamps[c] - points[p], axis=1), n).all()
+    same = warp.shadowed == numpy.shadowed
+    np.testing.assert_array_equal(warp.value[same] > 0.0, numpy.value[same] > 0.0)
+    np.testing.assert_array_equal(warp.dominant, numpy.dominant)
+    np.testing.assert_allclose(warp.off_axis, numpy.off_axis, rtol=0, atol=1e-9)
+    lit = same & (numpy.value > 0.0)
+    np.testing.assert_allclose(warp.value[lit], numpy.value[lit], rtol=RTOL, atol=0)
+
+
+def test_gray_matches_reference_beside_a_wall(blocks):
+    rng = np.random.default_rng(7)
+    points = np.column_stack([rng.uniform(-0.045, 0.045, (40, 2)), np.full(40, 0.01)])
+    normals = np.tile([0.0, 0.0, 1.0], (40, 1))
+    lamps, aims = lamps_around(rng, np.array([0.0, 0.0, 0.01]), 300)
+    camera = np.array([-0.03, 0.01, 0.40])
+    args = (points, normals, camera, lamps, aims, P_LAMP, GAMMA, METAL, C_CAMERA, A_PIXEL)
+    warp, numpy = gray_per_exposure(blocks, *args), ref.gray_per_exposure(blocks, *args)
+    cast = numpy.shadowed & (np.sum((lamps[:, None] - points[None]) * normals[None], axis=-1) > 0)
+    assert 0.05 < cast.mean() < 0.5                   # the wall really casts shadows
+    assert (numpy.value > 0).mean() > 0.1 and (numpy.off_axis > GAMMA / 2).mean() > 0.1
+    assert set(np.unique(numpy.dominant)) == {-1, 0, 1, 2}
+    assert_gray_agrees(blocks, points, normals, lamps, warp, numpy)
+
+
+def test_gray_matches_reference_on_the_hinge(hinge):
+    mesh, tm = hinge
+    points, face = trimesh.sample.sample_surface(tm, 48, seed=3)
+    normals = tm.face_normals[face]
+    rng = np.random.default_rng(11)
+    lamps, aims = lamps_around(rng, np.array([0.0, 0.0, 0.004]), 200, radius=(0.08, 0.6))
+    args = (points, normals, np.array([-0.025, 0.0, 0.5]), lamps, aims, P_LAMP, GAMMA, ALUMINIUM,
+            C_CAMERA, A_PIXEL)
+    warp, numpy = gray_per_exposure(mesh, *args), ref.gray_per_exposure(mesh, *args)
+    assert (numpy.value > 0).mean() > 0.05
+    assert_gray_agrees(mesh, points, normals, lamps, warp, numpy)
+    for switch in ({"shadows": False}, {"cone": False}):
+        assert_gray_agrees(mesh, points, normals, lamps, gray_per_exposure(mesh, *args, **switch),
+                           ref.gray_per_exposure(mesh, *args, **switch))
+
+
+def test_spike_exponents_up_to_1e4_agree_in_float64():
+    """Near the mirror direction c -> 1, where float32 would lose ~m * 6e-8 relative."""
+    rng = np.random.default_rng(5)
+    table = np.array([[0.0, 0.03, 4.0, 3000.0, 30.0, 10000.0]])      # one row: clamped everywhere
+    camera = np.array([0.0, -0.2, 0.3])
+    mirror = np.array([0.0, 0.2, 0.3])
+    lamps = mirror + rng.normal(scale=2e-3, size=(400, 3))          # within ~1e-2 rad of the mirror
+    points = np.zeros((1, 3))
+    normals = np.array([[0.0, 0.0, 1.0]])
+    args = (points, normals, camera, lamps, -lamps, P_LAMP, np.pi, table, C_CAMERA, A_PIXEL)
+    warp, numpy = gray_per_exposure(None, *args), ref.gray_per_exposure(None, *args)
+    assert np.all(np.isfinite(warp.value)) and (numpy.dominant == 2).mean() > 0.3
+    np.testing.assert_allclose(warp.value, numpy.value, rtol=RTOL, atol=0)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), m1=st.floats(1.0, 1e3), m2=st.floats(1e3, 1e5),
+       sigma1=st.floats(0.0, 10.0), sigma2=st.floats(0.0, 100.0))
+def test_any_valid_parameters_give_finite_gray_equal_to_reference(seed, m1, m2, sigma1, sigma2):
+    rng = np.random.default_rng(seed)
+    table = np.array([[0.0, 0.05, sigma1, m1, sigma2, m2], [2.0, 0.02, sigma1, 2 * m1, sigma2, 2 * m2]])
+    points = rng.normal(scale=0.01, size=(16, 3))
+    normals = rng.normal(size=(16, 3))
+    lamps = rng.normal(scale=0.3, size=(8, 3))
+    args = (points, normals, rng.normal(scale=0.3, size=3), lamps, -lamps, P_LAMP, 2.0, table,
+            C_CAMERA, A_PIXEL)
+    warp, numpy = gray_per_exposure(None, *args), ref.gray_per_exposure(None, *args)
+    assert np.all(np.isfinite(warp.value)) and np.all(warp.value >= 0.0)
+    np.testing.assert_allclose(warp.value, numpy.value, rtol=RTOL, atol=0)
+    np.testing.assert_array_equal(warp.dominant, numpy.dominant)
+
+
+def test_lamp_or_camera_behind_the_surface_gives_zero():
+    points, normals = np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]])
+    lamps = np.array([[0.1, 0.0, -0.3], [0.3, 0.0, 0.0], [0.1, 0.0, 0.3]])
+    common = (lamps, -lamps, P_LAMP, np.pi, METAL, C_CAMERA, A_PIXEL)
+    front = gray_per_exposure(None, points, normals, np.array([0.0, 0.0, 0.5]), *common)
+    np.testing.assert_array_equal(front.value[:2, 0], 0.0)             # below / in the tangent plane
+    np.testing.assert_array_equal(front.shadowed[:, 0], [True, True, False])
+    np.testing.assert_array_equal(front.dominant[:, 0], [-1, -1, 0])
+    assert front.value[2, 0] > 0.0
+    behind = gray_per_exposure(None, points, normals, np.array([0.0, 0.0, -0.5]), *common)
+    np.testing.assert_array_equal(behind.value, 0.0)
+    np.testing.assert_array_equal(behind.dominant, -1)
+
+
+def test_cone_cuts_off_exactly_outside_half_the_opening_angle():
+    """Lamp 0.3 m above a plane aiming straight down: points at 5.9 and 6.1 deg off axis."""
+    off = np.radians([0.0, 3.0, 5.9, 6.1, 10.0])
+    points = np.column_stack([0.3 * np.tan(off), np.zeros(5), np.zeros(5)])
+    normals = np.tile([0.0, 0.0, 1.0], (5, 1))
+    args = (points, normals, np.array([0.0, 0.0, 0.5]), [[0.0, 0.0, 0.3]], [[0.0, 0.0, -1.0]],
+            P_LAMP, GAMMA, METAL, C_CAMERA, A_PIXEL)
+    inside = gray_per_exposure(None, *args)
+    np.testing.assert_allclose(inside.off_axis[0], off, atol=1e-12)
+    assert np.all(inside.value[0, :3] > 0.0)
+    np.testing.assert_array_equal(inside.value[0, 3:], 0.0)
+    no_cone = gray_per_exposure(None, *args, cone=False)
+    np.testing.assert_array_equal(no_cone.value[0, :3], inside.value[0, :3])
+    assert np.all(no_cone.value[0, 3:] > 0.0)
+
+
+def test_the_rods_lamp_at_040_m_with_r_0252_gives_gray_130_at_f62_and_11_7_ms():
+    """Physics notes' worked check: Phi(0.40 m) = 41.84 W/m^2, R = 0.252 (diffuse, on axis)."""
+    table = np.array([[0.0, 0.252, 0.0, 2.0, 0.0, 3.0]])
+    g = gray_per_exposure(None, np.zeros((1, 3)), [[0.0, 0.0, 1.0]], np.array([0.0, 0.0, 0.35]),
+                          [[0.0, 0.0, 0.40]], [[0.0, 0.0, -1.0]], P_LAMP, GAMMA, table,
+                          C_CAMERA, A_PIXEL)
+    assert g.value[0, 0] * 11.7e-3 / 6.2**2 == pytest.approx(130.0, abs=0.5)
+
+
+def test_visibility_matches_reference_beside_a_wall(blocks):
+    rng = np.random.default_rng(2)
+    points = np.column_stack([rng.uniform(-0.045, 0.045, (12, 2)), np.full(12, 0.01)])
+    normals = np.tile([0.0, 0.0, 1.0], (12, 1))
+    az = np.radians(np.arange(-180.0, 180.0, 5.0))
+    el = np.radians(np.arange(-10.0, 90.0, 5.0))                      # includes the tangent plane
+    warp = visibility_maps(blocks, points, normals, np.eye(3), az, el)
+    numpy = ref.visibility_maps(blocks, points, normals, np.eye(3), az, el)
+    assert warp.shape == (12, len(el), len(az)) and warp.dtype == bool
+    assert not warp[:, el <= 0].any()                                   # the slab hides these
+    assert 0.1 < 1 - warp[:, el > 0].mean() < 0.5                       # the wall hides these
+    assert_visibility_agrees(blocks, points, normals, np.eye(3), az, el, warp, numpy)
+    np.testing.assert_array_equal(combined_map(warp), warp.all(axis=0))
+
+
+def test_visibility_matches_reference_on_the_hinge_in_a_tilted_frame(hinge):
+    """Samples on the leaf near the knuckle; the feature frame is rotated about the normal."""
+    mesh, _ = hinge
+    rng = np.random.default_rng(4)
+    points = np.column_stack([rng.uniform(-0.026, -0.005, 10), rng.uniform(-0.015, 0.015, 10),
+                              np.full(10, 0.004)])
+    normals = np.tile([0.0, 0.0, 1.0], (10, 1))
+    frame = geometry.frame_from_normal([0.0, 0.0, 1.0], reference=(1.0, 1.0, 0.0))
+    az = np.radians(np.arange(-180.0, 180.0, 6.0))
+    el = np.radians(np.arange(3.0, 90.0, 6.0))
+    warp = visibility_maps(mesh, points, normals, frame, az, el)
+    numpy = ref.visibility_maps(mesh, points, normals, frame, az, el)
+    assert 0.05 < 1 - warp.mean() < 0.6
+    assert_visibility_agrees(mesh, points, normals, frame, az, el, warp, numpy)
+
+
+def assert_visibility_agrees(mesh, points, normals, frame, az, el, warp, numpy, offset_m=1e-5):
+    p, e, a = np.nonzero(warp != numpy)
+    assert len(p) <= max(2, 2e-3 * warp.size), f"{len(p)} of {warp.size} cells differ"
+    if len(p):
+        dirs = ref.feature_directions(frame, az, el)[e, a]
+        n = geometry.unit(normals[p])
+        assert ambiguous_rays(mesh, points[p] + offset_m * n, dirs, 10.0, n).all()
+
+
+def test_a_ray_through_the_walls_top_edge_counts_as_ambiguous(blocks):
+    """The tolerance above is honest: an exact edge hit flips under a 1e-4 rad tilt, a clear
+    ray does not."""
+    origin = np.array([[0.0, 0.0, 0.01 + 1e-5]] * 2)
+    dirs = geometry.unit(np.array([[0.05, 0.0, 0.08 - 1e-5], [0.0, 0.0, 1.0]]))
+    normals = np.array([[0.0, 0.0, 1.0]] * 2)
+    np.testing.assert_array_equal(ambiguous_rays(blocks, origin, dirs, 10.0, normals), [True, False])
+
+
+def test_bad_tables_and_shapes_are_refused():
+    args = (np.zeros((1, 3)), [[0.0, 0.0, 1.0]], np.array([0.0, 0.0, 1.0]), [[0.0, 0.0, 1.0]],
+            [[0.0, 0.0, -1.0]], P_LAMP, GAMMA)
+    with pytest.raises(ValueError, match="ascending"):
+        gray_per_exposure(None, *args, METAL[::-1], C_CAMERA, A_PIXEL)
+    with pytest.raises(ValueError, match=r"\(K, 6\)"):
+        gray_per_exposure(None, *args, METAL[:, :5], C_CAMERA, A_PIXEL)
+
+
+@pytest.fixture(scope="module")
+def plate_scene():
+    """A 200 mm square plate (z = 0, normal +z) with a 20 mm cube on it, camera 0.5 m above."""
+    plate = trimesh.Trimesh([[-0.1, -0.1, 0.0], [0.1, -0.1, 0.0], [0.1, 0.1, 0.0], [-0.1, 0.1, 0.0]],
+                            [[0, 1, 2], [0, 2, 3]])
+    mesh = WarpMesh.from_trimesh(trimesh.util.concatenate([plate, box((0.02,) * 3, (0.0413, 0.0037, 0.01))]))
+    u = np.linspace(-0.25, 0.25, 41)                                   # tan of the pixel angles
+    X, Y = np.meshgrid(u, u)
+    dirs = geometry.unit(np.column_stack([X.ravel(), Y.ravel(), -np.ones(X.size)]))
+    lamp = np.array([0.15, 0.02, 0.1])
+    light = (mesh, np.array([0.0, 0.0, 0.5]), dirs, lamp, geometry.unit(-lamp), P_LAMP,
+             math.radians(40.0), ALUMINIUM, C_CAMERA, A_PIXEL)
+    return light
+
+
+def test_render_equals_the_gray_kernel_at_its_hit_points(plate_scene):
+    mesh, origin, dirs, lamp, aim, *rest = plate_scene
+    out = render(mesh, origin, dirs, lamp, aim, *rest)
+    on_plate = out.hit & (np.abs(out.normal[:, 2] - 1.0) < 1e-12) & (out.depth > 0.49 / np.abs(dirs[:, 2]))
+    assert (~out.hit).sum() > 100 and on_plate.sum() > 900
+    assert np.all(np.isinf(out.depth[~out.hit])) and np.all(out.value[~out.hit] == 0.0)
+    np.testing.assert_allclose(out.depth[on_plate], 0.5 / -dirs[on_plate, 2], rtol=1e-6)
+    points = origin + out.depth[out.hit, None] * dirs[out.hit]
+    g = gray_per_exposure(mesh, points, out.normal[out.hit], origin, lamp[None], aim[None], *rest)
+    np.testing.assert_allclose(out.value[out.hit], g.value[0], rtol=1e-12, atol=0)
+    assert g.shadowed[0].sum() > 20 and (g.off_axis[0] > math.radians(20.0)).sum() > 20
+
+
+def test_render_matches_the_numpy_renderer(plate_scene):
+    """Looser than 1e-5: Warp's hit distance is float32 (3e-8 m at 0.5 m), and the spike
+    (m = 400) turns that into ~1e-5 relative."""
+    warp, numpy = render(*plate_scene), ref.render(*plate_scene)
+    np.testing.assert_array_equal(warp.hit, numpy.hit)
+    np.testing.assert_allclose(warp.normal, numpy.normal, atol=1e-6)
+    np.testing.assert_allclose(warp.depth[warp.hit], numpy.depth[numpy.hit], rtol=1e-6)
+    np.testing.assert_array_equal(warp.value > 0.0, numpy.value > 0.0)
+    np.testing.assert_allclose(warp.value, numpy.value, rtol=1e-4, atol=0)
+
+
+def test_closest_points_project_onto_the_hinge_leaf(hinge):
+    mesh, _ = hinge
+    guesses = np.array([[0.006, 0.0, 0.0045], [0.010, 0.005, 0.0035], [0.0, 0.0, 0.5]])
+    point, face, normal = closest_points(mesh, guesses, max_dist=0.01)
+    np.testing.assert_allclose(point[:2], [[0.006, 0.0, 0.004], [0.010, 0.005, 0.004]], atol=1e-7)
+    np.testing.assert_allclose(normal[:2], [[0.0, 0.0, 1.0]] * 2, atol=1e-6)
+    assert face[2] == -1 and np.isnan(point[2]).all()
