@@ -1,0 +1,1 @@
+"""Real device backends (ur_rtde, dynamixel_sdk, OpenCV); used only with --backend hw."""

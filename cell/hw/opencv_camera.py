@@ -1,0 +1,64 @@
+"""The real camera through cv2.VideoCapture (a V4L2 device index, or a video or image-sequence
+path, which exercises the same capture code). Manual exposure goes through
+CAP_PROP_AUTO_EXPOSURE (raw V4L2 1 = manual) and CAP_PROP_EXPOSURE in `exposure_unit_s` steps;
+OpenCV has no aperture control, so the operator sets the f-number."""
+import cv2
+import numpy as np
+
+from cell.devices import Camera
+from cell.errors import DeviceFault
+
+V4L2_MANUAL_EXPOSURE = 1
+
+
+class OpenCVCamera(Camera):
+    def __init__(self, config, bit_depth, operator):
+        super().__init__(bit_depth)
+        self.config, self.operator = config, operator
+        operator.require(self.device, "the aperture (OpenCV has no lens control)")
+        self._capture = cv2.VideoCapture(config.source)
+        if not self._capture.isOpened():
+            raise DeviceFault(self.device, f"cannot open {config.source!r} with cv2.VideoCapture")
+
+    def set_exposure(self, shutter_s):
+        """Manual exposure, read back: returns the shutter time the camera reports [s]."""
+        unit = self.config.exposure_unit_s
+        value = round(shutter_s / unit)
+        for prop, name, v in ((cv2.CAP_PROP_AUTO_EXPOSURE, "CAP_PROP_AUTO_EXPOSURE", V4L2_MANUAL_EXPOSURE),
+                              (cv2.CAP_PROP_EXPOSURE, "CAP_PROP_EXPOSURE", value)):
+            if not self._capture.set(prop, v):
+                raise DeviceFault(self.device, f"{self.config.source!r} refused {name} = {v} "
+                                               f"(shutter {shutter_s * 1e3:.3g} ms)")
+        actual = self._capture.get(cv2.CAP_PROP_EXPOSURE) * unit
+        if not actual > 0:
+            raise DeviceFault(self.device, f"{self.config.source!r} reads back exposure {actual} s")
+        for _ in range(self.config.discard_frames):     # still exposed with the old setting
+            self._read()
+        self.shutter_s = actual
+        return actual
+
+    def set_aperture(self, f_number):
+        if self.f_number is None or abs(f_number / self.f_number - 1) > 0.01:
+            self.operator.confirm(self.device, f"set the lens to f/{f_number:.1f}")
+        self.f_number = float(f_number)
+
+    def _read(self):
+        ok, frame = self._capture.read()
+        if not ok or frame is None:
+            raise DeviceFault(self.device, f"no frame from {self.config.source!r}")
+        return frame
+
+    def capture(self):
+        frame = self._read()
+        if frame.ndim == 3 and frame.shape[2] == 1:
+            frame = frame[..., 0]
+        elif frame.ndim == 3:
+            frame = cv2.cvtColor(frame, cv2.COLOR_BGRA2GRAY if frame.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+        expected = np.uint8 if self.bit_depth <= 8 else np.uint16
+        if frame.dtype != expected:
+            raise DeviceFault(self.device, f"frames are {frame.dtype}, a {self.bit_depth}-bit sensor "
+                                           f"gives {np.dtype(expected)}")
+        return frame
+
+    def close(self):
+        self._capture.release()

@@ -1,0 +1,39 @@
+"""Simulated camera: the renderer draws what the camera sees from the arm's and the lamp's
+read-back poses with the set shutter time and f-number (motorized aperture in the sim)."""
+import numpy as np
+
+from cell.devices import Camera
+from cell.errors import DeviceFault
+
+
+class SimCamera(Camera):
+    """`render(T_cell_cam, lamp_pos, lamp_aim, shutter_s, f_number) -> image` is the renderer.
+    Fault injection: capture number `fail_on_capture` times out (DeviceFault)."""
+
+    def __init__(self, render, arm, lamp, bit_depth=8, fail_on_capture=None, timeout_s=1.0):
+        super().__init__(bit_depth)
+        self.render, self.arm, self.lamp = render, arm, lamp
+        self.fail_on_capture, self.timeout_s = fail_on_capture, timeout_s
+        self.captures = 0
+
+    def set_exposure(self, shutter_s):
+        if not shutter_s > 0:
+            raise DeviceFault(self.device, f"shutter time {shutter_s} s is not positive")
+        self.shutter_s = float(shutter_s)
+        return self.shutter_s
+
+    def set_aperture(self, f_number):
+        if not f_number > 0:
+            raise DeviceFault(self.device, f"f-number {f_number} is not positive")
+        self.f_number = float(f_number)
+
+    def capture(self):
+        self.captures += 1
+        if self.captures == self.fail_on_capture:
+            raise DeviceFault(self.device, f"capture timed out after {self.timeout_s} s "
+                                           f"(capture {self.captures}, injected)")
+        if self.shutter_s is None or self.f_number is None:
+            raise DeviceFault(self.device, "capture before the shutter time and f-number were set")
+        lamp_pos, lamp_aim = self.lamp.lamp_pose()
+        image = self.render(self.arm.camera_pose(), lamp_pos, lamp_aim, self.shutter_s, self.f_number)
+        return np.asarray(image)

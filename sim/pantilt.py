@@ -1,0 +1,48 @@
+"""Simulated pan-tilt: Dynamixel-like servos in integer ticks (4096 a turn, 2048 the centre)
+with position limits, so the read-back joints carry the real rig's quantization."""
+from cell.devices import Operator
+from cell.errors import DeviceFault
+from cell.hw.dynamixel import CENTRE_TICK, ServoRig, describe_hardware_error
+
+FULL_RANGE = (0, 4095)
+
+
+class SimPanTilt(ServoRig):
+    """`limits` {id: (min, max) ticks} as the servos' Min/Max Position Limit (default the full
+    turn). Fault injection: on move number `fail_on_move` servo `fail_servo` (default the tilt)
+    reports Hardware Error Status `fail_bits` (default 0x04, overheating) and stops. In the sim
+    the operator's manual radius is confirmed unless `yes` is False."""
+
+    def __init__(self, rig, config, yes=True, operator=None, limits=None,
+                 fail_on_move=None, fail_servo=None, fail_bits=0x04):
+        super().__init__(rig, config, operator or Operator(yes=yes))
+        self.limits = {i: (limits or {}).get(i, FULL_RANGE) for i in self.ids}
+        self.present = {i: CENTRE_TICK for i in self.ids}
+        self.torque = {i: True for i in self.ids}
+        self.hardware_error = {i: 0 for i in self.ids}
+        self.moves = 0
+        self._fail = (fail_on_move, config.tilt_id if fail_servo is None else fail_servo, fail_bits)
+
+    def _check_errors(self):
+        for dxl_id, bits in self.hardware_error.items():
+            if bits:
+                raise DeviceFault(self.device, f"servo {dxl_id}: Hardware Error Status "
+                                               f"{describe_hardware_error(bits)}")
+
+    def _drive(self, goals):
+        self.moves += 1
+        on_move, dxl_id, bits = self._fail
+        if self.moves == on_move:
+            self.hardware_error[dxl_id], self.torque[dxl_id] = bits, False   # the servo's shutdown
+        self._check_errors()
+        for dxl_id, tick in goals.items():
+            if self.torque[dxl_id]:
+                self.present[dxl_id] = tick
+
+    def _present_ticks(self):
+        self._check_errors()
+        return dict(self.present)
+
+    def stop(self, fault_is_own=False):
+        if fault_is_own:
+            self.torque = {i: False for i in self.ids}
