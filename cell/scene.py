@@ -9,6 +9,8 @@ import numpy as np
 import trimesh
 
 from cell import geometry
+from kernels.mesh import WarpMesh
+from kernels.proximity import closest_points
 
 GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
 
@@ -48,7 +50,6 @@ class Scene:
 
     @cached_property
     def warp_mesh(self):
-        from kernels.mesh import WarpMesh
         return WarpMesh(self.mesh.vertices, self.mesh.faces)
 
     def sample_depths(self):
@@ -68,8 +69,13 @@ def build_scene(task, samples=None):
     n = samples or task.feature.samples
     disk = sunflower_disk(n, task.feature.radius_m)
     guesses = center + disk[:, :1] * frame[:, 0] + disk[:, 1:] * frame[:, 1]
-    points, _, faces = trimesh.proximity.closest_point(mesh, guesses)
+    scene_mesh = WarpMesh(mesh.vertices, mesh.faces)
+    points, faces, _ = closest_points(scene_mesh, guesses, max_dist=4 * task.feature.radius_m + 0.01)
+    if np.any(faces < 0):
+        raise ValueError("feature samples found no surface nearby")
     normals = mesh.face_normals[faces]
     cam = center + task.camera.distance_m * geometry.unit(geometry.rotate(T, task.camera.view_direction))
-    return Scene(mesh=mesh, center=center, normal=normal, frame=frame, points=points,
-                 normals=normals, T_cell_cam=look_at(cam, center))
+    scene = Scene(mesh=mesh, center=center, normal=normal, frame=frame, points=points,
+                  normals=normals, T_cell_cam=look_at(cam, center))
+    scene.__dict__["warp_mesh"] = scene_mesh
+    return scene

@@ -15,14 +15,14 @@ OCCLUDED = -1
 def stable_power(base, exponent):
     """base**exponent for base in [0, 1], exponent up to ~1e5; 0 where base <= 0.
 
-    Computed as exp(m log1p(b - 1)) so that b near 1 with m ~ 1e4 keeps its accuracy
-    and nothing under/overflows to NaN.
+    Computed as exp(m ln b) with b clamped to 1 and b <= 0 masked, so nothing under- or
+    overflows to NaN or inf (ln b is exact for b near 1: b - 1 is exact there).
     """
     base = np.asarray(base, dtype=float)
     exponent = np.asarray(exponent, dtype=float)
     b = np.minimum(base, 1.0)
     positive = b > 0.0
-    log_b = np.log1p(np.where(positive, b, 1.0) - 1.0)
+    log_b = np.log(np.where(positive, b, 1.0))
     return np.where(positive, np.exp(exponent * log_b), 0.0)
 
 

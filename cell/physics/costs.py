@@ -5,14 +5,23 @@ from dataclasses import dataclass
 import numpy as np
 
 
+EXP_LIMIT = 700.0   # exp(700) ~ 1e304: requirement values stay finite however far they miss
+
+
 def f_max(x, x_max):
     """Eq. (1): exp(x / x_max - 1); <= 1 iff x <= x_max (x_max > 0)."""
-    return np.exp(np.asarray(x, dtype=float) / x_max - 1.0)
+    return np.exp(np.minimum(np.asarray(x, dtype=float) / x_max - 1.0, EXP_LIMIT))
 
 
 def f_min(x, x_min):
     """Eq. (1): exp(-x / x_min + 1); <= 1 iff x >= x_min (x_min > 0)."""
-    return np.exp(-np.asarray(x, dtype=float) / x_min + 1.0)
+    return np.exp(np.minimum(-np.asarray(x, dtype=float) / x_min + 1.0, EXP_LIMIT))
+
+
+def count_cost(count):
+    """A requirement that no item fails (shadowed sample, unseen sample): 0.5 + count, so it
+    is met (<= 1) exactly when count is 0 and never sits at the boundary 1 when met."""
+    return 0.5 + np.asarray(count, dtype=float)
 
 
 def log_sum_exp(x, axis=-1):

@@ -1,0 +1,95 @@
+"""Pictures a person reads (paper Fig. 4-6): BRDF on the visibility map, segmented region map,
+cost map, each with the camera direction (square) and the lamp (dot) marked."""
+from pathlib import Path
+
+import numpy as np
+
+from cell import geometry
+from cell.physics import brdf
+
+
+def _pyplot():
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def _feature_angles(plan, scene, position):
+    az, el = geometry.angles_from_direction((position - scene.center) @ scene.frame)
+    return np.degrees(az), np.degrees(el)
+
+
+def _mark(ax, plan, scene):
+    cam = _feature_angles(plan, scene, plan.camera_position)
+    lamp = _feature_angles(plan, scene, plan.lamp_position)
+    ax.plot(*cam, marker="s", ms=11, mfc="none", mec="white", mew=2, ls="none", label="camera")
+    ax.plot(*lamp, marker="o", ms=8, mfc="white", mec="black", ls="none", label="lamp")
+    ax.legend(loc="lower right", fontsize=8, framealpha=0.6)
+
+
+def _axes(ax, title):
+    ax.set_xlabel("azimuth [deg] (feature frame)")
+    ax.set_ylabel("elevation [deg] (+90 = feature normal)")
+    ax.set_title(title, fontsize=10)
+
+
+def write_plan_pictures(plan, task, scene, out_dir):
+    """Write visibility_brdf.png, regions.png and cost.png into out_dir; return their paths."""
+    plt = _pyplot()
+    out_dir = Path(out_dir)
+    m = plan.maps
+    extent = [np.degrees(m.grid.azimuth[0]), np.degrees(m.grid.azimuth[-1]),
+              np.degrees(m.grid.elevation[0]), np.degrees(m.grid.elevation[-1])]
+    paths = []
+
+    fig, ax = plt.subplots(figsize=(9, 4.8))
+    shown = np.ma.masked_where(~m.visible | (m.reflectance <= 0), np.log10(np.maximum(m.reflectance, 1e-12)))
+    ax.set_facecolor("0.25")
+    im = ax.imshow(shown, origin="lower", extent=extent, aspect="auto", cmap="inferno")
+    fig.colorbar(im, ax=ax, label="log10 R (occluded: dark gray)")
+    _mark(ax, plan, scene)
+    _axes(ax, f"{plan.task_name}: BRDF mapped on the visibility map")
+    paths.append(out_dir / "visibility_brdf.png")
+
+    fig2, ax = plt.subplots(figsize=(9, 4.8))
+    seg = np.where(m.visible, m.dominant, brdf.OCCLUDED).astype(float)
+    from matplotlib.colors import ListedColormap
+    cmap = ListedColormap(["black", "tab:blue", "tab:orange", "tab:red"])
+    ax.imshow(seg, origin="lower", extent=extent, aspect="auto", cmap=cmap, vmin=-1.5, vmax=2.5,
+              interpolation="nearest")
+    ax.contour(np.degrees(m.grid.azimuth), np.degrees(m.grid.elevation), m.wanted.astype(float),
+               levels=[0.5], colors="white", linewidths=1)
+    for color, name in zip(["black", "tab:blue", "tab:orange", "tab:red"], ["occluded", *brdf.TERM_NAMES]):
+        ax.plot([], [], "s", color=color, label=name)
+    _mark(ax, plan, scene)
+    _axes(ax, "segmented region map (white line: wanted region)")
+    paths.append(out_dir / "regions.png")
+
+    fig3, (ax1, ax2) = plt.subplots(1, 2, figsize=(13, 4.8))
+    margin = max(task.requirements.region_margin_rad, 1e-6)
+    cost = (m.distance / margin + 1.0) / np.log(10.0)    # log10 of exp(d / margin + 1)
+    im = ax1.imshow(cost, origin="lower", extent=extent, aspect="auto", cmap="viridis", vmin=-3, vmax=3)
+    fig3.colorbar(im, ax=ax1, label="log10 region cost (<= 0: met)")
+    _mark(ax1, plan, scene)
+    _axes(ax1, "region cost exp(d / margin + 1)")
+    pan, tilt, obj = np.degrees(m.candidate_pan), np.degrees(m.candidate_tilt), m.candidate_objective
+    keys = np.round(np.column_stack([pan, tilt]), 6)
+    uniq, inv = np.unique(keys, axis=0, return_inverse=True)
+    best = np.full(len(uniq), np.inf)
+    np.minimum.at(best, inv.ravel(), obj)
+    sc = ax2.scatter(uniq[:, 0], uniq[:, 1], c=np.clip(best, -2, 10), cmap="magma_r", s=28, marker="s")
+    fig3.colorbar(sc, ax=ax2, label="objective lse(ln f_i), best over radius (<= 0 needed)")
+    jp, jt, _ = plan.joints
+    ax2.plot(np.degrees(jp), np.degrees(jt), "o", mfc="white", mec="black", ms=9, label="lamp")
+    ax2.set_xlabel("rig pan [deg]")
+    ax2.set_ylabel("rig tilt [deg]")
+    ax2.set_title("overall cost over the rig's candidates", fontsize=10)
+    ax2.legend(loc="lower right", fontsize=8)
+    paths.append(out_dir / "cost.png")
+
+    for f, p in zip((fig, fig2, fig3), paths):
+        f.tight_layout()
+        f.savefig(p, dpi=90)
+        plt.close(f)
+    return paths

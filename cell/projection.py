@@ -1,0 +1,36 @@
+"""Pinhole camera of the task's sensor and lens (OpenCV convention: z forward, x right, y down).
+
+K = [[f/p, 0, cx], [0, f/p, cy], [0, 0, 1]] with f the focal length, p the pixel pitch and the
+principal point at the sensor centre. Shared by the simulated camera (rays per pixel) and the
+closed loop (where the feature's samples land in the image).
+"""
+import numpy as np
+
+from cell import geometry
+
+
+def intrinsics(sensor, lens):
+    """3x3 camera matrix K [px]."""
+    f_px = lens.focal_length_m / sensor.pixel_pitch_m
+    return np.array([[f_px, 0.0, (sensor.width_px - 1) / 2.0],
+                     [0.0, f_px, (sensor.height_px - 1) / 2.0],
+                     [0.0, 0.0, 1.0]])
+
+
+def project(K, T_cell_cam, points):
+    """Pixel coordinates (N, 2) (x right, y down) and depth along the optical axis (N,) [m] of
+    cell-frame points; points behind the camera get NaN pixels."""
+    local = geometry.apply(np.linalg.inv(T_cell_cam), np.asarray(points, dtype=float).reshape(-1, 3))
+    z = local[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = (local @ K.T)[:, :2] / z[:, None]
+    uv[z <= 0] = np.nan
+    return uv, z
+
+
+def pixel_rays(K, T_cell_cam, width, height):
+    """Unit ray directions (H*W, 3) in the cell frame through every pixel centre, row-major."""
+    u, v = np.meshgrid(np.arange(width, dtype=float), np.arange(height, dtype=float))
+    pixels = np.column_stack([u.ravel(), v.ravel(), np.ones(u.size)])
+    local = pixels @ np.linalg.inv(K).T
+    return geometry.unit(geometry.rotate(T_cell_cam, local))
