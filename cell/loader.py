@@ -325,9 +325,12 @@ def _join(path, key):
 
 
 def _unit(key):
-    """(base, suffix) of a key whose last `_` part is a unit suffix, else (key, None)."""
+    """(base, suffix) of a key whose last `_` part is a unit suffix, else (key, None).
+    A rate such as `speed_m_s` (base ending in a unit too) is not a unit variant of `speed_m`."""
     base, _, suffix = key.rpartition("_")
-    return (base, suffix) if base and suffix in UNITS else (key, None)
+    if not base or suffix not in UNITS or base.rpartition("_")[2] in UNITS:
+        return key, None
+    return base, suffix
 
 
 def _schema_key(file, path, written, fields):

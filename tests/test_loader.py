@@ -353,3 +353,12 @@ def test_a_missing_task_file_is_one_line(tmp_path, capsys):
     assert cli.main(["check", str(tmp_path / "nope.yaml")]) == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and "nope.yaml" in err and "Traceback" not in err
+
+
+def test_rate_keys_are_not_unit_variants(tmp_path):
+    """`speed_m_ms` is not `speed_m` in milliseconds: a rate key is only accepted as written."""
+    from cell.devices import devices_from_config
+    with pytest.raises(TaskError) as err:
+        devices_from_config({"arm": {"speed_m_ms": 0.1}}, tmp_path / "t.yaml")
+    assert "speed_m_ms" in str(err.value) and "speed_m_s" in str(err.value)
+    assert devices_from_config({"arm": {"speed_m_s": 0.1}}, tmp_path / "t.yaml").arm.speed_m_s == 0.1
