@@ -24,6 +24,12 @@ class PlanInfeasible(CellError):
     exit_code = 1
 
 
+class GoalNotReached(CellError):
+    """The closed loop ran but the feature's gray did not reach the band; says why (exit 1)."""
+
+    exit_code = 1
+
+
 class DeviceFault(CellError):
     """A device failed or refused a command; motion has been stopped (exit 3)."""
 

@@ -1,5 +1,5 @@
 """Simulated camera: the renderer draws what the camera sees from the arm's and the lamp's
-read-back poses with the set shutter time and f-number (motorized aperture in the sim)."""
+read-back poses with the set shutter time, f-number and focus (motorized lens in the sim)."""
 import numpy as np
 
 from cell.devices import Camera
@@ -7,7 +7,8 @@ from cell.errors import DeviceFault
 
 
 class SimCamera(Camera):
-    """`render(T_cell_cam, lamp_pos, lamp_aim, shutter_s, f_number) -> image` is the renderer.
+    """`render(T_cell_cam, lamp_pos, lamp_aim, shutter_s, f_number, focus_m) -> image` is the
+    renderer (sim.world.Renderer); focus_m is None until set_focus (the renderer's default).
     Fault injection: capture number `fail_on_capture` times out (DeviceFault)."""
 
     def __init__(self, render, arm, lamp, bit_depth=8, fail_on_capture=None, timeout_s=1.0):
@@ -15,6 +16,7 @@ class SimCamera(Camera):
         self.render, self.arm, self.lamp = render, arm, lamp
         self.fail_on_capture, self.timeout_s = fail_on_capture, timeout_s
         self.captures = 0
+        self.focus_m = None
 
     def set_exposure(self, shutter_s):
         if not shutter_s > 0:
@@ -27,6 +29,12 @@ class SimCamera(Camera):
             raise DeviceFault(self.device, f"f-number {f_number} is not positive")
         self.f_number = float(f_number)
 
+    def set_focus(self, focus_m):
+        """Focus distance along the optical axis [m] (motorized focus in the sim)."""
+        if not focus_m > 0:
+            raise DeviceFault(self.device, f"focus distance {focus_m} m is not positive")
+        self.focus_m = float(focus_m)
+
     def capture(self):
         self.captures += 1
         if self.captures == self.fail_on_capture:
@@ -35,5 +43,6 @@ class SimCamera(Camera):
         if self.shutter_s is None or self.f_number is None:
             raise DeviceFault(self.device, "capture before the shutter time and f-number were set")
         lamp_pos, lamp_aim = self.lamp.lamp_pose()
-        image = self.render(self.arm.camera_pose(), lamp_pos, lamp_aim, self.shutter_s, self.f_number)
+        image = self.render(self.arm.camera_pose(), lamp_pos, lamp_aim, self.shutter_s, self.f_number,
+                            self.focus_m)
         return np.asarray(image)

@@ -213,8 +213,8 @@ def test_sim_camera_renders_from_the_read_back_poses_and_settings():
     calls = []
     arm, rig = SimArm(DEFAULTS.arm), SimPanTilt(RIG, DEFAULTS.pan_tilt)
 
-    def render(T_cell_cam, lamp_pos, lamp_aim_, shutter_s, f_number):
-        calls.append((T_cell_cam, lamp_pos, lamp_aim_, shutter_s, f_number))
+    def render(T_cell_cam, lamp_pos, lamp_aim_, shutter_s, f_number, focus_m):
+        calls.append((T_cell_cam, lamp_pos, lamp_aim_, shutter_s, f_number, focus_m))
         return np.full((3, 4), 7, np.uint8)
 
     camera = SimCamera(render, arm, rig)
@@ -224,9 +224,11 @@ def test_sim_camera_renders_from_the_read_back_poses_and_settings():
     rig.move(0.0, np.radians(45.0), 0.3)
     assert camera.set_exposure(0.0116) == 0.0116
     camera.set_aperture(5.6)
-    assert camera.capture().shape == (3, 4)
-    T, lamp_pos, aim, shutter_s, f_number = calls[-1]
-    assert T == pytest.approx(HINGE_CAMERA) and (shutter_s, f_number) == (0.0116, 5.6)
+    assert camera.capture().shape == (3, 4) and calls[-1][-1] is None     # the renderer's focus
+    camera.set_focus(0.5)
+    camera.capture()
+    T, lamp_pos, aim, shutter_s, f_number, focus_m = calls[-1]
+    assert T == pytest.approx(HINGE_CAMERA) and (shutter_s, f_number, focus_m) == (0.0116, 5.6, 0.5)
     assert lamp_pos == pytest.approx(rig.lamp_pose()[0]) and aim == pytest.approx(rig.lamp_pose()[1])
 
 

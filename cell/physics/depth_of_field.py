@@ -16,6 +16,16 @@ def far_limit(u, f, kappa, sigma):
         return np.where(den > 0.0, u * f**2 / np.where(den > 0.0, den, 1.0), np.inf)
 
 
+def blur_diameter(z, u, f, kappa):
+    """Thin-lens circle of confusion on the sensor of a point at distance z, focus at u:
+    c = f^2 |z - u| / (kappa (u - f) z) [m]; c = sigma exactly at near_limit and far_limit,
+    and f^2 / (kappa (u - f)) for z = inf."""
+    z = np.asarray(z, dtype=float)
+    with np.errstate(invalid="ignore"):
+        ratio = np.where(np.isfinite(z), np.abs(z - u) / z, 1.0)
+    return f**2 * ratio / (kappa * (u - f))
+
+
 def hyperfocal_distance(f, kappa, sigma):
     """Focus distance whose far limit is infinite: u_h = f + f^2 / (kappa sigma)."""
     return f + f**2 / (kappa * sigma)

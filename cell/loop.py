@@ -1,0 +1,346 @@
+"""The closed loop of `cell run` (design.md, steps 3-4): plan, drive the cell, capture, measure the
+feature's gray, correct, until every feature pixel is in the gray band or N iterations have run.
+
+Correction from G = c P_pixel t with P_pixel ~ 1 / kappa^2 (eq. 10, 17): the gray scales with
+t / kappa^2, so one gain k = sqrt(low high) / sqrt(G_min G_max) centres the measured range in the
+band geometrically. The shutter takes k first; where it hits its limits the f-number takes the rest,
+never wider than the depth of field allows. What neither absorbs (or a range wider than the band) is
+re-planned with the measured model error as an effective albedo scale: only the product c rho is
+observable, so the scale also absorbs an error in c.
+"""
+import json
+import os
+import sys
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from cell import measure
+from cell.errors import CellError, DeviceFault, GoalNotReached, PlanInfeasible, TaskError
+from cell.planner import Evaluator, gray_stats, plan as make_plan, write_plan
+
+DARK = 0.5                  # a pixel reading 0 is below the first gray level: true gray < 0.5
+SATURATED_STEP = 16.0       # every pixel saturated: step this far past the lower bound (4 stops)
+
+
+class RunLog:
+    """log.jsonl: one JSON line per step, appended, flushed and fsync'd so that a crash loses
+    nothing measured; each step also as a progress line on stderr."""
+
+    def __init__(self, path):
+        self.file = open(path, "a", encoding="utf-8")
+
+    def step(self, step, message, **data):
+        line = {"t": datetime.now(timezone.utc).isoformat(timespec="milliseconds"), "step": step, **data}
+        self.file.write(json.dumps(line, default=_plain) + "\n")
+        self.file.flush()
+        os.fsync(self.file.fileno())
+        print(f"{data.get('iteration', ''):>2} {step:<12} {message}", file=sys.stderr, flush=True)
+
+    def close(self):
+        self.file.close()
+
+
+def _plain(value):
+    """JSON for numpy values."""
+    return value.tolist() if hasattr(value, "tolist") else str(value)
+
+
+class Measurement:
+    """Gray of one capture over the feature's image region (the convex hull of the projected
+    samples, seen from the arm's read-back pose) and at each sample's pixel (NaN off the image)."""
+
+    def __init__(self, image, task, T_cell_cam, points, saturation):
+        self.row, self.col, inside = measure.sample_pixels(task, T_cell_cam, points)
+        if not inside.any():
+            raise GoalNotReached("no feature sample projects into the image: check the camera pose "
+                                 "and the hand-eye calibration (cell.arm.hand_eye_*)")
+        image = np.asarray(image, float)
+        self.region = measure.feature_mask(image.shape, self.row[inside], self.col[inside])
+        self.gray = image[self.region]
+        rows, cols = np.clip(self.row, 0, image.shape[0] - 1), np.clip(self.col, 0, image.shape[1] - 1)
+        self.sample_gray = np.where(inside, image[rows, cols], np.nan)
+        self.saturation = saturation
+        self.saturated = self.region & (image >= saturation)
+        self.min, self.max = float(self.gray.min()), float(self.gray.max())
+
+    def stats(self):
+        """measured_gray of report.json: saturated pixels count in min/max/mean at the maximum."""
+        return {**gray_stats(self.gray), "pixels": int(self.gray.size),
+                "saturated": int(self.saturated.sum())}
+
+    def in_band(self, band):
+        return not self.saturated.any() and band[0] <= self.min and self.max <= band[1]
+
+
+def model_error(sample_gray, predicted, saturation):
+    """(measured / predicted gray at the samples, relation): the median over samples the sensor
+    resolves, "="; if every one saturates the tightest lower bound, ">="; if every one reads 0
+    the tightest upper bound (true gray < DARK), "<="."""
+    ok = np.isfinite(sample_gray) & (predicted > 0)
+    g, p = sample_gray[ok], predicted[ok]
+    resolved = (g > 0) & (g < saturation)
+    if resolved.any():
+        return float(np.median(g[resolved] / p[resolved])), "="
+    if (g >= saturation).any():
+        return float(np.max(saturation / p[g >= saturation])), ">="
+    return float(np.min(DARK / p)), "<="
+
+
+def true_range(m, predicted, error):
+    """The feature's gray range (lo, hi) the capture implies: the measured extremes where the
+    sensor resolves them; at saturation (true >= it) or at 0 (true < DARK) the model times the
+    measured error, within what the reading allows."""
+    def resolve(reading, estimate):
+        if reading >= m.saturation:
+            return max(m.saturation, estimate)
+        return min(DARK, estimate) if reading <= 0 else reading
+    return resolve(m.min, error * predicted.min()), resolve(m.max, error * predicted.max())
+
+
+def correct_exposure(lo, hi, relation, shutter_s, f_number, band, shutter_range, f_number_range):
+    """(shutter, f-number, reason): the gain sqrt(low high) / sqrt(lo hi) on G ~ t / kappa^2,
+    shutter first, the f-number within f_number_range (its low end the widest the depth of field
+    allows) for what the shutter's range leaves. With every pixel saturated (relation ">=", lo and
+    hi lower bounds) it steps SATURATED_STEP further, so the next capture measures. reason is None
+    when the range can then be in band, else says why not."""
+    low, high = band
+    if hi > lo * high / low:
+        return shutter_s, f_number, (f"the feature's gray spans {lo:.1f}-{hi:.1f}, max/min "
+                                     f"{hi / max(lo, 1e-12):.2f} > the band's {high / low:.2f}: "
+                                     f"no exposure fits it in {low:g}-{high:g}")
+    step = SATURATED_STEP if relation == ">=" else 1.0
+    exposure = shutter_s / f_number**2 * np.sqrt(low * high / (lo * hi)) / step
+    shutter = float(np.clip(exposure * f_number**2, *shutter_range))
+    kappa = float(np.clip(np.sqrt(shutter / exposure), *f_number_range))
+    k = shutter / kappa**2 / (shutter_s / f_number**2)
+    fits = {"=": low <= lo * k and hi * k <= high, ">=": lo * k <= high, "<=": hi * k >= low}[relation]
+    if not fits:
+        bound = {"=": "at", ">=": "at least", "<=": "at most"}[relation]
+        return shutter, kappa, (f"even at {1e3 * shutter:.3g} ms and f/{kappa:.1f} the feature would be "
+                                f"{bound} {lo * k:.1f}-{hi * k:.1f}, band {low:g}-{high:g}")
+    return shutter, kappa, None
+
+
+def describe_error(error, relation):
+    bound = {"=": "", ">=": "at least ", "<=": "at most "}[relation]
+    return f"measured gray is {bound}{error:.3g}x the model's"
+
+
+def open_devices(task, scene, backend, yes=False):
+    """The cell's devices: the simulated cell (rendering `scene`) or, for backend hw, the real
+    ones from the task's cell.arm / cell.pan_tilt / cell.camera settings. The sim has no operator
+    to set the lamp radius: it confirms for itself."""
+    if backend == "hw":
+        from cell.devices import devices_from_config, make_hw_devices
+        return make_hw_devices(devices_from_config(task.cell.devices, task.path), task, yes=yes)
+    from sim.cell import make_sim_devices
+    return make_sim_devices(task, scene, yes=True)
+
+
+def plan_step(task, out, log, albedo_scale=1.0, iteration=None):
+    """Plan (the same function `cell plan` uses), write plan.json and pictures, log it."""
+    planned = make_plan(task, albedo_scale=albedo_scale,
+                        progress=lambda msg: print(f"{'':16}{msg}", file=sys.stderr, flush=True))
+    write_plan(planned, task, out)
+    g, exposure = gray_stats(planned.gray), planned.exposure
+    verdict = "feasible" if planned.feasible else f"INFEASIBLE, {planned.binding}: {planned.hint}"
+    where = {} if iteration is None else {"iteration": iteration}
+    log.step("plan", f"{verdict}; lamp {planned.distance_m:.3f} m, phase "
+                     f"{np.degrees(planned.phase_angle_rad):.1f} deg; {1e3 * exposure.shutter_s:.3f} ms, "
+                     f"f/{exposure.f_number:.1f}; predicted gray {g['min']:.1f}-{g['max']:.1f}"
+                     + (f" (albedo x{albedo_scale:.3g})" if albedo_scale != 1.0 else ""),
+             **where, albedo_scale=albedo_scale, feasible=planned.feasible, binding=planned.binding,
+             hint=planned.hint, joints=planned.joints, shutter_s=exposure.shutter_s,
+             f_number=exposure.f_number, predicted_gray=g, folder=str(out))
+    return planned
+
+
+def drive(devices, plan, log, iteration):
+    """Camera and lamp to the plan's poses, each logged as read back from the device."""
+    devices.arm.move_camera(plan.scene.T_cell_cam)
+    position = devices.arm.camera_pose()[:3, 3]
+    off = float(np.linalg.norm(position - plan.scene.camera_position))
+    log.step("move_camera", f"camera at {np.round(position, 4).tolist()} m ({1e3 * off:.2f} mm from the plan)",
+             iteration=iteration, position_m=position, error_m=off)
+    devices.lamp.move(*plan.joints)
+    pan, tilt, radius = devices.lamp.joints()
+    log.step("move_lamp", f"pan {np.degrees(pan):.2f} deg, tilt {np.degrees(tilt):.2f} deg, "
+                          f"radius {1e3 * radius:.1f} mm", iteration=iteration,
+             joints={"pan_deg": np.degrees(pan), "tilt_deg": np.degrees(tilt), "radius_m": radius})
+
+
+def png_levels(image, bit_depth):
+    """The camera's integer levels for a PNG (uint8 up to 8 bits, else uint16); a float image
+    (no quantization effect) rounded and clipped to them."""
+    return np.clip(np.rint(image), 0, 2**bit_depth - 1).astype(np.uint8 if bit_depth <= 8 else np.uint16)
+
+
+def draw_feature(image, m, bit_depth, caption):
+    """8-bit colour copy: the measured region outlined (green), its saturated pixels red, the
+    samples' pixels blue, a caption."""
+    view = cv2.cvtColor((png_levels(image, bit_depth) * (255.0 / (2**bit_depth - 1))).astype(np.uint8),
+                        cv2.COLOR_GRAY2BGR)
+    view[m.saturated] = (0, 0, 255)
+    contours, _ = cv2.findContours(m.region.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    cv2.polylines(view, contours, True, (0, 255, 0), 1)
+    for r, c in zip(m.row, m.col):
+        cv2.circle(view, (int(c), int(r)), 1, (255, 128, 0), -1)
+    cv2.putText(view, caption, (10, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 255, 255), 1, cv2.LINE_AA)
+    return view
+
+
+def shoot(task, plan, devices, out, log, k, shutter, f_number):
+    """Set the exposure, capture (saved at once), measure and compare with the current plan's
+    model at these settings (G ~ t / kappa^2). Returns (record, Measurement, predicted gray)."""
+    camera, bit_depth = devices.camera, devices.camera.bit_depth
+    shutter = camera.set_exposure(shutter)
+    camera.set_aperture(f_number)
+    log.step("set_exposure", f"shutter {1e3 * shutter:.3f} ms, f/{f_number:.2f}", iteration=k,
+             shutter_s=shutter, f_number=f_number)
+    image = np.asarray(camera.capture())
+    name, annotated = f"capture-{k}.png", f"capture-{k}-feature.png"
+    cv2.imwrite(str(out / name), png_levels(image, bit_depth))
+    log.step("capture", name, iteration=k, capture=name, shape=image.shape, dtype=str(image.dtype))
+
+    saturation = measure.saturation_level(bit_depth)
+    m = Measurement(image, task, devices.arm.camera_pose(), plan.scene.points, saturation)
+    predicted = plan.gray * (shutter / plan.exposure.shutter_s) * (plan.exposure.f_number / f_number) ** 2
+    error, relation = model_error(m.sample_gray, predicted, saturation)
+    band = task.requirements.gray_band
+    in_band = m.in_band(band)
+    stats, expected = m.stats(), gray_stats(predicted)
+    verdict = f"{'in' if in_band else 'out of'} band {band[0]:g}-{band[1]:g}"
+    caption = f"{k}: gray {m.min:.0f}-{m.max:.0f}, {stats['saturated']} saturated: {verdict}"
+    cv2.imwrite(str(out / annotated), draw_feature(image, m, bit_depth, caption))
+    record = {"iteration": k, "shutter_s": shutter, "f_number": f_number, "predicted_gray": expected,
+              "measured_gray": stats, "model_error": error, "model_error_relation": relation,
+              "in_band": in_band, "capture": name, "annotated": annotated}
+    log.step("measure", f"gray mean {stats['mean']:.1f}, {m.min:.1f}-{m.max:.1f} over {stats['pixels']} px "
+                        f"({stats['saturated']} saturated); the model predicts {expected['mean']:.1f}, "
+                        f"{expected['min']:.1f}-{expected['max']:.1f}; {describe_error(error, relation)}; "
+                        f"{verdict}",
+             **record)
+    return record, m, predicted
+
+
+def iterate(task, plan, devices, out, log, report, max_iterations):
+    """Drive, shoot, correct until every feature pixel is in the band; raises GoalNotReached
+    saying why when no correction is possible or the iterations run out."""
+    band = tuple(map(float, task.requirements.gray_band))
+    lens_range = (Evaluator(task, plan.scene, plan.maps).kappa_open, task.camera.lens.f_number_range[1])
+    albedo, shutter, f_number, moved = 1.0, plan.exposure.shutter_s, plan.exposure.f_number, False
+    for k in range(1, max_iterations + 1):
+        if not moved:
+            drive(devices, plan, log, k)
+            moved = True
+        record, m, predicted = shoot(task, plan, devices, out, log, k, shutter, f_number)
+        shutter, error, relation = (record[key] for key in ("shutter_s", "model_error", "model_error_relation"))
+        report["iterations"].append({**record, "albedo_scale": albedo})
+        report["captures"].append(record["capture"])
+        if record["in_band"]:
+            report["converged"] = True
+            return
+        if k == max_iterations:
+            saturated = record["measured_gray"]["saturated"]
+            raise GoalNotReached(f"not in band {band[0]:g}-{band[1]:g} after {_count(k, 'iteration')}: "
+                                 f"feature gray {m.min:.1f}-{m.max:.1f} ({saturated} pixels saturated) at "
+                                 f"{1e3 * shutter:.3g} ms, f/{f_number:.1f}; {describe_error(error, relation)}")
+
+        lo, hi = true_range(m, predicted, error)
+        new_shutter, new_f_number, why = correct_exposure(lo, hi, relation, shutter, f_number, band,
+                                                          task.camera.shutter_range_s, lens_range)
+        if why is None:
+            correction = {"action": "exposure", "shutter_s": new_shutter, "f_number": new_f_number,
+                          "gray_range": [lo, hi]}
+            message = (f"exposure: shutter {1e3 * shutter:.3f} -> {1e3 * new_shutter:.3f} ms, "
+                       f"f/{f_number:.2f} -> f/{new_f_number:.2f} (gray range taken as {lo:.1f}-{hi:.1f})")
+        else:
+            albedo *= error
+            correction = {"action": "replan", "albedo_scale": albedo, "reason": why}
+            message = f"re-plan with albedo x{albedo:.3g}: {why}"
+        report["iterations"][-1]["correction"] = correction
+        log.step("correct", message, iteration=k, **correction)
+        if why is None:
+            shutter, f_number = new_shutter, new_f_number
+            continue
+        plan = plan_step(task, out / f"replan-{k}", log, albedo, iteration=k)
+        report["replans"].append({"iteration": k, "albedo_scale": albedo, "plan": plan.to_json()})
+        if not plan.feasible:
+            raise GoalNotReached(f"{describe_error(error, relation)}; {why}; re-planned for an albedo "
+                                 f"x{albedo:.3g}: infeasible, {plan.binding}: {plan.hint}")
+        shutter, f_number, moved = plan.exposure.shutter_s, plan.exposure.f_number, False
+
+
+def run(task, out, connect, max_iterations=6):
+    """Plan, connect(scene) -> Devices, then iterate; out/report.json is written however the run
+    ends. Raises PlanInfeasible or GoalNotReached (exit 1), or DeviceFault (exit 3) after the safe
+    stop of every device. Returns the report."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    report = {"task": str(task.path), "plan": None, "iterations": [], "converged": False, "captures": [],
+              "reason": "", "replans": []}
+    log, devices = RunLog(out / "log.jsonl"), None
+    try:
+        planned = plan_step(task, out, log)
+        report["plan"] = planned.to_json()
+        if not planned.feasible:
+            raise PlanInfeasible(f"infeasible: {planned.binding} binds: {planned.hint}")
+        devices = connect(planned.scene)
+        iterate(task, planned, devices, out, log, report, max_iterations)
+        devices.close()
+        n = len(report["iterations"])
+        log.step("done", f"converged after {_count(n, 'iteration')}", converged=True, iterations=n)
+        return report
+    except DeviceFault as fault:
+        _stop(devices, fault, log, report)
+        raise DeviceFault(fault.device, f"{fault.reason}; motion stopped, log in {out}/log.jsonl") from fault
+    except CellError as err:                    # the goal was not reached: the devices are fine
+        report["reason"] = str(err)
+        if devices:
+            devices.close()
+        log.step("done", f"not converged: {err}", converged=False, reason=str(err))
+        raise
+    except BaseException as err:                # anything else (a bug, Ctrl-C): stop first
+        _stop(devices, err, log, report)
+        raise
+    finally:
+        (out / "report.json").write_text(json.dumps(report, indent=2, default=_plain) + "\n")
+        log.close()
+
+
+def _count(n, noun):
+    return f"{n} {noun}{'s' * (n != 1)}"
+
+
+def _stop(devices, err, log, report):
+    """The safe stop every fault ends in (hardware notes), then the fault in the log and report."""
+    failures = devices.safe_stop(err) if devices else []
+    device = getattr(err, "device", None)
+    report["reason"] = str(err) or type(err).__name__
+    report["fault"] = {"device": device, "error": report["reason"], "stop_failures": failures}
+    log.step("fault", f"{report['reason']}: motion stopped" + (f" (stop failed: {'; '.join(failures)})"
+                                                                if failures else ""), **report["fault"])
+
+
+def command(args):
+    """`cell run TASK [--backend sim|hw] [--out DIR] [--max-iterations N] [--yes]`: exit 0 when
+    every feature pixel ends in the gray band, 1 when not (with the reason), 3 on a device fault."""
+    from cell.loader import load_task
+    if args.max_iterations < 1:
+        raise TaskError("command line", "--max-iterations", args.max_iterations, "an integer >= 1")
+    task = load_task(args.task)
+    backend = args.backend or task.cell.backend
+    out = Path(args.out or Path("runs") / f"{Path(args.task).stem}-{time.strftime('%Y%m%d-%H%M%S')}")
+    report = run(task, out, lambda scene: open_devices(task, scene, backend, args.yes), args.max_iterations)
+    last, n = report["iterations"][-1], len(report["iterations"])
+    g, (low, high) = last["measured_gray"], task.requirements.gray_band
+    print(f"{task.name}: converged after {_count(n, 'iteration')}: feature gray {g['min']:.0f}-{g['max']:.0f} "
+          f"(mean {g['mean']:.1f}, band {low:g}-{high:g}) at {1e3 * last['shutter_s']:.3f} ms, "
+          f"f/{last['f_number']:.2f}")
+    print(f"  wrote {out}/report.json, log.jsonl, {_count(n, 'capture')} with the feature drawn, "
+          f"plan pictures")
+    return 0

@@ -1,0 +1,39 @@
+"""The simulated cell: SimArm, SimPanTilt and a SimCamera rendering the task's scene
+(sim.world.Renderer), with the task's `cell.arm` / `cell.pan_tilt` settings (docs/devices.md)
+and optional injected faults."""
+from dataclasses import dataclass
+
+from cell.devices import Devices, devices_from_config
+from sim.arm import SimArm
+from sim.camera import SimCamera
+from sim.pantilt import SimPanTilt
+from sim.world import Renderer
+
+
+@dataclass(frozen=True)
+class SimFaults:
+    """Faults to inject (None: none). The arm's move number `arm_fail_on_move` ends in a
+    protective stop; on the lamp's move number `lamp_fail_on_move` servo `servo_id` (None: the
+    tilt) reports Hardware Error Status `servo_bits` (0x04 overheating) and its torque goes off;
+    capture number `camera_fail_on_capture` times out. All raise DeviceFault."""
+
+    arm_fail_on_move: int | None = None
+    lamp_fail_on_move: int | None = None
+    servo_id: int | None = None
+    servo_bits: int = 0x04
+    camera_fail_on_capture: int | None = None
+
+
+def make_sim_devices(task, scene, operator=None, yes=True, faults=None):
+    """Devices of the simulated cell for a task and its scene (cell.scene.build_scene); the
+    operator (default Operator(yes=yes)) sets a manual lamp radius. faults: SimFaults, a dict of
+    its fields, or None. Bad device settings raise TaskError."""
+    faults = SimFaults(**faults) if isinstance(faults, dict) else faults or SimFaults()
+    config = devices_from_config(task.cell.devices, task.path)
+    arm = SimArm(config.arm, fail_on_move=faults.arm_fail_on_move)
+    lamp = SimPanTilt(task.lamp.rig, config.pan_tilt, yes=yes, operator=operator,
+                      fail_on_move=faults.lamp_fail_on_move, fail_servo=faults.servo_id,
+                      fail_bits=faults.servo_bits)
+    camera = SimCamera(Renderer(task, scene), arm, lamp, task.camera.sensor.bit_depth,
+                       fail_on_capture=faults.camera_fail_on_capture)
+    return Devices(arm, lamp, camera)

@@ -1,0 +1,134 @@
+"""The simulated camera's world: the task's scene rendered with the planner's own shading
+(kernels.render uses kernels.funcs.shade_point, like the planner's bulk kernel), the world's
+"truth" (task `sim.truth`) and only the effects the task lists (`sim.effects`).
+
+gray = value t / kappa^2 with value = c A_pixel Phi R / 8 (eq. 10, 11, 17) per pixel, shaded with
+the true rho (model rho * albedo_scale), the true c (model c * camera_constant_scale) and the
+lamp's true axis, lamp_direction_error away from the commanded aim (the axis enters only through
+the cone). With no effects and a neutral truth a pixel's gray is the planner's prediction at the
+point it sees: eq. (11)'s ideal cone with a hard edge, no cast shadows, float gray, unclipped.
+
+Effects, applied in the physical order light -> lens -> sensor -> ADC, whatever the list's order:
+  shadows       cast shadows (the kernel's shadow rays); faces turned from the lamp are dark anyway
+  cone_falloff  a real LED optic's soft cone edge, which the planner's eq. (11) lacks: the hard
+                cone blurred in angle by a Gaussian (1 deg for a 12 deg cone), so eq. (11) holds
+                near the axis, half of it at the nominal edge, and some light spills beyond
+  vignetting    natural vignetting, cos^4 of the ray's angle to the optical axis
+  defocus       thin-lens blur, circle of confusion c of depth_of_field.blur_diameter per pixel
+  noise         shot noise (Poisson in electrons, FULL_WELL_E at full scale) and READ_NOISE_E
+  black_level   a constant offset, BLACK_LEVEL of full scale (5 gray at 8 bits)
+  quantization  gray rounded to integers, clipped to [0, 2^bits - 1] (uint8, or uint16 above 8 bits)
+"""
+from dataclasses import replace
+
+import numpy as np
+from scipy.ndimage import gaussian_filter
+from scipy.special import erfc
+
+from cell import geometry
+from cell.physics.depth_of_field import blur_diameter
+from cell.projection import intrinsics, pixel_rays
+from kernels.render import render
+
+CONE_EDGE = 1.0 / 6.0       # cone edge blur s as a fraction of the half angle gamma/2
+DEFOCUS_STEP_PX = 0.5       # defocus depth layers: circle of confusion in these steps
+FULL_WELL_E = 10_000.0      # electrons at full scale: assumed, typical of 4.65 um pixels
+READ_NOISE_E = 10.0         # rms electrons: assumed, typical of machine-vision sensors
+BLACK_LEVEL = 0.02          # of full scale, rounded (5 gray at 8 bits): keeps read noise above 0
+
+
+def cone_falloff(off_axis_rad, cone_angle_rad):
+    """Soft-edged cone: irradiance relative to eq. (11)'s at off-axis angle theta,
+    erfc((theta - gamma/2) / (sqrt 2 s)) / 2, s = CONE_EDGE gamma/2 (1 on the axis)."""
+    half = 0.5 * cone_angle_rad
+    return 0.5 * erfc((np.asarray(off_axis_rad) - half) / (np.sqrt(2.0) * CONE_EDGE * half))
+
+
+def defocus(gray, depth_m, focus_m, focal_length_m, f_number, pixel_pitch_m):
+    """Thin-lens blur: each depth layer (circle of confusion c in DEFOCUS_STEP_PX steps) is spread
+    by the Gaussian with its disk's second moment (sigma = c / 4) and the layers are summed, so
+    light is conserved (occlusion at depth steps is ignored). depth_m along the optical axis."""
+    c_px = blur_diameter(depth_m, focus_m, focal_length_m, f_number) / pixel_pitch_m
+    layer = np.rint(c_px / DEFOCUS_STEP_PX)
+    out = np.zeros_like(gray)
+    for k in np.unique(layer[gray != 0.0]):
+        light = np.where(layer == k, gray, 0.0)
+        out += gaussian_filter(light, k * DEFOCUS_STEP_PX / 4.0, mode="constant") if k else light
+    return out
+
+
+def sensor_noise(gray, full_scale, rng):
+    """Shot noise, Poisson in the electrons n = G FULL_WELL_E / full_scale, plus Gaussian read
+    noise: variance in gray g G + g^2 READ_NOISE_E^2, g = full_scale / FULL_WELL_E."""
+    gain = full_scale / FULL_WELL_E
+    electrons = rng.poisson(gray / gain) + rng.normal(0.0, READ_NOISE_E, gray.shape)
+    return gain * electrons
+
+
+def quantize(gray, bit_depth):
+    """Integer gray clipped to [0, 2^bits - 1], as the camera's ADC delivers it."""
+    dtype = np.uint8 if bit_depth <= 8 else np.uint16
+    return np.clip(np.rint(gray), 0, 2**bit_depth - 1).astype(dtype)
+
+
+class Renderer:
+    """What the simulated camera sees of a task's scene (cell.scene.build_scene), called by
+    sim.camera.SimCamera. `scale` < 1 samples a coarser pixel grid over the same sensor (gray per
+    real pixel unchanged), for fast tests; K is the grid's camera matrix."""
+
+    def __init__(self, task, scene, scale=1.0):
+        sensor, lens = task.camera.sensor, task.camera.lens
+        self.task, self.scene, self.effects = task, scene, frozenset(task.sim.effects)
+        grid = replace(sensor, width_px=round(sensor.width_px * scale),
+                       height_px=round(sensor.height_px * scale),
+                       pixel_pitch_m=sensor.pixel_pitch_m / scale)
+        self.shape, self.pixel_pitch_m = (grid.height_px, grid.width_px), grid.pixel_pitch_m
+        self.K = intrinsics(grid, lens)
+        self.rays_cam = pixel_rays(self.K, np.eye(4), grid.width_px, grid.height_px)
+        truth = task.sim.truth
+        self.table = task.part.material.scaled(truth.albedo_scale).table()
+        self.camera_constant = sensor.camera_constant * truth.camera_constant_scale
+        self.rng = np.random.default_rng(task.sim.seed)
+        self.error_direction_rad = self.rng.uniform(0.0, 2.0 * np.pi)
+
+    def lamp_axis(self, lamp_aim):
+        """The lamp's true axis: the commanded aim turned by lamp_direction_error toward a direction
+        drawn once from the seed (a mis-mounted lamp errs the same way at every pose)."""
+        aim = geometry.unit(lamp_aim)
+        x, y = geometry.frame_from_normal(aim)[:, :2].T
+        error, psi = self.task.sim.truth.lamp_direction_error_rad, self.error_direction_rad
+        return np.cos(error) * aim + np.sin(error) * (np.cos(psi) * x + np.sin(psi) * y)
+
+    def __call__(self, T_cell_cam, lamp_pos, lamp_aim, shutter_s, f_number, focus_m=None):
+        """Gray image (H, W): float, or integers with quantization. focus_m is the lens's focus
+        distance along the optical axis (None: the feature centre's, as planned, sec. 5.4)."""
+        task, effects = self.task, self.effects
+        origin, optical_axis = T_cell_cam[:3, 3], T_cell_cam[:3, 2]
+        # einsum, not BLAS: OpenBLAS threads left spinning after a matmul slow the Warp kernel 4x
+        dirs = np.einsum("ij,nj->ni", T_cell_cam[:3, :3], self.rays_cam)
+        axis = self.lamp_axis(lamp_aim)
+        soft_cone = "cone_falloff" in effects
+        r = render(self.scene.warp_mesh, origin, dirs, lamp_pos, axis, task.lamp.power_w,
+                   task.lamp.cone_angle_rad, self.table, self.camera_constant,
+                   task.camera.sensor.pixel_area_m2, shadows="shadows" in effects, cone=not soft_cone)
+        if soft_cone:
+            lamp_to_point = origin + r.depth[r.hit, None] * dirs[r.hit] - lamp_pos
+            cos_off_axis = np.clip(np.einsum("nj,j->n", geometry.unit(lamp_to_point), axis), -1.0, 1.0)
+            r.value[r.hit] *= cone_falloff(np.arccos(cos_off_axis), task.lamp.cone_angle_rad)
+        gray = (r.value * shutter_s / f_number**2).reshape(self.shape)
+        cos_field = self.rays_cam[:, 2].reshape(self.shape)
+        if "vignetting" in effects:
+            gray = gray * cos_field**4
+        if "defocus" in effects:
+            if focus_m is None:
+                focus_m = (self.scene.center - origin) @ optical_axis
+            gray = defocus(gray, r.depth.reshape(self.shape) * cos_field, focus_m,
+                           task.camera.lens.focal_length_m, f_number, self.pixel_pitch_m)
+        full_scale = 2.0**task.camera.sensor.bit_depth - 1.0
+        if "noise" in effects:
+            gray = sensor_noise(gray, full_scale, self.rng)
+        if "black_level" in effects:
+            gray = gray + np.rint(BLACK_LEVEL * full_scale)
+        if "quantization" in effects:
+            gray = quantize(gray, task.camera.sensor.bit_depth)
+        return gray

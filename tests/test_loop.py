@@ -1,0 +1,255 @@
+"""The closed loop `cell run` on the simulated cell: the paper's two tasks converge, a wrong model
+is corrected within 4 captures, what no exposure absorbs ends in exit 1 with the reason, and
+every injected fault stops all motion with exit 3 and a log holding every step before it."""
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from cell import loop, projection
+from cell.cli import main
+from cell.errors import CellError, DeviceFault, GoalNotReached
+from cell.loader import load_task
+from sim.cell import make_sim_devices
+
+HINGE, CONROD = "tasks/hinge.yaml", "tasks/conrod.yaml"
+DRIVE = ["move_camera", "move_lamp"]
+SHOT = ["set_exposure", "capture", "measure"]
+
+
+def variant(tmp_path, source, changes):
+    """A copy of a task with {dotted.key: value} changed, its files referenced absolutely."""
+    source = Path(source)
+    raw = yaml.safe_load(source.read_text())
+    for key in ("mesh", "material"):
+        raw["part"][key] = str((source.parent / raw["part"][key]).resolve())
+    for dotted, value in changes.items():
+        *parents, last = dotted.split(".")
+        node = raw
+        for name in parents:
+            node = node.setdefault(name, {})
+        node[last] = value
+    path = tmp_path / f"{source.stem}-variant.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    return path
+
+
+def run(task_path, out, faults=None, max_iterations=6):
+    """loop.run on the simulated cell; records every stop and close the devices receive."""
+    task = load_task(task_path)
+    cell = SimpleNamespace(devices=None, stops=[], error=None, out=Path(out))
+
+    def connect(scene):
+        cell.devices = make_sim_devices(task, scene, faults=faults)
+        for device, name in ((cell.devices.arm, "stop"), (cell.devices.lamp, "stop"),
+                             (cell.devices.camera, "close")):
+            method = getattr(device, name)
+            setattr(device, name, lambda *a, _m=method, _n=f"{device.device}.{name}", **k:
+                    (cell.stops.append(_n), _m(*a, **k))[1])
+        return cell.devices
+
+    try:
+        loop.run(task, out, connect, max_iterations)
+    except CellError as err:
+        cell.error = err
+    cell.report = json.loads((cell.out / "report.json").read_text())
+    cell.log = [json.loads(line) for line in (cell.out / "log.jsonl").read_text().splitlines()]
+    cell.steps = [line["step"] for line in cell.log]
+    return cell
+
+
+def feature_pixels(task_path, image, shrink=0.9):
+    """Independent of the loop's hull: pixels within shrink x the feature radius of its projected
+    centre (the views are nearly perpendicular, so the disk images as a near circle)."""
+    task = load_task(task_path)
+    from cell.scene import build_scene
+    scene = build_scene(task)
+    K = projection.intrinsics(task.camera.sensor, task.camera.lens)
+    (centre,), (depth,) = projection.project(K, scene.T_cell_cam, scene.center[None])
+    radius_px = K[0, 0] * task.feature.radius_m / depth
+    v, u = np.mgrid[:image.shape[0], :image.shape[1]]
+    return image[np.hypot(u - centre[0], v - centre[1]) < shrink * radius_px]
+
+
+@pytest.fixture(scope="module")
+def hinge(tmp_path_factory):
+    out = tmp_path_factory.mktemp("hinge")
+    code = main(["run", HINGE, "--out", str(out)])
+    return SimpleNamespace(code=code, out=out, report=json.loads((out / "report.json").read_text()),
+                           log=(out / "log.jsonl").read_text().splitlines())
+
+
+# --- the paper's tasks converge --------------------------------------------------------------
+
+def test_hinge_converges_with_every_feature_pixel_in_100_125(hinge):
+    assert hinge.code == 0 and hinge.report["converged"]
+    last = hinge.report["iterations"][-1]
+    assert last["in_band"] and last["measured_gray"]["saturated"] == 0
+    assert 100 <= last["measured_gray"]["min"] <= last["measured_gray"]["max"] <= 125
+    image = cv2.imread(str(hinge.out / last["capture"]), cv2.IMREAD_UNCHANGED)
+    pixels = feature_pixels(HINGE, image)
+    assert len(pixels) > 10_000 and 100 <= pixels.min() and pixels.max() <= 125
+
+
+def test_conrod_converges_with_every_feature_pixel_in_110_150(tmp_path):
+    assert main(["run", CONROD, "--out", str(tmp_path)]) == 0
+    report = json.loads((tmp_path / "report.json").read_text())
+    last = report["iterations"][-1]
+    assert report["converged"] and 110 <= last["measured_gray"]["min"] <= last["measured_gray"]["max"] <= 150
+    pixels = feature_pixels(CONROD, cv2.imread(str(tmp_path / last["capture"]), cv2.IMREAD_UNCHANGED))
+    assert 110 <= pixels.min() and pixels.max() <= 150
+
+
+def test_report_follows_the_output_contract(hinge):
+    report = hinge.report
+    assert {"plan", "iterations", "converged", "captures"} <= set(report)
+    plan = report["plan"]
+    assert plan["feasible"] and {"binding", "requirements", "lamp", "camera", "predicted_gray",
+                                 "timing_s"} <= set(plan)
+    for record in report["iterations"]:
+        assert {"shutter_s", "f_number", "predicted_gray", "measured_gray", "in_band"} <= set(record)
+        for key in ("predicted_gray", "measured_gray"):
+            assert {"mean", "min", "max"} <= set(record[key])
+    assert len(report["captures"]) == len(report["iterations"])
+    for record, name in zip(report["iterations"], report["captures"]):
+        assert (hinge.out / name).is_file() and (hinge.out / record["annotated"]).is_file()
+    for picture in ("plan.json", "visibility_brdf.png", "regions.png", "cost.png"):
+        assert (hinge.out / picture).is_file()
+
+
+def test_log_is_one_json_line_per_step_in_order(hinge):
+    lines = [json.loads(line) for line in hinge.log]
+    assert [line["step"] for line in lines] == ["plan", *DRIVE, *SHOT, "done"]
+    assert all("t" in line for line in lines)
+    assert lines[-2]["measured_gray"] == hinge.report["iterations"][0]["measured_gray"]
+
+
+def test_without_effects_the_first_capture_measures_the_prediction(tmp_path):
+    cell = run(variant(tmp_path, HINGE, {"sim.effects": []}), tmp_path / "run")
+    first = cell.report["iterations"][0]
+    assert abs(first["measured_gray"]["mean"] - first["predicted_gray"]["mean"]) < 1.0
+    assert first["model_error"] == pytest.approx(1.0, abs=0.01)
+
+
+# --- a wrong model is corrected ----------------------------------------------------------------
+
+@pytest.mark.parametrize("truth", [{"albedo_scale": 0.7}, {"albedo_scale": 1.4},
+                                   {"camera_constant_scale": 0.8}])
+def test_a_wrong_model_is_corrected_within_4_iterations(tmp_path, truth):
+    changes = {f"sim.truth.{key}": value for key, value in truth.items()}
+    cell = run(variant(tmp_path, HINGE, changes), tmp_path / "run")
+    assert cell.error is None and cell.report["converged"]
+    assert len(cell.report["iterations"]) <= 4
+    first, last = cell.report["iterations"][0], cell.report["iterations"][-1]
+    assert first["model_error"] == pytest.approx(next(iter(truth.values())), rel=0.02)
+    assert 100 <= last["measured_gray"]["min"] and last["measured_gray"]["max"] <= 125
+    # shutter first: the f-number stays at the widest the depth of field allows
+    assert last["f_number"] == pytest.approx(first["f_number"])
+
+
+def test_what_the_exposure_cannot_absorb_is_re_planned_with_the_measured_error(tmp_path):
+    cell = run(variant(tmp_path, HINGE, {"sim.truth.albedo_scale": 1e4}), tmp_path / "run")
+    assert cell.error is None and cell.report["converged"]
+    replan, = cell.report["replans"]
+    assert replan["albedo_scale"] == pytest.approx(1e4, rel=0.02)
+    assert replan["plan"]["lamp"]["distance_m"] > cell.report["plan"]["lamp"]["distance_m"]
+    assert cell.steps.count("move_lamp") == 2 and (tmp_path / "run" / f"replan-{replan['iteration']}"
+                                                   / "plan.json").is_file()
+    first = cell.report["iterations"][0]["measured_gray"]
+    assert first["saturated"] == first["pixels"]         # counted, not silently left out
+
+
+def test_a_deviation_no_exposure_absorbs_exits_1_and_says_why(tmp_path):
+    cell = run(variant(tmp_path, HINGE, {"sim.truth.albedo_scale": 0.001}), tmp_path / "run")
+    assert isinstance(cell.error, GoalNotReached) and cell.error.exit_code == 1
+    assert not cell.report["converged"]
+    reason = str(cell.error)
+    assert "measured gray is at most" in reason and "even at 20 ms" in reason and "infeasible" in reason
+    assert cell.report["reason"] == reason and cell.steps[-1] == "done"
+    assert "arm.stop" not in cell.stops and "camera.close" in cell.stops     # closed, no fault stop
+
+
+def test_iterations_run_out_with_the_last_measurement_as_reason(tmp_path):
+    cell = run(variant(tmp_path, HINGE, {"sim.truth.albedo_scale": 0.7}), tmp_path / "run", max_iterations=1)
+    assert isinstance(cell.error, GoalNotReached) and cell.error.exit_code == 1
+    assert "after 1 iteration:" in str(cell.error) and "0.7" in str(cell.error)
+
+
+# --- corrections, unit by unit ----------------------------------------------------------------
+
+BAND, SHUTTER, LENS = (100.0, 125.0), (1e-5, 0.02), (5.5, 16.0)
+
+
+def test_shutter_takes_the_correction_first():
+    t, kappa, why = loop.correct_exposure(73.0, 84.0, "=", 6e-3, 5.5, BAND, SHUTTER, LENS)
+    assert why is None and kappa == 5.5
+    assert t == pytest.approx(6e-3 * np.sqrt(100 * 125 / (73 * 84)))
+
+
+def test_aperture_takes_what_the_shutter_cannot_never_wider_than_depth_of_field():
+    t, kappa, why = loop.correct_exposure(300.0, 330.0, "=", 2e-5, 5.5, BAND, SHUTTER, LENS)
+    assert why is None and t == 1e-5 and 5.5 < kappa < 16
+    assert 100 <= 300 * t / kappa**2 / (2e-5 / 5.5**2) <= 125
+    t, kappa, why = loop.correct_exposure(50.0, 55.0, "=", 0.019, 5.5, BAND, SHUTTER, LENS)
+    assert t == 0.02 and kappa == 5.5 and "even at 20 ms and f/5.5" in why
+
+
+def test_a_range_wider_than_the_band_is_not_an_exposure_problem():
+    _, _, why = loop.correct_exposure(90.0, 130.0, "=", 6e-3, 5.5, BAND, SHUTTER, LENS)
+    assert "max/min 1.44 > the band's 1.25" in why
+
+
+def test_saturated_samples_give_a_lower_bound_and_the_rest_an_estimate():
+    predicted = np.array([100.0, 110.0, 120.0])
+    assert loop.model_error(np.array([200.0, 220.0, 255.0]), predicted, 255) == (2.0, "=")
+    assert loop.model_error(np.array([255.0, 255.0, np.nan]), predicted, 255) == (2.55, ">=")
+    assert loop.model_error(np.array([0.0, 0.0, 0.0]), predicted, 255) == (0.5 / 120.0, "<=")
+
+
+# --- faults ----------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("name, changes, faults, before", [
+    ("arm unreachable", {"cell.arm.base_position_m": [0.0, -1.2, 0.0]}, None, ["plan"]),
+    ("arm protective stop", {}, {"arm_fail_on_move": 1}, ["plan"]),
+    ("servo hardware error", {}, {"lamp_fail_on_move": 1}, ["plan", "move_camera"]),
+    ("camera timeout, capture 1", {}, {"camera_fail_on_capture": 1}, ["plan", *DRIVE, "set_exposure"]),
+    ("camera timeout, capture 2", {"sim.truth.albedo_scale": 1.4}, {"camera_fail_on_capture": 2},
+     ["plan", *DRIVE, *SHOT, "correct", "set_exposure"]),
+])
+def test_a_fault_stops_all_motion_and_the_log_keeps_every_step_before_it(tmp_path, name, changes, faults,
+                                                                         before):
+    cell = run(variant(tmp_path, HINGE, changes), tmp_path / "run", faults=faults)
+    assert isinstance(cell.error, DeviceFault) and cell.error.exit_code == 3
+    assert cell.steps == [*before, "fault"]
+    assert cell.stops == ["arm.stop", "pan-tilt.stop", "camera.close"]
+    fault = cell.log[-1]
+    assert fault["device"] == cell.error.device and not fault["stop_failures"]
+    assert "motion stopped" in str(cell.error) and "\n" not in str(cell.error)
+    assert cell.report["fault"]["device"] == cell.error.device and not cell.report["converged"]
+    assert len(cell.report["iterations"]) == before.count("measure")
+    if name == "servo hardware error":
+        assert not any(cell.devices.lamp.torque.values())      # the servos' own fault: torque off
+        assert "Hardware Error Status" in str(cell.error)
+    if name == "arm unreachable":
+        assert "unreachable" in str(cell.error)
+
+
+def test_the_cli_turns_a_fault_into_exit_3_and_one_line(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(loop, "open_devices", lambda task, scene, backend, yes:
+                        make_sim_devices(task, scene, faults={"camera_fail_on_capture": 1}))
+    assert main(["run", HINGE, "--out", str(tmp_path)]) == 3
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.startswith("cell run: camera: capture timed out") and "motion stopped" in last
+
+
+def test_the_hardware_backend_needs_an_address_before_anything_connects(tmp_path):
+    assert main(["run", HINGE, "--backend", "hw", "--out", str(tmp_path)]) == 2
+    assert "cell.arm.host" in json.loads((tmp_path / "report.json").read_text())["reason"]
+
+
+def test_max_iterations_below_1_is_bad_input():
+    assert main(["run", HINGE, "--max-iterations", "0"]) == 2

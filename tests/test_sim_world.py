@@ -1,0 +1,289 @@
+"""The simulated camera's world (sim.world, sim.cell): with no effects and a neutral truth the
+image shows the planner's predicted gray; each effect, switched on alone, does what its physics
+says; the truth changes the image as declared; a seed fixes every random choice."""
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.stats import norm
+
+from cell import geometry
+from cell.errors import DeviceFault
+from cell.loader import load_task
+from cell.material import Material
+from cell.physics import depth_of_field as dof
+from cell.planner import plan
+from cell.projection import pixel_rays, project
+from cell.rig import lamp_aim
+from cell.scene import build_scene
+from cell.task import SimConfig, Truth
+from sim import world
+from sim.cell import make_sim_devices
+from sim.world import Renderer
+
+TASKS = Path(__file__).resolve().parent.parent / "tasks"
+ALL_EFFECTS = ("shadows", "cone_falloff", "vignetting", "defocus", "noise", "black_level",
+               "quantization")
+SCALE = 0.25                   # test grid: 258 x 194 pixels of 18.6 um, 0.37 mm on the plate
+OVERHEAD = np.array([0.025, 0.0, 0.2])        # lamp 0.2 m above the plate, aimed straight down
+EXPOSURE = (8e-4, 4.0)         # shutter [s], f-number: plate gray ~100 under that lamp
+WIDE = 60.0                    # cone angle [deg] of a lamp that lights the whole view
+WIDE_EXPOSURE = (0.12, 4.0)    # plate gray ~100 under a wide lamp 0.4-0.5 m away
+DOWN = np.array([0.0, 0.0, -1.0])
+
+
+def with_sim(task, effects=(), seed=1, **truth):
+    return replace(task, sim=SimConfig(seed, tuple(effects), Truth(**truth)))
+
+
+def box(size, center):
+    return trimesh.creation.box(size, trimesh.transformations.translation_matrix(center))
+
+
+@pytest.fixture(scope="module")
+def hinge():
+    return load_task(TASKS / "hinge.yaml")
+
+
+@pytest.fixture(scope="module")
+def plans(hinge):
+    """The task files (effects as given) and their plans; a plan does not depend on sim."""
+    return {name: (task, plan(task)) for name, task in
+            (("hinge", hinge), ("conrod", load_task(TASKS / "conrod.yaml")))}
+
+
+@pytest.fixture(scope="module")
+def plate(hinge):
+    """A diffuse (rho 0.3) 160 mm plate, top face z = 0, filling the view (96 x 72 mm) of the
+    hinge's camera 0.5 m straight above x = 15 mm, with an 8 mm cube standing on it at x = -15 mm."""
+    mesh = trimesh.util.concatenate([box((0.16, 0.16, 0.002), (0.0, 0.0, -0.001)),
+                                     box((0.008, 0.008, 0.008), (-0.015, 0.0, 0.004))])
+    ones = np.ones(2)
+    diffuse = Material("diffuse", "test", phase_rad=np.array([0.0, np.pi]), rho=0.3 * ones,
+                       sigma1=0 * ones, m1=ones, sigma2=0 * ones, m2=2 * ones)
+    task = replace(hinge, part=replace(hinge.part, mesh=mesh, material=diffuse),
+                   feature=replace(hinge.feature, center_m=np.array([0.015, 0.0, 0.0]),
+                                   normal=np.array([0.0, 0.0, 1.0]), radius_m=0.005, samples=8),
+                   camera=replace(hinge.camera, view_direction=np.array([0.0, 0.0, 1.0])))
+    return task, build_scene(task)
+
+
+def shoot(plate, effects=(), lamp=OVERHEAD, aim=DOWN, cone_deg=12.0, exposure=EXPOSURE,
+          focus_m=None, seed=1, **truth):
+    """Image of the plate world at the test grid, and its renderer."""
+    task, scene = plate
+    task = with_sim(replace(task, lamp=replace(task.lamp, cone_angle_rad=np.radians(cone_deg))),
+                    effects, seed, **truth)
+    renderer = Renderer(task, scene, scale=SCALE)
+    return renderer(scene.T_cell_cam, lamp, aim, *exposure, focus_m), renderer
+
+
+def pixel(renderer, scene, point):
+    """(row, column) of the pixel nearest to a cell-frame point."""
+    uv, _ = project(renderer.K, scene.T_cell_cam, np.atleast_2d(point))
+    u, v = np.rint(uv[0]).astype(int)
+    return v, u
+
+
+def plate_points(renderer, scene):
+    """Where each pixel's ray meets the plane z = 0 (H, W, 3)."""
+    T = scene.T_cell_cam
+    rays = pixel_rays(renderer.K, T, renderer.shape[1], renderer.shape[0])
+    return (T[:3, 3] - T[2, 3] / rays[:, 2:] * rays).reshape(*renderer.shape, 3)
+
+
+# --- (a) no effects, neutral truth: the planner's prediction -------------------------------------
+
+@pytest.mark.parametrize("name", ["hinge", "conrod"])
+def test_without_effects_the_image_shows_the_planned_gray_at_every_sample(plans, name):
+    task, p = plans[name]
+    task, scene = with_sim(task), p.scene
+    renderer = Renderer(task, scene)
+    aim = lamp_aim(task.lamp.rig.pivot_m, p.lamp_position)
+    image = renderer(scene.T_cell_cam, p.lamp_position, aim, p.exposure.shutter_s, p.exposure.f_number)
+    assert image.shape == (776, 1032) and image.dtype == np.float64
+    uv, _ = project(renderer.K, scene.T_cell_cam, scene.points)
+    u, v = np.rint(uv).astype(int).T
+    assert abs(image[v, u].mean() - p.gray.mean()) < 1.0
+    np.testing.assert_allclose(image[v, u], p.gray, atol=1.0)
+
+
+def test_the_simulated_cell_driven_to_the_plan_captures_the_predicted_gray(plans):
+    task, p = plans["hinge"]
+    devices = make_sim_devices(task, p.scene)
+    devices.arm.move_camera(p.scene.T_cell_cam)
+    devices.lamp.move(*p.joints)
+    devices.camera.set_exposure(p.exposure.shutter_s)
+    devices.camera.set_aperture(p.exposure.f_number)
+    image = devices.camera.capture()            # hinge.yaml: shadows, cone_falloff, quantization
+    assert image.dtype == np.uint8 and image.shape == (776, 1032)
+    uv, _ = project(devices.camera.render.K, devices.arm.camera_pose(), p.scene.points)
+    u, v = np.rint(uv).astype(int).T
+    np.testing.assert_allclose(image[v, u], p.gray, atol=1.0)  # rounding, servo ticks of 0.09 deg
+
+
+@pytest.mark.parametrize("faults, act, message", [
+    ({"arm_fail_on_move": 1}, lambda d: d.arm.move_camera(d.arm.camera_pose()), "protective stop"),
+    ({"lamp_fail_on_move": 1, "servo_bits": 0x20}, lambda d: d.lamp.move(0.0, 0.8, 0.3),
+     r"servo 2: Hardware Error Status 0x20 \(overload\)"),
+    ({"camera_fail_on_capture": 1}, lambda d: d.camera.capture(), "timed out"),
+])
+def test_the_simulated_cell_injects_faults(hinge, plate, faults, act, message):
+    devices = make_sim_devices(hinge, plate[1], faults=faults)
+    with pytest.raises(DeviceFault, match=message):
+        act(devices)
+
+
+# --- (b) each effect alone -------------------------------------------------------------------
+
+def test_shadows_darken_the_plate_behind_the_cube_and_nothing_else(plate):
+    lamp = np.array([-0.015 - 0.3, 0.0, 0.3])        # 45 deg above the plate, from -x
+    aim = geometry.unit([-0.015, 0.0, 0.0] - lamp)
+    lit, renderer = shoot(plate, (), lamp, aim, WIDE, WIDE_EXPOSURE)
+    shadowed, _ = shoot(plate, ("shadows",), lamp, aim, WIDE, WIDE_EXPOSURE)
+    scene = plate[1]
+    assert np.all(shadowed <= lit)
+    behind, beside = (pixel(renderer, scene, [-0.007, y, 0.0]) for y in (0.0, 0.01))
+    assert shadowed[behind] == 0.0 < lit[behind] and shadowed[beside] == lit[beside] > 0.0
+    # the cube (8 mm, light at 45 deg) shades 8 x 8 mm of plate; a pixel sees p z / f of it
+    footprint_mm = 1e3 * renderer.pixel_pitch_m * 0.5 / 0.025
+    assert np.sum(shadowed < lit) == pytest.approx(64.0 / footprint_mm**2, rel=0.05)
+
+
+def test_cone_falloff_softens_the_edge_as_a_blurred_cone(plate):
+    hard, renderer = shoot(plate)
+    soft, _ = shoot(plate, ("cone_falloff",))
+    points = plate_points(renderer, plate[1])
+    theta = np.degrees(np.arccos(geometry.unit(points - OVERHEAD) @ DOWN))
+    on_plate = (points[..., 0] > 0.0) & (hard > 0.0)                 # clear of the cube
+    ratio = soft[on_plate] / hard[on_plate]
+    # hard cone of half angle 6 deg convolved with a Gaussian of 1 deg in angle
+    np.testing.assert_allclose(ratio, norm.sf((theta[on_plate] - 6.0) / 1.0), rtol=1e-4)
+    assert ratio[theta[on_plate] < 2.0].min() > 0.9999                # eq. (11) in the core
+    assert ratio[theta[on_plate] > 5.9].max() < 0.55                  # half at the nominal edge
+    spill = (points[..., 0] > 0.0) & (theta > 6.5) & (theta < 7.0)
+    assert np.all(hard[spill] == 0.0) and np.all(soft[spill] > 0.0)
+
+
+def test_vignetting_is_the_cos4_law_at_the_corner(plate):
+    lamp = np.array([0.015, 0.0, 0.5])
+    plain, renderer = shoot(plate, (), lamp, DOWN, WIDE, WIDE_EXPOSURE)
+    vignetted, _ = shoot(plate, ("vignetting",), lamp, DOWN, WIDE, WIDE_EXPOSURE)
+    K = renderer.K
+    tan_corner = np.hypot(K[0, 2], K[1, 2]) / K[0, 0]                 # half diagonal / focal length
+    ratio = vignetted / plain
+    assert ratio[0, 0] / ratio[renderer.shape[0] // 2, renderer.shape[1] // 2] == pytest.approx(
+        np.cos(np.arctan(tan_corner))**4, rel=1e-6)
+
+
+def edge_profile(image, renderer, scene):
+    """Gray along the image row through the lamp's axis, right of the axis (the hard cone's edge)."""
+    row, column = pixel(renderer, scene, [OVERHEAD[0], 0.0, 0.0])
+    return image[row, column:]
+
+
+def edge_spread(profile, edge, half_width=12):
+    """Standard deviation [px] of the line spread (the profile's fall) within half_width of edge."""
+    fall = np.clip(-np.diff(profile), 0.0, None)[edge - half_width:edge + half_width + 1]
+    x = np.arange(len(fall))
+    mean = np.sum(x * fall) / fall.sum()
+    return np.sqrt(np.sum((x - mean)**2 * fall) / fall.sum())
+
+
+def test_defocus_blurs_by_the_circle_of_confusion_and_not_in_focus(plate):
+    scene = plate[1]
+    sharp, renderer = shoot(plate)
+    in_focus, _ = shoot(plate, ("defocus",))                      # focus default: the feature
+    near_focus, _ = shoot(plate, ("defocus",), focus_m=0.35)
+    profiles = [edge_profile(image, renderer, scene) for image in (sharp, in_focus, near_focus)]
+    steps = [np.abs(np.diff(profile)).max() for profile in profiles]
+    assert steps[1] > 0.8 * steps[0] and steps[2] < 0.35 * steps[0]
+    assert near_focus.sum() == pytest.approx(sharp.sum(), rel=1e-3)   # light is only moved
+    # the edge spreads by the Gaussian with the thin-lens disk's second moment, sigma = c / 4
+    f, kappa, u, z = 0.025, EXPOSURE[1], 0.35, 0.5
+    c_px = f**2 * abs(z - u) / (kappa * (u - f) * z) / renderer.pixel_pitch_m
+    edge = int(np.argmax(-np.diff(profiles[0])))
+    blur = np.sqrt(edge_spread(profiles[2], edge)**2 - edge_spread(profiles[0], edge)**2)
+    assert blur == pytest.approx(c_px / 4.0, rel=0.1)
+
+
+def test_blur_diameter_is_the_circle_of_confusion_at_the_depth_of_field_limits():
+    u, f, kappa, sigma = 0.35, 0.025, 6.2, 5.015e-6
+    for z in (dof.near_limit(u, f, kappa, sigma), dof.far_limit(u, f, kappa, sigma)):
+        assert dof.blur_diameter(z, u, f, kappa) == pytest.approx(sigma, rel=1e-12)
+    assert dof.blur_diameter(u, u, f, kappa) == 0.0
+    assert dof.blur_diameter(np.inf, u, f, kappa) == pytest.approx(f**2 / (kappa * (u - f)))
+
+
+def test_noise_has_the_shot_and_read_variance_and_a_seed_fixes_it(plate):
+    clean, _ = shoot(plate)
+    noisy, renderer = shoot(plate, ("noise",))
+    again, _ = shoot(plate, ("noise",))
+    assert np.array_equal(noisy, again)
+    assert not np.array_equal(noisy, renderer(plate[1].T_cell_cam, OVERHEAD, DOWN, *EXPOSURE))
+    assert not np.array_equal(noisy, shoot(plate, ("noise",), seed=2)[0])
+    gain = 255.0 / world.FULL_WELL_E                      # gray per electron
+    z = (noisy - clean) / np.sqrt(gain * clean + (gain * world.READ_NOISE_E)**2)
+    lit = clean > 50.0
+    assert lit.sum() > 5000
+    assert abs(z[lit].mean()) < 0.03 and z[lit].std() == pytest.approx(1.0, abs=0.03)
+    assert z[clean == 0.0].std() == pytest.approx(1.0, abs=0.03)     # read noise alone
+
+
+def test_black_level_adds_a_constant(plate):
+    plain, _ = shoot(plate)
+    offset, _ = shoot(plate, ("black_level",))
+    np.testing.assert_allclose(offset - plain, 5.0, atol=1e-12)     # 2 % of 255, rounded
+
+
+def test_quantization_gives_integers_clipped_at_the_bit_depth(plate):
+    exposure = (3 * EXPOSURE[0], EXPOSURE[1])            # bright enough to saturate the centre
+    plain, _ = shoot(plate, exposure=exposure)
+    quantized, _ = shoot(plate, ("quantization",), exposure=exposure)
+    assert quantized.dtype == np.uint8
+    np.testing.assert_array_equal(quantized, np.clip(np.rint(plain), 0, 255))
+    assert np.sum(quantized == 255) == np.sum(plain >= 254.5) > 100
+    assert quantized.min() == 0
+
+
+# --- (c) truth ---------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("truth", [{"albedo_scale": 1.4}, {"camera_constant_scale": 1.4}])
+def test_the_truth_scales_the_gray(plate, truth):
+    model, _ = shoot(plate)
+    true, _ = shoot(plate, **truth)
+    lit = model > 0.0
+    assert np.array_equal(true > 0.0, lit)
+    np.testing.assert_allclose(true[lit] / model[lit], 1.4, rtol=1e-12)
+
+
+def test_a_lamp_aim_error_moves_only_the_cone(plate):
+    aimed, renderer = shoot(plate)
+    erred, erred_renderer = shoot(plate, lamp_direction_error_rad=np.radians(2.0))
+    axis = erred_renderer.lamp_axis(DOWN)
+    assert np.degrees(np.arccos(axis @ DOWN)) == pytest.approx(2.0)
+    both = (aimed > 0.0) & (erred > 0.0)
+    np.testing.assert_allclose(erred[both], aimed[both], rtol=1e-12)
+    # the lit disk moves to where the true axis meets the plate
+    scene = plate[1]
+    hit = OVERHEAD + axis * OVERHEAD[2] / -axis[2]
+    shift = np.subtract(pixel(renderer, scene, hit), pixel(renderer, scene, OVERHEAD * [1, 1, 0]))
+    centroid = [np.argwhere(image > 0.0).mean(axis=0) for image in (aimed, erred)]
+    np.testing.assert_allclose(centroid[1] - centroid[0], shift, atol=1.0)
+
+
+# --- (d) determinism ---------------------------------------------------------------------------
+
+def test_a_seed_fixes_every_frame_and_every_effect(plate):
+    task, scene = plate
+    task = with_sim(task, ALL_EFFECTS, seed=7, lamp_direction_error_rad=np.radians(1.0))
+    first, second = (Renderer(task, scene, scale=SCALE) for _ in range(2))
+    frames = [[r(scene.T_cell_cam, OVERHEAD, DOWN, *EXPOSURE) for _ in range(2)]
+              for r in (first, second)]
+    assert all(np.array_equal(a, b) for a, b in zip(*frames))
+    assert not np.array_equal(*frames[0])                      # fresh noise every capture
+    other = Renderer(with_sim(task, ALL_EFFECTS, seed=8, lamp_direction_error_rad=np.radians(1.0)),
+                     scene, scale=SCALE)
+    assert not np.allclose(other.lamp_axis(DOWN), first.lamp_axis(DOWN))
