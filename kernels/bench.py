@@ -1,29 +1,44 @@
-"""Throughput of the bulk gray kernel against its NumPy reference (for `cell bench`)."""
+"""Throughput of the bulk kernels against their NumPy references and trimesh's ray casters
+(for `cell bench`).
+
+Each pair is measured side by side in one call, warm (each Warp kernel runs once before it is
+timed), as the median of `repeat` runs. The NumPy references cast brute-force rays (every ray
+against every triangle, cost per evaluation independent of the batch), so they are timed on at
+most `reference_evaluations` and compared per evaluation. Each call returns rows
+{name, size, warp_per_s, reference, reference_size, reference_per_s, ratio, unavailable}.
+"""
 import time
 
 import numpy as np
 
 from . import reference
 from .gray import gray_per_exposure
+from .visibility import visibility_maps
 
 
-def _best_time(fn, repeat):
-    best = np.inf
-    for _ in range(repeat):
+def median_time(fn, repeat):
+    """Median wall time of `repeat` calls of fn() [s]."""
+    times = []
+    for _ in range(max(1, repeat)):
         t0 = time.perf_counter()
         fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def _row(name, size, warp_per_s, ref_name, ref_size=0, ref_per_s=None, unavailable=None):
+    return {"name": name, "size": int(size), "warp_per_s": warp_per_s, "reference": ref_name,
+            "reference_size": int(ref_size), "reference_per_s": ref_per_s,
+            "ratio": None if ref_per_s is None else warp_per_s / ref_per_s, "unavailable": unavailable}
 
 
 def benchmark_gray(mesh, points, normals, camera_pos, table, power_w=0.23043,
                    cone_angle_rad=np.radians(12.0), camera_constant=1.5e16, pixel_area_m2=4.65e-6**2,
                    evaluations=1_000_000, reference_evaluations=20_000, shadows=True, repeat=3, seed=0):
-    """Evaluations per second (candidate x point) of kernels.gray vs kernels.reference.
+    """Gray evaluations (candidate x point) per second, kernels.gray vs kernels.reference.
 
     Candidates: random lamps 0.15-0.6 m from the points' centroid on its upper hemisphere,
-    aimed at it. The reference is timed on fewer evaluations (its brute-force shadow rays are
-    slow) and both are reported per evaluation. Warm timing: the kernel is launched once first.
+    aimed at it. Returns one row, named "gray" (with shadow rays) or "gray, no shadows".
     """
     points = np.asarray(points, dtype=float).reshape(-1, 3)
     rng = np.random.default_rng(seed)
@@ -41,14 +56,57 @@ def benchmark_gray(mesh, points, normals, camera_pos, table, power_w=0.23043,
                             table, camera_constant, pixel_area_m2, shadows=shadows)
 
     n_warp = max(1, evaluations // len(points))
-    n_ref = max(1, reference_evaluations // len(points))
-    run(gray_per_exposure, 1)()                                    # compile or load once
-    t_warp = _best_time(run(gray_per_exposure, n_warp), repeat)
-    t_ref = _best_time(run(reference.gray_per_exposure, n_ref), 1)
-    return {
-        "points": len(points), "shadows": bool(shadows),
-        "warp_evaluations": n_warp * len(points), "warp_s": t_warp,
-        "warp_evaluations_per_s": n_warp * len(points) / t_warp,
-        "numpy_evaluations": n_ref * len(points), "numpy_s": t_ref,
-        "numpy_evaluations_per_s": n_ref * len(points) / t_ref,
-    }
+    n_ref = max(1, min(evaluations, reference_evaluations) // len(points))
+    run(gray_per_exposure, 1)()
+    t_warp = median_time(run(gray_per_exposure, n_warp), repeat)
+    t_ref = median_time(run(reference.gray_per_exposure, n_ref), 1)
+    return _row("gray" if shadows else "gray, no shadows", n_warp * len(points),
+                n_warp * len(points) / t_warp, "numpy", n_ref * len(points), n_ref * len(points) / t_ref)
+
+
+def benchmark_visibility(mesh, points, normals, frame, azimuth, elevation,
+                         reference_evaluations=20_000, reference_rays=100_000, repeat=3, offset_m=1e-5):
+    """Visibility evaluations (point x direction) per second, kernels.visibility vs
+    kernels.reference (on the first points, up to reference_evaluations); and rays per second
+    on the rays the kernel casts (directions above each tangent plane) vs trimesh's
+    ray_triangle and embree casters (up to reference_rays of them). Returns three rows."""
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    normals = np.asarray(normals, dtype=float).reshape(-1, 3)
+    per_point = len(azimuth) * len(elevation)
+    size = len(points) * per_point
+    n_ref = max(1, min(len(points), reference_evaluations // per_point))
+
+    def run(impl, count):
+        return lambda: impl(mesh, points[:count], normals[:count], frame, azimuth, elevation)
+
+    run(visibility_maps, 1)()
+    t_warp = median_time(run(visibility_maps, len(points)), repeat)
+    t_ref = median_time(run(reference.visibility_maps, n_ref), 1)
+    rows = [_row("visibility", size, size / t_warp, "numpy", n_ref * per_point, n_ref * per_point / t_ref)]
+
+    dirs = reference.feature_directions(frame, azimuth, elevation).reshape(-1, 3)
+    p, d = np.nonzero(normals @ dirs.T > reference.TANGENT_EPS)
+    rays_per_s = len(p) / t_warp
+    pick = np.random.default_rng(0).permutation(len(p))[:reference_rays]
+    origins, ray_dirs = points[p[pick]] + offset_m * normals[p[pick]], dirs[d[pick]]
+    for name, module in (("rays vs trimesh", "ray_triangle"), ("rays vs embree", "ray_pyembree")):
+        try:
+            caster = _trimesh_caster(mesh, module)
+            caster(origins[:1], ray_dirs[:1])
+        except ImportError as missing:      # trimesh's casters need rtree or embreex
+            rows.append(_row(name, len(p), rays_per_s, f"trimesh.ray.{module}",
+                             unavailable=f"needs {missing.name or missing}, not installed"))
+            continue
+        t_ref = median_time(lambda: caster(origins, ray_dirs), 1)
+        rows.append(_row(name, len(p), rays_per_s, f"trimesh.ray.{module}", len(pick), len(pick) / t_ref))
+    return rows
+
+
+def _trimesh_caster(mesh, module):
+    """intersects_any(origins, directions) of trimesh.ray.<module> on the mesh."""
+    import importlib
+
+    import trimesh
+    ray = importlib.import_module(f"trimesh.ray.{module}")
+    intersector = ray.RayMeshIntersector(trimesh.Trimesh(mesh.vertices, mesh.faces, process=False))
+    return intersector.intersects_any

@@ -1,0 +1,281 @@
+"""`cell bench`: what accuracy costs in time, and how fast the kernels are.
+
+Each planner setting (PlannerSettings: map grid step, lamp candidates, feature samples,
+refinement) is timed warm (one plan first, then the median of repeats) and compared with a
+reference plan of the same task at fine resolution (REFERENCE):
+- gray error: a plan predicts mean/min/max gray over the feature from its own samples. The truth
+  is what its chosen lamp pose and exposure give on the reference's fine samples with the same
+  physics (G = u t / kappa^2, u from the Evaluator on the reference scene). `gray_error` is
+  predicted - true for each of mean, min, max [gray levels]; `gray_error_max` the largest
+  magnitude e: every fine sample's true gray then lies within e of the predicted [min, max].
+- lamp error: distance to the reference plan's lamp [mm] and angle between the two lamp
+  directions seen from the feature centre [deg].
+- feasible_agrees: the plan's verdict equals the reference's. A flip or any NaN/inf is flagged.
+Pareto front, per task: settings no other setting beats on both time_s and gray_error_max.
+"""
+import json
+import sys
+import time
+from dataclasses import asdict, replace
+from pathlib import Path
+
+import numpy as np
+
+from cell import geometry, planner, rig
+from cell.loader import load_task
+from cell.pictures import _pyplot
+from cell.planner import PlannerSettings
+from cell.regions import SphereGrid
+from cell.scene import build_scene
+from kernels.bench import benchmark_gray, benchmark_visibility
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_TASKS = (ROOT / "tasks" / "hinge.yaml", ROOT / "tasks" / "conrod.yaml")
+DEFAULT = PlannerSettings()
+SWEEP = {
+    "coarse": PlannerSettings(grid_step_deg=4.0, pan_step_deg=20.0, tilt_step_deg=10.0, radius_steps=3,
+                              samples=16),
+    "default": DEFAULT,
+    "fine": PlannerSettings(grid_step_deg=1.0, pan_step_deg=5.0, tilt_step_deg=2.5, radius_steps=10,
+                            samples=128),
+    "grid 4 deg": replace(DEFAULT, grid_step_deg=4.0),
+    "grid 1 deg": replace(DEFAULT, grid_step_deg=1.0),
+    "candidates /8": replace(DEFAULT, pan_step_deg=20.0, tilt_step_deg=10.0, radius_steps=3),
+    "candidates x8": replace(DEFAULT, pan_step_deg=5.0, tilt_step_deg=2.5, radius_steps=12),
+    "samples 16": replace(DEFAULT, samples=16),
+    "samples 32": replace(DEFAULT, samples=32),
+    "samples 128": replace(DEFAULT, samples=128),
+    "no refinement": replace(DEFAULT, refine=False),
+}
+QUICK_SWEEP = ("coarse", "default", "fine")
+REFERENCE = PlannerSettings(grid_step_deg=0.5, pan_step_deg=2.0, tilt_step_deg=1.0, radius_steps=20,
+                            samples=256)
+QUICK_REFERENCE = PlannerSettings(grid_step_deg=1.0, pan_step_deg=4.0, tilt_step_deg=2.0, radius_steps=12,
+                                  samples=192)
+GRAY_SIZES = (10_000, 100_000, 1_000_000, 10_000_000)     # candidate x sample evaluations
+QUICK_GRAY_SIZES = (10_000, 1_000_000)
+GRID_STEPS_DEG = (4.0, 2.0, 1.0)                          # visibility map sizes
+QUICK_GRID_STEPS_DEG = (4.0,)
+
+
+def timed_plan(task, settings, repeats):
+    """(plan, median wall time [s], every time): one warm-up plan, then `repeats` timed ones."""
+    planner.plan(task, settings)
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        result = planner.plan(task, settings)
+        times.append(time.perf_counter() - t0)
+    return result, float(np.median(times)), times
+
+
+def accuracy(task, result, reference, truth):
+    """Errors of a plan against the reference plan (module docstring); `truth` is a
+    planner.Evaluator on the reference's scene."""
+    pos = result.lamp_position
+    u, _, _ = truth.bulk(pos[None], rig.lamp_aim(task.lamp.rig.pivot_m, pos)[None])
+    true_gray = u[0] * result.exposure.shutter_s / result.exposure.f_number**2
+    predicted, true = planner.gray_stats(result.gray), planner.gray_stats(true_gray)
+    error = {k: predicted[k] - true[k] for k in predicted}
+    center = reference.scene.center
+    cos = geometry.unit(pos - center) @ geometry.unit(reference.lamp_position - center)
+    numbers = np.concatenate([result.gray, true_gray, pos, result.joints, list(asdict(result.exposure).values()),
+                              [r.value for r in result.requirements]])
+    return {
+        "predicted_gray": predicted, "true_gray": true, "gray_error": error,
+        "gray_error_max": max(abs(e) for e in error.values()),
+        "lamp_error_mm": 1e3 * float(np.linalg.norm(pos - reference.lamp_position)),
+        "lamp_error_deg": float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))),
+        "feasible_agrees": result.feasible == reference.feasible,
+        "finite": bool(np.all(np.isfinite(numbers))),
+    }
+
+
+def pareto(points):
+    """Flags of the (time, error) points that no other point dominates (<= in both, < in one);
+    a point with a NaN/inf is off the front and dominates nothing."""
+    pts = np.asarray(points, dtype=float)
+    ok = np.all(np.isfinite(pts), axis=1)
+    return [bool(ok[i] and not any(ok[j] and np.all(q <= p) and np.any(q < p) for j, q in enumerate(pts)))
+            for i, p in enumerate(pts)]
+
+
+def sweep_task(path, names, reference_settings, repeats, say):
+    """(rows of the settings `names`, the reference's summary) for one task file."""
+    task, label = load_task(path), Path(path).stem
+    t0 = time.perf_counter()
+    reference = planner.plan(task, reference_settings)
+    ref_time = time.perf_counter() - t0
+    say(f"{label} reference: {ref_time:.1f} s, {len(reference.gray)} samples, "
+        f"{'feasible' if reference.feasible else 'INFEASIBLE (' + reference.binding + ')'}")
+    truth = planner.Evaluator(task, reference.scene, reference.maps)
+    rows = []
+    for name in names:
+        settings = SWEEP[name]
+        result, time_s, times = timed_plan(task, settings, repeats)
+        row = {"name": name, "task": label, "settings": asdict(settings),
+               "candidates": len(planner.candidate_grid(task.lamp.rig, settings)[0]),
+               "samples": len(result.gray), "time_s": time_s, "times_s": times, "stages_s": result.timing_s,
+               "feasible": result.feasible, "binding": result.binding, "miss": result.miss,
+               **accuracy(task, result, reference, truth), "default": settings == DEFAULT}
+        rows.append(row)
+        say(f"{label} {name}: {time_s:.3f} s, gray error {row['gray_error_max']:.3f}, lamp "
+            f"{row['lamp_error_mm']:.1f} mm / {row['lamp_error_deg']:.2f} deg{flags(row)}")
+    for row, on_front in zip(rows, pareto([(r["time_s"], r["gray_error_max"]) for r in rows])):
+        row["pareto"] = on_front
+    ref = {"task": label, "settings": asdict(reference_settings), "time_s": ref_time,
+           "candidates": len(planner.candidate_grid(task.lamp.rig, reference_settings)[0]),
+           "samples": len(reference.gray), "feasible": reference.feasible, "binding": reference.binding,
+           "miss": reference.miss,
+           "predicted_gray": planner.gray_stats(reference.gray),
+           "lamp_position_m": reference.lamp_position.tolist()}
+    return rows, ref
+
+
+def flags(row):
+    """What the progress line shouts about: a feasibility flip, a NaN/inf."""
+    return ("" if row["feasible_agrees"] else "  FLIP: feasibility differs from the reference") + \
+        ("" if row["finite"] else "  NaN/inf in the plan")
+
+
+def kernel_rows(path, quick, repeats, say):
+    """Kernel throughput rows on the task's scene (kernels.bench), tagged with the task."""
+    task, label = load_task(path), Path(path).stem
+    scene = build_scene(task)
+    sensor = task.camera.sensor
+    rows = []
+    for size in QUICK_GRAY_SIZES if quick else GRAY_SIZES:
+        for shadows in (True, False):
+            rows.append(benchmark_gray(scene.warp_mesh, scene.points, scene.normals, scene.camera_position,
+                                       task.part.material.table(), task.lamp.power_w, task.lamp.cone_angle_rad,
+                                       sensor.camera_constant, sensor.pixel_area_m2, evaluations=size,
+                                       shadows=shadows, repeat=repeats))
+    for step in QUICK_GRID_STEPS_DEG if quick else GRID_STEPS_DEG:
+        grid = SphereGrid(np.radians(step))
+        rows += benchmark_visibility(scene.warp_mesh, scene.points, scene.normals, scene.frame,
+                                     grid.azimuth, grid.elevation, repeat=repeats)
+    for row in rows:
+        row["task"] = label
+        say(f"{label} kernel {row['name']} at {row['size']:.3g}: {row['warp_per_s']:.3g}/s"
+            + (f", {row['ratio']:.3g} x {row['reference']}" if row["ratio"] is not None
+               else f" ({row['unavailable']})"))
+    return rows
+
+
+def targets(settings, kernels):
+    """The issue's done-when: default within 1 gray level and well under 1 s; gray kernel >= 5x
+    NumPy at 1e6 evaluations."""
+    out = []
+    for row in (r for r in settings if r["default"]):
+        out.append({"name": f"{row['task']}: default gray error <= 1 gray level",
+                    "value": row["gray_error_max"], "limit": 1.0, "met": row["gray_error_max"] <= 1.0})
+        out.append({"name": f"{row['task']}: default warm plan < 1 s",
+                    "value": row["time_s"], "limit": 1.0, "met": row["time_s"] < 1.0})
+    for row in (r for r in kernels if r["name"] == "gray" and abs(r["size"] / 1e6 - 1.0) < 0.01):
+        out.append({"name": f"{row['task']}: gray kernel Warp / NumPy at 1e6 >= 5",
+                    "value": row["ratio"], "limit": 5.0, "met": row["ratio"] >= 5.0})
+    return out
+
+
+def text_table(header, rows):
+    """Columns aligned: left for the first two, right for the rest."""
+    cells = [header] + [[str(c) for c in r] for r in rows]
+    widths = [max(len(r[i]) for r in cells) for i in range(len(header))]
+    return "\n".join("  ".join(c.ljust(w) if i < 2 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths)))
+                     for r in cells)
+
+
+def report(result):
+    """The terminal tables: settings, kernels, targets."""
+    settings = text_table(
+        ["task", "setting", "cands", "samples", "time s", "err mean", "err min", "err max", "worst",
+         "lamp mm", "lamp deg", "feasible", "miss", "agrees", "finite", "pareto", "default"],
+        [[r["task"], r["name"], r["candidates"], r["samples"], f"{r['time_s']:.3f}",
+          *(f"{r['gray_error'][k]:+.3f}" for k in ("mean", "min", "max")), f"{r['gray_error_max']:.3f}",
+          f"{r['lamp_error_mm']:.1f}", f"{r['lamp_error_deg']:.2f}", "yes" if r["feasible"] else "NO",
+          f"{r['miss']:+.4f}", "yes" if r["feasible_agrees"] else "FLIP", "yes" if r["finite"] else "NaN/inf",
+          "*" if r["pareto"] else "", "*" if r["default"] else ""] for r in result["settings"]])
+    refs = "\n".join(f"reference {r['task']}: {r['time_s']:.1f} s, {r['candidates']} candidates, "
+                     f"{r['samples']} samples, grid {r['settings']['grid_step_deg']} deg, "
+                     f"{'feasible' if r['feasible'] else 'INFEASIBLE'}, {r['binding']} binds, miss {r['miss']:+.4f}"
+                     for r in result["references"])
+    kernels = text_table(
+        ["task", "kernel", "size", "Warp /s", "reference", "ref size", "ref /s", "ratio"],
+        [[r["task"], r["name"], f"{r['size']:.3g}", f"{r['warp_per_s']:.3g}", r["reference"],
+          *((f"{r['reference_size']:.3g}", f"{r['reference_per_s']:.3g}", f"{r['ratio']:.1f}")
+            if r["ratio"] is not None else ("-", "-", r["unavailable"]))] for r in result["kernels"]])
+    goals = "\n".join(f"{'met    ' if t['met'] else 'NOT MET'}  {t['name']}: {t['value']:.3g}"
+                      for t in result["targets"])
+    return "\n\n".join([settings, refs, kernels, goals])
+
+
+def write_plot(path, settings):
+    """Gray error vs warm time, log-log, a marker set per task, its Pareto front as a line and
+    the default setting ringed."""
+    plt = _pyplot()
+    floor = 1e-3                    # a zero error still shows on the log axis
+    fig, ax = plt.subplots(figsize=(7.5, 5))
+    for (label, marker) in zip(dict.fromkeys(r["task"] for r in settings), "osD^v<>"):
+        rows = [r for r in settings if r["task"] == label and np.isfinite(r["gray_error_max"])]
+        t = np.array([r["time_s"] for r in rows])
+        e = np.maximum([r["gray_error_max"] for r in rows], floor)
+        dots = ax.plot(t, e, marker, ls="none", label=label)[0]
+        front = sorted((ti, ei) for ti, ei, r in zip(t, e, rows) if r["pareto"])
+        ax.plot(*zip(*front), "-", color=dots.get_color(), alpha=0.6)
+        for ti, ei, r in zip(t, e, rows):
+            ax.annotate(r["name"], (ti, ei), fontsize=6, xytext=(3, 3), textcoords="offset points")
+            if r["default"]:
+                ax.plot(ti, ei, "o", ms=14, mfc="none", mec="red", mew=1.5)
+    ax.plot([], [], "o", ms=10, mfc="none", mec="red", label="default setting")
+    ax.plot([], [], "k-", alpha=0.6, label="Pareto front")
+    ax.axhline(1.0, color="gray", ls=":", label="1 gray level")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("warm plan time [s] (median)")
+    ax.set_ylabel("largest error of predicted mean/min/max gray [gray levels]")
+    ax.set_title("What accuracy costs in time (vs a fine reference plan)", fontsize=10)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def jsonable(value):
+    """Non-finite floats become null (JSON has no NaN); the rows' `finite` flags say where."""
+    if isinstance(value, dict):
+        return {k: jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [jsonable(v) for v in value]
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
+
+
+def command(args):
+    """`cell bench [TASK...] [--quick] [--out DIR] [--json]`: tables on stdout (stderr with
+    --json), bench.json and bench.png in DIR, progress on stderr."""
+    def say(msg):
+        print(msg, file=sys.stderr, flush=True)
+
+    paths = args.tasks or DEFAULT_TASKS
+    repeats = 1 if args.quick else 3
+    out = Path(args.out or Path("runs") / "bench")
+    result = {"quick": args.quick, "repeats": repeats, "settings": [], "references": [], "kernels": []}
+    for path in paths:
+        rows, ref = sweep_task(path, QUICK_SWEEP if args.quick else SWEEP,
+                               QUICK_REFERENCE if args.quick else REFERENCE, repeats, say)
+        result["settings"] += rows
+        result["references"].append(ref)
+    for path in paths:
+        result["kernels"] += kernel_rows(path, args.quick, repeats, say)
+    result["targets"] = targets(result["settings"], result["kernels"])
+    out.mkdir(parents=True, exist_ok=True)
+    text = json.dumps(jsonable(result), indent=2, allow_nan=False)
+    (out / "bench.json").write_text(text + "\n")
+    write_plot(out / "bench.png", result["settings"])
+    tables = sys.stderr if args.json else sys.stdout
+    print(report(result), file=tables)
+    print(f"wrote {out}/bench.json and bench.png", file=tables, flush=True)
+    if args.json:
+        print(text)
+    return 0
