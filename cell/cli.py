@@ -39,8 +39,10 @@ def build_parser():
     p.add_argument("task")
     p.add_argument("--backend", choices=("sim", "hw"), help="override the task's cell.backend")
     p.add_argument("--out", help="run folder (default runs/<task>-<time>)")
-    p.add_argument("--max-iterations", type=int, default=6)
-    p.add_argument("--yes", action="store_true", help="confirm operator prompts (manual lamp radius)")
+    p.add_argument("--max-iterations", type=int, default=6, metavar="N",
+                   help="captures at most before giving up (default 6)")
+    p.add_argument("--yes", action="store_true", help="confirm operator prompts (manual lamp radius) on "
+                                                      "the real cell; the simulated cell confirms its own")
 
     p = sub.add_parser("bench", help="what accuracy costs in time; kernel throughput")
     p.add_argument("tasks", nargs="*", help="default: tasks/hinge.yaml tasks/conrod.yaml")
@@ -51,8 +53,10 @@ def build_parser():
     p = sub.add_parser("calibrate", help="operator routine: estimate the camera constant c")
     p.add_argument("task")
     p.add_argument("--backend", choices=("sim", "hw"))
-    p.add_argument("--out", help="folder for calibration.json")
-    p.add_argument("--yes", action="store_true")
+    p.add_argument("--out", help="folder for calibration.json and calibration.png "
+                                 "(default runs/<task>-calibration)")
+    p.add_argument("--shots", type=int, default=6, help="shutter times in the sweep (default 6)")
+    p.add_argument("--yes", action="store_true", help="confirm operator prompts (manual lamp radius)")
     return parser
 
 

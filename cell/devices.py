@@ -334,7 +334,8 @@ class LampRig(ABC):
 
 
 class Camera(ABC):
-    """Takes gray images (uint8 or uint16 by bit depth) with a set shutter time and f-number."""
+    """Takes gray images (uint8 or uint16 by bit depth) with a set shutter time, f-number and
+    focus distance."""
 
     device = "camera"
 
@@ -342,6 +343,7 @@ class Camera(ABC):
         self.bit_depth = bit_depth
         self.shutter_s = None
         self.f_number = None
+        self.focus_m = None
 
     @abstractmethod
     def set_exposure(self, shutter_s):
@@ -350,6 +352,11 @@ class Camera(ABC):
     @abstractmethod
     def set_aperture(self, f_number):
         """Set the f-number (motorized, or by the operator)."""
+
+    @abstractmethod
+    def set_focus(self, focus_m):
+        """Focus the lens at this distance along the optical axis [m] (motorized, or by the
+        operator)."""
 
     @abstractmethod
     def capture(self):

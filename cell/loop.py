@@ -199,8 +199,10 @@ def shoot(task, plan, devices, out, log, k, shutter, f_number):
     camera, bit_depth = devices.camera, devices.camera.bit_depth
     shutter = camera.set_exposure(shutter)
     camera.set_aperture(f_number)
-    log.step("set_exposure", f"shutter {1e3 * shutter:.3f} ms, f/{f_number:.2f}", iteration=k,
-             shutter_s=shutter, f_number=f_number)
+    camera.set_focus(plan.exposure.focus_m)
+    log.step("set_exposure", f"shutter {1e3 * shutter:.3f} ms, f/{f_number:.2f}, focus "
+                             f"{plan.exposure.focus_m:.3f} m", iteration=k,
+             shutter_s=shutter, f_number=f_number, focus_m=plan.exposure.focus_m)
     image = np.asarray(camera.capture())
     name, annotated = f"capture-{k}.png", f"capture-{k}-feature.png"
     cv2.imwrite(str(out / name), png_levels(image, bit_depth))

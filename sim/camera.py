@@ -16,7 +16,6 @@ class SimCamera(Camera):
         self.render, self.arm, self.lamp = render, arm, lamp
         self.fail_on_capture, self.timeout_s = fail_on_capture, timeout_s
         self.captures = 0
-        self.focus_m = None
 
     def set_exposure(self, shutter_s):
         if not shutter_s > 0:

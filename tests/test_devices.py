@@ -272,6 +272,9 @@ def test_opencv_camera_reads_an_image_sequence_and_refuses_exposure_on_a_file(tm
         camera.set_exposure(0.0116)
     camera.set_aperture(5.6)
     assert "camera: set the lens to f/5.6" in out.getvalue()
+    camera.set_focus(0.5)
+    camera.set_focus(0.5004)                    # within a millimetre: not asked again
+    assert out.getvalue().count("camera: focus the lens at 500 mm") == 1
     with pytest.raises(DeviceFault, match="frames are uint8, a 12-bit sensor gives uint16"):
         opencv_camera(tmp_path / "frame_%03d.png", bit_depth=12).capture()
 

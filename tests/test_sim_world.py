@@ -117,6 +117,7 @@ def test_the_simulated_cell_driven_to_the_plan_captures_the_predicted_gray(plans
     devices.lamp.move(*p.joints)
     devices.camera.set_exposure(p.exposure.shutter_s)
     devices.camera.set_aperture(p.exposure.f_number)
+    devices.camera.set_focus(p.exposure.focus_m)
     image = devices.camera.capture()            # hinge.yaml: shadows, cone_falloff, quantization
     assert image.dtype == np.uint8 and image.shape == (776, 1032)
     uv, _ = project(devices.camera.render.K, devices.arm.camera_pose(), p.scene.points)

@@ -1,7 +1,7 @@
 """The real camera through cv2.VideoCapture (a V4L2 device index, or a video or image-sequence
 path, which exercises the same capture code). Manual exposure goes through
 CAP_PROP_AUTO_EXPOSURE (raw V4L2 1 = manual) and CAP_PROP_EXPOSURE in `exposure_unit_s` steps;
-OpenCV has no aperture control, so the operator sets the f-number."""
+OpenCV has no lens control, so the operator sets the f-number and the focus."""
 import cv2
 import numpy as np
 
@@ -15,7 +15,7 @@ class OpenCVCamera(Camera):
     def __init__(self, config, bit_depth, operator):
         super().__init__(bit_depth)
         self.config, self.operator = config, operator
-        operator.require(self.device, "the aperture (OpenCV has no lens control)")
+        operator.require(self.device, "the aperture and focus (OpenCV has no lens control)")
         self._capture = cv2.VideoCapture(config.source)
         if not self._capture.isOpened():
             raise DeviceFault(self.device, f"cannot open {config.source!r} with cv2.VideoCapture")
@@ -41,6 +41,11 @@ class OpenCVCamera(Camera):
         if self.f_number is None or abs(f_number / self.f_number - 1) > 0.01:
             self.operator.confirm(self.device, f"set the lens to f/{f_number:.1f}")
         self.f_number = float(f_number)
+
+    def set_focus(self, focus_m):
+        if self.focus_m is None or abs(focus_m - self.focus_m) > 1e-3:
+            self.operator.confirm(self.device, f"focus the lens at {1e3 * focus_m:.0f} mm")
+        self.focus_m = float(focus_m)
 
     def _read(self):
         ok, frame = self._capture.read()
