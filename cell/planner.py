@@ -321,7 +321,7 @@ def plan(task, settings=PlannerSettings(), albedo_scale=1.0, progress=None):
 
 def assemble(task, scene, evaluator, maps, settings, joints, values, detail, timing):
     """The Plan object for the chosen lamp pose."""
-    reqs = [costs.Requirement(name, float(values[i]), describe(name, detail, evaluator))
+    reqs = [costs.Requirement(name, float(values[i]), describe(name, detail, evaluator, values[i] <= 1.0))
             for i, name in enumerate(REQUIREMENTS)
             if not (name == "depth_of_field" and evaluator.depth_needed <= 0)]
     verdict = costs.verdict(reqs)
@@ -343,48 +343,53 @@ def assemble(task, scene, evaluator, maps, settings, joints, values, detail, tim
                 maps=maps, settings=settings, scene=scene, timing_s=timing)
 
 
-def describe(name, d, ev):
-    """A sentence a person can act on, for each requirement."""
+def describe(name, d, ev, met):
+    """What a requirement's value means for the chosen pose: the fact, and where it is not met
+    (met False) what would fix it, in a sentence a person can act on."""
     low, high = ev.low, ev.high
     g = d["gray"]
-    cam = ev.task.camera
+    cam, req = ev.task.camera, ev.task.requirements
+    t_lo, t_hi = cam.shutter_range_s
+    if name in ("gray_min", "shutter_max") and not np.isfinite(d["t_need"]):
+        return "no feature sample is lit by the lamp at any shutter time"
     if name == "gray_min":
-        if not np.isfinite(d["t_need"]):
-            return "no feature sample is lit by the lamp"
-        if d["t_need"] > cam.shutter_range_s[1]:
-            return (f"gray band needs shutter {1e3 * d['t_need']:.1f} ms > max "
-                    f"{1e3 * cam.shutter_range_s[1]:.1f} ms at f/{d['kappa']:.1f}; move the lamp closer, "
-                    f"open the aperture (less depth of field) or use a brighter lamp")
+        if d["t_need"] > t_hi:
+            return (f"gray band needs shutter {1e3 * d['t_need']:.1f} ms > max {1e3 * t_hi:.1f} ms at "
+                    f"f/{d['kappa']:.1f}; move the lamp closer, open the aperture (less depth of field) "
+                    f"or use a brighter lamp")
         return f"darkest sample gray {g.min():.1f} (band {low:g}-{high:g})"
     if name == "gray_max":
-        if g.max() / max(g.min(), 1e-12) > high / low:
+        if not met and g.max() / max(g.min(), 1e-12) > high / low:
             return (f"feature too uneven: gray {g.min():.1f}-{g.max():.1f} spans more than the band "
                     f"{low:g}-{high:g}; move the lamp farther away or toward the camera direction")
         return f"brightest sample gray {g.max():.1f} (band {low:g}-{high:g})"
     if name == "reflection_region":
-        return (f"lamp must be {np.degrees(ev.task.requirements.region_margin_rad):.1f} deg inside the "
-                f"region where {ev.task.requirements.reflection} reflection dominates and every sample "
-                f"sees the lamp ({ev.maps.wanted.mean():.1%} of directions qualify)")
+        fact = (f"lamp at least {np.degrees(req.region_margin_rad):.1f} deg inside the region where "
+                f"{req.reflection} reflection dominates and every sample sees the lamp "
+                f"({ev.maps.wanted.mean():.1%} of directions qualify)")
+        return fact if met else f"needs the {fact}"
     if name == "lamp_tolerance":
-        return (f"gray must stay in band for lamp errors of "
-                f"{np.degrees(ev.task.requirements.lamp_tolerance_rad):.1f} deg")
+        tol = f"lamp errors of {np.degrees(req.lamp_tolerance_rad):.1f} deg"
+        return (f"gray stays in band for {tol}" if met else
+                f"{tol} move some sample's gray out of the band {low:g}-{high:g}; inspect a smaller "
+                f"feature, widen the band or want a reflection whose BRDF changes more slowly")
     if name == "no_shadow":
         return (f"{int(d['shadowed'].sum())} of {len(ev.scene.points)} feature samples are shadowed from "
                 f"the lamp ({ev.maps.visible.mean():.0%} of directions see every sample)")
     if name == "cone_coverage":
-        return "the lamp's cone does not cover the whole feature; move the lamp farther away"
+        return ("the lamp's cone covers every sample" if met else
+                "the lamp's cone does not cover the whole feature; move the lamp farther away")
     if name == "camera_view":
-        return (f"the camera cannot see {ev.camera_unseen} of {len(ev.scene.points)} feature samples; "
+        return (f"the camera sees all {len(ev.scene.points)} feature samples" if met else
+                f"the camera cannot see {ev.camera_unseen} of {len(ev.scene.points)} feature samples; "
                 f"change the view direction")
     if name in ("shutter_min", "f_number_max"):
-        return (f"too bright even at f/{d['kappa']:.1f} and {1e3 * d['shutter']:.3f} ms; "
-                f"move the lamp farther away")
+        fact = f"f/{d['kappa']:.1f} and {1e3 * d['shutter']:.3f} ms"
+        return fact if met else f"too bright even at {fact}; move the lamp farther away"
     if name == "shutter_max":
-        if not np.isfinite(d["t_need"]):
-            return "no feature sample is lit by the lamp at any shutter time"
-        return f"needs shutter {1e3 * d['t_need']:.1f} ms, max {1e3 * cam.shutter_range_s[1]:.1f} ms"
+        return f"needs shutter {1e3 * d['t_need']:.1f} ms, max {1e3 * t_hi:.1f} ms"
     if name == "f_number_min":
-        return f"f/{d['kappa']:.1f} within the lens's range"
+        return f"f/{d['kappa']:.1f} within the lens's range f/{cam.lens.f_number_range[0]:g}-f/{cam.lens.f_number_range[1]:g}"
     return f"depth of field needs {1e3 * ev.depth_needed:.1f} mm"
 
 

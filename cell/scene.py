@@ -27,11 +27,16 @@ def look_at(position, target, up=(0.0, 0.0, 1.0)):
     return geometry.transform(np.column_stack([x, y, z]), position)
 
 
-def sunflower_disk(n, radius):
-    """n points spread evenly over a disk (Vogel's sunflower), shape (n, 2)."""
-    i = np.arange(n)
-    r = radius * np.sqrt((i + 0.5) / n)
-    return np.column_stack([r * np.cos(i * GOLDEN_ANGLE), r * np.sin(i * GOLDEN_ANGLE)])
+def feature_disk(n, radius):
+    """n points over a disk, shape (n, 2): round(sqrt(pi n)) evenly on its rim, the rest spread
+    over the inside (Vogel's sunflower). The rim is sampled on purpose: gray varies smoothly over
+    a patch, so its extremes, which decide "every point in band", lie mostly on the edge."""
+    rim = int(round(np.sqrt(np.pi * n))) if n >= 8 else 0      # fewer: the sunflower alone
+    a = 2.0 * np.pi * np.arange(rim) / rim
+    i = np.arange(n - rim)
+    r = radius * np.sqrt((i + 0.5) / (n - rim + (rim > 0)))    # inside the rim when there is one
+    return np.vstack([np.column_stack([radius * np.cos(a), radius * np.sin(a)]),
+                      np.column_stack([r * np.cos(i * GOLDEN_ANGLE), r * np.sin(i * GOLDEN_ANGLE)])])
 
 
 @dataclass(frozen=True)
@@ -67,7 +72,7 @@ def build_scene(task, samples=None):
     normal = geometry.unit(geometry.rotate(T, task.feature.normal))
     frame = geometry.frame_from_normal(normal)
     n = samples or task.feature.samples
-    disk = sunflower_disk(n, task.feature.radius_m)
+    disk = feature_disk(n, task.feature.radius_m)
     guesses = center + disk[:, :1] * frame[:, 0] + disk[:, 1:] * frame[:, 1]
     scene_mesh = WarpMesh(mesh.vertices, mesh.faces)
     points, faces, _ = closest_points(scene_mesh, guesses, max_dist=4 * task.feature.radius_m + 0.01)

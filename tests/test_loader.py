@@ -193,7 +193,7 @@ def test_fitter_output_is_kept_in_material_extra(tmp_path):
 def test_summary_names_what_a_person_checks():
     summary = loader.summarize(loader.load_task(HINGE))
     for text in ("Aluminium hinge", "hinge.stl", "70.0 x 40.0 x 12.0 mm", "780 triangles",
-                 "[6.0, 0.0, 4.0] mm", "201.1 mm^2", "milled aluminium", "0.01..20 ms",
+                 "[6.0, 0.0, 4.0] mm", "113.1 mm^2", "milled aluminium", "0.01..20 ms",
                  "230.43 mW", "tilt 5..85 deg", "backend sim", "quantization"):
         assert text in summary
 

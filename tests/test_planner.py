@@ -13,6 +13,7 @@ from cell import geometry, planner
 from cell.cli import main
 from cell.loader import load_task
 from cell.physics import brdf, depth_of_field as dof, radiometry
+from cell.scene import build_scene, feature_disk
 
 TASKS = Path(__file__).resolve().parent.parent / "tasks"
 COARSE = planner.PlannerSettings(grid_step_deg=6.0, pan_step_deg=30.0, tilt_step_deg=15.0,
@@ -68,6 +69,28 @@ def test_hinge_lamp_sits_in_the_lobe_region(hinge):
     assert 5.0 <= np.degrees(plan.phase_angle_rad) <= 45.0
 
 
+def test_feature_samples_cover_the_rim_and_stay_inside_the_patch():
+    for n in (8, 64, 256):
+        r = np.hypot(*feature_disk(n, 0.006).T)
+        assert len(r) == n and r.max() <= 0.006 * (1 + 1e-12)
+        assert np.sum(np.isclose(r, 0.006)) == round(np.sqrt(np.pi * n))     # the rim, evenly
+        assert np.sum(r < 0.006 * 0.5) >= n // 5                           # and the inside
+
+
+@pytest.mark.parametrize("name", ["hinge", "conrod"])
+def test_every_point_of_the_feature_is_in_band_not_only_the_samples(name, request):
+    """The plan's lamp and exposure, evaluated on 8x finer samples of the same patch: every
+    point stays in the band, within 1 gray level of the predicted extremes."""
+    task, plan = request.getfixturevalue(name)
+    fine = build_scene(task, 512)
+    u, shadowed, _ = planner.Evaluator(task, fine, plan.maps).bulk(
+        plan.lamp_position[None], geometry.unit(task.lamp.rig.pivot_m - plan.lamp_position)[None])
+    gray = u[0] * plan.exposure.shutter_s / plan.exposure.f_number**2
+    low, high = task.requirements.gray_band
+    assert not shadowed.any() and low <= gray.min() and gray.max() <= high
+    assert gray.min() >= plan.gray.min() - 1.0 and gray.max() <= plan.gray.max() + 1.0
+
+
 @pytest.mark.parametrize("name", ["hinge", "conrod"])
 def test_exposure_respects_lens_shutter_and_depth_of_field(name, request):
     task, plan = request.getfixturevalue(name)
@@ -114,6 +137,16 @@ def test_too_short_shutter_range_is_infeasible_with_a_hint(tmp_path, capsys):
     assert "shutter" in err and "binds" in err
     data = json.loads((tmp_path / "out" / "plan.json").read_text())
     assert data["feasible"] is False and data["binding"] in ("gray_min", "shutter_max")
+
+
+def test_a_lamp_error_the_band_cannot_absorb_binds_with_a_hint(tmp_path, capsys):
+    """5 deg of lamp error moves the hinge's lobe gray by well over the band's +-11 %."""
+    text = (TASKS / "hinge.yaml").read_text().replace("lamp_tolerance_deg: 1.0", "lamp_tolerance_deg: 5.0")
+    path = tmp_path / "shaky.yaml"
+    path.write_text(text.replace("parts/", f"{TASKS}/parts/").replace("materials/", f"{TASKS}/materials/"))
+    assert main(["plan", str(path), "--out", str(tmp_path / "out")]) == 1
+    err = capsys.readouterr().err
+    assert "lamp_tolerance binds" in err and "lamp errors of 5.0 deg" in err and "smaller feature" in err
 
 
 def finite_json(plan):
