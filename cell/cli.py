@@ -50,13 +50,16 @@ def build_parser():
     p.add_argument("--out", help="folder for bench.json and bench.png (default runs/bench)")
     p.add_argument("--json", action="store_true", help="print bench.json to stdout")
 
-    p = sub.add_parser("calibrate", help="operator routine: estimate the camera constant c")
-    p.add_argument("task")
-    p.add_argument("--backend", choices=("sim", "hw"))
+    p = sub.add_parser("calibrate", help="operator routine: fit the camera constant c from a shutter sweep")
+    p.add_argument("task", help="a task whose part and material table you trust (the reference)")
+    p.add_argument("--backend", choices=("sim", "hw"), help="override the task's cell.backend")
     p.add_argument("--out", help="folder for calibration.json and calibration.png "
                                  "(default runs/<task>-calibration)")
-    p.add_argument("--shots", type=int, default=6, help="shutter times in the sweep (default 6)")
-    p.add_argument("--yes", action="store_true", help="confirm operator prompts (manual lamp radius)")
+    p.add_argument("--shots", type=int, default=6, metavar="N",
+                   help="shutter times in the sweep, at least 3 (default 6)")
+    p.add_argument("--yes", action="store_true", help="confirm operator prompts (manual lamp radius, "
+                                                      "lens) on the real cell; the simulated cell "
+                                                      "confirms its own")
     return parser
 
 
