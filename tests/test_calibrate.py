@@ -8,7 +8,6 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-import yaml
 from hypothesis import given, settings, strategies as st
 
 from cell import calibrate, loop
@@ -18,24 +17,14 @@ from cell.errors import CellError, DeviceFault, PlanInfeasible
 from cell.loader import load_task
 from sim.cell import make_sim_devices
 
+import simcell
+
 HINGE = Path(__file__).resolve().parent.parent / "tasks" / "hinge.yaml"
 C_TASK = 1.5e16                 # tasks/hinge.yaml camera.sensor.camera_constant
 
 
 def variant(tmp_path, changes):
-    """A copy of the hinge task with {dotted.key: value} changed, its files referenced absolutely."""
-    raw = yaml.safe_load(HINGE.read_text())
-    for key in ("mesh", "material"):
-        raw["part"][key] = str((HINGE.parent / raw["part"][key]).resolve())
-    for dotted, value in changes.items():
-        *parents, last = dotted.split(".")
-        node = raw
-        for name in parents:
-            node = node.setdefault(name, {})
-        node[last] = value
-    path = tmp_path / "hinge-variant.yaml"
-    path.write_text(yaml.safe_dump(raw))
-    return path
+    return simcell.variant(tmp_path, HINGE, changes)
 
 
 def calibrate_sim(task_path, out, faults=None, shots=6):
@@ -43,18 +32,8 @@ def calibrate_sim(task_path, out, faults=None, shots=6):
     whether `connect` was called at all."""
     task = load_task(task_path)
     cell = SimpleNamespace(devices=None, stops=[], error=None, result=None, out=Path(out))
-
-    def connect(scene):
-        cell.devices = make_sim_devices(task, scene, faults=faults)
-        for device, name in ((cell.devices.arm, "stop"), (cell.devices.lamp, "stop"),
-                             (cell.devices.camera, "close")):
-            method = getattr(device, name)
-            setattr(device, name, lambda *a, _m=method, _n=f"{device.device}.{name}", **k:
-                    (cell.stops.append(_n), _m(*a, **k))[1])
-        return cell.devices
-
     try:
-        cell.result = calibrate.run(task, out, connect, shots)
+        cell.result = calibrate.run(task, out, simcell.recording_connect(task, cell, faults), shots)
     except CellError as err:
         cell.error = err
     cell.written = json.loads((cell.out / "calibration.json").read_text())

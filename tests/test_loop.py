@@ -8,52 +8,25 @@ from types import SimpleNamespace
 import cv2
 import numpy as np
 import pytest
-import yaml
 
 from cell import loop, projection
 from cell.cli import main
 from cell.errors import CellError, DeviceFault, GoalNotReached
 from cell.loader import load_task
 from sim.cell import make_sim_devices
+from simcell import recording_connect, variant
 
 HINGE, CONROD = "tasks/hinge.yaml", "tasks/conrod.yaml"
 DRIVE = ["move_camera", "move_lamp"]
 SHOT = ["set_exposure", "capture", "measure"]
 
 
-def variant(tmp_path, source, changes):
-    """A copy of a task with {dotted.key: value} changed, its files referenced absolutely."""
-    source = Path(source)
-    raw = yaml.safe_load(source.read_text())
-    for key in ("mesh", "material"):
-        raw["part"][key] = str((source.parent / raw["part"][key]).resolve())
-    for dotted, value in changes.items():
-        *parents, last = dotted.split(".")
-        node = raw
-        for name in parents:
-            node = node.setdefault(name, {})
-        node[last] = value
-    path = tmp_path / f"{source.stem}-variant.yaml"
-    path.write_text(yaml.safe_dump(raw))
-    return path
-
-
 def run(task_path, out, faults=None, max_iterations=6):
     """loop.run on the simulated cell; records every stop and close the devices receive."""
     task = load_task(task_path)
     cell = SimpleNamespace(devices=None, stops=[], error=None, out=Path(out))
-
-    def connect(scene):
-        cell.devices = make_sim_devices(task, scene, faults=faults)
-        for device, name in ((cell.devices.arm, "stop"), (cell.devices.lamp, "stop"),
-                             (cell.devices.camera, "close")):
-            method = getattr(device, name)
-            setattr(device, name, lambda *a, _m=method, _n=f"{device.device}.{name}", **k:
-                    (cell.stops.append(_n), _m(*a, **k))[1])
-        return cell.devices
-
     try:
-        loop.run(task, out, connect, max_iterations)
+        loop.run(task, out, recording_connect(task, cell, faults), max_iterations)
     except CellError as err:
         cell.error = err
     cell.report = json.loads((cell.out / "report.json").read_text())

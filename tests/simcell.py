@@ -1,0 +1,38 @@
+"""Helpers the closed-loop and calibration tests share: task variants and a simulated cell that
+records the safe-stop calls its devices receive."""
+from pathlib import Path
+
+import yaml
+
+from sim.cell import make_sim_devices
+
+
+def variant(tmp_path, source, changes):
+    """A copy of a task with {dotted.key: value} changed, its files referenced absolutely."""
+    source = Path(source)
+    raw = yaml.safe_load(source.read_text())
+    for key in ("mesh", "material"):
+        raw["part"][key] = str((source.parent / raw["part"][key]).resolve())
+    for dotted, value in changes.items():
+        *parents, last = dotted.split(".")
+        node = raw
+        for name in parents:
+            node = node.setdefault(name, {})
+        node[last] = value
+    path = tmp_path / f"{source.stem}-variant.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    return path
+
+
+def recording_connect(task, cell, faults=None):
+    """connect(scene) -> the simulated cell's Devices, stored in cell.devices; every arm.stop,
+    pan-tilt.stop and camera.close they receive is appended to cell.stops in order."""
+    def connect(scene):
+        cell.devices = make_sim_devices(task, scene, faults=faults)
+        for device, name in ((cell.devices.arm, "stop"), (cell.devices.lamp, "stop"),
+                             (cell.devices.camera, "close")):
+            method = getattr(device, name)
+            setattr(device, name, lambda *a, _m=method, _n=f"{device.device}.{name}", **k:
+                    (cell.stops.append(_n), _m(*a, **k))[1])
+        return cell.devices
+    return connect
