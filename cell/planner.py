@@ -393,9 +393,8 @@ def describe(name, d, ev, met):
     return f"depth of field needs {1e3 * ev.depth_needed:.1f} mm"
 
 
-def write_plan(plan, task, out_dir, pictures=None):
-    """plan.json and the pictures into out_dir (drawn by `pictures`, a started
-    cell.pictures.PictureWorker, if given)."""
+def write_plan(plan, task, out_dir):
+    """plan.json and the pictures into out_dir."""
     import json
     from pathlib import Path
 
@@ -403,7 +402,7 @@ def write_plan(plan, task, out_dir, pictures=None):
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "plan.json").write_text(json.dumps(plan.to_json(), indent=2) + "\n")
-    write_plan_pictures(plan, task, plan.scene, out_dir, worker=pictures)
+    write_plan_pictures(plan, task, plan.scene, out_dir)
     return out_dir
 
 
@@ -426,24 +425,15 @@ def summary(plan):
 
 def command(args):
     """`cell plan TASK [--out DIR] [--json]`: exit 0 feasible, 1 infeasible (with the reason)."""
-    import atexit
-    import gc
     import json
     import sys
     from pathlib import Path
 
     from cell.errors import PlanInfeasible
     from cell.loader import load_task
-    from cell.pictures import PictureWorker
-    # The process ends with this command: at exit, leave the objects of numpy, scipy, Warp and
-    # matplotlib to the OS instead of the interpreter's final collection (~0.17 s).
-    atexit.unregister(gc.freeze)
-    atexit.register(gc.freeze)
-    with PictureWorker() as pictures:    # imports matplotlib beside the planning, then draws
-        task = load_task(args.task)
-        result = plan(task, progress=lambda msg: print(msg, file=sys.stderr, flush=True))
-        out = write_plan(result, task, args.out or Path("runs") / f"{Path(args.task).stem}-plan",
-                         pictures)
+    task = load_task(args.task)
+    result = plan(task, progress=lambda msg: print(msg, file=sys.stderr, flush=True))
+    out = write_plan(result, task, args.out or Path("runs") / f"{Path(args.task).stem}-plan")
     if args.json:
         print(json.dumps(result.to_json(), indent=2))
     else:
