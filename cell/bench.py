@@ -206,7 +206,23 @@ def report(result):
             if r["ratio"] is not None else ("-", "-", r["unavailable"]))] for r in result["kernels"]])
     goals = "\n".join(f"{'met    ' if t['met'] else 'NOT MET'}  {t['name']}: {t['value']:.3g}"
                       for t in result["targets"])
-    return "\n\n".join([settings, refs, kernels, goals])
+    return "\n\n".join([settings, refs, "\n".join(summary(result["settings"])), kernels, goals])
+
+
+def summary(settings):
+    """Per task: the default setting's time and error, and the fastest setting within 1 gray
+    level of the reference."""
+    lines = []
+    for label in dict.fromkeys(r["task"] for r in settings):
+        rows = [r for r in settings if r["task"] == label]
+        default = next(r for r in rows if r["default"])
+        close = [r for r in rows if r["gray_error_max"] <= 1.0]
+        fastest = min(close, key=lambda r: r["time_s"]) if close else None
+        lines.append(f"{label}: default {default['time_s']:.3f} s, gray within {default['gray_error_max']:.2f} of "
+                     f"the reference; fastest within 1 gray level: "
+                     + (f"{fastest['name']}, {fastest['time_s']:.3f} s ({fastest['gray_error_max']:.2f})"
+                        if fastest else "none"))
+    return lines
 
 
 def write_plot(path, settings):

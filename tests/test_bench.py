@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from cell.bench import QUICK_SWEEP
+from cell.bench import QUICK_SWEEP, summary
 from cell.cli import main
 from cell.planner import PlannerSettings
 
@@ -87,3 +87,14 @@ def test_finer_settings_are_not_less_accurate_on_average(bench):
     mean_error = [sum(r["gray_error_max"] for r in result["settings"] if r["name"] == name) / 2
                   for name in QUICK_SWEEP]
     assert mean_error == sorted(mean_error, reverse=True)
+
+
+def test_summary_names_the_default_and_the_fastest_setting_within_1_gray_level():
+    rows = [{"task": "t", "name": n, "time_s": t, "gray_error_max": e, "default": n == "default"}
+            for n, t, e in [("coarse", 0.1, 1.8), ("samples 16", 0.2, 0.9), ("default", 0.3, 0.5),
+                            ("fine", 1.5, 0.2)]]
+    (line,) = summary(rows)
+    assert line == ("t: default 0.300 s, gray within 0.50 of the reference; fastest within 1 gray "
+                    "level: samples 16, 0.200 s (0.90)")
+    (line,) = summary([{**rows[0], "default": True}])
+    assert line.endswith("fastest within 1 gray level: none")
