@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from cell import geometry, planner, rig
+from cell.cli import output_folder
 from cell.loader import load_task
 from cell.pictures import _pyplot
 from cell.planner import PlannerSettings
@@ -275,7 +276,7 @@ def command(args):
 
     paths = args.tasks or DEFAULT_TASKS
     repeats = 1 if args.quick else 3
-    out = Path(args.out or Path("runs") / "bench")
+    out = output_folder(args.out, Path("runs") / "bench")
     result = {"quick": args.quick, "repeats": repeats, "settings": [], "references": [], "kernels": []}
     for path in paths:
         rows, ref = sweep_task(path, QUICK_SWEEP if args.quick else SWEEP,
@@ -285,7 +286,6 @@ def command(args):
     for path in paths:
         result["kernels"] += kernel_rows(path, args.quick, repeats, say)
     result["targets"] = targets(result["settings"], result["kernels"])
-    out.mkdir(parents=True, exist_ok=True)
     text = json.dumps(jsonable(result), indent=2, allow_nan=False)
     (out / "bench.json").write_text(text + "\n")
     write_plot(out / "bench.png", result["settings"])

@@ -187,14 +187,13 @@ def run(task, out, connect, shots=6, say=lambda msg: None):
 def command(args):
     """`cell calibrate TASK [--backend sim|hw] [--out DIR] [--shots N] [--yes]`: exit 0 with c
     fitted, 1 infeasible plan or nothing usable measured, 2 bad input, 3 device fault."""
-    from cell.loader import load_task
     from cell import loop
+    from cell.cli import output_folder
+    from cell.loader import load_task
 
     if args.shots < MIN_SHOTS:
         raise TaskError("command line", "--shots", args.shots, f"an integer >= {MIN_SHOTS}")
-    out = Path(args.out or Path("runs") / f"{Path(args.task).stem}-calibration")
-    if out.exists() and not out.is_dir():
-        raise TaskError("command line", "--out", str(out), "a folder (this is a file)")
+    out = output_folder(args.out, Path("runs") / f"{Path(args.task).stem}-calibration")
 
     def say(msg):
         print(msg, file=sys.stderr, flush=True)

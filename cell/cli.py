@@ -17,6 +17,21 @@ COMMANDS = {
 }
 
 
+def output_folder(out, default):
+    """The run folder `--out` names (or `default`), created now, before any work: a path that
+    is a file or cannot be created is bad input (exit 2), not a traceback after the work."""
+    from pathlib import Path
+
+    from cell.errors import TaskError
+    folder = Path(out or default)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise TaskError("command line", "--out", str(folder),
+                        f"a folder that can be created ({err.strerror or err})") from None
+    return folder
+
+
 def build_parser():
     parser = argparse.ArgumentParser(prog="cell", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")

@@ -331,12 +331,13 @@ def _stop(devices, err, log, report):
 def command(args):
     """`cell run TASK [--backend sim|hw] [--out DIR] [--max-iterations N] [--yes]`: exit 0 when
     every feature pixel ends in the gray band, 1 when not (with the reason), 3 on a device fault."""
+    from cell.cli import output_folder
     from cell.loader import load_task
     if args.max_iterations < 1:
         raise TaskError("command line", "--max-iterations", args.max_iterations, "an integer >= 1")
     task = load_task(args.task)
     backend = args.backend or task.cell.backend
-    out = Path(args.out or Path("runs") / f"{Path(args.task).stem}-{time.strftime('%Y%m%d-%H%M%S')}")
+    out = output_folder(args.out, Path("runs") / f"{Path(args.task).stem}-{time.strftime('%Y%m%d-%H%M%S')}")
     report = run(task, out, lambda scene: open_devices(task, scene, backend, args.yes), args.max_iterations)
     last, n = report["iterations"][-1], len(report["iterations"])
     g, (low, high) = last["measured_gray"], task.requirements.gray_band

@@ -429,11 +429,13 @@ def command(args):
     import sys
     from pathlib import Path
 
+    from cell.cli import output_folder
     from cell.errors import PlanInfeasible
     from cell.loader import load_task
     task = load_task(args.task)
+    out = output_folder(args.out, Path("runs") / f"{Path(args.task).stem}-plan")
     result = plan(task, progress=lambda msg: print(msg, file=sys.stderr, flush=True))
-    out = write_plan(result, task, args.out or Path("runs") / f"{Path(args.task).stem}-plan")
+    write_plan(result, task, out)
     if args.json:
         print(json.dumps(result.to_json(), indent=2))
     else:
