@@ -24,7 +24,7 @@ import numpy as np
 from cell import geometry, planner, rig
 from cell.cli import output_folder
 from cell.loader import load_task
-from cell.pictures import _pyplot
+from cell.pictures import pyplot
 from cell.planner import PlannerSettings
 from cell.regions import SphereGrid
 from cell.scene import build_scene
@@ -229,7 +229,7 @@ def summary(settings):
 def write_plot(path, settings):
     """Gray error vs warm time, log-log, a marker set per task, its Pareto front as a line and
     the default setting ringed."""
-    plt = _pyplot()
+    plt = pyplot()
     floor = 1e-3                    # a zero error still shows on the log axis
     fig, ax = plt.subplots(figsize=(7.5, 5))
     for (label, marker) in zip(dict.fromkeys(r["task"] for r in settings), "osD^v<>"):

@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from cell import measure
-from cell.errors import CellError, DeviceFault, GoalNotReached, PlanInfeasible, TaskError
+from cell.devices import Session
+from cell.errors import GoalNotReached, PlanInfeasible, TaskError
 
 # the brightest sample's gray by the model, as a fraction of full scale, at the first and the
 # last shot: dim, up to near (not at) saturation; G ~ t, so the shutter times follow
@@ -76,48 +77,44 @@ def shutter_sweep(shutter_s, predicted_max, full_scale, shutter_range_s, shots):
     return np.geomspace(lo, hi, shots)
 
 
-def calibrate(task, plan, devices, shots=6, say=lambda msg: None, record=None):
-    """Drive the cell to the plan, sweep the shutter, fit c. Each shot's summary is appended to
-    `record` as it is taken. Returns (Fit or None, exposures P t, grays), (shots, samples)."""
+def calibrate(task, plan, devices, log, shots=6, record=None):
+    """Drive the cell to the plan, sweep the shutter, fit c. Each shot is logged and its summary
+    appended to `record` as it is taken. Returns (Fit or None, exposures P t, grays), each
+    (shots, samples)."""
+    from cell.loop import drive
     record = [] if record is None else record
     camera = devices.camera
     full_scale = measure.saturation_level(camera.bit_depth)
     sweep = shutter_sweep(plan.exposure.shutter_s, plan.gray.max(), full_scale,
                           task.camera.shutter_range_s, shots)
-    devices.arm.move_camera(plan.scene.T_cell_cam)
-    devices.lamp.move(*plan.joints)
+    drive(devices, plan, log)
     camera.set_aperture(plan.exposure.f_number)
     camera.set_focus(plan.exposure.focus_m)
     # the model's pixel power per sample at the planned f-number: G = c P t
     power = plan.gray / (task.camera.sensor.camera_constant * plan.exposure.shutter_s)
-    row, col, inside = measure.sample_pixels(task, devices.arm.camera_pose(), plan.scene.points)
-    if not inside.any():
-        raise GoalNotReached("no feature sample projects into the image: check the camera pose "
-                             "and the hand-eye calibration (cell.arm.hand_eye_*)")
     exposures, grays = [], []
     for k, wanted in enumerate(sweep, 1):
         actual = camera.set_exposure(wanted)
-        image = np.asarray(camera.capture(), dtype=float)
-        gray = np.where(inside, image[np.clip(row, 0, image.shape[0] - 1),
-                                      np.clip(col, 0, image.shape[1] - 1)], np.nan)
+        image = camera.capture()
+        _, _, inside, gray = measure.read_samples(image, task, devices.arm.camera_pose(), plan.scene.points)
         exposures.append(power * actual)
         grays.append(gray)
         seen = gray[inside]
-        record.append({"shutter_s": float(actual), "gray_min": float(seen.min()),
-                       "gray_mean": float(seen.mean()), "gray_max": float(seen.max()),
-                       "samples": int(seen.size), "saturated": int(np.sum(seen >= full_scale))})
-        say(f"shot {k}/{len(sweep)}: shutter {1e3 * actual:.3f} ms, gray at the samples "
-            f"{seen.min():.1f}-{seen.max():.1f} (mean {seen.mean():.1f}), "
-            f"{record[-1]['saturated']} of {seen.size} saturated")
+        record.append({"shutter_s": float(actual), "f_number": plan.exposure.f_number,
+                       "gray_min": float(seen.min()), "gray_mean": float(seen.mean()),
+                       "gray_max": float(seen.max()), "samples": int(seen.size),
+                       "saturated": int(np.sum(seen >= full_scale))})
+        log.step("shot", f"{k}/{len(sweep)}: shutter {1e3 * actual:.3f} ms, gray at the samples "
+                         f"{seen.min():.1f}-{seen.max():.1f} (mean {seen.mean():.1f}), "
+                         f"{record[-1]['saturated']} of {seen.size} saturated", iteration=k, **record[-1])
     exposures, grays = np.array(exposures), np.array(grays)
     return fit_camera_constant(exposures, grays, full_scale), exposures, grays
 
 
 def write_picture(path, exposures, grays, fit, c_model):
     """G over the model's P t: the fitted line and the line the task's c predicts."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from cell.pictures import pyplot
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 4))
     ax.plot(exposures.ravel() * 1e15, grays.ravel(), ".", ms=3, label="measured (per sample and shot)")
     x = np.linspace(0.0, np.nanmax(exposures), 2)
@@ -133,27 +130,28 @@ def write_picture(path, exposures, grays, fit, c_model):
     plt.close(fig)
 
 
-def run(task, out, connect, shots=6, say=lambda msg: None):
-    """Plan (the function `cell plan` uses), connect(scene) -> Devices, calibrate, write
-    out/calibration.json (however it ends) and out/calibration.png. Raises PlanInfeasible before
-    anything moves, GoalNotReached when nothing usable was measured (exit 1), DeviceFault after
-    the safe stop of every device (exit 3). Returns the result written."""
-    from cell.planner import plan as make_plan
+def run(task, out, connect, shots=6):
+    """Plan (the function `cell plan` uses, plan.json and pictures in out), connect(scene) ->
+    Devices, calibrate; out/log.jsonl as it happens, out/calibration.json however it ends, and
+    out/calibration.png. Raises PlanInfeasible before anything moves, GoalNotReached when nothing
+    usable was measured (exit 1), DeviceFault after the safe stop of every device (exit 3).
+    Returns the result written."""
+    from cell.loop import RunLog, log_fault, plan_step
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     c_model = task.camera.sensor.camera_constant
     result = {"task": str(task.path), "camera_constant_task": c_model, "plan": None, "shots": [],
               "fit": None, "camera_constant_ratio": None, "reason": ""}
-    devices = None
+    log = RunLog(out / "log.jsonl")
+    session = Session(on_fault=lambda fault: log_fault(log, fault))
     try:
-        planned = make_plan(task, progress=say)
-        result["plan"] = planned.to_json()
-        if not planned.feasible:
-            raise PlanInfeasible(f"infeasible: {planned.binding} binds: {planned.hint}")
-        devices = connect(planned.scene)
-        fit, exposures, grays = calibrate(task, planned, devices, shots, say, result["shots"])
-        devices.close()
-        devices = None
+        with session:
+            planned = plan_step(task, out, log)
+            result["plan"] = planned.to_json()
+            if not planned.feasible:
+                raise PlanInfeasible(f"infeasible: {planned.binding} binds: {planned.hint}")
+            session.devices = connect(planned.scene)
+            fit, exposures, grays = calibrate(task, planned, session.devices, log, shots, result["shots"])
         write_picture(out / "calibration.png", exposures, grays, fit, c_model)
         if fit is None:
             n = sum(s["samples"] for s in result["shots"])
@@ -163,25 +161,19 @@ def run(task, out, connect, shots=6, say=lambda msg: None):
                                  f"on, does it light the feature, is the part the task's?")
         result["fit"] = asdict(fit)
         result["camera_constant_ratio"] = fit.camera_constant / c_model
+        log.step("done", f"c = {fit.camera_constant:.5g} 1/(W s), {result['camera_constant_ratio']:.3f} x "
+                         f"the task's", **result["fit"])
         return result
-    except DeviceFault as fault:
-        failures = devices.safe_stop(fault) if devices else []
-        result["reason"] = str(fault)
-        result["fault"] = {"device": fault.device, "error": str(fault), "stop_failures": failures}
-        stop = f" (stop failed: {'; '.join(failures)})" if failures else ""
-        raise DeviceFault(fault.device, f"{fault.reason}; motion stopped{stop}") from fault
-    except CellError as err:                    # nothing usable measured: the devices are fine
-        result["reason"] = str(err)
-        if devices:
-            devices.close()
-        raise
-    except BaseException as err:                # anything else (a bug, Ctrl-C): stop first
-        if devices:
-            devices.safe_stop(err)
+    except BaseException as err:
         result["reason"] = str(err) or type(err).__name__
+        if session.fault:
+            result["fault"] = session.fault
+        else:
+            log.step("done", f"no fit: {err}", reason=str(err))
         raise
     finally:
         (out / "calibration.json").write_text(json.dumps(result, indent=2) + "\n")
+        log.close()
 
 
 def command(args):
@@ -194,17 +186,12 @@ def command(args):
     if args.shots < MIN_SHOTS:
         raise TaskError("command line", "--shots", args.shots, f"an integer >= {MIN_SHOTS}")
     out = output_folder(args.out, Path("runs") / f"{Path(args.task).stem}-calibration")
-
-    def say(msg):
-        print(msg, file=sys.stderr, flush=True)
-
     task = load_task(args.task)
     backend = args.backend or task.cell.backend
     c_model = task.camera.sensor.camera_constant
-    say("Place the reference part (the task's part and material) in the cell; the camera constant "
-        "is measured against its material table.")
-    result = run(task, out, lambda scene: loop.open_devices(task, scene, backend, yes=args.yes),
-                 args.shots, say)
+    print("Place the reference part (the task's part and material) in the cell; the camera constant "
+          "is measured against its material table.", file=sys.stderr, flush=True)
+    result = run(task, out, lambda scene: loop.open_devices(task, scene, backend, yes=args.yes), args.shots)
     fit = Fit(**result["fit"])
     print(f"camera constant c = {fit.camera_constant:.5g} +- {fit.stderr:.2g} 1/(W s) "
           f"({fit.camera_constant / c_model:.3f} x the task's {c_model:.5g}); black level "
@@ -212,5 +199,5 @@ def command(args):
           f"({fit.saturated} saturated, {fit.dark} at 0 left out)")
     print(f"  set camera.sensor.camera_constant: {fit.camera_constant:.5g} in the tasks that use "
           f"this camera (e.g. {args.task})")
-    print(f"  wrote {out}/calibration.json and calibration.png")
+    print(f"  wrote {out}/calibration.json, calibration.png, log.jsonl and the plan's pictures")
     return 0

@@ -2,6 +2,7 @@
 0 done, 1 goal not reached, 2 bad input, 3 device fault."""
 import argparse
 import importlib
+import signal
 import sys
 
 from cell.errors import CellError
@@ -78,17 +79,30 @@ def build_parser():
     return parser
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised like Ctrl-C so that a run's safe stop and its report still happen."""
+
+
+def _terminate(signum, frame):
+    raise Terminated()
+
+
 def main(argv=None):
     args = build_parser().parse_args(argv)
+    previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         module = importlib.import_module(COMMANDS[args.command])
         return int(module.command(args) or 0)
     except CellError as err:
         print(f"cell {args.command}: {err}", file=sys.stderr, flush=True)
         return err.exit_code
-    except KeyboardInterrupt:
-        print(f"cell {args.command}: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as err:
+        terminated = isinstance(err, Terminated)
+        print(f"cell {args.command}: {'terminated (SIGTERM)' if terminated else 'interrupted'}",
+              file=sys.stderr, flush=True)
+        return 143 if terminated else 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

@@ -14,12 +14,12 @@ from pathlib import Path
 import numpy as np
 
 from cell import geometry
-from cell.errors import DeviceFault, TaskError
+from cell.errors import CellError, DeviceFault, TaskError
 from cell.loader import Integer, Number, Pair, Section, Spec, Text, Vector
 from cell.rig import lamp_aim, lamp_joints, lamp_position
 
-__all__ = ["Arm", "LampRig", "Camera", "Operator", "Devices", "ArmConfig", "PanTiltConfig",
-           "CameraConfig", "DevicesConfig", "devices_from_config", "make_hw_devices",
+__all__ = ["Arm", "LampRig", "Camera", "Operator", "Devices", "Session", "stop_outcome", "ArmConfig",
+           "PanTiltConfig", "CameraConfig", "DevicesConfig", "devices_from_config", "make_hw_devices",
            "check_arm_motion", "lamp_position", "lamp_aim", "lamp_joints"]
 
 MAX_SPEED_M_S = 0.25            # ur_rtde's default moveL speed: a hard cap for an inspection cell
@@ -375,15 +375,49 @@ class Devices:
     camera: Camera
 
     def safe_stop(self, fault=None):
-        """Stop the arm, hold the servos (torque off only for their own fault), close the camera.
-        Every step is tried; returns the messages of steps that failed in turn."""
+        """Stop the arm, hold the servos (torque off only for their own fault), close the camera,
+        then release the arm's and the servos' connections. Every step is tried; returns the
+        messages of steps that failed, in turn."""
         lamp_faulted = isinstance(fault, DeviceFault) and fault.device == self.lamp.device
-        steps = (self.arm.stop, lambda: self.lamp.stop(fault_is_own=lamp_faulted), self.camera.close)
+        steps = (self.arm.stop, lambda: self.lamp.stop(fault_is_own=lamp_faulted), self.camera.close,
+                 self.arm.close, self.lamp.close)
         return _try_all(steps)
 
     def close(self):
-        """Release everything after a normal end (or after safe_stop)."""
+        """Release everything after a normal end."""
         return _try_all((self.arm.close, self.lamp.close, self.camera.close))
+
+
+class Session:
+    """Owns the devices of one run, `with Session(on_fault) as session: session.devices =
+    connect(...)`. A normal end, or a goal not reached (a CellError that is no DeviceFault), closes
+    them. A DeviceFault or anything else (a bug, Ctrl-C, SIGTERM) stops them safely first; then
+    `fault` = {device, error, stop_failures}, on_fault(fault) is called (to log it), and a
+    DeviceFault is raised again saying whether motion stopped."""
+
+    def __init__(self, on_fault=lambda fault: None):
+        self.devices, self.fault, self.on_fault = None, None, on_fault
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, err, traceback):
+        if err is None or (isinstance(err, CellError) and not isinstance(err, DeviceFault)):
+            if self.devices:
+                self.devices.close()
+            return False
+        failures = self.devices.safe_stop(err) if self.devices else []
+        self.fault = {"device": getattr(err, "device", None), "error": str(err) or type(err).__name__,
+                      "stop_failures": failures}
+        self.on_fault(self.fault)
+        if isinstance(err, DeviceFault):
+            raise DeviceFault(err.device, f"{err.reason}; {stop_outcome(failures)}") from err
+        return False
+
+
+def stop_outcome(failures):
+    """What a safe stop achieved, in words an operator must be able to trust."""
+    return "motion stopped" if not failures else f"STOP FAILED, check the cell: {'; '.join(failures)}"
 
 
 def _try_all(steps):

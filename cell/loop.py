@@ -19,7 +19,8 @@ import cv2
 import numpy as np
 
 from cell import measure
-from cell.errors import CellError, DeviceFault, GoalNotReached, PlanInfeasible, TaskError
+from cell.devices import Session, stop_outcome
+from cell.errors import DeviceFault, GoalNotReached, PlanInfeasible, TaskError
 from cell.planner import Evaluator, gray_stats, plan as make_plan, write_plan
 
 DARK = 0.5                  # a pixel reading 0 is below the first gray level: true gray < 0.5
@@ -27,14 +28,15 @@ SATURATED_STEP = 16.0       # every pixel saturated: step this far past the lowe
 
 
 class RunLog:
-    """log.jsonl: one JSON line per step, appended, flushed and fsync'd so that a crash loses
-    nothing measured; each step also as a progress line on stderr."""
+    """log.jsonl: one JSON line per step (time, step, message, data), appended, flushed and
+    fsync'd so that a crash loses nothing measured; each step also as a progress line on stderr."""
 
     def __init__(self, path):
         self.file = open(path, "a", encoding="utf-8")
 
     def step(self, step, message, **data):
-        line = {"t": datetime.now(timezone.utc).isoformat(timespec="milliseconds"), "step": step, **data}
+        line = {"t": datetime.now(timezone.utc).isoformat(timespec="milliseconds"), "step": step,
+                "message": message, **data}
         self.file.write(json.dumps(line, default=_plain) + "\n")
         self.file.flush()
         os.fsync(self.file.fileno())
@@ -54,21 +56,18 @@ class Measurement:
     samples, seen from the arm's read-back pose) and at each sample's pixel (NaN off the image)."""
 
     def __init__(self, image, task, T_cell_cam, points, saturation):
-        self.row, self.col, inside = measure.sample_pixels(task, T_cell_cam, points)
-        if not inside.any():
-            raise GoalNotReached("no feature sample projects into the image: check the camera pose "
-                                 "and the hand-eye calibration (cell.arm.hand_eye_*)")
+        self.row, self.col, inside, self.sample_gray = measure.read_samples(image, task, T_cell_cam, points)
         image = np.asarray(image, float)
         self.region = measure.feature_mask(image.shape, self.row[inside], self.col[inside])
         self.gray = image[self.region]
-        rows, cols = np.clip(self.row, 0, image.shape[0] - 1), np.clip(self.col, 0, image.shape[1] - 1)
-        self.sample_gray = np.where(inside, image[rows, cols], np.nan)
         self.saturation = saturation
         self.saturated = self.region & (image >= saturation)
         self.min, self.max = float(self.gray.min()), float(self.gray.max())
 
     def stats(self):
-        """measured_gray of report.json: saturated pixels count in min/max/mean at the maximum."""
+        """measured_gray of report.json over every pixel of the region, as the camera delivered
+        it (a real sensor clips at saturation; the sim without `quantization` does not), and
+        how many read saturation or more."""
         return {**gray_stats(self.gray), "pixels": int(self.gray.size),
                 "saturated": int(self.saturated.sum())}
 
@@ -159,30 +158,25 @@ def plan_step(task, out, log, albedo_scale=1.0, iteration=None):
     return planned
 
 
-def drive(devices, plan, log, iteration):
+def drive(devices, plan, log, iteration=None):
     """Camera and lamp to the plan's poses, each logged as read back from the device."""
+    where = {} if iteration is None else {"iteration": iteration}
     devices.arm.move_camera(plan.scene.T_cell_cam)
     position = devices.arm.camera_pose()[:3, 3]
     off = float(np.linalg.norm(position - plan.scene.camera_position))
     log.step("move_camera", f"camera at {np.round(position, 4).tolist()} m ({1e3 * off:.2f} mm from the plan)",
-             iteration=iteration, position_m=position, error_m=off)
+             **where, position_m=position, error_m=off)
     devices.lamp.move(*plan.joints)
     pan, tilt, radius = devices.lamp.joints()
     log.step("move_lamp", f"pan {np.degrees(pan):.2f} deg, tilt {np.degrees(tilt):.2f} deg, "
-                          f"radius {1e3 * radius:.1f} mm", iteration=iteration,
+                          f"radius {1e3 * radius:.1f} mm", **where,
              joints={"pan_deg": np.degrees(pan), "tilt_deg": np.degrees(tilt), "radius_m": radius})
-
-
-def png_levels(image, bit_depth):
-    """The camera's integer levels for a PNG (uint8 up to 8 bits, else uint16); a float image
-    (no quantization effect) rounded and clipped to them."""
-    return np.clip(np.rint(image), 0, 2**bit_depth - 1).astype(np.uint8 if bit_depth <= 8 else np.uint16)
 
 
 def draw_feature(image, m, bit_depth, caption):
     """8-bit colour copy: the measured region outlined (green), its saturated pixels red, the
     samples' pixels blue, a caption."""
-    view = cv2.cvtColor((png_levels(image, bit_depth) * (255.0 / (2**bit_depth - 1))).astype(np.uint8),
+    view = cv2.cvtColor((measure.levels(image, bit_depth) * (255.0 / measure.saturation_level(bit_depth))).astype(np.uint8),
                         cv2.COLOR_GRAY2BGR)
     view[m.saturated] = (0, 0, 255)
     contours, _ = cv2.findContours(m.region.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
@@ -205,7 +199,7 @@ def shoot(task, plan, devices, out, log, k, shutter, f_number):
              shutter_s=shutter, f_number=f_number, focus_m=plan.exposure.focus_m)
     image = np.asarray(camera.capture())
     name, annotated = f"capture-{k}.png", f"capture-{k}-feature.png"
-    cv2.imwrite(str(out / name), png_levels(image, bit_depth))
+    cv2.imwrite(str(out / name), measure.levels(image, bit_depth))  # float (sim) rounded
     log.step("capture", name, iteration=k, capture=name, shape=image.shape, dtype=str(image.dtype))
 
     saturation = measure.saturation_level(bit_depth)
@@ -280,34 +274,32 @@ def iterate(task, plan, devices, out, log, report, max_iterations):
 def run(task, out, connect, max_iterations=6):
     """Plan, connect(scene) -> Devices, then iterate; out/report.json is written however the run
     ends. Raises PlanInfeasible or GoalNotReached (exit 1), or DeviceFault (exit 3) after the safe
-    stop of every device. Returns the report."""
+    stop of every device (devices.Session). Returns the report."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     report = {"task": str(task.path), "plan": None, "iterations": [], "converged": False, "captures": [],
               "reason": "", "replans": []}
-    log, devices = RunLog(out / "log.jsonl"), None
+    log = RunLog(out / "log.jsonl")
+    session = Session(on_fault=lambda fault: log_fault(log, fault))
     try:
-        planned = plan_step(task, out, log)
-        report["plan"] = planned.to_json()
-        if not planned.feasible:
-            raise PlanInfeasible(f"infeasible: {planned.binding} binds: {planned.hint}")
-        devices = connect(planned.scene)
-        iterate(task, planned, devices, out, log, report, max_iterations)
-        devices.close()
+        with session:
+            planned = plan_step(task, out, log)
+            report["plan"] = planned.to_json()
+            if not planned.feasible:
+                raise PlanInfeasible(f"infeasible: {planned.binding} binds: {planned.hint}")
+            session.devices = connect(planned.scene)
+            iterate(task, planned, session.devices, out, log, report, max_iterations)
         n = len(report["iterations"])
         log.step("done", f"converged after {_count(n, 'iteration')}", converged=True, iterations=n)
         return report
-    except DeviceFault as fault:
-        _stop(devices, fault, log, report)
-        raise DeviceFault(fault.device, f"{fault.reason}; motion stopped, log in {out}/log.jsonl") from fault
-    except CellError as err:                    # the goal was not reached: the devices are fine
-        report["reason"] = str(err)
-        if devices:
-            devices.close()
-        log.step("done", f"not converged: {err}", converged=False, reason=str(err))
-        raise
-    except BaseException as err:                # anything else (a bug, Ctrl-C): stop first
-        _stop(devices, err, log, report)
+    except BaseException as err:
+        report["reason"] = str(err) or type(err).__name__
+        if not session.fault:                   # the goal was not reached: the devices are fine
+            log.step("done", f"not converged: {err}", converged=False, reason=str(err))
+            raise
+        report["fault"] = session.fault
+        if isinstance(err, DeviceFault):
+            raise DeviceFault(err.device, f"{err.reason}; log in {out / 'log.jsonl'}") from err
         raise
     finally:
         (out / "report.json").write_text(json.dumps(report, indent=2, default=_plain) + "\n")
@@ -318,14 +310,9 @@ def _count(n, noun):
     return f"{n} {noun}{'s' * (n != 1)}"
 
 
-def _stop(devices, err, log, report):
-    """The safe stop every fault ends in (hardware notes), then the fault in the log and report."""
-    failures = devices.safe_stop(err) if devices else []
-    device = getattr(err, "device", None)
-    report["reason"] = str(err) or type(err).__name__
-    report["fault"] = {"device": device, "error": report["reason"], "stop_failures": failures}
-    log.step("fault", f"{report['reason']}: motion stopped" + (f" (stop failed: {'; '.join(failures)})"
-                                                                if failures else ""), **report["fault"])
+def log_fault(log, fault):
+    """The fault step of log.jsonl, after the safe stop."""
+    log.step("fault", f"{fault['error']}: {stop_outcome(fault['stop_failures'])}", **fault)
 
 
 def command(args):

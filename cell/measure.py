@@ -4,6 +4,7 @@ import cv2
 import numpy as np
 
 from cell import projection
+from cell.errors import DeviceFault, GoalNotReached
 
 
 def sample_pixels(task, T_cell_cam, points):
@@ -18,6 +19,24 @@ def sample_pixels(task, T_cell_cam, points):
     return row, col, inside
 
 
+def read_samples(image, task, T_cell_cam, points):
+    """(row, col, inside, gray) of each feature sample in a frame: its pixel, whether it is in
+    the image, the gray there (NaN outside). A frame of another size than camera.sensor is a
+    camera fault (the projection would read the wrong pixels); no sample in the image means the
+    camera does not see the feature."""
+    sensor = task.camera.sensor
+    if np.shape(image)[:2] != (sensor.height_px, sensor.width_px):
+        h, w = np.shape(image)[:2]
+        raise DeviceFault("camera", f"frames are {w}x{h} px, camera.sensor says "
+                                    f"{sensor.width_px}x{sensor.height_px}: set the camera's resolution")
+    row, col, inside = sample_pixels(task, T_cell_cam, points)
+    if not inside.any():
+        raise GoalNotReached("no feature sample projects into the image: check the camera pose "
+                             "and the hand-eye calibration (cell.arm.hand_eye_*)")
+    gray = np.where(inside, np.asarray(image, float)[np.where(inside, row, 0), np.where(inside, col, 0)], np.nan)
+    return row, col, inside, gray
+
+
 def feature_mask(shape, row, col):
     """Pixels inside the convex hull of the samples' pixels (the feature's image region)."""
     mask = np.zeros(shape, dtype=np.uint8)
@@ -30,3 +49,10 @@ def feature_mask(shape, row, col):
 def saturation_level(bit_depth):
     """The largest gray a bit_depth sensor reports: a pixel there may truly be brighter."""
     return 2 ** int(bit_depth) - 1
+
+
+def levels(gray, bit_depth):
+    """Integer gray clipped to [0, saturation_level], as a bit_depth ADC delivers it (uint8 up
+    to 8 bits, else uint16)."""
+    dtype = np.uint8 if bit_depth <= 8 else np.uint16
+    return np.clip(np.rint(gray), 0, saturation_level(bit_depth)).astype(dtype)

@@ -13,7 +13,7 @@ MARGINS = {"left": 0.08, "right": 0.98, "bottom": 0.12, "top": 0.93}
 PNG = {"compress_level": 1}     # zlib: lossless like the default, at a fraction of its time
 
 
-def _pyplot():
+def pyplot():
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -41,7 +41,7 @@ def _axes(ax, title):
 
 def write_plan_pictures(plan, task, scene, out_dir):
     """Write visibility_brdf.png, regions.png and cost.png into out_dir; return their paths."""
-    plt = _pyplot()
+    plt = pyplot()
     out_dir = Path(out_dir)
     m = plan.maps
     extent = [np.degrees(m.grid.azimuth[0]), np.degrees(m.grid.azimuth[-1]),

@@ -26,6 +26,7 @@ from scipy.ndimage import gaussian_filter
 from scipy.special import erfc
 
 from cell import geometry
+from cell.measure import levels, saturation_level
 from cell.physics.depth_of_field import blur_diameter
 from cell.projection import intrinsics, pixel_rays
 from kernels.render import render
@@ -63,12 +64,6 @@ def sensor_noise(gray, full_scale, rng):
     gain = full_scale / FULL_WELL_E
     electrons = rng.poisson(gray / gain) + rng.normal(0.0, READ_NOISE_E, gray.shape)
     return gain * electrons
-
-
-def quantize(gray, bit_depth):
-    """Integer gray clipped to [0, 2^bits - 1], as the camera's ADC delivers it."""
-    dtype = np.uint8 if bit_depth <= 8 else np.uint16
-    return np.clip(np.rint(gray), 0, 2**bit_depth - 1).astype(dtype)
 
 
 class Renderer:
@@ -124,11 +119,11 @@ class Renderer:
                 focus_m = (self.scene.center - origin) @ optical_axis
             gray = defocus(gray, r.depth.reshape(self.shape) * cos_field, focus_m,
                            task.camera.lens.focal_length_m, f_number, self.pixel_pitch_m)
-        full_scale = 2.0**task.camera.sensor.bit_depth - 1.0
+        full_scale = float(saturation_level(task.camera.sensor.bit_depth))
         if "noise" in effects:
             gray = sensor_noise(gray, full_scale, self.rng)
         if "black_level" in effects:
             gray = gray + np.rint(BLACK_LEVEL * full_scale)
         if "quantization" in effects:
-            gray = quantize(gray, task.camera.sensor.bit_depth)
+            gray = levels(gray, task.camera.sensor.bit_depth)
         return gray

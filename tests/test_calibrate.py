@@ -154,11 +154,6 @@ def test_bad_shots_is_bad_input_in_one_line(argv, capsys):
     assert err == [f"cell calibrate: command line: --shots: found {argv[1]}, expected an integer >= 3"]
 
 
-def test_out_that_is_a_file_is_bad_input(tmp_path):
-    (tmp_path / "file").write_text("")
-    assert main(["calibrate", str(HINGE), "--out", str(tmp_path / "file")]) == 2
-
-
 def test_an_infeasible_plan_exits_1_before_anything_moves(tmp_path, monkeypatch, capsys):
     connected = []
     monkeypatch.setattr(loop, "open_devices", lambda *a, **k: connected.append(a))

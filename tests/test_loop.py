@@ -2,6 +2,8 @@
 is corrected within 4 captures, what no exposure absorbs ends in exit 1 with the reason, and
 every injected fault stops all motion with exit 3 and a log holding every step before it."""
 import json
+import os
+import signal
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -9,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from cell import loop, projection
+from cell import cli, loop, projection
 from cell.cli import main
 from cell.errors import CellError, DeviceFault, GoalNotReached
 from cell.loader import load_task
@@ -217,6 +219,49 @@ def test_the_cli_turns_a_fault_into_exit_3_and_one_line(tmp_path, monkeypatch, c
     assert main(["run", HINGE, "--out", str(tmp_path)]) == 3
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert last.startswith("cell run: camera: capture timed out") and "motion stopped" in last
+
+
+def test_a_stop_that_fails_is_reported_as_such_never_as_motion_stopped(tmp_path, monkeypatch, capsys):
+    def connect(task, scene, backend, yes):
+        devices = make_sim_devices(task, scene, faults={"camera_fail_on_capture": 1})
+
+        def stop_fails():
+            raise DeviceFault("arm", "stopL failed: socket closed")
+        devices.arm.stop = stop_fails
+        return devices
+
+    monkeypatch.setattr(loop, "open_devices", connect)
+    assert main(["run", HINGE, "--out", str(tmp_path)]) == 3
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "STOP FAILED" in last and "stopL failed" in last and "motion stopped" not in last
+    fault = json.loads((tmp_path / "report.json").read_text())["fault"]
+    assert fault["stop_failures"] == ["arm: stopL failed: socket closed"]
+    logged = json.loads((tmp_path / "log.jsonl").read_text().splitlines()[-1])
+    assert logged["step"] == "fault" and "STOP FAILED" in (tmp_path / "log.jsonl").read_text()
+
+
+def test_sigterm_stops_the_cell_and_still_writes_the_report(tmp_path, monkeypatch, capsys):
+    def connect(task, scene, backend, yes):
+        devices = make_sim_devices(task, scene)
+        devices.camera.capture = lambda: os.kill(os.getpid(), signal.SIGTERM)
+        return devices
+
+    monkeypatch.setattr(loop, "open_devices", connect)
+    assert main(["run", HINGE, "--out", str(tmp_path)]) == 143
+    assert capsys.readouterr().err.strip().splitlines()[-1] == "cell run: terminated (SIGTERM)"
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["fault"]["error"] == "Terminated" and not report["fault"]["stop_failures"]
+    steps = [json.loads(line)["step"] for line in (tmp_path / "log.jsonl").read_text().splitlines()]
+    assert steps == ["plan", *DRIVE, "set_exposure", "fault"]
+    assert signal.getsignal(signal.SIGTERM) is not cli._terminate      # restored after the run
+
+
+def test_a_frame_of_another_size_than_the_sensor_is_a_camera_fault():
+    task = load_task(HINGE)
+    from cell.scene import build_scene
+    scene = build_scene(task)
+    with pytest.raises(DeviceFault, match="frames are 516x388 px, camera.sensor says 1032x776"):
+        loop.Measurement(np.zeros((388, 516)), task, scene.T_cell_cam, scene.points, 255)
 
 
 def test_the_hardware_backend_needs_an_address_before_anything_connects(tmp_path):
