@@ -24,7 +24,9 @@ from cell.errors import DeviceFault, GoalNotReached, PlanInfeasible, TaskError
 from cell.planner import Evaluator, gray_stats, plan as make_plan, write_plan
 
 DARK = 0.5                  # a pixel reading 0 is below the first gray level: true gray < 0.5
-SATURATED_STEP = 16.0       # every pixel saturated: step this far past the lower bound (4 stops)
+SATURATED_STEP = 4.0        # every pixel saturated: step this far past the lower bound (2 stops)
+RESOLVED = 0.5              # darkest pixel below this x the band's low end: noise and black level
+                            # dominate its spread, so brighten and look again before judging it
 
 
 class RunLog:
@@ -104,10 +106,12 @@ def correct_exposure(lo, hi, relation, shutter_s, f_number, band, shutter_range,
     """(shutter, f-number, reason): the gain sqrt(low high) / sqrt(lo hi) on G ~ t / kappa^2,
     shutter first, the f-number within f_number_range (its low end the widest the depth of field
     allows) for what the shutter's range leaves. With every pixel saturated (relation ">=", lo and
-    hi lower bounds) it steps SATURATED_STEP further, so the next capture measures. reason is None
-    when the range can then be in band, else says why not."""
+    hi lower bounds) it steps SATURATED_STEP further, so the next capture measures. A dim range
+    (lo < RESOLVED low) is brightened before its spread is judged. reason is None when the range
+    can then be in band (or, dim, is brighter), else says why not."""
     low, high = band
-    if hi > lo * high / low:
+    dim = lo < RESOLVED * low
+    if hi > lo * high / low and not dim:
         return shutter_s, f_number, (f"the feature's gray spans {lo:.1f}-{hi:.1f}, max/min "
                                      f"{hi / max(lo, 1e-12):.2f} > the band's {high / low:.2f}: "
                                      f"no exposure fits it in {low:g}-{high:g}")
@@ -117,7 +121,7 @@ def correct_exposure(lo, hi, relation, shutter_s, f_number, band, shutter_range,
     kappa = float(np.clip(np.sqrt(shutter / exposure), *f_number_range))
     k = shutter / kappa**2 / (shutter_s / f_number**2)
     fits = {"=": low <= lo * k and hi * k <= high, ">=": lo * k <= high, "<=": hi * k >= low}[relation]
-    if not fits:
+    if not fits and not (dim and k > 1.0 + 1e-9):
         bound = {"=": "at", ">=": "at least", "<=": "at most"}[relation]
         return shutter, kappa, (f"even at {1e3 * shutter:.3g} ms and f/{kappa:.1f} the feature would be "
                                 f"{bound} {lo * k:.1f}-{hi * k:.1f}, band {low:g}-{high:g}")

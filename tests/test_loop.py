@@ -138,6 +138,17 @@ def test_what_the_exposure_cannot_absorb_is_re_planned_with_the_measured_error(t
     assert first["saturated"] == first["pixels"]         # counted, not silently left out
 
 
+def test_a_saturated_noisy_start_is_re_exposed_not_re_planned(tmp_path):
+    """Albedo x3 saturates every pixel; the step back lands dim, where noise and the black level
+    inflate the relative spread: that calls for more light, not a new lamp pose."""
+    changes = {"sim.truth.albedo_scale": 3.0,
+               "sim.effects": ["shadows", "cone_falloff", "noise", "black_level", "quantization"]}
+    cell = run(variant(tmp_path, HINGE, changes), tmp_path / "run")
+    assert cell.error is None and cell.report["converged"] and cell.report["replans"] == []
+    first = cell.report["iterations"][0]["measured_gray"]
+    assert first["saturated"] == first["pixels"] and len(cell.report["iterations"]) <= 4
+
+
 def test_a_deviation_no_exposure_absorbs_exits_1_and_says_why(tmp_path):
     cell = run(variant(tmp_path, HINGE, {"sim.truth.albedo_scale": 0.001}), tmp_path / "run")
     assert isinstance(cell.error, GoalNotReached) and cell.error.exit_code == 1
