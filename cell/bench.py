@@ -13,7 +13,6 @@ reference plan of the same task at fine resolution (REFERENCE):
 - feasible_agrees: the plan's verdict equals the reference's. A flip or any NaN/inf is flagged.
 Pareto front, per task: settings no other setting beats on both time_s and gray_error_max.
 """
-import json
 import sys
 import time
 from dataclasses import asdict, replace
@@ -21,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cell import geometry, planner, rig
+from cell import geometry, jsonio, planner, rig
 from cell.cli import output_folder
 from cell.loader import load_task
 from cell.pictures import pyplot
@@ -257,17 +256,6 @@ def write_plot(path, settings):
     plt.close(fig)
 
 
-def jsonable(value):
-    """Non-finite floats become null (JSON has no NaN); the rows' `finite` flags say where."""
-    if isinstance(value, dict):
-        return {k: jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [jsonable(v) for v in value]
-    if isinstance(value, float) and not np.isfinite(value):
-        return None
-    return value
-
-
 def command(args):
     """`cell bench [TASK...] [--quick] [--out DIR] [--json]`: tables on stdout (stderr with
     --json), bench.json and bench.png in DIR, progress on stderr."""
@@ -286,7 +274,7 @@ def command(args):
     for path in paths:
         result["kernels"] += kernel_rows(path, args.quick, repeats, say)
     result["targets"] = targets(result["settings"], result["kernels"])
-    text = json.dumps(jsonable(result), indent=2, allow_nan=False)
+    text = jsonio.dumps(result, indent=2)
     (out / "bench.json").write_text(text + "\n")
     write_plot(out / "bench.png", result["settings"])
     tables = sys.stderr if args.json else sys.stdout

@@ -9,14 +9,13 @@ saturated, nor 0, nor outside the image); b absorbs a black level. Only the prod
 observable this way: calibrate on a part whose material table you trust (the task's material is
 the reference).
 """
-import json
 import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
-from cell import measure
+from cell import jsonio, measure
 from cell.devices import Session
 from cell.errors import GoalNotReached, PlanInfeasible, TaskError
 
@@ -172,7 +171,7 @@ def run(task, out, connect, shots=6):
             log.step("done", f"no fit: {err}", reason=str(err))
         raise
     finally:
-        (out / "calibration.json").write_text(json.dumps(result, indent=2) + "\n")
+        (out / "calibration.json").write_text(jsonio.dumps(result, indent=2) + "\n")
         log.close()
 
 

@@ -17,7 +17,6 @@ largest are weighted as if they were that large (dark level).
 import csv
 import dataclasses
 import datetime
-import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +25,7 @@ import numpy as np
 import yaml
 from scipy import optimize, stats
 
+from cell import jsonio
 from cell.errors import TaskError
 from cell.material import PARAMETERS
 from cell.physics.brdf import brdf_terms, reflectance, reflectance_jacobian
@@ -256,15 +256,6 @@ def material_document(fits, name, source):
     return doc
 
 
-def _json_safe(value):
-    """Strict JSON has no Infinity: an infinite standard error becomes null."""
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_json_safe(v) for v in value]
-    return None if isinstance(value, float) and np.isinf(value) else value
-
-
 def _absent_notes(fits):
     """One line per phase angle with a term the data do not support."""
     for f in fits:
@@ -305,7 +296,7 @@ def command(args):
     for note in _absent_notes(fits):
         print(note, file=sys.stderr)
     if args.json:
-        print(json.dumps(_json_safe(doc), indent=2, allow_nan=False))
+        print(jsonio.dumps(doc, indent=2))
     else:
         print(summary(fits))
         if args.out:

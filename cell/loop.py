@@ -8,7 +8,6 @@ never wider than the depth of field allows. What neither absorbs (or a range wid
 re-planned with the measured model error as an effective albedo scale: only the product c rho is
 observable, so the scale also absorbs an error in c.
 """
-import json
 import os
 import sys
 import time
@@ -18,7 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from cell import measure
+from cell import jsonio, measure
 from cell.devices import Session, stop_outcome
 from cell.errors import DeviceFault, GoalNotReached, PlanInfeasible, TaskError
 from cell.planner import Evaluator, gray_stats, plan as make_plan, write_plan
@@ -39,18 +38,13 @@ class RunLog:
     def step(self, step, message, **data):
         line = {"t": datetime.now(timezone.utc).isoformat(timespec="milliseconds"), "step": step,
                 "message": message, **data}
-        self.file.write(json.dumps(line, default=_plain) + "\n")
+        self.file.write(jsonio.dumps(line) + "\n")
         self.file.flush()
         os.fsync(self.file.fileno())
         print(f"{data.get('iteration', ''):>2} {step:<12} {message}", file=sys.stderr, flush=True)
 
     def close(self):
         self.file.close()
-
-
-def _plain(value):
-    """JSON for numpy values."""
-    return value.tolist() if hasattr(value, "tolist") else str(value)
 
 
 class Measurement:
@@ -306,7 +300,7 @@ def run(task, out, connect, max_iterations=6):
             raise DeviceFault(err.device, f"{err.reason}; log in {out / 'log.jsonl'}") from err
         raise
     finally:
-        (out / "report.json").write_text(json.dumps(report, indent=2, default=_plain) + "\n")
+        (out / "report.json").write_text(jsonio.dumps(report, indent=2) + "\n")
         log.close()
 
 

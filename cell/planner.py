@@ -395,13 +395,14 @@ def describe(name, d, ev, met):
 
 def write_plan(plan, task, out_dir):
     """plan.json and the pictures into out_dir."""
-    import json
     from pathlib import Path
+
+    from cell import jsonio
 
     from cell.pictures import write_plan_pictures
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "plan.json").write_text(json.dumps(plan.to_json(), indent=2) + "\n")
+    (out_dir / "plan.json").write_text(jsonio.dumps(plan.to_json(), indent=2) + "\n")
     write_plan_pictures(plan, task, plan.scene, out_dir)
     return out_dir
 
@@ -425,10 +426,10 @@ def summary(plan):
 
 def command(args):
     """`cell plan TASK [--out DIR] [--json]`: exit 0 feasible, 1 infeasible (with the reason)."""
-    import json
     import sys
     from pathlib import Path
 
+    from cell import jsonio
     from cell.cli import output_folder
     from cell.errors import PlanInfeasible
     from cell.loader import load_task
@@ -437,7 +438,7 @@ def command(args):
     result = plan(task, progress=lambda msg: print(msg, file=sys.stderr, flush=True))
     write_plan(result, task, out)
     if args.json:
-        print(json.dumps(result.to_json(), indent=2))
+        print(jsonio.dumps(result.to_json(), indent=2))
     else:
         print(summary(result))
         print(f"  wrote {out}/plan.json and pictures")
