@@ -20,7 +20,7 @@ import numpy as np
 from cell import jsonio, measure
 from cell.devices import Session, stop_outcome
 from cell.errors import DeviceFault, GoalNotReached, PlanInfeasible, TaskError
-from cell.planner import Evaluator, gray_stats, plan as make_plan, write_plan
+from cell.planner import depth_of_field_limits, gray_stats, plan as make_plan, write_plan
 
 DARK = 0.5                  # a pixel reading 0 is below the first gray level: true gray < 0.5
 SATURATED_STEP = 4.0        # every pixel saturated: step this far past the lower bound (2 stops)
@@ -225,7 +225,7 @@ def iterate(task, plan, devices, out, log, report, max_iterations):
     """Drive, shoot, correct until every feature pixel is in the band; raises GoalNotReached
     saying why when no correction is possible or the iterations run out."""
     band = tuple(map(float, task.requirements.gray_band))
-    lens_range = (Evaluator(task, plan.scene, plan.maps).kappa_open, task.camera.lens.f_number_range[1])
+    lens_range = (depth_of_field_limits(task, plan.scene)[2], task.camera.lens.f_number_range[1])
     albedo, shutter, f_number, moved = 1.0, plan.exposure.shutter_s, plan.exposure.f_number, False
     for k in range(1, max_iterations + 1):
         if not moved:

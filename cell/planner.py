@@ -109,21 +109,27 @@ def gray_stats(gray):
     return {"mean": float(gray.mean()), "min": float(gray.min()), "max": float(gray.max())}
 
 
+def depth_of_field_limits(task, scene):
+    """(focus [m], depth of field needed [m], widest f-number giving it within the lens's range)
+    for the camera focused on the feature centre (sec. 4.3, 5.4): the needed depth is the larger
+    of the task's and the feature samples' own depth range."""
+    lens = task.camera.lens
+    focus = float(np.linalg.norm(scene.camera_position - scene.center))
+    depths = scene.sample_depths()
+    needed = max(task.requirements.depth_of_field_m, float(depths.max() - depths.min()))
+    kappa = dof.f_number_for_depth(focus, lens.focal_length_m, lens.circle_of_confusion_m, needed)
+    # rounded up by 1e-9 so that the depth of field is met despite floating-point rounding
+    return focus, needed, float(np.clip(kappa * (1 + 1e-9), *lens.f_number_range))
+
+
 class Evaluator:
     """Requirement values for lamp poses on the rig, vectorized over candidates."""
 
     def __init__(self, task, scene, maps, albedo_scale=1.0):
         self.task, self.scene, self.maps = task, scene, maps
         self.material = task.part.material.scaled(albedo_scale)
-        cam, req = task.camera, task.requirements
-        self.low, self.high = map(float, req.gray_band)
-        self.focus = float(np.linalg.norm(scene.camera_position - scene.center))
-        depths = scene.sample_depths()
-        self.depth_needed = max(req.depth_of_field_m, float(depths.max() - depths.min()))
-        kappa_dof = dof.f_number_for_depth(self.focus, cam.lens.focal_length_m,
-                                           cam.lens.circle_of_confusion_m, self.depth_needed)
-        # rounded up by 1e-9 so that the depth of field is met despite floating-point rounding
-        self.kappa_open = float(np.clip(kappa_dof * (1 + 1e-9), *cam.lens.f_number_range))
+        self.low, self.high = map(float, task.requirements.gray_band)
+        self.focus, self.depth_needed, self.kappa_open = depth_of_field_limits(task, scene)
         self.camera_unseen = int(self.bulk(scene.camera_position[None], -scene.normal[None])[1].sum())
 
     def bulk(self, positions, aims):
@@ -387,7 +393,8 @@ def describe(name, d, ev, met):
         fact = f"f/{d['kappa']:.1f} and {1e3 * d['shutter']:.3f} ms"
         return fact if met else f"too bright even at {fact}; move the lamp farther away"
     if name == "shutter_max":
-        return f"needs shutter {1e3 * d['t_need']:.1f} ms, max {1e3 * t_hi:.1f} ms"
+        need = f"needs shutter {1e3 * d['t_need']:.1f} ms"
+        return f"{need}, within the max {1e3 * t_hi:.1f} ms" if met else f"{need} > max {1e3 * t_hi:.1f} ms"
     if name == "f_number_min":
         return f"f/{d['kappa']:.1f} within the lens's range f/{cam.lens.f_number_range[0]:g}-f/{cam.lens.f_number_range[1]:g}"
     return f"depth of field needs {1e3 * ev.depth_needed:.1f} mm"
