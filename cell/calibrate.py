@@ -135,7 +135,7 @@ def run(task, out, connect, shots=6):
     out/calibration.png. Raises PlanInfeasible before anything moves, GoalNotReached when nothing
     usable was measured (exit 1), DeviceFault after the safe stop of every device (exit 3).
     Returns the result written."""
-    from cell.loop import RunLog, log_fault, plan_step
+    from cell.loop import RunLog, log_fault, plan_and_connect
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     c_model = task.camera.sensor.camera_constant
@@ -145,11 +145,7 @@ def run(task, out, connect, shots=6):
     session = Session(on_fault=lambda fault: log_fault(log, fault))
     try:
         with session:
-            planned = plan_step(task, out, log)
-            result["plan"] = planned.to_json()
-            if not planned.feasible:
-                raise PlanInfeasible(f"infeasible: {planned.binding} binds: {planned.hint}")
-            session.devices = connect(planned.scene)
+            planned = plan_and_connect(task, out, log, session, connect, result)
             fit, exposures, grays = calibrate(task, planned, session.devices, log, shots, result["shots"])
         write_picture(out / "calibration.png", exposures, grays, fit, c_model)
         if fit is None:

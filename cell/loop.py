@@ -269,6 +269,18 @@ def iterate(task, plan, devices, out, log, report, max_iterations):
         shutter, f_number, moved = plan.exposure.shutter_s, plan.exposure.f_number, False
 
 
+def plan_and_connect(task, out, log, session, connect, record):
+    """Plan (plan_step; its plan.json in record["plan"]), refuse an infeasible plan before
+    anything moves (PlanInfeasible), then connect(scene) the cell's devices into the session.
+    Returns the plan."""
+    planned = plan_step(task, out, log)
+    record["plan"] = planned.to_json()
+    if not planned.feasible:
+        raise PlanInfeasible(f"infeasible: {planned.binding} binds: {planned.hint}")
+    session.devices = connect(planned.scene)
+    return planned
+
+
 def run(task, out, connect, max_iterations=6):
     """Plan, connect(scene) -> Devices, then iterate; out/report.json is written however the run
     ends. Raises PlanInfeasible or GoalNotReached (exit 1), or DeviceFault (exit 3) after the safe
@@ -281,11 +293,7 @@ def run(task, out, connect, max_iterations=6):
     session = Session(on_fault=lambda fault: log_fault(log, fault))
     try:
         with session:
-            planned = plan_step(task, out, log)
-            report["plan"] = planned.to_json()
-            if not planned.feasible:
-                raise PlanInfeasible(f"infeasible: {planned.binding} binds: {planned.hint}")
-            session.devices = connect(planned.scene)
+            planned = plan_and_connect(task, out, log, session, connect, report)
             iterate(task, planned, session.devices, out, log, report, max_iterations)
         n = len(report["iterations"])
         log.step("done", f"converged after {_count(n, 'iteration')}", converged=True, iterations=n)
