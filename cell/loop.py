@@ -20,6 +20,7 @@ import numpy as np
 from cell import jsonio, measure
 from cell.devices import Session, stop_outcome
 from cell.errors import DeviceFault, GoalNotReached, PlanInfeasible, TaskError
+from cell.pictures import write_convergence
 from cell.planner import depth_of_field_limits, gray_stats, plan as make_plan, write_plan
 
 DARK = 0.5                  # a pixel reading 0 is below the first gray level: true gray < 0.5
@@ -310,6 +311,8 @@ def run(task, out, connect, max_iterations=6):
     finally:
         (out / "report.json").write_text(jsonio.dumps(report, indent=2) + "\n")
         log.close()
+        if report["iterations"]:
+            write_convergence(out / "convergence.png", report["iterations"], task.requirements.gray_band)
 
 
 def _count(n, noun):

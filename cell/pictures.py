@@ -100,3 +100,33 @@ def write_plan_pictures(plan, task, scene, out_dir):
         f.savefig(p, dpi=90, pil_kwargs=PNG)
         plt.close(f)
     return paths
+
+
+def write_convergence(path, iterations, band):
+    """The closed loop at a glance: per capture the measured gray range (bar) and mean (dot) over
+    the feature's pixels, the model's prediction (open diamonds: min, max), the gray band shaded,
+    the correction taken written under each capture."""
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    low, high = band
+    ax.axhspan(low, high, color="tab:green", alpha=0.15, label=f"band {low:g}-{high:g}")
+    for it in iterations:
+        k, g, p = it["iteration"], it["measured_gray"], it["predicted_gray"]
+        color = "tab:green" if it["in_band"] else "tab:red"
+        ax.plot([k, k], [g["min"], g["max"]], color=color, lw=4, alpha=0.6)
+        ax.plot(k, g["mean"], "o", color=color)
+        ax.plot([k, k], [p["min"], p["max"]], "D", mfc="none", mec="0.3", ms=6)
+    ax.plot([], [], "o", color="0.4", label="measured mean, bar: min-max (red: out of band)")
+    ax.plot([], [], "D", mfc="none", mec="0.3", ls="none", label="plan's model: min, max")
+    ax.set_xticks([it["iteration"] for it in iterations],
+                  [f"{it['iteration']}\n{1e3 * it['shutter_s']:.3g} ms, f/{it['f_number']:.1f}\n"
+                   f"{(it.get('correction') or {}).get('action', '')}" for it in iterations], fontsize=7)
+    ax.set_xlim(0.5, len(iterations) + 0.5)
+    ax.set_ylim(0, max(high * 1.3, *(it["measured_gray"]["max"] * 1.05 for it in iterations)))
+    ax.set_xlabel("capture, exposure, correction")
+    ax.set_ylabel("gray over the feature")
+    ax.set_title("closed loop: measured against predicted gray", fontsize=10)
+    ax.legend(fontsize=7, loc="upper right")
+    fig.subplots_adjust(left=0.1, right=0.97, bottom=0.2, top=0.92)
+    fig.savefig(path, dpi=90, pil_kwargs=PNG)
+    plt.close(fig)

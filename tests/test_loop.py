@@ -92,7 +92,7 @@ def test_report_follows_the_output_contract(hinge):
     assert len(report["captures"]) == len(report["iterations"])
     for record, name in zip(report["iterations"], report["captures"]):
         assert (hinge.out / name).is_file() and (hinge.out / record["annotated"]).is_file()
-    for picture in ("plan.json", "visibility_brdf.png", "regions.png", "cost.png"):
+    for picture in ("plan.json", "visibility_brdf.png", "regions.png", "cost.png", "convergence.png"):
         assert (hinge.out / picture).is_file()
 
 
