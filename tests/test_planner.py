@@ -115,6 +115,8 @@ def test_plan_json_contract(hinge, tmp_path):
     assert {"shutter_s", "f_number", "focus_m"} <= set(data["camera"])
     assert set(data["predicted_gray"]) == {"mean", "min", "max"}
     assert {"scene", "maps", "global_search", "refine", "total"} <= set(data["timing_s"])
+    for r in data["requirements"]:        # a met requirement states the fact, asks for no fix
+        assert r["met"] and not any(w in r["detail"] for w in ("move the", "too bright", "does not", ">"))
     for picture in ("visibility_brdf.png", "regions.png", "cost.png"):
         assert (tmp_path / picture).stat().st_size > 10_000
 
