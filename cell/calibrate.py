@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from cell import jsonio, measure
-from cell.devices import Session
+from cell.devices import Operator, Session
 from cell.errors import GoalNotReached, PlanInfeasible, TaskError
 
 # the brightest sample's gray by the model, as a fraction of full scale, at the first and the
@@ -184,8 +184,10 @@ def command(args):
     task = load_task(args.task)
     backend = args.backend or task.cell.backend
     c_model = task.camera.sensor.camera_constant
-    print("Place the reference part (the task's part and material) in the cell; the camera constant "
-          "is measured against its material table.", file=sys.stderr, flush=True)
+    # the simulated cell holds the task's part already: it confirms for itself, as for the lamp radius
+    Operator(yes=args.yes or backend == "sim", stdout=sys.stderr).confirm(
+        "calibration", "place the reference part (the task's part, of the task's material) in the cell; "
+                       "the camera constant is measured against its material table")
     result = run(task, out, lambda scene: loop.open_devices(task, scene, backend, yes=args.yes), args.shots)
     fit = Fit(**result["fit"])
     print(f"camera constant c = {fit.camera_constant:.5g} +- {fit.stderr:.2g} 1/(W s) "

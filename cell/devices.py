@@ -47,7 +47,7 @@ class Operator:
     def require(self, device, what):
         """Fail now, before anything moves, if a later prompt could not be answered."""
         if not (self.yes or self.stdin.isatty()):
-            raise DeviceFault(device, f"{what} is set by the operator, but stdin is not a terminal: "
+            raise DeviceFault(device, f"{what} needs the operator, but stdin is not a terminal: "
                                       "run with --yes to confirm operator steps")
 
     def confirm(self, device, instruction):
@@ -55,7 +55,7 @@ class Operator:
         if self.yes:
             print("  (confirmed automatically: --yes)", file=self.stdout, flush=True)
             return
-        self.require(device, instruction)
+        self.require(device, f"'{instruction}'")
         print("  press Enter when done", file=self.stdout, flush=True)
         if not self.stdin.readline():
             raise DeviceFault(device, f"stdin closed before the operator confirmed: {instruction}")

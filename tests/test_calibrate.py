@@ -196,6 +196,16 @@ def test_the_task_backend_is_used_unless_overridden(tmp_path, monkeypatch):
                         seen.append(backend) or make_sim_devices(task, scene))
     task = variant(tmp_path, {"cell.backend": "hw"})
     quick = ["--shots", "3", "--out"]
-    assert main(["calibrate", str(task), *quick, str(tmp_path / "a")]) == 0
+    assert main(["calibrate", str(task), "--yes", *quick, str(tmp_path / "a")]) == 0
     assert main(["calibrate", str(task), "--backend", "sim", *quick, str(tmp_path / "b")]) == 0
     assert seen == ["hw", "sim"]
+
+
+def test_on_the_real_cell_the_operator_confirms_the_reference_part_before_anything(tmp_path, monkeypatch,
+                                                                                    capsys):
+    connected = []
+    monkeypatch.setattr(loop, "open_devices", lambda *a, **k: connected.append(a))
+    task = variant(tmp_path, {"cell.backend": "hw"})
+    assert main(["calibrate", str(task), "--out", str(tmp_path / "c")]) == 3    # stdin: no terminal
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "place the reference part" in last and "run with --yes" in last and connected == []
