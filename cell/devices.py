@@ -375,12 +375,10 @@ class Devices:
     camera: Camera
 
     def safe_stop(self, fault=None):
-        """Stop the arm, hold the servos (torque off only for their own fault), close the camera,
-        then release the arm's and the servos' connections. Every step is tried; returns the
-        messages of steps that failed, in turn."""
+        """Stop the arm, hold the servos (torque off only for their own fault), close the camera.
+        Every step is tried; returns the messages of steps that failed, in turn."""
         lamp_faulted = isinstance(fault, DeviceFault) and fault.device == self.lamp.device
-        steps = (self.arm.stop, lambda: self.lamp.stop(fault_is_own=lamp_faulted), self.camera.close,
-                 self.arm.close, self.lamp.close)
+        steps = (self.arm.stop, lambda: self.lamp.stop(fault_is_own=lamp_faulted), self.camera.close)
         return _try_all(steps)
 
     def close(self):
@@ -391,9 +389,10 @@ class Devices:
 class Session:
     """Owns the devices of one run, `with Session(on_fault) as session: session.devices =
     connect(...)`. A normal end, or a goal not reached (a CellError that is no DeviceFault), closes
-    them. A DeviceFault or anything else (a bug, Ctrl-C, SIGTERM) stops them safely first; then
-    `fault` = {device, error, stop_failures}, on_fault(fault) is called (to log it), and a
-    DeviceFault is raised again saying whether motion stopped."""
+    them. A DeviceFault or anything else (a bug, Ctrl-C, SIGTERM) stops them safely first, then
+    releases the arm's and the servos' connections; `fault` = {device, error, stop_failures,
+    release_failures}, on_fault(fault) is called (to log it), and a DeviceFault is raised again
+    saying whether motion stopped."""
 
     def __init__(self, on_fault=lambda fault: None):
         self.devices, self.fault, self.on_fault = None, None, on_fault
@@ -407,8 +406,9 @@ class Session:
                 self.devices.close()
             return False
         failures = self.devices.safe_stop(err) if self.devices else []
+        released = _try_all((self.devices.arm.close, self.devices.lamp.close)) if self.devices else []
         self.fault = {"device": getattr(err, "device", None), "error": str(err) or type(err).__name__,
-                      "stop_failures": failures}
+                      "stop_failures": failures, "release_failures": released}
         self.on_fault(self.fault)
         if isinstance(err, DeviceFault):
             raise DeviceFault(err.device, f"{err.reason}; {stop_outcome(failures)}") from err
