@@ -50,23 +50,32 @@ class RunLog:
 
 class Measurement:
     """Gray of one capture over the feature's image region (the convex hull of the projected
-    samples, seen from the arm's read-back pose) and at each sample's pixel (NaN off the image)."""
+    samples, seen from the arm's read-back pose) and at each sample's pixel (NaN off the image).
+
+    The band is judged on the surface's gray at every pixel, measure.local_mean (5x5 within the
+    region): a sensor's pixel noise, whose extremes over ten thousand pixels reach +-4 sigma, is
+    no property of the lighting and no lamp pose or exposure could narrow it. Without noise the
+    two agree to the rounding; the raw pixels' range and the noise are reported beside it."""
 
     def __init__(self, image, task, T_cell_cam, points, saturation):
         self.row, self.col, inside, self.sample_gray = measure.read_samples(image, task, T_cell_cam, points)
         image = np.asarray(image, float)
         self.region = measure.feature_mask(image.shape, self.row[inside], self.col[inside])
         self.gray = image[self.region]
+        self.surface = measure.local_mean(image, self.region)[self.region]
         self.saturation = saturation
         self.saturated = self.region & (image >= saturation)
-        self.min, self.max = float(self.gray.min()), float(self.gray.max())
+        self.min, self.max = float(self.surface.min()), float(self.surface.max())
 
     def stats(self):
-        """measured_gray of report.json over every pixel of the region, as the camera delivered
-        it (a real sensor clips at saturation; the sim without `quantization` does not), and
-        how many read saturation or more."""
-        return {**gray_stats(self.gray), "pixels": int(self.gray.size),
-                "saturated": int(self.saturated.sum())}
+        """measured_gray of report.json: mean/min/max of the surface's gray over the region,
+        `pixels` in it, how many read saturation or more, the raw pixels' range as the camera
+        delivered them (a real sensor clips at saturation; the sim without `quantization` does
+        not) and the pixel noise (rms of raw minus surface)."""
+        return {**gray_stats(self.surface), "pixels": int(self.gray.size),
+                "saturated": int(self.saturated.sum()),
+                "pixel_min": float(self.gray.min()), "pixel_max": float(self.gray.max()),
+                "noise_rms": float(np.sqrt(np.mean((self.gray - self.surface) ** 2)))}
 
     def in_band(self, band):
         return not self.saturated.any() and band[0] <= self.min and self.max <= band[1]
@@ -215,7 +224,8 @@ def shoot(task, plan, devices, out, log, k, shutter, f_number):
               "measured_gray": stats, "model_error": error, "model_error_relation": relation,
               "in_band": in_band, "capture": name, "annotated": annotated}
     log.step("measure", f"gray mean {stats['mean']:.1f}, {m.min:.1f}-{m.max:.1f} over {stats['pixels']} px "
-                        f"({stats['saturated']} saturated); the model predicts {expected['mean']:.1f}, "
+                        f"(pixels {stats['pixel_min']:.0f}-{stats['pixel_max']:.0f}, noise "
+                        f"{stats['noise_rms']:.1f} rms, {stats['saturated']} saturated); the model predicts {expected['mean']:.1f}, "
                         f"{expected['min']:.1f}-{expected['max']:.1f}; {describe_error(error, relation)}; "
                         f"{verdict}",
              **record)

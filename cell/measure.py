@@ -46,6 +46,17 @@ def feature_mask(shape, row, col):
     return mask.astype(bool)
 
 
+def local_mean(image, mask, size=5):
+    """Mean of each pixel's size x size neighbourhood within mask (normalized convolution): the
+    surface's gray with the sensor's pixel noise averaged down by size (5: 5x), while shading that
+    changes over tens of pixels passes unchanged. Outside the mask: 0."""
+    m = mask.astype(np.float64)
+    total = cv2.boxFilter(np.asarray(image, np.float64) * m, -1, (size, size), normalize=False,
+                          borderType=cv2.BORDER_CONSTANT)
+    count = cv2.boxFilter(m, -1, (size, size), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    return np.where(mask, total / np.maximum(count, 1.0), 0.0)
+
+
 def saturation_level(bit_depth):
     """The largest gray a bit_depth sensor reports: a pixel there may truly be brighter."""
     return 2 ** int(bit_depth) - 1

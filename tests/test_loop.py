@@ -10,6 +10,7 @@ from types import SimpleNamespace
 import cv2
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings, strategies as st
 
 from cell import cli, loop, projection
 from cell.cli import main
@@ -124,6 +125,23 @@ def test_a_wrong_model_is_corrected_within_4_iterations(tmp_path, truth):
     assert 100 <= last["measured_gray"]["min"] and last["measured_gray"]["max"] <= 125
     # shutter first: the f-number stays at the widest the depth of field allows
     assert last["f_number"] == pytest.approx(first["f_number"])
+
+
+@settings(max_examples=6, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(albedo=st.floats(0.5, 2.0), constant=st.floats(0.7, 1.3), aim_error_deg=st.floats(0.0, 1.0),
+       seed=st.integers(0, 2**16))
+def test_any_modest_model_error_converges_within_4_captures(tmp_path_factory, albedo, constant,
+                                                           aim_error_deg, seed):
+    changes = {"sim.truth.albedo_scale": albedo, "sim.truth.camera_constant_scale": constant,
+               "sim.truth.lamp_direction_error_deg": aim_error_deg, "sim.seed": seed,
+               "sim.effects": ["shadows", "cone_falloff", "noise", "black_level", "quantization"]}
+    tmp_path = tmp_path_factory.mktemp("truth")
+    cell = run(variant(tmp_path, HINGE, changes), tmp_path / "run")
+    assert cell.error is None and cell.report["converged"], cell.report["reason"]
+    assert len(cell.report["iterations"]) <= 4
+    last = cell.report["iterations"][-1]["measured_gray"]
+    assert 100 <= last["min"] and last["max"] <= 125 and last["saturated"] == 0
 
 
 def test_what_the_exposure_cannot_absorb_is_re_planned_with_the_measured_error(tmp_path):
