@@ -4,9 +4,10 @@ feature's gray, correct, until every feature pixel is in the gray band or N iter
 Correction from G = c P_pixel t with P_pixel ~ 1 / kappa^2 (eq. 10, 17): the gray scales with
 t / kappa^2, so one gain k = sqrt(low high) / sqrt(G_min G_max) centres the measured range in the
 band geometrically. The shutter takes k first; where it hits its limits the f-number takes the rest,
-never wider than the depth of field allows. What neither absorbs (or a range wider than the band) is
-re-planned with the measured model error as an effective albedo scale: only the product c rho is
-observable, so the scale also absorbs an error in c.
+never wider than the depth of field allows. What neither absorbs is re-planned with the measured
+model error as an effective albedo scale: only the product c rho is observable, so the scale also
+absorbs an error in c. A range relatively wider than the band is no exposure problem and an albedo
+scale does not change the predicted shape: the run ends at once and says so.
 """
 import os
 import sys
@@ -106,19 +107,23 @@ def true_range(m, predicted, error):
     return resolve(m.min, error * predicted.min()), resolve(m.max, error * predicted.max())
 
 
+def spread_exceeds_band(lo, hi, band):
+    """Whether the feature's gray range is relatively wider than the band (max/min > high/low), so
+    that no exposure fits it, G ~ t / kappa^2 scaling all alike. A dim range (lo < RESOLVED low)
+    is not judged: noise and black level inflate it."""
+    low, high = band
+    return lo >= RESOLVED * low and hi > lo * high / low
+
+
 def correct_exposure(lo, hi, relation, shutter_s, f_number, band, shutter_range, f_number_range):
     """(shutter, f-number, reason): the gain sqrt(low high) / sqrt(lo hi) on G ~ t / kappa^2,
     shutter first, the f-number within f_number_range (its low end the widest the depth of field
     allows) for what the shutter's range leaves. With every pixel saturated (relation ">=", lo and
     hi lower bounds) it steps SATURATED_STEP further, so the next capture measures. A dim range
-    (lo < RESOLVED low) is brightened before its spread is judged. reason is None when the range
-    can then be in band (or, dim, is brighter), else says why not."""
+    (lo < RESOLVED low, whose spread is not judged: spread_exceeds_band) is brightened. reason is
+    None when the range can then be in band (or, dim, is brighter), else says why not."""
     low, high = band
     dim = lo < RESOLVED * low
-    if hi > lo * high / low and not dim:
-        return shutter_s, f_number, (f"the feature's gray spans {lo:.1f}-{hi:.1f}, max/min "
-                                     f"{hi / max(lo, 1e-12):.2f} > the band's {high / low:.2f}: "
-                                     f"no exposure fits it in {low:g}-{high:g}")
     step = SATURATED_STEP if relation == ">=" else 1.0
     exposure = shutter_s / f_number**2 * np.sqrt(low * high / (lo * hi)) / step
     shutter = float(np.clip(exposure * f_number**2, *shutter_range))
@@ -256,6 +261,14 @@ def iterate(task, plan, devices, out, log, report, max_iterations):
                                  f"{1e3 * shutter:.3g} ms, f/{f_number:.1f}; {describe_error(error, relation)}")
 
         lo, hi = true_range(m, predicted, error)
+        if spread_exceeds_band(lo, hi, band):
+            p = gray_stats(predicted * error)
+            raise GoalNotReached(
+                f"the feature's gray spans {lo:.1f}-{hi:.1f}, max/min {hi / lo:.2f} > the band's "
+                f"{band[1] / band[0]:.2f}, where the model (its albedo corrected) predicts "
+                f"{p['min']:.1f}-{p['max']:.1f}: no exposure narrows it, and a re-plan with a corrected "
+                f"albedo would not either; the light falls otherwise than modelled (check the lamp's "
+                f"aim, shadows on the feature and the material table)")
         new_shutter, new_f_number, why = correct_exposure(lo, hi, relation, shutter, f_number, band,
                                                           task.camera.shutter_range_s, lens_range)
         if why is None:

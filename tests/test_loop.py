@@ -202,9 +202,20 @@ def test_aperture_takes_what_the_shutter_cannot_never_wider_than_depth_of_field(
     assert t == 0.02 and kappa == 5.5 and "even at 20 ms and f/5.5" in why
 
 
-def test_a_range_wider_than_the_band_is_not_an_exposure_problem():
-    _, _, why = loop.correct_exposure(90.0, 130.0, "=", 6e-3, 5.5, BAND, SHUTTER, LENS)
-    assert "max/min 1.44 > the band's 1.25" in why
+def test_a_range_wider_than_the_band_is_not_an_exposure_problem_unless_too_dim_to_judge():
+    assert loop.spread_exceeds_band(90.0, 130.0, BAND)          # 1.44 > 1.25
+    assert not loop.spread_exceeds_band(100.0, 125.0, BAND)
+    assert not loop.spread_exceeds_band(11.0, 16.0, BAND)       # dim: noise and black level
+
+
+def test_a_spread_the_model_does_not_predict_ends_at_once_and_says_why(tmp_path):
+    """The lamp 4.5 deg off its aim puts the cone's soft edge across the feature: the measured
+    spread is the world's, not the model's, so neither exposure nor a re-plan can help."""
+    cell = run(variant(tmp_path, HINGE, {"sim.truth.lamp_direction_error_deg": 4.5}), tmp_path / "run")
+    assert isinstance(cell.error, GoalNotReached) and len(cell.report["iterations"]) == 1
+    reason = str(cell.error)
+    assert "max/min" in reason and "the model (its albedo corrected) predicts" in reason
+    assert "lamp's aim" in reason and cell.report["replans"] == []
 
 
 def test_saturated_samples_give_a_lower_bound_and_the_rest_an_estimate():
