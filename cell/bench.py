@@ -27,7 +27,7 @@ from cell.pictures import pyplot
 from cell.planner import PlannerSettings
 from cell.regions import SphereGrid
 from cell.scene import build_scene
-from kernels.bench import benchmark_gray, benchmark_visibility
+from kernels.bench import benchmark_gray, benchmark_visibility, wall_times
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_TASKS = (ROOT / "tasks" / "hinge.yaml", ROOT / "tasks" / "conrod.yaml")
@@ -59,13 +59,10 @@ QUICK_GRID_STEPS_DEG = (4.0,)
 
 
 def timed_plan(task, settings, repeats):
-    """(plan, median wall time [s], every time): one warm-up plan, then `repeats` timed ones."""
-    planner.plan(task, settings)
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        result = planner.plan(task, settings)
-        times.append(time.perf_counter() - t0)
+    """(plan, median wall time [s], every time): one warm-up plan (the planner is deterministic:
+    its result is the plan), then `repeats` timed ones."""
+    result = planner.plan(task, settings)
+    times = wall_times(lambda: planner.plan(task, settings), repeats)
     return result, float(np.median(times)), times
 
 

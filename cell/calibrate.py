@@ -191,7 +191,7 @@ def command(args):
     result = run(task, out, lambda scene: loop.open_devices(task, scene, backend, yes=args.yes), args.shots)
     fit = Fit(**result["fit"])
     print(f"camera constant c = {fit.camera_constant:.5g} +- {fit.stderr:.2g} 1/(W s) "
-          f"({fit.camera_constant / c_model:.3f} x the task's {c_model:.5g}); black level "
+          f"({result['camera_constant_ratio']:.3f} x the task's {c_model:.5g}); black level "
           f"{fit.black_level:.2f}, linearity r2 {fit.r2:.5f}, {fit.used} pairs "
           f"({fit.saturated} saturated, {fit.dark} at 0 left out)")
     print(f"  set camera.sensor.camera_constant: {fit.camera_constant:.5g} in the tasks that use "

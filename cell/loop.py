@@ -37,13 +37,15 @@ class RunLog:
     def __init__(self, path):
         self.file = open(path, "a", encoding="utf-8")
 
-    def step(self, step, message, **data):
+    def step(self, step, message, iteration=None, **data):
+        """One step; `iteration` (the capture it belongs to) is left out when None."""
+        where = {} if iteration is None else {"iteration": iteration}
         line = {"t": datetime.now(timezone.utc).isoformat(timespec="milliseconds"), "step": step,
-                "message": message, **data}
+                "message": message, **where, **data}
         self.file.write(jsonio.dumps(line) + "\n")
         self.file.flush()
         os.fsync(self.file.fileno())
-        print(f"{data.get('iteration', ''):>2} {step:<12} {message}", file=sys.stderr, flush=True)
+        print(f"{'' if iteration is None else iteration:>2} {step:<12} {message}", file=sys.stderr, flush=True)
 
     def close(self):
         self.file.close()
@@ -160,12 +162,11 @@ def plan_step(task, out, log, albedo_scale=1.0, iteration=None):
     write_plan(planned, task, out)
     g, exposure = gray_stats(planned.gray), planned.exposure
     verdict = "feasible" if planned.feasible else f"INFEASIBLE, {planned.binding}: {planned.hint}"
-    where = {} if iteration is None else {"iteration": iteration}
     log.step("plan", f"{verdict}; lamp {planned.distance_m:.3f} m, phase "
                      f"{np.degrees(planned.phase_angle_rad):.1f} deg; {1e3 * exposure.shutter_s:.3f} ms, "
                      f"f/{exposure.f_number:.1f}; predicted gray {g['min']:.1f}-{g['max']:.1f}"
                      + (f" (albedo x{albedo_scale:.3g})" if albedo_scale != 1.0 else ""),
-             **where, albedo_scale=albedo_scale, feasible=planned.feasible, binding=planned.binding,
+             iteration=iteration, albedo_scale=albedo_scale, feasible=planned.feasible, binding=planned.binding,
              hint=planned.hint, joints=planned.joints, shutter_s=exposure.shutter_s,
              f_number=exposure.f_number, predicted_gray=g, folder=str(out))
     return planned
@@ -173,16 +174,15 @@ def plan_step(task, out, log, albedo_scale=1.0, iteration=None):
 
 def drive(devices, plan, log, iteration=None):
     """Camera and lamp to the plan's poses, each logged as read back from the device."""
-    where = {} if iteration is None else {"iteration": iteration}
     devices.arm.move_camera(plan.scene.T_cell_cam)
     position = devices.arm.camera_pose()[:3, 3]
     off = float(np.linalg.norm(position - plan.scene.camera_position))
     log.step("move_camera", f"camera at {np.round(position, 4).tolist()} m ({1e3 * off:.2f} mm from the plan)",
-             **where, position_m=position, error_m=off)
+             iteration=iteration, position_m=position, error_m=off)
     devices.lamp.move(*plan.joints)
     pan, tilt, radius = devices.lamp.joints()
     log.step("move_lamp", f"pan {np.degrees(pan):.2f} deg, tilt {np.degrees(tilt):.2f} deg, "
-                          f"radius {1e3 * radius:.1f} mm", **where,
+                          f"radius {1e3 * radius:.1f} mm", iteration=iteration,
              joints={"pan_deg": np.degrees(pan), "tilt_deg": np.degrees(tilt), "radius_m": radius})
 
 

@@ -16,14 +16,19 @@ from .gray import gray_per_exposure
 from .visibility import visibility_maps
 
 
-def median_time(fn, repeat):
-    """Median wall time of `repeat` calls of fn() [s]."""
+def wall_times(fn, repeat):
+    """Wall time of each of `repeat` (at least 1) calls of fn() [s]."""
     times = []
     for _ in range(max(1, repeat)):
         t0 = time.perf_counter()
         fn()
         times.append(time.perf_counter() - t0)
-    return float(np.median(times))
+    return times
+
+
+def median_time(fn, repeat):
+    """Median wall time of `repeat` calls of fn() [s]."""
+    return float(np.median(wall_times(fn, repeat)))
 
 
 def _row(name, size, warp_per_s, ref_name, ref_size=0, ref_per_s=None, unavailable=None):
