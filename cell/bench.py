@@ -5,7 +5,7 @@ refinement) is timed warm (one plan first, then the median of repeats) and compa
 reference plan of the same task at fine resolution (REFERENCE):
 - gray error: a plan predicts mean/min/max gray over the feature from its own samples. The truth
   is what its chosen lamp pose and exposure give on the reference's fine samples with the same
-  physics (G = u t / kappa^2, u from the Evaluator on the reference scene). `gray_error` is
+  physics (G = u t / kappa^2, u from cell.evaluate on the reference scene). `gray_error` is
   predicted - true for each of mean, min, max [gray levels]; `gray_error_max` the largest
   magnitude e: every fine sample's true gray then lies within e of the predicted [min, max].
 - lamp error: distance to the reference plan's lamp [mm] and angle between the two lamp
@@ -20,11 +20,11 @@ from pathlib import Path
 
 import numpy as np
 
-from cell import geometry, jsonio, planner, rig
+from cell import evaluate, geometry, jsonio, planner, rig
 from cell.cli import output_folder
 from cell.loader import load_task
 from cell.pictures import pyplot
-from cell.planner import PlannerSettings
+from cell.plan import PlannerSettings, gray_stats
 from cell.regions import SphereGrid
 from cell.scene import build_scene
 from kernels.bench import benchmark_gray, benchmark_visibility, wall_times
@@ -67,21 +67,22 @@ def timed_plan(task, settings, repeats):
 
 
 def accuracy(task, result, reference, truth):
-    """Errors of a plan against the reference plan (module docstring); `truth` is a
-    planner.Evaluator on the reference's scene."""
-    pos = result.lamp_position
-    u, _, _ = truth.bulk(pos[None], rig.lamp_aim(task.lamp.rig.pivot_m, pos)[None])
-    true_gray = u[0] * result.exposure.shutter_s / result.exposure.f_number**2
-    predicted, true = planner.gray_stats(result.gray), planner.gray_stats(true_gray)
+    """Errors of a plan against the reference plan (module docstring); `truth` is the
+    evaluate.Problem of the reference's scene."""
+    shot, ref_shot = result.shot, reference.shot
+    pos = shot.lamp_position
+    u, _, _ = evaluate.unit_gray(truth, pos[None], rig.lamp_aim(task.lamp.rig.pivot_m, pos)[None])
+    true_gray = u[0] * shot.exposure.shutter_s / shot.exposure.f_number**2
+    predicted, true = gray_stats(shot.gray), gray_stats(true_gray)
     error = {k: predicted[k] - true[k] for k in predicted}
     center = reference.scene.center
-    cos = geometry.unit(pos - center) @ geometry.unit(reference.lamp_position - center)
-    numbers = np.concatenate([result.gray, true_gray, pos, result.joints, list(asdict(result.exposure).values()),
+    cos = geometry.unit(pos - center) @ geometry.unit(ref_shot.lamp_position - center)
+    numbers = np.concatenate([shot.gray, true_gray, pos, shot.joints, list(asdict(shot.exposure).values()),
                               [r.value for r in result.requirements]])
     return {
         "predicted_gray": predicted, "true_gray": true, "gray_error": error,
         "gray_error_max": max(abs(e) for e in error.values()),
-        "lamp_error_mm": 1e3 * float(np.linalg.norm(pos - reference.lamp_position)),
+        "lamp_error_mm": 1e3 * float(np.linalg.norm(pos - ref_shot.lamp_position)),
         "lamp_error_deg": float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))),
         "feasible_agrees": result.feasible == reference.feasible,
         "finite": bool(np.all(np.isfinite(numbers))),
@@ -103,16 +104,16 @@ def sweep_task(path, names, reference_settings, repeats, say):
     t0 = time.perf_counter()
     reference = planner.plan(task, reference_settings)
     ref_time = time.perf_counter() - t0
-    say(f"{label} reference: {ref_time:.1f} s, {len(reference.gray)} samples, "
+    say(f"{label} reference: {ref_time:.1f} s, {len(reference.scene.points)} samples, "
         f"{'feasible' if reference.feasible else 'INFEASIBLE (' + reference.binding + ')'}")
-    truth = planner.Evaluator(task, reference.scene, reference.maps)
+    truth = evaluate.build_problem(task, reference.scene, reference.maps)
     rows = []
     for name in names:
         settings = SWEEP[name]
         result, time_s, times = timed_plan(task, settings, repeats)
         row = {"name": name, "task": label, "settings": asdict(settings),
                "candidates": len(planner.candidate_grid(task.lamp.rig, settings)[0]),
-               "samples": len(result.gray), "time_s": time_s, "times_s": times, "stages_s": result.timing_s,
+               "samples": len(result.scene.points), "time_s": time_s, "times_s": times, "stages_s": result.timing_s,
                "feasible": result.feasible, "binding": result.binding, "miss": result.miss,
                **accuracy(task, result, reference, truth), "default": settings == DEFAULT}
         rows.append(row)
@@ -122,10 +123,10 @@ def sweep_task(path, names, reference_settings, repeats, say):
         row["pareto"] = on_front
     ref = {"task": label, "settings": asdict(reference_settings), "time_s": ref_time,
            "candidates": len(planner.candidate_grid(task.lamp.rig, reference_settings)[0]),
-           "samples": len(reference.gray), "feasible": reference.feasible, "binding": reference.binding,
+           "samples": len(reference.scene.points), "feasible": reference.feasible, "binding": reference.binding,
            "miss": reference.miss,
-           "predicted_gray": planner.gray_stats(reference.gray),
-           "lamp_position_m": reference.lamp_position.tolist()}
+           "predicted_gray": gray_stats(reference.shot.gray),
+           "lamp_position_m": reference.shot.lamp_position.tolist()}
     return rows, ref
 
 

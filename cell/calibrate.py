@@ -84,13 +84,14 @@ def calibrate(task, plan, devices, log, shots=6, record=None):
     record = [] if record is None else record
     camera = devices.camera
     full_scale = measure.saturation_level(camera.bit_depth)
-    sweep = shutter_sweep(plan.exposure.shutter_s, plan.gray.max(), full_scale,
+    shot = plan.shot
+    sweep = shutter_sweep(shot.exposure.shutter_s, shot.gray.max(), full_scale,
                           task.camera.shutter_range_s, shots)
     drive(devices, plan, log)
-    camera.set_aperture(plan.exposure.f_number)
-    camera.set_focus(plan.exposure.focus_m)
+    camera.set_aperture(shot.exposure.f_number)
+    camera.set_focus(shot.exposure.focus_m)
     # the model's pixel power per sample at the planned f-number: G = c P t
-    power = plan.gray / (task.camera.sensor.camera_constant * plan.exposure.shutter_s)
+    power = shot.gray / (task.camera.sensor.camera_constant * shot.exposure.shutter_s)
     exposures, grays = [], []
     for k, wanted in enumerate(sweep, 1):
         actual = camera.set_exposure(wanted)
@@ -99,7 +100,7 @@ def calibrate(task, plan, devices, log, shots=6, record=None):
         exposures.append(power * actual)
         grays.append(gray)
         seen = gray[inside]
-        record.append({"shutter_s": float(actual), "f_number": plan.exposure.f_number,
+        record.append({"shutter_s": float(actual), "f_number": shot.exposure.f_number,
                        "gray_min": float(seen.min()), "gray_mean": float(seen.mean()),
                        "gray_max": float(seen.max()), "samples": int(seen.size),
                        "saturated": int(np.sum(seen >= full_scale))})

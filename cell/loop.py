@@ -22,7 +22,9 @@ from cell import jsonio, measure
 from cell.devices import Session, stop_outcome
 from cell.errors import DeviceFault, GoalNotReached, PlanInfeasible, TaskError
 from cell.pictures import write_convergence
-from cell.planner import depth_of_field_limits, gray_stats, plan as make_plan, write_plan
+from cell.evaluate import depth_of_field_limits
+from cell.plan import gray_stats
+from cell.planner import plan as make_plan, write_plan
 
 DARK = 0.5                  # a pixel reading 0 is below the first gray level: true gray < 0.5
 SATURATED_STEP = 4.0        # every pixel saturated: step this far past the lower bound (2 stops)
@@ -160,26 +162,28 @@ def plan_step(task, out, log, albedo_scale=1.0, iteration=None):
     planned = make_plan(task, albedo_scale=albedo_scale,
                         progress=lambda msg: print(f"{'':16}{msg}", file=sys.stderr, flush=True))
     write_plan(planned, task, out)
-    g, exposure = gray_stats(planned.gray), planned.exposure
+    shot = planned.shot
+    g, exposure = gray_stats(shot.gray), shot.exposure
     verdict = "feasible" if planned.feasible else f"INFEASIBLE, {planned.binding}: {planned.hint}"
-    log.step("plan", f"{verdict}; lamp {planned.distance_m:.3f} m, phase "
-                     f"{np.degrees(planned.phase_angle_rad):.1f} deg; {1e3 * exposure.shutter_s:.3f} ms, "
+    log.step("plan", f"{verdict}; lamp {shot.distance_m:.3f} m, phase "
+                     f"{np.degrees(shot.phase_angle_rad):.1f} deg; {1e3 * exposure.shutter_s:.3f} ms, "
                      f"f/{exposure.f_number:.1f}; predicted gray {g['min']:.1f}-{g['max']:.1f}"
                      + (f" (albedo x{albedo_scale:.3g})" if albedo_scale != 1.0 else ""),
              iteration=iteration, albedo_scale=albedo_scale, feasible=planned.feasible, binding=planned.binding,
-             hint=planned.hint, joints=planned.joints, shutter_s=exposure.shutter_s,
+             hint=planned.hint, joints=shot.joints, shutter_s=exposure.shutter_s,
              f_number=exposure.f_number, predicted_gray=g, folder=str(out))
     return planned
 
 
 def drive(devices, plan, log, iteration=None):
     """Camera and lamp to the plan's poses, each logged as read back from the device."""
-    devices.arm.move_camera(plan.scene.T_cell_cam)
+    shot = plan.shot
+    devices.arm.move_camera(shot.T_cell_cam)
     position = devices.arm.camera_pose()[:3, 3]
-    off = float(np.linalg.norm(position - plan.scene.camera_position))
+    off = float(np.linalg.norm(position - shot.camera_position))
     log.step("move_camera", f"camera at {np.round(position, 4).tolist()} m ({1e3 * off:.2f} mm from the plan)",
              iteration=iteration, position_m=position, error_m=off)
-    devices.lamp.move(*plan.joints)
+    devices.lamp.move(*shot.joints)
     pan, tilt, radius = devices.lamp.joints()
     log.step("move_lamp", f"pan {np.degrees(pan):.2f} deg, tilt {np.degrees(tilt):.2f} deg, "
                           f"radius {1e3 * radius:.1f} mm", iteration=iteration,
@@ -203,13 +207,13 @@ def draw_feature(image, m, bit_depth, caption):
 def shoot(task, plan, devices, out, log, k, shutter, f_number):
     """Set the exposure, capture (saved at once), measure and compare with the current plan's
     model at these settings (G ~ t / kappa^2). Returns (record, Measurement, predicted gray)."""
-    camera, bit_depth = devices.camera, devices.camera.bit_depth
+    camera, bit_depth, shot = devices.camera, devices.camera.bit_depth, plan.shot
     shutter = camera.set_exposure(shutter)
     camera.set_aperture(f_number)
-    camera.set_focus(plan.exposure.focus_m)
+    camera.set_focus(shot.exposure.focus_m)
     log.step("set_exposure", f"shutter {1e3 * shutter:.3f} ms, f/{f_number:.2f}, focus "
-                             f"{plan.exposure.focus_m:.3f} m", iteration=k,
-             shutter_s=shutter, f_number=f_number, focus_m=plan.exposure.focus_m)
+                             f"{shot.exposure.focus_m:.3f} m", iteration=k,
+             shutter_s=shutter, f_number=f_number, focus_m=shot.exposure.focus_m)
     image = np.asarray(camera.capture())
     name, annotated = f"capture-{k}.png", f"capture-{k}-feature.png"
     cv2.imwrite(str(out / name), measure.levels(image, bit_depth))  # float (sim) rounded
@@ -217,7 +221,7 @@ def shoot(task, plan, devices, out, log, k, shutter, f_number):
 
     saturation = measure.saturation_level(bit_depth)
     m = Measurement(image, task, devices.arm.camera_pose(), plan.scene.points, saturation)
-    predicted = plan.gray * (shutter / plan.exposure.shutter_s) * (plan.exposure.f_number / f_number) ** 2
+    predicted = shot.gray * (shutter / shot.exposure.shutter_s) * (shot.exposure.f_number / f_number) ** 2
     error, relation = model_error(m.sample_gray, predicted, saturation)
     band = task.requirements.gray_band
     in_band = m.in_band(band)
@@ -242,7 +246,7 @@ def iterate(task, plan, devices, out, log, report, max_iterations):
     saying why when no correction is possible or the iterations run out."""
     band = tuple(map(float, task.requirements.gray_band))
     lens_range = (depth_of_field_limits(task, plan.scene)[2], task.camera.lens.f_number_range[1])
-    albedo, shutter, f_number, moved = 1.0, plan.exposure.shutter_s, plan.exposure.f_number, False
+    albedo, shutter, f_number, moved = 1.0, plan.shot.exposure.shutter_s, plan.shot.exposure.f_number, False
     for k in range(1, max_iterations + 1):
         if not moved:
             drive(devices, plan, log, k)
@@ -290,7 +294,7 @@ def iterate(task, plan, devices, out, log, report, max_iterations):
         if not plan.feasible:
             raise GoalNotReached(f"{describe_error(error, relation)}; {why}; re-planned for an albedo "
                                  f"x{albedo:.3g}: infeasible, {plan.binding}: {plan.hint}")
-        shutter, f_number, moved = plan.exposure.shutter_s, plan.exposure.f_number, False
+        shutter, f_number, moved = plan.shot.exposure.shutter_s, plan.shot.exposure.f_number, False
 
 
 def plan_and_connect(task, out, log, session, connect, record):

@@ -26,8 +26,8 @@ def _feature_angles(plan, scene, position):
 
 
 def _mark(ax, plan, scene):
-    cam = _feature_angles(plan, scene, plan.camera_position)
-    lamp = _feature_angles(plan, scene, plan.lamp_position)
+    cam = _feature_angles(plan, scene, plan.shot.camera_position)
+    lamp = _feature_angles(plan, scene, plan.shot.lamp_position)
     ax.plot(*cam, marker="s", ms=11, mfc="none", mec="white", mew=2, ls="none", label="camera")
     ax.plot(*lamp, marker="o", ms=8, mfc="white", mec="black", ls="none", label="lamp")
     ax.legend(loc="lower right", fontsize=8, framealpha=0.6)
@@ -85,7 +85,7 @@ def write_plan_pictures(plan, task, scene, out_dir):
     np.minimum.at(best, inv.ravel(), obj)
     sc = ax2.scatter(uniq[:, 0], uniq[:, 1], c=np.clip(best, -2, 10), cmap="magma_r", s=28, marker="s")
     fig3.colorbar(sc, ax=ax2, label="objective ln sum f_i (eq. 22), best over radius")
-    jp, jt, _ = plan.joints
+    jp, jt, _ = plan.shot.joints
     ax2.plot(np.degrees(jp), np.degrees(jt), "o", mfc="white", mec="black", ms=9, label="lamp")
     ax2.set_xlabel("rig pan [deg]")
     ax2.set_ylabel("rig tilt [deg]")

@@ -1,15 +1,16 @@
 """The task's geometry in the cell frame: part mesh, feature samples, camera pose.
 
-Shared by the planner, the simulated camera and the closed loop so they all see one scene.
+Shared by the planner, the simulated camera and the closed loop so they all see one scene. A
+Scene is plain arrays (it pickles: a plan made in a worker process carries it back); the Warp
+BVH of its mesh is the process's own (kernels.mesh.shared_mesh, keyed by the geometry's digest).
 """
+import hashlib
 from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
-import trimesh
 
 from cell import geometry
-from kernels.mesh import WarpMesh
+from kernels.mesh import shared_mesh
 from kernels.proximity import closest_points
 
 GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
@@ -41,7 +42,9 @@ def feature_disk(n, radius):
 
 @dataclass(frozen=True)
 class Scene:
-    mesh: trimesh.Trimesh        # cell frame, metres
+    vertices: np.ndarray         # (V, 3) part mesh in the cell frame [m]
+    faces: np.ndarray            # (F, 3) vertex indices
+    mesh_key: str                # digest of vertices and faces: names the geometry in caches
     center: np.ndarray           # feature centre, cell frame
     normal: np.ndarray           # feature normal, cell frame
     frame: np.ndarray            # 3x3, columns x, y, z of the feature frame (z = normal)
@@ -53,9 +56,10 @@ class Scene:
     def camera_position(self):
         return self.T_cell_cam[:3, 3]
 
-    @cached_property
+    @property
     def warp_mesh(self):
-        return WarpMesh(self.mesh.vertices, self.mesh.faces)
+        """This process's Warp BVH of the mesh (built on first use)."""
+        return shared_mesh(self.mesh_key, self.vertices, self.faces)
 
     def sample_depths(self):
         """Distances camera -> samples along the optical axis [m]."""
@@ -74,13 +78,17 @@ def build_scene(task, samples=None):
     n = samples or task.feature.samples
     disk = feature_disk(n, task.feature.radius_m)
     guesses = center + disk[:, :1] * frame[:, 0] + disk[:, 1:] * frame[:, 1]
-    scene_mesh = WarpMesh(mesh.vertices, mesh.faces)
-    points, faces, _ = closest_points(scene_mesh, guesses, max_dist=4 * task.feature.radius_m + 0.01)
-    if np.any(faces < 0):
+    vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
+    faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
+    key = hashlib.blake2b(vertices.tobytes() + faces.tobytes(), digest_size=16).hexdigest()
+    points, hit, _ = closest_points(shared_mesh(key, vertices, faces), guesses,
+                                    max_dist=4 * task.feature.radius_m + 0.01)
+    if np.any(hit < 0):
         raise ValueError("feature samples found no surface nearby")
-    normals = mesh.face_normals[faces]
+    normals = mesh.face_normals[hit]
     cam = center + task.camera.distance_m * geometry.unit(geometry.rotate(T, task.camera.view_direction))
-    scene = Scene(mesh=mesh, center=center, normal=normal, frame=frame, points=points,
-                  normals=normals, T_cell_cam=look_at(cam, center))
-    scene.__dict__["warp_mesh"] = scene_mesh
-    return scene
+    arrays = dict(vertices=vertices, faces=faces, center=center, normal=normal, frame=frame,
+                  points=points, normals=normals, T_cell_cam=look_at(cam, center))
+    for a in arrays.values():
+        a.flags.writeable = False        # the key names this geometry: it must not change under it
+    return Scene(mesh_key=key, **arrays)

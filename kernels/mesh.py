@@ -39,3 +39,21 @@ class WarpMesh:
 
     def __repr__(self):
         return f"WarpMesh({len(self.vertices)} vertices, {len(self.faces)} faces)"
+
+
+_SHARED = {}                # this process's meshes: key -> WarpMesh, newest last
+_SHARED_MAX = 8
+
+
+def shared_mesh(key, vertices, faces):
+    """The process's WarpMesh of this geometry, built on first use and kept for the next.
+
+    Warp handles cannot be pickled or sent to another process, so plans and scenes carry plain
+    arrays and a `key` naming their geometry (a digest); each process builds its own BVH once.
+    The few most recent meshes are kept (a bench or a test suite plans many scenes of one part).
+    """
+    mesh = _SHARED.pop(key, None) or WarpMesh(vertices, faces)
+    _SHARED[key] = mesh
+    while len(_SHARED) > _SHARED_MAX:
+        _SHARED.pop(next(iter(_SHARED)))
+    return mesh

@@ -101,7 +101,7 @@ def test_cost_functions_are_one_at_their_limits():
 
 def test_feasibility_uses_the_max_not_lse_minus_ln_n():
     # three requirements at 0.9, 0.9 and 1.05: lse - ln 3 < 1 would wrongly accept (eq. 25 erratum)
-    reqs = [costs.Requirement("a", 0.9), costs.Requirement("gray_max", 1.05), costs.Requirement("c", 0.9)]
+    reqs = [costs.RequirementValue("a", 0.9), costs.RequirementValue("gray_max", 1.05), costs.RequirementValue("c", 0.9)]
     v = costs.verdict(reqs)
     assert math.log(sum(r.value for r in reqs)) - math.log(3) < 1.0
     assert not v.feasible and v.binding == "gray_max" and v.miss == pytest.approx(0.05)

@@ -9,7 +9,7 @@ import pytest
 import trimesh
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from cell import geometry, planner
+from cell import evaluate, geometry, planner
 from cell.cli import main
 from cell.loader import load_task
 from cell.physics import brdf, depth_of_field as dof, radiometry
@@ -36,16 +36,16 @@ def numpy_gray(task, plan):
     """Gray per sample from cell.physics alone: eq. (6)-(7), (11), (10), (17); no shadows (the
     tests' plans have every sample lit)."""
     scene = plan.scene
-    s = geometry.unit(plan.lamp_position - scene.points)
+    s = geometry.unit(plan.shot.lamp_position - scene.points)
     v = geometry.unit(scene.camera_position - scene.points)
     R = brdf.reflectance_vectors(scene.normals, s, v, task.part.material)
-    aim = geometry.unit(task.lamp.rig.pivot_m - plan.lamp_position)
+    aim = geometry.unit(task.lamp.rig.pivot_m - plan.shot.lamp_position)
     off_axis = np.arccos(np.clip(-s @ aim, -1, 1))
     E = radiometry.cone_irradiance(task.lamp.power_w, task.lamp.cone_angle_rad,
-                                   np.linalg.norm(plan.lamp_position - scene.points, axis=-1), off_axis)
+                                   np.linalg.norm(plan.shot.lamp_position - scene.points, axis=-1), off_axis)
     sensor = task.camera.sensor
-    P = radiometry.pixel_power(sensor.pixel_area_m2, E, R, plan.exposure.f_number)
-    return radiometry.gray_value(sensor.camera_constant, P, plan.exposure.shutter_s)
+    P = radiometry.pixel_power(sensor.pixel_area_m2, E, R, plan.shot.exposure.f_number)
+    return radiometry.gray_value(sensor.camera_constant, P, plan.shot.exposure.shutter_s)
 
 
 @pytest.mark.parametrize("name", ["hinge", "conrod"])
@@ -53,20 +53,20 @@ def test_plan_meets_band_and_matches_numpy_physics(name, request):
     task, plan = request.getfixturevalue(name)
     low, high = task.requirements.gray_band
     assert plan.feasible, plan.hint
-    assert low <= plan.gray.min() and plan.gray.max() <= high
-    np.testing.assert_allclose(plan.gray, numpy_gray(task, plan), rtol=1e-5)
+    assert low <= plan.shot.gray.min() and plan.shot.gray.max() <= high
+    np.testing.assert_allclose(plan.shot.gray, numpy_gray(task, plan), rtol=1e-5)
     assert all(r.value <= 1.0 for r in plan.requirements)
 
 
 def test_hinge_lamp_sits_in_the_lobe_region(hinge):
     task, plan = hinge
     scene = plan.scene
-    s = geometry.unit(plan.lamp_position - scene.center)
+    s = geometry.unit(plan.shot.lamp_position - scene.center)
     v = geometry.unit(scene.camera_position - scene.center)
     assert brdf.dominant_term_vectors(scene.normal, s, v, task.part.material) == brdf.LOBE
     # of the paper's order: 0.258 m, phase 28.9 deg (README explains the smaller phase angle)
-    assert 0.15 <= plan.distance_m <= 0.45
-    assert 5.0 <= np.degrees(plan.phase_angle_rad) <= 45.0
+    assert 0.15 <= plan.shot.distance_m <= 0.45
+    assert 5.0 <= np.degrees(plan.shot.phase_angle_rad) <= 45.0
 
 
 def test_feature_samples_cover_the_rim_and_stay_inside_the_patch():
@@ -83,18 +83,19 @@ def test_every_point_of_the_feature_is_in_band_not_only_the_samples(name, reques
     point stays in the band, within 1 gray level of the predicted extremes."""
     task, plan = request.getfixturevalue(name)
     fine = build_scene(task, 512)
-    u, shadowed, _ = planner.Evaluator(task, fine, plan.maps).bulk(
-        plan.lamp_position[None], geometry.unit(task.lamp.rig.pivot_m - plan.lamp_position)[None])
-    gray = u[0] * plan.exposure.shutter_s / plan.exposure.f_number**2
+    u, shadowed, _ = evaluate.unit_gray(
+        evaluate.build_problem(task, fine, plan.maps),
+        plan.shot.lamp_position[None], geometry.unit(task.lamp.rig.pivot_m - plan.shot.lamp_position)[None])
+    gray = u[0] * plan.shot.exposure.shutter_s / plan.shot.exposure.f_number**2
     low, high = task.requirements.gray_band
     assert not shadowed.any() and low <= gray.min() and gray.max() <= high
-    assert gray.min() >= plan.gray.min() - 1.0 and gray.max() <= plan.gray.max() + 1.0
+    assert gray.min() >= plan.shot.gray.min() - 1.0 and gray.max() <= plan.shot.gray.max() + 1.0
 
 
 @pytest.mark.parametrize("name", ["hinge", "conrod"])
 def test_exposure_respects_lens_shutter_and_depth_of_field(name, request):
     task, plan = request.getfixturevalue(name)
-    lens, e = task.camera.lens, plan.exposure
+    lens, e = task.camera.lens, plan.shot.exposure
     t_lo, t_hi = task.camera.shutter_range_s
     assert t_lo <= e.shutter_s <= t_hi
     assert lens.f_number_range[0] <= e.f_number <= lens.f_number_range[1]
@@ -154,7 +155,7 @@ def test_a_lamp_error_the_band_cannot_absorb_binds_with_a_hint(tmp_path, capsys)
 def finite_json(plan):
     """plan.json must hold no NaN or inf (json rejects them with allow_nan=False)."""
     json.dumps(plan.to_json(), allow_nan=False)
-    assert np.all(np.isfinite(plan.gray))
+    assert np.all(np.isfinite(plan.shot.gray))
 
 
 def lidded(task, gap_m=0.003):
@@ -200,3 +201,30 @@ def test_plans_stay_finite_for_any_normal_view_and_rig(rpy, view_polar, view_azi
     assert plan.feasible == all(r.value <= 1.0 for r in plan.requirements)
     if not plan.feasible:
         assert plan.hint
+
+
+def plan_of(task):
+    """A worker process's plan (module level: a spawned process imports it by name)."""
+    return planner.plan(task)
+
+
+def without_timing(plan):
+    document = plan.to_json()
+    document.pop("timing_s")
+    return document
+
+
+def test_a_task_and_a_plan_pickle_and_a_spawned_worker_plans_the_same(hinge):
+    """Nothing of Warp travels in a Task or a Plan: a worker process builds its own BVH and
+    plans exactly what the parent planned."""
+    import multiprocessing
+    import pickle
+
+    task, plan = hinge
+    copy = pickle.loads(pickle.dumps(plan))
+    assert without_timing(copy) == without_timing(plan)
+    np.testing.assert_array_equal(copy.scene.points, plan.scene.points)
+    with multiprocessing.get_context("spawn").Pool(1) as pool:
+        worker = pool.apply(plan_of, (pickle.loads(pickle.dumps(task)),))
+    assert without_timing(worker) == without_timing(plan)
+    np.testing.assert_array_equal(worker.shot.gray, plan.shot.gray)

@@ -101,28 +101,28 @@ def test_without_effects_the_image_shows_the_planned_gray_at_every_sample(plans,
     task, p = plans[name]
     task, scene = with_sim(task), p.scene
     renderer = Renderer(task, scene)
-    aim = lamp_aim(task.lamp.rig.pivot_m, p.lamp_position)
-    image = renderer(scene.T_cell_cam, p.lamp_position, aim, p.exposure.shutter_s, p.exposure.f_number)
+    aim = lamp_aim(task.lamp.rig.pivot_m, p.shot.lamp_position)
+    image = renderer(scene.T_cell_cam, p.shot.lamp_position, aim, p.shot.exposure.shutter_s, p.shot.exposure.f_number)
     assert image.shape == (776, 1032) and image.dtype == np.float64
     uv, _ = project(renderer.K, scene.T_cell_cam, scene.points)
     u, v = np.rint(uv).astype(int).T
-    assert abs(image[v, u].mean() - p.gray.mean()) < 1.0
-    np.testing.assert_allclose(image[v, u], p.gray, atol=1.0)
+    assert abs(image[v, u].mean() - p.shot.gray.mean()) < 1.0
+    np.testing.assert_allclose(image[v, u], p.shot.gray, atol=1.0)
 
 
 def test_the_simulated_cell_driven_to_the_plan_captures_the_predicted_gray(plans):
     task, p = plans["hinge"]
     devices = make_sim_devices(task, p.scene)
     devices.arm.move_camera(p.scene.T_cell_cam)
-    devices.lamp.move(*p.joints)
-    devices.camera.set_exposure(p.exposure.shutter_s)
-    devices.camera.set_aperture(p.exposure.f_number)
-    devices.camera.set_focus(p.exposure.focus_m)
+    devices.lamp.move(*p.shot.joints)
+    devices.camera.set_exposure(p.shot.exposure.shutter_s)
+    devices.camera.set_aperture(p.shot.exposure.f_number)
+    devices.camera.set_focus(p.shot.exposure.focus_m)
     image = devices.camera.capture()            # hinge.yaml: shadows, cone_falloff, quantization
     assert image.dtype == np.uint8 and image.shape == (776, 1032)
     uv, _ = project(devices.camera.render.K, devices.arm.camera_pose(), p.scene.points)
     u, v = np.rint(uv).astype(int).T
-    np.testing.assert_allclose(image[v, u], p.gray, atol=1.0)  # rounding, servo ticks of 0.09 deg
+    np.testing.assert_allclose(image[v, u], p.shot.gray, atol=1.0)  # rounding, servo ticks of 0.09 deg
 
 
 @pytest.mark.parametrize("faults, act, message", [

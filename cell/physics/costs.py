@@ -34,8 +34,8 @@ def log_sum_exp(x, axis=-1):
 
 
 @dataclass(frozen=True)
-class Requirement:
-    """One requirement's value f_i (met when <= 1) and a sentence a person can act on."""
+class RequirementValue:
+    """One requirement's value f_i for a chosen pose (met when <= 1) and a sentence a person can act on."""
 
     name: str
     value: float

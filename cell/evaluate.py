@@ -1,0 +1,134 @@
+"""The planning problem of one shot and what the model predicts for lamp poses on the rig,
+vectorized over candidates: gray per sample from the bulk Warp kernel (G = u t / kappa^2, eq. 10,
+11, 17), the exposure that centres it in the band (sec. 5.4) and the lamp moved by its tolerance.
+The requirements (cell.requirements) are judged on these values."""
+from dataclasses import dataclass, fields, replace
+
+import numpy as np
+
+from cell import rig
+from cell.material import Material
+from cell.physics import depth_of_field as dof
+
+
+def depth_of_field_limits(task, scene):
+    """(focus [m], depth of field needed [m], widest f-number giving it within the lens's range)
+    for the camera focused on the feature centre (sec. 4.3, 5.4): the needed depth is the larger
+    of the task's and the feature samples' own depth range."""
+    lens = task.camera.lens
+    focus = float(np.linalg.norm(scene.camera_position - scene.center))
+    depths = scene.sample_depths()
+    needed = max(task.requirements.depth_of_field_m, float(depths.max() - depths.min()))
+    kappa = dof.f_number_for_depth(focus, lens.focal_length_m, lens.circle_of_confusion_m, needed)
+    # rounded up by 1e-9 so that the depth of field is met despite floating-point rounding
+    return focus, needed, float(np.clip(kappa * (1 + 1e-9), *lens.f_number_range))
+
+
+@dataclass(frozen=True)
+class Problem:
+    """Everything a shot's evaluation needs, fixed before the search: the task, the scene, the
+    maps, the material as planned (albedo scaled by the loop's measured error), the gray band,
+    the focus, the needed depth of field, the widest f-number giving it, and how many samples
+    the camera cannot see."""
+
+    task: object
+    scene: object
+    maps: object
+    material: Material
+    band: tuple
+    focus_m: float
+    depth_needed_m: float
+    kappa_open: float
+    camera_unseen: int
+
+
+def build_problem(task, scene, maps, albedo_scale=1.0):
+    """The Problem of a task's scene and maps; the camera's view is a lamp at the camera."""
+    focus, needed, kappa_open = depth_of_field_limits(task, scene)
+    p = Problem(task, scene, maps, task.part.material.scaled(albedo_scale),
+                tuple(map(float, task.requirements.gray_band)), focus, needed, kappa_open, 0)
+    unseen = unit_gray(p, scene.camera_position[None], -scene.normal[None])[1].sum()
+    return replace(p, camera_unseen=int(unseen))
+
+
+def unit_gray(problem, positions, aims):
+    """(gray per exposure u (C, P), shadowed (C, P), off-axis angle (C, P)) of lamps at
+    `positions` aiming along `aims`, from the Warp kernel."""
+    from kernels.gray import gray_per_exposure
+    task, scene = problem.task, problem.scene
+    out = gray_per_exposure(
+        scene.warp_mesh, scene.points, scene.normals, scene.camera_position, positions, aims,
+        task.lamp.power_w, task.lamp.cone_angle_rad, problem.material.table(),
+        task.camera.sensor.camera_constant, task.camera.sensor.pixel_area_m2)
+    return out.value, out.shadowed, out.off_axis
+
+
+def exposure(problem, unit_gray):
+    """(shutter, f-number, shutter needed at the widest f-number) putting the geometric mean of
+    the lit samples' extremes at the band's geometric centre (G = u t / kappa^2), the f-number
+    no wider than the depth of field allows; t_need is inf where no sample is lit."""
+    cam = problem.task.camera
+    low, high = problem.band
+    lit = unit_gray > 0.0
+    darkest = np.where(lit, unit_gray, np.inf).min(axis=-1)
+    u_mid = np.where(lit.any(axis=-1), np.sqrt(np.where(lit.any(axis=-1), darkest, 0.0)
+                                               * unit_gray.max(axis=-1)), 0.0)
+    target = np.sqrt(low * high)
+    t_lo, t_hi = cam.shutter_range_s
+    k_lo, k_hi = cam.lens.f_number_range
+    with np.errstate(divide="ignore"):
+        t_need = np.where(u_mid > 0, problem.kappa_open**2 * target / np.where(u_mid > 0, u_mid, 1.0), np.inf)
+    kappa = np.where(t_need < t_lo, np.sqrt(t_lo * u_mid / target), problem.kappa_open)
+    kappa = np.clip(kappa, problem.kappa_open, k_hi)
+    shutter = np.clip(t_need, t_lo, t_hi)
+    return shutter, kappa, t_need
+
+
+@dataclass(frozen=True)
+class Candidates:
+    """Lamp poses (C of them) and what the model predicts for each: positions (C, 3), gray
+    (C, P) at the chosen exposure, the gray with the lamp moved by its tolerance (M, C, P) at the
+    same exposure (M = 0 when not evaluated), shadowed and off-axis angle (C, P), and the
+    exposure: shutter, f-number, shutter needed (C,)."""
+
+    position: np.ndarray
+    gray: np.ndarray
+    moved_gray: np.ndarray
+    shadowed: np.ndarray
+    off_axis: np.ndarray
+    shutter: np.ndarray
+    kappa: np.ndarray
+    t_need: np.ndarray
+
+    def pick(self, k):
+        """Candidate k alone, as Candidates of one."""
+        return Candidates(**{f.name: getattr(self, f.name)[:, k:k + 1] if f.name == "moved_gray"
+                             else getattr(self, f.name)[k:k + 1] for f in fields(self)})
+
+
+def tolerance_moves(problem, tilt):
+    """(d_pan, d_tilt) moving the lamp direction by lamp_tolerance along pan and tilt."""
+    tol = problem.task.requirements.lamp_tolerance_rad
+    if tol <= 0:
+        return []
+    dpan = tol / np.maximum(np.cos(tilt), 1e-3)
+    return [(dpan, 0.0), (-dpan, 0.0), (0.0, tol), (0.0, -tol)]
+
+
+def candidates(problem, pan, tilt, radius, tolerance=True):
+    """Candidates for lamp joints (C,) arrays. With `tolerance` the lamp is also moved by
+    lamp_tolerance in 4 directions (one bulk call for all)."""
+    pivot = problem.task.lamp.rig.pivot_m
+    pan, tilt, radius = np.broadcast_arrays(*(np.atleast_1d(np.asarray(x, float)) for x in (pan, tilt, radius)))
+    n = len(pan)
+    moves = tolerance_moves(problem, tilt) if tolerance else []
+    all_pan = np.concatenate([pan] + [pan + dp for dp, _ in moves])
+    all_tilt = np.concatenate([tilt] + [tilt + dt for _, dt in moves])
+    all_pos = rig.lamp_position(pivot, all_pan, all_tilt, np.tile(radius, len(moves) + 1))
+    all_u, all_shadowed, all_off_axis = unit_gray(problem, all_pos, rig.lamp_aim(pivot, all_pos))
+    u = all_u[:n]
+    shutter, kappa, t_need = exposure(problem, u)
+    gain = (shutter / kappa**2)[:, None]
+    moved = all_u[n:].reshape(len(moves), n, u.shape[1]) * gain
+    return Candidates(all_pos[:n], u * gain, moved, all_shadowed[:n], all_off_axis[:n],
+                      shutter, kappa, t_need)

@@ -1,0 +1,145 @@
+"""What planning produces (sec. 5), as plain values that pickle: a Plan made of Shots, its
+verdict like scipy's OptimizeResult (feasible, binding, each requirement, the search's counters),
+and plan.json (design.md's output contract) made from it in one place."""
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from cell import regions
+
+
+@dataclass(frozen=True)
+class PlannerSettings:
+    """Resolution knobs (what accuracy costs in time: `cell bench` sweeps them)."""
+
+    grid_step_deg: float = 2.0      # visibility / region map cell size
+    pan_step_deg: float = 10.0      # global candidate grid on the rig
+    tilt_step_deg: float = 5.0
+    radius_steps: int = 6
+    samples: int | None = None      # feature samples (None: the task's)
+    refine: bool = True             # Nelder-Mead from the best starts
+    starts: int = 4
+
+
+@dataclass(frozen=True)
+class Exposure:
+    shutter_s: float
+    f_number: float
+    focus_m: float
+    depth_of_field_m: float
+
+
+@dataclass(frozen=True)
+class Maps:
+    """The paper's spherical maps in the feature frame (sec. 2.2, 5.2), for pictures and tests."""
+
+    grid: regions.SphereGrid
+    visible: np.ndarray          # (E, A) every sample sees this direction
+    reflectance: np.ndarray      # (E, A) R at the feature centre for a lamp there
+    dominant: np.ndarray         # (E, A) dominant term, brdf.OCCLUDED behind
+    wanted: np.ndarray           # (E, A) wanted reflection and visible
+    distance: np.ndarray         # (E, A) signed haversine distance to the wanted region [rad]
+    candidate_pan: np.ndarray    # (C,) global candidates [rad]
+    candidate_tilt: np.ndarray
+    candidate_objective: np.ndarray
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """One local refinement (Nelder-Mead) with its solver's own verdict."""
+
+    success: bool
+    nfev: int
+    message: str
+    objective: float             # eq. (22) where it ended
+
+
+@dataclass(frozen=True)
+class Search:
+    """The search's counters: global candidates, the starts taken from them, and the local
+    refinements from those starts."""
+
+    candidates: int
+    starts: int
+    refinements: tuple = ()
+
+
+@dataclass(frozen=True)
+class Shot:
+    """One capture of a plan: camera pose, lamp joints and position, exposure, the model's gray
+    at every feature sample and each requirement's value there (costs.RequirementValue)."""
+
+    T_cell_cam: np.ndarray       # 4x4 camera pose
+    joints: tuple                # (pan, tilt, radius) [rad, rad, m]
+    lamp_position: np.ndarray    # cell frame [m]
+    exposure: Exposure
+    gray: np.ndarray             # predicted gray per feature sample
+    distance_m: float            # lamp -> feature centre
+    phase_angle_rad: float       # between lamp and camera, at the feature centre
+    requirements: tuple
+
+    @property
+    def camera_position(self):
+        return self.T_cell_cam[:3, 3]
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A plan with its verdict, like scipy's OptimizeResult: `feasible` (max f_i <= 1 over every
+    shot's requirements), the `binding` requirement, how far it misses, and `hint`, what would
+    fix it. Today's plans have one shot (`plan.shot`)."""
+
+    task_name: str
+    feasible: bool
+    binding: str
+    miss: float
+    objective: float
+    hint: str
+    shots: tuple
+    maps: Maps
+    settings: PlannerSettings
+    scene: object                # cell.scene.Scene planned on (plain arrays)
+    search: Search
+    timing_s: dict = field(default_factory=dict)
+
+    @property
+    def shot(self):
+        """The plan's only shot."""
+        if len(self.shots) != 1:
+            raise ValueError(f"the plan has {len(self.shots)} shots; pick one from plan.shots")
+        return self.shots[0]
+
+    @property
+    def requirements(self):
+        return [r for shot in self.shots for r in shot.requirements]
+
+    def to_json(self):
+        """plan.json per design.md's output contract (a one-shot plan)."""
+        shot = self.shot
+        pan, tilt, radius = shot.joints
+        e = shot.exposure
+        return {
+            "task": self.task_name,
+            "feasible": self.feasible,
+            "binding": self.binding,
+            "miss": self.miss,
+            "objective": self.objective,
+            "hint": self.hint,
+            "requirements": [{"name": r.name, "value": r.value, "met": r.met, "detail": r.detail}
+                             for r in shot.requirements],
+            "lamp": {"position_m": shot.lamp_position.tolist(), "distance_m": shot.distance_m,
+                     "phase_angle_deg": float(np.degrees(shot.phase_angle_rad)),
+                     "joints": {"pan_deg": float(np.degrees(pan)), "tilt_deg": float(np.degrees(tilt)),
+                                "radius_m": float(radius)}},
+            "camera": {"shutter_s": e.shutter_s, "f_number": e.f_number, "focus_m": e.focus_m,
+                       "depth_of_field_m": e.depth_of_field_m, "position_m": shot.camera_position.tolist()},
+            "predicted_gray": gray_stats(shot.gray),
+            "search": asdict(self.search),
+            "timing_s": self.timing_s,
+            "settings": asdict(self.settings),
+        }
+
+
+def gray_stats(gray):
+    gray = np.asarray(gray, dtype=float)
+    return {"mean": float(gray.mean()), "min": float(gray.min()), "max": float(gray.max())}
