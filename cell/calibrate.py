@@ -15,9 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
-from cell import jsonio, measure
+from cell import measure
+from cell.acquisition import acquire, move_to, plan_recorded, require_feasible
 from cell.devices import Operator, Session
 from cell.errors import GoalNotReached, PlanInfeasible, TaskError
+from cell.recorder import Recorder
 
 # the brightest sample's gray by the model, as a fraction of full scale, at the first and the
 # last shot: dim, up to near (not at) saturation; G ~ t, so the shutter times follow
@@ -76,39 +78,71 @@ def shutter_sweep(shutter_s, predicted_max, full_scale, shutter_range_s, shots):
     return np.geomspace(lo, hi, shots)
 
 
-def calibrate(task, plan, devices, log, shots=6, record=None):
-    """Drive the cell to the plan, sweep the shutter, fit c. Each shot is logged and its summary
-    appended to `record` as it is taken. Returns (Fit or None, exposures P t, grays), each
-    (shots, samples)."""
-    from cell.loop import drive
-    record = [] if record is None else record
-    camera = devices.camera
-    full_scale = measure.saturation_level(camera.bit_depth)
+@dataclass(frozen=True)
+class ShotRecord:
+    """One shot of the sweep: the shutter the camera used and the gray at the feature samples."""
+
+    shutter_s: float
+    f_number: float
+    gray_min: float
+    gray_mean: float
+    gray_max: float
+    samples: int                # samples in the image
+    saturated: int
+    exposure: np.ndarray        # (P,) model pixel power x shutter, P t [W s]
+    gray: np.ndarray            # (P,) measured gray, NaN off the image
+
+    def to_json(self):
+        return {k: getattr(self, k) for k in ("shutter_s", "f_number", "gray_min", "gray_mean", "gray_max",
+                                              "samples", "saturated")}
+
+
+def sweep(task, plan, devices, recorder, shots=6):
+    """Drive the cell to the plan and take the shutter sweep at the planned f-number and focus,
+    yielding each ShotRecord as it is taken (and logged)."""
     shot = plan.shot
-    sweep = shutter_sweep(shot.exposure.shutter_s, shot.gray.max(), full_scale,
-                          task.camera.shutter_range_s, shots)
-    drive(devices, plan, log)
-    camera.set_aperture(shot.exposure.f_number)
-    camera.set_focus(shot.exposure.focus_m)
+    full_scale = measure.saturation_level(devices.camera.bit_depth)
+    times = shutter_sweep(shot.exposure.shutter_s, shot.gray.max(), full_scale, task.camera.shutter_range_s, shots)
+    move_to(devices, shot, recorder)
     # the model's pixel power per sample at the planned f-number: G = c P t
     power = shot.gray / (task.camera.sensor.camera_constant * shot.exposure.shutter_s)
-    exposures, grays = [], []
-    for k, wanted in enumerate(sweep, 1):
-        actual = camera.set_exposure(wanted)
-        image = camera.capture()
-        _, _, inside, gray = measure.read_samples(image, task, devices.arm.camera_pose(), plan.scene.points)
-        exposures.append(power * actual)
-        grays.append(gray)
+    for k, wanted in enumerate(times, 1):
+        capture = acquire(devices, recorder, k, wanted, shot.exposure.f_number, shot.exposure.focus_m)
+        _, _, inside, gray = measure.read_samples(capture.image, task, capture.T_cell_cam, plan.scene.points)
         seen = gray[inside]
-        record.append({"shutter_s": float(actual), "f_number": shot.exposure.f_number,
-                       "gray_min": float(seen.min()), "gray_mean": float(seen.mean()),
-                       "gray_max": float(seen.max()), "samples": int(seen.size),
-                       "saturated": int(np.sum(seen >= full_scale))})
-        log.step("shot", f"{k}/{len(sweep)}: shutter {1e3 * actual:.3f} ms, gray at the samples "
-                         f"{seen.min():.1f}-{seen.max():.1f} (mean {seen.mean():.1f}), "
-                         f"{record[-1]['saturated']} of {seen.size} saturated", iteration=k, **record[-1])
-    exposures, grays = np.array(exposures), np.array(grays)
-    return fit_camera_constant(exposures, grays, full_scale), exposures, grays
+        record = ShotRecord(capture.shutter_s, shot.exposure.f_number, float(seen.min()), float(seen.mean()),
+                            float(seen.max()), int(seen.size), int(np.sum(seen >= full_scale)),
+                            power * capture.shutter_s, gray)
+        recorder.step("shot", f"{k}/{len(times)}: shutter {1e3 * capture.shutter_s:.3f} ms, gray at the samples "
+                              f"{seen.min():.1f}-{seen.max():.1f} (mean {seen.mean():.1f}), "
+                              f"{record.saturated} of {seen.size} saturated", iteration=k, **record.to_json())
+        yield record
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """What a calibration achieved, like scipy's OptimizeResult: `success` (c fitted), `message`
+    (why not), the Fit, its ratio to the task's c, every shot, the plan, and the device fault
+    with its safe stop's outcome when there was one. calibration.json is to_json()."""
+
+    task: str
+    camera_constant_task: float
+    success: bool
+    message: str
+    plan: dict | None
+    shots: tuple = ()
+    fit: Fit | None = None
+    fault: dict | None = None
+
+    @property
+    def camera_constant_ratio(self):
+        return self.fit.camera_constant / self.camera_constant_task if self.fit else None
+
+    def to_json(self):
+        return {"task": self.task, "camera_constant_task": self.camera_constant_task, "plan": self.plan,
+                "shots": [s.to_json() for s in self.shots], "fit": asdict(self.fit) if self.fit else None,
+                "camera_constant_ratio": self.camera_constant_ratio, "reason": self.message} | (
+                    {"fault": self.fault} if self.fault else {})
 
 
 def write_picture(path, exposures, grays, fit, c_model):
@@ -132,50 +166,50 @@ def write_picture(path, exposures, grays, fit, c_model):
 
 def run(task, out, connect, shots=6):
     """Plan (the function `cell plan` uses, plan.json and pictures in out), connect(scene) ->
-    Devices, calibrate; out/log.jsonl as it happens, out/calibration.json however it ends, and
-    out/calibration.png. Raises PlanInfeasible before anything moves, GoalNotReached when nothing
-    usable was measured (exit 1), DeviceFault after the safe stop of every device (exit 3).
-    Returns the result written."""
-    from cell.loop import RunLog, log_fault, plan_and_connect
+    Devices, sweep and fit c; out/log.jsonl as it happens, out/calibration.json however it ends,
+    and out/calibration.png. Raises PlanInfeasible before anything moves, GoalNotReached when
+    nothing usable was measured (exit 1), DeviceFault after the safe stop of every device (exit 3).
+    Returns the CalibrationResult."""
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     c_model = task.camera.sensor.camera_constant
-    result = {"task": str(task.path), "camera_constant_task": c_model, "plan": None, "shots": [],
-              "fit": None, "camera_constant_ratio": None, "reason": ""}
-    log = RunLog(out / "log.jsonl")
-    session = Session(on_fault=lambda fault: log_fault(log, fault))
-    try:
-        with session:
-            planned = plan_and_connect(task, out, log, session, connect, result)
-            fit, exposures, grays = calibrate(task, planned, session.devices, log, shots, result["shots"])
-        write_picture(out / "calibration.png", exposures, grays, fit, c_model)
-        if fit is None:
-            n = sum(s["samples"] for s in result["shots"])
-            saturated = sum(s["saturated"] for s in result["shots"])
-            raise GoalNotReached(f"too few resolved samples to fit c ({saturated} of {n} readings "
-                                 f"saturated, the rest at 0 or from a single shot): is the lamp "
-                                 f"on, does it light the feature, is the part the task's?")
-        result["fit"] = asdict(fit)
-        result["camera_constant_ratio"] = fit.camera_constant / c_model
-        log.step("done", f"c = {fit.camera_constant:.5g} 1/(W s), {result['camera_constant_ratio']:.3f} x "
-                         f"the task's", **result["fit"])
-        return result
-    except BaseException as err:
-        result["reason"] = str(err) or type(err).__name__
-        if session.fault:
-            result["fault"] = session.fault
-        else:
-            log.step("done", f"no fit: {err}", reason=str(err))
-        raise
-    finally:
-        (out / "calibration.json").write_text(jsonio.dumps(result, indent=2) + "\n")
-        log.close()
+    records, plan_document, fit, reason = [], None, None, ""
+    with Recorder(out) as recorder:
+        session = Session(on_fault=recorder.fault)
+        try:
+            with session:
+                planned = plan_recorded(task, recorder)
+                plan_document = planned.to_json()
+                require_feasible(planned)
+                session.devices = connect(planned.scene)
+                records.extend(sweep(task, planned, session.devices, recorder, shots))
+            exposures = np.array([r.exposure for r in records])
+            grays = np.array([r.gray for r in records])
+            fit = fit_camera_constant(exposures, grays, measure.saturation_level(task.camera.sensor.bit_depth))
+            write_picture(out / "calibration.png", exposures, grays, fit, c_model)
+            if fit is None:
+                n = sum(r.samples for r in records)
+                saturated = sum(r.saturated for r in records)
+                raise GoalNotReached(f"too few resolved samples to fit c ({saturated} of {n} readings "
+                                     f"saturated, the rest at 0 or from a single shot): is the lamp "
+                                     f"on, does it light the feature, is the part the task's?")
+            recorder.step("done", f"c = {fit.camera_constant:.5g} 1/(W s), {fit.camera_constant / c_model:.3f} x "
+                                  f"the task's", **asdict(fit))
+        except BaseException as err:
+            reason = str(err) or type(err).__name__
+            if not session.fault:
+                recorder.step("done", f"no fit: {err}", reason=str(err))
+            raise
+        finally:
+            result = CalibrationResult(str(task.path), c_model, fit is not None and not reason, reason,
+                                       plan_document, tuple(records), fit, session.fault)
+            recorder.write_json("calibration.json", result.to_json())
+    return result
 
 
 def command(args):
     """`cell calibrate TASK [--backend sim|hw] [--out DIR] [--shots N] [--yes]`: exit 0 with c
     fitted, 1 infeasible plan or nothing usable measured, 2 bad input, 3 device fault."""
-    from cell import loop
+    from cell import backends
     from cell.cli import output_folder
     from cell.loader import load_task
 
@@ -189,10 +223,10 @@ def command(args):
     Operator(yes=args.yes or backend == "sim", stdout=sys.stderr).confirm(
         "calibration", "place the reference part (the task's part, of the task's material) in the cell; "
                        "the camera constant is measured against its material table")
-    result = run(task, out, lambda scene: loop.open_devices(task, scene, backend, yes=args.yes), args.shots)
-    fit = Fit(**result["fit"])
+    result = run(task, out, lambda scene: backends.open_devices(task, scene, backend, yes=args.yes), args.shots)
+    fit = result.fit
     print(f"camera constant c = {fit.camera_constant:.5g} +- {fit.stderr:.2g} 1/(W s) "
-          f"({result['camera_constant_ratio']:.3f} x the task's {c_model:.5g}); black level "
+          f"({result.camera_constant_ratio:.3f} x the task's {c_model:.5g}); black level "
           f"{fit.black_level:.2f}, linearity r2 {fit.r2:.5f}, {fit.used} pairs "
           f"({fit.saturated} saturated, {fit.dark} at 0 left out)")
     print(f"  set camera.sensor.camera_constant: {fit.camera_constant:.5g} in the tasks that use "

@@ -1,10 +1,13 @@
 """Gray values of the feature in a captured image: at the projected feature samples, and over
 the feature's image region (the convex hull of the projected samples)."""
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
 from cell import projection
 from cell.errors import DeviceFault, GoalNotReached
+from cell.plan import gray_stats
 
 
 def sample_pixels(task, T_cell_cam, points):
@@ -67,3 +70,48 @@ def levels(gray, bit_depth):
     to 8 bits, else uint16)."""
     dtype = np.uint8 if bit_depth <= 8 else np.uint16
     return np.clip(np.rint(gray), 0, saturation_level(bit_depth)).astype(dtype)
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """Gray of one capture over the feature's image region (the convex hull of the projected
+    samples, seen from the arm's read-back pose) and at each sample's pixel (NaN off the image).
+
+    The band is judged on the surface's gray at every pixel, local_mean (5x5 within the region):
+    a sensor's pixel noise, whose extremes over ten thousand pixels reach +-4 sigma, is no
+    property of the lighting and no lamp pose or exposure could narrow it. Without noise the two
+    agree to the rounding; the raw pixels' range and the noise are reported beside it."""
+
+    row: np.ndarray              # (P,) each sample's pixel
+    col: np.ndarray
+    sample_gray: np.ndarray      # (P,) gray there, NaN off the image
+    region: np.ndarray           # (H, W) bool: the feature's pixels
+    gray: np.ndarray             # raw gray of the region's pixels
+    surface: np.ndarray          # their local mean
+    saturated: np.ndarray        # (H, W) bool: region pixels at saturation or above
+    saturation: float
+    min: float                   # of the surface's gray
+    max: float
+
+    def stats(self):
+        """measured_gray of report.json: mean/min/max of the surface's gray over the region,
+        `pixels` in it, how many read saturation or more, the raw pixels' range as the camera
+        delivered them (a real sensor clips at saturation; the sim without `quantization` does
+        not) and the pixel noise (rms of raw minus surface)."""
+        return {**gray_stats(self.surface), "pixels": int(self.gray.size),
+                "saturated": int(self.saturated.sum()),
+                "pixel_min": float(self.gray.min()), "pixel_max": float(self.gray.max()),
+                "noise_rms": float(np.sqrt(np.mean((self.gray - self.surface) ** 2)))}
+
+    def in_band(self, band):
+        return not self.saturated.any() and band[0] <= self.min and self.max <= band[1]
+
+
+def measure_feature(image, task, T_cell_cam, points, saturation):
+    """The Measurement of a frame taken from T_cell_cam (read back) of the feature's samples."""
+    row, col, inside, sample_gray = read_samples(image, task, T_cell_cam, points)
+    image = np.asarray(image, float)
+    region = feature_mask(image.shape, row[inside], col[inside])
+    surface = local_mean(image, region)[region]
+    return Measurement(row, col, sample_gray, region, image[region], surface, region & (image >= saturation),
+                       float(saturation), float(surface.min()), float(surface.max()))

@@ -1,10 +1,12 @@
 """Pictures a person reads (paper Fig. 4-6): BRDF on the visibility map, segmented region map,
-cost map, each with the camera direction (square) and the lamp (dot) marked."""
+cost map, each with the camera direction (square) and the lamp (dot) marked; the closed loop's
+convergence and its captures with the measured feature drawn."""
 from pathlib import Path
 
+import cv2
 import numpy as np
 
-from cell import geometry
+from cell import geometry, measure
 from cell.physics import brdf
 
 
@@ -130,3 +132,17 @@ def write_convergence(path, iterations, band):
     fig.subplots_adjust(left=0.1, right=0.97, bottom=0.2, top=0.92)
     fig.savefig(path, dpi=90, pil_kwargs=PNG)
     plt.close(fig)
+
+
+def annotate_capture(image, m, bit_depth, caption):
+    """8-bit colour copy of a capture: the measured region (measure.Measurement) outlined
+    (green), its saturated pixels red, the samples' pixels blue, a caption."""
+    scale = 255.0 / measure.saturation_level(bit_depth)
+    view = cv2.cvtColor((measure.levels(image, bit_depth) * scale).astype(np.uint8), cv2.COLOR_GRAY2BGR)
+    view[m.saturated] = (0, 0, 255)
+    contours, _ = cv2.findContours(m.region.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    cv2.polylines(view, contours, True, (0, 255, 0), 1)
+    for r, c in zip(m.row, m.col):
+        cv2.circle(view, (int(c), int(r)), 1, (255, 128, 0), -1)
+    cv2.putText(view, caption, (10, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 255, 255), 1, cv2.LINE_AA)
+    return view

@@ -143,20 +143,6 @@ def make_shot(problem, joints, candidate, values):
                 requirements=requirements.judged(problem, candidate, values))
 
 
-def write_plan(plan, task, out_dir):
-    """plan.json and the pictures into out_dir."""
-    from pathlib import Path
-
-    from cell import jsonio
-
-    from cell.pictures import write_plan_pictures
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "plan.json").write_text(jsonio.dumps(plan.to_json(), indent=2) + "\n")
-    write_plan_pictures(plan, task, plan.scene, out_dir)
-    return out_dir
-
-
 def summary(plan):
     """A few lines for the terminal."""
     shot = plan.shot
@@ -182,6 +168,7 @@ def command(args):
 
     from cell import jsonio
     from cell.cli import output_folder
+    from cell.recorder import write_plan
     from cell.errors import PlanInfeasible
     from cell.loader import load_task
     task = load_task(args.task)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from cell import calibrate, loop
+from cell import backends, calibrate
 from cell.calibrate import fit_camera_constant, shutter_sweep
 from cell.cli import main
 from cell.errors import CellError, DeviceFault, PlanInfeasible
@@ -116,12 +116,12 @@ def test_cli_calibrates_the_hinge_and_writes_the_fit_and_the_picture(tmp_path, c
 def test_fit_finds_the_true_camera_constant(tmp_path, scale):
     cell = calibrate_sim(variant(tmp_path, {"sim.truth.camera_constant_scale": scale}), tmp_path / "c")
     assert cell.error is None
-    fit = cell.result["fit"]
-    assert fit["camera_constant"] == pytest.approx(scale * C_TASK, rel=0.01)
-    assert cell.result["camera_constant_ratio"] == pytest.approx(scale, rel=0.01)
-    assert fit["r2"] > 0.999
+    fit = cell.result.fit
+    assert fit.camera_constant == pytest.approx(scale * C_TASK, rel=0.01)
+    assert cell.result.camera_constant_ratio == pytest.approx(scale, rel=0.01)
+    assert fit.r2 > 0.999
     if scale > 1:       # brighter than the model: the top shots saturate and are left out
-        assert fit["saturated"] > 0 and fit["saturated"] + fit["used"] == 6 * 64
+        assert fit.saturated > 0 and fit.saturated + fit.used == 6 * 64
     assert cell.stops == ["camera.close"]                       # closed normally, no fault stop
 
 
@@ -129,20 +129,20 @@ def test_fit_finds_the_black_level(tmp_path):
     effects = ["shadows", "cone_falloff", "black_level", "quantization"]
     cell = calibrate_sim(variant(tmp_path, {"sim.effects": effects,
                                             "sim.truth.camera_constant_scale": 0.8}), tmp_path / "c")
-    fit = cell.result["fit"]
-    assert fit["black_level"] == pytest.approx(round(0.02 * 255), abs=0.5)     # sim.world: 5 gray
-    assert fit["camera_constant"] == pytest.approx(0.8 * C_TASK, rel=0.01)
+    fit = cell.result.fit
+    assert fit.black_level == pytest.approx(round(0.02 * 255), abs=0.5)     # sim.world: 5 gray
+    assert fit.camera_constant == pytest.approx(0.8 * C_TASK, rel=0.01)
 
 
 def test_fit_under_sensor_noise_is_within_its_standard_error(tmp_path):
     effects = ["shadows", "cone_falloff", "noise", "black_level", "quantization"]
     cell = calibrate_sim(variant(tmp_path, {"sim.effects": effects,
                                             "sim.truth.camera_constant_scale": 0.8}), tmp_path / "c")
-    fit = cell.result["fit"]
+    fit = cell.result.fit
     c_true = 0.8 * C_TASK
-    assert abs(fit["camera_constant"] - c_true) < 4 * fit["stderr"] + 0.002 * c_true
-    assert fit["camera_constant"] == pytest.approx(c_true, rel=0.01)
-    assert fit["black_level"] == pytest.approx(5.0, abs=1.0)
+    assert abs(fit.camera_constant - c_true) < 4 * fit.stderr + 0.002 * c_true
+    assert fit.camera_constant == pytest.approx(c_true, rel=0.01)
+    assert fit.black_level == pytest.approx(5.0, abs=1.0)
 
 
 # --- what stops it -----------------------------------------------------------------------------
@@ -156,7 +156,7 @@ def test_bad_shots_is_bad_input_in_one_line(argv, capsys):
 
 def test_an_infeasible_plan_exits_1_before_anything_moves(tmp_path, monkeypatch, capsys):
     connected = []
-    monkeypatch.setattr(loop, "open_devices", lambda *a, **k: connected.append(a))
+    monkeypatch.setattr(backends, "open_devices", lambda *a, **k: connected.append(a))
     task = variant(tmp_path, {"camera.shutter_range_ms": [0.01, 0.02]})
     assert main(["calibrate", str(task), "--out", str(tmp_path / "c")]) == 1
     assert connected == []
@@ -183,7 +183,7 @@ def test_a_servo_fault_turns_its_torque_off(tmp_path):
 
 
 def test_the_cli_turns_a_fault_into_exit_3_and_one_line(tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(loop, "open_devices", lambda task, scene, backend, yes:
+    monkeypatch.setattr(backends, "open_devices", lambda task, scene, backend, yes:
                         make_sim_devices(task, scene, faults={"camera_fail_on_capture": 1}))
     assert main(["calibrate", str(HINGE), "--out", str(tmp_path)]) == 3
     last = capsys.readouterr().err.strip().splitlines()[-1]
@@ -192,7 +192,7 @@ def test_the_cli_turns_a_fault_into_exit_3_and_one_line(tmp_path, monkeypatch, c
 
 def test_the_task_backend_is_used_unless_overridden(tmp_path, monkeypatch):
     seen = []
-    monkeypatch.setattr(loop, "open_devices", lambda task, scene, backend, yes:
+    monkeypatch.setattr(backends, "open_devices", lambda task, scene, backend, yes:
                         seen.append(backend) or make_sim_devices(task, scene))
     task = variant(tmp_path, {"cell.backend": "hw"})
     quick = ["--shots", "3", "--out"]
@@ -204,7 +204,7 @@ def test_the_task_backend_is_used_unless_overridden(tmp_path, monkeypatch):
 def test_on_the_real_cell_the_operator_confirms_the_reference_part_before_anything(tmp_path, monkeypatch,
                                                                                     capsys):
     connected = []
-    monkeypatch.setattr(loop, "open_devices", lambda *a, **k: connected.append(a))
+    monkeypatch.setattr(backends, "open_devices", lambda *a, **k: connected.append(a))
     task = variant(tmp_path, {"cell.backend": "hw"})
     assert main(["calibrate", str(task), "--out", str(tmp_path / "c")]) == 3    # stdin: no terminal
     last = capsys.readouterr().err.strip().splitlines()[-1]

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from cell import cli, loop, projection
+from cell import backends, cli, control, loop, measure, projection
 from cell.cli import main
 from cell.errors import CellError, DeviceFault, GoalNotReached
 from cell.loader import load_task
@@ -189,23 +189,23 @@ BAND, SHUTTER, LENS = (100.0, 125.0), (1e-5, 0.02), (5.5, 16.0)
 
 
 def test_shutter_takes_the_correction_first():
-    t, kappa, why = loop.correct_exposure(73.0, 84.0, "=", 6e-3, 5.5, BAND, SHUTTER, LENS)
+    t, kappa, why = control.correct_exposure(73.0, 84.0, "=", 6e-3, 5.5, BAND, SHUTTER, LENS)
     assert why is None and kappa == 5.5
     assert t == pytest.approx(6e-3 * np.sqrt(100 * 125 / (73 * 84)))
 
 
 def test_aperture_takes_what_the_shutter_cannot_never_wider_than_depth_of_field():
-    t, kappa, why = loop.correct_exposure(300.0, 330.0, "=", 2e-5, 5.5, BAND, SHUTTER, LENS)
+    t, kappa, why = control.correct_exposure(300.0, 330.0, "=", 2e-5, 5.5, BAND, SHUTTER, LENS)
     assert why is None and t == 1e-5 and 5.5 < kappa < 16
     assert 100 <= 300 * t / kappa**2 / (2e-5 / 5.5**2) <= 125
-    t, kappa, why = loop.correct_exposure(50.0, 55.0, "=", 0.019, 5.5, BAND, SHUTTER, LENS)
+    t, kappa, why = control.correct_exposure(50.0, 55.0, "=", 0.019, 5.5, BAND, SHUTTER, LENS)
     assert t == 0.02 and kappa == 5.5 and "even at 20 ms and f/5.5" in why
 
 
 def test_a_range_wider_than_the_band_is_not_an_exposure_problem_unless_too_dim_to_judge():
-    assert loop.spread_exceeds_band(90.0, 130.0, BAND)          # 1.44 > 1.25
-    assert not loop.spread_exceeds_band(100.0, 125.0, BAND)
-    assert not loop.spread_exceeds_band(11.0, 16.0, BAND)       # dim: noise and black level
+    assert control.spread_exceeds_band(90.0, 130.0, BAND)          # 1.44 > 1.25
+    assert not control.spread_exceeds_band(100.0, 125.0, BAND)
+    assert not control.spread_exceeds_band(11.0, 16.0, BAND)       # dim: noise and black level
 
 
 def test_a_spread_the_model_does_not_predict_ends_at_once_and_says_why(tmp_path):
@@ -220,9 +220,9 @@ def test_a_spread_the_model_does_not_predict_ends_at_once_and_says_why(tmp_path)
 
 def test_saturated_samples_give_a_lower_bound_and_the_rest_an_estimate():
     predicted = np.array([100.0, 110.0, 120.0])
-    assert loop.model_error(np.array([200.0, 220.0, 255.0]), predicted, 255) == (2.0, "=")
-    assert loop.model_error(np.array([255.0, 255.0, np.nan]), predicted, 255) == (2.55, ">=")
-    assert loop.model_error(np.array([0.0, 0.0, 0.0]), predicted, 255) == (0.5 / 120.0, "<=")
+    assert control.model_error(np.array([200.0, 220.0, 255.0]), predicted, 255) == (2.0, "=")
+    assert control.model_error(np.array([255.0, 255.0, np.nan]), predicted, 255) == (2.55, ">=")
+    assert control.model_error(np.array([0.0, 0.0, 0.0]), predicted, 255) == (0.5 / 120.0, "<=")
 
 
 # --- faults ----------------------------------------------------------------------------------
@@ -254,7 +254,7 @@ def test_a_fault_stops_all_motion_and_the_log_keeps_every_step_before_it(tmp_pat
 
 
 def test_the_cli_turns_a_fault_into_exit_3_and_one_line(tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(loop, "open_devices", lambda task, scene, backend, yes:
+    monkeypatch.setattr(backends, "open_devices", lambda task, scene, backend, yes:
                         make_sim_devices(task, scene, faults={"camera_fail_on_capture": 1}))
     assert main(["run", HINGE, "--out", str(tmp_path)]) == 3
     last = capsys.readouterr().err.strip().splitlines()[-1]
@@ -270,7 +270,7 @@ def test_a_stop_that_fails_is_reported_as_such_never_as_motion_stopped(tmp_path,
         devices.arm.stop = stop_fails
         return devices
 
-    monkeypatch.setattr(loop, "open_devices", connect)
+    monkeypatch.setattr(backends, "open_devices", connect)
     assert main(["run", HINGE, "--out", str(tmp_path)]) == 3
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert "STOP FAILED" in last and "stopL failed" in last and "motion stopped" not in last
@@ -286,7 +286,7 @@ def test_sigterm_stops_the_cell_and_still_writes_the_report(tmp_path, monkeypatc
         devices.camera.capture = lambda: os.kill(os.getpid(), signal.SIGTERM)
         return devices
 
-    monkeypatch.setattr(loop, "open_devices", connect)
+    monkeypatch.setattr(backends, "open_devices", connect)
     assert main(["run", HINGE, "--out", str(tmp_path)]) == 143
     assert capsys.readouterr().err.strip().splitlines()[-1] == "cell run: terminated (SIGTERM)"
     report = json.loads((tmp_path / "report.json").read_text())
@@ -301,7 +301,7 @@ def test_a_frame_of_another_size_than_the_sensor_is_a_camera_fault():
     from cell.scene import build_scene
     scene = build_scene(task)
     with pytest.raises(DeviceFault, match="frames are 516x388 px, camera.sensor says 1032x776"):
-        loop.Measurement(np.zeros((388, 516)), task, scene.T_cell_cam, scene.points, 255)
+        measure.measure_feature(np.zeros((388, 516)), task, scene.T_cell_cam, scene.points, 255)
 
 
 def test_the_hardware_backend_needs_an_address_before_anything_connects(tmp_path):

@@ -12,6 +12,7 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 from cell import evaluate, geometry, planner
 from cell.cli import main
 from cell.loader import load_task
+from cell.recorder import write_plan
 from cell.physics import brdf, depth_of_field as dof, radiometry
 from cell.scene import build_scene, feature_disk
 
@@ -108,7 +109,7 @@ def test_exposure_respects_lens_shutter_and_depth_of_field(name, request):
 
 def test_plan_json_contract(hinge, tmp_path):
     task, plan = hinge
-    planner.write_plan(plan, task, tmp_path)
+    write_plan(plan, task, tmp_path)
     data = json.loads((tmp_path / "plan.json").read_text())
     assert data["feasible"] is True
     assert data["binding"] in {r["name"] for r in data["requirements"]}

@@ -1,0 +1,73 @@
+"""The run folder a person can open and a machine can read: `log.jsonl` (one JSON line per step:
+time, step, message, data; appended, flushed and fsync'd so that a crash loses nothing measured;
+each step also a progress line on stderr), plan.json with the plan's pictures, every capture,
+and the result file, written however the run ends."""
+import os
+import sys
+from datetime import datetime, timezone
+from pathlib import Path
+
+import cv2
+
+from cell import jsonio
+
+
+def write_plan(plan, task, folder):
+    """plan.json and the plan's pictures into folder (created)."""
+    from cell.pictures import write_plan_pictures
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    write_json(folder / "plan.json", plan.to_json())
+    write_plan_pictures(plan, task, plan.scene, folder)
+    return folder
+
+
+def write_json(path, document):
+    Path(path).write_text(jsonio.dumps(document, indent=2) + "\n")
+
+
+class Recorder:
+    """A run folder and its log; `with Recorder(folder) as rec:` closes the log however it ends."""
+
+    def __init__(self, folder):
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.log = open(self.folder / "log.jsonl", "a", encoding="utf-8")
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.log.close()
+        return False
+
+    def step(self, step, message, iteration=None, **data):
+        """One step; `iteration` (the capture it belongs to) is left out when None."""
+        where = {} if iteration is None else {"iteration": iteration}
+        line = {"t": datetime.now(timezone.utc).isoformat(timespec="milliseconds"), "step": step,
+                "message": message, **where, **data}
+        self.log.write(jsonio.dumps(line) + "\n")
+        self.log.flush()
+        os.fsync(self.log.fileno())
+        print(f"{'' if iteration is None else iteration:>2} {step:<12} {message}", file=sys.stderr, flush=True)
+
+    def progress(self, message):
+        """A progress line on stderr only (the planner's stages), indented under the steps."""
+        print(f"{'':16}{message}", file=sys.stderr, flush=True)
+
+    def write_plan(self, plan, task, subfolder=""):
+        """plan.json and pictures, in the run folder or a subfolder of it; returns that folder."""
+        return write_plan(plan, task, self.folder / subfolder)
+
+    def write_image(self, name, image):
+        """An image file in the run folder (PNG: lossless, 8 or 16 bit); returns its name."""
+        cv2.imwrite(str(self.folder / name), image)
+        return name
+
+    def write_json(self, name, document):
+        write_json(self.folder / name, document)
+
+    def fault(self, fault):
+        """The fault step, after the safe stop (devices.Session's fault record)."""
+        from cell.devices import stop_outcome
+        self.step("fault", f"{fault['error']}: {stop_outcome(fault['stop_failures'])}", **fault)
