@@ -27,7 +27,7 @@ from cell.pictures import pyplot
 from cell.planner import PlannerSettings
 from cell.regions import SphereGrid
 from cell.scene import build_scene
-from kernels.bench import benchmark_gray, benchmark_visibility, wall_times
+from cell.kernel_bench import benchmark_gray, benchmark_visibility, wall_times
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_TASKS = (ROOT / "tasks" / "hinge.yaml", ROOT / "tasks" / "conrod.yaml")
@@ -136,7 +136,7 @@ def flags(row):
 
 
 def kernel_rows(path, quick, repeats, say):
-    """Kernel throughput rows on the task's scene (kernels.bench), tagged with the task."""
+    """Kernel throughput rows on the task's scene (cell.kernel_bench), tagged with the task."""
     task, label = load_task(path), Path(path).stem
     scene = build_scene(task)
     sensor = task.camera.sensor
