@@ -23,7 +23,7 @@ import numpy as np
 from cell import geometry, jsonio, planner, rig
 from cell.cli import output_folder
 from cell.loader import load_task
-from cell.pictures import pyplot
+from cell.pictures import write_bench
 from cell.planner import PlannerSettings
 from cell.regions import SphereGrid
 from cell.scene import build_scene
@@ -222,37 +222,6 @@ def summary(settings):
     return lines
 
 
-def write_plot(path, settings):
-    """Gray error vs warm time, log-log, a marker set per task, its Pareto front as a line and
-    the default setting ringed."""
-    plt = pyplot()
-    floor = 1e-3                    # a zero error still shows on the log axis
-    fig, ax = plt.subplots(figsize=(7.5, 5))
-    for (label, marker) in zip(dict.fromkeys(r["task"] for r in settings), "osD^v<>"):
-        rows = [r for r in settings if r["task"] == label and np.isfinite(r["gray_error_max"])]
-        t = np.array([r["time_s"] for r in rows])
-        e = np.maximum([r["gray_error_max"] for r in rows], floor)
-        dots = ax.plot(t, e, marker, ls="none", label=label)[0]
-        front = sorted((ti, ei) for ti, ei, r in zip(t, e, rows) if r["pareto"])
-        ax.plot(*zip(*front), "-", color=dots.get_color(), alpha=0.6)
-        for ti, ei, r in zip(t, e, rows):
-            ax.annotate(r["name"], (ti, ei), fontsize=6, xytext=(3, 3), textcoords="offset points")
-            if r["default"]:
-                ax.plot(ti, ei, "o", ms=14, mfc="none", mec="red", mew=1.5)
-    ax.plot([], [], "o", ms=10, mfc="none", mec="red", label="default setting")
-    ax.plot([], [], "k-", alpha=0.6, label="Pareto front")
-    ax.axhline(1.0, color="gray", ls=":", label="1 gray level")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlabel("warm plan time [s] (median)")
-    ax.set_ylabel("largest error of predicted mean/min/max gray [gray levels]")
-    ax.set_title("What accuracy costs in time (vs a fine reference plan)", fontsize=10)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
 def command(args):
     """`cell bench [TASK...] [--quick] [--out DIR] [--json]`: tables on stdout (stderr with
     --json), bench.json and bench.png in DIR, progress on stderr."""
@@ -273,7 +242,7 @@ def command(args):
     result["targets"] = targets(result["settings"], result["kernels"])
     text = jsonio.dumps(result, indent=2)
     (out / "bench.json").write_text(text + "\n")
-    write_plot(out / "bench.png", result["settings"])
+    write_bench(out / "bench.png", result["settings"])
     tables = sys.stderr if args.json else sys.stdout
     print(report(result), file=tables)
     print(f"wrote {out}/bench.json and bench.png", file=tables, flush=True)

@@ -18,6 +18,7 @@ import numpy as np
 from cell import jsonio, measure
 from cell.devices import Operator, Session
 from cell.errors import GoalNotReached, PlanInfeasible, TaskError
+from cell.pictures import write_calibration
 
 # the brightest sample's gray by the model, as a fraction of full scale, at the first and the
 # last shot: dim, up to near (not at) saturation; G ~ t, so the shutter times follow
@@ -110,25 +111,6 @@ def calibrate(task, plan, devices, log, shots=6, record=None):
     return fit_camera_constant(exposures, grays, full_scale), exposures, grays
 
 
-def write_picture(path, exposures, grays, fit, c_model):
-    """G over the model's P t: the fitted line and the line the task's c predicts."""
-    from cell.pictures import pyplot
-    plt = pyplot()
-    fig, ax = plt.subplots(figsize=(6, 4))
-    ax.plot(exposures.ravel() * 1e15, grays.ravel(), ".", ms=3, label="measured (per sample and shot)")
-    x = np.linspace(0.0, np.nanmax(exposures), 2)
-    ax.plot(x * 1e15, c_model * x, "--", label=f"task's c = {c_model:.4g}")
-    if fit:
-        ax.plot(x * 1e15, fit.black_level + fit.camera_constant * x,
-                label=f"fit c = {fit.camera_constant:.4g}, b = {fit.black_level:.2f}")
-    ax.set_xlabel("model pixel power x shutter  P t  [fJ]")
-    ax.set_ylabel("measured gray G")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
 def run(task, out, connect, shots=6):
     """Plan (the function `cell plan` uses, plan.json and pictures in out), connect(scene) ->
     Devices, calibrate; out/log.jsonl as it happens, out/calibration.json however it ends, and
@@ -147,7 +129,7 @@ def run(task, out, connect, shots=6):
         with session:
             planned = plan_and_connect(task, out, log, session, connect, result)
             fit, exposures, grays = calibrate(task, planned, session.devices, log, shots, result["shots"])
-        write_picture(out / "calibration.png", exposures, grays, fit, c_model)
+        write_calibration(out / "calibration.png", exposures, grays, fit, c_model)
         if fit is None:
             n = sum(s["samples"] for s in result["shots"])
             saturated = sum(s["saturated"] for s in result["shots"])
