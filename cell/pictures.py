@@ -4,8 +4,10 @@ marked), the closed loop's convergence, the calibration fit and the benchmark's 
 
 Drawn through matplotlib's object API (a Figure per picture, saved by its own canvas): no global
 figure state and no backend to select, so drawing is safe in worker processes, and a figure is
-freed with its last reference.
+freed with its last reference; threads draw one picture at a time (_DRAWING).
 """
+import functools
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +21,19 @@ from cell.physics import brdf
 # Fixed margins fit these figure sizes and labels: tight_layout would cost a layout pass each.
 MARGINS = {"left": 0.08, "right": 0.98, "bottom": 0.12, "top": 0.93}
 PNG = {"compress_level": 1}     # zlib: lossless like the default, at a fraction of its time
+
+# Each picture has its own Figure, but matplotlib's text layout (mathtext parser, font cache) is
+# shared and not thread-safe: two threads laying out log-axis tick labels at once raise a
+# ParseException. One picture at a time, then.
+_DRAWING = threading.Lock()
+
+
+def _one_at_a_time(write):
+    @functools.wraps(write)
+    def locked(*args, **kwargs):
+        with _DRAWING:
+            return write(*args, **kwargs)
+    return locked
 
 
 def _feature_angles(plan, scene, position):
@@ -40,6 +55,7 @@ def _axes(ax, title):
     ax.set_title(title, fontsize=10)
 
 
+@_one_at_a_time
 def write_plan_pictures(plan, task, scene, out_dir):
     """Write visibility_brdf.png, regions.png and cost.png into out_dir; return their paths."""
     out_dir = Path(out_dir)
@@ -103,6 +119,7 @@ def write_plan_pictures(plan, task, scene, out_dir):
     return paths
 
 
+@_one_at_a_time
 def write_convergence(path, iterations, band):
     """The closed loop at a glance: per capture the measured gray range (bar) and mean (dot) over
     the feature's pixels, the model's prediction (open diamonds: min, max), the gray band shaded,
@@ -132,6 +149,7 @@ def write_convergence(path, iterations, band):
     fig.savefig(path, dpi=90, pil_kwargs=PNG)
 
 
+@_one_at_a_time
 def write_calibration(path, exposures, grays, fit, c_model):
     """cell calibrate's fit: G over the model's P t, the fitted line and the line the task's c
     predicts."""
@@ -150,6 +168,7 @@ def write_calibration(path, exposures, grays, fit, c_model):
     fig.savefig(path, dpi=110)
 
 
+@_one_at_a_time
 def write_bench(path, settings):
     """cell bench's rows: gray error vs warm time, log-log, a marker set per task, its Pareto
     front as a line and the default setting ringed."""
