@@ -16,6 +16,7 @@ Pareto front, per task: settings no other setting beats on both time_s and gray_
 import sys
 import time
 from dataclasses import asdict, replace
+from importlib.resources import files
 from pathlib import Path
 
 import numpy as np
@@ -29,8 +30,8 @@ from cell.regions import SphereGrid
 from cell.scene import build_scene
 from cell.kernel_bench import benchmark_gray, benchmark_visibility, wall_times
 
-ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_TASKS = (ROOT / "tasks" / "hinge.yaml", ROOT / "tasks" / "conrod.yaml")
+EXAMPLES = files("lightplan_tasks")     # tasks/, installed with the package (pyproject.toml)
+DEFAULT_TASKS = (EXAMPLES / "hinge.yaml", EXAMPLES / "conrod.yaml")
 DEFAULT = PlannerSettings()
 SWEEP = {
     "coarse": PlannerSettings(grid_step_deg=4.0, pan_step_deg=20.0, tilt_step_deg=10.0, radius_steps=3,
