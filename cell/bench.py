@@ -16,6 +16,7 @@ Pareto front, per task: settings no other setting beats on both time_s and gray_
 import sys
 import time
 from dataclasses import asdict, replace
+from importlib.resources import files
 from pathlib import Path
 
 import numpy as np
@@ -23,14 +24,14 @@ import numpy as np
 from cell import evaluate, geometry, jsonio, planner, rig
 from cell.cli import output_folder
 from cell.loader import load_task
-from cell.pictures import pyplot
+from cell.pictures import write_bench
 from cell.plan import PlannerSettings, gray_stats
 from cell.regions import SphereGrid
 from cell.scene import build_scene
-from kernels.bench import benchmark_gray, benchmark_visibility, wall_times
+from cell.kernel_bench import benchmark_gray, benchmark_visibility, wall_times
 
-ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_TASKS = (ROOT / "tasks" / "hinge.yaml", ROOT / "tasks" / "conrod.yaml")
+EXAMPLES = files("lightplan_tasks")     # tasks/, installed with the package (pyproject.toml)
+DEFAULT_TASKS = (EXAMPLES / "hinge.yaml", EXAMPLES / "conrod.yaml")
 DEFAULT = PlannerSettings()
 SWEEP = {
     "coarse": PlannerSettings(grid_step_deg=4.0, pan_step_deg=20.0, tilt_step_deg=10.0, radius_steps=3,
@@ -137,7 +138,7 @@ def flags(row):
 
 
 def kernel_rows(path, quick, repeats, say):
-    """Kernel throughput rows on the task's scene (kernels.bench), tagged with the task."""
+    """Kernel throughput rows on the task's scene (cell.kernel_bench), tagged with the task."""
     task, label = load_task(path), Path(path).stem
     scene = build_scene(task)
     sensor = task.camera.sensor
@@ -223,37 +224,6 @@ def summary(settings):
     return lines
 
 
-def write_plot(path, settings):
-    """Gray error vs warm time, log-log, a marker set per task, its Pareto front as a line and
-    the default setting ringed."""
-    plt = pyplot()
-    floor = 1e-3                    # a zero error still shows on the log axis
-    fig, ax = plt.subplots(figsize=(7.5, 5))
-    for (label, marker) in zip(dict.fromkeys(r["task"] for r in settings), "osD^v<>"):
-        rows = [r for r in settings if r["task"] == label and np.isfinite(r["gray_error_max"])]
-        t = np.array([r["time_s"] for r in rows])
-        e = np.maximum([r["gray_error_max"] for r in rows], floor)
-        dots = ax.plot(t, e, marker, ls="none", label=label)[0]
-        front = sorted((ti, ei) for ti, ei, r in zip(t, e, rows) if r["pareto"])
-        ax.plot(*zip(*front), "-", color=dots.get_color(), alpha=0.6)
-        for ti, ei, r in zip(t, e, rows):
-            ax.annotate(r["name"], (ti, ei), fontsize=6, xytext=(3, 3), textcoords="offset points")
-            if r["default"]:
-                ax.plot(ti, ei, "o", ms=14, mfc="none", mec="red", mew=1.5)
-    ax.plot([], [], "o", ms=10, mfc="none", mec="red", label="default setting")
-    ax.plot([], [], "k-", alpha=0.6, label="Pareto front")
-    ax.axhline(1.0, color="gray", ls=":", label="1 gray level")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlabel("warm plan time [s] (median)")
-    ax.set_ylabel("largest error of predicted mean/min/max gray [gray levels]")
-    ax.set_title("What accuracy costs in time (vs a fine reference plan)", fontsize=10)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
 def command(args):
     """`cell bench [TASK...] [--quick] [--out DIR] [--json]`: tables on stdout (stderr with
     --json), bench.json and bench.png in DIR, progress on stderr."""
@@ -274,7 +244,7 @@ def command(args):
     result["targets"] = targets(result["settings"], result["kernels"])
     text = jsonio.dumps(result, indent=2)
     (out / "bench.json").write_text(text + "\n")
-    write_plot(out / "bench.png", result["settings"])
+    write_bench(out / "bench.png", result["settings"])
     tables = sys.stderr if args.json else sys.stdout
     print(report(result), file=tables)
     print(f"wrote {out}/bench.json and bench.png", file=tables, flush=True)

@@ -19,6 +19,7 @@ from cell import measure
 from cell.acquisition import acquire, move_to, plan_recorded, require_feasible
 from cell.devices import Operator, Session
 from cell.errors import GoalNotReached, PlanInfeasible, TaskError
+from cell.pictures import write_calibration
 from cell.recorder import Recorder
 
 # the brightest sample's gray by the model, as a fraction of full scale, at the first and the
@@ -145,25 +146,6 @@ class CalibrationResult:
                     {"fault": self.fault} if self.fault else {})
 
 
-def write_picture(path, exposures, grays, fit, c_model):
-    """G over the model's P t: the fitted line and the line the task's c predicts."""
-    from cell.pictures import pyplot
-    plt = pyplot()
-    fig, ax = plt.subplots(figsize=(6, 4))
-    ax.plot(exposures.ravel() * 1e15, grays.ravel(), ".", ms=3, label="measured (per sample and shot)")
-    x = np.linspace(0.0, np.nanmax(exposures), 2)
-    ax.plot(x * 1e15, c_model * x, "--", label=f"task's c = {c_model:.4g}")
-    if fit:
-        ax.plot(x * 1e15, fit.black_level + fit.camera_constant * x,
-                label=f"fit c = {fit.camera_constant:.4g}, b = {fit.black_level:.2f}")
-    ax.set_xlabel("model pixel power x shutter  P t  [fJ]")
-    ax.set_ylabel("measured gray G")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
 def run(task, out, connect, shots=6):
     """Plan (the function `cell plan` uses, plan.json and pictures in out), connect(scene) ->
     Devices, sweep and fit c; out/log.jsonl as it happens, out/calibration.json however it ends,
@@ -185,7 +167,7 @@ def run(task, out, connect, shots=6):
             exposures = np.array([r.exposure for r in records])
             grays = np.array([r.gray for r in records])
             fit = fit_camera_constant(exposures, grays, measure.saturation_level(task.camera.sensor.bit_depth))
-            write_picture(out / "calibration.png", exposures, grays, fit, c_model)
+            write_calibration(out / "calibration.png", exposures, grays, fit, c_model)
             if fit is None:
                 n = sum(r.samples for r in records)
                 saturated = sum(r.saturated for r in records)

@@ -1,10 +1,20 @@
-"""Pictures a person reads (paper Fig. 4-6): BRDF on the visibility map, segmented region map,
-cost map, each with the camera direction (square) and the lamp (dot) marked; the closed loop's
-convergence and its captures with the measured feature drawn."""
+"""Every picture a person reads: the plan's maps (paper Fig. 4-6: BRDF on the visibility map,
+segmented region map, cost map, each with the camera direction (square) and the lamp (dot)
+marked), the closed loop's convergence and its captures with the measured feature drawn, the
+calibration fit and the benchmark's error vs time.
+
+Drawn through matplotlib's object API (a Figure per picture, saved by its own canvas): no global
+figure state and no backend to select, so drawing is safe in worker processes, and a figure is
+freed with its last reference; threads draw one picture at a time (_DRAWING).
+"""
+import functools
+import threading
 from pathlib import Path
 
 import cv2
 import numpy as np
+from matplotlib.colors import ListedColormap
+from matplotlib.figure import Figure
 
 from cell import geometry, measure
 from cell.physics import brdf
@@ -14,12 +24,18 @@ from cell.physics import brdf
 MARGINS = {"left": 0.08, "right": 0.98, "bottom": 0.12, "top": 0.93}
 PNG = {"compress_level": 1}     # zlib: lossless like the default, at a fraction of its time
 
+# Each picture has its own Figure, but matplotlib's text layout (mathtext parser, font cache) is
+# shared and not thread-safe: two threads laying out log-axis tick labels at once raise a
+# ParseException. One picture at a time, then.
+_DRAWING = threading.Lock()
 
-def pyplot():
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    return plt
+
+def _one_at_a_time(write):
+    @functools.wraps(write)
+    def locked(*args, **kwargs):
+        with _DRAWING:
+            return write(*args, **kwargs)
+    return locked
 
 
 def _feature_angles(plan, scene, position):
@@ -41,16 +57,17 @@ def _axes(ax, title):
     ax.set_title(title, fontsize=10)
 
 
+@_one_at_a_time
 def write_plan_pictures(plan, task, scene, out_dir):
     """Write visibility_brdf.png, regions.png and cost.png into out_dir; return their paths."""
-    plt = pyplot()
     out_dir = Path(out_dir)
     m = plan.maps
     extent = [np.degrees(m.grid.azimuth[0]), np.degrees(m.grid.azimuth[-1]),
               np.degrees(m.grid.elevation[0]), np.degrees(m.grid.elevation[-1])]
     paths = []
 
-    fig, ax = plt.subplots(figsize=(9, 4.8))
+    fig = Figure(figsize=(9, 4.8))
+    ax = fig.subplots()
     shown = np.ma.masked_where(~m.visible | (m.reflectance <= 0), np.log10(np.maximum(m.reflectance, 1e-12)))
     ax.set_facecolor("0.25")
     im = ax.imshow(shown, origin="lower", extent=extent, aspect="auto", cmap="inferno")
@@ -59,9 +76,9 @@ def write_plan_pictures(plan, task, scene, out_dir):
     _axes(ax, f"{plan.task_name}: BRDF mapped on the visibility map")
     paths.append(out_dir / "visibility_brdf.png")
 
-    fig2, ax = plt.subplots(figsize=(9, 4.8))
+    fig2 = Figure(figsize=(9, 4.8))
+    ax = fig2.subplots()
     seg = np.where(m.visible, m.dominant, brdf.OCCLUDED).astype(float)
-    from matplotlib.colors import ListedColormap
     cmap = ListedColormap(["black", "tab:blue", "tab:orange", "tab:red"])
     ax.imshow(seg, origin="lower", extent=extent, aspect="auto", cmap=cmap, vmin=-1.5, vmax=2.5,
               interpolation="nearest")
@@ -73,7 +90,8 @@ def write_plan_pictures(plan, task, scene, out_dir):
     _axes(ax, "segmented region map (white line: wanted region)")
     paths.append(out_dir / "regions.png")
 
-    fig3, (ax1, ax2) = plt.subplots(1, 2, figsize=(13, 4.8))
+    fig3 = Figure(figsize=(13, 4.8))
+    ax1, ax2 = fig3.subplots(1, 2)
     margin = max(task.requirements.region_margin_rad, 1e-6)
     cost = (m.distance / margin + 1.0) / np.log(10.0)    # log10 of exp(d / margin + 1)
     im = ax1.imshow(cost, origin="lower", extent=extent, aspect="auto", cmap="viridis", vmin=-3, vmax=3)
@@ -100,16 +118,16 @@ def write_plan_pictures(plan, task, scene, out_dir):
     fig3.subplots_adjust(**{**MARGINS, "left": 0.06, "wspace": 0.11})
     for f, p in zip((fig, fig2, fig3), paths):
         f.savefig(p, dpi=90, pil_kwargs=PNG)
-        plt.close(f)
     return paths
 
 
+@_one_at_a_time
 def write_convergence(path, iterations, band):
     """The closed loop at a glance: per capture the measured gray range (bar) and mean (dot) over
     the feature's pixels, the model's prediction (open diamonds: min, max), the gray band shaded,
     the correction taken written under each capture."""
-    plt = pyplot()
-    fig, ax = plt.subplots(figsize=(7, 4.2))
+    fig = Figure(figsize=(7, 4.2))
+    ax = fig.subplots()
     low, high = band
     ax.axhspan(low, high, color="tab:green", alpha=0.15, label=f"band {low:g}-{high:g}")
     for it in iterations:
@@ -131,12 +149,61 @@ def write_convergence(path, iterations, band):
     ax.legend(fontsize=7, loc="upper right")
     fig.subplots_adjust(left=0.1, right=0.97, bottom=0.2, top=0.92)
     fig.savefig(path, dpi=90, pil_kwargs=PNG)
-    plt.close(fig)
+
+
+@_one_at_a_time
+def write_calibration(path, exposures, grays, fit, c_model):
+    """cell calibrate's fit: G over the model's P t, the fitted line and the line the task's c
+    predicts."""
+    fig = Figure(figsize=(6, 4))
+    ax = fig.subplots()
+    ax.plot(exposures.ravel() * 1e15, grays.ravel(), ".", ms=3, label="measured (per sample and shot)")
+    x = np.linspace(0.0, np.nanmax(exposures), 2)
+    ax.plot(x * 1e15, c_model * x, "--", label=f"task's c = {c_model:.4g}")
+    if fit:
+        ax.plot(x * 1e15, fit.black_level + fit.camera_constant * x,
+                label=f"fit c = {fit.camera_constant:.4g}, b = {fit.black_level:.2f}")
+    ax.set_xlabel("model pixel power x shutter  P t  [fJ]")
+    ax.set_ylabel("measured gray G")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+@_one_at_a_time
+def write_bench(path, settings):
+    """cell bench's rows: gray error vs warm time, log-log, a marker set per task, its Pareto
+    front as a line and the default setting ringed."""
+    floor = 1e-3                    # a zero error still shows on the log axis
+    fig = Figure(figsize=(7.5, 5))
+    ax = fig.subplots()
+    for (label, marker) in zip(dict.fromkeys(r["task"] for r in settings), "osD^v<>"):
+        rows = [r for r in settings if r["task"] == label and np.isfinite(r["gray_error_max"])]
+        t = np.array([r["time_s"] for r in rows])
+        e = np.maximum([r["gray_error_max"] for r in rows], floor)
+        dots = ax.plot(t, e, marker, ls="none", label=label)[0]
+        front = sorted((ti, ei) for ti, ei, r in zip(t, e, rows) if r["pareto"])
+        ax.plot(*zip(*front), "-", color=dots.get_color(), alpha=0.6)
+        for ti, ei, r in zip(t, e, rows):
+            ax.annotate(r["name"], (ti, ei), fontsize=6, xytext=(3, 3), textcoords="offset points")
+            if r["default"]:
+                ax.plot(ti, ei, "o", ms=14, mfc="none", mec="red", mew=1.5)
+    ax.plot([], [], "o", ms=10, mfc="none", mec="red", label="default setting")
+    ax.plot([], [], "k-", alpha=0.6, label="Pareto front")
+    ax.axhline(1.0, color="gray", ls=":", label="1 gray level")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("warm plan time [s] (median)")
+    ax.set_ylabel("largest error of predicted mean/min/max gray [gray levels]")
+    ax.set_title("What accuracy costs in time (vs a fine reference plan)", fontsize=10)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
 
 
 def annotate_capture(image, m, bit_depth, caption):
-    """8-bit colour copy of a capture: the measured region (measure.Measurement) outlined
-    (green), its saturated pixels red, the samples' pixels blue, a caption."""
+    """8-bit colour copy of a capture (OpenCV): the measured region (measure.Measurement)
+    outlined (green), its saturated pixels red, the samples' pixels blue, a caption."""
     scale = 255.0 / measure.saturation_level(bit_depth)
     view = cv2.cvtColor((measure.levels(image, bit_depth) * scale).astype(np.uint8), cv2.COLOR_GRAY2BGR)
     view[m.saturated] = (0, 0, 255)

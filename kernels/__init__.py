@@ -8,6 +8,7 @@ Pure arrays in, NumPy out; nothing here knows of task files or devices. Warp sta
     kernels.gray.gray_per_exposure(...)      -> GrayResult (value, shadowed, off_axis, dominant)
     kernels.render.render(...)               -> RenderResult (value, hit, depth, normal)
     kernels.proximity.closest_points(...)    -> (point, face, normal) on the surface
-    kernels.reference                        NumPy versions of the above (tests, benchmark)
-    kernels.bench.benchmark_gray(...)        evaluations/s, Warp vs NumPy
+
+Their NumPy references (tests, `cell bench`) are cell.physics.reference, built from the readable
+physics in cell; the throughput benchmark is cell.kernel_bench.
 """

@@ -17,7 +17,7 @@ TWO_PI = wp.constant(wp.float64(2.0 * math.pi))   # wp.pi is float32
 
 # Directions within this cosine of a point's tangent plane count as below it: a ray along
 # the tangent plane grazes the part's own surface, and the sign of a ~1e-17 dot product
-# would otherwise decide visibility by rounding. NumPy reference: kernels.reference.
+# would otherwise decide visibility by rounding. NumPy reference: cell.physics.reference.
 TANGENT_EPS = wp.constant(wp.float64(1.0e-9))
 
 OCCLUDED = wp.constant(-1)       # dominant term where R is clamped to 0 (cell.physics.brdf)

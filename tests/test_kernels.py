@@ -1,4 +1,4 @@
-"""The Warp kernels against their NumPy references (kernels.reference, cell.physics).
+"""The Warp kernels against their NumPy references (cell.physics.reference).
 
 Gray values agree to 1e-5 relative with an identical zero pattern; visibility and shadows
 agree except for rays that graze an edge, and those must be few and provably ambiguous
@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cell import geometry
-from kernels import reference as ref
+from cell.physics import reference as ref
 from kernels.gray import gray_per_exposure
 from kernels.mesh import WarpMesh
 from kernels.proximity import closest_points

@@ -1,1 +1,2 @@
-"""Readable NumPy reference of the paper's physics, one equation family per module."""
+"""Readable NumPy reference of the paper's physics, one equation family per module; `reference`
+holds the kernels' NumPy versions built from them."""

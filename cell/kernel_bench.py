@@ -11,9 +11,9 @@ import time
 
 import numpy as np
 
-from . import reference
-from .gray import gray_per_exposure
-from .visibility import visibility_maps
+from cell.physics import reference
+from kernels.gray import gray_per_exposure
+from kernels.visibility import visibility_maps
 
 
 def wall_times(fn, repeat):
@@ -40,7 +40,7 @@ def _row(name, size, warp_per_s, ref_name, ref_size=0, ref_per_s=None, unavailab
 def benchmark_gray(mesh, points, normals, camera_pos, table, power_w=0.23043,
                    cone_angle_rad=np.radians(12.0), camera_constant=1.5e16, pixel_area_m2=4.65e-6**2,
                    evaluations=1_000_000, reference_evaluations=20_000, shadows=True, repeat=3, seed=0):
-    """Gray evaluations (candidate x point) per second, kernels.gray vs kernels.reference.
+    """Gray evaluations (candidate x point) per second, kernels.gray vs cell.physics.reference.
 
     Candidates: random lamps 0.15-0.6 m from the points' centroid on its upper hemisphere,
     aimed at it. Returns one row, named "gray" (with shadow rays) or "gray, no shadows".
@@ -72,7 +72,7 @@ def benchmark_gray(mesh, points, normals, camera_pos, table, power_w=0.23043,
 def benchmark_visibility(mesh, points, normals, frame, azimuth, elevation,
                          reference_evaluations=20_000, reference_rays=100_000, repeat=3, offset_m=1e-5):
     """Visibility evaluations (point x direction) per second, kernels.visibility vs
-    kernels.reference (on the first points, up to reference_evaluations); and rays per second
+    cell.physics.reference (on the first points, up to reference_evaluations); and rays per second
     on the rays the kernel casts (directions above each tangent plane) vs trimesh's
     ray_triangle and embree casters (up to reference_rays of them). Returns three rows."""
     points = np.asarray(points, dtype=float).reshape(-1, 3)

@@ -1,6 +1,7 @@
-"""NumPy references of the kernels, for the tests and `cell bench`.
+"""NumPy references of the kernels in kernels/, for the tests and `cell bench`.
 
-Physics from cell.physics (brdf, radiometry) and cell.material; rays by brute-force
+Here in cell, not in kernels, because they are built from the readable physics (cell.physics.brdf,
+radiometry) and cell.material, and kernels/ knows nothing of cell; rays by brute-force
 Moller-Trumbore over every triangle in float64 (trimesh's ray module would need the optional
 `rtree` package, which the project does not depend on). Slow, readable, independent of Warp.
 `mesh` is anything with .vertices (V, 3) and .faces (F, 3): a WarpMesh (its float32
@@ -11,9 +12,8 @@ import numpy as np
 from cell import geometry
 from cell.material import Material
 from cell.physics import brdf, radiometry
-
-from .gray import GrayResult
-from .render import RenderResult
+from kernels.gray import GrayResult
+from kernels.render import RenderResult
 
 TANGENT_EPS = 1e-9          # as kernels.funcs.TANGENT_EPS
 _CHUNK = 1 << 19            # rays x triangles per NumPy batch
@@ -67,7 +67,7 @@ def ray_hits_any(mesh, origins, dirs, max_dist):
 
 def _material(table):
     t = np.asarray(table, dtype=np.float64)
-    return Material("table", "kernels.reference", *t.T)
+    return Material("table", "cell.physics.reference", *t.T)
 
 
 def gray_per_exposure(mesh, points, normals, camera_pos, lamp_pos, lamp_axis, power_w,

@@ -1,0 +1,16 @@
+"""Pictures drawn from several threads at once come out as if drawn one after the other."""
+from concurrent.futures import ThreadPoolExecutor
+
+from cell.pictures import write_bench
+
+ROWS = [{"task": "t", "name": n, "time_s": t, "gray_error_max": e, "default": n == "default", "pareto": True}
+        for n, t, e in [("coarse", 0.1, 1.8), ("default", 0.3, 0.5), ("fine", 1.5, 0.2)]]
+
+
+def test_bench_plots_drawn_in_threads_equal_one_drawn_alone(tmp_path):
+    """Log axes lay out their tick labels with matplotlib's shared mathtext parser."""
+    write_bench(tmp_path / "alone.png", ROWS)
+    with ThreadPoolExecutor(4) as pool:
+        list(pool.map(lambda k: write_bench(tmp_path / f"{k}.png", ROWS), range(8)))
+    alone = (tmp_path / "alone.png").read_bytes()
+    assert all((tmp_path / f"{k}.png").read_bytes() == alone for k in range(8))
