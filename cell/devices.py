@@ -15,7 +15,7 @@ import numpy as np
 
 from cell import geometry
 from cell.errors import CellError, DeviceFault, TaskError
-from cell.loader import Integer, Number, Pair, Section, Spec, Text, Vector
+from cell.schema import Integer, Number, Pair, Section, Spec, Text, Vector
 from cell.rig import lamp_aim, lamp_joints, lamp_position
 
 __all__ = ["Arm", "LampRig", "Camera", "Operator", "Devices", "Session", "stop_outcome", "ArmConfig",

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
-from cell import cli, loader
+from cell import cli, loader, schema
 from cell.errors import TaskError
 from cell.task import SimConfig
 
@@ -29,7 +29,7 @@ def write_task(folder, edit=None):
     the task; an edit returning text writes that text instead. Returns the task's path."""
     shutil.copytree(TASKS / "parts", folder / "parts")
     shutil.copytree(TASKS / "materials", folder / "materials")
-    task = loader.read_yaml(HINGE)
+    task = schema.read_yaml(HINGE)
     text = edit(task, folder) if edit else None
     path = folder / "task.yaml"
     path.write_text(text if isinstance(text, str) else yaml.safe_dump(task, sort_keys=False))
@@ -81,7 +81,7 @@ def material(key, value):
     """Edit: set material[key] = value (None deletes) in the task's material file."""
     def edit(task, folder):
         path = folder / MATERIAL
-        data = loader.read_yaml(path)
+        data = schema.read_yaml(path)
         if value is None:
             del data[key]
         else:
