@@ -15,7 +15,7 @@ import numpy as np
 
 from cell import geometry
 from cell.errors import CellError, DeviceFault, TaskError
-from cell.schema import Integer, Number, Pair, Section, Spec, Text, Vector
+from cell.schema import Integer, Number, Pair, Section, Spec, Text, Vector, show
 from cell.rig import lamp_aim, lamp_joints, lamp_position
 
 __all__ = ["Arm", "LampRig", "Camera", "Operator", "Devices", "Session", "stop_outcome", "ArmConfig",
@@ -190,14 +190,14 @@ def devices_from_config(task_cell_devices, task_file):
     p = _section(task_file, "pan_tilt", PAN_TILT, raw.get("pan_tilt"))
     c = _section(task_file, "camera", CAMERA, raw.get("camera"))
     if not np.all(a["workspace_min_m"] < a["workspace_max_m"]):
-        raise TaskError(task_file, "cell.arm.workspace_max_m", list(a["workspace_max_m"]),
-                        f"above workspace_min_m {list(a['workspace_min_m'])} on every axis")
+        raise TaskError(task_file, "cell.arm.workspace_max_m", show(a["workspace_max_m"]),
+                        f"above workspace_min_m {show(a['workspace_min_m'])} on every axis")
     if p["baud"] not in DXL_BAUD_RATES:
-        raise TaskError(task_file, "cell.pan_tilt.baud", p["baud"],
+        raise TaskError(task_file, "cell.pan_tilt.baud", show(p["baud"]),
                         "one of the SDK's rates: " + ", ".join(map(str, DXL_BAUD_RATES)))
     ids = [p["pan_id"], p["tilt_id"], p["radius_id"]]
     if len(set(ids)) != 3:
-        raise TaskError(task_file, "cell.pan_tilt.tilt_id", ids, "distinct pan, tilt and radius ids")
+        raise TaskError(task_file, "cell.pan_tilt.tilt_id", show(ids), "distinct pan, tilt and radius ids")
     arm = ArmConfig(
         host=a["host"], connect_timeout_s=a["connect_timeout_s"],
         T_cell_base=geometry.from_rpy(a["base_rpy_rad"], a["base_position_m"]),

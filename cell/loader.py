@@ -142,11 +142,11 @@ def load_material(path):
         if isinstance(column, np.ndarray) and len(column) != len(phase):
             raise TaskError(path, key, f"{len(column)} values", f"{len(phase)}, one per phase_deg entry")
     if np.any(np.diff(phase) <= 0):
-        found = show(np.round(np.degrees(phase), 6).tolist())
+        found = show(np.round(np.degrees(phase), 6))
         raise TaskError(path, "phase_deg", found, "strictly ascending phase angles")
     for i, (m1, m2) in enumerate(zip(v["m1"], v["m2"])):
         if not m2 > m1:
-            raise TaskError(path, f"m2[{i}]", show(float(m2)), f"a spike exponent m2 > m1 = {m1:g}")
+            raise TaskError(path, f"m2[{i}]", show(m2), f"a spike exponent m2 > m1 = {m1:g}")
     table = ("name", "source", "phase_rad", *PARAMETERS)
     extra = {k: x for k, x in v.items() if k not in table and x is not None}
     return Material(v["name"], v["source"], phase, *(v[p] for p in PARAMETERS), extra=extra)
@@ -196,7 +196,7 @@ def _feature(file, mesh, f):
     """The feature with its center snapped to the surface and the outward normal there."""
     center, normal, distance = closest_surface_point(mesh, f["center_m"])
     if distance > SURFACE_TOLERANCE_M:
-        found = f"{show(f['center_m'].tolist())} m, {distance * 1e3:.1f} mm from the surface"
+        found = f"{show(f['center_m'])} m, {distance * 1e3:.1f} mm from the surface"
         raise TaskError(file, "feature.center_m", found,
                         "a point within 1 mm of the part's surface (part frame)")
     return Feature(center, normal, f["radius_m"], f["samples"])

@@ -33,8 +33,21 @@ class Invalid(Exception):
         self.found, self.expected, self.index = found, expected, index
 
 
+def _plain(value):
+    """numpy scalars and arrays, and lists of them, as the plain Python values a file holds."""
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value
+
+
 def show(value):
-    """A value as the file wrote it, on one short line."""
+    """A value as the file wrote it, on one short line: `0.6`, `[0.6, 0.6, 0.1]`, never numpy's
+    reprs such as `np.float64(0.6)`, which no user wrote."""
+    value = _plain(value)
     if isinstance(value, dict):
         return "a mapping"
     text = "null" if value is None else repr(value)

@@ -80,6 +80,13 @@ def test_bad_settings_name_file_key_and_expectation(raw, key, expected):
     assert error.value.exit_code == 2
 
 
+def test_a_workspace_error_shows_the_numbers_as_written():
+    with pytest.raises(TaskError) as error:
+        devices_from_config({"arm": {"workspace_min_m": [0.7, 0.6, 0.1]}}, TASK)
+    assert str(error.value) == (f"{TASK}: cell.arm.workspace_max_m: found [0.6, 0.6, 1.0], expected "
+                                "above workspace_min_m [0.7, 0.6, 0.1] on every axis")
+
+
 def test_hardware_backend_needs_an_explicit_host_and_port():
     task = type("Task", (), {})()
     with pytest.raises(TaskError, match=r"cell.arm.host: found nothing, expected the robot's address"):

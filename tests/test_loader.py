@@ -331,6 +331,14 @@ def test_broken_input_is_one_line_naming_file_and_key(tmp_path, capsys, edit, fi
     assert str(tmp_path / file) in err
     assert f": {key}: found" in err if key else ": found" in err
     assert text in err
+    assert "np." not in err and "array(" not in err          # values as the user wrote them
+
+
+def test_values_in_errors_are_plain_numbers_never_numpy_reprs():
+    assert schema.show(np.float64(0.6)) == "0.6"
+    assert schema.show(np.array([0.6, 0.6, 0.1])) == "[0.6, 0.6, 0.1]"
+    assert schema.show([np.float64(0.6), np.int64(3)]) == "[0.6, 3]"
+    assert schema.show("far") == "'far'" and schema.show(None) == "null"
 
 
 def test_loader_raises_task_error_with_the_key_path(tmp_path):
