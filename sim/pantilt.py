@@ -2,7 +2,7 @@
 with position limits, so the read-back joints carry the real rig's quantization."""
 from cell.devices import Operator
 from cell.errors import DeviceFault
-from cell.hw.dynamixel import CENTRE_TICK, ServoRig, describe_hardware_error
+from cell.servo import CENTRE_TICK, ServoRig, describe_hardware_error
 
 FULL_RANGE = (0, 4095)
 
