@@ -16,8 +16,9 @@ from pathlib import Path
 import numpy as np
 
 from cell import jsonio, measure
-from cell.devices import Operator, Session
 from cell.errors import GoalNotReached, PlanInfeasible, TaskError
+from cell.operator import Operator
+from cell.session import Session
 
 # the brightest sample's gray by the model, as a fraction of full scale, at the first and the
 # last shot: dim, up to near (not at) saturation; G ~ t, so the shutter times follow
@@ -174,7 +175,7 @@ def run(task, out, connect, shots=6):
 def command(args):
     """`cell calibrate TASK [--backend sim|hw] [--out DIR] [--shots N] [--yes]`: exit 0 with c
     fitted, 1 infeasible plan or nothing usable measured, 2 bad input, 3 device fault."""
-    from cell import loop
+    from cell import backends
     from cell.cli import output_folder
     from cell.loader import load_task
 
@@ -188,7 +189,7 @@ def command(args):
     Operator(yes=args.yes or backend == "sim", stdout=sys.stderr).confirm(
         "calibration", "place the reference part (the task's part, of the task's material) in the cell; "
                        "the camera constant is measured against its material table")
-    result = run(task, out, lambda scene: loop.open_devices(task, scene, backend, yes=args.yes), args.shots)
+    result = run(task, out, lambda scene: backends.open_devices(task, scene, backend, yes=args.yes), args.shots)
     fit = Fit(**result["fit"])
     print(f"camera constant c = {fit.camera_constant:.5g} +- {fit.stderr:.2g} 1/(W s) "
           f"({result['camera_constant_ratio']:.3f} x the task's {c_model:.5g}); black level "

@@ -1,12 +1,11 @@
 """The devices the closed loop drives, as small interfaces with simulated (sim/) and real
-(cell/hw/) implementations side by side, and the task's `cell.arm`, `cell.pan_tilt` and
-`cell.camera` settings (docs/devices.md).
+(cell/hw/) implementations side by side (built in cell.backends), and the task's `cell.arm`,
+`cell.pan_tilt` and `cell.camera` settings (docs/devices.md).
 
 Every motion is checked against the envelope and speed limits here, in the interface, before a
 backend sees it, so no backend can skip the check. A refused or failed command raises
 DeviceFault; state is read back from the device, never assumed.
 """
-import sys
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,51 +13,19 @@ from pathlib import Path
 import numpy as np
 
 from cell import geometry
-from cell.errors import CellError, DeviceFault, TaskError
+from cell.errors import DeviceFault, TaskError
 from cell.schema import Integer, Number, Pair, Section, Spec, Text, Vector, show
-from cell.rig import lamp_aim, lamp_joints, lamp_position
+from cell.rig import lamp_aim, lamp_position
+from cell.session import try_all
 
-__all__ = ["Arm", "LampRig", "Camera", "Operator", "Devices", "Session", "stop_outcome", "ArmConfig",
-           "PanTiltConfig", "CameraConfig", "DevicesConfig", "devices_from_config", "make_hw_devices",
-           "check_arm_motion", "lamp_position", "lamp_aim", "lamp_joints"]
+__all__ = ["Arm", "LampRig", "Camera", "Devices", "ArmConfig", "PanTiltConfig", "CameraConfig",
+           "DevicesConfig", "devices_from_config", "check_arm_motion"]
 
 MAX_SPEED_M_S = 0.25            # ur_rtde's default moveL speed: a hard cap for an inspection cell
 MAX_ACCELERATION_M_S2 = 1.2     # ur_rtde's default moveL acceleration
 MAX_SERVO_SPEED_DEG_S = 90.0
 DXL_BAUD_RATES = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 921600,
                   1000000, 1152000, 2000000, 2500000, 3000000, 3500000, 4000000)  # the SDK's list
-
-
-class Operator:
-    """Tells the operator what to set by hand and waits for Enter; `yes` confirms for them
-    (tests, `--yes`). Without `yes` a prompt needs an interactive stdin, else it is a fault."""
-
-    def __init__(self, yes=False, stdin=None, stdout=None):
-        self.yes, self._stdin, self._stdout = yes, stdin, stdout
-
-    @property
-    def stdin(self):
-        return self._stdin or sys.stdin
-
-    @property
-    def stdout(self):
-        return self._stdout or sys.stdout
-
-    def require(self, device, what):
-        """Fail now, before anything moves, if a later prompt could not be answered."""
-        if not (self.yes or self.stdin.isatty()):
-            raise DeviceFault(device, f"{what} needs the operator, but stdin is not a terminal: "
-                                      "run with --yes to confirm operator steps")
-
-    def confirm(self, device, instruction):
-        print(f"{device}: {instruction}", file=self.stdout, flush=True)
-        if self.yes:
-            print("  (confirmed automatically: --yes)", file=self.stdout, flush=True)
-            return
-        self.require(device, f"'{instruction}'")
-        print("  press Enter when done", file=self.stdout, flush=True)
-        if not self.stdin.readline():
-            raise DeviceFault(device, f"stdin closed before the operator confirmed: {instruction}")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -379,78 +346,8 @@ class Devices:
         Every step is tried; returns the messages of steps that failed, in turn."""
         lamp_faulted = isinstance(fault, DeviceFault) and fault.device == self.lamp.device
         steps = (self.arm.stop, lambda: self.lamp.stop(fault_is_own=lamp_faulted), self.camera.close)
-        return _try_all(steps)
+        return try_all(steps)
 
     def close(self):
         """Release everything after a normal end."""
-        return _try_all((self.arm.close, self.lamp.close, self.camera.close))
-
-
-class Session:
-    """Owns the devices of one run, `with Session(on_fault) as session: session.devices =
-    connect(...)`. A normal end, or a goal not reached (a CellError that is no DeviceFault), closes
-    them. A DeviceFault or anything else (a bug, Ctrl-C, SIGTERM) stops them safely first, then
-    releases the arm's and the servos' connections; `fault` = {device, error, stop_failures,
-    release_failures}, on_fault(fault) is called (to log it), and a DeviceFault is raised again
-    saying whether motion stopped."""
-
-    def __init__(self, on_fault=lambda fault: None):
-        self.devices, self.fault, self.on_fault = None, None, on_fault
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, kind, err, traceback):
-        if err is None or (isinstance(err, CellError) and not isinstance(err, DeviceFault)):
-            if self.devices:
-                self.devices.close()
-            return False
-        failures = self.devices.safe_stop(err) if self.devices else []
-        released = _try_all((self.devices.arm.close, self.devices.lamp.close)) if self.devices else []
-        self.fault = {"device": getattr(err, "device", None), "error": str(err) or type(err).__name__,
-                      "stop_failures": failures, "release_failures": released}
-        self.on_fault(self.fault)
-        if isinstance(err, DeviceFault):
-            raise DeviceFault(err.device, f"{err.reason}; {stop_outcome(failures)}") from err
-        return False
-
-
-def stop_outcome(failures):
-    """What a safe stop achieved, in words an operator must be able to trust."""
-    return "motion stopped" if not failures else f"STOP FAILED, check the cell: {'; '.join(failures)}"
-
-
-def _try_all(steps):
-    failures = []
-    for step in steps:
-        try:
-            step()
-        except Exception as err:                     # a stop must not prevent the next one
-            failures.append(str(err))
-    return failures
-
-
-def make_hw_devices(config, task, yes=False, operator=None):
-    """The real devices for --backend hw. Needs explicit `cell.arm.host` and `cell.pan_tilt.port`
-    (no default reaches the network or a serial bus); connects arm, servos, camera in turn and
-    closes what was opened if a later one fails."""
-    from cell.hw.dynamixel import DynamixelPanTilt
-    from cell.hw.opencv_camera import OpenCVCamera
-    from cell.hw.ur import URArm
-
-    if not config.arm.host:
-        raise TaskError(config.task_file, "cell.arm.host", "nothing",
-                        "the robot's address (required for --backend hw; there is no default)")
-    if not config.pan_tilt.port:
-        raise TaskError(config.task_file, "cell.pan_tilt.port", "nothing",
-                        "the servos' serial port, e.g. /dev/ttyUSB0 (required for --backend hw)")
-    operator = operator or Operator(yes=yes)
-    opened = []
-    try:
-        opened.append(URArm(config.arm))
-        opened.append(DynamixelPanTilt(task.lamp.rig, config.pan_tilt, operator))
-        opened.append(OpenCVCamera(config.camera, task.camera.sensor.bit_depth, operator))
-    except Exception:
-        _try_all([device.close for device in reversed(opened)])
-        raise
-    return Devices(*opened)
+        return try_all((self.arm.close, self.lamp.close, self.camera.close))

@@ -18,11 +18,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from cell import jsonio, measure
-from cell.devices import Session, stop_outcome
+from cell import backends, jsonio, measure
 from cell.errors import DeviceFault, GoalNotReached, PlanInfeasible, TaskError
 from cell.pictures import write_convergence
 from cell.planner import depth_of_field_limits, gray_stats, plan as make_plan, write_plan
+from cell.session import Session, stop_outcome
 
 DARK = 0.5                  # a pixel reading 0 is below the first gray level: true gray < 0.5
 SATURATED_STEP = 4.0        # every pixel saturated: step this far past the lower bound (2 stops)
@@ -142,17 +142,6 @@ def correct_exposure(lo, hi, relation, shutter_s, f_number, band, shutter_range,
 def describe_error(error, relation):
     bound = {"=": "", ">=": "at least ", "<=": "at most "}[relation]
     return f"measured gray is {bound}{error:.3g}x the model's"
-
-
-def open_devices(task, scene, backend, yes=False):
-    """The cell's devices: the simulated cell (rendering `scene`) or, for backend hw, the real
-    ones from the task's cell.arm / cell.pan_tilt / cell.camera settings. The sim has no operator
-    to set the lamp radius: it confirms for itself."""
-    if backend == "hw":
-        from cell.devices import devices_from_config, make_hw_devices
-        return make_hw_devices(devices_from_config(task.cell.devices, task.path), task, yes=yes)
-    from sim.cell import make_sim_devices
-    return make_sim_devices(task, scene, yes=True)
 
 
 def plan_step(task, out, log, albedo_scale=1.0, iteration=None):
@@ -308,7 +297,7 @@ def plan_and_connect(task, out, log, session, connect, record):
 def run(task, out, connect, max_iterations=6):
     """Plan, connect(scene) -> Devices, then iterate; out/report.json is written however the run
     ends. Raises PlanInfeasible or GoalNotReached (exit 1), or DeviceFault (exit 3) after the safe
-    stop of every device (devices.Session). Returns the report."""
+    stop of every device (session.Session). Returns the report."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     report = {"task": str(task.path), "plan": None, "iterations": [], "converged": False, "captures": [],
@@ -357,7 +346,7 @@ def command(args):
     task = load_task(args.task)
     backend = args.backend or task.cell.backend
     out = output_folder(args.out, Path("runs") / f"{Path(args.task).stem}-{time.strftime('%Y%m%d-%H%M%S')}")
-    report = run(task, out, lambda scene: open_devices(task, scene, backend, args.yes), args.max_iterations)
+    report = run(task, out, lambda scene: backends.open_devices(task, scene, backend, args.yes), args.max_iterations)
     last, n = report["iterations"][-1], len(report["iterations"])
     g, (low, high) = last["measured_gray"], task.requirements.gray_band
     print(f"{task.name}: converged after {_count(n, 'iteration')}: feature gray {g['min']:.0f}-{g['max']:.0f} "

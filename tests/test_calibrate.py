@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from cell import calibrate, loop
+from cell import backends, calibrate
 from cell.calibrate import fit_camera_constant, shutter_sweep
 from cell.cli import main
 from cell.errors import CellError, DeviceFault, PlanInfeasible
@@ -156,7 +156,7 @@ def test_bad_shots_is_bad_input_in_one_line(argv, capsys):
 
 def test_an_infeasible_plan_exits_1_before_anything_moves(tmp_path, monkeypatch, capsys):
     connected = []
-    monkeypatch.setattr(loop, "open_devices", lambda *a, **k: connected.append(a))
+    monkeypatch.setattr(backends, "open_devices", lambda *a, **k: connected.append(a))
     task = variant(tmp_path, {"camera.shutter_range_ms": [0.01, 0.02]})
     assert main(["calibrate", str(task), "--out", str(tmp_path / "c")]) == 1
     assert connected == []
@@ -183,7 +183,7 @@ def test_a_servo_fault_turns_its_torque_off(tmp_path):
 
 
 def test_the_cli_turns_a_fault_into_exit_3_and_one_line(tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(loop, "open_devices", lambda task, scene, backend, yes:
+    monkeypatch.setattr(backends, "open_devices", lambda task, scene, backend, yes:
                         make_sim_devices(task, scene, faults={"camera_fail_on_capture": 1}))
     assert main(["calibrate", str(HINGE), "--out", str(tmp_path)]) == 3
     last = capsys.readouterr().err.strip().splitlines()[-1]
@@ -192,7 +192,7 @@ def test_the_cli_turns_a_fault_into_exit_3_and_one_line(tmp_path, monkeypatch, c
 
 def test_the_task_backend_is_used_unless_overridden(tmp_path, monkeypatch):
     seen = []
-    monkeypatch.setattr(loop, "open_devices", lambda task, scene, backend, yes:
+    monkeypatch.setattr(backends, "open_devices", lambda task, scene, backend, yes:
                         seen.append(backend) or make_sim_devices(task, scene))
     task = variant(tmp_path, {"cell.backend": "hw"})
     quick = ["--shots", "3", "--out"]
@@ -204,7 +204,7 @@ def test_the_task_backend_is_used_unless_overridden(tmp_path, monkeypatch):
 def test_on_the_real_cell_the_operator_confirms_the_reference_part_before_anything(tmp_path, monkeypatch,
                                                                                     capsys):
     connected = []
-    monkeypatch.setattr(loop, "open_devices", lambda *a, **k: connected.append(a))
+    monkeypatch.setattr(backends, "open_devices", lambda *a, **k: connected.append(a))
     task = variant(tmp_path, {"cell.backend": "hw"})
     assert main(["calibrate", str(task), "--out", str(tmp_path / "c")]) == 3    # stdin: no terminal
     last = capsys.readouterr().err.strip().splitlines()[-1]

@@ -13,11 +13,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cell import devices
-from cell.devices import (Devices, Operator, devices_from_config, lamp_aim, lamp_joints, lamp_position,
-                          make_hw_devices)
+from cell.backends import make_hw_devices
+from cell.devices import Devices, devices_from_config
 from cell.errors import DeviceFault, TaskError
 from cell.hw import ur
 from cell.hw.opencv_camera import OpenCVCamera
+from cell.operator import Operator
+from cell.rig import lamp_aim, lamp_joints, lamp_position
 from cell.scene import look_at
 from cell.task import LampRig
 from sim.arm import SimArm

@@ -15,9 +15,10 @@ from dynamixel_sdk import (COMM_RX_TIMEOUT, COMM_SUCCESS, GroupSyncRead, GroupSy
                            PortHandler)
 
 from cell import servo
-from cell.devices import Operator, devices_from_config
+from cell.devices import devices_from_config
 from cell.errors import DeviceFault
 from cell.hw.dynamixel import DynamixelPanTilt
+from cell.operator import Operator
 from cell.task import LampRig
 from sim.dxl_emulator import DxlEmulator, crc16, packet, stuff, unstuff
 

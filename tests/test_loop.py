@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from cell import cli, loop, projection
+from cell import backends, cli, loop, projection
 from cell.cli import main
 from cell.errors import CellError, DeviceFault, GoalNotReached
 from cell.loader import load_task
@@ -254,7 +254,7 @@ def test_a_fault_stops_all_motion_and_the_log_keeps_every_step_before_it(tmp_pat
 
 
 def test_the_cli_turns_a_fault_into_exit_3_and_one_line(tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(loop, "open_devices", lambda task, scene, backend, yes:
+    monkeypatch.setattr(backends, "open_devices", lambda task, scene, backend, yes:
                         make_sim_devices(task, scene, faults={"camera_fail_on_capture": 1}))
     assert main(["run", HINGE, "--out", str(tmp_path)]) == 3
     last = capsys.readouterr().err.strip().splitlines()[-1]
@@ -270,7 +270,7 @@ def test_a_stop_that_fails_is_reported_as_such_never_as_motion_stopped(tmp_path,
         devices.arm.stop = stop_fails
         return devices
 
-    monkeypatch.setattr(loop, "open_devices", connect)
+    monkeypatch.setattr(backends, "open_devices", connect)
     assert main(["run", HINGE, "--out", str(tmp_path)]) == 3
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert "STOP FAILED" in last and "stopL failed" in last and "motion stopped" not in last
@@ -286,7 +286,7 @@ def test_sigterm_stops_the_cell_and_still_writes_the_report(tmp_path, monkeypatc
         devices.camera.capture = lambda: os.kill(os.getpid(), signal.SIGTERM)
         return devices
 
-    monkeypatch.setattr(loop, "open_devices", connect)
+    monkeypatch.setattr(backends, "open_devices", connect)
     assert main(["run", HINGE, "--out", str(tmp_path)]) == 143
     assert capsys.readouterr().err.strip().splitlines()[-1] == "cell run: terminated (SIGTERM)"
     report = json.loads((tmp_path / "report.json").read_text())
