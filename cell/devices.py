@@ -1,6 +1,6 @@
 """The devices the closed loop drives, as small interfaces with simulated (sim/) and real
-(cell/hw/) implementations side by side (built in cell.backends), and the task's `cell.arm`,
-`cell.pan_tilt` and `cell.camera` settings (docs/devices.md).
+(cell/hw/) implementations side by side, built in cell.backends from the task's settings
+(cell.device_config, docs/devices.md).
 
 Every motion is checked against the envelope and speed limits here, in the interface, before a
 backend sees it, so no backend can skip the check. A refused or failed command raises
@@ -8,182 +8,15 @@ DeviceFault; state is read back from the device, never assumed.
 """
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
-from cell import geometry
-from cell.errors import DeviceFault, TaskError
-from cell.schema import Integer, Number, Pair, Section, Spec, Text, Vector, show
+from cell.errors import DeviceFault
 from cell.rig import lamp_aim, lamp_position
 from cell.session import try_all
 
-__all__ = ["Arm", "LampRig", "Camera", "Devices", "ArmConfig", "PanTiltConfig", "CameraConfig",
-           "DevicesConfig", "devices_from_config", "check_arm_motion"]
+__all__ = ["Arm", "LampRig", "Camera", "Devices", "check_arm_motion"]
 
-MAX_SPEED_M_S = 0.25            # ur_rtde's default moveL speed: a hard cap for an inspection cell
-MAX_ACCELERATION_M_S2 = 1.2     # ur_rtde's default moveL acceleration
-MAX_SERVO_SPEED_DEG_S = 90.0
-DXL_BAUD_RATES = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 921600,
-                  1000000, 1152000, 2000000, 2500000, 3000000, 3500000, 4000000)  # the SDK's list
-
-
-# ---------------------------------------------------------------------------------------------
-# Settings (task keys cell.arm, cell.pan_tilt, cell.camera; docs/devices.md)
-
-# Validated settings in SI units; the defaults live in the schemas below (devices_from_config({})).
-@dataclass(frozen=True)
-class ArmConfig:
-    host: str | None                        # robot address; required for --backend hw only
-    connect_timeout_s: float
-    T_cell_base: np.ndarray                 # 4x4: robot base frame in the cell
-    T_flange_cam: np.ndarray                # 4x4 hand-eye: camera frame in the flange frame
-    workspace_min_m: np.ndarray             # cell frame box the camera and flange must stay in
-    workspace_max_m: np.ndarray
-    speed_m_s: float                        # what moves use, and the most any move may use
-    acceleration_m_s2: float
-
-
-@dataclass(frozen=True)
-class PanTiltConfig:
-    port: str | None                        # serial device; required for --backend hw only
-    baud: int
-    pan_id: int
-    tilt_id: int
-    radius_id: int                          # used when lamp.rig.radius_axis is servo
-    pan_offset_rad: float                   # joint angle at the servo's centre tick 2048
-    tilt_offset_rad: float
-    radius_ticks: tuple                     # radius servo ticks at radius_range_m's ends
-    speed_rad_s: float
-    move_timeout_s: float
-    tolerance_ticks: int
-
-
-@dataclass(frozen=True)
-class CameraConfig:
-    source: int | str                       # cv2.VideoCapture index or path
-    exposure_unit_s: float                  # CAP_PROP_EXPOSURE unit (V4L2: 100 us)
-    discard_frames: int                     # frames still exposed the old way after a change
-
-
-@dataclass(frozen=True)
-class DevicesConfig:
-    task_file: Path
-    arm: ArmConfig
-    pan_tilt: PanTiltConfig
-    camera: CameraConfig
-
-
-class _OptionalText(Text):
-    default = None
-
-
-class _Source(Spec):
-    """A camera index (integer >= 0) or a device / video / image-sequence path."""
-
-    expected = "a camera index (integer >= 0) or a path"
-    default = 0
-
-    def read(self, file, path, raw, to_si):
-        if isinstance(raw, int) and not isinstance(raw, bool) and raw >= 0:
-            return raw
-        if isinstance(raw, str) and raw.strip():
-            return raw.strip()
-        raise TaskError(file, path, repr(raw), self.expected)
-
-
-def _default(spec, value):
-    """spec with a default (in SI units, as the parser returns values)."""
-    spec.default = value
-    return spec
-
-
-POSITIVE = dict(ok=lambda v: v > 0, expected="a positive number")
-ANGLE = dict(ok=lambda v: abs(v) <= np.pi, expected="an angle within [-180, 180] deg")
-# defaults: the example cell, a UR5e on the table beside the part, the camera 5 cm past the flange
-ARM = Section({
-    "host": _OptionalText(),
-    "connect_timeout_s": Number(**POSITIVE, default=2.0),
-    "base_position_m": _default(Vector(), (0.0, -0.40, 0.0)),
-    "base_rpy_deg": _default(Vector(), (0.0, 0.0, 0.0)),
-    "hand_eye_position_m": _default(Vector(), (0.0, 0.0, 0.05)),
-    "hand_eye_rpy_deg": _default(Vector(), (0.0, 0.0, 0.0)),
-    "workspace_min_m": _default(Vector(), (-0.60, -0.60, 0.10)),
-    "workspace_max_m": _default(Vector(), (0.60, 0.60, 1.00)),
-    "speed_m_s": Number(lambda v: 0 < v <= MAX_SPEED_M_S, f"a speed in (0, {MAX_SPEED_M_S}] m/s",
-                        default=0.1),
-    "acceleration_m_s2": Number(lambda v: 0 < v <= MAX_ACCELERATION_M_S2,
-                                f"an acceleration in (0, {MAX_ACCELERATION_M_S2}] m/s^2", default=0.5),
-}, required=False)
-
-PAN_TILT = Section({
-    "port": _OptionalText(),
-    "baud": Integer(9600, 4_000_000, default=57600),
-    "pan_id": Integer(0, 252, default=1),
-    "tilt_id": Integer(0, 252, default=2),
-    "radius_id": Integer(0, 252, default=3),
-    "pan_offset_deg": Number(**ANGLE, default=0.0),
-    "tilt_offset_deg": Number(**ANGLE, default=0.0),
-    "radius_ticks": _default(Pair(lambda v: 0 <= v <= 4095 and v == int(v), "ticks in 0..4095",
-                                  strict=True), (0, 4095)),
-    "speed_deg_s": Number(lambda v: 0 < v <= MAX_SERVO_SPEED_DEG_S,
-                          f"a speed in (0, {MAX_SERVO_SPEED_DEG_S}] deg/s", default=30.0),
-    "move_timeout_s": Number(**POSITIVE, default=5.0),
-    "tolerance_ticks": Integer(0, 100, default=3),
-}, required=False)
-
-CAMERA = Section({
-    "source": _Source(),
-    "exposure_unit_s": Number(**POSITIVE, default=1e-4),
-    "discard_frames": Integer(0, 100, default=2),
-}, required=False)
-
-
-def _section(file, name, spec, raw):
-    path = f"cell.{name}"
-    return spec.absent(file, path) if raw is None else spec.read(file, path, raw, None)
-
-
-def devices_from_config(task_cell_devices, task_file):
-    """The task's raw `cell.arm`, `cell.pan_tilt`, `cell.camera` mappings -> DevicesConfig
-    (SI units, defaults filled in). Raises TaskError naming the file and key path."""
-    raw = dict(task_cell_devices or {})
-    for name in raw:
-        if name not in ("arm", "pan_tilt", "camera"):
-            raise TaskError(task_file, f"cell.{name}", "an unknown device section",
-                            "one of arm, pan_tilt, camera")
-    a = {k: np.asarray(v, float) if isinstance(v, tuple) else v
-         for k, v in _section(task_file, "arm", ARM, raw.get("arm")).items()}
-    p = _section(task_file, "pan_tilt", PAN_TILT, raw.get("pan_tilt"))
-    c = _section(task_file, "camera", CAMERA, raw.get("camera"))
-    if not np.all(a["workspace_min_m"] < a["workspace_max_m"]):
-        raise TaskError(task_file, "cell.arm.workspace_max_m", show(a["workspace_max_m"]),
-                        f"above workspace_min_m {show(a['workspace_min_m'])} on every axis")
-    if p["baud"] not in DXL_BAUD_RATES:
-        raise TaskError(task_file, "cell.pan_tilt.baud", show(p["baud"]),
-                        "one of the SDK's rates: " + ", ".join(map(str, DXL_BAUD_RATES)))
-    ids = [p["pan_id"], p["tilt_id"], p["radius_id"]]
-    if len(set(ids)) != 3:
-        raise TaskError(task_file, "cell.pan_tilt.tilt_id", show(ids), "distinct pan, tilt and radius ids")
-    arm = ArmConfig(
-        host=a["host"], connect_timeout_s=a["connect_timeout_s"],
-        T_cell_base=geometry.from_rpy(a["base_rpy_rad"], a["base_position_m"]),
-        T_flange_cam=geometry.from_rpy(a["hand_eye_rpy_rad"], a["hand_eye_position_m"]),
-        workspace_min_m=a["workspace_min_m"], workspace_max_m=a["workspace_max_m"],
-        speed_m_s=a["speed_m_s"], acceleration_m_s2=a["acceleration_m_s2"])
-    pan_tilt = PanTiltConfig(
-        port=p["port"], baud=p["baud"], pan_id=p["pan_id"], tilt_id=p["tilt_id"],
-        radius_id=p["radius_id"], pan_offset_rad=p["pan_offset_rad"],
-        tilt_offset_rad=p["tilt_offset_rad"], radius_ticks=tuple(int(t) for t in p["radius_ticks"]),
-        speed_rad_s=np.radians(p["speed_deg_s"]), move_timeout_s=p["move_timeout_s"],
-        tolerance_ticks=p["tolerance_ticks"])
-    camera = CameraConfig(source=c["source"], exposure_unit_s=c["exposure_unit_s"],
-                          discard_frames=c["discard_frames"])
-    return DevicesConfig(Path(task_file), arm, pan_tilt, camera)
-
-
-# ---------------------------------------------------------------------------------------------
-# Interfaces
 
 def check_arm_motion(config, T_cell_cam, speed_m_s):
     """Refuse (DeviceFault) a camera pose whose camera or flange leaves the workspace box, a

@@ -11,9 +11,10 @@ import trimesh
 
 from cell import geometry
 from cell.errors import TaskError
+from cell.device_config import SECTIONS as DEVICES, devices_config
 from cell.material import PARAMETERS, Material
-from cell.schema import (NON_NEGATIVE, POSITIVE, Anything, Choice, Integer, Invalid, Mapping, Number,
-                         Pair, Section, Spec, Table, Text, Vector, parse, read_yaml, show)
+from cell.schema import (NON_NEGATIVE, POSITIVE, Anything, Choice, Integer, Invalid, Number, Pair,
+                         Section, Spec, Table, Text, Vector, parse, read_yaml, show)
 from cell.task import (CameraModel, CellConfig, Feature, Lamp, LampRig, Lens, Part, Requirements,
                        SimConfig, Sensor, Task, Truth)
 
@@ -94,9 +95,7 @@ TASK = {
     }),
     "cell": Section({
         "backend": Choice("sim", "hw", default="sim"),
-        "arm": Mapping(),
-        "pan_tilt": Mapping(),
-        "camera": Mapping(),
+        **DEVICES,                                       # arm, pan_tilt, camera: cell.device_config
     }, required=False),
     "sim": Section({
         "seed": Integer(0, 2**32 - 1, default=1),
@@ -213,9 +212,12 @@ def _check_gray_band(file, band, bit_depth):
 def load_task(path):
     """A task file and everything it references -> Task (SI units, mesh in metres)."""
     path = Path(path)
-    v = parse(path, "", _read_mapping(path), TASK)
+    data = _read_mapping(path)
+    v = parse(path, "", data, TASK)
     part, cam, lamp, cell, sim = v["part"], v["camera"], v["lamp"], v["cell"], v["sim"]
     _check_gray_band(path, v["requirements"]["gray_band"], cam["sensor"]["bit_depth"])
+    written = data.get("cell") or {}                     # which device sections the task set
+    devices = devices_config(path, cell, given=tuple(name for name in DEVICES if written.get(name)))
     mesh_path, mesh = _load_mesh(path, part)
     material = load_material(_relative_file(path, "part.material", part["material"]))
     return Task(
@@ -227,7 +229,7 @@ def load_task(path):
         camera=CameraModel(cam["distance_m"], cam["view_direction"], Sensor(**cam["sensor"]),
                            Lens(**cam["lens"]), cam["shutter_range_s"]),
         lamp=Lamp(lamp["power_w"], lamp["cone_angle_rad"], LampRig(**lamp["rig"])),
-        cell=CellConfig(cell["backend"], {k: d for k, d in cell.items() if k != "backend" and d}),
+        cell=CellConfig(cell["backend"], devices),
         sim=SimConfig(sim["seed"], sim["effects"], Truth(**sim["truth"])),
     )
 
@@ -249,7 +251,7 @@ def summarize(task):
     source = material.source.splitlines()[0]
     size = " x ".join(f"{e:.1f}" for e in mesh.extents * 1e3)
     radius_mm = f.radius_m * 1e3
-    devices = "".join(f", {name} settings" for name in task.cell.devices)
+    devices = "".join(f", {name} settings" for name in task.cell.devices.given)
     return "\n".join([
         f"task         {task.name} ({task.path})",
         f"part         {task.part.mesh_path}: {size} mm, {len(mesh.faces)} triangles",

@@ -93,6 +93,9 @@ class Spec:
 class Text(Spec):
     expected = "a non-empty text"
 
+    def __init__(self, default=REQUIRED):
+        self.default = default
+
     def convert(self, raw, to_si):
         if not isinstance(raw, str) or not raw.strip():
             raise Invalid(raw, self.expected)
@@ -136,11 +139,15 @@ class Integer(Spec):
 
 
 class Vector(Spec):
-    """A 3-vector; `direction` rejects the zero vector and normalizes."""
+    """A 3-vector; `direction` rejects the zero vector and normalizes. A default (SI) is given as
+    a tuple, and each task gets its own array of it."""
 
-    def __init__(self, direction=False):
-        self.direction = direction
+    def __init__(self, direction=False, default=REQUIRED):
+        self.direction, self.default = direction, default
         self.expected = "a non-zero 3-vector [x, y, z]" if direction else "a 3-vector [x, y, z]"
+
+    def absent(self, file, path):
+        return np.array(super().absent(file, path), float)
 
     def convert(self, raw, to_si):
         v = to_si(_numbers(raw, 3, self.expected))
@@ -154,8 +161,8 @@ class Vector(Spec):
 class Pair(Spec):
     """A range [low, high] of numbers passing `ok` (SI); low < high if strict, else low <= high."""
 
-    def __init__(self, ok, what, strict=False):
-        self.ok, self.strict = ok, strict
+    def __init__(self, ok, what, strict=False, default=REQUIRED):
+        self.ok, self.strict, self.default = ok, strict, default
         self.expected = f"an ascending pair of {what}"
 
     def convert(self, raw, to_si):
@@ -181,18 +188,6 @@ class Table(Spec):
                 raise Invalid(raw[i], self.element, i)
         return values
 
-
-
-class Mapping(Spec):
-    """Settings checked elsewhere (device settings): any mapping, kept as it is."""
-
-    expected = "a mapping of settings"
-    default = None
-
-    def convert(self, raw, to_si):
-        if not isinstance(raw, dict):
-            raise Invalid(raw, self.expected)
-        return raw
 
 
 class Anything(Spec):

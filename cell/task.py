@@ -1,10 +1,11 @@
 """Typed inspection task (task-format.md), SI units inside. The loader lives in cell.loader."""
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
+from cell.device_config import DevicesConfig
 from cell.material import Material
 
 
@@ -94,8 +95,8 @@ class SimConfig:
 
 @dataclass(frozen=True)
 class CellConfig:
-    backend: str = "sim"
-    devices: dict = field(default_factory=dict)   # arm / pan_tilt / camera settings (README)
+    backend: str                   # sim | hw
+    devices: DevicesConfig         # cell.arm / cell.pan_tilt / cell.camera, defaults filled in
 
 
 @dataclass(frozen=True)

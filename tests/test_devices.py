@@ -5,6 +5,7 @@ import socket
 import threading
 import time
 from dataclasses import replace
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -14,7 +15,7 @@ from hypothesis import strategies as st
 
 from cell import devices
 from cell.backends import make_hw_devices
-from cell.devices import Devices, devices_from_config
+from cell.devices import Devices
 from cell.errors import DeviceFault, TaskError
 from cell.hw import ur
 from cell.hw.opencv_camera import OpenCVCamera
@@ -25,12 +26,13 @@ from cell.task import LampRig
 from sim.arm import SimArm
 from sim.camera import SimCamera
 from sim.pantilt import SimPanTilt
+from simcell import device_settings
 
 TASK = "tasks/hinge.yaml"
 RIG = LampRig(pivot_m=np.array([0.006, 0.0, 0.004]), pan_range_rad=(-np.pi, np.pi),
               tilt_range_rad=(np.radians(5.0), np.radians(85.0)), radius_range_m=(0.15, 0.60),
               radius_axis="manual")
-DEFAULTS = devices_from_config({}, TASK)
+DEFAULTS = device_settings({}, TASK)
 HINGE_CAMERA = look_at(np.array([-0.019, 0.0, 0.503]), RIG.pivot_m)      # as the hinge plan has it
 
 
@@ -51,11 +53,11 @@ def test_defaults_are_the_example_cell_and_reach_no_network():
 
 
 def test_settings_in_other_units_are_converted():
-    config = devices_from_config({"arm": {"host": "192.0.2.10", "base_position_mm": [100, -500, 0],
-                                          "base_rpy_deg": [0, 0, 90], "connect_timeout_ms": 500},
-                                  "pan_tilt": {"port": "/dev/ttyUSB0", "speed_deg_s": 45,
-                                               "tilt_offset_deg": -90}},
-                                 TASK)
+    config = device_settings({"arm": {"host": "192.0.2.10", "base_position_mm": [100, -500, 0],
+                                      "base_rpy_deg": [0, 0, 90], "connect_timeout_ms": 500},
+                              "pan_tilt": {"port": "/dev/ttyUSB0", "speed_deg_s": 45,
+                                           "tilt_offset_deg": -90}},
+                             TASK)
     assert config.arm.host == "192.0.2.10" and config.arm.connect_timeout_s == 0.5
     assert config.arm.T_cell_base[:3, 3] == pytest.approx([0.1, -0.5, 0.0])
     assert config.arm.T_cell_base[:3, 0] == pytest.approx([0.0, 1.0, 0.0])
@@ -77,25 +79,18 @@ def test_settings_in_other_units_are_converted():
 ])
 def test_bad_settings_name_file_key_and_expectation(raw, key, expected):
     with pytest.raises(TaskError) as error:
-        devices_from_config(raw, TASK)
+        device_settings(raw, TASK)
     assert error.value.file == TASK and error.value.key == key and expected in error.value.expected
     assert error.value.exit_code == 2
 
 
-def test_a_workspace_error_shows_the_numbers_as_written():
-    with pytest.raises(TaskError) as error:
-        devices_from_config({"arm": {"workspace_min_m": [0.7, 0.6, 0.1]}}, TASK)
-    assert str(error.value) == (f"{TASK}: cell.arm.workspace_max_m: found [0.6, 0.6, 1.0], expected "
-                                "above workspace_min_m [0.7, 0.6, 0.1] on every axis")
-
-
 def test_hardware_backend_needs_an_explicit_host_and_port():
-    task = type("Task", (), {})()
+    task = SimpleNamespace(cell=SimpleNamespace(devices=DEFAULTS))
     with pytest.raises(TaskError, match=r"cell.arm.host: found nothing, expected the robot's address"):
-        make_hw_devices(DEFAULTS, task)
-    config = devices_from_config({"arm": {"host": "127.0.0.1"}}, TASK)
+        make_hw_devices(task)
+    task.cell.devices = device_settings({"arm": {"host": "127.0.0.1"}}, TASK)
     with pytest.raises(TaskError, match="cell.pan_tilt.port"):
-        make_hw_devices(config, task)
+        make_hw_devices(task)
 
 
 # --- arm ------------------------------------------------------------------------------------

@@ -15,12 +15,12 @@ from dynamixel_sdk import (COMM_RX_TIMEOUT, COMM_SUCCESS, GroupSyncRead, GroupSy
                            PortHandler)
 
 from cell import servo
-from cell.devices import devices_from_config
 from cell.errors import DeviceFault
 from cell.hw.dynamixel import DynamixelPanTilt
 from cell.operator import Operator
 from cell.task import LampRig
 from sim.dxl_emulator import DxlEmulator, crc16, packet, stuff, unstuff
+from simcell import device_settings
 
 # e-Manual, Protocol 2.0, Ping example 1: ID 1 is an XM430-W210 (1030), firmware 38
 PING_1 = bytes.fromhex("FF FF FD 00 01 03 00 01 19 4E")
@@ -128,7 +128,7 @@ RIG = LampRig(pivot_m=np.array([0.0, 0.0, 0.004]), pan_range_rad=(-np.pi, np.pi)
 SERVO_RIG = LampRig(RIG.pivot_m, RIG.pan_range_rad, RIG.tilt_range_rad, RIG.radius_range_m, "servo")
 
 
-DEFAULTS = devices_from_config({}, "tasks/hinge.yaml").pan_tilt
+DEFAULTS = device_settings({}).pan_tilt
 
 
 def pan_tilt(emulator, rig=RIG, **config):
