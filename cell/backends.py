@@ -35,7 +35,7 @@ def make_hw_devices(task, yes=False, operator=None):
     operator = operator or Operator(yes=yes)
     opened = []
     try:
-        opened.append(URArm(config.arm))
+        opened.append(URArm(config.arm, task.frames))
         opened.append(DynamixelPanTilt(task.lamp.rig, config.pan_tilt, operator))
         opened.append(OpenCVCamera(config.camera, task.camera.sensor.bit_depth, operator))
     except Exception:

@@ -7,7 +7,6 @@ from pathlib import Path
 
 import numpy as np
 
-from cell import geometry
 from cell.errors import TaskError
 from cell.schema import POSITIVE, Integer, Invalid, Number, Pair, Section, Spec, Text, Vector, show
 
@@ -23,8 +22,6 @@ DXL_BAUD_RATES = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576
 class ArmConfig:
     host: str | None                        # robot address; required for --backend hw only
     connect_timeout_s: float
-    T_cell_base: np.ndarray                 # 4x4: robot base frame in the cell
-    T_flange_cam: np.ndarray                # 4x4 hand-eye: camera frame in the flange frame
     workspace_min_m: np.ndarray             # cell frame box the camera and flange must stay in
     workspace_max_m: np.ndarray
     speed_m_s: float                        # what moves use, and the most any move may use
@@ -121,7 +118,7 @@ SECTIONS = {"arm": ARM, "pan_tilt": PAN_TILT, "camera": CAMERA}     # the task's
 def devices_config(file, cell, given=()):
     """The parsed `cell` section's arm, pan_tilt and camera values -> DevicesConfig, after the
     checks one key alone cannot make (TaskError naming the file and key). `given`: the sections
-    the task set, for the record."""
+    the task set, for the record. The base and hand-eye poses go to the task's Frames."""
     a, p, c = cell["arm"], cell["pan_tilt"], cell["camera"]
     if not np.all(a["workspace_min_m"] < a["workspace_max_m"]):
         raise TaskError(file, "cell.arm.workspace_max_m", show(a["workspace_max_m"]),
@@ -133,10 +130,7 @@ def devices_config(file, cell, given=()):
     if len(set(ids)) != 3:
         raise TaskError(file, "cell.pan_tilt.tilt_id", show(ids), "distinct pan, tilt and radius ids")
     arm = ArmConfig(
-        host=a["host"], connect_timeout_s=a["connect_timeout_s"],
-        T_cell_base=geometry.from_rpy(a["base_rpy_rad"], a["base_position_m"]),
-        T_flange_cam=geometry.from_rpy(a["hand_eye_rpy_rad"], a["hand_eye_position_m"]),
-        workspace_min_m=a["workspace_min_m"], workspace_max_m=a["workspace_max_m"],
+        host=a["host"], connect_timeout_s=a["connect_timeout_s"], workspace_min_m=a["workspace_min_m"], workspace_max_m=a["workspace_max_m"],
         speed_m_s=a["speed_m_s"], acceleration_m_s2=a["acceleration_m_s2"])
     pan_tilt = PanTiltConfig(
         port=p["port"], baud=p["baud"], pan_id=p["pan_id"], tilt_id=p["tilt_id"],

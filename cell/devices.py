@@ -18,9 +18,10 @@ from cell.session import try_all
 __all__ = ["Arm", "LampRig", "Camera", "Devices", "check_arm_motion"]
 
 
-def check_arm_motion(config, T_cell_cam, speed_m_s):
-    """Refuse (DeviceFault) a camera pose whose camera or flange leaves the workspace box, a
-    matrix that is not a rigid transform, or a speed above the limit - before anything moves."""
+def check_arm_motion(config, frames, T_cell_cam, speed_m_s):
+    """Refuse (DeviceFault) a camera pose whose camera or flange (by the frames' hand-eye) leaves
+    the workspace box, a matrix that is not a rigid transform, or a speed above the limit -
+    before anything moves."""
     T = np.asarray(T_cell_cam, float)
     R = T[:3, :3] if T.shape == (4, 4) else np.zeros((3, 3))
     if not (np.allclose(R.T @ R, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0):
@@ -28,7 +29,7 @@ def check_arm_motion(config, T_cell_cam, speed_m_s):
     if not 0 < speed_m_s <= config.speed_m_s:
         raise DeviceFault("arm", f"speed {speed_m_s} m/s outside (0, {config.speed_m_s}] m/s: "
                                  "refused before moving")
-    flange = T @ np.linalg.inv(config.T_flange_cam)
+    flange = frames.T_cell_flange(T)
     lo, hi = config.workspace_min_m, config.workspace_max_m
     for name, p in (("camera", T[:3, 3]), ("flange", flange[:3, 3])):
         if np.any(p < lo) or np.any(p > hi):
@@ -37,23 +38,24 @@ def check_arm_motion(config, T_cell_cam, speed_m_s):
 
 
 class Arm(ABC):
-    """Carries the camera. Poses are T_cell_cam (camera frame in the cell frame)."""
+    """Carries the camera. Poses are T_cell_cam (camera frame in the cell frame); the robot base
+    and the hand-eye are the task's frames (cell.frames.Frames)."""
 
     device = "arm"
 
-    def __init__(self, config):
-        self.config = config
+    def __init__(self, config, frames):
+        self.config, self.frames = config, frames
 
     def move_camera(self, T_cell_cam, speed_m_s=None):
         """Move so the camera frame is at T_cell_cam; returns when there, raises DeviceFault on
         limits, unreachable poses or a device error."""
         speed = self.config.speed_m_s if speed_m_s is None else speed_m_s
-        check_arm_motion(self.config, T_cell_cam, speed)
-        self._move_tcp(np.linalg.inv(self.config.T_cell_base) @ T_cell_cam, speed)
+        check_arm_motion(self.config, self.frames, T_cell_cam, speed)
+        self._move_tcp(self.frames.T_base_cam(T_cell_cam), speed)
 
     def camera_pose(self):
         """The actual T_cell_cam, read back from the device."""
-        return self.config.T_cell_base @ self._tcp_pose()
+        return self.frames.T_cell_cam_from_base(self._tcp_pose())
 
     @abstractmethod
     def _move_tcp(self, T_base_cam, speed_m_s):

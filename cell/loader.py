@@ -10,8 +10,9 @@ import numpy as np
 import trimesh
 
 from cell import geometry
-from cell.errors import TaskError
 from cell.device_config import SECTIONS as DEVICES, devices_config
+from cell.errors import TaskError
+from cell.frames import Frames
 from cell.material import PARAMETERS, Material
 from cell.schema import (NON_NEGATIVE, POSITIVE, Anything, Choice, Integer, Invalid, Number, Pair,
                          Section, Spec, Table, Text, Vector, parse, read_yaml, show)
@@ -215,6 +216,7 @@ def load_task(path):
     data = _read_mapping(path)
     v = parse(path, "", data, TASK)
     part, cam, lamp, cell, sim = v["part"], v["camera"], v["lamp"], v["cell"], v["sim"]
+    arm = cell["arm"]
     _check_gray_band(path, v["requirements"]["gray_band"], cam["sensor"]["bit_depth"])
     written = data.get("cell") or {}                     # which device sections the task set
     devices = devices_config(path, cell, given=tuple(name for name in DEVICES if written.get(name)))
@@ -223,7 +225,10 @@ def load_task(path):
     return Task(
         path=path,
         name=v["name"],
-        part=Part(mesh_path, mesh, geometry.from_rpy(part["rpy_rad"], part["position_m"]), material),
+        part=Part(mesh_path, mesh, material),
+        frames=Frames(T_cell_part=geometry.from_rpy(part["rpy_rad"], part["position_m"]),
+                      T_cell_base=geometry.from_rpy(arm["base_rpy_rad"], arm["base_position_m"]),
+                      T_flange_cam=geometry.from_rpy(arm["hand_eye_rpy_rad"], arm["hand_eye_position_m"])),
         feature=_feature(path, mesh, v["feature"]),
         requirements=Requirements(**v["requirements"]),
         camera=CameraModel(cam["distance_m"], cam["view_direction"], Sensor(**cam["sensor"]),

@@ -6,14 +6,14 @@ import numpy as np
 import trimesh
 
 from cell.device_config import DevicesConfig
+from cell.frames import Frames
 from cell.material import Material
 
 
 @dataclass(frozen=True)
 class Part:
     mesh_path: Path
-    mesh: trimesh.Trimesh          # in metres, part frame
-    T_cell_part: np.ndarray        # 4x4
+    mesh: trimesh.Trimesh          # in metres, part frame (its pose: Task.frames.T_cell_part)
     material: Material
 
 
@@ -104,6 +104,7 @@ class Task:
     path: Path
     name: str
     part: Part
+    frames: Frames                 # the named transforms: part, robot base, hand-eye
     feature: Feature
     requirements: Requirements
     camera: CameraModel

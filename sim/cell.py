@@ -30,7 +30,7 @@ def make_sim_devices(task, scene, operator=None, yes=True, faults=None):
     its fields, or None. The settings are the task's, checked when it was loaded."""
     faults = SimFaults(**faults) if isinstance(faults, dict) else faults or SimFaults()
     config = task.cell.devices
-    arm = SimArm(config.arm, fail_on_move=faults.arm_fail_on_move)
+    arm = SimArm(config.arm, task.frames, fail_on_move=faults.arm_fail_on_move)
     lamp = SimPanTilt(task.lamp.rig, config.pan_tilt, yes=yes, operator=operator,
                       fail_on_move=faults.lamp_fail_on_move, fail_servo=faults.servo_id,
                       fail_bits=faults.servo_bits)

@@ -127,7 +127,7 @@ def test_hinge_feature_snaps_to_the_leaf_with_normal_up():
 def test_hinge_mesh_is_in_metres_and_material_in_radians():
     task = loader.load_task(HINGE)
     np.testing.assert_allclose(task.part.mesh.extents, [0.070, 0.040, 0.012], atol=1e-9)
-    np.testing.assert_allclose(task.part.T_cell_part, np.eye(4))
+    np.testing.assert_allclose(task.frames.T_cell_part, np.eye(4))
     assert task.part.material.name == "milled aluminium"
     assert task.part.material.phase_rad[-1] == pytest.approx(math.radians(80.0))
 
