@@ -1,5 +1,10 @@
 """The one place that builds the cell's devices: the simulated cell (sim/) or the real one
-(cell/hw/), from the task's validated settings."""
+(cell/hw/). Nothing else in cell/ imports either, so the controller sees only cell.devices'
+interfaces, and the real backends' SDKs load only for --backend hw."""
+from cell.devices import Devices
+from cell.errors import TaskError
+from cell.operator import Operator
+from cell.session import try_all
 
 
 def open_devices(task, scene, backend, yes=False):
@@ -7,7 +12,33 @@ def open_devices(task, scene, backend, yes=False):
     ones from the task's cell.arm / cell.pan_tilt / cell.camera settings. The sim has no operator
     to set the lamp radius: it confirms for itself."""
     if backend == "hw":
-        from cell.devices import devices_from_config, make_hw_devices
-        return make_hw_devices(devices_from_config(task.cell.devices, task.path), task, yes=yes)
+        return make_hw_devices(task, yes=yes)
     from sim.cell import make_sim_devices
     return make_sim_devices(task, scene, yes=True)
+
+
+def make_hw_devices(task, yes=False, operator=None):
+    """The real devices for --backend hw from the task's settings. Needs explicit `cell.arm.host`
+    and `cell.pan_tilt.port` (no default reaches the network or a serial bus); connects arm,
+    servos, camera in turn and closes what was opened if a later one fails."""
+    config = task.cell.devices
+    if not config.arm.host:
+        raise TaskError(config.task_file, "cell.arm.host", "nothing",
+                        "the robot's address (required for --backend hw; there is no default)")
+    if not config.pan_tilt.port:
+        raise TaskError(config.task_file, "cell.pan_tilt.port", "nothing",
+                        "the servos' serial port, e.g. /dev/ttyUSB0 (required for --backend hw)")
+    from cell.hw.dynamixel import DynamixelPanTilt
+    from cell.hw.opencv_camera import OpenCVCamera
+    from cell.hw.ur import URArm
+
+    operator = operator or Operator(yes=yes)
+    opened = []
+    try:
+        opened.append(URArm(config.arm, task.frames))
+        opened.append(DynamixelPanTilt(task.lamp.rig, config.pan_tilt, operator))
+        opened.append(OpenCVCamera(config.camera, task.camera.sensor.bit_depth, operator))
+    except Exception:
+        try_all([device.close for device in reversed(opened)])
+        raise
+    return Devices(*opened)

@@ -17,10 +17,11 @@ import numpy as np
 
 from cell import measure
 from cell.acquisition import acquire, move_to, plan_recorded, require_feasible
-from cell.devices import Operator, Session
 from cell.errors import GoalNotReached, PlanInfeasible, TaskError
+from cell.operator import Operator
 from cell.pictures import write_calibration
 from cell.recorder import Recorder
+from cell.session import Session
 
 # the brightest sample's gray by the model, as a fraction of full scale, at the first and the
 # last shot: dim, up to near (not at) saturation; G ~ t, so the shutter times follow

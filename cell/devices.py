@@ -1,226 +1,27 @@
 """The devices the closed loop drives, as small interfaces with simulated (sim/) and real
-(cell/hw/) implementations side by side, and the task's `cell.arm`, `cell.pan_tilt` and
-`cell.camera` settings (docs/devices.md).
+(cell/hw/) implementations side by side, built in cell.backends from the task's settings
+(cell.device_config, docs/devices.md).
 
 Every motion is checked against the envelope and speed limits here, in the interface, before a
 backend sees it, so no backend can skip the check. A refused or failed command raises
 DeviceFault; state is read back from the device, never assumed.
 """
-import sys
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
-from cell import geometry
-from cell.errors import CellError, DeviceFault, TaskError
-from cell.loader import Integer, Number, Pair, Section, Spec, Text, Vector
-from cell.rig import lamp_aim, lamp_joints, lamp_position
+from cell.errors import DeviceFault
+from cell.rig import lamp_aim, lamp_position
+from cell.session import try_all
 
-__all__ = ["Arm", "LampRig", "Camera", "Operator", "Devices", "Session", "stop_outcome", "ArmConfig",
-           "PanTiltConfig", "CameraConfig", "DevicesConfig", "devices_from_config", "make_hw_devices",
-           "check_arm_motion", "lamp_position", "lamp_aim", "lamp_joints"]
-
-MAX_SPEED_M_S = 0.25            # ur_rtde's default moveL speed: a hard cap for an inspection cell
-MAX_ACCELERATION_M_S2 = 1.2     # ur_rtde's default moveL acceleration
-MAX_SERVO_SPEED_DEG_S = 90.0
-DXL_BAUD_RATES = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 921600,
-                  1000000, 1152000, 2000000, 2500000, 3000000, 3500000, 4000000)  # the SDK's list
+__all__ = ["Arm", "LampRig", "Camera", "Devices", "check_arm_motion"]
 
 
-class Operator:
-    """Tells the operator what to set by hand and waits for Enter; `yes` confirms for them
-    (tests, `--yes`). Without `yes` a prompt needs an interactive stdin, else it is a fault."""
-
-    def __init__(self, yes=False, stdin=None, stdout=None):
-        self.yes, self._stdin, self._stdout = yes, stdin, stdout
-
-    @property
-    def stdin(self):
-        return self._stdin or sys.stdin
-
-    @property
-    def stdout(self):
-        return self._stdout or sys.stdout
-
-    def require(self, device, what):
-        """Fail now, before anything moves, if a later prompt could not be answered."""
-        if not (self.yes or self.stdin.isatty()):
-            raise DeviceFault(device, f"{what} needs the operator, but stdin is not a terminal: "
-                                      "run with --yes to confirm operator steps")
-
-    def confirm(self, device, instruction):
-        print(f"{device}: {instruction}", file=self.stdout, flush=True)
-        if self.yes:
-            print("  (confirmed automatically: --yes)", file=self.stdout, flush=True)
-            return
-        self.require(device, f"'{instruction}'")
-        print("  press Enter when done", file=self.stdout, flush=True)
-        if not self.stdin.readline():
-            raise DeviceFault(device, f"stdin closed before the operator confirmed: {instruction}")
-
-
-# ---------------------------------------------------------------------------------------------
-# Settings (task keys cell.arm, cell.pan_tilt, cell.camera; docs/devices.md)
-
-# Validated settings in SI units; the defaults live in the schemas below (devices_from_config({})).
-@dataclass(frozen=True)
-class ArmConfig:
-    host: str | None                        # robot address; required for --backend hw only
-    connect_timeout_s: float
-    T_cell_base: np.ndarray                 # 4x4: robot base frame in the cell
-    T_flange_cam: np.ndarray                # 4x4 hand-eye: camera frame in the flange frame
-    workspace_min_m: np.ndarray             # cell frame box the camera and flange must stay in
-    workspace_max_m: np.ndarray
-    speed_m_s: float                        # what moves use, and the most any move may use
-    acceleration_m_s2: float
-
-
-@dataclass(frozen=True)
-class PanTiltConfig:
-    port: str | None                        # serial device; required for --backend hw only
-    baud: int
-    pan_id: int
-    tilt_id: int
-    radius_id: int                          # used when lamp.rig.radius_axis is servo
-    pan_offset_rad: float                   # joint angle at the servo's centre tick 2048
-    tilt_offset_rad: float
-    radius_ticks: tuple                     # radius servo ticks at radius_range_m's ends
-    speed_rad_s: float
-    move_timeout_s: float
-    tolerance_ticks: int
-
-
-@dataclass(frozen=True)
-class CameraConfig:
-    source: int | str                       # cv2.VideoCapture index or path
-    exposure_unit_s: float                  # CAP_PROP_EXPOSURE unit (V4L2: 100 us)
-    discard_frames: int                     # frames still exposed the old way after a change
-
-
-@dataclass(frozen=True)
-class DevicesConfig:
-    task_file: Path
-    arm: ArmConfig
-    pan_tilt: PanTiltConfig
-    camera: CameraConfig
-
-
-class _OptionalText(Text):
-    default = None
-
-
-class _Source(Spec):
-    """A camera index (integer >= 0) or a device / video / image-sequence path."""
-
-    expected = "a camera index (integer >= 0) or a path"
-    default = 0
-
-    def read(self, file, path, raw, to_si):
-        if isinstance(raw, int) and not isinstance(raw, bool) and raw >= 0:
-            return raw
-        if isinstance(raw, str) and raw.strip():
-            return raw.strip()
-        raise TaskError(file, path, repr(raw), self.expected)
-
-
-def _default(spec, value):
-    """spec with a default (in SI units, as the parser returns values)."""
-    spec.default = value
-    return spec
-
-
-POSITIVE = dict(ok=lambda v: v > 0, expected="a positive number")
-ANGLE = dict(ok=lambda v: abs(v) <= np.pi, expected="an angle within [-180, 180] deg")
-# defaults: the example cell, a UR5e on the table beside the part, the camera 5 cm past the flange
-ARM = Section({
-    "host": _OptionalText(),
-    "connect_timeout_s": Number(**POSITIVE, default=2.0),
-    "base_position_m": _default(Vector(), (0.0, -0.40, 0.0)),
-    "base_rpy_deg": _default(Vector(), (0.0, 0.0, 0.0)),
-    "hand_eye_position_m": _default(Vector(), (0.0, 0.0, 0.05)),
-    "hand_eye_rpy_deg": _default(Vector(), (0.0, 0.0, 0.0)),
-    "workspace_min_m": _default(Vector(), (-0.60, -0.60, 0.10)),
-    "workspace_max_m": _default(Vector(), (0.60, 0.60, 1.00)),
-    "speed_m_s": Number(lambda v: 0 < v <= MAX_SPEED_M_S, f"a speed in (0, {MAX_SPEED_M_S}] m/s",
-                        default=0.1),
-    "acceleration_m_s2": Number(lambda v: 0 < v <= MAX_ACCELERATION_M_S2,
-                                f"an acceleration in (0, {MAX_ACCELERATION_M_S2}] m/s^2", default=0.5),
-}, required=False)
-
-PAN_TILT = Section({
-    "port": _OptionalText(),
-    "baud": Integer(9600, 4_000_000, default=57600),
-    "pan_id": Integer(0, 252, default=1),
-    "tilt_id": Integer(0, 252, default=2),
-    "radius_id": Integer(0, 252, default=3),
-    "pan_offset_deg": Number(**ANGLE, default=0.0),
-    "tilt_offset_deg": Number(**ANGLE, default=0.0),
-    "radius_ticks": _default(Pair(lambda v: 0 <= v <= 4095 and v == int(v), "ticks in 0..4095",
-                                  strict=True), (0, 4095)),
-    "speed_deg_s": Number(lambda v: 0 < v <= MAX_SERVO_SPEED_DEG_S,
-                          f"a speed in (0, {MAX_SERVO_SPEED_DEG_S}] deg/s", default=30.0),
-    "move_timeout_s": Number(**POSITIVE, default=5.0),
-    "tolerance_ticks": Integer(0, 100, default=3),
-}, required=False)
-
-CAMERA = Section({
-    "source": _Source(),
-    "exposure_unit_s": Number(**POSITIVE, default=1e-4),
-    "discard_frames": Integer(0, 100, default=2),
-}, required=False)
-
-
-def _section(file, name, spec, raw):
-    path = f"cell.{name}"
-    return spec.absent(file, path) if raw is None else spec.read(file, path, raw, None)
-
-
-def devices_from_config(task_cell_devices, task_file):
-    """The task's raw `cell.arm`, `cell.pan_tilt`, `cell.camera` mappings -> DevicesConfig
-    (SI units, defaults filled in). Raises TaskError naming the file and key path."""
-    raw = dict(task_cell_devices or {})
-    for name in raw:
-        if name not in ("arm", "pan_tilt", "camera"):
-            raise TaskError(task_file, f"cell.{name}", "an unknown device section",
-                            "one of arm, pan_tilt, camera")
-    a = {k: np.asarray(v, float) if isinstance(v, tuple) else v
-         for k, v in _section(task_file, "arm", ARM, raw.get("arm")).items()}
-    p = _section(task_file, "pan_tilt", PAN_TILT, raw.get("pan_tilt"))
-    c = _section(task_file, "camera", CAMERA, raw.get("camera"))
-    if not np.all(a["workspace_min_m"] < a["workspace_max_m"]):
-        raise TaskError(task_file, "cell.arm.workspace_max_m", list(a["workspace_max_m"]),
-                        f"above workspace_min_m {list(a['workspace_min_m'])} on every axis")
-    if p["baud"] not in DXL_BAUD_RATES:
-        raise TaskError(task_file, "cell.pan_tilt.baud", p["baud"],
-                        "one of the SDK's rates: " + ", ".join(map(str, DXL_BAUD_RATES)))
-    ids = [p["pan_id"], p["tilt_id"], p["radius_id"]]
-    if len(set(ids)) != 3:
-        raise TaskError(task_file, "cell.pan_tilt.tilt_id", ids, "distinct pan, tilt and radius ids")
-    arm = ArmConfig(
-        host=a["host"], connect_timeout_s=a["connect_timeout_s"],
-        T_cell_base=geometry.from_rpy(a["base_rpy_rad"], a["base_position_m"]),
-        T_flange_cam=geometry.from_rpy(a["hand_eye_rpy_rad"], a["hand_eye_position_m"]),
-        workspace_min_m=a["workspace_min_m"], workspace_max_m=a["workspace_max_m"],
-        speed_m_s=a["speed_m_s"], acceleration_m_s2=a["acceleration_m_s2"])
-    pan_tilt = PanTiltConfig(
-        port=p["port"], baud=p["baud"], pan_id=p["pan_id"], tilt_id=p["tilt_id"],
-        radius_id=p["radius_id"], pan_offset_rad=p["pan_offset_rad"],
-        tilt_offset_rad=p["tilt_offset_rad"], radius_ticks=tuple(int(t) for t in p["radius_ticks"]),
-        speed_rad_s=np.radians(p["speed_deg_s"]), move_timeout_s=p["move_timeout_s"],
-        tolerance_ticks=p["tolerance_ticks"])
-    camera = CameraConfig(source=c["source"], exposure_unit_s=c["exposure_unit_s"],
-                          discard_frames=c["discard_frames"])
-    return DevicesConfig(Path(task_file), arm, pan_tilt, camera)
-
-
-# ---------------------------------------------------------------------------------------------
-# Interfaces
-
-def check_arm_motion(config, T_cell_cam, speed_m_s):
-    """Refuse (DeviceFault) a camera pose whose camera or flange leaves the workspace box, a
-    matrix that is not a rigid transform, or a speed above the limit - before anything moves."""
+def check_arm_motion(config, frames, T_cell_cam, speed_m_s):
+    """Refuse (DeviceFault) a camera pose whose camera or flange (by the frames' hand-eye) leaves
+    the workspace box, a matrix that is not a rigid transform, or a speed above the limit -
+    before anything moves."""
     T = np.asarray(T_cell_cam, float)
     R = T[:3, :3] if T.shape == (4, 4) else np.zeros((3, 3))
     if not (np.allclose(R.T @ R, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0):
@@ -228,7 +29,7 @@ def check_arm_motion(config, T_cell_cam, speed_m_s):
     if not 0 < speed_m_s <= config.speed_m_s:
         raise DeviceFault("arm", f"speed {speed_m_s} m/s outside (0, {config.speed_m_s}] m/s: "
                                  "refused before moving")
-    flange = T @ np.linalg.inv(config.T_flange_cam)
+    flange = frames.T_cell_flange(T)
     lo, hi = config.workspace_min_m, config.workspace_max_m
     for name, p in (("camera", T[:3, 3]), ("flange", flange[:3, 3])):
         if np.any(p < lo) or np.any(p > hi):
@@ -237,23 +38,24 @@ def check_arm_motion(config, T_cell_cam, speed_m_s):
 
 
 class Arm(ABC):
-    """Carries the camera. Poses are T_cell_cam (camera frame in the cell frame)."""
+    """Carries the camera. Poses are T_cell_cam (camera frame in the cell frame); the robot base
+    and the hand-eye are the task's frames (cell.frames.Frames)."""
 
     device = "arm"
 
-    def __init__(self, config):
-        self.config = config
+    def __init__(self, config, frames):
+        self.config, self.frames = config, frames
 
     def move_camera(self, T_cell_cam, speed_m_s=None):
         """Move so the camera frame is at T_cell_cam; returns when there, raises DeviceFault on
         limits, unreachable poses or a device error."""
         speed = self.config.speed_m_s if speed_m_s is None else speed_m_s
-        check_arm_motion(self.config, T_cell_cam, speed)
-        self._move_tcp(np.linalg.inv(self.config.T_cell_base) @ T_cell_cam, speed)
+        check_arm_motion(self.config, self.frames, T_cell_cam, speed)
+        self._move_tcp(self.frames.T_base_cam(T_cell_cam), speed)
 
     def camera_pose(self):
         """The actual T_cell_cam, read back from the device."""
-        return self.config.T_cell_base @ self._tcp_pose()
+        return self.frames.T_cell_cam_from_base(self._tcp_pose())
 
     @abstractmethod
     def _move_tcp(self, T_base_cam, speed_m_s):
@@ -379,78 +181,8 @@ class Devices:
         Every step is tried; returns the messages of steps that failed, in turn."""
         lamp_faulted = isinstance(fault, DeviceFault) and fault.device == self.lamp.device
         steps = (self.arm.stop, lambda: self.lamp.stop(fault_is_own=lamp_faulted), self.camera.close)
-        return _try_all(steps)
+        return try_all(steps)
 
     def close(self):
         """Release everything after a normal end."""
-        return _try_all((self.arm.close, self.lamp.close, self.camera.close))
-
-
-class Session:
-    """Owns the devices of one run, `with Session(on_fault) as session: session.devices =
-    connect(...)`. A normal end, or a goal not reached (a CellError that is no DeviceFault), closes
-    them. A DeviceFault or anything else (a bug, Ctrl-C, SIGTERM) stops them safely first, then
-    releases the arm's and the servos' connections; `fault` = {device, error, stop_failures,
-    release_failures}, on_fault(fault) is called (to log it), and a DeviceFault is raised again
-    saying whether motion stopped."""
-
-    def __init__(self, on_fault=lambda fault: None):
-        self.devices, self.fault, self.on_fault = None, None, on_fault
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, kind, err, traceback):
-        if err is None or (isinstance(err, CellError) and not isinstance(err, DeviceFault)):
-            if self.devices:
-                self.devices.close()
-            return False
-        failures = self.devices.safe_stop(err) if self.devices else []
-        released = _try_all((self.devices.arm.close, self.devices.lamp.close)) if self.devices else []
-        self.fault = {"device": getattr(err, "device", None), "error": str(err) or type(err).__name__,
-                      "stop_failures": failures, "release_failures": released}
-        self.on_fault(self.fault)
-        if isinstance(err, DeviceFault):
-            raise DeviceFault(err.device, f"{err.reason}; {stop_outcome(failures)}") from err
-        return False
-
-
-def stop_outcome(failures):
-    """What a safe stop achieved, in words an operator must be able to trust."""
-    return "motion stopped" if not failures else f"STOP FAILED, check the cell: {'; '.join(failures)}"
-
-
-def _try_all(steps):
-    failures = []
-    for step in steps:
-        try:
-            step()
-        except Exception as err:                     # a stop must not prevent the next one
-            failures.append(str(err))
-    return failures
-
-
-def make_hw_devices(config, task, yes=False, operator=None):
-    """The real devices for --backend hw. Needs explicit `cell.arm.host` and `cell.pan_tilt.port`
-    (no default reaches the network or a serial bus); connects arm, servos, camera in turn and
-    closes what was opened if a later one fails."""
-    from cell.hw.dynamixel import DynamixelPanTilt
-    from cell.hw.opencv_camera import OpenCVCamera
-    from cell.hw.ur import URArm
-
-    if not config.arm.host:
-        raise TaskError(config.task_file, "cell.arm.host", "nothing",
-                        "the robot's address (required for --backend hw; there is no default)")
-    if not config.pan_tilt.port:
-        raise TaskError(config.task_file, "cell.pan_tilt.port", "nothing",
-                        "the servos' serial port, e.g. /dev/ttyUSB0 (required for --backend hw)")
-    operator = operator or Operator(yes=yes)
-    opened = []
-    try:
-        opened.append(URArm(config.arm))
-        opened.append(DynamixelPanTilt(task.lamp.rig, config.pan_tilt, operator))
-        opened.append(OpenCVCamera(config.camera, task.camera.sensor.bit_depth, operator))
-    except Exception:
-        _try_all([device.close for device in reversed(opened)])
-        raise
-    return Devices(*opened)
+        return try_all((self.arm.close, self.lamp.close, self.camera.close))

@@ -1,180 +1,27 @@
 """Task and material files (task-format.md) -> validated, typed values in SI units.
 
-Units are converted here and nowhere else. Every problem becomes one TaskError naming the
-file, the dotted key path (`camera.lens.f_number_range`, `requirements.gray_band[1]`),
-what was found and what was expected. The schema below reads like the file format.
+Units are converted here and nowhere else, by the schema engine (cell.schema): every problem is
+one TaskError naming the file, the dotted key path, what was found and what was expected. The
+schemas below read like the file format; then the mesh is loaded and the feature snapped to it.
 """
-import difflib
-import re
 from pathlib import Path
 
 import numpy as np
 import trimesh
-import yaml
 
 from cell import geometry
+from cell.device_config import SECTIONS as DEVICES, devices_config
 from cell.errors import TaskError
+from cell.frames import Frames
 from cell.material import PARAMETERS, Material
+from cell.schema import (NON_NEGATIVE, POSITIVE, Anything, Choice, Integer, Invalid, Number, Pair,
+                         Section, Spec, Table, Text, Vector, parse, read_yaml, show)
 from cell.task import (CameraModel, CellConfig, Feature, Lamp, LampRig, Lens, Part, Requirements,
                        SimConfig, Sensor, Task, Truth)
-
-# unit suffix -> (quantity, conversion to SI); division keeps 230.43 mW == 0.23043 W exact
-UNITS = {
-    "m": ("length", lambda v: v), "mm": ("length", lambda v: v / 1e3), "um": ("length", lambda v: v / 1e6),
-    "s": ("time", lambda v: v), "ms": ("time", lambda v: v / 1e3),
-    "deg": ("angle", np.radians), "rad": ("angle", lambda v: v),
-    "w": ("power", lambda v: v), "mw": ("power", lambda v: v / 1e3),
-}
-SI_SUFFIX = {"length": "m", "time": "s", "angle": "rad", "power": "w"}
 
 EFFECTS = ("shadows", "cone_falloff", "vignetting", "defocus", "noise", "black_level", "quantization")
 SURFACE_TOLERANCE_M = 1e-3       # feature center at most this far from the mesh surface
 MAX_SAMPLES = 4096
-REQUIRED = object()
-
-
-class _Invalid(Exception):
-    """A bad value, before the section parser adds the file and the key path."""
-
-    def __init__(self, found, expected, index=None):
-        super().__init__(expected)
-        self.found, self.expected, self.index = found, expected, index
-
-
-def _show(value):
-    """A value as the file wrote it, on one short line."""
-    if isinstance(value, dict):
-        return "a mapping"
-    text = "null" if value is None else repr(value)
-    return text if len(text) <= 80 else text[:77] + "..."
-
-
-def _number(raw, expected, index=None, finite=True):
-    """raw as a float; bools and text are not numbers, NaN and inf are rejected if finite."""
-    if isinstance(raw, bool) or not isinstance(raw, (int, float)):
-        raise _Invalid(raw, expected, index)
-    value = float(raw) if abs(raw) < 1e308 else float("inf")   # float(10**400) would overflow
-    if finite and not np.isfinite(value):
-        raise _Invalid(raw, "a finite number", index)
-    return value
-
-
-def _numbers(raw, length, expected):
-    """raw as a float array of exactly `length` numbers, element errors indexed."""
-    if not isinstance(raw, list) or len(raw) != length:
-        raise _Invalid(raw, expected)
-    return np.array([_number(x, "a number", i) for i, x in enumerate(raw)])
-
-
-class Spec:
-    """One key's rule: `convert` checks the raw YAML value and returns it in SI units."""
-
-    expected = "a value"
-    default = REQUIRED
-
-    def read(self, file, path, raw, to_si):
-        try:
-            return self.convert(raw, to_si)
-        except _Invalid as bad:
-            key = path if bad.index is None else f"{path}[{bad.index}]"
-            raise TaskError(file, key, _show(bad.found), bad.expected) from None
-
-    def absent(self, file, path):
-        if self.default is REQUIRED:
-            raise TaskError(file, path, "nothing", f"{self.expected} (required key)")
-        return self.default
-
-
-class Text(Spec):
-    expected = "a non-empty text"
-
-    def convert(self, raw, to_si):
-        if not isinstance(raw, str) or not raw.strip():
-            raise _Invalid(raw, self.expected)
-        return raw.strip()
-
-
-class Choice(Spec):
-    def __init__(self, *options, default=REQUIRED):
-        self.options, self.default = options, default
-        self.expected = "one of " + " | ".join(options)
-
-    def convert(self, raw, to_si):
-        if raw not in self.options:
-            raise _Invalid(raw, self.expected)
-        return raw
-
-
-class Number(Spec):
-    """A finite number whose SI value passes `ok`."""
-
-    def __init__(self, ok, expected, default=REQUIRED):
-        self.ok, self.expected, self.default = ok, expected, default
-
-    def convert(self, raw, to_si):
-        value = to_si(_number(raw, self.expected))
-        if not self.ok(value):
-            raise _Invalid(raw, self.expected)
-        return float(value)
-
-
-class Integer(Spec):
-    def __init__(self, low, high=None, default=REQUIRED):
-        self.low, self.high, self.default = low, high, default
-        self.expected = f"an integer in {low}..{high}" if high else f"an integer >= {low}"
-
-    def convert(self, raw, to_si):
-        is_int = isinstance(raw, int) and not isinstance(raw, bool)
-        if not is_int or raw < self.low or (self.high and raw > self.high):
-            raise _Invalid(raw, self.expected)
-        return raw
-
-
-class Vector(Spec):
-    """A 3-vector; `direction` rejects the zero vector and normalizes."""
-
-    def __init__(self, direction=False):
-        self.direction = direction
-        self.expected = "a non-zero 3-vector [x, y, z]" if direction else "a 3-vector [x, y, z]"
-
-    def convert(self, raw, to_si):
-        v = to_si(_numbers(raw, 3, self.expected))
-        if self.direction:
-            if not np.linalg.norm(v) > 0:
-                raise _Invalid(raw, self.expected)
-            v = geometry.unit(v)
-        return v
-
-
-class Pair(Spec):
-    """A range [low, high] of numbers passing `ok` (SI); low < high if strict, else low <= high."""
-
-    def __init__(self, ok, what, strict=False):
-        self.ok, self.strict = ok, strict
-        self.expected = f"an ascending pair of {what}"
-
-    def convert(self, raw, to_si):
-        low, high = to_si(_numbers(raw, 2, self.expected))
-        if not (self.ok(low) and self.ok(high)) or low > high or (self.strict and low == high):
-            raise _Invalid(raw, self.expected)
-        return float(low), float(high)
-
-
-class Table(Spec):
-    """A material table column: one number per phase angle, each passing `ok`."""
-
-    def __init__(self, ok, expected, default=REQUIRED, finite=True):
-        self.ok, self.element, self.default, self.finite = ok, expected, default, finite
-        self.expected = f"a list with one value per phase angle, each {expected}"
-
-    def convert(self, raw, to_si):
-        if not isinstance(raw, list) or not raw:
-            raise _Invalid(raw, self.expected)
-        values = to_si(np.array([_number(x, self.element, i, self.finite) for i, x in enumerate(raw)]))
-        for i, v in enumerate(values):
-            if not self.ok(v):
-                raise _Invalid(raw[i], self.element, i)
-        return values
 
 
 class Effects(Spec):
@@ -185,57 +32,17 @@ class Effects(Spec):
 
     def convert(self, raw, to_si):
         if not isinstance(raw, list):
-            raise _Invalid(raw, self.expected)
+            raise Invalid(raw, self.expected)
         for i, name in enumerate(raw):
             if name == "interreflection":
-                raise _Invalid(name, "a simulated effect (interreflection is not modelled)", i)
+                raise Invalid(name, "a simulated effect (interreflection is not modelled)", i)
             if name not in EFFECTS:
-                raise _Invalid(name, "one of " + ", ".join(EFFECTS), i)
+                raise Invalid(name, "one of " + ", ".join(EFFECTS), i)
             if name in raw[:i]:
-                raise _Invalid(name, "each effect at most once", i)
+                raise Invalid(name, "each effect at most once", i)
         return tuple(raw)
 
 
-class Mapping(Spec):
-    """Settings checked elsewhere (device settings): any mapping, kept as it is."""
-
-    expected = "a mapping of settings"
-    default = None
-
-    def convert(self, raw, to_si):
-        if not isinstance(raw, dict):
-            raise _Invalid(raw, self.expected)
-        return raw
-
-
-class Anything(Spec):
-    """Fitter notes kept verbatim (e.g. `unidentifiable`)."""
-
-    default = None
-
-    def convert(self, raw, to_si):
-        return raw
-
-
-class Section(Spec):
-    """A nested mapping of keys; an optional section missing from the file takes its defaults."""
-
-    expected = "a mapping of keys"
-
-    def __init__(self, fields, required=True):
-        self.fields, self.required = fields, required
-
-    def read(self, file, path, raw, to_si):
-        return _parse(file, path, raw, self.fields)
-
-    def absent(self, file, path):
-        if self.required:
-            raise TaskError(file, path, "nothing", f"{self.expected} (required section)")
-        return _parse(file, path, {}, self.fields)
-
-
-POSITIVE = dict(ok=lambda v: v > 0, expected="a positive number")
-NON_NEGATIVE = dict(ok=lambda v: v >= 0, expected="a number >= 0")
 DEG = np.radians
 
 TASK = {
@@ -289,9 +96,7 @@ TASK = {
     }),
     "cell": Section({
         "backend": Choice("sim", "hw", default="sim"),
-        "arm": Mapping(),
-        "pan_tilt": Mapping(),
-        "camera": Mapping(),
+        **DEVICES,                                       # arm, pan_tilt, camera: cell.device_config
     }, required=False),
     "sim": Section({
         "seed": Integer(0, 2**32 - 1, default=1),
@@ -320,96 +125,6 @@ MATERIAL = {
 }
 
 
-def _join(path, key):
-    return f"{path}.{key}" if path else str(key)
-
-
-def _unit(key):
-    """(base, suffix) of a key whose last `_` part is a unit suffix, else (key, None).
-    A rate such as `speed_m_s` (base ending in a unit too) is not a unit variant of `speed_m`."""
-    base, _, suffix = key.rpartition("_")
-    if not base or suffix not in UNITS or base.rpartition("_")[2] in UNITS:
-        return key, None
-    return base, suffix
-
-
-def _schema_key(file, path, written, fields):
-    """The schema key a file key stands for (the same quantity in any accepted unit)."""
-    if written in fields:
-        return written
-    dimensioned = {base: key for key in fields for base, suffix in [_unit(key)] if suffix}
-    base, _, suffix = written.rpartition("_")
-    if base in dimensioned:
-        quantity = UNITS[_unit(dimensioned[base])[1]][0]
-        if UNITS.get(suffix, ("",))[0] == quantity:
-            return dimensioned[base]
-        units = ", ".join(s for s, (q, _) in UNITS.items() if q == quantity)
-        raise TaskError(file, _join(path, written), f"unit '{suffix}'", f"a {quantity} unit: {units}")
-    hint = difflib.get_close_matches(written, list(fields), n=1)
-    expected = "one of " + ", ".join(fields) + (f"; did you mean '{hint[0]}'?" if hint else "")
-    raise TaskError(file, _join(path, written), "an unknown key", expected)
-
-
-def _parse(file, path, data, fields):
-    """Check a mapping against its fields (an empty value counts as absent); returns
-    {key with SI suffix: SI value}."""
-    if not isinstance(data, dict):
-        raise TaskError(file, path, _show(data), "a mapping of keys")
-    given = {}
-    for written in data:
-        key = _schema_key(file, path, str(written), fields)
-        if key in given:
-            raise TaskError(file, _join(path, written), f"{given[key]} and {written} both",
-                            "the value in one unit only")
-        given[key] = written
-    values = {}
-    for key, spec in fields.items():
-        base, suffix = _unit(key)
-        si_key = f"{base}_{SI_SUFFIX[UNITS[suffix][0]]}" if suffix else key
-        written = given.get(key)
-        if written is not None and data[written] is not None:
-            to_si = UNITS[_unit(written)[1]][1] if suffix else (lambda v: v)
-            values[si_key] = spec.read(file, _join(path, written), data[written], to_si)
-        else:
-            values[si_key] = spec.absent(file, _join(path, key))
-    return values
-
-
-class _YamlLoader(yaml.SafeLoader):
-    """SafeLoader that reads YAML 1.2 floats (1e-5, 1.5e16 are numbers) and rejects duplicate keys."""
-
-    def construct_mapping(self, node, deep=False):
-        seen = set()
-        for key_node, _ in node.value:
-            if isinstance(key_node, yaml.ScalarNode):
-                if key_node.value in seen:
-                    raise yaml.constructor.ConstructorError(
-                        None, None, f"duplicate key '{key_node.value}'", key_node.start_mark)
-                seen.add(key_node.value)
-        return super().construct_mapping(node, deep)
-
-
-_YamlLoader.add_implicit_resolver("tag:yaml.org,2002:float", re.compile(
-    r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"), list("-+0123456789"))
-
-
-def read_yaml(path):
-    """A YAML file's content; a missing or unreadable file or bad syntax is a TaskError (file:line)."""
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-        return yaml.load(text, Loader=_YamlLoader)
-    except OSError as err:
-        raise TaskError(path, "", f"an unreadable file ({err.strerror})", "a readable YAML file") from None
-    except UnicodeDecodeError:
-        raise TaskError(path, "", "bytes that are not UTF-8 text", "a YAML text file") from None
-    except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        where = f"{path}:{mark.line + 1}" if mark else path
-        problem = " ".join(str(getattr(err, "problem", None) or err).split())
-        raise TaskError(where, "", f"a YAML syntax error ({problem})", "valid YAML") from None
-
-
 def _read_mapping(path):
     """A YAML file that must hold a mapping of keys (not empty, not a list)."""
     data = read_yaml(path)
@@ -421,17 +136,17 @@ def _read_mapping(path):
 def load_material(path):
     """A material file -> Material (phase in radians, parameters as arrays)."""
     path = Path(path)
-    v = _parse(path, "", _read_mapping(path), MATERIAL)
+    v = parse(path, "", _read_mapping(path), MATERIAL)
     phase = v["phase_rad"]
     for key, column in v.items():
         if isinstance(column, np.ndarray) and len(column) != len(phase):
             raise TaskError(path, key, f"{len(column)} values", f"{len(phase)}, one per phase_deg entry")
     if np.any(np.diff(phase) <= 0):
-        found = _show(np.round(np.degrees(phase), 6).tolist())
+        found = show(np.round(np.degrees(phase), 6))
         raise TaskError(path, "phase_deg", found, "strictly ascending phase angles")
     for i, (m1, m2) in enumerate(zip(v["m1"], v["m2"])):
         if not m2 > m1:
-            raise TaskError(path, f"m2[{i}]", _show(float(m2)), f"a spike exponent m2 > m1 = {m1:g}")
+            raise TaskError(path, f"m2[{i}]", show(m2), f"a spike exponent m2 > m1 = {m1:g}")
     table = ("name", "source", "phase_rad", *PARAMETERS)
     extra = {k: x for k, x in v.items() if k not in table and x is not None}
     return Material(v["name"], v["source"], phase, *(v[p] for p in PARAMETERS), extra=extra)
@@ -481,7 +196,7 @@ def _feature(file, mesh, f):
     """The feature with its center snapped to the surface and the outward normal there."""
     center, normal, distance = closest_surface_point(mesh, f["center_m"])
     if distance > SURFACE_TOLERANCE_M:
-        found = f"{_show(f['center_m'].tolist())} m, {distance * 1e3:.1f} mm from the surface"
+        found = f"{show(f['center_m'])} m, {distance * 1e3:.1f} mm from the surface"
         raise TaskError(file, "feature.center_m", found,
                         "a point within 1 mm of the part's surface (part frame)")
     return Feature(center, normal, f["radius_m"], f["samples"])
@@ -491,28 +206,35 @@ def _check_gray_band(file, band, bit_depth):
     top = 2**bit_depth - 1
     for i, gray in enumerate(band):
         if not 0 <= gray <= top:
-            raise TaskError(file, f"requirements.gray_band[{i}]", _show(gray),
+            raise TaskError(file, f"requirements.gray_band[{i}]", show(gray),
                             f"a gray level in [0, {top}] (bit_depth {bit_depth})")
 
 
 def load_task(path):
     """A task file and everything it references -> Task (SI units, mesh in metres)."""
     path = Path(path)
-    v = _parse(path, "", _read_mapping(path), TASK)
+    data = _read_mapping(path)
+    v = parse(path, "", data, TASK)
     part, cam, lamp, cell, sim = v["part"], v["camera"], v["lamp"], v["cell"], v["sim"]
+    arm = cell["arm"]
     _check_gray_band(path, v["requirements"]["gray_band"], cam["sensor"]["bit_depth"])
+    written = data.get("cell") or {}                     # which device sections the task set
+    devices = devices_config(path, cell, given=tuple(name for name in DEVICES if written.get(name)))
     mesh_path, mesh = _load_mesh(path, part)
     material = load_material(_relative_file(path, "part.material", part["material"]))
     return Task(
         path=path,
         name=v["name"],
-        part=Part(mesh_path, mesh, geometry.from_rpy(part["rpy_rad"], part["position_m"]), material),
+        part=Part(mesh_path, mesh, material),
+        frames=Frames(T_cell_part=geometry.from_rpy(part["rpy_rad"], part["position_m"]),
+                      T_cell_base=geometry.from_rpy(arm["base_rpy_rad"], arm["base_position_m"]),
+                      T_flange_cam=geometry.from_rpy(arm["hand_eye_rpy_rad"], arm["hand_eye_position_m"])),
         feature=_feature(path, mesh, v["feature"]),
         requirements=Requirements(**v["requirements"]),
         camera=CameraModel(cam["distance_m"], cam["view_direction"], Sensor(**cam["sensor"]),
                            Lens(**cam["lens"]), cam["shutter_range_s"]),
         lamp=Lamp(lamp["power_w"], lamp["cone_angle_rad"], LampRig(**lamp["rig"])),
-        cell=CellConfig(cell["backend"], {k: d for k, d in cell.items() if k != "backend" and d}),
+        cell=CellConfig(cell["backend"], devices),
         sim=SimConfig(sim["seed"], sim["effects"], Truth(**sim["truth"])),
     )
 
@@ -534,7 +256,7 @@ def summarize(task):
     source = material.source.splitlines()[0]
     size = " x ".join(f"{e:.1f}" for e in mesh.extents * 1e3)
     radius_mm = f.radius_m * 1e3
-    devices = "".join(f", {name} settings" for name in task.cell.devices)
+    devices = "".join(f", {name} settings" for name in task.cell.devices.given)
     return "\n".join([
         f"task         {task.name} ({task.path})",
         f"part         {task.part.mesh_path}: {size} mm, {len(mesh.faces)} triangles",

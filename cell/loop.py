@@ -9,11 +9,11 @@ import numpy as np
 
 from cell import control, measure
 from cell.acquisition import acquire, move_to, plan_recorded, require_feasible
-from cell.devices import Session
 from cell.errors import DeviceFault, GoalNotReached
 from cell.evaluate import depth_of_field_limits
 from cell.plan import gray_stats
 from cell.recorder import Recorder
+from cell.session import Session
 
 
 @dataclass(frozen=True)
@@ -146,7 +146,7 @@ def iterate(task, plan, devices, recorder, max_iterations):
 def run(task, out, connect, max_iterations=6):
     """Plan, connect(scene) -> Devices, then iterate; out/report.json (RunResult.to_json) is
     written however the run ends. Raises PlanInfeasible or GoalNotReached (exit 1), or DeviceFault
-    (exit 3) after the safe stop of every device (devices.Session). Returns the RunResult."""
+    (exit 3) after the safe stop of every device (session.Session). Returns the RunResult."""
     from cell.pictures import write_convergence
     out = Path(out)
     events, plan_document, reason = [], None, ""

@@ -68,6 +68,6 @@ class Recorder:
         write_json(self.folder / name, document)
 
     def fault(self, fault):
-        """The fault step, after the safe stop (devices.Session's fault record)."""
-        from cell.devices import stop_outcome
+        """The fault step, after the safe stop (session.Session's fault record)."""
+        from cell.session import stop_outcome
         self.step("fault", f"{fault['error']}: {stop_outcome(fault['stop_failures'])}", **fault)

@@ -69,7 +69,7 @@ class Scene:
 def build_scene(task, samples=None):
     """Scene of a task: mesh and feature in the cell frame, `samples` points over the feature
     patch (default: the task's), projected onto the surface."""
-    T = task.part.T_cell_part
+    T = task.frames.T_cell_part
     mesh = task.part.mesh.copy()
     mesh.apply_transform(T)
     center = geometry.apply(T, task.feature.center_m)

@@ -1,18 +1,19 @@
 """Typed inspection task (task-format.md), SI units inside. The loader lives in cell.loader."""
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
+from cell.device_config import DevicesConfig
+from cell.frames import Frames
 from cell.material import Material
 
 
 @dataclass(frozen=True)
 class Part:
     mesh_path: Path
-    mesh: trimesh.Trimesh          # in metres, part frame
-    T_cell_part: np.ndarray        # 4x4
+    mesh: trimesh.Trimesh          # in metres, part frame (its pose: Task.frames.T_cell_part)
     material: Material
 
 
@@ -94,8 +95,8 @@ class SimConfig:
 
 @dataclass(frozen=True)
 class CellConfig:
-    backend: str = "sim"
-    devices: dict = field(default_factory=dict)   # arm / pan_tilt / camera settings (README)
+    backend: str                   # sim | hw
+    devices: DevicesConfig         # cell.arm / cell.pan_tilt / cell.camera, defaults filled in
 
 
 @dataclass(frozen=True)
@@ -103,6 +104,7 @@ class Task:
     path: Path
     name: str
     part: Part
+    frames: Frames                 # the named transforms: part, robot base, hand-eye
     feature: Feature
     requirements: Requirements
     camera: CameraModel

@@ -1,5 +1,5 @@
 """Simulated UR5e carrying the camera: the analytic kinematics of sim/ur5e.py, the robot base at
-the config's T_cell_base and the camera at its hand-eye T_flange_cam."""
+the frames' T_cell_base and the camera at their hand-eye T_flange_cam."""
 import numpy as np
 
 from cell.devices import Arm
@@ -14,8 +14,8 @@ class SimArm(Arm):
     """Moves instantly to the IK solution nearest the current joints. Fault injection:
     move number `fail_on_move` ends in a protective stop (DeviceFault)."""
 
-    def __init__(self, config, joints=HOME_JOINTS, fail_on_move=None):
-        super().__init__(config)
+    def __init__(self, config, frames, joints=HOME_JOINTS, fail_on_move=None):
+        super().__init__(config, frames)
         self.joints = np.array(joints, float)
         self.moves = 0
         self.fail_on_move = fail_on_move
@@ -24,14 +24,13 @@ class SimArm(Arm):
         self.moves += 1
         if self.moves == self.fail_on_move:
             raise DeviceFault(self.device, f"protective stop during move {self.moves} (injected)")
-        T_base_flange = T_base_cam @ np.linalg.inv(self.config.T_flange_cam)
         try:
-            self.joints = ur5e.inverse(T_base_flange, self.joints)
+            self.joints = ur5e.inverse(self.frames.T_base_flange(T_base_cam), self.joints)
         except ur5e.Unreachable as why:
             raise DeviceFault(self.device, f"camera pose unreachable for the UR5e: {why}") from None
 
     def _tcp_pose(self):
-        return ur5e.forward(self.joints) @ self.config.T_flange_cam
+        return self.frames.T_base_cam_from_flange(ur5e.forward(self.joints))
 
     def stop(self):
         """Moves are instantaneous: nothing is ever in motion."""

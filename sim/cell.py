@@ -3,7 +3,7 @@
 and optional injected faults."""
 from dataclasses import dataclass
 
-from cell.devices import Devices, devices_from_config
+from cell.devices import Devices
 from sim.arm import SimArm
 from sim.camera import SimCamera
 from sim.pantilt import SimPanTilt
@@ -27,10 +27,10 @@ class SimFaults:
 def make_sim_devices(task, scene, operator=None, yes=True, faults=None):
     """Devices of the simulated cell for a task and its scene (cell.scene.build_scene); the
     operator (default Operator(yes=yes)) sets a manual lamp radius. faults: SimFaults, a dict of
-    its fields, or None. Bad device settings raise TaskError."""
+    its fields, or None. The settings are the task's, checked when it was loaded."""
     faults = SimFaults(**faults) if isinstance(faults, dict) else faults or SimFaults()
-    config = devices_from_config(task.cell.devices, task.path)
-    arm = SimArm(config.arm, fail_on_move=faults.arm_fail_on_move)
+    config = task.cell.devices
+    arm = SimArm(config.arm, task.frames, fail_on_move=faults.arm_fail_on_move)
     lamp = SimPanTilt(task.lamp.rig, config.pan_tilt, yes=yes, operator=operator,
                       fail_on_move=faults.lamp_fail_on_move, fail_servo=faults.servo_id,
                       fail_bits=faults.servo_bits)

@@ -13,11 +13,10 @@ import threading
 import time
 import tty
 
-from cell.hw.dynamixel import (ALERT, CENTRE_TICK, EEPROM_END, FIRMWARE_VERSION, GOAL_POSITION,
-                               HARDWARE_ERROR_STATUS, ID, MAX_POSITION_LIMIT, MIN_POSITION_LIMIT,
-                               MODEL_NUMBER, MOVING, OPERATING_MODE, POSITION_MODE, PRESENT_POSITION,
-                               PROFILE_VELOCITY, PROFILE_VELOCITY_RPM, SHUTDOWN, TICKS_PER_TURN,
-                               TORQUE_ENABLE)
+from cell.servo import (ALERT, CENTRE_TICK, EEPROM_END, FIRMWARE_VERSION, GOAL_POSITION,
+                        HARDWARE_ERROR_STATUS, ID, MAX_POSITION_LIMIT, MIN_POSITION_LIMIT, MODEL_NUMBER,
+                        MOVING, OPERATING_MODE, POSITION_MODE, PRESENT_POSITION, PROFILE_VELOCITY,
+                        PROFILE_VELOCITY_RPM, SHUTDOWN, TICKS_PER_TURN, TORQUE_ENABLE)
 
 HEADER = b"\xff\xff\xfd\x00"
 PING, READ, WRITE, SYNC_READ, SYNC_WRITE, STATUS = 0x01, 0x02, 0x03, 0x82, 0x83, 0x55
@@ -71,7 +70,7 @@ def _word(params, i):
 
 
 class Servo:
-    """One servo's control table (X-series addresses from cell.hw.dynamixel)."""
+    """One servo's control table (X-series addresses from cell.servo)."""
 
     def __init__(self, dxl_id, model_number, firmware):
         self.table = bytearray(TABLE_SIZE)

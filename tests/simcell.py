@@ -1,9 +1,12 @@
-"""Helpers the closed-loop and calibration tests share: task variants and a simulated cell that
-records the safe-stop calls its devices receive."""
+"""Helpers the device, closed-loop and calibration tests share: task variants, device settings
+read as load_task reads them, and a simulated cell that records the safe-stop calls its devices
+receive."""
 from pathlib import Path
 
 import yaml
 
+from cell.device_config import SECTIONS, devices_config
+from cell.schema import parse
 from sim.cell import make_sim_devices
 
 
@@ -22,6 +25,12 @@ def variant(tmp_path, source, changes):
     path = tmp_path / f"{source.stem}-variant.yaml"
     path.write_text(yaml.safe_dump(raw))
     return path
+
+
+def device_settings(raw, file="tasks/hinge.yaml"):
+    """DevicesConfig of raw `cell.arm` / `cell.pan_tilt` / `cell.camera` mappings, checked as
+    load_task checks a task's `cell` section."""
+    return devices_config(file, parse(file, "cell", raw, SECTIONS), given=tuple(raw))
 
 
 def recording_connect(task, cell, faults=None):

@@ -5,6 +5,7 @@ import socket
 import threading
 import time
 from dataclasses import replace
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -13,22 +14,27 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cell import devices
-from cell.devices import (Devices, Operator, devices_from_config, lamp_aim, lamp_joints, lamp_position,
-                          make_hw_devices)
+from cell.backends import make_hw_devices
+from cell.devices import Devices
 from cell.errors import DeviceFault, TaskError
 from cell.hw import ur
 from cell.hw.opencv_camera import OpenCVCamera
+from cell.loader import load_task
+from cell.operator import Operator
+from cell.rig import lamp_aim, lamp_joints, lamp_position
 from cell.scene import look_at
 from cell.task import LampRig
 from sim.arm import SimArm
 from sim.camera import SimCamera
 from sim.pantilt import SimPanTilt
+from simcell import device_settings, variant
 
 TASK = "tasks/hinge.yaml"
 RIG = LampRig(pivot_m=np.array([0.006, 0.0, 0.004]), pan_range_rad=(-np.pi, np.pi),
               tilt_range_rad=(np.radians(5.0), np.radians(85.0)), radius_range_m=(0.15, 0.60),
               radius_axis="manual")
-DEFAULTS = devices_from_config({}, TASK)
+DEFAULTS = device_settings({}, TASK)
+FRAMES = load_task(TASK).frames                     # the part at the origin, the default arm
 HINGE_CAMERA = look_at(np.array([-0.019, 0.0, 0.503]), RIG.pivot_m)      # as the hinge plan has it
 
 
@@ -43,20 +49,20 @@ class Terminal(io.StringIO):
 
 def test_defaults_are_the_example_cell_and_reach_no_network():
     assert DEFAULTS.arm.host is None and DEFAULTS.pan_tilt.port is None
-    assert DEFAULTS.arm.T_cell_base[:3, 3] == pytest.approx([0.0, -0.40, 0.0])
-    assert DEFAULTS.arm.T_flange_cam[:3, 3] == pytest.approx([0.0, 0.0, 0.05])
+    assert FRAMES.T_cell_base[:3, 3] == pytest.approx([0.0, -0.40, 0.0])
+    assert FRAMES.T_flange_cam[:3, 3] == pytest.approx([0.0, 0.0, 0.05])
     assert DEFAULTS.pan_tilt.baud == 57600 and DEFAULTS.camera.exposure_unit_s == 1e-4
 
 
-def test_settings_in_other_units_are_converted():
-    config = devices_from_config({"arm": {"host": "192.0.2.10", "base_position_mm": [100, -500, 0],
-                                          "base_rpy_deg": [0, 0, 90], "connect_timeout_ms": 500},
-                                  "pan_tilt": {"port": "/dev/ttyUSB0", "speed_deg_s": 45,
-                                               "tilt_offset_deg": -90}},
-                                 TASK)
+def test_settings_in_other_units_are_converted(tmp_path):
+    task = load_task(variant(tmp_path, TASK, {
+        "cell.arm": {"host": "192.0.2.10", "base_position_mm": [100, -500, 0], "base_rpy_deg": [0, 0, 90],
+                     "connect_timeout_ms": 500},
+        "cell.pan_tilt": {"port": "/dev/ttyUSB0", "speed_deg_s": 45, "tilt_offset_deg": -90}}))
+    config = task.cell.devices
     assert config.arm.host == "192.0.2.10" and config.arm.connect_timeout_s == 0.5
-    assert config.arm.T_cell_base[:3, 3] == pytest.approx([0.1, -0.5, 0.0])
-    assert config.arm.T_cell_base[:3, 0] == pytest.approx([0.0, 1.0, 0.0])
+    assert task.frames.T_cell_base[:3, 3] == pytest.approx([0.1, -0.5, 0.0])
+    assert task.frames.T_cell_base[:3, 0] == pytest.approx([0.0, 1.0, 0.0])
     assert config.pan_tilt.speed_rad_s == pytest.approx(np.radians(45))
     assert config.pan_tilt.tilt_offset_rad == pytest.approx(-np.pi / 2)
 
@@ -75,24 +81,24 @@ def test_settings_in_other_units_are_converted():
 ])
 def test_bad_settings_name_file_key_and_expectation(raw, key, expected):
     with pytest.raises(TaskError) as error:
-        devices_from_config(raw, TASK)
+        device_settings(raw, TASK)
     assert error.value.file == TASK and error.value.key == key and expected in error.value.expected
     assert error.value.exit_code == 2
 
 
 def test_hardware_backend_needs_an_explicit_host_and_port():
-    task = type("Task", (), {})()
+    task = SimpleNamespace(cell=SimpleNamespace(devices=DEFAULTS))
     with pytest.raises(TaskError, match=r"cell.arm.host: found nothing, expected the robot's address"):
-        make_hw_devices(DEFAULTS, task)
-    config = devices_from_config({"arm": {"host": "127.0.0.1"}}, TASK)
+        make_hw_devices(task)
+    task.cell.devices = device_settings({"arm": {"host": "127.0.0.1"}}, TASK)
     with pytest.raises(TaskError, match="cell.pan_tilt.port"):
-        make_hw_devices(config, task)
+        make_hw_devices(task)
 
 
 # --- arm ------------------------------------------------------------------------------------
 
 def test_sim_arm_puts_the_camera_where_asked_for_both_example_tasks():
-    arm = SimArm(DEFAULTS.arm)
+    arm = SimArm(DEFAULTS.arm, FRAMES)
     for T in (HINGE_CAMERA, look_at(np.array([0.0, 0.0175, 0.357]), np.array([0.0, 0.0, 0.008]))):
         arm.move_camera(T)
         assert arm.camera_pose() == pytest.approx(T, abs=1e-9)
@@ -104,7 +110,7 @@ def test_sim_arm_puts_the_camera_where_asked_for_both_example_tasks():
     (HINGE_CAMERA * 1.01, None, "not a rigid transform"),
 ])
 def test_arm_refuses_before_moving(T, speed, reason):
-    arm = SimArm(DEFAULTS.arm)
+    arm = SimArm(DEFAULTS.arm, FRAMES)
     before = arm.joints.copy()
     with pytest.raises(DeviceFault, match=reason):
         arm.move_camera(T, speed)
@@ -112,13 +118,13 @@ def test_arm_refuses_before_moving(T, speed, reason):
 
 
 def test_unreachable_pose_inside_the_envelope_says_why():
-    arm = SimArm(DEFAULTS.arm)
+    arm = SimArm(DEFAULTS.arm, FRAMES)
     with pytest.raises(DeviceFault, match="unreachable for the UR5e: wrist .* mm from the shoulder"):
         arm.move_camera(look_at(np.array([0.55, 0.55, 0.9]), np.array([0.6, 0.6, 0.0])))
 
 
 def test_injected_arm_fault_on_the_second_move():
-    arm = SimArm(DEFAULTS.arm, fail_on_move=2)
+    arm = SimArm(DEFAULTS.arm, FRAMES, fail_on_move=2)
     arm.move_camera(HINGE_CAMERA)
     with pytest.raises(DeviceFault, match="protective stop during move 2"):
         arm.move_camera(HINGE_CAMERA)
@@ -170,7 +176,7 @@ def test_servo_position_limits_are_checked_before_moving():
 
 
 def test_injected_hardware_error_names_the_servo_and_safe_stop_turns_its_torque_off():
-    arm = SimArm(DEFAULTS.arm)
+    arm = SimArm(DEFAULTS.arm, FRAMES)
     rig = SimPanTilt(RIG, DEFAULTS.pan_tilt, fail_on_move=2, fail_bits=0x24)
     cell = Devices(arm, rig, SimCamera(lambda *a: np.zeros((4, 4), np.uint8), arm, rig))
     rig.move(0.0, np.radians(45.0), 0.3)
@@ -181,7 +187,7 @@ def test_injected_hardware_error_names_the_servo_and_safe_stop_turns_its_torque_
 
 
 def test_another_devices_fault_keeps_the_servo_torque_on():
-    arm = SimArm(DEFAULTS.arm)
+    arm = SimArm(DEFAULTS.arm, FRAMES)
     rig = SimPanTilt(RIG, DEFAULTS.pan_tilt)
     Devices(arm, rig, SimCamera(None, arm, rig)).safe_stop(DeviceFault("arm", "protective stop"))
     assert rig.torque == {1: True, 2: True}
@@ -211,7 +217,7 @@ def test_operator_closing_stdin_is_a_fault():
 
 def test_sim_camera_renders_from_the_read_back_poses_and_settings():
     calls = []
-    arm, rig = SimArm(DEFAULTS.arm), SimPanTilt(RIG, DEFAULTS.pan_tilt)
+    arm, rig = SimArm(DEFAULTS.arm, FRAMES), SimPanTilt(RIG, DEFAULTS.pan_tilt)
 
     def render(T_cell_cam, lamp_pos, lamp_aim_, shutter_s, f_number, focus_m):
         calls.append((T_cell_cam, lamp_pos, lamp_aim_, shutter_s, f_number, focus_m))
@@ -233,7 +239,7 @@ def test_sim_camera_renders_from_the_read_back_poses_and_settings():
 
 
 def test_sim_camera_injected_timeout():
-    arm, rig = SimArm(DEFAULTS.arm), SimPanTilt(RIG, DEFAULTS.pan_tilt)
+    arm, rig = SimArm(DEFAULTS.arm, FRAMES), SimPanTilt(RIG, DEFAULTS.pan_tilt)
     camera = SimCamera(lambda *a: np.zeros((2, 2), np.uint8), arm, rig, fail_on_capture=1, timeout_s=0.5)
     with pytest.raises(DeviceFault, match=r"camera: capture timed out after 0.5 s"):
         camera.capture()
@@ -307,7 +313,7 @@ def silent_server(monkeypatch):
 
 
 def loopback_arm(timeout_s=1.0):
-    return ur.URArm(replace(DEFAULTS.arm, host="127.0.0.1", connect_timeout_s=timeout_s))
+    return ur.URArm(replace(DEFAULTS.arm, host="127.0.0.1", connect_timeout_s=timeout_s), FRAMES)
 
 
 @pytest.mark.skipif(not nothing_listens(30004), reason="something listens on 127.0.0.1:30004")
@@ -333,8 +339,19 @@ def test_ur_arm_that_accepts_but_never_answers_fails_within_the_timeout(silent_s
     assert time.monotonic() - start < 1.5
 
 
+def test_a_calibrated_hand_eye_moves_the_flange_and_keeps_the_camera_where_asked():
+    arm = SimArm(DEFAULTS.arm, FRAMES.with_transform("T_flange_cam", look_at(np.array([0.0, 0.03, 0.08]),
+                                                                            np.array([0.0, 0.03, 1.0]))))
+    arm.move_camera(HINGE_CAMERA)
+    assert arm.camera_pose() == pytest.approx(HINGE_CAMERA, abs=1e-9)
+    assert arm.frames.T_cell_base is FRAMES.T_cell_base and FRAMES.T_flange_cam[:3, 3] == pytest.approx(
+        [0.0, 0.0, 0.05])                                   # the task's own frames are unchanged
+    with pytest.raises(ValueError, match="no transform 'T_cell_lamp'"):
+        FRAMES.with_transform("T_cell_lamp", np.eye(4))
+
+
 def test_the_flange_must_stay_in_the_workspace_too():
-    devices.check_arm_motion(DEFAULTS.arm, HINGE_CAMERA, 0.1)
+    devices.check_arm_motion(DEFAULTS.arm, FRAMES, HINGE_CAMERA, 0.1)
     looking_up = look_at(np.array([0.0, 0.0, 0.12]), np.array([0.0, 0.0, 1.0]))   # flange 5 cm below
     with pytest.raises(DeviceFault, match=r"flange at \[0.0, 0.0, 0.07\] m is outside the workspace"):
-        devices.check_arm_motion(DEFAULTS.arm, looking_up, 0.1)
+        devices.check_arm_motion(DEFAULTS.arm, FRAMES, looking_up, 0.1)

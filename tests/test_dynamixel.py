@@ -1,7 +1,10 @@
 """Protocol 2.0 on the wire, pymeasure-style: the e-Manual's example packets byte for byte
 through the real dynamixel_sdk and the pty servo emulator, then the real DynamixelPanTilt on
-that emulator (moves, read-back, hardware errors, absent servos, limits)."""
+that emulator (moves, read-back, hardware errors, absent servos, limits); the simulated cell
+loads no SDK."""
 import io
+import subprocess
+import sys
 import time
 from dataclasses import replace
 
@@ -11,12 +14,13 @@ import serial
 from dynamixel_sdk import (COMM_RX_TIMEOUT, COMM_SUCCESS, GroupSyncRead, GroupSyncWrite, PacketHandler,
                            PortHandler)
 
-from cell.devices import Operator, devices_from_config
+from cell import servo
 from cell.errors import DeviceFault
-from cell.hw import dynamixel as dxl
 from cell.hw.dynamixel import DynamixelPanTilt
+from cell.operator import Operator
 from cell.task import LampRig
 from sim.dxl_emulator import DxlEmulator, crc16, packet, stuff, unstuff
+from simcell import device_settings
 
 # e-Manual, Protocol 2.0, Ping example 1: ID 1 is an XM430-W210 (1030), firmware 38
 PING_1 = bytes.fromhex("FF FF FD 00 01 03 00 01 19 4E")
@@ -31,6 +35,12 @@ def sdk(emulator):
     port = PortHandler(emulator.port)
     assert port.openPort() and port.setBaudRate(57600)
     return port, PacketHandler(2.0)
+
+
+def test_the_simulated_cell_loads_no_servo_sdk():
+    code = "import sys, sim.cell; assert 'dynamixel_sdk' not in sys.modules and 'serial' not in sys.modules"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
 
 
 def test_crc_and_packet_of_the_emanual_ping():
@@ -52,11 +62,11 @@ def test_ping_read_write_bytes_match_the_emanual():
         assert emulator.received[-1] == PING_1 and emulator.sent[-1] == PING_1_STATUS
 
         emulator.servos[1].position = 166                # torque off: it stays there
-        assert handler.read4ByteTxRx(port, 1, dxl.PRESENT_POSITION.address) == (166, COMM_SUCCESS, 0)
+        assert handler.read4ByteTxRx(port, 1, servo.PRESENT_POSITION.address) == (166, COMM_SUCCESS, 0)
         assert emulator.received[-1] == bytes.fromhex("FF FF FD 00 01 07 00 02 84 00 04 00 1D 15")
         assert emulator.sent[-1] == bytes.fromhex("FF FF FD 00 01 08 00 55 00 A6 00 00 00 8C C0")
 
-        assert handler.write4ByteTxRx(port, 1, dxl.GOAL_POSITION.address, 512) == (COMM_SUCCESS, 0)
+        assert handler.write4ByteTxRx(port, 1, servo.GOAL_POSITION.address, 512) == (COMM_SUCCESS, 0)
         assert emulator.received[-1] == bytes.fromhex("FF FF FD 00 01 09 00 03 74 00 00 02 00 00 CA 89")
         assert emulator.sent[-1] == bytes.fromhex("FF FF FD 00 01 04 00 55 00 A1 0C")
         port.closePort()
@@ -67,7 +77,7 @@ def test_sync_read_and_sync_write_bytes_match_the_emanual():
         port, handler = sdk(emulator)
         emulator.servos[1].position, emulator.servos[2].position = 166, 2079
         time.sleep(0.01)                                   # the emulator publishes the positions
-        group = GroupSyncRead(port, handler, dxl.PRESENT_POSITION.address, 4)
+        group = GroupSyncRead(port, handler, servo.PRESENT_POSITION.address, 4)
         group.addParam(1), group.addParam(2)
         assert group.txRxPacket() == COMM_SUCCESS
         assert [group.getData(i, 132, 4) for i in (1, 2)] == [166, 2079]
@@ -75,13 +85,13 @@ def test_sync_read_and_sync_write_bytes_match_the_emanual():
         assert emulator.sent[-2:] == [bytes.fromhex("FF FF FD 00 01 08 00 55 00 A6 00 00 00 8C C0"),
                                       bytes.fromhex("FF FF FD 00 02 08 00 55 00 1F 08 00 00 BA BE")]
 
-        write = GroupSyncWrite(port, handler, dxl.GOAL_POSITION.address, 4)
+        write = GroupSyncWrite(port, handler, servo.GOAL_POSITION.address, 4)
         write.addParam(1, [0x96, 0, 0, 0]), write.addParam(2, [0xAA, 0, 0, 0])
         assert write.txPacket() == COMM_SUCCESS
         time.sleep(0.01)
         assert emulator.received[-1] == bytes.fromhex(
             "FF FF FD 00 FE 11 00 83 74 00 04 00 01 96 00 00 00 02 AA 00 00 00 82 87")
-        assert [emulator.servos[i].get(dxl.GOAL_POSITION) for i in (1, 2)] == [150, 170]
+        assert [emulator.servos[i].get(servo.GOAL_POSITION) for i in (1, 2)] == [150, 170]
         port.closePort()
 
 
@@ -91,8 +101,8 @@ def test_a_value_that_looks_like_a_header_survives_the_round_trip_through_the_sd
     with bus(ids=(1,)) as emulator:
         port, handler = sdk(emulator)
         value = 0x00FDFFFF                                  # little endian on the wire: FF FF FD 00
-        assert handler.write4ByteTxRx(port, 1, dxl.PROFILE_ACCELERATION.address, value) == (COMM_SUCCESS, 0)
-        assert handler.read4ByteTxRx(port, 1, dxl.PROFILE_ACCELERATION.address) == (value, COMM_SUCCESS, 0)
+        assert handler.write4ByteTxRx(port, 1, servo.PROFILE_ACCELERATION.address, value) == (COMM_SUCCESS, 0)
+        assert handler.read4ByteTxRx(port, 1, servo.PROFILE_ACCELERATION.address) == (value, COMM_SUCCESS, 0)
         assert emulator.sent[-1] == packet(1, 0x55, bytes.fromhex("FF FF FD 00"), error=0)
         assert b"\xff\xff\xfd\xfd\x00" in emulator.sent[-1]
         port.closePort()
@@ -118,7 +128,7 @@ RIG = LampRig(pivot_m=np.array([0.0, 0.0, 0.004]), pan_range_rad=(-np.pi, np.pi)
 SERVO_RIG = LampRig(RIG.pivot_m, RIG.pan_range_rad, RIG.tilt_range_rad, RIG.radius_range_m, "servo")
 
 
-DEFAULTS = devices_from_config({}, "tasks/hinge.yaml").pan_tilt
+DEFAULTS = device_settings({}).pan_tilt
 
 
 def pan_tilt(emulator, rig=RIG, **config):
@@ -129,11 +139,11 @@ def pan_tilt(emulator, rig=RIG, **config):
 def test_moves_and_reads_back_the_quantized_joints():
     with bus(ids=(1, 2), speedup=10) as emulator:
         rig = pan_tilt(emulator)
-        assert [emulator.servos[i].get(dxl.TORQUE_ENABLE) for i in (1, 2)] == [1, 1]
-        assert emulator.servos[1].get(dxl.PROFILE_VELOCITY) == dxl.profile_velocity(np.radians(90.0))
+        assert [emulator.servos[i].get(servo.TORQUE_ENABLE) for i in (1, 2)] == [1, 1]
+        assert emulator.servos[1].get(servo.PROFILE_VELOCITY) == servo.profile_velocity(np.radians(90.0))
         rig.move(np.radians(30.0), np.radians(45.0), 0.30)
-        assert emulator.servos[1].get(dxl.GOAL_POSITION) == 2048 + round(4096 * 30 / 360)
-        assert emulator.servos[2].get(dxl.PRESENT_POSITION) == 2048 + 512
+        assert emulator.servos[1].get(servo.GOAL_POSITION) == 2048 + round(4096 * 30 / 360)
+        assert emulator.servos[2].get(servo.PRESENT_POSITION) == 2048 + 512
         pan, tilt, radius = rig.joints()
         assert np.degrees(pan) == pytest.approx(30.0, abs=360 / 4096 / 2)
         assert pan == (2048 + 341 - 2048) * 2 * np.pi / 4096            # the quantized angle
@@ -141,7 +151,7 @@ def test_moves_and_reads_back_the_quantized_joints():
         rig.move(np.radians(-170.0), np.radians(10.0), 0.30)
         assert np.degrees(rig.joints()[0]) == pytest.approx(-170.0, abs=0.05)
         rig.stop()                                         # hold: torque stays on
-        assert [emulator.servos[i].get(dxl.TORQUE_ENABLE) for i in (1, 2)] == [1, 1]
+        assert [emulator.servos[i].get(servo.TORQUE_ENABLE) for i in (1, 2)] == [1, 1]
         rig.close()
 
 
@@ -149,7 +159,7 @@ def test_servo_radius_axis_moves_the_third_servo():
     with bus(ids=(1, 2, 3), speedup=10) as emulator:
         rig = pan_tilt(emulator, rig=SERVO_RIG, radius_ticks=(100, 4000))
         rig.move(0.0, np.radians(45.0), 0.375)              # half way along the radius range
-        assert emulator.servos[3].get(dxl.PRESENT_POSITION) == 2050
+        assert emulator.servos[3].get(servo.PRESENT_POSITION) == 2050
         assert rig.joints()[2] == pytest.approx(0.375, abs=0.45 / 3900)
         rig.close()
 
@@ -161,7 +171,7 @@ def test_hardware_error_during_a_move_names_the_servo_and_the_bits():
         with pytest.raises(DeviceFault, match=r"servo 2: Hardware Error Status 0x04 \(overheating\)"):
             rig.move(np.radians(10.0), np.radians(45.0), 0.3)
         rig.stop(fault_is_own=True)                         # the servos' own fault: torque off
-        assert [emulator.servos[i].get(dxl.TORQUE_ENABLE) for i in (1, 2)] == [0, 0]
+        assert [emulator.servos[i].get(servo.TORQUE_ENABLE) for i in (1, 2)] == [0, 0]
         rig.close()
 
 
@@ -183,11 +193,11 @@ def test_absent_servo_is_a_fault_after_the_sdk_timeout():
 
 def test_goal_outside_the_servos_position_limits_is_refused_before_moving():
     with bus(ids=(1, 2), speedup=10) as emulator:
-        emulator.servos[1].set(dxl.MAX_POSITION_LIMIT, 3000)   # EEPROM, set before the torque is on
+        emulator.servos[1].set(servo.MAX_POSITION_LIMIT, 3000)   # EEPROM, set before the torque is on
         rig = pan_tilt(emulator)
         with pytest.raises(DeviceFault, match=r"servo 1: goal tick 3755 outside its position limits \[0, 3000"):
             rig.move(np.radians(150.0), np.radians(45.0), 0.3)
-        assert emulator.servos[1].get(dxl.GOAL_POSITION) == 2048
+        assert emulator.servos[1].get(servo.GOAL_POSITION) == 2048
         rig.close()
 
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
-from cell import cli, loader
+from cell import cli, loader, schema
 from cell.errors import TaskError
 from cell.task import SimConfig
 
@@ -29,7 +29,7 @@ def write_task(folder, edit=None):
     the task; an edit returning text writes that text instead. Returns the task's path."""
     shutil.copytree(TASKS / "parts", folder / "parts")
     shutil.copytree(TASKS / "materials", folder / "materials")
-    task = loader.read_yaml(HINGE)
+    task = schema.read_yaml(HINGE)
     text = edit(task, folder) if edit else None
     path = folder / "task.yaml"
     path.write_text(text if isinstance(text, str) else yaml.safe_dump(task, sort_keys=False))
@@ -81,7 +81,7 @@ def material(key, value):
     """Edit: set material[key] = value (None deletes) in the task's material file."""
     def edit(task, folder):
         path = folder / MATERIAL
-        data = loader.read_yaml(path)
+        data = schema.read_yaml(path)
         if value is None:
             del data[key]
         else:
@@ -127,7 +127,7 @@ def test_hinge_feature_snaps_to_the_leaf_with_normal_up():
 def test_hinge_mesh_is_in_metres_and_material_in_radians():
     task = loader.load_task(HINGE)
     np.testing.assert_allclose(task.part.mesh.extents, [0.070, 0.040, 0.012], atol=1e-9)
-    np.testing.assert_allclose(task.part.T_cell_part, np.eye(4))
+    np.testing.assert_allclose(task.frames.T_cell_part, np.eye(4))
     assert task.part.material.name == "milled aluminium"
     assert task.part.material.phase_rad[-1] == pytest.approx(math.radians(80.0))
 
@@ -162,7 +162,8 @@ def test_optional_sections_take_their_defaults(tmp_path):
         del task["sim"], task["cell"], task["requirements"]["depth_of_field_m"]
     task = loader.load_task(write_task(tmp_path, edit))
     assert task.sim == SimConfig()
-    assert task.cell.backend == "sim" and task.cell.devices == {}
+    assert task.cell.backend == "sim" and task.cell.devices.given == ()
+    assert task.cell.devices.arm.host is None and task.cell.devices.pan_tilt.baud == 57600
     assert task.requirements.depth_of_field_m == 0.0
 
 
@@ -172,10 +173,13 @@ def test_an_empty_optional_section_takes_its_defaults(tmp_path):
     assert task.sim == SimConfig() and task.cell.backend == "sim"
 
 
-def test_device_settings_are_kept_for_the_device_layer(tmp_path):
+def test_device_settings_are_checked_and_typed_at_load(tmp_path):
     arm = {"host": "127.0.0.1", "speed_m_s": 0.1}
     task = loader.load_task(write_task(tmp_path, put("cell.arm", arm)))
-    assert task.cell.devices == {"arm": arm}
+    devices = task.cell.devices
+    assert devices.given == ("arm",) and devices.arm.host == "127.0.0.1" and devices.arm.speed_m_s == 0.1
+    assert devices.pan_tilt.baud == 57600 and devices.camera.source == 0     # the defaults
+    assert "backend sim, arm settings" in loader.summarize(task)
 
 
 def test_fitter_output_is_kept_in_material_extra(tmp_path):
@@ -269,6 +273,25 @@ BROKEN = [
                  "diffuse | lobe | spike | any", id="bad-reflection"),
     pytest.param(put("cell.backend", "robot"), "task.yaml", "cell.backend", "sim | hw", id="bad-backend"),
     pytest.param(put("cell.arm", "127.0.0.1"), "task.yaml", "cell.arm", "mapping", id="device-not-mapping"),
+    pytest.param(put("cell.arm", {"sped_m_s": 0.1}), "task.yaml", "cell.arm.sped_m_s",
+                 "an unknown key, expected one of host,", id="device-unknown-key"),
+    pytest.param(put("cell.arm", {"speed_m_s": float("nan")}), "task.yaml", "cell.arm.speed_m_s",
+                 "found nan, expected a finite number", id="device-nan"),
+    pytest.param(put("cell.arm", {"speed_m_s": 5}), "task.yaml", "cell.arm.speed_m_s",
+                 "found 5, expected a speed in (0, 0.25] m/s", id="device-speed-over-limit"),
+    pytest.param(put("cell.arm", {"workspace_min_m": [0.7, 0.6, 0.1]}), "task.yaml", "cell.arm.workspace_max_m",
+                 "found [0.6, 0.6, 1.0], expected above workspace_min_m [0.7, 0.6, 0.1] on every axis",
+                 id="device-workspace-min-above-max"),
+    pytest.param(put("cell.arm", {"hand_eye_position_mm": [0, 0, 50], "hand_eye_position_m": [0, 0, 0.05]}),
+                 "task.yaml", "cell.arm.hand_eye_position_m", "one unit", id="device-two-units"),
+    pytest.param(put("cell.pan_tilt", {"baud": 12345}), "task.yaml", "cell.pan_tilt.baud",
+                 "one of the SDK's rates", id="device-baud"),
+    pytest.param(put("cell.pan_tilt", {"pan_id": 2}), "task.yaml", "cell.pan_tilt.tilt_id",
+                 "distinct pan, tilt and radius ids", id="device-ids-not-distinct"),
+    pytest.param(put("cell.pan_tilt", {"radius_ticks": [4000, 100]}), "task.yaml", "cell.pan_tilt.radius_ticks",
+                 "ascending pair of ticks", id="device-radius-ticks"),
+    pytest.param(put("cell.camera", {"source": -1}), "task.yaml", "cell.camera.source", "a camera index",
+                 id="device-camera-source"),
     pytest.param(put("part.mesh_unit", "inch"), "task.yaml", "part.mesh_unit", "m | mm", id="bad-mesh-unit"),
     pytest.param(put("lamp.rig.radius_axis", "motor"), "task.yaml", "lamp.rig.radius_axis", "manual | servo",
                  id="bad-radius-axis"),
@@ -331,6 +354,14 @@ def test_broken_input_is_one_line_naming_file_and_key(tmp_path, capsys, edit, fi
     assert str(tmp_path / file) in err
     assert f": {key}: found" in err if key else ": found" in err
     assert text in err
+    assert "np." not in err and "array(" not in err          # values as the user wrote them
+
+
+def test_values_in_errors_are_plain_numbers_never_numpy_reprs():
+    assert schema.show(np.float64(0.6)) == "0.6"
+    assert schema.show(np.array([0.6, 0.6, 0.1])) == "[0.6, 0.6, 0.1]"
+    assert schema.show([np.float64(0.6), np.int64(3)]) == "[0.6, 3]"
+    assert schema.show("far") == "'far'" and schema.show(None) == "null"
 
 
 def test_loader_raises_task_error_with_the_key_path(tmp_path):
@@ -357,8 +388,8 @@ def test_a_missing_task_file_is_one_line(tmp_path, capsys):
 
 def test_rate_keys_are_not_unit_variants(tmp_path):
     """`speed_m_ms` is not `speed_m` in milliseconds: a rate key is only accepted as written."""
-    from cell.devices import devices_from_config
     with pytest.raises(TaskError) as err:
-        devices_from_config({"arm": {"speed_m_ms": 0.1}}, tmp_path / "t.yaml")
+        loader.load_task(write_task(tmp_path / "ms", put("cell.arm", {"speed_m_ms": 0.1})))
     assert "speed_m_ms" in str(err.value) and "speed_m_s" in str(err.value)
-    assert devices_from_config({"arm": {"speed_m_s": 0.1}}, tmp_path / "t.yaml").arm.speed_m_s == 0.1
+    task = loader.load_task(write_task(tmp_path / "s", put("cell.arm", {"speed_m_s": 0.1})))
+    assert task.cell.devices.arm.speed_m_s == 0.1

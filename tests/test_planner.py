@@ -181,7 +181,7 @@ def rotated_about_feature(task, rpy):
     """The part turned about its feature centre: a new feature normal for the same rig."""
     c = task.feature.center_m
     T = geometry.transform(translation=c) @ geometry.from_rpy(rpy) @ geometry.transform(translation=-c)
-    return replace(task, part=replace(task.part, T_cell_part=T @ task.part.T_cell_part))
+    return replace(task, frames=task.frames.with_transform("T_cell_part", T @ task.frames.T_cell_part))
 
 
 @settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])

@@ -56,17 +56,17 @@ def probe(host, timeout_s):
 
 
 class URArm(Arm):
-    """moveL of the camera frame: the hand-eye is set as the TCP, so poses on the wire are
+    """moveL of the camera frame: the frames' hand-eye is set as the TCP, so poses on the wire are
     T_base_cam; read back with getActualTCPPose."""
 
-    def __init__(self, config):
-        super().__init__(config)
+    def __init__(self, config, frames):
+        super().__init__(config, frames)
         host = config.host
         probe(host, config.connect_timeout_s)
         try:
             self._receive = rtde_receive.RTDEReceiveInterface(host)
             self._control = rtde_control.RTDEControlInterface(host)
-            if not self._control.setTcp(list(to_ur_pose(config.T_flange_cam))):
+            if not self._control.setTcp(list(to_ur_pose(frames.T_flange_cam))):
                 raise RuntimeError("setTcp(hand-eye) refused")
         except RuntimeError as err:
             raise DeviceFault(self.device, f"UR at {host}: {err}") from None
