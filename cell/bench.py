@@ -13,7 +13,6 @@ reference plan of the same task at fine resolution (REFERENCE):
 - feasible_agrees: the plan's verdict equals the reference's. A flip or any NaN/inf is flagged.
 Pareto front, per task: settings no other setting beats on both time_s and gray_error_max.
 """
-import sys
 import time
 from dataclasses import asdict, replace
 from importlib.resources import files
@@ -21,10 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from cell import evaluate, geometry, jsonio, planner, rig
-from cell.cli import output_folder
+from cell import evaluate, geometry, planner, rig
 from cell.loader import load_task
-from cell.pictures import write_bench
 from cell.plan import PlannerSettings, gray_stats
 from cell.regions import SphereGrid
 from cell.scene import build_scene
@@ -176,78 +173,17 @@ def targets(settings, kernels):
     return out
 
 
-def text_table(header, rows):
-    """Columns aligned: left for the first two, right for the rest."""
-    cells = [header] + [[str(c) for c in r] for r in rows]
-    widths = [max(len(r[i]) for r in cells) for i in range(len(header))]
-    return "\n".join("  ".join(c.ljust(w) if i < 2 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths)))
-                     for r in cells)
-
-
-def report(result):
-    """The terminal tables: settings, kernels, targets."""
-    settings = text_table(
-        ["task", "setting", "cands", "samples", "time s", "err mean", "err min", "err max", "worst",
-         "lamp mm", "lamp deg", "feasible", "miss", "agrees", "finite", "pareto", "default"],
-        [[r["task"], r["name"], r["candidates"], r["samples"], f"{r['time_s']:.3f}",
-          *(f"{r['gray_error'][k]:+.3f}" for k in ("mean", "min", "max")), f"{r['gray_error_max']:.3f}",
-          f"{r['lamp_error_mm']:.1f}", f"{r['lamp_error_deg']:.2f}", "yes" if r["feasible"] else "NO",
-          f"{r['miss']:+.4f}", "yes" if r["feasible_agrees"] else "FLIP", "yes" if r["finite"] else "NaN/inf",
-          "*" if r["pareto"] else "", "*" if r["default"] else ""] for r in result["settings"]])
-    refs = "\n".join(f"reference {r['task']}: {r['time_s']:.1f} s, {r['candidates']} candidates, "
-                     f"{r['samples']} samples, grid {r['settings']['grid_step_deg']} deg, "
-                     f"{'feasible' if r['feasible'] else 'INFEASIBLE'}, {r['binding']} binds, miss {r['miss']:+.4f}"
-                     for r in result["references"])
-    kernels = text_table(
-        ["task", "kernel", "size", "Warp /s", "reference", "ref size", "ref /s", "ratio"],
-        [[r["task"], r["name"], f"{r['size']:.3g}", f"{r['warp_per_s']:.3g}", r["reference"],
-          *((f"{r['reference_size']:.3g}", f"{r['reference_per_s']:.3g}", f"{r['ratio']:.1f}")
-            if r["ratio"] is not None else ("-", "-", r["unavailable"]))] for r in result["kernels"]])
-    goals = "\n".join(f"{'met    ' if t['met'] else 'NOT MET'}  {t['name']}: {t['value']:.3g}"
-                      for t in result["targets"])
-    return "\n\n".join([settings, refs, "\n".join(summary(result["settings"])), kernels, goals])
-
-
-def summary(settings):
-    """Per task: the default setting's time and error, and the fastest setting within 1 gray
-    level of the reference."""
-    lines = []
-    for label in dict.fromkeys(r["task"] for r in settings):
-        rows = [r for r in settings if r["task"] == label]
-        default = next(r for r in rows if r["default"])
-        close = [r for r in rows if r["gray_error_max"] <= 1.0]
-        fastest = min(close, key=lambda r: r["time_s"]) if close else None
-        lines.append(f"{label}: default {default['time_s']:.3f} s, gray within {default['gray_error_max']:.2f} of "
-                     f"the reference; fastest within 1 gray level: "
-                     + (f"{fastest['name']}, {fastest['time_s']:.3f} s ({fastest['gray_error_max']:.2f})"
-                        if fastest else "none"))
-    return lines
-
-
-def command(args):
-    """`cell bench [TASK...] [--quick] [--out DIR] [--json]`: tables on stdout (stderr with
-    --json), bench.json and bench.png in DIR, progress on stderr."""
-    def say(msg):
-        print(msg, file=sys.stderr, flush=True)
-
-    paths = args.tasks or DEFAULT_TASKS
-    repeats = 1 if args.quick else 3
-    out = output_folder(args.out, Path("runs") / "bench")
-    result = {"quick": args.quick, "repeats": repeats, "settings": [], "references": [], "kernels": []}
+def run(paths, quick, say):
+    """The benchmark of the tasks at `paths`: every setting's row against the task's reference,
+    the references, the kernel rows and the targets (bench.json)."""
+    repeats = 1 if quick else 3
+    result = {"quick": quick, "repeats": repeats, "settings": [], "references": [], "kernels": []}
     for path in paths:
-        rows, ref = sweep_task(path, QUICK_SWEEP if args.quick else SWEEP,
-                               QUICK_REFERENCE if args.quick else REFERENCE, repeats, say)
+        rows, ref = sweep_task(path, QUICK_SWEEP if quick else SWEEP,
+                               QUICK_REFERENCE if quick else REFERENCE, repeats, say)
         result["settings"] += rows
         result["references"].append(ref)
     for path in paths:
-        result["kernels"] += kernel_rows(path, args.quick, repeats, say)
+        result["kernels"] += kernel_rows(path, quick, repeats, say)
     result["targets"] = targets(result["settings"], result["kernels"])
-    text = jsonio.dumps(result, indent=2)
-    (out / "bench.json").write_text(text + "\n")
-    write_bench(out / "bench.png", result["settings"])
-    tables = sys.stderr if args.json else sys.stdout
-    print(report(result), file=tables)
-    print(f"wrote {out}/bench.json and bench.png", file=tables, flush=True)
-    if args.json:
-        print(text)
-    return 0
+    return result

@@ -9,7 +9,6 @@ saturated, nor 0, nor outside the image); b absorbs a black level. Only the prod
 observable this way: calibrate on a part whose material table you trust (the task's material is
 the reference).
 """
-import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -17,8 +16,7 @@ import numpy as np
 
 from cell import measure
 from cell.acquisition import acquire, move_to, plan_recorded, require_feasible
-from cell.errors import GoalNotReached, PlanInfeasible, TaskError
-from cell.operator import Operator
+from cell.errors import GoalNotReached, PlanInfeasible
 from cell.pictures import write_calibration
 from cell.recorder import Recorder
 from cell.session import Session
@@ -187,32 +185,3 @@ def run(task, out, connect, shots=6):
                                        plan_document, tuple(records), fit, session.fault)
             recorder.write_json("calibration.json", result.to_json())
     return result
-
-
-def command(args):
-    """`cell calibrate TASK [--backend sim|hw] [--out DIR] [--shots N] [--yes]`: exit 0 with c
-    fitted, 1 infeasible plan or nothing usable measured, 2 bad input, 3 device fault."""
-    from cell import backends
-    from cell.cli import output_folder
-    from cell.loader import load_task
-
-    if args.shots < MIN_SHOTS:
-        raise TaskError("command line", "--shots", args.shots, f"an integer >= {MIN_SHOTS}")
-    out = output_folder(args.out, Path("runs") / f"{Path(args.task).stem}-calibration")
-    task = load_task(args.task)
-    backend = args.backend or task.cell.backend
-    c_model = task.camera.sensor.camera_constant
-    # the simulated cell holds the task's part already: it confirms for itself, as for the lamp radius
-    Operator(yes=args.yes or backend == "sim", stdout=sys.stderr).confirm(
-        "calibration", "place the reference part (the task's part, of the task's material) in the cell; "
-                       "the camera constant is measured against its material table")
-    result = run(task, out, lambda scene: backends.open_devices(task, scene, backend, yes=args.yes), args.shots)
-    fit = result.fit
-    print(f"camera constant c = {fit.camera_constant:.5g} +- {fit.stderr:.2g} 1/(W s) "
-          f"({result.camera_constant_ratio:.3f} x the task's {c_model:.5g}); black level "
-          f"{fit.black_level:.2f}, linearity r2 {fit.r2:.5f}, {fit.used} pairs "
-          f"({fit.saturated} saturated, {fit.dark} at 0 left out)")
-    print(f"  set camera.sensor.camera_constant: {fit.camera_constant:.5g} in the tasks that use "
-          f"this camera (e.g. {args.task})")
-    print(f"  wrote {out}/calibration.json, calibration.png, log.jsonl and the plan's pictures")
-    return 0

@@ -16,16 +16,12 @@ largest are weighted as if they were that large (dark level).
 """
 import csv
 import dataclasses
-import datetime
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 from scipy import optimize, stats
 
-from cell import jsonio
 from cell.errors import TaskError
 from cell.material import PARAMETERS
 from cell.physics.brdf import brdf_terms, reflectance, reflectance_jacobian
@@ -256,49 +252,10 @@ def material_document(fits, name, source):
     return doc
 
 
-def _absent_notes(fits):
+def absent_notes(fits):
     """One line per phase angle with a term the data do not support."""
     for f in fits:
         for term in f.absent:
             k = TERMS.index(term) + 1
             yield (f"phase {f.phase_deg:g} deg: no {term} in the data (F-test p = {f.p_values[k - 1]:.2g} "
                    f"for adding it): sigma{k} = 0, m{k} unidentifiable")
-
-
-def summary(fits):
-    """A table a person reads: value +- standard error per parameter and phase angle."""
-    def cell(f, i):
-        if i in (2, 4) and TERMS[i // 2 - 1] in f.absent:
-            return "-"
-        return f"{f.params[i]:.4g} +- {f.stderr[i]:.2g}"
-
-    lines = [f"{'phase':>6} {'rows':>5} " + " ".join(f"{p:>18}" for p in PARAMETERS) + f" {'rms':>9}  terms"]
-    for f in fits:
-        terms = ", ".join(("diffuse",) + tuple(t for t in TERMS if t not in f.absent))
-        lines.append(f"{f.phase_deg:6g} {f.rows:5d} " + " ".join(f"{cell(f, i):>18}" for i in range(5))
-                     + f" {f.rms_residual:9.2g}  {terms}")
-    return "\n".join(lines)
-
-
-def command(args):
-    """`cell fit-brdf DATA.csv [--out material.yaml] [--name NAME] [--json]`."""
-    path = Path(args.data)
-    fits = fit_material(read_goniometer(path))
-    source = (f"fit of {path} by cell fit-brdf on {datetime.date.today().isoformat()}: eq. (6)-(7) "
-              f"per phase angle, relative residuals, a specular term kept if its F-test p < {SIGNIFICANCE:g}")
-    doc = material_document(fits, args.name or path.stem, source)
-    if args.out:
-        try:
-            text = yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=100)
-            Path(args.out).write_text(text)
-        except OSError as err:
-            raise TaskError(args.out, "", f"an unwritable path ({err.strerror})", "a writable file") from None
-    for note in _absent_notes(fits):
-        print(note, file=sys.stderr)
-    if args.json:
-        print(jsonio.dumps(doc, indent=2))
-    else:
-        print(summary(fits))
-        if args.out:
-            print(f"wrote {args.out}")
-    return 0

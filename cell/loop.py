@@ -2,10 +2,9 @@
 feature's gray, correct (cell.control), until every feature pixel is in the gray band or N
 iterations have run. It composes the stages: acquisition (plan, connect, move, expose, capture),
 measurement, the control law, the device session's safe stop and the recorder's run folder."""
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
-import numpy as np
 
 from cell import control, measure
 from cell.acquisition import acquire, move_to, plan_recorded, require_feasible

@@ -14,7 +14,7 @@ from scipy.optimize import minimize
 
 from cell import evaluate, geometry, regions, requirements
 from cell.physics import costs, depth_of_field as dof
-from cell.plan import Exposure, Maps, Plan, PlannerSettings, Refinement, Search, Shot, gray_stats
+from cell.plan import Exposure, Maps, Plan, PlannerSettings, Refinement, Search, Shot
 
 
 def build_maps(task, scene, settings):
@@ -141,45 +141,3 @@ def make_shot(problem, joints, candidate, values):
                 exposure=exposure, gray=candidate.gray[0], distance_m=float(np.linalg.norm(pos - scene.center)),
                 phase_angle_rad=float(np.arccos(np.clip(s @ v, -1, 1))),
                 requirements=requirements.judged(problem, candidate, values))
-
-
-def summary(plan):
-    """A few lines for the terminal."""
-    shot = plan.shot
-    pan, tilt, radius = shot.joints
-    g = gray_stats(shot.gray)
-    verdict = "feasible" if plan.feasible else f"INFEASIBLE ({plan.binding} misses by {plan.miss:.3g})"
-    return "\n".join([
-        f"{plan.task_name}: {verdict}",
-        f"  lamp   {shot.distance_m:.3f} m from the feature, phase angle {np.degrees(shot.phase_angle_rad):.1f} deg"
-        f" (pan {np.degrees(pan):.1f} deg, tilt {np.degrees(tilt):.1f} deg, radius {radius:.3f} m)",
-        f"  camera shutter {1e3 * shot.exposure.shutter_s:.2f} ms, f/{shot.exposure.f_number:.1f},"
-        f" focus {shot.exposure.focus_m:.3f} m (depth of field {1e3 * shot.exposure.depth_of_field_m:.1f} mm)",
-        f"  gray   mean {g['mean']:.1f}, min {g['min']:.1f}, max {g['max']:.1f}",
-        f"  binding {plan.binding} = {max(r.value for r in plan.requirements):.4g};"
-        f" time {plan.timing_s['total']:.2f} s",
-    ])
-
-
-def command(args):
-    """`cell plan TASK [--out DIR] [--json]`: exit 0 feasible, 1 infeasible (with the reason)."""
-    import sys
-    from pathlib import Path
-
-    from cell import jsonio
-    from cell.cli import output_folder
-    from cell.recorder import write_plan
-    from cell.errors import PlanInfeasible
-    from cell.loader import load_task
-    task = load_task(args.task)
-    out = output_folder(args.out, Path("runs") / f"{Path(args.task).stem}-plan")
-    result = plan(task, progress=lambda msg: print(msg, file=sys.stderr, flush=True))
-    write_plan(result, task, out)
-    if args.json:
-        print(jsonio.dumps(result.to_json(), indent=2))
-    else:
-        print(summary(result))
-        print(f"  wrote {out}/plan.json and pictures")
-    if not result.feasible:
-        raise PlanInfeasible(f"infeasible: {result.binding} binds: {result.hint}")
-    return 0

@@ -8,7 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from cell.bench import QUICK_SWEEP, summary
+from cell.bench import QUICK_SWEEP
+from cell.cli.bench import summary
 from cell.cli import main
 from cell.planner import PlannerSettings
 

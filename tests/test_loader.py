@@ -11,6 +11,7 @@ import pytest
 import yaml
 
 from cell import cli, loader, schema
+from cell.cli import check
 from cell.errors import TaskError
 from cell.task import SimConfig
 
@@ -179,7 +180,7 @@ def test_device_settings_are_checked_and_typed_at_load(tmp_path):
     devices = task.cell.devices
     assert devices.given == ("arm",) and devices.arm.host == "127.0.0.1" and devices.arm.speed_m_s == 0.1
     assert devices.pan_tilt.baud == 57600 and devices.camera.source == 0     # the defaults
-    assert "backend sim, arm settings" in loader.summarize(task)
+    assert "backend sim, arm settings" in check.summarize(task)
 
 
 def test_fitter_output_is_kept_in_material_extra(tmp_path):
@@ -195,7 +196,7 @@ def test_fitter_output_is_kept_in_material_extra(tmp_path):
 
 
 def test_summary_names_what_a_person_checks():
-    summary = loader.summarize(loader.load_task(HINGE))
+    summary = check.summarize(loader.load_task(HINGE))
     for text in ("Aluminium hinge", "hinge.stl", "70.0 x 40.0 x 12.0 mm", "780 triangles",
                  "[6.0, 0.0, 4.0] mm", "113.1 mm^2", "milled aluminium", "0.01..20 ms",
                  "230.43 mW", "tilt 5..85 deg", "backend sim", "quantization"):

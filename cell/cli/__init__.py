@@ -7,39 +7,16 @@ import sys
 
 from cell.errors import CellError
 
-# sub-command -> module implementing `command(args) -> int`
+# sub-command -> the module of this package implementing `command(args) -> int`, imported only
+# when run: `cell check` loads no Warp, SciPy optimizer or matplotlib
 COMMANDS = {
-    "check": "cell.loader",
-    "fit-brdf": "cell.fit",
-    "plan": "cell.planner",
-    "bench": "cell.bench",
-    "calibrate": "cell.calibrate",
+    "check": "cell.cli.check",
+    "fit-brdf": "cell.cli.fit_brdf",
+    "plan": "cell.cli.plan",
+    "run": "cell.cli.run",
+    "bench": "cell.cli.bench",
+    "calibrate": "cell.cli.calibrate",
 }
-
-
-def run_command(args):
-    """`cell run TASK [--backend sim|hw] [--out DIR] [--max-iterations N] [--yes]`: exit 0 when
-    every feature pixel ends in the gray band, 1 when not (with the reason), 3 on a device fault."""
-    import time
-    from pathlib import Path
-
-    from cell import backends, loop
-    from cell.errors import TaskError
-    from cell.loader import load_task
-    if args.max_iterations < 1:
-        raise TaskError("command line", "--max-iterations", args.max_iterations, "an integer >= 1")
-    task = load_task(args.task)
-    backend = args.backend or task.cell.backend
-    out = output_folder(args.out, Path("runs") / f"{Path(args.task).stem}-{time.strftime('%Y%m%d-%H%M%S')}")
-    result = loop.run(task, out, lambda scene: backends.open_devices(task, scene, backend, args.yes),
-                      args.max_iterations)
-    last, n = result.iterations[-1], len(result.iterations)
-    g, (low, high) = last.measured_gray, task.requirements.gray_band
-    print(f"{task.name}: converged after {loop.count(n, 'iteration')}: feature gray {g['min']:.0f}-{g['max']:.0f} "
-          f"(mean {g['mean']:.1f}, band {low:g}-{high:g}) at {1e3 * last.shutter_s:.3f} ms, "
-          f"f/{last.f_number:.2f}")
-    print(f"  wrote {out}/report.json, log.jsonl, {loop.count(n, 'capture')} with the feature drawn, plan pictures")
-    return 0
 
 
 def output_folder(out, default):
@@ -115,8 +92,6 @@ def main(argv=None):
     args = build_parser().parse_args(argv)
     previous = signal.signal(signal.SIGTERM, _terminate)
     try:
-        if args.command == "run":
-            return run_command(args)
         module = importlib.import_module(COMMANDS[args.command])
         return int(module.command(args) or 0)
     except CellError as err:

@@ -1,0 +1,52 @@
+"""`cell check TASK`: load a task and everything it references, print a summary in the units
+people read."""
+import numpy as np
+
+from cell.loader import load_task
+
+
+def _span(pair, scale=1.0, unit=""):
+    """'low..high unit' of an SI range shown in another unit (scale: that unit per SI unit)."""
+    return f"{pair[0] * scale:g}..{pair[1] * scale:g}" + (f" {unit}" if unit else "")
+
+
+def _vector(v, scale=1.0, decimals=3):
+    return str((np.round(np.asarray(v) * scale, decimals) + 0.0).tolist())   # + 0.0: no "-0.0"
+
+
+def summarize(task):
+    """A short human summary of a loaded task, in the units people read."""
+    mesh, f, req, cam, lamp = task.part.mesh, task.feature, task.requirements, task.camera, task.lamp
+    sensor, lens, rig, material = cam.sensor, cam.lens, lamp.rig, task.part.material
+    deg = 180.0 / np.pi
+    source = material.source.splitlines()[0]
+    size = " x ".join(f"{e:.1f}" for e in mesh.extents * 1e3)
+    radius_mm = f.radius_m * 1e3
+    devices = "".join(f", {name} settings" for name in task.cell.devices.given)
+    return "\n".join([
+        f"task         {task.name} ({task.path})",
+        f"part         {task.part.mesh_path}: {size} mm, {len(mesh.faces)} triangles",
+        f"feature      center {_vector(f.center_m, 1e3, 2)} mm, normal {_vector(f.normal)}, "
+        f"radius {radius_mm:g} mm (area {np.pi * radius_mm**2:.1f} mm^2), {f.samples} samples",
+        f"material     {material.name}: {source if len(source) <= 70 else source[:67] + '...'}",
+        f"requirements gray {_span(req.gray_band)}, {req.reflection}, "
+        f"margin {req.region_margin_rad * deg:g} deg, lamp tolerance {req.lamp_tolerance_rad * deg:g} deg, "
+        f"depth of field {req.depth_of_field_m * 1e3:g} mm",
+        f"camera       {cam.distance_m:g} m along {_vector(cam.view_direction)}, "
+        f"shutter {_span(cam.shutter_range_s, 1e3, 'ms')}",
+        f"sensor       {sensor.width_px} x {sensor.height_px} px, pitch {sensor.pixel_pitch_m * 1e6:g} um, "
+        f"{sensor.bit_depth} bit, c = {sensor.camera_constant:g} 1/(W s)",
+        f"lens         f = {lens.focal_length_m * 1e3:g} mm, f-number {_span(lens.f_number_range)}, "
+        f"circle of confusion {lens.circle_of_confusion_m * 1e6:g} um",
+        f"lamp         {lamp.power_w * 1e3:g} mW, cone {lamp.cone_angle_rad * deg:g} deg",
+        f"rig          pan {_span(rig.pan_range_rad, deg, 'deg')}, "
+        f"tilt {_span(rig.tilt_range_rad, deg, 'deg')}, "
+        f"radius {_span(rig.radius_range_m, unit='m')} ({rig.radius_axis})",
+        f"cell         backend {task.cell.backend}{devices}",
+        f"sim          seed {task.sim.seed}, effects {', '.join(task.sim.effects) or 'none'}",
+    ])
+
+
+def command(args):
+    print(summarize(load_task(args.task)))
+    return 0

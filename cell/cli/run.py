@@ -1,0 +1,26 @@
+"""`cell run TASK [--backend sim|hw] [--out DIR] [--max-iterations N] [--yes]`: exit 0 when every
+feature pixel ends in the gray band, 1 when not (with the reason), 3 on a device fault."""
+import time
+from pathlib import Path
+
+from cell import backends, loop
+from cell.cli import output_folder
+from cell.errors import TaskError
+from cell.loader import load_task
+
+
+def command(args):
+    if args.max_iterations < 1:
+        raise TaskError("command line", "--max-iterations", args.max_iterations, "an integer >= 1")
+    task = load_task(args.task)
+    backend = args.backend or task.cell.backend
+    out = output_folder(args.out, Path("runs") / f"{Path(args.task).stem}-{time.strftime('%Y%m%d-%H%M%S')}")
+    result = loop.run(task, out, lambda scene: backends.open_devices(task, scene, backend, args.yes),
+                      args.max_iterations)
+    last, n = result.iterations[-1], len(result.iterations)
+    g, (low, high) = last.measured_gray, task.requirements.gray_band
+    print(f"{task.name}: converged after {loop.count(n, 'iteration')}: feature gray {g['min']:.0f}-{g['max']:.0f} "
+          f"(mean {g['mean']:.1f}, band {low:g}-{high:g}) at {1e3 * last.shutter_s:.3f} ms, "
+          f"f/{last.f_number:.2f}")
+    print(f"  wrote {out}/report.json, log.jsonl, {loop.count(n, 'capture')} with the feature drawn, plan pictures")
+    return 0
