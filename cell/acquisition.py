@@ -16,6 +16,7 @@ class Capture:
 
     image: np.ndarray            # (H, W) gray, uint8/uint16 (a real sensor) or float (the sim)
     T_cell_cam: np.ndarray       # the arm's read-back camera pose
+    lamp_joints: tuple           # the pan-tilt's read-back (pan, tilt, radius) [rad, rad, m]
     shutter_s: float             # the shutter time the camera reports
     f_number: float
     focus_m: float
@@ -45,7 +46,7 @@ def plan_recorded(task, recorder, albedo_scale=1.0, iteration=None, subfolder=""
 def require_feasible(plan):
     """Refuse an infeasible plan before anything moves (PlanInfeasible, exit 1)."""
     if not plan.feasible:
-        raise PlanInfeasible(f"infeasible: {plan.binding} binds: {plan.hint}")
+        raise PlanInfeasible(f"infeasible: {plan.message}")
 
 
 def move_to(devices, shot, recorder, iteration=None):
@@ -75,4 +76,5 @@ def acquire(devices, recorder, iteration, shutter_s, f_number, focus_m):
     image = np.asarray(camera.capture())
     name = recorder.write_image(f"capture-{iteration}.png", measure.levels(image, camera.bit_depth))
     recorder.step("capture", name, iteration=iteration, capture=name, shape=image.shape, dtype=str(image.dtype))
-    return Capture(image, devices.arm.camera_pose(), shutter_s, float(f_number), float(focus_m), name)
+    return Capture(image, devices.arm.camera_pose(), tuple(devices.lamp.joints()), shutter_s, float(f_number),
+                   float(focus_m), name)

@@ -103,6 +103,15 @@ class Plan:
     timing_s: dict = field(default_factory=dict)
 
     @property
+    def success(self):
+        """OptimizeResult's name for the verdict: the plan is feasible."""
+        return self.feasible
+
+    @property
+    def message(self):
+        return "feasible" if self.feasible else f"{self.binding} binds: {self.hint}"
+
+    @property
     def shot(self):
         """The plan's only shot."""
         if len(self.shots) != 1:

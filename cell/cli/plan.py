@@ -5,8 +5,8 @@ from pathlib import Path
 import numpy as np
 
 from cell import jsonio
+from cell.acquisition import require_feasible
 from cell.cli import output_folder
-from cell.errors import PlanInfeasible
 from cell.loader import load_task
 from cell.plan import gray_stats
 from cell.planner import plan
@@ -41,6 +41,5 @@ def command(args):
     else:
         print(summary(result))
         print(f"  wrote {out}/plan.json and pictures")
-    if not result.feasible:
-        raise PlanInfeasible(f"infeasible: {result.binding} binds: {result.hint}")
+    require_feasible(result)
     return 0
