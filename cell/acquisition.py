@@ -1,6 +1,6 @@
-"""Acquisition, shared by the closed loop and the calibration routines: plan and refuse an
-infeasible plan before anything moves, move to a Shot's poses, set an exposure and take a frame,
-each step logged as the devices read it back."""
+"""Acquisition, shared by the closed loop and the calibration routines: plan, refuse an
+infeasible plan before anything moves and connect the devices; move to a Shot's poses, set an
+exposure and take a frame, each step logged as the devices read it back."""
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,6 +47,15 @@ def require_feasible(plan):
     """Refuse an infeasible plan before anything moves (PlanInfeasible, exit 1)."""
     if not plan.feasible:
         raise PlanInfeasible(f"infeasible: {plan.message}")
+
+
+def plan_and_connect(task, recorder, session, connect):
+    """Plan (plan_recorded), refuse an infeasible plan before anything moves, then connect(scene)
+    the cell's devices into the session. Returns the plan."""
+    planned = plan_recorded(task, recorder)
+    require_feasible(planned)
+    session.devices = connect(planned.scene)
+    return planned
 
 
 def move_to(devices, shot, recorder, iteration=None):

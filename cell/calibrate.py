@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from cell import measure
-from cell.acquisition import acquire, move_to, plan_recorded, require_feasible
+from cell.acquisition import acquire, move_to, plan_and_connect
 from cell.errors import GoalNotReached, PlanInfeasible
 from cell.pictures import write_calibration
 from cell.recorder import Recorder
@@ -153,15 +153,12 @@ def run(task, out, connect, shots=6):
     Returns the CalibrationResult."""
     out = Path(out)
     c_model = task.camera.sensor.camera_constant
-    records, plan_document, fit, reason = [], None, None, ""
+    records, fit, reason = [], None, ""
     with Recorder(out) as recorder:
         session = Session(on_fault=recorder.fault)
         try:
             with session:
-                planned = plan_recorded(task, recorder)
-                plan_document = planned.to_json()
-                require_feasible(planned)
-                session.devices = connect(planned.scene)
+                planned = plan_and_connect(task, recorder, session, connect)
                 records.extend(sweep(task, planned, session.devices, recorder, shots))
             exposures = np.array([r.exposure for r in records])
             grays = np.array([r.gray for r in records])
@@ -182,6 +179,6 @@ def run(task, out, connect, shots=6):
             raise
         finally:
             result = CalibrationResult(str(task.path), c_model, fit is not None and not reason, reason,
-                                       plan_document, tuple(records), fit, session.fault)
+                                       recorder.plan, tuple(records), fit, session.fault)
             recorder.write_json("calibration.json", result.to_json())
     return result

@@ -7,7 +7,7 @@ from pathlib import Path
 
 
 from cell import control, measure
-from cell.acquisition import acquire, move_to, plan_recorded, require_feasible
+from cell.acquisition import acquire, move_to, plan_and_connect, plan_recorded
 from cell.errors import DeviceFault, GoalNotReached
 from cell.evaluate import depth_of_field_limits
 from cell.plan import gray_stats
@@ -148,15 +148,12 @@ def run(task, out, connect, max_iterations=6):
     (exit 3) after the safe stop of every device (session.Session). Returns the RunResult."""
     from cell.pictures import write_convergence
     out = Path(out)
-    events, plan_document, reason = [], None, ""
+    events, reason = [], ""
     with Recorder(out) as recorder:
         session = Session(on_fault=recorder.fault)
         try:
             with session:
-                planned = plan_recorded(task, recorder)
-                plan_document = planned.to_json()
-                require_feasible(planned)
-                session.devices = connect(planned.scene)
+                planned = plan_and_connect(task, recorder, session, connect)
                 events.extend(iterate(task, planned, session.devices, recorder, max_iterations))
             n = sum(isinstance(e, Iteration) for e in events)
             recorder.step("done", f"converged after {count(n, 'iteration')}", converged=True, iterations=n)
@@ -170,7 +167,7 @@ def run(task, out, connect, max_iterations=6):
             raise
         finally:
             iterations = tuple(e for e in events if isinstance(e, Iteration))
-            result = RunResult(str(task.path), not reason, reason, plan_document, iterations,
+            result = RunResult(str(task.path), not reason, reason, recorder.plan, iterations,
                                tuple(e for e in events if isinstance(e, Replan)), session.fault)
             recorder.write_json("report.json", result.to_json())
             if iterations:

@@ -33,6 +33,7 @@ class Recorder:
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.log = open(self.folder / "log.jsonl", "a", encoding="utf-8")
+        self.plan = None            # the run folder's plan.json, once written
 
     def __enter__(self):
         return self
@@ -56,7 +57,10 @@ class Recorder:
         print(f"{'':16}{message}", file=sys.stderr, flush=True)
 
     def write_plan(self, plan, task, subfolder=""):
-        """plan.json and pictures, in the run folder or a subfolder of it; returns that folder."""
+        """plan.json and pictures, in the run folder (its plan, `self.plan`) or a subfolder of it
+        (a re-plan's); returns that folder."""
+        if not subfolder:
+            self.plan = plan.to_json()
         return write_plan(plan, task, self.folder / subfolder)
 
     def write_image(self, name, image):
