@@ -78,3 +78,16 @@ def haversine_distance(az1, el1, az2, el2):
     a = np.sin(0.5 * (el2 - el1)) ** 2 + np.cos(el1) * np.cos(el2) * np.sin(0.5 * (az2 - az1)) ** 2
     a = np.clip(a, 0.0, 1.0)
     return 2.0 * np.arctan2(np.sqrt(a), np.sqrt(1.0 - a))
+
+
+def winding_number(vertices, faces, point):
+    """Generalized winding number of a triangle mesh about a point: the solid angle its triangles
+    subtend, over 4 pi (Van Oosterom and Strackee's formula per triangle). 1 inside a closed,
+    outward-oriented mesh, 0 outside, 1/2 on the surface; robust to small holes."""
+    tri = np.asarray(vertices, float)[np.asarray(faces)] - np.asarray(point, float)
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    la, lb, lc = (np.linalg.norm(x, axis=1) for x in (a, b, c))
+    det = np.einsum("ij,ij->i", a, np.cross(b, c))
+    den = (la * lb * lc + np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", b, c) * la
+           + np.einsum("ij,ij->i", c, a) * lb)
+    return float(np.sum(np.arctan2(det, den)) / (2.0 * np.pi))

@@ -13,6 +13,7 @@ from cell import geometry
 from cell.device_config import SECTIONS as DEVICES, devices_config
 from cell.errors import TaskError
 from cell.frames import Frames
+from cell.inputs import checked_file
 from cell.material import PARAMETERS, Material
 from cell.schema import (NON_NEGATIVE, POSITIVE, Anything, Choice, Integer, Invalid, Number, Pair,
                          Section, Spec, Table, Text, Vector, parse, read_yaml, show)
@@ -22,6 +23,9 @@ from cell.task import (CameraModel, CellConfig, Feature, Lamp, LampRig, Lens, Pa
 EFFECTS = ("shadows", "cone_falloff", "vignetting", "defocus", "noise", "black_level", "quantization")
 SURFACE_TOLERANCE_M = 1e-3       # feature center at most this far from the mesh surface
 MAX_SAMPLES = 4096
+MAX_SENSOR_SIDE_PX = 65_536
+MAX_SENSOR_PIXELS = 160_000_000  # the largest machine-vision sensors (151 Mpx): a frame fits in memory
+MIN_F_NUMBER = 0.5               # the physical limit of a lens in air (numerical aperture 1)
 
 
 class Effects(Spec):
@@ -70,15 +74,16 @@ TASK = {
         "distance_m": Number(**POSITIVE),
         "view_direction": Vector(direction=True),
         "sensor": Section({
-            "width_px": Integer(1),
-            "height_px": Integer(1),
+            "width_px": Integer(1, MAX_SENSOR_SIDE_PX),
+            "height_px": Integer(1, MAX_SENSOR_SIDE_PX),
             "pixel_pitch_m": Number(**POSITIVE),
             "bit_depth": Integer(1, 16),
             "camera_constant": Number(**POSITIVE),
         }),
         "lens": Section({
             "focal_length_m": Number(**POSITIVE),
-            "f_number_range": Pair(lambda v: v > 0, "positive numbers"),
+            "f_number_range": Pair(lambda v: v >= MIN_F_NUMBER,
+                                   f"f-numbers of at least {MIN_F_NUMBER:g} (no lens in air is faster)"),
             "circle_of_confusion_m": Number(**POSITIVE),
         }),
         "shutter_range_s": Pair(lambda v: v > 0, "positive times"),
@@ -104,7 +109,8 @@ TASK = {
         "truth": Section({
             "albedo_scale": Number(**POSITIVE, default=1.0),
             "camera_constant_scale": Number(**POSITIVE, default=1.0),
-            "lamp_direction_error_deg": Number(**NON_NEGATIVE, default=0.0),
+            "lamp_direction_error_deg": Number(lambda v: 0 <= v <= DEG(90), "an angle within [0, 90] deg",
+                                               default=0.0),
         }, required=False),
     }, required=False),
 }
@@ -152,19 +158,15 @@ def load_material(path):
     return Material(v["name"], v["source"], phase, *(v[p] for p in PARAMETERS), extra=extra)
 
 
-def _relative_file(file, key, name):
-    """A file named relative to the task file, which must exist."""
-    path = file.parent / name
-    if not path.is_file():
-        raise TaskError(file, key, f"'{name}' (no such file: {path})",
-                        "an existing file, relative to the task file")
-    return path
+def _relative_file(file, key, name, kind):
+    """A file named relative to the task file: a regular file under its kind's size limit."""
+    return checked_file(file.parent / name, kind, file, key, relative_to="the task file")
 
 
 def _load_mesh(file, part):
     """The part's mesh in metres; missing, unreadable, empty or non-finite meshes are errors."""
     name, key = part["mesh"], "part.mesh"
-    path = _relative_file(file, key, name)
+    path = _relative_file(file, key, name, "mesh")
     try:
         mesh = trimesh.load(path, force="mesh", process=False)
     except Exception:  # trimesh raises many kinds of errors on garbage
@@ -176,6 +178,9 @@ def _load_mesh(file, part):
     if not np.isfinite(mesh.vertices).all():
         raise TaskError(file, key, f"'{name}' with NaN or infinite vertices", "finite coordinates")
     mesh.process()
+    mesh.update_faces(mesh.nondegenerate_faces())       # zero-area triangles have no normal
+    if len(mesh.faces) == 0:
+        raise TaskError(file, key, f"'{name}' whose triangles all have zero area", "a mesh with a surface")
     if part["mesh_unit"] == "mm":
         mesh.apply_scale(1e-3)
     return path, mesh
@@ -210,6 +215,31 @@ def _check_gray_band(file, band, bit_depth):
                             f"a gray level in [0, {top}] (bit_depth {bit_depth})")
 
 
+def _check_camera(file, cam):
+    """A sensor whose frame fits in memory and a camera beyond its lens's focal length."""
+    sensor = cam["sensor"]
+    pixels = sensor["width_px"] * sensor["height_px"]
+    if pixels > MAX_SENSOR_PIXELS:
+        raise TaskError(file, "camera.sensor", f"{sensor['width_px']} x {sensor['height_px']} px",
+                        f"at most {MAX_SENSOR_PIXELS / 1e6:g} Mpx (a frame must fit in memory)")
+    focal = cam["lens"]["focal_length_m"]
+    if not cam["distance_m"] > focal:
+        raise TaskError(file, "camera.distance_m", show(cam["distance_m"]),
+                        f"more than the focal length {focal:g} m (a lens focuses only beyond it)")
+
+
+def _check_outside(file, mesh, T_cell_part, points):
+    """Each {key: cell-frame point} lies outside the part (winding number below 1/2) or on its
+    surface (within SURFACE_TOLERANCE_M): a lamp pivot or a camera inside the part is a mistake."""
+    T_part_cell = np.linalg.inv(T_cell_part)
+    for key, point in points.items():
+        local = geometry.apply(T_part_cell, point)
+        if (geometry.winding_number(mesh.vertices, mesh.faces, local) > 0.5
+                and closest_surface_point(mesh, local)[2] > SURFACE_TOLERANCE_M):
+            raise TaskError(file, key, f"{show(np.round(point, 6))} m, inside the part",
+                            "a point outside the part (cell frame)")
+
+
 def load_task(path):
     """A task file and everything it references -> Task (SI units, mesh in metres)."""
     path = Path(path)
@@ -220,16 +250,23 @@ def load_task(path):
     _check_gray_band(path, v["requirements"]["gray_band"], cam["sensor"]["bit_depth"])
     written = data.get("cell") or {}                     # which device sections the task set
     devices = devices_config(path, cell, given=tuple(name for name in DEVICES if written.get(name)))
+    _check_camera(path, cam)
     mesh_path, mesh = _load_mesh(path, part)
-    material = load_material(_relative_file(path, "part.material", part["material"]))
+    material = load_material(_relative_file(path, "part.material", part["material"], "yaml"))
+    feature = _feature(path, mesh, v["feature"])
+    frames = Frames(T_cell_part=geometry.from_rpy(part["rpy_rad"], part["position_m"]),
+                    T_cell_base=geometry.from_rpy(arm["base_rpy_rad"], arm["base_position_m"]),
+                    T_flange_cam=geometry.from_rpy(arm["hand_eye_rpy_rad"], arm["hand_eye_position_m"]))
+    camera_part = feature.center_m + cam["distance_m"] * cam["view_direction"]
+    _check_outside(path, mesh, frames.T_cell_part, {
+        "lamp.rig.pivot_m": lamp["rig"]["pivot_m"],
+        "camera.distance_m": geometry.apply(frames.T_cell_part, camera_part)})
     return Task(
         path=path,
         name=v["name"],
         part=Part(mesh_path, mesh, material),
-        frames=Frames(T_cell_part=geometry.from_rpy(part["rpy_rad"], part["position_m"]),
-                      T_cell_base=geometry.from_rpy(arm["base_rpy_rad"], arm["base_position_m"]),
-                      T_flange_cam=geometry.from_rpy(arm["hand_eye_rpy_rad"], arm["hand_eye_position_m"])),
-        feature=_feature(path, mesh, v["feature"]),
+        frames=frames,
+        feature=feature,
         requirements=Requirements(**v["requirements"]),
         camera=CameraModel(cam["distance_m"], cam["view_direction"], Sensor(**cam["sensor"]),
                            Lens(**cam["lens"]), cam["shutter_range_s"]),

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cell import geometry
+from cell.errors import TaskError
 from kernels.mesh import shared_mesh
 from kernels.proximity import closest_points
 
@@ -84,7 +85,9 @@ def build_scene(task, samples=None):
     points, hit, _ = closest_points(shared_mesh(key, vertices, faces), guesses,
                                     max_dist=4 * task.feature.radius_m + 0.01)
     if np.any(hit < 0):
-        raise ValueError("feature samples found no surface nearby")
+        raise TaskError(task.path, "feature.radius_m", f"{task.feature.radius_m:g} m, a patch "
+                        f"{int(np.sum(hit < 0))} of whose {n} samples find no surface within "
+                        f"{1e3 * (4 * task.feature.radius_m + 0.01):.0f} mm", "a patch on the part's surface")
     normals = mesh.face_normals[hit]
     cam = center + task.camera.distance_m * geometry.unit(geometry.rotate(T, task.camera.view_direction))
     arrays = dict(vertices=vertices, faces=faces, center=center, normal=normal, frame=frame,

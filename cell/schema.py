@@ -6,6 +6,7 @@ Every problem becomes one TaskError naming the file, the dotted key path (`camer
 """
 import difflib
 import re
+import reprlib
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,7 @@ import yaml
 
 from cell import geometry
 from cell.errors import TaskError
+from cell.inputs import read_text
 
 # unit suffix -> (quantity, conversion to SI); division keeps 230.43 mW == 0.23043 W exact
 UNITS = {
@@ -40,25 +42,37 @@ def _plain(value):
     if isinstance(value, np.generic):
         return value.item()
     if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
+        return [_plain(v) for v in value[:_SHORT.maxlist + 1]]
     return value
+
+
+_SHORT = reprlib.Repr()
+_SHORT.maxlevel, _SHORT.maxlist, _SHORT.maxdict, _SHORT.maxstring, _SHORT.maxother = 3, 10, 4, 60, 60
 
 
 def show(value):
     """A value as the file wrote it, on one short line: `0.6`, `[0.6, 0.6, 0.1]`, never numpy's
-    reprs such as `np.float64(0.6)`, which no user wrote."""
+    reprs such as `np.float64(0.6)`, which no user wrote. Long or deep values are cut before
+    they are written out (an alias bomb in YAML holds billions of elements)."""
     value = _plain(value)
     if isinstance(value, dict):
         return "a mapping"
-    text = "null" if value is None else repr(value)
-    return text if len(text) <= 80 else text[:77] + "..."
+    return clip("null" if value is None else _SHORT.repr(value))
+
+
+def clip(text, length=80):
+    """text on at most `length` characters, cut with '...'."""
+    return text if len(text) <= length else text[:length - 3] + "..."
 
 
 def _number(raw, expected, index=None, finite=True):
     """raw as a float; bools and text are not numbers, NaN and inf are rejected if finite."""
     if isinstance(raw, bool) or not isinstance(raw, (int, float)):
         raise Invalid(raw, expected, index)
-    value = float(raw) if abs(raw) < 1e308 else float("inf")   # float(10**400) would overflow
+    try:
+        value = float(raw)
+    except OverflowError:                                        # an integer such as 10**400
+        value = float("inf") if raw > 0 else float("-inf")
     if finite and not np.isfinite(value):
         raise Invalid(raw, "a finite number", index)
     return value
@@ -276,8 +290,14 @@ def parse(file, path, data, fields):
     return values
 
 
-class _YamlLoader(yaml.SafeLoader):
-    """SafeLoader that reads YAML 1.2 floats (1e-5, 1.5e16 are numbers) and rejects duplicate keys."""
+MAX_DEPTH = 32          # nesting levels: a task needs 4; deeper is a mistake or an attack
+MAX_VALUES = 100_000    # values with every alias expanded: a few lines of aliases can expand to
+                        # billions ("billion laughs"); a task has a few hundred
+
+
+class _YamlLoader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):
+    """The safe loader (libyaml's C parser where installed) reading YAML 1.2 floats (1e-5,
+    1.5e16 are numbers) and rejecting duplicate keys."""
 
     def construct_mapping(self, node, deep=False):
         seen = set()
@@ -294,18 +314,55 @@ _YamlLoader.add_implicit_resolver("tag:yaml.org,2002:float", re.compile(
     r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"), list("-+0123456789"))
 
 
+def _check_structure(path, text):
+    """Refuse nesting deeper than MAX_DEPTH and more than MAX_VALUES values with the aliases
+    expanded, from the parser's events alone (nothing is built, nothing expanded)."""
+    sizes, open_counts = {}, []          # anchor -> values it expands to; one count per open level
+
+    def refuse(event, found, expected):
+        raise TaskError(f"{path}:{event.start_mark.line + 1}", "", found, expected)
+
+    for event in yaml.parse(text, Loader=_YamlLoader):
+        if isinstance(event, (yaml.SequenceStartEvent, yaml.MappingStartEvent)):
+            open_counts.append([event.anchor, 1])
+            if len(open_counts) > MAX_DEPTH:
+                refuse(event, f"nesting deeper than {MAX_DEPTH} levels", "a task or material file (4 levels)")
+            continue
+        if isinstance(event, (yaml.SequenceEndEvent, yaml.MappingEndEvent)):
+            anchor, n = open_counts.pop()
+        elif isinstance(event, yaml.ScalarEvent):
+            anchor, n = event.anchor, 1
+        elif isinstance(event, yaml.AliasEvent):
+            anchor, n = None, sizes.get(event.anchor, 1)
+        else:
+            continue
+        if anchor:
+            sizes[anchor] = n
+        if open_counts:
+            open_counts[-1][1] += n
+        if sum(count for _, count in open_counts) > MAX_VALUES:
+            refuse(event, f"more than {MAX_VALUES} values with its YAML aliases expanded",
+                   "a task or material file (a few hundred values)")
+
+
 def read_yaml(path):
-    """A YAML file's content; a missing or unreadable file or bad syntax is a TaskError (file:line)."""
+    """A YAML file's content: a regular file under the size limit (cell.inputs), nested at most
+    MAX_DEPTH deep with at most MAX_ALIASES aliases; any problem is a TaskError (file:line)."""
     path = Path(path)
+    text = read_text(path, "yaml")
     try:
-        text = path.read_text(encoding="utf-8")
+        _check_structure(path, text)
         return yaml.load(text, Loader=_YamlLoader)
-    except OSError as err:
-        raise TaskError(path, "", f"an unreadable file ({err.strerror})", "a readable YAML file") from None
-    except UnicodeDecodeError:
-        raise TaskError(path, "", "bytes that are not UTF-8 text", "a YAML text file") from None
+    except yaml.constructor.ConstructorError as err:
+        mark = err.problem_mark or err.context_mark
+        where = f"{path}:{mark.line + 1}" if mark else path
+        problem = clip(" ".join(str(err.problem).split()))
+        if problem.startswith("duplicate key"):
+            raise TaskError(where, "", f"a {problem}", "each key once") from None
+        raise TaskError(where, "", f"a value plain YAML cannot hold ({problem})",
+                        "mappings, lists, numbers and text (no tags)") from None
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         where = f"{path}:{mark.line + 1}" if mark else path
-        problem = " ".join(str(getattr(err, "problem", None) or err).split())
+        problem = clip(" ".join(str(getattr(err, "problem", None) or err).split()))
         raise TaskError(where, "", f"a YAML syntax error ({problem})", "valid YAML") from None

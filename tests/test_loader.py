@@ -21,6 +21,7 @@ HINGE = TASKS / "hinge.yaml"
 CONROD = TASKS / "conrod.yaml"
 HINGE_TEXT = HINGE.read_text()
 MATERIAL = "materials/milled_aluminium.yaml"
+HINGE_SENSOR = yaml.safe_load(HINGE_TEXT)["camera"]["sensor"]
 
 
 # --- helpers that write (broken) variants of the hinge task into a folder ---
@@ -65,6 +66,14 @@ def rename(dotted, new):
     def edit(task, folder):
         parent, last = _parent(task, dotted)
         parent[new] = parent.pop(last)
+    return edit
+
+
+def both(*edits):
+    """Edit: the edits one after the other."""
+    def edit(task, folder):
+        for e in edits:
+            e(task, folder)
     return edit
 
 
@@ -253,7 +262,7 @@ BROKEN = [
     pytest.param(put("part.position_m", [0.0, float("nan"), 0.0]), "task.yaml", "part.position_m[1]",
                  "finite", id="nan-in-list"),
     pytest.param(put("camera.lens.f_number_range", [16.0, 1.4]), "task.yaml", "camera.lens.f_number_range",
-                 "found [16.0, 1.4], expected an ascending pair of positive numbers", id="reversed-range"),
+                 "found [16.0, 1.4], expected an ascending pair of f-numbers of at least 0.5", id="reversed-range"),
     pytest.param(put("camera.shutter_range_ms", [20.0, 0.01]), "task.yaml", "camera.shutter_range_ms",
                  "ascending", id="reversed-shutter-ms"),
     pytest.param(put("lamp.power_mw", -230.43), "task.yaml", "lamp.power_mw", "positive",
@@ -305,7 +314,7 @@ BROKEN = [
     pytest.param(put("sim.truth.albedo_scale", 0.0), "task.yaml", "sim.truth.albedo_scale", "positive",
                  id="zero-albedo-scale"),
     pytest.param(put("sim.truth.lamp_direction_error_deg", -1.0), "task.yaml",
-                 "sim.truth.lamp_direction_error_deg", ">= 0", id="negative-lamp-error"),
+                 "sim.truth.lamp_direction_error_deg", "within [0, 90] deg", id="negative-lamp-error"),
     pytest.param(put("sim.seed", 1.5), "task.yaml", "sim.seed", "integer", id="float-seed"),
     pytest.param(put("requirements.gray_band", [100, 300]), "task.yaml", "requirements.gray_band[1]",
                  "[0, 255]", id="gray-band-beyond-bit-depth"),
@@ -342,6 +351,40 @@ BROKEN = [
                  id="material-unknown-key"),
     pytest.param(material("sigma1", [4.0] * 6 + [float("nan")]), MATERIAL, "sigma1[6]", "finite",
                  id="material-nan"),
+    # physically implausible, though every number is valid on its own
+    pytest.param(put("camera.lens.f_number_range", [0.1, 0.4]), "task.yaml", "camera.lens.f_number_range",
+                 "at least 0.5", id="f-number-below-0.5"),
+    pytest.param(put("sim.truth.lamp_direction_error_deg", 1000), "task.yaml",
+                 "sim.truth.lamp_direction_error_deg", "within [0, 90] deg", id="lamp-error-1000-deg"),
+    pytest.param(put("lamp.rig.pivot_m", [0.0, 0.0, 0.002]), "task.yaml", "lamp.rig.pivot_m",
+                 "inside the part", id="pivot-inside-the-part"),
+    pytest.param(both(put("camera.view_direction", [-1.0, 0.0, -0.05]), put("camera.distance_m", 0.03)),
+                 "task.yaml", "camera.distance_m", "inside the part", id="camera-inside-the-part"),
+    pytest.param(put("camera.sensor.width_px", 100_000), "task.yaml", "camera.sensor.width_px",
+                 "1..65536", id="sensor-side-too-large"),
+    pytest.param(put("camera.sensor", {**HINGE_SENSOR, "width_px": 60_000, "height_px": 60_000}), "task.yaml",
+                 "camera.sensor", "at most 160 Mpx", id="sensor-frame-too-large"),
+    pytest.param(put("camera.distance_m", 0.02), "task.yaml", "camera.distance_m", "more than the focal length",
+                 id="camera-within-focal-length"),
+    pytest.param(put("camera.lens.focal_length_m", 1e308), "task.yaml", "camera.distance_m",
+                 "focal length 1e+308 m", id="1e308-is-a-finite-number"),
+    pytest.param(mesh_file(ascii_stl(["0 0 0", "1 0 0", "2 0 0"], ["2 0 0", "3 0 0", "4 0 0"])), "task.yaml",
+                 "part.mesh", "zero area", id="mesh-on-a-line"),
+    pytest.param(put("part.mesh", "parts"), "task.yaml", "part.mesh", "a folder", id="mesh-is-a-folder"),
+    pytest.param(put("part.material", "materials"), "task.yaml", "part.material", "a folder",
+                 id="material-is-a-folder"),
+    # YAML tricks
+    pytest.param(text(content="a: &a [1, 2, 3, 4, 5, 6, 7, 8, 9]\n" + "".join(
+        f"{k}: &{k} [{', '.join(['*' + p] * 9)}]\n" for p, k in zip("abcdefgh", "bcdefghi"))), "task.yaml:", "",
+        "aliases expanded", id="alias-bomb"),
+    pytest.param(text(content="name: " + "[" * 50 + "]" * 50 + "\n"), "task.yaml:", "",
+                 "nesting deeper than 32 levels", id="nested-50-deep"),
+    pytest.param(text(content="name: " + "[" * 10_000 + "]" * 10_000 + "\n"), "task.yaml:", "",
+                 "nesting depth", id="nested-10000-deep"),
+    pytest.param(text(content="name: !!python/object/apply:os.system ['true']\n"), "task.yaml:", "",
+                 "no tags", id="unsupported-yaml-tag"),
+    pytest.param(text(content="name: '" + "x" * 100_000 + "\n"), "task.yaml", "", "YAML syntax error",
+                 id="unterminated-quote"),
 ]
 
 
@@ -356,6 +399,7 @@ def test_broken_input_is_one_line_naming_file_and_key(tmp_path, capsys, edit, fi
     assert f": {key}: found" in err if key else ": found" in err
     assert text in err
     assert "np." not in err and "array(" not in err          # values as the user wrote them
+    assert len(err) < 600                                     # no value is written out whole
 
 
 def test_values_in_errors_are_plain_numbers_never_numpy_reprs():
