@@ -5,6 +5,7 @@ from pathlib import Path
 
 from cell import bench, jsonio
 from cell.cli import output_folder
+from cell.loader import load_task
 
 
 def text_table(header, rows):
@@ -61,7 +62,8 @@ def command(args):
 
     from cell.pictures import write_bench
     out = output_folder(args.out, Path("runs") / "bench")
-    result = bench.run(args.tasks or bench.DEFAULT_TASKS, args.quick, say)
+    tasks = [load_task(path) for path in args.tasks or bench.DEFAULT_TASKS]   # every one before any work
+    result = bench.run(tasks, args.quick, say)
     text = jsonio.dumps(result, indent=2)
     (out / "bench.json").write_text(text + "\n")
     write_bench(out / "bench.png", result["settings"])
