@@ -16,12 +16,10 @@ Pareto front, per task: settings no other setting beats on both time_s and gray_
 import time
 from dataclasses import asdict, replace
 from importlib.resources import files
-from pathlib import Path
 
 import numpy as np
 
 from cell import evaluate, geometry, planner, rig
-from cell.loader import load_task
 from cell.plan import PlannerSettings, gray_stats
 from cell.regions import SphereGrid
 from cell.scene import build_scene
@@ -96,9 +94,9 @@ def pareto(points):
             for i, p in enumerate(pts)]
 
 
-def sweep_task(path, names, reference_settings, repeats, say):
-    """(rows of the settings `names`, the reference's summary) for one task file."""
-    task, label = load_task(path), Path(path).stem
+def sweep_task(task, names, reference_settings, repeats, say):
+    """(rows of the settings `names`, the reference's summary) for one task."""
+    label = task.path.stem
     t0 = time.perf_counter()
     reference = planner.plan(task, reference_settings)
     ref_time = time.perf_counter() - t0
@@ -134,9 +132,9 @@ def flags(row):
         ("" if row["finite"] else "  NaN/inf in the plan")
 
 
-def kernel_rows(path, quick, repeats, say):
+def kernel_rows(task, quick, repeats, say):
     """Kernel throughput rows on the task's scene (cell.kernel_bench), tagged with the task."""
-    task, label = load_task(path), Path(path).stem
+    label = task.path.stem
     scene = build_scene(task)
     sensor = task.camera.sensor
     rows = []
@@ -173,17 +171,17 @@ def targets(settings, kernels):
     return out
 
 
-def run(paths, quick, say):
-    """The benchmark of the tasks at `paths`: every setting's row against the task's reference,
+def run(tasks, quick, say):
+    """The benchmark of the loaded `tasks`: every setting's row against the task's reference,
     the references, the kernel rows and the targets (bench.json)."""
     repeats = 1 if quick else 3
     result = {"quick": quick, "repeats": repeats, "settings": [], "references": [], "kernels": []}
-    for path in paths:
-        rows, ref = sweep_task(path, QUICK_SWEEP if quick else SWEEP,
+    for task in tasks:
+        rows, ref = sweep_task(task, QUICK_SWEEP if quick else SWEEP,
                                QUICK_REFERENCE if quick else REFERENCE, repeats, say)
         result["settings"] += rows
         result["references"].append(ref)
-    for path in paths:
-        result["kernels"] += kernel_rows(path, quick, repeats, say)
+    for task in tasks:
+        result["kernels"] += kernel_rows(task, quick, repeats, say)
     result["targets"] = targets(result["settings"], result["kernels"])
     return result

@@ -239,7 +239,7 @@ def _round(value, digits):
 
 
 def material_document(fits, name, source):
-    """The material file's keys (task-format.md "Material"), in file order."""
+    """The material file's keys (docs/formats.md, "Material"), in file order."""
     doc = {"name": name, "source": source, "phase_deg": [f.phase_deg for f in fits]}
     for i, p in enumerate(PARAMETERS):
         doc[p] = [_round(f.params[i], 6) for f in fits]

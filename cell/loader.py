@@ -1,4 +1,4 @@
-"""Task and material files (task-format.md) -> validated, typed values in SI units.
+"""Task and material files (docs/formats.md) -> validated, typed values in SI units.
 
 Units are converted here and nowhere else, by the schema engine (cell.schema): every problem is
 one TaskError naming the file, the dotted key path, what was found and what was expected. The

@@ -1,4 +1,4 @@
-"""The schema engine the task and material files are checked with (task-format.md): one Spec per
+"""The schema engine the task and material files are checked with (docs/formats.md): one Spec per
 key, sections of them, unit suffixes converted to SI, and the YAML reader.
 
 Every problem becomes one TaskError naming the file, the dotted key path (`camera.lens.f_number_range`,

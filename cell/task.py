@@ -1,4 +1,4 @@
-"""Typed inspection task (task-format.md), SI units inside. The loader lives in cell.loader."""
+"""Typed inspection task (docs/formats.md), SI units inside. The loader lives in cell.loader."""
 from dataclasses import dataclass
 from pathlib import Path
 

@@ -1,22 +1,107 @@
-"""Command-line input every command shares: a bad --out is one line and exit 2, before any work."""
+"""Command-line input every command shares: a bad --out is one line and exit 2, before any work;
+a task that fails to load leaves no folder behind; runs never mix in one folder."""
+import json
 from pathlib import Path
 
 import pytest
 
-from cell.cli import main
+from cell.cli import create_folder, main, output_folder
 
 HINGE = str(Path(__file__).resolve().parent.parent / "tasks" / "hinge.yaml")
+# the commands that write a folder, each as `cell COMMAND ... TASK`
+FOLDER_COMMANDS = [["plan"], ["run"], ["calibrate"], ["bench", "--quick"]]
+ids = lambda c: c[0]                                                       # noqa: E731
 
 
-@pytest.mark.parametrize("command", [["plan", HINGE], ["run", HINGE], ["calibrate", HINGE],
-                                     ["bench", "--quick", HINGE]], ids=lambda c: c[0])
+def one_line_naming_out(capsys):
+    """stderr is one line about --out, stdout is empty and nothing was planned."""
+    out, err = capsys.readouterr()
+    assert err.count("\n") == 1 and "--out" in err and "Traceback" not in err
+    assert out == "" and "maps:" not in err
+    return err
+
+
+@pytest.mark.parametrize("command", FOLDER_COMMANDS, ids=ids)
 def test_an_out_that_is_a_file_is_bad_input_before_any_work(command, tmp_path, capsys):
     taken = tmp_path / "taken"
     taken.write_text("not a folder")
-    assert main([*command, "--out", str(taken)]) == 2
-    out, err = capsys.readouterr()
-    assert err.count("\n") == 1 and "--out" in err and str(taken) in err and "a folder" in err
-    assert out == "" and "maps:" not in err                    # nothing was planned
+    assert main([*command, HINGE, "--out", str(taken)]) == 2
+    err = one_line_naming_out(capsys)
+    assert str(taken) in err and "a folder" in err
+
+
+@pytest.mark.parametrize("command", FOLDER_COMMANDS, ids=ids)
+def test_an_out_below_a_file_cannot_be_created_and_is_bad_input_before_any_work(command, tmp_path, capsys):
+    (tmp_path / "taken").write_text("not a folder")
+    inside = tmp_path / "taken" / "run"
+    assert main([*command, HINGE, "--out", str(inside)]) == 2
+    err = one_line_naming_out(capsys)
+    assert str(inside) in err and "a folder that can be created" in err and "is a file" in err
+
+
+@pytest.mark.parametrize("command", FOLDER_COMMANDS, ids=ids)
+def test_an_empty_out_is_bad_input_not_the_default_folder(command, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main([*command, HINGE, "--out", ""]) == 2
+    err = one_line_naming_out(capsys)
+    assert err == (f"cell {command[0]}: command line: --out: found '', "
+                   "expected a folder path (an empty --out names no folder)\n")
+    assert list(tmp_path.iterdir()) == []                      # no runs/ in the current folder
+
+
+@pytest.mark.parametrize("command", FOLDER_COMMANDS, ids=ids)
+def test_an_existing_folder_that_is_not_empty_is_refused_and_left_as_it_was(command, tmp_path, capsys):
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "log.jsonl").write_text('{"step": "done"}\n')
+    assert main([*command, HINGE, "--out", str(old)]) == 2
+    err = one_line_naming_out(capsys)
+    assert f"found {old}, a folder that exists and is not empty" in err and "pass another --out" in err
+    assert [p.name for p in old.iterdir()] == ["log.jsonl"]
+    assert (old / "log.jsonl").read_text() == '{"step": "done"}\n'
+
+
+@pytest.mark.parametrize("command", FOLDER_COMMANDS, ids=ids)
+@pytest.mark.parametrize("given", [True, False], ids=["--out", "default"])
+def test_a_task_that_fails_to_load_leaves_no_folder(command, given, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: no part, no feature\n")
+    tasks = [HINGE, str(bad)] if command[0] == "bench" else [str(bad)]     # bench: the second is bad
+    out = ["--out", str(tmp_path / "new")] if given else []
+    assert main([*command, *tasks, *out]) == 2
+    err = capsys.readouterr().err
+    assert err == f"cell {command[0]}: {bad}: part: found nothing, expected a mapping of keys (required section)\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.yaml"]  # neither new/ nor runs/
+
+
+def test_a_second_plan_into_the_same_folder_is_refused(tmp_path, capsys):
+    out = tmp_path / "plan"
+    assert main(["plan", HINGE, "--out", str(out)]) == 0
+    first = (out / "plan.json").read_text()
+    capsys.readouterr()
+    assert main(["plan", HINGE, "--out", str(out)]) == 2
+    assert "exists and is not empty" in one_line_naming_out(capsys)
+    assert (out / "plan.json").read_text() == first and json.loads(first)["feasible"]
+
+
+def test_an_existing_empty_folder_is_used_and_a_new_one_created_only_when_asked(tmp_path):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert create_folder(output_folder(str(empty), "x")) == empty
+    new = output_folder(str(tmp_path / "a" / "b"), "x")
+    assert not (tmp_path / "a").exists()                    # checked, not created
+    assert create_folder(new).is_dir()
+
+
+def test_the_default_folders_are_new_every_time(tmp_path, monkeypatch):
+    """Without --out every command writes a folder of its own, runs/<name>-<time>, never an old one."""
+    monkeypatch.chdir(tmp_path)
+    first = output_folder(None, "hinge-plan")
+    assert first.parent == Path("runs") and first.name.startswith("hinge-plan-") and not first.exists()
+    (create_folder(first) / "plan.json").write_text("{}")
+    second = create_folder(output_folder(None, "hinge-plan"))
+    assert second != first and second.parent == Path("runs") and list(second.iterdir()) == []
 
 
 def test_cell_check_loads_no_kernel_plotting_or_device_library():

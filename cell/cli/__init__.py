@@ -19,19 +19,65 @@ COMMANDS = {
 }
 
 
-def output_folder(out, default):
-    """The run folder `--out` names (or `default`), created now, before any work: a path that
-    is a file or cannot be created is bad input (exit 2), not a traceback after the work."""
+def output_folder(out, name):
+    """The run folder `--out` names, checked now, before any work, and not yet created: a task
+    that fails to load leaves no folder behind (create_folder makes it once the task loaded).
+    Bad input (exit 2): an empty --out, a path that is a file or cannot be created, and an
+    existing folder that is not empty, so that runs never mix in one log or report. Without
+    --out: runs/<name>-<YYYYmmdd-HHMMSS>, with -2, -3, ... if that exists already."""
+    import time
     from pathlib import Path
 
-    from cell.errors import TaskError
-    folder = Path(out or default)
+    if out is None:
+        stamp = Path("runs") / f"{name}-{time.strftime('%Y%m%d-%H%M%S')}"
+        folder, n = stamp, 1
+        while folder.exists() or folder.is_symlink():
+            n += 1
+            folder = stamp.with_name(f"{stamp.name}-{n}")
+    elif not out.strip():
+        raise _bad_out("''", "a folder path (an empty --out names no folder)")
+    else:
+        folder = Path(out)
+    _check_folder(folder)
+    return folder
+
+
+def create_folder(folder):
+    """The folder output_folder checked, created now that the task loaded (checked again: a
+    folder that filled up meanwhile is refused as well)."""
+    _check_folder(folder)
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as err:
-        raise TaskError("command line", "--out", str(folder),
-                        f"a folder that can be created ({err.strerror or err})") from None
+        raise _bad_out(folder, f"a folder that can be created ({err.strerror or err})") from None
     return folder
+
+
+def _check_folder(folder):
+    import os
+
+    try:
+        if folder.is_dir():
+            if any(folder.iterdir()):
+                raise _bad_out(f"{folder}, a folder that exists and is not empty",
+                               "a new or empty folder: pass another --out (runs never mix)")
+            return
+        if folder.exists() or folder.is_symlink():
+            raise _bad_out(f"{folder}, which is not a folder", "a folder that can be created")
+        parent = folder.absolute().parent
+        while not parent.exists():
+            parent = parent.parent
+        if not parent.is_dir():
+            raise _bad_out(folder, f"a folder that can be created ({parent} is a file)")
+        if not os.access(parent, os.W_OK | os.X_OK):
+            raise _bad_out(folder, f"a folder that can be created (no permission in {parent})")
+    except OSError as err:
+        raise _bad_out(folder, f"a folder that can be created ({err.strerror or err})") from None
+
+
+def _bad_out(found, expected):
+    from cell.errors import TaskError
+    return TaskError("command line", "--out", found, expected)
 
 
 def build_parser():
@@ -49,13 +95,14 @@ def build_parser():
 
     p = sub.add_parser("plan", help="plan lamp position, shutter, f-number and focus for a task")
     p.add_argument("task")
-    p.add_argument("--out", help="folder for plan.json and the pictures (default runs/<task>-plan)")
+    p.add_argument("--out", help="folder for plan.json and the pictures, new or empty "
+                                 "(default runs/<task>-plan-<time>)")
     p.add_argument("--json", action="store_true", help="print plan.json to stdout")
 
     p = sub.add_parser("run", help="plan, drive the cell, capture, measure and correct in a closed loop")
     p.add_argument("task")
     p.add_argument("--backend", choices=("sim", "hw"), help="override the task's cell.backend")
-    p.add_argument("--out", help="run folder (default runs/<task>-<time>)")
+    p.add_argument("--out", help="run folder, new or empty (default runs/<task>-<time>)")
     p.add_argument("--max-iterations", type=int, default=6, metavar="N",
                    help="captures at most before giving up (default 6)")
     p.add_argument("--yes", action="store_true", help="confirm operator prompts (manual lamp radius) on "
@@ -64,14 +111,14 @@ def build_parser():
     p = sub.add_parser("bench", help="what accuracy costs in time; kernel throughput")
     p.add_argument("tasks", nargs="*", help="default: the example tasks hinge.yaml and conrod.yaml, installed with the package")
     p.add_argument("--quick", action="store_true", help="small sweep (< 1 min) for smoke tests")
-    p.add_argument("--out", help="folder for bench.json and bench.png (default runs/bench)")
+    p.add_argument("--out", help="folder for bench.json and bench.png, new or empty (default runs/bench-<time>)")
     p.add_argument("--json", action="store_true", help="print bench.json to stdout")
 
     p = sub.add_parser("calibrate", help="operator routine: fit the camera constant c from a shutter sweep")
     p.add_argument("task", help="a task whose part and material table you trust (the reference)")
     p.add_argument("--backend", choices=("sim", "hw"), help="override the task's cell.backend")
-    p.add_argument("--out", help="folder for calibration.json and calibration.png "
-                                 "(default runs/<task>-calibration)")
+    p.add_argument("--out", help="folder for calibration.json and calibration.png, new or empty "
+                                 "(default runs/<task>-calibration-<time>)")
     p.add_argument("--shots", type=int, default=6, metavar="N",
                    help="shutter times in the sweep, at least 3 (default 6)")
     p.add_argument("--yes", action="store_true", help="confirm operator prompts (manual lamp radius, "

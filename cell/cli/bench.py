@@ -1,10 +1,10 @@
 """`cell bench [TASK...] [--quick] [--out DIR] [--json]`: tables on stdout (stderr with --json),
 bench.json and bench.png in DIR, progress on stderr."""
 import sys
-from pathlib import Path
 
 from cell import bench, jsonio
-from cell.cli import output_folder
+from cell.cli import create_folder, output_folder
+from cell.loader import load_task
 
 
 def text_table(header, rows):
@@ -60,8 +60,10 @@ def command(args):
         print(msg, file=sys.stderr, flush=True)
 
     from cell.pictures import write_bench
-    out = output_folder(args.out, Path("runs") / "bench")
-    result = bench.run(args.tasks or bench.DEFAULT_TASKS, args.quick, say)
+    out = output_folder(args.out, "bench")
+    tasks = [load_task(path) for path in args.tasks or bench.DEFAULT_TASKS]   # every one before any work
+    create_folder(out)
+    result = bench.run(tasks, args.quick, say)
     text = jsonio.dumps(result, indent=2)
     (out / "bench.json").write_text(text + "\n")
     write_bench(out / "bench.png", result["settings"])

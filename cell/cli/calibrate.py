@@ -5,7 +5,7 @@ from pathlib import Path
 
 from cell import backends
 from cell.calibrate import MIN_SHOTS, run
-from cell.cli import output_folder
+from cell.cli import create_folder, output_folder
 from cell.errors import TaskError
 from cell.loader import load_task
 from cell.operator import Operator
@@ -14,7 +14,7 @@ from cell.operator import Operator
 def command(args):
     if args.shots < MIN_SHOTS:
         raise TaskError("command line", "--shots", args.shots, f"an integer >= {MIN_SHOTS}")
-    out = output_folder(args.out, Path("runs") / f"{Path(args.task).stem}-calibration")
+    out = output_folder(args.out, f"{Path(args.task).stem}-calibration")
     task = load_task(args.task)
     backend = args.backend or task.cell.backend
     c_model = task.camera.sensor.camera_constant
@@ -22,6 +22,7 @@ def command(args):
     Operator(yes=args.yes or backend == "sim", stdout=sys.stderr).confirm(
         "calibration", "place the reference part (the task's part, of the task's material) in the cell; "
                        "the camera constant is measured against its material table")
+    create_folder(out)
     result = run(task, out, lambda scene: backends.open_devices(task, scene, backend, yes=args.yes), args.shots)
     fit = result.fit
     print(f"camera constant c = {fit.camera_constant:.5g} +- {fit.stderr:.2g} 1/(W s) "

@@ -6,7 +6,7 @@ import numpy as np
 
 from cell import jsonio
 from cell.acquisition import require_feasible
-from cell.cli import output_folder
+from cell.cli import create_folder, output_folder
 from cell.loader import load_task
 from cell.plan import gray_stats
 from cell.planner import plan
@@ -32,8 +32,9 @@ def summary(plan):
 
 
 def command(args):
+    out = output_folder(args.out, f"{Path(args.task).stem}-plan")
     task = load_task(args.task)
-    out = output_folder(args.out, Path("runs") / f"{Path(args.task).stem}-plan")
+    create_folder(out)
     result = plan(task, progress=lambda msg: print(msg, file=sys.stderr, flush=True))
     write_plan(result, task, out)
     if args.json:

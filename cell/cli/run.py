@@ -1,10 +1,9 @@
 """`cell run TASK [--backend sim|hw] [--out DIR] [--max-iterations N] [--yes]`: exit 0 when every
 feature pixel ends in the gray band, 1 when not (with the reason), 3 on a device fault."""
-import time
 from pathlib import Path
 
 from cell import backends, loop
-from cell.cli import output_folder
+from cell.cli import create_folder, output_folder
 from cell.errors import TaskError
 from cell.loader import load_task
 
@@ -12,9 +11,10 @@ from cell.loader import load_task
 def command(args):
     if args.max_iterations < 1:
         raise TaskError("command line", "--max-iterations", args.max_iterations, "an integer >= 1")
+    out = output_folder(args.out, Path(args.task).stem)
     task = load_task(args.task)
     backend = args.backend or task.cell.backend
-    out = output_folder(args.out, Path("runs") / f"{Path(args.task).stem}-{time.strftime('%Y%m%d-%H%M%S')}")
+    create_folder(out)
     result = loop.run(task, out, lambda scene: backends.open_devices(task, scene, backend, args.yes),
                       args.max_iterations)
     last, n = result.iterations[-1], len(result.iterations)
