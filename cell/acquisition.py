@@ -16,7 +16,6 @@ class Capture:
 
     image: np.ndarray            # (H, W) gray, uint8/uint16 (a real sensor) or float (the sim)
     T_cell_cam: np.ndarray       # the arm's read-back camera pose
-    lamp_joints: tuple           # the pan-tilt's read-back (pan, tilt, radius) [rad, rad, m]
     shutter_s: float             # the shutter time the camera reports
     f_number: float
     focus_m: float
@@ -73,17 +72,18 @@ def move_to(devices, shot, recorder, iteration=None):
 
 
 def acquire(devices, recorder, iteration, shutter_s, f_number, focus_m):
-    """Set shutter, f-number and focus, take a frame and save it at once (capture-N.png, the
-    sim's float gray rounded to the sensor's levels). Returns the Capture."""
+    """Set f-number, focus and shutter, take a frame and save it at once (capture-N.png, the
+    sim's float gray rounded to the sensor's levels). Returns the Capture. The shutter comes last:
+    a camera drops the frames exposed before it changed (OpenCVCamera), and an operator turning
+    the lens by hand would otherwise be in them."""
     camera = devices.camera
-    shutter_s = camera.set_exposure(shutter_s)
     camera.set_aperture(f_number)
     camera.set_focus(focus_m)
+    shutter_s = camera.set_exposure(shutter_s)
     recorder.step("set_exposure", f"shutter {1e3 * shutter_s:.3f} ms, f/{f_number:.2f}, focus "
                                   f"{focus_m:.3f} m", iteration=iteration,
                   shutter_s=shutter_s, f_number=f_number, focus_m=focus_m)
     image = np.asarray(camera.capture())
     name = recorder.write_image(f"capture-{iteration}.png", measure.levels(image, camera.bit_depth))
     recorder.step("capture", name, iteration=iteration, capture=name, shape=image.shape, dtype=str(image.dtype))
-    return Capture(image, devices.arm.camera_pose(), tuple(devices.lamp.joints()), shutter_s, float(f_number),
-                   float(focus_m), name)
+    return Capture(image, devices.arm.camera_pose(), shutter_s, float(f_number), float(focus_m), name)

@@ -155,14 +155,15 @@ def run(task, out, connect, shots=6):
     c_model = task.camera.sensor.camera_constant
     records, fit, reason = [], None, ""
     with Recorder(out) as recorder:
-        session = Session(on_fault=recorder.fault)
+        session = Session(on_fault=recorder.fault, log=recorder.log.name)
         try:
             with session:
                 planned = plan_and_connect(task, recorder, session, connect)
-                records.extend(sweep(task, planned, session.devices, recorder, shots))
+                for record in sweep(task, planned, session.devices, recorder, shots):
+                    records.append(record)
             exposures = np.array([r.exposure for r in records])
             grays = np.array([r.gray for r in records])
-            fit = fit_camera_constant(exposures, grays, measure.saturation_level(task.camera.sensor.bit_depth))
+            fit = fit_camera_constant(exposures, grays, measure.saturation_level(session.devices.camera.bit_depth))
             write_calibration(out / "calibration.png", exposures, grays, fit, c_model)
             if fit is None:
                 n = sum(r.samples for r in records)

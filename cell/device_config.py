@@ -115,10 +115,12 @@ CAMERA = Section({
 SECTIONS = {"arm": ARM, "pan_tilt": PAN_TILT, "camera": CAMERA}     # the task's cell.<name>
 
 
-def devices_config(file, cell, given=()):
+def devices_config(file, cell, written):
     """The parsed `cell` section's arm, pan_tilt and camera values -> DevicesConfig, after the
-    checks one key alone cannot make (TaskError naming the file and key). `given`: the sections
-    the task set, for the record. The base and hand-eye poses go to the task's Frames."""
+    checks one key alone cannot make (TaskError naming the file and key). `written`: the section
+    as the file wrote it, whose non-empty device sections are recorded as `given`. The base and
+    hand-eye poses go to the task's Frames."""
+    given = tuple(name for name in SECTIONS if (written or {}).get(name))
     a, p, c = cell["arm"], cell["pan_tilt"], cell["camera"]
     if not np.all(a["workspace_min_m"] < a["workspace_max_m"]):
         raise TaskError(file, "cell.arm.workspace_max_m", show(a["workspace_max_m"]),

@@ -14,8 +14,15 @@ class TaskError(CellError):
 
     def __init__(self, file, key, found, expected):
         self.file, self.key, self.found, self.expected = str(file), key, found, expected
-        where = f"{self.file}: {key}" if key else self.file
-        super().__init__(f"{where}: found {found}, expected {expected}")
+        where = f"{_one_line(self.file)}: {_one_line(key)}" if key else _one_line(self.file)
+        super().__init__(f"{where}: found {_one_line(found)}, expected {_one_line(expected)}")
+
+
+def _one_line(text):
+    """text with control characters escaped (a key written as "a\nb" in a file), so that an
+    error stays one line."""
+    text = str(text)
+    return text if text.isprintable() else text.encode("unicode_escape").decode("ascii")
 
 
 class PlanInfeasible(CellError):

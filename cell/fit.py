@@ -1,4 +1,4 @@
-"""`cell fit-brdf`: the BRDF of eq. (6)-(7) fitted to goniometer data, one fit per phase angle (sec. 3.3).
+"""The BRDF of eq. (6)-(7) fitted to goniometer data, one fit per phase angle (sec. 3.3): `cell fit-brdf`.
 
 R = rho (cos ti + sigma1 c^m1 + sigma2 c^m2), c = 2 cos te cos ti - cos alpha. The diffuse term has
 no coefficient of its own, so rho (the diffuse albedo) and the sigma_k (specular amplitudes relative

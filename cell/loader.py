@@ -248,8 +248,7 @@ def load_task(path):
     part, cam, lamp, cell, sim = v["part"], v["camera"], v["lamp"], v["cell"], v["sim"]
     arm = cell["arm"]
     _check_gray_band(path, v["requirements"]["gray_band"], cam["sensor"]["bit_depth"])
-    written = data.get("cell") or {}                     # which device sections the task set
-    devices = devices_config(path, cell, given=tuple(name for name in DEVICES if written.get(name)))
+    devices = devices_config(path, cell, written=data.get("cell"))
     _check_camera(path, cam)
     mesh_path, mesh = _load_mesh(path, part)
     material = load_material(_relative_file(path, "part.material", part["material"], "yaml"))

@@ -5,10 +5,9 @@ measurement, the control law, the device session's safe stop and the recorder's 
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-
 from cell import control, measure
 from cell.acquisition import acquire, move_to, plan_and_connect, plan_recorded
-from cell.errors import DeviceFault, GoalNotReached
+from cell.errors import GoalNotReached
 from cell.evaluate import depth_of_field_limits
 from cell.plan import gray_stats
 from cell.recorder import Recorder
@@ -23,7 +22,6 @@ class Iteration:
     iteration: int
     shutter_s: float
     f_number: float
-    albedo_scale: float
     predicted_gray: dict
     measured_gray: dict
     model_error: float
@@ -31,11 +29,20 @@ class Iteration:
     in_band: bool
     capture: str
     annotated: str
+    albedo_scale: float
     correction: dict | None = None
 
     def to_json(self):
         document = {k: getattr(self, k) for k in self.__dataclass_fields__ if k != "correction"}
         return document | ({"correction": self.correction} if self.correction else {})
+
+
+@dataclass(frozen=True)
+class Corrected:
+    """The correction taken after iteration `iteration` (its document in report.json)."""
+
+    iteration: int
+    correction: dict
 
 
 @dataclass(frozen=True)
@@ -88,8 +95,8 @@ def shoot(task, plan, devices, recorder, k, shutter_s, f_number, albedo_scale):
     caption = f"{k}: gray {m.min:.0f}-{m.max:.0f}, {stats['saturated']} saturated: {verdict}"
     annotated = recorder.write_image(f"capture-{k}-feature.png",
                                      annotate_capture(capture.image, m, bit_depth, caption))
-    it = Iteration(k, capture.shutter_s, float(f_number), albedo_scale, expected, stats, error, relation,
-                   in_band, capture.name, annotated)
+    it = Iteration(k, capture.shutter_s, float(f_number), expected, stats, error, relation, in_band,
+                   capture.name, annotated, albedo_scale)
     recorder.step("measure", f"gray mean {stats['mean']:.1f}, {m.min:.1f}-{m.max:.1f} over {stats['pixels']} px "
                              f"(pixels {stats['pixel_min']:.0f}-{stats['pixel_max']:.0f}, noise "
                              f"{stats['noise_rms']:.1f} rms, {stats['saturated']} saturated); the model predicts "
@@ -100,9 +107,9 @@ def shoot(task, plan, devices, recorder, k, shutter_s, f_number, albedo_scale):
 
 
 def iterate(task, plan, devices, recorder, max_iterations):
-    """Drive, shoot, correct until every feature pixel is in the band, yielding each Iteration
-    (with its correction) and each Replan as it happens; raises GoalNotReached saying why when no
-    correction is possible or the iterations run out."""
+    """Drive, shoot, correct until every feature pixel is in the band, yielding each Iteration as
+    soon as it is measured, then its Corrected and a Replan as they happen; raises GoalNotReached
+    saying why when no correction is possible or the iterations run out."""
     band = tuple(map(float, task.requirements.gray_band))
     lens_range = (depth_of_field_limits(task, plan.scene)[2], task.camera.lens.f_number_range[1])
     albedo, moved = 1.0, False
@@ -112,24 +119,22 @@ def iterate(task, plan, devices, recorder, max_iterations):
             move_to(devices, plan.shot, recorder, k)
             moved = True
         it, m, predicted = shoot(task, plan, devices, recorder, k, shutter, f_number, albedo)
+        yield it
         shutter = it.shutter_s
         if it.in_band:
-            yield it
             return
         if k == max_iterations:
-            yield it
             raise GoalNotReached(f"not in band {band[0]:g}-{band[1]:g} after {count(k, 'iteration')}: "
                                  f"feature gray {m.min:.1f}-{m.max:.1f} ({it.measured_gray['saturated']} pixels "
                                  f"saturated) at {1e3 * shutter:.3g} ms, f/{f_number:.1f}; "
                                  f"{control.describe_error(it.model_error, it.model_error_relation)}")
         c = control.correct(m, predicted, shutter, f_number, band, task.camera.shutter_range_s, lens_range)
         if c.action == "stop":
-            yield it
             raise GoalNotReached(c.reason)
         if c.action == "replan":
             albedo *= c.model_error
         recorder.step("correct", c.message(shutter, f_number, albedo), iteration=k, **c.document(albedo))
-        yield replace(it, correction=c.document(albedo))
+        yield Corrected(k, c.document(albedo))
         if c.action == "exposure":
             shutter, f_number = c.shutter_s, c.f_number
             continue
@@ -148,27 +153,27 @@ def run(task, out, connect, max_iterations=6):
     (exit 3) after the safe stop of every device (session.Session). Returns the RunResult."""
     from cell.pictures import write_convergence
     out = Path(out)
-    events, reason = [], ""
+    iterations, replans, reason = [], [], ""
     with Recorder(out) as recorder:
-        session = Session(on_fault=recorder.fault)
+        session = Session(on_fault=recorder.fault, log=recorder.log.name)
         try:
             with session:
                 planned = plan_and_connect(task, recorder, session, connect)
-                events.extend(iterate(task, planned, session.devices, recorder, max_iterations))
-            n = sum(isinstance(e, Iteration) for e in events)
+                for event in iterate(task, planned, session.devices, recorder, max_iterations):
+                    if isinstance(event, Corrected):
+                        iterations[-1] = replace(iterations[-1], correction=event.correction)
+                    else:
+                        (iterations if isinstance(event, Iteration) else replans).append(event)
+            n = len(iterations)
             recorder.step("done", f"converged after {count(n, 'iteration')}", converged=True, iterations=n)
         except BaseException as err:
             reason = str(err) or type(err).__name__
             if not session.fault:                   # the goal was not reached: the devices are fine
                 recorder.step("done", f"not converged: {err}", converged=False, reason=str(err))
-                raise
-            if isinstance(err, DeviceFault):
-                raise DeviceFault(err.device, f"{err.reason}; log in {out / 'log.jsonl'}") from err
             raise
         finally:
-            iterations = tuple(e for e in events if isinstance(e, Iteration))
-            result = RunResult(str(task.path), not reason, reason, recorder.plan, iterations,
-                               tuple(e for e in events if isinstance(e, Replan)), session.fault)
+            result = RunResult(str(task.path), not reason, reason, recorder.plan, tuple(iterations),
+                               tuple(replans), session.fault)
             recorder.write_json("report.json", result.to_json())
             if iterations:
                 write_convergence(out / "convergence.png", [it.to_json() for it in iterations],

@@ -27,7 +27,7 @@ PNG = {"compress_level": 1}     # zlib: lossless like the default, at a fraction
 # Each picture has its own Figure, but matplotlib's text layout (mathtext parser, font cache) is
 # shared and not thread-safe: two threads laying out log-axis tick labels at once raise a
 # ParseException. One picture at a time, then.
-_DRAWING = threading.Lock()
+_DRAWING = threading.RLock()      # reentrant: a picture may draw another
 
 
 def _one_at_a_time(write):

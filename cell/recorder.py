@@ -10,6 +10,7 @@ from pathlib import Path
 import cv2
 
 from cell import jsonio
+from cell.session import stop_outcome
 
 
 def write_plan(plan, task, folder):
@@ -73,5 +74,4 @@ class Recorder:
 
     def fault(self, fault):
         """The fault step, after the safe stop (session.Session's fault record)."""
-        from cell.session import stop_outcome
         self.step("fault", f"{fault['error']}: {stop_outcome(fault['stop_failures'])}", **fault)

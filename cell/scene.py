@@ -53,6 +53,11 @@ class Scene:
     normals: np.ndarray          # (P, 3) surface normals at the samples
     T_cell_cam: np.ndarray       # the camera pose the planner assumes
 
+    def __setstate__(self, state):
+        """Unpickled (a plan from a worker process): its arrays read-only again, as built."""
+        self.__dict__.update(state)
+        _read_only(state.values())
+
     @property
     def camera_position(self):
         return self.T_cell_cam[:3, 3]
@@ -92,6 +97,13 @@ def build_scene(task, samples=None):
     cam = center + task.camera.distance_m * geometry.unit(geometry.rotate(T, task.camera.view_direction))
     arrays = dict(vertices=vertices, faces=faces, center=center, normal=normal, frame=frame,
                   points=points, normals=normals, T_cell_cam=look_at(cam, center))
-    for a in arrays.values():
-        a.flags.writeable = False        # the key names this geometry: it must not change under it
+    _read_only(arrays.values())
     return Scene(mesh_key=key, **arrays)
+
+
+def _read_only(values):
+    """The arrays among values made read-only: mesh_key names this geometry, so it must not
+    change under the key (nor a plan's samples under its predictions)."""
+    for value in values:
+        if isinstance(value, np.ndarray):
+            value.flags.writeable = False

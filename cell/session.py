@@ -9,10 +9,10 @@ class Session:
     them. A DeviceFault or anything else (a bug, Ctrl-C, SIGTERM) stops them safely first, then
     releases the arm's and the servos' connections; `fault` = {device, error, stop_failures,
     release_failures}, on_fault(fault) is called (to log it), and a DeviceFault is raised again
-    saying whether motion stopped."""
+    saying whether motion stopped and, given `log`, where the run's log is."""
 
-    def __init__(self, on_fault=lambda fault: None):
-        self.devices, self.fault, self.on_fault = None, None, on_fault
+    def __init__(self, on_fault=lambda fault: None, log=None):
+        self.devices, self.fault, self.on_fault, self.log = None, None, on_fault, log
 
     def __enter__(self):
         return self
@@ -28,7 +28,8 @@ class Session:
                       "stop_failures": failures, "release_failures": released}
         self.on_fault(self.fault)
         if isinstance(err, DeviceFault):
-            raise DeviceFault(err.device, f"{err.reason}; {stop_outcome(failures)}") from err
+            where = f"; log in {self.log}" if self.log else ""
+            raise DeviceFault(err.device, f"{err.reason}; {stop_outcome(failures)}{where}") from err
         return False
 
 

@@ -30,7 +30,7 @@ def variant(tmp_path, source, changes):
 def device_settings(raw, file="tasks/hinge.yaml"):
     """DevicesConfig of raw `cell.arm` / `cell.pan_tilt` / `cell.camera` mappings, checked as
     load_task checks a task's `cell` section."""
-    return devices_config(file, parse(file, "cell", raw, SECTIONS), given=tuple(raw))
+    return devices_config(file, parse(file, "cell", raw, SECTIONS), written=raw)
 
 
 def recording_connect(task, cell, faults=None):

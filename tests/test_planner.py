@@ -225,6 +225,7 @@ def test_a_task_and_a_plan_pickle_and_a_spawned_worker_plans_the_same(hinge):
     copy = pickle.loads(pickle.dumps(plan))
     assert without_timing(copy) == without_timing(plan)
     np.testing.assert_array_equal(copy.scene.points, plan.scene.points)
+    assert not copy.scene.vertices.flags.writeable        # its mesh_key still names its geometry
     with multiprocessing.get_context("spawn").Pool(1) as pool:
         worker = pool.apply(plan_of, (pickle.loads(pickle.dumps(task)),))
     assert without_timing(worker) == without_timing(plan)

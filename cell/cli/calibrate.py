@@ -31,5 +31,6 @@ def command(args):
           f"({fit.saturated} saturated, {fit.dark} at 0 left out)")
     print(f"  set camera.sensor.camera_constant: {fit.camera_constant:.5g} in the tasks that use "
           f"this camera (e.g. {args.task})")
-    print(f"  wrote {out}/calibration.json, calibration.png, log.jsonl and the plan's pictures")
+    print(f"  wrote {out}/calibration.json, calibration.png, log.jsonl, {len(result.shots)} captures and the "
+          f"plan's pictures")
     return 0
