@@ -16,6 +16,8 @@ largest are weighted as if they were that large (dark level).
 """
 import csv
 import dataclasses
+import io
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,6 +39,10 @@ RHO_MIN = 1e-9                          # rho > 0 (loader); binds only without a
 SIGNIFICANCE = 1e-3                     # F-test level for keeping a specular term
 DARK_FRACTION = 1e-3
 RESIDUAL_FLOOR = 1e-6                   # relative error no goniometer beats (noise-free data)
+CSV_LIMIT_BYTES = 50_000_000            # a goniometer CSV is far smaller; /dev/zero is refused, not read
+ROWS_MAX = 100_000                      # data rows read at most: the fit takes ~1 s per 10,000 rows
+PHASES_MAX = 1_000                      # phase angles fitted at most, ~0.04 s each
+SHOWN_CHARS = 80                        # an error line quotes at most this much of a value
 
 
 @dataclass(frozen=True)
@@ -64,62 +70,116 @@ class PhaseFit:
 
 # --- reading the CSV ---
 
-def _csv_rows(path):
-    """(line number, fields) of each non-blank row of a CSV file."""
+def read_limited_text(path, limit_bytes, what, *, limit_name=None):
+    """The UTF-8 text of the regular file at path, at most limit_bytes long; anything else (missing,
+    a folder, a device or named pipe, too large, not UTF-8) is a TaskError naming `what`. The file's
+    type is checked before it is opened: /dev/zero would fill memory and a FIFO would block."""
+    path = Path(path)
     try:
-        with path.open(newline="", encoding="utf-8-sig") as f:
-            reader = csv.reader(f)
-            return [(reader.line_num, row) for row in reader if any(x.strip() for x in row)]
+        info = path.stat()
     except OSError as err:
-        raise TaskError(path, "", f"an unreadable file ({err.strerror})", "a readable CSV file") from None
-    except UnicodeDecodeError:
-        raise TaskError(path, "", "bytes that are not UTF-8 text", "a CSV text file") from None
+        raise TaskError(path, "", f"an unreadable file ({err.strerror})", f"a readable {what} file") from None
+    mode, size = info.st_mode, info.st_size
+    if not stat.S_ISREG(mode):
+        kind = ("a folder" if stat.S_ISDIR(mode) else "a named pipe (FIFO)" if stat.S_ISFIFO(mode) else
+                "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "not a regular file")
+        raise TaskError(path, "", kind, f"a regular {what} file")
+    limit = f"a {what} file of at most {limit_bytes:,} bytes" + (f" ({limit_name})" if limit_name else "")
+    try:
+        with path.open("rb") as f:
+            data = f.read(limit_bytes + 1)       # a file growing since stat() is cut here
+    except OSError as err:
+        raise TaskError(path, "", f"an unreadable file ({err.strerror})", f"a readable {what} file") from None
+    if max(size, len(data)) > limit_bytes:
+        raise TaskError(path, "", f"{max(size, len(data)):,} bytes", limit)
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as err:
+        line = data.count(b"\n", 0, err.start) + 1
+        raise TaskError(path, f"line {line}", f"bytes that are not UTF-8 text (0x{data[err.start]:02x})",
+                        f"a {what} file in UTF-8") from None
+
+
+def shown(text):
+    """A value as an error line shows it: quoted, at most SHOWN_CHARS characters of it, '...' after."""
+    text = text.strip()
+    if not text:
+        return "an empty field"
+    return repr(text[:SHOWN_CHARS]) + ("..." if len(text) > SHOWN_CHARS else "")
+
+
+def _lines(first, last):
+    """Where a row is: a quoted field may hold line breaks (an unclosed quote runs on to the end)."""
+    return f"line {first}" if first == last else f"lines {first}-{last}"
+
+
+def _csv_rows(path, text):
+    """(where, fields) of each non-blank row of CSV text, at most ROWS_MAX + 1 of them (the header)."""
+    reader, rows, last = csv.reader(io.StringIO(text, newline="")), [], 0
+    try:
+        for row in reader:
+            if any(x.strip() for x in row):
+                if len(rows) > ROWS_MAX:
+                    raise TaskError(path, _lines(last + 1, reader.line_num), f"more than {ROWS_MAX:,} data rows",
+                                    f"at most {ROWS_MAX:,} (cell.fit.ROWS_MAX; the fit takes ~1 s per 10,000)")
+                rows.append((_lines(last + 1, reader.line_num), row))
+            last = reader.line_num
     except csv.Error as err:
-        raise TaskError(path, "", f"broken CSV ({err})", "a CSV text file") from None
+        raise TaskError(path, f"line {last + 1}", f"broken CSV ({err})", "CSV text") from None
+    return rows
 
 
-def _cell(path, line, column, text, ok, expected):
+def _cell(path, where, column, text, ok, expected):
     """One field as a finite float passing ok."""
-    where, shown = f"line {line}, {column}", repr(text.strip()) if text.strip() else "an empty field"
+    where, found = f"{where}, {column}", shown(text)
     try:
         value = float(text)
     except ValueError:
-        raise TaskError(path, where, shown, "a number") from None
+        raise TaskError(path, where, found, "a number") from None
     if not np.isfinite(value):
-        raise TaskError(path, where, shown, "a finite number")
+        raise TaskError(path, where, found, "a finite number")
     if not ok(value):
-        raise TaskError(path, where, shown, expected)
+        raise TaskError(path, where, found, expected)
     return value
 
 
 def read_goniometer(path):
     """The CSV's rows grouped by phase angle (ascending); any bad field, row or group is a TaskError."""
     path = Path(path)
-    rows = _csv_rows(path)
+    rows = _csv_rows(path, read_limited_text(path, CSV_LIMIT_BYTES, "goniometer CSV",
+                                             limit_name="cell.fit.CSV_LIMIT_BYTES"))
     if not rows:
         raise TaskError(path, "", "an empty file", "a header " + ",".join(COLUMNS) + " and data rows")
     header = [h.strip() for h in rows[0][1]]
+    where = f"{rows[0][0]} (header)"
     missing = [c for c in COLUMNS if c not in header]
     if missing:
-        raise TaskError(path, f"line {rows[0][0]} (header)", "columns " + ",".join(header),
+        raise TaskError(path, where, "columns " + shown(",".join(header)),
                         f"the columns {','.join(COLUMNS)} (missing {', '.join(missing)})")
+    twice = next((h for i, h in enumerate(header) if h and h in header[:i]), None)
+    if twice is not None:
+        fields = ", ".join(str(i + 1) for i, h in enumerate(header) if h == twice)
+        raise TaskError(path, where, f"the column {shown(twice)} in fields {fields}", "each column named once")
     angle = (lambda v: 0 <= v < 90, "an angle in [0, 90) deg (lamp and camera in front of the surface)")
     checks = {"theta_i_deg": angle, "theta_e_deg": angle,
               "phase_deg": (lambda v: 0 <= v <= 180, "an angle in [0, 180] deg"),
               "reflectance": (lambda v: v >= 0, "a reflectance >= 0")}
     groups = {}
-    for line, row in rows[1:]:
+    for where, row in rows[1:]:
         if len(row) != len(header):
-            raise TaskError(path, f"line {line}", f"{len(row)} fields", f"{len(header)}, as in the header")
-        ti, te, phase, r = (_cell(path, line, c, row[header.index(c)], *checks[c]) for c in COLUMNS)
+            raise TaskError(path, where, f"{len(row)} fields", f"{len(header)}, as in the header")
+        ti, te, phase, r = (_cell(path, where, c, row[header.index(c)], *checks[c]) for c in COLUMNS)
         if not abs(ti - te) - TRIANGLE_TOLERANCE_DEG <= phase <= ti + te + TRIANGLE_TOLERANCE_DEG:
             found = f"theta_i {ti:.10g}, theta_e {te:.10g}, phase {phase:.10g} deg"
-            raise TaskError(path, f"line {line}", found,
+            raise TaskError(path, where, found,
                             "|theta_i - theta_e| <= phase <= theta_i + theta_e (lamp, camera and normal "
                             "form a spherical triangle)")
         groups.setdefault(phase, []).append((ti, te, r))
     if not groups:
         raise TaskError(path, "", "a header but no data rows", "one row per measurement")
+    if len(groups) > PHASES_MAX:
+        raise TaskError(path, "phase_deg", f"{len(groups):,} phase angles",
+                        f"at most {PHASES_MAX:,} (cell.fit.PHASES_MAX; one fit each)")
     for phase, group in groups.items():
         if len(group) < MIN_ROWS:
             raise TaskError(path, f"phase_deg {phase:g}", f"{len(group)} rows",
