@@ -12,7 +12,8 @@ too, with the Jacobian including rho as the physics notes require.) Two degenera
   errors, and its phase angle is listed under `unidentifiable`.
 Residuals are relative, (R - y) / y: readings span the spike's peak and the diffuse background
 (often 1000:1) and their error grows with the reading; readings under DARK_FRACTION of the phase's
-largest are weighted as if they were that large (dark level).
+largest are weighted as if they were that large (dark level). R is linear in rho, so each phase is
+fitted in units of its largest reading: the fit is the same at any scale of the readings.
 """
 import csv
 import dataclasses
@@ -35,7 +36,8 @@ TRIANGLE_TOLERANCE_DEG = 1e-6
 LN_M_MAX = np.log(1e5)                  # exponents in [1, 1e5], where stable_power is accurate
 LN_M_GRID = np.linspace(0.0, LN_M_MAX, 21)   # multi-start grid: factor 1.78 between exponents
 STARTS = 3                              # best grid points refined by nonlinear least squares
-RHO_MIN = 1e-9                          # rho > 0 (loader); binds only without a diffuse background
+RHO_MIN = 1e-9                          # rho > 0 (loader), in units of the phase's largest reading;
+                                        # binds only without a diffuse background
 SIGNIFICANCE = 1e-3                     # F-test level for keeping a specular term
 DARK_FRACTION = 1e-3
 RESIDUAL_FLOOR = 1e-6                   # relative error no goniometer beats (noise-free data)
@@ -43,6 +45,9 @@ CSV_LIMIT_BYTES = 50_000_000            # a goniometer CSV is far smaller; /dev/
 ROWS_MAX = 100_000                      # data rows read at most: the fit takes ~1 s per 10,000 rows
 PHASES_MAX = 1_000                      # phase angles fitted at most, ~0.04 s each
 SHOWN_CHARS = 80                        # an error line quotes at most this much of a value
+REFLECTANCE_MAX = 1e100                 # far above any reading (a mirror through a 0.01 deg aperture: ~1e7)
+BRIGHTEST_MIN = 1e-100                  # each phase's largest reading at least this; with REFLECTANCE_MAX,
+                                        # rho, its stderr and the residual stay finite and > 0 when scaled back
 
 
 @dataclass(frozen=True)
@@ -163,7 +168,7 @@ def read_goniometer(path):
     angle = (lambda v: 0 <= v < 90, "an angle in [0, 90) deg (lamp and camera in front of the surface)")
     checks = {"theta_i_deg": angle, "theta_e_deg": angle,
               "phase_deg": (lambda v: 0 <= v <= 180, "an angle in [0, 180] deg"),
-              "reflectance": (lambda v: v >= 0, "a reflectance >= 0")}
+              "reflectance": (lambda v: 0 <= v <= REFLECTANCE_MAX, f"a reflectance in [0, {REFLECTANCE_MAX:g}]")}
     groups = {}
     for where, row in rows[1:]:
         if len(row) != len(header):
@@ -184,6 +189,11 @@ def read_goniometer(path):
         if len(group) < MIN_ROWS:
             raise TaskError(path, f"phase_deg {phase:g}", f"{len(group)} rows",
                             f"at least {MIN_ROWS} rows per phase angle (5 parameters and a residual)")
+        brightest = max(r for _, _, r in group)
+        if brightest < BRIGHTEST_MIN:
+            found = f"{len(group)} readings, " + ("all 0" if brightest == 0 else f"the largest {brightest:.3g}")
+            raise TaskError(path, f"phase_deg {phase:g}", found,
+                            f"a reflectance of at least {BRIGHTEST_MIN:g} at each phase angle (nothing to fit)")
     return [Measurements(phase, *np.array(groups[phase]).T) for phase in sorted(groups)]
 
 
@@ -258,7 +268,8 @@ def fit_phase(m):
     """Fit eq. (7) to the Measurements at one phase angle; the model (diffuse, + lobe, + spike)
     is the smallest the F-tests allow."""
     geometry = tuple(np.cos(np.radians(a)) for a in (m.theta_i_deg, m.theta_e_deg, m.phase_deg))
-    y, n = m.reflectance, len(m.reflectance)
+    scale = float(m.reflectance.max()) or 1.0
+    y, n = m.reflectance / scale, len(m.reflectance)
     w = np.maximum(y, DARK_FRACTION * y.max()) if y.max() > 0 else np.ones(n)
     diffuse, _, _ = brdf_terms(*geometry, 0.0, 1.0, 0.0, 1.0)
     powers = [brdf_terms(*geometry, 1.0, np.exp(g), 0.0, 1.0)[1] for g in LN_M_GRID] + [diffuse]
@@ -273,7 +284,8 @@ def fit_phase(m):
     jac_w = reflectance_jacobian(*geometry, *params)[:, :k] / w[:, None]
     stderr = np.concatenate([_stderr(jac_w, rss, n - k), np.full(len(PARAMETERS) - k, np.inf)])
     rms = float(np.sqrt(np.mean((reflectance(*geometry, *params) - y) ** 2)))
-    return PhaseFit(float(m.phase_deg), n, params, stderr, rms, p_values, TERMS[terms:])
+    unit = np.array([scale, 1.0, 1.0, 1.0, 1.0])                 # rho in the readings' units
+    return PhaseFit(float(m.phase_deg), n, params * unit, stderr * unit, rms * scale, p_values, TERMS[terms:])
 
 
 def fit_material(groups):

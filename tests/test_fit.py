@@ -1,6 +1,7 @@
 """The BRDF fitter (`cell fit-brdf`, sec. 3.3): it recovers parameters it generated, says when a
 term is absent instead of fitting noise, writes a material the loader reads back, and turns every
 broken CSV into one line with exit code 2."""
+import dataclasses
 import json
 import os
 import signal
@@ -12,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from hypothesis import given, settings, strategies as st
+from hypothesis import assume, given, settings, strategies as st
 
 from cell import cli, fit
 from cell.loader import load_material
@@ -134,16 +135,33 @@ def test_exponents_of_an_absent_spike_follow_the_neighbouring_phase_and_stay_abo
 
 
 @settings(max_examples=30, deadline=None, derandomize=True)
-@given(readings=st.lists(st.floats(0.0, 1e3), min_size=fit.MIN_ROWS, max_size=fit.MIN_ROWS),
+@given(readings=st.lists(st.floats(0.0, fit.REFLECTANCE_MAX), min_size=fit.MIN_ROWS, max_size=fit.MIN_ROWS),
        phase=st.sampled_from([0.0, 30.0, 80.0]))
 def test_any_valid_data_give_finite_parameters_and_a_loadable_material(tmp_path_factory, readings, phase):
+    """Valid: what read_goniometer accepts; the fit warns of nothing (a warning is an error here)."""
+    assume(max(readings) >= fit.BRIGHTEST_MIN)
     data = goniometer(ALUMINIUM, phase)
     groups = [fit.Measurements(phase, data.theta_i_deg[:6], data.theta_e_deg[:6], np.array(readings))]
-    fits = fit.fit_material(groups)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fits = fit.fit_material(groups)
     assert np.isfinite(fits[0].params).all() and not np.isnan(fits[0].stderr).any()
     path = tmp_path_factory.mktemp("m") / "m.yaml"
     path.write_text(yaml.safe_dump(fit.material_document(fits, "x", "y")))
     load_material(path)
+
+
+@pytest.mark.parametrize("scale", [1e-90, 1e90])
+def test_the_fit_is_the_same_at_any_scale_of_the_readings(scale):
+    data = goniometer(ALUMINIUM, 20.0, seed=3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scaled = fit.fit_phase(dataclasses.replace(data, reflectance=data.reflectance * scale))
+    unit = fit.fit_phase(data)
+    per_unit = np.array([scale, 1, 1, 1, 1])
+    np.testing.assert_allclose(scaled.params / per_unit, unit.params, rtol=1e-6)
+    np.testing.assert_allclose(scaled.stderr / per_unit, unit.stderr, rtol=1e-6)
+    assert scaled.rms_residual / scale == pytest.approx(unit.rms_residual, rel=1e-6)
 
 
 # --- the command ---
@@ -225,7 +243,12 @@ BROKEN = [
     pytest.param(GOOD.replace("0.3", "nan"), "line 4, reflectance", "a finite number", id="nan"),
     pytest.param(GOOD.replace("0.3", "-inf"), "line 4, reflectance", "a finite number", id="inf"),
     pytest.param(GOOD.replace("12,14", "nan,14"), "line 4, theta_i_deg", "a finite number", id="nan-angle"),
-    pytest.param(GOOD.replace("0.3", "-0.3"), "line 4, reflectance", ">= 0", id="negative"),
+    pytest.param(GOOD.replace("0.3", "-0.3"), "line 4, reflectance", "in [0, 1e+100]", id="negative"),
+    pytest.param(GOOD.replace("0.3", "1e300"), "line 4, reflectance", "found '1e300', expected a reflectance in "
+                 "[0, 1e+100]", id="huge"),
+    pytest.param(GOOD.replace(",20,0.", ",20,0e"), "phase_deg 20", "found 6 readings, all 0, expected a reflectance "
+                 "of at least 1e-100 at each phase angle (nothing to fit)", id="all-zero"),
+    pytest.param(GOOD.replace(",20,0.", ",20,1e-10"), "phase_deg 20", "found 6 readings, the largest 1e-101", id="all-dark"),
     pytest.param(GOOD.replace("12,14,20,", "12,14,,"), "line 4, phase_deg", "empty field", id="empty-field"),
     pytest.param(GOOD.replace("12,14,20,0.3", "12,14,20"), "line 4", "3 fields", id="short-row"),
     pytest.param(GOOD.replace("12,14", "95,14"), "line 4, theta_i_deg", "[0, 90)", id="lamp-behind"),
