@@ -38,6 +38,7 @@ LN_M_GRID = np.linspace(0.0, LN_M_MAX, 21)   # multi-start grid: factor 1.78 bet
 STARTS = 3                              # best grid points refined by nonlinear least squares
 RHO_MIN = 1e-9                          # rho > 0 (loader), in units of the phase's largest reading;
                                         # binds only without a diffuse background
+SIGMA_MAX = 1e12                        # a term 1e12 times the diffuse: the data never sampled its peak
 SIGNIFICANCE = 1e-3                     # F-test level for keeping a specular term
 DARK_FRACTION = 1e-3
 RESIDUAL_FLOOR = 1e-6                   # relative error no goniometer beats (noise-free data)
@@ -210,16 +211,18 @@ def _physical(x):
 
 def _grid_starts(terms, y, w, powers):
     """(weighted RSS, fit vector) per grid exponent pair; for fixed m_k, R is linear in
-    (rho, rho sigma1, rho sigma2), solved by non-negative least squares."""
+    (rho, rho sigma1, rho sigma2), solved by non-negative least squares, then held in the bounds."""
     n = len(LN_M_GRID)
     pairs = ([()] if terms == 0 else [(a,) for a in range(n)] if terms == 1 else
              [(a, b) for a in range(n) for b in range(a + 2, n)])   # m2 >= 3 m1
     for ks in pairs:
         a = np.column_stack([powers[-1]] + [powers[k] for k in ks]) / w[:, None]
-        coef, norm = optimize.nnls(a, y / w)
+        coef, _ = optimize.nnls(a, y / w)
         rho = max(coef[0], RHO_MIN)
-        x0 = [rho] + [v for c, k in zip(coef[1:], ks) for v in (c / rho, LN_M_GRID[k])]
-        yield norm**2, np.array(x0)
+        with np.errstate(over="ignore"):         # a column ~0 at every row: a huge coefficient, clipped
+            sigmas = np.minimum(coef[1:] / rho, SIGMA_MAX)
+        x0 = [rho] + [v for sigma, k in zip(sigmas, ks) for v in (sigma, LN_M_GRID[k])]
+        yield np.sum((a @ np.concatenate([[rho], rho * sigmas]) - y / w) ** 2), np.array(x0)
 
 
 def _fit_terms(geometry, y, w, terms, powers):
@@ -237,7 +240,7 @@ def _fit_terms(geometry, y, w, terms, powers):
         return j[:, :k] / w[:, None]
 
     lower = np.array([RHO_MIN, 0.0, 0.0, 0.0, 0.0])[:k]
-    upper = np.array([np.inf, np.inf, LN_M_MAX, np.inf, LN_M_MAX])[:k]
+    upper = np.array([np.inf, SIGMA_MAX, LN_M_MAX, SIGMA_MAX, LN_M_MAX])[:k]
     starts = sorted(_grid_starts(terms, y, w, powers), key=lambda s: s[0])[:STARTS]
     best = min((optimize.least_squares(residual, x0, jac=jacobian, bounds=(lower, upper), method="trf",
                                        x_scale="jac") for _, x0 in starts), key=lambda r: r.cost)

@@ -151,6 +151,33 @@ def test_any_valid_data_give_finite_parameters_and_a_loadable_material(tmp_path_
     load_material(path)
 
 
+@st.composite
+def any_goniometer(draw):
+    """Measurements read_goniometer accepts: one phase angle, lamp and camera in front, the
+    spherical triangle closed, readings anywhere in [0, REFLECTANCE_MAX] (no structure at all)."""
+    phase = draw(st.floats(0.0, 179.0))
+    front = 89.999
+    rows = []
+    for _ in range(draw(st.integers(fit.MIN_ROWS, 40))):
+        ti = draw(st.floats(max(0.0, phase - front), front))
+        rows.append((ti, draw(st.floats(abs(phase - ti), min(phase + ti, front)))))
+    readings = draw(st.lists(st.one_of(st.just(0.0), log_uniform(fit.BRIGHTEST_MIN, fit.REFLECTANCE_MAX),
+                                       st.floats(0.0, 1.0)), min_size=len(rows), max_size=len(rows)))
+    assume(max(readings) >= fit.BRIGHTEST_MIN)
+    ti, te = np.array(rows).T
+    return fit.Measurements(phase, ti, te, np.array(readings))
+
+
+@settings(max_examples=60, deadline=None, derandomize=True)
+@given(data=any_goniometer())
+def test_any_geometry_and_readings_fit_without_a_warning(data):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        f = fit.fit_material([data])[0]
+    assert np.isfinite(f.params).all() and f.params[0] > 0 and f.params[[1, 3]].max() <= fit.SIGMA_MAX
+    assert np.isfinite(f.rms_residual) and not np.isnan(f.stderr).any()
+
+
 @pytest.mark.parametrize("scale", [1e-90, 1e90])
 def test_the_fit_is_the_same_at_any_scale_of_the_readings(scale):
     data = goniometer(ALUMINIUM, 20.0, seed=3)
