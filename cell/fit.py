@@ -48,7 +48,7 @@ PHASES_MAX = 1_000                      # phase angles fitted at most, ~0.04 s e
 SHOWN_CHARS = 80                        # an error line quotes at most this much of a value
 REFLECTANCE_MAX = 1e100                 # far above any reading (a mirror through a 0.01 deg aperture: ~1e7)
 BRIGHTEST_MIN = 1e-100                  # each phase's largest reading at least this; with REFLECTANCE_MAX,
-                                        # rho, its stderr and the residual stay finite and > 0 when scaled back
+                                        # rho, its stderr and the residual scaled back stay finite and > 0
 
 
 @dataclass(frozen=True)
@@ -126,8 +126,9 @@ def _csv_rows(path, text):
         for row in reader:
             if any(x.strip() for x in row):
                 if len(rows) > ROWS_MAX:
-                    raise TaskError(path, _lines(last + 1, reader.line_num), f"more than {ROWS_MAX:,} data rows",
-                                    f"at most {ROWS_MAX:,} (cell.fit.ROWS_MAX; the fit takes ~1 s per 10,000)")
+                    where = _lines(last + 1, reader.line_num)
+                    raise TaskError(path, where, f"more than {ROWS_MAX:,} data rows",
+                                    f"at most {ROWS_MAX:,} (cell.fit.ROWS_MAX; fitting takes ~1 s per 10,000)")
                 rows.append((_lines(last + 1, reader.line_num), row))
             last = reader.line_num
     except csv.Error as err:
@@ -165,11 +166,13 @@ def read_goniometer(path):
     twice = next((h for i, h in enumerate(header) if h and h in header[:i]), None)
     if twice is not None:
         fields = ", ".join(str(i + 1) for i, h in enumerate(header) if h == twice)
-        raise TaskError(path, where, f"the column {shown(twice)} in fields {fields}", "each column named once")
+        raise TaskError(path, where, f"the column {shown(twice)} in fields {fields}",
+                        "each column named once")
     angle = (lambda v: 0 <= v < 90, "an angle in [0, 90) deg (lamp and camera in front of the surface)")
     checks = {"theta_i_deg": angle, "theta_e_deg": angle,
               "phase_deg": (lambda v: 0 <= v <= 180, "an angle in [0, 180] deg"),
-              "reflectance": (lambda v: 0 <= v <= REFLECTANCE_MAX, f"a reflectance in [0, {REFLECTANCE_MAX:g}]")}
+              "reflectance": (lambda v: 0 <= v <= REFLECTANCE_MAX,
+                              f"a reflectance in [0, {REFLECTANCE_MAX:g}]")}
     groups = {}
     for where, row in rows[1:]:
         if len(row) != len(header):
@@ -192,9 +195,10 @@ def read_goniometer(path):
                             f"at least {MIN_ROWS} rows per phase angle (5 parameters and a residual)")
         brightest = max(r for _, _, r in group)
         if brightest < BRIGHTEST_MIN:
-            found = f"{len(group)} readings, " + ("all 0" if brightest == 0 else f"the largest {brightest:.3g}")
-            raise TaskError(path, f"phase_deg {phase:g}", found,
-                            f"a reflectance of at least {BRIGHTEST_MIN:g} at each phase angle (nothing to fit)")
+            found = "all 0" if brightest == 0 else f"the largest {brightest:.3g}"
+            raise TaskError(path, f"phase_deg {phase:g}", f"{len(group)} readings, {found}",
+                            f"a reflectance of at least {BRIGHTEST_MIN:g} at each phase angle "
+                            "(nothing to fit)")
     return [Measurements(phase, *np.array(groups[phase]).T) for phase in sorted(groups)]
 
 

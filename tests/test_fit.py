@@ -271,18 +271,19 @@ BROKEN = [
     pytest.param(GOOD.replace("0.3", "-inf"), "line 4, reflectance", "a finite number", id="inf"),
     pytest.param(GOOD.replace("12,14", "nan,14"), "line 4, theta_i_deg", "a finite number", id="nan-angle"),
     pytest.param(GOOD.replace("0.3", "-0.3"), "line 4, reflectance", "in [0, 1e+100]", id="negative"),
-    pytest.param(GOOD.replace("0.3", "1e300"), "line 4, reflectance", "found '1e300', expected a reflectance in "
-                 "[0, 1e+100]", id="huge"),
-    pytest.param(GOOD.replace(",20,0.", ",20,0e"), "phase_deg 20", "found 6 readings, all 0, expected a reflectance "
-                 "of at least 1e-100 at each phase angle (nothing to fit)", id="all-zero"),
-    pytest.param(GOOD.replace(",20,0.", ",20,1e-10"), "phase_deg 20", "found 6 readings, the largest 1e-101", id="all-dark"),
+    pytest.param(GOOD.replace("0.3", "1e300"), "line 4, reflectance",
+                 "found '1e300', expected a reflectance in [0, 1e+100]", id="huge"),
+    pytest.param(GOOD.replace(",20,0.", ",20,0e"), "phase_deg 20", "found 6 readings, all 0, expected a "
+                 "reflectance of at least 1e-100 at each phase angle (nothing to fit)", id="all-zero"),
+    pytest.param(GOOD.replace(",20,0.", ",20,1e-10"), "phase_deg 20", "found 6 readings, the largest 1e-101",
+                 id="all-dark"),
     pytest.param(GOOD.replace("12,14,20,", "12,14,,"), "line 4, phase_deg", "empty field", id="empty-field"),
     pytest.param(GOOD.replace("12,14,20,0.3", "12,14,20"), "line 4", "3 fields", id="short-row"),
     pytest.param(GOOD.replace("12,14", "95,14"), "line 4, theta_i_deg", "[0, 90)", id="lamp-behind"),
-    pytest.param(GOOD.replace("12,14", "-2,14"), "line 4, theta_i_deg", "found '-2', expected an angle in [0, 90)",
-                 id="negative-theta-i"),
-    pytest.param(GOOD.replace("12,14", "12,-14"), "line 4, theta_e_deg", "found '-14', expected an angle in [0, 90)",
-                 id="negative-theta-e"),
+    pytest.param(GOOD.replace("12,14", "-2,14"), "line 4, theta_i_deg",
+                 "found '-2', expected an angle in [0, 90)", id="negative-theta-i"),
+    pytest.param(GOOD.replace("12,14", "12,-14"), "line 4, theta_e_deg",
+                 "found '-14', expected an angle in [0, 90)", id="negative-theta-e"),
     pytest.param(GOOD.replace("12,14,20", "12,14,-20"), "line 4, phase_deg", "[0, 180]", id="negative-phase"),
     pytest.param(GOOD.replace("12,14,20", "12,14,200"), "line 4, phase_deg", "[0, 180]", id="phase-over-180"),
     pytest.param(GOOD.replace("12,14,20", "12,40,20"), "line 4", "spherical triangle",
@@ -295,7 +296,8 @@ BROKEN = [
                  "found '0.1\\nxxx", id="unclosed-quote"),
     pytest.param(GOOD + '10,12,20,"0.1\n' + "x" * 200_000 + "\n", "line 8", "field larger than field limit",
                  id="unclosed-quote-past-the-csv-field-limit"),
-    pytest.param('"' + GOOD, "lines 1-7 (header)", "columns 'theta_i_deg,theta_e_deg,", id="unclosed-quote-header"),
+    pytest.param('"' + GOOD, "lines 1-7 (header)", "columns 'theta_i_deg,theta_e_deg,",
+                 id="unclosed-quote-header"),
 ]
 
 
@@ -334,18 +336,58 @@ def test_a_csv_over_the_size_limit_is_refused_unread(tmp_path, capsys, monkeypat
     monkeypatch.setattr(fit, "CSV_LIMIT_BYTES", len(GOOD) - 1)
     path = tmp_path / "data.csv"
     path.write_text(GOOD)
-    assert (f"{path}: found {len(GOOD)} bytes, expected a goniometer CSV file of at most {len(GOOD) - 1} bytes "
-            "(cell.fit.CSV_LIMIT_BYTES)") in refused(capsys, path)
+    assert (f"{path}: found {len(GOOD)} bytes, expected a goniometer CSV file of at most {len(GOOD) - 1} "
+            "bytes (cell.fit.CSV_LIMIT_BYTES)") in refused(capsys, path)
 
 
 def test_too_many_rows_or_phase_angles_are_refused_before_the_fit(tmp_path, capsys, monkeypatch):
     path = tmp_path / "data.csv"
     path.write_text(GOOD + GOOD.split("\n", 1)[1].replace(",20,", ",21,"))
     monkeypatch.setattr(fit, "PHASES_MAX", 1)
-    assert f"{path}: phase_deg: found 2 phase angles, expected at most 1 (cell.fit.PHASES_MAX" in refused(capsys, path)
+    assert f"{path}: phase_deg: found 2 phase angles, expected at most 1 (cell.fit.PHASES_MAX" \
+        in refused(capsys, path)
     monkeypatch.setattr(fit, "ROWS_MAX", 11)
     assert f"{path}: line 13: found more than 11 data rows, expected at most 11 (cell.fit.ROWS_MAX" \
         in refused(capsys, path)
+
+
+@pytest.fixture
+def no_fit(monkeypatch):
+    """`--out` is checked before the fit: fitting is an error here."""
+    def fit_material(groups):
+        raise AssertionError("fitted before refusing --out")
+    monkeypatch.setattr("cell.cli.fit_brdf.fit_material", fit_material)
+
+
+@pytest.mark.parametrize("out, says", [
+    ("{tmp}", "{tmp} (a folder), expected a material file to write"),
+    ("/proc/m.yaml", "/proc/m.yaml (no file can be created in /proc: "),
+    ("{tmp}/no/m.yaml", "{tmp}/no/m.yaml (no folder {tmp}/no)"),
+    ("{tmp}/data.csv/m.yaml", "(Not a directory)"),
+    ("/dev/null", "/dev/null (not a regular file)"),
+], ids=["folder", "proc", "no-folder", "under-a-file", "device"])
+def test_an_unwritable_out_is_refused_before_the_fit(tmp_path, capsys, no_fit, out, says):
+    data = tmp_path / "data.csv"
+    data.write_text(GOOD)
+    out, says = (x.replace("{tmp}", str(tmp_path)) for x in (out, says))
+    err = refused(capsys, data, "--out", out)
+    assert err.startswith("cell fit-brdf: command line: --out: found ") and says in err
+
+
+@pytest.mark.parametrize("alias", ["same", "dotdot", "symlink", "hardlink"])
+def test_out_is_never_the_csv_itself(tmp_path, capsys, no_fit, alias):
+    data = tmp_path / "data.csv"
+    data.write_text(GOOD)
+    out = {"same": data, "dotdot": tmp_path / "." / ".." / tmp_path.name / "data.csv",
+           "symlink": tmp_path / "m.yaml", "hardlink": tmp_path / "m.yaml"}[alias]
+    if alias == "symlink":
+        out.symlink_to(data)
+    elif alias == "hardlink":
+        os.link(data, out)
+    err = refused(capsys, data, "--out", out)
+    assert f"--out: found {out} (the goniometer CSV itself), expected a material file other than the data" \
+        in err
+    assert data.read_text() == GOOD
 
 
 def test_the_good_csv_of_the_broken_cases_fits(tmp_path, capsys):
