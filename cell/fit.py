@@ -12,10 +12,13 @@ too, with the Jacobian including rho as the physics notes require.) Two degenera
   errors, and its phase angle is listed under `unidentifiable`.
 Residuals are relative, (R - y) / y: readings span the spike's peak and the diffuse background
 (often 1000:1) and their error grows with the reading; readings under DARK_FRACTION of the phase's
-largest are weighted as if they were that large (dark level).
+largest are weighted as if they were that large (dark level). R is linear in rho, so each phase is
+fitted in units of its largest reading: the fit is the same at any scale of the readings.
 """
 import csv
 import dataclasses
+import io
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,10 +36,19 @@ TRIANGLE_TOLERANCE_DEG = 1e-6
 LN_M_MAX = np.log(1e5)                  # exponents in [1, 1e5], where stable_power is accurate
 LN_M_GRID = np.linspace(0.0, LN_M_MAX, 21)   # multi-start grid: factor 1.78 between exponents
 STARTS = 3                              # best grid points refined by nonlinear least squares
-RHO_MIN = 1e-9                          # rho > 0 (loader); binds only without a diffuse background
+RHO_MIN = 1e-9                          # rho > 0 (loader), in units of the phase's largest reading;
+                                        # binds only without a diffuse background
+SIGMA_MAX = 1e12                        # a term 1e12 times the diffuse: the data never sampled its peak
 SIGNIFICANCE = 1e-3                     # F-test level for keeping a specular term
 DARK_FRACTION = 1e-3
 RESIDUAL_FLOOR = 1e-6                   # relative error no goniometer beats (noise-free data)
+CSV_LIMIT_BYTES = 50_000_000            # a goniometer CSV is far smaller; /dev/zero is refused, not read
+ROWS_MAX = 100_000                      # data rows read at most: the fit takes ~1 s per 10,000 rows
+PHASES_MAX = 1_000                      # phase angles fitted at most, ~0.04 s each
+SHOWN_CHARS = 80                        # an error line quotes at most this much of a value
+REFLECTANCE_MAX = 1e100                 # far above any reading (a mirror through a 0.01 deg aperture: ~1e7)
+BRIGHTEST_MIN = 1e-100                  # each phase's largest reading at least this; with REFLECTANCE_MAX,
+                                        # rho, its stderr and the residual scaled back stay finite and > 0
 
 
 @dataclass(frozen=True)
@@ -64,66 +76,129 @@ class PhaseFit:
 
 # --- reading the CSV ---
 
-def _csv_rows(path):
-    """(line number, fields) of each non-blank row of a CSV file."""
+def read_limited_text(path, limit_bytes, what, *, limit_name=None):
+    """The UTF-8 text of the regular file at path, at most limit_bytes long; anything else (missing,
+    a folder, a device or named pipe, too large, not UTF-8) is a TaskError naming `what`. The file's
+    type is checked before it is opened: /dev/zero would fill memory and a FIFO would block."""
+    path = Path(path)
     try:
-        with path.open(newline="", encoding="utf-8-sig") as f:
-            reader = csv.reader(f)
-            return [(reader.line_num, row) for row in reader if any(x.strip() for x in row)]
+        info = path.stat()
     except OSError as err:
-        raise TaskError(path, "", f"an unreadable file ({err.strerror})", "a readable CSV file") from None
-    except UnicodeDecodeError:
-        raise TaskError(path, "", "bytes that are not UTF-8 text", "a CSV text file") from None
+        raise TaskError(path, "", f"an unreadable file ({err.strerror})", f"a readable {what} file") from None
+    mode, size = info.st_mode, info.st_size
+    if not stat.S_ISREG(mode):
+        kind = ("a folder" if stat.S_ISDIR(mode) else "a named pipe (FIFO)" if stat.S_ISFIFO(mode) else
+                "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "not a regular file")
+        raise TaskError(path, "", kind, f"a regular {what} file")
+    limit = f"a {what} file of at most {limit_bytes:,} bytes" + (f" ({limit_name})" if limit_name else "")
+    try:
+        with path.open("rb") as f:
+            data = f.read(limit_bytes + 1)       # a file growing since stat() is cut here
+    except OSError as err:
+        raise TaskError(path, "", f"an unreadable file ({err.strerror})", f"a readable {what} file") from None
+    if max(size, len(data)) > limit_bytes:
+        raise TaskError(path, "", f"{max(size, len(data)):,} bytes", limit)
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as err:
+        line = data.count(b"\n", 0, err.start) + 1
+        raise TaskError(path, f"line {line}", f"bytes that are not UTF-8 text (0x{data[err.start]:02x})",
+                        f"a {what} file in UTF-8") from None
+
+
+def shown(text):
+    """A value as an error line shows it: quoted, at most SHOWN_CHARS characters of it, '...' after."""
+    text = text.strip()
+    if not text:
+        return "an empty field"
+    return repr(text[:SHOWN_CHARS]) + ("..." if len(text) > SHOWN_CHARS else "")
+
+
+def _lines(first, last):
+    """Where a row is: a quoted field may hold line breaks (an unclosed quote runs on to the end)."""
+    return f"line {first}" if first == last else f"lines {first}-{last}"
+
+
+def _csv_rows(path, text):
+    """(where, fields) of each non-blank row of CSV text, at most ROWS_MAX + 1 of them (the header)."""
+    reader, rows, last = csv.reader(io.StringIO(text, newline="")), [], 0
+    try:
+        for row in reader:
+            if any(x.strip() for x in row):
+                if len(rows) > ROWS_MAX:
+                    where = _lines(last + 1, reader.line_num)
+                    raise TaskError(path, where, f"more than {ROWS_MAX:,} data rows",
+                                    f"at most {ROWS_MAX:,} (cell.fit.ROWS_MAX; fitting takes ~1 s per 10,000)")
+                rows.append((_lines(last + 1, reader.line_num), row))
+            last = reader.line_num
     except csv.Error as err:
-        raise TaskError(path, "", f"broken CSV ({err})", "a CSV text file") from None
+        raise TaskError(path, f"line {last + 1}", f"broken CSV ({err})", "CSV text") from None
+    return rows
 
 
-def _cell(path, line, column, text, ok, expected):
+def _cell(path, where, column, text, ok, expected):
     """One field as a finite float passing ok."""
-    where, shown = f"line {line}, {column}", repr(text.strip()) if text.strip() else "an empty field"
+    where, found = f"{where}, {column}", shown(text)
     try:
         value = float(text)
     except ValueError:
-        raise TaskError(path, where, shown, "a number") from None
+        raise TaskError(path, where, found, "a number") from None
     if not np.isfinite(value):
-        raise TaskError(path, where, shown, "a finite number")
+        raise TaskError(path, where, found, "a finite number")
     if not ok(value):
-        raise TaskError(path, where, shown, expected)
+        raise TaskError(path, where, found, expected)
     return value
 
 
 def read_goniometer(path):
     """The CSV's rows grouped by phase angle (ascending); any bad field, row or group is a TaskError."""
     path = Path(path)
-    rows = _csv_rows(path)
+    rows = _csv_rows(path, read_limited_text(path, CSV_LIMIT_BYTES, "goniometer CSV",
+                                             limit_name="cell.fit.CSV_LIMIT_BYTES"))
     if not rows:
         raise TaskError(path, "", "an empty file", "a header " + ",".join(COLUMNS) + " and data rows")
     header = [h.strip() for h in rows[0][1]]
+    where = f"{rows[0][0]} (header)"
     missing = [c for c in COLUMNS if c not in header]
     if missing:
-        raise TaskError(path, f"line {rows[0][0]} (header)", "columns " + ",".join(header),
+        raise TaskError(path, where, "columns " + shown(",".join(header)),
                         f"the columns {','.join(COLUMNS)} (missing {', '.join(missing)})")
+    twice = next((h for i, h in enumerate(header) if h and h in header[:i]), None)
+    if twice is not None:
+        fields = ", ".join(str(i + 1) for i, h in enumerate(header) if h == twice)
+        raise TaskError(path, where, f"the column {shown(twice)} in fields {fields}",
+                        "each column named once")
     angle = (lambda v: 0 <= v < 90, "an angle in [0, 90) deg (lamp and camera in front of the surface)")
     checks = {"theta_i_deg": angle, "theta_e_deg": angle,
               "phase_deg": (lambda v: 0 <= v <= 180, "an angle in [0, 180] deg"),
-              "reflectance": (lambda v: v >= 0, "a reflectance >= 0")}
+              "reflectance": (lambda v: 0 <= v <= REFLECTANCE_MAX,
+                              f"a reflectance in [0, {REFLECTANCE_MAX:g}]")}
     groups = {}
-    for line, row in rows[1:]:
+    for where, row in rows[1:]:
         if len(row) != len(header):
-            raise TaskError(path, f"line {line}", f"{len(row)} fields", f"{len(header)}, as in the header")
-        ti, te, phase, r = (_cell(path, line, c, row[header.index(c)], *checks[c]) for c in COLUMNS)
+            raise TaskError(path, where, f"{len(row)} fields", f"{len(header)}, as in the header")
+        ti, te, phase, r = (_cell(path, where, c, row[header.index(c)], *checks[c]) for c in COLUMNS)
         if not abs(ti - te) - TRIANGLE_TOLERANCE_DEG <= phase <= ti + te + TRIANGLE_TOLERANCE_DEG:
             found = f"theta_i {ti:.10g}, theta_e {te:.10g}, phase {phase:.10g} deg"
-            raise TaskError(path, f"line {line}", found,
+            raise TaskError(path, where, found,
                             "|theta_i - theta_e| <= phase <= theta_i + theta_e (lamp, camera and normal "
                             "form a spherical triangle)")
         groups.setdefault(phase, []).append((ti, te, r))
     if not groups:
         raise TaskError(path, "", "a header but no data rows", "one row per measurement")
+    if len(groups) > PHASES_MAX:
+        raise TaskError(path, "phase_deg", f"{len(groups):,} phase angles",
+                        f"at most {PHASES_MAX:,} (cell.fit.PHASES_MAX; one fit each)")
     for phase, group in groups.items():
         if len(group) < MIN_ROWS:
             raise TaskError(path, f"phase_deg {phase:g}", f"{len(group)} rows",
                             f"at least {MIN_ROWS} rows per phase angle (5 parameters and a residual)")
+        brightest = max(r for _, _, r in group)
+        if brightest < BRIGHTEST_MIN:
+            found = "all 0" if brightest == 0 else f"the largest {brightest:.3g}"
+            raise TaskError(path, f"phase_deg {phase:g}", f"{len(group)} readings, {found}",
+                            f"a reflectance of at least {BRIGHTEST_MIN:g} at each phase angle "
+                            "(nothing to fit)")
     return [Measurements(phase, *np.array(groups[phase]).T) for phase in sorted(groups)]
 
 
@@ -140,16 +215,18 @@ def _physical(x):
 
 def _grid_starts(terms, y, w, powers):
     """(weighted RSS, fit vector) per grid exponent pair; for fixed m_k, R is linear in
-    (rho, rho sigma1, rho sigma2), solved by non-negative least squares."""
+    (rho, rho sigma1, rho sigma2), solved by non-negative least squares, then held in the bounds."""
     n = len(LN_M_GRID)
     pairs = ([()] if terms == 0 else [(a,) for a in range(n)] if terms == 1 else
              [(a, b) for a in range(n) for b in range(a + 2, n)])   # m2 >= 3 m1
     for ks in pairs:
         a = np.column_stack([powers[-1]] + [powers[k] for k in ks]) / w[:, None]
-        coef, norm = optimize.nnls(a, y / w)
+        coef, _ = optimize.nnls(a, y / w)
         rho = max(coef[0], RHO_MIN)
-        x0 = [rho] + [v for c, k in zip(coef[1:], ks) for v in (c / rho, LN_M_GRID[k])]
-        yield norm**2, np.array(x0)
+        with np.errstate(over="ignore"):         # a column ~0 at every row: a huge coefficient, clipped
+            sigmas = np.minimum(coef[1:] / rho, SIGMA_MAX)
+        x0 = [rho] + [v for sigma, k in zip(sigmas, ks) for v in (sigma, LN_M_GRID[k])]
+        yield np.sum((a @ np.concatenate([[rho], rho * sigmas]) - y / w) ** 2), np.array(x0)
 
 
 def _fit_terms(geometry, y, w, terms, powers):
@@ -167,7 +244,7 @@ def _fit_terms(geometry, y, w, terms, powers):
         return j[:, :k] / w[:, None]
 
     lower = np.array([RHO_MIN, 0.0, 0.0, 0.0, 0.0])[:k]
-    upper = np.array([np.inf, np.inf, LN_M_MAX, np.inf, LN_M_MAX])[:k]
+    upper = np.array([np.inf, SIGMA_MAX, LN_M_MAX, SIGMA_MAX, LN_M_MAX])[:k]
     starts = sorted(_grid_starts(terms, y, w, powers), key=lambda s: s[0])[:STARTS]
     best = min((optimize.least_squares(residual, x0, jac=jacobian, bounds=(lower, upper), method="trf",
                                        x_scale="jac") for _, x0 in starts), key=lambda r: r.cost)
@@ -198,7 +275,8 @@ def fit_phase(m):
     """Fit eq. (7) to the Measurements at one phase angle; the model (diffuse, + lobe, + spike)
     is the smallest the F-tests allow."""
     geometry = tuple(np.cos(np.radians(a)) for a in (m.theta_i_deg, m.theta_e_deg, m.phase_deg))
-    y, n = m.reflectance, len(m.reflectance)
+    scale = float(m.reflectance.max()) or 1.0
+    y, n = m.reflectance / scale, len(m.reflectance)
     w = np.maximum(y, DARK_FRACTION * y.max()) if y.max() > 0 else np.ones(n)
     diffuse, _, _ = brdf_terms(*geometry, 0.0, 1.0, 0.0, 1.0)
     powers = [brdf_terms(*geometry, 1.0, np.exp(g), 0.0, 1.0)[1] for g in LN_M_GRID] + [diffuse]
@@ -213,7 +291,8 @@ def fit_phase(m):
     jac_w = reflectance_jacobian(*geometry, *params)[:, :k] / w[:, None]
     stderr = np.concatenate([_stderr(jac_w, rss, n - k), np.full(len(PARAMETERS) - k, np.inf)])
     rms = float(np.sqrt(np.mean((reflectance(*geometry, *params) - y) ** 2)))
-    return PhaseFit(float(m.phase_deg), n, params, stderr, rms, p_values, TERMS[terms:])
+    unit = np.array([scale, 1.0, 1.0, 1.0, 1.0])                 # rho in the readings' units
+    return PhaseFit(float(m.phase_deg), n, params * unit, stderr * unit, rms * scale, p_values, TERMS[terms:])
 
 
 def fit_material(groups):

@@ -1,15 +1,19 @@
 """The BRDF fitter (`cell fit-brdf`, sec. 3.3): it recovers parameters it generated, says when a
 term is absent instead of fitting noise, writes a material the loader reads back, and turns every
 broken CSV into one line with exit code 2."""
+import dataclasses
 import json
+import os
+import signal
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
-from hypothesis import given, settings, strategies as st
+from hypothesis import assume, given, settings, strategies as st
 
 from cell import cli, fit
 from cell.loader import load_material
@@ -131,16 +135,60 @@ def test_exponents_of_an_absent_spike_follow_the_neighbouring_phase_and_stay_abo
 
 
 @settings(max_examples=30, deadline=None, derandomize=True)
-@given(readings=st.lists(st.floats(0.0, 1e3), min_size=fit.MIN_ROWS, max_size=fit.MIN_ROWS),
+@given(readings=st.lists(st.floats(0.0, fit.REFLECTANCE_MAX), min_size=fit.MIN_ROWS, max_size=fit.MIN_ROWS),
        phase=st.sampled_from([0.0, 30.0, 80.0]))
 def test_any_valid_data_give_finite_parameters_and_a_loadable_material(tmp_path_factory, readings, phase):
+    """Valid: what read_goniometer accepts; the fit warns of nothing (a warning is an error here)."""
+    assume(max(readings) >= fit.BRIGHTEST_MIN)
     data = goniometer(ALUMINIUM, phase)
     groups = [fit.Measurements(phase, data.theta_i_deg[:6], data.theta_e_deg[:6], np.array(readings))]
-    fits = fit.fit_material(groups)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fits = fit.fit_material(groups)
     assert np.isfinite(fits[0].params).all() and not np.isnan(fits[0].stderr).any()
     path = tmp_path_factory.mktemp("m") / "m.yaml"
     path.write_text(yaml.safe_dump(fit.material_document(fits, "x", "y")))
     load_material(path)
+
+
+@st.composite
+def any_goniometer(draw):
+    """Measurements read_goniometer accepts: one phase angle, lamp and camera in front, the
+    spherical triangle closed, readings anywhere in [0, REFLECTANCE_MAX] (no structure at all)."""
+    phase = draw(st.floats(0.0, 179.0))
+    front = 89.999
+    rows = []
+    for _ in range(draw(st.integers(fit.MIN_ROWS, 40))):
+        ti = draw(st.floats(max(0.0, phase - front), front))
+        rows.append((ti, draw(st.floats(abs(phase - ti), min(phase + ti, front)))))
+    readings = draw(st.lists(st.one_of(st.just(0.0), log_uniform(fit.BRIGHTEST_MIN, fit.REFLECTANCE_MAX),
+                                       st.floats(0.0, 1.0)), min_size=len(rows), max_size=len(rows)))
+    assume(max(readings) >= fit.BRIGHTEST_MIN)
+    ti, te = np.array(rows).T
+    return fit.Measurements(phase, ti, te, np.array(readings))
+
+
+@settings(max_examples=60, deadline=None, derandomize=True)
+@given(data=any_goniometer())
+def test_any_geometry_and_readings_fit_without_a_warning(data):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        f = fit.fit_material([data])[0]
+    assert np.isfinite(f.params).all() and f.params[0] > 0 and f.params[[1, 3]].max() <= fit.SIGMA_MAX
+    assert np.isfinite(f.rms_residual) and not np.isnan(f.stderr).any()
+
+
+@pytest.mark.parametrize("scale", [1e-90, 1e90])
+def test_the_fit_is_the_same_at_any_scale_of_the_readings(scale):
+    data = goniometer(ALUMINIUM, 20.0, seed=3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scaled = fit.fit_phase(dataclasses.replace(data, reflectance=data.reflectance * scale))
+    unit = fit.fit_phase(data)
+    per_unit = np.array([scale, 1, 1, 1, 1])
+    np.testing.assert_allclose(scaled.params / per_unit, unit.params, rtol=1e-6)
+    np.testing.assert_allclose(scaled.stderr / per_unit, unit.stderr, rtol=1e-6)
+    assert scaled.rms_residual / scale == pytest.approx(unit.rms_residual, rel=1e-6)
 
 
 # --- the command ---
@@ -179,26 +227,77 @@ def test_cell_fit_brdf_json_runs_as_a_program(tmp_path):
 
 GOOD = "theta_i_deg,theta_e_deg,phase_deg,reflectance\n" + "".join(
     f"{10 + i},{12 + i},20,0.{i + 1}\n" for i in range(6))
+LINE_MAX = 400                     # an error line quotes short prefixes of values, never a whole file
+
+
+def refused(capsys, *argv):
+    """`cell fit-brdf ARGV` as bad input: exit 2, one short line on stderr, nothing on stdout, no
+    traceback and no warning (every warning is an error here); returns that line."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert cli.main(["fit-brdf", *map(str, argv)]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.count("\n") == 1 and "Traceback" not in err and len(err) < LINE_MAX, err
+    assert err.startswith("cell fit-brdf: ") and "found" in err and "expected" in err
+    return err
+
+
+@pytest.fixture
+def no_hang():
+    """A test that would block (reading a FIFO) fails after 20 s instead."""
+    def timeout(signum, frame):
+        raise TimeoutError("cell fit-brdf blocked")
+    previous = signal.signal(signal.SIGALRM, timeout)
+    signal.alarm(20)
+    yield
+    signal.alarm(0)
+    signal.signal(signal.SIGALRM, previous)
+
 
 BROKEN = [
     pytest.param(None, "", "unreadable file", id="missing-file"),
-    pytest.param(b"\xff\xfe\x00bad", "", "not UTF-8", id="binary"),
+    pytest.param(b"\xff\xfe\x00bad", "line 1", "not UTF-8", id="binary"),
+    pytest.param(GOOD.encode().replace(b"0.2", b"0.\xb2"), "line 3", "not UTF-8 text (0xb2)", id="latin-1"),
     pytest.param("", "", "empty file", id="empty"),
+    pytest.param("\n \n,,,\n", "", "empty file", id="blank-lines"),
     pytest.param("theta_i_deg,theta_e_deg,phase_deg,reflectance\n", "", "no data rows", id="header-only"),
     pytest.param(GOOD.replace("reflectance", "R", 1), "line 1 (header)", "missing reflectance",
                  id="missing-column"),
+    pytest.param(GOOD.replace("phase_deg,reflectance", "phase_deg,reflectance,reflectance", 1)
+                 .replace(",20,0.", ",20,0.5,0."), "line 1 (header)",
+                 "the column 'reflectance' in fields 4, 5", id="duplicate-column"),
     pytest.param(GOOD.replace("0.3", "bright"), "line 4, reflectance", "'bright'", id="not-a-number"),
     pytest.param(GOOD.replace("0.3", "nan"), "line 4, reflectance", "a finite number", id="nan"),
     pytest.param(GOOD.replace("0.3", "-inf"), "line 4, reflectance", "a finite number", id="inf"),
-    pytest.param(GOOD.replace("0.3", "-0.3"), "line 4, reflectance", ">= 0", id="negative"),
-    pytest.param(GOOD.replace("12,14,20", "12,14,"), "line 4, phase_deg", "empty field", id="empty-field"),
+    pytest.param(GOOD.replace("12,14", "nan,14"), "line 4, theta_i_deg", "a finite number", id="nan-angle"),
+    pytest.param(GOOD.replace("0.3", "-0.3"), "line 4, reflectance", "in [0, 1e+100]", id="negative"),
+    pytest.param(GOOD.replace("0.3", "1e300"), "line 4, reflectance",
+                 "found '1e300', expected a reflectance in [0, 1e+100]", id="huge"),
+    pytest.param(GOOD.replace(",20,0.", ",20,0e"), "phase_deg 20", "found 6 readings, all 0, expected a "
+                 "reflectance of at least 1e-100 at each phase angle (nothing to fit)", id="all-zero"),
+    pytest.param(GOOD.replace(",20,0.", ",20,1e-10"), "phase_deg 20", "found 6 readings, the largest 1e-101",
+                 id="all-dark"),
+    pytest.param(GOOD.replace("12,14,20,", "12,14,,"), "line 4, phase_deg", "empty field", id="empty-field"),
     pytest.param(GOOD.replace("12,14,20,0.3", "12,14,20"), "line 4", "3 fields", id="short-row"),
     pytest.param(GOOD.replace("12,14", "95,14"), "line 4, theta_i_deg", "[0, 90)", id="lamp-behind"),
+    pytest.param(GOOD.replace("12,14", "-2,14"), "line 4, theta_i_deg",
+                 "found '-2', expected an angle in [0, 90)", id="negative-theta-i"),
+    pytest.param(GOOD.replace("12,14", "12,-14"), "line 4, theta_e_deg",
+                 "found '-14', expected an angle in [0, 90)", id="negative-theta-e"),
+    pytest.param(GOOD.replace("12,14,20", "12,14,-20"), "line 4, phase_deg", "[0, 180]", id="negative-phase"),
+    pytest.param(GOOD.replace("12,14,20", "12,14,200"), "line 4, phase_deg", "[0, 180]", id="phase-over-180"),
     pytest.param(GOOD.replace("12,14,20", "12,40,20"), "line 4", "spherical triangle",
                  id="triangle-phase-too-small"),
     pytest.param(GOOD.replace("12,14,20", "5,5,20.001"), "line 4", "spherical triangle",
                  id="triangle-phase-too-large"),
     pytest.param(GOOD.replace("15,17,20", "15,17,21"), "phase_deg 20", "5 rows", id="too-few-rows"),
+    # a quote never closed: the field runs to the end of the file; the line shows its start
+    pytest.param(GOOD + '10,12,20,"0.1\n' + "x" * 80_000 + "\n", "lines 8-9, reflectance",
+                 "found '0.1\\nxxx", id="unclosed-quote"),
+    pytest.param(GOOD + '10,12,20,"0.1\n' + "x" * 200_000 + "\n", "line 8", "field larger than field limit",
+                 id="unclosed-quote-past-the-csv-field-limit"),
+    pytest.param('"' + GOOD, "lines 1-7 (header)", "columns 'theta_i_deg,theta_e_deg,",
+                 id="unclosed-quote-header"),
 ]
 
 
@@ -209,12 +308,86 @@ def test_broken_csv_is_one_line_and_exit_2(tmp_path, capsys, content, key, says)
         path.write_bytes(content)
     elif content is not None:
         path.write_text(content)
-    assert cli.main(["fit-brdf", str(path), "--out", str(tmp_path / "m.yaml")]) == 2
-    out, err = capsys.readouterr()
-    assert out == "" and err.count("\n") == 1 and "Traceback" not in err
-    assert err.startswith(f"cell fit-brdf: {path}: {key}" if key else f"cell fit-brdf: {path}: found")
-    assert says in err and "expected" in err
+    err = refused(capsys, path, "--out", tmp_path / "m.yaml")
+    assert err.startswith(f"cell fit-brdf: {path}: {key}" if key else f"cell fit-brdf: {path}: found"), err
+    assert says in err
     assert not (tmp_path / "m.yaml").exists()
+
+
+def test_a_long_value_is_shown_as_its_first_80_characters(tmp_path, capsys):
+    path = tmp_path / "data.csv"
+    path.write_text(GOOD.replace("0.3", "y" * 5000))
+    err = refused(capsys, path)
+    assert f"found '{'y' * fit.SHOWN_CHARS}'..., expected a number" in err
+
+
+def test_a_folder_a_device_or_a_named_pipe_is_refused_before_it_is_opened(tmp_path, capsys, no_hang):
+    fifo = tmp_path / "pipe.csv"
+    os.mkfifo(fifo)
+    assert "found a named pipe (FIFO), expected a regular goniometer CSV file" in refused(capsys, fifo)
+    assert "found a device, expected a regular goniometer CSV file" in refused(capsys, "/dev/zero")
+    assert "found a folder, expected a regular goniometer CSV file" in refused(capsys, tmp_path)
+    link = tmp_path / "zero.csv"
+    link.symlink_to("/dev/zero")
+    assert "found a device" in refused(capsys, link)
+
+
+def test_a_csv_over_the_size_limit_is_refused_unread(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(fit, "CSV_LIMIT_BYTES", len(GOOD) - 1)
+    path = tmp_path / "data.csv"
+    path.write_text(GOOD)
+    assert (f"{path}: found {len(GOOD)} bytes, expected a goniometer CSV file of at most {len(GOOD) - 1} "
+            "bytes (cell.fit.CSV_LIMIT_BYTES)") in refused(capsys, path)
+
+
+def test_too_many_rows_or_phase_angles_are_refused_before_the_fit(tmp_path, capsys, monkeypatch):
+    path = tmp_path / "data.csv"
+    path.write_text(GOOD + GOOD.split("\n", 1)[1].replace(",20,", ",21,"))
+    monkeypatch.setattr(fit, "PHASES_MAX", 1)
+    assert f"{path}: phase_deg: found 2 phase angles, expected at most 1 (cell.fit.PHASES_MAX" \
+        in refused(capsys, path)
+    monkeypatch.setattr(fit, "ROWS_MAX", 11)
+    assert f"{path}: line 13: found more than 11 data rows, expected at most 11 (cell.fit.ROWS_MAX" \
+        in refused(capsys, path)
+
+
+@pytest.fixture
+def no_fit(monkeypatch):
+    """`--out` is checked before the fit: fitting is an error here."""
+    def fit_material(groups):
+        raise AssertionError("fitted before refusing --out")
+    monkeypatch.setattr("cell.cli.fit_brdf.fit_material", fit_material)
+
+
+@pytest.mark.parametrize("out, says", [
+    ("{tmp}", "{tmp} (a folder), expected a material file to write"),
+    ("/proc/m.yaml", "/proc/m.yaml (no file can be created in /proc: "),
+    ("{tmp}/no/m.yaml", "{tmp}/no/m.yaml (no folder {tmp}/no)"),
+    ("{tmp}/data.csv/m.yaml", "(Not a directory)"),
+    ("/dev/null", "/dev/null (not a regular file)"),
+], ids=["folder", "proc", "no-folder", "under-a-file", "device"])
+def test_an_unwritable_out_is_refused_before_the_fit(tmp_path, capsys, no_fit, out, says):
+    data = tmp_path / "data.csv"
+    data.write_text(GOOD)
+    out, says = (x.replace("{tmp}", str(tmp_path)) for x in (out, says))
+    err = refused(capsys, data, "--out", out)
+    assert err.startswith("cell fit-brdf: command line: --out: found ") and says in err
+
+
+@pytest.mark.parametrize("alias", ["same", "dotdot", "symlink", "hardlink"])
+def test_out_is_never_the_csv_itself(tmp_path, capsys, no_fit, alias):
+    data = tmp_path / "data.csv"
+    data.write_text(GOOD)
+    out = {"same": data, "dotdot": tmp_path / "." / ".." / tmp_path.name / "data.csv",
+           "symlink": tmp_path / "m.yaml", "hardlink": tmp_path / "m.yaml"}[alias]
+    if alias == "symlink":
+        out.symlink_to(data)
+    elif alias == "hardlink":
+        os.link(data, out)
+    err = refused(capsys, data, "--out", out)
+    assert f"--out: found {out} (the goniometer CSV itself), expected a material file other than the data" \
+        in err
+    assert data.read_text() == GOOD
 
 
 def test_the_good_csv_of_the_broken_cases_fits(tmp_path, capsys):
@@ -222,3 +395,9 @@ def test_the_good_csv_of_the_broken_cases_fits(tmp_path, capsys):
     path.write_text(GOOD)
     assert cli.main(["fit-brdf", str(path)]) == 0
     assert "phase" in capsys.readouterr().out
+
+
+def test_trailing_empty_columns_and_a_byte_order_mark_are_fine(tmp_path, capsys):
+    path = tmp_path / "excel.csv"
+    path.write_text("\ufeff" + GOOD.replace("\n", ",,\n"))
+    assert cli.main(["fit-brdf", str(path)]) == 0

@@ -1,7 +1,10 @@
 """`cell fit-brdf DATA.csv [--out material.yaml] [--name NAME] [--json]`: the fit's table, the
 material file, notes on absent terms."""
 import datetime
+import os
+import stat
 import sys
+import tempfile
 from pathlib import Path
 
 import yaml
@@ -27,18 +30,54 @@ def summary(fits):
     return "\n".join(lines)
 
 
+def output_file(out, data):
+    """The material file --out names, checked before the fit: a regular file or a new one, in a
+    folder where files can be created, and not the data (YAML over the CSV)."""
+    def refuse(found, expected="a material file to write, in a folder that exists and is writable"):
+        raise TaskError("command line", "--out", f"{out} ({found})", expected)
+
+    path = Path(out)
+    try:
+        mode = path.stat().st_mode
+    except FileNotFoundError:
+        mode = None
+    except OSError as err:
+        refuse(err.strerror)
+    if mode is not None and stat.S_ISDIR(mode):
+        refuse("a folder")
+    if mode is not None and not stat.S_ISREG(mode):
+        refuse("not a regular file")
+    try:
+        same = os.path.samefile(path, data)          # also through a symlink or a hard link
+    except OSError:
+        same = path.resolve() == Path(data).resolve()
+    if same:
+        refuse("the goniometer CSV itself", "a material file other than the data")
+    if mode is None and not path.parent.is_dir():
+        refuse(f"no folder {path.parent}")
+    try:
+        if mode is None:
+            tempfile.TemporaryFile(dir=path.parent).close()
+        else:
+            open(path, "ab").close()                 # neither truncates nor touches it
+    except OSError as err:
+        refuse(f"no file can be created in {path.parent}: {err.strerror}" if mode is None else
+               f"not writable: {err.strerror}")
+    return path
+
+
 def command(args):
     path = Path(args.data)
+    out = output_file(args.out, path) if args.out else None
     fits = fit_material(read_goniometer(path))
     source = (f"fit of {path} by cell fit-brdf on {datetime.date.today().isoformat()}: eq. (6)-(7) "
               f"per phase angle, relative residuals, a specular term kept if its F-test p < {SIGNIFICANCE:g}")
     doc = material_document(fits, args.name or path.stem, source)
-    if args.out:
+    if out:
         try:
-            text = yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=100)
-            Path(args.out).write_text(text)
+            out.write_text(yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=100))
         except OSError as err:
-            raise TaskError(args.out, "", f"an unwritable path ({err.strerror})", "a writable file") from None
+            raise TaskError("command line", "--out", f"{out} ({err.strerror})", "a writable file") from None
     for note in absent_notes(fits):
         print(note, file=sys.stderr)
     if args.json:
