@@ -18,7 +18,6 @@ fitted in units of its largest reading: the fit is the same at any scale of the 
 import csv
 import dataclasses
 import io
-import stat
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,6 +25,7 @@ import numpy as np
 from scipy import optimize, stats
 
 from cell.errors import TaskError
+from cell.inputs import read_text
 from cell.material import PARAMETERS
 from cell.physics.brdf import brdf_terms, reflectance, reflectance_jacobian
 
@@ -42,7 +42,6 @@ SIGMA_MAX = 1e12                        # a term 1e12 times the diffuse: the dat
 SIGNIFICANCE = 1e-3                     # F-test level for keeping a specular term
 DARK_FRACTION = 1e-3
 RESIDUAL_FLOOR = 1e-6                   # relative error no goniometer beats (noise-free data)
-CSV_LIMIT_BYTES = 50_000_000            # a goniometer CSV is far smaller; /dev/zero is refused, not read
 ROWS_MAX = 100_000                      # data rows read at most: the fit takes ~1 s per 10,000 rows
 PHASES_MAX = 1_000                      # phase angles fitted at most, ~0.04 s each
 SHOWN_CHARS = 80                        # an error line quotes at most this much of a value
@@ -75,36 +74,6 @@ class PhaseFit:
 
 
 # --- reading the CSV ---
-
-def read_limited_text(path, limit_bytes, what, *, limit_name=None):
-    """The UTF-8 text of the regular file at path, at most limit_bytes long; anything else (missing,
-    a folder, a device or named pipe, too large, not UTF-8) is a TaskError naming `what`. The file's
-    type is checked before it is opened: /dev/zero would fill memory and a FIFO would block."""
-    path = Path(path)
-    try:
-        info = path.stat()
-    except OSError as err:
-        raise TaskError(path, "", f"an unreadable file ({err.strerror})", f"a readable {what} file") from None
-    mode, size = info.st_mode, info.st_size
-    if not stat.S_ISREG(mode):
-        kind = ("a folder" if stat.S_ISDIR(mode) else "a named pipe (FIFO)" if stat.S_ISFIFO(mode) else
-                "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "not a regular file")
-        raise TaskError(path, "", kind, f"a regular {what} file")
-    limit = f"a {what} file of at most {limit_bytes:,} bytes" + (f" ({limit_name})" if limit_name else "")
-    try:
-        with path.open("rb") as f:
-            data = f.read(limit_bytes + 1)       # a file growing since stat() is cut here
-    except OSError as err:
-        raise TaskError(path, "", f"an unreadable file ({err.strerror})", f"a readable {what} file") from None
-    if max(size, len(data)) > limit_bytes:
-        raise TaskError(path, "", f"{max(size, len(data)):,} bytes", limit)
-    try:
-        return data.decode("utf-8-sig")
-    except UnicodeDecodeError as err:
-        line = data.count(b"\n", 0, err.start) + 1
-        raise TaskError(path, f"line {line}", f"bytes that are not UTF-8 text (0x{data[err.start]:02x})",
-                        f"a {what} file in UTF-8") from None
-
 
 def shown(text):
     """A value as an error line shows it: quoted, at most SHOWN_CHARS characters of it, '...' after."""
@@ -153,8 +122,7 @@ def _cell(path, where, column, text, ok, expected):
 def read_goniometer(path):
     """The CSV's rows grouped by phase angle (ascending); any bad field, row or group is a TaskError."""
     path = Path(path)
-    rows = _csv_rows(path, read_limited_text(path, CSV_LIMIT_BYTES, "goniometer CSV",
-                                             limit_name="cell.fit.CSV_LIMIT_BYTES"))
+    rows = _csv_rows(path, read_text(path, "csv"))
     if not rows:
         raise TaskError(path, "", "an empty file", "a header " + ",".join(COLUMNS) + " and data rows")
     header = [h.strip() for h in rows[0][1]]

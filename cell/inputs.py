@@ -11,7 +11,8 @@ from pathlib import Path
 
 from cell.errors import TaskError
 
-LIMIT_MB = {"yaml": 1.0, "mesh": 256.0, "csv": 50.0}
+# kind -> (what the messages call it, default limit [MB])
+KINDS = {"yaml": ("YAML", 1.0), "mesh": ("mesh", 256.0), "csv": ("goniometer CSV", 50.0)}
 
 
 def limit_bytes(kind):
@@ -19,51 +20,59 @@ def limit_bytes(kind):
     name = f"CELL_MAX_{kind.upper()}_MB"
     raw = os.environ.get(name)
     try:
-        mb = float(raw) if raw is not None else LIMIT_MB[kind]
+        mb = float(raw) if raw is not None else KINDS[kind][1]
     except ValueError:
         raise TaskError("environment", name, repr(raw), "a size in MB") from None
     if not mb > 0:
         raise TaskError("environment", name, repr(raw), "a positive size in MB")
-    return mb * 2**20
+    return int(mb * 2**20)
+
+
+def _size(n):
+    return f"{n / 2**20:.3g} MB"
 
 
 def checked_file(path, kind, file=None, key="", relative_to=""):
     """path, if it names a regular file of at most the kind's size limit; else a TaskError naming
-    `file` and `key` (where the path was given; default: the path itself)."""
+    `file` and `key` where the path was given (default: the path itself, no key)."""
     path = Path(path)
-    where = file if file is not None else path
+    what = KINDS[kind][0]
+    where, named = (path, "") if file is None else (file, f"'{path}', ")
     try:
         info = path.stat()
     except OSError as err:
-        raise TaskError(where, key, f"'{path}' ({err.strerror.lower()})",
-                        "an existing, readable file" + (f", relative to {relative_to}" if relative_to else "")) from None
-    if stat.S_ISDIR(info.st_mode):
-        raise TaskError(where, key, f"'{path}', a folder", "a file")
-    if not stat.S_ISREG(info.st_mode):
-        raise TaskError(where, key, f"'{path}', not a regular file (a device, pipe or socket)",
-                        "a regular file")
+        raise TaskError(where, key, f"{named}an unreadable file ({err.strerror.lower()})",
+                        f"an existing, readable {what} file"
+                        + (f", relative to {relative_to}" if relative_to else "")) from None
+    mode = info.st_mode
+    if not stat.S_ISREG(mode):
+        found = ("a folder" if stat.S_ISDIR(mode) else "a named pipe (FIFO)" if stat.S_ISFIFO(mode) else
+                 "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "not a regular file")
+        raise TaskError(where, key, named + found, f"a regular {what} file")
     limit = limit_bytes(kind)
     if info.st_size > limit:
-        raise TaskError(where, key, f"'{path}' of {info.st_size / 2**20:.1f} MB",
-                        f"at most {limit / 2**20:g} MB for a {kind} file (CELL_MAX_{kind.upper()}_MB "
-                        f"sets the limit)")
+        raise TaskError(where, key, f"{named}{_size(info.st_size)}",
+                        f"a {what} file of at most {_size(limit)} (CELL_MAX_{kind.upper()}_MB sets the limit)")
     return path
 
 
 def read_text(path, kind, file=None, key=""):
-    """The text of a checked_file (UTF-8), read to at most its limit however the file changes."""
+    """The UTF-8 text (a byte order mark allowed) of a checked_file, read to at most its limit
+    however the file changes meanwhile."""
     path = checked_file(path, kind, file, key)
-    limit = int(limit_bytes(kind))
-    where = file if file is not None else path
+    what, limit = KINDS[kind][0], limit_bytes(kind)
+    where = path if file is None else file
     try:
         with open(path, "rb") as f:
             data = f.read(limit + 1)
     except OSError as err:
-        raise TaskError(where, key, f"'{path}' ({err.strerror.lower()})", "a readable file") from None
+        raise TaskError(where, key, f"an unreadable file ({err.strerror.lower()})", f"a readable {what} file") from None
     if len(data) > limit:
-        raise TaskError(where, key, f"'{path}' growing past {limit / 2**20:g} MB while read",
-                        f"at most {limit / 2**20:g} MB for a {kind} file")
+        raise TaskError(where, key, f"a file growing past {_size(limit)} while read",
+                        f"a {what} file of at most {_size(limit)}")
     try:
-        return data.decode("utf-8")
-    except UnicodeDecodeError:
-        raise TaskError(where, key, f"'{path}' with bytes that are not UTF-8 text", f"a {kind} text file") from None
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as err:
+        line = data.count(b"\n", 0, err.start) + 1
+        raise TaskError(where, key or f"line {line}", f"bytes that are not UTF-8 text (0x{data[err.start]:02x})",
+                        f"a {what} file in UTF-8") from None

@@ -333,11 +333,11 @@ def test_a_folder_a_device_or_a_named_pipe_is_refused_before_it_is_opened(tmp_pa
 
 
 def test_a_csv_over_the_size_limit_is_refused_unread(tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(fit, "CSV_LIMIT_BYTES", len(GOOD) - 1)
+    monkeypatch.setenv("CELL_MAX_CSV_MB", str(0.5 * len(GOOD) / 2**20))
     path = tmp_path / "data.csv"
     path.write_text(GOOD)
-    assert (f"{path}: found {len(GOOD)} bytes, expected a goniometer CSV file of at most {len(GOOD) - 1} "
-            "bytes (cell.fit.CSV_LIMIT_BYTES)") in refused(capsys, path)
+    assert (f"{path}: found {len(GOOD) / 2**20:.3g} MB, expected a goniometer CSV file of at most "
+            f"{0.5 * len(GOOD) / 2**20:.3g} MB (CELL_MAX_CSV_MB sets the limit)") in refused(capsys, path)
 
 
 def test_too_many_rows_or_phase_angles_are_refused_before_the_fit(tmp_path, capsys, monkeypatch):
@@ -401,3 +401,9 @@ def test_trailing_empty_columns_and_a_byte_order_mark_are_fine(tmp_path, capsys)
     path = tmp_path / "excel.csv"
     path.write_text("\ufeff" + GOOD.replace("\n", ",,\n"))
     assert cli.main(["fit-brdf", str(path)]) == 0
+
+
+def test_an_empty_out_is_bad_input_not_no_file(tmp_path, capsys):
+    path = tmp_path / "data.csv"
+    path.write_text(GOOD)
+    assert "--out: found an empty path, expected a material file to write" in refused(capsys, path, "--out", "")

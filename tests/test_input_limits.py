@@ -40,20 +40,20 @@ def assert_one_line(code, err, *texts):
 
 
 def test_a_device_is_refused_without_reading_it():
-    assert_one_line(*cell_check("/dev/zero"), "/dev/zero", "not a regular file")
+    assert_one_line(*cell_check("/dev/zero"), "/dev/zero", "found a device, expected a regular YAML file")
 
 
 def test_a_named_pipe_with_no_writer_is_refused_without_blocking(tmp_path):
     fifo = tmp_path / "task.yaml"
     os.mkfifo(fifo)
-    assert_one_line(*cell_check(fifo), "not a regular file")
+    assert_one_line(*cell_check(fifo), "found a named pipe (FIFO)")
 
 
 def test_a_50_mb_mesh_given_as_the_task_is_refused_by_its_size(tmp_path):
     big = tmp_path / "part.stl"
     with open(big, "wb") as f:
         f.truncate(50 * 2**20)                       # sparse: 50 MB by its size, nothing on disk
-    assert_one_line(*cell_check(big), "50.0 MB", "at most 1 MB", "CELL_MAX_YAML_MB")
+    assert_one_line(*cell_check(big), "found 50 MB", "at most 1 MB", "CELL_MAX_YAML_MB")
 
 
 def big_task(tmp_path, megabytes):

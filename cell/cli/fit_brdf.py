@@ -36,6 +36,8 @@ def output_file(out, data):
     def refuse(found, expected="a material file to write, in a folder that exists and is writable"):
         raise TaskError("command line", "--out", f"{out} ({found})", expected)
 
+    if not out.strip():
+        raise TaskError("command line", "--out", "an empty path", "a material file to write")
     path = Path(out)
     try:
         mode = path.stat().st_mode
@@ -68,7 +70,7 @@ def output_file(out, data):
 
 def command(args):
     path = Path(args.data)
-    out = output_file(args.out, path) if args.out else None
+    out = output_file(args.out, path) if args.out is not None else None
     fits = fit_material(read_goniometer(path))
     source = (f"fit of {path} by cell fit-brdf on {datetime.date.today().isoformat()}: eq. (6)-(7) "
               f"per phase angle, relative residuals, a specular term kept if its F-test p < {SIGNIFICANCE:g}")
