@@ -2,8 +2,8 @@
 settings it was taken with and the limits -> a Correction (design.md step 3).
 
 From G = c P_pixel t with P_pixel ~ 1 / kappa^2 (eq. 10, 17) the gray scales with t / kappa^2, so
-one gain k = sqrt(low high) / sqrt(G_min G_max) centres the measured range in the band
-geometrically. The shutter takes k first; where it hits its limits the f-number takes the rest,
+one gain k = target / sqrt(G_min G_max) centres the measured range in the band geometrically
+(the target: evaluate.target_gray, sqrt(low high) for a band not starting near 0). The shutter takes k first; where it hits its limits the f-number takes the rest,
 never wider than the depth of field allows. What neither absorbs is re-planned with the measured
 model error as an effective albedo scale: only the product c rho is observable, so the scale also
 absorbs an error in c. A range relatively wider than the band is no exposure problem and an albedo
@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cell.evaluate import target_gray
 from cell.plan import gray_stats
 
 DARK = 0.5                  # a pixel reading 0 is below the first gray level: true gray < 0.5
@@ -56,11 +57,11 @@ def spread_exceeds_band(lo, hi, band):
     that no exposure fits it, G ~ t / kappa^2 scaling all alike. A dim range (lo < RESOLVED low)
     is not judged: noise and black level inflate it."""
     low, high = band
-    return lo >= RESOLVED * low and hi > lo * high / low
+    return lo >= RESOLVED * low and hi * low > lo * high
 
 
 def correct_exposure(lo, hi, relation, shutter_s, f_number, band, shutter_range, f_number_range):
-    """(shutter, f-number, reason): the gain sqrt(low high) / sqrt(lo hi) on G ~ t / kappa^2,
+    """(shutter, f-number, reason): the gain target / sqrt(lo hi) on G ~ t / kappa^2,
     shutter first, the f-number within f_number_range (its low end the widest the depth of field
     allows) for what the shutter's range leaves. With every pixel saturated (relation ">=", lo and
     hi lower bounds) it steps SATURATED_STEP further, so the next capture measures. A dim range
@@ -69,7 +70,7 @@ def correct_exposure(lo, hi, relation, shutter_s, f_number, band, shutter_range,
     low, high = band
     dim = lo < RESOLVED * low
     step = SATURATED_STEP if relation == ">=" else 1.0
-    exposure = shutter_s / f_number**2 * np.sqrt(low * high / (lo * hi)) / step
+    exposure = shutter_s / f_number**2 * target_gray(band) / np.sqrt(lo * hi) / step
     shutter = float(np.clip(exposure * f_number**2, *shutter_range))
     kappa = float(np.clip(np.sqrt(shutter / exposure), *f_number_range))
     k = shutter / kappa**2 / (shutter_s / f_number**2)

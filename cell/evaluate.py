@@ -6,22 +6,43 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
-from cell import rig
+from cell import projection, rig
 from cell.material import Material
 from cell.physics import depth_of_field as dof
 
 
 def depth_of_field_limits(task, scene):
-    """(focus [m], depth of field needed [m], widest f-number giving it within the lens's range)
-    for the camera focused on the feature centre (sec. 4.3, 5.4): the needed depth is the larger
-    of the task's and the feature samples' own depth range."""
+    """(focus [m], depth of field needed [m], f-number) for the camera focused on the feature
+    centre (sec. 4.3, 5.4): the widest f-number within the lens's range whose near and far limits
+    hold the nearest and the farthest sample and whose depth of field is at least the task's. The
+    limits are judged where they fall: a patch seen at a slant is not centred on the focus."""
     lens = task.camera.lens
+    f, sigma = lens.focal_length_m, lens.circle_of_confusion_m
     focus = float(np.linalg.norm(scene.camera_position - scene.center))
     depths = scene.sample_depths()
-    needed = max(task.requirements.depth_of_field_m, float(depths.max() - depths.min()))
-    kappa = dof.f_number_for_depth(focus, lens.focal_length_m, lens.circle_of_confusion_m, needed)
-    # rounded up by 1e-9 so that the depth of field is met despite floating-point rounding
-    return focus, needed, float(np.clip(kappa * (1 + 1e-9), *lens.f_number_range))
+    nearest, farthest = float(depths.min()), float(depths.max())
+    wanted = task.requirements.depth_of_field_m
+    # the task's depth: closed form, rounded up by 1e-9 so it holds despite floating-point rounding
+    kappa = dof.f_number_for_depth(focus, f, sigma, wanted) * (1 + 1e-9)
+
+    def holds(k):
+        return dof.near_limit(focus, f, k, sigma) <= nearest and dof.far_limit(focus, f, k, sigma) >= farthest
+
+    k_lo, k_hi = lens.f_number_range
+    if not holds(max(kappa, k_lo)) and holds(k_hi):
+        lo, hi = max(kappa, k_lo), k_hi              # bisection: the limits widen with kappa
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (lo, mid) if holds(mid) else (mid, hi)
+        kappa = hi
+    return focus, max(wanted, farthest - nearest), float(np.clip(kappa, k_lo, k_hi))
+
+
+def target_gray(band):
+    """The gray the exposure aims the feature at: the band's geometric centre, its low end taken
+    as at least a quarter of the high end (a band from 0 would aim at 0, a black image)."""
+    low, high = band
+    return float(np.sqrt(max(low, 0.25 * high) * high))
 
 
 @dataclass(frozen=True)
@@ -43,12 +64,21 @@ class Problem:
 
 
 def build_problem(task, scene, maps, albedo_scale=1.0):
-    """The Problem of a task's scene and maps; the camera's view is a lamp at the camera."""
+    """The Problem of a task's scene and maps. A sample the camera sees lies inside the image
+    and is not hidden (a lamp at the camera would light it). The band's top is kept half a level
+    below the sensor's full scale: a pixel there reads saturated, whatever the band says."""
     focus, needed, kappa_open = depth_of_field_limits(task, scene)
+    low, high = map(float, task.requirements.gray_band)
+    full_scale = 2.0 ** task.camera.sensor.bit_depth - 1
     p = Problem(task, scene, maps, task.part.material.scaled(albedo_scale),
-                tuple(map(float, task.requirements.gray_band)), focus, needed, kappa_open, 0)
-    unseen = unit_gray(p, scene.camera_position[None], -scene.normal[None])[1].sum()
-    return replace(p, camera_unseen=int(unseen))
+                (low, min(high, full_scale - 0.5)), focus, needed, kappa_open, 0)
+    hidden = unit_gray(p, scene.camera_position[None], -scene.normal[None])[1][0]
+    sensor = task.camera.sensor
+    uv, z = projection.project(projection.intrinsics(sensor, task.camera.lens), scene.T_cell_cam, scene.points)
+    with np.errstate(invalid="ignore"):
+        in_image = ((z > 0) & (uv[:, 0] >= -0.5) & (uv[:, 0] <= sensor.width_px - 0.5)
+                    & (uv[:, 1] >= -0.5) & (uv[:, 1] <= sensor.height_px - 0.5))
+    return replace(p, camera_unseen=int(np.sum(hidden | ~in_image)))
 
 
 def unit_gray(problem, positions, aims):
@@ -73,7 +103,7 @@ def exposure(problem, unit_gray):
     darkest = np.where(lit, unit_gray, np.inf).min(axis=-1)
     u_mid = np.where(lit.any(axis=-1), np.sqrt(np.where(lit.any(axis=-1), darkest, 0.0)
                                                * unit_gray.max(axis=-1)), 0.0)
-    target = np.sqrt(low * high)
+    target = target_gray(problem.band)
     t_lo, t_hi = cam.shutter_range_s
     k_lo, k_hi = cam.lens.f_number_range
     with np.errstate(divide="ignore"):

@@ -20,6 +20,12 @@ class PlannerSettings:
     refine: bool = True             # Nelder-Mead from the best starts
     starts: int = 4
 
+    def __post_init__(self):
+        cells = 180.0 / self.grid_step_deg
+        if not (self.grid_step_deg > 0 and abs(cells - round(cells)) < 1e-9):
+            raise ValueError(f"grid_step_deg {self.grid_step_deg:g} must divide 180 deg (the map's rows "
+                             f"must reach the poles and its columns close the circle)")
+
 
 @dataclass(frozen=True)
 class Exposure:
@@ -73,7 +79,7 @@ class Shot:
     joints: tuple                # (pan, tilt, radius) [rad, rad, m]
     lamp_position: np.ndarray    # cell frame [m]
     exposure: Exposure
-    gray: np.ndarray             # predicted gray per feature sample
+    gray: np.ndarray             # predicted gray per feature sample, at most the sensor's full scale
     distance_m: float            # lamp -> feature centre
     phase_angle_rad: float       # between lamp and camera, at the feature centre
     requirements: tuple
@@ -101,6 +107,7 @@ class Plan:
     scene: object                # cell.scene.Scene planned on (plain arrays)
     search: Search
     timing_s: dict = field(default_factory=dict)
+    notes: tuple = ()            # what the user should know although it is no requirement
 
     @property
     def success(self):
@@ -134,6 +141,7 @@ class Plan:
             "miss": self.miss,
             "objective": self.objective,
             "hint": self.hint,
+            "notes": list(self.notes),
             "requirements": [{"name": r.name, "value": r.value, "met": r.met, "detail": r.detail}
                              for r in shot.requirements],
             "lamp": {"position_m": shot.lamp_position.tolist(), "distance_m": shot.distance_m,

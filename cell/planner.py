@@ -13,7 +13,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from cell import evaluate, geometry, regions, requirements
-from cell.physics import costs, depth_of_field as dof
+from cell.physics import depth_of_field as dof
 from cell.plan import Exposure, Maps, Plan, PlannerSettings, Refinement, Search, Shot
 
 
@@ -59,6 +59,9 @@ def pick_starts(pan, tilt, objective_values, count, min_separation):
     return chosen
 
 
+UNLIT_OBJECTIVE = 1e300     # the objective of a pose no exposure can make work (it is inf), finite
+
+
 def refine(problem, start, lamp_rig):
     """Nelder-Mead over (pan, tilt, radius) in grid-step units, clipped to the rig's ranges:
     (joints, Refinement with the solver's own verdict and evaluation count)."""
@@ -72,7 +75,8 @@ def refine(problem, start, lamp_rig):
     def f(z):
         x = clipped(z)
         c = evaluate.candidates(problem, x[:1], x[1:2], x[2:3])
-        return float(requirements.objective(requirements.values(problem, c))[0])
+        # unlit (inf) capped: Nelder-Mead compares differences, and inf - inf is NaN
+        return float(min(requirements.objective(requirements.ln_values(problem, c))[0], UNLIT_OBJECTIVE))
 
     simplex = np.vstack([np.zeros(3), np.eye(3)])
     res = minimize(f, np.zeros(3), method="Nelder-Mead",
@@ -99,8 +103,8 @@ def plan(task, settings=PlannerSettings(), albedo_scale=1.0, progress=None):
     problem = evaluate.build_problem(task, scene, maps, albedo_scale)
     lamp_rig = task.lamp.rig
     pan, tilt, radius = candidate_grid(lamp_rig, settings)
-    obj = requirements.objective(requirements.values(
-        problem, evaluate.candidates(problem, pan, tilt, radius, tolerance=False)))
+    global_values = requirements.ln_values(problem, evaluate.candidates(problem, pan, tilt, radius, tolerance=False))
+    obj = requirements.objective(global_values)
     maps = replace(maps, candidate_pan=pan, candidate_tilt=tilt, candidate_objective=obj)
     problem = replace(problem, maps=maps)
     timing["global_search"] = time.perf_counter() - t
@@ -112,19 +116,34 @@ def plan(task, settings=PlannerSettings(), albedo_scale=1.0, progress=None):
     refined = [refine(problem, x, lamp_rig) for x in poses] if settings.refine else []
     stack = np.array(poses + [x for x, _ in refined])
     final = evaluate.candidates(problem, stack[:, 0], stack[:, 1], stack[:, 2])
-    final_values = requirements.values(problem, final)
-    all_values = requirements.stacked(final_values)
-    rank = np.lexsort((requirements.objective(final_values), all_values.max(axis=-1) > 1.0))
+    final_values = requirements.ln_values(problem, final)
+    rank = np.lexsort((requirements.objective(final_values), requirements.missed(final_values)))
     best = int(rank[0])
     timing["refine"] = time.perf_counter() - t
     timing["total"] = time.perf_counter() - t0
     search = Search(candidates=len(pan), starts=len(poses), refinements=tuple(r for _, r in refined))
     shot = make_shot(problem, stack[best], final.pick(best), {k: v[best:best + 1] for k, v in final_values.items()})
-    verdict = costs.verdict(shot.requirements)
+    verdict = requirements.verdict(shot.requirements, requirements.failing_everywhere(global_values))
     binding = next(r for r in shot.requirements if r.name == verdict.binding)
     return Plan(task_name=task.name, feasible=verdict.feasible, binding=verdict.binding, miss=verdict.miss,
                 objective=verdict.objective, hint="" if verdict.feasible else binding.detail, shots=(shot,),
-                maps=maps, settings=settings, scene=scene, search=search, timing_s=timing)
+                maps=maps, settings=settings, scene=scene, search=search, timing_s=timing,
+                notes=notes(problem, shot))
+
+
+def notes(problem, shot):
+    """Facts about the chosen shot that no requirement judges: phase angles beyond the material
+    table (planned with its end values, which the table's interpolation clamps to)."""
+    scene, table = problem.scene, problem.material.phase_rad
+    s = geometry.unit(shot.lamp_position - scene.points)
+    v = geometry.unit(scene.camera_position - scene.points)
+    phase = np.degrees(np.arccos(np.clip(np.sum(s * v, axis=-1), -1.0, 1.0)))
+    lo, hi = np.degrees(table[0]), np.degrees(table[-1])
+    out = []
+    if phase.max() > hi + 1e-9 or phase.min() < lo - 1e-9:
+        out.append(f"phase angles {phase.min():.1f}-{phase.max():.1f} deg reach beyond the material table's "
+                   f"{lo:g}-{hi:g} deg: planned with the table's end values there")
+    return tuple(out)
 
 
 def make_shot(problem, joints, candidate, values):
@@ -137,7 +156,8 @@ def make_shot(problem, joints, candidate, values):
     exposure = Exposure(float(candidate.shutter[0]), kappa, problem.focus_m,
                         float(dof.depth_of_field(problem.focus_m, lens.focal_length_m, kappa,
                                                  lens.circle_of_confusion_m)))
+    full_scale = 2.0 ** problem.task.camera.sensor.bit_depth - 1
     return Shot(T_cell_cam=scene.T_cell_cam, joints=tuple(float(x) for x in joints), lamp_position=pos,
-                exposure=exposure, gray=candidate.gray[0], distance_m=float(np.linalg.norm(pos - scene.center)),
+                exposure=exposure, gray=np.minimum(candidate.gray[0], full_scale), distance_m=float(np.linalg.norm(pos - scene.center)),
                 phase_angle_rad=float(np.arccos(np.clip(s @ v, -1, 1))),
                 requirements=requirements.judged(problem, candidate, values))

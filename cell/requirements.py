@@ -1,12 +1,13 @@
 """The requirements a plan must meet (sec. 2.1, 5), one registry: each has a name (plan.json's),
-its value f_i over candidates (met when <= 1, eq. 1 and the erratum of eq. 25) and the sentence
-that explains it for a chosen pose - the fact, and where it is missed what would fix it.
+its value over candidates as ln f_i (met when <= 0, i.e. f_i <= 1: eq. 1 and the erratum of eq. 25;
+uncapped, so the objective ranks however far a pose misses) and the sentence that explains it for
+a chosen pose - the fact, and where it is missed what would fix it.
 
 A new requirement is one entry in REGISTRY; its value and explanation read only the
 planning Problem and the Candidates (cell.evaluate). The registry's order breaks ties between
 equally binding requirements.
 """
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable
 
 import numpy as np
@@ -18,9 +19,8 @@ from cell.physics import costs, depth_of_field as dof
 @dataclass(frozen=True)
 class Requirement:
     name: str
-    value: Callable         # (Problem, Candidates) -> (C,) values f_i
+    ln_value: Callable      # (Problem, Candidates) -> (C,) ln f_i
     explain: Callable       # (Problem, Candidates of one, met) -> sentence
-    applies: Callable = lambda problem: True
 
 
 def _unlit(c):
@@ -30,8 +30,13 @@ def _unlit(c):
 UNLIT = "no feature sample is lit by the lamp at any shutter time"
 
 
+def at_least(x, low):
+    """ln f_min(x, low) of eq. (1); a band from 0 asks nothing of the darkest sample (-inf: met)."""
+    return costs.ln_f_min(x, low) if low > 0 else np.full(np.shape(x), -np.inf)
+
+
 def gray_min(p, c):
-    return costs.f_min(np.min(c.gray, axis=-1), p.band[0])
+    return at_least(np.min(c.gray, axis=-1), p.band[0])
 
 
 def explain_gray_min(p, c, met):
@@ -47,29 +52,37 @@ def explain_gray_min(p, c, met):
 
 
 def gray_max(p, c):
-    return costs.f_max(np.max(c.gray, axis=-1), p.band[1])
+    return costs.ln_f_max(np.max(c.gray, axis=-1), p.band[1])
 
 
 def explain_gray_max(p, c, met):
     low, high = p.band
     g = c.gray[0]
-    if not met and g.max() / max(g.min(), 1e-12) > high / low:
+    t_lo, k_hi = p.task.camera.shutter_range_s[0], p.task.camera.lens.f_number_range[1]
+    if not met and c.shutter[0] <= t_lo and c.kappa[0] >= k_hi:
+        return (f"too bright even at f/{k_hi:g} and {1e3 * t_lo:.3g} ms: gray {g.min():.1f}-{g.max():.1f}, band "
+                f"{low:g}-{high:g}; move the lamp farther away or use a weaker lamp")
+    if not met and g.max() * low > max(g.min(), 1e-12) * high:
         return (f"feature too uneven: gray {g.min():.1f}-{g.max():.1f} spans more than the band "
                 f"{low:g}-{high:g}; move the lamp farther away or toward the camera direction")
     return f"brightest sample gray {g.max():.1f} (band {low:g}-{high:g})"
 
 
 def reflection_region(p, c):
-    """exp(d / margin + 1): 1 at `margin` inside the wanted region (sec. 5.2)."""
+    """ln of exp(d / margin + 1): 0 at `margin` inside the wanted region (sec. 5.2)."""
     local = (c.position - p.scene.center) @ p.scene.frame
     az, el = geometry.angles_from_direction(local)
     d = p.maps.grid.sample(p.maps.distance, az, el)
     margin = max(p.task.requirements.region_margin_rad, 1e-6)
-    return np.exp(np.minimum(d / margin + 1.0, costs.EXP_LIMIT))
+    return d / margin + 1.0
 
 
 def explain_reflection_region(p, c, met):
     req = p.task.requirements
+    if not p.maps.wanted.any():
+        return (f"no lamp direction gives {req.reflection} reflection where every sample sees the lamp "
+                f"(none of the map's {np.degrees(p.maps.grid.step):g} deg cells): want another reflection "
+                f"or change the view")
     fact = (f"lamp at least {np.degrees(req.region_margin_rad):.1f} deg inside the region where "
             f"{req.reflection} reflection dominates and every sample sees the lamp "
             f"({p.maps.wanted.mean():.1%} of directions qualify)")
@@ -77,12 +90,12 @@ def explain_reflection_region(p, c, met):
 
 
 def lamp_tolerance(p, c):
-    """The worst band miss with the lamp moved by its tolerance (0 when not evaluated)."""
+    """The worst band miss with the lamp moved by its tolerance (-inf, f = 0, when not evaluated)."""
     low, high = p.band
-    value = np.zeros(len(c.shutter))
+    value = np.full(len(c.shutter), -np.inf)
     for moved in c.moved_gray:
-        value = np.maximum(value, np.maximum(costs.f_min(moved.min(axis=-1), low),
-                                             costs.f_max(moved.max(axis=-1), high)))
+        value = np.maximum(value, np.maximum(at_least(moved.min(axis=-1), low),
+                                             costs.ln_f_max(moved.max(axis=-1), high)))
     return value
 
 
@@ -95,7 +108,7 @@ def explain_lamp_tolerance(p, c, met):
 
 
 def no_shadow(p, c):
-    return costs.count_cost(c.shadowed.sum(axis=-1))
+    return costs.ln_count_cost(c.shadowed.sum(axis=-1))
 
 
 def explain_no_shadow(p, c, met):
@@ -104,7 +117,7 @@ def explain_no_shadow(p, c, met):
 
 
 def cone_coverage(p, c):
-    return costs.f_max(np.max(c.off_axis, axis=-1), 0.5 * p.task.lamp.cone_angle_rad)
+    return costs.ln_f_max(np.max(c.off_axis, axis=-1), 0.5 * p.task.lamp.cone_angle_rad)
 
 
 def explain_cone_coverage(p, c, met):
@@ -113,7 +126,7 @@ def explain_cone_coverage(p, c, met):
 
 
 def camera_view(p, c):
-    return np.broadcast_to(costs.count_cost(p.camera_unseen), c.shutter.shape)
+    return np.broadcast_to(costs.ln_count_cost(p.camera_unseen), c.shutter.shape)
 
 
 def explain_camera_view(p, c, met):
@@ -123,7 +136,7 @@ def explain_camera_view(p, c, met):
 
 
 def shutter_min(p, c):
-    return costs.f_min(c.shutter, p.task.camera.shutter_range_s[0])
+    return costs.ln_f_min(c.shutter, p.task.camera.shutter_range_s[0])
 
 
 def explain_too_bright(p, c, met):
@@ -132,10 +145,10 @@ def explain_too_bright(p, c, met):
 
 
 def shutter_max(p, c):
-    """No sample lit: no shutter helps; value e marks the miss and leaves the cause (shadow,
-    cone, facing away) to bind."""
-    t_hi = p.task.camera.shutter_range_s[1]
-    return costs.f_max(np.where(np.isfinite(c.t_need), c.t_need, 2.0 * t_hi), t_hi)
+    """The shutter the band needs within the camera's. With no sample lit no shutter helps: inf,
+    worse than any lit pose however dim, so the search prefers a lit one; the cause (shadow, cone,
+    facing away) binds by CAUSES."""
+    return costs.ln_f_max(c.t_need, p.task.camera.shutter_range_s[1])
 
 
 def explain_shutter_max(p, c, met):
@@ -147,7 +160,7 @@ def explain_shutter_max(p, c, met):
 
 
 def f_number_min(p, c):
-    return costs.f_min(c.kappa, p.task.camera.lens.f_number_range[0])
+    return costs.ln_f_min(c.kappa, p.task.camera.lens.f_number_range[0])
 
 
 def explain_f_number_min(p, c, met):
@@ -156,17 +169,32 @@ def explain_f_number_min(p, c, met):
 
 
 def f_number_max(p, c):
-    return costs.f_max(c.kappa, p.task.camera.lens.f_number_range[1])
+    return costs.ln_f_max(c.kappa, p.task.camera.lens.f_number_range[1])
 
 
 def depth_of_field(p, c):
+    """Near limit before the nearest sample, far limit beyond the farthest (where they fall, not
+    only the width), and at least the task's depth of field."""
     lens = p.task.camera.lens
-    depth = dof.depth_of_field(p.focus_m, lens.focal_length_m, c.kappa, lens.circle_of_confusion_m)
-    return costs.f_min(np.minimum(depth, 1e3), p.depth_needed_m)
+    f, sigma = lens.focal_length_m, lens.circle_of_confusion_m
+    depths = p.scene.sample_depths()
+    near = dof.near_limit(p.focus_m, f, c.kappa, sigma)
+    far = dof.far_limit(p.focus_m, f, c.kappa, sigma)
+    value = np.maximum(costs.ln_f_max(near, depths.min()), costs.ln_f_min(np.minimum(far, 1e3), depths.max()))
+    wanted = p.task.requirements.depth_of_field_m
+    if wanted > 0:
+        value = np.maximum(value, costs.ln_f_min(np.minimum(far - near, 1e3), wanted))
+    return value
 
 
 def explain_depth_of_field(p, c, met):
-    return f"depth of field needs {1e3 * p.depth_needed_m:.1f} mm"
+    lens = p.task.camera.lens
+    f, sigma, k = lens.focal_length_m, lens.circle_of_confusion_m, c.kappa[0]
+    near, far = dof.near_limit(p.focus_m, f, k, sigma), float(dof.far_limit(p.focus_m, f, k, sigma))
+    depths = p.scene.sample_depths()
+    fact = (f"in focus {1e3 * near:.1f}-{1e3 * far:.1f} mm at f/{k:.1f}, samples at {1e3 * depths.min():.1f}-"
+            f"{1e3 * depths.max():.1f} mm, depth of field needs {1e3 * p.depth_needed_m:.1f} mm")
+    return fact if met else f"{fact}; a narrower aperture is beyond the lens's f/{lens.f_number_range[1]:g}"
 
 
 REGISTRY = (
@@ -181,29 +209,52 @@ REGISTRY = (
     Requirement("shutter_max", shutter_max, explain_shutter_max),
     Requirement("f_number_min", f_number_min, explain_f_number_min),
     Requirement("f_number_max", f_number_max, explain_too_bright),
-    Requirement("depth_of_field", depth_of_field, explain_depth_of_field,
-                applies=lambda p: p.depth_needed_m > 0),
+    Requirement("depth_of_field", depth_of_field, explain_depth_of_field),
 )
 
-
-def values(problem, candidates):
-    """{name: (C,) value} of every requirement that applies to the problem, in registry order."""
-    return {r.name: np.asarray(r.value(problem, candidates), dtype=float)
-            for r in REGISTRY if r.applies(problem)}
-
-
-def stacked(values_by_name):
-    """(C, R) of the values, for the objective and the feasibility test over all of them."""
-    return np.column_stack(list(values_by_name.values()))
+# The order in which requirements that no lamp pose meets name the cause of an infeasible plan:
+# the first is the true cause (an unlit pose misses every exposure by far, but the shadow, the
+# cone or the view is what to fix).
+CAUSES = ("camera_view", "no_shadow", "cone_coverage", "reflection_region", "gray_min", "shutter_max",
+          "shutter_min", "f_number_max", "f_number_min", "gray_max", "depth_of_field", "lamp_tolerance")
 
 
-def objective(values_by_name):
-    """Eq. (22) over the log-values ln f_i: a smooth max that the optimizer minimises (C,)."""
-    return costs.log_sum_exp(np.log(np.maximum(stacked(values_by_name), 1e-300)), axis=-1)
+def ln_values(problem, candidates):
+    """{name: (C,) ln f_i} of every requirement, in registry order."""
+    return {r.name: np.asarray(r.ln_value(problem, candidates), dtype=float) for r in REGISTRY}
 
 
-def judged(problem, candidate, values_by_name):
+def missed(ln_values_by_name):
+    """(C,) whether any requirement is missed (some ln f_i > 0)."""
+    return np.any(np.column_stack(list(ln_values_by_name.values())) > 0.0, axis=-1)
+
+
+def objective(ln_values_by_name):
+    """Eq. (22) over ln f_i: a smooth max that the optimizer minimises (C,); inf for a pose that
+    no exposure can make work (unlit)."""
+    with np.errstate(invalid="ignore"):        # -inf entries (met by construction) add nothing
+        return costs.log_sum_exp(np.column_stack(list(ln_values_by_name.values())), axis=-1)
+
+
+def judged(problem, candidate, ln_values_by_name):
     """costs.RequirementValue of each requirement for one candidate (Candidates of one)."""
     by_name = {r.name: r for r in REGISTRY}
-    return tuple(costs.RequirementValue(name, float(v[0]), by_name[name].explain(problem, candidate, v[0] <= 1.0))
-                 for name, v in values_by_name.items())
+    return tuple(costs.RequirementValue(name, float(costs.value(v[0])),
+                                        by_name[name].explain(problem, candidate, v[0] <= 0.0))
+                 for name, v in ln_values_by_name.items())
+
+
+def verdict(judged_values, everywhere=()):
+    """costs.verdict (feasible when max f_i <= 1, erratum eq. 25; the binding, largest value; the
+    objective), except that an infeasible plan's binding requirement is the first in CAUSES
+    order that fails at every lamp pose of the global search (`everywhere`) and at the chosen one:
+    no lamp pose fixes that, so it is the cause, whatever else the compromise chosen misses."""
+    v = costs.verdict(judged_values)
+    failing = {r.name: r for r in judged_values if not r.met}
+    cause = next((failing[name] for name in CAUSES if name in everywhere and name in failing), None)
+    return v if cause is None else replace(v, binding=cause.name, miss=cause.value - 1.0)
+
+
+def failing_everywhere(ln_values_by_name):
+    """Names of the requirements that fail at every candidate."""
+    return {name for name, v in ln_values_by_name.items() if np.all(v > 0.0)}

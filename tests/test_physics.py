@@ -93,10 +93,17 @@ def test_paper_rod_f_number_gives_its_depth():
 
 
 def test_cost_functions_are_one_at_their_limits():
-    assert costs.f_max(10.0, 10.0) == pytest.approx(1.0)
-    assert costs.f_min(10.0, 10.0) == pytest.approx(1.0)
-    assert costs.f_max(9.0, 10.0) < 1.0 < costs.f_max(11.0, 10.0)
-    assert costs.f_min(11.0, 10.0) < 1.0 < costs.f_min(9.0, 10.0)
+    assert costs.value(costs.ln_f_max(10.0, 10.0)) == pytest.approx(1.0)
+    assert costs.value(costs.ln_f_min(10.0, 10.0)) == pytest.approx(1.0)
+    assert costs.value(costs.ln_f_max(9.0, 10.0)) < 1.0 < costs.value(costs.ln_f_max(11.0, 10.0))
+    assert costs.value(costs.ln_f_min(11.0, 10.0)) < 1.0 < costs.value(costs.ln_f_min(9.0, 10.0))
+    assert costs.value(costs.ln_count_cost(0)) < 1.0 < costs.value(costs.ln_count_cost(1))
+
+
+def test_a_miss_far_beyond_the_cap_is_still_ranked_and_reported_finite():
+    far, farther = costs.ln_f_max(1e5, 1.0), costs.ln_f_max(1e6, 1.0)
+    assert costs.log_sum_exp([far, 0.0]) < costs.log_sum_exp([farther, 0.0])
+    assert np.isfinite(costs.value(farther)) and costs.value(farther) == costs.value(far)
 
 
 def test_feasibility_uses_the_max_not_lse_minus_ln_n():

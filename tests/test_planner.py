@@ -230,3 +230,70 @@ def test_a_task_and_a_plan_pickle_and_a_spawned_worker_plans_the_same(hinge):
         worker = pool.apply(plan_of, (pickle.loads(pickle.dumps(task)),))
     assert without_timing(worker) == without_timing(plan)
     np.testing.assert_array_equal(worker.shot.gray, plan.shot.gray)
+
+
+# --- edge cases: every requirement judged the way it is stated ------------------------------
+
+def variant_plan(tmp_path, changes, settings=COARSE):
+    """A hinge variant's task and plan, with every warning an error (no NaN may slip through)."""
+    import warnings
+
+    from simcell import variant
+    task = load_task(variant(tmp_path, TASKS / "hinge.yaml", changes))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        return task, planner.plan(task, settings)
+
+
+def test_depth_of_field_limits_hold_the_nearest_and_farthest_sample_at_a_steep_view(tmp_path):
+    """At 60 deg from the normal the patch spans +-5 mm in depth around a focus that is not its
+    middle: the f-number is chosen by where the limits fall, not by the width alone."""
+    view = [float(np.sin(np.radians(60.0))), 0.0, float(np.cos(np.radians(60.0)))]
+    task, plan = variant_plan(tmp_path, {"camera.view_direction": view, "requirements.depth_of_field_m": 0.0})
+    lens, e, depths = task.camera.lens, plan.shot.exposure, plan.scene.sample_depths()
+    near = dof.near_limit(e.focus_m, lens.focal_length_m, e.f_number, lens.circle_of_confusion_m)
+    far = dof.far_limit(e.focus_m, lens.focal_length_m, e.f_number, lens.circle_of_confusion_m)
+    assert near <= depths.min() and far >= depths.max()
+    width_only = dof.f_number_for_depth(e.focus_m, lens.focal_length_m, lens.circle_of_confusion_m,
+                                        depths.max() - depths.min())
+    assert e.f_number > width_only                      # the width alone would leave an end out of focus
+
+
+def test_a_band_from_0_plans_a_sensible_exposure(tmp_path):
+    task, plan = variant_plan(tmp_path, {"requirements.gray_band": [0, 255]})
+    assert plan.feasible, plan.hint
+    assert 64.0 < plan.shot.gray.max() < 254.5          # aimed at the middle, not at 0 (black)
+    assert np.all(np.isfinite([r.value for r in plan.requirements]))
+
+
+def test_a_sensor_too_small_to_see_the_feature_fails_the_camera_view_first(tmp_path):
+    task, plan = variant_plan(tmp_path, {"camera.sensor.width_px": 1, "camera.sensor.height_px": 1})
+    assert not plan.feasible and plan.binding == "camera_view"
+    assert "cannot see" in plan.hint
+
+
+def test_a_lamp_too_weak_for_any_pose_says_so_not_that_the_region_binds(tmp_path):
+    """1 uW: every lit pose is too dark at the longest shutter; the search keeps a lit pose and
+    the reason is the exposure, not the reflection region."""
+    task, plan = variant_plan(tmp_path, {"lamp.power_mw": 1e-3})
+    assert not plan.feasible and plan.binding in ("gray_min", "shutter_max")
+    assert "shutter" in plan.hint
+    assert next(r for r in plan.requirements if r.name == "no_shadow").met
+
+
+def test_phase_angles_beyond_the_material_table_are_noted(tmp_path):
+    view = [float(np.sin(np.radians(75.0))), 0.0, float(np.cos(np.radians(75.0)))]
+    task, plan = variant_plan(tmp_path, {"camera.view_direction": view})
+    assert any("beyond the material table" in note for note in plan.notes)
+    assert plan.to_json()["notes"] == list(plan.notes)
+
+
+def test_a_map_step_that_does_not_divide_180_is_refused():
+    with pytest.raises(ValueError, match="must divide 180"):
+        planner.PlannerSettings(grid_step_deg=7.0)
+
+
+def test_a_camera_far_too_bright_for_any_pose_says_so(tmp_path):
+    task, plan = variant_plan(tmp_path, {"camera.sensor.camera_constant": 1.5e30})
+    assert not plan.feasible and plan.binding == "gray_max"
+    assert "too bright even at f/16" in plan.hint

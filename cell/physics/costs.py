@@ -5,23 +5,31 @@ from dataclasses import dataclass
 import numpy as np
 
 
-EXP_LIMIT = 700.0   # exp(700) ~ 1e304: requirement values stay finite however far they miss
+EXP_LIMIT = 700.0   # exp(700) ~ 1e304: reported requirement values stay finite however far they miss
+
+# The requirements are computed as ln f_i, uncapped, so that the objective (eq. 22 over ln f_i)
+# still ranks poses that miss by e^1000 or by e^100000; only the reported f_i is capped.
 
 
-def f_max(x, x_max):
-    """Eq. (1): exp(x / x_max - 1); <= 1 iff x <= x_max (x_max > 0)."""
-    return np.exp(np.minimum(np.asarray(x, dtype=float) / x_max - 1.0, EXP_LIMIT))
+def ln_f_max(x, x_max):
+    """ln of eq. (1)'s f_max = exp(x / x_max - 1): <= 0 iff x <= x_max (x_max > 0)."""
+    return np.asarray(x, dtype=float) / x_max - 1.0
 
 
-def f_min(x, x_min):
-    """Eq. (1): exp(-x / x_min + 1); <= 1 iff x >= x_min (x_min > 0)."""
-    return np.exp(np.minimum(-np.asarray(x, dtype=float) / x_min + 1.0, EXP_LIMIT))
+def ln_f_min(x, x_min):
+    """ln of eq. (1)'s f_min = exp(1 - x / x_min): <= 0 iff x >= x_min (x_min > 0)."""
+    return 1.0 - np.asarray(x, dtype=float) / x_min
 
 
-def count_cost(count):
-    """A requirement that no item fails (shadowed sample, unseen sample): 0.5 + count, so it
-    is met (<= 1) exactly when count is 0 and never sits at the boundary 1 when met."""
-    return 0.5 + np.asarray(count, dtype=float)
+def ln_count_cost(count):
+    """ln of a requirement that no item fails (shadowed sample, unseen sample), f = 0.5 + count:
+    met (<= 1) exactly when count is 0, and never at the boundary 1 when met."""
+    return np.log(0.5 + np.asarray(count, dtype=float))
+
+
+def value(ln_f):
+    """The requirement value f_i = exp(ln f_i) as reported, capped at exp(EXP_LIMIT)."""
+    return np.exp(np.minimum(ln_f, EXP_LIMIT))
 
 
 def log_sum_exp(x, axis=-1):
