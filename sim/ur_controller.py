@@ -155,6 +155,12 @@ class Line:
         else:
             self.phases, self.end = [], s
 
+    def velocity(self, ds_dt):
+        """The TCP's [vx, vy, vz, wx, wy, wz] (base frame) at path speed ds/dt."""
+        if self.length == 0:
+            return np.zeros(6)
+        return np.concatenate([self.dp, self.T0[:3, :3] @ self.w]) * ds_dt / self.length
+
     def pose(self, s):
         f = s / self.length if self.length > 0 else 1.0
         T = np.eye(4)
@@ -168,7 +174,7 @@ class Arm:
 
     def __init__(self, joints=HOME_JOINTS):
         self.q = np.array(joints, float)
-        self.qd = np.zeros(6)
+        self.qd, self.tcp_speed = np.zeros(6), np.zeros(6)
         self.T_flange_tcp = np.eye(4)
         self.line = None
         self.t = time.monotonic()                # of the last step
@@ -195,15 +201,15 @@ class Arm:
         self.line = Line(self.tcp(), from_ur_pose(pose), speed, acceleration, now)
 
     def halt(self):
-        self.line, self.qd = None, np.zeros(6)
+        self.line, self.qd, self.tcp_speed = None, np.zeros(6), np.zeros(6)
 
     def step(self, now):
         """Follow the line to `now`; returns an error saying why the arm stopped, or None."""
         dt, self.t = now - self.t, now
         if self.line is None:
-            self.qd = np.zeros(6)
+            self.qd, self.tcp_speed = np.zeros(6), np.zeros(6)
             return None
-        s, _, finished = self.line.state(now)
+        s, ds_dt, finished = self.line.state(now)
         T_base_flange = self.line.pose(s) @ np.linalg.inv(self.T_flange_tcp)
         try:
             q = ur5e.inverse(T_base_flange, self.q)
@@ -215,7 +221,7 @@ class Arm:
             self.halt()
             return (f"movel: joint speeds {np.round(qd, 2).tolist()} rad/s over the limit "
                     "(a singularity or a configuration change on the line)")
-        self.q, self.qd = q, qd
+        self.q, self.qd, self.tcp_speed = q, qd, self.line.velocity(ds_dt)
         if finished:
             self.line = None
         return None
@@ -436,6 +442,7 @@ class Controller:
             "target_q": self.arm.q, "actual_q": self.arm.q,
             "target_qd": self.arm.qd, "actual_qd": self.arm.qd,
             "actual_TCP_pose": pose, "target_TCP_pose": pose,
+            "actual_TCP_speed": self.arm.tcp_speed, "target_TCP_speed": self.arm.tcp_speed,
             "joint_mode": [JOINT_RUNNING_MODE] * 6, "joint_temperatures": [30.0] * 6,
             "robot_mode": self.robot_mode, "safety_mode": self.safety_mode, "safety_status": self.safety_mode,
             "runtime_state": self.runtime_state,
@@ -707,6 +714,8 @@ class Server:
 
     def carry_out(self, kind):
         if kind == "silent":
+            for conn in self.clients.values():          # the dashboard's answer still goes out
+                conn.flush()
             self.silent = True
         elif kind == "drop":
             self.close()

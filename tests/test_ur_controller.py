@@ -1,12 +1,15 @@
 """The unmodified ur_rtde client against the loopback UR controller emulator (sim/ur_controller.py),
-run as its own process: moveL at the commanded speed, async moveL and stopL, setTcp, an injected
-protective stop, and cell.hw.ur.URArm moving the camera and reading it back."""
+run as its own process: moveL at the commanded speed, async moveL and stopL, setTcp, injected
+protective and emergency stops; cell.hw.ur.URArm moving the camera and reading it back, and its
+watch on the controller: a killed, silent or dropped controller mid-move is a DeviceFault at once
+(not after ur_rtde's 300 s), as are a protective stop and a move past move_timeout_s."""
 import fcntl
 import selectors
 import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from contextlib import contextmanager
 from dataclasses import replace
@@ -17,6 +20,7 @@ import pytest
 import rtde_control
 import rtde_receive
 
+from cell.errors import DeviceFault
 from cell.geometry import from_ur_pose
 from cell.hw import ur
 from cell.loader import load_task
@@ -222,22 +226,61 @@ def test_an_injected_protective_stop_halts_the_move_and_the_script(controller):
         assert dashboard("unlock protective stop") == "Protective stop releasing"
         assert control.reuploadScript()                # returns once sent, like on a robot:
         assert until(control.isProgramRunning, 1.0)    # the program starts a moment later
-        assert control.moveL(goal, 0.25, 1.2)
-        assert from_ur_pose(receive.getActualTCPPose()) == pytest.approx(from_ur_pose(goal), abs=1e-4)
+        assert control.moveL(start, 0.25, 1.2)
+        assert from_ur_pose(receive.getActualTCPPose()) == pytest.approx(from_ur_pose(start), abs=1e-4)
 
 
-LOOPBACK_ARM = replace(device_settings({}, TASK).arm, host=HOST, speed_m_s=0.25, connect_timeout_s=2.0)
+FRAMES = load_task(TASK).frames
+LOOPBACK_ARM = replace(device_settings({}, TASK).arm, host=HOST, speed_m_s=0.25, acceleration_m_s2=1.2,
+                       connect_timeout_s=2.0)
+# the move from the emulator's home to HINGE_CAMERA at 0.1 m/s takes about 1.8 s
+WATCHED_ARM = replace(LOOPBACK_ARM, speed_m_s=0.1, connect_timeout_s=0.5, move_timeout_s=5.0)
 
 
-def test_ur_arm_moves_the_camera_and_reads_it_back_from_the_controller(controller):
-    frames = load_task(TASK).frames
-    arm = ur.URArm(LOOPBACK_ARM, frames)
+@contextmanager
+def ur_arm(config):
+    arm = ur.URArm(config, FRAMES)
     try:
+        yield arm
+    finally:
+        arm.close()
+
+
+def test_ur_arm_moves_the_camera_reads_it_back_and_watches_the_move_against_its_timeout(controller, monkeypatch):
+    with ur_arm(replace(LOOPBACK_ARM, move_timeout_s=1.0)) as arm:
         arm.move_camera(HINGE_CAMERA)
         assert arm.camera_pose() == pytest.approx(HINGE_CAMERA, abs=1e-4)
         arm.stop()
-    finally:
-        arm.close()
+        far, near = HINGE_CAMERA.copy(), HINGE_CAMERA.copy()
+        far[:3, 3] += [0.15, 0.0, 0.0]
+        near[:3, 3] += [0.0, 0.0, 0.02]
+        with pytest.raises(DeviceFault, match=r"moveL of 0.150 m at 0.1 m/s takes 1.6 s, over move_timeout_s "
+                                              r"1.0 s: refused before moving"):
+            arm.move_camera(far, speed_m_s=0.1)
+        assert arm.camera_pose() == pytest.approx(HINGE_CAMERA, abs=1e-4)       # nothing moved
+        monkeypatch.setattr(ur, "ARRIVED_M", -1.0)                  # never counts as arrived
+        began = time.monotonic()
+        with pytest.raises(DeviceFault, match=r"moveL not done within move_timeout_s 1.0 s \(0.0 mm from the "
+                                              r"target\): stopped"):
+            arm.move_camera(near)
+        assert 1.0 < time.monotonic() - began < 1.5
+
+
+def test_ur_arm_protective_stop_mid_move_is_a_fault(controller):
+    with ur_arm(WATCHED_ARM) as arm:
+        assert dashboard("emulator fault protective-stop on move 1 after 0.3").startswith("fault")
+        with pytest.raises(DeviceFault, match=r"moveL did not complete \(protective stop\)"):
+            arm.move_camera(HINGE_CAMERA)
+        arm.stop()                         # the robot has stopped itself; stopL still answers
+
+
+def watched_move_fails(arm, match, within_s):
+    began = time.monotonic()
+    with pytest.raises(DeviceFault, match=match) as fault:
+        arm.move_camera(HINGE_CAMERA)
+    assert time.monotonic() - began < within_s
+    assert fault.value.device == "arm"
+    return time.monotonic()
 
 
 # --- tests with an emulator of their own (the shared one stops first) ---------------------------
@@ -266,3 +309,32 @@ def test_one_emulator_per_host_and_it_ends_itself(emulators):
         with pytest.raises(SystemExit, match="127.0.0.1:29999 .*address already in use"):
             ur_controller.Server(HOST, ur_controller.Controller())
         assert process.wait(timeout=5) == 0 and time.monotonic() - began < 2.0      # --max-seconds
+
+
+def test_ur_arm_controller_killed_mid_move_is_a_fault_at_once_and_stop_says_it_could_not_stop(emulators):
+    with emulators.own() as process, ur_arm(WATCHED_ARM) as arm:
+        threading.Timer(0.5, process.kill).start()
+        watched_move_fails(arm, "connection to the controller lost during moveL: stopL not sent", 1.0)
+        began = time.monotonic()
+        with pytest.raises(DeviceFault, match="connection to the controller lost: stopL not sent"):
+            arm.stop()                                     # ur_rtde would wait 300 s for its done
+        assert time.monotonic() - began < 0.1
+
+
+def test_ur_arm_controller_silent_mid_move_is_a_fault_within_the_connect_timeout(emulators):
+    with emulators.own("--fault", "silent", "--fault-after-s", "0.5") as process:
+        arm = ur.URArm(WATCHED_ARM, FRAMES)
+        try:
+            watched_move_fails(arm, r"controller silent during moveL \(no state for 0.5 s\)", 0.5 + 0.5 + 0.3)
+            with pytest.raises(DeviceFault, match=r"controller silent \(no state for 0.5 s\): stopL not sent"):
+                arm.stop()
+        finally:
+            # ur_rtde's disconnect waits for its threads' reconnect attempts to a silent controller
+            # (measured: 5 s); to a vanished one they fail at once
+            process.kill()
+            arm.close()
+
+
+def test_ur_arm_connection_dropped_mid_move_is_a_fault_at_once(emulators):
+    with emulators.own("--fault", "drop", "--fault-after-s", "0.5"), ur_arm(WATCHED_ARM) as arm:
+        watched_move_fails(arm, "connection to the controller lost during moveL", 0.5 + 0.5)
