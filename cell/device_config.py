@@ -26,6 +26,7 @@ class ArmConfig:
     workspace_max_m: np.ndarray
     speed_m_s: float                        # what moves use, and the most any move may use
     acceleration_m_s2: float
+    move_timeout_s: float                   # a move not done by then is a fault
 
 
 @dataclass(frozen=True)
@@ -88,6 +89,7 @@ ARM = Section({
                         default=0.1),
     "acceleration_m_s2": Number(lambda v: 0 < v <= MAX_ACCELERATION_M_S2,
                                 f"an acceleration in (0, {MAX_ACCELERATION_M_S2}] m/s^2", default=0.5),
+    "move_timeout_s": Number(**POSITIVE, default=30.0),
 }, required=False)
 
 PAN_TILT = Section({
@@ -133,7 +135,8 @@ def devices_config(file, cell, written):
         raise TaskError(file, "cell.pan_tilt.tilt_id", show(ids), "distinct pan, tilt and radius ids")
     arm = ArmConfig(
         host=a["host"], connect_timeout_s=a["connect_timeout_s"], workspace_min_m=a["workspace_min_m"], workspace_max_m=a["workspace_max_m"],
-        speed_m_s=a["speed_m_s"], acceleration_m_s2=a["acceleration_m_s2"])
+        speed_m_s=a["speed_m_s"], acceleration_m_s2=a["acceleration_m_s2"],
+        move_timeout_s=a["move_timeout_s"])
     pan_tilt = PanTiltConfig(
         port=p["port"], baud=p["baud"], pan_id=p["pan_id"], tilt_id=p["tilt_id"],
         radius_id=p["radius_id"], pan_offset_rad=p["pan_offset_rad"],

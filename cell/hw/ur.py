@@ -5,9 +5,17 @@ constructor in a worker thread froze the whole interpreter), so neither a thread
 timeout nor a signal can bound them. Instead `probe` first walks the same steps with our own
 socket timeouts - the RTDE protocol-version handshake on 30004, the dashboard server's greeting
 on 29999, a connect to the script port 30003 - and the constructors run only when all answered.
+
+Once connected, a command to a controller that has died or gone silent waits up to 300 s for its
+"done" (and the getters return the last state forever; checked against sim/ur_controller.py). So
+every command is sent only to a controller whose state is still arriving, and moveL is sent
+asynchronously and watched here on the receive side against `move_timeout_s`.
 """
 import socket
 import struct
+import time
+
+import numpy as np
 
 import rtde_control
 import rtde_receive
@@ -20,6 +28,10 @@ PORTS = (30004, 29999, 30003)            # RTDE, dashboard, script: fixed by UR 
 RTDE_REQUEST_PROTOCOL_VERSION = 86        # 'V' (RTDE guide); payload: uint16 version
 RTDE_PROTOCOL_VERSION = 2
 STOP_DECELERATION_M_S2 = 1.0
+PLAYING = 2                               # runtime_state: the control script runs
+ARRIVED_M, ARRIVED_RAD = 0.5e-3, 5e-3     # TCP vs target when a move has arrived ...
+STEADY_M_S = 1e-3                         # ... and stands still
+POLL_S = 0.005
 
 
 def _receive(sock, n):
@@ -57,7 +69,9 @@ def probe(host, timeout_s):
 
 class URArm(Arm):
     """moveL of the camera frame: the frames' hand-eye is set as the TCP, so poses on the wire are
-    T_base_cam; read back with getActualTCPPose."""
+    T_base_cam; read back with getActualTCPPose. A controller whose state stops arriving for
+    connect_timeout_s, a lost connection, a protective or emergency stop, a stopped control
+    script and a move not done within move_timeout_s are each a DeviceFault."""
 
     def __init__(self, config, frames):
         super().__init__(config, frames)
@@ -66,39 +80,123 @@ class URArm(Arm):
         try:
             self._receive = rtde_receive.RTDEReceiveInterface(host)
             self._control = rtde_control.RTDEControlInterface(host)
+            self._alive("setTcp")
             if not self._control.setTcp(list(to_ur_pose(frames.T_flange_cam))):
                 raise RuntimeError("setTcp(hand-eye) refused")
         except RuntimeError as err:
-            raise DeviceFault(self.device, f"UR at {host}: {err}") from None
+            raise self._fault(str(err)) from None
+
+    def _fault(self, reason):
+        return DeviceFault(self.device, f"UR at {self.config.host}: {reason}")
+
+    def _connected(self):
+        return self._receive.isConnected() and self._control.isConnected()
+
+    def _alive(self, command):
+        """Return once a new controller state arrived (a tick, 2 ms on an e-Series); DeviceFault
+        naming `command`, unsent, if the connection is lost or none comes in connect_timeout_s."""
+        timeout_s = self.config.connect_timeout_s
+        seen, deadline = self._receive.getTimestamp(), time.monotonic() + timeout_s
+        while self._receive.getTimestamp() == seen:
+            if not self._connected():
+                raise self._fault(f"connection to the controller lost: {command} not sent")
+            if time.monotonic() > deadline:
+                raise self._fault(f"controller silent (no state for {timeout_s} s): {command} not sent")
+            time.sleep(POLL_S / 5)
 
     def _move_tcp(self, T_base_cam, speed_m_s):
         pose = list(to_ur_pose(T_base_cam))
-        host = self.config.host
+        a, timeout_s = self.config.acceleration_m_s2, self.config.move_timeout_s
+        T_now = from_ur_pose(self._receive.getActualTCPPose())
+        length = max(np.linalg.norm(T_base_cam[:3, 3] - T_now[:3, 3]), _angle(T_now, T_base_cam))
+        # moveL's trapezoid; a rotation counted as 1 m per rad (movel's speed is rad/s when only
+        # the orientation changes)
+        takes_s = length / speed_m_s + speed_m_s / a
+        if takes_s > timeout_s:
+            raise self._fault(f"moveL of {length:.3f} m at {speed_m_s} m/s takes {takes_s:.1f} s, over "
+                              f"move_timeout_s {timeout_s} s: refused before moving")
         try:
+            self._alive("isPoseWithinSafetyLimits")
             if not self._control.isPoseWithinSafetyLimits(pose):
-                raise DeviceFault(self.device, f"UR at {host}: pose {pose} unreachable or outside the "
-                                               "robot's safety limits: refused before moving")
-            done = self._control.moveL(pose, speed_m_s, self.config.acceleration_m_s2)
-            stopped = self._receive.isProtectiveStopped() or self._receive.isEmergencyStopped()
+                raise self._fault(f"pose {pose} unreachable or outside the robot's safety limits: "
+                                  "refused before moving")
+            self._alive("moveL")
+            if not self._control.moveL(pose, speed_m_s, a, True):
+                raise self._fault("moveL refused" + self._why_stopped())
         except RuntimeError as err:
-            raise DeviceFault(self.device, f"UR at {host}: {err}") from None
-        if not done or stopped:
-            raise DeviceFault(self.device, f"UR at {host}: moveL did not complete"
-                                           + (" (protective or emergency stop)" if stopped else ""))
+            raise self._fault(str(err)) from None
+        self._watch(T_base_cam, time.monotonic() + timeout_s)
+
+    def _watch(self, T_target, deadline):
+        """Poll the receive side until the TCP stands at T_target; DeviceFault on the way."""
+        timeout_s = self.config.connect_timeout_s
+        seen, seen_at = None, time.monotonic()
+        while True:
+            now = time.monotonic()
+            if not self._connected():
+                raise self._fault("connection to the controller lost during moveL: stopL not sent")
+            stamp = self._receive.getTimestamp()
+            if stamp != seen:
+                seen, seen_at = stamp, now
+            elif now - seen_at > timeout_s:
+                raise self._fault(f"controller silent during moveL (no state for {timeout_s} s): "
+                                  "stopL not sent")
+            why = self._why_stopped()
+            if why:
+                raise self._fault("moveL did not complete" + why)
+            T = from_ur_pose(self._receive.getActualTCPPose())
+            error_m = np.linalg.norm(T[:3, 3] - T_target[:3, 3])
+            if (error_m < ARRIVED_M and _angle(T, T_target) < ARRIVED_RAD
+                    and np.linalg.norm(self._receive.getActualTCPSpeed()[:3]) < STEADY_M_S):
+                return
+            if now > deadline:
+                try:
+                    self.stop()
+                    stopped = "stopped"
+                except DeviceFault as fault:
+                    stopped = fault.reason.removeprefix(f"UR at {self.config.host}: ")
+                raise self._fault(f"moveL not done within move_timeout_s {self.config.move_timeout_s} s "
+                                  f"({error_m * 1e3:.1f} mm from the target): {stopped}")
+            time.sleep(POLL_S)
+
+    def _why_stopped(self):
+        if self._receive.isEmergencyStopped():
+            return " (emergency stop)"
+        if self._receive.isProtectiveStopped():
+            return " (protective stop)"
+        if self._receive.getRuntimeState() != PLAYING:
+            return " (the control script is not running)"
+        return ""
 
     def _tcp_pose(self):
         try:
+            if not self._receive.isConnected():
+                raise RuntimeError("connection to the controller lost")
             return from_ur_pose(self._receive.getActualTCPPose())
         except RuntimeError as err:
-            raise DeviceFault(self.device, f"UR at {self.config.host}: {err}") from None
+            raise self._fault(str(err)) from None
 
     def stop(self):
+        """stopL, sent only to a controller that still answers (to any other it would wait 300 s
+        for the done): then the stop could not be commanded, and that is a DeviceFault."""
+        self._alive("stopL")
         try:
             self._control.stopL(STOP_DECELERATION_M_S2)
         except RuntimeError as err:
-            raise DeviceFault(self.device, f"UR at {self.config.host}: stopL failed: {err}") from None
+            raise self._fault(f"stopL failed: {err}") from None
 
     def close(self):
-        self._control.stopScript()
-        self._control.disconnect()
-        self._receive.disconnect()
+        try:
+            self._alive("stopScript")
+            self._control.stopScript()
+        except DeviceFault:
+            pass                  # gone or silent: stopScript would wait 300 s; still let go below
+        finally:
+            self._control.disconnect()
+            self._receive.disconnect()
+
+
+def _angle(T_a, T_b):
+    """The rotation angle between two poses' orientations [rad]."""
+    cos = (np.trace(T_a[:3, :3].T @ T_b[:3, :3]) - 1.0) / 2.0
+    return float(np.arccos(np.clip(cos, -1.0, 1.0)))
