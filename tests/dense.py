@@ -9,7 +9,7 @@ Per point p with facet normal n, lamp L aiming at the rig's pivot, camera C (eq.
   0 where the lamp is behind the facet or the ray p -> L hits the part (shadow);
   in focus when near(u) <= (p - C) . z_cam <= far(u), u the shot's focus (sec. 4.3, thin lens).
 
-`python tests/dense.py` plans the example tasks and prints each plan's predicted gray
+`python tests/dense.py` plans the example and curved tasks and prints each plan's predicted gray
 beside the dense check's.
 """
 from dataclasses import dataclass
@@ -26,6 +26,21 @@ from cell.physics import brdf, depth_of_field as dof, radiometry, reference
 
 ROOT = Path(__file__).resolve().parent.parent
 EXAMPLES = {name: ROOT / "tasks" / f"{name}.yaml" for name in ("hinge", "conrod")}
+CURVED_TASKS = {p.stem: p for p in sorted((ROOT / "tests" / "tasks").glob("*.yaml"))}
+
+# The curved tasks whose plan today's planner reports feasible although the dense check finds
+# points out of the band or out of focus (acceptance_failures): its verdict is judged on the 64
+# samples, and its depth of field on their depth range, not on where the near and far limits fall.
+# The acceptance cases to turn on once the planner certifies the whole patch: delete a name here
+# and tests/test_dense.py checks it. Today's numbers: `python tests/dense.py`.
+CURVED_CASES = {
+    "sphere_cast_iron_wide": "the spike's highlight between the samples saturates (predicted max 200.6, "
+                             "dense 255); the patch's far side lies beyond the far limit",
+    "fillet_cast_iron_wide": "the convex patch falls away from the camera: 449 points beyond the far limit, "
+                             "the depth of field centred on the feature centre",
+    "fillet_paint_steep": "60 deg view: 27 points nearer than the near limit (the limits are not symmetric "
+                          "about the focus, the depth range is)",
+}
 
 OFFSET_M = 1e-5             # shadow and view rays leave 10 um above the facet (as the kernels')
 
@@ -183,17 +198,27 @@ def acceptance_failures(plan, check):
     return failures
 
 
+def disk_footprint(task, points, normals):
+    """bool (N,): the points a tangent disk of feature.radius_m, projected onto the surface along
+    the normals, reaches: p's normal line meets the feature's tangent plane within the radius.
+    On a convex patch that is less than the surface within the radius (the planner's samples are
+    such a projection); for the report only, not for the acceptance."""
+    c = geometry.apply(task.frames.T_cell_part, task.feature.center_m)
+    n0 = geometry.unit(geometry.rotate(task.frames.T_cell_part, task.feature.normal))
+    t = ((c - points) @ n0) / (normals @ n0)
+    return np.linalg.norm(points + t[:, None] * normals - c, axis=1) <= task.feature.radius_m * (1 + 1e-9)
+
+
 def main():
     """Plan every example and curved task; print predicted and dense gray, focus and the verdict."""
     import time
 
     from cell import planner
     from cell.loader import load_task
-    print("reach: the farthest sample's distance from the feature centre [mm]; dense<=reach: the dense points "
-          "no farther out")
-    print(f"{'task':24} {'feasible':8} {'predicted':>13} {'dense':>13} {'reach':>5} {'dense<=reach':>13} "
+    print("beyond: dense points beyond the projected tangent disk the planner samples; inside: their gray")
+    print(f"{'task':24} {'feasible':8} {'predicted':>13} {'dense':>13} {'beyond':>6} {'inside':>13} "
           f"{'in band':>8} {'unfocused':>9} {'shadow':>6} {'sat':>4}  acceptance")
-    for name, path in EXAMPLES.items():
+    for name, path in {**EXAMPLES, **CURVED_TASKS}.items():
         task = load_task(path)
         t0 = time.perf_counter()
         plan = planner.plan(task)
@@ -201,11 +226,12 @@ def main():
         check = dense_check(task, plan.shot)
         t2 = time.perf_counter()
         s, g = check.summary(), plan.shot.gray
-        reach = np.linalg.norm(plan.scene.points - plan.scene.center, axis=1).max()
-        inner = check.gray[check.radius_m <= reach]
+        points, normals = patch_surface(task)
+        inside = disk_footprint(task, points, normals)
+        inner = check.gray[inside]
         failures = acceptance_failures(plan, check)
         print(f"{name:24} {str(plan.feasible):8} {g.min():6.1f}-{g.max():6.1f} {s['min_gray']:6.1f}-"
-              f"{s['max_gray']:6.1f} {1e3 * reach:5.2f} {inner.min():6.1f}-{inner.max():6.1f} {s['in_band']:8.2%} "
+              f"{s['max_gray']:6.1f} {np.sum(~inside):6d} {inner.min():6.1f}-{inner.max():6.1f} {s['in_band']:8.2%} "
               f"{s['out_of_focus']:9d} {s['shadowed']:6d} {s['saturated']:4d}  {'; '.join(failures) or 'holds'}  "
               f"[plan {t1 - t0:.1f} s, dense {t2 - t1:.1f} s]")
         if not plan.feasible:
