@@ -25,8 +25,9 @@ def depth_of_field_limits(task, scene):
     # the task's depth: closed form, rounded up by 1e-9 so it holds despite floating-point rounding
     kappa = dof.f_number_for_depth(focus, f, sigma, wanted) * (1 + 1e-9)
 
-    def holds(k):
-        return dof.near_limit(focus, f, k, sigma) <= nearest and dof.far_limit(focus, f, k, sigma) >= farthest
+    def holds(k):           # with 1e-9 to spare, as above, so the limits hold when judged again
+        return (dof.near_limit(focus, f, k, sigma) <= nearest * (1 - 1e-9)
+                and dof.far_limit(focus, f, k, sigma) >= farthest * (1 + 1e-9))
 
     k_lo, k_hi = lens.f_number_range
     if not holds(max(kappa, k_lo)) and holds(k_hi):
@@ -162,3 +163,14 @@ def candidates(problem, pan, tilt, radius, tolerance=True):
     moved = all_u[n:].reshape(len(moves), n, u.shape[1]) * gain
     return Candidates(all_pos[:n], u * gain, moved, all_shadowed[:n], all_off_axis[:n],
                       shutter, kappa, t_need)
+
+
+def at_exposure(problem, position, shutter_s, f_number):
+    """Candidates of one lamp at `position` (aiming at the rig's pivot) at a fixed shutter and
+    f-number: a chosen shot, as the certificate checks it."""
+    pivot = problem.task.lamp.rig.pivot_m
+    pos = np.asarray(position, float).reshape(1, 3)
+    u, shadowed, off_axis = unit_gray(problem, pos, rig.lamp_aim(pivot, pos))
+    t_need = exposure(problem, u)[2]
+    return Candidates(pos, u * (shutter_s / f_number**2), np.zeros((0, 1, u.shape[1])), shadowed, off_axis,
+                      np.array([float(shutter_s)]), np.array([float(f_number)]), t_need)

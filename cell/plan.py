@@ -108,6 +108,7 @@ class Plan:
     search: Search
     timing_s: dict = field(default_factory=dict)
     notes: tuple = ()            # what the user should know although it is no requirement
+    verification: object = None  # cell.certificate.Verification of the shot (None: infeasible already)
 
     @property
     def success(self):
@@ -151,6 +152,7 @@ class Plan:
             "camera": {"shutter_s": e.shutter_s, "f_number": e.f_number, "focus_m": e.focus_m,
                        "depth_of_field_m": e.depth_of_field_m, "position_m": shot.camera_position.tolist()},
             "predicted_gray": gray_stats(shot.gray),
+            "verified": self.verification.to_json() if self.verification else None,
             "search": asdict(self.search),
             "timing_s": self.timing_s,
             "settings": asdict(self.settings),

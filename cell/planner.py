@@ -12,7 +12,7 @@ from dataclasses import replace
 import numpy as np
 from scipy.optimize import minimize
 
-from cell import evaluate, geometry, regions, requirements
+from cell import certificate, evaluate, geometry, regions, requirements
 from cell.physics import depth_of_field as dof
 from cell.plan import Exposure, Maps, Plan, PlannerSettings, Refinement, Search, Shot
 
@@ -59,6 +59,7 @@ def pick_starts(pan, tilt, objective_values, count, min_separation):
     return chosen
 
 
+CERTIFY_ROUNDS = 3          # searches again with the certificate's worst points added
 UNLIT_OBJECTIVE = 1e300     # the objective of a pose no exposure can make work (it is inf), finite
 
 
@@ -85,12 +86,46 @@ def refine(problem, start, lamp_rig):
 
 
 def plan(task, settings=PlannerSettings(), albedo_scale=1.0, progress=None):
-    """Plan a task: the CLI, the closed loop and the benchmark all call this."""
-    from cell.scene import build_scene
+    """Plan a task (the CLI, the closed loop and the benchmark all call this): search, then
+    certify the chosen shot on the dense patch (cell.certificate); where the certificate fails,
+    its worst points join the samples and the search runs again, at most CERTIFY_ROUNDS times.
+    The plan is feasible when its samples and its certificate say so."""
     say = progress or (lambda msg: None)
+    t0 = time.perf_counter()
+    extra = np.zeros((0, 3))
+    for rounds in range(CERTIFY_ROUNDS + 1):
+        result, problem = search(task, settings, albedo_scale, extra, say)
+        if not result.feasible:
+            return replace(result, timing_s={**result.timing_s, "total": time.perf_counter() - t0})
+        t = time.perf_counter()
+        verification, worst = certificate.verify(problem, result.shot)
+        timing = {**result.timing_s, "verify": time.perf_counter() - t}
+        say(f"certificate: {verification.points} points, gray {verification.gray_min:.1f}-"
+            f"{verification.gray_max:.1f}: " + ("holds" if verification.holds else
+                                                 ", ".join(r.name for r in verification.failing) + " missed"))
+        if verification.holds or rounds == CERTIFY_ROUNDS:
+            break
+        extra = np.vstack([extra, worst])
+    verification = replace(verification, rounds=rounds)
+    timing["total"] = time.perf_counter() - t0
+    # each requirement the certificate judges is reported where it is worse: samples or dense
+    dense = {r.name: r for r in verification.judged}
+    judged = tuple(dense[r.name] if r.name in dense and dense[r.name].value > r.value else r
+                   for r in result.shot.requirements)
+    result = replace(result, shots=(replace(result.shot, requirements=judged),), verification=verification,
+                     timing_s=timing)
+    if verification.holds:
+        return result
+    cause = min(verification.failing, key=lambda r: requirements.CAUSES.index(r.name))
+    return replace(result, feasible=False, binding=cause.name, miss=cause.value - 1.0, hint=cause.detail)
+
+
+def search(task, settings, albedo_scale, extra, say):
+    """(Plan of the search over the rig on the task's samples plus `extra` points, its Problem)."""
+    from cell.scene import build_scene
     timing = {}
     t0 = time.perf_counter()
-    scene = build_scene(task, settings.samples)
+    scene = build_scene(task, settings.samples, extra)
     timing["scene"] = time.perf_counter() - t0
 
     t = time.perf_counter()
@@ -120,7 +155,6 @@ def plan(task, settings=PlannerSettings(), albedo_scale=1.0, progress=None):
     rank = np.lexsort((requirements.objective(final_values), requirements.missed(final_values)))
     best = int(rank[0])
     timing["refine"] = time.perf_counter() - t
-    timing["total"] = time.perf_counter() - t0
     search = Search(candidates=len(pan), starts=len(poses), refinements=tuple(r for _, r in refined))
     shot = make_shot(problem, stack[best], final.pick(best), {k: v[best:best + 1] for k, v in final_values.items()})
     verdict = requirements.verdict(shot.requirements, requirements.failing_everywhere(global_values))
@@ -128,7 +162,7 @@ def plan(task, settings=PlannerSettings(), albedo_scale=1.0, progress=None):
     return Plan(task_name=task.name, feasible=verdict.feasible, binding=verdict.binding, miss=verdict.miss,
                 objective=verdict.objective, hint="" if verdict.feasible else binding.detail, shots=(shot,),
                 maps=maps, settings=settings, scene=scene, search=search, timing_s=timing,
-                notes=notes(problem, shot))
+                notes=notes(problem, shot)), problem
 
 
 def notes(problem, shot):

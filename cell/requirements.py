@@ -194,7 +194,8 @@ def explain_depth_of_field(p, c, met):
     depths = p.scene.sample_depths()
     fact = (f"in focus {1e3 * near:.1f}-{1e3 * far:.1f} mm at f/{k:.1f}, samples at {1e3 * depths.min():.1f}-"
             f"{1e3 * depths.max():.1f} mm, depth of field needs {1e3 * p.depth_needed_m:.1f} mm")
-    return fact if met else f"{fact}; a narrower aperture is beyond the lens's f/{lens.f_number_range[1]:g}"
+    return fact if met else (f"{fact}; stop the lens down (up to f/{lens.f_number_range[1]:g}, with more light "
+                             f"or a longer shutter) or view the patch less obliquely")
 
 
 REGISTRY = (

@@ -15,6 +15,8 @@ from kernels.mesh import shared_mesh
 from kernels.proximity import closest_points
 
 GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
+PATCH_ITERATIONS = 6        # pushes of the disk's points out onto a curved patch
+PATCH_TOLERANCE = 1e-4      # of the radius: where a sample lands at its distance
 
 
 def look_at(position, target, up=(0.0, 0.0, 1.0)):
@@ -72,9 +74,14 @@ class Scene:
         return (self.points - self.camera_position) @ self.T_cell_cam[:3, 2]
 
 
-def build_scene(task, samples=None):
+def build_scene(task, samples=None, extra=None):
     """Scene of a task: mesh and feature in the cell frame, `samples` points over the feature
-    patch (default: the task's), projected onto the surface."""
+    patch (default: the task's) and the `extra` cell-frame points (the certificate's worst), on
+    the surface.
+
+    The patch is the surface within radius_m of the centre (task-format), so a disk point at
+    radius rho must land at 3D distance rho: projected onto a curved surface it falls short (a
+    cylinder's R atan(rho / R)), so its guess is pushed out radially until it lands there."""
     T = task.frames.T_cell_part
     mesh = task.part.mesh.copy()
     mesh.apply_transform(T)
@@ -87,12 +94,24 @@ def build_scene(task, samples=None):
     vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
     faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
     key = hashlib.blake2b(vertices.tobytes() + faces.tobytes(), digest_size=16).hexdigest()
-    points, hit, _ = closest_points(shared_mesh(key, vertices, faces), guesses,
-                                    max_dist=4 * task.feature.radius_m + 0.01)
+    bvh = shared_mesh(key, vertices, faces)
+    reach = 4 * task.feature.radius_m + 0.01
+    wanted = np.hypot(disk[:, 0], disk[:, 1])
+    away = wanted > 1e-3 * task.feature.radius_m
+    for _ in range(PATCH_ITERATIONS):
+        points, hit, _ = closest_points(bvh, guesses, max_dist=reach)
+        landed = np.linalg.norm(points - center, axis=1)
+        push = away & (hit >= 0) & (landed > 0)
+        if not np.any(np.abs(landed[push] - wanted[push]) > PATCH_TOLERANCE * task.feature.radius_m):
+            break
+        guesses[push] = center + (guesses[push] - center) * (wanted[push] / landed[push])[:, None]
+    if extra is not None and len(extra):
+        more, more_hit, _ = closest_points(bvh, np.asarray(extra, float), max_dist=reach)
+        points, hit = np.vstack([points, more]), np.concatenate([hit, more_hit])
     if np.any(hit < 0):
         raise TaskError(task.path, "feature.radius_m", f"{task.feature.radius_m:g} m, a patch "
-                        f"{int(np.sum(hit < 0))} of whose {n} samples find no surface within "
-                        f"{1e3 * (4 * task.feature.radius_m + 0.01):.0f} mm", "a patch on the part's surface")
+                        f"{int(np.sum(hit < 0))} of whose {len(hit)} samples find no surface within "
+                        f"{1e3 * reach:.0f} mm", "a patch on the part's surface")
     normals = mesh.face_normals[hit]
     cam = center + task.camera.distance_m * geometry.unit(geometry.rotate(T, task.camera.view_direction))
     arrays = dict(vertices=vertices, faces=faces, center=center, normal=normal, frame=frame,

@@ -28,19 +28,6 @@ ROOT = Path(__file__).resolve().parent.parent
 EXAMPLES = {name: ROOT / "tasks" / f"{name}.yaml" for name in ("hinge", "conrod")}
 CURVED_TASKS = {p.stem: p for p in sorted((ROOT / "tests" / "tasks").glob("*.yaml"))}
 
-# The curved tasks whose plan today's planner reports feasible although the dense check finds
-# points out of the band or out of focus (acceptance_failures): its verdict is judged on the 64
-# samples, and its depth of field on their depth range, not on where the near and far limits fall.
-# The acceptance cases to turn on once the planner certifies the whole patch: delete a name here
-# and tests/test_dense.py checks it. Today's numbers: `python tests/dense.py`.
-CURVED_CASES = {
-    "sphere_cast_iron_wide": "the spike's highlight between the samples saturates (predicted max 200.6, "
-                             "dense 255); the patch's far side lies beyond the far limit",
-    "fillet_cast_iron_wide": "the convex patch falls away from the camera: 449 points beyond the far limit, "
-                             "the depth of field centred on the feature centre",
-    "fillet_paint_steep": "60 deg view: 27 points nearer than the near limit (the limits are not symmetric "
-                          "about the focus, the depth range is)",
-}
 
 OFFSET_M = 1e-5             # shadow and view rays leave 10 um above the facet (as the kernels')
 
@@ -147,7 +134,7 @@ def shade(task, shot, points, normals, center=None):
     mesh = cell_mesh(task)
     if center is None:
         center = geometry.apply(task.frames.T_cell_part, task.feature.center_m)
-    cam, sensor, lens, lamp = task.camera, task.camera.sensor, task.camera.lens, task.lamp
+    sensor, lens, lamp = task.camera.sensor, task.camera.lens, task.lamp
     e = shot.exposure
     camera = shot.T_cell_cam[:3, 3]
     to_lamp = shot.lamp_position - points

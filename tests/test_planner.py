@@ -297,3 +297,37 @@ def test_a_camera_far_too_bright_for_any_pose_says_so(tmp_path):
     task, plan = variant_plan(tmp_path, {"camera.sensor.camera_constant": 1.5e30})
     assert not plan.feasible and plan.binding == "gray_max"
     assert "too bright even at f/16" in plan.hint
+
+
+# --- the certificate: the shot checked at the camera's density --------------------------------
+
+def test_the_examples_are_certified_at_the_cameras_pixel_density(hinge):
+    """The hinge's 6 mm patch at 0.5 m through 25 mm and 4.65 um pixels: 93 um per pixel, about
+    13 000 pixels; every one in band (within a gray level of the 64 samples' prediction)."""
+    task, plan = hinge
+    v = plan.verification
+    footprint = 0.5 * 4.65e-6 / 0.025
+    assert v.holds and v.rounds == 0
+    assert v.points == pytest.approx(np.pi * 0.006**2 / footprint**2, rel=0.01)
+    assert plan.shot.gray.min() - 1.0 <= v.gray_min and v.gray_max <= plan.shot.gray.max() + 1.0
+    assert plan.to_json()["verified"]["holds"] is True
+
+
+CURVED = Path(__file__).resolve().parent / "tasks"
+
+
+def test_a_rim_out_of_focus_between_the_samples_is_added_and_planned_for():
+    """60 deg view of a fillet: the search's samples miss the rim points nearest and farthest from
+    the camera; the certificate finds them, they join the samples, and the next search covers them."""
+    plan = planner.plan(load_task(CURVED / "fillet_paint_steep.yaml"))
+    assert plan.feasible and plan.verification.holds and plan.verification.rounds >= 1
+    assert len(plan.scene.points) > 64
+
+
+def test_a_highlight_no_lamp_pose_keeps_off_the_patch_is_infeasible_on_the_dense_patch():
+    """Cast iron's spike on a sphere: wherever the lamp, its mirror point lies on the patch and
+    saturates; the reason says where it was found."""
+    plan = planner.plan(load_task(CURVED / "sphere_cast_iron_wide.yaml"))
+    assert not plan.feasible and plan.binding == "gray_max"
+    assert plan.hint.startswith("on the dense patch") and plan.verification.rounds == planner.CERTIFY_ROUNDS
+    assert plan.feasible == all(r.met for r in plan.requirements)
