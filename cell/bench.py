@@ -67,7 +67,7 @@ def accuracy(task, result, reference, truth):
     evaluate.Problem of the reference's scene."""
     shot, ref_shot = result.shot, reference.shot
     pos = shot.lamp_position
-    u, _, _ = evaluate.unit_gray(truth, pos[None], rig.lamp_aim(task.lamp.rig.pivot_m, pos)[None])
+    u = evaluate.unit_gray(truth, pos[None], rig.lamp_aim(task.lamp.rig.pivot_m, pos)[None])[0]
     true_gray = u[0] * shot.exposure.shutter_s / shot.exposure.f_number**2
     predicted, true = gray_stats(shot.gray), gray_stats(true_gray)
     error = {k: predicted[k] - true[k] for k in predicted}

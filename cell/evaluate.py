@@ -83,15 +83,15 @@ def build_problem(task, scene, maps, albedo_scale=1.0):
 
 
 def unit_gray(problem, positions, aims):
-    """(gray per exposure u (C, P), shadowed (C, P), off-axis angle (C, P)) of lamps at
-    `positions` aiming along `aims`, from the Warp kernel."""
+    """(gray per exposure u (C, P), shadowed (C, P), off-axis angle (C, P), dominant BRDF term
+    (C, P)) of lamps at `positions` aiming along `aims`, from the Warp kernel."""
     from kernels.gray import gray_per_exposure
     task, scene = problem.task, problem.scene
     out = gray_per_exposure(
         scene.warp_mesh, scene.points, scene.normals, scene.camera_position, positions, aims,
         task.lamp.power_w, task.lamp.cone_angle_rad, problem.material.table(),
         task.camera.sensor.camera_constant, task.camera.sensor.pixel_area_m2)
-    return out.value, out.shadowed, out.off_axis
+    return out.value, out.shadowed, out.off_axis, out.dominant
 
 
 def exposure(problem, unit_gray):
@@ -120,13 +120,14 @@ class Candidates:
     """Lamp poses (C of them) and what the model predicts for each: positions (C, 3), gray
     (C, P) at the chosen exposure, the gray with the lamp moved by its tolerance (M, C, P) at the
     same exposure (M = 0 when not evaluated), shadowed and off-axis angle (C, P), and the
-    exposure: shutter, f-number, shutter needed (C,)."""
+    exposure: shutter, f-number, shutter needed (C,), and each sample's dominant BRDF term (C, P)."""
 
     position: np.ndarray
     gray: np.ndarray
     moved_gray: np.ndarray
     shadowed: np.ndarray
     off_axis: np.ndarray
+    dominant: np.ndarray
     shutter: np.ndarray
     kappa: np.ndarray
     t_need: np.ndarray
@@ -137,13 +138,17 @@ class Candidates:
                              else getattr(self, f.name)[k:k + 1] for f in fields(self)})
 
 
+TOLERANCE_RING = 8          # lamp errors of lamp_tolerance in this many directions around the aim
+
+
 def tolerance_moves(problem, tilt):
-    """(d_pan, d_tilt) moving the lamp direction by lamp_tolerance along pan and tilt."""
+    """(d_pan, d_tilt) moving the lamp direction by lamp_tolerance in TOLERANCE_RING directions
+    (a ring: an error of that size in any direction, not only along the two axes)."""
     tol = problem.task.requirements.lamp_tolerance_rad
     if tol <= 0:
         return []
-    dpan = tol / np.maximum(np.cos(tilt), 1e-3)
-    return [(dpan, 0.0), (-dpan, 0.0), (0.0, tol), (0.0, -tol)]
+    psi = 2.0 * np.pi * np.arange(TOLERANCE_RING) / TOLERANCE_RING
+    return [(tol * np.cos(a) / np.maximum(np.cos(tilt), 1e-3), tol * np.sin(a)) for a in psi]
 
 
 def candidates(problem, pan, tilt, radius, tolerance=True):
@@ -156,12 +161,12 @@ def candidates(problem, pan, tilt, radius, tolerance=True):
     all_pan = np.concatenate([pan] + [pan + dp for dp, _ in moves])
     all_tilt = np.concatenate([tilt] + [tilt + dt for _, dt in moves])
     all_pos = rig.lamp_position(pivot, all_pan, all_tilt, np.tile(radius, len(moves) + 1))
-    all_u, all_shadowed, all_off_axis = unit_gray(problem, all_pos, rig.lamp_aim(pivot, all_pos))
+    all_u, all_shadowed, all_off_axis, all_dominant = unit_gray(problem, all_pos, rig.lamp_aim(pivot, all_pos))
     u = all_u[:n]
     shutter, kappa, t_need = exposure(problem, u)
     gain = (shutter / kappa**2)[:, None]
     moved = all_u[n:].reshape(len(moves), n, u.shape[1]) * gain
-    return Candidates(all_pos[:n], u * gain, moved, all_shadowed[:n], all_off_axis[:n],
+    return Candidates(all_pos[:n], u * gain, moved, all_shadowed[:n], all_off_axis[:n], all_dominant[:n],
                       shutter, kappa, t_need)
 
 
@@ -170,7 +175,7 @@ def at_exposure(problem, position, shutter_s, f_number):
     f-number: a chosen shot, as the certificate checks it."""
     pivot = problem.task.lamp.rig.pivot_m
     pos = np.asarray(position, float).reshape(1, 3)
-    u, shadowed, off_axis = unit_gray(problem, pos, rig.lamp_aim(pivot, pos))
+    u, shadowed, off_axis, dominant = unit_gray(problem, pos, rig.lamp_aim(pivot, pos))
     t_need = exposure(problem, u)[2]
     return Candidates(pos, u * (shutter_s / f_number**2), np.zeros((0, 1, u.shape[1])), shadowed, off_axis,
-                      np.array([float(shutter_s)]), np.array([float(f_number)]), t_need)
+                      dominant, np.array([float(shutter_s)]), np.array([float(f_number)]), t_need)

@@ -12,7 +12,7 @@ from typing import Callable
 
 import numpy as np
 
-from cell import geometry
+from cell import geometry, regions
 from cell.physics import costs, depth_of_field as dof
 
 
@@ -68,13 +68,25 @@ def explain_gray_max(p, c, met):
     return f"brightest sample gray {g.max():.1f} (band {low:g}-{high:g})"
 
 
+def other_reflection(p, c):
+    """(C,) lit samples whose dominant BRDF term is not the wanted one (0 when any term will do)."""
+    reflection = p.task.requirements.reflection
+    if reflection == "any":
+        return np.zeros(len(c.shutter), dtype=int)
+    lit = ~c.shadowed & (c.gray > 0)
+    return np.sum(lit & (c.dominant != regions.WANTED_TERM[reflection]), axis=-1)
+
+
 def reflection_region(p, c):
-    """ln of exp(d / margin + 1): 0 at `margin` inside the wanted region (sec. 5.2)."""
+    """ln of exp(d / margin + 1): 0 at `margin` inside the wanted region (sec. 5.2), judged for
+    the lamp seen from the feature centre; and at each lit sample its dominant term must be the
+    wanted one (ln(0.5 + count) where some are not)."""
     local = (c.position - p.scene.center) @ p.scene.frame
     az, el = geometry.angles_from_direction(local)
     d = p.maps.grid.sample(p.maps.distance, az, el)
     margin = max(p.task.requirements.region_margin_rad, 1e-6)
-    return d / margin + 1.0
+    others = other_reflection(p, c)
+    return np.where(others > 0, np.maximum(d / margin + 1.0, costs.ln_count_cost(others)), d / margin + 1.0)
 
 
 def explain_reflection_region(p, c, met):
@@ -83,6 +95,10 @@ def explain_reflection_region(p, c, met):
         return (f"no lamp direction gives {req.reflection} reflection where every sample sees the lamp "
                 f"(none of the map's {np.degrees(p.maps.grid.step):g} deg cells): want another reflection "
                 f"or change the view")
+    others = int(other_reflection(p, c)[0])
+    if others:
+        return (f"{others} of {len(p.scene.points)} lit samples see another reflection than {req.reflection}: "
+                f"the term changes across the patch; inspect a smaller feature or want 'any'")
     fact = (f"lamp at least {np.degrees(req.region_margin_rad):.1f} deg inside the region where "
             f"{req.reflection} reflection dominates and every sample sees the lamp "
             f"({p.maps.wanted.mean():.1%} of directions qualify)")

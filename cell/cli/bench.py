@@ -18,9 +18,10 @@ def text_table(header, rows):
 def report(result):
     """The terminal tables: settings, kernels, targets."""
     settings = text_table(
-        ["task", "setting", "cands", "samples", "time s", "err mean", "err min", "err max", "worst",
+        ["task", "setting", "cands", "samples", "time s", "certify s", "err mean", "err min", "err max", "worst",
          "lamp mm", "lamp deg", "feasible", "miss", "agrees", "finite", "pareto", "default"],
         [[r["task"], r["name"], r["candidates"], r["samples"], f"{r['time_s']:.3f}",
+          f"{r['stages_s'].get('verify', 0.0):.3f}",
           *(f"{r['gray_error'][k]:+.3f}" for k in ("mean", "min", "max")), f"{r['gray_error_max']:.3f}",
           f"{r['lamp_error_mm']:.1f}", f"{r['lamp_error_deg']:.2f}", "yes" if r["feasible"] else "NO",
           f"{r['miss']:+.4f}", "yes" if r["feasible_agrees"] else "FLIP", "yes" if r["finite"] else "NaN/inf",
