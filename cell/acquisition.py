@@ -6,6 +6,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cell import measure
+from cell.devices import speaking_for
 from cell.errors import PlanInfeasible
 from cell.plan import gray_stats
 
@@ -59,13 +60,15 @@ def plan_and_connect(task, recorder, session, connect):
 
 def move_to(devices, shot, recorder, iteration=None):
     """Camera and lamp to the shot's poses, each logged as read back from the device."""
-    devices.arm.move_camera(shot.T_cell_cam)
-    position = devices.arm.camera_pose()[:3, 3]
+    with speaking_for(devices.arm):
+        devices.arm.move_camera(shot.T_cell_cam)
+        position = devices.arm.camera_pose()[:3, 3]
     off = float(np.linalg.norm(position - shot.camera_position))
     recorder.step("move_camera", f"camera at {np.round(position, 4).tolist()} m ({1e3 * off:.2f} mm from "
                                  f"the plan)", iteration=iteration, position_m=position, error_m=off)
-    devices.lamp.move(*shot.joints)
-    pan, tilt, radius = devices.lamp.joints()
+    with speaking_for(devices.lamp):
+        devices.lamp.move(*shot.joints)
+        pan, tilt, radius = devices.lamp.joints()
     recorder.step("move_lamp", f"pan {np.degrees(pan):.2f} deg, tilt {np.degrees(tilt):.2f} deg, "
                                f"radius {1e3 * radius:.1f} mm", iteration=iteration,
                   joints={"pan_deg": np.degrees(pan), "tilt_deg": np.degrees(tilt), "radius_m": radius})
@@ -77,13 +80,17 @@ def acquire(devices, recorder, iteration, shutter_s, f_number, focus_m):
     a camera drops the frames exposed before it changed (OpenCVCamera), and an operator turning
     the lens by hand would otherwise be in them."""
     camera = devices.camera
-    camera.set_aperture(f_number)
-    camera.set_focus(focus_m)
-    shutter_s = camera.set_exposure(shutter_s)
+    with speaking_for(camera):
+        camera.set_aperture(f_number)
+        camera.set_focus(focus_m)
+        shutter_s = camera.set_exposure(shutter_s)
     recorder.step("set_exposure", f"shutter {1e3 * shutter_s:.3f} ms, f/{f_number:.2f}, focus "
                                   f"{focus_m:.3f} m", iteration=iteration,
                   shutter_s=shutter_s, f_number=f_number, focus_m=focus_m)
-    image = np.asarray(camera.capture())
+    with speaking_for(camera):
+        image = np.asarray(camera.capture())
     name = recorder.write_image(f"capture-{iteration}.png", measure.levels(image, camera.bit_depth))
     recorder.step("capture", name, iteration=iteration, capture=name, shape=image.shape, dtype=str(image.dtype))
-    return Capture(image, devices.arm.camera_pose(), shutter_s, float(f_number), float(focus_m), name)
+    with speaking_for(devices.arm):
+        pose = devices.arm.camera_pose()
+    return Capture(image, pose, shutter_s, float(f_number), float(focus_m), name)

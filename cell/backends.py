@@ -1,7 +1,7 @@
 """The one place that builds the cell's devices: the simulated cell (sim/) or the real one
 (cell/hw/). Nothing else in cell/ imports either, so the controller sees only cell.devices'
 interfaces, and the real backends' SDKs load only for --backend hw."""
-from cell.devices import Devices
+from cell.devices import Devices, speaking_for
 from cell.errors import TaskError
 from cell.operator import Operator
 from cell.session import try_all
@@ -35,9 +35,12 @@ def make_hw_devices(task, yes=False, operator=None):
     operator = operator or Operator(yes=yes)
     opened = []
     try:
-        opened.append(URArm(config.arm, task.frames))
-        opened.append(DynamixelPanTilt(task.lamp.rig, config.pan_tilt, operator))
-        opened.append(OpenCVCamera(config.camera, task.camera.sensor.bit_depth, operator))
+        with speaking_for(URArm):
+            opened.append(URArm(config.arm, task.frames))
+        with speaking_for(DynamixelPanTilt):
+            opened.append(DynamixelPanTilt(task.lamp.rig, config.pan_tilt, operator))
+        with speaking_for(OpenCVCamera):
+            opened.append(OpenCVCamera(config.camera, task.camera.sensor.bit_depth, operator))
     except Exception:
         try_all([device.close for device in reversed(opened)])
         raise

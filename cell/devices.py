@@ -7,6 +7,7 @@ backend sees it, so no backend can skip the check. A refused or failed command r
 DeviceFault; state is read back from the device, never assumed.
 """
 from abc import ABC, abstractmethod
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,7 +16,21 @@ from cell.errors import DeviceFault
 from cell.rig import lamp_aim, lamp_position
 from cell.session import try_all
 
-__all__ = ["Arm", "LampRig", "Camera", "Devices", "check_arm_motion"]
+__all__ = ["Arm", "LampRig", "Camera", "Devices", "check_arm_motion", "speaking_for"]
+
+# what device libraries raise: serial.SerialException and socket errors are OSErrors (an unplugged
+# USB adapter, OSError 19 from a camera), ur_rtde raises RuntimeError
+LIBRARY_ERRORS = (OSError, RuntimeError, EOFError)
+
+
+@contextmanager
+def speaking_for(device):
+    """Device calls inside this block: whatever the device's library raises becomes a DeviceFault
+    naming the device (`device.device`), so the run stops safely and exits 3, never a traceback."""
+    try:
+        yield
+    except LIBRARY_ERRORS as err:
+        raise DeviceFault(device.device, f"{type(err).__name__}: {err}") from err
 
 
 def check_arm_motion(config, frames, T_cell_cam, speed_m_s):

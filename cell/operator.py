@@ -20,9 +20,18 @@ class Operator:
     def stdout(self):
         return self._stdout or sys.stdout
 
+    @property
+    def interactive(self):
+        """Whether someone can answer at stdin: a terminal (not a file, a pipe, or none at all,
+        as when started with stdin closed, `<&-`)."""
+        try:
+            return self.stdin is not None and self.stdin.isatty()
+        except (ValueError, OSError):           # a closed or broken stream
+            return False
+
     def require(self, device, what):
         """Fail now, before anything moves, if a later prompt could not be answered."""
-        if not (self.yes or self.stdin.isatty()):
+        if not (self.yes or self.interactive):
             raise DeviceFault(device, f"{what} needs the operator, but stdin is not a terminal: "
                                       "run with --yes to confirm operator steps")
 

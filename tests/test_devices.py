@@ -355,3 +355,15 @@ def test_the_flange_must_stay_in_the_workspace_too():
     looking_up = look_at(np.array([0.0, 0.0, 0.12]), np.array([0.0, 0.0, 1.0]))   # flange 5 cm below
     with pytest.raises(DeviceFault, match=r"flange at \[0.0, 0.0, 0.07\] m is outside the workspace"):
         devices.check_arm_motion(DEFAULTS.arm, FRAMES, looking_up, 0.1)
+
+
+def test_no_stdin_at_all_or_a_closed_one_is_no_operator_not_a_traceback(monkeypatch, tmp_path):
+    """Started with stdin closed (`<&-`) Python has sys.stdin None; a closed stream raises on
+    isatty: either way nobody can answer, a DeviceFault before anything moves."""
+    monkeypatch.setattr("sys.stdin", None)
+    with pytest.raises(DeviceFault, match="needs the operator"):
+        Operator().require("pan-tilt", "the lamp radius")
+    closed = open(tmp_path / "in.txt", "w")
+    closed.close()
+    with pytest.raises(DeviceFault, match="needs the operator"):
+        Operator(stdin=closed).require("camera", "the lens")

@@ -9,6 +9,7 @@ from types import SimpleNamespace
 
 import cv2
 import numpy as np
+import serial
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
@@ -259,6 +260,35 @@ def test_the_cli_turns_a_fault_into_exit_3_and_one_line(tmp_path, monkeypatch, c
     assert main(["run", HINGE, "--out", str(tmp_path)]) == 3
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert last.startswith("cell run: camera: capture timed out") and "motion stopped" in last
+
+
+@pytest.mark.parametrize("device, error", [
+    ("camera", OSError(19, "No such device")),
+    ("pan-tilt", serial.SerialException("device reports readiness to read but returned no data")),
+    ("arm", RuntimeError("RTDE control script is not running")),
+], ids=["camera-oserror", "unplugged-serial", "ur-rtde-runtime-error"])
+def test_whatever_a_device_library_raises_is_a_device_fault_naming_it(tmp_path, monkeypatch, capsys, device, error):
+    """An unplugged USB adapter, a camera's OSError, ur_rtde's RuntimeError: exit 3 after the safe
+    stop, one line, the device in report.json, no traceback."""
+    def connect(task, scene, backend, yes):
+        devices = make_sim_devices(task, scene)
+        def fails(*args, **kwargs):
+            raise error
+        if device == "camera":
+            devices.camera.capture = fails
+        elif device == "pan-tilt":
+            devices.lamp._drive = fails
+        else:
+            devices.arm._move_tcp = fails
+        return devices
+
+    monkeypatch.setattr(backends, "open_devices", connect)
+    assert main(["run", HINGE, "--out", str(tmp_path)]) == 3
+    err = capsys.readouterr().err
+    last = err.strip().splitlines()[-1]
+    assert "Traceback" not in err and last.startswith(f"cell run: {device}: {type(error).__name__}")
+    assert "motion stopped" in last
+    assert json.loads((tmp_path / "report.json").read_text())["fault"]["device"] == device
 
 
 def test_a_stop_that_fails_is_reported_as_such_never_as_motion_stopped(tmp_path, monkeypatch, capsys):
