@@ -126,6 +126,7 @@ def test_hinge_loads_in_si_units():
     assert task.requirements.gray_band == (100.0, 125.0)
     assert task.requirements.depth_of_field_m == 0.021
     assert np.linalg.norm(task.camera.view_direction) == pytest.approx(1.0)
+    np.testing.assert_allclose(task.lamp.profile[8], [math.radians(6.0), 0.5])    # half at the nominal edge
 
 
 def test_hinge_feature_snaps_to_the_leaf_with_normal_up():

@@ -90,7 +90,8 @@ def test_a_sample_at_the_old_hard_edge_gets_the_profiles_relative_intensity(hing
     to_center = geometry.unit(scene.center - pos)
     side = geometry.unit(np.cross(to_center, [0.0, 0.0, 1.0]))
     aim = np.cos(np.radians(5.9)) * to_center + np.sin(np.radians(5.9)) * side
-    hard_u, _, off_axis = evaluate.unit_gray(evaluate.build_problem(task, scene, plan.maps), pos[None], aim[None])
+    hard = evaluate.build_problem(with_profile(task, None), scene, plan.maps)
+    hard_u, _, off_axis = evaluate.unit_gray(hard, pos[None], aim[None])
     soft = evaluate.build_problem(with_profile(task, SOFT_EDGE), scene, plan.maps)
     soft_u, _, _ = evaluate.unit_gray(soft, pos[None], aim[None])
     inside, beyond = hard_u[0] > 0.0, off_axis[0] > np.radians(6.0)
@@ -118,7 +119,8 @@ def test_the_lamp_tolerance_moves_see_the_profile(hinge):
                                     task.lamp.cone_angle_rad, soft.material.table(), sensor.camera_constant,
                                     sensor.pixel_area_m2, shadows=False, profile=SOFT_EDGE).value
     np.testing.assert_allclose(c.moved_gray[:, 0], u * c.shutter[0] / c.kappa[0]**2, rtol=1e-5)
-    hard = evaluate.candidates(evaluate.build_problem(task, plan.scene, plan.maps), pan, tilt, radius)
+    hard = evaluate.candidates(evaluate.build_problem(with_profile(task, None), plan.scene, plan.maps),
+                               pan, tilt, radius)
     gain = (c.shutter / c.kappa**2) / (hard.shutter / hard.kappa**2)
     assert np.all(c.moved_gray < hard.moved_gray * gain)       # the profile dims every sample off the axis
 
