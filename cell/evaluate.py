@@ -84,13 +84,15 @@ def build_problem(task, scene, maps, albedo_scale=1.0):
 
 def unit_gray(problem, positions, aims):
     """(gray per exposure u (C, P), shadowed (C, P), off-axis angle (C, P), dominant BRDF term
-    (C, P)) of lamps at `positions` aiming along `aims`, from the Warp kernel."""
+    (C, P)) of lamps at `positions` aiming along `aims`, from the Warp kernel, the irradiance by
+    the lamp's profile (eq. 11's ideal cone without one)."""
     from kernels.gray import gray_per_exposure
     task, scene = problem.task, problem.scene
     out = gray_per_exposure(
         scene.warp_mesh, scene.points, scene.normals, scene.camera_position, positions, aims,
         task.lamp.power_w, task.lamp.cone_angle_rad, problem.material.table(),
-        task.camera.sensor.camera_constant, task.camera.sensor.pixel_area_m2)
+        task.camera.sensor.camera_constant, task.camera.sensor.pixel_area_m2,
+        profile=task.lamp.profile)
     return out.value, out.shadowed, out.off_axis, out.dominant
 
 

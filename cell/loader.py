@@ -91,6 +91,12 @@ TASK = {
     "lamp": Section({
         "power_w": Number(**POSITIVE),
         "cone_angle_deg": Number(lambda v: 0 < v < DEG(180), "an angle in (0, 180) deg"),
+        "profile": Section({
+            "off_axis_deg": Table(lambda v: 0 <= v <= np.pi, "an angle within [0, 180] deg",
+                                  default=None, per="off-axis angle"),
+            "relative": Table(lambda v: 0 <= v <= 1, "a number in [0, 1]", default=None,
+                              per="off-axis angle"),
+        }, required=False),
         "rig": Section({
             "pivot_m": Vector(),
             "pan_range_deg": Pair(lambda v: DEG(-360) <= v <= DEG(360), "angles within [-360, 360] deg"),
@@ -240,6 +246,32 @@ def _check_outside(file, mesh, T_cell_part, points):
                             "a point outside the part (cell frame)")
 
 
+def _lamp_profile(file, profile):
+    """The lamp's angular profile (M, 2) [off_axis_rad, relative], or None (eq. 11's ideal cone):
+    both columns or neither, of equal length, at least two angles strictly ascending from 0, and
+    relative 1 on the axis (the profile scales eq. (11)'s on-axis irradiance)."""
+    angles, relative = profile["off_axis_rad"], profile["relative"]
+    if angles is None and relative is None:
+        return None
+    for key, column in (("off_axis_deg", angles), ("relative", relative)):
+        if column is None:
+            raise TaskError(file, f"lamp.profile.{key}", "nothing",
+                            "a list with one value per off-axis angle (required in a profile)")
+    if len(angles) < 2:
+        raise TaskError(file, "lamp.profile.off_axis_deg", show(np.degrees(angles)),
+                        "at least two off-axis angles, from 0")
+    if len(relative) != len(angles):
+        raise TaskError(file, "lamp.profile.relative", f"{len(relative)} values",
+                        f"{len(angles)}, one per off_axis_deg entry")
+    if angles[0] != 0.0 or np.any(np.diff(angles) <= 0):
+        raise TaskError(file, "lamp.profile.off_axis_deg", show(np.round(np.degrees(angles), 6)),
+                        "strictly ascending off-axis angles from 0")
+    if relative[0] != 1.0:
+        raise TaskError(file, "lamp.profile.relative[0]", show(relative[0]),
+                        "1 (the profile is relative to the axis)")
+    return np.column_stack([angles, relative])
+
+
 def load_task(path):
     """A task file and everything it references -> Task (SI units, mesh in metres)."""
     path = Path(path)
@@ -269,7 +301,8 @@ def load_task(path):
         requirements=Requirements(**v["requirements"]),
         camera=CameraModel(cam["distance_m"], cam["view_direction"], Sensor(**cam["sensor"]),
                            Lens(**cam["lens"]), cam["shutter_range_s"]),
-        lamp=Lamp(lamp["power_w"], lamp["cone_angle_rad"], LampRig(**lamp["rig"])),
+        lamp=Lamp(lamp["power_w"], lamp["cone_angle_rad"], LampRig(**lamp["rig"]),
+                  _lamp_profile(path, lamp["profile"])),
         cell=CellConfig(cell["backend"], devices),
         sim=SimConfig(sim["seed"], sim["effects"], Truth(**sim["truth"])),
     )

@@ -187,11 +187,12 @@ class Pair(Spec):
 
 
 class Table(Spec):
-    """A material table column: one number per phase angle, each passing `ok`."""
+    """A table column: one number per row (a material's phase angle, a lamp profile's off-axis
+    angle), each passing `ok`."""
 
-    def __init__(self, ok, expected, default=REQUIRED, finite=True):
+    def __init__(self, ok, expected, default=REQUIRED, finite=True, per="phase angle"):
         self.ok, self.element, self.default, self.finite = ok, expected, default, finite
-        self.expected = f"a list with one value per phase angle, each {expected}"
+        self.expected = f"a list with one value per {per}, each {expected}"
 
     def convert(self, raw, to_si):
         if not isinstance(raw, list) or not raw:

@@ -30,6 +30,19 @@ def table2d(table):
     return wp.array(t, dtype=wp.float64, device="cpu")
 
 
+def profile2d(profile, cone_angle_rad):
+    """Lamp profile (M, 2) [off_axis_rad, relative], angles ascending from 0; None: eq. (11)'s
+    ideal cone, 1 up to gamma/2 and 0 beyond (as cell.physics.radiometry.hard_cone_profile)."""
+    if profile is None:
+        profile = [[0.0, 1.0], [0.5 * float(cone_angle_rad), 1.0]]
+    p = np.ascontiguousarray(profile, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 2 or len(p) < 2:
+        raise ValueError(f"lamp profile must have shape (M >= 2, 2), got {p.shape}")
+    if p[0, 0] != 0.0 or np.any(np.diff(p[:, 0]) <= 0.0):
+        raise ValueError("lamp profile off-axis angles must start at 0 and be strictly ascending")
+    return wp.array(p, dtype=wp.float64, device="cpu")
+
+
 def output(shape, dtype, wp_dtype):
     """A NumPy output array and a zero-copy Warp view of it (NumPy owns the memory)."""
     out = np.empty(shape, dtype=dtype)

@@ -170,15 +170,35 @@ def off_axis_angle(lamp_axis: wp.vec3d, lamp_to_point: wp.vec3d) -> wp.float64:
 
 
 @wp.func
-def cone_irradiance(power_w: wp.float64, cone_angle_rad: wp.float64, distance_m: wp.float64,
-                    off_axis_rad: wp.float64) -> wp.float64:
-    """Eq. (11): Phi = P_L / (2 pi (1 - cos(gamma/2)) d^2) [W/m^2]; 0 outside the cone
-    (|off-axis angle| > gamma/2)."""
-    half = wp.float64(0.5) * cone_angle_rad
-    if wp.abs(off_axis_rad) > half:
+def relative_intensity(profile: wp.array2d(dtype=wp.float64), off_axis_rad: wp.float64) -> wp.float64:
+    """Lamp profile (M, 2) [off_axis_rad ascending from 0, relative] at an off-axis angle:
+    I(theta) / I(0), linear between the angles, 0 beyond the last (numpy.interp(..., right=0),
+    as cell.physics.radiometry.relative_intensity)."""
+    theta = wp.abs(off_axis_rad)
+    m = profile.shape[0]
+    if theta > profile[m - 1, 0]:
         return wp.float64(0.0)
-    solid_angle = TWO_PI * (wp.float64(1.0) - wp.cos(half))
-    return power_w / (solid_angle * distance_m * distance_m)
+    if theta <= profile[0, 0]:
+        return profile[0, 1]
+    if theta == profile[m - 1, 0]:
+        return profile[m - 1, 1]
+    j = int(0)
+    while profile[j + 1, 0] <= theta:       # profile[j, 0] <= theta < profile[j + 1, 0]
+        j += 1
+    return _interp_column(profile, j, 1, theta)
+
+
+@wp.func
+def cone_irradiance(power_w: wp.float64, cone_angle_rad: wp.float64, distance_m: wp.float64,
+                    off_axis_rad: wp.float64, profile: wp.array2d(dtype=wp.float64)) -> wp.float64:
+    """Eq. (11) scaled by the lamp's profile: Phi = I(theta)/I(0) P_L / (2 pi (1 - cos(gamma/2)) d^2)
+    [W/m^2], normalized by the cone angle gamma as eq. (11); the ideal cone's profile is 1 up to
+    gamma/2 and 0 beyond."""
+    relative = relative_intensity(profile, off_axis_rad)
+    if relative <= wp.float64(0.0):
+        return wp.float64(0.0)
+    solid_angle = TWO_PI * (wp.float64(1.0) - wp.cos(wp.float64(0.5) * cone_angle_rad))
+    return relative * power_w / (solid_angle * distance_m * distance_m)
 
 
 @wp.func
@@ -208,13 +228,15 @@ def ray_blocked(mesh_id: wp.uint64, origin: wp.vec3d, direction: wp.vec3d,
 def shade_point(mesh_id: wp.uint64, shadows: wp.int32, cone: wp.int32, offset_m: wp.float64,
                 point: wp.vec3d, normal: wp.vec3d, camera: wp.vec3d,
                 lamp: wp.vec3d, lamp_axis: wp.vec3d, power_w: wp.float64,
-                cone_angle_rad: wp.float64, table: wp.array2d(dtype=wp.float64),
+                cone_angle_rad: wp.float64, profile: wp.array2d(dtype=wp.float64),
+                table: wp.array2d(dtype=wp.float64),
                 camera_constant: wp.float64, pixel_area_m2: wp.float64) -> Shading:
-    """One lamp at one point seen from the camera: gray per exposure c A Phi R / 8.
+    """One lamp at one point seen from the camera: gray per exposure c A Phi R / 8, Phi by the
+    lamp's profile (cone_irradiance).
 
     Shadowed = attached shadow (<n,s> <= 0) or, with `shadows` and a mesh, the ray from
     point + offset * normal toward the lamp hits the mesh before the lamp; its value is 0.
-    Without `cone` the irradiance is that inside the cone everywhere. The dominant term is
+    Without `cone` the irradiance is the axis's everywhere. The dominant term is
     the BRDF's alone (cast shadows do not change it)."""
     out = Shading()
     to_lamp = lamp - point
@@ -236,7 +258,7 @@ def shade_point(mesh_id: wp.uint64, shadows: wp.int32, cone: wp.int32, offset_m:
     off_axis = out.off_axis
     if cone == 0:
         off_axis = wp.float64(0.0)
-    irradiance = cone_irradiance(power_w, cone_angle_rad, d, off_axis)
+    irradiance = cone_irradiance(power_w, cone_angle_rad, d, off_axis, profile)
     out.value = wp.float64(0.0)
     if not shadowed:
         out.value = gray_per_exposure(camera_constant, pixel_area_m2, irradiance, reflectance)

@@ -5,7 +5,7 @@ import numpy as np
 import warp as wp
 
 from . import funcs
-from ._arrays import output, table2d, unit_rows, vec3d
+from ._arrays import output, profile2d, table2d, unit_rows, vec3d
 from .runtime import ensure_init
 
 
@@ -16,7 +16,8 @@ class GrayResult:
     value: c A_pixel Phi R / 8 = G / (t / kappa^2) [gray s^-1]; 0 when shadowed.
     shadowed: lamp behind the point's tangent plane, or (with shadows) the mesh blocks it.
     off_axis: angle between the lamp's axis and the ray lamp -> point [rad] (cone coverage:
-        the point is inside the cone iff off_axis <= gamma / 2).
+        the point is inside the nominal cone iff off_axis <= gamma / 2; the lamp's profile at
+        this angle scales the value).
     dominant: 0 diffuse, 1 lobe, 2 spike, -1 camera or lamp behind the surface (BRDF only).
     """
 
@@ -31,14 +32,15 @@ def gray_kernel(mesh_id: wp.uint64, shadows: wp.int32, cone: wp.int32, offset_m:
                 points: wp.array(dtype=wp.vec3d), normals: wp.array(dtype=wp.vec3d),
                 camera: wp.vec3d, lamp_pos: wp.array(dtype=wp.vec3d),
                 lamp_axis: wp.array(dtype=wp.vec3d), power_w: wp.float64,
-                cone_angle_rad: wp.float64, table: wp.array2d(dtype=wp.float64),
+                cone_angle_rad: wp.float64, profile: wp.array2d(dtype=wp.float64),
+                table: wp.array2d(dtype=wp.float64),
                 camera_constant: wp.float64, pixel_area_m2: wp.float64,
                 value: wp.array2d(dtype=wp.float64), shadowed: wp.array2d(dtype=wp.bool),
                 off_axis: wp.array2d(dtype=wp.float64), dominant: wp.array2d(dtype=wp.int8)):
     """One thread per (candidate lamp c, sample point p)."""
     c, p = wp.tid()
     sh = funcs.shade_point(mesh_id, shadows, cone, offset_m, points[p], normals[p], camera,
-                           lamp_pos[c], lamp_axis[c], power_w, cone_angle_rad, table,
+                           lamp_pos[c], lamp_axis[c], power_w, cone_angle_rad, profile, table,
                            camera_constant, pixel_area_m2)
     value[c, p] = sh.value
     shadowed[c, p] = sh.shadowed
@@ -48,13 +50,14 @@ def gray_kernel(mesh_id: wp.uint64, shadows: wp.int32, cone: wp.int32, offset_m:
 
 def gray_per_exposure(mesh, points, normals, camera_pos, lamp_pos, lamp_axis, power_w,
                       cone_angle_rad, table, camera_constant, pixel_area_m2,
-                      shadows=True, cone=True, offset_m=1e-5):
+                      shadows=True, cone=True, offset_m=1e-5, profile=None):
     """Gray per exposure c A_pixel Phi R / 8 for C candidate lamps x P sample points.
 
     mesh: kernels.mesh.WarpMesh or None (no cast shadows); points, normals (P, 3) [m];
     camera_pos (3,); lamp_pos (C, 3); lamp_axis (C, 3) lamp aim (normalized here);
     power_w, cone_angle_rad: eq. (11); table (K, 6): Material.table(); shadow rays start at
-    point + offset_m * normal. Returns GrayResult of (C, P) NumPy arrays.
+    point + offset_m * normal; profile (M, 2) [off_axis_rad, relative]: the lamp's angular
+    profile (None: eq. (11)'s ideal cone). Returns GrayResult of (C, P) NumPy arrays.
     """
     device = ensure_init()
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -75,7 +78,8 @@ def gray_per_exposure(mesh, points, normals, camera_pos, lamp_pos, lamp_axis, po
         mesh.id if use_shadows else wp.uint64(0), int(use_shadows), int(bool(cone)),
         float(offset_m), vec3d(points, "points"), vec3d(normals, "normals"),
         wp.vec3d(*np.asarray(camera_pos, dtype=np.float64)), vec3d(lamp_pos, "lamp_pos"),
-        vec3d(lamp_axis, "lamp_axis"), float(power_w), float(cone_angle_rad), table2d(table),
+        vec3d(lamp_axis, "lamp_axis"), float(power_w), float(cone_angle_rad),
+        profile2d(profile, cone_angle_rad), table2d(table),
         float(camera_constant), float(pixel_area_m2),
     ], outputs=[value_wp, shadowed_wp, off_axis_wp, dominant_wp])
     return GrayResult(value, shadowed, off_axis, dominant)

@@ -5,7 +5,7 @@ import numpy as np
 import warp as wp
 
 from . import funcs
-from ._arrays import output, table2d, unit_rows, vec3d
+from ._arrays import output, profile2d, table2d, unit_rows, vec3d
 from .runtime import ensure_init
 
 
@@ -23,7 +23,8 @@ class RenderResult(NamedTuple):
 def render_kernel(mesh_id: wp.uint64, origin: wp.vec3d, ray_dirs: wp.array(dtype=wp.vec3d),
                   max_dist: wp.float64, shadows: wp.int32, cone: wp.int32, offset_m: wp.float64,
                   lamp: wp.vec3d, lamp_axis: wp.vec3d, power_w: wp.float64,
-                  cone_angle_rad: wp.float64, table: wp.array2d(dtype=wp.float64),
+                  cone_angle_rad: wp.float64, profile: wp.array2d(dtype=wp.float64),
+                  table: wp.array2d(dtype=wp.float64),
                   camera_constant: wp.float64, pixel_area_m2: wp.float64,
                   value: wp.array(dtype=wp.float64), hit: wp.array(dtype=wp.bool),
                   depth: wp.array(dtype=wp.float64), normal: wp.array(dtype=wp.vec3d)):
@@ -40,7 +41,7 @@ def render_kernel(mesh_id: wp.uint64, origin: wp.vec3d, ray_dirs: wp.array(dtype
     t = wp.float64(q.t)
     n = wp.vec3d(q.normal)
     sh = funcs.shade_point(mesh_id, shadows, cone, offset_m, origin + t * d, n, origin,
-                           lamp, lamp_axis, power_w, cone_angle_rad, table,
+                           lamp, lamp_axis, power_w, cone_angle_rad, profile, table,
                            camera_constant, pixel_area_m2)
     value[i] = sh.value
     hit[i] = True
@@ -49,13 +50,15 @@ def render_kernel(mesh_id: wp.uint64, origin: wp.vec3d, ray_dirs: wp.array(dtype
 
 
 def render(mesh, origin, ray_dirs, lamp_pos, lamp_axis, power_w, cone_angle_rad, table,
-           camera_constant, pixel_area_m2, shadows=True, cone=True, offset_m=1e-5, max_dist=10.0):
+           camera_constant, pixel_area_m2, shadows=True, cone=True, offset_m=1e-5, max_dist=10.0,
+           profile=None):
     """Shade the first hit of each ray from `origin` (the camera centre) along unit
     `ray_dirs` (N, 3), lit by one lamp: RenderResult(value, hit, depth, normal).
 
     The hit point is origin + depth * dir (float64 from the float32 hit distance); its normal
     is the mesh's outward face normal (a back face gives cos te <= 0, so R = 0). The shading
-    is kernels.funcs.shade_point, the same as gray_per_exposure at that point and normal.
+    is kernels.funcs.shade_point, the same as gray_per_exposure at that point and normal, with
+    the lamp's angular profile (M, 2) (None: eq. (11)'s ideal cone).
     """
     device = ensure_init()
     dirs = unit_rows(ray_dirs, "ray_dirs")
@@ -71,7 +74,8 @@ def render(mesh, origin, ray_dirs, lamp_pos, lamp_axis, power_w, cone_angle_rad,
         mesh.id, wp.vec3d(*np.asarray(origin, dtype=np.float64)), vec3d(dirs, "ray_dirs"),
         float(max_dist), int(bool(shadows)), int(bool(cone)), float(offset_m),
         wp.vec3d(*np.asarray(lamp_pos, dtype=np.float64)), wp.vec3d(*(axis / np.linalg.norm(axis))),
-        float(power_w), float(cone_angle_rad), table2d(table), float(camera_constant),
+        float(power_w), float(cone_angle_rad), profile2d(profile, cone_angle_rad), table2d(table),
+        float(camera_constant),
         float(pixel_area_m2),
     ], outputs=[value_wp, hit_wp, depth_wp, normal_wp])
     return RenderResult(value, hit, depth, normal)

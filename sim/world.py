@@ -5,14 +5,16 @@
 gray = value t / kappa^2 with value = c A_pixel Phi R / 8 (eq. 10, 11, 17) per pixel, shaded with
 the true rho (model rho * albedo_scale), the true c (model c * camera_constant_scale) and the
 lamp's true axis, lamp_direction_error away from the commanded aim (the axis enters only through
-the cone). With no effects and a neutral truth a pixel's gray is the planner's prediction at the
-point it sees: eq. (11)'s ideal cone with a hard edge, no cast shadows, float gray, unclipped.
+the lamp's profile). With no effects and a neutral truth a pixel's gray is the planner's prediction
+at the point it sees: the task's lamp profile (`lamp.profile`; without one eq. (11)'s ideal cone
+with a hard edge), no cast shadows, float gray, unclipped.
 
 Effects, applied in the physical order light -> lens -> sensor -> ADC, whatever the list's order:
   shadows       cast shadows (the kernel's shadow rays); faces turned from the lamp are dark anyway
-  cone_falloff  a real LED optic's soft cone edge, which the planner's eq. (11) lacks: the hard
-                cone blurred in angle by a Gaussian (1 deg for a 12 deg cone), so eq. (11) holds
-                near the axis, half of it at the nominal edge, and some light spills beyond
+  cone_falloff  the world's lamp has a softer edge than the model's: the model's profile (the
+                task's, else eq. (11)'s hard cone) blurred in angle by a Gaussian (1 deg for a
+                12 deg cone), so the model holds near the axis, the edge falls more gently (the
+                hard cone: to half at the nominal edge) and some light spills beyond it
   vignetting    natural vignetting, cos^4 of the ray's angle to the optical axis
   defocus       thin-lens blur, circle of confusion c of depth_of_field.blur_diameter per pixel
   noise         shot noise (Poisson in electrons, FULL_WELL_E at full scale) and READ_NOISE_E
@@ -23,7 +25,7 @@ from dataclasses import replace
 
 import numpy as np
 from scipy.ndimage import gaussian_filter
-from scipy.special import erfc
+from scipy.special import erfc, ndtr
 
 from cell import geometry
 from cell.measure import levels, saturation_level
@@ -38,11 +40,37 @@ READ_NOISE_E = 10.0         # rms electrons: assumed, typical of machine-vision 
 BLACK_LEVEL = 0.02          # of full scale, rounded (5 gray at 8 bits): keeps read noise above 0
 
 
-def cone_falloff(off_axis_rad, cone_angle_rad):
-    """Soft-edged cone: irradiance relative to eq. (11)'s at off-axis angle theta,
-    erfc((theta - gamma/2) / (sqrt 2 s)) / 2, s = CONE_EDGE gamma/2 (1 on the axis)."""
+def cone_falloff(off_axis_rad, cone_angle_rad, profile=None):
+    """The world's lamp profile: irradiance relative to eq. (11)'s on the axis at off-axis angle
+    theta, the model's profile blurred in angle by a Gaussian of s = CONE_EDGE gamma/2. Without a
+    profile (the hard cone) erfc((theta - gamma/2) / (sqrt 2 s)) / 2; with one, blurred_profile."""
     half = 0.5 * cone_angle_rad
+    if profile is not None:
+        return blurred_profile(off_axis_rad, profile, CONE_EDGE * half)
     return 0.5 * erfc((np.asarray(off_axis_rad) - half) / (np.sqrt(2.0) * CONE_EDGE * half))
+
+
+def _normal_pdf(x):
+    return np.exp(-0.5 * x * x) / np.sqrt(2.0 * np.pi)
+
+
+def blurred_profile(off_axis_rad, profile, s):
+    """E[f(|theta + X|)], X ~ N(0, s^2): a profile f (M, 2) [off_axis_rad, relative], linear and 0
+    beyond its last angle, blurred in angle across the axis (f(|t|) along a line through it). On a
+    segment [a, b], f = f_a + beta (t - a), its integral against N(t; mu, s) is
+    (f_a + beta (mu - a)) (Phi(B) - Phi(A)) - beta s (phi(B) - phi(A)), A = (a - mu) / s,
+    B = (b - mu) / s; E sums it over the segments at mu = theta and mu = -theta."""
+    theta = np.abs(np.asarray(off_axis_rad, dtype=float))
+    profile = np.asarray(profile, dtype=float)
+    a, b = profile[:-1, 0], profile[1:, 0]
+    f_a, beta = profile[:-1, 1], np.diff(profile[:, 1]) / np.diff(profile[:, 0])
+    out = np.zeros_like(theta)
+    for mu in (theta, -theta):                  # |t| folds the Gaussian about the axis
+        for k in range(len(a)):
+            A, B = (a[k] - mu) / s, (b[k] - mu) / s
+            out += ((f_a[k] + beta[k] * (mu - a[k])) * (ndtr(B) - ndtr(A))
+                    - beta[k] * s * (_normal_pdf(B) - _normal_pdf(A)))
+    return out
 
 
 def defocus(gray, depth_m, focus_m, focal_length_m, f_number, pixel_pitch_m):
@@ -102,14 +130,16 @@ class Renderer:
         # einsum, not BLAS: OpenBLAS threads left spinning after a matmul slow the Warp kernel 4x
         dirs = np.einsum("ij,nj->ni", T_cell_cam[:3, :3], self.rays_cam)
         axis = self.lamp_axis(lamp_aim)
-        soft_cone = "cone_falloff" in effects
-        r = render(self.scene.warp_mesh, origin, dirs, lamp_pos, axis, task.lamp.power_w,
-                   task.lamp.cone_angle_rad, self.table, self.camera_constant,
-                   task.camera.sensor.pixel_area_m2, shadows="shadows" in effects, cone=not soft_cone)
+        soft_cone = "cone_falloff" in effects            # then rendered on-axis, scaled here
+        lamp = task.lamp
+        r = render(self.scene.warp_mesh, origin, dirs, lamp_pos, axis, lamp.power_w,
+                   lamp.cone_angle_rad, self.table, self.camera_constant,
+                   task.camera.sensor.pixel_area_m2, shadows="shadows" in effects, cone=not soft_cone,
+                   profile=lamp.profile)
         if soft_cone:
             lamp_to_point = origin + r.depth[r.hit, None] * dirs[r.hit] - lamp_pos
             cos_off_axis = np.clip(np.einsum("nj,j->n", geometry.unit(lamp_to_point), axis), -1.0, 1.0)
-            r.value[r.hit] *= cone_falloff(np.arccos(cos_off_axis), task.lamp.cone_angle_rad)
+            r.value[r.hit] *= cone_falloff(np.arccos(cos_off_axis), lamp.cone_angle_rad, lamp.profile)
         gray = (r.value * shutter_s / f_number**2).reshape(self.shape)
         cos_field = self.rays_cam[:, 2].reshape(self.shape)
         if "vignetting" in effects:

@@ -34,6 +34,9 @@ METAL = np.array([
     [0.70, 0.030, 2.0, 150.0, 10.0, 10000.0],
     [1.20, 0.025, 1.0, 400.0, 5.0, 10000.0],
 ])
+# a soft-edged lamp profile [off_axis_rad, relative] for the 12 deg cone: half at the nominal edge
+SOFT = np.column_stack([np.radians([0.0, 2.0, 4.0, 5.0, 6.0, 7.0, 8.0]),
+                        [1.0, 0.99, 0.93, 0.80, 0.50, 0.15, 0.0]])
 ALUMINIUM = np.column_stack([np.radians([0, 10, 20, 30, 40, 60, 80]),
                              [0.0340, 0.0325, 0.0310, 0.02959, 0.0282, 0.0260, 0.0240],
                              np.full(7, 4.0), np.full(7, 6.0), np.full(7, 30.0), np.full(7, 400.0)])
@@ -126,6 +129,26 @@ def test_gray_matches_reference_on_the_hinge(hinge):
     for switch in ({"shadows": False}, {"cone": False}):
         assert_gray_agrees(mesh, points, normals, lamps, gray_per_exposure(mesh, *args, **switch),
                            ref.gray_per_exposure(mesh, *args, **switch))
+
+
+def test_a_lamp_profile_scales_the_gray_as_the_reference_does(blocks):
+    """With a soft-edged profile Warp == NumPy, and the gray is the cone-free gray times the
+    profile at each point's off-axis angle (0 beyond its last angle, light beyond gamma/2)."""
+    rng = np.random.default_rng(8)
+    points = np.column_stack([rng.uniform(-0.045, 0.045, (40, 2)), np.full(40, 0.01)])
+    normals = np.tile([0.0, 0.0, 1.0], (40, 1))
+    lamps, aims = lamps_around(rng, np.array([0.0, 0.0, 0.01]), 300)
+    args = (points, normals, np.array([-0.03, 0.01, 0.40]), lamps, aims, P_LAMP, GAMMA, METAL,
+            C_CAMERA, A_PIXEL)
+    warp, numpy = (f(blocks, *args, profile=SOFT) for f in (gray_per_exposure, ref.gray_per_exposure))
+    assert_gray_agrees(blocks, points, normals, lamps, warp, numpy)
+    spill = (numpy.off_axis > GAMMA / 2) & (numpy.off_axis < SOFT[-1, 0]) & ~numpy.shadowed
+    assert spill.sum() > 20 and np.all(warp.value[spill] > 0.0)
+    no_cone = gray_per_exposure(blocks, *args, cone=False)
+    relative = np.interp(warp.off_axis, SOFT[:, 0], SOFT[:, 1], right=0.0)
+    np.testing.assert_allclose(warp.value, no_cone.value * relative, rtol=1e-12, atol=0)
+    hard = gray_per_exposure(blocks, *args, profile=[[0.0, 1.0], [0.02, 1.0], [GAMMA / 2, 1.0]])
+    np.testing.assert_array_equal(hard.value, gray_per_exposure(blocks, *args).value)
 
 
 def test_spike_exponents_up_to_1e4_agree_in_float64():
@@ -255,6 +278,10 @@ def test_bad_tables_and_shapes_are_refused():
         gray_per_exposure(None, *args, METAL[::-1], C_CAMERA, A_PIXEL)
     with pytest.raises(ValueError, match=r"\(K, 6\)"):
         gray_per_exposure(None, *args, METAL[:, :5], C_CAMERA, A_PIXEL)
+    for profile, message in ((SOFT[:, :1], r"\(M >= 2, 2\)"), (SOFT[:1], r"\(M >= 2, 2\)"),
+                             (SOFT[::-1], "start at 0"), (SOFT[1:], "start at 0")):
+        with pytest.raises(ValueError, match=message):
+            gray_per_exposure(None, *args, METAL, C_CAMERA, A_PIXEL, profile=profile)
 
 
 @pytest.fixture(scope="module")
@@ -285,15 +312,28 @@ def test_render_equals_the_gray_kernel_at_its_hit_points(plate_scene):
     assert g.shadowed[0].sum() > 20 and (g.off_axis[0] > math.radians(20.0)).sum() > 20
 
 
-def test_render_matches_the_numpy_renderer(plate_scene):
+@pytest.mark.parametrize("profile", [None, SOFT * [40.0 / 12.0, 1.0]], ids=["hard-cone", "soft-edge"])
+def test_render_matches_the_numpy_renderer(plate_scene, profile):
     """Looser than 1e-5: Warp's hit distance is float32 (3e-8 m at 0.5 m), and the spike
-    (m = 400) turns that into ~1e-5 relative."""
-    warp, numpy = render(*plate_scene), ref.render(*plate_scene)
+    (m = 400) turns that into ~1e-5 relative. The soft edge: the profile above, for the 40 deg cone."""
+    warp, numpy = render(*plate_scene, profile=profile), ref.render(*plate_scene, profile=profile)
     np.testing.assert_array_equal(warp.hit, numpy.hit)
     np.testing.assert_allclose(warp.normal, numpy.normal, atol=1e-6)
     np.testing.assert_allclose(warp.depth[warp.hit], numpy.depth[numpy.hit], rtol=1e-6)
     np.testing.assert_array_equal(warp.value > 0.0, numpy.value > 0.0)
     np.testing.assert_allclose(warp.value, numpy.value, rtol=1e-4, atol=0)
+
+
+def test_render_with_a_profile_equals_the_gray_kernel_with_it(plate_scene):
+    mesh, origin, dirs, lamp, aim, *rest = plate_scene
+    profile = SOFT * [40.0 / 12.0, 1.0]
+    out = render(mesh, origin, dirs, lamp, aim, *rest, profile=profile)
+    points = origin + out.depth[out.hit, None] * dirs[out.hit]
+    g = gray_per_exposure(mesh, points, out.normal[out.hit], origin, lamp[None], aim[None], *rest,
+                          profile=profile)
+    np.testing.assert_allclose(out.value[out.hit], g.value[0], rtol=1e-12, atol=0)
+    lit_beyond_the_edge = (g.off_axis[0] > math.radians(20.0)) & (g.value[0] > 0.0)
+    assert lit_beyond_the_edge.sum() > 20
 
 
 def test_closest_points_project_onto_the_hinge_leaf(hinge):

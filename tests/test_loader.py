@@ -126,6 +126,7 @@ def test_hinge_loads_in_si_units():
     assert task.requirements.gray_band == (100.0, 125.0)
     assert task.requirements.depth_of_field_m == 0.021
     assert np.linalg.norm(task.camera.view_direction) == pytest.approx(1.0)
+    np.testing.assert_allclose(task.lamp.profile[8], [math.radians(6.0), 0.5])    # half at the nominal edge
 
 
 def test_hinge_feature_snaps_to_the_leaf_with_normal_up():
@@ -165,6 +166,17 @@ def test_every_unit_spelling_gives_the_same_si_value(tmp_path):
     assert task.camera.sensor.pixel_pitch_m == pytest.approx(4.65e-6, rel=1e-15)
     assert task.lamp.power_w == hinge.lamp.power_w
     assert task.lamp.cone_angle_rad == pytest.approx(hinge.lamp.cone_angle_rad, rel=1e-15)
+
+
+def test_a_lamp_profile_loads_in_radians_in_either_unit(tmp_path):
+    written = {"off_axis_deg": [0.0, 4.0, 6.0, 8.0], "relative": [1.0, 0.9, 0.5, 0.0]}
+    task = loader.load_task(write_task(tmp_path / "deg", put("lamp.profile", written)))
+    np.testing.assert_array_equal(task.lamp.profile, np.column_stack([np.radians(written["off_axis_deg"]),
+                                                                      written["relative"]]))
+    in_rad = {"off_axis_rad": np.radians(written["off_axis_deg"]).tolist(), "relative": written["relative"]}
+    again = loader.load_task(write_task(tmp_path / "rad", put("lamp.profile", in_rad)))
+    np.testing.assert_allclose(again.lamp.profile, task.lamp.profile, rtol=1e-15)
+    assert loader.load_task(write_task(tmp_path / "none", put("lamp.profile", None))).lamp.profile is None
 
 
 def test_optional_sections_take_their_defaults(tmp_path):
@@ -269,6 +281,31 @@ BROKEN = [
                  id="negative-power"),
     pytest.param(put("lamp.cone_angle_deg", 0.0), "task.yaml", "lamp.cone_angle_deg", "(0, 180)",
                  id="zero-cone-angle"),
+    pytest.param(put("lamp.profile", {"off_axis_deg": [0.0, 6.0]}), "task.yaml", "lamp.profile.relative",
+                 "found nothing, expected a list with one value per off-axis angle (required in a profile)",
+                 id="profile-without-relative"),
+    pytest.param(put("lamp.profile", {"off_axis_deg": [0.0, 6.0], "relative": [1.0, 0.5, 0.0]}), "task.yaml",
+                 "lamp.profile.relative", "found 3 values, expected 2, one per off_axis_deg entry",
+                 id="profile-unequal-lengths"),
+    pytest.param(put("lamp.profile", {"off_axis_deg": [0.0, 6.0, 5.0], "relative": [1.0, 0.5, 0.0]}),
+                 "task.yaml", "lamp.profile.off_axis_deg", "strictly ascending off-axis angles from 0",
+                 id="profile-not-ascending"),
+    pytest.param(put("lamp.profile", {"off_axis_deg": [1.0, 6.0], "relative": [1.0, 0.0]}), "task.yaml",
+                 "lamp.profile.off_axis_deg", "found [1.0, 6.0], expected strictly ascending off-axis angles from 0",
+                 id="profile-not-from-0"),
+    pytest.param(put("lamp.profile", {"off_axis_deg": [0.0], "relative": [1.0]}), "task.yaml",
+                 "lamp.profile.off_axis_deg", "at least two off-axis angles", id="profile-one-angle"),
+    pytest.param(put("lamp.profile", {"off_axis_deg": [0.0, 6.0], "relative": [1.0, 1.5]}), "task.yaml",
+                 "lamp.profile.relative[1]", "found 1.5, expected a number in [0, 1]", id="profile-above-1"),
+    pytest.param(put("lamp.profile", {"off_axis_deg": [0.0, 6.0], "relative": [0.9, 0.5]}), "task.yaml",
+                 "lamp.profile.relative[0]", "found 0.9, expected 1 (the profile is relative to the axis)",
+                 id="profile-not-1-on-the-axis"),
+    pytest.param(put("lamp.profile", {"off_axis_deg": [0.0, 200.0], "relative": [1.0, 0.0]}), "task.yaml",
+                 "lamp.profile.off_axis_deg[1]", "within [0, 180] deg", id="profile-beyond-180"),
+    pytest.param(put("lamp.profile", {"off_axis_deg": [0.0, 6.0], "relativ": [1.0, 0.0]}), "task.yaml",
+                 "lamp.profile.relativ", "did you mean 'relative'", id="profile-unknown-key"),
+    pytest.param(put("lamp.profile", {"off_axis_deg": [0.0, 6.0], "relative": [1.0, float("nan")]}),
+                 "task.yaml", "lamp.profile.relative[1]", "finite", id="profile-nan"),
     pytest.param(put("lamp.rig.tilt_range_deg", [5.0, 95.0]), "task.yaml", "lamp.rig.tilt_range_deg",
                  "[-90, 90]", id="tilt-beyond-90"),
     pytest.param(put("lamp.rig.radius_range_m", [0.0, 0.6]), "task.yaml", "lamp.rig.radius_range_m",

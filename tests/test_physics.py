@@ -57,6 +57,19 @@ def test_irradiance_is_zero_outside_the_cone():
     assert radiometry.cone_irradiance(P_LAMP, GAMMA, 0.3, math.radians(5.99)) > 0.0
 
 
+def test_a_lamp_profile_scales_eq_11_normalized_by_the_cone():
+    """Phi = I(theta)/I(0) P_L / (2 pi (1 - cos(gamma/2)) d^2): the axis keeps the paper's
+    41.84 W/m^2 at 0.40 m, the profile interpolates linearly and ends in 0; the ideal cone is the
+    table ending at gamma/2."""
+    profile = np.column_stack([np.radians([0.0, 4.0, 6.0, 8.0]), [1.0, 0.9, 0.5, 0.0]])
+    phi = radiometry.cone_irradiance(P_LAMP, GAMMA, 0.40, np.radians([0.0, 5.0, 6.0, 7.0, 8.5]), profile)
+    np.testing.assert_allclose(phi, 41.84 * np.array([1.0, 0.7, 0.5, 0.25, 0.0]), rtol=1e-4)
+    off = np.radians([0.0, 5.99, 6.01])
+    np.testing.assert_array_equal(radiometry.cone_irradiance(P_LAMP, GAMMA, 0.3, off),
+                                  radiometry.cone_irradiance(P_LAMP, GAMMA, 0.3, off,
+                                                             radiometry.hard_cone_profile(GAMMA)))
+
+
 def test_depth_of_field_worked_values():
     u, f, sigma = 0.35, 0.025, 5.015e-6
     assert dof.near_limit(u, f, 6.2, sigma) == pytest.approx(0.3444, abs=5e-5)

@@ -9,11 +9,11 @@ import pytest
 import trimesh
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from cell import evaluate, geometry, planner
+from cell import evaluate, geometry, planner, rig
 from cell.cli import main
 from cell.loader import load_task
 from cell.recorder import write_plan
-from cell.physics import brdf, depth_of_field as dof, radiometry
+from cell.physics import brdf, depth_of_field as dof, radiometry, reference
 from cell.scene import build_scene, feature_disk
 
 TASKS = Path(__file__).resolve().parent.parent / "tasks"
@@ -43,7 +43,8 @@ def numpy_gray(task, plan):
     aim = geometry.unit(task.lamp.rig.pivot_m - plan.shot.lamp_position)
     off_axis = np.arccos(np.clip(-s @ aim, -1, 1))
     E = radiometry.cone_irradiance(task.lamp.power_w, task.lamp.cone_angle_rad,
-                                   np.linalg.norm(plan.shot.lamp_position - scene.points, axis=-1), off_axis)
+                                   np.linalg.norm(plan.shot.lamp_position - scene.points, axis=-1), off_axis,
+                                   task.lamp.profile)
     sensor = task.camera.sensor
     P = radiometry.pixel_power(sensor.pixel_area_m2, E, R, plan.shot.exposure.f_number)
     return radiometry.gray_value(sensor.camera_constant, P, plan.shot.exposure.shutter_s)
@@ -68,6 +69,60 @@ def test_hinge_lamp_sits_in_the_lobe_region(hinge):
     # of the paper's order: 0.258 m, phase 28.9 deg (README explains the smaller phase angle)
     assert 0.15 <= plan.shot.distance_m <= 0.45
     assert 5.0 <= np.degrees(plan.shot.phase_angle_rad) <= 45.0
+
+
+# a soft-edged profile for the 12 deg cone [off_axis_rad, relative]: half at the nominal edge
+SOFT_EDGE = np.column_stack([np.radians([0.0, 2.0, 4.0, 5.0, 6.0, 7.0, 8.0]),
+                             [1.0, 0.99, 0.93, 0.80, 0.50, 0.15, 0.0]])
+
+
+def with_profile(task, profile):
+    return replace(task, lamp=replace(task.lamp, profile=profile))
+
+
+def test_a_sample_at_the_old_hard_edge_gets_the_profiles_relative_intensity(hinge):
+    """The hinge's planned lamp turned off its pivot until the feature centre lies 5.9 deg off the
+    axis: the planner's gray is the hard cone's times the profile there (about half), and samples
+    beyond the hard edge get the profile's spill instead of nothing."""
+    task, plan = hinge
+    scene = plan.scene
+    pos = plan.shot.lamp_position
+    to_center = geometry.unit(scene.center - pos)
+    side = geometry.unit(np.cross(to_center, [0.0, 0.0, 1.0]))
+    aim = np.cos(np.radians(5.9)) * to_center + np.sin(np.radians(5.9)) * side
+    hard = evaluate.build_problem(with_profile(task, None), scene, plan.maps)
+    hard_u, _, off_axis, _ = evaluate.unit_gray(hard, pos[None], aim[None])
+    soft = evaluate.build_problem(with_profile(task, SOFT_EDGE), scene, plan.maps)
+    soft_u, _, _, _ = evaluate.unit_gray(soft, pos[None], aim[None])
+    inside, beyond = hard_u[0] > 0.0, off_axis[0] > np.radians(6.0)
+    assert inside.sum() > 10 and beyond.sum() > 10 and np.all(hard_u[0, beyond] == 0.0)
+    relative = np.interp(off_axis[0], SOFT_EDGE[:, 0], SOFT_EDGE[:, 1])
+    np.testing.assert_allclose(soft_u[0, inside], hard_u[0, inside] * relative[inside], rtol=1e-12)
+    assert np.all(soft_u[0, beyond] > 0.0)
+    center = np.argmin(np.linalg.norm(scene.points - scene.center, axis=1))
+    assert np.degrees(off_axis[0, center]) == pytest.approx(5.9, abs=0.1)
+    assert soft_u[0, center] / hard_u[0, center] == pytest.approx(0.53, abs=0.03)
+
+
+def test_the_lamp_tolerance_moves_see_the_profile(hinge):
+    """The planner's gray with the lamp moved by its tolerance (Candidates.moved_gray), against the
+    NumPy reference with the same soft-edged profile at the moved positions."""
+    task, plan = hinge
+    soft = evaluate.build_problem(with_profile(task, SOFT_EDGE), plan.scene, plan.maps)
+    pan, tilt, radius = plan.shot.joints
+    c = evaluate.candidates(soft, pan, tilt, radius)
+    pivot, scene, sensor = task.lamp.rig.pivot_m, plan.scene, task.camera.sensor
+    moved = np.array([rig.lamp_position(pivot, pan + dp, tilt + dt, radius).reshape(3)
+                      for dp, dt in evaluate.tolerance_moves(soft, np.array([tilt]))])
+    u = reference.gray_per_exposure(None, scene.points, scene.normals, scene.camera_position, moved,
+                                    rig.lamp_aim(pivot, moved), task.lamp.power_w,
+                                    task.lamp.cone_angle_rad, soft.material.table(), sensor.camera_constant,
+                                    sensor.pixel_area_m2, shadows=False, profile=SOFT_EDGE).value
+    np.testing.assert_allclose(c.moved_gray[:, 0], u * c.shutter[0] / c.kappa[0]**2, rtol=1e-5)
+    hard = evaluate.candidates(evaluate.build_problem(with_profile(task, None), plan.scene, plan.maps),
+                               pan, tilt, radius)
+    gain = (c.shutter / c.kappa**2) / (hard.shutter / hard.kappa**2)
+    assert np.all(c.moved_gray < hard.moved_gray * gain)       # the profile dims every sample off the axis
 
 
 def test_feature_samples_cover_the_rim_and_stay_inside_the_patch():

@@ -13,7 +13,7 @@ from cell import geometry
 from cell.errors import DeviceFault
 from cell.loader import load_task
 from cell.material import Material
-from cell.physics import depth_of_field as dof
+from cell.physics import depth_of_field as dof, radiometry
 from cell.planner import plan
 from cell.projection import pixel_rays, project
 from cell.rig import lamp_aim
@@ -71,10 +71,10 @@ def plate(hinge):
 
 
 def shoot(plate, effects=(), lamp=OVERHEAD, aim=DOWN, cone_deg=12.0, exposure=EXPOSURE,
-          focus_m=None, seed=1, **truth):
+          focus_m=None, seed=1, profile=None, **truth):
     """Image of the plate world at the test grid, and its renderer."""
     task, scene = plate
-    task = with_sim(replace(task, lamp=replace(task.lamp, cone_angle_rad=np.radians(cone_deg))),
+    task = with_sim(replace(task, lamp=replace(task.lamp, cone_angle_rad=np.radians(cone_deg), profile=profile)),
                     effects, seed, **truth)
     renderer = Renderer(task, scene, scale=SCALE)
     return renderer(scene.T_cell_cam, lamp, aim, *exposure, focus_m), renderer
@@ -166,6 +166,48 @@ def test_cone_falloff_softens_the_edge_as_a_blurred_cone(plate):
     assert ratio[theta[on_plate] > 5.9].max() < 0.55                  # half at the nominal edge
     spill = (points[..., 0] > 0.0) & (theta > 6.5) & (theta < 7.0)
     assert np.all(hard[spill] == 0.0) and np.all(soft[spill] > 0.0)
+
+
+# a soft-edged profile for the 12 deg cone [off_axis_rad, relative]: half at the nominal edge
+SOFT_EDGE = np.column_stack([np.radians([0.0, 2.0, 4.0, 5.0, 6.0, 7.0, 8.0]),
+                             [1.0, 0.99, 0.93, 0.80, 0.50, 0.15, 0.0]])
+
+
+def test_without_cone_falloff_the_world_has_the_tasks_lamp_profile(plate):
+    hard, renderer = shoot(plate)
+    model, _ = shoot(plate, profile=SOFT_EDGE)
+    points = plate_points(renderer, plate[1])
+    theta = np.arccos(geometry.unit(points - OVERHEAD) @ DOWN)
+    inside = (points[..., 0] > 0.0) & (hard > 0.0)
+    # the kernel's hit points are float32 distances along the ray: theta to ~1e-6 relative
+    np.testing.assert_allclose(model[inside], hard[inside] * np.interp(theta[inside], *SOFT_EDGE.T), rtol=1e-5)
+    spill = (points[..., 0] > 0.0) & (theta > np.radians(6.2)) & (theta < np.radians(7.8))
+    assert spill.sum() > 100 and np.all(hard[spill] == 0.0) and np.all(model[spill] > 0.0)
+    assert np.all(model[theta > SOFT_EDGE[-1, 0]] == 0.0)
+
+
+def test_cone_falloff_with_a_profile_blurs_the_tasks_profile(plate):
+    """The world's lamp then differs from the model's: the task's profile blurred in angle by the
+    same 1 deg Gaussian (across the axis, f(|theta + x|)), checked by quadrature."""
+    hard, renderer = shoot(plate)
+    soft, _ = shoot(plate, ("cone_falloff",), profile=SOFT_EDGE)
+    points = plate_points(renderer, plate[1])
+    theta = np.arccos(geometry.unit(points - OVERHEAD) @ DOWN)
+    inside = (points[..., 0] > 0.0) & (hard > 0.0)
+    x = np.linspace(-8.0, 8.0, 8001)                                  # in units of s = 1 deg
+    weights = norm.pdf(x) * (x[1] - x[0])
+    blurred = [np.sum(weights * np.interp(np.abs(t + np.radians(x)), *SOFT_EDGE.T, right=0.0))
+               for t in theta[inside][::50]]
+    np.testing.assert_allclose(soft[inside][::50] / hard[inside][::50], blurred, rtol=1e-5, atol=1e-7)
+    beyond = (points[..., 0] > 0.0) & (theta > np.radians(8.2)) & (theta < np.radians(9.0))
+    assert beyond.sum() > 100 and np.all(soft[beyond] > 0.0)         # spills past the profile's end
+
+
+def test_blurring_the_hard_cones_profile_is_the_erfc_edge():
+    theta = np.radians(np.linspace(0.0, 12.0, 241))
+    gamma = np.radians(12.0)
+    np.testing.assert_allclose(world.cone_falloff(theta, gamma, radiometry.hard_cone_profile(gamma)),
+                               world.cone_falloff(theta, gamma), rtol=0, atol=1e-8)
 
 
 def test_vignetting_is_the_cos4_law_at_the_corner(plate):

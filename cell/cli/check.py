@@ -38,7 +38,9 @@ def summarize(task):
         f"{sensor.bit_depth} bit, c = {sensor.camera_constant:g} 1/(W s)",
         f"lens         f = {lens.focal_length_m * 1e3:g} mm, f-number {_span(lens.f_number_range)}, "
         f"circle of confusion {lens.circle_of_confusion_m * 1e6:g} um",
-        f"lamp         {lamp.power_w * 1e3:g} mW, cone {lamp.cone_angle_rad * deg:g} deg",
+        f"lamp         {lamp.power_w * 1e3:g} mW, cone {lamp.cone_angle_rad * deg:g} deg, " + (
+            "ideal cone (eq. 11)" if lamp.profile is None else
+            f"profile of {len(lamp.profile)} angles to {lamp.profile[-1, 0] * deg:g} deg"),
         f"rig          pan {_span(rig.pan_range_rad, deg, 'deg')}, "
         f"tilt {_span(rig.tilt_range_rad, deg, 'deg')}, "
         f"radius {_span(rig.radius_range_m, unit='m')} ({rig.radius_axis})",

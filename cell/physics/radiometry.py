@@ -1,14 +1,32 @@
-"""Radiometry of sec. 4: lamp irradiance (eq. 11), pixel power (eq. 17), gray value (eq. 10),
-and the corrected inverse (erratum eq. 18-19). SI units: W, m, s, rad."""
+"""Radiometry of sec. 4: lamp irradiance (eq. 11, scaled by the lamp's angular profile), pixel
+power (eq. 17), gray value (eq. 10), and the corrected inverse (erratum eq. 18-19). SI units: W, m,
+s, rad."""
 import numpy as np
 
 
-def cone_irradiance(power_w, cone_angle_rad, distance_m, off_axis_rad=0.0):
-    """Eq. (11): Phi = P_L / (2 pi (1 - cos(gamma/2)) d^2) [W/m^2]; 0 outside the cone."""
+def hard_cone_profile(cone_angle_rad):
+    """Eq. (11)'s ideal cone as a lamp profile (2, 2) [off_axis_rad, relative]: 1 up to gamma/2
+    and, being the table's last angle, 0 beyond it."""
+    return np.array([[0.0, 1.0], [0.5 * cone_angle_rad, 1.0]])
+
+
+def relative_intensity(off_axis_rad, profile):
+    """The lamp's angular profile I(theta) / I(0) at off-axis angle theta [rad]: the table (M, 2)
+    [off_axis_rad ascending from 0, relative], linear between its angles and 0 beyond the last."""
+    profile = np.asarray(profile, dtype=float)
+    return np.interp(np.abs(off_axis_rad), profile[:, 0], profile[:, 1], right=0.0)
+
+
+def cone_irradiance(power_w, cone_angle_rad, distance_m, off_axis_rad=0.0, profile=None):
+    """Eq. (11) scaled by the lamp's profile: Phi = I(theta)/I(0) P_L / (2 pi (1 - cos(gamma/2)) d^2)
+    [W/m^2]. The normalization stays eq. (11)'s by the cone angle gamma, so Phi on the axis is the
+    paper's; profile (M, 2) as relative_intensity, None: the ideal cone (hard_cone_profile)."""
     distance_m = np.asarray(distance_m, dtype=float)
-    inside = np.abs(np.asarray(off_axis_rad, dtype=float)) <= 0.5 * cone_angle_rad
+    if profile is None:
+        profile = hard_cone_profile(cone_angle_rad)
+    relative = relative_intensity(off_axis_rad, profile)
     solid_angle = 2.0 * np.pi * (1.0 - np.cos(0.5 * cone_angle_rad))
-    return np.where(inside, power_w / (solid_angle * distance_m**2), 0.0)
+    return np.where(relative > 0.0, relative * power_w / (solid_angle * distance_m**2), 0.0)
 
 
 def pixel_power(pixel_area_m2, irradiance, reflectance, f_number):

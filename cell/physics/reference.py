@@ -72,7 +72,7 @@ def _material(table):
 
 def gray_per_exposure(mesh, points, normals, camera_pos, lamp_pos, lamp_axis, power_w,
                       cone_angle_rad, table, camera_constant, pixel_area_m2,
-                      shadows=True, cone=True, offset_m=1e-5):
+                      shadows=True, cone=True, offset_m=1e-5, profile=None):
     """NumPy version of kernels.gray.gray_per_exposure (same arguments, same GrayResult)."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     n = geometry.unit(np.asarray(normals, dtype=np.float64).reshape(-1, 3))
@@ -86,7 +86,7 @@ def gray_per_exposure(mesh, points, normals, camera_pos, lamp_pos, lamp_axis, po
     reflectance = brdf.reflectance_vectors(n[None], s, v, material)
     dominant = brdf.dominant_term_vectors(n[None], s, v, material).astype(np.int8)
     off_axis = np.arccos(np.clip(np.sum(axis[:, None, :] * -s, axis=-1), -1.0, 1.0))
-    irradiance = radiometry.cone_irradiance(power_w, cone_angle_rad, d, off_axis if cone else 0.0)
+    irradiance = radiometry.cone_irradiance(power_w, cone_angle_rad, d, off_axis if cone else 0.0, profile)
     shadowed = np.sum(n[None] * s, axis=-1) <= 0.0                  # attached shadow
     if shadows and mesh is not None:
         c, p = np.nonzero(~shadowed)
@@ -117,7 +117,8 @@ def visibility_maps(mesh, points, normals, frame, azimuth, elevation, offset_m=1
 
 
 def render(mesh, origin, ray_dirs, lamp_pos, lamp_axis, power_w, cone_angle_rad, table,
-           camera_constant, pixel_area_m2, shadows=True, cone=True, offset_m=1e-5, max_dist=10.0):
+           camera_constant, pixel_area_m2, shadows=True, cone=True, offset_m=1e-5, max_dist=10.0,
+           profile=None):
     """NumPy version of kernels.render.render (same arguments, same RenderResult)."""
     origin = np.asarray(origin, dtype=np.float64)
     dirs = geometry.unit(np.asarray(ray_dirs, dtype=np.float64).reshape(-1, 3))
@@ -131,6 +132,6 @@ def render(mesh, origin, ray_dirs, lamp_pos, lamp_axis, power_w, cone_angle_rad,
         g = gray_per_exposure(mesh if shadows else None, origin + t[hit, None] * dirs[hit],
                               normal[hit], origin, lamp_pos, lamp_axis, power_w,
                               cone_angle_rad, table, camera_constant, pixel_area_m2,
-                              shadows=shadows, cone=cone, offset_m=offset_m)
+                              shadows=shadows, cone=cone, offset_m=offset_m, profile=profile)
         value[hit] = g.value[0]
     return RenderResult(value, hit, t, normal)
