@@ -137,8 +137,14 @@ def cone_coverage(p, c):
 
 
 def explain_cone_coverage(p, c, met):
-    return ("the lamp's cone covers every sample" if met else
-            "the lamp's cone does not cover the whole feature; move the lamp farther away")
+    if met:
+        return "the lamp's cone covers every sample"
+    half, radius = 0.5 * p.task.lamp.cone_angle_rad, p.task.feature.radius_m
+    needed, reach = radius / np.tan(half), p.task.lamp.rig.radius_range_m[1]
+    if needed > reach:
+        return (f"the lamp's {np.degrees(2 * half):g} deg cone covers the {2e3 * radius:g} mm patch only from "
+                f"{needed:.2f} m, the rig reaches {reach:g} m: use a wider cone or a smaller feature")
+    return "the lamp's cone does not cover the whole feature; move the lamp farther away"
 
 
 def camera_view(p, c):

@@ -392,3 +392,16 @@ def test_a_highlight_between_the_samples_is_found_and_planned_around(tmp_path, m
     monkeypatch.undo()
     again = planner.plan(task)
     assert again.feasible and again.verification.holds and again.verification.rounds >= 1
+
+
+def test_a_cone_too_narrow_at_any_radius_of_the_rig_says_so(tmp_path):
+    """1 deg covers the 12 mm patch only from 0.69 m; the rig reaches 0.6 m."""
+    task, plan = variant_plan(tmp_path, {"lamp.cone_angle_deg": 1.0})
+    assert not plan.feasible and plan.binding == "cone_coverage"
+    assert "only from 0.69 m, the rig reaches 0.6 m" in plan.hint
+
+
+def test_a_camera_behind_the_part_or_along_its_surface_cannot_see_the_feature(tmp_path):
+    for view in ([0.0, 0.0, -1.0], [1.0, 0.0, 0.0]):
+        task, plan = variant_plan(tmp_path, {"camera.view_direction": view})
+        assert not plan.feasible and plan.binding == "camera_view" and "cannot see" in plan.hint
