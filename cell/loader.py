@@ -187,6 +187,9 @@ def _load_mesh(file, part):
     mesh.update_faces(mesh.nondegenerate_faces())       # zero-area triangles have no normal
     if len(mesh.faces) == 0:
         raise TaskError(file, key, f"'{name}' whose triangles all have zero area", "a mesh with a surface")
+    if mesh.is_watertight and mesh.volume < 0:          # a closed shell wound inside out
+        raise TaskError(file, key, f"'{name}' whose triangles face inward (a closed mesh of negative volume)",
+                        "outward-facing triangles (reverse the mesh's winding)")
     if part["mesh_unit"] == "mm":
         mesh.apply_scale(1e-3)
     return path, mesh

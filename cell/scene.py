@@ -17,6 +17,8 @@ from kernels.proximity import closest_points
 GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
 PATCH_ITERATIONS = 6        # pushes of the disk's points out onto a curved patch
 PATCH_TOLERANCE = 1e-4      # of the radius: where a sample lands at its distance
+PATCH_LEAVES = 0.05         # of the radius: a sample this far from its distance runs off the patch
+PATCH_PUSH_MAX = 3.0        # a guess goes at most this many times its distance out
 
 
 def look_at(position, target, up=(0.0, 0.0, 1.0)):
@@ -104,7 +106,15 @@ def build_scene(task, samples=None, extra=None):
         push = away & (hit >= 0) & (landed > 0)
         if not np.any(np.abs(landed[push] - wanted[push]) > PATCH_TOLERANCE * task.feature.radius_m):
             break
-        guesses[push] = center + (guesses[push] - center) * (wanted[push] / landed[push])[:, None]
+        offset = (guesses[push] - center) * (wanted[push] / landed[push])[:, None]
+        reach_out = np.linalg.norm(offset, axis=1) / (PATCH_PUSH_MAX * wanted[push])   # an edge: no
+        guesses[push] = center + offset / np.maximum(reach_out, 1.0)[:, None]         # surface out there
+    short = away & (hit >= 0) & (np.abs(np.linalg.norm(points - center, axis=1) - wanted)
+                                 > PATCH_LEAVES * task.feature.radius_m)
+    if np.any(short):
+        raise TaskError(task.path, "feature.center_m", f"a patch of radius {1e3 * task.feature.radius_m:g} mm "
+                        f"whose {int(short.sum())} of {n} samples cannot lie on the surface at their distance "
+                        f"(it runs over an edge of the part)", "a patch on one continuous surface")
     if extra is not None and len(extra):
         more, more_hit, _ = closest_points(bvh, np.asarray(extra, float), max_dist=reach)
         points, hit = np.vstack([points, more]), np.concatenate([hit, more_hit])

@@ -108,6 +108,15 @@ def mesh_file(content):
     return edit
 
 
+def inverted_mesh(task, folder):
+    """Edit: the hinge's mesh with every triangle's winding reversed (normals pointing in)."""
+    import trimesh
+    mesh = trimesh.load(folder / "parts" / "hinge.stl")
+    mesh.invert()
+    mesh.export(folder / "parts" / "inside_out.stl")
+    task["part"]["mesh"] = "parts/inside_out.stl"
+
+
 def ascii_stl(*triangles):
     facets = "".join("facet normal 0 0 1\nouter loop\n" + "".join(f"vertex {v}\n" for v in t)
                      + "endloop\nendfacet\n" for t in triangles)
@@ -408,6 +417,7 @@ BROKEN = [
     pytest.param(mesh_file(ascii_stl(["0 0 0", "1 0 0", "2 0 0"], ["2 0 0", "3 0 0", "4 0 0"])), "task.yaml",
                  "part.mesh", "zero area", id="mesh-on-a-line"),
     pytest.param(put("part.mesh", "parts"), "task.yaml", "part.mesh", "a folder", id="mesh-is-a-folder"),
+    pytest.param(inverted_mesh, "task.yaml", "part.mesh", "triangles face inward", id="mesh-inside-out"),
     pytest.param(put("part.material", "materials"), "task.yaml", "part.material", "a folder",
                  id="material-is-a-folder"),
     # YAML tricks

@@ -405,3 +405,12 @@ def test_a_camera_behind_the_part_or_along_its_surface_cannot_see_the_feature(tm
     for view in ([0.0, 0.0, -1.0], [1.0, 0.0, 0.0]):
         task, plan = variant_plan(tmp_path, {"camera.view_direction": view})
         assert not plan.feasible and plan.binding == "camera_view" and "cannot see" in plan.hint
+
+
+def test_a_feature_over_the_parts_edge_is_bad_input_not_a_patch_collapsed_on_the_edge(tmp_path):
+    """Centred on the leaf's edge (x = 30 mm) half the patch lies beyond it: its samples cannot lie
+    on the surface at their distance from the centre."""
+    from cell.errors import TaskError
+    with pytest.raises(TaskError, match="runs over an edge of the part") as caught:
+        variant_plan(tmp_path, {"feature.center_m": [0.030, 0.0, 0.004]})
+    assert caught.value.key == "feature.center_m"
