@@ -55,12 +55,52 @@ def dense_samples(task, scene):
     return int(np.clip(count, len(scene.points), DENSE_MAX))
 
 
+def mirror_alignment(points, normals, lamp, camera):
+    """<v, r> at each point, r the lamp direction s mirrored about the normal (2 <n,s> n - s):
+    1 where the mirror direction points at the camera, the spike's peak (eq. 6-7)."""
+    s = geometry.unit(np.asarray(lamp, float) - points)
+    v = geometry.unit(np.asarray(camera, float) - points)
+    mirror = 2.0 * np.sum(normals * s, axis=-1, keepdims=True) * normals - s
+    return np.sum(mirror * v, axis=-1)
+
+
+def specular_point(scene, lamp):
+    """The patch's specular point, where <v, r> is largest: the best of the dense points, refined
+    by Nelder-Mead over a step in the feature's tangent plane projected onto the surface (a
+    highlight between the dense points, on a curved patch, is found to within float32)."""
+    from scipy.optimize import minimize
+
+    from kernels.proximity import closest_points
+    radius = float(np.max(np.linalg.norm(scene.points - scene.center, axis=1)))
+    start = scene.points[int(np.argmax(mirror_alignment(scene.points, scene.normals, lamp,
+                                                        scene.camera_position)))]
+
+    def on_surface(step):
+        guess = start + step[0] * scene.frame[:, 0] + step[1] * scene.frame[:, 1]
+        point, _, normal = closest_points(scene.warp_mesh, guess[None], max_dist=radius)
+        return point, normal
+
+    def f(step):
+        point, normal = on_surface(step)
+        if not np.linalg.norm(point[0] - scene.center) <= radius:     # off the patch (or no surface)
+            return 2.0
+        return -float(mirror_alignment(point, normal, lamp, scene.camera_position)[0])
+
+    d = 0.02 * radius
+    res = minimize(f, np.zeros(2), method="Nelder-Mead",
+                   options={"initial_simplex": [[0.0, 0.0], [d, 0.0], [0.0, d]], "xatol": 1e-7,
+                            "fatol": 1e-12, "maxfev": 80})
+    best = res.x if res.fun <= f(np.zeros(2)) else np.zeros(2)
+    return on_surface(best)[0][0]
+
+
 def verify(problem, shot):
     """(Verification of the shot on the dense patch, its worst points to add to the search's
     samples). problem: the search's Problem (its maps and albedo scale are kept)."""
     from cell.scene import build_scene
     task = problem.task
-    scene = build_scene(task, dense_samples(task, problem.scene))
+    count = dense_samples(task, problem.scene)
+    scene = build_scene(task, count, extra=[specular_point(build_scene(task, count), shot.lamp_position)])
     dense = evaluate.build_problem(task, scene, problem.maps, albedo_scale=1.0)
     dense = replace(dense, material=problem.material, focus_m=problem.focus_m, kappa_open=problem.kappa_open)
     c = evaluate.at_exposure(dense, shot.lamp_position, shot.exposure.shutter_s, shot.exposure.f_number)
@@ -71,10 +111,7 @@ def verify(problem, shot):
     low, high = dense.band
     miss = np.maximum(low - c.gray[0], c.gray[0] - high)
     depths = scene.sample_depths()
-    s = geometry.unit(shot.lamp_position - scene.points)
-    v = geometry.unit(scene.camera_position - scene.points)
-    mirror = 2.0 * np.sum(scene.normals * s, axis=-1, keepdims=True) * scene.normals - s
-    specular = int(np.argmax(np.sum(mirror * v, axis=-1)))
+    specular = len(scene.points) - 1                # the extra point: specular_point
     worst = int(np.argmax(miss))
     picks = {worst, specular, int(np.argmin(c.gray[0])), int(np.argmax(c.gray[0])), int(np.argmin(depths)),
              int(np.argmax(depths))} | set(np.flatnonzero(c.shadowed[0])[:4].tolist())

@@ -25,9 +25,9 @@ def depth_of_field_limits(task, scene):
     # the task's depth: closed form, rounded up by 1e-9 so it holds despite floating-point rounding
     kappa = dof.f_number_for_depth(focus, f, sigma, wanted) * (1 + 1e-9)
 
-    def holds(k):           # with 1e-9 to spare, as above, so the limits hold when judged again
-        return (dof.near_limit(focus, f, k, sigma) <= nearest * (1 - 1e-9)
-                and dof.far_limit(focus, f, k, sigma) >= farthest * (1 + 1e-9))
+    def holds(k):           # with 1e-6 to spare: points on the surface are known to float32
+        return (dof.near_limit(focus, f, k, sigma) <= nearest * (1 - 1e-6)
+                and dof.far_limit(focus, f, k, sigma) >= farthest * (1 + 1e-6))
 
     k_lo, k_hi = lens.f_number_range
     if not holds(max(kappa, k_lo)) and holds(k_hi):
