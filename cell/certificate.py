@@ -67,7 +67,8 @@ def mirror_alignment(points, normals, lamp, camera):
 def specular_point(scene, lamp):
     """The patch's specular point, where <v, r> is largest: the best of the dense points, refined
     by Nelder-Mead over a step in the feature's tangent plane projected onto the surface (a
-    highlight between the dense points, on a curved patch, is found to within float32)."""
+    highlight between the dense points, on a curved patch, is found to within float32). Returns
+    (point, outward normal) on the surface."""
     from scipy.optimize import minimize
 
     from kernels.proximity import closest_points
@@ -91,7 +92,8 @@ def specular_point(scene, lamp):
                    options={"initial_simplex": [[0.0, 0.0], [d, 0.0], [0.0, d]], "xatol": 1e-7,
                             "fatol": 1e-12, "maxfev": 80})
     best = res.x if res.fun <= f(np.zeros(2)) else np.zeros(2)
-    return on_surface(best)[0][0]
+    point, normal = on_surface(best)
+    return point[0], normal[0]
 
 
 def verify(problem, shot):
@@ -99,8 +101,9 @@ def verify(problem, shot):
     samples). problem: the search's Problem (its maps and albedo scale are kept)."""
     from cell.scene import build_scene
     task = problem.task
-    count = dense_samples(task, problem.scene)
-    scene = build_scene(task, count, extra=[specular_point(build_scene(task, count), shot.lamp_position)])
+    scene = build_scene(task, dense_samples(task, problem.scene))
+    point, normal = specular_point(scene, shot.lamp_position)
+    scene = replace(scene, points=np.vstack([scene.points, point]), normals=np.vstack([scene.normals, normal]))
     dense = evaluate.build_problem(task, scene, problem.maps, albedo_scale=1.0)
     dense = replace(dense, material=problem.material, focus_m=problem.focus_m, kappa_open=problem.kappa_open)
     c = evaluate.at_exposure(dense, shot.lamp_position, shot.exposure.shutter_s, shot.exposure.f_number)

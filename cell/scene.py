@@ -57,6 +57,10 @@ class Scene:
     normals: np.ndarray          # (P, 3) surface normals at the samples
     T_cell_cam: np.ndarray       # the camera pose the planner assumes
 
+    def __post_init__(self):
+        """Its arrays read-only, however it was made (built, replaced by the certificate)."""
+        _read_only(self.__dict__.values())
+
     def __setstate__(self, state):
         """Unpickled (a plan from a worker process): its arrays read-only again, as built."""
         self.__dict__.update(state)
@@ -124,10 +128,8 @@ def build_scene(task, samples=None, extra=None):
                         f"{1e3 * reach:.0f} mm", "a patch on the part's surface")
     normals = mesh.face_normals[hit]
     cam = center + task.camera.distance_m * geometry.unit(geometry.rotate(T, task.camera.view_direction))
-    arrays = dict(vertices=vertices, faces=faces, center=center, normal=normal, frame=frame,
-                  points=points, normals=normals, T_cell_cam=look_at(cam, center))
-    _read_only(arrays.values())
-    return Scene(mesh_key=key, **arrays)
+    return Scene(vertices=vertices, faces=faces, mesh_key=key, center=center, normal=normal, frame=frame,
+                 points=points, normals=normals, T_cell_cam=look_at(cam, center))
 
 
 def _read_only(values):
