@@ -155,7 +155,7 @@ def tolerance_moves(problem, tilt):
 
 def candidates(problem, pan, tilt, radius, tolerance=True):
     """Candidates for lamp joints (C,) arrays. With `tolerance` the lamp is also moved by
-    lamp_tolerance in 4 directions (one bulk call for all)."""
+    lamp_tolerance in TOLERANCE_RING directions (one bulk call for all)."""
     pivot = problem.task.lamp.rig.pivot_m
     pan, tilt, radius = np.broadcast_arrays(*(np.atleast_1d(np.asarray(x, float)) for x in (pan, tilt, radius)))
     n = len(pan)
