@@ -9,7 +9,7 @@ import pytest
 import trimesh
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from cell import evaluate, geometry, planner, rig
+from cell import evaluate, geometry, planner, requirements, rig
 from cell.cli import main
 from cell.loader import load_task
 from cell.recorder import write_plan
@@ -429,3 +429,25 @@ def test_a_feature_over_the_parts_edge_is_bad_input_not_a_patch_collapsed_on_the
     with pytest.raises(TaskError, match="runs over an edge of the part") as caught:
         variant_plan(tmp_path, {"feature.center_m": [0.030, 0.0, 0.004]})
     assert caught.value.key == "feature.center_m"
+
+
+def test_a_lamp_candidate_standing_on_the_feature_is_unlit_not_nan(tmp_path):
+    """A rig whose sphere passes through the feature: the candidate at the feature's centre (the
+    pivot 0.2 m above it, tilt -90 deg, radius 0.2 m) has distance 0 to a sample. It lights
+    nothing there (no direction to the lamp), so no shutter helps (shutter_max inf, as any unlit
+    pose) and no value is NaN; with every warning an error."""
+    import warnings
+
+    from simcell import variant
+    task = load_task(variant(tmp_path, TASKS / "hinge.yaml", {
+        "lamp.rig.pivot_m": [0.006, 0.0, 0.204], "lamp.rig.tilt_range_deg": [-90.0, 90.0]}))
+    scene = build_scene(task)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        problem = evaluate.build_problem(task, scene, planner.build_maps(task, scene, COARSE))
+        c = evaluate.candidates(problem, [0.0], [-np.pi / 2], [0.2])
+        values = requirements.ln_values(problem, c)
+    assert np.allclose(c.position[0], scene.center, atol=1e-9)
+    assert not np.any(np.isnan(c.gray)) and c.gray[0, 0] == 0.0
+    assert not any(np.isnan(v).any() for v in values.values())
+    assert values["shutter_max"][0] == np.inf
