@@ -215,3 +215,27 @@ def test_hw_check_without_the_robots_address_is_bad_input(tmp_path, video):
     assert done.returncode == 2
     assert done.stderr.strip().endswith("cell.arm.host: found nothing, expected the robot's address "
                                         "(required for --backend hw; there is no default)")
+
+
+def test_the_interfaces_default_state_is_the_read_back_of_the_simulated_devices():
+    from cell.scene import look_at
+    from sim.arm import SimArm
+    from sim.camera import SimCamera
+    from sim.pantilt import SimPanTilt
+    from simcell import device_settings
+
+    hinge = load_task("tasks/hinge.yaml")
+    settings = device_settings({})
+    arm = SimArm(settings.arm, hinge.frames)
+    T = look_at(np.array([-0.019, 0.0, 0.503]), np.array([0.006, 0.0, 0.004]))
+    arm.move_camera(T)
+    assert np.array(arm.state()["camera_pose"]) == pytest.approx(T, abs=1e-9)
+    lamp = SimPanTilt(hinge.lamp.rig, settings.pan_tilt)
+    lamp.move(np.radians(30.0), np.radians(45.0), 0.25)
+    state = lamp.state()
+    assert state["pan_rad"] == 341 * 2 * np.pi / 4096 and state["tilt_rad"] == np.pi / 4   # 4096 ticks a turn
+    assert state["radius_m"] == 0.25 and state["problems"] == []                          # as confirmed (manual)
+    camera = SimCamera(lambda *a: None, arm, lamp)
+    camera.set_exposure(0.004)
+    assert camera.state() == {"bit_depth": 8, "shutter_s": 0.004, "f_number": None, "focus_m": None,
+                              "problems": []}
