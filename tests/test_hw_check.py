@@ -239,3 +239,16 @@ def test_the_interfaces_default_state_is_the_read_back_of_the_simulated_devices(
     camera.set_exposure(0.004)
     assert camera.state() == {"bit_depth": 8, "shutter_s": 0.004, "f_number": None, "focus_m": None,
                               "problems": []}
+
+
+def test_an_absent_servo_is_named_and_the_other_servo_and_devices_still_read(tmp_path, video):
+    host = free_loopback()                                            # nothing listens there
+    with servos() as emulator:
+        path = variant(tmp_path, "tasks/hinge.yaml", {
+            "cell.arm.host": host, "cell.pan_tilt.port": emulator.port, "cell.pan_tilt.tilt_id": 7,
+            "cell.camera.source": str(video)})
+        arm, pan_tilt, camera = check_hw_devices(load_task(path))
+    assert arm.fault.startswith(f"UR at {host}:30004: ") and camera.ready
+    assert pan_tilt.state["problems"] == ["servo 7: ping: [TxRxResult] There is no status packet!"]
+    assert pan_tilt.state["servos"]["1"]["present_position_ticks"] == PAN_TICKS
+    assert pan_tilt.state["servos"]["7"] == {"role": "tilt", "error": pan_tilt.state["problems"][0]}
