@@ -252,3 +252,22 @@ def test_an_absent_servo_is_named_and_the_other_servo_and_devices_still_read(tmp
     assert pan_tilt.state["problems"] == ["servo 7: ping: [TxRxResult] There is no status packet!"]
     assert pan_tilt.state["servos"]["1"]["present_position_ticks"] == PAN_TICKS
     assert pan_tilt.state["servos"]["7"] == {"role": "tilt", "error": pan_tilt.state["problems"][0]}
+
+
+def test_a_read_only_arm_refuses_to_move_and_has_nothing_to_stop(ur_host):
+    from cell.errors import DeviceFault
+    from cell.hw.ur import URArm
+    from cell.scene import look_at
+    from simcell import device_settings
+
+    hinge = load_task("tasks/hinge.yaml")
+    arm = URArm(device_settings({"arm": {"host": ur_host}}).arm, hinge.frames, read_only=True)
+    try:
+        T = look_at(np.array([-0.019, 0.0, 0.503]), np.array([0.006, 0.0, 0.004]))
+        with pytest.raises(DeviceFault, match=rf"UR at {ur_host}: opened read-only \(cell hw-check\): moveL refused"):
+            arm.move_camera(T)
+        arm.stop()                                                  # nothing was commanded
+        assert arm.state()["joints_rad"] == pytest.approx(HOME_RAD, abs=1e-12)
+    finally:
+        arm.close()
+    assert dashboard(ur_host, "emulator status").startswith("moves 0 runtime_state 1 ")
