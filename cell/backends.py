@@ -1,8 +1,10 @@
 """The one place that builds the cell's devices: the simulated cell (sim/) or the real one
 (cell/hw/). Nothing else in cell/ imports either, so the controller sees only cell.devices'
 interfaces, and the real backends' SDKs load only for --backend hw."""
+from dataclasses import dataclass
+
 from cell.devices import Devices, speaking_for
-from cell.errors import TaskError
+from cell.errors import DeviceFault, TaskError
 from cell.operator import Operator
 from cell.session import try_all
 
@@ -21,13 +23,7 @@ def make_hw_devices(task, yes=False, operator=None):
     """The real devices for --backend hw from the task's settings. Needs explicit `cell.arm.host`
     and `cell.pan_tilt.port` (no default reaches the network or a serial bus); connects arm,
     servos, camera in turn and closes what was opened if a later one fails."""
-    config = task.cell.devices
-    if not config.arm.host:
-        raise TaskError(config.task_file, "cell.arm.host", "nothing",
-                        "the robot's address (required for --backend hw; there is no default)")
-    if not config.pan_tilt.port:
-        raise TaskError(config.task_file, "cell.pan_tilt.port", "nothing",
-                        "the servos' serial port, e.g. /dev/ttyUSB0 (required for --backend hw)")
+    config = _addressed(task)
     from cell.hw.dynamixel import DynamixelPanTilt
     from cell.hw.opencv_camera import OpenCVCamera
     from cell.hw.ur import URArm
@@ -45,3 +41,71 @@ def make_hw_devices(task, yes=False, operator=None):
         try_all([device.close for device in reversed(opened)])
         raise
     return Devices(*opened)
+
+
+def _addressed(task):
+    """The task's device settings, once they name the robot and the serial port: no default
+    reaches a network or a bus (bad input otherwise)."""
+    config = task.cell.devices
+    if not config.arm.host:
+        raise TaskError(config.task_file, "cell.arm.host", "nothing",
+                        "the robot's address (required for --backend hw; there is no default)")
+    if not config.pan_tilt.port:
+        raise TaskError(config.task_file, "cell.pan_tilt.port", "nothing",
+                        "the servos' serial port, e.g. /dev/ttyUSB0 (required for --backend hw)")
+    return config
+
+
+@dataclass(frozen=True)
+class DeviceCheck:
+    """One real device as `cell hw-check` found it: its state() if it answered, else the fault."""
+
+    device: str
+    address: str                      # host, serial port or camera source
+    state: dict | None
+    fault: str | None
+
+    @property
+    def ready(self):
+        """Answered, and reports nothing a run would stop on."""
+        return self.fault is None and not self.state["problems"]
+
+
+def check_hw_devices(task):
+    """`cell hw-check`: each real device of the task opened alone and read-only, asked its
+    state() and closed, so one that fails does not hide the others. Reading only: nothing moves,
+    no torque or setting changes, no control script is uploaded, no frame exposure is set; a
+    DeviceCheck per device (arm, pan-tilt, camera). The camera's frames are compared with
+    camera.sensor, as a run does."""
+    config = _addressed(task)
+    from cell.hw.dynamixel import DynamixelPanTilt
+    from cell.hw.opencv_camera import OpenCVCamera
+    from cell.hw.ur import URArm
+
+    no_prompt = Operator(yes=True)    # nothing is set by hand in a check, so nothing is asked
+    sensor = task.camera.sensor
+    checks = [
+        _check(URArm, config.arm.host, lambda: URArm(config.arm, task.frames, read_only=True)),
+        _check(DynamixelPanTilt, config.pan_tilt.port,
+               lambda: DynamixelPanTilt(task.lamp.rig, config.pan_tilt, no_prompt, read_only=True)),
+        _check(OpenCVCamera, str(config.camera.source),
+               lambda: OpenCVCamera(config.camera, sensor.bit_depth, no_prompt)),
+    ]
+    camera = checks[-1].state
+    if camera and (camera["width_px"], camera["height_px"]) != (sensor.width_px, sensor.height_px):
+        camera["problems"].append(f"frames are {camera['width_px']}x{camera['height_px']}, camera.sensor is "
+                                  f"{sensor.width_px}x{sensor.height_px}: set the camera's resolution")
+    return checks
+
+
+def _check(kind, address, open_device):
+    device = None
+    try:
+        with speaking_for(kind):
+            device = open_device()
+            return DeviceCheck(kind.device, address, device.state(), None)
+    except DeviceFault as fault:
+        return DeviceCheck(kind.device, address, None, fault.reason)
+    finally:
+        if device is not None:
+            try_all([device.close])

@@ -54,7 +54,27 @@ class OpenCVCamera(Camera):
         return frame
 
     def capture(self):
-        frame = self._read()
+        return self._gray(self._read())
+
+    def state(self):
+        """The source, OpenCV's backend, one frame's size, channels and bit depth, the FOURCC
+        the capture reports and the exposure setting, by get() only: nothing is set. OpenCV cannot
+        ask a camera its model or exposure range (on V4L2 `v4l2-ctl --all` shows them): None."""
+        frame, problems = self._read(), []
+        try:
+            self._gray(frame)
+        except DeviceFault as fault:
+            problems.append(fault.reason)
+        fourcc = int(self._capture.get(cv2.CAP_PROP_FOURCC))
+        exposure = self._capture.get(cv2.CAP_PROP_EXPOSURE)
+        return {"source": self.config.source, "model": None, "backend": self._capture.getBackendName(),
+                "width_px": frame.shape[1], "height_px": frame.shape[0],
+                "channels": 1 if frame.ndim == 2 else frame.shape[2], "bit_depth": 8 * frame.itemsize,
+                "pixel_format": fourcc.to_bytes(4, "little").decode("latin-1") if fourcc > 0 else None,
+                "exposure_s": exposure * self.config.exposure_unit_s if exposure > 0 else None,
+                "exposure_range_s": None, "problems": problems}
+
+    def _gray(self, frame):
         if frame.ndim == 3 and frame.shape[2] == 1:
             frame = frame[..., 0]
         elif frame.ndim == 3:
