@@ -20,7 +20,7 @@ from cell.hw import genicam_camera
 from cell.hw.genicam_camera import GenICamCamera, mono_to_gray, pick_pixel_format
 from cell.loader import load_task
 from cell.operator import Operator
-from genicam_fake import FakeCamera, FloatNode, NodeMap, harvester_of
+from genicam_fake import Buffer, FakeCamera, FloatNode, NodeMap, harvester_of
 from simcell import device_settings, variant
 
 TASK = "tasks/hinge.yaml"
@@ -377,3 +377,18 @@ def test_a_device_without_exposure_time_fails_at_connect_and_is_released(monkeyp
         GenICamCamera(genicam_settings(12), SimpleNamespace(width_px=8, height_px=6, bit_depth=12), YES)
     assert "FakeCam serial FAKE-1 (viky.cti) has no ExposureTime node" in err.value.reason
     assert opened[0].destroyed
+
+
+@pytest.mark.parametrize("delivered, reason", [
+    (None, "sent a buffer without its image information"),   # harvesters could not make a Buffer
+    ("no payload", "sent a buffer without an image"),
+])
+def test_a_buffer_harvesters_cannot_read_is_a_fault(monkeypatch, delivered, reason):
+    camera, opened = fake_camera(monkeypatch, FakeCamera())
+    if delivered is not None:
+        delivered = Buffer(None)
+        delivered.payload = None                         # an unsupported payload type
+    monkeypatch.setattr(opened[0], "fetch", lambda timeout: delivered)
+    with pytest.raises(DeviceFault) as err:
+        camera.capture()
+    assert reason in err.value.reason

@@ -227,8 +227,10 @@ class GenICamCamera(ManualLensCamera):
         except gentl.TimeoutException:
             raise DeviceFault(self.device, f"{self.name} sent no frame within {timeout:.3g} s "
                                            "(shutter + cell.camera.frame_timeout_s)") from None
+        if buffer is None:                                  # harvesters could not read it
+            raise DeviceFault(self.device, f"{self.name} sent a buffer without its image information")
         with buffer:
-            components = buffer.payload.components
+            components = buffer.payload.components if buffer.payload is not None else []
             if not components:
                 raise DeviceFault(self.device, f"{self.name} sent a buffer without an image")
             image = components[0]
