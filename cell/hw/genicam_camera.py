@@ -11,6 +11,7 @@ from cell.device_config import MONO_FORMATS
 from cell.devices import Camera
 from cell.errors import DeviceFault
 from cell.hw.lens import ManualLensCamera
+from cell.session import try_all
 
 # what genicam raises (harvesters passes it on): node access (genapi), transport layer (gentl)
 GENICAM_ERRORS = (genapi.GenericException, gentl.GenericException)
@@ -85,7 +86,7 @@ class GenICamCamera(ManualLensCamera):
             with self._speaking("setting it up"):
                 self._set_up(sensor)
         except BaseException:
-            self.close()
+            try_all([self.close])                           # the fault to report is the first
             raise
 
     def _device_info(self):
@@ -112,9 +113,8 @@ class GenICamCamera(ManualLensCamera):
 
     def _node(self, name, why):
         """The device's node `name`; missing or unavailable is a fault naming it."""
-        nodes = self._nodes()
-        node = getattr(nodes, name) if nodes.has_node(name) else None
-        if node is None or node.node.get_access_mode() in UNAVAILABLE:
+        node = self._present(name)
+        if node is None:
             raise DeviceFault(self.device, f"{self.name} has no {name} node, which {why} "
                                            "(GenICam SFNC name)")
         return node
