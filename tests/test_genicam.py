@@ -1,8 +1,10 @@
 """The GenICam camera backend (cell.camera.driver: genicam): its settings, the PFNC conversion on
 hand-made buffers, the real harvesters/GenTL path against genicam 1.6.0's software producer
 viky.cti (a 400x400 Mono8 test pattern: white, with a black BouncingBallSize square moving one
-pixel a frame), and, for the nodes viky lacks (ExposureTime, Gain, trigger), a fake device
-(tests/genicam_fake.py)."""
+pixel a frame), for the nodes viky lacks (ExposureTime, Gain, trigger) a fake device
+(tests/genicam_fake.py), and `cell run --backend hw` on viky with the UR and servo emulators."""
+import json
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -20,6 +22,7 @@ from cell.hw import genicam_camera
 from cell.hw.genicam_camera import GenICamCamera, mono_to_gray, pick_pixel_format
 from cell.loader import load_task
 from cell.operator import Operator
+from sim.dxl_emulator import DxlEmulator
 from genicam_fake import Buffer, FakeCamera, FloatNode, NodeMap, harvester_of
 from simcell import device_settings, variant
 
@@ -392,3 +395,47 @@ def test_a_buffer_harvesters_cannot_read_is_a_fault(monkeypatch, delivered, reas
     with pytest.raises(DeviceFault) as err:
         camera.capture()
     assert reason in err.value.reason
+
+
+# --- the whole hw path: exit 3 naming the camera, before anything moves ----------------------
+
+def free_loopback_host():
+    """A 127.0.0.X whose UR ports (29999, 30003, 30004) are free: other tests and engineers run
+    UR emulators on loopback addresses of their own."""
+    for x in (163, 164, 165, 166, 167):
+        host = f"127.0.0.{x}"
+        try:
+            for port in (29999, 30003, 30004):
+                with socket.socket() as probe:
+                    probe.bind((host, port))
+            return host
+        except OSError:
+            continue
+    pytest.fail("127.0.0.163-167: every address has a UR port taken")
+
+
+def test_cell_run_on_viky_is_exit_3_naming_camera_and_node_before_anything_moves(tmp_path, capsys):
+    """The real ur_rtde against the UR emulator, the real dynamixel_sdk against the pty servos,
+    the real harvesters against viky.cti: the missing ExposureTime ends the run at connect."""
+    host = free_loopback_host()
+    controller = subprocess.Popen([sys.executable, "-m", "sim.ur_controller", "--host", host,
+                                   "--max-seconds", "60"], stdout=subprocess.PIPE, text=True)
+    try:
+        assert controller.stdout.readline().strip() == "READY"
+        with DxlEmulator(ids=(1, 2)) as servos:
+            task = variant(tmp_path, TASK, {
+                "camera.sensor.width_px": 400, "camera.sensor.height_px": 400,   # viky's frames
+                "cell.arm.host": host, "cell.pan_tilt.port": servos.port,
+                "cell.camera": {"driver": "genicam", "cti": str(VIKY)}})
+            out = tmp_path / "run"
+            assert main(["run", str(task), "--backend", "hw", "--yes", "--out", str(out)]) == 3
+    finally:
+        controller.terminate()
+        controller.wait(timeout=10)
+        controller.stdout.close()
+    fault = json.loads((out / "report.json").read_text())["fault"]
+    assert fault["device"] == "camera" and "has no ExposureTime node" in fault["error"]
+    assert fault["stop_failures"] == [] and fault["release_failures"] == []
+    assert [json.loads(line)["step"] for line in (out / "log.jsonl").read_text().splitlines()] == \
+        ["plan", "fault"]
+    assert "Traceback" not in capsys.readouterr().err
