@@ -194,7 +194,7 @@ def _camera_config(file, c, written, bit_depth):
     with at least the sensor's bits (fewer would make up gray levels)."""
     driver = c["driver"]
     keys_of = {d: {_unit(k)[0] for k in keys} for d, keys in DRIVER_KEYS.items()}
-    for key in written:
+    for key in (k for k, v in written.items() if v is not None):    # empty is absent, as in parse
         base = _unit(str(key))[0]                       # frame_timeout_ms is frame_timeout_s
         other = next((d for d, bases in keys_of.items() if d != driver and base in bases), None)
         if other and base not in keys_of[driver]:
@@ -210,7 +210,7 @@ def _camera_config(file, c, written, bit_depth):
             raise TaskError(file, "cell.camera.cti", f"'{c['cti']}'" + ("" if _is_file(cti) else
                             ", which is not a file"), "a GenTL producer file (.cti), relative to "
                             "the task file or absolute")
-    if c["serial_number"] is not None and "device_index" in written:
+    if c["serial_number"] is not None and written.get("device_index") is not None:
         raise TaskError(file, "cell.camera.device_index", f"{show(c['device_index'])} and "
                         f"serial_number '{c['serial_number']}' both", "the device named one way")
     fmt = c["pixel_format"]
