@@ -59,5 +59,6 @@ def hw_camera(task):
         from cell.hw.genicam_camera import GenICamCamera
     except ImportError as err:
         raise TaskError(task.path, "cell.camera.driver", f"genicam, but {err.name or err} cannot be "
-                        "imported", "the GenICam SDK installed: pip install 'lightplan-cell[genicam]'") from None
+                        "imported", "the GenICam SDK installed: "
+                        "pip install 'lightplan-cell[genicam]'") from None
     return lambda operator: GenICamCamera(config, task.camera.sensor, operator)
