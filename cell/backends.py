@@ -3,7 +3,7 @@
 interfaces, and the real backends' SDKs load only for --backend hw."""
 from dataclasses import dataclass
 
-from cell.devices import Devices, speaking_for
+from cell.devices import Camera, Devices, speaking_for
 from cell.errors import DeviceFault, TaskError
 from cell.operator import Operator
 from cell.session import try_all
@@ -25,8 +25,8 @@ def make_hw_devices(task, yes=False, operator=None):
     servos, camera in turn and closes what was opened if a later one fails."""
     config = _addressed(task)
     from cell.hw.dynamixel import DynamixelPanTilt
-    from cell.hw.opencv_camera import OpenCVCamera
     from cell.hw.ur import URArm
+    open_camera = hw_camera(task)
 
     operator = operator or Operator(yes=yes)
     opened = []
@@ -35,8 +35,8 @@ def make_hw_devices(task, yes=False, operator=None):
             opened.append(URArm(config.arm, task.frames))
         with speaking_for(DynamixelPanTilt):
             opened.append(DynamixelPanTilt(task.lamp.rig, config.pan_tilt, operator))
-        with speaking_for(OpenCVCamera):
-            opened.append(OpenCVCamera(config.camera, task.camera.sensor.bit_depth, operator))
+        with speaking_for(Camera):
+            opened.append(open_camera(operator))
     except Exception:
         try_all([device.close for device in reversed(opened)])
         raise
@@ -79,8 +79,8 @@ def check_hw_devices(task):
     camera.sensor, as a run does."""
     config = _addressed(task)
     from cell.hw.dynamixel import DynamixelPanTilt
-    from cell.hw.opencv_camera import OpenCVCamera
     from cell.hw.ur import URArm
+    open_camera = hw_camera(task, read_only=True)
 
     no_prompt = Operator(yes=True)    # nothing is set by hand in a check, so nothing is asked
     sensor = task.camera.sensor
@@ -88,8 +88,7 @@ def check_hw_devices(task):
         _check(URArm, config.arm.host, lambda: URArm(config.arm, task.frames, read_only=True)),
         _check(DynamixelPanTilt, config.pan_tilt.port,
                lambda: DynamixelPanTilt(task.lamp.rig, config.pan_tilt, no_prompt, read_only=True)),
-        _check(OpenCVCamera, str(config.camera.source),
-               lambda: OpenCVCamera(config.camera, sensor.bit_depth, no_prompt)),
+        _check(Camera, camera_address(config.camera), lambda: open_camera(no_prompt)),
     ]
     camera = checks[-1].state
     if camera and (camera["width_px"], camera["height_px"]) != (sensor.width_px, sensor.height_px):
@@ -109,3 +108,29 @@ def _check(kind, address, open_device):
     finally:
         if device is not None:
             try_all([device.close])
+
+
+def camera_address(config):
+    """Where the camera is found: OpenCV's source, or the GenTL producer and the device in it."""
+    if config.driver != "genicam":
+        return str(config.source)
+    device = f"serial {config.serial_number}" if config.serial_number else f"device {config.device_index}"
+    return f"{config.cti} {device}"
+
+
+def hw_camera(task, read_only=False):
+    """open(operator) -> the real camera of the task's cell.camera.driver: OpenCV's VideoCapture,
+    or a GenICam device, whose SDK (harvesters, the `genicam` extra) is imported only here: not
+    installed is bad input before anything connects. read_only: a GenICam device opened without
+    its set-up, for `cell hw-check` (OpenCV's camera sets nothing when it opens)."""
+    config = task.cell.devices.camera
+    if config.driver == "opencv":
+        from cell.hw.opencv_camera import OpenCVCamera
+        return lambda operator: OpenCVCamera(config, task.camera.sensor.bit_depth, operator)
+    try:
+        from cell.hw.genicam_camera import GenICamCamera
+    except ImportError as err:
+        raise TaskError(task.path, "cell.camera.driver", f"genicam, but {err.name or err} cannot be "
+                        "imported", "the GenICam SDK installed: "
+                        "pip install 'lightplan-cell[genicam]'") from None
+    return lambda operator: GenICamCamera(config, task.camera.sensor, operator, read_only=read_only)

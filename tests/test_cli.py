@@ -110,7 +110,7 @@ def test_cell_check_loads_no_plotting_or_device_library():
     SDK (a fresh interpreter, so other tests' imports do not count)."""
     import subprocess
     import sys
-    heavy = ("matplotlib", "cv2", "dynamixel_sdk", "rtde_control", "rtde_receive")
+    heavy = ("matplotlib", "cv2", "dynamixel_sdk", "rtde_control", "rtde_receive", "harvesters", "genicam")
     code = (f"import sys; from cell.cli import main; assert main(['check', {HINGE!r}]) == 0; "
             f"print([m for m in {heavy!r} if m in sys.modules])")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)

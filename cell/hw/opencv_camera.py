@@ -5,17 +5,16 @@ OpenCV has no lens control, so the operator sets the f-number and the focus."""
 import cv2
 import numpy as np
 
-from cell.devices import Camera
 from cell.errors import DeviceFault
+from cell.hw.lens import ManualLensCamera
 
 V4L2_MANUAL_EXPOSURE = 1
 
 
-class OpenCVCamera(Camera):
+class OpenCVCamera(ManualLensCamera):
     def __init__(self, config, bit_depth, operator):
-        super().__init__(bit_depth)
-        self.config, self.operator = config, operator
-        operator.require(self.device, "the aperture and focus (OpenCV has no lens control)")
+        super().__init__(bit_depth, operator, "OpenCV has no lens control")
+        self.config = config
         self._capture = cv2.VideoCapture(config.source)
         if not self._capture.isOpened():
             raise DeviceFault(self.device, f"cannot open {config.source!r} with cv2.VideoCapture")
@@ -36,16 +35,6 @@ class OpenCVCamera(Camera):
             self._read()
         self.shutter_s = actual
         return actual
-
-    def set_aperture(self, f_number):
-        if self.f_number is None or abs(f_number / self.f_number - 1) > 0.01:
-            self.operator.confirm(self.device, f"set the lens to f/{f_number:.1f}")
-        self.f_number = float(f_number)
-
-    def set_focus(self, focus_m):
-        if self.focus_m is None or abs(focus_m - self.focus_m) > 1e-3:
-            self.operator.confirm(self.device, f"focus the lens at {1e3 * focus_m:.0f} mm")
-        self.focus_m = float(focus_m)
 
     def _read(self):
         ok, frame = self._capture.read()
