@@ -321,12 +321,17 @@ class LaserCalibration:
 
 
 def check_camera_file(path, force):
-    """Refuse (bad input, before any work) to replace an existing camera file without --force."""
+    """Refuse (bad input, before any work) to replace an existing camera file without --force, a
+    folder, or a file in a folder that does not exist."""
     path = Path(path)
-    if path.is_dir() or (path.exists() and not force):
-        what = "a folder" if path.is_dir() else "a file that exists"
-        raise TaskError("command line", "--camera-file", f"{path}, {what}",
-                        "a new file, or --force to replace it" if not path.is_dir() else "a file path")
+    if path.is_dir():
+        raise TaskError("command line", "--camera-file", f"{path}, a folder", "a file path")
+    if not path.parent.is_dir():
+        raise TaskError("command line", "--camera-file", f"{path}, in no existing folder",
+                        "a file in an existing folder")
+    if path.exists() and not force:
+        raise TaskError("command line", "--camera-file", f"{path}, a file that exists",
+                        "a new file, or --force to replace it")
     return path
 
 

@@ -226,6 +226,16 @@ def test_json_prints_the_fit_and_the_camera_file_is_used_by_a_task(tmp_path, cap
     assert json.loads(capsys.readouterr().out)["camera_file"] == str(camera) and camera.read_text() != before
 
 
+@pytest.mark.parametrize("name, found", [("", "a folder"), ("no/such/camera.yaml", "in no existing folder")])
+def test_a_camera_file_that_cannot_be_written_is_bad_input_before_any_work(tmp_path, capsys, name, found):
+    path = tmp_path / name
+    argv = ["calibrate", "camera-constant", str(HINGE), "--laser-power-w", "2e-10", "--camera-file", str(path),
+            "--out", str(tmp_path / "run")]
+    assert main(argv) == 2
+    assert capsys.readouterr().err.startswith(f"cell calibrate: command line: --camera-file: found {path}, {found}")
+    assert not (tmp_path / "run").exists()
+
+
 def test_the_plain_calibrate_names_the_two_routines_exit_2(capsys):
     with pytest.raises(SystemExit) as exited:
         main(["calibrate", str(HINGE), "--out", "x"])
