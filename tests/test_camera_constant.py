@@ -134,6 +134,16 @@ def test_c_is_the_world_s_within_2_percent_and_its_stderr_covers_it(tmp_path):
     assert steps[0] == "setup" and steps[-1] == "done" and "move_camera" not in steps and "move_lamp" not in steps
 
 
+def test_a_world_far_brighter_than_the_task_says_is_found_by_the_probes(tmp_path):
+    """The world's c 12x the task's: the first probe (the task's c putting the spot's sum at full
+    scale) saturates, a 4x shorter one does not; the sweep follows the probe, not the task."""
+    result, _, written = calibrate(sim_task(tmp_path, scale=12.0), tmp_path / "run")
+    probes = [f for f in written["frames"] if f["kind"] == "probe"]
+    assert [p["saturated"] for p in probes] == [True, False]
+    assert probes[1]["shutter_s"] == pytest.approx(probes[0]["shutter_s"] / 4)
+    assert result.fit.camera_constant == pytest.approx(12.0 * C_TASK, rel=0.02) and result.fit.frames_used == 8
+
+
 def test_over_seeds_the_stderr_is_the_scatter_s(tmp_path):
     """z = (c - c_true) / stderr over 6 worlds (seeds: the noise and where the spot lands). With 8
     frames and 2 parameters z is Student's t with 6 degrees of freedom: rms sqrt(6/4) = 1.22,
@@ -260,6 +270,17 @@ def test_on_the_real_cell_the_operator_works_the_laser_before_anything(tmp_path,
     assert main(argv) == 3                                                  # stdin: no terminal
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert last.startswith("cell calibrate: laser: ") and "run with --yes" in last and connected == []
+
+
+def test_the_cli_turns_a_fault_into_exit_3_and_one_line(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(backends, "open_devices", lambda task, scene, backend, yes, laser:
+                        make_sim_devices(task, scene, faults={"camera_fail_on_capture": 3}, laser=laser))
+    argv = ["calibrate", "camera-constant", str(sim_task(tmp_path)), "--laser-power-w", "2e-10", "--out",
+            str(tmp_path / "run")]
+    assert main(argv) == 3
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.startswith("cell calibrate: camera: capture timed out") and "motion stopped" in last
+    assert json.loads((tmp_path / "run" / "calibration.json").read_text())["fault"]["device"] == "camera"
 
 
 def test_a_camera_fault_stops_the_cell_exits_3_and_the_log_is_complete(tmp_path):
