@@ -9,14 +9,15 @@ from cell.operator import Operator
 from cell.session import try_all
 
 
-def open_devices(task, scene, backend, yes=False):
-    """The cell's devices: the simulated cell (rendering `scene`) or, for backend hw, the real
-    ones from the task's cell.arm / cell.pan_tilt / cell.camera settings. The sim has no operator
-    to set the lamp radius: it confirms for itself."""
+def open_devices(task, scene, backend, yes=False, laser=None):
+    """The cell's devices: the simulated cell (rendering `scene`, or the spot of a laser aimed at
+    the sensor) or, for backend hw, the real ones from the task's cell.arm / cell.pan_tilt /
+    cell.camera settings (a real laser is the operator's). The sim has no operator to set the
+    lamp radius: it confirms for itself."""
     if backend == "hw":
         return make_hw_devices(task, yes=yes)
     from sim.cell import make_sim_devices
-    return make_sim_devices(task, scene, yes=True)
+    return make_sim_devices(task, scene, yes=True, laser=laser)
 
 
 def make_hw_devices(task, yes=False, operator=None):

@@ -15,6 +15,7 @@ from cell.errors import TaskError
 from cell.frames import Frames
 from cell.inputs import checked_file
 from cell.material import PARAMETERS, Material
+from cell.physics.radiometry import camera_constant_from_datasheet
 from cell.schema import (NON_NEGATIVE, POSITIVE, Anything, Choice, Integer, Invalid, Number, Pair,
                          Section, Spec, Table, Text, Vector, parse, read_yaml, show)
 from cell.task import (CameraModel, CellConfig, Feature, Lamp, LampRig, Lens, Part, Requirements,
@@ -26,6 +27,7 @@ MAX_SAMPLES = 4096
 MAX_SENSOR_SIDE_PX = 65_536
 MAX_SENSOR_PIXELS = 160_000_000  # the largest machine-vision sensors (151 Mpx): a frame fits in memory
 MIN_F_NUMBER = 0.5               # the physical limit of a lens in air (numerical aperture 1)
+DATASHEET_AGREEMENT = 0.01       # camera_constant against the EMVA 1288 keys' c: relative
 
 
 class Effects(Spec):
@@ -45,6 +47,20 @@ class Effects(Spec):
             if name in raw[:i]:
                 raise Invalid(name, "each effect at most once", i)
         return tuple(raw)
+
+
+class SensorSection(Section):
+    """`camera.sensor`: its keys in the task, or the name of a camera file holding them (relative
+    to the task file; `cell calibrate camera-constant` writes one), checked alike; "file" is the
+    camera file's path, or None."""
+
+    expected = "a mapping of keys, or the name of a camera file holding them"
+
+    def read(self, file, path, raw, to_si):
+        if not isinstance(raw, str):
+            return super().read(file, path, raw, to_si) | {"file": None}
+        camera_file = _relative_file(Path(file), path, raw, "yaml")
+        return parse(camera_file, "", _read_mapping(camera_file), self.fields) | {"file": camera_file}
 
 
 DEG = np.radians
@@ -73,12 +89,20 @@ TASK = {
     "camera": Section({
         "distance_m": Number(**POSITIVE),
         "view_direction": Vector(direction=True),
-        "sensor": Section({
+        "sensor": SensorSection({
             "width_px": Integer(1, MAX_SENSOR_SIDE_PX),
             "height_px": Integer(1, MAX_SENSOR_SIDE_PX),
             "pixel_pitch_m": Number(**POSITIVE),
             "bit_depth": Integer(1, 16),
-            "camera_constant": Number(**POSITIVE),
+            "camera_constant": Number(**POSITIVE, default=None),
+            "camera_constant_stderr": Number(**NON_NEGATIVE, default=None),
+            "quantum_efficiency": Number(lambda v: 0 < v <= 1, "a number in (0, 1]", default=None),
+            "wavelength_m": Number(lambda v: 0.2e-6 <= v <= 2e-6, "a wavelength of light within "
+                                   "[0.2, 2] um", default=None),
+            "system_gain_dn_per_e": Number(**POSITIVE, default=None),
+            "dark_noise_e": Number(**NON_NEGATIVE, default=None),
+            "saturation_capacity_e": Number(**POSITIVE, default=None),
+            "source": Text(default=None),
         }),
         "lens": Section({
             "focal_length_m": Number(**POSITIVE),
@@ -224,6 +248,35 @@ def _check_gray_band(file, band, bit_depth):
                             f"a gray level in [0, {top}] (bit_depth {bit_depth})")
 
 
+def _sensor(task_file, sensor):
+    """The Sensor, its camera constant as given or from the EMVA 1288 keys (c = eta lambda K /
+    (h c0)); given both ways, they must agree within DATASHEET_AGREEMENT. Errors name the camera
+    file's keys when the sensor came from one."""
+    file, key = (sensor["file"], str) if sensor["file"] else (task_file, "camera.sensor.{}".format)
+    eta, wavelength, gain = (sensor[k] for k in ("quantum_efficiency", "wavelength_m", "system_gain_dn_per_e"))
+    for name, value, needs in (("quantum_efficiency", eta, ("wavelength_m", wavelength)),
+                               ("wavelength_m", wavelength, ("quantum_efficiency", eta)),
+                               ("quantum_efficiency", eta, ("system_gain_dn_per_e", gain))):
+        if value is not None and needs[1] is None:
+            raise TaskError(file, key(needs[0]), "nothing", f"a value beside {name} (c = eta lambda K / (h c0) "
+                                                            "needs quantum_efficiency, wavelength_m and "
+                                                            "system_gain_dn_per_e)")
+    c = sensor["camera_constant"]
+    if eta is not None:
+        datasheet = camera_constant_from_datasheet(eta, wavelength, gain)
+        if c is not None and abs(c / datasheet - 1.0) > DATASHEET_AGREEMENT:
+            raise TaskError(file, key("camera_constant"),
+                            f"{show(c)}, {100 * abs(c / datasheet - 1):.1f} % from the {datasheet:.4g} of "
+                            f"quantum_efficiency {eta:g}, wavelength_m {wavelength:g} and system_gain_dn_per_e {gain:g}",
+                            f"the two within {100 * DATASHEET_AGREEMENT:g} % (or only one of them)")
+        c = datasheet if c is None else c
+    elif c is None:
+        raise TaskError(file, key("camera_constant"), "nothing",
+                        "c in G = c P t [1/(W s)], or quantum_efficiency, wavelength_m and system_gain_dn_per_e "
+                        "from an EMVA 1288 datasheet (required key)")
+    return Sensor(**(sensor | {"camera_constant": c}))
+
+
 def _check_camera(file, cam):
     """A sensor whose frame fits in memory and a camera beyond its lens's focal length."""
     sensor = cam["sensor"]
@@ -303,7 +356,7 @@ def load_task(path):
         frames=frames,
         feature=feature,
         requirements=Requirements(**v["requirements"]),
-        camera=CameraModel(cam["distance_m"], cam["view_direction"], Sensor(**cam["sensor"]),
+        camera=CameraModel(cam["distance_m"], cam["view_direction"], _sensor(path, cam["sensor"]),
                            Lens(**cam["lens"]), cam["shutter_range_s"]),
         lamp=Lamp(lamp["power_w"], lamp["cone_angle_rad"], LampRig(**lamp["rig"]),
                   _lamp_profile(path, lamp["profile"])),

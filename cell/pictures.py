@@ -171,6 +171,30 @@ def write_calibration(path, exposures, grays, fit, c_model):
 
 
 @_one_at_a_time
+def write_laser_fit(path, frames, fit, c_task, power_w):
+    """cell calibrate camera-constant's fit: the spot's summed gray S over the shutter time, the
+    frames fitted, those left out (saturated, too dark), the fitted line and the task's c P t."""
+    fig = Figure(figsize=(6, 4))
+    ax = fig.subplots()
+    summed = [f for f in frames if f.spot_sum is not None]
+    for label, style, pick in (("used", "o", lambda f: f.usable), ("saturated, left out", "rx", lambda f: f.saturated),
+                               ("too dark, left out", "s", lambda f: f.too_dark and not f.saturated)):
+        chosen = [f for f in summed if pick(f)]
+        if chosen:
+            ax.plot([1e3 * f.shutter_s for f in chosen], [f.spot_sum for f in chosen], style, mfc="none", label=label)
+    t = np.linspace(0.0, max((f.shutter_s for f in summed), default=1e-3), 2)
+    ax.plot(1e3 * t, c_task * power_w * t, "--", label=f"the task's c P t, c = {c_task:.5g}")
+    if fit:
+        ax.plot(1e3 * t, fit.offset + fit.camera_constant * power_w * t,
+                label=f"fit c = {fit.camera_constant:.5g} +- {fit.camera_constant_stderr:.2g}, r2 {fit.r_squared:.5f}")
+    ax.set_xlabel("shutter time t [ms]")
+    ax.set_ylabel("spot's gray above the dark, summed  S")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+@_one_at_a_time
 def write_bench(path, settings):
     """cell bench's rows: gray error vs warm time, log-log, a marker set per task, its Pareto
     front as a line and the default setting ringed."""

@@ -40,7 +40,16 @@ class Sensor:
     height_px: int
     pixel_pitch_m: float
     bit_depth: int
-    camera_constant: float         # c of eq. (10) [1/(W s)]
+    camera_constant: float         # c of eq. (10) [1/(W s)], as given or from the datasheet keys
+    camera_constant_stderr: float | None = None    # as measured (cell calibrate camera-constant)
+    # EMVA 1288 datasheet figures (None: not given); eta and K give c, K and the rest the sim's noise
+    quantum_efficiency: float | None = None        # eta at wavelength_m
+    wavelength_m: float | None = None              # the light's (the lamp's) wavelength
+    system_gain_dn_per_e: float | None = None      # K [gray per electron]
+    dark_noise_e: float | None = None              # sigma_d [electrons rms]
+    saturation_capacity_e: float | None = None     # mu_e,sat [electrons]
+    source: str | None = None                      # where the numbers come from
+    file: Path | None = None                       # the camera file they were read from, if any
 
     @property
     def pixel_area_m2(self):

@@ -17,11 +17,13 @@ Effects, applied in the physical order light -> lens -> sensor -> ADC, whatever 
                 hard cone: to half at the nominal edge) and some light spills beyond it
   vignetting    natural vignetting, cos^4 of the ray's angle to the optical axis
   defocus       thin-lens blur, circle of confusion c of depth_of_field.blur_diameter per pixel
-  noise         shot noise (Poisson in electrons, FULL_WELL_E at full scale) and READ_NOISE_E
+  noise         EMVA 1288's sensor (SensorModel): shot noise (Poisson in electrons), dark noise,
+                the full well; the datasheet's camera.sensor keys where given, else FULL_WELL_E at
+                full scale and READ_NOISE_E
   black_level   a constant offset, BLACK_LEVEL of full scale (5 gray at 8 bits)
   quantization  gray rounded to integers, clipped to [0, 2^bits - 1] (uint8, or uint16 above 8 bits)
 """
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.ndimage import gaussian_filter
@@ -86,12 +88,40 @@ def defocus(gray, depth_m, focus_m, focal_length_m, f_number, pixel_pitch_m):
     return out
 
 
-def sensor_noise(gray, full_scale, rng):
-    """Shot noise, Poisson in the electrons n = G FULL_WELL_E / full_scale, plus Gaussian read
-    noise: variance in gray g G + g^2 READ_NOISE_E^2, g = full_scale / FULL_WELL_E."""
-    gain = full_scale / FULL_WELL_E
-    electrons = rng.poisson(gray / gain) + rng.normal(0.0, READ_NOISE_E, gray.shape)
-    return gain * electrons
+@dataclass(frozen=True)
+class SensorModel:
+    """EMVA 1288's linear camera model behind the lens: the noiseless gray G = c P t is
+    mu_e = G / K electrons; noise makes them Poisson(mu_e) plus Gaussian dark noise sigma_d, the
+    full well mu_e,sat clips them, and the gray is K e + black level, rounded. So mean
+    K (eta mu_p) + b and variance K^2 (sigma_d^2 + eta mu_p) + 1/12 (rounding), mu_p photons."""
+
+    gain_dn_per_e: float            # K
+    dark_noise_e: float             # sigma_d
+    saturation_capacity_e: float    # mu_e,sat (inf: only the ADC clips)
+    black_level: float              # b [gray]
+    bit_depth: int
+
+    @classmethod
+    def of(cls, sensor):
+        """The task's sensor: its datasheet keys (camera.sensor) where given, else FULL_WELL_E
+        electrons at full scale, READ_NOISE_E and no full well below the ADC's top."""
+        full_scale = float(saturation_level(sensor.bit_depth))
+        gain = sensor.system_gain_dn_per_e or full_scale / FULL_WELL_E
+        dark = READ_NOISE_E if sensor.dark_noise_e is None else sensor.dark_noise_e
+        return cls(gain, dark, sensor.saturation_capacity_e or np.inf, float(np.rint(BLACK_LEVEL * full_scale)),
+                   sensor.bit_depth)
+
+    def read_out(self, gray, effects, rng):
+        """The sensor's image of the noiseless gray, with the effects listed: noise (shot, dark,
+        full well), black_level, quantization (integers clipped to the bit depth)."""
+        if "noise" in effects:
+            electrons = rng.poisson(gray / self.gain_dn_per_e) + rng.normal(0.0, self.dark_noise_e, gray.shape)
+            gray = self.gain_dn_per_e * np.minimum(electrons, self.saturation_capacity_e)
+        if "black_level" in effects:
+            gray = gray + self.black_level
+        if "quantization" in effects:
+            gray = levels(gray, self.bit_depth)
+        return gray
 
 
 class Renderer:
@@ -111,6 +141,7 @@ class Renderer:
         truth = task.sim.truth
         self.table = task.part.material.scaled(truth.albedo_scale).table()
         self.camera_constant = sensor.camera_constant * truth.camera_constant_scale
+        self.sensor = SensorModel.of(sensor)
         self.rng = np.random.default_rng(task.sim.seed)
         self.error_direction_rad = self.rng.uniform(0.0, 2.0 * np.pi)
 
@@ -149,11 +180,4 @@ class Renderer:
                 focus_m = (self.scene.center - origin) @ optical_axis
             gray = defocus(gray, r.depth.reshape(self.shape) * cos_field, focus_m,
                            task.camera.lens.focal_length_m, f_number, self.pixel_pitch_m)
-        full_scale = float(saturation_level(task.camera.sensor.bit_depth))
-        if "noise" in effects:
-            gray = sensor_noise(gray, full_scale, self.rng)
-        if "black_level" in effects:
-            gray = gray + np.rint(BLACK_LEVEL * full_scale)
-        if "quantization" in effects:
-            gray = levels(gray, task.camera.sensor.bit_depth)
-        return gray
+        return self.sensor.read_out(gray, effects, self.rng)

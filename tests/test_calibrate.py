@@ -96,7 +96,7 @@ def test_sweep_is_clipped_to_the_shutter_range_and_refused_when_none_is_left():
 # --- end to end on the simulated cell ----------------------------------------------------------
 
 def test_cli_calibrates_the_hinge_and_writes_the_fit_and_the_picture(tmp_path, capsys):
-    assert main(["calibrate", str(HINGE), "--out", str(tmp_path)]) == 0
+    assert main(["calibrate", "reference-part", str(HINGE), "--out", str(tmp_path)]) == 0
     written = json.loads((tmp_path / "calibration.json").read_text())
     assert (tmp_path / "calibration.png").stat().st_size > 0
     fit = written["fit"]
@@ -149,7 +149,7 @@ def test_fit_under_sensor_noise_is_within_its_standard_error(tmp_path):
 
 @pytest.mark.parametrize("argv", [["--shots", "2"], ["--shots", "-1"]])
 def test_bad_shots_is_bad_input_in_one_line(argv, capsys):
-    assert main(["calibrate", str(HINGE), *argv]) == 2
+    assert main(["calibrate", "reference-part", str(HINGE), *argv]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"cell calibrate: command line: --shots: found {argv[1]}, expected an integer >= 3"]
 
@@ -158,7 +158,7 @@ def test_an_infeasible_plan_exits_1_before_anything_moves(tmp_path, monkeypatch,
     connected = []
     monkeypatch.setattr(backends, "open_devices", lambda *a, **k: connected.append(a))
     task = variant(tmp_path, {"camera.shutter_range_ms": [0.01, 0.02]})
-    assert main(["calibrate", str(task), "--out", str(tmp_path / "c")]) == 1
+    assert main(["calibrate", "reference-part", str(task), "--out", str(tmp_path / "c")]) == 1
     assert connected == []
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert last.startswith("cell calibrate: infeasible: ") and "binds" in last
@@ -185,7 +185,7 @@ def test_a_servo_fault_turns_its_torque_off(tmp_path):
 def test_the_cli_turns_a_fault_into_exit_3_and_one_line(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(backends, "open_devices", lambda task, scene, backend, yes:
                         make_sim_devices(task, scene, faults={"camera_fail_on_capture": 1}))
-    assert main(["calibrate", str(HINGE), "--out", str(tmp_path)]) == 3
+    assert main(["calibrate", "reference-part", str(HINGE), "--out", str(tmp_path)]) == 3
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert last.startswith("cell calibrate: camera: capture timed out") and "motion stopped" in last
 
@@ -196,8 +196,8 @@ def test_the_task_backend_is_used_unless_overridden(tmp_path, monkeypatch):
                         seen.append(backend) or make_sim_devices(task, scene))
     task = variant(tmp_path, {"cell.backend": "hw"})
     quick = ["--shots", "3", "--out"]
-    assert main(["calibrate", str(task), "--yes", *quick, str(tmp_path / "a")]) == 0
-    assert main(["calibrate", str(task), "--backend", "sim", *quick, str(tmp_path / "b")]) == 0
+    assert main(["calibrate", "reference-part", str(task), "--yes", *quick, str(tmp_path / "a")]) == 0
+    assert main(["calibrate", "reference-part", str(task), "--backend", "sim", *quick, str(tmp_path / "b")]) == 0
     assert seen == ["hw", "sim"]
 
 
@@ -206,6 +206,6 @@ def test_on_the_real_cell_the_operator_confirms_the_reference_part_before_anythi
     connected = []
     monkeypatch.setattr(backends, "open_devices", lambda *a, **k: connected.append(a))
     task = variant(tmp_path, {"cell.backend": "hw"})
-    assert main(["calibrate", str(task), "--out", str(tmp_path / "c")]) == 3    # stdin: no terminal
+    assert main(["calibrate", "reference-part", str(task), "--out", str(tmp_path / "c")]) == 3    # stdin: no terminal
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert "place the reference part" in last and "run with --yes" in last and connected == []

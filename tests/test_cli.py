@@ -9,8 +9,9 @@ from cell.cli import create_folder, main, output_folder
 
 HINGE = str(Path(__file__).resolve().parent.parent / "tasks" / "hinge.yaml")
 # the commands that write a folder, each as `cell COMMAND ... TASK`
-FOLDER_COMMANDS = [["plan"], ["run"], ["calibrate"], ["bench", "--quick"]]
-ids = lambda c: c[0]                                                       # noqa: E731
+FOLDER_COMMANDS = [["plan"], ["run"], ["calibrate", "reference-part"],
+                   ["calibrate", "camera-constant", "--laser-power-w", "2e-10"], ["bench", "--quick"]]
+ids = lambda c: "-".join(c[:2]) if c[0] == "calibrate" else c[0]          # noqa: E731
 
 
 def one_line_naming_out(capsys):

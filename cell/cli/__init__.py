@@ -2,6 +2,7 @@
 0 done, 1 goal not reached, 2 bad input, 3 device fault."""
 import argparse
 import importlib
+import re
 import signal
 import sys
 
@@ -18,6 +19,12 @@ COMMANDS = {
     "calibrate": "cell.cli.calibrate",
     "hw-check": "cell.cli.hw_check",
 }
+
+# `cell calibrate`'s routines
+ROUTINES = {"camera-constant": "c by a laser of known power aimed at the sensor at several shutter times "
+                               "(sec. 4.1); writes a camera file",
+            "reference-part": "c by a shutter sweep on a reference part, against the task's material table "
+                              "(G = b + c P t): a cross-check"}
 
 
 def output_folder(out, name):
@@ -82,7 +89,7 @@ def _bad_out(found, expected):
 
 
 def build_parser():
-    parser = argparse.ArgumentParser(prog="cell", description=__doc__.splitlines()[0])
+    parser = _Parser(prog="cell", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("check", help="load a task and everything it references, print a summary")
@@ -115,16 +122,30 @@ def build_parser():
     p.add_argument("--out", help="folder for bench.json and bench.png, new or empty (default runs/bench-<time>)")
     p.add_argument("--json", action="store_true", help="print bench.json to stdout")
 
-    p = sub.add_parser("calibrate", help="operator routine: fit the camera constant c from a shutter sweep")
-    p.add_argument("task", help="a task whose part and material table you trust (the reference)")
-    p.add_argument("--backend", choices=("sim", "hw"), help="override the task's cell.backend")
-    p.add_argument("--out", help="folder for calibration.json and calibration.png, new or empty "
-                                 "(default runs/<task>-calibration-<time>)")
-    p.add_argument("--shots", type=int, default=6, metavar="N",
+    p = sub.add_parser("calibrate", help="operator routines measuring the camera constant c")
+    p.routines = ROUTINES
+    routines = p.add_subparsers(dest="routine", required=True, metavar="ROUTINE")
+    r = routines.add_parser("camera-constant", help=ROUTINES["camera-constant"])
+    r.add_argument("task", help="a task whose camera it is (its sensor section, sim effects and truth)")
+    r.add_argument("--laser-power-w", type=float, required=True, metavar="P",
+                   help="the laser's power reaching the sensor, after its neutral-density filters [W]")
+    r.add_argument("--camera-file", metavar="PATH", help="the camera file to write (default camera.yaml "
+                                                         "beside the task), for tasks' camera.sensor")
+    r.add_argument("--force", action="store_true", help="replace an existing camera file")
+    r.add_argument("--shots", type=int, default=8, metavar="N",
+                   help="shutter times in the sweep, at least 4 (default 8)")
+    r.add_argument("--json", action="store_true", help="print camera_constant, camera_constant_stderr, "
+                                                       "r_squared, frames_used as JSON")
+    r = routines.add_parser("reference-part", help=ROUTINES["reference-part"])
+    r.add_argument("task", help="a task whose part and material table you trust (the reference)")
+    r.add_argument("--shots", type=int, default=6, metavar="N",
                    help="shutter times in the sweep, at least 3 (default 6)")
-    p.add_argument("--yes", action="store_true", help="confirm operator prompts (manual lamp radius, "
-                                                      "lens) on the real cell; the simulated cell "
-                                                      "confirms its own")
+    for r in routines.choices.values():
+        r.add_argument("--backend", choices=("sim", "hw"), help="override the task's cell.backend")
+        r.add_argument("--out", help="folder for calibration.json and calibration.png, new or empty "
+                                     "(default runs/<task>-calibration-<time>)")
+        r.add_argument("--yes", action="store_true", help="confirm operator prompts on the real cell; the "
+                                                          "simulated cell confirms its own")
 
     p = sub.add_parser("hw-check", help="connect to each real device of the task, print its state; "
                                         "moves and sets nothing")
@@ -132,6 +153,21 @@ def build_parser():
                                 "cell.pan_tilt.port, cell.camera.source)")
     p.add_argument("--json", action="store_true", help="print the states as JSON")
     return parser
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser, but `cell calibrate` naming no routine (`cell calibrate TASK`, the form
+    before there were two) is one line listing the routines and exit 2, as bad input is elsewhere."""
+
+    routines = None             # {name: what it does}, on the parser whose ROUTINE it is
+
+    def error(self, message):
+        if not (self.routines and message.startswith("argument ROUTINE: invalid choice")):
+            super().error(message)
+        found = re.search(r"invalid choice: (.*?) \(choose", message)
+        self.exit(2, f"{self.prog}: command line: ROUTINE: found {found.group(1) if found else message}, "
+                     f"expected {' or '.join(self.routines)} before the task ({self.prog} -h says what each "
+                     "does)\n")
 
 
 class Terminated(KeyboardInterrupt):

@@ -15,6 +15,23 @@ def _vector(v, scale=1.0, decimals=3):
     return str((np.round(np.asarray(v) * scale, decimals) + 0.0).tolist())   # + 0.0: no "-0.0"
 
 
+def _camera_constant(sensor):
+    """c with its standard error, and where it comes from: the datasheet keys, the camera file."""
+    c = f"c = {sensor.camera_constant:.5g}" + (
+        f" +- {sensor.camera_constant_stderr:.2g}" if sensor.camera_constant_stderr is not None else "") + " 1/(W s)"
+    if sensor.quantum_efficiency is not None:
+        c += (f" (EMVA 1288: eta {sensor.quantum_efficiency:g} at {sensor.wavelength_m * 1e9:g} nm, "
+              f"K {sensor.system_gain_dn_per_e:g} DN/e-)")
+    source = (sensor.source or "").splitlines()[0:1]
+    where = [f"from {sensor.file}"] if sensor.file else []
+    where += [_clip(source[0], 70)] if source else []
+    return c + (f"; {': '.join(where)}" if where else "")
+
+
+def _clip(text, length):
+    return text if len(text) <= length else text[:length - 3] + "..."
+
+
 def summarize(task):
     """A short human summary of a loaded task, in the units people read."""
     mesh, f, req, cam, lamp = task.part.mesh, task.feature, task.requirements, task.camera, task.lamp
@@ -29,14 +46,14 @@ def summarize(task):
         f"part         {task.part.mesh_path}: {size} mm, {len(mesh.faces)} triangles",
         f"feature      center {_vector(f.center_m, 1e3, 2)} mm, normal {_vector(f.normal)}, "
         f"radius {radius_mm:g} mm (area {np.pi * radius_mm**2:.1f} mm^2), {f.samples} samples",
-        f"material     {material.name}: {source if len(source) <= 70 else source[:67] + '...'}",
+        f"material     {material.name}: {_clip(source, 70)}",
         f"requirements gray {_span(req.gray_band)}, {req.reflection}, "
         f"margin {req.region_margin_rad * deg:g} deg, lamp tolerance {req.lamp_tolerance_rad * deg:g} deg, "
         f"depth of field {req.depth_of_field_m * 1e3:g} mm",
         f"camera       {cam.distance_m:g} m along {_vector(cam.view_direction)}, "
         f"shutter {_span(cam.shutter_range_s, 1e3, 'ms')}",
         f"sensor       {sensor.width_px} x {sensor.height_px} px, pitch {sensor.pixel_pitch_m * 1e6:g} um, "
-        f"{sensor.bit_depth} bit, c = {sensor.camera_constant:g} 1/(W s)",
+        f"{sensor.bit_depth} bit, {_camera_constant(sensor)}",
         f"lens         f = {lens.focal_length_m * 1e3:g} mm, f-number {_span(lens.f_number_range)}, "
         f"circle of confusion {lens.circle_of_confusion_m * 1e6:g} um",
         f"lamp         {lamp.power_w * 1e3:g} mW, cone {lamp.cone_angle_rad * deg:g} deg, " + (

@@ -1,7 +1,8 @@
 """Radiometry of sec. 4: lamp irradiance (eq. 11, scaled by the lamp's angular profile), pixel
-power (eq. 17), gray value (eq. 10), and the corrected inverse (erratum eq. 18-19). SI units: W, m,
-s, rad."""
+power (eq. 17), gray value (eq. 10) with its camera constant from a sensor datasheet, and the
+corrected inverse (erratum eq. 18-19). SI units: W, m, s, rad."""
 import numpy as np
+from scipy.constants import Planck, speed_of_light
 
 
 def hard_cone_profile(cone_angle_rad):
@@ -38,6 +39,13 @@ def gray_value(camera_constant, pixel_power_w, shutter_s, bit_depth=None):
     """Eq. (10): G = c P_pixel t; clipped to [0, 2^bits - 1] when a bit depth is given."""
     gray = camera_constant * np.asarray(pixel_power_w, dtype=float) * shutter_s
     return gray if bit_depth is None else np.clip(gray, 0.0, 2.0**bit_depth - 1.0)
+
+
+def camera_constant_from_datasheet(quantum_efficiency, wavelength_m, system_gain_dn_per_e):
+    """c of eq. (10) from EMVA 1288 figures: a watt for a second at wavelength lambda is
+    lambda / (h c0) photons, eta of them become electrons, K gray each: c = eta lambda K / (h c0)
+    [1/(W s)]. Holds for light of that wavelength (a narrow-band lamp's)."""
+    return quantum_efficiency * wavelength_m * system_gain_dn_per_e / (Planck * speed_of_light)
 
 
 def reflectance_from_gray(gray, camera_constant, shutter_s, f_number, pixel_area_m2, irradiance):
