@@ -121,3 +121,16 @@ def test_a_black_level_the_task_gives_is_planned_with_and_no_dark_frame_taken(tm
     assert first["model_error"] == pytest.approx(1.0, abs=0.01)
     g = cell.report["plan"]["predicted_gray"]
     assert np.sqrt((g["min"] - 5) * (g["max"] - 5)) == pytest.approx(np.sqrt(95 * 120), rel=0.01)
+
+
+def test_calibrate_fits_c_against_the_plans_signal_when_the_task_knows_b(tmp_path):
+    """With camera.sensor.black_level in the task the plan's gray holds b; the sweep pairs the
+    measured G with the model's P t of the signal alone, so c and b come out as the world's."""
+    from cell import calibrate
+    path = variant(tmp_path, HINGE, {**WITH_BLACK, "camera.sensor.black_level": B_WORLD,
+                                     "sim.truth.camera_constant_scale": 0.8})
+    task = load_task(path)
+    cell = SimpleNamespace(devices=None, stops=[])
+    result = calibrate.run(task, tmp_path / "c", recording_connect(task, cell), shots=4)
+    assert result.camera_constant_ratio == pytest.approx(0.8, rel=0.01)
+    assert result.fit.black_level == pytest.approx(B_WORLD, abs=0.5)

@@ -198,6 +198,21 @@ def test_optional_sections_take_their_defaults(tmp_path):
     assert task.requirements.depth_of_field_m == 0.0
 
 
+def test_the_worlds_material_loads_beside_the_tasks_and_vectors_in_si(tmp_path):
+    """sim.truth.material is read relative to the task file, like part.material, and the task
+    keeps its own; the pose errors arrive in metres and radians."""
+    def edit(task, folder):
+        task["sim"]["truth"].update({"material": "materials/gray_cast_iron.yaml", "part_offset_mm": [0, 2, 0],
+                                     "camera_rpy_deg": [0.25, 0, 0], "lamp_radius_error_mm": 20})
+    task = loader.load_task(write_task(tmp_path, edit))
+    truth = task.sim.truth
+    assert truth.material.name == loader.load_material(TASKS / "materials/gray_cast_iron.yaml").name
+    assert task.part.material.name == loader.load_material(TASKS / MATERIAL).name != truth.material.name
+    assert truth.part_offset_m == (0.0, 0.002, 0.0) and truth.lamp_radius_error_m == pytest.approx(0.02)
+    assert truth.camera_rpy_rad == pytest.approx((math.radians(0.25), 0.0, 0.0))
+    assert loader.load_task(HINGE).loop.albedo_scale_range == (0.1, 10.0)
+
+
 def test_an_empty_optional_section_takes_its_defaults(tmp_path):
     without_settings = HINGE_TEXT.split("cell:")[0] + "cell:\nsim:\n"
     task = loader.load_task(write_task(tmp_path, text(content=without_settings)))

@@ -29,8 +29,8 @@ def command(args):
           f"({result.camera_constant_ratio:.3f} x the task's {c_model:.5g}); black level "
           f"{fit.black_level:.2f}, linearity r2 {fit.r2:.5f}, {fit.used} pairs "
           f"({fit.saturated} saturated, {fit.dark} at 0 left out)")
-    print(f"  set camera.sensor.camera_constant: {fit.camera_constant:.5g} in the tasks that use "
-          f"this camera (e.g. {args.task})")
+    print(f"  set camera.sensor.camera_constant: {fit.camera_constant:.5g} and camera.sensor.black_level: "
+          f"{max(fit.black_level, 0.0):.3g} in the tasks that use this camera (e.g. {args.task})")
     print(f"  wrote {out}/calibration.json, calibration.png, log.jsonl, {len(result.shots)} captures and the "
           f"plan's pictures")
     return 0
