@@ -32,7 +32,8 @@ DARK = 0.5                  # a pixel at the black level reads below the first g
 SATURATED_STEP = 4.0        # every pixel saturated: step this far past the lower bound (2 stops)
 RESOLVED = 0.5              # darkest pixel below this x the band's low end: noise and black level
                             # dominate its spread, so brighten and look again before judging it
-BLACK_FRACTION = 0.01       # more of the region's pixels than this at the black level: no light
+BLACK_FRACTION = 0.001      # more of the region's pixels than this at the black level: no light
+                            # (a 0.25 deg hand-eye tilt puts 0.35 % of the conrod's off its shank)
 LIT_CONTRAST = 8.0          # the others lit: their median this many black-level ceilings above b
 
 
@@ -172,7 +173,7 @@ def correct(m, predicted, shutter_s, f_number, limits, black, albedo_scale=1.0):
     fraction, lit = black_pixels(m, black)
     if fraction > BLACK_FRACTION and lit:
         return Correction("stop", (lo, hi), error, relation, cause="black pixels", reason=(
-            f"{100 * fraction:.0f} % of the feature's pixels read the black level {b:.1f} (off the part "
+            f"{100 * fraction:.2g} % of the feature's pixels read the black level {b:.1f} (off the part "
             f"or shadowed), where the model lights every sample: check the part's fixture / hand-eye"))
     implied = albedo_scale * error
     if implausible_albedo(implied, relation, limits.albedo_range):
