@@ -18,7 +18,7 @@ from cell.session import Session
 @dataclass(frozen=True)
 class Iteration:
     """One capture of the loop: its settings, the model's and the measured gray, the model's
-    error, the verdict and the correction taken after it (None when in band or the last)."""
+    error, the verdict and the correction taken after it (a stop too; None when in band or the last)."""
 
     iteration: int
     shutter_s: float
@@ -113,14 +113,15 @@ class Model:
 
 def find_black_level(task, plan, devices, recorder):
     """The task's camera.sensor.black_level, else a dark frame's (measure.black_level_of): the
-    shortest shutter at the narrowest f-number (the rig cannot switch the lamp off), logged with
-    the most light the plan's model lets reach the feature then. capture-0.png is that frame."""
+    shortest shutter at the planned f-number (the rig cannot switch the lamp off, and a manual
+    lens is not turned twice more), logged with the most light the plan's model lets reach the
+    feature then. capture-0.png is that frame."""
     b = task.camera.sensor.black_level
     if b is not None:
         black = measure.BlackLevel(float(b), 0.0, "task")
         recorder.step("black_level", f"black level {b:.2f} gray (camera.sensor.black_level)", **black.to_json())
         return black
-    shutter, f_number = task.camera.shutter_range_s[0], task.camera.lens.f_number_range[1]
+    shutter, f_number = task.camera.shutter_range_s[0], plan.shot.exposure.f_number
     capture = acquire(devices, recorder, 0, shutter, f_number, plan.shot.exposure.focus_m)
     black = measure.black_level_of(capture.image)
     light = float(np.max(Model(plan, task).predicted(0.0, capture.shutter_s, f_number)))
@@ -195,7 +196,8 @@ def iterate(task, plan, devices, recorder, max_iterations):
                                  f"saturated) at {1e3 * shutter:.3g} ms, f/{f_number:.1f}; "
                                  f"{control.describe_error(it.model_error, it.model_error_relation)}")
         c = control.correct(m, predicted, shutter, f_number, limits, black, albedo)
-        if c.action == "stop":
+        if c.action == "stop":                  # its cause in report.json; the done step says why
+            yield Corrected(k, c.document(albedo))
             raise GoalNotReached(c.reason)
         if c.action == "replan":
             albedo *= c.model_error
