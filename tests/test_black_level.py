@@ -1,20 +1,17 @@
 """The black level b in the model, G = b + c P t (issue 16 item 5): the planner centres the signal
 G - b in the band less b, `cell run` takes b from the task or measures it from a dark frame,
 logs it, and its first capture then measures the model's signal; b = 0 leaves every plan as it was."""
-import json
 from dataclasses import replace
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from cell import loop, measure
-from cell.errors import CellError
 from cell.evaluate import target_gray
 from cell.loader import load_task
 from cell.planner import plan
-from simcell import recording_connect, variant
+from simcell import recording_connect, run_loop as run, variant
 
 HINGE = "tasks/hinge.yaml"
 B_WORLD = 5.0                   # sim.world.BLACK_LEVEL of 255, rounded
@@ -23,18 +20,6 @@ WITH_BLACK = {"sim.effects": ["shadows", "cone_falloff", "black_level", "quantiz
 
 def with_black_level(task, b):
     return replace(task, camera=replace(task.camera, sensor=replace(task.camera.sensor, black_level=b)))
-
-
-def run(path, out):
-    task = load_task(path)
-    cell = SimpleNamespace(devices=None, stops=[], error=None)
-    try:
-        loop.run(task, out, recording_connect(task, cell))
-    except CellError as err:
-        cell.error = err
-    cell.report = json.loads((Path(out) / "report.json").read_text())
-    cell.log = [json.loads(line) for line in (Path(out) / "log.jsonl").read_text().splitlines()]
-    return cell
 
 
 @pytest.fixture(scope="module")

@@ -3,18 +3,13 @@ the part, a cast shadow) are found before any exposure correction and named in t
 correction implying an implausible albedo is refused, not acted on. The decision is
 cell.control.correct's; each cause is checked on its own, on made-up measurements and on the
 simulated cell with the world's part or camera moved off the conrod's 14 mm shank."""
-import json
-from pathlib import Path
-from types import SimpleNamespace
-
 import numpy as np
 import pytest
 
-from cell import control, loop
-from cell.errors import CellError, GoalNotReached
-from cell.loader import load_task
+from cell import control
+from cell.errors import GoalNotReached
 from cell.measure import BlackLevel, Measurement
-from simcell import recording_connect, variant
+from simcell import run_loop as run, variant
 
 HINGE, CONROD = "tasks/hinge.yaml", "tasks/conrod.yaml"
 LIMITS = control.Limits((110.0, 150.0), (1e-5, 0.02), (6.2, 16.0))
@@ -28,18 +23,6 @@ def measurement(pixels, samples):
     n = len(samples)
     return Measurement(np.zeros(n, int), np.zeros(n, int), samples, np.ones(pixels.shape, bool), pixels, pixels,
                        np.zeros(pixels.shape, bool), 255.0, float(pixels.min()), float(pixels.max()))
-
-
-def run(path, out):
-    task = load_task(path)
-    cell = SimpleNamespace(devices=None, stops=[], error=None)
-    try:
-        loop.run(task, out, recording_connect(task, cell))
-    except CellError as err:
-        cell.error = err
-    cell.report = json.loads((Path(out) / "report.json").read_text())
-    cell.steps = [json.loads(line)["step"] for line in (Path(out) / "log.jsonl").read_text().splitlines()]
-    return cell
 
 
 # --- the decision, cause by cause ------------------------------------------------------------
