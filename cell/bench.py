@@ -68,7 +68,7 @@ def accuracy(task, result, reference, truth):
     shot, ref_shot = result.shot, reference.shot
     pos = shot.lamp_position
     u = evaluate.unit_gray(truth, pos[None], rig.lamp_aim(task.lamp.rig.pivot_m, pos)[None])[0]
-    true_gray = u[0] * shot.exposure.shutter_s / shot.exposure.f_number**2
+    true_gray = truth.black_level + u[0] * shot.exposure.shutter_s / shot.exposure.f_number**2
     predicted, true = gray_stats(shot.gray), gray_stats(true_gray)
     error = {k: predicted[k] - true[k] for k in predicted}
     center = reference.scene.center

@@ -17,6 +17,7 @@ import numpy as np
 from cell import measure
 from cell.acquisition import acquire, move_to, plan_and_connect
 from cell.errors import GoalNotReached, PlanInfeasible
+from cell.evaluate import black_level
 from cell.pictures import write_calibration
 from cell.recorder import Recorder
 from cell.session import Session
@@ -102,10 +103,11 @@ def sweep(task, plan, devices, recorder, shots=6):
     yielding each ShotRecord as it is taken (and logged)."""
     shot = plan.shot
     full_scale = measure.saturation_level(devices.camera.bit_depth)
-    times = shutter_sweep(shot.exposure.shutter_s, shot.gray.max(), full_scale, task.camera.shutter_range_s, shots)
+    signal = shot.gray - black_level(task)               # the plan's G less the black level it knew
+    times = shutter_sweep(shot.exposure.shutter_s, signal.max(), full_scale, task.camera.shutter_range_s, shots)
     move_to(devices, shot, recorder)
-    # the model's pixel power per sample at the planned f-number: G = c P t
-    power = shot.gray / (task.camera.sensor.camera_constant * shot.exposure.shutter_s)
+    # the model's pixel power per sample at the planned f-number: G = b + c P t
+    power = signal / (task.camera.sensor.camera_constant * shot.exposure.shutter_s)
     for k, wanted in enumerate(times, 1):
         capture = acquire(devices, recorder, k, wanted, shot.exposure.f_number, shot.exposure.focus_m)
         _, _, inside, gray = measure.read_samples(capture.image, task, capture.T_cell_cam, plan.scene.points)

@@ -1,6 +1,7 @@
 """The planning problem of one shot and what the model predicts for lamp poses on the rig,
-vectorized over candidates: gray per sample from the bulk Warp kernel (G = u t / kappa^2, eq. 10,
-11, 17), the exposure that centres it in the band (sec. 5.4) and the lamp moved by its tolerance.
+vectorized over candidates: gray per sample from the bulk Warp kernel (G = b + u t / kappa^2,
+eq. 10, 11, 17, b the sensor's black level), the exposure that centres it in the band (sec. 5.4)
+and the lamp moved by its tolerance.
 The requirements (cell.requirements) are judged on these values."""
 from dataclasses import dataclass, fields, replace
 from functools import cached_property
@@ -51,14 +52,16 @@ def target_gray(band):
 class Problem:
     """Everything a shot's evaluation needs, fixed before the search: the task, the scene, the
     maps, the material as planned (albedo scaled by the loop's measured error), the gray band,
-    the focus, the needed depth of field, the widest f-number giving it, and how many samples
-    the camera cannot see."""
+    the sensor's black level b (the task's camera.sensor.black_level, 0 when unknown), the focus,
+    the needed depth of field, the widest f-number giving it, and how many samples the camera
+    cannot see."""
 
     task: object
     scene: object
     maps: object
     material: Material
     band: tuple
+    black_level: float
     focus_m: float
     depth_needed_m: float
     kappa_open: float
@@ -80,15 +83,25 @@ class Problem:
         return {k: v for k, v in self.__dict__.items() if k != "gray_inputs"}
 
 
+def planning_band(task):
+    """The gray band planned for: the task's, its top kept half a level below the sensor's full
+    scale (a pixel there reads saturated, whatever the band says)."""
+    low, high = map(float, task.requirements.gray_band)
+    return low, min(high, 2.0 ** task.camera.sensor.bit_depth - 1 - 0.5)
+
+
+def black_level(task):
+    """b of G = b + c P t [gray]: the task's camera.sensor.black_level, 0 while it is unknown."""
+    b = task.camera.sensor.black_level
+    return 0.0 if b is None else float(b)
+
+
 def build_problem(task, scene, maps, albedo_scale=1.0):
     """The Problem of a task's scene and maps. A sample the camera sees lies inside the image
-    and is not hidden (a lamp at the camera would light it). The band's top is kept half a level
-    below the sensor's full scale: a pixel there reads saturated, whatever the band says."""
+    and is not hidden (a lamp at the camera would light it)."""
     focus, needed, kappa_open = depth_of_field_limits(task, scene)
-    low, high = map(float, task.requirements.gray_band)
-    full_scale = 2.0 ** task.camera.sensor.bit_depth - 1
-    p = Problem(task, scene, maps, task.part.material.scaled(albedo_scale),
-                (low, min(high, full_scale - 0.5)), focus, needed, kappa_open, 0)
+    p = Problem(task, scene, maps, task.part.material.scaled(albedo_scale), planning_band(task),
+                black_level(task), focus, needed, kappa_open, 0)
     hidden = unit_gray(p, scene.camera_position[None], -scene.normal[None])[1][0]
     sensor = task.camera.sensor
     uv, z = projection.project(projection.intrinsics(sensor, task.camera.lens), scene.T_cell_cam, scene.points)
@@ -107,22 +120,29 @@ def unit_gray(problem, positions, aims):
 
 
 def exposure(problem, unit_gray):
-    """(shutter, f-number, shutter needed at the widest f-number) putting the geometric mean of
-    the lit samples' extremes at the band's geometric centre (G = u t / kappa^2), the f-number
-    no wider than the depth of field allows; t_need is inf where no sample is lit."""
+    """centring_exposure of the Problem's band, black level, camera and depth of field."""
     cam = problem.task.camera
-    low, high = problem.band
+    return centring_exposure(unit_gray, problem.band, problem.black_level, problem.kappa_open,
+                             cam.shutter_range_s, cam.lens.f_number_range)
+
+
+def centring_exposure(unit_gray, band, black_level, kappa_open, shutter_range, f_number_range):
+    """(shutter, f-number, shutter needed at kappa_open) putting the geometric mean of the lit
+    samples' extremes at the geometric centre of the band the signal must meet: G = b + u t /
+    kappa^2 is in [low, high] when u t / kappa^2 is in [low - b, high - b]. The f-number no
+    wider than kappa_open (the depth of field's); t_need is inf where no sample is lit."""
+    low, high = band
     lit = unit_gray > 0.0
     darkest = np.where(lit, unit_gray, np.inf).min(axis=-1)
     u_mid = np.where(lit.any(axis=-1), np.sqrt(np.where(lit.any(axis=-1), darkest, 0.0)
                                                * unit_gray.max(axis=-1)), 0.0)
-    target = target_gray(problem.band)
-    t_lo, t_hi = cam.shutter_range_s
-    k_lo, k_hi = cam.lens.f_number_range
+    target = target_gray((low - black_level, high - black_level))
+    t_lo, t_hi = shutter_range
+    k_hi = f_number_range[1]
     with np.errstate(divide="ignore"):
-        t_need = np.where(u_mid > 0, problem.kappa_open**2 * target / np.where(u_mid > 0, u_mid, 1.0), np.inf)
-    kappa = np.where(t_need < t_lo, np.sqrt(t_lo * u_mid / target), problem.kappa_open)
-    kappa = np.clip(kappa, problem.kappa_open, k_hi)
+        t_need = np.where(u_mid > 0, kappa_open**2 * target / np.where(u_mid > 0, u_mid, 1.0), np.inf)
+    kappa = np.where(t_need < t_lo, np.sqrt(t_lo * u_mid / target), kappa_open)
+    kappa = np.clip(kappa, kappa_open, k_hi)
     shutter = np.clip(t_need, t_lo, t_hi)
     return shutter, kappa, t_need
 
@@ -177,8 +197,9 @@ def candidates(problem, pan, tilt, radius, tolerance=True):
     u = all_u[:n]
     shutter, kappa, t_need = exposure(problem, u)
     gain = (shutter / kappa**2)[:, None]
-    moved = all_u[n:].reshape(len(moves), n, u.shape[1]) * gain
-    return Candidates(all_pos[:n], u * gain, moved, all_shadowed[:n], all_off_axis[:n], all_dominant[:n],
+    b = problem.black_level
+    moved = b + all_u[n:].reshape(len(moves), n, u.shape[1]) * gain
+    return Candidates(all_pos[:n], b + u * gain, moved, all_shadowed[:n], all_off_axis[:n], all_dominant[:n],
                       shutter, kappa, t_need)
 
 
@@ -189,5 +210,5 @@ def at_exposure(problem, position, shutter_s, f_number):
     pos = np.asarray(position, float).reshape(1, 3)
     u, shadowed, off_axis, dominant = unit_gray(problem, pos, rig.lamp_aim(pivot, pos))
     t_need = exposure(problem, u)[2]
-    return Candidates(pos, u * (shutter_s / f_number**2), np.zeros((0, 1, u.shape[1])), shadowed, off_axis,
+    return Candidates(pos, problem.black_level + u * (shutter_s / f_number**2), np.zeros((0, 1, u.shape[1])), shadowed, off_axis,
                       dominant, np.array([float(shutter_s)]), np.array([float(f_number)]), t_need)

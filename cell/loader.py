@@ -18,8 +18,8 @@ from cell.material import PARAMETERS, Material
 from cell.physics.radiometry import camera_constant_from_datasheet
 from cell.schema import (NON_NEGATIVE, POSITIVE, Anything, Choice, Integer, Invalid, Number, Pair,
                          Section, Spec, Table, Text, Vector, parse, read_yaml, show)
-from cell.task import (CameraModel, CellConfig, Feature, Lamp, LampRig, Lens, Part, Requirements,
-                       SimConfig, Sensor, Task, Truth)
+from cell.task import (CameraModel, CellConfig, Feature, Lamp, LampRig, Lens, LoopSettings, Part,
+                       Requirements, SimConfig, Sensor, Task, Truth)
 
 EFFECTS = ("shadows", "cone_falloff", "vignetting", "defocus", "noise", "black_level", "quantization")
 SURFACE_TOLERANCE_M = 1e-3       # feature center at most this far from the mesh surface
@@ -103,6 +103,7 @@ TASK = {
             "dark_noise_e": Number(**NON_NEGATIVE, default=None),
             "saturation_capacity_e": Number(**POSITIVE, default=None),
             "source": Text(default=None),
+            "black_level": Number(**NON_NEGATIVE, default=None),
         }),
         "lens": Section({
             "focal_length_m": Number(**POSITIVE),
@@ -141,7 +142,16 @@ TASK = {
             "camera_constant_scale": Number(**POSITIVE, default=1.0),
             "lamp_direction_error_deg": Number(lambda v: 0 <= v <= DEG(90), "an angle within [0, 90] deg",
                                                default=0.0),
+            "material": Text(default=None),
+            "part_offset_m": Vector(default=(0.0, 0.0, 0.0)),
+            "part_rpy_deg": Vector(default=(0.0, 0.0, 0.0)),
+            "camera_offset_m": Vector(default=(0.0, 0.0, 0.0)),
+            "camera_rpy_deg": Vector(default=(0.0, 0.0, 0.0)),
+            "lamp_radius_error_m": Number(lambda v: True, "a number", default=0.0),
         }, required=False),
+    }, required=False),
+    "loop": Section({
+        "albedo_scale_range": Pair(lambda v: v > 0, "positive scales", default=(0.1, 10.0)),
     }, required=False),
 }
 
@@ -277,6 +287,34 @@ def _sensor(task_file, sensor):
     return Sensor(**(sensor | {"camera_constant": c}))
 
 
+def _check_black_level(file, band, black_level):
+    """A known black level below the band's top: the band must be reachable by light."""
+    if black_level is not None and not black_level < band[1]:
+        raise TaskError(file, "camera.sensor.black_level", show(black_level),
+                        f"a gray level below the band's top {band[1]:g} (requirements.gray_band)")
+
+
+def _truth(file, truth, rig):
+    """The simulated world's truth: its material file loaded and checked like the task's, and a
+    lamp radius error that keeps the lamp beyond the rig's pivot."""
+    if not truth["lamp_radius_error_m"] > -rig["radius_range_m"][0]:
+        raise TaskError(file, "sim.truth.lamp_radius_error_m", show(truth["lamp_radius_error_m"]),
+                        f"more than -{rig['radius_range_m'][0]:g} m (the true lamp beyond the pivot)")
+    name = truth["material"]
+    material = None if name is None else load_material(
+        _relative_file(file, "sim.truth.material", name, "yaml"))
+    vectors = {k: tuple(map(float, v)) for k, v in truth.items() if isinstance(v, np.ndarray)}
+    return Truth(**(truth | vectors | {"material": material}))
+
+
+def _loop(file, loop):
+    low, high = loop["albedo_scale_range"]
+    if not low <= 1.0 <= high:
+        raise TaskError(file, "loop.albedo_scale_range", show([low, high]),
+                        "a range of albedo scales holding 1 (the model itself)")
+    return LoopSettings(**loop)
+
+
 def _check_camera(file, cam):
     """A sensor whose frame fits in memory and a camera beyond its lens's focal length."""
     sensor = cam["sensor"]
@@ -336,6 +374,7 @@ def load_task(path):
     part, cam, lamp, cell, sim = v["part"], v["camera"], v["lamp"], v["cell"], v["sim"]
     arm = cell["arm"]
     _check_gray_band(path, v["requirements"]["gray_band"], cam["sensor"]["bit_depth"])
+    _check_black_level(path, v["requirements"]["gray_band"], cam["sensor"]["black_level"])
     devices = devices_config(path, cell, written=data.get("cell"),
                              bit_depth=cam["sensor"]["bit_depth"])
     _check_camera(path, cam)
@@ -361,5 +400,6 @@ def load_task(path):
         lamp=Lamp(lamp["power_w"], lamp["cone_angle_rad"], LampRig(**lamp["rig"]),
                   _lamp_profile(path, lamp["profile"])),
         cell=CellConfig(cell["backend"], devices),
-        sim=SimConfig(sim["seed"], sim["effects"], Truth(**sim["truth"])),
+        sim=SimConfig(sim["seed"], sim["effects"], _truth(path, sim["truth"], lamp["rig"])),
+        loop=_loop(path, v["loop"]),
     )

@@ -5,10 +5,11 @@ measurement, the control law, the device session's safe stop and the recorder's 
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from cell import control, measure
+import numpy as np
+
+from cell import control, evaluate, measure
 from cell.acquisition import acquire, move_to, plan_and_connect, plan_recorded
 from cell.errors import GoalNotReached
-from cell.evaluate import depth_of_field_limits
 from cell.plan import gray_stats
 from cell.recorder import Recorder
 from cell.session import Session
@@ -17,7 +18,7 @@ from cell.session import Session
 @dataclass(frozen=True)
 class Iteration:
     """One capture of the loop: its settings, the model's and the measured gray, the model's
-    error, the verdict and the correction taken after it (None when in band or the last)."""
+    error, the verdict and the correction taken after it (a stop too; None when in band or the last)."""
 
     iteration: int
     shutter_s: float
@@ -46,6 +47,13 @@ class Corrected:
 
 
 @dataclass(frozen=True)
+class BlackLevelFound:
+    """The sensor's black level the run works with (measure.BlackLevel)."""
+
+    black: measure.BlackLevel
+
+
+@dataclass(frozen=True)
 class Replan:
     iteration: int
     albedo_scale: float
@@ -65,6 +73,7 @@ class RunResult:
     iterations: tuple = ()
     replans: tuple = ()
     fault: dict | None = None
+    black_level: dict | None = None
 
     @property
     def captures(self):
@@ -74,20 +83,67 @@ class RunResult:
         return {"task": self.task, "plan": self.plan, "iterations": [it.to_json() for it in self.iterations],
                 "converged": self.success, "captures": self.captures, "reason": self.message,
                 "replans": [{"iteration": r.iteration, "albedo_scale": r.albedo_scale, "plan": r.plan}
-                            for r in self.replans]} | ({"fault": self.fault} if self.fault else {})
+                            for r in self.replans], "black_level": self.black_level} | (
+                    {"fault": self.fault} if self.fault else {})
 
 
-def shoot(task, plan, devices, recorder, k, shutter_s, f_number, albedo_scale):
+@dataclass(frozen=True)
+class Model:
+    """The plan the loop works with and the task (its black level) it was planned for."""
+
+    plan: object
+    task: object
+
+    def predicted(self, black_level, shutter_s, f_number):
+        """The plan's gray per sample at these settings with black level b, G = b + c P t: the
+        plan's signal (its gray less the black level it was planned with) ~ t / kappa^2."""
+        e = self.plan.shot.exposure
+        signal = self.plan.shot.gray - evaluate.black_level(self.task)
+        return black_level + signal * (shutter_s / e.shutter_s) * (e.f_number / f_number) ** 2
+
+    def exposure(self, black_level, lens_range):
+        """(shutter, f-number) the planner's closed form sets for the plan's lamp pose with black
+        level b (evaluate.centring_exposure on the plan's signal per unit exposure)."""
+        e, camera = self.plan.shot.exposure, self.task.camera
+        unit = (self.plan.shot.gray - evaluate.black_level(self.task)) * e.f_number**2 / e.shutter_s
+        shutter, kappa, _ = evaluate.centring_exposure(unit[None], evaluate.planning_band(self.task), black_level,
+                                                       lens_range[0], camera.shutter_range_s, lens_range)
+        return float(shutter[0]), float(kappa[0])
+
+
+def find_black_level(task, plan, devices, recorder):
+    """The task's camera.sensor.black_level, else a dark frame's (measure.black_level_of): the
+    shortest shutter at the planned f-number (the rig cannot switch the lamp off, and a manual
+    lens is not turned twice more), logged with the most light the plan's model lets reach the
+    feature then. capture-0.png is that frame."""
+    b = task.camera.sensor.black_level
+    if b is not None:
+        black = measure.BlackLevel(float(b), 0.0, "task")
+        recorder.step("black_level", f"black level {b:.2f} gray (camera.sensor.black_level)", **black.to_json())
+        return black
+    shutter, f_number = task.camera.shutter_range_s[0], plan.shot.exposure.f_number
+    capture = acquire(devices, recorder, 0, shutter, f_number, plan.shot.exposure.focus_m)
+    black = measure.black_level_of(capture.image)
+    light = float(np.max(Model(plan, task).predicted(0.0, capture.shutter_s, f_number)))
+    recorder.step("black_level", f"black level {black.value:.2f} gray, noise {black.noise_rms:.2f} rms (dark frame "
+                                 f"at {1e3 * capture.shutter_s:.3g} ms, f/{f_number:.1f}: the feature's light at "
+                                 f"most {light:.2g} gray by the model)", iteration=0, **black.to_json(),
+                  feature_light=light)
+    return black
+
+
+def shoot(task, model, devices, recorder, k, shutter_s, f_number, albedo_scale, black):
     """Expose, capture, measure and compare with the plan's model at these settings
-    (G ~ t / kappa^2). Returns (Iteration, Measurement, predicted gray per sample)."""
+    (G = b + c P t, the signal ~ t / kappa^2). Returns (Iteration, Measurement, predicted gray
+    per sample)."""
     from cell.pictures import annotate_capture
-    shot = plan.shot
+    shot = model.plan.shot
     capture = acquire(devices, recorder, k, shutter_s, f_number, shot.exposure.focus_m)
     bit_depth = devices.camera.bit_depth
     saturation = measure.saturation_level(bit_depth)
-    m = measure.measure_feature(capture.image, task, capture.T_cell_cam, plan.scene.points, saturation)
-    predicted = shot.gray * (capture.shutter_s / shot.exposure.shutter_s) * (shot.exposure.f_number / f_number) ** 2
-    error, relation = control.model_error(m.sample_gray, predicted, saturation)
+    m = measure.measure_feature(capture.image, task, capture.T_cell_cam, model.plan.scene.points, saturation)
+    predicted = model.predicted(black.value, capture.shutter_s, f_number)
+    error, relation = control.model_error(m.sample_gray, predicted, saturation, black.value)
     band = task.requirements.gray_band
     in_band = m.in_band(band)
     stats, expected = m.stats(), gray_stats(predicted)
@@ -107,18 +163,29 @@ def shoot(task, plan, devices, recorder, k, shutter_s, f_number, albedo_scale):
 
 
 def iterate(task, plan, devices, recorder, max_iterations):
-    """Drive, shoot, correct until every feature pixel is in the band, yielding each Iteration as
-    soon as it is measured, then its Corrected and a Replan as they happen; raises GoalNotReached
-    saying why when no correction is possible or the iterations run out."""
-    band = tuple(map(float, task.requirements.gray_band))
-    lens_range = (depth_of_field_limits(task, plan.scene)[2], task.camera.lens.f_number_range[1])
-    albedo, moved = 1.0, False
+    """Drive, find the black level (BlackLevelFound), shoot, correct until every feature pixel is
+    in the band, yielding each Iteration as soon as it is measured, then its Corrected and a
+    Replan as they happen; raises GoalNotReached saying why when no correction is possible or the
+    iterations run out. A black level the plan did not know re-sets its exposure (the lamp pose
+    stays: b only shifts the band the signal must meet) and is the re-plans' from then on."""
+    lens_range = (evaluate.depth_of_field_limits(task, plan.scene)[2], task.camera.lens.f_number_range[1])
+    limits = control.Limits(tuple(map(float, task.requirements.gray_band)), task.camera.shutter_range_s,
+                            lens_range, task.loop.albedo_scale_range)
+    band = limits.band
+    model, albedo, moved, black = Model(plan, task), 1.0, False, None
     shutter, f_number = plan.shot.exposure.shutter_s, plan.shot.exposure.f_number
     for k in range(1, max_iterations + 1):
         if not moved:
-            move_to(devices, plan.shot, recorder, k)
+            move_to(devices, model.plan.shot, recorder, k)
             moved = True
-        it, m, predicted = shoot(task, plan, devices, recorder, k, shutter, f_number, albedo)
+        if black is None:
+            black = find_black_level(task, plan, devices, recorder)
+            yield BlackLevelFound(black)
+            if black.value != evaluate.black_level(task):
+                shutter, f_number = model.exposure(black.value, lens_range)
+                sensor = replace(task.camera.sensor, black_level=black.value)
+                task = replace(task, camera=replace(task.camera, sensor=sensor))
+        it, m, predicted = shoot(task, model, devices, recorder, k, shutter, f_number, albedo, black)
         yield it
         shutter = it.shutter_s
         if it.in_band:
@@ -128,8 +195,9 @@ def iterate(task, plan, devices, recorder, max_iterations):
                                  f"feature gray {m.min:.1f}-{m.max:.1f} ({it.measured_gray['saturated']} pixels "
                                  f"saturated) at {1e3 * shutter:.3g} ms, f/{f_number:.1f}; "
                                  f"{control.describe_error(it.model_error, it.model_error_relation)}")
-        c = control.correct(m, predicted, shutter, f_number, band, task.camera.shutter_range_s, lens_range)
-        if c.action == "stop":
+        c = control.correct(m, predicted, shutter, f_number, limits, black, albedo)
+        if c.action == "stop":                  # its cause in report.json; the done step says why
+            yield Corrected(k, c.document(albedo))
             raise GoalNotReached(c.reason)
         if c.action == "replan":
             albedo *= c.model_error
@@ -138,13 +206,14 @@ def iterate(task, plan, devices, recorder, max_iterations):
         if c.action == "exposure":
             shutter, f_number = c.shutter_s, c.f_number
             continue
-        plan = plan_recorded(task, recorder, albedo, iteration=k, subfolder=f"replan-{k}")
-        yield Replan(k, albedo, plan.to_json())
-        if not plan.feasible:
+        replanned = plan_recorded(task, recorder, albedo, iteration=k, subfolder=f"replan-{k}")
+        yield Replan(k, albedo, replanned.to_json())
+        if not replanned.feasible:
             raise GoalNotReached(f"{control.describe_error(c.model_error, c.relation)}; {c.reason}; "
-                                 f"re-planned for an albedo x{albedo:.3g}: infeasible, {plan.binding}: "
-                                 f"{plan.hint}")
-        shutter, f_number, moved = plan.shot.exposure.shutter_s, plan.shot.exposure.f_number, False
+                                 f"re-planned for an albedo x{albedo:.3g}: infeasible, {replanned.binding}: "
+                                 f"{replanned.hint}")
+        model = Model(replanned, task)
+        shutter, f_number, moved = replanned.shot.exposure.shutter_s, replanned.shot.exposure.f_number, False
 
 
 def run(task, out, connect, max_iterations=6):
@@ -153,7 +222,7 @@ def run(task, out, connect, max_iterations=6):
     (exit 3) after the safe stop of every device (session.Session). Returns the RunResult."""
     from cell.pictures import write_convergence
     out = Path(out)
-    iterations, replans, reason = [], [], ""
+    iterations, replans, reason, black = [], [], "", None
     with Recorder(out) as recorder:
         session = Session(on_fault=recorder.fault, log=recorder.log.name)
         try:
@@ -162,6 +231,8 @@ def run(task, out, connect, max_iterations=6):
                 for event in iterate(task, planned, session.devices, recorder, max_iterations):
                     if isinstance(event, Corrected):
                         iterations[-1] = replace(iterations[-1], correction=event.correction)
+                    elif isinstance(event, BlackLevelFound):
+                        black = event.black.to_json()
                     else:
                         (iterations if isinstance(event, Iteration) else replans).append(event)
             n = len(iterations)
@@ -173,7 +244,7 @@ def run(task, out, connect, max_iterations=6):
             raise
         finally:
             result = RunResult(str(task.path), not reason, reason, recorder.plan, tuple(iterations),
-                               tuple(replans), session.fault)
+                               tuple(replans), session.fault, black)
             recorder.write_json("report.json", result.to_json())
             if iterations:
                 write_convergence(out / "convergence.png", [it.to_json() for it in iterations],

@@ -60,6 +60,32 @@ def local_mean(image, mask, size=5):
     return np.where(mask, total / np.maximum(count, 1.0), 0.0)
 
 
+@dataclass(frozen=True)
+class BlackLevel:
+    """b of G = b + c P t [gray]: what a pixel reads without light, the dark frame's pixel noise
+    (rms; 0 when b is the task's) and where b comes from."""
+
+    value: float
+    noise_rms: float
+    source: str
+
+    @property
+    def ceiling(self):
+        """The highest gray that still reads the black level: b + max(1 level, 4 sigma)."""
+        return self.value + max(1.0, 4.0 * self.noise_rms)
+
+    def to_json(self):
+        return {"value": self.value, "noise_rms": self.noise_rms, "source": self.source}
+
+
+def black_level_of(dark):
+    """BlackLevel of a dark frame: its median (a few lit or hot pixels do not move it) and its
+    noise as 1.4826 x the median absolute deviation (the rms of Gaussian noise)."""
+    dark = np.asarray(dark, float)
+    b = float(np.median(dark))
+    return BlackLevel(b, float(1.4826 * np.median(np.abs(dark - b))), "dark frame")
+
+
 def saturation_level(bit_depth):
     """The largest gray a bit_depth sensor reports: a pixel there may truly be brighter."""
     return 2 ** int(bit_depth) - 1
@@ -102,6 +128,11 @@ class Measurement:
                 "saturated": int(self.saturated.sum()),
                 "pixel_min": float(self.gray.min()), "pixel_max": float(self.gray.max()),
                 "noise_rms": float(np.sqrt(np.mean((self.gray - self.surface) ** 2)))}
+
+    def black_fraction(self, black):
+        """The fraction of the region's pixels reading the BlackLevel (at most its ceiling):
+        no light reaches them (off the part, or a cast shadow)."""
+        return float(np.mean(self.gray <= black.ceiling))
 
     def in_band(self, band):
         return not self.saturated.any() and band[0] <= self.min and self.max <= band[1]

@@ -73,7 +73,7 @@ def other_reflection(p, c):
     reflection = p.task.requirements.reflection
     if reflection == "any":
         return np.zeros(len(c.shutter), dtype=int)
-    lit = ~c.shadowed & (c.gray > 0)
+    lit = ~c.shadowed & (c.gray > p.black_level)
     return np.sum(lit & (c.dominant != regions.WANTED_TERM[reflection]), axis=-1)
 
 

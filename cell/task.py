@@ -50,6 +50,7 @@ class Sensor:
     saturation_capacity_e: float | None = None     # mu_e,sat [electrons]
     source: str | None = None                      # where the numbers come from
     file: Path | None = None                       # the camera file they were read from, if any
+    black_level: float | None = None               # b of G = b + c P t [gray]; None: measured by `cell run`
 
     @property
     def pixel_area_m2(self):
@@ -102,9 +103,25 @@ class Lamp:
 
 @dataclass(frozen=True)
 class Truth:
+    """How the simulated world differs from the model (docs/formats.md, `sim.truth`); vectors as
+    tuples, so that truths compare equal."""
+
     albedo_scale: float = 1.0
     camera_constant_scale: float = 1.0
     lamp_direction_error_rad: float = 0.0
+    material: Material | None = None           # the world's BRDF table; None: the task's
+    part_offset_m: tuple = (0.0, 0.0, 0.0)     # cell frame
+    part_rpy_rad: tuple = (0.0, 0.0, 0.0)      # about the feature centre
+    camera_offset_m: tuple = (0.0, 0.0, 0.0)   # camera frame (hand-eye error)
+    camera_rpy_rad: tuple = (0.0, 0.0, 0.0)
+    lamp_radius_error_m: float = 0.0           # the lamp this much farther from the pivot
+
+
+@dataclass(frozen=True)
+class LoopSettings:
+    """The closed loop's limits (`loop`): the albedo scales a correction may imply."""
+
+    albedo_scale_range: tuple = (0.1, 10.0)
 
 
 @dataclass(frozen=True)
@@ -132,3 +149,4 @@ class Task:
     lamp: Lamp
     cell: CellConfig
     sim: SimConfig
+    loop: LoopSettings = LoopSettings()

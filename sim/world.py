@@ -2,12 +2,16 @@
 (kernels.render uses kernels.funcs.shade_point, like the planner's bulk kernel), the world's
 "truth" (task `sim.truth`) and only the effects the task lists (`sim.effects`).
 
-gray = value t / kappa^2 with value = c A_pixel Phi R / 8 (eq. 10, 11, 17) per pixel, shaded with
-the true rho (model rho * albedo_scale), the true c (model c * camera_constant_scale) and the
-lamp's true axis, lamp_direction_error away from the commanded aim (the axis enters only through
-the lamp's profile). With no effects and a neutral truth a pixel's gray is the planner's prediction
-at the point it sees: the task's lamp profile (`lamp.profile`; without one eq. (11)'s ideal cone
-with a hard edge), no cast shadows, float gray, unclipped.
+gray = value t / kappa^2 with value = c A_pixel Phi R / 8 (eq. 10, 11, 17) per pixel, shaded in
+the world the truth (`sim.truth`) declares: the true material (truth `material`, else the task's)
+with rho * albedo_scale, the true c (model c * camera_constant_scale), the part at its true pose
+(T_cell_part moved by part_offset_m in the cell frame after turning by part_rpy about the feature
+centre), the camera where the arm's reported pose composed with the hand-eye error (camera_offset_m,
+camera_rpy in the camera frame) puts it, the lamp lamp_radius_error_m farther from the pivot along
+its commanded aim and its true axis lamp_direction_error away from that aim (the axis enters only
+through the lamp's profile). With no effects and a neutral truth a pixel's gray is the planner's
+prediction at the point it sees: the task's lamp profile (`lamp.profile`; without one eq. (11)'s
+ideal cone with a hard edge), no cast shadows, float gray, unclipped.
 
 Effects, applied in the physical order light -> lens -> sensor -> ADC, whatever the list's order:
   shadows       cast shadows (the kernel's shadow rays); faces turned from the lamp are dark anyway
@@ -33,6 +37,7 @@ from cell import geometry
 from cell.measure import levels, saturation_level
 from cell.physics.depth_of_field import blur_diameter
 from cell.projection import intrinsics, pixel_rays
+from cell.scene import build_scene
 from kernels.render import render
 
 CONE_EDGE = 1.0 / 6.0       # cone edge blur s as a fraction of the half angle gamma/2
@@ -124,6 +129,19 @@ class SensorModel:
         return gray
 
 
+def true_part_scene(task, scene):
+    """The scene with the part at its true pose: T_cell_part moved by the truth's part_offset_m
+    (cell frame) after turning by part_rpy about the feature centre; `scene` itself when neutral."""
+    truth = task.sim.truth
+    if not (np.any(truth.part_offset_m) or np.any(truth.part_rpy_rad)):
+        return scene
+    about = geometry.transform(translation=scene.center)
+    turn = geometry.from_rpy(truth.part_rpy_rad)
+    T_cell_part = (geometry.transform(translation=truth.part_offset_m) @ about @ turn
+                   @ np.linalg.inv(about) @ task.frames.T_cell_part)
+    return build_scene(replace(task, frames=task.frames.with_transform("T_cell_part", T_cell_part)))
+
+
 class Renderer:
     """What the simulated camera sees of a task's scene (cell.scene.build_scene), called by
     sim.camera.SimCamera. `scale` < 1 samples a coarser pixel grid over the same sensor (gray per
@@ -139,9 +157,11 @@ class Renderer:
         self.K = intrinsics(grid, lens)
         self.rays_cam = pixel_rays(self.K, np.eye(4), grid.width_px, grid.height_px)
         truth = task.sim.truth
-        self.table = task.part.material.scaled(truth.albedo_scale).table()
+        self.table = (truth.material or task.part.material).scaled(truth.albedo_scale).table()
         self.camera_constant = sensor.camera_constant * truth.camera_constant_scale
         self.sensor = SensorModel.of(sensor)
+        self.world = true_part_scene(task, scene)
+        self.T_cam_true = geometry.from_rpy(truth.camera_rpy_rad, truth.camera_offset_m)
         self.rng = np.random.default_rng(task.sim.seed)
         self.error_direction_rad = self.rng.uniform(0.0, 2.0 * np.pi)
 
@@ -154,16 +174,20 @@ class Renderer:
         return np.cos(error) * aim + np.sin(error) * (np.cos(psi) * x + np.sin(psi) * y)
 
     def __call__(self, T_cell_cam, lamp_pos, lamp_aim, shutter_s, f_number, focus_m=None):
-        """Gray image (H, W): float, or integers with quantization. focus_m is the lens's focus
-        distance along the optical axis (None: the feature centre's, as planned, sec. 5.4)."""
+        """Gray image (H, W): float, or integers with quantization, seen from the camera pose the
+        arm reports (T_cell_cam; the true one is T_cell_cam T_cam_true) with the lamp at its
+        read-back pose. focus_m is the lens's focus distance along the optical axis (None: the
+        feature centre's, as planned, sec. 5.4)."""
         task, effects = self.task, self.effects
+        T_cell_cam = T_cell_cam @ self.T_cam_true
         origin, optical_axis = T_cell_cam[:3, 3], T_cell_cam[:3, 2]
+        lamp_pos = lamp_pos - task.sim.truth.lamp_radius_error_m * geometry.unit(lamp_aim)
         # einsum, not BLAS: OpenBLAS threads left spinning after a matmul slow the Warp kernel 4x
         dirs = np.einsum("ij,nj->ni", T_cell_cam[:3, :3], self.rays_cam)
         axis = self.lamp_axis(lamp_aim)
         soft_cone = "cone_falloff" in effects            # then rendered on-axis, scaled here
         lamp = task.lamp
-        r = render(self.scene.warp_mesh, origin, dirs, lamp_pos, axis, lamp.power_w,
+        r = render(self.world.warp_mesh, origin, dirs, lamp_pos, axis, lamp.power_w,
                    lamp.cone_angle_rad, self.table, self.camera_constant,
                    task.camera.sensor.pixel_area_m2, shadows="shadows" in effects, cone=not soft_cone,
                    profile=lamp.profile)

@@ -1,11 +1,16 @@
 """Helpers the device, closed-loop and calibration tests share: task variants, device settings
 read as load_task reads them, and a simulated cell that records the safe-stop calls its devices
 receive."""
+import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import yaml
 
+from cell import loop
 from cell.device_config import SECTIONS, devices_config
+from cell.errors import CellError
+from cell.loader import load_task
 from cell.schema import parse
 from sim.cell import make_sim_devices
 
@@ -45,3 +50,18 @@ def recording_connect(task, cell, faults=None):
                     (cell.stops.append(_n), _m(*a, **k))[1])
         return cell.devices
     return connect
+
+
+def run_loop(task_path, out):
+    """loop.run of a task file on the simulated cell: a namespace of its devices, the stops they
+    received, the error it ended with (None), report.json, the log's lines and their steps."""
+    task = load_task(task_path)
+    cell = SimpleNamespace(devices=None, stops=[], error=None)
+    try:
+        loop.run(task, out, recording_connect(task, cell))
+    except CellError as err:
+        cell.error = err
+    cell.report = json.loads((Path(out) / "report.json").read_text())
+    cell.log = [json.loads(line) for line in (Path(out) / "log.jsonl").read_text().splitlines()]
+    cell.steps = [line["step"] for line in cell.log]
+    return cell

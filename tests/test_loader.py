@@ -198,6 +198,21 @@ def test_optional_sections_take_their_defaults(tmp_path):
     assert task.requirements.depth_of_field_m == 0.0
 
 
+def test_the_worlds_material_loads_beside_the_tasks_and_vectors_in_si(tmp_path):
+    """sim.truth.material is read relative to the task file, like part.material, and the task
+    keeps its own; the pose errors arrive in metres and radians."""
+    def edit(task, folder):
+        task["sim"]["truth"].update({"material": "materials/gray_cast_iron.yaml", "part_offset_mm": [0, 2, 0],
+                                     "camera_rpy_deg": [0.25, 0, 0], "lamp_radius_error_mm": 20})
+    task = loader.load_task(write_task(tmp_path, edit))
+    truth = task.sim.truth
+    assert truth.material.name == loader.load_material(TASKS / "materials/gray_cast_iron.yaml").name
+    assert task.part.material.name == loader.load_material(TASKS / MATERIAL).name != truth.material.name
+    assert truth.part_offset_m == (0.0, 0.002, 0.0) and truth.lamp_radius_error_m == pytest.approx(0.02)
+    assert truth.camera_rpy_rad == pytest.approx((math.radians(0.25), 0.0, 0.0))
+    assert loader.load_task(HINGE).loop.albedo_scale_range == (0.1, 10.0)
+
+
 def test_an_empty_optional_section_takes_its_defaults(tmp_path):
     without_settings = HINGE_TEXT.split("cell:")[0] + "cell:\nsim:\n"
     task = loader.load_task(write_task(tmp_path, text(content=without_settings)))
@@ -362,6 +377,28 @@ BROKEN = [
     pytest.param(put("sim.truth.lamp_direction_error_deg", -1.0), "task.yaml",
                  "sim.truth.lamp_direction_error_deg", "within [0, 90] deg", id="negative-lamp-error"),
     pytest.param(put("sim.seed", 1.5), "task.yaml", "sim.seed", "integer", id="float-seed"),
+    pytest.param(put("sim.truth.material", "materials/missing.yaml"), "task.yaml", "sim.truth.material",
+                 "missing.yaml", id="truth-material-missing"),
+    pytest.param(both(material("m2", [5.0] * 7), put("sim.truth.material", MATERIAL)), MATERIAL, "m2[0]",
+                 "m2 > m1", id="truth-material-checked-like-the-tasks"),
+    pytest.param(put("sim.truth.part_offset_m", [0.0, 0.001]), "task.yaml", "sim.truth.part_offset_m",
+                 "a 3-vector", id="truth-part-offset-two-numbers"),
+    pytest.param(put("sim.truth.part_rpy_deg", [0.0, "x", 0.0]), "task.yaml", "sim.truth.part_rpy_deg[1]",
+                 "a number", id="truth-part-rpy-text"),
+    pytest.param(put("sim.truth.camera_offset_m", [0.0, float("inf"), 0.0]), "task.yaml",
+                 "sim.truth.camera_offset_m[1]", "finite", id="truth-camera-offset-inf"),
+    pytest.param(put("sim.truth.camera_rpy_deg", 0.25), "task.yaml", "sim.truth.camera_rpy_deg", "a 3-vector",
+                 id="truth-camera-rpy-scalar"),
+    pytest.param(put("sim.truth.lamp_radius_error_m", -0.2), "task.yaml", "sim.truth.lamp_radius_error_m",
+                 "more than -0.15 m", id="truth-lamp-behind-the-pivot"),
+    pytest.param(put("camera.sensor.black_level", -1), "task.yaml", "camera.sensor.black_level", ">= 0",
+                 id="negative-black-level"),
+    pytest.param(put("camera.sensor.black_level", 125), "task.yaml", "camera.sensor.black_level",
+                 "below the band's top 125", id="black-level-at-the-band-top"),
+    pytest.param(put("loop", {"albedo_scale_range": [2.0, 10.0]}), "task.yaml", "loop.albedo_scale_range",
+                 "holding 1", id="albedo-range-without-1"),
+    pytest.param(put("loop", {"albedo_scale_range": [0.0, 10.0]}), "task.yaml", "loop.albedo_scale_range",
+                 "positive scales", id="albedo-range-from-0"),
     pytest.param(put("requirements.gray_band", [100, 300]), "task.yaml", "requirements.gray_band[1]",
                  "[0, 255]", id="gray-band-beyond-bit-depth"),
     pytest.param(put("requirements.gray_band", [125, 100]), "task.yaml", "requirements.gray_band",

@@ -330,3 +330,94 @@ def test_a_seed_fixes_every_frame_and_every_effect(plate):
     other = Renderer(with_sim(task, ALL_EFFECTS, seed=8, lamp_direction_error_rad=np.radians(1.0)),
                      scene, scale=SCALE)
     assert not np.allclose(other.lamp_axis(DOWN), first.lamp_axis(DOWN))
+
+
+# --- (e) the truth keys of issue 16, each on its own -------------------------------------------
+
+F_PX = 0.025 / (4.65e-6 / SCALE)        # focal length over the test grid's pixel pitch [px]
+CUBE_TOP = np.array([-0.015, 0.0, 0.008])  # the cube's top face centre, 0.492 m from the camera
+OVER_CUBE = CUBE_TOP * [1, 1, 0] + [0.0, 0.0, 0.2]
+
+
+def lit_centroid(image):
+    """(row, col) centroid of the lit pixels."""
+    return np.argwhere(image > 0.0).mean(axis=0)
+
+
+def cube_centroid(image):
+    """(row, col) centroid of the cube's top face under a wide lamp 0.2 m above it: 8 mm nearer
+    the lamp than the plate, it is (0.2 / 0.192)^2 = 1.085x brighter than any plate point."""
+    plate_max = image.max() / (0.2 / 0.192) ** 2
+    return np.argwhere(image > 1.04 * plate_max).mean(axis=0)
+
+
+def test_a_hand_eye_offset_shifts_the_image_by_f_over_pitch_times_offset_over_distance(plate):
+    """The camera frame's x is the cell's here (looking straight down, scene.look_at): the true
+    camera 2 mm along it sees the lit disk on the plate (0.5 m away) f/p 0.002/0.5 px to the left."""
+    aimed, _ = shoot(plate)
+    shifted, _ = shoot(plate, camera_offset_m=(0.002, 0.0, 0.0))
+    np.testing.assert_allclose(lit_centroid(shifted) - lit_centroid(aimed), [0.0, -F_PX * 0.002 / 0.5], atol=0.1)
+
+
+def test_a_hand_eye_rotation_turns_the_image_by_f_tan_angle(plate):
+    """Turned by +0.25 deg about its x axis, the true camera sees a point of the old axis at
+    R^T (0, 0, Z) = (0, Z sin, Z cos): f tan(0.25 deg) px further down the image."""
+    aimed, _ = shoot(plate)
+    turned, _ = shoot(plate, camera_rpy_rad=(np.radians(0.25), 0.0, 0.0))
+    shift = lit_centroid(turned) - lit_centroid(aimed)
+    np.testing.assert_allclose(shift, [F_PX * np.tan(np.radians(0.25)), 0.0], atol=0.1)
+
+
+def test_a_part_offset_moves_the_part_by_its_projection(plate):
+    """The part 3 mm along the cell's x (the camera's x) moves the cube's top f/p 0.003/0.492 px
+    right; the lamp stays where it was."""
+    kw = dict(lamp=OVER_CUBE, cone_deg=WIDE, exposure=WIDE_EXPOSURE)
+    placed, _ = shoot(plate, **kw)
+    moved, _ = shoot(plate, part_offset_m=(0.003, 0.0, 0.0), **kw)
+    np.testing.assert_allclose(cube_centroid(moved) - cube_centroid(placed), [0.0, F_PX * 0.003 / 0.492],
+                               atol=0.3)
+
+
+def test_a_part_rotation_turns_the_part_about_the_feature_centre(plate):
+    """Yawed 90 deg about the feature centre (15, 0, 0) mm, the cube 30 mm to its -x goes 30 mm to
+    its -y: its top face images where (15, -30, 8) mm projects."""
+    task, scene = plate
+    turned_top = np.array([0.015, -0.030, 0.008])
+    image, renderer = shoot(plate, lamp=turned_top * [1, 1, 0] + [0.0, 0.0, 0.2], cone_deg=WIDE,
+                            exposure=WIDE_EXPOSURE, part_rpy_rad=(0.0, 0.0, np.pi / 2))
+    uv, _ = project(renderer.K, scene.T_cell_cam, turned_top[None])
+    np.testing.assert_allclose(cube_centroid(image), uv[0, ::-1], atol=0.3)
+
+
+def test_a_truth_material_with_twice_the_albedo_doubles_the_gray(plate):
+    task, _ = plate
+    doubled = replace(task.part.material, rho=2.0 * task.part.material.rho)
+    model, _ = shoot(plate)
+    true, _ = shoot(plate, material=doubled)
+    lit = model > 0.0
+    np.testing.assert_allclose(true[lit] / model[lit], 2.0, rtol=1e-12)
+    assert not true[~lit].any()
+
+
+def test_a_lamp_radius_error_scales_the_irradiance_at_the_centre_by_the_inverse_square(plate):
+    """The lamp 20 mm farther from the pivot along its aim: at the point under it (0.2 m) the
+    gray is (0.2 / 0.22)^2 of the model's."""
+    scene = plate[1]
+    model, renderer = shoot(plate)
+    true, _ = shoot(plate, lamp_radius_error_m=0.02)
+    below = pixel(renderer, scene, OVERHEAD * [1, 1, 0])
+    assert true[below] / model[below] == pytest.approx((0.2 / 0.22) ** 2, rel=1e-4)
+
+
+def test_the_planner_ignores_the_truth(plans, tmp_path):
+    """plan.json (all but its timings) is the same whatever the world's truth."""
+    hinge, p = plans["hinge"]
+    other = load_task(TASKS / "conrod.yaml").part.material
+    truth = Truth(albedo_scale=2.0, camera_constant_scale=0.5, lamp_direction_error_rad=0.05,
+                  material=other, part_offset_m=(0.002, 0, 0), part_rpy_rad=(0, 0, 0.1),
+                  camera_offset_m=(0, 0.002, 0), camera_rpy_rad=(0.01, 0, 0), lamp_radius_error_m=0.02)
+    truthful = plan(replace(hinge, sim=replace(hinge.sim, truth=truth)))
+    first, second = (q.to_json() for q in (p, truthful))
+    for document in (first, second):
+        del document["timing_s"]
+    assert first == second

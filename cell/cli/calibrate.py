@@ -69,8 +69,9 @@ def reference_part(args):
           f"({result.camera_constant_ratio:.3f} x the task's {c_model:.5g}); black level "
           f"{fit.black_level:.2f}, linearity r2 {fit.r2:.5f}, {fit.used} pairs "
           f"({fit.saturated} saturated, {fit.dark} at 0 left out)")
-    print(f"  set camera.sensor.camera_constant: {fit.camera_constant:.5g} in the tasks that use "
-          f"this camera (e.g. {args.task}), or measure it with the laser: cell calibrate camera-constant")
+    print(f"  set camera.sensor.camera_constant: {fit.camera_constant:.5g} and camera.sensor.black_level: "
+          f"{max(fit.black_level, 0.0):.3g} in the tasks that use this camera (e.g. {args.task}), or measure "
+          f"c with the laser: cell calibrate camera-constant")
     print(f"  wrote {out}/calibration.json, calibration.png, log.jsonl, {len(result.shots)} captures and the "
           f"plan's pictures")
     return 0
