@@ -10,7 +10,7 @@ import yaml
 
 from cell.fit import COLUMNS, PhaseFit, material_document, read_goniometer
 from cell.loader import MATERIAL, TASK, load_material, load_task
-from cell.schema import REQUIRED, UNITS, Section, _unit
+from cell.schema import REQUIRED, UNITS, Section, Sections, _unit
 
 ROOT = Path(__file__).resolve().parent.parent
 DOC = ROOT / "docs" / "formats.md"
@@ -42,12 +42,15 @@ def blocks(text, language):
 
 
 def schema_keys(fields, path=""):
-    """(dotted key, spec) of every key and section of a schema, depth first."""
+    """(dotted key, spec) of every key and section of a schema, depth first; the keys of each
+    entry of a list of sections as `features[].center_m`."""
     for key, spec in fields.items():
         dotted = f"{path}.{key}" if path else key
         yield dotted, spec
         if isinstance(spec, Section):
             yield from schema_keys(spec.fields, dotted)
+        if isinstance(spec, Sections):
+            yield from schema_keys(spec.fields, f"{dotted}[]")
 
 
 def other_units(key):
@@ -69,6 +72,8 @@ def documented_default(key, cell):
 def schema_default(spec):
     if isinstance(spec, Section):
         return "required" if spec.required else "optional"
+    if isinstance(spec, Sections):
+        return "optional"                   # the alternative to one section (`features`, `feature`)
     return "required" if spec.default is REQUIRED else spec.default
 
 
