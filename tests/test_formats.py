@@ -110,14 +110,22 @@ def test_the_device_keys_are_in_the_task_table():
     assert {"cell.arm.host", "cell.pan_tilt.radius_ticks", "cell.camera.exposure_unit_s"} <= documented.keys()
 
 
-def test_the_task_example_loads(tmp_path):
-    (example,) = blocks(section("Task"), "yaml")
+def test_the_task_examples_load(tmp_path):
+    """The example task, and the same with the features example in place of its `feature:`."""
+    example, several = blocks(section("Task"), "yaml")
+    example = example.replace("parts/", f"{TASKS}/parts/").replace("materials/", f"{TASKS}/materials/")
     path = tmp_path / "example.yaml"
-    path.write_text(example.replace("parts/", f"{TASKS}/parts/").replace("materials/", f"{TASKS}/materials/"))
+    path.write_text(example)
     task = load_task(path)
     assert task.name == "Aluminium hinge, leaf surface" and task.lamp.power_w == pytest.approx(0.23043)
     assert task.cell.devices.arm.host == "192.168.1.10" and task.sim.effects == ("shadows", "cone_falloff",
                                                                                     "quantization")
+    start = example.index("feature:")
+    path.write_text(example[:start] + several + example[example.index("requirements:"):])
+    leaf, screw = load_task(path).features
+    assert (leaf.name, screw.name) == ("leaf", "near_screw") and leaf.requirements == task.requirements
+    assert screw.requirements.gray_band == (90, 140) and screw.requirements.lamp_tolerance_rad == pytest.approx(
+        np.radians(0.5)) and screw.requirements.reflection == task.requirements.reflection
 
 
 def test_the_material_examples_load_and_the_fitter_writes_the_documented_keys_in_order(tmp_path):

@@ -5,7 +5,7 @@ from pathlib import Path
 
 from cell import backends
 from cell.calibrate import MIN_SHOTS, run
-from cell.cli import create_folder, output_folder
+from cell.cli import create_folder, one_feature, output_folder
 from cell.errors import TaskError
 from cell.loader import load_task
 from cell.operator import Operator
@@ -15,7 +15,7 @@ def command(args):
     if args.shots < MIN_SHOTS:
         raise TaskError("command line", "--shots", args.shots, f"an integer >= {MIN_SHOTS}")
     out = output_folder(args.out, f"{Path(args.task).stem}-calibration")
-    task = load_task(args.task)
+    task = one_feature(load_task(args.task), "calibrate")
     backend = args.backend or task.cell.backend
     c_model = task.camera.sensor.camera_constant
     # the simulated cell holds the task's part already: it confirms for itself, as for the lamp radius
