@@ -46,7 +46,7 @@ def judge(task, plan, shot):
     does not depend on the camera: its samples (with the certificate's worst points) and its
     visibility map."""
     scene = replace(plan.scene, T_cell_cam=shot.T_cell_cam)
-    maps = build_maps(task, scene, plan.settings, visible=plan.maps.visible)
+    maps = build_maps(task, scene, plan.settings, visible=plan.maps.visible, lamps=shot.lamp_position[None])
     problem = evaluate.build_problem(task, scene, maps, focus_m=shot.exposure.focus_m)
     e = shot.exposure
     c = evaluate.at_exposure(problem, shot.lamp_position, e.shutter_s, e.f_number, joints=shot.joints)

@@ -17,10 +17,11 @@ from cell.physics import depth_of_field as dof
 from cell.plan import Exposure, Maps, Plan, PlannerSettings, Refinement, Search, Shot
 
 
-def build_maps(task, scene, settings, visible=None):
+def build_maps(task, scene, settings, visible=None, lamps=None):
     """Visibility (all samples), BRDF, dominant-term and region distance maps (sec. 2.2, 5.2).
     The visibility map (given: a plan's own, judging another camera pose on its samples) does not
-    depend on the camera; the others do (the view direction is in the BRDF)."""
+    depend on the camera; the others do (the view direction is in the BRDF). Given `lamps`
+    (cell-frame positions: a shot judged), the region distance only where they read it."""
     from kernels.visibility import visibility_maps
     grid = regions.SphereGrid(np.radians(settings.grid_step_deg))
     if visible is None:
@@ -31,7 +32,10 @@ def build_maps(task, scene, settings, visible=None):
     dominant = regions.dominant_term_map(grid, scene.frame, scene.normal, view, material)
     reflectance = regions.reflectance_map(grid, scene.frame, scene.normal, view, material)
     wanted = regions.wanted_region(dominant, visible, task.requirements.reflection)
-    distance = regions.signed_distance(grid, wanted)
+    cells = None
+    if lamps is not None:
+        cells = grid.cells_around(*geometry.angles_from_direction((np.asarray(lamps) - scene.center) @ scene.frame))
+    distance = regions.signed_distance(grid, wanted, cells)
     empty = np.zeros(0)
     return Maps(grid, visible, reflectance, dominant, wanted, distance, empty, empty, empty)
 
