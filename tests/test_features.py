@@ -94,6 +94,8 @@ BAD = [
                  "features[1].requirements.gray_bnd", "did you mean 'gray_band'", id="unknown-override"),
     pytest.param(features(LEAF_A, {**LEAF_A, "name": "high", "center_m": [0.006, 0.0, 0.009]}),
                  "features[1].center_m", "5.0 mm from the surface", id="off-surface"),
+    pytest.param(features(LEAF_A, {**LEAF_A, "name": "edge", "center_m": [0.030, 0.0, 0.004]}),
+                 "features[1].center_m", "runs over an edge of the part", id="over-the-edge"),   # cell check lays it
 ]
 
 
@@ -231,7 +233,8 @@ def test_the_multi_feature_plan_json_has_shots_features_and_cover(multi, tmp_pat
     assert "requirements" not in doc                # two shots: no one-shot keys
 
 
-def test_a_one_shot_multi_feature_plan_keeps_the_one_shot_keys(multi):
+def test_a_one_shot_multi_feature_plan_keeps_the_one_shot_keys_and_cell_plan_exits_0(multi, tmp_path, capsys,
+                                                                                      monkeypatch):
     from dataclasses import replace
     task, _ = multi
     plan = plan_features(replace(task, features=task.features[:2]))
@@ -239,6 +242,11 @@ def test_a_one_shot_multi_feature_plan_keeps_the_one_shot_keys(multi):
     assert plan.feasible and len(plan.shots) == 1 and [f.covered_by for f in plan.features] == [0, 0]
     assert {"requirements", "lamp", "camera", "predicted_gray", "verified", "search", "shots", "features"} <= set(doc)
     assert doc["lamp"] == doc["shots"][0]["lamp"]
+    own = task.features[doc["cover"]["chosen"][0]].name                       # the shot's own feature's
+    assert doc["requirements"] == next(c for c in doc["shots"][0]["covers"] if c["feature"] == own)["requirements"]
+    monkeypatch.setattr("cell.cli.plan.plan_features", lambda task, progress: plan)
+    assert cli.main(["plan", str(FEATURES), "--out", str(tmp_path / "out")]) == 0
+    assert capsys.readouterr().out.startswith(f"{task.name}: feasible: 1 shot cover 2 of 2 features")
 
 
 def test_cell_plan_prints_a_line_per_shot_and_feature_and_exits_1_naming_the_uncovered(multi, tmp_path,
@@ -261,3 +269,13 @@ def test_cell_run_refuses_several_features_in_one_line(tmp_path, capsys):
     assert cli.main(["run", str(FEATURES), "--out", str(tmp_path / "run")]) == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and "running several shots is not yet supported" in err
+
+
+def test_a_multi_feature_plan_pickles_whole(multi):
+    """The later steps plan features in worker processes: the plan, its shots' coverage and each
+    feature's own plan travel as plain values."""
+    task, plan = multi
+    copy = pickle.loads(pickle.dumps(plan))
+    assert {**copy.to_json(), "timing_s": None} == {**plan.to_json(), "timing_s": None}
+    np.testing.assert_array_equal(copy.plans[2].scene.points, plan.plans[2].scene.points)
+    np.testing.assert_array_equal(copy.shots[0].covers[1].gray, plan.shots[0].covers[1].gray)
