@@ -14,9 +14,10 @@ from cell.physics import depth_of_field as dof
 
 def depth_of_field_limits(task, scene, focus_m=None):
     """(focus [m], depth of field needed [m], f-number) for the camera focused on the feature
-    centre, or at focus_m (a shot's, judged on another feature) (sec. 4.3, 5.4): the widest f-number within the lens's range whose near and far limits
-    hold the nearest and the farthest sample and whose depth of field is at least the task's. The
-    limits are judged where they fall: a patch seen at a slant is not centred on the focus."""
+    centre, or at focus_m (a shot's, judged on another feature) (sec. 4.3, 5.4): the widest
+    f-number within the lens's range whose near and far limits hold the nearest and the farthest
+    sample and whose depth of field is at least the task's. The limits are judged where they
+    fall: a patch seen at a slant is not centred on the focus."""
     lens = task.camera.lens
     f, sigma = lens.focal_length_m, lens.circle_of_confusion_m
     focus = float(np.linalg.norm(scene.camera_position - scene.center)) if focus_m is None else float(focus_m)

@@ -17,8 +17,7 @@ from cell.frames import Frames
 from cell.inputs import checked_file
 from cell.material import PARAMETERS, Material
 from cell.schema import (NON_NEGATIVE, POSITIVE, Anything, Choice, Integer, Invalid, Number, Pair,
-                         Section, Sections, Spec, Table, Text, Vector, parse, read_yaml,
-                         show)
+                         Section, Sections, Spec, Table, Text, Vector, parse, read_yaml, show)
 from cell.task import (CameraModel, CellConfig, Feature, Lamp, LampRig, Lens, Part, Requirements,
                        SimConfig, Sensor, Task, Truth)
 

@@ -117,8 +117,9 @@ def build_scene(task, samples=None, extra=None, T_cell_cam=None):
     short = away & (hit >= 0) & (np.abs(np.linalg.norm(points - center, axis=1) - wanted)
                                  > PATCH_LEAVES * task.feature.radius_m)
     if np.any(short):
-        raise TaskError(task.path, f"{task.feature.key}.center_m", f"a patch of radius {1e3 * task.feature.radius_m:g} mm "
-                        f"whose {int(short.sum())} of {n} samples cannot lie on the surface at their distance "
+        raise TaskError(task.path, f"{task.feature.key}.center_m",
+                        f"a patch of radius {1e3 * task.feature.radius_m:g} mm whose"
+                        f" {int(short.sum())} of {n} samples cannot lie on the surface at their distance "
                         f"(it runs over an edge of the part)", "a patch on one continuous surface")
     if extra is not None and len(extra):
         more, more_hit, _ = closest_points(bvh, np.asarray(extra, float), max_dist=reach)
