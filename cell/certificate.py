@@ -46,6 +46,13 @@ class Verification:
                 "rounds": self.rounds}
 
 
+def worse_of(values, verification):
+    """The requirement values (costs.RequirementValue) on the samples with each the certificate
+    judges replaced by its dense value where that is worse: each reported where it is worse."""
+    dense = {r.name: r for r in verification.judged}
+    return tuple(dense[r.name] if r.name in dense and dense[r.name].value > r.value else r for r in values)
+
+
 def dense_samples(task, scene):
     """Points for the camera's density: the patch's area over a pixel's footprint on it
     (distance x pitch / focal length), at least the search's and at most DENSE_MAX."""
@@ -101,7 +108,7 @@ def verify(problem, shot):
     samples). problem: the search's Problem (its maps and albedo scale are kept)."""
     from cell.scene import build_scene
     task = problem.task
-    scene = build_scene(task, dense_samples(task, problem.scene))
+    scene = build_scene(task, dense_samples(task, problem.scene), T_cell_cam=problem.scene.T_cell_cam)
     point, normal = specular_point(scene, shot.lamp_position)
     scene = replace(scene, points=np.vstack([scene.points, point]), normals=np.vstack([scene.normals, normal]))
     dense = evaluate.build_problem(task, scene, problem.maps, albedo_scale=1.0)

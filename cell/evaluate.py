@@ -13,14 +13,15 @@ from cell.material import Material
 from cell.physics import depth_of_field as dof
 
 
-def depth_of_field_limits(task, scene):
+def depth_of_field_limits(task, scene, focus_m=None):
     """(focus [m], depth of field needed [m], f-number) for the camera focused on the feature
-    centre (sec. 4.3, 5.4): the widest f-number within the lens's range whose near and far limits
-    hold the nearest and the farthest sample and whose depth of field is at least the task's. The
-    limits are judged where they fall: a patch seen at a slant is not centred on the focus."""
+    centre, or at focus_m (a shot's, judged on another feature) (sec. 4.3, 5.4): the widest
+    f-number within the lens's range whose near and far limits hold the nearest and the farthest
+    sample and whose depth of field is at least the task's. The limits are judged where they
+    fall: a patch seen at a slant is not centred on the focus."""
     lens = task.camera.lens
     f, sigma = lens.focal_length_m, lens.circle_of_confusion_m
-    focus = float(np.linalg.norm(scene.camera_position - scene.center))
+    focus = float(np.linalg.norm(scene.camera_position - scene.center)) if focus_m is None else float(focus_m)
     depths = scene.sample_depths()
     nearest, farthest = float(depths.min()), float(depths.max())
     wanted = task.requirements.depth_of_field_m
@@ -96,10 +97,11 @@ def black_level(task):
     return 0.0 if b is None else float(b)
 
 
-def build_problem(task, scene, maps, albedo_scale=1.0):
-    """The Problem of a task's scene and maps. A sample the camera sees lies inside the image
-    and is not hidden (a lamp at the camera would light it)."""
-    focus, needed, kappa_open = depth_of_field_limits(task, scene)
+def build_problem(task, scene, maps, albedo_scale=1.0, focus_m=None):
+    """The Problem of a task's scene and maps, the camera focused on the feature centre or at
+    focus_m (a given shot's). A sample the camera sees lies inside the image and is not hidden
+    (a lamp at the camera would light it)."""
+    focus, needed, kappa_open = depth_of_field_limits(task, scene, focus_m)
     p = Problem(task, scene, maps, task.part.material.scaled(albedo_scale), planning_band(task),
                 black_level(task), focus, needed, kappa_open, 0)
     hidden = unit_gray(p, scene.camera_position[None], -scene.normal[None])[1][0]
@@ -203,12 +205,20 @@ def candidates(problem, pan, tilt, radius, tolerance=True):
                       shutter, kappa, t_need)
 
 
-def at_exposure(problem, position, shutter_s, f_number):
+def at_exposure(problem, position, shutter_s, f_number, joints=None):
     """Candidates of one lamp at `position` (aiming at the rig's pivot) at a fixed shutter and
-    f-number: a chosen shot, as the certificate checks it."""
+    f-number: a chosen shot, as the certificate checks it. Given its `joints` (pan, tilt,
+    radius), the lamp is also moved by its tolerance around them, at the same exposure."""
     pivot = problem.task.lamp.rig.pivot_m
     pos = np.asarray(position, float).reshape(1, 3)
-    u, shadowed, off_axis, dominant = unit_gray(problem, pos, rig.lamp_aim(pivot, pos))
+    moves = [] if joints is None else tolerance_moves(problem, np.array([joints[1]]))
+    moved_pos = [rig.lamp_position(pivot, joints[0] + dp, joints[1] + dt, joints[2]).reshape(1, 3)
+                 for dp, dt in moves]
+    all_pos = np.vstack([pos, *moved_pos])
+    all_u, all_shadowed, all_off_axis, all_dominant = unit_gray(problem, all_pos, rig.lamp_aim(pivot, all_pos))
+    u, gain = all_u[:1], shutter_s / f_number**2
     t_need = exposure(problem, u)[2]
-    return Candidates(pos, problem.black_level + u * (shutter_s / f_number**2), np.zeros((0, 1, u.shape[1])), shadowed, off_axis,
-                      dominant, np.array([float(shutter_s)]), np.array([float(f_number)]), t_need)
+    b = problem.black_level
+    return Candidates(pos, b + u * gain, b + all_u[1:].reshape(len(moves), 1, u.shape[1]) * gain, all_shadowed[:1],
+                      all_off_axis[:1], all_dominant[:1], np.array([float(shutter_s)]),
+                      np.array([float(f_number)]), t_need)

@@ -4,6 +4,7 @@ Units are converted here and nowhere else, by the schema engine (cell.schema): e
 one TaskError naming the file, the dotted key path, what was found and what was expected. The
 schemas below read like the file format; then the mesh is loaded and the feature snapped to it.
 """
+import copy
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +18,7 @@ from cell.inputs import checked_file
 from cell.material import PARAMETERS, Material
 from cell.physics.radiometry import camera_constant_from_datasheet
 from cell.schema import (NON_NEGATIVE, POSITIVE, Anything, Choice, Integer, Invalid, Number, Pair,
-                         Section, Spec, Table, Text, Vector, parse, read_yaml, show)
+                         Section, Sections, Spec, Table, Text, Vector, parse, read_yaml, show)
 from cell.task import (CameraModel, CellConfig, Feature, Lamp, LampRig, Lens, LoopSettings, Part,
                        Requirements, SimConfig, Sensor, Task, Truth)
 
@@ -65,6 +66,28 @@ class SensorSection(Section):
 
 DEG = np.radians
 
+FEATURE = {
+    "center_m": Vector(),
+    "radius_m": Number(**POSITIVE),
+    "samples": Integer(1, MAX_SAMPLES),
+}
+REQUIREMENTS = {
+    "gray_band": Pair(lambda v: True, "gray levels", strict=True),
+    "reflection": Choice("diffuse", "lobe", "spike", "any"),
+    "region_margin_deg": Number(**NON_NEGATIVE),
+    "lamp_tolerance_deg": Number(**NON_NEGATIVE),
+    "depth_of_field_m": Number(**NON_NEGATIVE, default=0.0),
+}
+
+
+def _overriding(fields):
+    """The same keys, each optional: absent (None), the task's top-level value is taken."""
+    specs = {key: copy.copy(spec) for key, spec in fields.items()}
+    for spec in specs.values():
+        spec.default = None
+    return specs
+
+
 TASK = {
     "name": Text(),
     "part": Section({
@@ -74,18 +97,10 @@ TASK = {
         "rpy_deg": Vector(),
         "material": Text(),
     }),
-    "feature": Section({
-        "center_m": Vector(),
-        "radius_m": Number(**POSITIVE),
-        "samples": Integer(1, MAX_SAMPLES),
-    }),
-    "requirements": Section({
-        "gray_band": Pair(lambda v: True, "gray levels", strict=True),
-        "reflection": Choice("diffuse", "lobe", "spike", "any"),
-        "region_margin_deg": Number(**NON_NEGATIVE),
-        "lamp_tolerance_deg": Number(**NON_NEGATIVE),
-        "depth_of_field_m": Number(**NON_NEGATIVE, default=0.0),
-    }),
+    "feature": Section(FEATURE, required=False, defaults=False),        # one feature, or
+    "features": Sections({"name": Text(), **FEATURE,                    # several
+                          "requirements": Section(_overriding(REQUIREMENTS), required=False)}),
+    "requirements": Section(REQUIREMENTS),                              # every feature's defaults
     "camera": Section({
         "distance_m": Number(**POSITIVE),
         "view_direction": Vector(direction=True),
@@ -240,21 +255,43 @@ def closest_surface_point(mesh, point):
     return closest[i], mesh.face_normals[i], float(distances[i])
 
 
-def _feature(file, mesh, f):
+def _feature(file, mesh, f, key, name, requirements):
     """The feature with its center snapped to the surface and the outward normal there."""
     center, normal, distance = closest_surface_point(mesh, f["center_m"])
     if distance > SURFACE_TOLERANCE_M:
         found = f"{show(f['center_m'])} m, {distance * 1e3:.1f} mm from the surface"
-        raise TaskError(file, "feature.center_m", found,
+        raise TaskError(file, f"{key}.center_m", found,
                         "a point within 1 mm of the part's surface (part frame)")
-    return Feature(center, normal, f["radius_m"], f["samples"])
+    return Feature(name, center, normal, f["radius_m"], f["samples"], Requirements(**requirements), key)
 
 
-def _check_gray_band(file, band, bit_depth):
+def _feature_entries(file, v):
+    """[(key, name, feature values, requirement values)] from `feature:` (named `feature`) or
+    `features:`, each feature's requirements the task's with its own keys replacing them (SI)."""
+    if v["feature"] is not None and v["features"] is not None:
+        raise TaskError(file, "feature, features", "both", "one of them: feature (one) or features (a list)")
+    if v["feature"] is not None:
+        return [("feature", "feature", v["feature"], v["requirements"])]
+    if v["features"] is None:
+        raise TaskError(file, "features", "nothing",
+                        "a non-empty list of mappings of keys, or one feature as `feature` (required key)")
+    entries, seen = [], {}
+    for i, f in enumerate(v["features"]):
+        key = f"features[{i}]"
+        if f["name"] in seen:
+            raise TaskError(file, f"{key}.name", f"'{f['name']}', also the name of features[{seen[f['name']]}]",
+                            "a name unique among the features")
+        seen[f["name"]] = i
+        own = f["requirements"]
+        entries.append((key, f["name"], f, {k: v["requirements"][k] if own[k] is None else own[k] for k in own}))
+    return entries
+
+
+def _check_gray_band(file, key, band, bit_depth):
     top = 2**bit_depth - 1
     for i, gray in enumerate(band):
         if not 0 <= gray <= top:
-            raise TaskError(file, f"requirements.gray_band[{i}]", show(gray),
+            raise TaskError(file, f"{key}.gray_band[{i}]", show(gray),
                             f"a gray level in [0, {top}] (bit_depth {bit_depth})")
 
 
@@ -332,11 +369,11 @@ def _check_outside(file, mesh, T_cell_part, points):
     """Each {key: cell-frame point} lies outside the part (winding number below 1/2) or on its
     surface (within SURFACE_TOLERANCE_M): a lamp pivot or a camera inside the part is a mistake."""
     T_part_cell = np.linalg.inv(T_cell_part)
-    for key, point in points.items():
+    for (key, whose), point in points.items():
         local = geometry.apply(T_part_cell, point)
         if (geometry.winding_number(mesh.vertices, mesh.faces, local) > 0.5
                 and closest_surface_point(mesh, local)[2] > SURFACE_TOLERANCE_M):
-            raise TaskError(file, key, f"{show(np.round(point, 6))} m, inside the part",
+            raise TaskError(file, key, f"{show(np.round(point, 6))} m, inside the part{whose}",
                             "a point outside the part (cell frame)")
 
 
@@ -373,28 +410,35 @@ def load_task(path):
     v = parse(path, "", data, TASK)
     part, cam, lamp, cell, sim = v["part"], v["camera"], v["lamp"], v["cell"], v["sim"]
     arm = cell["arm"]
-    _check_gray_band(path, v["requirements"]["gray_band"], cam["sensor"]["bit_depth"])
-    _check_black_level(path, v["requirements"]["gray_band"], cam["sensor"]["black_level"])
+    _check_gray_band(path, "requirements", v["requirements"]["gray_band"], cam["sensor"]["bit_depth"])
+    entries = _feature_entries(path, v)
+    for key, _, f, _ in entries:
+        if key != "feature" and f["requirements"]["gray_band"] is not None:
+            _check_gray_band(path, f"{key}.requirements", f["requirements"]["gray_band"], cam["sensor"]["bit_depth"])
+    black = cam["sensor"]["black_level"]
+    _check_black_level(path, v["requirements"]["gray_band"], black)
+    for key, _, f, _ in entries:
+        if key != "feature" and f["requirements"]["gray_band"] is not None:
+            _check_black_level(path, f["requirements"]["gray_band"], black)
     devices = devices_config(path, cell, written=data.get("cell"),
                              bit_depth=cam["sensor"]["bit_depth"])
     _check_camera(path, cam)
     mesh_path, mesh = _load_mesh(path, part)
     material = load_material(_relative_file(path, "part.material", part["material"], "yaml"))
-    feature = _feature(path, mesh, v["feature"])
+    features = tuple(_feature(path, mesh, f, key, name, req) for key, name, f, req in entries)
     frames = Frames(T_cell_part=geometry.from_rpy(part["rpy_rad"], part["position_m"]),
                     T_cell_base=geometry.from_rpy(arm["base_rpy_rad"], arm["base_position_m"]),
                     T_flange_cam=geometry.from_rpy(arm["hand_eye_rpy_rad"], arm["hand_eye_position_m"]))
-    camera_part = feature.center_m + cam["distance_m"] * cam["view_direction"]
-    _check_outside(path, mesh, frames.T_cell_part, {
-        "lamp.rig.pivot_m": lamp["rig"]["pivot_m"],
-        "camera.distance_m": geometry.apply(frames.T_cell_part, camera_part)})
+    cameras = {("camera.distance_m", "" if len(features) == 1 else f", the camera of {f.key} ({f.name})"):
+               geometry.apply(frames.T_cell_part, f.center_m + cam["distance_m"] * cam["view_direction"])
+               for f in features}
+    _check_outside(path, mesh, frames.T_cell_part, {("lamp.rig.pivot_m", ""): lamp["rig"]["pivot_m"], **cameras})
     return Task(
         path=path,
         name=v["name"],
         part=Part(mesh_path, mesh, material),
         frames=frames,
-        feature=feature,
-        requirements=Requirements(**v["requirements"]),
+        features=features,
         camera=CameraModel(cam["distance_m"], cam["view_direction"], _sensor(path, cam["sensor"]),
                            Lens(**cam["lens"]), cam["shutter_range_s"]),
         lamp=Lamp(lamp["power_w"], lamp["cone_angle_rad"], LampRig(**lamp["rig"]),

@@ -83,6 +83,7 @@ class Shot:
     distance_m: float            # lamp -> feature centre
     phase_angle_rad: float       # between lamp and camera, at the feature centre
     requirements: tuple
+    covers: tuple = ()           # a multi-feature plan's: cell.coverage.Coverage of each feature it covers
 
     @property
     def camera_position(self):
@@ -90,10 +91,24 @@ class Shot:
 
 
 @dataclass(frozen=True)
+class FeatureVerdict:
+    """A feature of a multi-feature plan: the shot covering it (an index into Plan.shots), or
+    None with the requirement that binds in its own plan and what would fix it."""
+
+    name: str
+    covered_by: int | None
+    binding: str = ""
+    hint: str = ""
+
+
+@dataclass(frozen=True)
 class Plan:
     """A plan with its verdict, like scipy's OptimizeResult: `feasible` (max f_i <= 1 over every
     shot's requirements), the `binding` requirement, how far it misses, and `hint`, what would
-    fix it. Today's plans have one shot (`plan.shot`)."""
+    fix it. A one-feature task's plan has one shot (`plan.shot`); a multi-feature task's
+    (cell.multiplan) has the fewest shots covering its features, `features` saying which covers
+    which, `plans` each feature's own plan (whose shots were the candidates: their scene and
+    maps; the plan's own `scene` and `maps` are None) and `cover` the set cover's numbers."""
 
     task_name: str
     feasible: bool
@@ -109,6 +124,9 @@ class Plan:
     timing_s: dict = field(default_factory=dict)
     notes: tuple = ()            # what the user should know although it is no requirement
     verification: object = None  # cell.certificate.Verification of the shot (None: infeasible already)
+    features: tuple = ()         # FeatureVerdict of each feature (a multi-feature plan)
+    plans: tuple = ()            # each feature's own one-shot Plan (a multi-feature plan)
+    cover: dict = None           # candidate shots, coverage matrix, travel, chosen (plain values)
 
     @property
     def success(self):
@@ -117,7 +135,12 @@ class Plan:
 
     @property
     def message(self):
-        return "feasible" if self.feasible else f"{self.binding} binds: {self.hint}"
+        if self.feasible:
+            return "feasible"
+        uncovered = next((f for f in self.features if f.covered_by is None), None)
+        if uncovered is not None:
+            return f"feature '{uncovered.name}' is covered by no shot: {uncovered.binding} binds: {uncovered.hint}"
+        return f"{self.binding} binds: {self.hint}"
 
     @property
     def shot(self):
@@ -131,10 +154,11 @@ class Plan:
         return [r for shot in self.shots for r in shot.requirements]
 
     def to_json(self):
-        """plan.json per design.md's output contract (a one-shot plan)."""
+        """plan.json per design.md's output contract (a one-feature plan; a multi-feature plan's
+        adds `shots`, `features` and `cover`, and keeps these keys when it has one shot)."""
+        if self.features:
+            return self._features_json()
         shot = self.shot
-        pan, tilt, radius = shot.joints
-        e = shot.exposure
         return {
             "task": self.task_name,
             "feasible": self.feasible,
@@ -143,20 +167,52 @@ class Plan:
             "objective": self.objective,
             "hint": self.hint,
             "notes": list(self.notes),
-            "requirements": [{"name": r.name, "value": r.value, "met": r.met, "detail": r.detail}
-                             for r in shot.requirements],
-            "lamp": {"position_m": shot.lamp_position.tolist(), "distance_m": shot.distance_m,
-                     "phase_angle_deg": float(np.degrees(shot.phase_angle_rad)),
-                     "joints": {"pan_deg": float(np.degrees(pan)), "tilt_deg": float(np.degrees(tilt)),
-                                "radius_m": float(radius)}},
-            "camera": {"shutter_s": e.shutter_s, "f_number": e.f_number, "focus_m": e.focus_m,
-                       "depth_of_field_m": e.depth_of_field_m, "position_m": shot.camera_position.tolist()},
+            "requirements": requirements_json(shot.requirements),
+            "lamp": lamp_json(shot),
+            "camera": camera_json(shot),
             "predicted_gray": gray_stats(shot.gray),
             "verified": self.verification.to_json() if self.verification else None,
             "search": asdict(self.search),
             "timing_s": self.timing_s,
             "settings": asdict(self.settings),
         }
+
+    def _features_json(self):
+        doc = {"task": self.task_name, "feasible": self.feasible, "binding": self.binding, "miss": self.miss,
+               "objective": self.objective, "hint": self.hint, "notes": list(self.notes),
+               "shots": [{"camera": {"T_cell_cam": shot.T_cell_cam.tolist(), **camera_json(shot)},
+                          "lamp": lamp_json(shot),
+                          "covers": [{"feature": c.feature, "predicted_gray": gray_stats(c.gray),
+                                      "requirements": requirements_json(c.requirements),
+                                      "verified": c.verification.to_json() if c.verification else None}
+                                     for c in shot.covers]} for shot in self.shots],
+               "features": [{"name": f.name, "covered_by": f.covered_by,
+                             **({} if f.covered_by is not None else {"binding": f.binding, "hint": f.hint})}
+                            for f in self.features],
+               "cover": self.cover}
+        if len(self.shots) == 1:                     # a one-shot plan keeps the one-shot keys
+            own = self.plans[self.cover["chosen"][0]].to_json()
+            doc.update({k: own[k] for k in ("requirements", "lamp", "camera", "predicted_gray", "verified",
+                                            "search")})
+        return {**doc, "timing_s": self.timing_s, "settings": asdict(self.settings)}
+
+
+def requirements_json(values):
+    return [{"name": r.name, "value": r.value, "met": r.met, "detail": r.detail} for r in values]
+
+
+def lamp_json(shot):
+    pan, tilt, radius = shot.joints
+    return {"position_m": shot.lamp_position.tolist(), "distance_m": shot.distance_m,
+            "phase_angle_deg": float(np.degrees(shot.phase_angle_rad)),
+            "joints": {"pan_deg": float(np.degrees(pan)), "tilt_deg": float(np.degrees(tilt)),
+                       "radius_m": float(radius)}}
+
+
+def camera_json(shot):
+    e = shot.exposure
+    return {"shutter_s": e.shutter_s, "f_number": e.f_number, "focus_m": e.focus_m,
+            "depth_of_field_m": e.depth_of_field_m, "position_m": shot.camera_position.tolist()}
 
 
 def gray_stats(gray):

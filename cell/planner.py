@@ -17,18 +17,25 @@ from cell.physics import depth_of_field as dof
 from cell.plan import Exposure, Maps, Plan, PlannerSettings, Refinement, Search, Shot
 
 
-def build_maps(task, scene, settings):
-    """Visibility (all samples), BRDF, dominant-term and region distance maps (sec. 2.2, 5.2)."""
+def build_maps(task, scene, settings, visible=None, lamps=None):
+    """Visibility (all samples), BRDF, dominant-term and region distance maps (sec. 2.2, 5.2).
+    The visibility map (given: a plan's own, judging another camera pose on its samples) does not
+    depend on the camera; the others do (the view direction is in the BRDF). Given `lamps`
+    (cell-frame positions: a shot judged), the region distance only where they read it."""
     from kernels.visibility import visibility_maps
     grid = regions.SphereGrid(np.radians(settings.grid_step_deg))
-    visible = visibility_maps(scene.warp_mesh, scene.points, scene.normals, scene.frame,
-                              grid.azimuth, grid.elevation).all(axis=0)
+    if visible is None:
+        visible = visibility_maps(scene.warp_mesh, scene.points, scene.normals, scene.frame,
+                                  grid.azimuth, grid.elevation).all(axis=0)
     view = geometry.unit(scene.camera_position - scene.center)
     material = task.part.material
     dominant = regions.dominant_term_map(grid, scene.frame, scene.normal, view, material)
     reflectance = regions.reflectance_map(grid, scene.frame, scene.normal, view, material)
     wanted = regions.wanted_region(dominant, visible, task.requirements.reflection)
-    distance = regions.signed_distance(grid, wanted)
+    cells = None
+    if lamps is not None:
+        cells = grid.cells_around(*geometry.angles_from_direction((np.asarray(lamps) - scene.center) @ scene.frame))
+    distance = regions.signed_distance(grid, wanted, cells)
     empty = np.zeros(0)
     return Maps(grid, visible, reflectance, dominant, wanted, distance, empty, empty, empty)
 
@@ -108,10 +115,7 @@ def plan(task, settings=PlannerSettings(), albedo_scale=1.0, progress=None):
         extra = np.vstack([extra, worst])
     verification = replace(verification, rounds=rounds)
     timing["total"] = time.perf_counter() - t0
-    # each requirement the certificate judges is reported where it is worse: samples or dense
-    dense = {r.name: r for r in verification.judged}
-    judged = tuple(dense[r.name] if r.name in dense and dense[r.name].value > r.value else r
-                   for r in result.shot.requirements)
+    judged = certificate.worse_of(result.shot.requirements, verification)
     result = replace(result, shots=(replace(result.shot, requirements=judged),), verification=verification,
                      timing_s=timing)
     if verification.holds:

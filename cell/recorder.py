@@ -14,12 +14,17 @@ from cell.session import stop_outcome
 
 
 def write_plan(plan, task, folder):
-    """plan.json and the plan's pictures into folder (created)."""
+    """plan.json and the plan's pictures into folder (created); a multi-feature plan's own plan
+    of each feature i (plan.json, pictures) into folder/feature-i."""
     from cell.pictures import write_plan_pictures
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     write_json(folder / "plan.json", plan.to_json())
-    write_plan_pictures(plan, task, plan.scene, folder)
+    if plan.plans:
+        for i, own in enumerate(plan.plans):
+            write_plan(own, task.with_feature(i), folder / f"feature-{i}")
+    else:
+        write_plan_pictures(plan, task, plan.scene, folder)
     return folder
 
 

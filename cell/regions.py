@@ -29,18 +29,27 @@ class SphereGrid:
         el, az = np.meshgrid(self.elevation, self.azimuth, indexing="ij")
         return geometry.direction_from_angles(az, el) @ np.asarray(frame).T
 
-    def sample(self, values, azimuth, elevation):
-        """Bilinear interpolation of a map at (azimuth, elevation), wrapping across the seam."""
+    def _corners(self, azimuth, elevation):
+        """(e0, a0, a1, ta, te): the cells around (azimuth, elevation) and the weights between."""
         a = (np.asarray(azimuth) + np.pi) / self.step
         e = np.clip((np.asarray(elevation) + 0.5 * np.pi) / self.step, 0, len(self.elevation) - 1)
         n_az = len(self.azimuth)
         a0 = np.floor(a).astype(int)
         e0 = np.minimum(np.floor(e).astype(int), len(self.elevation) - 2)
-        ta, te = a - a0, e - e0
-        a0, a1 = a0 % n_az, (a0 + 1) % n_az
+        return e0, a0 % n_az, (a0 + 1) % n_az, a - a0, e - e0
+
+    def sample(self, values, azimuth, elevation):
+        """Bilinear interpolation of a map at (azimuth, elevation), wrapping across the seam."""
+        e0, a0, a1, ta, te = self._corners(azimuth, elevation)
         v = values
         return ((1 - te) * ((1 - ta) * v[e0, a0] + ta * v[e0, a1])
                 + te * ((1 - ta) * v[e0 + 1, a0] + ta * v[e0 + 1, a1]))
+
+    def cells_around(self, azimuth, elevation):
+        """Flat indices into an (E, A) map of the cells `sample` reads at these directions."""
+        e0, a0, a1, _, _ = self._corners(azimuth, elevation)
+        n_az = len(self.azimuth)
+        return np.unique(np.concatenate([np.ravel(e * n_az + a) for e in (e0, e0 + 1) for a in (a0, a1)]))
 
 
 def chord_to_angle(chord):
@@ -48,9 +57,11 @@ def chord_to_angle(chord):
     return 2.0 * np.arcsin(np.clip(0.5 * chord, 0.0, 1.0))
 
 
-def signed_distance(grid, inside):
+def signed_distance(grid, inside, cells=None):
     """Exact signed spherical distance transform of a boolean map (E, A) [rad]:
-    -(distance to the nearest outside cell) inside, +(distance to the nearest inside cell) outside.
+    -(distance to the nearest outside cell) inside, +(distance to the nearest inside cell) outside;
+    only at the flat indices `cells` if given (NaN elsewhere: one lamp's value needs the four
+    cells around it, not the whole map).
 
     Chord length between unit vectors is monotonic in the great-circle angle, so a k-d tree
     on the cells' unit vectors finds the haversine-nearest cell exactly, seam and poles included.
@@ -63,11 +74,12 @@ def signed_distance(grid, inside):
         return np.full(inside.shape, -np.pi)
     dirs = grid.directions().reshape(-1, 3)
     flat = inside.ravel()
-    out = np.empty(flat.shape)
-    chord_out, _ = cKDTree(dirs[~flat]).query(dirs[flat])
-    chord_in, _ = cKDTree(dirs[flat]).query(dirs[~flat])
-    out[flat] = -chord_to_angle(chord_out)
-    out[~flat] = chord_to_angle(chord_in)
+    wanted = np.ones(flat.shape, bool) if cells is None else np.isin(np.arange(flat.size), cells)
+    out = np.full(flat.shape, np.nan)
+    chord_out, _ = cKDTree(dirs[~flat]).query(dirs[flat & wanted])
+    chord_in, _ = cKDTree(dirs[flat]).query(dirs[~flat & wanted])
+    out[flat & wanted] = -chord_to_angle(chord_out)
+    out[~flat & wanted] = chord_to_angle(chord_in)
     return out.reshape(inside.shape)
 
 

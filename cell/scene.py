@@ -80,10 +80,11 @@ class Scene:
         return (self.points - self.camera_position) @ self.T_cell_cam[:3, 2]
 
 
-def build_scene(task, samples=None, extra=None):
-    """Scene of a task: mesh and feature in the cell frame, `samples` points over the feature
-    patch (default: the task's) and the `extra` cell-frame points (the certificate's worst), on
-    the surface.
+def build_scene(task, samples=None, extra=None, T_cell_cam=None):
+    """Scene of a one-feature task: mesh and feature in the cell frame, `samples` points over the
+    feature patch (default: the task's) and the `extra` cell-frame points (the certificate's
+    worst), on the surface; the camera at T_cell_cam (a shot's), by default the task's rule: at
+    camera.distance_m along view_direction from the feature centre, looking at it.
 
     The patch is the surface within radius_m of the centre (task-format), so a disk point at
     radius rho must land at 3D distance rho: projected onto a curved surface it falls short (a
@@ -116,20 +117,23 @@ def build_scene(task, samples=None, extra=None):
     short = away & (hit >= 0) & (np.abs(np.linalg.norm(points - center, axis=1) - wanted)
                                  > PATCH_LEAVES * task.feature.radius_m)
     if np.any(short):
-        raise TaskError(task.path, "feature.center_m", f"a patch of radius {1e3 * task.feature.radius_m:g} mm "
-                        f"whose {int(short.sum())} of {n} samples cannot lie on the surface at their distance "
+        raise TaskError(task.path, f"{task.feature.key}.center_m",
+                        f"a patch of radius {1e3 * task.feature.radius_m:g} mm whose"
+                        f" {int(short.sum())} of {n} samples cannot lie on the surface at their distance "
                         f"(it runs over an edge of the part)", "a patch on one continuous surface")
     if extra is not None and len(extra):
         more, more_hit, _ = closest_points(bvh, np.asarray(extra, float), max_dist=reach)
         points, hit = np.vstack([points, more]), np.concatenate([hit, more_hit])
     if np.any(hit < 0):
-        raise TaskError(task.path, "feature.radius_m", f"{task.feature.radius_m:g} m, a patch "
+        raise TaskError(task.path, f"{task.feature.key}.radius_m", f"{task.feature.radius_m:g} m, a patch "
                         f"{int(np.sum(hit < 0))} of whose {len(hit)} samples find no surface within "
                         f"{1e3 * reach:.0f} mm", "a patch on the part's surface")
     normals = mesh.face_normals[hit]
-    cam = center + task.camera.distance_m * geometry.unit(geometry.rotate(T, task.camera.view_direction))
+    if T_cell_cam is None:
+        cam = center + task.camera.distance_m * geometry.unit(geometry.rotate(T, task.camera.view_direction))
+        T_cell_cam = look_at(cam, center)
     return Scene(vertices=vertices, faces=faces, mesh_key=key, center=center, normal=normal, frame=frame,
-                 points=points, normals=normals, T_cell_cam=look_at(cam, center))
+                 points=points, normals=normals, T_cell_cam=np.array(T_cell_cam, float))
 
 
 def _read_only(values):

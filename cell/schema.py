@@ -219,8 +219,10 @@ class Section(Spec):
 
     expected = "a mapping of keys"
 
-    def __init__(self, fields, required=True):
-        self.fields, self.required = fields, required
+    def __init__(self, fields, required=True, defaults=True):
+        """required: missing is an error; otherwise a missing section takes the defaults of all
+        its keys, or is None when not `defaults` (one of two alternative sections)."""
+        self.fields, self.required, self.defaults = fields, required, defaults
 
     def read(self, file, path, raw, to_si):
         return parse(file, path, raw, self.fields)
@@ -228,7 +230,23 @@ class Section(Spec):
     def absent(self, file, path):
         if self.required:
             raise TaskError(file, path, "nothing", f"{self.expected} (required section)")
-        return parse(file, path, {}, self.fields)
+        return parse(file, path, {}, self.fields) if self.defaults else None
+
+
+class Sections(Spec):
+    """A non-empty list of sections, each checked against `fields`; an error names the entry,
+    `features[2].radius_m`. Absent: None (it is an alternative to another key)."""
+
+    expected = "a non-empty list of mappings of keys"
+    default = None
+
+    def __init__(self, fields):
+        self.fields = fields
+
+    def read(self, file, path, raw, to_si):
+        if not isinstance(raw, list) or not raw:
+            raise TaskError(file, path, show(raw), self.expected)
+        return [parse(file, f"{path}[{i}]", item, self.fields) for i, item in enumerate(raw)]
 
 
 # common rules: Number(**POSITIVE), Table(**NON_NEGATIVE)

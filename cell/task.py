@@ -1,5 +1,5 @@
 """Typed inspection task (docs/formats.md), SI units inside. The loader lives in cell.loader."""
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -18,20 +18,23 @@ class Part:
 
 
 @dataclass(frozen=True)
-class Feature:
-    center_m: np.ndarray           # part frame, on the surface (snapped to the closest point)
-    normal: np.ndarray             # part frame, unit, outward
-    radius_m: float
-    samples: int
-
-
-@dataclass(frozen=True)
 class Requirements:
     gray_band: tuple               # (low, high) gray levels
     reflection: str                # diffuse | lobe | spike | any
     region_margin_rad: float
     lamp_tolerance_rad: float
     depth_of_field_m: float = 0.0  # wanted depth of field beyond the feature's own depth range
+
+
+@dataclass(frozen=True)
+class Feature:
+    name: str                      # `feature` for the one-feature form
+    center_m: np.ndarray           # part frame, on the surface (snapped to the closest point)
+    normal: np.ndarray             # part frame, unit, outward
+    radius_m: float
+    samples: int
+    requirements: Requirements     # the task's, with the feature's own keys replacing them
+    key: str = "feature"           # where the task file gives it (`features[2]`), for errors
 
 
 @dataclass(frozen=True)
@@ -143,10 +146,26 @@ class Task:
     name: str
     part: Part
     frames: Frames                 # the named transforms: part, robot base, hand-eye
-    feature: Feature
-    requirements: Requirements
+    features: tuple                # Feature, one or more
     camera: CameraModel
     lamp: Lamp
     cell: CellConfig
     sim: SimConfig
     loop: LoopSettings = LoopSettings()
+
+    @property
+    def feature(self):
+        """The task's only feature (what one-shot planning, the loop and calibration work on)."""
+        if len(self.features) != 1:
+            raise ValueError(f"the task has {len(self.features)} features; plan them with "
+                             f"cell.multiplan.plan_features, or take one with task.with_feature(i)")
+        return self.features[0]
+
+    @property
+    def requirements(self):
+        """The only feature's requirements."""
+        return self.feature.requirements
+
+    def with_feature(self, i):
+        """The one-feature task of feature i (the rest of the task shared)."""
+        return replace(self, features=(self.features[i],))

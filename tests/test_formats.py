@@ -10,7 +10,7 @@ import yaml
 
 from cell.fit import COLUMNS, PhaseFit, material_document, read_goniometer
 from cell.loader import MATERIAL, TASK, load_material, load_task
-from cell.schema import REQUIRED, UNITS, Section, _unit
+from cell.schema import REQUIRED, UNITS, Section, Sections, _unit
 
 ROOT = Path(__file__).resolve().parent.parent
 DOC = ROOT / "docs" / "formats.md"
@@ -42,12 +42,15 @@ def blocks(text, language):
 
 
 def schema_keys(fields, path=""):
-    """(dotted key, spec) of every key and section of a schema, depth first."""
+    """(dotted key, spec) of every key and section of a schema, depth first; the keys of each
+    entry of a list of sections as `features[].center_m`."""
     for key, spec in fields.items():
         dotted = f"{path}.{key}" if path else key
         yield dotted, spec
         if isinstance(spec, Section):
             yield from schema_keys(spec.fields, dotted)
+        if isinstance(spec, Sections):
+            yield from schema_keys(spec.fields, f"{dotted}[]")
 
 
 def other_units(key):
@@ -69,6 +72,8 @@ def documented_default(key, cell):
 def schema_default(spec):
     if isinstance(spec, Section):
         return "required" if spec.required else "optional"
+    if isinstance(spec, Sections):
+        return "optional"                   # the alternative to one section (`features`, `feature`)
     return "required" if spec.default is REQUIRED else spec.default
 
 
@@ -105,14 +110,22 @@ def test_the_device_keys_are_in_the_task_table():
     assert {"cell.arm.host", "cell.pan_tilt.radius_ticks", "cell.camera.exposure_unit_s"} <= documented.keys()
 
 
-def test_the_task_example_loads(tmp_path):
-    (example,) = blocks(section("Task"), "yaml")
+def test_the_task_examples_load(tmp_path):
+    """The example task, and the same with the features example in place of its `feature:`."""
+    example, several = blocks(section("Task"), "yaml")
+    example = example.replace("parts/", f"{TASKS}/parts/").replace("materials/", f"{TASKS}/materials/")
     path = tmp_path / "example.yaml"
-    path.write_text(example.replace("parts/", f"{TASKS}/parts/").replace("materials/", f"{TASKS}/materials/"))
+    path.write_text(example)
     task = load_task(path)
     assert task.name == "Aluminium hinge, leaf surface" and task.lamp.power_w == pytest.approx(0.23043)
     assert task.cell.devices.arm.host == "192.168.1.10" and task.sim.effects == ("shadows", "cone_falloff",
                                                                                     "quantization")
+    start = example.index("feature:")
+    path.write_text(example[:start] + several + example[example.index("requirements:"):])
+    leaf, screw = load_task(path).features
+    assert (leaf.name, screw.name) == ("leaf", "near_screw") and leaf.requirements == task.requirements
+    assert screw.requirements.gray_band == (90, 140) and screw.requirements.lamp_tolerance_rad == pytest.approx(
+        np.radians(0.5)) and screw.requirements.reflection == task.requirements.reflection
 
 
 def test_the_material_examples_load_and_the_fitter_writes_the_documented_keys_in_order(tmp_path):

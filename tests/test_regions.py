@@ -60,3 +60,19 @@ def test_interpolation_wraps_the_seam():
     near_seam = np.pi - np.radians(5.0)     # halfway between az=170 deg and az=-180 deg
     got = grid.sample(values, near_seam, 0.3)
     assert got == pytest.approx(0.5 * (np.cos(np.radians(170.0)) + np.cos(-np.pi)), abs=1e-12)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_distance_at_the_cells_around_a_lamp_is_the_whole_maps_there(seed):
+    """A judged shot computes the transform only at the cells `sample` reads around its lamp:
+    there it equals brute force (and the whole map), and sampling gives the same value."""
+    grid = SphereGrid(np.radians(10.0))
+    rng = np.random.default_rng(seed)
+    inside = grid.directions() @ geometry.unit(rng.normal(size=3)) > np.cos(np.radians(40))
+    az, el = rng.uniform(-np.pi, np.pi, 3), rng.uniform(-1.5, 1.5, 3)
+    cells = grid.cells_around(az, el)
+    assert 4 <= len(cells) <= 12
+    part = signed_distance(grid, inside, cells)
+    assert np.isnan(part).sum() == part.size - len(cells)
+    assert np.allclose(part.ravel()[cells], brute_force(grid, inside).ravel()[cells], atol=1e-12)
+    np.testing.assert_array_equal(grid.sample(part, az, el), grid.sample(signed_distance(grid, inside), az, el))

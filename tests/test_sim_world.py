@@ -64,8 +64,8 @@ def plate(hinge):
     diffuse = Material("diffuse", "test", phase_rad=np.array([0.0, np.pi]), rho=0.3 * ones,
                        sigma1=0 * ones, m1=ones, sigma2=0 * ones, m2=2 * ones)
     task = replace(hinge, part=replace(hinge.part, mesh=mesh, material=diffuse),
-                   feature=replace(hinge.feature, center_m=np.array([0.015, 0.0, 0.0]),
-                                   normal=np.array([0.0, 0.0, 1.0]), radius_m=0.005, samples=8),
+                   features=(replace(hinge.feature, center_m=np.array([0.015, 0.0, 0.0]),
+                                    normal=np.array([0.0, 0.0, 1.0]), radius_m=0.005, samples=8),),
                    camera=replace(hinge.camera, view_direction=np.array([0.0, 0.0, 1.0])))
     return task, build_scene(task)
 

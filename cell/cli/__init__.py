@@ -50,6 +50,17 @@ def output_folder(out, name):
     return folder
 
 
+def one_feature(task, command):
+    """The task, refused (bad input, exit 2) when it has several features: `command` drives
+    one shot; running several is not yet supported (`cell plan` plans them)."""
+    from cell.errors import TaskError
+    if len(task.features) != 1:
+        raise TaskError(task.path, "features", f"{len(task.features)} features",
+                        f"one feature for `cell {command}`: running several shots is not yet supported "
+                        f"(`cell plan` plans them)")
+    return task
+
+
 def create_folder(folder):
     """The folder output_folder checked, created now that the task loaded (checked again: a
     folder that filled up meanwhile is refused as well)."""

@@ -3,7 +3,7 @@ bench.json and bench.png in DIR, progress on stderr."""
 import sys
 
 from cell import bench, jsonio
-from cell.cli import create_folder, output_folder
+from cell.cli import create_folder, one_feature, output_folder
 from cell.loader import load_task
 
 
@@ -62,7 +62,7 @@ def command(args):
 
     from cell.pictures import write_bench
     out = output_folder(args.out, "bench")
-    tasks = [load_task(path) for path in args.tasks or bench.DEFAULT_TASKS]   # every one before any work
+    tasks = [one_feature(load_task(path), "bench") for path in args.tasks or bench.DEFAULT_TASKS]  # all first
     create_folder(out)
     result = bench.run(tasks, args.quick, say)
     text = jsonio.dumps(result, indent=2)

@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from cell import backends, jsonio
-from cell.cli import create_folder, output_folder
+from cell.cli import create_folder, one_feature, output_folder
 from cell.errors import TaskError
 from cell.loader import load_task
 from cell.operator import Operator
@@ -55,7 +55,7 @@ def reference_part(args):
     if args.shots < MIN_SHOTS:
         raise TaskError("command line", "--shots", args.shots, f"an integer >= {MIN_SHOTS}")
     out = output_folder(args.out, f"{Path(args.task).stem}-calibration")
-    task = load_task(args.task)
+    task = one_feature(load_task(args.task), "calibrate")
     backend = args.backend or task.cell.backend
     c_model = task.camera.sensor.camera_constant
     # the simulated cell holds the task's part already: it confirms for itself, as for the lamp radius

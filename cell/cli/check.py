@@ -32,24 +32,33 @@ def _clip(text, length):
     return text if len(text) <= length else text[:length - 3] + "..."
 
 
+def _feature_lines(f, label):
+    """The feature's and its requirements' lines."""
+    deg, req, radius_mm = 180.0 / np.pi, f.requirements, f.radius_m * 1e3
+    return [f"{label:<12} center {_vector(f.center_m, 1e3, 2)} mm, normal {_vector(f.normal)}, "
+            f"radius {radius_mm:g} mm (area {np.pi * radius_mm**2:.1f} mm^2), {f.samples} samples",
+            f"requirements gray {_span(req.gray_band)}, {req.reflection}, "
+            f"margin {req.region_margin_rad * deg:g} deg, lamp tolerance {req.lamp_tolerance_rad * deg:g} deg, "
+            f"depth of field {req.depth_of_field_m * 1e3:g} mm"]
+
+
 def summarize(task):
     """A short human summary of a loaded task, in the units people read."""
-    mesh, f, req, cam, lamp = task.part.mesh, task.feature, task.requirements, task.camera, task.lamp
+    mesh, cam, lamp = task.part.mesh, task.camera, task.lamp
     sensor, lens, rig, material = cam.sensor, cam.lens, lamp.rig, task.part.material
     deg = 180.0 / np.pi
     source = material.source.splitlines()[0]
     size = " x ".join(f"{e:.1f}" for e in mesh.extents * 1e3)
-    radius_mm = f.radius_m * 1e3
     devices = "".join(f", {name} settings" for name in task.cell.devices.given)
+    (first, *more) = [_feature_lines(f, "feature" if len(task.features) == 1 else f"feature {f.name}")
+                      for f in task.features]
     return "\n".join([
         f"task         {task.name} ({task.path})",
         f"part         {task.part.mesh_path}: {size} mm, {len(mesh.faces)} triangles",
-        f"feature      center {_vector(f.center_m, 1e3, 2)} mm, normal {_vector(f.normal)}, "
-        f"radius {radius_mm:g} mm (area {np.pi * radius_mm**2:.1f} mm^2), {f.samples} samples",
+        first[0],
         f"material     {material.name}: {_clip(source, 70)}",
-        f"requirements gray {_span(req.gray_band)}, {req.reflection}, "
-        f"margin {req.region_margin_rad * deg:g} deg, lamp tolerance {req.lamp_tolerance_rad * deg:g} deg, "
-        f"depth of field {req.depth_of_field_m * 1e3:g} mm",
+        first[1],
+        *(line for lines in more for line in lines),
         f"camera       {cam.distance_m:g} m along {_vector(cam.view_direction)}, "
         f"shutter {_span(cam.shutter_range_s, 1e3, 'ms')}",
         f"sensor       {sensor.width_px} x {sensor.height_px} px, pitch {sensor.pixel_pitch_m * 1e6:g} um, "
@@ -67,11 +76,12 @@ def summarize(task):
     ])
 
 
-def patch_line(task, scene):
+def patch_line(task, scene, label="patch"):
     """The feature's samples as laid onto the surface: how far the patch bends away from the
     feature's tangent plane (its sag)."""
     sag = np.abs((scene.points - scene.center) @ scene.normal).max()
-    return f"patch        {len(scene.points)} samples on the surface, within {sag * 1e3:.2f} mm of its tangent plane"
+    return (f"{label:<12} {len(scene.points)} samples on the surface, within {sag * 1e3:.2f} mm of its "
+            f"tangent plane")
 
 
 def command(args):
@@ -79,5 +89,7 @@ def command(args):
 
     task = load_task(args.task)
     print(summarize(task))
-    print(patch_line(task, build_scene(task)))
+    for i, f in enumerate(task.features):
+        label = "patch" if len(task.features) == 1 else f"patch {f.name}"
+        print(patch_line(task, build_scene(task.with_feature(i)), label))
     return 0

@@ -1,4 +1,5 @@
-"""`cell plan TASK [--out DIR] [--json]`: exit 0 feasible, 1 infeasible (with the reason)."""
+"""`cell plan TASK [--out DIR] [--json]`: exit 0 feasible (every feature covered), 1 infeasible
+(with the reason: the first uncovered feature and its cause)."""
 import sys
 from pathlib import Path
 
@@ -8,6 +9,7 @@ from cell import jsonio
 from cell.acquisition import require_feasible
 from cell.cli import create_folder, output_folder
 from cell.loader import load_task
+from cell.multiplan import plan_features
 from cell.plan import gray_stats
 from cell.planner import plan
 from cell.recorder import write_plan
@@ -31,16 +33,41 @@ def summary(plan):
     ])
 
 
+def features_summary(plan):
+    """One line per shot and one per feature (the shot covering it, or why none does)."""
+    n, covered = len(plan.features), sum(f.covered_by is not None for f in plan.features)
+    verdict = "feasible" if plan.feasible else "PARTIAL"
+    lines = [f"{plan.task_name}: {verdict}: {len(plan.shots)} shot{'s' * (len(plan.shots) != 1)} cover "
+             f"{covered} of {n} features (of {plan.cover['candidate_shots']} candidate shots); "
+             f"time {plan.timing_s['total']:.2f} s"]
+    for k, shot in enumerate(plan.shots):
+        pan, tilt, radius = shot.joints
+        lines.append(f"  shot {k}: camera at {np.round(shot.camera_position, 3).tolist()} m, lamp pan "
+                     f"{np.degrees(pan):.1f} deg, tilt {np.degrees(tilt):.1f} deg, radius {radius:.3f} m, "
+                     f"{1e3 * shot.exposure.shutter_s:.2f} ms, f/{shot.exposure.f_number:.1f}, focus "
+                     f"{shot.exposure.focus_m:.3f} m; covers " + ", ".join(c.feature for c in shot.covers))
+    for f in plan.features:
+        if f.covered_by is None:
+            lines.append(f"  feature {f.name}: covered by no shot: {f.binding} binds: {f.hint}")
+            continue
+        c = next(c for c in plan.shots[f.covered_by].covers if c.feature == f.name)
+        g = gray_stats(c.gray)
+        lines.append(f"  feature {f.name}: shot {f.covered_by}, gray {g['min']:.1f}-{g['max']:.1f}, "
+                     f"max f_i {c.worst:.3g}")
+    return "\n".join(lines)
+
+
 def command(args):
     out = output_folder(args.out, f"{Path(args.task).stem}-plan")
     task = load_task(args.task)
     create_folder(out)
-    result = plan(task, progress=lambda msg: print(msg, file=sys.stderr, flush=True))
+    planner = plan if len(task.features) == 1 else plan_features
+    result = planner(task, progress=lambda msg: print(msg, file=sys.stderr, flush=True))
     write_plan(result, task, out)
     if args.json:
         print(jsonio.dumps(result.to_json(), indent=2))
     else:
-        print(summary(result))
+        print(summary(result) if len(task.features) == 1 else features_summary(result))
         print(f"  wrote {out}/plan.json and pictures")
     require_feasible(result)
     return 0

@@ -3,7 +3,7 @@ feature pixel ends in the gray band, 1 when not (with the reason), 3 on a device
 from pathlib import Path
 
 from cell import backends, loop
-from cell.cli import create_folder, output_folder
+from cell.cli import create_folder, one_feature, output_folder
 from cell.errors import TaskError
 from cell.loader import load_task
 
@@ -12,7 +12,7 @@ def command(args):
     if args.max_iterations < 1:
         raise TaskError("command line", "--max-iterations", args.max_iterations, "an integer >= 1")
     out = output_folder(args.out, Path(args.task).stem)
-    task = load_task(args.task)
+    task = one_feature(load_task(args.task), "run")
     backend = args.backend or task.cell.backend
     create_folder(out)
     result = loop.run(task, out, lambda scene: backends.open_devices(task, scene, backend, args.yes),
