@@ -8,11 +8,14 @@ from pathlib import Path
 import numpy as np
 
 from cell.errors import TaskError
-from cell.schema import POSITIVE, Integer, Invalid, Number, Pair, Section, Spec, Text, Vector, show
+from cell.schema import POSITIVE, Choice, Integer, Invalid, Number, Pair, Section, Spec, Text, Vector, show
 
 MAX_SPEED_M_S = 0.25            # ur_rtde's default moveL speed: a hard cap for an inspection cell
 MAX_ACCELERATION_M_S2 = 1.2     # ur_rtde's default moveL acceleration
 MAX_SERVO_SPEED_DEG_S = 90.0
+# opencv: cv2.VideoCapture; simulated: frames rendered by the simulator from the real arm's and
+# pan-tilt's read-back poses, a dry run of a real arm and lamp rig without a camera
+CAMERA_DRIVERS = ("opencv", "simulated")
 DXL_BAUD_RATES = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 921600,
                   1000000, 1152000, 2000000, 2500000, 3000000, 3500000, 4000000)  # the SDK's list
 
@@ -46,6 +49,7 @@ class PanTiltConfig:
 
 @dataclass(frozen=True)
 class CameraConfig:
+    driver: str                             # CAMERA_DRIVERS
     source: int | str                       # cv2.VideoCapture index or path
     exposure_unit_s: float                  # CAP_PROP_EXPOSURE unit (V4L2: 100 us)
     discard_frames: int                     # frames still exposed the old way after a change
@@ -109,6 +113,7 @@ PAN_TILT = Section({
 }, required=False)
 
 CAMERA = Section({
+    "driver": Choice(*CAMERA_DRIVERS, default="opencv"),
     "source": _Source(),
     "exposure_unit_s": Number(**POSITIVE, default=1e-4),
     "discard_frames": Integer(0, 100, default=2),
@@ -143,6 +148,6 @@ def devices_config(file, cell, written):
         tilt_offset_rad=p["tilt_offset_rad"], radius_ticks=tuple(int(t) for t in p["radius_ticks"]),
         speed_rad_s=np.radians(p["speed_deg_s"]), move_timeout_s=p["move_timeout_s"],
         tolerance_ticks=p["tolerance_ticks"])
-    camera = CameraConfig(source=c["source"], exposure_unit_s=c["exposure_unit_s"],
+    camera = CameraConfig(driver=c["driver"], source=c["source"], exposure_unit_s=c["exposure_unit_s"],
                           discard_frames=c["discard_frames"])
     return DevicesConfig(Path(file), arm, pan_tilt, camera, tuple(given))
