@@ -135,8 +135,16 @@ class DxlEmulator:
         return self
 
     def __exit__(self, *exc):
+        self.close()
+
+    def close(self):
+        """The bus goes away, as an unplugged adapter: the pty closes, and the SDK's next read or
+        write on it fails (EIO). Idempotent."""
+        if self._stop.is_set():
+            return
         self._stop.set()
-        self._thread.join()
+        if self._thread.is_alive():
+            self._thread.join()
         os.close(self._master)
         os.close(self._slave)
 

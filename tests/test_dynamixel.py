@@ -201,6 +201,22 @@ def test_goal_outside_the_servos_position_limits_is_refused_before_moving():
         rig.close()
 
 
+def test_a_serial_link_that_goes_away_is_a_fault_now_and_for_every_later_call():
+    """The pty closes, as an unplugged adapter: the SDK's termios.error (EIO) on its next call is a
+    DeviceFault saying the link is lost, and the stop after it says so too, not 'Port is in use!'
+    (the SDK's flag stays set after the error)."""
+    with bus(ids=(1, 2), speedup=10) as emulator:
+        rig = pan_tilt(emulator)
+        emulator.close()
+        lost = rf"serial link {emulator.port} lost \(\[Errno 5\] Input/output error\)"
+        with pytest.raises(DeviceFault, match=lost) as fault:
+            rig.move(np.radians(10.0), np.radians(45.0), 0.3)
+        assert fault.value.device == "pan-tilt"
+        with pytest.raises(DeviceFault, match=lost + ": not sent"):
+            rig.stop(fault_is_own=True)
+        rig.close()                                        # nothing left to release: no error
+
+
 def test_missing_serial_port_is_a_fault():
     config = replace(DEFAULTS, port="/nonexistent/ttyDXL")
     with pytest.raises(DeviceFault, match="cannot open /nonexistent/ttyDXL"):

@@ -1,5 +1,13 @@
 """The lamp's real pan-tilt: Dynamixel X-series servos, Protocol 2.0 through dynamixel_sdk, on the
-control table and the tick mapping of cell.servo."""
+control table and the tick mapping of cell.servo.
+
+A serial link that goes away (an unplugged USB adapter, a closed pty) fails inside the SDK with
+pyserial's SerialException, an OSError, or termios.error (no OSError: tcdrain and tcflush on a
+vanished tty, EIO), and leaves the SDK's port flagged in use, so that every later call would
+report "Port is in use!". So each SDK call goes through `_sdk`: the first such failure is a
+DeviceFault saying the link is lost, and so is every later call, unsent.
+"""
+import termios
 import time
 
 import serial
@@ -17,6 +25,7 @@ class DynamixelPanTilt(ServoRig):
     def __init__(self, rig, config, operator):
         super().__init__(rig, config, operator)
         self._port, self._packet = PortHandler(config.port), PacketHandler(2.0)
+        self._lost = None                    # why the serial link is gone, once it is
         try:
             self._port.openPort()
             self._port.setBaudRate(config.baud)
@@ -29,8 +38,20 @@ class DynamixelPanTilt(ServoRig):
             self._port.closePort()
             raise
 
+    def _sdk(self, call, *args):
+        """call(*args), an SDK function; a lost serial link is a DeviceFault, now and from then on."""
+        if self._lost:
+            raise DeviceFault(self.device, f"{self._lost}: not sent")
+        try:
+            return call(*args)
+        except (OSError, termios.error) as err:          # SerialException is an OSError
+            if isinstance(err, termios.error):
+                err = OSError(*err.args)                  # (errno, text) shown as an OSError's
+            self._lost = f"serial link {self.config.port} lost ({err})"
+            raise DeviceFault(self.device, self._lost) from None
+
     def _connect(self, dxl_id):
-        model, comm, error = self._packet.ping(self._port, dxl_id)
+        model, comm, error = self._sdk(self._packet.ping, self._port, dxl_id)
         self._check(dxl_id, comm, error, "ping")
         if model not in MODELS:
             raise DeviceFault(self.device, f"servo {dxl_id} is model {model}; expected one with the "
@@ -47,7 +68,8 @@ class DynamixelPanTilt(ServoRig):
         if comm != COMM_SUCCESS:
             raise DeviceFault(self.device, f"servo {dxl_id}: {what}: {self._packet.getTxRxResult(comm)}")
         if error & ALERT and not alert_ok:
-            bits, comm, _ = self._packet.read1ByteTxRx(self._port, dxl_id, HARDWARE_ERROR_STATUS.address)
+            bits, comm, _ = self._sdk(self._packet.read1ByteTxRx, self._port, dxl_id,
+                                      HARDWARE_ERROR_STATUS.address)
             status = describe_hardware_error(bits) if comm == COMM_SUCCESS else "(status unreadable)"
             raise DeviceFault(self.device, f"servo {dxl_id}: Hardware Error Status {status}")
         if error & ~ALERT:
@@ -56,13 +78,13 @@ class DynamixelPanTilt(ServoRig):
     def _read(self, dxl_id, item):
         read = {1: self._packet.read1ByteTxRx, 2: self._packet.read2ByteTxRx,
                 4: self._packet.read4ByteTxRx}[item.size]
-        value, comm, error = read(self._port, dxl_id, item.address)
+        value, comm, error = self._sdk(read, self._port, dxl_id, item.address)
         self._check(dxl_id, comm, error, f"read {item.address}")
         return value - (1 << 32) if item.size == 4 and value >= 1 << 31 else value   # int32
 
     def _write(self, dxl_id, item, value, alert_ok=False):
         write = {1: self._packet.write1ByteTxRx, 4: self._packet.write4ByteTxRx}[item.size]
-        comm, error = write(self._port, dxl_id, item.address, int(value) & 0xFFFFFFFF)
+        comm, error = self._sdk(write, self._port, dxl_id, item.address, int(value) & 0xFFFFFFFF)
         self._check(dxl_id, comm, error, f"write {item.address}", alert_ok)
 
     def _drive(self, goals):
@@ -70,7 +92,7 @@ class DynamixelPanTilt(ServoRig):
         sync = GroupSyncWrite(self._port, self._packet, GOAL_POSITION.address, GOAL_POSITION.size)
         for dxl_id, tick in goals.items():
             sync.addParam(dxl_id, list(int(tick).to_bytes(4, "little", signed=True)))
-        comm = sync.txPacket()
+        comm = self._sdk(sync.txPacket)
         if comm != COMM_SUCCESS:
             raise DeviceFault(self.device, f"goal positions not sent: {self._packet.getTxRxResult(comm)}")
         deadline = time.monotonic() + self.config.move_timeout_s
@@ -105,4 +127,7 @@ class DynamixelPanTilt(ServoRig):
             raise failures[0]
 
     def close(self):
-        self._port.closePort()
+        try:
+            self._port.closePort()
+        except (OSError, termios.error):
+            pass                              # a lost link: nothing left to release
