@@ -3,9 +3,6 @@ run as its own process: moveL at the commanded speed, async moveL and stopL, set
 protective and emergency stops; cell.hw.ur.URArm moving the camera and reading it back, and its
 watch on the controller: a killed, silent or dropped controller mid-move is a DeviceFault at once
 (not after ur_rtde's 300 s), as are a protective stop and a move past move_timeout_s."""
-import selectors
-import socket
-import subprocess
 import sys
 import threading
 import time
@@ -24,8 +21,8 @@ from cell.loader import load_task
 from cell.scene import look_at
 from sim import ur5e
 from sim import ur_controller
-from sim.ur_controller import DASHBOARD_PORT
-from loopback import free_host
+import loopback
+from loopback import free_host, start_emulator, stop_emulator
 from simcell import device_settings
 
 HOST = free_host()                      # UR's ports are fixed: an address of this module's own
@@ -41,29 +38,11 @@ class Emulators:
     def __init__(self, log_dir):
         self.log_dir, self.count, self.shared_process = log_dir, 0, None
 
-    def start(self, options, max_seconds, ready_timeout_s=15.0):
+    def start(self, options, max_seconds):
         self.count += 1
-        log = self.log_dir / f"ur_controller-{self.count}.log"
-        with open(log, "w") as stderr:
-            process = subprocess.Popen(
-                [sys.executable, "-m", "sim.ur_controller", "--host", HOST, "--max-seconds", str(max_seconds),
-                 *options],
-                stdout=subprocess.PIPE, stderr=stderr, text=True)
-        process.log, process.log_seen = log, 0
-        with selectors.DefaultSelector() as selector:
-            selector.register(process.stdout, selectors.EVENT_READ)
-            line = process.stdout.readline().strip() if selector.select(ready_timeout_s) else ""
-        if line != "READY":
-            self.stop(process)
-            pytest.fail(f"UR emulator not READY within {ready_timeout_s} s: {log.read_text().strip()}")
-        return process
+        return start_emulator(HOST, options, max_seconds, self.log_dir / f"ur_controller-{self.count}.log")
 
-    @staticmethod
-    def stop(process):
-        if process is not None:
-            process.kill()
-            process.wait(timeout=10)
-            process.stdout.close()
+    stop = staticmethod(stop_emulator)
 
     @staticmethod
     def show_log(process):
@@ -117,12 +96,7 @@ def controller(emulators):
 
 
 def dashboard(command):
-    """One dashboard command and its answer line."""
-    with socket.create_connection((HOST, DASHBOARD_PORT), timeout=2.0) as sock:
-        reader = sock.makefile("rb")
-        reader.readline()                                         # the welcome line
-        sock.sendall(command.encode() + b"\n")
-        return reader.readline().decode().strip()
+    return loopback.dashboard(HOST, command)
 
 
 @contextmanager
