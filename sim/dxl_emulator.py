@@ -122,6 +122,7 @@ class DxlEmulator:
         self.servos = {i: Servo(i, model_number, firmware) for i in ids}
         self.speedup = speedup
         self.received, self.sent = [], []           # raw packets, as on the wire
+        self.lose_replies = 0                        # status packets still to lose (lose())
         self.lock = threading.Lock()
         self._master, self._slave = pty.openpty()
         tty.setraw(self._slave)
@@ -147,6 +148,11 @@ class DxlEmulator:
             self._thread.join()
         os.close(self._master)
         os.close(self._slave)
+
+    def lose(self, replies):
+        """The next `replies` status packets are lost on the bus (noise): never sent."""
+        with self.lock:
+            self.lose_replies = replies
 
     def inject_hardware_error(self, dxl_id, bits):
         """Set Hardware Error Status; like the real servo's shutdown, the torque goes off."""
@@ -189,6 +195,9 @@ class DxlEmulator:
         servo = self.servos[dxl_id]
         alert = ALERT if servo.get(HARDWARE_ERROR_STATUS) else 0
         raw = packet(dxl_id, STATUS, params, error | alert)
+        if self.lose_replies:
+            self.lose_replies -= 1
+            return
         self.sent.append(raw)
         os.write(self._master, raw)
 

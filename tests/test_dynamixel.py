@@ -16,6 +16,7 @@ from dynamixel_sdk import (COMM_RX_TIMEOUT, COMM_SUCCESS, GroupSyncRead, GroupSy
 
 from cell import servo
 from cell.errors import DeviceFault
+from cell.hw import dynamixel
 from cell.hw.dynamixel import DynamixelPanTilt
 from cell.operator import Operator
 from cell.task import LampRig
@@ -198,6 +199,19 @@ def test_goal_outside_the_servos_position_limits_is_refused_before_moving():
         with pytest.raises(DeviceFault, match=r"servo 1: goal tick 3755 outside its position limits \[0, 3000"):
             rig.move(np.radians(150.0), np.radians(45.0), 0.3)
         assert emulator.servos[1].get(servo.GOAL_POSITION) == 2048
+        rig.close()
+
+
+def test_a_lost_status_packet_is_asked_again_and_only_a_servo_that_never_answers_is_a_fault():
+    with bus(ids=(1, 2), speedup=10) as emulator:
+        rig = pan_tilt(emulator)
+        rig.move(np.radians(30.0), np.radians(45.0), 0.30)
+        emulator.lose(2)                         # two replies lost: the third attempt answers
+        assert np.degrees(rig.joints()[0]) == pytest.approx(30.0, abs=0.05)
+        assert np.degrees(rig.joints()[1]) == pytest.approx(45.0, abs=0.05)   # nothing stale left over
+        emulator.lose(dynamixel.ATTEMPTS)
+        with pytest.raises(DeviceFault, match="servo 1: read 132: .*There is no status packet"):
+            rig.joints()
         rig.close()
 
 

@@ -6,17 +6,24 @@ pyserial's SerialException, an OSError, or termios.error (no OSError: tcdrain an
 vanished tty, EIO), and leaves the SDK's port flagged in use, so that every later call would
 report "Port is in use!". So each SDK call goes through `_sdk`: the first such failure is a
 DeviceFault saying the link is lost, and so is every later call, unsent.
+
+A ping or a read without a status packet is asked again (ATTEMPTS in all): they change nothing,
+a bus loses a packet now and then, and the SDK's busy wait misses a reply that came while the
+process was descheduled past its timeout (2 latency timers + 2 ms, 34 ms here). A late reply is
+drained first, so it cannot be taken for the next question's.
 """
 import termios
 import time
 
 import serial
-from dynamixel_sdk import COMM_SUCCESS, GroupSyncWrite, PacketHandler, PortHandler
+from dynamixel_sdk import COMM_RX_TIMEOUT, COMM_SUCCESS, GroupSyncWrite, PacketHandler, PortHandler
 
 from cell.errors import DeviceFault
 from cell.servo import (ALERT, GOAL_POSITION, HARDWARE_ERROR_STATUS, MAX_POSITION_LIMIT, MIN_POSITION_LIMIT,
                         MODELS, MOVING, OPERATING_MODE, POSITION_MODE, PRESENT_POSITION, PROFILE_VELOCITY,
                         TORQUE_ENABLE, ServoRig, describe_hardware_error, profile_velocity)
+
+ATTEMPTS = 3
 
 
 class DynamixelPanTilt(ServoRig):
@@ -50,8 +57,20 @@ class DynamixelPanTilt(ServoRig):
             self._lost = f"serial link {self.config.port} lost ({err})"
             raise DeviceFault(self.device, self._lost) from None
 
+    def _ask(self, call, dxl_id, *args):
+        """A ping or read, call(port, dxl_id, *args) -> (value, comm, error), asked again while no
+        status packet comes, the input drained of a late one first."""
+        for attempt in range(ATTEMPTS):
+            if attempt:
+                time.sleep(self._port.packet_timeout / 1e3)          # ms
+                self._sdk(self._port.ser.reset_input_buffer)
+            value, comm, error = self._sdk(call, self._port, dxl_id, *args)
+            if comm != COMM_RX_TIMEOUT:
+                break
+        return value, comm, error
+
     def _connect(self, dxl_id):
-        model, comm, error = self._sdk(self._packet.ping, self._port, dxl_id)
+        model, comm, error = self._ask(self._packet.ping, dxl_id)
         self._check(dxl_id, comm, error, "ping")
         if model not in MODELS:
             raise DeviceFault(self.device, f"servo {dxl_id} is model {model}; expected one with the "
@@ -68,8 +87,7 @@ class DynamixelPanTilt(ServoRig):
         if comm != COMM_SUCCESS:
             raise DeviceFault(self.device, f"servo {dxl_id}: {what}: {self._packet.getTxRxResult(comm)}")
         if error & ALERT and not alert_ok:
-            bits, comm, _ = self._sdk(self._packet.read1ByteTxRx, self._port, dxl_id,
-                                      HARDWARE_ERROR_STATUS.address)
+            bits, comm, _ = self._ask(self._packet.read1ByteTxRx, dxl_id, HARDWARE_ERROR_STATUS.address)
             status = describe_hardware_error(bits) if comm == COMM_SUCCESS else "(status unreadable)"
             raise DeviceFault(self.device, f"servo {dxl_id}: Hardware Error Status {status}")
         if error & ~ALERT:
@@ -78,7 +96,7 @@ class DynamixelPanTilt(ServoRig):
     def _read(self, dxl_id, item):
         read = {1: self._packet.read1ByteTxRx, 2: self._packet.read2ByteTxRx,
                 4: self._packet.read4ByteTxRx}[item.size]
-        value, comm, error = self._sdk(read, self._port, dxl_id, item.address)
+        value, comm, error = self._ask(read, dxl_id, item.address)
         self._check(dxl_id, comm, error, f"read {item.address}")
         return value - (1 << 32) if item.size == 4 and value >= 1 << 31 else value   # int32
 
