@@ -229,17 +229,19 @@ class URArm(Arm):
             raise self._fault(f"stopL failed: {err}") from None
 
     def close(self):
-        """stopScript to a controller that still answers, disconnect both interfaces (each
-        within connect_timeout_s: to a silent controller ur_rtde's disconnect waits 5 s for its
-        reconnecting threads), then end the worker."""
+        """stopScript and disconnect both interfaces (within 2 connect timeouts + 1 s) when the
+        controller still answers; a gone or silent one gets neither (stopScript would wait 300 s,
+        ur_rtde's disconnect 5 s for its reconnecting threads): the worker is ended at once, which
+        closes its sockets."""
+        disconnects = []
         try:
             self._alive("stopScript")
             self._control.stopScript()
+            disconnects = [("control", "disconnect", ()), ("receive", "disconnect", ())]
         except (DeviceFault, RuntimeError):
-            pass                  # gone or silent: stopScript would wait 300 s; still let go below
+            pass
         finally:
-            self._worker.close([("control", "disconnect", ()), ("receive", "disconnect", ())],
-                               2 * self.config.connect_timeout_s + 1.0)
+            self._worker.close(disconnects, 2 * self.config.connect_timeout_s + 1.0)
 
 
 def _angle(T_a, T_b):

@@ -79,7 +79,8 @@ class Worker:
 
     def close(self, calls=(), timeout_s=CLOSE_TIMEOUT_S):
         """Run each of calls (e.g. disconnects; one failing does not skip the next) within
-        timeout_s for all, then end the worker."""
+        timeout_s for all, then let the worker end; without calls it is killed at once (the
+        objects' destructors would disconnect, which ur_rtde does slowly from a silent host)."""
         deadline = time.monotonic() + timeout_s
         try:
             for call in calls:
@@ -89,7 +90,7 @@ class Worker:
                     self.call([call], max(deadline - time.monotonic(), 0.0), call[1])
                 except (DeviceFault, RuntimeError):
                     pass
-            if not self._dead:
+            if calls and not self._dead:
                 self._conn.send(None)                       # end
                 self._process.join(max(deadline - time.monotonic(), 0.0))
         except OSError:
