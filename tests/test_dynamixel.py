@@ -202,13 +202,17 @@ def test_goal_outside_the_servos_position_limits_is_refused_before_moving():
         rig.close()
 
 
-def test_a_lost_status_packet_is_asked_again_and_only_a_servo_that_never_answers_is_a_fault():
+def test_a_lost_status_packet_is_sent_again_and_only_a_servo_that_never_answers_is_a_fault():
     with bus(ids=(1, 2), speedup=10) as emulator:
         rig = pan_tilt(emulator)
         rig.move(np.radians(30.0), np.radians(45.0), 0.30)
         emulator.lose(2)                         # two replies lost: the third attempt answers
         assert np.degrees(rig.joints()[0]) == pytest.approx(30.0, abs=0.05)
         assert np.degrees(rig.joints()[1]) == pytest.approx(45.0, abs=0.05)   # nothing stale left over
+        emulator.lose(dynamixel.ATTEMPTS - 1)      # a write too: it sets an absolute value
+        rig._write(1, servo.PROFILE_VELOCITY, 77)
+        assert emulator.servos[1].get(servo.PROFILE_VELOCITY) == 77
+        assert sum(raw[7] == 0x03 for raw in emulator.received[-dynamixel.ATTEMPTS:]) == dynamixel.ATTEMPTS
         emulator.lose(dynamixel.ATTEMPTS)
         with pytest.raises(DeviceFault, match="servo 1: read 132: .*There is no status packet"):
             rig.joints()

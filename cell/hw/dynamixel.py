@@ -7,10 +7,11 @@ vanished tty, EIO), and leaves the SDK's port flagged in use, so that every late
 report "Port is in use!". So each SDK call goes through `_sdk`: the first such failure is a
 DeviceFault saying the link is lost, and so is every later call, unsent.
 
-A ping or a read without a status packet is asked again (ATTEMPTS in all): they change nothing,
-a bus loses a packet now and then, and the SDK's busy wait misses a reply that came while the
-process was descheduled past its timeout (2 latency timers + 2 ms, 34 ms here). A late reply is
-drained first, so it cannot be taken for the next question's.
+A ping, read or write without a status packet is sent again (ATTEMPTS in all): a ping or read
+changes nothing and every write here sets an absolute value, so a repeat is harmless, while a
+bus loses a packet now and then and the SDK's busy wait misses a reply that came while the
+process was descheduled past its timeout (2 latency timers + 2 ms, 36 ms here; seen on this
+loaded 2-core machine). A late reply is drained first, so it cannot be taken for the next one's.
 """
 import termios
 import time
@@ -58,16 +59,16 @@ class DynamixelPanTilt(ServoRig):
             raise DeviceFault(self.device, self._lost) from None
 
     def _ask(self, call, dxl_id, *args):
-        """A ping or read, call(port, dxl_id, *args) -> (value, comm, error), asked again while no
-        status packet comes, the input drained of a late one first."""
+        """A ping, read or write, call(port, dxl_id, *args) -> (..., comm, error), sent again while
+        no status packet comes, the input drained of a late one first."""
         for attempt in range(ATTEMPTS):
             if attempt:
                 time.sleep(self._port.packet_timeout / 1e3)          # ms
                 self._sdk(self._port.ser.reset_input_buffer)
-            value, comm, error = self._sdk(call, self._port, dxl_id, *args)
+            *value, comm, error = self._sdk(call, self._port, dxl_id, *args)
             if comm != COMM_RX_TIMEOUT:
                 break
-        return value, comm, error
+        return (*value, comm, error)
 
     def _connect(self, dxl_id):
         model, comm, error = self._ask(self._packet.ping, dxl_id)
@@ -102,7 +103,7 @@ class DynamixelPanTilt(ServoRig):
 
     def _write(self, dxl_id, item, value, alert_ok=False):
         write = {1: self._packet.write1ByteTxRx, 4: self._packet.write4ByteTxRx}[item.size]
-        comm, error = self._sdk(write, self._port, dxl_id, item.address, int(value) & 0xFFFFFFFF)
+        comm, error = self._ask(write, dxl_id, item.address, int(value) & 0xFFFFFFFF)
         self._check(dxl_id, comm, error, f"write {item.address}", alert_ok)
 
     def _drive(self, goals):
