@@ -123,6 +123,8 @@ class DxlEmulator:
         self.speedup = speedup
         self.received, self.sent = [], []           # raw packets, as on the wire
         self.lose_replies = 0                        # status packets still to lose (lose())
+        self.late_replies = (0, 0.0)                 # (how many, by how long): late()
+        self.synced = threading.Event()              # set when a Sync Write (goal positions) came
         self.lock = threading.Lock()
         self._master, self._slave = pty.openpty()
         tty.setraw(self._slave)
@@ -153,6 +155,11 @@ class DxlEmulator:
         """The next `replies` status packets are lost on the bus (noise): never sent."""
         with self.lock:
             self.lose_replies = replies
+
+    def late(self, replies, delay_s):
+        """The next `replies` status packets are sent `delay_s` late (a reply the SDK gave up on)."""
+        with self.lock:
+            self.late_replies = (replies, delay_s)
 
     def inject_hardware_error(self, dxl_id, bits):
         """Set Hardware Error Status; like the real servo's shutdown, the torque goes off."""
@@ -199,6 +206,11 @@ class DxlEmulator:
             self.lose_replies -= 1
             return
         self.sent.append(raw)
+        late, delay_s = self.late_replies
+        if late:
+            self.late_replies = (late - 1, delay_s)
+            threading.Timer(delay_s, os.write, (self._master, raw)).start()
+            return
         os.write(self._master, raw)
 
     def _handle(self, raw):
@@ -227,6 +239,7 @@ class DxlEmulator:
                 if unicast:
                     self._reply(i, error)
         elif instruction == SYNC_WRITE:
+            self.synced.set()
             for k in range(4, len(params), length + 1):
                 if params[k] in self.servos:
                     self.servos[params[k]].write(address, params[k + 1:k + 1 + length])

@@ -219,6 +219,23 @@ def test_a_lost_status_packet_is_sent_again_and_only_a_servo_that_never_answers_
         rig.close()
 
 
+def test_a_reply_that_comes_after_the_sdk_gave_up_is_never_taken_for_the_next_answer():
+    """Replies later than the wait: taken for the next question's answer, a position would pass
+    for the Max Position Limit. The line is waited out before each repeat, so the position's
+    reads end in a fault instead."""
+    with bus(ids=(1, 2), speedup=10) as emulator:
+        rig = pan_tilt(emulator)
+        rig.move(np.radians(30.0), np.radians(45.0), 0.30)
+        timeout_s = (2 * 16 + 2.0 + dynamixel.SLACK_MS) / 1e3       # the SDK's wait and ours
+        emulator.late(3, 1.2 * timeout_s)
+        with pytest.raises(DeviceFault, match="servo 1: read 132: .*There is no status packet"):
+            rig._read(1, servo.PRESENT_POSITION)
+            pytest.fail(f"Max Position Limit read as {rig._read(1, servo.MAX_POSITION_LIMIT)}")
+        time.sleep(2 * timeout_s)
+        assert rig._read(1, servo.MAX_POSITION_LIMIT) == 4095
+        rig.close()
+
+
 def test_a_serial_link_that_goes_away_is_a_fault_now_and_for_every_later_call():
     """The pty closes, as an unplugged adapter: the SDK's termios.error (EIO) on its next call is a
     DeviceFault saying the link is lost, and the stop after it says so too, not 'Port is in use!'

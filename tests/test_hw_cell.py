@@ -26,7 +26,7 @@ import pytest
 
 from cell import servo
 from loopback import dashboard, free_host, start_emulator, stop_emulator
-from sim.dxl_emulator import SYNC_WRITE, DxlEmulator
+from sim.dxl_emulator import DxlEmulator
 from simcell import variant
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -151,11 +151,8 @@ def when_moving(host, then):
 def when_servos_get_goals(servos, then):
     """A thread waiting for the pan-tilt's Sync Write of goal positions, then calling then()."""
     def watch():
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline:
-            if any(raw[7] == SYNC_WRITE for raw in list(servos.received)):
-                return then()
-            time.sleep(0.002)
+        if servos.synced.wait(120):
+            then()
     thread = threading.Thread(target=watch, daemon=True)
     thread.start()
     return thread

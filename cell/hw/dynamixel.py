@@ -7,17 +7,20 @@ vanished tty, EIO), and leaves the SDK's port flagged in use, so that every late
 report "Port is in use!". So each SDK call goes through `_sdk`: the first such failure is a
 DeviceFault saying the link is lost, and so is every later call, unsent.
 
-A ping, read or write without a status packet is sent again (ATTEMPTS in all): a ping or read
-changes nothing and every write here sets an absolute value, so a repeat is harmless, while a
-bus loses a packet now and then and the SDK's busy wait misses a reply that came while the
-process was descheduled past its timeout (2 latency timers + 2 ms, 36 ms here; seen on this
-loaded 2-core machine). A late reply is drained first, so it cannot be taken for the next one's.
+The SDK waits 2 latency timers + 2 ms for a status packet (36 ms), and its busy wait misses a
+reply that came while the process was descheduled between reading nothing and checking the
+clock (seen on a loaded 2-core machine), so the port (`_Port`) waits SLACK_MS longer. A ping,
+read or write still without a status packet is sent again (ATTEMPTS in all): a ping or read
+changes nothing and every write here sets an absolute value, and a bus loses a packet now and
+then. Before it, a late reply is waited out and discarded (the line quiet for QUIET_S), so it
+cannot be taken for the next question's answer.
 """
 import termios
 import time
 
 import serial
 from dynamixel_sdk import COMM_RX_TIMEOUT, COMM_SUCCESS, GroupSyncWrite, PacketHandler, PortHandler
+from dynamixel_sdk.port_handler import LATENCY_TIMER
 
 from cell.errors import DeviceFault
 from cell.servo import (ALERT, GOAL_POSITION, HARDWARE_ERROR_STATUS, MAX_POSITION_LIMIT, MIN_POSITION_LIMIT,
@@ -25,6 +28,16 @@ from cell.servo import (ALERT, GOAL_POSITION, HARDWARE_ERROR_STATUS, MAX_POSITIO
                         TORQUE_ENABLE, ServoRig, describe_hardware_error, profile_velocity)
 
 ATTEMPTS = 3
+SLACK_MS = 50.0
+QUIET_S = (2 * LATENCY_TIMER + 2.0 + SLACK_MS) / 1e3
+
+
+class _Port(PortHandler):
+    """The SDK's port, waiting SLACK_MS longer for every status packet."""
+
+    def setPacketTimeout(self, packet_length):
+        super().setPacketTimeout(packet_length)
+        self.packet_timeout += SLACK_MS
 
 
 class DynamixelPanTilt(ServoRig):
@@ -32,7 +45,7 @@ class DynamixelPanTilt(ServoRig):
 
     def __init__(self, rig, config, operator):
         super().__init__(rig, config, operator)
-        self._port, self._packet = PortHandler(config.port), PacketHandler(2.0)
+        self._port, self._packet = _Port(config.port), PacketHandler(2.0)
         self._lost = None                    # why the serial link is gone, once it is
         try:
             self._port.openPort()
@@ -63,12 +76,19 @@ class DynamixelPanTilt(ServoRig):
         no status packet comes, the input drained of a late one first."""
         for attempt in range(ATTEMPTS):
             if attempt:
-                time.sleep(self._port.packet_timeout / 1e3)          # ms
-                self._sdk(self._port.ser.reset_input_buffer)
+                self._sdk(self._drain)
             *value, comm, error = self._sdk(call, self._port, dxl_id, *args)
             if comm != COMM_RX_TIMEOUT:
                 break
         return (*value, comm, error)
+
+    def _drain(self):
+        """Discard what arrives until the line is quiet for QUIET_S (at most 10 times)."""
+        for _ in range(10):
+            time.sleep(QUIET_S)
+            if not self._port.ser.in_waiting:
+                return
+            self._port.ser.reset_input_buffer()
 
     def _connect(self, dxl_id):
         model, comm, error = self._ask(self._packet.ping, dxl_id)
