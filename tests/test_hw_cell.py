@@ -31,8 +31,9 @@ from simcell import variant
 
 ROOT = Path(__file__).resolve().parent.parent
 HINGE = ROOT / "tasks/hinge.yaml"
-CONNECT_TIMEOUT_S = 0.5
-MOVE_TIMEOUT_S = 4.0              # the arm's move from the emulator's home takes about 0.9 s
+# ur_rtde's command handshake took over 0.5 s once with this 2-core machine at a load of 6
+CONNECT_TIMEOUT_S = 1.0
+MOVE_TIMEOUT_S = 5.0              # the arm's move from the emulator's home takes about 0.9 s
 SETTINGS = {
     "cell.arm.connect_timeout_s": CONNECT_TIMEOUT_S, "cell.arm.speed_m_s": 0.25,
     "cell.arm.acceleration_m_s2": 1.2, "cell.arm.move_timeout_s": MOVE_TIMEOUT_S,

@@ -4,13 +4,16 @@ the connection - after RTDE's protocol version, at RTDE's start once the recipes
 after the dashboard's greeting, on the script port - are each a DeviceFault naming the arm, the
 host and the step within connect_timeout_s and a small margin, never a hang. The listeners run in
 this test process as threads: possible only because ur_rtde no longer holds this process's GIL."""
-import multiprocessing
+import os
 import socket
 import statistics
+import subprocess
+import sys
 import threading
 import time
 from contextlib import contextmanager
 from dataclasses import replace
+from pathlib import Path
 
 import pytest
 
@@ -34,7 +37,16 @@ def arm_config(host, timeout_s=TIMEOUT_S):
 
 
 def no_worker_left():
-    return not [p for p in multiprocessing.active_children() if p.name.startswith("ur_rtde worker")]
+    """No child of this process runs cell.hw.ur_worker (zombies included: every worker is reaped)."""
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+            command = (stat.parent / "cmdline").read_bytes()
+        except (OSError, IndexError, ValueError):
+            continue
+        if ppid == os.getpid() and b"cell.hw.ur_worker" in command:
+            return False
+    return True
 
 
 def fails_in_time(host, match, timeout_s=TIMEOUT_S):
@@ -130,14 +142,26 @@ def test_the_move_watchers_round_trip_to_the_worker_stays_well_under_its_poll_pe
             assert state.connected and state.runtime_state == ur.PLAYING and len(state.tcp_pose) == 6
             assert statistics.median(times) < 0.2 * ur.POLL_S, times
             assert arm._receive.getRobotMode() == ur_controller.RUNNING         # any getter, by name
+            assert not no_worker_left()
         finally:
             arm.close()
         assert no_worker_left()
 
 
+def test_the_worker_starts_from_any_main_even_a_script_without_a_main_guard():
+    """(multiprocessing's spawn would re-run such a script in the child and fail)"""
+    code = ("from cell.hw.ur_worker import Worker\n"
+            "worker = Worker('arm', 'UR at 127.0.0.9')\n"
+            "print(worker.call([], 5.0, 'nothing'))\n"
+            "worker.close()\n")
+    done = subprocess.run([sys.executable, "-"], input=code, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0 and done.stdout.strip() == "[]", done.stderr
+
+
 def test_a_worker_that_died_is_a_fault_naming_the_step_and_later_calls_say_why():
     worker = Worker("arm", "UR at 127.0.0.9")
     worker._process.kill()
+    worker._process.wait()
     with pytest.raises(DeviceFault, match=r"UR at 127.0.0.9: getActualQ: the ur_rtde worker process ended"):
         worker.call([("receive", "getActualQ", ())], 1.0, "getActualQ")
     with pytest.raises(DeviceFault, match=r"stopL not sent: the ur_rtde worker process ended"):

@@ -2,18 +2,24 @@
 
 ur_rtde's constructors have no read timeout and hold the GIL while they block (checked: one in a
 worker thread froze the whole interpreter), and its commands wait up to 300 s for a "done". So
-the interfaces live in a spawned process of their own, and the controller sends it requests over
-a pipe, one at a time, each with a timeout. A worker that does not answer in time is killed
+the interfaces live in a process of their own (`python -m cell.hw.ur_worker`, a fresh
+interpreter: not multiprocessing's spawn, which re-runs the caller's main script and so fails in
+a script without a main guard), and the controller sends it requests over a socket pair, one at
+a time, each with a timeout. A worker that does not answer in time is killed
 (the kernel closes its sockets) and that is a DeviceFault naming the device, its address and the
 step. One request may carry several calls (`Worker.call`), so a watcher polling the receive side
 pays one round trip per poll, not one per getter.
 """
 import builtins
 import ctypes
-import multiprocessing
 import os
 import signal
+import socket
+import subprocess
+import sys
 import time
+from multiprocessing.connection import Connection
+from pathlib import Path
 
 from cell.errors import DeviceFault
 
@@ -23,17 +29,20 @@ PR_SET_PDEATHSIG = 1          # linux/prctl.h
 
 
 class Worker:
-    """A spawned process holding ur_rtde objects by name ("receive", "control"). `device` and
-    `address` name what a DeviceFault is about, e.g. "arm" and "UR at 192.168.1.10"."""
+    """A process holding ur_rtde objects by name ("receive", "control"). `device` and `address`
+    name what a DeviceFault is about, e.g. "arm" and "UR at 192.168.1.10"."""
 
     def __init__(self, device, address):
         self.device, self.address = device, address
-        context = multiprocessing.get_context("spawn")    # not fork: the parent may hold threads, Warp
-        self._conn, child = context.Pipe()
-        self._process = context.Process(target=serve, args=(child, os.getpid()), daemon=True,
-                                        name=f"ur_rtde worker ({address})")
-        self._process.start()
-        child.close()
+        ours, theirs = socket.socketpair()
+        env = dict(os.environ)               # the child imports this very `cell`, wherever it lies
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, (str(Path(__file__).resolve().parents[2]),
+                                                          env.get("PYTHONPATH"))))
+        with theirs:
+            self._process = subprocess.Popen(
+                [sys.executable, "-m", "cell.hw.ur_worker", str(theirs.fileno()), str(os.getpid())],
+                pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL, env=env)
+        self._conn = Connection(ours.detach())
         self._dead = None                                 # why the worker is gone, once it is
         self.call([], START_TIMEOUT_S, "start of the ur_rtde worker process")
 
@@ -49,8 +58,8 @@ class Worker:
             self._conn.send(list(calls))
             answered = self._conn.poll(timeout_s)
             reply = self._conn.recv() if answered else None
-        except (OSError, EOFError):                     # the worker died (its pipe closed)
-            code = self._process.exitcode
+        except (OSError, EOFError):                     # the worker died (its socket closed)
+            code = self._process.poll()
             self.kill(f"the ur_rtde worker process ended (exit code {code})")
             raise self._fault(f"{step}: {self._dead}") from None
         if reply is None:
@@ -72,9 +81,9 @@ class Worker:
         """End the worker at once (its sockets close with it); later calls are DeviceFaults saying why."""
         if self._dead is None:
             self._dead = why
-        if self._process.is_alive():
+        if self._process.poll() is None:
             self._process.kill()
-        self._process.join(CLOSE_TIMEOUT_S)
+        self._process.wait(CLOSE_TIMEOUT_S)
         self._conn.close()
 
     def close(self, calls=(), timeout_s=CLOSE_TIMEOUT_S):
@@ -92,8 +101,8 @@ class Worker:
                     pass
             if calls and not self._dead:
                 self._conn.send(None)                       # end
-                self._process.join(max(deadline - time.monotonic(), 0.0))
-        except OSError:
+                self._process.wait(max(deadline - time.monotonic(), 0.0))
+        except (OSError, subprocess.TimeoutExpired):
             pass
         finally:
             self.kill()
@@ -153,3 +162,7 @@ def _die_with_parent(parent_pid):
         return
     if os.getppid() != parent_pid:             # the parent died before prctl took effect
         os._exit(0)
+
+
+if __name__ == "__main__":
+    serve(Connection(int(sys.argv[1])), int(sys.argv[2]))
