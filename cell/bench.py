@@ -140,7 +140,7 @@ def kernel_rows(task, quick, repeats, say):
     rows = []
     for size in QUICK_GRAY_SIZES if quick else GRAY_SIZES:
         for shadows in (True, False):
-            rows.append(benchmark_gray(scene.warp_mesh, scene.points, scene.normals, scene.camera_position,
+            rows.extend(benchmark_gray(scene.warp_mesh, scene.points, scene.normals, scene.camera_position,
                                        task.part.material.table(), task.lamp.power_w, task.lamp.cone_angle_rad,
                                        sensor.camera_constant, sensor.pixel_area_m2, evaluations=size,
                                        shadows=shadows, repeat=repeats))

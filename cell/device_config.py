@@ -8,14 +8,16 @@ from pathlib import Path
 import numpy as np
 
 from cell.errors import TaskError
-from cell.schema import POSITIVE, Choice, Integer, Invalid, Number, Pair, Section, Spec, Text, Vector, show
+from cell.schema import (POSITIVE, Choice, Integer, Invalid, Number, Pair, Section, Spec, Text, Vector,
+                         _unit, show)
 
 MAX_SPEED_M_S = 0.25            # ur_rtde's default moveL speed: a hard cap for an inspection cell
 MAX_ACCELERATION_M_S2 = 1.2     # ur_rtde's default moveL acceleration
 MAX_SERVO_SPEED_DEG_S = 90.0
-# opencv: cv2.VideoCapture; simulated: frames rendered by the simulator from the real arm's and
-# pan-tilt's read-back poses, a dry run of a real arm and lamp rig without a camera
-CAMERA_DRIVERS = ("opencv", "simulated")
+# opencv: cv2.VideoCapture; genicam: harvesters and a GenTL producer; simulated: frames rendered by
+# the simulator from the real arm's and pan-tilt's read-back poses, a dry run of a real arm and
+# lamp rig without a camera
+CAMERA_DRIVERS = ("opencv", "genicam", "simulated")
 DXL_BAUD_RATES = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 921600,
                   1000000, 1152000, 2000000, 2500000, 3000000, 3500000, 4000000)  # the SDK's list
 
@@ -49,10 +51,16 @@ class PanTiltConfig:
 
 @dataclass(frozen=True)
 class CameraConfig:
-    driver: str                             # CAMERA_DRIVERS
-    source: int | str                       # cv2.VideoCapture index or path
-    exposure_unit_s: float                  # CAP_PROP_EXPOSURE unit (V4L2: 100 us)
-    discard_frames: int                     # frames still exposed the old way after a change
+    driver: str                             # CAMERA_DRIVERS: which backend class
+    source: int | str                       # opencv: cv2.VideoCapture index or path
+    exposure_unit_s: float                  # opencv: CAP_PROP_EXPOSURE unit (V4L2: 100 us)
+    discard_frames: int                     # opencv: frames still exposed the old way after a change
+    cti: Path | None                        # genicam: the GenTL producer (a .cti file)
+    serial_number: str | None               # genicam: the device, by serial number ...
+    device_index: int                       #   ... or by its place in the producer's list
+    pixel_format: str | None                # genicam: Mono8 | Mono12 | Mono16, None: by bit depth
+    gain: float | None                      # genicam: the Gain node's value, None: left as is
+    frame_timeout_s: float                  # genicam: a frame later than shutter + this is a fault
 
 
 @dataclass(frozen=True)
@@ -78,6 +86,21 @@ class _Source(Spec):
         raise Invalid(raw, self.expected)
 
 
+class _SerialNumber(Spec):
+    """A serial number as text; YAML reads an all-digit one as an integer, which is the same."""
+
+    expected = "a serial number (text or digits)"
+    default = None
+
+    def convert(self, raw, to_si):
+        if isinstance(raw, int) and not isinstance(raw, bool) and raw >= 0:
+            return str(raw)
+        if isinstance(raw, str) and raw.strip():
+            return raw.strip()
+        raise Invalid(raw, self.expected)
+
+
+MONO_FORMATS = {"Mono8": 8, "Mono12": 12, "Mono16": 16}    # PFNC name -> bits per pixel value
 ANGLE = dict(ok=lambda v: abs(v) <= np.pi, expected="an angle within [-180, 180] deg")
 # defaults: the example cell, a UR5e on the table beside the part, the camera 5 cm past the flange
 ARM = Section({
@@ -117,16 +140,27 @@ CAMERA = Section({
     "source": _Source(),
     "exposure_unit_s": Number(**POSITIVE, default=1e-4),
     "discard_frames": Integer(0, 100, default=2),
+    "cti": Text(default=None),
+    "serial_number": _SerialNumber(),
+    "device_index": Integer(0, default=0),
+    "pixel_format": Choice(*MONO_FORMATS, default=None),
+    "gain": Number(lambda v: True, "a number (the device's Gain node, usually dB)", default=None),
+    "frame_timeout_s": Number(**POSITIVE, default=1.0),
 }, required=False)
+DRIVER_KEYS = {"opencv": ("source", "exposure_unit_s", "discard_frames"),   # cell.camera keys
+               "genicam": ("cti", "serial_number", "device_index", "pixel_format", "gain",
+                           "frame_timeout_s"),                              # only a driver reads
+               "simulated": ()}
 
 SECTIONS = {"arm": ARM, "pan_tilt": PAN_TILT, "camera": CAMERA}     # the task's cell.<name>
 
 
-def devices_config(file, cell, written):
+def devices_config(file, cell, written, bit_depth):
     """The parsed `cell` section's arm, pan_tilt and camera values -> DevicesConfig, after the
     checks one key alone cannot make (TaskError naming the file and key). `written`: the section
-    as the file wrote it, whose non-empty device sections are recorded as `given`. The base and
-    hand-eye poses go to the task's Frames."""
+    as the file wrote it, whose non-empty device sections are recorded as `given`; `bit_depth`:
+    camera.sensor's, which a pixel format must carry. The base and hand-eye poses go to the
+    task's Frames."""
     given = tuple(name for name in SECTIONS if (written or {}).get(name))
     a, p, c = cell["arm"], cell["pan_tilt"], cell["camera"]
     if not np.all(a["workspace_min_m"] < a["workspace_max_m"]):
@@ -148,6 +182,49 @@ def devices_config(file, cell, written):
         tilt_offset_rad=p["tilt_offset_rad"], radius_ticks=tuple(int(t) for t in p["radius_ticks"]),
         speed_rad_s=np.radians(p["speed_deg_s"]), move_timeout_s=p["move_timeout_s"],
         tolerance_ticks=p["tolerance_ticks"])
-    camera = CameraConfig(driver=c["driver"], source=c["source"], exposure_unit_s=c["exposure_unit_s"],
-                          discard_frames=c["discard_frames"])
+    camera = _camera_config(file, c, (written or {}).get("camera") or {}, bit_depth)
     return DevicesConfig(Path(file), arm, pan_tilt, camera, tuple(given))
+
+
+def _is_file(path):
+    try:
+        return path.is_file()
+    except OSError:                                     # e.g. a name too long for the system
+        return False
+
+
+def _camera_config(file, c, written, bit_depth):
+    """cell.camera -> CameraConfig: only the chosen driver's keys written, a GenTL producer that
+    is a .cti file (relative to the task file), one way to name the device, and a pixel format
+    with at least the sensor's bits (fewer would make up gray levels)."""
+    driver = c["driver"]
+    keys_of = {d: {_unit(k)[0] for k in keys} for d, keys in DRIVER_KEYS.items()}
+    for key in (k for k, v in written.items() if v is not None):    # empty is absent, as in parse
+        base = _unit(str(key))[0]                       # frame_timeout_ms is frame_timeout_s
+        other = next((d for d, bases in keys_of.items() if d != driver and base in bases), None)
+        if other and base not in keys_of[driver]:
+            raise TaskError(file, f"cell.camera.{key}", f"a setting of driver {other}",
+                            f"only the keys of driver {driver}: " + ", ".join(DRIVER_KEYS[driver]))
+    cti = None
+    if driver == "genicam":
+        if c["cti"] is None:
+            raise TaskError(file, "cell.camera.cti", "nothing",
+                            "the GenTL producer file (.cti) of the camera's vendor (driver genicam)")
+        cti = (Path(file).parent / c["cti"]).absolute()
+        if cti.suffix.lower() != ".cti" or not _is_file(cti):
+            raise TaskError(file, "cell.camera.cti", f"'{c['cti']}'" + ("" if _is_file(cti) else
+                            ", which is not a file"), "a GenTL producer file (.cti), relative to "
+                            "the task file or absolute")
+    if c["serial_number"] is not None and written.get("device_index") is not None:
+        raise TaskError(file, "cell.camera.device_index", f"{show(c['device_index'])} and "
+                        f"serial_number '{c['serial_number']}' both", "the device named one way")
+    fmt = c["pixel_format"]
+    if fmt is not None and MONO_FORMATS[fmt] < bit_depth:
+        raise TaskError(file, "cell.camera.pixel_format", f"{fmt} ({MONO_FORMATS[fmt]} bits)",
+                        f"a format of at least camera.sensor.bit_depth {bit_depth} bits: " +
+                        ", ".join(f for f, bits in MONO_FORMATS.items() if bits >= bit_depth))
+    return CameraConfig(
+        driver=driver, source=c["source"], exposure_unit_s=c["exposure_unit_s"],
+        discard_frames=c["discard_frames"], cti=cti, serial_number=c["serial_number"],
+        device_index=c["device_index"], pixel_format=fmt, gain=c["gain"],
+        frame_timeout_s=c["frame_timeout_s"])

@@ -84,6 +84,11 @@ class Arm(ABC):
     def stop(self):
         """Stop any motion now."""
 
+    def state(self):
+        """What the arm reports, read back and JSON-ready (`cell hw-check`); reads only. A backend
+        that knows more (modes, joints) says more; `problems`: what a run would stop on."""
+        return {"camera_pose": self.camera_pose().tolist(), "problems": []}
+
     def close(self):
         """Release the connection (after stop)."""
 
@@ -146,6 +151,13 @@ class LampRig(ABC):
     def stop(self, fault_is_own=False):
         """Hold position with torque on; torque off only if the fault is the servos' own."""
 
+    def state(self):
+        """The read-back joints [rad, m], JSON-ready (`cell hw-check`); reads only. `problems`:
+        what a run would stop on."""
+        pan, tilt, radius = self.joints()
+        return {"pan_rad": float(pan), "tilt_rad": float(tilt),
+                "radius_m": None if radius is None or np.isnan(radius) else float(radius), "problems": []}
+
     def close(self):
         """Release the port (after stop)."""
 
@@ -178,6 +190,13 @@ class Camera(ABC):
     @abstractmethod
     def capture(self):
         """One gray image (H, W) as uint8 (bit depth <= 8) or uint16."""
+
+    def state(self):
+        """What the camera reports, JSON-ready (`cell hw-check`); sets nothing. A backend that
+        can ask the device (model, pixel format, exposure range) says more; `problems`: what a run
+        would stop on."""
+        return {"bit_depth": self.bit_depth, "shutter_s": self.shutter_s, "f_number": self.f_number,
+                "focus_m": self.focus_m, "problems": []}
 
     def close(self):
         """Release the camera."""

@@ -3,6 +3,7 @@ vectorized over candidates: gray per sample from the bulk Warp kernel (G = u t /
 11, 17), the exposure that centres it in the band (sec. 5.4) and the lamp moved by its tolerance.
 The requirements (cell.requirements) are judged on these values."""
 from dataclasses import dataclass, fields, replace
+from functools import cached_property
 
 import numpy as np
 
@@ -63,6 +64,21 @@ class Problem:
     kappa_open: float
     camera_unseen: int
 
+    @cached_property
+    def gray_inputs(self):
+        """The kernel's fixed inputs (kernels.gray.GrayInputs), converted once per Problem: a
+        search evaluates it hundreds of times."""
+        from kernels.gray import GrayInputs
+        task, scene = self.task, self.scene
+        return GrayInputs(scene.warp_mesh, scene.points, scene.normals, scene.camera_position,
+                          task.lamp.power_w, task.lamp.cone_angle_rad, self.material.table(),
+                          task.camera.sensor.camera_constant, task.camera.sensor.pixel_area_m2,
+                          profile=task.lamp.profile)
+
+    def __getstate__(self):
+        """Pickled without the Warp arrays (rebuilt where unpickled)."""
+        return {k: v for k, v in self.__dict__.items() if k != "gray_inputs"}
+
 
 def build_problem(task, scene, maps, albedo_scale=1.0):
     """The Problem of a task's scene and maps. A sample the camera sees lies inside the image
@@ -86,13 +102,7 @@ def unit_gray(problem, positions, aims):
     """(gray per exposure u (C, P), shadowed (C, P), off-axis angle (C, P), dominant BRDF term
     (C, P)) of lamps at `positions` aiming along `aims`, from the Warp kernel, the irradiance by
     the lamp's profile (eq. 11's ideal cone without one)."""
-    from kernels.gray import gray_per_exposure
-    task, scene = problem.task, problem.scene
-    out = gray_per_exposure(
-        scene.warp_mesh, scene.points, scene.normals, scene.camera_position, positions, aims,
-        task.lamp.power_w, task.lamp.cone_angle_rad, problem.material.table(),
-        task.camera.sensor.camera_constant, task.camera.sensor.pixel_area_m2,
-        profile=task.lamp.profile)
+    out = problem.gray_inputs(positions, aims)
     return out.value, out.shadowed, out.off_axis, out.dominant
 
 
@@ -155,7 +165,7 @@ def tolerance_moves(problem, tilt):
 
 def candidates(problem, pan, tilt, radius, tolerance=True):
     """Candidates for lamp joints (C,) arrays. With `tolerance` the lamp is also moved by
-    lamp_tolerance in 4 directions (one bulk call for all)."""
+    lamp_tolerance in TOLERANCE_RING directions (one bulk call for all)."""
     pivot = problem.task.lamp.rig.pivot_m
     pan, tilt, radius = np.broadcast_arrays(*(np.atleast_1d(np.asarray(x, float)) for x in (pan, tilt, radius)))
     n = len(pan)

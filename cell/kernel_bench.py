@@ -7,6 +7,7 @@ against every triangle, cost per evaluation independent of the batch), so they a
 most `reference_evaluations` and compared per evaluation. Each call returns rows
 {name, size, warp_per_s, reference, reference_size, reference_per_s, ratio, unavailable}.
 """
+import functools
 import time
 
 import numpy as np
@@ -43,7 +44,9 @@ def benchmark_gray(mesh, points, normals, camera_pos, table, power_w=0.23043,
     """Gray evaluations (candidate x point) per second, kernels.gray vs cell.physics.reference.
 
     Candidates: random lamps 0.15-0.6 m from the points' centroid on its upper hemisphere,
-    aimed at it. Returns one row, named "gray" (with shadow rays) or "gray, no shadows".
+    aimed at it. Returns one row, named "gray" (with shadow rays) or "gray, no shadows"; with
+    shadows also "gray vs numpy + embree": NumPy's arithmetic with Embree casting the shadow rays
+    (trimesh.ray.ray_pyembree, the optional [bench] extra), at the kernel's own size.
     """
     points = np.asarray(points, dtype=float).reshape(-1, 3)
     rng = np.random.default_rng(seed)
@@ -65,8 +68,24 @@ def benchmark_gray(mesh, points, normals, camera_pos, table, power_w=0.23043,
     run(gray_per_exposure, 1)()
     t_warp = median_time(run(gray_per_exposure, n_warp), repeat)
     t_ref = median_time(run(reference.gray_per_exposure, n_ref), 1)
-    return _row("gray" if shadows else "gray, no shadows", n_warp * len(points),
-                n_warp * len(points) / t_warp, "numpy", n_ref * len(points), n_ref * len(points) / t_ref)
+    name = "gray" if shadows else "gray, no shadows"
+    rows = [_row(name, n_warp * len(points), n_warp * len(points) / t_warp, "numpy", n_ref * len(points),
+                 n_ref * len(points) / t_ref)]
+    if shadows:       # what a user would write instead: NumPy arithmetic, Embree's shadow rays
+        try:
+            blocked = _blocked_by(mesh, "ray_pyembree")
+        except ImportError as missing:
+            rows.append(_row("gray vs numpy + embree", n_warp * len(points), rows[0]["warp_per_s"],
+                             "numpy + trimesh.ray.ray_pyembree",
+                             unavailable=f"needs {missing.name or missing}, not installed"))
+            return rows
+        n_embree = max(1, evaluations // len(points))
+        impl = functools.partial(reference.gray_per_exposure, blocked=blocked)
+        t_embree = median_time(run(impl, n_embree), 1)
+        rows.append(_row("gray vs numpy + embree", n_warp * len(points), rows[0]["warp_per_s"],
+                         "numpy + trimesh.ray.ray_pyembree", n_embree * len(points),
+                         n_embree * len(points) / t_embree))
+    return rows
 
 
 def benchmark_visibility(mesh, points, normals, frame, azimuth, elevation,
@@ -105,6 +124,23 @@ def benchmark_visibility(mesh, points, normals, frame, azimuth, elevation,
         t_ref = median_time(lambda: caster(origins, ray_dirs), 1)
         rows.append(_row(name, len(p), rays_per_s, f"trimesh.ray.{module}", len(pick), len(pick) / t_ref))
     return rows
+
+
+def _blocked_by(mesh, module):
+    """blocked(origins, dirs, max_dist) -> bool (R,) of trimesh.ray.<module>: the first hit
+    nearer than max_dist along each ray."""
+    import importlib
+
+    import trimesh
+    ray = importlib.import_module(f"trimesh.ray.{module}")
+    intersector = ray.RayMeshIntersector(trimesh.Trimesh(mesh.vertices, mesh.faces, process=False))
+
+    def blocked(origins, dirs, max_dist):
+        hits, index, _ = intersector.intersects_location(origins, dirs, multiple_hits=False)
+        out = np.zeros(len(origins), dtype=bool)
+        out[index] = np.linalg.norm(hits - origins[index], axis=1) < np.broadcast_to(max_dist, len(origins))[index]
+        return out
+    return blocked
 
 
 def _trimesh_caster(mesh, module):

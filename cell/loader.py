@@ -283,7 +283,8 @@ def load_task(path):
     part, cam, lamp, cell, sim = v["part"], v["camera"], v["lamp"], v["cell"], v["sim"]
     arm = cell["arm"]
     _check_gray_band(path, v["requirements"]["gray_band"], cam["sensor"]["bit_depth"])
-    devices = devices_config(path, cell, written=data.get("cell"))
+    devices = devices_config(path, cell, written=data.get("cell"),
+                             bit_depth=cam["sensor"]["bit_depth"])
     _check_camera(path, cam)
     mesh_path, mesh = _load_mesh(path, part)
     material = load_material(_relative_file(path, "part.material", part["material"], "yaml"))

@@ -133,17 +133,21 @@ def explain_no_shadow(p, c, met):
 
 
 def cone_coverage(p, c):
-    return costs.ln_f_max(np.max(c.off_axis, axis=-1), 0.5 * p.task.lamp.cone_angle_rad)
+    """Every sample within the angle the lamp lights at all (lit_half_angle_rad: its profile's
+    end, gamma / 2 for the ideal cone); how evenly is the band's and the lamp tolerance's to judge,
+    with the profile in the gray."""
+    return costs.ln_f_max(np.max(c.off_axis, axis=-1), p.task.lamp.lit_half_angle_rad)
 
 
 def explain_cone_coverage(p, c, met):
     if met:
         return "the lamp's cone covers every sample"
-    half, radius = 0.5 * p.task.lamp.cone_angle_rad, p.task.feature.radius_m
+    half, radius = p.task.lamp.lit_half_angle_rad, p.task.feature.radius_m
     needed, reach = radius / np.tan(half), p.task.lamp.rig.radius_range_m[1]
     if needed > reach:
-        return (f"the lamp's {np.degrees(2 * half):g} deg cone covers the {2e3 * radius:g} mm patch only from "
-                f"{needed:.2f} m, the rig reaches {reach:g} m: use a wider cone or a smaller feature")
+        return (f"the lamp lights {np.degrees(half):.3g} deg off its axis and covers the {2e3 * radius:g} mm "
+                f"patch only from {needed:.2f} m, the rig reaches {reach:g} m: use a wider cone or a "
+                f"smaller feature")
     return "the lamp's cone does not cover the whole feature; move the lamp farther away"
 
 

@@ -16,6 +16,7 @@ MODEL_NUMBER = Item(0, 2)
 FIRMWARE_VERSION = Item(6, 1)
 ID = Item(7, 1)
 OPERATING_MODE = Item(11, 1)
+TEMPERATURE_LIMIT = Item(31, 1)          # [deg C]
 MAX_POSITION_LIMIT = Item(48, 4)
 MIN_POSITION_LIMIT = Item(52, 4)
 SHUTDOWN = Item(63, 1)
@@ -27,6 +28,8 @@ PROFILE_VELOCITY = Item(112, 4)
 GOAL_POSITION = Item(116, 4)
 MOVING = Item(122, 1)
 PRESENT_POSITION = Item(132, 4)
+PRESENT_INPUT_VOLTAGE = Item(144, 2)     # [0.1 V]
+PRESENT_TEMPERATURE = Item(146, 1)       # [deg C]
 EEPROM_END = 64                         # addresses below are writable only with torque off
 
 MODELS = {1020: "XM430-W350", 1030: "XM430-W210"}   # models with exactly this table
@@ -34,6 +37,7 @@ POSITION_MODE = 3
 TICKS_PER_TURN = 4096
 CENTRE_TICK = 2048
 PROFILE_VELOCITY_RPM = 0.229            # Profile Velocity unit [rev/min]
+INPUT_VOLTAGE_UNIT_V = 0.1              # Present Input Voltage unit
 ALERT = 0x80                            # status packet error byte: see Hardware Error Status
 HARDWARE_ERRORS = {0: "input voltage", 2: "overheating", 3: "motor encoder",
                    4: "electrical shock", 5: "overload"}

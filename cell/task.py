@@ -80,6 +80,16 @@ class Lamp:
     profile: np.ndarray = None     # (M, 2) [off_axis_rad, relative]: I(theta)/I(0), linear, 0
                                    # beyond the last angle; None: eq. (11)'s ideal cone
 
+    @property
+    def lit_half_angle_rad(self):
+        """The off-axis angle beyond which the lamp lights nothing: the profile's end, where it
+        reaches 0 for good (gamma / 2 for eq. (11)'s ideal cone)."""
+        if self.profile is None:
+            return 0.5 * self.cone_angle_rad
+        angles, relative = self.profile[:, 0], self.profile[:, 1]
+        lit = np.flatnonzero(relative > 0)
+        return float(angles[min(lit[-1] + 1, len(angles) - 1)])
+
 
 @dataclass(frozen=True)
 class Truth:

@@ -15,8 +15,9 @@ import tty
 
 from cell.servo import (ALERT, CENTRE_TICK, EEPROM_END, FIRMWARE_VERSION, GOAL_POSITION,
                         HARDWARE_ERROR_STATUS, ID, MAX_POSITION_LIMIT, MIN_POSITION_LIMIT, MODEL_NUMBER,
-                        MOVING, OPERATING_MODE, POSITION_MODE, PRESENT_POSITION, PROFILE_VELOCITY,
-                        PROFILE_VELOCITY_RPM, SHUTDOWN, TICKS_PER_TURN, TORQUE_ENABLE)
+                        MOVING, OPERATING_MODE, POSITION_MODE, PRESENT_INPUT_VOLTAGE, PRESENT_POSITION,
+                        PRESENT_TEMPERATURE, PROFILE_VELOCITY, PROFILE_VELOCITY_RPM, SHUTDOWN,
+                        TEMPERATURE_LIMIT, TICKS_PER_TURN, TORQUE_ENABLE)
 
 HEADER = b"\xff\xff\xfd\x00"
 PING, READ, WRITE, SYNC_READ, SYNC_WRITE, STATUS = 0x01, 0x02, 0x03, 0x82, 0x83, 0x55
@@ -70,14 +71,17 @@ def _word(params, i):
 
 
 class Servo:
-    """One servo's control table (X-series addresses from cell.servo)."""
+    """One servo's control table (X-series addresses from cell.servo), at the e-Manual's initial
+    values; powered at 12.0 V and at 30 deg C unless a test sets Present Input Voltage (144) or
+    Present Temperature (146)."""
 
     def __init__(self, dxl_id, model_number, firmware):
         self.table = bytearray(TABLE_SIZE)
         for item, value in ((MODEL_NUMBER, model_number), (FIRMWARE_VERSION, firmware), (ID, dxl_id),
                             (OPERATING_MODE, POSITION_MODE), (MAX_POSITION_LIMIT, TICKS_PER_TURN - 1),
-                            (MIN_POSITION_LIMIT, 0), (SHUTDOWN, 0x34), (GOAL_POSITION, CENTRE_TICK),
-                            (PRESENT_POSITION, CENTRE_TICK)):
+                            (MIN_POSITION_LIMIT, 0), (TEMPERATURE_LIMIT, 80), (SHUTDOWN, 0x34),
+                            (GOAL_POSITION, CENTRE_TICK), (PRESENT_POSITION, CENTRE_TICK),
+                            (PRESENT_INPUT_VOLTAGE, 120), (PRESENT_TEMPERATURE, 30)):
             self.set(item, value)
         self.position = float(CENTRE_TICK)
 

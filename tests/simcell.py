@@ -27,10 +27,10 @@ def variant(tmp_path, source, changes):
     return path
 
 
-def device_settings(raw, file="tasks/hinge.yaml"):
+def device_settings(raw, file="tasks/hinge.yaml", bit_depth=8):
     """DevicesConfig of raw `cell.arm` / `cell.pan_tilt` / `cell.camera` mappings, checked as
-    load_task checks a task's `cell` section."""
-    return devices_config(file, parse(file, "cell", raw, SECTIONS), written=raw)
+    load_task checks a task's `cell` section (camera.sensor.bit_depth: bit_depth)."""
+    return devices_config(file, parse(file, "cell", raw, SECTIONS), written=raw, bit_depth=bit_depth)
 
 
 def recording_connect(task, cell, faults=None):

@@ -99,3 +99,38 @@ def test_summary_names_the_default_and_the_fastest_setting_within_1_gray_level()
                     "level: samples 16, 0.200 s (0.90)")
     (line,) = summary([{**rows[0], "default": True}])
     assert line.endswith("fastest within 1 gray level: none")
+
+
+def test_the_gray_row_against_numpy_with_embree_rays_casts_the_same_shadows():
+    """What a user would write instead of the kernel: NumPy's shading with Embree's shadow rays.
+    With embreex (the [bench] extra) its shadows equal the brute-force reference's on the hinge
+    (lamps all around, many of them shadowed by the knuckle); without it the row says so."""
+    import importlib.util
+
+    import numpy as np
+
+    from cell import kernel_bench
+    from cell.loader import load_task
+    from cell.physics import reference
+    from cell.scene import build_scene
+    task = load_task(Path(__file__).resolve().parent.parent / "tasks" / "hinge.yaml")
+    scene = build_scene(task)
+    rows = kernel_bench.benchmark_gray(scene.warp_mesh, scene.points, scene.normals, scene.camera_position,
+                                       task.part.material.table(), evaluations=6400,
+                                       reference_evaluations=640, repeat=1)
+    embree = {r["name"]: r for r in rows}["gray vs numpy + embree"]
+    if importlib.util.find_spec("embreex") is None:
+        assert embree["ratio"] is None and embree["unavailable"] == "needs embreex, not installed"
+        return
+    assert embree["ratio"] > 0 and embree["reference_size"] == 6400
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(50, 3))
+    lamps = scene.center + 0.2 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    args = (scene.warp_mesh, scene.points, scene.normals, scene.camera_position, lamps, scene.center - lamps,
+            0.2, np.radians(12.0), task.part.material.table(), 1.5e16, 4.65e-6**2)
+    brute = reference.gray_per_exposure(*args)
+    fast = reference.gray_per_exposure(*args, blocked=kernel_bench._blocked_by(scene.warp_mesh, "ray_pyembree"))
+    assert 0 < brute.shadowed.sum() < brute.shadowed.size
+    assert np.mean(fast.shadowed == brute.shadowed) > 0.999        # float32 Embree vs float64 at grazing
+    np.testing.assert_allclose(fast.value[fast.shadowed == brute.shadowed],
+                               brute.value[fast.shadowed == brute.shadowed])

@@ -104,14 +104,38 @@ def test_the_default_folders_are_new_every_time(tmp_path, monkeypatch):
     assert second != first and second.parent == Path("runs") and list(second.iterdir()) == []
 
 
-def test_cell_check_loads_no_kernel_plotting_or_device_library():
-    """The CLI imports a command's module only when it runs: checking a task needs no Warp,
-    matplotlib, OpenCV or device SDK (a fresh interpreter, so other tests' imports do not count)."""
+def test_cell_check_loads_no_plotting_or_device_library():
+    """The CLI imports a command's module only when it runs: checking a task needs Warp (the
+    feature patch is laid onto the surface as the planner does) but no matplotlib, OpenCV or device
+    SDK (a fresh interpreter, so other tests' imports do not count)."""
     import subprocess
     import sys
-    heavy = ("warp", "matplotlib", "cv2", "dynamixel_sdk", "rtde_control", "rtde_receive")
+    heavy = ("matplotlib", "cv2", "dynamixel_sdk", "rtde_control", "rtde_receive", "harvesters", "genicam")
     code = (f"import sys; from cell.cli import main; assert main(['check', {HINGE!r}]) == 0; "
             f"print([m for m in {heavy!r} if m in sys.modules])")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip().splitlines()[-1] == "[]"
+
+
+def test_cell_check_refuses_a_patch_over_the_parts_edge_as_cell_plan_would(tmp_path, capsys):
+    """Centred on the hinge leaf's edge (x = 30 mm), half the patch lies beyond it: `cell check`
+    lays the patch onto the surface as the planner does, so it is one line and exit 2 here too."""
+    from simcell import variant
+    task = variant(tmp_path, Path(HINGE), {"feature.center_m": [0.030, 0.0, 0.004]})
+    assert main(["check", str(task)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "feature.center_m" in err[0] and "runs over an edge of the part" in err[0]
+
+
+def test_cell_check_reports_how_far_a_curved_patch_bends(capsys):
+    """The sphere cap's feature (tests/tasks, sphere of R = 30 mm): the patch is the surface within
+    r = 6 mm (3D distance) of its centre, so its rim lies r^2 / (2 R) = 0.6 mm below the tangent
+    plane (chord^2 = 2 R h). The mesh's facets are 0.7 mm wide (tasks/make_parts.py), so the centre
+    face's normal may tilt by up to half a facet's angle, 0.35 / 30 rad: r times that more at most."""
+    path = Path(__file__).parent / "tasks" / "sphere_paint_wide.yaml"
+    assert main(["check", str(path)]) == 0
+    line = [x for x in capsys.readouterr().out.splitlines() if x.startswith("patch")][0]
+    sag_mm = float(line.split("within ")[1].split(" mm")[0])
+    r, R = 6.0, 30.0
+    assert 0.98 * r**2 / (2 * R) <= sag_mm <= r**2 / (2 * R) + r * 0.35 / R + 0.005, line

@@ -9,7 +9,7 @@ import pytest
 import trimesh
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from cell import evaluate, geometry, planner, rig
+from cell import evaluate, geometry, planner, requirements, rig
 from cell.cli import main
 from cell.loader import load_task
 from cell.recorder import write_plan
@@ -395,10 +395,25 @@ def test_a_highlight_between_the_samples_is_found_and_planned_around(tmp_path, m
 
 
 def test_a_cone_too_narrow_at_any_radius_of_the_rig_says_so(tmp_path):
-    """1 deg covers the 12 mm patch only from 0.69 m; the rig reaches 0.6 m."""
-    task, plan = variant_plan(tmp_path, {"lamp.cone_angle_deg": 1.0})
+    """An ideal 1 deg cone covers the 12 mm patch only from 6 mm / tan(0.5 deg) = 0.69 m; the rig
+    reaches 0.6 m."""
+    task, plan = variant_plan(tmp_path, {"lamp.cone_angle_deg": 1.0, "lamp.profile": None})
     assert not plan.feasible and plan.binding == "cone_coverage"
     assert "only from 0.69 m, the rig reaches 0.6 m" in plan.hint
+
+
+def test_a_profiles_soft_edge_lights_the_patch_beyond_the_nominal_half_angle(tmp_path):
+    """With a profile the lamp lights what its profile reaches (the example's: 0 from 9 deg), so a
+    narrow nominal cone whose profile reaches 9 deg covers the patch from 6 mm / tan(9 deg) =
+    0.038 m on; the ideal cone's coverage ends at half its angle."""
+    from cell.task import Lamp
+    task, plan = variant_plan(tmp_path, {"lamp.cone_angle_deg": 1.0})
+    assert task.lamp.lit_half_angle_rad == pytest.approx(np.radians(9.0))
+    assert Lamp(1.0, np.radians(12.0), task.lamp.rig).lit_half_angle_rad == pytest.approx(np.radians(6.0))
+    tail = np.array([[0.0, 1.0], [0.1, 0.5], [0.2, 0.3]])        # ends lit: 0 beyond its last angle
+    assert Lamp(1.0, 0.1, task.lamp.rig, tail).lit_half_angle_rad == pytest.approx(0.2)
+    coverage = {r.name: r for r in plan.requirements}["cone_coverage"]
+    assert coverage.met and plan.shot.distance_m < 0.69         # where the ideal 1 deg cone could not
 
 
 def test_a_camera_behind_the_part_or_along_its_surface_cannot_see_the_feature(tmp_path):
@@ -414,3 +429,25 @@ def test_a_feature_over_the_parts_edge_is_bad_input_not_a_patch_collapsed_on_the
     with pytest.raises(TaskError, match="runs over an edge of the part") as caught:
         variant_plan(tmp_path, {"feature.center_m": [0.030, 0.0, 0.004]})
     assert caught.value.key == "feature.center_m"
+
+
+def test_a_lamp_candidate_standing_on_the_feature_is_unlit_not_nan(tmp_path):
+    """A rig whose sphere passes through the feature: the candidate at the feature's centre (the
+    pivot 0.2 m above it, tilt -90 deg, radius 0.2 m) has distance 0 to a sample. It lights
+    nothing there (no direction to the lamp), so no shutter helps (shutter_max inf, as any unlit
+    pose) and no value is NaN; with every warning an error."""
+    import warnings
+
+    from simcell import variant
+    task = load_task(variant(tmp_path, TASKS / "hinge.yaml", {
+        "lamp.rig.pivot_m": [0.006, 0.0, 0.204], "lamp.rig.tilt_range_deg": [-90.0, 90.0]}))
+    scene = build_scene(task)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        problem = evaluate.build_problem(task, scene, planner.build_maps(task, scene, COARSE))
+        c = evaluate.candidates(problem, [0.0], [-np.pi / 2], [0.2])
+        values = requirements.ln_values(problem, c)
+    assert np.allclose(c.position[0], scene.center, atol=1e-9)
+    assert not np.any(np.isnan(c.gray)) and c.gray[0, 0] == 0.0
+    assert not any(np.isnan(v).any() for v in values.values())
+    assert values["shutter_max"][0] == np.inf

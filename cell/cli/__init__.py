@@ -16,6 +16,7 @@ COMMANDS = {
     "run": "cell.cli.run",
     "bench": "cell.cli.bench",
     "calibrate": "cell.cli.calibrate",
+    "hw-check": "cell.cli.hw_check",
 }
 
 
@@ -124,6 +125,12 @@ def build_parser():
     p.add_argument("--yes", action="store_true", help="confirm operator prompts (manual lamp radius, "
                                                       "lens) on the real cell; the simulated cell "
                                                       "confirms its own")
+
+    p = sub.add_parser("hw-check", help="connect to each real device of the task, print its state; "
+                                        "moves and sets nothing")
+    p.add_argument("task", help="a task whose cell section names the devices (cell.arm.host, "
+                                "cell.pan_tilt.port, cell.camera.source)")
+    p.add_argument("--json", action="store_true", help="print the states as JSON")
     return parser
 
 

@@ -1,5 +1,6 @@
-"""`cell check TASK`: load a task and everything it references, print a summary in the units
-people read."""
+"""`cell check TASK`: load a task and everything it references, lay the feature patch onto the
+surface as the planner does (so a patch over an edge is refused here too), print a summary in the
+units people read."""
 import numpy as np
 
 from cell.loader import load_task
@@ -49,6 +50,17 @@ def summarize(task):
     ])
 
 
+def patch_line(task, scene):
+    """The feature's samples as laid onto the surface: how far the patch bends away from the
+    feature's tangent plane (its sag)."""
+    sag = np.abs((scene.points - scene.center) @ scene.normal).max()
+    return f"patch        {len(scene.points)} samples on the surface, within {sag * 1e3:.2f} mm of its tangent plane"
+
+
 def command(args):
-    print(summarize(load_task(args.task)))
+    from cell.scene import build_scene          # Warp's BVH: the planner's own patch, no copy
+
+    task = load_task(args.task)
+    print(summarize(task))
+    print(patch_line(task, build_scene(task)))
     return 0

@@ -23,9 +23,10 @@ from dynamixel_sdk import COMM_RX_TIMEOUT, COMM_SUCCESS, GroupSyncWrite, PacketH
 from dynamixel_sdk.port_handler import LATENCY_TIMER
 
 from cell.errors import DeviceFault
-from cell.servo import (ALERT, GOAL_POSITION, HARDWARE_ERROR_STATUS, MAX_POSITION_LIMIT, MIN_POSITION_LIMIT,
-                        MODELS, MOVING, OPERATING_MODE, POSITION_MODE, PRESENT_POSITION, PROFILE_VELOCITY,
-                        TORQUE_ENABLE, ServoRig, describe_hardware_error, profile_velocity)
+from cell.servo import (ALERT, FIRMWARE_VERSION, GOAL_POSITION, HARDWARE_ERROR_STATUS, INPUT_VOLTAGE_UNIT_V,
+                        MAX_POSITION_LIMIT, MIN_POSITION_LIMIT, MODELS, MOVING, OPERATING_MODE, POSITION_MODE,
+                        PRESENT_INPUT_VOLTAGE, PRESENT_POSITION, PRESENT_TEMPERATURE, PROFILE_VELOCITY,
+                        TEMPERATURE_LIMIT, TORQUE_ENABLE, ServoRig, describe_hardware_error, profile_velocity)
 
 ATTEMPTS = 3
 SLACK_MS = 50.0
@@ -41,9 +42,12 @@ class _Port(PortHandler):
 
 
 class DynamixelPanTilt(ServoRig):
-    """The real pan-tilt: dynamixel_sdk PortHandler/PacketHandler(2.0) on a serial port."""
+    """The real pan-tilt: dynamixel_sdk PortHandler/PacketHandler(2.0) on a serial port.
 
-    def __init__(self, rig, config, operator):
+    read_only (`cell hw-check`): the port opened and nothing written - no Profile Velocity, the
+    torque left as it is - so only state() works; the servos are pinged and read there."""
+
+    def __init__(self, rig, config, operator, read_only=False):
         super().__init__(rig, config, operator)
         self._port, self._packet = _Port(config.port), PacketHandler(2.0)
         self._lost = None                    # why the serial link is gone, once it is
@@ -52,6 +56,8 @@ class DynamixelPanTilt(ServoRig):
             self._port.setBaudRate(config.baud)
         except (OSError, serial.SerialException) as err:
             raise DeviceFault(self.device, f"cannot open {config.port}: {err}") from None
+        if read_only:
+            return
         try:
             for dxl_id in self.ids:
                 self._connect(dxl_id)
@@ -114,11 +120,11 @@ class DynamixelPanTilt(ServoRig):
         if error & ~ALERT:
             raise DeviceFault(self.device, f"servo {dxl_id}: {what}: {self._packet.getRxPacketError(error)}")
 
-    def _read(self, dxl_id, item):
+    def _read(self, dxl_id, item, alert_ok=False):
         read = {1: self._packet.read1ByteTxRx, 2: self._packet.read2ByteTxRx,
                 4: self._packet.read4ByteTxRx}[item.size]
         value, comm, error = self._ask(read, dxl_id, item.address)
-        self._check(dxl_id, comm, error, f"read {item.address}")
+        self._check(dxl_id, comm, error, f"read {item.address}", alert_ok)
         return value - (1 << 32) if item.size == 4 and value >= 1 << 31 else value   # int32
 
     def _write(self, dxl_id, item, value, alert_ok=False):
@@ -149,6 +155,62 @@ class DynamixelPanTilt(ServoRig):
 
     def _present_ticks(self):
         return {dxl_id: self._read(dxl_id, PRESENT_POSITION) for dxl_id in self.ids}
+
+    def state(self):
+        """Per servo (pan, tilt and the radius servo, by id): model, firmware, operating mode,
+        torque, Present Position in ticks and as its joint [rad or m], Min/Max Position Limit,
+        Hardware Error Status decoded, temperature and its limit [deg C], input voltage [V]; pings
+        and reads only. A servo that does not answer is recorded and the others are still read.
+        `problems`: what a run would stop on (an absent servo, another model or operating mode, a
+        hardware error, a position outside the limits)."""
+        roles = {self.config.pan_id: "pan", self.config.tilt_id: "tilt", self.config.radius_id: "radius"}
+        servos, problems, ticks = {}, [], {}
+        for dxl_id in self.ids:
+            try:
+                servos[dxl_id] = self._servo_state(dxl_id, roles[dxl_id])
+            except DeviceFault as fault:
+                servos[dxl_id] = {"role": roles[dxl_id], "error": fault.reason}
+                problems.append(fault.reason)
+                continue
+            s = servos[dxl_id]
+            ticks[dxl_id] = s["present_position_ticks"]
+            problems += [f"servo {dxl_id}: {p}" for p in s.pop("problems")]
+        if len(ticks) == len(self.ids):
+            joints = self.joints_from_ticks(ticks)
+            for dxl_id, joint in zip((self.config.pan_id, self.config.tilt_id, self.config.radius_id), joints):
+                if dxl_id in servos:
+                    servos[dxl_id]["joint_m" if dxl_id == self.config.radius_id else "joint_rad"] = float(joint)
+        return {"port": self.config.port, "baud": self.config.baud,
+                "servos": {str(i): s for i, s in servos.items()}, "problems": problems}
+
+    def _servo_state(self, dxl_id, role):
+        model, comm, error = self._ask(self._packet.ping, dxl_id)
+        self._check(dxl_id, comm, error, "ping", alert_ok=True)
+        read = {item: self._read(dxl_id, item, alert_ok=True) for item in (
+            FIRMWARE_VERSION, OPERATING_MODE, TORQUE_ENABLE, PRESENT_POSITION, MIN_POSITION_LIMIT,
+            MAX_POSITION_LIMIT, HARDWARE_ERROR_STATUS, PRESENT_TEMPERATURE, TEMPERATURE_LIMIT,
+            PRESENT_INPUT_VOLTAGE)}
+        position, lo, hi = read[PRESENT_POSITION], read[MIN_POSITION_LIMIT], read[MAX_POSITION_LIMIT]
+        bits = read[HARDWARE_ERROR_STATUS]
+        problems = []
+        if model not in MODELS:
+            problems.append(f"model {model}; a run needs one with the X-series table: {MODELS}")
+        if read[OPERATING_MODE] != POSITION_MODE:
+            problems.append(f"Operating Mode {read[OPERATING_MODE]}; a run needs position control "
+                            f"({POSITION_MODE})")
+        if bits:
+            problems.append(f"Hardware Error Status {describe_hardware_error(bits)}")
+        if not lo <= position <= hi:
+            problems.append(f"Present Position {position} outside its position limits [{lo}, {hi}]")
+        return {"role": role, "model_number": model, "model": MODELS.get(model, "unknown"),
+                "firmware": read[FIRMWARE_VERSION], "operating_mode": read[OPERATING_MODE],
+                "torque_enabled": bool(read[TORQUE_ENABLE]), "present_position_ticks": position,
+                "min_position_limit_ticks": lo, "max_position_limit_ticks": hi,
+                "hardware_error_status": bits,
+                "hardware_error": describe_hardware_error(bits) if bits else "none",
+                "temperature_c": read[PRESENT_TEMPERATURE], "temperature_limit_c": read[TEMPERATURE_LIMIT],
+                "input_voltage_v": round(read[PRESENT_INPUT_VOLTAGE] * INPUT_VOLTAGE_UNIT_V, 3),
+                "problems": problems}
 
     def stop(self, fault_is_own=False):
         """Hold where each servo is (goal = present, torque on), or torque off for the servos'

@@ -5,17 +5,16 @@ OpenCV has no lens control, so the operator sets the f-number and the focus."""
 import cv2
 import numpy as np
 
-from cell.devices import Camera
 from cell.errors import DeviceFault
+from cell.hw.lens import ManualLensCamera
 
 V4L2_MANUAL_EXPOSURE = 1
 
 
-class OpenCVCamera(Camera):
+class OpenCVCamera(ManualLensCamera):
     def __init__(self, config, bit_depth, operator):
-        super().__init__(bit_depth)
-        self.config, self.operator = config, operator
-        operator.require(self.device, "the aperture and focus (OpenCV has no lens control)")
+        super().__init__(bit_depth, operator, "OpenCV has no lens control")
+        self.config = config
         self._capture = cv2.VideoCapture(config.source)
         if not self._capture.isOpened():
             raise DeviceFault(self.device, f"cannot open {config.source!r} with cv2.VideoCapture")
@@ -37,16 +36,6 @@ class OpenCVCamera(Camera):
         self.shutter_s = actual
         return actual
 
-    def set_aperture(self, f_number):
-        if self.f_number is None or abs(f_number / self.f_number - 1) > 0.01:
-            self.operator.confirm(self.device, f"set the lens to f/{f_number:.1f}")
-        self.f_number = float(f_number)
-
-    def set_focus(self, focus_m):
-        if self.focus_m is None or abs(focus_m - self.focus_m) > 1e-3:
-            self.operator.confirm(self.device, f"focus the lens at {1e3 * focus_m:.0f} mm")
-        self.focus_m = float(focus_m)
-
     def _read(self):
         ok, frame = self._capture.read()
         if not ok or frame is None:
@@ -54,7 +43,27 @@ class OpenCVCamera(Camera):
         return frame
 
     def capture(self):
-        frame = self._read()
+        return self._gray(self._read())
+
+    def state(self):
+        """The source, OpenCV's backend, one frame's size, channels and bit depth, the FOURCC
+        the capture reports and the exposure setting, by get() only: nothing is set. OpenCV cannot
+        ask a camera its model or exposure range (on V4L2 `v4l2-ctl --all` shows them): None."""
+        frame, problems = self._read(), []
+        try:
+            self._gray(frame)
+        except DeviceFault as fault:
+            problems.append(fault.reason)
+        fourcc = int(self._capture.get(cv2.CAP_PROP_FOURCC))
+        exposure = self._capture.get(cv2.CAP_PROP_EXPOSURE)
+        return {"source": self.config.source, "model": None, "backend": self._capture.getBackendName(),
+                "width_px": frame.shape[1], "height_px": frame.shape[0],
+                "channels": 1 if frame.ndim == 2 else frame.shape[2], "bit_depth": 8 * frame.itemsize,
+                "pixel_format": fourcc.to_bytes(4, "little").decode("latin-1") if fourcc > 0 else None,
+                "exposure_s": exposure * self.config.exposure_unit_s if exposure > 0 else None,
+                "exposure_range_s": None, "problems": problems}
+
+    def _gray(self, frame):
         if frame.ndim == 3 and frame.shape[2] == 1:
             frame = frame[..., 0]
         elif frame.ndim == 3:

@@ -36,6 +36,16 @@ PLAYING = 2                               # runtime_state: the control script ru
 ARRIVED_M, ARRIVED_RAD = 0.5e-3, 5e-3     # TCP vs target when a move has arrived ...
 STEADY_M_S = 1e-3                         # ... and stands still
 POLL_S = 0.005
+# getRobotMode / getSafetyMode (RTDE guide's robot_mode and safety_mode; UR's dashboard names)
+ROBOT_MODES = {-1: "NO_CONTROLLER", 0: "DISCONNECTED", 1: "CONFIRM_SAFETY", 2: "BOOTING", 3: "POWER_OFF",
+               4: "POWER_ON", 5: "IDLE", 6: "BACKDRIVE", 7: "RUNNING", 8: "UPDATING_FIRMWARE"}
+SAFETY_MODES = {1: "NORMAL", 2: "REDUCED", 3: "PROTECTIVE_STOP", 4: "RECOVERY", 5: "SAFEGUARD_STOP",
+                6: "SYSTEM_EMERGENCY_STOP", 7: "ROBOT_EMERGENCY_STOP", 8: "VIOLATION", 9: "FAULT",
+                10: "VALIDATE_JOINT_ID", 11: "UNDEFINED_SAFETY_MODE", 12: "AUTOMATIC_MODE_SAFEGUARD_STOP",
+                13: "SYSTEM_THREE_POSITION_ENABLING_STOP"}
+ROBOT_MODE_RUNNING, SAFETY_MODES_TO_MOVE = 7, (1, 2)     # a run needs these: powered, brakes off, normal
+DASHBOARD_QUERIES = {"polyscope_version": "PolyscopeVersion", "serial_number": "get serial number",
+                     "remote_control": "is in remote control"}
 # what the watcher reads per poll, in one round trip to the worker
 WATCHED = (("receive", "isConnected"), ("control", "isConnected"), ("receive", "getTimestamp"),
            ("receive", "isEmergencyStopped"), ("receive", "isProtectiveStopped"),
@@ -102,15 +112,39 @@ def probe(host, timeout_s):
                                      f"{reason}") from None
 
 
+def dashboard(host, timeout_s):
+    """The controller's identity and whether it is in Remote Control (which ur_rtde's control
+    interface needs on a real robot), asked on the dashboard server: queries only. An answer
+    other than true/false (a CB3 has no `is in remote control`) is None for unknown."""
+    port = PORTS[1]
+    try:
+        with socket.create_connection((host, port), timeout=timeout_s) as sock:
+            lines = sock.makefile("rb")
+            lines.readline()                                            # the greeting
+            answers = {}
+            for key, query in DASHBOARD_QUERIES.items():
+                sock.sendall(query.encode() + b"\n")
+                answers[key] = lines.readline().decode(errors="replace").strip()
+    except OSError as err:
+        reason = "no answer" if isinstance(err, TimeoutError) else str(err) or type(err).__name__
+        raise DeviceFault("arm", f"UR at {host}:{port}: dashboard query failed within {timeout_s} s: "
+                                 f"{reason}") from None
+    answers["remote_control"] = {"true": True, "false": False}.get(answers["remote_control"].lower())
+    return answers
+
+
 class URArm(Arm):
     """moveL of the camera frame: the frames' hand-eye is set as the TCP, so poses on the wire are
     T_base_cam; read back with getActualTCPPose. A controller whose state stops arriving for
     connect_timeout_s, a lost connection, a protective or emergency stop, a stopped control
     script, a move not done within move_timeout_s and a ur_rtde call that does not return in
     time are each a DeviceFault. `self._receive.<getter>()` and `self._control.<command>()` call
-    the worker's interfaces."""
+    the worker's interfaces.
 
-    def __init__(self, config, frames):
+    read_only (`cell hw-check`): the receive interface alone - no control script uploaded, no TCP
+    set, nothing commanded - so only state() and the read-back work; a move is refused."""
+
+    def __init__(self, config, frames, read_only=False):
         super().__init__(config, frames)
         host, timeout_s = config.host, config.connect_timeout_s
         probe(host, timeout_s)
@@ -118,10 +152,12 @@ class URArm(Arm):
         # stopL brakes from up to speed_m_s before it answers
         stop_s = timeout_s + config.speed_m_s / STOP_DECELERATION_M_S2
         self._receive = Remote(self._worker, "receive", timeout_s)
-        self._control = Remote(self._worker, "control", timeout_s, {"stopL": stop_s})
+        self._control = None if read_only else Remote(self._worker, "control", timeout_s, {"stopL": stop_s})
         try:
             self._worker.call([("receive", "__init__", (host,))], timeout_s,
                               "RTDEReceiveInterface connect (RTDE setup and the first state)")
+            if read_only:
+                return
             self._worker.call([("control", "__init__", (host,))], timeout_s,
                               "RTDEControlInterface connect (RTDE setup, dashboard, control script "
                               "upload and start)")
@@ -139,9 +175,12 @@ class URArm(Arm):
         return DeviceFault(self.device, f"UR at {self.config.host}: {reason}")
 
     def _watched(self):
-        """The controller's state, one round trip (Watched)."""
-        calls = [(name, method, ()) for name, method in WATCHED]
-        return Watched(*self._worker.call(calls, self.config.connect_timeout_s, "reading the state"))
+        """The controller's state, one round trip (Watched); read-only, no control interface to ask."""
+        calls = [(name, method, ()) for name, method in WATCHED if self._control or name == "receive"]
+        values = self._worker.call(calls, self.config.connect_timeout_s, "reading the state")
+        if self._control is None:
+            values.insert(1, True)
+        return Watched(*values)
 
     def _alive(self, command):
         """Return once a new controller state arrived (a tick, 2 ms on an e-Series); DeviceFault
@@ -159,6 +198,8 @@ class URArm(Arm):
             time.sleep(POLL_S / 5)
 
     def _move_tcp(self, T_base_cam, speed_m_s):
+        if self._control is None:
+            raise self._fault("opened read-only (cell hw-check): moveL refused")
         pose = list(to_ur_pose(T_base_cam))
         a, timeout_s = self.config.acceleration_m_s2, self.config.move_timeout_s
         T_now = from_ur_pose(self._receive.getActualTCPPose())
@@ -219,9 +260,39 @@ class URArm(Arm):
             raise self._fault("connection to the controller lost")
         return from_ur_pose(pose)
 
+    def state(self):
+        """Robot and safety mode by name, the TCP pose ([x, y, z, rx, ry, rz] in m and rad, base
+        frame, of the controller's active TCP: a run sets the hand-eye as TCP) and the joints [rad],
+        read once a fresh state arrived; the dashboard's identity and Remote Control. `problems`:
+        what keeps a run from moving."""
+        try:
+            self._alive("state read")
+            robot_mode, safety_mode = self._receive.getRobotMode(), self._receive.getSafetyMode()
+            state = {"host": self.config.host,
+                     "robot_mode": ROBOT_MODES.get(robot_mode, f"unknown ({robot_mode})"),
+                     "safety_mode": SAFETY_MODES.get(safety_mode, f"unknown ({safety_mode})"),
+                     "tcp_pose": list(self._receive.getActualTCPPose()),
+                     "joints_rad": list(self._receive.getActualQ())}
+        except RuntimeError as err:
+            raise self._fault(str(err)) from None
+        state.update(dashboard(self.config.host, self.config.connect_timeout_s))
+        problems = []
+        if robot_mode != ROBOT_MODE_RUNNING:
+            problems.append(f"robot mode {state['robot_mode']}: a run needs RUNNING (power on, brakes "
+                            "released)")
+        if safety_mode not in SAFETY_MODES_TO_MOVE:
+            problems.append(f"safety mode {state['safety_mode']}: a run needs NORMAL or REDUCED")
+        if state["remote_control"] is False:
+            problems.append("not in Remote Control: set it on the teach pendant (ur_rtde's control "
+                            "interface needs it)")
+        return {**state, "problems": problems}
+
     def stop(self):
         """stopL, sent only to a controller that still answers (to any other it would wait 300 s
-        for the done): then the stop could not be commanded, and that is a DeviceFault."""
+        for the done): then the stop could not be commanded, and that is a DeviceFault. A
+        read-only arm commanded nothing: nothing to stop."""
+        if self._control is None:
+            return
         self._alive("stopL")
         try:
             self._control.stopL(STOP_DECELERATION_M_S2)
@@ -235,11 +306,15 @@ class URArm(Arm):
         closes its sockets."""
         disconnects = []
         try:
-            self._alive("stopScript")
-            self._control.stopScript()
-            disconnects = [("control", "disconnect", ()), ("receive", "disconnect", ())]
+            if self._control is None:               # read-only: no script, no control interface
+                self._alive("disconnect")
+            else:
+                self._alive("stopScript")
+                self._control.stopScript()
+                disconnects.append(("control", "disconnect", ()))
+            disconnects.append(("receive", "disconnect", ()))
         except (DeviceFault, RuntimeError):
-            pass
+            disconnects = []
         finally:
             self._worker.close(disconnects, 2 * self.config.connect_timeout_s + 1.0)
 

@@ -72,8 +72,10 @@ def _material(table):
 
 def gray_per_exposure(mesh, points, normals, camera_pos, lamp_pos, lamp_axis, power_w,
                       cone_angle_rad, table, camera_constant, pixel_area_m2,
-                      shadows=True, cone=True, offset_m=1e-5, profile=None):
-    """NumPy version of kernels.gray.gray_per_exposure (same arguments, same GrayResult)."""
+                      shadows=True, cone=True, offset_m=1e-5, profile=None, blocked=None):
+    """NumPy version of kernels.gray.gray_per_exposure (same arguments, same GrayResult).
+    blocked(origins, dirs, max_dist) -> bool (R,) casts the shadow rays (default: ray_hits_any on
+    the mesh; `cell bench` passes Embree's, what a user would write instead of our kernel)."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     n = geometry.unit(np.asarray(normals, dtype=np.float64).reshape(-1, 3))
     lamps = np.asarray(lamp_pos, dtype=np.float64).reshape(-1, 3)
@@ -90,7 +92,8 @@ def gray_per_exposure(mesh, points, normals, camera_pos, lamp_pos, lamp_axis, po
     shadowed = np.sum(n[None] * s, axis=-1) <= 0.0                  # attached shadow
     if shadows and mesh is not None:
         c, p = np.nonzero(~shadowed)
-        shadowed[c, p] = ray_hits_any(mesh, points[p] + offset_m * n[p], s[c, p], d[c, p])
+        cast = blocked or (lambda o, u, t: ray_hits_any(mesh, o, u, t))
+        shadowed[c, p] = cast(points[p] + offset_m * n[p], s[c, p], d[c, p])
     value = radiometry.gray_per_exposure(camera_constant, pixel_area_m2, irradiance, reflectance)
     return GrayResult(np.where(shadowed, 0.0, value), shadowed, off_axis, dominant)
 
