@@ -92,8 +92,7 @@ def check_hw_devices(task):
         _check(Camera, camera_address(config.camera), lambda: open_camera(no_prompt)),
     ]
     camera = checks[-1].state
-    if camera and "width_px" in camera and (camera["width_px"], camera["height_px"]) != (sensor.width_px,
-                                                                                          sensor.height_px):
+    if camera and (camera["width_px"], camera["height_px"]) != (sensor.width_px, sensor.height_px):
         camera["problems"].append(f"frames are {camera['width_px']}x{camera['height_px']}, camera.sensor is "
                                   f"{sensor.width_px}x{sensor.height_px}: set the camera's resolution")
     return checks
@@ -127,9 +126,8 @@ def hw_camera(task, read_only=False, scene=None):
     VideoCapture, a GenICam device, whose SDK (harvesters, the `genicam` extra) is imported only
     here: not installed is bad input before anything connects, or the simulator rendering `scene`
     (default: the task's) from `arm`'s and `lamp`'s read-back poses, a dry run of a real arm and
-    lamp rig without a camera. read_only: a GenICam device opened without its set-up, a simulated
-    camera without its renderer (it is only asked its state), for `cell hw-check` (OpenCV's
-    camera sets nothing when it opens)."""
+    lamp rig without a camera. read_only: a GenICam device opened without its set-up, for `cell
+    hw-check` (OpenCV's and the simulated camera set nothing when they open)."""
     config, bit_depth = task.cell.devices.camera, task.camera.sensor.bit_depth
     if config.driver == "opencv":
         from cell.hw.opencv_camera import OpenCVCamera
@@ -138,8 +136,8 @@ def hw_camera(task, read_only=False, scene=None):
         from cell.scene import build_scene
         from sim.camera import SimCamera
         from sim.world import Renderer
-        return lambda operator, arm=None, lamp=None: SimCamera(
-            None if read_only else Renderer(task, scene or build_scene(task)), arm, lamp, bit_depth)
+        return lambda operator, arm=None, lamp=None: SimCamera(Renderer(task, scene or build_scene(task)),
+                                                               arm, lamp, bit_depth)
     try:
         from cell.hw.genicam_camera import GenICamCamera
     except ImportError as err:

@@ -127,6 +127,17 @@ def test_the_hw_cell_on_the_real_sdks_converges_as_the_simulated_cell_does(tmp_p
         assert present[dxl_id] == pytest.approx(2048 + angle_deg * 4096 / 360, abs=0.5 + 3)
 
 
+def test_cell_hw_check_reads_the_hw_cell_with_its_simulated_camera(tmp_path):
+    with hw_cell(tmp_path) as cell:
+        done = subprocess.run([sys.executable, "-m", "cell", "hw-check", str(cell.task)], cwd=ROOT,
+                              stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=120)
+        status = dashboard(cell.host, "emulator status")
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "camera    simulated (renders the task's scene): answered" in done.stdout
+    assert "1032 x 776 px, 1 channel(s), 8 bit" in done.stdout             # camera.sensor's frames
+    assert "moves 0 " in status and "runtime_state 1 " in status           # nothing moved, no program
+
+
 # --- each fault kind mid-run ---------------------------------------------------------------
 
 def when_moving(host, then):
