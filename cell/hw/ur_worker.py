@@ -5,10 +5,10 @@ worker thread froze the whole interpreter), and its commands wait up to 300 s fo
 the interfaces live in a process of their own (`python -m cell.hw.ur_worker`, a fresh
 interpreter: not multiprocessing's spawn, which re-runs the caller's main script and so fails in
 a script without a main guard), and the controller sends it requests over a socket pair, one at
-a time, each with a timeout. A worker that does not answer in time is killed
-(the kernel closes its sockets) and that is a DeviceFault naming the device, its address and the
-step. One request may carry several calls (`Worker.call`), so a watcher polling the receive side
-pays one round trip per poll, not one per getter.
+a time, each with a timeout. A worker that does not answer in time is killed (the kernel closes
+its sockets) and that is a DeviceFault naming the device, its address and the step. One request
+may carry several calls (`Worker.call`), so a watcher polling the receive side pays one round
+trip per poll, not one per getter.
 """
 import builtins
 import ctypes
@@ -59,7 +59,10 @@ class Worker:
             answered = self._conn.poll(timeout_s)
             reply = self._conn.recv() if answered else None
         except (OSError, EOFError):                     # the worker died (its socket closed)
-            code = self._process.poll()
+            try:
+                code = self._process.wait(CLOSE_TIMEOUT_S)
+            except subprocess.TimeoutExpired:
+                code = None
             self.kill(f"the ur_rtde worker process ended (exit code {code})")
             raise self._fault(f"{step}: {self._dead}") from None
         if reply is None:
@@ -125,7 +128,7 @@ class Remote:
 
 def serve(conn, parent_pid):
     """The worker's loop: answer each request, a list of calls, ("ok", results) or ("error", type
-    name, message) for the first call that raised; None or the pipe closing ends it."""
+    name, message) for the first call that raised; None or the socket closing ends it."""
     _die_with_parent(parent_pid)
     import rtde_control
     import rtde_receive
