@@ -15,19 +15,20 @@ def open_devices(task, scene, backend, yes=False, laser=None):
     cell.camera settings (a real laser is the operator's). The sim has no operator to set the
     lamp radius: it confirms for itself."""
     if backend == "hw":
-        return make_hw_devices(task, yes=yes)
+        return make_hw_devices(task, yes=yes, scene=scene)
     from sim.cell import make_sim_devices
     return make_sim_devices(task, scene, yes=True, laser=laser)
 
 
-def make_hw_devices(task, yes=False, operator=None):
+def make_hw_devices(task, yes=False, operator=None, scene=None):
     """The real devices for --backend hw from the task's settings. Needs explicit `cell.arm.host`
     and `cell.pan_tilt.port` (no default reaches the network or a serial bus); connects arm,
-    servos, camera in turn and closes what was opened if a later one fails."""
+    servos, camera in turn and closes what was opened if a later one fails. With
+    cell.camera.driver simulated the camera renders `scene` (default: the task's, built here)."""
     config = _addressed(task)
     from cell.hw.dynamixel import DynamixelPanTilt
     from cell.hw.ur import URArm
-    open_camera = hw_camera(task)
+    open_camera = hw_camera(task, scene=scene)
 
     operator = operator or Operator(yes=yes)
     opened = []
@@ -37,7 +38,7 @@ def make_hw_devices(task, yes=False, operator=None):
         with speaking_for(DynamixelPanTilt):
             opened.append(DynamixelPanTilt(task.lamp.rig, config.pan_tilt, operator))
         with speaking_for(Camera):
-            opened.append(open_camera(operator))
+            opened.append(open_camera(operator, *opened))
     except Exception:
         try_all([device.close for device in reversed(opened)])
         raise
@@ -113,25 +114,36 @@ def _check(kind, address, open_device):
 
 def camera_address(config):
     """Where the camera is found: OpenCV's source, or the GenTL producer and the device in it."""
+    if config.driver == "simulated":
+        return "simulated (renders the task's scene)"
     if config.driver != "genicam":
         return str(config.source)
     device = f"serial {config.serial_number}" if config.serial_number else f"device {config.device_index}"
     return f"{config.cti} {device}"
 
 
-def hw_camera(task, read_only=False):
-    """open(operator) -> the real camera of the task's cell.camera.driver: OpenCV's VideoCapture,
-    or a GenICam device, whose SDK (harvesters, the `genicam` extra) is imported only here: not
-    installed is bad input before anything connects. read_only: a GenICam device opened without
-    its set-up, for `cell hw-check` (OpenCV's camera sets nothing when it opens)."""
-    config = task.cell.devices.camera
+def hw_camera(task, read_only=False, scene=None):
+    """open(operator, arm=None, lamp=None) -> the camera of the task's cell.camera.driver: OpenCV's
+    VideoCapture, a GenICam device, whose SDK (harvesters, the `genicam` extra) is imported only
+    here: not installed is bad input before anything connects, or the simulator rendering `scene`
+    (default: the task's) from `arm`'s and `lamp`'s read-back poses, a dry run of a real arm and
+    lamp rig without a camera. read_only: a GenICam device opened without its set-up, for `cell
+    hw-check` (OpenCV's and the simulated camera set nothing when they open)."""
+    config, bit_depth = task.cell.devices.camera, task.camera.sensor.bit_depth
     if config.driver == "opencv":
         from cell.hw.opencv_camera import OpenCVCamera
-        return lambda operator: OpenCVCamera(config, task.camera.sensor.bit_depth, operator)
+        return lambda operator, arm=None, lamp=None: OpenCVCamera(config, bit_depth, operator)
+    if config.driver == "simulated":
+        from cell.scene import build_scene
+        from sim.camera import SimCamera
+        from sim.world import Renderer
+        return lambda operator, arm=None, lamp=None: SimCamera(Renderer(task, scene or build_scene(task)),
+                                                               arm, lamp, bit_depth)
     try:
         from cell.hw.genicam_camera import GenICamCamera
     except ImportError as err:
         raise TaskError(task.path, "cell.camera.driver", f"genicam, but {err.name or err} cannot be "
                         "imported", "the GenICam SDK installed: "
                         "pip install 'lightplan-cell[genicam]'") from None
-    return lambda operator: GenICamCamera(config, task.camera.sensor, operator, read_only=read_only)
+    return lambda operator, arm=None, lamp=None: GenICamCamera(config, task.camera.sensor, operator,
+                                                               read_only=read_only)

@@ -14,6 +14,10 @@ from cell.schema import (POSITIVE, Choice, Integer, Invalid, Number, Pair, Secti
 MAX_SPEED_M_S = 0.25            # ur_rtde's default moveL speed: a hard cap for an inspection cell
 MAX_ACCELERATION_M_S2 = 1.2     # ur_rtde's default moveL acceleration
 MAX_SERVO_SPEED_DEG_S = 90.0
+# opencv: cv2.VideoCapture; genicam: harvesters and a GenTL producer; simulated: frames rendered by
+# the simulator from the real arm's and pan-tilt's read-back poses, a dry run of a real arm and
+# lamp rig without a camera
+CAMERA_DRIVERS = ("opencv", "genicam", "simulated")
 DXL_BAUD_RATES = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 921600,
                   1000000, 1152000, 2000000, 2500000, 3000000, 3500000, 4000000)  # the SDK's list
 
@@ -47,7 +51,7 @@ class PanTiltConfig:
 
 @dataclass(frozen=True)
 class CameraConfig:
-    driver: str                             # opencv | genicam: which backend class
+    driver: str                             # CAMERA_DRIVERS: which backend class
     source: int | str                       # opencv: cv2.VideoCapture index or path
     exposure_unit_s: float                  # opencv: CAP_PROP_EXPOSURE unit (V4L2: 100 us)
     discard_frames: int                     # opencv: frames still exposed the old way after a change
@@ -132,7 +136,7 @@ PAN_TILT = Section({
 }, required=False)
 
 CAMERA = Section({
-    "driver": Choice("opencv", "genicam", default="opencv"),
+    "driver": Choice(*CAMERA_DRIVERS, default="opencv"),
     "source": _Source(),
     "exposure_unit_s": Number(**POSITIVE, default=1e-4),
     "discard_frames": Integer(0, 100, default=2),
@@ -145,7 +149,8 @@ CAMERA = Section({
 }, required=False)
 DRIVER_KEYS = {"opencv": ("source", "exposure_unit_s", "discard_frames"),   # cell.camera keys
                "genicam": ("cti", "serial_number", "device_index", "pixel_format", "gain",
-                           "frame_timeout_s")}                              # only a driver reads
+                           "frame_timeout_s"),                              # only a driver reads
+               "simulated": ()}
 
 SECTIONS = {"arm": ARM, "pan_tilt": PAN_TILT, "camera": CAMERA}     # the task's cell.<name>
 

@@ -34,6 +34,17 @@ class SimCamera(Camera):
             raise DeviceFault(self.device, f"focus distance {focus_m} m is not positive")
         self.focus_m = float(focus_m)
 
+    def state(self):
+        """The interface's state, and with a renderer of a frame size (sim.world.Renderer) what a
+        real camera reports besides (`cell hw-check` of cell.camera.driver: simulated)."""
+        state = super().state()
+        shape = getattr(self.render, "shape", None)
+        if shape is not None:
+            state.update(model="simulated", backend="sim.world.Renderer (the task's scene)",
+                         width_px=shape[1], height_px=shape[0], channels=1, pixel_format=None,
+                         exposure_s=self.shutter_s, exposure_range_s=None)
+        return state
+
     def capture(self):
         self.captures += 1
         if self.captures == self.fail_on_capture:

@@ -126,6 +126,9 @@ class DxlEmulator:
         self.servos = {i: Servo(i, model_number, firmware) for i in ids}
         self.speedup = speedup
         self.received, self.sent = [], []           # raw packets, as on the wire
+        self.lose_replies = 0                        # status packets still to lose (lose())
+        self.late_replies = (0, 0.0)                 # (how many, by how long): late()
+        self.synced = threading.Event()              # set when a Sync Write (goal positions) came
         self.lock = threading.Lock()
         self._master, self._slave = pty.openpty()
         tty.setraw(self._slave)
@@ -139,10 +142,28 @@ class DxlEmulator:
         return self
 
     def __exit__(self, *exc):
+        self.close()
+
+    def close(self):
+        """The bus goes away, as an unplugged adapter: the pty closes, and the SDK's next read or
+        write on it fails (EIO). Idempotent."""
+        if self._stop.is_set():
+            return
         self._stop.set()
-        self._thread.join()
+        if self._thread.is_alive():
+            self._thread.join()
         os.close(self._master)
         os.close(self._slave)
+
+    def lose(self, replies):
+        """The next `replies` status packets are lost on the bus (noise): never sent."""
+        with self.lock:
+            self.lose_replies = replies
+
+    def late(self, replies, delay_s):
+        """The next `replies` status packets are sent `delay_s` late (a reply the SDK gave up on)."""
+        with self.lock:
+            self.late_replies = (replies, delay_s)
 
     def inject_hardware_error(self, dxl_id, bits):
         """Set Hardware Error Status; like the real servo's shutdown, the torque goes off."""
@@ -185,7 +206,15 @@ class DxlEmulator:
         servo = self.servos[dxl_id]
         alert = ALERT if servo.get(HARDWARE_ERROR_STATUS) else 0
         raw = packet(dxl_id, STATUS, params, error | alert)
+        if self.lose_replies:
+            self.lose_replies -= 1
+            return
         self.sent.append(raw)
+        late, delay_s = self.late_replies
+        if late:
+            self.late_replies = (late - 1, delay_s)
+            threading.Timer(delay_s, os.write, (self._master, raw)).start()
+            return
         os.write(self._master, raw)
 
     def _handle(self, raw):
@@ -214,6 +243,7 @@ class DxlEmulator:
                 if unicast:
                     self._reply(i, error)
         elif instruction == SYNC_WRITE:
+            self.synced.set()
             for k in range(4, len(params), length + 1):
                 if params[k] in self.servos:
                     self.servos[params[k]].write(address, params[k + 1:k + 1 + length])

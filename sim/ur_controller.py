@@ -3,6 +3,7 @@ real RTDEReceiveInterface / RTDEControlInterface code path (and cell.hw.ur.URArm
 
     python -m sim.ur_controller [--host 127.0.0.1] [--max-seconds N]
                                 [--fault KIND [--fault-on-move N] [--fault-after-s S]]
+                                [--mute STEP]
 
 It must run in its own process (ur_rtde's constructors hold the GIL while they block). It prints
 READY once it listens on UR's fixed ports - dashboard 29999, RTDE 30004, script 30003 - and ends
@@ -24,6 +25,8 @@ itself after --max-seconds. One process, one thread, a 500 Hz tick, standard-lib
   protective-stop, emergency-stop (the arm halts, the script stops, the safety bits rise), silent
   (the controller answers nothing more and streams nothing, connections stay open), drop (every
   connection closes and the controller leaves the network: it accepts no more).
+- A connection step that never answers (`--mute STEP`, MUTE_STEPS): every client's connection
+  goes silent at that step, as a listener that passes a connection check and then hangs.
 """
 import argparse
 import errno
@@ -49,6 +52,11 @@ SERIAL_NUMBER = "20205500000"
 HOME_JOINTS = np.radians([-90.0, -90.0, 90.0, -90.0, -90.0, 0.0])  # as sim.arm: flange down
 JOINT_SPEED_MAX = np.radians([180.0, 180.0, 180.0, 180.0, 180.0, 180.0])  # UR5e, rad/s
 FAULTS = ("protective-stop", "emergency-stop", "silent", "drop")
+# --mute STEP: a controller that goes silent at one step of a client's connection (the connection
+# stays open): after answering RTDE's protocol version request, at RTDE's start (the recipes set
+# up, no state ever streamed), after the dashboard's greeting, or taking programs on the script
+# port without ever starting them
+MUTE_STEPS = ("rtde-version", "rtde-start", "dashboard", "script")
 MAX_BACKLOG = 1 << 22                  # bytes queued for a client that does not read: drop it
 
 # RTDE message types (RTDE guide)
@@ -346,9 +354,10 @@ class ControlScript:
 class Controller:
     """The controller's state: arm, program, safety, registers, and the armed fault."""
 
-    def __init__(self, fault=None, fault_on_move=1, fault_after_s=0.0, verbose=False, log=sys.stderr):
+    def __init__(self, fault=None, fault_on_move=1, fault_after_s=0.0, verbose=False, log=sys.stderr,
+                 mute=None):
         self.start = time.monotonic()
-        self.log, self.verbose = log, verbose
+        self.log, self.verbose, self.mute = log, verbose, mute
         self.reset()
         self.armed = (fault, fault_on_move, fault_after_s) if fault else None
 
@@ -489,6 +498,9 @@ class Rtde(Connection):
         self.started, self.next_send = False, 0.0
 
     def handle(self, c, kind, payload):
+        if (c.mute == "rtde-version" and kind != REQUEST_PROTOCOL_VERSION) or (c.mute == "rtde-start"
+                                                                             and kind == START):
+            return c.trace(f"muted at {c.mute}: RTDE message {chr(kind)!r} not answered")
         if kind == REQUEST_PROTOCOL_VERSION:
             version = struct.unpack(">H", payload[:2])[0] if len(payload) >= 2 else 0
             self.send(message(kind, bytes([version == 2])))
@@ -567,6 +579,9 @@ class Dashboard(Connection):
         self.send(b"Connected: Universal Robots Dashboard Server\n")
 
     def receive(self, c):
+        if c.mute == "dashboard":
+            self.inbox.clear()
+            return True
         while b"\n" in self.inbox:
             line, _, rest = bytes(self.inbox).partition(b"\n")
             self.inbox[:] = rest
@@ -635,6 +650,9 @@ class ScriptPort(Connection):
         super().__init__(sock, "script")
 
     def receive(self, c):
+        if c.mute == "script":
+            self.inbox.clear()
+            return True
         text = self.inbox.decode(errors="replace")
         end = re.search(r"^end[ \t]*\r?\n", text, re.M)
         while end:
@@ -646,7 +664,9 @@ class ScriptPort(Connection):
 
 
 class Server:
-    """The three listening ports and their clients, ticked at 500 Hz on one thread."""
+    """The three listening ports and their clients, ticked at 500 Hz on one thread; `run` ends
+    after max_seconds or once `stopping` is set (a test running it in a thread of its own, now
+    that ur_rtde runs in cell.hw.ur_worker's process and no longer holds this one's GIL)."""
 
     KINDS = {RTDE_PORT: Rtde, DASHBOARD_PORT: Dashboard, SCRIPT_PORT: ScriptPort}
 
@@ -654,7 +674,7 @@ class Server:
         self.controller = controller
         self.selector = selectors.DefaultSelector()
         self.listeners, self.clients = [], {}
-        self.silent = False
+        self.silent = self.stopping = False
         for port, what in ((DASHBOARD_PORT, "dashboard"), (RTDE_PORT, "RTDE"), (SCRIPT_PORT, "script")):
             sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -726,7 +746,7 @@ class Server:
         next_tick = time.monotonic()
         while True:
             now = time.monotonic()
-            if now >= deadline:
+            if now >= deadline or self.stopping:
                 break
             if self.silent:                         # answers nothing, streams nothing, until the end
                 time.sleep(min(0.05, deadline - now))
@@ -774,10 +794,11 @@ def main(argv=None):
     parser.add_argument("--fault", choices=FAULTS, help="inject this fault during a move")
     parser.add_argument("--fault-on-move", type=int, default=1, help="the moveL it fires in (1 = first)")
     parser.add_argument("--fault-after-s", type=float, default=0.0, help="seconds after that move starts")
+    parser.add_argument("--mute", choices=MUTE_STEPS, help="answer nothing from this step of a connection on")
     parser.add_argument("--verbose", action="store_true", help="log recipes and commands on stderr")
     args = parser.parse_args(argv)
     host = loopback(args.host)
-    controller = Controller(args.fault, args.fault_on_move, args.fault_after_s, args.verbose)
+    controller = Controller(args.fault, args.fault_on_move, args.fault_after_s, args.verbose, mute=args.mute)
     server = Server(host, controller)
     print("READY", flush=True)
     try:

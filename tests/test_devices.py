@@ -1,9 +1,6 @@
-"""Device settings, the interfaces' safety checks, the simulated devices, and the real UR and
-OpenCV backends on loopback and files only."""
+"""Device settings, the interfaces' safety checks, the simulated devices, and the real OpenCV
+backend on files (the UR's connection: tests/test_ur_worker.py)."""
 import io
-import socket
-import threading
-import time
 from dataclasses import replace
 from types import SimpleNamespace
 
@@ -17,7 +14,6 @@ from cell import devices
 from cell.backends import make_hw_devices
 from cell.devices import Devices
 from cell.errors import DeviceFault, TaskError
-from cell.hw import ur
 from cell.hw.opencv_camera import OpenCVCamera
 from cell.loader import load_task
 from cell.operator import Operator
@@ -288,55 +284,6 @@ def test_opencv_camera_reads_an_image_sequence_and_refuses_exposure_on_a_file(tm
 def test_opencv_camera_missing_file_is_a_fault(tmp_path):
     with pytest.raises(DeviceFault, match="cannot open .*missing.avi"):
         opencv_camera(tmp_path / "missing.avi")
-
-
-# --- UR arm on loopback ---------------------------------------------------------------------
-
-def nothing_listens(port):
-    with socket.socket() as s:
-        return s.connect_ex(("127.0.0.1", port)) != 0
-
-
-@pytest.fixture
-def silent_server(monkeypatch):
-    """A loopback server that accepts and never answers; URArm's probe is pointed at it."""
-    server = socket.create_server(("127.0.0.1", 0))
-    accepted = []
-    thread = threading.Thread(target=lambda: accepted.append(server.accept()), daemon=True)
-    thread.start()
-    port = server.getsockname()[1]
-    monkeypatch.setattr(ur, "PORTS", (port, port, port))
-    yield port
-    server.close()
-    for conn, _ in accepted:
-        conn.close()
-
-
-def loopback_arm(timeout_s=1.0):
-    return ur.URArm(replace(DEFAULTS.arm, host="127.0.0.1", connect_timeout_s=timeout_s), FRAMES)
-
-
-@pytest.mark.skipif(not nothing_listens(30004), reason="something listens on 127.0.0.1:30004")
-def test_ur_arm_with_nothing_listening_fails_fast_naming_arm_and_host():
-    start = time.monotonic()
-    with pytest.raises(DeviceFault, match=r"UR at 127.0.0.1:30004: RTDE protocol version request") as f:
-        loopback_arm()
-    assert f.value.device == "arm" and time.monotonic() - start < 0.5
-
-
-@pytest.mark.skipif(not nothing_listens(30004), reason="something listens on 127.0.0.1:30004")
-def test_ur_rtde_connection_error_becomes_a_device_fault(monkeypatch):
-    monkeypatch.setattr(ur, "probe", lambda host, timeout_s: None)     # straight to ur_rtde
-    with pytest.raises(DeviceFault, match="UR at 127.0.0.1: .*Could not connect to: 127.0.0.1") as f:
-        loopback_arm()
-    assert f.value.device == "arm"
-
-
-def test_ur_arm_that_accepts_but_never_answers_fails_within_the_timeout(silent_server):
-    start = time.monotonic()
-    with pytest.raises(DeviceFault, match=rf"UR at 127.0.0.1:{silent_server}: .* within 1.0 s: no answer"):
-        loopback_arm(timeout_s=1.0)
-    assert time.monotonic() - start < 1.5
 
 
 def test_a_calibrated_hand_eye_moves_the_flange_and_keeps_the_camera_where_asked():

@@ -16,6 +16,7 @@ from dynamixel_sdk import (COMM_RX_TIMEOUT, COMM_SUCCESS, GroupSyncRead, GroupSy
 
 from cell import servo
 from cell.errors import DeviceFault
+from cell.hw import dynamixel
 from cell.hw.dynamixel import DynamixelPanTilt
 from cell.operator import Operator
 from cell.task import LampRig
@@ -199,6 +200,56 @@ def test_goal_outside_the_servos_position_limits_is_refused_before_moving():
             rig.move(np.radians(150.0), np.radians(45.0), 0.3)
         assert emulator.servos[1].get(servo.GOAL_POSITION) == 2048
         rig.close()
+
+
+def test_a_lost_status_packet_is_sent_again_and_only_a_servo_that_never_answers_is_a_fault():
+    with bus(ids=(1, 2), speedup=10) as emulator:
+        rig = pan_tilt(emulator)
+        rig.move(np.radians(30.0), np.radians(45.0), 0.30)
+        emulator.lose(2)                         # two replies lost: the third attempt answers
+        assert np.degrees(rig.joints()[0]) == pytest.approx(30.0, abs=0.05)
+        assert np.degrees(rig.joints()[1]) == pytest.approx(45.0, abs=0.05)   # nothing stale left over
+        emulator.lose(dynamixel.ATTEMPTS - 1)      # a write too: it sets an absolute value
+        rig._write(1, servo.PROFILE_VELOCITY, 77)
+        assert emulator.servos[1].get(servo.PROFILE_VELOCITY) == 77
+        assert sum(raw[7] == 0x03 for raw in emulator.received[-dynamixel.ATTEMPTS:]) == dynamixel.ATTEMPTS
+        emulator.lose(dynamixel.ATTEMPTS)
+        with pytest.raises(DeviceFault, match="servo 1: read 132: .*There is no status packet"):
+            rig.joints()
+        rig.close()
+
+
+def test_a_reply_that_comes_after_the_sdk_gave_up_is_never_taken_for_the_next_answer():
+    """Replies later than the wait: taken for the next question's answer, a position would pass
+    for the Max Position Limit. The line is waited out before each repeat, so the position's
+    reads end in a fault instead."""
+    with bus(ids=(1, 2), speedup=10) as emulator:
+        rig = pan_tilt(emulator)
+        rig.move(np.radians(30.0), np.radians(45.0), 0.30)
+        timeout_s = (2 * 16 + 2.0 + dynamixel.SLACK_MS) / 1e3       # the SDK's wait and ours
+        emulator.late(3, 1.2 * timeout_s)
+        with pytest.raises(DeviceFault, match="servo 1: read 132: .*There is no status packet"):
+            rig._read(1, servo.PRESENT_POSITION)
+            pytest.fail(f"Max Position Limit read as {rig._read(1, servo.MAX_POSITION_LIMIT)}")
+        time.sleep(2 * timeout_s)
+        assert rig._read(1, servo.MAX_POSITION_LIMIT) == 4095
+        rig.close()
+
+
+def test_a_serial_link_that_goes_away_is_a_fault_now_and_for_every_later_call():
+    """The pty closes, as an unplugged adapter: the SDK's termios.error (EIO) on its next call is a
+    DeviceFault saying the link is lost, and the stop after it says so too, not 'Port is in use!'
+    (the SDK's flag stays set after the error)."""
+    with bus(ids=(1, 2), speedup=10) as emulator:
+        rig = pan_tilt(emulator)
+        emulator.close()
+        lost = rf"serial link {emulator.port} lost \(\[Errno 5\] Input/output error\)"
+        with pytest.raises(DeviceFault, match=lost) as fault:
+            rig.move(np.radians(10.0), np.radians(45.0), 0.3)
+        assert fault.value.device == "pan-tilt"
+        with pytest.raises(DeviceFault, match=lost + ": not sent"):
+            rig.stop(fault_is_own=True)
+        rig.close()                                        # nothing left to release: no error
 
 
 def test_missing_serial_port_is_a_fault():

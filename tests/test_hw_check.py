@@ -4,7 +4,6 @@ real cv2.VideoCapture): every device's state as the emulators were set, nothing 
 a silent or absent arm, a missing serial port, a stopped arm and a servo's hardware error are
 exit 3 naming the device and its address, and the other devices are still read."""
 import json
-import selectors
 import socket
 import subprocess
 import sys
@@ -21,61 +20,22 @@ from cell.geometry import to_ur_pose
 from cell.loader import load_task
 from sim import ur5e
 from sim.dxl_emulator import PING, READ, DxlEmulator
-from sim.ur_controller import DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT
+from sim.ur_controller import RTDE_PORT
+from loopback import dashboard, start_emulator, stop_emulator
+from loopback import free_host as free_loopback
 from simcell import variant
 
-UR_PORTS = (DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT)
 HOME_RAD = np.radians([-90.0, -90.0, 90.0, -90.0, -90.0, 0.0])   # the emulator after power-up
 PAN_TICKS, TILT_TICKS = 2048 + 341, 2048 + 512                    # pan 29.97 deg, tilt 45 deg
-
-
-def free_loopback(exclude=()):
-    """A loopback address of our own (127.0.0.X) on which UR's fixed ports are all free."""
-    for x in range(171, 254):
-        host = f"127.0.0.{x}"
-        if host in exclude:
-            continue
-        socks = []
-        try:
-            for port in UR_PORTS:
-                sock = socket.socket()
-                socks.append(sock)
-                sock.bind((host, port))
-            return host
-        except OSError:
-            continue
-        finally:
-            for sock in socks:
-                sock.close()
-    pytest.fail("no loopback address 127.0.0.171-253 has UR's ports free")
 
 
 @pytest.fixture(scope="module")
 def ur_host(tmp_path_factory):
     """The UR controller emulator, its own process on its own loopback address."""
     host = free_loopback()
-    log = tmp_path_factory.mktemp("ur") / "ur_controller.log"
-    with open(log, "w") as stderr:
-        process = subprocess.Popen([sys.executable, "-m", "sim.ur_controller", "--host", host,
-                                    "--max-seconds", "180"], stdout=subprocess.PIPE, stderr=stderr, text=True)
-    with selectors.DefaultSelector() as selector:
-        selector.register(process.stdout, selectors.EVENT_READ)
-        line = process.stdout.readline().strip() if selector.select(15.0) else ""
-    if line != "READY":
-        process.kill()
-        pytest.fail(f"UR emulator on {host} not READY: {log.read_text()}")
+    process = start_emulator(host, (), 180, tmp_path_factory.mktemp("ur") / "ur_controller.log")
     yield host
-    process.kill()
-    process.wait(timeout=10)
-    process.stdout.close()
-
-
-def dashboard(host, command):
-    with socket.create_connection((host, DASHBOARD_PORT), timeout=2.0) as sock:
-        reader = sock.makefile("rb")
-        reader.readline()
-        sock.sendall(command.encode() + b"\n")
-        return reader.readline().decode().strip()
+    stop_emulator(process)
 
 
 @contextmanager

@@ -3,17 +3,11 @@ run as its own process: moveL at the commanded speed, async moveL and stopL, set
 protective and emergency stops; cell.hw.ur.URArm moving the camera and reading it back, and its
 watch on the controller: a killed, silent or dropped controller mid-move is a DeviceFault at once
 (not after ur_rtde's 300 s), as are a protective stop and a move past move_timeout_s."""
-import fcntl
-import selectors
-import socket
-import subprocess
 import sys
-import tempfile
 import threading
 import time
 from contextlib import contextmanager
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -27,45 +21,28 @@ from cell.loader import load_task
 from cell.scene import look_at
 from sim import ur5e
 from sim import ur_controller
-from sim.ur_controller import DASHBOARD_PORT
+import loopback
+from loopback import free_host, start_emulator, stop_emulator
 from simcell import device_settings
 
-HOST = "127.0.0.1"
+HOST = free_host()                      # UR's ports are fixed: an address of this module's own
 TASK = "tasks/hinge.yaml"
-LOCK = Path(tempfile.gettempdir()) / "lightplan-ur-emulator.lock"    # UR's ports are one per host
 HINGE_CAMERA = look_at(np.array([-0.019, 0.0, 0.503]), np.array([0.006, 0.0, 0.004]))
 
 
 class Emulators:
-    """This module's emulator processes, one at a time (UR's ports are fixed: one per host): the
+    """This module's emulator processes on HOST, one at a time (UR's ports are fixed): the
     shared one, reset between tests, or a test's own with its options. Each is started with
     --max-seconds (it ends itself even if pytest dies) and killed here."""
 
     def __init__(self, log_dir):
         self.log_dir, self.count, self.shared_process = log_dir, 0, None
 
-    def start(self, options, max_seconds, ready_timeout_s=15.0):
+    def start(self, options, max_seconds):
         self.count += 1
-        log = self.log_dir / f"ur_controller-{self.count}.log"
-        with open(log, "w") as stderr:
-            process = subprocess.Popen(
-                [sys.executable, "-m", "sim.ur_controller", "--max-seconds", str(max_seconds), *options],
-                stdout=subprocess.PIPE, stderr=stderr, text=True)
-        process.log, process.log_seen = log, 0
-        with selectors.DefaultSelector() as selector:
-            selector.register(process.stdout, selectors.EVENT_READ)
-            line = process.stdout.readline().strip() if selector.select(ready_timeout_s) else ""
-        if line != "READY":
-            self.stop(process)
-            pytest.fail(f"UR emulator not READY within {ready_timeout_s} s: {log.read_text().strip()}")
-        return process
+        return start_emulator(HOST, options, max_seconds, self.log_dir / f"ur_controller-{self.count}.log")
 
-    @staticmethod
-    def stop(process):
-        if process is not None:
-            process.kill()
-            process.wait(timeout=10)
-            process.stdout.close()
+    stop = staticmethod(stop_emulator)
 
     @staticmethod
     def show_log(process):
@@ -103,22 +80,11 @@ class Emulators:
 
 @pytest.fixture(scope="module")
 def emulators(tmp_path_factory):
-    """Test sessions on one host take turns on a lock file (the ports are fixed)."""
-    with open(LOCK, "w") as lock:
-        waited = time.monotonic()
-        while True:
-            try:
-                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                break
-            except BlockingIOError:
-                if time.monotonic() - waited > 120:
-                    pytest.fail(f"another test session has held {LOCK} for 120 s")
-                time.sleep(0.2)
-        pool = Emulators(tmp_path_factory.mktemp("ur_controller"))
-        try:
-            yield pool
-        finally:
-            pool.close()
+    pool = Emulators(tmp_path_factory.mktemp("ur_controller"))
+    try:
+        yield pool
+    finally:
+        pool.close()
 
 
 @pytest.fixture
@@ -130,12 +96,7 @@ def controller(emulators):
 
 
 def dashboard(command):
-    """One dashboard command and its answer line."""
-    with socket.create_connection((HOST, DASHBOARD_PORT), timeout=2.0) as sock:
-        reader = sock.makefile("rb")
-        reader.readline()                                         # the welcome line
-        sock.sendall(command.encode() + b"\n")
-        return reader.readline().decode().strip()
+    return loopback.dashboard(HOST, command)
 
 
 @contextmanager
@@ -306,7 +267,7 @@ def test_the_emulator_listens_on_loopback_only():
 def test_one_emulator_per_host_and_it_ends_itself(emulators):
     with emulators.own(max_seconds=1.5) as process:
         began = time.monotonic()
-        with pytest.raises(SystemExit, match="127.0.0.1:29999 .*address already in use"):
+        with pytest.raises(SystemExit, match=f"{HOST}:29999 .*address already in use"):
             ur_controller.Server(HOST, ur_controller.Controller())
         assert process.wait(timeout=5) == 0 and time.monotonic() - began < 2.0      # --max-seconds
 
@@ -322,17 +283,18 @@ def test_ur_arm_controller_killed_mid_move_is_a_fault_at_once_and_stop_says_it_c
 
 
 def test_ur_arm_controller_silent_mid_move_is_a_fault_within_the_connect_timeout(emulators):
-    with emulators.own("--fault", "silent", "--fault-after-s", "0.5") as process:
+    with emulators.own("--fault", "silent", "--fault-after-s", "0.5"):
         arm = ur.URArm(WATCHED_ARM, FRAMES)
         try:
             watched_move_fails(arm, r"controller silent during moveL \(no state for 0.5 s\)", 0.5 + 0.5 + 0.3)
             with pytest.raises(DeviceFault, match=r"controller silent \(no state for 0.5 s\): stopL not sent"):
                 arm.stop()
         finally:
-            # ur_rtde's disconnect waits for its threads' reconnect attempts to a silent controller
-            # (measured: 5 s); to a vanished one they fail at once
-            process.kill()
+            # no stopScript (no state for 0.5 s) and no disconnect (ur_rtde's waits 5 s for its
+            # threads' reconnect attempts to a silent controller, measured): the worker is ended
+            began = time.monotonic()
             arm.close()
+            assert time.monotonic() - began < 0.5 + 0.5
 
 
 def test_ur_arm_connection_dropped_mid_move_is_a_fault_at_once(emulators):

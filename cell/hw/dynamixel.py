@@ -1,15 +1,44 @@
 """The lamp's real pan-tilt: Dynamixel X-series servos, Protocol 2.0 through dynamixel_sdk, on the
-control table and the tick mapping of cell.servo."""
+control table and the tick mapping of cell.servo.
+
+A serial link that goes away (an unplugged USB adapter, a closed pty) fails inside the SDK with
+pyserial's SerialException, an OSError, or termios.error (no OSError: tcdrain and tcflush on a
+vanished tty, EIO), and leaves the SDK's port flagged in use, so that every later call would
+report "Port is in use!". So each SDK call goes through `_sdk`: the first such failure is a
+DeviceFault saying the link is lost, and so is every later call, unsent.
+
+The SDK waits 2 latency timers + 2 ms for a status packet (36 ms), and its busy wait misses a
+reply that came while the process was descheduled between reading nothing and checking the
+clock (seen on a loaded 2-core machine), so the port (`_Port`) waits SLACK_MS longer. A ping,
+read or write still without a status packet is sent again (ATTEMPTS in all): a ping or read
+changes nothing and every write here sets an absolute value, and a bus loses a packet now and
+then. Before it, a late reply is waited out and discarded (the line quiet for QUIET_S), so it
+cannot be taken for the next question's answer.
+"""
+import termios
 import time
 
 import serial
-from dynamixel_sdk import COMM_SUCCESS, GroupSyncWrite, PacketHandler, PortHandler
+from dynamixel_sdk import COMM_RX_TIMEOUT, COMM_SUCCESS, GroupSyncWrite, PacketHandler, PortHandler
+from dynamixel_sdk.port_handler import LATENCY_TIMER
 
 from cell.errors import DeviceFault
 from cell.servo import (ALERT, FIRMWARE_VERSION, GOAL_POSITION, HARDWARE_ERROR_STATUS, INPUT_VOLTAGE_UNIT_V,
                         MAX_POSITION_LIMIT, MIN_POSITION_LIMIT, MODELS, MOVING, OPERATING_MODE, POSITION_MODE,
                         PRESENT_INPUT_VOLTAGE, PRESENT_POSITION, PRESENT_TEMPERATURE, PROFILE_VELOCITY,
                         TEMPERATURE_LIMIT, TORQUE_ENABLE, ServoRig, describe_hardware_error, profile_velocity)
+
+ATTEMPTS = 3
+SLACK_MS = 50.0
+QUIET_S = (2 * LATENCY_TIMER + 2.0 + SLACK_MS) / 1e3
+
+
+class _Port(PortHandler):
+    """The SDK's port, waiting SLACK_MS longer for every status packet."""
+
+    def setPacketTimeout(self, packet_length):
+        super().setPacketTimeout(packet_length)
+        self.packet_timeout += SLACK_MS
 
 
 class DynamixelPanTilt(ServoRig):
@@ -20,7 +49,8 @@ class DynamixelPanTilt(ServoRig):
 
     def __init__(self, rig, config, operator, read_only=False):
         super().__init__(rig, config, operator)
-        self._port, self._packet = PortHandler(config.port), PacketHandler(2.0)
+        self._port, self._packet = _Port(config.port), PacketHandler(2.0)
+        self._lost = None                    # why the serial link is gone, once it is
         try:
             self._port.openPort()
             self._port.setBaudRate(config.baud)
@@ -35,8 +65,39 @@ class DynamixelPanTilt(ServoRig):
             self._port.closePort()
             raise
 
+    def _sdk(self, call, *args):
+        """call(*args), an SDK function; a lost serial link is a DeviceFault, now and from then on."""
+        if self._lost:
+            raise DeviceFault(self.device, f"{self._lost}: not sent")
+        try:
+            return call(*args)
+        except (OSError, termios.error) as err:          # SerialException is an OSError
+            if isinstance(err, termios.error):
+                err = OSError(*err.args)                  # (errno, text) shown as an OSError's
+            self._lost = f"serial link {self.config.port} lost ({err})"
+            raise DeviceFault(self.device, self._lost) from None
+
+    def _ask(self, call, dxl_id, *args):
+        """A ping, read or write, call(port, dxl_id, *args) -> (..., comm, error), sent again while
+        no status packet comes, the input drained of a late one first."""
+        for attempt in range(ATTEMPTS):
+            if attempt:
+                self._sdk(self._drain)
+            *value, comm, error = self._sdk(call, self._port, dxl_id, *args)
+            if comm != COMM_RX_TIMEOUT:
+                break
+        return (*value, comm, error)
+
+    def _drain(self):
+        """Discard what arrives until the line is quiet for QUIET_S (at most 10 times)."""
+        for _ in range(10):
+            time.sleep(QUIET_S)
+            if not self._port.ser.in_waiting:
+                return
+            self._port.ser.reset_input_buffer()
+
     def _connect(self, dxl_id):
-        model, comm, error = self._packet.ping(self._port, dxl_id)
+        model, comm, error = self._ask(self._packet.ping, dxl_id)
         self._check(dxl_id, comm, error, "ping")
         if model not in MODELS:
             raise DeviceFault(self.device, f"servo {dxl_id} is model {model}; expected one with the "
@@ -53,7 +114,7 @@ class DynamixelPanTilt(ServoRig):
         if comm != COMM_SUCCESS:
             raise DeviceFault(self.device, f"servo {dxl_id}: {what}: {self._packet.getTxRxResult(comm)}")
         if error & ALERT and not alert_ok:
-            bits, comm, _ = self._packet.read1ByteTxRx(self._port, dxl_id, HARDWARE_ERROR_STATUS.address)
+            bits, comm, _ = self._ask(self._packet.read1ByteTxRx, dxl_id, HARDWARE_ERROR_STATUS.address)
             status = describe_hardware_error(bits) if comm == COMM_SUCCESS else "(status unreadable)"
             raise DeviceFault(self.device, f"servo {dxl_id}: Hardware Error Status {status}")
         if error & ~ALERT:
@@ -62,13 +123,13 @@ class DynamixelPanTilt(ServoRig):
     def _read(self, dxl_id, item, alert_ok=False):
         read = {1: self._packet.read1ByteTxRx, 2: self._packet.read2ByteTxRx,
                 4: self._packet.read4ByteTxRx}[item.size]
-        value, comm, error = read(self._port, dxl_id, item.address)
+        value, comm, error = self._ask(read, dxl_id, item.address)
         self._check(dxl_id, comm, error, f"read {item.address}", alert_ok)
         return value - (1 << 32) if item.size == 4 and value >= 1 << 31 else value   # int32
 
     def _write(self, dxl_id, item, value, alert_ok=False):
         write = {1: self._packet.write1ByteTxRx, 4: self._packet.write4ByteTxRx}[item.size]
-        comm, error = write(self._port, dxl_id, item.address, int(value) & 0xFFFFFFFF)
+        comm, error = self._ask(write, dxl_id, item.address, int(value) & 0xFFFFFFFF)
         self._check(dxl_id, comm, error, f"write {item.address}", alert_ok)
 
     def _drive(self, goals):
@@ -76,7 +137,7 @@ class DynamixelPanTilt(ServoRig):
         sync = GroupSyncWrite(self._port, self._packet, GOAL_POSITION.address, GOAL_POSITION.size)
         for dxl_id, tick in goals.items():
             sync.addParam(dxl_id, list(int(tick).to_bytes(4, "little", signed=True)))
-        comm = sync.txPacket()
+        comm = self._sdk(sync.txPacket)
         if comm != COMM_SUCCESS:
             raise DeviceFault(self.device, f"goal positions not sent: {self._packet.getTxRxResult(comm)}")
         deadline = time.monotonic() + self.config.move_timeout_s
@@ -123,7 +184,7 @@ class DynamixelPanTilt(ServoRig):
                 "servos": {str(i): s for i, s in servos.items()}, "problems": problems}
 
     def _servo_state(self, dxl_id, role):
-        model, comm, error = self._packet.ping(self._port, dxl_id)
+        model, comm, error = self._ask(self._packet.ping, dxl_id)
         self._check(dxl_id, comm, error, "ping", alert_ok=True)
         read = {item: self._read(dxl_id, item, alert_ok=True) for item in (
             FIRMWARE_VERSION, OPERATING_MODE, TORQUE_ENABLE, PRESENT_POSITION, MIN_POSITION_LIMIT,
@@ -167,4 +228,7 @@ class DynamixelPanTilt(ServoRig):
             raise failures[0]
 
     def close(self):
-        self._port.closePort()
+        try:
+            self._port.closePort()
+        except (OSError, termios.error):
+            pass                              # a lost link: nothing left to release

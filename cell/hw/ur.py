@@ -1,28 +1,32 @@
-"""The real arm: a UR through ur_rtde's RTDEControlInterface / RTDEReceiveInterface.
+"""The real arm: a UR through ur_rtde's RTDEControlInterface / RTDEReceiveInterface, run in a
+device worker process (cell.hw.ur_worker).
 
-ur_rtde's constructors have no read timeout and hold the GIL while they block (checked: a
-constructor in a worker thread froze the whole interpreter), so neither a thread with a join
-timeout nor a signal can bound them. Instead `probe` first walks the same steps with our own
-socket timeouts - the RTDE protocol-version handshake on 30004, the dashboard server's greeting
-on 29999, a connect to the script port 30003 - and the constructors run only when all answered.
+ur_rtde's constructors have no read timeout and hold the GIL while they block, so neither a thread
+with a join timeout nor a signal can bound them in this process. `probe` first walks the first
+steps with our own socket timeouts - the RTDE protocol-version handshake on 30004, the dashboard
+server's greeting on 29999, a connect to the script port 30003 - for a precise message; then the
+constructors and every later call run in the worker, each within connect_timeout_s (a command:
+plus its own braking time), and a worker that does not answer in time is killed: a DeviceFault
+naming the step. So a controller that answers the probe and then goes silent at any later step
+of the connection cannot hang the run either.
 
 Once connected, a command to a controller that has died or gone silent waits up to 300 s for its
 "done" (and the getters return the last state forever; checked against sim/ur_controller.py). So
 every command is sent only to a controller whose state is still arriving, and moveL is sent
-asynchronously and watched here on the receive side against `move_timeout_s`.
+asynchronously and watched here on the receive side against `move_timeout_s`, one batched round
+trip to the worker per poll.
 """
 import socket
 import struct
 import time
+from dataclasses import dataclass
 
 import numpy as np
-
-import rtde_control
-import rtde_receive
 
 from cell.devices import Arm
 from cell.errors import DeviceFault
 from cell.geometry import from_ur_pose, to_ur_pose
+from cell.hw.ur_worker import Remote, Worker
 
 PORTS = (30004, 29999, 30003)            # RTDE, dashboard, script: fixed by UR and ur_rtde
 RTDE_REQUEST_PROTOCOL_VERSION = 86        # 'V' (RTDE guide); payload: uint16 version
@@ -42,6 +46,37 @@ SAFETY_MODES = {1: "NORMAL", 2: "REDUCED", 3: "PROTECTIVE_STOP", 4: "RECOVERY", 
 ROBOT_MODE_RUNNING, SAFETY_MODES_TO_MOVE = 7, (1, 2)     # a run needs these: powered, brakes off, normal
 DASHBOARD_QUERIES = {"polyscope_version": "PolyscopeVersion", "serial_number": "get serial number",
                      "remote_control": "is in remote control"}
+# what the watcher reads per poll, in one round trip to the worker
+WATCHED = (("receive", "isConnected"), ("control", "isConnected"), ("receive", "getTimestamp"),
+           ("receive", "isEmergencyStopped"), ("receive", "isProtectiveStopped"),
+           ("receive", "getRuntimeState"), ("receive", "getActualTCPPose"), ("receive", "getActualTCPSpeed"))
+
+
+@dataclass(frozen=True)
+class Watched:
+    """The controller's state as one poll of WATCHED read it."""
+
+    receive_connected: bool
+    control_connected: bool
+    timestamp: float
+    emergency_stopped: bool
+    protective_stopped: bool
+    runtime_state: int
+    tcp_pose: list
+    tcp_speed: list
+
+    @property
+    def connected(self):
+        return self.receive_connected and self.control_connected
+
+    def why_stopped(self):
+        if self.emergency_stopped:
+            return " (emergency stop)"
+        if self.protective_stopped:
+            return " (protective stop)"
+        if self.runtime_state != PLAYING:
+            return " (the control script is not running)"
+        return ""
 
 
 def _receive(sock, n):
@@ -102,40 +137,61 @@ class URArm(Arm):
     """moveL of the camera frame: the frames' hand-eye is set as the TCP, so poses on the wire are
     T_base_cam; read back with getActualTCPPose. A controller whose state stops arriving for
     connect_timeout_s, a lost connection, a protective or emergency stop, a stopped control
-    script and a move not done within move_timeout_s are each a DeviceFault.
+    script, a move not done within move_timeout_s and a ur_rtde call that does not return in
+    time are each a DeviceFault. `self._receive.<getter>()` and `self._control.<command>()` call
+    the worker's interfaces.
 
     read_only (`cell hw-check`): the receive interface alone - no control script uploaded, no TCP
     set, nothing commanded - so only state() and the read-back work; a move is refused."""
 
     def __init__(self, config, frames, read_only=False):
         super().__init__(config, frames)
-        host = config.host
-        probe(host, config.connect_timeout_s)
-        self._control = None
+        host, timeout_s = config.host, config.connect_timeout_s
+        probe(host, timeout_s)
+        self._worker = Worker(self.device, f"UR at {host}")
+        # stopL brakes from up to speed_m_s before it answers
+        stop_s = timeout_s + config.speed_m_s / STOP_DECELERATION_M_S2
+        self._receive = Remote(self._worker, "receive", timeout_s)
+        self._control = None if read_only else Remote(self._worker, "control", timeout_s, {"stopL": stop_s})
         try:
-            self._receive = rtde_receive.RTDEReceiveInterface(host)
+            self._worker.call([("receive", "__init__", (host,))], timeout_s,
+                              "RTDEReceiveInterface connect (RTDE setup and the first state)")
             if read_only:
                 return
-            self._control = rtde_control.RTDEControlInterface(host)
+            self._worker.call([("control", "__init__", (host,))], timeout_s,
+                              "RTDEControlInterface connect (RTDE setup, dashboard, control script "
+                              "upload and start)")
             self._alive("setTcp")
             if not self._control.setTcp(list(to_ur_pose(frames.T_flange_cam))):
                 raise RuntimeError("setTcp(hand-eye) refused")
         except RuntimeError as err:
+            self._worker.kill()
             raise self._fault(str(err)) from None
+        except DeviceFault:
+            self._worker.kill()
+            raise
 
     def _fault(self, reason):
         return DeviceFault(self.device, f"UR at {self.config.host}: {reason}")
 
-    def _connected(self):
-        return self._receive.isConnected() and (self._control is None or self._control.isConnected())
+    def _watched(self):
+        """The controller's state, one round trip (Watched); read-only, no control interface to ask."""
+        calls = [(name, method, ()) for name, method in WATCHED if self._control or name == "receive"]
+        values = self._worker.call(calls, self.config.connect_timeout_s, "reading the state")
+        if self._control is None:
+            values.insert(1, True)
+        return Watched(*values)
 
     def _alive(self, command):
         """Return once a new controller state arrived (a tick, 2 ms on an e-Series); DeviceFault
         naming `command`, unsent, if the connection is lost or none comes in connect_timeout_s."""
         timeout_s = self.config.connect_timeout_s
-        seen, deadline = self._receive.getTimestamp(), time.monotonic() + timeout_s
-        while self._receive.getTimestamp() == seen:
-            if not self._connected():
+        seen, deadline = self._watched().timestamp, time.monotonic() + timeout_s
+        while True:
+            state = self._watched()
+            if state.timestamp != seen:
+                return
+            if not state.connected:
                 raise self._fault(f"connection to the controller lost: {command} not sent")
             if time.monotonic() > deadline:
                 raise self._fault(f"controller silent (no state for {timeout_s} s): {command} not sent")
@@ -161,7 +217,7 @@ class URArm(Arm):
                                   "refused before moving")
             self._alive("moveL")
             if not self._control.moveL(pose, speed_m_s, a, True):
-                raise self._fault("moveL refused" + self._why_stopped())
+                raise self._fault("moveL refused" + self._watched().why_stopped())
         except RuntimeError as err:
             raise self._fault(str(err)) from None
         self._watch(T_base_cam, time.monotonic() + timeout_s)
@@ -171,22 +227,21 @@ class URArm(Arm):
         timeout_s = self.config.connect_timeout_s
         seen, seen_at = None, time.monotonic()
         while True:
-            now = time.monotonic()
-            if not self._connected():
+            state, now = self._watched(), time.monotonic()
+            if not state.connected:
                 raise self._fault("connection to the controller lost during moveL: stopL not sent")
-            stamp = self._receive.getTimestamp()
-            if stamp != seen:
-                seen, seen_at = stamp, now
+            if state.timestamp != seen:
+                seen, seen_at = state.timestamp, now
             elif now - seen_at > timeout_s:
                 raise self._fault(f"controller silent during moveL (no state for {timeout_s} s): "
                                   "stopL not sent")
-            why = self._why_stopped()
+            why = state.why_stopped()
             if why:
                 raise self._fault("moveL did not complete" + why)
-            T = from_ur_pose(self._receive.getActualTCPPose())
+            T = from_ur_pose(state.tcp_pose)
             error_m = np.linalg.norm(T[:3, 3] - T_target[:3, 3])
             if (error_m < ARRIVED_M and _angle(T, T_target) < ARRIVED_RAD
-                    and np.linalg.norm(self._receive.getActualTCPSpeed()[:3]) < STEADY_M_S):
+                    and np.linalg.norm(state.tcp_speed[:3]) < STEADY_M_S):
                 return
             if now > deadline:
                 try:
@@ -198,22 +253,12 @@ class URArm(Arm):
                                   f"({error_m * 1e3:.1f} mm from the target): {stopped}")
             time.sleep(POLL_S)
 
-    def _why_stopped(self):
-        if self._receive.isEmergencyStopped():
-            return " (emergency stop)"
-        if self._receive.isProtectiveStopped():
-            return " (protective stop)"
-        if self._receive.getRuntimeState() != PLAYING:
-            return " (the control script is not running)"
-        return ""
-
     def _tcp_pose(self):
-        try:
-            if not self._receive.isConnected():
-                raise RuntimeError("connection to the controller lost")
-            return from_ur_pose(self._receive.getActualTCPPose())
-        except RuntimeError as err:
-            raise self._fault(str(err)) from None
+        connected, pose = self._worker.call([("receive", "isConnected", ()), ("receive", "getActualTCPPose", ())],
+                                            self.config.connect_timeout_s, "getActualTCPPose")
+        if not connected:
+            raise self._fault("connection to the controller lost")
+        return from_ur_pose(pose)
 
     def state(self):
         """Robot and safety mode by name, the TCP pose ([x, y, z, rx, ry, rz] in m and rad, base
@@ -255,17 +300,23 @@ class URArm(Arm):
             raise self._fault(f"stopL failed: {err}") from None
 
     def close(self):
-        if self._control is None:
-            self._receive.disconnect()
-            return
+        """stopScript and disconnect both interfaces (within 2 connect timeouts + 1 s) when the
+        controller still answers; a gone or silent one gets neither (stopScript would wait 300 s,
+        ur_rtde's disconnect 5 s for its reconnecting threads): the worker is ended at once, which
+        closes its sockets."""
+        disconnects = []
         try:
-            self._alive("stopScript")
-            self._control.stopScript()
-        except DeviceFault:
-            pass                  # gone or silent: stopScript would wait 300 s; still let go below
+            if self._control is None:               # read-only: no script, no control interface
+                self._alive("disconnect")
+            else:
+                self._alive("stopScript")
+                self._control.stopScript()
+                disconnects.append(("control", "disconnect", ()))
+            disconnects.append(("receive", "disconnect", ()))
+        except (DeviceFault, RuntimeError):
+            disconnects = []
         finally:
-            self._control.disconnect()
-            self._receive.disconnect()
+            self._worker.close(disconnects, 2 * self.config.connect_timeout_s + 1.0)
 
 
 def _angle(T_a, T_b):
