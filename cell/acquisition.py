@@ -66,17 +66,24 @@ def move_to(devices, shot, recorder, iteration=None):
     off = float(np.linalg.norm(position - shot.camera_position))
     recorder.step("move_camera", f"camera at {np.round(position, 4).tolist()} m ({1e3 * off:.2f} mm from "
                                  f"the plan)", iteration=iteration, position_m=position, error_m=off)
+    move_lamp(devices, shot.joints, recorder, iteration)
+
+
+def move_lamp(devices, joints, recorder, iteration=None, why=""):
+    """The lamp to (pan, tilt, radius) [rad, rad, m], logged as read back (after `why`, if
+    given). Returns the read-back joints."""
     with speaking_for(devices.lamp):
-        devices.lamp.move(*shot.joints)
+        devices.lamp.move(*joints)
         pan, tilt, radius = devices.lamp.joints()
-    recorder.step("move_lamp", f"pan {np.degrees(pan):.2f} deg, tilt {np.degrees(tilt):.2f} deg, "
+    recorder.step("move_lamp", f"{why}pan {np.degrees(pan):.2f} deg, tilt {np.degrees(tilt):.2f} deg, "
                                f"radius {1e3 * radius:.1f} mm", iteration=iteration,
                   joints={"pan_deg": np.degrees(pan), "tilt_deg": np.degrees(tilt), "radius_m": radius})
+    return pan, tilt, radius
 
 
-def acquire(devices, recorder, iteration, shutter_s, f_number, focus_m):
-    """Set f-number, focus and shutter, take a frame and save it at once (capture-N.png, the
-    sim's float gray rounded to the sensor's levels). Returns the Capture. The shutter comes last:
+def acquire(devices, recorder, iteration, shutter_s, f_number, focus_m, name=None):
+    """Set f-number, focus and shutter, take a frame and save it at once (capture-N.png, or
+    name.png, the sim's float gray rounded to the sensor's levels). Returns the Capture. The shutter comes last:
     a camera drops the frames exposed before it changed (OpenCVCamera), and an operator turning
     the lens by hand would otherwise be in them."""
     camera = devices.camera
@@ -89,7 +96,7 @@ def acquire(devices, recorder, iteration, shutter_s, f_number, focus_m):
                   shutter_s=shutter_s, f_number=f_number, focus_m=focus_m)
     with speaking_for(camera):
         image = np.asarray(camera.capture())
-    name = recorder.write_image(f"capture-{iteration}.png", measure.levels(image, camera.bit_depth))
+    name = recorder.write_image(f"{name or f'capture-{iteration}'}.png", measure.levels(image, camera.bit_depth))
     recorder.step("capture", name, iteration=iteration, capture=name, shape=image.shape, dtype=str(image.dtype))
     with speaking_for(devices.arm):
         pose = devices.arm.camera_pose()

@@ -225,7 +225,7 @@ def _p_value(rss_without, rss_with, extra, dof):
     return float(stats.f.sf(max(rss_without - rss_with, 0.0) / extra / noise, extra, dof))
 
 
-def _stderr(jac_w, rss, dof):
+def standard_errors(jac_w, rss, dof):
     """sqrt(diag(s^2 (J^T J)^-1)), s^2 = RSS / dof, J the weighted Jacobian; via the SVD of J with
     scaled columns, inf for a parameter in a direction J cannot see (zero column, singular J)."""
     norms = np.linalg.norm(jac_w, axis=0)
@@ -257,7 +257,7 @@ def fit_phase(m):
         params = params[[0, 3, 4, 1, 2]]
     k = 1 + 2 * terms
     jac_w = reflectance_jacobian(*geometry, *params)[:, :k] / w[:, None]
-    stderr = np.concatenate([_stderr(jac_w, rss, n - k), np.full(len(PARAMETERS) - k, np.inf)])
+    stderr = np.concatenate([standard_errors(jac_w, rss, n - k), np.full(len(PARAMETERS) - k, np.inf)])
     rms = float(np.sqrt(np.mean((reflectance(*geometry, *params) - y) ** 2)))
     unit = np.array([scale, 1.0, 1.0, 1.0, 1.0])                 # rho in the readings' units
     return PhaseFit(float(m.phase_deg), n, params * unit, stderr * unit, rms * scale, p_values, TERMS[terms:])

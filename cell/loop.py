@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cell import control, evaluate, measure
+from cell import control, evaluate, measure, refit
 from cell.acquisition import acquire, move_to, plan_and_connect, plan_recorded
 from cell.errors import GoalNotReached
 from cell.plan import gray_stats
@@ -54,6 +54,18 @@ class BlackLevelFound:
 
 
 @dataclass(frozen=True)
+class Refitted:
+    """The material refitted after iteration `iteration` (refit.Refit) and its file's name."""
+
+    iteration: int
+    refit: object
+    material_file: str
+
+    def to_json(self):
+        return {"iteration": self.iteration, "material_file": self.material_file} | self.refit.to_json()
+
+
+@dataclass(frozen=True)
 class Replan:
     iteration: int
     albedo_scale: float
@@ -74,6 +86,7 @@ class RunResult:
     replans: tuple = ()
     fault: dict | None = None
     black_level: dict | None = None
+    refits: tuple = ()
 
     @property
     def captures(self):
@@ -83,7 +96,8 @@ class RunResult:
         return {"task": self.task, "plan": self.plan, "iterations": [it.to_json() for it in self.iterations],
                 "converged": self.success, "captures": self.captures, "reason": self.message,
                 "replans": [{"iteration": r.iteration, "albedo_scale": r.albedo_scale, "plan": r.plan}
-                            for r in self.replans], "black_level": self.black_level} | (
+                            for r in self.replans], "black_level": self.black_level,
+                "refits": [r.to_json() for r in self.refits]} | (
                     {"fault": self.fault} if self.fault else {})
 
 
@@ -172,7 +186,7 @@ def iterate(task, plan, devices, recorder, max_iterations):
     limits = control.Limits(tuple(map(float, task.requirements.gray_band)), task.camera.shutter_range_s,
                             lens_range, task.loop.albedo_scale_range)
     band = limits.band
-    model, albedo, moved, black = Model(plan, task), 1.0, False, None
+    model, albedo, moved, black, refitted = Model(plan, task), 1.0, False, None, False
     shutter, f_number = plan.shot.exposure.shutter_s, plan.shot.exposure.f_number
     for k in range(1, max_iterations + 1):
         if not moved:
@@ -196,6 +210,13 @@ def iterate(task, plan, devices, recorder, max_iterations):
                                  f"saturated) at {1e3 * shutter:.3g} ms, f/{f_number:.1f}; "
                                  f"{control.describe_error(it.model_error, it.model_error_relation)}")
         c = control.correct(m, predicted, shutter, f_number, limits, black, albedo)
+        if c.action == "stop" and c.cause == "spread" and not refitted:     # the shape is wrong: refit
+            refitted = True
+            task, replanned = yield from refit_and_replan(task, model, devices, recorder, k, m, c, black, albedo,
+                                                         shutter, f_number)
+            model, albedo, moved = Model(replanned, task), 1.0, False
+            shutter, f_number = replanned.shot.exposure.shutter_s, replanned.shot.exposure.f_number
+            continue
         if c.action == "stop":                  # its cause in report.json; the done step says why
             yield Corrected(k, c.document(albedo))
             raise GoalNotReached(c.reason)
@@ -216,13 +237,34 @@ def iterate(task, plan, devices, recorder, max_iterations):
         shutter, f_number, moved = replanned.shot.exposure.shutter_s, replanned.shot.exposure.f_number, False
 
 
+def refit_and_replan(task, model, devices, recorder, k, m, c, black, albedo, shutter_s, f_number):
+    """After capture k (at shutter_s, f_number) whose shape disagreed with the model (Correction
+    c, cause spread): probe, refit the material (cell.refit; Corrected, Refitted) and re-plan with
+    it (Replan). Returns
+    (the task with the refitted material, its plan); GoalNotReached when the refit cannot be used
+    or its plan is infeasible."""
+    recorder.step("correct", f"refit the material: {c.reason}", iteration=k, action="refit")
+    yield Corrected(k, {"action": "refit", "cause": "spread", "reason": c.reason})
+    fitted = refit.probe_and_refit(task, model.plan.scene, devices, recorder, k, m,
+                                   (shutter_s, f_number, model.plan.shot.exposure.focus_m), black, albedo)
+    yield Refitted(k, fitted, refit.keep(fitted, task, recorder, k))
+    refit.require_usable(fitted, c.reason)
+    task = refit.task_with(task, fitted)
+    replanned = plan_recorded(task, recorder, 1.0, iteration=k, subfolder=f"refit-{k}")
+    yield Replan(k, 1.0, replanned.to_json())
+    if not replanned.feasible:
+        raise GoalNotReached(f"the material is not the task's ({fitted.summary()}); re-planned for the refitted "
+                             f"material: infeasible, {replanned.binding}: {replanned.hint}")
+    return task, replanned
+
+
 def run(task, out, connect, max_iterations=6):
     """Plan, connect(scene) -> Devices, then iterate; out/report.json (RunResult.to_json) is
     written however the run ends. Raises PlanInfeasible or GoalNotReached (exit 1), or DeviceFault
     (exit 3) after the safe stop of every device (session.Session). Returns the RunResult."""
     from cell.pictures import write_convergence
     out = Path(out)
-    iterations, replans, reason, black = [], [], "", None
+    iterations, replans, refits, reason, black = [], [], [], "", None
     with Recorder(out) as recorder:
         session = Session(on_fault=recorder.fault, log=recorder.log.name)
         try:
@@ -233,6 +275,8 @@ def run(task, out, connect, max_iterations=6):
                         iterations[-1] = replace(iterations[-1], correction=event.correction)
                     elif isinstance(event, BlackLevelFound):
                         black = event.black.to_json()
+                    elif isinstance(event, Refitted):
+                        refits.append(event)
                     else:
                         (iterations if isinstance(event, Iteration) else replans).append(event)
             n = len(iterations)
@@ -244,11 +288,11 @@ def run(task, out, connect, max_iterations=6):
             raise
         finally:
             result = RunResult(str(task.path), not reason, reason, recorder.plan, tuple(iterations),
-                               tuple(replans), session.fault, black)
+                               tuple(replans), session.fault, black, tuple(refits))
             recorder.write_json("report.json", result.to_json())
             if iterations:
                 write_convergence(out / "convergence.png", [it.to_json() for it in iterations],
-                                  task.requirements.gray_band)
+                                  task.requirements.gray_band, [r.to_json() for r in refits])
     return result
 
 

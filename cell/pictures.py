@@ -122,10 +122,11 @@ def write_plan_pictures(plan, task, scene, out_dir):
 
 
 @_one_at_a_time
-def write_convergence(path, iterations, band):
+def write_convergence(path, iterations, band, refits=()):
     """The closed loop at a glance: per capture the measured gray range (bar) and mean (dot) over
     the feature's pixels, the model's prediction (open diamonds: min, max), the gray band shaded,
-    the correction taken written under each capture."""
+    the correction taken written under each capture; each refit's probe shots (their raw gray
+    range, grey bars between capture k and k + 1) and a dashed line where the refit took effect."""
     fig = Figure(figsize=(7, 4.2))
     ax = fig.subplots()
     low, high = band
@@ -136,13 +137,25 @@ def write_convergence(path, iterations, band):
         ax.plot([k, k], [g["min"], g["max"]], color=color, lw=4, alpha=0.6)
         ax.plot(k, g["mean"], "o", color=color)
         ax.plot([k, k], [p["min"], p["max"]], "D", mfc="none", mec="0.3", ms=6)
+    for r in refits:
+        k, probes = r["iteration"], r["probes"][1:]          # the first is capture k itself
+        for j, probe in enumerate(probes, 1):
+            x, g = k + j / (len(probes) + 1) * 0.8, probe["measured_gray"]
+            ax.plot([x, x], [g["min"], g["max"]], color="0.5", lw=3, alpha=0.6)
+            ax.plot(x, g["mean"], "v", color="0.4", ms=5)
+        ax.axvline(k + 0.9, color="tab:purple", ls="--", lw=1)
+        ax.text(k + 0.9, 0.02, f" refit ({len(r['captures'])} captures)", rotation=90, fontsize=7,
+                color="tab:purple", transform=ax.get_xaxis_transform(), va="bottom")
+    if refits:
+        ax.plot([], [], "v", color="0.4", label="probe shot (lamp tilted): mean, bar: raw min-max")
     ax.plot([], [], "o", color="0.4", label="measured mean, bar: min-max (red: out of band)")
     ax.plot([], [], "D", mfc="none", mec="0.3", ls="none", label="plan's model: min, max")
     ax.set_xticks([it["iteration"] for it in iterations],
                   [f"{it['iteration']}\n{1e3 * it['shutter_s']:.3g} ms, f/{it['f_number']:.1f}\n"
                    f"{(it.get('correction') or {}).get('action', '')}" for it in iterations], fontsize=7)
     ax.set_xlim(0.5, len(iterations) + 0.5)
-    ax.set_ylim(0, max(high * 1.3, *(it["measured_gray"]["max"] * 1.05 for it in iterations)))
+    ax.set_ylim(0, max(high * 1.3, *(it["measured_gray"]["max"] * 1.05 for it in iterations),
+                       *(p["measured_gray"]["max"] * 1.05 for r in refits for p in r["probes"])))
     ax.set_xlabel("capture, exposure, correction")
     ax.set_ylabel("gray over the feature")
     ax.set_title("closed loop: measured against predicted gray", fontsize=10)
