@@ -154,8 +154,9 @@ def write_convergence(path, iterations, band, refits=()):
                   [f"{it['iteration']}\n{1e3 * it['shutter_s']:.3g} ms, f/{it['f_number']:.1f}\n"
                    f"{(it.get('correction') or {}).get('action', '')}" for it in iterations], fontsize=7)
     ax.set_xlim(0.5, len(iterations) + 0.5)
-    ax.set_ylim(0, max(high * 1.3, *(it["measured_gray"]["max"] * 1.05 for it in iterations),
-                       *(p["measured_gray"]["max"] * 1.05 for r in refits for p in r["probes"])))
+    top = max(it["measured_gray"]["max"] for it in iterations)
+    probes = max((p["measured_gray"]["max"] for r in refits for p in r["probes"]), default=0.0)
+    ax.set_ylim(0, max(high * 1.3, top * 1.05, probes * 1.4))     # the legend above the probes
     ax.set_xlabel("capture, exposure, correction")
     ax.set_ylabel("gray over the feature")
     ax.set_title("closed loop: measured against predicted gray", fontsize=10)
