@@ -138,7 +138,7 @@ def write_convergence(path, iterations, band, refits=()):
         ax.plot(k, g["mean"], "o", color=color)
         ax.plot([k, k], [p["min"], p["max"]], "D", mfc="none", mec="0.3", ms=6)
     for r in refits:
-        k, probes = r["iteration"], r["probes"][1:]          # the first is capture k itself
+        k, probes = r["iteration"], r["shots"][1:]           # the first is capture k itself
         for j, probe in enumerate(probes, 1):
             x, g = k + j / (len(probes) + 1) * 0.8, probe["measured_gray"]
             ax.plot([x, x], [g["min"], g["max"]], color="0.5", lw=3, alpha=0.6)
@@ -155,7 +155,7 @@ def write_convergence(path, iterations, band, refits=()):
                    f"{(it.get('correction') or {}).get('action', '')}" for it in iterations], fontsize=7)
     ax.set_xlim(0.5, len(iterations) + 0.5)
     top = max(it["measured_gray"]["max"] for it in iterations)
-    probes = max((p["measured_gray"]["max"] for r in refits for p in r["probes"]), default=0.0)
+    probes = max((p["measured_gray"]["max"] for r in refits for p in r["shots"]), default=0.0)
     ax.set_ylim(0, max(high * 1.3, top * 1.05, probes * 1.4))     # the legend above the probes
     ax.set_xlabel("capture, exposure, correction")
     ax.set_ylabel("gray over the feature")

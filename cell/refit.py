@@ -148,7 +148,7 @@ class Refit:
             parameters[n] = {"value": value, "stderr": float(stderr) if known else None,
                              "relative_stderr": (float(self.stderr[i]) if i != BLACK else None) if known else None,
                              "determined": known} | ({"factor": float(self.factors[i])} if i != BLACK else {})
-        return {"captures": [o.name for o in self.observations], "probes": [o.to_json() for o in self.observations],
+        return {"captures": [o.name for o in self.observations], "shots": [o.to_json() for o in self.observations],
                 "pixels": int(sum(o.gray.size for o in self.observations)),
                 "phase_deg": [self.phase_deg[0], self.phase_deg[2]], "parameters": parameters,
                 "unknown": list(self.unknown), "condition_number": self.condition_number,
@@ -179,7 +179,8 @@ def _model(x, obs, base):
     scale = obs["exposure"] * obs["irradiance"]
     geometry_ = (obs["cos_i"], obs["cos_e"], obs["cos_alpha"])
     gray = x[BLACK] + scale * reflectance(*geometry_, *p)
-    jac = reflectance_jacobian(*geometry_, *p) * np.column_stack(p) * scale[:, None]
+    inside = np.abs(x[:BLACK]) < LN_FACTOR_MAX                   # a clipped factor does not move
+    jac = reflectance_jacobian(*geometry_, *p) * np.column_stack(p) * (scale[:, None] * inside)
     return gray, np.column_stack([jac, np.ones(gray.size)])
 
 

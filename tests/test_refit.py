@@ -54,7 +54,7 @@ def test_the_refit_recovers_the_worlds_lobe_from_the_plan_and_two_probe_shots(mi
     assert_lobe_recovered(fitted)
     assert fitted["captures"] == ["capture-1.png", "capture-1-probe-1.png", "capture-1-probe-2.png"]
     assert all((mismatch.out / name).is_file() for name in fitted["captures"])
-    tilts = [p["tilt_deg"] for p in fitted["probes"]]
+    tilts = [p["tilt_deg"] for p in fitted["shots"]]
     assert tilts[1] == pytest.approx(tilts[0] - 5, abs=0.1) and tilts[2] == pytest.approx(tilts[0] + 5, abs=0.1)
     assert fitted["condition_number"] < 1e4 and fitted["explains"]
     assert mismatch.report["iterations"][0]["correction"]["action"] == "refit"
@@ -99,6 +99,16 @@ def test_after_the_refit_the_run_converges_where_the_true_material_allows_it(tmp
     first, last = cell.report["iterations"][0], cell.report["iterations"][-1]
     assert first["correction"]["action"] == "refit" and len(cell.report["iterations"]) == 2
     assert last["in_band"] and 100 <= last["measured_gray"]["min"] <= last["measured_gray"]["max"] <= 125
+
+
+def test_a_lamp_off_its_aim_is_not_taken_for_a_material(tmp_path):
+    """4.5 deg of aim error puts the cone's soft edge across the feature: no material fits the
+    captures (rms residual far above 3 % of the signal), so nothing is re-planned with it."""
+    cell = run_loop(variant(tmp_path, HINGE, {"sim.truth.lamp_direction_error_deg": 4.5}), tmp_path / "run")
+    assert isinstance(cell.error, GoalNotReached) and cell.report["replans"] == []
+    (fitted,) = cell.report["refits"]
+    assert not fitted["explains"] and fitted["rms_residual"] > refit.RESIDUAL_MAX * fitted["median_signal"]
+    assert "the material is not the cause: check the lamp's aim" in str(cell.error)
 
 
 @pytest.mark.parametrize("task", [HINGE, CONROD])
