@@ -235,7 +235,7 @@ def _condition(jac):
     return float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
 
 
-def fit(observations, material, black_level, saturation):
+def fit(observations, material, black_level):
     """The Refit of `material` (the task's table; its shape kept where the data do not tell) and
     the black level (the loop's b where they do not) to the Observations."""
     obs = {k: np.concatenate([getattr(o, k) for o in observations])
@@ -263,8 +263,7 @@ def fit(observations, material, black_level, saturation):
             break
     stderr = np.full(len(NAMES), np.inf)
     stderr[free] = se
-    factors = np.exp(x)
-    factors[BLACK] = x[BLACK]
+    factors = np.concatenate([np.exp(x[:BLACK]), x[BLACK:]])
     refitted = Material(f"{material.name}, refit in the loop", "", material.phase_rad,
                         *(getattr(material, p) * f for p, f in zip(PARAMETERS, factors[:BLACK])))
     predicted = _model(x, obs, base)[0]
@@ -326,7 +325,11 @@ def probe_and_refit(task, scene, devices, recorder, k, m, exposure, black, albed
         recorder.step("probe", f"probe {j}: gray {g['min']:.1f}-{g['max']:.1f} over the feature, {o.gray.size} px "
                                f"usable", iteration=k, **o.to_json())
         observations.append(o)
-    refit = fit(observations, task.part.material, b, saturation)
+    usable = sum(o.gray.size for o in observations)
+    if usable <= len(NAMES):
+        raise GoalNotReached(f"the feature's gray disagrees with the model's shape, but the probe shots left "
+                             f"{usable} usable pixels (lit by the model, below saturation): nothing to refit")
+    refit = fit(observations, task.part.material, b)
     recorder.step("refit", refit.summary(), iteration=k, **refit.to_json())
     return refit
 

@@ -168,7 +168,7 @@ def synthetic(tmp_path_factory):
 
 def test_three_captures_determine_the_lobe_and_the_black_level(synthetic):
     task, observations = synthetic
-    fitted = refit.fit(observations, task.part.material, 0.0, 255.0)
+    fitted = refit.fit(observations, task.part.material, 0.0)
     assert fitted.value("m1") == pytest.approx(12.0, rel=0.01)
     assert fitted.value("sigma1") == pytest.approx(8.0, rel=0.02)
     assert fitted.value("black_level") == pytest.approx(2.0, abs=0.2)
@@ -179,9 +179,9 @@ def test_three_captures_determine_the_lobe_and_the_black_level(synthetic):
 def test_one_capture_says_which_parameters_it_could_not_determine(synthetic):
     """Its pixels lie almost on one (ti, te, alpha) curve: the level and about one shape number."""
     task, observations = synthetic
-    fitted = refit.fit(observations[:1], task.part.material, 0.0, 255.0)
+    fitted = refit.fit(observations[:1], task.part.material, 0.0)
     assert "black_level" in fitted.unknown and {"sigma2", "m2"} <= set(fitted.unknown)
-    assert fitted.condition_number_all > 10 * refit.fit(observations, task.part.material, 0.0, 255.0).condition_number
+    assert fitted.condition_number_all > 10 * refit.fit(observations, task.part.material, 0.0).condition_number
     assert fitted.factors[refit.BLACK] == 0.0                   # kept as the loop had it, not invented
     assert "not determined (kept as they were): sigma2, m2, black_level" in fitted.summary()
     doc = fitted.to_json()
