@@ -20,7 +20,7 @@ from cell.physics.radiometry import camera_constant_from_datasheet
 from cell.schema import (NON_NEGATIVE, POSITIVE, Anything, Choice, Integer, Invalid, Number, Pair,
                          Section, Sections, Spec, Table, Text, Vector, parse, read_yaml, show)
 from cell.task import (CameraModel, CellConfig, Feature, Lamp, LampRig, Lens, LoopSettings, Part,
-                       Requirements, SimConfig, Sensor, Task, Truth)
+                       Requirements, SimConfig, Sensor, Task, Truth, Viewpoint)
 
 EFFECTS = ("shadows", "cone_falloff", "vignetting", "defocus", "noise", "black_level", "quantization")
 SURFACE_TOLERANCE_M = 1e-3       # feature center at most this far from the mesh surface
@@ -77,6 +77,8 @@ REQUIREMENTS = {
     "region_margin_deg": Number(**NON_NEGATIVE),
     "lamp_tolerance_deg": Number(**NON_NEGATIVE),
     "depth_of_field_m": Number(**NON_NEGATIVE, default=0.0),
+    "resolution_m": Number(**POSITIVE, default=None),
+    "view_angle_deg": Number(lambda v: 0 < v <= DEG(90), "an angle in (0, 90] deg", default=None),
 }
 
 
@@ -127,6 +129,12 @@ TASK = {
             "circle_of_confusion_m": Number(**POSITIVE),
         }),
         "shutter_range_s": Pair(lambda v: v > 0, "positive times"),
+        "viewpoint": Choice("fixed", "planned", default="fixed"),
+        "standoff_range_m": Pair(lambda v: v > 0, "positive lengths", default=None),
+        "standoff_steps": Integer(1, 16, default=3),
+        "view_step_deg": Number(lambda v: DEG(1) <= v <= DEG(45), "an angle within [1, 45] deg",
+                                default=float(DEG(15))),
+        "views_per_feature": Integer(1, 32, default=3),
     }),
     "lamp": Section({
         "power_w": Number(**POSITIVE),
@@ -363,6 +371,18 @@ def _check_camera(file, cam):
     if not cam["distance_m"] > focal:
         raise TaskError(file, "camera.distance_m", show(cam["distance_m"]),
                         f"more than the focal length {focal:g} m (a lens focuses only beyond it)")
+    standoff = cam["standoff_range_m"]
+    if cam["viewpoint"] == "planned" and standoff is None:
+        raise TaskError(file, "camera.standoff_range_m", "nothing",
+                        "an ascending pair of positive lengths (required with camera.viewpoint: planned)")
+    if standoff is not None and not standoff[0] > focal:
+        raise TaskError(file, "camera.standoff_range_m[0]", show(standoff[0]),
+                        f"more than the focal length {focal:g} m (a lens focuses only beyond it)")
+
+
+def _viewpoint(cam):
+    return Viewpoint(cam["viewpoint"], cam["standoff_range_m"], cam["standoff_steps"], cam["view_step_rad"],
+                     cam["views_per_feature"])
 
 
 def _check_outside(file, mesh, T_cell_part, points):
@@ -440,7 +460,7 @@ def load_task(path):
         frames=frames,
         features=features,
         camera=CameraModel(cam["distance_m"], cam["view_direction"], _sensor(path, cam["sensor"]),
-                           Lens(**cam["lens"]), cam["shutter_range_s"]),
+                           Lens(**cam["lens"]), cam["shutter_range_s"], _viewpoint(cam)),
         lamp=Lamp(lamp["power_w"], lamp["cone_angle_rad"], LampRig(**lamp["rig"]),
                   _lamp_profile(path, lamp["profile"])),
         cell=CellConfig(cell["backend"], devices),

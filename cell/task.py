@@ -24,6 +24,8 @@ class Requirements:
     region_margin_rad: float
     lamp_tolerance_rad: float
     depth_of_field_m: float = 0.0  # wanted depth of field beyond the feature's own depth range
+    resolution_m: float | None = None      # a pixel covers at most this on the feature (None: not asked)
+    view_angle_rad: float | None = None    # the camera at most this far from each sample's normal
 
 
 @dataclass(frozen=True)
@@ -68,12 +70,27 @@ class Lens:
 
 
 @dataclass(frozen=True)
+class Viewpoint:
+    """How the camera's pose is chosen (`camera.viewpoint`): `fixed`, the task's rule
+    (distance_m along view_direction), or `planned` on view spheres around each feature
+    (cell.viewpoints): radii over standoff_range_m in standoff_steps, directions step_rad apart,
+    at most per_feature poses of each feature tried with lamps."""
+
+    mode: str = "fixed"
+    standoff_range_m: tuple | None = None
+    standoff_steps: int = 3
+    step_rad: float = float(np.radians(15.0))
+    per_feature: int = 3
+
+
+@dataclass(frozen=True)
 class CameraModel:
     distance_m: float
     view_direction: np.ndarray     # part frame, unit, from feature to camera
     sensor: Sensor
     lens: Lens
     shutter_range_s: tuple
+    viewpoint: Viewpoint = Viewpoint()
 
 
 @dataclass(frozen=True)
