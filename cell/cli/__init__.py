@@ -51,13 +51,18 @@ def output_folder(out, name):
 
 
 def one_feature(task, command):
-    """The task, refused (bad input, exit 2) when it has several features: `command` drives
-    one shot; running several is not yet supported (`cell plan` plans them)."""
+    """The task, refused (bad input, exit 2) when it has several features or a planned camera
+    viewpoint: `command` drives one shot at the fixed camera rule; running several, or a planned
+    viewpoint, is not yet supported (`cell plan` plans them)."""
     from cell.errors import TaskError
     if len(task.features) != 1:
         raise TaskError(task.path, "features", f"{len(task.features)} features",
                         f"one feature for `cell {command}`: running several shots is not yet supported "
                         f"(`cell plan` plans them)")
+    if task.camera.viewpoint.mode != "fixed":
+        raise TaskError(task.path, "camera.viewpoint", task.camera.viewpoint.mode,
+                        f"fixed for `cell {command}`: running a planned viewpoint is not yet supported "
+                        f"(`cell plan` plans it)")
     return task
 
 
