@@ -46,7 +46,8 @@ def view_angles(camera, points, normals):
 def pixel_footprint(camera, points, normals, pixel_pitch_m, focal_length_m):
     """(N,) the length one pixel covers on the surface at each point [m]: |p - C| pitch / f across
     the ray (the pinhole's magnification), stretched by 1 / cos(view angle) along the slant (the
-    longer side of the pixel's footprint)."""
+    longer side of the pixel's footprint); inf where the camera is behind the surface."""
     distance = np.linalg.norm(np.asarray(points, float) - np.asarray(camera, float), axis=-1)
     cos = np.cos(view_angles(camera, points, normals))
-    return distance * pixel_pitch_m / focal_length_m / np.maximum(cos, 1e-12)
+    with np.errstate(divide="ignore"):
+        return np.where(cos > 0, distance * pixel_pitch_m / focal_length_m / np.maximum(cos, 0.0), np.inf)

@@ -190,6 +190,8 @@ def resolution(p, c):
 
 
 def explain_resolution(p, c, met):
+    if not np.isfinite(footprints(p).max()):
+        return "the camera sees some samples from behind their surface; change the view direction"
     fact = (f"a pixel covers up to {1e6 * footprints(p).max():.1f} um of the feature (at most "
             f"{1e6 * p.task.requirements.resolution_m:g} um wanted)")
     return fact if met else f"{fact}; bring the camera closer, view more squarely or use a longer lens"
