@@ -41,9 +41,10 @@ def candidate_plans(tasks, settings, say):
     grid = regions.SphereGrid(np.radians(settings.grid_step_deg))
     out, views, lend = [], [], []
     for f, t in enumerate(tasks):
+        start = time.perf_counter()
         scene = build_scene(t, settings.samples)
         v = plan_viewpoints(t, scene, planner.visibility_map(scene, grid), grid)
-        views.append(v)
+        views.append(replace(v, time_s=time.perf_counter() - start))
         say(f"feature {t.feature.name}: {len(v.kept)} of {v.poses} camera poses kept (pruned: "
             + ", ".join(f"{n} {s}" for s, n in v.pruned.items() if n) + ")")
         own = []
@@ -100,6 +101,8 @@ def plan_features(task, settings=PlannerSettings(), progress=None):
         binding, miss, hint = worst.name, worst.value - 1.0, ""
     timing = {"features": t_own - t0, "judge": t_judge - t_own, "cover": time.perf_counter() - t_judge,
               "total": time.perf_counter() - t0}
+    if views is not None:                  # of "features": the view spheres, before any lamp
+        timing["viewpoints"] = sum(v.time_s for v in views)
     plans = tuple(p for _, p in cands)
     search = Search(candidates=sum(p.search.candidates for p in plans), starts=sum(p.search.starts for p in plans),
                     refinements=tuple(r for p in plans for r in p.search.refinements))

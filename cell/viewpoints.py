@@ -55,6 +55,7 @@ class Viewpoints:
     poses: int
     pruned: dict
     passed: int
+    time_s: float = 0.0          # the viewpoints' own time (cell.multiplan records it)
 
     def to_json(self):
         return {"poses": self.poses, "pruned": dict(self.pruned), "passed": self.passed, "kept": len(self.kept)}
