@@ -131,11 +131,12 @@ def plan_viewpoints(task, scene, visible, grid):
     for k in np.flatnonzero(square):
         d = scene.frame @ dirs[k]
         for r in radii:
-            if req.resolution_m is not None and r * sensor.pixel_pitch_m / lens.focal_length_m / np.cos(
-                    polar[k]) > req.resolution_m:
+            camera = scene.center + r * d
+            if req.resolution_m is not None and projection.pixel_footprint(
+                    camera, scene.center, scene.normal, sensor.pixel_pitch_m, lens.focal_length_m) > req.resolution_m:
                 pruned["resolution"] += 1
                 continue
-            T, q = reach(task, look_at(scene.center + r * d, scene.center))
+            T, q = reach(task, look_at(camera, scene.center))
             if T is None:
                 pruned[q] += 1
                 continue

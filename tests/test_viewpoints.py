@@ -169,6 +169,8 @@ def test_the_plan_json_reports_the_planned_cameras_and_cell_plan_prints_them(pla
 
 
 def test_a_planned_viewpoint_needs_a_standoff_range_and_is_not_run(tmp_path, capsys):
+    assert cli.main(["check", str(PLANNED)]) == 0
+    assert "camera       planned on view spheres 0.3..0.5 m from each feature, 15 deg apart" in capsys.readouterr().out
     path = write_task(tmp_path, put("camera.viewpoint", "planned"))
     assert cli.main(["check", str(path)]) == 2
     err = capsys.readouterr().err
