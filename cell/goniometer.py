@@ -230,12 +230,12 @@ def find_black_level(task, devices, recorder):
     return black
 
 
-def measure_poses(task, devices, recorder, nominal):
-    """Visit every pose: (readings, refused [(pose, reason)], failed [(pose, reason)])."""
+def measure_poses(task, devices, recorder, nominal, readings, refused, failed):
+    """Visit every pose, appending to readings, refused [(pose, reason)] and failed [(pose,
+    reason)] as it goes (so a fault keeps what was measured)."""
     pivot, lamp, sensor = np.asarray(task.lamp.rig.pivot_m, float), task.lamp, task.camera.sensor
     c, area = sensor.camera_constant, sensor.pixel_area_m2
     wanted = poses(task)
-    readings, refused, failed = [], [], []
     exposer = Exposer(task, devices, recorder, measure.BlackLevel(0.0, 0.0, "none"))
     for k, pose in enumerate(wanted, 1):
         T, joints, why = refusal(devices, task, pose)
@@ -272,7 +272,6 @@ def measure_poses(task, devices, recorder, nominal):
                                 float(np.degrees(pose.theta_e_rad)), float(np.degrees(pose.beta_rad)), signal,
                                 capture.shutter_s, capture.f_number, phi, r, takes, name))
         recorder.step("reading", f"pose {k}: R = {r:.5g}", pose=k, reflectance=r)
-    return readings, refused, failed
 
 
 def write_csv(path, readings):
@@ -360,7 +359,7 @@ def run(task, out, connect, operator):
                                        f"step {np.degrees(gonio.step_rad):g} deg, ti and te up to "
                                        f"{np.degrees(gonio.max_angle_rad):g} deg; lamp at {1e3 * gonio.lamp_radius_m:g} mm")
                 session.devices = connect(build_scene(staged))
-                readings, refused, failed = measure_poses(staged, session.devices, recorder, material.at)
+                measure_poses(staged, session.devices, recorder, material.at, readings, refused, failed)
             csv = write_csv(out / "goniometer.csv", readings)
             short = [f"{np.degrees(a):g}" for a in gonio.phase_rad
                      if sum(abs(r.phase_deg - np.degrees(a)) < 1e-9 for r in readings) < MIN_ROWS]

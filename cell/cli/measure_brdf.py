@@ -1,6 +1,7 @@
 """`cell measure-brdf TASK --out DIR [--backend sim|hw] [--yes] [--json]`: the cell as a
 goniometer (cell.goniometer); writes the material file with standard errors. Exit 0 measured,
 1 a phase angle without enough readings, 2 bad input, 3 device fault."""
+import contextlib
 import sys
 from pathlib import Path
 
@@ -22,8 +23,9 @@ def command(args):
     operator.require("sample", "placing the sample")
     staged = goniometer.sample_task(task)
     create_folder(out)
-    result = goniometer.run(task, out, lambda scene: backends.open_devices(staged, scene, backend, yes=args.yes),
-                            operator)
+    with contextlib.redirect_stdout(sys.stderr):         # the devices' prompts too: stdout is --json's
+        result = goniometer.run(task, out, lambda scene: backends.open_devices(staged, scene, backend, yes=args.yes),
+                                operator)
     if args.json:
         print(jsonio.dumps(result.summary(), indent=2))
         return 0
