@@ -355,7 +355,7 @@ def run(task, out, connect, operator):
                 operator.confirm("sample", f"take the part out; lay the flat sample of {material.name} (a disc of "
                                            f"{2e3 * sample.radius_m:g} mm) with its top face's centre at the lamp "
                                            f"rig's pivot {pivot} m, facing {list(sample.normal)}")
-                recorder.step("setup", f"{total} poses: phase {[round(np.degrees(a), 2) for a in gonio.phase_rad]} deg, "
+                recorder.step("setup", f"{total} poses: phase {[round(float(np.degrees(a)), 2) for a in gonio.phase_rad]} deg, "
                                        f"step {np.degrees(gonio.step_rad):g} deg, ti and te up to "
                                        f"{np.degrees(gonio.max_angle_rad):g} deg; lamp at {1e3 * gonio.lamp_radius_m:g} mm")
                 session.devices = connect(build_scene(staged))
