@@ -204,8 +204,9 @@ class Exposer:
                                  f"f/{capture.f_number:.3g})"
             elif signal < MIN_SIGNAL * self.range:
                 if used >= hi * (1 - 1e-9):
+                    # dim, but measured: above 3 standard errors of a PATCH_PX^2 pixel mean
                     if signal > 3.0 * max(self.black.noise_rms, 0.5) / PATCH_PX:
-                        return (capture, signal, takes, name), None   # dim, but measured
+                        return (capture, signal, takes, name), None
                     return None, f"the patch is dark at the longest exposure ({signal:.2g} gray above the black level)"
                 nxt = used * TARGET * self.range / max(signal, 0.05 * MIN_SIGNAL * self.range)
             else:
@@ -236,7 +237,7 @@ def measure_poses(task, devices, recorder, nominal, readings, refused, failed):
     pivot, lamp, sensor = np.asarray(task.lamp.rig.pivot_m, float), task.lamp, task.camera.sensor
     c, area = sensor.camera_constant, sensor.pixel_area_m2
     wanted = poses(task)
-    exposer = Exposer(task, devices, recorder, measure.BlackLevel(0.0, 0.0, "none"))
+    exposer = None
     for k, pose in enumerate(wanted, 1):
         T, joints, why = refusal(devices, task, pose)
         where = (f"phase {np.degrees(pose.phase_rad):.1f} deg, ti {np.degrees(pose.theta_i_rad):.1f}, "
@@ -250,9 +251,8 @@ def measure_poses(task, devices, recorder, nominal, readings, refused, failed):
         with speaking_for(devices.lamp):
             devices.lamp.move(*joints)
             lamp_pos, _ = devices.lamp.lamp_pose()
-        if exposer.black.source == "none":
-            exposer.black = find_black_level(task, devices, recorder)
-            exposer.range = exposer.top - exposer.black.value
+        if exposer is None:                      # the dark frame once the lamp is somewhere (its radius set)
+            exposer = Exposer(task, devices, recorder, find_black_level(task, devices, recorder))
         distance = float(np.linalg.norm(lamp_pos - pivot))
         phi = float(cone_irradiance(lamp.power_w, lamp.cone_angle_rad, distance, 0.0, lamp.profile))
         r_guess = float(reflectance(np.cos(pose.theta_i_rad), np.cos(pose.theta_e_rad), np.cos(pose.phase_rad),

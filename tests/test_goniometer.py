@@ -13,7 +13,7 @@ import yaml
 
 from cell import backends, goniometer
 from cell.cli import main
-from cell.errors import DeviceFault, TaskError
+from cell.errors import DeviceFault, GoalNotReached, TaskError
 from cell.loader import load_material, load_task
 from cell.operator import Operator
 from sim.arm import SimArm
@@ -198,3 +198,12 @@ def test_the_goniometer_keys_are_checked_at_load(tmp_path):
     bad = simcell.variant(tmp_path, HINGE, {"calibration.sample.radius_mm": -3})
     with pytest.raises(TaskError, match="calibration.sample.radius_mm"):
         load_task(bad)
+
+
+def test_a_phase_angle_with_too_few_readings_is_refused_with_the_reason(tmp_path):
+    """ti, te up to 25 deg at phase 40 deg leave beta within +-5 deg: 1 pose at a 10 deg step, of 6 needed."""
+    task = sim_task(tmp_path, {"phase_deg": [40], "step_deg": 10, "max_angle_deg": 25})
+    result, _, written = measure(task, tmp_path / "run")
+    assert isinstance(result, GoalNotReached) and result.exit_code == 1
+    assert str(result).startswith("fewer than 6 readings at phase 40 deg (0 of 1 poses refused")
+    assert written["material"] is None and len(written["readings"]) == 1
