@@ -19,8 +19,8 @@ from cell.material import PARAMETERS, Material
 from cell.physics.radiometry import camera_constant_from_datasheet
 from cell.schema import (NON_NEGATIVE, POSITIVE, Anything, Choice, Integer, Invalid, Number, Pair,
                          Section, Sections, Spec, Table, Text, Vector, parse, read_yaml, show)
-from cell.task import (CameraModel, CellConfig, Feature, Lamp, LampRig, Lens, LoopSettings, Part,
-                       Requirements, SimConfig, Sensor, Task, Truth, Viewpoint)
+from cell.task import (Calibration, CameraModel, CellConfig, Feature, Goniometer, Lamp, LampRig, Lens,
+                       LoopSettings, Part, Requirements, Sample, SimConfig, Sensor, Task, Truth, Viewpoint)
 
 EFFECTS = ("shadows", "cone_falloff", "vignetting", "defocus", "noise", "black_level", "quantization")
 SURFACE_TOLERANCE_M = 1e-3       # feature center at most this far from the mesh surface
@@ -173,6 +173,22 @@ TASK = {
             "lamp_radius_error_m": Number(lambda v: True, "a number", default=0.0),
         }, required=False),
     }, required=False),
+    "calibration": Section({
+        "sample": Section({
+            "material": Text(default=None),
+            "radius_m": Number(**POSITIVE, default=0.025),
+            "thickness_m": Number(**POSITIVE, default=0.002),
+            "normal": Vector(direction=True, default=(0.0, 0.0, 1.0)),
+        }, required=False),
+        "goniometer": Section({
+            "phase_deg": Table(lambda v: 0 < v < np.pi, "an angle within (0, 180) deg",
+                               default=(np.radians(20.0), np.radians(40.0), np.radians(60.0))),
+            "step_deg": Number(lambda v: 0 < v <= DEG(30), "an angle within (0, 30] deg", default=np.radians(2.0)),
+            "max_angle_deg": Number(lambda v: 0 < v < DEG(90), "an angle within (0, 90) deg",
+                                    default=np.radians(80.0)),
+            "lamp_radius_m": Number(**POSITIVE, default=None),
+        }, required=False),
+    }, required=False),
     "loop": Section({
         "albedo_scale_range": Pair(lambda v: v > 0, "positive scales", default=(0.1, 10.0)),
     }, required=False),
@@ -191,6 +207,7 @@ MATERIAL = {
     **{f"{p}_stderr": Table(**NON_NEGATIVE, default=None, finite=False) for p in PARAMETERS},
     "rms_residual": Table(**NON_NEGATIVE, default=None),
     "unidentifiable": Anything(),
+    "unresolved": Anything(),                # written by cell measure-brdf
 }
 
 
@@ -352,6 +369,34 @@ def _truth(file, truth, rig):
     return Truth(**(truth | vectors | {"material": material}))
 
 
+def _calibration(file, calibration, material, rig):
+    """The calibration routines' set-up: the goniometer's sample (its material file loaded and
+    checked like `part.material`, else the part's) and its sampling, whose lamp radius lies in the
+    rig's range (default: the middle of it) and whose phase angles fit under twice max_angle."""
+    sample, gonio = calibration["sample"], calibration["goniometer"]
+    name = sample["material"]
+    sample_material = material if name is None else load_material(
+        _relative_file(file, "calibration.sample.material", name, "yaml"))
+    lo, hi = rig["radius_range_m"]
+    radius = gonio["lamp_radius_m"]
+    if radius is None:
+        radius = 0.5 * (lo + hi)
+    elif not lo <= radius <= hi:
+        raise TaskError(file, "calibration.goniometer.lamp_radius_m", show(radius),
+                        f"a radius within lamp.rig.radius_range_m [{lo:g}, {hi:g}] m")
+    phases = np.asarray(gonio["phase_rad"], float)
+    if np.any(np.diff(phases) <= 0):
+        raise TaskError(file, "calibration.goniometer.phase_deg", show(np.degrees(phases).tolist()),
+                        "ascending phase angles")
+    if phases[-1] >= 2 * gonio["max_angle_rad"]:
+        raise TaskError(file, "calibration.goniometer.phase_deg", f"{np.degrees(phases[-1]):g} deg",
+                        f"phase angles below twice max_angle_deg ({np.degrees(2 * gonio['max_angle_rad']):g} deg): "
+                        "lamp and camera each within max_angle_deg of the normal")
+    return Calibration(Sample(sample_material, sample["radius_m"], sample["thickness_m"],
+                              tuple(map(float, sample["normal"]))),
+                       Goniometer(tuple(map(float, phases)), gonio["step_rad"], gonio["max_angle_rad"], radius))
+
+
 def _loop(file, loop):
     low, high = loop["albedo_scale_range"]
     if not low <= 1.0 <= high:
@@ -466,4 +511,5 @@ def load_task(path):
         cell=CellConfig(cell["backend"], devices),
         sim=SimConfig(sim["seed"], sim["effects"], _truth(path, sim["truth"], lamp["rig"])),
         loop=_loop(path, v["loop"]),
+        calibration=_calibration(path, v["calibration"], material, lamp["rig"]),
     )

@@ -145,6 +145,33 @@ class LoopSettings:
 
 
 @dataclass(frozen=True)
+class Sample:
+    """The goniometer's flat sample (`calibration.sample`): a disc of the material at the lamp
+    rig's pivot, its top face there, facing `normal` (cell frame, unit)."""
+
+    material: Material | None = None           # the material it is made of (None: the part's)
+    radius_m: float = 0.025
+    thickness_m: float = 0.002
+    normal: tuple = (0.0, 0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class Goniometer:
+    """How `cell measure-brdf` samples the BRDF (`calibration.goniometer`)."""
+
+    phase_rad: tuple = tuple(np.radians([20.0, 40.0, 60.0]))
+    step_rad: float = float(np.radians(2.0))   # of the half-angle's tilt, in the plane of incidence
+    max_angle_rad: float = float(np.radians(80.0))   # ti and te at most
+    lamp_radius_m: float | None = None         # None: the middle of the rig's range
+
+
+@dataclass(frozen=True)
+class Calibration:
+    sample: Sample = Sample()
+    goniometer: Goniometer = Goniometer()
+
+
+@dataclass(frozen=True)
 class SimConfig:
     seed: int = 1
     effects: tuple = ()
@@ -169,6 +196,7 @@ class Task:
     cell: CellConfig
     sim: SimConfig
     loop: LoopSettings = LoopSettings()
+    calibration: Calibration = Calibration()
 
     @property
     def feature(self):

@@ -29,6 +29,14 @@ class SimArm(Arm):
         except ur5e.Unreachable as why:
             raise DeviceFault(self.device, f"camera pose unreachable for the UR5e: {why}") from None
 
+    def _unreachable(self, T_base_cam):
+        """The UR5e's inverse kinematics from the current joints: why it has no solution, or None."""
+        try:
+            ur5e.inverse(self.frames.T_base_flange(T_base_cam), self.joints)
+        except ur5e.Unreachable as why:
+            return f"camera pose unreachable for the UR5e: {why}"
+        return None
+
     def _tcp_pose(self):
         return self.frames.T_base_cam_from_flange(ur5e.forward(self.joints))
 

@@ -18,6 +18,7 @@ COMMANDS = {
     "bench": "cell.cli.bench",
     "calibrate": "cell.cli.calibrate",
     "hw-check": "cell.cli.hw_check",
+    "measure-brdf": "cell.cli.measure_brdf",
 }
 
 # `cell calibrate`'s routines
@@ -162,6 +163,17 @@ def build_parser():
                                      "(default runs/<task>-calibration-<time>)")
         r.add_argument("--yes", action="store_true", help="confirm operator prompts on the real cell; the "
                                                           "simulated cell confirms its own")
+
+    p = sub.add_parser("measure-brdf", help="the cell as a goniometer: a flat sample's BRDF measured and "
+                                            "fitted, a material file written")
+    p.add_argument("task", help="a task whose calibration.sample and calibration.goniometer say what and how")
+    p.add_argument("--backend", choices=("sim", "hw"), help="override the task's cell.backend")
+    p.add_argument("--out", help="run folder for material.yaml, goniometer.csv, fit.png, measurement.json, "
+                                 "new or empty (default runs/<task>-brdf-<time>)")
+    p.add_argument("--yes", action="store_true", help="confirm operator prompts (placing the sample) on the real "
+                                                      "cell; the simulated cell confirms its own")
+    p.add_argument("--json", action="store_true", help="print the material (phase_deg, rho, sigma1, m1, sigma2, "
+                                                       "m2, their *_stderr, unresolved) as JSON")
 
     p = sub.add_parser("hw-check", help="connect to each real device of the task, print its state; "
                                         "moves and sets nothing")
