@@ -11,6 +11,7 @@ import numpy as np
 import trimesh
 
 from cell import geometry
+from cell.board import DICTIONARIES, Board
 from cell.device_config import SECTIONS as DEVICES, devices_config
 from cell.errors import TaskError
 from cell.frames import Frames
@@ -163,6 +164,17 @@ TASK = {
             "camera_offset_m": Vector(default=(0.0, 0.0, 0.0)),
             "camera_rpy_deg": Vector(default=(0.0, 0.0, 0.0)),
             "lamp_radius_error_m": Number(lambda v: True, "a number", default=0.0),
+        }, required=False),
+    }, required=False),
+    "calibration": Section({
+        "board": Section({
+            "squares_x": Integer(3, 100, default=9),
+            "squares_y": Integer(3, 100, default=7),
+            "square_size_m": Number(**POSITIVE, default=0.008),
+            "marker_size_m": Number(**POSITIVE, default=0.006),
+            "dictionary": Choice(*DICTIONARIES, default="DICT_5X5_100"),
+            "position_m": Vector(default=(0.0, -0.15, 0.0)),
+            "rpy_deg": Vector(default=(np.pi, 0.0, 0.0)),
         }, required=False),
     }, required=False),
     "loop": Section({
@@ -344,6 +356,21 @@ def _truth(file, truth, rig):
     return Truth(**(truth | vectors | {"material": material}))
 
 
+def _board(file, board):
+    """The ChArUco board: markers smaller than their squares, and no more of them than the
+    dictionary holds."""
+    if not board["marker_size_m"] < board["square_size_m"]:
+        raise TaskError(file, "calibration.board.marker_size_m", show(board["marker_size_m"]),
+                        f"less than square_size_m {board['square_size_m']:g} m (a marker lies inside a square)")
+    squares = (board["squares_x"], board["squares_y"])
+    made = Board(squares, board["square_size_m"], board["marker_size_m"], board["dictionary"],
+                 geometry.from_rpy(board["rpy_rad"], board["position_m"]))
+    if made.markers > DICTIONARIES[made.dictionary]:
+        raise TaskError(file, "calibration.board.dictionary", made.dictionary,
+                        f"a dictionary of at least {made.markers} markers ({squares[0]} x {squares[1]} squares)")
+    return made
+
+
 def _loop(file, loop):
     low, high = loop["albedo_scale_range"]
     if not low <= 1.0 <= high:
@@ -446,4 +473,5 @@ def load_task(path):
         cell=CellConfig(cell["backend"], devices),
         sim=SimConfig(sim["seed"], sim["effects"], _truth(path, sim["truth"], lamp["rig"])),
         loop=_loop(path, v["loop"]),
+        board=_board(path, v["calibration"]["board"]),
     )

@@ -152,6 +152,7 @@ class Task:
     cell: CellConfig
     sim: SimConfig
     loop: LoopSettings = LoopSettings()
+    board: object = None           # cell.board.Board: the ChArUco board (calibration.board)
 
     @property
     def feature(self):
