@@ -144,9 +144,9 @@ def draw_corners(image8, corners, ids):
 
 
 def auto_exposure(devices, recorder, task, f_number, focus_m, frames):
-    """The shutter putting the board's white (the frame's 99th percentile above its darkest
-    1 %) at EXPOSURE_TARGET of the range: probes from the shutter range's geometric middle,
-    rescaled (G ~ t), 4x shorter while saturated. GoalNotReached when the range ends first."""
+    """The shutter putting the board's white (the frame's 99th percentile) at EXPOSURE_TARGET of
+    the range: probes from the shutter range's geometric middle, rescaled (G ~ t), 4x shorter
+    while saturated. GoalNotReached when the range ends first."""
     lo, hi = task.camera.shutter_range_s
     top = measure.saturation_level(task.camera.sensor.bit_depth)
     shutter = float(np.sqrt(lo * hi))
@@ -154,12 +154,11 @@ def auto_exposure(devices, recorder, task, f_number, focus_m, frames):
         capture = acquire(devices, recorder, len(frames) + 1, shutter, f_number, focus_m)
         frames.append(capture.name)
         image = np.asarray(capture.image, float)
-        dark, white = np.percentile(image, [1, 99])
-        share = (white - dark) / (top - dark) if top > dark else 1.0
-        saturated = white >= top
+        white = float(np.percentile(image, 99))
+        share, saturated = white / top, white >= top
         recorder.step("exposure", f"{1e3 * capture.shutter_s:.3f} ms: white at {100 * share:.0f} % of the range"
                                   + (" (saturated)" if saturated else ""), shutter_s=capture.shutter_s,
-                      white=white, dark=dark, saturated=bool(saturated))
+                      white=white, saturated=bool(saturated))
         if not saturated and EXPOSURE_BAND[0] <= share <= EXPOSURE_BAND[1]:
             return capture.shutter_s
         wanted = capture.shutter_s / 4 if saturated else capture.shutter_s * EXPOSURE_TARGET / max(share, 1e-3)

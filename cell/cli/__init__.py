@@ -189,7 +189,7 @@ class _Parser(argparse.ArgumentParser):
             super().error(message)
         found = re.search(r"invalid choice: (.*?) \(choose", message)
         self.exit(2, f"{self.prog}: command line: ROUTINE: found {found.group(1) if found else message}, "
-                     f"expected {' or '.join(self.routines)} before the task ({self.prog} -h says what each "
+                     f"expected {', '.join(list(self.routines)[:-1])} or {list(self.routines)[-1]} before the task ({self.prog} -h says what each "
                      "does)\n")
 
 
