@@ -422,9 +422,10 @@ def run(task, out, connect, hand_eye_file, poses=12, force=False):
         session = Session(on_fault=recorder.fault, log=recorder.log.name)
         try:
             distance = viewing_distance(task)
-            recorder.step("setup", f"{poses} viewpoints {1e3 * distance:.0f} mm from the board's centre "
+            near, far = (distance * f(DISTANCE) for f in (min, max))
+            recorder.step("setup", f"{poses} viewpoints {1e3 * near:.0f}-{1e3 * far:.0f} mm from the board's centre "
                                    f"{np.round(task.board.T_cell_centre[:3, 3], 4).tolist()} m, tilted "
-                                   f"{min(TILT_DEG):g}-{max(TILT_DEG):g} deg, rolled {min(ROLL_DEG):g}-"
+                                   f"{min(TILT_DEG):g} to {max(TILT_DEG):g} deg, rolled {min(ROLL_DEG):g} to "
                                    f"{max(ROLL_DEG):g} deg", distance_m=distance)
             with session:
                 session.devices = connect()
