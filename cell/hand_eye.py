@@ -1,24 +1,23 @@
-"""Operator routine for the camera's intrinsics and the hand-eye transform T_flange_cam with the
+"""Operator routine for the camera's focal length and the hand-eye transform T_flange_cam with the
 ChArUco board of calibration.board (`cell calibrate hand-eye`).
 
 The arm takes the camera to `poses` viewpoints around the board (cell.board: its place in the
-cell says where to look), each tilted TILT_DEG from the board's normal toward another azimuth and
-rolled about the optical axis by ROLL_DEG, so that the rotations between views turn about
-different axes (what hand-eye calibration needs most); a viewpoint outside the workspace box or
-the arm's reach is skipped and counted. At each the board's ChArUco corners are detected
-(cv2.aruco.CharucoDetector) and matched to the board's points (Board.matchImagePoints); the
-intrinsics come from cv2.calibrateCamera over all views in the cell's own camera model
-(cell.projection: one focal length, the principal point at the sensor's centre, no distortion),
-the task's lens as the first guess, with each view's board pose T_cam_board: the hand-eye then
-holds what the cell's model needs (a real camera's principal point off centre becomes a turn of
-T_flange_cam, which a lens of 10 deg field cannot tell from it anyway). A second fit freeing the
-principal point, fx, fy, k1 and k2 is reported as a check (the simulator has no distortion). The flange poses, read back from
-the arm (T_cell_flange = the reported camera pose with the task's hand-eye taken off), and the
-board poses give AX = XB, solved by cv2.calibrateHandEye with METHODS compared; the result is the
-method with the smaller residual, refined by least squares over X and the board's pose in the
-cell on the corners' reprojection error (what the linear methods leave: they weigh rotations
-and translations by no measure of the image). Residuals: the spread of the board's pose in the
-cell over the views, and the corners' reprojection error through X.
+cell says where to look) at DISTANCE x the board-filling distance, each tilted TILT_DEG from the
+board's normal toward another azimuth and rolled ROLL_DEG about the optical axis, so that the
+rotations between views turn about different axes (what hand-eye calibration needs most); a
+viewpoint outside the workspace box or the arm's reach is skipped and counted. In each frame the
+board's ChArUco corners are detected (cv2.aruco.CharucoDetector) and matched to the board's
+points (Board.matchImagePoints). cv2.calibrateCamera fits the views in the cell's own camera
+model (cell.projection: one focal length, the principal point at the sensor's centre, no
+distortion), the task's lens as the first guess, giving each view's board pose T_cam_board; so
+the hand-eye holds what the cell's model needs (a real principal point off centre becomes a
+small turn of T_flange_cam, which a narrow field barely tells from it). A fit freeing the
+principal point, fx, fy, k1 and k2 is reported as a check (the simulator has no distortion).
+The flange poses read back from the arm (the reported camera pose with the task's hand-eye taken
+off) and the board poses give AX = XB, solved by cv2.calibrateHandEye with each of METHODS; the
+one reprojecting the corners best is refined (refine) with the board's pose in the cell and the
+focal length on every corner's reprojection error. Residuals: the spread of the board's pose in
+the cell over the views, and the corners' reprojection error through the result.
 """
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -103,18 +102,18 @@ def refused(task, T_cell_cam):
 
 @dataclass(frozen=True)
 class View:
-    """One viewpoint: the flange pose read back, the frame, the ChArUco corners found, and, once
-    calibrated, the board pose T_cam_board and its reprojection error."""
+    """One viewpoint: the flange pose read back, the picture with the corners drawn, the ChArUco
+    corners found, and their board and image points when there are enough."""
 
     pose: int
-    capture: str
+    picture: str
     T_cell_flange: np.ndarray
     corners: int
     object_points: np.ndarray | None = None      # (N, 3) board frame
     image_points: np.ndarray | None = None       # (N, 2) px
 
     def to_json(self):
-        return {"pose": self.pose, "capture": self.capture, "corners": self.corners,
+        return {"pose": self.pose, "picture": self.picture, "corners": self.corners,
                 "T_cell_flange": self.T_cell_flange}
 
 
@@ -173,7 +172,7 @@ def auto_exposure(devices, recorder, task, f_number, focus_m, frames):
 
 def collect(devices, recorder, task, poses):
     """Visit each pose the arm accepts (refused ones skipped, logged and counted), take a frame,
-    detect the board, save the frame with its corners drawn. Returns (views, refused, frames)."""
+    detect the board, save the frame with its corners drawn. Returns (views, refused)."""
     board, bit_depth = task.board, task.camera.sensor.bit_depth
     f_number = float(np.clip(F_NUMBER, *task.camera.lens.f_number_range))
     views, skipped, frames, shutter = [], [], [], None
@@ -202,7 +201,7 @@ def collect(devices, recorder, task, poses):
         recorder.step("board", f"pose {k}: {len(obj)} corners" + ("" if usable else f", fewer than {MIN_CORNERS}: "
                                                                                   "left out"), pose=k,
                       corners=len(obj), picture=name)
-    return views, skipped, frames
+    return views, skipped
 
 
 @dataclass(frozen=True)
@@ -295,10 +294,10 @@ def with_focal(K, focal_px):
 
 def refine(views, X, T_cell_board, K, distortion):
     """X, the board's pose in the cell and the focal length by least squares on the corners'
-    reprojection error (scipy.optimize.least_squares, trust region): the arm's poses fix the
-    camera's distance to the board, which a narrow field's perspective alone pins only to about
-    0.2 % (the focal length and the distance trade off). Returns (X, T_cell_board, K, the
-    solver's result)."""
+    reprojection error (scipy.optimize.least_squares, trust region): the views' different
+    distances, known from the arm, part the focal length from the camera's offset along its axis,
+    which at one distance trade off (f / (d + dz)) and a narrow field's perspective pins only to
+    about 0.2 %. Returns (X, T_cell_board, K, the solver's result)."""
     def residual(p):
         return reprojection(views, _pose(p[1:7]), _pose(p[7:]), with_focal(K, p[0]), distortion)
 
@@ -361,13 +360,13 @@ def board_poses(views, K, distortion):
 
 def solve(views, intrinsics_):
     """Every method of METHODS judged, the refinement of the best (smallest reprojection error),
-    judged with its focal length: (the refined HandEye, {method: HandEye})."""
+    judged with its focal length: (the refined HandEye, {method: HandEye}, the solver's verdict)."""
     K, dist, T_cam_board = intrinsics_.K, intrinsics_.distortion, intrinsics_.T_cam_board
     linear = {m: judge(m, views, T_cam_board, hand_eye_linear(views, T_cam_board, m), K, dist) for m in METHODS}
     best = min(linear.values(), key=lambda h: h.reprojection_error_px)
-    X, T_cell_board, K, _ = refine(views, best.T_flange_cam, best.T_cell_board, K, dist)
+    X, T_cell_board, K, fit = refine(views, best.T_flange_cam, best.T_cell_board, K, dist)
     refined = judge(f"{best.method} refined", views, board_poses(views, K, dist), X, K, dist, T_cell_board)
-    return refined, linear
+    return refined, linear, {"success": bool(fit.success), "nfev": int(fit.nfev), "message": fit.message}
 
 
 def hand_eye_document(result):
@@ -390,6 +389,7 @@ class HandEyeCalibration:
     intrinsics: Intrinsics | None = None
     hand_eye: HandEye | None = None
     methods: dict | None = None
+    refinement: dict | None = None      # least_squares' success, nfev, message
     hand_eye_file: str | None = None
     fault: dict | None = None
 
@@ -405,7 +405,7 @@ class HandEyeCalibration:
         return {"task": self.task, **self.summary(),
                 "intrinsics": self.intrinsics.to_json() if self.intrinsics else None,
                 "hand_eye": self.hand_eye.to_json() if self.hand_eye else None,
-                "methods": {m: h.to_json() for m, h in (self.methods or {}).items()},
+                "methods": {m: h.to_json() for m, h in (self.methods or {}).items()}, "refinement": self.refinement,
                 "views": [v.to_json() for v in self.views], "refused": list(self.refused),
                 "hand_eye_file": self.hand_eye_file, "reason": self.message} | (
                     {"fault": self.fault} if self.fault else {})
@@ -417,7 +417,7 @@ def run(task, out, connect, hand_eye_file, poses=12, force=False):
     Raises GoalNotReached with fewer than MIN_POSES usable views (exit 1), DeviceFault after the
     safe stop (exit 3). Returns the HandEyeCalibration."""
     out = Path(out)
-    views, skipped, calibrated, result, linear, reason, written = [], [], None, None, None, "", None
+    views, skipped, calibrated, result, linear, solver, reason, written = [], [], None, None, None, None, "", None
     with Recorder(out) as recorder:
         session = Session(on_fault=recorder.fault, log=recorder.log.name)
         try:
@@ -429,7 +429,7 @@ def run(task, out, connect, hand_eye_file, poses=12, force=False):
                                    f"{max(ROLL_DEG):g} deg", distance_m=distance)
             with session:
                 session.devices = connect()
-                views, skipped, _ = collect(session.devices, recorder, task, viewpoints(task.board, distance, poses))
+                views, skipped = collect(session.devices, recorder, task, viewpoints(task.board, distance, poses))
             usable = [v for v in views if v.object_points is not None]
             if len(usable) < MIN_POSES:
                 raise GoalNotReached(f"the board was seen at {len(usable)} of {poses} viewpoints ({len(skipped)} "
@@ -437,7 +437,7 @@ def run(task, out, connect, hand_eye_file, poses=12, force=False):
                                      f"corners), at least {MIN_POSES} are needed: is the board where "
                                      "calibration.board says, and lit?")
             calibrated = calibrate_intrinsics(task, usable)
-            result, linear = solve(usable, calibrated)
+            result, linear, solver = solve(usable, calibrated)
             stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
             header = (f"cell calibrate hand-eye {task.path.name} on {stamp}: {len(usable)} views, corners' "
                       f"reprojection error {result.reprojection_error_px:.3f} px, run folder {out}\n"
@@ -453,6 +453,6 @@ def run(task, out, connect, hand_eye_file, poses=12, force=False):
             raise
         finally:
             done = HandEyeCalibration(str(task.path), result is not None and not reason, reason, tuple(views),
-                                      tuple(skipped), calibrated, result, linear, written, session.fault)
+                                      tuple(skipped), calibrated, result, linear, solver, written, session.fault)
             recorder.write_json("calibration.json", done.to_json())
     return done

@@ -71,7 +71,8 @@ def test_the_example_tasks_get_the_default_board_beside_the_part():
 
 @pytest.mark.parametrize("changes, key, expected", [
     ({"calibration.board.marker_size_m": 0.008}, "calibration.board.marker_size_m", "less than square_size_m"),
-    ({"calibration.board.dictionary": "DICT_4X4_50", "calibration.board.squares_x": 12, "calibration.board.squares_y": 9},
+    ({"calibration.board.dictionary": "DICT_4X4_50", "calibration.board.squares_x": 12,
+      "calibration.board.squares_y": 9},
      "calibration.board.dictionary", "a dictionary of at least 54 markers"),
     ({"calibration.board.dictionary": "DICT_9X9_50"}, "calibration.board.dictionary", "one of DICT_4X4_50"),
 ])
@@ -96,7 +97,8 @@ def test_the_board_s_white_is_eq_17_and_its_corners_land_where_the_true_camera_p
     the detector finds in every other of the routine's 10 views lie within 0.15 px rms (0.35 px at worst) of the
     board's corners projected through the true camera pose (the reported one composed with the
     hand-eye error)."""
-    task = load_task(simcell.variant(tmp_path, HINGE, {**SMALL, "sim.effects": [], "sim.truth.camera_offset_m": OFFSET_M,
+    task = load_task(simcell.variant(tmp_path, HINGE, {**SMALL, "sim.effects": [],
+                                                       "sim.truth.camera_offset_m": OFFSET_M,
                                                        "sim.truth.camera_rpy_deg": RPY_DEG}))
     view = BoardView(task)
     K = intrinsics(task.camera.sensor, task.camera.lens)
@@ -145,7 +147,7 @@ def test_every_method_is_compared_and_the_refined_result_reprojects_best(calibra
     for linear in result.methods.values():
         assert pose_error(linear.T_flange_cam, result.hand_eye.T_flange_cam)[0] < 5e-3
         assert result.hand_eye.reprojection_error_px <= linear.reprojection_error_px + 1e-9
-    assert result.hand_eye.board_spread_m < 1e-3
+    assert result.hand_eye.board_spread_m < 1e-3 and result.refinement["success"]
 
 
 def test_the_run_folder_holds_the_evidence_and_the_hand_eye_file_is_the_task_s_keys(calibrated, tmp_path):
