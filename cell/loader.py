@@ -11,6 +11,7 @@ import numpy as np
 import trimesh
 
 from cell import geometry
+from cell.board import DICTIONARIES, Board
 from cell.device_config import SECTIONS as DEVICES, devices_config
 from cell.errors import TaskError
 from cell.frames import Frames
@@ -187,6 +188,15 @@ TASK = {
             "max_angle_deg": Number(lambda v: 0 < v < DEG(90), "an angle within (0, 90) deg",
                                     default=np.radians(80.0)),
             "lamp_radius_m": Number(**POSITIVE, default=None),
+        }, required=False),
+        "board": Section({
+            "squares_x": Integer(3, 100, default=9),
+            "squares_y": Integer(3, 100, default=7),
+            "square_size_m": Number(**POSITIVE, default=0.008),
+            "marker_size_m": Number(**POSITIVE, default=0.006),
+            "dictionary": Choice(*DICTIONARIES, default="DICT_5X5_100"),
+            "position_m": Vector(default=(0.0, 0.08, 0.0)),
+            "rpy_deg": Vector(default=(np.pi, 0.0, 0.0)),
         }, required=False),
     }, required=False),
     "loop": Section({
@@ -397,6 +407,21 @@ def _calibration(file, calibration, material, rig):
                        Goniometer(tuple(map(float, phases)), gonio["step_rad"], gonio["max_angle_rad"], radius))
 
 
+def _board(file, board):
+    """The ChArUco board: markers smaller than their squares, and no more of them than the
+    dictionary holds."""
+    if not board["marker_size_m"] < board["square_size_m"]:
+        raise TaskError(file, "calibration.board.marker_size_m", show(board["marker_size_m"]),
+                        f"less than square_size_m {board['square_size_m']:g} m (a marker lies inside a square)")
+    squares = (board["squares_x"], board["squares_y"])
+    made = Board(squares, board["square_size_m"], board["marker_size_m"], board["dictionary"],
+                 geometry.from_rpy(board["rpy_rad"], board["position_m"]))
+    if made.markers > DICTIONARIES[made.dictionary]:
+        raise TaskError(file, "calibration.board.dictionary", made.dictionary,
+                        f"a dictionary of at least {made.markers} markers ({squares[0]} x {squares[1]} squares)")
+    return made
+
+
 def _loop(file, loop):
     low, high = loop["albedo_scale_range"]
     if not low <= 1.0 <= high:
@@ -512,4 +537,5 @@ def load_task(path):
         sim=SimConfig(sim["seed"], sim["effects"], _truth(path, sim["truth"], lamp["rig"])),
         loop=_loop(path, v["loop"]),
         calibration=_calibration(path, v["calibration"], material, lamp["rig"]),
+        board=_board(path, v["calibration"]["board"]),
     )

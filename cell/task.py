@@ -197,6 +197,7 @@ class Task:
     sim: SimConfig
     loop: LoopSettings = LoopSettings()
     calibration: Calibration = Calibration()
+    board: object = None           # cell.board.Board: the ChArUco board (calibration.board)
 
     @property
     def feature(self):

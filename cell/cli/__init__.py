@@ -25,7 +25,9 @@ COMMANDS = {
 ROUTINES = {"camera-constant": "c by a laser of known power aimed at the sensor at several shutter times "
                                "(sec. 4.1); writes a camera file",
             "reference-part": "c by a shutter sweep on a reference part, against the task's material table "
-                              "(G = b + c P t): a cross-check"}
+                              "(G = b + c P t): a cross-check",
+            "hand-eye": "the camera's focal length and the hand-eye transform T_flange_cam from views of the "
+                        "ChArUco board of calibration.board; writes the task's hand-eye keys"}
 
 
 def output_folder(out, name):
@@ -139,7 +141,8 @@ def build_parser():
     p.add_argument("--out", help="folder for bench.json and bench.png, new or empty (default runs/bench-<time>)")
     p.add_argument("--json", action="store_true", help="print bench.json to stdout")
 
-    p = sub.add_parser("calibrate", help="operator routines measuring the camera constant c")
+    p = sub.add_parser("calibrate", help="operator routines measuring the camera constant c, the intrinsics "
+                                         "and the hand-eye transform")
     p.routines = ROUTINES
     routines = p.add_subparsers(dest="routine", required=True, metavar="ROUTINE")
     r = routines.add_parser("camera-constant", help=ROUTINES["camera-constant"])
@@ -157,6 +160,15 @@ def build_parser():
     r.add_argument("task", help="a task whose part and material table you trust (the reference)")
     r.add_argument("--shots", type=int, default=6, metavar="N",
                    help="shutter times in the sweep, at least 3 (default 6)")
+    r = routines.add_parser("hand-eye", help=ROUTINES["hand-eye"])
+    r.add_argument("task", help="a task whose camera, arm and calibration.board it is")
+    r.add_argument("--poses", type=int, default=12, metavar="N",
+                   help="viewpoints around the board, at least 10 (default 12)")
+    r.add_argument("--hand-eye-file", metavar="PATH", help="the file of the task's cell.arm hand-eye keys to "
+                                                           "write (default hand-eye.yaml beside the task)")
+    r.add_argument("--force", action="store_true", help="replace an existing hand-eye file")
+    r.add_argument("--json", action="store_true", help="print hand_eye_position_m, hand_eye_rpy_deg, "
+                                                       "focal_length_px, reprojection_error_px as JSON")
     for r in routines.choices.values():
         r.add_argument("--backend", choices=("sim", "hw"), help="override the task's cell.backend")
         r.add_argument("--out", help="folder for calibration.json and calibration.png, new or empty "
@@ -194,7 +206,7 @@ class _Parser(argparse.ArgumentParser):
             super().error(message)
         found = re.search(r"invalid choice: (.*?) \(choose", message)
         self.exit(2, f"{self.prog}: command line: ROUTINE: found {found.group(1) if found else message}, "
-                     f"expected {' or '.join(self.routines)} before the task ({self.prog} -h says what each "
+                     f"expected {', '.join(list(self.routines)[:-1])} or {list(self.routines)[-1]} before the task ({self.prog} -h says what each "
                      "does)\n")
 
 
