@@ -45,6 +45,18 @@ def test_an_offset_on_the_conrod_is_found_as_the_hand_derived_shift_and_the_run_
     assert "resolved across the window's edges only" in steps[0]["message"]     # the shank's two edges
 
 
+def test_a_fixture_offset_on_the_hinge_is_found_by_its_edges_not_the_lamps_light(tmp_path):
+    """The part 2 mm along -x (the image's -x; view [-0.05, 0, 1]): f/p 2 mm cos(atan 0.05) / 0.5 m
+    = 21.5 px. The lamp's soft edge and the lobe's shading stay where they were; the leaf's edges
+    and screw heads move (matched by intensity, the coarse step put it 67 px off)."""
+    truth = {"sim.truth.part_offset_m": [-0.002, 0.0, 0.0], "sim.effects": ALL_BUT_DEFOCUS}
+    cell = run_loop(variant(tmp_path, HINGE, truth), tmp_path / "run")
+    assert cell.error is None and len(cell.report["iterations"]) <= 6
+    found = cell.report["iterations"][0]["registration"]
+    assert found["trusted"] and found["resolved"] == 2
+    assert found["shift_px"] == pytest.approx((-F_PX * 0.002 * np.cos(np.arctan(0.05)) / 0.5, 0.0), abs=1.0)
+
+
 def test_a_2_deg_camera_tilt_on_the_hinge_stops_with_exit_1_naming_the_offset(tmp_path, capsys):
     """A tilt of 2 deg about the camera's x moves the image by f/p tan(2 deg) = 187.7 px, at 0.5 m
     17.5 mm at the feature: beyond loop.registration_limit_m (3 mm), so the run stops after its
