@@ -4,12 +4,13 @@ task's material, lamp and camera constant) is aligned with the capture, and the 
 samples move by the shift found, so the measured region follows the feature as it appears.
 
 Two steps. The model's window around the feature at 1/COARSE resolution, matched over the whole
-capture by its edges (coarse_shift), finds any shift that keeps it in the frame (a 2 deg hand-eye tilt on the
-hinge is 188 px), to within a coarse pixel. cv2.findTransformECC (a translation, on intensity) then refines it to a fraction
-of a pixel in a window around the feature: ECC maximizes the correlation coefficient, which is
-blind to a gain and an offset of the gray, so a wrong albedo, camera constant or black level (what
-the loop corrects after) does not pull it; intensity rather than gradients because the part's
-edges against the dark background are the structure, and gradients would only add noise.
+capture by its edges (coarse_shift), finds any shift that keeps it in the frame (a 2 deg hand-eye
+tilt on the hinge is 188 px), to within a coarse pixel. cv2.findTransformECC (a translation, on
+intensity) then refines it to a fraction of a pixel in a window around the feature: ECC
+maximizes the correlation coefficient, which is blind to a gain and an offset of the gray, so a
+wrong albedo, camera constant or black level (what the loop corrects after) does not pull it.
+Intensity rather than gradient magnitudes there: on the examples' offsets the gradients
+correlated less (0.95-0.98 against 0.99-1.0) for the same shift.
 
 What the window cannot tell is not moved: the template's structure tensor J = sum grad T grad T^T
 (its gray per pixel, on the model's noiseless image) resolves a direction when its eigenvalue
@@ -176,7 +177,6 @@ def locate(image, task, scene, T_cell_cam, lamp_pose, row, col, saturation=np.in
     pixels at `saturation` or above clipped by the sensor."""
     start = time.perf_counter()
     image = np.asarray(image, np.float32)
-    h, w = image.shape
     K = projection.intrinsics(task.camera.sensor, task.camera.lens)
     (_,), (depth,) = projection.project(K, T_cell_cam, scene.center[None])
     footprint = float(depth / K[0, 0])
