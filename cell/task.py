@@ -139,9 +139,11 @@ class Truth:
 
 @dataclass(frozen=True)
 class LoopSettings:
-    """The closed loop's limits (`loop`): the albedo scales a correction may imply."""
+    """The closed loop's limits (`loop`): the albedo scales a correction may imply, how far
+    from where the model puts it the feature may be found (registration) [m]."""
 
     albedo_scale_range: tuple = (0.1, 10.0)
+    registration_limit_m: float = 0.003
 
 
 @dataclass(frozen=True)
