@@ -9,15 +9,15 @@ from cell.operator import Operator
 from cell.session import try_all
 
 
-def open_devices(task, scene, backend, yes=False, laser=None):
-    """The cell's devices: the simulated cell (rendering `scene`, or the spot of a laser aimed at
-    the sensor) or, for backend hw, the real ones from the task's cell.arm / cell.pan_tilt /
-    cell.camera settings (a real laser is the operator's). The sim has no operator to set the
-    lamp radius: it confirms for itself."""
+def open_devices(task, scene, backend, yes=False, laser=None, board=False):
+    """The cell's devices: the simulated cell (rendering `scene`, the spot of a laser aimed at
+    the sensor, or with board the calibration.board) or, for backend hw, the real ones from the
+    task's cell.arm / cell.pan_tilt / cell.camera settings (a real laser and board are the
+    operator's). The sim has no operator to set the lamp radius: it confirms for itself."""
     if backend == "hw":
         return make_hw_devices(task, yes=yes, scene=scene)
     from sim.cell import make_sim_devices
-    return make_sim_devices(task, scene, yes=True, laser=laser)
+    return make_sim_devices(task, scene, yes=True, laser=laser, board=board)
 
 
 def make_hw_devices(task, yes=False, operator=None, scene=None):

@@ -320,17 +320,17 @@ class LaserCalibration:
                 "reason": self.message} | ({"fault": self.fault} if self.fault else {})
 
 
-def check_camera_file(path, force):
-    """Refuse (bad input, before any work) to replace an existing camera file without --force, a
-    folder, or a file in a folder that does not exist."""
+def check_camera_file(path, force, option="--camera-file"):
+    """Refuse (bad input, before any work) to replace an existing file (the `option` names it)
+    without --force, a folder, or a file in a folder that does not exist."""
     path = Path(path)
     if path.is_dir():
-        raise TaskError("command line", "--camera-file", f"{path}, a folder", "a file path")
+        raise TaskError("command line", option, f"{path}, a folder", "a file path")
     if not path.parent.is_dir():
-        raise TaskError("command line", "--camera-file", f"{path}, in no existing folder",
+        raise TaskError("command line", option, f"{path}, in no existing folder",
                         "a file in an existing folder")
     if path.exists() and not force:
-        raise TaskError("command line", "--camera-file", f"{path}, a file that exists",
+        raise TaskError("command line", option, f"{path}, a file that exists",
                         "a new file, or --force to replace it")
     return path
 
@@ -348,11 +348,12 @@ def camera_document(sensor, fit, source):
     return doc | {"source": source}
 
 
-def write_camera_file(path, document, force):
-    """The YAML file, written whole (a temporary file renamed into place); an existing file only
-    with force."""
+def write_camera_file(path, document, force, header=""):
+    """The YAML file, written whole (a temporary file renamed into place), below `header`'s lines
+    as comments; an existing file only with force."""
     path = Path(path)
-    text = yaml.safe_dump(document, sort_keys=False, width=100)
+    comments = "".join(f"# {line}\n" for line in header.splitlines())
+    text = comments + yaml.safe_dump(document, sort_keys=False, width=100)
     fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
     with os.fdopen(fd, "w") as f:
         f.write(text)

@@ -13,7 +13,8 @@ from cell import evaluate, geometry, requirements
 
 DENSE_MAX = 20_000              # points: a 12 mm patch seen by 93 um pixels needs 13 000
 # the requirements that depend on where the points are; the others are judged by the search
-JUDGED = ("gray_min", "gray_max", "no_shadow", "cone_coverage", "camera_view", "depth_of_field")
+JUDGED = ("gray_min", "gray_max", "no_shadow", "cone_coverage", "camera_view", "view_angle", "resolution",
+          "depth_of_field")
 
 
 @dataclass(frozen=True)

@@ -68,6 +68,20 @@ class Arm(ABC):
         check_arm_motion(self.config, self.frames, T_cell_cam, speed)
         self._move_tcp(self.frames.T_base_cam(T_cell_cam), speed)
 
+    def refusal(self, T_cell_cam, speed_m_s=None):
+        """Why move_camera would refuse this pose (the envelope's check, then the backend's reach),
+        or None; moves nothing. A backend without kinematics of its own finds out when it moves."""
+        speed = self.config.speed_m_s if speed_m_s is None else speed_m_s
+        try:
+            check_arm_motion(self.config, self.frames, T_cell_cam, speed)
+        except DeviceFault as refused:
+            return refused.reason
+        return self._unreachable(self.frames.T_base_cam(T_cell_cam))
+
+    def _unreachable(self, T_base_cam):
+        """Why the robot cannot put the camera at T_base_cam (None: it can, or cannot tell)."""
+        return None
+
     def camera_pose(self):
         """The actual T_cell_cam, read back from the device."""
         return self.frames.T_cell_cam_from_base(self._tcp_pose())
@@ -117,17 +131,30 @@ class LampRig(ABC):
     def move(self, pan_rad, tilt_rad, radius_m):
         """Move to the joints (checked against the rig's ranges first); a manual radius is then
         set by the operator."""
+        pan = self._in_range(pan_rad, tilt_rad, radius_m)
+        self._move_axes(pan, tilt_rad, None if self.manual_radius else radius_m)
+        if self.manual_radius and not abs(radius_m - self._confirmed_radius) < 0.5e-3:
+            self.operator.confirm(self.device, f"set the lamp radius (pivot to lamp) to "
+                                               f"{radius_m * 1e3:.1f} mm")
+            self._confirmed_radius = radius_m
+
+    def _in_range(self, pan_rad, tilt_rad, radius_m):
+        """The pan (+ 2 pi k) within the rig's range, or DeviceFault for joints outside it."""
         lo, hi = self.rig.pan_range_rad      # pan turns about z: pan + 2 pi k may be the one in range
         pan = next((p for p in pan_rad + 2 * np.pi * np.array([0.0, -1.0, 1.0])
                     if lo - 1e-9 <= p <= hi + 1e-9), pan_rad)
         _check_range(self.device, "pan", pan, self.rig.pan_range_rad, degrees=True)
         _check_range(self.device, "tilt", tilt_rad, self.rig.tilt_range_rad, degrees=True)
         _check_range(self.device, "radius", radius_m, self.rig.radius_range_m)
-        self._move_axes(pan, tilt_rad, None if self.manual_radius else radius_m)
-        if self.manual_radius and not abs(radius_m - self._confirmed_radius) < 0.5e-3:
-            self.operator.confirm(self.device, f"set the lamp radius (pivot to lamp) to "
-                                               f"{radius_m * 1e3:.1f} mm")
-            self._confirmed_radius = radius_m
+        return pan
+
+    def refusal(self, pan_rad, tilt_rad, radius_m):
+        """Why move would refuse these joints (outside the rig's ranges), or None; moves nothing."""
+        try:
+            self._in_range(pan_rad, tilt_rad, radius_m)
+        except DeviceFault as refused:
+            return refused.reason
+        return None
 
     def joints(self):
         """(pan, tilt, radius) read back; a manual radius is the one the operator confirmed."""

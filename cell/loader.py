@@ -11,6 +11,7 @@ import numpy as np
 import trimesh
 
 from cell import geometry
+from cell.board import DICTIONARIES, Board
 from cell.device_config import SECTIONS as DEVICES, devices_config
 from cell.errors import TaskError
 from cell.frames import Frames
@@ -19,8 +20,8 @@ from cell.material import PARAMETERS, Material
 from cell.physics.radiometry import camera_constant_from_datasheet
 from cell.schema import (NON_NEGATIVE, POSITIVE, Anything, Choice, Integer, Invalid, Number, Pair,
                          Section, Sections, Spec, Table, Text, Vector, parse, read_yaml, show)
-from cell.task import (CameraModel, CellConfig, Feature, Lamp, LampRig, Lens, LoopSettings, Part,
-                       Requirements, SimConfig, Sensor, Task, Truth)
+from cell.task import (Calibration, CameraModel, CellConfig, Feature, Goniometer, Lamp, LampRig, Lens,
+                       LoopSettings, Part, Requirements, Sample, SimConfig, Sensor, Task, Truth, Viewpoint)
 
 EFFECTS = ("shadows", "cone_falloff", "vignetting", "defocus", "noise", "black_level", "quantization")
 SURFACE_TOLERANCE_M = 1e-3       # feature center at most this far from the mesh surface
@@ -77,6 +78,8 @@ REQUIREMENTS = {
     "region_margin_deg": Number(**NON_NEGATIVE),
     "lamp_tolerance_deg": Number(**NON_NEGATIVE),
     "depth_of_field_m": Number(**NON_NEGATIVE, default=0.0),
+    "resolution_m": Number(**POSITIVE, default=None),
+    "view_angle_deg": Number(lambda v: 0 < v <= DEG(90), "an angle in (0, 90] deg", default=None),
 }
 
 
@@ -127,6 +130,12 @@ TASK = {
             "circle_of_confusion_m": Number(**POSITIVE),
         }),
         "shutter_range_s": Pair(lambda v: v > 0, "positive times"),
+        "viewpoint": Choice("fixed", "planned", default="fixed"),
+        "standoff_range_m": Pair(lambda v: v > 0, "positive lengths", default=None),
+        "standoff_steps": Integer(1, 16, default=3),
+        "view_step_deg": Number(lambda v: DEG(1) <= v <= DEG(45), "an angle within [1, 45] deg",
+                                default=float(DEG(15))),
+        "views_per_feature": Integer(1, 32, default=3),
     }),
     "lamp": Section({
         "power_w": Number(**POSITIVE),
@@ -165,8 +174,34 @@ TASK = {
             "lamp_radius_error_m": Number(lambda v: True, "a number", default=0.0),
         }, required=False),
     }, required=False),
+    "calibration": Section({
+        "sample": Section({
+            "material": Text(default=None),
+            "radius_m": Number(**POSITIVE, default=0.025),
+            "thickness_m": Number(**POSITIVE, default=0.002),
+            "normal": Vector(direction=True, default=(0.0, 0.0, 1.0)),
+        }, required=False),
+        "goniometer": Section({
+            "phase_deg": Table(lambda v: 0 < v < np.pi, "an angle within (0, 180) deg",
+                               default=(np.radians(20.0), np.radians(40.0), np.radians(60.0))),
+            "step_deg": Number(lambda v: 0 < v <= DEG(30), "an angle within (0, 30] deg", default=np.radians(2.0)),
+            "max_angle_deg": Number(lambda v: 0 < v < DEG(90), "an angle within (0, 90) deg",
+                                    default=np.radians(80.0)),
+            "lamp_radius_m": Number(**POSITIVE, default=None),
+        }, required=False),
+        "board": Section({
+            "squares_x": Integer(3, 100, default=9),
+            "squares_y": Integer(3, 100, default=7),
+            "square_size_m": Number(**POSITIVE, default=0.008),
+            "marker_size_m": Number(**POSITIVE, default=0.006),
+            "dictionary": Choice(*DICTIONARIES, default="DICT_5X5_100"),
+            "position_m": Vector(default=(0.0, 0.08, 0.0)),
+            "rpy_deg": Vector(default=(np.pi, 0.0, 0.0)),
+        }, required=False),
+    }, required=False),
     "loop": Section({
         "albedo_scale_range": Pair(lambda v: v > 0, "positive scales", default=(0.1, 10.0)),
+        "registration_limit_m": Number(lambda v: v > 0, "a positive distance", default=0.003),
     }, required=False),
 }
 
@@ -183,6 +218,7 @@ MATERIAL = {
     **{f"{p}_stderr": Table(**NON_NEGATIVE, default=None, finite=False) for p in PARAMETERS},
     "rms_residual": Table(**NON_NEGATIVE, default=None),
     "unidentifiable": Anything(),
+    "unresolved": Anything(),                # written by cell measure-brdf
 }
 
 
@@ -344,6 +380,49 @@ def _truth(file, truth, rig):
     return Truth(**(truth | vectors | {"material": material}))
 
 
+def _calibration(file, calibration, material, rig):
+    """The calibration routines' set-up: the goniometer's sample (its material file loaded and
+    checked like `part.material`, else the part's) and its sampling, whose lamp radius lies in the
+    rig's range (default: the middle of it) and whose phase angles fit under twice max_angle."""
+    sample, gonio = calibration["sample"], calibration["goniometer"]
+    name = sample["material"]
+    sample_material = material if name is None else load_material(
+        _relative_file(file, "calibration.sample.material", name, "yaml"))
+    lo, hi = rig["radius_range_m"]
+    radius = gonio["lamp_radius_m"]
+    if radius is None:
+        radius = 0.5 * (lo + hi)
+    elif not lo <= radius <= hi:
+        raise TaskError(file, "calibration.goniometer.lamp_radius_m", show(radius),
+                        f"a radius within lamp.rig.radius_range_m [{lo:g}, {hi:g}] m")
+    phases = np.asarray(gonio["phase_rad"], float)
+    if np.any(np.diff(phases) <= 0):
+        raise TaskError(file, "calibration.goniometer.phase_deg", show(np.degrees(phases).tolist()),
+                        "ascending phase angles")
+    if phases[-1] >= 2 * gonio["max_angle_rad"]:
+        raise TaskError(file, "calibration.goniometer.phase_deg", f"{np.degrees(phases[-1]):g} deg",
+                        f"phase angles below twice max_angle_deg ({np.degrees(2 * gonio['max_angle_rad']):g} deg): "
+                        "lamp and camera each within max_angle_deg of the normal")
+    return Calibration(Sample(sample_material, sample["radius_m"], sample["thickness_m"],
+                              tuple(map(float, sample["normal"]))),
+                       Goniometer(tuple(map(float, phases)), gonio["step_rad"], gonio["max_angle_rad"], radius))
+
+
+def _board(file, board):
+    """The ChArUco board: markers smaller than their squares, and no more of them than the
+    dictionary holds."""
+    if not board["marker_size_m"] < board["square_size_m"]:
+        raise TaskError(file, "calibration.board.marker_size_m", show(board["marker_size_m"]),
+                        f"less than square_size_m {board['square_size_m']:g} m (a marker lies inside a square)")
+    squares = (board["squares_x"], board["squares_y"])
+    made = Board(squares, board["square_size_m"], board["marker_size_m"], board["dictionary"],
+                 geometry.from_rpy(board["rpy_rad"], board["position_m"]))
+    if made.markers > DICTIONARIES[made.dictionary]:
+        raise TaskError(file, "calibration.board.dictionary", made.dictionary,
+                        f"a dictionary of at least {made.markers} markers ({squares[0]} x {squares[1]} squares)")
+    return made
+
+
 def _loop(file, loop):
     low, high = loop["albedo_scale_range"]
     if not low <= 1.0 <= high:
@@ -363,6 +442,18 @@ def _check_camera(file, cam):
     if not cam["distance_m"] > focal:
         raise TaskError(file, "camera.distance_m", show(cam["distance_m"]),
                         f"more than the focal length {focal:g} m (a lens focuses only beyond it)")
+    standoff = cam["standoff_range_m"]
+    if cam["viewpoint"] == "planned" and standoff is None:
+        raise TaskError(file, "camera.standoff_range_m", "nothing",
+                        "an ascending pair of positive lengths (required with camera.viewpoint: planned)")
+    if standoff is not None and not standoff[0] > focal:
+        raise TaskError(file, "camera.standoff_range_m[0]", show(standoff[0]),
+                        f"more than the focal length {focal:g} m (a lens focuses only beyond it)")
+
+
+def _viewpoint(cam):
+    return Viewpoint(cam["viewpoint"], cam["standoff_range_m"], cam["standoff_steps"], cam["view_step_rad"],
+                     cam["views_per_feature"])
 
 
 def _check_outside(file, mesh, T_cell_part, points):
@@ -440,10 +531,12 @@ def load_task(path):
         frames=frames,
         features=features,
         camera=CameraModel(cam["distance_m"], cam["view_direction"], _sensor(path, cam["sensor"]),
-                           Lens(**cam["lens"]), cam["shutter_range_s"]),
+                           Lens(**cam["lens"]), cam["shutter_range_s"], _viewpoint(cam)),
         lamp=Lamp(lamp["power_w"], lamp["cone_angle_rad"], LampRig(**lamp["rig"]),
                   _lamp_profile(path, lamp["profile"])),
         cell=CellConfig(cell["backend"], devices),
         sim=SimConfig(sim["seed"], sim["effects"], _truth(path, sim["truth"], lamp["rig"])),
         loop=_loop(path, v["loop"]),
+        calibration=_calibration(path, v["calibration"], material, lamp["rig"]),
+        board=_board(path, v["calibration"]["board"]),
     )

@@ -7,8 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
-from cell import control, evaluate, measure, refit
+from cell import control, evaluate, measure, refit, register
 from cell.acquisition import acquire, move_to, plan_and_connect, plan_recorded
+from cell.devices import speaking_for
 from cell.errors import GoalNotReached
 from cell.plan import gray_stats
 from cell.recorder import Recorder
@@ -31,6 +32,7 @@ class Iteration:
     capture: str
     annotated: str
     albedo_scale: float
+    registration: dict | None = None     # register.Registration.to_json
     correction: dict | None = None
 
     def to_json(self):
@@ -146,16 +148,31 @@ def find_black_level(task, plan, devices, recorder):
     return black
 
 
+def locate(task, scene, devices, recorder, k, capture, saturation):
+    """Registration (cell.register) of a capture at the read-back camera and lamp poses, logged;
+    returns (Registration, the shift the measurement takes: the found one when trusted and within
+    loop.registration_limit_m, else none, the model's region)."""
+    with speaking_for(devices.lamp):
+        lamp_pose = devices.lamp.lamp_pose()
+    row, col, inside = measure.sample_pixels(task, capture.T_cell_cam, scene.points)
+    found = register.locate(capture.image, task, scene, capture.T_cell_cam, lamp_pose, row[inside], col[inside],
+                            saturation)
+    recorder.step("register", found.describe(), iteration=k, **found.to_json())
+    within = found.trusted and register.beyond_limit(found.to_json(), task.loop.registration_limit_m) is None
+    return found, found.shift_px if within else (0.0, 0.0)
+
+
 def shoot(task, model, devices, recorder, k, shutter_s, f_number, albedo_scale, black):
-    """Expose, capture, measure and compare with the plan's model at these settings
-    (G = b + c P t, the signal ~ t / kappa^2). Returns (Iteration, Measurement, predicted gray
-    per sample)."""
+    """Expose, capture, locate the feature (locate), measure it where found and compare with the
+    plan's model at these settings (G = b + c P t, the signal ~ t / kappa^2). Returns (Iteration,
+    Measurement, predicted gray per sample)."""
     from cell.pictures import annotate_capture
     shot = model.plan.shot
     capture = acquire(devices, recorder, k, shutter_s, f_number, shot.exposure.focus_m)
     bit_depth = devices.camera.bit_depth
     saturation = measure.saturation_level(bit_depth)
-    m = measure.measure_feature(capture.image, task, capture.T_cell_cam, model.plan.scene.points, saturation)
+    found, shift = locate(task, model.plan.scene, devices, recorder, k, capture, saturation)
+    m = measure.measure_feature(capture.image, task, capture.T_cell_cam, model.plan.scene.points, saturation, shift)
     predicted = model.predicted(black.value, capture.shutter_s, f_number)
     error, relation = control.model_error(m.sample_gray, predicted, saturation, black.value)
     band = task.requirements.gray_band
@@ -166,13 +183,13 @@ def shoot(task, model, devices, recorder, k, shutter_s, f_number, albedo_scale, 
     annotated = recorder.write_image(f"capture-{k}-feature.png",
                                      annotate_capture(capture.image, m, bit_depth, caption))
     it = Iteration(k, capture.shutter_s, float(f_number), expected, stats, error, relation, in_band,
-                   capture.name, annotated, albedo_scale)
+                   capture.name, annotated, albedo_scale, found.to_json())
     recorder.step("measure", f"gray mean {stats['mean']:.1f}, {m.min:.1f}-{m.max:.1f} over {stats['pixels']} px "
                              f"(pixels {stats['pixel_min']:.0f}-{stats['pixel_max']:.0f}, noise "
                              f"{stats['noise_rms']:.1f} rms, {stats['saturated']} saturated); the model predicts "
                              f"{expected['mean']:.1f}, {expected['min']:.1f}-{expected['max']:.1f}; "
                              f"{control.describe_error(error, relation)}; {verdict}",
-                  **{key: v for key, v in it.to_json().items() if key != "albedo_scale"})
+                  **{key: v for key, v in it.to_json().items() if key not in ("albedo_scale", "registration")})
     return it, m, predicted
 
 
@@ -202,6 +219,10 @@ def iterate(task, plan, devices, recorder, max_iterations):
         it, m, predicted = shoot(task, model, devices, recorder, k, shutter, f_number, albedo, black)
         yield it
         shutter = it.shutter_s
+        far = register.beyond_limit(it.registration, task.loop.registration_limit_m)
+        if far:                                 # the plan's poses do not hold: nothing to correct
+            yield Corrected(k, {"action": "stop", "albedo_scale": albedo, "reason": far, "cause": "registration"})
+            raise GoalNotReached(far)
         if it.in_band:
             return
         if k == max_iterations:

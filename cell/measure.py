@@ -10,11 +10,13 @@ from cell.errors import DeviceFault, GoalNotReached
 from cell.plan import gray_stats
 
 
-def sample_pixels(task, T_cell_cam, points):
-    """Nearest pixel (row, col) of each feature sample seen from the actual camera pose, and
-    whether it falls inside the image."""
+def sample_pixels(task, T_cell_cam, points, shift_px=(0.0, 0.0)):
+    """Nearest pixel (row, col) of each feature sample seen from the actual camera pose, moved
+    by shift_px (dx, dy: where registration found the feature), and whether it falls inside the
+    image."""
     K = projection.intrinsics(task.camera.sensor, task.camera.lens)
     uv, _ = projection.project(K, T_cell_cam, points)
+    uv = uv + np.asarray(shift_px, float)
     sensor = task.camera.sensor
     col = np.rint(np.nan_to_num(uv[:, 0], nan=-1.0)).astype(int)
     row = np.rint(np.nan_to_num(uv[:, 1], nan=-1.0)).astype(int)
@@ -22,8 +24,9 @@ def sample_pixels(task, T_cell_cam, points):
     return row, col, inside
 
 
-def read_samples(image, task, T_cell_cam, points):
-    """(row, col, inside, gray) of each feature sample in a frame: its pixel, whether it is in
+def read_samples(image, task, T_cell_cam, points, shift_px=(0.0, 0.0)):
+    """(row, col, inside, gray) of each feature sample in a frame (moved by shift_px,
+    sample_pixels): its pixel, whether it is in
     the image, the gray there (NaN outside). A frame of another size than camera.sensor is a
     camera fault (the projection would read the wrong pixels); no sample in the image means the
     camera does not see the feature."""
@@ -32,7 +35,7 @@ def read_samples(image, task, T_cell_cam, points):
         h, w = np.shape(image)[:2]
         raise DeviceFault("camera", f"frames are {w}x{h} px, camera.sensor says "
                                     f"{sensor.width_px}x{sensor.height_px}: set the camera's resolution")
-    row, col, inside = sample_pixels(task, T_cell_cam, points)
+    row, col, inside = sample_pixels(task, T_cell_cam, points, shift_px)
     if not inside.any():
         raise GoalNotReached("no feature sample projects into the image: check the camera pose "
                              "and the hand-eye calibration (cell.arm.hand_eye_*)")
@@ -138,9 +141,10 @@ class Measurement:
         return not self.saturated.any() and band[0] <= self.min and self.max <= band[1]
 
 
-def measure_feature(image, task, T_cell_cam, points, saturation):
-    """The Measurement of a frame taken from T_cell_cam (read back) of the feature's samples."""
-    row, col, inside, sample_gray = read_samples(image, task, T_cell_cam, points)
+def measure_feature(image, task, T_cell_cam, points, saturation, shift_px=(0.0, 0.0)):
+    """The Measurement of a frame taken from T_cell_cam (read back) of the feature's samples,
+    their pixels moved by shift_px (where registration found the feature)."""
+    row, col, inside, sample_gray = read_samples(image, task, T_cell_cam, points, shift_px)
     image = np.asarray(image, float)
     region = feature_mask(image.shape, row[inside], col[inside])
     surface = local_mean(image, region)[region]

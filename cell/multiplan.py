@@ -9,9 +9,10 @@ from dataclasses import replace
 
 import numpy as np
 
-from cell import coverage, planner
+from cell import coverage, planner, regions
 from cell.cover import fewest_shots
 from cell.plan import FeatureVerdict, Plan, PlannerSettings, Search
+from cell.scene import build_scene
 
 
 def travel(shots):
@@ -25,50 +26,92 @@ def travel(shots):
             + np.linalg.norm(lamps - lamps.mean(axis=0), axis=1))
 
 
+def candidate_plans(tasks, settings, say):
+    """[(feature index, its Plan)] of every candidate shot, and the Viewpoints of each feature
+    (None: the fixed camera rule, one candidate per feature). A planned feature gets a plan per
+    kept viewpoint (cell.viewpoints); one with none gets its fixed-rule plan, which only lends
+    its samples and maps to the judge (not a candidate)."""
+    from cell.viewpoints import plan_viewpoints
+    if tasks[0].camera.viewpoint.mode == "fixed":
+        out = []
+        for f, t in enumerate(tasks):
+            say(f"feature {t.feature.name}:")
+            out.append((f, planner.plan(t, settings, progress=say)))
+        return out, None, [p for _, p in out]
+    grid = regions.SphereGrid(np.radians(settings.grid_step_deg))
+    out, views, lend = [], [], []
+    for f, t in enumerate(tasks):
+        start = time.perf_counter()
+        scene = build_scene(t, settings.samples)
+        v = plan_viewpoints(t, scene, planner.visibility_map(scene, grid), grid)
+        views.append(replace(v, time_s=time.perf_counter() - start))
+        say(f"feature {t.feature.name}: {len(v.kept)} of {v.poses} camera poses kept (pruned: "
+            + ", ".join(f"{n} {s}" for s, n in v.pruned.items() if n) + ")")
+        own = []
+        for k, vp in enumerate(v.kept):
+            say(f"feature {t.feature.name}, viewpoint {k}: camera at {np.round(vp.T_cell_cam[:3, 3], 3).tolist()} m")
+            p = planner.plan(t, settings, progress=say, T_cell_cam=vp.T_cell_cam)
+            own.append(replace(p, shots=(replace(p.shot, arm_joints=tuple(float(q) for q in vp.arm_joints)),)))
+        out += [(f, p) for p in own]
+        lend.append(own[0] if own else planner.plan(t, settings, progress=say))
+    return out, views, lend
+
+
 def plan_features(task, settings=PlannerSettings(), progress=None):
     """The Plan of a task's features (one or more): the chosen shots, each with the features it
-    covers (Shot.covers), and per feature the shot covering it (Plan.features)."""
+    covers (Shot.covers), and per feature the shot covering it (Plan.features). Candidate shots:
+    each feature's own by the task's camera rule, or (camera.viewpoint: planned) one per kept
+    viewpoint of each feature."""
     say = progress or (lambda msg: None)
     t0 = time.perf_counter()
     tasks = [task.with_feature(i) for i in range(len(task.features))]
-    own = []
-    for t in tasks:
-        say(f"feature {t.feature.name}:")
-        own.append(planner.plan(t, settings, progress=say))
+    cands, views, lend = candidate_plans(tasks, settings, say)
     t_own = time.perf_counter()
-    shots = [p.shot for p in own]
-    judged = [[coverage.of_plan(t, p) if s == f else coverage.judge(t, p, shot) for s, shot in enumerate(shots)]
-              for f, (t, p) in enumerate(zip(tasks, own))]
-    covers = np.array([[c.covered for c in row] for row in judged])
+    shots = [p.shot for _, p in cands]
+    judged = [[coverage.of_plan(t, p) if g == f else coverage.judge(t, lend[f], p.shot) for g, p in cands]
+              for f, t in enumerate(tasks)]
+    covers = np.array([[c.covered for c in row] for row in judged]).reshape(len(tasks), len(shots))
     t_judge = time.perf_counter()
-    distance = travel(shots)
+    distance = travel(shots) if shots else np.zeros(0)
     cover = fewest_shots(covers, distance)
     index = {s: k for k, s in enumerate(cover.chosen)}
     verdicts = []
-    for f, (t, p) in enumerate(zip(tasks, own)):
+    for f, t in enumerate(tasks):
         by = [s for s in cover.chosen if covers[f, s]]
         if not by:
-            verdicts.append(FeatureVerdict(t.feature.name, None, p.binding, p.hint))
+            if views is not None and not views[f].kept:
+                verdicts.append(FeatureVerdict(t.feature.name, None, "viewpoint", views[f].why_none()))
+            else:
+                verdicts.append(FeatureVerdict(t.feature.name, None, lend[f].binding, lend[f].hint))
             continue
-        best = f if f in by else min(by, key=lambda s: judged[f][s].worst)      # its own shot if chosen
+        own = [s for s in by if cands[s][0] == f]                           # its own shot if chosen
+        best = own[0] if own else min(by, key=lambda s: judged[f][s].worst)
         verdicts.append(FeatureVerdict(t.feature.name, index[best]))
     chosen = tuple(replace(shots[s], covers=tuple(judged[f][s] for f in range(len(tasks)) if covers[f, s]))
                    for s in cover.chosen)
     say(f"cover: {len(chosen)} of {len(shots)} shots cover {len(cover.coverable)} of {len(tasks)} features")
-    uncovered = [(v, own[f]) for f, v in enumerate(verdicts) if v.covered_by is None]
+    uncovered = [v for v in verdicts if v.covered_by is None]
     if uncovered:
-        v, p = uncovered[0]
-        binding, miss, hint = p.binding, p.miss, f"feature '{v.name}' is covered by no shot: {p.hint}"
+        v = uncovered[0]
+        f = [t.feature.name for t in tasks].index(v.name)
+        miss = lend[f].miss if v.binding != "viewpoint" else float("inf")
+        binding, hint = v.binding, f"feature '{v.name}' is covered by no shot: {v.hint}"
     else:
         worst = max((r for shot in chosen for c in shot.covers for r in c.requirements), key=lambda r: r.value)
         binding, miss, hint = worst.name, worst.value - 1.0, ""
     timing = {"features": t_own - t0, "judge": t_judge - t_own, "cover": time.perf_counter() - t_judge,
               "total": time.perf_counter() - t0}
-    search = Search(candidates=sum(p.search.candidates for p in own), starts=sum(p.search.starts for p in own),
-                    refinements=tuple(r for p in own for r in p.search.refinements))
-    notes = tuple(f"{t.feature.name}: {n}" for t, p in zip(tasks, own) for n in p.notes)
+    if views is not None:                  # of "features": the view spheres, before any lamp
+        timing["viewpoints"] = sum(v.time_s for v in views)
+    plans = tuple(p for _, p in cands)
+    search = Search(candidates=sum(p.search.candidates for p in plans), starts=sum(p.search.starts for p in plans),
+                    refinements=tuple(r for p in plans for r in p.search.refinements))
+    notes = tuple(f"{tasks[f].feature.name}: {n}" for f, p in cands for n in p.notes)
+    record = {"candidate_shots": len(shots), "covers": covers.tolist(), "travel_m": distance.tolist(),
+              "chosen": list(cover.chosen)}
+    if views is not None:
+        record |= {"candidate_features": [f for f, _ in cands],
+                   "viewpoints": [{"feature": t.feature.name, **v.to_json()} for t, v in zip(tasks, views)]}
     return Plan(task_name=task.name, feasible=not uncovered, binding=binding, miss=miss, objective=cover.objective,
                 hint=hint, shots=chosen, maps=None, settings=settings, scene=None, search=search,
-                timing_s=timing, notes=notes, features=tuple(verdicts), plans=tuple(own),
-                cover={"candidate_shots": len(shots), "covers": covers.tolist(), "travel_m": distance.tolist(),
-                       "chosen": list(cover.chosen)})
+                timing_s=timing, notes=notes, features=tuple(verdicts), plans=plans, cover=record)

@@ -209,6 +209,29 @@ def write_laser_fit(path, frames, fit, c_task, power_w):
 
 
 @_one_at_a_time
+def write_goniometer_fit(path, readings, material):
+    """cell measure-brdf's fit: R over the half-angle tilt beta per phase angle, measured (points)
+    and the fitted material (lines), on a log scale (the spike over the diffuse)."""
+    from cell.physics.brdf import reflectance
+    fig = Figure(figsize=(7, 4.5))
+    ax = fig.subplots()
+    for phase in sorted({r.phase_deg for r in readings}):
+        mine = [r for r in readings if r.phase_deg == phase]
+        line, = ax.semilogy([r.beta_deg for r in mine], [r.reflectance for r in mine], "o", mfc="none",
+                            label=f"phase {phase:g} deg")
+        a = np.radians(phase)
+        beta = np.radians(np.linspace(min(r.beta_deg for r in mine), max(r.beta_deg for r in mine), 400))
+        p = material.at(a)
+        ax.semilogy(np.degrees(beta), reflectance(np.cos(beta + a / 2), np.cos(beta - a / 2), np.cos(a), p.rho,
+                                                  p.sigma1, p.m1, p.sigma2, p.m2), "-", color=line.get_color())
+    ax.set_xlabel("half-angle tilt beta [deg] (ti = |beta + alpha/2|, te = |beta - alpha/2|)")
+    ax.set_ylabel("reflectance R")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+@_one_at_a_time
 def write_bench(path, settings):
     """cell bench's rows: gray error vs warm time, log-log, a marker set per task, its Pareto
     front as a line and the default setting ringed."""

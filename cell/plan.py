@@ -84,6 +84,7 @@ class Shot:
     phase_angle_rad: float       # between lamp and camera, at the feature centre
     requirements: tuple
     covers: tuple = ()           # a multi-feature plan's: cell.coverage.Coverage of each feature it covers
+    arm_joints: tuple = None     # a planned viewpoint's: the UR5e joints reaching T_cell_cam [rad]
 
     @property
     def camera_position(self):
@@ -180,7 +181,9 @@ class Plan:
     def _features_json(self):
         doc = {"task": self.task_name, "feasible": self.feasible, "binding": self.binding, "miss": self.miss,
                "objective": self.objective, "hint": self.hint, "notes": list(self.notes),
-               "shots": [{"camera": {"T_cell_cam": shot.T_cell_cam.tolist(), **camera_json(shot)},
+               "shots": [{"camera": {"T_cell_cam": shot.T_cell_cam.tolist(), **camera_json(shot),
+                                     **({} if shot.arm_joints is None else
+                                        {"arm_joints_deg": np.degrees(shot.arm_joints).tolist()})},
                           "lamp": lamp_json(shot),
                           "covers": [{"feature": c.feature, "predicted_gray": gray_stats(c.gray),
                                       "requirements": requirements_json(c.requirements),

@@ -17,16 +17,21 @@ from cell.physics import depth_of_field as dof
 from cell.plan import Exposure, Maps, Plan, PlannerSettings, Refinement, Search, Shot
 
 
+def visibility_map(scene, grid):
+    """(E, A) directions of the feature frame every sample sees (Warp ray casting, sec. 2.2)."""
+    from kernels.visibility import visibility_maps
+    return visibility_maps(scene.warp_mesh, scene.points, scene.normals, scene.frame,
+                           grid.azimuth, grid.elevation).all(axis=0)
+
+
 def build_maps(task, scene, settings, visible=None, lamps=None):
     """Visibility (all samples), BRDF, dominant-term and region distance maps (sec. 2.2, 5.2).
     The visibility map (given: a plan's own, judging another camera pose on its samples) does not
     depend on the camera; the others do (the view direction is in the BRDF). Given `lamps`
     (cell-frame positions: a shot judged), the region distance only where they read it."""
-    from kernels.visibility import visibility_maps
     grid = regions.SphereGrid(np.radians(settings.grid_step_deg))
     if visible is None:
-        visible = visibility_maps(scene.warp_mesh, scene.points, scene.normals, scene.frame,
-                                  grid.azimuth, grid.elevation).all(axis=0)
+        visible = visibility_map(scene, grid)
     view = geometry.unit(scene.camera_position - scene.center)
     material = task.part.material
     dominant = regions.dominant_term_map(grid, scene.frame, scene.normal, view, material)
@@ -92,8 +97,9 @@ def refine(problem, start, lamp_rig):
     return clipped(res.x), Refinement(bool(res.success), int(res.nfev), str(res.message), float(res.fun))
 
 
-def plan(task, settings=PlannerSettings(), albedo_scale=1.0, progress=None):
-    """Plan a task (the CLI, the closed loop and the benchmark all call this): search, then
+def plan(task, settings=PlannerSettings(), albedo_scale=1.0, progress=None, T_cell_cam=None):
+    """Plan a task (the CLI, the closed loop and the benchmark all call this), its camera at
+    T_cell_cam (a planned viewpoint's) or by the task's camera rule: search, then
     certify the chosen shot on the dense patch (cell.certificate); where the certificate fails,
     its worst points join the samples and the search runs again, at most CERTIFY_ROUNDS times.
     The plan is feasible when its samples and its certificate say so."""
@@ -101,7 +107,7 @@ def plan(task, settings=PlannerSettings(), albedo_scale=1.0, progress=None):
     t0 = time.perf_counter()
     extra = np.zeros((0, 3))
     for rounds in range(CERTIFY_ROUNDS + 1):
-        result, problem = search(task, settings, albedo_scale, extra, say)
+        result, problem = search(task, settings, albedo_scale, extra, say, T_cell_cam)
         if not result.feasible:
             return replace(result, timing_s={**result.timing_s, "total": time.perf_counter() - t0})
         t = time.perf_counter()
@@ -124,12 +130,12 @@ def plan(task, settings=PlannerSettings(), albedo_scale=1.0, progress=None):
     return replace(result, feasible=False, binding=cause.name, miss=cause.value - 1.0, hint=cause.detail)
 
 
-def search(task, settings, albedo_scale, extra, say):
+def search(task, settings, albedo_scale, extra, say, T_cell_cam=None):
     """(Plan of the search over the rig on the task's samples plus `extra` points, its Problem)."""
     from cell.scene import build_scene
     timing = {}
     t0 = time.perf_counter()
-    scene = build_scene(task, settings.samples, extra)
+    scene = build_scene(task, settings.samples, extra, T_cell_cam)
     timing["scene"] = time.perf_counter() - t0
 
     t = time.perf_counter()

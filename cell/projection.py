@@ -34,3 +34,20 @@ def pixel_rays(K, T_cell_cam, width, height):
     pixels = np.column_stack([u.ravel(), v.ravel(), np.ones(u.size)])
     local = pixels @ np.linalg.inv(K).T
     return geometry.unit(geometry.rotate(T_cell_cam, local))
+
+
+def view_angles(camera, points, normals):
+    """(N,) angle between each surface normal and the direction to the camera [rad] (0: seen
+    head-on, pi / 2: grazing)."""
+    v = geometry.unit(np.asarray(camera, float) - np.asarray(points, float))
+    return np.arccos(np.clip(np.sum(v * np.asarray(normals, float), axis=-1), -1.0, 1.0))
+
+
+def pixel_footprint(camera, points, normals, pixel_pitch_m, focal_length_m):
+    """(N,) the length one pixel covers on the surface at each point [m]: |p - C| pitch / f across
+    the ray (the pinhole's magnification), stretched by 1 / cos(view angle) along the slant (the
+    longer side of the pixel's footprint); inf where the camera is behind the surface."""
+    distance = np.linalg.norm(np.asarray(points, float) - np.asarray(camera, float), axis=-1)
+    cos = np.cos(view_angles(camera, points, normals))
+    with np.errstate(divide="ignore"):
+        return np.where(cos > 0, distance * pixel_pitch_m / focal_length_m / np.maximum(cos, 0.0), np.inf)

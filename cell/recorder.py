@@ -15,14 +15,17 @@ from cell.session import stop_outcome
 
 def write_plan(plan, task, folder):
     """plan.json and the plan's pictures into folder (created); a multi-feature plan's own plan
-    of each feature i (plan.json, pictures) into folder/feature-i."""
+    of each feature i (plan.json, pictures) into folder/feature-i, or with planned viewpoints
+    each candidate shot k's plan into folder/candidate-k."""
     from cell.pictures import write_plan_pictures
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     write_json(folder / "plan.json", plan.to_json())
     if plan.plans:
-        for i, own in enumerate(plan.plans):
-            write_plan(own, task.with_feature(i), folder / f"feature-{i}")
+        planned = plan.cover.get("candidate_features")
+        for k, own in enumerate(plan.plans):
+            i = k if planned is None else planned[k]
+            write_plan(own, task.with_feature(i), folder / (f"feature-{k}" if planned is None else f"candidate-{k}"))
     else:
         write_plan_pictures(plan, task, plan.scene, folder)
     return folder

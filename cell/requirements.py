@@ -12,7 +12,7 @@ from typing import Callable
 
 import numpy as np
 
-from cell import geometry, regions
+from cell import geometry, projection, regions
 from cell.physics import costs, depth_of_field as dof
 
 
@@ -21,6 +21,7 @@ class Requirement:
     name: str
     ln_value: Callable      # (Problem, Candidates) -> (C,) ln f_i
     explain: Callable       # (Problem, Candidates of one, met) -> sentence
+    asked: Callable = None  # (Problem) -> whether the task asks for it; None: always
 
 
 def _unlit(c):
@@ -161,6 +162,41 @@ def explain_camera_view(p, c, met):
             f"the camera cannot see {p.camera_unseen} of {n} feature samples; change the view direction")
 
 
+def view_angle(p, c):
+    """The largest angle between a sample's normal and its direction to the camera, at most the
+    task's view_angle_deg (a camera nearly grazing the surface sees it foreshortened)."""
+    angle = projection.view_angles(p.scene.camera_position, p.scene.points, p.scene.normals).max()
+    return np.broadcast_to(costs.ln_f_max(angle, p.task.requirements.view_angle_rad), c.shutter.shape)
+
+
+def explain_view_angle(p, c, met):
+    angle = projection.view_angles(p.scene.camera_position, p.scene.points, p.scene.normals).max()
+    fact = (f"the camera sees the samples at most {np.degrees(angle):.1f} deg from their normals "
+            f"(at most {np.degrees(p.task.requirements.view_angle_rad):g} deg wanted)")
+    return fact if met else f"{fact}; view the feature more squarely (camera.viewpoint: planned)"
+
+
+def footprints(p):
+    sensor, lens = p.task.camera.sensor, p.task.camera.lens
+    return projection.pixel_footprint(p.scene.camera_position, p.scene.points, p.scene.normals,
+                                      sensor.pixel_pitch_m, lens.focal_length_m)
+
+
+def resolution(p, c):
+    """The largest pixel footprint on the feature (|p - C| pitch / f / cos(view angle), the
+    pinhole's), at most the task's resolution_m per pixel."""
+    wanted = p.task.requirements.resolution_m
+    return np.broadcast_to(costs.ln_f_max(footprints(p).max(), wanted), c.shutter.shape)
+
+
+def explain_resolution(p, c, met):
+    if not np.isfinite(footprints(p).max()):
+        return "the camera sees some samples from behind their surface; change the view direction"
+    fact = (f"a pixel covers up to {1e6 * footprints(p).max():.1f} um of the feature (at most "
+            f"{1e6 * p.task.requirements.resolution_m:g} um wanted)")
+    return fact if met else f"{fact}; bring the camera closer, view more squarely or use a longer lens"
+
+
 def shutter_min(p, c):
     return costs.ln_f_min(c.shutter, p.task.camera.shutter_range_s[0])
 
@@ -232,6 +268,10 @@ REGISTRY = (
     Requirement("no_shadow", no_shadow, explain_no_shadow),
     Requirement("cone_coverage", cone_coverage, explain_cone_coverage),
     Requirement("camera_view", camera_view, explain_camera_view),
+    Requirement("view_angle", view_angle, explain_view_angle,
+                lambda p: p.task.requirements.view_angle_rad is not None),
+    Requirement("resolution", resolution, explain_resolution,
+                lambda p: p.task.requirements.resolution_m is not None),
     Requirement("shutter_min", shutter_min, explain_too_bright),
     Requirement("shutter_max", shutter_max, explain_shutter_max),
     Requirement("f_number_min", f_number_min, explain_f_number_min),
@@ -242,13 +282,14 @@ REGISTRY = (
 # The order in which requirements that no lamp pose meets name the cause of an infeasible plan:
 # the first is the true cause (an unlit pose misses every exposure by far, but the shadow, the
 # cone or the view is what to fix).
-CAUSES = ("camera_view", "no_shadow", "cone_coverage", "reflection_region", "gray_min", "shutter_max",
+CAUSES = ("camera_view", "view_angle", "resolution", "no_shadow", "cone_coverage", "reflection_region", "gray_min", "shutter_max",
           "shutter_min", "f_number_max", "f_number_min", "gray_max", "depth_of_field", "lamp_tolerance")
 
 
 def ln_values(problem, candidates):
-    """{name: (C,) ln f_i} of every requirement, in registry order."""
-    return {r.name: np.asarray(r.ln_value(problem, candidates), dtype=float) for r in REGISTRY}
+    """{name: (C,) ln f_i} of every requirement the task asks for, in registry order."""
+    return {r.name: np.asarray(r.ln_value(problem, candidates), dtype=float) for r in REGISTRY
+            if r.asked is None or r.asked(problem)}
 
 
 def missed(ln_values_by_name):

@@ -24,6 +24,8 @@ class Requirements:
     region_margin_rad: float
     lamp_tolerance_rad: float
     depth_of_field_m: float = 0.0  # wanted depth of field beyond the feature's own depth range
+    resolution_m: float | None = None      # a pixel covers at most this on the feature (None: not asked)
+    view_angle_rad: float | None = None    # the camera at most this far from each sample's normal
 
 
 @dataclass(frozen=True)
@@ -68,12 +70,27 @@ class Lens:
 
 
 @dataclass(frozen=True)
+class Viewpoint:
+    """How the camera's pose is chosen (`camera.viewpoint`): `fixed`, the task's rule
+    (distance_m along view_direction), or `planned` on view spheres around each feature
+    (cell.viewpoints): radii over standoff_range_m in standoff_steps, directions step_rad apart,
+    at most per_feature poses of each feature tried with lamps."""
+
+    mode: str = "fixed"
+    standoff_range_m: tuple | None = None
+    standoff_steps: int = 3
+    step_rad: float = float(np.radians(15.0))
+    per_feature: int = 3
+
+
+@dataclass(frozen=True)
 class CameraModel:
     distance_m: float
     view_direction: np.ndarray     # part frame, unit, from feature to camera
     sensor: Sensor
     lens: Lens
     shutter_range_s: tuple
+    viewpoint: Viewpoint = Viewpoint()
 
 
 @dataclass(frozen=True)
@@ -122,9 +139,38 @@ class Truth:
 
 @dataclass(frozen=True)
 class LoopSettings:
-    """The closed loop's limits (`loop`): the albedo scales a correction may imply."""
+    """The closed loop's limits (`loop`): the albedo scales a correction may imply, how far
+    from where the model puts it the feature may be found (registration) [m]."""
 
     albedo_scale_range: tuple = (0.1, 10.0)
+    registration_limit_m: float = 0.003
+
+
+@dataclass(frozen=True)
+class Sample:
+    """The goniometer's flat sample (`calibration.sample`): a disc of the material at the lamp
+    rig's pivot, its top face there, facing `normal` (cell frame, unit)."""
+
+    material: Material | None = None           # the material it is made of (None: the part's)
+    radius_m: float = 0.025
+    thickness_m: float = 0.002
+    normal: tuple = (0.0, 0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class Goniometer:
+    """How `cell measure-brdf` samples the BRDF (`calibration.goniometer`)."""
+
+    phase_rad: tuple = tuple(np.radians([20.0, 40.0, 60.0]))
+    step_rad: float = float(np.radians(2.0))   # of the half-angle's tilt, in the plane of incidence
+    max_angle_rad: float = float(np.radians(80.0))   # ti and te at most
+    lamp_radius_m: float | None = None         # None: the middle of the rig's range
+
+
+@dataclass(frozen=True)
+class Calibration:
+    sample: Sample = Sample()
+    goniometer: Goniometer = Goniometer()
 
 
 @dataclass(frozen=True)
@@ -152,6 +198,8 @@ class Task:
     cell: CellConfig
     sim: SimConfig
     loop: LoopSettings = LoopSettings()
+    calibration: Calibration = Calibration()
+    board: object = None           # cell.board.Board: the ChArUco board (calibration.board)
 
     @property
     def feature(self):

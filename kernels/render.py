@@ -79,3 +79,66 @@ def render(mesh, origin, ray_dirs, lamp_pos, lamp_axis, power_w, cone_angle_rad,
         float(pixel_area_m2),
     ], outputs=[value_wp, hit_wp, depth_wp, normal_wp])
     return RenderResult(value, hit, depth, normal)
+
+
+class PlaneResult(NamedTuple):
+    """Per ray (N,): the texture's value where the ray meets the plane (`outside` beyond the
+    texture, 0 on a miss), hit, depth [m] along the ray (inf on a miss)."""
+
+    value: np.ndarray
+    hit: np.ndarray
+    depth: np.ndarray
+
+
+@wp.kernel
+def plane_kernel(origin: wp.vec3d, ray_dirs: wp.array(dtype=wp.vec3d), plane_origin: wp.vec3d,
+                 plane_x: wp.vec3d, plane_y: wp.vec3d, texel_m: wp.float64,
+                 texture: wp.array2d(dtype=wp.float64), outside: wp.float64,
+                 value: wp.array(dtype=wp.float64), hit: wp.array(dtype=wp.bool),
+                 depth: wp.array(dtype=wp.float64)):
+    """One thread per ray: the plane through plane_origin spanned by the unit plane_x, plane_y,
+    met at t = ((o_p - o) . n) / (d . n) from either side; texel (floor(y / texel), floor(x / texel))."""
+    i = wp.tid()
+    d = ray_dirs[i]
+    n = wp.cross(plane_x, plane_y)
+    dn = wp.dot(d, n)
+    t = wp.float64(0.0)
+    if dn != wp.float64(0.0):
+        t = wp.dot(plane_origin - origin, n) / dn
+    if t <= wp.float64(0.0):
+        value[i] = wp.float64(0.0)
+        hit[i] = False
+        depth[i] = wp.float64(wp.inf)
+        return
+    p = origin + t * d - plane_origin
+    col = wp.int32(wp.floor(wp.dot(p, plane_x) / texel_m))
+    row = wp.int32(wp.floor(wp.dot(p, plane_y) / texel_m))
+    v = outside
+    if row >= 0 and row < texture.shape[0] and col >= 0 and col < texture.shape[1]:
+        v = texture[row, col]
+    value[i] = v
+    hit[i] = True
+    depth[i] = t
+
+
+def render_plane(origin, ray_dirs, T_world_plane, texture, texel_m, outside=0.0):
+    """Where each ray from `origin` along unit `ray_dirs` (N, 3) meets the plane z = 0 of the
+    frame T_world_plane, the texture's value there: texture (rows, cols) covers x in
+    [0, cols * texel_m), y in [0, rows * texel_m), texel (r, c) the square from (c, r) * texel_m
+    (nearest: no filtering, which supersampling the rays does); `outside` beyond it.
+    PlaneResult(value, hit, depth)."""
+    device = ensure_init()
+    dirs = unit_rows(ray_dirs, "ray_dirs")
+    n = len(dirs)
+    value, value_wp = output(n, np.float64, wp.float64)
+    hit, hit_wp = output(n, np.bool_, wp.bool)
+    depth, depth_wp = output(n, np.float64, wp.float64)
+    if n == 0:
+        return PlaneResult(value, hit, depth)
+    T = np.asarray(T_world_plane, dtype=np.float64)
+    tex = wp.array(np.ascontiguousarray(texture, dtype=np.float64), dtype=wp.float64, device=device)
+    wp.launch(plane_kernel, dim=n, device=device, inputs=[
+        wp.vec3d(*np.asarray(origin, dtype=np.float64)), vec3d(dirs, "ray_dirs"), wp.vec3d(*T[:3, 3]),
+        wp.vec3d(*T[:3, 0]), wp.vec3d(*T[:3, 1]), float(texel_m), tex, float(outside),
+    ], outputs=[value_wp, hit_wp, depth_wp])
+    return PlaneResult(value, hit, depth)

@@ -1,10 +1,10 @@
-"""Simulated UR5e carrying the camera: the analytic kinematics of sim/ur5e.py, the robot base at
+"""Simulated UR5e carrying the camera: the analytic kinematics of cell/ur5e.py, the robot base at
 the frames' T_cell_base and the camera at their hand-eye T_flange_cam."""
 import numpy as np
 
 from cell.devices import Arm
 from cell.errors import DeviceFault
-from sim import ur5e
+from cell import ur5e
 
 # elbow up, wrist down: the flange points at the table in front of the base
 HOME_JOINTS = np.radians([-90.0, -90.0, 90.0, -90.0, -90.0, 0.0])
@@ -28,6 +28,14 @@ class SimArm(Arm):
             self.joints = ur5e.inverse(self.frames.T_base_flange(T_base_cam), self.joints)
         except ur5e.Unreachable as why:
             raise DeviceFault(self.device, f"camera pose unreachable for the UR5e: {why}") from None
+
+    def _unreachable(self, T_base_cam):
+        """The UR5e's inverse kinematics from the current joints: why it has no solution, or None."""
+        try:
+            ur5e.inverse(self.frames.T_base_flange(T_base_cam), self.joints)
+        except ur5e.Unreachable as why:
+            return f"camera pose unreachable for the UR5e: {why}"
+        return None
 
     def _tcp_pose(self):
         return self.frames.T_base_cam_from_flange(ur5e.forward(self.joints))

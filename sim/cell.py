@@ -5,6 +5,7 @@ from dataclasses import dataclass
 
 from cell.devices import Devices
 from sim.arm import SimArm
+from sim.board import BoardView
 from sim.camera import SimCamera
 from sim.laser import LaserSpot
 from sim.pantilt import SimPanTilt
@@ -25,19 +26,20 @@ class SimFaults:
     camera_fail_on_capture: int | None = None
 
 
-def make_sim_devices(task, scene, operator=None, yes=True, faults=None, laser=None):
+def make_sim_devices(task, scene, operator=None, yes=True, faults=None, laser=None, board=False):
     """Devices of the simulated cell for a task and its scene (cell.scene.build_scene); the
     operator (default Operator(yes=yes)) sets a manual lamp radius. faults: SimFaults, a dict of
     its fields, or None. The settings are the task's, checked when it was loaded. Given a laser
     aimed at the sensor (cell.camera_constant.Laser), the camera sees its spot (sim.laser), not
-    the scene (which may then be None)."""
+    the scene (which may then be None); given board, the ChArUco board of calibration.board
+    (sim.board)."""
     faults = SimFaults(**faults) if isinstance(faults, dict) else faults or SimFaults()
     config = task.cell.devices
     arm = SimArm(config.arm, task.frames, fail_on_move=faults.arm_fail_on_move)
     lamp = SimPanTilt(task.lamp.rig, config.pan_tilt, yes=yes, operator=operator,
                       fail_on_move=faults.lamp_fail_on_move, fail_servo=faults.servo_id,
                       fail_bits=faults.servo_bits)
-    render = Renderer(task, scene) if laser is None else LaserSpot(task, laser)
+    render = BoardView(task) if board else LaserSpot(task, laser) if laser else Renderer(task, scene)
     camera = SimCamera(render, arm, lamp, task.camera.sensor.bit_depth,
                        fail_on_capture=faults.camera_fail_on_capture)
     return Devices(arm, lamp, camera)

@@ -17,7 +17,7 @@ itself after --max-seconds. One process, one thread, a 500 Hz tick, standard-lib
   the command in input_int_register_0, arguments in input_double_register_0.., the async flag in
   input_int_register_1; output_int_register_0 is 1 (ready) or 2 (done), output_int_register_1 a
   query's answer, output_int_register_2 the async progress word.
-- The arm: UR5e kinematics (sim/ur5e.py). moveL follows the straight TCP line at the commanded
+- The arm: UR5e kinematics (cell/ur5e.py). moveL follows the straight TCP line at the commanded
   speed with a trapezoidal profile of the commanded acceleration (a rotation counts as 1 m per
   rad, as movel's speed is rad/s for a pure rotation), the joints from the inverse nearest the
   current ones, every tick.
@@ -42,7 +42,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from cell.geometry import from_ur_pose, to_ur_pose
-from sim import ur5e
+from cell import ur5e
 
 DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT = 29999, 30004, 30003   # fixed by UR and ur_rtde
 TICK_S = 0.002                                                 # e-Series: 500 Hz

@@ -246,12 +246,12 @@ def test_a_camera_file_that_cannot_be_written_is_bad_input_before_any_work(tmp_p
     assert not (tmp_path / "run").exists()
 
 
-def test_the_plain_calibrate_names_the_two_routines_exit_2(capsys):
+def test_the_plain_calibrate_names_the_routines_exit_2(capsys):
     with pytest.raises(SystemExit) as exited:
         main(["calibrate", str(HINGE), "--out", "x"])
     assert exited.value.code == 2
     assert capsys.readouterr().err == (f"cell calibrate: command line: ROUTINE: found '{HINGE}', expected "
-                                       "camera-constant or reference-part before the task (cell calibrate -h "
+                                       "camera-constant, reference-part or hand-eye before the task (cell calibrate -h "
                                        "says what each does)\n")
 
 

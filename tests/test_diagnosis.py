@@ -6,7 +6,7 @@ simulated cell with the world's part or camera moved off the conrod's 14 mm shan
 import numpy as np
 import pytest
 
-from cell import control
+from cell import control, register
 from cell.errors import GoalNotReached
 from cell.measure import BlackLevel, Measurement
 from simcell import run_loop as run, variant
@@ -80,15 +80,21 @@ ALL_BUT_DEFOCUS = ["shadows", "cone_falloff", "vignetting", "noise", "black_leve
     ({"sim.truth.part_offset_m": [0.0, 0.003, 0.0], "sim.effects": ALL_BUT_DEFOCUS}, (6, 16)),
     ({"sim.truth.camera_rpy_deg": [0.25, 0.0, 0.0], "sim.effects": ALL_BUT_DEFOCUS}, (0.1, 1.5)),
 ], ids=["fixture-3mm-all-effects", "hand-eye-tilt-0.25deg-all-effects"])
-def test_a_feature_moved_off_the_conrods_shank_stops_with_the_black_pixels_named(tmp_path, truth, percent):
-    """The part 3 mm across the 14 mm shank puts a 1 mm-deep segment of the 12 mm patch's region beside
+def test_a_feature_moved_off_the_conrods_shank_stops_with_the_black_pixels_named(tmp_path, monkeypatch, truth,
+                                                                               percent):
+    """Registration made untrustworthy (no correlation reaches 1.01), so the model's region is
+    measured, as the log says (registration itself: tests/test_register.py). The part 3 mm across the 14 mm shank puts a 1 mm-deep segment of the 12 mm patch's region beside
     the part (36 acos(4/6) - 4 sqrt(20) = 12.4 of 113 mm^2, 11 %), where nothing is lit; a 0.25 deg
     tilt about the camera's x (1.5 mm at 0.35 m) at most a 0.5 mm-deep one (1.5 %), of which the
     tilted camera sees part as the shank's side face. Either way the run stops after its first
     capture, no exposure brightened, no re-plan, with the cause, instead of brightening into
     saturation ("infeasible, shutter_max", or 6 captures swinging between 20 ms and 7 ms)."""
+    monkeypatch.setattr(register, "MIN_CORRELATION", 1.01)
     cell = run(variant(tmp_path, CONROD, truth), tmp_path / "run")
     assert isinstance(cell.error, GoalNotReached) and cell.error.exit_code == 1
+    (located,) = [line for line in cell.log if line["step"] == "register"]
+    assert not located["trusted"] and located["shift_px"] == [0.0, 0.0]
+    assert located["message"].endswith("below 1.01): the model's region is measured")
     reason = str(cell.error)
     fraction = float(reason.split(" %")[0])
     assert percent[0] <= fraction <= percent[1]

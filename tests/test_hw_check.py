@@ -18,7 +18,7 @@ from cell import servo
 from cell.backends import check_hw_devices
 from cell.geometry import to_ur_pose
 from cell.loader import load_task
-from sim import ur5e
+from cell import ur5e
 from sim.dxl_emulator import PING, READ, DxlEmulator
 from sim.ur_controller import RTDE_PORT
 from loopback import dashboard, start_emulator, stop_emulator

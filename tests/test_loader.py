@@ -211,6 +211,7 @@ def test_the_worlds_material_loads_beside_the_tasks_and_vectors_in_si(tmp_path):
     assert truth.part_offset_m == (0.0, 0.002, 0.0) and truth.lamp_radius_error_m == pytest.approx(0.02)
     assert truth.camera_rpy_rad == pytest.approx((math.radians(0.25), 0.0, 0.0))
     assert loader.load_task(HINGE).loop.albedo_scale_range == (0.1, 10.0)
+    assert loader.load_task(HINGE).loop.registration_limit_m == 0.003
 
 
 def test_an_empty_optional_section_takes_its_defaults(tmp_path):
@@ -399,6 +400,10 @@ BROKEN = [
                  "holding 1", id="albedo-range-without-1"),
     pytest.param(put("loop", {"albedo_scale_range": [0.0, 10.0]}), "task.yaml", "loop.albedo_scale_range",
                  "positive scales", id="albedo-range-from-0"),
+    pytest.param(put("loop", {"registration_limit_m": 0.0}), "task.yaml", "loop.registration_limit_m",
+                 "a positive distance", id="registration-limit-0"),
+    pytest.param(put("loop", {"registration_limit_mm": "far"}), "task.yaml", "loop.registration_limit_mm",
+                 "a positive distance", id="registration-limit-text"),
     pytest.param(put("requirements.gray_band", [100, 300]), "task.yaml", "requirements.gray_band[1]",
                  "[0, 255]", id="gray-band-beyond-bit-depth"),
     pytest.param(put("requirements.gray_band", [125, 100]), "task.yaml", "requirements.gray_band",

@@ -19,7 +19,7 @@ from cell.geometry import from_ur_pose
 from cell.hw import ur
 from cell.loader import load_task
 from cell.scene import look_at
-from sim import ur5e
+from cell import ur5e
 from sim import ur_controller
 import loopback
 from loopback import free_host, start_emulator, stop_emulator

@@ -15,12 +15,14 @@ from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from cell.errors import DeviceFault
 from cell.hw import ur
 from cell.hw.ur_worker import Worker
 from cell.loader import load_task
+from cell.scene import look_at
 from loopback import free_host
 from sim import ur_controller
 from simcell import device_settings
@@ -168,3 +170,20 @@ def test_a_worker_that_died_is_a_fault_naming_the_step_and_later_calls_say_why()
         worker.call([("control", "stopL", (1.0,))], 1.0, "stopL")
     worker.close()
     assert no_worker_left()
+
+
+def test_a_pose_the_controller_cannot_reach_is_refused_by_asking_it_and_nothing_moves():
+    """Arm.refusal on the real client: the controller's isPoseWithinSafetyLimits (the emulator's
+    UR5e kinematics) says no to a pose beyond the reach and yes to one within it."""
+    with controller_thread() as host:
+        arm = ur.URArm(arm_config(host), FRAMES)
+        try:
+            before = arm.camera_pose()
+            far = look_at(np.array([0.55, 0.55, 0.9]), np.array([0.6, 0.6, 0.0]))   # inside the workspace box
+            why = arm.refusal(far)
+            assert why is not None and "unreachable or outside the robot's safety limits" in why
+            assert arm.refusal(before) is None
+            assert np.allclose(arm.camera_pose(), before, atol=1e-9)
+        finally:
+            arm.stop()
+            arm.close()

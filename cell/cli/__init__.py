@@ -18,13 +18,16 @@ COMMANDS = {
     "bench": "cell.cli.bench",
     "calibrate": "cell.cli.calibrate",
     "hw-check": "cell.cli.hw_check",
+    "measure-brdf": "cell.cli.measure_brdf",
 }
 
 # `cell calibrate`'s routines
 ROUTINES = {"camera-constant": "c by a laser of known power aimed at the sensor at several shutter times "
                                "(sec. 4.1); writes a camera file",
             "reference-part": "c by a shutter sweep on a reference part, against the task's material table "
-                              "(G = b + c P t): a cross-check"}
+                              "(G = b + c P t): a cross-check",
+            "hand-eye": "the camera's focal length and the hand-eye transform T_flange_cam from views of the "
+                        "ChArUco board of calibration.board; writes the task's hand-eye keys"}
 
 
 def output_folder(out, name):
@@ -51,13 +54,18 @@ def output_folder(out, name):
 
 
 def one_feature(task, command):
-    """The task, refused (bad input, exit 2) when it has several features: `command` drives
-    one shot; running several is not yet supported (`cell plan` plans them)."""
+    """The task, refused (bad input, exit 2) when it has several features or a planned camera
+    viewpoint: `command` drives one shot at the fixed camera rule; running several, or a planned
+    viewpoint, is not yet supported (`cell plan` plans them)."""
     from cell.errors import TaskError
     if len(task.features) != 1:
         raise TaskError(task.path, "features", f"{len(task.features)} features",
                         f"one feature for `cell {command}`: running several shots is not yet supported "
                         f"(`cell plan` plans them)")
+    if task.camera.viewpoint.mode != "fixed":
+        raise TaskError(task.path, "camera.viewpoint", task.camera.viewpoint.mode,
+                        f"fixed for `cell {command}`: running a planned viewpoint is not yet supported "
+                        f"(`cell plan` plans it)")
     return task
 
 
@@ -133,7 +141,8 @@ def build_parser():
     p.add_argument("--out", help="folder for bench.json and bench.png, new or empty (default runs/bench-<time>)")
     p.add_argument("--json", action="store_true", help="print bench.json to stdout")
 
-    p = sub.add_parser("calibrate", help="operator routines measuring the camera constant c")
+    p = sub.add_parser("calibrate", help="operator routines measuring the camera constant c, the intrinsics "
+                                         "and the hand-eye transform")
     p.routines = ROUTINES
     routines = p.add_subparsers(dest="routine", required=True, metavar="ROUTINE")
     r = routines.add_parser("camera-constant", help=ROUTINES["camera-constant"])
@@ -151,12 +160,32 @@ def build_parser():
     r.add_argument("task", help="a task whose part and material table you trust (the reference)")
     r.add_argument("--shots", type=int, default=6, metavar="N",
                    help="shutter times in the sweep, at least 3 (default 6)")
+    r = routines.add_parser("hand-eye", help=ROUTINES["hand-eye"])
+    r.add_argument("task", help="a task whose camera, arm and calibration.board it is")
+    r.add_argument("--poses", type=int, default=12, metavar="N",
+                   help="viewpoints around the board, at least 10 (default 12)")
+    r.add_argument("--hand-eye-file", metavar="PATH", help="the file of the task's cell.arm hand-eye keys to "
+                                                           "write (default hand-eye.yaml beside the task)")
+    r.add_argument("--force", action="store_true", help="replace an existing hand-eye file")
+    r.add_argument("--json", action="store_true", help="print hand_eye_position_m, hand_eye_rpy_deg, "
+                                                       "focal_length_px, reprojection_error_px as JSON")
     for r in routines.choices.values():
         r.add_argument("--backend", choices=("sim", "hw"), help="override the task's cell.backend")
         r.add_argument("--out", help="folder for calibration.json and calibration.png, new or empty "
                                      "(default runs/<task>-calibration-<time>)")
         r.add_argument("--yes", action="store_true", help="confirm operator prompts on the real cell; the "
                                                           "simulated cell confirms its own")
+
+    p = sub.add_parser("measure-brdf", help="the cell as a goniometer: a flat sample's BRDF measured and "
+                                            "fitted, a material file written")
+    p.add_argument("task", help="a task whose calibration.sample and calibration.goniometer say what and how")
+    p.add_argument("--backend", choices=("sim", "hw"), help="override the task's cell.backend")
+    p.add_argument("--out", help="run folder for material.yaml, goniometer.csv, fit.png, measurement.json, "
+                                 "new or empty (default runs/<task>-brdf-<time>)")
+    p.add_argument("--yes", action="store_true", help="confirm operator prompts (placing the sample) on the real "
+                                                      "cell; the simulated cell confirms its own")
+    p.add_argument("--json", action="store_true", help="print the material (phase_deg, rho, sigma1, m1, sigma2, "
+                                                       "m2, their *_stderr, unresolved) as JSON")
 
     p = sub.add_parser("hw-check", help="connect to each real device of the task, print its state; "
                                         "moves and sets nothing")
@@ -177,7 +206,7 @@ class _Parser(argparse.ArgumentParser):
             super().error(message)
         found = re.search(r"invalid choice: (.*?) \(choose", message)
         self.exit(2, f"{self.prog}: command line: ROUTINE: found {found.group(1) if found else message}, "
-                     f"expected {' or '.join(self.routines)} before the task ({self.prog} -h says what each "
+                     f"expected {', '.join(list(self.routines)[:-1])} or {list(self.routines)[-1]} before the task ({self.prog} -h says what each "
                      "does)\n")
 
 

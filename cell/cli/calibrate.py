@@ -1,10 +1,13 @@
 """`cell calibrate ROUTINE TASK ...`, the routines measuring the camera constant c:
 `camera-constant` (a laser of known power at several shutter times, sec. 4.1; writes a camera
 file) and `reference-part` (a shutter sweep on a reference part, c against the task's material:
-a cross-check). Exit 0 with c measured, 1 infeasible plan or an untrustworthy series, 2 bad
-input (an unknown routine: cell.cli's parser), 3 device fault."""
+a cross-check), and the camera's intrinsics and hand-eye: `hand-eye` (views of a ChArUco board;
+writes the task's hand-eye keys). Exit 0 measured, 1 infeasible plan, an untrustworthy series or
+too few views of the board, 2 bad input (an unknown routine: cell.cli's parser), 3 device fault."""
 import sys
 from pathlib import Path
+
+import numpy as np
 
 from cell import backends, jsonio
 from cell.cli import create_folder, one_feature, output_folder
@@ -13,7 +16,8 @@ from cell.loader import load_task
 from cell.operator import Operator
 
 def command(args):
-    return camera_constant(args) if args.routine == "camera-constant" else reference_part(args)
+    routine = {"camera-constant": camera_constant, "reference-part": reference_part, "hand-eye": hand_eye}
+    return routine[args.routine](args)
 
 
 def camera_constant(args):
@@ -74,4 +78,48 @@ def reference_part(args):
           f"c with the laser: cell calibrate camera-constant")
     print(f"  wrote {out}/calibration.json, calibration.png, log.jsonl, {len(result.shots)} captures and the "
           f"plan's pictures")
+    return 0
+
+
+def hand_eye(args):
+    from cell import hand_eye as routine
+    from cell.camera_constant import check_camera_file
+
+    if args.poses < routine.MIN_POSES:
+        raise TaskError("command line", "--poses", args.poses, f"an integer >= {routine.MIN_POSES}")
+    out = output_folder(args.out, f"{Path(args.task).stem}-calibration")
+    hand_eye_file = check_camera_file(args.hand_eye_file or Path(args.task).parent / "hand-eye.yaml", args.force,
+                                      option="--hand-eye-file")
+    task = load_task(args.task)
+    backend = args.backend or task.cell.backend
+    board = task.board
+    # the simulated cell holds the board already: it confirms for itself
+    Operator(yes=args.yes or backend == "sim", stdout=sys.stderr).confirm(
+        "calibration", f"lay the ChArUco board ({board.squares[0]} x {board.squares[1]} squares of "
+                       f"{1e3 * board.square_m:g} mm, {board.dictionary}) face up with its centre at "
+                       f"{np.round(board.T_cell_centre[:3, 3], 4).tolist()} m as calibration.board says, and "
+                       "light it evenly (a diffuse light over it; the arm will move around it)")
+    create_folder(out)
+    result = routine.run(task, out, lambda: backends.open_devices(task, None, backend, yes=args.yes, board=True),
+                         hand_eye_file, args.poses, args.force)
+    if args.json:
+        print(jsonio.dumps(result.summary() | {"hand_eye_file": result.hand_eye_file}, indent=2))
+        return 0
+    h, k = result.hand_eye, result.intrinsics
+    views = sum(v.object_points is not None for v in result.views)
+    print(f"hand-eye T_flange_cam: position {np.round(1e3 * h.position_m, 3).tolist()} mm, rpy "
+          f"{np.round(h.rpy_deg, 3).tolist()} deg ({h.method}); board pose spread over the views "
+          f"{1e3 * h.board_spread_m:.3f} mm, {np.degrees(h.board_spread_rad):.3f} deg; corners reprojected through "
+          f"it {h.reprojection_error_px:.3f} px rms")
+    for name, other in result.methods.items():
+        dp = 1e3 * np.linalg.norm(other.position_m - h.position_m)
+        print(f"  {name:<10} {np.round(1e3 * other.position_m, 3).tolist()} mm, {dp:.3f} mm from the result; "
+              f"reprojected {other.reprojection_error_px:.3f} px rms")
+    f_task = task.camera.lens.focal_length_m / task.camera.sensor.pixel_pitch_m
+    print(f"camera: focal length {h.focal_length_px:.1f} px ({h.focal_length_px / f_task:.4f} x the task's "
+          f"{f_task:.1f} px; calibrateCamera {k.focal_length_px:.1f} px, reprojection error {k.rms_px:.3f} px); "
+          f"{views} views ({len(result.refused)} viewpoints refused by the arm)")
+    print(f"  wrote {result.hand_eye_file}: copy its cell.arm keys into the task")
+    print(f"  wrote {out}/calibration.json, log.jsonl and {len(result.views)} board-N.png frames with the corners "
+          f"drawn")
     return 0

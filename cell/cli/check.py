@@ -59,8 +59,10 @@ def summarize(task):
         f"material     {material.name}: {_clip(source, 70)}",
         first[1],
         *(line for lines in more for line in lines),
-        f"camera       {cam.distance_m:g} m along {_vector(cam.view_direction)}, "
-        f"shutter {_span(cam.shutter_range_s, 1e3, 'ms')}",
+        (f"camera       {cam.distance_m:g} m along {_vector(cam.view_direction)}, " if cam.viewpoint.mode == "fixed"
+         else f"camera       planned on view spheres {_span(cam.viewpoint.standoff_range_m, 1, 'm')} from each "
+              f"feature, {np.degrees(cam.viewpoint.step_rad):g} deg apart, ")
+        + f"shutter {_span(cam.shutter_range_s, 1e3, 'ms')}",
         f"sensor       {sensor.width_px} x {sensor.height_px} px, pitch {sensor.pixel_pitch_m * 1e6:g} um, "
         f"{sensor.bit_depth} bit, {_camera_constant(sensor)}",
         f"lens         f = {lens.focal_length_m * 1e3:g} mm, f-number {_span(lens.f_number_range)}, "

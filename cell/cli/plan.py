@@ -38,7 +38,8 @@ def features_summary(plan):
     n, covered = len(plan.features), sum(f.covered_by is not None for f in plan.features)
     verdict = "feasible" if plan.feasible else "PARTIAL"
     lines = [f"{plan.task_name}: {verdict}: {len(plan.shots)} shot{'s' * (len(plan.shots) != 1)} cover "
-             f"{covered} of {n} features (of {plan.cover['candidate_shots']} candidate shots); "
+             f"{covered} of {n} features (of {plan.cover['candidate_shots']} candidate shots"
+             + (", planned viewpoints" if "viewpoints" in plan.cover else "") + "); "
              f"time {plan.timing_s['total']:.2f} s"]
     for k, shot in enumerate(plan.shots):
         pan, tilt, radius = shot.joints
@@ -46,6 +47,9 @@ def features_summary(plan):
                      f"{np.degrees(pan):.1f} deg, tilt {np.degrees(tilt):.1f} deg, radius {radius:.3f} m, "
                      f"{1e3 * shot.exposure.shutter_s:.2f} ms, f/{shot.exposure.f_number:.1f}, focus "
                      f"{shot.exposure.focus_m:.3f} m; covers " + ", ".join(c.feature for c in shot.covers))
+        if shot.arm_joints is not None:
+            lines.append(f"          planned camera looking along {np.round(shot.T_cell_cam[:3, 2], 3).tolist()}, "
+                         f"UR5e joints {np.round(np.degrees(shot.arm_joints), 1).tolist()} deg")
     for f in plan.features:
         if f.covered_by is None:
             lines.append(f"  feature {f.name}: covered by no shot: {f.binding} binds: {f.hint}")
@@ -61,13 +65,13 @@ def command(args):
     out = output_folder(args.out, f"{Path(args.task).stem}-plan")
     task = load_task(args.task)
     create_folder(out)
-    planner = plan if len(task.features) == 1 else plan_features
+    planner = plan if len(task.features) == 1 and task.camera.viewpoint.mode == "fixed" else plan_features
     result = planner(task, progress=lambda msg: print(msg, file=sys.stderr, flush=True))
     write_plan(result, task, out)
     if args.json:
         print(jsonio.dumps(result.to_json(), indent=2))
     else:
-        print(summary(result) if len(task.features) == 1 else features_summary(result))
+        print(summary(result) if not result.features else features_summary(result))
         print(f"  wrote {out}/plan.json and pictures")
     require_feasible(result)
     return 0

@@ -197,6 +197,20 @@ class URArm(Arm):
                 raise self._fault(f"controller silent (no state for {timeout_s} s): {command} not sent")
             time.sleep(POLL_S / 5)
 
+    def _unreachable(self, T_base_cam):
+        """The controller's isPoseWithinSafetyLimits (its kinematics and safety limits): why it
+        would refuse the pose, or None; moves nothing. Read-only (no control side): None."""
+        if self._control is None:
+            return None
+        pose = list(to_ur_pose(T_base_cam))
+        try:
+            self._alive("isPoseWithinSafetyLimits")
+            within = self._control.isPoseWithinSafetyLimits(pose)
+        except RuntimeError as err:
+            raise self._fault(str(err)) from None
+        return None if within else (f"pose {np.round(pose, 4).tolist()} unreachable or outside the robot's "
+                                    "safety limits (isPoseWithinSafetyLimits)")
+
     def _move_tcp(self, T_base_cam, speed_m_s):
         if self._control is None:
             raise self._fault("opened read-only (cell hw-check): moveL refused")

@@ -4,6 +4,8 @@
 Frames are UR's own: 0 is the controller's base frame (the one `getActualTCPPose` uses), 6 the
 tool flange. The inverse follows the usual derivation for UR arms (joints 2-4 parallel): the
 wrist centre fixes q1, the tool z axis fixes q5 and q6, and a planar two-link arm gives q2-q4.
+Shared by the planner (a planned camera viewpoint must be reachable, cell.viewpoints) and the
+simulated arm and UR controller (sim/).
 """
 import numpy as np
 

@@ -1,0 +1,46 @@
+"""`cell measure-brdf TASK --out DIR [--backend sim|hw] [--yes] [--json]`: the cell as a
+goniometer (cell.goniometer); writes the material file with standard errors. Exit 0 measured,
+1 a phase angle without enough readings, 2 bad input, 3 device fault."""
+import contextlib
+import sys
+from pathlib import Path
+
+
+from cell import backends, jsonio
+from cell.cli import create_folder, output_folder
+from cell.loader import load_task
+from cell.operator import Operator
+
+
+def command(args):
+    from cell import goniometer
+
+    out = output_folder(args.out, f"{Path(args.task).stem}-brdf")
+    task = load_task(args.task)
+    backend = args.backend or task.cell.backend
+    # the simulated cell holds the sample already: it confirms for itself
+    operator = Operator(yes=args.yes or backend == "sim", stdout=sys.stderr)
+    operator.require("sample", "placing the sample")
+    staged = goniometer.sample_task(task)
+    create_folder(out)
+    with contextlib.redirect_stdout(sys.stderr):         # the devices' prompts too: stdout is --json's
+        result = goniometer.run(task, out, lambda scene: backends.open_devices(staged, scene, backend, yes=args.yes),
+                                operator)
+    if args.json:
+        print(jsonio.dumps(result.summary(), indent=2))
+        return 0
+    doc = result.material
+    for i, phase in enumerate(doc["phase_deg"]):
+        print(f"phase {phase:g} deg: " + ", ".join(
+            f"{k} {doc[k][i]:.4g} +- {doc[k + '_stderr'][i]:.2g}" for k in ("rho", "sigma1", "m1", "sigma2", "m2")))
+    unresolved = doc.get("unresolved")
+    if unresolved:
+        for term, phases in unresolved["terms"].items():
+            print(f"  {term} unresolved at phase {', '.join(f'{p:g}' for p in phases)} deg: the step "
+                  f"{unresolved['step_deg']:g} deg sees exponents up to {unresolved['resolvable_m_max']:.4g}; "
+                  "a finer calibration.goniometer.step_deg measures it")
+    print(f"  {len(result.readings)} of {result.poses} poses measured ({len(result.refused)} refused, "
+          f"{len(result.failed)} without a reading)")
+    print(f"  wrote {result.material_file}: a task uses it as part.material; goniometer.csv, fit.png, "
+          f"measurement.json, log.jsonl and the captures in {out}")
+    return 0

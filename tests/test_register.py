@@ -1,0 +1,144 @@
+"""Registration (issue 16 item 2): the feature is located in every capture before it is measured.
+A hand-eye or fixture offset on the conrod (its 12 mm patch on a 14 mm shank: without
+registration these stop at "black pixels") is found as the image shift derived by hand, f / p x
+offset / distance, and the run converges; the hinge's 2 deg camera tilt stops with exit 1 naming
+the offset; a capture that gives registration nothing to align on keeps the model's region."""
+import json
+
+import numpy as np
+import pytest
+
+from cell import geometry, measure, register
+from cell.cli import main
+from cell.loader import load_task
+from cell.scene import build_scene
+from simcell import run_loop, variant
+
+HINGE, CONROD = "tasks/hinge.yaml", "tasks/conrod.yaml"
+ALL_BUT_DEFOCUS = ["shadows", "cone_falloff", "vignetting", "noise", "black_level", "quantization"]
+F_PX = 0.025 / 4.65e-6          # focal length over pixel pitch of both tasks' camera: 5376 px
+
+
+@pytest.mark.parametrize("truth, expected", [
+    # the camera 1 mm down its own y (image down): the scene appears 1 mm up, f/p 1 mm / 0.35 m
+    ({"sim.truth.camera_offset_m": [0.0, 0.001, 0.0]}, (0.0, -F_PX * 0.001 / 0.35)),
+    ({"sim.truth.camera_offset_m": [0.0, -0.002, 0.0]}, (0.0, F_PX * 0.002 / 0.35)),
+    # 1.5 mm along the shank too: nothing in the window tells that component, it stays the model's
+    ({"sim.truth.camera_offset_m": [0.0015, 0.0015, 0.0]}, (0.0, -F_PX * 0.0015 / 0.35)),
+    # the part 2 mm along the cell's y, which the camera (view [0, 0.05, 1]) sees as image -y,
+    # foreshortened by cos(atan 0.05)
+    ({"sim.truth.part_offset_m": [0.0, 0.002, 0.0]}, (0.0, -F_PX * 0.002 * np.cos(np.arctan(0.05)) / 0.35)),
+], ids=["hand-eye-1mm", "hand-eye-2mm", "hand-eye-1.5mm-both-axes", "fixture-2mm"])
+def test_an_offset_on_the_conrod_is_found_as_the_hand_derived_shift_and_the_run_converges(tmp_path, truth, expected):
+    """Within a pixel: the simulator renders one ray per pixel, so an edge lands on a whole pixel
+    (the 2 mm fixture offset's 30.7 px is found as 30.0 with every effect off as on)."""
+    cell = run_loop(variant(tmp_path, CONROD, truth | {"sim.effects": ALL_BUT_DEFOCUS}), tmp_path / "run")
+    assert cell.error is None and cell.report["converged"] and len(cell.report["iterations"]) <= 6
+    for it in cell.report["iterations"]:
+        found = it["registration"]
+        assert found["trusted"] and found["shift_px"] == pytest.approx(expected, abs=1.0)
+        assert found["offset_m"] == pytest.approx(np.hypot(*expected) * 0.35 / F_PX, abs=0.35 / F_PX)
+        assert it["measured_gray"]["pixel_min"] > 5.0 + 1.0      # no pixel at the black level: on the part
+    steps = [line for line in cell.log if line["step"] == "register"]
+    assert len(steps) == len(cell.report["iterations"])
+    assert steps[0]["message"].startswith(f"feature found {np.hypot(*expected):.0f}"[:-1])
+    assert "resolved across the window's edges only" in steps[0]["message"]     # the shank's two edges
+
+
+def test_a_fixture_offset_on_the_hinge_is_found_by_its_edges_not_the_lamps_light(tmp_path):
+    """The part 2 mm along -x (the image's -x; view [-0.05, 0, 1]): f/p 2 mm cos(atan 0.05) / 0.5 m
+    = 21.5 px. The lamp's soft edge and the lobe's shading stay where they were; the leaf's edges
+    and screw heads move (matched by intensity, the coarse step put it 67 px off)."""
+    truth = {"sim.truth.part_offset_m": [-0.002, 0.0, 0.0], "sim.effects": ALL_BUT_DEFOCUS}
+    cell = run_loop(variant(tmp_path, HINGE, truth), tmp_path / "run")
+    assert cell.error is None and len(cell.report["iterations"]) <= 6
+    found = cell.report["iterations"][0]["registration"]
+    assert found["trusted"] and found["resolved"] == 2
+    assert found["shift_px"] == pytest.approx((-F_PX * 0.002 * np.cos(np.arctan(0.05)) / 0.5, 0.0), abs=1.0)
+
+
+def test_a_2_deg_camera_tilt_on_the_hinge_stops_with_exit_1_naming_the_offset(tmp_path, capsys):
+    """A tilt of 2 deg about the camera's x moves the image by f/p tan(2 deg) = 187.7 px, at 0.5 m
+    17.5 mm at the feature: beyond loop.registration_limit_m (3 mm), so the run stops after its
+    first capture with the offset, instead of measuring a patch 17 mm away."""
+    task = variant(tmp_path, HINGE, {"sim.truth.camera_rpy_deg": [2.0, 0.0, 0.0], "sim.effects": ALL_BUT_DEFOCUS})
+    assert main(["run", str(task), "--out", str(tmp_path / "run")]) == 1
+    report = json.loads((tmp_path / "run" / "report.json").read_text())
+    shift = F_PX * np.tan(np.radians(2.0))
+    (it,) = report["iterations"]
+    assert it["registration"]["offset_px"] == pytest.approx(shift, abs=1.0)
+    assert report["reason"] == (f"the feature appears {shift:.0f} px ({shift * 0.5 / F_PX * 1e3:.1f} mm) from where "
+                                f"the model puts it, more than loop.registration_limit_m 3 mm: check the hand-eye "
+                                f"calibration or the part's fixture")
+    assert it["correction"]["cause"] == "registration" and report["replans"] == []
+    err = capsys.readouterr().err
+    assert f" 1 register     feature found {it['registration']['offset_px']:.1f} px" in err
+    assert err.strip().endswith(report["reason"])
+
+
+def test_the_limit_is_a_setting(tmp_path):
+    """The same 1 mm hand-eye offset (15.4 px, 1.0 mm) stops under a 0.5 mm limit and not under 3 mm."""
+    truth = {"sim.truth.camera_offset_m": [0.0, 0.001, 0.0]}
+    cell = run_loop(variant(tmp_path, CONROD, truth | {"loop.registration_limit_mm": 0.5}), tmp_path / "run")
+    assert cell.error is not None and cell.error.exit_code == 1
+    assert str(cell.error).startswith("the feature appears 15 px (1.0 mm) from where the model puts it, more "
+                                      "than loop.registration_limit_m 0.5 mm")
+
+
+@pytest.mark.parametrize("task_path", [HINGE, CONROD])
+def test_without_a_truth_error_the_examples_converge_in_their_first_capture_found_where_modelled(tmp_path,
+                                                                                                   task_path):
+    cell = run_loop(task_path, tmp_path / "run")
+    assert cell.error is None and len(cell.report["iterations"]) == 1
+    found = cell.report["iterations"][0]["registration"]
+    assert found["trusted"] and found["offset_px"] < 0.1
+    assert found["time_s"] < 1.0
+
+
+@pytest.fixture(scope="module")
+def conrod_view():
+    """The conrod's scene, its samples' pixels and a lamp 0.2 m above the feature aiming at it."""
+    task = load_task(CONROD)
+    scene = build_scene(task)
+    row, col, inside = measure.sample_pixels(task, scene.T_cell_cam, scene.points)
+    lamp = scene.center + np.array([0.0, 0.06, 0.19])
+    return task, scene, (lamp, geometry.unit(scene.center - lamp)), row[inside], col[inside]
+
+
+@pytest.mark.parametrize("frame", ["flat", "noise"])
+def test_a_capture_with_nothing_to_align_on_keeps_the_models_region_and_says_so(conrod_view, frame):
+    """A uniform frame (no edge: ECC's correlation is undefined) and pure noise (nothing of the
+    part in it) are not aligned: the shift stays 0 and the note says why."""
+    task, scene, lamp, row, col = conrod_view
+    shape = (task.camera.sensor.height_px, task.camera.sensor.width_px)
+    image = np.full(shape, 60.0) if frame == "flat" else np.random.default_rng(3).normal(60.0, 20.0, shape)
+    found = register.locate(image, task, scene, scene.T_cell_cam, lamp, row, col)
+    assert not found.trusted and found.shift_px == (0.0, 0.0) and found.note
+    assert found.describe().endswith("the model's region is measured")
+    assert register.beyond_limit(found.to_json(), 1e-6) is None
+
+
+def test_a_saturated_capture_is_not_aligned(conrod_view):
+    """The model's own image, 40x too bright for an 8-bit sensor: the shank reads 255 over the
+    window, whose shape there is unknown, so the shift is not trusted (on the hinge at albedo x1e4
+    a saturated frame correlated 0.90 with the model 87 px off)."""
+    task, scene, lamp, row, col = conrod_view
+    w, h = task.camera.sensor.width_px, task.camera.sensor.height_px
+    image = register.expected_image(task, scene, scene.T_cell_cam, lamp, (0, 0, w, h))
+    image = np.minimum(40.0 * 120.0 * image / image.max(), 255.0)
+    found = register.locate(image, task, scene, scene.T_cell_cam, lamp, row, col, saturation=255.0)
+    assert not found.trusted and found.note.endswith("of the window around the feature saturated")
+    assert register.locate(image, task, scene, scene.T_cell_cam, lamp, row, col, saturation=256.0).trusted
+
+
+def test_the_model_own_image_shifted_by_hand_is_found_to_a_fraction_of_a_pixel(conrod_view):
+    """The model's expected image itself moved by (-7, +12) px (np.roll of whole pixels) and given
+    a gain and an offset (what ECC is blind to) is found at (0, +12): the shank runs along the
+    image x, so only the shift across it is resolved."""
+    task, scene, lamp, row, col = conrod_view
+    w, h = task.camera.sensor.width_px, task.camera.sensor.height_px
+    image = register.expected_image(task, scene, scene.T_cell_cam, lamp, (0, 0, w, h))
+    image = 3.0 + 0.4 * 120.0 * image / image.max()
+    found = register.locate(np.roll(image, (12, -7), axis=(0, 1)), task, scene, scene.T_cell_cam, lamp, row, col)
+    assert found.trusted and found.resolved == 1
+    assert found.shift_px == pytest.approx((0.0, 12.0), abs=0.05)
