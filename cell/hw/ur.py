@@ -36,6 +36,7 @@ PLAYING = 2                               # runtime_state: the control script ru
 ARRIVED_M, ARRIVED_RAD = 0.5e-3, 5e-3     # TCP vs target when a move has arrived ...
 STEADY_M_S = 1e-3                         # ... and stands still
 POLL_S = 0.005
+TCP_SETTLE_S = 0.02                       # controller time after setTcp before the TCP is read back
 # getRobotMode / getSafetyMode (RTDE guide's robot_mode and safety_mode; UR's dashboard names)
 ROBOT_MODES = {-1: "NO_CONTROLLER", 0: "DISCONNECTED", 1: "CONFIRM_SAFETY", 2: "BOOTING", 3: "POWER_OFF",
                4: "POWER_ON", 5: "IDLE", 6: "BACKDRIVE", 7: "RUNNING", 8: "UPDATING_FIRMWARE"}
@@ -164,6 +165,9 @@ class URArm(Arm):
             self._alive("setTcp")
             if not self._control.setTcp(list(to_ur_pose(frames.T_flange_cam))):
                 raise RuntimeError("setTcp(hand-eye) refused")
+            # the receive interface's own stream may lag the control's "done" by a few ticks:
+            # read nothing back until a state well after it carries the new TCP
+            self._alive("getActualTCPPose after setTcp", after_s=TCP_SETTLE_S)
         except RuntimeError as err:
             self._worker.kill()
             raise self._fault(str(err)) from None
@@ -182,14 +186,15 @@ class URArm(Arm):
             values.insert(1, True)
         return Watched(*values)
 
-    def _alive(self, command):
-        """Return once a new controller state arrived (a tick, 2 ms on an e-Series); DeviceFault
-        naming `command`, unsent, if the connection is lost or none comes in connect_timeout_s."""
+    def _alive(self, command, after_s=0.0):
+        """Return once a new controller state arrived (a tick, 2 ms on an e-Series), or one stamped
+        `after_s` later than the last seen; DeviceFault naming `command`, unsent, if the connection
+        is lost or none comes in connect_timeout_s."""
         timeout_s = self.config.connect_timeout_s
         seen, deadline = self._watched().timestamp, time.monotonic() + timeout_s
         while True:
             state = self._watched()
-            if state.timestamp != seen:
+            if state.timestamp > seen + after_s or (not after_s and state.timestamp != seen):
                 return
             if not state.connected:
                 raise self._fault(f"connection to the controller lost: {command} not sent")
