@@ -19,8 +19,7 @@ from cell.acquisition import acquire, move_to, plan_and_connect
 from cell.errors import GoalNotReached, PlanInfeasible
 from cell.evaluate import black_level
 from cell.pictures import write_calibration
-from cell.recorder import Recorder
-from cell.session import Session
+from cell.recorder import Ending, Recorder
 
 # the brightest sample's gray by the model, as a fraction of full scale, at the first and the
 # last shot: dim, up to near (not at) saturation; G ~ t, so the shutter times follow
@@ -155,33 +154,27 @@ def run(task, out, connect, shots=6):
     Returns the CalibrationResult."""
     out = Path(out)
     c_model = task.camera.sensor.camera_constant
-    records, fit, reason = [], None, ""
-    with Recorder(out) as recorder:
-        session = Session(on_fault=recorder.fault, log=recorder.log.name)
-        try:
-            with session:
-                planned = plan_and_connect(task, recorder, session, connect)
-                for record in sweep(task, planned, session.devices, recorder, shots):
-                    records.append(record)
-            exposures = np.array([r.exposure for r in records])
-            grays = np.array([r.gray for r in records])
-            fit = fit_camera_constant(exposures, grays, measure.saturation_level(session.devices.camera.bit_depth))
-            write_calibration(out / "calibration.png", exposures, grays, fit, c_model)
-            if fit is None:
-                n = sum(r.samples for r in records)
-                saturated = sum(r.saturated for r in records)
-                raise GoalNotReached(f"too few resolved samples to fit c ({saturated} of {n} readings "
-                                     f"saturated, the rest at 0 or from a single shot): is the lamp "
-                                     f"on, does it light the feature, is the part the task's?")
-            recorder.step("done", f"c = {fit.camera_constant:.5g} 1/(W s), {fit.camera_constant / c_model:.3f} x "
-                                  f"the task's", **asdict(fit))
-        except BaseException as err:
-            reason = str(err) or type(err).__name__
-            if not session.fault:
-                recorder.step("done", f"no fit: {err}", reason=str(err))
-            raise
-        finally:
-            result = CalibrationResult(str(task.path), c_model, fit is not None and not reason, reason,
-                                       recorder.plan, tuple(records), fit, session.fault)
-            recorder.write_json("calibration.json", result.to_json())
-    return result
+    records, fit = [], None
+
+    def result(reason, fault):
+        return CalibrationResult(str(task.path), c_model, fit is not None and not reason, reason, recorder.plan,
+                                 tuple(records), fit, fault)
+
+    with Recorder(out) as recorder, Ending(recorder, "no fit", "calibration.json", result) as end:
+        with end.session:
+            planned = plan_and_connect(task, recorder, end.session, connect)
+            for record in sweep(task, planned, end.session.devices, recorder, shots):
+                records.append(record)
+        exposures = np.array([r.exposure for r in records])
+        grays = np.array([r.gray for r in records])
+        fit = fit_camera_constant(exposures, grays, measure.saturation_level(end.session.devices.camera.bit_depth))
+        write_calibration(out / "calibration.png", exposures, grays, fit, c_model)
+        if fit is None:
+            n = sum(r.samples for r in records)
+            saturated = sum(r.saturated for r in records)
+            raise GoalNotReached(f"too few resolved samples to fit c ({saturated} of {n} readings "
+                                 f"saturated, the rest at 0 or from a single shot): is the lamp "
+                                 f"on, does it light the feature, is the part the task's?")
+        recorder.step("done", f"c = {fit.camera_constant:.5g} 1/(W s), {fit.camera_constant / c_model:.3f} x "
+                              f"the task's", **asdict(fit))
+    return end.result

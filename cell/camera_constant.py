@@ -31,8 +31,7 @@ from cell.acquisition import acquire
 from cell.calibrate import shutter_sweep
 from cell.errors import CellError, DeviceFault, GoalNotReached, TaskError
 from cell.pictures import write_laser_fit
-from cell.recorder import Recorder
-from cell.session import Session
+from cell.recorder import Ending, Recorder
 
 DARK_FRAMES = 3             # at each end of the shutter range
 MIN_PEAK = 0.05             # a spot peaking below this share of the range above the dark is too dark
@@ -373,32 +372,26 @@ def run(task, out, connect, laser, camera_file, shots=8, force=False):
     success. Raises GoalNotReached for an untrustworthy series (exit 1), DeviceFault after the safe
     stop (exit 3). Returns the LaserCalibration."""
     out, c_task = Path(out), task.camera.sensor.camera_constant
-    frames, fit, window, reason, written = [], None, None, "", None
-    with Recorder(out) as recorder:
-        session = Session(on_fault=recorder.fault, log=recorder.log.name)
+    frames, fit, window, written = [], None, None, None
+
+    def result(reason, fault):
+        return LaserCalibration(str(task.path), laser.power_w, c_task, fit is not None and not reason, reason,
+                                tuple(frames), fit, window, written, fault)
+
+    with Recorder(out) as recorder, Ending(recorder, "no fit", "calibration.json", result) as end:
+        with end.session:
+            end.session.devices = connect()
+            spot, images = measure_series(end.session.devices, recorder, frames, task, laser, shots)
+        frames[:], window = sum_spots(frames, images, spot)
         try:
-            with session:
-                session.devices = connect()
-                spot, images = measure_series(session.devices, recorder, frames, task, laser, shots)
-            frames[:], window = sum_spots(frames, images, spot)
-            try:
-                fit = fit_series(frames, laser.power_w)
-            finally:
-                write_laser_fit(out / "calibration.png", frames, fit, c_task, laser.power_w)
-            stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-            source = (f"cell calibrate camera-constant {task.path.name} on {stamp}: laser {laser.power_w:.4g} W, "
-                      f"{fit.frames_used} frames, r2 {fit.r_squared:.6f}, run folder {out}")
-            written = str(write_camera_file(camera_file, camera_document(task.camera.sensor, fit, source), force))
-            recorder.step("done", f"c = {fit.camera_constant:.5g} +- {fit.camera_constant_stderr:.2g} 1/(W s), "
-                                  f"{fit.camera_constant / c_task:.3f} x the task's; wrote {written}",
-                          camera_file=written, **asdict(fit))
-        except BaseException as err:
-            reason = str(err) or type(err).__name__
-            if not session.fault:
-                recorder.step("done", f"no fit: {err}", reason=reason)
-            raise
+            fit = fit_series(frames, laser.power_w)
         finally:
-            result = LaserCalibration(str(task.path), laser.power_w, c_task, fit is not None and not reason, reason,
-                                      tuple(frames), fit, window, written, session.fault)
-            recorder.write_json("calibration.json", result.to_json())
-    return result
+            write_laser_fit(out / "calibration.png", frames, fit, c_task, laser.power_w)
+        stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+        source = (f"cell calibrate camera-constant {task.path.name} on {stamp}: laser {laser.power_w:.4g} W, "
+                  f"{fit.frames_used} frames, r2 {fit.r_squared:.6f}, run folder {out}")
+        written = str(write_camera_file(camera_file, camera_document(task.camera.sensor, fit, source), force))
+        recorder.step("done", f"c = {fit.camera_constant:.5g} +- {fit.camera_constant_stderr:.2g} 1/(W s), "
+                              f"{fit.camera_constant / c_task:.3f} x the task's; wrote {written}",
+                      camera_file=written, **asdict(fit))
+    return end.result

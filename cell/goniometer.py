@@ -34,10 +34,9 @@ from cell.loader import load_material
 from cell.physics.brdf import reflectance
 from cell.physics.radiometry import cone_irradiance, gray_per_exposure, reflectance_from_gray
 from cell.projection import intrinsics, project
-from cell.recorder import Recorder
+from cell.recorder import Ending, Recorder
 from cell.rig import lamp_joints
 from cell.scene import look_at
-from cell.session import Session
 from cell.task import Feature, Part
 
 PATCH_PX = 17               # the paper's patch (sec. 3.2)
@@ -345,52 +344,46 @@ def run(task, out, connect, operator):
     out, sample = Path(out), task.calibration.sample
     gonio, staged = task.calibration.goniometer, sample_task(task)
     material = staged.part.material
-    readings, refused, failed, doc, written, reason = [], [], [], None, None, ""
+    readings, refused, failed, doc, written = [], [], [], None, None
     total = len(poses(staged))
-    with Recorder(out) as recorder:
-        session = Session(on_fault=recorder.fault, log=recorder.log.name)
-        try:
-            with session:
-                pivot = np.round(np.asarray(task.lamp.rig.pivot_m), 4).tolist()
-                operator.confirm("sample", f"take the part out; lay the flat sample of {material.name} (a disc of "
-                                           f"{2e3 * sample.radius_m:g} mm) with its top face's centre at the lamp "
-                                           f"rig's pivot {pivot} m, facing {list(sample.normal)}")
-                recorder.step("setup", f"{total} poses: phase {[round(float(np.degrees(a)), 2) for a in gonio.phase_rad]} deg, "
-                                       f"step {np.degrees(gonio.step_rad):g} deg, ti and te up to "
-                                       f"{np.degrees(gonio.max_angle_rad):g} deg; lamp at {1e3 * gonio.lamp_radius_m:g} mm")
-                session.devices = connect(build_scene(staged))
-                measure_poses(staged, session.devices, recorder, material.at, readings, refused, failed)
-            csv = write_csv(out / "goniometer.csv", readings)
-            short = [f"{np.degrees(a):g}" for a in gonio.phase_rad
-                     if sum(abs(r.phase_deg - np.degrees(a)) < 1e-9 for r in readings) < MIN_ROWS]
-            if short:
-                raise GoalNotReached(f"fewer than {MIN_ROWS} readings at phase {', '.join(short)} deg "
-                                     f"({len(refused)} of {total} poses refused, {len(failed)} without a reading): "
-                                     "a finer step_deg, or a lamp radius and camera distance the arm can reach")
-            fits = fit_material(read_goniometer(csv))
-            stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-            source = (f"measured by cell measure-brdf {task.path.name} on {stamp}: the cell as a goniometer, "
-                      f"{len(readings)} poses ({len(refused)} refused, {len(failed)} without a reading) in the "
-                      f"plane of incidence, step {np.degrees(gonio.step_rad):g} deg, ti and te up to "
-                      f"{np.degrees(gonio.max_angle_rad):g} deg; R by eq. (17)-(19) with c "
-                      f"{task.camera.sensor.camera_constant:.5g}; fitted per phase angle (cell.fit, F-test p < "
-                      f"{SIGNIFICANCE:g}); run folder {out}")
-            doc = material_document(fits, f"{material.name} (measured)", source)
-            unresolved = unresolved_terms(doc, gonio.step_rad)
-            written = out / "material.yaml"
-            written.write_text(yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=100))
-            load_material(written)                    # what tasks will read: checked now
-            write_goniometer_fit(out / "fit.png", readings, load_material(written))
-            notes = "; ".join(f"{t} unresolved at phase {', '.join(f'{p:g}' for p in ps)} deg" for t, ps in unresolved.items())
-            recorder.step("done", f"{len(readings)} readings fitted; wrote {written}" + (f"; {notes}" if notes else ""),
-                          material_file=str(written), unresolved=unresolved)
-        except BaseException as err:
-            reason = str(err) or type(err).__name__
-            if not session.fault:
-                recorder.step("done", f"no material: {err}", reason=reason)
-            raise
-        finally:
-            result = Goniometry(str(task.path), doc is not None and not reason, reason, total, tuple(readings),
-                                tuple(refused), tuple(failed), doc, str(written) if written else None, session.fault)
-            recorder.write_json("measurement.json", result.to_json())
-    return result
+
+    def result(reason, fault):
+        return Goniometry(str(task.path), doc is not None and not reason, reason, total, tuple(readings),
+                          tuple(refused), tuple(failed), doc, str(written) if written else None, fault)
+
+    with Recorder(out) as recorder, Ending(recorder, "no material", "measurement.json", result) as end:
+        with end.session:
+            pivot = np.round(np.asarray(task.lamp.rig.pivot_m), 4).tolist()
+            operator.confirm("sample", f"take the part out; lay the flat sample of {material.name} (a disc of "
+                                       f"{2e3 * sample.radius_m:g} mm) with its top face's centre at the lamp "
+                                       f"rig's pivot {pivot} m, facing {list(sample.normal)}")
+            recorder.step("setup", f"{total} poses: phase {[round(float(np.degrees(a)), 2) for a in gonio.phase_rad]} deg, "
+                                   f"step {np.degrees(gonio.step_rad):g} deg, ti and te up to "
+                                   f"{np.degrees(gonio.max_angle_rad):g} deg; lamp at {1e3 * gonio.lamp_radius_m:g} mm")
+            end.session.devices = connect(build_scene(staged))
+            measure_poses(staged, end.session.devices, recorder, material.at, readings, refused, failed)
+        csv = write_csv(out / "goniometer.csv", readings)
+        short = [f"{np.degrees(a):g}" for a in gonio.phase_rad
+                 if sum(abs(r.phase_deg - np.degrees(a)) < 1e-9 for r in readings) < MIN_ROWS]
+        if short:
+            raise GoalNotReached(f"fewer than {MIN_ROWS} readings at phase {', '.join(short)} deg "
+                                 f"({len(refused)} of {total} poses refused, {len(failed)} without a reading): "
+                                 "a finer step_deg, or a lamp radius and camera distance the arm can reach")
+        fits = fit_material(read_goniometer(csv))
+        stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+        source = (f"measured by cell measure-brdf {task.path.name} on {stamp}: the cell as a goniometer, "
+                  f"{len(readings)} poses ({len(refused)} refused, {len(failed)} without a reading) in the "
+                  f"plane of incidence, step {np.degrees(gonio.step_rad):g} deg, ti and te up to "
+                  f"{np.degrees(gonio.max_angle_rad):g} deg; R by eq. (17)-(19) with c "
+                  f"{task.camera.sensor.camera_constant:.5g}; fitted per phase angle (cell.fit, F-test p < "
+                  f"{SIGNIFICANCE:g}); run folder {out}")
+        doc = material_document(fits, f"{material.name} (measured)", source)
+        unresolved = unresolved_terms(doc, gonio.step_rad)
+        written = out / "material.yaml"
+        written.write_text(yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=100))
+        load_material(written)                    # what tasks will read: checked now
+        write_goniometer_fit(out / "fit.png", readings, load_material(written))
+        notes = "; ".join(f"{t} unresolved at phase {', '.join(f'{p:g}' for p in ps)} deg" for t, ps in unresolved.items())
+        recorder.step("done", f"{len(readings)} readings fitted; wrote {written}" + (f"; {notes}" if notes else ""),
+                      material_file=str(written), unresolved=unresolved)
+    return end.result

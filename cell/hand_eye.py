@@ -34,8 +34,7 @@ from cell.camera_constant import write_camera_file
 from cell.devices import check_arm_motion, speaking_for
 from cell.errors import DeviceFault, GoalNotReached
 from cell.projection import intrinsics
-from cell.recorder import Recorder
-from cell.session import Session
+from cell.recorder import Ending, Recorder
 
 MIN_POSES = 10
 TILT_DEG = (18.0, 30.0, 24.0)       # the optical axis from the board's normal, in turn
@@ -417,42 +416,36 @@ def run(task, out, connect, hand_eye_file, poses=12, force=False):
     Raises GoalNotReached with fewer than MIN_POSES usable views (exit 1), DeviceFault after the
     safe stop (exit 3). Returns the HandEyeCalibration."""
     out = Path(out)
-    views, skipped, calibrated, result, linear, solver, reason, written = [], [], None, None, None, None, "", None
-    with Recorder(out) as recorder:
-        session = Session(on_fault=recorder.fault, log=recorder.log.name)
-        try:
-            distance = viewing_distance(task)
-            near, far = (distance * f(DISTANCE) for f in (min, max))
-            recorder.step("setup", f"{poses} viewpoints {1e3 * near:.0f}-{1e3 * far:.0f} mm from the board's centre "
-                                   f"{np.round(task.board.T_cell_centre[:3, 3], 4).tolist()} m, tilted "
-                                   f"{min(TILT_DEG):g} to {max(TILT_DEG):g} deg, rolled {min(ROLL_DEG):g} to "
-                                   f"{max(ROLL_DEG):g} deg", distance_m=distance)
-            with session:
-                session.devices = connect()
-                views, skipped = collect(session.devices, recorder, task, viewpoints(task.board, distance, poses))
-            usable = [v for v in views if v.object_points is not None]
-            if len(usable) < MIN_POSES:
-                raise GoalNotReached(f"the board was seen at {len(usable)} of {poses} viewpoints ({len(skipped)} "
-                                     f"refused by the arm, {len(views) - len(usable)} with fewer than {MIN_CORNERS} "
-                                     f"corners), at least {MIN_POSES} are needed: is the board where "
-                                     "calibration.board says, and lit?")
-            calibrated = calibrate_intrinsics(task, usable)
-            result, linear, solver = solve(usable, calibrated)
-            stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-            header = (f"cell calibrate hand-eye {task.path.name} on {stamp}: {len(usable)} views, corners' "
-                      f"reprojection error {result.reprojection_error_px:.3f} px, run folder {out}\n"
-                      "copy these keys into the task's cell.arm section")
-            written = str(write_camera_file(hand_eye_file, hand_eye_document(result), force, header=header))
-            recorder.step("done", f"T_flange_cam at {np.round(1e3 * result.position_m, 3).tolist()} mm, rpy "
-                                  f"{np.round(result.rpy_deg, 3).tolist()} deg; f {calibrated.focal_length_px:.1f} px; "
-                                  f"wrote {written}", hand_eye_file=written, **result.to_json())
-        except BaseException as err:
-            reason = str(err) or type(err).__name__
-            if not session.fault:
-                recorder.step("done", f"no calibration: {err}", reason=reason)
-            raise
-        finally:
-            done = HandEyeCalibration(str(task.path), result is not None and not reason, reason, tuple(views),
-                                      tuple(skipped), calibrated, result, linear, solver, written, session.fault)
-            recorder.write_json("calibration.json", done.to_json())
-    return done
+    views, skipped, calibrated, result, linear, solver, written = [], [], None, None, None, None, None
+
+    def done(reason, fault):
+        return HandEyeCalibration(str(task.path), result is not None and not reason, reason, tuple(views),
+                                  tuple(skipped), calibrated, result, linear, solver, written, fault)
+
+    with Recorder(out) as recorder, Ending(recorder, "no calibration", "calibration.json", done) as end:
+        distance = viewing_distance(task)
+        near, far = (distance * f(DISTANCE) for f in (min, max))
+        recorder.step("setup", f"{poses} viewpoints {1e3 * near:.0f}-{1e3 * far:.0f} mm from the board's centre "
+                               f"{np.round(task.board.T_cell_centre[:3, 3], 4).tolist()} m, tilted "
+                               f"{min(TILT_DEG):g} to {max(TILT_DEG):g} deg, rolled {min(ROLL_DEG):g} to "
+                               f"{max(ROLL_DEG):g} deg", distance_m=distance)
+        with end.session:
+            end.session.devices = connect()
+            views, skipped = collect(end.session.devices, recorder, task, viewpoints(task.board, distance, poses))
+        usable = [v for v in views if v.object_points is not None]
+        if len(usable) < MIN_POSES:
+            raise GoalNotReached(f"the board was seen at {len(usable)} of {poses} viewpoints ({len(skipped)} "
+                                 f"refused by the arm, {len(views) - len(usable)} with fewer than {MIN_CORNERS} "
+                                 f"corners), at least {MIN_POSES} are needed: is the board where "
+                                 "calibration.board says, and lit?")
+        calibrated = calibrate_intrinsics(task, usable)
+        result, linear, solver = solve(usable, calibrated)
+        stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+        header = (f"cell calibrate hand-eye {task.path.name} on {stamp}: {len(usable)} views, corners' "
+                  f"reprojection error {result.reprojection_error_px:.3f} px, run folder {out}\n"
+                  "copy these keys into the task's cell.arm section")
+        written = str(write_camera_file(hand_eye_file, hand_eye_document(result), force, header=header))
+        recorder.step("done", f"T_flange_cam at {np.round(1e3 * result.position_m, 3).tolist()} mm, rpy "
+                              f"{np.round(result.rpy_deg, 3).tolist()} deg; f {calibrated.focal_length_px:.1f} px; "
+                              f"wrote {written}", hand_eye_file=written, **result.to_json())
+    return end.result

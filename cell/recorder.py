@@ -10,7 +10,7 @@ from pathlib import Path
 import cv2
 
 from cell import jsonio
-from cell.session import stop_outcome
+from cell.session import Session, stop_outcome
 
 
 def write_plan(plan, task, folder):
@@ -83,3 +83,28 @@ class Recorder:
     def fault(self, fault):
         """The fault step, after the safe stop (session.Session's fault record)."""
         self.step("fault", f"{fault['error']}: {stop_outcome(fault['stop_failures'])}", **fault)
+
+
+class Ending:
+    """How a routine's run ends, whatever ends it: `with Recorder(out) as rec, Ending(rec, "no fit",
+    "calibration.json", result) as end:` holds the run's device Session (`end.session`). An error
+    logs the "done" step, `failed: error` with its reason (a fault the Session logged already is
+    not logged twice), and is raised again; then, or at a normal end, `end.result = result(reason,
+    fault)` (reason '' and fault None when it finished; the routine logs its own "done" step) is
+    written to the run folder as `name`."""
+
+    def __init__(self, recorder, failed, name, result, **failed_data):
+        self.recorder, self.failed, self.name, self.make = recorder, failed, name, result
+        self.failed_data, self.result = failed_data, None
+        self.session = Session(on_fault=recorder.fault, log=recorder.log.name)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, err, traceback):
+        reason = "" if err is None else str(err) or kind.__name__
+        if err is not None and not self.session.fault:     # the goal was not reached: the devices are fine
+            self.recorder.step("done", f"{self.failed}: {err}", **self.failed_data, reason=reason)
+        self.result = self.make(reason, self.session.fault)
+        self.recorder.write_json(self.name, self.result.to_json())
+        return False
