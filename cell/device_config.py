@@ -7,9 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
+from cell import geometry
 from cell.errors import TaskError
+from cell.inputs import checked_file
 from cell.schema import (POSITIVE, Choice, Integer, Invalid, Number, Pair, Section, Spec, Text, Vector,
-                         _unit, show)
+                         _unit, parse, read_yaml, show)
 
 MAX_SPEED_M_S = 0.25            # ur_rtde's default moveL speed: a hard cap for an inspection cell
 MAX_ACCELERATION_M_S2 = 1.2     # ur_rtde's default moveL acceleration
@@ -32,6 +34,7 @@ class ArmConfig:
     speed_m_s: float                        # what moves use, and the most any move may use
     acceleration_m_s2: float
     move_timeout_s: float                   # a move not done by then is a fault
+    hand_eye_file: Path | None = None       # where T_flange_cam came from (cell.arm.hand_eye), or the task
 
 
 @dataclass(frozen=True)
@@ -100,6 +103,28 @@ class _SerialNumber(Spec):
         raise Invalid(raw, self.expected)
 
 
+# what a hand-eye file holds: the task's own keys, in their place (`cell calibrate hand-eye` writes one)
+HAND_EYE_FILE = {"cell": Section({"arm": Section({"hand_eye_position_m": Vector(), "hand_eye_rpy_deg": Vector()})})}
+HAND_EYE_KEYS = ("hand_eye_position", "hand_eye_rpy")      # the keys' bases, in any unit
+
+
+class _HandEyeFile(Spec):
+    """`cell.arm.hand_eye`: a hand-eye file named relative to the task file, its keys checked as
+    a task's are; read as {"file": its path, its two keys in SI}."""
+
+    expected = "the name of a hand-eye file (cell calibrate hand-eye writes one)"
+    default = None
+
+    def read(self, file, path, raw, to_si):
+        if not isinstance(raw, str) or not raw.strip():
+            raise TaskError(file, path, show(raw), self.expected)
+        named = checked_file(Path(file).parent / raw.strip(), "yaml", file, path, relative_to="the task file")
+        data = read_yaml(named)
+        if data is None:
+            raise TaskError(named, "", "an empty file", "a mapping of keys")
+        return parse(named, "", data, HAND_EYE_FILE)["cell"]["arm"] | {"file": named}
+
+
 MONO_FORMATS = {"Mono8": 8, "Mono12": 12, "Mono16": 16}    # PFNC name -> bits per pixel value
 ANGLE = dict(ok=lambda v: abs(v) <= np.pi, expected="an angle within [-180, 180] deg")
 # defaults: the example cell, a UR5e on the table beside the part, the camera 5 cm past the flange
@@ -110,6 +135,7 @@ ARM = Section({
     "base_rpy_deg": Vector(default=(0.0, 0.0, 0.0)),
     "hand_eye_position_m": Vector(default=(0.0, 0.0, 0.05)),
     "hand_eye_rpy_deg": Vector(default=(0.0, 0.0, 0.0)),
+    "hand_eye": _HandEyeFile(),
     "workspace_min_m": Vector(default=(-0.60, -0.60, 0.10)),
     "workspace_max_m": Vector(default=(0.60, 0.60, 1.00)),
     "speed_m_s": Number(lambda v: 0 < v <= MAX_SPEED_M_S, f"a speed in (0, {MAX_SPEED_M_S}] m/s",
@@ -175,7 +201,7 @@ def devices_config(file, cell, written, bit_depth):
     arm = ArmConfig(
         host=a["host"], connect_timeout_s=a["connect_timeout_s"], workspace_min_m=a["workspace_min_m"], workspace_max_m=a["workspace_max_m"],
         speed_m_s=a["speed_m_s"], acceleration_m_s2=a["acceleration_m_s2"],
-        move_timeout_s=a["move_timeout_s"])
+        move_timeout_s=a["move_timeout_s"], hand_eye_file=a["hand_eye"] and a["hand_eye"]["file"])
     pan_tilt = PanTiltConfig(
         port=p["port"], baud=p["baud"], pan_id=p["pan_id"], tilt_id=p["tilt_id"],
         radius_id=p["radius_id"], pan_offset_rad=p["pan_offset_rad"],
@@ -184,6 +210,20 @@ def devices_config(file, cell, written, bit_depth):
         tolerance_ticks=p["tolerance_ticks"])
     camera = _camera_config(file, c, (written or {}).get("camera") or {}, bit_depth)
     return DevicesConfig(Path(file), arm, pan_tilt, camera, tuple(given))
+
+
+def hand_eye(file, arm, written):
+    """T_flange_cam of the parsed `cell.arm` (`written`: as the file wrote it): from the hand-eye
+    file `hand_eye` names, else the two keys (defaults included); both ways is an error."""
+    named = arm["hand_eye"]
+    if named is None:
+        return geometry.from_rpy(arm["hand_eye_rpy_rad"], arm["hand_eye_position_m"])
+    for key in (k for k, v in (written or {}).items() if v is not None):
+        if _unit(str(key))[0] in HAND_EYE_KEYS:
+            raise TaskError(file, f"cell.arm.{key}", f"a value beside hand_eye '{named['file'].name}'",
+                            "the hand-eye in one place: the file cell.arm.hand_eye names, or hand_eye_position_m "
+                            "and hand_eye_rpy_deg in the task")
+    return geometry.from_rpy(named["hand_eye_rpy_rad"], named["hand_eye_position_m"])
 
 
 def _is_file(path):

@@ -369,7 +369,8 @@ def solve(views, intrinsics_):
 
 
 def hand_eye_document(result):
-    """The hand-eye file: the task's cell.arm keys, ready to copy into a task."""
+    """The hand-eye file: the task's cell.arm keys in their place, which a task names as
+    cell.arm.hand_eye (or copies)."""
     return {"cell": {"arm": {"hand_eye_position_m": [round(float(v), 6) for v in result.position_m],
                              "hand_eye_rpy_deg": [round(float(v), 4) for v in result.rpy_deg]}}}
 
@@ -443,7 +444,8 @@ def run(task, out, connect, hand_eye_file, poses=12, force=False):
         stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
         header = (f"cell calibrate hand-eye {task.path.name} on {stamp}: {len(usable)} views, corners' "
                   f"reprojection error {result.reprojection_error_px:.3f} px, run folder {out}\n"
-                  "copy these keys into the task's cell.arm section")
+                  f"a task uses this file as cell.arm.hand_eye: {Path(hand_eye_file).name} (relative to the task file), "
+                  "or these keys copied into its cell.arm")
         written = str(write_camera_file(hand_eye_file, hand_eye_document(result), force, header=header))
         recorder.step("done", f"T_flange_cam at {np.round(1e3 * result.position_m, 3).tolist()} mm, rpy "
                               f"{np.round(result.rpy_deg, 3).tolist()} deg; f {calibrated.focal_length_px:.1f} px; "

@@ -12,7 +12,7 @@ import trimesh
 
 from cell import geometry
 from cell.board import DICTIONARIES, Board
-from cell.device_config import SECTIONS as DEVICES, devices_config
+from cell.device_config import SECTIONS as DEVICES, devices_config, hand_eye
 from cell.errors import TaskError
 from cell.frames import Frames
 from cell.inputs import checked_file
@@ -519,7 +519,7 @@ def load_task(path):
     features = tuple(_feature(path, mesh, f, key, name, req) for key, name, f, req in entries)
     frames = Frames(T_cell_part=geometry.from_rpy(part["rpy_rad"], part["position_m"]),
                     T_cell_base=geometry.from_rpy(arm["base_rpy_rad"], arm["base_position_m"]),
-                    T_flange_cam=geometry.from_rpy(arm["hand_eye_rpy_rad"], arm["hand_eye_position_m"]))
+                    T_flange_cam=hand_eye(path, arm, (data.get("cell") or {}).get("arm")))
     cameras = {("camera.distance_m", "" if len(features) == 1 else f", the camera of {f.key} ({f.name})"):
                geometry.apply(frames.T_cell_part, f.center_m + cam["distance_m"] * cam["view_direction"])
                for f in features}

@@ -154,3 +154,16 @@ def test_readme_and_devices_point_at_formats():
     for doc in (ROOT / "README.md", ROOT / "docs" / "devices.md"):
         text = doc.read_text()
         assert "formats.md" in text and "task-format.md" not in text, doc.name
+
+
+def test_the_hand_eye_file_example_loads_as_a_task_s_hand_eye(tmp_path):
+    """The documented hand-eye file, named by cell.arm.hand_eye, gives T_flange_cam its keys."""
+    (example,) = blocks(section("Hand-eye file"), "yaml")
+    (tmp_path / "hand-eye.yaml").write_text(example)
+    task = yaml.safe_load((TASKS / "hinge.yaml").read_text())
+    task["part"] |= {k: str(TASKS / task["part"][k]) for k in ("mesh", "material")}
+    task["cell"] = {"arm": {"hand_eye": "hand-eye.yaml"}}
+    (tmp_path / "task.yaml").write_text(yaml.safe_dump(task))
+    T = load_task(tmp_path / "task.yaml").frames.T_flange_cam
+    assert T[:3, 3] == pytest.approx([0.001499, -0.002001, 0.052993])
+    assert np.degrees(np.arctan2(T[2, 1], T[2, 2])) == pytest.approx(0.8)   # roll of extrinsic x-y-z

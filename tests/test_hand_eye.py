@@ -162,11 +162,15 @@ def test_the_run_folder_holds_the_evidence_and_the_hand_eye_file_is_the_task_s_k
         assert picture.shape == (388, 516, 3) and view["corners"] >= routine.MIN_CORNERS
     steps = [json.loads(line)["step"] for line in (run / "log.jsonl").read_text().splitlines()]
     assert steps[0] == "setup" and steps[-1] == "done" and steps.count("board") == 10
+    # a task takes the file as cell.arm.hand_eye (relative to the task file), or its keys copied
     keys = yaml.safe_load((folder / "direct.yaml").read_text())["cell"]["arm"]
-    fixed = load_task(simcell.variant(tmp_path, path, {"cell.arm.hand_eye_position_m": keys["hand_eye_position_m"],
-                                                       "cell.arm.hand_eye_rpy_deg": keys["hand_eye_rpy_deg"]}))
-    distance, angle = pose_error(fixed.frames.T_flange_cam, result.hand_eye.T_flange_cam)
-    assert distance < 1e-6 and angle < 1e-3
+    copied = load_task(simcell.variant(tmp_path, path, {"cell.arm.hand_eye_position_m": keys["hand_eye_position_m"],
+                                                        "cell.arm.hand_eye_rpy_deg": keys["hand_eye_rpy_deg"]}))
+    referencing = load_task(simcell.variant(folder, path, {"cell.arm.hand_eye": "direct.yaml"}))
+    assert referencing.cell.devices.arm.hand_eye_file == folder / "direct.yaml"
+    for fixed in (copied, referencing):
+        distance, angle = pose_error(fixed.frames.T_flange_cam, result.hand_eye.T_flange_cam)
+        assert distance < 1e-6 and angle < 1e-3
 
 
 def test_the_cli_answers_its_prompt_with_yes_prints_the_json_keys_and_never_overwrites(calibrated, capsys):

@@ -108,6 +108,15 @@ def mesh_file(content):
     return edit
 
 
+def hand_eye_file(content, **arm):
+    """Edit: write content as hand-eye.yaml beside the task, point cell.arm.hand_eye at it and set
+    the other cell.arm keys given."""
+    def edit(task, folder):
+        (folder / "hand-eye.yaml").write_text(content)
+        task.setdefault("cell", {})["arm"] = {"hand_eye": "hand-eye.yaml", **arm}
+    return edit
+
+
 def inverted_mesh(task, folder):
     """Edit: the hinge's mesh with every triangle's winding reversed (normals pointing in)."""
     import trimesh
@@ -356,6 +365,24 @@ BROKEN = [
                  id="device-workspace-min-above-max"),
     pytest.param(put("cell.arm", {"hand_eye_position_mm": [0, 0, 50], "hand_eye_position_m": [0, 0, 0.05]}),
                  "task.yaml", "cell.arm.hand_eye_position_m", "one unit", id="device-two-units"),
+    pytest.param(hand_eye_file("cell: {arm: {hand_eye_position_m: [0, 0, 0.05]}}\n"), "hand-eye.yaml",
+                 "cell.arm.hand_eye_rpy_deg", "found nothing, expected a 3-vector [x, y, z] (required key)",
+                 id="hand-eye-file-without-its-rotation"),
+    pytest.param(hand_eye_file("cell: {arm: {hand_eye_position_m: [0, 0, 0.05], hand_eye_rpy_deg: [0, 0, 0], "
+                               "host: 10.0.0.1}}\n"), "hand-eye.yaml", "cell.arm.host",
+                 "an unknown key, expected one of hand_eye_position_m, hand_eye_rpy_deg", id="hand-eye-file-other-key"),
+    pytest.param(hand_eye_file("hand_eye_position_m: [0, 0, 0.05]\n"), "hand-eye.yaml", "hand_eye_position_m",
+                 "an unknown key, expected one of cell", id="hand-eye-file-keys-not-in-their-place"),
+    pytest.param(hand_eye_file(""), "hand-eye.yaml", "", "an empty file", id="hand-eye-file-empty"),
+    pytest.param(hand_eye_file("cell: {arm: {hand_eye_position_m: [0, 0, 0.05], hand_eye_rpy_deg: [0, 0, 0]}}\n",
+                               hand_eye_rpy_deg=[0, 0, 1]), "task.yaml", "cell.arm.hand_eye_rpy_deg",
+                 "found a value beside hand_eye 'hand-eye.yaml', expected the hand-eye in one place",
+                 id="hand-eye-file-and-keys"),
+    pytest.param(put("cell.arm", {"hand_eye": "nowhere.yaml"}), "task.yaml", "cell.arm.hand_eye",
+                 "an unreadable file (no such file or directory), expected an existing, readable YAML file, "
+                 "relative to the task file", id="hand-eye-file-missing"),
+    pytest.param(put("cell.arm", {"hand_eye": [0, 0, 0.05]}), "task.yaml", "cell.arm.hand_eye",
+                 "expected the name of a hand-eye file", id="hand-eye-file-not-a-name"),
     pytest.param(put("cell.pan_tilt", {"baud": 12345}), "task.yaml", "cell.pan_tilt.baud",
                  "one of the SDK's rates", id="device-baud"),
     pytest.param(put("cell.pan_tilt", {"pan_id": 2}), "task.yaml", "cell.pan_tilt.tilt_id",

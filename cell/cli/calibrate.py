@@ -2,7 +2,7 @@
 `camera-constant` (a laser of known power at several shutter times, sec. 4.1; writes a camera
 file) and `reference-part` (a shutter sweep on a reference part, c against the task's material:
 a cross-check), and the camera's intrinsics and hand-eye: `hand-eye` (views of a ChArUco board;
-writes the task's hand-eye keys). Exit 0 measured, 1 infeasible plan, an untrustworthy series or
+writes a hand-eye file tasks reference). Exit 0 measured, 1 infeasible plan, an untrustworthy series or
 too few views of the board, 2 bad input (an unknown routine: cell.cli's parser), 3 device fault."""
 import sys
 from pathlib import Path
@@ -119,7 +119,8 @@ def hand_eye(args):
     print(f"camera: focal length {h.focal_length_px:.1f} px ({h.focal_length_px / f_task:.4f} x the task's "
           f"{f_task:.1f} px; calibrateCamera {k.focal_length_px:.1f} px, reprojection error {k.rms_px:.3f} px); "
           f"{views} views ({len(result.refused)} viewpoints refused by the arm)")
-    print(f"  wrote {result.hand_eye_file}: copy its cell.arm keys into the task")
+    print(f"  wrote {result.hand_eye_file}: a task uses it as cell: {{arm: {{hand_eye: "
+          f"{Path(result.hand_eye_file).name}}}}} (relative to the task file)")
     print(f"  wrote {out}/calibration.json, log.jsonl and {len(result.views)} board-N.png frames with the corners "
           f"drawn")
     return 0

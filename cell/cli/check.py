@@ -50,6 +50,8 @@ def summarize(task):
     source = material.source.splitlines()[0]
     size = " x ".join(f"{e:.1f}" for e in mesh.extents * 1e3)
     devices = "".join(f", {name} settings" for name in task.cell.devices.given)
+    hand_eye = task.cell.devices.arm.hand_eye_file
+    devices += f", hand-eye from {hand_eye}" if hand_eye else ""
     (first, *more) = [_feature_lines(f, "feature" if len(task.features) == 1 else f"feature {f.name}")
                       for f in task.features]
     return "\n".join([
