@@ -96,12 +96,15 @@ class LaserFit:
 
 class Darks:
     """Each pixel's dark gray at shutter t, linear between the mean dark frames at the two ends
-    of the shutter range (black level plus dark current), and the pixels' dark noise."""
+    of the shutter range (black level plus dark current), the pixels' dark noise, and the
+    sensor's black level b of G = b + c P t: the shortest shutter's frames' (measure.black_level_of,
+    as `cell run` takes it from a dark frame)."""
 
     def __init__(self, frames):
         ends = sorted(frames.items())           # one end only when the shutter range is one time
         (t0, d0), (t1, d1) = ends[0], ends[-1]
         self.t0, self.t1 = t0, t1
+        self.black = measure.black_level_of(np.asarray(d0))
         self.d0, self.d1 = (np.mean(d, axis=0) for d in (d0, d1))
         self.noise_rms = float(np.sqrt(np.mean([np.var(d, axis=0, ddof=1).mean() for d in (d0, d1)])))
 
@@ -201,7 +204,11 @@ def dark_frames(devices, recorder, frames, shutter_range_s, f_number, focus_m):
             frames.append(Frame("dark", t, name))
             recorder.step("dark", f"dark frame at {1e3 * t:.3f} ms: mean {image.mean():.2f}", iteration=len(frames),
                           shutter_s=t, mean=float(image.mean()))
-    return Darks(stacks)
+    darks = Darks(stacks)
+    b = darks.black
+    recorder.step("black_level", f"black level {b.value:.2f} gray, noise {b.noise_rms:.2f} rms (the dark frames at "
+                                 f"{1e3 * darks.t0:.3g} ms)", **b.to_json())
+    return darks
 
 
 def lit_frame(devices, recorder, frames, spot, kind, shutter_s, f_number, focus_m):
@@ -304,6 +311,7 @@ class LaserCalibration:
     window: dict | None = None
     camera_file: str | None = None
     fault: dict | None = None
+    black_level: measure.BlackLevel | None = None
 
     def summary(self):
         """--json's keys."""
@@ -315,6 +323,7 @@ class LaserCalibration:
         return {"task": self.task, "laser_power_w": self.laser_power_w, "camera_constant_task": self.camera_constant_task,
                 **self.summary(), "fit": asdict(self.fit) if self.fit else None,
                 "camera_constant_ratio": self.fit.camera_constant / self.camera_constant_task if self.fit else None,
+                "black_level": self.black_level.to_json() if self.black_level else None,
                 "window": self.window, "frames": [asdict(f) for f in self.frames], "camera_file": self.camera_file,
                 "reason": self.message} | ({"fault": self.fault} if self.fault else {})
 
@@ -334,17 +343,17 @@ def check_camera_file(path, force, option="--camera-file"):
     return path
 
 
-def camera_document(sensor, fit, source):
-    """The camera file: the task's sensor with the measured c (and its standard error); the
-    datasheet's noise keys stay, its quantum efficiency and wavelength go (the measurement
-    replaces the c they give)."""
+def camera_document(sensor, fit, black, source):
+    """The camera file: the task's sensor with the measured c (and its standard error) and the
+    black level of the dark frames (BlackLevel); the datasheet's noise keys stay, its quantum
+    efficiency and wavelength go (the measurement replaces the c they give)."""
     keep = ("width_px", "height_px", "pixel_pitch_m", "bit_depth")
     noise = ("system_gain_dn_per_e", "dark_noise_e", "saturation_capacity_e")
     doc = {k: getattr(sensor, k) for k in keep}
     doc |= {"camera_constant": float(f"{fit.camera_constant:.6g}"),
             "camera_constant_stderr": float(f"{fit.camera_constant_stderr:.3g}")}
     doc |= {k: getattr(sensor, k) for k in noise if getattr(sensor, k) is not None}
-    return doc | {"source": source}
+    return doc | {"black_level": float(f"{black.value:.4g}"), "source": source}
 
 
 def write_camera_file(path, document, force, header=""):
@@ -372,11 +381,11 @@ def run(task, out, connect, laser, camera_file, shots=8, force=False):
     success. Raises GoalNotReached for an untrustworthy series (exit 1), DeviceFault after the safe
     stop (exit 3). Returns the LaserCalibration."""
     out, c_task = Path(out), task.camera.sensor.camera_constant
-    frames, fit, window, written = [], None, None, None
+    frames, fit, window, written, spot = [], None, None, None, None
 
     def result(reason, fault):
         return LaserCalibration(str(task.path), laser.power_w, c_task, fit is not None and not reason, reason,
-                                tuple(frames), fit, window, written, fault)
+                                tuple(frames), fit, window, written, fault, spot and spot.darks.black)
 
     with Recorder(out) as recorder, Ending(recorder, "no fit", "calibration.json", result) as end:
         with end.session:
@@ -389,9 +398,10 @@ def run(task, out, connect, laser, camera_file, shots=8, force=False):
             write_laser_fit(out / "calibration.png", frames, fit, c_task, laser.power_w)
         stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
         source = (f"cell calibrate camera-constant {task.path.name} on {stamp}: laser {laser.power_w:.4g} W, "
-                  f"{fit.frames_used} frames, r2 {fit.r_squared:.6f}, run folder {out}")
-        written = str(write_camera_file(camera_file, camera_document(task.camera.sensor, fit, source), force))
+                  f"{fit.frames_used} frames, r2 {fit.r_squared:.6f}; black level from its dark frames; run folder {out}")
+        black = spot.darks.black
+        written = str(write_camera_file(camera_file, camera_document(task.camera.sensor, fit, black, source), force))
         recorder.step("done", f"c = {fit.camera_constant:.5g} +- {fit.camera_constant_stderr:.2g} 1/(W s), "
-                              f"{fit.camera_constant / c_task:.3f} x the task's; wrote {written}",
-                      camera_file=written, **asdict(fit))
+                              f"{fit.camera_constant / c_task:.3f} x the task's; black level {black.value:.2f} gray; "
+                              f"wrote {written}", camera_file=written, black_level=black.value, **asdict(fit))
     return end.result

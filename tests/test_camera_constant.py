@@ -206,6 +206,20 @@ def test_a_saturated_or_too_dark_series_is_refused_with_the_reason_and_exit_1(tm
     assert not (tmp_path / "camera.yaml").exists()
 
 
+@pytest.mark.parametrize("effects, black", [(EFFECTS, 5.0), (["noise", "quantization"], 0.0)])
+def test_the_camera_file_carries_the_black_level_of_the_dark_frames(tmp_path, effects, black):
+    """The world's black level is sim.world.BLACK_LEVEL x 255 rounded = 5 gray with the effect
+    black_level, else 0 (the dark noise of 0.26 gray rms rounds to 0); a task naming the camera
+    file then knows it, so cell run takes no dark frame of its own."""
+    result, _, written = calibrate(sim_task(tmp_path, **{"sim.effects": effects}), tmp_path / "run")
+    assert result.black_level.value == black and written["black_level"]["value"] == black
+    assert result.black_level.noise_rms < 0.5 and written["black_level"]["source"] == "dark frame"
+    camera = tmp_path / "camera.yaml"
+    assert yaml.safe_load(camera.read_text())["black_level"] == black
+    user = simcell.variant(tmp_path, sim_task(tmp_path), {"camera.sensor": "camera.yaml"})
+    assert load_task(user).camera.sensor.black_level == black
+
+
 # --- the command line, the camera file ------------------------------------------------------------
 
 def test_json_prints_the_fit_and_the_camera_file_is_used_by_a_task(tmp_path, capsys):
@@ -220,6 +234,7 @@ def test_json_prints_the_fit_and_the_camera_file_is_used_by_a_task(tmp_path, cap
     document = yaml.safe_load(camera.read_text())
     assert document["camera_constant"] == pytest.approx(printed["camera_constant"], rel=1e-5)
     assert document["source"].startswith("cell calibrate camera-constant")
+    assert document["black_level"] == printed["black_level"] == 5.0        # sim.world.BLACK_LEVEL of 255, rounded
 
     user = simcell.variant(tmp_path, task, {"camera.sensor": "camera.yaml"})  # beside the camera file
     assert load_task(user).camera.sensor.camera_constant == document["camera_constant"]

@@ -41,12 +41,15 @@ def camera_constant(args):
                          laser, camera_file, args.shots, args.force)
     fit = result.fit
     if args.json:
-        print(jsonio.dumps(result.summary() | {"camera_file": result.camera_file}, indent=2))
+        print(jsonio.dumps(result.summary() | {"black_level": result.black_level.value,
+                                               "camera_file": result.camera_file}, indent=2))
         return 0
     c_task = result.camera_constant_task
     print(f"camera constant c = {fit.camera_constant:.5g} +- {fit.camera_constant_stderr:.2g} 1/(W s) "
           f"({fit.camera_constant / c_task:.3f} x the task's {c_task:.5g}); linearity r2 {fit.r_squared:.6f}, "
           f"{fit.frames_used} frames ({fit.frames_saturated} saturated, {fit.frames_too_dark} too dark left out)")
+    print(f"black level {result.black_level.value:.2f} gray, noise {result.black_level.noise_rms:.2f} rms (the dark "
+          "frames at the shortest shutter time)")
     print(f"  wrote {result.camera_file}: a task uses it as camera: {{sensor: "
           f"{Path(result.camera_file).name}, ...}} (relative to the task file)")
     print(f"  wrote {out}/calibration.json, calibration.png, log.jsonl and {len(result.frames)} captures")
