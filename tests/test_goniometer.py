@@ -93,6 +93,7 @@ def test_the_world_s_rho_sigma1_m1_are_recovered_and_the_narrow_spike_is_unresol
     material = load_material(tmp_path / "run" / "material.yaml")
     assert np.allclose(material.rho, doc["rho"]) and "cell measure-brdf" in material.source
     assert (tmp_path / "run" / "fit.png").stat().st_size > 0 and (tmp_path / "run" / "patch-1.png").exists()
+    assert len(list((tmp_path / "run").glob("capture-*.png"))) == sum(line["step"] == "capture" for line in lines)
     rows = (tmp_path / "run" / "goniometer.csv").read_text().splitlines()
     assert rows[0] == "theta_i_deg,theta_e_deg,phase_deg,reflectance" and len(rows) == 1 + len(result.readings)
 

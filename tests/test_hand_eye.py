@@ -14,7 +14,7 @@ import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
-from cell import geometry, hand_eye as routine
+from cell import backends, geometry, hand_eye as routine
 from cell.cli import main
 from cell.errors import DeviceFault, GoalNotReached, TaskError
 from cell.loader import load_task
@@ -162,6 +162,7 @@ def test_the_run_folder_holds_the_evidence_and_the_hand_eye_file_is_the_task_s_k
         assert picture.shape == (388, 516, 3) and view["corners"] >= routine.MIN_CORNERS
     steps = [json.loads(line)["step"] for line in (run / "log.jsonl").read_text().splitlines()]
     assert steps[0] == "setup" and steps[-1] == "done" and steps.count("board") == 10
+    assert len(list(run.glob("capture-*.png"))) == steps.count("capture") >= 10      # every frame, as taken
     # a task takes the file as cell.arm.hand_eye (relative to the task file), or its keys copied
     keys = yaml.safe_load((folder / "direct.yaml").read_text())["cell"]["arm"]
     copied = load_task(simcell.variant(tmp_path, path, {"cell.arm.hand_eye_position_m": keys["hand_eye_position_m"],
@@ -199,11 +200,12 @@ def test_fewer_than_10_poses_is_bad_input(capsys):
 
 
 def test_a_device_fault_stops_the_cell_and_is_recorded(tmp_path):
-    task = load_task(sim_task(tmp_path))
+    task, stops = load_task(sim_task(tmp_path)), []
     with pytest.raises(DeviceFault, match="protective stop during move 3.*motion stopped"):
-        routine.run(believed(task), tmp_path / "run",
-                    lambda: make_sim_devices(task, None, board=True, faults={"arm_fail_on_move": 3}),
+        routine.run(believed(task), tmp_path / "run", lambda: recording_stops(
+            make_sim_devices(task, None, board=True, faults={"arm_fail_on_move": 3}), stops),
                     tmp_path / "hand-eye.yaml", poses=10)
+    assert stops == ["arm.stop", "pan-tilt.stop", "camera.close"]
     written = json.loads((tmp_path / "run" / "calibration.json").read_text())
     assert written["fault"]["device"] == "arm" and written["hand_eye"] is None
     assert json.loads((tmp_path / "run" / "log.jsonl").read_text().splitlines()[-1])["step"] == "fault"
@@ -219,3 +221,35 @@ def test_a_board_not_where_the_task_says_is_refused_with_the_reason(tmp_path):
                                              r"\d+ with fewer than 8 corners\)"):
         routine.run(replace(believed(task), board=elsewhere), tmp_path / "run",
                     lambda: make_sim_devices(task, None, board=True), tmp_path / "hand-eye.yaml", poses=10)
+
+
+def recording_stops(devices, stops):
+    """The devices, each arm.stop, pan-tilt.stop and camera.close they receive appended to stops."""
+    for device, name in ((devices.arm, "stop"), (devices.lamp, "stop"), (devices.camera, "close")):
+        method = getattr(device, name)
+        setattr(device, name, lambda *a, _m=method, _n=f"{device.device}.{name}", **k: (stops.append(_n), _m(*a, **k))[1])
+    return devices
+
+
+def test_the_cli_turns_a_camera_fault_into_exit_3_and_one_line_after_stopping_the_cell(tmp_path, monkeypatch, capsys):
+    stops = []
+    monkeypatch.setattr(backends, "open_devices", lambda task, scene, backend, yes, board: recording_stops(
+        make_sim_devices(task, scene, board=board, faults={"camera_fail_on_capture": 3}), stops))
+    out = tmp_path / "run"
+    assert main(["calibrate", "hand-eye", str(sim_task(tmp_path)), "--out", str(out), "--poses", "10"]) == 3
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.startswith("cell calibrate: camera: capture timed out") and "motion stopped" in last
+    assert stops == ["arm.stop", "pan-tilt.stop", "camera.close"]
+    assert json.loads((out / "calibration.json").read_text())["fault"]["device"] == "camera"
+    assert json.loads((out / "log.jsonl").read_text().splitlines()[-1])["step"] == "fault"
+    assert not (tmp_path / "hand-eye.yaml").exists()
+
+
+def test_on_the_real_cell_the_operator_lays_the_board_before_anything(tmp_path, monkeypatch, capsys):
+    connected = []
+    monkeypatch.setattr(backends, "open_devices", lambda *a, **k: connected.append(a))
+    task = sim_task(tmp_path, **{"cell.backend": "hw"})
+    assert main(["calibrate", "hand-eye", str(task), "--out", str(tmp_path / "r")]) == 3     # stdin: no terminal
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "lay the ChArUco board" in last and "run with --yes" in last and connected == []
+    assert not (tmp_path / "r").exists()
