@@ -38,16 +38,21 @@ def device_settings(raw, file="tasks/hinge.yaml", bit_depth=8):
     return devices_config(file, parse(file, "cell", raw, SECTIONS), written=raw, bit_depth=bit_depth)
 
 
+def record_stops(devices, stops):
+    """The devices, every arm.stop, pan-tilt.stop and camera.close they receive appended to stops
+    in order."""
+    for device, name in ((devices.arm, "stop"), (devices.lamp, "stop"), (devices.camera, "close")):
+        method = getattr(device, name)
+        setattr(device, name, lambda *a, _m=method, _n=f"{device.device}.{name}", **k:
+                (stops.append(_n), _m(*a, **k))[1])
+    return devices
+
+
 def recording_connect(task, cell, faults=None):
     """connect(scene) -> the simulated cell's Devices, stored in cell.devices; every arm.stop,
     pan-tilt.stop and camera.close they receive is appended to cell.stops in order."""
     def connect(scene):
-        cell.devices = make_sim_devices(task, scene, faults=faults)
-        for device, name in ((cell.devices.arm, "stop"), (cell.devices.lamp, "stop"),
-                             (cell.devices.camera, "close")):
-            method = getattr(device, name)
-            setattr(device, name, lambda *a, _m=method, _n=f"{device.device}.{name}", **k:
-                    (cell.stops.append(_n), _m(*a, **k))[1])
+        cell.devices = record_stops(make_sim_devices(task, scene, faults=faults), cell.stops)
         return cell.devices
     return connect
 

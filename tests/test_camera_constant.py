@@ -49,11 +49,7 @@ def calibrate(task_path, out, power_w=POWER_W, faults=None, camera_file=None):
     stops = []
 
     def connect():
-        devices = make_sim_devices(true, None, faults=faults, laser=laser)
-        for device, name in ((devices.arm, "stop"), (devices.lamp, "stop"), (devices.camera, "close")):
-            method = getattr(device, name)
-            setattr(device, name, lambda *a, _m=method, _n=f"{device.device}.{name}", **k: (stops.append(_n), _m(*a, **k))[1])
-        return devices
+        return simcell.record_stops(make_sim_devices(true, None, faults=faults, laser=laser), stops)
     try:
         result = routine.run(believed, out, connect, laser, camera_file or Path(out).parent / "camera.yaml")
     except Exception as err:                                    # noqa: BLE001 - returned for the test to judge

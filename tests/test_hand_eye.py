@@ -202,7 +202,7 @@ def test_fewer_than_10_poses_is_bad_input(capsys):
 def test_a_device_fault_stops_the_cell_and_is_recorded(tmp_path):
     task, stops = load_task(sim_task(tmp_path)), []
     with pytest.raises(DeviceFault, match="protective stop during move 3.*motion stopped"):
-        routine.run(believed(task), tmp_path / "run", lambda: recording_stops(
+        routine.run(believed(task), tmp_path / "run", lambda: simcell.record_stops(
             make_sim_devices(task, None, board=True, faults={"arm_fail_on_move": 3}), stops),
                     tmp_path / "hand-eye.yaml", poses=10)
     assert stops == ["arm.stop", "pan-tilt.stop", "camera.close"]
@@ -223,17 +223,9 @@ def test_a_board_not_where_the_task_says_is_refused_with_the_reason(tmp_path):
                     lambda: make_sim_devices(task, None, board=True), tmp_path / "hand-eye.yaml", poses=10)
 
 
-def recording_stops(devices, stops):
-    """The devices, each arm.stop, pan-tilt.stop and camera.close they receive appended to stops."""
-    for device, name in ((devices.arm, "stop"), (devices.lamp, "stop"), (devices.camera, "close")):
-        method = getattr(device, name)
-        setattr(device, name, lambda *a, _m=method, _n=f"{device.device}.{name}", **k: (stops.append(_n), _m(*a, **k))[1])
-    return devices
-
-
 def test_the_cli_turns_a_camera_fault_into_exit_3_and_one_line_after_stopping_the_cell(tmp_path, monkeypatch, capsys):
     stops = []
-    monkeypatch.setattr(backends, "open_devices", lambda task, scene, backend, yes, board: recording_stops(
+    monkeypatch.setattr(backends, "open_devices", lambda task, scene, backend, yes, board: simcell.record_stops(
         make_sim_devices(task, scene, board=board, faults={"camera_fail_on_capture": 3}), stops))
     out = tmp_path / "run"
     assert main(["calibrate", "hand-eye", str(sim_task(tmp_path)), "--out", str(out), "--poses", "10"]) == 3
