@@ -5,6 +5,7 @@ import warp as wp
 
 from . import funcs
 from ._arrays import output, unit_rows, vec3d
+from .cone import NO_CONE, free_cone_cosines, worth_finding
 from .runtime import ensure_init
 
 
@@ -12,14 +13,15 @@ from .runtime import ensure_init
 def visibility_kernel(mesh_id: wp.uint64, points: wp.array(dtype=wp.vec3d),
                       normals: wp.array(dtype=wp.vec3d), frame: wp.mat33d,
                       azimuth: wp.array(dtype=wp.float64), elevation: wp.array(dtype=wp.float64),
-                      offset_m: wp.float64, max_dist: wp.float64,
+                      offset_m: wp.float64, max_dist: wp.float64, free_cos: wp.array(dtype=wp.float64),
                       visible: wp.array3d(dtype=wp.bool)):
-    """One thread per (point p, elevation e, azimuth a)."""
+    """One thread per (point p, elevation e, azimuth a); no ray inside the point's free cone."""
     p, e, a = wp.tid()
     d = wp.mul(frame, funcs.direction_from_angles(azimuth[a], elevation[e]))
     n = normals[p]
-    ok = False
-    if wp.dot(d, n) > funcs.TANGENT_EPS:
+    cos_n = wp.dot(d, n)
+    ok = cos_n > free_cos[p]
+    if not ok and cos_n > funcs.TANGENT_EPS:
         ok = not funcs.ray_blocked(mesh_id, points[p] + offset_m * n, d, max_dist)
     visible[p, e, a] = ok
 
@@ -47,10 +49,14 @@ def visibility_maps(mesh, points, normals, frame, azimuth, elevation, offset_m=1
     visible, visible_wp = output(shape, np.bool_, wp.bool)
     if visible.size == 0:
         return visible
+    free_cos = np.full(len(points), NO_CONE)
+    if worth_finding(len(azimuth) * len(elevation), mesh):
+        free_cos = free_cone_cosines(mesh, points + offset_m * normals, normals)
     wp.launch(visibility_kernel, dim=shape, device=device, inputs=[
         mesh.id, vec3d(points, "points"), vec3d(normals, "normals"), wp.mat33d(*frame.ravel()),
         wp.array(azimuth, dtype=wp.float64, device=device),
         wp.array(elevation, dtype=wp.float64, device=device), float(offset_m), float(max_dist),
+        wp.array(free_cos, dtype=wp.float64, device=device),
     ], outputs=[visible_wp])
     return visible
 
