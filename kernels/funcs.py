@@ -212,12 +212,51 @@ def ray_blocked(mesh_id: wp.uint64, origin: wp.vec3d, direction: wp.vec3d,
     return wp.mesh_query_ray_anyhit(mesh_id, wp.vec3(origin), wp.vec3(direction), wp.float32(max_dist))
 
 
+SECTORS = wp.constant(16)        # azimuth sectors of a point's free cones (kernels.cone)
+SECTORS_PER_QUADRANT = wp.constant(wp.float64(SECTORS / 4))
+
+
+@wp.func
+def tangent_u(normal: wp.vec3d) -> wp.vec3d:
+    """A unit vector in the tangent plane (x, or y for a normal near x): with v = n x u it
+    measures a direction's azimuth about the normal."""
+    e = wp.vec3d(wp.float64(1.0), wp.float64(0.0), wp.float64(0.0))
+    if wp.abs(normal[0]) > wp.float64(0.9):
+        e = wp.vec3d(wp.float64(0.0), wp.float64(1.0), wp.float64(0.0))
+    return wp.normalize(wp.cross(normal, e))
+
+
+@wp.func
+def diamond_angle(x: wp.float64, y: wp.float64) -> wp.float64:
+    """A stand-in for atan2(y, x) in [0, 4), increasing with it, with no transcendental
+    (y / (|x| + |y|) per quadrant); (0, 0) gives 0."""
+    r = wp.abs(x) + wp.abs(y)
+    if r == wp.float64(0.0):
+        return wp.float64(0.0)
+    if y >= wp.float64(0.0):
+        if x >= wp.float64(0.0):
+            return y / r
+        return wp.float64(1.0) - x / r
+    if x < wp.float64(0.0):
+        return wp.float64(2.0) - y / r
+    return wp.float64(3.0) + x / r
+
+
+@wp.func
+def sector_of(diamond: wp.float64) -> wp.int32:
+    """The azimuth sector 0..SECTORS-1 of a diamond angle."""
+    k = wp.int32(wp.floor(diamond * SECTORS_PER_QUADRANT))
+    return wp.min(k, SECTORS - 1)
+
+
 @wp.struct
 class Surface:
     """A surface point as the shading sees it, all of it the point's own (computed once per
     point, whatever the lamp): where it is, its unit normal, the unit direction v and cos te to
-    the camera, the shadow ray's origin point + offset * normal, and the cosine of its free cone
-    (kernels.cone: a ray to the lamp with <n, s> above it meets no triangle; 2 when unknown)."""
+    the camera, the shadow ray's origin point + offset * normal, the cosine of its free cone
+    (kernels.cone: a ray to the lamp with <n, s> above it meets no triangle; NO_CONE when
+    unknown), and its row in the table of its sectors' free cones (-1: none), with the tangent
+    axes u, n x u that give a direction's sector."""
 
     point: wp.vec3d
     normal: wp.vec3d
@@ -225,11 +264,14 @@ class Surface:
     cos_e: wp.float64
     ray_origin: wp.vec3d
     free_cos: wp.float64
+    sector_row: wp.int32
+    u: wp.vec3d
+    w: wp.vec3d
 
 
 @wp.func
 def surface(point: wp.vec3d, normal: wp.vec3d, camera: wp.vec3d, offset_m: wp.float64,
-            free_cos: wp.float64) -> Surface:
+            free_cos: wp.float64, sector_row: wp.int32) -> Surface:
     """The Surface of a point with unit normal seen from the camera."""
     out = Surface()
     out.point = point
@@ -238,20 +280,36 @@ def surface(point: wp.vec3d, normal: wp.vec3d, camera: wp.vec3d, offset_m: wp.fl
     out.cos_e = wp.dot(normal, out.view)
     out.ray_origin = point + offset_m * normal
     out.free_cos = free_cos
+    out.sector_row = sector_row
+    out.u = tangent_u(normal)
+    out.w = wp.cross(normal, out.u)
     return out
 
 
 @wp.func
+def needs_ray(free_cos: wp.float64, sector_cos: wp.array2d(dtype=wp.float64), sector_row: wp.int32,
+              u: wp.vec3d, w: wp.vec3d, s: wp.vec3d, cos_i: wp.float64) -> wp.bool:
+    """Whether the unit direction s (<n, s> = cos_i) leaves a point's free cones (kernels.cone),
+    so that only a ray can tell whether it is blocked: outside the narrowest cone (free_cos),
+    then outside its azimuth sector's (row sector_row of sector_cos; none if -1)."""
+    if cos_i > free_cos:
+        return False
+    if sector_row < 0:
+        return True
+    return cos_i <= sector_cos[sector_row, sector_of(diamond_angle(wp.dot(s, u), wp.dot(s, w)))]
+
+
+@wp.func
 def shade_point(mesh_id: wp.uint64, shadows: wp.int32, cone: wp.int32, at: Surface,
-                lamp: wp.vec3d, lamp_axis: wp.vec3d, intensity_w_sr: wp.float64,
+                sector_cos: wp.array2d(dtype=wp.float64), lamp: wp.vec3d, lamp_axis: wp.vec3d, intensity_w_sr: wp.float64,
                 profile: wp.array2d(dtype=wp.float64), table: wp.array2d(dtype=wp.float64),
                 camera_constant: wp.float64, pixel_area_m2: wp.float64) -> Shading:
-    """One lamp (unit aim lamp_axis, axis intensity I(0) by axis_intensity) at one Surface seen
-    from the camera: gray per exposure c A Phi R / 8, Phi by the lamp's profile (cone_irradiance).
+    """One lamp (unit aim lamp_axis, axis intensity I(0) by axis_intensity) at one Surface
+    (its sectors' free cones in sector_cos) seen from the camera: gray per exposure c A Phi R / 8, Phi by the lamp's profile (cone_irradiance).
 
     Shadowed = attached shadow (<n,s> <= 0) or, with `shadows` and a mesh, the ray from
     point + offset * normal toward the lamp hits the mesh before the lamp (any hit within the
-    distance; none is cast inside the point's free cone, where none can hit); its value is 0.
+    distance; none is cast inside the point's free cones, where none can hit); its value is 0.
     Without `cone` the irradiance is the axis's everywhere. The dominant term is
     the BRDF's alone (cast shadows do not change it)."""
     out = Shading()
@@ -265,8 +323,9 @@ def shade_point(mesh_id: wp.uint64, shadows: wp.int32, cone: wp.int32, at: Surfa
     t = brdf_terms(cos_i, at.cos_e, cos_alpha, p)
     out.dominant = dominant_term(t, cos_i, at.cos_e)
     shadowed = cos_i <= wp.float64(0.0)
-    if not shadowed and shadows != 0 and cos_i <= at.free_cos:
-        shadowed = ray_blocked(mesh_id, at.ray_origin, s, d)
+    if not shadowed and shadows != 0:
+        if needs_ray(at.free_cos, sector_cos, at.sector_row, at.u, at.w, s, cos_i):
+            shadowed = ray_blocked(mesh_id, at.ray_origin, s, d)
     out.shadowed = shadowed
     out.value = wp.float64(0.0)
     if not shadowed:

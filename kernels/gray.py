@@ -30,16 +30,21 @@ class GrayResult:
 
 @wp.kernel
 def surface_kernel(points: wp.array(dtype=wp.vec3d), normals: wp.array(dtype=wp.vec3d), camera: wp.vec3d,
-                   offset_m: wp.float64, free_cos: wp.array(dtype=wp.float64),
+                   offset_m: wp.float64, free_cos: wp.array(dtype=wp.float64), sectors: wp.int32,
                    surfaces: wp.array(dtype=funcs.Surface)):
-    """One thread per sample point: what the shading needs of it alone (funcs.surface)."""
+    """One thread per sample point: what the shading needs of it alone (funcs.surface); its
+    sectors' cones in row p of the sector table, if `sectors`."""
     p = wp.tid()
-    surfaces[p] = funcs.surface(points[p], normals[p], camera, offset_m, free_cos[p])
+    row = -1
+    if sectors != 0:
+        row = p
+    surfaces[p] = funcs.surface(points[p], normals[p], camera, offset_m, free_cos[p], row)
 
 
 @wp.kernel
 def gray_kernel(mesh_id: wp.uint64, shadows: wp.int32, cone: wp.int32,
-                surfaces: wp.array(dtype=funcs.Surface), lamp_pos: wp.array(dtype=wp.vec3d),
+                surfaces: wp.array(dtype=funcs.Surface), sector_cos: wp.array2d(dtype=wp.float64),
+                lamp_pos: wp.array(dtype=wp.vec3d),
                 lamp_axis: wp.array(dtype=wp.vec3d), intensity_w_sr: wp.float64,
                 profile: wp.array2d(dtype=wp.float64), table: wp.array2d(dtype=wp.float64),
                 camera_constant: wp.float64, pixel_area_m2: wp.float64,
@@ -51,7 +56,7 @@ def gray_kernel(mesh_id: wp.uint64, shadows: wp.int32, cone: wp.int32,
     lamp = lamp_pos[c]
     axis = lamp_axis[c]
     for p in range(surfaces.shape[0]):
-        sh = funcs.shade_point(mesh_id, shadows, cone, surfaces[p], lamp, axis, intensity_w_sr,
+        sh = funcs.shade_point(mesh_id, shadows, cone, surfaces[p], sector_cos, lamp, axis, intensity_w_sr,
                                profile, table, camera_constant, pixel_area_m2)
         value[c, p] = sh.value
         shadowed[c, p] = sh.shadowed
@@ -93,19 +98,25 @@ class GrayInputs:
                                 wp.vec3d(*np.asarray(camera_pos, dtype=np.float64)), float(offset_m)]
         self._ray_origins = (points + float(offset_m) * normals, normals)
         self.surfaces = wp.empty(self.count, dtype=funcs.Surface, device=self.device)
-        self._set_free_cones(np.full(self.count, NO_CONE))
+        self._sector_cos, sector_cos_wp = output((max(1, self.count), funcs.SECTORS), np.float64, wp.float64)
+        self._set_free_cones(np.full(self.count, NO_CONE), None)
         self._lamps_seen = 0
         self.has_free_cones = False
         self._leading = [self._mesh.id if use_shadows else wp.uint64(0), int(use_shadows), int(bool(cone)),
-                         self.surfaces]
+                         self.surfaces, sector_cos_wp]
         self._trailing = [funcs.axis_intensity(power_w, cone_angle_rad), profile2d(profile, cone_angle_rad),
                           table2d(table), float(camera_constant), float(pixel_area_m2)]
         self._launches = {}
 
-    def _set_free_cones(self, free_cos):
+    def _set_free_cones(self, free_cos, sector_cos):
+        """The surfaces with these cones (sector_cos None: none by sector), in place: the
+        recorded launches read them."""
+        if sector_cos is not None:
+            self._sector_cos[:] = sector_cos
         if self.count:
             wp.launch(surface_kernel, dim=self.count, device=self.device,
-                      inputs=self._surface_inputs + [wp.array(free_cos, dtype=wp.float64, device=self.device)],
+                      inputs=self._surface_inputs + [wp.array(free_cos, dtype=wp.float64, device=self.device),
+                                                     int(sector_cos is not None)],
                       outputs=[self.surfaces])
 
     def __call__(self, lamp_pos, lamp_axis):
@@ -115,7 +126,7 @@ class GrayInputs:
         self._lamps_seen += len(lamp_pos)
         if (self._mesh is not None and not self.has_free_cones and self.count
                 and worth_finding(self._lamps_seen, self._mesh)):
-            self._set_free_cones(free_cone_cosines(self._mesh, *self._ray_origins))
+            self._set_free_cones(*free_cone_cosines(self._mesh, *self._ray_origins))
             self.has_free_cones = True
         if len(lamp_pos) * self.count > SMALL:
             return _Batch(self, len(lamp_pos)).run(lamp_pos, lamp_axis, copy=False)

@@ -16,6 +16,7 @@ from cell import geometry
 from cell.physics import reference as ref
 from kernels import cone, gray, visibility
 from kernels.cone import NO_CONE, free_cone_cosines
+from kernels.funcs import SECTORS
 from kernels.gray import GrayInputs, gray_per_exposure
 from kernels.mesh import WarpMesh
 from kernels.proximity import closest_points
@@ -273,44 +274,70 @@ def test_a_ray_through_the_walls_top_edge_counts_as_ambiguous(blocks):
     np.testing.assert_array_equal(ambiguous_rays(blocks, origin, dirs, 10.0, normals), [True, False])
 
 
+def sectors_of(normal, dirs):
+    """The azimuth sector of each unit direction about the normal, as kernels.funcs defines it:
+    u = n x (x, or y for n near x), w = n x u; the diamond angle of (<d, u>, <d, w>)."""
+    e = [0.0, 1.0, 0.0] if abs(normal[0]) > 0.9 else [1.0, 0.0, 0.0]
+    u = geometry.unit(np.cross(normal, e))
+    w = np.cross(normal, u)
+    x, y = dirs @ u, dirs @ w
+    r = np.abs(x) + np.abs(y)
+    diamond = np.where(y >= 0, np.where(x >= 0, y / r, 1 - x / r), np.where(x < 0, 2 - y / r, 3 + x / r))
+    return np.minimum((diamond * SECTORS / 4).astype(int), SECTORS - 1)
+
+
 def test_the_free_cone_beside_the_wall_reaches_its_top_edge(blocks):
     """At (0, 0, 10 mm) on the slab the wall's near top edge, 50 mm across and 80 mm up, is the
     nearest to the normal: beta = atan2(x_wall, z_top - z_origin), less the margin (float32
-    geometry as the mesh stores it). On a lone slab nothing is above: 90 deg. Under the slab
-    the axis meets it: no cone."""
+    geometry as the mesh stores it); the sectors facing away from the wall (more than 50 deg
+    from +x) see nothing above: 90 deg. On a lone slab every cone is 90 deg. Under the slab the
+    axis meets it: no cone."""
     x_wall = blocks.vertices[blocks.vertices[:, 0] > 0.04, 0].min()
     z_top = blocks.vertices[:, 2].max()
     origin = np.array([[0.0, 0.0, 0.01 + 1e-5]])
     up = np.array([[0.0, 0.0, 1.0]])
     beta = math.atan2(x_wall, z_top - origin[0, 2])
     assert math.degrees(beta) == pytest.approx(32.0, abs=0.1)
-    np.testing.assert_allclose(free_cone_cosines(blocks, origin, up), [math.cos(beta - cone.MARGIN_RAD)],
-                               rtol=0, atol=1e-12)
+    free, sectors = free_cone_cosines(blocks, origin, up)
+    np.testing.assert_allclose(free, [math.cos(beta - cone.MARGIN_RAD)], rtol=0, atol=1e-12)
+    az = np.radians(np.arange(0.0, 360.0, 0.25))
+    around = np.column_stack([np.cos(az), np.sin(az), np.zeros_like(az)])
+    k = sectors_of(up[0], around)
+    facing = np.unique(k[np.abs(np.angle(np.exp(1j * az))) < np.radians(50.0)])
+    away = np.setdiff1d(np.arange(SECTORS), facing)
+    assert len(away) >= SECTORS // 2 and sectors[0, k[0]] == free[0]          # +x: the wall's edge
+    np.testing.assert_allclose(sectors[0, away], math.sin(cone.MARGIN_RAD), rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(sectors[0, facing], free[0])        # the wall's faces span them all
+    assert np.all(sectors[0] <= free[0])                                # a sector's cone: never narrower
     slab = WarpMesh.from_trimesh(box((0.10, 0.10, 0.02), (0.0, 0.0, 0.0)))
-    np.testing.assert_allclose(free_cone_cosines(slab, origin, up), [math.sin(cone.MARGIN_RAD)], rtol=0, atol=1e-15)
-    assert free_cone_cosines(blocks, [[0.0, 0.0, -0.02]], up)[0] == NO_CONE
+    free, sectors = free_cone_cosines(slab, origin, up)
+    np.testing.assert_allclose(np.append(free, sectors), math.sin(cone.MARGIN_RAD), rtol=0, atol=1e-15)
+    free, sectors = free_cone_cosines(blocks, [[0.0, 0.0, -0.02]], up)
+    assert free[0] == NO_CONE and np.all(sectors == NO_CONE)
 
 
 def test_no_ray_inside_a_free_cone_hits_the_hinge(hinge):
-    """Soundness against the brute-force reference: rays from hinge samples inside their cones
-    never hit; the cones are tight (some rays within 0.02 rad outside hit)."""
+    """Soundness against the brute-force reference: rays from hinge samples inside their
+    sectors' cones never hit; the narrowest cone is tight (some ray 0.02 rad outside it hits; a
+    sector's may be narrower than it need be: a triangle counts with its nearest point in each
+    sector it reaches)."""
     mesh, _ = hinge
     rng = np.random.default_rng(11)
     points = np.column_stack([rng.uniform(-0.026, -0.005, 6), rng.uniform(-0.015, 0.015, 6), np.full(6, 0.004)])
     normals = np.tile([0.0, 0.0, 1.0], (6, 1))
     origins = points + 1e-5 * normals
-    free = free_cone_cosines(mesh, origins, normals)
-    assert np.all(free < 1.0)
-    beta = np.arccos(free)
-    for k in range(len(points)):
-        az = rng.uniform(-np.pi, np.pi, 400)
-        inside = geometry.direction_from_angles(az, np.pi / 2 - beta[k] * rng.uniform(0.0, 1.0, 400))
-        assert not ref.ray_hits_any(mesh, np.repeat(origins[k:k + 1], 400, 0), inside, 10.0).any()
-    rim = np.repeat(origins, 720, 0)
-    az = np.tile(np.radians(np.arange(0.0, 360.0, 0.5)), len(points))
-    outside = geometry.direction_from_angles(az, np.pi / 2 - np.repeat(beta, 720) - 0.02)
-    hits = ref.ray_hits_any(mesh, rim, outside, 10.0).reshape(len(points), 720)
-    assert hits.any(axis=1).all()
+    free, sectors = free_cone_cosines(mesh, origins, normals)
+    assert np.all(free < 1.0) and np.all(sectors <= free[:, None])
+    az = np.radians(np.arange(0.0, 360.0, 0.5))
+    flat = np.column_stack([np.cos(az), np.sin(az), np.zeros_like(az)])
+    assert np.mean(sectors < free[:, None]) > 0.25                     # sectors do widen them
+    for p in range(len(points)):
+        rays = np.repeat(origins[p:p + 1], len(az), 0)
+        beta = np.arccos(np.minimum(sectors[p], 1.0))[sectors_of(normals[p], flat)]
+        inside = geometry.direction_from_angles(az, np.pi / 2 - beta * rng.uniform(0.0, 1.0, len(az)))
+        assert not ref.ray_hits_any(mesh, rays, inside, 10.0).any()
+        outside = geometry.direction_from_angles(az, np.pi / 2 - np.arccos(free[p]) - 0.02)
+        assert ref.ray_hits_any(mesh, rays, outside, 10.0).any()
 
 
 def test_free_cones_change_no_gray_and_no_visibility(hinge, monkeypatch):
