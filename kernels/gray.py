@@ -1,4 +1,5 @@
 """Gray value per exposure for every (candidate lamp, sample point): the planner's bulk job."""
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -78,11 +79,11 @@ class GrayInputs:
     angular profile (None: eq. (11)'s ideal cone). Call with lamp_pos (C, 3) and lamp_axis
     (C, 3) (the aims, normalized here) for a GrayResult of (C, P) NumPy arrays.
 
-    The points' free cones (kernels.cone) are found once the lamps evaluated make them worth
-    it (kernels.cone.worth_finding: one ray per point per lamp): from then on only the rays
-    outside them are cast. The result is the same either way. A call of at
-    most SMALL evaluations replays its recorded launch (one per lamp count) on its own input and
-    output buffers and returns copies."""
+    The points' free cones (kernels.cone) are found once the lamps evaluated so far make them
+    worth it (kernels.cone.worth_finding, each lamp a ray per point): from then on only the rays
+    outside them are cast. The result is the same either way. A call of at most SMALL
+    evaluations replays its recorded launch (one per lamp count) on its own input and output
+    buffers, under a lock, and returns copies."""
 
     def __init__(self, mesh, points, normals, camera_pos, power_w, cone_angle_rad, table,
                  camera_constant, pixel_area_m2, shadows=True, cone=True, offset_m=1e-5, profile=None):
@@ -107,6 +108,7 @@ class GrayInputs:
         self._trailing = [funcs.axis_intensity(power_w, cone_angle_rad), profile2d(profile, cone_angle_rad),
                           table2d(table), float(camera_constant), float(pixel_area_m2)]
         self._launches = {}
+        self._lock = threading.Lock()
 
     def _set_free_cones(self, free_cos, sector_cos):
         """The surfaces with these cones (sector_cos None: none by sector), in place: the
@@ -123,17 +125,19 @@ class GrayInputs:
         lamp_pos = np.asarray(lamp_pos, dtype=np.float64).reshape(-1, 3)
         lamp_axis = unit_rows(np.broadcast_to(np.asarray(lamp_axis, dtype=np.float64), lamp_pos.shape),
                               "lamp_axis")
-        self._lamps_seen += len(lamp_pos)
-        if (self._mesh is not None and not self.has_free_cones and self.count
-                and worth_finding(self._lamps_seen, self._mesh)):
-            self._set_free_cones(*free_cone_cosines(self._mesh, *self._ray_origins))
-            self.has_free_cones = True
-        if len(lamp_pos) * self.count > SMALL:
-            return _Batch(self, len(lamp_pos)).run(lamp_pos, lamp_axis, copy=False)
-        batch = self._launches.get(len(lamp_pos))
-        if batch is None:
-            batch = self._launches[len(lamp_pos)] = _Batch(self, len(lamp_pos))
-        return batch.run(lamp_pos, lamp_axis, copy=True)
+        with self._lock:
+            self._lamps_seen += len(lamp_pos)
+            if (self._mesh is not None and not self.has_free_cones and self.count
+                    and worth_finding(self._lamps_seen, self._mesh)):
+                self._set_free_cones(*free_cone_cosines(self._mesh, *self._ray_origins))
+                self.has_free_cones = True
+            if len(lamp_pos) * self.count > SMALL:
+                batch = _Batch(self, len(lamp_pos))
+                return batch.run(lamp_pos, lamp_axis, copy=False)
+            batch = self._launches.get(len(lamp_pos))
+            if batch is None:
+                batch = self._launches[len(lamp_pos)] = _Batch(self, len(lamp_pos))
+            return batch.run(lamp_pos, lamp_axis, copy=True)
 
 
 class _Batch:
@@ -151,7 +155,7 @@ class _Batch:
             self.launch = wp.launch(gray_kernel, dim=lamps, device=inputs.device, record_cmd=True,
                                     inputs=inputs._leading + [pos_wp, axis_wp] + inputs._trailing,
                                     outputs=[out_wp for _, out_wp in self.outputs])
-            self._inputs_wp = (pos_wp, axis_wp)
+            self._inputs_wp = (pos_wp, axis_wp)         # the launch holds their addresses
 
     def run(self, lamp_pos, lamp_axis, copy):
         self.lamp_pos[:] = lamp_pos

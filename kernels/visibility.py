@@ -34,7 +34,8 @@ def visibility_kernel(mesh_id: wp.uint64, points: wp.array(dtype=wp.vec3d),
     visible[p, e, a] = ok
 
 
-def visibility_maps(mesh, points, normals, frame, azimuth, elevation, offset_m=1e-5, max_dist=10.0):
+def visibility_maps(mesh, points, normals, frame, azimuth, elevation, offset_m=1e-5, max_dist=10.0,
+                    free_cones=True):
     """bool (P, E, A): True where the ray from point + offset_m * normal along the direction
     (azimuth a, elevation e) escapes the mesh within max_dist [m].
 
@@ -58,7 +59,7 @@ def visibility_maps(mesh, points, normals, frame, azimuth, elevation, offset_m=1
     if visible.size == 0:
         return visible
     free_cos, sector_cos = np.full(len(points), NO_CONE), np.zeros((0, funcs.SECTORS))
-    if worth_finding(len(azimuth) * len(elevation), mesh):
+    if free_cones and worth_finding(len(azimuth) * len(elevation), mesh):
         free_cos, sector_cos = free_cone_cosines(mesh, points + offset_m * normals, normals)
     wp.launch(visibility_kernel, dim=shape, device=device, inputs=[
         mesh.id, vec3d(points, "points"), vec3d(normals, "normals"), wp.mat33d(*frame.ravel()),
