@@ -218,8 +218,8 @@ SECTORS_PER_QUADRANT = wp.constant(wp.float64(SECTORS / 4))
 
 @wp.func
 def tangent_u(normal: wp.vec3d) -> wp.vec3d:
-    """A unit vector in the tangent plane (x, or y for a normal near x): with v = n x u it
-    measures a direction's azimuth about the normal."""
+    """A unit vector in the tangent plane (n x x, or n x y for a normal near x): with w = n x u
+    it measures a direction's azimuth about the normal."""
     e = wp.vec3d(wp.float64(1.0), wp.float64(0.0), wp.float64(0.0))
     if wp.abs(normal[0]) > wp.float64(0.9):
         e = wp.vec3d(wp.float64(0.0), wp.float64(1.0), wp.float64(0.0))
@@ -301,11 +301,13 @@ def needs_ray(free_cos: wp.float64, sector_cos: wp.array2d(dtype=wp.float64), se
 
 @wp.func
 def shade_point(mesh_id: wp.uint64, shadows: wp.int32, cone: wp.int32, at: Surface,
-                sector_cos: wp.array2d(dtype=wp.float64), lamp: wp.vec3d, lamp_axis: wp.vec3d, intensity_w_sr: wp.float64,
-                profile: wp.array2d(dtype=wp.float64), table: wp.array2d(dtype=wp.float64),
-                camera_constant: wp.float64, pixel_area_m2: wp.float64) -> Shading:
+                sector_cos: wp.array2d(dtype=wp.float64), lamp: wp.vec3d, lamp_axis: wp.vec3d,
+                intensity_w_sr: wp.float64, profile: wp.array2d(dtype=wp.float64),
+                table: wp.array2d(dtype=wp.float64), camera_constant: wp.float64,
+                pixel_area_m2: wp.float64) -> Shading:
     """One lamp (unit aim lamp_axis, axis intensity I(0) by axis_intensity) at one Surface
-    (its sectors' free cones in sector_cos) seen from the camera: gray per exposure c A Phi R / 8, Phi by the lamp's profile (cone_irradiance).
+    (its sectors' free cones in sector_cos) seen from the camera: gray per exposure
+    c A Phi R / 8, Phi by the lamp's profile (cone_irradiance).
 
     Shadowed = attached shadow (<n,s> <= 0) or, with `shadows` and a mesh, the ray from
     point + offset * normal toward the lamp hits the mesh before the lamp (any hit within the
