@@ -3,8 +3,7 @@ vectorized over candidates: gray per sample from the bulk Warp kernel (G = b + u
 eq. 10, 11, 17, b the sensor's black level), the exposure that centres it in the band (sec. 5.4)
 and the lamp moved by its tolerance.
 The requirements (cell.requirements) are judged on these values."""
-from dataclasses import dataclass, fields, replace
-from functools import cached_property
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
@@ -49,6 +48,23 @@ def target_gray(band):
     return float(np.sqrt(max(low, 0.25 * high) * high))
 
 
+class KernelInputs:
+    """A Problem's Warp inputs (kernels.gray.GrayInputs), shared with the Problems `replace`
+    makes of it (a search replaces its maps): built for the task, scene and material they were
+    made of, rebuilt where one of those is another object. Pickled empty: Warp handles stay in
+    their process."""
+
+    def __init__(self):
+        self.made_of = None
+        self.gray = None
+
+    def __getstate__(self):
+        return {}
+
+    def __setstate__(self, state):
+        self.__init__()
+
+
 @dataclass(frozen=True)
 class Problem:
     """Everything a shot's evaluation needs, fixed before the search: the task, the scene, the
@@ -67,21 +83,22 @@ class Problem:
     depth_needed_m: float
     kappa_open: float
     camera_unseen: int
+    kernels: KernelInputs = field(default_factory=KernelInputs, compare=False, repr=False)
 
-    @cached_property
+    @property
     def gray_inputs(self):
-        """The kernel's fixed inputs (kernels.gray.GrayInputs), converted once per Problem: a
-        search evaluates it hundreds of times."""
+        """The kernel's fixed inputs (kernels.gray.GrayInputs), converted once per plan: a search
+        evaluates it hundreds of times, on Problems that differ in their maps alone."""
         from kernels.gray import GrayInputs
-        task, scene = self.task, self.scene
-        return GrayInputs(scene.warp_mesh, scene.points, scene.normals, scene.camera_position,
-                          task.lamp.power_w, task.lamp.cone_angle_rad, self.material.table(),
-                          task.camera.sensor.camera_constant, task.camera.sensor.pixel_area_m2,
-                          profile=task.lamp.profile)
-
-    def __getstate__(self):
-        """Pickled without the Warp arrays (rebuilt where unpickled)."""
-        return {k: v for k, v in self.__dict__.items() if k != "gray_inputs"}
+        task, scene, material = self.task, self.scene, self.material
+        made_of = self.kernels.made_of
+        if made_of is None or any(a is not b for a, b in zip(made_of, (task, scene, material))):
+            self.kernels.gray = GrayInputs(scene.warp_mesh, scene.points, scene.normals, scene.camera_position,
+                                           task.lamp.power_w, task.lamp.cone_angle_rad, material.table(),
+                                           task.camera.sensor.camera_constant, task.camera.sensor.pixel_area_m2,
+                                           profile=task.lamp.profile)
+            self.kernels.made_of = (task, scene, material)
+        return self.kernels.gray
 
 
 def planning_band(task):

@@ -92,25 +92,26 @@ def benchmark_visibility(mesh, points, normals, frame, azimuth, elevation,
                          reference_evaluations=20_000, reference_rays=100_000, repeat=3, offset_m=1e-5):
     """Visibility evaluations (point x direction) per second, kernels.visibility vs
     cell.physics.reference (on the first points, up to reference_evaluations); and rays per second
-    on the rays the kernel casts (directions above each tangent plane) vs trimesh's
-    ray_triangle and embree casters (up to reference_rays of them). Returns three rows."""
+    on the rays above each tangent plane, every one cast (the kernel without its free cones), vs
+    trimesh's ray_triangle and embree casters (up to reference_rays of them). Returns three rows."""
     points = np.asarray(points, dtype=float).reshape(-1, 3)
     normals = np.asarray(normals, dtype=float).reshape(-1, 3)
     per_point = len(azimuth) * len(elevation)
     size = len(points) * per_point
     n_ref = max(1, min(len(points), reference_evaluations // per_point))
 
-    def run(impl, count):
-        return lambda: impl(mesh, points[:count], normals[:count], frame, azimuth, elevation)
+    def run(impl, count, **options):
+        return lambda: impl(mesh, points[:count], normals[:count], frame, azimuth, elevation, **options)
 
     run(visibility_maps, 1)()
     t_warp = median_time(run(visibility_maps, len(points)), repeat)
+    t_rays = median_time(run(visibility_maps, len(points), free_cones=False), repeat)
     t_ref = median_time(run(reference.visibility_maps, n_ref), 1)
     rows = [_row("visibility", size, size / t_warp, "numpy", n_ref * per_point, n_ref * per_point / t_ref)]
 
     dirs = reference.feature_directions(frame, azimuth, elevation).reshape(-1, 3)
     p, d = np.nonzero(normals @ dirs.T > reference.TANGENT_EPS)
-    rays_per_s = len(p) / t_warp
+    rays_per_s = len(p) / t_rays
     pick = np.random.default_rng(0).permutation(len(p))[:reference_rays]
     origins, ray_dirs = points[p[pick]] + offset_m * normals[p[pick]], dirs[d[pick]]
     for name, module in (("rays vs trimesh", "ray_triangle"), ("rays vs embree", "ray_pyembree")):

@@ -6,6 +6,8 @@ Pure arrays in, NumPy out; nothing here knows of task files or devices. Warp sta
     kernels.mesh.WarpMesh(vertices, faces)                 BVH of a triangle mesh [m]
     kernels.visibility.visibility_maps(...)  -> bool (P, E, A)
     kernels.gray.gray_per_exposure(...)      -> GrayResult (value, shadowed, off_axis, dominant)
+    kernels.gray.GrayInputs(...)(lamps, aims) the same, its fixed inputs converted once
+    kernels.cone.free_cone_cosines(...)      -> the cones about each normal no triangle enters
     kernels.render.render(...)               -> RenderResult (value, hit, depth, normal)
     kernels.proximity.closest_points(...)    -> (point, face, normal) on the surface
 

@@ -20,19 +20,30 @@ def unit_rows(a, name):
     return a / norm
 
 
+def with_slopes(t):
+    """Table (K, 1 + N) [x, y_1..y_N] -> (K, 1 + 2N) [x, y_1..y_N, slope_1..slope_N]: slope_i of
+    row j is (y_i[j+1] - y_i[j]) / (x[j+1] - x[j]), numpy.interp's (0 on the last row), so the
+    kernels interpolate without a division."""
+    slopes = np.zeros_like(t[:, 1:])
+    slopes[:-1] = np.diff(t[:, 1:], axis=0) / np.diff(t[:, :1], axis=0)
+    return wp.array(np.hstack([t, slopes]), dtype=wp.float64, device="cpu")
+
+
 def table2d(table):
-    """Material table (K, 6) [phase_rad, rho, sigma1, m1, sigma2, m2], ascending phase."""
+    """Material table (K, 6) [phase_rad, rho, sigma1, m1, sigma2, m2], ascending phase, with its
+    slopes (with_slopes): (K, 11)."""
     t = np.ascontiguousarray(table, dtype=np.float64)
     if t.ndim != 2 or t.shape[1] != 6 or len(t) < 1:
         raise ValueError(f"material table must have shape (K, 6), got {t.shape}")
     if np.any(np.diff(t[:, 0]) <= 0.0):
         raise ValueError("material table phase angles must be strictly ascending")
-    return wp.array(t, dtype=wp.float64, device="cpu")
+    return with_slopes(t)
 
 
 def profile2d(profile, cone_angle_rad):
     """Lamp profile (M, 2) [off_axis_rad, relative], angles ascending from 0; None: eq. (11)'s
-    ideal cone, 1 up to gamma/2 and 0 beyond (as cell.physics.radiometry.hard_cone_profile)."""
+    ideal cone, 1 up to gamma/2 and 0 beyond (as cell.physics.radiometry.hard_cone_profile).
+    With its slopes (with_slopes): (M, 3)."""
     if profile is None:
         profile = [[0.0, 1.0], [0.5 * float(cone_angle_rad), 1.0]]
     p = np.ascontiguousarray(profile, dtype=np.float64)
@@ -40,7 +51,7 @@ def profile2d(profile, cone_angle_rad):
         raise ValueError(f"lamp profile must have shape (M >= 2, 2), got {p.shape}")
     if p[0, 0] != 0.0 or np.any(np.diff(p[:, 0]) <= 0.0):
         raise ValueError("lamp profile off-axis angles must start at 0 and be strictly ascending")
-    return wp.array(p, dtype=wp.float64, device="cpu")
+    return with_slopes(p)
 
 
 def output(shape, dtype, wp_dtype):

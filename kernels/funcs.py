@@ -8,12 +8,12 @@ Radiometry is float64 throughout: c**m with m ~ 1e4 in float32 carries a relativ
 about m * eps32 ~ 1e-3, too much for a 1e-5 agreement with the reference. Only ray casting is
 float32, because wp.Mesh stores float32 vertices.
 Directions point away from the surface point: n normal, s to the lamp, v to the camera.
+What depends on the point alone (v, cos te, the shadow ray's origin) or on the lamp alone (its
+unit aim, its axis intensity) is computed once by the callers, not per evaluation.
 """
 import math
 
 import warp as wp
-
-TWO_PI = wp.constant(wp.float64(2.0 * math.pi))   # wp.pi is float32
 
 # Directions within this cosine of a point's tangent plane count as below it: a ray along
 # the tangent plane grazes the part's own surface, and the sign of a ~1e-17 dot product
@@ -49,35 +49,34 @@ class Shading:
 
 # --- BRDF, eq. (6)-(7) ---------------------------------------------------------------
 
-@wp.func
-def log1p(x: wp.float64) -> wp.float64:
-    """log(1 + x), accurate for small x (Goldberg: log(u) x / (u - 1), u = 1 + x)."""
-    u = wp.float64(1.0) + x
-    if u == wp.float64(1.0):
-        return x
-    return wp.log(u) * (x / (u - wp.float64(1.0)))
+# exp(x) is 0 in float64 below this (e^-746 < half the smallest subnormal): no need to call it
+EXP_ZERO_BELOW = wp.constant(wp.float64(-746.0))
 
 
 @wp.func
-def stable_power(base: wp.float64, exponent: wp.float64) -> wp.float64:
-    """base**exponent = exp(m log1p(b - 1)) for b in (0, 1], m up to ~1e5; 0 where base <= 0."""
-    b = wp.min(base, wp.float64(1.0))
-    if b <= wp.float64(0.0):
+def power_of(log_base: wp.float64, exponent: wp.float64) -> wp.float64:
+    """b**m = exp(m ln b) from ln b (one log serves the lobe and the spike); exactly 0 where
+    exp underflows. ln b <= 0 and m up to ~1e5 (c^m in float32 would be off by ~m eps32)."""
+    x = exponent * log_base
+    if x < EXP_ZERO_BELOW:
         return wp.float64(0.0)
-    return wp.exp(exponent * log1p(b - wp.float64(1.0)))
+    return wp.exp(x)
 
 
 @wp.func
-def _interp_column(table: wp.array2d(dtype=wp.float64), j: int, column: int, x: wp.float64) -> wp.float64:
-    """numpy.interp's formula on the bracket [j, j + 1] of one table column."""
-    slope = (table[j + 1, column] - table[j, column]) / (table[j + 1, 0] - table[j, 0])
-    return slope * (x - table[j, 0]) + table[j, column]
+def _interp_column(table: wp.array2d(dtype=wp.float64), j: int, column: int, slopes: int,
+                   x: wp.float64) -> wp.float64:
+    """numpy.interp's formula slope * (x - x_j) + y_j on the bracket [j, j + 1] of one table
+    column, its slope (y_j+1 - y_j) / (x_j+1 - x_j) precomputed in column `column + slopes`
+    (kernels._arrays: the same division, done once)."""
+    return table[j, column + slopes] * (x - table[j, 0]) + table[j, column]
 
 
 @wp.func
 def material_at(table: wp.array2d(dtype=wp.float64), phase_rad: wp.float64) -> BrdfParameters:
-    """Material table (K, 6) [phase_rad, rho, sigma1, m1, sigma2, m2] at a phase angle:
-    linear in phase, clamped at the ends (numpy.interp, as cell.material.Material.at)."""
+    """Material table (K, 11) [phase_rad, rho, sigma1, m1, sigma2, m2, their 5 slopes]
+    (kernels._arrays.table2d) at a phase angle: linear in phase, clamped at the ends
+    (numpy.interp, as cell.material.Material.at)."""
     k = table.shape[0]
     p = BrdfParameters()
     row = int(-1)
@@ -95,11 +94,11 @@ def material_at(table: wp.array2d(dtype=wp.float64), phase_rad: wp.float64) -> B
     j = int(0)
     while table[j + 1, 0] <= phase_rad:     # table[j, 0] <= phase < table[j + 1, 0]
         j += 1
-    p.rho = _interp_column(table, j, 1, phase_rad)
-    p.sigma1 = _interp_column(table, j, 2, phase_rad)
-    p.m1 = _interp_column(table, j, 3, phase_rad)
-    p.sigma2 = _interp_column(table, j, 4, phase_rad)
-    p.m2 = _interp_column(table, j, 5, phase_rad)
+    p.rho = _interp_column(table, j, 1, 5, phase_rad)
+    p.sigma1 = _interp_column(table, j, 2, 5, phase_rad)
+    p.m1 = _interp_column(table, j, 3, 5, phase_rad)
+    p.sigma2 = _interp_column(table, j, 4, 5, phase_rad)
+    p.m2 = _interp_column(table, j, 5, 5, phase_rad)
     return p
 
 
@@ -117,7 +116,10 @@ def brdf_terms(cos_i: wp.float64, cos_e: wp.float64, cos_alpha: wp.float64,
     if cos_i <= wp.float64(0.0) or cos_e <= wp.float64(0.0):
         return wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
     c = mirror_cosine(cos_i, cos_e, cos_alpha)
-    return wp.vec3d(cos_i, p.sigma1 * stable_power(c, p.m1), p.sigma2 * stable_power(c, p.m2))
+    if c <= wp.float64(0.0):
+        return wp.vec3d(cos_i, wp.float64(0.0), wp.float64(0.0))
+    log_c = wp.log(wp.min(c, wp.float64(1.0)))
+    return wp.vec3d(cos_i, p.sigma1 * power_of(log_c, p.m1), p.sigma2 * power_of(log_c, p.m2))
 
 
 @wp.func
@@ -139,39 +141,20 @@ def phase_cosine(s: wp.vec3d, v: wp.vec3d) -> wp.float64:
     return wp.clamp(wp.dot(s, v), wp.float64(-1.0), wp.float64(1.0))
 
 
-@wp.func
-def brdf_reflectance(n: wp.vec3d, s: wp.vec3d, v: wp.vec3d,
-                     table: wp.array2d(dtype=wp.float64)) -> wp.float64:
-    """R of eq. (7) for unit vectors, material at the phase angle alpha = angle(s, v)."""
-    cos_alpha = phase_cosine(s, v)
-    p = material_at(table, wp.acos(cos_alpha))
-    t = brdf_terms(wp.dot(n, s), wp.dot(n, v), cos_alpha, p)
-    return p.rho * (t[0] + t[1] + t[2])
-
-
-@wp.func
-def brdf_dominant(n: wp.vec3d, s: wp.vec3d, v: wp.vec3d,
-                  table: wp.array2d(dtype=wp.float64)) -> wp.int32:
-    """dominant_term for unit vectors (DIFFUSE, LOBE, SPIKE or OCCLUDED)."""
-    cos_alpha = phase_cosine(s, v)
-    p = material_at(table, wp.acos(cos_alpha))
-    cos_i = wp.dot(n, s)
-    cos_e = wp.dot(n, v)
-    return dominant_term(brdf_terms(cos_i, cos_e, cos_alpha, p), cos_i, cos_e)
-
-
 # --- Radiometry, eq. (10), (11), (17) -----------------------------------------------------
 
 @wp.func
-def off_axis_angle(lamp_axis: wp.vec3d, lamp_to_point: wp.vec3d) -> wp.float64:
-    """Angle [rad] between the lamp's aim and the ray from the lamp to the point."""
-    c = wp.dot(wp.normalize(lamp_axis), wp.normalize(lamp_to_point))
-    return wp.acos(wp.clamp(c, wp.float64(-1.0), wp.float64(1.0)))
+def off_axis_angle(lamp_axis: wp.vec3d, to_lamp: wp.vec3d) -> wp.float64:
+    """Angle [rad] between the lamp's unit aim a and the ray from the lamp to the point, -s for
+    the unit s toward the lamp: 2 asin(|a + s| / 2), the chord's angle, which needs no clamp and
+    is accurate near 0 where acos(<a, -s>) is not (and costs less there)."""
+    return wp.float64(2.0) * wp.asin(wp.min(wp.float64(0.5) * wp.length(lamp_axis + to_lamp), wp.float64(1.0)))
 
 
 @wp.func
 def relative_intensity(profile: wp.array2d(dtype=wp.float64), off_axis_rad: wp.float64) -> wp.float64:
-    """Lamp profile (M, 2) [off_axis_rad ascending from 0, relative] at an off-axis angle:
+    """Lamp profile (M, 3) [off_axis_rad ascending from 0, relative, slope]
+    (kernels._arrays.profile2d) at an off-axis angle:
     I(theta) / I(0), linear between the angles, 0 beyond the last (numpy.interp(..., right=0),
     as cell.physics.radiometry.relative_intensity)."""
     theta = wp.abs(off_axis_rad)
@@ -185,20 +168,25 @@ def relative_intensity(profile: wp.array2d(dtype=wp.float64), off_axis_rad: wp.f
     j = int(0)
     while profile[j + 1, 0] <= theta:       # profile[j, 0] <= theta < profile[j + 1, 0]
         j += 1
-    return _interp_column(profile, j, 1, theta)
+    return _interp_column(profile, j, 1, 1, theta)
+
+
+def axis_intensity(power_w, cone_angle_rad):
+    """I(0) = P_L / (2 pi (1 - cos(gamma/2))) [W/sr], eq. (11)'s power spread over its cone's
+    solid angle (plain Python: once per lamp, not per evaluation)."""
+    return float(power_w) / (2.0 * math.pi * (1.0 - math.cos(0.5 * float(cone_angle_rad))))
 
 
 @wp.func
-def cone_irradiance(power_w: wp.float64, cone_angle_rad: wp.float64, distance_m: wp.float64,
-                    off_axis_rad: wp.float64, profile: wp.array2d(dtype=wp.float64)) -> wp.float64:
-    """Eq. (11) scaled by the lamp's profile: Phi = I(theta)/I(0) P_L / (2 pi (1 - cos(gamma/2)) d^2)
-    [W/m^2], normalized by the cone angle gamma as eq. (11); the ideal cone's profile is 1 up to
-    gamma/2 and 0 beyond."""
+def cone_irradiance(intensity_w_sr: wp.float64, distance_m: wp.float64, off_axis_rad: wp.float64,
+                    profile: wp.array2d(dtype=wp.float64)) -> wp.float64:
+    """Eq. (11) scaled by the lamp's profile: Phi = I(theta)/I(0) I(0) / d^2 [W/m^2], I(0) by
+    axis_intensity (normalized by the cone angle gamma as eq. 11); the ideal cone's profile is 1
+    up to gamma/2 and 0 beyond."""
     relative = relative_intensity(profile, off_axis_rad)
     if relative <= wp.float64(0.0):
         return wp.float64(0.0)
-    solid_angle = TWO_PI * (wp.float64(1.0) - wp.cos(wp.float64(0.5) * cone_angle_rad))
-    return relative * power_w / (solid_angle * distance_m * distance_m)
+    return relative * intensity_w_sr / (distance_m * distance_m)
 
 
 @wp.func
@@ -224,42 +212,129 @@ def ray_blocked(mesh_id: wp.uint64, origin: wp.vec3d, direction: wp.vec3d,
     return wp.mesh_query_ray_anyhit(mesh_id, wp.vec3(origin), wp.vec3(direction), wp.float32(max_dist))
 
 
+SECTORS = wp.constant(16)        # azimuth sectors of a point's free cones (kernels.cone)
+SECTORS_PER_QUADRANT = wp.constant(wp.float64(SECTORS / 4))
+
+
 @wp.func
-def shade_point(mesh_id: wp.uint64, shadows: wp.int32, cone: wp.int32, offset_m: wp.float64,
-                point: wp.vec3d, normal: wp.vec3d, camera: wp.vec3d,
-                lamp: wp.vec3d, lamp_axis: wp.vec3d, power_w: wp.float64,
-                cone_angle_rad: wp.float64, profile: wp.array2d(dtype=wp.float64),
-                table: wp.array2d(dtype=wp.float64),
-                camera_constant: wp.float64, pixel_area_m2: wp.float64) -> Shading:
-    """One lamp at one point seen from the camera: gray per exposure c A Phi R / 8, Phi by the
-    lamp's profile (cone_irradiance).
+def tangent_u(normal: wp.vec3d) -> wp.vec3d:
+    """A unit vector in the tangent plane (n x x, or n x y for a normal near x): with w = n x u
+    it measures a direction's azimuth about the normal."""
+    e = wp.vec3d(wp.float64(1.0), wp.float64(0.0), wp.float64(0.0))
+    if wp.abs(normal[0]) > wp.float64(0.9):
+        e = wp.vec3d(wp.float64(0.0), wp.float64(1.0), wp.float64(0.0))
+    return wp.normalize(wp.cross(normal, e))
+
+
+@wp.func
+def diamond_angle(x: wp.float64, y: wp.float64) -> wp.float64:
+    """A stand-in for atan2(y, x) in [0, 4), increasing with it, with no transcendental
+    (y / (|x| + |y|) per quadrant); (0, 0) gives 0."""
+    r = wp.abs(x) + wp.abs(y)
+    if r == wp.float64(0.0):
+        return wp.float64(0.0)
+    if y >= wp.float64(0.0):
+        if x >= wp.float64(0.0):
+            return y / r
+        return wp.float64(1.0) - x / r
+    if x < wp.float64(0.0):
+        return wp.float64(2.0) - y / r
+    return wp.float64(3.0) + x / r
+
+
+@wp.func
+def sector_of(diamond: wp.float64) -> wp.int32:
+    """The azimuth sector 0..SECTORS-1 of a diamond angle."""
+    k = wp.int32(wp.floor(diamond * SECTORS_PER_QUADRANT))
+    return wp.min(k, SECTORS - 1)
+
+
+@wp.struct
+class Surface:
+    """A surface point as the shading sees it, all of it the point's own (computed once per
+    point, whatever the lamp): where it is, its unit normal, the unit direction v and cos te to
+    the camera, the shadow ray's origin point + offset * normal, the cosine of its free cone
+    (kernels.cone: a ray to the lamp with <n, s> above it meets no triangle; NO_CONE when
+    unknown), and its row in the table of its sectors' free cones (-1: none), with the tangent
+    axes u, n x u that give a direction's sector."""
+
+    point: wp.vec3d
+    normal: wp.vec3d
+    view: wp.vec3d
+    cos_e: wp.float64
+    ray_origin: wp.vec3d
+    free_cos: wp.float64
+    sector_row: wp.int32
+    u: wp.vec3d
+    w: wp.vec3d
+
+
+@wp.func
+def surface(point: wp.vec3d, normal: wp.vec3d, camera: wp.vec3d, offset_m: wp.float64,
+            free_cos: wp.float64, sector_row: wp.int32) -> Surface:
+    """The Surface of a point with unit normal seen from the camera."""
+    out = Surface()
+    out.point = point
+    out.normal = normal
+    out.view = wp.normalize(camera - point)
+    out.cos_e = wp.dot(normal, out.view)
+    out.ray_origin = point + offset_m * normal
+    out.free_cos = free_cos
+    out.sector_row = sector_row
+    out.u = tangent_u(normal)
+    out.w = wp.cross(normal, out.u)
+    return out
+
+
+@wp.func
+def needs_ray(free_cos: wp.float64, sector_cos: wp.array2d(dtype=wp.float64), sector_row: wp.int32,
+              u: wp.vec3d, w: wp.vec3d, s: wp.vec3d, cos_i: wp.float64) -> wp.bool:
+    """Whether the unit direction s (<n, s> = cos_i) leaves a point's free cones (kernels.cone),
+    so that only a ray can tell whether it is blocked: outside the narrowest cone (free_cos),
+    then outside its azimuth sector's (row sector_row of sector_cos; none if -1)."""
+    if cos_i > free_cos:
+        return False
+    if sector_row < 0:
+        return True
+    return cos_i <= sector_cos[sector_row, sector_of(diamond_angle(wp.dot(s, u), wp.dot(s, w)))]
+
+
+@wp.func
+def shade_point(mesh_id: wp.uint64, shadows: wp.int32, cone: wp.int32, at: Surface,
+                sector_cos: wp.array2d(dtype=wp.float64), lamp: wp.vec3d, lamp_axis: wp.vec3d,
+                intensity_w_sr: wp.float64, profile: wp.array2d(dtype=wp.float64),
+                table: wp.array2d(dtype=wp.float64), camera_constant: wp.float64,
+                pixel_area_m2: wp.float64) -> Shading:
+    """One lamp (unit aim lamp_axis, axis intensity I(0) by axis_intensity) at one Surface
+    (its sectors' free cones in sector_cos) seen from the camera: gray per exposure
+    c A Phi R / 8, Phi by the lamp's profile (cone_irradiance).
 
     Shadowed = attached shadow (<n,s> <= 0) or, with `shadows` and a mesh, the ray from
-    point + offset * normal toward the lamp hits the mesh before the lamp; its value is 0.
+    point + offset * normal toward the lamp hits the mesh before the lamp (any hit within the
+    distance; none is cast inside the point's free cones, where none can hit); its value is 0.
     Without `cone` the irradiance is the axis's everywhere. The dominant term is
     the BRDF's alone (cast shadows do not change it)."""
     out = Shading()
-    to_lamp = lamp - point
+    to_lamp = lamp - at.point
     d = wp.length(to_lamp)
     s = to_lamp / d
-    v = wp.normalize(camera - point)
-    out.off_axis = off_axis_angle(lamp_axis, -s)
-    cos_i = wp.dot(normal, s)
-    cos_e = wp.dot(normal, v)
-    cos_alpha = phase_cosine(s, v)
+    out.off_axis = off_axis_angle(lamp_axis, s)
+    cos_i = wp.dot(at.normal, s)
+    cos_alpha = phase_cosine(s, at.view)
     p = material_at(table, wp.acos(cos_alpha))
-    t = brdf_terms(cos_i, cos_e, cos_alpha, p)
-    reflectance = p.rho * (t[0] + t[1] + t[2])
-    out.dominant = dominant_term(t, cos_i, cos_e)
+    t = brdf_terms(cos_i, at.cos_e, cos_alpha, p)
+    out.dominant = dominant_term(t, cos_i, at.cos_e)
     shadowed = cos_i <= wp.float64(0.0)
     if not shadowed and shadows != 0:
-        shadowed = ray_blocked(mesh_id, point + offset_m * normal, s, d)
+        if needs_ray(at.free_cos, sector_cos, at.sector_row, at.u, at.w, s, cos_i):
+            shadowed = ray_blocked(mesh_id, at.ray_origin, s, d)
     out.shadowed = shadowed
-    off_axis = out.off_axis
-    if cone == 0:
-        off_axis = wp.float64(0.0)
-    irradiance = cone_irradiance(power_w, cone_angle_rad, d, off_axis, profile)
     out.value = wp.float64(0.0)
     if not shadowed:
-        out.value = gray_per_exposure(camera_constant, pixel_area_m2, irradiance, reflectance)
+        off_axis = out.off_axis
+        if cone == 0:
+            off_axis = wp.float64(0.0)
+        irradiance = cone_irradiance(intensity_w_sr, d, off_axis, profile)
+        out.value = gray_per_exposure(camera_constant, pixel_area_m2, irradiance,
+                                      p.rho * (t[0] + t[1] + t[2]))
     return out

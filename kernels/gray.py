@@ -1,4 +1,5 @@
 """Gray value per exposure for every (candidate lamp, sample point): the planner's bulk job."""
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -6,6 +7,7 @@ import warp as wp
 
 from . import funcs
 from ._arrays import output, profile2d, table2d, unit_rows, vec3d
+from .cone import NO_CONE, free_cone_cosines, worth_finding
 from .runtime import ensure_init
 
 
@@ -28,36 +30,60 @@ class GrayResult:
 
 
 @wp.kernel
-def gray_kernel(mesh_id: wp.uint64, shadows: wp.int32, cone: wp.int32, offset_m: wp.float64,
-                points: wp.array(dtype=wp.vec3d), normals: wp.array(dtype=wp.vec3d),
-                camera: wp.vec3d, lamp_pos: wp.array(dtype=wp.vec3d),
-                lamp_axis: wp.array(dtype=wp.vec3d), power_w: wp.float64,
-                cone_angle_rad: wp.float64, profile: wp.array2d(dtype=wp.float64),
-                table: wp.array2d(dtype=wp.float64),
+def surface_kernel(points: wp.array(dtype=wp.vec3d), normals: wp.array(dtype=wp.vec3d), camera: wp.vec3d,
+                   offset_m: wp.float64, free_cos: wp.array(dtype=wp.float64), sectors: wp.int32,
+                   surfaces: wp.array(dtype=funcs.Surface)):
+    """One thread per sample point: what the shading needs of it alone (funcs.surface); its
+    sectors' cones in row p of the sector table, if `sectors`."""
+    p = wp.tid()
+    row = -1
+    if sectors != 0:
+        row = p
+    surfaces[p] = funcs.surface(points[p], normals[p], camera, offset_m, free_cos[p], row)
+
+
+@wp.kernel
+def gray_kernel(mesh_id: wp.uint64, shadows: wp.int32, cone: wp.int32,
+                surfaces: wp.array(dtype=funcs.Surface), sector_cos: wp.array2d(dtype=wp.float64),
+                lamp_pos: wp.array(dtype=wp.vec3d),
+                lamp_axis: wp.array(dtype=wp.vec3d), intensity_w_sr: wp.float64,
+                profile: wp.array2d(dtype=wp.float64), table: wp.array2d(dtype=wp.float64),
                 camera_constant: wp.float64, pixel_area_m2: wp.float64,
                 value: wp.array2d(dtype=wp.float64), shadowed: wp.array2d(dtype=wp.bool),
                 off_axis: wp.array2d(dtype=wp.float64), dominant: wp.array2d(dtype=wp.int8)):
-    """One thread per (candidate lamp c, sample point p)."""
-    c, p = wp.tid()
-    sh = funcs.shade_point(mesh_id, shadows, cone, offset_m, points[p], normals[p], camera,
-                           lamp_pos[c], lamp_axis[c], power_w, cone_angle_rad, profile, table,
-                           camera_constant, pixel_area_m2)
-    value[c, p] = sh.value
-    shadowed[c, p] = sh.shadowed
-    off_axis[c, p] = sh.off_axis
-    dominant[c, p] = wp.int8(sh.dominant)
+    """One thread per candidate lamp c, over every sample point p (on the CPU a thread is a
+    loop's turn: this way the lamp is read once and no thread index is divided)."""
+    c = wp.tid()
+    lamp = lamp_pos[c]
+    axis = lamp_axis[c]
+    for p in range(surfaces.shape[0]):
+        sh = funcs.shade_point(mesh_id, shadows, cone, surfaces[p], sector_cos, lamp, axis, intensity_w_sr,
+                               profile, table, camera_constant, pixel_area_m2)
+        value[c, p] = sh.value
+        shadowed[c, p] = sh.shadowed
+        off_axis[c, p] = sh.off_axis
+        dominant[c, p] = wp.int8(sh.dominant)
+
+
+SMALL = 1 << 16         # evaluations: a call this small reuses its launch (a search makes hundreds)
 
 
 class GrayInputs:
     """The inputs that stay fixed while a planner tries lamp poses (the scene, the camera, the
-    lamp, the material), converted to Warp arrays once: a search calls the kernel hundreds of
-    times on a few candidates each, where converting them every call cost 10x the kernel's work.
+    lamp, the material), converted to Warp arrays once, with what depends on a sample point
+    alone (funcs.Surface): a search calls the kernel hundreds of times on a few candidates each.
 
     mesh: kernels.mesh.WarpMesh or None (no cast shadows); points, normals (P, 3) [m];
     camera_pos (3,); power_w, cone_angle_rad: eq. (11); table (K, 6): Material.table(); shadow
     rays start at point + offset_m * normal; profile (M, 2) [off_axis_rad, relative]: the lamp's
     angular profile (None: eq. (11)'s ideal cone). Call with lamp_pos (C, 3) and lamp_axis
-    (C, 3) (the aims, normalized here) for a GrayResult of (C, P) NumPy arrays."""
+    (C, 3) (the aims, normalized here) for a GrayResult of (C, P) NumPy arrays.
+
+    The points' free cones (kernels.cone) are found once the lamps evaluated so far make them
+    worth it (kernels.cone.worth_finding, each lamp a ray per point): from then on only the rays
+    outside them are cast. The result is the same either way. A call of at most SMALL
+    evaluations replays its recorded launch (one per lamp count) on its own input and output
+    buffers, under a lock, and returns copies."""
 
     def __init__(self, mesh, points, normals, camera_pos, power_w, cone_angle_rad, table,
                  camera_constant, pixel_area_m2, shadows=True, cone=True, offset_m=1e-5, profile=None):
@@ -68,27 +94,75 @@ class GrayInputs:
             raise ValueError(f"{len(points)} points but {len(normals)} normals")
         self.count = len(points)
         use_shadows = bool(shadows) and mesh is not None
-        self._mesh = mesh                       # keeps the BVH alive as long as its id is used
-        self._leading = [mesh.id if use_shadows else wp.uint64(0), int(use_shadows), int(bool(cone)),
-                         float(offset_m), vec3d(points, "points"), vec3d(normals, "normals"),
-                         wp.vec3d(*np.asarray(camera_pos, dtype=np.float64))]
-        self._trailing = [float(power_w), float(cone_angle_rad), profile2d(profile, cone_angle_rad),
+        self._mesh = mesh if use_shadows else None      # keeps the BVH alive as long as its id is used
+        self._surface_inputs = [vec3d(points, "points"), vec3d(normals, "normals"),
+                                wp.vec3d(*np.asarray(camera_pos, dtype=np.float64)), float(offset_m)]
+        self._ray_origins = (points + float(offset_m) * normals, normals)
+        self.surfaces = wp.empty(self.count, dtype=funcs.Surface, device=self.device)
+        self._sector_cos, sector_cos_wp = output((max(1, self.count), funcs.SECTORS), np.float64, wp.float64)
+        self._set_free_cones(np.full(self.count, NO_CONE), None)
+        self._lamps_seen = 0
+        self.has_free_cones = False
+        self._leading = [self._mesh.id if use_shadows else wp.uint64(0), int(use_shadows), int(bool(cone)),
+                         self.surfaces, sector_cos_wp]
+        self._trailing = [funcs.axis_intensity(power_w, cone_angle_rad), profile2d(profile, cone_angle_rad),
                           table2d(table), float(camera_constant), float(pixel_area_m2)]
+        self._launches = {}
+        self._lock = threading.Lock()
+
+    def _set_free_cones(self, free_cos, sector_cos):
+        """The surfaces with these cones (sector_cos None: none by sector), in place: the
+        recorded launches read them."""
+        if sector_cos is not None:
+            self._sector_cos[:] = sector_cos
+        if self.count:
+            wp.launch(surface_kernel, dim=self.count, device=self.device,
+                      inputs=self._surface_inputs + [wp.array(free_cos, dtype=wp.float64, device=self.device),
+                                                     int(sector_cos is not None)],
+                      outputs=[self.surfaces])
 
     def __call__(self, lamp_pos, lamp_axis):
         lamp_pos = np.asarray(lamp_pos, dtype=np.float64).reshape(-1, 3)
         lamp_axis = unit_rows(np.broadcast_to(np.asarray(lamp_axis, dtype=np.float64), lamp_pos.shape),
                               "lamp_axis")
-        shape = (len(lamp_pos), self.count)
-        value, value_wp = output(shape, np.float64, wp.float64)
-        shadowed, shadowed_wp = output(shape, np.bool_, wp.bool)
-        off_axis, off_axis_wp = output(shape, np.float64, wp.float64)
-        dominant, dominant_wp = output(shape, np.int8, wp.int8)
-        if value.size:
-            wp.launch(gray_kernel, dim=shape, device=self.device,
-                      inputs=self._leading + [vec3d(lamp_pos, "lamp_pos"), vec3d(lamp_axis, "lamp_axis")]
-                      + self._trailing, outputs=[value_wp, shadowed_wp, off_axis_wp, dominant_wp])
-        return GrayResult(value, shadowed, off_axis, dominant)
+        with self._lock:
+            self._lamps_seen += len(lamp_pos)
+            if (self._mesh is not None and not self.has_free_cones and self.count
+                    and worth_finding(self._lamps_seen, self._mesh)):
+                self._set_free_cones(*free_cone_cosines(self._mesh, *self._ray_origins))
+                self.has_free_cones = True
+            if len(lamp_pos) * self.count > SMALL:
+                batch = _Batch(self, len(lamp_pos))
+                return batch.run(lamp_pos, lamp_axis, copy=False)
+            batch = self._launches.get(len(lamp_pos))
+            if batch is None:
+                batch = self._launches[len(lamp_pos)] = _Batch(self, len(lamp_pos))
+            return batch.run(lamp_pos, lamp_axis, copy=True)
+
+
+class _Batch:
+    """Buffers and the recorded launch of one lamp count: run copies the lamps in, launches,
+    and returns the outputs (copies where the batch is kept for the next call)."""
+
+    def __init__(self, inputs, lamps):
+        shape = (lamps, inputs.count)
+        (self.lamp_pos, pos_wp), (self.lamp_axis, axis_wp) = (output((lamps, 3), np.float64, wp.vec3d)
+                                                              for _ in range(2))
+        self.outputs = [output(shape, np.float64, wp.float64), output(shape, np.bool_, wp.bool),
+                        output(shape, np.float64, wp.float64), output(shape, np.int8, wp.int8)]
+        self.launch = None
+        if lamps and inputs.count:
+            self.launch = wp.launch(gray_kernel, dim=lamps, device=inputs.device, record_cmd=True,
+                                    inputs=inputs._leading + [pos_wp, axis_wp] + inputs._trailing,
+                                    outputs=[out_wp for _, out_wp in self.outputs])
+            self._inputs_wp = (pos_wp, axis_wp)         # the launch holds their addresses
+
+    def run(self, lamp_pos, lamp_axis, copy):
+        self.lamp_pos[:] = lamp_pos
+        self.lamp_axis[:] = lamp_axis
+        if self.launch is not None:
+            self.launch.launch()
+        return GrayResult(*(out.copy() if copy else out for out, _ in self.outputs))
 
 
 def gray_per_exposure(mesh, points, normals, camera_pos, lamp_pos, lamp_axis, power_w,

@@ -6,7 +6,13 @@ import warp as wp
 
 from . import funcs
 from ._arrays import output, profile2d, table2d, unit_rows, vec3d
+from .cone import NO_CONE
 from .runtime import ensure_init
+
+
+def _ray_outputs(n):
+    """(value, hit, depth) of n rays, each a NumPy array and its zero-copy Warp view."""
+    return output(n, np.float64, wp.float64), output(n, np.bool_, wp.bool), output(n, np.float64, wp.float64)
 
 
 class RenderResult(NamedTuple):
@@ -22,13 +28,14 @@ class RenderResult(NamedTuple):
 @wp.kernel
 def render_kernel(mesh_id: wp.uint64, origin: wp.vec3d, ray_dirs: wp.array(dtype=wp.vec3d),
                   max_dist: wp.float64, shadows: wp.int32, cone: wp.int32, offset_m: wp.float64,
-                  lamp: wp.vec3d, lamp_axis: wp.vec3d, power_w: wp.float64,
-                  cone_angle_rad: wp.float64, profile: wp.array2d(dtype=wp.float64),
+                  no_sectors: wp.array2d(dtype=wp.float64), lamp: wp.vec3d, lamp_axis: wp.vec3d,
+                  intensity_w_sr: wp.float64,
+                  profile: wp.array2d(dtype=wp.float64),
                   table: wp.array2d(dtype=wp.float64),
                   camera_constant: wp.float64, pixel_area_m2: wp.float64,
                   value: wp.array(dtype=wp.float64), hit: wp.array(dtype=wp.bool),
                   depth: wp.array(dtype=wp.float64), normal: wp.array(dtype=wp.vec3d)):
-    """One thread per pixel ray."""
+    """One thread per pixel ray (its hit point's free cones unknown: every shadow ray cast)."""
     i = wp.tid()
     d = ray_dirs[i]
     q = wp.mesh_query_ray(mesh_id, wp.vec3(origin), wp.vec3(d), wp.float32(max_dist))
@@ -40,8 +47,8 @@ def render_kernel(mesh_id: wp.uint64, origin: wp.vec3d, ray_dirs: wp.array(dtype
         return
     t = wp.float64(q.t)
     n = wp.vec3d(q.normal)
-    sh = funcs.shade_point(mesh_id, shadows, cone, offset_m, origin + t * d, n, origin,
-                           lamp, lamp_axis, power_w, cone_angle_rad, profile, table,
+    at = funcs.surface(origin + t * d, n, origin, offset_m, wp.float64(NO_CONE), -1)
+    sh = funcs.shade_point(mesh_id, shadows, cone, at, no_sectors, lamp, lamp_axis, intensity_w_sr, profile, table,
                            camera_constant, pixel_area_m2)
     value[i] = sh.value
     hit[i] = True
@@ -63,9 +70,7 @@ def render(mesh, origin, ray_dirs, lamp_pos, lamp_axis, power_w, cone_angle_rad,
     device = ensure_init()
     dirs = unit_rows(ray_dirs, "ray_dirs")
     n = len(dirs)
-    value, value_wp = output(n, np.float64, wp.float64)
-    hit, hit_wp = output(n, np.bool_, wp.bool)
-    depth, depth_wp = output(n, np.float64, wp.float64)
+    (value, value_wp), (hit, hit_wp), (depth, depth_wp) = _ray_outputs(n)
     normal, normal_wp = output((n, 3), np.float64, wp.vec3d)
     if n == 0:
         return RenderResult(value, hit, depth, normal)
@@ -73,10 +78,9 @@ def render(mesh, origin, ray_dirs, lamp_pos, lamp_axis, power_w, cone_angle_rad,
     wp.launch(render_kernel, dim=n, device=device, inputs=[
         mesh.id, wp.vec3d(*np.asarray(origin, dtype=np.float64)), vec3d(dirs, "ray_dirs"),
         float(max_dist), int(bool(shadows)), int(bool(cone)), float(offset_m),
-        wp.vec3d(*np.asarray(lamp_pos, dtype=np.float64)), wp.vec3d(*(axis / np.linalg.norm(axis))),
-        float(power_w), float(cone_angle_rad), profile2d(profile, cone_angle_rad), table2d(table),
-        float(camera_constant),
-        float(pixel_area_m2),
+        wp.empty((0, funcs.SECTORS), dtype=wp.float64, device=device), wp.vec3d(*np.asarray(lamp_pos, dtype=np.float64)), wp.vec3d(*(axis / np.linalg.norm(axis))),
+        funcs.axis_intensity(power_w, cone_angle_rad), profile2d(profile, cone_angle_rad), table2d(table),
+        float(camera_constant), float(pixel_area_m2),
     ], outputs=[value_wp, hit_wp, depth_wp, normal_wp])
     return RenderResult(value, hit, depth, normal)
 
@@ -130,9 +134,7 @@ def render_plane(origin, ray_dirs, T_world_plane, texture, texel_m, outside=0.0)
     device = ensure_init()
     dirs = unit_rows(ray_dirs, "ray_dirs")
     n = len(dirs)
-    value, value_wp = output(n, np.float64, wp.float64)
-    hit, hit_wp = output(n, np.bool_, wp.bool)
-    depth, depth_wp = output(n, np.float64, wp.float64)
+    (value, value_wp), (hit, hit_wp), (depth, depth_wp) = _ray_outputs(n)
     if n == 0:
         return PlaneResult(value, hit, depth)
     T = np.asarray(T_world_plane, dtype=np.float64)

@@ -5,6 +5,7 @@ import warp as wp
 
 from . import funcs
 from ._arrays import output, unit_rows, vec3d
+from .cone import NO_CONE, free_cone_cosines, worth_finding
 from .runtime import ensure_init
 
 
@@ -12,19 +13,29 @@ from .runtime import ensure_init
 def visibility_kernel(mesh_id: wp.uint64, points: wp.array(dtype=wp.vec3d),
                       normals: wp.array(dtype=wp.vec3d), frame: wp.mat33d,
                       azimuth: wp.array(dtype=wp.float64), elevation: wp.array(dtype=wp.float64),
-                      offset_m: wp.float64, max_dist: wp.float64,
+                      offset_m: wp.float64, max_dist: wp.float64, free_cos: wp.array(dtype=wp.float64),
+                      sector_cos: wp.array2d(dtype=wp.float64), sectors: wp.int32,
                       visible: wp.array3d(dtype=wp.bool)):
-    """One thread per (point p, elevation e, azimuth a)."""
+    """One thread per (point p, elevation e, azimuth a); no ray inside the point's free cones
+    (its sectors' in row p of sector_cos, if `sectors`)."""
     p, e, a = wp.tid()
     d = wp.mul(frame, funcs.direction_from_angles(azimuth[a], elevation[e]))
     n = normals[p]
+    cos_n = wp.dot(d, n)
     ok = False
-    if wp.dot(d, n) > funcs.TANGENT_EPS:
-        ok = not funcs.ray_blocked(mesh_id, points[p] + offset_m * n, d, max_dist)
+    if cos_n > funcs.TANGENT_EPS:
+        row = -1
+        if sectors != 0:
+            row = p
+        u = funcs.tangent_u(n)
+        ok = True
+        if funcs.needs_ray(free_cos[p], sector_cos, row, u, wp.cross(n, u), d, cos_n):
+            ok = not funcs.ray_blocked(mesh_id, points[p] + offset_m * n, d, max_dist)
     visible[p, e, a] = ok
 
 
-def visibility_maps(mesh, points, normals, frame, azimuth, elevation, offset_m=1e-5, max_dist=10.0):
+def visibility_maps(mesh, points, normals, frame, azimuth, elevation, offset_m=1e-5, max_dist=10.0,
+                    free_cones=True):
     """bool (P, E, A): True where the ray from point + offset_m * normal along the direction
     (azimuth a, elevation e) escapes the mesh within max_dist [m].
 
@@ -47,11 +58,15 @@ def visibility_maps(mesh, points, normals, frame, azimuth, elevation, offset_m=1
     visible, visible_wp = output(shape, np.bool_, wp.bool)
     if visible.size == 0:
         return visible
+    free_cos, sector_cos = np.full(len(points), NO_CONE), np.zeros((0, funcs.SECTORS))
+    if free_cones and worth_finding(len(azimuth) * len(elevation), mesh):
+        free_cos, sector_cos = free_cone_cosines(mesh, points + offset_m * normals, normals)
     wp.launch(visibility_kernel, dim=shape, device=device, inputs=[
         mesh.id, vec3d(points, "points"), vec3d(normals, "normals"), wp.mat33d(*frame.ravel()),
         wp.array(azimuth, dtype=wp.float64, device=device),
         wp.array(elevation, dtype=wp.float64, device=device), float(offset_m), float(max_dist),
-    ], outputs=[visible_wp])
+        wp.array(free_cos, dtype=wp.float64, device=device), wp.array(sector_cos, dtype=wp.float64, device=device),
+        int(len(sector_cos) > 0)], outputs=[visible_wp])
     return visible
 
 

@@ -9,12 +9,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from cell import geometry
 from cell.physics import reference as ref
-from kernels.gray import gray_per_exposure
+from kernels import cone, gray, visibility
+from kernels.cone import NO_CONE, free_cone_cosines
+from kernels.funcs import SECTORS
+from kernels.gray import GrayInputs, gray_per_exposure
 from kernels.mesh import WarpMesh
 from kernels.proximity import closest_points
 from kernels.render import render
@@ -269,6 +272,152 @@ def test_a_ray_through_the_walls_top_edge_counts_as_ambiguous(blocks):
     dirs = geometry.unit(np.array([[0.05, 0.0, 0.08 - 1e-5], [0.0, 0.0, 1.0]]))
     normals = np.array([[0.0, 0.0, 1.0]] * 2)
     np.testing.assert_array_equal(ambiguous_rays(blocks, origin, dirs, 10.0, normals), [True, False])
+
+
+def sectors_of(normal, dirs):
+    """The azimuth sector of each unit direction about the normal, as kernels.funcs defines it:
+    u = n x (x, or y for n near x), w = n x u; the diamond angle of (<d, u>, <d, w>)."""
+    e = [0.0, 1.0, 0.0] if abs(normal[0]) > 0.9 else [1.0, 0.0, 0.0]
+    u = geometry.unit(np.cross(normal, e))
+    w = np.cross(normal, u)
+    x, y = dirs @ u, dirs @ w
+    r = np.abs(x) + np.abs(y)
+    diamond = np.where(y >= 0, np.where(x >= 0, y / r, 1 - x / r), np.where(x < 0, 2 - y / r, 3 + x / r))
+    return np.minimum((diamond * SECTORS / 4).astype(int), SECTORS - 1)
+
+
+def test_the_free_cone_beside_the_wall_reaches_its_top_edge(blocks):
+    """At (0, 0, 10 mm) on the slab the wall's near top edge, 50 mm across and 80 mm up, is the
+    nearest to the normal: beta = atan2(x_wall, z_top - z_origin), less the margin (float32
+    geometry as the mesh stores it); the sectors facing away from the wall (more than 50 deg
+    from +x) see nothing above: 90 deg. On a lone slab every cone is 90 deg. Under the slab the
+    axis meets it: no cone."""
+    x_wall = blocks.vertices[blocks.vertices[:, 0] > 0.04, 0].min()
+    z_top = blocks.vertices[:, 2].max()
+    origin = np.array([[0.0, 0.0, 0.01 + 1e-5]])
+    up = np.array([[0.0, 0.0, 1.0]])
+    beta = math.atan2(x_wall, z_top - origin[0, 2])
+    assert math.degrees(beta) == pytest.approx(32.0, abs=0.1)
+    free, sectors = free_cone_cosines(blocks, origin, up)
+    np.testing.assert_allclose(free, [math.cos(beta - cone.MARGIN_RAD)], rtol=0, atol=1e-12)
+    az = np.radians(np.arange(0.0, 360.0, 0.25))
+    around = np.column_stack([np.cos(az), np.sin(az), np.zeros_like(az)])
+    k = sectors_of(up[0], around)
+    facing = np.unique(k[np.abs(np.angle(np.exp(1j * az))) < np.radians(50.0)])
+    away = np.setdiff1d(np.arange(SECTORS), facing)
+    assert len(away) >= SECTORS // 2 and sectors[0, k[0]] == free[0]          # +x: the wall's edge
+    np.testing.assert_allclose(sectors[0, away], math.sin(cone.MARGIN_RAD), rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(sectors[0, facing], free[0])        # the wall's faces span them all
+    assert np.all(sectors[0] <= free[0])                                # a sector's cone: never narrower
+    slab = WarpMesh.from_trimesh(box((0.10, 0.10, 0.02), (0.0, 0.0, 0.0)))
+    free, sectors = free_cone_cosines(slab, origin, up)
+    np.testing.assert_allclose(np.append(free, sectors), math.sin(cone.MARGIN_RAD), rtol=0, atol=1e-15)
+    free, sectors = free_cone_cosines(blocks, [[0.0, 0.0, -0.02]], up)
+    assert free[0] == NO_CONE and np.all(sectors == NO_CONE)
+
+
+def test_no_ray_inside_a_free_cone_hits_the_hinge(hinge):
+    """Soundness against the brute-force reference: rays from hinge samples inside their
+    sectors' cones never hit; the narrowest cone is tight (some ray 0.02 rad outside it hits; a
+    sector's may be narrower than it need be: a triangle counts with its nearest point in each
+    sector it reaches)."""
+    mesh, _ = hinge
+    rng = np.random.default_rng(11)
+    points = np.column_stack([rng.uniform(-0.026, -0.005, 6), rng.uniform(-0.015, 0.015, 6), np.full(6, 0.004)])
+    normals = np.tile([0.0, 0.0, 1.0], (6, 1))
+    origins = points + 1e-5 * normals
+    free, sectors = free_cone_cosines(mesh, origins, normals)
+    assert np.all(free < 1.0) and np.all(sectors <= free[:, None])
+    az = np.radians(np.arange(0.0, 360.0, 0.5))
+    flat = np.column_stack([np.cos(az), np.sin(az), np.zeros_like(az)])
+    assert np.mean(sectors < free[:, None]) > 0.25                     # sectors do widen them
+    for p in range(len(points)):
+        rays = np.repeat(origins[p:p + 1], len(az), 0)
+        beta = np.arccos(np.minimum(sectors[p], 1.0))[sectors_of(normals[p], flat)]
+        inside = geometry.direction_from_angles(az, np.pi / 2 - beta * rng.uniform(0.0, 1.0, len(az)))
+        assert not ref.ray_hits_any(mesh, rays, inside, 10.0).any()
+        outside = geometry.direction_from_angles(az, np.pi / 2 - np.arccos(free[p]) - 0.02)
+        assert ref.ray_hits_any(mesh, rays, outside, 10.0).any()
+
+
+def test_free_cones_change_no_gray_and_no_visibility(hinge, monkeypatch):
+    """The cones only spare rays: with them (found once the lamps make them worth it) the gray
+    and the visibility maps equal those cast without them, bit for bit."""
+    mesh, _ = hinge
+    rng = np.random.default_rng(5)
+    points = np.column_stack([rng.uniform(-0.026, -0.005, 32), rng.uniform(-0.015, 0.015, 32), np.full(32, 0.004)])
+    normals = np.tile([0.0, 0.0, 1.0], (32, 1))
+    lamps, aims = lamps_around(rng, np.array([-0.015, 0.0, 0.004]), 2 * len(mesh.faces), min_elevation=0.0)
+    args = (mesh, points, normals, np.array([-0.01, 0.02, 0.3]), P_LAMP, GAMMA, METAL, C_CAMERA, A_PIXEL)
+    with_cones = GrayInputs(*args)
+    first, rest = with_cones(lamps[:3], aims[:3]), with_cones(lamps[3:], aims[3:])
+    assert with_cones.has_free_cones
+    az, el = np.radians(np.arange(-180.0, 180.0, 2.0)), np.radians(np.arange(1.0, 90.0, 2.0))
+    maps = visibility_maps(mesh, points, normals, np.eye(3), az, el)
+    monkeypatch.setattr(gray, "worth_finding", lambda *_: False)
+    monkeypatch.setattr(visibility, "worth_finding", lambda *_: False)
+    without = GrayInputs(*args)(lamps, aims)
+    assert 0.02 < without.shadowed.mean() < 0.5
+    for field in ("value", "shadowed", "off_axis", "dominant"):
+        np.testing.assert_array_equal(getattr(first, field), getattr(without, field)[:3])
+        np.testing.assert_array_equal(getattr(rest, field), getattr(without, field)[3:])
+    np.testing.assert_array_equal(maps, visibility_maps(mesh, points, normals, np.eye(3), az, el))
+
+
+def test_small_calls_reuse_their_launch_but_not_their_results(blocks):
+    """Calls of one lamp count replay one recorded launch: each result is its own array."""
+    rng = np.random.default_rng(3)
+    points = np.column_stack([rng.uniform(-0.045, 0.045, (20, 2)), np.full(20, 0.01)])
+    normals = np.tile([0.0, 0.0, 1.0], (20, 1))
+    lamps, aims = lamps_around(rng, np.array([0.0, 0.0, 0.01]), 18)
+    args = (points, normals, np.array([0.0, 0.0, 0.4]), P_LAMP, GAMMA, METAL, C_CAMERA, A_PIXEL)
+    g = GrayInputs(blocks, *args)
+    a, b = g(lamps[:9], aims[:9]), g(lamps[9:], aims[9:])
+    assert len(g._launches) == 1 and not np.array_equal(a.value, b.value)
+    for got, lamp, aim in ((a, lamps[:9], aims[:9]), (b, lamps[9:], aims[9:])):
+        want = gray_per_exposure(blocks, *args[:3], lamp, aim, *args[3:])
+        for field in ("value", "shadowed", "off_axis", "dominant"):
+            np.testing.assert_array_equal(getattr(got, field), getattr(want, field))
+
+
+@settings(max_examples=40, deadline=None)
+@given(lamp_polar=st.one_of(st.floats(0.0, 1.5707), st.sampled_from([0.0, 1.5707963, 1.5707963267]),
+                            st.floats(1.6, 3.14)),
+       camera_polar=st.one_of(st.floats(0.0, 1.5707), st.floats(1.58, 3.1)),
+       azimuths=st.tuples(st.floats(-np.pi, np.pi), st.floats(-np.pi, np.pi)),
+       near_mirror=st.booleans(), m1=st.floats(1.0, 1e3), m2=st.floats(1e3, 1e5), aim_off=st.floats(0.0, 3.1))
+def test_gray_equals_the_brdf_written_with_numpy_power(lamp_polar, camera_polar, azimuths, near_mirror, m1, m2,
+                                                       aim_off):
+    """The kernel's forms (c^m = exp(m ln c) from one log, the off-axis angle as a chord's
+    2 asin(|a + s| / 2), interpolation slopes and I(0) computed once) against eq. (6)-(11) written
+    directly: numpy.power and atan2(|a x s|, <a, -s>), over grazing and back-facing lamps and
+    cameras, a camera at the mirror direction and exponents up to 1e5. Finite, never negative."""
+    n = np.array([0.0, 0.0, 1.0])
+    s = geometry.direction_from_angles(azimuths[0], np.pi / 2 - lamp_polar)
+    v = geometry.direction_from_angles(azimuths[1], np.pi / 2 - camera_polar)
+    if near_mirror:                                     # within ~1e-3 rad of the mirror direction
+        v = geometry.unit(2 * (s @ n) * n - s + 1e-3 * v)
+    d, distance = 0.3 * s, 0.3
+    axis = geometry.unit(np.cross(s, [0.3, 0.5, 0.7]))  # aim_off away from the point
+    aim = -s * math.cos(aim_off) + axis * math.sin(aim_off)
+    table = np.array([[0.0, 0.05, 2.0, m1, 20.0, m2], [2.0, 0.03, 1.0, 2 * m1, 10.0, 2 * m2]])
+    g = gray_per_exposure(None, np.zeros((1, 3)), n[None], 0.4 * v, d[None], aim[None], P_LAMP, np.pi, table,
+                          C_CAMERA, A_PIXEL)
+    assert np.isfinite(g.value).all() and g.value[0, 0] >= 0.0
+    off_axis = math.atan2(np.linalg.norm(np.cross(aim, -s)), aim @ -s)
+    assume(abs(off_axis - np.pi / 2) > 1e-9)            # the cone's edge: either side is right
+    assert g.off_axis[0, 0] == pytest.approx(off_axis, abs=1e-9)
+    cos_i, cos_e, cos_a = s @ n, v @ n, float(np.clip(s @ v, -1, 1))
+    alpha = math.acos(cos_a)
+    rho, s1, e1, s2, e2 = (np.interp(alpha, table[:, 0], table[:, k]) for k in range(1, 6))
+    c = 2 * cos_e * cos_i - cos_a
+    front = cos_i > 0 and cos_e > 0
+    lobes = s1 * np.power(min(c, 1.0), e1) + s2 * np.power(min(c, 1.0), e2) if front and c > 0 else 0.0
+    reflectance = rho * (cos_i + lobes) if front else 0.0
+    lit = off_axis <= np.pi / 2 and cos_i > 0
+    intensity = P_LAMP / (2 * np.pi * (1 - math.cos(np.pi / 2)))
+    want = C_CAMERA * A_PIXEL * intensity / distance**2 * reflectance / 8 if lit else 0.0
+    assert g.value[0, 0] == pytest.approx(want, rel=1e-9, abs=0.0)
 
 
 def test_bad_tables_and_shapes_are_refused():

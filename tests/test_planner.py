@@ -125,6 +125,26 @@ def test_the_lamp_tolerance_moves_see_the_profile(hinge):
     assert np.all(c.moved_gray < hard.moved_gray * gain)       # the profile dims every sample off the axis
 
 
+def test_a_problem_replaced_keeps_its_kernel_inputs_until_what_they_are_made_of_changes(hinge):
+    """A search replaces its Problem's maps: the Warp inputs carry over (built once per plan).
+    Another material (the loop's albedo scale) rebuilds them and scales the gray by its albedo;
+    a pickled Problem rebuilds its own, giving the same gray."""
+    import pickle
+    task, plan = hinge
+    problem = evaluate.build_problem(task, plan.scene, plan.maps)
+    lamp = plan.shot.lamp_position[None]
+    aim = geometry.unit(task.lamp.rig.pivot_m - lamp)
+    u = evaluate.unit_gray(problem, lamp, aim)[0]
+    moved = replace(problem, maps=None)
+    assert moved.gray_inputs is problem.gray_inputs
+    darker = replace(problem, material=task.part.material.scaled(0.5))
+    np.testing.assert_allclose(evaluate.unit_gray(darker, lamp, aim)[0], 0.5 * u, rtol=1e-12)
+    np.testing.assert_array_equal(evaluate.unit_gray(problem, lamp, aim)[0], u)
+    copy = pickle.loads(pickle.dumps(problem))
+    assert copy.kernels.made_of is None
+    np.testing.assert_array_equal(evaluate.unit_gray(copy, lamp, aim)[0], u)
+
+
 def test_feature_samples_cover_the_rim_and_stay_inside_the_patch():
     for n in (8, 64, 256):
         r = np.hypot(*feature_disk(n, 0.006).T)
