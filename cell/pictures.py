@@ -16,7 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import trimesh
-from matplotlib.colors import ListedColormap, to_rgb
+from matplotlib.colors import ListedColormap, to_rgba
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
@@ -236,8 +236,8 @@ def write_cell(path, plan, task):
     camera (square) with its frustum to the focus distance (the image's corners there: the pinhole's
     W p d / f by H p d / f), its lamp (dot) with a dashed line to the aim point (the rig's pivot),
     and the rig's sphere at both ends of its radius range; right, the part [mm]: its mesh shaded,
-    each feature's patch in its colour, each shot's optical axis toward its camera and the line from
-    the pivot toward its lamp. Returns a CellPicture."""
+    each feature's patch in its colour (pale and dashed on a face turned away), each shot's optical
+    axis toward its camera and the line from the pivot toward its lamp. Returns a CellPicture."""
     T = task.frames.T_cell_part
     vertices = geometry.apply(T, task.part.mesh.vertices)
     faces = np.asarray(task.part.mesh.faces)
@@ -273,12 +273,16 @@ def write_cell(path, plan, task):
     whole.set_title("the cell: cameras with their frusta, lamps, the rig's sphere", fontsize=9)
 
     mm = 1e3
+    elev, azim = np.radians(VIEW)
+    viewer = np.array([np.cos(elev) * np.cos(azim), np.cos(elev) * np.sin(azim), np.sin(elev)])
     _draw_mesh(near, vertices, faces, mm, 1500, split=6)
     reach = np.ptp(vertices, axis=0).max() * 0.8
     for j, (name, center, normal, radius) in enumerate(features):
         color = FEATURE_COLORS[j % len(FEATURE_COLORS)]
         disk = _disk(center + 2e-4 * normal, normal, radius) * mm
-        near.add_collection3d(Poly3DCollection([disk], facecolors=color, edgecolors="black", linewidths=0.4,
+        behind = normal @ viewer < 0.0                        # on a face turned away: seen through the part
+        near.add_collection3d(Poly3DCollection([disk], facecolors=to_rgba(color, 0.4 if behind else 1.0),
+                                               edgecolors="black", linewidths=0.6, linestyles="--" if behind else "-",
                                                zorder=5))
         tip = center + 0.25 * reach * normal                 # its normal: read even when seen edge-on
         near.plot(*np.array([center, tip]).T * mm, "-", color="black", lw=0.8, zorder=6)
