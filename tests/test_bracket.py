@@ -69,6 +69,10 @@ def test_the_plan_covers_every_feature_with_the_fewest_shots_by_brute_force(brac
     covers = np.array(plan.cover["covers"], bool)
     assert covers.shape == (5, plan.cover["candidate_shots"]) and covers.all(axis=0).sum() == 0
     assert len(plan.shots) >= 2 and len(plan.shots) == fewest_by_brute_force(covers)
+    # the README's bound by hand: the rows of base_top, web_inner and web_outer share no candidate,
+    # so no shot covers two of them: three shots at least, and the plan has three
+    rows = covers[[FEATURES.index(n) for n in ("base_top", "web_inner", "web_outer")]]
+    assert rows.any(axis=1).all() and rows.sum(axis=0).max() == 1 and len(plan.shots) == 3
     assert covers[:, plan.cover["chosen"]].any(axis=1).all()
     for k, shot in enumerate(plan.shots):          # each shot covers what the matrix says it does
         assert [c.feature for c in shot.covers] == [FEATURES[f] for f in np.flatnonzero(covers[:, plan.cover["chosen"][k]])]
