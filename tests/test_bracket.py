@@ -14,12 +14,15 @@ import pytest
 from matplotlib import image as plt_image
 from matplotlib.colors import to_rgb
 
-from cell import cli, loader, ur5e
+from cell import cli, loader, rig, ur5e
 from cell.cover import fewest_shots
 from cell.devices import check_arm_motion
+from cell.measure import measure_feature, saturation_level
 from cell.multiplan import plan_features
 from cell.pictures import write_cell
+from cell.scene import build_scene
 from dense import acceptance_failures, patch_surface, shade
+from sim.world import Renderer
 
 ROOT = Path(__file__).resolve().parent.parent
 BRACKET = ROOT / "tasks" / "bracket.yaml"
@@ -112,6 +115,27 @@ def test_each_feature_with_its_shot_holds_on_the_dense_check_and_the_arm_reaches
         check_arm_motion(arm, frames, shot.T_cell_cam, arm.speed_m_s)
         np.testing.assert_allclose(frames.T_cell_base @ ur5e.forward(shot.arm_joints) @ frames.T_flange_cam,
                                    shot.T_cell_cam, atol=1e-9)
+
+
+def test_the_simulated_camera_sees_every_feature_in_band_in_its_shot(bracket):
+    """What a run's first capture of each shot would measure: the simulated cell (its renderer,
+    the task's effects: shadows, the lamp's soft cone, quantization) at the shot's camera, lamp and
+    exposure, every pixel of each covered feature's image region (cell.measure) in the band and
+    within 1 gray level (quantization's rounding) of the plan's prediction."""
+    task, plan = bracket
+    for k, shot in enumerate(plan.shots):
+        e = shot.exposure
+        aim = rig.lamp_aim(task.lamp.rig.pivot_m, shot.lamp_position)
+        image = None
+        for c in shot.covers:
+            one = task.with_feature(FEATURES.index(c.feature))
+            scene = build_scene(one, T_cell_cam=shot.T_cell_cam)
+            if image is None:                                   # one capture of the shot for all
+                image = Renderer(one, scene)(shot.T_cell_cam, shot.lamp_position, aim, e.shutter_s, e.f_number,
+                                             e.focus_m)
+            m = measure_feature(image, one, shot.T_cell_cam, scene.points, saturation_level(8))
+            assert m.in_band(one.requirements.gray_band) and m.gray.size > 4000, (k, c.feature, m.stats())
+            assert m.min >= c.gray.min() - 1.0 and m.max <= c.gray.max() + 1.0, (k, c.feature, m.stats())
 
 
 def test_cell_png_of_the_bracket_draws_every_shot_and_feature(bracket, tmp_path):
