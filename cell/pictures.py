@@ -230,6 +230,80 @@ def _pixel(ax, point, height_px):
     return float(column), float(height_px - up)
 
 
+def _covered(plan, task):
+    """Per shot the names of the features it covers, per feature the shot covering it (or None)."""
+    if plan.features:
+        return [[c.feature for c in shot.covers] for shot in plan.shots], [f.covered_by for f in plan.features]
+    return [[task.feature.name] if plan.feasible else []], [0 if plan.feasible else None]
+
+
+def _draw_cell(ax, vertices, faces, shots, lamp_rig):
+    """The whole cell [m]: part, rig's sphere and pivot, each shot's frustum, camera and lamp."""
+    pivot = np.asarray(lamp_rig.pivot_m, float)
+    _draw_mesh(ax, vertices, faces, 1.0, 600)
+    sphere = _rig_lines(lamp_rig)
+    ax.add_collection3d(Line3DCollection(sphere, colors="0.7", linewidths=0.5, zorder=2))
+    ax.plot(*pivot, "k+", ms=8, zorder=4)
+    for k, (shot, color, corners) in enumerate(shots):
+        c, lamp = shot.camera_position, shot.lamp_position
+        edges = [np.array([c, q]) for q in corners] + [np.vstack([corners, corners[:1]])]
+        ax.add_collection3d(Line3DCollection(edges, colors=color, linewidths=1.0, zorder=3))
+        ax.plot(*np.array([lamp, pivot]).T, "--", color=color, lw=0.9, zorder=3)
+        ax.plot(*c, "s", color=color, mec="black", mew=0.5, ms=9, zorder=10)
+        ax.plot(*lamp, "o", color=color, mec="black", mew=0.5, ms=9, zorder=10)
+        ax.text(*c, f"   camera {k}", fontsize=7, color=color, zorder=11)      # spaces: off the marker
+        ax.text(*lamp, f"   lamp {k}", fontsize=7, color=color, zorder=11)
+    _cube(ax, np.vstack([vertices, *sphere, *(np.vstack([s.camera_position, s.lamp_position, q])
+                                              for s, _, q in shots)]), "m")
+    ax.set_title("the cell: cameras with their frusta, lamps, the rig's sphere", fontsize=9)
+
+
+def _draw_part(ax, vertices, faces, features, shots, pivot):
+    """The part [mm]: mesh, each feature's patch and normal, each shot's view axis and lamp
+    direction as stubs of 0.8 x the part's size."""
+    mm, stub = 1e3, 0.8 * np.ptp(vertices, axis=0).max()
+    elev, azim = np.radians(VIEW)
+    viewer = np.array([np.cos(elev) * np.cos(azim), np.cos(elev) * np.sin(azim), np.sin(elev)])
+    _draw_mesh(ax, vertices, faces, mm, 1500, split=6)
+    for name, center, normal, radius, color in features:
+        disk = _disk(center + 2e-4 * normal, normal, radius) * mm
+        behind = normal @ viewer < 0.0                        # on a face turned away: seen through the part
+        ax.add_collection3d(Poly3DCollection([disk], facecolors=to_rgba(color, 0.4 if behind else 1.0),
+                                             edgecolors="black", linewidths=0.6, linestyles="--" if behind else "-",
+                                             zorder=5))
+        tip = center + 0.3 * stub * normal                    # its normal: read even when seen edge-on
+        ax.plot(*np.array([center, tip]).T * mm, "-", color="black", lw=0.8, zorder=6)
+        ax.text(*tip * mm, name, fontsize=7, zorder=11)
+    ax.plot(*pivot * mm, "k+", ms=8, zorder=6)
+    ends = []
+    for k, (shot, color, _) in enumerate(shots):
+        axis = shot.T_cell_cam[:3, 2]
+        focus = shot.camera_position + shot.exposure.focus_m * axis        # on the shot's own feature
+        for start, end, style, marker, label in (
+                (focus, focus - stub * axis, "-", "s", f" camera {k}"),
+                (pivot, pivot + stub * geometry.unit(shot.lamp_position - pivot), "--", "o", f" lamp {k}")):
+            ax.plot(*np.array([start, end]).T * mm, style, color=color, lw=1.2, zorder=7)
+            ax.plot(*end * mm, marker, color=color, mec="black", mew=0.5, ms=7, zorder=10)
+            ax.text(*end * mm, label, fontsize=7, color=color, zorder=11)
+            ends.append(end)
+    _cube(ax, np.vstack([vertices, *ends]) * mm, "mm")
+    ax.set_title("the part: features, each shot's view axis and lamp direction", fontsize=9)
+
+
+def _legend(fig, shots, names, features, covered, lamp_rig):
+    handles = [Line2D([], [], color=color, lw=2, label=f"shot {k}: " + (", ".join(n) or "covers nothing"))
+               for k, ((_, color, _), n) in enumerate(zip(shots, names))]
+    handles += [Line2D([], [], color="black", marker="s", mfc="white", label="camera (left: its frustum to the focus)"),
+                Line2D([], [], color="black", marker="o", mfc="white", ls="--",
+                       label="lamp (left: dashed to its aim; right: its direction from the pivot)")]
+    handles += [Patch(facecolor=color, edgecolor="black", label=f"{name}: " + ("no shot" if by is None else f"shot {by}"))
+                for (name, *_, color), by in zip(features, covered)]
+    r0, r1 = lamp_rig.radius_range_m
+    handles += [Line2D([], [], color="0.7", lw=0.8, label=f"rig's sphere, radius {r0:.2f} and {r1:.2f} m"),
+                Line2D([], [], color="black", marker="+", ls="none", label="rig's pivot (every lamp's aim)")]
+    fig.legend(handles=handles, loc="lower center", ncol=3, fontsize=7, frameon=False)
+
+
 @_one_at_a_time
 def write_cell(path, plan, task):
     """cell.png: the cell of a plan in two views. Left, the whole cell [m]: the part, each shot's
@@ -239,95 +313,32 @@ def write_cell(path, plan, task):
     each feature's patch in its colour (pale and dashed on a face turned away), each shot's optical
     axis toward its camera and the line from the pivot toward its lamp. Returns a CellPicture."""
     T = task.frames.T_cell_part
-    vertices = geometry.apply(T, task.part.mesh.vertices)
-    faces = np.asarray(task.part.mesh.faces)
-    sensor, lens, lamp_rig = task.camera.sensor, task.camera.lens, task.lamp.rig
-    K = projection.intrinsics(sensor, lens)
-    covered = ([f.covered_by for f in plan.features] if plan.features else [0 if plan.feasible else None])
-    features = [(f.name, geometry.apply(T, f.center_m), geometry.unit(geometry.rotate(T, f.normal)), f.radius_m)
-                for f in task.features]
+    vertices, faces = geometry.apply(T, task.part.mesh.vertices), np.asarray(task.part.mesh.faces)
+    sensor, lamp_rig = task.camera.sensor, task.lamp.rig
+    K = projection.intrinsics(sensor, task.camera.lens)
+    names, covered = _covered(plan, task)
+    features = [(f.name, geometry.apply(T, f.center_m), geometry.unit(geometry.rotate(T, f.normal)), f.radius_m,
+                 FEATURE_COLORS[j % len(FEATURE_COLORS)]) for j, f in enumerate(task.features)]
     shots = [(shot, SHOT_COLORS[k % len(SHOT_COLORS)],
               projection.frustum_corners(K, shot.T_cell_cam, sensor.width_px, sensor.height_px,
                                          shot.exposure.focus_m)) for k, shot in enumerate(plan.shots)]
-    pivot = np.asarray(lamp_rig.pivot_m, float)
     fig = Figure(figsize=(13, 6.4), dpi=90)
-    whole = fig.add_subplot(1, 2, 1, projection="3d", computed_zorder=False)
+    whole = fig.add_subplot(1, 2, 1, projection="3d", computed_zorder=False)    # drawn in zorder: markers on top
     near = fig.add_subplot(1, 2, 2, projection="3d", computed_zorder=False)
-
-    _draw_mesh(whole, vertices, faces, 1.0, 600)
-    sphere = _rig_lines(lamp_rig)
-    whole.add_collection3d(Line3DCollection(sphere, colors="0.7", linewidths=0.5, zorder=2))
-    whole.plot(*pivot, "k+", ms=8, zorder=4)
-    for k, (shot, color, corners) in enumerate(shots):
-        c, lamp = shot.camera_position, shot.lamp_position
-        edges = [np.array([c, q]) for q in corners] + [np.vstack([corners, corners[:1]])]
-        whole.add_collection3d(Line3DCollection(edges, colors=color, linewidths=1.0, zorder=3))
-        whole.plot(*np.array([lamp, pivot]).T, "--", color=color, lw=0.9, zorder=3)
-        whole.plot(*c, "s", color=color, mec="black", mew=0.5, ms=9, zorder=10)
-        whole.plot(*lamp, "o", color=color, mec="black", mew=0.5, ms=9, zorder=10)
-        whole.text(*c, f"   camera {k}", fontsize=7, color=color, zorder=11)
-        whole.text(*lamp, f"   lamp {k}", fontsize=7, color=color, zorder=11)
-    everything = np.vstack([vertices, *sphere, *(np.vstack([s.camera_position, s.lamp_position, q])
-                                                 for s, _, q in shots)])
-    _cube(whole, everything, "m")
-    whole.set_title("the cell: cameras with their frusta, lamps, the rig's sphere", fontsize=9)
-
-    mm = 1e3
-    elev, azim = np.radians(VIEW)
-    viewer = np.array([np.cos(elev) * np.cos(azim), np.cos(elev) * np.sin(azim), np.sin(elev)])
-    _draw_mesh(near, vertices, faces, mm, 1500, split=6)
-    reach = np.ptp(vertices, axis=0).max() * 0.8
-    for j, (name, center, normal, radius) in enumerate(features):
-        color = FEATURE_COLORS[j % len(FEATURE_COLORS)]
-        disk = _disk(center + 2e-4 * normal, normal, radius) * mm
-        behind = normal @ viewer < 0.0                        # on a face turned away: seen through the part
-        near.add_collection3d(Poly3DCollection([disk], facecolors=to_rgba(color, 0.4 if behind else 1.0),
-                                               edgecolors="black", linewidths=0.6, linestyles="--" if behind else "-",
-                                               zorder=5))
-        tip = center + 0.25 * reach * normal                 # its normal: read even when seen edge-on
-        near.plot(*np.array([center, tip]).T * mm, "-", color="black", lw=0.8, zorder=6)
-        near.text(*tip * mm, name, fontsize=7, zorder=11)
-    near.plot(*pivot * mm, "k+", ms=8, zorder=6)
-    ends = []
-    for k, (shot, color, _) in enumerate(shots):
-        axis = shot.T_cell_cam[:3, 2]
-        aim = shot.camera_position + shot.exposure.focus_m * axis          # the focus point, on its feature
-        towards = [(aim, aim - reach * axis, "s", f" camera {k}"),
-                   (pivot, pivot + reach * geometry.unit(shot.lamp_position - pivot), "o", f" lamp {k}")]
-        for start, end, marker, label in towards:
-            near.plot(*np.array([start, end]).T * mm, "-" if marker == "s" else "--", color=color, lw=1.2, zorder=7)
-            near.plot(*end * mm, marker, color=color, mec="black", mew=0.5, ms=7, zorder=10)
-            near.text(*end * mm, label, fontsize=7, color=color, zorder=11)
-            ends.append(end)
-    _cube(near, np.vstack([vertices, *ends]) * mm, "mm")
-    near.set_title("the part: features, each shot's view axis and lamp direction", fontsize=9)
-
+    _draw_cell(whole, vertices, faces, shots, lamp_rig)
+    _draw_part(near, vertices, faces, features, shots, np.asarray(lamp_rig.pivot_m, float))
     for ax in (whole, near):
         ax.view_init(*VIEW)
     verdict = "feasible" if plan.feasible else f"not feasible ({plan.binding})"
     fig.suptitle(f"{plan.task_name}: {len(shots)} shot{'s' * (len(shots) != 1)}, {verdict}", fontsize=10)
-    names = [[c.feature for c in shot.covers] or [features[0][0]] * (covered[0] == k)
-             for k, (shot, _, _) in enumerate(shots)]
-    handles = [Line2D([], [], color=color, lw=2, label=f"shot {k}: " + (", ".join(n) or "covers nothing"))
-               for k, ((_, color, _), n) in enumerate(zip(shots, names))]
-    handles += [Line2D([], [], color="black", marker="s", mfc="white", label="camera; left its frustum to the focus"),
-                Line2D([], [], color="black", marker="o", mfc="white", ls="--",
-                       label="lamp, dashed to its aim (left) or from the pivot (right)")]
-    handles += [Patch(facecolor=FEATURE_COLORS[j % len(FEATURE_COLORS)], edgecolor="black",
-                      label=f"{name}: " + ("no shot" if by is None else f"shot {by}"))
-                for j, ((name, *_), by) in enumerate(zip(features, covered))]
-    r0, r1 = lamp_rig.radius_range_m
-    handles += [Line2D([], [], color="0.7", lw=0.8, label=f"rig's sphere, radius {r0:.2f} and {r1:.2f} m"),
-                Line2D([], [], color="black", marker="+", ls="none", label="rig's pivot (every lamp's aim)")]
-    fig.legend(handles=handles, loc="lower center", ncol=3, fontsize=7, frameon=False)
+    _legend(fig, shots, names, features, covered, lamp_rig)
     fig.subplots_adjust(left=0.0, right=1.0, bottom=0.17, top=0.93, wspace=0.0)
     fig.savefig(path, dpi=90, pil_kwargs=PNG)
     height = fig.get_figheight() * fig.dpi
-    drawn = tuple(DrawnShot(shot.camera_position.copy(), corners, shot.lamp_position.copy(), pivot, color,
-                            _pixel(whole, shot.camera_position, height), _pixel(whole, shot.lamp_position, height))
-                  for shot, color, corners in shots)
-    return CellPicture(Path(path), drawn, tuple((name, FEATURE_COLORS[j % len(FEATURE_COLORS)], by)
-                                               for j, ((name, *_), by) in enumerate(zip(features, covered))))
+    drawn = tuple(DrawnShot(shot.camera_position.copy(), corners, shot.lamp_position.copy(),
+                            np.asarray(lamp_rig.pivot_m, float), color, _pixel(whole, shot.camera_position, height),
+                            _pixel(whole, shot.lamp_position, height)) for shot, color, corners in shots)
+    return CellPicture(Path(path), drawn, tuple((name, color, by) for (name, *_, color), by in zip(features, covered)))
 
 
 @_one_at_a_time

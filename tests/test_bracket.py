@@ -150,6 +150,13 @@ def test_cell_png_of_the_bracket_draws_every_shot_and_feature(bracket, tmp_path)
         for px in (drawn.camera_px, drawn.lamp_px):
             np.testing.assert_allclose(image[int(round(px[1])), int(round(px[0]))], to_rgb(drawn.color), atol=2 / 255)
     assert len({s.color for s in picture.shots}) == len(plan.shots)
+    # a plan no shot of which covers anything (every feature uncovered) still draws the part
+    from dataclasses import replace
+    none = replace(plan, shots=(), feasible=False, binding="viewpoint",
+                   features=tuple(replace(f, covered_by=None, binding="viewpoint") for f in plan.features))
+    empty = write_cell(tmp_path / "none.png", none, task)
+    assert empty.shots == () and [by for *_, by in empty.features] == [None] * 5
+    assert (tmp_path / "none.png").stat().st_size > 20_000
 
 
 def test_cell_plan_prints_the_bracket_and_writes_cell_png_beside_plan_json(bracket, tmp_path, capsys, monkeypatch):
