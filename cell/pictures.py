@@ -1,6 +1,7 @@
 """Every picture a person reads: the plan's maps (paper Fig. 4-6: BRDF on the visibility map,
 segmented region map, cost map, each with the camera direction (square) and the lamp (dot)
-marked), the closed loop's convergence and its captures with the measured feature drawn, the
+marked), the cell of a plan (part, features, each shot's camera and lamp, the rig's sphere), the
+closed loop's convergence and its captures with the measured feature drawn, the
 calibration fit and the benchmark's error vs time.
 
 Drawn through matplotlib's object API (a Figure per picture, saved by its own canvas): no global
@@ -9,14 +10,20 @@ freed with its last reference; threads draw one picture at a time (_DRAWING).
 """
 import functools
 import threading
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
-from matplotlib.colors import ListedColormap
+import trimesh
+from matplotlib.colors import ListedColormap, to_rgba
 from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from matplotlib.patches import Patch
+from mpl_toolkits.mplot3d import proj3d
+from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 
-from cell import geometry, measure
+from cell import geometry, measure, projection, rig
 from cell.physics import brdf
 
 
@@ -119,6 +126,219 @@ def write_plan_pictures(plan, task, scene, out_dir):
     for f, p in zip((fig, fig2, fig3), paths):
         f.savefig(p, dpi=90, pil_kwargs=PNG)
     return paths
+
+
+SHOT_COLORS = ("tab:blue", "tab:red", "tab:green", "tab:purple", "tab:brown", "tab:olive", "tab:cyan",
+               "tab:pink", "tab:orange", "tab:gray")
+FEATURE_COLORS = ("gold", "magenta", "darkorange", "deepskyblue", "limegreen", "sienna", "teal", "pink")
+LIGHT = geometry.unit(np.array([0.4, -0.6, 1.0]))     # the mesh's shading: a light above, in front
+VIEW = (30.0, -75.0)            # cell.png's (elevation, azimuth) [deg]: from the front (-y), a little left, above
+
+
+@dataclass(frozen=True)
+class DrawnShot:
+    """One shot as cell.png draws it (cell frame [m]): the camera, its image's corners at the
+    focus distance, the lamp and its aim point (the rig's pivot), the colour, and where the camera's
+    and the lamp's markers of the whole-cell view lie in the PNG ([column, row] px)."""
+
+    camera_m: np.ndarray
+    frustum_m: np.ndarray
+    lamp_m: np.ndarray
+    aim_m: np.ndarray
+    color: str
+    camera_px: tuple
+    lamp_px: tuple
+
+
+@dataclass(frozen=True)
+class CellPicture:
+    """cell.png's path, its shots as drawn and its features (name, colour, covering shot or None)."""
+
+    path: Path
+    shots: tuple
+    features: tuple
+
+
+def display_mesh(vertices, faces, max_faces, split=None):
+    """A mesh for drawing: beyond max_faces merged by vertex clustering (each cell of a grid, sized
+    for about max_faces facets over the surface area, becomes its vertices' mean; facets that
+    collapse or repeat dropped: a dense curved surface thins, a big flat facet's corners stay
+    put), then facets longer than 1 / split of its size split (matplotlib sorts whole polygons by
+    depth, so a long one drawn large hides what lies in front of it)."""
+    vertices, faces = np.asarray(vertices, float), np.asarray(faces, np.int64)
+    if len(faces) > max_faces:
+        tri = vertices[faces]
+        area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum()
+        size = np.sqrt(2.0 * area / max_faces)                  # two facets per cell of the surface
+        key = np.floor((vertices - vertices.min(axis=0)) / size).astype(np.int64)
+        _, cluster, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+        cluster = cluster.ravel()
+        merged = np.zeros((len(count), 3))
+        np.add.at(merged, cluster, vertices)
+        f = cluster[faces]
+        f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
+        _, first = np.unique(np.sort(f, axis=1), axis=0, return_index=True)
+        vertices, faces = merged / count[:, None], f[np.sort(first)]
+    if split is None:
+        return vertices, faces
+    return trimesh.remesh.subdivide_to_size(vertices, faces, np.ptp(vertices, axis=0).max() / split)
+
+
+def _draw_mesh(ax, vertices, faces, scale, max_faces, split=None):
+    v, f = display_mesh(vertices, faces, max_faces, split)
+    tri = v[f] * scale
+    normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    lit = np.abs(geometry.unit(normals + 1e-30) @ LIGHT)          # two-sided: merged facets may flip
+    shade = (0.35 + 0.6 * lit)[:, None] * np.array([0.78, 0.80, 0.84])
+    ax.add_collection3d(Poly3DCollection(tri, facecolors=shade, edgecolors="none", zorder=1))
+
+
+def _rig_lines(lamp_rig):
+    """Polylines of the rig's sphere at both ends of its radius range over its pan and tilt ranges:
+    5 circles of latitude and a meridian every 30 deg of pan."""
+    pan = np.linspace(*lamp_rig.pan_range_rad, 73)
+    tilt = np.linspace(*lamp_rig.tilt_range_rad, 19)
+    lines = []
+    for r in sorted(set(lamp_rig.radius_range_m)):
+        lines += [rig.lamp_position(lamp_rig.pivot_m, pan, t, r) for t in np.linspace(*lamp_rig.tilt_range_rad, 5)]
+        lines += [rig.lamp_position(lamp_rig.pivot_m, p, tilt, r)
+                  for p in np.arange(lamp_rig.pan_range_rad[0], lamp_rig.pan_range_rad[1] + 1e-9, np.radians(30.0))]
+    return lines
+
+
+def _cube(ax, points, unit):
+    """Equal scales on the three axes: a cube around the points."""
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    middle, half = 0.5 * (lo + hi), 0.5 * (hi - lo).max() * 1.02
+    for axis, m in zip("xyz", middle):
+        getattr(ax, f"set_{axis}lim")(m - half, m + half)
+        getattr(ax, f"set_{axis}label")(f"{axis} [{unit}]", fontsize=8, labelpad=-2)
+    ax.set_box_aspect((1, 1, 1))
+    ax.tick_params(labelsize=7, pad=0)
+
+
+def _disk(center, normal, radius, n=36):
+    frame = geometry.frame_from_normal(normal)
+    a = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+    return center + radius * (np.cos(a)[:, None] * frame[:, 0] + np.sin(a)[:, None] * frame[:, 1])
+
+
+def _pixel(ax, point, height_px):
+    """[column, row] of a 3D point in the saved PNG (after the draw that laid the axes out)."""
+    x, y, _ = proj3d.proj_transform(*point, ax.get_proj())
+    column, up = ax.transData.transform((x, y))
+    return float(column), float(height_px - up)
+
+
+def _covered(plan, task):
+    """Per shot the names of the features it covers, per feature the shot covering it (or None)."""
+    if plan.features:
+        return [[c.feature for c in shot.covers] for shot in plan.shots], [f.covered_by for f in plan.features]
+    return [[task.feature.name] if plan.feasible else []], [0 if plan.feasible else None]
+
+
+def _draw_cell(ax, vertices, faces, shots, lamp_rig):
+    """The whole cell [m]: part, rig's sphere and pivot, each shot's frustum, camera and lamp."""
+    pivot = np.asarray(lamp_rig.pivot_m, float)
+    _draw_mesh(ax, vertices, faces, 1.0, 600)
+    sphere = _rig_lines(lamp_rig)
+    ax.add_collection3d(Line3DCollection(sphere, colors="0.7", linewidths=0.5, zorder=2))
+    ax.plot(*pivot, "k+", ms=8, zorder=4)
+    for k, (shot, color, corners) in enumerate(shots):
+        c, lamp = shot.camera_position, shot.lamp_position
+        edges = [np.array([c, q]) for q in corners] + [np.vstack([corners, corners[:1]])]
+        ax.add_collection3d(Line3DCollection(edges, colors=color, linewidths=1.0, zorder=3))
+        ax.plot(*np.array([lamp, pivot]).T, "--", color=color, lw=0.9, zorder=3)
+        ax.plot(*c, "s", color=color, mec="black", mew=0.5, ms=9, zorder=10)
+        ax.plot(*lamp, "o", color=color, mec="black", mew=0.5, ms=9, zorder=10)
+        ax.text(*c, f"   camera {k}", fontsize=7, color=color, zorder=11)      # spaces: off the marker
+        ax.text(*lamp, f"   lamp {k}", fontsize=7, color=color, zorder=11)
+    _cube(ax, np.vstack([vertices, *sphere, *(np.vstack([s.camera_position, s.lamp_position, q])
+                                              for s, _, q in shots)]), "m")
+    ax.set_title("the cell: cameras with their frusta, lamps, the rig's sphere", fontsize=9)
+
+
+def _draw_part(ax, vertices, faces, features, shots, pivot):
+    """The part [mm]: mesh, each feature's patch and normal, each shot's view axis and lamp
+    direction as stubs of 0.8 x the part's size."""
+    mm, stub = 1e3, 0.8 * np.ptp(vertices, axis=0).max()
+    elev, azim = np.radians(VIEW)
+    viewer = np.array([np.cos(elev) * np.cos(azim), np.cos(elev) * np.sin(azim), np.sin(elev)])
+    _draw_mesh(ax, vertices, faces, mm, 1500, split=6)
+    for name, center, normal, radius, color in features:
+        disk = _disk(center + 2e-4 * normal, normal, radius) * mm
+        behind = normal @ viewer < 0.0                        # on a face turned away: seen through the part
+        ax.add_collection3d(Poly3DCollection([disk], facecolors=to_rgba(color, 0.4 if behind else 1.0),
+                                             edgecolors="black", linewidths=0.6, linestyles="--" if behind else "-",
+                                             zorder=5))
+        tip = center + 0.3 * stub * normal                    # its normal: read even when seen edge-on
+        ax.plot(*np.array([center, tip]).T * mm, "-", color="black", lw=0.8, zorder=6)
+        ax.text(*tip * mm, name, fontsize=7, zorder=11)
+    ax.plot(*pivot * mm, "k+", ms=8, zorder=6)
+    ends = []
+    for k, (shot, color, _) in enumerate(shots):
+        axis = shot.T_cell_cam[:3, 2]
+        focus = shot.camera_position + shot.exposure.focus_m * axis        # on the shot's own feature
+        for start, end, style, marker, label in (
+                (focus, focus - stub * axis, "-", "s", f" camera {k}"),
+                (pivot, pivot + stub * geometry.unit(shot.lamp_position - pivot), "--", "o", f" lamp {k}")):
+            ax.plot(*np.array([start, end]).T * mm, style, color=color, lw=1.2, zorder=7)
+            ax.plot(*end * mm, marker, color=color, mec="black", mew=0.5, ms=7, zorder=10)
+            ax.text(*end * mm, label, fontsize=7, color=color, zorder=11)
+            ends.append(end)
+    _cube(ax, np.vstack([vertices, *ends]) * mm, "mm")
+    ax.set_title("the part: features, each shot's view axis and lamp direction", fontsize=9)
+
+
+def _legend(fig, shots, names, features, covered, lamp_rig):
+    handles = [Line2D([], [], color=color, lw=2, label=f"shot {k}: " + (", ".join(n) or "covers nothing"))
+               for k, ((_, color, _), n) in enumerate(zip(shots, names))]
+    handles += [Line2D([], [], color="black", marker="s", mfc="white", label="camera (left: its frustum to the focus)"),
+                Line2D([], [], color="black", marker="o", mfc="white", ls="--",
+                       label="lamp (left: dashed to its aim; right: its direction from the pivot)")]
+    handles += [Patch(facecolor=color, edgecolor="black", label=f"{name}: " + ("no shot" if by is None else f"shot {by}"))
+                for (name, *_, color), by in zip(features, covered)]
+    r0, r1 = lamp_rig.radius_range_m
+    handles += [Line2D([], [], color="0.7", lw=0.8, label=f"rig's sphere, radius {r0:.2f} and {r1:.2f} m"),
+                Line2D([], [], color="black", marker="+", ls="none", label="rig's pivot (every lamp's aim)")]
+    fig.legend(handles=handles, loc="lower center", ncol=3, fontsize=7, frameon=False)
+
+
+@_one_at_a_time
+def write_cell(path, plan, task):
+    """cell.png: the cell of a plan in two views. Left, the whole cell [m]: the part, each shot's
+    camera (square) with its frustum to the focus distance (the image's corners there: the pinhole's
+    W p d / f by H p d / f), its lamp (dot) with a dashed line to the aim point (the rig's pivot),
+    and the rig's sphere at both ends of its radius range; right, the part [mm]: its mesh shaded,
+    each feature's patch in its colour (pale and dashed on a face turned away), each shot's optical
+    axis toward its camera and the line from the pivot toward its lamp. Returns a CellPicture."""
+    T = task.frames.T_cell_part
+    vertices, faces = geometry.apply(T, task.part.mesh.vertices), np.asarray(task.part.mesh.faces)
+    sensor, lamp_rig = task.camera.sensor, task.lamp.rig
+    K = projection.intrinsics(sensor, task.camera.lens)
+    names, covered = _covered(plan, task)
+    features = [(f.name, geometry.apply(T, f.center_m), geometry.unit(geometry.rotate(T, f.normal)), f.radius_m,
+                 FEATURE_COLORS[j % len(FEATURE_COLORS)]) for j, f in enumerate(task.features)]
+    shots = [(shot, SHOT_COLORS[k % len(SHOT_COLORS)],
+              projection.frustum_corners(K, shot.T_cell_cam, sensor.width_px, sensor.height_px,
+                                         shot.exposure.focus_m)) for k, shot in enumerate(plan.shots)]
+    fig = Figure(figsize=(13, 6.4), dpi=90)
+    whole = fig.add_subplot(1, 2, 1, projection="3d", computed_zorder=False)    # drawn in zorder: markers on top
+    near = fig.add_subplot(1, 2, 2, projection="3d", computed_zorder=False)
+    _draw_cell(whole, vertices, faces, shots, lamp_rig)
+    _draw_part(near, vertices, faces, features, shots, np.asarray(lamp_rig.pivot_m, float))
+    for ax in (whole, near):
+        ax.view_init(*VIEW)
+    verdict = "feasible" if plan.feasible else f"not feasible ({plan.binding})"
+    fig.suptitle(f"{plan.task_name}: {len(shots)} shot{'s' * (len(shots) != 1)}, {verdict}", fontsize=10)
+    _legend(fig, shots, names, features, covered, lamp_rig)
+    fig.subplots_adjust(left=0.0, right=1.0, bottom=0.17, top=0.93, wspace=0.0)
+    fig.savefig(path, dpi=90, pil_kwargs=PNG)
+    height = fig.get_figheight() * fig.dpi
+    drawn = tuple(DrawnShot(shot.camera_position.copy(), corners, shot.lamp_position.copy(),
+                            np.asarray(lamp_rig.pivot_m, float), color, _pixel(whole, shot.camera_position, height),
+                            _pixel(whole, shot.lamp_position, height)) for shot, color, corners in shots)
+    return CellPicture(Path(path), drawn, tuple((name, color, by) for (name, *_, color), by in zip(features, covered)))
 
 
 @_one_at_a_time

@@ -51,3 +51,12 @@ def pixel_footprint(camera, points, normals, pixel_pitch_m, focal_length_m):
     cos = np.cos(view_angles(camera, points, normals))
     with np.errstate(divide="ignore"):
         return np.where(cos > 0, distance * pixel_pitch_m / focal_length_m / np.maximum(cos, 0.0), np.inf)
+
+
+def frustum_corners(K, T_cell_cam, width, height, depth_m):
+    """(4, 3) cell-frame corners of the image (its outer pixel edges, clockwise in the image from
+    top left) at depth_m along the optical axis: depth K^-1 [u, v, 1], a rectangle W p d / f by
+    H p d / f."""
+    corners = np.array([[-0.5, -0.5, 1.0], [width - 0.5, -0.5, 1.0], [width - 0.5, height - 0.5, 1.0],
+                        [-0.5, height - 0.5, 1.0]])
+    return geometry.apply(T_cell_cam, depth_m * corners @ np.linalg.inv(K).T)

@@ -13,11 +13,12 @@ from cell import jsonio
 from cell.session import Session, stop_outcome
 
 
-def write_plan(plan, task, folder):
-    """plan.json and the plan's pictures into folder (created); a multi-feature plan's own plan
-    of each feature i (plan.json, pictures) into folder/feature-i, or with planned viewpoints
-    each candidate shot k's plan into folder/candidate-k."""
-    from cell.pictures import write_plan_pictures
+def write_plan(plan, task, folder, cell_picture=True):
+    """plan.json, the plan's pictures and cell.png (its shots in the cell) into folder (created);
+    a multi-feature plan's own plan of each feature i (plan.json, pictures) into folder/feature-i,
+    or with planned viewpoints each candidate shot k's plan into folder/candidate-k (cell.png only
+    of the plan itself: it shows the chosen shots)."""
+    from cell.pictures import write_cell, write_plan_pictures
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     write_json(folder / "plan.json", plan.to_json())
@@ -25,9 +26,12 @@ def write_plan(plan, task, folder):
         planned = plan.cover.get("candidate_features")
         for k, own in enumerate(plan.plans):
             i = k if planned is None else planned[k]
-            write_plan(own, task.with_feature(i), folder / (f"feature-{k}" if planned is None else f"candidate-{k}"))
+            write_plan(own, task.with_feature(i), folder / (f"feature-{k}" if planned is None else f"candidate-{k}"),
+                       cell_picture=False)
     else:
         write_plan_pictures(plan, task, plan.scene, folder)
+    if cell_picture:
+        write_cell(folder / "cell.png", plan, task)
     return folder
 
 

@@ -1,0 +1,180 @@
+"""The whole-part example, tasks/bracket.yaml: five features on faces at five angles of a cast
+angle bracket, camera viewpoints planned. Its plan covers every feature with several shots, the
+fewest by brute force over the coverage matrix (and over reduced candidate sets of it), and each
+feature with the shot covering it is checked independently: tests/dense.py's NumPy shading of
+the true patch (in band, lit, seen, in focus), the image bounds, view angle and pixel footprint
+recomputed at those points by the pinhole, and the UR5e's forward kinematics reaching the pose."""
+import json
+from itertools import combinations
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from matplotlib import image as plt_image
+from matplotlib.colors import to_rgb
+
+from cell import cli, loader, rig, ur5e
+from cell.cover import fewest_shots
+from cell.devices import check_arm_motion
+from cell.measure import measure_feature, saturation_level
+from cell.multiplan import plan_features
+from cell.pictures import write_cell
+from cell.scene import build_scene
+from dense import acceptance_failures, patch_surface, shade
+from sim.world import Renderer
+
+ROOT = Path(__file__).resolve().parent.parent
+BRACKET = ROOT / "tasks" / "bracket.yaml"
+FEATURES = ["base_top", "chamfer", "web_inner", "bevel", "web_outer"]
+
+
+@pytest.fixture(scope="module")
+def bracket():
+    task = loader.load_task(BRACKET)
+    return task, plan_features(task)
+
+
+def fewest_by_brute_force(covers):
+    """The fewest columns of the bool matrix covering every row that any column covers, by trying
+    every subset in order of size."""
+    covers = np.asarray(covers, bool)
+    need = covers.any(axis=1)
+    for k in range(covers.shape[1] + 1):
+        if any(np.array_equal(covers[:, list(s)].any(axis=1), need) for s in combinations(range(covers.shape[1]), k)):
+            return k
+
+
+def test_the_bracket_loads_and_cell_check_passes(capsys):
+    assert cli.main(["check", str(BRACKET)]) == 0
+    out = capsys.readouterr().out
+    for name in FEATURES:
+        assert f"patch {name:<6} 32 samples on the surface, within 0.00 mm of its tangent plane" in out
+
+
+def test_no_one_camera_pose_sees_both_faces_of_the_web(bracket):
+    """web_inner faces +x on the plane x = -15 mm, web_outer -x on x = -25 mm: a camera sees the
+    first only from x > -15 mm and the second only from x < -25 mm. So no candidate covers both,
+    and every candidate covering one lies on its side."""
+    task, plan = bracket
+    covers = np.array(plan.cover["covers"], bool)
+    inner, outer = covers[FEATURES.index("web_inner")], covers[FEATURES.index("web_outer")]
+    assert inner.any() and outer.any() and not (inner & outer).any()
+    shots = [p.shot for p in plan.plans]
+    assert all(shots[s].camera_position[0] > -0.015 for s in np.flatnonzero(inner))
+    assert all(shots[s].camera_position[0] < -0.025 for s in np.flatnonzero(outer))
+
+
+def test_the_plan_covers_every_feature_with_the_fewest_shots_by_brute_force(bracket):
+    task, plan = bracket
+    assert plan.feasible and [f.name for f in plan.features] == FEATURES
+    assert all(f.covered_by is not None for f in plan.features)
+    covers = np.array(plan.cover["covers"], bool)
+    assert covers.shape == (5, plan.cover["candidate_shots"]) and covers.all(axis=0).sum() == 0
+    assert len(plan.shots) >= 2 and len(plan.shots) == fewest_by_brute_force(covers)
+    # the README's bound by hand: the rows of base_top, web_inner and web_outer share no candidate,
+    # so no shot covers two of them: three shots at least, and the plan has three
+    rows = covers[[FEATURES.index(n) for n in ("base_top", "web_inner", "web_outer")]]
+    assert rows.any(axis=1).all() and rows.sum(axis=0).max() == 1 and len(plan.shots) == 3
+    assert covers[:, plan.cover["chosen"]].any(axis=1).all()
+    for k, shot in enumerate(plan.shots):          # each shot covers what the matrix says it does
+        assert [c.feature for c in shot.covers] == [FEATURES[f] for f in np.flatnonzero(covers[:, plan.cover["chosen"][k]])]
+    # reduced candidate sets: each candidate left out in turn (a chosen one forces another cover)
+    travel = np.array(plan.cover["travel_m"])
+    for s in range(covers.shape[1]):
+        keep = [t for t in range(covers.shape[1]) if t != s]
+        cover = fewest_shots(covers[:, keep], travel[keep])
+        assert len(cover.chosen) == fewest_by_brute_force(covers[:, keep])
+        assert np.array_equal(covers[:, keep][:, list(cover.chosen)].any(axis=1), covers[:, keep].any(axis=1))
+
+
+def test_each_feature_with_its_shot_holds_on_the_dense_check_and_the_arm_reaches_it(bracket):
+    """3000 points of each true patch, the covering shot's camera, lamp and exposure: in band, lit,
+    seen and in focus (tests/dense.py); inside the image by the pinhole u = f/p x/z + (W - 1)/2;
+    within 50 deg of the camera; a pixel covering at most 0.15 mm; the arm's workspace and the
+    UR5e's forward kinematics of the plan's joints giving the camera pose back."""
+    task, plan = bracket
+    frames, arm = task.frames, task.cell.devices.arm
+    sensor, lens = task.camera.sensor, task.camera.lens
+    f_px = lens.focal_length_m / sensor.pixel_pitch_m
+    for i, f in enumerate(plan.features):
+        shot, one = plan.shots[f.covered_by], task.with_feature(i)
+        points, normals = patch_surface(one, 3000)
+        check = shade(one, shot, points, normals)
+        assert acceptance_failures(SimpleNamespace(feasible=True), check) == [], f.name
+        local = (points - shot.camera_position) @ shot.T_cell_cam[:3, :3]
+        u = f_px * local[:, 0] / local[:, 2] + (sensor.width_px - 1) / 2
+        v = f_px * local[:, 1] / local[:, 2] + (sensor.height_px - 1) / 2
+        assert (u.min() > -0.5 and u.max() < sensor.width_px - 0.5 and v.min() > -0.5
+                and v.max() < sensor.height_px - 0.5), f.name
+        to_camera = shot.camera_position - points
+        distance = np.linalg.norm(to_camera, axis=1)
+        cos = np.sum(to_camera * normals, axis=1) / distance
+        assert np.degrees(np.arccos(cos.min())) <= 50.0, f.name
+        assert (distance * sensor.pixel_pitch_m / lens.focal_length_m / cos).max() <= 0.15e-3, f.name
+        check_arm_motion(arm, frames, shot.T_cell_cam, arm.speed_m_s)
+        np.testing.assert_allclose(frames.T_cell_base @ ur5e.forward(shot.arm_joints) @ frames.T_flange_cam,
+                                   shot.T_cell_cam, atol=1e-9)
+
+
+def test_the_simulated_camera_sees_every_feature_in_band_in_its_shot(bracket):
+    """What a run's first capture of each shot would measure: the simulated cell (its renderer,
+    the task's effects: shadows, the lamp's soft cone, quantization) at the shot's camera, lamp and
+    exposure, every pixel of each covered feature's image region (cell.measure) in the band and
+    within 1 gray level (quantization's rounding) of the plan's prediction."""
+    task, plan = bracket
+    for k, shot in enumerate(plan.shots):
+        e = shot.exposure
+        aim = rig.lamp_aim(task.lamp.rig.pivot_m, shot.lamp_position)
+        image = None
+        for c in shot.covers:
+            one = task.with_feature(FEATURES.index(c.feature))
+            scene = build_scene(one, T_cell_cam=shot.T_cell_cam)
+            if image is None:                                   # one capture of the shot for all
+                image = Renderer(one, scene)(shot.T_cell_cam, shot.lamp_position, aim, e.shutter_s, e.f_number,
+                                             e.focus_m)
+            m = measure_feature(image, one, shot.T_cell_cam, scene.points, saturation_level(8))
+            assert m.in_band(one.requirements.gray_band) and m.gray.size > 4000, (k, c.feature, m.stats())
+            assert m.min >= c.gray.min() - 1.0 and m.max <= c.gray.max() + 1.0, (k, c.feature, m.stats())
+
+
+def test_cell_png_of_the_bracket_draws_every_shot_and_feature(bracket, tmp_path):
+    """Three shots' markers where the PNG has their colours; each feature with the shot covering it."""
+    task, plan = bracket
+    picture = write_cell(tmp_path / "cell.png", plan, task)
+    assert len(picture.shots) == len(plan.shots)
+    assert [(name, by) for name, _, by in picture.features] == [(f.name, f.covered_by) for f in plan.features]
+    image = plt_image.imread(tmp_path / "cell.png")[..., :3]
+    for drawn, shot in zip(picture.shots, plan.shots):
+        np.testing.assert_allclose(drawn.camera_m, shot.camera_position)
+        for px in (drawn.camera_px, drawn.lamp_px):
+            np.testing.assert_allclose(image[int(round(px[1])), int(round(px[0]))], to_rgb(drawn.color), atol=2 / 255)
+    assert len({s.color for s in picture.shots}) == len(plan.shots)
+    # a plan no shot of which covers anything (every feature uncovered) still draws the part
+    from dataclasses import replace
+    none = replace(plan, shots=(), feasible=False, binding="viewpoint",
+                   features=tuple(replace(f, covered_by=None, binding="viewpoint") for f in plan.features))
+    empty = write_cell(tmp_path / "none.png", none, task)
+    assert empty.shots == () and [by for *_, by in empty.features] == [None] * 5
+    assert (tmp_path / "none.png").stat().st_size > 20_000
+
+
+def test_cell_plan_prints_the_bracket_and_writes_cell_png_beside_plan_json(bracket, tmp_path, capsys, monkeypatch):
+    """The plan's lines as the README shows them; cell.png of the chosen shots beside plan.json, each
+    candidate's plan and maps in candidate-k/ without one (the maps' drawing, ~0.3 s a candidate,
+    stubbed: only where they go is checked here)."""
+    task, plan = bracket
+    maps = []
+    monkeypatch.setattr("cell.cli.plan.plan_features", lambda task, progress: plan)
+    monkeypatch.setattr("cell.pictures.write_plan_pictures", lambda plan, task, scene, folder: maps.append(folder))
+    out = tmp_path / "out"
+    assert cli.main(["plan", str(BRACKET), "--out", str(out)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith(f"{task.name}: feasible: {len(plan.shots)} shots cover 5 of 5 features "
+                               f"(of {plan.cover['candidate_shots']} candidate shots, planned viewpoints)")
+    assert sum(line.startswith("  shot ") for line in lines) == len(plan.shots)
+    assert sum(line.startswith("  feature ") for line in lines) == 5
+    assert (out / "cell.png").stat().st_size > 20_000
+    assert maps == [out / f"candidate-{k}" for k in range(plan.cover["candidate_shots"])]
+    assert not any((out / f"candidate-{k}" / "cell.png").exists() for k in range(len(maps)))
+    assert json.loads((out / "plan.json").read_text())["cover"]["chosen"] == plan.cover["chosen"]
