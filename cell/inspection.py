@@ -237,7 +237,7 @@ def visit_order(plan, devices, recorder):
     exact = "exact" if len(order) <= route.EXACT_MAX else "nearest neighbour"
     recorder.step("route", f"shots in the order {list(order)}: {route.length(D, order):.3f} m of camera and lamp "
                            f"travel from the start ({exact})", order=list(order),
-                  travel_m=route.length(D, order))
+                  travel_m=route.length(D, order), start={"camera_m": camera, "lamp_m": lamp})
     return order, route.length(D, order)
 
 
