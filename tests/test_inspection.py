@@ -294,3 +294,26 @@ def test_a_fault_in_the_second_shot_exits_3_and_keeps_the_first_shots_measuremen
     assert not second["converged"] and "capture timed out" in second["reason"]
     first = json.loads((tmp_path / "shot-1" / "report.json").read_text())
     assert first["converged"] and first["iterations"][-1]["measured_gray"] == by["knuckle"]["measured_gray"]
+
+
+def test_a_wrong_albedo_is_corrected_in_each_shot_with_one_exposure_for_the_features_it_shares(tmp_path):
+    from simcell import variant
+    path = variant(tmp_path, PAIR, {"sim.truth.albedo_scale": 0.5,
+                                    "sim.effects": ["shadows", "quantization", "noise", "black_level"]})
+    assert cli.main(["run", str(path), "--out", str(tmp_path / "run")]) == 0
+    run = read(tmp_path / "run")
+    assert all(f["converged"] and f["iterations"] == 2 for f in run.report["features"])
+    shared = json.loads((tmp_path / "run" / "shot-0" / "report.json").read_text())["iterations"]
+    first, second = [it for it in shared if it["iteration"] == 1], [it for it in shared if it["iteration"] == 2]
+    assert [it["feature"] for it in first] == [it["feature"] for it in second] == ["leaf_a", "leaf_b"]
+    assert not all(it["in_band"] for it in first) and all(it["in_band"] for it in second)
+    assert first[0]["correction"] == first[1]["correction"] and first[0]["correction"]["action"] == "exposure"
+    assert len({it["shutter_s"] for it in second}) == 1                 # one exposure for both
+    # the gain on G - b: the joined range's geometric mean to the band's centre (evaluate.target_gray)
+    b = run.report["black_level"]["value"]
+    lo = min(it["measured_gray"]["min"] for it in first) - b
+    hi = max(it["measured_gray"]["max"] for it in first) - b
+    low, high = 60 - b, 250 - b
+    gain = np.sqrt(max(low, 0.25 * high) * high) / np.sqrt(lo * hi)
+    k = (second[0]["shutter_s"] / second[0]["f_number"] ** 2) / (first[0]["shutter_s"] / first[0]["f_number"] ** 2)
+    assert k == pytest.approx(gain, rel=1e-3)
