@@ -296,8 +296,9 @@ def plan_logged(task, recorder):
     plan = plan_features(task, progress=recorder.progress)
     recorder.write_plan(plan, task)
     covered = sum(f.covered_by is not None for f in plan.features)
-    recorder.step("plan", f"{plan.message}: {loop.count(len(plan.shots), 'shot')} cover {covered} of "
-                          f"{len(plan.features)} features", feasible=plan.feasible, binding=plan.binding,
+    recorder.step("plan", f"{'feasible' if plan.feasible else 'PARTIAL'}: {loop.count(len(plan.shots), 'shot')} "
+                          f"cover {covered} of {len(plan.features)} features"
+                          + ("" if plan.feasible else f"; {plan.message}"), feasible=plan.feasible, binding=plan.binding,
                   hint=plan.hint, shots=len(plan.shots),
                   features={f.name: f.covered_by for f in plan.features})
     return plan
