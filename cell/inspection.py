@@ -15,6 +15,7 @@ from cell import control, loop, measure, register, route
 from cell.acquisition import acquire, move_to, require_feasible
 from cell.devices import speaking_for
 from cell.errors import GoalNotReached
+from cell.geometry import rotation_angle
 from cell.recorder import Recorder
 from cell.rig import lamp_position
 from cell.session import Session
@@ -153,12 +154,13 @@ class ShotRun:
         return [it for it in self.iterations if it.feature == name]
 
     def summary(self):
-        """`shot s: converged after N iterations: leaf_a gray 104-119, ...`, one line."""
+        """`converged after N iterations; leaf_a gray 104-119, ...`, one line."""
         n = len({it.iteration for it in self.iterations})
         grays = ", ".join(f"{name} gray {its[-1].measured_gray['min']:.0f}-{its[-1].measured_gray['max']:.0f}"
                           for name in self.features if (its := self.of(name)))
-        verdict = f"converged after {loop.count(n, 'iteration')}" if self.success else f"not converged: {self.message}"
-        return f"{verdict}" + (f"; {grays}" if grays else "")
+        verdict = f"converged after {loop.count(n, 'iteration')}" if self.success else \
+            f"not converged: {self.message}"
+        return verdict + (f"; {grays}" if grays else "")
 
     def to_json(self):
         return {"shot": self.shot, "features": list(self.features), "converged": self.success,
@@ -220,9 +222,8 @@ def camera_error(devices, T_cell_cam):
     between their orientations [deg]."""
     with speaking_for(devices.arm):
         T = devices.arm.camera_pose()
-    cos = (np.trace(T[:3, :3].T @ np.asarray(T_cell_cam)[:3, :3]) - 1.0) / 2.0
     return {"position_m": float(np.linalg.norm(T[:3, 3] - np.asarray(T_cell_cam)[:3, 3])),
-            "angle_deg": float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))}
+            "angle_deg": float(np.degrees(rotation_angle(T, T_cell_cam)))}
 
 
 def visit_order(plan, devices, recorder):
@@ -296,10 +297,10 @@ def plan_logged(task, recorder):
     plan = plan_features(task, progress=recorder.progress)
     recorder.write_plan(plan, task)
     covered = sum(f.covered_by is not None for f in plan.features)
-    recorder.step("plan", f"{'feasible' if plan.feasible else 'PARTIAL'}: {loop.count(len(plan.shots), 'shot')} "
-                          f"cover {covered} of {len(plan.features)} features"
-                          + ("" if plan.feasible else f"; {plan.message}"), feasible=plan.feasible, binding=plan.binding,
-                  hint=plan.hint, shots=len(plan.shots),
+    verdict = "feasible" if plan.feasible else "PARTIAL"
+    recorder.step("plan", f"{verdict}: {loop.count(len(plan.shots), 'shot')} cover {covered} of "
+                          f"{len(plan.features)} features" + ("" if plan.feasible else f"; {plan.message}"),
+                  feasible=plan.feasible, binding=plan.binding, hint=plan.hint, shots=len(plan.shots),
                   features={f.name: f.covered_by for f in plan.features})
     return plan
 
@@ -325,15 +326,9 @@ def run(task, out, connect, max_iterations=6):
                 session.devices = connect(plan.plans[candidate_features(plan).index(0)].scene)
                 order, travel = visit_order(plan, session.devices, recorder)
                 for n, s in enumerate(order):
-                    shot = plan.shots[s]
-                    pan, tilt, radius = shot.joints
                     recorder.step("shot", f"shot {n + 1} of {len(order)} (plan's shot {s}): "
-                                          + ", ".join(c.feature for c in shot.covers)
-                                          + f"; camera at {np.round(shot.camera_position, 3).tolist()} m, lamp pan "
-                                          f"{np.degrees(pan):.1f} deg, tilt {np.degrees(tilt):.1f} deg, radius "
-                                          f"{radius:.3f} m; {1e3 * shot.exposure.shutter_s:.3f} ms, "
-                                          f"f/{shot.exposure.f_number:.1f}", shot=s, visit=n + 1,
-                                  features=[c.feature for c in shot.covers])
+                                          f"{describe(plan.shots[s])}", shot=s, visit=n + 1,
+                                  features=[c.feature for c in plan.shots[s].covers])
                     done = run_shot(task, plan, s, session.devices, recorder, max_iterations, black, runs)
                     black = black or done.black
                     recorder.step("shot_done", f"shot {n + 1} of {len(order)} (plan's shot {s}): {done.summary()}",
@@ -356,6 +351,15 @@ def run(task, out, connect, max_iterations=6):
                                       travel, tuple(runs), session.fault)
             recorder.write_json("report.json", result.to_json())
     return result
+
+
+def describe(shot):
+    """`leaf_a, leaf_b; camera at [...] m, lamp pan ..., 2.265 ms, f/1.4`: a shot's line."""
+    pan, tilt, radius = shot.joints
+    camera = np.round(shot.camera_position, 3).tolist()
+    return (", ".join(c.feature for c in shot.covers) + f"; camera at {camera} m, lamp pan {np.degrees(pan):.1f} "
+            f"deg, tilt {np.degrees(tilt):.1f} deg, radius {radius:.3f} m; {1e3 * shot.exposure.shutter_s:.3f} ms, "
+            f"f/{shot.exposure.f_number:.1f}")
 
 
 def gray_line(feature):

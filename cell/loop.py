@@ -37,7 +37,8 @@ class Iteration:
     feature: str | None = None           # its feature's name, in a shot of several (cell.inspection)
 
     def to_json(self):
-        document = {k: getattr(self, k) for k in self.__dataclass_fields__ if k not in ("correction", "feature")}
+        document = {k: getattr(self, k) for k in self.__dataclass_fields__
+                    if k not in ("correction", "feature")}
         return ({"feature": self.feature} if self.feature else {}) | document | (
             {"correction": self.correction} if self.correction else {})
 
@@ -190,12 +191,14 @@ def measure_capture(task, model, devices, recorder, k, capture, albedo_scale, bl
     in_band = m.in_band(band)
     stats, expected = m.stats(), gray_stats(predicted)
     verdict = f"{'in' if in_band else 'out of'} band {band[0]:g}-{band[1]:g}"
-    caption = f"{k}: {feature + ', ' if feature else ''}gray {m.min:.0f}-{m.max:.0f}, {stats['saturated']} saturated: {verdict}"
+    named = f"{feature}: " if feature else ""
+    caption = f"{k}: {named}gray {m.min:.0f}-{m.max:.0f}, {stats['saturated']} saturated: {verdict}"
     annotated = recorder.write_image(f"capture-{k}-{file_name(feature) if feature else 'feature'}.png",
                                      annotate_capture(capture.image, m, bit_depth, caption))
     it = Iteration(k, capture.shutter_s, float(f_number), expected, stats, error, relation, in_band,
                    capture.name, annotated, albedo_scale, found.to_json(), feature=feature)
-    recorder.step("measure", f"{feature}: " * bool(feature) + f"gray mean {stats['mean']:.1f}, {m.min:.1f}-{m.max:.1f} over {stats['pixels']} px "
+    recorder.step("measure", f"{named}gray mean {stats['mean']:.1f}, {m.min:.1f}-{m.max:.1f} over "
+                             f"{stats['pixels']} px "
                              f"(pixels {stats['pixel_min']:.0f}-{stats['pixel_max']:.0f}, noise "
                              f"{stats['noise_rms']:.1f} rms, {stats['saturated']} saturated); the model predicts "
                              f"{expected['mean']:.1f}, {expected['min']:.1f}-{expected['max']:.1f}; "
@@ -222,7 +225,7 @@ def iterate(task, plan, devices, recorder, max_iterations, black=None, T_cell_ca
     T_cell_cam (a shot's of several, cell.inspection), else by the task's camera rule."""
     limits = limits_of(task, plan)
     band, lens_range = limits.band, limits.f_number_range
-    model, albedo, moved, known, refitted = Model(plan, task), 1.0, False, black, False
+    model, albedo, moved, given, refitted = Model(plan, task), 1.0, False, black, False
     black = None
     shutter, f_number = plan.shot.exposure.shutter_s, plan.shot.exposure.f_number
     for k in range(1, max_iterations + 1):
@@ -230,8 +233,8 @@ def iterate(task, plan, devices, recorder, max_iterations, black=None, T_cell_ca
             move_to(devices, model.plan.shot, recorder, k)
             moved = True
         if black is None:
-            black = known or find_black_level(task, plan, devices, recorder)
-            if not known:
+            black = given or find_black_level(task, plan, devices, recorder)
+            if not given:
                 yield BlackLevelFound(black)
             if black.value != evaluate.black_level(task):
                 shutter, f_number = model.exposure(black.value, lens_range)
@@ -269,7 +272,8 @@ def iterate(task, plan, devices, recorder, max_iterations, black=None, T_cell_ca
         if c.action == "exposure":
             shutter, f_number = c.shutter_s, c.f_number
             continue
-        replanned = plan_recorded(task, recorder, albedo, iteration=k, subfolder=f"replan-{k}", T_cell_cam=T_cell_cam)
+        replanned = plan_recorded(task, recorder, albedo, iteration=k, subfolder=f"replan-{k}",
+                                  T_cell_cam=T_cell_cam)
         yield Replan(k, albedo, replanned.to_json())
         if not replanned.feasible:
             raise GoalNotReached(f"{control.describe_error(c.model_error, c.relation)}; {c.reason}; "
@@ -279,7 +283,8 @@ def iterate(task, plan, devices, recorder, max_iterations, black=None, T_cell_ca
         shutter, f_number, moved = replanned.shot.exposure.shutter_s, replanned.shot.exposure.f_number, False
 
 
-def refit_and_replan(task, model, devices, recorder, k, m, c, black, albedo, shutter_s, f_number, T_cell_cam=None):
+def refit_and_replan(task, model, devices, recorder, k, m, c, black, albedo, shutter_s, f_number,
+                     T_cell_cam=None):
     """After capture k (at shutter_s, f_number) whose shape disagreed with the model (Correction
     c, cause spread): probe, refit the material (cell.refit; Corrected, Refitted) and re-plan with
     it (Replan; the camera at T_cell_cam, else by the task's rule). Returns

@@ -317,3 +317,27 @@ def test_a_wrong_albedo_is_corrected_in_each_shot_with_one_exposure_for_the_feat
     gain = np.sqrt(max(low, 0.25 * high) * high) / np.sqrt(lo * hi)
     k = (second[0]["shutter_s"] / second[0]["f_number"] ** 2) / (first[0]["shutter_s"] / first[0]["f_number"] ** 2)
     assert k == pytest.approx(gain, rel=1e-3)
+
+
+def test_a_shot_that_does_not_converge_leaves_the_others_to_run_and_the_run_exits_1_naming_each(tmp_path, capsys):
+    from simcell import variant
+    path = variant(tmp_path, PAIR, {"sim.truth.albedo_scale": 0.5})        # out of band at first
+    assert cli.main(["run", str(path), "--out", str(tmp_path / "run"), "--max-iterations", "1"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    run = read(tmp_path / "run")
+    assert [line["step"] for line in run.log].count("shot_done") == 2      # both shots ran
+    assert not any(shot["converged"] for shot in run.report["shots"])
+    assert err.startswith("cell run: 3 of 3 features not in band: leaf_a (shot 0): not every feature in band "
+                          "after 1 iteration")
+    assert "knuckle (shot 1): not in band 60-250 after 1 iteration" in err
+    by = {f["name"]: f for f in run.report["features"]}
+    # leaf_a alone read in band, but its shot did not converge: not converged, with the shot's reason
+    assert by["leaf_a"]["in_band"] and not by["leaf_a"]["converged"] and "leaf_b" in by["leaf_a"]["reason"]
+
+
+def test_the_rotation_angle_between_two_poses():
+    from cell import geometry
+    a = geometry.from_rpy(np.radians([10.0, -20.0, 30.0]), [1.0, 2.0, 3.0])
+    turn = geometry.from_rpy(np.radians([0.0, 0.0, 25.0]))
+    assert np.degrees(geometry.rotation_angle(a, a @ turn)) == pytest.approx(25.0, abs=1e-9)
+    assert geometry.rotation_angle(a, a) == pytest.approx(0.0, abs=1e-6)
