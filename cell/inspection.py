@@ -27,6 +27,13 @@ def candidate_features(plan):
     return plan.cover.get("candidate_features") or list(range(len(plan.plans)))
 
 
+def assigned(plan, s):
+    """The names of the features plan.shots[s] is the shot of (Plan.features' covered_by), in the
+    task's order: each feature is measured once, in its own shot, though another may cover it too.
+    A fewest-shots cover gives every chosen shot at least one (else it would not be needed)."""
+    return tuple(f.name for f in plan.features if f.covered_by == s)
+
+
 def feature_plan(plan, s, f):
     """The one-shot Plan of feature f at plan.shots[s], as the one-feature loop works on it: the
     shot's own candidate plan when it was planned for f; else the plan whose samples coverage
@@ -182,7 +189,7 @@ def run_shot(task, plan, s, devices, recorder, max_iterations, black, done):
     fault is raised on."""
     from cell.pictures import write_convergence
     shot = plan.shots[s]
-    names = tuple(c.feature for c in shot.covers)
+    names = assigned(plan, s)
     index = [f.name for f in plan.features]
     tasks = [task.with_feature(index.index(n)) for n in names]
     plans = [feature_plan(plan, s, index.index(n)) for n in names]
@@ -327,8 +334,7 @@ def run(task, out, connect, max_iterations=6):
                 order, travel = visit_order(plan, session.devices, recorder)
                 for n, s in enumerate(order):
                     recorder.step("shot", f"shot {n + 1} of {len(order)} (plan's shot {s}): "
-                                          f"{describe(plan.shots[s])}", shot=s, visit=n + 1,
-                                  features=[c.feature for c in plan.shots[s].covers])
+                                          f"{describe(plan, s)}", shot=s, visit=n + 1, features=assigned(plan, s))
                     done = run_shot(task, plan, s, session.devices, recorder, max_iterations, black, runs)
                     black = black or done.black
                     recorder.step("shot_done", f"shot {n + 1} of {len(order)} (plan's shot {s}): {done.summary()}",
@@ -353,11 +359,12 @@ def run(task, out, connect, max_iterations=6):
     return result
 
 
-def describe(shot):
-    """`leaf_a, leaf_b; camera at [...] m, lamp pan ..., 2.265 ms, f/1.4`: a shot's line."""
+def describe(plan, s):
+    """`leaf_a, leaf_b; camera at [...] m, lamp pan ..., 2.265 ms, f/1.4`: plan.shots[s]'s line."""
+    shot = plan.shots[s]
     pan, tilt, radius = shot.joints
     camera = np.round(shot.camera_position, 3).tolist()
-    return (", ".join(c.feature for c in shot.covers) + f"; camera at {camera} m, lamp pan {np.degrees(pan):.1f} "
+    return (", ".join(assigned(plan, s)) + f"; camera at {camera} m, lamp pan {np.degrees(pan):.1f} "
             f"deg, tilt {np.degrees(tilt):.1f} deg, radius {radius:.3f} m; {1e3 * shot.exposure.shutter_s:.3f} ms, "
             f"f/{shot.exposure.f_number:.1f}")
 
