@@ -69,14 +69,12 @@ def shared_correction(names, measured, limits, shutter_s, f_number, black):
     joint = control.Limits(band, limits[0].shutter_range, (max(lim.f_number_range[0] for lim in limits),
                                                            min(lim.f_number_range[1] for lim in limits)),
                            limits[0].albedo_range)
-    predicted = np.concatenate([p for _, _, p in measured])
     if band[0] > band[1]:
-        error, relation = control.model_error(measure.joined(m for _, m, _ in measured).sample_gray, predicted,
-                                              measured[0][1].saturation, black.value)
-        return control.Correction("stop", (np.nan, np.nan), error, relation, cause="bands", reason=(
+        return control.Correction("stop", (np.nan, np.nan), np.nan, "=", cause="bands", reason=(
             "the shot's features have gray bands with nothing in common ("
             + ", ".join(f"{n} {lim.band[0]:g}-{lim.band[1]:g}" for n, lim in zip(names, limits))
             + "): one exposure cannot be corrected toward all of them"))
+    predicted = np.concatenate([p for _, _, p in measured])
     c = control.correct(measure.joined(m for _, m, _ in measured), predicted, shutter_s, f_number, joint, black)
     if c.action == "stop" and c.cause == "spread":
         b = black.value

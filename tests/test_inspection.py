@@ -341,3 +341,15 @@ def test_the_rotation_angle_between_two_poses():
     turn = geometry.from_rpy(np.radians([0.0, 0.0, 25.0]))
     assert np.degrees(geometry.rotation_angle(a, a @ turn)) == pytest.approx(25.0, abs=1e-9)
     assert geometry.rotation_angle(a, a) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_features_whose_bands_share_nothing_are_not_corrected_toward_either(pair):
+    image, T, points = shared_capture(pair)
+    tasks = [pair.task.with_feature(f) for f in (0, 1)]
+    ms = [measure.measure_feature(image, t, T, p, 255) for t, p in zip(tasks, points)]
+    limits = [control.Limits((60.0, 100.0), (1e-5, 0.02), (1.4, 16.0)),
+              control.Limits((150.0, 250.0), (1e-5, 0.02), (1.4, 16.0))]
+    c = inspection.shared_correction(["leaf_a", "leaf_b"], [measured(m) for m in ms], limits, 0.002, 1.4,
+                                     measure.BlackLevel(0.0, 0.0, "task"))
+    assert c.action == "stop" and c.cause == "bands"
+    assert "leaf_a 60-100, leaf_b 150-250" in c.reason
