@@ -23,11 +23,11 @@ class Capture:
     name: str                    # its file in the run folder
 
 
-def plan_recorded(task, recorder, albedo_scale=1.0, iteration=None, subfolder=""):
-    """Plan (the function `cell plan` uses), write plan.json and pictures, log it."""
+def plan_recorded(task, recorder, albedo_scale=1.0, iteration=None, subfolder="", T_cell_cam=None):
+    """Plan (the function `cell plan` uses; the camera at T_cell_cam, else by the task's rule),
+    write plan.json and pictures, log it."""
     from cell.planner import plan
-    planned = plan(task, albedo_scale=albedo_scale,
-                   progress=recorder.progress)
+    planned = plan(task, albedo_scale=albedo_scale, progress=recorder.progress, T_cell_cam=T_cell_cam)
     folder = recorder.write_plan(planned, task, subfolder)
     shot = planned.shot
     g, exposure = gray_stats(shot.gray), shot.exposure

@@ -29,6 +29,12 @@ def to_ur_pose(T):
     return np.concatenate([T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_rotvec()])
 
 
+def rotation_angle(T_a, T_b):
+    """The angle of the rotation between two poses' orientations [rad]: arccos((tr(R_a^T R_b) - 1) / 2)."""
+    cos = (np.trace(np.asarray(T_a)[:3, :3].T @ np.asarray(T_b)[:3, :3]) - 1.0) / 2.0
+    return float(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
 def apply(T, points):
     """Map points (..., 3) through T."""
     points = np.asarray(points, dtype=float)

@@ -12,7 +12,7 @@ from cell.acquisition import acquire, move_to, plan_and_connect, plan_recorded
 from cell.devices import speaking_for
 from cell.errors import GoalNotReached
 from cell.plan import gray_stats
-from cell.recorder import Recorder
+from cell.recorder import Recorder, file_name
 from cell.session import Session
 
 
@@ -34,10 +34,13 @@ class Iteration:
     albedo_scale: float
     registration: dict | None = None     # register.Registration.to_json
     correction: dict | None = None
+    feature: str | None = None           # its feature's name, in a shot of several (cell.inspection)
 
     def to_json(self):
-        document = {k: getattr(self, k) for k in self.__dataclass_fields__ if k != "correction"}
-        return document | ({"correction": self.correction} if self.correction else {})
+        document = {k: getattr(self, k) for k in self.__dataclass_fields__
+                    if k not in ("correction", "feature")}
+        return ({"feature": self.feature} if self.feature else {}) | document | (
+            {"correction": self.correction} if self.correction else {})
 
 
 @dataclass(frozen=True)
@@ -148,30 +151,39 @@ def find_black_level(task, plan, devices, recorder):
     return black
 
 
-def locate(task, scene, devices, recorder, k, capture, saturation):
-    """Registration (cell.register) of a capture at the read-back camera and lamp poses, logged;
-    returns (Registration, the shift the measurement takes: the found one when trusted and within
-    loop.registration_limit_m, else none, the model's region)."""
+def locate(task, scene, devices, recorder, k, capture, saturation, feature=None):
+    """Registration (cell.register) of a capture at the read-back camera and lamp poses, logged
+    (as `feature`'s, when named); returns (Registration, the shift the measurement takes: the found
+    one when trusted and within loop.registration_limit_m, else none, the model's region)."""
     with speaking_for(devices.lamp):
         lamp_pose = devices.lamp.lamp_pose()
     row, col, inside = measure.sample_pixels(task, capture.T_cell_cam, scene.points)
     found = register.locate(capture.image, task, scene, capture.T_cell_cam, lamp_pose, row[inside], col[inside],
                             saturation)
-    recorder.step("register", found.describe(), iteration=k, **found.to_json())
+    recorder.step("register", f"{feature}: " * bool(feature) + found.describe(), iteration=k,
+                  **({"feature": feature} if feature else {}), **found.to_json())
     within = found.trusted and register.beyond_limit(found.to_json(), task.loop.registration_limit_m) is None
     return found, found.shift_px if within else (0.0, 0.0)
 
 
 def shoot(task, model, devices, recorder, k, shutter_s, f_number, albedo_scale, black):
-    """Expose, capture, locate the feature (locate), measure it where found and compare with the
-    plan's model at these settings (G = b + c P t, the signal ~ t / kappa^2). Returns (Iteration,
+    """Expose, capture and measure the feature in it (measure_capture). Returns (Iteration,
     Measurement, predicted gray per sample)."""
+    capture = acquire(devices, recorder, k, shutter_s, f_number, model.plan.shot.exposure.focus_m)
+    return measure_capture(task, model, devices, recorder, k, capture, albedo_scale, black)
+
+
+def measure_capture(task, model, devices, recorder, k, capture, albedo_scale, black, feature=None):
+    """Locate the task's feature in capture k (locate), measure it where found, in its own image
+    region, and compare with the plan's model at the capture's settings (G = b + c P t, the signal
+    ~ t / kappa^2); `feature` names it in a capture of several (its picture
+    capture-k-<feature>.png, else capture-k-feature.png). Returns (Iteration, Measurement,
+    predicted gray per sample)."""
     from cell.pictures import annotate_capture
-    shot = model.plan.shot
-    capture = acquire(devices, recorder, k, shutter_s, f_number, shot.exposure.focus_m)
+    f_number = capture.f_number
     bit_depth = devices.camera.bit_depth
     saturation = measure.saturation_level(bit_depth)
-    found, shift = locate(task, model.plan.scene, devices, recorder, k, capture, saturation)
+    found, shift = locate(task, model.plan.scene, devices, recorder, k, capture, saturation, feature)
     m = measure.measure_feature(capture.image, task, capture.T_cell_cam, model.plan.scene.points, saturation, shift)
     predicted = model.predicted(black.value, capture.shutter_s, f_number)
     error, relation = control.model_error(m.sample_gray, predicted, saturation, black.value)
@@ -179,12 +191,14 @@ def shoot(task, model, devices, recorder, k, shutter_s, f_number, albedo_scale, 
     in_band = m.in_band(band)
     stats, expected = m.stats(), gray_stats(predicted)
     verdict = f"{'in' if in_band else 'out of'} band {band[0]:g}-{band[1]:g}"
-    caption = f"{k}: gray {m.min:.0f}-{m.max:.0f}, {stats['saturated']} saturated: {verdict}"
-    annotated = recorder.write_image(f"capture-{k}-feature.png",
+    named = f"{feature}: " if feature else ""
+    caption = f"{k}: {named}gray {m.min:.0f}-{m.max:.0f}, {stats['saturated']} saturated: {verdict}"
+    annotated = recorder.write_image(f"capture-{k}-{file_name(feature) if feature else 'feature'}.png",
                                      annotate_capture(capture.image, m, bit_depth, caption))
     it = Iteration(k, capture.shutter_s, float(f_number), expected, stats, error, relation, in_band,
-                   capture.name, annotated, albedo_scale, found.to_json())
-    recorder.step("measure", f"gray mean {stats['mean']:.1f}, {m.min:.1f}-{m.max:.1f} over {stats['pixels']} px "
+                   capture.name, annotated, albedo_scale, found.to_json(), feature=feature)
+    recorder.step("measure", f"{named}gray mean {stats['mean']:.1f}, {m.min:.1f}-{m.max:.1f} over "
+                             f"{stats['pixels']} px "
                              f"(pixels {stats['pixel_min']:.0f}-{stats['pixel_max']:.0f}, noise "
                              f"{stats['noise_rms']:.1f} rms, {stats['saturated']} saturated); the model predicts "
                              f"{expected['mean']:.1f}, {expected['min']:.1f}-{expected['max']:.1f}; "
@@ -193,25 +207,35 @@ def shoot(task, model, devices, recorder, k, shutter_s, f_number, albedo_scale, 
     return it, m, predicted
 
 
-def iterate(task, plan, devices, recorder, max_iterations):
-    """Drive, find the black level (BlackLevelFound), shoot, correct until every feature pixel is
-    in the band, yielding each Iteration as soon as it is measured, then its Corrected and a
-    Replan as they happen; raises GoalNotReached saying why when no correction is possible or the
-    iterations run out. A black level the plan did not know re-sets its exposure (the lamp pose
-    stays: b only shifts the band the signal must meet) and is the re-plans' from then on."""
+def limits_of(task, plan):
+    """The control.Limits of a one-feature task's plan: its band, the shutter range, the f-numbers
+    from the widest the depth of field allows to the lens's narrowest, the plausible albedos."""
     lens_range = (evaluate.depth_of_field_limits(task, plan.scene)[2], task.camera.lens.f_number_range[1])
-    limits = control.Limits(tuple(map(float, task.requirements.gray_band)), task.camera.shutter_range_s,
-                            lens_range, task.loop.albedo_scale_range)
-    band = limits.band
-    model, albedo, moved, black, refitted = Model(plan, task), 1.0, False, None, False
+    return control.Limits(tuple(map(float, task.requirements.gray_band)), task.camera.shutter_range_s,
+                          lens_range, task.loop.albedo_scale_range)
+
+
+def iterate(task, plan, devices, recorder, max_iterations, black=None, T_cell_cam=None):
+    """Drive, find the black level (BlackLevelFound; a `black` given, found in an earlier shot,
+    is taken as it is), shoot, correct until every feature pixel is in the band, yielding each
+    Iteration as soon as it is measured, then its Corrected and a Replan as they happen; raises
+    GoalNotReached saying why when no correction is possible or the iterations run out. A black
+    level the plan did not know re-sets its exposure (the lamp pose stays: b only shifts the band
+    the signal must meet) and is the re-plans' from then on. Re-plans put the camera at
+    T_cell_cam (a shot's of several, cell.inspection), else by the task's camera rule."""
+    limits = limits_of(task, plan)
+    band, lens_range = limits.band, limits.f_number_range
+    model, albedo, moved, given, refitted = Model(plan, task), 1.0, False, black, False
+    black = None
     shutter, f_number = plan.shot.exposure.shutter_s, plan.shot.exposure.f_number
     for k in range(1, max_iterations + 1):
         if not moved:
             move_to(devices, model.plan.shot, recorder, k)
             moved = True
         if black is None:
-            black = find_black_level(task, plan, devices, recorder)
-            yield BlackLevelFound(black)
+            black = given or find_black_level(task, plan, devices, recorder)
+            if not given:
+                yield BlackLevelFound(black)
             if black.value != evaluate.black_level(task):
                 shutter, f_number = model.exposure(black.value, lens_range)
                 sensor = replace(task.camera.sensor, black_level=black.value)
@@ -234,7 +258,7 @@ def iterate(task, plan, devices, recorder, max_iterations):
         if c.action == "stop" and c.cause == "spread" and not refitted:     # the shape is wrong: refit
             refitted = True
             task, replanned = yield from refit_and_replan(task, model, devices, recorder, k, m, c, black, albedo,
-                                                         shutter, f_number)
+                                                         shutter, f_number, T_cell_cam)
             model, albedo, moved = Model(replanned, task), 1.0, False
             shutter, f_number = replanned.shot.exposure.shutter_s, replanned.shot.exposure.f_number
             continue
@@ -248,7 +272,8 @@ def iterate(task, plan, devices, recorder, max_iterations):
         if c.action == "exposure":
             shutter, f_number = c.shutter_s, c.f_number
             continue
-        replanned = plan_recorded(task, recorder, albedo, iteration=k, subfolder=f"replan-{k}")
+        replanned = plan_recorded(task, recorder, albedo, iteration=k, subfolder=f"replan-{k}",
+                                  T_cell_cam=T_cell_cam)
         yield Replan(k, albedo, replanned.to_json())
         if not replanned.feasible:
             raise GoalNotReached(f"{control.describe_error(c.model_error, c.relation)}; {c.reason}; "
@@ -258,10 +283,11 @@ def iterate(task, plan, devices, recorder, max_iterations):
         shutter, f_number, moved = replanned.shot.exposure.shutter_s, replanned.shot.exposure.f_number, False
 
 
-def refit_and_replan(task, model, devices, recorder, k, m, c, black, albedo, shutter_s, f_number):
+def refit_and_replan(task, model, devices, recorder, k, m, c, black, albedo, shutter_s, f_number,
+                     T_cell_cam=None):
     """After capture k (at shutter_s, f_number) whose shape disagreed with the model (Correction
     c, cause spread): probe, refit the material (cell.refit; Corrected, Refitted) and re-plan with
-    it (Replan). Returns
+    it (Replan; the camera at T_cell_cam, else by the task's rule). Returns
     (the task with the refitted material, its plan); GoalNotReached when the refit cannot be used
     or its plan is infeasible."""
     recorder.step("correct", f"refit the material: {c.reason}", iteration=k, action="refit")
@@ -271,7 +297,7 @@ def refit_and_replan(task, model, devices, recorder, k, m, c, black, albedo, shu
     yield Refitted(k, fitted, refit.keep(fitted, task, recorder, k))
     refit.require_usable(fitted, c.reason)
     task = refit.task_with(task, fitted)
-    replanned = plan_recorded(task, recorder, 1.0, iteration=k, subfolder=f"refit-{k}")
+    replanned = plan_recorded(task, recorder, 1.0, iteration=k, subfolder=f"refit-{k}", T_cell_cam=T_cell_cam)
     yield Replan(k, 1.0, replanned.to_json())
     if not replanned.feasible:
         raise GoalNotReached(f"the material is not the task's ({fitted.summary()}); re-planned for the refitted "
@@ -285,22 +311,15 @@ def run(task, out, connect, max_iterations=6):
     (exit 3) after the safe stop of every device (session.Session). Returns the RunResult."""
     from cell.pictures import write_convergence
     out = Path(out)
-    iterations, replans, refits, reason, black = [], [], [], "", None
+    events, reason = Events(), ""
     with Recorder(out) as recorder:
         session = Session(on_fault=recorder.fault, log=recorder.log.name)
         try:
             with session:
                 planned = plan_and_connect(task, recorder, session, connect)
                 for event in iterate(task, planned, session.devices, recorder, max_iterations):
-                    if isinstance(event, Corrected):
-                        iterations[-1] = replace(iterations[-1], correction=event.correction)
-                    elif isinstance(event, BlackLevelFound):
-                        black = event.black.to_json()
-                    elif isinstance(event, Refitted):
-                        refits.append(event)
-                    else:
-                        (iterations if isinstance(event, Iteration) else replans).append(event)
-            n = len(iterations)
+                    events.add(event)
+            n = len(events.iterations)
             recorder.step("done", f"converged after {count(n, 'iteration')}", converged=True, iterations=n)
         except BaseException as err:
             reason = str(err) or type(err).__name__
@@ -308,13 +327,37 @@ def run(task, out, connect, max_iterations=6):
                 recorder.step("done", f"not converged: {err}", converged=False, reason=str(err))
             raise
         finally:
-            result = RunResult(str(task.path), not reason, reason, recorder.plan, tuple(iterations),
-                               tuple(replans), session.fault, black, tuple(refits))
+            result = RunResult(str(task.path), not reason, reason, recorder.plan, tuple(events.iterations),
+                               tuple(events.replans), session.fault, events.black_json, tuple(events.refits))
             recorder.write_json("report.json", result.to_json())
-            if iterations:
-                write_convergence(out / "convergence.png", [it.to_json() for it in iterations],
-                                  task.requirements.gray_band, [r.to_json() for r in refits])
+            if events.iterations:
+                write_convergence(out / "convergence.png", [it.to_json() for it in events.iterations],
+                                  task.requirements.gray_band, [r.to_json() for r in events.refits])
     return result
+
+
+class Events:
+    """iterate's events gathered as RunResult holds them: every Iteration, the Corrected taken
+    after capture k written into capture k's iterations (one per feature in a capture of
+    several), Replans, Refitted, and the black level found."""
+
+    def __init__(self):
+        self.iterations, self.replans, self.refits, self.black = [], [], [], None
+
+    def add(self, event):
+        if isinstance(event, Corrected):
+            self.iterations = [replace(it, correction=event.correction) if it.iteration == event.iteration else it
+                               for it in self.iterations]
+        elif isinstance(event, BlackLevelFound):
+            self.black = event.black
+        elif isinstance(event, Refitted):
+            self.refits.append(event)
+        else:
+            (self.iterations if isinstance(event, Iteration) else self.replans).append(event)
+
+    @property
+    def black_json(self):
+        return self.black.to_json() if self.black else None
 
 
 def count(n, noun):

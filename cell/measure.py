@@ -150,3 +150,15 @@ def measure_feature(image, task, T_cell_cam, points, saturation, shift_px=(0.0, 
     surface = local_mean(image, region)[region]
     return Measurement(row, col, sample_gray, region, image[region], surface, region & (image >= saturation),
                        float(saturation), float(surface.min()), float(surface.max()))
+
+
+def joined(measurements):
+    """The Measurements of the features of one capture side by side, for the control law judging
+    them together (one exposure serves them all): their samples, pixels and surface gray
+    concatenated, each as measured in its own region. It has no region (None): the regions are
+    never merged; `saturated` flags its pixels in that order."""
+    ms = list(measurements)
+    cat = lambda get: np.concatenate([get(m) for m in ms])
+    return Measurement(cat(lambda m: m.row), cat(lambda m: m.col), cat(lambda m: m.sample_gray), None,
+                       cat(lambda m: m.gray), cat(lambda m: m.surface), cat(lambda m: m.saturated[m.region]),
+                       ms[0].saturation, min(m.min for m in ms), max(m.max for m in ms))

@@ -3,6 +3,7 @@ time, step, message, data; appended, flushed and fsync'd so that a crash loses n
 each step also a progress line on stderr), plan.json with the plan's pictures, every capture,
 and the result file, written however the run ends."""
 import os
+import re
 import sys
 from datetime import datetime, timezone
 from pathlib import Path
@@ -39,14 +40,22 @@ def write_json(path, document):
     Path(path).write_text(jsonio.dumps(document, indent=2) + "\n")
 
 
-class Recorder:
-    """A run folder and its log; `with Recorder(folder) as rec:` closes the log however it ends."""
+def file_name(text):
+    """text as part of a file name: what is not a letter, digit, '.', '-' or '_' becomes '_'."""
+    return re.sub(r"[^\w.-]", "_", text)
 
-    def __init__(self, folder):
+
+class Recorder:
+    """A run folder and its log; `with Recorder(folder) as rec:` closes the log however it ends.
+    A sub-run's (`rec.sub("shot-0", shot=0)`) has its own folder and log, and every step it logs
+    is also appended to the parent's log with `tags` (shot=0)."""
+
+    def __init__(self, folder, parent=None, **tags):
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.log = open(self.folder / "log.jsonl", "a", encoding="utf-8")
         self.plan = None            # the run folder's plan.json, once written
+        self.parent, self.tags = parent, tags
 
     def __enter__(self):
         return self
@@ -55,15 +64,25 @@ class Recorder:
         self.log.close()
         return False
 
+    def sub(self, name, **tags):
+        """The Recorder of a sub-run in folder/name, its steps also in this log with tags."""
+        return Recorder(self.folder / name, self, **tags)
+
     def step(self, step, message, iteration=None, **data):
         """One step; `iteration` (the capture it belongs to) is left out when None."""
         where = {} if iteration is None else {"iteration": iteration}
         line = {"t": datetime.now(timezone.utc).isoformat(timespec="milliseconds"), "step": step,
                 "message": message, **where, **data}
+        self._append(line)
+        print(f"{'' if iteration is None else iteration:>2} {step:<12} {message}", file=sys.stderr, flush=True)
+
+    def _append(self, line):
+        """line to the log, flushed and fsync'd, and with the tags to the parent's."""
         self.log.write(jsonio.dumps(line) + "\n")
         self.log.flush()
         os.fsync(self.log.fileno())
-        print(f"{'' if iteration is None else iteration:>2} {step:<12} {message}", file=sys.stderr, flush=True)
+        if self.parent is not None:
+            self.parent._append({**self.tags, **line})
 
     def progress(self, message):
         """A progress line on stderr only (the planner's stages), indented under the steps."""

@@ -265,12 +265,6 @@ def test_cell_plan_prints_a_line_per_shot_and_feature_and_exits_1_naming_the_unc
     assert (tmp_path / "out" / "feature-2" / "regions.png").stat().st_size > 10_000
 
 
-def test_cell_run_refuses_several_features_in_one_line(tmp_path, capsys):
-    assert cli.main(["run", str(FEATURES), "--out", str(tmp_path / "run")]) == 2
-    err = capsys.readouterr().err
-    assert len(err.strip().splitlines()) == 1 and "running several shots is not yet supported" in err
-
-
 def test_a_multi_feature_plan_pickles_whole(multi):
     """The later steps plan features in worker processes: the plan, its shots' coverage and each
     feature's own plan travel as plain values."""

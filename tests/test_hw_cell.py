@@ -54,14 +54,15 @@ sys.exit(main(sys.argv[1:]))
 
 
 @contextmanager
-def hw_cell(tmp_path):
-    """The UR emulator process and the servo bus, and a variant of the hinge task wired to them."""
+def hw_cell(tmp_path, source=HINGE):
+    """The UR emulator process and the servo bus, and a variant of the task `source` (the hinge)
+    wired to them."""
     host = free_host()
     log = tmp_path / "ur_controller.log"
     emulator = start_emulator(host, (), 120, log)
     try:
         with DxlEmulator(ids=(1, 2), speedup=10) as servos:
-            task = variant(tmp_path, HINGE, {**SETTINGS, "cell.arm.host": host, "cell.pan_tilt.port": servos.port})
+            task = variant(tmp_path, source, {**SETTINGS, "cell.arm.host": host, "cell.pan_tilt.port": servos.port})
             yield SimpleNamespace(host=host, emulator=emulator, servos=servos, task=task)
     finally:
         stop_emulator(emulator)
@@ -125,6 +126,25 @@ def test_the_hw_cell_on_the_real_sdks_converges_as_the_simulated_cell_does(tmp_p
     joints = hw.report["plan"]["lamp"]["joints"]
     for dxl_id, angle_deg in ((1, joints["pan_deg"]), (2, joints["tilt_deg"])):   # within tolerance_ticks
         assert present[dxl_id] == pytest.approx(2048 + angle_deg * 4096 / 360, abs=0.5 + 3)
+
+
+@pytest.mark.hw_matrix                  # two runs of three features, 25-45 s on this machine
+def test_a_multi_shot_run_on_the_real_sdks_converges_for_every_feature_as_the_simulated_cell_does(tmp_path):
+    with hw_cell(tmp_path, ROOT / "tests/tasks/features/hinge_pair.yaml") as cell:
+        hw_run, sim_run = start(cell.task, tmp_path / "hw"), start(cell.task, tmp_path / "sim", backend="sim")
+        hw, sim = finish(hw_run), finish(sim_run)
+        status = dashboard(cell.host, "emulator status")
+    assert hw.code == 0 and sim.code == 0, hw.stderr + sim.stderr
+    assert "Traceback" not in hw.stderr and hw.steps == sim.steps
+    assert hw.report["order"] == sim.report["order"] and len(hw.report["order"]) == 2
+    for h, s in zip(hw.report["features"], sim.report["features"]):
+        assert h["converged"] and s["converged"] and h["iterations"] == s["iterations"]
+        for key in ("mean", "min", "max"):
+            assert h["measured_gray"][key] == pytest.approx(s["measured_gray"][key], abs=0.5)
+    # one moveL per shot, each arriving at the shot's camera pose as read back
+    assert "moves 2 " in status and "moving False" in status
+    for shot in hw.report["shots"]:
+        assert shot["camera_error"]["position_m"] < 0.5e-3 and shot["camera_error"]["angle_deg"] < 0.3
 
 
 def test_cell_hw_check_reads_the_hw_cell_with_its_simulated_camera(tmp_path):

@@ -168,18 +168,10 @@ def test_the_plan_json_reports_the_planned_cameras_and_cell_plan_prints_them(pla
     assert (tmp_path / "out" / "candidate-0" / "plan.json").exists()
 
 
-def test_a_planned_viewpoint_needs_a_standoff_range_and_is_not_run(tmp_path, capsys):
+def test_a_planned_viewpoint_needs_a_standoff_range(tmp_path, capsys):
     assert cli.main(["check", str(PLANNED)]) == 0
     assert "camera       planned on view spheres 0.3..0.5 m from each feature, 15 deg apart" in capsys.readouterr().out
     path = write_task(tmp_path, put("camera.viewpoint", "planned"))
     assert cli.main(["check", str(path)]) == 2
     err = capsys.readouterr().err
     assert "camera.standoff_range_m: found nothing" in err and len(err.strip().splitlines()) == 1
-    assert cli.main(["run", str(PLANNED), "--out", str(tmp_path / "run")]) == 2
-    assert "running several shots" in capsys.readouterr().err
-    one = tmp_path / "one"
-    one.mkdir()
-    path = write_task(one, lambda task, folder: task["camera"].update(viewpoint="planned",
-                                                                      standoff_range_m=[0.3, 0.5]) and None)
-    assert cli.main(["run", str(path), "--out", str(tmp_path / "run2")]) == 2
-    assert "running a planned viewpoint is not yet supported" in capsys.readouterr().err

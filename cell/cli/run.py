@@ -1,9 +1,10 @@
 """`cell run TASK [--backend sim|hw] [--out DIR] [--max-iterations N] [--yes]`: exit 0 when every
-feature pixel ends in the gray band, 1 when not (with the reason), 3 on a device fault."""
+feature pixel ends in the gray band, 1 when not (with the reason), 3 on a device fault. A task
+with several features, or planned viewpoints, runs its shots (cell.inspection)."""
 from pathlib import Path
 
 from cell import backends, loop
-from cell.cli import create_folder, one_feature, output_folder
+from cell.cli import create_folder, output_folder
 from cell.errors import TaskError
 from cell.loader import load_task
 
@@ -12,9 +13,11 @@ def command(args):
     if args.max_iterations < 1:
         raise TaskError("command line", "--max-iterations", args.max_iterations, "an integer >= 1")
     out = output_folder(args.out, Path(args.task).stem)
-    task = one_feature(load_task(args.task), "run")
+    task = load_task(args.task)
     backend = args.backend or task.cell.backend
     create_folder(out)
+    if len(task.features) != 1 or task.camera.viewpoint.mode != "fixed":
+        return shots(task, out, backend, args)
     result = loop.run(task, out, lambda scene: backends.open_devices(task, scene, backend, args.yes),
                       args.max_iterations)
     last, n = result.iterations[-1], len(result.iterations)
@@ -23,4 +26,21 @@ def command(args):
           f"(mean {g['mean']:.1f}, band {low:g}-{high:g}) at {1e3 * last.shutter_s:.3f} ms, "
           f"f/{last.f_number:.2f}")
     print(f"  wrote {out}/report.json, log.jsonl, {loop.count(n, 'capture')} with the feature drawn, plan pictures")
+    return 0
+
+
+def shots(task, out, backend, args):
+    """The shots of a task with several features or planned viewpoints, and a line per feature."""
+    from cell import inspection
+    first = task.with_feature(0)            # the simulated cell renders the first feature's scene
+    result = inspection.run(task, out, lambda scene: backends.open_devices(first, scene, backend, args.yes),
+                            args.max_iterations)
+    features = result.feature_results()
+    print(f"{task.name}: converged: {len(features)} of {len(features)} features in band, "
+          f"{loop.count(len(result.shots), 'shot')} in the order {list(result.order)} "
+          f"({result.travel_m:.3f} m of travel)")
+    for f in features:
+        print(f"  feature {inspection.gray_line(f)}")
+    print(f"  wrote {out}/report.json, log.jsonl, plan.json and a folder per shot "
+          + ", ".join(f"shot-{s}/" for s in result.order))
     return 0

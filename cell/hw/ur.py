@@ -25,7 +25,7 @@ import numpy as np
 
 from cell.devices import Arm
 from cell.errors import DeviceFault
-from cell.geometry import from_ur_pose, to_ur_pose
+from cell.geometry import from_ur_pose, rotation_angle, to_ur_pose
 from cell.hw.ur_worker import Remote, Worker
 
 PORTS = (30004, 29999, 30003)            # RTDE, dashboard, script: fixed by UR and ur_rtde
@@ -222,7 +222,7 @@ class URArm(Arm):
         pose = list(to_ur_pose(T_base_cam))
         a, timeout_s = self.config.acceleration_m_s2, self.config.move_timeout_s
         T_now = from_ur_pose(self._receive.getActualTCPPose())
-        length = max(np.linalg.norm(T_base_cam[:3, 3] - T_now[:3, 3]), _angle(T_now, T_base_cam))
+        length = max(np.linalg.norm(T_base_cam[:3, 3] - T_now[:3, 3]), rotation_angle(T_now, T_base_cam))
         # moveL's trapezoid; a rotation counted as 1 m per rad (movel's speed is rad/s when only
         # the orientation changes)
         takes_s = length / speed_m_s + speed_m_s / a
@@ -259,7 +259,7 @@ class URArm(Arm):
                 raise self._fault("moveL did not complete" + why)
             T = from_ur_pose(state.tcp_pose)
             error_m = np.linalg.norm(T[:3, 3] - T_target[:3, 3])
-            if (error_m < ARRIVED_M and _angle(T, T_target) < ARRIVED_RAD
+            if (error_m < ARRIVED_M and rotation_angle(T, T_target) < ARRIVED_RAD
                     and np.linalg.norm(state.tcp_speed[:3]) < STEADY_M_S):
                 return
             if now > deadline:
@@ -336,9 +336,3 @@ class URArm(Arm):
             disconnects = []
         finally:
             self._worker.close(disconnects, 2 * self.config.connect_timeout_s + 1.0)
-
-
-def _angle(T_a, T_b):
-    """The rotation angle between two poses' orientations [rad]."""
-    cos = (np.trace(T_a[:3, :3].T @ T_b[:3, :3]) - 1.0) / 2.0
-    return float(np.arccos(np.clip(cos, -1.0, 1.0)))

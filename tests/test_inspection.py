@@ -1,0 +1,355 @@
+"""`cell run` of a multi-shot plan (cell.inspection) on the simulated cell: every feature of a
+coverable task converges, with fixed and planned viewpoints; the shots' order is the shortest
+by brute force; features sharing a capture are measured in regions that never merge, and one
+exposure serves them (or the run says they disagree); the run folder holds a folder per shot
+and a report per feature; a partial plan is refused before anything moves; a fault in the
+second shot exits 3 and keeps the first shot's measurements."""
+import itertools
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+import pytest
+
+from cell import cli, control, inspection, measure, projection, route
+from cell.errors import CellError
+from cell.loader import load_task
+from cell.scene import build_scene
+from simcell import recording_connect
+
+ROOT = Path(__file__).resolve().parent.parent
+PAIR = ROOT / "tests" / "tasks" / "features" / "hinge_pair.yaml"        # 3 features, 2 shots, fixed camera
+PLANNED = ROOT / "tests" / "tasks" / "features" / "hinge_planned.yaml"  # 2 features, 2 planned viewpoints
+PARTIAL = ROOT / "tests" / "tasks" / "features" / "hinge.yaml"          # end_face covered by no shot
+
+
+def read(out):
+    out = Path(out)
+    return SimpleNamespace(out=out, report=json.loads((out / "report.json").read_text()),
+                           log=[json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()])
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    out = tmp_path_factory.mktemp("pair") / "run"
+    code = cli.main(["run", str(PAIR), "--out", str(out)])
+    return SimpleNamespace(code=code, task=load_task(PAIR), **vars(read(out)))
+
+
+@pytest.fixture(scope="module")
+def planned(tmp_path_factory):
+    out = tmp_path_factory.mktemp("planned") / "run"
+    code = cli.main(["run", str(PLANNED), "--out", str(out)])
+    return SimpleNamespace(code=code, task=load_task(PLANNED), **vars(read(out)))
+
+
+def disk_pixels(task, f, T_cell_cam, shape, shrink=1.0):
+    """Independent of the loop's hull: the pixels within shrink x feature f's radius of its
+    projected centre (the camera looks nearly along the normal: the disk images as a circle)."""
+    scene = build_scene(task.with_feature(f), T_cell_cam=T_cell_cam)
+    K = projection.intrinsics(task.camera.sensor, task.camera.lens)
+    (centre,), (depth,) = projection.project(K, T_cell_cam, scene.center[None])
+    v, u = np.mgrid[:shape[0], :shape[1]]
+    return np.hypot(u - centre[0], v - centre[1]) < shrink * K[0, 0] * task.features[f].radius_m / depth
+
+
+def shot_pose(run, s):
+    return np.array(run.report["plan"]["shots"][s]["camera"]["T_cell_cam"])
+
+
+# --- every feature converges ----------------------------------------------------------------
+
+def test_every_feature_of_a_coverable_task_converges_with_its_pixels_in_band(pair):
+    assert pair.code == 0 and pair.report["converged"]
+    by = {f["name"]: f for f in pair.report["features"]}
+    assert list(by) == ["leaf_a", "leaf_b", "knuckle"]
+    assert (by["leaf_a"]["shot"], by["leaf_b"]["shot"]) == (0, 0) and by["knuckle"]["shot"] == 1
+    for f, name in enumerate(by):
+        result = by[name]
+        assert result["converged"] and result["in_band"] and result["reason"] == ""
+        low, high = pair.task.features[f].requirements.gray_band
+        assert low <= result["measured_gray"]["min"] <= result["measured_gray"]["max"] <= high
+        image = cv2.imread(str(pair.out / result["capture"]), cv2.IMREAD_UNCHANGED)
+        pixels = image[disk_pixels(pair.task, f, shot_pose(pair, result["shot"]), image.shape, 0.9)]
+        assert len(pixels) > 500 and low <= pixels.min() and pixels.max() <= high
+
+
+def test_planned_viewpoints_run_with_the_arm_carrying_the_camera_to_each_shots_pose(planned):
+    assert planned.code == 0 and planned.report["converged"]
+    assert [f["converged"] for f in planned.report["features"]] == [True, True]
+    for shot in planned.report["shots"]:
+        assert shot["camera_error"]["position_m"] < 1e-9 and shot["camera_error"]["angle_deg"] < 1e-6
+        moved = next(line for line in planned.log if line["step"] == "move_camera" and line["shot"] == shot["shot"])
+        np.testing.assert_allclose(moved["position_m"], shot_pose(planned, shot["shot"])[:3, 3], atol=1e-9)
+    # the end face's camera 0.5 m out along +x looks back along -x: a pose the fixed rule never gives
+    end = planned.report["features"][1]
+    assert end["name"] == "end_face" and shot_pose(planned, end["shot"])[0, 3] > 0.4
+    assert shot_pose(planned, end["shot"])[0, 2] < -0.9
+
+
+# --- the order of the shots ----------------------------------------------------------------
+
+@pytest.mark.parametrize("n", range(1, 8))
+def test_the_shots_order_is_the_shortest_by_brute_force(n):
+    rng = np.random.default_rng(n)
+    for _ in range(5):
+        poses = [(rng.uniform(-0.5, 0.5, 3), rng.uniform(-0.5, 0.5, 3)) for _ in range(n + 1)]
+        D = route.travel_matrix(poses[0], poses[1:])
+        best = min(route.length(D, p) for p in itertools.permutations(range(n)))
+        order = route.shortest_order(D)
+        assert sorted(order) == list(range(n)) and route.length(D, order) == pytest.approx(best, abs=1e-12)
+
+
+def test_a_leg_is_the_cameras_travel_plus_the_lamps_and_an_unknown_lamp_counts_nothing():
+    a = (np.zeros(3), np.array([0.0, 0.0, 1.0]))
+    b = (np.array([3.0, 4.0, 0.0]), np.array([0.0, 1.0, 1.0]))
+    assert route.leg(a, b) == pytest.approx(5.0 + 1.0)
+    assert route.leg((np.zeros(3), np.full(3, np.nan)), b) == pytest.approx(5.0)
+
+
+def test_beyond_the_exact_limit_the_order_is_nearest_neighbour():
+    rng = np.random.default_rng(0)
+    poses = [(rng.uniform(size=3), rng.uniform(size=3)) for _ in range(route.EXACT_MAX + 3)]
+    D = route.travel_matrix(poses[0], poses[1:])
+    order, here = route.shortest_order(D), 0
+    assert sorted(order) == list(range(len(poses) - 1))
+    for k, i in enumerate(order):           # each step goes to the nearest stop not yet visited
+        assert D[here, i + 1] == min(D[here, j + 1] for j in order[k:])
+        here = i + 1
+
+
+def test_the_run_visits_the_shots_in_the_shortest_order_from_the_start_pose(pair):
+    route_line = next(line for line in pair.log if line["step"] == "route")
+    shots = [line["shot"] for line in pair.log if line["step"] == "shot"]
+    assert shots == route_line["order"] == pair.report["order"]
+    start = (np.array(route_line["start"]["camera_m"]), np.array(route_line["start"]["lamp_m"], float))
+    stops = [(np.array(s["camera"]["position_m"]), np.array(s["lamp"]["position_m"]))
+             for s in pair.report["plan"]["shots"]]
+    D = route.travel_matrix(start, stops)
+    assert pair.report["travel_m"] == pytest.approx(min(route.length(D, p) for p in
+                                                        itertools.permutations(range(len(stops)))))
+
+
+# --- features sharing a capture ------------------------------------------------------------
+
+def shared_capture(pair):
+    """The capture of the shot of leaf_a and leaf_b and each feature's Measurement in it."""
+    image = cv2.imread(str(pair.out / "shot-0" / "capture-1.png"), cv2.IMREAD_UNCHANGED).astype(float)
+    T = shot_pose(pair, 0)
+    points = [build_scene(pair.task.with_feature(f), T_cell_cam=T).points for f in (0, 1)]
+    return image, T, points
+
+
+def test_two_features_close_together_are_measured_in_regions_of_their_own(pair):
+    image, T, points = shared_capture(pair)
+    tasks = [pair.task.with_feature(f) for f in (0, 1)]
+    a, b = (measure.measure_feature(image, t, T, p, 255) for t, p in zip(tasks, points))
+    assert a.region.sum() > 3000 and b.region.sum() > 3000
+    assert not (a.region & b.region).any()                 # never merged, nothing shared
+    # each region lies on its own feature's disk (1 px of rounding beyond its rim) and off the other's
+    for m, own, other in ((a, 0, 1), (b, 1, 0)):
+        assert not (m.region & ~disk_pixels(pair.task, own, T, image.shape, 1.02)).any()
+        assert not (m.region & disk_pixels(pair.task, other, T, image.shape, 1.0)).any()
+    # the annotated captures of the run: one per feature
+    assert (pair.out / "shot-0" / "capture-1-leaf_a.png").is_file()
+    assert (pair.out / "shot-0" / "capture-1-leaf_b.png").is_file()
+
+
+def test_a_gray_error_in_one_feature_does_not_leak_into_the_other(pair):
+    image, T, points = shared_capture(pair)
+    tasks = [pair.task.with_feature(f) for f in (0, 1)]
+    before = [measure.measure_feature(image, t, T, p, 255) for t, p in zip(tasks, points)]
+    wrong = np.where(before[0].region, 0.5 * image, image)         # leaf_a half as bright
+    after = [measure.measure_feature(wrong, t, T, p, 255) for t, p in zip(tasks, points)]
+    assert after[0].stats()["mean"] == pytest.approx(0.5 * before[0].stats()["mean"], rel=1e-9)
+    assert after[1].stats() == before[1].stats()
+    np.testing.assert_array_equal(after[1].surface, before[1].surface)
+
+
+def measured(m):
+    """(Iteration, Measurement, predicted) as loop.measure_capture gives them, the model exact."""
+    return None, m, np.where(np.isfinite(m.sample_gray), m.sample_gray, 100.0)
+
+
+def test_one_exposure_serves_features_that_agree_and_the_run_says_so_when_they_disagree(pair):
+    image, T, points = shared_capture(pair)
+    tasks = [pair.task.with_feature(f) for f in (0, 1)]
+    base = [measure.measure_feature(image, t, T, p, 255) for t, p in zip(tasks, points)]
+    limits = [control.Limits((60.0, 250.0), (1e-5, 0.02), (1.4, 16.0))] * 2
+    black = measure.BlackLevel(0.0, 0.0, "task")
+    names = ["leaf_a", "leaf_b"]
+    # both a third as bright as measured (111-129 -> 37-43): one gain brightens both into the band
+    dim = np.where(base[0].region | base[1].region, image / 3, image)
+    ms = [measure.measure_feature(dim, t, T, p, 255) for t, p in zip(tasks, points)]
+    c = inspection.shared_correction(names, [measured(m) for m in ms], limits, 0.002, 1.4, black)
+    assert c.action == "exposure"
+    gain = c.shutter_s / c.f_number**2 / (0.002 / 1.4**2)
+    lo, hi = min(m.min for m in ms), max(m.max for m in ms)
+    # the joined range's geometric mean to the band's centre, its low end at least a quarter of
+    # the high: sqrt(62.5 x 250) (evaluate.target_gray)
+    assert gain == pytest.approx(np.sqrt(62.5 * 250) / np.sqrt(lo * hi), rel=1e-6)
+    for m in ms:
+        assert 60 <= gain * m.min and gain * m.max <= 250
+    # leaf_a 5x brighter than leaf_b: each alone fits the band's 250/60 = 4.2, together they do not
+    split = np.where(base[0].region, 1.6 * image, np.where(base[1].region, 0.35 * image, image))
+    ms = [measure.measure_feature(split, t, T, p, 255) for t, p in zip(tasks, points)]
+    assert all(m.max / m.min < 250 / 60 for m in ms) and ms[0].max / ms[1].min > 250 / 60
+    c = inspection.shared_correction(names, [measured(m) for m in ms], limits, 0.002, 1.4, black)
+    assert c.action == "stop" and c.cause == "features"
+    assert c.reason.startswith("the shot's features disagree: leaf_a") and "each alone would fit" in c.reason
+
+
+def test_a_feature_that_stops_alone_is_named(pair):
+    image, T, points = shared_capture(pair)
+    tasks = [pair.task.with_feature(f) for f in (0, 1)]
+    ms = [measure.measure_feature(image, t, T, p, 255) for t, p in zip(tasks, points)]
+    limits = [control.Limits((60.0, 250.0), (1e-5, 0.02), (1.4, 16.0))] * 2
+    # leaf_b predicted 100x brighter than measured: an albedo x0.01, outside x0.1-x10
+    wrong = [measured(ms[0]), (None, ms[1], 100 * measured(ms[1])[2])]
+    c = inspection.shared_correction(["leaf_a", "leaf_b"], wrong, limits, 0.002, 1.4,
+                                     measure.BlackLevel(0.0, 0.0, "task"))
+    assert c.action == "stop" and c.cause == "albedo" and c.reason.startswith("leaf_b: ")
+
+
+# --- the run folder ------------------------------------------------------------------------
+
+def test_a_folder_per_shot_with_its_captures_log_and_report(pair):
+    for shot in pair.report["shots"]:
+        folder = pair.out / shot["folder"]
+        own = json.loads((folder / "report.json").read_text())
+        assert own["shot"] == shot["shot"] and own["converged"] and own["features"] == shot["features"]
+        assert {it["feature"] for it in own["iterations"]} == set(shot["features"])
+        for it in own["iterations"]:
+            assert (folder / it["capture"]).is_file() and (folder / it["annotated"]).is_file()
+        lines = [json.loads(line) for line in (folder / "log.jsonl").read_text().splitlines()]
+        assert lines[-1]["step"] == "done" and lines[-1]["converged"]
+        # every step of the shot's log is in the run's, in order, tagged with the shot
+        tagged = [{k: v for k, v in line.items() if k != "shot"} for line in pair.log if line.get("shot") == shot["shot"]
+                  and line["step"] not in ("shot", "shot_done")]
+        assert tagged == lines
+
+
+def test_the_report_holds_each_features_result_as_its_shot_measured_it(pair):
+    report = pair.report
+    assert {"plan", "iterations", "converged", "captures", "features", "shots", "order"} <= set(report)
+    for f in report["features"]:
+        own = json.loads((pair.out / f"shot-{f['shot']}" / "report.json").read_text())
+        its = [it for it in own["iterations"] if it["feature"] == f["name"]]
+        assert f["iterations"] == len(its) and f["measured_gray"] == its[-1]["measured_gray"]
+        assert f["capture"] == f"shot-{f['shot']}/{its[-1]['capture']}"
+    assert report["black_level"]["source"] == "dark frame"        # found once, in the first shot
+    first = report["order"][0]
+    assert [line["shot"] for line in pair.log if line["step"] == "black_level"] == [first]
+    steps = [line["step"] for line in pair.log]
+    assert steps[:2] == ["plan", "route"] and steps[-1] == "done"
+    assert steps.count("shot") == steps.count("shot_done") == 2
+
+
+def test_a_one_feature_shot_and_a_shared_shot_print_their_lines(pair, capsys):
+    # the summary the CLI printed is in the module fixture's run; the log's messages say the same
+    done = [line["message"] for line in pair.log if line["step"] == "shot_done"]
+    assert any("leaf_a gray" in m and "leaf_b gray" in m for m in done)
+    assert any("knuckle gray" in m for m in done)
+    shots = [line["message"] for line in pair.log if line["step"] == "shot"]
+    assert shots[0].startswith("shot 1 of 2") and shots[1].startswith("shot 2 of 2")
+
+
+# --- what stops a run ------------------------------------------------------------------------
+
+def test_a_partial_plan_is_refused_before_anything_moves_naming_the_uncovered_feature(tmp_path, capsys,
+                                                                                      monkeypatch):
+    from test_features import FEATURES
+    assert FEATURES == PARTIAL
+    out = tmp_path / "run"
+    assert cli.main(["run", str(PARTIAL), "--out", str(out)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith("cell run: infeasible: feature 'end_face' is covered by no shot: camera_view binds")
+    run = read(out)
+    assert not {"move_camera", "move_lamp", "capture"} & {line["step"] for line in run.log}
+    assert not run.report["converged"] and run.report["shots"] == []
+    end = next(f for f in run.report["features"] if f["name"] == "end_face")
+    assert end["shot"] is None and not end["converged"] and "covered by no shot" in end["reason"]
+
+
+def test_a_fault_in_the_second_shot_exits_3_and_keeps_the_first_shots_measurements(tmp_path):
+    task = load_task(PAIR)
+    cell = SimpleNamespace(devices=None, stops=[])
+    # the first shot (the knuckle's, by the route) takes the dark frame and one capture
+    with pytest.raises(CellError) as failed:
+        inspection.run(task, tmp_path, recording_connect(task.with_feature(0), cell,
+                                                         {"camera_fail_on_capture": 3}))
+    assert failed.value.exit_code == 3 and "motion stopped" in str(failed.value)
+    assert cell.stops == ["arm.stop", "pan-tilt.stop", "camera.close"]
+    run = read(tmp_path)
+    assert run.report["fault"]["device"] == "camera" and not run.report["converged"]
+    by = {f["name"]: f for f in run.report["features"]}
+    assert by["knuckle"]["converged"] and by["knuckle"]["measured_gray"]["pixels"] > 500
+    for name in ("leaf_a", "leaf_b"):
+        assert not by[name]["converged"] and by[name]["measured_gray"] is None
+        assert "capture timed out" in by[name]["reason"]
+    assert run.log[-1]["step"] == "fault"
+    second = json.loads((tmp_path / "shot-0" / "report.json").read_text())
+    assert not second["converged"] and "capture timed out" in second["reason"]
+    first = json.loads((tmp_path / "shot-1" / "report.json").read_text())
+    assert first["converged"] and first["iterations"][-1]["measured_gray"] == by["knuckle"]["measured_gray"]
+
+
+def test_a_wrong_albedo_is_corrected_in_each_shot_with_one_exposure_for_the_features_it_shares(tmp_path):
+    from simcell import variant
+    path = variant(tmp_path, PAIR, {"sim.truth.albedo_scale": 0.5,
+                                    "sim.effects": ["shadows", "quantization", "noise", "black_level"]})
+    assert cli.main(["run", str(path), "--out", str(tmp_path / "run")]) == 0
+    run = read(tmp_path / "run")
+    assert all(f["converged"] and f["iterations"] == 2 for f in run.report["features"])
+    shared = json.loads((tmp_path / "run" / "shot-0" / "report.json").read_text())["iterations"]
+    first, second = [it for it in shared if it["iteration"] == 1], [it for it in shared if it["iteration"] == 2]
+    assert [it["feature"] for it in first] == [it["feature"] for it in second] == ["leaf_a", "leaf_b"]
+    assert not all(it["in_band"] for it in first) and all(it["in_band"] for it in second)
+    assert first[0]["correction"] == first[1]["correction"] and first[0]["correction"]["action"] == "exposure"
+    assert len({it["shutter_s"] for it in second}) == 1                 # one exposure for both
+    # the gain on G - b: the joined range's geometric mean to the band's centre (evaluate.target_gray)
+    b = run.report["black_level"]["value"]
+    lo = min(it["measured_gray"]["min"] for it in first) - b
+    hi = max(it["measured_gray"]["max"] for it in first) - b
+    low, high = 60 - b, 250 - b
+    gain = np.sqrt(max(low, 0.25 * high) * high) / np.sqrt(lo * hi)
+    k = (second[0]["shutter_s"] / second[0]["f_number"] ** 2) / (first[0]["shutter_s"] / first[0]["f_number"] ** 2)
+    assert k == pytest.approx(gain, rel=1e-3)
+
+
+def test_a_shot_that_does_not_converge_leaves_the_others_to_run_and_the_run_exits_1_naming_each(tmp_path, capsys):
+    from simcell import variant
+    path = variant(tmp_path, PAIR, {"sim.truth.albedo_scale": 0.5})        # out of band at first
+    assert cli.main(["run", str(path), "--out", str(tmp_path / "run"), "--max-iterations", "1"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    run = read(tmp_path / "run")
+    assert [line["step"] for line in run.log].count("shot_done") == 2      # both shots ran
+    assert not any(shot["converged"] for shot in run.report["shots"])
+    assert err.startswith("cell run: 3 of 3 features not in band: leaf_a (shot 0): not every feature in band "
+                          "after 1 iteration")
+    assert "knuckle (shot 1): not in band 60-250 after 1 iteration" in err
+    by = {f["name"]: f for f in run.report["features"]}
+    # leaf_a alone read in band, but its shot did not converge: not converged, with the shot's reason
+    assert by["leaf_a"]["in_band"] and not by["leaf_a"]["converged"] and "leaf_b" in by["leaf_a"]["reason"]
+
+
+def test_the_rotation_angle_between_two_poses():
+    from cell import geometry
+    a = geometry.from_rpy(np.radians([10.0, -20.0, 30.0]), [1.0, 2.0, 3.0])
+    turn = geometry.from_rpy(np.radians([0.0, 0.0, 25.0]))
+    assert np.degrees(geometry.rotation_angle(a, a @ turn)) == pytest.approx(25.0, abs=1e-9)
+    assert geometry.rotation_angle(a, a) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_features_whose_bands_share_nothing_are_not_corrected_toward_either(pair):
+    image, T, points = shared_capture(pair)
+    tasks = [pair.task.with_feature(f) for f in (0, 1)]
+    ms = [measure.measure_feature(image, t, T, p, 255) for t, p in zip(tasks, points)]
+    limits = [control.Limits((60.0, 100.0), (1e-5, 0.02), (1.4, 16.0)),
+              control.Limits((150.0, 250.0), (1e-5, 0.02), (1.4, 16.0))]
+    c = inspection.shared_correction(["leaf_a", "leaf_b"], [measured(m) for m in ms], limits, 0.002, 1.4,
+                                     measure.BlackLevel(0.0, 0.0, "task"))
+    assert c.action == "stop" and c.cause == "bands"
+    assert "leaf_a 60-100, leaf_b 150-250" in c.reason
