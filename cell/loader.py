@@ -270,8 +270,8 @@ def _unresolved(path, section, phase):
     for term, phases in terms.items():
         for i, p in enumerate(phases):
             if not np.isclose(table_deg, p, rtol=0, atol=1e-6).any():
-                raise TaskError(path, f"unresolved.terms.{term}[{i}]", show(p),
-                                f"one of the table's phase_deg {show(np.round(table_deg, 6))}")
+                raise TaskError(path, f"unresolved.terms.{term}[{i}]", f"{p:g}",
+                                "one of the table's phase_deg [" + ", ".join(f"{a:.6g}" for a in table_deg) + "]")
     return Unresolved({t: tuple(phase[np.argmin(abs(table_deg[:, None] - np.asarray(ps)), axis=0)].tolist())
                        for t, ps in terms.items()}, section["step_rad"], section["resolvable_m_max"])
 
