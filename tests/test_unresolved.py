@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 import yaml
 
-from cell import certificate, regions
+from cell import certificate, evaluate, planner, regions, requirements
 from cell.cli import main
 from cell.loader import load_material, load_task
 from cell.physics import brdf
+from cell.plan import PlannerSettings
 from cell.scene import build_scene
 
 TASKS = Path(__file__).resolve().parent.parent / "tasks"
@@ -149,6 +150,29 @@ def test_the_trial_the_lamp_stays_out_of_the_unresolved_spike_and_the_first_capt
     assert half_vector_angles_deg(forgotten, lamp).min() < STEP_DEG
     assert not first["in_band"] and first["measured_gray"]["saturated"] > 0
     assert first["measured_gray"]["mean"] > 1.5 * first["predicted_gray"]["mean"]
+
+
+def test_the_certificate_refuses_a_lamp_in_the_cone_at_every_point_the_search_would(tmp_path):
+    """The forgotten file's shot (its lamp in the cone) judged with the unresolved material: the
+    dense certificate fails on reflection_region alone (the gray is the same model's), counting
+    the points whose half vector lies within the step of their normal, and the search's own
+    samples see it too (both read brdf.judged_term)."""
+    for name in ("unresolved", "forgotten"):
+        (tmp_path / name).mkdir()
+    forgotten = hinge(tmp_path / "forgotten", {k: v for k, v in MEASURED.items() if k != "unresolved"})
+    shot = planner.plan(load_task(forgotten)).shot
+    task_path = hinge(tmp_path / "unresolved", MEASURED)
+    _, problem = planner.search(load_task(task_path), PlannerSettings(refine=False), 1.0, np.zeros((0, 3)),
+                                lambda message: None)
+    verification, _ = certificate.verify(problem, shot)
+    (failing,) = verification.failing
+    inside = int(np.sum(half_vector_angles_deg(task_path, shot.lamp_position) < STEP_DEG))
+    assert failing.name == "reflection_region" and inside > 0
+    # the dense points in the cone, and the specular point the certificate adds (nearest the mirror)
+    assert f"{inside + 1} of {verification.points} lit samples see the lamp where an unresolved spike may be" \
+        in failing.detail, failing.detail
+    c = evaluate.at_exposure(problem, shot.lamp_position, shot.exposure.shutter_s, shot.exposure.f_number)
+    assert requirements.wrong_reflection(problem, c)[0].any()
 
 
 def test_a_spike_wanted_of_a_material_whose_spike_is_unresolved_is_infeasible_and_says_re_measure(tmp_path, capsys):
