@@ -1,8 +1,10 @@
 """A plan's certificate: the chosen shot checked on the feature patch at the camera's own
 sampling density, not only at the search's samples. Gray (with shadows and the cone, clipped at
 full scale), visibility in the image and the depth of field are judged at every point by the
-same requirements as the search (cell.requirements), at the shot's fixed exposure. A specular
-highlight or a rim point out of focus between the search's samples shows up here; the planner
+same requirements as the search (cell.requirements), at the shot's fixed exposure, and so is
+each point's dominant BRDF term (brdf.judged_term, as the search's samples: a lamp where a spike
+the goniometer did not resolve may lie is refused at every point). A specular highlight or a
+rim point out of focus between the search's samples shows up here; the planner
 then adds the worst points to its samples and searches again (cell.planner.plan).
 """
 from dataclasses import dataclass, replace
@@ -13,8 +15,8 @@ from cell import evaluate, geometry, requirements
 
 DENSE_MAX = 20_000              # points: a 12 mm patch seen by 93 um pixels needs 13 000
 # the requirements that depend on where the points are; the others are judged by the search
-JUDGED = ("gray_min", "gray_max", "no_shadow", "cone_coverage", "camera_view", "view_angle", "resolution",
-          "depth_of_field")
+JUDGED = ("gray_min", "gray_max", "reflection_region", "no_shadow", "cone_coverage", "camera_view", "view_angle",
+          "resolution", "depth_of_field")
 
 
 @dataclass(frozen=True)
@@ -126,6 +128,7 @@ def verify(problem, shot):
     worst = int(np.argmax(miss))
     picks = {worst, specular, int(np.argmin(c.gray[0])), int(np.argmax(c.gray[0])), int(np.argmin(depths)),
              int(np.argmax(depths))} | set(np.flatnonzero(c.shadowed[0])[:4].tolist())
+    picks |= set(np.flatnonzero(requirements.wrong_reflection(dense, c)[0])[:4].tolist())
     result = Verification(all(r.met for r in judged), len(scene.points), float(gray.min()), float(gray.max()),
                           scene.points[worst], float(gray[worst]), scene.points[specular], float(gray[specular]),
                           judged)

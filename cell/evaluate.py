@@ -7,9 +7,9 @@ from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
-from cell import projection, rig
+from cell import geometry, projection, rig
 from cell.material import Material
-from cell.physics import depth_of_field as dof
+from cell.physics import brdf, depth_of_field as dof
 
 
 def depth_of_field_limits(task, scene, focus_m=None):
@@ -132,10 +132,16 @@ def build_problem(task, scene, maps, albedo_scale=1.0, focus_m=None):
 
 def unit_gray(problem, positions, aims):
     """(gray per exposure u (C, P), shadowed (C, P), off-axis angle (C, P), dominant BRDF term
-    (C, P)) of lamps at `positions` aiming along `aims`, from the Warp kernel, the irradiance by
-    the lamp's profile (eq. 11's ideal cone without one)."""
+    (C, P), as brdf.judged_term judges the kernel's) of lamps at `positions` aiming along `aims`,
+    from the Warp kernel, the irradiance by the lamp's profile (eq. 11's ideal cone without one)."""
     out = problem.gray_inputs(positions, aims)
-    return out.value, out.shadowed, out.off_axis, out.dominant
+    if problem.material.unresolved is None:               # nothing to judge: the kernel's term
+        return out.value, out.shadowed, out.off_axis, out.dominant
+    scene = problem.scene
+    s = geometry.unit(np.asarray(positions, float).reshape(-1, 1, 3) - scene.points[None])
+    v = geometry.unit(scene.camera_position - scene.points)[None]
+    dominant = brdf.judged_term(out.dominant, scene.normals[None], s, v, problem.material)
+    return out.value, out.shadowed, out.off_axis, dominant
 
 
 def exposure(problem, unit_gray):

@@ -16,7 +16,7 @@ from cell.device_config import SECTIONS as DEVICES, devices_config, hand_eye
 from cell.errors import TaskError
 from cell.frames import Frames
 from cell.inputs import checked_file
-from cell.material import PARAMETERS, Material
+from cell.material import PARAMETERS, Material, Unresolved
 from cell.physics.radiometry import camera_constant_from_datasheet
 from cell.schema import (NON_NEGATIVE, POSITIVE, Anything, Choice, Integer, Invalid, Number, Pair,
                          Section, Sections, Spec, Table, Text, Vector, parse, read_yaml, show)
@@ -205,6 +205,8 @@ TASK = {
     }, required=False),
 }
 
+UNRESOLVED_TERMS = ("lobe", "spike")
+
 MATERIAL = {
     "name": Text(),
     "source": Text(),
@@ -218,7 +220,13 @@ MATERIAL = {
     **{f"{p}_stderr": Table(**NON_NEGATIVE, default=None, finite=False) for p in PARAMETERS},
     "rms_residual": Table(**NON_NEGATIVE, default=None),
     "unidentifiable": Anything(),
-    "unresolved": Anything(),                # written by cell measure-brdf
+    "unresolved": Section({                  # written by cell measure-brdf
+        "terms": Section({term: Table(lambda v: True, "a phase angle [deg] of the table's phase_deg", default=None,
+                                      per="phase angle whose term is unresolved")
+                          for term in UNRESOLVED_TERMS}),
+        "step_deg": Number(lambda v: v > 0, "a positive angle"),
+        "resolvable_m_max": Number(**POSITIVE),
+    }, required=False, defaults=False),
 }
 
 
@@ -244,9 +252,28 @@ def load_material(path):
     for i, (m1, m2) in enumerate(zip(v["m1"], v["m2"])):
         if not m2 > m1:
             raise TaskError(path, f"m2[{i}]", show(m2), f"a spike exponent m2 > m1 = {m1:g}")
-    table = ("name", "source", "phase_rad", *PARAMETERS)
+    table = ("name", "source", "phase_rad", "unresolved", *PARAMETERS)
     extra = {k: x for k, x in v.items() if k not in table and x is not None}
-    return Material(v["name"], v["source"], phase, *(v[p] for p in PARAMETERS), extra=extra)
+    return Material(v["name"], v["source"], phase, *(v[p] for p in PARAMETERS), extra=extra,
+                    unresolved=_unresolved(path, v["unresolved"], phase))
+
+
+def _unresolved(path, section, phase):
+    """The `unresolved` section -> Unresolved (phases in radians), or None; each term's phase
+    angles must be rows of the table (they mark those rows' fitted terms as unknown)."""
+    if section is None:
+        return None
+    terms = {term: phases for term, phases in section["terms"].items() if phases is not None}
+    if not terms:
+        raise TaskError(path, "unresolved.terms", "no term", "lobe: [phase angles] and/or spike: [phase angles]")
+    table_deg = np.degrees(phase)
+    for term, phases in terms.items():
+        for i, p in enumerate(phases):
+            if not np.isclose(table_deg, p, rtol=0, atol=1e-6).any():
+                raise TaskError(path, f"unresolved.terms.{term}[{i}]", f"{p:g}",
+                                "one of the table's phase_deg [" + ", ".join(f"{a:.6g}" for a in table_deg) + "]")
+    return Unresolved({t: tuple(phase[np.argmin(abs(table_deg[:, None] - np.asarray(ps)), axis=0)].tolist())
+                       for t, ps in terms.items()}, section["step_rad"], section["resolvable_m_max"])
 
 
 def _relative_file(file, key, name, kind):

@@ -19,6 +19,22 @@ class BrdfParameters:
 
 
 @dataclass(frozen=True)
+class Unresolved:
+    """What `cell measure-brdf` could not resolve (the material file's `unresolved`): the phase
+    angles [rad] of each term ("lobe", "spike") narrower than its step, the step of the
+    half-angle tilt beta [rad] and the largest exponent it resolves, M = ln 2 / (2 step^2)."""
+
+    terms: dict
+    step_rad: float
+    resolvable_m_max: float
+
+    def spike_rows(self, phase_rad):
+        """(n_phase,) 1.0 at the table's rows whose spike is unresolved, else 0.0."""
+        spike = np.asarray(self.terms.get("spike", ()), float)
+        return np.isclose(np.asarray(phase_rad)[:, None], spike[None, :], rtol=0, atol=1e-9).any(axis=1) * 1.0
+
+
+@dataclass(frozen=True)
 class Material:
     """BRDF table: phase_rad ascending, one row of each parameter per phase angle."""
 
@@ -31,6 +47,15 @@ class Material:
     sigma2: np.ndarray
     m2: np.ndarray
     extra: dict = field(default_factory=dict)   # optional fitter output (stderr, rms_residual)
+    unresolved: Unresolved | None = None         # what the goniometer could not resolve
+
+    def unresolved_spike(self, phase_rad):
+        """Whether an unresolved spike may shape the parameters at phase angle(s) alpha [rad]:
+        a row whose spike is unresolved carries weight in at()'s interpolation there (or is the
+        clamped end row)."""
+        if self.unresolved is None:
+            return np.zeros(np.shape(phase_rad), bool)
+        return np.interp(np.asarray(phase_rad, float), self.phase_rad, self.unresolved.spike_rows(self.phase_rad)) > 0
 
     def at(self, phase_rad):
         """Parameters at phase angle(s) alpha [rad], linear in alpha, clamped at the ends."""
@@ -44,4 +69,4 @@ class Material:
     def scaled(self, albedo_scale):
         """The same material with rho multiplied by albedo_scale (sim truth, loop correction)."""
         return Material(self.name, self.source, self.phase_rad, self.rho * albedo_scale,
-                        self.sigma1, self.m1, self.sigma2, self.m2, self.extra)
+                        self.sigma1, self.m1, self.sigma2, self.m2, self.extra, self.unresolved)

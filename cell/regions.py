@@ -84,10 +84,11 @@ def signed_distance(grid, inside, cells=None):
 
 
 def dominant_term_map(grid, frame, normal, view, material):
-    """Sec. 5.2: dominant BRDF term (brdf.DIFFUSE/LOBE/SPIKE, OCCLUDED behind) for a lamp in each
-    grid direction, seen by a camera in direction `view` from a surface with `normal`."""
+    """Sec. 5.2: dominant BRDF term (brdf.DIFFUSE/LOBE/SPIKE, OCCLUDED behind, UNKNOWN where a
+    spike the goniometer did not resolve may lie: brdf.judged_term) for a lamp in each grid
+    direction, seen by a camera in direction `view` from a surface with `normal`."""
     s = grid.directions(frame)
-    return brdf.dominant_term_vectors(normal, s, view, material)
+    return brdf.judged_term(brdf.dominant_term_vectors(normal, s, view, material), normal, s, view, material)
 
 
 def reflectance_map(grid, frame, normal, view, material):
@@ -99,7 +100,8 @@ WANTED_TERM = {"diffuse": brdf.DIFFUSE, "lobe": brdf.LOBE, "spike": brdf.SPIKE}
 
 
 def wanted_region(dominant, visible, reflection):
-    """Cells where a lamp gives the wanted reflection type and every sample sees it."""
+    """Cells where a lamp gives the wanted reflection type and every sample sees it; `any` is
+    any known term (not where an unresolved spike may be: its brightness is unknown)."""
     if reflection == "any":
-        return visible & (dominant != brdf.OCCLUDED)
+        return visible & (dominant != brdf.OCCLUDED) & (dominant != brdf.UNKNOWN)
     return visible & (dominant == WANTED_TERM[reflection])

@@ -13,7 +13,7 @@ from typing import Callable
 import numpy as np
 
 from cell import geometry, projection, regions
-from cell.physics import costs, depth_of_field as dof
+from cell.physics import brdf, costs, depth_of_field as dof
 
 
 @dataclass(frozen=True)
@@ -69,13 +69,31 @@ def explain_gray_max(p, c, met):
     return f"brightest sample gray {g.max():.1f} (band {low:g}-{high:g})"
 
 
-def other_reflection(p, c):
-    """(C,) lit samples whose dominant BRDF term is not the wanted one (0 when any term will do)."""
+def wrong_reflection(p, c):
+    """(C, P) lit samples whose dominant BRDF term (brdf.judged_term's) is not the wanted one;
+    with `any`, those where a spike the goniometer did not resolve may be (brdf.UNKNOWN)."""
     reflection = p.task.requirements.reflection
-    if reflection == "any":
-        return np.zeros(len(c.shutter), dtype=int)
     lit = ~c.shadowed & (c.gray > p.black_level)
-    return np.sum(lit & (c.dominant != regions.WANTED_TERM[reflection]), axis=-1)
+    if reflection == "any":
+        return lit & (c.dominant == brdf.UNKNOWN)
+    return lit & (c.dominant != regions.WANTED_TERM[reflection])
+
+
+def other_reflection(p, c):
+    """(C,) count of wrong_reflection's samples."""
+    return np.sum(wrong_reflection(p, c), axis=-1)
+
+
+def unresolved_note(p):
+    """What the material's goniometer left unresolved, for a sentence ('' when nothing)."""
+    u = p.material.unresolved
+    if u is None or "spike" not in u.terms:
+        return ""
+    phases = ", ".join(f"{np.degrees(a):g}" for a in u.terms["spike"])
+    return (f"the material's spike is not resolved at phase {phases} deg (its goniometer's step "
+            f"{np.degrees(u.step_rad):g} deg sees exponents up to {u.resolvable_m_max:.4g}): a lamp whose half "
+            f"vector lies within {np.degrees(brdf.spike_keep_out(u)):g} deg of a sample's normal may meet a spike "
+            f"of unknown brightness")
 
 
 def reflection_region(p, c):
@@ -92,11 +110,21 @@ def reflection_region(p, c):
 
 def explain_reflection_region(p, c, met):
     req = p.task.requirements
+    unresolved = unresolved_note(p)
     if not p.maps.wanted.any():
+        if req.reflection == "spike" and unresolved:
+            return (f"the spike was not resolved: {unresolved}; no lamp direction is known to give spike "
+                    f"reflection: re-measure the material with a finer calibration.goniometer.step_deg")
         return (f"no lamp direction gives {req.reflection} reflection where every sample sees the lamp "
                 f"(none of the map's {np.degrees(p.maps.grid.step):g} deg cells): want another reflection "
-                f"or change the view")
-    others = int(other_reflection(p, c)[0])
+                f"or change the view" + (f"; {unresolved} (kept out)" if unresolved else ""))
+    wrong = wrong_reflection(p, c)[0]
+    unknown = int(np.sum(wrong & (c.dominant[0] == brdf.UNKNOWN)))
+    if unknown:
+        return (f"{unknown} of {len(p.scene.points)} lit samples see the lamp where an unresolved spike may be: "
+                f"{unresolved}; keep the lamp out, or re-measure the material with a finer "
+                f"calibration.goniometer.step_deg")
+    others = int(np.sum(wrong))
     if others:
         return (f"{others} of {len(p.scene.points)} lit samples see another reflection than {req.reflection}: "
                 f"the term changes across the patch; inspect a smaller feature or want 'any'")

@@ -92,6 +92,10 @@ def test_the_world_s_rho_sigma1_m1_are_recovered_and_the_narrow_spike_is_unresol
     # the files: the CSV the fitter reads, the material a task loads, the plot, patch crops
     material = load_material(tmp_path / "run" / "material.yaml")
     assert np.allclose(material.rho, doc["rho"]) and "cell measure-brdf" in material.source
+    # ... its unresolved spike as the planner reads it (tests/test_unresolved.py: what it does)
+    assert material.unresolved.terms == {"spike": tuple(np.radians([30.0, 60.0]))}
+    assert material.unresolved.step_rad == np.radians(8.0)
+    assert material.unresolved.resolvable_m_max == pytest.approx(m_max, rel=1e-5)
     assert (tmp_path / "run" / "fit.png").stat().st_size > 0 and (tmp_path / "run" / "patch-1.png").exists()
     assert len(list((tmp_path / "run").glob("capture-*.png"))) == sum(line["step"] == "capture" for line in lines)
     rows = (tmp_path / "run" / "goniometer.csv").read_text().splitlines()

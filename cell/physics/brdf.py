@@ -10,6 +10,7 @@ import numpy as np
 DIFFUSE, LOBE, SPIKE = 0, 1, 2
 TERM_NAMES = ("diffuse", "lobe", "spike")
 OCCLUDED = -1
+UNKNOWN = 3                 # possibly a spike the goniometer did not resolve (unresolved_spike)
 
 
 def stable_power(base, exponent):
@@ -93,3 +94,36 @@ def dominant_term_vectors(n, s, v, material):
     cos_alpha = np.clip(np.sum(s * v, axis=-1), -1.0, 1.0)
     p = material.at(np.arccos(cos_alpha))
     return dominant_term(cos_i, cos_e, cos_alpha, p.sigma1, p.m1, p.sigma2, p.m2)
+
+
+def spike_keep_out(unresolved):
+    """The angle [rad] between the half vector h = (s + v) / |s + v| and the normal within which
+    an unresolved spike may lie: the goniometer's step, = sqrt(ln 2 / (2 M)), the half width of
+    the widest term it cannot resolve (M = ln 2 / (2 step^2)). It read the mirror pose and poses
+    at beta = +-step, +-2 step (beta: h's tilt from the normal, the spike's c^m ~ exp(-2 m
+    beta^2)); a term narrower than the step showed at most between them, and c^m falls
+    monotonically with beta, so from one step out the readings bound it by the fit's residual
+    and within a step nothing does."""
+    return float(unresolved.step_rad)
+
+
+def unresolved_spike(n, s, v, material):
+    """bool mask for unit vectors (..., 3): a spike the material's goniometer did not resolve
+    (Material.unresolved) may dominate here: the phase angle's parameters come from a row whose
+    spike is unresolved, and h lies within spike_keep_out of the normal. Nowhere without one."""
+    n, s, v = (np.asarray(a, dtype=float) for a in (n, s, v))
+    if material.unresolved is None:
+        return np.zeros(np.broadcast_shapes(n.shape, s.shape, v.shape)[:-1], bool)
+    cos_alpha = np.clip(np.sum(s * v, axis=-1), -1.0, 1.0)
+    h = s + v
+    cos_h = np.sum(n * h, axis=-1) / np.maximum(np.linalg.norm(h, axis=-1), 1e-300)
+    near = cos_h > np.cos(spike_keep_out(material.unresolved))
+    return near & material.unresolved_spike(np.arccos(cos_alpha))
+
+
+def judged_term(dominant, n, s, v, material):
+    """The dominant term (dominant_term_vectors', the kernels') as the planner judges it:
+    UNKNOWN where an unresolved spike may dominate (unresolved_spike), OCCLUDED kept. The region
+    map and every sample's check (search and certificate) read this one function."""
+    dominant = np.asarray(dominant)
+    return np.where((dominant != OCCLUDED) & unresolved_spike(n, s, v, material), UNKNOWN, dominant)
