@@ -1,16 +1,18 @@
 """Helpers the device, closed-loop and calibration tests share: task variants, device settings
 read as load_task reads them, and a simulated cell that records the safe-stop calls its devices
-receive."""
+receive, and the pixels of a feature's projected disk."""
 import json
 from pathlib import Path
 from types import SimpleNamespace
 
+import numpy as np
 import yaml
 
-from cell import loop
+from cell import loop, projection
 from cell.device_config import SECTIONS, devices_config
 from cell.errors import CellError
 from cell.loader import load_task
+from cell.scene import build_scene
 from cell.schema import parse
 from sim.cell import make_sim_devices
 
@@ -70,3 +72,13 @@ def run_loop(task_path, out):
     cell.log = [json.loads(line) for line in (Path(out) / "log.jsonl").read_text().splitlines()]
     cell.steps = [line["step"] for line in cell.log]
     return cell
+
+
+def disk_pixels(task, f, T_cell_cam, shape, shrink=1.0):
+    """Independent of the loop's hull: the pixels within shrink x feature f's radius of its
+    projected centre (the camera looks nearly along the normal: the disk images as a circle)."""
+    scene = build_scene(task.with_feature(f), T_cell_cam=T_cell_cam)
+    K = projection.intrinsics(task.camera.sensor, task.camera.lens)
+    (centre,), (depth,) = projection.project(K, T_cell_cam, scene.center[None])
+    v, u = np.mgrid[:shape[0], :shape[1]]
+    return np.hypot(u - centre[0], v - centre[1]) < shrink * K[0, 0] * task.features[f].radius_m / depth

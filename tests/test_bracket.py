@@ -9,6 +9,7 @@ from itertools import combinations
 from pathlib import Path
 from types import SimpleNamespace
 
+import cv2
 import numpy as np
 import pytest
 from matplotlib import image as plt_image
@@ -22,6 +23,7 @@ from cell.multiplan import plan_features
 from cell.pictures import write_cell
 from cell.scene import build_scene
 from dense import acceptance_failures, patch_surface, shade
+from simcell import disk_pixels
 from sim.world import Renderer
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -178,3 +180,26 @@ def test_cell_plan_prints_the_bracket_and_writes_cell_png_beside_plan_json(brack
     assert maps == [out / f"candidate-{k}" for k in range(plan.cover["candidate_shots"])]
     assert not any((out / f"candidate-{k}" / "cell.png").exists() for k in range(len(maps)))
     assert json.loads((out / "plan.json").read_text())["cover"]["chosen"] == plan.cover["chosen"]
+
+
+def test_cell_run_of_the_bracket_puts_every_feature_in_band_in_its_shots_capture(bracket, tmp_path, monkeypatch):
+    """The issue's end: `cell run tasks/bracket.yaml` converges for every feature. The plan is the
+    fixture's (the command would plan the same; the candidates' map pictures stubbed, as above);
+    every feature's pixels within 0.6 of its radius of its projected centre (a disk seen up to
+    50 deg off its normal images as an ellipse at least cos 50 deg = 0.64 as wide) are in band in
+    the capture of the shot the report names, read from the file."""
+    task, plan = bracket
+    monkeypatch.setattr("cell.multiplan.plan_features", lambda task, progress: plan)
+    monkeypatch.setattr("cell.pictures.write_plan_pictures", lambda plan, task, scene, folder: None)
+    out = tmp_path / "run"
+    assert cli.main(["run", str(BRACKET), "--out", str(out)]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["converged"] and [f["name"] for f in report["features"]] == FEATURES
+    assert sorted(report["order"]) == list(range(len(plan.shots)))
+    for f, result in enumerate(report["features"]):
+        low, high = task.features[f].requirements.gray_band
+        assert result["converged"] and result["shot"] == plan.features[f].covered_by
+        image = cv2.imread(str(out / result["capture"]), cv2.IMREAD_UNCHANGED)
+        T = np.asarray(plan.shots[result["shot"]].T_cell_cam)
+        pixels = image[disk_pixels(task, f, T, image.shape, 0.6)]
+        assert len(pixels) > 300 and low <= pixels.min() and pixels.max() <= high

@@ -13,11 +13,11 @@ import cv2
 import numpy as np
 import pytest
 
-from cell import cli, control, inspection, measure, projection, route
+from cell import cli, control, inspection, measure, route
 from cell.errors import CellError
 from cell.loader import load_task
 from cell.scene import build_scene
-from simcell import recording_connect
+from simcell import disk_pixels, recording_connect
 
 ROOT = Path(__file__).resolve().parent.parent
 PAIR = ROOT / "tests" / "tasks" / "features" / "hinge_pair.yaml"        # 3 features, 2 shots, fixed camera
@@ -43,16 +43,6 @@ def planned(tmp_path_factory):
     out = tmp_path_factory.mktemp("planned") / "run"
     code = cli.main(["run", str(PLANNED), "--out", str(out)])
     return SimpleNamespace(code=code, task=load_task(PLANNED), **vars(read(out)))
-
-
-def disk_pixels(task, f, T_cell_cam, shape, shrink=1.0):
-    """Independent of the loop's hull: the pixels within shrink x feature f's radius of its
-    projected centre (the camera looks nearly along the normal: the disk images as a circle)."""
-    scene = build_scene(task.with_feature(f), T_cell_cam=T_cell_cam)
-    K = projection.intrinsics(task.camera.sensor, task.camera.lens)
-    (centre,), (depth,) = projection.project(K, T_cell_cam, scene.center[None])
-    v, u = np.mgrid[:shape[0], :shape[1]]
-    return np.hypot(u - centre[0], v - centre[1]) < shrink * K[0, 0] * task.features[f].radius_m / depth
 
 
 def shot_pose(run, s):
