@@ -4,7 +4,8 @@ task's material, lamp and camera constant) is aligned with the capture, and the 
 samples move by the shift found, so the measured region follows the feature as it appears.
 
 Two steps. The model's window around the feature at 1/COARSE resolution, matched over the whole
-capture by its edges (coarse_shift), finds any shift that keeps it in the frame (a 2 deg hand-eye
+capture by its edges (coarse_shift: of the image less its blur, high_pass, so that the lamp's
+soft edge does not count), finds any shift that keeps it in the frame (a 2 deg hand-eye
 tilt on the hinge is 188 px), to within a coarse pixel. cv2.findTransformECC (a translation and
 a turn, MOTION_EUCLIDEAN, on intensity) then refines it to a fraction of a pixel in a window
 around the feature, the shift being where the warp moves the feature's centre (a part turned
@@ -22,8 +23,8 @@ H^2 / (2 sqrt(pi) sigma) per pixel of edge length, sigma the smoothing) and at l
 the other: along the conrod's shank (two parallel edges) only the shift across it is resolved,
 the one along it stays the model's. A capture whose registration cannot be trusted (no direction
 resolved, more than SATURATED_FRACTION of the window saturated, ECC not converging, a correlation
-below MIN_CORRELATION, ECC wandering more than COARSE pixels from the coarse estimate) keeps the
-model's region and says so."""
+below MIN_CORRELATION, ECC wandering more than COARSE pixels or TURN_STEP_DEG from the coarse
+estimate) keeps the model's region and says so."""
 import time
 from dataclasses import dataclass, replace
 
@@ -39,6 +40,9 @@ MARGIN_PX = 24              # the window around the feature's samples: the conro
 MAX_MARGIN_PX = 192         # up to this (the hinge's screw heads are 100-200 px beyond its patch)
 COARSE_MARGIN_PX = 96       # the coarse step's window (its search: the whole frame)
 COARSE_TURNS_DEG = (-6.0, -4.0, -2.0, 0.0, 2.0, 4.0, 6.0)   # the coarse step's turns of it
+TURN_STEP_DEG = 2.0         # their step: ECC's turn farther from the coarse one is not trusted
+HIGH_PASS_SIGMA = 3.0       # coarse px (12 px): the coarse step matches the edges of the image
+                            # less this blur of it (high_pass)
 SMOOTH_SIGMA = 1.0          # px, Gaussian before ECC and the structure tensor
 EDGE_PX = 20.0              # a resolved direction: this many pixels of edge at the window's contrast
 RATIO = 0.01                # ... and at least this fraction of the other direction's eigenvalue
@@ -126,6 +130,13 @@ def gradient(image):
     return cv2.magnitude(gx, gy)
 
 
+def high_pass(image):
+    """image less its Gaussian blur of HIGH_PASS_SIGMA px: the part's edges, not the lamp's soft
+    edge (tens of pixels wide), which a lamp off its aim puts elsewhere than the model does (the
+    hinge's lamp 4-5 deg off: matched 70-107 px away without it)."""
+    return image - cv2.GaussianBlur(image, (0, 0), HIGH_PASS_SIGMA)
+
+
 def structure(template):
     """(eigenvalues ascending, eigenvectors as columns) of the structure tensor of a template
     (smoothed by SMOOTH_SIGMA), its gradient in gray per pixel."""
@@ -175,9 +186,9 @@ def coarse_shift(image, task, scene, T_cell_cam, lamp_pose, row, col):
     size = (round(w / COARSE), round(h / COARSE))
     small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
     u0, v0, width, height = feature_window(row // COARSE, col // COARSE, small.shape, COARSE_MARGIN_PX // COARSE)
-    edges = gradient(expected_image(task, scene, T_cell_cam, lamp_pose, (u0, v0, width, height), COARSE))
+    edges = gradient(high_pass(expected_image(task, scene, T_cell_cam, lamp_pose, (u0, v0, width, height), COARSE)))
     centre = (float(np.mean(col) / COARSE - u0), float(np.mean(row) / COARSE - v0))
-    target = gradient(small)
+    target = gradient(high_pass(small))
     best = (-np.inf, None, 0.0)
     for turn in COARSE_TURNS_DEG:               # the turned window's corners have no edge: 0
         M = cv2.getRotationMatrix2D(centre, turn, 1.0)
@@ -230,6 +241,9 @@ def locate(image, task, scene, T_cell_cam, lamp_pose, row, col, saturation=np.in
     if np.max(np.abs(from_coarse)) > COARSE:
         return result((0.0, 0.0), False, int(resolved.sum()), correlation,
                       f"ECC ended {np.max(np.abs(from_coarse)):.1f} px from the coarse estimate")
+    if abs(rotation + turn) > TURN_STEP_DEG:        # the coarse turn of the window is -rotation's
+        return result((0.0, 0.0), False, int(resolved.sum()), correlation,
+                      f"ECC turned {rotation:+.1f} deg, the coarse estimate {-turn:+.0f} deg")
     note = "" if resolved.all() else (
         f"resolved across the window's edges only (along {np.degrees(np.arctan2(*vectors[::-1, 0])) % 180:.0f} deg "
         f"in the image it has none: that component is the model's)")

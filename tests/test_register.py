@@ -75,6 +75,7 @@ def test_a_2_deg_camera_tilt_on_the_hinge_stops_with_exit_1_naming_the_offset(tm
                                 f"check the hand-eye calibration or the part's fixture")
     assert limit_mm == pytest.approx(4.0, abs=0.05)
     assert it["correction"]["cause"] == "registration" and report["replans"] == []
+    assert report["cause"] == "registration"
     err = capsys.readouterr().err
     assert f" 1 register     feature found {it['registration']['offset_px']:.1f} px" in err
     assert err.strip().endswith(report["reason"])
