@@ -15,7 +15,7 @@ ratio (max/min of the signal), which any exposure then centres (aim_solvable).
 
     pytest -q tests/test_mismatch.py                      # the bounded sample (SAMPLE)
     pytest -m mismatch_matrix tests/test_mismatch.py      # the whole matrix
-    python tests/test_mismatch.py [--jobs 2] [--seeds 1 2 3] [--kinds ...] [--tasks hinge conrod]
+    python tests/test_mismatch.py [--jobs 2] [--seeds 1 2] [--kinds ...] [--tasks hinge conrod]
 """
 import argparse
 import hashlib
@@ -150,7 +150,7 @@ def _kinds(task):
     return rows
 
 
-def cases(seeds=(1, 2, 3), tasks=("hinge", "conrod"), kinds=None):
+def cases(seeds=(1, 2), tasks=("hinge", "conrod"), kinds=None):
     """The matrix: every kind x magnitude x task x seed (kinds None: all)."""
     return [Case(kind, magnitude, task, seed, world, model, materials)
             for task in tasks for seed in seeds
@@ -312,6 +312,13 @@ def report(outcomes):
                  f"within {MAX_CAPTURES} captures ({share:.1f} %); {s['not_converged']} did not converge, "
                  f"{s['not_converged_right_cause']} of them exit 1 naming the right cause; wrong: {s['wrong']}; "
                  f"unsolvable but converged: {s['unsolvable_converged']}")
+    for kind in dict.fromkeys(o.case.kind for o in outcomes):
+        of = [o for o in outcomes if o.case.kind == kind]
+        causes = sorted({o.named for o in of if not o.converged})
+        lines.append(f"  {kind:15} {len(of):3} runs, {sum(o.solvable for o in of):3} solvable, "
+                     f"{sum(o.converged for o in of):3} converged (of the solvable "
+                     f"{sum(o.converged for o in of if o.solvable)}), exit 1: {', '.join(causes) or '-'}; "
+                     f"wrong {sum(not o.right for o in of)}")
     for o in outcomes:
         if not o.right or (o.solvable and not o.converged):
             lines.append(f"  {o.case.kind} {o.case.magnitude} {o.case.task} seed {o.case.seed}: {o.named}; "
@@ -321,8 +328,15 @@ def report(outcomes):
 
 # --- the bounded sample in the default run, the whole matrix behind the marker ----------------
 
-SAMPLE = [("none", "-", "hinge"), ("none", "-", "conrod"), ("part offset", "[0.0, 2.0, 0.0] mm", "conrod"),
-          ("hand-eye", "2 deg", "hinge"), ("material shape", "m1 x2", "hinge")]
+SAMPLE = {   # (kind, magnitude, task): how it must end, from the kind injected
+    ("none", "-", "hinge"): "converged", ("none", "-", "conrod"): "converged",
+    # f/p 2 mm cos(atan 0.05) / 0.35 m = 30.6 px, within the 3.9 mm limit: measured through
+    ("part offset", "[0.0, 2.0, 0.0] mm", "conrod"): "converged",
+    # f/p tan 2 deg = 187.7 px, 17.5 mm at 0.5 m, beyond the plan's 4.0 mm
+    ("hand-eye", "2 deg", "hinge"): "registration",
+    # a lobe twice as narrow: the band under 1 deg lamp error is infeasible for it (test_refit)
+    ("material shape", "m1 x2", "hinge"): "infeasible",
+}
 
 
 def test_a_sample_of_the_matrix_converges_or_names_the_right_cause(tmp_path):
@@ -331,11 +345,11 @@ def test_a_sample_of_the_matrix_converges_or_names_the_right_cause(tmp_path):
     outcomes = matrix(picked, jobs=1, root=tmp_path)
     text = report(outcomes)
     assert all(o.right for o in outcomes), text
+    assert [o.named for o in outcomes] == [SAMPLE[o.case.kind, o.case.magnitude, o.case.task] for o in outcomes], text
     for o in outcomes:
         if o.case.kind == "none":            # no mismatch: the first capture is in band
-            assert o.solvable and o.run["converged"] and o.run["iterations"] == 1, text
-        if o.solvable:
-            assert o.converged, text
+            assert o.solvable and o.run["iterations"] == 1, text
+    assert not next(o for o in outcomes if o.case.kind == "material shape").solvable, text
 
 
 @pytest.mark.mismatch_matrix
@@ -352,7 +366,7 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description="issue 16's mismatch matrix: cell run against a world that "
                                                  "differs from the model; prints the table and the percentages")
     parser.add_argument("--jobs", type=int, default=2)
-    parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS))
     parser.add_argument("--kinds", nargs="+", default=None, choices=list(EXPECTED))
     parser.add_argument("--out", default=None, help="the runs' folder (default: a new temporary one)")
