@@ -32,9 +32,14 @@ class PlanInfeasible(CellError):
 
 
 class GoalNotReached(CellError):
-    """The closed loop ran but the feature's gray did not reach the band; says why (exit 1)."""
+    """The closed loop ran but the feature's gray did not reach the band; says why (exit 1) and,
+    where the loop decided it, names the cause (cell.loop.CAUSES)."""
 
     exit_code = 1
+
+    def __init__(self, message, cause=None):
+        self.cause = cause
+        super().__init__(message)
 
 
 class DeviceFault(CellError):

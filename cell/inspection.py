@@ -114,13 +114,13 @@ def iterate_shared(tasks, plans, devices, recorder, max_iterations, black=None):
                     for t, model, name in zip(tasks, models, names)]
         yield from (it for it, _, _ in measured)
         shutter = capture.shutter_s
-        for name, t, (it, _, _) in zip(names, tasks, measured):
-            far = register.beyond_limit(it.registration, t.loop.registration_limit_m)
+        for name, t, p, (it, _, _) in zip(names, tasks, plans, measured):
+            far = register.beyond_limit(it.registration, loop.registration_limit(t, p.shot))
             if far:
                 reason = f"{name}: {far}"
                 yield loop.Corrected(k, {"action": "stop", "albedo_scale": 1.0, "reason": reason,
                                          "cause": "registration"})
-                raise GoalNotReached(reason)
+                raise GoalNotReached(reason, "registration")
         if all(it.in_band for it, _, _ in measured):
             return
         if k == max_iterations:
@@ -128,11 +128,11 @@ def iterate_shared(tasks, plans, devices, recorder, max_iterations, black=None):
                                  f"{1e3 * shutter:.3g} ms, f/{f_number:.1f}: " + "; ".join(
                                      f"{n} {m.min:.1f}-{m.max:.1f} (band {lim.band[0]:g}-{lim.band[1]:g}, "
                                      f"{it.measured_gray['saturated']} saturated)"
-                                     for n, (it, m, _), lim in zip(names, measured, limits)))
+                                     for n, (it, m, _), lim in zip(names, measured, limits)), "iterations")
         c = shared_correction(names, measured, limits, shutter, f_number, black)
         if c.action == "stop":
             yield loop.Corrected(k, c.document(1.0))
-            raise GoalNotReached(c.reason)
+            raise GoalNotReached(c.reason, c.cause)
         recorder.step("correct", c.message(shutter, f_number, 1.0), iteration=k, **c.document(1.0))
         yield loop.Corrected(k, c.document(1.0))
         shutter, f_number = c.shutter_s, c.f_number

@@ -201,7 +201,7 @@ TASK = {
     }, required=False),
     "loop": Section({
         "albedo_scale_range": Pair(lambda v: v > 0, "positive scales", default=(0.1, 10.0)),
-        "registration_limit_m": Number(lambda v: v > 0, "a positive distance", default=0.003),
+        "registration_limit_m": Number(lambda v: v > 0, "a positive distance", default=None),
     }, required=False),
 }
 

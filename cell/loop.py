@@ -10,10 +10,30 @@ import numpy as np
 from cell import control, evaluate, measure, refit, register
 from cell.acquisition import acquire, move_to, plan_and_connect, plan_recorded
 from cell.devices import speaking_for
-from cell.errors import GoalNotReached
+from cell.errors import GoalNotReached, PlanInfeasible
 from cell.plan import gray_stats
 from cell.recorder import Recorder, file_name
 from cell.session import Session
+
+
+CAUSES = {          # report.json's `cause` of a run that ends without the goal (exit 1): the README's table
+    "registration": "the feature appears beyond loop.registration_limit_m from where the model puts it "
+                    "(hand-eye or fixture)",
+    "black pixels": "part of the region reads the black level (off the part or shadowed: hand-eye or fixture)",
+    "albedo": "the level implies an albedo outside loop.albedo_scale_range",
+    "spread": "the shape still disagrees after a refit",
+    "lamp aim": "the refitted material does not explain the captures (the lamp's aim, shadows)",
+    "material shape": "the shape disagrees and the captures cannot tell the material's",
+    "infeasible": "the band is infeasible for the model as measured (the plan or a re-plan)",
+    "iterations": "the iterations ran out",
+    "features": "a shot's features each fit the band alone but not together under one exposure",
+    "bands": "a shot's features have gray bands with nothing in common",
+    "replan": "a shot of several features needs more than an exposure (it is not re-planned)",
+}
+
+
+REGISTRATION_FLOOR_M = 0.001   # the least registration_limit: a plan without lamp tolerance still
+                               # measures through a sub-millimetre hand-eye error
 
 
 @dataclass(frozen=True)
@@ -92,6 +112,7 @@ class RunResult:
     fault: dict | None = None
     black_level: dict | None = None
     refits: tuple = ()
+    cause: str | None = None     # CAUSES' key of a run that ended without the goal
 
     @property
     def captures(self):
@@ -102,7 +123,7 @@ class RunResult:
                 "converged": self.success, "captures": self.captures, "reason": self.message,
                 "replans": [{"iteration": r.iteration, "albedo_scale": r.albedo_scale, "plan": r.plan}
                             for r in self.replans], "black_level": self.black_level,
-                "refits": [r.to_json() for r in self.refits]} | (
+                "refits": [r.to_json() for r in self.refits], "cause": self.cause} | (
                     {"fault": self.fault} if self.fault else {})
 
 
@@ -151,10 +172,21 @@ def find_black_level(task, plan, devices, recorder):
     return black
 
 
-def locate(task, scene, devices, recorder, k, capture, saturation, feature=None):
+def registration_limit(task, shot):
+    """How far from where the model puts it the feature may be found [m]: loop.registration_limit_m,
+    else what the plan tolerates. A fixture error d turns the lamp's direction to the feature by
+    d / r (r the lamp's distance), and the plan holds the band under lamp errors up to
+    lamp_tolerance: d = r tan(lamp_tolerance), at least REGISTRATION_FLOOR_M (3.9-4.0 mm on the
+    examples: 1 deg at 0.22-0.23 m)."""
+    if task.loop.registration_limit_m is not None:
+        return task.loop.registration_limit_m
+    return max(shot.distance_m * np.tan(task.requirements.lamp_tolerance_rad), REGISTRATION_FLOOR_M)
+
+
+def locate(task, scene, devices, recorder, k, capture, saturation, limit, feature=None):
     """Registration (cell.register) of a capture at the read-back camera and lamp poses, logged
     (as `feature`'s, when named); returns (Registration, the shift the measurement takes: the found
-    one when trusted and within loop.registration_limit_m, else none, the model's region)."""
+    one when trusted and within the limit [m], else none, the model's region)."""
     with speaking_for(devices.lamp):
         lamp_pose = devices.lamp.lamp_pose()
     row, col, inside = measure.sample_pixels(task, capture.T_cell_cam, scene.points)
@@ -162,7 +194,7 @@ def locate(task, scene, devices, recorder, k, capture, saturation, feature=None)
                             saturation)
     recorder.step("register", f"{feature}: " * bool(feature) + found.describe(), iteration=k,
                   **({"feature": feature} if feature else {}), **found.to_json())
-    within = found.trusted and register.beyond_limit(found.to_json(), task.loop.registration_limit_m) is None
+    within = found.trusted and register.beyond_limit(found.to_json(), limit) is None
     return found, found.shift_px if within else (0.0, 0.0)
 
 
@@ -183,7 +215,8 @@ def measure_capture(task, model, devices, recorder, k, capture, albedo_scale, bl
     f_number = capture.f_number
     bit_depth = devices.camera.bit_depth
     saturation = measure.saturation_level(bit_depth)
-    found, shift = locate(task, model.plan.scene, devices, recorder, k, capture, saturation, feature)
+    found, shift = locate(task, model.plan.scene, devices, recorder, k, capture, saturation,
+                          registration_limit(task, model.plan.shot), feature)
     m = measure.measure_feature(capture.image, task, capture.T_cell_cam, model.plan.scene.points, saturation, shift)
     predicted = model.predicted(black.value, capture.shutter_s, f_number)
     error, relation = control.model_error(m.sample_gray, predicted, saturation, black.value)
@@ -243,28 +276,29 @@ def iterate(task, plan, devices, recorder, max_iterations, black=None, T_cell_ca
         it, m, predicted = shoot(task, model, devices, recorder, k, shutter, f_number, albedo, black)
         yield it
         shutter = it.shutter_s
-        far = register.beyond_limit(it.registration, task.loop.registration_limit_m)
+        far = register.beyond_limit(it.registration, registration_limit(task, model.plan.shot))
         if far:                                 # the plan's poses do not hold: nothing to correct
             yield Corrected(k, {"action": "stop", "albedo_scale": albedo, "reason": far, "cause": "registration"})
-            raise GoalNotReached(far)
+            raise GoalNotReached(far, "registration")
         if it.in_band:
             return
         if k == max_iterations:
             raise GoalNotReached(f"not in band {band[0]:g}-{band[1]:g} after {count(k, 'iteration')}: "
                                  f"feature gray {m.min:.1f}-{m.max:.1f} ({it.measured_gray['saturated']} pixels "
                                  f"saturated) at {1e3 * shutter:.3g} ms, f/{f_number:.1f}; "
-                                 f"{control.describe_error(it.model_error, it.model_error_relation)}")
+                                 f"{control.describe_error(it.model_error, it.model_error_relation)}", "iterations")
         c = control.correct(m, predicted, shutter, f_number, limits, black, albedo)
         if c.action == "stop" and c.cause == "spread" and not refitted:     # the shape is wrong: refit
             refitted = True
             task, replanned = yield from refit_and_replan(task, model, devices, recorder, k, m, c, black, albedo,
-                                                         shutter, f_number, T_cell_cam)
+                                                         shutter, f_number, it.registration["shift_px"],
+                                                         T_cell_cam)
             model, albedo, moved = Model(replanned, task), 1.0, False
             shutter, f_number = replanned.shot.exposure.shutter_s, replanned.shot.exposure.f_number
             continue
         if c.action == "stop":                  # its cause in report.json; the done step says why
             yield Corrected(k, c.document(albedo))
-            raise GoalNotReached(c.reason)
+            raise GoalNotReached(c.reason, c.cause)
         if c.action == "replan":
             albedo *= c.model_error
         recorder.step("correct", c.message(shutter, f_number, albedo), iteration=k, **c.document(albedo))
@@ -278,22 +312,22 @@ def iterate(task, plan, devices, recorder, max_iterations, black=None, T_cell_ca
         if not replanned.feasible:
             raise GoalNotReached(f"{control.describe_error(c.model_error, c.relation)}; {c.reason}; "
                                  f"re-planned for an albedo x{albedo:.3g}: infeasible, {replanned.binding}: "
-                                 f"{replanned.hint}")
+                                 f"{replanned.hint}", "infeasible")
         model = Model(replanned, task)
         shutter, f_number, moved = replanned.shot.exposure.shutter_s, replanned.shot.exposure.f_number, False
 
 
-def refit_and_replan(task, model, devices, recorder, k, m, c, black, albedo, shutter_s, f_number,
+def refit_and_replan(task, model, devices, recorder, k, m, c, black, albedo, shutter_s, f_number, shift_px,
                      T_cell_cam=None):
     """After capture k (at shutter_s, f_number) whose shape disagreed with the model (Correction
-    c, cause spread): probe, refit the material (cell.refit; Corrected, Refitted) and re-plan with
-    it (Replan; the camera at T_cell_cam, else by the task's rule). Returns
-    (the task with the refitted material, its plan); GoalNotReached when the refit cannot be used
-    or its plan is infeasible."""
+    c, cause spread; the feature found shift_px away): probe, refit the material (cell.refit;
+    Corrected, Refitted) and re-plan with it (Replan; the camera at T_cell_cam, else by the task's
+    rule). Returns (the task with the refitted material, its plan); GoalNotReached when the refit
+    cannot be used or its plan is infeasible."""
     recorder.step("correct", f"refit the material: {c.reason}", iteration=k, action="refit")
     yield Corrected(k, {"action": "refit", "cause": "spread", "reason": c.reason})
     fitted = refit.probe_and_refit(task, model.plan.scene, devices, recorder, k, m,
-                                   (shutter_s, f_number, model.plan.shot.exposure.focus_m), black, albedo)
+                                   (shutter_s, f_number, model.plan.shot.exposure.focus_m), black, albedo, shift_px)
     yield Refitted(k, fitted, refit.keep(fitted, task, recorder, k))
     refit.require_usable(fitted, c.reason)
     task = refit.task_with(task, fitted)
@@ -301,7 +335,7 @@ def refit_and_replan(task, model, devices, recorder, k, m, c, black, albedo, shu
     yield Replan(k, 1.0, replanned.to_json())
     if not replanned.feasible:
         raise GoalNotReached(f"the material is not the task's ({fitted.summary()}); re-planned for the refitted "
-                             f"material: infeasible, {replanned.binding}: {replanned.hint}")
+                             f"material: infeasible, {replanned.binding}: {replanned.hint}", "infeasible")
     return task, replanned
 
 
@@ -311,7 +345,7 @@ def run(task, out, connect, max_iterations=6):
     (exit 3) after the safe stop of every device (session.Session). Returns the RunResult."""
     from cell.pictures import write_convergence
     out = Path(out)
-    events, reason = Events(), ""
+    events, reason, cause = Events(), "", None
     with Recorder(out) as recorder:
         session = Session(on_fault=recorder.fault, log=recorder.log.name)
         try:
@@ -323,12 +357,13 @@ def run(task, out, connect, max_iterations=6):
             recorder.step("done", f"converged after {count(n, 'iteration')}", converged=True, iterations=n)
         except BaseException as err:
             reason = str(err) or type(err).__name__
+            cause = "infeasible" if isinstance(err, PlanInfeasible) else getattr(err, "cause", None)
             if not session.fault:                   # the goal was not reached: the devices are fine
                 recorder.step("done", f"not converged: {err}", converged=False, reason=str(err))
             raise
         finally:
             result = RunResult(str(task.path), not reason, reason, recorder.plan, tuple(events.iterations),
-                               tuple(events.replans), session.fault, events.black_json, tuple(events.refits))
+                               tuple(events.replans), session.fault, events.black_json, tuple(events.refits), cause)
             recorder.write_json("report.json", result.to_json())
             if events.iterations:
                 write_convergence(out / "convergence.png", [it.to_json() for it in events.iterations],

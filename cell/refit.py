@@ -71,15 +71,17 @@ class Observation:
                 "measured_gray": self.gray_range}
 
 
-def pixel_geometry(task, scene, T_cell_cam, region, lamp_pos, lamp_aim):
+def pixel_geometry(task, scene, T_cell_cam, region, lamp_pos, lamp_aim, shift_px=(0.0, 0.0)):
     """(lit, E, cos ti, cos te, cos alpha) of the region's pixels (row-major, as image[region]):
-    each pixel's ray cast into the model's mesh from the camera pose, shaded unit-diffuse with the
+    each pixel's ray, less the shift registration found (where the model sees what the pixel
+    shows), cast into the model's mesh from the camera pose, shaded unit-diffuse with the
     planner's lamp (kernels.render: its cone and profile, cast shadows), E = that gray per
     exposure / cos ti; `lit` marks the pixels the model lights (the others have no E)."""
     from kernels.render import render
     rows, cols = np.nonzero(region)
     K = projection.intrinsics(task.camera.sensor, task.camera.lens)
-    local = np.column_stack([cols, rows, np.ones(rows.size)]) @ np.linalg.inv(K).T
+    dx, dy = shift_px
+    local = np.column_stack([cols - dx, rows - dy, np.ones(rows.size)]) @ np.linalg.inv(K).T
     dirs = geometry.unit(geometry.rotate(T_cell_cam, local))
     origin = T_cell_cam[:3, 3]
     r = render(scene.warp_mesh, origin, dirs, lamp_pos, lamp_aim, task.lamp.power_w, task.lamp.cone_angle_rad,
@@ -93,11 +95,12 @@ def pixel_geometry(task, scene, T_cell_cam, region, lamp_pos, lamp_aim):
     return lit, np.where(lit, r.value / np.where(lit, cos_i, 1.0), 0.0), cos_i, cos_e, cos_alpha
 
 
-def observe(task, scene, name, gray, T_cell_cam, lamp, joints, shutter_s, f_number, region, saturation):
+def observe(task, scene, name, gray, T_cell_cam, lamp, joints, shutter_s, f_number, region, saturation,
+            shift_px=(0.0, 0.0)):
     """The Observation of a capture's region pixels `gray` (image[region]) taken with the lamp at
-    lamp = (position, aim) and joints: the pixels the model lights and the sensor resolves
-    (below saturation)."""
-    lit, e, ci, ce, ca = pixel_geometry(task, scene, T_cell_cam, region, *lamp)
+    lamp = (position, aim) and joints, the feature found shift_px from where the model puts it:
+    the pixels the model lights and the sensor resolves (below saturation)."""
+    lit, e, ci, ce, ca = pixel_geometry(task, scene, T_cell_cam, region, *lamp, shift_px)
     gray = np.asarray(gray, float)
     keep = lit & (gray < saturation)
     stats = {"min": float(gray.min()), "max": float(gray.max()), "mean": float(gray.mean())}
@@ -281,13 +284,14 @@ def probe_joints(joints, tilt_range):
     return [(pan, float(t), radius) for t in tilts if abs(t - tilt) > 0.2 * PROBE_TILT]
 
 
-def probe_and_refit(task, scene, devices, recorder, k, m, exposure, black, albedo_scale):
+def probe_and_refit(task, scene, devices, recorder, k, m, exposure, black, albedo_scale, shift_px=(0.0, 0.0)):
     """After capture k (Measurement m at exposure = (shutter_s, f_number, focus_m), the lamp still
     at the plan's pose) disagreed with the model's shape: probe shots at probe_joints through the loop's own
     acquisition path (a device fault exits 3), each exposed so that its brightest pixel is
     expected at PROBE_TARGET of the signal range (capture k's measured brightness times the
-    model's ratio probe / capture k), then fit() to capture k and the probes. Logs each probe and
-    the refit; returns the Refit."""
+    model's ratio probe / capture k), then fit() to capture k and the probes, their pixels seen
+    where registration found the feature (shift_px). Logs each probe and the refit; returns the
+    Refit."""
     saturation, b = m.saturation, black.value
     shutter_s, f_number, focus_m = exposure
     material = task.part.material.scaled(albedo_scale)
@@ -296,10 +300,10 @@ def probe_and_refit(task, scene, devices, recorder, k, m, exposure, black, albed
     with speaking_for(devices.arm):
         T_cell_cam = devices.arm.camera_pose()
     trigger = observe(task, scene, f"capture-{k}.png", m.gray, T_cell_cam, plan_lamp, plan_joints,
-                      shutter_s, f_number, m.region, saturation)
+                      shutter_s, f_number, m.region, saturation, shift_px)
 
     def brightest(lamp):
-        lit, e, ci, ce, ca = pixel_geometry(task, scene, T_cell_cam, m.region, *lamp)
+        lit, e, ci, ce, ca = pixel_geometry(task, scene, T_cell_cam, m.region, *lamp, shift_px)
         p = material.at(np.arccos(ca[lit]))
         return float(np.max(e[lit] * reflectance(ci[lit], ce[lit], ca[lit], p.rho, p.sigma1, p.m1, p.sigma2, p.m2),
                             initial=0.0))
@@ -320,7 +324,7 @@ def probe_and_refit(task, scene, devices, recorder, k, m, exposure, black, albed
         with speaking_for(devices.lamp):
             lamp = devices.lamp.lamp_pose()
         o = observe(task, scene, capture.name, image[m.region], capture.T_cell_cam, lamp, read,
-                    capture.shutter_s, f_number, m.region, saturation)
+                    capture.shutter_s, f_number, m.region, saturation, shift_px)
         g = o.gray_range
         recorder.step("probe", f"probe {j}: gray {g['min']:.1f}-{g['max']:.1f} over the feature, {o.gray.size} px "
                                f"usable", iteration=k, **o.to_json())
@@ -328,7 +332,7 @@ def probe_and_refit(task, scene, devices, recorder, k, m, exposure, black, albed
     usable = sum(o.gray.size for o in observations)
     if usable <= len(NAMES):
         raise GoalNotReached(f"the feature's gray disagrees with the model's shape, but the probe shots left "
-                             f"{usable} usable pixels (lit by the model, below saturation): nothing to refit")
+                             f"{usable} usable pixels (lit by the model, below saturation): nothing to refit", "material shape")
     refit = fit(observations, task.part.material, b)
     recorder.step("refit", refit.summary(), iteration=k, **refit.to_json())
     return refit
@@ -371,10 +375,10 @@ def require_usable(refit, spread_reason):
         raise GoalNotReached(f"{spread_reason}; {refit.summary()}: the refitted material does not explain the "
                              f"captures either (rms residual {refit.rms_residual:.2f} gray > {100 * RESIDUAL_MAX:g} % "
                              f"of the signal {refit.median_signal:.1f}), so the material is not the cause: check the "
-                             f"lamp's aim and shadows on the feature")
+                             f"lamp's aim and shadows on the feature", "lamp aim")
     if not refit.determined_shape:
         raise GoalNotReached(f"{spread_reason}; {refit.summary()}: the captures determine none of the lobe's and "
-                             f"spike's parameters, so there is nothing to re-plan with")
+                             f"spike's parameters, so there is nothing to re-plan with", "material shape")
 
 
 def task_with(task, refit):

@@ -143,7 +143,7 @@ class LoopSettings:
     from where the model puts it the feature may be found (registration) [m]."""
 
     albedo_scale_range: tuple = (0.1, 10.0)
-    registration_limit_m: float = 0.003
+    registration_limit_m: float | None = None    # None: the plan's (cell.loop.registration_limit)
 
 
 @dataclass(frozen=True)

@@ -220,7 +220,7 @@ def test_the_worlds_material_loads_beside_the_tasks_and_vectors_in_si(tmp_path):
     assert truth.part_offset_m == (0.0, 0.002, 0.0) and truth.lamp_radius_error_m == pytest.approx(0.02)
     assert truth.camera_rpy_rad == pytest.approx((math.radians(0.25), 0.0, 0.0))
     assert loader.load_task(HINGE).loop.albedo_scale_range == (0.1, 10.0)
-    assert loader.load_task(HINGE).loop.registration_limit_m == 0.003
+    assert loader.load_task(HINGE).loop.registration_limit_m is None
 
 
 def test_an_empty_optional_section_takes_its_defaults(tmp_path):

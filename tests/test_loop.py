@@ -177,7 +177,7 @@ def test_a_deviation_no_exposure_absorbs_exits_1_and_says_why(tmp_path):
     assert not cell.report["converged"]
     reason = str(cell.error)
     assert "measured gray is at most" in reason and "even at 20 ms" in reason and "infeasible" in reason
-    assert cell.report["reason"] == reason and cell.steps[-1] == "done"
+    assert cell.report["reason"] == reason and cell.steps[-1] == "done" and cell.report["cause"] == "infeasible"
     assert "arm.stop" not in cell.stops and "camera.close" in cell.stops     # closed, no fault stop
 
 
@@ -223,6 +223,7 @@ def test_a_spread_the_model_does_not_predict_ends_at_once_and_says_why(tmp_path)
     reason = str(cell.error)
     assert "max/min" in reason and "the model (its albedo corrected) predicts" in reason
     assert "lamp's aim" in reason and cell.report["replans"] == []
+    assert cell.report["cause"] == "lamp aim"           # the refit did not explain it: not the material
 
 
 def test_saturated_samples_give_a_lower_bound_and_the_rest_an_estimate():

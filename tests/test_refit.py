@@ -84,6 +84,7 @@ def test_the_band_infeasible_for_the_true_material_is_the_reason_given(mismatch)
     assert reason.startswith("the material is not the task's")
     assert f"re-planned for the refitted material: infeasible, {truth_plan.binding}" in reason
     assert len(mismatch.report["replans"]) == 1 and not mismatch.report["replans"][0]["plan"]["feasible"]
+    assert mismatch.report["cause"] == "infeasible"
 
 
 def test_after_the_refit_the_run_converges_where_the_true_material_allows_it(tmp_path):
@@ -109,6 +110,28 @@ def test_a_lamp_off_its_aim_is_not_taken_for_a_material(tmp_path):
     (fitted,) = cell.report["refits"]
     assert not fitted["explains"] and fitted["rms_residual"] > refit.RESIDUAL_MAX * fitted["median_signal"]
     assert "the material is not the cause: check the lamp's aim" in str(cell.error)
+    assert cell.report["cause"] == "lamp aim"
+
+
+def test_a_pixel_is_given_the_geometry_of_where_registration_found_the_feature():
+    """The region moved by the registration's shift (a hand-eye error) sees the model's points of
+    the unmoved region: the same (lit, E, ti, te, alpha) pixel for pixel."""
+    task = load_task(HINGE)
+    planned = plan(task)
+    scene, pivot = planned.scene, task.lamp.rig.pivot_m
+    row, col, _ = measure.sample_pixels(task, scene.T_cell_cam, scene.points)
+    shape = (task.camera.sensor.height_px, task.camera.sensor.width_px)
+    region = measure.feature_mask(shape, row, col)
+    moved = measure.feature_mask(shape, row - 7, col + 12)
+    position = lamp_position(pivot, *planned.shot.joints)
+    lamp = (position, lamp_aim(pivot, position))
+    there = refit.pixel_geometry(task, scene, scene.T_cell_cam, region, *lamp)
+    found = refit.pixel_geometry(task, scene, scene.T_cell_cam, moved, *lamp, shift_px=(12.0, -7.0))
+    unshifted = refit.pixel_geometry(task, scene, scene.T_cell_cam, moved, *lamp)
+    assert moved.sum() == region.sum()
+    for a, b in zip(there, found):
+        assert np.allclose(a, b)
+    assert not np.allclose(there[1], unshifted[1])         # without the shift: other points
 
 
 @pytest.mark.parametrize("task", [HINGE, CONROD])

@@ -59,30 +59,62 @@ def test_a_fixture_offset_on_the_hinge_is_found_by_its_edges_not_the_lamps_light
 
 def test_a_2_deg_camera_tilt_on_the_hinge_stops_with_exit_1_naming_the_offset(tmp_path, capsys):
     """A tilt of 2 deg about the camera's x moves the image by f/p tan(2 deg) = 187.7 px, at 0.5 m
-    17.5 mm at the feature: beyond loop.registration_limit_m (3 mm), so the run stops after its
-    first capture with the offset, instead of measuring a patch 17 mm away."""
+    17.5 mm at the feature: beyond the registration limit (the plan's lamp at 0.227 m, its 1 deg lamp
+    tolerance: 0.227 tan 1 deg = 4.0 mm), so the run stops after its first capture with the offset,
+    instead of measuring a patch 17 mm away."""
     task = variant(tmp_path, HINGE, {"sim.truth.camera_rpy_deg": [2.0, 0.0, 0.0], "sim.effects": ALL_BUT_DEFOCUS})
     assert main(["run", str(task), "--out", str(tmp_path / "run")]) == 1
     report = json.loads((tmp_path / "run" / "report.json").read_text())
     shift = F_PX * np.tan(np.radians(2.0))
+    limit_mm = 1e3 * report["plan"]["lamp"]["distance_m"] * np.tan(np.radians(1.0))
     (it,) = report["iterations"]
     assert it["registration"]["offset_px"] == pytest.approx(shift, abs=1.0)
     assert report["reason"] == (f"the feature appears {shift:.0f} px ({shift * 0.5 / F_PX * 1e3:.1f} mm) from where "
-                                f"the model puts it, more than loop.registration_limit_m 3 mm: check the hand-eye "
-                                f"calibration or the part's fixture")
+                                f"the model puts it, more than the registration limit {limit_mm:.1f} mm "
+                                f"(loop.registration_limit_m, else the lamp's distance x tan lamp_tolerance): "
+                                f"check the hand-eye calibration or the part's fixture")
+    assert limit_mm == pytest.approx(4.0, abs=0.05)
     assert it["correction"]["cause"] == "registration" and report["replans"] == []
+    assert report["cause"] == "registration"
     err = capsys.readouterr().err
     assert f" 1 register     feature found {it['registration']['offset_px']:.1f} px" in err
     assert err.strip().endswith(report["reason"])
 
 
 def test_the_limit_is_a_setting(tmp_path):
-    """The same 1 mm hand-eye offset (15.4 px, 1.0 mm) stops under a 0.5 mm limit and not under 3 mm."""
+    """The same 1 mm hand-eye offset (15.4 px, 1.0 mm) stops under a 0.5 mm limit."""
     truth = {"sim.truth.camera_offset_m": [0.0, 0.001, 0.0]}
     cell = run_loop(variant(tmp_path, CONROD, truth | {"loop.registration_limit_mm": 0.5}), tmp_path / "run")
     assert cell.error is not None and cell.error.exit_code == 1
     assert str(cell.error).startswith("the feature appears 15 px (1.0 mm) from where the model puts it, more "
-                                      "than loop.registration_limit_m 0.5 mm")
+                                      "than the registration limit 0.5 mm")
+    assert cell.report["cause"] == "registration"
+
+
+def test_the_default_limit_is_what_the_plan_tolerates_so_a_quarter_degree_hand_eye_tilt_is_measured_through(
+        tmp_path):
+    """0.25 deg about the camera's x and y on the hinge: f/p tan(0.354 deg) = 33 px, 3.1 mm at
+    0.5 m, within the plan's lamp distance x tan 1 deg (its lamp tolerance) = 4.0 mm: the region
+    follows the feature and the run converges."""
+    truth = {"sim.truth.camera_rpy_deg": [0.25, 0.25, 0.0], "sim.effects": ALL_BUT_DEFOCUS}
+    cell = run_loop(variant(tmp_path, HINGE, truth), tmp_path / "run")
+    assert cell.error is None and cell.report["converged"], cell.report["reason"]
+    found = cell.report["iterations"][0]["registration"]
+    assert found["trusted"] and found["offset_px"] == pytest.approx(F_PX * np.tan(np.radians(0.25 * np.sqrt(2))),
+                                                                     abs=1.5)
+
+
+def test_a_part_turned_about_the_feature_centre_is_found_turned_not_shifted(tmp_path):
+    """The conrod yawed 3 deg about its feature's centre: the shank's edges turn about it, so the
+    feature stays where the model puts it; ECC's Euclidean warp finds the turn (a translation alone
+    was not trusted here: its correlation 0.82) and the centre's shift is
+    sub-millimetre."""
+    truth = {"sim.truth.part_rpy_deg": [0.0, 0.0, 3.0], "sim.effects": ALL_BUT_DEFOCUS}
+    cell = run_loop(variant(tmp_path, CONROD, truth), tmp_path / "run")
+    assert cell.error is None and cell.report["converged"]
+    found = cell.report["iterations"][0]["registration"]
+    assert found["trusted"] and abs(found["rotation_deg"]) == pytest.approx(3.0, abs=0.3)
+    assert found["offset_m"] < 0.0005
 
 
 @pytest.mark.parametrize("task_path", [HINGE, CONROD])
