@@ -268,7 +268,8 @@ def fit(observations, material, black_level):
     stderr[free] = se
     factors = np.concatenate([np.exp(x[:BLACK]), x[BLACK:]])
     refitted = Material(f"{material.name}, refit in the loop", "", material.phase_rad,
-                        *(getattr(material, p) * f for p, f in zip(PARAMETERS, factors[:BLACK])))
+                        *(getattr(material, p) * f for p, f in zip(PARAMETERS, factors[:BLACK])),
+                        unresolved=material.unresolved)   # what the goniometer could not resolve stays so
     predicted = _model(x, obs, base)[0]
     phase = tuple(float(v) for v in np.degrees(np.percentile(alpha, [0, 50, 100])))
     return Refit(factors, stderr, tuple(NAMES[i] for i in sorted(unknown)), condition, condition_all,
@@ -340,13 +341,20 @@ def probe_and_refit(task, scene, devices, recorder, k, m, exposure, black, albed
 
 def material_document(refit, name, source):
     """The refitted material as a material file's keys (docs/formats.md, "Material"): the task's
-    table times the factors, and the stderr of each parameter (.inf where not determined)."""
+    table times the factors, the stderr of each parameter (.inf where not determined, a zero
+    entry's too) and the task's `unresolved` section, if any (a refit resolves no spike)."""
     mat = refit.material
     doc = {"name": name, "source": source, "phase_deg": [round(float(a), 6) for a in np.degrees(mat.phase_rad)]}
     for p in PARAMETERS:
         doc[p] = [float(f"{v:.6g}") for v in getattr(mat, p)]
     for i, p in enumerate(PARAMETERS):
-        doc[f"{p}_stderr"] = [float(f"{v * refit.stderr[i]:.3g}") for v in getattr(mat, p)]
+        known = np.isfinite(refit.stderr[i])
+        doc[f"{p}_stderr"] = [float(f"{v * refit.stderr[i]:.3g}") if known else float("inf") for v in getattr(mat, p)]
+    if mat.unresolved is not None:
+        u = mat.unresolved
+        doc["unresolved"] = {"terms": {t: [round(float(np.degrees(a)), 6) for a in phases] for t, phases in u.terms.items()},
+                             "step_deg": float(f"{np.degrees(u.step_rad):.6g}"),
+                             "resolvable_m_max": float(f"{u.resolvable_m_max:.6g}")}
     return doc
 
 

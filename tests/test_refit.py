@@ -209,3 +209,25 @@ def test_one_capture_says_which_parameters_it_could_not_determine(synthetic):
     assert "not determined (kept as they were): sigma2, m2, black_level" in fitted.summary()
     doc = fitted.to_json()
     assert doc["parameters"]["black_level"]["determined"] is False and doc["parameters"]["m2"]["stderr"] is None
+
+
+def test_a_refit_keeps_what_the_goniometer_could_not_resolve_and_writes_no_nan(synthetic, tmp_path):
+    """A material whose spike `cell measure-brdf` did not resolve: the refit (which resolves no
+    spike) keeps its `unresolved` section, so the re-plan still keeps the lamp out of the spike's
+    cone, and the file it writes loads back with the same section; a parameter left undetermined
+    has stderr inf, also where its value is 0 (0 x inf is not a number)."""
+    from dataclasses import replace
+    from cell.material import Unresolved
+    task, observations = synthetic
+    phases = task.part.material.phase_rad
+    unresolved = Unresolved({"spike": (float(phases[1]), float(phases[3]))}, np.radians(6.0), 31.6037)
+    material = replace(task.part.material, sigma2=np.zeros_like(phases), unresolved=unresolved)
+    fitted = refit.fit(observations[:1], material, 0.0)
+    assert fitted.material.unresolved == unresolved
+    doc = refit.material_document(fitted, "refit", "test")
+    assert not any(np.isnan(v) for p in refit.PARAMETERS for v in doc[f"{p}_stderr"])
+    assert doc["sigma2_stderr"] == [np.inf] * len(phases)
+    path = tmp_path / "refit.yaml"
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    back = load_material(path).unresolved
+    assert back.terms["spike"] == pytest.approx(unresolved.terms["spike"]) and back.step_rad == pytest.approx(unresolved.step_rad)
