@@ -16,9 +16,8 @@ from cell.acquisition import acquire, move_to, require_feasible
 from cell.devices import speaking_for
 from cell.errors import GoalNotReached
 from cell.geometry import rotation_angle
-from cell.recorder import Recorder
+from cell.recorder import Ending, Recorder
 from cell.rig import lamp_position
-from cell.session import Session
 
 
 def candidate_features(plan):
@@ -318,43 +317,37 @@ def run(task, out, connect, max_iterations=6):
     however the run ends. Raises GoalNotReached naming every feature not in band (exit 1), or
     DeviceFault (exit 3) after the safe stop. Returns the InspectionResult."""
     out = Path(out)
-    runs, order, travel, reason, black = [], (), None, "", None
+    runs, order, travel, black = [], (), None, None
     names = tuple(f.name for f in task.features)
     covered_by = (None,) * len(names)
-    with Recorder(out) as recorder:
-        session = Session(on_fault=recorder.fault, log=recorder.log.name)
-        try:
-            with session:
-                plan = plan_logged(task, recorder)
-                covered_by = tuple(f.covered_by for f in plan.features)
-                require_feasible(plan)
-                session.devices = connect(plan.plans[candidate_features(plan).index(0)].scene)
-                order, travel = visit_order(plan, session.devices, recorder)
-                for n, s in enumerate(order):
-                    recorder.step("shot", f"shot {n + 1} of {len(order)} (plan's shot {s}): "
-                                          f"{describe(plan, s)}", shot=s, visit=n + 1, features=assigned(plan, s))
-                    done = run_shot(task, plan, s, session.devices, recorder, max_iterations, black, runs)
-                    black = black or done.black
-                    recorder.step("shot_done", f"shot {n + 1} of {len(order)} (plan's shot {s}): {done.summary()}",
-                                  shot=s, converged=done.success, reason=done.message)
-            result = InspectionResult(str(task.path), True, "", recorder.plan, names, covered_by, order, travel,
-                                      tuple(runs))
-            failed = [f for f in result.feature_results() if not f["converged"]]
-            if failed:
-                raise GoalNotReached(f"{len(failed)} of {len(names)} features not in band: " + "; ".join(
-                    f"{f['name']} (shot {f['shot']}): {f['reason']}" for f in failed))
-            recorder.step("done", f"converged: every feature in band ({len(names)} features, "
-                                  f"{loop.count(len(runs), 'shot')})", converged=True)
-        except BaseException as err:
-            reason = str(err) or type(err).__name__
-            if not session.fault:
-                recorder.step("done", f"not converged: {err}", converged=False, reason=str(err))
-            raise
-        finally:
-            result = InspectionResult(str(task.path), not reason, reason, recorder.plan, names, covered_by, order,
-                                      travel, tuple(runs), session.fault)
-            recorder.write_json("report.json", result.to_json())
-    return result
+
+    def result(reason, fault):
+        return InspectionResult(str(task.path), not reason, reason, recorder.plan, names, covered_by, order,
+                                travel, tuple(runs), fault)
+
+    with Recorder(out) as recorder, Ending(recorder, "not converged", "report.json", result,
+                                           converged=False) as ending:
+        session = ending.session
+        with session:
+            plan = plan_logged(task, recorder)
+            covered_by = tuple(f.covered_by for f in plan.features)
+            require_feasible(plan)
+            session.devices = connect(plan.plans[candidate_features(plan).index(0)].scene)
+            order, travel = visit_order(plan, session.devices, recorder)
+            for n, s in enumerate(order):
+                recorder.step("shot", f"shot {n + 1} of {len(order)} (plan's shot {s}): "
+                                      f"{describe(plan, s)}", shot=s, visit=n + 1, features=assigned(plan, s))
+                done = run_shot(task, plan, s, session.devices, recorder, max_iterations, black, runs)
+                black = black or done.black
+                recorder.step("shot_done", f"shot {n + 1} of {len(order)} (plan's shot {s}): {done.summary()}",
+                              shot=s, converged=done.success, reason=done.message)
+        failed = [f for f in result("", None).feature_results() if not f["converged"]]
+        if failed:
+            raise GoalNotReached(f"{len(failed)} of {len(names)} features not in band: " + "; ".join(
+                f"{f['name']} (shot {f['shot']}): {f['reason']}" for f in failed))
+        recorder.step("done", f"converged: every feature in band ({len(names)} features, "
+                              f"{loop.count(len(runs), 'shot')})", converged=True)
+    return ending.result
 
 
 def describe(plan, s):

@@ -12,8 +12,7 @@ from cell.acquisition import acquire, move_to, plan_and_connect, plan_recorded
 from cell.devices import speaking_for
 from cell.errors import GoalNotReached, PlanInfeasible
 from cell.plan import gray_stats
-from cell.recorder import Recorder, file_name
-from cell.session import Session
+from cell.recorder import Ending, Recorder, file_name
 
 
 CAUSES = {          # report.json's `cause` of a run that ends without the goal (exit 1): the README's table
@@ -344,31 +343,28 @@ def run(task, out, connect, max_iterations=6):
     written however the run ends. Raises PlanInfeasible or GoalNotReached (exit 1), or DeviceFault
     (exit 3) after the safe stop of every device (session.Session). Returns the RunResult."""
     from cell.pictures import write_convergence
-    out = Path(out)
-    events, reason, cause = Events(), "", None
-    with Recorder(out) as recorder:
-        session = Session(on_fault=recorder.fault, log=recorder.log.name)
-        try:
-            with session:
-                planned = plan_and_connect(task, recorder, session, connect)
-                for event in iterate(task, planned, session.devices, recorder, max_iterations):
+    out, events = Path(out), Events()
+
+    def result(reason, fault):
+        err = ending.error
+        cause = None if err is None else "infeasible" if isinstance(err, PlanInfeasible) else getattr(err, "cause", None)
+        return RunResult(str(task.path), not reason, reason, recorder.plan, tuple(events.iterations),
+                         tuple(events.replans), fault, events.black_json, tuple(events.refits), cause)
+
+    try:
+        with Recorder(out) as recorder, Ending(recorder, "not converged", "report.json", result,
+                                               converged=False) as ending:
+            with ending.session:
+                planned = plan_and_connect(task, recorder, ending.session, connect)
+                for event in iterate(task, planned, ending.session.devices, recorder, max_iterations):
                     events.add(event)
             n = len(events.iterations)
             recorder.step("done", f"converged after {count(n, 'iteration')}", converged=True, iterations=n)
-        except BaseException as err:
-            reason = str(err) or type(err).__name__
-            cause = "infeasible" if isinstance(err, PlanInfeasible) else getattr(err, "cause", None)
-            if not session.fault:                   # the goal was not reached: the devices are fine
-                recorder.step("done", f"not converged: {err}", converged=False, reason=str(err))
-            raise
-        finally:
-            result = RunResult(str(task.path), not reason, reason, recorder.plan, tuple(events.iterations),
-                               tuple(events.replans), session.fault, events.black_json, tuple(events.refits), cause)
-            recorder.write_json("report.json", result.to_json())
-            if events.iterations:
-                write_convergence(out / "convergence.png", [it.to_json() for it in events.iterations],
-                                  task.requirements.gray_band, [r.to_json() for r in events.refits])
-    return result
+    finally:                                    # after report.json: a failing picture loses no report
+        if events.iterations:
+            write_convergence(out / "convergence.png", [it.to_json() for it in events.iterations],
+                              task.requirements.gray_band, [r.to_json() for r in events.refits])
+    return ending.result
 
 
 class Events:

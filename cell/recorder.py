@@ -114,11 +114,11 @@ class Ending:
     logs the "done" step, `failed: error` with its reason (a fault the Session logged already is
     not logged twice), and is raised again; then, or at a normal end, `end.result = result(reason,
     fault)` (reason '' and fault None when it finished; the routine logs its own "done" step) is
-    written to the run folder as `name`."""
+    written to the run folder as `name`; `end.error` is what ended it (None at a normal end)."""
 
     def __init__(self, recorder, failed, name, result, **failed_data):
         self.recorder, self.failed, self.name, self.make = recorder, failed, name, result
-        self.failed_data, self.result = failed_data, None
+        self.failed_data, self.result, self.error = failed_data, None, None
         self.session = Session(on_fault=recorder.fault, log=recorder.log.name)
 
     def __enter__(self):
@@ -126,6 +126,7 @@ class Ending:
 
     def __exit__(self, kind, err, traceback):
         reason = "" if err is None else str(err) or kind.__name__
+        self.error = err
         if err is not None and not self.session.fault:     # the goal was not reached: the devices are fine
             self.recorder.step("done", f"{self.failed}: {err}", **self.failed_data, reason=reason)
         self.result = self.make(reason, self.session.fault)
