@@ -8,13 +8,14 @@ import logging
 import pickle
 import socket
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
 
 from cell import cli, jsonio, parallel, planner
 from cell.errors import DeviceFault, PlanInfeasible, TaskError
-from cell.feature_bench import without_timing
+from cell.feature_bench import same_plan, without_timing
 from cell.loader import load_task
 from cell.multiplan import plan_features
 
@@ -64,6 +65,9 @@ def test_serial_workers_2_and_a_cluster_by_address_plan_the_same(scheduler, tmp_
         assert written(tmp_path / "remote" / "hinge_planned" / f"candidate-{k}") == document(own)
     # the workers' progress reached the terminal, each task's lines named when there are several
     assert sorted(local_err.splitlines()) == sorted(lines)         # as the jobs completed, not in order
+    # the bench's comparison: blind to timing_s, not to a candidate's own plan
+    assert same_plan(serial, replace(serial, timing_s={}, plans=tuple(replace(p, timing_s={}) for p in serial.plans)))
+    assert not same_plan(serial, replace(serial, plans=serial.plans[::-1]))
     assert "hinge_planned: feature end_face, viewpoint 1:" in remote_err and "hinge: global search:" in remote_err
 
 
