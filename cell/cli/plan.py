@@ -66,9 +66,11 @@ def features_summary(plan):
 def command(args):
     workers = worker_count(args)
     several = len(args.tasks) > 1
-    out = output_folder(args.out, "plan") if several and args.out is not None else None
-    for path in args.tasks:             # the folders' places checked before any work
-        if out is None:
+    out = None                          # the folders' places checked before any work
+    if several and args.out is not None:
+        out = output_folder(args.out, "plan")
+    else:
+        for path in args.tasks:
             output_folder(args.out, f"{Path(path).stem}-plan")
     tasks = [load_task(path) for path in args.tasks]
     names = distinct([Path(path).stem for path in args.tasks])
