@@ -6,7 +6,9 @@ the serial one in every key but timing_s.
 Evaluations: the lamp candidates x samples of every candidate shot's global search (its last
 search's), summed; serial and parallel count the same, so their rates' ratio is the times'.
 The worker rows are warm (the cluster's start and the workers' first plan, which loads Warp's
-kernels, are reported apart: startup_s, first_s)."""
+kernels, are reported apart: startup_s, first_s), 1 and 2 workers timed in turn. On a machine
+other jobs load, 2 processes take a larger share of its cores than 1: the speedup is a quiet
+machine's only when nothing else runs."""
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -41,14 +43,16 @@ def same_plan(a, b):
             and all(without_timing(p.to_json()) == without_timing(q.to_json()) for p, q in zip(a.plans, b.plans)))
 
 
-def timed(task, pool, repeats):
-    """(the plan, median wall time [s]) of plan_features on `pool`, `repeats` times."""
-    times, result = [], None
+def timed(task, pools, repeats):
+    """[(the plan, median wall time [s])] of plan_features on each of `pools`, `repeats` rounds of
+    one run on each in turn (a load that comes and goes then weighs on each alike)."""
+    times, results = [[] for _ in pools], [None] * len(pools)
     for _ in range(repeats):
-        t0 = time.perf_counter()
-        result = plan_features(task, pool=pool)
-        times.append(time.perf_counter() - t0)
-    return result, float(np.median(times))
+        for k, pool in enumerate(pools):
+            t0 = time.perf_counter()
+            results[k] = plan_features(task, pool=pool)
+            times[k].append(time.perf_counter() - t0)
+    return [(result, float(np.median(t))) for result, t in zip(results, times)]
 
 
 def feature_rows(task, quick, repeats, say):
@@ -59,7 +63,7 @@ def feature_rows(task, quick, repeats, say):
         plan_features(replace(task, features=task.features[:1]))
     rows, plans = [], []
     for k in sorted({1, n}) if quick else range(1, n + 1):
-        plan, time_s = timed(replace(task, features=task.features[:k]), parallel.SERIAL, repeats)
+        ((plan, time_s),) = timed(replace(task, features=task.features[:k]), [parallel.SERIAL], repeats)
         rows.append({"task": label, "features": k, "candidates": plan.cover["candidate_shots"],
                      "evaluations": evaluations(plan), "time_s": time_s,
                      "evaluations_per_s": evaluations(plan) / time_s, "stages_s": plan.timing_s})
@@ -78,8 +82,7 @@ def worker_row(task, serial, serial_s, repeats, say):
         first = plan_features(task, pool=both)          # the workers' first plan: Warp's kernels load
         first_s = time.perf_counter() - t0
         one = both.restricted(sorted(both.client.nthreads())[:1])
-        by_one, one_s = timed(task, one, repeats)
-        by_two, two_s = timed(task, both, repeats)
+        (by_one, one_s), (by_two, two_s) = timed(task, [one, both], repeats)
     count = evaluations(serial)
     row = {"task": label, "features": len(task.features), "candidates": serial.cover["candidate_shots"],
            "evaluations": count, "serial_s": serial_s, "startup_s": startup_s, "first_s": first_s,
