@@ -171,9 +171,11 @@ def targets(settings, kernels):
     return out
 
 
-def run(tasks, quick, say):
-    """The benchmark of the loaded `tasks`: every setting's row against the task's reference,
-    the references, the kernel rows and the targets (bench.json)."""
+def run(tasks, quick, say, feature_tasks=()):
+    """The benchmark of the loaded one-feature `tasks`: every setting's row against the task's
+    reference, the references, the kernel rows; of the multi-feature `feature_tasks` the
+    cell.feature_bench rows; and the targets (bench.json)."""
+    from cell import feature_bench
     repeats = 1 if quick else 3
     result = {"quick": quick, "repeats": repeats, "settings": [], "references": [], "kernels": []}
     for task in tasks:
@@ -183,5 +185,6 @@ def run(tasks, quick, say):
         result["references"].append(ref)
     for task in tasks:
         result["kernels"] += kernel_rows(task, quick, repeats, say)
-    result["targets"] = targets(result["settings"], result["kernels"])
+    result |= feature_bench.run(feature_tasks, quick, say)
+    result["targets"] = targets(result["settings"], result["kernels"]) + feature_bench.targets(result["workers"])
     return result

@@ -17,6 +17,10 @@ class TaskError(CellError):
         where = f"{_one_line(self.file)}: {_one_line(key)}" if key else _one_line(self.file)
         super().__init__(f"{where}: found {_one_line(found)}, expected {_one_line(expected)}")
 
+    def __reduce__(self):
+        """Pickled by its own arguments: a Dask worker's error comes back to the client whole."""
+        return type(self), (self.file, self.key, self.found, self.expected)
+
 
 def _one_line(text):
     """text with control characters escaped (a key written as "a\nb" in a file), so that an
@@ -50,3 +54,6 @@ class DeviceFault(CellError):
     def __init__(self, device, reason):
         self.device, self.reason = device, reason
         super().__init__(f"{device}: {reason}")
+
+    def __reduce__(self):
+        return type(self), (self.device, self.reason)

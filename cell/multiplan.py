@@ -11,6 +11,7 @@ import numpy as np
 
 from cell import coverage, planner, regions
 from cell.cover import fewest_shots
+from cell.parallel import SERIAL
 from cell.plan import FeatureVerdict, Plan, PlannerSettings, Search
 from cell.scene import build_scene
 
@@ -26,50 +27,76 @@ def travel(shots):
             + np.linalg.norm(lamps - lamps.mean(axis=0), axis=1))
 
 
-def candidate_plans(tasks, settings, say):
-    """[(feature index, its Plan)] of every candidate shot, and the Viewpoints of each feature
-    (None: the fixed camera rule, one candidate per feature). A planned feature gets a plan per
-    kept viewpoint (cell.viewpoints); one with none gets its fixed-rule plan, which only lends
-    its samples and maps to the judge (not a candidate)."""
+def own_plan(task, settings, T_cell_cam, arm_joints, header, say):
+    """A job: the one-shot plan of a one-feature task, its camera at T_cell_cam (a planned
+    viewpoint's, reached by `arm_joints`) or by the task's rule (None)."""
+    if header:
+        say(header)
+    p = planner.plan(task, settings, progress=say, T_cell_cam=T_cell_cam)
+    if arm_joints is None:
+        return p
+    return replace(p, shots=(replace(p.shot, arm_joints=tuple(float(q) for q in arm_joints)),))
+
+
+def viewpoints_of(task, settings, say):
+    """A job: the Viewpoints of a one-feature task (cell.viewpoints), with their own time."""
     from cell.viewpoints import plan_viewpoints
-    if tasks[0].camera.viewpoint.mode == "fixed":
-        out = []
-        for f, t in enumerate(tasks):
-            say(f"feature {t.feature.name}:")
-            out.append((f, planner.plan(t, settings, progress=say)))
-        return out, None, [p for _, p in out]
+    start = time.perf_counter()
     grid = regions.SphereGrid(np.radians(settings.grid_step_deg))
-    out, views, lend = [], [], []
-    for f, t in enumerate(tasks):
-        start = time.perf_counter()
-        scene = build_scene(t, settings.samples)
-        v = plan_viewpoints(t, scene, planner.visibility_map(scene, grid), grid)
-        views.append(replace(v, time_s=time.perf_counter() - start))
-        say(f"feature {t.feature.name}: {len(v.kept)} of {v.poses} camera poses kept (pruned: "
-            + ", ".join(f"{n} {s}" for s, n in v.pruned.items() if n) + ")")
-        own = []
+    scene = build_scene(task, settings.samples)
+    v = plan_viewpoints(task, scene, planner.visibility_map(scene, grid), grid)
+    say(f"feature {task.feature.name}: {len(v.kept)} of {v.poses} camera poses kept (pruned: "
+        + ", ".join(f"{n} {s}" for s, n in v.pruned.items() if n) + ")")
+    return replace(v, time_s=time.perf_counter() - start)
+
+
+def judge_row(task, lend, shots, say):
+    """A job: the Coverage of each shot on the one-feature task whose own plan `lend` lends its
+    samples and maps (None where the shot is the feature's own: its plan's verdict stands)."""
+    return [None if shot is None else coverage.judge(task, lend, shot) for shot in shots]
+
+
+def candidate_plans(tasks, settings, say, pool=SERIAL):
+    """[(feature index, its Plan)] of every candidate shot, the Viewpoints of each feature (None:
+    the fixed camera rule, one candidate per feature) and each feature's plan that lends its
+    samples and maps to the judge. A planned feature gets a plan per kept viewpoint
+    (cell.viewpoints); one with none gets its fixed-rule plan, which only lends (not a candidate).
+    Every plan is a job of `pool` (cell.parallel), the viewpoints of each feature one before."""
+    if tasks[0].camera.viewpoint.mode == "fixed":
+        plans = pool.map(own_plan, [(t, settings, None, None, f"feature {t.feature.name}:") for t in tasks], say)
+        return list(enumerate(plans)), None, plans
+    views = pool.map(viewpoints_of, [(t, settings) for t in tasks], say)
+    jobs, whose = [], []                # whose: (feature, a candidate or only lending)
+    for f, (t, v) in enumerate(zip(tasks, views)):
         for k, vp in enumerate(v.kept):
-            say(f"feature {t.feature.name}, viewpoint {k}: camera at {np.round(vp.T_cell_cam[:3, 3], 3).tolist()} m")
-            p = planner.plan(t, settings, progress=say, T_cell_cam=vp.T_cell_cam)
-            own.append(replace(p, shots=(replace(p.shot, arm_joints=tuple(float(q) for q in vp.arm_joints)),)))
-        out += [(f, p) for p in own]
-        lend.append(own[0] if own else planner.plan(t, settings, progress=say))
+            jobs.append((t, settings, vp.T_cell_cam, vp.arm_joints, f"feature {t.feature.name}, viewpoint {k}: "
+                         f"camera at {np.round(vp.T_cell_cam[:3, 3], 3).tolist()} m"))
+            whose.append((f, True))
+        if not v.kept:
+            jobs.append((t, settings, None, None, ""))
+            whose.append((f, False))
+    plans = pool.map(own_plan, jobs, say)
+    out = [(f, p) for (f, candidate), p in zip(whose, plans) if candidate]
+    lend = [next(p for (g, _), p in zip(whose, plans) if g == f) for f in range(len(tasks))]
     return out, views, lend
 
 
-def plan_features(task, settings=PlannerSettings(), progress=None):
+def plan_features(task, settings=PlannerSettings(), progress=None, pool=SERIAL):
     """The Plan of a task's features (one or more): the chosen shots, each with the features it
     covers (Shot.covers), and per feature the shot covering it (Plan.features). Candidate shots:
     each feature's own by the task's camera rule, or (camera.viewpoint: planned) one per kept
-    viewpoint of each feature."""
+    viewpoint of each feature. The plans and the coverage matrix's rows are jobs of `pool`
+    (cell.parallel: here, or on a Dask cluster), gathered in order: the same plan either way."""
     say = progress or (lambda msg: None)
     t0 = time.perf_counter()
     tasks = [task.with_feature(i) for i in range(len(task.features))]
-    cands, views, lend = candidate_plans(tasks, settings, say)
+    cands, views, lend = candidate_plans(tasks, settings, say, pool)
     t_own = time.perf_counter()
     shots = [p.shot for _, p in cands]
-    judged = [[coverage.of_plan(t, p) if g == f else coverage.judge(t, lend[f], p.shot) for g, p in cands]
-              for f, t in enumerate(tasks)]
+    rows = pool.map(judge_row, [(t, lend[f], [None if g == f else p.shot for g, p in cands])
+                                for f, t in enumerate(tasks)], say)
+    judged = [[coverage.of_plan(t, p) if g == f else c for (g, p), c in zip(cands, row)]
+              for f, (t, row) in enumerate(zip(tasks, rows))]
     covers = np.array([[c.covered for c in row] for row in judged]).reshape(len(tasks), len(shots))
     t_judge = time.perf_counter()
     distance = travel(shots) if shots else np.zeros(0)

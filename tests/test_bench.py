@@ -14,6 +14,7 @@ from cell.cli import main
 from cell.planner import PlannerSettings
 
 TASKS = Path(__file__).resolve().parent.parent / "tasks"
+PLANNED = Path(__file__).resolve().parent / "tasks" / "features" / "hinge_planned.yaml"   # the multi-feature rows
 SETTING_KEYS = {"name", "task", "time_s", "gray_error", "gray_error_max", "lamp_error_mm", "lamp_error_deg",
                 "feasible", "feasible_agrees", "finite", "pareto", "default"}
 KERNEL_KEYS = {"name", "size", "warp_per_s", "reference_per_s", "ratio"}
@@ -22,7 +23,8 @@ KERNEL_KEYS = {"name", "size", "warp_per_s", "reference_per_s", "ratio"}
 @pytest.fixture(scope="module")
 def bench(tmp_path_factory):
     out = tmp_path_factory.mktemp("bench")
-    assert main(["bench", "--quick", "--out", str(out), str(TASKS / "hinge.yaml"), str(TASKS / "conrod.yaml")]) == 0
+    assert main(["bench", "--quick", "--out", str(out), str(TASKS / "hinge.yaml"), str(TASKS / "conrod.yaml"),
+                 str(PLANNED)]) == 0
     return json.loads((out / "bench.json").read_text()), out
 
 
@@ -56,7 +58,8 @@ def test_every_number_is_finite(bench):
     """bench.json writes a NaN/inf as null: no null but where null means something."""
     result, _ = bench
     available = [r for r in result["kernels"] if not r["unavailable"]]
-    for key, x in leaves(result["settings"] + result["references"] + available):
+    for key, x in leaves(result["settings"] + result["references"] + available + result["features"]
+                         + result["workers"]):
         if x is None:
             assert key in ("samples", "unavailable")   # PlannerSettings.samples None: the task's
         elif isinstance(x, (int, float)):
@@ -134,3 +137,31 @@ def test_the_gray_row_against_numpy_with_embree_rays_casts_the_same_shadows():
     assert np.mean(fast.shadowed == brute.shadowed) > 0.999        # float32 Embree vs float64 at grazing
     np.testing.assert_allclose(fast.value[fast.shadowed == brute.shadowed],
                                brute.value[fast.shadowed == brute.shadowed])
+
+
+def test_multi_feature_rows_count_features_candidates_and_evaluations(bench):
+    """hinge_planned keeps 2 viewpoints of each feature: 2 candidate shots per feature, each one
+    global search of the 3672 lamp poses of the default grid over at least the feature's samples
+    (48 on leaf_a, 16 on the end face; the certificate's worst points add to them)."""
+    result, _ = bench
+    rows = result["features"]
+    assert [(r["task"], r["features"], r["candidates"]) for r in rows] == [("hinge_planned", 1, 2),
+                                                                           ("hinge_planned", 2, 4)]
+    assert rows[0]["evaluations"] >= 2 * 3672 * 48 and rows[0]["evaluations"] % 3672 == 0
+    assert rows[1]["evaluations"] >= rows[0]["evaluations"] + 2 * 3672 * 16
+    for row in rows:
+        assert row["evaluations_per_s"] == pytest.approx(row["evaluations"] / row["time_s"])
+
+
+def test_the_worker_row_compares_1_and_2_workers_and_finds_the_plans_identical(bench):
+    result, _ = bench
+    (row,) = result["workers"]
+    assert row["identical"] is True and row["evaluations"] == result["features"][-1]["evaluations"]
+    one, two = row["workers"]
+    assert (one["workers"], two["workers"]) == (1, 2)
+    assert row["speedup"] == pytest.approx(one["time_s"] / two["time_s"])
+    assert two["evaluations_per_s"] == pytest.approx(row["evaluations"] / two["time_s"])
+    assert row["serial_s"] == result["features"][-1]["time_s"] and row["startup_s"] > 0
+    targets = {t["name"]: t for t in result["targets"]}
+    assert targets["hinge_planned: 2 workers / 1 worker >= 1.8"]["met"] == (row["speedup"] >= 1.8)
+    assert targets["hinge_planned: serial and parallel plans identical"]["met"] is True

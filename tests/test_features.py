@@ -244,7 +244,7 @@ def test_a_one_shot_multi_feature_plan_keeps_the_one_shot_keys_and_cell_plan_exi
     assert doc["lamp"] == doc["shots"][0]["lamp"]
     own = task.features[doc["cover"]["chosen"][0]].name                       # the shot's own feature's
     assert doc["requirements"] == next(c for c in doc["shots"][0]["covers"] if c["feature"] == own)["requirements"]
-    monkeypatch.setattr("cell.cli.plan.plan_features", lambda task, progress: plan)
+    monkeypatch.setattr("cell.cli.plan.plan_features", lambda task, progress, pool: plan)
     assert cli.main(["plan", str(FEATURES), "--out", str(tmp_path / "out")]) == 0
     assert capsys.readouterr().out.startswith(f"{task.name}: feasible: 1 shot cover 2 of 2 features")
 
@@ -252,7 +252,7 @@ def test_a_one_shot_multi_feature_plan_keeps_the_one_shot_keys_and_cell_plan_exi
 def test_cell_plan_prints_a_line_per_shot_and_feature_and_exits_1_naming_the_uncovered(multi, tmp_path,
                                                                                       capsys, monkeypatch):
     task, plan = multi
-    monkeypatch.setattr("cell.cli.plan.plan_features", lambda task, progress: plan)
+    monkeypatch.setattr("cell.cli.plan.plan_features", lambda task, progress, pool: plan)
     assert cli.main(["plan", str(FEATURES), "--out", str(tmp_path / "out")]) == 1
     captured = capsys.readouterr()
     lines = captured.out.splitlines()

@@ -161,7 +161,7 @@ def test_the_plan_json_reports_the_planned_cameras_and_cell_plan_prints_them(pla
     for shot in doc["shots"]:
         assert len(shot["camera"]["arm_joints_deg"]) == 6 and len(shot["camera"]["T_cell_cam"]) == 4
     assert [v["feature"] for v in doc["cover"]["viewpoints"]] == ["leaf_a", "end_face"]
-    monkeypatch.setattr("cell.cli.plan.plan_features", lambda task, progress: plan)
+    monkeypatch.setattr("cell.cli.plan.plan_features", lambda task, progress, pool: plan)
     assert cli.main(["plan", str(PLANNED), "--out", str(tmp_path / "out")]) == 0
     out = capsys.readouterr().out
     assert "planned viewpoints" in out and out.count("planned camera looking along") == len(plan.shots)

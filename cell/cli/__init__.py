@@ -121,10 +121,14 @@ def build_parser():
     p.add_argument("--json", action="store_true", help="print the material as JSON")
 
     p = sub.add_parser("plan", help="plan lamp position, shutter, f-number and focus for a task")
-    p.add_argument("task")
-    p.add_argument("--out", help="folder for plan.json and the pictures, new or empty "
-                                 "(default runs/<task>-plan-<time>)")
-    p.add_argument("--json", action="store_true", help="print plan.json to stdout")
+    p.add_argument("tasks", nargs="+", metavar="TASK")
+    p.add_argument("--out", help="folder for plan.json and the pictures, new or empty (default "
+                                 "runs/<task>-plan-<time>); with several tasks, a folder <task> in it for each")
+    p.add_argument("--json", action="store_true", help="print plan.json to stdout (several tasks: a list)")
+    p.add_argument("--workers", metavar="N", help="plan on a Dask LocalCluster of N worker processes "
+                                                  "on this machine (127.0.0.1)")
+    p.add_argument("--scheduler", metavar="ADDRESS", help="plan on the running Dask cluster of this "
+                                                          "scheduler, e.g. tcp://127.0.0.1:8786")
 
     p = sub.add_parser("run", help="plan, drive the cell, capture, measure and correct in a closed loop")
     p.add_argument("task")
@@ -136,7 +140,9 @@ def build_parser():
                                                       "the real cell; the simulated cell confirms its own")
 
     p = sub.add_parser("bench", help="what accuracy costs in time; kernel throughput")
-    p.add_argument("tasks", nargs="*", help="default: the example tasks hinge.yaml and conrod.yaml, installed with the package")
+    p.add_argument("tasks", nargs="*", help="default: the example tasks hinge.yaml and conrod.yaml, installed with "
+                                            "the package, and the multi-feature example (its planning time on 1 and "
+                                            "2 workers)")
     p.add_argument("--quick", action="store_true", help="small sweep (< 1 min) for smoke tests")
     p.add_argument("--out", help="folder for bench.json and bench.png, new or empty (default runs/bench-<time>)")
     p.add_argument("--json", action="store_true", help="print bench.json to stdout")

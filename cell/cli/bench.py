@@ -3,7 +3,7 @@ bench.json and bench.png in DIR, progress on stderr."""
 import sys
 
 from cell import bench, jsonio
-from cell.cli import create_folder, one_feature, output_folder
+from cell.cli import create_folder, output_folder
 from cell.loader import load_task
 
 
@@ -35,9 +35,22 @@ def report(result):
         [[r["task"], r["name"], f"{r['size']:.3g}", f"{r['warp_per_s']:.3g}", r["reference"],
           *((f"{r['reference_size']:.3g}", f"{r['reference_per_s']:.3g}", f"{r['ratio']:.1f}")
             if r["ratio"] is not None else ("-", "-", r["unavailable"]))] for r in result["kernels"]])
+    features = text_table(
+        ["task", "features", "candidates", "evaluations", "time s", "evals/s", "judge s"],
+        [[r["task"], r["features"], r["candidates"], r["evaluations"], f"{r['time_s']:.2f}",
+          f"{r['evaluations_per_s']:.3g}", f"{r['stages_s']['judge']:.3f}"] for r in result["features"]])
+    workers = text_table(
+        ["task", "features", "candidates", "serial s", "1 worker s", "2 workers s", "1 worker evals/s",
+         "2 workers evals/s", "speedup", "start s", "first s", "identical"],
+        [[r["task"], r["features"], r["candidates"], f"{r['serial_s']:.2f}",
+          *(f"{w['time_s']:.2f}" for w in r["workers"]), *(f"{w['evaluations_per_s']:.3g}" for w in r["workers"]),
+          f"{r['speedup']:.2f}x", f"{r['startup_s']:.1f}", f"{r['first_s']:.2f}", "yes" if r["identical"] else "NO"]
+         for r in result["workers"]])
     goals = "\n".join(f"{'met    ' if t['met'] else 'NOT MET'}  {t['name']}: {t['value']:.3g}"
                       for t in result["targets"])
-    return "\n\n".join([settings, refs, "\n".join(summary(result["settings"])), kernels, goals])
+    parts = [settings, refs, "\n".join(summary(result["settings"])), kernels] if result["settings"] else []
+    parts += [features, workers] if result["workers"] else []
+    return "\n\n".join(parts + [goals])
 
 
 def summary(settings):
@@ -56,21 +69,37 @@ def summary(settings):
     return lines
 
 
+def multi_feature(task):
+    """Whether the task gets cell.feature_bench's rows (several features or a planned viewpoint)
+    rather than the settings sweep and kernel rows of one shot."""
+    return len(task.features) > 1 or task.camera.viewpoint.mode != "fixed"
+
+
 def command(args):
     def say(msg):
         print(msg, file=sys.stderr, flush=True)
 
+    from cell.feature_bench import FEATURE_TASKS
     from cell.pictures import write_bench
     out = output_folder(args.out, "bench")
-    tasks = [one_feature(load_task(path), "bench") for path in args.tasks or bench.DEFAULT_TASKS]  # all first
+    if args.tasks:
+        paths = args.tasks
+    else:
+        paths = list(bench.DEFAULT_TASKS) + [p for p in FEATURE_TASKS if p.is_file()]
+        for missing in (p for p in FEATURE_TASKS if not p.is_file()):     # a regular install has no tests/
+            say(f"no multi-feature rows of {missing}: not installed (a checkout's file)")
+    loaded = [load_task(path) for path in paths]          # all first
+    tasks = [t for t in loaded if not multi_feature(t)]
+    feature_tasks = [t for t in loaded if multi_feature(t)]
     create_folder(out)
-    result = bench.run(tasks, args.quick, say)
+    result = bench.run(tasks, args.quick, say, feature_tasks)
     text = jsonio.dumps(result, indent=2)
     (out / "bench.json").write_text(text + "\n")
-    write_bench(out / "bench.png", result["settings"])
+    if result["settings"]:              # bench.png: the one-feature settings sweep
+        write_bench(out / "bench.png", result["settings"])
     tables = sys.stderr if args.json else sys.stdout
     print(report(result), file=tables)
-    print(f"wrote {out}/bench.json and bench.png", file=tables, flush=True)
+    print(f"wrote {out}/bench.json" + (" and bench.png" if result["settings"] else ""), file=tables, flush=True)
     if args.json:
         print(text)
     return 0

@@ -1,17 +1,19 @@
-"""`cell plan TASK [--out DIR] [--json]`: exit 0 feasible (every feature covered), 1 infeasible
-(with the reason: the first uncovered feature and its cause)."""
+"""`cell plan TASK... [--out DIR] [--json] [--workers N | --scheduler ADDRESS]`: exit 0 feasible
+(every feature of every task covered), 1 infeasible (with the reason: the first uncovered feature
+and its cause), 2 bad input. With --workers or --scheduler the plans' jobs run on Dask
+(cell.parallel); the plans are the serial ones."""
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
-from cell import jsonio
-from cell.acquisition import require_feasible
+from cell import jsonio, parallel
 from cell.cli import create_folder, output_folder
+from cell.errors import PlanInfeasible, TaskError
 from cell.loader import load_task
-from cell.multiplan import plan_features
-from cell.plan import gray_stats
-from cell.planner import plan
+from cell.multiplan import own_plan, plan_features
+from cell.plan import PlannerSettings, gray_stats
 from cell.recorder import write_plan
 
 
@@ -62,16 +64,85 @@ def features_summary(plan):
 
 
 def command(args):
-    out = output_folder(args.out, f"{Path(args.task).stem}-plan")
-    task = load_task(args.task)
-    create_folder(out)
-    planner = plan if len(task.features) == 1 and task.camera.viewpoint.mode == "fixed" else plan_features
-    result = planner(task, progress=lambda msg: print(msg, file=sys.stderr, flush=True))
-    write_plan(result, task, out)
-    if args.json:
-        print(jsonio.dumps(result.to_json(), indent=2))
+    workers = worker_count(args)
+    several = len(args.tasks) > 1
+    out = None                          # the folders' places checked before any work
+    if several and args.out is not None:
+        out = output_folder(args.out, "plan")
     else:
-        print(summary(result) if not result.features else features_summary(result))
-        print(f"  wrote {out}/plan.json and pictures")
-    require_feasible(result)
+        for path in args.tasks:
+            output_folder(args.out, f"{Path(path).stem}-plan")
+    tasks = [load_task(path) for path in args.tasks]
+    names = distinct([Path(path).stem for path in args.tasks])
+    with parallel.pool(workers, args.scheduler) as pool:
+        folders = task_folders(args, out, names)
+        say = [(lambda msg, label=f"{name}: " if several else "": print(label + msg, file=sys.stderr, flush=True))
+               for name in names]
+        if pool is parallel.SERIAL or not several:
+            results = [plan_one(task, s, pool) for task, s in zip(tasks, say)]
+        else:                           # the tasks' jobs side by side on the cluster
+            with ThreadPoolExecutor(len(tasks)) as threads:
+                results = [f.result() for f in [threads.submit(plan_one, t, s, pool) for t, s in zip(tasks, say)]]
+    for result, task, folder in zip(results, tasks, folders):
+        write_plan(result, task, folder)
+    if args.json:
+        documents = [result.to_json() for result in results]
+        print(jsonio.dumps(documents if several else documents[0], indent=2))
+    else:
+        for result, folder in zip(results, folders):
+            print(summary(result) if not result.features else features_summary(result))
+            print(f"  wrote {folder}/plan.json and pictures")
+    for result, path in zip(results, args.tasks):
+        if not result.feasible:
+            raise PlanInfeasible(f"infeasible: {f'{path}: ' if several else ''}{result.message}")
     return 0
+
+
+def plan_one(task, say, pool):
+    """`cell plan`'s Plan of a task: planner.plan's of one feature at the task's camera rule (one
+    job of `pool`), plan_features' of several or of planned viewpoints."""
+    if len(task.features) == 1 and task.camera.viewpoint.mode == "fixed":
+        return pool.map(own_plan, [(task, PlannerSettings(), None, None, "")], say)[0]
+    return plan_features(task, progress=say, pool=pool)
+
+
+def worker_count(args):
+    """--workers as a whole number >= 1 (None: not given); --workers and --scheduler exclude each
+    other. Bad input otherwise (exit 2)."""
+    if args.workers is not None and args.scheduler is not None:
+        raise TaskError("command line", "--scheduler", f"--scheduler {args.scheduler} with --workers {args.workers}",
+                        "one of them: --workers N starts a cluster on this machine, --scheduler ADDRESS "
+                        "uses a running one")
+    if args.workers is None:
+        return None
+    try:
+        n = int(args.workers)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise TaskError("command line", "--workers", args.workers, "a whole number of worker processes, at least 1")
+    return n
+
+
+def distinct(names):
+    """The names, a repeat of an earlier one numbered -2, -3, ..."""
+    out = []
+    for name in names:
+        unique, n = name, 1
+        while unique in out:
+            n += 1
+            unique = f"{name}-{n}"
+        out.append(unique)
+    return out
+
+
+def task_folders(args, out, names):
+    """Each task's output folder, created now that every task loaded: --out itself (one task),
+    a folder of each task's name in --out (several), or runs/<task>-plan-<time> (-2, -3, ... when
+    taken, also by an earlier task of the same name)."""
+    if out is None and args.out is not None:
+        return [create_folder(output_folder(args.out, ""))]
+    if out is None:
+        return [create_folder(output_folder(None, f"{Path(path).stem}-plan")) for path in args.tasks]
+    create_folder(out)
+    return [create_folder(out / name) for name in names]

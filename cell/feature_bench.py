@@ -1,0 +1,118 @@
+"""`cell bench`'s multi-feature rows: planning time against the number of features (and the
+candidate shots they bring), and planning on Dask workers (cell.parallel): one LocalCluster of 2
+processes, timed with its jobs on 1 of them and on both, the speedup, and whether each plan equals
+the serial one in every key but timing_s.
+
+Evaluations: the lamp candidates x samples of every candidate shot's global search (its last
+search's), summed; serial and parallel count the same, so their rates' ratio is the times'.
+The worker rows are warm (the cluster's start and the workers' first plan, which loads Warp's
+kernels, are reported apart: startup_s, first_s), 1 and 2 workers timed in turn. On a machine
+other jobs load, 2 processes take a larger share of its cores than 1: the speedup is a quiet
+machine's only when nothing else runs."""
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from cell import parallel
+from cell.multiplan import plan_features
+
+# the bench's multi-feature example; tasks/bracket.yaml (lightplan_tasks' "bracket.yaml") when it lands
+FEATURE_TASKS = (Path(__file__).resolve().parents[1] / "tests" / "tasks" / "features" / "hinge_planned_four.yaml",)
+SPEEDUP_TARGET = 1.8            # 2 workers over 1 (the issue's done-when)
+
+
+def evaluations(plan):
+    """Lamp candidates x samples of the global searches of a multi-feature plan's candidate shots."""
+    return sum(p.search.candidates * len(p.scene.points) for p in plan.plans)
+
+
+def without_timing(document):
+    """A plan.json without its timing_s keys (at any depth): what must equal between runs."""
+    if isinstance(document, dict):
+        return {k: without_timing(v) for k, v in document.items() if k != "timing_s"}
+    if isinstance(document, list):
+        return [without_timing(v) for v in document]
+    return document
+
+
+def same_plan(a, b):
+    """The two multi-feature plans and each candidate's own plan equal but for timing_s."""
+    return (without_timing(a.to_json()) == without_timing(b.to_json()) and len(a.plans) == len(b.plans)
+            and all(without_timing(p.to_json()) == without_timing(q.to_json()) for p, q in zip(a.plans, b.plans)))
+
+
+def timed(task, pools, repeats):
+    """[(the plan, median wall time [s])] of plan_features on each of `pools`, `repeats` rounds of
+    one run on each in turn (a load that comes and goes then weighs on each alike)."""
+    times, results = [[] for _ in pools], [None] * len(pools)
+    for _ in range(repeats):
+        for k, pool in enumerate(pools):
+            t0 = time.perf_counter()
+            results[k] = plan_features(task, pool=pool)
+            times[k].append(time.perf_counter() - t0)
+    return [(result, float(np.median(t))) for result, t in zip(results, times)]
+
+
+def feature_rows(task, quick, repeats, say):
+    """Serial planning time of the task's first k features, k = 1 .. all (quick: 1 and all); the
+    last row's plan is the serial reference of the worker rows."""
+    label, n = task.path.stem, len(task.features)
+    if not quick:                       # warm: this process's first plan loads Warp's kernels
+        plan_features(replace(task, features=task.features[:1]))
+    rows, plans = [], []
+    for k in sorted({1, n}) if quick else range(1, n + 1):
+        ((plan, time_s),) = timed(replace(task, features=task.features[:k]), [parallel.SERIAL], repeats)
+        rows.append({"task": label, "features": k, "candidates": plan.cover["candidate_shots"],
+                     "evaluations": evaluations(plan), "time_s": time_s,
+                     "evaluations_per_s": evaluations(plan) / time_s, "stages_s": plan.timing_s})
+        plans.append(plan)
+        say(f"{label} {k} of {n} features: {rows[-1]['candidates']} candidate shots, {time_s:.2f} s serial")
+    return rows, plans[-1], rows[-1]["time_s"]
+
+
+def worker_row(task, serial, serial_s, repeats, say):
+    """1 and 2 workers of one LocalCluster against the serial plan `serial` (serial_s [s])."""
+    label = task.path.stem
+    t0 = time.perf_counter()
+    with parallel.local_cluster(2) as both:
+        startup_s = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        first = plan_features(task, pool=both)          # the workers' first plan: Warp's kernels load
+        first_s = time.perf_counter() - t0
+        one = both.restricted(sorted(both.client.nthreads())[:1])
+        (by_one, one_s), (by_two, two_s) = timed(task, [one, both], repeats)
+    count = evaluations(serial)
+    row = {"task": label, "features": len(task.features), "candidates": serial.cover["candidate_shots"],
+           "evaluations": count, "serial_s": serial_s, "startup_s": startup_s, "first_s": first_s,
+           "workers": [{"workers": 1, "time_s": one_s, "evaluations_per_s": count / one_s},
+                       {"workers": 2, "time_s": two_s, "evaluations_per_s": count / two_s}],
+           "speedup": one_s / two_s, "speedup_with_startup": serial_s / (startup_s + first_s),
+           "identical": all(same_plan(serial, p) for p in (first, by_one, by_two))}
+    say(f"{label} on workers: 1 worker {one_s:.2f} s, 2 workers {two_s:.2f} s: {row['speedup']:.2f}x "
+        f"(cluster start {startup_s:.1f} s, first plan {first_s:.2f} s); plans identical to the serial one: "
+        + ("yes" if row["identical"] else "NO"))
+    return row
+
+
+def run(tasks, quick, say):
+    """{"features": rows, "workers": rows} of the multi-feature `tasks`."""
+    repeats = 1 if quick else 3
+    out = {"features": [], "workers": []}
+    for task in tasks:
+        rows, serial, serial_s = feature_rows(task, quick, repeats, say)
+        out["features"] += rows
+        out["workers"].append(worker_row(task, serial, serial_s, repeats, say))
+    return out
+
+
+def targets(workers):
+    """The issue's done-when: 2 workers at least SPEEDUP_TARGET x 1 worker; the plans identical."""
+    out = []
+    for row in workers:
+        out.append({"name": f"{row['task']}: 2 workers / 1 worker >= {SPEEDUP_TARGET:g}",
+                    "value": row["speedup"], "limit": SPEEDUP_TARGET, "met": row["speedup"] >= SPEEDUP_TARGET})
+        out.append({"name": f"{row['task']}: serial and parallel plans identical",
+                    "value": float(row["identical"]), "limit": 1.0, "met": row["identical"]})
+    return out

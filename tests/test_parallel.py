@@ -1,0 +1,134 @@
+"""Planning on Dask (cell.parallel, `cell plan --workers N | --scheduler ADDRESS`): the plans are
+the serial ones in every key but timing_s, on a LocalCluster `cell plan` starts and on one this
+module starts and names by its address; errors on a worker are the serial run's one line; a
+scheduler that does not answer is one line and exit 2 within its timeout. Everything on
+127.0.0.1 (LocalCluster's host)."""
+import json
+import logging
+import pickle
+import socket
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+
+from cell import cli, jsonio, parallel, planner
+from cell.errors import DeviceFault, PlanInfeasible, TaskError
+from cell.feature_bench import same_plan, without_timing
+from cell.loader import load_task
+from cell.multiplan import plan_features
+
+ROOT = Path(__file__).resolve().parent.parent
+HINGE = ROOT / "tasks" / "hinge.yaml"
+PLANNED = ROOT / "tests" / "tasks" / "features" / "hinge_planned.yaml"
+
+
+@pytest.fixture(scope="module")
+def scheduler():
+    """The address of a LocalCluster of 2 worker processes on 127.0.0.1, started here."""
+    from distributed import LocalCluster
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", scheduler_port=0,
+                      dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR) as cluster:
+        assert cluster.scheduler_address.startswith("tcp://127.0.0.1:")
+        yield cluster.scheduler_address
+
+
+def document(plan):
+    """plan.json as written and read back, without timing_s."""
+    return without_timing(json.loads(jsonio.dumps(plan.to_json())))
+
+
+def written(folder):
+    return without_timing(json.loads((folder / "plan.json").read_text()))
+
+
+def one_line(err):
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    return err
+
+
+def test_serial_workers_2_and_a_cluster_by_address_plan_the_same(scheduler, tmp_path, capsys):
+    lines = []
+    serial = plan_features(load_task(PLANNED), progress=lines.append)
+    alone = planner.plan(load_task(HINGE))
+    assert cli.main(["plan", str(PLANNED), "--workers", "2", "--out", str(tmp_path / "local")]) == 0
+    local_err = capsys.readouterr().err
+    assert cli.main(["plan", str(PLANNED), str(HINGE), "--scheduler", scheduler, "--out", str(tmp_path / "remote")]) == 0
+    remote_err = capsys.readouterr().err
+    expected = document(serial)
+    assert written(tmp_path / "local") == expected
+    assert written(tmp_path / "remote" / "hinge_planned") == expected
+    assert written(tmp_path / "remote" / "hinge") == document(alone)
+    for k, own in enumerate(serial.plans):                  # each candidate's own plan.json too
+        assert written(tmp_path / "local" / f"candidate-{k}") == document(own)
+        assert written(tmp_path / "remote" / "hinge_planned" / f"candidate-{k}") == document(own)
+    # the workers' progress reached the terminal, each task's lines named when there are several
+    assert sorted(local_err.splitlines()) == sorted(lines)         # as the jobs completed, not in order
+    # the bench's comparison: blind to timing_s, not to a candidate's own plan
+    assert same_plan(serial, replace(serial, timing_s={}, plans=tuple(replace(p, timing_s={}) for p in serial.plans)))
+    assert not same_plan(serial, replace(serial, plans=serial.plans[::-1]))
+    assert "hinge_planned: feature end_face, viewpoint 1:" in remote_err and "hinge: global search:" in remote_err
+
+
+def test_a_bad_task_on_a_worker_is_the_serial_runs_one_line(scheduler, tmp_path, capsys):
+    """A patch over the part's edge is found where the scene is built: on the worker."""
+    from simcell import variant
+    edge = variant(tmp_path, HINGE, {"feature.center_m": [0.030, 0.0, 0.004]})
+    assert cli.main(["plan", str(edge), "--out", str(tmp_path / "serial")]) == 2
+    serial = one_line(capsys.readouterr().err)
+    assert cli.main(["plan", str(edge), "--scheduler", scheduler, "--out", str(tmp_path / "cluster")]) == 2
+    assert one_line(capsys.readouterr().err) == serial and "runs over an edge of the part" in serial
+
+
+def test_a_scheduler_that_does_not_answer_is_one_line_and_exit_2_within_the_timeout(tmp_path, capsys, monkeypatch):
+    with socket.socket() as s:                  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    monkeypatch.setattr(parallel, "SCHEDULER_TIMEOUT_S", 2.0)
+    t0 = time.perf_counter()
+    assert cli.main(["plan", str(HINGE), "--scheduler", f"tcp://127.0.0.1:{port}", "--out", str(tmp_path / "p")]) == 2
+    assert time.perf_counter() - t0 < 2.0 + 8.0
+    err = one_line(capsys.readouterr().err)
+    assert err.startswith(f"cell plan: command line: --scheduler: found tcp://127.0.0.1:{port}, which did not "
+                          "answer within 2 s")
+    assert not (tmp_path / "p").exists()
+
+
+def test_a_scheduler_without_workers_is_one_line_and_exit_2(tmp_path, capsys, monkeypatch):
+    from distributed import LocalCluster
+    monkeypatch.setattr(parallel, "SCHEDULER_TIMEOUT_S", 1.0)
+    with LocalCluster(n_workers=0, host="127.0.0.1", scheduler_port=0, dashboard_address="127.0.0.1:0",
+                      silence_logs=logging.ERROR) as empty:
+        assert cli.main(["plan", str(HINGE), "--scheduler", empty.scheduler_address]) == 2
+    assert "a scheduler with no worker after 1 s" in one_line(capsys.readouterr().err)
+
+
+@pytest.mark.parametrize("workers", ["0", "-1", "two", "1.5"])
+def test_workers_must_be_a_whole_number_at_least_1(workers, tmp_path, capsys):
+    assert cli.main(["plan", str(HINGE), "--workers", workers, "--out", str(tmp_path / "p")]) == 2
+    assert one_line(capsys.readouterr().err) == (f"cell plan: command line: --workers: found {workers}, expected "
+                                                 "a whole number of worker processes, at least 1\n")
+    assert not (tmp_path / "p").exists()
+
+
+def test_workers_and_scheduler_together_are_refused(tmp_path, capsys):
+    assert cli.main(["plan", str(HINGE), "--workers", "2", "--scheduler", "tcp://127.0.0.1:8786"]) == 2
+    err = one_line(capsys.readouterr().err)
+    assert "--scheduler tcp://127.0.0.1:8786 with --workers 2" in err and "expected one of them" in err
+
+
+def test_errors_pickle_whole_so_a_workers_error_reads_as_it_was_raised():
+    for error in (TaskError("a.yaml", "feature.radius_m", "-1", "a positive number"), DeviceFault("arm", "stopped"),
+                  PlanInfeasible("infeasible: shadow binds")):
+        copy = pickle.loads(pickle.dumps(error))
+        assert type(copy) is type(error) and str(copy) == str(error) and copy.exit_code == error.exit_code
+
+
+def test_the_first_worker_whose_code_or_libraries_differ_is_named():
+    ours = parallel.fingerprint()
+    assert set(ours) == {"python", "lightplan-cell", *parallel.LIBRARIES}
+    assert parallel.first_difference(ours, {"tcp://127.0.0.1:1": dict(ours)}) is None
+    theirs = {"tcp://127.0.0.1:1": dict(ours), "tcp://127.0.0.1:2": {**ours, "lightplan-cell": "0" * 16}}
+    assert parallel.first_difference(ours, theirs) == ("tcp://127.0.0.1:2", "lightplan-cell")
+    assert parallel.first_difference(ours, {"w": {}}) == ("w", "python")
