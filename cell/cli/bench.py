@@ -85,9 +85,7 @@ def command(args):
     if args.tasks:
         paths = args.tasks
     else:
-        paths = list(bench.DEFAULT_TASKS) + [p for p in FEATURE_TASKS if p.is_file()]
-        for missing in (p for p in FEATURE_TASKS if not p.is_file()):     # a regular install has no tests/
-            say(f"no multi-feature rows of {missing}: not installed (a checkout's file)")
+        paths = list(bench.DEFAULT_TASKS) + list(FEATURE_TASKS)
     loaded = [load_task(path) for path in paths]          # all first
     tasks = [t for t in loaded if not multi_feature(t)]
     feature_tasks = [t for t in loaded if multi_feature(t)]
