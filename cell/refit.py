@@ -147,8 +147,8 @@ class Refit:
         for i, n in enumerate(NAMES):
             known = n not in self.unknown
             value = self.value(n)
-            stderr = self.stderr[i] if i == BLACK else self.stderr[i] * value
-            parameters[n] = {"value": value, "stderr": float(stderr) if known else None,
+            stderr = (self.stderr[i] if i == BLACK else self.stderr[i] * value) if known else None
+            parameters[n] = {"value": value, "stderr": None if stderr is None else float(stderr),
                              "relative_stderr": (float(self.stderr[i]) if i != BLACK else None) if known else None,
                              "determined": known} | ({"factor": float(self.factors[i])} if i != BLACK else {})
         return {"captures": [o.name for o in self.observations], "shots": [o.to_json() for o in self.observations],

@@ -167,7 +167,7 @@ def test_cell_plan_prints_the_bracket_and_writes_cell_png_beside_plan_json(brack
     stubbed: only where they go is checked here)."""
     task, plan = bracket
     maps = []
-    monkeypatch.setattr("cell.cli.plan.plan_features", lambda task, progress: plan)
+    monkeypatch.setattr("cell.cli.plan.plan_features", lambda task, progress, pool: plan)
     monkeypatch.setattr("cell.pictures.write_plan_pictures", lambda plan, task, scene, folder: maps.append(folder))
     out = tmp_path / "out"
     assert cli.main(["plan", str(BRACKET), "--out", str(out)]) == 0
