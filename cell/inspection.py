@@ -169,14 +169,14 @@ class ShotRun:
     def to_json(self):
         return {"shot": self.shot, "features": list(self.features), "converged": self.success,
                 "reason": self.message, "iterations": [it.to_json() for it in self.iterations],
-                "captures": sorted({it.capture for it in self.iterations}, key=self._number),
-                "replans": [{"iteration": r.iteration, "albedo_scale": r.albedo_scale, "plan": r.plan}
-                            for r in self.replans],
+                "captures": self.captures, "replans": [r.to_json() for r in self.replans],
                 "refits": [r.to_json() for r in self.refits], "camera_error": self.camera_error}
 
-    @staticmethod
-    def _number(capture):
-        return int(capture.split("-")[1].split(".")[0])
+    @property
+    def captures(self):
+        """The shot's capture files, each once (a capture of several features is each one's), in
+        the order taken (capture-N: by N)."""
+        return sorted({it.capture for it in self.iterations}, key=lambda c: int(c.split("-")[1].split(".")[0]))
 
 
 def run_shot(task, plan, s, devices, recorder, max_iterations, black, done):
@@ -239,11 +239,12 @@ def visit_order(plan, devices, recorder):
         lamp = lamp_position(devices.lamp.rig.pivot_m, *devices.lamp.joints())
     D = route.travel_matrix((camera, lamp), [(s.camera_position, s.lamp_position) for s in plan.shots])
     order = route.shortest_order(D)
+    travel = route.length(D, order)
     exact = "exact" if len(order) <= route.EXACT_MAX else "nearest neighbour"
-    recorder.step("route", f"shots in the order {list(order)}: {route.length(D, order):.3f} m of camera and lamp "
+    recorder.step("route", f"shots in the order {list(order)}: {travel:.3f} m of camera and lamp "
                            f"travel from the start ({exact})", order=list(order),
-                  travel_m=route.length(D, order), start={"camera_m": camera, "lamp_m": lamp})
-    return order, route.length(D, order)
+                  travel_m=travel, start={"camera_m": camera, "lamp_m": lamp})
+    return order, travel
 
 
 @dataclass(frozen=True)
@@ -290,7 +291,7 @@ class InspectionResult:
                            "iterations": len({it.iteration for it in r.iterations}),
                            "camera_error": r.camera_error} for r in self.shots],
                 "iterations": [{"shot": r.shot, **it.to_json()} for r in self.shots for it in r.iterations],
-                "captures": [f"shot-{r.shot}/{c}" for r in self.shots for c in r.to_json()["captures"]],
+                "captures": [f"shot-{r.shot}/{c}" for r in self.shots for c in r.captures],
                 "black_level": black} | ({"fault": self.fault} if self.fault else {})
 
 

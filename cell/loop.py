@@ -91,9 +91,14 @@ class Refitted:
 
 @dataclass(frozen=True)
 class Replan:
+    """A re-plan after iteration `iteration` for an albedo scale (its document in report.json)."""
+
     iteration: int
     albedo_scale: float
     plan: dict                   # its plan.json
+
+    def to_json(self):
+        return {"iteration": self.iteration, "albedo_scale": self.albedo_scale, "plan": self.plan}
 
 
 @dataclass(frozen=True)
@@ -120,8 +125,7 @@ class RunResult:
     def to_json(self):
         return {"task": self.task, "plan": self.plan, "iterations": [it.to_json() for it in self.iterations],
                 "converged": self.success, "captures": self.captures, "reason": self.message,
-                "replans": [{"iteration": r.iteration, "albedo_scale": r.albedo_scale, "plan": r.plan}
-                            for r in self.replans], "black_level": self.black_level,
+                "replans": [r.to_json() for r in self.replans], "black_level": self.black_level,
                 "refits": [r.to_json() for r in self.refits], "cause": self.cause} | (
                     {"fault": self.fault} if self.fault else {})
 
