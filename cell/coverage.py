@@ -41,12 +41,26 @@ def of_plan(task, plan):
     return Coverage(task.feature.name, plan.feasible, shot.gray, shot.requirements, plan.verification)
 
 
-def judge(task, plan, shot):
-    """Coverage of `shot` (cell.plan.Shot) on the one-feature `task`, whose own `plan` lends what
-    does not depend on the camera: its samples (with the certificate's worst points) and its
-    visibility map."""
-    scene = replace(plan.scene, T_cell_cam=shot.T_cell_cam)
-    maps = build_maps(task, scene, plan.settings, visible=plan.maps.visible, lamps=shot.lamp_position[None])
+@dataclass(frozen=True)
+class Lent:
+    """What a feature's own plan lends to judging other shots on it, what does not depend on the
+    camera: its samples (the Scene, with the certificate's worst points), its settings and its
+    visibility map; a few kB where the plan with its maps is half a MB."""
+
+    scene: object
+    settings: object
+    visible: np.ndarray
+
+    @classmethod
+    def of(cls, plan):
+        return cls(plan.scene, plan.settings, plan.maps.visible)
+
+
+def judge(task, lent, shot):
+    """Coverage of `shot` (cell.plan.Shot) on the one-feature `task`, whose own plan lent what
+    does not depend on the camera (Lent)."""
+    scene = replace(lent.scene, T_cell_cam=shot.T_cell_cam)
+    maps = build_maps(task, scene, lent.settings, visible=lent.visible, lamps=shot.lamp_position[None])
     problem = evaluate.build_problem(task, scene, maps, focus_m=shot.exposure.focus_m)
     e = shot.exposure
     c = evaluate.at_exposure(problem, shot.lamp_position, e.shutter_s, e.f_number, joints=shot.joints)

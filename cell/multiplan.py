@@ -50,53 +50,72 @@ def viewpoints_of(task, settings, say):
     return replace(v, time_s=time.perf_counter() - start)
 
 
-def judge_row(task, lend, shots, say):
-    """A job: the Coverage of each shot on the one-feature task whose own plan `lend` lends its
-    samples and maps (None where the shot is the feature's own: its plan's verdict stands)."""
-    return [None if shot is None else coverage.judge(task, lend, shot) for shot in shots]
+def judge_column(tasks, f, shot, lent, say):
+    """A job: (the Coverage of feature f's candidate `shot` on every other feature, whose own
+    first plan lent its samples and maps (`lent`, coverage.Lent; None at f: its plan's verdict
+    stands), its own time [s])."""
+    start = time.perf_counter()
+    column = [None if g == f else coverage.judge(t, lent[g], shot) for g, t in enumerate(tasks)]
+    return column, time.perf_counter() - start
 
 
 def candidate_plans(tasks, settings, say, pool=SERIAL):
     """[(feature index, its Plan)] of every candidate shot, the Viewpoints of each feature (None:
-    the fixed camera rule, one candidate per feature) and each feature's plan that lends its
-    samples and maps to the judge. A planned feature gets a plan per kept viewpoint
-    (cell.viewpoints); one with none gets its fixed-rule plan, which only lends (not a candidate).
-    Every plan is a job of `pool` (cell.parallel), the viewpoints of each feature one before."""
-    if tasks[0].camera.viewpoint.mode == "fixed":
-        plans = pool.map(own_plan, [(t, settings, None, None, f"feature {t.feature.name}:") for t in tasks], say)
-        return list(enumerate(plans)), None, plans
-    views = pool.map(viewpoints_of, [(t, settings) for t in tasks], say)
-    jobs, whose = [], []                # whose: (feature, a candidate or only lending)
-    for f, (t, v) in enumerate(zip(tasks, views)):
-        for k, vp in enumerate(v.kept):
-            jobs.append((t, settings, vp.T_cell_cam, vp.arm_joints, f"feature {t.feature.name}, viewpoint {k}: "
-                         f"camera at {np.round(vp.T_cell_cam[:3, 3], 3).tolist()} m"))
-            whose.append((f, True))
-        if not v.kept:
-            jobs.append((t, settings, None, None, ""))
-            whose.append((f, False))
-    plans = pool.map(own_plan, jobs, say)
-    out = [(f, p) for (f, candidate), p in zip(whose, plans) if candidate]
-    lend = [next(p for (g, _), p in zip(whose, plans) if g == f) for f in range(len(tasks))]
-    return out, views, lend
+    the fixed camera rule, one candidate per feature), each feature's plan that lends its samples
+    and maps to the judge (its first), and the coverage of each candidate on every other feature
+    (judge_column). A planned feature gets a plan per kept viewpoint (cell.viewpoints); one with
+    none gets its fixed-rule plan, which only lends (not a candidate).
+    Every step is a job of `pool` (cell.parallel), handed on as the results it needs complete: a
+    feature's lamp searches as its viewpoints land, the first of each feature ahead of the others
+    (the judge needs them all), a shot's judging once its plan and every lending plan have."""
+    fixed = tasks[0].camera.viewpoint.mode == "fixed"
+    views, plans, columns = [None] * len(tasks), {}, {}
+    jobs = pool.jobs(say)
+    for f, t in enumerate(tasks):
+        if fixed:
+            jobs.submit(("plan", f, 0), own_plan, t, settings, None, None, f"feature {t.feature.name}:", first=True)
+        else:
+            jobs.submit(("views", f), viewpoints_of, t, settings, first=True)
+    for key, result in jobs:
+        if key[0] == "views":
+            f, t = key[1], tasks[key[1]]
+            views[f] = result
+            for k, vp in enumerate(result.kept):
+                jobs.submit(("plan", f, k), own_plan, t, settings, vp.T_cell_cam, vp.arm_joints,
+                            f"feature {t.feature.name}, viewpoint {k}: camera at "
+                            f"{np.round(vp.T_cell_cam[:3, 3], 3).tolist()} m", first=k == 0)
+            if not result.kept:
+                jobs.submit(("plan", f, 0), own_plan, t, settings, None, None, "", first=True)
+        elif key[0] == "plan":
+            plans[key[1:]] = result
+            firsts = [plans.get((f, 0)) for f in range(len(tasks))]
+            if all(p is not None for p in firsts):     # judge each candidate planned so far, not yet judged
+                lent = [coverage.Lent.of(p) for p in firsts]
+                for (f, k), p in plans.items():
+                    if (f, k) not in columns and (views[f] is None or k < len(views[f].kept)):
+                        columns[f, k] = None
+                        jobs.submit(("judge", f, k), judge_column, tasks, f, p.shot, lent)
+        else:
+            columns[key[1:]] = result
+    whose = sorted(columns)             # (feature, k) of each candidate, in the serial order
+    return ([(f, plans[f, k]) for f, k in whose], None if fixed else views, [plans[f, 0] for f in range(len(tasks))],
+            [columns[c] for c in whose])
 
 
 def plan_features(task, settings=PlannerSettings(), progress=None, pool=SERIAL):
     """The Plan of a task's features (one or more): the chosen shots, each with the features it
     covers (Shot.covers), and per feature the shot covering it (Plan.features). Candidate shots:
     each feature's own by the task's camera rule, or (camera.viewpoint: planned) one per kept
-    viewpoint of each feature. The plans and the coverage matrix's rows are jobs of `pool`
+    viewpoint of each feature. The plans and the coverage matrix's columns are jobs of `pool`
     (cell.parallel: here, or on a Dask cluster), gathered in order: the same plan either way."""
     say = progress or (lambda msg: None)
     t0 = time.perf_counter()
     tasks = [task.with_feature(i) for i in range(len(task.features))]
-    cands, views, lend = candidate_plans(tasks, settings, say, pool)
-    t_own = time.perf_counter()
+    cands, views, lend, columns = candidate_plans(tasks, settings, say, pool)
+    t_jobs = time.perf_counter()
     shots = [p.shot for _, p in cands]
-    rows = pool.map(judge_row, [(t, lend[f], [None if g == f else p.shot for g, p in cands])
-                                for f, t in enumerate(tasks)], say)
-    judged = [[coverage.of_plan(t, p) if g == f else c for (g, p), c in zip(cands, row)]
-              for f, (t, row) in enumerate(zip(tasks, rows))]
+    judged = [[coverage.of_plan(t, p) if g == f else column[f] for (g, p), (column, _) in zip(cands, columns)]
+              for f, t in enumerate(tasks)]
     covers = np.array([[c.covered for c in row] for row in judged]).reshape(len(tasks), len(shots))
     t_judge = time.perf_counter()
     distance = travel(shots) if shots else np.zeros(0)
@@ -126,9 +145,9 @@ def plan_features(task, settings=PlannerSettings(), progress=None, pool=SERIAL):
     else:
         worst = max((r for shot in chosen for c in shot.covers for r in c.requirements), key=lambda r: r.value)
         binding, miss, hint = worst.name, worst.value - 1.0, ""
-    timing = {"features": t_own - t0, "judge": t_judge - t_own, "cover": time.perf_counter() - t_judge,
+    timing = {"candidates": t_jobs - t0, "judge": sum(t for _, t in columns), "cover": time.perf_counter() - t_judge,
               "total": time.perf_counter() - t0}
-    if views is not None:                  # of "features": the view spheres, before any lamp
+    if views is not None:                  # of "candidates" (as "judge"): the view spheres, before any lamp
         timing["viewpoints"] = sum(v.time_s for v in views)
     plans = tuple(p for _, p in cands)
     search = Search(candidates=sum(p.search.candidates for p in plans), starts=sum(p.search.starts for p in plans),

@@ -3,78 +3,51 @@ distributed cluster (Cluster): a LocalCluster of N worker processes on this mach
 N`) or a running cluster by its scheduler's address (`--scheduler ADDRESS`). Warp launches a CPU
 kernel on one core, so a second core helps only through a second process.
 
-A map's results come back in the order the jobs were given, whatever order they finish in, and
-each job is the same function on the same values as the serial run: the plan is bit-identical to
-the serial one. A job's progress lines are kept where it runs and said when it completes. Jobs
-carry their Task and plans by value (the mesh is in the Task and the Scene, the BVH each process's
-own): a worker needs no task file, only the same lightplan-cell and libraries (fingerprint).
-distributed is imported only here, only when a cluster is asked for.
+A planner hands its jobs to `pool.jobs(say)` and reads their results as they complete, handing
+on new jobs as earlier results allow (a feature's lamp searches once its viewpoints are known):
+stages overlap instead of waiting for their slowest job. A job takes only values, never another
+job's pending result, so the scheduler holds every job in its queue and gives it to the first
+worker free, in the planner's order (`first` jobs ahead); each job is the same function on the
+same values as the serial run, and the planner places each result by its key: the plan is
+bit-identical to the serial one. A job's progress lines are kept where it runs and said when it
+completes. Jobs carry their Task and plans by value (the mesh is in the Task and the Scene, the
+BVH each process's own): a worker needs no task file, only the same lightplan-cell and libraries
+(fingerprint). distributed is imported only here, only when a cluster is asked for.
 """
 import hashlib
+import itertools
 import sys
+import uuid
+from collections import deque
 from importlib import metadata
 from pathlib import Path
 
 from cell.errors import TaskError
 
 SCHEDULER_TIMEOUT_S = 10.0       # a scheduler that has not answered (or has no worker) by then: exit 2
+# The LocalCluster's scheduler and workers, quiet where Dask's defaults take time the plan's jobs
+# need (an idle 2-worker LocalCluster kept 5 % of a core busy here, 1 % so):
+LOCAL_CONFIG = {
+    "distributed.scheduler.worker-saturation": 1.0,   # a worker's next job once it starts one (1.1 rounds
+                                                       # up to two in hand, one waiting while the other idles)
+    "distributed.scheduler.work-stealing": False,      # jobs wait in the scheduler's queue: none to steal
+    "distributed.admin.tick.interval": "1s",           # the event loops' watchdog (20 ms)
+    "distributed.admin.system-monitor.interval": "5s", # the dashboard's CPU and memory samples (0.5 s)
+    "distributed.worker.profile.enabled": False,       # each worker's sampling profiler (every 10 ms)
+}
 LIBRARIES = ("numpy", "scipy", "warp-lang", "trimesh")     # whose versions a worker's plan depends on
 
 
-class Serial:
-    """Each job in this process, in order, its progress said as it goes."""
+class Pool:
+    """jobs(say): a set of jobs to submit and read as they complete; map(fn, jobs, say)."""
 
     def map(self, fn, jobs, say):
-        return [fn(*job, say) for job in jobs]
-
-    def close(self):
-        pass
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
-
-
-SERIAL = Serial()
-
-
-def _run(fn, job):
-    """A job on a worker: (its result, its progress lines)."""
-    lines = []
-    return fn(*job, lines.append), lines
-
-
-class Cluster:
-    """Jobs as Dask futures on a client's cluster (`only`: on those worker addresses alone)."""
-
-    def __init__(self, client, cluster=None, only=None):
-        self.client, self.cluster, self.only = client, cluster, only
-
-    def restricted(self, addresses):
-        """The same cluster, its jobs on `addresses` only (the bench's one worker of two)."""
-        return Cluster(self.client, only=list(addresses))
-
-    def map(self, fn, jobs, say):
-        """fn(*job, say) of every job, in the jobs' order; the first error raised (a CellError as
-        it was raised on the worker), the rest cancelled."""
-        from distributed import as_completed
-        where = {} if self.only is None else {"workers": self.only, "allow_other_workers": False}
-        futures = [self.client.submit(_run, fn, job, pure=False, **where) for job in jobs]
-        try:
-            for future in as_completed(futures, loop=self.client.loop):
-                for line in future.result()[1]:
-                    say(line)
-        except BaseException:
-            self.client.cancel(futures)
-            raise
-        return [future.result()[0] for future in futures]
-
-    def close(self):
-        self.client.close()
-        if self.cluster is not None:
-            self.cluster.close()
+        """fn(*job, say) of every job, in the jobs' order."""
+        running = self.jobs(say)
+        for k, job in enumerate(jobs):
+            running.submit(k, fn, *job)
+        done = dict(running)
+        return [done[k] for k in range(len(jobs))]
 
     def __enter__(self):
         return self
@@ -84,14 +57,109 @@ class Cluster:
         return False
 
 
+class Serial(Pool):
+    """Each job in this process when it is submitted, its progress said as it goes."""
+
+    def jobs(self, say):
+        return SerialJobs(say)
+
+    def close(self):
+        pass
+
+
+class SerialJobs:
+    """submit(key, fn, *args) runs fn(*args, say) at once; iterating yields (key, result) in the
+    order submitted, jobs submitted meanwhile included."""
+
+    def __init__(self, say):
+        self.say, self.done = say, deque()
+
+    def submit(self, key, fn, *args, first=False):
+        self.done.append((key, fn(*args, self.say)))
+
+    def __iter__(self):
+        while self.done:
+            yield self.done.popleft()
+
+
+SERIAL = Serial()
+
+
+def _run(fn, args):
+    """A job on a worker: (its result, its progress lines)."""
+    lines = []
+    return fn(*args, lines.append), lines
+
+
+class Cluster(Pool):
+    """Jobs as Dask futures on a client's cluster (`only`: on those worker addresses alone)."""
+
+    def __init__(self, client, cluster=None, only=None):
+        self.client, self.cluster, self.only = client, cluster, only
+
+    def restricted(self, addresses):
+        """The same cluster, its jobs on `addresses` only (the bench's one worker of two)."""
+        return Cluster(self.client, only=list(addresses))
+
+    def jobs(self, say):
+        return ClusterJobs(self, say)
+
+    def close(self):
+        self.client.close()
+        if self.cluster is not None:
+            self.cluster.close()
+
+
+FIRST = 1 << 40            # a `first` job's priority over every other's
+SUBMITTED = itertools.count()   # the order of every job submitted here, whatever its Cluster
+
+
+class ClusterJobs:
+    """submit(key, fn, *args, first=False) a job to the cluster; iterating yields (key, result)
+    as each completes (its lines said then), jobs submitted meanwhile included; the first error
+    raised (a CellError as it was raised on the worker), the jobs not done cancelled."""
+
+    def __init__(self, pool, say):
+        from distributed import as_completed
+        self.pool, self.say, self.named = pool, say, {}
+        self.pending = as_completed(loop=pool.client.loop)
+
+    def submit(self, key, fn, *args, first=False):
+        """A job ahead of every job submitted after it, and `first` ahead of every job not first
+        (Dask's own order is arbitrary among jobs submitted within its fifo_timeout of each
+        other); keyed by fn's name, so that the scheduler learns each kind's duration apart."""
+        pool = self.pool
+        where = {} if pool.only is None else {"workers": pool.only, "allow_other_workers": False}
+        future = pool.client.submit(_run, fn, args, key=f"lightplan-{fn.__name__}-{uuid.uuid4().hex}",
+                                    priority=(FIRST if first else 0) - next(SUBMITTED), pure=False, **where)
+        self.named[future.key] = key
+        self.pending.add(future)
+
+    def __iter__(self):
+        try:
+            for future in self.pending:
+                result, lines = future.result()
+                for line in lines:
+                    self.say(line)
+                yield self.named.pop(future.key), result
+        except BaseException:
+            self.pool.client.cancel(list(self.pending.futures))
+            raise
+
+
 def local_cluster(workers):
     """A LocalCluster of `workers` processes of one thread each, on 127.0.0.1 only (scheduler,
-    workers and the scheduler's HTTP server, on free ports), and its Cluster."""
+    workers and the scheduler's HTTP server, on free ports), and its Cluster, with LOCAL_CONFIG
+    and no memory limit (a plan's jobs hold a few MB; the nannies' monitor would wake every
+    100 ms)."""
     import logging
 
+    import dask
     from distributed import Client, LocalCluster
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
-                           scheduler_port=0, dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR)
+    with dask.config.set(LOCAL_CONFIG):
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
+                               scheduler_port=0, dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR,
+                               memory_limit=0)
     return Cluster(Client(cluster, set_as_default=False), cluster)
 
 

@@ -134,7 +134,7 @@ def hinge_plan():
 
 def test_the_judge_of_a_features_own_shot_agrees_with_its_plan(hinge_plan):
     task, plan = hinge_plan
-    c = coverage.judge(task, plan, plan.shot)
+    c = coverage.judge(task, coverage.Lent.of(plan), plan.shot)
     assert c.covered is plan.feasible is True
     assert [r.name for r in c.requirements] == [r.name for r in plan.shot.requirements]
     np.testing.assert_allclose([r.value for r in c.requirements], [r.value for r in plan.shot.requirements],
@@ -158,7 +158,7 @@ def test_the_judge_takes_the_shots_focus_not_the_features_distance(hinge_plan):
     near = dof.near_limit(moved.exposure.focus_m, lens.focal_length_m, shot.exposure.f_number,
                           lens.circle_of_confusion_m)
     assert near > plan.scene.sample_depths().min()                   # the thin lens says: out of focus
-    c = coverage.judge(task, plan, moved)
+    c = coverage.judge(task, coverage.Lent.of(plan), moved)
     failing = {r.name for r in c.requirements if not r.met}
     assert not c.covered and "depth_of_field" in failing and failing <= {"depth_of_field", "shutter_max"}
     np.testing.assert_allclose(c.gray, shot.gray, rtol=1e-9)
@@ -193,7 +193,7 @@ def test_the_judge_of_each_features_own_shot_agrees_with_its_plan_feasible_or_no
     task, plan = multi
     assert [p.feasible for p in plan.plans] == [True, True, True, False]
     for i, own in enumerate(plan.plans):
-        c = coverage.judge(task.with_feature(i), own, own.shot)
+        c = coverage.judge(task.with_feature(i), coverage.Lent.of(own), own.shot)
         assert c.covered is own.feasible
         np.testing.assert_allclose([r.value for r in c.requirements], [r.value for r in own.shot.requirements],
                                    rtol=1e-9)
@@ -214,7 +214,7 @@ def test_a_feature_judged_on_a_shot_focused_elsewhere_is_out_of_focus_on_the_den
     judge says depth_of_field, and the dense check finds points out of focus."""
     task, plan = multi
     knuckle = plan.shots[next(f.covered_by for f in plan.features if f.name == "knuckle")]
-    c = coverage.judge(task.with_feature(0), plan.plans[0], knuckle)
+    c = coverage.judge(task.with_feature(0), coverage.Lent.of(plan.plans[0]), knuckle)
     assert "depth_of_field" in {r.name for r in c.requirements if not r.met}
     assert dense_check(task.with_feature(0), knuckle, count=2000).summary()["out_of_focus"] > 0
 
