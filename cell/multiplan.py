@@ -50,6 +50,23 @@ def viewpoints_of(task, settings, say):
     return replace(v, time_s=time.perf_counter() - start)
 
 
+def at_viewpoint(task, settings, views, k, say):
+    """A job: the one-shot plan of a one-feature task at its k-th kept viewpoint."""
+    vp = views.kept[k]
+    return own_plan(task, settings, vp.T_cell_cam, vp.arm_joints, f"feature {task.feature.name}, viewpoint {k}: "
+                    f"camera at {np.round(vp.T_cell_cam[:3, 3], 3).tolist()} m", say)
+
+
+def views_and_first_plan(task, settings, say):
+    """A job: (the Viewpoints of a one-feature task, its plan at the first kept one, or by the
+    fixed rule when none is kept: the plan that only lends). One job, not two: a job costs the
+    cluster's scheduler some 10 ms of the cores the plans need."""
+    views = viewpoints_of(task, settings, say)
+    if not views.kept:
+        return views, own_plan(task, settings, None, None, "", say)
+    return views, at_viewpoint(task, settings, views, 0, say)
+
+
 def judge_column(tasks, f, shot, lent, say):
     """A job: (the Coverage of feature f's candidate `shot` on every other feature, whose own
     first plan lent its samples and maps (`lent`, coverage.Lent; None at f: its plan's verdict
@@ -65,38 +82,41 @@ def candidate_plans(tasks, settings, say, pool=SERIAL):
     and maps to the judge (its first), and the coverage of each candidate on every other feature
     (judge_column). A planned feature gets a plan per kept viewpoint (cell.viewpoints); one with
     none gets its fixed-rule plan, which only lends (not a candidate).
-    Every step is a job of `pool` (cell.parallel), handed on as the results it needs complete: a
-    feature's lamp searches as its viewpoints land, the first of each feature ahead of the others
-    (the judge needs them all), a shot's judging once its plan and every lending plan have."""
+    Every step is a job of `pool` (cell.parallel), handed on as the results it needs complete:
+    each feature's viewpoints and first plan ahead of the rest (the judge needs every first
+    plan), its other lamp searches once its viewpoints are known, a shot's judging once its plan
+    and every first plan are."""
     fixed = tasks[0].camera.viewpoint.mode == "fixed"
     views, plans, columns = [None] * len(tasks), {}, {}
     jobs = pool.jobs(say)
+
+    def planned(f, k, plan):
+        """Keep a plan; once every feature's first is in, judge each candidate not yet judged."""
+        plans[f, k] = plan
+        firsts = [plans.get((g, 0)) for g in range(len(tasks))]
+        if any(p is None for p in firsts):
+            return
+        lent = [coverage.Lent.of(p) for p in firsts]
+        for (g, j), p in plans.items():
+            if (g, j) not in columns and (views[g] is None or j < len(views[g].kept)):
+                columns[g, j] = None
+                jobs.submit(("judge", g, j), judge_column, tasks, g, p.shot, lent)
+
     for f, t in enumerate(tasks):
         if fixed:
             jobs.submit(("plan", f, 0), own_plan, t, settings, None, None, f"feature {t.feature.name}:", first=True)
         else:
-            jobs.submit(("views", f), viewpoints_of, t, settings, first=True)
-    for key, result in jobs:
-        if key[0] == "views":
-            f, t = key[1], tasks[key[1]]
-            views[f] = result
-            for k, vp in enumerate(result.kept):
-                jobs.submit(("plan", f, k), own_plan, t, settings, vp.T_cell_cam, vp.arm_joints,
-                            f"feature {t.feature.name}, viewpoint {k}: camera at "
-                            f"{np.round(vp.T_cell_cam[:3, 3], 3).tolist()} m", first=k == 0)
-            if not result.kept:
-                jobs.submit(("plan", f, 0), own_plan, t, settings, None, None, "", first=True)
-        elif key[0] == "plan":
-            plans[key[1:]] = result
-            firsts = [plans.get((f, 0)) for f in range(len(tasks))]
-            if all(p is not None for p in firsts):     # judge each candidate planned so far, not yet judged
-                lent = [coverage.Lent.of(p) for p in firsts]
-                for (f, k), p in plans.items():
-                    if (f, k) not in columns and (views[f] is None or k < len(views[f].kept)):
-                        columns[f, k] = None
-                        jobs.submit(("judge", f, k), judge_column, tasks, f, p.shot, lent)
+            jobs.submit(("views", f, 0), views_and_first_plan, t, settings, first=True)
+    for (kind, f, k), result in jobs:
+        if kind == "views":
+            views[f], first = result
+            for j in range(1, len(views[f].kept)):
+                jobs.submit(("plan", f, j), at_viewpoint, tasks[f], settings, views[f], j)
+            planned(f, 0, first)
+        elif kind == "plan":
+            planned(f, k, result)
         else:
-            columns[key[1:]] = result
+            columns[f, k] = result
     whose = sorted(columns)             # (feature, k) of each candidate, in the serial order
     return ([(f, plans[f, k]) for f, k in whose], None if fixed else views, [plans[f, 0] for f in range(len(tasks))],
             [columns[c] for c in whose])

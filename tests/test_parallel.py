@@ -132,3 +132,42 @@ def test_the_first_worker_whose_code_or_libraries_differ_is_named():
     theirs = {"tcp://127.0.0.1:1": dict(ours), "tcp://127.0.0.1:2": {**ours, "lightplan-cell": "0" * 16}}
     assert parallel.first_difference(ours, theirs) == ("tcp://127.0.0.1:2", "lightplan-cell")
     assert parallel.first_difference(ours, {"w": {}}) == ("w", "python")
+
+
+def started(label, wait_s, say):
+    """A job: (its label, when it started [s, this machine's clock]) after holding its worker wait_s."""
+    start = time.time()
+    time.sleep(wait_s)
+    return label, start
+
+
+def ran_in_order(pool):
+    """The labels of jobs on `pool` in the order they started: a blocker, then three submitted
+    while it runs, the last of them `first`; and a job submitted while the results are read."""
+    jobs = pool.jobs(lambda line: None)
+    jobs.submit("blocker", started, "blocker", 0.3)
+    jobs.submit("late", started, "late", 0.0)
+    jobs.submit("later", started, "later", 0.0)
+    jobs.submit("early", started, "early", 0.0, first=True)
+    done = {}
+    for key, (label, start) in jobs:
+        done[key] = start
+        if key == "blocker":
+            jobs.submit("afterwards", started, "afterwards", 0.0)
+    return sorted(done, key=done.get)
+
+
+def test_a_job_first_runs_ahead_and_jobs_submitted_while_reading_are_read_too(scheduler):
+    """On one worker the jobs run in the planner's order, `first` ahead (Dask's own order among
+    jobs submitted within 100 ms of each other is arbitrary); serially each as it is given."""
+    with parallel.remote_cluster(scheduler) as cluster:
+        one = cluster.restricted(sorted(cluster.client.nthreads())[:1])
+        assert ran_in_order(one) == ["blocker", "early", "late", "later", "afterwards"]
+    assert ran_in_order(parallel.SERIAL) == ["blocker", "late", "later", "early", "afterwards"]
+
+
+def test_the_local_cluster_hands_a_worker_one_job_at_a_time_without_stealing():
+    with parallel.local_cluster(1) as cluster:
+        scheduler = cluster.cluster.scheduler
+        assert scheduler.WORKER_SATURATION == 1.0 and "stealing" not in scheduler.extensions
+        assert cluster.client.scheduler_info()["workers"] and cluster.cluster.scheduler_address.startswith("tcp://127.0.0.1:")
