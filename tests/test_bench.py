@@ -160,6 +160,7 @@ def test_the_worker_row_compares_1_and_2_workers_and_finds_the_plans_identical(b
     one, two = row["workers"]
     assert (one["workers"], two["workers"]) == (1, 2)
     assert len(row["speedups"]) == 1 and row["speedup"] == pytest.approx(one["time_s"] / two["time_s"])
+    assert len(row["machine_speedups"]) == 1 and 0.5 < row["machine_speedup"] < 2.2      # two cores at most
     assert two["evaluations_per_s"] == pytest.approx(row["evaluations"] / two["time_s"])
     assert row["serial_s"] == result["features"][-1]["time_s"] and row["startup_s"] > 0
     targets = {t["name"]: t for t in result["targets"]}

@@ -41,10 +41,11 @@ def report(result):
           f"{r['evaluations_per_s']:.3g}", f"{r['stages_s']['judge']:.3f}"] for r in result["features"]])
     workers = text_table(
         ["task", "features", "candidates", "serial s", "1 worker s", "2 workers s", "1 worker evals/s",
-         "2 workers evals/s", "speedup", "rounds", "start s", "first s", "identical"],
+         "2 workers evals/s", "speedup", "rounds", "machine", "start s", "first s", "identical"],
         [[r["task"], r["features"], r["candidates"], f"{r['serial_s']:.2f}",
           *(f"{w['time_s']:.2f}" for w in r["workers"]), *(f"{w['evaluations_per_s']:.3g}" for w in r["workers"]),
           f"{r['speedup']:.2f}x", f"{min(r['speedups']):.2f}-{max(r['speedups']):.2f} ({len(r['speedups'])})",
+          f"{r['machine_speedup']:.2f}x",
           f"{r['startup_s']:.1f}", f"{r['first_s']:.2f}", "yes" if r["identical"] else "NO"]
          for r in result["workers"]])
     goals = "\n".join(f"{'met    ' if t['met'] else 'NOT MET'}  {t['name']}: {t['value']:.3g}"
