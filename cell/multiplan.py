@@ -39,7 +39,7 @@ def own_plan(task, settings, T_cell_cam, arm_joints, header, say):
 
 
 def viewpoints_of(task, settings, say):
-    """A job: the Viewpoints of a one-feature task (cell.viewpoints), with their own time."""
+    """The Viewpoints of a one-feature task (cell.viewpoints), with their own time."""
     from cell.viewpoints import plan_viewpoints
     start = time.perf_counter()
     grid = regions.SphereGrid(np.radians(settings.grid_step_deg))
@@ -127,7 +127,8 @@ def plan_features(task, settings=PlannerSettings(), progress=None, pool=SERIAL):
     covers (Shot.covers), and per feature the shot covering it (Plan.features). Candidate shots:
     each feature's own by the task's camera rule, or (camera.viewpoint: planned) one per kept
     viewpoint of each feature. The plans and the coverage matrix's columns are jobs of `pool`
-    (cell.parallel: here, or on a Dask cluster), gathered in order: the same plan either way."""
+    (cell.parallel: here, or on a Dask cluster), each result placed by its job's key: the same
+    plan either way."""
     say = progress or (lambda msg: None)
     t0 = time.perf_counter()
     tasks = [task.with_feature(i) for i in range(len(task.features))]

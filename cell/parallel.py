@@ -127,7 +127,8 @@ class ClusterJobs:
     def submit(self, key, fn, *args, first=False):
         """A job ahead of every job submitted after it, and `first` ahead of every job not first
         (Dask's own order is arbitrary among jobs submitted within its fifo_timeout of each
-        other); keyed by fn's name, so that the scheduler learns each kind's duration apart."""
+        other). Keyed lightplan-<fn>-<id>: the scheduler sees one task group (Dask queues a
+        group's jobs once it has more than two per worker thread), the task stream each fn."""
         pool = self.pool
         where = {} if pool.only is None else {"workers": pool.only, "allow_other_workers": False}
         future = pool.client.submit(_run, fn, args, key=f"lightplan-{fn.__name__}-{uuid.uuid4().hex}",
