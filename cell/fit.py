@@ -26,11 +26,10 @@ from scipy import optimize, stats
 
 from cell.errors import TaskError
 from cell.inputs import read_text
-from cell.material import PARAMETERS
+from cell.material import PARAMETERS, TERMS
 from cell.physics.brdf import brdf_terms, reflectance, reflectance_jacobian
 
 COLUMNS = ("theta_i_deg", "theta_e_deg", "phase_deg", "reflectance")
-TERMS = ("lobe", "spike")
 MIN_ROWS = len(PARAMETERS) + 1          # one more than the parameters, so the residual is defined
 TRIANGLE_TOLERANCE_DEG = 1e-6
 LN_M_MAX = np.log(1e5)                  # exponents in [1, 1e5], where stable_power is accurate

@@ -381,8 +381,7 @@ def run(task, out, connect, operator):
         unresolved = unresolved_terms(doc, gonio.step_rad)
         written = out / "material.yaml"
         written.write_text(yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=100))
-        load_material(written)                    # what tasks will read: checked now
-        write_goniometer_fit(out / "fit.png", readings, load_material(written))
+        write_goniometer_fit(out / "fit.png", readings, load_material(written))   # what tasks will read: checked now
         notes = "; ".join(f"{t} unresolved at phase {', '.join(f'{p:g}' for p in ps)} deg" for t, ps in unresolved.items())
         recorder.step("done", f"{len(readings)} readings fitted; wrote {written}" + (f"; {notes}" if notes else ""),
                       material_file=str(written), unresolved=unresolved)

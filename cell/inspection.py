@@ -17,7 +17,6 @@ from cell.devices import speaking_for
 from cell.errors import GoalNotReached
 from cell.geometry import rotation_angle
 from cell.recorder import Ending, Recorder
-from cell.rig import lamp_position
 
 
 def candidate_features(plan):
@@ -236,7 +235,7 @@ def visit_order(plan, devices, recorder):
     with speaking_for(devices.arm):
         camera = devices.arm.camera_pose()[:3, 3]
     with speaking_for(devices.lamp):
-        lamp = lamp_position(devices.lamp.rig.pivot_m, *devices.lamp.joints())
+        lamp = devices.lamp.lamp_pose()[0]
     D = route.travel_matrix((camera, lamp), [(s.camera_position, s.lamp_position) for s in plan.shots])
     order = route.shortest_order(D)
     travel = route.length(D, order)

@@ -16,7 +16,7 @@ from cell.device_config import SECTIONS as DEVICES, devices_config, hand_eye
 from cell.errors import TaskError
 from cell.frames import Frames
 from cell.inputs import checked_file
-from cell.material import PARAMETERS, Material, Unresolved
+from cell.material import PARAMETERS, TERMS, Material, Unresolved
 from cell.physics.radiometry import camera_constant_from_datasheet
 from cell.schema import (NON_NEGATIVE, POSITIVE, Anything, Choice, Integer, Invalid, Number, Pair,
                          Section, Sections, Spec, Table, Text, Vector, parse, read_yaml, show)
@@ -205,8 +205,6 @@ TASK = {
     }, required=False),
 }
 
-UNRESOLVED_TERMS = ("lobe", "spike")
-
 MATERIAL = {
     "name": Text(),
     "source": Text(),
@@ -223,7 +221,7 @@ MATERIAL = {
     "unresolved": Section({                  # written by cell measure-brdf
         "terms": Section({term: Table(lambda v: True, "a phase angle [deg] of the table's phase_deg", default=None,
                                       per="phase angle whose term is unresolved")
-                          for term in UNRESOLVED_TERMS}),
+                          for term in TERMS}),
         "step_deg": Number(lambda v: v > 0, "a positive angle"),
         "resolvable_m_max": Number(**POSITIVE),
     }, required=False, defaults=False),

@@ -1,10 +1,11 @@
 """A material's BRDF parameters as a table over the phase angle (sec. 4.2, Fig. 2),
 interpolated linearly and clamped at the table's ends."""
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 PARAMETERS = ("rho", "sigma1", "m1", "sigma2", "m2")
+TERMS = ("lobe", "spike")           # the specular terms: (sigma1, m1) and (sigma2, m2)
 
 
 @dataclass(frozen=True)
@@ -68,5 +69,4 @@ class Material:
 
     def scaled(self, albedo_scale):
         """The same material with rho multiplied by albedo_scale (sim truth, loop correction)."""
-        return Material(self.name, self.source, self.phase_rad, self.rho * albedo_scale,
-                        self.sigma1, self.m1, self.sigma2, self.m2, self.extra, self.unresolved)
+        return replace(self, rho=self.rho * albedo_scale)
