@@ -12,5 +12,5 @@ Pure arrays in, NumPy out; nothing here knows of task files or devices. Warp sta
     kernels.proximity.closest_points(...)    -> (point, face, normal) on the surface
 
 Their NumPy references (tests, `cell bench`) are cell.physics.reference, built from the readable
-physics in cell; the throughput benchmark is cell.kernel_bench.
+physics in cell; the throughput benchmark is cell.bench.throughput.
 """

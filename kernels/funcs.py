@@ -1,7 +1,7 @@
 """@wp.func building blocks: the paper's formulas, one function each, in float64.
 
 They mirror the NumPy reference in cell.physics (brdf.py, radiometry.py) and
-cell.material.Material.at, and serve both the planner's bulk kernels (gray.py,
+cell.physics.material.Material.at, and serve both the planner's bulk kernels (gray.py,
 visibility.py) and the simulator's renderer (render.py), so the two cannot drift apart.
 
 Radiometry is float64 throughout: c**m with m ~ 1e4 in float32 carries a relative error of
@@ -76,7 +76,7 @@ def _interp_column(table: wp.array2d(dtype=wp.float64), j: int, column: int, slo
 def material_at(table: wp.array2d(dtype=wp.float64), phase_rad: wp.float64) -> BrdfParameters:
     """Material table (K, 11) [phase_rad, rho, sigma1, m1, sigma2, m2, their 5 slopes]
     (kernels._arrays.table2d) at a phase angle: linear in phase, clamped at the ends
-    (numpy.interp, as cell.material.Material.at)."""
+    (numpy.interp, as cell.physics.material.Material.at)."""
     k = table.shape[0]
     p = BrdfParameters()
     row = int(-1)

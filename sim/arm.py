@@ -1,10 +1,10 @@
-"""Simulated UR5e carrying the camera: the analytic kinematics of cell/ur5e.py, the robot base at
+"""Simulated UR5e carrying the camera: the analytic kinematics of cell/devices/ur5e.py, the robot base at
 the frames' T_cell_base and the camera at their hand-eye T_flange_cam."""
 import numpy as np
 
-from cell.devices import Arm
-from cell.errors import DeviceFault
-from cell import ur5e
+from cell.devices.interfaces import Arm
+from cell.core.errors import DeviceFault
+from cell.devices import ur5e
 
 # elbow up, wrist down: the flange points at the table in front of the base
 HOME_JOINTS = np.radians([-90.0, -90.0, 90.0, -90.0, -90.0, 0.0])

@@ -1,5 +1,5 @@
 """What the simulated camera sees of the ChArUco board (`cell calibrate hand-eye`): the board
-(task calibration.board, cell.board.Board) as a textured plane on the table, OpenCV's printed
+(task calibration.board, cell.task.board.Board) as a textured plane on the table, OpenCV's printed
 image mapped onto it (kernels.render.render_plane), seen from the true camera pose (the arm's
 reported pose composed with the hand-eye error sim.truth.camera_offset_m / camera_rpy_deg, as in
 sim.world.Renderer).
@@ -16,9 +16,9 @@ board lies beside it and it occludes nothing the routine needs.
 """
 import numpy as np
 
-from cell import geometry
+from cell.core import geometry
 from cell.physics.radiometry import gray_value, pixel_power
-from cell.projection import intrinsics
+from cell.physics.projection import intrinsics
 from kernels.render import render_plane
 from sim.world import SensorModel, defocus
 

@@ -2,8 +2,8 @@
 read-back poses with the set shutter time, f-number and focus (motorized lens in the sim)."""
 import numpy as np
 
-from cell.devices import Camera
-from cell.errors import DeviceFault
+from cell.devices.interfaces import Camera
+from cell.core.errors import DeviceFault
 
 
 class SimCamera(Camera):

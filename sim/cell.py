@@ -3,7 +3,7 @@
 and optional injected faults."""
 from dataclasses import dataclass
 
-from cell.devices import Devices
+from cell.devices.interfaces import Devices
 from sim.arm import SimArm
 from sim.board import BoardView
 from sim.camera import SimCamera
@@ -27,10 +27,10 @@ class SimFaults:
 
 
 def make_sim_devices(task, scene, operator=None, yes=True, faults=None, laser=None, board=False):
-    """Devices of the simulated cell for a task and its scene (cell.scene.build_scene); the
+    """Devices of the simulated cell for a task and its scene (cell.planning.scene.build_scene); the
     operator (default Operator(yes=yes)) sets a manual lamp radius. faults: SimFaults, a dict of
     its fields, or None. The settings are the task's, checked when it was loaded. Given a laser
-    aimed at the sensor (cell.camera_constant.Laser), the camera sees its spot (sim.laser), not
+    aimed at the sensor (cell.calibration.camera_constant.Laser), the camera sees its spot (sim.laser), not
     the scene (which may then be None); given board, the ChArUco board of calibration.board
     (sim.board)."""
     faults = SimFaults(**faults) if isinstance(faults, dict) else faults or SimFaults()

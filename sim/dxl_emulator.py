@@ -13,7 +13,7 @@ import threading
 import time
 import tty
 
-from cell.servo import (ALERT, CENTRE_TICK, EEPROM_END, FIRMWARE_VERSION, GOAL_POSITION,
+from cell.devices.servo import (ALERT, CENTRE_TICK, EEPROM_END, FIRMWARE_VERSION, GOAL_POSITION,
                         HARDWARE_ERROR_STATUS, ID, MAX_POSITION_LIMIT, MIN_POSITION_LIMIT, MODEL_NUMBER,
                         MOVING, OPERATING_MODE, POSITION_MODE, PRESENT_INPUT_VOLTAGE, PRESENT_POSITION,
                         PRESENT_TEMPERATURE, PROFILE_VELOCITY, PROFILE_VELOCITY_RPM, SHUTDOWN,
@@ -71,7 +71,7 @@ def _word(params, i):
 
 
 class Servo:
-    """One servo's control table (X-series addresses from cell.servo), at the e-Manual's initial
+    """One servo's control table (X-series addresses from cell.devices.servo), at the e-Manual's initial
     values; powered at 12.0 V and at 30 deg C unless a test sets Present Input Voltage (144) or
     Present Temperature (146)."""
 

@@ -25,7 +25,7 @@ def spot_shares(shape, centre_rc, sigma_px):
 
 class LaserSpot:
     """The renderer a SimCamera calls, for a laser (anything with `power_w` and `blocked`,
-    cell.camera_constant.Laser) aimed at the sensor: (H, W) gray at the set shutter time."""
+    cell.calibration.camera_constant.Laser) aimed at the sensor: (H, W) gray at the set shutter time."""
 
     def __init__(self, task, laser):
         sensor = task.camera.sensor

@@ -1,8 +1,8 @@
 """Simulated pan-tilt: Dynamixel-like servos in integer ticks (4096 a turn, 2048 the centre)
 with position limits, so the read-back joints carry the real rig's quantization."""
-from cell.errors import DeviceFault
-from cell.operator import Operator
-from cell.servo import CENTRE_TICK, ServoRig, describe_hardware_error
+from cell.core.errors import DeviceFault
+from cell.devices.operator import Operator
+from cell.devices.servo import CENTRE_TICK, ServoRig, describe_hardware_error
 
 FULL_RANGE = (0, 4095)
 

@@ -1,5 +1,5 @@
 """A UR e-Series controller on loopback for the unmodified ur_rtde client, so tests can run the
-real RTDEReceiveInterface / RTDEControlInterface code path (and cell.hw.ur.URArm) without a robot.
+real RTDEReceiveInterface / RTDEControlInterface code path (and cell.devices.hw.ur.URArm) without a robot.
 
     python -m sim.ur_controller [--host 127.0.0.1] [--max-seconds N]
                                 [--fault KIND [--fault-on-move N] [--fault-after-s S]]
@@ -17,7 +17,7 @@ itself after --max-seconds. One process, one thread, a 500 Hz tick, standard-lib
   the command in input_int_register_0, arguments in input_double_register_0.., the async flag in
   input_int_register_1; output_int_register_0 is 1 (ready) or 2 (done), output_int_register_1 a
   query's answer, output_int_register_2 the async progress word.
-- The arm: UR5e kinematics (cell/ur5e.py). moveL follows the straight TCP line at the commanded
+- The arm: UR5e kinematics (cell/devices/ur5e.py). moveL follows the straight TCP line at the commanded
   speed with a trapezoidal profile of the commanded acceleration (a rotation counts as 1 m per
   rad, as movel's speed is rad/s for a pure rotation), the joints from the inverse nearest the
   current ones, every tick.
@@ -41,8 +41,8 @@ import time
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from cell.geometry import from_ur_pose, to_ur_pose
-from cell import ur5e
+from cell.core.geometry import from_ur_pose, to_ur_pose
+from cell.devices import ur5e
 
 DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT = 29999, 30004, 30003   # fixed by UR and ur_rtde
 TICK_S = 0.002                                                 # e-Series: 500 Hz
@@ -666,7 +666,7 @@ class ScriptPort(Connection):
 class Server:
     """The three listening ports and their clients, ticked at 500 Hz on one thread; `run` ends
     after max_seconds or once `stopping` is set (a test running it in a thread of its own, now
-    that ur_rtde runs in cell.hw.ur_worker's process and no longer holds this one's GIL)."""
+    that ur_rtde runs in cell.devices.hw.ur_worker's process and no longer holds this one's GIL)."""
 
     KINDS = {RTDE_PORT: Rtde, DASHBOARD_PORT: Dashboard, SCRIPT_PORT: ScriptPort}
 

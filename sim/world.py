@@ -33,11 +33,11 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 from scipy.special import erfc, ndtr
 
-from cell import geometry
-from cell.measure import levels, saturation_level
+from cell.core import geometry
+from cell.physics.sensor import levels, saturation_level
 from cell.physics.depth_of_field import blur_diameter
-from cell.projection import intrinsics, pixel_rays
-from cell.scene import build_scene
+from cell.physics.projection import intrinsics, pixel_rays
+from cell.planning.scene import build_scene
 from kernels.render import render
 
 CONE_EDGE = 1.0 / 6.0       # cone edge blur s as a fraction of the half angle gamma/2
@@ -143,7 +143,7 @@ def true_part_scene(task, scene):
 
 
 class Renderer:
-    """What the simulated camera sees of a task's scene (cell.scene.build_scene), called by
+    """What the simulated camera sees of a task's scene (cell.planning.scene.build_scene), called by
     sim.camera.SimCamera. `scale` < 1 samples a coarser pixel grid over the same sensor (gray per
     real pixel unchanged), for fast tests; K is the grid's camera matrix."""
 

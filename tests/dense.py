@@ -21,7 +21,7 @@ import trimesh
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from cell import geometry
+from cell.core import geometry
 from cell.physics import brdf, depth_of_field as dof, radiometry, reference
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -128,7 +128,7 @@ def _blocked(mesh, points, normals, target):
 
 
 def shade(task, shot, points, normals, center=None):
-    """DenseCheck of a shot (cell.plan.Shot: lamp position, camera pose, exposure) at the given
+    """DenseCheck of a shot (cell.planning.plan.Shot: lamp position, camera pose, exposure) at the given
     surface points and unit normals, cell frame; center (default the feature's) for radius_m."""
     points, normals = np.asarray(points, float), geometry.unit(np.asarray(normals, float))
     mesh = cell_mesh(task)
@@ -200,15 +200,15 @@ def main():
     """Plan every example and curved task; print predicted and dense gray, focus and the verdict."""
     import time
 
-    from cell import planner
-    from cell.loader import load_task
+    from cell.planning import one_shot
+    from cell.task.loader import load_task
     print("beyond: dense points beyond the projected tangent disk the planner samples; inside: their gray")
     print(f"{'task':24} {'feasible':8} {'predicted':>13} {'dense':>13} {'beyond':>6} {'inside':>13} "
           f"{'in band':>8} {'unfocused':>9} {'shadow':>6} {'sat':>4}  acceptance")
     for name, path in {**EXAMPLES, **CURVED_TASKS}.items():
         task = load_task(path)
         t0 = time.perf_counter()
-        plan = planner.plan(task)
+        plan = one_shot.plan(task)
         t1 = time.perf_counter()
         check = dense_check(task, plan.shot)
         t2 = time.perf_counter()

@@ -1,4 +1,4 @@
-"""GenICam devices for the tests, as harvesters presents them to cell.hw.genicam_camera: node
+"""GenICam devices for the tests, as harvesters presents them to cell.devices.hw.genicam_camera: node
 proxies (`value`, `min`, `max`, `entries`, `execute()`, `node.get_access_mode()`), a node map
 (`has_node`, attributes), an image acquirer and a Harvester. Used where no software producer on
 PyPI has the nodes: viky.cti (genicam 1.6.0) has no ExposureTime, Gain or trigger, and neither

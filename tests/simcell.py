@@ -8,12 +8,14 @@ from types import SimpleNamespace
 import numpy as np
 import yaml
 
-from cell import loop, projection
-from cell.device_config import SECTIONS, devices_config
-from cell.errors import CellError
-from cell.loader import load_task
-from cell.scene import build_scene
-from cell.schema import parse
+from cell.run import loop
+
+from cell.physics import projection
+from cell.task.device_config import SECTIONS, devices_config
+from cell.core.errors import CellError
+from cell.task.loader import load_task
+from cell.planning.scene import build_scene
+from cell.task.schema import parse
 from sim.cell import make_sim_devices
 
 

@@ -8,10 +8,10 @@ from pathlib import Path
 
 import pytest
 
-from cell.bench import QUICK_SWEEP
+from cell.bench.suite import QUICK_SWEEP
 from cell.cli.bench import summary
 from cell.cli import main
-from cell.planner import PlannerSettings
+from cell.planning.one_shot import PlannerSettings
 
 TASKS = Path(__file__).resolve().parent.parent / "tasks"
 PLANNED = Path(__file__).resolve().parent / "tasks" / "features" / "hinge_planned.yaml"   # the multi-feature rows
@@ -112,13 +112,13 @@ def test_the_gray_row_against_numpy_with_embree_rays_casts_the_same_shadows():
 
     import numpy as np
 
-    from cell import kernel_bench
-    from cell.loader import load_task
+    from cell.bench import throughput
+    from cell.task.loader import load_task
     from cell.physics import reference
-    from cell.scene import build_scene
+    from cell.planning.scene import build_scene
     task = load_task(Path(__file__).resolve().parent.parent / "tasks" / "hinge.yaml")
     scene = build_scene(task)
-    rows = kernel_bench.benchmark_gray(scene.warp_mesh, scene.points, scene.normals, scene.camera_position,
+    rows = throughput.benchmark_gray(scene.warp_mesh, scene.points, scene.normals, scene.camera_position,
                                        task.part.material.table(), evaluations=6400,
                                        reference_evaluations=640, repeat=1)
     embree = {r["name"]: r for r in rows}["gray vs numpy + embree"]
@@ -132,7 +132,7 @@ def test_the_gray_row_against_numpy_with_embree_rays_casts_the_same_shadows():
     args = (scene.warp_mesh, scene.points, scene.normals, scene.camera_position, lamps, scene.center - lamps,
             0.2, np.radians(12.0), task.part.material.table(), 1.5e16, 4.65e-6**2)
     brute = reference.gray_per_exposure(*args)
-    fast = reference.gray_per_exposure(*args, blocked=kernel_bench._blocked_by(scene.warp_mesh, "ray_pyembree"))
+    fast = reference.gray_per_exposure(*args, blocked=throughput._blocked_by(scene.warp_mesh, "ray_pyembree"))
     assert 0 < brute.shadowed.sum() < brute.shadowed.size
     assert np.mean(fast.shadowed == brute.shadowed) > 0.999        # float32 Embree vs float64 at grazing
     np.testing.assert_allclose(fast.value[fast.shadowed == brute.shadowed],

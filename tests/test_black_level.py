@@ -1,4 +1,4 @@
-"""The black level b in the model, G = b + c P t (issue 16 item 5): the planner centres the signal
+"""The black level b in the model, G = b + c P t: the planner centres the signal
 G - b in the band less b, `cell run` takes b from the task or measures it from a dark frame,
 logs it, and its first capture then measures the model's signal; b = 0 leaves every plan as it was."""
 from dataclasses import replace
@@ -7,10 +7,10 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from cell import loop, measure
-from cell.evaluate import target_gray
-from cell.loader import load_task
-from cell.planner import plan
+from cell.run import loop, measurement
+from cell.planning.evaluate import target_gray
+from cell.task.loader import load_task
+from cell.planning.one_shot import plan
 from simcell import recording_connect, run_loop as run, variant
 
 HINGE = "tasks/hinge.yaml"
@@ -63,10 +63,10 @@ def test_a_dark_frame_gives_its_median_and_noise():
     rng = np.random.default_rng(2)
     dark = 5.0 + rng.normal(0.0, 0.8, (200, 300))
     dark[:10, :10] = 200.0                                   # a lit corner does not move b
-    black = measure.black_level_of(dark)
+    black = measurement.black_level_of(dark)
     assert black.value == pytest.approx(5.0, abs=0.02) and black.noise_rms == pytest.approx(0.8, rel=0.03)
     assert black.ceiling == pytest.approx(5.0 + 4 * 0.8, abs=0.2)
-    assert measure.BlackLevel(5.0, 0.0, "task").ceiling == 6.0         # at least one level above b
+    assert measurement.BlackLevel(5.0, 0.0, "task").ceiling == 6.0         # at least one level above b
 
 
 def test_a_run_measures_the_black_level_from_a_dark_frame_and_converges_in_its_first_capture(tmp_path):
@@ -106,11 +106,11 @@ def test_a_black_level_the_task_gives_is_planned_with_and_no_dark_frame_taken(tm
 def test_calibrate_fits_c_against_the_plans_signal_when_the_task_knows_b(tmp_path):
     """With camera.sensor.black_level in the task the plan's gray holds b; the sweep pairs the
     measured G with the model's P t of the signal alone, so c and b come out as the world's."""
-    from cell import calibrate
+    from cell.calibration import reference_part
     path = variant(tmp_path, HINGE, {**WITH_BLACK, "camera.sensor.black_level": B_WORLD,
                                      "sim.truth.camera_constant_scale": 0.8})
     task = load_task(path)
     cell = SimpleNamespace(devices=None, stops=[])
-    result = calibrate.run(task, tmp_path / "c", recording_connect(task, cell), shots=4)
+    result = reference_part.run(task, tmp_path / "c", recording_connect(task, cell), shots=4)
     assert result.camera_constant_ratio == pytest.approx(0.8, rel=0.01)
     assert result.fit.black_level == pytest.approx(B_WORLD, abs=0.5)

@@ -15,13 +15,18 @@ import pytest
 from matplotlib import image as plt_image
 from matplotlib.colors import to_rgb
 
-from cell import cli, loader, rig, ur5e
-from cell.cover import fewest_shots
-from cell.devices import check_arm_motion
-from cell.measure import measure_feature, saturation_level
-from cell.multiplan import plan_features
-from cell.pictures import write_cell
-from cell.scene import build_scene
+from cell import cli
+
+from cell.task import loader
+
+from cell.devices import rig, ur5e
+from cell.planning.set_cover import fewest_shots
+from cell.devices.interfaces import check_arm_motion
+from cell.run.measurement import measure_feature
+from cell.physics.sensor import saturation_level
+from cell.planning.whole_part import plan_features
+from cell.report.pictures import write_cell
+from cell.planning.scene import build_scene
 from dense import acceptance_failures, patch_surface, shade
 from simcell import disk_pixels
 from sim.world import Renderer
@@ -122,7 +127,7 @@ def test_each_feature_with_its_shot_holds_on_the_dense_check_and_the_arm_reaches
 def test_the_simulated_camera_sees_every_feature_in_band_in_its_shot(bracket):
     """What a run's first capture of each shot would measure: the simulated cell (its renderer,
     the task's effects: shadows, the lamp's soft cone, quantization) at the shot's camera, lamp and
-    exposure, every pixel of each covered feature's image region (cell.measure) in the band and
+    exposure, every pixel of each covered feature's image region (cell.run.measurement) in the band and
     within 1 gray level (quantization's rounding) of the plan's prediction."""
     task, plan = bracket
     for k, shot in enumerate(plan.shots):
@@ -168,7 +173,7 @@ def test_cell_plan_prints_the_bracket_and_writes_cell_png_beside_plan_json(brack
     task, plan = bracket
     maps = []
     monkeypatch.setattr("cell.cli.plan.plan_features", lambda task, progress, pool: plan)
-    monkeypatch.setattr("cell.pictures.write_plan_pictures", lambda plan, task, scene, folder: maps.append(folder))
+    monkeypatch.setattr("cell.report.pictures.write_plan_pictures", lambda plan, task, scene, folder: maps.append(folder))
     out = tmp_path / "out"
     assert cli.main(["plan", str(BRACKET), "--out", str(out)]) == 0
     lines = capsys.readouterr().out.splitlines()
@@ -189,8 +194,8 @@ def test_cell_run_of_the_bracket_puts_every_feature_in_band_in_its_shots_capture
     50 deg off its normal images as an ellipse at least cos 50 deg = 0.64 as wide) are in band in
     the capture of the shot the report names, read from the file."""
     task, plan = bracket
-    monkeypatch.setattr("cell.multiplan.plan_features", lambda task, progress: plan)
-    monkeypatch.setattr("cell.pictures.write_plan_pictures", lambda plan, task, scene, folder: None)
+    monkeypatch.setattr("cell.planning.whole_part.plan_features", lambda task, progress: plan)
+    monkeypatch.setattr("cell.report.pictures.write_plan_pictures", lambda plan, task, scene, folder: None)
     out = tmp_path / "run"
     assert cli.main(["run", str(BRACKET), "--out", str(out)]) == 0
     report = json.loads((out / "report.json").read_text())

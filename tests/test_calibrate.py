@@ -10,11 +10,13 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from cell import backends, calibrate
-from cell.calibrate import fit_camera_constant, shutter_sweep
+from cell.run import backends
+
+from cell.calibration import reference_part
+from cell.calibration.reference_part import fit_camera_constant, shutter_sweep
 from cell.cli import main
-from cell.errors import CellError, DeviceFault, PlanInfeasible
-from cell.loader import load_task
+from cell.core.errors import CellError, DeviceFault, PlanInfeasible
+from cell.task.loader import load_task
 from sim.cell import make_sim_devices
 
 import simcell
@@ -28,12 +30,12 @@ def variant(tmp_path, changes):
 
 
 def calibrate_sim(task_path, out, faults=None, shots=6):
-    """calibrate.run on the simulated cell; records the stops and closes the devices receive and
+    """reference_part.run on the simulated cell; records the stops and closes the devices receive and
     whether `connect` was called at all."""
     task = load_task(task_path)
     cell = SimpleNamespace(devices=None, stops=[], error=None, result=None, out=Path(out))
     try:
-        cell.result = calibrate.run(task, out, simcell.recording_connect(task, cell, faults), shots)
+        cell.result = reference_part.run(task, out, simcell.recording_connect(task, cell, faults), shots)
     except CellError as err:
         cell.error = err
     cell.written = json.loads((cell.out / "calibration.json").read_text())

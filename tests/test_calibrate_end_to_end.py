@@ -1,4 +1,4 @@
-"""Issue 15's end to end: a hinge task whose world differs from it in the camera constant, the
+"""Calibration end to end: a hinge task whose world differs from it in the camera constant, the
 material and the hand-eye is calibrated with the three routines through the command line
 (`cell calibrate hand-eye`, `cell calibrate camera-constant`, `cell measure-brdf`, each with --yes
 and --out), the task then names the files they wrote (cell.arm.hand_eye, camera.sensor,
@@ -18,9 +18,9 @@ import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
-from cell import geometry
+from cell.core import geometry
 from cell.cli import main
-from cell.loader import load_task
+from cell.task.loader import load_task
 
 TASKS = Path(__file__).resolve().parent.parent / "tasks"
 EFFECTS = ["shadows", "cone_falloff", "noise", "black_level", "quantization"]

@@ -12,14 +12,16 @@ import numpy as np
 import pytest
 import yaml
 
-from cell import backends, camera_constant as routine
-from cell.camera_constant import Frame, fit_series, spot_window
+from cell.run import backends
+
+from cell.calibration import camera_constant as routine
+from cell.calibration.camera_constant import Frame, fit_series, spot_window
 from cell.cli import main
-from cell.errors import DeviceFault, GoalNotReached
-from cell.loader import load_task
-from cell.operator import Operator
+from cell.core.errors import DeviceFault, GoalNotReached
+from cell.task.loader import load_task
+from cell.devices.operator import Operator
 from cell.physics.radiometry import camera_constant_from_datasheet
-from cell.task import Truth
+from cell.task.types import Truth
 from sim.cell import make_sim_devices
 from sim.laser import SPOT_SIGMA_PX, spot_shares
 

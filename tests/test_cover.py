@@ -1,11 +1,11 @@
-"""The set cover (cell.cover) against brute force over every subset of the candidate shots."""
+"""The set cover (cell.planning.set_cover) against brute force over every subset of the candidate shots."""
 from itertools import combinations
 
 import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from cell.cover import fewest_shots, tie_break
+from cell.planning.set_cover import fewest_shots, tie_break
 
 
 def brute_force(covers, travel):

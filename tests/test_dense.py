@@ -8,9 +8,9 @@ from functools import cache
 import numpy as np
 import pytest
 
-from cell import planner
+from cell.planning import one_shot
 from cell.cli import main
-from cell.loader import load_task
+from cell.task.loader import load_task
 from dense import (CURVED_TASKS, EXAMPLES, acceptance_failures, dense_check, patch_surface,
                    shade)
 
@@ -21,7 +21,7 @@ TASKS = {**EXAMPLES, **CURVED_TASKS}
 def planned(name):
     """(task, plan, dense check) of a task, planned once per session."""
     task = load_task(TASKS[name])
-    plan = planner.plan(task)
+    plan = one_shot.plan(task)
     return task, plan, dense_check(task, plan.shot)
 
 

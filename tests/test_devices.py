@@ -10,16 +10,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cell import devices
-from cell.backends import make_hw_devices
-from cell.devices import Devices
-from cell.errors import DeviceFault, TaskError
-from cell.hw.opencv_camera import OpenCVCamera
-from cell.loader import load_task
-from cell.operator import Operator
-from cell.rig import lamp_aim, lamp_joints, lamp_position
-from cell.scene import look_at
-from cell.task import LampRig
+from cell.devices import interfaces
+from cell.run.backends import make_hw_devices
+from cell.devices.interfaces import Devices
+from cell.core.errors import DeviceFault, TaskError
+from cell.devices.hw.opencv_camera import OpenCVCamera
+from cell.task.loader import load_task
+from cell.devices.operator import Operator
+from cell.devices.rig import lamp_aim, lamp_joints, lamp_position
+from cell.planning.scene import look_at
+from cell.task.types import LampRig
 from sim.arm import SimArm
 from sim.camera import SimCamera
 from sim.pantilt import SimPanTilt
@@ -298,10 +298,10 @@ def test_a_calibrated_hand_eye_moves_the_flange_and_keeps_the_camera_where_asked
 
 
 def test_the_flange_must_stay_in_the_workspace_too():
-    devices.check_arm_motion(DEFAULTS.arm, FRAMES, HINGE_CAMERA, 0.1)
+    interfaces.check_arm_motion(DEFAULTS.arm, FRAMES, HINGE_CAMERA, 0.1)
     looking_up = look_at(np.array([0.0, 0.0, 0.12]), np.array([0.0, 0.0, 1.0]))   # flange 5 cm below
     with pytest.raises(DeviceFault, match=r"flange at \[0.0, 0.0, 0.07\] m is outside the workspace"):
-        devices.check_arm_motion(DEFAULTS.arm, FRAMES, looking_up, 0.1)
+        interfaces.check_arm_motion(DEFAULTS.arm, FRAMES, looking_up, 0.1)
 
 
 def test_no_stdin_at_all_or_a_closed_one_is_no_operator_not_a_traceback(monkeypatch, tmp_path):

@@ -1,14 +1,14 @@
-"""No false "dim" (issue 16 item 3): pixels at the black level inside the feature's region (off
+"""No false "dim": pixels at the black level inside the feature's region (off
 the part, a cast shadow) are found before any exposure correction and named in the reason, and a
 correction implying an implausible albedo is refused, not acted on. The decision is
-cell.control.correct's; each cause is checked on its own, on made-up measurements and on the
+cell.run.control.correct's; each cause is checked on its own, on made-up measurements and on the
 simulated cell with the world's part or camera moved off the conrod's 14 mm shank."""
 import numpy as np
 import pytest
 
-from cell import control, register
-from cell.errors import GoalNotReached
-from cell.measure import BlackLevel, Measurement
+from cell.run import control, registration
+from cell.core.errors import GoalNotReached
+from cell.run.measurement import BlackLevel, Measurement
 from simcell import run_loop as run, variant
 
 HINGE, CONROD = "tasks/hinge.yaml", "tasks/conrod.yaml"
@@ -89,7 +89,7 @@ def test_a_feature_moved_off_the_conrods_shank_stops_with_the_black_pixels_named
     tilted camera sees part as the shank's side face. Either way the run stops after its first
     capture, no exposure brightened, no re-plan, with the cause, instead of brightening into
     saturation ("infeasible, shutter_max", or 6 captures swinging between 20 ms and 7 ms)."""
-    monkeypatch.setattr(register, "MIN_CORRELATION", 1.01)
+    monkeypatch.setattr(registration, "MIN_CORRELATION", 1.01)
     cell = run(variant(tmp_path, CONROD, truth), tmp_path / "run")
     assert isinstance(cell.error, GoalNotReached) and cell.error.exit_code == 1
     (located,) = [line for line in cell.log if line["step"] == "register"]

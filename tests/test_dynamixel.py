@@ -14,12 +14,12 @@ import serial
 from dynamixel_sdk import (COMM_RX_TIMEOUT, COMM_SUCCESS, GroupSyncRead, GroupSyncWrite, PacketHandler,
                            PortHandler)
 
-from cell import servo
-from cell.errors import DeviceFault
-from cell.hw import dynamixel
-from cell.hw.dynamixel import DynamixelPanTilt
-from cell.operator import Operator
-from cell.task import LampRig
+from cell.devices import servo
+from cell.core.errors import DeviceFault
+from cell.devices.hw import dynamixel
+from cell.devices.hw.dynamixel import DynamixelPanTilt
+from cell.devices.operator import Operator
+from cell.task.types import LampRig
 from sim.dxl_emulator import DxlEmulator, crc16, packet, stuff, unstuff
 from simcell import device_settings
 

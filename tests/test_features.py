@@ -1,6 +1,6 @@
 """Tasks with several features: the `features:` format and its errors, the one-feature views of
-a task, the judge of a given shot on a feature (cell.coverage) against the one-shot planner's
-own verdict, and the multi-feature plan (cell.multiplan) against an independent dense check of
+a task, the judge of a given shot on a feature (cell.planning.coverage) against the one-shot planner's
+own verdict, and the multi-feature plan (cell.planning.whole_part) against an independent dense check of
 every feature with the shot said to cover it."""
 import json
 import pickle
@@ -10,9 +10,13 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from cell import cli, coverage, loader, planner
-from cell.errors import TaskError
-from cell.multiplan import plan_features
+from cell import cli
+
+from cell.planning import coverage, one_shot
+
+from cell.task import loader
+from cell.core.errors import TaskError
+from cell.planning.whole_part import plan_features
 from dense import acceptance_failures, dense_check
 from test_loader import write_task
 
@@ -129,7 +133,7 @@ def test_a_features_camera_inside_the_part_names_that_feature(tmp_path):
 @pytest.fixture(scope="module")
 def hinge_plan():
     task = loader.load_task(ROOT / "tasks" / "hinge.yaml")
-    return task, planner.plan(task)
+    return task, one_shot.plan(task)
 
 
 def test_the_judge_of_a_features_own_shot_agrees_with_its_plan(hinge_plan):

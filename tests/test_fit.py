@@ -15,8 +15,10 @@ import pytest
 import yaml
 from hypothesis import assume, given, settings, strategies as st
 
-from cell import cli, fit
-from cell.loader import load_material
+from cell import cli
+
+from cell.physics import brdf_fit
+from cell.task.loader import load_material
 from cell.physics.brdf import reflectance
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -45,7 +47,7 @@ def goniometer(params, phase_deg, seed=0, noise=NOISE):
     ti, te = ti[front], te[front]
     r = reflectance(np.cos(np.radians(ti)), np.cos(np.radians(te)), np.cos(2 * half), *params)
     r *= 1.0 + noise * np.random.default_rng(seed).standard_normal(r.shape)
-    return fit.Measurements(float(phase_deg), ti, te, r)
+    return brdf_fit.Measurements(float(phase_deg), ti, te, r)
 
 
 def write_csv(path, groups, header="theta_i_deg,theta_e_deg,phase_deg,reflectance"):
@@ -101,7 +103,7 @@ def brdf_parameters(draw):
 @given(params=brdf_parameters(), phase=st.sampled_from([0.0, 10.0, 30.0, 60.0, 80.0]),
        seed=st.integers(0, 2**32 - 1))
 def test_fitter_recovers_the_parameters_it_generated(params, phase, seed):
-    result = fit.fit_phase(goniometer(params, phase, seed))
+    result = brdf_fit.fit_phase(goniometer(params, phase, seed))
     assert result.absent == ()
     assert np.all(np.abs(result.params / params - 1) < TOLERANCE), (result.params, params)
     assert np.all(np.abs(result.params - params) < 6 * result.stderr)   # the stderr is honest
@@ -110,44 +112,44 @@ def test_fitter_recovers_the_parameters_it_generated(params, phase, seed):
 
 @pytest.mark.parametrize("phase", [0.0, 28.9])
 def test_spike_in_the_thousands_is_resolved_when_sampled_near_the_mirror_direction(phase):
-    result = fit.fit_phase(goniometer(POLISHED, phase, seed=7))
+    result = brdf_fit.fit_phase(goniometer(POLISHED, phase, seed=7))
     assert abs(result.params[4] / 5000.0 - 1) < 0.10
     assert result.stderr[4] < 0.05 * 5000.0
 
 
 def test_absent_spike_is_reported_unidentifiable_not_fitted_to_noise():
-    result = fit.fit_phase(goniometer(NO_SPIKE, 30.0, seed=5))
-    assert result.absent == ("spike",) and result.p_values[1] > fit.SIGNIFICANCE
+    result = brdf_fit.fit_phase(goniometer(NO_SPIKE, 30.0, seed=5))
+    assert result.absent == ("spike",) and result.p_values[1] > brdf_fit.SIGNIFICANCE
     assert result.params[3] == 0.0 and np.isinf(result.stderr[3:]).all()
     assert np.all(np.abs(result.params[:3] / NO_SPIKE[:3] - 1) < TOLERANCE[:3])
 
 
 def test_a_purely_diffuse_surface_has_neither_lobe_nor_spike():
-    result = fit.fit_phase(goniometer((0.2, 0.0, 1.0, 0.0, 2.0), 30.0, seed=6))
+    result = brdf_fit.fit_phase(goniometer((0.2, 0.0, 1.0, 0.0, 2.0), 30.0, seed=6))
     assert result.absent == ("lobe", "spike")
     assert abs(result.params[0] / 0.2 - 1) < 0.01 and np.isinf(result.stderr[1:]).all()
 
 
 def test_exponents_of_an_absent_spike_follow_the_neighbouring_phase_and_stay_above_m1():
-    fits = fit.fit_material([goniometer(ALUMINIUM, 0, 1), goniometer(NO_SPIKE, 40, 2)])
+    fits = brdf_fit.fit_material([goniometer(ALUMINIUM, 0, 1), goniometer(NO_SPIKE, 40, 2)])
     assert fits[1].params[3] == 0.0
     assert fits[1].params[4] == fits[0].params[4] > fits[1].params[2]
 
 
 @settings(max_examples=30, deadline=None, derandomize=True)
-@given(readings=st.lists(st.floats(0.0, fit.REFLECTANCE_MAX), min_size=fit.MIN_ROWS, max_size=fit.MIN_ROWS),
+@given(readings=st.lists(st.floats(0.0, brdf_fit.REFLECTANCE_MAX), min_size=brdf_fit.MIN_ROWS, max_size=brdf_fit.MIN_ROWS),
        phase=st.sampled_from([0.0, 30.0, 80.0]))
 def test_any_valid_data_give_finite_parameters_and_a_loadable_material(tmp_path_factory, readings, phase):
     """Valid: what read_goniometer accepts; the fit warns of nothing (a warning is an error here)."""
-    assume(max(readings) >= fit.BRIGHTEST_MIN)
+    assume(max(readings) >= brdf_fit.BRIGHTEST_MIN)
     data = goniometer(ALUMINIUM, phase)
-    groups = [fit.Measurements(phase, data.theta_i_deg[:6], data.theta_e_deg[:6], np.array(readings))]
+    groups = [brdf_fit.Measurements(phase, data.theta_i_deg[:6], data.theta_e_deg[:6], np.array(readings))]
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        fits = fit.fit_material(groups)
+        fits = brdf_fit.fit_material(groups)
     assert np.isfinite(fits[0].params).all() and not np.isnan(fits[0].stderr).any()
     path = tmp_path_factory.mktemp("m") / "m.yaml"
-    path.write_text(yaml.safe_dump(fit.material_document(fits, "x", "y")))
+    path.write_text(yaml.safe_dump(brdf_fit.material_document(fits, "x", "y")))
     load_material(path)
 
 
@@ -158,14 +160,14 @@ def any_goniometer(draw):
     phase = draw(st.floats(0.0, 179.0))
     front = 89.999
     rows = []
-    for _ in range(draw(st.integers(fit.MIN_ROWS, 40))):
+    for _ in range(draw(st.integers(brdf_fit.MIN_ROWS, 40))):
         ti = draw(st.floats(max(0.0, phase - front), front))
         rows.append((ti, draw(st.floats(abs(phase - ti), min(phase + ti, front)))))
-    readings = draw(st.lists(st.one_of(st.just(0.0), log_uniform(fit.BRIGHTEST_MIN, fit.REFLECTANCE_MAX),
+    readings = draw(st.lists(st.one_of(st.just(0.0), log_uniform(brdf_fit.BRIGHTEST_MIN, brdf_fit.REFLECTANCE_MAX),
                                        st.floats(0.0, 1.0)), min_size=len(rows), max_size=len(rows)))
-    assume(max(readings) >= fit.BRIGHTEST_MIN)
+    assume(max(readings) >= brdf_fit.BRIGHTEST_MIN)
     ti, te = np.array(rows).T
-    return fit.Measurements(phase, ti, te, np.array(readings))
+    return brdf_fit.Measurements(phase, ti, te, np.array(readings))
 
 
 @settings(max_examples=60, deadline=None, derandomize=True)
@@ -173,8 +175,8 @@ def any_goniometer(draw):
 def test_any_geometry_and_readings_fit_without_a_warning(data):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        f = fit.fit_material([data])[0]
-    assert np.isfinite(f.params).all() and f.params[0] > 0 and f.params[[1, 3]].max() <= fit.SIGMA_MAX
+        f = brdf_fit.fit_material([data])[0]
+    assert np.isfinite(f.params).all() and f.params[0] > 0 and f.params[[1, 3]].max() <= brdf_fit.SIGMA_MAX
     assert np.isfinite(f.rms_residual) and not np.isnan(f.stderr).any()
 
 
@@ -183,8 +185,8 @@ def test_the_fit_is_the_same_at_any_scale_of_the_readings(scale):
     data = goniometer(ALUMINIUM, 20.0, seed=3)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        scaled = fit.fit_phase(dataclasses.replace(data, reflectance=data.reflectance * scale))
-    unit = fit.fit_phase(data)
+        scaled = brdf_fit.fit_phase(dataclasses.replace(data, reflectance=data.reflectance * scale))
+    unit = brdf_fit.fit_phase(data)
     per_unit = np.array([scale, 1, 1, 1, 1])
     np.testing.assert_allclose(scaled.params / per_unit, unit.params, rtol=1e-6)
     np.testing.assert_allclose(scaled.stderr / per_unit, unit.stderr, rtol=1e-6)
@@ -201,8 +203,8 @@ def test_cell_fit_brdf_writes_a_material_that_loads_and_reproduces_the_readings(
     assert material.source.startswith("fit of ") and "by cell fit-brdf on " in material.source
     assert material.extra["unidentifiable"] == {"spike": [60.0]}
     assert material.extra["m2_stderr"][2] == np.inf and np.isfinite(material.extra["m2_stderr"][:2]).all()
-    assert set(material.extra) >= {f"{p}_stderr" for p in fit.PARAMETERS} | {"rms_residual"}
-    for f, truth in zip(fit.fit_material(three_phases()), (ALUMINIUM, POLISHED, NO_SPIKE)):
+    assert set(material.extra) >= {f"{p}_stderr" for p in brdf_fit.PARAMETERS} | {"rms_residual"}
+    for f, truth in zip(brdf_fit.fit_material(three_phases()), (ALUMINIUM, POLISHED, NO_SPIKE)):
         g = goniometer(truth, f.phase_deg, noise=0.0)
         cosines = [np.cos(np.radians(a)) for a in (g.theta_i_deg, g.theta_e_deg, f.phase_deg)]
         p = material.at(np.radians(f.phase_deg))
@@ -318,7 +320,7 @@ def test_a_long_value_is_shown_as_its_first_80_characters(tmp_path, capsys):
     path = tmp_path / "data.csv"
     path.write_text(GOOD.replace("0.3", "y" * 5000))
     err = refused(capsys, path)
-    assert f"found '{'y' * fit.SHOWN_CHARS}'..., expected a number" in err
+    assert f"found '{'y' * brdf_fit.SHOWN_CHARS}'..., expected a number" in err
 
 
 def test_a_folder_a_device_or_a_named_pipe_is_refused_before_it_is_opened(tmp_path, capsys, no_hang):
@@ -343,11 +345,11 @@ def test_a_csv_over_the_size_limit_is_refused_unread(tmp_path, capsys, monkeypat
 def test_too_many_rows_or_phase_angles_are_refused_before_the_fit(tmp_path, capsys, monkeypatch):
     path = tmp_path / "data.csv"
     path.write_text(GOOD + GOOD.split("\n", 1)[1].replace(",20,", ",21,"))
-    monkeypatch.setattr(fit, "PHASES_MAX", 1)
-    assert f"{path}: phase_deg: found 2 phase angles, expected at most 1 (cell.fit.PHASES_MAX" \
+    monkeypatch.setattr(brdf_fit, "PHASES_MAX", 1)
+    assert f"{path}: phase_deg: found 2 phase angles, expected at most 1 (cell.physics.brdf_fit.PHASES_MAX" \
         in refused(capsys, path)
-    monkeypatch.setattr(fit, "ROWS_MAX", 11)
-    assert f"{path}: line 13: found more than 11 data rows, expected at most 11 (cell.fit.ROWS_MAX" \
+    monkeypatch.setattr(brdf_fit, "ROWS_MAX", 11)
+    assert f"{path}: line 13: found more than 11 data rows, expected at most 11 (cell.physics.brdf_fit.ROWS_MAX" \
         in refused(capsys, path)
 
 

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import yaml
 
-from cell.fit import COLUMNS, PhaseFit, material_document, read_goniometer
-from cell.loader import MATERIAL, TASK, load_material, load_task
-from cell.schema import REQUIRED, UNITS, Section, Sections, _unit
+from cell.physics.brdf_fit import COLUMNS, PhaseFit, material_document, read_goniometer
+from cell.task.loader import MATERIAL, TASK, load_material, load_task
+from cell.task.schema import REQUIRED, UNITS, Section, Sections, _unit
 
 ROOT = Path(__file__).resolve().parent.parent
 DOC = ROOT / "docs" / "formats.md"
@@ -54,7 +54,7 @@ def schema_keys(fields, path=""):
 
 
 def other_units(key):
-    """The suffixes the loader also accepts for this key (cell.schema's rule)."""
+    """The suffixes the loader also accepts for this key (cell.task.schema's rule)."""
     suffix = _unit(key.rpartition(".")[2])[1]
     return {f"_{u}" for u, (quantity, _) in UNITS.items()
             if suffix and u != suffix and quantity == UNITS[suffix][0]}
@@ -105,7 +105,7 @@ def test_each_row_says_what_the_loader_accepts_its_other_units_and_its_default(t
 
 
 def test_the_device_keys_are_in_the_task_table():
-    """cell.arm, cell.pan_tilt and cell.camera come from cell.device_config, through cell's section."""
+    """cell.arm, cell.pan_tilt and cell.camera come from cell.task.device_config, through cell's section."""
     documented = rows(section("Task"))
     assert {"cell.arm.host", "cell.pan_tilt.radius_ticks", "cell.camera.exposure_unit_s"} <= documented.keys()
 

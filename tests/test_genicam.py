@@ -15,13 +15,13 @@ import numpy as np
 import pytest
 from genicam import gentl
 
-from cell.backends import hw_camera
+from cell.run.backends import hw_camera
 from cell.cli import main
-from cell.errors import DeviceFault, TaskError
-from cell.hw import genicam_camera
-from cell.hw.genicam_camera import GenICamCamera, mono_to_gray, pick_pixel_format
-from cell.loader import load_task
-from cell.operator import Operator
+from cell.core.errors import DeviceFault, TaskError
+from cell.devices.hw import genicam_camera
+from cell.devices.hw.genicam_camera import GenICamCamera, mono_to_gray, pick_pixel_format
+from cell.task.loader import load_task
+from cell.devices.operator import Operator
 from sim.dxl_emulator import DxlEmulator
 from genicam_fake import Buffer, FakeCamera, FloatNode, NodeMap, harvester_of
 from simcell import device_settings, variant
@@ -96,7 +96,7 @@ def test_cell_check_of_a_genicam_task_loads_no_genicam_library(tmp_path):
 
 def test_genicam_driver_without_its_sdk_is_bad_input_before_anything_connects(tmp_path, monkeypatch):
     task = load_task(variant(tmp_path, TASK, {"cell.camera": {"driver": "genicam", "cti": str(VIKY)}}))
-    monkeypatch.delitem(sys.modules, "cell.hw.genicam_camera")
+    monkeypatch.delitem(sys.modules, "cell.devices.hw.genicam_camera")
     monkeypatch.setitem(sys.modules, "harvesters.core", None)        # import fails, as uninstalled
     with pytest.raises(TaskError) as err:
         hw_camera(task)

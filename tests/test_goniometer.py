@@ -11,11 +11,13 @@ import numpy as np
 import pytest
 import yaml
 
-from cell import backends, goniometer
+from cell.run import backends
+
+from cell.calibration import goniometer
 from cell.cli import main
-from cell.errors import DeviceFault, GoalNotReached, TaskError
-from cell.loader import load_material, load_task
-from cell.operator import Operator
+from cell.core.errors import DeviceFault, GoalNotReached, TaskError
+from cell.task.loader import load_material, load_task
+from cell.devices.operator import Operator
 from sim.arm import SimArm
 from sim.cell import make_sim_devices
 

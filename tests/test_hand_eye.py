@@ -14,12 +14,16 @@ import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
-from cell import backends, geometry, hand_eye as routine
+from cell.run import backends
+
+from cell.core import geometry
+
+from cell.calibration import hand_eye as routine
 from cell.cli import main
-from cell.errors import DeviceFault, GoalNotReached, TaskError
-from cell.loader import load_task
-from cell.projection import intrinsics, project
-from cell.task import Truth
+from cell.core.errors import DeviceFault, GoalNotReached, TaskError
+from cell.task.loader import load_task
+from cell.physics.projection import intrinsics, project
+from cell.task.types import Truth
 from kernels.render import render_plane
 from sim import board as sim_board
 from sim.board import BoardView

@@ -24,7 +24,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from cell import servo
+from cell.devices import servo
 from loopback import dashboard, free_host, start_emulator, stop_emulator
 from sim.dxl_emulator import DxlEmulator
 from simcell import variant

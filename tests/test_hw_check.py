@@ -14,11 +14,11 @@ import cv2
 import numpy as np
 import pytest
 
-from cell import servo
-from cell.backends import check_hw_devices
-from cell.geometry import to_ur_pose
-from cell.loader import load_task
-from cell import ur5e
+from cell.devices import servo
+from cell.run.backends import check_hw_devices
+from cell.core.geometry import to_ur_pose
+from cell.task.loader import load_task
+from cell.devices import ur5e
 from sim.dxl_emulator import PING, READ, DxlEmulator
 from sim.ur_controller import RTDE_PORT
 from loopback import dashboard, start_emulator, stop_emulator
@@ -178,7 +178,7 @@ def test_hw_check_without_the_robots_address_is_bad_input(tmp_path, video):
 
 
 def test_the_interfaces_default_state_is_the_read_back_of_the_simulated_devices():
-    from cell.scene import look_at
+    from cell.planning.scene import look_at
     from sim.arm import SimArm
     from sim.camera import SimCamera
     from sim.pantilt import SimPanTilt
@@ -215,9 +215,9 @@ def test_an_absent_servo_is_named_and_the_other_servo_and_devices_still_read(tmp
 
 
 def test_a_read_only_arm_refuses_to_move_and_has_nothing_to_stop(ur_host):
-    from cell.errors import DeviceFault
-    from cell.hw.ur import URArm
-    from cell.scene import look_at
+    from cell.core.errors import DeviceFault
+    from cell.devices.hw.ur import URArm
+    from cell.planning.scene import look_at
     from simcell import device_settings
 
     hinge = load_task("tasks/hinge.yaml")

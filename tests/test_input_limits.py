@@ -13,8 +13,8 @@ import pytest
 import yaml
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from cell import loader, schema
-from cell.errors import TaskError
+from cell.task import loader, schema
+from cell.core.errors import TaskError
 
 ROOT = Path(__file__).resolve().parents[1]
 HINGE = ROOT / "tasks" / "hinge.yaml"

@@ -1,4 +1,4 @@
-"""`cell run` of a multi-shot plan (cell.inspection) on the simulated cell: every feature of a
+"""`cell run` of a multi-shot plan (cell.run.inspection) on the simulated cell: every feature of a
 coverable task converges, with fixed and planned viewpoints; the shots' order is the shortest
 by brute force; features sharing a capture are measured in regions that never merge, and one
 exposure serves them (or the run says they disagree); the run folder holds a folder per shot
@@ -13,10 +13,12 @@ import cv2
 import numpy as np
 import pytest
 
-from cell import cli, control, inspection, measure, route
-from cell.errors import CellError
-from cell.loader import load_task
-from cell.scene import build_scene
+from cell import cli
+
+from cell.run import control, inspection, measurement, route
+from cell.core.errors import CellError
+from cell.task.loader import load_task
+from cell.planning.scene import build_scene
 from simcell import disk_pixels, recording_connect
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -135,7 +137,7 @@ def shared_capture(pair):
 def test_two_features_close_together_are_measured_in_regions_of_their_own(pair):
     image, T, points = shared_capture(pair)
     tasks = [pair.task.with_feature(f) for f in (0, 1)]
-    a, b = (measure.measure_feature(image, t, T, p, 255) for t, p in zip(tasks, points))
+    a, b = (measurement.measure_feature(image, t, T, p, 255) for t, p in zip(tasks, points))
     assert a.region.sum() > 3000 and b.region.sum() > 3000
     assert not (a.region & b.region).any()                 # never merged, nothing shared
     # each region lies on its own feature's disk (1 px of rounding beyond its rim) and off the other's
@@ -150,9 +152,9 @@ def test_two_features_close_together_are_measured_in_regions_of_their_own(pair):
 def test_a_gray_error_in_one_feature_does_not_leak_into_the_other(pair):
     image, T, points = shared_capture(pair)
     tasks = [pair.task.with_feature(f) for f in (0, 1)]
-    before = [measure.measure_feature(image, t, T, p, 255) for t, p in zip(tasks, points)]
+    before = [measurement.measure_feature(image, t, T, p, 255) for t, p in zip(tasks, points)]
     wrong = np.where(before[0].region, 0.5 * image, image)         # leaf_a half as bright
-    after = [measure.measure_feature(wrong, t, T, p, 255) for t, p in zip(tasks, points)]
+    after = [measurement.measure_feature(wrong, t, T, p, 255) for t, p in zip(tasks, points)]
     assert after[0].stats()["mean"] == pytest.approx(0.5 * before[0].stats()["mean"], rel=1e-9)
     assert after[1].stats() == before[1].stats()
     np.testing.assert_array_equal(after[1].surface, before[1].surface)
@@ -166,13 +168,13 @@ def measured(m):
 def test_one_exposure_serves_features_that_agree_and_the_run_says_so_when_they_disagree(pair):
     image, T, points = shared_capture(pair)
     tasks = [pair.task.with_feature(f) for f in (0, 1)]
-    base = [measure.measure_feature(image, t, T, p, 255) for t, p in zip(tasks, points)]
+    base = [measurement.measure_feature(image, t, T, p, 255) for t, p in zip(tasks, points)]
     limits = [control.Limits((60.0, 250.0), (1e-5, 0.02), (1.4, 16.0))] * 2
-    black = measure.BlackLevel(0.0, 0.0, "task")
+    black = measurement.BlackLevel(0.0, 0.0, "task")
     names = ["leaf_a", "leaf_b"]
     # both a third as bright as measured (111-129 -> 37-43): one gain brightens both into the band
     dim = np.where(base[0].region | base[1].region, image / 3, image)
-    ms = [measure.measure_feature(dim, t, T, p, 255) for t, p in zip(tasks, points)]
+    ms = [measurement.measure_feature(dim, t, T, p, 255) for t, p in zip(tasks, points)]
     c = inspection.shared_correction(names, [measured(m) for m in ms], limits, 0.002, 1.4, black)
     assert c.action == "exposure"
     gain = c.shutter_s / c.f_number**2 / (0.002 / 1.4**2)
@@ -184,7 +186,7 @@ def test_one_exposure_serves_features_that_agree_and_the_run_says_so_when_they_d
         assert 60 <= gain * m.min and gain * m.max <= 250
     # leaf_a 5x brighter than leaf_b: each alone fits the band's 250/60 = 4.2, together they do not
     split = np.where(base[0].region, 1.6 * image, np.where(base[1].region, 0.35 * image, image))
-    ms = [measure.measure_feature(split, t, T, p, 255) for t, p in zip(tasks, points)]
+    ms = [measurement.measure_feature(split, t, T, p, 255) for t, p in zip(tasks, points)]
     assert all(m.max / m.min < 250 / 60 for m in ms) and ms[0].max / ms[1].min > 250 / 60
     c = inspection.shared_correction(names, [measured(m) for m in ms], limits, 0.002, 1.4, black)
     assert c.action == "stop" and c.cause == "features"
@@ -194,12 +196,12 @@ def test_one_exposure_serves_features_that_agree_and_the_run_says_so_when_they_d
 def test_a_feature_that_stops_alone_is_named(pair):
     image, T, points = shared_capture(pair)
     tasks = [pair.task.with_feature(f) for f in (0, 1)]
-    ms = [measure.measure_feature(image, t, T, p, 255) for t, p in zip(tasks, points)]
+    ms = [measurement.measure_feature(image, t, T, p, 255) for t, p in zip(tasks, points)]
     limits = [control.Limits((60.0, 250.0), (1e-5, 0.02), (1.4, 16.0))] * 2
     # leaf_b predicted 100x brighter than measured: an albedo x0.01, outside x0.1-x10
     wrong = [measured(ms[0]), (None, ms[1], 100 * measured(ms[1])[2])]
     c = inspection.shared_correction(["leaf_a", "leaf_b"], wrong, limits, 0.002, 1.4,
-                                     measure.BlackLevel(0.0, 0.0, "task"))
+                                     measurement.BlackLevel(0.0, 0.0, "task"))
     assert c.action == "stop" and c.cause == "albedo" and c.reason.startswith("leaf_b: ")
 
 
@@ -326,7 +328,7 @@ def test_a_shot_that_does_not_converge_leaves_the_others_to_run_and_the_run_exit
 
 
 def test_the_rotation_angle_between_two_poses():
-    from cell import geometry
+    from cell.core import geometry
     a = geometry.from_rpy(np.radians([10.0, -20.0, 30.0]), [1.0, 2.0, 3.0])
     turn = geometry.from_rpy(np.radians([0.0, 0.0, 25.0]))
     assert np.degrees(geometry.rotation_angle(a, a @ turn)) == pytest.approx(25.0, abs=1e-9)
@@ -336,10 +338,10 @@ def test_the_rotation_angle_between_two_poses():
 def test_features_whose_bands_share_nothing_are_not_corrected_toward_either(pair):
     image, T, points = shared_capture(pair)
     tasks = [pair.task.with_feature(f) for f in (0, 1)]
-    ms = [measure.measure_feature(image, t, T, p, 255) for t, p in zip(tasks, points)]
+    ms = [measurement.measure_feature(image, t, T, p, 255) for t, p in zip(tasks, points)]
     limits = [control.Limits((60.0, 100.0), (1e-5, 0.02), (1.4, 16.0)),
               control.Limits((150.0, 250.0), (1e-5, 0.02), (1.4, 16.0))]
     c = inspection.shared_correction(["leaf_a", "leaf_b"], [measured(m) for m in ms], limits, 0.002, 1.4,
-                                     measure.BlackLevel(0.0, 0.0, "task"))
+                                     measurement.BlackLevel(0.0, 0.0, "task"))
     assert c.action == "stop" and c.cause == "bands"
     assert "leaf_a 60-100, leaf_b 150-250" in c.reason

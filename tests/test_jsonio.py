@@ -4,7 +4,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cell.jsonio import dumps
+from cell.core.jsonio import dumps
 
 
 def test_numpy_values_are_plain_and_non_finite_numbers_are_null():

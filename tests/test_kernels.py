@@ -12,7 +12,7 @@ import trimesh
 from hypothesis import assume, example, given, settings
 from hypothesis import strategies as st
 
-from cell import geometry
+from cell.core import geometry
 from cell.physics import reference as ref
 from kernels import cone, gray, visibility
 from kernels.cone import NO_CONE, free_cone_cosines

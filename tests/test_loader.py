@@ -10,10 +10,12 @@ import numpy as np
 import pytest
 import yaml
 
-from cell import cli, loader, schema
+from cell import cli
+
+from cell.task import loader, schema
 from cell.cli import check
-from cell.errors import TaskError
-from cell.task import SimConfig
+from cell.core.errors import TaskError
+from cell.task.types import SimConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 TASKS = ROOT / "tasks"
@@ -270,7 +272,7 @@ def test_cell_check_runs_as_a_program_without_warp():
                           cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert "Aluminium hinge" in done.stdout
-    code = "import sys, cell.loader; print('warp' in sys.modules)"
+    code = "import sys, cell.task.loader; print('warp' in sys.modules)"
     assert subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
                           text=True).stdout.strip() == "False"
 

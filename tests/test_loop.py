@@ -14,10 +14,14 @@ import serial
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from cell import backends, cli, control, loop, measure, projection
+from cell.run import backends, control, loop, measurement
+
+from cell import cli
+
+from cell.physics import projection
 from cell.cli import main
-from cell.errors import CellError, DeviceFault, GoalNotReached
-from cell.loader import load_task
+from cell.core.errors import CellError, DeviceFault, GoalNotReached
+from cell.task.loader import load_task
 from sim.cell import make_sim_devices
 from simcell import recording_connect, variant
 
@@ -46,7 +50,7 @@ def feature_pixels(task_path, image, shrink=0.9):
     """Independent of the loop's hull: pixels within shrink x the feature radius of its projected
     centre (the views are nearly perpendicular, so the disk images as a near circle)."""
     task = load_task(task_path)
-    from cell.scene import build_scene
+    from cell.planning.scene import build_scene
     scene = build_scene(task)
     K = projection.intrinsics(task.camera.sensor, task.camera.lens)
     (centre,), (depth,) = projection.project(K, scene.T_cell_cam, scene.center[None])
@@ -335,10 +339,10 @@ def test_sigterm_stops_the_cell_and_still_writes_the_report(tmp_path, monkeypatc
 
 def test_a_frame_of_another_size_than_the_sensor_is_a_camera_fault():
     task = load_task(HINGE)
-    from cell.scene import build_scene
+    from cell.planning.scene import build_scene
     scene = build_scene(task)
     with pytest.raises(DeviceFault, match="frames are 516x388 px, camera.sensor says 1032x776"):
-        measure.measure_feature(np.zeros((388, 516)), task, scene.T_cell_cam, scene.points, 255)
+        measurement.measure_feature(np.zeros((388, 516)), task, scene.T_cell_cam, scene.points, 255)
 
 
 def test_the_hardware_backend_needs_an_address_before_anything_connects(tmp_path):

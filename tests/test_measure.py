@@ -2,7 +2,7 @@
 averages pixel noise down 5x (independent expectations: a linear ramp, white noise's sigma/5)."""
 import numpy as np
 
-from cell.measure import local_mean
+from cell.run.measurement import local_mean
 
 
 def disk(shape, centre, radius):

@@ -1,4 +1,4 @@
-"""Issue 16's matrix: `cell run` on a simulated cell whose world differs from the model in one
+"""The mismatch matrix: `cell run` on a simulated cell whose world differs from the model in one
 kind of mismatch (several magnitudes each, several seeds, both example tasks, every effect on).
 
 Each case is judged against a correct model, independently of what the loop says: the same case
@@ -43,7 +43,7 @@ EFFECTS = ["shadows", "cone_falloff", "vignetting", "defocus", "noise", "black_l
 SIM_BLACK_LEVEL = 5.0            # sim.world.BLACK_LEVEL of 255, rounded: the world's b at 8 bits
 MAX_CAPTURES = 6
 
-# the loop's causes (cell.loop.CAUSES) by what they name
+# the loop's causes (cell.run.loop.CAUSES) by what they name
 NAMES = {"registration": "registration", "black pixels": "registration", "lamp aim": "lamp aim",
          "material shape": "material shape", "spread": "material shape", "infeasible": "infeasible",
          "albedo": "level", "iterations": "not converged"}
@@ -200,10 +200,10 @@ def aim_solvable(case, world_run):
     """Whether the lamp-aim case's world, at the model's planned camera and lamp poses (the world
     run's plan), noiseless (shadows, cone falloff, vignetting, defocus), holds the feature's
     signal within the band's max/min (module docstring). Returns (solvable, why)."""
-    from cell.loader import load_task
-    from cell.measure import measure_feature
-    from cell.rig import lamp_aim
-    from cell.scene import build_scene
+    from cell.task.loader import load_task
+    from cell.run.measurement import measure_feature
+    from cell.devices.rig import lamp_aim
+    from cell.planning.scene import build_scene
     from sim.world import Renderer
     folder = Path(world_run["folder"]) / "oracle"
     folder.mkdir(exist_ok=True)
@@ -363,7 +363,7 @@ def test_the_whole_matrix(tmp_path):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description="issue 16's mismatch matrix: cell run against a world that "
+    parser = argparse.ArgumentParser(description="the mismatch matrix: cell run against a world that "
                                                  "differs from the model; prints the table and the percentages")
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2])

@@ -4,8 +4,8 @@ hand-written package list and package-data globs to the tree."""
 import tomllib
 from pathlib import Path
 
-from cell.bench import DEFAULT_TASKS
-from cell.loader import load_task
+from cell.bench.suite import DEFAULT_TASKS
+from cell.task.loader import load_task
 
 ROOT = Path(__file__).resolve().parents[1]
 SETUPTOOLS = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]

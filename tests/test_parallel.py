@@ -1,4 +1,4 @@
-"""Planning on Dask (cell.parallel, `cell plan --workers N | --scheduler ADDRESS`): the plans are
+"""Planning on Dask (cell.planning.parallel, `cell plan --workers N | --scheduler ADDRESS`): the plans are
 the serial ones in every key but timing_s, on a LocalCluster `cell plan` starts and on one this
 module starts and names by its address; errors on a worker are the serial run's one line; a
 scheduler that does not answer is one line and exit 2 within its timeout. Everything on
@@ -13,11 +13,15 @@ from pathlib import Path
 
 import pytest
 
-from cell import cli, jsonio, parallel, planner
-from cell.errors import DeviceFault, PlanInfeasible, TaskError
-from cell.feature_bench import same_plan, without_timing
-from cell.loader import load_task
-from cell.multiplan import plan_features
+from cell import cli
+
+from cell.core import jsonio
+
+from cell.planning import parallel, one_shot
+from cell.core.errors import DeviceFault, PlanInfeasible, TaskError
+from cell.bench.multi_feature import same_plan, without_timing
+from cell.task.loader import load_task
+from cell.planning.whole_part import plan_features
 
 ROOT = Path(__file__).resolve().parent.parent
 HINGE = ROOT / "tasks" / "hinge.yaml"
@@ -51,7 +55,7 @@ def one_line(err):
 def test_serial_workers_2_and_a_cluster_by_address_plan_the_same(scheduler, tmp_path, capsys):
     lines = []
     serial = plan_features(load_task(PLANNED), progress=lines.append)
-    alone = planner.plan(load_task(HINGE))
+    alone = one_shot.plan(load_task(HINGE))
     assert cli.main(["plan", str(PLANNED), "--workers", "2", "--out", str(tmp_path / "local")]) == 0
     local_err = capsys.readouterr().err
     assert cli.main(["plan", str(PLANNED), str(HINGE), "--scheduler", scheduler, "--out", str(tmp_path / "remote")]) == 0

@@ -58,7 +58,7 @@ def test_the_brackets_shells_are_closed_and_outward_and_each_feature_sits_on_an_
     face its docstring names (the loader's normal there is that face's), and that face the
     outermost surface: a ray cast from 50 mm out along the normal at every point of the patch's
     rim and centre meets the part first at that point (no overlapping solid covers it)."""
-    from cell.loader import load_task
+    from cell.task.loader import load_task
     from cell.physics.reference import ray_first_hit
     mesh = trimesh.load(PARTS / "bracket.stl")
     for shell in mesh.split(only_watertight=False):

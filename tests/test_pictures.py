@@ -9,10 +9,10 @@ import pytest
 from matplotlib import image as plt_image
 from matplotlib.colors import to_rgb
 
-from cell.loader import load_task
-from cell.pictures import FEATURE_COLORS, display_mesh, write_bench, write_cell
-from cell.planner import plan
-from cell.recorder import write_plan
+from cell.task.loader import load_task
+from cell.report.pictures import FEATURE_COLORS, display_mesh, write_bench, write_cell
+from cell.planning.one_shot import plan
+from cell.report.recorder import write_plan
 
 ROOT = Path(__file__).resolve().parent.parent
 

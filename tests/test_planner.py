@@ -9,28 +9,32 @@ import pytest
 import trimesh
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from cell import evaluate, geometry, planner, requirements, rig
+from cell.planning import evaluate, one_shot, requirements
+
+from cell.core import geometry
+
+from cell.devices import rig
 from cell.cli import main
-from cell.loader import load_task
-from cell.recorder import write_plan
+from cell.task.loader import load_task
+from cell.report.recorder import write_plan
 from cell.physics import brdf, depth_of_field as dof, radiometry, reference
-from cell.scene import build_scene, feature_disk
+from cell.planning.scene import build_scene, feature_disk
 
 TASKS = Path(__file__).resolve().parent.parent / "tasks"
-COARSE = planner.PlannerSettings(grid_step_deg=6.0, pan_step_deg=30.0, tilt_step_deg=15.0,
+COARSE = one_shot.PlannerSettings(grid_step_deg=6.0, pan_step_deg=30.0, tilt_step_deg=15.0,
                                  radius_steps=2, samples=16, refine=False, starts=2)
 
 
 @pytest.fixture(scope="module")
 def hinge():
     task = load_task(TASKS / "hinge.yaml")
-    return task, planner.plan(task)
+    return task, one_shot.plan(task)
 
 
 @pytest.fixture(scope="module")
 def conrod():
     task = load_task(TASKS / "conrod.yaml")
-    return task, planner.plan(task)
+    return task, one_shot.plan(task)
 
 
 def numpy_gray(task, plan):
@@ -200,8 +204,8 @@ def test_plan_json_contract(hinge, tmp_path):
 
 def test_refinement_never_worsens_the_global_best():
     task = load_task(TASKS / "conrod.yaml")
-    rough = planner.plan(task, replace(COARSE, refine=False))
-    refined = planner.plan(task, replace(COARSE, refine=True))
+    rough = one_shot.plan(task, replace(COARSE, refine=False))
+    refined = one_shot.plan(task, replace(COARSE, refine=True))
     assert refined.objective <= rough.objective + 1e-12
 
 
@@ -244,7 +248,7 @@ def lidded(task, gap_m=0.003):
 
 def test_all_occluded_feature_is_a_clear_infeasible_plan():
     task = lidded(load_task(TASKS / "hinge.yaml"))
-    plan = planner.plan(task, COARSE)
+    plan = one_shot.plan(task, COARSE)
     finite_json(plan)
     assert not plan.feasible
     assert not plan.maps.visible.any()
@@ -272,7 +276,7 @@ def test_plans_stay_finite_for_any_normal_view_and_rig(rpy, view_polar, view_azi
     rig = replace(task.lamp.rig, tilt_range_rad=(tilt_low, min(tilt_low + np.radians(5.0), np.radians(85.0))))
     task = replace(task, camera=replace(task.camera, view_direction=view),
                    lamp=replace(task.lamp, rig=rig))
-    plan = planner.plan(task, replace(COARSE, refine=True))
+    plan = one_shot.plan(task, replace(COARSE, refine=True))
     finite_json(plan)
     assert plan.feasible == all(r.value <= 1.0 for r in plan.requirements)
     if not plan.feasible:
@@ -281,7 +285,7 @@ def test_plans_stay_finite_for_any_normal_view_and_rig(rpy, view_polar, view_azi
 
 def plan_of(task):
     """A worker process's plan (module level: a spawned process imports it by name)."""
-    return planner.plan(task)
+    return one_shot.plan(task)
 
 
 def without_timing(plan):
@@ -317,7 +321,7 @@ def variant_plan(tmp_path, changes, settings=COARSE):
     task = load_task(variant(tmp_path, TASKS / "hinge.yaml", changes))
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        return task, planner.plan(task, settings)
+        return task, one_shot.plan(task, settings)
 
 
 def test_depth_of_field_limits_hold_the_nearest_and_farthest_sample_at_a_steep_view(tmp_path):
@@ -365,7 +369,7 @@ def test_phase_angles_beyond_the_material_table_are_noted(tmp_path):
 
 def test_a_map_step_that_does_not_divide_180_is_refused():
     with pytest.raises(ValueError, match="must divide 180"):
-        planner.PlannerSettings(grid_step_deg=7.0)
+        one_shot.PlannerSettings(grid_step_deg=7.0)
 
 
 def test_a_camera_far_too_bright_for_any_pose_says_so(tmp_path):
@@ -394,7 +398,7 @@ CURVED = Path(__file__).resolve().parent / "tasks"
 def test_a_rim_out_of_focus_between_the_samples_is_added_and_planned_for():
     """60 deg view of a fillet: the search's samples miss the rim points nearest and farthest from
     the camera; the certificate finds them, they join the samples, and the next search covers them."""
-    plan = planner.plan(load_task(CURVED / "fillet_paint_steep.yaml"))
+    plan = one_shot.plan(load_task(CURVED / "fillet_paint_steep.yaml"))
     assert plan.feasible and plan.verification.holds and plan.verification.rounds >= 1
     assert len(plan.scene.points) > 64
 
@@ -405,12 +409,12 @@ def test_a_highlight_between_the_samples_is_found_and_planned_around(tmp_path, m
     the dense patch; with them, the worst points join the samples and the next shot holds."""
     from simcell import variant
     task = load_task(variant(tmp_path, CURVED / "sphere_cast_iron_wide.yaml", {"requirements.reflection": "any"}))
-    monkeypatch.setattr(planner, "CERTIFY_ROUNDS", 0)
-    once = planner.plan(task)
+    monkeypatch.setattr(one_shot, "CERTIFY_ROUNDS", 0)
+    once = one_shot.plan(task)
     assert not once.feasible and once.hint.startswith("on the dense patch")
     assert once.feasible == all(r.met for r in once.requirements)
     monkeypatch.undo()
-    again = planner.plan(task)
+    again = one_shot.plan(task)
     assert again.feasible and again.verification.holds and again.verification.rounds >= 1
 
 
@@ -426,7 +430,7 @@ def test_a_profiles_soft_edge_lights_the_patch_beyond_the_nominal_half_angle(tmp
     """With a profile the lamp lights what its profile reaches (the example's: 0 from 9 deg), so a
     narrow nominal cone whose profile reaches 9 deg covers the patch from 6 mm / tan(9 deg) =
     0.038 m on; the ideal cone's coverage ends at half its angle."""
-    from cell.task import Lamp
+    from cell.task.types import Lamp
     task, plan = variant_plan(tmp_path, {"lamp.cone_angle_deg": 1.0})
     assert task.lamp.lit_half_angle_rad == pytest.approx(np.radians(9.0))
     assert Lamp(1.0, np.radians(12.0), task.lamp.rig).lit_half_angle_rad == pytest.approx(np.radians(6.0))
@@ -445,7 +449,7 @@ def test_a_camera_behind_the_part_or_along_its_surface_cannot_see_the_feature(tm
 def test_a_feature_over_the_parts_edge_is_bad_input_not_a_patch_collapsed_on_the_edge(tmp_path):
     """Centred on the leaf's edge (x = 30 mm) half the patch lies beyond it: its samples cannot lie
     on the surface at their distance from the centre."""
-    from cell.errors import TaskError
+    from cell.core.errors import TaskError
     with pytest.raises(TaskError, match="runs over an edge of the part") as caught:
         variant_plan(tmp_path, {"feature.center_m": [0.030, 0.0, 0.004]})
     assert caught.value.key == "feature.center_m"
@@ -464,7 +468,7 @@ def test_a_lamp_candidate_standing_on_the_feature_is_unlit_not_nan(tmp_path):
     scene = build_scene(task)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        problem = evaluate.build_problem(task, scene, planner.build_maps(task, scene, COARSE))
+        problem = evaluate.build_problem(task, scene, one_shot.build_maps(task, scene, COARSE))
         c = evaluate.candidates(problem, [0.0], [-np.pi / 2], [0.2])
         values = requirements.ln_values(problem, c)
     assert np.allclose(c.position[0], scene.center, atol=1e-9)

@@ -1,4 +1,4 @@
-"""The material refit of the closed loop (cell.refit): a world whose lobe is 2x the task's (m1 and
+"""The material refit of the closed loop (cell.run.refit): a world whose lobe is 2x the task's (m1 and
 sigma1 doubled, `sim.truth.material`) is found by the probe shots and the fit, within 5 %, and the
 run then converges or says the band is infeasible for the true material, which a plan made with
 the true material confirms; a run without mismatch takes no probe shot; one capture leaves
@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import yaml
 
-from cell import measure, refit
-from cell.errors import DeviceFault, GoalNotReached
-from cell.loader import load_material, load_task
+from cell.run import measurement, refit
+from cell.core.errors import DeviceFault, GoalNotReached
+from cell.task.loader import load_material, load_task
 from cell.physics.brdf import reflectance
-from cell.planner import plan
-from cell.rig import lamp_aim, lamp_position
+from cell.planning.one_shot import plan
+from cell.devices.rig import lamp_aim, lamp_position
 from simcell import run_loop, variant
 from test_loop import run
 
@@ -119,10 +119,10 @@ def test_a_pixel_is_given_the_geometry_of_where_registration_found_the_feature()
     task = load_task(HINGE)
     planned = plan(task)
     scene, pivot = planned.scene, task.lamp.rig.pivot_m
-    row, col, _ = measure.sample_pixels(task, scene.T_cell_cam, scene.points)
+    row, col, _ = measurement.sample_pixels(task, scene.T_cell_cam, scene.points)
     shape = (task.camera.sensor.height_px, task.camera.sensor.width_px)
-    region = measure.feature_mask(shape, row, col)
-    moved = measure.feature_mask(shape, row - 7, col + 12)
+    region = measurement.feature_mask(shape, row, col)
+    moved = measurement.feature_mask(shape, row - 7, col + 12)
     position = lamp_position(pivot, *planned.shot.joints)
     lamp = (position, lamp_aim(pivot, position))
     there = refit.pixel_geometry(task, scene, scene.T_cell_cam, region, *lamp)
@@ -170,8 +170,8 @@ def synthetic(tmp_path_factory):
     task = load_task(HINGE)
     planned = plan(task)
     scene, pivot = planned.scene, task.lamp.rig.pivot_m
-    row, col, _ = measure.sample_pixels(task, scene.T_cell_cam, scene.points)
-    region = measure.feature_mask((task.camera.sensor.height_px, task.camera.sensor.width_px), row, col)
+    row, col, _ = measurement.sample_pixels(task, scene.T_cell_cam, scene.points)
+    region = measurement.feature_mask((task.camera.sensor.height_px, task.camera.sensor.width_px), row, col)
     world = load_material(lobe_2x(tmp_path_factory.mktemp("world")))
     rng = np.random.default_rng(3)
     pan, tilt, radius = planned.shot.joints
@@ -217,7 +217,7 @@ def test_a_refit_keeps_what_the_goniometer_could_not_resolve_and_writes_no_nan(s
     cone, and the file it writes loads back with the same section; a parameter left undetermined
     has stderr inf, also where its value is 0 (0 x inf is not a number)."""
     from dataclasses import replace
-    from cell.material import Unresolved
+    from cell.physics.material import Unresolved
     task, observations = synthetic
     phases = task.part.material.phase_rad
     unresolved = Unresolved({"spike": (float(phases[1]), float(phases[3]))}, np.radians(6.0), 31.6037)

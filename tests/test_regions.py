@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from cell import geometry
-from cell.regions import SphereGrid, signed_distance
+from cell.core import geometry
+from cell.planning.regions import SphereGrid, signed_distance
 
 
 def brute_force(grid, inside):

@@ -1,4 +1,4 @@
-"""Registration (issue 16 item 2): the feature is located in every capture before it is measured.
+"""Registration: the feature is located in every capture before it is measured.
 A hand-eye or fixture offset on the conrod (its 12 mm patch on a 14 mm shank: without
 registration these stop at "black pixels") is found as the image shift derived by hand, f / p x
 offset / distance, and the run converges; the hinge's 2 deg camera tilt stops with exit 1 naming
@@ -8,10 +8,12 @@ import json
 import numpy as np
 import pytest
 
-from cell import geometry, measure, register
+from cell.core import geometry
+
+from cell.run import measurement, registration
 from cell.cli import main
-from cell.loader import load_task
-from cell.scene import build_scene
+from cell.task.loader import load_task
+from cell.planning.scene import build_scene
 from simcell import run_loop, variant
 
 HINGE, CONROD = "tasks/hinge.yaml", "tasks/conrod.yaml"
@@ -132,7 +134,7 @@ def conrod_view():
     """The conrod's scene, its samples' pixels and a lamp 0.2 m above the feature aiming at it."""
     task = load_task(CONROD)
     scene = build_scene(task)
-    row, col, inside = measure.sample_pixels(task, scene.T_cell_cam, scene.points)
+    row, col, inside = measurement.sample_pixels(task, scene.T_cell_cam, scene.points)
     lamp = scene.center + np.array([0.0, 0.06, 0.19])
     return task, scene, (lamp, geometry.unit(scene.center - lamp)), row[inside], col[inside]
 
@@ -144,10 +146,10 @@ def test_a_capture_with_nothing_to_align_on_keeps_the_models_region_and_says_so(
     task, scene, lamp, row, col = conrod_view
     shape = (task.camera.sensor.height_px, task.camera.sensor.width_px)
     image = np.full(shape, 60.0) if frame == "flat" else np.random.default_rng(3).normal(60.0, 20.0, shape)
-    found = register.locate(image, task, scene, scene.T_cell_cam, lamp, row, col)
+    found = registration.locate(image, task, scene, scene.T_cell_cam, lamp, row, col)
     assert not found.trusted and found.shift_px == (0.0, 0.0) and found.note
     assert found.describe().endswith("the model's region is measured")
-    assert register.beyond_limit(found.to_json(), 1e-6) is None
+    assert registration.beyond_limit(found.to_json(), 1e-6) is None
 
 
 def test_a_saturated_capture_is_not_aligned(conrod_view):
@@ -156,11 +158,11 @@ def test_a_saturated_capture_is_not_aligned(conrod_view):
     a saturated frame correlated 0.90 with the model 87 px off)."""
     task, scene, lamp, row, col = conrod_view
     w, h = task.camera.sensor.width_px, task.camera.sensor.height_px
-    image = register.expected_image(task, scene, scene.T_cell_cam, lamp, (0, 0, w, h))
+    image = registration.expected_image(task, scene, scene.T_cell_cam, lamp, (0, 0, w, h))
     image = np.minimum(40.0 * 120.0 * image / image.max(), 255.0)
-    found = register.locate(image, task, scene, scene.T_cell_cam, lamp, row, col, saturation=255.0)
+    found = registration.locate(image, task, scene, scene.T_cell_cam, lamp, row, col, saturation=255.0)
     assert not found.trusted and found.note.endswith("of the window around the feature saturated")
-    assert register.locate(image, task, scene, scene.T_cell_cam, lamp, row, col, saturation=256.0).trusted
+    assert registration.locate(image, task, scene, scene.T_cell_cam, lamp, row, col, saturation=256.0).trusted
 
 
 def test_the_model_own_image_shifted_by_hand_is_found_to_a_fraction_of_a_pixel(conrod_view):
@@ -169,8 +171,8 @@ def test_the_model_own_image_shifted_by_hand_is_found_to_a_fraction_of_a_pixel(c
     image x, so only the shift across it is resolved."""
     task, scene, lamp, row, col = conrod_view
     w, h = task.camera.sensor.width_px, task.camera.sensor.height_px
-    image = register.expected_image(task, scene, scene.T_cell_cam, lamp, (0, 0, w, h))
+    image = registration.expected_image(task, scene, scene.T_cell_cam, lamp, (0, 0, w, h))
     image = 3.0 + 0.4 * 120.0 * image / image.max()
-    found = register.locate(np.roll(image, (12, -7), axis=(0, 1)), task, scene, scene.T_cell_cam, lamp, row, col)
+    found = registration.locate(np.roll(image, (12, -7), axis=(0, 1)), task, scene, scene.T_cell_cam, lamp, row, col)
     assert found.trusted and found.resolved == 1
     assert found.shift_px == pytest.approx((0.0, 12.0), abs=0.05)

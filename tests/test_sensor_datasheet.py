@@ -9,7 +9,9 @@ import yaml
 from emva1288.camera import Camera as EmvaCamera
 from emva1288.camera import routines as emva_routines
 
-from cell import cli, loader
+from cell import cli
+
+from cell.task import loader
 from cell.physics.radiometry import camera_constant_from_datasheet
 from sim.world import SensorModel
 

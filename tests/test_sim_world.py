@@ -9,16 +9,16 @@ import pytest
 import trimesh
 from scipy.stats import norm
 
-from cell import geometry
-from cell.errors import DeviceFault
-from cell.loader import load_task
-from cell.material import Material
+from cell.core import geometry
+from cell.core.errors import DeviceFault
+from cell.task.loader import load_task
+from cell.physics.material import Material
 from cell.physics import depth_of_field as dof, radiometry
-from cell.planner import plan
-from cell.projection import pixel_rays, project
-from cell.rig import lamp_aim
-from cell.scene import build_scene
-from cell.task import SimConfig, Truth
+from cell.planning.one_shot import plan
+from cell.physics.projection import pixel_rays, project
+from cell.devices.rig import lamp_aim
+from cell.planning.scene import build_scene
+from cell.task.types import SimConfig, Truth
 from sim import world
 from sim.cell import make_sim_devices
 from sim.world import Renderer
@@ -332,7 +332,7 @@ def test_a_seed_fixes_every_frame_and_every_effect(plate):
     assert not np.allclose(other.lamp_axis(DOWN), first.lamp_axis(DOWN))
 
 
-# --- (e) the truth keys of issue 16, each on its own -------------------------------------------
+# --- (e) the truth keys, each on its own -------------------------------------------
 
 F_PX = 0.025 / (4.65e-6 / SCALE)        # focal length over the test grid's pixel pitch [px]
 CUBE_TOP = np.array([-0.015, 0.0, 0.008])  # the cube's top face centre, 0.492 m from the camera

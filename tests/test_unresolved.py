@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 import yaml
 
-from cell import certificate, evaluate, planner, regions, requirements
+from cell.planning import certificate, evaluate, one_shot, regions, requirements
 from cell.cli import main
-from cell.loader import load_material, load_task
+from cell.task.loader import load_material, load_task
 from cell.physics import brdf
-from cell.plan import PlannerSettings
-from cell.scene import build_scene
+from cell.planning.plan import PlannerSettings
+from cell.planning.scene import build_scene
 
 TASKS = Path(__file__).resolve().parent.parent / "tasks"
 WORLD = {"rho": 0.04, "sigma1": 3.5, "m1": 7.0, "sigma2": 30.0, "m2": 800.0}
@@ -160,9 +160,9 @@ def test_the_certificate_refuses_a_lamp_in_the_cone_at_every_point_the_search_wo
     for name in ("unresolved", "forgotten"):
         (tmp_path / name).mkdir()
     forgotten = hinge(tmp_path / "forgotten", {k: v for k, v in MEASURED.items() if k != "unresolved"})
-    shot = planner.plan(load_task(forgotten)).shot
+    shot = one_shot.plan(load_task(forgotten)).shot
     task_path = hinge(tmp_path / "unresolved", MEASURED)
-    _, problem = planner.search(load_task(task_path), PlannerSettings(refine=False), 1.0, np.zeros((0, 3)),
+    _, problem = one_shot.search(load_task(task_path), PlannerSettings(refine=False), 1.0, np.zeros((0, 3)),
                                 lambda message: None)
     verification, _ = certificate.verify(problem, shot)
     (failing,) = verification.failing

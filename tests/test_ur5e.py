@@ -5,8 +5,8 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from cell import geometry
-from cell import ur5e
+from cell.core import geometry
+from cell.devices import ur5e
 
 joint = st.floats(-np.pi, np.pi, allow_nan=False)
 elbow = st.floats(-0.95 * np.pi, 0.95 * np.pi).filter(lambda q: abs(np.sin(q)) > 0.02)

@@ -1,6 +1,6 @@
 """The unmodified ur_rtde client against the loopback UR controller emulator (sim/ur_controller.py),
 run as its own process: moveL at the commanded speed, async moveL and stopL, setTcp, injected
-protective and emergency stops; cell.hw.ur.URArm moving the camera and reading it back, and its
+protective and emergency stops; cell.devices.hw.ur.URArm moving the camera and reading it back, and its
 watch on the controller: a killed, silent or dropped controller mid-move is a DeviceFault at once
 (not after ur_rtde's 300 s), as are a protective stop and a move past move_timeout_s."""
 import sys
@@ -14,12 +14,12 @@ import pytest
 import rtde_control
 import rtde_receive
 
-from cell.errors import DeviceFault
-from cell.geometry import from_ur_pose
-from cell.hw import ur
-from cell.loader import load_task
-from cell.scene import look_at
-from cell import ur5e
+from cell.core.errors import DeviceFault
+from cell.core.geometry import from_ur_pose
+from cell.devices.hw import ur
+from cell.task.loader import load_task
+from cell.planning.scene import look_at
+from cell.devices import ur5e
 from sim import ur_controller
 import loopback
 from loopback import free_host, start_emulator, stop_emulator

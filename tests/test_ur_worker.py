@@ -1,4 +1,4 @@
-"""URArm's connection through the ur_rtde worker process (cell.hw.ur_worker): nothing listening, a
+"""URArm's connection through the ur_rtde worker process (cell.devices.hw.ur_worker): nothing listening, a
 listener that accepts and never answers, and a controller that goes silent at each later step of
 the connection - after RTDE's protocol version, at RTDE's start once the recipes are set up,
 after the dashboard's greeting, on the script port - are each a DeviceFault naming the arm, the
@@ -18,11 +18,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cell.errors import DeviceFault
-from cell.hw import ur
-from cell.hw.ur_worker import Worker
-from cell.loader import load_task
-from cell.scene import look_at
+from cell.core.errors import DeviceFault
+from cell.devices.hw import ur
+from cell.devices.hw.ur_worker import Worker
+from cell.task.loader import load_task
+from cell.planning.scene import look_at
 from loopback import free_host
 from sim import ur_controller
 from simcell import device_settings
@@ -39,14 +39,14 @@ def arm_config(host, timeout_s=TIMEOUT_S):
 
 
 def no_worker_left():
-    """No child of this process runs cell.hw.ur_worker (zombies included: every worker is reaped)."""
+    """No child of this process runs cell.devices.hw.ur_worker (zombies included: every worker is reaped)."""
     for stat in Path("/proc").glob("[0-9]*/stat"):
         try:
             ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
             command = (stat.parent / "cmdline").read_bytes()
         except (OSError, IndexError, ValueError):
             continue
-        if ppid == os.getpid() and b"cell.hw.ur_worker" in command:
+        if ppid == os.getpid() and b"cell.devices.hw.ur_worker" in command:
             return False
     return True
 
@@ -152,7 +152,7 @@ def test_the_move_watchers_round_trip_to_the_worker_stays_well_under_its_poll_pe
 
 def test_the_worker_starts_from_any_main_even_a_script_without_a_main_guard():
     """(multiprocessing's spawn would re-run such a script in the child and fail)"""
-    code = ("from cell.hw.ur_worker import Worker\n"
+    code = ("from cell.devices.hw.ur_worker import Worker\n"
             "worker = Worker('arm', 'UR at 127.0.0.9')\n"
             "print(worker.call([], 5.0, 'nothing'))\n"
             "worker.close()\n")

@@ -10,12 +10,18 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from cell import cli, loader, planner, regions, ur5e
-from cell.devices import check_arm_motion
-from cell.multiplan import plan_features
-from cell.plan import PlannerSettings
-from cell.scene import build_scene
-from cell.viewpoints import STAGES, plan_viewpoints, sphere_directions
+from cell import cli
+
+from cell.task import loader
+
+from cell.planning import one_shot, regions
+
+from cell.devices import ur5e
+from cell.devices.interfaces import check_arm_motion
+from cell.planning.whole_part import plan_features
+from cell.planning.plan import PlannerSettings
+from cell.planning.scene import build_scene
+from cell.planning.viewpoints import STAGES, plan_viewpoints, sphere_directions
 from dense import acceptance_failures, patch_surface, shade
 from test_loader import put, write_task
 
@@ -33,7 +39,7 @@ def requirement(plan, name):
 # --- the viewpoint requirements on the fixed camera ---
 
 def test_not_asked_the_viewpoint_requirements_are_not_judged():
-    plan = planner.plan(loader.load_task(ROOT / "tasks" / "hinge.yaml"))
+    plan = one_shot.plan(loader.load_task(ROOT / "tasks" / "hinge.yaml"))
     assert not {"resolution", "view_angle"} & {r.name for r in plan.shot.requirements}
 
 
@@ -48,8 +54,8 @@ def test_resolution_and_view_angle_are_the_pinholes_numbers_and_bind_when_too_st
         return loader.load_task(write_task(folder, lambda task, _: task["requirements"].update(req)))
 
     base_task = loader.load_task(ROOT / "tasks" / "hinge.yaml")
-    base = planner.plan(base_task)
-    loose = planner.plan(task_with(resolution_mm=0.1, view_angle_deg=10.0))
+    base = one_shot.plan(base_task)
+    loose = one_shot.plan(task_with(resolution_mm=0.1, view_angle_deg=10.0))
     assert loose.feasible and loose.shot.joints == base.shot.joints and loose.shot.exposure == base.shot.exposure
     # reported where worse, samples or the certificate's dense patch: the true patch's extremes
     points, normals = patch_surface(base_task, 6000)
@@ -61,9 +67,9 @@ def test_resolution_and_view_angle_are_the_pinholes_numbers_and_bind_when_too_st
     assert requirement(loose, "resolution").value == pytest.approx(np.exp(footprint.max() / 1e-4 - 1), rel=2e-3)
     assert requirement(loose, "view_angle").value == pytest.approx(
         np.exp(np.arccos(cos.min()) / np.radians(10.0) - 1), rel=5e-3)
-    fine = planner.plan(task_with(resolution_mm=0.09))
+    fine = one_shot.plan(task_with(resolution_mm=0.09))
     assert not fine.feasible and fine.binding == "resolution" and "93." in fine.hint
-    steep = planner.plan(task_with(view_angle_deg=2.0))
+    steep = one_shot.plan(task_with(view_angle_deg=2.0))
     assert not steep.feasible and steep.binding == "view_angle"
 
 
@@ -149,7 +155,7 @@ def test_a_pose_the_arm_cannot_reach_is_pruned(planned):
                   features=(replace(leaf, requirements=replace(leaf.requirements, resolution_m=None)),))
     grid = regions.SphereGrid(np.radians(PlannerSettings().grid_step_deg))
     scene = build_scene(far)
-    views = plan_viewpoints(far, scene, planner.visibility_map(scene, grid), grid)
+    views = plan_viewpoints(far, scene, one_shot.visibility_map(scene, grid), grid)
     assert views.kept == () and views.pruned["reach"] > 0, views.to_json()
     assert views.pruned["workspace"] == views.pruned["resolution"] == views.pruned["seen"] == 0
     assert "by reach" in views.why_none()

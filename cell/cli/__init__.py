@@ -6,7 +6,7 @@ import re
 import signal
 import sys
 
-from cell.errors import CellError
+from cell.core.errors import CellError
 
 # sub-command -> the module of this package implementing `command(args) -> int`, imported only
 # when run: `cell check` loads no Warp, SciPy optimizer or matplotlib
@@ -57,7 +57,7 @@ def one_feature(task, command):
     """The task, refused (bad input, exit 2) when it has several features or a planned camera
     viewpoint: `command` drives one shot at the fixed camera rule; running several, or a planned
     viewpoint, is not yet supported (`cell plan` plans them)."""
-    from cell.errors import TaskError
+    from cell.core.errors import TaskError
     if len(task.features) != 1:
         raise TaskError(task.path, "features", f"{len(task.features)} features",
                         f"one feature for `cell {command}`: running several shots is not yet supported "
@@ -103,7 +103,7 @@ def _check_folder(folder):
 
 
 def _bad_out(found, expected):
-    from cell.errors import TaskError
+    from cell.core.errors import TaskError
     return TaskError("command line", "--out", found, expected)
 
 

@@ -2,9 +2,11 @@
 bench.json and bench.png in DIR, progress on stderr."""
 import sys
 
-from cell import bench, jsonio
+from cell.bench import suite
+
+from cell.core import jsonio
 from cell.cli import create_folder, output_folder
-from cell.loader import load_task
+from cell.task.loader import load_task
 
 
 def text_table(header, rows):
@@ -72,7 +74,7 @@ def summary(settings):
 
 
 def multi_feature(task):
-    """Whether the task gets cell.feature_bench's rows (several features or a planned viewpoint)
+    """Whether the task gets cell.bench.multi_feature's rows (several features or a planned viewpoint)
     rather than the settings sweep and kernel rows of one shot."""
     return len(task.features) > 1 or task.camera.viewpoint.mode != "fixed"
 
@@ -81,18 +83,18 @@ def command(args):
     def say(msg):
         print(msg, file=sys.stderr, flush=True)
 
-    from cell.feature_bench import FEATURE_TASKS
-    from cell.pictures import write_bench
+    from cell.bench.multi_feature import FEATURE_TASKS
+    from cell.report.pictures import write_bench
     out = output_folder(args.out, "bench")
     if args.tasks:
         paths = args.tasks
     else:
-        paths = list(bench.DEFAULT_TASKS) + list(FEATURE_TASKS)
+        paths = list(suite.DEFAULT_TASKS) + list(FEATURE_TASKS)
     loaded = [load_task(path) for path in paths]          # all first
     tasks = [t for t in loaded if not multi_feature(t)]
     feature_tasks = [t for t in loaded if multi_feature(t)]
     create_folder(out)
-    result = bench.run(tasks, args.quick, say, feature_tasks)
+    result = suite.run(tasks, args.quick, say, feature_tasks)
     text = jsonio.dumps(result, indent=2)
     (out / "bench.json").write_text(text + "\n")
     if result["settings"]:              # bench.png: the one-feature settings sweep

@@ -9,11 +9,13 @@ from pathlib import Path
 
 import numpy as np
 
-from cell import backends, jsonio
+from cell.run import backends
+
+from cell.core import jsonio
 from cell.cli import create_folder, one_feature, output_folder
-from cell.errors import TaskError
-from cell.loader import load_task
-from cell.operator import Operator
+from cell.core.errors import TaskError
+from cell.task.loader import load_task
+from cell.devices.operator import Operator
 
 def command(args):
     routine = {"camera-constant": camera_constant, "reference-part": reference_part, "hand-eye": hand_eye}
@@ -21,7 +23,7 @@ def command(args):
 
 
 def camera_constant(args):
-    from cell import camera_constant as routine
+    from cell.calibration import camera_constant as routine
 
     if args.shots < routine.MIN_FRAMES:
         raise TaskError("command line", "--shots", args.shots, f"an integer >= {routine.MIN_FRAMES}")
@@ -57,7 +59,7 @@ def camera_constant(args):
 
 
 def reference_part(args):
-    from cell.calibrate import MIN_SHOTS, run
+    from cell.calibration.reference_part import MIN_SHOTS, run
 
     if args.shots < MIN_SHOTS:
         raise TaskError("command line", "--shots", args.shots, f"an integer >= {MIN_SHOTS}")
@@ -85,8 +87,8 @@ def reference_part(args):
 
 
 def hand_eye(args):
-    from cell import hand_eye as routine
-    from cell.camera_constant import check_camera_file
+    from cell.calibration import hand_eye as routine
+    from cell.calibration.camera_constant import check_camera_file
 
     if args.poses < routine.MIN_POSES:
         raise TaskError("command line", "--poses", args.poses, f"an integer >= {routine.MIN_POSES}")

@@ -3,7 +3,7 @@ surface as the planner does (so a patch over an edge is refused here too), print
 units people read."""
 import numpy as np
 
-from cell.loader import load_task
+from cell.task.loader import load_task
 
 
 def _span(pair, scale=1.0, unit=""):
@@ -89,7 +89,7 @@ def patch_line(task, scene, label="patch"):
 
 
 def command(args):
-    from cell.scene import build_scene          # Warp's BVH: the planner's own patch, no copy
+    from cell.planning.scene import build_scene          # Warp's BVH: the planner's own patch, no copy
 
     task = load_task(args.task)
     print(summarize(task))

@@ -9,10 +9,10 @@ from pathlib import Path
 
 import yaml
 
-from cell import jsonio
-from cell.errors import TaskError
-from cell.fit import SIGNIFICANCE, TERMS, absent_notes, fit_material, material_document, read_goniometer
-from cell.material import PARAMETERS
+from cell.core import jsonio
+from cell.core.errors import TaskError
+from cell.physics.brdf_fit import SIGNIFICANCE, TERMS, absent_notes, fit_material, material_document, read_goniometer
+from cell.physics.material import PARAMETERS
 
 
 def summary(fits):

@@ -5,9 +5,9 @@ import sys
 
 import numpy as np
 
-from cell import jsonio
-from cell.backends import check_hw_devices
-from cell.loader import load_task
+from cell.core import jsonio
+from cell.run.backends import check_hw_devices
+from cell.task.loader import load_task
 
 
 def _rounded(values, decimals):

@@ -1,20 +1,22 @@
 """`cell plan TASK... [--out DIR] [--json] [--workers N | --scheduler ADDRESS]`: exit 0 feasible
 (every feature of every task covered), 1 infeasible (with the reason: the first uncovered feature
 and its cause), 2 bad input. With --workers or --scheduler the plans' jobs run on Dask
-(cell.parallel); the plans are the serial ones."""
+(cell.planning.parallel); the plans are the serial ones."""
 import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
-from cell import jsonio, parallel
+from cell.core import jsonio
+
+from cell.planning import parallel
 from cell.cli import create_folder, output_folder
-from cell.errors import PlanInfeasible, TaskError
-from cell.loader import load_task
-from cell.multiplan import own_plan, plan_features
-from cell.plan import PlannerSettings, gray_stats
-from cell.recorder import write_plan
+from cell.core.errors import PlanInfeasible, TaskError
+from cell.task.loader import load_task
+from cell.planning.whole_part import own_plan, plan_features
+from cell.planning.plan import PlannerSettings, gray_stats
+from cell.report.recorder import write_plan
 
 
 def summary(plan):

@@ -1,12 +1,12 @@
 """`cell run TASK [--backend sim|hw] [--out DIR] [--max-iterations N] [--yes]`: exit 0 when every
 feature pixel ends in the gray band, 1 when not (with the reason), 3 on a device fault. A task
-with several features, or planned viewpoints, runs its shots (cell.inspection)."""
+with several features, or planned viewpoints, runs its shots (cell.run.inspection)."""
 from pathlib import Path
 
-from cell import backends, loop
+from cell.run import backends, loop
 from cell.cli import create_folder, output_folder
-from cell.errors import TaskError
-from cell.loader import load_task
+from cell.core.errors import TaskError
+from cell.task.loader import load_task
 
 
 def command(args):
@@ -31,7 +31,7 @@ def command(args):
 
 def shots(task, out, backend, args):
     """The shots of a task with several features or planned viewpoints, and a line per feature."""
-    from cell import inspection
+    from cell.run import inspection
     first = task.with_feature(0)            # the simulated cell renders the first feature's scene
     result = inspection.run(task, out, lambda scene: backends.open_devices(first, scene, backend, args.yes),
                             args.max_iterations)

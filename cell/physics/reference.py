@@ -1,7 +1,7 @@
 """NumPy references of the kernels in kernels/, for the tests and `cell bench`.
 
 Here in cell, not in kernels, because they are built from the readable physics (cell.physics.brdf,
-radiometry) and cell.material, and kernels/ knows nothing of cell; rays by brute-force
+radiometry) and cell.physics.material, and kernels/ knows nothing of cell; rays by brute-force
 Moller-Trumbore over every triangle in float64 (trimesh's ray module would need the optional
 `rtree` package, which the project does not depend on). Slow, readable, independent of Warp.
 `mesh` is anything with .vertices (V, 3) and .faces (F, 3): a WarpMesh (its float32
@@ -9,8 +9,8 @@ geometry, exactly what the kernels see) or a trimesh.Trimesh.
 """
 import numpy as np
 
-from cell import geometry
-from cell.material import Material
+from cell.core import geometry
+from cell.physics.material import Material
 from cell.physics import brdf, radiometry
 from kernels.gray import GrayResult
 from kernels.render import RenderResult

@@ -1,0 +1,59 @@
+"""The project's one exception hierarchy; the CLI turns each into one line and an exit code."""
+
+
+class CellError(Exception):
+    """Base of every error the CLI reports as one line."""
+
+    exit_code = 1
+
+
+class TaskError(CellError):
+    """Bad input: a task, mesh, material table, data file or CLI argument (exit 2)."""
+
+    exit_code = 2
+
+    def __init__(self, file, key, found, expected):
+        self.file, self.key, self.found, self.expected = str(file), key, found, expected
+        where = f"{_one_line(self.file)}: {_one_line(key)}" if key else _one_line(self.file)
+        super().__init__(f"{where}: found {_one_line(found)}, expected {_one_line(expected)}")
+
+    def __reduce__(self):
+        """Pickled by its own arguments: a Dask worker's error comes back to the client whole."""
+        return type(self), (self.file, self.key, self.found, self.expected)
+
+
+def _one_line(text):
+    """text with control characters escaped (a key written as "a\nb" in a file), so that an
+    error stays one line."""
+    text = str(text)
+    return text if text.isprintable() else text.encode("unicode_escape").decode("ascii")
+
+
+class PlanInfeasible(CellError):
+    """Physics says no: the goal cannot be reached with the given cell (exit 1)."""
+
+    exit_code = 1
+
+
+class GoalNotReached(CellError):
+    """The closed loop ran but the feature's gray did not reach the band; says why (exit 1) and,
+    where the loop decided it, names the cause (cell.run.loop.CAUSES)."""
+
+    exit_code = 1
+
+    def __init__(self, message, cause=None):
+        self.cause = cause
+        super().__init__(message)
+
+
+class DeviceFault(CellError):
+    """A device failed or refused a command; motion has been stopped (exit 3)."""
+
+    exit_code = 3
+
+    def __init__(self, device, reason):
+        self.device, self.reason = device, reason
+        super().__init__(f"{device}: {reason}")
+
+    def __reduce__(self):
+        return type(self), (self.device, self.reason)

@@ -1,0 +1,249 @@
+"""The devices the closed loop drives, as small interfaces with simulated (sim/) and real
+(cell/devices/hw.py) implementations side by side, built in cell.run.backends from the task's settings
+(cell.task.device_config, docs/devices.md).
+
+Every motion is checked against the envelope and speed limits here, in the interface, before a
+backend sees it, so no backend can skip the check. A refused or failed command raises
+DeviceFault; state is read back from the device, never assumed.
+"""
+from abc import ABC, abstractmethod
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import numpy as np
+
+from cell.core.errors import DeviceFault
+from cell.devices.rig import lamp_aim, lamp_position
+from cell.devices.session import try_all
+
+__all__ = ["Arm", "LampRig", "Camera", "Devices", "check_arm_motion", "speaking_for"]
+
+# what device libraries raise: serial.SerialException and socket errors are OSErrors (an unplugged
+# USB adapter, OSError 19 from a camera), ur_rtde raises RuntimeError
+LIBRARY_ERRORS = (OSError, RuntimeError, EOFError)
+
+
+@contextmanager
+def speaking_for(device):
+    """Device calls inside this block: whatever the device's library raises becomes a DeviceFault
+    naming the device (`device.device`), so the run stops safely and exits 3, never a traceback."""
+    try:
+        yield
+    except LIBRARY_ERRORS as err:
+        raise DeviceFault(device.device, f"{type(err).__name__}: {err}") from err
+
+
+def check_arm_motion(config, frames, T_cell_cam, speed_m_s):
+    """Refuse (DeviceFault) a camera pose whose camera or flange (by the frames' hand-eye) leaves
+    the workspace box, a matrix that is not a rigid transform, or a speed above the limit -
+    before anything moves."""
+    T = np.asarray(T_cell_cam, float)
+    R = T[:3, :3] if T.shape == (4, 4) else np.zeros((3, 3))
+    if not (np.allclose(R.T @ R, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0):
+        raise DeviceFault("arm", "camera pose is not a rigid transform: refused before moving")
+    if not 0 < speed_m_s <= config.speed_m_s:
+        raise DeviceFault("arm", f"speed {speed_m_s} m/s outside (0, {config.speed_m_s}] m/s: "
+                                 "refused before moving")
+    flange = frames.T_cell_flange(T)
+    lo, hi = config.workspace_min_m, config.workspace_max_m
+    for name, p in (("camera", T[:3, 3]), ("flange", flange[:3, 3])):
+        if np.any(p < lo) or np.any(p > hi):
+            raise DeviceFault("arm", f"{name} at {np.round(p, 3).tolist()} m is outside the workspace "
+                                     f"{lo.tolist()}..{hi.tolist()} m: refused before moving")
+
+
+class Arm(ABC):
+    """Carries the camera. Poses are T_cell_cam (camera frame in the cell frame); the robot base
+    and the hand-eye are the task's frames (cell.core.frames.Frames)."""
+
+    device = "arm"
+
+    def __init__(self, config, frames):
+        self.config, self.frames = config, frames
+
+    def move_camera(self, T_cell_cam, speed_m_s=None):
+        """Move so the camera frame is at T_cell_cam; returns when there, raises DeviceFault on
+        limits, unreachable poses or a device error."""
+        speed = self.config.speed_m_s if speed_m_s is None else speed_m_s
+        check_arm_motion(self.config, self.frames, T_cell_cam, speed)
+        self._move_tcp(self.frames.T_base_cam(T_cell_cam), speed)
+
+    def refusal(self, T_cell_cam, speed_m_s=None):
+        """Why move_camera would refuse this pose (the envelope's check, then the backend's reach),
+        or None; moves nothing. A backend without kinematics of its own finds out when it moves."""
+        speed = self.config.speed_m_s if speed_m_s is None else speed_m_s
+        try:
+            check_arm_motion(self.config, self.frames, T_cell_cam, speed)
+        except DeviceFault as refused:
+            return refused.reason
+        return self._unreachable(self.frames.T_base_cam(T_cell_cam))
+
+    def _unreachable(self, T_base_cam):
+        """Why the robot cannot put the camera at T_base_cam (None: it can, or cannot tell)."""
+        return None
+
+    def camera_pose(self):
+        """The actual T_cell_cam, read back from the device."""
+        return self.frames.T_cell_cam_from_base(self._tcp_pose())
+
+    @abstractmethod
+    def _move_tcp(self, T_base_cam, speed_m_s):
+        """Move the camera (the TCP) to T_base_cam in the robot's base frame."""
+
+    @abstractmethod
+    def _tcp_pose(self):
+        """Actual T_base_cam."""
+
+    @abstractmethod
+    def stop(self):
+        """Stop any motion now."""
+
+    def state(self):
+        """What the arm reports, read back and JSON-ready (`cell hw-check`); reads only. A backend
+        that knows more (modes, joints) says more; `problems`: what a run would stop on."""
+        return {"camera_pose": self.camera_pose().tolist(), "problems": []}
+
+    def close(self):
+        """Release the connection (after stop)."""
+
+
+def _check_range(device, name, value, bounds, degrees=False):
+    lo, hi = bounds
+    if not lo - 1e-9 <= value <= hi + 1e-9:
+        show, unit = (np.degrees, "deg") if degrees else (float, "m")
+        raise DeviceFault(device, f"{name} {show(value):.4g} {unit} outside the rig's range "
+                                  f"[{show(lo):.4g}, {show(hi):.4g}] {unit}: refused before moving")
+
+
+class LampRig(ABC):
+    """Moves the lamp on its sphere around the pivot (task's lamp.rig): pan about the cell's z,
+    tilt as elevation, radius by a servo or by the operator (radius_axis: manual)."""
+
+    device = "pan-tilt"
+
+    def __init__(self, rig, operator):
+        self.rig, self.operator = rig, operator
+        self.manual_radius = rig.radius_axis == "manual"
+        self._confirmed_radius = float("nan")      # manual radius: what the operator confirmed
+        if self.manual_radius:
+            operator.require(self.device, "the lamp radius (radius_axis: manual)")
+
+    def move(self, pan_rad, tilt_rad, radius_m):
+        """Move to the joints (checked against the rig's ranges first); a manual radius is then
+        set by the operator."""
+        pan = self._in_range(pan_rad, tilt_rad, radius_m)
+        self._move_axes(pan, tilt_rad, None if self.manual_radius else radius_m)
+        if self.manual_radius and not abs(radius_m - self._confirmed_radius) < 0.5e-3:
+            self.operator.confirm(self.device, f"set the lamp radius (pivot to lamp) to "
+                                               f"{radius_m * 1e3:.1f} mm")
+            self._confirmed_radius = radius_m
+
+    def _in_range(self, pan_rad, tilt_rad, radius_m):
+        """The pan (+ 2 pi k) within the rig's range, or DeviceFault for joints outside it."""
+        lo, hi = self.rig.pan_range_rad      # pan turns about z: pan + 2 pi k may be the one in range
+        pan = next((p for p in pan_rad + 2 * np.pi * np.array([0.0, -1.0, 1.0])
+                    if lo - 1e-9 <= p <= hi + 1e-9), pan_rad)
+        _check_range(self.device, "pan", pan, self.rig.pan_range_rad, degrees=True)
+        _check_range(self.device, "tilt", tilt_rad, self.rig.tilt_range_rad, degrees=True)
+        _check_range(self.device, "radius", radius_m, self.rig.radius_range_m)
+        return pan
+
+    def refusal(self, pan_rad, tilt_rad, radius_m):
+        """Why move would refuse these joints (outside the rig's ranges), or None; moves nothing."""
+        try:
+            self._in_range(pan_rad, tilt_rad, radius_m)
+        except DeviceFault as refused:
+            return refused.reason
+        return None
+
+    def joints(self):
+        """(pan, tilt, radius) read back; a manual radius is the one the operator confirmed."""
+        pan, tilt, radius = self._read_axes()
+        return pan, tilt, self._confirmed_radius if self.manual_radius else radius
+
+    def lamp_pose(self):
+        """(position, aim) of the lamp in the cell frame from the read-back joints."""
+        position = lamp_position(self.rig.pivot_m, *self.joints())
+        return position, lamp_aim(self.rig.pivot_m, position)
+
+    @abstractmethod
+    def _move_axes(self, pan_rad, tilt_rad, radius_m):
+        """Drive the axes (radius_m is None when the operator sets it) and wait until there."""
+
+    @abstractmethod
+    def _read_axes(self):
+        """(pan, tilt, radius or None) as the device reports them."""
+
+    @abstractmethod
+    def stop(self, fault_is_own=False):
+        """Hold position with torque on; torque off only if the fault is the servos' own."""
+
+    def state(self):
+        """The read-back joints [rad, m], JSON-ready (`cell hw-check`); reads only. `problems`:
+        what a run would stop on."""
+        pan, tilt, radius = self.joints()
+        return {"pan_rad": float(pan), "tilt_rad": float(tilt),
+                "radius_m": None if radius is None or np.isnan(radius) else float(radius), "problems": []}
+
+    def close(self):
+        """Release the port (after stop)."""
+
+
+class Camera(ABC):
+    """Takes gray images (uint8 or uint16 by bit depth) with a set shutter time, f-number and
+    focus distance."""
+
+    device = "camera"
+
+    def __init__(self, bit_depth):
+        self.bit_depth = bit_depth
+        self.shutter_s = None
+        self.f_number = None
+        self.focus_m = None
+
+    @abstractmethod
+    def set_exposure(self, shutter_s):
+        """Set the shutter time; returns the one the camera actually uses [s]."""
+
+    @abstractmethod
+    def set_aperture(self, f_number):
+        """Set the f-number (motorized, or by the operator)."""
+
+    @abstractmethod
+    def set_focus(self, focus_m):
+        """Focus the lens at this distance along the optical axis [m] (motorized, or by the
+        operator)."""
+
+    @abstractmethod
+    def capture(self):
+        """One gray image (H, W) as uint8 (bit depth <= 8) or uint16."""
+
+    def state(self):
+        """What the camera reports, JSON-ready (`cell hw-check`); sets nothing. A backend that
+        can ask the device (model, pixel format, exposure range) says more; `problems`: what a run
+        would stop on."""
+        return {"bit_depth": self.bit_depth, "shutter_s": self.shutter_s, "f_number": self.f_number,
+                "focus_m": self.focus_m, "problems": []}
+
+    def close(self):
+        """Release the camera."""
+
+
+@dataclass
+class Devices:
+    """The cell's three devices, with the safe stop every fault ends in (hardware notes)."""
+
+    arm: Arm
+    lamp: LampRig
+    camera: Camera
+
+    def safe_stop(self, fault=None):
+        """Stop the arm, hold the servos (torque off only for their own fault), close the camera.
+        Every step is tried; returns the messages of steps that failed, in turn."""
+        lamp_faulted = isinstance(fault, DeviceFault) and fault.device == self.lamp.device
+        steps = (self.arm.stop, lambda: self.lamp.stop(fault_is_own=lamp_faulted), self.camera.close)
+        return try_all(steps)
+
+    def close(self):
+        """Release everything after a normal end."""
+        return try_all((self.arm.close, self.lamp.close, self.camera.close))

@@ -1,0 +1,46 @@
+"""The operator at the cell: told what to set by hand (a manual lamp radius, the lens, the reference
+part), confirming with Enter on the console."""
+import sys
+
+from cell.core.errors import DeviceFault
+
+
+class Operator:
+    """Tells the operator what to set by hand and waits for Enter; `yes` confirms for them
+    (tests, `--yes`). Without `yes` a prompt needs an interactive stdin, else it is a fault."""
+
+    def __init__(self, yes=False, stdin=None, stdout=None):
+        self.yes, self._stdin, self._stdout = yes, stdin, stdout
+
+    @property
+    def stdin(self):
+        return self._stdin or sys.stdin
+
+    @property
+    def stdout(self):
+        return self._stdout or sys.stdout
+
+    @property
+    def interactive(self):
+        """Whether someone can answer at stdin: a terminal (not a file, a pipe, or none at all,
+        as when started with stdin closed, `<&-`)."""
+        try:
+            return self.stdin is not None and self.stdin.isatty()
+        except (ValueError, OSError):           # a closed or broken stream
+            return False
+
+    def require(self, device, what):
+        """Fail now, before anything moves, if a later prompt could not be answered."""
+        if not (self.yes or self.interactive):
+            raise DeviceFault(device, f"{what} needs the operator, but stdin is not a terminal: "
+                                      "run with --yes to confirm operator steps")
+
+    def confirm(self, device, instruction):
+        print(f"{device}: {instruction}", file=self.stdout, flush=True)
+        if self.yes:
+            print("  (confirmed automatically: --yes)", file=self.stdout, flush=True)
+            return
+        self.require(device, f"'{instruction}'")
+        print("  press Enter when done", file=self.stdout, flush=True)
+        if not self.stdin.readline():
+            raise DeviceFault(device, f"stdin closed before the operator confirmed: {instruction}")

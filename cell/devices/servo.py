@@ -1,0 +1,107 @@
+"""Dynamixel X-series servos without the SDK: the control table (ROBOTIS e-Manual, XM430-W350) and
+ServoRig, which maps the rig's joints to servo ticks (4096 a turn, 2048 the centre) so the
+simulated and the real pan-tilt quantize alike. The real SDK calls live in cell/devices/hw/dynamixel.py;
+the simulated pan-tilt and the servo emulator use this table too, without loading the SDK.
+"""
+from abc import abstractmethod
+from collections import namedtuple
+
+import numpy as np
+
+from cell.devices.interfaces import LampRig
+from cell.core.errors import DeviceFault
+
+Item = namedtuple("Item", "address size")
+MODEL_NUMBER = Item(0, 2)
+FIRMWARE_VERSION = Item(6, 1)
+ID = Item(7, 1)
+OPERATING_MODE = Item(11, 1)
+TEMPERATURE_LIMIT = Item(31, 1)          # [deg C]
+MAX_POSITION_LIMIT = Item(48, 4)
+MIN_POSITION_LIMIT = Item(52, 4)
+SHUTDOWN = Item(63, 1)
+TORQUE_ENABLE = Item(64, 1)
+LED = Item(65, 1)
+HARDWARE_ERROR_STATUS = Item(70, 1)
+PROFILE_ACCELERATION = Item(108, 4)
+PROFILE_VELOCITY = Item(112, 4)
+GOAL_POSITION = Item(116, 4)
+MOVING = Item(122, 1)
+PRESENT_POSITION = Item(132, 4)
+PRESENT_INPUT_VOLTAGE = Item(144, 2)     # [0.1 V]
+PRESENT_TEMPERATURE = Item(146, 1)       # [deg C]
+EEPROM_END = 64                         # addresses below are writable only with torque off
+
+MODELS = {1020: "XM430-W350", 1030: "XM430-W210"}   # models with exactly this table
+POSITION_MODE = 3
+TICKS_PER_TURN = 4096
+CENTRE_TICK = 2048
+PROFILE_VELOCITY_RPM = 0.229            # Profile Velocity unit [rev/min]
+INPUT_VOLTAGE_UNIT_V = 0.1              # Present Input Voltage unit
+ALERT = 0x80                            # status packet error byte: see Hardware Error Status
+HARDWARE_ERRORS = {0: "input voltage", 2: "overheating", 3: "motor encoder",
+                   4: "electrical shock", 5: "overload"}
+
+
+def describe_hardware_error(bits):
+    """Hardware Error Status (70) as text, e.g. '0x24 (overheating, overload)'."""
+    names = [name for bit, name in HARDWARE_ERRORS.items() if bits >> bit & 1] or ["unknown bit"]
+    return f"0x{bits:02X} ({', '.join(names)})"
+
+
+def profile_velocity(speed_rad_s):
+    """Profile Velocity (112) value for a joint speed; at least 1, as 0 means unlimited."""
+    return max(1, round(speed_rad_s * 60 / (2 * np.pi) / PROFILE_VELOCITY_RPM))
+
+
+class ServoRig(LampRig):
+    """A LampRig on position-controlled servos: pan and tilt (and the radius when
+    radius_axis is servo) as ticks, checked against each servo's position limits."""
+
+    def __init__(self, rig, config, operator):
+        super().__init__(rig, operator)
+        self.config = config
+        self.ids = [config.pan_id, config.tilt_id] + ([] if self.manual_radius else [config.radius_id])
+        self.limits = {}                          # id -> (min tick, max tick), read from the servo
+
+    def goal_ticks(self, pan, tilt, radius):
+        """{id: tick} for the joints; pan wraps (it turns about z), tilt and radius do not."""
+        c = self.config
+        pan_rel = (pan - c.pan_offset_rad + np.pi) % (2 * np.pi) - np.pi
+        goals = {c.pan_id: CENTRE_TICK + round(pan_rel * TICKS_PER_TURN / (2 * np.pi)),
+                 c.tilt_id: CENTRE_TICK + round((tilt - c.tilt_offset_rad) * TICKS_PER_TURN / (2 * np.pi))}
+        if radius is not None:
+            (r0, r1), (t0, t1) = self.rig.radius_range_m, c.radius_ticks
+            goals[c.radius_id] = round(t0 + (radius - r0) / (r1 - r0) * (t1 - t0))
+        return goals
+
+    def joints_from_ticks(self, ticks):
+        """(pan, tilt, radius or None) from {id: tick}: the quantized joints the servos hold."""
+        c = self.config
+        pan = (ticks[c.pan_id] - CENTRE_TICK) * 2 * np.pi / TICKS_PER_TURN + c.pan_offset_rad
+        tilt = (ticks[c.tilt_id] - CENTRE_TICK) * 2 * np.pi / TICKS_PER_TURN + c.tilt_offset_rad
+        radius = None
+        if c.radius_id in ticks:
+            (r0, r1), (t0, t1) = self.rig.radius_range_m, c.radius_ticks
+            radius = r0 + (ticks[c.radius_id] - t0) / (t1 - t0) * (r1 - r0)
+        return (pan + np.pi) % (2 * np.pi) - np.pi, tilt, radius
+
+    def _move_axes(self, pan, tilt, radius):
+        goals = self.goal_ticks(pan, tilt, radius)
+        for dxl_id, tick in goals.items():
+            lo, hi = self.limits[dxl_id]
+            if not lo <= tick <= hi:
+                raise DeviceFault(self.device, f"servo {dxl_id}: goal tick {tick} outside its position "
+                                               f"limits [{lo}, {hi}]: refused before moving")
+        self._drive(goals)
+
+    def _read_axes(self):
+        return self.joints_from_ticks(self._present_ticks())
+
+    @abstractmethod
+    def _drive(self, goals):
+        """Send the goal ticks and return once every servo holds its goal."""
+
+    @abstractmethod
+    def _present_ticks(self):
+        """{id: Present Position}."""

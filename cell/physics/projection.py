@@ -1,0 +1,62 @@
+"""Pinhole camera of the task's sensor and lens (OpenCV convention: z forward, x right, y down).
+
+K = [[f/p, 0, cx], [0, f/p, cy], [0, 0, 1]] with f the focal length, p the pixel pitch and the
+principal point at the sensor centre. Shared by the simulated camera (rays per pixel) and the
+closed loop (where the feature's samples land in the image).
+"""
+import numpy as np
+
+from cell.core import geometry
+
+
+def intrinsics(sensor, lens):
+    """3x3 camera matrix K [px]."""
+    f_px = lens.focal_length_m / sensor.pixel_pitch_m
+    return np.array([[f_px, 0.0, (sensor.width_px - 1) / 2.0],
+                     [0.0, f_px, (sensor.height_px - 1) / 2.0],
+                     [0.0, 0.0, 1.0]])
+
+
+def project(K, T_cell_cam, points):
+    """Pixel coordinates (N, 2) (x right, y down) and depth along the optical axis (N,) [m] of
+    cell-frame points; points behind the camera get NaN pixels."""
+    local = geometry.apply(np.linalg.inv(T_cell_cam), np.asarray(points, dtype=float).reshape(-1, 3))
+    z = local[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = (local @ K.T)[:, :2] / z[:, None]
+    uv[z <= 0] = np.nan
+    return uv, z
+
+
+def pixel_rays(K, T_cell_cam, width, height):
+    """Unit ray directions (H*W, 3) in the cell frame through every pixel centre, row-major."""
+    u, v = np.meshgrid(np.arange(width, dtype=float), np.arange(height, dtype=float))
+    pixels = np.column_stack([u.ravel(), v.ravel(), np.ones(u.size)])
+    local = pixels @ np.linalg.inv(K).T
+    return geometry.unit(geometry.rotate(T_cell_cam, local))
+
+
+def view_angles(camera, points, normals):
+    """(N,) angle between each surface normal and the direction to the camera [rad] (0: seen
+    head-on, pi / 2: grazing)."""
+    v = geometry.unit(np.asarray(camera, float) - np.asarray(points, float))
+    return np.arccos(np.clip(np.sum(v * np.asarray(normals, float), axis=-1), -1.0, 1.0))
+
+
+def pixel_footprint(camera, points, normals, pixel_pitch_m, focal_length_m):
+    """(N,) the length one pixel covers on the surface at each point [m]: |p - C| pitch / f across
+    the ray (the pinhole's magnification), stretched by 1 / cos(view angle) along the slant (the
+    longer side of the pixel's footprint); inf where the camera is behind the surface."""
+    distance = np.linalg.norm(np.asarray(points, float) - np.asarray(camera, float), axis=-1)
+    cos = np.cos(view_angles(camera, points, normals))
+    with np.errstate(divide="ignore"):
+        return np.where(cos > 0, distance * pixel_pitch_m / focal_length_m / np.maximum(cos, 0.0), np.inf)
+
+
+def frustum_corners(K, T_cell_cam, width, height, depth_m):
+    """(4, 3) cell-frame corners of the image (its outer pixel edges, clockwise in the image from
+    top left) at depth_m along the optical axis: depth K^-1 [u, v, 1], a rectangle W p d / f by
+    H p d / f."""
+    corners = np.array([[-0.5, -0.5, 1.0], [width - 0.5, -0.5, 1.0], [width - 0.5, height - 0.5, 1.0],
+                        [-0.5, height - 0.5, 1.0]])
+    return geometry.apply(T_cell_cam, depth_m * corners @ np.linalg.inv(K).T)

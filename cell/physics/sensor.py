@@ -1,0 +1,15 @@
+"""The sensor's digital output: the largest gray it reports and the integer levels its ADC
+delivers (the rest of the EMVA 1288 model is radiometry's and the simulator's)."""
+import numpy as np
+
+
+def saturation_level(bit_depth):
+    """The largest gray a bit_depth sensor reports: a pixel there may truly be brighter."""
+    return 2 ** int(bit_depth) - 1
+
+
+def levels(gray, bit_depth):
+    """Integer gray clipped to [0, saturation_level], as a bit_depth ADC delivers it (uint8 up
+    to 8 bits, else uint16)."""
+    dtype = np.uint8 if bit_depth <= 8 else np.uint16
+    return np.clip(np.rint(gray), 0, saturation_level(bit_depth)).astype(dtype)

@@ -1,0 +1,9 @@
+"""Planning (sec. 2, 5 of the paper): the task's geometry (`scene`), the spherical maps
+(`regions`), one shot's problem and the model's prediction over lamp poses (`evaluate`), the
+requirement registry (`requirements`), one shot's lamp and camera settings (`one_shot`: global
+search, refinement, `certificate`), planned camera viewpoints (`viewpoints`), a part's several
+features (`whole_part`: candidate shots, `coverage` of each feature, `set_cover` for the fewest
+shots), where independent jobs run (`parallel`); what it produces is `plan` (Plan, Shot).
+
+Layer 5: imports `cell.core`, `cell.physics`, `cell.task`, `cell.devices` (not `hw`) and
+`kernels`."""

@@ -1,0 +1,137 @@
+"""A plan's certificate: the chosen shot checked on the feature patch at the camera's own
+sampling density, not only at the search's samples. Gray (with shadows and the cone, clipped at
+full scale), visibility in the image and the depth of field are judged at every point by the
+same requirements as the search (cell.planning.requirements), at the shot's fixed exposure, and so is
+each point's dominant BRDF term (brdf.judged_term, as the search's samples: a lamp where a spike
+the goniometer did not resolve may lie is refused at every point). A specular highlight or a
+rim point out of focus between the search's samples shows up here; the planner
+then adds the worst points to its samples and searches again (cell.planning.one_shot.plan).
+"""
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from cell.planning import evaluate, requirements
+
+from cell.core import geometry
+
+DENSE_MAX = 20_000              # points: a 12 mm patch seen by 93 um pixels needs 13 000
+# the requirements that depend on where the points are; the others are judged by the search
+JUDGED = ("gray_min", "gray_max", "reflection_region", "no_shadow", "cone_coverage", "camera_view", "view_angle",
+          "resolution", "depth_of_field")
+
+
+@dataclass(frozen=True)
+class Verification:
+    """The dense check of one shot: `holds` when every point meets every JUDGED requirement;
+    the points checked, their gray range, the worst point (farthest out of the band, else the
+    one nearest its edge), the specular point (where the mirror direction of the lamp is nearest
+    the camera's) and the requirements that failed there."""
+
+    holds: bool
+    points: int
+    gray_min: float
+    gray_max: float
+    worst_m: np.ndarray
+    worst_gray: float
+    specular_m: np.ndarray
+    specular_gray: float
+    judged: tuple               # costs.RequirementValue of each JUDGED requirement on the dense patch
+    rounds: int = 0             # searches again with worst points added
+
+    @property
+    def failing(self):
+        return tuple(r for r in self.judged if not r.met)
+
+    def to_json(self):
+        return {"holds": self.holds, "points": self.points, "gray_min": self.gray_min, "gray_max": self.gray_max,
+                "worst": {"position_m": self.worst_m.tolist(), "gray": self.worst_gray},
+                "specular": {"position_m": self.specular_m.tolist(), "gray": self.specular_gray},
+                "failing": [{"name": r.name, "value": r.value, "detail": r.detail} for r in self.failing],
+                "rounds": self.rounds}
+
+
+def worse_of(values, verification):
+    """The requirement values (costs.RequirementValue) on the samples with each the certificate
+    judges replaced by its dense value where that is worse: each reported where it is worse."""
+    dense = {r.name: r for r in verification.judged}
+    return tuple(dense[r.name] if r.name in dense and dense[r.name].value > r.value else r for r in values)
+
+
+def dense_samples(task, scene):
+    """Points for the camera's density: the patch's area over a pixel's footprint on it
+    (distance x pitch / focal length), at least the search's and at most DENSE_MAX."""
+    focus = float(np.linalg.norm(scene.camera_position - scene.center))
+    footprint = focus * task.camera.sensor.pixel_pitch_m / task.camera.lens.focal_length_m
+    count = np.pi * task.feature.radius_m**2 / footprint**2
+    return int(np.clip(count, len(scene.points), DENSE_MAX))
+
+
+def mirror_alignment(points, normals, lamp, camera):
+    """<v, r> at each point, r the lamp direction s mirrored about the normal (2 <n,s> n - s):
+    1 where the mirror direction points at the camera, the spike's peak (eq. 6-7)."""
+    s = geometry.unit(np.asarray(lamp, float) - points)
+    v = geometry.unit(np.asarray(camera, float) - points)
+    mirror = 2.0 * np.sum(normals * s, axis=-1, keepdims=True) * normals - s
+    return np.sum(mirror * v, axis=-1)
+
+
+def specular_point(scene, lamp):
+    """The patch's specular point, where <v, r> is largest: the best of the dense points, refined
+    by Nelder-Mead over a step in the feature's tangent plane projected onto the surface (a
+    highlight between the dense points, on a curved patch, is found to within float32). Returns
+    (point, outward normal) on the surface."""
+    from scipy.optimize import minimize
+
+    from kernels.proximity import closest_points
+    radius = float(np.max(np.linalg.norm(scene.points - scene.center, axis=1)))
+    start = scene.points[int(np.argmax(mirror_alignment(scene.points, scene.normals, lamp,
+                                                        scene.camera_position)))]
+
+    def on_surface(step):
+        guess = start + step[0] * scene.frame[:, 0] + step[1] * scene.frame[:, 1]
+        point, _, normal = closest_points(scene.warp_mesh, guess[None], max_dist=radius)
+        return point, normal
+
+    def f(step):
+        point, normal = on_surface(step)
+        if not np.linalg.norm(point[0] - scene.center) <= radius:     # off the patch (or no surface)
+            return 2.0
+        return -float(mirror_alignment(point, normal, lamp, scene.camera_position)[0])
+
+    d = 0.02 * radius
+    res = minimize(f, np.zeros(2), method="Nelder-Mead",
+                   options={"initial_simplex": [[0.0, 0.0], [d, 0.0], [0.0, d]], "xatol": 1e-7,
+                            "fatol": 1e-12, "maxfev": 80})
+    best = res.x if res.fun <= f(np.zeros(2)) else np.zeros(2)
+    point, normal = on_surface(best)
+    return point[0], normal[0]
+
+
+def verify(problem, shot):
+    """(Verification of the shot on the dense patch, its worst points to add to the search's
+    samples). problem: the search's Problem (its maps and albedo scale are kept)."""
+    from cell.planning.scene import build_scene
+    task = problem.task
+    scene = build_scene(task, dense_samples(task, problem.scene), T_cell_cam=problem.scene.T_cell_cam)
+    point, normal = specular_point(scene, shot.lamp_position)
+    scene = replace(scene, points=np.vstack([scene.points, point]), normals=np.vstack([scene.normals, normal]))
+    dense = evaluate.build_problem(task, scene, problem.maps, albedo_scale=1.0)
+    dense = replace(dense, material=problem.material, focus_m=problem.focus_m, kappa_open=problem.kappa_open)
+    c = evaluate.at_exposure(dense, shot.lamp_position, shot.exposure.shutter_s, shot.exposure.f_number)
+    ln = {name: v for name, v in requirements.ln_values(dense, c).items() if name in JUDGED}
+    judged = tuple(replace(r, detail=f"on the dense patch ({len(scene.points)} points): {r.detail}")
+                   for r in requirements.judged(dense, c, ln))
+    gray = np.minimum(c.gray[0], 2.0 ** task.camera.sensor.bit_depth - 1)
+    low, high = dense.band
+    miss = np.maximum(low - c.gray[0], c.gray[0] - high)
+    depths = scene.sample_depths()
+    specular = len(scene.points) - 1                # the extra point: specular_point
+    worst = int(np.argmax(miss))
+    picks = {worst, specular, int(np.argmin(c.gray[0])), int(np.argmax(c.gray[0])), int(np.argmin(depths)),
+             int(np.argmax(depths))} | set(np.flatnonzero(c.shadowed[0])[:4].tolist())
+    picks |= set(np.flatnonzero(requirements.wrong_reflection(dense, c)[0])[:4].tolist())
+    result = Verification(all(r.met for r in judged), len(scene.points), float(gray.min()), float(gray.max()),
+                          scene.points[worst], float(gray[worst]), scene.points[specular], float(gray[specular]),
+                          judged)
+    return result, scene.points[sorted(picks)]

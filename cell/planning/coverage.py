@@ -1,0 +1,73 @@
+"""Whether a given shot covers a feature: every requirement (cell.planning.requirements) on the feature's
+samples at the shot's fixed camera pose, lamp pose and exposure, the lamp moved by its tolerance
+at that exposure too, the maps for that camera position (the wanted reflection region depends on
+the view), and the dense certificate (cell.planning.certificate.verify). The search (cell.planning.one_shot) chooses
+a shot for a feature; this judges one it is given, on any feature, so its own module; the set
+cover (cell.planning.set_cover) reads its verdicts.
+
+For a feature's own planned shot it repeats the plan's judgement exactly (same samples, maps,
+focus and exposure), so it agrees with plan()'s verdict.
+"""
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from cell.planning import certificate, evaluate, requirements
+from cell.planning.one_shot import build_maps
+
+
+@dataclass(frozen=True)
+class Coverage:
+    """One feature judged on one shot: covered when every requirement is met on the samples and
+    the certificate holds on the dense patch; the predicted gray per sample (clipped at full
+    scale), each requirement's value (costs.RequirementValue, where worse: samples or dense) and
+    the certificate (None when the samples fail already: nothing to certify)."""
+
+    feature: str
+    covered: bool
+    gray: np.ndarray
+    requirements: tuple
+    verification: object = None
+
+    @property
+    def worst(self):
+        """The largest requirement value (max f_i, met when <= 1)."""
+        return max(r.value for r in self.requirements)
+
+
+def of_plan(task, plan):
+    """The Coverage of a one-feature task's own plan (its verdict, nothing judged again)."""
+    shot = plan.shot
+    return Coverage(task.feature.name, plan.feasible, shot.gray, shot.requirements, plan.verification)
+
+
+@dataclass(frozen=True)
+class Lent:
+    """What a feature's own plan lends to judging other shots on it, what does not depend on the
+    camera: its samples (the Scene, with the certificate's worst points), its settings and its
+    visibility map; a few kB where the plan with its maps is half a MB."""
+
+    scene: object
+    settings: object
+    visible: np.ndarray
+
+    @classmethod
+    def of(cls, plan):
+        return cls(plan.scene, plan.settings, plan.maps.visible)
+
+
+def judge(task, lent, shot):
+    """Coverage of `shot` (cell.planning.plan.Shot) on the one-feature `task`, whose own plan lent what
+    does not depend on the camera (Lent)."""
+    scene = replace(lent.scene, T_cell_cam=shot.T_cell_cam)
+    maps = build_maps(task, scene, lent.settings, visible=lent.visible, lamps=shot.lamp_position[None])
+    problem = evaluate.build_problem(task, scene, maps, focus_m=shot.exposure.focus_m)
+    e = shot.exposure
+    c = evaluate.at_exposure(problem, shot.lamp_position, e.shutter_s, e.f_number, joints=shot.joints)
+    values = requirements.judged(problem, c, requirements.ln_values(problem, c))
+    gray = np.minimum(c.gray[0], 2.0 ** task.camera.sensor.bit_depth - 1)
+    if not all(r.met for r in values):
+        return Coverage(task.feature.name, False, gray, values)
+    verification, _ = certificate.verify(problem, shot)
+    return Coverage(task.feature.name, verification.holds, gray, certificate.worse_of(values, verification),
+                    verification)

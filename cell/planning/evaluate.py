@@ -1,0 +1,251 @@
+"""The planning problem of one shot and what the model predicts for lamp poses on the rig,
+vectorized over candidates: gray per sample from the bulk Warp kernel (G = b + u t / kappa^2,
+eq. 10, 11, 17, b the sensor's black level), the exposure that centres it in the band (sec. 5.4)
+and the lamp moved by its tolerance.
+The requirements (cell.planning.requirements) are judged on these values."""
+from dataclasses import dataclass, field, fields, replace
+
+import numpy as np
+
+from cell.core import geometry
+
+from cell.physics import projection
+
+from cell.devices import rig
+from cell.physics.material import Material
+from cell.physics import brdf, depth_of_field as dof
+
+
+def depth_of_field_limits(task, scene, focus_m=None):
+    """(focus [m], depth of field needed [m], f-number) for the camera focused on the feature
+    centre, or at focus_m (a shot's, judged on another feature) (sec. 4.3, 5.4): the widest
+    f-number within the lens's range whose near and far limits hold the nearest and the farthest
+    sample and whose depth of field is at least the task's. The limits are judged where they
+    fall: a patch seen at a slant is not centred on the focus."""
+    lens = task.camera.lens
+    f, sigma = lens.focal_length_m, lens.circle_of_confusion_m
+    focus = float(np.linalg.norm(scene.camera_position - scene.center)) if focus_m is None else float(focus_m)
+    depths = scene.sample_depths()
+    nearest, farthest = float(depths.min()), float(depths.max())
+    wanted = task.requirements.depth_of_field_m
+    # the task's depth: closed form, rounded up by 1e-9 so it holds despite floating-point rounding
+    kappa = dof.f_number_for_depth(focus, f, sigma, wanted) * (1 + 1e-9)
+
+    def holds(k):           # with 1e-6 to spare: points on the surface are known to float32
+        return (dof.near_limit(focus, f, k, sigma) <= nearest * (1 - 1e-6)
+                and dof.far_limit(focus, f, k, sigma) >= farthest * (1 + 1e-6))
+
+    k_lo, k_hi = lens.f_number_range
+    if not holds(max(kappa, k_lo)) and holds(k_hi):
+        lo, hi = max(kappa, k_lo), k_hi              # bisection: the limits widen with kappa
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (lo, mid) if holds(mid) else (mid, hi)
+        kappa = hi
+    return focus, max(wanted, farthest - nearest), float(np.clip(kappa, k_lo, k_hi))
+
+
+def target_gray(band):
+    """The gray the exposure aims the feature at: the band's geometric centre, its low end taken
+    as at least a quarter of the high end (a band from 0 would aim at 0, a black image)."""
+    low, high = band
+    return float(np.sqrt(max(low, 0.25 * high) * high))
+
+
+class KernelInputs:
+    """A Problem's Warp inputs (kernels.gray.GrayInputs), shared with the Problems `replace`
+    makes of it (a search replaces its maps): built for the task, scene and material they were
+    made of, rebuilt where one of those is another object. Pickled empty: Warp handles stay in
+    their process."""
+
+    def __init__(self):
+        self.made_of = None
+        self.gray = None
+
+    def __getstate__(self):
+        return {}
+
+    def __setstate__(self, state):
+        self.__init__()
+
+
+@dataclass(frozen=True)
+class Problem:
+    """Everything a shot's evaluation needs, fixed before the search: the task, the scene, the
+    maps, the material as planned (albedo scaled by the loop's measured error), the gray band,
+    the sensor's black level b (the task's camera.sensor.black_level, 0 when unknown), the focus,
+    the needed depth of field, the widest f-number giving it, and how many samples the camera
+    cannot see."""
+
+    task: object
+    scene: object
+    maps: object
+    material: Material
+    band: tuple
+    black_level: float
+    focus_m: float
+    depth_needed_m: float
+    kappa_open: float
+    camera_unseen: int
+    kernels: KernelInputs = field(default_factory=KernelInputs, compare=False, repr=False)
+
+    @property
+    def gray_inputs(self):
+        """The kernel's fixed inputs (kernels.gray.GrayInputs), converted once per plan: a search
+        evaluates it hundreds of times, on Problems that differ in their maps alone."""
+        from kernels.gray import GrayInputs
+        task, scene, material = self.task, self.scene, self.material
+        made_of = self.kernels.made_of
+        if made_of is None or any(a is not b for a, b in zip(made_of, (task, scene, material))):
+            self.kernels.gray = GrayInputs(scene.warp_mesh, scene.points, scene.normals, scene.camera_position,
+                                           task.lamp.power_w, task.lamp.cone_angle_rad, material.table(),
+                                           task.camera.sensor.camera_constant, task.camera.sensor.pixel_area_m2,
+                                           profile=task.lamp.profile)
+            self.kernels.made_of = (task, scene, material)
+        return self.kernels.gray
+
+
+def planning_band(task):
+    """The gray band planned for: the task's, its top kept half a level below the sensor's full
+    scale (a pixel there reads saturated, whatever the band says)."""
+    low, high = map(float, task.requirements.gray_band)
+    return low, min(high, 2.0 ** task.camera.sensor.bit_depth - 1 - 0.5)
+
+
+def black_level(task):
+    """b of G = b + c P t [gray]: the task's camera.sensor.black_level, 0 while it is unknown."""
+    b = task.camera.sensor.black_level
+    return 0.0 if b is None else float(b)
+
+
+def build_problem(task, scene, maps, albedo_scale=1.0, focus_m=None):
+    """The Problem of a task's scene and maps, the camera focused on the feature centre or at
+    focus_m (a given shot's). A sample the camera sees lies inside the image and is not hidden
+    (a lamp at the camera would light it)."""
+    focus, needed, kappa_open = depth_of_field_limits(task, scene, focus_m)
+    p = Problem(task, scene, maps, task.part.material.scaled(albedo_scale), planning_band(task),
+                black_level(task), focus, needed, kappa_open, 0)
+    hidden = unit_gray(p, scene.camera_position[None], -scene.normal[None])[1][0]
+    sensor = task.camera.sensor
+    uv, z = projection.project(projection.intrinsics(sensor, task.camera.lens), scene.T_cell_cam, scene.points)
+    with np.errstate(invalid="ignore"):
+        in_image = ((z > 0) & (uv[:, 0] >= -0.5) & (uv[:, 0] <= sensor.width_px - 0.5)
+                    & (uv[:, 1] >= -0.5) & (uv[:, 1] <= sensor.height_px - 0.5))
+    return replace(p, camera_unseen=int(np.sum(hidden | ~in_image)))
+
+
+def unit_gray(problem, positions, aims):
+    """(gray per exposure u (C, P), shadowed (C, P), off-axis angle (C, P), dominant BRDF term
+    (C, P), as brdf.judged_term judges the kernel's) of lamps at `positions` aiming along `aims`,
+    from the Warp kernel, the irradiance by the lamp's profile (eq. 11's ideal cone without one)."""
+    out = problem.gray_inputs(positions, aims)
+    if problem.material.unresolved is None:               # nothing to judge: the kernel's term
+        return out.value, out.shadowed, out.off_axis, out.dominant
+    scene = problem.scene
+    s = geometry.unit(np.asarray(positions, float).reshape(-1, 1, 3) - scene.points[None])
+    v = geometry.unit(scene.camera_position - scene.points)[None]
+    dominant = brdf.judged_term(out.dominant, scene.normals[None], s, v, problem.material)
+    return out.value, out.shadowed, out.off_axis, dominant
+
+
+def exposure(problem, unit_gray):
+    """centring_exposure of the Problem's band, black level, camera and depth of field."""
+    cam = problem.task.camera
+    return centring_exposure(unit_gray, problem.band, problem.black_level, problem.kappa_open,
+                             cam.shutter_range_s, cam.lens.f_number_range)
+
+
+def centring_exposure(unit_gray, band, black_level, kappa_open, shutter_range, f_number_range):
+    """(shutter, f-number, shutter needed at kappa_open) putting the geometric mean of the lit
+    samples' extremes at the geometric centre of the band the signal must meet: G = b + u t /
+    kappa^2 is in [low, high] when u t / kappa^2 is in [low - b, high - b]. The f-number no
+    wider than kappa_open (the depth of field's); t_need is inf where no sample is lit."""
+    low, high = band
+    lit = unit_gray > 0.0
+    darkest = np.where(lit, unit_gray, np.inf).min(axis=-1)
+    u_mid = np.where(lit.any(axis=-1), np.sqrt(np.where(lit.any(axis=-1), darkest, 0.0)
+                                               * unit_gray.max(axis=-1)), 0.0)
+    target = target_gray((low - black_level, high - black_level))
+    t_lo, t_hi = shutter_range
+    k_hi = f_number_range[1]
+    with np.errstate(divide="ignore"):
+        t_need = np.where(u_mid > 0, kappa_open**2 * target / np.where(u_mid > 0, u_mid, 1.0), np.inf)
+    kappa = np.where(t_need < t_lo, np.sqrt(t_lo * u_mid / target), kappa_open)
+    kappa = np.clip(kappa, kappa_open, k_hi)
+    shutter = np.clip(t_need, t_lo, t_hi)
+    return shutter, kappa, t_need
+
+
+@dataclass(frozen=True)
+class Candidates:
+    """Lamp poses (C of them) and what the model predicts for each: positions (C, 3), gray
+    (C, P) at the chosen exposure, the gray with the lamp moved by its tolerance (M, C, P) at the
+    same exposure (M = 0 when not evaluated), shadowed and off-axis angle (C, P), and the
+    exposure: shutter, f-number, shutter needed (C,), and each sample's dominant BRDF term (C, P)."""
+
+    position: np.ndarray
+    gray: np.ndarray
+    moved_gray: np.ndarray
+    shadowed: np.ndarray
+    off_axis: np.ndarray
+    dominant: np.ndarray
+    shutter: np.ndarray
+    kappa: np.ndarray
+    t_need: np.ndarray
+
+    def pick(self, k):
+        """Candidate k alone, as Candidates of one."""
+        return Candidates(**{f.name: getattr(self, f.name)[:, k:k + 1] if f.name == "moved_gray"
+                             else getattr(self, f.name)[k:k + 1] for f in fields(self)})
+
+
+TOLERANCE_RING = 8          # lamp errors of lamp_tolerance in this many directions around the aim
+
+
+def tolerance_moves(problem, tilt):
+    """(d_pan, d_tilt) moving the lamp direction by lamp_tolerance in TOLERANCE_RING directions
+    (a ring: an error of that size in any direction, not only along the two axes)."""
+    tol = problem.task.requirements.lamp_tolerance_rad
+    if tol <= 0:
+        return []
+    psi = 2.0 * np.pi * np.arange(TOLERANCE_RING) / TOLERANCE_RING
+    return [(tol * np.cos(a) / np.maximum(np.cos(tilt), 1e-3), tol * np.sin(a)) for a in psi]
+
+
+def candidates(problem, pan, tilt, radius, tolerance=True):
+    """Candidates for lamp joints (C,) arrays. With `tolerance` the lamp is also moved by
+    lamp_tolerance in TOLERANCE_RING directions (one bulk call for all)."""
+    pivot = problem.task.lamp.rig.pivot_m
+    pan, tilt, radius = np.broadcast_arrays(*(np.atleast_1d(np.asarray(x, float)) for x in (pan, tilt, radius)))
+    n = len(pan)
+    moves = tolerance_moves(problem, tilt) if tolerance else []
+    all_pan = np.concatenate([pan] + [pan + dp for dp, _ in moves])
+    all_tilt = np.concatenate([tilt] + [tilt + dt for _, dt in moves])
+    all_pos = rig.lamp_position(pivot, all_pan, all_tilt, np.tile(radius, len(moves) + 1))
+    all_u, all_shadowed, all_off_axis, all_dominant = unit_gray(problem, all_pos, rig.lamp_aim(pivot, all_pos))
+    u = all_u[:n]
+    shutter, kappa, t_need = exposure(problem, u)
+    gain = (shutter / kappa**2)[:, None]
+    b = problem.black_level
+    moved = b + all_u[n:].reshape(len(moves), n, u.shape[1]) * gain
+    return Candidates(all_pos[:n], b + u * gain, moved, all_shadowed[:n], all_off_axis[:n], all_dominant[:n],
+                      shutter, kappa, t_need)
+
+
+def at_exposure(problem, position, shutter_s, f_number, joints=None):
+    """Candidates of one lamp at `position` (aiming at the rig's pivot) at a fixed shutter and
+    f-number: a chosen shot, as the certificate checks it. Given its `joints` (pan, tilt,
+    radius), the lamp is also moved by its tolerance around them, at the same exposure."""
+    pivot = problem.task.lamp.rig.pivot_m
+    pos = np.asarray(position, float).reshape(1, 3)
+    moves = [] if joints is None else tolerance_moves(problem, np.array([joints[1]]))
+    moved_pos = [rig.lamp_position(pivot, joints[0] + dp, joints[1] + dt, joints[2]).reshape(1, 3)
+                 for dp, dt in moves]
+    all_pos = np.vstack([pos, *moved_pos])
+    all_u, all_shadowed, all_off_axis, all_dominant = unit_gray(problem, all_pos, rig.lamp_aim(pivot, all_pos))
+    u, gain = all_u[:1], shutter_s / f_number**2
+    t_need = exposure(problem, u)[2]
+    b = problem.black_level
+    return Candidates(pos, b + u * gain, b + all_u[1:].reshape(len(moves), 1, u.shape[1]) * gain, all_shadowed[:1],
+                      all_off_axis[:1], all_dominant[:1], np.array([float(shutter_s)]),
+                      np.array([float(f_number)]), t_need)

@@ -1,0 +1,209 @@
+"""Illumination and sensor planning (sec. 5): lamp pose on the rig, shutter, f-number and focus.
+
+Global search over the rig's reachable candidates with the bulk Warp kernels, then Nelder-Mead
+refinement from several starts (the problem is not convex, physics notes sec. 5). Shutter and
+f-number follow the near closed form G ~ t / kappa^2 for every lamp pose (sec. 5.4, in
+cell.planning.evaluate). Feasibility is max_i f_i <= 1 over the requirement values (erratum eq. 25,
+cell.planning.requirements). The result is a cell.planning.plan.Plan of plain values: it pickles.
+"""
+import time
+from dataclasses import replace
+
+import numpy as np
+from scipy.optimize import minimize
+
+from cell.planning import certificate, evaluate, regions, requirements
+
+from cell.core import geometry
+from cell.physics import depth_of_field as dof
+from cell.planning.plan import Exposure, Maps, Plan, PlannerSettings, Refinement, Search, Shot
+
+
+def visibility_map(scene, grid):
+    """(E, A) directions of the feature frame every sample sees (Warp ray casting, sec. 2.2)."""
+    from kernels.visibility import visibility_maps
+    return visibility_maps(scene.warp_mesh, scene.points, scene.normals, scene.frame,
+                           grid.azimuth, grid.elevation).all(axis=0)
+
+
+def build_maps(task, scene, settings, visible=None, lamps=None):
+    """Visibility (all samples), BRDF, dominant-term and region distance maps (sec. 2.2, 5.2).
+    The visibility map (given: a plan's own, judging another camera pose on its samples) does not
+    depend on the camera; the others do (the view direction is in the BRDF). Given `lamps`
+    (cell-frame positions: a shot judged), the region distance only where they read it."""
+    grid = regions.SphereGrid(np.radians(settings.grid_step_deg))
+    if visible is None:
+        visible = visibility_map(scene, grid)
+    view = geometry.unit(scene.camera_position - scene.center)
+    material = task.part.material
+    dominant = regions.dominant_term_map(grid, scene.frame, scene.normal, view, material)
+    reflectance = regions.reflectance_map(grid, scene.frame, scene.normal, view, material)
+    wanted = regions.wanted_region(dominant, visible, task.requirements.reflection)
+    cells = None
+    if lamps is not None:
+        cells = grid.cells_around(*geometry.angles_from_direction((np.asarray(lamps) - scene.center) @ scene.frame))
+    distance = regions.signed_distance(grid, wanted, cells)
+    empty = np.zeros(0)
+    return Maps(grid, visible, reflectance, dominant, wanted, distance, empty, empty, empty)
+
+
+def candidate_grid(lamp_rig, settings):
+    """Pan x tilt x radius grid over the rig's ranges (pan wraps: no duplicate at +-180)."""
+    p0, p1 = lamp_rig.pan_range_rad
+    full_turn = p1 - p0 >= 2 * np.pi - 1e-9
+    n_pan = max(1, int(round((p1 - p0) / np.radians(settings.pan_step_deg)))) + (0 if full_turn else 1)
+    pan = np.linspace(p0, p1, n_pan, endpoint=not full_turn)
+    t0, t1 = lamp_rig.tilt_range_rad
+    tilt = np.linspace(t0, t1, max(2, int(round((t1 - t0) / np.radians(settings.tilt_step_deg))) + 1))
+    radius = np.linspace(*lamp_rig.radius_range_m, max(1, settings.radius_steps))
+    P, T, R = np.meshgrid(pan, tilt, radius, indexing="ij")
+    return P.ravel(), T.ravel(), R.ravel()
+
+
+def pick_starts(pan, tilt, objective_values, count, min_separation):
+    """Best candidates that are at least `min_separation` apart on the sphere (diverse starts)."""
+    order = np.argsort(objective_values)
+    chosen = []
+    dirs = geometry.direction_from_angles(pan, tilt)
+    for k in order:
+        if all(np.arccos(np.clip(dirs[k] @ dirs[j], -1, 1)) >= min_separation for j in chosen):
+            chosen.append(k)
+        if len(chosen) == count:
+            break
+    return chosen
+
+
+CERTIFY_ROUNDS = 3          # searches again with the certificate's worst points added
+UNLIT_OBJECTIVE = 1e300     # the objective of a pose no exposure can make work (it is inf), finite
+
+
+def refine(problem, start, lamp_rig):
+    """Nelder-Mead over (pan, tilt, radius) in grid-step units, clipped to the rig's ranges:
+    (joints, Refinement with the solver's own verdict and evaluation count)."""
+    lo = np.array([lamp_rig.pan_range_rad[0], lamp_rig.tilt_range_rad[0], lamp_rig.radius_range_m[0]])
+    hi = np.array([lamp_rig.pan_range_rad[1], lamp_rig.tilt_range_rad[1], lamp_rig.radius_range_m[1]])
+    scale = np.array([np.radians(5.0), np.radians(5.0), 0.05])
+
+    def clipped(z):
+        return np.clip(np.asarray(start) + z * scale, lo, hi)
+
+    def f(z):
+        x = clipped(z)
+        c = evaluate.candidates(problem, x[:1], x[1:2], x[2:3])
+        # unlit (inf) capped: Nelder-Mead compares differences, and inf - inf is NaN
+        return float(min(requirements.objective(requirements.ln_values(problem, c))[0], UNLIT_OBJECTIVE))
+
+    simplex = np.vstack([np.zeros(3), np.eye(3)])
+    res = minimize(f, np.zeros(3), method="Nelder-Mead",
+                   options={"initial_simplex": simplex, "xatol": 0.02, "fatol": 1e-4, "maxfev": 90})
+    return clipped(res.x), Refinement(bool(res.success), int(res.nfev), str(res.message), float(res.fun))
+
+
+def plan(task, settings=PlannerSettings(), albedo_scale=1.0, progress=None, T_cell_cam=None):
+    """Plan a task (the CLI, the closed loop and the benchmark all call this), its camera at
+    T_cell_cam (a planned viewpoint's) or by the task's camera rule: search, then
+    certify the chosen shot on the dense patch (cell.planning.certificate); where the certificate fails,
+    its worst points join the samples and the search runs again, at most CERTIFY_ROUNDS times.
+    The plan is feasible when its samples and its certificate say so."""
+    say = progress or (lambda msg: None)
+    t0 = time.perf_counter()
+    extra = np.zeros((0, 3))
+    for rounds in range(CERTIFY_ROUNDS + 1):
+        result, problem = search(task, settings, albedo_scale, extra, say, T_cell_cam)
+        if not result.feasible:
+            return replace(result, timing_s={**result.timing_s, "total": time.perf_counter() - t0})
+        t = time.perf_counter()
+        verification, worst = certificate.verify(problem, result.shot)
+        timing = {**result.timing_s, "verify": time.perf_counter() - t}
+        say(f"certificate: {verification.points} points, gray {verification.gray_min:.1f}-"
+            f"{verification.gray_max:.1f}: " + ("holds" if verification.holds else
+                                                 ", ".join(r.name for r in verification.failing) + " missed"))
+        if verification.holds or rounds == CERTIFY_ROUNDS:
+            break
+        extra = np.vstack([extra, worst])
+    verification = replace(verification, rounds=rounds)
+    timing["total"] = time.perf_counter() - t0
+    judged = certificate.worse_of(result.shot.requirements, verification)
+    result = replace(result, shots=(replace(result.shot, requirements=judged),), verification=verification,
+                     timing_s=timing)
+    if verification.holds:
+        return result
+    cause = min(verification.failing, key=lambda r: requirements.CAUSES.index(r.name))
+    return replace(result, feasible=False, binding=cause.name, miss=cause.value - 1.0, hint=cause.detail)
+
+
+def search(task, settings, albedo_scale, extra, say, T_cell_cam=None):
+    """(Plan of the search over the rig on the task's samples plus `extra` points, its Problem)."""
+    from cell.planning.scene import build_scene
+    timing = {}
+    t0 = time.perf_counter()
+    scene = build_scene(task, settings.samples, extra, T_cell_cam)
+    timing["scene"] = time.perf_counter() - t0
+
+    t = time.perf_counter()
+    maps = build_maps(task, scene, settings)
+    timing["maps"] = time.perf_counter() - t
+    say(f"maps: {maps.visible.mean():.0%} of directions visible, {maps.wanted.mean():.1%} give "
+        f"{task.requirements.reflection} reflection")
+
+    t = time.perf_counter()
+    problem = evaluate.build_problem(task, scene, maps, albedo_scale)
+    lamp_rig = task.lamp.rig
+    pan, tilt, radius = candidate_grid(lamp_rig, settings)
+    global_values = requirements.ln_values(problem, evaluate.candidates(problem, pan, tilt, radius, tolerance=False))
+    obj = requirements.objective(global_values)
+    maps = replace(maps, candidate_pan=pan, candidate_tilt=tilt, candidate_objective=obj)
+    problem = replace(problem, maps=maps)
+    timing["global_search"] = time.perf_counter() - t
+    say(f"global search: {len(pan)} lamp poses x {len(scene.points)} samples")
+
+    t = time.perf_counter()
+    starts = pick_starts(pan, tilt, obj, settings.starts, np.radians(2 * settings.pan_step_deg))
+    poses = [np.array([pan[k], tilt[k], radius[k]]) for k in starts]
+    refined = [refine(problem, x, lamp_rig) for x in poses] if settings.refine else []
+    stack = np.array(poses + [x for x, _ in refined])
+    final = evaluate.candidates(problem, stack[:, 0], stack[:, 1], stack[:, 2])
+    final_values = requirements.ln_values(problem, final)
+    rank = np.lexsort((requirements.objective(final_values), requirements.missed(final_values)))
+    best = int(rank[0])
+    timing["refine"] = time.perf_counter() - t
+    search = Search(candidates=len(pan), starts=len(poses), refinements=tuple(r for _, r in refined))
+    shot = make_shot(problem, stack[best], final.pick(best), {k: v[best:best + 1] for k, v in final_values.items()})
+    verdict = requirements.verdict(shot.requirements, requirements.failing_everywhere(global_values))
+    binding = next(r for r in shot.requirements if r.name == verdict.binding)
+    return Plan(task_name=task.name, feasible=verdict.feasible, binding=verdict.binding, miss=verdict.miss,
+                objective=verdict.objective, hint="" if verdict.feasible else binding.detail, shots=(shot,),
+                maps=maps, settings=settings, scene=scene, search=search, timing_s=timing,
+                notes=notes(problem, shot)), problem
+
+
+def notes(problem, shot):
+    """Facts about the chosen shot that no requirement judges: phase angles beyond the material
+    table (planned with its end values, which the table's interpolation clamps to)."""
+    scene, table = problem.scene, problem.material.phase_rad
+    s = geometry.unit(shot.lamp_position - scene.points)
+    v = geometry.unit(scene.camera_position - scene.points)
+    phase = np.degrees(np.arccos(np.clip(np.sum(s * v, axis=-1), -1.0, 1.0)))
+    lo, hi = np.degrees(table[0]), np.degrees(table[-1])
+    out = []
+    if phase.max() > hi + 1e-9 or phase.min() < lo - 1e-9:
+        out.append(f"phase angles {phase.min():.1f}-{phase.max():.1f} deg reach beyond the material table's "
+                   f"{lo:g}-{hi:g} deg: planned with the table's end values there")
+    return tuple(out)
+
+
+def make_shot(problem, joints, candidate, values):
+    """The Shot of the chosen lamp pose (Candidates of one and its requirement values)."""
+    scene, lens = problem.scene, problem.task.camera.lens
+    pos = candidate.position[0]
+    s = geometry.unit(pos - scene.center)
+    v = geometry.unit(scene.camera_position - scene.center)
+    kappa = float(candidate.kappa[0])
+    exposure = Exposure(float(candidate.shutter[0]), kappa, problem.focus_m,
+                        float(dof.depth_of_field(problem.focus_m, lens.focal_length_m, kappa,
+                                                 lens.circle_of_confusion_m)))
+    full_scale = 2.0 ** problem.task.camera.sensor.bit_depth - 1
+    return Shot(T_cell_cam=scene.T_cell_cam, joints=tuple(float(x) for x in joints), lamp_position=pos,
+                exposure=exposure, gray=np.minimum(candidate.gray[0], full_scale), distance_m=float(np.linalg.norm(pos - scene.center)),
+                phase_angle_rad=float(np.arccos(np.clip(s @ v, -1, 1))),
+                requirements=requirements.judged(problem, candidate, values))

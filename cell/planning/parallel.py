@@ -1,0 +1,234 @@
+"""Where planning's independent jobs run: here, one after another (SERIAL), or on a Dask
+distributed cluster (Cluster): a LocalCluster of N worker processes on this machine (`--workers
+N`) or a running cluster by its scheduler's address (`--scheduler ADDRESS`). Warp launches a CPU
+kernel on one core, so a second core helps only through a second process.
+
+A planner hands its jobs to `pool.jobs(say)` and reads their results as they complete, handing
+on new jobs as earlier results allow (a feature's lamp searches once its viewpoints are known):
+stages overlap instead of waiting for their slowest job. A job takes only values, never another
+job's pending result, so the scheduler holds every job in its queue and gives it to the first
+worker free, in the planner's order (`first` jobs ahead); each job is the same function on the
+same values as the serial run, and the planner places each result by its key: the plan is
+bit-identical to the serial one. A job's progress lines are kept where it runs and said when it
+completes. Jobs carry their Task and plans by value (the mesh is in the Task and the Scene, the
+BVH each process's own): a worker needs no task file, only the same lightplan-cell and libraries
+(fingerprint). distributed is imported only here, only when a cluster is asked for.
+"""
+import hashlib
+import itertools
+import sys
+import uuid
+from collections import deque
+from importlib import metadata
+from pathlib import Path
+
+from cell.core.errors import TaskError
+
+SCHEDULER_TIMEOUT_S = 10.0       # a scheduler that has not answered (or has no worker) by then: exit 2
+# The LocalCluster's scheduler and workers, quiet where Dask's defaults take time the plan's jobs
+# need (an idle 2-worker LocalCluster kept 5 % of a core busy here, 1 % so):
+LOCAL_CONFIG = {
+    "distributed.scheduler.worker-saturation": 1.0,   # a worker's next job once it starts one (1.1 rounds
+                                                       # up to two in hand, one waiting while the other idles)
+    "distributed.scheduler.work-stealing": False,      # jobs wait in the scheduler's queue: none to steal
+    "distributed.admin.tick.interval": "1s",           # the event loops' watchdog (20 ms)
+    "distributed.admin.system-monitor.interval": "5s", # the dashboard's CPU and memory samples (0.5 s)
+    "distributed.worker.profile.enabled": False,       # each worker's sampling profiler (every 10 ms)
+}
+LIBRARIES = ("numpy", "scipy", "warp-lang", "trimesh")     # whose versions a worker's plan depends on
+
+
+class Pool:
+    """jobs(say): a set of jobs to submit and read as they complete; map(fn, jobs, say)."""
+
+    def map(self, fn, jobs, say):
+        """fn(*job, say) of every job, in the jobs' order."""
+        running = self.jobs(say)
+        for k, job in enumerate(jobs):
+            running.submit(k, fn, *job)
+        done = dict(running)
+        return [done[k] for k in range(len(jobs))]
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
+
+
+class Serial(Pool):
+    """Each job in this process when it is submitted, its progress said as it goes."""
+
+    def jobs(self, say):
+        return SerialJobs(say)
+
+    def close(self):
+        pass
+
+
+class SerialJobs:
+    """submit(key, fn, *args) runs fn(*args, say) at once; iterating yields (key, result) in the
+    order submitted, jobs submitted meanwhile included."""
+
+    def __init__(self, say):
+        self.say, self.done = say, deque()
+
+    def submit(self, key, fn, *args, first=False):
+        self.done.append((key, fn(*args, self.say)))
+
+    def __iter__(self):
+        while self.done:
+            yield self.done.popleft()
+
+
+SERIAL = Serial()
+
+
+def _run(fn, args):
+    """A job on a worker: (its result, its progress lines)."""
+    lines = []
+    return fn(*args, lines.append), lines
+
+
+class Cluster(Pool):
+    """Jobs as Dask futures on a client's cluster (`only`: on those worker addresses alone)."""
+
+    def __init__(self, client, cluster=None, only=None):
+        self.client, self.cluster, self.only = client, cluster, only
+
+    def restricted(self, addresses):
+        """The same cluster, its jobs on `addresses` only (the bench's one worker of two)."""
+        return Cluster(self.client, only=list(addresses))
+
+    def jobs(self, say):
+        return ClusterJobs(self, say)
+
+    def close(self):
+        self.client.close()
+        if self.cluster is not None:
+            self.cluster.close()
+
+
+FIRST = 1 << 40            # a `first` job's priority over every other's
+SUBMITTED = itertools.count()   # the order of every job submitted here, whatever its Cluster
+
+
+class ClusterJobs:
+    """submit(key, fn, *args, first=False) a job to the cluster; iterating yields (key, result)
+    as each completes (its lines said then), jobs submitted meanwhile included; the first error
+    raised (a CellError as it was raised on the worker), the jobs not done cancelled."""
+
+    def __init__(self, pool, say):
+        from distributed import as_completed
+        self.pool, self.say, self.named = pool, say, {}
+        self.pending = as_completed(loop=pool.client.loop)
+
+    def submit(self, key, fn, *args, first=False):
+        """A job ahead of every job submitted after it, and `first` ahead of every job not first
+        (Dask's own order is arbitrary among jobs submitted within its fifo_timeout of each
+        other). Keyed lightplan-<fn>-<id>: the scheduler sees one task group (Dask queues a
+        group's jobs once it has more than two per worker thread), the task stream each fn."""
+        pool = self.pool
+        where = {} if pool.only is None else {"workers": pool.only, "allow_other_workers": False}
+        future = pool.client.submit(_run, fn, args, key=f"lightplan-{fn.__name__}-{uuid.uuid4().hex}",
+                                    priority=(FIRST if first else 0) - next(SUBMITTED), pure=False, **where)
+        self.named[future.key] = key
+        self.pending.add(future)
+
+    def __iter__(self):
+        try:
+            for future in self.pending:
+                result, lines = future.result()
+                for line in lines:
+                    self.say(line)
+                yield self.named.pop(future.key), result
+        except BaseException:
+            self.pool.client.cancel(list(self.pending.futures))
+            raise
+
+
+def local_cluster(workers):
+    """A LocalCluster of `workers` processes of one thread each, on 127.0.0.1 only (scheduler,
+    workers and the scheduler's HTTP server, on free ports), and its Cluster, with LOCAL_CONFIG
+    and no memory limit (a plan's jobs hold a few MB; the nannies' monitor would wake every
+    100 ms)."""
+    import logging
+
+    import dask
+    from distributed import Client, LocalCluster
+    with dask.config.set(LOCAL_CONFIG):
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
+                               scheduler_port=0, dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR,
+                               memory_limit=0)
+    return Cluster(Client(cluster, set_as_default=False), cluster)
+
+
+def remote_cluster(address, timeout_s=None):
+    """The Cluster of the running scheduler at `address`, once it has a worker; bad input (exit 2,
+    naming --scheduler) when it does not answer or has no worker within the timeout, or when a
+    worker's lightplan-cell or libraries differ from ours (its plans would not be ours)."""
+    from distributed import Client
+    timeout_s = SCHEDULER_TIMEOUT_S if timeout_s is None else timeout_s
+    try:
+        client = Client(address, timeout=timeout_s, set_as_default=False)
+    except (OSError, TimeoutError, ValueError, TypeError) as err:
+        raise TaskError("command line", "--scheduler", f"{address}, which did not answer within {timeout_s:g} s "
+                        f"({type(err).__name__}: {err})",
+                        "the address of a running Dask scheduler, e.g. tcp://127.0.0.1:8786") from None
+    try:
+        try:
+            client.wait_for_workers(1, timeout=timeout_s)
+        except TimeoutError:
+            raise TaskError("command line", "--scheduler", f"{address}, a scheduler with no worker after "
+                            f"{timeout_s:g} s", "a scheduler with workers (dask worker ADDRESS)") from None
+        try:
+            theirs = client.run(fingerprint)
+        except Exception as err:            # whatever the worker raised unpickling or running it
+            raise TaskError("command line", "--scheduler", f"{address}, whose workers cannot run the planner "
+                            f"({type(err).__name__}: {err})",
+                            "workers with lightplan-cell installed (pip install lightplan-cell)") from None
+        ours = fingerprint()
+        differs = first_difference(ours, theirs)
+        if differs:
+            worker, what = differs
+            raise TaskError("command line", "--scheduler", f"worker {worker} with {what} {theirs[worker].get(what)}",
+                            f"{what} {ours[what]} as here: a worker runs the same code, or its plans are not "
+                            "this planner's")
+    except BaseException:
+        client.close()
+        raise
+    return Cluster(client)
+
+
+def first_difference(ours, theirs):
+    """(worker, what) of the first worker whose fingerprint differs from ours, or None."""
+    for worker, found in theirs.items():
+        what = next((k for k in ours if found.get(k) != ours[k]), None)
+        if what:
+            return worker, what
+    return None
+
+
+def fingerprint():
+    """{what: version} a worker's plans depend on: Python, the libraries' versions and a digest of
+    lightplan-cell's own code (cell/, kernels/), equal for an editable and a regular install of
+    one commit."""
+    import cell
+    import kernels
+    digest = hashlib.blake2b(digest_size=8)
+    for package in (cell, kernels):
+        root = Path(package.__file__).parent
+        for path in sorted(root.rglob("*.py")):
+            digest.update(path.relative_to(root.parent).as_posix().encode() + b"\0" + path.read_bytes())
+    return {"python": sys.version.split()[0], **{name: metadata.version(name) for name in LIBRARIES},
+            "lightplan-cell": digest.hexdigest()}
+
+
+def pool(workers=None, scheduler=None):
+    """SERIAL, or the Cluster `--workers` / `--scheduler` ask for (the caller closes it)."""
+    if workers is not None:
+        return local_cluster(workers)
+    if scheduler is not None:
+        return remote_cluster(scheduler)
+    return SERIAL

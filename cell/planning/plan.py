@@ -1,0 +1,223 @@
+"""What planning produces (sec. 5), as plain values that pickle: a Plan made of Shots, its
+verdict like scipy's OptimizeResult (feasible, binding, each requirement, the search's counters),
+and plan.json (docs/formats.md) made from it in one place."""
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from cell.planning import regions
+
+
+@dataclass(frozen=True)
+class PlannerSettings:
+    """Resolution knobs (what accuracy costs in time: `cell bench` sweeps them)."""
+
+    grid_step_deg: float = 2.0      # visibility / region map cell size
+    pan_step_deg: float = 10.0      # global candidate grid on the rig
+    tilt_step_deg: float = 5.0
+    radius_steps: int = 6
+    samples: int | None = None      # feature samples (None: the task's)
+    refine: bool = True             # Nelder-Mead from the best starts
+    starts: int = 4
+
+    def __post_init__(self):
+        cells = 180.0 / self.grid_step_deg
+        if not (self.grid_step_deg > 0 and abs(cells - round(cells)) < 1e-9):
+            raise ValueError(f"grid_step_deg {self.grid_step_deg:g} must divide 180 deg (the map's rows "
+                             f"must reach the poles and its columns close the circle)")
+
+
+@dataclass(frozen=True)
+class Exposure:
+    shutter_s: float
+    f_number: float
+    focus_m: float
+    depth_of_field_m: float
+
+
+@dataclass(frozen=True)
+class Maps:
+    """The paper's spherical maps in the feature frame (sec. 2.2, 5.2), for pictures and tests."""
+
+    grid: regions.SphereGrid
+    visible: np.ndarray          # (E, A) every sample sees this direction
+    reflectance: np.ndarray      # (E, A) R at the feature centre for a lamp there
+    dominant: np.ndarray         # (E, A) dominant term, brdf.OCCLUDED behind
+    wanted: np.ndarray           # (E, A) wanted reflection and visible
+    distance: np.ndarray         # (E, A) signed haversine distance to the wanted region [rad]
+    candidate_pan: np.ndarray    # (C,) global candidates [rad]
+    candidate_tilt: np.ndarray
+    candidate_objective: np.ndarray
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """One local refinement (Nelder-Mead) with its solver's own verdict."""
+
+    success: bool
+    nfev: int
+    message: str
+    objective: float             # eq. (22) where it ended
+
+
+@dataclass(frozen=True)
+class Search:
+    """The search's counters: global candidates, the starts taken from them, and the local
+    refinements from those starts."""
+
+    candidates: int
+    starts: int
+    refinements: tuple = ()
+
+
+@dataclass(frozen=True)
+class Shot:
+    """One capture of a plan: camera pose, lamp joints and position, exposure, the model's gray
+    at every feature sample and each requirement's value there (costs.RequirementValue)."""
+
+    T_cell_cam: np.ndarray       # 4x4 camera pose
+    joints: tuple                # (pan, tilt, radius) [rad, rad, m]
+    lamp_position: np.ndarray    # cell frame [m]
+    exposure: Exposure
+    gray: np.ndarray             # predicted gray per feature sample, at most the sensor's full scale
+    distance_m: float            # lamp -> feature centre
+    phase_angle_rad: float       # between lamp and camera, at the feature centre
+    requirements: tuple
+    covers: tuple = ()           # a multi-feature plan's: cell.planning.coverage.Coverage of each feature it covers
+    arm_joints: tuple = None     # a planned viewpoint's: the UR5e joints reaching T_cell_cam [rad]
+
+    @property
+    def camera_position(self):
+        return self.T_cell_cam[:3, 3]
+
+
+@dataclass(frozen=True)
+class FeatureVerdict:
+    """A feature of a multi-feature plan: the shot covering it (an index into Plan.shots), or
+    None with the requirement that binds in its own plan and what would fix it."""
+
+    name: str
+    covered_by: int | None
+    binding: str = ""
+    hint: str = ""
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A plan with its verdict, like scipy's OptimizeResult: `feasible` (max f_i <= 1 over every
+    shot's requirements), the `binding` requirement, how far it misses, and `hint`, what would
+    fix it. A one-feature task's plan has one shot (`plan.shot`); a multi-feature task's
+    (cell.planning.whole_part) has the fewest shots covering its features, `features` saying which covers
+    which, `plans` each feature's own plan (whose shots were the candidates: their scene and
+    maps; the plan's own `scene` and `maps` are None) and `cover` the set cover's numbers."""
+
+    task_name: str
+    feasible: bool
+    binding: str
+    miss: float
+    objective: float
+    hint: str
+    shots: tuple
+    maps: Maps
+    settings: PlannerSettings
+    scene: object                # cell.planning.scene.Scene planned on (plain arrays)
+    search: Search
+    timing_s: dict = field(default_factory=dict)
+    notes: tuple = ()            # what the user should know although it is no requirement
+    verification: object = None  # cell.planning.certificate.Verification of the shot (None: infeasible already)
+    features: tuple = ()         # FeatureVerdict of each feature (a multi-feature plan)
+    plans: tuple = ()            # each feature's own one-shot Plan (a multi-feature plan)
+    cover: dict = None           # candidate shots, coverage matrix, travel, chosen (plain values)
+
+    @property
+    def success(self):
+        """OptimizeResult's name for the verdict: the plan is feasible."""
+        return self.feasible
+
+    @property
+    def message(self):
+        if self.feasible:
+            return "feasible"
+        uncovered = next((f for f in self.features if f.covered_by is None), None)
+        if uncovered is not None:
+            return f"feature '{uncovered.name}' is covered by no shot: {uncovered.binding} binds: {uncovered.hint}"
+        return f"{self.binding} binds: {self.hint}"
+
+    @property
+    def shot(self):
+        """The plan's only shot."""
+        if len(self.shots) != 1:
+            raise ValueError(f"the plan has {len(self.shots)} shots; pick one from plan.shots")
+        return self.shots[0]
+
+    @property
+    def requirements(self):
+        return [r for shot in self.shots for r in shot.requirements]
+
+    def to_json(self):
+        """plan.json as docs/formats.md gives it (a one-feature plan; a multi-feature plan's
+        adds `shots`, `features` and `cover`, and keeps these keys when it has one shot)."""
+        if self.features:
+            return self._features_json()
+        shot = self.shot
+        return {
+            "task": self.task_name,
+            "feasible": self.feasible,
+            "binding": self.binding,
+            "miss": self.miss,
+            "objective": self.objective,
+            "hint": self.hint,
+            "notes": list(self.notes),
+            "requirements": requirements_json(shot.requirements),
+            "lamp": lamp_json(shot),
+            "camera": camera_json(shot),
+            "predicted_gray": gray_stats(shot.gray),
+            "verified": self.verification.to_json() if self.verification else None,
+            "search": asdict(self.search),
+            "timing_s": self.timing_s,
+            "settings": asdict(self.settings),
+        }
+
+    def _features_json(self):
+        doc = {"task": self.task_name, "feasible": self.feasible, "binding": self.binding, "miss": self.miss,
+               "objective": self.objective, "hint": self.hint, "notes": list(self.notes),
+               "shots": [{"camera": {"T_cell_cam": shot.T_cell_cam.tolist(), **camera_json(shot),
+                                     **({} if shot.arm_joints is None else
+                                        {"arm_joints_deg": np.degrees(shot.arm_joints).tolist()})},
+                          "lamp": lamp_json(shot),
+                          "covers": [{"feature": c.feature, "predicted_gray": gray_stats(c.gray),
+                                      "requirements": requirements_json(c.requirements),
+                                      "verified": c.verification.to_json() if c.verification else None}
+                                     for c in shot.covers]} for shot in self.shots],
+               "features": [{"name": f.name, "covered_by": f.covered_by,
+                             **({} if f.covered_by is not None else {"binding": f.binding, "hint": f.hint})}
+                            for f in self.features],
+               "cover": self.cover}
+        if len(self.shots) == 1:                     # a one-shot plan keeps the one-shot keys
+            own = self.plans[self.cover["chosen"][0]].to_json()
+            doc.update({k: own[k] for k in ("requirements", "lamp", "camera", "predicted_gray", "verified",
+                                            "search")})
+        return {**doc, "timing_s": self.timing_s, "settings": asdict(self.settings)}
+
+
+def requirements_json(values):
+    return [{"name": r.name, "value": r.value, "met": r.met, "detail": r.detail} for r in values]
+
+
+def lamp_json(shot):
+    pan, tilt, radius = shot.joints
+    return {"position_m": shot.lamp_position.tolist(), "distance_m": shot.distance_m,
+            "phase_angle_deg": float(np.degrees(shot.phase_angle_rad)),
+            "joints": {"pan_deg": float(np.degrees(pan)), "tilt_deg": float(np.degrees(tilt)),
+                       "radius_m": float(radius)}}
+
+
+def camera_json(shot):
+    e = shot.exposure
+    return {"shutter_s": e.shutter_s, "f_number": e.f_number, "focus_m": e.focus_m,
+            "depth_of_field_m": e.depth_of_field_m, "position_m": shot.camera_position.tolist()}
+
+
+def gray_stats(gray):
+    gray = np.asarray(gray, dtype=float)
+    return {"mean": float(gray.mean()), "min": float(gray.min()), "max": float(gray.max())}

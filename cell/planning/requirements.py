@@ -1,0 +1,360 @@
+"""The requirements a plan must meet (sec. 2.1, 5), one registry: each has a name (plan.json's),
+its value over candidates as ln f_i (met when <= 0, i.e. f_i <= 1: eq. 1 and the erratum of eq. 25;
+uncapped, so the objective ranks however far a pose misses) and the sentence that explains it for
+a chosen pose - the fact, and where it is missed what would fix it.
+
+A new requirement is one entry in REGISTRY; its value and explanation read only the
+planning Problem and the Candidates (cell.planning.evaluate). The registry's order breaks ties between
+equally binding requirements.
+"""
+from dataclasses import dataclass, replace
+from typing import Callable
+
+import numpy as np
+
+from cell.core import geometry
+
+from cell.physics import projection
+
+from cell.planning import regions
+from cell.physics import brdf, costs, depth_of_field as dof
+
+
+@dataclass(frozen=True)
+class Requirement:
+    name: str
+    ln_value: Callable      # (Problem, Candidates) -> (C,) ln f_i
+    explain: Callable       # (Problem, Candidates of one, met) -> sentence
+    asked: Callable = None  # (Problem) -> whether the task asks for it; None: always
+
+
+def _unlit(c):
+    return not np.isfinite(c.t_need[0])
+
+
+UNLIT = "no feature sample is lit by the lamp at any shutter time"
+
+
+def at_least(x, low):
+    """ln f_min(x, low) of eq. (1); a band from 0 asks nothing of the darkest sample (-inf: met)."""
+    return costs.ln_f_min(x, low) if low > 0 else np.full(np.shape(x), -np.inf)
+
+
+def gray_min(p, c):
+    return at_least(np.min(c.gray, axis=-1), p.band[0])
+
+
+def explain_gray_min(p, c, met):
+    low, high = p.band
+    t_hi = p.task.camera.shutter_range_s[1]
+    if _unlit(c):
+        return UNLIT
+    if c.t_need[0] > t_hi:
+        return (f"gray band needs shutter {1e3 * c.t_need[0]:.1f} ms > max {1e3 * t_hi:.1f} ms at "
+                f"f/{c.kappa[0]:.1f}; move the lamp closer, open the aperture (less depth of field) "
+                f"or use a brighter lamp")
+    return f"darkest sample gray {c.gray[0].min():.1f} (band {low:g}-{high:g})"
+
+
+def gray_max(p, c):
+    return costs.ln_f_max(np.max(c.gray, axis=-1), p.band[1])
+
+
+def explain_gray_max(p, c, met):
+    low, high = p.band
+    g = c.gray[0]
+    t_lo, k_hi = p.task.camera.shutter_range_s[0], p.task.camera.lens.f_number_range[1]
+    if not met and c.shutter[0] <= t_lo and c.kappa[0] >= k_hi:
+        return (f"too bright even at f/{k_hi:g} and {1e3 * t_lo:.3g} ms: gray {g.min():.1f}-{g.max():.1f}, band "
+                f"{low:g}-{high:g}; move the lamp farther away or use a weaker lamp")
+    if not met and g.max() * low > max(g.min(), 1e-12) * high:
+        return (f"feature too uneven: gray {g.min():.1f}-{g.max():.1f} spans more than the band "
+                f"{low:g}-{high:g}; move the lamp farther away or toward the camera direction")
+    return f"brightest sample gray {g.max():.1f} (band {low:g}-{high:g})"
+
+
+def wrong_reflection(p, c):
+    """(C, P) lit samples whose dominant BRDF term (brdf.judged_term's) is not the wanted one;
+    with `any`, those where a spike the goniometer did not resolve may be (brdf.UNKNOWN)."""
+    reflection = p.task.requirements.reflection
+    lit = ~c.shadowed & (c.gray > p.black_level)
+    if reflection == "any":
+        return lit & (c.dominant == brdf.UNKNOWN)
+    return lit & (c.dominant != regions.WANTED_TERM[reflection])
+
+
+def other_reflection(p, c):
+    """(C,) count of wrong_reflection's samples."""
+    return np.sum(wrong_reflection(p, c), axis=-1)
+
+
+def unresolved_note(p):
+    """What the material's goniometer left unresolved, for a sentence ('' when nothing)."""
+    u = p.material.unresolved
+    if u is None or "spike" not in u.terms:
+        return ""
+    phases = ", ".join(f"{np.degrees(a):g}" for a in u.terms["spike"])
+    return (f"the material's spike is not resolved at phase {phases} deg (its goniometer's step "
+            f"{np.degrees(u.step_rad):g} deg sees exponents up to {u.resolvable_m_max:.4g}): a lamp whose half "
+            f"vector lies within {np.degrees(brdf.spike_keep_out(u)):g} deg of a sample's normal may meet a spike "
+            f"of unknown brightness")
+
+
+def reflection_region(p, c):
+    """ln of exp(d / margin + 1): 0 at `margin` inside the wanted region (sec. 5.2), judged for
+    the lamp seen from the feature centre; and at each lit sample its dominant term must be the
+    wanted one (ln(0.5 + count) where some are not)."""
+    local = (c.position - p.scene.center) @ p.scene.frame
+    az, el = geometry.angles_from_direction(local)
+    d = p.maps.grid.sample(p.maps.distance, az, el)
+    margin = max(p.task.requirements.region_margin_rad, 1e-6)
+    others = other_reflection(p, c)
+    return np.where(others > 0, np.maximum(d / margin + 1.0, costs.ln_count_cost(others)), d / margin + 1.0)
+
+
+def explain_reflection_region(p, c, met):
+    req = p.task.requirements
+    unresolved = unresolved_note(p)
+    if not p.maps.wanted.any():
+        if req.reflection == "spike" and unresolved:
+            return (f"the spike was not resolved: {unresolved}; no lamp direction is known to give spike "
+                    f"reflection: re-measure the material with a finer calibration.goniometer.step_deg")
+        return (f"no lamp direction gives {req.reflection} reflection where every sample sees the lamp "
+                f"(none of the map's {np.degrees(p.maps.grid.step):g} deg cells): want another reflection "
+                f"or change the view" + (f"; {unresolved} (kept out)" if unresolved else ""))
+    wrong = wrong_reflection(p, c)[0]
+    unknown = int(np.sum(wrong & (c.dominant[0] == brdf.UNKNOWN)))
+    if unknown:
+        return (f"{unknown} of {len(p.scene.points)} lit samples see the lamp where an unresolved spike may be: "
+                f"{unresolved}; keep the lamp out, or re-measure the material with a finer "
+                f"calibration.goniometer.step_deg")
+    others = int(np.sum(wrong))
+    if others:
+        return (f"{others} of {len(p.scene.points)} lit samples see another reflection than {req.reflection}: "
+                f"the term changes across the patch; inspect a smaller feature or want 'any'")
+    fact = (f"lamp at least {np.degrees(req.region_margin_rad):.1f} deg inside the region where "
+            f"{req.reflection} reflection dominates and every sample sees the lamp "
+            f"({p.maps.wanted.mean():.1%} of directions qualify)")
+    return fact if met else f"needs the {fact}"
+
+
+def lamp_tolerance(p, c):
+    """The worst band miss with the lamp moved by its tolerance (-inf, f = 0, when not evaluated)."""
+    low, high = p.band
+    value = np.full(len(c.shutter), -np.inf)
+    for moved in c.moved_gray:
+        value = np.maximum(value, np.maximum(at_least(moved.min(axis=-1), low),
+                                             costs.ln_f_max(moved.max(axis=-1), high)))
+    return value
+
+
+def explain_lamp_tolerance(p, c, met):
+    low, high = p.band
+    tol = f"lamp errors of {np.degrees(p.task.requirements.lamp_tolerance_rad):.1f} deg"
+    return (f"gray stays in band for {tol}" if met else
+            f"{tol} move some sample's gray out of the band {low:g}-{high:g}; inspect a smaller "
+            f"feature, widen the band or want a reflection whose BRDF changes more slowly")
+
+
+def no_shadow(p, c):
+    return costs.ln_count_cost(c.shadowed.sum(axis=-1))
+
+
+def explain_no_shadow(p, c, met):
+    return (f"{int(c.shadowed[0].sum())} of {len(p.scene.points)} feature samples are shadowed from "
+            f"the lamp ({p.maps.visible.mean():.0%} of directions see every sample)")
+
+
+def cone_coverage(p, c):
+    """Every sample within the angle the lamp lights at all (lit_half_angle_rad: its profile's
+    end, gamma / 2 for the ideal cone); how evenly is the band's and the lamp tolerance's to judge,
+    with the profile in the gray."""
+    return costs.ln_f_max(np.max(c.off_axis, axis=-1), p.task.lamp.lit_half_angle_rad)
+
+
+def explain_cone_coverage(p, c, met):
+    if met:
+        return "the lamp's cone covers every sample"
+    half, radius = p.task.lamp.lit_half_angle_rad, p.task.feature.radius_m
+    needed, reach = radius / np.tan(half), p.task.lamp.rig.radius_range_m[1]
+    if needed > reach:
+        return (f"the lamp lights {np.degrees(half):.3g} deg off its axis and covers the {2e3 * radius:g} mm "
+                f"patch only from {needed:.2f} m, the rig reaches {reach:g} m: use a wider cone or a "
+                f"smaller feature")
+    return "the lamp's cone does not cover the whole feature; move the lamp farther away"
+
+
+def camera_view(p, c):
+    return np.broadcast_to(costs.ln_count_cost(p.camera_unseen), c.shutter.shape)
+
+
+def explain_camera_view(p, c, met):
+    n = len(p.scene.points)
+    return (f"the camera sees all {n} feature samples" if met else
+            f"the camera cannot see {p.camera_unseen} of {n} feature samples; change the view direction")
+
+
+def view_angle(p, c):
+    """The largest angle between a sample's normal and its direction to the camera, at most the
+    task's view_angle_deg (a camera nearly grazing the surface sees it foreshortened)."""
+    angle = projection.view_angles(p.scene.camera_position, p.scene.points, p.scene.normals).max()
+    return np.broadcast_to(costs.ln_f_max(angle, p.task.requirements.view_angle_rad), c.shutter.shape)
+
+
+def explain_view_angle(p, c, met):
+    angle = projection.view_angles(p.scene.camera_position, p.scene.points, p.scene.normals).max()
+    fact = (f"the camera sees the samples at most {np.degrees(angle):.1f} deg from their normals "
+            f"(at most {np.degrees(p.task.requirements.view_angle_rad):g} deg wanted)")
+    return fact if met else f"{fact}; view the feature more squarely (camera.viewpoint: planned)"
+
+
+def footprints(p):
+    sensor, lens = p.task.camera.sensor, p.task.camera.lens
+    return projection.pixel_footprint(p.scene.camera_position, p.scene.points, p.scene.normals,
+                                      sensor.pixel_pitch_m, lens.focal_length_m)
+
+
+def resolution(p, c):
+    """The largest pixel footprint on the feature (|p - C| pitch / f / cos(view angle), the
+    pinhole's), at most the task's resolution_m per pixel."""
+    wanted = p.task.requirements.resolution_m
+    return np.broadcast_to(costs.ln_f_max(footprints(p).max(), wanted), c.shutter.shape)
+
+
+def explain_resolution(p, c, met):
+    if not np.isfinite(footprints(p).max()):
+        return "the camera sees some samples from behind their surface; change the view direction"
+    fact = (f"a pixel covers up to {1e6 * footprints(p).max():.1f} um of the feature (at most "
+            f"{1e6 * p.task.requirements.resolution_m:g} um wanted)")
+    return fact if met else f"{fact}; bring the camera closer, view more squarely or use a longer lens"
+
+
+def shutter_min(p, c):
+    return costs.ln_f_min(c.shutter, p.task.camera.shutter_range_s[0])
+
+
+def explain_too_bright(p, c, met):
+    fact = f"f/{c.kappa[0]:.1f} and {1e3 * c.shutter[0]:.3f} ms"
+    return fact if met else f"too bright even at {fact}; move the lamp farther away"
+
+
+def shutter_max(p, c):
+    """The shutter the band needs within the camera's. With no sample lit no shutter helps: inf,
+    worse than any lit pose however dim, so the search prefers a lit one; the cause (shadow, cone,
+    facing away) binds by CAUSES."""
+    return costs.ln_f_max(c.t_need, p.task.camera.shutter_range_s[1])
+
+
+def explain_shutter_max(p, c, met):
+    t_hi = p.task.camera.shutter_range_s[1]
+    if _unlit(c):
+        return UNLIT
+    need = f"needs shutter {1e3 * c.t_need[0]:.1f} ms"
+    return f"{need}, within the max {1e3 * t_hi:.1f} ms" if met else f"{need} > max {1e3 * t_hi:.1f} ms"
+
+
+def f_number_min(p, c):
+    return costs.ln_f_min(c.kappa, p.task.camera.lens.f_number_range[0])
+
+
+def explain_f_number_min(p, c, met):
+    k_lo, k_hi = p.task.camera.lens.f_number_range
+    return f"f/{c.kappa[0]:.1f} within the lens's range f/{k_lo:g}-f/{k_hi:g}"
+
+
+def f_number_max(p, c):
+    return costs.ln_f_max(c.kappa, p.task.camera.lens.f_number_range[1])
+
+
+def depth_of_field(p, c):
+    """Near limit before the nearest sample, far limit beyond the farthest (where they fall, not
+    only the width), and at least the task's depth of field."""
+    lens = p.task.camera.lens
+    f, sigma = lens.focal_length_m, lens.circle_of_confusion_m
+    depths = p.scene.sample_depths()
+    near = dof.near_limit(p.focus_m, f, c.kappa, sigma)
+    far = dof.far_limit(p.focus_m, f, c.kappa, sigma)
+    value = np.maximum(costs.ln_f_max(near, depths.min()), costs.ln_f_min(np.minimum(far, 1e3), depths.max()))
+    wanted = p.task.requirements.depth_of_field_m
+    if wanted > 0:
+        value = np.maximum(value, costs.ln_f_min(np.minimum(far - near, 1e3), wanted))
+    return value
+
+
+def explain_depth_of_field(p, c, met):
+    lens = p.task.camera.lens
+    f, sigma, k = lens.focal_length_m, lens.circle_of_confusion_m, c.kappa[0]
+    near, far = dof.near_limit(p.focus_m, f, k, sigma), float(dof.far_limit(p.focus_m, f, k, sigma))
+    depths = p.scene.sample_depths()
+    fact = (f"in focus {1e3 * near:.1f}-{1e3 * far:.1f} mm at f/{k:.1f}, samples at {1e3 * depths.min():.1f}-"
+            f"{1e3 * depths.max():.1f} mm, depth of field needs {1e3 * p.depth_needed_m:.1f} mm")
+    return fact if met else (f"{fact}; stop the lens down (up to f/{lens.f_number_range[1]:g}, with more light "
+                             f"or a longer shutter) or view the patch less obliquely")
+
+
+REGISTRY = (
+    Requirement("gray_min", gray_min, explain_gray_min),
+    Requirement("gray_max", gray_max, explain_gray_max),
+    Requirement("reflection_region", reflection_region, explain_reflection_region),
+    Requirement("lamp_tolerance", lamp_tolerance, explain_lamp_tolerance),
+    Requirement("no_shadow", no_shadow, explain_no_shadow),
+    Requirement("cone_coverage", cone_coverage, explain_cone_coverage),
+    Requirement("camera_view", camera_view, explain_camera_view),
+    Requirement("view_angle", view_angle, explain_view_angle,
+                lambda p: p.task.requirements.view_angle_rad is not None),
+    Requirement("resolution", resolution, explain_resolution,
+                lambda p: p.task.requirements.resolution_m is not None),
+    Requirement("shutter_min", shutter_min, explain_too_bright),
+    Requirement("shutter_max", shutter_max, explain_shutter_max),
+    Requirement("f_number_min", f_number_min, explain_f_number_min),
+    Requirement("f_number_max", f_number_max, explain_too_bright),
+    Requirement("depth_of_field", depth_of_field, explain_depth_of_field),
+)
+
+# The order in which requirements that no lamp pose meets name the cause of an infeasible plan:
+# the first is the true cause (an unlit pose misses every exposure by far, but the shadow, the
+# cone or the view is what to fix).
+CAUSES = ("camera_view", "view_angle", "resolution", "no_shadow", "cone_coverage", "reflection_region", "gray_min", "shutter_max",
+          "shutter_min", "f_number_max", "f_number_min", "gray_max", "depth_of_field", "lamp_tolerance")
+
+
+def ln_values(problem, candidates):
+    """{name: (C,) ln f_i} of every requirement the task asks for, in registry order."""
+    return {r.name: np.asarray(r.ln_value(problem, candidates), dtype=float) for r in REGISTRY
+            if r.asked is None or r.asked(problem)}
+
+
+def missed(ln_values_by_name):
+    """(C,) whether any requirement is missed (some ln f_i > 0)."""
+    return np.any(np.column_stack(list(ln_values_by_name.values())) > 0.0, axis=-1)
+
+
+def objective(ln_values_by_name):
+    """Eq. (22) over ln f_i: a smooth max that the optimizer minimises (C,); inf for a pose that
+    no exposure can make work (unlit)."""
+    with np.errstate(invalid="ignore"):        # -inf entries (met by construction) add nothing
+        return costs.log_sum_exp(np.column_stack(list(ln_values_by_name.values())), axis=-1)
+
+
+def judged(problem, candidate, ln_values_by_name):
+    """costs.RequirementValue of each requirement for one candidate (Candidates of one)."""
+    by_name = {r.name: r for r in REGISTRY}
+    return tuple(costs.RequirementValue(name, float(costs.value(v[0])),
+                                        by_name[name].explain(problem, candidate, v[0] <= 0.0))
+                 for name, v in ln_values_by_name.items())
+
+
+def verdict(judged_values, everywhere=()):
+    """costs.verdict (feasible when max f_i <= 1, erratum eq. 25; the binding, largest value; the
+    objective), except that an infeasible plan's binding requirement is the first in CAUSES
+    order that fails at every lamp pose of the global search (`everywhere`) and at the chosen one:
+    no lamp pose fixes that, so it is the cause, whatever else the compromise chosen misses."""
+    v = costs.verdict(judged_values)
+    failing = {r.name: r for r in judged_values if not r.met}
+    cause = next((failing[name] for name in CAUSES if name in everywhere and name in failing), None)
+    return v if cause is None else replace(v, binding=cause.name, miss=cause.value - 1.0)
+
+
+def failing_everywhere(ln_values_by_name):
+    """Names of the requirements that fail at every candidate."""
+    return {name for name, v in ln_values_by_name.items() if np.all(v > 0.0)}

@@ -1,0 +1,144 @@
+"""The task's geometry in the cell frame: part mesh, feature samples, camera pose.
+
+Shared by the planner, the simulated camera and the closed loop so they all see one scene. A
+Scene is plain arrays (it pickles: a plan made in a worker process carries it back); the Warp
+BVH of its mesh is the process's own (kernels.mesh.shared_mesh, keyed by the geometry's digest).
+"""
+import hashlib
+from dataclasses import dataclass
+
+import numpy as np
+
+from cell.core import geometry
+from cell.core.errors import TaskError
+from kernels.mesh import shared_mesh
+from kernels.proximity import closest_points
+
+GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
+PATCH_ITERATIONS = 6        # pushes of the disk's points out onto a curved patch
+PATCH_TOLERANCE = 1e-4      # of the radius: where a sample lands at its distance
+PATCH_LEAVES = 0.05         # of the radius: a sample this far from its distance runs off the patch
+PATCH_PUSH_MAX = 3.0        # a guess goes at most this many times its distance out
+
+
+def look_at(position, target, up=(0.0, 0.0, 1.0)):
+    """T_cell_cam for a camera at `position` looking at `target` (OpenCV axes: z forward,
+    x right, y down in the image)."""
+    z = geometry.unit(np.asarray(target, float) - np.asarray(position, float))
+    up = np.asarray(up, dtype=float)
+    if abs(np.dot(up, z)) > 0.99:
+        up = np.array([0.0, 1.0, 0.0])
+    x = geometry.unit(np.cross(z, up))
+    y = np.cross(z, x)
+    return geometry.transform(np.column_stack([x, y, z]), position)
+
+
+def feature_disk(n, radius):
+    """n points over a disk, shape (n, 2): round(sqrt(pi n)) evenly on its rim, the rest spread
+    over the inside (Vogel's sunflower). The rim is sampled on purpose: gray varies smoothly over
+    a patch, so its extremes, which decide "every point in band", lie mostly on the edge."""
+    rim = int(round(np.sqrt(np.pi * n))) if n >= 8 else 0      # fewer: the sunflower alone
+    a = 2.0 * np.pi * np.arange(rim) / rim
+    i = np.arange(n - rim)
+    r = radius * np.sqrt((i + 0.5) / (n - rim + (rim > 0)))    # inside the rim when there is one
+    return np.vstack([np.column_stack([radius * np.cos(a), radius * np.sin(a)]),
+                      np.column_stack([r * np.cos(i * GOLDEN_ANGLE), r * np.sin(i * GOLDEN_ANGLE)])])
+
+
+@dataclass(frozen=True)
+class Scene:
+    vertices: np.ndarray         # (V, 3) part mesh in the cell frame [m]
+    faces: np.ndarray            # (F, 3) vertex indices
+    mesh_key: str                # digest of vertices and faces: names the geometry in caches
+    center: np.ndarray           # feature centre, cell frame
+    normal: np.ndarray           # feature normal, cell frame
+    frame: np.ndarray            # 3x3, columns x, y, z of the feature frame (z = normal)
+    points: np.ndarray           # (P, 3) feature samples on the surface
+    normals: np.ndarray          # (P, 3) surface normals at the samples
+    T_cell_cam: np.ndarray       # the camera pose the planner assumes
+
+    def __post_init__(self):
+        """Its arrays read-only, however it was made (built, replaced by the certificate)."""
+        _read_only(self.__dict__.values())
+
+    def __setstate__(self, state):
+        """Unpickled (a plan from a worker process): its arrays read-only again, as built."""
+        self.__dict__.update(state)
+        _read_only(state.values())
+
+    @property
+    def camera_position(self):
+        return self.T_cell_cam[:3, 3]
+
+    @property
+    def warp_mesh(self):
+        """This process's Warp BVH of the mesh (built on first use)."""
+        return shared_mesh(self.mesh_key, self.vertices, self.faces)
+
+    def sample_depths(self):
+        """Distances camera -> samples along the optical axis [m]."""
+        return (self.points - self.camera_position) @ self.T_cell_cam[:3, 2]
+
+
+def build_scene(task, samples=None, extra=None, T_cell_cam=None):
+    """Scene of a one-feature task: mesh and feature in the cell frame, `samples` points over the
+    feature patch (default: the task's) and the `extra` cell-frame points (the certificate's
+    worst), on the surface; the camera at T_cell_cam (a shot's), by default the task's rule: at
+    camera.distance_m along view_direction from the feature centre, looking at it.
+
+    The patch is the surface within radius_m of the centre (task-format), so a disk point at
+    radius rho must land at 3D distance rho: projected onto a curved surface it falls short (a
+    cylinder's R atan(rho / R)), so its guess is pushed out radially until it lands there."""
+    T = task.frames.T_cell_part
+    mesh = task.part.mesh.copy()
+    mesh.apply_transform(T)
+    center = geometry.apply(T, task.feature.center_m)
+    normal = geometry.unit(geometry.rotate(T, task.feature.normal))
+    frame = geometry.frame_from_normal(normal)
+    n = samples or task.feature.samples
+    disk = feature_disk(n, task.feature.radius_m)
+    guesses = center + disk[:, :1] * frame[:, 0] + disk[:, 1:] * frame[:, 1]
+    vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
+    faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
+    key = hashlib.blake2b(vertices.tobytes() + faces.tobytes(), digest_size=16).hexdigest()
+    bvh = shared_mesh(key, vertices, faces)
+    reach = 4 * task.feature.radius_m + 0.01
+    wanted = np.hypot(disk[:, 0], disk[:, 1])
+    away = wanted > 1e-3 * task.feature.radius_m
+    for _ in range(PATCH_ITERATIONS):
+        points, hit, _ = closest_points(bvh, guesses, max_dist=reach)
+        landed = np.linalg.norm(points - center, axis=1)
+        push = away & (hit >= 0) & (landed > 0)
+        if not np.any(np.abs(landed[push] - wanted[push]) > PATCH_TOLERANCE * task.feature.radius_m):
+            break
+        offset = (guesses[push] - center) * (wanted[push] / landed[push])[:, None]
+        reach_out = np.linalg.norm(offset, axis=1) / (PATCH_PUSH_MAX * wanted[push])   # an edge: no
+        guesses[push] = center + offset / np.maximum(reach_out, 1.0)[:, None]         # surface out there
+    short = away & (hit >= 0) & (np.abs(np.linalg.norm(points - center, axis=1) - wanted)
+                                 > PATCH_LEAVES * task.feature.radius_m)
+    if np.any(short):
+        raise TaskError(task.path, f"{task.feature.key}.center_m",
+                        f"a patch of radius {1e3 * task.feature.radius_m:g} mm whose"
+                        f" {int(short.sum())} of {n} samples cannot lie on the surface at their distance "
+                        f"(it runs over an edge of the part)", "a patch on one continuous surface")
+    if extra is not None and len(extra):
+        more, more_hit, _ = closest_points(bvh, np.asarray(extra, float), max_dist=reach)
+        points, hit = np.vstack([points, more]), np.concatenate([hit, more_hit])
+    if np.any(hit < 0):
+        raise TaskError(task.path, f"{task.feature.key}.radius_m", f"{task.feature.radius_m:g} m, a patch "
+                        f"{int(np.sum(hit < 0))} of whose {len(hit)} samples find no surface within "
+                        f"{1e3 * reach:.0f} mm", "a patch on the part's surface")
+    normals = mesh.face_normals[hit]
+    if T_cell_cam is None:
+        cam = center + task.camera.distance_m * geometry.unit(geometry.rotate(T, task.camera.view_direction))
+        T_cell_cam = look_at(cam, center)
+    return Scene(vertices=vertices, faces=faces, mesh_key=key, center=center, normal=normal, frame=frame,
+                 points=points, normals=normals, T_cell_cam=np.array(T_cell_cam, float))
+
+
+def _read_only(values):
+    """The arrays among values made read-only: mesh_key names this geometry, so it must not
+    change under the key (nor a plan's samples under its predictions)."""
+    for value in values:
+        if isinstance(value, np.ndarray):
+            value.flags.writeable = False

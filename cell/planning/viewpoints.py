@@ -1,0 +1,163 @@
+"""Planned camera viewpoints (camera.viewpoint: planned): camera poses on view spheres around a
+feature, pruned coarse to fine before any lamp is tried, so that only a bounded few get a lamp
+planned (cell.planning.whole_part).
+
+Directions d in the feature frame (+z the normal) in rings of polar angle theta = 0, step, ...
+< 90 deg, each ring round(2 pi sin(theta) / step) evenly; radii r over camera.standoff_range_m.
+The camera at C = centre + r d looks at the centre (rolled 0, 90, 180, 270 deg about its axis
+until the arm reaches it). Stages, cheapest first, each counted:
+  visibility   every sample sees d (the paper's visibility map, all four cells around d)
+  view_angle   theta within requirements.view_angle_deg (at the centre; exact per sample below)
+  resolution   r pitch / f / cos(theta) within requirements.resolution_m (at the centre)
+  workspace    camera and flange (by the frames' hand-eye) inside cell.arm's workspace box
+               (cell.devices.interfaces.check_arm_motion, as every move is checked)
+  reach        the UR5e's closed-form inverse kinematics (cell.devices.ur5e) has a solution
+  seen         a direct ray from every sample to C is free and every sample lies in the image
+               (evaluate.build_problem's camera_unseen), the view angle and resolution hold at
+               every sample, and the depth of field holds at the lens's narrowest f-number
+               (cell.planning.requirements' own values)
+The survivors are ranked by their largest view angle (the squarest first, then the nearest)
+and at most views_per_feature are kept, each at least two steps from those kept before.
+The arm's collisions with the part or the table are not checked.
+"""
+from dataclasses import dataclass, replace
+from types import SimpleNamespace
+
+import numpy as np
+
+from cell.planning import evaluate, requirements
+
+from cell.core import geometry
+
+from cell.physics import projection
+
+from cell.devices import ur5e
+from cell.devices.interfaces import check_arm_motion
+from cell.core.errors import DeviceFault
+from cell.planning.scene import look_at
+
+STAGES = ("visibility", "view_angle", "resolution", "workspace", "reach", "seen")
+ROLLS = np.radians([0.0, 90.0, 180.0, 270.0])
+VIEWPOINT_REQUIREMENTS = ("camera_view", "view_angle", "resolution", "depth_of_field")
+
+
+@dataclass(frozen=True)
+class Viewpoint:
+    """A camera pose the arm reaches: T_cell_cam, the UR5e joints reaching it (nearest zero
+    joints), its standoff [m] and the largest view angle over the samples [rad]."""
+
+    T_cell_cam: np.ndarray
+    arm_joints: np.ndarray
+    standoff_m: float
+    view_angle_rad: float
+
+
+@dataclass(frozen=True)
+class Viewpoints:
+    """The kept viewpoints of one feature, best first, the poses tried, those each stage pruned
+    and those that passed every stage (kept or not: the bound)."""
+
+    kept: tuple
+    poses: int
+    pruned: dict
+    passed: int
+    time_s: float = 0.0          # the viewpoints' own time (cell.planning.whole_part records it)
+
+    def to_json(self):
+        return {"poses": self.poses, "pruned": dict(self.pruned), "passed": self.passed, "kept": len(self.kept)}
+
+    def why_none(self):
+        """A sentence for a feature no pose survives."""
+        stages = ", ".join(f"{self.pruned[s]} by {s}" for s in STAGES if self.pruned[s])
+        return f"no camera pose of the {self.poses} on the view spheres survives ({stages})"
+
+
+def sphere_directions(step):
+    """(N, 3) unit directions in the feature frame over the open hemisphere above it and their
+    polar angles (N,): rings theta = 0, step, ... < pi / 2 of round(2 pi sin theta / step)."""
+    dirs, polar = [], []
+    for theta in np.arange(0.0, 0.5 * np.pi - 1e-9, step):
+        n = max(1, int(round(2 * np.pi * np.sin(theta) / step)))
+        phi = 2 * np.pi * (np.arange(n) + 0.5 * (len(polar) % 2)) / n     # rings staggered
+        dirs.append(np.column_stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi),
+                                     np.full(n, np.cos(theta))]))
+        polar.append(np.full(n, theta))
+    return np.vstack(dirs), np.concatenate(polar)
+
+
+def rolled(T, angle):
+    """T_cell_cam turned by `angle` about its own optical axis (z)."""
+    c, s = np.cos(angle), np.sin(angle)
+    return T @ geometry.transform(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]))
+
+
+def reach(task, T_cell_cam):
+    """(T_cell_cam rolled so the arm reaches it, joints) or (None, the stage that refused)."""
+    frames, arm = task.frames, task.cell.devices.arm
+    refused = "workspace"
+    for angle in ROLLS:
+        T = rolled(T_cell_cam, angle)
+        try:
+            check_arm_motion(arm, frames, T, arm.speed_m_s)
+        except DeviceFault:
+            continue
+        try:
+            q = ur5e.inverse(frames.T_base_flange(frames.T_base_cam(T)), np.zeros(6))
+        except ur5e.Unreachable:
+            refused = "reach"
+            continue
+        return T, q
+    return None, refused
+
+
+def viewpoint_values(task, scene):
+    """{name: ln f_i} of the viewpoint requirements the task asks for at the scene's camera (the
+    depth of field at the lens's narrowest f-number: whether any f-number gives it)."""
+    problem = evaluate.build_problem(task, scene, None)
+    lens_only = SimpleNamespace(kappa=np.array([task.camera.lens.f_number_range[1]]), shutter=np.zeros(1))
+    by_name = {r.name: r for r in requirements.REGISTRY}
+    return {name: float(np.max(by_name[name].ln_value(problem, lens_only))) for name in VIEWPOINT_REQUIREMENTS
+            if by_name[name].asked is None or by_name[name].asked(problem)}
+
+
+def plan_viewpoints(task, scene, visible, grid):
+    """Viewpoints of the one-feature task whose samples and visibility map (grid's) are given."""
+    vp, req = task.camera.viewpoint, task.requirements
+    sensor, lens = task.camera.sensor, task.camera.lens
+    dirs, polar = sphere_directions(vp.step_rad)
+    radii = np.linspace(*vp.standoff_range_m, vp.standoff_steps) if vp.standoff_steps > 1 else \
+        np.array([vp.standoff_range_m[0]])
+    pruned = dict.fromkeys(STAGES, 0)
+    az, el = geometry.angles_from_direction(dirs)
+    seen_dir = grid.sample(visible.astype(float), az, el) >= 1.0 - 1e-9
+    pruned["visibility"] = int(np.sum(~seen_dir)) * len(radii)
+    square = seen_dir & (polar <= (np.inf if req.view_angle_rad is None else req.view_angle_rad) + 1e-12)
+    pruned["view_angle"] = int(np.sum(seen_dir & ~square)) * len(radii)
+    survivors = []
+    for k in np.flatnonzero(square):
+        d = scene.frame @ dirs[k]
+        for r in radii:
+            camera = scene.center + r * d
+            if req.resolution_m is not None and projection.pixel_footprint(
+                    camera, scene.center, scene.normal, sensor.pixel_pitch_m, lens.focal_length_m) > req.resolution_m:
+                pruned["resolution"] += 1
+                continue
+            T, q = reach(task, look_at(camera, scene.center))
+            if T is None:
+                pruned[q] += 1
+                continue
+            values = viewpoint_values(task, replace(scene, T_cell_cam=T))
+            if any(v > 0.0 for v in values.values()):
+                pruned["seen"] += 1
+                continue
+            angle = projection.view_angles(T[:3, 3], scene.points, scene.normals).max()
+            survivors.append(Viewpoint(T, q, float(r), float(angle)))
+    survivors.sort(key=lambda v: (round(v.view_angle_rad, 9), v.standoff_m))
+    kept = []
+    for v in survivors:
+        axis = v.T_cell_cam[:3, 2]
+        if all(np.arccos(np.clip(axis @ k.T_cell_cam[:3, 2], -1, 1)) >= 2 * vp.step_rad - 1e-9 for k in kept):
+            kept.append(v)
+        if len(kept) == vp.per_feature:
+            break
+    return Viewpoints(tuple(kept), len(dirs) * len(radii), pruned, len(survivors))

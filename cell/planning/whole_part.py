@@ -1,0 +1,184 @@
+"""Planning a task with several features: each feature's own shot by the one-shot planner (its
+camera by the task's camera rule around its centre), every shot judged on every feature (the
+coverage matrix, cell.planning.coverage), and the fewest shots covering every coverable feature by
+integer programming (cell.planning.set_cover), ties broken by travel. A feature no shot covers is named
+with the requirement that binds in its own plan: the plan is partial (not feasible), never
+silently short of a feature."""
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from cell.planning import coverage, one_shot, regions
+from cell.planning.set_cover import fewest_shots
+from cell.planning.parallel import SERIAL
+from cell.planning.plan import FeatureVerdict, Plan, PlannerSettings, Search
+from cell.planning.scene import build_scene
+
+
+def travel(shots):
+    """(S,) travel of each candidate shot [m]: its camera's distance from the candidates' mean
+    camera position plus its lamp's from their mean lamp position. A linear stand-in for the
+    arm's and the lamp's travel between the chosen shots (a tour's length is not linear in the
+    choice): of equally few shots, those nearer the middle lie nearer each other."""
+    cameras = np.array([s.camera_position for s in shots])
+    lamps = np.array([s.lamp_position for s in shots])
+    return (np.linalg.norm(cameras - cameras.mean(axis=0), axis=1)
+            + np.linalg.norm(lamps - lamps.mean(axis=0), axis=1))
+
+
+def own_plan(task, settings, T_cell_cam, arm_joints, header, say):
+    """A job: the one-shot plan of a one-feature task, its camera at T_cell_cam (a planned
+    viewpoint's, reached by `arm_joints`) or by the task's rule (None)."""
+    if header:
+        say(header)
+    p = one_shot.plan(task, settings, progress=say, T_cell_cam=T_cell_cam)
+    if arm_joints is None:
+        return p
+    return replace(p, shots=(replace(p.shot, arm_joints=tuple(float(q) for q in arm_joints)),))
+
+
+def viewpoints_of(task, settings, say):
+    """The Viewpoints of a one-feature task (cell.planning.viewpoints), with their own time."""
+    from cell.planning.viewpoints import plan_viewpoints
+    start = time.perf_counter()
+    grid = regions.SphereGrid(np.radians(settings.grid_step_deg))
+    scene = build_scene(task, settings.samples)
+    v = plan_viewpoints(task, scene, one_shot.visibility_map(scene, grid), grid)
+    say(f"feature {task.feature.name}: {len(v.kept)} of {v.poses} camera poses kept (pruned: "
+        + ", ".join(f"{n} {s}" for s, n in v.pruned.items() if n) + ")")
+    return replace(v, time_s=time.perf_counter() - start)
+
+
+def at_viewpoint(task, settings, views, k, say):
+    """A job: the one-shot plan of a one-feature task at its k-th kept viewpoint."""
+    vp = views.kept[k]
+    return own_plan(task, settings, vp.T_cell_cam, vp.arm_joints, f"feature {task.feature.name}, viewpoint {k}: "
+                    f"camera at {np.round(vp.T_cell_cam[:3, 3], 3).tolist()} m", say)
+
+
+def views_and_first_plan(task, settings, say):
+    """A job: (the Viewpoints of a one-feature task, its plan at the first kept one, or by the
+    fixed rule when none is kept: the plan that only lends). One job, not two: a job costs the
+    cluster's scheduler some 10 ms of the cores the plans need."""
+    views = viewpoints_of(task, settings, say)
+    if not views.kept:
+        return views, own_plan(task, settings, None, None, "", say)
+    return views, at_viewpoint(task, settings, views, 0, say)
+
+
+def judge_column(tasks, f, shot, lent, say):
+    """A job: (the Coverage of feature f's candidate `shot` on every other feature, whose own
+    first plan lent its samples and maps (`lent`, coverage.Lent; None at f: its plan's verdict
+    stands), its own time [s])."""
+    start = time.perf_counter()
+    column = [None if g == f else coverage.judge(t, lent[g], shot) for g, t in enumerate(tasks)]
+    return column, time.perf_counter() - start
+
+
+def candidate_plans(tasks, settings, say, pool=SERIAL):
+    """[(feature index, its Plan)] of every candidate shot, the Viewpoints of each feature (None:
+    the fixed camera rule, one candidate per feature), each feature's plan that lends its samples
+    and maps to the judge (its first), and the coverage of each candidate on every other feature
+    (judge_column). A planned feature gets a plan per kept viewpoint (cell.planning.viewpoints); one with
+    none gets its fixed-rule plan, which only lends (not a candidate).
+    Every step is a job of `pool` (cell.planning.parallel), handed on as the results it needs complete:
+    each feature's viewpoints and first plan ahead of the rest (the judge needs every first
+    plan), its other lamp searches once its viewpoints are known, a shot's judging once its plan
+    and every first plan are."""
+    fixed = tasks[0].camera.viewpoint.mode == "fixed"
+    views, plans, columns = [None] * len(tasks), {}, {}
+    jobs = pool.jobs(say)
+
+    def planned(f, k, plan):
+        """Keep a plan; once every feature's first is in, judge each candidate not yet judged."""
+        plans[f, k] = plan
+        firsts = [plans.get((g, 0)) for g in range(len(tasks))]
+        if any(p is None for p in firsts):
+            return
+        lent = [coverage.Lent.of(p) for p in firsts]
+        for (g, j), p in plans.items():
+            if (g, j) not in columns and (views[g] is None or j < len(views[g].kept)):
+                columns[g, j] = None
+                jobs.submit(("judge", g, j), judge_column, tasks, g, p.shot, lent)
+
+    for f, t in enumerate(tasks):
+        if fixed:
+            jobs.submit(("plan", f, 0), own_plan, t, settings, None, None, f"feature {t.feature.name}:", first=True)
+        else:
+            jobs.submit(("views", f, 0), views_and_first_plan, t, settings, first=True)
+    for (kind, f, k), result in jobs:
+        if kind == "views":
+            views[f], first = result
+            for j in range(1, len(views[f].kept)):
+                jobs.submit(("plan", f, j), at_viewpoint, tasks[f], settings, views[f], j)
+            planned(f, 0, first)
+        elif kind == "plan":
+            planned(f, k, result)
+        else:
+            columns[f, k] = result
+    whose = sorted(columns)             # (feature, k) of each candidate, in the serial order
+    return ([(f, plans[f, k]) for f, k in whose], None if fixed else views, [plans[f, 0] for f in range(len(tasks))],
+            [columns[c] for c in whose])
+
+
+def plan_features(task, settings=PlannerSettings(), progress=None, pool=SERIAL):
+    """The Plan of a task's features (one or more): the chosen shots, each with the features it
+    covers (Shot.covers), and per feature the shot covering it (Plan.features). Candidate shots:
+    each feature's own by the task's camera rule, or (camera.viewpoint: planned) one per kept
+    viewpoint of each feature. The plans and the coverage matrix's columns are jobs of `pool`
+    (cell.planning.parallel: here, or on a Dask cluster), each result placed by its job's key: the same
+    plan either way."""
+    say = progress or (lambda msg: None)
+    t0 = time.perf_counter()
+    tasks = [task.with_feature(i) for i in range(len(task.features))]
+    cands, views, lend, columns = candidate_plans(tasks, settings, say, pool)
+    t_jobs = time.perf_counter()
+    shots = [p.shot for _, p in cands]
+    judged = [[coverage.of_plan(t, p) if g == f else column[f] for (g, p), (column, _) in zip(cands, columns)]
+              for f, t in enumerate(tasks)]
+    covers = np.array([[c.covered for c in row] for row in judged]).reshape(len(tasks), len(shots))
+    t_judge = time.perf_counter()
+    distance = travel(shots) if shots else np.zeros(0)
+    cover = fewest_shots(covers, distance)
+    index = {s: k for k, s in enumerate(cover.chosen)}
+    verdicts = []
+    for f, t in enumerate(tasks):
+        by = [s for s in cover.chosen if covers[f, s]]
+        if not by:
+            if views is not None and not views[f].kept:
+                verdicts.append(FeatureVerdict(t.feature.name, None, "viewpoint", views[f].why_none()))
+            else:
+                verdicts.append(FeatureVerdict(t.feature.name, None, lend[f].binding, lend[f].hint))
+            continue
+        own = [s for s in by if cands[s][0] == f]                           # its own shot if chosen
+        best = own[0] if own else min(by, key=lambda s: judged[f][s].worst)
+        verdicts.append(FeatureVerdict(t.feature.name, index[best]))
+    chosen = tuple(replace(shots[s], covers=tuple(judged[f][s] for f in range(len(tasks)) if covers[f, s]))
+                   for s in cover.chosen)
+    say(f"cover: {len(chosen)} of {len(shots)} shots cover {len(cover.coverable)} of {len(tasks)} features")
+    uncovered = [v for v in verdicts if v.covered_by is None]
+    if uncovered:
+        v = uncovered[0]
+        f = [t.feature.name for t in tasks].index(v.name)
+        miss = lend[f].miss if v.binding != "viewpoint" else float("inf")
+        binding, hint = v.binding, f"feature '{v.name}' is covered by no shot: {v.hint}"
+    else:
+        worst = max((r for shot in chosen for c in shot.covers for r in c.requirements), key=lambda r: r.value)
+        binding, miss, hint = worst.name, worst.value - 1.0, ""
+    timing = {"candidates": t_jobs - t0, "judge": sum(t for _, t in columns), "cover": time.perf_counter() - t_judge,
+              "total": time.perf_counter() - t0}
+    if views is not None:                  # of "candidates" (as "judge"): the view spheres, before any lamp
+        timing["viewpoints"] = sum(v.time_s for v in views)
+    plans = tuple(p for _, p in cands)
+    search = Search(candidates=sum(p.search.candidates for p in plans), starts=sum(p.search.starts for p in plans),
+                    refinements=tuple(r for p in plans for r in p.search.refinements))
+    notes = tuple(f"{tasks[f].feature.name}: {n}" for f, p in cands for n in p.notes)
+    record = {"candidate_shots": len(shots), "covers": covers.tolist(), "travel_m": distance.tolist(),
+              "chosen": list(cover.chosen)}
+    if views is not None:
+        record |= {"candidate_features": [f for f, _ in cands],
+                   "viewpoints": [{"feature": t.feature.name, **v.to_json()} for t, v in zip(tasks, views)]}
+    return Plan(task_name=task.name, feasible=not uncovered, binding=binding, miss=miss, objective=cover.objective,
+                hint=hint, shots=chosen, maps=None, settings=settings, scene=None, search=search,
+                timing_s=timing, notes=notes, features=tuple(verdicts), plans=plans, cover=record)

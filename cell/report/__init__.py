@@ -1,0 +1,4 @@
+"""What a person opens and a machine reads: the run folder (`recorder`: log.jsonl, plan.json,
+result files, the routines' ending) and every picture (`pictures`).
+
+Layer 6: imports `cell.core` to `cell.planning`."""

@@ -1,0 +1,134 @@
+"""The run folder a person can open and a machine can read: `log.jsonl` (one JSON line per step:
+time, step, message, data; appended, flushed and fsync'd so that a crash loses nothing measured;
+each step also a progress line on stderr), plan.json with the plan's pictures, every capture,
+and the result file, written however the run ends."""
+import os
+import re
+import sys
+from datetime import datetime, timezone
+from pathlib import Path
+
+import cv2
+
+from cell.core import jsonio
+from cell.devices.session import Session, stop_outcome
+
+
+def write_plan(plan, task, folder, cell_picture=True):
+    """plan.json, the plan's pictures and cell.png (its shots in the cell) into folder (created);
+    a multi-feature plan's own plan of each feature i (plan.json, pictures) into folder/feature-i,
+    or with planned viewpoints each candidate shot k's plan into folder/candidate-k (cell.png only
+    of the plan itself: it shows the chosen shots)."""
+    from cell.report.pictures import write_cell, write_plan_pictures
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    write_json(folder / "plan.json", plan.to_json())
+    if plan.plans:
+        planned = plan.cover.get("candidate_features")
+        for k, own in enumerate(plan.plans):
+            i = k if planned is None else planned[k]
+            write_plan(own, task.with_feature(i), folder / (f"feature-{k}" if planned is None else f"candidate-{k}"),
+                       cell_picture=False)
+    else:
+        write_plan_pictures(plan, task, plan.scene, folder)
+    if cell_picture:
+        write_cell(folder / "cell.png", plan, task)
+    return folder
+
+
+def write_json(path, document):
+    Path(path).write_text(jsonio.dumps(document, indent=2) + "\n")
+
+
+def file_name(text):
+    """text as part of a file name: what is not a letter, digit, '.', '-' or '_' becomes '_'."""
+    return re.sub(r"[^\w.-]", "_", text)
+
+
+class Recorder:
+    """A run folder and its log; `with Recorder(folder) as rec:` closes the log however it ends.
+    A sub-run's (`rec.sub("shot-0", shot=0)`) has its own folder and log, and every step it logs
+    is also appended to the parent's log with `tags` (shot=0)."""
+
+    def __init__(self, folder, parent=None, **tags):
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.log = open(self.folder / "log.jsonl", "a", encoding="utf-8")
+        self.plan = None            # the run folder's plan.json, once written
+        self.parent, self.tags = parent, tags
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.log.close()
+        return False
+
+    def sub(self, name, **tags):
+        """The Recorder of a sub-run in folder/name, its steps also in this log with tags."""
+        return Recorder(self.folder / name, self, **tags)
+
+    def step(self, step, message, iteration=None, **data):
+        """One step; `iteration` (the capture it belongs to) is left out when None."""
+        where = {} if iteration is None else {"iteration": iteration}
+        line = {"t": datetime.now(timezone.utc).isoformat(timespec="milliseconds"), "step": step,
+                "message": message, **where, **data}
+        self._append(line)
+        print(f"{'' if iteration is None else iteration:>2} {step:<12} {message}", file=sys.stderr, flush=True)
+
+    def _append(self, line):
+        """line to the log, flushed and fsync'd, and with the tags to the parent's."""
+        self.log.write(jsonio.dumps(line) + "\n")
+        self.log.flush()
+        os.fsync(self.log.fileno())
+        if self.parent is not None:
+            self.parent._append({**self.tags, **line})
+
+    def progress(self, message):
+        """A progress line on stderr only (the planner's stages), indented under the steps."""
+        print(f"{'':16}{message}", file=sys.stderr, flush=True)
+
+    def write_plan(self, plan, task, subfolder=""):
+        """plan.json and pictures, in the run folder (its plan, `self.plan`) or a subfolder of it
+        (a re-plan's); returns that folder."""
+        if not subfolder:
+            self.plan = plan.to_json()
+        return write_plan(plan, task, self.folder / subfolder)
+
+    def write_image(self, name, image):
+        """An image file in the run folder (PNG: lossless, 8 or 16 bit); returns its name."""
+        cv2.imwrite(str(self.folder / name), image)
+        return name
+
+    def write_json(self, name, document):
+        write_json(self.folder / name, document)
+
+    def fault(self, fault):
+        """The fault step, after the safe stop (session.Session's fault record)."""
+        self.step("fault", f"{fault['error']}: {stop_outcome(fault['stop_failures'])}", **fault)
+
+
+class Ending:
+    """How a routine's run ends, whatever ends it: `with Recorder(out) as rec, Ending(rec, "no fit",
+    "calibration.json", result) as end:` holds the run's device Session (`end.session`). An error
+    logs the "done" step, `failed: error` with its reason (a fault the Session logged already is
+    not logged twice), and is raised again; then, or at a normal end, `end.result = result(reason,
+    fault)` (reason '' and fault None when it finished; the routine logs its own "done" step) is
+    written to the run folder as `name`; `end.error` is what ended it (None at a normal end)."""
+
+    def __init__(self, recorder, failed, name, result, **failed_data):
+        self.recorder, self.failed, self.name, self.make = recorder, failed, name, result
+        self.failed_data, self.result, self.error = failed_data, None, None
+        self.session = Session(on_fault=recorder.fault, log=recorder.log.name)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, err, traceback):
+        reason = "" if err is None else str(err) or kind.__name__
+        self.error = err
+        if err is not None and not self.session.fault:     # the goal was not reached: the devices are fine
+            self.recorder.step("done", f"{self.failed}: {err}", **self.failed_data, reason=reason)
+        self.result = self.make(reason, self.session.fault)
+        self.recorder.write_json(self.name, self.result.to_json())
+        return False

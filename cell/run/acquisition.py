@@ -1,0 +1,103 @@
+"""Acquisition, shared by the closed loop and the calibration routines: plan, refuse an
+infeasible plan before anything moves and connect the devices; move to a Shot's poses, set an
+exposure and take a frame, each step logged as the devices read it back."""
+from dataclasses import dataclass
+
+import numpy as np
+
+from cell.physics.sensor import levels
+from cell.devices.interfaces import speaking_for
+from cell.core.errors import PlanInfeasible
+from cell.planning.plan import gray_stats
+
+
+@dataclass(frozen=True)
+class Capture:
+    """One frame as the camera delivered it and what the devices read back when it was taken."""
+
+    image: np.ndarray            # (H, W) gray, uint8/uint16 (a real sensor) or float (the sim)
+    T_cell_cam: np.ndarray       # the arm's read-back camera pose
+    shutter_s: float             # the shutter time the camera reports
+    f_number: float
+    focus_m: float
+    name: str                    # its file in the run folder
+
+
+def plan_recorded(task, recorder, albedo_scale=1.0, iteration=None, subfolder="", T_cell_cam=None):
+    """Plan (the function `cell plan` uses; the camera at T_cell_cam, else by the task's rule),
+    write plan.json and pictures, log it."""
+    from cell.planning.one_shot import plan
+    planned = plan(task, albedo_scale=albedo_scale, progress=recorder.progress, T_cell_cam=T_cell_cam)
+    folder = recorder.write_plan(planned, task, subfolder)
+    shot = planned.shot
+    g, exposure = gray_stats(shot.gray), shot.exposure
+    verdict = "feasible" if planned.feasible else f"INFEASIBLE, {planned.binding}: {planned.hint}"
+    recorder.step("plan", f"{verdict}; lamp {shot.distance_m:.3f} m, phase "
+                          f"{np.degrees(shot.phase_angle_rad):.1f} deg; {1e3 * exposure.shutter_s:.3f} ms, "
+                          f"f/{exposure.f_number:.1f}; predicted gray {g['min']:.1f}-{g['max']:.1f}"
+                          + (f" (albedo x{albedo_scale:.3g})" if albedo_scale != 1.0 else ""),
+                  iteration=iteration, albedo_scale=albedo_scale, feasible=planned.feasible,
+                  binding=planned.binding, hint=planned.hint, joints=shot.joints,
+                  shutter_s=exposure.shutter_s, f_number=exposure.f_number, predicted_gray=g,
+                  folder=str(folder))
+    return planned
+
+
+def require_feasible(plan):
+    """Refuse an infeasible plan before anything moves (PlanInfeasible, exit 1)."""
+    if not plan.feasible:
+        raise PlanInfeasible(f"infeasible: {plan.message}")
+
+
+def plan_and_connect(task, recorder, session, connect):
+    """Plan (plan_recorded), refuse an infeasible plan before anything moves, then connect(scene)
+    the cell's devices into the session. Returns the plan."""
+    planned = plan_recorded(task, recorder)
+    require_feasible(planned)
+    session.devices = connect(planned.scene)
+    return planned
+
+
+def move_to(devices, shot, recorder, iteration=None):
+    """Camera and lamp to the shot's poses, each logged as read back from the device."""
+    with speaking_for(devices.arm):
+        devices.arm.move_camera(shot.T_cell_cam)
+        position = devices.arm.camera_pose()[:3, 3]
+    off = float(np.linalg.norm(position - shot.camera_position))
+    recorder.step("move_camera", f"camera at {np.round(position, 4).tolist()} m ({1e3 * off:.2f} mm from "
+                                 f"the plan)", iteration=iteration, position_m=position, error_m=off)
+    move_lamp(devices, shot.joints, recorder, iteration)
+
+
+def move_lamp(devices, joints, recorder, iteration=None, why=""):
+    """The lamp to (pan, tilt, radius) [rad, rad, m], logged as read back (after `why`, if
+    given). Returns the read-back joints."""
+    with speaking_for(devices.lamp):
+        devices.lamp.move(*joints)
+        pan, tilt, radius = devices.lamp.joints()
+    recorder.step("move_lamp", f"{why}pan {np.degrees(pan):.2f} deg, tilt {np.degrees(tilt):.2f} deg, "
+                               f"radius {1e3 * radius:.1f} mm", iteration=iteration,
+                  joints={"pan_deg": np.degrees(pan), "tilt_deg": np.degrees(tilt), "radius_m": radius})
+    return pan, tilt, radius
+
+
+def acquire(devices, recorder, iteration, shutter_s, f_number, focus_m, name=None):
+    """Set f-number, focus and shutter, take a frame and save it at once (capture-N.png, or
+    name.png, the sim's float gray rounded to the sensor's levels). Returns the Capture. The shutter comes last:
+    a camera drops the frames exposed before it changed (OpenCVCamera), and an operator turning
+    the lens by hand would otherwise be in them."""
+    camera = devices.camera
+    with speaking_for(camera):
+        camera.set_aperture(f_number)
+        camera.set_focus(focus_m)
+        shutter_s = camera.set_exposure(shutter_s)
+    recorder.step("set_exposure", f"shutter {1e3 * shutter_s:.3f} ms, f/{f_number:.2f}, focus "
+                                  f"{focus_m:.3f} m", iteration=iteration,
+                  shutter_s=shutter_s, f_number=f_number, focus_m=focus_m)
+    with speaking_for(camera):
+        image = np.asarray(camera.capture())
+    name = recorder.write_image(f"{name or f'capture-{iteration}'}.png", levels(image, camera.bit_depth))
+    recorder.step("capture", name, iteration=iteration, capture=name, shape=image.shape, dtype=str(image.dtype))
+    with speaking_for(devices.arm):
+        pose = devices.arm.camera_pose()
+    return Capture(image, pose, shutter_s, float(f_number), float(focus_m), name)

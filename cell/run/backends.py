@@ -1,0 +1,149 @@
+"""The one place that builds the cell's devices: the simulated cell (sim/) or the real one
+(cell/devices/hw/). Nothing else in cell/ imports either, so the controller sees only the
+interfaces of cell.devices.interfaces, and the real backends' SDKs load only for --backend hw."""
+from dataclasses import dataclass
+
+from cell.devices.interfaces import Camera, Devices, speaking_for
+from cell.core.errors import DeviceFault, TaskError
+from cell.devices.operator import Operator
+from cell.devices.session import try_all
+
+
+def open_devices(task, scene, backend, yes=False, laser=None, board=False):
+    """The cell's devices: the simulated cell (rendering `scene`, the spot of a laser aimed at
+    the sensor, or with board the calibration.board) or, for backend hw, the real ones from the
+    task's cell.arm / cell.pan_tilt / cell.camera settings (a real laser and board are the
+    operator's). The sim has no operator to set the lamp radius: it confirms for itself."""
+    if backend == "hw":
+        return make_hw_devices(task, yes=yes, scene=scene)
+    from sim.cell import make_sim_devices
+    return make_sim_devices(task, scene, yes=True, laser=laser, board=board)
+
+
+def make_hw_devices(task, yes=False, operator=None, scene=None):
+    """The real devices for --backend hw from the task's settings. Needs explicit `cell.arm.host`
+    and `cell.pan_tilt.port` (no default reaches the network or a serial bus); connects arm,
+    servos, camera in turn and closes what was opened if a later one fails. With
+    cell.camera.driver simulated the camera renders `scene` (default: the task's, built here)."""
+    config = _addressed(task)
+    from cell.devices.hw.dynamixel import DynamixelPanTilt
+    from cell.devices.hw.ur import URArm
+    open_camera = hw_camera(task, scene=scene)
+
+    operator = operator or Operator(yes=yes)
+    opened = []
+    try:
+        with speaking_for(URArm):
+            opened.append(URArm(config.arm, task.frames))
+        with speaking_for(DynamixelPanTilt):
+            opened.append(DynamixelPanTilt(task.lamp.rig, config.pan_tilt, operator))
+        with speaking_for(Camera):
+            opened.append(open_camera(operator, *opened))
+    except Exception:
+        try_all([device.close for device in reversed(opened)])
+        raise
+    return Devices(*opened)
+
+
+def _addressed(task):
+    """The task's device settings, once they name the robot and the serial port: no default
+    reaches a network or a bus (bad input otherwise)."""
+    config = task.cell.devices
+    if not config.arm.host:
+        raise TaskError(config.task_file, "cell.arm.host", "nothing",
+                        "the robot's address (required for --backend hw; there is no default)")
+    if not config.pan_tilt.port:
+        raise TaskError(config.task_file, "cell.pan_tilt.port", "nothing",
+                        "the servos' serial port, e.g. /dev/ttyUSB0 (required for --backend hw)")
+    return config
+
+
+@dataclass(frozen=True)
+class DeviceCheck:
+    """One real device as `cell hw-check` found it: its state() if it answered, else the fault."""
+
+    device: str
+    address: str                      # host, serial port or camera source
+    state: dict | None
+    fault: str | None
+
+    @property
+    def ready(self):
+        """Answered, and reports nothing a run would stop on."""
+        return self.fault is None and not self.state["problems"]
+
+
+def check_hw_devices(task):
+    """`cell hw-check`: each real device of the task opened alone and read-only, asked its
+    state() and closed, so one that fails does not hide the others. Reading only: nothing moves,
+    no torque or setting changes, no control script is uploaded, no frame exposure is set; a
+    DeviceCheck per device (arm, pan-tilt, camera). The camera's frames are compared with
+    camera.sensor, as a run does."""
+    config = _addressed(task)
+    from cell.devices.hw.dynamixel import DynamixelPanTilt
+    from cell.devices.hw.ur import URArm
+    open_camera = hw_camera(task, read_only=True)
+
+    no_prompt = Operator(yes=True)    # nothing is set by hand in a check, so nothing is asked
+    sensor = task.camera.sensor
+    checks = [
+        _check(URArm, config.arm.host, lambda: URArm(config.arm, task.frames, read_only=True)),
+        _check(DynamixelPanTilt, config.pan_tilt.port,
+               lambda: DynamixelPanTilt(task.lamp.rig, config.pan_tilt, no_prompt, read_only=True)),
+        _check(Camera, camera_address(config.camera), lambda: open_camera(no_prompt)),
+    ]
+    camera = checks[-1].state
+    if camera and (camera["width_px"], camera["height_px"]) != (sensor.width_px, sensor.height_px):
+        camera["problems"].append(f"frames are {camera['width_px']}x{camera['height_px']}, camera.sensor is "
+                                  f"{sensor.width_px}x{sensor.height_px}: set the camera's resolution")
+    return checks
+
+
+def _check(kind, address, open_device):
+    device = None
+    try:
+        with speaking_for(kind):
+            device = open_device()
+            return DeviceCheck(kind.device, address, device.state(), None)
+    except DeviceFault as fault:
+        return DeviceCheck(kind.device, address, None, fault.reason)
+    finally:
+        if device is not None:
+            try_all([device.close])
+
+
+def camera_address(config):
+    """Where the camera is found: OpenCV's source, or the GenTL producer and the device in it."""
+    if config.driver == "simulated":
+        return "simulated (renders the task's scene)"
+    if config.driver != "genicam":
+        return str(config.source)
+    device = f"serial {config.serial_number}" if config.serial_number else f"device {config.device_index}"
+    return f"{config.cti} {device}"
+
+
+def hw_camera(task, read_only=False, scene=None):
+    """open(operator, arm=None, lamp=None) -> the camera of the task's cell.camera.driver: OpenCV's
+    VideoCapture, a GenICam device, whose SDK (harvesters, the `genicam` extra) is imported only
+    here: not installed is bad input before anything connects, or the simulator rendering `scene`
+    (default: the task's) from `arm`'s and `lamp`'s read-back poses, a dry run of a real arm and
+    lamp rig without a camera. read_only: a GenICam device opened without its set-up, for `cell
+    hw-check` (OpenCV's and the simulated camera set nothing when they open)."""
+    config, bit_depth = task.cell.devices.camera, task.camera.sensor.bit_depth
+    if config.driver == "opencv":
+        from cell.devices.hw.opencv_camera import OpenCVCamera
+        return lambda operator, arm=None, lamp=None: OpenCVCamera(config, bit_depth, operator)
+    if config.driver == "simulated":
+        from cell.planning.scene import build_scene
+        from sim.camera import SimCamera
+        from sim.world import Renderer
+        return lambda operator, arm=None, lamp=None: SimCamera(Renderer(task, scene or build_scene(task)),
+                                                               arm, lamp, bit_depth)
+    try:
+        from cell.devices.hw.genicam_camera import GenICamCamera
+    except ImportError as err:
+        raise TaskError(task.path, "cell.camera.driver", f"genicam, but {err.name or err} cannot be "
+                        "imported", "the GenICam SDK installed: "
+                        "pip install 'lightplan-cell[genicam]'") from None
+    return lambda operator, arm=None, lamp=None: GenICamCamera(config, task.camera.sensor, operator,
+                                                               read_only=read_only)

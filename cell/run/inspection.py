@@ -1,0 +1,368 @@
+"""`cell run` of a task with several features, or with planned viewpoints: plan its shots
+(cell.planning.whole_part), refuse a partial plan before anything moves, connect, visit the chosen shots in
+the shortest order (cell.run.route) and run the closed loop at each, each in its own folder
+shot-<s>/ (s: the shot's index in plan.json). A shot of one feature runs loop.iterate itself; a
+shot of several runs iterate_shared: one capture, each feature located and measured in its own
+image region, one exposure for all of them. The run's report.json holds every feature's result.
+A shot that does not converge leaves the devices fine: the other shots still run, and the run
+exits 1 at the end naming each feature not in band; a device fault stops everything (exit 3)."""
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from cell.run import control, loop, measurement, registration, route
+from cell.run.acquisition import acquire, move_to, require_feasible
+from cell.devices.interfaces import speaking_for
+from cell.core.errors import GoalNotReached
+from cell.core.geometry import rotation_angle
+from cell.report.recorder import Ending, Recorder
+
+
+def candidate_features(plan):
+    """The feature whose own candidate each of plan.plans is (cell.planning.whole_part: one per feature
+    with the fixed camera rule, one per kept viewpoint of each feature when planned)."""
+    return plan.cover.get("candidate_features") or list(range(len(plan.plans)))
+
+
+def assigned(plan, s):
+    """The names of the features plan.shots[s] is the shot of (Plan.features' covered_by), in the
+    task's order: each feature is measured once, in its own shot, though another may cover it too.
+    A fewest-shots cover gives every chosen shot at least one (else it would not be needed)."""
+    return tuple(f.name for f in plan.features if f.covered_by == s)
+
+
+def feature_plan(plan, s, f):
+    """The one-shot Plan of feature f at plan.shots[s], as the one-feature loop works on it: the
+    shot's own candidate plan when it was planned for f; else the plan whose samples coverage
+    judged f on (f's first candidate), its camera moved to the shot's, with the gray coverage
+    predicts there (cell.planning.coverage.judge) and its verdict."""
+    shot, k = plan.shots[s], plan.cover["chosen"][s]
+    owners, name = candidate_features(plan), plan.features[f].name
+    if owners[k] == f:
+        return plan.plans[k]
+    covered = next(c for c in shot.covers if c.feature == name)
+    lend = plan.plans[owners.index(f)]
+    scene = replace(lend.scene, T_cell_cam=shot.T_cell_cam)
+    if len(covered.gray) != len(scene.points):
+        raise ValueError(f"feature {name}: {len(covered.gray)} predicted grays for {len(scene.points)} samples")
+    own = replace(shot, gray=covered.gray, requirements=covered.requirements, covers=())
+    return replace(lend, feasible=covered.covered, shots=(own,), scene=scene, verification=covered.verification)
+
+
+def shared_correction(names, measured, limits, shutter_s, f_number, black):
+    """The one Correction of a capture of several features (names; measured: loop.measure_capture's
+    (Iteration, Measurement, predicted) of each; limits: each one's control.Limits). Each feature
+    is judged alone first (control.correct): a stop names it. Then all together, their
+    measurements joined (measurement.joined) against the band they all accept (the bands'
+    intersection), for the exposure: a spread there that no feature has alone means the features
+    disagree (cause `features`): no one exposure puts them all in band. What the exposure cannot
+    absorb stops (cause `replan`): a shot of several features is not re-planned."""
+    for name, (_, m, predicted), lim in zip(names, measured, limits):
+        c = control.correct(m, predicted, shutter_s, f_number, lim, black)
+        if c.action == "stop":
+            note = " (a shot of several features is not refitted)" if c.cause == "spread" else ""
+            return replace(c, reason=f"{name}: {c.reason}{note}")
+    band = (max(lim.band[0] for lim in limits), min(lim.band[1] for lim in limits))
+    joint = control.Limits(band, limits[0].shutter_range, (max(lim.f_number_range[0] for lim in limits),
+                                                           min(lim.f_number_range[1] for lim in limits)),
+                           limits[0].albedo_range)
+    if band[0] > band[1]:
+        return control.Correction("stop", (np.nan, np.nan), np.nan, "=", cause="bands", reason=(
+            "the shot's features have gray bands with nothing in common ("
+            + ", ".join(f"{n} {lim.band[0]:g}-{lim.band[1]:g}" for n, lim in zip(names, limits))
+            + "): one exposure cannot be corrected toward all of them"))
+    predicted = np.concatenate([p for _, _, p in measured])
+    c = control.correct(measurement.joined(m for _, m, _ in measured), predicted, shutter_s, f_number, joint, black)
+    if c.action == "stop" and c.cause == "spread":
+        b = black.value
+        ranges = ", ".join(f"{n} {m.min:.1f}-{m.max:.1f}" for n, (_, m, _) in zip(names, measured))
+        lo, hi = c.gray_range
+        return replace(c, cause="features", reason=(
+            f"the shot's features disagree: {ranges}; together max/min {(hi - b) / (lo - b):.2f} > the "
+            f"band's {(band[1] - b) / (band[0] - b):.2f} ({band[0]:g}-{band[1]:g}), so no one exposure puts "
+            f"all of them in band (each alone would fit): plan them in shots of their own"))
+    if c.action == "replan":
+        return replace(c, action="stop", cause="replan", reason=(
+            f"{c.reason}; a shot of several features is not re-planned (plan them in shots of their own, "
+            f"or correct the model: {control.describe_error(c.model_error, c.relation)})"))
+    return c
+
+
+def iterate_shared(tasks, plans, devices, recorder, max_iterations, black=None):
+    """The closed loop of one shot covering several features (tasks[i] feature i's one-feature
+    task, plans[i] its one-shot plan at the shot, feature_plan): move there, find the black level
+    unless given (loop.find_black_level, BlackLevelFound), then per capture each feature located
+    and measured in its own region (loop.measure_capture: an Iteration each, named), until every
+    feature is in its own band; shared_correction decides the one exposure. Yields as loop.iterate
+    does; raises GoalNotReached saying why. A black level the plan did not know goes into every
+    prediction; the first capture's correction absorbs it."""
+    shot = plans[0].shot
+    names = [t.feature.name for t in tasks]
+    models = [loop.Model(p, t) for p, t in zip(plans, tasks)]
+    limits = [loop.limits_of(t, p) for t, p in zip(tasks, plans)]
+    move_to(devices, shot, recorder, 1)
+    if black is None:
+        black = loop.find_black_level(tasks[0], plans[0], devices, recorder)
+        yield loop.BlackLevelFound(black)
+    shutter, f_number = shot.exposure.shutter_s, shot.exposure.f_number
+    for k in range(1, max_iterations + 1):
+        capture = acquire(devices, recorder, k, shutter, f_number, shot.exposure.focus_m)
+        measured = [loop.measure_capture(t, model, devices, recorder, k, capture, 1.0, black, name)
+                    for t, model, name in zip(tasks, models, names)]
+        yield from (it for it, _, _ in measured)
+        shutter = capture.shutter_s
+        for name, t, p, (it, _, _) in zip(names, tasks, plans, measured):
+            far = registration.beyond_limit(it.registration, loop.registration_limit(t, p.shot))
+            if far:
+                reason = f"{name}: {far}"
+                yield loop.Corrected(k, {"action": "stop", "albedo_scale": 1.0, "reason": reason,
+                                         "cause": "registration"})
+                raise GoalNotReached(reason, "registration")
+        if all(it.in_band for it, _, _ in measured):
+            return
+        if k == max_iterations:
+            raise GoalNotReached(f"not every feature in band after {loop.count(k, 'iteration')} at "
+                                 f"{1e3 * shutter:.3g} ms, f/{f_number:.1f}: " + "; ".join(
+                                     f"{n} {m.min:.1f}-{m.max:.1f} (band {lim.band[0]:g}-{lim.band[1]:g}, "
+                                     f"{it.measured_gray['saturated']} saturated)"
+                                     for n, (it, m, _), lim in zip(names, measured, limits)), "iterations")
+        c = shared_correction(names, measured, limits, shutter, f_number, black)
+        if c.action == "stop":
+            yield loop.Corrected(k, c.document(1.0))
+            raise GoalNotReached(c.reason, c.cause)
+        recorder.step("correct", c.message(shutter, f_number, 1.0), iteration=k, **c.document(1.0))
+        yield loop.Corrected(k, c.document(1.0))
+        shutter, f_number = c.shutter_s, c.f_number
+
+
+@dataclass(frozen=True)
+class ShotRun:
+    """One shot's closed loop: the plan's shot index, its features' names, whether it converged
+    (every feature in its band), why not, its Iterations (each named by its feature), re-plans,
+    refits, and how far the camera read back from the shot's pose (None: not read)."""
+
+    shot: int
+    features: tuple
+    success: bool
+    message: str
+    iterations: tuple = ()
+    replans: tuple = ()
+    refits: tuple = ()
+    black: object = None                    # measurement.BlackLevel found in this shot, if any
+    camera_error: dict | None = None        # position_m, angle_deg
+
+    def of(self, name):
+        """The Iterations of feature `name`."""
+        return [it for it in self.iterations if it.feature == name]
+
+    def summary(self):
+        """`converged after N iterations; leaf_a gray 104-119, ...`, one line."""
+        n = len({it.iteration for it in self.iterations})
+        grays = ", ".join(f"{name} gray {its[-1].measured_gray['min']:.0f}-{its[-1].measured_gray['max']:.0f}"
+                          for name in self.features if (its := self.of(name)))
+        verdict = f"converged after {loop.count(n, 'iteration')}" if self.success else \
+            f"not converged: {self.message}"
+        return verdict + (f"; {grays}" if grays else "")
+
+    def to_json(self):
+        return {"shot": self.shot, "features": list(self.features), "converged": self.success,
+                "reason": self.message, "iterations": [it.to_json() for it in self.iterations],
+                "captures": self.captures, "replans": [r.to_json() for r in self.replans],
+                "refits": [r.to_json() for r in self.refits], "camera_error": self.camera_error}
+
+    @property
+    def captures(self):
+        """The shot's capture files, each once (a capture of several features is each one's), in
+        the order taken (capture-N: by N)."""
+        return sorted({it.capture for it in self.iterations}, key=lambda c: int(c.split("-")[1].split(".")[0]))
+
+
+def run_shot(task, plan, s, devices, recorder, max_iterations, black, done):
+    """The closed loop at plan.shots[s] in its folder shot-<s>/ (its own log.jsonl, every step
+    also in the run's, and report.json, written however it ends); its ShotRun is appended to
+    `done` however it ends. A goal not reached ends the shot (its ShotRun says why); a device
+    fault is raised on."""
+    from cell.report.pictures import write_convergence
+    shot = plan.shots[s]
+    names = assigned(plan, s)
+    index = [f.name for f in plan.features]
+    tasks = [task.with_feature(index.index(n)) for n in names]
+    plans = [feature_plan(plan, s, index.index(n)) for n in names]
+    events, message, error = loop.Events(), "", None
+    with recorder.sub(f"shot-{s}", shot=s) as rec:
+        try:
+            if len(tasks) == 1:
+                steps = loop.iterate(tasks[0], plans[0], devices, rec, max_iterations, black, shot.T_cell_cam)
+            else:
+                steps = iterate_shared(tasks, plans, devices, rec, max_iterations, black)
+            for event in steps:
+                events.add(event)
+            error = camera_error(devices, shot.T_cell_cam)
+            n = len({it.iteration for it in events.iterations})
+            rec.step("done", f"converged after {loop.count(n, 'iteration')}", converged=True, iterations=n)
+        except GoalNotReached as err:               # the devices are fine: the next shot runs
+            message = str(err)
+            rec.step("done", f"not converged: {err}", converged=False, reason=message)
+            error = camera_error(devices, shot.T_cell_cam)
+        except BaseException as err:                # a fault, Ctrl-C, SIGTERM: the session stops all
+            message = str(err) or type(err).__name__
+            raise
+        finally:
+            iterations = [it if it.feature else replace(it, feature=names[0]) for it in events.iterations]
+            result = ShotRun(s, names, not message, message, tuple(iterations), tuple(events.replans),
+                             tuple(events.refits), events.black, error)
+            done.append(result)
+            rec.write_json("report.json", result.to_json())
+            if iterations:
+                write_convergence(rec.folder / "convergence.png", [it.to_json() for it in iterations],
+                                  tasks[0].requirements.gray_band, [r.to_json() for r in events.refits])
+    return result
+
+
+def camera_error(devices, T_cell_cam):
+    """How far the arm's read-back camera pose is from T_cell_cam: position [m] and the angle
+    between their orientations [deg]."""
+    with speaking_for(devices.arm):
+        T = devices.arm.camera_pose()
+    return {"position_m": float(np.linalg.norm(T[:3, 3] - np.asarray(T_cell_cam)[:3, 3])),
+            "angle_deg": float(np.degrees(rotation_angle(T, T_cell_cam)))}
+
+
+def visit_order(plan, devices, recorder):
+    """The shots' order (plan.shots indices) by cell.run.route from the devices' read-back start pose,
+    logged with its travel."""
+    with speaking_for(devices.arm):
+        camera = devices.arm.camera_pose()[:3, 3]
+    with speaking_for(devices.lamp):
+        lamp = devices.lamp.lamp_pose()[0]
+    D = route.travel_matrix((camera, lamp), [(s.camera_position, s.lamp_position) for s in plan.shots])
+    order = route.shortest_order(D)
+    travel = route.length(D, order)
+    exact = "exact" if len(order) <= route.EXACT_MAX else "nearest neighbour"
+    recorder.step("route", f"shots in the order {list(order)}: {travel:.3f} m of camera and lamp "
+                           f"travel from the start ({exact})", order=list(order),
+                  travel_m=travel, start={"camera_m": camera, "lamp_m": lamp})
+    return order, travel
+
+
+@dataclass(frozen=True)
+class InspectionResult:
+    """A run of several shots, like scipy's OptimizeResult: `success` (every feature in its
+    band), `message` (why not), the plan, the visiting order and its travel, each shot's ShotRun
+    and the fault. report.json is to_json()."""
+
+    task: str
+    success: bool
+    message: str
+    plan: dict | None
+    features: tuple                 # the plan's feature names, in the task's order
+    covered_by: tuple               # the plan's shot index of each (None: uncovered)
+    order: tuple = ()
+    travel_m: float | None = None
+    shots: tuple = ()
+    fault: dict | None = None
+
+    def feature_results(self):
+        """Per feature: name, shot, converged (its shot converged: it ended in band), the last
+        capture's measured_gray, iterations, reason when not converged."""
+        runs = {r.shot: r for r in self.shots}
+        out = []
+        for name, s in zip(self.features, self.covered_by):
+            run = runs.get(s)
+            its = run.of(name) if run else []
+            converged = bool(run and run.success and its and its[-1].in_band)
+            reason = "" if converged else (run.message if run else "not run: " + (
+                f"the run stopped at a device fault ({self.fault['error']})" if self.fault else
+                self.message or "covered by no shot"))
+            out.append({"name": name, "shot": s, "converged": converged,
+                        "measured_gray": its[-1].measured_gray if its else None,
+                        "in_band": bool(its and its[-1].in_band), "iterations": len(its),
+                        "capture": f"shot-{s}/{its[-1].capture}" if its else None, "reason": reason})
+        return out
+
+    def to_json(self):
+        black = next((r.black.to_json() for r in self.shots if r.black), None)
+        return {"task": self.task, "plan": self.plan, "converged": self.success, "reason": self.message,
+                "features": self.feature_results(), "order": list(self.order), "travel_m": self.travel_m,
+                "shots": [{"shot": r.shot, "folder": f"shot-{r.shot}", "features": list(r.features),
+                           "converged": r.success, "reason": r.message,
+                           "iterations": len({it.iteration for it in r.iterations}),
+                           "camera_error": r.camera_error} for r in self.shots],
+                "iterations": [{"shot": r.shot, **it.to_json()} for r in self.shots for it in r.iterations],
+                "captures": [f"shot-{r.shot}/{c}" for r in self.shots for c in r.captures],
+                "black_level": black} | ({"fault": self.fault} if self.fault else {})
+
+
+def plan_logged(task, recorder):
+    """plan_features (the function `cell plan` uses for several features), plan.json and its
+    pictures in the run folder, logged."""
+    from cell.planning.whole_part import plan_features
+    plan = plan_features(task, progress=recorder.progress)
+    recorder.write_plan(plan, task)
+    covered = sum(f.covered_by is not None for f in plan.features)
+    verdict = "feasible" if plan.feasible else "PARTIAL"
+    recorder.step("plan", f"{verdict}: {loop.count(len(plan.shots), 'shot')} cover {covered} of "
+                          f"{len(plan.features)} features" + ("" if plan.feasible else f"; {plan.message}"),
+                  feasible=plan.feasible, binding=plan.binding, hint=plan.hint, shots=len(plan.shots),
+                  features={f.name: f.covered_by for f in plan.features})
+    return plan
+
+
+def run(task, out, connect, max_iterations=6):
+    """Plan the task's shots (plan_logged), refuse a partial or infeasible plan before anything
+    moves (PlanInfeasible naming the first feature no shot covers, exit 1), connect(scene) ->
+    Devices (scene: the first feature's, whose mesh the simulated cell renders), order the shots
+    (visit_order) and run each (run_shot). out/report.json (InspectionResult.to_json) is written
+    however the run ends. Raises GoalNotReached naming every feature not in band (exit 1), or
+    DeviceFault (exit 3) after the safe stop. Returns the InspectionResult."""
+    out = Path(out)
+    runs, order, travel, black = [], (), None, None
+    names = tuple(f.name for f in task.features)
+    covered_by = (None,) * len(names)
+
+    def result(reason, fault):
+        return InspectionResult(str(task.path), not reason, reason, recorder.plan, names, covered_by, order,
+                                travel, tuple(runs), fault)
+
+    with Recorder(out) as recorder, Ending(recorder, "not converged", "report.json", result,
+                                           converged=False) as ending:
+        session = ending.session
+        with session:
+            plan = plan_logged(task, recorder)
+            covered_by = tuple(f.covered_by for f in plan.features)
+            require_feasible(plan)
+            session.devices = connect(plan.plans[candidate_features(plan).index(0)].scene)
+            order, travel = visit_order(plan, session.devices, recorder)
+            for n, s in enumerate(order):
+                recorder.step("shot", f"shot {n + 1} of {len(order)} (plan's shot {s}): "
+                                      f"{describe(plan, s)}", shot=s, visit=n + 1, features=assigned(plan, s))
+                done = run_shot(task, plan, s, session.devices, recorder, max_iterations, black, runs)
+                black = black or done.black
+                recorder.step("shot_done", f"shot {n + 1} of {len(order)} (plan's shot {s}): {done.summary()}",
+                              shot=s, converged=done.success, reason=done.message)
+        failed = [f for f in result("", None).feature_results() if not f["converged"]]
+        if failed:
+            raise GoalNotReached(f"{len(failed)} of {len(names)} features not in band: " + "; ".join(
+                f"{f['name']} (shot {f['shot']}): {f['reason']}" for f in failed))
+        recorder.step("done", f"converged: every feature in band ({len(names)} features, "
+                              f"{loop.count(len(runs), 'shot')})", converged=True)
+    return ending.result
+
+
+def describe(plan, s):
+    """`leaf_a, leaf_b; camera at [...] m, lamp pan ..., 2.265 ms, f/1.4`: plan.shots[s]'s line."""
+    shot = plan.shots[s]
+    pan, tilt, radius = shot.joints
+    camera = np.round(shot.camera_position, 3).tolist()
+    return (", ".join(assigned(plan, s)) + f"; camera at {camera} m, lamp pan {np.degrees(pan):.1f} "
+            f"deg, tilt {np.degrees(tilt):.1f} deg, radius {radius:.3f} m; {1e3 * shot.exposure.shutter_s:.3f} ms, "
+            f"f/{shot.exposure.f_number:.1f}")
+
+
+def gray_line(feature):
+    """`leaf_a: shot 0, gray 104-119 (mean 112.3), 1 iteration`, of a feature_results() entry."""
+    g = feature["measured_gray"] or {}
+    gray = f"gray {g['min']:.0f}-{g['max']:.0f} (mean {g['mean']:.1f})" if g else "not measured"
+    return f"{feature['name']}: shot {feature['shot']}, {gray}, {loop.count(feature['iterations'], 'iteration')}"
+

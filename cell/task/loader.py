@@ -1,0 +1,567 @@
+"""Task and material files (docs/formats.md) -> validated, typed values in SI units.
+
+Units are converted here and nowhere else, by the schema engine (cell.task.schema): every problem is
+one TaskError naming the file, the dotted key path, what was found and what was expected. The
+schemas below read like the file format; then the mesh is loaded and the feature snapped to it.
+"""
+import copy
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from cell.core import geometry
+from cell.task.board import DICTIONARIES, Board
+from cell.task.device_config import SECTIONS as DEVICES, devices_config, hand_eye
+from cell.core.errors import TaskError
+from cell.core.frames import Frames
+from cell.core.inputs import checked_file
+from cell.physics.material import PARAMETERS, TERMS, Material, Unresolved
+from cell.physics.radiometry import camera_constant_from_datasheet
+from cell.task.schema import (NON_NEGATIVE, POSITIVE, Anything, Choice, Integer, Invalid, Number, Pair,
+                         Section, Sections, Spec, Table, Text, Vector, parse, read_yaml, show)
+from cell.task.types import (Calibration, CameraModel, CellConfig, Feature, Goniometer, Lamp, LampRig, Lens,
+                       LoopSettings, Part, Requirements, Sample, SimConfig, Sensor, Task, Truth, Viewpoint)
+
+EFFECTS = ("shadows", "cone_falloff", "vignetting", "defocus", "noise", "black_level", "quantization")
+SURFACE_TOLERANCE_M = 1e-3       # feature center at most this far from the mesh surface
+MAX_SAMPLES = 4096
+MAX_SENSOR_SIDE_PX = 65_536
+MAX_SENSOR_PIXELS = 160_000_000  # the largest machine-vision sensors (151 Mpx): a frame fits in memory
+MIN_F_NUMBER = 0.5               # the physical limit of a lens in air (numerical aperture 1)
+DATASHEET_AGREEMENT = 0.01       # camera_constant against the EMVA 1288 keys' c: relative
+
+
+class Effects(Spec):
+    """The simulator's effects: names from EFFECTS, each at most once."""
+
+    expected = "a list of effect names"
+    default = ()
+
+    def convert(self, raw, to_si):
+        if not isinstance(raw, list):
+            raise Invalid(raw, self.expected)
+        for i, name in enumerate(raw):
+            if name == "interreflection":
+                raise Invalid(name, "a simulated effect (interreflection is not modelled)", i)
+            if name not in EFFECTS:
+                raise Invalid(name, "one of " + ", ".join(EFFECTS), i)
+            if name in raw[:i]:
+                raise Invalid(name, "each effect at most once", i)
+        return tuple(raw)
+
+
+class SensorSection(Section):
+    """`camera.sensor`: its keys in the task, or the name of a camera file holding them (relative
+    to the task file; `cell calibrate camera-constant` writes one), checked alike; "file" is the
+    camera file's path, or None."""
+
+    expected = "a mapping of keys, or the name of a camera file holding them"
+
+    def read(self, file, path, raw, to_si):
+        if not isinstance(raw, str):
+            return super().read(file, path, raw, to_si) | {"file": None}
+        camera_file = _relative_file(Path(file), path, raw, "yaml")
+        return parse(camera_file, "", _read_mapping(camera_file), self.fields) | {"file": camera_file}
+
+
+DEG = np.radians
+
+FEATURE = {
+    "center_m": Vector(),
+    "radius_m": Number(**POSITIVE),
+    "samples": Integer(1, MAX_SAMPLES),
+}
+REQUIREMENTS = {
+    "gray_band": Pair(lambda v: True, "gray levels", strict=True),
+    "reflection": Choice("diffuse", "lobe", "spike", "any"),
+    "region_margin_deg": Number(**NON_NEGATIVE),
+    "lamp_tolerance_deg": Number(**NON_NEGATIVE),
+    "depth_of_field_m": Number(**NON_NEGATIVE, default=0.0),
+    "resolution_m": Number(**POSITIVE, default=None),
+    "view_angle_deg": Number(lambda v: 0 < v <= DEG(90), "an angle in (0, 90] deg", default=None),
+}
+
+
+def _overriding(fields):
+    """The same keys, each optional: absent (None), the task's top-level value is taken."""
+    specs = {key: copy.copy(spec) for key, spec in fields.items()}
+    for spec in specs.values():
+        spec.default = None
+    return specs
+
+
+TASK = {
+    "name": Text(),
+    "part": Section({
+        "mesh": Text(),
+        "mesh_unit": Choice("m", "mm"),
+        "position_m": Vector(),
+        "rpy_deg": Vector(),
+        "material": Text(),
+    }),
+    "feature": Section(FEATURE, required=False, defaults=False),        # one feature, or
+    "features": Sections({"name": Text(), **FEATURE,                    # several
+                          "requirements": Section(_overriding(REQUIREMENTS), required=False)}),
+    "requirements": Section(REQUIREMENTS),                              # every feature's defaults
+    "camera": Section({
+        "distance_m": Number(**POSITIVE),
+        "view_direction": Vector(direction=True),
+        "sensor": SensorSection({
+            "width_px": Integer(1, MAX_SENSOR_SIDE_PX),
+            "height_px": Integer(1, MAX_SENSOR_SIDE_PX),
+            "pixel_pitch_m": Number(**POSITIVE),
+            "bit_depth": Integer(1, 16),
+            "camera_constant": Number(**POSITIVE, default=None),
+            "camera_constant_stderr": Number(**NON_NEGATIVE, default=None),
+            "quantum_efficiency": Number(lambda v: 0 < v <= 1, "a number in (0, 1]", default=None),
+            "wavelength_m": Number(lambda v: 0.2e-6 <= v <= 2e-6, "a wavelength of light within "
+                                   "[0.2, 2] um", default=None),
+            "system_gain_dn_per_e": Number(**POSITIVE, default=None),
+            "dark_noise_e": Number(**NON_NEGATIVE, default=None),
+            "saturation_capacity_e": Number(**POSITIVE, default=None),
+            "source": Text(default=None),
+            "black_level": Number(**NON_NEGATIVE, default=None),
+        }),
+        "lens": Section({
+            "focal_length_m": Number(**POSITIVE),
+            "f_number_range": Pair(lambda v: v >= MIN_F_NUMBER,
+                                   f"f-numbers of at least {MIN_F_NUMBER:g} (no lens in air is faster)"),
+            "circle_of_confusion_m": Number(**POSITIVE),
+        }),
+        "shutter_range_s": Pair(lambda v: v > 0, "positive times"),
+        "viewpoint": Choice("fixed", "planned", default="fixed"),
+        "standoff_range_m": Pair(lambda v: v > 0, "positive lengths", default=None),
+        "standoff_steps": Integer(1, 16, default=3),
+        "view_step_deg": Number(lambda v: DEG(1) <= v <= DEG(45), "an angle within [1, 45] deg",
+                                default=float(DEG(15))),
+        "views_per_feature": Integer(1, 32, default=3),
+    }),
+    "lamp": Section({
+        "power_w": Number(**POSITIVE),
+        "cone_angle_deg": Number(lambda v: 0 < v < DEG(180), "an angle in (0, 180) deg"),
+        "profile": Section({
+            "off_axis_deg": Table(lambda v: 0 <= v <= np.pi, "an angle within [0, 180] deg",
+                                  default=None, per="off-axis angle"),
+            "relative": Table(lambda v: 0 <= v <= 1, "a number in [0, 1]", default=None,
+                              per="off-axis angle"),
+        }, required=False),
+        "rig": Section({
+            "pivot_m": Vector(),
+            "pan_range_deg": Pair(lambda v: DEG(-360) <= v <= DEG(360), "angles within [-360, 360] deg"),
+            "tilt_range_deg": Pair(lambda v: DEG(-90) <= v <= DEG(90), "angles within [-90, 90] deg"),
+            "radius_range_m": Pair(lambda v: v > 0, "positive lengths"),
+            "radius_axis": Choice("manual", "servo"),
+        }),
+    }),
+    "cell": Section({
+        "backend": Choice("sim", "hw", default="sim"),
+        **DEVICES,                                       # arm, pan_tilt, camera: cell.task.device_config
+    }, required=False),
+    "sim": Section({
+        "seed": Integer(0, 2**32 - 1, default=1),
+        "effects": Effects(),
+        "truth": Section({
+            "albedo_scale": Number(**POSITIVE, default=1.0),
+            "camera_constant_scale": Number(**POSITIVE, default=1.0),
+            "lamp_direction_error_deg": Number(lambda v: 0 <= v <= DEG(90), "an angle within [0, 90] deg",
+                                               default=0.0),
+            "material": Text(default=None),
+            "part_offset_m": Vector(default=(0.0, 0.0, 0.0)),
+            "part_rpy_deg": Vector(default=(0.0, 0.0, 0.0)),
+            "camera_offset_m": Vector(default=(0.0, 0.0, 0.0)),
+            "camera_rpy_deg": Vector(default=(0.0, 0.0, 0.0)),
+            "lamp_radius_error_m": Number(lambda v: True, "a number", default=0.0),
+        }, required=False),
+    }, required=False),
+    "calibration": Section({
+        "sample": Section({
+            "material": Text(default=None),
+            "radius_m": Number(**POSITIVE, default=0.025),
+            "thickness_m": Number(**POSITIVE, default=0.002),
+            "normal": Vector(direction=True, default=(0.0, 0.0, 1.0)),
+        }, required=False),
+        "goniometer": Section({
+            "phase_deg": Table(lambda v: 0 < v < np.pi, "an angle within (0, 180) deg",
+                               default=(np.radians(20.0), np.radians(40.0), np.radians(60.0))),
+            "step_deg": Number(lambda v: 0 < v <= DEG(30), "an angle within (0, 30] deg", default=np.radians(2.0)),
+            "max_angle_deg": Number(lambda v: 0 < v < DEG(90), "an angle within (0, 90) deg",
+                                    default=np.radians(80.0)),
+            "lamp_radius_m": Number(**POSITIVE, default=None),
+        }, required=False),
+        "board": Section({
+            "squares_x": Integer(3, 100, default=9),
+            "squares_y": Integer(3, 100, default=7),
+            "square_size_m": Number(**POSITIVE, default=0.008),
+            "marker_size_m": Number(**POSITIVE, default=0.006),
+            "dictionary": Choice(*DICTIONARIES, default="DICT_5X5_100"),
+            "position_m": Vector(default=(0.0, 0.08, 0.0)),
+            "rpy_deg": Vector(default=(np.pi, 0.0, 0.0)),
+        }, required=False),
+    }, required=False),
+    "loop": Section({
+        "albedo_scale_range": Pair(lambda v: v > 0, "positive scales", default=(0.1, 10.0)),
+        "registration_limit_m": Number(lambda v: v > 0, "a positive distance", default=None),
+    }, required=False),
+}
+
+MATERIAL = {
+    "name": Text(),
+    "source": Text(),
+    "phase_deg": Table(lambda v: 0 <= v <= np.pi, "an angle within [0, 180] deg"),
+    "rho": Table(**POSITIVE),
+    "sigma1": Table(**NON_NEGATIVE),
+    "m1": Table(**POSITIVE),
+    "sigma2": Table(**NON_NEGATIVE),
+    "m2": Table(**POSITIVE),
+    # written by the fitter; an unidentifiable parameter may have an infinite standard error
+    **{f"{p}_stderr": Table(**NON_NEGATIVE, default=None, finite=False) for p in PARAMETERS},
+    "rms_residual": Table(**NON_NEGATIVE, default=None),
+    "unidentifiable": Anything(),
+    "unresolved": Section({                  # written by cell measure-brdf
+        "terms": Section({term: Table(lambda v: True, "a phase angle [deg] of the table's phase_deg", default=None,
+                                      per="phase angle whose term is unresolved")
+                          for term in TERMS}),
+        "step_deg": Number(lambda v: v > 0, "a positive angle"),
+        "resolvable_m_max": Number(**POSITIVE),
+    }, required=False, defaults=False),
+}
+
+
+def _read_mapping(path):
+    """A YAML file that must hold a mapping of keys (not empty, not a list)."""
+    data = read_yaml(path)
+    if data is None:
+        raise TaskError(path, "", "an empty file", "a mapping of keys")
+    return data
+
+
+def load_material(path):
+    """A material file -> Material (phase in radians, parameters as arrays)."""
+    path = Path(path)
+    v = parse(path, "", _read_mapping(path), MATERIAL)
+    phase = v["phase_rad"]
+    for key, column in v.items():
+        if isinstance(column, np.ndarray) and len(column) != len(phase):
+            raise TaskError(path, key, f"{len(column)} values", f"{len(phase)}, one per phase_deg entry")
+    if np.any(np.diff(phase) <= 0):
+        found = show(np.round(np.degrees(phase), 6))
+        raise TaskError(path, "phase_deg", found, "strictly ascending phase angles")
+    for i, (m1, m2) in enumerate(zip(v["m1"], v["m2"])):
+        if not m2 > m1:
+            raise TaskError(path, f"m2[{i}]", show(m2), f"a spike exponent m2 > m1 = {m1:g}")
+    table = ("name", "source", "phase_rad", "unresolved", *PARAMETERS)
+    extra = {k: x for k, x in v.items() if k not in table and x is not None}
+    return Material(v["name"], v["source"], phase, *(v[p] for p in PARAMETERS), extra=extra,
+                    unresolved=_unresolved(path, v["unresolved"], phase))
+
+
+def _unresolved(path, section, phase):
+    """The `unresolved` section -> Unresolved (phases in radians), or None; each term's phase
+    angles must be rows of the table (they mark those rows' fitted terms as unknown)."""
+    if section is None:
+        return None
+    terms = {term: phases for term, phases in section["terms"].items() if phases is not None}
+    if not terms:
+        raise TaskError(path, "unresolved.terms", "no term", "lobe: [phase angles] and/or spike: [phase angles]")
+    table_deg = np.degrees(phase)
+    for term, phases in terms.items():
+        for i, p in enumerate(phases):
+            if not np.isclose(table_deg, p, rtol=0, atol=1e-6).any():
+                raise TaskError(path, f"unresolved.terms.{term}[{i}]", f"{p:g}",
+                                "one of the table's phase_deg [" + ", ".join(f"{a:.6g}" for a in table_deg) + "]")
+    return Unresolved({t: tuple(phase[np.argmin(abs(table_deg[:, None] - np.asarray(ps)), axis=0)].tolist())
+                       for t, ps in terms.items()}, section["step_rad"], section["resolvable_m_max"])
+
+
+def _relative_file(file, key, name, kind):
+    """A file named relative to the task file: a regular file under its kind's size limit."""
+    return checked_file(file.parent / name, kind, file, key, relative_to="the task file")
+
+
+def _load_mesh(file, part):
+    """The part's mesh in metres; missing, unreadable, empty or non-finite meshes are errors."""
+    name, key = part["mesh"], "part.mesh"
+    path = _relative_file(file, key, name, "mesh")
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception:  # trimesh raises many kinds of errors on garbage
+        mesh = None
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise TaskError(file, key, f"'{name}', which trimesh cannot read", "a mesh file (STL, OBJ, PLY, ...)")
+    if len(mesh.faces) == 0:
+        raise TaskError(file, key, f"'{name}' with 0 triangles", "a mesh with triangles")
+    if not np.isfinite(mesh.vertices).all():
+        raise TaskError(file, key, f"'{name}' with NaN or infinite vertices", "finite coordinates")
+    mesh.process()
+    mesh.update_faces(mesh.nondegenerate_faces())       # zero-area triangles have no normal
+    if len(mesh.faces) == 0:
+        raise TaskError(file, key, f"'{name}' whose triangles all have zero area", "a mesh with a surface")
+    if mesh.is_watertight and mesh.volume < 0:          # a closed shell wound inside out
+        raise TaskError(file, key, f"'{name}' whose triangles face inward (a closed mesh of negative volume)",
+                        "outward-facing triangles (reverse the mesh's winding)")
+    if part["mesh_unit"] == "mm":
+        mesh.apply_scale(1e-3)
+    return path, mesh
+
+
+def closest_surface_point(mesh, point):
+    """(closest point on the mesh, that face's unit normal, distance) for one point.
+    Brute force over all faces: trimesh's `mesh.nearest` needs rtree, which we do not depend on."""
+    point = np.asarray(point, dtype=float)
+    points = np.broadcast_to(point, (len(mesh.faces), 3))
+    closest = trimesh.triangles.closest_point(mesh.triangles, points)
+    distances = np.linalg.norm(closest - point, axis=1)
+    i = int(np.argmin(distances))
+    return closest[i], mesh.face_normals[i], float(distances[i])
+
+
+def _feature(file, mesh, f, key, name, requirements):
+    """The feature with its center snapped to the surface and the outward normal there."""
+    center, normal, distance = closest_surface_point(mesh, f["center_m"])
+    if distance > SURFACE_TOLERANCE_M:
+        found = f"{show(f['center_m'])} m, {distance * 1e3:.1f} mm from the surface"
+        raise TaskError(file, f"{key}.center_m", found,
+                        "a point within 1 mm of the part's surface (part frame)")
+    return Feature(name, center, normal, f["radius_m"], f["samples"], Requirements(**requirements), key)
+
+
+def _feature_entries(file, v):
+    """[(key, name, feature values, requirement values)] from `feature:` (named `feature`) or
+    `features:`, each feature's requirements the task's with its own keys replacing them (SI)."""
+    if v["feature"] is not None and v["features"] is not None:
+        raise TaskError(file, "feature, features", "both", "one of them: feature (one) or features (a list)")
+    if v["feature"] is not None:
+        return [("feature", "feature", v["feature"], v["requirements"])]
+    if v["features"] is None:
+        raise TaskError(file, "features", "nothing",
+                        "a non-empty list of mappings of keys, or one feature as `feature` (required key)")
+    entries, seen = [], {}
+    for i, f in enumerate(v["features"]):
+        key = f"features[{i}]"
+        if f["name"] in seen:
+            raise TaskError(file, f"{key}.name", f"'{f['name']}', also the name of features[{seen[f['name']]}]",
+                            "a name unique among the features")
+        seen[f["name"]] = i
+        own = f["requirements"]
+        entries.append((key, f["name"], f, {k: v["requirements"][k] if own[k] is None else own[k] for k in own}))
+    return entries
+
+
+def _check_gray_band(file, key, band, bit_depth):
+    top = 2**bit_depth - 1
+    for i, gray in enumerate(band):
+        if not 0 <= gray <= top:
+            raise TaskError(file, f"{key}.gray_band[{i}]", show(gray),
+                            f"a gray level in [0, {top}] (bit_depth {bit_depth})")
+
+
+def _sensor(task_file, sensor):
+    """The Sensor, its camera constant as given or from the EMVA 1288 keys (c = eta lambda K /
+    (h c0)); given both ways, they must agree within DATASHEET_AGREEMENT. Errors name the camera
+    file's keys when the sensor came from one."""
+    file, key = (sensor["file"], str) if sensor["file"] else (task_file, "camera.sensor.{}".format)
+    eta, wavelength, gain = (sensor[k] for k in ("quantum_efficiency", "wavelength_m", "system_gain_dn_per_e"))
+    for name, value, needs in (("quantum_efficiency", eta, ("wavelength_m", wavelength)),
+                               ("wavelength_m", wavelength, ("quantum_efficiency", eta)),
+                               ("quantum_efficiency", eta, ("system_gain_dn_per_e", gain))):
+        if value is not None and needs[1] is None:
+            raise TaskError(file, key(needs[0]), "nothing", f"a value beside {name} (c = eta lambda K / (h c0) "
+                                                            "needs quantum_efficiency, wavelength_m and "
+                                                            "system_gain_dn_per_e)")
+    c = sensor["camera_constant"]
+    if eta is not None:
+        datasheet = camera_constant_from_datasheet(eta, wavelength, gain)
+        if c is not None and abs(c / datasheet - 1.0) > DATASHEET_AGREEMENT:
+            raise TaskError(file, key("camera_constant"),
+                            f"{show(c)}, {100 * abs(c / datasheet - 1):.1f} % from the {datasheet:.4g} of "
+                            f"quantum_efficiency {eta:g}, wavelength_m {wavelength:g} and system_gain_dn_per_e {gain:g}",
+                            f"the two within {100 * DATASHEET_AGREEMENT:g} % (or only one of them)")
+        c = datasheet if c is None else c
+    elif c is None:
+        raise TaskError(file, key("camera_constant"), "nothing",
+                        "c in G = c P t [1/(W s)], or quantum_efficiency, wavelength_m and system_gain_dn_per_e "
+                        "from an EMVA 1288 datasheet (required key)")
+    return Sensor(**(sensor | {"camera_constant": c}))
+
+
+def _check_black_level(file, band, black_level):
+    """A known black level below the band's top: the band must be reachable by light."""
+    if black_level is not None and not black_level < band[1]:
+        raise TaskError(file, "camera.sensor.black_level", show(black_level),
+                        f"a gray level below the band's top {band[1]:g} (requirements.gray_band)")
+
+
+def _truth(file, truth, rig):
+    """The simulated world's truth: its material file loaded and checked like the task's, and a
+    lamp radius error that keeps the lamp beyond the rig's pivot."""
+    if not truth["lamp_radius_error_m"] > -rig["radius_range_m"][0]:
+        raise TaskError(file, "sim.truth.lamp_radius_error_m", show(truth["lamp_radius_error_m"]),
+                        f"more than -{rig['radius_range_m'][0]:g} m (the true lamp beyond the pivot)")
+    name = truth["material"]
+    material = None if name is None else load_material(
+        _relative_file(file, "sim.truth.material", name, "yaml"))
+    vectors = {k: tuple(map(float, v)) for k, v in truth.items() if isinstance(v, np.ndarray)}
+    return Truth(**(truth | vectors | {"material": material}))
+
+
+def _calibration(file, calibration, material, rig):
+    """The calibration routines' set-up: the goniometer's sample (its material file loaded and
+    checked like `part.material`, else the part's) and its sampling, whose lamp radius lies in the
+    rig's range (default: the middle of it) and whose phase angles fit under twice max_angle."""
+    sample, gonio = calibration["sample"], calibration["goniometer"]
+    name = sample["material"]
+    sample_material = material if name is None else load_material(
+        _relative_file(file, "calibration.sample.material", name, "yaml"))
+    lo, hi = rig["radius_range_m"]
+    radius = gonio["lamp_radius_m"]
+    if radius is None:
+        radius = 0.5 * (lo + hi)
+    elif not lo <= radius <= hi:
+        raise TaskError(file, "calibration.goniometer.lamp_radius_m", show(radius),
+                        f"a radius within lamp.rig.radius_range_m [{lo:g}, {hi:g}] m")
+    phases = np.asarray(gonio["phase_rad"], float)
+    if np.any(np.diff(phases) <= 0):
+        raise TaskError(file, "calibration.goniometer.phase_deg", show(np.degrees(phases).tolist()),
+                        "ascending phase angles")
+    if phases[-1] >= 2 * gonio["max_angle_rad"]:
+        raise TaskError(file, "calibration.goniometer.phase_deg", f"{np.degrees(phases[-1]):g} deg",
+                        f"phase angles below twice max_angle_deg ({np.degrees(2 * gonio['max_angle_rad']):g} deg): "
+                        "lamp and camera each within max_angle_deg of the normal")
+    return Calibration(Sample(sample_material, sample["radius_m"], sample["thickness_m"],
+                              tuple(map(float, sample["normal"]))),
+                       Goniometer(tuple(map(float, phases)), gonio["step_rad"], gonio["max_angle_rad"], radius))
+
+
+def _board(file, board):
+    """The ChArUco board: markers smaller than their squares, and no more of them than the
+    dictionary holds."""
+    if not board["marker_size_m"] < board["square_size_m"]:
+        raise TaskError(file, "calibration.board.marker_size_m", show(board["marker_size_m"]),
+                        f"less than square_size_m {board['square_size_m']:g} m (a marker lies inside a square)")
+    squares = (board["squares_x"], board["squares_y"])
+    made = Board(squares, board["square_size_m"], board["marker_size_m"], board["dictionary"],
+                 geometry.from_rpy(board["rpy_rad"], board["position_m"]))
+    if made.markers > DICTIONARIES[made.dictionary]:
+        raise TaskError(file, "calibration.board.dictionary", made.dictionary,
+                        f"a dictionary of at least {made.markers} markers ({squares[0]} x {squares[1]} squares)")
+    return made
+
+
+def _loop(file, loop):
+    low, high = loop["albedo_scale_range"]
+    if not low <= 1.0 <= high:
+        raise TaskError(file, "loop.albedo_scale_range", show([low, high]),
+                        "a range of albedo scales holding 1 (the model itself)")
+    return LoopSettings(**loop)
+
+
+def _check_camera(file, cam):
+    """A sensor whose frame fits in memory and a camera beyond its lens's focal length."""
+    sensor = cam["sensor"]
+    pixels = sensor["width_px"] * sensor["height_px"]
+    if pixels > MAX_SENSOR_PIXELS:
+        raise TaskError(file, "camera.sensor", f"{sensor['width_px']} x {sensor['height_px']} px",
+                        f"at most {MAX_SENSOR_PIXELS / 1e6:g} Mpx (a frame must fit in memory)")
+    focal = cam["lens"]["focal_length_m"]
+    if not cam["distance_m"] > focal:
+        raise TaskError(file, "camera.distance_m", show(cam["distance_m"]),
+                        f"more than the focal length {focal:g} m (a lens focuses only beyond it)")
+    standoff = cam["standoff_range_m"]
+    if cam["viewpoint"] == "planned" and standoff is None:
+        raise TaskError(file, "camera.standoff_range_m", "nothing",
+                        "an ascending pair of positive lengths (required with camera.viewpoint: planned)")
+    if standoff is not None and not standoff[0] > focal:
+        raise TaskError(file, "camera.standoff_range_m[0]", show(standoff[0]),
+                        f"more than the focal length {focal:g} m (a lens focuses only beyond it)")
+
+
+def _viewpoint(cam):
+    return Viewpoint(cam["viewpoint"], cam["standoff_range_m"], cam["standoff_steps"], cam["view_step_rad"],
+                     cam["views_per_feature"])
+
+
+def _check_outside(file, mesh, T_cell_part, points):
+    """Each {key: cell-frame point} lies outside the part (winding number below 1/2) or on its
+    surface (within SURFACE_TOLERANCE_M): a lamp pivot or a camera inside the part is a mistake."""
+    T_part_cell = np.linalg.inv(T_cell_part)
+    for (key, whose), point in points.items():
+        local = geometry.apply(T_part_cell, point)
+        if (geometry.winding_number(mesh.vertices, mesh.faces, local) > 0.5
+                and closest_surface_point(mesh, local)[2] > SURFACE_TOLERANCE_M):
+            raise TaskError(file, key, f"{show(np.round(point, 6))} m, inside the part{whose}",
+                            "a point outside the part (cell frame)")
+
+
+def _lamp_profile(file, profile):
+    """The lamp's angular profile (M, 2) [off_axis_rad, relative], or None (eq. 11's ideal cone):
+    both columns or neither, of equal length, at least two angles strictly ascending from 0, and
+    relative 1 on the axis (the profile scales eq. (11)'s on-axis irradiance)."""
+    angles, relative = profile["off_axis_rad"], profile["relative"]
+    if angles is None and relative is None:
+        return None
+    for key, column in (("off_axis_deg", angles), ("relative", relative)):
+        if column is None:
+            raise TaskError(file, f"lamp.profile.{key}", "nothing",
+                            "a list with one value per off-axis angle (required in a profile)")
+    if len(angles) < 2:
+        raise TaskError(file, "lamp.profile.off_axis_deg", show(np.degrees(angles)),
+                        "at least two off-axis angles, from 0")
+    if len(relative) != len(angles):
+        raise TaskError(file, "lamp.profile.relative", f"{len(relative)} values",
+                        f"{len(angles)}, one per off_axis_deg entry")
+    if angles[0] != 0.0 or np.any(np.diff(angles) <= 0):
+        raise TaskError(file, "lamp.profile.off_axis_deg", show(np.round(np.degrees(angles), 6)),
+                        "strictly ascending off-axis angles from 0")
+    if relative[0] != 1.0:
+        raise TaskError(file, "lamp.profile.relative[0]", show(relative[0]),
+                        "1 (the profile is relative to the axis)")
+    return np.column_stack([angles, relative])
+
+
+def load_task(path):
+    """A task file and everything it references -> Task (SI units, mesh in metres)."""
+    path = Path(path)
+    data = _read_mapping(path)
+    v = parse(path, "", data, TASK)
+    part, cam, lamp, cell, sim = v["part"], v["camera"], v["lamp"], v["cell"], v["sim"]
+    arm = cell["arm"]
+    _check_gray_band(path, "requirements", v["requirements"]["gray_band"], cam["sensor"]["bit_depth"])
+    entries = _feature_entries(path, v)
+    for key, _, f, _ in entries:
+        if key != "feature" and f["requirements"]["gray_band"] is not None:
+            _check_gray_band(path, f"{key}.requirements", f["requirements"]["gray_band"], cam["sensor"]["bit_depth"])
+    black = cam["sensor"]["black_level"]
+    _check_black_level(path, v["requirements"]["gray_band"], black)
+    for key, _, f, _ in entries:
+        if key != "feature" and f["requirements"]["gray_band"] is not None:
+            _check_black_level(path, f["requirements"]["gray_band"], black)
+    devices = devices_config(path, cell, written=data.get("cell"),
+                             bit_depth=cam["sensor"]["bit_depth"])
+    _check_camera(path, cam)
+    mesh_path, mesh = _load_mesh(path, part)
+    material = load_material(_relative_file(path, "part.material", part["material"], "yaml"))
+    features = tuple(_feature(path, mesh, f, key, name, req) for key, name, f, req in entries)
+    frames = Frames(T_cell_part=geometry.from_rpy(part["rpy_rad"], part["position_m"]),
+                    T_cell_base=geometry.from_rpy(arm["base_rpy_rad"], arm["base_position_m"]),
+                    T_flange_cam=hand_eye(path, arm, (data.get("cell") or {}).get("arm")))
+    cameras = {("camera.distance_m", "" if len(features) == 1 else f", the camera of {f.key} ({f.name})"):
+               geometry.apply(frames.T_cell_part, f.center_m + cam["distance_m"] * cam["view_direction"])
+               for f in features}
+    _check_outside(path, mesh, frames.T_cell_part, {("lamp.rig.pivot_m", ""): lamp["rig"]["pivot_m"], **cameras})
+    return Task(
+        path=path,
+        name=v["name"],
+        part=Part(mesh_path, mesh, material),
+        frames=frames,
+        features=features,
+        camera=CameraModel(cam["distance_m"], cam["view_direction"], _sensor(path, cam["sensor"]),
+                           Lens(**cam["lens"]), cam["shutter_range_s"], _viewpoint(cam)),
+        lamp=Lamp(lamp["power_w"], lamp["cone_angle_rad"], LampRig(**lamp["rig"]),
+                  _lamp_profile(path, lamp["profile"])),
+        cell=CellConfig(cell["backend"], devices),
+        sim=SimConfig(sim["seed"], sim["effects"], _truth(path, sim["truth"], lamp["rig"])),
+        loop=_loop(path, v["loop"]),
+        calibration=_calibration(path, v["calibration"], material, lamp["rig"]),
+        board=_board(path, v["calibration"]["board"]),
+    )

@@ -1,0 +1,219 @@
+"""Typed inspection task (docs/formats.md), SI units inside. The loader lives in cell.task.loader."""
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from cell.task.device_config import DevicesConfig
+from cell.core.frames import Frames
+from cell.physics.material import Material
+
+
+@dataclass(frozen=True)
+class Part:
+    mesh_path: Path
+    mesh: trimesh.Trimesh          # in metres, part frame (its pose: Task.frames.T_cell_part)
+    material: Material
+
+
+@dataclass(frozen=True)
+class Requirements:
+    gray_band: tuple               # (low, high) gray levels
+    reflection: str                # diffuse | lobe | spike | any
+    region_margin_rad: float
+    lamp_tolerance_rad: float
+    depth_of_field_m: float = 0.0  # wanted depth of field beyond the feature's own depth range
+    resolution_m: float | None = None      # a pixel covers at most this on the feature (None: not asked)
+    view_angle_rad: float | None = None    # the camera at most this far from each sample's normal
+
+
+@dataclass(frozen=True)
+class Feature:
+    name: str                      # `feature` for the one-feature form
+    center_m: np.ndarray           # part frame, on the surface (snapped to the closest point)
+    normal: np.ndarray             # part frame, unit, outward
+    radius_m: float
+    samples: int
+    requirements: Requirements     # the task's, with the feature's own keys replacing them
+    key: str = "feature"           # where the task file gives it (`features[2]`), for errors
+
+
+@dataclass(frozen=True)
+class Sensor:
+    width_px: int
+    height_px: int
+    pixel_pitch_m: float
+    bit_depth: int
+    camera_constant: float         # c of eq. (10) [1/(W s)], as given or from the datasheet keys
+    camera_constant_stderr: float | None = None    # as measured (cell calibrate camera-constant)
+    # EMVA 1288 datasheet figures (None: not given); eta and K give c, K and the rest the sim's noise
+    quantum_efficiency: float | None = None        # eta at wavelength_m
+    wavelength_m: float | None = None              # the light's (the lamp's) wavelength
+    system_gain_dn_per_e: float | None = None      # K [gray per electron]
+    dark_noise_e: float | None = None              # sigma_d [electrons rms]
+    saturation_capacity_e: float | None = None     # mu_e,sat [electrons]
+    source: str | None = None                      # where the numbers come from
+    file: Path | None = None                       # the camera file they were read from, if any
+    black_level: float | None = None               # b of G = b + c P t [gray]; None: measured by `cell run`
+
+    @property
+    def pixel_area_m2(self):
+        return self.pixel_pitch_m**2
+
+
+@dataclass(frozen=True)
+class Lens:
+    focal_length_m: float
+    f_number_range: tuple
+    circle_of_confusion_m: float
+
+
+@dataclass(frozen=True)
+class Viewpoint:
+    """How the camera's pose is chosen (`camera.viewpoint`): `fixed`, the task's rule
+    (distance_m along view_direction), or `planned` on view spheres around each feature
+    (cell.planning.viewpoints): radii over standoff_range_m in standoff_steps, directions step_rad apart,
+    at most per_feature poses of each feature tried with lamps."""
+
+    mode: str = "fixed"
+    standoff_range_m: tuple | None = None
+    standoff_steps: int = 3
+    step_rad: float = float(np.radians(15.0))
+    per_feature: int = 3
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    distance_m: float
+    view_direction: np.ndarray     # part frame, unit, from feature to camera
+    sensor: Sensor
+    lens: Lens
+    shutter_range_s: tuple
+    viewpoint: Viewpoint = Viewpoint()
+
+
+@dataclass(frozen=True)
+class LampRig:
+    pivot_m: np.ndarray            # cell frame
+    pan_range_rad: tuple
+    tilt_range_rad: tuple
+    radius_range_m: tuple
+    radius_axis: str               # manual | servo
+
+
+@dataclass(frozen=True)
+class Lamp:
+    power_w: float
+    cone_angle_rad: float          # full opening angle gamma (eq. 11's normalization)
+    rig: LampRig
+    profile: np.ndarray = None     # (M, 2) [off_axis_rad, relative]: I(theta)/I(0), linear, 0
+                                   # beyond the last angle; None: eq. (11)'s ideal cone
+
+    @property
+    def lit_half_angle_rad(self):
+        """The off-axis angle beyond which the lamp lights nothing: the profile's end, where it
+        reaches 0 for good (gamma / 2 for eq. (11)'s ideal cone)."""
+        if self.profile is None:
+            return 0.5 * self.cone_angle_rad
+        angles, relative = self.profile[:, 0], self.profile[:, 1]
+        lit = np.flatnonzero(relative > 0)
+        return float(angles[min(lit[-1] + 1, len(angles) - 1)])
+
+
+@dataclass(frozen=True)
+class Truth:
+    """How the simulated world differs from the model (docs/formats.md, `sim.truth`); vectors as
+    tuples, so that truths compare equal."""
+
+    albedo_scale: float = 1.0
+    camera_constant_scale: float = 1.0
+    lamp_direction_error_rad: float = 0.0
+    material: Material | None = None           # the world's BRDF table; None: the task's
+    part_offset_m: tuple = (0.0, 0.0, 0.0)     # cell frame
+    part_rpy_rad: tuple = (0.0, 0.0, 0.0)      # about the feature centre
+    camera_offset_m: tuple = (0.0, 0.0, 0.0)   # camera frame (hand-eye error)
+    camera_rpy_rad: tuple = (0.0, 0.0, 0.0)
+    lamp_radius_error_m: float = 0.0           # the lamp this much farther from the pivot
+
+
+@dataclass(frozen=True)
+class LoopSettings:
+    """The closed loop's limits (`loop`): the albedo scales a correction may imply, how far
+    from where the model puts it the feature may be found (registration) [m]."""
+
+    albedo_scale_range: tuple = (0.1, 10.0)
+    registration_limit_m: float | None = None    # None: the plan's (cell.run.loop.registration_limit)
+
+
+@dataclass(frozen=True)
+class Sample:
+    """The goniometer's flat sample (`calibration.sample`): a disc of the material at the lamp
+    rig's pivot, its top face there, facing `normal` (cell frame, unit)."""
+
+    material: Material | None = None           # the material it is made of (None: the part's)
+    radius_m: float = 0.025
+    thickness_m: float = 0.002
+    normal: tuple = (0.0, 0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class Goniometer:
+    """How `cell measure-brdf` samples the BRDF (`calibration.goniometer`)."""
+
+    phase_rad: tuple = tuple(np.radians([20.0, 40.0, 60.0]))
+    step_rad: float = float(np.radians(2.0))   # of the half-angle's tilt, in the plane of incidence
+    max_angle_rad: float = float(np.radians(80.0))   # ti and te at most
+    lamp_radius_m: float | None = None         # None: the middle of the rig's range
+
+
+@dataclass(frozen=True)
+class Calibration:
+    sample: Sample = Sample()
+    goniometer: Goniometer = Goniometer()
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    seed: int = 1
+    effects: tuple = ()
+    truth: Truth = Truth()
+
+
+@dataclass(frozen=True)
+class CellConfig:
+    backend: str                   # sim | hw
+    devices: DevicesConfig         # cell.arm / cell.pan_tilt / cell.camera, defaults filled in
+
+
+@dataclass(frozen=True)
+class Task:
+    path: Path
+    name: str
+    part: Part
+    frames: Frames                 # the named transforms: part, robot base, hand-eye
+    features: tuple                # Feature, one or more
+    camera: CameraModel
+    lamp: Lamp
+    cell: CellConfig
+    sim: SimConfig
+    loop: LoopSettings = LoopSettings()
+    calibration: Calibration = Calibration()
+    board: object = None           # cell.task.board.Board: the ChArUco board (calibration.board)
+
+    @property
+    def feature(self):
+        """The task's only feature (what one-shot planning, the loop and calibration work on)."""
+        if len(self.features) != 1:
+            raise ValueError(f"the task has {len(self.features)} features; plan them with "
+                             f"cell.planning.whole_part.plan_features, or take one with task.with_feature(i)")
+        return self.features[0]
+
+    @property
+    def requirements(self):
+        """The only feature's requirements."""
+        return self.feature.requirements
+
+    def with_feature(self, i):
+        """The one-feature task of feature i (the rest of the task shared)."""
+        return replace(self, features=(self.features[i],))
