@@ -15,14 +15,11 @@ window's dark variance, and the system gain K is what a camera without a datashe
 over the sweep's decade OLS stays unbiased and its standard error holds (tests/test_camera_constant.py).
 The arm and the lamp are connected (a fault stops them) but never moved.
 """
-import os
-import tempfile
 from dataclasses import asdict, dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
-import yaml
 from scipy.ndimage import uniform_filter
 from scipy.stats import linregress
 
@@ -30,6 +27,7 @@ from cell.physics.sensor import saturation_level
 from cell.run import measurement
 from cell.run.acquisition import acquire
 from cell.calibration.reference_part import shutter_sweep
+from cell.core.files import write_yaml
 from cell.core.errors import CellError, DeviceFault, GoalNotReached, TaskError
 from cell.report.pictures import write_laser_fit
 from cell.report.recorder import Ending, Recorder
@@ -357,25 +355,6 @@ def camera_document(sensor, fit, black, source):
     return doc | {"black_level": float(f"{black.value:.4g}"), "source": source}
 
 
-def write_camera_file(path, document, force, header=""):
-    """The YAML file, written whole (a temporary file renamed into place), below `header`'s lines
-    as comments; an existing file only with force."""
-    path = Path(path)
-    comments = "".join(f"# {line}\n" for line in header.splitlines())
-    text = comments + yaml.safe_dump(document, sort_keys=False, width=100)
-    fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    if force:
-        os.replace(temporary, path)
-    else:
-        try:
-            os.link(temporary, path)            # fails if it appeared meanwhile: never overwritten
-        finally:
-            os.unlink(temporary)
-    return path
-
-
 def run(task, out, connect, laser, camera_file, shots=8, force=False):
     """connect() -> Devices; dark frames, probes, the sweep and the fit; out/log.jsonl as it
     happens, out/calibration.json however it ends, out/calibration.png, and the camera file on
@@ -401,7 +380,7 @@ def run(task, out, connect, laser, camera_file, shots=8, force=False):
         source = (f"cell calibrate camera-constant {task.path.name} on {stamp}: laser {laser.power_w:.4g} W, "
                   f"{fit.frames_used} frames, r2 {fit.r_squared:.6f}; black level from its dark frames; run folder {out}")
         black = spot.darks.black
-        written = str(write_camera_file(camera_file, camera_document(task.camera.sensor, fit, black, source), force))
+        written = str(write_yaml(camera_file, camera_document(task.camera.sensor, fit, black, source), replace=force))
         recorder.step("done", f"c = {fit.camera_constant:.5g} +- {fit.camera_constant_stderr:.2g} 1/(W s), "
                               f"{fit.camera_constant / c_task:.3f} x the task's; black level {black.value:.2f} gray; "
                               f"wrote {written}", camera_file=written, black_level=black.value, **asdict(fit))

@@ -23,7 +23,6 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-import yaml
 
 from cell.physics.sensor import levels, saturation_level
 from cell.core import geometry
@@ -31,6 +30,7 @@ from cell.core import geometry
 from cell.run import measurement
 from cell.run.acquisition import acquire
 from cell.devices.interfaces import speaking_for
+from cell.core.files import write_yaml
 from cell.core.errors import GoalNotReached
 from cell.physics.brdf_fit import MIN_ROWS, SIGNIFICANCE, fit_material, material_document, read_goniometer
 from cell.task.loader import load_material
@@ -383,7 +383,7 @@ def run(task, out, connect, operator):
         doc = material_document(fits, f"{material.name} (measured)", source)
         unresolved = unresolved_terms(doc, gonio.step_rad)
         written = out / "material.yaml"
-        written.write_text(yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=100))
+        write_yaml(written, doc, inline_lists=True)
         write_goniometer_fit(out / "fit.png", readings, load_material(written))   # what tasks will read: checked now
         notes = "; ".join(f"{t} unresolved at phase {', '.join(f'{p:g}' for p in ps)} deg" for t, ps in unresolved.items())
         recorder.step("done", f"{len(readings)} readings fitted; wrote {written}" + (f"; {notes}" if notes else ""),

@@ -32,8 +32,8 @@ from cell.physics.sensor import levels, saturation_level
 from cell.core import geometry
 
 from cell.run.acquisition import acquire
-from cell.calibration.camera_constant import write_camera_file
 from cell.devices.interfaces import check_arm_motion, speaking_for
+from cell.core.files import write_yaml
 from cell.core.errors import DeviceFault, GoalNotReached
 from cell.physics.projection import intrinsics
 from cell.report.recorder import Ending, Recorder
@@ -448,7 +448,7 @@ def run(task, out, connect, hand_eye_file, poses=12, force=False):
                   f"reprojection error {result.reprojection_error_px:.3f} px, run folder {out}\n"
                   f"a task uses this file as cell.arm.hand_eye: {Path(hand_eye_file).name} (relative to the task file), "
                   "or these keys copied into its cell.arm")
-        written = str(write_camera_file(hand_eye_file, hand_eye_document(result), force, header=header))
+        written = str(write_yaml(hand_eye_file, hand_eye_document(result), replace=force, header=header))
         recorder.step("done", f"T_flange_cam at {np.round(1e3 * result.position_m, 3).tolist()} mm, rpy "
                               f"{np.round(result.rpy_deg, 3).tolist()} deg; f {calibrated.focal_length_px:.1f} px; "
                               f"wrote {written}", hand_eye_file=written, **result.to_json())

@@ -7,9 +7,9 @@ import sys
 import tempfile
 from pathlib import Path
 
-import yaml
 
 from cell.core import jsonio
+from cell.core.files import write_yaml
 from cell.core.errors import TaskError
 from cell.physics.brdf_fit import SIGNIFICANCE, TERMS, absent_notes, fit_material, material_document, read_goniometer
 from cell.physics.material import PARAMETERS
@@ -77,7 +77,7 @@ def command(args):
     doc = material_document(fits, args.name or path.stem, source)
     if out:
         try:
-            out.write_text(yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=100))
+            write_yaml(out, doc, inline_lists=True)
         except OSError as err:
             raise TaskError("command line", "--out", f"{out} ({err.strerror})", "a writable file") from None
     for note in absent_notes(fits):

@@ -48,12 +48,6 @@ def f_number_for_depth(u, f, sigma, depth_m):
     return float(x / (sigma * (u - f)))
 
 
-def focus_for_range(near_m, far_m):
-    """Focus distance whose near/far limits are near_m/far_m: the harmonic mean 2 n f / (n + f)
-    (exact for the thin-lens limits above when u >> f)."""
-    return 2.0 * near_m * far_m / (near_m + far_m)
-
-
 def near_limit_german(g, f, kappa, sigma):
     """The paper's eq. (20), d_n = f^2 g / (f^2 - kappa sigma (g + f)), with g = -u < 0: returns -near."""
     return f**2 * g / (f**2 - kappa * sigma * (g + f))

@@ -52,7 +52,3 @@ class Board:
         px_per_square, y likewise."""
         width, height = (n * px_per_square for n in self.squares)
         return self.charuco().generateImage((width, height), marginSize=0, borderBits=1)
-
-    def corners_cell(self):
-        """The inner chessboard corners (ChArUco corner ids in order) in the cell frame (N, 3)."""
-        return geometry.apply(self.T_cell_board, np.asarray(self.charuco().getChessboardCorners(), float))
