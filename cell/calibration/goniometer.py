@@ -27,8 +27,7 @@ import trimesh
 from cell.physics.sensor import levels, saturation_level
 from cell.core import geometry
 
-from cell.run import measurement
-from cell.run.acquisition import acquire
+from cell.run.acquisition import acquire, find_black_level
 from cell.devices.interfaces import speaking_for
 from cell.core.files import write_yaml
 from cell.core.errors import GoalNotReached
@@ -217,22 +216,6 @@ class Exposer:
         return None, f"no usable exposure in {MAX_TAKES} takes"
 
 
-def find_black_level(task, devices, recorder):
-    """The task's camera.sensor.black_level, else a dark frame at the shortest shutter and the
-    largest f-number (the rig cannot switch the lamp off): its median (measurement.black_level_of)."""
-    b = task.camera.sensor.black_level
-    if b is not None:
-        black = measurement.BlackLevel(float(b), 0.0, "task")
-        recorder.step("black_level", f"black level {b:.2f} gray (camera.sensor.black_level)", **black.to_json())
-        return black
-    (t_lo, _), (_, k_hi) = task.camera.shutter_range_s, task.camera.lens.f_number_range
-    capture = acquire(devices, recorder, 0, t_lo, k_hi, task.camera.distance_m)
-    black = measurement.black_level_of(capture.image)
-    recorder.step("black_level", f"black level {black.value:.2f} gray, noise {black.noise_rms:.2f} rms (dark frame "
-                                 f"at {1e3 * capture.shutter_s:.3g} ms, f/{k_hi:g})", iteration=0, **black.to_json())
-    return black
-
-
 def measure_poses(task, devices, recorder, nominal, readings, refused, failed):
     """Visit every pose, appending to readings, refused [(pose, reason)] and failed [(pose,
     reason)] as it goes (so a fault keeps what was measured)."""
@@ -253,8 +236,10 @@ def measure_poses(task, devices, recorder, nominal, readings, refused, failed):
         with speaking_for(devices.lamp):
             devices.lamp.move(*joints)
             lamp_pos, _ = devices.lamp.lamp_pose()
-        if exposer is None:                      # the dark frame once the lamp is somewhere (its radius set)
-            exposer = Exposer(task, devices, recorder, find_black_level(task, devices, recorder))
+        if exposer is None:                      # the dark frame once the lamp is somewhere (its radius set),
+            k_hi = task.camera.lens.f_number_range[1]   # at the largest f-number: the least light
+            exposer = Exposer(task, devices, recorder, find_black_level(task, devices, recorder, k_hi,
+                                                                        task.camera.distance_m))
         distance = float(np.linalg.norm(lamp_pos - pivot))
         phi = float(cone_irradiance(lamp.power_w, lamp.cone_angle_rad, distance, 0.0, lamp.profile))
         r_guess = float(reflectance(np.cos(pose.theta_i_rad), np.cos(pose.theta_e_rad), np.cos(pose.phase_rad),

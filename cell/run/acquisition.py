@@ -1,6 +1,7 @@
 """Acquisition, shared by the closed loop and the calibration routines: plan, refuse an
 infeasible plan before anything moves and connect the devices; move to a Shot's poses, set an
-exposure and take a frame, each step logged as the devices read it back."""
+exposure and take a frame, find the sensor's black level (the task's, or a dark frame's), each step
+logged as the devices read it back."""
 from dataclasses import dataclass
 
 import numpy as np
@@ -9,6 +10,7 @@ from cell.physics.sensor import levels
 from cell.devices.interfaces import speaking_for
 from cell.core.errors import PlanInfeasible
 from cell.planning.plan import gray_stats
+from cell.run import measurement
 
 
 @dataclass(frozen=True)
@@ -101,3 +103,23 @@ def acquire(devices, recorder, iteration, shutter_s, f_number, focus_m, name=Non
     with speaking_for(devices.arm):
         pose = devices.arm.camera_pose()
     return Capture(image, pose, shutter_s, float(f_number), float(focus_m), name)
+
+
+def find_black_level(task, devices, recorder, f_number, focus_m, feature_light=None):
+    """The task's camera.sensor.black_level, else a dark frame's (measurement.black_level_of):
+    capture-0.png at the shortest shutter (the rig cannot switch the lamp off) and f_number,
+    logged with feature_light(shutter) when given: the most light the model lets reach the
+    feature in that frame [gray]. Returns the measurement.BlackLevel."""
+    b = task.camera.sensor.black_level
+    if b is not None:
+        black = measurement.BlackLevel(float(b), 0.0, "task")
+        recorder.step("black_level", f"black level {b:.2f} gray (camera.sensor.black_level)", **black.to_json())
+        return black
+    capture = acquire(devices, recorder, 0, task.camera.shutter_range_s[0], f_number, focus_m)
+    black = measurement.black_level_of(capture.image)
+    light = {} if feature_light is None else {"feature_light": feature_light(capture.shutter_s)}
+    note = f": the feature's light at most {light['feature_light']:.2g} gray by the model" if light else ""
+    recorder.step("black_level", f"black level {black.value:.2f} gray, noise {black.noise_rms:.2f} rms (dark frame "
+                                 f"at {1e3 * capture.shutter_s:.3g} ms, f/{f_number:.1f}{note})", iteration=0,
+                  **black.to_json(), **light)
+    return black

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from cell.physics.sensor import saturation_level
-from cell.run import control, measurement, refit, registration
+from cell.run import acquisition, control, measurement, refit, registration
 
 from cell.planning import evaluate
 from cell.run.acquisition import acquire, move_to, plan_and_connect, plan_recorded
@@ -158,24 +158,11 @@ class Model:
 
 
 def find_black_level(task, plan, devices, recorder):
-    """The task's camera.sensor.black_level, else a dark frame's (measurement.black_level_of): the
-    shortest shutter at the planned f-number (the rig cannot switch the lamp off, and a manual
-    lens is not turned twice more), logged with the most light the plan's model lets reach the
-    feature then. capture-0.png is that frame."""
-    b = task.camera.sensor.black_level
-    if b is not None:
-        black = measurement.BlackLevel(float(b), 0.0, "task")
-        recorder.step("black_level", f"black level {b:.2f} gray (camera.sensor.black_level)", **black.to_json())
-        return black
-    shutter, f_number = task.camera.shutter_range_s[0], plan.shot.exposure.f_number
-    capture = acquire(devices, recorder, 0, shutter, f_number, plan.shot.exposure.focus_m)
-    black = measurement.black_level_of(capture.image)
-    light = float(np.max(Model(plan, task).predicted(0.0, capture.shutter_s, f_number)))
-    recorder.step("black_level", f"black level {black.value:.2f} gray, noise {black.noise_rms:.2f} rms (dark frame "
-                                 f"at {1e3 * capture.shutter_s:.3g} ms, f/{f_number:.1f}: the feature's light at "
-                                 f"most {light:.2g} gray by the model)", iteration=0, **black.to_json(),
-                  feature_light=light)
-    return black
+    """acquisition.find_black_level at the planned f-number and focus (a manual lens is not turned
+    twice more), with the most light the plan's model lets reach the feature in the dark frame."""
+    e = plan.shot.exposure
+    return acquisition.find_black_level(task, devices, recorder, e.f_number, e.focus_m, lambda shutter_s: float(
+        np.max(Model(plan, task).predicted(0.0, shutter_s, e.f_number))))
 
 
 def registration_limit(task, shot):
