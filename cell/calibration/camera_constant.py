@@ -15,9 +15,12 @@ window's dark variance, and the system gain K is what a camera without a datashe
 over the sweep's decade OLS stays unbiased and its standard error holds (tests/test_camera_constant.py).
 The arm and the lamp are connected (a fault stops them) but never moved.
 """
+from __future__ import annotations
+
 from dataclasses import asdict, dataclass
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.ndimage import uniform_filter
@@ -31,6 +34,7 @@ from cell.core.files import write_yaml
 from cell.core.errors import CellError, DeviceFault, GoalNotReached, TaskError
 from cell.report.pictures import write_laser_fit
 from cell.report.recorder import Ending, Recorder
+from cell.report.result import Result
 
 DARK_FRAMES = 3             # at each end of the shutter range
 MIN_PEAK = 0.05             # a spot peaking below this share of the range above the dark is too dark
@@ -171,17 +175,17 @@ def fit_series(frames, power_w):
     saturated, dark = sum(f.saturated for f in sweep), sum(f.too_dark and not f.saturated for f in sweep)
     if sweep and saturated == len(sweep):
         raise GoalNotReached(f"the spot is saturated at every shutter time of the sweep ({len(sweep)} frames): "
-                             "put a denser neutral-density filter in the beam")
+                             "put a denser neutral-density filter in the beam", "saturated")
     if len(used) < MIN_FRAMES:
         raise GoalNotReached(f"too few usable frames: {len(used)} of {len(sweep)} ({saturated} saturated, "
-                             f"{dark} too dark), at least {MIN_FRAMES} are needed")
+                             f"{dark} too dark), at least {MIN_FRAMES} are needed", "too_few_frames")
     t, s = np.array([f.shutter_s for f in used]), np.array([f.spot_sum for f in used])
     line = linregress(t, s)
     r2 = float(line.rvalue**2)
     if not r2 >= MIN_R2:
         raise GoalNotReached(f"poor linearity: r2 {r2:.5f} below {MIN_R2} over {len(used)} frames: the spot's sum "
                              "is not proportional to the shutter time (a gain or gamma that is not linear, "
-                             "the laser's power drifting, room light changing)")
+                             "the laser's power drifting, room light changing)", "linearity")
     return LaserFit(float(line.slope / power_w), float(line.stderr / power_w), float(line.intercept), r2,
                     len(used), saturated, dark)
 
@@ -239,11 +243,11 @@ def probe(devices, recorder, frames, spot, task, power_w, f_number, focus_m):
     if last.saturated:
         raise GoalNotReached(f"the spot is saturated at every shutter time down to {1e3 * t:.3g} ms "
                              f"(the camera's shortest is {1e3 * lo:.3g} ms): put a denser neutral-density "
-                             "filter in the beam (and say its power with --laser-power-w)")
+                             "filter in the beam (and say its power with --laser-power-w)", "saturated")
     raise GoalNotReached(f"the spot is too dark at every shutter time up to {1e3 * t:.3g} ms: its peak is "
                          f"{last.peak:.1f} gray above the dark, less than {100 * MIN_PEAK:g} % of the range: "
                          "is the laser on and aimed at the sensor? a lighter neutral-density filter "
-                         "(and --laser-power-w to match)")
+                         "(and --laser-power-w to match)", "too_dark")
 
 
 def measure_series(devices, recorder, frames, task, laser, shots):
@@ -285,7 +289,7 @@ def sum_spots(frames, images, spot):
     window = {"row": row, "col": col, "half_size_px": half}
     if where is None:
         raise GoalNotReached(f"the spot at row {row}, column {col} lies within {half} px of the image's edge: "
-                             "aim the laser nearer the middle of the sensor")
+                             "aim the laser nearer the middle of the sensor", "spot_at_edge")
     out = list(frames)
     for i, image in zip(sweep, images):
         f = frames[i]
@@ -296,35 +300,50 @@ def sum_spots(frames, images, spot):
 
 
 @dataclass(frozen=True)
-class LaserCalibration:
-    """What the routine achieved, like scipy's OptimizeResult: `success`, `message` (why not),
-    the LaserFit, every frame, the spot's window, the camera file written, the device fault."""
+class LaserCalibration(Result):
+    """What the routine achieved (cell.report.result's verdict: `success`, c fitted and the
+    camera file written; `message`, why not; the device fault), the LaserFit, every frame, the
+    spot's window, the camera file and the black level of the dark frames. calibration.json is
+    to_json(), with `reason` (the message) as well."""
+
+    SUCCEEDED = "calibrated"
+    NOT_REACHED = "not_calibrated"
 
     task: str
     laser_power_w: float
     camera_constant_task: float
     success: bool
     message: str
-    frames: tuple = ()
+    frames: tuple[Frame, ...] = ()
     fit: LaserFit | None = None
-    window: dict | None = None
+    window: dict[str, int] | None = None
     camera_file: str | None = None
-    fault: dict | None = None
+    fault: dict[str, Any] | None = None
     black_level: measurement.BlackLevel | None = None
+    cause: str | None = None
 
-    def summary(self):
-        """--json's keys."""
+    def fitted(self) -> dict[str, float]:
+        """c, its standard error, the linearity and the frames used ({} without a fit)."""
         fit = self.fit
         return {"camera_constant": fit.camera_constant, "camera_constant_stderr": fit.camera_constant_stderr,
                 "r_squared": fit.r_squared, "frames_used": fit.frames_used} if fit else {}
 
-    def to_json(self):
+    def summary(self) -> dict[str, Any]:
+        """--json's keys: fitted()'s, the black level [gray] and the camera file."""
+        return self.fitted() | {"black_level": self.black_level.value if self.black_level else None,
+                                "camera_file": self.camera_file}
+
+    @property
+    def counters(self) -> dict[str, int]:
+        return {"frames": len(self.frames), "frames_used": self.fit.frames_used if self.fit else 0}
+
+    def details(self) -> dict[str, Any]:
         return {"task": self.task, "laser_power_w": self.laser_power_w, "camera_constant_task": self.camera_constant_task,
-                **self.summary(), "fit": asdict(self.fit) if self.fit else None,
+                **self.fitted(), "fit": asdict(self.fit) if self.fit else None,
                 "camera_constant_ratio": self.fit.camera_constant / self.camera_constant_task if self.fit else None,
                 "black_level": self.black_level.to_json() if self.black_level else None,
                 "window": self.window, "frames": [asdict(f) for f in self.frames], "camera_file": self.camera_file,
-                "reason": self.message} | ({"fault": self.fault} if self.fault else {})
+                "reason": self.message}
 
 
 def check_camera_file(path, force, option="--camera-file"):

@@ -17,9 +17,12 @@ maximum is sqrt(ln 2 / (2 m)); a term narrower than the step falls between the p
 exponent above M = ln 2 / (2 step^2) cannot be measured: such a term (or one the data do not show)
 is reported unresolved, with sigma 0, m = M (at least that narrow) and infinite standard errors.
 """
+from __future__ import annotations
+
 from dataclasses import asdict, astuple, dataclass, replace
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import trimesh
@@ -37,6 +40,7 @@ from cell.physics.brdf import reflectance
 from cell.physics.radiometry import cone_irradiance, gray_per_exposure, reflectance_from_gray
 from cell.physics.projection import intrinsics, project
 from cell.report.recorder import Ending, Recorder
+from cell.report.result import Result
 from cell.devices.rig import lamp_joints
 from cell.planning.scene import look_at
 from cell.task.types import Feature, Part
@@ -180,7 +184,7 @@ class Exposer:
         patch = patch_at(capture.image, self.K, capture.T_cell_cam, centre)
         if patch is None:
             raise GoalNotReached(f"pose {k}: the sample's centre is not {PATCH_PX // 2} px inside the image: "
-                                 "is the camera looking at the pivot (hand-eye)?")
+                                 "is the camera looking at the pivot (hand-eye)?", "not_in_view")
         name = self.recorder.write_image(f"patch-{self.captures}.png", levels(patch, self.task.camera.sensor.bit_depth))
         return capture, patch, name
 
@@ -290,22 +294,33 @@ def unresolved_terms(doc, step_rad):
 
 
 @dataclass(frozen=True)
-class Goniometry:
-    """What the routine achieved: success and why not, the readings, poses refused and failed,
-    the material document written, the device fault."""
+class Goniometry(Result):
+    """What the routine achieved (cell.report.result's verdict: `success`, the material fitted
+    and written; `message`, why not; the device fault), the readings, the poses refused and
+    failed [(pose, reason)], the material document written. measurement.json is to_json(), with
+    `reason` (the message) as well."""
+
+    SUCCEEDED = "measured"
+    NOT_REACHED = "not_measured"
 
     task: str
     success: bool
     message: str
     poses: int = 0
-    readings: tuple = ()
-    refused: tuple = ()
-    failed: tuple = ()
-    material: dict | None = None
+    readings: tuple[Reading, ...] = ()
+    refused: tuple[tuple[int, str], ...] = ()
+    failed: tuple[tuple[int, str], ...] = ()
+    material: dict[str, Any] | None = None
     material_file: str | None = None
-    fault: dict | None = None
+    fault: dict[str, Any] | None = None
+    cause: str | None = None
 
-    def summary(self):
+    @property
+    def counters(self) -> dict[str, int]:
+        return {"poses": self.poses, "readings": len(self.readings), "refused": len(self.refused),
+                "failed": len(self.failed)}
+
+    def summary(self) -> dict[str, Any]:
         """--json's keys: the material's table and standard errors, what is unresolved."""
         if not self.material:
             return {}
@@ -313,12 +328,12 @@ class Goniometry:
         keys += [f"{k}_stderr" for k in keys[1:]] + ["unresolved"]
         return {k: self.material[k] for k in keys if k in self.material}
 
-    def to_json(self):
-        return {"task": self.task, "success": self.success, "reason": self.message, "poses": self.poses,
+    def details(self) -> dict[str, Any]:
+        return {"task": self.task, "reason": self.message, "poses": self.poses,
                 "refused": [{"pose": k, "reason": r} for k, r in self.refused],
                 "failed": [{"pose": k, "reason": r} for k, r in self.failed],
                 "readings": [asdict(r) for r in self.readings], "material": self.material,
-                "material_file": self.material_file} | ({"fault": self.fault} if self.fault else {})
+                "material_file": self.material_file}
 
 
 def run(task, out, connect, operator):
@@ -356,7 +371,7 @@ def run(task, out, connect, operator):
         if short:
             raise GoalNotReached(f"fewer than {MIN_ROWS} readings at phase {', '.join(short)} deg "
                                  f"({len(refused)} of {total} poses refused, {len(failed)} without a reading): "
-                                 "a finer step_deg, or a lamp radius and camera distance the arm can reach")
+                                 "a finer step_deg, or a lamp radius and camera distance the arm can reach", "too_few_readings")
         fits = fit_material(read_goniometer(csv))
         stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
         source = (f"measured by cell measure-brdf {task.path.name} on {stamp}: the cell as a goniometer, "

@@ -19,9 +19,12 @@ one reprojecting the corners best is refined (refine) with the board's pose in t
 focal length on every corner's reprojection error. Residuals: the spread of the board's pose in
 the cell over the views, and the corners' reprojection error through the result.
 """
+from __future__ import annotations
+
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -37,6 +40,7 @@ from cell.core.files import write_yaml
 from cell.core.errors import DeviceFault, GoalNotReached
 from cell.physics.projection import intrinsics
 from cell.report.recorder import Ending, Recorder
+from cell.report.result import Result
 
 MIN_POSES = 10
 TILT_DEG = (18.0, 30.0, 24.0)       # the optical axis from the board's normal, in turn
@@ -168,7 +172,7 @@ def auto_exposure(devices, recorder, task, f_number, focus_m, frames):
         shutter = nxt
     raise GoalNotReached(f"no shutter time in {1e3 * lo:.3g}-{1e3 * hi:.3g} ms shows the board's white within "
                          f"{100 * EXPOSURE_BAND[0]:.0f}-{100 * EXPOSURE_BAND[1]:.0f} % of the range: is the light "
-                         "over the board on, and not too bright?")
+                         "over the board on, and not too bright?", "exposure")
 
 
 def collect(devices, recorder, task, poses):
@@ -378,39 +382,53 @@ def hand_eye_document(result):
 
 
 @dataclass(frozen=True)
-class HandEyeCalibration:
-    """What the routine achieved, like scipy's OptimizeResult: `success`, `message` (why not),
-    the intrinsics, the hand-eye (refined) and each method's, the views, the poses refused, the
-    hand-eye file written and the device fault."""
+class HandEyeCalibration(Result):
+    """What the routine achieved (cell.report.result's verdict: `success`, the hand-eye solved
+    and its file written; `message`, why not; the device fault), the intrinsics, the hand-eye
+    (refined) and each method's, the views, the poses refused and the hand-eye file.
+    calibration.json is to_json(), with `reason` (the message) as well."""
+
+    SUCCEEDED = "calibrated"
+    NOT_REACHED = "not_calibrated"
 
     task: str
     success: bool
     message: str
-    views: tuple = ()
-    refused: tuple = ()
+    views: tuple[View, ...] = ()
+    refused: tuple[dict[str, Any], ...] = ()            # {pose, reason}
     intrinsics: Intrinsics | None = None
     hand_eye: HandEye | None = None
-    methods: dict | None = None
-    refinement: dict | None = None      # least_squares' success, nfev, message
+    methods: dict[str, HandEye] | None = None
+    refinement: dict[str, Any] | None = None      # least_squares' success, nfev, message
     hand_eye_file: str | None = None
-    fault: dict | None = None
+    fault: dict[str, Any] | None = None
+    cause: str | None = None
 
-    def summary(self):
-        """--json's keys."""
-        if not self.hand_eye:
+    def fitted(self) -> dict[str, Any]:
+        """The hand-eye's position and angles, the focal length and the reprojection error ({}
+        without a result)."""
+        if not self.hand_eye or not self.intrinsics:
             return {}
         return {"hand_eye_position_m": self.hand_eye.position_m, "hand_eye_rpy_deg": self.hand_eye.rpy_deg,
                 "focal_length_px": self.intrinsics.focal_length_px,
                 "reprojection_error_px": self.intrinsics.rms_px}
 
-    def to_json(self):
-        return {"task": self.task, **self.summary(),
+    def summary(self) -> dict[str, Any]:
+        """--json's keys: fitted()'s and the hand-eye file."""
+        return self.fitted() | {"hand_eye_file": self.hand_eye_file}
+
+    @property
+    def counters(self) -> dict[str, int]:
+        return {"poses": len(self.views) + len(self.refused), "views": len(self.views),
+                "views_used": sum(v.object_points is not None for v in self.views), "refused": len(self.refused)}
+
+    def details(self) -> dict[str, Any]:
+        return {"task": self.task, **self.fitted(),
                 "intrinsics": self.intrinsics.to_json() if self.intrinsics else None,
                 "hand_eye": self.hand_eye.to_json() if self.hand_eye else None,
                 "methods": {m: h.to_json() for m, h in (self.methods or {}).items()}, "refinement": self.refinement,
                 "views": [v.to_json() for v in self.views], "refused": list(self.refused),
-                "hand_eye_file": self.hand_eye_file, "reason": self.message} | (
-                    {"fault": self.fault} if self.fault else {})
+                "hand_eye_file": self.hand_eye_file, "reason": self.message}
 
 
 def run(task, out, connect, hand_eye_file, poses=12, force=False):
@@ -440,7 +458,7 @@ def run(task, out, connect, hand_eye_file, poses=12, force=False):
             raise GoalNotReached(f"the board was seen at {len(usable)} of {poses} viewpoints ({len(skipped)} "
                                  f"refused by the arm, {len(views) - len(usable)} with fewer than {MIN_CORNERS} "
                                  f"corners), at least {MIN_POSES} are needed: is the board where "
-                                 "calibration.board says, and lit?")
+                                 "calibration.board says, and lit?", "too_few_views")
         calibrated = calibrate_intrinsics(task, usable)
         result, linear, solver = solve(usable, calibrated)
         stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")

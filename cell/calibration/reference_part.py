@@ -9,8 +9,11 @@ saturated, nor 0, nor outside the image); b absorbs a black level. Only the prod
 observable this way: calibrate on a part whose material table you trust (the task's material is
 the reference).
 """
+from __future__ import annotations
+
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -21,6 +24,7 @@ from cell.core.errors import GoalNotReached, PlanInfeasible
 from cell.planning.evaluate import black_level
 from cell.report.pictures import write_calibration
 from cell.report.recorder import Ending, Recorder
+from cell.report.result import Result
 
 # the brightest sample's gray by the model, as a fraction of full scale, at the first and the
 # last shot: dim, up to near (not at) saturation; G ~ t, so the shutter times follow
@@ -122,29 +126,36 @@ def sweep(task, plan, devices, recorder, shots=6):
 
 
 @dataclass(frozen=True)
-class CalibrationResult:
-    """What a calibration achieved, like scipy's OptimizeResult: `success` (c fitted), `message`
-    (why not), the Fit, its ratio to the task's c, every shot, the plan, and the device fault
-    with its safe stop's outcome when there was one. calibration.json is to_json()."""
+class CalibrationResult(Result):
+    """What the calibration achieved (cell.report.result's verdict: `success`, c fitted;
+    `message`, why not; the device fault), the Fit, its ratio to the task's c, every shot and
+    the plan. calibration.json is to_json(), with `reason` (the message) as well."""
+
+    SUCCEEDED = "calibrated"
+    NOT_REACHED = "not_calibrated"
 
     task: str
     camera_constant_task: float
     success: bool
     message: str
-    plan: dict | None
-    shots: tuple = ()
+    plan: dict[str, Any] | None
+    shots: tuple[ShotRecord, ...] = ()
     fit: Fit | None = None
-    fault: dict | None = None
+    fault: dict[str, Any] | None = None
+    cause: str | None = None
 
     @property
-    def camera_constant_ratio(self):
+    def camera_constant_ratio(self) -> float | None:
         return self.fit.camera_constant / self.camera_constant_task if self.fit else None
 
-    def to_json(self):
+    @property
+    def counters(self) -> dict[str, int]:
+        return {"shots": len(self.shots), "pairs_used": self.fit.used if self.fit else 0}
+
+    def details(self) -> dict[str, Any]:
         return {"task": self.task, "camera_constant_task": self.camera_constant_task, "plan": self.plan,
                 "shots": [s.to_json() for s in self.shots], "fit": asdict(self.fit) if self.fit else None,
-                "camera_constant_ratio": self.camera_constant_ratio, "reason": self.message} | (
-                    {"fault": self.fault} if self.fault else {})
+                "camera_constant_ratio": self.camera_constant_ratio, "reason": self.message}
 
 
 def run(task, out, connect, shots=6):
@@ -175,7 +186,7 @@ def run(task, out, connect, shots=6):
             saturated = sum(r.saturated for r in records)
             raise GoalNotReached(f"too few resolved samples to fit c ({saturated} of {n} readings "
                                  f"saturated, the rest at 0 or from a single shot): is the lamp "
-                                 f"on, does it light the feature, is the part the task's?")
+                                 f"on, does it light the feature, is the part the task's?", "too_few_samples")
         recorder.step("done", f"c = {fit.camera_constant:.5g} 1/(W s), {fit.camera_constant / c_model:.3f} x "
                               f"the task's", **asdict(fit))
     return end.result

@@ -43,8 +43,7 @@ def camera_constant(args):
                          laser, camera_file, args.shots, args.force)
     fit = result.fit
     if args.json:
-        print(jsonio.dumps(result.summary() | {"black_level": result.black_level.value,
-                                               "camera_file": result.camera_file}, indent=2))
+        print(jsonio.dumps(result.summary(), indent=2))
         return 0
     c_task = result.camera_constant_task
     print(f"camera constant c = {fit.camera_constant:.5g} +- {fit.camera_constant_stderr:.2g} 1/(W s) "
@@ -108,7 +107,7 @@ def hand_eye(args):
     result = routine.run(task, out, lambda: backends.open_devices(task, None, backend, yes=args.yes, board=True),
                          hand_eye_file, args.poses, args.force)
     if args.json:
-        print(jsonio.dumps(result.summary() | {"hand_eye_file": result.hand_eye_file}, indent=2))
+        print(jsonio.dumps(result.summary(), indent=2))
         return 0
     h, k = result.hand_eye, result.intrinsics
     views = sum(v.object_points is not None for v in result.views)

@@ -8,6 +8,7 @@ A shot that does not converge leaves the devices fine: the other shots still run
 exits 1 at the end naming each feature not in band; a device fault stops everything (exit 3)."""
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -17,6 +18,7 @@ from cell.devices.interfaces import speaking_for
 from cell.core.errors import GoalNotReached
 from cell.core.geometry import rotation_angle
 from cell.report.recorder import Ending, Recorder
+from cell.report.result import Result
 
 
 def candidate_features(plan):
@@ -137,26 +139,30 @@ def iterate_shared(tasks, plans, devices, recorder, max_iterations, black=None):
 
 
 @dataclass(frozen=True)
-class ShotRun:
-    """One shot's closed loop: the plan's shot index, its features' names, whether it converged
-    (every feature in its band), why not, its Iterations (each named by its feature), re-plans,
-    refits, and how far the camera read back from the shot's pose (None: not read)."""
+class ShotRun(Result):
+    """One shot's closed loop (cell.report.result's verdict: `success`, every feature in its
+    band; `message`, why not): the plan's shot index, its features' names, its Iterations (each
+    named by its feature), re-plans, refits, the black level found in it, and how far the camera
+    read back from the shot's pose (None: not read). Its report.json is to_json(), with
+    `converged` and `reason` (success and message) as well; a device fault is the run's."""
 
     shot: int
-    features: tuple
+    features: tuple[str, ...]
     success: bool
     message: str
-    iterations: tuple = ()
-    replans: tuple = ()
-    refits: tuple = ()
-    black: object = None                    # measurement.BlackLevel found in this shot, if any
-    camera_error: dict | None = None        # position_m, angle_deg
+    iterations: tuple[loop.Iteration, ...] = ()
+    replans: tuple[loop.Replan, ...] = ()
+    refits: tuple[loop.Refitted, ...] = ()
+    black: measurement.BlackLevel | None = None     # found in this shot, if any
+    camera_error: dict[str, float] | None = None    # position_m, angle_deg
+    cause: str | None = None
+    fault: dict[str, Any] | None = None
 
-    def of(self, name):
+    def of(self, name: str) -> list[loop.Iteration]:
         """The Iterations of feature `name`."""
         return [it for it in self.iterations if it.feature == name]
 
-    def summary(self):
+    def summary(self) -> str:
         """`converged after N iterations; leaf_a gray 104-119, ...`, one line."""
         n = len({it.iteration for it in self.iterations})
         grays = ", ".join(f"{name} gray {its[-1].measured_gray['min']:.0f}-{its[-1].measured_gray['max']:.0f}"
@@ -165,14 +171,19 @@ class ShotRun:
             f"not converged: {self.message}"
         return verdict + (f"; {grays}" if grays else "")
 
-    def to_json(self):
+    def details(self) -> dict[str, Any]:
         return {"shot": self.shot, "features": list(self.features), "converged": self.success,
                 "reason": self.message, "iterations": [it.to_json() for it in self.iterations],
                 "captures": self.captures, "replans": [r.to_json() for r in self.replans],
                 "refits": [r.to_json() for r in self.refits], "camera_error": self.camera_error}
 
     @property
-    def captures(self):
+    def counters(self) -> dict[str, int]:
+        return {"iterations": len({it.iteration for it in self.iterations}), "captures": len(self.captures),
+                "replans": len(self.replans), "refits": len(self.refits)}
+
+    @property
+    def captures(self) -> list[str]:
         """The shot's capture files, each once (a capture of several features is each one's), in
         the order taken (capture-N: by N)."""
         return sorted({it.capture for it in self.iterations}, key=lambda c: int(c.split("-")[1].split(".")[0]))
@@ -247,23 +258,30 @@ def visit_order(plan, devices, recorder):
 
 
 @dataclass(frozen=True)
-class InspectionResult:
-    """A run of several shots, like scipy's OptimizeResult: `success` (every feature in its
-    band), `message` (why not), the plan, the visiting order and its travel, each shot's ShotRun
-    and the fault. report.json is to_json()."""
+class InspectionResult(Result):
+    """A run of several shots (cell.report.result's verdict: `success`, every feature in its
+    band; `message`, why not; the device fault), the plan, the visiting order and its travel and
+    each shot's ShotRun. report.json is to_json(), with `converged` and `reason` as well."""
 
     task: str
     success: bool
     message: str
-    plan: dict | None
-    features: tuple                 # the plan's feature names, in the task's order
-    covered_by: tuple               # the plan's shot index of each (None: uncovered)
-    order: tuple = ()
+    plan: dict[str, Any] | None
+    features: tuple[str, ...]               # the plan's feature names, in the task's order
+    covered_by: tuple[int | None, ...]      # the plan's shot index of each (None: uncovered)
+    order: tuple[int, ...] = ()
     travel_m: float | None = None
-    shots: tuple = ()
-    fault: dict | None = None
+    shots: tuple[ShotRun, ...] = ()
+    fault: dict[str, Any] | None = None
+    cause: str | None = None
 
-    def feature_results(self):
+    @property
+    def counters(self) -> dict[str, int]:
+        return {"features": len(self.features), "shots": len(self.shots),
+                "iterations": sum(r.counters["iterations"] for r in self.shots),
+                "captures": sum(len(r.captures) for r in self.shots)}
+
+    def feature_results(self) -> list[dict[str, Any]]:
         """Per feature: name, shot, converged (its shot converged: it ended in band), the last
         capture's measured_gray, iterations, reason when not converged."""
         runs = {r.shot: r for r in self.shots}
@@ -281,7 +299,7 @@ class InspectionResult:
                         "capture": f"shot-{s}/{its[-1].capture}" if its else None, "reason": reason})
         return out
 
-    def to_json(self):
+    def details(self) -> dict[str, Any]:
         black = next((r.black.to_json() for r in self.shots if r.black), None)
         return {"task": self.task, "plan": self.plan, "converged": self.success, "reason": self.message,
                 "features": self.feature_results(), "order": list(self.order), "travel_m": self.travel_m,
@@ -291,7 +309,7 @@ class InspectionResult:
                            "camera_error": r.camera_error} for r in self.shots],
                 "iterations": [{"shot": r.shot, **it.to_json()} for r in self.shots for it in r.iterations],
                 "captures": [f"shot-{r.shot}/{c}" for r in self.shots for c in r.captures],
-                "black_level": black} | ({"fault": self.fault} if self.fault else {})
+                "black_level": black}
 
 
 def plan_logged(task, recorder):

@@ -4,6 +4,7 @@ iterations have run. It composes the stages: acquisition (plan, connect, move, e
 measurement, the control law, the device session's safe stop and the recorder's run folder."""
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -16,6 +17,7 @@ from cell.devices.interfaces import speaking_for
 from cell.core.errors import GoalNotReached, PlanInfeasible
 from cell.planning.plan import gray_stats
 from cell.report.recorder import Ending, Recorder, file_name
+from cell.report.result import Result
 
 
 CAUSES = {          # report.json's `cause` of a run that ends without the goal (exit 1): the README's table
@@ -105,32 +107,37 @@ class Replan:
 
 
 @dataclass(frozen=True)
-class RunResult:
-    """What a run achieved, like scipy's OptimizeResult: `success` (every feature pixel in the
-    band), `message` (why not: the error's line), the plan, every iteration and re-plan, and the
-    device fault with its safe stop's outcome when there was one. report.json is to_json()."""
+class RunResult(Result):
+    """What a run achieved (cell.report.result's verdict: `success`, every feature pixel in the
+    band; `message`, why not; `cause`, CAUSES' key; the device fault), the plan, every iteration,
+    re-plan and refit, and the black level. report.json is to_json(), with `converged` and
+    `reason` (success and message) as well."""
 
     task: str
     success: bool
     message: str
-    plan: dict | None
-    iterations: tuple = ()
-    replans: tuple = ()
-    fault: dict | None = None
-    black_level: dict | None = None
-    refits: tuple = ()
+    plan: dict[str, Any] | None
+    iterations: tuple[Iteration, ...] = ()
+    replans: tuple[Replan, ...] = ()
+    fault: dict[str, Any] | None = None
+    black_level: dict[str, Any] | None = None
+    refits: tuple[Refitted, ...] = ()
     cause: str | None = None     # CAUSES' key of a run that ended without the goal
 
     @property
-    def captures(self):
+    def captures(self) -> list[str]:
         return [it.capture for it in self.iterations]
 
-    def to_json(self):
+    @property
+    def counters(self) -> dict[str, int]:
+        return {"iterations": len(self.iterations), "captures": len(self.captures), "replans": len(self.replans),
+                "refits": len(self.refits)}
+
+    def details(self) -> dict[str, Any]:
         return {"task": self.task, "plan": self.plan, "iterations": [it.to_json() for it in self.iterations],
                 "converged": self.success, "captures": self.captures, "reason": self.message,
                 "replans": [r.to_json() for r in self.replans], "black_level": self.black_level,
-                "refits": [r.to_json() for r in self.refits], "cause": self.cause} | (
-                    {"fault": self.fault} if self.fault else {})
+                "refits": [r.to_json() for r in self.refits]}
 
 
 @dataclass(frozen=True)
