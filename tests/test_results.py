@@ -138,3 +138,15 @@ def test_every_result_file_has_the_same_verdict_keys_agreeing_with_the_exit_code
     assert count is None or run_file["counters"][counter] == count
     if code == 3:
         assert run_file["fault"]["device"] == "camera"
+
+
+def test_the_formats_page_names_every_verdict_key_and_status_with_its_exit_code():
+    from cell.report.result import STATUSES
+    text = (ROOT / "docs" / "formats.md").read_text()
+    section = text[text.index("\n## Result files"):]
+    cells = [[c.strip() for c in line.split("|")[1:-1]] for line in section.splitlines() if line.startswith("| `")]
+    keys = {c[0].strip("`") for c in cells if len(c) == 2}
+    statuses = {c[0].strip("`"): c[2] for c in cells if len(c) == 3}
+    assert keys == VERDICT and statuses.keys() == STATUSES.keys()
+    for code, allowed in STATUS_OF_EXIT.items():
+        assert {s for s, exit_code in statuses.items() if exit_code == str(code)} == allowed
