@@ -20,7 +20,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 from scipy.ndimage import uniform_filter
@@ -35,6 +35,11 @@ from cell.core.errors import CellError, DeviceFault, GoalNotReached, TaskError
 from cell.report.pictures import write_laser_fit
 from cell.report.recorder import Ending, Recorder
 from cell.report.result import Result
+
+if TYPE_CHECKING:
+    from cell.devices.interfaces import Devices
+    from cell.devices.operator import Operator
+    from cell.task.types import Sensor, Task
 
 DARK_FRAMES = 3             # at each end of the shutter range
 MIN_PEAK = 0.05             # a spot peaking below this share of the range above the dark is too dark
@@ -53,14 +58,14 @@ class Laser:
 
     device = "laser"
 
-    def __init__(self, power_w, operator):
+    def __init__(self, power_w: float, operator: Operator) -> None:
         self.power_w, self.operator, self.blocked = power_w, operator, True
 
-    def block(self, instruction="block the beam"):
+    def block(self, instruction: str = "block the beam") -> None:
         self.operator.confirm(self.device, instruction)
         self.blocked = True
 
-    def unblock(self, instruction="unblock the beam"):
+    def unblock(self, instruction: str = "unblock the beam") -> None:
         self.operator.confirm(self.device, instruction)
         self.blocked = False
 
@@ -80,7 +85,7 @@ class Frame:
     spot_sum: float | None = None
 
     @property
-    def usable(self):
+    def usable(self) -> bool:
         return self.kind != "dark" and not (self.saturated or self.too_dark)
 
 
@@ -103,7 +108,7 @@ class Darks:
     sensor's black level b of G = b + c P t: the shortest shutter's frames' (measurement.black_level_of,
     as `cell run` takes it from a dark frame)."""
 
-    def __init__(self, frames):
+    def __init__(self, frames: dict[float, list[np.ndarray]]) -> None:
         ends = sorted(frames.items())           # one end only when the shutter range is one time
         (t0, d0), (t1, d1) = ends[0], ends[-1]
         self.t0, self.t1 = t0, t1
@@ -111,12 +116,12 @@ class Darks:
         self.d0, self.d1 = (np.mean(d, axis=0) for d in (d0, d1))
         self.noise_rms = float(np.sqrt(np.mean([np.var(d, axis=0, ddof=1).mean() for d in (d0, d1)])))
 
-    def at(self, shutter_s):
+    def at(self, shutter_s: float) -> np.ndarray:
         w = 0.0 if self.t1 == self.t0 else (shutter_s - self.t0) / (self.t1 - self.t0)
         return (1.0 - w) * self.d0 + w * self.d1
 
 
-def saturation_margin(sensor):
+def saturation_margin(sensor: Sensor) -> float:
     """The gray above the dark a pixel cannot exceed when the full well (the datasheet's
     K mu_e,sat) fills before the ADC's top: one level below it; inf without those keys."""
     if sensor.system_gain_dn_per_e and sensor.saturation_capacity_e:
@@ -127,27 +132,28 @@ def saturation_margin(sensor):
 class Spot:
     """Judges a lit frame: the signal above the dark, its peak, saturation and darkness."""
 
-    def __init__(self, task, darks):
+    def __init__(self, task: Task, darks: Darks) -> None:
         self.darks, self.top = darks, saturation_level(task.camera.sensor.bit_depth)
         self.full_well = saturation_margin(task.camera.sensor)
 
-    def signal(self, image, shutter_s):
+    def signal(self, image: np.ndarray, shutter_s: float) -> np.ndarray:
         return np.asarray(image, float) - self.darks.at(shutter_s)
 
-    def judge(self, image, shutter_s, where=np.s_[:, :]):
+    def judge(self, image: np.ndarray, shutter_s: float,
+              where: tuple[slice, slice] = np.s_[:, :]) -> tuple[float, bool, bool]:
         """(peak, saturated, too dark) within `where` (the whole frame until the window is known)."""
         image, signal = np.asarray(image, float)[where], self.signal(image, shutter_s)[where]
         peak = float(signal.max())
         saturated = bool(np.any(image >= self.top) or np.any(signal >= self.full_well))
         return peak, saturated, peak < MIN_PEAK * self.room(shutter_s)
 
-    def room(self, shutter_s):
+    def room(self, shutter_s: float) -> float:
         """Gray levels a pixel can rise above the dark: to the ADC's top from the frame's brightest
         dark pixel, or to the full well if that fills first."""
         return min(self.top - float(self.darks.at(shutter_s).max()), self.full_well)
 
 
-def spot_window(signal, noise_rms):
+def spot_window(signal: np.ndarray, noise_rms: float) -> tuple[tuple[slice, slice] | None, tuple[int, int, int]]:
     """The window (row slice, column slice) about the spot's brightest 3x3 patch: its half-size
     twice the first ring (the square's border, one pixel wide) that holds less than RING_SIGMAS
     noise rms (sqrt(pixels) sigma, sigma^2 the dark noise plus 1/12 of rounding), so that the
@@ -167,7 +173,7 @@ def spot_window(signal, noise_rms):
     return np.s_[row - half:row + half + 1, col - half:col + half + 1], (int(row), int(col), half)
 
 
-def fit_series(frames, power_w):
+def fit_series(frames: list[Frame], power_w: float) -> LaserFit:
     """LaserFit of the usable sweep frames' S over t, or GoalNotReached with the reason: a spot
     saturated, or too dark, at every shutter time, too few usable frames, poor linearity."""
     sweep = [f for f in frames if f.kind == "sweep"]
@@ -190,14 +196,16 @@ def fit_series(frames, power_w):
                     len(used), saturated, dark)
 
 
-def take(devices, recorder, frames, shutter_s, f_number, focus_m):
+def take(devices: Devices, recorder: Recorder, frames: list[Frame], shutter_s: float, f_number: float,
+         focus_m: float) -> tuple[np.ndarray, float, str]:
     """acquire one frame (capture-N.png, logged); returns (image, the shutter the camera used, its
     file's name)."""
     capture = acquire(devices, recorder, len(frames) + 1, shutter_s, f_number, focus_m)
     return np.asarray(capture.image, float), capture.shutter_s, capture.name
 
 
-def dark_frames(devices, recorder, frames, shutter_range_s, f_number, focus_m):
+def dark_frames(devices: Devices, recorder: Recorder, frames: list[Frame], shutter_range_s: tuple[float, float],
+                f_number: float, focus_m: float) -> Darks:
     """DARK_FRAMES at each end of the shutter range, beam blocked: Darks."""
     stacks = {}
     for wanted in shutter_range_s:
@@ -214,7 +222,9 @@ def dark_frames(devices, recorder, frames, shutter_range_s, f_number, focus_m):
     return darks
 
 
-def lit_frame(devices, recorder, frames, spot, kind, shutter_s, f_number, focus_m):
+def lit_frame(devices: Devices, recorder: Recorder, frames: list[Frame], spot: Spot, kind: str, shutter_s: float,
+              f_number: float, focus_m: float) -> np.ndarray:
+    """One lit frame (take) judged by the spot: its Frame appended to frames and logged; returns its image."""
     image, t, name = take(devices, recorder, frames, shutter_s, f_number, focus_m)
     peak, saturated, too_dark = spot.judge(image, t)
     frames.append(Frame(kind, t, name, peak, saturated, too_dark))
@@ -224,7 +234,8 @@ def lit_frame(devices, recorder, frames, spot, kind, shutter_s, f_number, focus_
     return image
 
 
-def probe(devices, recorder, frames, spot, task, power_w, f_number, focus_m):
+def probe(devices: Devices, recorder: Recorder, frames: list[Frame], spot: Spot, task: Task, power_w: float,
+          f_number: float, focus_m: float) -> Frame:
     """Probes from the shutter at which the task's c puts the spot's sum at the range above the
     dark, PROBE_STEP shorter while saturated, longer while too dark, until one is usable: its
     Frame. GoalNotReached when the shutter range ends first."""
@@ -250,8 +261,10 @@ def probe(devices, recorder, frames, spot, task, power_w, f_number, focus_m):
                          "(and --laser-power-w to match)", "too_dark")
 
 
-def measure_series(devices, recorder, frames, task, laser, shots):
-    """Dark frames, probes and the sweep, the operator told each step; returns the Spot."""
+def measure_series(devices: Devices, recorder: Recorder, frames: list[Frame], task: Task, laser: Laser,
+                   shots: int) -> tuple[Spot, list[np.ndarray]]:
+    """Dark frames, probes and the sweep, the operator told each step; returns the Spot and the
+    sweep's images."""
     lens = task.camera.lens
     f_number, focus_m = lens.f_number_range[0], task.camera.distance_m
     recorder.step("setup", f"laser {laser.power_w:.4g} W; the arm and the lamp stay where they are (no motion is "
@@ -275,7 +288,7 @@ def measure_series(devices, recorder, frames, task, laser, shots):
     return spot, images
 
 
-def sum_spots(frames, images, spot):
+def sum_spots(frames: list[Frame], images: list[np.ndarray], spot: Spot) -> tuple[list[Frame], dict[str, int] | None]:
     """The window from the brightest usable sweep frame; each sweep frame judged again within it,
     with its sum S. Returns (frames, window description) or GoalNotReached when the spot lies
     too near the image's edge."""
@@ -346,7 +359,7 @@ class LaserCalibration(Result):
                 "reason": self.message}
 
 
-def check_camera_file(path, force, option="--camera-file"):
+def check_camera_file(path: str | Path, force: bool, option: str = "--camera-file") -> Path:
     """Refuse (bad input, before any work) to replace an existing file (the `option` names it)
     without --force, a folder, or a file in a folder that does not exist."""
     path = Path(path)
@@ -361,7 +374,7 @@ def check_camera_file(path, force, option="--camera-file"):
     return path
 
 
-def camera_document(sensor, fit, black, source):
+def camera_document(sensor: Sensor, fit: LaserFit, black: measurement.BlackLevel, source: str) -> dict[str, Any]:
     """The camera file: the task's sensor with the measured c (and its standard error) and the
     black level of the dark frames (BlackLevel); the datasheet's noise keys stay, its quantum
     efficiency and wavelength go (the measurement replaces the c they give)."""
@@ -374,17 +387,22 @@ def camera_document(sensor, fit, black, source):
     return doc | {"black_level": float(f"{black.value:.4g}"), "source": source}
 
 
-def run(task, out, connect, laser, camera_file, shots=8, force=False):
+def run(task: Task, out: str | Path, connect: Callable[[], Devices], laser: Laser, camera_file: str | Path,
+        shots: int = 8, force: bool = False) -> LaserCalibration:
     """connect() -> Devices; dark frames, probes, the sweep and the fit; out/log.jsonl as it
     happens, out/calibration.json however it ends, out/calibration.png, and the camera file on
     success. Raises GoalNotReached for an untrustworthy series (exit 1), DeviceFault after the safe
     stop (exit 3). Returns the LaserCalibration."""
     out, c_task = Path(out), task.camera.sensor.camera_constant
-    frames, fit, window, written, spot = [], None, None, None, None
+    frames: list[Frame] = []
+    fit: LaserFit | None = None
+    window: dict[str, int] | None = None
+    written: str | None = None
+    spot: Spot | None = None
 
-    def result(reason, fault):
+    def result(reason: str, fault: dict[str, Any] | None) -> LaserCalibration:
         return LaserCalibration(str(task.path), laser.power_w, c_task, fit is not None and not reason, reason,
-                                tuple(frames), fit, window, written, fault, spot and spot.darks.black)
+                                tuple(frames), fit, window, written, fault, spot.darks.black if spot else None)
 
     with Recorder(out) as recorder, Ending(recorder, "no fit", "calibration.json", result) as end:
         with end.session:

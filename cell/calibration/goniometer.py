@@ -22,7 +22,7 @@ from __future__ import annotations
 from dataclasses import asdict, astuple, dataclass, replace
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 import trimesh
@@ -41,6 +41,15 @@ from cell.physics.radiometry import cone_irradiance, gray_per_exposure, reflecta
 from cell.physics.projection import intrinsics, project
 from cell.report.recorder import Ending, Recorder
 from cell.report.result import Result
+
+if TYPE_CHECKING:
+    from cell.devices.interfaces import Devices
+    from cell.devices.operator import Operator
+    from cell.physics.material import BrdfParameters
+    from cell.planning.scene import Scene
+    from cell.run.acquisition import Capture
+    from cell.run.measurement import BlackLevel
+    from cell.task.types import Sample, Task
 from cell.devices.rig import lamp_joints
 from cell.planning.scene import look_at
 from cell.task.types import Feature, Part
@@ -63,8 +72,8 @@ class Pose:
     beta_rad: float
     theta_i_rad: float
     theta_e_rad: float
-    to_lamp: tuple
-    to_camera: tuple
+    to_lamp: tuple[float, float, float]
+    to_camera: tuple[float, float, float]
 
 
 @dataclass(frozen=True)
@@ -85,13 +94,13 @@ class Reading:
     capture: str
 
 
-def resolvable_exponent(step_rad):
+def resolvable_exponent(step_rad: float) -> float:
     """M = ln 2 / (2 step^2): the largest exponent whose peak (half width sqrt(ln 2 / (2 m)) in
     beta) is at least one step wide."""
     return float(np.log(2.0) / (2.0 * step_rad**2))
 
 
-def plate_mesh(sample, centre):
+def plate_mesh(sample: Sample, centre: np.ndarray) -> trimesh.Trimesh:
     """The sample as a disc (64-gon prism) whose top face lies at `centre`, facing sample.normal."""
     disc = trimesh.creation.cylinder(radius=sample.radius_m, height=sample.thickness_m, sections=64)
     disc.apply_translation([0.0, 0.0, -0.5 * sample.thickness_m])
@@ -99,7 +108,7 @@ def plate_mesh(sample, centre):
     return disc
 
 
-def sample_task(task):
+def sample_task(task: Task) -> Task:
     """The task with the sample in the part's place (the operator swaps them for this routine):
     its plate mesh in the cell frame, its material, one small feature at the pivot."""
     sample, pivot = task.calibration.sample, np.asarray(task.lamp.rig.pivot_m, float)
@@ -110,12 +119,12 @@ def sample_task(task):
                    frames=task.frames.with_transform("T_cell_part", np.eye(4)), features=(feature,))
 
 
-def poses(task):
+def poses(task: Task) -> list[Pose]:
     """Every Pose of the task's goniometer (module docstring), phase by phase, beta ascending."""
     gonio, normal = task.calibration.goniometer, geometry.unit(task.calibration.sample.normal)
     along = geometry.frame_from_normal(normal)[:, 0]
 
-    def direction(angle):
+    def direction(angle: float) -> tuple[float, float, float]:
         return tuple(np.cos(angle) * normal + np.sin(angle) * along)
 
     out = []
@@ -128,7 +137,7 @@ def poses(task):
     return out
 
 
-def refusal(devices, task, pose):
+def refusal(devices: Devices, task: Task, pose: Pose) -> tuple[np.ndarray, tuple[float, float, float], str | None]:
     """(T_cell_cam, lamp joints, why the arm or the rig would refuse the pose or None)."""
     pivot, gonio = np.asarray(task.lamp.rig.pivot_m, float), task.calibration.goniometer
     T = look_at(pivot + task.camera.distance_m * np.asarray(pose.to_camera), pivot)
@@ -140,7 +149,7 @@ def refusal(devices, task, pose):
     return T, joints, why or (lamp and f"pan-tilt: {lamp}")
 
 
-def split_exposure(task, exposure):
+def split_exposure(task: Task, exposure: float) -> tuple[float, float]:
     """(shutter, f-number) giving t / kappa^2 = exposure: DEFAULT_F_NUMBER while the shutter range
     allows, else the shutter at its end and kappa to match, within the lens's range."""
     (t_lo, t_hi), (k_lo, k_hi) = task.camera.shutter_range_s, task.camera.lens.f_number_range
@@ -152,7 +161,7 @@ def split_exposure(task, exposure):
     return t, kappa
 
 
-def patch_at(image, K, T_cell_cam, point):
+def patch_at(image: np.ndarray, K: np.ndarray, T_cell_cam: np.ndarray, point: np.ndarray) -> np.ndarray | None:
     """The PATCH_PX square of the image about the point's pixel; None when it leaves the image."""
     (u, v), = project(K, T_cell_cam, point[None])[0]
     h = PATCH_PX // 2
@@ -167,7 +176,7 @@ def patch_at(image, K, T_cell_cam, point):
 class Exposer:
     """Takes a pose's frames until its patch is unsaturated and bright enough."""
 
-    def __init__(self, task, devices, recorder, black):
+    def __init__(self, task: Task, devices: Devices, recorder: Recorder, black: BlackLevel) -> None:
         self.task, self.devices, self.recorder, self.black = task, devices, recorder, black
         sensor = task.camera.sensor
         self.top = saturation_level(sensor.bit_depth)
@@ -177,7 +186,9 @@ class Exposer:
         self.limits = (t_lo / k_hi**2, t_hi / k_lo**2)
         self.captures = 0
 
-    def take(self, k, exposure, centre):
+    def take(self, k: int, exposure: float, centre: np.ndarray) -> tuple[Capture, np.ndarray, str]:
+        """A frame at t / kappa^2 = exposure and its patch about centre (saved as patch-N.png) for pose
+        k: (Capture, patch, patch file); GoalNotReached when the patch leaves the image."""
         t, kappa = split_exposure(self.task, exposure)
         self.captures += 1
         capture = acquire(self.devices, self.recorder, self.captures, t, kappa, self.task.camera.distance_m)
@@ -188,9 +199,10 @@ class Exposer:
         name = self.recorder.write_image(f"patch-{self.captures}.png", levels(patch, self.task.camera.sensor.bit_depth))
         return capture, patch, name
 
-    def expose(self, k, guess, centre):
+    def expose(self, k: int, guess: float, centre: np.ndarray) -> tuple[Capture, float, int, str] | str:
         """(Capture, mean signal, takes, patch file) at an exposure keeping the patch unclipped:
-        from `guess` (t / kappa^2), shorter by the clipped fraction, longer toward TARGET."""
+        from `guess` (t / kappa^2), shorter by the clipped fraction, longer toward TARGET; why not
+        when no exposure gives one."""
         lo, hi = self.limits
         exposure = float(np.clip(guess, lo, hi))
         for takes in range(1, MAX_TAKES + 1):
@@ -205,28 +217,30 @@ class Exposer:
             if clipped:
                 nxt = used * max(0.25, TARGET * self.range / max(float(patch.max()) - self.black.value, 1.0))
                 if used <= lo * (1 + 1e-9):
-                    return None, f"the patch clips at the shortest exposure ({1e3 * capture.shutter_s:.3g} ms, " \
-                                 f"f/{capture.f_number:.3g})"
+                    return f"the patch clips at the shortest exposure ({1e3 * capture.shutter_s:.3g} ms, " \
+                           f"f/{capture.f_number:.3g})"
             elif signal < MIN_SIGNAL * self.range:
                 if used >= hi * (1 - 1e-9):
                     # dim, but measured: above 3 standard errors of a PATCH_PX^2 pixel mean
                     if signal > 3.0 * max(self.black.noise_rms, 0.5) / PATCH_PX:
-                        return (capture, signal, takes, name), None
-                    return None, f"the patch is dark at the longest exposure ({signal:.2g} gray above the black level)"
+                        return capture, signal, takes, name
+                    return f"the patch is dark at the longest exposure ({signal:.2g} gray above the black level)"
                 nxt = used * TARGET * self.range / max(signal, 0.05 * MIN_SIGNAL * self.range)
             else:
-                return (capture, signal, takes, name), None
+                return capture, signal, takes, name
             exposure = float(np.clip(nxt, lo, hi))
-        return None, f"no usable exposure in {MAX_TAKES} takes"
+        return f"no usable exposure in {MAX_TAKES} takes"
 
 
-def measure_poses(task, devices, recorder, nominal, readings, refused, failed):
+def measure_poses(task: Task, devices: Devices, recorder: Recorder, nominal: Callable[[float], BrdfParameters],
+                  readings: list[Reading], refused: list[tuple[int, str]], failed: list[tuple[int, str]]) -> None:
     """Visit every pose, appending to readings, refused [(pose, reason)] and failed [(pose,
-    reason)] as it goes (so a fault keeps what was measured)."""
+    reason)] as it goes (so a fault keeps what was measured); nominal(phase) gives the parameters
+    whose R guesses each pose's first exposure."""
     pivot, lamp, sensor = np.asarray(task.lamp.rig.pivot_m, float), task.lamp, task.camera.sensor
     c, area = sensor.camera_constant, sensor.pixel_area_m2
     wanted = poses(task)
-    exposer = None
+    exposer: Exposer | None = None
     for k, pose in enumerate(wanted, 1):
         T, joints, why = refusal(devices, task, pose)
         where = (f"phase {np.degrees(pose.phase_rad):.1f} deg, ti {np.degrees(pose.theta_i_rad):.1f}, "
@@ -252,8 +266,9 @@ def measure_poses(task, devices, recorder, nominal, readings, refused, failed):
         recorder.step("pose", f"pose {k} of {len(wanted)}: {where}; lamp {1e3 * distance:.1f} mm, "
                               f"Phi {phi:.4g} W/m^2", pose=k, beta_deg=np.degrees(pose.beta_rad),
                       lamp_distance_m=distance, irradiance_w_m2=phi)
-        taken, why = exposer.expose(k, TARGET * exposer.range / float(unit), pivot)
-        if taken is None:
+        taken = exposer.expose(k, TARGET * exposer.range / float(unit), pivot)
+        if isinstance(taken, str):
+            why = taken
             failed.append((k, why))
             recorder.step("no_reading", f"pose {k}: {why}", pose=k, reason=why)
             continue
@@ -265,7 +280,7 @@ def measure_poses(task, devices, recorder, nominal, readings, refused, failed):
         recorder.step("reading", f"pose {k}: R = {r:.5g}", pose=k, reflectance=r)
 
 
-def write_csv(path, readings):
+def write_csv(path: Path, readings: list[Reading]) -> Path:
     """The goniometer CSV (docs/formats.md) of the commanded angles and the measured R."""
     lines = [",".join(CSV_COLUMNS)]
     lines += [f"{r.theta_i_deg:.10g},{r.theta_e_deg:.10g},{r.phase_deg:.10g},{r.reflectance:.8g}" for r in readings]
@@ -273,7 +288,7 @@ def write_csv(path, readings):
     return path
 
 
-def unresolved_terms(doc, step_rad):
+def unresolved_terms(doc: dict[str, Any], step_rad: float) -> dict[str, list[float]]:
     """Mark in the material document (in place) each phase's lobe or spike the sampling cannot
     resolve: absent from the data, or an exponent above resolvable_exponent(step); there sigma 0,
     m = M, standard errors inf. Returns {term: [phase_deg]}."""
@@ -336,7 +351,7 @@ class Goniometry(Result):
                 "material_file": self.material_file}
 
 
-def run(task, out, connect, operator):
+def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices], operator: Operator) -> Goniometry:
     """connect(scene) -> Devices of the sample's scene; the operator places the sample; every
     pose measured, the CSV fitted, out/material.yaml, goniometer.csv, fit.png, measurement.json,
     log.jsonl. GoalNotReached (exit 1) when a phase angle has too few readings to fit; DeviceFault
@@ -347,10 +362,14 @@ def run(task, out, connect, operator):
     out, sample = Path(out), task.calibration.sample
     gonio, staged = task.calibration.goniometer, sample_task(task)
     material = staged.part.material
-    readings, refused, failed, doc, written = [], [], [], None, None
+    readings: list[Reading] = []
+    refused: list[tuple[int, str]] = []
+    failed: list[tuple[int, str]] = []
+    doc: dict[str, Any] | None = None
+    written: Path | None = None
     total = len(poses(staged))
 
-    def result(reason, fault):
+    def result(reason: str, fault: dict[str, Any] | None) -> Goniometry:
         return Goniometry(str(task.path), doc is not None and not reason, reason, total, tuple(readings),
                           tuple(refused), tuple(failed), doc, str(written) if written else None, fault)
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Callable, Iterator
 
 import numpy as np
 
@@ -25,6 +25,12 @@ from cell.planning.evaluate import black_level
 from cell.report.pictures import write_calibration
 from cell.report.recorder import Ending, Recorder
 from cell.report.result import Result
+
+if TYPE_CHECKING:
+    from cell.devices.interfaces import Devices
+    from cell.planning.plan import Plan
+    from cell.planning.scene import Scene
+    from cell.task.types import Task
 
 # the brightest sample's gray by the model, as a fraction of full scale, at the first and the
 # last shot: dim, up to near (not at) saturation; G ~ t, so the shutter times follow
@@ -46,7 +52,7 @@ class Fit:
     dark: int                   # pairs left out at 0 (true gray below the first level)
 
 
-def fit_camera_constant(exposure, gray, saturation):
+def fit_camera_constant(exposure: np.ndarray, gray: np.ndarray, saturation: float) -> Fit | None:
     """Least squares G = b + c x over the pairs 0 < G < saturation. exposure x = P t [W s] and
     gray are (shots, samples); None unless at least 3 pairs from at least 2 shots are usable
     (across samples alone, b and c would rest on the model's spatial shape of P)."""
@@ -69,7 +75,8 @@ def fit_camera_constant(exposure, gray, saturation):
                int(x.size), int(saturated.sum()), int(dark.sum()))
 
 
-def shutter_sweep(shutter_s, predicted_max, full_scale, shutter_range_s, shots):
+def shutter_sweep(shutter_s: float, predicted_max: float, full_scale: float, shutter_range_s: tuple[float, float],
+                  shots: int) -> np.ndarray:
     """`shots` shutter times, geometric, from the one that puts the brightest sample's predicted
     gray at SWEEP_GRAY[0] of full scale to SWEEP_GRAY[1] (G ~ t, predicted_max at shutter_s),
     both ends clipped to the camera's shutter range. Raises PlanInfeasible if nothing is left."""
@@ -97,12 +104,12 @@ class ShotRecord:
     exposure: np.ndarray        # (P,) model pixel power x shutter, P t [W s]
     gray: np.ndarray            # (P,) measured gray, NaN off the image
 
-    def to_json(self):
+    def to_json(self) -> dict[str, Any]:
         return {k: getattr(self, k) for k in ("shutter_s", "f_number", "gray_min", "gray_mean", "gray_max",
                                               "samples", "saturated")}
 
 
-def sweep(task, plan, devices, recorder, shots=6):
+def sweep(task: Task, plan: Plan, devices: Devices, recorder: Recorder, shots: int = 6) -> Iterator[ShotRecord]:
     """Drive the cell to the plan and take the shutter sweep at the planned f-number and focus,
     yielding each ShotRecord as it is taken (and logged)."""
     shot = plan.shot
@@ -158,7 +165,7 @@ class CalibrationResult(Result):
                 "camera_constant_ratio": self.camera_constant_ratio, "reason": self.message}
 
 
-def run(task, out, connect, shots=6):
+def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices], shots: int = 6) -> CalibrationResult:
     """Plan (the function `cell plan` uses, plan.json and pictures in out), connect(scene) ->
     Devices, sweep and fit c; out/log.jsonl as it happens, out/calibration.json however it ends,
     and out/calibration.png. Raises PlanInfeasible before anything moves, GoalNotReached when
@@ -166,9 +173,10 @@ def run(task, out, connect, shots=6):
     Returns the CalibrationResult."""
     out = Path(out)
     c_model = task.camera.sensor.camera_constant
-    records, fit = [], None
+    records: list[ShotRecord] = []
+    fit: Fit | None = None
 
-    def result(reason, fault):
+    def result(reason: str, fault: dict[str, Any] | None) -> CalibrationResult:
         return CalibrationResult(str(task.path), c_model, fit is not None and not reason, reason, recorder.plan,
                                  tuple(records), fit, fault)
 

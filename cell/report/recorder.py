@@ -10,7 +10,7 @@ import sys
 from datetime import datetime, timezone
 from pathlib import Path
 from types import TracebackType
-from typing import TYPE_CHECKING, Any, Callable, TextIO
+from typing import TYPE_CHECKING, Any, Callable, Generic, TextIO, TypeVar
 
 import cv2
 import numpy as np
@@ -18,11 +18,14 @@ import numpy as np
 from cell.core import jsonio
 from cell.core.errors import GoalNotReached, PlanInfeasible
 from cell.devices.session import Session, stop_outcome
+from cell.report.result import Result
 
 if TYPE_CHECKING:
     from cell.planning.plan import Plan
-    from cell.report.result import Result
     from cell.task.types import Task
+
+
+R = TypeVar("R", bound=Result)
 
 
 def write_plan(plan: Plan, task: Task, folder: str | os.PathLike[str], cell_picture: bool = True) -> Path:
@@ -119,7 +122,7 @@ class Recorder:
         self.step("fault", f"{fault['error']}: {stop_outcome(fault['stop_failures'])}", **fault)
 
 
-class Ending:
+class Ending(Generic[R]):
     """How a routine's run ends, whatever ends it: `with Recorder(out) as rec, Ending(rec, "no fit",
     "calibration.json", result) as end:` holds the run's device Session (`end.session`). An error
     logs the "done" step, `failed: error` with its reason (a fault the Session logged already is
@@ -129,14 +132,14 @@ class Ending:
     `name`; `end.error` is what ended it (None at a normal end)."""
 
     def __init__(self, recorder: Recorder, failed: str, name: str,
-                 result: Callable[[str, dict[str, Any] | None], Result], **failed_data: Any) -> None:
+                 result: Callable[[str, dict[str, Any] | None], R], **failed_data: Any) -> None:
         self.recorder, self.failed, self.name, self.make = recorder, failed, name, result
         self.failed_data = failed_data
-        self.result: Result | None = None
+        self._result: R | None = None
         self.error: BaseException | None = None
         self.session = Session(on_fault=recorder.fault, log=recorder.log.name)
 
-    def __enter__(self) -> Ending:
+    def __enter__(self) -> Ending[R]:
         return self
 
     def __exit__(self, kind: type[BaseException] | None, err: BaseException | None,
@@ -145,9 +148,16 @@ class Ending:
         self.error = err
         if err is not None and not self.session.fault:     # the goal was not reached: the devices are fine
             self.recorder.step("done", f"{self.failed}: {err}", **self.failed_data, reason=reason)
-        self.result = self.make(reason, self.session.fault).ended(self.cause)
-        self.recorder.write_json(self.name, self.result.to_json())
+        self._result = self.make(reason, self.session.fault).ended(self.cause)
+        self.recorder.write_json(self.name, self._result.to_json())
         return False
+
+    @property
+    def result(self) -> R:
+        """The routine's result, once it has ended."""
+        if self._result is None:
+            raise RuntimeError(f"{self.name} is written when the routine ends")
+        return self._result
 
     @property
     def cause(self) -> str | None:

@@ -14,7 +14,7 @@ measurement.json) carries the same verdict keys, beside the routine's own (docs/
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, ClassVar, cast
+from typing import Any, ClassVar, TypeVar, cast
 
 STATUSES = {
     "converged": "a run: every feature pixel in its gray band",
@@ -29,6 +29,8 @@ STATUSES = {
 }
 ENDINGS = ("fault", "infeasible", "interrupted")   # causes that are their own status
 VERDICT_KEYS = ("success", "status", "message", "cause", "fault", "counters")
+
+R = TypeVar("R", bound="Result")
 
 
 class Result:
@@ -62,7 +64,7 @@ class Result:
         """The routine's own keys of its result file."""
         raise NotImplementedError
 
-    def ended(self, cause: str | None) -> Result:
+    def ended(self: R, cause: str | None) -> R:
         """This result with `cause` (cell.report.recorder.Ending's) when it names none of its own
         (the subclass is a frozen dataclass with a `cause` field)."""
         return self if self.cause or not cause else dataclasses.replace(cast(Any, self), cause=cause)
