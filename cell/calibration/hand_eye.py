@@ -24,11 +24,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Callable
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares
+from scipy.optimize import OptimizeResult, least_squares
 from scipy.spatial.transform import Rotation
 
 from cell.physics.sensor import levels, saturation_level
@@ -41,6 +41,11 @@ from cell.core.errors import DeviceFault, GoalNotReached
 from cell.physics.projection import intrinsics
 from cell.report.recorder import Ending, Recorder
 from cell.report.result import Result
+
+if TYPE_CHECKING:
+    from cell.devices.interfaces import Devices
+    from cell.task.board import Board
+    from cell.task.types import Task
 
 MIN_POSES = 10
 TILT_DEG = (18.0, 30.0, 24.0)       # the optical axis from the board's normal, in turn
@@ -64,7 +69,7 @@ PINHOLE_FLAGS = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_PRINCIPAL_POINT |
 FREE_FLAGS = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K3
 
 
-def viewpoints(board, distance_m, count):
+def viewpoints(board: Board, distance_m: float, count: int) -> list[np.ndarray]:
     """`count` camera poses T_cell_cam looking at the board's centre, the i-th from DISTANCE[i % 4]
     x distance_m, tilted TILT_DEG[i % 3] from the board's face normal toward azimuth i * 360 /
     count (about the normal, from the board's x) and rolled ROLL_DEG[i % 5] about the optical axis."""
@@ -83,7 +88,7 @@ def viewpoints(board, distance_m, count):
     return poses
 
 
-def viewing_distance(task):
+def viewing_distance(task: Task) -> float:
     """The distance at which the board's larger side fills FILL of the field of view, seen
     square on (pinhole: the field at distance d is d * side_px * pitch / f)."""
     sensor, lens = task.camera.sensor, task.camera.lens
@@ -91,7 +96,7 @@ def viewing_distance(task):
     return float(np.max(task.board.size_m / field) / FILL)
 
 
-def refused(task, T_cell_cam):
+def refused(task: Task, T_cell_cam: np.ndarray) -> str | None:
     """Why the arm would refuse this camera pose (the interface's workspace check, or the flange
     beyond REACH_M of the robot base), or None."""
     config, frames = task.cell.devices.arm, task.frames
@@ -117,18 +122,18 @@ class View:
     object_points: np.ndarray | None = None      # (N, 3) board frame
     image_points: np.ndarray | None = None       # (N, 2) px
 
-    def to_json(self):
+    def to_json(self) -> dict[str, Any]:
         return {"pose": self.pose, "picture": self.picture, "corners": self.corners,
                 "T_cell_flange": self.T_cell_flange}
 
 
-def to_8_bit(image, bit_depth):
+def to_8_bit(image: np.ndarray, bit_depth: int) -> np.ndarray:
     """The frame as 8-bit levels for the ArUco detector."""
     gray = levels(image, bit_depth).astype(float)
     return np.clip(np.rint(gray * 255.0 / saturation_level(bit_depth)), 0, 255).astype(np.uint8)
 
 
-def detect(board, image8):
+def detect(board: Board, image8: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
     """(object points (N, 3), image points (N, 2), charuco corners, ids) of the board in an 8-bit
     frame; N = 0 when nothing was found."""
     charuco = board.charuco()
@@ -139,7 +144,7 @@ def detect(board, image8):
     return obj.reshape(-1, 3).astype(float), img.reshape(-1, 2).astype(float), corners, ids
 
 
-def draw_corners(image8, corners, ids):
+def draw_corners(image8: np.ndarray, corners: np.ndarray | None, ids: np.ndarray | None) -> np.ndarray:
     """The frame in colour with the detected corners and their ids drawn (evidence)."""
     picture = cv2.cvtColor(image8, cv2.COLOR_GRAY2BGR)
     if corners is not None and len(corners):
@@ -147,7 +152,8 @@ def draw_corners(image8, corners, ids):
     return picture
 
 
-def auto_exposure(devices, recorder, task, f_number, focus_m, frames):
+def auto_exposure(devices: Devices, recorder: Recorder, task: Task, f_number: float, focus_m: float,
+                  frames: list[str]) -> float:
     """The shutter putting the board's white (the frame's 99th percentile) at EXPOSURE_TARGET of
     the range: probes from the shutter range's geometric middle, rescaled (G ~ t), 4x shorter
     while saturated. GoalNotReached when the range ends first."""
@@ -175,7 +181,8 @@ def auto_exposure(devices, recorder, task, f_number, focus_m, frames):
                          "over the board on, and not too bright?", "exposure")
 
 
-def collect(devices, recorder, task, poses):
+def collect(devices: Devices, recorder: Recorder, task: Task, poses: list[np.ndarray]
+            ) -> tuple[list[View], list[dict[str, Any]]]:
     """Visit each pose the arm accepts (refused ones skipped, logged and counted), take a frame,
     detect the board, save the frame with its corners drawn. Returns (views, refused)."""
     board, bit_depth = task.board, task.camera.sensor.bit_depth
@@ -217,26 +224,26 @@ class Intrinsics:
     K: np.ndarray
     distortion: np.ndarray              # (k1, k2, p1, p2, k3): zeros in the cell's model
     rms_px: float
-    T_cam_board: tuple
-    check: dict
+    T_cam_board: tuple[np.ndarray, ...]
+    check: dict[str, Any]               # free_fit's
 
     @property
-    def focal_length_px(self):
+    def focal_length_px(self) -> float:
         return float(np.mean(np.diag(self.K)[:2]))
 
-    def to_json(self):
+    def to_json(self) -> dict[str, Any]:
         return {"focal_length_px": self.focal_length_px, "fx_px": self.K[0, 0], "fy_px": self.K[1, 1],
                 "principal_point_px": self.K[:2, 2], "reprojection_error_px": self.rms_px,
                 "free_fit": self.check}
 
 
-def free_fit(rms, K, distortion):
+def free_fit(rms: float, K: np.ndarray, distortion: np.ndarray) -> dict[str, Any]:
     """The check fit's numbers (JSON-ready)."""
     return {"fx_px": K[0, 0], "fy_px": K[1, 1], "principal_point_px": K[:2, 2], "k1": distortion[0],
             "k2": distortion[1], "reprojection_error_px": rms}
 
 
-def calibrate_intrinsics(task, views):
+def calibrate_intrinsics(task: Task, views: list[View]) -> Intrinsics:
     """cv2.calibrateCamera over the views in the cell's model (PINHOLE_FLAGS) and the check fit
     (FREE_FLAGS), the task's pinhole K as the first guess of both."""
     sensor = task.camera.sensor
@@ -250,7 +257,7 @@ def calibrate_intrinsics(task, views):
     return Intrinsics(K, dist.ravel(), float(rms), poses, free_fit(free[0], free[1], free[2].ravel()))
 
 
-def hand_eye_linear(views, T_cam_board, method):
+def hand_eye_linear(views: list[View], T_cam_board: tuple[np.ndarray, ...], method: str) -> np.ndarray:
     """cv2.calibrateHandEye (method by keyword: as the 5th positional argument it is ignored):
     T_flange_cam from the flange poses (in the cell) and the board poses in the camera."""
     R, t = cv2.calibrateHandEye([v.T_cell_flange[:3, :3] for v in views], [v.T_cell_flange[:3, 3] for v in views],
@@ -259,18 +266,19 @@ def hand_eye_linear(views, T_cam_board, method):
     return geometry.transform(R, t.ravel())
 
 
-def board_in_cell(views, T_cam_board, X):
+def board_in_cell(views: list[View], T_cam_board: tuple[np.ndarray, ...], X: np.ndarray) -> np.ndarray:
     """The board's pose in the cell each view implies, T_cell_flange X T_cam_board, (V, 4, 4)."""
     return np.array([v.T_cell_flange @ X @ T for v, T in zip(views, T_cam_board)])
 
 
-def mean_pose(Ts):
+def mean_pose(Ts: np.ndarray) -> np.ndarray:
     """The mean of rigid transforms: mean translation, the rotations' chordal mean."""
     R = Rotation.from_matrix(Ts[:, :3, :3]).mean().as_matrix()
     return geometry.transform(R, Ts[:, :3, 3].mean(axis=0))
 
 
-def reprojection(views, X, T_cell_board, K, distortion):
+def reprojection(views: list[View], X: np.ndarray, T_cell_board: np.ndarray, K: np.ndarray,
+                 distortion: np.ndarray) -> np.ndarray:
     """Each corner's image residual (detected - projected through X: the board at T_cell_board
     seen from T_cell_flange X), concatenated (2 N,) [px]."""
     out = []
@@ -282,28 +290,29 @@ def reprojection(views, X, T_cell_board, K, distortion):
     return np.concatenate(out)
 
 
-def _pose(params):
+def _pose(params: np.ndarray) -> np.ndarray:
     return geometry.transform(Rotation.from_rotvec(params[:3]).as_matrix(), params[3:])
 
 
-def _params(T):
+def _params(T: np.ndarray) -> np.ndarray:
     return np.concatenate([Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3]])
 
 
-def with_focal(K, focal_px):
+def with_focal(K: np.ndarray, focal_px: float) -> np.ndarray:
     """K with fx = fy = focal_px."""
     K = np.array(K, float)
     K[0, 0] = K[1, 1] = focal_px
     return K
 
 
-def refine(views, X, T_cell_board, K, distortion):
+def refine(views: list[View], X: np.ndarray, T_cell_board: np.ndarray, K: np.ndarray, distortion: np.ndarray
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, OptimizeResult]:
     """X, the board's pose in the cell and the focal length by least squares on the corners'
     reprojection error (scipy.optimize.least_squares, trust region): the views' different
     distances, known from the arm, part the focal length from the camera's offset along its axis,
     which at one distance trade off (f / (d + dz)) and a narrow field's perspective pins only to
     about 0.2 %. Returns (X, T_cell_board, K, the solver's result)."""
-    def residual(p):
+    def residual(p: np.ndarray) -> np.ndarray:
         return reprojection(views, _pose(p[1:7]), _pose(p[7:]), with_focal(K, p[0]), distortion)
 
     start = np.concatenate([[K[0, 0]], _params(X), _params(T_cell_board)])
@@ -327,14 +336,14 @@ class HandEye:
     reprojection_error_px: float
 
     @property
-    def position_m(self):
+    def position_m(self) -> np.ndarray:
         return self.T_flange_cam[:3, 3]
 
     @property
-    def rpy_deg(self):
+    def rpy_deg(self) -> np.ndarray:
         return Rotation.from_matrix(self.T_flange_cam[:3, :3]).as_euler("xyz", degrees=True)
 
-    def to_json(self):
+    def to_json(self) -> dict[str, Any]:
         return {"method": self.method, "hand_eye_position_m": self.position_m, "hand_eye_rpy_deg": self.rpy_deg,
                 "T_flange_cam": self.T_flange_cam, "T_cell_board": self.T_cell_board,
                 "focal_length_px": self.focal_length_px,
@@ -342,7 +351,8 @@ class HandEye:
                 "reprojection_error_px": self.reprojection_error_px}
 
 
-def judge(method, views, T_cam_board, X, K, distortion, T_cell_board=None):
+def judge(method: str, views: list[View], T_cam_board: tuple[np.ndarray, ...], X: np.ndarray, K: np.ndarray,
+          distortion: np.ndarray, T_cell_board: np.ndarray | None = None) -> HandEye:
     """The HandEye of X with its residuals; the board's pose the views' mean unless given."""
     boards = board_in_cell(views, T_cam_board, X)
     T_cell_board = mean_pose(boards) if T_cell_board is None else T_cell_board
@@ -354,7 +364,7 @@ def judge(method, views, T_cam_board, X, K, distortion, T_cell_board=None):
     return HandEye(method, X, T_cell_board, float(K[0, 0]), spread_m, spread_rad, rms)
 
 
-def board_poses(views, K, distortion):
+def board_poses(views: list[View], K: np.ndarray, distortion: np.ndarray) -> tuple[np.ndarray, ...]:
     """Each view's T_cam_board by cv2.solvePnP with this camera matrix."""
     poses = []
     for v in views:
@@ -363,7 +373,7 @@ def board_poses(views, K, distortion):
     return tuple(poses)
 
 
-def solve(views, intrinsics_):
+def solve(views: list[View], intrinsics_: Intrinsics) -> tuple[HandEye, dict[str, HandEye], dict[str, Any]]:
     """Every method of METHODS judged, the refinement of the best (smallest reprojection error),
     judged with its focal length: (the refined HandEye, {method: HandEye}, the solver's verdict)."""
     K, dist, T_cam_board = intrinsics_.K, intrinsics_.distortion, intrinsics_.T_cam_board
@@ -374,7 +384,7 @@ def solve(views, intrinsics_):
     return refined, linear, {"success": bool(fit.success), "nfev": int(fit.nfev), "message": fit.message}
 
 
-def hand_eye_document(result):
+def hand_eye_document(result: HandEye) -> dict[str, Any]:
     """The hand-eye file: the task's cell.arm keys in their place, which a task names as
     cell.arm.hand_eye (or copies)."""
     return {"cell": {"arm": {"hand_eye_position_m": [round(float(v), 6) for v in result.position_m],
@@ -431,15 +441,22 @@ class HandEyeCalibration(Result):
                 "hand_eye_file": self.hand_eye_file, "reason": self.message}
 
 
-def run(task, out, connect, hand_eye_file, poses=12, force=False):
+def run(task: Task, out: str | Path, connect: Callable[[], Devices], hand_eye_file: str | Path, poses: int = 12,
+        force: bool = False) -> HandEyeCalibration:
     """connect() -> Devices; the views, intrinsics and hand-eye; out/log.jsonl as it happens,
     out/calibration.json however it ends, a board-K.png per view, the hand-eye file on success.
     Raises GoalNotReached with fewer than MIN_POSES usable views (exit 1), DeviceFault after the
     safe stop (exit 3). Returns the HandEyeCalibration."""
     out = Path(out)
-    views, skipped, calibrated, result, linear, solver, written = [], [], None, None, None, None, None
+    views: list[View] = []
+    skipped: list[dict[str, Any]] = []
+    calibrated: Intrinsics | None = None
+    result: HandEye | None = None
+    linear: dict[str, HandEye] | None = None
+    solver: dict[str, Any] | None = None
+    written: str | None = None
 
-    def done(reason, fault):
+    def done(reason: str, fault: dict[str, Any] | None) -> HandEyeCalibration:
         return HandEyeCalibration(str(task.path), result is not None and not reason, reason, tuple(views),
                                   tuple(skipped), calibrated, result, linear, solver, written, fault)
 
