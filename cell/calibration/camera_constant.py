@@ -207,7 +207,7 @@ def take(devices: Devices, recorder: Recorder, frames: list[Frame], shutter_s: f
 def dark_frames(devices: Devices, recorder: Recorder, frames: list[Frame], shutter_range_s: tuple[float, float],
                 f_number: float, focus_m: float) -> Darks:
     """DARK_FRAMES at each end of the shutter range, beam blocked: Darks."""
-    stacks = {}
+    stacks: dict[float, list[np.ndarray]] = {}
     for wanted in shutter_range_s:
         for _ in range(DARK_FRAMES):
             image, t, name = take(devices, recorder, frames, wanted, f_number, focus_m)

@@ -293,7 +293,7 @@ def unresolved_terms(doc: dict[str, Any], step_rad: float) -> dict[str, list[flo
     resolve: absent from the data, or an exponent above resolvable_exponent(step); there sigma 0,
     m = M, standard errors inf. Returns {term: [phase_deg]}."""
     m_max = resolvable_exponent(step_rad)
-    out = {}
+    out: dict[str, list[float]] = {}
     for term, s, m in (("lobe", "sigma1", "m1"), ("spike", "sigma2", "m2")):
         absent = doc.get("unidentifiable", {}).get(term, []) if term == "spike" else []
         for i, phase in enumerate(doc["phase_deg"]):

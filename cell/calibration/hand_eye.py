@@ -113,14 +113,21 @@ def refused(task: Task, T_cell_cam: np.ndarray) -> str | None:
 @dataclass(frozen=True)
 class View:
     """One viewpoint: the flange pose read back, the picture with the corners drawn, the ChArUco
-    corners found, and their board and image points when there are enough."""
+    corners found and their board and image points; `usable` with at least MIN_CORNERS."""
 
     pose: int
     picture: str
     T_cell_flange: np.ndarray
-    corners: int
-    object_points: np.ndarray | None = None      # (N, 3) board frame
-    image_points: np.ndarray | None = None       # (N, 2) px
+    object_points: np.ndarray       # (N, 3) board frame
+    image_points: np.ndarray        # (N, 2) px
+
+    @property
+    def corners(self) -> int:
+        return len(self.object_points)
+
+    @property
+    def usable(self) -> bool:
+        return self.corners >= MIN_CORNERS
 
     def to_json(self) -> dict[str, Any]:
         return {"pose": self.pose, "picture": self.picture, "corners": self.corners,
@@ -187,7 +194,10 @@ def collect(devices: Devices, recorder: Recorder, task: Task, poses: list[np.nda
     detect the board, save the frame with its corners drawn. Returns (views, refused)."""
     board, bit_depth = task.board, task.camera.sensor.bit_depth
     f_number = float(np.clip(F_NUMBER, *task.camera.lens.f_number_range))
-    views, skipped, frames, shutter = [], [], [], None
+    views: list[View] = []
+    skipped: list[dict[str, Any]] = []
+    frames: list[str] = []
+    shutter: float | None = None
     for k, T in enumerate(poses, 1):
         why = refused(task, T)
         if why:
@@ -208,9 +218,8 @@ def collect(devices: Devices, recorder: Recorder, task: Task, poses: list[np.nda
         obj, img, corners, ids = detect(board, image8)
         name = recorder.write_image(f"board-{k}.png", draw_corners(image8, corners, ids))
         T_cell_flange = task.frames.T_cell_flange(capture.T_cell_cam)
-        usable = len(obj) >= MIN_CORNERS
-        views.append(View(k, name, T_cell_flange, len(obj), obj if usable else None, img if usable else None))
-        recorder.step("board", f"pose {k}: {len(obj)} corners" + ("" if usable else f", fewer than {MIN_CORNERS}: "
+        views.append(View(k, name, T_cell_flange, obj, img))
+        recorder.step("board", f"pose {k}: {len(obj)} corners" + ("" if views[-1].usable else f", fewer than {MIN_CORNERS}: "
                                                                                   "left out"), pose=k,
                       corners=len(obj), picture=name)
     return views, skipped
@@ -430,7 +439,7 @@ class HandEyeCalibration(Result):
     @property
     def counters(self) -> dict[str, int]:
         return {"poses": len(self.views) + len(self.refused), "views": len(self.views),
-                "views_used": sum(v.object_points is not None for v in self.views), "refused": len(self.refused)}
+                "views_used": sum(v.usable for v in self.views), "refused": len(self.refused)}
 
     def details(self) -> dict[str, Any]:
         return {"task": self.task, **self.fitted(),
@@ -470,7 +479,7 @@ def run(task: Task, out: str | Path, connect: Callable[[], Devices], hand_eye_fi
         with end.session:
             end.session.devices = connect()
             views, skipped = collect(end.session.devices, recorder, task, viewpoints(task.board, distance, poses))
-        usable = [v for v in views if v.object_points is not None]
+        usable = [v for v in views if v.usable]
         if len(usable) < MIN_POSES:
             raise GoalNotReached(f"the board was seen at {len(usable)} of {poses} viewpoints ({len(skipped)} "
                                  f"refused by the arm, {len(views) - len(usable)} with fewer than {MIN_CORNERS} "

@@ -110,7 +110,7 @@ def hand_eye(args):
         print(jsonio.dumps(result.summary(), indent=2))
         return 0
     h, k = result.hand_eye, result.intrinsics
-    views = sum(v.object_points is not None for v in result.views)
+    views = sum(v.usable for v in result.views)
     print(f"hand-eye T_flange_cam: position {np.round(1e3 * h.position_m, 3).tolist()} mm, rpy "
           f"{np.round(h.rpy_deg, 3).tolist()} deg ({h.method}); board pose spread over the views "
           f"{1e3 * h.board_spread_m:.3f} mm, {np.degrees(h.board_spread_rad):.3f} deg; corners reprojected through "

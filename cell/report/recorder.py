@@ -10,7 +10,7 @@ import sys
 from datetime import datetime, timezone
 from pathlib import Path
 from types import TracebackType
-from typing import TYPE_CHECKING, Any, Callable, Generic, TextIO, TypeVar
+from typing import TYPE_CHECKING, Any, Callable, Generic, Literal, TextIO, TypeVar
 
 import cv2
 import numpy as np
@@ -74,7 +74,7 @@ class Recorder:
     def __enter__(self) -> Recorder:
         return self
 
-    def __exit__(self, *exc: object) -> bool:
+    def __exit__(self, *exc: object) -> Literal[False]:
         self.log.close()
         return False
 
@@ -143,7 +143,7 @@ class Ending(Generic[R]):
         return self
 
     def __exit__(self, kind: type[BaseException] | None, err: BaseException | None,
-                 traceback: TracebackType | None) -> bool:
+                 traceback: TracebackType | None) -> Literal[False]:
         reason = "" if err is None or kind is None else str(err) or kind.__name__
         self.error = err
         if err is not None and not self.session.fault:     # the goal was not reached: the devices are fine
