@@ -37,10 +37,12 @@ import selectors
 import socket
 import threading
 import time
+from typing import Self
 
 TCP_PORT = 30313                                   # 12.1: TCP commands go to this port
 MODELS = {2: "RT220-20", 4: "RT420-20", 8: "RT820F-20"}
 FAULTS = ("silent", "drop")
+Fault = str | tuple[int, int]                      # one of FAULTS, or an event (channel, code)
 INVALID, UNKNOWN_COMMAND, BAD_NUMBER, PARAMETER_COUNT = 1, 2, 3, 4      # 13.3 error codes
 COMMAND = re.compile(r"([A-Z]{2})(.*)")
 NUMBER = re.compile(r"\d+(\.\d*)?|\.\d+")
@@ -49,7 +51,7 @@ NUMBER = re.compile(r"\d+(\.\d*)?|\.\d+")
 class CommandError(Exception):
     """A command the controller answers with `Err n` (13.3)."""
 
-    def __init__(self, code):
+    def __init__(self, code: int) -> None:
         self.code = code
 
 
@@ -57,16 +59,16 @@ class Controller:
     """The controller's state: per channel its mode and setting [%], event messages on or off,
     the last event; `answer(line)` is what the controller replies to one command line."""
 
-    def __init__(self, channels=4):
+    def __init__(self, channels: int = 4) -> None:
         if channels not in MODELS:
             raise ValueError(f"an RT controller has 2, 4 or 8 channels, not {channels}")
         self.channels = channels
-        self.mode = {c: "OFF" for c in range(1, channels + 1)}
-        self.setting_pct = {c: 0.0 for c in range(1, channels + 1)}
+        self.mode: dict[int, str] = {c: "OFF" for c in range(1, channels + 1)}
+        self.setting_pct: dict[int, float] = {c: 0.0 for c in range(1, channels + 1)}
         self.messages = False                       # GT1: events go to the client
-        self.last_event = None                      # (channel, code), read and cleared by GR
+        self.last_event: tuple[int, int] | None = None   # (channel, code), read and cleared by GR
 
-    def answer(self, line):
+    def answer(self, line: str) -> str:
         """The reply to one command line (without its CR): each `;`-separated command's output
         or `Err n`, then the prompt `>`."""
         outputs = []
@@ -81,22 +83,22 @@ class Controller:
                 outputs.append(output)
         return "".join(out + "\r\n" for out in outputs) + ">"
 
-    def command(self, text):
+    def command(self, text: str) -> str:
         match = COMMAND.fullmatch(text)
         if not match:
             raise CommandError(UNKNOWN_COMMAND)
-        name, params = match.group(1), [p for p in match.group(2).split(",")] if match.group(2) else []
+        name, params = match.group(1), match.group(2).split(",") if match.group(2) else []
         handler = {"RS": self._rs, "ST": self._st, "GT": self._gt, "GR": self._gr, "VR": self._vr}.get(name)
         if handler is None:
             raise CommandError(UNKNOWN_COMMAND)
         return handler([_number(p) for p in params])
 
-    def _channel(self, value, allow_zero=False):
+    def _channel(self, value: float, allow_zero: bool = False) -> int:
         if value != int(value) or not (0 if allow_zero else 1) <= value <= self.channels:
             raise CommandError(INVALID)
         return int(value)
 
-    def _rs(self, params):
+    def _rs(self, params: list[float]) -> str:
         if len(params) != 2:
             raise CommandError(PARAMETER_COUNT)
         channel = self._channel(params[0])
@@ -105,7 +107,7 @@ class Controller:
         self.mode[channel], self.setting_pct[channel] = "CONT", params[1]
         return ""
 
-    def _st(self, params):
+    def _st(self, params: list[float]) -> str:
         if len(params) != 1:
             raise CommandError(PARAMETER_COUNT)
         channel = self._channel(params[0], allow_zero=True)
@@ -113,30 +115,30 @@ class Controller:
             return "TM 0, TP 20.00ms"              # the internal trigger off (TT0), its period
         return f"CH {channel}, MD {self.mode[channel]}, S {self.setting_pct[channel]:.1f}%"
 
-    def _gt(self, params):
+    def _gt(self, params: list[float]) -> str:
         if len(params) != 1 or params[0] not in (0, 1):
             raise CommandError(PARAMETER_COUNT if len(params) != 1 else INVALID)
         self.messages = params[0] == 1
         return ""
 
-    def _gr(self, params):
+    def _gr(self, params: list[float]) -> str:
         if params:
             raise CommandError(PARAMETER_COUNT)
         event, self.last_event = self.last_event, None
         return "" if event is None else event_message(*event)
 
-    def _vr(self, params):
+    def _vr(self, params: list[float]) -> str:
         if params:
             raise CommandError(PARAMETER_COUNT)
         return f"{MODELS[self.channels]} (HW02) V031"
 
 
-def event_message(channel, code):
+def event_message(channel: int, code: int) -> str:
     """13.5: `Evt<channel>,<event code>;`."""
     return f"Evt{channel},{code};"
 
 
-def _number(text):
+def _number(text: str) -> float:
     if not NUMBER.fullmatch(text):
         raise CommandError(BAD_NUMBER)
     return float(text)
@@ -147,30 +149,30 @@ class GardasoftEmulator:
     by one thread; a context manager. `received`: every command line, as bytes up to and
     including its CR."""
 
-    def __init__(self, host="127.0.0.1", port=0, channels=4):
+    def __init__(self, host: str = "127.0.0.1", port: int = 0, channels: int = 4) -> None:
         self.controller = Controller(channels)
-        self.received = []
+        self.received: list[bytes] = []
         self.lock = threading.Lock()
         self._listener = socket.create_server((loopback(host), port))
         self._listener.setblocking(False)
         self.address = self._listener.getsockname()[:2]
         self._selector = selectors.DefaultSelector()
         self._selector.register(self._listener, selectors.EVENT_READ)
-        self._clients = {}                          # socket -> bytes not yet a whole line
-        self._last_client = None                    # where event messages go (13.5)
+        self._clients: dict[socket.socket, bytes] = {}      # socket -> bytes not yet a whole line
+        self._last_client: socket.socket | None = None      # where event messages go (13.5)
         self._silent = False
-        self._armed = {}                            # command number -> fault or event to fire then
+        self._armed: dict[int, Fault] = {}          # command number -> fault or event to fire then
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self.serve, name="gardasoft-emulator", daemon=True)
 
-    def __enter__(self):
+    def __enter__(self) -> Self:
         self._thread.start()
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def inject(self, fault, on_command=None):
+    def inject(self, fault: Fault, on_command: int | None = None) -> None:
         """Fault "silent" or "drop", or an error event (channel, code): now, or when the
         on_command-th command line (counting from 1 since the start) arrives."""
         if fault not in FAULTS and not (isinstance(fault, tuple) and len(fault) == 2):
@@ -181,18 +183,18 @@ class GardasoftEmulator:
             else:
                 self._armed[on_command] = fault
 
-    def _fire(self, fault):
+    def _fire(self, fault: Fault) -> None:
         if fault == "silent":
             self._silent = True
         elif fault == "drop":
             for sock in list(self._clients):
                 self._drop(sock)
-        else:
+        elif isinstance(fault, tuple):
             self.controller.last_event = fault
             if self.controller.messages and self._last_client in self._clients:
                 self._send(self._last_client, event_message(*fault))
 
-    def serve(self, max_seconds=None):
+    def serve(self, max_seconds: float | None = None) -> None:
         """Accept clients and answer their command lines until close() (or max_seconds)."""
         deadline = None if max_seconds is None else time.monotonic() + max_seconds
         while not self._stop.is_set() and (deadline is None or time.monotonic() < deadline):
@@ -204,7 +206,7 @@ class GardasoftEmulator:
                         self._read(key.fileobj)
         self._close_sockets()
 
-    def _accept(self):
+    def _accept(self) -> None:
         try:
             sock, _ = self._listener.accept()
         except BlockingIOError:
@@ -213,7 +215,7 @@ class GardasoftEmulator:
         self._clients[sock] = b""
         self._selector.register(sock, selectors.EVENT_READ)
 
-    def _read(self, sock):
+    def _read(self, sock: socket.socket) -> None:
         try:
             data = sock.recv(4096)
         except OSError:
@@ -229,7 +231,7 @@ class GardasoftEmulator:
                 return
         self._clients[sock] = buffer
 
-    def _line(self, sock, line):
+    def _line(self, sock: socket.socket, line: bytes) -> None:
         self.received.append(line + b"\r")
         self._last_client = sock
         fault = self._armed.pop(len(self.received), None)
@@ -239,18 +241,18 @@ class GardasoftEmulator:
             return
         self._send(sock, self.controller.answer(line.decode("ascii", "replace").strip("\n")))
 
-    def _send(self, sock, text):
+    def _send(self, sock: socket.socket, text: str) -> None:
         try:
             sock.sendall(text.encode("ascii"))
         except OSError:
             self._drop(sock)
 
-    def _drop(self, sock):
+    def _drop(self, sock: socket.socket) -> None:
         self._clients.pop(sock, None)
         self._selector.unregister(sock)
         sock.close()
 
-    def _close_sockets(self):
+    def _close_sockets(self) -> None:
         with self.lock:
             for sock in list(self._clients):
                 self._drop(sock)
@@ -258,7 +260,7 @@ class GardasoftEmulator:
             self._listener.close()
             self._selector.close()
 
-    def close(self):
+    def close(self) -> None:
         """Stop serving and close every socket (idempotent)."""
         self._stop.set()
         if self._thread.is_alive():
@@ -267,7 +269,7 @@ class GardasoftEmulator:
             self._close_sockets()
 
 
-def loopback(host):
+def loopback(host: str) -> str:
     """Refuse anything but an IPv4 loopback address (the tests' rule)."""
     address = "127.0.0.1" if host == "localhost" else host
     try:
@@ -279,12 +281,12 @@ def loopback(host):
                      "(127.0.0.0/8 or localhost)")
 
 
-def _event(text):
+def _event(text: str) -> tuple[int, int]:
     channel, _, code = text.partition(",")
     return int(channel), int(code)
 
 
-def main(argv=None):
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m sim.gardasoft_emulator", description=__doc__.split("\n")[0])
     parser.add_argument("--host", default="127.0.0.1", help="loopback address to listen on")
     parser.add_argument("--port", type=int, default=TCP_PORT, help="TCP port (0: any free port)")

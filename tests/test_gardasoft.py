@@ -27,7 +27,8 @@ from sim.camera import SimCamera
 from sim.gardasoft_emulator import GardasoftEmulator
 from sim.pantilt import SimPanTilt
 from simcell import device_settings, variant
-from test_hw_check import hw_check, servos, task as hw_task, ur_host, video  # noqa: F401 (fixtures)
+from test_hw_check import hw_check, servos, ur_host, video  # noqa: F401 (ur_host, video: fixtures)
+from test_hw_check import task as hw_task
 
 TIMEOUT_S = 0.3
 
@@ -249,6 +250,19 @@ def test_the_sessions_safe_stop_turns_every_channel_off(emulator, fault):
     assert emulator.controller.setting_pct == {1: 0.0, 2: 0.0, 3: 0.0, 4: 0.0}
     assert faults[0]["stop_failures"] == [] and faults[0]["release_failures"] == []
     assert ended.value.device == ("arm" if fault == "another device's" else "lighting")
+
+
+def test_a_silent_controller_is_a_failed_stop_naming_the_channels_left_on(emulator):
+    faults = []
+    with pytest.raises(DeviceFault, match=r"STOP FAILED, check the cell: lighting: Gardasoft controller at "
+                                          r"127\.0\.0\.1:\d+: no reply ending in '>' to RS1,0 within 0\.3 s; "
+                                          r"channels \[1, 2, 3, 4\] not turned off$"):
+        with Session(on_fault=faults.append) as session:
+            session.devices = sim_devices(controller(emulator))
+            session.devices.lights.set_drive(2, 0.9)
+            emulator.inject("silent")
+            raise DeviceFault("arm", "protective stop")
+    assert len(faults[0]["stop_failures"]) == 1 and emulator.controller.setting_pct[2] == 90.0
 
 
 def test_a_normal_end_turns_the_lights_off_and_closes_them(emulator):

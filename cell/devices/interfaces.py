@@ -237,10 +237,10 @@ class LightController(ABC):
 
     device = "lighting"
 
-    def __init__(self, channels, name):
+    def __init__(self, channels: int, name: str) -> None:
         self.channels, self.name = channels, name       # name: the controller and its address
 
-    def set_drive(self, channel, level):
+    def set_drive(self, channel: int, level: float) -> float:
         """Drive `channel` at `level` (0..1); returns the level read back from the device."""
         self._check_channel(channel)
         if not 0.0 <= level <= 1.0:
@@ -248,40 +248,47 @@ class LightController(ABC):
                                            "[0, 1]: refused before setting")
         return self._set_drive(channel, float(level))
 
-    def drive(self, channel):
+    def drive(self, channel: int) -> float:
         """The level channel is driven at (0..1), read back from the device."""
         self._check_channel(channel)
         return self._read_drive(channel)
 
-    def all_off(self):
-        """Every channel to 0, each tried even if one fails; the first failure is raised after."""
-        failures = try_all([lambda c=c: self.set_drive(c, 0.0) for c in range(1, self.channels + 1)])
+    def all_off(self) -> None:
+        """Every channel to 0, each tried even if one fails; then the first failure is raised,
+        naming the channels left as they were."""
+        failures = {}
+        for channel in range(1, self.channels + 1):
+            try:
+                self.set_drive(channel, 0.0)
+            except DeviceFault as fault:
+                failures[channel] = fault.reason
         if failures:
-            raise DeviceFault(self.device, f"{self.name}: not every channel off: {'; '.join(failures)}")
+            first = next(iter(failures.values()))
+            raise DeviceFault(self.device, f"{first}; channels {list(failures)} not turned off")
 
-    def _check_channel(self, channel):
+    def _check_channel(self, channel: int) -> None:
         if not (isinstance(channel, (int, np.integer)) and 1 <= channel <= self.channels):
             raise DeviceFault(self.device, f"{self.name}: channel {channel!r} is not one of the "
                                            f"configured 1..{self.channels}: refused before setting")
 
     @abstractmethod
-    def _set_drive(self, channel, level):
+    def _set_drive(self, channel: int, level: float) -> float:
         """Set the channel's level on the device and return it read back."""
 
     @abstractmethod
-    def _read_drive(self, channel):
+    def _read_drive(self, channel: int) -> float:
         """The channel's level as the device reports it."""
 
-    def describe(self):
+    def describe(self) -> dict:
         """What the controller is, JSON-ready: its name (and address) and channel count."""
         return {"name": self.name, "channels": self.channels}
 
-    def state(self):
+    def state(self) -> dict:
         """Every channel's level read back, JSON-ready (`cell hw-check`); sets nothing. `problems`:
         what a run would stop on."""
         return {"levels": {str(c): self.drive(c) for c in range(1, self.channels + 1)}, "problems": []}
 
-    def close(self):
+    def close(self) -> None:
         """Release the connection (after all_off)."""
 
 
@@ -308,7 +315,7 @@ class Devices:
         lights = (self.lights.all_off, self.lights.close) if self.lights else ()
         return try_all((self.arm.close, self.lamp.close, self.camera.close) + lights)
 
-    def releases(self):
+    def releases(self) -> tuple:
         """The connections to release after a safe stop: the arm's, the servos' and the lighting
         controller's."""
         return (self.arm.close, self.lamp.close) + ((self.lights.close,) if self.lights else ())

@@ -23,8 +23,6 @@ be the channel asked - the form the loopback emulator (sim/gardasoft_emulator.py
 the same manual) answers. A real controller answering otherwise is a DeviceFault saying so,
 never a wrong level.
 """
-from __future__ import annotations
-
 import re
 import socket
 import time
@@ -103,11 +101,12 @@ class GardasoftController(LightController):
         """Send one command line and return its reply without the prompt `>` and without event
         messages; an error event or `Err n` in the reply is a DeviceFault, as is no `>` within
         timeout_s or a connection gone."""
-        if self._lost or self._sock is None:
+        sock = self._sock
+        if self._lost or sock is None:
             raise DeviceFault(self.device, f"{self.name}: {self._lost or 'not connected'}: {text} not sent")
         try:
-            self._sock.sendall(text.encode("ascii") + b"\r")
-            reply = self._reply(text)
+            sock.sendall(text.encode("ascii") + b"\r")
+            reply = self._reply(sock, text)
         except OSError as err:                      # refused, reset, broken pipe
             self._lost = f"connection lost ({type(err).__name__}: {err})"
             raise DeviceFault(self.device, f"{self.name}: {self._lost}") from None
@@ -121,7 +120,7 @@ class GardasoftController(LightController):
                                            f"({ERRORS.get(code, 'see the manual, 13.3')})")
         return EVENT.sub("", reply).strip()
 
-    def _reply(self, text: str) -> str:
+    def _reply(self, sock: socket.socket, text: str) -> str:
         """The bytes up to the next `>` (what follows stays for the next reply), waited for at
         most timeout_s; sets _lost when the connection closes or the time is up."""
         deadline = time.monotonic() + self.config.timeout_s
@@ -130,9 +129,9 @@ class GardasoftController(LightController):
             if remaining <= 0:
                 self._lost = f"no reply ending in '>' to {text} within {self.config.timeout_s:g} s"
                 return ""
-            self._sock.settimeout(remaining)
+            sock.settimeout(remaining)
             try:
-                data = self._sock.recv(4096)
+                data = sock.recv(4096)
             except TimeoutError:
                 continue
             if not data:
