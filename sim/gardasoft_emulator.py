@@ -31,13 +31,14 @@ without an answer, the controller keeps listening), an error event `Evt c,e` sen
 Every line received is kept as bytes (`received`) for exact asserts.
 """
 import argparse
-import ipaddress
 import re
 import selectors
 import socket
 import threading
 import time
 from typing import Self
+
+from sim.addresses import loopback
 
 TCP_PORT = 30313                                   # 12.1: TCP commands go to this port
 MODELS = {2: "RT220-20", 4: "RT420-20", 8: "RT820F-20"}
@@ -153,7 +154,7 @@ class GardasoftEmulator:
         self.controller = Controller(channels)
         self.received: list[bytes] = []
         self.lock = threading.Lock()
-        self._listener = socket.create_server((loopback(host), port))
+        self._listener = socket.create_server((loopback(host, "gardasoft_emulator"), port))
         self._listener.setblocking(False)
         self.address = self._listener.getsockname()[:2]
         self._selector = selectors.DefaultSelector()
@@ -267,18 +268,6 @@ class GardasoftEmulator:
             self._thread.join()
         elif self._listener.fileno() >= 0:
             self._close_sockets()
-
-
-def loopback(host: str) -> str:
-    """Refuse anything but an IPv4 loopback address (the tests' rule)."""
-    address = "127.0.0.1" if host == "localhost" else host
-    try:
-        if ipaddress.IPv4Address(address).is_loopback:
-            return address
-    except ipaddress.AddressValueError:
-        pass
-    raise SystemExit(f"gardasoft_emulator: refusing host {host!r}: it listens on loopback only "
-                     "(127.0.0.0/8 or localhost)")
 
 
 def _event(text: str) -> tuple[int, int]:

@@ -92,7 +92,8 @@ def test_the_emulator_sends_error_events_only_after_gt1(emulator):
 
 
 def test_the_emulator_runs_as_a_module_and_refuses_a_non_loopback_host():
-    process = subprocess.Popen([sys.executable, "-m", "sim.gardasoft_emulator", "--port", "0", "--max-seconds", "20"],
+    process = subprocess.Popen([sys.executable, "-m", "sim.gardasoft_emulator", "--port", "0", "--max-seconds", "20",
+                                "--channels", "2", "--fault", "drop", "--fault-on-command", "2"],
                                stdout=subprocess.PIPE, text=True)
     try:
         ready, _, address = process.stdout.readline().strip().partition(" ")
@@ -100,7 +101,9 @@ def test_the_emulator_runs_as_a_module_and_refuses_a_non_loopback_host():
         assert ready == "READY" and host == "127.0.0.1"
         with socket.create_connection((host, int(port)), timeout=2.0) as sock:
             sock.sendall(b"VR\r")
-            assert sock.recv(64) == b"RT420-20 (HW02) V031\r\n>"
+            assert sock.recv(64) == b"RT220-20 (HW02) V031\r\n>"
+            sock.sendall(b"ST1\r")
+            assert sock.recv(64) == b""                                 # dropped at the second command
     finally:
         process.kill()
         process.wait(timeout=10)
