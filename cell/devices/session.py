@@ -8,9 +8,9 @@ class Session:
     connect(...)`. A normal end, or a goal not reached (a CellError that is no DeviceFault), closes
     them. A DeviceFault or anything else (a bug, Ctrl-C, SIGTERM) stops them safely first (every
     light channel off too), then releases the arm's, the servos' and the lighting controller's
-    connections; `fault` = {device, error, stop_failures,
-    release_failures}, on_fault(fault) is called (to log it), and a DeviceFault is raised again
-    saying whether motion stopped and, given `log`, where the run's log is."""
+    connections; `fault` = {device, error, stop_failures, release_failures}, on_fault(fault) is
+    called (to log it), and a DeviceFault is raised again saying whether motion stopped and, given
+    `log`, where the run's log is."""
 
     def __init__(self, on_fault=lambda fault: None, log=None):
         self.devices, self.fault, self.on_fault, self.log = None, None, on_fault, log

@@ -217,8 +217,8 @@ SECTIONS = {"arm": ARM, "pan_tilt": PAN_TILT, "camera": CAMERA, "lighting": LIGH
 
 def devices_config(file, cell, written, bit_depth):
     """The parsed `cell` section's arm, pan_tilt, camera and lighting values -> DevicesConfig
-    (lighting only when the task wrote the section), after the
-    checks one key alone cannot make (TaskError naming the file and key). `written`: the section
+    (lighting only when the task wrote the section), after the checks one key alone cannot make
+    (TaskError naming the file and key). `written`: the section
     as the file wrote it, whose non-empty device sections are recorded as `given`; `bit_depth`:
     camera.sensor's, which a pixel format must carry. The base and hand-eye poses go to the
     task's Frames."""
@@ -244,8 +244,7 @@ def devices_config(file, cell, written, bit_depth):
         speed_rad_s=np.radians(p["speed_deg_s"]), move_timeout_s=p["move_timeout_s"],
         tolerance_ticks=p["tolerance_ticks"])
     camera = _camera_config(file, c, (written or {}).get("camera") or {}, bit_depth)
-    light = cell["lighting"]
-    lighting = LightingConfig(**light) if "lighting" in given else None
+    lighting = LightingConfig(**cell["lighting"]) if "lighting" in given else None
     return DevicesConfig(Path(file), arm, pan_tilt, camera, tuple(given), lighting)
 
 
