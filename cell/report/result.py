@@ -28,7 +28,6 @@ STATUSES = {
     "interrupted": "anything else ended it: an unexpected error",
 }
 ENDINGS = ("fault", "infeasible", "interrupted")   # causes that are their own status
-VERDICT_KEYS = ("success", "status", "message", "cause", "fault", "counters")
 
 R = TypeVar("R", bound="Result")
 
@@ -70,7 +69,7 @@ class Result:
         return self if self.cause or not cause else dataclasses.replace(cast(Any, self), cause=cause)
 
     def verdict(self) -> dict[str, Any]:
-        """The keys VERDICT_KEYS, the same in every result file."""
+        """success, status, message, cause, fault and counters: the same keys in every result file."""
         return {"success": self.success, "status": self.status, "message": self.message, "cause": self.cause,
                 "fault": self.fault, "counters": self.counters}
 
