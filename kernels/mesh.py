@@ -41,7 +41,7 @@ class WarpMesh:
         return f"WarpMesh({len(self.vertices)} vertices, {len(self.faces)} faces)"
 
 
-_SHARED = {}                # this process's meshes: key -> WarpMesh, newest last
+_SHARED: dict[str, WarpMesh] = {}   # this process's meshes: key -> WarpMesh, newest last
 _SHARED_MAX = 8
 
 
