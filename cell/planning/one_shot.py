@@ -31,9 +31,9 @@ if TYPE_CHECKING:
 
 def visibility_map(scene: Scene, grid: regions.SphereGrid) -> np.ndarray:
     """(E, A) directions of the feature frame every sample sees (Warp ray casting, sec. 2.2)."""
-    from kernels.visibility import visibility_maps
-    return visibility_maps(scene.warp_mesh, scene.points, scene.normals, scene.frame,
-                           grid.azimuth, grid.elevation).all(axis=0)
+    from kernels.visibility import combined_map, visibility_maps
+    return combined_map(visibility_maps(scene.warp_mesh, scene.points, scene.normals, scene.frame,
+                                        grid.azimuth, grid.elevation))
 
 
 def build_maps(task: Task, scene: Scene, settings: PlannerSettings, visible: np.ndarray | None = None,
