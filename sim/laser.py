@@ -11,8 +11,8 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
-from scipy.special import ndtr
 from numpy.typing import ArrayLike
+from scipy.special import ndtr
 
 from sim.world import SensorModel
 

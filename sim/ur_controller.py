@@ -44,8 +44,8 @@ from collections.abc import Sequence
 from typing import Any, TextIO, cast
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 from numpy.typing import ArrayLike
+from scipy.spatial.transform import Rotation
 
 from cell.core.geometry import from_ur_pose, to_ur_pose
 from cell.devices import ur5e

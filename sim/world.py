@@ -30,14 +30,14 @@ Effects, applied in the physical order light -> lens -> sensor -> ADC, whatever 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
 from collections.abc import Collection
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.ndimage import gaussian_filter
 from scipy.special import erfc, ndtr
-from numpy.typing import ArrayLike
 
 from cell.core import geometry
 from cell.physics.sensor import levels, saturation_level

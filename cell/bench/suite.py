@@ -17,9 +17,9 @@ Pareto front, per task: settings no other setting beats on both time_s and gray_
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, replace
 from importlib.resources import files
-from collections.abc import Callable, Iterable, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np

@@ -3,8 +3,8 @@ bench.json and bench.png in DIR, progress on stderr."""
 
 from __future__ import annotations
 
-import sys
 import argparse
+import sys
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 

@@ -7,9 +7,9 @@ too few views of the board, 2 bad input (an unknown routine: cell.cli's parser),
 
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
-import argparse
 
 import numpy as np
 

@@ -3,14 +3,14 @@ material file, notes on absent terms."""
 
 from __future__ import annotations
 
+import argparse
 import datetime
 import os
 import stat
 import sys
 import tempfile
-from pathlib import Path
-import argparse
 from collections.abc import Sequence
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import yaml

@@ -4,8 +4,8 @@ run would stop on, 3 otherwise (each such device named with its address), 2 for 
 
 from __future__ import annotations
 
-import sys
 import argparse
+import sys
 
 import numpy as np
 

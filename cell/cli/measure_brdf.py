@@ -4,10 +4,10 @@ goniometer (cell.calibration.goniometer); writes the material file with standard
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import sys
 from pathlib import Path
-import argparse
 
 from cell.run import backends
 from cell.core import jsonio

@@ -5,11 +5,11 @@ and its cause), 2 bad input. With --workers or --scheduler the plans' jobs run o
 
 from __future__ import annotations
 
+import argparse
 import sys
+from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-import argparse
-from collections.abc import Callable, Iterable
 from typing import TYPE_CHECKING
 
 import numpy as np

@@ -4,8 +4,8 @@ with several features, or planned viewpoints, runs its shots (cell.run.inspectio
 
 from __future__ import annotations
 
-from pathlib import Path
 import argparse
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from cell.run import backends, loop

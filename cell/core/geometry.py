@@ -4,8 +4,8 @@ of the physics notes (azimuth/elevation with elevation as latitude)."""
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 from numpy.typing import ArrayLike
+from scipy.spatial.transform import Rotation
 
 
 def transform(rotation: ArrayLike | None = None, translation: ArrayLike = (0.0, 0.0, 0.0)) -> np.ndarray:

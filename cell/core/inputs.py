@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import os
 import stat
-from pathlib import Path
 from os import PathLike
+from pathlib import Path
 
 from cell.core.errors import TaskError
 

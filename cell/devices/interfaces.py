@@ -10,9 +10,9 @@ DeviceFault; state is read back from the device, never assumed.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any
 
 import numpy as np

@@ -21,10 +21,10 @@ from __future__ import annotations
 import csv
 import dataclasses
 import io
-from dataclasses import dataclass
-from pathlib import Path
 from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 from os import PathLike
+from pathlib import Path
 
 import numpy as np
 from scipy import optimize, stats

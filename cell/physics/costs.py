@@ -3,8 +3,8 @@ erratum of eq. (25): feasibility is max_i f_i <= 1 over the requirement values t
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike

@@ -11,8 +11,8 @@ focus and exposure), so it agrees with plan()'s verdict.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 

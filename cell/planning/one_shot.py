@@ -10,13 +10,13 @@ cell.planning.requirements). The result is a cell.planning.plan.Plan of plain va
 from __future__ import annotations
 
 import time
-from dataclasses import replace
 from collections.abc import Callable
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.optimize import minimize
 from numpy.typing import ArrayLike
+from scipy.optimize import minimize
 
 from cell.planning import certificate, evaluate, regions, requirements
 from cell.core import geometry

@@ -17,15 +17,15 @@ BVH each process's own): a worker needs no task file, only the same lightplan-ce
 
 from __future__ import annotations
 
-from collections.abc import Hashable
 import hashlib
 import itertools
 import sys
 import uuid
 from collections import deque
+from collections.abc import Hashable
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from importlib import metadata
 from pathlib import Path
-from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any, Protocol
 
 from cell.core.errors import TaskError

@@ -7,8 +7,8 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial import cKDTree
 from numpy.typing import ArrayLike
+from scipy.spatial import cKDTree
 
 from cell.core import geometry
 from cell.physics import brdf

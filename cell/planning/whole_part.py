@@ -8,12 +8,12 @@ silently short of a feature."""
 from __future__ import annotations
 
 import time
-from dataclasses import replace
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from typing import TYPE_CHECKING, cast
 
-from numpy.typing import ArrayLike
 import numpy as np
+from numpy.typing import ArrayLike
 
 from cell.planning import coverage, one_shot, regions
 from cell.planning.set_cover import fewest_shots

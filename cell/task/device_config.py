@@ -6,8 +6,8 @@ backends are built from. The defaults describe the example cell and reach no net
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 from os import PathLike
+from pathlib import Path
 from typing import Any
 
 import numpy as np

@@ -8,8 +8,8 @@ schemas below read like the file format; then the mesh is loaded and the feature
 from __future__ import annotations
 
 import copy
-from pathlib import Path
 from os import PathLike
+from pathlib import Path
 from typing import Any
 
 import numpy as np

@@ -10,9 +10,9 @@ from __future__ import annotations
 import difflib
 import re
 import reprlib
-from pathlib import Path
 from collections.abc import Callable, Mapping
 from os import PathLike
+from pathlib import Path
 from typing import Any, TypedDict
 
 import numpy as np

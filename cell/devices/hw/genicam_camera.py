@@ -4,8 +4,8 @@ set by the operator, as with OpenCV."""
 
 from __future__ import annotations
 
-from contextlib import contextmanager
 from collections.abc import Iterable
+from contextlib import contextmanager
 from typing import TYPE_CHECKING, Any
 
 import numpy as np

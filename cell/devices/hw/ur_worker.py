@@ -21,9 +21,9 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from multiprocessing.connection import Connection
 from pathlib import Path
-from collections.abc import Sequence
 from typing import Any
 
 from cell.core.errors import DeviceFault
