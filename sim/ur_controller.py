@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import argparse
 import errno
-import ipaddress
 import re
 import selectors
 import socket
@@ -49,6 +48,7 @@ from scipy.spatial.transform import Rotation
 
 from cell.core.geometry import from_ur_pose, to_ur_pose
 from cell.devices import ur5e
+from sim.addresses import loopback
 
 DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT = 29999, 30004, 30003   # fixed by UR and ur_rtde
 TICK_S = 0.002                                                 # e-Series: 500 Hz
@@ -790,18 +790,6 @@ class Server:
         self.close()
 
 
-def loopback(host: str) -> str:
-    """Refuse anything but an IPv4 loopback address (the tests' and the notes' rule)."""
-    address = "127.0.0.1" if host == "localhost" else host
-    try:
-        if ipaddress.IPv4Address(address).is_loopback:
-            return address
-    except ipaddress.AddressValueError:
-        pass
-    raise SystemExit(f"ur_controller: refusing host {host!r}: the emulator listens on loopback only "
-                     "(127.0.0.0/8 or localhost)")
-
-
 def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m sim.ur_controller", description=__doc__.split("\n")[0])
     parser.add_argument("--host", default="127.0.0.1", help="loopback address to listen on")
@@ -812,7 +800,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--mute", choices=MUTE_STEPS, help="answer nothing from this step of a connection on")
     parser.add_argument("--verbose", action="store_true", help="log recipes and commands on stderr")
     args = parser.parse_args(argv)
-    host = loopback(args.host)
+    host = loopback(args.host, "ur_controller")
     controller = Controller(args.fault, args.fault_on_move, args.fault_after_s, args.verbose, mute=args.mute)
     server = Server(host, controller)
     print("READY", flush=True)

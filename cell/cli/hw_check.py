@@ -64,7 +64,12 @@ def _camera(s):
             f"pixel format {known(s.get('pixel_format'))}, exposure {exposure}, range {span}"]
 
 
-DETAILS = {"arm": _arm, "pan-tilt": _pan_tilt, "camera": _camera}
+def _lighting(s):
+    levels = ", ".join(f"{channel}: {level:.3f}" for channel, level in s["levels"].items())
+    return [f"firmware {s['firmware']}", f"drive levels (0..1) by channel: {levels}"]
+
+
+DETAILS = {"arm": _arm, "pan-tilt": _pan_tilt, "camera": _camera, "lighting": _lighting}
 
 
 def _lines(check):

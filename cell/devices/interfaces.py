@@ -10,7 +10,7 @@ DeviceFault; state is read back from the device, never assumed.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -28,7 +28,7 @@ if TYPE_CHECKING:
     from cell.task.device_config import ArmConfig
     from cell.task.types import LampRig as LampRigModel
 
-__all__ = ["Arm", "LampRig", "Camera", "Devices", "check_arm_motion", "speaking_for"]
+__all__ = ["Arm", "LampRig", "Camera", "LightController", "Devices", "check_arm_motion", "speaking_for"]
 
 # what device libraries raise: serial.SerialException and socket errors are OSErrors (an unplugged
 # USB adapter, OSError 19 from a camera), ur_rtde raises RuntimeError
@@ -241,25 +241,93 @@ class Camera(ABC):
         """Release the camera."""
 
 
+class LightController(ABC):
+    """A multi-channel LED lighting controller: channels 1..channels, each driven at a level, the
+    fraction of its full output in [0, 1] (percent only on the wire). Levels outside [0, 1] and
+    channels not configured are refused here, before the device sees them; every set is read
+    back from the device."""
+
+    device = "lighting"
+
+    def __init__(self, channels: int, name: str) -> None:
+        self.channels, self.name = channels, name       # name: the controller and its address
+
+    def set_drive(self, channel: int, level: float) -> float:
+        """Drive `channel` at `level` (0..1); returns the level read back from the device."""
+        self._check_channel(channel)
+        if not 0.0 <= level <= 1.0:
+            raise DeviceFault(self.device, f"{self.name}: channel {channel} level {level:.4g} outside "
+                                           "[0, 1]: refused before setting")
+        return self._set_drive(channel, float(level))
+
+    def drive(self, channel: int) -> float:
+        """The level channel is driven at (0..1), read back from the device."""
+        self._check_channel(channel)
+        return self._read_drive(channel)
+
+    def all_off(self) -> None:
+        """Every channel to 0, each tried even if one fails; then the first failure is raised,
+        naming the channels left as they were."""
+        failures = {}
+        for channel in range(1, self.channels + 1):
+            try:
+                self.set_drive(channel, 0.0)
+            except DeviceFault as fault:
+                failures[channel] = fault.reason
+        if failures:
+            first = next(iter(failures.values()))
+            raise DeviceFault(self.device, f"{first}; channels {list(failures)} not turned off")
+
+    def _check_channel(self, channel: int) -> None:
+        if not (isinstance(channel, (int, np.integer)) and 1 <= channel <= self.channels):
+            raise DeviceFault(self.device, f"{self.name}: channel {channel!r} is not one of the "
+                                           f"configured 1..{self.channels}: refused before setting")
+
+    @abstractmethod
+    def _set_drive(self, channel: int, level: float) -> float:
+        """Set the channel's level on the device and return it read back."""
+
+    @abstractmethod
+    def _read_drive(self, channel: int) -> float:
+        """The channel's level as the device reports it."""
+
+    def describe(self) -> dict:
+        """What the controller is, JSON-ready: its name (and address) and channel count."""
+        return {"name": self.name, "channels": self.channels}
+
+    def state(self) -> dict:
+        """Every channel's level read back, JSON-ready (`cell hw-check`); sets nothing. `problems`:
+        what a run would stop on."""
+        return {"levels": {str(c): self.drive(c) for c in range(1, self.channels + 1)}, "problems": []}
+
+    def close(self) -> None:
+        """Release the connection (after all_off)."""
+
+
 @dataclass
 class Devices:
-    """The cell's three devices, with the safe stop every fault ends in (hardware notes)."""
+    """The cell's three devices and, where the task has one, its lighting controller, with the
+    safe stop every fault ends in (hardware notes)."""
 
     arm: Arm
     lamp: LampRig
     camera: Camera
+    lights: LightController | None = None
 
     def safe_stop(self, fault: BaseException | None = None) -> list[str]:
-        """Stop the arm, hold the servos (torque off only for their own fault), close the camera.
-        Every step is tried; returns the messages of steps that failed, in turn."""
+        """Stop the arm, hold the servos (torque off only for their own fault), close the camera,
+        turn every light channel off. Every step is tried; returns the messages of steps that
+        failed, in turn."""
         lamp_faulted = isinstance(fault, DeviceFault) and fault.device == self.lamp.device
         steps = (self.arm.stop, lambda: self.lamp.stop(fault_is_own=lamp_faulted), self.camera.close)
-        return try_all(steps)
-
-    def release(self) -> list[str]:
-        """Release the arm's and the servos' connections (after a safe stop): what failed."""
-        return try_all((self.arm.close, self.lamp.close))
+        return try_all(steps + ((self.lights.all_off,) if self.lights else ()))
 
     def close(self) -> list[str]:
-        """Release everything after a normal end."""
-        return try_all((self.arm.close, self.lamp.close, self.camera.close))
+        """Release everything after a normal end (the lights turned off first)."""
+        lights = (self.lights.all_off, self.lights.close) if self.lights else ()
+        return try_all((self.arm.close, self.lamp.close, self.camera.close) + lights)
+
+    def releases(self) -> tuple[Callable[[], object], ...]:
+        """The connections to release after a safe stop: the arm's, the servos' and the lighting
+        controller's."""
+        return (self.arm.close, self.lamp.close) + ((self.lights.close,) if self.lights else ())

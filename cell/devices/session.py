@@ -18,16 +18,17 @@ class Held(Protocol):
 
     def safe_stop(self, fault: BaseException | None = None) -> list[str]: ...
 
-    def release(self) -> list[str]: ...
+    def releases(self) -> tuple[Callable[[], object], ...]: ...
 
 
 class Session:
     """Owns the devices of one run, `with Session(on_fault) as session: session.devices =
     connect(...)`. A normal end, or a goal not reached (a CellError that is no DeviceFault), closes
-    them. A DeviceFault or anything else (a bug, Ctrl-C, SIGTERM) stops them safely first, then
-    releases the arm's and the servos' connections; `fault` = {device, error, stop_failures,
-    release_failures}, on_fault(fault) is called (to log it), and a DeviceFault is raised again
-    saying whether motion stopped and, given `log`, where the run's log is."""
+    them. A DeviceFault or anything else (a bug, Ctrl-C, SIGTERM) stops them safely first (every
+    light channel off too), then releases the arm's, the servos' and the lighting controller's
+    connections; `fault` = {device, error, stop_failures, release_failures}, on_fault(fault) is
+    called (to log it), and a DeviceFault is raised again saying whether motion stopped and, given
+    `log`, where the run's log is."""
 
     def __init__(self, on_fault: Callable[[dict[str, Any]], object] = lambda fault: None,
                  log: str | PathLike[str] | None = None) -> None:
@@ -45,7 +46,7 @@ class Session:
                 self.devices.close()
             return False
         failures = self.devices.safe_stop(err) if self.devices else []
-        released = self.devices.release() if self.devices else []
+        released = try_all(self.devices.releases()) if self.devices else []
         self.fault = {"device": getattr(err, "device", None), "error": str(err) or type(err).__name__,
                       "stop_failures": failures, "release_failures": released}
         self.on_fault(self.fault)

@@ -23,7 +23,8 @@ def open_devices(task, scene, backend, yes=False, laser=None, board=False):
 def make_hw_devices(task, yes=False, operator=None, scene=None):
     """The real devices for --backend hw from the task's settings. Needs explicit `cell.arm.host`
     and `cell.pan_tilt.port` (no default reaches the network or a serial bus); connects arm,
-    servos, camera in turn and closes what was opened if a later one fails. With
+    servos, camera and, if the task has cell.lighting, the lighting controller in turn and closes
+    what was opened if a later one fails. With
     cell.camera.driver simulated the camera renders `scene` (default: the task's, built here)."""
     config = _addressed(task)
     from cell.devices.hw.dynamixel import DynamixelPanTilt
@@ -39,6 +40,10 @@ def make_hw_devices(task, yes=False, operator=None, scene=None):
             opened.append(DynamixelPanTilt(task.lamp.rig, config.pan_tilt, operator))
         with speaking_for(Camera):
             opened.append(open_camera(operator, *opened))
+        if config.lighting:
+            from cell.devices.hw.gardasoft import GardasoftController
+            with speaking_for(GardasoftController):
+                opened.append(GardasoftController(config.lighting))
     except Exception:
         try_all([device.close for device in reversed(opened)])
         raise
@@ -55,6 +60,9 @@ def _addressed(task):
     if not config.pan_tilt.port:
         raise TaskError(config.task_file, "cell.pan_tilt.port", "nothing",
                         "the servos' serial port, e.g. /dev/ttyUSB0 (required for --backend hw)")
+    if config.lighting and not config.lighting.host:
+        raise TaskError(config.task_file, "cell.lighting.host", "nothing",
+                        "the lighting controller's address (required for --backend hw; there is no default)")
     return config
 
 
@@ -63,7 +71,7 @@ class DeviceCheck:
     """One real device as `cell hw-check` found it: its state() if it answered, else the fault."""
 
     device: str
-    address: str                      # host, serial port or camera source
+    address: str                      # host, serial port, camera source or host:port
     state: dict | None
     fault: str | None
 
@@ -77,8 +85,9 @@ def check_hw_devices(task):
     """`cell hw-check`: each real device of the task opened alone and read-only, asked its
     state() and closed, so one that fails does not hide the others. Reading only: nothing moves,
     no torque or setting changes, no control script is uploaded, no frame exposure is set; a
-    DeviceCheck per device (arm, pan-tilt, camera). The camera's frames are compared with
-    camera.sensor, as a run does."""
+    DeviceCheck per device (arm, pan-tilt, camera, and the lighting controller if the task has
+    cell.lighting: its firmware and every channel's level read, no `GT1`). The camera's frames
+    are compared with camera.sensor, as a run does."""
     config = _addressed(task)
     from cell.devices.hw.dynamixel import DynamixelPanTilt
     from cell.devices.hw.ur import URArm
@@ -93,6 +102,10 @@ def check_hw_devices(task):
         _check(Camera, camera_address(config.camera), lambda: open_camera(no_prompt)),
     ]
     camera = checks[-1].state
+    if config.lighting:
+        from cell.devices.hw.gardasoft import GardasoftController
+        checks.append(_check(GardasoftController, f"{config.lighting.host}:{config.lighting.port}",
+                             lambda: GardasoftController(config.lighting, read_only=True)))
     if camera and (camera["width_px"], camera["height_px"]) != (sensor.width_px, sensor.height_px):
         camera["problems"].append(f"frames are {camera['width_px']}x{camera['height_px']}, camera.sensor is "
                                   f"{sensor.width_px}x{sensor.height_px}: set the camera's resolution")

@@ -1,4 +1,5 @@
-"""The task's device settings, `cell.arm`, `cell.pan_tilt` and `cell.camera` (docs/devices.md):
+"""The task's device settings, `cell.arm`, `cell.pan_tilt`, `cell.camera` and `cell.lighting`
+(docs/devices.md):
 their schemas, read by load_task with the rest of the task, and the typed, SI values the
 backends are built from. The defaults describe the example cell and reach no network or bus.
 """
@@ -25,6 +26,9 @@ MAX_SERVO_SPEED_DEG_S = 90.0
 # the simulator from the real arm's and pan-tilt's read-back poses, a dry run of a real arm and
 # lamp rig without a camera
 CAMERA_DRIVERS = ("opencv", "genicam", "simulated")
+LIGHTING_DRIVERS = ("gardasoft",)           # Gardasoft RT-series command set over TCP
+GARDASOFT_PORT = 30313                      # RT manual 12.1: TCP commands go to this port
+LIGHTING_CHANNELS = (2, 4, 8)               # RT220, RT420, RT820F
 DXL_BAUD_RATES = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 921600,
                   1000000, 1152000, 2000000, 2500000, 3000000, 3500000, 4000000)  # the SDK's list
 
@@ -72,12 +76,22 @@ class CameraConfig:
 
 
 @dataclass(frozen=True)
+class LightingConfig:
+    driver: str                             # LIGHTING_DRIVERS: which backend class
+    host: str | None                        # controller address; required for --backend hw only
+    port: int
+    channels: int                           # the model's channels: 2, 4 or 8
+    timeout_s: float                        # a reply (ending in ">") later than this is a fault
+
+
+@dataclass(frozen=True)
 class DevicesConfig:
     task_file: Path
     arm: ArmConfig
     pan_tilt: PanTiltConfig
     camera: CameraConfig
-    given: tuple[str, ...]  # the sections the task set, e.g. ("arm",)
+    given: tuple[str, ...]                  # the sections the task set, e.g. ("arm",)
+    lighting: LightingConfig | None = None  # the lighting controller, if the task has cell.lighting
 
 
 class _Source(Spec):
@@ -106,6 +120,18 @@ class _SerialNumber(Spec):
         if isinstance(raw, str) and raw.strip():
             return raw.strip()
         raise Invalid(raw, self.expected)
+
+
+class _ChannelCount(Spec):
+    """How many channels the controller model has."""
+
+    expected = "2, 4 or 8 (the controller model's channels)"
+    default = 4
+
+    def convert(self, raw: Any, to_si: ToSI) -> int:
+        if isinstance(raw, bool) or raw not in LIGHTING_CHANNELS:
+            raise Invalid(raw, self.expected)
+        return int(raw)
 
 
 # what a hand-eye file holds: the task's own keys, in their place (`cell calibrate hand-eye` writes one)
@@ -183,13 +209,22 @@ DRIVER_KEYS = {"opencv": ("source", "exposure_unit_s", "discard_frames"),   # ce
                            "frame_timeout_s"),                              # only a driver reads
                "simulated": ()}
 
-SECTIONS = {"arm": ARM, "pan_tilt": PAN_TILT, "camera": CAMERA}     # the task's cell.<name>
+LIGHTING = Section({
+    "driver": Choice(*LIGHTING_DRIVERS, default="gardasoft"),
+    "host": Text(default=None),
+    "port": Integer(1, 65535, default=GARDASOFT_PORT),
+    "channels": _ChannelCount(),
+    "timeout_s": Number(**POSITIVE, default=1.0),
+}, required=False)
+
+SECTIONS = {"arm": ARM, "pan_tilt": PAN_TILT, "camera": CAMERA, "lighting": LIGHTING}   # the task's cell.<name>
 
 
 def devices_config(file: str | PathLike[str], cell: dict[str, Any], written: dict[str, Any] | None,
                    bit_depth: int) -> DevicesConfig:
-    """The parsed `cell` section's arm, pan_tilt and camera values -> DevicesConfig, after the
-    checks one key alone cannot make (TaskError naming the file and key). `written`: the section
+    """The parsed `cell` section's arm, pan_tilt, camera and lighting values -> DevicesConfig
+    (lighting only when the task wrote the section), after the checks one key alone cannot make
+    (TaskError naming the file and key). `written`: the section
     as the file wrote it, whose non-empty device sections are recorded as `given`; `bit_depth`:
     camera.sensor's, which a pixel format must carry. The base and hand-eye poses go to the
     task's Frames."""
@@ -215,7 +250,8 @@ def devices_config(file: str | PathLike[str], cell: dict[str, Any], written: dic
         speed_rad_s=np.radians(p["speed_deg_s"]), move_timeout_s=p["move_timeout_s"],
         tolerance_ticks=p["tolerance_ticks"])
     camera = _camera_config(file, c, (written or {}).get("camera") or {}, bit_depth)
-    return DevicesConfig(Path(file), arm, pan_tilt, camera, tuple(given))
+    lighting = LightingConfig(**cell["lighting"]) if "lighting" in given else None
+    return DevicesConfig(Path(file), arm, pan_tilt, camera, tuple(given), lighting)
 
 
 def hand_eye(file: str | PathLike[str], arm: dict[str, Any], written: dict[str, Any] | None) -> np.ndarray:
