@@ -17,7 +17,7 @@ TYPED_PACKAGES = ("cell.core", "cell.physics", "cell.task", "cell.devices", "cel
 VAGUE_FIELD_TYPES = ("object", "Any", "typing.Any")
 
 
-def test_mypy_passes(tmp_path):
+def test_mypy_passes():
     """`python -m mypy` on cell, kernels and sim reports no error (its output is the message)."""
     pytest.importorskip("mypy")
     run = subprocess.run([sys.executable, "-m", "mypy", "--cache-dir", str(ROOT / ".mypy_cache")],
@@ -54,8 +54,8 @@ def unannotated(function, is_method):
 
 
 def annotation_gaps(path, root=ROOT):
-    """"file:line name: what is missing" for each public function or method (name without a leading
-    underscore, and __init__) and each dataclass field lacking its annotation or typed vaguely."""
+    """Each gap as "file:line name: what is missing": a public function or method (its name without
+    a leading underscore, or __init__) lacking an annotation, a dataclass field typed vaguely."""
     gaps = []
     where = path.relative_to(root)
 
@@ -66,13 +66,15 @@ def annotation_gaps(path, root=ROOT):
                     continue
                 missing = unannotated(node, owner is not None)
                 if missing:
-                    gaps.append(f"{where}:{node.lineno} {owner + '.' if owner else ''}{node.name}: {', '.join(missing)}")
+                    qualified = f"{owner}.{node.name}" if owner else node.name
+                    gaps.append(f"{where}:{node.lineno} {qualified}: {', '.join(missing)}")
             elif isinstance(node, ast.ClassDef):
                 name = f"{owner}.{node.name}" if owner else node.name
                 if is_dataclass(node):
                     for item in node.body:
-                        if isinstance(item, ast.Assign):
-                            gaps.append(f"{where}:{item.lineno} {name}: field without a type")
+                        if isinstance(item, ast.Assign):      # not a field: a class attribute
+                            gaps.append(f"{where}:{item.lineno} {name}: an attribute without a type "
+                                        "(a field needs one, a constant says ClassVar)")
                         elif (isinstance(item, ast.AnnAssign)
                               and ast.unparse(item.annotation) in VAGUE_FIELD_TYPES):
                             gaps.append(f"{where}:{item.lineno} {name}.{ast.unparse(item.target)}: "
@@ -106,8 +108,10 @@ def test_the_annotation_check_sees_a_gap(tmp_path):
         "@dataclass\n"
         "class Fields:\n"
         "    good: int\n"
-        "    vague: object = None\n")
+        "    vague: object = None\n"
+        "    loose = 0\n")
     gaps = [gap.split(" ", 1)[1] for gap in annotation_gaps(source, tmp_path)]
     assert gaps == ["untyped: x, rest, return", "Thing.method: return", "Thing.static: self",
-                    "Fields.vague: typed object"]
+                    "Fields.vague: typed object",
+                    "Fields: an attribute without a type (a field needs one, a constant says ClassVar)"]
 
