@@ -110,8 +110,8 @@ class GrayInputs:
         self._set_free_cones(np.full(self.count, NO_CONE), None)
         self._lamps_seen = 0
         self.has_free_cones = False
-        self._leading = [self._mesh.id if self._mesh is not None else wp.uint64(0), int(use_shadows), int(bool(cone)),
-                         self.surfaces, sector_cos_wp]
+        self._leading = [self._mesh.id if self._mesh is not None else wp.uint64(0), int(use_shadows),
+                         int(bool(cone)), self.surfaces, sector_cos_wp]
         self._trailing = [funcs.axis_intensity(power_w, cone_angle_rad), profile2d(profile, cone_angle_rad),
                           table2d(table), float(camera_constant), float(pixel_area_m2)]
         self._launches: dict[int, _Batch] = {}       # the kept batches, by lamp count

@@ -132,7 +132,8 @@ def sweep_task(task: Task, names: Iterable[str], reference_settings: PlannerSett
         row["pareto"] = on_front
     ref = {"task": label, "settings": asdict(reference_settings), "time_s": ref_time,
            "candidates": len(one_shot.candidate_grid(task.lamp.rig, reference_settings)[0]),
-           "samples": len(reference.planned_scene.points), "feasible": reference.feasible, "binding": reference.binding,
+           "samples": len(reference.planned_scene.points), "feasible": reference.feasible,
+           "binding": reference.binding,
            "miss": reference.miss,
            "predicted_gray": gray_stats(reference.shot.gray),
            "lamp_position_m": reference.shot.lamp_position.tolist()}

@@ -26,6 +26,10 @@ TANGENT_EPS = 1e-9          # as kernels.funcs.TANGENT_EPS
 _CHUNK = 1 << 19            # rays x triangles per NumPy batch
 
 
+# blocked(origins (R, 3), unit dirs (R, 3), max_dist (R,)) -> bool (R,): a triangle lies on each ray
+RayBlocker = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+
+
 class TriangleMesh(Protocol):
     """A WarpMesh or a trimesh.Trimesh: vertices (V, 3), faces (F, 3)."""
 
@@ -91,7 +95,7 @@ def gray_per_exposure(mesh: TriangleMesh | None, points: ArrayLike, normals: Arr
                       lamp_pos: ArrayLike, lamp_axis: ArrayLike, power_w: float, cone_angle_rad: float,
                       table: ArrayLike, camera_constant: float, pixel_area_m2: float, shadows: bool = True,
                       cone: bool = True, offset_m: float = 1e-5, profile: np.ndarray | None = None,
-                      blocked: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None) -> GrayResult:
+                      blocked: RayBlocker | None = None) -> GrayResult:
     """NumPy version of kernels.gray.gray_per_exposure (same arguments, same GrayResult).
     blocked(origins, dirs, max_dist) -> bool (R,) casts the shadow rays (default: ray_hits_any on
     the mesh; `cell bench` passes Embree's, what a user would write instead of our kernel)."""
