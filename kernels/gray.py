@@ -150,7 +150,7 @@ class _Batch:
     """Buffers and the recorded launch of one lamp count: run copies the lamps in, launches,
     and returns the outputs (copies where the batch is kept for the next call)."""
 
-    def __init__(self, inputs, lamps):
+    def __init__(self, inputs: GrayInputs, lamps: int) -> None:
         shape = (lamps, inputs.count)
         (self.lamp_pos, pos_wp), (self.lamp_axis, axis_wp) = (output((lamps, 3), np.float64, wp.vec3d)
                                                               for _ in range(2))
@@ -163,7 +163,7 @@ class _Batch:
                                     outputs=[out_wp for _, out_wp in self.outputs])
             self._inputs_wp = (pos_wp, axis_wp)         # the launch holds their addresses
 
-    def run(self, lamp_pos, lamp_axis, copy):
+    def run(self, lamp_pos: np.ndarray, lamp_axis: np.ndarray, copy: bool) -> GrayResult:
         self.lamp_pos[:] = lamp_pos
         self.lamp_axis[:] = lamp_axis
         if self.launch is not None:

@@ -12,7 +12,10 @@ ROOT = Path(__file__).resolve().parent.parent
 
 # the packages whose public functions, methods and dataclass fields must be annotated
 TYPED_PACKAGES = ("cell.core", "cell.physics", "cell.task", "cell.devices", "cell.planning", "cell.bench",
-                  "cell.cli", "sim")
+                  "cell.cli", "sim", "kernels")
+# Warp's @wp.func and @wp.kernel are typed in Warp's kernel language, which Warp checks (a kernel
+# returns nothing and says so by no annotation)
+WARP_DECORATORS = ("wp.func", "wp.kernel")
 # a field typed so says nothing: its real type belongs in the annotation
 VAGUE_FIELD_TYPES = ("object", "Any", "typing.Any")
 
@@ -30,12 +33,9 @@ def package_files(package):
     return sorted(folder.rglob("*.py"))
 
 
-def is_dataclass(node):
-    for decorator in node.decorator_list:
-        target = decorator.func if isinstance(decorator, ast.Call) else decorator
-        if ast.unparse(target) in ("dataclass", "dataclasses.dataclass"):
-            return True
-    return False
+def decorated(node, names):
+    """Whether a decorator of node is one of names, called (`@dataclass(frozen=True)`) or not."""
+    return any(ast.unparse(d.func if isinstance(d, ast.Call) else d) in names for d in node.decorator_list)
 
 
 def unannotated(function, is_method):
@@ -62,7 +62,7 @@ def annotation_gaps(path, root=ROOT):
     def visit(body, owner):
         for node in body:
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
-                if node.name.startswith("_") and node.name != "__init__":
+                if (node.name.startswith("_") and node.name != "__init__") or decorated(node, WARP_DECORATORS):
                     continue
                 missing = unannotated(node, owner is not None)
                 if missing:
@@ -70,7 +70,7 @@ def annotation_gaps(path, root=ROOT):
                     gaps.append(f"{where}:{node.lineno} {qualified}: {', '.join(missing)}")
             elif isinstance(node, ast.ClassDef):
                 name = f"{owner}.{node.name}" if owner else node.name
-                if is_dataclass(node):
+                if decorated(node, ("dataclass", "dataclasses.dataclass")):
                     for item in node.body:
                         if isinstance(item, ast.Assign):      # not a field: a class attribute
                             gaps.append(f"{where}:{item.lineno} {name}: an attribute without a type "
@@ -105,6 +105,8 @@ def test_the_annotation_check_sees_a_gap(tmp_path):
         "    def method(self, a: int): ...\n"
         "    @staticmethod\n"
         "    def static(self) -> None: ...\n"
+        "@wp.kernel\n"
+        "def launched(a: wp.array(dtype=float)): ...\n"
         "@dataclass\n"
         "class Fields:\n"
         "    good: int\n"
