@@ -4,25 +4,28 @@ file) and `reference-part` (a shutter sweep on a reference part, c against the t
 a cross-check), and the camera's intrinsics and hand-eye: `hand-eye` (views of a ChArUco board;
 writes a hand-eye file tasks reference). Exit 0 measured, 1 infeasible plan, an untrustworthy series or
 too few views of the board, 2 bad input (an unknown routine: cell.cli's parser), 3 device fault."""
+
+from __future__ import annotations
+
+import argparse
 import sys
 from pathlib import Path
 
 import numpy as np
 
 from cell.run import backends
-
 from cell.core import jsonio
 from cell.cli import create_folder, one_feature, output_folder
 from cell.core.errors import TaskError
 from cell.task.loader import load_task
 from cell.devices.operator import Operator
 
-def command(args):
+def command(args: argparse.Namespace) -> int:
     routine = {"camera-constant": camera_constant, "reference-part": reference_part, "hand-eye": hand_eye}
     return routine[args.routine](args)
 
 
-def camera_constant(args):
+def camera_constant(args: argparse.Namespace) -> int:
     from cell.calibration import camera_constant as routine
 
     if args.shots < routine.MIN_FRAMES:
@@ -57,7 +60,7 @@ def camera_constant(args):
     return 0
 
 
-def reference_part(args):
+def reference_part(args: argparse.Namespace) -> int:
     from cell.calibration.reference_part import MIN_SHOTS, run
 
     if args.shots < MIN_SHOTS:
@@ -85,7 +88,7 @@ def reference_part(args):
     return 0
 
 
-def hand_eye(args):
+def hand_eye(args: argparse.Namespace) -> int:
     from cell.calibration import hand_eye as routine
     from cell.calibration.camera_constant import check_camera_file
 

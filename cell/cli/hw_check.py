@@ -1,6 +1,10 @@
 """`cell hw-check TASK [--json]`: connect to each real device of the task's `cell` section, read and
 print its state, move and set nothing; exit 0 when every device answered and reports nothing a
 run would stop on, 3 otherwise (each such device named with its address), 2 for bad input."""
+
+from __future__ import annotations
+
+import argparse
 import sys
 
 import numpy as np
@@ -78,7 +82,7 @@ def _lines(check):
     return lines
 
 
-def command(args):
+def command(args: argparse.Namespace) -> int:
     task = load_task(args.task)
     checks = check_hw_devices(task)
     if args.json:

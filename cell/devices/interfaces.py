@@ -6,15 +6,27 @@ Every motion is checked against the envelope and speed limits here, in the inter
 backend sees it, so no backend can skip the check. A refused or failed command raises
 DeviceFault; state is read back from the device, never assumed.
 """
+
+from __future__ import annotations
+
 from abc import ABC, abstractmethod
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from cell.core.errors import DeviceFault
 from cell.devices.rig import lamp_aim, lamp_position
 from cell.devices.session import try_all
+
+if TYPE_CHECKING:
+    from cell.core.frames import Frames
+    from cell.devices.operator import Operator
+    from cell.task.device_config import ArmConfig
+    from cell.task.types import LampRig as LampRigModel
 
 __all__ = ["Arm", "LampRig", "Camera", "LightController", "Devices", "check_arm_motion", "speaking_for"]
 
@@ -24,7 +36,7 @@ LIBRARY_ERRORS = (OSError, RuntimeError, EOFError)
 
 
 @contextmanager
-def speaking_for(device):
+def speaking_for(device: Arm | LampRig | Camera) -> Iterator[None]:
     """Device calls inside this block: whatever the device's library raises becomes a DeviceFault
     naming the device (`device.device`), so the run stops safely and exits 3, never a traceback."""
     try:
@@ -33,7 +45,7 @@ def speaking_for(device):
         raise DeviceFault(device.device, f"{type(err).__name__}: {err}") from err
 
 
-def check_arm_motion(config, frames, T_cell_cam, speed_m_s):
+def check_arm_motion(config: ArmConfig, frames: Frames, T_cell_cam: ArrayLike, speed_m_s: float) -> None:
     """Refuse (DeviceFault) a camera pose whose camera or flange (by the frames' hand-eye) leaves
     the workspace box, a matrix that is not a rigid transform, or a speed above the limit -
     before anything moves."""
@@ -58,17 +70,17 @@ class Arm(ABC):
 
     device = "arm"
 
-    def __init__(self, config, frames):
+    def __init__(self, config: ArmConfig, frames: Frames) -> None:
         self.config, self.frames = config, frames
 
-    def move_camera(self, T_cell_cam, speed_m_s=None):
+    def move_camera(self, T_cell_cam: np.ndarray, speed_m_s: float | None = None) -> None:
         """Move so the camera frame is at T_cell_cam; returns when there, raises DeviceFault on
         limits, unreachable poses or a device error."""
         speed = self.config.speed_m_s if speed_m_s is None else speed_m_s
         check_arm_motion(self.config, self.frames, T_cell_cam, speed)
         self._move_tcp(self.frames.T_base_cam(T_cell_cam), speed)
 
-    def refusal(self, T_cell_cam, speed_m_s=None):
+    def refusal(self, T_cell_cam: np.ndarray, speed_m_s: float | None = None) -> str | None:
         """Why move_camera would refuse this pose (the envelope's check, then the backend's reach),
         or None; moves nothing. A backend without kinematics of its own finds out when it moves."""
         speed = self.config.speed_m_s if speed_m_s is None else speed_m_s
@@ -82,7 +94,7 @@ class Arm(ABC):
         """Why the robot cannot put the camera at T_base_cam (None: it can, or cannot tell)."""
         return None
 
-    def camera_pose(self):
+    def camera_pose(self) -> np.ndarray:
         """The actual T_cell_cam, read back from the device."""
         return self.frames.T_cell_cam_from_base(self._tcp_pose())
 
@@ -95,15 +107,15 @@ class Arm(ABC):
         """Actual T_base_cam."""
 
     @abstractmethod
-    def stop(self):
+    def stop(self) -> None:
         """Stop any motion now."""
 
-    def state(self):
+    def state(self) -> dict[str, Any]:
         """What the arm reports, read back and JSON-ready (`cell hw-check`); reads only. A backend
         that knows more (modes, joints) says more; `problems`: what a run would stop on."""
         return {"camera_pose": self.camera_pose().tolist(), "problems": []}
 
-    def close(self):
+    def close(self) -> None:
         """Release the connection (after stop)."""
 
 
@@ -121,14 +133,14 @@ class LampRig(ABC):
 
     device = "pan-tilt"
 
-    def __init__(self, rig, operator):
+    def __init__(self, rig: LampRigModel, operator: Operator) -> None:
         self.rig, self.operator = rig, operator
         self.manual_radius = rig.radius_axis == "manual"
         self._confirmed_radius = float("nan")      # manual radius: what the operator confirmed
         if self.manual_radius:
             operator.require(self.device, "the lamp radius (radius_axis: manual)")
 
-    def move(self, pan_rad, tilt_rad, radius_m):
+    def move(self, pan_rad: float, tilt_rad: float, radius_m: float) -> None:
         """Move to the joints (checked against the rig's ranges first); a manual radius is then
         set by the operator."""
         pan = self._in_range(pan_rad, tilt_rad, radius_m)
@@ -148,7 +160,7 @@ class LampRig(ABC):
         _check_range(self.device, "radius", radius_m, self.rig.radius_range_m)
         return pan
 
-    def refusal(self, pan_rad, tilt_rad, radius_m):
+    def refusal(self, pan_rad: float, tilt_rad: float, radius_m: float) -> str | None:
         """Why move would refuse these joints (outside the rig's ranges), or None; moves nothing."""
         try:
             self._in_range(pan_rad, tilt_rad, radius_m)
@@ -156,12 +168,12 @@ class LampRig(ABC):
             return refused.reason
         return None
 
-    def joints(self):
+    def joints(self) -> tuple[float, float, float]:
         """(pan, tilt, radius) read back; a manual radius is the one the operator confirmed."""
         pan, tilt, radius = self._read_axes()
         return pan, tilt, self._confirmed_radius if self.manual_radius else radius
 
-    def lamp_pose(self):
+    def lamp_pose(self) -> tuple[np.ndarray, np.ndarray]:
         """(position, aim) of the lamp in the cell frame from the read-back joints."""
         position = lamp_position(self.rig.pivot_m, *self.joints())
         return position, lamp_aim(self.rig.pivot_m, position)
@@ -175,17 +187,17 @@ class LampRig(ABC):
         """(pan, tilt, radius or None) as the device reports them."""
 
     @abstractmethod
-    def stop(self, fault_is_own=False):
+    def stop(self, fault_is_own: bool = False) -> None:
         """Hold position with torque on; torque off only if the fault is the servos' own."""
 
-    def state(self):
+    def state(self) -> dict[str, Any]:
         """The read-back joints [rad, m], JSON-ready (`cell hw-check`); reads only. `problems`:
         what a run would stop on."""
         pan, tilt, radius = self.joints()
         return {"pan_rad": float(pan), "tilt_rad": float(tilt),
                 "radius_m": None if radius is None or np.isnan(radius) else float(radius), "problems": []}
 
-    def close(self):
+    def close(self) -> None:
         """Release the port (after stop)."""
 
 
@@ -195,37 +207,37 @@ class Camera(ABC):
 
     device = "camera"
 
-    def __init__(self, bit_depth):
+    def __init__(self, bit_depth: int) -> None:
         self.bit_depth = bit_depth
-        self.shutter_s = None
-        self.f_number = None
-        self.focus_m = None
+        self.shutter_s: float | None = None
+        self.f_number: float | None = None
+        self.focus_m: float | None = None
 
     @abstractmethod
-    def set_exposure(self, shutter_s):
+    def set_exposure(self, shutter_s: float) -> float:
         """Set the shutter time; returns the one the camera actually uses [s]."""
 
     @abstractmethod
-    def set_aperture(self, f_number):
+    def set_aperture(self, f_number: float) -> None:
         """Set the f-number (motorized, or by the operator)."""
 
     @abstractmethod
-    def set_focus(self, focus_m):
+    def set_focus(self, focus_m: float) -> None:
         """Focus the lens at this distance along the optical axis [m] (motorized, or by the
         operator)."""
 
     @abstractmethod
-    def capture(self):
+    def capture(self) -> np.ndarray:
         """One gray image (H, W) as uint8 (bit depth <= 8) or uint16."""
 
-    def state(self):
+    def state(self) -> dict[str, Any]:
         """What the camera reports, JSON-ready (`cell hw-check`); sets nothing. A backend that
         can ask the device (model, pixel format, exposure range) says more; `problems`: what a run
         would stop on."""
         return {"bit_depth": self.bit_depth, "shutter_s": self.shutter_s, "f_number": self.f_number,
                 "focus_m": self.focus_m, "problems": []}
 
-    def close(self):
+    def close(self) -> None:
         """Release the camera."""
 
 
@@ -302,7 +314,7 @@ class Devices:
     camera: Camera
     lights: LightController | None = None
 
-    def safe_stop(self, fault=None):
+    def safe_stop(self, fault: BaseException | None = None) -> list[str]:
         """Stop the arm, hold the servos (torque off only for their own fault), close the camera,
         turn every light channel off. Every step is tried; returns the messages of steps that
         failed, in turn."""
@@ -310,12 +322,12 @@ class Devices:
         steps = (self.arm.stop, lambda: self.lamp.stop(fault_is_own=lamp_faulted), self.camera.close)
         return try_all(steps + ((self.lights.all_off,) if self.lights else ()))
 
-    def close(self):
+    def close(self) -> list[str]:
         """Release everything after a normal end (the lights turned off first)."""
         lights = (self.lights.all_off, self.lights.close) if self.lights else ()
         return try_all((self.arm.close, self.lamp.close, self.camera.close) + lights)
 
-    def releases(self) -> tuple:
+    def releases(self) -> tuple[Callable[[], object], ...]:
         """The connections to release after a safe stop: the arm's, the servos' and the lighting
         controller's."""
         return (self.arm.close, self.lamp.close) + ((self.lights.close,) if self.lights else ())
