@@ -20,7 +20,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any, Callable, ClassVar
 
 import numpy as np
 from scipy.ndimage import uniform_filter
@@ -319,8 +319,8 @@ class LaserCalibration(Result):
     spot's window, the camera file and the black level of the dark frames. calibration.json is
     to_json(), with `reason` (the message) as well."""
 
-    SUCCEEDED = "calibrated"
-    NOT_REACHED = "not_calibrated"
+    SUCCEEDED: ClassVar[str] = "calibrated"
+    NOT_REACHED: ClassVar[str] = "not_calibrated"
 
     task: str
     laser_power_w: float
@@ -334,6 +334,21 @@ class LaserCalibration(Result):
     fault: dict[str, Any] | None = None
     black_level: measurement.BlackLevel | None = None
     cause: str | None = None
+
+    @property
+    def laser_fit(self) -> LaserFit:
+        """The fit of a successful calibration (ValueError on one that made none)."""
+        return self._made(self.fit, "laser fit")
+
+    @property
+    def dark_black_level(self) -> measurement.BlackLevel:
+        """The black level of the dark frames (ValueError when the routine took none)."""
+        return self._made(self.black_level, "black level")
+
+    @property
+    def written_camera_file(self) -> str:
+        """The camera file a successful calibration wrote (ValueError when it wrote none)."""
+        return self._made(self.camera_file, "camera file")
 
     def fitted(self) -> dict[str, float]:
         """c, its standard error, the linearity and the frames used ({} without a fit)."""

@@ -22,7 +22,7 @@ from __future__ import annotations
 from dataclasses import asdict, astuple, dataclass, replace
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any, Callable, ClassVar
 
 import numpy as np
 import trimesh
@@ -141,8 +141,8 @@ def refusal(devices: Devices, task: Task, pose: Pose) -> tuple[np.ndarray, tuple
     """(T_cell_cam, lamp joints, why the arm or the rig would refuse the pose or None)."""
     pivot, gonio = np.asarray(task.lamp.rig.pivot_m, float), task.calibration.goniometer
     T = look_at(pivot + task.camera.distance_m * np.asarray(pose.to_camera), pivot)
-    joints = lamp_joints(pivot, pivot + gonio.lamp_radius_m * np.asarray(pose.to_lamp))
-    joints = tuple(float(j) for j in joints)
+    pan, tilt, radius = lamp_joints(pivot, pivot + gonio.lamp_radius_m * np.asarray(pose.to_lamp))
+    joints = (float(pan), float(tilt), float(radius))     # one pose's: 0-d arrays as floats
     why = devices.arm.refusal(T)
     why = why and f"arm: {why}"
     lamp = devices.lamp.refusal(*joints)
@@ -315,8 +315,8 @@ class Goniometry(Result):
     failed [(pose, reason)], the material document written. measurement.json is to_json(), with
     `reason` (the message) as well."""
 
-    SUCCEEDED = "measured"
-    NOT_REACHED = "not_measured"
+    SUCCEEDED: ClassVar[str] = "measured"
+    NOT_REACHED: ClassVar[str] = "not_measured"
 
     task: str
     success: bool
@@ -334,6 +334,11 @@ class Goniometry(Result):
     def counters(self) -> dict[str, int]:
         return {"poses": self.poses, "readings": len(self.readings), "refused": len(self.refused),
                 "failed": len(self.failed)}
+
+    @property
+    def measured_material(self) -> dict[str, Any]:
+        """The material document of a successful measurement (ValueError on one that fitted none)."""
+        return self._made(self.material, "material")
 
     def summary(self) -> dict[str, Any]:
         """--json's keys: the material's table and standard errors, what is unresolved."""

@@ -24,7 +24,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any, Callable, ClassVar
 
 import cv2
 import numpy as np
@@ -407,8 +407,8 @@ class HandEyeCalibration(Result):
     (refined) and each method's, the views, the poses refused and the hand-eye file.
     calibration.json is to_json(), with `reason` (the message) as well."""
 
-    SUCCEEDED = "calibrated"
-    NOT_REACHED = "not_calibrated"
+    SUCCEEDED: ClassVar[str] = "calibrated"
+    NOT_REACHED: ClassVar[str] = "not_calibrated"
 
     task: str
     success: bool
@@ -422,6 +422,26 @@ class HandEyeCalibration(Result):
     hand_eye_file: str | None = None
     fault: dict[str, Any] | None = None
     cause: str | None = None
+
+    @property
+    def solved_hand_eye(self) -> HandEye:
+        """The refined hand-eye of a successful calibration (ValueError on one that solved none)."""
+        return self._made(self.hand_eye, "hand-eye")
+
+    @property
+    def solved_methods(self) -> dict[str, HandEye]:
+        """Each method's hand-eye of a successful calibration (ValueError on one that solved none)."""
+        return self._made(self.methods, "hand-eye of each method")
+
+    @property
+    def calibrated_intrinsics(self) -> Intrinsics:
+        """The intrinsics of a successful calibration (ValueError on one that calibrated none)."""
+        return self._made(self.intrinsics, "intrinsics")
+
+    @property
+    def written_hand_eye_file(self) -> str:
+        """The hand-eye file a successful calibration wrote (ValueError when it wrote none)."""
+        return self._made(self.hand_eye_file, "hand-eye file")
 
     def fitted(self) -> dict[str, Any]:
         """The hand-eye's position and angles, the focal length and the reprojection error ({}

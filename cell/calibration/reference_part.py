@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Iterator
+from typing import TYPE_CHECKING, Any, Callable, ClassVar, Iterator
 
 import numpy as np
 
@@ -121,7 +121,8 @@ def sweep(task: Task, plan: Plan, devices: Devices, recorder: Recorder, shots: i
     power = signal / (task.camera.sensor.camera_constant * shot.exposure.shutter_s)
     for k, wanted in enumerate(times, 1):
         capture = acquire(devices, recorder, k, wanted, shot.exposure.f_number, shot.exposure.focus_m)
-        _, _, inside, gray = measurement.read_samples(capture.image, task, capture.T_cell_cam, plan.scene.points)
+        _, _, inside, gray = measurement.read_samples(capture.image, task, capture.T_cell_cam,
+                                                      plan.planned_scene.points)
         seen = gray[inside]
         record = ShotRecord(capture.shutter_s, shot.exposure.f_number, float(seen.min()), float(seen.mean()),
                             float(seen.max()), int(seen.size), int(np.sum(seen >= full_scale)),
@@ -138,8 +139,8 @@ class CalibrationResult(Result):
     `message`, why not; the device fault), the Fit, its ratio to the task's c, every shot and
     the plan. calibration.json is to_json(), with `reason` (the message) as well."""
 
-    SUCCEEDED = "calibrated"
-    NOT_REACHED = "not_calibrated"
+    SUCCEEDED: ClassVar[str] = "calibrated"
+    NOT_REACHED: ClassVar[str] = "not_calibrated"
 
     task: str
     camera_constant_task: float
@@ -150,6 +151,11 @@ class CalibrationResult(Result):
     fit: Fit | None = None
     fault: dict[str, Any] | None = None
     cause: str | None = None
+
+    @property
+    def camera_fit(self) -> Fit:
+        """The fit of a successful calibration (ValueError on one that made none)."""
+        return self._made(self.fit, "fit of c")
 
     @property
     def camera_constant_ratio(self) -> float | None:
@@ -180,14 +186,23 @@ def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices], shots:
         return CalibrationResult(str(task.path), c_model, fit is not None and not reason, reason, recorder.plan,
                                  tuple(records), fit, fault)
 
+    # the Devices connect(scene) opened: the session holds them too, but as a Held (cell.devices.session
+    # sits below cell.devices.interfaces), which has no camera
+    opened: list[Devices] = []
+
+    def connect_scene(scene: Scene) -> Devices:
+        opened.append(connect(scene))
+        return opened[-1]
+
     with Recorder(out) as recorder, Ending(recorder, "no fit", "calibration.json", result) as end:
         with end.session:
-            planned = plan_and_connect(task, recorder, end.session, connect)
-            for record in sweep(task, planned, end.session.devices, recorder, shots):
+            planned = plan_and_connect(task, recorder, end.session, connect_scene)
+            devices = opened[-1]
+            for record in sweep(task, planned, devices, recorder, shots):
                 records.append(record)
         exposures = np.array([r.exposure for r in records])
         grays = np.array([r.gray for r in records])
-        fit = fit_camera_constant(exposures, grays, saturation_level(end.session.devices.camera.bit_depth))
+        fit = fit_camera_constant(exposures, grays, saturation_level(devices.camera.bit_depth))
         write_calibration(out / "calibration.png", exposures, grays, fit, c_model)
         if fit is None:
             n = sum(r.samples for r in records)

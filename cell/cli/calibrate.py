@@ -44,18 +44,19 @@ def camera_constant(args: argparse.Namespace) -> int:
     create_folder(out)
     result = routine.run(task, out, lambda: backends.open_devices(task, None, backend, yes=args.yes, laser=laser),
                          laser, camera_file, args.shots, args.force)
-    fit = result.fit
     if args.json:
         print(jsonio.dumps(result.summary(), indent=2))
         return 0
+    # routine.run returns only once it has calibrated (else it raises): its fit, black level and file are there
+    fit, black = result.laser_fit, result.dark_black_level
     c_task = result.camera_constant_task
     print(f"camera constant c = {fit.camera_constant:.5g} +- {fit.camera_constant_stderr:.2g} 1/(W s) "
           f"({fit.camera_constant / c_task:.3f} x the task's {c_task:.5g}); linearity r2 {fit.r_squared:.6f}, "
           f"{fit.frames_used} frames ({fit.frames_saturated} saturated, {fit.frames_too_dark} too dark left out)")
-    print(f"black level {result.black_level.value:.2f} gray, noise {result.black_level.noise_rms:.2f} rms (the dark "
+    print(f"black level {black.value:.2f} gray, noise {black.noise_rms:.2f} rms (the dark "
           "frames at the shortest shutter time)")
-    print(f"  wrote {result.camera_file}: a task uses it as camera: {{sensor: "
-          f"{Path(result.camera_file).name}, ...}} (relative to the task file)")
+    print(f"  wrote {result.written_camera_file}: a task uses it as camera: {{sensor: "
+          f"{Path(result.written_camera_file).name}, ...}} (relative to the task file)")
     print(f"  wrote {out}/calibration.json, calibration.png, log.jsonl and {len(result.frames)} captures")
     return 0
 
@@ -75,7 +76,7 @@ def reference_part(args: argparse.Namespace) -> int:
                        "the camera constant is measured against its material table")
     create_folder(out)
     result = run(task, out, lambda scene: backends.open_devices(task, scene, backend, yes=args.yes), args.shots)
-    fit = result.fit
+    fit = result.camera_fit                  # run returns only once it has fitted c (else it raises)
     print(f"camera constant c = {fit.camera_constant:.5g} +- {fit.stderr:.2g} 1/(W s) "
           f"({result.camera_constant_ratio:.3f} x the task's {c_model:.5g}); black level "
           f"{fit.black_level:.2f}, linearity r2 {fit.r2:.5f}, {fit.used} pairs "
@@ -112,13 +113,14 @@ def hand_eye(args: argparse.Namespace) -> int:
     if args.json:
         print(jsonio.dumps(result.summary(), indent=2))
         return 0
-    h, k = result.hand_eye, result.intrinsics
+    # routine.run returns only once it has solved the hand-eye (else it raises)
+    h, k = result.solved_hand_eye, result.calibrated_intrinsics
     views = sum(v.usable for v in result.views)
     print(f"hand-eye T_flange_cam: position {np.round(1e3 * h.position_m, 3).tolist()} mm, rpy "
           f"{np.round(h.rpy_deg, 3).tolist()} deg ({h.method}); board pose spread over the views "
           f"{1e3 * h.board_spread_m:.3f} mm, {np.degrees(h.board_spread_rad):.3f} deg; corners reprojected through "
           f"it {h.reprojection_error_px:.3f} px rms")
-    for name, other in result.methods.items():
+    for name, other in result.solved_methods.items():
         dp = 1e3 * np.linalg.norm(other.position_m - h.position_m)
         print(f"  {name:<10} {np.round(1e3 * other.position_m, 3).tolist()} mm, {dp:.3f} mm from the result; "
               f"reprojected {other.reprojection_error_px:.3f} px rms")
@@ -126,8 +128,8 @@ def hand_eye(args: argparse.Namespace) -> int:
     print(f"camera: focal length {h.focal_length_px:.1f} px ({h.focal_length_px / f_task:.4f} x the task's "
           f"{f_task:.1f} px; calibrateCamera {k.focal_length_px:.1f} px, reprojection error {k.rms_px:.3f} px); "
           f"{views} views ({len(result.refused)} viewpoints refused by the arm)")
-    print(f"  wrote {result.hand_eye_file}: a task uses it as cell: {{arm: {{hand_eye: "
-          f"{Path(result.hand_eye_file).name}}}}} (relative to the task file)")
+    print(f"  wrote {result.written_hand_eye_file}: a task uses it as cell: {{arm: {{hand_eye: "
+          f"{Path(result.written_hand_eye_file).name}}}}} (relative to the task file)")
     print(f"  wrote {out}/calibration.json, log.jsonl and {len(result.views)} board-N.png frames with the corners "
           f"drawn")
     return 0

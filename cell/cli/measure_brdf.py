@@ -33,7 +33,7 @@ def command(args: argparse.Namespace) -> int:
     if args.json:
         print(jsonio.dumps(result.summary(), indent=2))
         return 0
-    doc = result.material
+    doc = result.measured_material          # goniometer.run returns only once it is measured
     for i, phase in enumerate(doc["phase_deg"]):
         print(f"phase {phase:g} deg: " + ", ".join(
             f"{k} {doc[k][i]:.4g} +- {doc[k + '_stderr'][i]:.2g}" for k in ("rho", "sigma1", "m1", "sigma2", "m2")))

@@ -8,10 +8,15 @@ Drawn through matplotlib's object API (a Figure per picture, saved by its own ca
 figure state and no backend to select, so drawing is safe in worker processes, and a figure is
 freed with its last reference; threads draw one picture at a time (_DRAWING).
 """
+from __future__ import annotations
+
 import functools
+import os
 import threading
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, ParamSpec, Protocol, TypeVar
 
 import cv2
 import numpy as np
@@ -32,6 +37,72 @@ from cell.physics import projection
 from cell.devices import rig
 from cell.physics import brdf
 
+if TYPE_CHECKING:
+    from cell.physics.material import Material
+    from cell.planning.plan import Plan
+    from cell.planning.scene import Scene
+    from cell.task.types import Task
+
+PathLike = str | os.PathLike[str]
+
+
+# What the pictures read of the results of the stages above this one (cell.run, cell.calibration),
+# which cell.report may not import: each named for the class it stands for.
+class CameraConstantFit(Protocol):
+    """cell.calibration.reference_part.Fit: G = b + c P t."""
+    @property
+    def camera_constant(self) -> float: ...
+    @property
+    def black_level(self) -> float: ...
+
+
+class LaserFit(Protocol):
+    """cell.calibration.camera_constant.LaserFit: S = offset + c P t."""
+    @property
+    def offset(self) -> float: ...
+    @property
+    def camera_constant(self) -> float: ...
+    @property
+    def camera_constant_stderr(self) -> float: ...
+    @property
+    def r_squared(self) -> float: ...
+
+
+class LaserFrame(Protocol):
+    """cell.calibration.camera_constant.Frame: a frame of the laser's sweep."""
+    @property
+    def shutter_s(self) -> float: ...
+    @property
+    def spot_sum(self) -> float | None: ...
+    @property
+    def saturated(self) -> bool: ...
+    @property
+    def too_dark(self) -> bool: ...
+    @property
+    def usable(self) -> bool: ...
+
+
+class GoniometerReading(Protocol):
+    """cell.calibration.goniometer.Reading: R at one pose."""
+    @property
+    def phase_deg(self) -> float: ...
+    @property
+    def beta_deg(self) -> float: ...
+    @property
+    def reflectance(self) -> float: ...
+
+
+class MeasuredRegion(Protocol):
+    """cell.run.measurement.Measurement: the feature's pixels in a capture."""
+    @property
+    def saturated(self) -> np.ndarray: ...
+    @property
+    def region(self) -> np.ndarray: ...
+    @property
+    def row(self) -> np.ndarray: ...
+    @property
+    def col(self) -> np.ndarray: ...
+
 
 # Fixed margins fit these figure sizes and labels: tight_layout would cost a layout pass each.
 MARGINS = {"left": 0.08, "right": 0.98, "bottom": 0.12, "top": 0.93}
@@ -43,9 +114,13 @@ PNG = {"compress_level": 1}     # zlib: lossless like the default, at a fraction
 _DRAWING = threading.RLock()      # reentrant: a picture may draw another
 
 
-def _one_at_a_time(write):
+P = ParamSpec("P")
+Drawn = TypeVar("Drawn")      # what a picture function returns
+
+
+def _one_at_a_time(write: Callable[P, Drawn]) -> Callable[P, Drawn]:
     @functools.wraps(write)
-    def locked(*args, **kwargs):
+    def locked(*args: P.args, **kwargs: P.kwargs) -> Drawn:
         with _DRAWING:
             return write(*args, **kwargs)
     return locked
@@ -71,12 +146,14 @@ def _axes(ax, title):
 
 
 @_one_at_a_time
-def write_plan_pictures(plan, task, scene, out_dir):
+def write_plan_pictures(plan: Plan, task: Task, scene: Scene, out_dir: PathLike) -> list[Path]:
     """Write visibility_brdf.png, regions.png and cost.png into out_dir; return their paths."""
     out_dir = Path(out_dir)
     m = plan.maps
-    extent = [np.degrees(m.grid.azimuth[0]), np.degrees(m.grid.azimuth[-1]),
-              np.degrees(m.grid.elevation[0]), np.degrees(m.grid.elevation[-1])]
+    if m is None:
+        raise ValueError("a multi-feature plan has no maps of its own: its features' plans have theirs")
+    extent = (float(np.degrees(m.grid.azimuth[0])), float(np.degrees(m.grid.azimuth[-1])),
+              float(np.degrees(m.grid.elevation[0])), float(np.degrees(m.grid.elevation[-1])))
     paths = []
 
     fig = Figure(figsize=(9, 4.8))
@@ -152,8 +229,8 @@ class DrawnShot:
     lamp_m: np.ndarray
     aim_m: np.ndarray
     color: str
-    camera_px: tuple
-    lamp_px: tuple
+    camera_px: tuple[float, float]
+    lamp_px: tuple[float, float]
 
 
 @dataclass(frozen=True)
@@ -161,11 +238,12 @@ class CellPicture:
     """cell.png's path, its shots as drawn and its features (name, colour, covering shot or None)."""
 
     path: Path
-    shots: tuple
-    features: tuple
+    shots: tuple[DrawnShot, ...]
+    features: tuple[tuple[str, str, int | None], ...]
 
 
-def display_mesh(vertices, faces, max_faces, split=None):
+def display_mesh(vertices: np.ndarray, faces: np.ndarray, max_faces: int,
+                 split: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """A mesh for drawing: beyond max_faces merged by vertex clustering (each cell of a grid, sized
     for about max_faces facets over the surface area, becomes its vertices' mean; facets that
     collapse or repeat dropped: a dense curved surface thins, a big flat facet's corners stay
@@ -311,7 +389,7 @@ def _legend(fig, shots, names, features, covered, lamp_rig):
 
 
 @_one_at_a_time
-def write_cell(path, plan, task):
+def write_cell(path: PathLike, plan: Plan, task: Task) -> CellPicture:
     """cell.png: the cell of a plan in two views. Left, the whole cell [m]: the part, each shot's
     camera (square) with its frustum to the focus distance (the image's corners there: the pinhole's
     W p d / f by H p d / f), its lamp (dot) with a dashed line to the aim point (the rig's pivot),
@@ -348,7 +426,8 @@ def write_cell(path, plan, task):
 
 
 @_one_at_a_time
-def write_convergence(path, iterations, band, refits=()):
+def write_convergence(path: PathLike, iterations: Sequence[dict[str, Any]], band: tuple[float, float],
+                      refits: Iterable[dict[str, Any]] = ()) -> None:
     """The closed loop at a glance: per capture the measured gray range (bar) and mean (dot) over
     the feature's pixels, the model's prediction (open diamonds: min, max), the gray band shaded,
     the correction taken written under each capture; each refit's probe shots (their raw gray
@@ -392,7 +471,8 @@ def write_convergence(path, iterations, band, refits=()):
 
 
 @_one_at_a_time
-def write_calibration(path, exposures, grays, fit, c_model):
+def write_calibration(path: PathLike, exposures: np.ndarray, grays: np.ndarray, fit: CameraConstantFit | None,
+                      c_model: float) -> None:
     """cell calibrate's fit: G over the model's P t, the fitted line and the line the task's c
     predicts."""
     fig = Figure(figsize=(6, 4))
@@ -411,7 +491,8 @@ def write_calibration(path, exposures, grays, fit, c_model):
 
 
 @_one_at_a_time
-def write_laser_fit(path, frames, fit, c_task, power_w):
+def write_laser_fit(path: PathLike, frames: Iterable[LaserFrame], fit: LaserFit | None, c_task: float,
+                    power_w: float) -> None:
     """cell calibrate camera-constant's fit: the spot's summed gray S over the shutter time, the
     frames fitted, those left out (saturated, too dark), the fitted line and the task's c P t."""
     fig = Figure(figsize=(6, 4))
@@ -421,7 +502,9 @@ def write_laser_fit(path, frames, fit, c_task, power_w):
                                ("too dark, left out", "s", lambda f: f.too_dark and not f.saturated)):
         chosen = [f for f in summed if pick(f)]
         if chosen:
-            ax.plot([1e3 * f.shutter_s for f in chosen], [f.spot_sum for f in chosen], style, mfc="none", label=label)
+            # every frame of `summed` has its sum: the condition only says so to mypy
+            ax.plot([1e3 * f.shutter_s for f in chosen], [f.spot_sum for f in chosen if f.spot_sum is not None],
+                    style, mfc="none", label=label)
     t = np.linspace(0.0, max((f.shutter_s for f in summed), default=1e-3), 2)
     ax.plot(1e3 * t, c_task * power_w * t, "--", label=f"the task's c P t, c = {c_task:.5g}")
     if fit:
@@ -435,7 +518,7 @@ def write_laser_fit(path, frames, fit, c_task, power_w):
 
 
 @_one_at_a_time
-def write_goniometer_fit(path, readings, material):
+def write_goniometer_fit(path: PathLike, readings: Sequence[GoniometerReading], material: Material) -> None:
     """cell measure-brdf's fit: R over the half-angle tilt beta per phase angle, measured (points)
     and the fitted material (lines), on a log scale (the spike over the diffuse)."""
     from cell.physics.brdf import reflectance
@@ -458,7 +541,7 @@ def write_goniometer_fit(path, readings, material):
 
 
 @_one_at_a_time
-def write_bench(path, settings):
+def write_bench(path: PathLike, settings: Sequence[dict[str, Any]]) -> None:
     """cell bench's rows: gray error vs warm time, log-log, a marker set per task, its Pareto
     front as a line and the default setting ringed."""
     floor = 1e-3                    # a zero error still shows on the log axis
@@ -488,7 +571,7 @@ def write_bench(path, settings):
     fig.savefig(path, dpi=110)
 
 
-def annotate_capture(image, m, bit_depth, caption):
+def annotate_capture(image: np.ndarray, m: MeasuredRegion, bit_depth: int, caption: str) -> np.ndarray:
     """8-bit colour copy of a capture (OpenCV): the measured region (measurement.Measurement)
     outlined (green), its saturated pixels red, the samples' pixels blue, a caption."""
     scale = 255.0 / saturation_level(bit_depth)

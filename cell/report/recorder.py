@@ -38,13 +38,15 @@ def write_plan(plan: Plan, task: Task, folder: str | os.PathLike[str], cell_pict
     folder.mkdir(parents=True, exist_ok=True)
     write_json(folder / "plan.json", plan.to_json())
     if plan.plans:
+        if plan.cover is None:           # cell.planning.whole_part gives every multi-feature plan its cover
+            raise ValueError("a multi-feature plan without its set cover's numbers (plan.cover)")
         planned = plan.cover.get("candidate_features")
         for k, own in enumerate(plan.plans):
             i = k if planned is None else planned[k]
             write_plan(own, task.with_feature(i), folder / (f"feature-{k}" if planned is None else f"candidate-{k}"),
                        cell_picture=False)
     else:
-        write_plan_pictures(plan, task, plan.scene, folder)
+        write_plan_pictures(plan, task, plan.planned_scene, folder)
     if cell_picture:
         write_cell(folder / "cell.png", plan, task)
     return folder

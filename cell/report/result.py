@@ -30,6 +30,7 @@ STATUSES = {
 ENDINGS = ("fault", "infeasible", "interrupted")   # causes that are their own status
 
 R = TypeVar("R", bound="Result")
+T = TypeVar("T")
 
 
 class Result:
@@ -67,6 +68,15 @@ class Result:
         """This result with `cause` (cell.report.recorder.Ending's) when it names none of its own
         (the subclass is a frozen dataclass with a `cause` field)."""
         return self if self.cause or not cause else dataclasses.replace(cast(Any, self), cause=cause)
+
+    def _made(self, value: T | None, what: str) -> T:
+        """value, a field a routine fills when it succeeds (`what` names it, for the error): for the
+        properties that give a successful result's fit or file without its Optional. Raises
+        ValueError, with the verdict, on a result that has none (the routine did not succeed)."""
+        if value is None:
+            why = f": {self.message}" if self.message else ""
+            raise ValueError(f"no {what}: the routine ended {self.status}{why}")
+        return value
 
     def verdict(self) -> dict[str, Any]:
         """success, status, message, cause, fault and counters: the same keys in every result file."""

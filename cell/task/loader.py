@@ -436,7 +436,8 @@ def _calibration(file, calibration, material, rig):
                         "lamp and camera each within max_angle_deg of the normal")
     return Calibration(Sample(sample_material, sample["radius_m"], sample["thickness_m"],
                               tuple(map(float, sample["normal"]))),
-                       Goniometer(tuple(map(float, phases)), gonio["step_rad"], gonio["max_angle_rad"], radius))
+                       goniometer=Goniometer(tuple(map(float, phases)), gonio["step_rad"], gonio["max_angle_rad"],
+                                             lamp_radius_m=radius))
 
 
 def _board(file, board):

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -168,13 +168,15 @@ class Goniometer:
     phase_rad: tuple[float, ...] = tuple(np.radians([20.0, 40.0, 60.0]))
     step_rad: float = float(np.radians(2.0))   # of the half-angle's tilt, in the plane of incidence
     max_angle_rad: float = float(np.radians(80.0))   # ti and te at most
-    lamp_radius_m: float | None = None         # None: the middle of the rig's range
+    # the lamp's distance from the pivot: the loader's (calibration.goniometer.lamp_radius_m, by
+    # default the middle of lamp.rig.radius_range_m, which only the task knows: no default here)
+    lamp_radius_m: float = field(kw_only=True)
 
 
 @dataclass(frozen=True)
 class Calibration:
     sample: Sample = Sample()
-    goniometer: Goniometer = Goniometer()
+    goniometer: Goniometer = field(kw_only=True)    # no default: its lamp radius is the task's
 
 
 @dataclass(frozen=True)
@@ -203,7 +205,7 @@ class Task:
     sim: SimConfig
     board: Board                   # the ChArUco board (calibration.board)
     loop: LoopSettings = LoopSettings()
-    calibration: Calibration = Calibration()
+    calibration: Calibration = field(kw_only=True)   # no default: its goniometer's lamp radius is the task's
 
     @property
     def feature(self) -> Feature:
