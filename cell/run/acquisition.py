@@ -1,7 +1,11 @@
 """Acquisition, shared by the closed loop and the calibration routines: plan, refuse an
 infeasible plan before anything moves and connect the devices; move to a Shot's poses, set an
 exposure and take a frame, each step logged as the devices read it back."""
+from __future__ import annotations
+
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -9,6 +13,14 @@ from cell.physics.sensor import levels
 from cell.devices.interfaces import speaking_for
 from cell.core.errors import PlanInfeasible
 from cell.planning.plan import gray_stats
+
+if TYPE_CHECKING:
+    from cell.devices.interfaces import Devices
+    from cell.devices.session import Session
+    from cell.planning.plan import Plan, Shot
+    from cell.planning.scene import Scene
+    from cell.report.recorder import Recorder
+    from cell.task.types import Task
 
 
 @dataclass(frozen=True)
@@ -23,7 +35,8 @@ class Capture:
     name: str                    # its file in the run folder
 
 
-def plan_recorded(task, recorder, albedo_scale=1.0, iteration=None, subfolder="", T_cell_cam=None):
+def plan_recorded(task: Task, recorder: Recorder, albedo_scale: float = 1.0, iteration: int | None = None,
+                  subfolder: str = "", T_cell_cam: np.ndarray | None = None) -> Plan:
     """Plan (the function `cell plan` uses; the camera at T_cell_cam, else by the task's rule),
     write plan.json and pictures, log it."""
     from cell.planning.one_shot import plan
@@ -43,13 +56,14 @@ def plan_recorded(task, recorder, albedo_scale=1.0, iteration=None, subfolder=""
     return planned
 
 
-def require_feasible(plan):
+def require_feasible(plan: Plan) -> None:
     """Refuse an infeasible plan before anything moves (PlanInfeasible, exit 1)."""
     if not plan.feasible:
         raise PlanInfeasible(f"infeasible: {plan.message}")
 
 
-def plan_and_connect(task, recorder, session, connect):
+def plan_and_connect(task: Task, recorder: Recorder, session: Session,
+                     connect: Callable[[Scene], Devices]) -> Plan:
     """Plan (plan_recorded), refuse an infeasible plan before anything moves, then connect(scene)
     the cell's devices into the session. Returns the plan."""
     planned = plan_recorded(task, recorder)
@@ -58,7 +72,7 @@ def plan_and_connect(task, recorder, session, connect):
     return planned
 
 
-def move_to(devices, shot, recorder, iteration=None):
+def move_to(devices: Devices, shot: Shot, recorder: Recorder, iteration: int | None = None) -> None:
     """Camera and lamp to the shot's poses, each logged as read back from the device."""
     with speaking_for(devices.arm):
         devices.arm.move_camera(shot.T_cell_cam)
@@ -69,7 +83,8 @@ def move_to(devices, shot, recorder, iteration=None):
     move_lamp(devices, shot.joints, recorder, iteration)
 
 
-def move_lamp(devices, joints, recorder, iteration=None, why=""):
+def move_lamp(devices: Devices, joints: tuple[float, float, float], recorder: Recorder,
+              iteration: int | None = None, why: str = "") -> tuple[float, float, float]:
     """The lamp to (pan, tilt, radius) [rad, rad, m], logged as read back (after `why`, if
     given). Returns the read-back joints."""
     with speaking_for(devices.lamp):
@@ -81,7 +96,8 @@ def move_lamp(devices, joints, recorder, iteration=None, why=""):
     return pan, tilt, radius
 
 
-def acquire(devices, recorder, iteration, shutter_s, f_number, focus_m, name=None):
+def acquire(devices: Devices, recorder: Recorder, iteration: int, shutter_s: float, f_number: float,
+            focus_m: float, name: str | None = None) -> Capture:
     """Set f-number, focus and shutter, take a frame and save it at once (capture-N.png, or
     name.png, the sim's float gray rounded to the sensor's levels). Returns the Capture. The shutter comes last:
     a camera drops the frames exposed before it changed (OpenCVCamera), and an operator turning

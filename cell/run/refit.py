@@ -326,7 +326,8 @@ def probe_and_refit(ctx: RunContext, task: Task, scene: Scene, disagreement: Dis
     their pixels seen where registration found the feature. Logs each probe and the refit;
     returns the Refit."""
     devices, recorder, k, m = ctx.devices, ctx.recorder, disagreement.iteration, disagreement.measurement
-    saturation, b, shift_px = m.saturation, disagreement.black.value, disagreement.shift_px
+    saturation, b, shift_px, region = m.saturation, disagreement.black.value, disagreement.shift_px, m.region
+    assert region is not None, "one feature's own Measurement has its region (only a joined one has none)"
     shutter_s, f_number, focus_m = disagreement.exposure
     material = task.part.material.scaled(disagreement.albedo_scale)
     with speaking_for(devices.lamp):
@@ -334,10 +335,10 @@ def probe_and_refit(ctx: RunContext, task: Task, scene: Scene, disagreement: Dis
     with speaking_for(devices.arm):
         T_cell_cam = devices.arm.camera_pose()
     disagreed = observe(task, scene, f"capture-{k}.png", m.gray, T_cell_cam, plan_lamp, plan_joints,
-                      shutter_s, f_number, m.region, saturation, shift_px)
+                        shutter_s, f_number, region, saturation, shift_px)
 
-    def brightest(lamp):
-        lit, e, ci, ce, ca = pixel_geometry(task, scene, T_cell_cam, m.region, *lamp, shift_px)
+    def brightest(lamp: LampPose) -> float:
+        lit, e, ci, ce, ca = pixel_geometry(task, scene, T_cell_cam, region, *lamp, shift_px)
         p = material.at(np.arccos(ca[lit]))
         return float(np.max(e[lit] * reflectance(ci[lit], ce[lit], ca[lit], p.rho, p.sigma1, p.m1, p.sigma2, p.m2),
                             initial=0.0))
@@ -357,8 +358,8 @@ def probe_and_refit(ctx: RunContext, task: Task, scene: Scene, disagreement: Dis
         image = np.asarray(capture.image, float)
         with speaking_for(devices.lamp):
             lamp = devices.lamp.lamp_pose()
-        o = observe(task, scene, capture.name, image[m.region], capture.T_cell_cam, lamp, read,
-                    capture.shutter_s, f_number, m.region, saturation, shift_px)
+        o = observe(task, scene, capture.name, image[region], capture.T_cell_cam, lamp, read,
+                    capture.shutter_s, f_number, region, saturation, shift_px)
         g = o.gray_range
         recorder.step("probe", f"probe {j}: gray {g['min']:.1f}-{g['max']:.1f} over the feature, {o.gray.size} px "
                                f"usable", iteration=k, **o.to_json())
