@@ -44,7 +44,7 @@ def make_hw_devices(task: Task, yes: bool = False, operator: Operator | None = N
     open_camera = hw_camera(task, scene=scene)
 
     operator = operator or Operator(yes=yes)
-    opened = []
+    opened: list[Any] = []            # URArm, DynamixelPanTilt, the camera: Devices' order
     try:
         with speaking_for(URArm):
             opened.append(URArm(config.arm, task.frames))
@@ -83,7 +83,7 @@ class DeviceCheck:
     @property
     def ready(self) -> bool:
         """Answered, and reports nothing a run would stop on."""
-        return self.fault is None and not self.state["problems"]
+        return self.fault is None and self.state is not None and not self.state["problems"]
 
 
 def check_hw_devices(task: Task) -> list[DeviceCheck]:
@@ -100,8 +100,8 @@ def check_hw_devices(task: Task) -> list[DeviceCheck]:
     no_prompt = Operator(yes=True)    # nothing is set by hand in a check, so nothing is asked
     sensor = task.camera.sensor
     checks = [
-        _check(URArm, config.arm.host, lambda: URArm(config.arm, task.frames, read_only=True)),
-        _check(DynamixelPanTilt, config.pan_tilt.port,
+        _check(URArm, str(config.arm.host), lambda: URArm(config.arm, task.frames, read_only=True)),
+        _check(DynamixelPanTilt, str(config.pan_tilt.port),
                lambda: DynamixelPanTilt(task.lamp.rig, config.pan_tilt, no_prompt, read_only=True)),
         _check(Camera, camera_address(config.camera), lambda: open_camera(no_prompt)),
     ]

@@ -26,6 +26,7 @@ from cell.report.recorder import Ending, Recorder
 
 if TYPE_CHECKING:
     from cell.devices.interfaces import Devices
+    from cell.run.measurement import BlackLevel
     from cell.planning.plan import Plan
     from cell.planning.scene import Scene
     from cell.task.types import Task
@@ -242,7 +243,10 @@ def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices],
     however the run ends. Raises GoalNotReached naming every feature not in band (exit 1), or
     DeviceFault (exit 3) after the safe stop. Returns the InspectionResult."""
     out = Path(out)
-    runs, order, travel, black = [], (), None, None
+    runs: list[ShotRun] = []
+    order: tuple[int, ...] = ()
+    travel: float | None = None
+    black: BlackLevel | None = None
     names = tuple(f.name for f in task.features)
     covered_by = (None,) * len(names)
 

@@ -1,7 +1,12 @@
 """The closed loop of `cell run`: plan, drive the cell, capture, measure the
 feature's gray, correct (cell.run.control), until every feature pixel is in the gray band or N
 iterations have run. It composes the stages: acquisition (plan, connect, move, expose, capture),
-measurement, the control law, the device session's safe stop and the recorder's run folder."""
+measurement, the control law, the device session's safe stop and the recorder's run folder.
+
+One step (`step`) serves a shot of one feature and a shot of several (cell.run.inspection): each
+capture measures every Feature of the Aim in its own region; one feature is corrected alone (and
+may be refitted and re-planned), several are joined for one exposure. What the steps share and
+never change is the RunContext."""
 from __future__ import annotations
 
 from collections.abc import Callable, Generator, Iterator, Sequence
@@ -210,7 +215,8 @@ def limits_of(task: Task, plan: Plan) -> control.Limits:
     """The control.Limits of a one-feature task's plan: its band, the shutter range, the f-numbers
     from the widest the depth of field allows to the lens's narrowest, the plausible albedos."""
     lens_range = (evaluate.depth_of_field_limits(task, plan.scene)[2], task.camera.lens.f_number_range[1])
-    return control.Limits(tuple(map(float, task.requirements.gray_band)), task.camera.shutter_range_s,
+    low, high = task.requirements.gray_band
+    return control.Limits((float(low), float(high)), task.camera.shutter_range_s,
                           lens_range, task.loop.albedo_scale_range)
 
 
@@ -231,6 +237,7 @@ class Feature:
 
     @property
     def name(self) -> str:
+        """The feature's name in the task."""
         return self.task.feature.name
 
 
@@ -269,7 +276,7 @@ class Measured(NamedTuple):
 
 
 def locate(ctx: RunContext, feature: Feature, k: int, capture: Capture,
-           name: str | None = None) -> tuple[Registration, tuple[float, float]]:
+           name: str | None) -> tuple[Registration, tuple[float, float]]:
     """Registration (cell.run.registration) of the feature in capture k at the read-back camera
     and lamp poses, logged (as `name`'s, when given); returns (Registration, the shift the
     measurement takes: the found one when trusted and within registration_limit [px], else none)."""
@@ -400,8 +407,8 @@ def not_in_band(aim: Aim, measured: Sequence[Measured], k: int) -> str:
 
 
 def correction(aim: Aim, measured: Sequence[Measured]) -> control.Correction:
-    """The control law on capture k: one feature's Correction (control.correct), or the one
-    exposure of several features, their measurements joined (control.shared_correction)."""
+    """The control law on a capture's measurements: one feature's Correction (control.correct), or
+    the one exposure of several features, their measurements joined (control.shared_correction)."""
     if len(measured) == 1:
         (feature,), (_, m, predicted) = aim.features, measured[0]
         return control.correct(m, predicted, aim.shutter_s, aim.f_number, feature.limits, aim.black,

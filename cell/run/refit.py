@@ -122,7 +122,8 @@ def observe(task: Task, scene: Scene, name: str, gray: np.ndarray, T_cell_cam: n
     gray = np.asarray(gray, float)
     keep = lit & (gray < saturation)
     stats = {"min": float(gray.min()), "max": float(gray.max()), "mean": float(gray.mean())}
-    return Observation(name, tuple(map(float, joints)), shutter_s / f_number**2, gray[keep], e[keep], ci[keep],
+    pan, tilt, radius = joints
+    return Observation(name, (float(pan), float(tilt), float(radius)), shutter_s / f_number**2, gray[keep], e[keep], ci[keep],
                        ce[keep], ca[keep], stats)
 
 
@@ -285,14 +286,14 @@ def fit(observations: Sequence[Observation], material: Material, black_level: fl
     stderr = np.full(len(NAMES), np.inf)
     stderr[free] = se
     factors = np.concatenate([np.exp(x[:BLACK]), x[BLACK:]])
-    refitted = Material(f"{material.name}, refit in the loop", "", material.phase_rad,
-                        *(getattr(material, p) * f for p, f in zip(PARAMETERS, factors[:BLACK])),
+    rho, sigma1, m1, sigma2, m2 = (getattr(material, p) * f for p, f in zip(PARAMETERS, factors[:BLACK]))
+    refitted = Material(f"{material.name}, refit in the loop", "", material.phase_rad, rho, sigma1, m1, sigma2, m2,
                         unresolved=material.unresolved)   # what the goniometer could not resolve stays so
     predicted = _model(x, obs, base)[0]
-    phase = tuple(float(v) for v in np.degrees(np.percentile(alpha, [0, 50, 100])))
+    least, median, most = (float(v) for v in np.degrees(np.percentile(alpha, [0, 50, 100])))
     return Refit(factors, stderr, tuple(NAMES[i] for i in sorted(unknown)), condition, condition_all,
                  float(np.sqrt(np.mean((predicted - obs["gray"]) ** 2))), float(np.median(obs["gray"] - x[BLACK])),
-                 tuple(observations), refitted, phase)
+                 tuple(observations), refitted, (least, median, most))
 
 
 def probe_joints(joints: tuple[float, float, float],
@@ -378,7 +379,7 @@ def material_document(refit: Refit, name: str, source: str) -> dict[str, Any]:
     table times the factors, the stderr of each parameter (.inf where not determined, a zero
     entry's too) and the task's `unresolved` section, if any (a refit resolves no spike)."""
     mat = refit.material
-    doc = {"name": name, "source": source, "phase_deg": [round(float(a), 6) for a in np.degrees(mat.phase_rad)]}
+    doc: dict[str, Any] = {"name": name, "source": source, "phase_deg": [round(float(a), 6) for a in np.degrees(mat.phase_rad)]}
     for p in PARAMETERS:
         doc[p] = [float(f"{v:.6g}") for v in getattr(mat, p)]
     for i, p in enumerate(PARAMETERS):

@@ -203,7 +203,7 @@ def coarse_shift(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.nda
     edges = gradient(high_pass(expected_image(task, scene, T_cell_cam, lamp_pose, (u0, v0, width, height), COARSE)))
     centre = (float(np.mean(col) / COARSE - u0), float(np.mean(row) / COARSE - v0))
     target = gradient(high_pass(small))
-    best = (-np.inf, None, 0.0)
+    best: tuple[float, tuple[int, int] | None, float] = (-np.inf, None, 0.0)
     for turn in COARSE_TURNS_DEG:               # the turned window's corners have no edge: 0
         M = cv2.getRotationMatrix2D(centre, turn, 1.0)
         score = cv2.matchTemplate(target, cv2.warpAffine(edges, M, (width, height)), cv2.TM_CCOEFF_NORMED)
@@ -226,7 +226,7 @@ def locate(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, 
 
     def result(shift: Any, trusted: bool, resolved: int, correlation: float, note: str,
                rotation: float = 0.0) -> Registration:
-        return Registration(tuple(float(s) for s in shift), footprint, trusted, resolved, float(correlation), note,
+        return Registration((float(shift[0]), float(shift[1])), footprint, trusted, resolved, float(correlation), note,
                             time.perf_counter() - start, rotation)
 
     coarse, turn = coarse_shift(image, task, scene, T_cell_cam, lamp_pose, row, col)
