@@ -34,7 +34,7 @@ from cell.run.acquisition import acquire, move_lamp
 from cell.devices.interfaces import speaking_for
 from cell.core.errors import GoalNotReached
 from cell.physics.brdf_fit import standard_errors
-from cell.physics.material import PARAMETERS, Material
+from cell.physics.material import PARAMETERS, BrdfParameters, Material
 from cell.physics.brdf import brdf_terms, reflectance, reflectance_jacobian
 from cell.devices.rig import lamp_aim, lamp_position
 
@@ -46,6 +46,7 @@ if TYPE_CHECKING:
     from cell.task.types import Task
 
 LampPose = tuple[np.ndarray, np.ndarray]    # the lamp's position and aim in the cell frame
+Pixels = dict[str, np.ndarray]              # the Observations' pixels stacked: gray, irradiance, cosines, exposure
 
 NAMES = PARAMETERS + ("black_level",)
 BLACK = len(PARAMETERS)                 # index of b among NAMES
@@ -194,7 +195,7 @@ class Refit:
                 f"{self.condition_number:.3g}, rms residual {self.rms_residual:.2f} gray")
 
 
-def _model(x, obs, base):
+def _model(x: np.ndarray, obs: Pixels, base: BrdfParameters) -> tuple[np.ndarray, np.ndarray]:
     """(predicted gray, Jacobian by x = (ln factors of PARAMETERS, b)) over the stacked pixels."""
     factors = np.exp(np.clip(x[:BLACK], -LN_FACTOR_MAX, LN_FACTOR_MAX))
     p = [getattr(base, n) * f for n, f in zip(PARAMETERS, factors)]
@@ -206,12 +207,12 @@ def _model(x, obs, base):
     return gray, np.column_stack([jac, np.ones(gray.size)])
 
 
-def _grid_start(obs, base, black_level):
+def _grid_start(obs: Pixels, base: BrdfParameters, black_level: float) -> np.ndarray:
     """Fit vector to start from: for each lobe-exponent factor of M1_GRID (the spike's held), G is
     linear in (b, a, a f1, a f2) (eq. 6 times the exposure), solved by linear least squares; the
     grid point of least RSS with positive factors."""
     scale = obs["exposure"] * obs["irradiance"] * base.rho
-    best = (np.inf, None)
+    best: tuple[float, np.ndarray | None] = (np.inf, None)
     for g in M1_GRID:
         terms = brdf_terms(obs["cos_i"], obs["cos_e"], obs["cos_alpha"], base.sigma1, base.m1 * np.exp(g),
                            base.sigma2, base.m2)
@@ -227,12 +228,12 @@ def _grid_start(obs, base, black_level):
     return np.clip(best[1], [-LN_FACTOR_MAX] * BLACK + [-np.inf], [LN_FACTOR_MAX] * BLACK + [np.inf])
 
 
-def _solve(x0, free, obs, base):
+def _solve(x0: np.ndarray, free: list[int], obs: Pixels, base: BrdfParameters) -> tuple[np.ndarray, float]:
     """Least squares (MINPACK's Levenberg-Marquardt: the Jacobian's QR, fast on tens of thousands
     of pixels) over the free entries of x from x0, the others held."""
-    memo = {}
+    memo: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
 
-    def model(z):
+    def model(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         key = z.tobytes()
         if key not in memo:
             x = x0.copy()
@@ -248,7 +249,7 @@ def _solve(x0, free, obs, base):
     return x, 2.0 * best.cost
 
 
-def _condition(jac):
+def _condition(jac: np.ndarray) -> float:
     """Condition number of the Jacobian with unit columns (inf with a zero column)."""
     norms = np.linalg.norm(jac, axis=0)
     if np.any(norms == 0):
