@@ -26,9 +26,9 @@ from cell.report.recorder import Ending, Recorder
 
 if TYPE_CHECKING:
     from cell.devices.interfaces import Devices
-    from cell.run.measurement import BlackLevel
     from cell.planning.plan import Plan
     from cell.planning.scene import Scene
+    from cell.run.measurement import BlackLevel
     from cell.task.types import Task
 
 
