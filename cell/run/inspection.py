@@ -116,7 +116,7 @@ def run_shot(ctx: RunContext, plan: Plan, s: int, done: list[ShotRun]) -> ShotRu
     names = assigned(plan, s)
     index = [f.name for f in plan.features]
     tasks = [ctx.task.with_feature(index.index(n)) for n in names]
-    features = [loop.Feature.planned(t, feature_plan(plan, s, index.index(n))) for t, n in zip(tasks, names)]
+    features = [loop.LoopFeature.planned(t, feature_plan(plan, s, index.index(n))) for t, n in zip(tasks, names)]
     events, message, error = loop.Events(), "", None
     devices = ctx.devices
     with ctx.recorder.sub(f"shot-{s}", shot=s) as rec:

@@ -4,9 +4,9 @@ iterations have run. It composes the stages: acquisition (plan, connect, move, e
 measurement, the control law, the device session's safe stop and the recorder's run folder.
 
 One step (`step`) serves a shot of one feature and a shot of several (cell.run.inspection): each
-capture measures every Feature of the Aim in its own region; one feature is corrected alone (and
-may be refitted and re-planned), several are joined for one exposure. What the steps share and
-never change is the RunContext."""
+capture measures every LoopFeature of the Aim in its own region; one feature is corrected alone
+(and may be refitted and re-planned), several are joined for one exposure. What the steps share
+and never change is the RunContext."""
 from __future__ import annotations
 
 from collections.abc import Callable, Generator, Iterator, Sequence
@@ -221,8 +221,8 @@ def limits_of(task: Task, plan: Plan) -> control.Limits:
 
 
 @dataclass(frozen=True)
-class Feature:
-    """A feature a capture measures: its one-feature task as the loop knows it now (the black
+class LoopFeature:
+    """A feature as the loop drives it: its one-feature task as the loop knows it now (the black
     level measured, the material refitted), the Model of the plan it works with, and the Limits
     of its correction (limits_of its first plan)."""
 
@@ -231,9 +231,9 @@ class Feature:
     limits: control.Limits
 
     @staticmethod
-    def planned(task: Task, plan: Plan) -> Feature:
-        """The Feature of a one-feature task and its one-shot plan."""
-        return Feature(task, Model(plan, task), limits_of(task, plan))
+    def planned(task: Task, plan: Plan) -> LoopFeature:
+        """The LoopFeature of a one-feature task and its one-shot plan."""
+        return LoopFeature(task, Model(plan, task), limits_of(task, plan))
 
     @property
     def name(self) -> str:
@@ -248,7 +248,7 @@ class Aim:
     cell stands at the plan's poses (not after a re-plan) and whether the material was refitted
     (once in a loop)."""
 
-    features: tuple[Feature, ...]
+    features: tuple[LoopFeature, ...]
     black: BlackLevel
     shutter_s: float
     f_number: float
@@ -261,7 +261,7 @@ class Aim:
         """The shot the features' plans share."""
         return self.features[0].model.plan.shot
 
-    def label(self, feature: Feature) -> str | None:
+    def label(self, feature: LoopFeature) -> str | None:
         """The feature's name in a capture of several (its log lines and picture named by it);
         None in a capture of one."""
         return feature.name if len(self.features) > 1 else None
@@ -275,7 +275,7 @@ class Measured(NamedTuple):
     predicted: np.ndarray
 
 
-def locate(ctx: RunContext, feature: Feature, k: int, capture: Capture,
+def locate(ctx: RunContext, feature: LoopFeature, k: int, capture: Capture,
            name: str | None) -> tuple[Registration, tuple[float, float]]:
     """Registration (cell.run.registration) of the feature in capture k at the read-back camera
     and lamp poses, logged (as `name`'s, when given); returns (Registration, the shift the
@@ -293,7 +293,7 @@ def locate(ctx: RunContext, feature: Feature, k: int, capture: Capture,
     return found, found.shift_px if within else (0.0, 0.0)
 
 
-def measure_capture(ctx: RunContext, aim: Aim, feature: Feature, k: int, capture: Capture) -> Measured:
+def measure_capture(ctx: RunContext, aim: Aim, feature: LoopFeature, k: int, capture: Capture) -> Measured:
     """Locate the feature in capture k (locate), measure it where found, in its own image region,
     and compare with its plan's model at the capture's settings (G = b + c P t, the signal ~
     t / kappa^2); in a capture of several its picture is capture-k-<name>.png, else
@@ -327,7 +327,7 @@ def measure_capture(ctx: RunContext, aim: Aim, feature: Feature, k: int, capture
     return Measured(it, m, predicted)
 
 
-def iterate(ctx: RunContext, features: Sequence[Feature]) -> Iterator[Event]:
+def iterate(ctx: RunContext, features: Sequence[LoopFeature]) -> Iterator[Event]:
     """The closed loop of one shot, of one feature or of several measured in each capture: move
     to the shot's poses, take ctx.black or find the black level (find_black_level,
     BlackLevelFound), then step until every feature is in its band, yielding each Iteration as soon
@@ -446,7 +446,7 @@ def correct_after(ctx: RunContext, aim: Aim, k: int, measured: Sequence[Measured
     return replan_aim(aim, replace(feature, model=Model(replanned, feature.task)), albedo)
 
 
-def replan_aim(aim: Aim, feature: Feature, albedo_scale: float) -> Aim:
+def replan_aim(aim: Aim, feature: LoopFeature, albedo_scale: float) -> Aim:
     """The Aim at a re-plan of the one feature (its Model the new plan): the plan's exposure, the
     cell still to move to its poses."""
     exposure = feature.model.plan.shot.exposure
@@ -498,7 +498,7 @@ def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices], max_it
             with ending.session:
                 planned = plan_and_connect(task, recorder, ending.session, connect)
                 context = RunContext(task, ending.session.devices, recorder, max_iterations)
-                for event in iterate(context, [Feature.planned(task, planned)]):
+                for event in iterate(context, [LoopFeature.planned(task, planned)]):
                     events.add(event)
             n = len(events.iterations)
             recorder.step("done", f"converged after {count(n, 'iteration')}", converged=True, iterations=n)

@@ -124,8 +124,8 @@ def observe(task: Task, scene: Scene, name: str, gray: np.ndarray, T_cell_cam: n
     keep = lit & (gray < saturation)
     stats = {"min": float(gray.min()), "max": float(gray.max()), "mean": float(gray.mean())}
     pan, tilt, radius = joints
-    return Observation(name, (float(pan), float(tilt), float(radius)), shutter_s / f_number**2, gray[keep], e[keep], ci[keep],
-                       ce[keep], ca[keep], stats)
+    return Observation(name, (float(pan), float(tilt), float(radius)), shutter_s / f_number**2, gray[keep], e[keep],
+                       ci[keep], ce[keep], ca[keep], stats)
 
 
 @dataclass(frozen=True)
@@ -380,7 +380,8 @@ def material_document(refit: Refit, name: str, source: str) -> dict[str, Any]:
     table times the factors, the stderr of each parameter (.inf where not determined, a zero
     entry's too) and the task's `unresolved` section, if any (a refit resolves no spike)."""
     mat = refit.material
-    doc: dict[str, Any] = {"name": name, "source": source, "phase_deg": [round(float(a), 6) for a in np.degrees(mat.phase_rad)]}
+    doc: dict[str, Any] = {"name": name, "source": source,
+                           "phase_deg": [round(float(a), 6) for a in np.degrees(mat.phase_rad)]}
     for p in PARAMETERS:
         doc[p] = [float(f"{v:.6g}") for v in getattr(mat, p)]
     for i, p in enumerate(PARAMETERS):
