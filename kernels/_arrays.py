@@ -1,9 +1,10 @@
 """NumPy <-> Warp conversions shared by the wrappers (CPU: zero-copy where possible)."""
 import numpy as np
 import warp as wp
+from numpy.typing import ArrayLike, DTypeLike
 
 
-def vec3d(a, name):
+def vec3d(a: ArrayLike, name: str) -> wp.array:
     """(N, 3) float64 -> wp.array(vec3d)."""
     a = np.ascontiguousarray(a, dtype=np.float64)
     if a.ndim != 2 or a.shape[1] != 3:
@@ -11,7 +12,7 @@ def vec3d(a, name):
     return wp.array(a, dtype=wp.vec3d, device="cpu")
 
 
-def unit_rows(a, name):
+def unit_rows(a: ArrayLike, name: str) -> np.ndarray:
     """Rows of (N, 3) scaled to unit length (float64)."""
     a = np.asarray(a, dtype=np.float64).reshape(-1, 3)
     norm = np.linalg.norm(a, axis=1, keepdims=True)
@@ -20,7 +21,7 @@ def unit_rows(a, name):
     return a / norm
 
 
-def with_slopes(t):
+def with_slopes(t: np.ndarray) -> wp.array:
     """Table (K, 1 + N) [x, y_1..y_N] -> (K, 1 + 2N) [x, y_1..y_N, slope_1..slope_N]: slope_i of
     row j is (y_i[j+1] - y_i[j]) / (x[j+1] - x[j]), numpy.interp's (0 on the last row), so the
     kernels interpolate without a division."""
@@ -29,7 +30,7 @@ def with_slopes(t):
     return wp.array(np.hstack([t, slopes]), dtype=wp.float64, device="cpu")
 
 
-def table2d(table):
+def table2d(table: ArrayLike) -> wp.array:
     """Material table (K, 6) [phase_rad, rho, sigma1, m1, sigma2, m2], ascending phase, with its
     slopes (with_slopes): (K, 11)."""
     t = np.ascontiguousarray(table, dtype=np.float64)
@@ -40,7 +41,7 @@ def table2d(table):
     return with_slopes(t)
 
 
-def profile2d(profile, cone_angle_rad):
+def profile2d(profile: ArrayLike | None, cone_angle_rad: float) -> wp.array:
     """Lamp profile (M, 2) [off_axis_rad, relative], angles ascending from 0; None: eq. (11)'s
     ideal cone, 1 up to gamma/2 and 0 beyond (as cell.physics.radiometry.hard_cone_profile).
     With its slopes (with_slopes): (M, 3)."""
@@ -54,7 +55,7 @@ def profile2d(profile, cone_angle_rad):
     return with_slopes(p)
 
 
-def output(shape, dtype, wp_dtype):
+def output(shape: int | tuple[int, ...], dtype: DTypeLike, wp_dtype: type) -> tuple[np.ndarray, wp.array]:
     """A NumPy output array and a zero-copy Warp view of it (NumPy owns the memory)."""
     out = np.empty(shape, dtype=dtype)
     return out, wp.array(out, dtype=wp_dtype, device="cpu", copy=False)

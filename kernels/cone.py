@@ -15,12 +15,18 @@ through passes every triangle by at least that angle (a ray the float32 BVH coul
 by rounding is cast, not skipped). Sectors are kept only where the narrowest cone is wider than
 2 MARGIN_RAD, so that the directions they judge have a well-defined azimuth.
 """
+from typing import TYPE_CHECKING
+
 import numpy as np
 import warp as wp
+from numpy.typing import ArrayLike
 
 from . import funcs
 from ._arrays import output, unit_rows, vec3d
 from .runtime import ensure_init
+
+if TYPE_CHECKING:
+    from .mesh import WarpMesh
 
 MARGIN_RAD = 1e-4
 PAD = 1e-6                      # of the diamond angle (~1e-6 rad): sectors touched by rounding count
@@ -28,7 +34,7 @@ NO_CONE = 2.0                   # a cosine no <n, s> exceeds: every ray is cast
 RAYS_PER_TRIANGLE = 0.5         # a point's cones cost about this many of its rays per triangle
 
 
-def worth_finding(rays_per_point, mesh):
+def worth_finding(rays_per_point: int, mesh: "WarpMesh") -> bool:
     """Whether the free cones pay for themselves: each point casts (or has cast) at least
     RAYS_PER_TRIANGLE rays per triangle of the mesh, most of which its cones would spare."""
     return rays_per_point >= RAYS_PER_TRIANGLE * len(mesh.faces)
@@ -173,7 +179,8 @@ def free_cone_kernel(origins: wp.array(dtype=wp.vec3d), normals: wp.array(dtype=
         sector_cos[i, k] = sector
 
 
-def free_cone_cosines(mesh, origins, normals, margin_rad=MARGIN_RAD):
+def free_cone_cosines(mesh: "WarpMesh", origins: ArrayLike, normals: ArrayLike,
+                      margin_rad: float = MARGIN_RAD) -> tuple[np.ndarray, np.ndarray]:
     """(free_cos (P,), sector_cos (P, funcs.SECTORS)) float64: cos(beta - margin) of each
     origin's free cone about its normal, overall and per azimuth sector (funcs.sector_of of the
     diamond angle about funcs.tangent_u), NO_CONE where there is none (module docstring). A ray

@@ -171,7 +171,7 @@ def relative_intensity(profile: wp.array2d(dtype=wp.float64), off_axis_rad: wp.f
     return _interp_column(profile, j, 1, 1, theta)
 
 
-def axis_intensity(power_w, cone_angle_rad):
+def axis_intensity(power_w: float, cone_angle_rad: float) -> float:
     """I(0) = P_L / (2 pi (1 - cos(gamma/2))) [W/sr], eq. (11)'s power spread over its cone's
     solid angle (plain Python: once per lamp, not per evaluation)."""
     return float(power_w) / (2.0 * math.pi * (1.0 - math.cos(0.5 * float(cone_angle_rad))))

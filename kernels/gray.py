@@ -1,14 +1,19 @@
 """Gray value per exposure for every (candidate lamp, sample point): the planner's bulk job."""
 import threading
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import warp as wp
+from numpy.typing import ArrayLike
 
 from . import funcs
 from ._arrays import output, profile2d, table2d, unit_rows, vec3d
 from .cone import NO_CONE, free_cone_cosines, worth_finding
 from .runtime import ensure_init
+
+if TYPE_CHECKING:
+    from .mesh import WarpMesh
 
 
 @dataclass(frozen=True)
@@ -85,8 +90,10 @@ class GrayInputs:
     evaluations replays its recorded launch (one per lamp count) on its own input and output
     buffers, under a lock, and returns copies."""
 
-    def __init__(self, mesh, points, normals, camera_pos, power_w, cone_angle_rad, table,
-                 camera_constant, pixel_area_m2, shadows=True, cone=True, offset_m=1e-5, profile=None):
+    def __init__(self, mesh: "WarpMesh | None", points: ArrayLike, normals: ArrayLike, camera_pos: ArrayLike,
+                 power_w: float, cone_angle_rad: float, table: ArrayLike, camera_constant: float,
+                 pixel_area_m2: float, shadows: bool = True, cone: bool = True, offset_m: float = 1e-5,
+                 profile: ArrayLike | None = None) -> None:
         self.device = ensure_init()
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         normals = unit_rows(normals, "normals")
@@ -103,11 +110,11 @@ class GrayInputs:
         self._set_free_cones(np.full(self.count, NO_CONE), None)
         self._lamps_seen = 0
         self.has_free_cones = False
-        self._leading = [self._mesh.id if use_shadows else wp.uint64(0), int(use_shadows), int(bool(cone)),
-                         self.surfaces, sector_cos_wp]
+        self._leading = [self._mesh.id if self._mesh is not None else wp.uint64(0), int(use_shadows),
+                         int(bool(cone)), self.surfaces, sector_cos_wp]
         self._trailing = [funcs.axis_intensity(power_w, cone_angle_rad), profile2d(profile, cone_angle_rad),
                           table2d(table), float(camera_constant), float(pixel_area_m2)]
-        self._launches = {}
+        self._launches: dict[int, _Batch] = {}       # the kept batches, by lamp count
         self._lock = threading.Lock()
 
     def _set_free_cones(self, free_cos, sector_cos):
@@ -121,7 +128,7 @@ class GrayInputs:
                                                      int(sector_cos is not None)],
                       outputs=[self.surfaces])
 
-    def __call__(self, lamp_pos, lamp_axis):
+    def __call__(self, lamp_pos: ArrayLike, lamp_axis: ArrayLike) -> GrayResult:
         lamp_pos = np.asarray(lamp_pos, dtype=np.float64).reshape(-1, 3)
         lamp_axis = unit_rows(np.broadcast_to(np.asarray(lamp_axis, dtype=np.float64), lamp_pos.shape),
                               "lamp_axis")
@@ -132,19 +139,18 @@ class GrayInputs:
                 self._set_free_cones(*free_cone_cosines(self._mesh, *self._ray_origins))
                 self.has_free_cones = True
             if len(lamp_pos) * self.count > SMALL:
-                batch = _Batch(self, len(lamp_pos))
-                return batch.run(lamp_pos, lamp_axis, copy=False)
-            batch = self._launches.get(len(lamp_pos))
-            if batch is None:
-                batch = self._launches[len(lamp_pos)] = _Batch(self, len(lamp_pos))
-            return batch.run(lamp_pos, lamp_axis, copy=True)
+                return _Batch(self, len(lamp_pos)).run(lamp_pos, lamp_axis, copy=False)
+            kept = self._launches.get(len(lamp_pos))
+            if kept is None:
+                kept = self._launches[len(lamp_pos)] = _Batch(self, len(lamp_pos))
+            return kept.run(lamp_pos, lamp_axis, copy=True)
 
 
 class _Batch:
     """Buffers and the recorded launch of one lamp count: run copies the lamps in, launches,
     and returns the outputs (copies where the batch is kept for the next call)."""
 
-    def __init__(self, inputs, lamps):
+    def __init__(self, inputs: GrayInputs, lamps: int) -> None:
         shape = (lamps, inputs.count)
         (self.lamp_pos, pos_wp), (self.lamp_axis, axis_wp) = (output((lamps, 3), np.float64, wp.vec3d)
                                                               for _ in range(2))
@@ -157,7 +163,7 @@ class _Batch:
                                     outputs=[out_wp for _, out_wp in self.outputs])
             self._inputs_wp = (pos_wp, axis_wp)         # the launch holds their addresses
 
-    def run(self, lamp_pos, lamp_axis, copy):
+    def run(self, lamp_pos: np.ndarray, lamp_axis: np.ndarray, copy: bool) -> GrayResult:
         self.lamp_pos[:] = lamp_pos
         self.lamp_axis[:] = lamp_axis
         if self.launch is not None:
@@ -165,9 +171,10 @@ class _Batch:
         return GrayResult(*(out.copy() if copy else out for out, _ in self.outputs))
 
 
-def gray_per_exposure(mesh, points, normals, camera_pos, lamp_pos, lamp_axis, power_w,
-                      cone_angle_rad, table, camera_constant, pixel_area_m2,
-                      shadows=True, cone=True, offset_m=1e-5, profile=None):
+def gray_per_exposure(mesh: "WarpMesh | None", points: ArrayLike, normals: ArrayLike, camera_pos: ArrayLike,
+                      lamp_pos: ArrayLike, lamp_axis: ArrayLike, power_w: float, cone_angle_rad: float,
+                      table: ArrayLike, camera_constant: float, pixel_area_m2: float, shadows: bool = True,
+                      cone: bool = True, offset_m: float = 1e-5, profile: ArrayLike | None = None) -> GrayResult:
     """Gray per exposure c A_pixel Phi R / 8 for C candidate lamps x P sample points, in one
     call (GrayInputs, which keeps the fixed inputs, has the arguments' meaning). Returns
     GrayResult of (C, P) NumPy arrays."""

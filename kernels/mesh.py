@@ -1,6 +1,9 @@
 """A triangle mesh as a Warp BVH (wp.Mesh), for the ray-casting kernels."""
+from typing import Any
+
 import numpy as np
 import warp as wp
+from numpy.typing import ArrayLike
 
 from .runtime import ensure_init
 
@@ -13,7 +16,7 @@ class WarpMesh:
     (a BVH over F triangles): rebuild rather than mutate.
     """
 
-    def __init__(self, vertices, faces):
+    def __init__(self, vertices: ArrayLike, faces: ArrayLike) -> None:
         device = ensure_init()
         points = np.ascontiguousarray(vertices, dtype=np.float32).reshape(-1, 3)
         faces = np.ascontiguousarray(faces, dtype=np.int32).reshape(-1, 3)
@@ -28,12 +31,12 @@ class WarpMesh:
         self.mesh = wp.Mesh(points=self._points, indices=self._indices)
 
     @classmethod
-    def from_trimesh(cls, mesh):
+    def from_trimesh(cls, mesh: Any) -> "WarpMesh":
         """From anything with .vertices and .faces (a trimesh.Trimesh)."""
         return cls(mesh.vertices, mesh.faces)
 
     @property
-    def id(self):
+    def id(self) -> Any:
         """The wp.uint64 handle kernels take."""
         return self.mesh.id
 
@@ -41,11 +44,11 @@ class WarpMesh:
         return f"WarpMesh({len(self.vertices)} vertices, {len(self.faces)} faces)"
 
 
-_SHARED = {}                # this process's meshes: key -> WarpMesh, newest last
+_SHARED: dict[str, WarpMesh] = {}   # this process's meshes: key -> WarpMesh, newest last
 _SHARED_MAX = 8
 
 
-def shared_mesh(key, vertices, faces):
+def shared_mesh(key: str, vertices: ArrayLike, faces: ArrayLike) -> WarpMesh:
     """The process's WarpMesh of this geometry, built on first use and kept for the next.
 
     Warp handles cannot be pickled or sent to another process, so plans and scenes carry plain

@@ -1,10 +1,16 @@
 """Closest points on the mesh (BVH query): project feature samples onto the surface
 without trimesh.proximity, which needs the optional `rtree` package."""
+from typing import TYPE_CHECKING
+
 import numpy as np
 import warp as wp
+from numpy.typing import ArrayLike
 
 from ._arrays import output, vec3d
 from .runtime import ensure_init
+
+if TYPE_CHECKING:
+    from .mesh import WarpMesh
 
 
 @wp.kernel
@@ -24,7 +30,8 @@ def closest_point_kernel(mesh_id: wp.uint64, queries: wp.array(dtype=wp.vec3d), 
         normal[i] = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
 
 
-def closest_points(mesh, queries, max_dist=10.0):
+def closest_points(mesh: "WarpMesh", queries: ArrayLike,
+                   max_dist: float = 10.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For queries (N, 3) [m]: (closest surface points (N, 3), face index (N,), outward face
     normal (N, 3)); NaN / -1 / 0 where no triangle lies within max_dist. Float32 accuracy."""
     device = ensure_init()

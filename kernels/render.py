@@ -1,13 +1,18 @@
 """The simulator's camera: one primary ray per pixel, shaded with the planner's own funcs."""
 from typing import NamedTuple
+from typing import TYPE_CHECKING
 
 import numpy as np
 import warp as wp
+from numpy.typing import ArrayLike
 
 from . import funcs
 from ._arrays import output, profile2d, table2d, unit_rows, vec3d
 from .cone import NO_CONE
 from .runtime import ensure_init
+
+if TYPE_CHECKING:
+    from .mesh import WarpMesh
 
 
 def _ray_outputs(n):
@@ -56,9 +61,10 @@ def render_kernel(mesh_id: wp.uint64, origin: wp.vec3d, ray_dirs: wp.array(dtype
     normal[i] = n
 
 
-def render(mesh, origin, ray_dirs, lamp_pos, lamp_axis, power_w, cone_angle_rad, table,
-           camera_constant, pixel_area_m2, shadows=True, cone=True, offset_m=1e-5, max_dist=10.0,
-           profile=None):
+def render(mesh: "WarpMesh", origin: ArrayLike, ray_dirs: ArrayLike, lamp_pos: ArrayLike, lamp_axis: ArrayLike,
+           power_w: float, cone_angle_rad: float, table: ArrayLike, camera_constant: float, pixel_area_m2: float,
+           shadows: bool = True, cone: bool = True, offset_m: float = 1e-5, max_dist: float = 10.0,
+           profile: ArrayLike | None = None) -> RenderResult:
     """Shade the first hit of each ray from `origin` (the camera centre) along unit
     `ray_dirs` (N, 3), lit by one lamp: RenderResult(value, hit, depth, normal).
 
@@ -125,7 +131,8 @@ def plane_kernel(origin: wp.vec3d, ray_dirs: wp.array(dtype=wp.vec3d), plane_ori
     depth[i] = t
 
 
-def render_plane(origin, ray_dirs, T_world_plane, texture, texel_m, outside=0.0):
+def render_plane(origin: ArrayLike, ray_dirs: ArrayLike, T_world_plane: np.ndarray, texture: np.ndarray,
+                 texel_m: float, outside: float = 0.0) -> "PlaneResult":
     """Where each ray from `origin` along unit `ray_dirs` (N, 3) meets the plane z = 0 of the
     frame T_world_plane, the texture's value there: texture (rows, cols) covers x in
     [0, cols * texel_m), y in [0, rows * texel_m), texel (r, c) the square from (c, r) * texel_m

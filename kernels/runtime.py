@@ -16,7 +16,7 @@ _lock = threading.Lock()
 _ready = False
 
 
-def ensure_init():
+def ensure_init() -> str:
     """Initialize Warp once per process (no greeting, no CUDA-driver warning); return the device."""
     global _ready
     if _ready:

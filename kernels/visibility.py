@@ -1,12 +1,18 @@
 """Visibility maps (sec. 2.2): which azimuth/elevation directions escape the part from each
 sample point, by ray casting the mesh."""
+from typing import TYPE_CHECKING
+
 import numpy as np
 import warp as wp
+from numpy.typing import ArrayLike
 
 from . import funcs
 from ._arrays import output, unit_rows, vec3d
 from .cone import NO_CONE, free_cone_cosines, worth_finding
 from .runtime import ensure_init
+
+if TYPE_CHECKING:
+    from .mesh import WarpMesh
 
 
 @wp.kernel
@@ -34,8 +40,9 @@ def visibility_kernel(mesh_id: wp.uint64, points: wp.array(dtype=wp.vec3d),
     visible[p, e, a] = ok
 
 
-def visibility_maps(mesh, points, normals, frame, azimuth, elevation, offset_m=1e-5, max_dist=10.0,
-                    free_cones=True):
+def visibility_maps(mesh: "WarpMesh", points: ArrayLike, normals: ArrayLike, frame: ArrayLike, azimuth: ArrayLike,
+                    elevation: ArrayLike, offset_m: float = 1e-5, max_dist: float = 10.0,
+                    free_cones: bool = True) -> np.ndarray:
     """bool (P, E, A): True where the ray from point + offset_m * normal along the direction
     (azimuth a, elevation e) escapes the mesh within max_dist [m].
 
@@ -70,6 +77,6 @@ def visibility_maps(mesh, points, normals, frame, azimuth, elevation, offset_m=1
     return visible
 
 
-def combined_map(maps):
+def combined_map(maps: ArrayLike) -> np.ndarray:
     """The feature's map (E, A): a direction is visible if it is visible from every sample."""
-    return np.asarray(maps).all(axis=0)
+    return np.asarray(np.asarray(maps).all(axis=0))

@@ -1,10 +1,20 @@
 """Simulated UR5e carrying the camera: the analytic kinematics of cell/devices/ur5e.py, the robot base at
 the frames' T_cell_base and the camera at their hand-eye T_flange_cam."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from cell.devices.interfaces import Arm
 from cell.core.errors import DeviceFault
 from cell.devices import ur5e
+
+if TYPE_CHECKING:
+    from cell.core.frames import Frames
+    from cell.task.device_config import ArmConfig
 
 # elbow up, wrist down: the flange points at the table in front of the base
 HOME_JOINTS = np.radians([-90.0, -90.0, 90.0, -90.0, -90.0, 0.0])
@@ -14,7 +24,8 @@ class SimArm(Arm):
     """Moves instantly to the IK solution nearest the current joints. Fault injection:
     move number `fail_on_move` ends in a protective stop (DeviceFault)."""
 
-    def __init__(self, config, frames, joints=HOME_JOINTS, fail_on_move=None):
+    def __init__(self, config: ArmConfig, frames: Frames, joints: ArrayLike = HOME_JOINTS,
+                 fail_on_move: int | None = None) -> None:
         super().__init__(config, frames)
         self.joints = np.array(joints, float)
         self.moves = 0
@@ -40,5 +51,5 @@ class SimArm(Arm):
     def _tcp_pose(self):
         return self.frames.T_base_cam_from_flange(ur5e.forward(self.joints))
 
-    def stop(self):
+    def stop(self) -> None:
         """Moves are instantaneous: nothing is ever in motion."""

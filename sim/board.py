@@ -14,13 +14,22 @@ at sub-pixel positions). Then the task's effects of the lens and the sensor: vig
 (the board's depth), noise, black_level, quantization (sim.world). The part is not drawn: the
 board lies beside it and it occludes nothing the routine needs.
 """
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from cell.core import geometry
 from cell.physics.radiometry import gray_value, pixel_power
 from cell.physics.projection import intrinsics
 from kernels.render import render_plane
 from sim.world import SensorModel, defocus
+
+if TYPE_CHECKING:
+    from cell.task.types import Task
 
 AMBIENT_IRRADIANCE = 20.0   # W/m^2 on the board: a diffuse LED panel over it (about 10 klx)
 PRINT_WHITE = 0.85          # reflectance of the board's white (matte paper)
@@ -34,7 +43,7 @@ class BoardView:
     """The renderer a SimCamera calls for the board: (H, W) gray from the arm's reported camera
     pose at the set shutter time, f-number and focus."""
 
-    def __init__(self, task):
+    def __init__(self, task: Task) -> None:
         sensor, truth = task.camera.sensor, task.sim.truth
         self.task, self.board, self.effects = task, task.board, frozenset(task.sim.effects)
         self.shape = (sensor.height_px, sensor.width_px)
@@ -55,11 +64,12 @@ class BoardView:
         u, v = np.meshgrid(np.arange(self.shape[1]) - K[0, 2], np.arange(self.shape[0]) - K[1, 2])
         self.cos_field = K[0, 0] / np.sqrt(u**2 + v**2 + K[0, 0] ** 2)     # the pixel centre's ray to the axis
 
-    def pixel_mean(self, per_ray):
+    def pixel_mean(self, per_ray: np.ndarray) -> np.ndarray:
         """(H, W): the mean of each pixel's rays."""
         return per_ray.reshape(*self.shape, SUPERSAMPLE * SUPERSAMPLE).mean(axis=2)
 
-    def __call__(self, T_cell_cam, lamp_pos, lamp_aim, shutter_s, f_number, focus_m=None):
+    def __call__(self, T_cell_cam: np.ndarray, lamp_pos: ArrayLike, lamp_aim: ArrayLike, shutter_s: float,
+                 f_number: float, focus_m: float | None = None) -> np.ndarray:
         """Gray image (H, W), float or integers with quantization; the lamp plays no part."""
         T_cell_cam = np.asarray(T_cell_cam, float) @ self.T_cam_true
         dirs = np.einsum("ij,nj->ni", T_cell_cam[:3, :3], self.rays_cam)

@@ -1,9 +1,16 @@
 """Simulated camera: the renderer draws what the camera sees from the arm's and the lamp's
 read-back poses with the set shutter time, f-number and focus (motorized lens in the sim)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
 import numpy as np
 
 from cell.devices.interfaces import Camera
 from cell.core.errors import DeviceFault
+from cell.devices.interfaces import Arm, LampRig
 
 
 class SimCamera(Camera):
@@ -11,30 +18,31 @@ class SimCamera(Camera):
     renderer (sim.world.Renderer); focus_m is None until set_focus (the renderer's default).
     Fault injection: capture number `fail_on_capture` times out (DeviceFault)."""
 
-    def __init__(self, render, arm, lamp, bit_depth=8, fail_on_capture=None, timeout_s=1.0):
+    def __init__(self, render: Callable[..., np.ndarray], arm: Arm, lamp: LampRig, bit_depth: int = 8,
+                 fail_on_capture: int | None = None, timeout_s: float = 1.0) -> None:
         super().__init__(bit_depth)
         self.render, self.arm, self.lamp = render, arm, lamp
         self.fail_on_capture, self.timeout_s = fail_on_capture, timeout_s
         self.captures = 0
 
-    def set_exposure(self, shutter_s):
+    def set_exposure(self, shutter_s: float) -> float:
         if not shutter_s > 0:
             raise DeviceFault(self.device, f"shutter time {shutter_s} s is not positive")
         self.shutter_s = float(shutter_s)
         return self.shutter_s
 
-    def set_aperture(self, f_number):
+    def set_aperture(self, f_number: float) -> None:
         if not f_number > 0:
             raise DeviceFault(self.device, f"f-number {f_number} is not positive")
         self.f_number = float(f_number)
 
-    def set_focus(self, focus_m):
+    def set_focus(self, focus_m: float) -> None:
         """Focus distance along the optical axis [m] (motorized focus in the sim)."""
         if not focus_m > 0:
             raise DeviceFault(self.device, f"focus distance {focus_m} m is not positive")
         self.focus_m = float(focus_m)
 
-    def state(self):
+    def state(self) -> dict[str, Any]:
         """The interface's state, and with a renderer of a frame size (sim.world.Renderer) what a
         real camera reports besides (`cell hw-check` of cell.camera.driver: simulated)."""
         state = super().state()
@@ -45,7 +53,7 @@ class SimCamera(Camera):
                          exposure_s=self.shutter_s, exposure_range_s=None)
         return state
 
-    def capture(self):
+    def capture(self) -> np.ndarray:
         self.captures += 1
         if self.captures == self.fail_on_capture:
             raise DeviceFault(self.device, f"capture timed out after {self.timeout_s} s "

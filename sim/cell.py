@@ -1,7 +1,14 @@
 """The simulated cell: SimArm, SimPanTilt and a SimCamera rendering the task's scene
 (sim.world.Renderer), with the task's `cell.arm` / `cell.pan_tilt` settings (docs/devices.md)
 and optional injected faults."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
 
 from cell.devices.interfaces import Devices
 from sim.arm import SimArm
@@ -10,6 +17,12 @@ from sim.camera import SimCamera
 from sim.laser import LaserSpot
 from sim.pantilt import SimPanTilt
 from sim.world import Renderer
+from cell.devices.operator import Operator
+from sim.laser import Beam
+
+if TYPE_CHECKING:
+    from cell.planning.scene import Scene
+    from cell.task.types import Task
 
 
 @dataclass(frozen=True)
@@ -26,7 +39,9 @@ class SimFaults:
     camera_fail_on_capture: int | None = None
 
 
-def make_sim_devices(task, scene, operator=None, yes=True, faults=None, laser=None, board=False):
+def make_sim_devices(task: Task, scene: Scene | None, operator: Operator | None = None, yes: bool = True,
+                     faults: SimFaults | dict[str, Any] | None = None, laser: Beam | None = None,
+                     board: bool = False) -> Devices:
     """Devices of the simulated cell for a task and its scene (cell.planning.scene.build_scene); the
     operator (default Operator(yes=yes)) sets a manual lamp radius. faults: SimFaults, a dict of
     its fields, or None. The settings are the task's, checked when it was loaded. Given a laser
@@ -39,7 +54,15 @@ def make_sim_devices(task, scene, operator=None, yes=True, faults=None, laser=No
     lamp = SimPanTilt(task.lamp.rig, config.pan_tilt, yes=yes, operator=operator,
                       fail_on_move=faults.lamp_fail_on_move, fail_servo=faults.servo_id,
                       fail_bits=faults.servo_bits)
-    render = BoardView(task) if board else LaserSpot(task, laser) if laser else Renderer(task, scene)
+    render: Callable[..., np.ndarray]
+    if board:
+        render = BoardView(task)
+    elif laser:
+        render = LaserSpot(task, laser)
+    elif scene is not None:
+        render = Renderer(task, scene)
+    else:
+        raise ValueError("the simulated camera needs a scene to render (or a laser, or the board)")
     camera = SimCamera(render, arm, lamp, task.camera.sensor.bit_depth,
                        fail_on_capture=faults.camera_fail_on_capture)
     return Devices(arm, lamp, camera)

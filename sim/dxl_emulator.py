@@ -6,18 +6,24 @@ master side: PING, READ, WRITE, SYNC_READ, SYNC_WRITE, with CRC-16 and byte stuf
 produced, Present Position moving toward Goal Position at the profile velocity while the torque
 is on, and ids not on the bus silent. Every packet in and out is kept for byte-exact asserts.
 """
+
+from __future__ import annotations
+
 import os
 import pty
 import select
 import threading
 import time
 import tty
+from collections.abc import Iterable
+from types import TracebackType
 
 from cell.devices.servo import (ALERT, CENTRE_TICK, EEPROM_END, FIRMWARE_VERSION, GOAL_POSITION,
                         HARDWARE_ERROR_STATUS, ID, MAX_POSITION_LIMIT, MIN_POSITION_LIMIT, MODEL_NUMBER,
                         MOVING, OPERATING_MODE, POSITION_MODE, PRESENT_INPUT_VOLTAGE, PRESENT_POSITION,
                         PRESENT_TEMPERATURE, PROFILE_VELOCITY, PROFILE_VELOCITY_RPM, SHUTDOWN,
                         TEMPERATURE_LIMIT, TICKS_PER_TURN, TORQUE_ENABLE)
+from cell.devices.servo import Item
 
 HEADER = b"\xff\xff\xfd\x00"
 PING, READ, WRITE, SYNC_READ, SYNC_WRITE, STATUS = 0x01, 0x02, 0x03, 0x82, 0x83, 0x55
@@ -28,7 +34,7 @@ WRITABLE = set(range(ID.address, EEPROM_END)) | {64, 65, 68} | set(range(108, 12
 MAX_VELOCITY = 265                                 # Profile Velocity 0 (no limit) moves at this
 
 
-def crc16(data):
+def crc16(data: bytes) -> int:
     """Protocol 2.0 CRC-16: polynomial 0x8005, initial value 0, no reflection."""
     crc = 0
     for byte in data:
@@ -38,7 +44,7 @@ def crc16(data):
     return crc
 
 
-def stuff(body):
+def stuff(body: bytes) -> bytes:
     """FF FF FD inside a packet goes out as FF FF FD FD, so it cannot look like a header."""
     out = bytearray()
     for byte in body:
@@ -48,7 +54,7 @@ def stuff(body):
     return bytes(out)
 
 
-def unstuff(body):
+def unstuff(body: bytes) -> bytes:
     out, i = bytearray(), 0
     while i < len(body):
         out.append(body[i])
@@ -58,7 +64,7 @@ def unstuff(body):
     return bytes(out)
 
 
-def packet(dxl_id, instruction, params=b"", error=None):
+def packet(dxl_id: int, instruction: int, params: bytes | Iterable[int] = b"", error: int | None = None) -> bytes:
     """A complete packet: header, id, length, instruction (and a status packet's error byte),
     stuffed parameters, CRC over everything before it."""
     body = stuff(bytes([instruction]) + (b"" if error is None else bytes([error])) + bytes(params))
@@ -75,7 +81,7 @@ class Servo:
     values; powered at 12.0 V and at 30 deg C unless a test sets Present Input Voltage (144) or
     Present Temperature (146)."""
 
-    def __init__(self, dxl_id, model_number, firmware):
+    def __init__(self, dxl_id: int, model_number: int, firmware: int) -> None:
         self.table = bytearray(TABLE_SIZE)
         for item, value in ((MODEL_NUMBER, model_number), (FIRMWARE_VERSION, firmware), (ID, dxl_id),
                             (OPERATING_MODE, POSITION_MODE), (MAX_POSITION_LIMIT, TICKS_PER_TURN - 1),
@@ -85,15 +91,15 @@ class Servo:
             self.set(item, value)
         self.position = float(CENTRE_TICK)
 
-    def get(self, item):
+    def get(self, item: Item) -> int:
         raw = self.table[item.address:item.address + item.size]
         return int.from_bytes(raw, "little", signed=item.size == 4)
 
-    def set(self, item, value):
+    def set(self, item: Item, value: int) -> None:
         self.table[item.address:item.address + item.size] = int(value).to_bytes(
             item.size, "little", signed=item.size == 4)
 
-    def write(self, address, data):
+    def write(self, address: int, data: bytes) -> int:
         """Apply a WRITE; returns the status error number (0 = done)."""
         span = range(address, address + len(data))
         if not set(span) <= WRITABLE or (address < EEPROM_END and self.get(TORQUE_ENABLE)):
@@ -106,7 +112,7 @@ class Servo:
         self.table = new
         return 0
 
-    def step(self, dt, speedup):
+    def step(self, dt: float, speedup: float) -> None:
         """Move Present Position toward Goal Position at the profile velocity (torque on, no
         hardware error)."""
         goal = self.get(GOAL_POSITION)
@@ -122,10 +128,12 @@ class DxlEmulator:
     """A bus of servos at `ids` on a pseudo-terminal; use as a context manager. `speedup`
     scales the motion so tests need not wait for real servo speeds."""
 
-    def __init__(self, ids=(1, 2), model_number=1020, firmware=45, speedup=1.0):
+    def __init__(self, ids: Iterable[int] = (1, 2), model_number: int = 1020, firmware: int = 45,
+                 speedup: float = 1.0) -> None:
         self.servos = {i: Servo(i, model_number, firmware) for i in ids}
         self.speedup = speedup
-        self.received, self.sent = [], []           # raw packets, as on the wire
+        self.received: list[bytes] = []             # raw packets, as on the wire
+        self.sent: list[bytes] = []
         self.lose_replies = 0                        # status packets still to lose (lose())
         self.late_replies = (0, 0.0)                 # (how many, by how long): late()
         self.synced = threading.Event()              # set when a Sync Write (goal positions) came
@@ -137,14 +145,14 @@ class DxlEmulator:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="dxl-emulator", daemon=True)
 
-    def __enter__(self):
+    def __enter__(self) -> DxlEmulator:
         self._thread.start()
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def close(self):
+    def close(self) -> None:
         """The bus goes away, as an unplugged adapter: the pty closes, and the SDK's next read or
         write on it fails (EIO). Idempotent."""
         if self._stop.is_set():
@@ -155,17 +163,17 @@ class DxlEmulator:
         os.close(self._master)
         os.close(self._slave)
 
-    def lose(self, replies):
+    def lose(self, replies: int) -> None:
         """The next `replies` status packets are lost on the bus (noise): never sent."""
         with self.lock:
             self.lose_replies = replies
 
-    def late(self, replies, delay_s):
+    def late(self, replies: int, delay_s: float) -> None:
         """The next `replies` status packets are sent `delay_s` late (a reply the SDK gave up on)."""
         with self.lock:
             self.late_replies = (replies, delay_s)
 
-    def inject_hardware_error(self, dxl_id, bits):
+    def inject_hardware_error(self, dxl_id: int, bits: int) -> None:
         """Set Hardware Error Status; like the real servo's shutdown, the torque goes off."""
         with self.lock:
             servo = self.servos[dxl_id]

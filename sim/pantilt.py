@@ -1,8 +1,18 @@
 """Simulated pan-tilt: Dynamixel-like servos in integer ticks (4096 a turn, 2048 the centre)
 with position limits, so the read-back joints carry the real rig's quantization."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import TYPE_CHECKING
+
 from cell.core.errors import DeviceFault
 from cell.devices.operator import Operator
 from cell.devices.servo import CENTRE_TICK, ServoRig, describe_hardware_error
+
+if TYPE_CHECKING:
+    from cell.task.device_config import PanTiltConfig
+    from cell.task.types import LampRig as LampRigModel
 
 FULL_RANGE = (0, 4095)
 
@@ -13,8 +23,9 @@ class SimPanTilt(ServoRig):
     reports Hardware Error Status `fail_bits` (default 0x04, overheating) and stops. In the sim
     the operator's manual radius is confirmed unless `yes` is False."""
 
-    def __init__(self, rig, config, yes=True, operator=None, limits=None,
-                 fail_on_move=None, fail_servo=None, fail_bits=0x04):
+    def __init__(self, rig: LampRigModel, config: PanTiltConfig, yes: bool = True,
+                 operator: Operator | None = None, limits: Mapping[int, tuple[int, int]] | None = None,
+                 fail_on_move: int | None = None, fail_servo: int | None = None, fail_bits: int = 0x04) -> None:
         super().__init__(rig, config, operator or Operator(yes=yes))
         self.limits = {i: (limits or {}).get(i, FULL_RANGE) for i in self.ids}
         self.present = {i: CENTRE_TICK for i in self.ids}
@@ -43,6 +54,6 @@ class SimPanTilt(ServoRig):
         self._check_errors()
         return dict(self.present)
 
-    def stop(self, fault_is_own=False):
+    def stop(self, fault_is_own: bool = False) -> None:
         if fault_is_own:
             self.torque = {i: False for i in self.ids}

@@ -28,21 +28,27 @@ itself after --max-seconds. One process, one thread, a 500 Hz tick, standard-lib
 - A connection step that never answers (`--mute STEP`, MUTE_STEPS): every client's connection
   goes silent at that step, as a listener that passes a connection check and then hangs.
 """
+
+from __future__ import annotations
+
 import argparse
 import errno
-import ipaddress
 import re
 import selectors
 import socket
 import struct
 import sys
 import time
+from collections.abc import Sequence
+from typing import Any, TextIO, cast
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
 from cell.core.geometry import from_ur_pose, to_ur_pose
 from cell.devices import ur5e
+from sim.addresses import loopback
 
 DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT = 29999, 30004, 30003   # fixed by UR and ur_rtde
 TICK_S = 0.002                                                 # e-Series: 500 Hz
@@ -111,7 +117,7 @@ TYPES = {name: kind for kind, names in _TYPE_GROUPS.items() for name in names.sp
 REGISTER = re.compile(r"(?:input|output)_(int|double|bit)_register_(\d+)$")
 
 
-def rtde_type(name):
+def rtde_type(name: str) -> str:
     """The RTDE guide's type of a variable, or NOT_FOUND."""
     register = REGISTER.match(name)
     if register:
@@ -119,7 +125,7 @@ def rtde_type(name):
     return TYPES.get(name, "NOT_FOUND")
 
 
-def message(kind, payload=b""):
+def message(kind: int, payload: bytes = b"") -> bytes:
     """An RTDE message: uint16 size counting the 3 header bytes, uint8 type, payload."""
     return struct.pack(">HB", len(payload) + 3, kind) + payload
 
@@ -129,11 +135,11 @@ class Line:
     per rad of rotation), a trapezoidal profile of the commanded speed and acceleration started
     at t0; `brake` replaces the profile by a stop at a deceleration from wherever it is."""
 
-    def __init__(self, T0, T1, speed, acceleration, t0):
+    def __init__(self, T0: np.ndarray, T1: np.ndarray, speed: float, acceleration: float, t0: float) -> None:
         self.T0, self.T1, self.t0 = T0, T1, t0
         self.dp = T1[:3, 3] - T0[:3, 3]
         self.w = Rotation.from_matrix(T0[:3, :3].T @ T1[:3, :3]).as_rotvec()
-        self.length = max(np.linalg.norm(self.dp), np.linalg.norm(self.w))
+        self.length = float(max(np.linalg.norm(self.dp), np.linalg.norm(self.w)))
         v, a = speed, acceleration
         t_ramp = v / a
         if v * t_ramp >= self.length:                  # triangular: never reaches the speed
@@ -143,7 +149,7 @@ class Line:
             self.phases = [(t_ramp, a), (self.length / v - t_ramp, 0.0), (t_ramp, -a)]
         self.s0, self.v0, self.end = 0.0, 0.0, self.length
 
-    def state(self, t):
+    def state(self, t: float) -> tuple[float, float, bool]:
         """(path position s, speed ds/dt, finished) at time t."""
         s, v, tau = self.s0, self.v0, t - self.t0
         for duration, a in self.phases:
@@ -154,7 +160,7 @@ class Line:
                 return min(s, self.end), max(v, 0.0), False
         return self.end, 0.0, True
 
-    def brake(self, deceleration, t):
+    def brake(self, deceleration: float, t: float) -> None:
         s, v, _ = self.state(t)
         self.s0, self.v0, self.t0 = s, v, t
         if deceleration > 0:
@@ -163,13 +169,13 @@ class Line:
         else:
             self.phases, self.end = [], s
 
-    def velocity(self, ds_dt):
+    def velocity(self, ds_dt: float) -> np.ndarray:
         """The TCP's [vx, vy, vz, wx, wy, wz] (base frame) at path speed ds/dt."""
         if self.length == 0:
             return np.zeros(6)
         return np.concatenate([self.dp, self.T0[:3, :3] @ self.w]) * ds_dt / self.length
 
-    def pose(self, s):
+    def pose(self, s: float) -> np.ndarray:
         f = s / self.length if self.length > 0 else 1.0
         T = np.eye(4)
         T[:3, :3] = self.T0[:3, :3] @ Rotation.from_rotvec(self.w * f).as_matrix()
@@ -180,38 +186,38 @@ class Line:
 class Arm:
     """The UR5e: joints, the TCP offset (setTcp) and the line it follows, if any."""
 
-    def __init__(self, joints=HOME_JOINTS):
+    def __init__(self, joints: ArrayLike = HOME_JOINTS) -> None:
         self.q = np.array(joints, float)
         self.qd, self.tcp_speed = np.zeros(6), np.zeros(6)
         self.T_flange_tcp = np.eye(4)
-        self.line = None
+        self.line: Line | None = None
         self.t = time.monotonic()                # of the last step
-        self._pose = (None, None)                # (key, wire pose): the stream's every tick
+        self._pose: tuple[bytes, np.ndarray] | None = None   # (key, wire pose): the stream's every tick
 
-    def tcp(self):
+    def tcp(self) -> np.ndarray:
         return ur5e.forward(self.q) @ self.T_flange_tcp
 
-    def tcp_pose(self):
+    def tcp_pose(self) -> np.ndarray:
         """getActualTCPPose's [x, y, z, rx, ry, rz], computed again only when the arm moved."""
         key = self.q.tobytes() + self.T_flange_tcp.tobytes()
-        if self._pose[0] != key:
+        if self._pose is None or self._pose[0] != key:
             self._pose = (key, to_ur_pose(self.tcp()))
         return self._pose[1]
 
-    def reachable(self, T_base_tcp):
+    def reachable(self, T_base_tcp: np.ndarray) -> bool:
         try:
             ur5e.inverse(T_base_tcp @ np.linalg.inv(self.T_flange_tcp), self.q)
             return True
         except ur5e.Unreachable:
             return False
 
-    def move_line(self, pose, speed, acceleration, now):
+    def move_line(self, pose: ArrayLike, speed: float, acceleration: float, now: float) -> None:
         self.line = Line(self.tcp(), from_ur_pose(pose), speed, acceleration, now)
 
-    def halt(self):
+    def halt(self) -> None:
         self.line, self.qd, self.tcp_speed = None, np.zeros(6), np.zeros(6)
 
-    def step(self, now):
+    def step(self, now: float) -> str | None:
         """Follow the line to `now`; returns an error saying why the arm stopped, or None."""
         dt, self.t = now - self.t, now
         if self.line is None:
@@ -239,32 +245,32 @@ class ControlScript:
     """ur_rtde's rtde_control program, its main loop and process_cmd interpreted on the registers
     instead of run as URScript. `blocked` is what a synchronous command waits for."""
 
-    def __init__(self, text):
+    def __init__(self, text: str) -> None:
         offset = re.search(r"reg_offset_int\s*=\s*(\d+)", text)
         self.offset = int(offset.group(1)) if offset else 0
         self.executing = False
-        self.blocked = None                 # "move" or "stop": a sync movel / stopl in progress
+        self.blocked: str | None = None     # "move" or "stop": a sync movel / stopl in progress
         self.async_move = self.async_stop = False
         self.write_count = self.operation_id = 0
 
-    def started(self, c):
+    def started(self, c: Controller) -> None:
         self.async_progress(c, -1)
         self.write_int(c, 0, READY_FOR_COMMAND)
 
     # registers, with the script's register offset
-    def read_int(self, c, i):
+    def read_int(self, c: Controller, i: int) -> int:
         return c.inputs.get(f"input_int_register_{i + self.offset}", 0)
 
-    def read_double(self, c, i):
+    def read_double(self, c: Controller, i: int) -> float:
         return c.inputs.get(f"input_double_register_{i + self.offset}", 0.0)
 
-    def read_pose(self, c):
+    def read_pose(self, c: Controller) -> list[float]:
         return [self.read_double(c, i) for i in range(6)]
 
-    def write_int(self, c, i, value):
+    def write_int(self, c: Controller, i: int, value: int) -> None:
         c.outputs[f"output_int_register_{i + self.offset}"] = int(value)
 
-    def async_progress(self, c, value):
+    def async_progress(self, c: Controller, value: int) -> None:
         """write_async_progress_register: bit 15 running + 15-bit progress, bits 16-23 a write
         count, bits 24-30 the operation id (a new one when an operation starts, value 0)."""
         self.write_count = (self.write_count + 1) % 128
@@ -275,7 +281,7 @@ class ControlScript:
             word += min(value, 32767) + 32768
         self.write_int(c, 2, word)
 
-    def tick(self, c, now):
+    def tick(self, c: Controller, now: float) -> None:
         """One pass of the script's `while keep_running:` loop (it syncs every tick)."""
         if self.async_move and c.arm.line is None:
             self.async_move = False
@@ -298,7 +304,7 @@ class ControlScript:
             self.executing = True
             self.process(c, command, now)
 
-    def process(self, c, command, now):
+    def process(self, c: Controller, command: int, now: float) -> None:
         c.trace(f"command {command} async {self.read_int(c, 1)} "
                 f"doubles {[round(self.read_double(c, i), 6) for i in range(8)]}")
         if command == MOVEL:
@@ -344,7 +350,7 @@ class ControlScript:
             return c.script_error(f"{what} {command} is not emulated")
         self.write_int(c, 0, DONE_WITH_COMMAND)
 
-    def stop_async_move(self, c):
+    def stop_async_move(self, c: Controller) -> None:
         """Kill the move thread: its operation ends here (the arm brakes from where it is)."""
         if self.async_move:
             self.async_move = False
@@ -354,37 +360,39 @@ class ControlScript:
 class Controller:
     """The controller's state: arm, program, safety, registers, and the armed fault."""
 
-    def __init__(self, fault=None, fault_on_move=1, fault_after_s=0.0, verbose=False, log=sys.stderr,
-                 mute=None):
+    def __init__(self, fault: str | None = None, fault_on_move: int = 1, fault_after_s: float = 0.0,
+                 verbose: bool = False, log: TextIO = sys.stderr, mute: str | None = None) -> None:
         self.start = time.monotonic()
         self.log, self.verbose, self.mute = log, verbose, mute
         self.reset()
-        self.armed = (fault, fault_on_move, fault_after_s) if fault else None
+        # (kind, move, after [s]): a fault to fire that long after that move starts
+        self.armed: tuple[str, int, float] | None = (fault, fault_on_move, fault_after_s) if fault else None
 
-    def reset(self):
+    def reset(self) -> None:
         """As after power-up: home joints, no TCP offset, no program, no fault armed."""
         self.arm = Arm()
-        self.program = None
-        self.inputs, self.outputs = {}, {}
+        self.program: ControlScript | None = None
+        self.inputs: dict[str, Any] = {}
+        self.outputs: dict[str, Any] = {}
         self.robot_mode, self.safety_mode = RUNNING, SAFETY_NORMAL
         self.safety_bits = NORMAL_MODE_BIT
         self.moves = 0
         self.armed = None
-        self.fault_at = None                       # (time, kind): a fault that fires then
-        self.pending = []                          # faults the server carries out (silent, drop)
+        self.fault_at: tuple[float, str] | None = None       # (time, kind): a fault that fires then
+        self.pending: list[str] = []                         # faults the server carries out (silent, drop)
 
-    def say(self, text):
+    def say(self, text: str) -> None:
         print(f"ur_controller {time.monotonic() - self.start:7.3f} s: {text}", file=self.log, flush=True)
 
-    def trace(self, text):
+    def trace(self, text: str) -> None:
         if self.verbose:
             self.say(text)
 
     @property
-    def runtime_state(self):
+    def runtime_state(self) -> int:
         return PLAYING if self.program else STOPPED
 
-    def run_program(self, text):
+    def run_program(self, text: str) -> None:
         if not re.search(r"^def rtde_control\(\):", text, re.M):
             self.say("a program other than ur_rtde's rtde_control arrived on the script port: not run")
             return
@@ -396,23 +404,23 @@ class Controller:
         self.program.started(self)
         self.say("rtde_control program started")
 
-    def stop_program(self, why):
+    def stop_program(self, why: str) -> None:
         if self.program:
             self.program = None
             self.arm.halt()
             self.say(f"program stopped ({why})")
 
-    def script_error(self, why):
+    def script_error(self, why: str) -> None:
         self.say(f"runtime error: {why}")
         self.stop_program("runtime error")
 
-    def move_started(self, now):
+    def move_started(self, now: float) -> None:
         self.moves += 1
         if self.armed and self.armed[1] == self.moves:
             kind, _, after_s = self.armed
             self.fault_at, self.armed = (now + after_s, kind), None
 
-    def fault(self, kind, why="injected"):
+    def fault(self, kind: str, why: str = "injected") -> None:
         self.say(f"fault: {kind} ({why})")
         if kind == "protective-stop":
             self.safety_mode = SAFETY_PROTECTIVE_STOP
@@ -426,13 +434,13 @@ class Controller:
         self.arm.halt()
         self.stop_program(kind)
 
-    def unlock_protective_stop(self):
+    def unlock_protective_stop(self) -> bool:
         if self.safety_mode != SAFETY_PROTECTIVE_STOP:
             return False
         self.safety_mode, self.safety_bits = SAFETY_NORMAL, NORMAL_MODE_BIT
         return True
 
-    def tick(self, now):
+    def tick(self, now: float) -> None:
         if self.fault_at and now >= self.fault_at[0]:
             kind, self.fault_at = self.fault_at[1], None
             self.fault(kind, "armed")
@@ -442,7 +450,7 @@ class Controller:
         if self.program:
             self.program.tick(self, now)
 
-    def values(self):
+    def values(self) -> dict[str, Any]:
         """The state as RTDE variables (names the guide defines; others are zero)."""
         pose = self.arm.tcp_pose()
         running = self.program is not None
@@ -468,14 +476,18 @@ class Controller:
 class Connection:
     """A client socket with its input buffer and unsent output."""
 
-    def __init__(self, sock, kind):
+    def __init__(self, sock: socket.socket, kind: str) -> None:
         self.sock, self.kind = sock, kind
         self.inbox, self.outbox = bytearray(), bytearray()
 
-    def send(self, data):
+    def send(self, data: bytes) -> None:
         self.outbox += data
 
-    def flush(self):
+    def receive(self, c: Controller) -> bool:
+        """Act on what arrived in the inbox; False when the client is to be dropped."""
+        raise NotImplementedError
+
+    def flush(self) -> bool:
         """Send what the socket takes; False when the client is gone or does not read."""
         try:
             while self.outbox:
@@ -491,13 +503,14 @@ class Connection:
 class Rtde(Connection):
     """One RTDE client: its output recipe (streamed once started) and its input recipes."""
 
-    def __init__(self, sock):
+    def __init__(self, sock: socket.socket) -> None:
         super().__init__(sock, "rtde")
-        self.output = None                       # (names, format, period_s)
-        self.inputs = []                         # per recipe id - 1: [(name, format)]
+        # ([(name, width)], format, period_s) of the output recipe
+        self.output: tuple[list[tuple[str, int]], struct.Struct, float] | None = None
+        self.inputs: list[list[tuple[str, str | None]]] = []     # per recipe id - 1: [(name, format)]
         self.started, self.next_send = False, 0.0
 
-    def handle(self, c, kind, payload):
+    def handle(self, c: Controller, kind: int, payload: bytes) -> None:
         if (c.mute == "rtde-version" and kind != REQUEST_PROTOCOL_VERSION) or (c.mute == "rtde-start"
                                                                              and kind == START):
             return c.trace(f"muted at {c.mute}: RTDE message {chr(kind)!r} not answered")
@@ -515,9 +528,10 @@ class Rtde(Connection):
                 c.say(f"output recipe asks for unknown variables: "
                       f"{[n for n, t in zip(names, types) if t == 'NOT_FOUND']}")
             else:
-                fmt = ">B" + "".join(FORMATS[t] for t in types)
+                recipe_format = ">B" + "".join(FORMATS[t] for t in types)
                 widths = [int(FORMATS[t][0]) if FORMATS[t][0].isdigit() else 1 for t in types]
-                self.output = (list(zip(names, widths)), struct.Struct(fmt), 1.0 / min(max(frequency, 1.0), 500.0))
+                self.output = (list(zip(names, widths)), struct.Struct(recipe_format),
+                               1.0 / min(max(frequency, 1.0), 500.0))
             self.send(message(kind, bytes([1]) + ",".join(types).encode()))
         elif kind == SETUP_INPUTS:
             names = [n for n in payload.decode().split(",") if n]
@@ -544,7 +558,7 @@ class Rtde(Connection):
                 c.inputs[name] = value[0] if len(value) == 1 else list(value)
                 offset += struct.calcsize(">" + fmt)
 
-    def receive(self, c):
+    def receive(self, c: Controller) -> bool:
         while len(self.inbox) >= 3:
             size, kind = struct.unpack_from(">HB", self.inbox)
             if size < 3:
@@ -556,8 +570,8 @@ class Rtde(Connection):
             self.handle(c, kind, payload)
         return True
 
-    def stream(self, c, values, now):
-        if not self.started or now < self.next_send:
+    def stream(self, c: Controller, values: dict[str, Any], now: float) -> None:
+        if not self.started or self.output is None or now < self.next_send:
             return
         fields, packer, period = self.output
         self.next_send = max(self.next_send + period, now - period)
@@ -574,11 +588,11 @@ class Rtde(Connection):
 class Dashboard(Connection):
     """The dashboard server: the lines ur_rtde and an operator use, plus `emulator ...`."""
 
-    def __init__(self, sock):
+    def __init__(self, sock: socket.socket) -> None:
         super().__init__(sock, "dashboard")
         self.send(b"Connected: Universal Robots Dashboard Server\n")
 
-    def receive(self, c):
+    def receive(self, c: Controller) -> bool:
         if c.mute == "dashboard":
             self.inbox.clear()
             return True
@@ -591,7 +605,7 @@ class Dashboard(Connection):
             self.send(answer.encode() + b"\n")
         return True
 
-    def answer(self, c, command):
+    def answer(self, c: Controller, command: str) -> str | None:
         lower = command.lower()
         safety = {SAFETY_NORMAL: "NORMAL", SAFETY_PROTECTIVE_STOP: "PROTECTIVE_STOP",
                   SAFETY_ROBOT_EMERGENCY_STOP: "ROBOT_EMERGENCY_STOP"}[c.safety_mode]
@@ -624,7 +638,7 @@ class Dashboard(Connection):
             return self.emulator(c, lower.split()[1:])
         return f"could not understand: '{command}'"
 
-    def emulator(self, c, words):
+    def emulator(self, c: Controller, words: Sequence[str]) -> str:
         """`emulator fault KIND [on move N after S]`, `emulator reset`, `emulator status`."""
         if words == ["reset"]:
             c.reset()
@@ -646,10 +660,10 @@ class Dashboard(Connection):
 class ScriptPort(Connection):
     """Port 30003: URScript programs arrive as text, one top-level `def ...:` ... `end`."""
 
-    def __init__(self, sock):
+    def __init__(self, sock: socket.socket) -> None:
         super().__init__(sock, "script")
 
-    def receive(self, c):
+    def receive(self, c: Controller) -> bool:
         if c.mute == "script":
             self.inbox.clear()
             return True
@@ -670,10 +684,11 @@ class Server:
 
     KINDS = {RTDE_PORT: Rtde, DASHBOARD_PORT: Dashboard, SCRIPT_PORT: ScriptPort}
 
-    def __init__(self, host, controller):
+    def __init__(self, host: str, controller: Controller) -> None:
         self.controller = controller
         self.selector = selectors.DefaultSelector()
-        self.listeners, self.clients = [], {}
+        self.listeners: list[socket.socket] = []
+        self.clients: dict[socket.socket, Connection] = {}
         self.silent = self.stopping = False
         for port, what in ((DASHBOARD_PORT, "dashboard"), (RTDE_PORT, "RTDE"), (SCRIPT_PORT, "script")):
             sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
@@ -691,7 +706,7 @@ class Server:
             self.selector.register(sock, selectors.EVENT_READ, port)
             self.listeners.append(sock)
 
-    def close(self):
+    def close(self) -> None:
         for conn in list(self.clients.values()):
             self.drop(conn)
         for sock in self.listeners:
@@ -699,7 +714,7 @@ class Server:
             sock.close()
         self.listeners = []
 
-    def drop(self, conn):
+    def drop(self, conn: Connection) -> None:
         self.clients.pop(conn.sock, None)
         try:
             self.selector.unregister(conn.sock)
@@ -707,7 +722,7 @@ class Server:
             pass
         conn.sock.close()
 
-    def accept(self, listener, port):
+    def accept(self, listener: socket.socket, port: int) -> None:
         try:
             sock, _ = listener.accept()
         except BlockingIOError:
@@ -718,7 +733,7 @@ class Server:
         self.clients[sock] = conn
         self.selector.register(sock, selectors.EVENT_READ, conn)
 
-    def read(self, conn):
+    def read(self, conn: Connection) -> None:
         try:
             data = conn.sock.recv(65536)
         except BlockingIOError:
@@ -732,7 +747,7 @@ class Server:
             conn.flush()
             self.drop(conn)
 
-    def carry_out(self, kind):
+    def carry_out(self, kind: str) -> None:
         if kind == "silent":
             for conn in self.clients.values():          # the dashboard's answer still goes out
                 conn.flush()
@@ -740,7 +755,7 @@ class Server:
         elif kind == "drop":
             self.close()
 
-    def run(self, max_seconds):
+    def run(self, max_seconds: float) -> None:
         c = self.controller
         deadline = time.monotonic() + max_seconds
         next_tick = time.monotonic()
@@ -753,7 +768,7 @@ class Server:
                 continue
             for key, _ in self.selector.select(max(0.0, next_tick - now)):
                 if isinstance(key.data, int):
-                    self.accept(key.fileobj, key.data)
+                    self.accept(cast(socket.socket, key.fileobj), key.data)     # a listener's port
                 elif key.fileobj in self.clients:
                     self.read(key.data)
             now = time.monotonic()
@@ -775,19 +790,7 @@ class Server:
         self.close()
 
 
-def loopback(host):
-    """Refuse anything but an IPv4 loopback address (the tests' and the notes' rule)."""
-    address = "127.0.0.1" if host == "localhost" else host
-    try:
-        if ipaddress.IPv4Address(address).is_loopback:
-            return address
-    except ipaddress.AddressValueError:
-        pass
-    raise SystemExit(f"ur_controller: refusing host {host!r}: the emulator listens on loopback only "
-                     "(127.0.0.0/8 or localhost)")
-
-
-def main(argv=None):
+def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m sim.ur_controller", description=__doc__.split("\n")[0])
     parser.add_argument("--host", default="127.0.0.1", help="loopback address to listen on")
     parser.add_argument("--max-seconds", type=float, default=600.0, help="end after this long")
@@ -797,7 +800,7 @@ def main(argv=None):
     parser.add_argument("--mute", choices=MUTE_STEPS, help="answer nothing from this step of a connection on")
     parser.add_argument("--verbose", action="store_true", help="log recipes and commands on stderr")
     args = parser.parse_args(argv)
-    host = loopback(args.host)
+    host = loopback(args.host, "ur_controller")
     controller = Controller(args.fault, args.fault_on_move, args.fault_after_s, args.verbose, mute=args.mute)
     server = Server(host, controller)
     print("READY", flush=True)

@@ -27,9 +27,15 @@ Effects, applied in the physical order light -> lens -> sensor -> ADC, whatever 
   black_level   a constant offset, BLACK_LEVEL of full scale (5 gray at 8 bits)
   quantization  gray rounded to integers, clipped to [0, 2^bits - 1] (uint8, or uint16 above 8 bits)
 """
+
+from __future__ import annotations
+
+from collections.abc import Collection
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.ndimage import gaussian_filter
 from scipy.special import erfc, ndtr
 
@@ -39,6 +45,10 @@ from cell.physics.depth_of_field import blur_diameter
 from cell.physics.projection import intrinsics, pixel_rays
 from cell.planning.scene import build_scene
 from kernels.render import render
+from cell.planning.scene import Scene
+
+if TYPE_CHECKING:
+    from cell.task.types import Sensor, Task
 
 CONE_EDGE = 1.0 / 6.0       # cone edge blur s as a fraction of the half angle gamma/2
 DEFOCUS_STEP_PX = 0.5       # defocus depth layers: circle of confusion in these steps
@@ -47,7 +57,7 @@ READ_NOISE_E = 10.0         # rms electrons: assumed, typical of machine-vision 
 BLACK_LEVEL = 0.02          # of full scale, rounded (5 gray at 8 bits): keeps read noise above 0
 
 
-def cone_falloff(off_axis_rad, cone_angle_rad, profile=None):
+def cone_falloff(off_axis_rad: ArrayLike, cone_angle_rad: float, profile: np.ndarray | None = None) -> np.ndarray:
     """The world's lamp profile: irradiance relative to eq. (11)'s on the axis at off-axis angle
     theta, the model's profile blurred in angle by a Gaussian of s = CONE_EDGE gamma/2. Without a
     profile (the hard cone) erfc((theta - gamma/2) / (sqrt 2 s)) / 2; with one, blurred_profile."""
@@ -61,7 +71,7 @@ def _normal_pdf(x):
     return np.exp(-0.5 * x * x) / np.sqrt(2.0 * np.pi)
 
 
-def blurred_profile(off_axis_rad, profile, s):
+def blurred_profile(off_axis_rad: ArrayLike, profile: ArrayLike, s: float) -> np.ndarray:
     """E[f(|theta + X|)], X ~ N(0, s^2): a profile f (M, 2) [off_axis_rad, relative], linear and 0
     beyond its last angle, blurred in angle across the axis (f(|t|) along a line through it). On a
     segment [a, b], f = f_a + beta (t - a), its integral against N(t; mu, s) is
@@ -80,7 +90,8 @@ def blurred_profile(off_axis_rad, profile, s):
     return out
 
 
-def defocus(gray, depth_m, focus_m, focal_length_m, f_number, pixel_pitch_m):
+def defocus(gray: np.ndarray, depth_m: np.ndarray, focus_m: float, focal_length_m: float, f_number: float,
+            pixel_pitch_m: float) -> np.ndarray:
     """Thin-lens blur: each depth layer (circle of confusion c in DEFOCUS_STEP_PX steps) is spread
     by the Gaussian with its disk's second moment (sigma = c / 4) and the layers are summed, so
     light is conserved (occlusion at depth steps is ignored). depth_m along the optical axis."""
@@ -107,7 +118,7 @@ class SensorModel:
     bit_depth: int
 
     @classmethod
-    def of(cls, sensor):
+    def of(cls, sensor: Sensor) -> SensorModel:
         """The task's sensor: its datasheet keys (camera.sensor) where given, else FULL_WELL_E
         electrons at full scale, READ_NOISE_E and no full well below the ADC's top."""
         full_scale = float(saturation_level(sensor.bit_depth))
@@ -116,7 +127,7 @@ class SensorModel:
         return cls(gain, dark, sensor.saturation_capacity_e or np.inf, float(np.rint(BLACK_LEVEL * full_scale)),
                    sensor.bit_depth)
 
-    def read_out(self, gray, effects, rng):
+    def read_out(self, gray: np.ndarray, effects: Collection[str], rng: np.random.Generator) -> np.ndarray:
         """The sensor's image of the noiseless gray, with the effects listed: noise (shot, dark,
         full well), black_level, quantization (integers clipped to the bit depth)."""
         if "noise" in effects:
@@ -129,7 +140,7 @@ class SensorModel:
         return gray
 
 
-def true_part_scene(task, scene):
+def true_part_scene(task: Task, scene: Scene) -> Scene:
     """The scene with the part at its true pose: T_cell_part moved by the truth's part_offset_m
     (cell frame) after turning by part_rpy about the feature centre; `scene` itself when neutral."""
     truth = task.sim.truth
@@ -147,7 +158,7 @@ class Renderer:
     sim.camera.SimCamera. `scale` < 1 samples a coarser pixel grid over the same sensor (gray per
     real pixel unchanged), for fast tests; K is the grid's camera matrix."""
 
-    def __init__(self, task, scene, scale=1.0):
+    def __init__(self, task: Task, scene: Scene, scale: float = 1.0) -> None:
         sensor, lens = task.camera.sensor, task.camera.lens
         self.task, self.scene, self.effects = task, scene, frozenset(task.sim.effects)
         grid = replace(sensor, width_px=round(sensor.width_px * scale),
@@ -165,7 +176,7 @@ class Renderer:
         self.rng = np.random.default_rng(task.sim.seed)
         self.error_direction_rad = self.rng.uniform(0.0, 2.0 * np.pi)
 
-    def lamp_axis(self, lamp_aim):
+    def lamp_axis(self, lamp_aim: ArrayLike) -> np.ndarray:
         """The lamp's true axis: the commanded aim turned by lamp_direction_error toward a direction
         drawn once from the seed (a mis-mounted lamp errs the same way at every pose)."""
         aim = geometry.unit(lamp_aim)
@@ -173,7 +184,8 @@ class Renderer:
         error, psi = self.task.sim.truth.lamp_direction_error_rad, self.error_direction_rad
         return np.cos(error) * aim + np.sin(error) * (np.cos(psi) * x + np.sin(psi) * y)
 
-    def __call__(self, T_cell_cam, lamp_pos, lamp_aim, shutter_s, f_number, focus_m=None):
+    def __call__(self, T_cell_cam: np.ndarray, lamp_pos: np.ndarray, lamp_aim: ArrayLike, shutter_s: float,
+                 f_number: float, focus_m: float | None = None) -> np.ndarray:
         """Gray image (H, W): float, or integers with quantization, seen from the camera pose the
         arm reports (T_cell_cam; the true one is T_cell_cam T_cam_true) with the lamp at its
         read-back pose. focus_m is the lens's focus distance along the optical axis (None: the

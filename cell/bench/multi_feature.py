@@ -15,14 +15,23 @@ counts too, against alone. Two virtual cores of a shared host lose 5-15 % of it 
 so that ceiling is what the plan's speedup is to be read against. On a machine other jobs load,
 2 processes take a larger share of its cores than 1: the speedup is a quiet machine's only when
 nothing else runs."""
+
+from __future__ import annotations
+
 import time
+from collections.abc import Callable, Iterable
 from dataclasses import replace
 from importlib.resources import files
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from cell.planning import parallel
 from cell.planning.whole_part import plan_features
+
+if TYPE_CHECKING:
+    from cell.planning.plan import Plan
+    from cell.task.types import Task
 
 FEATURE_TASKS = (files("lightplan_tasks") / "bracket.yaml",)    # the multi-feature example, installed with the package
 SPEEDUP_TARGET = 1.8            # 2 workers over 1 (the issue's done-when)
@@ -30,12 +39,12 @@ ROUNDS = 7                      # of 1 and 2 workers each (--quick: 1)
 SPIN_S = 0.5                    # a spin job's time (machine_speedup)
 
 
-def evaluations(plan):
+def evaluations(plan: Plan) -> int:
     """Lamp candidates x samples of the global searches of a multi-feature plan's candidate shots."""
-    return sum(p.search.candidates * len(p.scene.points) for p in plan.plans)
+    return sum(p.search.candidates * len(p.planned_scene.points) for p in plan.plans)
 
 
-def without_timing(document):
+def without_timing(document: Any) -> Any:
     """A plan.json without its timing_s keys (at any depth): what must equal between runs."""
     if isinstance(document, dict):
         return {k: without_timing(v) for k, v in document.items() if k != "timing_s"}
@@ -44,13 +53,13 @@ def without_timing(document):
     return document
 
 
-def same_plan(a, b):
+def same_plan(a: Plan, b: Plan) -> bool:
     """The two multi-feature plans and each candidate's own plan equal but for timing_s."""
     return (without_timing(a.to_json()) == without_timing(b.to_json()) and len(a.plans) == len(b.plans)
             and all(without_timing(p.to_json()) == without_timing(q.to_json()) for p, q in zip(a.plans, b.plans)))
 
 
-def timed(task, repeats):
+def timed(task: Task, repeats: int) -> tuple[Plan, float]:
     """(the serial plan, its median wall time [s] over `repeats` runs)."""
     times = []
     for _ in range(repeats):
@@ -60,7 +69,8 @@ def timed(task, repeats):
     return plan, float(np.median(times))
 
 
-def feature_rows(task, quick, repeats, say):
+def feature_rows(task: Task, quick: bool, repeats: int,
+                 say: Callable[[str], None]) -> tuple[list[dict[str, Any]], Plan, float]:
     """Serial planning time of the task's first k features, k = 1 .. all (quick: 1 and all); the
     last row's plan is the serial reference of the worker rows."""
     label, n = task.path.stem, len(task.features)
@@ -69,6 +79,7 @@ def feature_rows(task, quick, repeats, say):
     rows, plans = [], []
     for k in sorted({1, n}) if quick else range(1, n + 1):
         plan, time_s = timed(replace(task, features=task.features[:k]), repeats)
+        assert plan.cover is not None                  # a multi-feature plan's
         rows.append({"task": label, "features": k, "candidates": plan.cover["candidate_shots"],
                      "evaluations": evaluations(plan), "time_s": time_s,
                      "evaluations_per_s": evaluations(plan) / time_s, "stages_s": plan.timing_s})
@@ -77,7 +88,7 @@ def feature_rows(task, quick, repeats, say):
     return rows, plans[-1], rows[-1]["time_s"]
 
 
-def spin(seconds, say):
+def spin(seconds: float, say: Callable[[str], None]) -> int:
     """A job: plain integer steps for `seconds`; how many (the rate its core gives it)."""
     end, steps = time.perf_counter() + seconds, 0
     while time.perf_counter() < end:
@@ -85,7 +96,7 @@ def spin(seconds, say):
     return steps
 
 
-def machine_speedup(one, two, rounds):
+def machine_speedup(one: parallel.Pool, two: parallel.Pool, rounds: int) -> list[float]:
     """Each round's 2 x (a spin job's steps while another runs beside it on the other worker) /
     (a spin job's steps alone): what two processes on the machine's cores make of them with
     nothing to share and no job to wait for, the ceiling of the plan's speedup. ABBA rounds."""
@@ -98,20 +109,23 @@ def machine_speedup(one, two, rounds):
     return ratios
 
 
-def side_by_side(task, one, two, rounds):
+def side_by_side(task: Task, one: parallel.Pool, two: parallel.Pool,
+                 rounds: int) -> tuple[list[Plan], tuple[list[float], list[float]], list[float]]:
     """(the plans on pools `one` and `two`, their times [s], each round's ratio one / two) of
     plan_features, `rounds` rounds of a run on each, which first in turn (ABBA: a machine that
     slows or speeds up as the rounds go weighs on both alike)."""
-    plans, times = [None, None], ([], [])
+    plans: dict[int, Plan] = {}
+    times: tuple[list[float], list[float]] = ([], [])
     for r in range(rounds):
         for k in (0, 1) if r % 2 == 0 else (1, 0):
             t0 = time.perf_counter()
             plans[k] = plan_features(task, pool=(one, two)[k])
             times[k].append(time.perf_counter() - t0)
-    return plans, times, [a / b for a, b in zip(*times)]
+    return [plans[0], plans[1]], times, [a / b for a, b in zip(*times)]
 
 
-def worker_row(task, serial, serial_s, rounds, say):
+def worker_row(task: Task, serial: Plan, serial_s: float, rounds: int,
+               say: Callable[[str], None]) -> dict[str, Any]:
     """1 and 2 workers of one LocalCluster against the serial plan `serial` (serial_s [s]): each
     worker count's median time, the speedup as the median of the rounds' ratios (with every
     round's: the spread), and the machine's own speedup in as many rounds (machine_speedup)."""
@@ -126,6 +140,7 @@ def worker_row(task, serial, serial_s, rounds, say):
         plans, (one_times, two_times), ratios = side_by_side(task, one, both, rounds)
         ceiling = machine_speedup(one, both, rounds)
     one_s, two_s, count = float(np.median(one_times)), float(np.median(two_times)), evaluations(serial)
+    assert serial.cover is not None                    # a multi-feature plan's
     row = {"task": label, "features": len(task.features), "candidates": serial.cover["candidate_shots"],
            "evaluations": count, "serial_s": serial_s, "startup_s": startup_s, "first_s": first_s,
            "workers": [{"workers": 1, "time_s": one_s, "evaluations_per_s": count / one_s},
@@ -141,10 +156,10 @@ def worker_row(task, serial, serial_s, rounds, say):
     return row
 
 
-def run(tasks, quick, say):
+def run(tasks: Iterable[Task], quick: bool, say: Callable[[str], None]) -> dict[str, list[dict[str, Any]]]:
     """{"features": rows, "workers": rows} of the multi-feature `tasks`."""
     repeats = 1 if quick else 3
-    out = {"features": [], "workers": []}
+    out: dict[str, list[dict[str, Any]]] = {"features": [], "workers": []}
     for task in tasks:
         rows, serial, serial_s = feature_rows(task, quick, repeats, say)
         out["features"] += rows
@@ -152,7 +167,7 @@ def run(tasks, quick, say):
     return out
 
 
-def targets(workers):
+def targets(workers: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
     """The issue's done-when: 2 workers at least SPEEDUP_TARGET x 1 worker; the plans identical."""
     out = []
     for row in workers:

@@ -13,21 +13,28 @@ reference plan of the same task at fine resolution (REFERENCE):
 - feasible_agrees: the plan's verdict equals the reference's. A flip or any NaN/inf is flagged.
 Pareto front, per task: settings no other setting beats on both time_s and gray_error_max.
 """
+
+from __future__ import annotations
+
 import time
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, replace
 from importlib.resources import files
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from cell.planning import evaluate, one_shot
-
 from cell.core import geometry
-
 from cell.devices import rig
 from cell.planning.plan import PlannerSettings, gray_stats
 from cell.planning.regions import SphereGrid
 from cell.planning.scene import build_scene
 from cell.bench.throughput import benchmark_gray, benchmark_visibility, wall_times
+
+if TYPE_CHECKING:
+    from cell.planning.plan import Plan
+    from cell.task.types import Task
 
 EXAMPLES = files("lightplan_tasks")     # tasks/, installed with the package (pyproject.toml)
 DEFAULT_TASKS = (EXAMPLES / "hinge.yaml", EXAMPLES / "conrod.yaml")
@@ -58,7 +65,7 @@ GRID_STEPS_DEG = (4.0, 2.0, 1.0)                          # visibility map sizes
 QUICK_GRID_STEPS_DEG = (4.0,)
 
 
-def timed_plan(task, settings, repeats):
+def timed_plan(task: Task, settings: PlannerSettings, repeats: int) -> tuple[Plan, float, list[float]]:
     """(plan, median wall time [s], every time): one warm-up plan (the planner is deterministic:
     its result is the plan), then `repeats` timed ones."""
     result = one_shot.plan(task, settings)
@@ -66,7 +73,7 @@ def timed_plan(task, settings, repeats):
     return result, float(np.median(times)), times
 
 
-def accuracy(task, result, reference, truth):
+def accuracy(task: Task, result: Plan, reference: Plan, truth: evaluate.Problem) -> dict[str, Any]:
     """Errors of a plan against the reference plan (module docstring); `truth` is the
     evaluate.Problem of the reference's scene."""
     shot, ref_shot = result.shot, reference.shot
@@ -75,7 +82,7 @@ def accuracy(task, result, reference, truth):
     true_gray = truth.black_level + u[0] * shot.exposure.shutter_s / shot.exposure.f_number**2
     predicted, true = gray_stats(shot.gray), gray_stats(true_gray)
     error = {k: predicted[k] - true[k] for k in predicted}
-    center = reference.scene.center
+    center = reference.planned_scene.center
     cos = geometry.unit(pos - center) @ geometry.unit(ref_shot.lamp_position - center)
     numbers = np.concatenate([shot.gray, true_gray, pos, shot.joints, list(asdict(shot.exposure).values()),
                               [r.value for r in result.requirements]])
@@ -89,7 +96,7 @@ def accuracy(task, result, reference, truth):
     }
 
 
-def pareto(points):
+def pareto(points: Sequence[tuple[float, float]]) -> list[bool]:
     """Flags of the (time, error) points that no other point dominates (<= in both, < in one);
     a point with a NaN/inf is off the front and dominates nothing."""
     pts = np.asarray(points, dtype=float)
@@ -98,22 +105,24 @@ def pareto(points):
             for i, p in enumerate(pts)]
 
 
-def sweep_task(task, names, reference_settings, repeats, say):
+def sweep_task(task: Task, names: Iterable[str], reference_settings: PlannerSettings, repeats: int,
+               say: Callable[[str], None]) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """(rows of the settings `names`, the reference's summary) for one task."""
     label = task.path.stem
     t0 = time.perf_counter()
     reference = one_shot.plan(task, reference_settings)
     ref_time = time.perf_counter() - t0
-    say(f"{label} reference: {ref_time:.1f} s, {len(reference.scene.points)} samples, "
+    say(f"{label} reference: {ref_time:.1f} s, {len(reference.planned_scene.points)} samples, "
         f"{'feasible' if reference.feasible else 'INFEASIBLE (' + reference.binding + ')'}")
-    truth = evaluate.build_problem(task, reference.scene, reference.maps)
+    truth = evaluate.build_problem(task, reference.planned_scene, reference.maps)
     rows = []
     for name in names:
         settings = SWEEP[name]
         result, time_s, times = timed_plan(task, settings, repeats)
         row = {"name": name, "task": label, "settings": asdict(settings),
                "candidates": len(one_shot.candidate_grid(task.lamp.rig, settings)[0]),
-               "samples": len(result.scene.points), "time_s": time_s, "times_s": times, "stages_s": result.timing_s,
+               "samples": len(result.planned_scene.points), "time_s": time_s, "times_s": times,
+               "stages_s": result.timing_s,
                "feasible": result.feasible, "binding": result.binding, "miss": result.miss,
                **accuracy(task, result, reference, truth), "default": settings == DEFAULT}
         rows.append(row)
@@ -123,20 +132,21 @@ def sweep_task(task, names, reference_settings, repeats, say):
         row["pareto"] = on_front
     ref = {"task": label, "settings": asdict(reference_settings), "time_s": ref_time,
            "candidates": len(one_shot.candidate_grid(task.lamp.rig, reference_settings)[0]),
-           "samples": len(reference.scene.points), "feasible": reference.feasible, "binding": reference.binding,
+           "samples": len(reference.planned_scene.points), "feasible": reference.feasible,
+           "binding": reference.binding,
            "miss": reference.miss,
            "predicted_gray": gray_stats(reference.shot.gray),
            "lamp_position_m": reference.shot.lamp_position.tolist()}
     return rows, ref
 
 
-def flags(row):
+def flags(row: dict[str, Any]) -> str:
     """What the progress line shouts about: a feasibility flip, a NaN/inf."""
     return ("" if row["feasible_agrees"] else "  FLIP: feasibility differs from the reference") + \
         ("" if row["finite"] else "  NaN/inf in the plan")
 
 
-def kernel_rows(task, quick, repeats, say):
+def kernel_rows(task: Task, quick: bool, repeats: int, say: Callable[[str], None]) -> list[dict[str, Any]]:
     """Kernel throughput rows on the task's scene (cell.bench.throughput), tagged with the task."""
     label = task.path.stem
     scene = build_scene(task)
@@ -160,7 +170,7 @@ def kernel_rows(task, quick, repeats, say):
     return rows
 
 
-def targets(settings, kernels):
+def targets(settings: Iterable[dict[str, Any]], kernels: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
     """The issue's done-when: default within 1 gray level and well under 1 s; gray kernel >= 5x
     NumPy at 1e6 evaluations."""
     out = []
@@ -175,13 +185,14 @@ def targets(settings, kernels):
     return out
 
 
-def run(tasks, quick, say, feature_tasks=()):
+def run(tasks: Iterable[Task], quick: bool, say: Callable[[str], None],
+        feature_tasks: Iterable[Task] = ()) -> dict[str, Any]:
     """The benchmark of the loaded one-feature `tasks`: every setting's row against the task's
     reference, the references, the kernel rows; of the multi-feature `feature_tasks` the
     cell.bench.multi_feature rows; and the targets (bench.json)."""
     from cell.bench import multi_feature
     repeats = 1 if quick else 3
-    result = {"quick": quick, "repeats": repeats, "settings": [], "references": [], "kernels": []}
+    result: dict[str, Any] = {"quick": quick, "repeats": repeats, "settings": [], "references": [], "kernels": []}
     for task in tasks:
         rows, ref = sweep_task(task, QUICK_SWEEP if quick else SWEEP,
                                QUICK_REFERENCE if quick else REFERENCE, repeats, say)

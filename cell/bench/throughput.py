@@ -7,17 +7,24 @@ against every triangle, cost per evaluation independent of the batch), so they a
 most `reference_evaluations` and compared per evaluation. Each call returns rows
 {name, size, warp_per_s, reference, reference_size, reference_per_s, ratio, unavailable}.
 """
+
+from __future__ import annotations
+
 import functools
 import time
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from cell.physics import reference
 from kernels.gray import gray_per_exposure
 from kernels.visibility import visibility_maps
+from kernels.mesh import WarpMesh
 
 
-def wall_times(fn, repeat):
+def wall_times(fn: Callable[[], object], repeat: int) -> list[float]:
     """Wall time of each of `repeat` (at least 1) calls of fn() [s]."""
     times = []
     for _ in range(max(1, repeat)):
@@ -27,7 +34,7 @@ def wall_times(fn, repeat):
     return times
 
 
-def median_time(fn, repeat):
+def median_time(fn: Callable[[], object], repeat: int) -> float:
     """Median wall time of `repeat` calls of fn() [s]."""
     return float(np.median(wall_times(fn, repeat)))
 
@@ -38,9 +45,11 @@ def _row(name, size, warp_per_s, ref_name, ref_size=0, ref_per_s=None, unavailab
             "ratio": None if ref_per_s is None else warp_per_s / ref_per_s, "unavailable": unavailable}
 
 
-def benchmark_gray(mesh, points, normals, camera_pos, table, power_w=0.23043,
-                   cone_angle_rad=np.radians(12.0), camera_constant=1.5e16, pixel_area_m2=4.65e-6**2,
-                   evaluations=1_000_000, reference_evaluations=20_000, shadows=True, repeat=3, seed=0):
+def benchmark_gray(mesh: WarpMesh, points: ArrayLike, normals: ArrayLike, camera_pos: ArrayLike, table: np.ndarray,
+                   power_w: float = 0.23043, cone_angle_rad: float = np.radians(12.0),
+                   camera_constant: float = 1.5e16, pixel_area_m2: float = 4.65e-6**2,
+                   evaluations: int = 1_000_000, reference_evaluations: int = 20_000, shadows: bool = True,
+                   repeat: int = 3, seed: int = 0) -> list[dict[str, Any]]:
     """Gray evaluations (candidate x point) per second, kernels.gray vs cell.physics.reference.
 
     Candidates: random lamps 0.15-0.6 m from the points' centroid on its upper hemisphere,
@@ -88,8 +97,10 @@ def benchmark_gray(mesh, points, normals, camera_pos, table, power_w=0.23043,
     return rows
 
 
-def benchmark_visibility(mesh, points, normals, frame, azimuth, elevation,
-                         reference_evaluations=20_000, reference_rays=100_000, repeat=3, offset_m=1e-5):
+def benchmark_visibility(mesh: WarpMesh, points: ArrayLike, normals: ArrayLike, frame: np.ndarray,
+                         azimuth: np.ndarray, elevation: np.ndarray, reference_evaluations: int = 20_000,
+                         reference_rays: int = 100_000, repeat: int = 3,
+                         offset_m: float = 1e-5) -> list[dict[str, Any]]:
     """Visibility evaluations (point x direction) per second, kernels.visibility vs
     cell.physics.reference (on the first points, up to reference_evaluations); and rays per second
     on the rays above each tangent plane, every one cast (the kernel without its free cones), vs

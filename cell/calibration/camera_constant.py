@@ -15,14 +15,14 @@ window's dark variance, and the system gain K is what a camera without a datashe
 over the sweep's decade OLS stays unbiased and its standard error holds (tests/test_camera_constant.py).
 The arm and the lamp are connected (a fault stops them) but never moved.
 """
-import os
-import tempfile
+from __future__ import annotations
+
 from dataclasses import asdict, dataclass
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
-import yaml
 from scipy.ndimage import uniform_filter
 from scipy.stats import linregress
 
@@ -30,9 +30,16 @@ from cell.physics.sensor import saturation_level
 from cell.run import measurement
 from cell.run.acquisition import acquire
 from cell.calibration.reference_part import shutter_sweep
+from cell.core.files import write_yaml
 from cell.core.errors import CellError, DeviceFault, GoalNotReached, TaskError
 from cell.report.pictures import write_laser_fit
 from cell.report.recorder import Ending, Recorder
+from cell.report.result import Result
+
+if TYPE_CHECKING:
+    from cell.devices.interfaces import Devices
+    from cell.devices.operator import Operator
+    from cell.task.types import Sensor, Task
 
 DARK_FRAMES = 3             # at each end of the shutter range
 MIN_PEAK = 0.05             # a spot peaking below this share of the range above the dark is too dark
@@ -51,14 +58,14 @@ class Laser:
 
     device = "laser"
 
-    def __init__(self, power_w, operator):
+    def __init__(self, power_w: float, operator: Operator) -> None:
         self.power_w, self.operator, self.blocked = power_w, operator, True
 
-    def block(self, instruction="block the beam"):
+    def block(self, instruction: str = "block the beam") -> None:
         self.operator.confirm(self.device, instruction)
         self.blocked = True
 
-    def unblock(self, instruction="unblock the beam"):
+    def unblock(self, instruction: str = "unblock the beam") -> None:
         self.operator.confirm(self.device, instruction)
         self.blocked = False
 
@@ -78,7 +85,7 @@ class Frame:
     spot_sum: float | None = None
 
     @property
-    def usable(self):
+    def usable(self) -> bool:
         return self.kind != "dark" and not (self.saturated or self.too_dark)
 
 
@@ -101,7 +108,7 @@ class Darks:
     sensor's black level b of G = b + c P t: the shortest shutter's frames' (measurement.black_level_of,
     as `cell run` takes it from a dark frame)."""
 
-    def __init__(self, frames):
+    def __init__(self, frames: dict[float, list[np.ndarray]]) -> None:
         ends = sorted(frames.items())           # one end only when the shutter range is one time
         (t0, d0), (t1, d1) = ends[0], ends[-1]
         self.t0, self.t1 = t0, t1
@@ -109,12 +116,12 @@ class Darks:
         self.d0, self.d1 = (np.mean(d, axis=0) for d in (d0, d1))
         self.noise_rms = float(np.sqrt(np.mean([np.var(d, axis=0, ddof=1).mean() for d in (d0, d1)])))
 
-    def at(self, shutter_s):
+    def at(self, shutter_s: float) -> np.ndarray:
         w = 0.0 if self.t1 == self.t0 else (shutter_s - self.t0) / (self.t1 - self.t0)
         return (1.0 - w) * self.d0 + w * self.d1
 
 
-def saturation_margin(sensor):
+def saturation_margin(sensor: Sensor) -> float:
     """The gray above the dark a pixel cannot exceed when the full well (the datasheet's
     K mu_e,sat) fills before the ADC's top: one level below it; inf without those keys."""
     if sensor.system_gain_dn_per_e and sensor.saturation_capacity_e:
@@ -125,27 +132,28 @@ def saturation_margin(sensor):
 class Spot:
     """Judges a lit frame: the signal above the dark, its peak, saturation and darkness."""
 
-    def __init__(self, task, darks):
+    def __init__(self, task: Task, darks: Darks) -> None:
         self.darks, self.top = darks, saturation_level(task.camera.sensor.bit_depth)
         self.full_well = saturation_margin(task.camera.sensor)
 
-    def signal(self, image, shutter_s):
+    def signal(self, image: np.ndarray, shutter_s: float) -> np.ndarray:
         return np.asarray(image, float) - self.darks.at(shutter_s)
 
-    def judge(self, image, shutter_s, where=np.s_[:, :]):
+    def judge(self, image: np.ndarray, shutter_s: float,
+              where: tuple[slice, slice] = np.s_[:, :]) -> tuple[float, bool, bool]:
         """(peak, saturated, too dark) within `where` (the whole frame until the window is known)."""
         image, signal = np.asarray(image, float)[where], self.signal(image, shutter_s)[where]
         peak = float(signal.max())
         saturated = bool(np.any(image >= self.top) or np.any(signal >= self.full_well))
         return peak, saturated, peak < MIN_PEAK * self.room(shutter_s)
 
-    def room(self, shutter_s):
+    def room(self, shutter_s: float) -> float:
         """Gray levels a pixel can rise above the dark: to the ADC's top from the frame's brightest
         dark pixel, or to the full well if that fills first."""
         return min(self.top - float(self.darks.at(shutter_s).max()), self.full_well)
 
 
-def spot_window(signal, noise_rms):
+def spot_window(signal: np.ndarray, noise_rms: float) -> tuple[tuple[slice, slice] | None, tuple[int, int, int]]:
     """The window (row slice, column slice) about the spot's brightest 3x3 patch: its half-size
     twice the first ring (the square's border, one pixel wide) that holds less than RING_SIGMAS
     noise rms (sqrt(pixels) sigma, sigma^2 the dark noise plus 1/12 of rounding), so that the
@@ -165,7 +173,7 @@ def spot_window(signal, noise_rms):
     return np.s_[row - half:row + half + 1, col - half:col + half + 1], (int(row), int(col), half)
 
 
-def fit_series(frames, power_w):
+def fit_series(frames: list[Frame], power_w: float) -> LaserFit:
     """LaserFit of the usable sweep frames' S over t, or GoalNotReached with the reason: a spot
     saturated, or too dark, at every shutter time, too few usable frames, poor linearity."""
     sweep = [f for f in frames if f.kind == "sweep"]
@@ -173,31 +181,33 @@ def fit_series(frames, power_w):
     saturated, dark = sum(f.saturated for f in sweep), sum(f.too_dark and not f.saturated for f in sweep)
     if sweep and saturated == len(sweep):
         raise GoalNotReached(f"the spot is saturated at every shutter time of the sweep ({len(sweep)} frames): "
-                             "put a denser neutral-density filter in the beam")
+                             "put a denser neutral-density filter in the beam", "saturated")
     if len(used) < MIN_FRAMES:
         raise GoalNotReached(f"too few usable frames: {len(used)} of {len(sweep)} ({saturated} saturated, "
-                             f"{dark} too dark), at least {MIN_FRAMES} are needed")
+                             f"{dark} too dark), at least {MIN_FRAMES} are needed", "too_few_frames")
     t, s = np.array([f.shutter_s for f in used]), np.array([f.spot_sum for f in used])
     line = linregress(t, s)
     r2 = float(line.rvalue**2)
     if not r2 >= MIN_R2:
         raise GoalNotReached(f"poor linearity: r2 {r2:.5f} below {MIN_R2} over {len(used)} frames: the spot's sum "
                              "is not proportional to the shutter time (a gain or gamma that is not linear, "
-                             "the laser's power drifting, room light changing)")
+                             "the laser's power drifting, room light changing)", "linearity")
     return LaserFit(float(line.slope / power_w), float(line.stderr / power_w), float(line.intercept), r2,
                     len(used), saturated, dark)
 
 
-def take(devices, recorder, frames, shutter_s, f_number, focus_m):
+def take(devices: Devices, recorder: Recorder, frames: list[Frame], shutter_s: float, f_number: float,
+         focus_m: float) -> tuple[np.ndarray, float, str]:
     """acquire one frame (capture-N.png, logged); returns (image, the shutter the camera used, its
     file's name)."""
     capture = acquire(devices, recorder, len(frames) + 1, shutter_s, f_number, focus_m)
     return np.asarray(capture.image, float), capture.shutter_s, capture.name
 
 
-def dark_frames(devices, recorder, frames, shutter_range_s, f_number, focus_m):
+def dark_frames(devices: Devices, recorder: Recorder, frames: list[Frame], shutter_range_s: tuple[float, float],
+                f_number: float, focus_m: float) -> Darks:
     """DARK_FRAMES at each end of the shutter range, beam blocked: Darks."""
-    stacks = {}
+    stacks: dict[float, list[np.ndarray]] = {}
     for wanted in shutter_range_s:
         for _ in range(DARK_FRAMES):
             image, t, name = take(devices, recorder, frames, wanted, f_number, focus_m)
@@ -212,7 +222,9 @@ def dark_frames(devices, recorder, frames, shutter_range_s, f_number, focus_m):
     return darks
 
 
-def lit_frame(devices, recorder, frames, spot, kind, shutter_s, f_number, focus_m):
+def lit_frame(devices: Devices, recorder: Recorder, frames: list[Frame], spot: Spot, kind: str, shutter_s: float,
+              f_number: float, focus_m: float) -> np.ndarray:
+    """One lit frame (take) judged by the spot: its Frame appended to frames and logged; returns its image."""
     image, t, name = take(devices, recorder, frames, shutter_s, f_number, focus_m)
     peak, saturated, too_dark = spot.judge(image, t)
     frames.append(Frame(kind, t, name, peak, saturated, too_dark))
@@ -222,7 +234,8 @@ def lit_frame(devices, recorder, frames, spot, kind, shutter_s, f_number, focus_
     return image
 
 
-def probe(devices, recorder, frames, spot, task, power_w, f_number, focus_m):
+def probe(devices: Devices, recorder: Recorder, frames: list[Frame], spot: Spot, task: Task, power_w: float,
+          f_number: float, focus_m: float) -> Frame:
     """Probes from the shutter at which the task's c puts the spot's sum at the range above the
     dark, PROBE_STEP shorter while saturated, longer while too dark, until one is usable: its
     Frame. GoalNotReached when the shutter range ends first."""
@@ -241,15 +254,17 @@ def probe(devices, recorder, frames, spot, task, power_w, f_number, focus_m):
     if last.saturated:
         raise GoalNotReached(f"the spot is saturated at every shutter time down to {1e3 * t:.3g} ms "
                              f"(the camera's shortest is {1e3 * lo:.3g} ms): put a denser neutral-density "
-                             "filter in the beam (and say its power with --laser-power-w)")
+                             "filter in the beam (and say its power with --laser-power-w)", "saturated")
     raise GoalNotReached(f"the spot is too dark at every shutter time up to {1e3 * t:.3g} ms: its peak is "
                          f"{last.peak:.1f} gray above the dark, less than {100 * MIN_PEAK:g} % of the range: "
                          "is the laser on and aimed at the sensor? a lighter neutral-density filter "
-                         "(and --laser-power-w to match)")
+                         "(and --laser-power-w to match)", "too_dark")
 
 
-def measure_series(devices, recorder, frames, task, laser, shots):
-    """Dark frames, probes and the sweep, the operator told each step; returns the Spot."""
+def measure_series(devices: Devices, recorder: Recorder, frames: list[Frame], task: Task, laser: Laser,
+                   shots: int) -> tuple[Spot, list[np.ndarray]]:
+    """Dark frames, probes and the sweep, the operator told each step; returns the Spot and the
+    sweep's images."""
     lens = task.camera.lens
     f_number, focus_m = lens.f_number_range[0], task.camera.distance_m
     recorder.step("setup", f"laser {laser.power_w:.4g} W; the arm and the lamp stay where they are (no motion is "
@@ -273,7 +288,7 @@ def measure_series(devices, recorder, frames, task, laser, shots):
     return spot, images
 
 
-def sum_spots(frames, images, spot):
+def sum_spots(frames: list[Frame], images: list[np.ndarray], spot: Spot) -> tuple[list[Frame], dict[str, int] | None]:
     """The window from the brightest usable sweep frame; each sweep frame judged again within it,
     with its sum S. Returns (frames, window description) or GoalNotReached when the spot lies
     too near the image's edge."""
@@ -287,7 +302,7 @@ def sum_spots(frames, images, spot):
     window = {"row": row, "col": col, "half_size_px": half}
     if where is None:
         raise GoalNotReached(f"the spot at row {row}, column {col} lies within {half} px of the image's edge: "
-                             "aim the laser nearer the middle of the sensor")
+                             "aim the laser nearer the middle of the sensor", "spot_at_edge")
     out = list(frames)
     for i, image in zip(sweep, images):
         f = frames[i]
@@ -298,38 +313,53 @@ def sum_spots(frames, images, spot):
 
 
 @dataclass(frozen=True)
-class LaserCalibration:
-    """What the routine achieved, like scipy's OptimizeResult: `success`, `message` (why not),
-    the LaserFit, every frame, the spot's window, the camera file written, the device fault."""
+class LaserCalibration(Result):
+    """What the routine achieved (cell.report.result's verdict: `success`, c fitted and the
+    camera file written; `message`, why not; the device fault), the LaserFit, every frame, the
+    spot's window, the camera file and the black level of the dark frames. calibration.json is
+    to_json(), with `reason` (the message) as well."""
+
+    SUCCEEDED = "calibrated"
+    NOT_REACHED = "not_calibrated"
 
     task: str
     laser_power_w: float
     camera_constant_task: float
     success: bool
     message: str
-    frames: tuple = ()
+    frames: tuple[Frame, ...] = ()
     fit: LaserFit | None = None
-    window: dict | None = None
+    window: dict[str, int] | None = None
     camera_file: str | None = None
-    fault: dict | None = None
+    fault: dict[str, Any] | None = None
     black_level: measurement.BlackLevel | None = None
+    cause: str | None = None
 
-    def summary(self):
-        """--json's keys."""
+    def fitted(self) -> dict[str, float]:
+        """c, its standard error, the linearity and the frames used ({} without a fit)."""
         fit = self.fit
         return {"camera_constant": fit.camera_constant, "camera_constant_stderr": fit.camera_constant_stderr,
                 "r_squared": fit.r_squared, "frames_used": fit.frames_used} if fit else {}
 
-    def to_json(self):
+    def summary(self) -> dict[str, Any]:
+        """--json's keys: fitted()'s, the black level [gray] and the camera file."""
+        return self.fitted() | {"black_level": self.black_level.value if self.black_level else None,
+                                "camera_file": self.camera_file}
+
+    @property
+    def counters(self) -> dict[str, int]:
+        return {"frames": len(self.frames), "frames_used": self.fit.frames_used if self.fit else 0}
+
+    def details(self) -> dict[str, Any]:
         return {"task": self.task, "laser_power_w": self.laser_power_w, "camera_constant_task": self.camera_constant_task,
-                **self.summary(), "fit": asdict(self.fit) if self.fit else None,
+                **self.fitted(), "fit": asdict(self.fit) if self.fit else None,
                 "camera_constant_ratio": self.fit.camera_constant / self.camera_constant_task if self.fit else None,
                 "black_level": self.black_level.to_json() if self.black_level else None,
                 "window": self.window, "frames": [asdict(f) for f in self.frames], "camera_file": self.camera_file,
-                "reason": self.message} | ({"fault": self.fault} if self.fault else {})
+                "reason": self.message}
 
 
-def check_camera_file(path, force, option="--camera-file"):
+def check_camera_file(path: str | Path, force: bool, option: str = "--camera-file") -> Path:
     """Refuse (bad input, before any work) to replace an existing file (the `option` names it)
     without --force, a folder, or a file in a folder that does not exist."""
     path = Path(path)
@@ -344,7 +374,7 @@ def check_camera_file(path, force, option="--camera-file"):
     return path
 
 
-def camera_document(sensor, fit, black, source):
+def camera_document(sensor: Sensor, fit: LaserFit, black: measurement.BlackLevel, source: str) -> dict[str, Any]:
     """The camera file: the task's sensor with the measured c (and its standard error) and the
     black level of the dark frames (BlackLevel); the datasheet's noise keys stay, its quantum
     efficiency and wavelength go (the measurement replaces the c they give)."""
@@ -357,36 +387,22 @@ def camera_document(sensor, fit, black, source):
     return doc | {"black_level": float(f"{black.value:.4g}"), "source": source}
 
 
-def write_camera_file(path, document, force, header=""):
-    """The YAML file, written whole (a temporary file renamed into place), below `header`'s lines
-    as comments; an existing file only with force."""
-    path = Path(path)
-    comments = "".join(f"# {line}\n" for line in header.splitlines())
-    text = comments + yaml.safe_dump(document, sort_keys=False, width=100)
-    fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    if force:
-        os.replace(temporary, path)
-    else:
-        try:
-            os.link(temporary, path)            # fails if it appeared meanwhile: never overwritten
-        finally:
-            os.unlink(temporary)
-    return path
-
-
-def run(task, out, connect, laser, camera_file, shots=8, force=False):
+def run(task: Task, out: str | Path, connect: Callable[[], Devices], laser: Laser, camera_file: str | Path,
+        shots: int = 8, force: bool = False) -> LaserCalibration:
     """connect() -> Devices; dark frames, probes, the sweep and the fit; out/log.jsonl as it
     happens, out/calibration.json however it ends, out/calibration.png, and the camera file on
     success. Raises GoalNotReached for an untrustworthy series (exit 1), DeviceFault after the safe
     stop (exit 3). Returns the LaserCalibration."""
     out, c_task = Path(out), task.camera.sensor.camera_constant
-    frames, fit, window, written, spot = [], None, None, None, None
+    frames: list[Frame] = []
+    fit: LaserFit | None = None
+    window: dict[str, int] | None = None
+    written: str | None = None
+    spot: Spot | None = None
 
-    def result(reason, fault):
+    def result(reason: str, fault: dict[str, Any] | None) -> LaserCalibration:
         return LaserCalibration(str(task.path), laser.power_w, c_task, fit is not None and not reason, reason,
-                                tuple(frames), fit, window, written, fault, spot and spot.darks.black)
+                                tuple(frames), fit, window, written, fault, spot.darks.black if spot else None)
 
     with Recorder(out) as recorder, Ending(recorder, "no fit", "calibration.json", result) as end:
         with end.session:
@@ -401,7 +417,7 @@ def run(task, out, connect, laser, camera_file, shots=8, force=False):
         source = (f"cell calibrate camera-constant {task.path.name} on {stamp}: laser {laser.power_w:.4g} W, "
                   f"{fit.frames_used} frames, r2 {fit.r_squared:.6f}; black level from its dark frames; run folder {out}")
         black = spot.darks.black
-        written = str(write_camera_file(camera_file, camera_document(task.camera.sensor, fit, black, source), force))
+        written = str(write_yaml(camera_file, camera_document(task.camera.sensor, fit, black, source), replace=force))
         recorder.step("done", f"c = {fit.camera_constant:.5g} +- {fit.camera_constant_stderr:.2g} 1/(W s), "
                               f"{fit.camera_constant / c_task:.3f} x the task's; black level {black.value:.2f} gray; "
                               f"wrote {written}", camera_file=written, black_level=black.value, **asdict(fit))

@@ -17,20 +17,22 @@ maximum is sqrt(ln 2 / (2 m)); a term narrower than the step falls between the p
 exponent above M = ln 2 / (2 step^2) cannot be measured: such a term (or one the data do not show)
 is reported unresolved, with sigma 0, m = M (at least that narrow) and infinite standard errors.
 """
+from __future__ import annotations
+
 from dataclasses import asdict, astuple, dataclass, replace
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 import trimesh
-import yaml
 
 from cell.physics.sensor import levels, saturation_level
 from cell.core import geometry
 
-from cell.run import measurement
-from cell.run.acquisition import acquire
+from cell.run.acquisition import acquire, find_black_level
 from cell.devices.interfaces import speaking_for
+from cell.core.files import write_yaml
 from cell.core.errors import GoalNotReached
 from cell.physics.brdf_fit import MIN_ROWS, SIGNIFICANCE, fit_material, material_document, read_goniometer
 from cell.task.loader import load_material
@@ -38,6 +40,16 @@ from cell.physics.brdf import reflectance
 from cell.physics.radiometry import cone_irradiance, gray_per_exposure, reflectance_from_gray
 from cell.physics.projection import intrinsics, project
 from cell.report.recorder import Ending, Recorder
+from cell.report.result import Result
+
+if TYPE_CHECKING:
+    from cell.devices.interfaces import Devices
+    from cell.devices.operator import Operator
+    from cell.physics.material import BrdfParameters
+    from cell.planning.scene import Scene
+    from cell.run.acquisition import Capture
+    from cell.run.measurement import BlackLevel
+    from cell.task.types import Sample, Task
 from cell.devices.rig import lamp_joints
 from cell.planning.scene import look_at
 from cell.task.types import Feature, Part
@@ -60,8 +72,8 @@ class Pose:
     beta_rad: float
     theta_i_rad: float
     theta_e_rad: float
-    to_lamp: tuple
-    to_camera: tuple
+    to_lamp: tuple[float, float, float]
+    to_camera: tuple[float, float, float]
 
 
 @dataclass(frozen=True)
@@ -82,13 +94,13 @@ class Reading:
     capture: str
 
 
-def resolvable_exponent(step_rad):
+def resolvable_exponent(step_rad: float) -> float:
     """M = ln 2 / (2 step^2): the largest exponent whose peak (half width sqrt(ln 2 / (2 m)) in
     beta) is at least one step wide."""
     return float(np.log(2.0) / (2.0 * step_rad**2))
 
 
-def plate_mesh(sample, centre):
+def plate_mesh(sample: Sample, centre: np.ndarray) -> trimesh.Trimesh:
     """The sample as a disc (64-gon prism) whose top face lies at `centre`, facing sample.normal."""
     disc = trimesh.creation.cylinder(radius=sample.radius_m, height=sample.thickness_m, sections=64)
     disc.apply_translation([0.0, 0.0, -0.5 * sample.thickness_m])
@@ -96,7 +108,7 @@ def plate_mesh(sample, centre):
     return disc
 
 
-def sample_task(task):
+def sample_task(task: Task) -> Task:
     """The task with the sample in the part's place (the operator swaps them for this routine):
     its plate mesh in the cell frame, its material, one small feature at the pivot."""
     sample, pivot = task.calibration.sample, np.asarray(task.lamp.rig.pivot_m, float)
@@ -107,12 +119,12 @@ def sample_task(task):
                    frames=task.frames.with_transform("T_cell_part", np.eye(4)), features=(feature,))
 
 
-def poses(task):
+def poses(task: Task) -> list[Pose]:
     """Every Pose of the task's goniometer (module docstring), phase by phase, beta ascending."""
     gonio, normal = task.calibration.goniometer, geometry.unit(task.calibration.sample.normal)
     along = geometry.frame_from_normal(normal)[:, 0]
 
-    def direction(angle):
+    def direction(angle: float) -> tuple[float, float, float]:
         return tuple(np.cos(angle) * normal + np.sin(angle) * along)
 
     out = []
@@ -125,7 +137,7 @@ def poses(task):
     return out
 
 
-def refusal(devices, task, pose):
+def refusal(devices: Devices, task: Task, pose: Pose) -> tuple[np.ndarray, tuple[float, float, float], str | None]:
     """(T_cell_cam, lamp joints, why the arm or the rig would refuse the pose or None)."""
     pivot, gonio = np.asarray(task.lamp.rig.pivot_m, float), task.calibration.goniometer
     T = look_at(pivot + task.camera.distance_m * np.asarray(pose.to_camera), pivot)
@@ -137,7 +149,7 @@ def refusal(devices, task, pose):
     return T, joints, why or (lamp and f"pan-tilt: {lamp}")
 
 
-def split_exposure(task, exposure):
+def split_exposure(task: Task, exposure: float) -> tuple[float, float]:
     """(shutter, f-number) giving t / kappa^2 = exposure: DEFAULT_F_NUMBER while the shutter range
     allows, else the shutter at its end and kappa to match, within the lens's range."""
     (t_lo, t_hi), (k_lo, k_hi) = task.camera.shutter_range_s, task.camera.lens.f_number_range
@@ -149,7 +161,7 @@ def split_exposure(task, exposure):
     return t, kappa
 
 
-def patch_at(image, K, T_cell_cam, point):
+def patch_at(image: np.ndarray, K: np.ndarray, T_cell_cam: np.ndarray, point: np.ndarray) -> np.ndarray | None:
     """The PATCH_PX square of the image about the point's pixel; None when it leaves the image."""
     (u, v), = project(K, T_cell_cam, point[None])[0]
     h = PATCH_PX // 2
@@ -164,7 +176,7 @@ def patch_at(image, K, T_cell_cam, point):
 class Exposer:
     """Takes a pose's frames until its patch is unsaturated and bright enough."""
 
-    def __init__(self, task, devices, recorder, black):
+    def __init__(self, task: Task, devices: Devices, recorder: Recorder, black: BlackLevel) -> None:
         self.task, self.devices, self.recorder, self.black = task, devices, recorder, black
         sensor = task.camera.sensor
         self.top = saturation_level(sensor.bit_depth)
@@ -174,20 +186,23 @@ class Exposer:
         self.limits = (t_lo / k_hi**2, t_hi / k_lo**2)
         self.captures = 0
 
-    def take(self, k, exposure, centre):
+    def take(self, k: int, exposure: float, centre: np.ndarray) -> tuple[Capture, np.ndarray, str]:
+        """A frame at t / kappa^2 = exposure and its patch about centre (saved as patch-N.png) for pose
+        k: (Capture, patch, patch file); GoalNotReached when the patch leaves the image."""
         t, kappa = split_exposure(self.task, exposure)
         self.captures += 1
         capture = acquire(self.devices, self.recorder, self.captures, t, kappa, self.task.camera.distance_m)
         patch = patch_at(capture.image, self.K, capture.T_cell_cam, centre)
         if patch is None:
             raise GoalNotReached(f"pose {k}: the sample's centre is not {PATCH_PX // 2} px inside the image: "
-                                 "is the camera looking at the pivot (hand-eye)?")
+                                 "is the camera looking at the pivot (hand-eye)?", "not_in_view")
         name = self.recorder.write_image(f"patch-{self.captures}.png", levels(patch, self.task.camera.sensor.bit_depth))
         return capture, patch, name
 
-    def expose(self, k, guess, centre):
+    def expose(self, k: int, guess: float, centre: np.ndarray) -> tuple[Capture, float, int, str] | str:
         """(Capture, mean signal, takes, patch file) at an exposure keeping the patch unclipped:
-        from `guess` (t / kappa^2), shorter by the clipped fraction, longer toward TARGET."""
+        from `guess` (t / kappa^2), shorter by the clipped fraction, longer toward TARGET; why not
+        when no exposure gives one."""
         lo, hi = self.limits
         exposure = float(np.clip(guess, lo, hi))
         for takes in range(1, MAX_TAKES + 1):
@@ -202,44 +217,30 @@ class Exposer:
             if clipped:
                 nxt = used * max(0.25, TARGET * self.range / max(float(patch.max()) - self.black.value, 1.0))
                 if used <= lo * (1 + 1e-9):
-                    return None, f"the patch clips at the shortest exposure ({1e3 * capture.shutter_s:.3g} ms, " \
-                                 f"f/{capture.f_number:.3g})"
+                    return f"the patch clips at the shortest exposure ({1e3 * capture.shutter_s:.3g} ms, " \
+                           f"f/{capture.f_number:.3g})"
             elif signal < MIN_SIGNAL * self.range:
                 if used >= hi * (1 - 1e-9):
                     # dim, but measured: above 3 standard errors of a PATCH_PX^2 pixel mean
                     if signal > 3.0 * max(self.black.noise_rms, 0.5) / PATCH_PX:
-                        return (capture, signal, takes, name), None
-                    return None, f"the patch is dark at the longest exposure ({signal:.2g} gray above the black level)"
+                        return capture, signal, takes, name
+                    return f"the patch is dark at the longest exposure ({signal:.2g} gray above the black level)"
                 nxt = used * TARGET * self.range / max(signal, 0.05 * MIN_SIGNAL * self.range)
             else:
-                return (capture, signal, takes, name), None
+                return capture, signal, takes, name
             exposure = float(np.clip(nxt, lo, hi))
-        return None, f"no usable exposure in {MAX_TAKES} takes"
+        return f"no usable exposure in {MAX_TAKES} takes"
 
 
-def find_black_level(task, devices, recorder):
-    """The task's camera.sensor.black_level, else a dark frame at the shortest shutter and the
-    largest f-number (the rig cannot switch the lamp off): its median (measurement.black_level_of)."""
-    b = task.camera.sensor.black_level
-    if b is not None:
-        black = measurement.BlackLevel(float(b), 0.0, "task")
-        recorder.step("black_level", f"black level {b:.2f} gray (camera.sensor.black_level)", **black.to_json())
-        return black
-    (t_lo, _), (_, k_hi) = task.camera.shutter_range_s, task.camera.lens.f_number_range
-    capture = acquire(devices, recorder, 0, t_lo, k_hi, task.camera.distance_m)
-    black = measurement.black_level_of(capture.image)
-    recorder.step("black_level", f"black level {black.value:.2f} gray, noise {black.noise_rms:.2f} rms (dark frame "
-                                 f"at {1e3 * capture.shutter_s:.3g} ms, f/{k_hi:g})", iteration=0, **black.to_json())
-    return black
-
-
-def measure_poses(task, devices, recorder, nominal, readings, refused, failed):
+def measure_poses(task: Task, devices: Devices, recorder: Recorder, nominal: Callable[[float], BrdfParameters],
+                  readings: list[Reading], refused: list[tuple[int, str]], failed: list[tuple[int, str]]) -> None:
     """Visit every pose, appending to readings, refused [(pose, reason)] and failed [(pose,
-    reason)] as it goes (so a fault keeps what was measured)."""
+    reason)] as it goes (so a fault keeps what was measured); nominal(phase) gives the parameters
+    whose R guesses each pose's first exposure."""
     pivot, lamp, sensor = np.asarray(task.lamp.rig.pivot_m, float), task.lamp, task.camera.sensor
     c, area = sensor.camera_constant, sensor.pixel_area_m2
     wanted = poses(task)
-    exposer = None
+    exposer: Exposer | None = None
     for k, pose in enumerate(wanted, 1):
         T, joints, why = refusal(devices, task, pose)
         where = (f"phase {np.degrees(pose.phase_rad):.1f} deg, ti {np.degrees(pose.theta_i_rad):.1f}, "
@@ -253,8 +254,10 @@ def measure_poses(task, devices, recorder, nominal, readings, refused, failed):
         with speaking_for(devices.lamp):
             devices.lamp.move(*joints)
             lamp_pos, _ = devices.lamp.lamp_pose()
-        if exposer is None:                      # the dark frame once the lamp is somewhere (its radius set)
-            exposer = Exposer(task, devices, recorder, find_black_level(task, devices, recorder))
+        if exposer is None:                      # the dark frame once the lamp is somewhere (its radius set),
+            k_hi = task.camera.lens.f_number_range[1]   # at the largest f-number: the least light
+            exposer = Exposer(task, devices, recorder, find_black_level(task, devices, recorder, k_hi,
+                                                                        task.camera.distance_m))
         distance = float(np.linalg.norm(lamp_pos - pivot))
         phi = float(cone_irradiance(lamp.power_w, lamp.cone_angle_rad, distance, 0.0, lamp.profile))
         r_guess = float(reflectance(np.cos(pose.theta_i_rad), np.cos(pose.theta_e_rad), np.cos(pose.phase_rad),
@@ -263,8 +266,9 @@ def measure_poses(task, devices, recorder, nominal, readings, refused, failed):
         recorder.step("pose", f"pose {k} of {len(wanted)}: {where}; lamp {1e3 * distance:.1f} mm, "
                               f"Phi {phi:.4g} W/m^2", pose=k, beta_deg=np.degrees(pose.beta_rad),
                       lamp_distance_m=distance, irradiance_w_m2=phi)
-        taken, why = exposer.expose(k, TARGET * exposer.range / float(unit), pivot)
-        if taken is None:
+        taken = exposer.expose(k, TARGET * exposer.range / float(unit), pivot)
+        if isinstance(taken, str):
+            why = taken
             failed.append((k, why))
             recorder.step("no_reading", f"pose {k}: {why}", pose=k, reason=why)
             continue
@@ -276,7 +280,7 @@ def measure_poses(task, devices, recorder, nominal, readings, refused, failed):
         recorder.step("reading", f"pose {k}: R = {r:.5g}", pose=k, reflectance=r)
 
 
-def write_csv(path, readings):
+def write_csv(path: Path, readings: list[Reading]) -> Path:
     """The goniometer CSV (docs/formats.md) of the commanded angles and the measured R."""
     lines = [",".join(CSV_COLUMNS)]
     lines += [f"{r.theta_i_deg:.10g},{r.theta_e_deg:.10g},{r.phase_deg:.10g},{r.reflectance:.8g}" for r in readings]
@@ -284,12 +288,12 @@ def write_csv(path, readings):
     return path
 
 
-def unresolved_terms(doc, step_rad):
+def unresolved_terms(doc: dict[str, Any], step_rad: float) -> dict[str, list[float]]:
     """Mark in the material document (in place) each phase's lobe or spike the sampling cannot
     resolve: absent from the data, or an exponent above resolvable_exponent(step); there sigma 0,
     m = M, standard errors inf. Returns {term: [phase_deg]}."""
     m_max = resolvable_exponent(step_rad)
-    out = {}
+    out: dict[str, list[float]] = {}
     for term, s, m in (("lobe", "sigma1", "m1"), ("spike", "sigma2", "m2")):
         absent = doc.get("unidentifiable", {}).get(term, []) if term == "spike" else []
         for i, phase in enumerate(doc["phase_deg"]):
@@ -305,22 +309,33 @@ def unresolved_terms(doc, step_rad):
 
 
 @dataclass(frozen=True)
-class Goniometry:
-    """What the routine achieved: success and why not, the readings, poses refused and failed,
-    the material document written, the device fault."""
+class Goniometry(Result):
+    """What the routine achieved (cell.report.result's verdict: `success`, the material fitted
+    and written; `message`, why not; the device fault), the readings, the poses refused and
+    failed [(pose, reason)], the material document written. measurement.json is to_json(), with
+    `reason` (the message) as well."""
+
+    SUCCEEDED = "measured"
+    NOT_REACHED = "not_measured"
 
     task: str
     success: bool
     message: str
     poses: int = 0
-    readings: tuple = ()
-    refused: tuple = ()
-    failed: tuple = ()
-    material: dict | None = None
+    readings: tuple[Reading, ...] = ()
+    refused: tuple[tuple[int, str], ...] = ()
+    failed: tuple[tuple[int, str], ...] = ()
+    material: dict[str, Any] | None = None
     material_file: str | None = None
-    fault: dict | None = None
+    fault: dict[str, Any] | None = None
+    cause: str | None = None
 
-    def summary(self):
+    @property
+    def counters(self) -> dict[str, int]:
+        return {"poses": self.poses, "readings": len(self.readings), "refused": len(self.refused),
+                "failed": len(self.failed)}
+
+    def summary(self) -> dict[str, Any]:
         """--json's keys: the material's table and standard errors, what is unresolved."""
         if not self.material:
             return {}
@@ -328,15 +343,15 @@ class Goniometry:
         keys += [f"{k}_stderr" for k in keys[1:]] + ["unresolved"]
         return {k: self.material[k] for k in keys if k in self.material}
 
-    def to_json(self):
-        return {"task": self.task, "success": self.success, "reason": self.message, "poses": self.poses,
+    def details(self) -> dict[str, Any]:
+        return {"task": self.task, "reason": self.message, "poses": self.poses,
                 "refused": [{"pose": k, "reason": r} for k, r in self.refused],
                 "failed": [{"pose": k, "reason": r} for k, r in self.failed],
                 "readings": [asdict(r) for r in self.readings], "material": self.material,
-                "material_file": self.material_file} | ({"fault": self.fault} if self.fault else {})
+                "material_file": self.material_file}
 
 
-def run(task, out, connect, operator):
+def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices], operator: Operator) -> Goniometry:
     """connect(scene) -> Devices of the sample's scene; the operator places the sample; every
     pose measured, the CSV fitted, out/material.yaml, goniometer.csv, fit.png, measurement.json,
     log.jsonl. GoalNotReached (exit 1) when a phase angle has too few readings to fit; DeviceFault
@@ -347,10 +362,14 @@ def run(task, out, connect, operator):
     out, sample = Path(out), task.calibration.sample
     gonio, staged = task.calibration.goniometer, sample_task(task)
     material = staged.part.material
-    readings, refused, failed, doc, written = [], [], [], None, None
+    readings: list[Reading] = []
+    refused: list[tuple[int, str]] = []
+    failed: list[tuple[int, str]] = []
+    doc: dict[str, Any] | None = None
+    written: Path | None = None
     total = len(poses(staged))
 
-    def result(reason, fault):
+    def result(reason: str, fault: dict[str, Any] | None) -> Goniometry:
         return Goniometry(str(task.path), doc is not None and not reason, reason, total, tuple(readings),
                           tuple(refused), tuple(failed), doc, str(written) if written else None, fault)
 
@@ -371,7 +390,7 @@ def run(task, out, connect, operator):
         if short:
             raise GoalNotReached(f"fewer than {MIN_ROWS} readings at phase {', '.join(short)} deg "
                                  f"({len(refused)} of {total} poses refused, {len(failed)} without a reading): "
-                                 "a finer step_deg, or a lamp radius and camera distance the arm can reach")
+                                 "a finer step_deg, or a lamp radius and camera distance the arm can reach", "too_few_readings")
         fits = fit_material(read_goniometer(csv))
         stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
         source = (f"measured by cell measure-brdf {task.path.name} on {stamp}: the cell as a goniometer, "
@@ -383,7 +402,7 @@ def run(task, out, connect, operator):
         doc = material_document(fits, f"{material.name} (measured)", source)
         unresolved = unresolved_terms(doc, gonio.step_rad)
         written = out / "material.yaml"
-        written.write_text(yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=100))
+        write_yaml(written, doc, inline_lists=True)
         write_goniometer_fit(out / "fit.png", readings, load_material(written))   # what tasks will read: checked now
         notes = "; ".join(f"{t} unresolved at phase {', '.join(f'{p:g}' for p in ps)} deg" for t, ps in unresolved.items())
         recorder.step("done", f"{len(readings)} readings fitted; wrote {written}" + (f"; {notes}" if notes else ""),

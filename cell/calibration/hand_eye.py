@@ -19,24 +19,33 @@ one reprojecting the corners best is refined (refine) with the board's pose in t
 focal length on every corner's reprojection error. Residuals: the spread of the board's pose in
 the cell over the views, and the corners' reprojection error through the result.
 """
+from __future__ import annotations
+
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares
+from scipy.optimize import OptimizeResult, least_squares
 from scipy.spatial.transform import Rotation
 
 from cell.physics.sensor import levels, saturation_level
 from cell.core import geometry
 
 from cell.run.acquisition import acquire
-from cell.calibration.camera_constant import write_camera_file
 from cell.devices.interfaces import check_arm_motion, speaking_for
+from cell.core.files import write_yaml
 from cell.core.errors import DeviceFault, GoalNotReached
 from cell.physics.projection import intrinsics
 from cell.report.recorder import Ending, Recorder
+from cell.report.result import Result
+
+if TYPE_CHECKING:
+    from cell.devices.interfaces import Devices
+    from cell.task.board import Board
+    from cell.task.types import Task
 
 MIN_POSES = 10
 TILT_DEG = (18.0, 30.0, 24.0)       # the optical axis from the board's normal, in turn
@@ -60,7 +69,7 @@ PINHOLE_FLAGS = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_PRINCIPAL_POINT |
 FREE_FLAGS = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K3
 
 
-def viewpoints(board, distance_m, count):
+def viewpoints(board: Board, distance_m: float, count: int) -> list[np.ndarray]:
     """`count` camera poses T_cell_cam looking at the board's centre, the i-th from DISTANCE[i % 4]
     x distance_m, tilted TILT_DEG[i % 3] from the board's face normal toward azimuth i * 360 /
     count (about the normal, from the board's x) and rolled ROLL_DEG[i % 5] about the optical axis."""
@@ -79,7 +88,7 @@ def viewpoints(board, distance_m, count):
     return poses
 
 
-def viewing_distance(task):
+def viewing_distance(task: Task) -> float:
     """The distance at which the board's larger side fills FILL of the field of view, seen
     square on (pinhole: the field at distance d is d * side_px * pitch / f)."""
     sensor, lens = task.camera.sensor, task.camera.lens
@@ -87,7 +96,7 @@ def viewing_distance(task):
     return float(np.max(task.board.size_m / field) / FILL)
 
 
-def refused(task, T_cell_cam):
+def refused(task: Task, T_cell_cam: np.ndarray) -> str | None:
     """Why the arm would refuse this camera pose (the interface's workspace check, or the flange
     beyond REACH_M of the robot base), or None."""
     config, frames = task.cell.devices.arm, task.frames
@@ -104,27 +113,34 @@ def refused(task, T_cell_cam):
 @dataclass(frozen=True)
 class View:
     """One viewpoint: the flange pose read back, the picture with the corners drawn, the ChArUco
-    corners found, and their board and image points when there are enough."""
+    corners found and their board and image points; `usable` with at least MIN_CORNERS."""
 
     pose: int
     picture: str
     T_cell_flange: np.ndarray
-    corners: int
-    object_points: np.ndarray | None = None      # (N, 3) board frame
-    image_points: np.ndarray | None = None       # (N, 2) px
+    object_points: np.ndarray       # (N, 3) board frame
+    image_points: np.ndarray        # (N, 2) px
 
-    def to_json(self):
+    @property
+    def corners(self) -> int:
+        return len(self.object_points)
+
+    @property
+    def usable(self) -> bool:
+        return self.corners >= MIN_CORNERS
+
+    def to_json(self) -> dict[str, Any]:
         return {"pose": self.pose, "picture": self.picture, "corners": self.corners,
                 "T_cell_flange": self.T_cell_flange}
 
 
-def to_8_bit(image, bit_depth):
+def to_8_bit(image: np.ndarray, bit_depth: int) -> np.ndarray:
     """The frame as 8-bit levels for the ArUco detector."""
     gray = levels(image, bit_depth).astype(float)
     return np.clip(np.rint(gray * 255.0 / saturation_level(bit_depth)), 0, 255).astype(np.uint8)
 
 
-def detect(board, image8):
+def detect(board: Board, image8: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
     """(object points (N, 3), image points (N, 2), charuco corners, ids) of the board in an 8-bit
     frame; N = 0 when nothing was found."""
     charuco = board.charuco()
@@ -135,7 +151,7 @@ def detect(board, image8):
     return obj.reshape(-1, 3).astype(float), img.reshape(-1, 2).astype(float), corners, ids
 
 
-def draw_corners(image8, corners, ids):
+def draw_corners(image8: np.ndarray, corners: np.ndarray | None, ids: np.ndarray | None) -> np.ndarray:
     """The frame in colour with the detected corners and their ids drawn (evidence)."""
     picture = cv2.cvtColor(image8, cv2.COLOR_GRAY2BGR)
     if corners is not None and len(corners):
@@ -143,7 +159,8 @@ def draw_corners(image8, corners, ids):
     return picture
 
 
-def auto_exposure(devices, recorder, task, f_number, focus_m, frames):
+def auto_exposure(devices: Devices, recorder: Recorder, task: Task, f_number: float, focus_m: float,
+                  frames: list[str]) -> float:
     """The shutter putting the board's white (the frame's 99th percentile) at EXPOSURE_TARGET of
     the range: probes from the shutter range's geometric middle, rescaled (G ~ t), 4x shorter
     while saturated. GoalNotReached when the range ends first."""
@@ -168,15 +185,19 @@ def auto_exposure(devices, recorder, task, f_number, focus_m, frames):
         shutter = nxt
     raise GoalNotReached(f"no shutter time in {1e3 * lo:.3g}-{1e3 * hi:.3g} ms shows the board's white within "
                          f"{100 * EXPOSURE_BAND[0]:.0f}-{100 * EXPOSURE_BAND[1]:.0f} % of the range: is the light "
-                         "over the board on, and not too bright?")
+                         "over the board on, and not too bright?", "exposure")
 
 
-def collect(devices, recorder, task, poses):
+def collect(devices: Devices, recorder: Recorder, task: Task, poses: list[np.ndarray]
+            ) -> tuple[list[View], list[dict[str, Any]]]:
     """Visit each pose the arm accepts (refused ones skipped, logged and counted), take a frame,
     detect the board, save the frame with its corners drawn. Returns (views, refused)."""
     board, bit_depth = task.board, task.camera.sensor.bit_depth
     f_number = float(np.clip(F_NUMBER, *task.camera.lens.f_number_range))
-    views, skipped, frames, shutter = [], [], [], None
+    views: list[View] = []
+    skipped: list[dict[str, Any]] = []
+    frames: list[str] = []
+    shutter: float | None = None
     for k, T in enumerate(poses, 1):
         why = refused(task, T)
         if why:
@@ -197,9 +218,8 @@ def collect(devices, recorder, task, poses):
         obj, img, corners, ids = detect(board, image8)
         name = recorder.write_image(f"board-{k}.png", draw_corners(image8, corners, ids))
         T_cell_flange = task.frames.T_cell_flange(capture.T_cell_cam)
-        usable = len(obj) >= MIN_CORNERS
-        views.append(View(k, name, T_cell_flange, len(obj), obj if usable else None, img if usable else None))
-        recorder.step("board", f"pose {k}: {len(obj)} corners" + ("" if usable else f", fewer than {MIN_CORNERS}: "
+        views.append(View(k, name, T_cell_flange, obj, img))
+        recorder.step("board", f"pose {k}: {len(obj)} corners" + ("" if views[-1].usable else f", fewer than {MIN_CORNERS}: "
                                                                                   "left out"), pose=k,
                       corners=len(obj), picture=name)
     return views, skipped
@@ -213,26 +233,26 @@ class Intrinsics:
     K: np.ndarray
     distortion: np.ndarray              # (k1, k2, p1, p2, k3): zeros in the cell's model
     rms_px: float
-    T_cam_board: tuple
-    check: dict
+    T_cam_board: tuple[np.ndarray, ...]
+    check: dict[str, Any]               # free_fit's
 
     @property
-    def focal_length_px(self):
+    def focal_length_px(self) -> float:
         return float(np.mean(np.diag(self.K)[:2]))
 
-    def to_json(self):
+    def to_json(self) -> dict[str, Any]:
         return {"focal_length_px": self.focal_length_px, "fx_px": self.K[0, 0], "fy_px": self.K[1, 1],
                 "principal_point_px": self.K[:2, 2], "reprojection_error_px": self.rms_px,
                 "free_fit": self.check}
 
 
-def free_fit(rms, K, distortion):
+def free_fit(rms: float, K: np.ndarray, distortion: np.ndarray) -> dict[str, Any]:
     """The check fit's numbers (JSON-ready)."""
     return {"fx_px": K[0, 0], "fy_px": K[1, 1], "principal_point_px": K[:2, 2], "k1": distortion[0],
             "k2": distortion[1], "reprojection_error_px": rms}
 
 
-def calibrate_intrinsics(task, views):
+def calibrate_intrinsics(task: Task, views: list[View]) -> Intrinsics:
     """cv2.calibrateCamera over the views in the cell's model (PINHOLE_FLAGS) and the check fit
     (FREE_FLAGS), the task's pinhole K as the first guess of both."""
     sensor = task.camera.sensor
@@ -246,7 +266,7 @@ def calibrate_intrinsics(task, views):
     return Intrinsics(K, dist.ravel(), float(rms), poses, free_fit(free[0], free[1], free[2].ravel()))
 
 
-def hand_eye_linear(views, T_cam_board, method):
+def hand_eye_linear(views: list[View], T_cam_board: tuple[np.ndarray, ...], method: str) -> np.ndarray:
     """cv2.calibrateHandEye (method by keyword: as the 5th positional argument it is ignored):
     T_flange_cam from the flange poses (in the cell) and the board poses in the camera."""
     R, t = cv2.calibrateHandEye([v.T_cell_flange[:3, :3] for v in views], [v.T_cell_flange[:3, 3] for v in views],
@@ -255,18 +275,19 @@ def hand_eye_linear(views, T_cam_board, method):
     return geometry.transform(R, t.ravel())
 
 
-def board_in_cell(views, T_cam_board, X):
+def board_in_cell(views: list[View], T_cam_board: tuple[np.ndarray, ...], X: np.ndarray) -> np.ndarray:
     """The board's pose in the cell each view implies, T_cell_flange X T_cam_board, (V, 4, 4)."""
     return np.array([v.T_cell_flange @ X @ T for v, T in zip(views, T_cam_board)])
 
 
-def mean_pose(Ts):
+def mean_pose(Ts: np.ndarray) -> np.ndarray:
     """The mean of rigid transforms: mean translation, the rotations' chordal mean."""
     R = Rotation.from_matrix(Ts[:, :3, :3]).mean().as_matrix()
     return geometry.transform(R, Ts[:, :3, 3].mean(axis=0))
 
 
-def reprojection(views, X, T_cell_board, K, distortion):
+def reprojection(views: list[View], X: np.ndarray, T_cell_board: np.ndarray, K: np.ndarray,
+                 distortion: np.ndarray) -> np.ndarray:
     """Each corner's image residual (detected - projected through X: the board at T_cell_board
     seen from T_cell_flange X), concatenated (2 N,) [px]."""
     out = []
@@ -278,28 +299,29 @@ def reprojection(views, X, T_cell_board, K, distortion):
     return np.concatenate(out)
 
 
-def _pose(params):
+def _pose(params: np.ndarray) -> np.ndarray:
     return geometry.transform(Rotation.from_rotvec(params[:3]).as_matrix(), params[3:])
 
 
-def _params(T):
+def _params(T: np.ndarray) -> np.ndarray:
     return np.concatenate([Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3]])
 
 
-def with_focal(K, focal_px):
+def with_focal(K: np.ndarray, focal_px: float) -> np.ndarray:
     """K with fx = fy = focal_px."""
     K = np.array(K, float)
     K[0, 0] = K[1, 1] = focal_px
     return K
 
 
-def refine(views, X, T_cell_board, K, distortion):
+def refine(views: list[View], X: np.ndarray, T_cell_board: np.ndarray, K: np.ndarray, distortion: np.ndarray
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, OptimizeResult]:
     """X, the board's pose in the cell and the focal length by least squares on the corners'
     reprojection error (scipy.optimize.least_squares, trust region): the views' different
     distances, known from the arm, part the focal length from the camera's offset along its axis,
     which at one distance trade off (f / (d + dz)) and a narrow field's perspective pins only to
     about 0.2 %. Returns (X, T_cell_board, K, the solver's result)."""
-    def residual(p):
+    def residual(p: np.ndarray) -> np.ndarray:
         return reprojection(views, _pose(p[1:7]), _pose(p[7:]), with_focal(K, p[0]), distortion)
 
     start = np.concatenate([[K[0, 0]], _params(X), _params(T_cell_board)])
@@ -323,14 +345,14 @@ class HandEye:
     reprojection_error_px: float
 
     @property
-    def position_m(self):
+    def position_m(self) -> np.ndarray:
         return self.T_flange_cam[:3, 3]
 
     @property
-    def rpy_deg(self):
+    def rpy_deg(self) -> np.ndarray:
         return Rotation.from_matrix(self.T_flange_cam[:3, :3]).as_euler("xyz", degrees=True)
 
-    def to_json(self):
+    def to_json(self) -> dict[str, Any]:
         return {"method": self.method, "hand_eye_position_m": self.position_m, "hand_eye_rpy_deg": self.rpy_deg,
                 "T_flange_cam": self.T_flange_cam, "T_cell_board": self.T_cell_board,
                 "focal_length_px": self.focal_length_px,
@@ -338,7 +360,8 @@ class HandEye:
                 "reprojection_error_px": self.reprojection_error_px}
 
 
-def judge(method, views, T_cam_board, X, K, distortion, T_cell_board=None):
+def judge(method: str, views: list[View], T_cam_board: tuple[np.ndarray, ...], X: np.ndarray, K: np.ndarray,
+          distortion: np.ndarray, T_cell_board: np.ndarray | None = None) -> HandEye:
     """The HandEye of X with its residuals; the board's pose the views' mean unless given."""
     boards = board_in_cell(views, T_cam_board, X)
     T_cell_board = mean_pose(boards) if T_cell_board is None else T_cell_board
@@ -350,7 +373,7 @@ def judge(method, views, T_cam_board, X, K, distortion, T_cell_board=None):
     return HandEye(method, X, T_cell_board, float(K[0, 0]), spread_m, spread_rad, rms)
 
 
-def board_poses(views, K, distortion):
+def board_poses(views: list[View], K: np.ndarray, distortion: np.ndarray) -> tuple[np.ndarray, ...]:
     """Each view's T_cam_board by cv2.solvePnP with this camera matrix."""
     poses = []
     for v in views:
@@ -359,7 +382,7 @@ def board_poses(views, K, distortion):
     return tuple(poses)
 
 
-def solve(views, intrinsics_):
+def solve(views: list[View], intrinsics_: Intrinsics) -> tuple[HandEye, dict[str, HandEye], dict[str, Any]]:
     """Every method of METHODS judged, the refinement of the best (smallest reprojection error),
     judged with its focal length: (the refined HandEye, {method: HandEye}, the solver's verdict)."""
     K, dist, T_cam_board = intrinsics_.K, intrinsics_.distortion, intrinsics_.T_cam_board
@@ -370,7 +393,7 @@ def solve(views, intrinsics_):
     return refined, linear, {"success": bool(fit.success), "nfev": int(fit.nfev), "message": fit.message}
 
 
-def hand_eye_document(result):
+def hand_eye_document(result: HandEye) -> dict[str, Any]:
     """The hand-eye file: the task's cell.arm keys in their place, which a task names as
     cell.arm.hand_eye (or copies)."""
     return {"cell": {"arm": {"hand_eye_position_m": [round(float(v), 6) for v in result.position_m],
@@ -378,50 +401,71 @@ def hand_eye_document(result):
 
 
 @dataclass(frozen=True)
-class HandEyeCalibration:
-    """What the routine achieved, like scipy's OptimizeResult: `success`, `message` (why not),
-    the intrinsics, the hand-eye (refined) and each method's, the views, the poses refused, the
-    hand-eye file written and the device fault."""
+class HandEyeCalibration(Result):
+    """What the routine achieved (cell.report.result's verdict: `success`, the hand-eye solved
+    and its file written; `message`, why not; the device fault), the intrinsics, the hand-eye
+    (refined) and each method's, the views, the poses refused and the hand-eye file.
+    calibration.json is to_json(), with `reason` (the message) as well."""
+
+    SUCCEEDED = "calibrated"
+    NOT_REACHED = "not_calibrated"
 
     task: str
     success: bool
     message: str
-    views: tuple = ()
-    refused: tuple = ()
+    views: tuple[View, ...] = ()
+    refused: tuple[dict[str, Any], ...] = ()            # {pose, reason}
     intrinsics: Intrinsics | None = None
     hand_eye: HandEye | None = None
-    methods: dict | None = None
-    refinement: dict | None = None      # least_squares' success, nfev, message
+    methods: dict[str, HandEye] | None = None
+    refinement: dict[str, Any] | None = None      # least_squares' success, nfev, message
     hand_eye_file: str | None = None
-    fault: dict | None = None
+    fault: dict[str, Any] | None = None
+    cause: str | None = None
 
-    def summary(self):
-        """--json's keys."""
-        if not self.hand_eye:
+    def fitted(self) -> dict[str, Any]:
+        """The hand-eye's position and angles, the focal length and the reprojection error ({}
+        without a result)."""
+        if not self.hand_eye or not self.intrinsics:
             return {}
         return {"hand_eye_position_m": self.hand_eye.position_m, "hand_eye_rpy_deg": self.hand_eye.rpy_deg,
                 "focal_length_px": self.intrinsics.focal_length_px,
                 "reprojection_error_px": self.intrinsics.rms_px}
 
-    def to_json(self):
-        return {"task": self.task, **self.summary(),
+    def summary(self) -> dict[str, Any]:
+        """--json's keys: fitted()'s and the hand-eye file."""
+        return self.fitted() | {"hand_eye_file": self.hand_eye_file}
+
+    @property
+    def counters(self) -> dict[str, int]:
+        return {"poses": len(self.views) + len(self.refused), "views": len(self.views),
+                "views_used": sum(v.usable for v in self.views), "refused": len(self.refused)}
+
+    def details(self) -> dict[str, Any]:
+        return {"task": self.task, **self.fitted(),
                 "intrinsics": self.intrinsics.to_json() if self.intrinsics else None,
                 "hand_eye": self.hand_eye.to_json() if self.hand_eye else None,
                 "methods": {m: h.to_json() for m, h in (self.methods or {}).items()}, "refinement": self.refinement,
                 "views": [v.to_json() for v in self.views], "refused": list(self.refused),
-                "hand_eye_file": self.hand_eye_file, "reason": self.message} | (
-                    {"fault": self.fault} if self.fault else {})
+                "hand_eye_file": self.hand_eye_file, "reason": self.message}
 
 
-def run(task, out, connect, hand_eye_file, poses=12, force=False):
+def run(task: Task, out: str | Path, connect: Callable[[], Devices], hand_eye_file: str | Path, poses: int = 12,
+        force: bool = False) -> HandEyeCalibration:
     """connect() -> Devices; the views, intrinsics and hand-eye; out/log.jsonl as it happens,
     out/calibration.json however it ends, a board-K.png per view, the hand-eye file on success.
     Raises GoalNotReached with fewer than MIN_POSES usable views (exit 1), DeviceFault after the
     safe stop (exit 3). Returns the HandEyeCalibration."""
     out = Path(out)
-    views, skipped, calibrated, result, linear, solver, written = [], [], None, None, None, None, None
+    views: list[View] = []
+    skipped: list[dict[str, Any]] = []
+    calibrated: Intrinsics | None = None
+    result: HandEye | None = None
+    linear: dict[str, HandEye] | None = None
+    solver: dict[str, Any] | None = None
+    written: str | None = None
 
-    def done(reason, fault):
+    def done(reason: str, fault: dict[str, Any] | None) -> HandEyeCalibration:
         return HandEyeCalibration(str(task.path), result is not None and not reason, reason, tuple(views),
                                   tuple(skipped), calibrated, result, linear, solver, written, fault)
 
@@ -435,12 +479,12 @@ def run(task, out, connect, hand_eye_file, poses=12, force=False):
         with end.session:
             end.session.devices = connect()
             views, skipped = collect(end.session.devices, recorder, task, viewpoints(task.board, distance, poses))
-        usable = [v for v in views if v.object_points is not None]
+        usable = [v for v in views if v.usable]
         if len(usable) < MIN_POSES:
             raise GoalNotReached(f"the board was seen at {len(usable)} of {poses} viewpoints ({len(skipped)} "
                                  f"refused by the arm, {len(views) - len(usable)} with fewer than {MIN_CORNERS} "
                                  f"corners), at least {MIN_POSES} are needed: is the board where "
-                                 "calibration.board says, and lit?")
+                                 "calibration.board says, and lit?", "too_few_views")
         calibrated = calibrate_intrinsics(task, usable)
         result, linear, solver = solve(usable, calibrated)
         stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
@@ -448,7 +492,7 @@ def run(task, out, connect, hand_eye_file, poses=12, force=False):
                   f"reprojection error {result.reprojection_error_px:.3f} px, run folder {out}\n"
                   f"a task uses this file as cell.arm.hand_eye: {Path(hand_eye_file).name} (relative to the task file), "
                   "or these keys copied into its cell.arm")
-        written = str(write_camera_file(hand_eye_file, hand_eye_document(result), force, header=header))
+        written = str(write_yaml(hand_eye_file, hand_eye_document(result), replace=force, header=header))
         recorder.step("done", f"T_flange_cam at {np.round(1e3 * result.position_m, 3).tolist()} mm, rpy "
                               f"{np.round(result.rpy_deg, 3).tolist()} deg; f {calibrated.focal_length_px:.1f} px; "
                               f"wrote {written}", hand_eye_file=written, **result.to_json())

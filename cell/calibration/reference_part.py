@@ -9,8 +9,11 @@ saturated, nor 0, nor outside the image); b absorbs a black level. Only the prod
 observable this way: calibrate on a part whose material table you trust (the task's material is
 the reference).
 """
+from __future__ import annotations
+
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable, Iterator
 
 import numpy as np
 
@@ -21,6 +24,13 @@ from cell.core.errors import GoalNotReached, PlanInfeasible
 from cell.planning.evaluate import black_level
 from cell.report.pictures import write_calibration
 from cell.report.recorder import Ending, Recorder
+from cell.report.result import Result
+
+if TYPE_CHECKING:
+    from cell.devices.interfaces import Devices
+    from cell.planning.plan import Plan
+    from cell.planning.scene import Scene
+    from cell.task.types import Task
 
 # the brightest sample's gray by the model, as a fraction of full scale, at the first and the
 # last shot: dim, up to near (not at) saturation; G ~ t, so the shutter times follow
@@ -42,7 +52,7 @@ class Fit:
     dark: int                   # pairs left out at 0 (true gray below the first level)
 
 
-def fit_camera_constant(exposure, gray, saturation):
+def fit_camera_constant(exposure: np.ndarray, gray: np.ndarray, saturation: float) -> Fit | None:
     """Least squares G = b + c x over the pairs 0 < G < saturation. exposure x = P t [W s] and
     gray are (shots, samples); None unless at least 3 pairs from at least 2 shots are usable
     (across samples alone, b and c would rest on the model's spatial shape of P)."""
@@ -65,7 +75,8 @@ def fit_camera_constant(exposure, gray, saturation):
                int(x.size), int(saturated.sum()), int(dark.sum()))
 
 
-def shutter_sweep(shutter_s, predicted_max, full_scale, shutter_range_s, shots):
+def shutter_sweep(shutter_s: float, predicted_max: float, full_scale: float, shutter_range_s: tuple[float, float],
+                  shots: int) -> np.ndarray:
     """`shots` shutter times, geometric, from the one that puts the brightest sample's predicted
     gray at SWEEP_GRAY[0] of full scale to SWEEP_GRAY[1] (G ~ t, predicted_max at shutter_s),
     both ends clipped to the camera's shutter range. Raises PlanInfeasible if nothing is left."""
@@ -93,12 +104,12 @@ class ShotRecord:
     exposure: np.ndarray        # (P,) model pixel power x shutter, P t [W s]
     gray: np.ndarray            # (P,) measured gray, NaN off the image
 
-    def to_json(self):
+    def to_json(self) -> dict[str, Any]:
         return {k: getattr(self, k) for k in ("shutter_s", "f_number", "gray_min", "gray_mean", "gray_max",
                                               "samples", "saturated")}
 
 
-def sweep(task, plan, devices, recorder, shots=6):
+def sweep(task: Task, plan: Plan, devices: Devices, recorder: Recorder, shots: int = 6) -> Iterator[ShotRecord]:
     """Drive the cell to the plan and take the shutter sweep at the planned f-number and focus,
     yielding each ShotRecord as it is taken (and logged)."""
     shot = plan.shot
@@ -110,7 +121,7 @@ def sweep(task, plan, devices, recorder, shots=6):
     power = signal / (task.camera.sensor.camera_constant * shot.exposure.shutter_s)
     for k, wanted in enumerate(times, 1):
         capture = acquire(devices, recorder, k, wanted, shot.exposure.f_number, shot.exposure.focus_m)
-        _, _, inside, gray = measurement.read_samples(capture.image, task, capture.T_cell_cam, plan.scene.points)
+        _, _, inside, gray = measurement.read_samples(capture.image, task, capture.T_cell_cam, plan.planned_scene.points)
         seen = gray[inside]
         record = ShotRecord(capture.shutter_s, shot.exposure.f_number, float(seen.min()), float(seen.mean()),
                             float(seen.max()), int(seen.size), int(np.sum(seen >= full_scale)),
@@ -122,32 +133,39 @@ def sweep(task, plan, devices, recorder, shots=6):
 
 
 @dataclass(frozen=True)
-class CalibrationResult:
-    """What a calibration achieved, like scipy's OptimizeResult: `success` (c fitted), `message`
-    (why not), the Fit, its ratio to the task's c, every shot, the plan, and the device fault
-    with its safe stop's outcome when there was one. calibration.json is to_json()."""
+class CalibrationResult(Result):
+    """What the calibration achieved (cell.report.result's verdict: `success`, c fitted;
+    `message`, why not; the device fault), the Fit, its ratio to the task's c, every shot and
+    the plan. calibration.json is to_json(), with `reason` (the message) as well."""
+
+    SUCCEEDED = "calibrated"
+    NOT_REACHED = "not_calibrated"
 
     task: str
     camera_constant_task: float
     success: bool
     message: str
-    plan: dict | None
-    shots: tuple = ()
+    plan: dict[str, Any] | None
+    shots: tuple[ShotRecord, ...] = ()
     fit: Fit | None = None
-    fault: dict | None = None
+    fault: dict[str, Any] | None = None
+    cause: str | None = None
 
     @property
-    def camera_constant_ratio(self):
+    def camera_constant_ratio(self) -> float | None:
         return self.fit.camera_constant / self.camera_constant_task if self.fit else None
 
-    def to_json(self):
+    @property
+    def counters(self) -> dict[str, int]:
+        return {"shots": len(self.shots), "pairs_used": self.fit.used if self.fit else 0}
+
+    def details(self) -> dict[str, Any]:
         return {"task": self.task, "camera_constant_task": self.camera_constant_task, "plan": self.plan,
                 "shots": [s.to_json() for s in self.shots], "fit": asdict(self.fit) if self.fit else None,
-                "camera_constant_ratio": self.camera_constant_ratio, "reason": self.message} | (
-                    {"fault": self.fault} if self.fault else {})
+                "camera_constant_ratio": self.camera_constant_ratio, "reason": self.message}
 
 
-def run(task, out, connect, shots=6):
+def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices], shots: int = 6) -> CalibrationResult:
     """Plan (the function `cell plan` uses, plan.json and pictures in out), connect(scene) ->
     Devices, sweep and fit c; out/log.jsonl as it happens, out/calibration.json however it ends,
     and out/calibration.png. Raises PlanInfeasible before anything moves, GoalNotReached when
@@ -155,27 +173,28 @@ def run(task, out, connect, shots=6):
     Returns the CalibrationResult."""
     out = Path(out)
     c_model = task.camera.sensor.camera_constant
-    records, fit = [], None
+    records: list[ShotRecord] = []
+    fit: Fit | None = None
 
-    def result(reason, fault):
+    def result(reason: str, fault: dict[str, Any] | None) -> CalibrationResult:
         return CalibrationResult(str(task.path), c_model, fit is not None and not reason, reason, recorder.plan,
                                  tuple(records), fit, fault)
 
     with Recorder(out) as recorder, Ending(recorder, "no fit", "calibration.json", result) as end:
         with end.session:
-            planned = plan_and_connect(task, recorder, end.session, connect)
-            for record in sweep(task, planned, end.session.devices, recorder, shots):
+            planned, devices = plan_and_connect(task, recorder, end.session, connect)
+            for record in sweep(task, planned, devices, recorder, shots):
                 records.append(record)
         exposures = np.array([r.exposure for r in records])
         grays = np.array([r.gray for r in records])
-        fit = fit_camera_constant(exposures, grays, saturation_level(end.session.devices.camera.bit_depth))
+        fit = fit_camera_constant(exposures, grays, saturation_level(devices.camera.bit_depth))
         write_calibration(out / "calibration.png", exposures, grays, fit, c_model)
         if fit is None:
             n = sum(r.samples for r in records)
             saturated = sum(r.saturated for r in records)
             raise GoalNotReached(f"too few resolved samples to fit c ({saturated} of {n} readings "
                                  f"saturated, the rest at 0 or from a single shot): is the lamp "
-                                 f"on, does it light the feature, is the part the task's?")
+                                 f"on, does it light the feature, is the part the task's?", "too_few_samples")
         recorder.step("done", f"c = {fit.camera_constant:.5g} 1/(W s), {fit.camera_constant / c_model:.3f} x "
                               f"the task's", **asdict(fit))
     return end.result

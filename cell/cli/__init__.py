@@ -1,12 +1,21 @@
 """The `cell` command line. Every CellError becomes one line on stderr and its exit code:
 0 done, 1 goal not reached, 2 bad input, 3 device fault."""
+
+from __future__ import annotations
+
 import argparse
 import importlib
 import re
 import signal
 import sys
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, NoReturn
 
 from cell.core.errors import CellError
+
+if TYPE_CHECKING:
+    from pathlib import Path
+    from cell.task.types import Task
 
 # sub-command -> the module of this package implementing `command(args) -> int`, imported only
 # when run: `cell check` loads no Warp, SciPy optimizer or matplotlib
@@ -30,7 +39,7 @@ ROUTINES = {"camera-constant": "c by a laser of known power aimed at the sensor 
                         "ChArUco board of calibration.board; writes the task's hand-eye keys"}
 
 
-def output_folder(out, name):
+def output_folder(out: str | None, name: str) -> Path:
     """The run folder `--out` names, checked now, before any work, and not yet created: a task
     that fails to load leaves no folder behind (create_folder makes it once the task loaded).
     Bad input (exit 2): an empty --out, a path that is a file or cannot be created, and an
@@ -53,7 +62,7 @@ def output_folder(out, name):
     return folder
 
 
-def one_feature(task, command):
+def one_feature(task: Task, command: str) -> Task:
     """The task, refused (bad input, exit 2) when it has several features or a planned camera
     viewpoint: `command` drives one shot at the fixed camera rule; running several, or a planned
     viewpoint, is not yet supported (`cell plan` plans them)."""
@@ -69,7 +78,7 @@ def one_feature(task, command):
     return task
 
 
-def create_folder(folder):
+def create_folder(folder: Path) -> Path:
     """The folder output_folder checked, created now that the task loaded (checked again: a
     folder that filled up meanwhile is refused as well)."""
     _check_folder(folder)
@@ -107,7 +116,7 @@ def _bad_out(found, expected):
     return TaskError("command line", "--out", found, expected)
 
 
-def build_parser():
+def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="cell", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -205,9 +214,9 @@ class _Parser(argparse.ArgumentParser):
     """argparse's parser, but `cell calibrate` naming no routine (`cell calibrate TASK`, the form
     before there were two) is one line listing the routines and exit 2, as bad input is elsewhere."""
 
-    routines = None             # {name: what it does}, on the parser whose ROUTINE it is
+    routines: dict[str, str] | None = None  # {name: what it does}, on the parser whose ROUTINE it is
 
-    def error(self, message):
+    def error(self, message: str) -> NoReturn:
         if not (self.routines and message.startswith("argument ROUTINE: invalid choice")):
             super().error(message)
         found = re.search(r"invalid choice: (.*?) \(choose", message)
@@ -224,7 +233,7 @@ def _terminate(signum, frame):
     raise Terminated()
 
 
-def main(argv=None):
+def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     previous = signal.signal(signal.SIGTERM, _terminate)
     try:

@@ -1,15 +1,23 @@
 """`cell bench [TASK...] [--quick] [--out DIR] [--json]`: tables on stdout (stderr with --json),
 bench.json and bench.png in DIR, progress on stderr."""
+
+from __future__ import annotations
+
+import argparse
 import sys
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
 
 from cell.bench import suite
-
 from cell.core import jsonio
 from cell.cli import create_folder, output_folder
 from cell.task.loader import load_task
 
+if TYPE_CHECKING:
+    from cell.task.types import Task
 
-def text_table(header, rows):
+
+def text_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
     """Columns aligned: left for the first two, right for the rest."""
     cells = [header] + [[str(c) for c in r] for r in rows]
     widths = [max(len(r[i]) for r in cells) for i in range(len(header))]
@@ -17,7 +25,7 @@ def text_table(header, rows):
                      for r in cells)
 
 
-def report(result):
+def report(result: dict[str, Any]) -> str:
     """The terminal tables: settings, kernels, targets."""
     settings = text_table(
         ["task", "setting", "cands", "samples", "time s", "certify s", "err mean", "err min", "err max", "worst",
@@ -57,7 +65,7 @@ def report(result):
     return "\n\n".join(parts + [goals])
 
 
-def summary(settings):
+def summary(settings: Sequence[dict[str, Any]]) -> list[str]:
     """Per task: the default setting's time and error, and the fastest setting within 1 gray
     level of the reference."""
     lines = []
@@ -73,13 +81,13 @@ def summary(settings):
     return lines
 
 
-def multi_feature(task):
+def multi_feature(task: Task) -> bool:
     """Whether the task gets cell.bench.multi_feature's rows (several features or a planned viewpoint)
     rather than the settings sweep and kernel rows of one shot."""
     return len(task.features) > 1 or task.camera.viewpoint.mode != "fixed"
 
 
-def command(args):
+def command(args: argparse.Namespace) -> int:
     def say(msg):
         print(msg, file=sys.stderr, flush=True)
 

@@ -4,25 +4,28 @@ file) and `reference-part` (a shutter sweep on a reference part, c against the t
 a cross-check), and the camera's intrinsics and hand-eye: `hand-eye` (views of a ChArUco board;
 writes a hand-eye file tasks reference). Exit 0 measured, 1 infeasible plan, an untrustworthy series or
 too few views of the board, 2 bad input (an unknown routine: cell.cli's parser), 3 device fault."""
+
+from __future__ import annotations
+
+import argparse
 import sys
 from pathlib import Path
 
 import numpy as np
 
 from cell.run import backends
-
 from cell.core import jsonio
 from cell.cli import create_folder, one_feature, output_folder
 from cell.core.errors import TaskError
 from cell.task.loader import load_task
 from cell.devices.operator import Operator
 
-def command(args):
+def command(args: argparse.Namespace) -> int:
     routine = {"camera-constant": camera_constant, "reference-part": reference_part, "hand-eye": hand_eye}
     return routine[args.routine](args)
 
 
-def camera_constant(args):
+def camera_constant(args: argparse.Namespace) -> int:
     from cell.calibration import camera_constant as routine
 
     if args.shots < routine.MIN_FRAMES:
@@ -43,8 +46,7 @@ def camera_constant(args):
                          laser, camera_file, args.shots, args.force)
     fit = result.fit
     if args.json:
-        print(jsonio.dumps(result.summary() | {"black_level": result.black_level.value,
-                                               "camera_file": result.camera_file}, indent=2))
+        print(jsonio.dumps(result.summary(), indent=2))
         return 0
     c_task = result.camera_constant_task
     print(f"camera constant c = {fit.camera_constant:.5g} +- {fit.camera_constant_stderr:.2g} 1/(W s) "
@@ -58,7 +60,7 @@ def camera_constant(args):
     return 0
 
 
-def reference_part(args):
+def reference_part(args: argparse.Namespace) -> int:
     from cell.calibration.reference_part import MIN_SHOTS, run
 
     if args.shots < MIN_SHOTS:
@@ -86,7 +88,7 @@ def reference_part(args):
     return 0
 
 
-def hand_eye(args):
+def hand_eye(args: argparse.Namespace) -> int:
     from cell.calibration import hand_eye as routine
     from cell.calibration.camera_constant import check_camera_file
 
@@ -108,10 +110,10 @@ def hand_eye(args):
     result = routine.run(task, out, lambda: backends.open_devices(task, None, backend, yes=args.yes, board=True),
                          hand_eye_file, args.poses, args.force)
     if args.json:
-        print(jsonio.dumps(result.summary() | {"hand_eye_file": result.hand_eye_file}, indent=2))
+        print(jsonio.dumps(result.summary(), indent=2))
         return 0
     h, k = result.hand_eye, result.intrinsics
-    views = sum(v.object_points is not None for v in result.views)
+    views = sum(v.usable for v in result.views)
     print(f"hand-eye T_flange_cam: position {np.round(1e3 * h.position_m, 3).tolist()} mm, rpy "
           f"{np.round(h.rpy_deg, 3).tolist()} deg ({h.method}); board pose spread over the views "
           f"{1e3 * h.board_spread_m:.3f} mm, {np.degrees(h.board_spread_rad):.3f} deg; corners reprojected through "

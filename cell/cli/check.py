@@ -1,9 +1,19 @@
 """`cell check TASK`: load a task and everything it references, lay the feature patch onto the
 surface as the planner does (so a patch over an edge is refused here too), print a summary in the
 units people read."""
+
+from __future__ import annotations
+
+import argparse
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from cell.task.loader import load_task
+
+if TYPE_CHECKING:
+    from cell.planning.scene import Scene
+    from cell.task.types import Task
 
 
 def _span(pair, scale=1.0, unit=""):
@@ -42,7 +52,7 @@ def _feature_lines(f, label):
             f"depth of field {req.depth_of_field_m * 1e3:g} mm"]
 
 
-def summarize(task):
+def summarize(task: Task) -> str:
     """A short human summary of a loaded task, in the units people read."""
     mesh, cam, lamp = task.part.mesh, task.camera, task.lamp
     sensor, lens, rig, material = cam.sensor, cam.lens, lamp.rig, task.part.material
@@ -80,7 +90,7 @@ def summarize(task):
     ])
 
 
-def patch_line(task, scene, label="patch"):
+def patch_line(task: Task, scene: Scene, label: str = "patch") -> str:
     """The feature's samples as laid onto the surface: how far the patch bends away from the
     feature's tangent plane (its sag)."""
     sag = np.abs((scene.points - scene.center) @ scene.normal).max()
@@ -88,7 +98,7 @@ def patch_line(task, scene, label="patch"):
             f"tangent plane")
 
 
-def command(args):
+def command(args: argparse.Namespace) -> int:
     from cell.planning.scene import build_scene          # Warp's BVH: the planner's own patch, no copy
 
     task = load_task(args.task)

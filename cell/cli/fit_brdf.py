@@ -1,21 +1,30 @@
 """`cell fit-brdf DATA.csv [--out material.yaml] [--name NAME] [--json]`: the fit's table, the
 material file, notes on absent terms."""
+
+from __future__ import annotations
+
+import argparse
 import datetime
 import os
 import stat
 import sys
 import tempfile
+from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
-import yaml
 
 from cell.core import jsonio
+from cell.core.files import write_yaml
 from cell.core.errors import TaskError
 from cell.physics.brdf_fit import SIGNIFICANCE, TERMS, absent_notes, fit_material, material_document, read_goniometer
 from cell.physics.material import PARAMETERS
 
+if TYPE_CHECKING:
+    from cell.physics.brdf_fit import PhaseFit
 
-def summary(fits):
+
+def summary(fits: Sequence[PhaseFit]) -> str:
     """A table a person reads: value +- standard error per parameter and phase angle."""
     def cell(f, i):
         if i in (2, 4) and TERMS[i // 2 - 1] in f.absent:
@@ -30,7 +39,7 @@ def summary(fits):
     return "\n".join(lines)
 
 
-def output_file(out, data):
+def output_file(out: str, data: str | os.PathLike[str]) -> Path:
     """The material file --out names, checked before the fit: a regular file or a new one, in a
     folder where files can be created, and not the data (YAML over the CSV)."""
     def refuse(found, expected="a material file to write, in a folder that exists and is writable"):
@@ -68,7 +77,7 @@ def output_file(out, data):
     return path
 
 
-def command(args):
+def command(args: argparse.Namespace) -> int:
     path = Path(args.data)
     out = output_file(args.out, path) if args.out is not None else None
     fits = fit_material(read_goniometer(path))
@@ -77,7 +86,7 @@ def command(args):
     doc = material_document(fits, args.name or path.stem, source)
     if out:
         try:
-            out.write_text(yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=100))
+            write_yaml(out, doc, inline_lists=True)
         except OSError as err:
             raise TaskError("command line", "--out", f"{out} ({err.strerror})", "a writable file") from None
     for note in absent_notes(fits):

@@ -1,6 +1,10 @@
 """`cell hw-check TASK [--json]`: connect to each real device of the task's `cell` section, read and
 print its state, move and set nothing; exit 0 when every device answered and reports nothing a
 run would stop on, 3 otherwise (each such device named with its address), 2 for bad input."""
+
+from __future__ import annotations
+
+import argparse
 import sys
 
 import numpy as np
@@ -60,7 +64,12 @@ def _camera(s):
             f"pixel format {known(s.get('pixel_format'))}, exposure {exposure}, range {span}"]
 
 
-DETAILS = {"arm": _arm, "pan-tilt": _pan_tilt, "camera": _camera}
+def _lighting(s):
+    levels = ", ".join(f"{channel}: {level:.3f}" for channel, level in s["levels"].items())
+    return [f"firmware {s['firmware']}", f"drive levels (0..1) by channel: {levels}"]
+
+
+DETAILS = {"arm": _arm, "pan-tilt": _pan_tilt, "camera": _camera, "lighting": _lighting}
 
 
 def _lines(check):
@@ -73,7 +82,7 @@ def _lines(check):
     return lines
 
 
-def command(args):
+def command(args: argparse.Namespace) -> int:
     task = load_task(args.task)
     checks = check_hw_devices(task)
     if args.json:
@@ -89,6 +98,6 @@ def command(args):
             print(f"hw-check: all {len(checks)} devices answered; nothing was moved or set")
         return 0
     for c in failed:
-        what = f"did not answer: {c.fault}" if c.fault else "not ready: " + "; ".join(c.state["problems"])
+        what = f"did not answer: {c.fault}" if c.fault else "not ready: " + "; ".join(c.problems)
         print(f"cell hw-check: {c.device} at {c.address} {what}", file=sys.stderr, flush=True)
     return 3

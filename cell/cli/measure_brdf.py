@@ -1,21 +1,22 @@
 """`cell measure-brdf TASK --out DIR [--backend sim|hw] [--yes] [--json]`: the cell as a
 goniometer (cell.calibration.goniometer); writes the material file with standard errors. Exit 0 measured,
 1 a phase angle without enough readings, 2 bad input, 3 device fault."""
+
+from __future__ import annotations
+
+import argparse
 import contextlib
 import sys
 from pathlib import Path
 
-
 from cell.run import backends
-
-
 from cell.core import jsonio
 from cell.cli import create_folder, output_folder
 from cell.task.loader import load_task
 from cell.devices.operator import Operator
 
 
-def command(args):
+def command(args: argparse.Namespace) -> int:
     from cell.calibration import goniometer
 
     out = output_folder(args.out, f"{Path(args.task).stem}-brdf")

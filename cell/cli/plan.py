@@ -2,14 +2,19 @@
 (every feature of every task covered), 1 infeasible (with the reason: the first uncovered feature
 and its cause), 2 bad input. With --workers or --scheduler the plans' jobs run on Dask
 (cell.planning.parallel); the plans are the serial ones."""
+
+from __future__ import annotations
+
+import argparse
 import sys
+from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from cell.core import jsonio
-
 from cell.planning import parallel
 from cell.cli import create_folder, output_folder
 from cell.core.errors import PlanInfeasible, TaskError
@@ -18,8 +23,12 @@ from cell.planning.whole_part import own_plan, plan_features
 from cell.planning.plan import PlannerSettings, gray_stats
 from cell.report.recorder import write_plan
 
+if TYPE_CHECKING:
+    from cell.planning.plan import Plan
+    from cell.task.types import Task
 
-def summary(plan):
+
+def summary(plan: Plan) -> str:
     """A few lines for the terminal."""
     shot = plan.shot
     pan, tilt, radius = shot.joints
@@ -37,10 +46,11 @@ def summary(plan):
     ])
 
 
-def features_summary(plan):
+def features_summary(plan: Plan) -> str:
     """One line per shot and one per feature (the shot covering it, or why none does)."""
     n, covered = len(plan.features), sum(f.covered_by is not None for f in plan.features)
     verdict = "feasible" if plan.feasible else "PARTIAL"
+    assert plan.cover is not None                      # a multi-feature plan's
     lines = [f"{plan.task_name}: {verdict}: {len(plan.shots)} shot{'s' * (len(plan.shots) != 1)} cover "
              f"{covered} of {n} features (of {plan.cover['candidate_shots']} candidate shots"
              + (", planned viewpoints" if "viewpoints" in plan.cover else "") + "); "
@@ -65,7 +75,7 @@ def features_summary(plan):
     return "\n".join(lines)
 
 
-def command(args):
+def command(args: argparse.Namespace) -> int:
     workers = worker_count(args)
     several = len(args.tasks) > 1
     out = None                          # the folders' places checked before any work
@@ -100,7 +110,7 @@ def command(args):
     return 0
 
 
-def plan_one(task, say, pool):
+def plan_one(task: Task, say: Callable[[str], None], pool: parallel.Pool) -> Plan:
     """`cell plan`'s Plan of a task: planner.plan's of one feature at the task's camera rule (one
     job of `pool`), plan_features' of several or of planned viewpoints."""
     if len(task.features) == 1 and task.camera.viewpoint.mode == "fixed":
@@ -108,7 +118,7 @@ def plan_one(task, say, pool):
     return plan_features(task, progress=say, pool=pool)
 
 
-def worker_count(args):
+def worker_count(args: argparse.Namespace) -> int | None:
     """--workers as a whole number >= 1 (None: not given); --workers and --scheduler exclude each
     other. Bad input otherwise (exit 2)."""
     if args.workers is not None and args.scheduler is not None:
@@ -126,7 +136,7 @@ def worker_count(args):
     return n
 
 
-def distinct(names):
+def distinct(names: Iterable[str]) -> list[str]:
     """The names, a repeat of an earlier one numbered -2, -3, ..."""
     out = []
     for name in names:
@@ -138,7 +148,7 @@ def distinct(names):
     return out
 
 
-def task_folders(args, out, names):
+def task_folders(args: argparse.Namespace, out: Path | None, names: Iterable[str]) -> list[Path]:
     """Each task's output folder, created now that every task loaded: --out itself (one task),
     a folder of each task's name in --out (several), or runs/<task>-plan-<time> (-2, -3, ... when
     taken, also by an earlier task of the same name)."""

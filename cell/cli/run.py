@@ -1,15 +1,23 @@
 """`cell run TASK [--backend sim|hw] [--out DIR] [--max-iterations N] [--yes]`: exit 0 when every
 feature pixel ends in the gray band, 1 when not (with the reason), 3 on a device fault. A task
 with several features, or planned viewpoints, runs its shots (cell.run.inspection)."""
+
+from __future__ import annotations
+
+import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from cell.run import backends, loop
 from cell.cli import create_folder, output_folder
 from cell.core.errors import TaskError
 from cell.task.loader import load_task
 
+if TYPE_CHECKING:
+    from cell.task.types import Task
 
-def command(args):
+
+def command(args: argparse.Namespace) -> int:
     if args.max_iterations < 1:
         raise TaskError("command line", "--max-iterations", args.max_iterations, "an integer >= 1")
     out = output_folder(args.out, Path(args.task).stem)
@@ -29,7 +37,7 @@ def command(args):
     return 0
 
 
-def shots(task, out, backend, args):
+def shots(task: Task, out: Path, backend: str, args: argparse.Namespace) -> int:
     """The shots of a task with several features or planned viewpoints, and a line per feature."""
     from cell.run import inspection
     first = task.with_feature(0)            # the simulated cell renders the first feature's scene

@@ -1,5 +1,9 @@
 """The project's one exception hierarchy; the CLI turns each into one line and an exit code."""
 
+from __future__ import annotations
+
+from os import PathLike
+
 
 class CellError(Exception):
     """Base of every error the CLI reports as one line."""
@@ -12,12 +16,12 @@ class TaskError(CellError):
 
     exit_code = 2
 
-    def __init__(self, file, key, found, expected):
+    def __init__(self, file: str | PathLike[str], key: str, found: object, expected: object) -> None:
         self.file, self.key, self.found, self.expected = str(file), key, found, expected
         where = f"{_one_line(self.file)}: {_one_line(key)}" if key else _one_line(self.file)
         super().__init__(f"{where}: found {_one_line(found)}, expected {_one_line(expected)}")
 
-    def __reduce__(self):
+    def __reduce__(self) -> tuple[type[TaskError], tuple[str, str, object, object]]:
         """Pickled by its own arguments: a Dask worker's error comes back to the client whole."""
         return type(self), (self.file, self.key, self.found, self.expected)
 
@@ -41,7 +45,7 @@ class GoalNotReached(CellError):
 
     exit_code = 1
 
-    def __init__(self, message, cause=None):
+    def __init__(self, message: str, cause: str | None = None) -> None:
         self.cause = cause
         super().__init__(message)
 
@@ -51,9 +55,9 @@ class DeviceFault(CellError):
 
     exit_code = 3
 
-    def __init__(self, device, reason):
+    def __init__(self, device: str, reason: str) -> None:
         self.device, self.reason = device, reason
         super().__init__(f"{device}: {reason}")
 
-    def __reduce__(self):
+    def __reduce__(self) -> tuple[type[DeviceFault], tuple[str, str]]:
         return type(self), (self.device, self.reason)

@@ -1,10 +1,14 @@
 """Poses named by frames (T_a_b maps b coordinates into a) and the direction conventions
 of the physics notes (azimuth/elevation with elevation as latitude)."""
+
+from __future__ import annotations
+
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
 
-def transform(rotation=None, translation=(0.0, 0.0, 0.0)):
+def transform(rotation: ArrayLike | None = None, translation: ArrayLike = (0.0, 0.0, 0.0)) -> np.ndarray:
     """4x4 homogeneous transform from a 3x3 rotation and a translation."""
     T = np.eye(4)
     if rotation is not None:
@@ -13,46 +17,46 @@ def transform(rotation=None, translation=(0.0, 0.0, 0.0)):
     return T
 
 
-def from_rpy(rpy_rad, translation=(0.0, 0.0, 0.0)):
+def from_rpy(rpy_rad: ArrayLike, translation: ArrayLike = (0.0, 0.0, 0.0)) -> np.ndarray:
     """Extrinsic x-y-z roll/pitch/yaw (task files' `rpy_deg`, converted) to a transform."""
     return transform(Rotation.from_euler("xyz", rpy_rad).as_matrix(), translation)
 
 
-def from_ur_pose(pose):
+def from_ur_pose(pose: ArrayLike) -> np.ndarray:
     """UR wire pose [x, y, z, rx, ry, rz] (metres, rotation vector) to a transform."""
     pose = np.asarray(pose, dtype=float)
     return transform(Rotation.from_rotvec(pose[3:]).as_matrix(), pose[:3])
 
 
-def to_ur_pose(T):
+def to_ur_pose(T: np.ndarray) -> np.ndarray:
     """Transform to the UR wire pose [x, y, z, rx, ry, rz]."""
     return np.concatenate([T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_rotvec()])
 
 
-def rotation_angle(T_a, T_b):
+def rotation_angle(T_a: ArrayLike, T_b: ArrayLike) -> float:
     """The angle of the rotation between two poses' orientations [rad]: arccos((tr(R_a^T R_b) - 1) / 2)."""
     cos = (np.trace(np.asarray(T_a)[:3, :3].T @ np.asarray(T_b)[:3, :3]) - 1.0) / 2.0
     return float(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
-def apply(T, points):
+def apply(T: np.ndarray, points: ArrayLike) -> np.ndarray:
     """Map points (..., 3) through T."""
     points = np.asarray(points, dtype=float)
     return points @ T[:3, :3].T + T[:3, 3]
 
 
-def rotate(T, vectors):
+def rotate(T: np.ndarray, vectors: ArrayLike) -> np.ndarray:
     """Map directions (..., 3) through T's rotation."""
     return np.asarray(vectors, dtype=float) @ T[:3, :3].T
 
 
-def unit(v, axis=-1):
+def unit(v: ArrayLike, axis: int = -1) -> np.ndarray:
     """v / |v| along axis."""
     v = np.asarray(v, dtype=float)
     return v / np.linalg.norm(v, axis=axis, keepdims=True)
 
 
-def frame_from_normal(normal, reference=(1.0, 0.0, 0.0)):
+def frame_from_normal(normal: ArrayLike, reference: ArrayLike = (1.0, 0.0, 0.0)) -> np.ndarray:
     """3x3 rotation whose columns are (x, y, z) of a frame with +z = normal; x is the
     reference projected into the tangent plane (any fixed axis when they are parallel)."""
     z = unit(normal)
@@ -63,14 +67,14 @@ def frame_from_normal(normal, reference=(1.0, 0.0, 0.0)):
     return np.column_stack([x, np.cross(z, x), z])
 
 
-def direction_from_angles(azimuth, elevation):
+def direction_from_angles(azimuth: ArrayLike, elevation: ArrayLike) -> np.ndarray:
     """Unit vector(s) (..., 3) for azimuth phi in [-pi, pi) and elevation (latitude) theta."""
     azimuth, elevation = np.broadcast_arrays(np.asarray(azimuth, float), np.asarray(elevation, float))
     ce = np.cos(elevation)
     return np.stack([ce * np.cos(azimuth), ce * np.sin(azimuth), np.sin(elevation)], axis=-1)
 
 
-def angles_from_direction(d):
+def angles_from_direction(d: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """(azimuth in [-pi, pi), elevation in [-pi/2, pi/2]) of direction(s) (..., 3)."""
     d = unit(d)
     az = np.arctan2(d[..., 1], d[..., 0])
@@ -78,7 +82,8 @@ def angles_from_direction(d):
     return az, np.arcsin(np.clip(d[..., 2], -1.0, 1.0))
 
 
-def haversine_distance(az1, el1, az2, el2):
+def haversine_distance(az1: float | np.ndarray, el1: float | np.ndarray, az2: float | np.ndarray,
+                       el2: float | np.ndarray) -> np.ndarray:
     """Great-circle angle of eq. (2)-(3): d = 2 atan2(sqrt a, sqrt(1 - a)),
     a = h(el2 - el1) + cos el1 cos el2 h(az2 - az1), h(x) = sin^2(x / 2)."""
     a = np.sin(0.5 * (el2 - el1)) ** 2 + np.cos(el1) * np.cos(el2) * np.sin(0.5 * (az2 - az1)) ** 2
@@ -86,7 +91,7 @@ def haversine_distance(az1, el1, az2, el2):
     return 2.0 * np.arctan2(np.sqrt(a), np.sqrt(1.0 - a))
 
 
-def winding_number(vertices, faces, point):
+def winding_number(vertices: ArrayLike, faces: ArrayLike, point: ArrayLike) -> float:
     """Generalized winding number of a triangle mesh about a point: the solid angle its triangles
     subtend, over 4 pi (Van Oosterom and Strackee's formula per triangle). 1 inside a closed,
     outward-oriented mesh, 0 outside, 1/2 on the surface; robust to small holes."""

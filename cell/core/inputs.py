@@ -5,8 +5,12 @@ at once instead of hanging or filling memory.
 The limits are settings: environment variables CELL_MAX_<KIND>_MB override the defaults below
 (a task or material file is a few kB; a CAD mesh may be large).
 """
+
+from __future__ import annotations
+
 import os
 import stat
+from os import PathLike
 from pathlib import Path
 
 from cell.core.errors import TaskError
@@ -15,7 +19,7 @@ from cell.core.errors import TaskError
 KINDS = {"yaml": ("YAML", 1.0), "mesh": ("mesh", 256.0), "csv": ("goniometer CSV", 50.0)}
 
 
-def limit_bytes(kind):
+def limit_bytes(kind: str) -> int:
     """The size limit of a kind of input file [bytes]: CELL_MAX_<KIND>_MB or the default."""
     name = f"CELL_MAX_{kind.upper()}_MB"
     raw = os.environ.get(name)
@@ -32,7 +36,8 @@ def _size(n):
     return f"{n / 2**20:.3g} MB"
 
 
-def checked_file(path, kind, file=None, key="", relative_to=""):
+def checked_file(path: str | PathLike[str], kind: str, file: str | PathLike[str] | None = None, key: str = "",
+                 relative_to: str | PathLike[str] = "") -> Path:
     """path, if it names a regular file of at most the kind's size limit; else a TaskError naming
     `file` and `key` where the path was given (default: the path itself, no key)."""
     path = Path(path)
@@ -41,7 +46,7 @@ def checked_file(path, kind, file=None, key="", relative_to=""):
     try:
         info = path.stat()
     except OSError as err:
-        raise TaskError(where, key, f"{named}an unreadable file ({err.strerror.lower()})",
+        raise TaskError(where, key, f"{named}an unreadable file ({(err.strerror or str(err)).lower()})",
                         f"an existing, readable {what} file"
                         + (f", relative to {relative_to}" if relative_to else "")) from None
     mode = info.st_mode
@@ -56,7 +61,7 @@ def checked_file(path, kind, file=None, key="", relative_to=""):
     return path
 
 
-def read_text(path, kind, file=None, key=""):
+def read_text(path: str | PathLike[str], kind: str, file: str | PathLike[str] | None = None, key: str = "") -> str:
     """The UTF-8 text (a byte order mark allowed) of a checked_file, read to at most its limit
     however the file changes meanwhile."""
     path = checked_file(path, kind, file, key)
@@ -66,7 +71,8 @@ def read_text(path, kind, file=None, key=""):
         with open(path, "rb") as f:
             data = f.read(limit + 1)
     except OSError as err:
-        raise TaskError(where, key, f"an unreadable file ({err.strerror.lower()})", f"a readable {what} file") from None
+        raise TaskError(where, key, f"an unreadable file ({(err.strerror or str(err)).lower()})",
+                        f"a readable {what} file") from None
     if len(data) > limit:
         raise TaskError(where, key, f"a file growing past {_size(limit)} while read",
                         f"a {what} file of at most {_size(limit)}")

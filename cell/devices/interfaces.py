@@ -6,17 +6,29 @@ Every motion is checked against the envelope and speed limits here, in the inter
 backend sees it, so no backend can skip the check. A refused or failed command raises
 DeviceFault; state is read back from the device, never assumed.
 """
+
+from __future__ import annotations
+
 from abc import ABC, abstractmethod
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from cell.core.errors import DeviceFault
 from cell.devices.rig import lamp_aim, lamp_position
 from cell.devices.session import try_all
 
-__all__ = ["Arm", "LampRig", "Camera", "Devices", "check_arm_motion", "speaking_for"]
+if TYPE_CHECKING:
+    from cell.core.frames import Frames
+    from cell.devices.operator import Operator
+    from cell.task.device_config import ArmConfig
+    from cell.task.types import LampRig as LampRigModel
+
+__all__ = ["Arm", "LampRig", "Camera", "LightController", "Devices", "check_arm_motion", "speaking_for"]
 
 # what device libraries raise: serial.SerialException and socket errors are OSErrors (an unplugged
 # USB adapter, OSError 19 from a camera), ur_rtde raises RuntimeError
@@ -24,16 +36,17 @@ LIBRARY_ERRORS = (OSError, RuntimeError, EOFError)
 
 
 @contextmanager
-def speaking_for(device):
+def speaking_for(device: Device | type[Device]) -> Iterator[None]:
     """Device calls inside this block: whatever the device's library raises becomes a DeviceFault
-    naming the device (`device.device`), so the run stops safely and exits 3, never a traceback."""
+    naming the device (`device.device`; a device class while it opens), so the run stops safely and
+    exits 3, never a traceback."""
     try:
         yield
     except LIBRARY_ERRORS as err:
         raise DeviceFault(device.device, f"{type(err).__name__}: {err}") from err
 
 
-def check_arm_motion(config, frames, T_cell_cam, speed_m_s):
+def check_arm_motion(config: ArmConfig, frames: Frames, T_cell_cam: ArrayLike, speed_m_s: float) -> None:
     """Refuse (DeviceFault) a camera pose whose camera or flange (by the frames' hand-eye) leaves
     the workspace box, a matrix that is not a rigid transform, or a speed above the limit -
     before anything moves."""
@@ -58,17 +71,17 @@ class Arm(ABC):
 
     device = "arm"
 
-    def __init__(self, config, frames):
+    def __init__(self, config: ArmConfig, frames: Frames) -> None:
         self.config, self.frames = config, frames
 
-    def move_camera(self, T_cell_cam, speed_m_s=None):
+    def move_camera(self, T_cell_cam: np.ndarray, speed_m_s: float | None = None) -> None:
         """Move so the camera frame is at T_cell_cam; returns when there, raises DeviceFault on
         limits, unreachable poses or a device error."""
         speed = self.config.speed_m_s if speed_m_s is None else speed_m_s
         check_arm_motion(self.config, self.frames, T_cell_cam, speed)
         self._move_tcp(self.frames.T_base_cam(T_cell_cam), speed)
 
-    def refusal(self, T_cell_cam, speed_m_s=None):
+    def refusal(self, T_cell_cam: np.ndarray, speed_m_s: float | None = None) -> str | None:
         """Why move_camera would refuse this pose (the envelope's check, then the backend's reach),
         or None; moves nothing. A backend without kinematics of its own finds out when it moves."""
         speed = self.config.speed_m_s if speed_m_s is None else speed_m_s
@@ -82,7 +95,7 @@ class Arm(ABC):
         """Why the robot cannot put the camera at T_base_cam (None: it can, or cannot tell)."""
         return None
 
-    def camera_pose(self):
+    def camera_pose(self) -> np.ndarray:
         """The actual T_cell_cam, read back from the device."""
         return self.frames.T_cell_cam_from_base(self._tcp_pose())
 
@@ -95,15 +108,15 @@ class Arm(ABC):
         """Actual T_base_cam."""
 
     @abstractmethod
-    def stop(self):
+    def stop(self) -> None:
         """Stop any motion now."""
 
-    def state(self):
+    def state(self) -> dict[str, Any]:
         """What the arm reports, read back and JSON-ready (`cell hw-check`); reads only. A backend
         that knows more (modes, joints) says more; `problems`: what a run would stop on."""
         return {"camera_pose": self.camera_pose().tolist(), "problems": []}
 
-    def close(self):
+    def close(self) -> None:
         """Release the connection (after stop)."""
 
 
@@ -121,14 +134,14 @@ class LampRig(ABC):
 
     device = "pan-tilt"
 
-    def __init__(self, rig, operator):
+    def __init__(self, rig: LampRigModel, operator: Operator) -> None:
         self.rig, self.operator = rig, operator
         self.manual_radius = rig.radius_axis == "manual"
         self._confirmed_radius = float("nan")      # manual radius: what the operator confirmed
         if self.manual_radius:
             operator.require(self.device, "the lamp radius (radius_axis: manual)")
 
-    def move(self, pan_rad, tilt_rad, radius_m):
+    def move(self, pan_rad: float, tilt_rad: float, radius_m: float) -> None:
         """Move to the joints (checked against the rig's ranges first); a manual radius is then
         set by the operator."""
         pan = self._in_range(pan_rad, tilt_rad, radius_m)
@@ -148,7 +161,7 @@ class LampRig(ABC):
         _check_range(self.device, "radius", radius_m, self.rig.radius_range_m)
         return pan
 
-    def refusal(self, pan_rad, tilt_rad, radius_m):
+    def refusal(self, pan_rad: float, tilt_rad: float, radius_m: float) -> str | None:
         """Why move would refuse these joints (outside the rig's ranges), or None; moves nothing."""
         try:
             self._in_range(pan_rad, tilt_rad, radius_m)
@@ -156,12 +169,12 @@ class LampRig(ABC):
             return refused.reason
         return None
 
-    def joints(self):
+    def joints(self) -> tuple[float, float, float]:
         """(pan, tilt, radius) read back; a manual radius is the one the operator confirmed."""
         pan, tilt, radius = self._read_axes()
         return pan, tilt, self._confirmed_radius if self.manual_radius else radius
 
-    def lamp_pose(self):
+    def lamp_pose(self) -> tuple[np.ndarray, np.ndarray]:
         """(position, aim) of the lamp in the cell frame from the read-back joints."""
         position = lamp_position(self.rig.pivot_m, *self.joints())
         return position, lamp_aim(self.rig.pivot_m, position)
@@ -175,17 +188,17 @@ class LampRig(ABC):
         """(pan, tilt, radius or None) as the device reports them."""
 
     @abstractmethod
-    def stop(self, fault_is_own=False):
+    def stop(self, fault_is_own: bool = False) -> None:
         """Hold position with torque on; torque off only if the fault is the servos' own."""
 
-    def state(self):
+    def state(self) -> dict[str, Any]:
         """The read-back joints [rad, m], JSON-ready (`cell hw-check`); reads only. `problems`:
         what a run would stop on."""
         pan, tilt, radius = self.joints()
         return {"pan_rad": float(pan), "tilt_rad": float(tilt),
                 "radius_m": None if radius is None or np.isnan(radius) else float(radius), "problems": []}
 
-    def close(self):
+    def close(self) -> None:
         """Release the port (after stop)."""
 
 
@@ -195,55 +208,130 @@ class Camera(ABC):
 
     device = "camera"
 
-    def __init__(self, bit_depth):
+    def __init__(self, bit_depth: int) -> None:
         self.bit_depth = bit_depth
-        self.shutter_s = None
-        self.f_number = None
-        self.focus_m = None
+        self.shutter_s: float | None = None
+        self.f_number: float | None = None
+        self.focus_m: float | None = None
 
     @abstractmethod
-    def set_exposure(self, shutter_s):
+    def set_exposure(self, shutter_s: float) -> float:
         """Set the shutter time; returns the one the camera actually uses [s]."""
 
     @abstractmethod
-    def set_aperture(self, f_number):
+    def set_aperture(self, f_number: float) -> None:
         """Set the f-number (motorized, or by the operator)."""
 
     @abstractmethod
-    def set_focus(self, focus_m):
+    def set_focus(self, focus_m: float) -> None:
         """Focus the lens at this distance along the optical axis [m] (motorized, or by the
         operator)."""
 
     @abstractmethod
-    def capture(self):
+    def capture(self) -> np.ndarray:
         """One gray image (H, W) as uint8 (bit depth <= 8) or uint16."""
 
-    def state(self):
+    def state(self) -> dict[str, Any]:
         """What the camera reports, JSON-ready (`cell hw-check`); sets nothing. A backend that
         can ask the device (model, pixel format, exposure range) says more; `problems`: what a run
         would stop on."""
         return {"bit_depth": self.bit_depth, "shutter_s": self.shutter_s, "f_number": self.f_number,
                 "focus_m": self.focus_m, "problems": []}
 
-    def close(self):
+    def close(self) -> None:
         """Release the camera."""
+
+
+class LightController(ABC):
+    """A multi-channel LED lighting controller: channels 1..channels, each driven at a level, the
+    fraction of its full output in [0, 1] (percent only on the wire). Levels outside [0, 1] and
+    channels not configured are refused here, before the device sees them; every set is read
+    back from the device."""
+
+    device = "lighting"
+
+    def __init__(self, channels: int, name: str) -> None:
+        self.channels, self.name = channels, name       # name: the controller and its address
+
+    def set_drive(self, channel: int, level: float) -> float:
+        """Drive `channel` at `level` (0..1); returns the level read back from the device."""
+        self._check_channel(channel)
+        if not 0.0 <= level <= 1.0:
+            raise DeviceFault(self.device, f"{self.name}: channel {channel} level {level:.4g} outside "
+                                           "[0, 1]: refused before setting")
+        return self._set_drive(channel, float(level))
+
+    def drive(self, channel: int) -> float:
+        """The level channel is driven at (0..1), read back from the device."""
+        self._check_channel(channel)
+        return self._read_drive(channel)
+
+    def all_off(self) -> None:
+        """Every channel to 0, each tried even if one fails; then the first failure is raised,
+        naming the channels left as they were."""
+        failures = {}
+        for channel in range(1, self.channels + 1):
+            try:
+                self.set_drive(channel, 0.0)
+            except DeviceFault as fault:
+                failures[channel] = fault.reason
+        if failures:
+            first = next(iter(failures.values()))
+            raise DeviceFault(self.device, f"{first}; channels {list(failures)} not turned off")
+
+    def _check_channel(self, channel: int) -> None:
+        if not (isinstance(channel, (int, np.integer)) and 1 <= channel <= self.channels):
+            raise DeviceFault(self.device, f"{self.name}: channel {channel!r} is not one of the "
+                                           f"configured 1..{self.channels}: refused before setting")
+
+    @abstractmethod
+    def _set_drive(self, channel: int, level: float) -> float:
+        """Set the channel's level on the device and return it read back."""
+
+    @abstractmethod
+    def _read_drive(self, channel: int) -> float:
+        """The channel's level as the device reports it."""
+
+    def describe(self) -> dict:
+        """What the controller is, JSON-ready: its name (and address) and channel count."""
+        return {"name": self.name, "channels": self.channels}
+
+    def state(self) -> dict:
+        """Every channel's level read back, JSON-ready (`cell hw-check`); sets nothing. `problems`:
+        what a run would stop on."""
+        return {"levels": {str(c): self.drive(c) for c in range(1, self.channels + 1)}, "problems": []}
+
+    def close(self) -> None:
+        """Release the connection (after all_off)."""
+
+
+Device = Arm | LampRig | Camera | LightController     # one of the cell's devices (speaking_for names it)
 
 
 @dataclass
 class Devices:
-    """The cell's three devices, with the safe stop every fault ends in (hardware notes)."""
+    """The cell's three devices and, where the task has one, its lighting controller, with the
+    safe stop every fault ends in (hardware notes)."""
 
     arm: Arm
     lamp: LampRig
     camera: Camera
+    lights: LightController | None = None
 
-    def safe_stop(self, fault=None):
-        """Stop the arm, hold the servos (torque off only for their own fault), close the camera.
-        Every step is tried; returns the messages of steps that failed, in turn."""
+    def safe_stop(self, fault: BaseException | None = None) -> list[str]:
+        """Stop the arm, hold the servos (torque off only for their own fault), close the camera,
+        turn every light channel off. Every step is tried; returns the messages of steps that
+        failed, in turn."""
         lamp_faulted = isinstance(fault, DeviceFault) and fault.device == self.lamp.device
         steps = (self.arm.stop, lambda: self.lamp.stop(fault_is_own=lamp_faulted), self.camera.close)
-        return try_all(steps)
+        return try_all(steps + ((self.lights.all_off,) if self.lights else ()))
 
-    def close(self):
-        """Release everything after a normal end."""
-        return try_all((self.arm.close, self.lamp.close, self.camera.close))
+    def close(self) -> list[str]:
+        """Release everything after a normal end (the lights turned off first)."""
+        lights = (self.lights.all_off, self.lights.close) if self.lights else ()
+        return try_all((self.arm.close, self.lamp.close, self.camera.close) + lights)
+
+    def releases(self) -> tuple[Callable[[], object], ...]:
+        """The connections to release after a safe stop: the arm's, the servos' and the lighting
+        controller's."""
+        return (self.arm.close, self.lamp.close) + ((self.lights.close,) if self.lights else ())

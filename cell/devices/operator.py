@@ -1,6 +1,10 @@
 """The operator at the cell: told what to set by hand (a manual lamp radius, the lens, the reference
 part), confirming with Enter on the console."""
+
+from __future__ import annotations
+
 import sys
+from typing import TextIO
 
 from cell.core.errors import DeviceFault
 
@@ -9,19 +13,19 @@ class Operator:
     """Tells the operator what to set by hand and waits for Enter; `yes` confirms for them
     (tests, `--yes`). Without `yes` a prompt needs an interactive stdin, else it is a fault."""
 
-    def __init__(self, yes=False, stdin=None, stdout=None):
+    def __init__(self, yes: bool = False, stdin: TextIO | None = None, stdout: TextIO | None = None) -> None:
         self.yes, self._stdin, self._stdout = yes, stdin, stdout
 
     @property
-    def stdin(self):
+    def stdin(self) -> TextIO:
         return self._stdin or sys.stdin
 
     @property
-    def stdout(self):
+    def stdout(self) -> TextIO:
         return self._stdout or sys.stdout
 
     @property
-    def interactive(self):
+    def interactive(self) -> bool:
         """Whether someone can answer at stdin: a terminal (not a file, a pipe, or none at all,
         as when started with stdin closed, `<&-`)."""
         try:
@@ -29,13 +33,13 @@ class Operator:
         except (ValueError, OSError):           # a closed or broken stream
             return False
 
-    def require(self, device, what):
+    def require(self, device: str, what: str) -> None:
         """Fail now, before anything moves, if a later prompt could not be answered."""
         if not (self.yes or self.interactive):
             raise DeviceFault(device, f"{what} needs the operator, but stdin is not a terminal: "
                                       "run with --yes to confirm operator steps")
 
-    def confirm(self, device, instruction):
+    def confirm(self, device: str, instruction: str) -> None:
         print(f"{device}: {instruction}", file=self.stdout, flush=True)
         if self.yes:
             print("  (confirmed automatically: --yes)", file=self.stdout, flush=True)

@@ -1,9 +1,13 @@
 """Lamp rig geometry: the lamp moves on a sphere around the pivot and aims at it; pan about
 the cell's +z axis, tilt is the elevation above the cell's xy plane (hardware notes)."""
+
+from __future__ import annotations
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 
-def lamp_position(pivot, pan, tilt, radius):
+def lamp_position(pivot: ArrayLike, pan: ArrayLike, tilt: ArrayLike, radius: ArrayLike) -> np.ndarray:
     """p = pivot + r (cos t cos p, cos t sin p, sin t); broadcasts over pan/tilt/radius arrays."""
     pan, tilt, radius = np.broadcast_arrays(np.asarray(pan, float), np.asarray(tilt, float),
                                             np.asarray(radius, float))
@@ -11,13 +15,13 @@ def lamp_position(pivot, pan, tilt, radius):
     return np.asarray(pivot, float) + radius[..., None] * offset
 
 
-def lamp_aim(pivot, position):
+def lamp_aim(pivot: ArrayLike, position: ArrayLike) -> np.ndarray:
     """Unit aim direction of a lamp at `position` pointing at the pivot."""
     d = np.asarray(pivot, float) - np.asarray(position, float)
     return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
 
-def lamp_joints(pivot, position):
+def lamp_joints(pivot: ArrayLike, position: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(pan, tilt, radius) that put the lamp at `position` (inverse of lamp_position)."""
     d = np.asarray(position, float) - np.asarray(pivot, float)
     radius = np.linalg.norm(d, axis=-1)

@@ -3,13 +3,22 @@ ServoRig, which maps the rig's joints to servo ticks (4096 a turn, 2048 the cent
 simulated and the real pan-tilt quantize alike. The real SDK calls live in cell/devices/hw/dynamixel.py;
 the simulated pan-tilt and the servo emulator use this table too, without loading the SDK.
 """
+
+from __future__ import annotations
+
 from abc import abstractmethod
 from collections import namedtuple
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from cell.devices.interfaces import LampRig
 from cell.core.errors import DeviceFault
+
+if TYPE_CHECKING:
+    from cell.devices.operator import Operator
+    from cell.task.device_config import PanTiltConfig
+    from cell.task.types import LampRig as LampRigModel
 
 Item = namedtuple("Item", "address size")
 MODEL_NUMBER = Item(0, 2)
@@ -43,13 +52,13 @@ HARDWARE_ERRORS = {0: "input voltage", 2: "overheating", 3: "motor encoder",
                    4: "electrical shock", 5: "overload"}
 
 
-def describe_hardware_error(bits):
+def describe_hardware_error(bits: int) -> str:
     """Hardware Error Status (70) as text, e.g. '0x24 (overheating, overload)'."""
     names = [name for bit, name in HARDWARE_ERRORS.items() if bits >> bit & 1] or ["unknown bit"]
     return f"0x{bits:02X} ({', '.join(names)})"
 
 
-def profile_velocity(speed_rad_s):
+def profile_velocity(speed_rad_s: float) -> int:
     """Profile Velocity (112) value for a joint speed; at least 1, as 0 means unlimited."""
     return max(1, round(speed_rad_s * 60 / (2 * np.pi) / PROFILE_VELOCITY_RPM))
 
@@ -58,13 +67,13 @@ class ServoRig(LampRig):
     """A LampRig on position-controlled servos: pan and tilt (and the radius when
     radius_axis is servo) as ticks, checked against each servo's position limits."""
 
-    def __init__(self, rig, config, operator):
+    def __init__(self, rig: LampRigModel, config: PanTiltConfig, operator: Operator) -> None:
         super().__init__(rig, operator)
         self.config = config
         self.ids = [config.pan_id, config.tilt_id] + ([] if self.manual_radius else [config.radius_id])
-        self.limits = {}                          # id -> (min tick, max tick), read from the servo
+        self.limits: dict[int, tuple[int, int]] = {}      # id -> (min tick, max tick), read from the servo
 
-    def goal_ticks(self, pan, tilt, radius):
+    def goal_ticks(self, pan: float, tilt: float, radius: float | None) -> dict[int, int]:
         """{id: tick} for the joints; pan wraps (it turns about z), tilt and radius do not."""
         c = self.config
         pan_rel = (pan - c.pan_offset_rad + np.pi) % (2 * np.pi) - np.pi
@@ -75,7 +84,7 @@ class ServoRig(LampRig):
             goals[c.radius_id] = round(t0 + (radius - r0) / (r1 - r0) * (t1 - t0))
         return goals
 
-    def joints_from_ticks(self, ticks):
+    def joints_from_ticks(self, ticks: dict[int, int]) -> tuple[float, float, float | None]:
         """(pan, tilt, radius or None) from {id: tick}: the quantized joints the servos hold."""
         c = self.config
         pan = (ticks[c.pan_id] - CENTRE_TICK) * 2 * np.pi / TICKS_PER_TURN + c.pan_offset_rad

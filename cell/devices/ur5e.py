@@ -7,7 +7,13 @@ wrist centre fixes q1, the tool z axis fixes q5 and q6, and a planar two-link ar
 Shared by the planner (a planned camera viewpoint must be reachable, cell.planning.viewpoints) and the
 simulated arm and UR controller (sim/).
 """
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 D = np.array([0.1625, 0.0, 0.0, 0.1333, 0.0997, 0.0996])     # d_i [m]
 A = np.array([0.0, -0.425, -0.3922, 0.0, 0.0, 0.0])          # a_i [m]
@@ -20,7 +26,7 @@ class Unreachable(ValueError):
     """No joint solution for a flange pose; the message says why."""
 
 
-def dh(i, theta):
+def dh(i: int, theta: float) -> np.ndarray:
     """A_i = Rz(theta) Tz(d_i) Tx(a_i) Rx(alpha_i)."""
     ct, st = np.cos(theta), np.sin(theta)
     ca, sa = np.cos(ALPHA[i]), np.sin(ALPHA[i])
@@ -30,7 +36,7 @@ def dh(i, theta):
                      [0.0, 0.0, 0.0, 1.0]])
 
 
-def forward(q):
+def forward(q: Sequence[float] | np.ndarray) -> np.ndarray:
     """T_base_flange for joint angles q (6,) [rad]."""
     T = np.eye(4)
     for i, theta in enumerate(q):
@@ -42,7 +48,7 @@ def _wrap(angle):
     return (angle + np.pi) % (2 * np.pi) - np.pi
 
 
-def inverse_all(T_base_flange, q6_free=0.0):
+def inverse_all(T_base_flange: np.ndarray, q6_free: float = 0.0) -> np.ndarray:
     """All closed-form solutions (k, 6), angles in [-pi, pi). q6 is free when the wrist is
     singular (q5 = 0 or pi): it then takes `q6_free`. Raises Unreachable with the reason."""
     T = np.asarray(T_base_flange, float)
@@ -86,7 +92,7 @@ def _nearest_within_limits(q, q_near):
     return options[np.arange(6), np.argmin(np.abs(options - q_near[:, None]), axis=1)]
 
 
-def inverse(T_base_flange, q_near):
+def inverse(T_base_flange: np.ndarray, q_near: ArrayLike) -> np.ndarray:
     """The solution nearest the current joints q_near (smallest largest joint step), within
     the joint limits (+-2 pi, elbow +-pi). Raises Unreachable with the reason."""
     q_near = np.asarray(q_near, float)

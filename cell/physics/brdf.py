@@ -5,7 +5,16 @@ R = rho (cos ti + sigma1 <v,r>^m1 + sigma2 <v,r>^m2), r = 2<n,s>n - s, and
 <v,r> = 2 cos te cos ti - cos alpha (alpha: phase angle between s and v).
 Clamps (physics notes): R = 0 if <n,s> <= 0 or <n,v> <= 0; lobe and spike are 0 if <v,r> <= 0.
 """
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
 import numpy as np
+from numpy.typing import ArrayLike
+
+if TYPE_CHECKING:
+    from cell.physics.material import Material, Unresolved
 
 DIFFUSE, LOBE, SPIKE = 0, 1, 2
 TERM_NAMES = ("diffuse", "lobe", "spike")
@@ -13,7 +22,7 @@ OCCLUDED = -1
 UNKNOWN = 3                 # possibly a spike the goniometer did not resolve (unresolved_spike)
 
 
-def stable_power(base, exponent):
+def stable_power(base: ArrayLike, exponent: ArrayLike) -> np.ndarray:
     """base**exponent for base in [0, 1], exponent up to ~1e5; 0 where base <= 0.
 
     Computed as exp(m ln b) with b clamped to 1 and b <= 0 masked, so nothing under- or
@@ -27,12 +36,14 @@ def stable_power(base, exponent):
     return np.where(positive, np.exp(exponent * log_b), 0.0)
 
 
-def mirror_cosine(cos_i, cos_e, cos_alpha):
+def mirror_cosine(cos_i: ArrayLike, cos_e: ArrayLike, cos_alpha: ArrayLike) -> np.ndarray:
     """<v,r> = 2 cos te cos ti - cos alpha (eq. 7), the cosine between camera and mirror direction."""
     return 2.0 * np.asarray(cos_e) * np.asarray(cos_i) - np.asarray(cos_alpha)
 
 
-def brdf_terms(cos_i, cos_e, cos_alpha, sigma1, m1, sigma2, m2):
+def brdf_terms(cos_i: ArrayLike, cos_e: ArrayLike, cos_alpha: ArrayLike, sigma1: float | np.ndarray,
+               m1: float | np.ndarray, sigma2: float | np.ndarray,
+               m2: float | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The three bracketed terms of eq. (6): (cos ti, s1 c^m1, s2 c^m2), each clamped to 0 behind."""
     cos_i = np.asarray(cos_i, dtype=float)
     cos_e = np.asarray(cos_e, dtype=float)
@@ -44,20 +55,25 @@ def brdf_terms(cos_i, cos_e, cos_alpha, sigma1, m1, sigma2, m2):
     return diffuse, lobe, spike
 
 
-def reflectance(cos_i, cos_e, cos_alpha, rho, sigma1, m1, sigma2, m2):
+def reflectance(cos_i: ArrayLike, cos_e: ArrayLike, cos_alpha: ArrayLike, rho: float | np.ndarray,
+                sigma1: float | np.ndarray, m1: float | np.ndarray, sigma2: float | np.ndarray,
+                m2: float | np.ndarray) -> np.ndarray:
     """R of eq. (7) [1/sr-like, as the paper uses it]; finite and >= 0 for any valid input."""
     diffuse, lobe, spike = brdf_terms(cos_i, cos_e, cos_alpha, sigma1, m1, sigma2, m2)
     return rho * (diffuse + lobe + spike)
 
 
-def dominant_term(cos_i, cos_e, cos_alpha, sigma1, m1, sigma2, m2):
+def dominant_term(cos_i: ArrayLike, cos_e: ArrayLike, cos_alpha: ArrayLike, sigma1: float | np.ndarray,
+                  m1: float | np.ndarray, sigma2: float | np.ndarray, m2: float | np.ndarray) -> np.ndarray:
     """Sec. 5.2: index of the largest term (DIFFUSE, LOBE, SPIKE); OCCLUDED where R is clamped to 0."""
     terms = np.stack(np.broadcast_arrays(*brdf_terms(cos_i, cos_e, cos_alpha, sigma1, m1, sigma2, m2)))
     front = (np.asarray(cos_i) > 0.0) & (np.asarray(cos_e) > 0.0)
     return np.where(front, np.argmax(terms, axis=0), OCCLUDED)
 
 
-def reflectance_jacobian(cos_i, cos_e, cos_alpha, rho, sigma1, m1, sigma2, m2):
+def reflectance_jacobian(cos_i: ArrayLike, cos_e: ArrayLike, cos_alpha: ArrayLike, rho: float | np.ndarray,
+                         sigma1: float | np.ndarray, m1: float | np.ndarray, sigma2: float | np.ndarray,
+                         m2: float | np.ndarray) -> np.ndarray:
     """dR/d(rho, sigma1, m1, sigma2, m2), eq. (8)-(9) with the factor rho the paper drops.
 
     dR/dsigma_k = rho c^mk; dR/dm_k = rho sigma_k c^mk ln c (0 where c <= 0, since the term is 0).
@@ -76,7 +92,7 @@ def reflectance_jacobian(cos_i, cos_e, cos_alpha, rho, sigma1, m1, sigma2, m2):
         d_rho, rho * p1, rho * sigma1 * p1 * log_c, rho * p2, rho * sigma2 * p2 * log_c), axis=-1)
 
 
-def reflectance_vectors(n, s, v, material):
+def reflectance_vectors(n: ArrayLike, s: ArrayLike, v: ArrayLike, material: Material) -> np.ndarray:
     """R for unit vectors (..., 3): n normal, s to lamp, v to camera; material params at the phase angle."""
     n, s, v = (np.asarray(a, dtype=float) for a in (n, s, v))
     cos_i = np.sum(n * s, axis=-1)
@@ -86,7 +102,7 @@ def reflectance_vectors(n, s, v, material):
     return reflectance(cos_i, cos_e, cos_alpha, p.rho, p.sigma1, p.m1, p.sigma2, p.m2)
 
 
-def dominant_term_vectors(n, s, v, material):
+def dominant_term_vectors(n: ArrayLike, s: ArrayLike, v: ArrayLike, material: Material) -> np.ndarray:
     """dominant_term() for unit vectors, with the material at the phase angle."""
     n, s, v = (np.asarray(a, dtype=float) for a in (n, s, v))
     cos_i = np.sum(n * s, axis=-1)
@@ -96,7 +112,7 @@ def dominant_term_vectors(n, s, v, material):
     return dominant_term(cos_i, cos_e, cos_alpha, p.sigma1, p.m1, p.sigma2, p.m2)
 
 
-def spike_keep_out(unresolved):
+def spike_keep_out(unresolved: Unresolved) -> float:
     """The angle [rad] between the half vector h = (s + v) / |s + v| and the normal within which
     an unresolved spike may lie: the goniometer's step, = sqrt(ln 2 / (2 M)), the half width of
     the widest term it cannot resolve (M = ln 2 / (2 step^2)). It read the mirror pose and poses
@@ -107,7 +123,7 @@ def spike_keep_out(unresolved):
     return float(unresolved.step_rad)
 
 
-def unresolved_spike(n, s, v, material):
+def unresolved_spike(n: ArrayLike, s: ArrayLike, v: ArrayLike, material: Material) -> np.ndarray:
     """bool mask for unit vectors (..., 3): a spike the material's goniometer did not resolve
     (Material.unresolved) may dominate here: the phase angle's parameters come from a row whose
     spike is unresolved, and h lies within spike_keep_out of the normal. Nowhere without one."""
@@ -121,7 +137,7 @@ def unresolved_spike(n, s, v, material):
     return near & material.unresolved_spike(np.arccos(cos_alpha))
 
 
-def judged_term(dominant, n, s, v, material):
+def judged_term(dominant: ArrayLike, n: ArrayLike, s: ArrayLike, v: ArrayLike, material: Material) -> np.ndarray:
     """The dominant term (dominant_term_vectors', the kernels') as the planner judges it:
     UNKNOWN where an unresolved spike may dominate (unresolved_spike), OCCLUDED kept. The region
     map and every sample's check (search and certificate) read this one function."""

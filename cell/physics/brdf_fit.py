@@ -15,10 +15,15 @@ Residuals are relative, (R - y) / y: readings span the spike's peak and the diff
 largest are weighted as if they were that large (dark level). R is linear in rho, so each phase is
 fitted in units of its largest reading: the fit is the same at any scale of the readings.
 """
+
+from __future__ import annotations
+
 import csv
 import dataclasses
 import io
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from os import PathLike
 from pathlib import Path
 
 import numpy as np
@@ -68,13 +73,13 @@ class PhaseFit:
     params: np.ndarray        # rho, sigma1, m1, sigma2, m2
     stderr: np.ndarray        # same order; inf where the data do not determine the parameter
     rms_residual: float       # RMS of R_fit - R_measured [reflectance units]
-    p_values: tuple           # F-test p of adding the lobe (to diffuse), the spike (to the lobe)
-    absent: tuple             # terms the data do not support, from TERMS
+    p_values: tuple[float, float]# F-test p of adding the lobe (to diffuse), the spike (to the lobe)
+    absent: tuple[str, ...]   # terms the data do not support, from TERMS
 
 
 # --- reading the CSV ---
 
-def shown(text):
+def shown(text: str) -> str:
     """A value as an error line shows it: quoted, at most SHOWN_CHARS characters of it, '...' after."""
     text = text.strip()
     if not text:
@@ -118,7 +123,7 @@ def _cell(path, where, column, text, ok, expected):
     return value
 
 
-def read_goniometer(path):
+def read_goniometer(path: str | PathLike[str]) -> list[Measurements]:
     """The CSV's rows grouped by phase angle (ascending); any bad field, row or group is a TaskError."""
     path = Path(path)
     rows = _csv_rows(path, read_text(path, "csv"))
@@ -140,7 +145,7 @@ def read_goniometer(path):
               "phase_deg": (lambda v: 0 <= v <= 180, "an angle in [0, 180] deg"),
               "reflectance": (lambda v: 0 <= v <= REFLECTANCE_MAX,
                               f"a reflectance in [0, {REFLECTANCE_MAX:g}]")}
-    groups = {}
+    groups: dict[float, list[tuple[float, float, float]]] = {}
     for where, row in rows[1:]:
         if len(row) != len(header):
             raise TaskError(path, where, f"{len(row)} fields", f"{len(header)}, as in the header")
@@ -224,7 +229,7 @@ def _p_value(rss_without, rss_with, extra, dof):
     return float(stats.f.sf(max(rss_without - rss_with, 0.0) / extra / noise, extra, dof))
 
 
-def standard_errors(jac_w, rss, dof):
+def standard_errors(jac_w: np.ndarray, rss: float, dof: int) -> np.ndarray:
     """sqrt(diag(s^2 (J^T J)^-1)), s^2 = RSS / dof, J the weighted Jacobian; via the SVD of J with
     scaled columns, inf for a parameter in a direction J cannot see (zero column, singular J)."""
     norms = np.linalg.norm(jac_w, axis=0)
@@ -238,10 +243,11 @@ def standard_errors(jac_w, rss, dof):
     return stderr
 
 
-def fit_phase(m):
+def fit_phase(m: Measurements) -> PhaseFit:
     """Fit eq. (7) to the Measurements at one phase angle; the model (diffuse, + lobe, + spike)
     is the smallest the F-tests allow."""
-    geometry = tuple(np.cos(np.radians(a)) for a in (m.theta_i_deg, m.theta_e_deg, m.phase_deg))
+    cos_i, cos_e, cos_alpha = (np.cos(np.radians(a)) for a in (m.theta_i_deg, m.theta_e_deg, m.phase_deg))
+    geometry = (cos_i, cos_e, cos_alpha)
     scale = float(m.reflectance.max()) or 1.0
     y, n = m.reflectance / scale, len(m.reflectance)
     w = np.maximum(y, DARK_FRACTION * y.max()) if y.max() > 0 else np.ones(n)
@@ -262,7 +268,7 @@ def fit_phase(m):
     return PhaseFit(float(m.phase_deg), n, params * unit, stderr * unit, rms * scale, p_values, TERMS[terms:])
 
 
-def fit_material(groups):
+def fit_material(groups: Sequence[Measurements]) -> list[PhaseFit]:
     """PhaseFits for all phase angles. The exponent of an absent term does not change R, but the
     table is interpolated over the phase angle: take it from the nearest phases that have the term
     (so a fading spike keeps its width), and keep m2 > m1 as the loader requires."""
@@ -284,9 +290,9 @@ def _round(value, digits):
     return float(f"{value:.{digits}g}")
 
 
-def material_document(fits, name, source):
+def material_document(fits: Sequence[PhaseFit], name: str, source: str) -> dict[str, object]:
     """The material file's keys (docs/formats.md, "Material"), in file order."""
-    doc = {"name": name, "source": source, "phase_deg": [f.phase_deg for f in fits]}
+    doc: dict[str, object] = {"name": name, "source": source, "phase_deg": [f.phase_deg for f in fits]}
     for i, p in enumerate(PARAMETERS):
         doc[p] = [_round(f.params[i], 6) for f in fits]
     for i, p in enumerate(PARAMETERS):
@@ -298,7 +304,7 @@ def material_document(fits, name, source):
     return doc
 
 
-def absent_notes(fits):
+def absent_notes(fits: Sequence[PhaseFit]) -> Iterator[str]:
     """One line per phase angle with a term the data do not support."""
     for f in fits:
         for term in f.absent:

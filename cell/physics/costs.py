@@ -1,8 +1,13 @@
 """Requirement costs of sec. 2.1 / 5 and the log-sum-exp objective (eq. 1, 22-23), with the
 erratum of eq. (25): feasibility is max_i f_i <= 1 over the requirement values themselves."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 
 EXP_LIMIT = 700.0   # exp(700) ~ 1e304: reported requirement values stay finite however far they miss
@@ -11,28 +16,28 @@ EXP_LIMIT = 700.0   # exp(700) ~ 1e304: reported requirement values stay finite 
 # still ranks poses that miss by e^1000 or by e^100000; only the reported f_i is capped.
 
 
-def ln_f_max(x, x_max):
+def ln_f_max(x: ArrayLike, x_max: float) -> np.ndarray:
     """ln of eq. (1)'s f_max = exp(x / x_max - 1): <= 0 iff x <= x_max (x_max > 0)."""
     return np.asarray(x, dtype=float) / x_max - 1.0
 
 
-def ln_f_min(x, x_min):
+def ln_f_min(x: ArrayLike, x_min: float) -> np.ndarray:
     """ln of eq. (1)'s f_min = exp(1 - x / x_min): <= 0 iff x >= x_min (x_min > 0)."""
     return 1.0 - np.asarray(x, dtype=float) / x_min
 
 
-def ln_count_cost(count):
+def ln_count_cost(count: ArrayLike) -> np.ndarray:
     """ln of a requirement that no item fails (shadowed sample, unseen sample), f = 0.5 + count:
     met (<= 1) exactly when count is 0, and never at the boundary 1 when met."""
     return np.log(0.5 + np.asarray(count, dtype=float))
 
 
-def value(ln_f):
+def value(ln_f: ArrayLike) -> np.ndarray:
     """The requirement value f_i = exp(ln f_i) as reported, capped at exp(EXP_LIMIT)."""
     return np.exp(np.minimum(ln_f, EXP_LIMIT))
 
 
-def log_sum_exp(x, axis=-1):
+def log_sum_exp(x: ArrayLike, axis: int = -1) -> np.ndarray:
     """Eq. (22) ln sum exp(x_i) with the max shifted out; max <= lse <= max + ln N (eq. 23)."""
     x = np.asarray(x, dtype=float)
     m = np.max(x, axis=axis, keepdims=True)
@@ -50,7 +55,7 @@ class RequirementValue:
     detail: str = ""
 
     @property
-    def met(self):
+    def met(self) -> bool:
         return bool(self.value <= 1.0)
 
 
@@ -62,7 +67,7 @@ class Verdict:
     objective: float     # eq. (22) over the log-values ln f_i
 
 
-def verdict(requirements):
+def verdict(requirements: Sequence[RequirementValue]) -> Verdict:
     """Feasibility from max_i f_i <= 1 (erratum eq. 25), the binding (largest) requirement and
     the smooth objective lse(ln f_i) that the optimizer minimises."""
     values = np.array([r.value for r in requirements], dtype=float)

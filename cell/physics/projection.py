@@ -4,12 +4,36 @@ K = [[f/p, 0, cx], [0, f/p, cy], [0, 0, 1]] with f the focal length, p the pixel
 principal point at the sensor centre. Shared by the simulated camera (rays per pixel) and the
 closed loop (where the feature's samples land in the image).
 """
+
+from __future__ import annotations
+
+from typing import Protocol
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from cell.core import geometry
 
 
-def intrinsics(sensor, lens):
+class Sensor(Protocol):
+    """What the pinhole model reads of a sensor (cell.task.types.Sensor, a layer above)."""
+
+    @property
+    def pixel_pitch_m(self) -> float: ...
+    @property
+    def width_px(self) -> int: ...
+    @property
+    def height_px(self) -> int: ...
+
+
+class Lens(Protocol):
+    """What the pinhole model reads of a lens (cell.task.types.Lens)."""
+
+    @property
+    def focal_length_m(self) -> float: ...
+
+
+def intrinsics(sensor: Sensor, lens: Lens) -> np.ndarray:
     """3x3 camera matrix K [px]."""
     f_px = lens.focal_length_m / sensor.pixel_pitch_m
     return np.array([[f_px, 0.0, (sensor.width_px - 1) / 2.0],
@@ -17,7 +41,7 @@ def intrinsics(sensor, lens):
                      [0.0, 0.0, 1.0]])
 
 
-def project(K, T_cell_cam, points):
+def project(K: np.ndarray, T_cell_cam: np.ndarray, points: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """Pixel coordinates (N, 2) (x right, y down) and depth along the optical axis (N,) [m] of
     cell-frame points; points behind the camera get NaN pixels."""
     local = geometry.apply(np.linalg.inv(T_cell_cam), np.asarray(points, dtype=float).reshape(-1, 3))
@@ -28,7 +52,7 @@ def project(K, T_cell_cam, points):
     return uv, z
 
 
-def pixel_rays(K, T_cell_cam, width, height):
+def pixel_rays(K: np.ndarray, T_cell_cam: np.ndarray, width: int, height: int) -> np.ndarray:
     """Unit ray directions (H*W, 3) in the cell frame through every pixel centre, row-major."""
     u, v = np.meshgrid(np.arange(width, dtype=float), np.arange(height, dtype=float))
     pixels = np.column_stack([u.ravel(), v.ravel(), np.ones(u.size)])
@@ -36,14 +60,15 @@ def pixel_rays(K, T_cell_cam, width, height):
     return geometry.unit(geometry.rotate(T_cell_cam, local))
 
 
-def view_angles(camera, points, normals):
+def view_angles(camera: ArrayLike, points: ArrayLike, normals: ArrayLike) -> np.ndarray:
     """(N,) angle between each surface normal and the direction to the camera [rad] (0: seen
     head-on, pi / 2: grazing)."""
     v = geometry.unit(np.asarray(camera, float) - np.asarray(points, float))
     return np.arccos(np.clip(np.sum(v * np.asarray(normals, float), axis=-1), -1.0, 1.0))
 
 
-def pixel_footprint(camera, points, normals, pixel_pitch_m, focal_length_m):
+def pixel_footprint(camera: ArrayLike, points: ArrayLike, normals: ArrayLike, pixel_pitch_m: float,
+                    focal_length_m: float) -> np.ndarray:
     """(N,) the length one pixel covers on the surface at each point [m]: |p - C| pitch / f across
     the ray (the pinhole's magnification), stretched by 1 / cos(view angle) along the slant (the
     longer side of the pixel's footprint); inf where the camera is behind the surface."""
@@ -53,7 +78,7 @@ def pixel_footprint(camera, points, normals, pixel_pitch_m, focal_length_m):
         return np.where(cos > 0, distance * pixel_pitch_m / focal_length_m / np.maximum(cos, 0.0), np.inf)
 
 
-def frustum_corners(K, T_cell_cam, width, height, depth_m):
+def frustum_corners(K: np.ndarray, T_cell_cam: np.ndarray, width: int, height: int, depth_m: float) -> np.ndarray:
     """(4, 3) cell-frame corners of the image (its outer pixel edges, clockwise in the image from
     top left) at depth_m along the optical axis: depth K^-1 [u, v, 1], a rectangle W p d / f by
     H p d / f."""

@@ -7,7 +7,14 @@ Moller-Trumbore over every triangle in float64 (trimesh's ray module would need 
 `mesh` is anything with .vertices (V, 3) and .faces (F, 3): a WarpMesh (its float32
 geometry, exactly what the kernels see) or a trimesh.Trimesh.
 """
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Protocol
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from cell.core import geometry
 from cell.physics.material import Material
@@ -17,6 +24,19 @@ from kernels.render import RenderResult
 
 TANGENT_EPS = 1e-9          # as kernels.funcs.TANGENT_EPS
 _CHUNK = 1 << 19            # rays x triangles per NumPy batch
+
+
+# blocked(origins (R, 3), unit dirs (R, 3), max_dist (R,)) -> bool (R,): a triangle lies on each ray
+RayBlocker = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+
+
+class TriangleMesh(Protocol):
+    """A WarpMesh or a trimesh.Trimesh: vertices (V, 3), faces (F, 3)."""
+
+    @property
+    def vertices(self) -> np.ndarray: ...
+    @property
+    def faces(self) -> np.ndarray: ...
 
 
 def _triangles(mesh):
@@ -41,7 +61,8 @@ def _ray_triangle_t(v0, e1, e2, origins, dirs):
     return np.where(ok, t, np.inf)
 
 
-def ray_first_hit(mesh, origins, dirs, max_dist=np.inf):
+def ray_first_hit(mesh: TriangleMesh, origins: ArrayLike, dirs: ArrayLike,
+                  max_dist: ArrayLike = np.inf) -> tuple[np.ndarray, np.ndarray]:
     """Closest hit of each ray (R, 3) along unit dirs: (t (R,), face (R,)); inf / -1 on a miss."""
     v0, e1, e2 = _triangles(mesh)
     origins = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
@@ -59,7 +80,7 @@ def ray_first_hit(mesh, origins, dirs, max_dist=np.inf):
     return t_out, face
 
 
-def ray_hits_any(mesh, origins, dirs, max_dist):
+def ray_hits_any(mesh: TriangleMesh, origins: ArrayLike, dirs: ArrayLike, max_dist: ArrayLike) -> np.ndarray:
     """bool (R,): a triangle lies within max_dist (scalar or (R,)) along each unit ray."""
     t, _ = ray_first_hit(mesh, origins, dirs)
     return t < max_dist
@@ -70,9 +91,11 @@ def _material(table):
     return Material("table", "cell.physics.reference", *t.T)
 
 
-def gray_per_exposure(mesh, points, normals, camera_pos, lamp_pos, lamp_axis, power_w,
-                      cone_angle_rad, table, camera_constant, pixel_area_m2,
-                      shadows=True, cone=True, offset_m=1e-5, profile=None, blocked=None):
+def gray_per_exposure(mesh: TriangleMesh | None, points: ArrayLike, normals: ArrayLike, camera_pos: ArrayLike,
+                      lamp_pos: ArrayLike, lamp_axis: ArrayLike, power_w: float, cone_angle_rad: float,
+                      table: ArrayLike, camera_constant: float, pixel_area_m2: float, shadows: bool = True,
+                      cone: bool = True, offset_m: float = 1e-5, profile: np.ndarray | None = None,
+                      blocked: RayBlocker | None = None) -> GrayResult:
     """NumPy version of kernels.gray.gray_per_exposure (same arguments, same GrayResult).
     blocked(origins, dirs, max_dist) -> bool (R,) casts the shadow rays (default: ray_hits_any on
     the mesh; `cell bench` passes Embree's, what a user would write instead of our kernel)."""
@@ -98,14 +121,16 @@ def gray_per_exposure(mesh, points, normals, camera_pos, lamp_pos, lamp_axis, po
     return GrayResult(np.where(shadowed, 0.0, value), shadowed, off_axis, dominant)
 
 
-def feature_directions(frame, azimuth, elevation):
+def feature_directions(frame: ArrayLike, azimuth: ArrayLike, elevation: ArrayLike) -> np.ndarray:
     """(E, A, 3) unit directions of the azimuth/elevation grid, in the mesh's frame."""
     local = geometry.direction_from_angles(np.asarray(azimuth, float)[None, :],
                                            np.asarray(elevation, float)[:, None])
     return local @ np.asarray(frame, dtype=np.float64).T
 
 
-def visibility_maps(mesh, points, normals, frame, azimuth, elevation, offset_m=1e-5, max_dist=10.0):
+def visibility_maps(mesh: TriangleMesh, points: ArrayLike, normals: ArrayLike, frame: ArrayLike,
+                    azimuth: ArrayLike, elevation: ArrayLike, offset_m: float = 1e-5,
+                    max_dist: float = 10.0) -> np.ndarray:
     """NumPy version of kernels.visibility.visibility_maps: bool (P, E, A)."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     n = geometry.unit(np.asarray(normals, dtype=np.float64).reshape(-1, 3))
@@ -119,9 +144,10 @@ def visibility_maps(mesh, points, normals, frame, azimuth, elevation, offset_m=1
     return visible
 
 
-def render(mesh, origin, ray_dirs, lamp_pos, lamp_axis, power_w, cone_angle_rad, table,
-           camera_constant, pixel_area_m2, shadows=True, cone=True, offset_m=1e-5, max_dist=10.0,
-           profile=None):
+def render(mesh: TriangleMesh, origin: ArrayLike, ray_dirs: ArrayLike, lamp_pos: ArrayLike, lamp_axis: ArrayLike,
+           power_w: float, cone_angle_rad: float, table: ArrayLike, camera_constant: float, pixel_area_m2: float,
+           shadows: bool = True, cone: bool = True, offset_m: float = 1e-5, max_dist: float = 10.0,
+           profile: np.ndarray | None = None) -> RenderResult:
     """NumPy version of kernels.render.render (same arguments, same RenderResult)."""
     origin = np.asarray(origin, dtype=np.float64)
     dirs = geometry.unit(np.asarray(ray_dirs, dtype=np.float64).reshape(-1, 3))

@@ -7,13 +7,25 @@ the goniometer did not resolve may lie is refused at every point). A specular hi
 rim point out of focus between the search's samples shows up here; the planner
 then adds the worst points to its samples and searches again (cell.planning.one_shot.plan).
 """
-from dataclasses import dataclass, replace
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from cell.planning import evaluate, requirements
-
+from cell.planning.plan import Verification
 from cell.core import geometry
+from cell.physics.costs import RequirementValue
+
+if TYPE_CHECKING:
+    from cell.planning.plan import Shot
+    from cell.planning.scene import Scene
+    from cell.task.types import Task
 
 DENSE_MAX = 20_000              # points: a 12 mm patch seen by 93 um pixels needs 13 000
 # the requirements that depend on where the points are; the others are judged by the search
@@ -21,44 +33,14 @@ JUDGED = ("gray_min", "gray_max", "reflection_region", "no_shadow", "cone_covera
           "resolution", "depth_of_field")
 
 
-@dataclass(frozen=True)
-class Verification:
-    """The dense check of one shot: `holds` when every point meets every JUDGED requirement;
-    the points checked, their gray range, the worst point (farthest out of the band, else the
-    one nearest its edge), the specular point (where the mirror direction of the lamp is nearest
-    the camera's) and the requirements that failed there."""
-
-    holds: bool
-    points: int
-    gray_min: float
-    gray_max: float
-    worst_m: np.ndarray
-    worst_gray: float
-    specular_m: np.ndarray
-    specular_gray: float
-    judged: tuple               # costs.RequirementValue of each JUDGED requirement on the dense patch
-    rounds: int = 0             # searches again with worst points added
-
-    @property
-    def failing(self):
-        return tuple(r for r in self.judged if not r.met)
-
-    def to_json(self):
-        return {"holds": self.holds, "points": self.points, "gray_min": self.gray_min, "gray_max": self.gray_max,
-                "worst": {"position_m": self.worst_m.tolist(), "gray": self.worst_gray},
-                "specular": {"position_m": self.specular_m.tolist(), "gray": self.specular_gray},
-                "failing": [{"name": r.name, "value": r.value, "detail": r.detail} for r in self.failing],
-                "rounds": self.rounds}
-
-
-def worse_of(values, verification):
+def worse_of(values: Iterable[RequirementValue], verification: Verification) -> tuple[RequirementValue, ...]:
     """The requirement values (costs.RequirementValue) on the samples with each the certificate
     judges replaced by its dense value where that is worse: each reported where it is worse."""
     dense = {r.name: r for r in verification.judged}
     return tuple(dense[r.name] if r.name in dense and dense[r.name].value > r.value else r for r in values)
 
 
-def dense_samples(task, scene):
+def dense_samples(task: Task, scene: Scene) -> int:
     """Points for the camera's density: the patch's area over a pixel's footprint on it
     (distance x pitch / focal length), at least the search's and at most DENSE_MAX."""
     focus = float(np.linalg.norm(scene.camera_position - scene.center))
@@ -67,7 +49,7 @@ def dense_samples(task, scene):
     return int(np.clip(count, len(scene.points), DENSE_MAX))
 
 
-def mirror_alignment(points, normals, lamp, camera):
+def mirror_alignment(points: np.ndarray, normals: np.ndarray, lamp: ArrayLike, camera: ArrayLike) -> np.ndarray:
     """<v, r> at each point, r the lamp direction s mirrored about the normal (2 <n,s> n - s):
     1 where the mirror direction points at the camera, the spike's peak (eq. 6-7)."""
     s = geometry.unit(np.asarray(lamp, float) - points)
@@ -76,7 +58,7 @@ def mirror_alignment(points, normals, lamp, camera):
     return np.sum(mirror * v, axis=-1)
 
 
-def specular_point(scene, lamp):
+def specular_point(scene: Scene, lamp: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """The patch's specular point, where <v, r> is largest: the best of the dense points, refined
     by Nelder-Mead over a step in the feature's tangent plane projected onto the surface (a
     highlight between the dense points, on a curved patch, is found to within float32). Returns
@@ -108,7 +90,7 @@ def specular_point(scene, lamp):
     return point[0], normal[0]
 
 
-def verify(problem, shot):
+def verify(problem: evaluate.Problem, shot: Shot) -> tuple[Verification, np.ndarray]:
     """(Verification of the shot on the dense patch, its worst points to add to the search's
     samples). problem: the search's Problem (its maps and albedo scale are kept)."""
     from cell.planning.scene import build_scene

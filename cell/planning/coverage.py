@@ -8,34 +8,25 @@ cover (cell.planning.set_cover) reads its verdicts.
 For a feature's own planned shot it repeats the plan's judgement exactly (same samples, maps,
 focus and exposure), so it agrees with plan()'s verdict.
 """
+
+from __future__ import annotations
+
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from cell.planning import certificate, evaluate, requirements
 from cell.planning.one_shot import build_maps
+from cell.planning.plan import Coverage
+
+if TYPE_CHECKING:
+    from cell.planning.plan import Plan, PlannerSettings, Shot
+    from cell.planning.scene import Scene
+    from cell.task.types import Task
 
 
-@dataclass(frozen=True)
-class Coverage:
-    """One feature judged on one shot: covered when every requirement is met on the samples and
-    the certificate holds on the dense patch; the predicted gray per sample (clipped at full
-    scale), each requirement's value (costs.RequirementValue, where worse: samples or dense) and
-    the certificate (None when the samples fail already: nothing to certify)."""
-
-    feature: str
-    covered: bool
-    gray: np.ndarray
-    requirements: tuple
-    verification: object = None
-
-    @property
-    def worst(self):
-        """The largest requirement value (max f_i, met when <= 1)."""
-        return max(r.value for r in self.requirements)
-
-
-def of_plan(task, plan):
+def of_plan(task: Task, plan: Plan) -> Coverage:
     """The Coverage of a one-feature task's own plan (its verdict, nothing judged again)."""
     shot = plan.shot
     return Coverage(task.feature.name, plan.feasible, shot.gray, shot.requirements, plan.verification)
@@ -47,16 +38,18 @@ class Lent:
     camera: its samples (the Scene, with the certificate's worst points), its settings and its
     visibility map; a few kB where the plan with its maps is half a MB."""
 
-    scene: object
-    settings: object
+    scene: Scene
+    settings: PlannerSettings
     visible: np.ndarray
 
     @classmethod
-    def of(cls, plan):
+    def of(cls, plan: Plan) -> Lent:
+        if plan.scene is None or plan.maps is None:
+            raise ValueError("a multi-feature plan lends nothing: its features' own plans do")
         return cls(plan.scene, plan.settings, plan.maps.visible)
 
 
-def judge(task, lent, shot):
+def judge(task: Task, lent: Lent, shot: Shot) -> Coverage:
     """Coverage of `shot` (cell.planning.plan.Shot) on the one-feature `task`, whose own plan lent what
     does not depend on the camera (Lent)."""
     scene = replace(lent.scene, T_cell_cam=shot.T_cell_cam)

@@ -3,20 +3,30 @@ vectorized over candidates: gray per sample from the bulk Warp kernel (G = b + u
 eq. 10, 11, 17, b the sensor's black level), the exposure that centres it in the band (sec. 5.4)
 and the lamp moved by its tolerance.
 The requirements (cell.planning.requirements) are judged on these values."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
 from dataclasses import dataclass, field, fields, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from cell.core import geometry
-
 from cell.physics import projection
-
 from cell.devices import rig
 from cell.physics.material import Material
 from cell.physics import brdf, depth_of_field as dof
 
+if TYPE_CHECKING:
+    from kernels.gray import GrayInputs
+    from cell.planning.plan import Maps
+    from cell.planning.scene import Scene
+    from cell.task.types import Task
 
-def depth_of_field_limits(task, scene, focus_m=None):
+
+def depth_of_field_limits(task: Task, scene: Scene, focus_m: float | None = None) -> tuple[float, float, float]:
     """(focus [m], depth of field needed [m], f-number) for the camera focused on the feature
     centre, or at focus_m (a shot's, judged on another feature) (sec. 4.3, 5.4): the widest
     f-number within the lens's range whose near and far limits hold the nearest and the farthest
@@ -45,7 +55,7 @@ def depth_of_field_limits(task, scene, focus_m=None):
     return focus, max(wanted, farthest - nearest), float(np.clip(kappa, k_lo, k_hi))
 
 
-def target_gray(band):
+def target_gray(band: tuple[float, float]) -> float:
     """The gray the exposure aims the feature at: the band's geometric centre, its low end taken
     as at least a quarter of the high end (a band from 0 would aim at 0, a black image)."""
     low, high = band
@@ -58,9 +68,9 @@ class KernelInputs:
     made of, rebuilt where one of those is another object. Pickled empty: Warp handles stay in
     their process."""
 
-    def __init__(self):
-        self.made_of = None
-        self.gray = None
+    def __init__(self) -> None:
+        self.made_of: tuple[Task, Scene, Material] | None = None
+        self.gray: GrayInputs | None = None
 
     def __getstate__(self):
         return {}
@@ -77,11 +87,11 @@ class Problem:
     the needed depth of field, the widest f-number giving it, and how many samples the camera
     cannot see."""
 
-    task: object
-    scene: object
-    maps: object
+    task: Task
+    scene: Scene
+    maps: Maps | None
     material: Material
-    band: tuple
+    band: tuple[float, float]
     black_level: float
     focus_m: float
     depth_needed_m: float
@@ -90,35 +100,36 @@ class Problem:
     kernels: KernelInputs = field(default_factory=KernelInputs, compare=False, repr=False)
 
     @property
-    def gray_inputs(self):
+    def gray_inputs(self) -> GrayInputs:
         """The kernel's fixed inputs (kernels.gray.GrayInputs), converted once per plan: a search
         evaluates it hundreds of times, on Problems that differ in their maps alone."""
         from kernels.gray import GrayInputs
         task, scene, material = self.task, self.scene, self.material
-        made_of = self.kernels.made_of
-        if made_of is None or any(a is not b for a, b in zip(made_of, (task, scene, material))):
-            self.kernels.gray = GrayInputs(scene.warp_mesh, scene.points, scene.normals, scene.camera_position,
-                                           task.lamp.power_w, task.lamp.cone_angle_rad, material.table(),
-                                           task.camera.sensor.camera_constant, task.camera.sensor.pixel_area_m2,
-                                           profile=task.lamp.profile)
-            self.kernels.made_of = (task, scene, material)
-        return self.kernels.gray
+        made_of, gray = self.kernels.made_of, self.kernels.gray
+        if made_of is None or gray is None or any(a is not b for a, b in zip(made_of, (task, scene, material))):
+            gray = GrayInputs(scene.warp_mesh, scene.points, scene.normals, scene.camera_position,
+                              task.lamp.power_w, task.lamp.cone_angle_rad, material.table(),
+                              task.camera.sensor.camera_constant, task.camera.sensor.pixel_area_m2,
+                              profile=task.lamp.profile)
+            self.kernels.gray, self.kernels.made_of = gray, (task, scene, material)
+        return gray
 
 
-def planning_band(task):
+def planning_band(task: Task) -> tuple[float, float]:
     """The gray band planned for: the task's, its top kept half a level below the sensor's full
     scale (a pixel there reads saturated, whatever the band says)."""
     low, high = map(float, task.requirements.gray_band)
     return low, min(high, 2.0 ** task.camera.sensor.bit_depth - 1 - 0.5)
 
 
-def black_level(task):
+def black_level(task: Task) -> float:
     """b of G = b + c P t [gray]: the task's camera.sensor.black_level, 0 while it is unknown."""
     b = task.camera.sensor.black_level
     return 0.0 if b is None else float(b)
 
 
-def build_problem(task, scene, maps, albedo_scale=1.0, focus_m=None):
+def build_problem(task: Task, scene: Scene, maps: Maps | None, albedo_scale: float = 1.0,
+                  focus_m: float | None = None) -> Problem:
     """The Problem of a task's scene and maps, the camera focused on the feature centre or at
     focus_m (a given shot's). A sample the camera sees lies inside the image and is not hidden
     (a lamp at the camera would light it)."""
@@ -134,7 +145,8 @@ def build_problem(task, scene, maps, albedo_scale=1.0, focus_m=None):
     return replace(p, camera_unseen=int(np.sum(hidden | ~in_image)))
 
 
-def unit_gray(problem, positions, aims):
+def unit_gray(problem: Problem, positions: ArrayLike,
+              aims: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(gray per exposure u (C, P), shadowed (C, P), off-axis angle (C, P), dominant BRDF term
     (C, P), as brdf.judged_term judges the kernel's) of lamps at `positions` aiming along `aims`,
     from the Warp kernel, the irradiance by the lamp's profile (eq. 11's ideal cone without one)."""
@@ -148,14 +160,16 @@ def unit_gray(problem, positions, aims):
     return out.value, out.shadowed, out.off_axis, dominant
 
 
-def exposure(problem, unit_gray):
+def exposure(problem: Problem, unit_gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """centring_exposure of the Problem's band, black level, camera and depth of field."""
     cam = problem.task.camera
     return centring_exposure(unit_gray, problem.band, problem.black_level, problem.kappa_open,
                              cam.shutter_range_s, cam.lens.f_number_range)
 
 
-def centring_exposure(unit_gray, band, black_level, kappa_open, shutter_range, f_number_range):
+def centring_exposure(unit_gray: np.ndarray, band: tuple[float, float], black_level: float, kappa_open: float,
+                      shutter_range: tuple[float, float],
+                      f_number_range: tuple[float, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(shutter, f-number, shutter needed at kappa_open) putting the geometric mean of the lit
     samples' extremes at the geometric centre of the band the signal must meet: G = b + u t /
     kappa^2 is in [low, high] when u t / kappa^2 is in [low - b, high - b]. The f-number no
@@ -193,7 +207,7 @@ class Candidates:
     kappa: np.ndarray
     t_need: np.ndarray
 
-    def pick(self, k):
+    def pick(self, k: int) -> Candidates:
         """Candidate k alone, as Candidates of one."""
         return Candidates(**{f.name: getattr(self, f.name)[:, k:k + 1] if f.name == "moved_gray"
                              else getattr(self, f.name)[k:k + 1] for f in fields(self)})
@@ -202,7 +216,7 @@ class Candidates:
 TOLERANCE_RING = 8          # lamp errors of lamp_tolerance in this many directions around the aim
 
 
-def tolerance_moves(problem, tilt):
+def tolerance_moves(problem: Problem, tilt: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     """(d_pan, d_tilt) moving the lamp direction by lamp_tolerance in TOLERANCE_RING directions
     (a ring: an error of that size in any direction, not only along the two axes)."""
     tol = problem.task.requirements.lamp_tolerance_rad
@@ -212,7 +226,8 @@ def tolerance_moves(problem, tilt):
     return [(tol * np.cos(a) / np.maximum(np.cos(tilt), 1e-3), tol * np.sin(a)) for a in psi]
 
 
-def candidates(problem, pan, tilt, radius, tolerance=True):
+def candidates(problem: Problem, pan: ArrayLike, tilt: ArrayLike, radius: ArrayLike,
+               tolerance: bool = True) -> Candidates:
     """Candidates for lamp joints (C,) arrays. With `tolerance` the lamp is also moved by
     lamp_tolerance in TOLERANCE_RING directions (one bulk call for all)."""
     pivot = problem.task.lamp.rig.pivot_m
@@ -232,15 +247,18 @@ def candidates(problem, pan, tilt, radius, tolerance=True):
                       shutter, kappa, t_need)
 
 
-def at_exposure(problem, position, shutter_s, f_number, joints=None):
+def at_exposure(problem: Problem, position: ArrayLike, shutter_s: float, f_number: float,
+                joints: Sequence[float] | None = None) -> Candidates:
     """Candidates of one lamp at `position` (aiming at the rig's pivot) at a fixed shutter and
     f-number: a chosen shot, as the certificate checks it. Given its `joints` (pan, tilt,
     radius), the lamp is also moved by its tolerance around them, at the same exposure."""
     pivot = problem.task.lamp.rig.pivot_m
     pos = np.asarray(position, float).reshape(1, 3)
-    moves = [] if joints is None else tolerance_moves(problem, np.array([joints[1]]))
-    moved_pos = [rig.lamp_position(pivot, joints[0] + dp, joints[1] + dt, joints[2]).reshape(1, 3)
-                 for dp, dt in moves]
+    moves, moved_pos = [], []
+    if joints is not None:
+        moves = tolerance_moves(problem, np.array([joints[1]]))
+        moved_pos = [rig.lamp_position(pivot, joints[0] + dp, joints[1] + dt, joints[2]).reshape(1, 3)
+                     for dp, dt in moves]
     all_pos = np.vstack([pos, *moved_pos])
     all_u, all_shadowed, all_off_axis, all_dominant = unit_gray(problem, all_pos, rig.lamp_aim(pivot, all_pos))
     u, gain = all_u[:1], shutter_s / f_number**2

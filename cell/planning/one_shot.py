@@ -6,27 +6,38 @@ f-number follow the near closed form G ~ t / kappa^2 for every lamp pose (sec. 5
 cell.planning.evaluate). Feasibility is max_i f_i <= 1 over the requirement values (erratum eq. 25,
 cell.planning.requirements). The result is a cell.planning.plan.Plan of plain values: it pickles.
 """
+
+from __future__ import annotations
+
 import time
+from collections.abc import Callable
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.optimize import minimize
 
 from cell.planning import certificate, evaluate, regions, requirements
-
 from cell.core import geometry
 from cell.physics import depth_of_field as dof
 from cell.planning.plan import Exposure, Maps, Plan, PlannerSettings, Refinement, Search, Shot
+from cell.physics.costs import RequirementValue
+
+if TYPE_CHECKING:
+    from cell.planning.scene import Scene
+    from cell.task.types import LampRig, Task
 
 
-def visibility_map(scene, grid):
+def visibility_map(scene: Scene, grid: regions.SphereGrid) -> np.ndarray:
     """(E, A) directions of the feature frame every sample sees (Warp ray casting, sec. 2.2)."""
-    from kernels.visibility import visibility_maps
-    return visibility_maps(scene.warp_mesh, scene.points, scene.normals, scene.frame,
-                           grid.azimuth, grid.elevation).all(axis=0)
+    from kernels.visibility import combined_map, visibility_maps
+    return combined_map(visibility_maps(scene.warp_mesh, scene.points, scene.normals, scene.frame,
+                                        grid.azimuth, grid.elevation))
 
 
-def build_maps(task, scene, settings, visible=None, lamps=None):
+def build_maps(task: Task, scene: Scene, settings: PlannerSettings, visible: np.ndarray | None = None,
+               lamps: ArrayLike | None = None) -> Maps:
     """Visibility (all samples), BRDF, dominant-term and region distance maps (sec. 2.2, 5.2).
     The visibility map (given: a plan's own, judging another camera pose on its samples) does not
     depend on the camera; the others do (the view direction is in the BRDF). Given `lamps`
@@ -47,7 +58,7 @@ def build_maps(task, scene, settings, visible=None, lamps=None):
     return Maps(grid, visible, reflectance, dominant, wanted, distance, empty, empty, empty)
 
 
-def candidate_grid(lamp_rig, settings):
+def candidate_grid(lamp_rig: LampRig, settings: PlannerSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Pan x tilt x radius grid over the rig's ranges (pan wraps: no duplicate at +-180)."""
     p0, p1 = lamp_rig.pan_range_rad
     full_turn = p1 - p0 >= 2 * np.pi - 1e-9
@@ -60,10 +71,11 @@ def candidate_grid(lamp_rig, settings):
     return P.ravel(), T.ravel(), R.ravel()
 
 
-def pick_starts(pan, tilt, objective_values, count, min_separation):
+def pick_starts(pan: np.ndarray, tilt: np.ndarray, objective_values: np.ndarray, count: int,
+                min_separation: float) -> list[int]:
     """Best candidates that are at least `min_separation` apart on the sphere (diverse starts)."""
     order = np.argsort(objective_values)
-    chosen = []
+    chosen: list[int] = []
     dirs = geometry.direction_from_angles(pan, tilt)
     for k in order:
         if all(np.arccos(np.clip(dirs[k] @ dirs[j], -1, 1)) >= min_separation for j in chosen):
@@ -77,7 +89,7 @@ CERTIFY_ROUNDS = 3          # searches again with the certificate's worst points
 UNLIT_OBJECTIVE = 1e300     # the objective of a pose no exposure can make work (it is inf), finite
 
 
-def refine(problem, start, lamp_rig):
+def refine(problem: evaluate.Problem, start: ArrayLike, lamp_rig: LampRig) -> tuple[np.ndarray, Refinement]:
     """Nelder-Mead over (pan, tilt, radius) in grid-step units, clipped to the rig's ranges:
     (joints, Refinement with the solver's own verdict and evaluation count)."""
     lo = np.array([lamp_rig.pan_range_rad[0], lamp_rig.tilt_range_rad[0], lamp_rig.radius_range_m[0]])
@@ -99,7 +111,8 @@ def refine(problem, start, lamp_rig):
     return clipped(res.x), Refinement(bool(res.success), int(res.nfev), str(res.message), float(res.fun))
 
 
-def plan(task, settings=PlannerSettings(), albedo_scale=1.0, progress=None, T_cell_cam=None):
+def plan(task: Task, settings: PlannerSettings = PlannerSettings(), albedo_scale: float = 1.0,
+         progress: Callable[[str], None] | None = None, T_cell_cam: np.ndarray | None = None) -> Plan:
     """Plan a task (the CLI, the closed loop and the benchmark all call this), its camera at
     T_cell_cam (a planned viewpoint's) or by the task's camera rule: search, then
     certify the chosen shot on the dense patch (cell.planning.certificate); where the certificate fails,
@@ -132,7 +145,8 @@ def plan(task, settings=PlannerSettings(), albedo_scale=1.0, progress=None, T_ce
     return replace(result, feasible=False, binding=cause.name, miss=cause.value - 1.0, hint=cause.detail)
 
 
-def search(task, settings, albedo_scale, extra, say, T_cell_cam=None):
+def search(task: Task, settings: PlannerSettings, albedo_scale: float, extra: np.ndarray,
+           say: Callable[[str], None], T_cell_cam: np.ndarray | None = None) -> tuple[Plan, evaluate.Problem]:
     """(Plan of the search over the rig on the task's samples plus `extra` points, its Problem)."""
     from cell.planning.scene import build_scene
     timing = {}
@@ -177,7 +191,7 @@ def search(task, settings, albedo_scale, extra, say, T_cell_cam=None):
                 notes=notes(problem, shot)), problem
 
 
-def notes(problem, shot):
+def notes(problem: evaluate.Problem, shot: Shot) -> tuple[str, ...]:
     """Facts about the chosen shot that no requirement judges: phase angles beyond the material
     table (planned with its end values, which the table's interpolation clamps to)."""
     scene, table = problem.scene, problem.material.phase_rad
@@ -192,7 +206,8 @@ def notes(problem, shot):
     return tuple(out)
 
 
-def make_shot(problem, joints, candidate, values):
+def make_shot(problem: evaluate.Problem, joints: np.ndarray, candidate: evaluate.Candidates,
+              values: dict[str, np.ndarray]) -> Shot:
     """The Shot of the chosen lamp pose (Candidates of one and its requirement values)."""
     scene, lens = problem.scene, problem.task.camera.lens
     pos = candidate.position[0]

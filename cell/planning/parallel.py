@@ -14,13 +14,19 @@ completes. Jobs carry their Task and plans by value (the mesh is in the Task and
 BVH each process's own): a worker needs no task file, only the same lightplan-cell and libraries
 (fingerprint). distributed is imported only here, only when a cluster is asked for.
 """
+
+from __future__ import annotations
+
 import hashlib
 import itertools
 import sys
 import uuid
 from collections import deque
+from collections.abc import Hashable
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from importlib import metadata
 from pathlib import Path
+from typing import Any, Protocol
 
 from cell.core.errors import TaskError
 
@@ -38,10 +44,27 @@ LOCAL_CONFIG = {
 LIBRARIES = ("numpy", "scipy", "warp-lang", "trimesh")     # whose versions a worker's plan depends on
 
 
+class Jobs(Protocol):
+    """A set of jobs (a Pool's): submit(key, fn, *args, first=False) runs fn(*args, say) as a job;
+    iterating yields (key, result) as they complete, jobs submitted meanwhile included."""
+
+    def submit(self, key: Hashable, fn: Callable[..., Any], *args: Any, first: bool = False) -> None: ...
+
+    def __iter__(self) -> Iterator[tuple[Any, Any]]: ...
+
+
 class Pool:
     """jobs(say): a set of jobs to submit and read as they complete; map(fn, jobs, say)."""
 
-    def map(self, fn, jobs, say):
+    def jobs(self, say: Callable[[str], None]) -> Jobs:
+        """A new set of jobs whose progress lines go to say."""
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """Let go of the pool's workers (the `with` block's end)."""
+        raise NotImplementedError
+
+    def map(self, fn: Callable[..., Any], jobs: Sequence[Sequence[Any]], say: Callable[[str], None]) -> list[Any]:
         """fn(*job, say) of every job, in the jobs' order."""
         running = self.jobs(say)
         for k, job in enumerate(jobs):
@@ -60,10 +83,10 @@ class Pool:
 class Serial(Pool):
     """Each job in this process when it is submitted, its progress said as it goes."""
 
-    def jobs(self, say):
+    def jobs(self, say: Callable[[str], None]) -> SerialJobs:
         return SerialJobs(say)
 
-    def close(self):
+    def close(self) -> None:
         pass
 
 
@@ -71,10 +94,10 @@ class SerialJobs:
     """submit(key, fn, *args) runs fn(*args, say) at once; iterating yields (key, result) in the
     order submitted, jobs submitted meanwhile included."""
 
-    def __init__(self, say):
-        self.say, self.done = say, deque()
+    def __init__(self, say: Callable[[str], None]) -> None:
+        self.say, self.done = say, deque[tuple[Hashable, Any]]()
 
-    def submit(self, key, fn, *args, first=False):
+    def submit(self, key: Hashable, fn: Callable[..., Any], *args: Any, first: bool = False) -> None:
         self.done.append((key, fn(*args, self.say)))
 
     def __iter__(self):
@@ -94,17 +117,17 @@ def _run(fn, args):
 class Cluster(Pool):
     """Jobs as Dask futures on a client's cluster (`only`: on those worker addresses alone)."""
 
-    def __init__(self, client, cluster=None, only=None):
+    def __init__(self, client: Any, cluster: Any = None, only: list[str] | None = None) -> None:
         self.client, self.cluster, self.only = client, cluster, only
 
-    def restricted(self, addresses):
+    def restricted(self, addresses: Iterable[str]) -> Cluster:
         """The same cluster, its jobs on `addresses` only (the bench's one worker of two)."""
         return Cluster(self.client, only=list(addresses))
 
-    def jobs(self, say):
+    def jobs(self, say: Callable[[str], None]) -> ClusterJobs:
         return ClusterJobs(self, say)
 
-    def close(self):
+    def close(self) -> None:
         self.client.close()
         if self.cluster is not None:
             self.cluster.close()
@@ -119,12 +142,13 @@ class ClusterJobs:
     as each completes (its lines said then), jobs submitted meanwhile included; the first error
     raised (a CellError as it was raised on the worker), the jobs not done cancelled."""
 
-    def __init__(self, pool, say):
+    def __init__(self, pool: Cluster, say: Callable[[str], None]) -> None:
         from distributed import as_completed
-        self.pool, self.say, self.named = pool, say, {}
+        self.pool, self.say = pool, say
+        self.named: dict[str, Hashable] = {}
         self.pending = as_completed(loop=pool.client.loop)
 
-    def submit(self, key, fn, *args, first=False):
+    def submit(self, key: Hashable, fn: Callable[..., Any], *args: Any, first: bool = False) -> None:
         """A job ahead of every job submitted after it, and `first` ahead of every job not first
         (Dask's own order is arbitrary among jobs submitted within its fifo_timeout of each
         other). Keyed lightplan-<fn>-<id>: the scheduler sees one task group (Dask queues a
@@ -148,7 +172,7 @@ class ClusterJobs:
             raise
 
 
-def local_cluster(workers):
+def local_cluster(workers: int) -> Cluster:
     """A LocalCluster of `workers` processes of one thread each, on 127.0.0.1 only (scheduler,
     workers and the scheduler's HTTP server, on free ports), and its Cluster, with LOCAL_CONFIG
     and no memory limit (a plan's jobs hold a few MB; the nannies' monitor would wake every
@@ -164,7 +188,7 @@ def local_cluster(workers):
     return Cluster(Client(cluster, set_as_default=False), cluster)
 
 
-def remote_cluster(address, timeout_s=None):
+def remote_cluster(address: str, timeout_s: float | None = None) -> Cluster:
     """The Cluster of the running scheduler at `address`, once it has a worker; bad input (exit 2,
     naming --scheduler) when it does not answer or has no worker within the timeout, or when a
     worker's lightplan-cell or libraries differ from ours (its plans would not be ours)."""
@@ -201,7 +225,7 @@ def remote_cluster(address, timeout_s=None):
     return Cluster(client)
 
 
-def first_difference(ours, theirs):
+def first_difference(ours: dict[str, str], theirs: dict[str, dict[str, str]]) -> tuple[str, str] | None:
     """(worker, what) of the first worker whose fingerprint differs from ours, or None."""
     for worker, found in theirs.items():
         what = next((k for k in ours if found.get(k) != ours[k]), None)
@@ -210,7 +234,7 @@ def first_difference(ours, theirs):
     return None
 
 
-def fingerprint():
+def fingerprint() -> dict[str, str]:
     """{what: version} a worker's plans depend on: Python, the libraries' versions and a digest of
     lightplan-cell's own code (cell/, kernels/), equal for an editable and a regular install of
     one commit."""
@@ -218,14 +242,14 @@ def fingerprint():
     import kernels
     digest = hashlib.blake2b(digest_size=8)
     for package in (cell, kernels):
-        root = Path(package.__file__).parent
+        root = Path(str(package.__file__)).parent
         for path in sorted(root.rglob("*.py")):
             digest.update(path.relative_to(root.parent).as_posix().encode() + b"\0" + path.read_bytes())
     return {"python": sys.version.split()[0], **{name: metadata.version(name) for name in LIBRARIES},
             "lightplan-cell": digest.hexdigest()}
 
 
-def pool(workers=None, scheduler=None):
+def pool(workers: int | None = None, scheduler: str | None = None) -> Pool:
     """SERIAL, or the Cluster `--workers` / `--scheduler` ask for (the caller closes it)."""
     if workers is not None:
         return local_cluster(workers)

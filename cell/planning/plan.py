@@ -1,11 +1,22 @@
 """What planning produces (sec. 5), as plain values that pickle: a Plan made of Shots, its
 verdict like scipy's OptimizeResult (feasible, binding, each requirement, the search's counters),
-and plan.json (docs/formats.md) made from it in one place."""
+the dense certificate of a shot (Verification) and a feature judged on a shot (Coverage), and
+plan.json (docs/formats.md) made from it in one place."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from cell.planning import regions
+from cell.physics.costs import RequirementValue
+
+if TYPE_CHECKING:
+    from cell.planning.scene import Scene
 
 
 @dataclass(frozen=True)
@@ -20,7 +31,7 @@ class PlannerSettings:
     refine: bool = True             # Nelder-Mead from the best starts
     starts: int = 4
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         cells = 180.0 / self.grid_step_deg
         if not (self.grid_step_deg > 0 and abs(cells - round(cells)) < 1e-9):
             raise ValueError(f"grid_step_deg {self.grid_step_deg:g} must divide 180 deg (the map's rows "
@@ -67,7 +78,58 @@ class Search:
 
     candidates: int
     starts: int
-    refinements: tuple = ()
+    refinements: tuple[Refinement, ...] = ()
+
+
+@dataclass(frozen=True)
+class Verification:
+    """The dense check of one shot (cell.planning.certificate): `holds` when every point meets
+    every requirement the certificate judges (certificate.JUDGED); the points checked, their
+    gray range, the worst point (farthest out of the band, else the one nearest its edge), the
+    specular point (where the mirror direction of the lamp is nearest the camera's) and the
+    requirements that failed there."""
+
+    holds: bool
+    points: int
+    gray_min: float
+    gray_max: float
+    worst_m: np.ndarray
+    worst_gray: float
+    specular_m: np.ndarray
+    specular_gray: float
+    judged: tuple[RequirementValue, ...]  # each judged requirement's value on the dense patch
+    rounds: int = 0                       # searches again with worst points added
+
+    @property
+    def failing(self) -> tuple[RequirementValue, ...]:
+        return tuple(r for r in self.judged if not r.met)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"holds": self.holds, "points": self.points, "gray_min": self.gray_min, "gray_max": self.gray_max,
+                "worst": {"position_m": self.worst_m.tolist(), "gray": self.worst_gray},
+                "specular": {"position_m": self.specular_m.tolist(), "gray": self.specular_gray},
+                "failing": [{"name": r.name, "value": r.value, "detail": r.detail} for r in self.failing],
+                "rounds": self.rounds}
+
+
+@dataclass(frozen=True)
+class Coverage:
+    """One feature judged on one shot (cell.planning.coverage): covered when every requirement
+    is met on the samples and the certificate holds on the dense patch; the predicted gray per
+    sample (clipped at full scale), each requirement's value (costs.RequirementValue, where
+    worse: samples or dense) and the certificate (None when the samples fail already: nothing
+    to certify)."""
+
+    feature: str
+    covered: bool
+    gray: np.ndarray
+    requirements: tuple[RequirementValue, ...]
+    verification: Verification | None = None
+
+    @property
+    def worst(self) -> float:
+        """The largest requirement value (max f_i, met when <= 1)."""
+        return max(r.value for r in self.requirements)
 
 
 @dataclass(frozen=True)
@@ -76,18 +138,18 @@ class Shot:
     at every feature sample and each requirement's value there (costs.RequirementValue)."""
 
     T_cell_cam: np.ndarray       # 4x4 camera pose
-    joints: tuple                # (pan, tilt, radius) [rad, rad, m]
+    joints: tuple[float, ...]    # (pan, tilt, radius) [rad, rad, m]
     lamp_position: np.ndarray    # cell frame [m]
     exposure: Exposure
     gray: np.ndarray             # predicted gray per feature sample, at most the sensor's full scale
     distance_m: float            # lamp -> feature centre
     phase_angle_rad: float       # between lamp and camera, at the feature centre
-    requirements: tuple
-    covers: tuple = ()           # a multi-feature plan's: cell.planning.coverage.Coverage of each feature it covers
-    arm_joints: tuple = None     # a planned viewpoint's: the UR5e joints reaching T_cell_cam [rad]
+    requirements: tuple[RequirementValue, ...]
+    covers: tuple[Coverage, ...] = ()# a multi-feature plan's: the Coverage of each feature it covers
+    arm_joints: tuple[float, ...] | None = None# a planned viewpoint's: the UR5e joints reaching T_cell_cam [rad]
 
     @property
-    def camera_position(self):
+    def camera_position(self) -> np.ndarray:
         return self.T_cell_cam[:3, 3]
 
 
@@ -117,25 +179,25 @@ class Plan:
     miss: float
     objective: float
     hint: str
-    shots: tuple
-    maps: Maps
+    shots: tuple[Shot, ...]
+    maps: Maps | None
     settings: PlannerSettings
-    scene: object                # cell.planning.scene.Scene planned on (plain arrays)
+    scene: Scene | None                        # the Scene planned on (plain arrays; None: a multi-feature plan's)
     search: Search
-    timing_s: dict = field(default_factory=dict)
-    notes: tuple = ()            # what the user should know although it is no requirement
-    verification: object = None  # cell.planning.certificate.Verification of the shot (None: infeasible already)
-    features: tuple = ()         # FeatureVerdict of each feature (a multi-feature plan)
-    plans: tuple = ()            # each feature's own one-shot Plan (a multi-feature plan)
-    cover: dict = None           # candidate shots, coverage matrix, travel, chosen (plain values)
+    timing_s: dict[str, float] = field(default_factory=dict)
+    notes: tuple[str, ...] = ()                # what the user should know although it is no requirement
+    verification: Verification | None = None   # the shot's dense certificate (None: infeasible already)
+    features: tuple[FeatureVerdict, ...] = ()  # FeatureVerdict of each feature (a multi-feature plan)
+    plans: tuple[Plan, ...] = ()               # each feature's own one-shot Plan (a multi-feature plan)
+    cover: dict[str, Any] | None = None        # candidate shots, coverage matrix, travel, chosen (plain values)
 
     @property
-    def success(self):
+    def success(self) -> bool:
         """OptimizeResult's name for the verdict: the plan is feasible."""
         return self.feasible
 
     @property
-    def message(self):
+    def message(self) -> str:
         if self.feasible:
             return "feasible"
         uncovered = next((f for f in self.features if f.covered_by is None), None)
@@ -144,17 +206,25 @@ class Plan:
         return f"{self.binding} binds: {self.hint}"
 
     @property
-    def shot(self):
+    def planned_scene(self) -> Scene:
+        """The Scene a one-feature plan was planned on (a multi-feature plan has none of its own:
+        its features' plans, in `plans`, have theirs)."""
+        if self.scene is None:
+            raise ValueError("a multi-feature plan has no scene of its own: its features' plans have theirs")
+        return self.scene
+
+    @property
+    def shot(self) -> Shot:
         """The plan's only shot."""
         if len(self.shots) != 1:
             raise ValueError(f"the plan has {len(self.shots)} shots; pick one from plan.shots")
         return self.shots[0]
 
     @property
-    def requirements(self):
+    def requirements(self) -> list[RequirementValue]:
         return [r for shot in self.shots for r in shot.requirements]
 
-    def to_json(self):
+    def to_json(self) -> dict[str, Any]:
         """plan.json as docs/formats.md gives it (a one-feature plan; a multi-feature plan's
         adds `shots`, `features` and `cover`, and keeps these keys when it has one shot)."""
         if self.features:
@@ -200,11 +270,11 @@ class Plan:
         return {**doc, "timing_s": self.timing_s, "settings": asdict(self.settings)}
 
 
-def requirements_json(values):
+def requirements_json(values: Iterable[RequirementValue]) -> list[dict[str, Any]]:
     return [{"name": r.name, "value": r.value, "met": r.met, "detail": r.detail} for r in values]
 
 
-def lamp_json(shot):
+def lamp_json(shot: Shot) -> dict[str, Any]:
     pan, tilt, radius = shot.joints
     return {"position_m": shot.lamp_position.tolist(), "distance_m": shot.distance_m,
             "phase_angle_deg": float(np.degrees(shot.phase_angle_rad)),
@@ -212,12 +282,12 @@ def lamp_json(shot):
                        "radius_m": float(radius)}}
 
 
-def camera_json(shot):
+def camera_json(shot: Shot) -> dict[str, Any]:
     e = shot.exposure
     return {"shutter_s": e.shutter_s, "f_number": e.f_number, "focus_m": e.focus_m,
             "depth_of_field_m": e.depth_of_field_m, "position_m": shot.camera_position.tolist()}
 
 
-def gray_stats(gray):
+def gray_stats(gray: ArrayLike) -> dict[str, float]:
     gray = np.asarray(gray, dtype=float)
     return {"mean": float(gray.mean()), "min": float(gray.min()), "max": float(gray.max())}

@@ -7,25 +7,49 @@ A new requirement is one entry in REGISTRY; its value and explanation read only 
 planning Problem and the Candidates (cell.planning.evaluate). The registry's order breaks ties between
 equally binding requirements.
 """
+
+from __future__ import annotations
+
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass, replace
 from typing import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from cell.core import geometry
-
 from cell.physics import projection
-
 from cell.planning import regions
 from cell.physics import brdf, costs, depth_of_field as dof
+
+if TYPE_CHECKING:
+    from cell.planning.evaluate import Candidates, Problem
+    from cell.planning.plan import Maps
 
 
 @dataclass(frozen=True)
 class Requirement:
     name: str
-    ln_value: Callable      # (Problem, Candidates) -> (C,) ln f_i
-    explain: Callable       # (Problem, Candidates of one, met) -> sentence
-    asked: Callable = None  # (Problem) -> whether the task asks for it; None: always
+    ln_value: Callable[[Problem, Candidates], np.ndarray]  # (Problem, Candidates) -> (C,) ln f_i
+    explain: Callable[[Problem, Candidates, bool], str]    # (Problem, Candidates of one, met) -> sentence
+    asked: Callable[[Problem], bool] | None = None         # (Problem) -> whether the task asks for it; None: always
+
+
+def _maps(p: Problem) -> Maps:
+    """The Problem's maps: a viewpoint's Problem has none (cell.planning.viewpoints), and asks
+    only requirements that do not read them."""
+    if p.maps is None:
+        raise ValueError("this requirement reads the maps, and the Problem has none")
+    return p.maps
+
+
+def _wanted(limit: float | None) -> float:
+    """A limit the task may leave out (view_angle, resolution): REGISTRY asks its requirement only
+    where the task gives it."""
+    if limit is None:
+        raise ValueError("the task does not ask for this requirement")
+    return limit
 
 
 def _unlit(c):
@@ -35,16 +59,16 @@ def _unlit(c):
 UNLIT = "no feature sample is lit by the lamp at any shutter time"
 
 
-def at_least(x, low):
+def at_least(x: ArrayLike, low: float) -> np.ndarray:
     """ln f_min(x, low) of eq. (1); a band from 0 asks nothing of the darkest sample (-inf: met)."""
     return costs.ln_f_min(x, low) if low > 0 else np.full(np.shape(x), -np.inf)
 
 
-def gray_min(p, c):
+def gray_min(p: Problem, c: Candidates) -> np.ndarray:
     return at_least(np.min(c.gray, axis=-1), p.band[0])
 
 
-def explain_gray_min(p, c, met):
+def explain_gray_min(p: Problem, c: Candidates, met: bool) -> str:
     low, high = p.band
     t_hi = p.task.camera.shutter_range_s[1]
     if _unlit(c):
@@ -56,11 +80,11 @@ def explain_gray_min(p, c, met):
     return f"darkest sample gray {c.gray[0].min():.1f} (band {low:g}-{high:g})"
 
 
-def gray_max(p, c):
+def gray_max(p: Problem, c: Candidates) -> np.ndarray:
     return costs.ln_f_max(np.max(c.gray, axis=-1), p.band[1])
 
 
-def explain_gray_max(p, c, met):
+def explain_gray_max(p: Problem, c: Candidates, met: bool) -> str:
     low, high = p.band
     g = c.gray[0]
     t_lo, k_hi = p.task.camera.shutter_range_s[0], p.task.camera.lens.f_number_range[1]
@@ -73,7 +97,7 @@ def explain_gray_max(p, c, met):
     return f"brightest sample gray {g.max():.1f} (band {low:g}-{high:g})"
 
 
-def wrong_reflection(p, c):
+def wrong_reflection(p: Problem, c: Candidates) -> np.ndarray:
     """(C, P) lit samples whose dominant BRDF term (brdf.judged_term's) is not the wanted one;
     with `any`, those where a spike the goniometer did not resolve may be (brdf.UNKNOWN)."""
     reflection = p.task.requirements.reflection
@@ -83,12 +107,12 @@ def wrong_reflection(p, c):
     return lit & (c.dominant != regions.WANTED_TERM[reflection])
 
 
-def other_reflection(p, c):
+def other_reflection(p: Problem, c: Candidates) -> np.ndarray:
     """(C,) count of wrong_reflection's samples."""
     return np.sum(wrong_reflection(p, c), axis=-1)
 
 
-def unresolved_note(p):
+def unresolved_note(p: Problem) -> str:
     """What the material's goniometer left unresolved, for a sentence ('' when nothing)."""
     u = p.material.unresolved
     if u is None or "spike" not in u.terms:
@@ -100,27 +124,29 @@ def unresolved_note(p):
             f"of unknown brightness")
 
 
-def reflection_region(p, c):
+def reflection_region(p: Problem, c: Candidates) -> np.ndarray:
     """ln of exp(d / margin + 1): 0 at `margin` inside the wanted region (sec. 5.2), judged for
     the lamp seen from the feature centre; and at each lit sample its dominant term must be the
     wanted one (ln(0.5 + count) where some are not)."""
     local = (c.position - p.scene.center) @ p.scene.frame
     az, el = geometry.angles_from_direction(local)
-    d = p.maps.grid.sample(p.maps.distance, az, el)
+    maps = _maps(p)
+    d = maps.grid.sample(maps.distance, az, el)
     margin = max(p.task.requirements.region_margin_rad, 1e-6)
     others = other_reflection(p, c)
     return np.where(others > 0, np.maximum(d / margin + 1.0, costs.ln_count_cost(others)), d / margin + 1.0)
 
 
-def explain_reflection_region(p, c, met):
+def explain_reflection_region(p: Problem, c: Candidates, met: bool) -> str:
     req = p.task.requirements
     unresolved = unresolved_note(p)
-    if not p.maps.wanted.any():
+    maps = _maps(p)
+    if not maps.wanted.any():
         if req.reflection == "spike" and unresolved:
             return (f"the spike was not resolved: {unresolved}; no lamp direction is known to give spike "
                     f"reflection: re-measure the material with a finer calibration.goniometer.step_deg")
         return (f"no lamp direction gives {req.reflection} reflection where every sample sees the lamp "
-                f"(none of the map's {np.degrees(p.maps.grid.step):g} deg cells): want another reflection "
+                f"(none of the map's {np.degrees(maps.grid.step):g} deg cells): want another reflection "
                 f"or change the view" + (f"; {unresolved} (kept out)" if unresolved else ""))
     wrong = wrong_reflection(p, c)[0]
     unknown = int(np.sum(wrong & (c.dominant[0] == brdf.UNKNOWN)))
@@ -134,11 +160,11 @@ def explain_reflection_region(p, c, met):
                 f"the term changes across the patch; inspect a smaller feature or want 'any'")
     fact = (f"lamp at least {np.degrees(req.region_margin_rad):.1f} deg inside the region where "
             f"{req.reflection} reflection dominates and every sample sees the lamp "
-            f"({p.maps.wanted.mean():.1%} of directions qualify)")
+            f"({maps.wanted.mean():.1%} of directions qualify)")
     return fact if met else f"needs the {fact}"
 
 
-def lamp_tolerance(p, c):
+def lamp_tolerance(p: Problem, c: Candidates) -> np.ndarray:
     """The worst band miss with the lamp moved by its tolerance (-inf, f = 0, when not evaluated)."""
     low, high = p.band
     value = np.full(len(c.shutter), -np.inf)
@@ -148,7 +174,7 @@ def lamp_tolerance(p, c):
     return value
 
 
-def explain_lamp_tolerance(p, c, met):
+def explain_lamp_tolerance(p: Problem, c: Candidates, met: bool) -> str:
     low, high = p.band
     tol = f"lamp errors of {np.degrees(p.task.requirements.lamp_tolerance_rad):.1f} deg"
     return (f"gray stays in band for {tol}" if met else
@@ -156,23 +182,23 @@ def explain_lamp_tolerance(p, c, met):
             f"feature, widen the band or want a reflection whose BRDF changes more slowly")
 
 
-def no_shadow(p, c):
+def no_shadow(p: Problem, c: Candidates) -> np.ndarray:
     return costs.ln_count_cost(c.shadowed.sum(axis=-1))
 
 
-def explain_no_shadow(p, c, met):
+def explain_no_shadow(p: Problem, c: Candidates, met: bool) -> str:
     return (f"{int(c.shadowed[0].sum())} of {len(p.scene.points)} feature samples are shadowed from "
-            f"the lamp ({p.maps.visible.mean():.0%} of directions see every sample)")
+            f"the lamp ({_maps(p).visible.mean():.0%} of directions see every sample)")
 
 
-def cone_coverage(p, c):
+def cone_coverage(p: Problem, c: Candidates) -> np.ndarray:
     """Every sample within the angle the lamp lights at all (lit_half_angle_rad: its profile's
     end, gamma / 2 for the ideal cone); how evenly is the band's and the lamp tolerance's to judge,
     with the profile in the gray."""
     return costs.ln_f_max(np.max(c.off_axis, axis=-1), p.task.lamp.lit_half_angle_rad)
 
 
-def explain_cone_coverage(p, c, met):
+def explain_cone_coverage(p: Problem, c: Candidates, met: bool) -> str:
     if met:
         return "the lamp's cone covers every sample"
     half, radius = p.task.lamp.lit_half_angle_rad, p.task.feature.radius_m
@@ -184,68 +210,68 @@ def explain_cone_coverage(p, c, met):
     return "the lamp's cone does not cover the whole feature; move the lamp farther away"
 
 
-def camera_view(p, c):
+def camera_view(p: Problem, c: Candidates) -> np.ndarray:
     return np.broadcast_to(costs.ln_count_cost(p.camera_unseen), c.shutter.shape)
 
 
-def explain_camera_view(p, c, met):
+def explain_camera_view(p: Problem, c: Candidates, met: bool) -> str:
     n = len(p.scene.points)
     return (f"the camera sees all {n} feature samples" if met else
             f"the camera cannot see {p.camera_unseen} of {n} feature samples; change the view direction")
 
 
-def view_angle(p, c):
+def view_angle(p: Problem, c: Candidates) -> np.ndarray:
     """The largest angle between a sample's normal and its direction to the camera, at most the
     task's view_angle_deg (a camera nearly grazing the surface sees it foreshortened)."""
     angle = projection.view_angles(p.scene.camera_position, p.scene.points, p.scene.normals).max()
-    return np.broadcast_to(costs.ln_f_max(angle, p.task.requirements.view_angle_rad), c.shutter.shape)
+    return np.broadcast_to(costs.ln_f_max(angle, _wanted(p.task.requirements.view_angle_rad)), c.shutter.shape)
 
 
-def explain_view_angle(p, c, met):
+def explain_view_angle(p: Problem, c: Candidates, met: bool) -> str:
     angle = projection.view_angles(p.scene.camera_position, p.scene.points, p.scene.normals).max()
     fact = (f"the camera sees the samples at most {np.degrees(angle):.1f} deg from their normals "
-            f"(at most {np.degrees(p.task.requirements.view_angle_rad):g} deg wanted)")
+            f"(at most {np.degrees(_wanted(p.task.requirements.view_angle_rad)):g} deg wanted)")
     return fact if met else f"{fact}; view the feature more squarely (camera.viewpoint: planned)"
 
 
-def footprints(p):
+def footprints(p: Problem) -> np.ndarray:
     sensor, lens = p.task.camera.sensor, p.task.camera.lens
     return projection.pixel_footprint(p.scene.camera_position, p.scene.points, p.scene.normals,
                                       sensor.pixel_pitch_m, lens.focal_length_m)
 
 
-def resolution(p, c):
+def resolution(p: Problem, c: Candidates) -> np.ndarray:
     """The largest pixel footprint on the feature (|p - C| pitch / f / cos(view angle), the
     pinhole's), at most the task's resolution_m per pixel."""
-    wanted = p.task.requirements.resolution_m
+    wanted = _wanted(p.task.requirements.resolution_m)
     return np.broadcast_to(costs.ln_f_max(footprints(p).max(), wanted), c.shutter.shape)
 
 
-def explain_resolution(p, c, met):
+def explain_resolution(p: Problem, c: Candidates, met: bool) -> str:
     if not np.isfinite(footprints(p).max()):
         return "the camera sees some samples from behind their surface; change the view direction"
     fact = (f"a pixel covers up to {1e6 * footprints(p).max():.1f} um of the feature (at most "
-            f"{1e6 * p.task.requirements.resolution_m:g} um wanted)")
+            f"{1e6 * _wanted(p.task.requirements.resolution_m):g} um wanted)")
     return fact if met else f"{fact}; bring the camera closer, view more squarely or use a longer lens"
 
 
-def shutter_min(p, c):
+def shutter_min(p: Problem, c: Candidates) -> np.ndarray:
     return costs.ln_f_min(c.shutter, p.task.camera.shutter_range_s[0])
 
 
-def explain_too_bright(p, c, met):
+def explain_too_bright(p: Problem, c: Candidates, met: bool) -> str:
     fact = f"f/{c.kappa[0]:.1f} and {1e3 * c.shutter[0]:.3f} ms"
     return fact if met else f"too bright even at {fact}; move the lamp farther away"
 
 
-def shutter_max(p, c):
+def shutter_max(p: Problem, c: Candidates) -> np.ndarray:
     """The shutter the band needs within the camera's. With no sample lit no shutter helps: inf,
     worse than any lit pose however dim, so the search prefers a lit one; the cause (shadow, cone,
     facing away) binds by CAUSES."""
     return costs.ln_f_max(c.t_need, p.task.camera.shutter_range_s[1])
 
 
-def explain_shutter_max(p, c, met):
+def explain_shutter_max(p: Problem, c: Candidates, met: bool) -> str:
     t_hi = p.task.camera.shutter_range_s[1]
     if _unlit(c):
         return UNLIT
@@ -253,20 +279,20 @@ def explain_shutter_max(p, c, met):
     return f"{need}, within the max {1e3 * t_hi:.1f} ms" if met else f"{need} > max {1e3 * t_hi:.1f} ms"
 
 
-def f_number_min(p, c):
+def f_number_min(p: Problem, c: Candidates) -> np.ndarray:
     return costs.ln_f_min(c.kappa, p.task.camera.lens.f_number_range[0])
 
 
-def explain_f_number_min(p, c, met):
+def explain_f_number_min(p: Problem, c: Candidates, met: bool) -> str:
     k_lo, k_hi = p.task.camera.lens.f_number_range
     return f"f/{c.kappa[0]:.1f} within the lens's range f/{k_lo:g}-f/{k_hi:g}"
 
 
-def f_number_max(p, c):
+def f_number_max(p: Problem, c: Candidates) -> np.ndarray:
     return costs.ln_f_max(c.kappa, p.task.camera.lens.f_number_range[1])
 
 
-def depth_of_field(p, c):
+def depth_of_field(p: Problem, c: Candidates) -> np.ndarray:
     """Near limit before the nearest sample, far limit beyond the farthest (where they fall, not
     only the width), and at least the task's depth of field."""
     lens = p.task.camera.lens
@@ -281,7 +307,7 @@ def depth_of_field(p, c):
     return value
 
 
-def explain_depth_of_field(p, c, met):
+def explain_depth_of_field(p: Problem, c: Candidates, met: bool) -> str:
     lens = p.task.camera.lens
     f, sigma, k = lens.focal_length_m, lens.circle_of_confusion_m, c.kappa[0]
     near, far = dof.near_limit(p.focus_m, f, k, sigma), float(dof.far_limit(p.focus_m, f, k, sigma))
@@ -318,25 +344,26 @@ CAUSES = ("camera_view", "view_angle", "resolution", "no_shadow", "cone_coverage
           "shutter_min", "f_number_max", "f_number_min", "gray_max", "depth_of_field", "lamp_tolerance")
 
 
-def ln_values(problem, candidates):
+def ln_values(problem: Problem, candidates: Candidates) -> dict[str, np.ndarray]:
     """{name: (C,) ln f_i} of every requirement the task asks for, in registry order."""
     return {r.name: np.asarray(r.ln_value(problem, candidates), dtype=float) for r in REGISTRY
             if r.asked is None or r.asked(problem)}
 
 
-def missed(ln_values_by_name):
+def missed(ln_values_by_name: dict[str, np.ndarray]) -> np.ndarray:
     """(C,) whether any requirement is missed (some ln f_i > 0)."""
     return np.any(np.column_stack(list(ln_values_by_name.values())) > 0.0, axis=-1)
 
 
-def objective(ln_values_by_name):
+def objective(ln_values_by_name: dict[str, np.ndarray]) -> np.ndarray:
     """Eq. (22) over ln f_i: a smooth max that the optimizer minimises (C,); inf for a pose that
     no exposure can make work (unlit)."""
     with np.errstate(invalid="ignore"):        # -inf entries (met by construction) add nothing
         return costs.log_sum_exp(np.column_stack(list(ln_values_by_name.values())), axis=-1)
 
 
-def judged(problem, candidate, ln_values_by_name):
+def judged(problem: Problem, candidate: Candidates,
+           ln_values_by_name: dict[str, np.ndarray]) -> tuple[costs.RequirementValue, ...]:
     """costs.RequirementValue of each requirement for one candidate (Candidates of one)."""
     by_name = {r.name: r for r in REGISTRY}
     return tuple(costs.RequirementValue(name, float(costs.value(v[0])),
@@ -344,7 +371,7 @@ def judged(problem, candidate, ln_values_by_name):
                  for name, v in ln_values_by_name.items())
 
 
-def verdict(judged_values, everywhere=()):
+def verdict(judged_values: Sequence[costs.RequirementValue], everywhere: Collection[str] = ()) -> costs.Verdict:
     """costs.verdict (feasible when max f_i <= 1, erratum eq. 25; the binding, largest value; the
     objective), except that an infeasible plan's binding requirement is the first in CAUSES
     order that fails at every lamp pose of the global search (`everywhere`) and at the chosen one:
@@ -355,6 +382,6 @@ def verdict(judged_values, everywhere=()):
     return v if cause is None else replace(v, binding=cause.name, miss=cause.value - 1.0)
 
 
-def failing_everywhere(ln_values_by_name):
+def failing_everywhere(ln_values_by_name: dict[str, np.ndarray]) -> set[str]:
     """Names of the requirements that fail at every candidate."""
     return {name for name, v in ln_values_by_name.items() if np.all(v > 0.0)}

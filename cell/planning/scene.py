@@ -4,15 +4,24 @@ Shared by the planner, the simulated camera and the closed loop so they all see 
 Scene is plain arrays (it pickles: a plan made in a worker process carries it back); the Warp
 BVH of its mesh is the process's own (kernels.mesh.shared_mesh, keyed by the geometry's digest).
 """
+
+from __future__ import annotations
+
 import hashlib
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from cell.core import geometry
 from cell.core.errors import TaskError
 from kernels.mesh import shared_mesh
 from kernels.proximity import closest_points
+
+if TYPE_CHECKING:
+    from kernels.mesh import WarpMesh
+    from cell.task.types import Task
 
 GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
 PATCH_ITERATIONS = 6        # pushes of the disk's points out onto a curved patch
@@ -21,7 +30,7 @@ PATCH_LEAVES = 0.05         # of the radius: a sample this far from its distance
 PATCH_PUSH_MAX = 3.0        # a guess goes at most this many times its distance out
 
 
-def look_at(position, target, up=(0.0, 0.0, 1.0)):
+def look_at(position: ArrayLike, target: ArrayLike, up: ArrayLike = (0.0, 0.0, 1.0)) -> np.ndarray:
     """T_cell_cam for a camera at `position` looking at `target` (OpenCV axes: z forward,
     x right, y down in the image)."""
     z = geometry.unit(np.asarray(target, float) - np.asarray(position, float))
@@ -33,7 +42,7 @@ def look_at(position, target, up=(0.0, 0.0, 1.0)):
     return geometry.transform(np.column_stack([x, y, z]), position)
 
 
-def feature_disk(n, radius):
+def feature_disk(n: int, radius: float) -> np.ndarray:
     """n points over a disk, shape (n, 2): round(sqrt(pi n)) evenly on its rim, the rest spread
     over the inside (Vogel's sunflower). The rim is sampled on purpose: gray varies smoothly over
     a patch, so its extremes, which decide "every point in band", lie mostly on the edge."""
@@ -57,7 +66,7 @@ class Scene:
     normals: np.ndarray          # (P, 3) surface normals at the samples
     T_cell_cam: np.ndarray       # the camera pose the planner assumes
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         """Its arrays read-only, however it was made (built, replaced by the certificate)."""
         _read_only(self.__dict__.values())
 
@@ -67,20 +76,21 @@ class Scene:
         _read_only(state.values())
 
     @property
-    def camera_position(self):
+    def camera_position(self) -> np.ndarray:
         return self.T_cell_cam[:3, 3]
 
     @property
-    def warp_mesh(self):
+    def warp_mesh(self) -> WarpMesh:
         """This process's Warp BVH of the mesh (built on first use)."""
         return shared_mesh(self.mesh_key, self.vertices, self.faces)
 
-    def sample_depths(self):
+    def sample_depths(self) -> np.ndarray:
         """Distances camera -> samples along the optical axis [m]."""
         return (self.points - self.camera_position) @ self.T_cell_cam[:3, 2]
 
 
-def build_scene(task, samples=None, extra=None, T_cell_cam=None):
+def build_scene(task: Task, samples: int | None = None, extra: np.ndarray | None = None,
+                T_cell_cam: ArrayLike | None = None) -> Scene:
     """Scene of a one-feature task: mesh and feature in the cell frame, `samples` points over the
     feature patch (default: the task's) and the `extra` cell-frame points (the certificate's
     worst), on the surface; the camera at T_cell_cam (a shot's), by default the task's rule: at

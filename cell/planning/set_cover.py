@@ -8,9 +8,13 @@
 A_fs: shot s covers feature f. The tie-break w_s of any selection sums to less than 1 / S, so it
 never trades a shot: among the selections with the fewest shots it picks the least travel.
 """
+
+from __future__ import annotations
+
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.optimize import Bounds, LinearConstraint, milp
 
 
@@ -18,18 +22,18 @@ from scipy.optimize import Bounds, LinearConstraint, milp
 class Cover:
     """The chosen shots (ascending indices), the coverable features, the objective."""
 
-    chosen: tuple
-    coverable: tuple
+    chosen: tuple[int, ...]
+    coverable: tuple[int, ...]
     objective: float
 
 
-def tie_break(travel):
+def tie_break(travel: ArrayLike) -> np.ndarray:
     """w_s of the module's objective: travel scaled so that all of them sum to less than 1 / S."""
     travel = np.asarray(travel, float)
     return travel / (travel.sum() + 1.0) / max(len(travel), 1)
 
 
-def fewest_shots(covers, travel):
+def fewest_shots(covers: ArrayLike, travel: ArrayLike) -> Cover:
     """Cover of the (F, S) bool matrix `covers` (feature f covered by shot s) with per-shot
     travel (S,) >= 0 [m] breaking ties."""
     covers = np.asarray(covers, bool)

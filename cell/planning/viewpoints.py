@@ -20,21 +20,27 @@ The survivors are ranked by their largest view angle (the squarest first, then t
 and at most views_per_feature are kept, each at least two steps from those kept before.
 The arm's collisions with the part or the table are not checked.
 """
+
+from __future__ import annotations
+
 from dataclasses import dataclass, replace
 from types import SimpleNamespace
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
 from cell.planning import evaluate, requirements
-
 from cell.core import geometry
-
 from cell.physics import projection
-
 from cell.devices import ur5e
 from cell.devices.interfaces import check_arm_motion
 from cell.core.errors import DeviceFault
 from cell.planning.scene import look_at
+
+if TYPE_CHECKING:
+    from cell.planning.regions import SphereGrid
+    from cell.planning.scene import Scene
+    from cell.task.types import Task
 
 STAGES = ("visibility", "view_angle", "resolution", "workspace", "reach", "seen")
 ROLLS = np.radians([0.0, 90.0, 180.0, 270.0])
@@ -57,25 +63,26 @@ class Viewpoints:
     """The kept viewpoints of one feature, best first, the poses tried, those each stage pruned
     and those that passed every stage (kept or not: the bound)."""
 
-    kept: tuple
+    kept: tuple[Viewpoint, ...]
     poses: int
-    pruned: dict
+    pruned: dict[str, int]
     passed: int
     time_s: float = 0.0          # the viewpoints' own time (cell.planning.whole_part records it)
 
-    def to_json(self):
+    def to_json(self) -> dict[str, int | dict[str, int]]:
         return {"poses": self.poses, "pruned": dict(self.pruned), "passed": self.passed, "kept": len(self.kept)}
 
-    def why_none(self):
+    def why_none(self) -> str:
         """A sentence for a feature no pose survives."""
         stages = ", ".join(f"{self.pruned[s]} by {s}" for s in STAGES if self.pruned[s])
         return f"no camera pose of the {self.poses} on the view spheres survives ({stages})"
 
 
-def sphere_directions(step):
+def sphere_directions(step: float) -> tuple[np.ndarray, np.ndarray]:
     """(N, 3) unit directions in the feature frame over the open hemisphere above it and their
     polar angles (N,): rings theta = 0, step, ... < pi / 2 of round(2 pi sin theta / step)."""
-    dirs, polar = [], []
+    dirs: list[np.ndarray] = []
+    polar: list[np.ndarray] = []
     for theta in np.arange(0.0, 0.5 * np.pi - 1e-9, step):
         n = max(1, int(round(2 * np.pi * np.sin(theta) / step)))
         phi = 2 * np.pi * (np.arange(n) + 0.5 * (len(polar) % 2)) / n     # rings staggered
@@ -85,14 +92,14 @@ def sphere_directions(step):
     return np.vstack(dirs), np.concatenate(polar)
 
 
-def rolled(T, angle):
+def rolled(T: np.ndarray, angle: float) -> np.ndarray:
     """T_cell_cam turned by `angle` about its own optical axis (z)."""
     c, s = np.cos(angle), np.sin(angle)
     return T @ geometry.transform(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]))
 
 
-def reach(task, T_cell_cam):
-    """(T_cell_cam rolled so the arm reaches it, joints) or (None, the stage that refused)."""
+def reach(task: Task, T_cell_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray] | str:
+    """(T_cell_cam rolled so the arm reaches it, joints) or the stage that refused."""
     frames, arm = task.frames, task.cell.devices.arm
     refused = "workspace"
     for angle in ROLLS:
@@ -107,23 +114,26 @@ def reach(task, T_cell_cam):
             refused = "reach"
             continue
         return T, q
-    return None, refused
+    return refused
 
 
-def viewpoint_values(task, scene):
+def viewpoint_values(task: Task, scene: Scene) -> dict[str, float]:
     """{name: ln f_i} of the viewpoint requirements the task asks for at the scene's camera (the
     depth of field at the lens's narrowest f-number: whether any f-number gives it)."""
     problem = evaluate.build_problem(task, scene, None)
-    lens_only = SimpleNamespace(kappa=np.array([task.camera.lens.f_number_range[1]]), shutter=np.zeros(1))
-    by_name = {r.name: r for r in requirements.REGISTRY}
-    return {name: float(np.max(by_name[name].ln_value(problem, lens_only))) for name in VIEWPOINT_REQUIREMENTS
-            if by_name[name].asked is None or by_name[name].asked(problem)}
+    # the viewpoint requirements read only the f-number and the shutter's shape of the Candidates
+    lens_only = cast(evaluate.Candidates, SimpleNamespace(kappa=np.array([task.camera.lens.f_number_range[1]]),
+                                                          shutter=np.zeros(1)))
+    return {r.name: float(np.max(r.ln_value(problem, lens_only))) for r in requirements.REGISTRY
+            if r.name in VIEWPOINT_REQUIREMENTS and (r.asked is None or r.asked(problem))}
 
 
-def plan_viewpoints(task, scene, visible, grid):
+def plan_viewpoints(task: Task, scene: Scene, visible: np.ndarray, grid: SphereGrid) -> Viewpoints:
     """Viewpoints of the one-feature task whose samples and visibility map (grid's) are given."""
     vp, req = task.camera.viewpoint, task.requirements
     sensor, lens = task.camera.sensor, task.camera.lens
+    if vp.standoff_range_m is None:
+        raise ValueError("planned viewpoints need camera.standoff_range_m (the loader requires it)")
     dirs, polar = sphere_directions(vp.step_rad)
     radii = np.linspace(*vp.standoff_range_m, vp.standoff_steps) if vp.standoff_steps > 1 else \
         np.array([vp.standoff_range_m[0]])
@@ -142,10 +152,11 @@ def plan_viewpoints(task, scene, visible, grid):
                     camera, scene.center, scene.normal, sensor.pixel_pitch_m, lens.focal_length_m) > req.resolution_m:
                 pruned["resolution"] += 1
                 continue
-            T, q = reach(task, look_at(camera, scene.center))
-            if T is None:
-                pruned[q] += 1
+            reached = reach(task, look_at(camera, scene.center))
+            if isinstance(reached, str):
+                pruned[reached] += 1
                 continue
+            T, q = reached
             values = viewpoint_values(task, replace(scene, T_cell_cam=T))
             if any(v > 0.0 for v in values.values()):
                 pruned["seen"] += 1
@@ -153,7 +164,7 @@ def plan_viewpoints(task, scene, visible, grid):
             angle = projection.view_angles(T[:3, 3], scene.points, scene.normals).max()
             survivors.append(Viewpoint(T, q, float(r), float(angle)))
     survivors.sort(key=lambda v: (round(v.view_angle_rad, 9), v.standoff_m))
-    kept = []
+    kept: list[Viewpoint] = []
     for v in survivors:
         axis = v.T_cell_cam[:3, 2]
         if all(np.arccos(np.clip(axis @ k.T_cell_cam[:3, 2], -1, 1)) >= 2 * vp.step_rad - 1e-9 for k in kept):

@@ -4,19 +4,35 @@ coverage matrix, cell.planning.coverage), and the fewest shots covering every co
 integer programming (cell.planning.set_cover), ties broken by travel. A feature no shot covers is named
 with the requirement that binds in its own plan: the plan is partial (not feasible), never
 silently short of a feature."""
+
+from __future__ import annotations
+
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import replace
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from cell.planning import coverage, one_shot, regions
 from cell.planning.set_cover import fewest_shots
 from cell.planning.parallel import SERIAL
 from cell.planning.plan import FeatureVerdict, Plan, PlannerSettings, Search
 from cell.planning.scene import build_scene
+from cell.planning.parallel import Pool
+
+if TYPE_CHECKING:
+    from cell.planning.coverage import Lent
+    from cell.planning.plan import Coverage, Shot
+    from cell.planning.viewpoints import Viewpoints
+    from cell.task.types import Task
 
 
-def travel(shots):
+# a candidate shot judged on every feature (None at its own) and the judging's time [s]
+Column = tuple[list["Coverage | None"], float]
+
+def travel(shots: Sequence[Shot]) -> np.ndarray:
     """(S,) travel of each candidate shot [m]: its camera's distance from the candidates' mean
     camera position plus its lamp's from their mean lamp position. A linear stand-in for the
     arm's and the lamp's travel between the chosen shots (a tour's length is not linear in the
@@ -27,7 +43,8 @@ def travel(shots):
             + np.linalg.norm(lamps - lamps.mean(axis=0), axis=1))
 
 
-def own_plan(task, settings, T_cell_cam, arm_joints, header, say):
+def own_plan(task: Task, settings: PlannerSettings, T_cell_cam: np.ndarray | None, arm_joints: np.ndarray | None,
+             header: str, say: Callable[[str], None]) -> Plan:
     """A job: the one-shot plan of a one-feature task, its camera at T_cell_cam (a planned
     viewpoint's, reached by `arm_joints`) or by the task's rule (None)."""
     if header:
@@ -38,7 +55,7 @@ def own_plan(task, settings, T_cell_cam, arm_joints, header, say):
     return replace(p, shots=(replace(p.shot, arm_joints=tuple(float(q) for q in arm_joints)),))
 
 
-def viewpoints_of(task, settings, say):
+def viewpoints_of(task: Task, settings: PlannerSettings, say: Callable[[str], None]) -> Viewpoints:
     """The Viewpoints of a one-feature task (cell.planning.viewpoints), with their own time."""
     from cell.planning.viewpoints import plan_viewpoints
     start = time.perf_counter()
@@ -50,14 +67,16 @@ def viewpoints_of(task, settings, say):
     return replace(v, time_s=time.perf_counter() - start)
 
 
-def at_viewpoint(task, settings, views, k, say):
+def at_viewpoint(task: Task, settings: PlannerSettings, views: Viewpoints, k: int,
+                 say: Callable[[str], None]) -> Plan:
     """A job: the one-shot plan of a one-feature task at its k-th kept viewpoint."""
     vp = views.kept[k]
     return own_plan(task, settings, vp.T_cell_cam, vp.arm_joints, f"feature {task.feature.name}, viewpoint {k}: "
                     f"camera at {np.round(vp.T_cell_cam[:3, 3], 3).tolist()} m", say)
 
 
-def views_and_first_plan(task, settings, say):
+def views_and_first_plan(task: Task, settings: PlannerSettings,
+                         say: Callable[[str], None]) -> tuple[Viewpoints, Plan]:
     """A job: (the Viewpoints of a one-feature task, its plan at the first kept one, or by the
     fixed rule when none is kept: the plan that only lends). One job, not two: a job costs the
     cluster's scheduler some 10 ms of the cores the plans need."""
@@ -67,7 +86,8 @@ def views_and_first_plan(task, settings, say):
     return views, at_viewpoint(task, settings, views, 0, say)
 
 
-def judge_column(tasks, f, shot, lent, say):
+def judge_column(tasks: Sequence[Task], f: int, shot: Shot, lent: Sequence[Lent],
+                 say: Callable[[str], None]) -> Column:
     """A job: (the Coverage of feature f's candidate `shot` on every other feature, whose own
     first plan lent its samples and maps (`lent`, coverage.Lent; None at f: its plan's verdict
     stands), its own time [s])."""
@@ -76,7 +96,8 @@ def judge_column(tasks, f, shot, lent, say):
     return column, time.perf_counter() - start
 
 
-def candidate_plans(tasks, settings, say, pool=SERIAL):
+def candidate_plans(tasks: Sequence[Task], settings: PlannerSettings, say: Callable[[str], None], pool: Pool = SERIAL
+                    ) -> tuple[list[tuple[int, Plan]], list[Viewpoints] | None, list[Plan], list[Column]]:
     """[(feature index, its Plan)] of every candidate shot, the Viewpoints of each feature (None:
     the fixed camera rule, one candidate per feature), each feature's plan that lends its samples
     and maps to the judge (its first), and the coverage of each candidate on every other feature
@@ -87,7 +108,9 @@ def candidate_plans(tasks, settings, say, pool=SERIAL):
     plan), its other lamp searches once its viewpoints are known, a shot's judging once its plan
     and every first plan are."""
     fixed = tasks[0].camera.viewpoint.mode == "fixed"
-    views, plans, columns = [None] * len(tasks), {}, {}
+    views: list[Viewpoints | None] = [None] * len(tasks)
+    plans: dict[tuple[int, int], Plan] = {}
+    columns: dict[tuple[int, int], Column | None] = {}
     jobs = pool.jobs(say)
 
     def planned(f, k, plan):
@@ -109,20 +132,23 @@ def candidate_plans(tasks, settings, say, pool=SERIAL):
             jobs.submit(("views", f, 0), views_and_first_plan, t, settings, first=True)
     for (kind, f, k), result in jobs:
         if kind == "views":
-            views[f], first = result
-            for j in range(1, len(views[f].kept)):
-                jobs.submit(("plan", f, j), at_viewpoint, tasks[f], settings, views[f], j)
+            views[f], first = view, _ = result
+            for j in range(1, len(view.kept)):
+                jobs.submit(("plan", f, j), at_viewpoint, tasks[f], settings, view, j)
             planned(f, 0, first)
         elif kind == "plan":
             planned(f, k, result)
         else:
             columns[f, k] = result
     whose = sorted(columns)             # (feature, k) of each candidate, in the serial order
-    return ([(f, plans[f, k]) for f, k in whose], None if fixed else views, [plans[f, 0] for f in range(len(tasks))],
-            [columns[c] for c in whose])
+    # every job is done: each feature's viewpoints and each candidate's column are in
+    done_views, done_columns = cast("list[Viewpoints]", views), cast(dict[tuple[int, int], Column], columns)
+    return ([(f, plans[f, k]) for f, k in whose], None if fixed else done_views,
+            [plans[f, 0] for f in range(len(tasks))], [done_columns[c] for c in whose])
 
 
-def plan_features(task, settings=PlannerSettings(), progress=None, pool=SERIAL):
+def plan_features(task: Task, settings: PlannerSettings = PlannerSettings(),
+                  progress: Callable[[str], None] | None = None, pool: Pool = SERIAL) -> Plan:
     """The Plan of a task's features (one or more): the chosen shots, each with the features it
     covers (Shot.covers), and per feature the shot covering it (Plan.features). Candidate shots:
     each feature's own by the task's camera rule, or (camera.viewpoint: planned) one per kept
@@ -135,8 +161,9 @@ def plan_features(task, settings=PlannerSettings(), progress=None, pool=SERIAL):
     cands, views, lend, columns = candidate_plans(tasks, settings, say, pool)
     t_jobs = time.perf_counter()
     shots = [p.shot for _, p in cands]
-    judged = [[coverage.of_plan(t, p) if g == f else column[f] for (g, p), (column, _) in zip(cands, columns)]
-              for f, t in enumerate(tasks)]
+    # a column is None only at its own feature, whose coverage is its plan's
+    judged = [[coverage.of_plan(t, p) if g == f else cast("Coverage", column[f])
+               for (g, p), (column, _) in zip(cands, columns)] for f, t in enumerate(tasks)]
     covers = np.array([[c.covered for c in row] for row in judged]).reshape(len(tasks), len(shots))
     t_judge = time.perf_counter()
     distance = travel(shots) if shots else np.zeros(0)

@@ -1,4 +1,5 @@
 """What a person opens and a machine reads: the run folder (`recorder`: log.jsonl, plan.json,
-result files, the routines' ending) and every picture (`pictures`).
+result files, the routines' ending), the verdict every result file carries (`result`) and
+every picture (`pictures`).
 
 Layer 6: imports `cell.core` to `cell.planning`."""

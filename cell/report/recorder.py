@@ -1,20 +1,34 @@
 """The run folder a person can open and a machine can read: `log.jsonl` (one JSON line per step:
 time, step, message, data; appended, flushed and fsync'd so that a crash loses nothing measured;
 each step also a progress line on stderr), plan.json with the plan's pictures, every capture,
-and the result file, written however the run ends."""
+and the result file (cell.report.result's shape), written however the run ends."""
+from __future__ import annotations
+
 import os
 import re
 import sys
 from datetime import datetime, timezone
 from pathlib import Path
+from types import TracebackType
+from typing import TYPE_CHECKING, Any, Callable, Generic, Literal, TextIO, TypeVar
 
 import cv2
+import numpy as np
 
 from cell.core import jsonio
+from cell.core.errors import GoalNotReached, PlanInfeasible
 from cell.devices.session import Session, stop_outcome
+from cell.report.result import Result
+
+if TYPE_CHECKING:
+    from cell.planning.plan import Plan
+    from cell.task.types import Task
 
 
-def write_plan(plan, task, folder, cell_picture=True):
+R = TypeVar("R", bound=Result)
+
+
+def write_plan(plan: Plan, task: Task, folder: str | os.PathLike[str], cell_picture: bool = True) -> Path:
     """plan.json, the plan's pictures and cell.png (its shots in the cell) into folder (created);
     a multi-feature plan's own plan of each feature i (plan.json, pictures) into folder/feature-i,
     or with planned viewpoints each candidate shot k's plan into folder/candidate-k (cell.png only
@@ -36,11 +50,11 @@ def write_plan(plan, task, folder, cell_picture=True):
     return folder
 
 
-def write_json(path, document):
+def write_json(path: str | os.PathLike[str], document: Any) -> None:
     Path(path).write_text(jsonio.dumps(document, indent=2) + "\n")
 
 
-def file_name(text):
+def file_name(text: str) -> str:
     """text as part of a file name: what is not a letter, digit, '.', '-' or '_' becomes '_'."""
     return re.sub(r"[^\w.-]", "_", text)
 
@@ -50,25 +64,25 @@ class Recorder:
     A sub-run's (`rec.sub("shot-0", shot=0)`) has its own folder and log, and every step it logs
     is also appended to the parent's log with `tags` (shot=0)."""
 
-    def __init__(self, folder, parent=None, **tags):
+    def __init__(self, folder: str | os.PathLike[str], parent: Recorder | None = None, **tags: Any) -> None:
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
-        self.log = open(self.folder / "log.jsonl", "a", encoding="utf-8")
-        self.plan = None            # the run folder's plan.json, once written
+        self.log: TextIO = open(self.folder / "log.jsonl", "a", encoding="utf-8")
+        self.plan: dict[str, Any] | None = None     # the run folder's plan.json, once written
         self.parent, self.tags = parent, tags
 
-    def __enter__(self):
+    def __enter__(self) -> Recorder:
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: object) -> Literal[False]:
         self.log.close()
         return False
 
-    def sub(self, name, **tags):
+    def sub(self, name: str, **tags: Any) -> Recorder:
         """The Recorder of a sub-run in folder/name, its steps also in this log with tags."""
         return Recorder(self.folder / name, self, **tags)
 
-    def step(self, step, message, iteration=None, **data):
+    def step(self, step: str, message: str, iteration: int | None = None, **data: Any) -> None:
         """One step; `iteration` (the capture it belongs to) is left out when None."""
         where = {} if iteration is None else {"iteration": iteration}
         line = {"t": datetime.now(timezone.utc).isoformat(timespec="milliseconds"), "step": step,
@@ -76,7 +90,7 @@ class Recorder:
         self._append(line)
         print(f"{'' if iteration is None else iteration:>2} {step:<12} {message}", file=sys.stderr, flush=True)
 
-    def _append(self, line):
+    def _append(self, line: dict[str, Any]) -> None:
         """line to the log, flushed and fsync'd, and with the tags to the parent's."""
         self.log.write(jsonio.dumps(line) + "\n")
         self.log.flush()
@@ -84,51 +98,78 @@ class Recorder:
         if self.parent is not None:
             self.parent._append({**self.tags, **line})
 
-    def progress(self, message):
+    def progress(self, message: str) -> None:
         """A progress line on stderr only (the planner's stages), indented under the steps."""
         print(f"{'':16}{message}", file=sys.stderr, flush=True)
 
-    def write_plan(self, plan, task, subfolder=""):
+    def write_plan(self, plan: Plan, task: Task, subfolder: str = "") -> Path:
         """plan.json and pictures, in the run folder (its plan, `self.plan`) or a subfolder of it
         (a re-plan's); returns that folder."""
         if not subfolder:
             self.plan = plan.to_json()
         return write_plan(plan, task, self.folder / subfolder)
 
-    def write_image(self, name, image):
+    def write_image(self, name: str, image: np.ndarray) -> str:
         """An image file in the run folder (PNG: lossless, 8 or 16 bit); returns its name."""
         cv2.imwrite(str(self.folder / name), image)
         return name
 
-    def write_json(self, name, document):
+    def write_json(self, name: str, document: Any) -> None:
         write_json(self.folder / name, document)
 
-    def fault(self, fault):
+    def fault(self, fault: dict[str, Any]) -> None:
         """The fault step, after the safe stop (session.Session's fault record)."""
         self.step("fault", f"{fault['error']}: {stop_outcome(fault['stop_failures'])}", **fault)
 
 
-class Ending:
+class Ending(Generic[R]):
     """How a routine's run ends, whatever ends it: `with Recorder(out) as rec, Ending(rec, "no fit",
     "calibration.json", result) as end:` holds the run's device Session (`end.session`). An error
     logs the "done" step, `failed: error` with its reason (a fault the Session logged already is
     not logged twice), and is raised again; then, or at a normal end, `end.result = result(reason,
-    fault)` (reason '' and fault None when it finished; the routine logs its own "done" step) is
-    written to the run folder as `name`; `end.error` is what ended it (None at a normal end)."""
+    fault)` (reason '' and fault None when it finished; the routine logs its own "done" step),
+    its cause the ending's (`cause`) unless it names its own, is written to the run folder as
+    `name`; `end.error` is what ended it (None at a normal end)."""
 
-    def __init__(self, recorder, failed, name, result, **failed_data):
+    def __init__(self, recorder: Recorder, failed: str, name: str,
+                 result: Callable[[str, dict[str, Any] | None], R], **failed_data: Any) -> None:
         self.recorder, self.failed, self.name, self.make = recorder, failed, name, result
-        self.failed_data, self.result, self.error = failed_data, None, None
+        self.failed_data = failed_data
+        self._result: R | None = None
+        self.error: BaseException | None = None
         self.session = Session(on_fault=recorder.fault, log=recorder.log.name)
 
-    def __enter__(self):
+    def __enter__(self) -> Ending[R]:
         return self
 
-    def __exit__(self, kind, err, traceback):
-        reason = "" if err is None else str(err) or kind.__name__
+    def __exit__(self, kind: type[BaseException] | None, err: BaseException | None,
+                 traceback: TracebackType | None) -> Literal[False]:
+        reason = "" if err is None or kind is None else str(err) or kind.__name__
         self.error = err
         if err is not None and not self.session.fault:     # the goal was not reached: the devices are fine
             self.recorder.step("done", f"{self.failed}: {err}", **self.failed_data, reason=reason)
-        self.result = self.make(reason, self.session.fault)
-        self.recorder.write_json(self.name, self.result.to_json())
+        self._result = self.make(reason, self.session.fault).ended(self.cause)
+        self.recorder.write_json(self.name, self._result.to_json())
         return False
+
+    @property
+    def result(self) -> R:
+        """The routine's result, once it has ended."""
+        if self._result is None:
+            raise RuntimeError(f"{self.name} is written when the routine ends")
+        return self._result
+
+    @property
+    def cause(self) -> str | None:
+        """What ended the routine short of its goal, as a result's cause: None at a normal end,
+        "fault" (the Session stopped the devices), "infeasible" (PlanInfeasible), a
+        GoalNotReached's own cause (None when it names none), else "interrupted"."""
+        if self.error is None:
+            return None
+        if self.session.fault:
+            return "fault"
+        if isinstance(self.error, PlanInfeasible):
+            return "infeasible"
+        if isinstance(self.error, GoalNotReached):
+            return self.error.cause
+        return "interrupted"

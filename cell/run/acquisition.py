@@ -1,6 +1,7 @@
 """Acquisition, shared by the closed loop and the calibration routines: plan, refuse an
 infeasible plan before anything moves and connect the devices; move to a Shot's poses, set an
-exposure and take a frame, each step logged as the devices read it back."""
+exposure and take a frame, find the sensor's black level (the task's, or a dark frame's), each step
+logged as the devices read it back."""
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -13,6 +14,7 @@ from cell.physics.sensor import levels
 from cell.devices.interfaces import speaking_for
 from cell.core.errors import PlanInfeasible
 from cell.planning.plan import gray_stats
+from cell.run import measurement
 
 if TYPE_CHECKING:
     from cell.devices.interfaces import Devices
@@ -63,13 +65,13 @@ def require_feasible(plan: Plan) -> None:
 
 
 def plan_and_connect(task: Task, recorder: Recorder, session: Session,
-                     connect: Callable[[Scene], Devices]) -> Plan:
+                     connect: Callable[[Scene], Devices]) -> tuple[Plan, Devices]:
     """Plan (plan_recorded), refuse an infeasible plan before anything moves, then connect(scene)
-    the cell's devices into the session. Returns the plan."""
+    the cell's devices into the session. Returns the plan and the devices."""
     planned = plan_recorded(task, recorder)
     require_feasible(planned)
-    session.devices = connect(planned.scene)
-    return planned
+    devices = session.devices = connect(planned.planned_scene)
+    return planned, devices
 
 
 def move_to(devices: Devices, shot: Shot, recorder: Recorder, iteration: int | None = None) -> None:
@@ -83,7 +85,7 @@ def move_to(devices: Devices, shot: Shot, recorder: Recorder, iteration: int | N
     move_lamp(devices, shot.joints, recorder, iteration)
 
 
-def move_lamp(devices: Devices, joints: tuple[float, float, float], recorder: Recorder,
+def move_lamp(devices: Devices, joints: tuple[float, ...], recorder: Recorder,
               iteration: int | None = None, why: str = "") -> tuple[float, float, float]:
     """The lamp to (pan, tilt, radius) [rad, rad, m], logged as read back (after `why`, if
     given). Returns the read-back joints."""
@@ -117,3 +119,24 @@ def acquire(devices: Devices, recorder: Recorder, iteration: int, shutter_s: flo
     with speaking_for(devices.arm):
         pose = devices.arm.camera_pose()
     return Capture(image, pose, shutter_s, float(f_number), float(focus_m), name)
+
+
+def find_black_level(task: Task, devices: Devices, recorder: Recorder, f_number: float, focus_m: float,
+                     feature_light: Callable[[float], float] | None = None) -> measurement.BlackLevel:
+    """The task's camera.sensor.black_level, else a dark frame's (measurement.black_level_of):
+    capture-0.png at the shortest shutter (the rig cannot switch the lamp off) and f_number,
+    logged with feature_light(shutter) when given: the most light the model lets reach the
+    feature in that frame [gray]. Returns the measurement.BlackLevel."""
+    b = task.camera.sensor.black_level
+    if b is not None:
+        black = measurement.BlackLevel(float(b), 0.0, "task")
+        recorder.step("black_level", f"black level {b:.2f} gray (camera.sensor.black_level)", **black.to_json())
+        return black
+    capture = acquire(devices, recorder, 0, task.camera.shutter_range_s[0], f_number, focus_m)
+    black = measurement.black_level_of(capture.image)
+    light = {} if feature_light is None else {"feature_light": feature_light(capture.shutter_s)}
+    note = f": the feature's light at most {light['feature_light']:.2g} gray by the model" if light else ""
+    recorder.step("black_level", f"black level {black.value:.2f} gray, noise {black.noise_rms:.2f} rms (dark frame "
+                                 f"at {1e3 * capture.shutter_s:.3g} ms, f/{f_number:.1f}{note})", iteration=0,
+                  **black.to_json(), **light)
+    return black

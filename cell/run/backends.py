@@ -7,7 +7,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from cell.devices.interfaces import Arm, Camera, Devices, LampRig, speaking_for
+from cell.devices.interfaces import Camera, Device, Devices, speaking_for
 from cell.core.errors import DeviceFault, TaskError
 from cell.devices.operator import Operator
 from cell.devices.session import try_all
@@ -16,11 +16,12 @@ if TYPE_CHECKING:
     from cell.planning.scene import Scene
     from cell.task.device_config import CameraConfig, DevicesConfig
     from cell.task.types import Task
+    from sim.laser import Beam
 
 OpenCamera = Callable[..., Camera]      # open(operator, arm=None, lamp=None) -> the task's camera
 
 
-def open_devices(task: Task, scene: Scene | None, backend: str, yes: bool = False, laser: object | None = None,
+def open_devices(task: Task, scene: Scene | None, backend: str, yes: bool = False, laser: Beam | None = None,
                  board: bool = False) -> Devices:
     """The cell's devices: the simulated cell (rendering `scene`, the spot of a laser aimed at
     the sensor, or with board the calibration.board) or, for backend hw, the real ones from the
@@ -36,7 +37,8 @@ def make_hw_devices(task: Task, yes: bool = False, operator: Operator | None = N
                     scene: Scene | None = None) -> Devices:
     """The real devices for --backend hw from the task's settings. Needs explicit `cell.arm.host`
     and `cell.pan_tilt.port` (no default reaches the network or a serial bus); connects arm,
-    servos, camera in turn and closes what was opened if a later one fails. With
+    servos, camera and, if the task has cell.lighting, the lighting controller in turn and closes
+    what was opened if a later one fails. With
     cell.camera.driver simulated the camera renders `scene` (default: the task's, built here)."""
     config = _addressed(task)
     from cell.devices.hw.dynamixel import DynamixelPanTilt
@@ -44,7 +46,7 @@ def make_hw_devices(task: Task, yes: bool = False, operator: Operator | None = N
     open_camera = hw_camera(task, scene=scene)
 
     operator = operator or Operator(yes=yes)
-    opened: list[Any] = []            # URArm, DynamixelPanTilt, the camera: Devices' order
+    opened: list[Any] = []            # arm, pan-tilt, camera and lighting controller: Devices' order
     try:
         with speaking_for(URArm):
             opened.append(URArm(config.arm, task.frames))
@@ -52,6 +54,10 @@ def make_hw_devices(task: Task, yes: bool = False, operator: Operator | None = N
             opened.append(DynamixelPanTilt(task.lamp.rig, config.pan_tilt, operator))
         with speaking_for(Camera):
             opened.append(open_camera(operator, *opened))
+        if config.lighting:
+            from cell.devices.hw.gardasoft import GardasoftController
+            with speaking_for(GardasoftController):
+                opened.append(GardasoftController(config.lighting))
     except Exception:
         try_all([device.close for device in reversed(opened)])
         raise
@@ -68,6 +74,9 @@ def _addressed(task: Task) -> DevicesConfig:
     if not config.pan_tilt.port:
         raise TaskError(config.task_file, "cell.pan_tilt.port", "nothing",
                         "the servos' serial port, e.g. /dev/ttyUSB0 (required for --backend hw)")
+    if config.lighting and not config.lighting.host:
+        raise TaskError(config.task_file, "cell.lighting.host", "nothing",
+                        "the lighting controller's address (required for --backend hw; there is no default)")
     return config
 
 
@@ -76,22 +85,28 @@ class DeviceCheck:
     """One real device as `cell hw-check` found it: its state() if it answered, else the fault."""
 
     device: str
-    address: str                      # host, serial port or camera source
+    address: str                      # host, serial port, camera source or host:port
     state: dict[str, Any] | None
     fault: str | None
 
     @property
+    def problems(self) -> list[str]:
+        """What its state reports a run would stop on (nothing when it did not answer)."""
+        return self.state["problems"] if self.state is not None else []
+
+    @property
     def ready(self) -> bool:
         """Answered, and reports nothing a run would stop on."""
-        return self.fault is None and self.state is not None and not self.state["problems"]
+        return self.fault is None and not self.problems
 
 
 def check_hw_devices(task: Task) -> list[DeviceCheck]:
     """`cell hw-check`: each real device of the task opened alone and read-only, asked its
     state() and closed, so one that fails does not hide the others. Reading only: nothing moves,
     no torque or setting changes, no control script is uploaded, no frame exposure is set; a
-    DeviceCheck per device (arm, pan-tilt, camera). The camera's frames are compared with
-    camera.sensor, as a run does."""
+    DeviceCheck per device (arm, pan-tilt, camera, and the lighting controller if the task has
+    cell.lighting: its firmware and every channel's level read, no `GT1`). The camera's frames
+    are compared with camera.sensor, as a run does."""
     config = _addressed(task)
     from cell.devices.hw.dynamixel import DynamixelPanTilt
     from cell.devices.hw.ur import URArm
@@ -106,14 +121,19 @@ def check_hw_devices(task: Task) -> list[DeviceCheck]:
         _check(Camera, camera_address(config.camera), lambda: open_camera(no_prompt)),
     ]
     camera = checks[-1].state
+    lighting = config.lighting
+    if lighting:
+        from cell.devices.hw.gardasoft import GardasoftController
+        checks.append(_check(GardasoftController, f"{lighting.host}:{lighting.port}",
+                             lambda: GardasoftController(lighting, read_only=True)))
     if camera and (camera["width_px"], camera["height_px"]) != (sensor.width_px, sensor.height_px):
         camera["problems"].append(f"frames are {camera['width_px']}x{camera['height_px']}, camera.sensor is "
                                   f"{sensor.width_px}x{sensor.height_px}: set the camera's resolution")
     return checks
 
 
-def _check(kind: type[Arm] | type[LampRig] | type[Camera], address: str,
-           open_device: Callable[[], Any]) -> DeviceCheck:
+def _check(kind: type[Device], address: str,
+           open_device: Callable[[], Device]) -> DeviceCheck:
     device = None
     try:
         with speaking_for(kind):

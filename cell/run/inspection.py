@@ -16,26 +16,34 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from cell.run import loop, route
+from cell.run import loop, measurement, route
 from cell.run.acquisition import require_feasible
 from cell.run.context import RunContext
 from cell.devices.interfaces import speaking_for
 from cell.core.errors import GoalNotReached
 from cell.core.geometry import rotation_angle
 from cell.report.recorder import Ending, Recorder
+from cell.report.result import Result
 
 if TYPE_CHECKING:
     from cell.devices.interfaces import Devices
     from cell.planning.plan import Plan
     from cell.planning.scene import Scene
-    from cell.run.measurement import BlackLevel
     from cell.task.types import Task
+
+
+def cover_of(plan: Plan) -> dict[str, Any]:
+    """The set cover's numbers of a multi-feature plan (cell.planning.whole_part; a one-feature
+    plan has none)."""
+    if plan.cover is None:
+        raise ValueError("a one-feature plan has no cover: it is its own shot")
+    return plan.cover
 
 
 def candidate_features(plan: Plan) -> list[int]:
     """The feature whose own candidate each of plan.plans is (cell.planning.whole_part: one per feature
     with the fixed camera rule, one per kept viewpoint of each feature when planned)."""
-    return plan.cover.get("candidate_features") or list(range(len(plan.plans)))
+    return cover_of(plan).get("candidate_features") or list(range(len(plan.plans)))
 
 
 def assigned(plan: Plan, s: int) -> tuple[str, ...]:
@@ -50,13 +58,13 @@ def feature_plan(plan: Plan, s: int, f: int) -> Plan:
     shot's own candidate plan when it was planned for f; else the plan whose samples coverage
     judged f on (f's first candidate), its camera moved to the shot's, with the gray coverage
     predicts there (cell.planning.coverage.judge) and its verdict."""
-    shot, k = plan.shots[s], plan.cover["chosen"][s]
+    shot, k = plan.shots[s], cover_of(plan)["chosen"][s]
     owners, name = candidate_features(plan), plan.features[f].name
     if owners[k] == f:
         return plan.plans[k]
     covered = next(c for c in shot.covers if c.feature == name)
     lend = plan.plans[owners.index(f)]
-    scene = replace(lend.scene, T_cell_cam=shot.T_cell_cam)
+    scene = replace(lend.planned_scene, T_cell_cam=shot.T_cell_cam)
     if len(covered.gray) != len(scene.points):
         raise ValueError(f"feature {name}: {len(covered.gray)} predicted grays for {len(scene.points)} samples")
     own = replace(shot, gray=covered.gray, requirements=covered.requirements, covers=())
@@ -64,26 +72,30 @@ def feature_plan(plan: Plan, s: int, f: int) -> Plan:
 
 
 @dataclass(frozen=True)
-class ShotRun:
-    """One shot's closed loop: the plan's shot index, its features' names, whether it converged
-    (every feature in its band), why not, its Iterations (each named by its feature), re-plans,
-    refits, and how far the camera read back from the shot's pose (None: not read)."""
+class ShotRun(Result):
+    """One shot's closed loop (cell.report.result's verdict: `success`, every feature in its
+    band; `message`, why not): the plan's shot index, its features' names, its Iterations (each
+    named by its feature), re-plans, refits, the black level found in it, and how far the camera
+    read back from the shot's pose (None: not read). Its report.json is to_json(), with
+    `converged` and `reason` (success and message) as well; a device fault is the run's."""
 
     shot: int
-    features: tuple
+    features: tuple[str, ...]
     success: bool
     message: str
-    iterations: tuple = ()
-    replans: tuple = ()
-    refits: tuple = ()
-    black: object = None                    # measurement.BlackLevel found in this shot, if any
-    camera_error: dict | None = None        # position_m, angle_deg
+    iterations: tuple[loop.Iteration, ...] = ()
+    replans: tuple[loop.Replan, ...] = ()
+    refits: tuple[loop.Refitted, ...] = ()
+    black: measurement.BlackLevel | None = None     # found in this shot, if any
+    camera_error: dict[str, float] | None = None    # position_m, angle_deg
+    cause: str | None = None
+    fault: dict[str, Any] | None = None
 
-    def of(self, name):
+    def of(self, name: str) -> list[loop.Iteration]:
         """The Iterations of feature `name`."""
         return [it for it in self.iterations if it.feature == name]
 
-    def summary(self):
+    def summary(self) -> str:
         """`converged after N iterations; leaf_a gray 104-119, ...`, one line."""
         n = len({it.iteration for it in self.iterations})
         grays = ", ".join(f"{name} gray {its[-1].measured_gray['min']:.0f}-{its[-1].measured_gray['max']:.0f}"
@@ -92,14 +104,19 @@ class ShotRun:
             f"not converged: {self.message}"
         return verdict + (f"; {grays}" if grays else "")
 
-    def to_json(self):
+    def details(self) -> dict[str, Any]:
         return {"shot": self.shot, "features": list(self.features), "converged": self.success,
                 "reason": self.message, "iterations": [it.to_json() for it in self.iterations],
                 "captures": self.captures, "replans": [r.to_json() for r in self.replans],
                 "refits": [r.to_json() for r in self.refits], "camera_error": self.camera_error}
 
     @property
-    def captures(self):
+    def counters(self) -> dict[str, int]:
+        return {"iterations": len({it.iteration for it in self.iterations}), "captures": len(self.captures),
+                "replans": len(self.replans), "refits": len(self.refits)}
+
+    @property
+    def captures(self) -> list[str]:
         """The shot's capture files, each once (a capture of several features is each one's), in
         the order taken (capture-N: by N)."""
         return sorted({it.capture for it in self.iterations}, key=lambda c: int(c.split("-")[1].split(".")[0]))
@@ -172,26 +189,33 @@ def visit_order(plan: Plan, devices: Devices, recorder: Recorder) -> tuple[tuple
 
 
 @dataclass(frozen=True)
-class InspectionResult:
-    """A run of several shots, like scipy's OptimizeResult: `success` (every feature in its
-    band), `message` (why not), the plan, the visiting order and its travel, each shot's ShotRun
-    and the fault. report.json is to_json()."""
+class InspectionResult(Result):
+    """A run of several shots (cell.report.result's verdict: `success`, every feature in its
+    band; `message`, why not; the device fault), the plan, the visiting order and its travel and
+    each shot's ShotRun. report.json is to_json(), with `converged` and `reason` as well."""
 
     task: str
     success: bool
     message: str
-    plan: dict | None
-    features: tuple                 # the plan's feature names, in the task's order
-    covered_by: tuple               # the plan's shot index of each (None: uncovered)
-    order: tuple = ()
+    plan: dict[str, Any] | None
+    features: tuple[str, ...]               # the plan's feature names, in the task's order
+    covered_by: tuple[int | None, ...]      # the plan's shot index of each (None: uncovered)
+    order: tuple[int, ...] = ()
     travel_m: float | None = None
-    shots: tuple = ()
-    fault: dict | None = None
+    shots: tuple[ShotRun, ...] = ()
+    fault: dict[str, Any] | None = None
+    cause: str | None = None
 
-    def feature_results(self):
+    @property
+    def counters(self) -> dict[str, int]:
+        return {"features": len(self.features), "shots": len(self.shots),
+                "iterations": sum(r.counters["iterations"] for r in self.shots),
+                "captures": sum(len(r.captures) for r in self.shots)}
+
+    def feature_results(self) -> list[dict[str, Any]]:
         """Per feature: name, shot, converged (its shot converged: it ended in band), the last
         capture's measured_gray, iterations, reason when not converged."""
-        runs = {r.shot: r for r in self.shots}
+        runs: dict[int | None, ShotRun] = {r.shot: r for r in self.shots}
         out = []
         for name, s in zip(self.features, self.covered_by):
             run = runs.get(s)
@@ -206,7 +230,7 @@ class InspectionResult:
                         "capture": f"shot-{s}/{its[-1].capture}" if its else None, "reason": reason})
         return out
 
-    def to_json(self):
+    def details(self) -> dict[str, Any]:
         black = next((r.black.to_json() for r in self.shots if r.black), None)
         return {"task": self.task, "plan": self.plan, "converged": self.success, "reason": self.message,
                 "features": self.feature_results(), "order": list(self.order), "travel_m": self.travel_m,
@@ -216,7 +240,7 @@ class InspectionResult:
                            "camera_error": r.camera_error} for r in self.shots],
                 "iterations": [{"shot": r.shot, **it.to_json()} for r in self.shots for it in r.iterations],
                 "captures": [f"shot-{r.shot}/{c}" for r in self.shots for c in r.captures],
-                "black_level": black} | ({"fault": self.fault} if self.fault else {})
+                "black_level": black}
 
 
 def plan_logged(task: Task, recorder: Recorder) -> Plan:
@@ -246,9 +270,9 @@ def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices],
     runs: list[ShotRun] = []
     order: tuple[int, ...] = ()
     travel: float | None = None
-    black: BlackLevel | None = None
+    black: measurement.BlackLevel | None = None
     names = tuple(f.name for f in task.features)
-    covered_by = (None,) * len(names)
+    covered_by: tuple[int | None, ...] = (None,) * len(names)
 
     def result(reason, fault):
         return InspectionResult(str(task.path), not reason, reason, recorder.plan, names, covered_by, order,
@@ -261,9 +285,9 @@ def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices],
             plan = plan_logged(task, recorder)
             covered_by = tuple(f.covered_by for f in plan.features)
             require_feasible(plan)
-            session.devices = connect(plan.plans[candidate_features(plan).index(0)].scene)
-            order, travel = visit_order(plan, session.devices, recorder)
-            context = RunContext(task, session.devices, recorder, max_iterations)
+            devices = session.devices = connect(plan.plans[candidate_features(plan).index(0)].planned_scene)
+            order, travel = visit_order(plan, devices, recorder)
+            context = RunContext(task, devices, recorder, max_iterations)
             for n, s in enumerate(order):
                 recorder.step("shot", f"shot {n + 1} of {len(order)} (plan's shot {s}): "
                                       f"{describe(plan, s)}", shot=s, visit=n + 1, features=assigned(plan, s))

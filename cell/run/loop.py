@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import numpy as np
 
 from cell.physics.sensor import saturation_level
-from cell.run import control, measurement, refit, registration
+from cell.run import acquisition, control, measurement, refit, registration
 
 from cell.planning import evaluate
 from cell.run.acquisition import Capture, acquire, move_to, plan_and_connect, plan_recorded
@@ -28,6 +28,7 @@ from cell.devices.interfaces import speaking_for
 from cell.core.errors import GoalNotReached, PlanInfeasible
 from cell.planning.plan import gray_stats
 from cell.report.recorder import Ending, Recorder, file_name
+from cell.report.result import Result
 
 if TYPE_CHECKING:
     from cell.devices.interfaces import Devices
@@ -127,32 +128,37 @@ Event = Iteration | Corrected | BlackLevelFound | Refitted | Replan     # what i
 
 
 @dataclass(frozen=True)
-class RunResult:
-    """What a run achieved, like scipy's OptimizeResult: `success` (every feature pixel in the
-    band), `message` (why not: the error's line), the plan, every iteration and re-plan, and the
-    device fault with its safe stop's outcome when there was one. report.json is to_json()."""
+class RunResult(Result):
+    """What a run achieved (cell.report.result's verdict: `success`, every feature pixel in the
+    band; `message`, why not; `cause`, CAUSES' key; the device fault), the plan, every iteration,
+    re-plan and refit, and the black level. report.json is to_json(), with `converged` and
+    `reason` (success and message) as well."""
 
     task: str
     success: bool
     message: str
-    plan: dict | None
-    iterations: tuple = ()
-    replans: tuple = ()
-    fault: dict | None = None
-    black_level: dict | None = None
-    refits: tuple = ()
+    plan: dict[str, Any] | None
+    iterations: tuple[Iteration, ...] = ()
+    replans: tuple[Replan, ...] = ()
+    fault: dict[str, Any] | None = None
+    black_level: dict[str, Any] | None = None
+    refits: tuple[Refitted, ...] = ()
     cause: str | None = None     # CAUSES' key of a run that ended without the goal
 
     @property
-    def captures(self):
+    def captures(self) -> list[str]:
         return [it.capture for it in self.iterations]
 
-    def to_json(self):
+    @property
+    def counters(self) -> dict[str, int]:
+        return {"iterations": len(self.iterations), "captures": len(self.captures), "replans": len(self.replans),
+                "refits": len(self.refits)}
+
+    def details(self) -> dict[str, Any]:
         return {"task": self.task, "plan": self.plan, "iterations": [it.to_json() for it in self.iterations],
                 "converged": self.success, "captures": self.captures, "reason": self.message,
                 "replans": [r.to_json() for r in self.replans], "black_level": self.black_level,
-                "refits": [r.to_json() for r in self.refits], "cause": self.cause} | (
-                    {"fault": self.fault} if self.fault else {})
+                "refits": [r.to_json() for r in self.refits]}
 
 
 @dataclass(frozen=True)
@@ -179,25 +185,12 @@ class Model:
         return float(shutter[0]), float(kappa[0])
 
 
-def find_black_level(task, plan, devices, recorder):
-    """The task's camera.sensor.black_level, else a dark frame's (measurement.black_level_of): the
-    shortest shutter at the planned f-number (the rig cannot switch the lamp off, and a manual
-    lens is not turned twice more), logged with the most light the plan's model lets reach the
-    feature then. capture-0.png is that frame."""
-    b = task.camera.sensor.black_level
-    if b is not None:
-        black = measurement.BlackLevel(float(b), 0.0, "task")
-        recorder.step("black_level", f"black level {b:.2f} gray (camera.sensor.black_level)", **black.to_json())
-        return black
-    shutter, f_number = task.camera.shutter_range_s[0], plan.shot.exposure.f_number
-    capture = acquire(devices, recorder, 0, shutter, f_number, plan.shot.exposure.focus_m)
-    black = measurement.black_level_of(capture.image)
-    light = float(np.max(Model(plan, task).predicted(0.0, capture.shutter_s, f_number)))
-    recorder.step("black_level", f"black level {black.value:.2f} gray, noise {black.noise_rms:.2f} rms (dark frame "
-                                 f"at {1e3 * capture.shutter_s:.3g} ms, f/{f_number:.1f}: the feature's light at "
-                                 f"most {light:.2g} gray by the model)", iteration=0, **black.to_json(),
-                  feature_light=light)
-    return black
+def find_black_level(task: Task, plan: Plan, devices: Devices, recorder: Recorder) -> BlackLevel:
+    """acquisition.find_black_level at the planned f-number and focus (a manual lens is not turned
+    twice more), with the most light the plan's model lets reach the feature in the dark frame."""
+    e = plan.shot.exposure
+    return acquisition.find_black_level(task, devices, recorder, e.f_number, e.focus_m, lambda shutter_s: float(
+        np.max(Model(plan, task).predicted(0.0, shutter_s, e.f_number))))
 
 
 def registration_limit(task: Task, shot: Shot) -> float:
@@ -214,7 +207,7 @@ def registration_limit(task: Task, shot: Shot) -> float:
 def limits_of(task: Task, plan: Plan) -> control.Limits:
     """The control.Limits of a one-feature task's plan: its band, the shutter range, the f-numbers
     from the widest the depth of field allows to the lens's narrowest, the plausible albedos."""
-    lens_range = (evaluate.depth_of_field_limits(task, plan.scene)[2], task.camera.lens.f_number_range[1])
+    lens_range = (evaluate.depth_of_field_limits(task, plan.planned_scene)[2], task.camera.lens.f_number_range[1])
     low, high = task.requirements.gray_band
     return control.Limits((float(low), float(high)), task.camera.shutter_range_s,
                           lens_range, task.loop.albedo_scale_range)
@@ -280,7 +273,7 @@ def locate(ctx: RunContext, feature: LoopFeature, k: int, capture: Capture,
     """Registration (cell.run.registration) of the feature in capture k at the read-back camera
     and lamp poses, logged (as `name`'s, when given); returns (Registration, the shift the
     measurement takes: the found one when trusted and within registration_limit [px], else none)."""
-    devices, task, scene = ctx.devices, feature.task, feature.model.plan.scene
+    devices, task, scene = ctx.devices, feature.task, feature.model.plan.planned_scene
     with speaking_for(devices.lamp):
         lamp_pose = devices.lamp.lamp_pose()
     row, col, inside = measurement.sample_pixels(task, capture.T_cell_cam, scene.points)
@@ -304,7 +297,8 @@ def measure_capture(ctx: RunContext, aim: Aim, feature: LoopFeature, k: int, cap
     bit_depth = ctx.devices.camera.bit_depth
     saturation = saturation_level(bit_depth)
     found, shift = locate(ctx, feature, k, capture, name)
-    m = measurement.measure_feature(capture.image, task, capture.T_cell_cam, model.plan.scene.points, saturation, shift)
+    m = measurement.measure_feature(capture.image, task, capture.T_cell_cam, model.plan.planned_scene.points,
+                                    saturation, shift)
     predicted = model.predicted(aim.black.value, capture.shutter_s, f_number)
     error, relation = control.model_error(m.sample_gray, predicted, saturation, aim.black.value)
     band = task.requirements.gray_band
@@ -467,7 +461,7 @@ def refit_and_replan(ctx: RunContext, aim: Aim, k: int, measured: Measured,
     yield Corrected(k, {"action": "refit", "cause": "spread", "reason": c.reason})
     disagreement = refit.Disagreement(k, m, (aim.shutter_s, aim.f_number, aim.shot.exposure.focus_m), aim.black,
                                       aim.albedo_scale, it.registration["shift_px"])
-    fitted = refit.probe_and_refit(ctx, feature.task, feature.model.plan.scene, disagreement)
+    fitted = refit.probe_and_refit(ctx, feature.task, feature.model.plan.planned_scene, disagreement)
     yield Refitted(k, fitted, refit.keep(fitted, feature.task, recorder, k))
     refit.require_usable(fitted, c.reason)
     task = refit.task_with(feature.task, fitted)
@@ -496,8 +490,8 @@ def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices], max_it
         with Recorder(out) as recorder, Ending(recorder, "not converged", "report.json", result,
                                                converged=False) as ending:
             with ending.session:
-                planned = plan_and_connect(task, recorder, ending.session, connect)
-                context = RunContext(task, ending.session.devices, recorder, max_iterations)
+                planned, devices = plan_and_connect(task, recorder, ending.session, connect)
+                context = RunContext(task, devices, recorder, max_iterations)
                 for event in iterate(context, [LoopFeature.planned(task, planned)]):
                     events.add(event)
             n = len(events.iterations)

@@ -398,8 +398,9 @@ def material_document(refit: Refit, name: str, source: str) -> dict[str, Any]:
 def keep(refit: Refit, task: Task, recorder: Recorder, k: int) -> str:
     """Write the refitted material as refit-k-material.yaml in the run folder (a file the user can
     keep and name as part.material); returns its name."""
-    import yaml
     from datetime import date
+
+    from cell.core.files import write_yaml
     captures = ", ".join(o.name for o in refit.observations)
     source = (f"refit in the closed loop of cell run {task.path} on {date.today().isoformat()}: the factors and "
               f"the black level of G = b + (t / kappa^2) E R fitted to {sum(o.gray.size for o in refit.observations)} "
@@ -408,7 +409,7 @@ def keep(refit: Refit, task: Task, recorder: Recorder, k: int) -> str:
               + (f"; not determined, kept as the task's: {', '.join(refit.unknown)}" if refit.unknown else ""))
     name = f"refit-{k}-material.yaml"
     document = material_document(refit, f"{task.part.material.name} (refit)", source)
-    (recorder.folder / name).write_text(yaml.safe_dump(document, sort_keys=False, width=100, default_flow_style=None))
+    write_yaml(recorder.folder / name, document, inline_lists=True)
     return name
 
 

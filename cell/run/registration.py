@@ -242,8 +242,8 @@ def locate(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, 
     M = cv2.getRotationMatrix2D(tuple(centre), turn, 1.0)           # window -> image: turned about it,
     warp = np.column_stack([M[:, :2], M[:, 2] + (u0, v0) + coarse]).astype(np.float32)   # then shifted
     try:
-        correlation, warp = cv2.findTransformECC(template, cv2.GaussianBlur(image, (0, 0), SMOOTH_SIGMA), warp,
-                                                 cv2.MOTION_EUCLIDEAN, ECC_CRITERIA, None, 1)
+        correlation, warp = cv2.findTransformECC(  # type: ignore[call-overload]  # OpenCV's stubs: no mask None
+            template, cv2.GaussianBlur(image, (0, 0), SMOOTH_SIGMA), warp, cv2.MOTION_EUCLIDEAN, ECC_CRITERIA, None, 1)
     except cv2.error as err:
         return result((0.0, 0.0), False, int(resolved.sum()), np.nan,
                       f"ECC did not converge: {str(err).strip().splitlines()[-1]}")

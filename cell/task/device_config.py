@@ -1,17 +1,23 @@
-"""The task's device settings, `cell.arm`, `cell.pan_tilt` and `cell.camera` (docs/devices.md):
+"""The task's device settings, `cell.arm`, `cell.pan_tilt`, `cell.camera` and `cell.lighting`
+(docs/devices.md):
 their schemas, read by load_task with the rest of the task, and the typed, SI values the
 backends are built from. The defaults describe the example cell and reach no network or bus.
 """
+
+from __future__ import annotations
+
 from dataclasses import dataclass
+from os import PathLike
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from cell.core import geometry
 from cell.core.errors import TaskError
 from cell.core.inputs import checked_file
-from cell.task.schema import (POSITIVE, Choice, Integer, Invalid, Number, Pair, Section, Spec, Text, Vector,
-                         _unit, parse, read_yaml, show)
+from cell.task.schema import (POSITIVE, Choice, Integer, Invalid, Number, Pair, Rule, Section, Spec, Text, Vector,
+                         ToSI, _unit, parse, read_yaml, show)
 
 MAX_SPEED_M_S = 0.25            # ur_rtde's default moveL speed: a hard cap for an inspection cell
 MAX_ACCELERATION_M_S2 = 1.2     # ur_rtde's default moveL acceleration
@@ -20,6 +26,9 @@ MAX_SERVO_SPEED_DEG_S = 90.0
 # the simulator from the real arm's and pan-tilt's read-back poses, a dry run of a real arm and
 # lamp rig without a camera
 CAMERA_DRIVERS = ("opencv", "genicam", "simulated")
+LIGHTING_DRIVERS = ("gardasoft",)           # Gardasoft RT-series command set over TCP
+GARDASOFT_PORT = 30313                      # RT manual 12.1: TCP commands go to this port
+LIGHTING_CHANNELS = (2, 4, 8)               # RT220, RT420, RT820F
 DXL_BAUD_RATES = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 921600,
                   1000000, 1152000, 2000000, 2500000, 3000000, 3500000, 4000000)  # the SDK's list
 
@@ -46,7 +55,7 @@ class PanTiltConfig:
     radius_id: int                          # used when lamp.rig.radius_axis is servo
     pan_offset_rad: float                   # joint angle at the servo's centre tick 2048
     tilt_offset_rad: float
-    radius_ticks: tuple                     # radius servo ticks at radius_range_m's ends
+    radius_ticks: tuple[int, int]           # radius servo ticks at radius_range_m's ends
     speed_rad_s: float
     move_timeout_s: float
     tolerance_ticks: int
@@ -67,12 +76,22 @@ class CameraConfig:
 
 
 @dataclass(frozen=True)
+class LightingConfig:
+    driver: str                             # LIGHTING_DRIVERS: which backend class
+    host: str | None                        # controller address; required for --backend hw only
+    port: int
+    channels: int                           # the model's channels: 2, 4 or 8
+    timeout_s: float                        # a reply (ending in ">") later than this is a fault
+
+
+@dataclass(frozen=True)
 class DevicesConfig:
     task_file: Path
     arm: ArmConfig
     pan_tilt: PanTiltConfig
     camera: CameraConfig
-    given: tuple                            # the sections the task set, e.g. ("arm",)
+    given: tuple[str, ...]                  # the sections the task set, e.g. ("arm",)
+    lighting: LightingConfig | None = None  # the lighting controller, if the task has cell.lighting
 
 
 class _Source(Spec):
@@ -81,7 +100,7 @@ class _Source(Spec):
     expected = "a camera index (integer >= 0) or a path"
     default = 0
 
-    def convert(self, raw, to_si):
+    def convert(self, raw: Any, to_si: ToSI) -> int | str:
         if isinstance(raw, int) and not isinstance(raw, bool) and raw >= 0:
             return raw
         if isinstance(raw, str) and raw.strip():
@@ -95,12 +114,24 @@ class _SerialNumber(Spec):
     expected = "a serial number (text or digits)"
     default = None
 
-    def convert(self, raw, to_si):
+    def convert(self, raw: Any, to_si: ToSI) -> str:
         if isinstance(raw, int) and not isinstance(raw, bool) and raw >= 0:
             return str(raw)
         if isinstance(raw, str) and raw.strip():
             return raw.strip()
         raise Invalid(raw, self.expected)
+
+
+class _ChannelCount(Spec):
+    """How many channels the controller model has."""
+
+    expected = "2, 4 or 8 (the controller model's channels)"
+    default = 4
+
+    def convert(self, raw: Any, to_si: ToSI) -> int:
+        if isinstance(raw, bool) or raw not in LIGHTING_CHANNELS:
+            raise Invalid(raw, self.expected)
+        return int(raw)
 
 
 # what a hand-eye file holds: the task's own keys, in their place (`cell calibrate hand-eye` writes one)
@@ -115,7 +146,7 @@ class _HandEyeFile(Spec):
     expected = "the name of a hand-eye file (cell calibrate hand-eye writes one)"
     default = None
 
-    def read(self, file, path, raw, to_si):
+    def read(self, file: str | PathLike[str], path: str, raw: Any, to_si: ToSI) -> dict[str, Any]:
         if not isinstance(raw, str) or not raw.strip():
             raise TaskError(file, path, show(raw), self.expected)
         named = checked_file(Path(file).parent / raw.strip(), "yaml", file, path, relative_to="the task file")
@@ -126,7 +157,7 @@ class _HandEyeFile(Spec):
 
 
 MONO_FORMATS = {"Mono8": 8, "Mono12": 12, "Mono16": 16}    # PFNC name -> bits per pixel value
-ANGLE = dict(ok=lambda v: abs(v) <= np.pi, expected="an angle within [-180, 180] deg")
+ANGLE = Rule(ok=lambda v: abs(v) <= np.pi, expected="an angle within [-180, 180] deg")
 # defaults: the example cell, a UR5e on the table beside the part, the camera 5 cm past the flange
 ARM = Section({
     "host": Text(default=None),
@@ -178,12 +209,22 @@ DRIVER_KEYS = {"opencv": ("source", "exposure_unit_s", "discard_frames"),   # ce
                            "frame_timeout_s"),                              # only a driver reads
                "simulated": ()}
 
-SECTIONS = {"arm": ARM, "pan_tilt": PAN_TILT, "camera": CAMERA}     # the task's cell.<name>
+LIGHTING = Section({
+    "driver": Choice(*LIGHTING_DRIVERS, default="gardasoft"),
+    "host": Text(default=None),
+    "port": Integer(1, 65535, default=GARDASOFT_PORT),
+    "channels": _ChannelCount(),
+    "timeout_s": Number(**POSITIVE, default=1.0),
+}, required=False)
+
+SECTIONS = {"arm": ARM, "pan_tilt": PAN_TILT, "camera": CAMERA, "lighting": LIGHTING}   # the task's cell.<name>
 
 
-def devices_config(file, cell, written, bit_depth):
-    """The parsed `cell` section's arm, pan_tilt and camera values -> DevicesConfig, after the
-    checks one key alone cannot make (TaskError naming the file and key). `written`: the section
+def devices_config(file: str | PathLike[str], cell: dict[str, Any], written: dict[str, Any] | None,
+                   bit_depth: int) -> DevicesConfig:
+    """The parsed `cell` section's arm, pan_tilt, camera and lighting values -> DevicesConfig
+    (lighting only when the task wrote the section), after the checks one key alone cannot make
+    (TaskError naming the file and key). `written`: the section
     as the file wrote it, whose non-empty device sections are recorded as `given`; `bit_depth`:
     camera.sensor's, which a pixel format must carry. The base and hand-eye poses go to the
     task's Frames."""
@@ -205,14 +246,15 @@ def devices_config(file, cell, written, bit_depth):
     pan_tilt = PanTiltConfig(
         port=p["port"], baud=p["baud"], pan_id=p["pan_id"], tilt_id=p["tilt_id"],
         radius_id=p["radius_id"], pan_offset_rad=p["pan_offset_rad"],
-        tilt_offset_rad=p["tilt_offset_rad"], radius_ticks=tuple(int(t) for t in p["radius_ticks"]),
+        tilt_offset_rad=p["tilt_offset_rad"], radius_ticks=(int(p["radius_ticks"][0]), int(p["radius_ticks"][1])),
         speed_rad_s=np.radians(p["speed_deg_s"]), move_timeout_s=p["move_timeout_s"],
         tolerance_ticks=p["tolerance_ticks"])
     camera = _camera_config(file, c, (written or {}).get("camera") or {}, bit_depth)
-    return DevicesConfig(Path(file), arm, pan_tilt, camera, tuple(given))
+    lighting = LightingConfig(**cell["lighting"]) if "lighting" in given else None
+    return DevicesConfig(Path(file), arm, pan_tilt, camera, tuple(given), lighting)
 
 
-def hand_eye(file, arm, written):
+def hand_eye(file: str | PathLike[str], arm: dict[str, Any], written: dict[str, Any] | None) -> np.ndarray:
     """T_flange_cam of the parsed `cell.arm` (`written`: as the file wrote it): from the hand-eye
     file `hand_eye` names, else the two keys (defaults included); both ways is an error."""
     named = arm["hand_eye"]

@@ -4,11 +4,17 @@ Units are converted here and nowhere else, by the schema engine (cell.task.schem
 one TaskError naming the file, the dotted key path, what was found and what was expected. The
 schemas below read like the file format; then the mesh is loaded and the feature snapped to it.
 """
+
+from __future__ import annotations
+
 import copy
+from os import PathLike
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import trimesh
+from numpy.typing import ArrayLike
 
 from cell.core import geometry
 from cell.task.board import DICTIONARIES, Board
@@ -19,7 +25,7 @@ from cell.core.inputs import checked_file
 from cell.physics.material import PARAMETERS, TERMS, Material, Unresolved
 from cell.physics.radiometry import camera_constant_from_datasheet
 from cell.task.schema import (NON_NEGATIVE, POSITIVE, Anything, Choice, Integer, Invalid, Number, Pair,
-                         Section, Sections, Spec, Table, Text, Vector, parse, read_yaml, show)
+                         Section, Sections, Spec, Table, Text, ToSI, Vector, parse, read_yaml, show)
 from cell.task.types import (Calibration, CameraModel, CellConfig, Feature, Goniometer, Lamp, LampRig, Lens,
                        LoopSettings, Part, Requirements, Sample, SimConfig, Sensor, Task, Truth, Viewpoint)
 
@@ -38,7 +44,7 @@ class Effects(Spec):
     expected = "a list of effect names"
     default = ()
 
-    def convert(self, raw, to_si):
+    def convert(self, raw: Any, to_si: ToSI) -> tuple[str, ...]:
         if not isinstance(raw, list):
             raise Invalid(raw, self.expected)
         for i, name in enumerate(raw):
@@ -58,7 +64,7 @@ class SensorSection(Section):
 
     expected = "a mapping of keys, or the name of a camera file holding them"
 
-    def read(self, file, path, raw, to_si):
+    def read(self, file: str | PathLike[str], path: str, raw: Any, to_si: ToSI) -> dict[str, Any]:
         if not isinstance(raw, str):
             return super().read(file, path, raw, to_si) | {"file": None}
         camera_file = _relative_file(Path(file), path, raw, "yaml")
@@ -236,7 +242,7 @@ def _read_mapping(path):
     return data
 
 
-def load_material(path):
+def load_material(path: str | PathLike[str]) -> Material:
     """A material file -> Material (phase in radians, parameters as arrays)."""
     path = Path(path)
     v = parse(path, "", _read_mapping(path), MATERIAL)
@@ -252,7 +258,7 @@ def load_material(path):
             raise TaskError(path, f"m2[{i}]", show(m2), f"a spike exponent m2 > m1 = {m1:g}")
     table = ("name", "source", "phase_rad", "unresolved", *PARAMETERS)
     extra = {k: x for k, x in v.items() if k not in table and x is not None}
-    return Material(v["name"], v["source"], phase, *(v[p] for p in PARAMETERS), extra=extra,
+    return Material(v["name"], v["source"], phase, **{p: v[p] for p in PARAMETERS}, extra=extra,
                     unresolved=_unresolved(path, v["unresolved"], phase))
 
 
@@ -305,7 +311,7 @@ def _load_mesh(file, part):
     return path, mesh
 
 
-def closest_surface_point(mesh, point):
+def closest_surface_point(mesh: trimesh.Trimesh, point: ArrayLike) -> tuple[np.ndarray, np.ndarray, float]:
     """(closest point on the mesh, that face's unit normal, distance) for one point.
     Brute force over all faces: trimesh's `mesh.nearest` needs rtree, which we do not depend on."""
     point = np.asarray(point, dtype=float)
@@ -519,7 +525,7 @@ def _lamp_profile(file, profile):
     return np.column_stack([angles, relative])
 
 
-def load_task(path):
+def load_task(path: str | PathLike[str]) -> Task:
     """A task file and everything it references -> Task (SI units, mesh in metres)."""
     path = Path(path)
     data = _read_mapping(path)

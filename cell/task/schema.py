@@ -4,10 +4,16 @@ key, sections of them, unit suffixes converted to SI, and the YAML reader.
 Every problem becomes one TaskError naming the file, the dotted key path (`camera.lens.f_number_range`,
 `requirements.gray_band[1]`), what was found and what was expected; a schema reads like its file.
 """
+
+from __future__ import annotations
+
 import difflib
 import re
 import reprlib
+from collections.abc import Callable, Mapping
+from os import PathLike
 from pathlib import Path
+from typing import Any, TypedDict
 
 import numpy as np
 import yaml
@@ -16,8 +22,10 @@ from cell.core import geometry
 from cell.core.errors import TaskError
 from cell.core.inputs import read_text
 
+# a unit suffix's conversion of a number (or an array of them) to SI
+ToSI = Callable[[Any], Any]
 # unit suffix -> (quantity, conversion to SI); division keeps 230.43 mW == 0.23043 W exact
-UNITS = {
+UNITS: dict[str, tuple[str, ToSI]] = {
     "m": ("length", lambda v: v), "mm": ("length", lambda v: v / 1e3), "um": ("length", lambda v: v / 1e6),
     "s": ("time", lambda v: v), "ms": ("time", lambda v: v / 1e3),
     "deg": ("angle", np.radians), "rad": ("angle", lambda v: v),
@@ -30,7 +38,7 @@ REQUIRED = object()
 class Invalid(Exception):
     """A bad value, before the section parser adds the file and the key path."""
 
-    def __init__(self, found, expected, index=None):
+    def __init__(self, found: Any, expected: str, index: int | None = None) -> None:
         super().__init__(expected)
         self.found, self.expected, self.index = found, expected, index
 
@@ -50,7 +58,7 @@ _SHORT = reprlib.Repr()
 _SHORT.maxlevel, _SHORT.maxlist, _SHORT.maxdict, _SHORT.maxstring, _SHORT.maxother = 3, 10, 4, 60, 60
 
 
-def show(value):
+def show(value: Any) -> str:
     """A value as the file wrote it, on one short line: `0.6`, `[0.6, 0.6, 0.1]`, never numpy's
     reprs such as `np.float64(0.6)`, which no user wrote. Long or deep values are cut before
     they are written out (an alias bomb in YAML holds billions of elements)."""
@@ -60,7 +68,7 @@ def show(value):
     return clip("null" if value is None else _SHORT.repr(value))
 
 
-def clip(text, length=80):
+def clip(text: str, length: int = 80) -> str:
     """text on at most `length` characters, cut with '...'."""
     return text if len(text) <= length else text[:length - 3] + "..."
 
@@ -91,14 +99,18 @@ class Spec:
     expected = "a value"
     default = REQUIRED
 
-    def read(self, file, path, raw, to_si):
+    def read(self, file: str | PathLike[str], path: str, raw: Any, to_si: ToSI) -> Any:
         try:
             return self.convert(raw, to_si)
         except Invalid as bad:
             key = path if bad.index is None else f"{path}[{bad.index}]"
             raise TaskError(file, key, show(bad.found), bad.expected) from None
 
-    def absent(self, file, path):
+    def convert(self, raw: Any, to_si: ToSI) -> Any:
+        """raw checked and in SI units; an Invalid says what is wrong (each kind of key its own)."""
+        raise NotImplementedError
+
+    def absent(self, file: str | PathLike[str], path: str) -> Any:
         if self.default is REQUIRED:
             raise TaskError(file, path, "nothing", f"{self.expected} (required key)")
         return self.default
@@ -107,21 +119,21 @@ class Spec:
 class Text(Spec):
     expected = "a non-empty text"
 
-    def __init__(self, default=REQUIRED):
+    def __init__(self, default: Any = REQUIRED) -> None:
         self.default = default
 
-    def convert(self, raw, to_si):
+    def convert(self, raw: Any, to_si: ToSI) -> str:
         if not isinstance(raw, str) or not raw.strip():
             raise Invalid(raw, self.expected)
         return raw.strip()
 
 
 class Choice(Spec):
-    def __init__(self, *options, default=REQUIRED):
+    def __init__(self, *options: str, default: Any = REQUIRED) -> None:
         self.options, self.default = options, default
         self.expected = "one of " + " | ".join(options)
 
-    def convert(self, raw, to_si):
+    def convert(self, raw: Any, to_si: ToSI) -> str:
         if raw not in self.options:
             raise Invalid(raw, self.expected)
         return raw
@@ -130,10 +142,10 @@ class Choice(Spec):
 class Number(Spec):
     """A finite number whose SI value passes `ok`."""
 
-    def __init__(self, ok, expected, default=REQUIRED):
+    def __init__(self, ok: Callable[[float], bool], expected: str, default: Any = REQUIRED) -> None:
         self.ok, self.expected, self.default = ok, expected, default
 
-    def convert(self, raw, to_si):
+    def convert(self, raw: Any, to_si: ToSI) -> float:
         value = to_si(_number(raw, self.expected))
         if not self.ok(value):
             raise Invalid(raw, self.expected)
@@ -141,11 +153,11 @@ class Number(Spec):
 
 
 class Integer(Spec):
-    def __init__(self, low, high=None, default=REQUIRED):
+    def __init__(self, low: int, high: int | None = None, default: Any = REQUIRED) -> None:
         self.low, self.high, self.default = low, high, default
         self.expected = f"an integer in {low}..{high}" if high else f"an integer >= {low}"
 
-    def convert(self, raw, to_si):
+    def convert(self, raw: Any, to_si: ToSI) -> int:
         is_int = isinstance(raw, int) and not isinstance(raw, bool)
         if not is_int or raw < self.low or (self.high and raw > self.high):
             raise Invalid(raw, self.expected)
@@ -156,14 +168,14 @@ class Vector(Spec):
     """A 3-vector; `direction` rejects the zero vector and normalizes. A default (SI) is given as
     a tuple, and each task gets its own array of it."""
 
-    def __init__(self, direction=False, default=REQUIRED):
+    def __init__(self, direction: bool = False, default: Any = REQUIRED) -> None:
         self.direction, self.default = direction, default
         self.expected = "a non-zero 3-vector [x, y, z]" if direction else "a 3-vector [x, y, z]"
 
-    def absent(self, file, path):
+    def absent(self, file: str | PathLike[str], path: str) -> np.ndarray:
         return np.array(super().absent(file, path), float)
 
-    def convert(self, raw, to_si):
+    def convert(self, raw: Any, to_si: ToSI) -> np.ndarray:
         v = to_si(_numbers(raw, 3, self.expected))
         if self.direction:
             if not np.linalg.norm(v) > 0:
@@ -175,11 +187,12 @@ class Vector(Spec):
 class Pair(Spec):
     """A range [low, high] of numbers passing `ok` (SI); low < high if strict, else low <= high."""
 
-    def __init__(self, ok, what, strict=False, default=REQUIRED):
+    def __init__(self, ok: Callable[[float], bool], what: str, strict: bool = False,
+                 default: Any = REQUIRED) -> None:
         self.ok, self.strict, self.default = ok, strict, default
         self.expected = f"an ascending pair of {what}"
 
-    def convert(self, raw, to_si):
+    def convert(self, raw: Any, to_si: ToSI) -> tuple[float, float]:
         low, high = to_si(_numbers(raw, 2, self.expected))
         if not (self.ok(low) and self.ok(high)) or low > high or (self.strict and low == high):
             raise Invalid(raw, self.expected)
@@ -190,11 +203,12 @@ class Table(Spec):
     """A table column: one number per row (a material's phase angle, a lamp profile's off-axis
     angle), each passing `ok`."""
 
-    def __init__(self, ok, expected, default=REQUIRED, finite=True, per="phase angle"):
+    def __init__(self, ok: Callable[[float], bool], expected: str, default: Any = REQUIRED, finite: bool = True,
+                 per: str = "phase angle") -> None:
         self.ok, self.element, self.default, self.finite = ok, expected, default, finite
         self.expected = f"a list with one value per {per}, each {expected}"
 
-    def convert(self, raw, to_si):
+    def convert(self, raw: Any, to_si: ToSI) -> np.ndarray:
         if not isinstance(raw, list) or not raw:
             raise Invalid(raw, self.expected)
         values = to_si(np.array([_number(x, self.element, i, self.finite) for i, x in enumerate(raw)]))
@@ -210,7 +224,7 @@ class Anything(Spec):
 
     default = None
 
-    def convert(self, raw, to_si):
+    def convert(self, raw: Any, to_si: ToSI) -> Any:
         return raw
 
 
@@ -219,15 +233,15 @@ class Section(Spec):
 
     expected = "a mapping of keys"
 
-    def __init__(self, fields, required=True, defaults=True):
+    def __init__(self, fields: Mapping[str, Spec], required: bool = True, defaults: bool = True) -> None:
         """required: missing is an error; otherwise a missing section takes the defaults of all
         its keys, or is None when not `defaults` (one of two alternative sections)."""
         self.fields, self.required, self.defaults = fields, required, defaults
 
-    def read(self, file, path, raw, to_si):
+    def read(self, file: str | PathLike[str], path: str, raw: Any, to_si: ToSI) -> dict[str, Any]:
         return parse(file, path, raw, self.fields)
 
-    def absent(self, file, path):
+    def absent(self, file: str | PathLike[str], path: str) -> dict[str, Any] | None:
         if self.required:
             raise TaskError(file, path, "nothing", f"{self.expected} (required section)")
         return parse(file, path, {}, self.fields) if self.defaults else None
@@ -240,18 +254,25 @@ class Sections(Spec):
     expected = "a non-empty list of mappings of keys"
     default = None
 
-    def __init__(self, fields):
+    def __init__(self, fields: Mapping[str, Spec]) -> None:
         self.fields = fields
 
-    def read(self, file, path, raw, to_si):
+    def read(self, file: str | PathLike[str], path: str, raw: Any, to_si: ToSI) -> list[dict[str, Any]]:
         if not isinstance(raw, list) or not raw:
             raise TaskError(file, path, show(raw), self.expected)
         return [parse(file, f"{path}[{i}]", item, self.fields) for i, item in enumerate(raw)]
 
 
+class Rule(TypedDict):
+    """A Number's or Table's test of a value and what the message says it expected."""
+
+    ok: Callable[[float], bool]
+    expected: str
+
+
 # common rules: Number(**POSITIVE), Table(**NON_NEGATIVE)
-POSITIVE = dict(ok=lambda v: v > 0, expected="a positive number")
-NON_NEGATIVE = dict(ok=lambda v: v >= 0, expected="a number >= 0")
+POSITIVE = Rule(ok=lambda v: v > 0, expected="a positive number")
+NON_NEGATIVE = Rule(ok=lambda v: v >= 0, expected="a number >= 0")
 
 
 def _join(path, key):
@@ -284,12 +305,12 @@ def _schema_key(file, path, written, fields):
     raise TaskError(file, _join(path, written), "an unknown key", expected)
 
 
-def parse(file, path, data, fields):
+def parse(file: str | PathLike[str], path: str, data: Any, fields: Mapping[str, Spec]) -> dict[str, Any]:
     """Check a mapping against its fields (an empty value counts as absent); returns
     {key with SI suffix: SI value}."""
     if not isinstance(data, dict):
         raise TaskError(file, path, show(data), "a mapping of keys")
-    given = {}
+    given: dict[str, str] = {}
     for written in data:
         key = _schema_key(file, path, str(written), fields)
         if key in given:
@@ -314,11 +335,15 @@ MAX_VALUES = 100_000    # values with every alias expanded: a few lines of alias
                         # billions ("billion laughs"); a task has a few hundred
 
 
-class _YamlLoader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):
+# libyaml's C parser where installed (a name PyYAML defines only then)
+_SAFE_LOADER: Any = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
+
+class _YamlLoader(_SAFE_LOADER):
     """The safe loader (libyaml's C parser where installed) reading YAML 1.2 floats (1e-5,
     1.5e16 are numbers) and rejecting duplicate keys."""
 
-    def construct_mapping(self, node, deep=False):
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
         seen = set()
         for key_node, _ in node.value:
             if isinstance(key_node, yaml.ScalarNode):
@@ -364,7 +389,7 @@ def _check_structure(path, text):
                    "a task or material file (a few hundred values)")
 
 
-def read_yaml(path):
+def read_yaml(path: str | PathLike[str]) -> Any:
     """A YAML file's content: a regular file under the size limit (cell.core.inputs), nested at most
     MAX_DEPTH deep with at most MAX_ALIASES aliases; any problem is a TaskError (file:line)."""
     path = Path(path)

@@ -1,10 +1,14 @@
 """Typed inspection task (docs/formats.md), SI units inside. The loader lives in cell.task.loader."""
+
+from __future__ import annotations
+
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
+from cell.task.board import Board
 from cell.task.device_config import DevicesConfig
 from cell.core.frames import Frames
 from cell.physics.material import Material
@@ -19,7 +23,7 @@ class Part:
 
 @dataclass(frozen=True)
 class Requirements:
-    gray_band: tuple               # (low, high) gray levels
+    gray_band: tuple[float, float]         # (low, high) gray levels
     reflection: str                # diffuse | lobe | spike | any
     region_margin_rad: float
     lamp_tolerance_rad: float
@@ -58,14 +62,14 @@ class Sensor:
     black_level: float | None = None               # b of G = b + c P t [gray]; None: measured by `cell run`
 
     @property
-    def pixel_area_m2(self):
+    def pixel_area_m2(self) -> float:
         return self.pixel_pitch_m**2
 
 
 @dataclass(frozen=True)
 class Lens:
     focal_length_m: float
-    f_number_range: tuple
+    f_number_range: tuple[float, float]
     circle_of_confusion_m: float
 
 
@@ -77,7 +81,7 @@ class Viewpoint:
     at most per_feature poses of each feature tried with lamps."""
 
     mode: str = "fixed"
-    standoff_range_m: tuple | None = None
+    standoff_range_m: tuple[float, float] | None = None
     standoff_steps: int = 3
     step_rad: float = float(np.radians(15.0))
     per_feature: int = 3
@@ -89,16 +93,16 @@ class CameraModel:
     view_direction: np.ndarray     # part frame, unit, from feature to camera
     sensor: Sensor
     lens: Lens
-    shutter_range_s: tuple
+    shutter_range_s: tuple[float, float]
     viewpoint: Viewpoint = Viewpoint()
 
 
 @dataclass(frozen=True)
 class LampRig:
     pivot_m: np.ndarray            # cell frame
-    pan_range_rad: tuple
-    tilt_range_rad: tuple
-    radius_range_m: tuple
+    pan_range_rad: tuple[float, float]
+    tilt_range_rad: tuple[float, float]
+    radius_range_m: tuple[float, float]
     radius_axis: str               # manual | servo
 
 
@@ -107,11 +111,11 @@ class Lamp:
     power_w: float
     cone_angle_rad: float          # full opening angle gamma (eq. 11's normalization)
     rig: LampRig
-    profile: np.ndarray = None     # (M, 2) [off_axis_rad, relative]: I(theta)/I(0), linear, 0
+    profile: np.ndarray | None = None# (M, 2) [off_axis_rad, relative]: I(theta)/I(0), linear, 0
                                    # beyond the last angle; None: eq. (11)'s ideal cone
 
     @property
-    def lit_half_angle_rad(self):
+    def lit_half_angle_rad(self) -> float:
         """The off-axis angle beyond which the lamp lights nothing: the profile's end, where it
         reaches 0 for good (gamma / 2 for eq. (11)'s ideal cone)."""
         if self.profile is None:
@@ -130,10 +134,10 @@ class Truth:
     camera_constant_scale: float = 1.0
     lamp_direction_error_rad: float = 0.0
     material: Material | None = None           # the world's BRDF table; None: the task's
-    part_offset_m: tuple = (0.0, 0.0, 0.0)     # cell frame
-    part_rpy_rad: tuple = (0.0, 0.0, 0.0)      # about the feature centre
-    camera_offset_m: tuple = (0.0, 0.0, 0.0)   # camera frame (hand-eye error)
-    camera_rpy_rad: tuple = (0.0, 0.0, 0.0)
+    part_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)# cell frame
+    part_rpy_rad: tuple[float, float, float] = (0.0, 0.0, 0.0)# about the feature centre
+    camera_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)# camera frame (hand-eye error)
+    camera_rpy_rad: tuple[float, float, float] = (0.0, 0.0, 0.0)
     lamp_radius_error_m: float = 0.0           # the lamp this much farther from the pivot
 
 
@@ -142,7 +146,7 @@ class LoopSettings:
     """The closed loop's limits (`loop`): the albedo scales a correction may imply, how far
     from where the model puts it the feature may be found (registration) [m]."""
 
-    albedo_scale_range: tuple = (0.1, 10.0)
+    albedo_scale_range: tuple[float, float] = (0.1, 10.0)
     registration_limit_m: float | None = None    # None: the plan's (cell.run.loop.registration_limit)
 
 
@@ -154,14 +158,14 @@ class Sample:
     material: Material | None = None           # the material it is made of (None: the part's)
     radius_m: float = 0.025
     thickness_m: float = 0.002
-    normal: tuple = (0.0, 0.0, 1.0)
+    normal: tuple[float, float, float] = (0.0, 0.0, 1.0)
 
 
 @dataclass(frozen=True)
 class Goniometer:
     """How `cell measure-brdf` samples the BRDF (`calibration.goniometer`)."""
 
-    phase_rad: tuple = tuple(np.radians([20.0, 40.0, 60.0]))
+    phase_rad: tuple[float, ...] = tuple(np.radians([20.0, 40.0, 60.0]))
     step_rad: float = float(np.radians(2.0))   # of the half-angle's tilt, in the plane of incidence
     max_angle_rad: float = float(np.radians(80.0))   # ti and te at most
     lamp_radius_m: float | None = None         # None: the middle of the rig's range
@@ -176,7 +180,7 @@ class Calibration:
 @dataclass(frozen=True)
 class SimConfig:
     seed: int = 1
-    effects: tuple = ()
+    effects: tuple[str, ...] = ()
     truth: Truth = Truth()
 
 
@@ -192,17 +196,17 @@ class Task:
     name: str
     part: Part
     frames: Frames                 # the named transforms: part, robot base, hand-eye
-    features: tuple                # Feature, one or more
+    features: tuple[Feature, ...]  # Feature, one or more
     camera: CameraModel
     lamp: Lamp
     cell: CellConfig
     sim: SimConfig
+    board: Board                   # the ChArUco board (calibration.board)
     loop: LoopSettings = LoopSettings()
     calibration: Calibration = Calibration()
-    board: object = None           # cell.task.board.Board: the ChArUco board (calibration.board)
 
     @property
-    def feature(self):
+    def feature(self) -> Feature:
         """The task's only feature (what one-shot planning, the loop and calibration work on)."""
         if len(self.features) != 1:
             raise ValueError(f"the task has {len(self.features)} features; plan them with "
@@ -210,10 +214,10 @@ class Task:
         return self.features[0]
 
     @property
-    def requirements(self):
+    def requirements(self) -> Requirements:
         """The only feature's requirements."""
         return self.feature.requirements
 
-    def with_feature(self, i):
+    def with_feature(self, i: int) -> Task:
         """The one-feature task of feature i (the rest of the task shared)."""
         return replace(self, features=(self.features[i],))

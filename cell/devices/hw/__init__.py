@@ -1,2 +1,2 @@
-"""Real device backends (ur_rtde, dynamixel_sdk, OpenCV, GenICam via harvesters); used only with
---backend hw."""
+"""Real device backends (ur_rtde, dynamixel_sdk, OpenCV, GenICam via harvesters, a Gardasoft RT
+lighting controller over TCP); used only with --backend hw."""

@@ -15,8 +15,12 @@ changes nothing and every write here sets an absolute value, and a bus loses a p
 then. Before it, a late reply is waited out and discarded (the line quiet for QUIET_S), so it
 cannot be taken for the next question's answer.
 """
+
+from __future__ import annotations
+
 import termios
 import time
+from typing import TYPE_CHECKING, Any
 
 import serial
 from dynamixel_sdk import COMM_RX_TIMEOUT, COMM_SUCCESS, GroupSyncWrite, PacketHandler, PortHandler
@@ -28,6 +32,11 @@ from cell.devices.servo import (ALERT, FIRMWARE_VERSION, GOAL_POSITION, HARDWARE
                         PRESENT_INPUT_VOLTAGE, PRESENT_POSITION, PRESENT_TEMPERATURE, PROFILE_VELOCITY,
                         TEMPERATURE_LIMIT, TORQUE_ENABLE, ServoRig, describe_hardware_error, profile_velocity)
 
+if TYPE_CHECKING:
+    from cell.devices.operator import Operator
+    from cell.task.device_config import PanTiltConfig
+    from cell.task.types import LampRig as LampRigModel
+
 ATTEMPTS = 3
 SLACK_MS = 50.0
 QUIET_S = (2 * LATENCY_TIMER + 2.0 + SLACK_MS) / 1e3
@@ -36,7 +45,7 @@ QUIET_S = (2 * LATENCY_TIMER + 2.0 + SLACK_MS) / 1e3
 class _Port(PortHandler):
     """The SDK's port, waiting SLACK_MS longer for every status packet."""
 
-    def setPacketTimeout(self, packet_length):
+    def setPacketTimeout(self, packet_length: int) -> None:
         super().setPacketTimeout(packet_length)
         self.packet_timeout += SLACK_MS
 
@@ -47,7 +56,8 @@ class DynamixelPanTilt(ServoRig):
     read_only (`cell hw-check`): the port opened and nothing written - no Profile Velocity, the
     torque left as it is - so only state() works; the servos are pinged and read there."""
 
-    def __init__(self, rig, config, operator, read_only=False):
+    def __init__(self, rig: LampRigModel, config: PanTiltConfig, operator: Operator,
+                 read_only: bool = False) -> None:
         super().__init__(rig, config, operator)
         self._port, self._packet = _Port(config.port), PacketHandler(2.0)
         self._lost = None                    # why the serial link is gone, once it is
@@ -156,7 +166,7 @@ class DynamixelPanTilt(ServoRig):
     def _present_ticks(self):
         return {dxl_id: self._read(dxl_id, PRESENT_POSITION) for dxl_id in self.ids}
 
-    def state(self):
+    def state(self) -> dict[str, Any]:
         """Per servo (pan, tilt and the radius servo, by id): model, firmware, operating mode,
         torque, Present Position in ticks and as its joint [rad or m], Min/Max Position Limit,
         Hardware Error Status decoded, temperature and its limit [deg C], input voltage [V]; pings
@@ -178,7 +188,7 @@ class DynamixelPanTilt(ServoRig):
         if len(ticks) == len(self.ids):
             joints = self.joints_from_ticks(ticks)
             for dxl_id, joint in zip((self.config.pan_id, self.config.tilt_id, self.config.radius_id), joints):
-                if dxl_id in servos:
+                if dxl_id in servos and joint is not None:
                     servos[dxl_id]["joint_m" if dxl_id == self.config.radius_id else "joint_rad"] = float(joint)
         return {"port": self.config.port, "baud": self.config.baud,
                 "servos": {str(i): s for i, s in servos.items()}, "problems": problems}
@@ -212,7 +222,7 @@ class DynamixelPanTilt(ServoRig):
                 "input_voltage_v": round(read[PRESENT_INPUT_VOLTAGE] * INPUT_VOLTAGE_UNIT_V, 3),
                 "problems": problems}
 
-    def stop(self, fault_is_own=False):
+    def stop(self, fault_is_own: bool = False) -> None:
         """Hold where each servo is (goal = present, torque on), or torque off for the servos'
         own fault. Every servo is tried; the first failure is raised afterwards."""
         failures = []
@@ -227,7 +237,7 @@ class DynamixelPanTilt(ServoRig):
         if failures:
             raise failures[0]
 
-    def close(self):
+    def close(self) -> None:
         try:
             self._port.closePort()
         except (OSError, termios.error):

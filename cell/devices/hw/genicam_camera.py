@@ -1,7 +1,12 @@
 """An industrial camera (GigE Vision, USB3 Vision) through GenICam: `harvesters` loads the vendor's
 GenTL producer (cell.camera.cti) and drives the device by its standard (SFNC) nodes. The lens is
 set by the operator, as with OpenCV."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
 from contextlib import contextmanager
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from genicam import genapi, gentl
@@ -13,21 +18,27 @@ from cell.core.errors import DeviceFault
 from cell.devices.hw.lens import ManualLensCamera
 from cell.devices.session import try_all
 
+if TYPE_CHECKING:
+    from cell.devices.operator import Operator
+    from cell.task.device_config import CameraConfig
+    from cell.task.types import Sensor
+
 # what genicam raises (harvesters passes it on): node access (genapi), transport layer (gentl)
 GENICAM_ERRORS = (genapi.GenericException, gentl.GenericException)
 UNAVAILABLE = (genapi.EAccessMode.NI, genapi.EAccessMode.NA)
 WRITABLE = (genapi.EAccessMode.WO, genapi.EAccessMode.RW)
 
 
-def pick_pixel_format(offered, bit_depth):
+def pick_pixel_format(offered: Iterable[str], bit_depth: int) -> str | None:
     """The Mono format to stream from a sensor of `bit_depth` bits, of those `offered`: the one with
     exactly its bits, else the shallowest deeper one (shifted down: no gray level made up, the
     least data); None when every offered Mono format has fewer bits."""
     deep_enough = [f for f in offered if MONO_FORMATS.get(f, 0) >= bit_depth]
-    return min(deep_enough, key=MONO_FORMATS.get, default=None)
+    return min(deep_enough, key=lambda f: MONO_FORMATS[f], default=None)
 
 
-def mono_to_gray(raw, pixel_format, width, height, bit_depth, padding_x=0):
+def mono_to_gray(raw: bytes | np.ndarray, pixel_format: str, width: int, height: int, bit_depth: int,
+                 padding_x: int = 0) -> np.ndarray:
     """A PFNC Mono8 / Mono12 / Mono16 buffer (unpacked, little-endian; p bits LSB-aligned, so
     values 0 .. 2^p - 1; each row followed by `padding_x` bytes) as the sensor's gray levels
     G = v >> (p - b), 0 .. 2^b - 1: uint8 for b <= 8, else uint16. p < b would make up levels."""
@@ -71,9 +82,11 @@ class GenICamCamera(ManualLensCamera):
 
     Whatever genicam raises, and any missing node, is a DeviceFault naming the camera."""
 
-    def __init__(self, config, sensor, operator, read_only=False):
+    def __init__(self, config: CameraConfig, sensor: Sensor, operator: Operator, read_only: bool = False) -> None:
         """read_only (`cell hw-check`): the device is opened and its nodes only read, not set up."""
         super().__init__(sensor.bit_depth, operator, "a GenICam camera's lens is set by hand here")
+        if config.cti is None:
+            raise DeviceFault(self.device, "no GenTL producer to open (cell.camera.cti)")
         self.config = config
         self.name = f"the GenTL producer {config.cti}"
         self._harvester, self._acquirer = Harvester(), None
@@ -91,7 +104,7 @@ class GenICamCamera(ManualLensCamera):
             try_all([self.close])                           # the fault to report is the first
             raise
 
-    def state(self):
+    def state(self) -> dict[str, Any]:
         """The device's model and serial, Width x Height, PixelFormat (with the bits it carries),
         ExposureTime and its range, by reading nodes only (`cell hw-check`); `problems`: a node a
         run needs that is missing, or no Mono format with the sensor's bits."""
@@ -219,7 +232,7 @@ class GenICamCamera(ManualLensCamera):
             raise DeviceFault(self.device, f"{self.name}, {doing}: {type(err).__name__}: "
                                            f"{message}") from err
 
-    def set_exposure(self, shutter_s):
+    def set_exposure(self, shutter_s: float) -> float:
         """ExposureTime [us, SFNC] set with the stream stopped and read back: returns the shutter
         time the device uses [s] (devices round it, e.g. to whole sensor lines)."""
         with self._speaking("setting the exposure"):
@@ -236,7 +249,7 @@ class GenICamCamera(ManualLensCamera):
         self.shutter_s = actual
         return actual
 
-    def capture(self):
+    def capture(self) -> np.ndarray:
         with self._speaking("capturing"):
             self._start()
             if self.triggered:
@@ -278,7 +291,7 @@ class GenICamCamera(ManualLensCamera):
         if self._acquirer.is_acquiring():
             self._acquirer.stop()
 
-    def close(self):
+    def close(self) -> None:
         """Stop the stream, release the device and the producer (again: nothing more to do)."""
         acquirer, self._acquirer = self._acquirer, None
         with self._speaking("closing"):

@@ -2,24 +2,33 @@
 path, which exercises the same capture code). Manual exposure goes through
 CAP_PROP_AUTO_EXPOSURE (raw V4L2 1 = manual) and CAP_PROP_EXPOSURE in `exposure_unit_s` steps;
 OpenCV has no lens control, so the operator sets the f-number and the focus."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
 import cv2
 import numpy as np
 
 from cell.core.errors import DeviceFault
 from cell.devices.hw.lens import ManualLensCamera
 
+if TYPE_CHECKING:
+    from cell.devices.operator import Operator
+    from cell.task.device_config import CameraConfig
+
 V4L2_MANUAL_EXPOSURE = 1
 
 
 class OpenCVCamera(ManualLensCamera):
-    def __init__(self, config, bit_depth, operator):
+    def __init__(self, config: CameraConfig, bit_depth: int, operator: Operator) -> None:
         super().__init__(bit_depth, operator, "OpenCV has no lens control")
         self.config = config
         self._capture = cv2.VideoCapture(config.source)
         if not self._capture.isOpened():
             raise DeviceFault(self.device, f"cannot open {config.source!r} with cv2.VideoCapture")
 
-    def set_exposure(self, shutter_s):
+    def set_exposure(self, shutter_s: float) -> float:
         """Manual exposure, read back: returns the shutter time the camera reports [s]."""
         unit = self.config.exposure_unit_s
         value = round(shutter_s / unit)
@@ -42,10 +51,10 @@ class OpenCVCamera(ManualLensCamera):
             raise DeviceFault(self.device, f"no frame from {self.config.source!r}")
         return frame
 
-    def capture(self):
+    def capture(self) -> np.ndarray:
         return self._gray(self._read())
 
-    def state(self):
+    def state(self) -> dict[str, Any]:
         """The source, OpenCV's backend, one frame's size, channels and bit depth, the FOURCC
         the capture reports and the exposure setting, by get() only: nothing is set. OpenCV cannot
         ask a camera its model or exposure range (on V4L2 `v4l2-ctl --all` shows them): None."""
@@ -74,5 +83,5 @@ class OpenCVCamera(ManualLensCamera):
                                            f"gives {np.dtype(expected)}")
         return frame
 
-    def close(self):
+    def close(self) -> None:
         self._capture.release()

@@ -16,10 +16,14 @@ every command is sent only to a controller whose state is still arriving, and mo
 asynchronously and watched here on the receive side against `move_timeout_s`, one batched round
 trip to the worker per poll.
 """
+
+from __future__ import annotations
+
 import socket
 import struct
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -27,6 +31,10 @@ from cell.devices.interfaces import Arm
 from cell.core.errors import DeviceFault
 from cell.core.geometry import from_ur_pose, rotation_angle, to_ur_pose
 from cell.devices.hw.ur_worker import Remote, Worker
+
+if TYPE_CHECKING:
+    from cell.core.frames import Frames
+    from cell.task.device_config import ArmConfig
 
 PORTS = (30004, 29999, 30003)            # RTDE, dashboard, script: fixed by UR and ur_rtde
 RTDE_REQUEST_PROTOCOL_VERSION = 86        # 'V' (RTDE guide); payload: uint16 version
@@ -63,14 +71,14 @@ class Watched:
     emergency_stopped: bool
     protective_stopped: bool
     runtime_state: int
-    tcp_pose: list
-    tcp_speed: list
+    tcp_pose: list[float]
+    tcp_speed: list[float]
 
     @property
-    def connected(self):
+    def connected(self) -> bool:
         return self.receive_connected and self.control_connected
 
-    def why_stopped(self):
+    def why_stopped(self) -> str:
         if self.emergency_stopped:
             return " (emergency stop)"
         if self.protective_stopped:
@@ -90,7 +98,7 @@ def _receive(sock, n):
     return data
 
 
-def probe(host, timeout_s):
+def probe(host: str, timeout_s: float) -> None:
     """Raise DeviceFault unless the controller at `host` answers each step ur_rtde blocks on
     within timeout_s: RTDE handshake, dashboard greeting, script port connect."""
     rtde_port, dashboard_port, script_port = PORTS
@@ -113,7 +121,7 @@ def probe(host, timeout_s):
                                      f"{reason}") from None
 
 
-def dashboard(host, timeout_s):
+def dashboard(host: str, timeout_s: float) -> dict[str, Any]:
     """The controller's identity and whether it is in Remote Control (which ur_rtde's control
     interface needs on a real robot), asked on the dashboard server: queries only. An answer
     other than true/false (a CB3 has no `is in remote control`) is None for unknown."""
@@ -122,7 +130,7 @@ def dashboard(host, timeout_s):
         with socket.create_connection((host, port), timeout=timeout_s) as sock:
             lines = sock.makefile("rb")
             lines.readline()                                            # the greeting
-            answers = {}
+            answers: dict[str, Any] = {}
             for key, query in DASHBOARD_QUERIES.items():
                 sock.sendall(query.encode() + b"\n")
                 answers[key] = lines.readline().decode(errors="replace").strip()
@@ -145,15 +153,19 @@ class URArm(Arm):
     read_only (`cell hw-check`): the receive interface alone - no control script uploaded, no TCP
     set, nothing commanded - so only state() and the read-back work; a move is refused."""
 
-    def __init__(self, config, frames, read_only=False):
+    def __init__(self, config: ArmConfig, frames: Frames, read_only: bool = False) -> None:
         super().__init__(config, frames)
         host, timeout_s = config.host, config.connect_timeout_s
+        if host is None:
+            raise DeviceFault(self.device, "no address to connect to (cell.arm.host)")
+        self._host = host
         probe(host, timeout_s)
         self._worker = Worker(self.device, f"UR at {host}")
         # stopL brakes from up to speed_m_s before it answers
         stop_s = timeout_s + config.speed_m_s / STOP_DECELERATION_M_S2
         self._receive = Remote(self._worker, "receive", timeout_s)
-        self._control = None if read_only else Remote(self._worker, "control", timeout_s, {"stopL": stop_s})
+        control = Remote(self._worker, "control", timeout_s, {"stopL": stop_s})
+        self._control = None if read_only else control
         try:
             self._worker.call([("receive", "__init__", (host,))], timeout_s,
                               "RTDEReceiveInterface connect (RTDE setup and the first state)")
@@ -163,7 +175,7 @@ class URArm(Arm):
                               "RTDEControlInterface connect (RTDE setup, dashboard, control script "
                               "upload and start)")
             self._alive("setTcp")
-            if not self._control.setTcp(list(to_ur_pose(frames.T_flange_cam))):
+            if not control.setTcp(list(to_ur_pose(frames.T_flange_cam))):
                 raise RuntimeError("setTcp(hand-eye) refused")
             # the receive interface's own stream may lag the control's "done" by a few ticks:
             # read nothing back until a state well after it carries the new TCP
@@ -279,7 +291,7 @@ class URArm(Arm):
             raise self._fault("connection to the controller lost")
         return from_ur_pose(pose)
 
-    def state(self):
+    def state(self) -> dict[str, Any]:
         """Robot and safety mode by name, the TCP pose ([x, y, z, rx, ry, rz] in m and rad, base
         frame, of the controller's active TCP: a run sets the hand-eye as TCP) and the joints [rad],
         read once a fresh state arrived; the dashboard's identity and Remote Control. `problems`:
@@ -294,7 +306,7 @@ class URArm(Arm):
                      "joints_rad": list(self._receive.getActualQ())}
         except RuntimeError as err:
             raise self._fault(str(err)) from None
-        state.update(dashboard(self.config.host, self.config.connect_timeout_s))
+        state.update(dashboard(self._host, self.config.connect_timeout_s))
         problems = []
         if robot_mode != ROBOT_MODE_RUNNING:
             problems.append(f"robot mode {state['robot_mode']}: a run needs RUNNING (power on, brakes "
@@ -306,7 +318,7 @@ class URArm(Arm):
                             "interface needs it)")
         return {**state, "problems": problems}
 
-    def stop(self):
+    def stop(self) -> None:
         """stopL, sent only to a controller that still answers (to any other it would wait 300 s
         for the done): then the stop could not be commanded, and that is a DeviceFault. A
         read-only arm commanded nothing: nothing to stop."""
@@ -318,7 +330,7 @@ class URArm(Arm):
         except RuntimeError as err:
             raise self._fault(f"stopL failed: {err}") from None
 
-    def close(self):
+    def close(self) -> None:
         """stopScript and disconnect both interfaces (within 2 connect timeouts + 1 s) when the
         controller still answers; a gone or silent one gets neither (stopScript would wait 300 s,
         ur_rtde's disconnect 5 s for its reconnecting threads): the worker is ended at once, which

@@ -10,6 +10,9 @@ its sockets) and that is a DeviceFault naming the device, its address and the st
 may carry several calls (`Worker.call`), so a watcher polling the receive side pays one round
 trip per poll, not one per getter.
 """
+
+from __future__ import annotations
+
 import builtins
 import ctypes
 import os
@@ -18,8 +21,10 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from multiprocessing.connection import Connection
 from pathlib import Path
+from typing import Any
 
 from cell.core.errors import DeviceFault
 
@@ -32,7 +37,7 @@ class Worker:
     """A process holding ur_rtde objects by name ("receive", "control"). `device` and `address`
     name what a DeviceFault is about, e.g. "arm" and "UR at 192.168.1.10"."""
 
-    def __init__(self, device, address):
+    def __init__(self, device: str, address: str) -> None:
         self.device, self.address = device, address
         ours, theirs = socket.socketpair()
         env = dict(os.environ)               # the child imports this very `cell`, wherever it lies
@@ -43,10 +48,10 @@ class Worker:
                 [sys.executable, "-m", "cell.devices.hw.ur_worker", str(theirs.fileno()), str(os.getpid())],
                 pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL, env=env)
         self._conn = Connection(ours.detach())
-        self._dead = None                                 # why the worker is gone, once it is
+        self._dead: str | None = None                     # why the worker is gone, once it is
         self.call([], START_TIMEOUT_S, "start of the ur_rtde worker process")
 
-    def call(self, calls, timeout_s, step):
+    def call(self, calls: Sequence[tuple[str, str, tuple[Any, ...]]], timeout_s: float, step: str) -> list[Any]:
         """Run calls [(object, method, args)] in turn in the worker and return their results; method
         "__init__" constructs the object (rtde_receive.RTDEReceiveInterface for "receive",
         rtde_control.RTDEControlInterface for "control"). The first exception a call raises is
@@ -80,7 +85,7 @@ class Worker:
     def _fault(self, reason):
         return DeviceFault(self.device, f"{self.address}: {reason}")
 
-    def kill(self, why="closed"):
+    def kill(self, why: str = "closed") -> None:
         """End the worker at once (its sockets close with it); later calls are DeviceFaults saying why."""
         if self._dead is None:
             self._dead = why
@@ -89,7 +94,8 @@ class Worker:
         self._process.wait(CLOSE_TIMEOUT_S)
         self._conn.close()
 
-    def close(self, calls=(), timeout_s=CLOSE_TIMEOUT_S):
+    def close(self, calls: Sequence[tuple[str, str, tuple[Any, ...]]] = (),
+              timeout_s: float = CLOSE_TIMEOUT_S) -> None:
         """Run each of calls (e.g. disconnects; one failing does not skip the next) within
         timeout_s for all, then let the worker end; without calls it is killed at once (the
         objects' destructors would disconnect, which ur_rtde does slowly from a silent host)."""
@@ -115,7 +121,8 @@ class Remote:
     """`remote.method(*args)` calls `method` of the worker's object `name`, within `timeout_s`
     (`timeouts` for the methods that need longer, e.g. a stop that brakes first)."""
 
-    def __init__(self, worker, name, timeout_s, timeouts=None):
+    def __init__(self, worker: Worker, name: str, timeout_s: float,
+                 timeouts: dict[str, float] | None = None) -> None:
         self._worker, self._name, self._timeout_s, self._timeouts = worker, name, timeout_s, timeouts or {}
 
     def __getattr__(self, method):
@@ -126,7 +133,7 @@ class Remote:
         return call
 
 
-def serve(conn, parent_pid):
+def serve(conn: Connection, parent_pid: int) -> None:
     """The worker's loop: answer each request, a list of calls, ("ok", results) or ("error", type
     name, message) for the first call that raised; None or the socket closing ends it."""
     _die_with_parent(parent_pid)
@@ -141,7 +148,7 @@ def serve(conn, parent_pid):
             return
         if calls is None:
             return
-        results = []
+        results: list[Any] = []
         try:
             for name, method, args in calls:
                 if method == "__init__":
