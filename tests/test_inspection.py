@@ -175,7 +175,7 @@ def test_one_exposure_serves_features_that_agree_and_the_run_says_so_when_they_d
     # both a third as bright as measured (111-129 -> 37-43): one gain brightens both into the band
     dim = np.where(base[0].region | base[1].region, image / 3, image)
     ms = [measurement.measure_feature(dim, t, T, p, 255) for t, p in zip(tasks, points)]
-    c = inspection.shared_correction(names, [measured(m) for m in ms], limits, 0.002, 1.4, black)
+    c = control.shared_correction(names, [measured(m) for m in ms], limits, 0.002, 1.4, black)
     assert c.action == "exposure"
     gain = c.shutter_s / c.f_number**2 / (0.002 / 1.4**2)
     lo, hi = min(m.min for m in ms), max(m.max for m in ms)
@@ -188,7 +188,7 @@ def test_one_exposure_serves_features_that_agree_and_the_run_says_so_when_they_d
     split = np.where(base[0].region, 1.6 * image, np.where(base[1].region, 0.35 * image, image))
     ms = [measurement.measure_feature(split, t, T, p, 255) for t, p in zip(tasks, points)]
     assert all(m.max / m.min < 250 / 60 for m in ms) and ms[0].max / ms[1].min > 250 / 60
-    c = inspection.shared_correction(names, [measured(m) for m in ms], limits, 0.002, 1.4, black)
+    c = control.shared_correction(names, [measured(m) for m in ms], limits, 0.002, 1.4, black)
     assert c.action == "stop" and c.cause == "features"
     assert c.reason.startswith("the shot's features disagree: leaf_a") and "each alone would fit" in c.reason
 
@@ -200,7 +200,7 @@ def test_a_feature_that_stops_alone_is_named(pair):
     limits = [control.Limits((60.0, 250.0), (1e-5, 0.02), (1.4, 16.0))] * 2
     # leaf_b predicted 100x brighter than measured: an albedo x0.01, outside x0.1-x10
     wrong = [measured(ms[0]), (None, ms[1], 100 * measured(ms[1])[2])]
-    c = inspection.shared_correction(["leaf_a", "leaf_b"], wrong, limits, 0.002, 1.4,
+    c = control.shared_correction(["leaf_a", "leaf_b"], wrong, limits, 0.002, 1.4,
                                      measurement.BlackLevel(0.0, 0.0, "task"))
     assert c.action == "stop" and c.cause == "albedo" and c.reason.startswith("leaf_b: ")
 
@@ -341,7 +341,7 @@ def test_features_whose_bands_share_nothing_are_not_corrected_toward_either(pair
     ms = [measurement.measure_feature(image, t, T, p, 255) for t, p in zip(tasks, points)]
     limits = [control.Limits((60.0, 100.0), (1e-5, 0.02), (1.4, 16.0)),
               control.Limits((150.0, 250.0), (1e-5, 0.02), (1.4, 16.0))]
-    c = inspection.shared_correction(["leaf_a", "leaf_b"], [measured(m) for m in ms], limits, 0.002, 1.4,
+    c = control.shared_correction(["leaf_a", "leaf_b"], [measured(m) for m in ms], limits, 0.002, 1.4,
                                      measurement.BlackLevel(0.0, 0.0, "task"))
     assert c.action == "stop" and c.cause == "bands"
     assert "leaf_a 60-100, leaf_b 150-250" in c.reason

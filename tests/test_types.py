@@ -12,7 +12,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 # the packages whose public functions, methods and dataclass fields must be annotated
 TYPED_PACKAGES = ("cell.core", "cell.physics", "cell.task", "cell.devices", "cell.planning", "cell.report",
-                  "cell.calibration", "cell.bench",
+                  "cell.run", "cell.calibration", "cell.bench",
                   "cell.cli", "sim", "kernels")
 # Warp's @wp.func and @wp.kernel are typed in Warp's kernel language, which Warp checks (a kernel
 # returns nothing and says so by no annotation)

@@ -186,18 +186,9 @@ def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices], shots:
         return CalibrationResult(str(task.path), c_model, fit is not None and not reason, reason, recorder.plan,
                                  tuple(records), fit, fault)
 
-    # the Devices connect(scene) opened: the session holds them too, but as a Held (cell.devices.session
-    # sits below cell.devices.interfaces), which has no camera
-    opened: list[Devices] = []
-
-    def connect_scene(scene: Scene) -> Devices:
-        opened.append(connect(scene))
-        return opened[-1]
-
     with Recorder(out) as recorder, Ending(recorder, "no fit", "calibration.json", result) as end:
         with end.session:
-            planned = plan_and_connect(task, recorder, end.session, connect_scene)
-            devices = opened[-1]
+            planned, devices = plan_and_connect(task, recorder, end.session, connect)
             for record in sweep(task, planned, devices, recorder, shots):
                 records.append(record)
         exposures = np.array([r.exposure for r in records])

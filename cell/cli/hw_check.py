@@ -98,6 +98,6 @@ def command(args: argparse.Namespace) -> int:
             print(f"hw-check: all {len(checks)} devices answered; nothing was moved or set")
         return 0
     for c in failed:
-        what = f"did not answer: {c.fault}" if c.fault else "not ready: " + "; ".join(c.state["problems"])
+        what = f"did not answer: {c.fault}" if c.fault else "not ready: " + "; ".join(c.problems)
         print(f"cell hw-check: {c.device} at {c.address} {what}", file=sys.stderr, flush=True)
     return 3

@@ -36,9 +36,10 @@ LIBRARY_ERRORS = (OSError, RuntimeError, EOFError)
 
 
 @contextmanager
-def speaking_for(device: Arm | LampRig | Camera) -> Iterator[None]:
+def speaking_for(device: Device | type[Device]) -> Iterator[None]:
     """Device calls inside this block: whatever the device's library raises becomes a DeviceFault
-    naming the device (`device.device`), so the run stops safely and exits 3, never a traceback."""
+    naming the device (`device.device`; a device class while it opens), so the run stops safely and
+    exits 3, never a traceback."""
     try:
         yield
     except LIBRARY_ERRORS as err:
@@ -302,6 +303,9 @@ class LightController(ABC):
 
     def close(self) -> None:
         """Release the connection (after all_off)."""
+
+
+Device = Arm | LampRig | Camera | LightController     # one of the cell's devices (speaking_for names it)
 
 
 @dataclass

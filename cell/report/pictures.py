@@ -97,7 +97,7 @@ class MeasuredRegion(Protocol):
     @property
     def saturated(self) -> np.ndarray: ...
     @property
-    def region(self) -> np.ndarray: ...
+    def region(self) -> np.ndarray | None: ...
     @property
     def row(self) -> np.ndarray: ...
     @property
@@ -574,6 +574,8 @@ def write_bench(path: PathLike, settings: Sequence[dict[str, Any]]) -> None:
 def annotate_capture(image: np.ndarray, m: MeasuredRegion, bit_depth: int, caption: str) -> np.ndarray:
     """8-bit colour copy of a capture (OpenCV): the measured region (measurement.Measurement)
     outlined (green), its saturated pixels red, the samples' pixels blue, a caption."""
+    if m.region is None:
+        raise ValueError("a joined measurement has no region of its own to draw: annotate each feature's")
     scale = 255.0 / saturation_level(bit_depth)
     view = cv2.cvtColor((levels(image, bit_depth) * scale).astype(np.uint8), cv2.COLOR_GRAY2BGR)
     view[m.saturated] = (0, 0, 255)

@@ -2,7 +2,11 @@
 infeasible plan before anything moves and connect the devices; move to a Shot's poses, set an
 exposure and take a frame, find the sensor's black level (the task's, or a dark frame's), each step
 logged as the devices read it back."""
+from __future__ import annotations
+
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -11,6 +15,14 @@ from cell.devices.interfaces import speaking_for
 from cell.core.errors import PlanInfeasible
 from cell.planning.plan import gray_stats
 from cell.run import measurement
+
+if TYPE_CHECKING:
+    from cell.devices.interfaces import Devices
+    from cell.devices.session import Session
+    from cell.planning.plan import Plan, Shot
+    from cell.planning.scene import Scene
+    from cell.report.recorder import Recorder
+    from cell.task.types import Task
 
 
 @dataclass(frozen=True)
@@ -25,7 +37,8 @@ class Capture:
     name: str                    # its file in the run folder
 
 
-def plan_recorded(task, recorder, albedo_scale=1.0, iteration=None, subfolder="", T_cell_cam=None):
+def plan_recorded(task: Task, recorder: Recorder, albedo_scale: float = 1.0, iteration: int | None = None,
+                  subfolder: str = "", T_cell_cam: np.ndarray | None = None) -> Plan:
     """Plan (the function `cell plan` uses; the camera at T_cell_cam, else by the task's rule),
     write plan.json and pictures, log it."""
     from cell.planning.one_shot import plan
@@ -45,22 +58,23 @@ def plan_recorded(task, recorder, albedo_scale=1.0, iteration=None, subfolder=""
     return planned
 
 
-def require_feasible(plan):
+def require_feasible(plan: Plan) -> None:
     """Refuse an infeasible plan before anything moves (PlanInfeasible, exit 1)."""
     if not plan.feasible:
         raise PlanInfeasible(f"infeasible: {plan.message}")
 
 
-def plan_and_connect(task, recorder, session, connect):
+def plan_and_connect(task: Task, recorder: Recorder, session: Session,
+                     connect: Callable[[Scene], Devices]) -> tuple[Plan, Devices]:
     """Plan (plan_recorded), refuse an infeasible plan before anything moves, then connect(scene)
-    the cell's devices into the session. Returns the plan."""
+    the cell's devices into the session. Returns the plan and the devices."""
     planned = plan_recorded(task, recorder)
     require_feasible(planned)
-    session.devices = connect(planned.scene)
-    return planned
+    devices = session.devices = connect(planned.planned_scene)
+    return planned, devices
 
 
-def move_to(devices, shot, recorder, iteration=None):
+def move_to(devices: Devices, shot: Shot, recorder: Recorder, iteration: int | None = None) -> None:
     """Camera and lamp to the shot's poses, each logged as read back from the device."""
     with speaking_for(devices.arm):
         devices.arm.move_camera(shot.T_cell_cam)
@@ -71,7 +85,8 @@ def move_to(devices, shot, recorder, iteration=None):
     move_lamp(devices, shot.joints, recorder, iteration)
 
 
-def move_lamp(devices, joints, recorder, iteration=None, why=""):
+def move_lamp(devices: Devices, joints: tuple[float, ...], recorder: Recorder,
+              iteration: int | None = None, why: str = "") -> tuple[float, float, float]:
     """The lamp to (pan, tilt, radius) [rad, rad, m], logged as read back (after `why`, if
     given). Returns the read-back joints."""
     with speaking_for(devices.lamp):
@@ -83,7 +98,8 @@ def move_lamp(devices, joints, recorder, iteration=None, why=""):
     return pan, tilt, radius
 
 
-def acquire(devices, recorder, iteration, shutter_s, f_number, focus_m, name=None):
+def acquire(devices: Devices, recorder: Recorder, iteration: int, shutter_s: float, f_number: float,
+            focus_m: float, name: str | None = None) -> Capture:
     """Set f-number, focus and shutter, take a frame and save it at once (capture-N.png, or
     name.png, the sim's float gray rounded to the sensor's levels). Returns the Capture. The shutter comes last:
     a camera drops the frames exposed before it changed (OpenCVCamera), and an operator turning
@@ -105,7 +121,8 @@ def acquire(devices, recorder, iteration, shutter_s, f_number, focus_m, name=Non
     return Capture(image, pose, shutter_s, float(f_number), float(focus_m), name)
 
 
-def find_black_level(task, devices, recorder, f_number, focus_m, feature_light=None):
+def find_black_level(task: Task, devices: Devices, recorder: Recorder, f_number: float, focus_m: float,
+                     feature_light: Callable[[float], float] | None = None) -> measurement.BlackLevel:
     """The task's camera.sensor.black_level, else a dark frame's (measurement.black_level_of):
     capture-0.png at the shortest shutter (the rig cannot switch the lamp off) and f_number,
     logged with feature_light(shutter) when given: the most light the model lets reach the

@@ -1,15 +1,28 @@
 """The one place that builds the cell's devices: the simulated cell (sim/) or the real one
 (cell/devices/hw/). Nothing else in cell/ imports either, so the controller sees only the
 interfaces of cell.devices.interfaces, and the real backends' SDKs load only for --backend hw."""
-from dataclasses import dataclass
+from __future__ import annotations
 
-from cell.devices.interfaces import Camera, Devices, speaking_for
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from cell.devices.interfaces import Camera, Device, Devices, speaking_for
 from cell.core.errors import DeviceFault, TaskError
 from cell.devices.operator import Operator
 from cell.devices.session import try_all
 
+if TYPE_CHECKING:
+    from cell.planning.scene import Scene
+    from cell.task.device_config import CameraConfig, DevicesConfig
+    from cell.task.types import Task
+    from sim.laser import Beam
 
-def open_devices(task, scene, backend, yes=False, laser=None, board=False):
+OpenCamera = Callable[..., Camera]      # open(operator, arm=None, lamp=None) -> the task's camera
+
+
+def open_devices(task: Task, scene: Scene | None, backend: str, yes: bool = False, laser: Beam | None = None,
+                 board: bool = False) -> Devices:
     """The cell's devices: the simulated cell (rendering `scene`, the spot of a laser aimed at
     the sensor, or with board the calibration.board) or, for backend hw, the real ones from the
     task's cell.arm / cell.pan_tilt / cell.camera settings (a real laser and board are the
@@ -20,7 +33,8 @@ def open_devices(task, scene, backend, yes=False, laser=None, board=False):
     return make_sim_devices(task, scene, yes=True, laser=laser, board=board)
 
 
-def make_hw_devices(task, yes=False, operator=None, scene=None):
+def make_hw_devices(task: Task, yes: bool = False, operator: Operator | None = None,
+                    scene: Scene | None = None) -> Devices:
     """The real devices for --backend hw from the task's settings. Needs explicit `cell.arm.host`
     and `cell.pan_tilt.port` (no default reaches the network or a serial bus); connects arm,
     servos, camera and, if the task has cell.lighting, the lighting controller in turn and closes
@@ -32,7 +46,7 @@ def make_hw_devices(task, yes=False, operator=None, scene=None):
     open_camera = hw_camera(task, scene=scene)
 
     operator = operator or Operator(yes=yes)
-    opened = []
+    opened: list[Any] = []            # arm, pan-tilt, camera and lighting controller: Devices' order
     try:
         with speaking_for(URArm):
             opened.append(URArm(config.arm, task.frames))
@@ -50,7 +64,7 @@ def make_hw_devices(task, yes=False, operator=None, scene=None):
     return Devices(*opened)
 
 
-def _addressed(task):
+def _addressed(task: Task) -> DevicesConfig:
     """The task's device settings, once they name the robot and the serial port: no default
     reaches a network or a bus (bad input otherwise)."""
     config = task.cell.devices
@@ -72,16 +86,21 @@ class DeviceCheck:
 
     device: str
     address: str                      # host, serial port, camera source or host:port
-    state: dict | None
+    state: dict[str, Any] | None
     fault: str | None
 
     @property
-    def ready(self):
+    def problems(self) -> list[str]:
+        """What its state reports a run would stop on (nothing when it did not answer)."""
+        return self.state["problems"] if self.state is not None else []
+
+    @property
+    def ready(self) -> bool:
         """Answered, and reports nothing a run would stop on."""
-        return self.fault is None and not self.state["problems"]
+        return self.fault is None and not self.problems
 
 
-def check_hw_devices(task):
+def check_hw_devices(task: Task) -> list[DeviceCheck]:
     """`cell hw-check`: each real device of the task opened alone and read-only, asked its
     state() and closed, so one that fails does not hide the others. Reading only: nothing moves,
     no torque or setting changes, no control script is uploaded, no frame exposure is set; a
@@ -96,23 +115,25 @@ def check_hw_devices(task):
     no_prompt = Operator(yes=True)    # nothing is set by hand in a check, so nothing is asked
     sensor = task.camera.sensor
     checks = [
-        _check(URArm, config.arm.host, lambda: URArm(config.arm, task.frames, read_only=True)),
-        _check(DynamixelPanTilt, config.pan_tilt.port,
+        _check(URArm, str(config.arm.host), lambda: URArm(config.arm, task.frames, read_only=True)),
+        _check(DynamixelPanTilt, str(config.pan_tilt.port),
                lambda: DynamixelPanTilt(task.lamp.rig, config.pan_tilt, no_prompt, read_only=True)),
         _check(Camera, camera_address(config.camera), lambda: open_camera(no_prompt)),
     ]
     camera = checks[-1].state
-    if config.lighting:
+    lighting = config.lighting
+    if lighting:
         from cell.devices.hw.gardasoft import GardasoftController
-        checks.append(_check(GardasoftController, f"{config.lighting.host}:{config.lighting.port}",
-                             lambda: GardasoftController(config.lighting, read_only=True)))
+        checks.append(_check(GardasoftController, f"{lighting.host}:{lighting.port}",
+                             lambda: GardasoftController(lighting, read_only=True)))
     if camera and (camera["width_px"], camera["height_px"]) != (sensor.width_px, sensor.height_px):
         camera["problems"].append(f"frames are {camera['width_px']}x{camera['height_px']}, camera.sensor is "
                                   f"{sensor.width_px}x{sensor.height_px}: set the camera's resolution")
     return checks
 
 
-def _check(kind, address, open_device):
+def _check(kind: type[Device], address: str,
+           open_device: Callable[[], Device]) -> DeviceCheck:
     device = None
     try:
         with speaking_for(kind):
@@ -125,7 +146,7 @@ def _check(kind, address, open_device):
             try_all([device.close])
 
 
-def camera_address(config):
+def camera_address(config: CameraConfig) -> str:
     """Where the camera is found: OpenCV's source, or the GenTL producer and the device in it."""
     if config.driver == "simulated":
         return "simulated (renders the task's scene)"
@@ -135,7 +156,7 @@ def camera_address(config):
     return f"{config.cti} {device}"
 
 
-def hw_camera(task, read_only=False, scene=None):
+def hw_camera(task: Task, read_only: bool = False, scene: Scene | None = None) -> OpenCamera:
     """open(operator, arm=None, lamp=None) -> the camera of the task's cell.camera.driver: OpenCV's
     VideoCapture, a GenICam device, whose SDK (harvesters, the `genicam` extra) is imported only
     here: not installed is bad input before anything connects, or the simulator rendering `scene`

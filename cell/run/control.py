@@ -20,13 +20,25 @@ observable, so the scale also absorbs an error in c.
                     and an albedo scale does not change the predicted shape: stop
   4. exposure       a shutter and f-number within range put the range in the band
   5. re-plan        with the albedo scale the capture implies
+
+Several features in one capture share one exposure (`shared_correction`): each is judged alone,
+then their measurements joined against the bands' intersection; what needs more than an
+exposure stops there, a shot of several features being neither refitted nor re-planned.
 """
-from dataclasses import dataclass
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from cell.planning.evaluate import target_gray
 from cell.planning.plan import gray_stats
+from cell.run import measurement
+
+if TYPE_CHECKING:
+    from cell.run.measurement import BlackLevel, Measurement
 
 DARK = 0.5                  # a pixel at the black level reads below the first gray level above it
 SATURATED_STEP = 4.0        # every pixel saturated: step this far past the lower bound (2 stops)
@@ -42,13 +54,14 @@ class Limits:
     """What a correction must respect: the gray band, the shutter range, the f-number range (its
     low end the widest the depth of field allows) and the plausible albedo scales."""
 
-    band: tuple
-    shutter_range: tuple
-    f_number_range: tuple
-    albedo_range: tuple = (0.1, 10.0)
+    band: tuple[float, float]
+    shutter_range: tuple[float, float]
+    f_number_range: tuple[float, float]
+    albedo_range: tuple[float, float] = (0.1, 10.0)
 
 
-def model_error(sample_gray, predicted, saturation, black_level=0.0):
+def model_error(sample_gray: np.ndarray, predicted: np.ndarray, saturation: float,
+                black_level: float = 0.0) -> tuple[float, str]:
     """(measured / predicted signal G - b at the samples, relation): the median over samples the
     sensor resolves, "="; if every one saturates the tightest lower bound, ">="; if every one
     reads the black level the tightest upper bound (true signal < DARK), "<="."""
@@ -62,16 +75,18 @@ def model_error(sample_gray, predicted, saturation, black_level=0.0):
     return float(np.min(DARK / p)), "<="
 
 
-def describe_error(error, relation):
+def describe_error(error: float, relation: str) -> str:
+    """`measured gray is at least 1.3x the model's`: the model error and its relation in words."""
     bound = {"=": "", ">=": "at least ", "<=": "at most "}[relation]
     return f"measured gray is {bound}{error:.3g}x the model's"
 
 
-def true_range(m, predicted, error, black_level=0.0):
+def true_range(m: Measurement, predicted: np.ndarray, error: float,
+               black_level: float = 0.0) -> tuple[float, float]:
     """The feature's gray range (lo, hi) the capture implies: the measured extremes where the
     sensor resolves them; at saturation (true >= it) or at the black level b (true signal < DARK)
     b + the model's signal times the measured error, within what the reading allows."""
-    def resolve(reading, estimate):
+    def resolve(reading: float, estimate: float) -> float:
         estimate = black_level + error * (estimate - black_level)
         if reading >= m.saturation:
             return max(m.saturation, estimate)
@@ -79,7 +94,7 @@ def true_range(m, predicted, error, black_level=0.0):
     return resolve(m.min, predicted.min()), resolve(m.max, predicted.max())
 
 
-def spread_exceeds_band(lo, hi, band, black_level=0.0):
+def spread_exceeds_band(lo: float, hi: float, band: tuple[float, float], black_level: float = 0.0) -> bool:
     """Whether the feature's signal range (gray - b) is relatively wider than the band's
     (max/min > (high - b)/(low - b)), so that no exposure fits it, G - b ~ t / kappa^2 scaling all
     alike. A dim range (lo - b < RESOLVED (low - b)) is not judged: noise and the black level
@@ -89,8 +104,10 @@ def spread_exceeds_band(lo, hi, band, black_level=0.0):
     return lo >= RESOLVED * low and hi * low > lo * high
 
 
-def correct_exposure(lo, hi, relation, shutter_s, f_number, band, shutter_range, f_number_range,
-                     black_level=0.0):
+def correct_exposure(lo: float, hi: float, relation: str, shutter_s: float, f_number: float,
+                     band: tuple[float, float], shutter_range: tuple[float, float],
+                     f_number_range: tuple[float, float], black_level: float = 0.0,
+                     ) -> tuple[float, float, str | None]:
     """(shutter, f-number, reason): the gain target / sqrt(S_lo S_hi) on the signal S = G - b,
     S ~ t / kappa^2, shutter first, the f-number within f_number_range for what the shutter's
     range leaves. With every pixel saturated (relation ">=", lo and hi lower bounds) it steps
@@ -114,7 +131,7 @@ def correct_exposure(lo, hi, relation, shutter_s, f_number, band, shutter_range,
     return shutter, kappa, None
 
 
-def black_pixels(m, black):
+def black_pixels(m: Measurement, black: BlackLevel) -> tuple[float, bool]:
     """(fraction of the region's pixels at the BlackLevel, whether the others are lit: their
     median at least LIT_CONTRAST x (ceiling - b) above b, so the capture tells light from none)."""
     fraction = m.black_fraction(black)
@@ -123,7 +140,7 @@ def black_pixels(m, black):
     return fraction, bool(lit)
 
 
-def implausible_albedo(albedo, relation, albedo_range):
+def implausible_albedo(albedo: float, relation: str, albedo_range: tuple[float, float]) -> bool:
     """Whether an implied albedo scale (a bound for relation ">=" / "<=") lies surely outside the
     plausible range."""
     low, high = albedo_range
@@ -138,7 +155,7 @@ class Correction:
     capture implies (true_range)."""
 
     action: str
-    gray_range: tuple
+    gray_range: tuple[float, float]
     model_error: float
     relation: str
     shutter_s: float = float("nan")
@@ -146,7 +163,7 @@ class Correction:
     reason: str = ""
     cause: str = ""
 
-    def document(self, albedo_scale):
+    def document(self, albedo_scale: float) -> dict[str, Any]:
         """The correction in report.json and log.jsonl (albedo_scale: the re-plan's, in all)."""
         if self.action == "exposure":
             return {"action": "exposure", "shutter_s": self.shutter_s, "f_number": self.f_number,
@@ -154,7 +171,7 @@ class Correction:
         return {"action": self.action, "albedo_scale": albedo_scale, "reason": self.reason} | (
             {"cause": self.cause} if self.cause else {})
 
-    def message(self, shutter_s, f_number, albedo_scale):
+    def message(self, shutter_s: float, f_number: float, albedo_scale: float) -> str:
         """The sentence of log.jsonl's `correct` step, from the settings it corrects."""
         lo, hi = self.gray_range
         if self.action == "exposure":
@@ -163,7 +180,8 @@ class Correction:
         return f"re-plan with albedo x{albedo_scale:.3g}: {self.reason}"
 
 
-def correct(m, predicted, shutter_s, f_number, limits, black, albedo_scale=1.0):
+def correct(m: Measurement, predicted: np.ndarray, shutter_s: float, f_number: float, limits: Limits,
+            black: BlackLevel, albedo_scale: float = 1.0) -> Correction:
     """The Correction for Measurement m of a capture at (shutter_s, f_number) whose model
     prediction per sample at those settings is `predicted`, planned with `albedo_scale`; black is
     the BlackLevel. The decision of the module docstring, in its order."""
@@ -199,3 +217,44 @@ def correct(m, predicted, shutter_s, f_number, limits, black, albedo_scale=1.0):
     if why is None:
         return Correction("exposure", (lo, hi), error, relation, shutter, kappa)
     return Correction("replan", (lo, hi), error, relation, reason=why)
+
+
+def shared_correction(names: Sequence[str], measured: Sequence[tuple[object, Measurement, np.ndarray]],
+                      limits: Sequence[Limits], shutter_s: float, f_number: float,
+                      black: BlackLevel) -> Correction:
+    """The one Correction of a capture of several features (names; measured: each one's
+    (Iteration, Measurement, predicted gray per sample), cell.run.loop.measure_capture's; limits:
+    each one's Limits). Each feature is judged alone first (correct): a stop names it. Then all
+    together, their measurements joined (measurement.joined) against the band they all accept
+    (the bands' intersection), for the exposure: a spread there that no feature has alone means the features
+    disagree (cause `features`): no one exposure puts them all in band. What the exposure cannot
+    absorb stops (cause `replan`): a shot of several features is not re-planned."""
+    for name, (_, m, predicted), lim in zip(names, measured, limits):
+        c = correct(m, predicted, shutter_s, f_number, lim, black)
+        if c.action == "stop":
+            note = " (a shot of several features is not refitted)" if c.cause == "spread" else ""
+            return replace(c, reason=f"{name}: {c.reason}{note}")
+    band = (max(lim.band[0] for lim in limits), min(lim.band[1] for lim in limits))
+    joint = Limits(band, limits[0].shutter_range, (max(lim.f_number_range[0] for lim in limits),
+                                                   min(lim.f_number_range[1] for lim in limits)),
+                   limits[0].albedo_range)
+    if band[0] > band[1]:
+        return Correction("stop", (np.nan, np.nan), np.nan, "=", cause="bands", reason=(
+            "the shot's features have gray bands with nothing in common ("
+            + ", ".join(f"{n} {lim.band[0]:g}-{lim.band[1]:g}" for n, lim in zip(names, limits))
+            + "): one exposure cannot be corrected toward all of them"))
+    predicted = np.concatenate([p for _, _, p in measured])
+    c = correct(measurement.joined(m for _, m, _ in measured), predicted, shutter_s, f_number, joint, black)
+    if c.action == "stop" and c.cause == "spread":
+        b = black.value
+        ranges = ", ".join(f"{n} {m.min:.1f}-{m.max:.1f}" for n, (_, m, _) in zip(names, measured))
+        lo, hi = c.gray_range
+        return replace(c, cause="features", reason=(
+            f"the shot's features disagree: {ranges}; together max/min {(hi - b) / (lo - b):.2f} > the "
+            f"band's {(band[1] - b) / (band[0] - b):.2f} ({band[0]:g}-{band[1]:g}), so no one exposure puts "
+            f"all of them in band (each alone would fit): plan them in shots of their own"))
+    if c.action == "replan":
+        return replace(c, action="stop", cause="replan", reason=(
+            f"{c.reason}; a shot of several features is not re-planned (plan them in shots of their own, "
+            f"or correct the model: {describe_error(c.model_error, c.relation)})"))
+    return c

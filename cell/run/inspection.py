@@ -1,141 +1,74 @@
 """`cell run` of a task with several features, or with planned viewpoints: plan its shots
 (cell.planning.whole_part), refuse a partial plan before anything moves, connect, visit the chosen shots in
 the shortest order (cell.run.route) and run the closed loop at each, each in its own folder
-shot-<s>/ (s: the shot's index in plan.json). A shot of one feature runs loop.iterate itself; a
-shot of several runs iterate_shared: one capture, each feature located and measured in its own
-image region, one exposure for all of them. The run's report.json holds every feature's result.
+shot-<s>/ (s: the shot's index in plan.json). Every shot runs loop.iterate on the features it is
+the shot of: one, as `cell run` of a one-feature task does, or several: one capture, each
+feature located and measured in its own image region, one exposure for all of them. The run's
+report.json holds every feature's result.
 A shot that does not converge leaves the devices fine: the other shots still run, and the run
 exits 1 at the end naming each feature not in band; a device fault stops everything (exit 3)."""
+from __future__ import annotations
+
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from cell.run import control, loop, measurement, registration, route
-from cell.run.acquisition import acquire, move_to, require_feasible
+from cell.run import loop, measurement, route
+from cell.run.acquisition import require_feasible
+from cell.run.context import RunContext
 from cell.devices.interfaces import speaking_for
 from cell.core.errors import GoalNotReached
 from cell.core.geometry import rotation_angle
 from cell.report.recorder import Ending, Recorder
 from cell.report.result import Result
 
+if TYPE_CHECKING:
+    from cell.devices.interfaces import Devices
+    from cell.planning.plan import Plan
+    from cell.planning.scene import Scene
+    from cell.task.types import Task
 
-def candidate_features(plan):
+
+def cover_of(plan: Plan) -> dict[str, Any]:
+    """The set cover's numbers of a multi-feature plan (cell.planning.whole_part; a one-feature
+    plan has none)."""
+    if plan.cover is None:
+        raise ValueError("a one-feature plan has no cover: it is its own shot")
+    return plan.cover
+
+
+def candidate_features(plan: Plan) -> list[int]:
     """The feature whose own candidate each of plan.plans is (cell.planning.whole_part: one per feature
     with the fixed camera rule, one per kept viewpoint of each feature when planned)."""
-    return plan.cover.get("candidate_features") or list(range(len(plan.plans)))
+    return cover_of(plan).get("candidate_features") or list(range(len(plan.plans)))
 
 
-def assigned(plan, s):
+def assigned(plan: Plan, s: int) -> tuple[str, ...]:
     """The names of the features plan.shots[s] is the shot of (Plan.features' covered_by), in the
     task's order: each feature is measured once, in its own shot, though another may cover it too.
     A fewest-shots cover gives every chosen shot at least one (else it would not be needed)."""
     return tuple(f.name for f in plan.features if f.covered_by == s)
 
 
-def feature_plan(plan, s, f):
+def feature_plan(plan: Plan, s: int, f: int) -> Plan:
     """The one-shot Plan of feature f at plan.shots[s], as the one-feature loop works on it: the
     shot's own candidate plan when it was planned for f; else the plan whose samples coverage
     judged f on (f's first candidate), its camera moved to the shot's, with the gray coverage
     predicts there (cell.planning.coverage.judge) and its verdict."""
-    shot, k = plan.shots[s], plan.cover["chosen"][s]
+    shot, k = plan.shots[s], cover_of(plan)["chosen"][s]
     owners, name = candidate_features(plan), plan.features[f].name
     if owners[k] == f:
         return plan.plans[k]
     covered = next(c for c in shot.covers if c.feature == name)
     lend = plan.plans[owners.index(f)]
-    scene = replace(lend.scene, T_cell_cam=shot.T_cell_cam)
+    scene = replace(lend.planned_scene, T_cell_cam=shot.T_cell_cam)
     if len(covered.gray) != len(scene.points):
         raise ValueError(f"feature {name}: {len(covered.gray)} predicted grays for {len(scene.points)} samples")
     own = replace(shot, gray=covered.gray, requirements=covered.requirements, covers=())
     return replace(lend, feasible=covered.covered, shots=(own,), scene=scene, verification=covered.verification)
-
-
-def shared_correction(names, measured, limits, shutter_s, f_number, black):
-    """The one Correction of a capture of several features (names; measured: loop.measure_capture's
-    (Iteration, Measurement, predicted) of each; limits: each one's control.Limits). Each feature
-    is judged alone first (control.correct): a stop names it. Then all together, their
-    measurements joined (measurement.joined) against the band they all accept (the bands'
-    intersection), for the exposure: a spread there that no feature has alone means the features
-    disagree (cause `features`): no one exposure puts them all in band. What the exposure cannot
-    absorb stops (cause `replan`): a shot of several features is not re-planned."""
-    for name, (_, m, predicted), lim in zip(names, measured, limits):
-        c = control.correct(m, predicted, shutter_s, f_number, lim, black)
-        if c.action == "stop":
-            note = " (a shot of several features is not refitted)" if c.cause == "spread" else ""
-            return replace(c, reason=f"{name}: {c.reason}{note}")
-    band = (max(lim.band[0] for lim in limits), min(lim.band[1] for lim in limits))
-    joint = control.Limits(band, limits[0].shutter_range, (max(lim.f_number_range[0] for lim in limits),
-                                                           min(lim.f_number_range[1] for lim in limits)),
-                           limits[0].albedo_range)
-    if band[0] > band[1]:
-        return control.Correction("stop", (np.nan, np.nan), np.nan, "=", cause="bands", reason=(
-            "the shot's features have gray bands with nothing in common ("
-            + ", ".join(f"{n} {lim.band[0]:g}-{lim.band[1]:g}" for n, lim in zip(names, limits))
-            + "): one exposure cannot be corrected toward all of them"))
-    predicted = np.concatenate([p for _, _, p in measured])
-    c = control.correct(measurement.joined(m for _, m, _ in measured), predicted, shutter_s, f_number, joint, black)
-    if c.action == "stop" and c.cause == "spread":
-        b = black.value
-        ranges = ", ".join(f"{n} {m.min:.1f}-{m.max:.1f}" for n, (_, m, _) in zip(names, measured))
-        lo, hi = c.gray_range
-        return replace(c, cause="features", reason=(
-            f"the shot's features disagree: {ranges}; together max/min {(hi - b) / (lo - b):.2f} > the "
-            f"band's {(band[1] - b) / (band[0] - b):.2f} ({band[0]:g}-{band[1]:g}), so no one exposure puts "
-            f"all of them in band (each alone would fit): plan them in shots of their own"))
-    if c.action == "replan":
-        return replace(c, action="stop", cause="replan", reason=(
-            f"{c.reason}; a shot of several features is not re-planned (plan them in shots of their own, "
-            f"or correct the model: {control.describe_error(c.model_error, c.relation)})"))
-    return c
-
-
-def iterate_shared(tasks, plans, devices, recorder, max_iterations, black=None):
-    """The closed loop of one shot covering several features (tasks[i] feature i's one-feature
-    task, plans[i] its one-shot plan at the shot, feature_plan): move there, find the black level
-    unless given (loop.find_black_level, BlackLevelFound), then per capture each feature located
-    and measured in its own region (loop.measure_capture: an Iteration each, named), until every
-    feature is in its own band; shared_correction decides the one exposure. Yields as loop.iterate
-    does; raises GoalNotReached saying why. A black level the plan did not know goes into every
-    prediction; the first capture's correction absorbs it."""
-    shot = plans[0].shot
-    names = [t.feature.name for t in tasks]
-    models = [loop.Model(p, t) for p, t in zip(plans, tasks)]
-    limits = [loop.limits_of(t, p) for t, p in zip(tasks, plans)]
-    move_to(devices, shot, recorder, 1)
-    if black is None:
-        black = loop.find_black_level(tasks[0], plans[0], devices, recorder)
-        yield loop.BlackLevelFound(black)
-    shutter, f_number = shot.exposure.shutter_s, shot.exposure.f_number
-    for k in range(1, max_iterations + 1):
-        capture = acquire(devices, recorder, k, shutter, f_number, shot.exposure.focus_m)
-        measured = [loop.measure_capture(t, model, devices, recorder, k, capture, 1.0, black, name)
-                    for t, model, name in zip(tasks, models, names)]
-        yield from (it for it, _, _ in measured)
-        shutter = capture.shutter_s
-        for name, t, p, (it, _, _) in zip(names, tasks, plans, measured):
-            far = registration.beyond_limit(it.registration, loop.registration_limit(t, p.shot))
-            if far:
-                reason = f"{name}: {far}"
-                yield loop.Corrected(k, {"action": "stop", "albedo_scale": 1.0, "reason": reason,
-                                         "cause": "registration"})
-                raise GoalNotReached(reason, "registration")
-        if all(it.in_band for it, _, _ in measured):
-            return
-        if k == max_iterations:
-            raise GoalNotReached(f"not every feature in band after {loop.count(k, 'iteration')} at "
-                                 f"{1e3 * shutter:.3g} ms, f/{f_number:.1f}: " + "; ".join(
-                                     f"{n} {m.min:.1f}-{m.max:.1f} (band {lim.band[0]:g}-{lim.band[1]:g}, "
-                                     f"{it.measured_gray['saturated']} saturated)"
-                                     for n, (it, m, _), lim in zip(names, measured, limits)), "iterations")
-        c = shared_correction(names, measured, limits, shutter, f_number, black)
-        if c.action == "stop":
-            yield loop.Corrected(k, c.document(1.0))
-            raise GoalNotReached(c.reason, c.cause)
-        recorder.step("correct", c.message(shutter, f_number, 1.0), iteration=k, **c.document(1.0))
-        yield loop.Corrected(k, c.document(1.0))
-        shutter, f_number = c.shutter_s, c.f_number
 
 
 @dataclass(frozen=True)
@@ -189,25 +122,23 @@ class ShotRun(Result):
         return sorted({it.capture for it in self.iterations}, key=lambda c: int(c.split("-")[1].split(".")[0]))
 
 
-def run_shot(task, plan, s, devices, recorder, max_iterations, black, done):
-    """The closed loop at plan.shots[s] in its folder shot-<s>/ (its own log.jsonl, every step
-    also in the run's, and report.json, written however it ends); its ShotRun is appended to
-    `done` however it ends. A goal not reached ends the shot (its ShotRun says why); a device
-    fault is raised on."""
+def run_shot(ctx: RunContext, plan: Plan, s: int, done: list[ShotRun]) -> ShotRun:
+    """The closed loop (loop.iterate) at plan.shots[s] on the features it is the shot of, in its
+    folder shot-<s>/ (its own log.jsonl, every step also in the run's, and report.json, written
+    however it ends; re-plans keep the shot's camera pose); its ShotRun is appended to `done`
+    however it ends. A goal not reached ends the shot (its ShotRun says why); a device fault is
+    raised on."""
     from cell.report.pictures import write_convergence
     shot = plan.shots[s]
     names = assigned(plan, s)
     index = [f.name for f in plan.features]
-    tasks = [task.with_feature(index.index(n)) for n in names]
-    plans = [feature_plan(plan, s, index.index(n)) for n in names]
+    tasks = [ctx.task.with_feature(index.index(n)) for n in names]
+    features = [loop.LoopFeature.planned(t, feature_plan(plan, s, index.index(n))) for t, n in zip(tasks, names)]
     events, message, error = loop.Events(), "", None
-    with recorder.sub(f"shot-{s}", shot=s) as rec:
+    devices = ctx.devices
+    with ctx.recorder.sub(f"shot-{s}", shot=s) as rec:
         try:
-            if len(tasks) == 1:
-                steps = loop.iterate(tasks[0], plans[0], devices, rec, max_iterations, black, shot.T_cell_cam)
-            else:
-                steps = iterate_shared(tasks, plans, devices, rec, max_iterations, black)
-            for event in steps:
+            for event in loop.iterate(replace(ctx, recorder=rec, T_cell_cam=shot.T_cell_cam), features):
                 events.add(event)
             error = camera_error(devices, shot.T_cell_cam)
             n = len({it.iteration for it in events.iterations})
@@ -231,7 +162,7 @@ def run_shot(task, plan, s, devices, recorder, max_iterations, black, done):
     return result
 
 
-def camera_error(devices, T_cell_cam):
+def camera_error(devices: Devices, T_cell_cam: np.ndarray) -> dict[str, float]:
     """How far the arm's read-back camera pose is from T_cell_cam: position [m] and the angle
     between their orientations [deg]."""
     with speaking_for(devices.arm):
@@ -240,7 +171,7 @@ def camera_error(devices, T_cell_cam):
             "angle_deg": float(np.degrees(rotation_angle(T, T_cell_cam)))}
 
 
-def visit_order(plan, devices, recorder):
+def visit_order(plan: Plan, devices: Devices, recorder: Recorder) -> tuple[tuple[int, ...], float]:
     """The shots' order (plan.shots indices) by cell.run.route from the devices' read-back start pose,
     logged with its travel."""
     with speaking_for(devices.arm):
@@ -284,7 +215,7 @@ class InspectionResult(Result):
     def feature_results(self) -> list[dict[str, Any]]:
         """Per feature: name, shot, converged (its shot converged: it ended in band), the last
         capture's measured_gray, iterations, reason when not converged."""
-        runs = {r.shot: r for r in self.shots}
+        runs: dict[int | None, ShotRun] = {r.shot: r for r in self.shots}
         out = []
         for name, s in zip(self.features, self.covered_by):
             run = runs.get(s)
@@ -312,7 +243,7 @@ class InspectionResult(Result):
                 "black_level": black}
 
 
-def plan_logged(task, recorder):
+def plan_logged(task: Task, recorder: Recorder) -> Plan:
     """plan_features (the function `cell plan` uses for several features), plan.json and its
     pictures in the run folder, logged."""
     from cell.planning.whole_part import plan_features
@@ -327,7 +258,8 @@ def plan_logged(task, recorder):
     return plan
 
 
-def run(task, out, connect, max_iterations=6):
+def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices],
+        max_iterations: int = 6) -> InspectionResult:
     """Plan the task's shots (plan_logged), refuse a partial or infeasible plan before anything
     moves (PlanInfeasible naming the first feature no shot covers, exit 1), connect(scene) ->
     Devices (scene: the first feature's, whose mesh the simulated cell renders), order the shots
@@ -335,9 +267,12 @@ def run(task, out, connect, max_iterations=6):
     however the run ends. Raises GoalNotReached naming every feature not in band (exit 1), or
     DeviceFault (exit 3) after the safe stop. Returns the InspectionResult."""
     out = Path(out)
-    runs, order, travel, black = [], (), None, None
+    runs: list[ShotRun] = []
+    order: tuple[int, ...] = ()
+    travel: float | None = None
+    black: measurement.BlackLevel | None = None
     names = tuple(f.name for f in task.features)
-    covered_by = (None,) * len(names)
+    covered_by: tuple[int | None, ...] = (None,) * len(names)
 
     def result(reason, fault):
         return InspectionResult(str(task.path), not reason, reason, recorder.plan, names, covered_by, order,
@@ -350,12 +285,13 @@ def run(task, out, connect, max_iterations=6):
             plan = plan_logged(task, recorder)
             covered_by = tuple(f.covered_by for f in plan.features)
             require_feasible(plan)
-            session.devices = connect(plan.plans[candidate_features(plan).index(0)].scene)
-            order, travel = visit_order(plan, session.devices, recorder)
+            devices = session.devices = connect(plan.plans[candidate_features(plan).index(0)].planned_scene)
+            order, travel = visit_order(plan, devices, recorder)
+            context = RunContext(task, devices, recorder, max_iterations)
             for n, s in enumerate(order):
                 recorder.step("shot", f"shot {n + 1} of {len(order)} (plan's shot {s}): "
                                       f"{describe(plan, s)}", shot=s, visit=n + 1, features=assigned(plan, s))
-                done = run_shot(task, plan, s, session.devices, recorder, max_iterations, black, runs)
+                done = run_shot(replace(context, black=black), plan, s, runs)
                 black = black or done.black
                 recorder.step("shot_done", f"shot {n + 1} of {len(order)} (plan's shot {s}): {done.summary()}",
                               shot=s, converged=done.success, reason=done.message)
@@ -368,7 +304,7 @@ def run(task, out, connect, max_iterations=6):
     return ending.result
 
 
-def describe(plan, s):
+def describe(plan: Plan, s: int) -> str:
     """`leaf_a, leaf_b; camera at [...] m, lamp pan ..., 2.265 ms, f/1.4`: plan.shots[s]'s line."""
     shot = plan.shots[s]
     pan, tilt, radius = shot.joints
@@ -378,7 +314,7 @@ def describe(plan, s):
             f"f/{shot.exposure.f_number:.1f}")
 
 
-def gray_line(feature):
+def gray_line(feature: dict[str, Any]) -> str:
     """`leaf_a: shot 0, gray 104-119 (mean 112.3), 1 iteration`, of a feature_results() entry."""
     g = feature["measured_gray"] or {}
     gray = f"gray {g['min']:.0f}-{g['max']:.0f} (mean {g['mean']:.1f})" if g else "not measured"

@@ -1,10 +1,18 @@
 """The closed loop of `cell run`: plan, drive the cell, capture, measure the
 feature's gray, correct (cell.run.control), until every feature pixel is in the gray band or N
 iterations have run. It composes the stages: acquisition (plan, connect, move, expose, capture),
-measurement, the control law, the device session's safe stop and the recorder's run folder."""
+measurement, the control law, the device session's safe stop and the recorder's run folder.
+
+One step (`step`) serves a shot of one feature and a shot of several (cell.run.inspection): each
+capture measures every LoopFeature of the Aim in its own region; one feature is corrected alone
+(and may be refitted and re-planned), several are joined for one exposure. What the steps share
+and never change is the RunContext."""
+from __future__ import annotations
+
+from collections.abc import Callable, Generator, Iterator, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
@@ -12,12 +20,22 @@ from cell.physics.sensor import saturation_level
 from cell.run import acquisition, control, measurement, refit, registration
 
 from cell.planning import evaluate
-from cell.run.acquisition import acquire, move_to, plan_and_connect, plan_recorded
+from cell.run.acquisition import Capture, acquire, move_to, plan_and_connect, plan_recorded
+from cell.run.context import RunContext
+from cell.run.measurement import BlackLevel, Measurement
+from cell.run.refit import Refit
 from cell.devices.interfaces import speaking_for
 from cell.core.errors import GoalNotReached, PlanInfeasible
 from cell.planning.plan import gray_stats
 from cell.report.recorder import Ending, Recorder, file_name
 from cell.report.result import Result
+
+if TYPE_CHECKING:
+    from cell.devices.interfaces import Devices
+    from cell.planning.plan import Plan, Shot
+    from cell.planning.scene import Scene
+    from cell.run.registration import Registration
+    from cell.task.types import Task
 
 
 CAUSES = {          # report.json's `cause` of a run that ends without the goal (exit 1): the README's table
@@ -48,19 +66,19 @@ class Iteration:
     iteration: int
     shutter_s: float
     f_number: float
-    predicted_gray: dict
-    measured_gray: dict
+    predicted_gray: dict[str, float]
+    measured_gray: dict[str, float]
     model_error: float
     model_error_relation: str
     in_band: bool
     capture: str
     annotated: str
     albedo_scale: float
-    registration: dict | None = None     # registration.Registration.to_json
-    correction: dict | None = None
+    registration: dict[str, Any]         # registration.Registration.to_json
+    correction: dict[str, Any] | None = None
     feature: str | None = None           # its feature's name, in a shot of several (cell.run.inspection)
 
-    def to_json(self):
+    def to_json(self) -> dict[str, Any]:
         document = {k: getattr(self, k) for k in self.__dataclass_fields__
                     if k not in ("correction", "feature")}
         return ({"feature": self.feature} if self.feature else {}) | document | (
@@ -72,14 +90,14 @@ class Corrected:
     """The correction taken after iteration `iteration` (its document in report.json)."""
 
     iteration: int
-    correction: dict
+    correction: dict[str, Any]
 
 
 @dataclass(frozen=True)
 class BlackLevelFound:
     """The sensor's black level the run works with (measurement.BlackLevel)."""
 
-    black: measurement.BlackLevel
+    black: BlackLevel
 
 
 @dataclass(frozen=True)
@@ -87,10 +105,10 @@ class Refitted:
     """The material refitted after iteration `iteration` (refit.Refit) and its file's name."""
 
     iteration: int
-    refit: object
+    refit: Refit
     material_file: str
 
-    def to_json(self):
+    def to_json(self) -> dict[str, Any]:
         return {"iteration": self.iteration, "material_file": self.material_file} | self.refit.to_json()
 
 
@@ -100,10 +118,13 @@ class Replan:
 
     iteration: int
     albedo_scale: float
-    plan: dict                   # its plan.json
+    plan: dict[str, Any]         # its plan.json
 
-    def to_json(self):
+    def to_json(self) -> dict[str, Any]:
         return {"iteration": self.iteration, "albedo_scale": self.albedo_scale, "plan": self.plan}
+
+
+Event = Iteration | Corrected | BlackLevelFound | Refitted | Replan     # what iterate yields
 
 
 @dataclass(frozen=True)
@@ -144,17 +165,17 @@ class RunResult(Result):
 class Model:
     """The plan the loop works with and the task (its black level) it was planned for."""
 
-    plan: object
-    task: object
+    plan: Plan
+    task: Task
 
-    def predicted(self, black_level, shutter_s, f_number):
+    def predicted(self, black_level: float, shutter_s: float, f_number: float) -> np.ndarray:
         """The plan's gray per sample at these settings with black level b, G = b + c P t: the
         plan's signal (its gray less the black level it was planned with) ~ t / kappa^2."""
         e = self.plan.shot.exposure
         signal = self.plan.shot.gray - evaluate.black_level(self.task)
         return black_level + signal * (shutter_s / e.shutter_s) * (e.f_number / f_number) ** 2
 
-    def exposure(self, black_level, lens_range):
+    def exposure(self, black_level: float, lens_range: tuple[float, float]) -> tuple[float, float]:
         """(shutter, f-number) the planner's closed form sets for the plan's lamp pose with black
         level b (evaluate.centring_exposure on the plan's signal per unit exposure)."""
         e, camera = self.plan.shot.exposure, self.task.camera
@@ -164,7 +185,7 @@ class Model:
         return float(shutter[0]), float(kappa[0])
 
 
-def find_black_level(task, plan, devices, recorder):
+def find_black_level(task: Task, plan: Plan, devices: Devices, recorder: Recorder) -> BlackLevel:
     """acquisition.find_black_level at the planned f-number and focus (a manual lens is not turned
     twice more), with the most light the plan's model lets reach the feature in the dark frame."""
     e = plan.shot.exposure
@@ -172,7 +193,7 @@ def find_black_level(task, plan, devices, recorder):
         np.max(Model(plan, task).predicted(0.0, shutter_s, e.f_number))))
 
 
-def registration_limit(task, shot):
+def registration_limit(task: Task, shot: Shot) -> float:
     """How far from where the model puts it the feature may be found [m]: loop.registration_limit_m,
     else what the plan tolerates. A fixture error d turns the lamp's direction to the feature by
     d / r (r the lamp's distance), and the plan holds the band under lamp errors up to
@@ -183,163 +204,276 @@ def registration_limit(task, shot):
     return max(shot.distance_m * np.tan(task.requirements.lamp_tolerance_rad), REGISTRATION_FLOOR_M)
 
 
-def locate(task, scene, devices, recorder, k, capture, saturation, limit, feature=None):
-    """Registration (cell.run.registration) of a capture at the read-back camera and lamp poses, logged
-    (as `feature`'s, when named); returns (Registration, the shift the measurement takes: the found
-    one when trusted and within the limit [m], else none, the model's region)."""
+def limits_of(task: Task, plan: Plan) -> control.Limits:
+    """The control.Limits of a one-feature task's plan: its band, the shutter range, the f-numbers
+    from the widest the depth of field allows to the lens's narrowest, the plausible albedos."""
+    lens_range = (evaluate.depth_of_field_limits(task, plan.planned_scene)[2], task.camera.lens.f_number_range[1])
+    low, high = task.requirements.gray_band
+    return control.Limits((float(low), float(high)), task.camera.shutter_range_s,
+                          lens_range, task.loop.albedo_scale_range)
+
+
+@dataclass(frozen=True)
+class LoopFeature:
+    """A feature as the loop drives it: its one-feature task as the loop knows it now (the black
+    level measured, the material refitted), the Model of the plan it works with, and the Limits
+    of its correction (limits_of its first plan)."""
+
+    task: Task
+    model: Model
+    limits: control.Limits
+
+    @staticmethod
+    def planned(task: Task, plan: Plan) -> LoopFeature:
+        """The LoopFeature of a one-feature task and its one-shot plan."""
+        return LoopFeature(task, Model(plan, task), limits_of(task, plan))
+
+    @property
+    def name(self) -> str:
+        """The feature's name in the task."""
+        return self.task.feature.name
+
+
+@dataclass(frozen=True)
+class Aim:
+    """What the next capture is taken with and judged against: the features it measures (one, or
+    a shot's several), the black level, the exposure, the albedo scale of the plan, whether the
+    cell stands at the plan's poses (not after a re-plan) and whether the material was refitted
+    (once in a loop)."""
+
+    features: tuple[LoopFeature, ...]
+    black: BlackLevel
+    shutter_s: float
+    f_number: float
+    albedo_scale: float = 1.0
+    moved: bool = True
+    refitted: bool = False
+
+    @property
+    def shot(self) -> Shot:
+        """The shot the features' plans share."""
+        return self.features[0].model.plan.shot
+
+    def label(self, feature: LoopFeature) -> str | None:
+        """The feature's name in a capture of several (its log lines and picture named by it);
+        None in a capture of one."""
+        return feature.name if len(self.features) > 1 else None
+
+
+class Measured(NamedTuple):
+    """A feature in one capture: its Iteration, its Measurement and the model's gray per sample."""
+
+    iteration: Iteration
+    measurement: Measurement
+    predicted: np.ndarray
+
+
+def locate(ctx: RunContext, feature: LoopFeature, k: int, capture: Capture,
+           name: str | None) -> tuple[Registration, tuple[float, float]]:
+    """Registration (cell.run.registration) of the feature in capture k at the read-back camera
+    and lamp poses, logged (as `name`'s, when given); returns (Registration, the shift the
+    measurement takes: the found one when trusted and within registration_limit [px], else none)."""
+    devices, task, scene = ctx.devices, feature.task, feature.model.plan.planned_scene
     with speaking_for(devices.lamp):
         lamp_pose = devices.lamp.lamp_pose()
     row, col, inside = measurement.sample_pixels(task, capture.T_cell_cam, scene.points)
     found = registration.locate(capture.image, task, scene, capture.T_cell_cam, lamp_pose, row[inside], col[inside],
-                            saturation)
-    recorder.step("register", f"{feature}: " * bool(feature) + found.describe(), iteration=k,
-                  **({"feature": feature} if feature else {}), **found.to_json())
+                                saturation_level(devices.camera.bit_depth))
+    ctx.recorder.step("register", f"{name}: " * bool(name) + found.describe(), iteration=k,
+                      **({"feature": name} if name else {}), **found.to_json())
+    limit = registration_limit(task, feature.model.plan.shot)
     within = found.trusted and registration.beyond_limit(found.to_json(), limit) is None
     return found, found.shift_px if within else (0.0, 0.0)
 
 
-def shoot(task, model, devices, recorder, k, shutter_s, f_number, albedo_scale, black):
-    """Expose, capture and measure the feature in it (measure_capture). Returns (Iteration,
-    Measurement, predicted gray per sample)."""
-    capture = acquire(devices, recorder, k, shutter_s, f_number, model.plan.shot.exposure.focus_m)
-    return measure_capture(task, model, devices, recorder, k, capture, albedo_scale, black)
-
-
-def measure_capture(task, model, devices, recorder, k, capture, albedo_scale, black, feature=None):
-    """Locate the task's feature in capture k (locate), measure it where found, in its own image
-    region, and compare with the plan's model at the capture's settings (G = b + c P t, the signal
-    ~ t / kappa^2); `feature` names it in a capture of several (its picture
-    capture-k-<feature>.png, else capture-k-feature.png). Returns (Iteration, Measurement,
-    predicted gray per sample)."""
+def measure_capture(ctx: RunContext, aim: Aim, feature: LoopFeature, k: int, capture: Capture) -> Measured:
+    """Locate the feature in capture k (locate), measure it where found, in its own image region,
+    and compare with its plan's model at the capture's settings (G = b + c P t, the signal ~
+    t / kappa^2); in a capture of several its picture is capture-k-<name>.png, else
+    capture-k-feature.png."""
     from cell.report.pictures import annotate_capture
+    task, model, name = feature.task, feature.model, aim.label(feature)
     f_number = capture.f_number
-    bit_depth = devices.camera.bit_depth
+    bit_depth = ctx.devices.camera.bit_depth
     saturation = saturation_level(bit_depth)
-    found, shift = locate(task, model.plan.scene, devices, recorder, k, capture, saturation,
-                          registration_limit(task, model.plan.shot), feature)
-    m = measurement.measure_feature(capture.image, task, capture.T_cell_cam, model.plan.scene.points, saturation, shift)
-    predicted = model.predicted(black.value, capture.shutter_s, f_number)
-    error, relation = control.model_error(m.sample_gray, predicted, saturation, black.value)
+    found, shift = locate(ctx, feature, k, capture, name)
+    m = measurement.measure_feature(capture.image, task, capture.T_cell_cam, model.plan.planned_scene.points,
+                                    saturation, shift)
+    predicted = model.predicted(aim.black.value, capture.shutter_s, f_number)
+    error, relation = control.model_error(m.sample_gray, predicted, saturation, aim.black.value)
     band = task.requirements.gray_band
     in_band = m.in_band(band)
     stats, expected = m.stats(), gray_stats(predicted)
     verdict = f"{'in' if in_band else 'out of'} band {band[0]:g}-{band[1]:g}"
-    named = f"{feature}: " if feature else ""
+    named = f"{name}: " if name else ""
     caption = f"{k}: {named}gray {m.min:.0f}-{m.max:.0f}, {stats['saturated']} saturated: {verdict}"
-    annotated = recorder.write_image(f"capture-{k}-{file_name(feature) if feature else 'feature'}.png",
-                                     annotate_capture(capture.image, m, bit_depth, caption))
+    annotated = ctx.recorder.write_image(f"capture-{k}-{file_name(name) if name else 'feature'}.png",
+                                         annotate_capture(capture.image, m, bit_depth, caption))
     it = Iteration(k, capture.shutter_s, float(f_number), expected, stats, error, relation, in_band,
-                   capture.name, annotated, albedo_scale, found.to_json(), feature=feature)
-    recorder.step("measure", f"{named}gray mean {stats['mean']:.1f}, {m.min:.1f}-{m.max:.1f} over "
-                             f"{stats['pixels']} px "
-                             f"(pixels {stats['pixel_min']:.0f}-{stats['pixel_max']:.0f}, noise "
-                             f"{stats['noise_rms']:.1f} rms, {stats['saturated']} saturated); the model predicts "
-                             f"{expected['mean']:.1f}, {expected['min']:.1f}-{expected['max']:.1f}; "
-                             f"{control.describe_error(error, relation)}; {verdict}",
-                  **{key: v for key, v in it.to_json().items() if key not in ("albedo_scale", "registration")})
-    return it, m, predicted
+                   capture.name, annotated, aim.albedo_scale, found.to_json(), feature=name)
+    ctx.recorder.step("measure", f"{named}gray mean {stats['mean']:.1f}, {m.min:.1f}-{m.max:.1f} over "
+                                 f"{stats['pixels']} px "
+                                 f"(pixels {stats['pixel_min']:.0f}-{stats['pixel_max']:.0f}, noise "
+                                 f"{stats['noise_rms']:.1f} rms, {stats['saturated']} saturated); the model "
+                                 f"predicts {expected['mean']:.1f}, {expected['min']:.1f}-{expected['max']:.1f}; "
+                                 f"{control.describe_error(error, relation)}; {verdict}",
+                      **{key: v for key, v in it.to_json().items() if key not in ("albedo_scale", "registration")})
+    return Measured(it, m, predicted)
 
 
-def limits_of(task, plan):
-    """The control.Limits of a one-feature task's plan: its band, the shutter range, the f-numbers
-    from the widest the depth of field allows to the lens's narrowest, the plausible albedos."""
-    lens_range = (evaluate.depth_of_field_limits(task, plan.scene)[2], task.camera.lens.f_number_range[1])
-    return control.Limits(tuple(map(float, task.requirements.gray_band)), task.camera.shutter_range_s,
-                          lens_range, task.loop.albedo_scale_range)
-
-
-def iterate(task, plan, devices, recorder, max_iterations, black=None, T_cell_cam=None):
-    """Drive, find the black level (BlackLevelFound; a `black` given, found in an earlier shot,
-    is taken as it is), shoot, correct until every feature pixel is in the band, yielding each
-    Iteration as soon as it is measured, then its Corrected and a Replan as they happen; raises
+def iterate(ctx: RunContext, features: Sequence[LoopFeature]) -> Iterator[Event]:
+    """The closed loop of one shot, of one feature or of several measured in each capture: move
+    to the shot's poses, take ctx.black or find the black level (find_black_level,
+    BlackLevelFound), then step until every feature is in its band, yielding each Iteration as soon
+    as it is measured, then its Corrected and a Replan or Refitted as they happen; raises
     GoalNotReached saying why when no correction is possible or the iterations run out. A black
-    level the plan did not know re-sets its exposure (the lamp pose stays: b only shifts the band
-    the signal must meet) and is the re-plans' from then on. Re-plans put the camera at
-    T_cell_cam (a shot's of several, cell.run.inspection), else by the task's camera rule."""
-    limits = limits_of(task, plan)
-    band, lens_range = limits.band, limits.f_number_range
-    model, albedo, moved, given, refitted = Model(plan, task), 1.0, False, black, False
-    black = None
-    shutter, f_number = plan.shot.exposure.shutter_s, plan.shot.exposure.f_number
-    for k in range(1, max_iterations + 1):
-        if not moved:
-            move_to(devices, model.plan.shot, recorder, k)
-            moved = True
-        if black is None:
-            black = given or find_black_level(task, plan, devices, recorder)
-            if not given:
-                yield BlackLevelFound(black)
-            if black.value != evaluate.black_level(task):
-                shutter, f_number = model.exposure(black.value, lens_range)
-                sensor = replace(task.camera.sensor, black_level=black.value)
-                task = replace(task, camera=replace(task.camera, sensor=sensor))
-        it, m, predicted = shoot(task, model, devices, recorder, k, shutter, f_number, albedo, black)
-        yield it
-        shutter = it.shutter_s
-        far = registration.beyond_limit(it.registration, registration_limit(task, model.plan.shot))
-        if far:                                 # the plan's poses do not hold: nothing to correct
-            yield Corrected(k, {"action": "stop", "albedo_scale": albedo, "reason": far, "cause": "registration"})
-            raise GoalNotReached(far, "registration")
-        if it.in_band:
+    level the plan did not know: one feature's task takes it (the re-plans' from then on) and its
+    plan's exposure is re-set (Model.exposure; the lamp pose stays: b only shifts the band the
+    signal must meet); a shot of several puts it into every prediction and the first capture's
+    correction absorbs it."""
+    first = features[0]
+    move_to(ctx.devices, first.model.plan.shot, ctx.recorder, 1)
+    black = ctx.black or find_black_level(first.task, first.model.plan, ctx.devices, ctx.recorder)
+    if not ctx.black:
+        yield BlackLevelFound(black)
+    exposure = first.model.plan.shot.exposure
+    aim = Aim(tuple(features), black, exposure.shutter_s, exposure.f_number)
+    if len(features) == 1 and black.value != evaluate.black_level(first.task):
+        aim = knowing_black_level(aim)
+    for k in range(1, ctx.max_iterations + 1):
+        after = yield from step(ctx, aim, k)
+        if after is None:
             return
-        if k == max_iterations:
-            raise GoalNotReached(f"not in band {band[0]:g}-{band[1]:g} after {count(k, 'iteration')}: "
-                                 f"feature gray {m.min:.1f}-{m.max:.1f} ({it.measured_gray['saturated']} pixels "
-                                 f"saturated) at {1e3 * shutter:.3g} ms, f/{f_number:.1f}; "
-                                 f"{control.describe_error(it.model_error, it.model_error_relation)}", "iterations")
-        c = control.correct(m, predicted, shutter, f_number, limits, black, albedo)
-        if c.action == "stop" and c.cause == "spread" and not refitted:     # the shape is wrong: refit
-            refitted = True
-            task, replanned = yield from refit_and_replan(task, model, devices, recorder, k, m, c, black, albedo,
-                                                         shutter, f_number, it.registration["shift_px"],
-                                                         T_cell_cam)
-            model, albedo, moved = Model(replanned, task), 1.0, False
-            shutter, f_number = replanned.shot.exposure.shutter_s, replanned.shot.exposure.f_number
-            continue
-        if c.action == "stop":                  # its cause in report.json; the done step says why
-            yield Corrected(k, c.document(albedo))
-            raise GoalNotReached(c.reason, c.cause)
-        if c.action == "replan":
-            albedo *= c.model_error
-        recorder.step("correct", c.message(shutter, f_number, albedo), iteration=k, **c.document(albedo))
-        yield Corrected(k, c.document(albedo))
-        if c.action == "exposure":
-            shutter, f_number = c.shutter_s, c.f_number
-            continue
-        replanned = plan_recorded(task, recorder, albedo, iteration=k, subfolder=f"replan-{k}",
-                                  T_cell_cam=T_cell_cam)
-        yield Replan(k, albedo, replanned.to_json())
-        if not replanned.feasible:
-            raise GoalNotReached(f"{control.describe_error(c.model_error, c.relation)}; {c.reason}; "
-                                 f"re-planned for an albedo x{albedo:.3g}: infeasible, {replanned.binding}: "
-                                 f"{replanned.hint}", "infeasible")
-        model = Model(replanned, task)
-        shutter, f_number, moved = replanned.shot.exposure.shutter_s, replanned.shot.exposure.f_number, False
+        aim = after
 
 
-def refit_and_replan(task, model, devices, recorder, k, m, c, black, albedo, shutter_s, f_number, shift_px,
-                     T_cell_cam=None):
-    """After capture k (at shutter_s, f_number) whose shape disagreed with the model (Correction
-    c, cause spread; the feature found shift_px away): probe, refit the material (cell.run.refit;
-    Corrected, Refitted) and re-plan with it (Replan; the camera at T_cell_cam, else by the task's
-    rule). Returns (the task with the refitted material, its plan); GoalNotReached when the refit
-    cannot be used or its plan is infeasible."""
+def knowing_black_level(aim: Aim) -> Aim:
+    """The Aim of one feature with a black level its plan did not know: its task's sensor takes
+    it, and the plan's lamp pose gets the exposure the planner's closed form sets for it."""
+    (feature,) = aim.features
+    shutter, f_number = feature.model.exposure(aim.black.value, feature.limits.f_number_range)
+    task = feature.task
+    sensor = replace(task.camera.sensor, black_level=aim.black.value)
+    task = replace(task, camera=replace(task.camera, sensor=sensor))
+    return replace(aim, features=(replace(feature, task=task),), shutter_s=shutter, f_number=f_number)
+
+
+def step(ctx: RunContext, aim: Aim, k: int) -> Generator[Event, None, Aim | None]:
+    """Capture k, the closed loop's one step: to the plan's poses when not there (after a
+    re-plan), expose and capture (acquire), each feature located and measured (measure_capture:
+    its Iteration yielded), then the first that applies: a feature found beyond its
+    registration_limit stops (the plan's poses do not hold: nothing to correct); every feature in
+    its band ends the loop (returns None); the last iteration stops; else the correction after it
+    (correct_after: the next Aim)."""
+    if not aim.moved:
+        move_to(ctx.devices, aim.shot, ctx.recorder, k)
+    capture = acquire(ctx.devices, ctx.recorder, k, aim.shutter_s, aim.f_number, aim.shot.exposure.focus_m)
+    measured = [measure_capture(ctx, aim, feature, k, capture) for feature in aim.features]
+    yield from (m.iteration for m in measured)
+    aim = replace(aim, shutter_s=capture.shutter_s, moved=True)
+    for feature, m in zip(aim.features, measured):
+        far = registration.beyond_limit(m.iteration.registration, registration_limit(feature.task,
+                                                                                     feature.model.plan.shot))
+        if far:
+            name = aim.label(feature)
+            reason = f"{name}: {far}" if name else far
+            yield Corrected(k, {"action": "stop", "albedo_scale": aim.albedo_scale, "reason": reason,
+                                "cause": "registration"})
+            raise GoalNotReached(reason, "registration")
+    if all(m.iteration.in_band for m in measured):
+        return None
+    if k == ctx.max_iterations:
+        raise GoalNotReached(not_in_band(aim, measured, k), "iterations")
+    return (yield from correct_after(ctx, aim, k, measured))
+
+
+def not_in_band(aim: Aim, measured: Sequence[Measured], k: int) -> str:
+    """Why the loop stops after its last iteration k: the gray of each feature against its band."""
+    at = f"{1e3 * aim.shutter_s:.3g} ms, f/{aim.f_number:.1f}"
+    if len(measured) == 1:
+        (it, m, _), band = measured[0], aim.features[0].limits.band
+        return (f"not in band {band[0]:g}-{band[1]:g} after {count(k, 'iteration')}: feature gray "
+                f"{m.min:.1f}-{m.max:.1f} ({it.measured_gray['saturated']} pixels saturated) at {at}; "
+                f"{control.describe_error(it.model_error, it.model_error_relation)}")
+    return f"not every feature in band after {count(k, 'iteration')} at {at}: " + "; ".join(
+        f"{f.name} {m.min:.1f}-{m.max:.1f} (band {f.limits.band[0]:g}-{f.limits.band[1]:g}, "
+        f"{it.measured_gray['saturated']} saturated)" for f, (it, m, _) in zip(aim.features, measured))
+
+
+def correction(aim: Aim, measured: Sequence[Measured]) -> control.Correction:
+    """The control law on a capture's measurements: one feature's Correction (control.correct), or
+    the one exposure of several features, their measurements joined (control.shared_correction)."""
+    if len(measured) == 1:
+        (feature,), (_, m, predicted) = aim.features, measured[0]
+        return control.correct(m, predicted, aim.shutter_s, aim.f_number, feature.limits, aim.black,
+                               aim.albedo_scale)
+    return control.shared_correction([f.name for f in aim.features], measured, [f.limits for f in aim.features],
+                                     aim.shutter_s, aim.f_number, aim.black)
+
+
+def correct_after(ctx: RunContext, aim: Aim, k: int, measured: Sequence[Measured]) -> Generator[Event, None, Aim]:
+    """Act on capture k's correction (Corrected, logged but for a stop): a shape that disagrees
+    with one feature's model refits the material and re-plans, once (refit_and_replan); a stop
+    raises GoalNotReached with its cause; an exposure sets the next one; a re-plan plans one
+    feature again with the albedo scale times the measured model error (Replan; infeasible:
+    GoalNotReached). A shot of several features is not refitted or re-planned
+    (control.shared_correction stops instead)."""
+    c = correction(aim, measured)
+    if c.action == "stop" and c.cause == "spread" and len(aim.features) == 1 and not aim.refitted:
+        return (yield from refit_and_replan(ctx, aim, k, measured[0], c))
+    if c.action == "stop":                  # its cause in report.json; the done step says why
+        yield Corrected(k, c.document(aim.albedo_scale))
+        raise GoalNotReached(c.reason, c.cause)
+    albedo = aim.albedo_scale * c.model_error if c.action == "replan" else aim.albedo_scale
+    ctx.recorder.step("correct", c.message(aim.shutter_s, aim.f_number, albedo), iteration=k, **c.document(albedo))
+    yield Corrected(k, c.document(albedo))
+    if c.action == "exposure":
+        return replace(aim, shutter_s=c.shutter_s, f_number=c.f_number)
+    (feature,) = aim.features
+    replanned = plan_recorded(feature.task, ctx.recorder, albedo, iteration=k, subfolder=f"replan-{k}",
+                              T_cell_cam=ctx.T_cell_cam)
+    yield Replan(k, albedo, replanned.to_json())
+    if not replanned.feasible:
+        raise GoalNotReached(f"{control.describe_error(c.model_error, c.relation)}; {c.reason}; "
+                             f"re-planned for an albedo x{albedo:.3g}: infeasible, {replanned.binding}: "
+                             f"{replanned.hint}", "infeasible")
+    return replan_aim(aim, replace(feature, model=Model(replanned, feature.task)), albedo)
+
+
+def replan_aim(aim: Aim, feature: LoopFeature, albedo_scale: float) -> Aim:
+    """The Aim at a re-plan of the one feature (its Model the new plan): the plan's exposure, the
+    cell still to move to its poses."""
+    exposure = feature.model.plan.shot.exposure
+    return replace(aim, features=(feature,), shutter_s=exposure.shutter_s, f_number=exposure.f_number,
+                   albedo_scale=albedo_scale, moved=False)
+
+
+def refit_and_replan(ctx: RunContext, aim: Aim, k: int, measured: Measured,
+                     c: control.Correction) -> Generator[Event, None, Aim]:
+    """After capture k whose shape disagreed with the feature's model (Correction c, cause
+    spread): probe, refit the material (cell.run.refit; Corrected, Refitted) and re-plan with it
+    (Replan; the camera at ctx.T_cell_cam, else by the task's rule). Returns the Aim of the
+    refitted material's plan; GoalNotReached when the refit cannot be used or its plan is
+    infeasible."""
+    (feature,), recorder = aim.features, ctx.recorder
+    it, m, _ = measured
     recorder.step("correct", f"refit the material: {c.reason}", iteration=k, action="refit")
     yield Corrected(k, {"action": "refit", "cause": "spread", "reason": c.reason})
-    fitted = refit.probe_and_refit(task, model.plan.scene, devices, recorder, k, m,
-                                   (shutter_s, f_number, model.plan.shot.exposure.focus_m), black, albedo, shift_px)
-    yield Refitted(k, fitted, refit.keep(fitted, task, recorder, k))
+    disagreement = refit.Disagreement(k, m, (aim.shutter_s, aim.f_number, aim.shot.exposure.focus_m), aim.black,
+                                      aim.albedo_scale, it.registration["shift_px"])
+    fitted = refit.probe_and_refit(ctx, feature.task, feature.model.plan.planned_scene, disagreement)
+    yield Refitted(k, fitted, refit.keep(fitted, feature.task, recorder, k))
     refit.require_usable(fitted, c.reason)
-    task = refit.task_with(task, fitted)
-    replanned = plan_recorded(task, recorder, 1.0, iteration=k, subfolder=f"refit-{k}", T_cell_cam=T_cell_cam)
+    task = refit.task_with(feature.task, fitted)
+    replanned = plan_recorded(task, recorder, 1.0, iteration=k, subfolder=f"refit-{k}", T_cell_cam=ctx.T_cell_cam)
     yield Replan(k, 1.0, replanned.to_json())
     if not replanned.feasible:
         raise GoalNotReached(f"the material is not the task's ({fitted.summary()}); re-planned for the refitted "
                              f"material: infeasible, {replanned.binding}: {replanned.hint}", "infeasible")
-    return task, replanned
+    return replace(replan_aim(aim, replace(feature, task=task, model=Model(replanned, task)), 1.0), refitted=True)
 
 
-def run(task, out, connect, max_iterations=6):
+def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices], max_iterations: int = 6) -> RunResult:
     """Plan, connect(scene) -> Devices, then iterate; out/report.json (RunResult.to_json) is
     written however the run ends. Raises PlanInfeasible or GoalNotReached (exit 1), or DeviceFault
     (exit 3) after the safe stop of every device (session.Session). Returns the RunResult."""
@@ -356,8 +490,9 @@ def run(task, out, connect, max_iterations=6):
         with Recorder(out) as recorder, Ending(recorder, "not converged", "report.json", result,
                                                converged=False) as ending:
             with ending.session:
-                planned = plan_and_connect(task, recorder, ending.session, connect)
-                for event in iterate(task, planned, ending.session.devices, recorder, max_iterations):
+                planned, devices = plan_and_connect(task, recorder, ending.session, connect)
+                context = RunContext(task, devices, recorder, max_iterations)
+                for event in iterate(context, [LoopFeature.planned(task, planned)]):
                     events.add(event)
             n = len(events.iterations)
             recorder.step("done", f"converged after {count(n, 'iteration')}", converged=True, iterations=n)
@@ -373,10 +508,13 @@ class Events:
     after capture k written into capture k's iterations (one per feature in a capture of
     several), Replans, Refitted, and the black level found."""
 
-    def __init__(self):
-        self.iterations, self.replans, self.refits, self.black = [], [], [], None
+    def __init__(self) -> None:
+        self.iterations: list[Iteration] = []
+        self.replans: list[Replan] = []
+        self.refits: list[Refitted] = []
+        self.black: BlackLevel | None = None
 
-    def add(self, event):
+    def add(self, event: Event) -> None:
         if isinstance(event, Corrected):
             self.iterations = [replace(it, correction=event.correction) if it.iteration == event.iteration else it
                                for it in self.iterations]
@@ -384,13 +522,16 @@ class Events:
             self.black = event.black
         elif isinstance(event, Refitted):
             self.refits.append(event)
+        elif isinstance(event, Iteration):
+            self.iterations.append(event)
         else:
-            (self.iterations if isinstance(event, Iteration) else self.replans).append(event)
+            self.replans.append(event)
 
     @property
-    def black_json(self):
+    def black_json(self) -> dict[str, Any] | None:
         return self.black.to_json() if self.black else None
 
 
-def count(n, noun):
+def count(n: int, noun: str) -> str:
+    """`1 iteration`, `3 iterations`."""
     return f"{n} {noun}{'s' * (n != 1)}"

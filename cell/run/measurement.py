@@ -1,6 +1,10 @@
 """Gray values of the feature in a captured image: at the projected feature samples, and over
 the feature's image region (the convex hull of the projected samples)."""
+from __future__ import annotations
+
+from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -9,8 +13,12 @@ from cell.physics import projection
 from cell.core.errors import DeviceFault, GoalNotReached
 from cell.planning.plan import gray_stats
 
+if TYPE_CHECKING:
+    from cell.task.types import Task
 
-def sample_pixels(task, T_cell_cam, points, shift_px=(0.0, 0.0)):
+
+def sample_pixels(task: Task, T_cell_cam: np.ndarray, points: np.ndarray, shift_px: tuple[float, float] = (0.0, 0.0),
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Nearest pixel (row, col) of each feature sample seen from the actual camera pose, moved
     by shift_px (dx, dy: where registration found the feature), and whether it falls inside the
     image."""
@@ -24,7 +32,8 @@ def sample_pixels(task, T_cell_cam, points, shift_px=(0.0, 0.0)):
     return row, col, inside
 
 
-def read_samples(image, task, T_cell_cam, points, shift_px=(0.0, 0.0)):
+def read_samples(image: np.ndarray, task: Task, T_cell_cam: np.ndarray, points: np.ndarray,
+                 shift_px: tuple[float, float] = (0.0, 0.0)) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(row, col, inside, gray) of each feature sample in a frame (moved by shift_px,
     sample_pixels): its pixel, whether it is in
     the image, the gray there (NaN outside). A frame of another size than camera.sensor is a
@@ -43,7 +52,7 @@ def read_samples(image, task, T_cell_cam, points, shift_px=(0.0, 0.0)):
     return row, col, inside, gray
 
 
-def feature_mask(shape, row, col):
+def feature_mask(shape: tuple[int, ...], row: np.ndarray, col: np.ndarray) -> np.ndarray:
     """Pixels inside the convex hull of the samples' pixels (the feature's image region)."""
     mask = np.zeros(shape, dtype=np.uint8)
     if len(row):
@@ -52,7 +61,7 @@ def feature_mask(shape, row, col):
     return mask.astype(bool)
 
 
-def local_mean(image, mask, size=5):
+def local_mean(image: np.ndarray, mask: np.ndarray, size: int = 5) -> np.ndarray:
     """Mean of each pixel's size x size neighbourhood within mask (normalized convolution): the
     surface's gray with the sensor's pixel noise averaged down by size (5: 5x), while shading that
     changes over tens of pixels passes unchanged. Outside the mask: 0."""
@@ -73,15 +82,15 @@ class BlackLevel:
     source: str
 
     @property
-    def ceiling(self):
+    def ceiling(self) -> float:
         """The highest gray that still reads the black level: b + max(1 level, 4 sigma)."""
         return self.value + max(1.0, 4.0 * self.noise_rms)
 
-    def to_json(self):
+    def to_json(self) -> dict[str, Any]:
         return {"value": self.value, "noise_rms": self.noise_rms, "source": self.source}
 
 
-def black_level_of(dark):
+def black_level_of(dark: np.ndarray) -> BlackLevel:
     """BlackLevel of a dark frame: its median (a few lit or hot pixels do not move it) and its
     noise as 1.4826 x the median absolute deviation (the rms of Gaussian noise)."""
     dark = np.asarray(dark, float)
@@ -102,7 +111,7 @@ class Measurement:
     row: np.ndarray              # (P,) each sample's pixel
     col: np.ndarray
     sample_gray: np.ndarray      # (P,) gray there, NaN off the image
-    region: np.ndarray           # (H, W) bool: the feature's pixels
+    region: np.ndarray | None    # (H, W) bool: the feature's pixels (None: joined, the regions never merged)
     gray: np.ndarray             # raw gray of the region's pixels
     surface: np.ndarray          # their local mean
     saturated: np.ndarray        # (H, W) bool: region pixels at saturation or above
@@ -110,7 +119,7 @@ class Measurement:
     min: float                   # of the surface's gray
     max: float
 
-    def stats(self):
+    def stats(self) -> dict[str, float]:
         """measured_gray of report.json: mean/min/max of the surface's gray over the region,
         `pixels` in it, how many read saturation or more, the raw pixels' range as the camera
         delivered them (a real sensor clips at saturation; the sim without `quantization` does
@@ -120,16 +129,17 @@ class Measurement:
                 "pixel_min": float(self.gray.min()), "pixel_max": float(self.gray.max()),
                 "noise_rms": float(np.sqrt(np.mean((self.gray - self.surface) ** 2)))}
 
-    def black_fraction(self, black):
+    def black_fraction(self, black: BlackLevel) -> float:
         """The fraction of the region's pixels reading the BlackLevel (at most its ceiling):
         no light reaches them (off the part, or a cast shadow)."""
         return float(np.mean(self.gray <= black.ceiling))
 
-    def in_band(self, band):
+    def in_band(self, band: tuple[float, float]) -> bool:
         return not self.saturated.any() and band[0] <= self.min and self.max <= band[1]
 
 
-def measure_feature(image, task, T_cell_cam, points, saturation, shift_px=(0.0, 0.0)):
+def measure_feature(image: np.ndarray, task: Task, T_cell_cam: np.ndarray, points: np.ndarray, saturation: float,
+                    shift_px: tuple[float, float] = (0.0, 0.0)) -> Measurement:
     """The Measurement of a frame taken from T_cell_cam (read back) of the feature's samples,
     their pixels moved by shift_px (where registration found the feature)."""
     row, col, inside, sample_gray = read_samples(image, task, T_cell_cam, points, shift_px)
@@ -140,7 +150,7 @@ def measure_feature(image, task, T_cell_cam, points, saturation, shift_px=(0.0, 
                        float(saturation), float(surface.min()), float(surface.max()))
 
 
-def joined(measurements):
+def joined(measurements: Iterable[Measurement]) -> Measurement:
     """The Measurements of the features of one capture side by side, for the control law judging
     them together (one exposure serves them all): their samples, pixels and surface gray
     concatenated, each as measured in its own region. It has no region (None): the regions are

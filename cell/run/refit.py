@@ -18,7 +18,11 @@ A parameter whose relative standard error exceeds RELATIVE_STDERR_MAX (b: BLACK_
 is not determined by the data: the worst is fixed at the task's value and the rest refitted, until
 every free one is determined; the fixed ones are reported as unknown, never invented.
 """
+from __future__ import annotations
+
 from dataclasses import dataclass, replace
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy import optimize
@@ -30,9 +34,19 @@ from cell.run.acquisition import acquire, move_lamp
 from cell.devices.interfaces import speaking_for
 from cell.core.errors import GoalNotReached
 from cell.physics.brdf_fit import standard_errors
-from cell.physics.material import PARAMETERS, Material
+from cell.physics.material import PARAMETERS, BrdfParameters, Material
 from cell.physics.brdf import brdf_terms, reflectance, reflectance_jacobian
 from cell.devices.rig import lamp_aim, lamp_position
+
+if TYPE_CHECKING:
+    from cell.planning.scene import Scene
+    from cell.report.recorder import Recorder
+    from cell.run.context import RunContext
+    from cell.run.measurement import BlackLevel, Measurement
+    from cell.task.types import Task
+
+LampPose = tuple[np.ndarray, np.ndarray]    # the lamp's position and aim in the cell frame
+Pixels = dict[str, np.ndarray]              # the Observations' pixels stacked: gray, irradiance, cosines, exposure
 
 NAMES = PARAMETERS + ("black_level",)
 BLACK = len(PARAMETERS)                 # index of b among NAMES
@@ -57,23 +71,25 @@ class Observation:
     joints read back [rad, rad, m] and the region's gray range (for the pictures)."""
 
     name: str
-    joints: tuple
+    joints: tuple[float, float, float]
     exposure: float
     gray: np.ndarray
     irradiance: np.ndarray
     cos_i: np.ndarray
     cos_e: np.ndarray
     cos_alpha: np.ndarray
-    gray_range: dict
+    gray_range: dict[str, float]
 
-    def to_json(self):
+    def to_json(self) -> dict[str, Any]:
         pan, tilt, radius = self.joints
         return {"capture": self.name, "pan_deg": float(np.degrees(pan)), "tilt_deg": float(np.degrees(tilt)),
                 "radius_m": float(radius), "exposure_s": self.exposure, "pixels": int(self.gray.size),
                 "measured_gray": self.gray_range}
 
 
-def pixel_geometry(task, scene, T_cell_cam, region, lamp_pos, lamp_aim, shift_px=(0.0, 0.0)):
+def pixel_geometry(task: Task, scene: Scene, T_cell_cam: np.ndarray, region: np.ndarray, lamp_pos: np.ndarray,
+                   lamp_aim: np.ndarray, shift_px: tuple[float, float] = (0.0, 0.0),
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(lit, E, cos ti, cos te, cos alpha) of the region's pixels (row-major, as image[region]):
     each pixel's ray, less the shift registration found (where the model sees what the pixel
     shows), cast into the model's mesh from the camera pose, shaded unit-diffuse with the
@@ -97,8 +113,9 @@ def pixel_geometry(task, scene, T_cell_cam, region, lamp_pos, lamp_aim, shift_px
     return lit, np.where(lit, r.value / np.where(lit, cos_i, 1.0), 0.0), cos_i, cos_e, cos_alpha
 
 
-def observe(task, scene, name, gray, T_cell_cam, lamp, joints, shutter_s, f_number, region, saturation,
-            shift_px=(0.0, 0.0)):
+def observe(task: Task, scene: Scene, name: str, gray: np.ndarray, T_cell_cam: np.ndarray, lamp: LampPose,
+            joints: tuple[float, float, float], shutter_s: float, f_number: float, region: np.ndarray,
+            saturation: float, shift_px: tuple[float, float] = (0.0, 0.0)) -> Observation:
     """The Observation of a capture's region pixels `gray` (image[region]) taken with the lamp at
     lamp = (position, aim) and joints, the feature found shift_px from where the model puts it:
     the pixels the model lights and the sensor resolves (below saturation)."""
@@ -106,8 +123,9 @@ def observe(task, scene, name, gray, T_cell_cam, lamp, joints, shutter_s, f_numb
     gray = np.asarray(gray, float)
     keep = lit & (gray < saturation)
     stats = {"min": float(gray.min()), "max": float(gray.max()), "mean": float(gray.mean())}
-    return Observation(name, tuple(map(float, joints)), shutter_s / f_number**2, gray[keep], e[keep], ci[keep],
-                       ce[keep], ca[keep], stats)
+    pan, tilt, radius = joints
+    return Observation(name, (float(pan), float(tilt), float(radius)), shutter_s / f_number**2, gray[keep], e[keep],
+                       ci[keep], ce[keep], ca[keep], stats)
 
 
 @dataclass(frozen=True)
@@ -119,32 +137,32 @@ class Refit:
 
     factors: np.ndarray
     stderr: np.ndarray
-    unknown: tuple
+    unknown: tuple[str, ...]
     condition_number: float
     condition_number_all: float
     rms_residual: float
     median_signal: float
-    observations: tuple
+    observations: tuple[Observation, ...]
     material: Material
-    phase_deg: tuple
+    phase_deg: tuple[float, float, float]   # the captures' phase angles: least, median, most
 
     @property
-    def explains(self):
+    def explains(self) -> bool:
         """Whether the refitted material explains the captures to RESIDUAL_MAX of their signal."""
         return self.rms_residual <= RESIDUAL_MAX * self.median_signal
 
     @property
-    def determined_shape(self):
+    def determined_shape(self) -> list[str]:
         """The shape parameters (lobe, spike) the data determined."""
         return [n for n in NAMES[1:BLACK] if n not in self.unknown]
 
-    def value(self, name):
+    def value(self, name: str) -> float:
         """A parameter's refitted value at the captures' median phase angle (b: its value)."""
         if name == "black_level":
             return float(self.factors[BLACK])
         return float(np.interp(np.radians(self.phase_deg[1]), self.material.phase_rad, getattr(self.material, name)))
 
-    def to_json(self):
+    def to_json(self) -> dict[str, Any]:
         parameters = {}
         for i, n in enumerate(NAMES):
             known = n not in self.unknown
@@ -160,7 +178,7 @@ class Refit:
                 "condition_number_all": self.condition_number_all, "rms_residual": self.rms_residual,
                 "median_signal": self.median_signal, "explains": self.explains}
 
-    def summary(self):
+    def summary(self) -> str:
         """One line: the values with their stderr, what stayed unknown, the condition number."""
         parts = []
         for i, n in enumerate(NAMES):
@@ -177,7 +195,7 @@ class Refit:
                 f"{self.condition_number:.3g}, rms residual {self.rms_residual:.2f} gray")
 
 
-def _model(x, obs, base):
+def _model(x: np.ndarray, obs: Pixels, base: BrdfParameters) -> tuple[np.ndarray, np.ndarray]:
     """(predicted gray, Jacobian by x = (ln factors of PARAMETERS, b)) over the stacked pixels."""
     factors = np.exp(np.clip(x[:BLACK], -LN_FACTOR_MAX, LN_FACTOR_MAX))
     p = [getattr(base, n) * f for n, f in zip(PARAMETERS, factors)]
@@ -189,12 +207,12 @@ def _model(x, obs, base):
     return gray, np.column_stack([jac, np.ones(gray.size)])
 
 
-def _grid_start(obs, base, black_level):
+def _grid_start(obs: Pixels, base: BrdfParameters, black_level: float) -> np.ndarray:
     """Fit vector to start from: for each lobe-exponent factor of M1_GRID (the spike's held), G is
     linear in (b, a, a f1, a f2) (eq. 6 times the exposure), solved by linear least squares; the
     grid point of least RSS with positive factors."""
     scale = obs["exposure"] * obs["irradiance"] * base.rho
-    best = (np.inf, None)
+    best: tuple[float, np.ndarray | None] = (np.inf, None)
     for g in M1_GRID:
         terms = brdf_terms(obs["cos_i"], obs["cos_e"], obs["cos_alpha"], base.sigma1, base.m1 * np.exp(g),
                            base.sigma2, base.m2)
@@ -210,12 +228,12 @@ def _grid_start(obs, base, black_level):
     return np.clip(best[1], [-LN_FACTOR_MAX] * BLACK + [-np.inf], [LN_FACTOR_MAX] * BLACK + [np.inf])
 
 
-def _solve(x0, free, obs, base):
+def _solve(x0: np.ndarray, free: list[int], obs: Pixels, base: BrdfParameters) -> tuple[np.ndarray, float]:
     """Least squares (MINPACK's Levenberg-Marquardt: the Jacobian's QR, fast on tens of thousands
     of pixels) over the free entries of x from x0, the others held."""
-    memo = {}
+    memo: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
 
-    def model(z):
+    def model(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         key = z.tobytes()
         if key not in memo:
             x = x0.copy()
@@ -231,7 +249,7 @@ def _solve(x0, free, obs, base):
     return x, 2.0 * best.cost
 
 
-def _condition(jac):
+def _condition(jac: np.ndarray) -> float:
     """Condition number of the Jacobian with unit columns (inf with a zero column)."""
     norms = np.linalg.norm(jac, axis=0)
     if np.any(norms == 0):
@@ -240,7 +258,7 @@ def _condition(jac):
     return float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
 
 
-def fit(observations, material, black_level):
+def fit(observations: Sequence[Observation], material: Material, black_level: float) -> Refit:
     """The Refit of `material` (the task's table; its shape kept where the data do not tell) and
     the black level (the loop's b where they do not) to the Observations."""
     obs = {k: np.concatenate([getattr(o, k) for o in observations])
@@ -269,17 +287,18 @@ def fit(observations, material, black_level):
     stderr = np.full(len(NAMES), np.inf)
     stderr[free] = se
     factors = np.concatenate([np.exp(x[:BLACK]), x[BLACK:]])
-    refitted = Material(f"{material.name}, refit in the loop", "", material.phase_rad,
-                        *(getattr(material, p) * f for p, f in zip(PARAMETERS, factors[:BLACK])),
+    rho, sigma1, m1, sigma2, m2 = (getattr(material, p) * f for p, f in zip(PARAMETERS, factors[:BLACK]))
+    refitted = Material(f"{material.name}, refit in the loop", "", material.phase_rad, rho, sigma1, m1, sigma2, m2,
                         unresolved=material.unresolved)   # what the goniometer could not resolve stays so
     predicted = _model(x, obs, base)[0]
-    phase = tuple(float(v) for v in np.degrees(np.percentile(alpha, [0, 50, 100])))
+    least, median, most = (float(v) for v in np.degrees(np.percentile(alpha, [0, 50, 100])))
     return Refit(factors, stderr, tuple(NAMES[i] for i in sorted(unknown)), condition, condition_all,
                  float(np.sqrt(np.mean((predicted - obs["gray"]) ** 2))), float(np.median(obs["gray"] - x[BLACK])),
-                 tuple(observations), refitted, phase)
+                 tuple(observations), refitted, (least, median, most))
 
 
-def probe_joints(joints, tilt_range):
+def probe_joints(joints: tuple[float, float, float],
+                 tilt_range: tuple[float, float]) -> list[tuple[float, float, float]]:
     """The probes' lamp joints: the tilt PROBE_TILT below and above the plan's, within the rig's
     range (a probe the range would put on the plan's own tilt is left out)."""
     pan, tilt, radius = joints
@@ -287,33 +306,48 @@ def probe_joints(joints, tilt_range):
     return [(pan, float(t), radius) for t in tilts if abs(t - tilt) > 0.2 * PROBE_TILT]
 
 
-def probe_and_refit(task, scene, devices, recorder, k, m, exposure, black, albedo_scale, shift_px=(0.0, 0.0)):
-    """After capture k (Measurement m at exposure = (shutter_s, f_number, focus_m), the lamp still
-    at the plan's pose) disagreed with the model's shape: probe shots at probe_joints through the loop's own
-    acquisition path (a device fault exits 3), each exposed so that its brightest pixel is
-    expected at PROBE_TARGET of the signal range (capture k's measured brightness times the
-    model's ratio probe / capture k), then fit() to capture k and the probes, their pixels seen
-    where registration found the feature (shift_px). Logs each probe and the refit; returns the
-    Refit."""
-    saturation, b = m.saturation, black.value
-    shutter_s, f_number, focus_m = exposure
-    material = task.part.material.scaled(albedo_scale)
+@dataclass(frozen=True)
+class Disagreement:
+    """The capture whose shape disagreed with the model: its iteration k, its Measurement, its
+    exposure (shutter_s, f_number, focus_m), the shift (dx, dy) [px] registration found the
+    feature at, and the black level and albedo scale the loop measured it with."""
+
+    iteration: int
+    measurement: Measurement
+    exposure: tuple[float, float, float]
+    black: BlackLevel
+    albedo_scale: float
+    shift_px: tuple[float, float]
+
+
+def probe_and_refit(ctx: RunContext, task: Task, scene: Scene, disagreement: Disagreement) -> Refit:
+    """After the Disagreement's capture k (the lamp still at the plan's pose): probe shots at
+    probe_joints through the loop's own acquisition path (a device fault exits 3), each exposed so
+    that its brightest pixel is expected at PROBE_TARGET of the signal range (capture k's measured
+    brightness times the model's ratio probe / capture k), then fit() to capture k and the probes,
+    their pixels seen where registration found the feature. Logs each probe and the refit;
+    returns the Refit."""
+    devices, recorder, k, m = ctx.devices, ctx.recorder, disagreement.iteration, disagreement.measurement
+    saturation, b, shift_px, region = m.saturation, disagreement.black.value, disagreement.shift_px, m.region
+    assert region is not None, "one feature's own Measurement has its region (only a joined one has none)"
+    shutter_s, f_number, focus_m = disagreement.exposure
+    material = task.part.material.scaled(disagreement.albedo_scale)
     with speaking_for(devices.lamp):
         plan_joints, plan_lamp = devices.lamp.joints(), devices.lamp.lamp_pose()
     with speaking_for(devices.arm):
         T_cell_cam = devices.arm.camera_pose()
-    trigger = observe(task, scene, f"capture-{k}.png", m.gray, T_cell_cam, plan_lamp, plan_joints,
-                      shutter_s, f_number, m.region, saturation, shift_px)
+    disagreed = observe(task, scene, f"capture-{k}.png", m.gray, T_cell_cam, plan_lamp, plan_joints,
+                        shutter_s, f_number, region, saturation, shift_px)
 
-    def brightest(lamp):
-        lit, e, ci, ce, ca = pixel_geometry(task, scene, T_cell_cam, m.region, *lamp, shift_px)
+    def brightest(lamp: LampPose) -> float:
+        lit, e, ci, ce, ca = pixel_geometry(task, scene, T_cell_cam, region, *lamp, shift_px)
         p = material.at(np.arccos(ca[lit]))
         return float(np.max(e[lit] * reflectance(ci[lit], ce[lit], ca[lit], p.rho, p.sigma1, p.m1, p.sigma2, p.m2),
                             initial=0.0))
 
     measured = (float(np.max(m.gray)) - b) / (shutter_s / f_number**2)
     planned = brightest(plan_lamp)
-    observations = [trigger]
+    observations = [disagreed]
     probes = probe_joints(plan_joints, task.lamp.rig.tilt_range_rad)
     for j, joints in enumerate(probes, 1):
         position = lamp_position(task.lamp.rig.pivot_m, *joints)
@@ -326,8 +360,8 @@ def probe_and_refit(task, scene, devices, recorder, k, m, exposure, black, albed
         image = np.asarray(capture.image, float)
         with speaking_for(devices.lamp):
             lamp = devices.lamp.lamp_pose()
-        o = observe(task, scene, capture.name, image[m.region], capture.T_cell_cam, lamp, read,
-                    capture.shutter_s, f_number, m.region, saturation, shift_px)
+        o = observe(task, scene, capture.name, image[region], capture.T_cell_cam, lamp, read,
+                    capture.shutter_s, f_number, region, saturation, shift_px)
         g = o.gray_range
         recorder.step("probe", f"probe {j}: gray {g['min']:.1f}-{g['max']:.1f} over the feature, {o.gray.size} px "
                                f"usable", iteration=k, **o.to_json())
@@ -341,12 +375,13 @@ def probe_and_refit(task, scene, devices, recorder, k, m, exposure, black, albed
     return refit
 
 
-def material_document(refit, name, source):
+def material_document(refit: Refit, name: str, source: str) -> dict[str, Any]:
     """The refitted material as a material file's keys (docs/formats.md, "Material"): the task's
     table times the factors, the stderr of each parameter (.inf where not determined, a zero
     entry's too) and the task's `unresolved` section, if any (a refit resolves no spike)."""
     mat = refit.material
-    doc = {"name": name, "source": source, "phase_deg": [round(float(a), 6) for a in np.degrees(mat.phase_rad)]}
+    doc: dict[str, Any] = {"name": name, "source": source,
+                           "phase_deg": [round(float(a), 6) for a in np.degrees(mat.phase_rad)]}
     for p in PARAMETERS:
         doc[p] = [float(f"{v:.6g}") for v in getattr(mat, p)]
     for i, p in enumerate(PARAMETERS):
@@ -360,7 +395,7 @@ def material_document(refit, name, source):
     return doc
 
 
-def keep(refit, task, recorder, k):
+def keep(refit: Refit, task: Task, recorder: Recorder, k: int) -> str:
     """Write the refitted material as refit-k-material.yaml in the run folder (a file the user can
     keep and name as part.material); returns its name."""
     from datetime import date
@@ -378,7 +413,7 @@ def keep(refit, task, recorder, k):
     return name
 
 
-def require_usable(refit, spread_reason):
+def require_usable(refit: Refit, spread_reason: str) -> None:
     """A refit the loop can re-plan with: it explains the captures (rms residual within
     RESIDUAL_MAX of the signal) and determined a shape parameter; else GoalNotReached saying why
     (the shape disagreement's reason first)."""
@@ -392,6 +427,6 @@ def require_usable(refit, spread_reason):
                              f"spike's parameters, so there is nothing to re-plan with", "material shape")
 
 
-def task_with(task, refit):
+def task_with(task: Task, refit: Refit) -> Task:
     """The task with the refitted material (the planner's and every later re-plan's)."""
     return replace(task, part=replace(task.part, material=refit.material))

@@ -25,14 +25,24 @@ the one along it stays the model's. A capture whose registration cannot be trust
 resolved, more than SATURATED_FRACTION of the window saturated, ECC not converging, a correlation
 below MIN_CORRELATION, ECC wandering more than COARSE pixels or TURN_STEP_DEG from the coarse
 estimate) keeps the model's region and says so."""
+from __future__ import annotations
+
 import time
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
 
 from cell.physics import projection
 from kernels.render import render
+
+if TYPE_CHECKING:
+    from cell.planning.scene import Scene
+    from cell.task.types import Task
+
+Window = tuple[int, int, int, int]          # (u0, v0, width, height) of a part of the image [px]
+LampPose = tuple[np.ndarray, np.ndarray]    # the lamp's position and aim in the cell frame
 
 COARSE = 4                  # the coarse step's pixels per model pixel
 MARGIN_PX = 24              # the window around the feature's samples: the conrod's shank edges
@@ -59,7 +69,7 @@ class Registration:
     footprint at the feature [m], whether it is trusted and why (note), the directions resolved,
     ECC's correlation and the time it took."""
 
-    shift_px: tuple
+    shift_px: tuple[float, float]
     footprint_m: float
     trusted: bool
     resolved: int
@@ -69,15 +79,15 @@ class Registration:
     rotation_deg: float = 0.0    # the image's turn about the optical axis, ECC's (not applied)
 
     @property
-    def offset_px(self):
+    def offset_px(self) -> float:
         return float(np.hypot(*self.shift_px))
 
     @property
-    def offset_m(self):
+    def offset_m(self) -> float:
         """The pose error it implies at the feature: offset x the pixel's footprint there."""
         return self.offset_px * self.footprint_m
 
-    def describe(self):
+    def describe(self) -> str:
         """The log's sentence."""
         if not self.trusted:
             return f"not trusted ({self.note}): the model's region is measured"
@@ -87,14 +97,14 @@ class Registration:
                 f"{self.correlation:.3f}"
                 + (f"; {self.note}" if self.note else "") + f"; {1e3 * self.time_s:.0f} ms)")
 
-    def to_json(self):
+    def to_json(self) -> dict[str, Any]:
         return {"shift_px": list(self.shift_px), "offset_px": self.offset_px, "offset_m": self.offset_m,
                 "footprint_m": self.footprint_m, "trusted": self.trusted, "resolved": self.resolved,
                 "correlation": self.correlation, "note": self.note, "time_s": self.time_s,
                 "rotation_deg": self.rotation_deg}
 
 
-def beyond_limit(registration, limit_m):
+def beyond_limit(registration: dict[str, Any], limit_m: float) -> str | None:
     """The stop's reason when a trusted registration (Registration.to_json) puts the feature
     farther than limit_m (cell.run.loop.registration_limit) from where the model puts it, else None."""
     if not registration["trusted"] or registration["offset_m"] <= limit_m:
@@ -105,7 +115,8 @@ def beyond_limit(registration, limit_m):
             f"hand-eye calibration or the part's fixture")
 
 
-def expected_image(task, scene, T_cell_cam, lamp_pose, window, scale=1):
+def expected_image(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: LampPose, window: Window,
+                   scale: int = 1) -> np.ndarray:
     """The model's gray per unit exposure (c A Phi R / 8, eq. 10, 11, 17) over a window
     (u0, v0, width, height) of a grid `scale` times coarser than the sensor's, seen from T_cell_cam
     with the lamp at lamp_pose (position, aim): the planner's shading with shadows."""
@@ -123,21 +134,21 @@ def expected_image(task, scene, T_cell_cam, lamp_pose, window, scale=1):
     return r.value.reshape(height, width).astype(np.float32)
 
 
-def gradient(image):
+def gradient(image: np.ndarray) -> np.ndarray:
     """|grad image| [gray / px] (Sobel)."""
     gx = cv2.Sobel(image, cv2.CV_32F, 1, 0, scale=1 / 8)
     gy = cv2.Sobel(image, cv2.CV_32F, 0, 1, scale=1 / 8)
     return cv2.magnitude(gx, gy)
 
 
-def high_pass(image):
+def high_pass(image: np.ndarray) -> np.ndarray:
     """image less its Gaussian blur of HIGH_PASS_SIGMA px: the part's edges, not the lamp's soft
     edge (tens of pixels wide), which a lamp off its aim puts elsewhere than the model does (the
     hinge's lamp 4-5 deg off: matched 70-107 px away without it)."""
     return image - cv2.GaussianBlur(image, (0, 0), HIGH_PASS_SIGMA)
 
 
-def structure(template):
+def structure(template: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(eigenvalues ascending, eigenvectors as columns) of the structure tensor of a template
     (smoothed by SMOOTH_SIGMA), its gradient in gray per pixel."""
     gx = cv2.Sobel(template, cv2.CV_64F, 1, 0, scale=1 / 8)
@@ -146,14 +157,16 @@ def structure(template):
     return np.linalg.eigh(J)
 
 
-def feature_window(row, col, shape, margin):
+def feature_window(row: np.ndarray, col: np.ndarray, shape: tuple[int, ...], margin: int) -> Window:
     """(u0, v0, width, height): the samples' pixels' bounding box and a margin, inside the image."""
     u0, v0 = max(int(col.min()) - margin, 0), max(int(row.min()) - margin, 0)
     u1, v1 = min(int(col.max()) + margin + 1, shape[1]), min(int(row.max()) + margin + 1, shape[0])
     return u0, v0, u1 - u0, v1 - v0
 
 
-def edged_window(task, scene, T_cell_cam, lamp_pose, row, col, shape):
+def edged_window(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: LampPose, row: np.ndarray,
+                 col: np.ndarray, shape: tuple[int, ...],
+                 ) -> tuple[Window, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(window, smoothed template, eigenvalues, eigenvectors, resolved directions) of the smallest
     window around the feature (margin MARGIN_PX, doubled up to MAX_MARGIN_PX) whose model image
     resolves a direction (module docstring)."""
@@ -171,7 +184,8 @@ def edged_window(task, scene, T_cell_cam, lamp_pose, row, col, shape):
         margin *= 2
 
 
-def coarse_shift(image, task, scene, T_cell_cam, lamp_pose, row, col):
+def coarse_shift(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: LampPose,
+                 row: np.ndarray, col: np.ndarray) -> tuple[np.ndarray, float]:
     """(the feature centre's shift (dx, dy) [px] to within COARSE px, the image's turn about it
     [deg] to within half a COARSE_TURNS_DEG step): the model's window around it
     (COARSE_MARGIN_PX) at 1/COARSE resolution, turned by each of COARSE_TURNS_DEG about the
@@ -189,7 +203,7 @@ def coarse_shift(image, task, scene, T_cell_cam, lamp_pose, row, col):
     edges = gradient(high_pass(expected_image(task, scene, T_cell_cam, lamp_pose, (u0, v0, width, height), COARSE)))
     centre = (float(np.mean(col) / COARSE - u0), float(np.mean(row) / COARSE - v0))
     target = gradient(high_pass(small))
-    best = (-np.inf, None, 0.0)
+    best: tuple[float, tuple[int, int] | None, float] = (-np.inf, None, 0.0)
     for turn in COARSE_TURNS_DEG:               # the turned window's corners have no edge: 0
         M = cv2.getRotationMatrix2D(centre, turn, 1.0)
         score = cv2.matchTemplate(target, cv2.warpAffine(edges, M, (width, height)), cv2.TM_CCOEFF_NORMED)
@@ -199,7 +213,8 @@ def coarse_shift(image, task, scene, T_cell_cam, lamp_pose, row, col):
     return COARSE * np.array(best[1], float), best[2]
 
 
-def locate(image, task, scene, T_cell_cam, lamp_pose, row, col, saturation=np.inf):
+def locate(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: LampPose,
+           row: np.ndarray, col: np.ndarray, saturation: float = np.inf) -> Registration:
     """The Registration of a capture taken from T_cell_cam (read back) with the lamp at
     lamp_pose, the feature's samples at pixels (row, col) by the model (those inside the image),
     pixels at `saturation` or above clipped by the sensor."""
@@ -209,8 +224,9 @@ def locate(image, task, scene, T_cell_cam, lamp_pose, row, col, saturation=np.in
     (_,), (depth,) = projection.project(K, T_cell_cam, scene.center[None])
     footprint = float(depth / K[0, 0])
 
-    def result(shift, trusted, resolved, correlation, note, rotation=0.0):
-        return Registration(tuple(float(s) for s in shift), footprint, trusted, resolved, float(correlation), note,
+    def result(shift: Any, trusted: bool, resolved: int, correlation: float, note: str,
+               rotation: float = 0.0) -> Registration:
+        return Registration((float(shift[0]), float(shift[1])), footprint, trusted, resolved, float(correlation), note,
                             time.perf_counter() - start, rotation)
 
     coarse, turn = coarse_shift(image, task, scene, T_cell_cam, lamp_pose, row, col)
@@ -226,8 +242,8 @@ def locate(image, task, scene, T_cell_cam, lamp_pose, row, col, saturation=np.in
     M = cv2.getRotationMatrix2D(tuple(centre), turn, 1.0)           # window -> image: turned about it,
     warp = np.column_stack([M[:, :2], M[:, 2] + (u0, v0) + coarse]).astype(np.float32)   # then shifted
     try:
-        correlation, warp = cv2.findTransformECC(template, cv2.GaussianBlur(image, (0, 0), SMOOTH_SIGMA), warp,
-                                                 cv2.MOTION_EUCLIDEAN, ECC_CRITERIA, None, 1)
+        correlation, warp = cv2.findTransformECC(  # type: ignore[call-overload]  # OpenCV's stubs: no mask None
+            template, cv2.GaussianBlur(image, (0, 0), SMOOTH_SIGMA), warp, cv2.MOTION_EUCLIDEAN, ECC_CRITERIA, None, 1)
     except cv2.error as err:
         return result((0.0, 0.0), False, int(resolved.sum()), np.nan,
                       f"ECC did not converge: {str(err).strip().splitlines()[-1]}")
