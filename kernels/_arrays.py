@@ -3,6 +3,8 @@ import numpy as np
 import warp as wp
 from numpy.typing import ArrayLike, DTypeLike
 
+from .emission import hard_cone_profile
+
 
 def vec3d(a: ArrayLike, name: str) -> wp.array:
     """(N, 3) float64 -> wp.array(vec3d)."""
@@ -43,10 +45,10 @@ def table2d(table: ArrayLike) -> wp.array:
 
 def profile2d(profile: ArrayLike | None, cone_angle_rad: float) -> wp.array:
     """Lamp profile (M, 2) [off_axis_rad, relative], angles ascending from 0; None: eq. (11)'s
-    ideal cone, 1 up to gamma/2 and 0 beyond (as cell.physics.radiometry.hard_cone_profile).
+    ideal cone, 1 up to gamma/2 and 0 beyond (kernels.emission.hard_cone_profile).
     With its slopes (with_slopes): (M, 3)."""
     if profile is None:
-        profile = [[0.0, 1.0], [0.5 * float(cone_angle_rad), 1.0]]
+        profile = hard_cone_profile(cone_angle_rad)
     p = np.ascontiguousarray(profile, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 2 or len(p) < 2:
         raise ValueError(f"lamp profile must have shape (M >= 2, 2), got {p.shape}")

@@ -11,7 +11,6 @@ Directions point away from the surface point: n normal, s to the lamp, v to the 
 What depends on the point alone (v, cos te, the shadow ray's origin) or on the lamp alone (its
 unit aim, its axis intensity) is computed once by the callers, not per evaluation.
 """
-import math
 
 import warp as wp
 
@@ -171,18 +170,12 @@ def relative_intensity(profile: wp.array2d(dtype=wp.float64), off_axis_rad: wp.f
     return _interp_column(profile, j, 1, 1, theta)
 
 
-def axis_intensity(power_w: float, cone_angle_rad: float) -> float:
-    """I(0) = P_L / (2 pi (1 - cos(gamma/2))) [W/sr], eq. (11)'s power spread over its cone's
-    solid angle (plain Python: once per lamp, not per evaluation)."""
-    return float(power_w) / (2.0 * math.pi * (1.0 - math.cos(0.5 * float(cone_angle_rad))))
-
-
 @wp.func
 def cone_irradiance(intensity_w_sr: wp.float64, distance_m: wp.float64, off_axis_rad: wp.float64,
                     profile: wp.array2d(dtype=wp.float64)) -> wp.float64:
-    """Eq. (11) scaled by the lamp's profile: Phi = I(theta)/I(0) I(0) / d^2 [W/m^2], I(0) by
-    axis_intensity (normalized by the cone angle gamma as eq. 11); the ideal cone's profile is 1
-    up to gamma/2 and 0 beyond."""
+    """Phi = I(theta)/I(0) I(0) / d^2 [W/m^2], I(0) by kernels.emission.axis_intensity (the
+    lamp's power over the solid angle its profile fills; eq. 11's for the ideal cone, whose
+    profile is 1 up to gamma/2 and 0 beyond)."""
     relative = relative_intensity(profile, off_axis_rad)
     if relative <= wp.float64(0.0):
         return wp.float64(0.0)
@@ -305,7 +298,7 @@ def shade_point(mesh_id: wp.uint64, shadows: wp.int32, cone: wp.int32, at: Surfa
                 intensity_w_sr: wp.float64, profile: wp.array2d(dtype=wp.float64),
                 table: wp.array2d(dtype=wp.float64), camera_constant: wp.float64,
                 pixel_area_m2: wp.float64) -> Shading:
-    """One lamp (unit aim lamp_axis, axis intensity I(0) by axis_intensity) at one Surface
+    """One lamp (unit aim lamp_axis, axis intensity I(0) by kernels.emission.axis_intensity) at one Surface
     (its sectors' free cones in sector_cos) seen from the camera: gray per exposure
     c A Phi R / 8, Phi by the lamp's profile (cone_irradiance).
 

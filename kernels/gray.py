@@ -8,6 +8,7 @@ import warp as wp
 from numpy.typing import ArrayLike
 
 from . import funcs
+from .emission import axis_intensity
 from ._arrays import output, profile2d, table2d, unit_rows, vec3d
 from .cone import NO_CONE, free_cone_cosines, worth_finding
 from .runtime import ensure_init
@@ -79,7 +80,7 @@ class GrayInputs:
     alone (funcs.Surface): a search calls the kernel hundreds of times on a few candidates each.
 
     mesh: kernels.mesh.WarpMesh or None (no cast shadows); points, normals (P, 3) [m];
-    camera_pos (3,); power_w, cone_angle_rad: eq. (11); table (K, 6): Material.table(); shadow
+    camera_pos (3,); power_w, cone_angle_rad: the lamp (I(0) by kernels.emission.axis_intensity); table (K, 6): Material.table(); shadow
     rays start at point + offset_m * normal; profile (M, 2) [off_axis_rad, relative]: the lamp's
     angular profile (None: eq. (11)'s ideal cone). Call with lamp_pos (C, 3) and lamp_axis
     (C, 3) (the aims, normalized here) for a GrayResult of (C, P) NumPy arrays.
@@ -112,7 +113,7 @@ class GrayInputs:
         self.has_free_cones = False
         self._leading = [self._mesh.id if self._mesh is not None else wp.uint64(0), int(use_shadows),
                          int(bool(cone)), self.surfaces, sector_cos_wp]
-        self._trailing = [funcs.axis_intensity(power_w, cone_angle_rad), profile2d(profile, cone_angle_rad),
+        self._trailing = [axis_intensity(power_w, cone_angle_rad, profile), profile2d(profile, cone_angle_rad),
                           table2d(table), float(camera_constant), float(pixel_area_m2)]
         self._launches: dict[int, _Batch] = {}       # the kept batches, by lamp count
         self._lock = threading.Lock()

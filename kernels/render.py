@@ -7,6 +7,7 @@ import warp as wp
 from numpy.typing import ArrayLike
 
 from . import funcs
+from .emission import axis_intensity
 from ._arrays import output, profile2d, table2d, unit_rows, vec3d
 from .cone import NO_CONE
 from .runtime import ensure_init
@@ -85,7 +86,7 @@ def render(mesh: "WarpMesh", origin: ArrayLike, ray_dirs: ArrayLike, lamp_pos: A
         mesh.id, wp.vec3d(*np.asarray(origin, dtype=np.float64)), vec3d(dirs, "ray_dirs"),
         float(max_dist), int(bool(shadows)), int(bool(cone)), float(offset_m),
         wp.empty((0, funcs.SECTORS), dtype=wp.float64, device=device), wp.vec3d(*np.asarray(lamp_pos, dtype=np.float64)), wp.vec3d(*(axis / np.linalg.norm(axis))),
-        funcs.axis_intensity(power_w, cone_angle_rad), profile2d(profile, cone_angle_rad), table2d(table),
+        axis_intensity(power_w, cone_angle_rad, profile), profile2d(profile, cone_angle_rad), table2d(table),
         float(camera_constant), float(pixel_area_m2),
     ], outputs=[value_wp, hit_wp, depth_wp, normal_wp])
     return RenderResult(value, hit, depth, normal)

@@ -58,7 +58,8 @@ BLACK_LEVEL = 0.02          # of full scale, rounded (5 gray at 8 bits): keeps r
 
 
 def cone_falloff(off_axis_rad: ArrayLike, cone_angle_rad: float, profile: np.ndarray | None = None) -> np.ndarray:
-    """The world's lamp profile: irradiance relative to eq. (11)'s on the axis at off-axis angle
+    """The world's lamp profile: irradiance relative to the model's on the axis (its profile's
+    energy-conserving I(0), kernels.emission.axis_intensity) at off-axis angle
     theta, the model's profile blurred in angle by a Gaussian of s = CONE_EDGE gamma/2. Without a
     profile (the hard cone) erfc((theta - gamma/2) / (sqrt 2 s)) / 2; with one, blurred_profile."""
     half = 0.5 * cone_angle_rad

@@ -13,7 +13,7 @@ from hypothesis import assume, example, given, settings
 from hypothesis import strategies as st
 
 from cell.core import geometry
-from cell.physics import reference as ref
+from cell.physics import radiometry, reference as ref
 from kernels import cone, gray, visibility
 from kernels.cone import NO_CONE, free_cone_cosines
 from kernels.funcs import SECTORS
@@ -147,11 +147,14 @@ def test_a_lamp_profile_scales_the_gray_as_the_reference_does(blocks):
     assert_gray_agrees(blocks, points, normals, lamps, warp, numpy)
     spill = (numpy.off_axis > GAMMA / 2) & (numpy.off_axis < SOFT[-1, 0]) & ~numpy.shadowed
     assert spill.sum() > 20 and np.all(warp.value[spill] > 0.0)
-    no_cone = gray_per_exposure(blocks, *args, cone=False)
+    no_cone = gray_per_exposure(blocks, *args, cone=False, profile=SOFT)     # the profile's axis intensity
     relative = np.interp(warp.off_axis, SOFT[:, 0], SOFT[:, 1], right=0.0)
     np.testing.assert_allclose(warp.value, no_cone.value * relative, rtol=1e-12, atol=0)
+    np.testing.assert_allclose(no_cone.value, gray_per_exposure(blocks, *args, cone=False).value
+                               * radiometry.axis_intensity(P_LAMP, GAMMA, SOFT) / radiometry.axis_intensity(P_LAMP, GAMMA),
+                               rtol=1e-12, atol=0)
     hard = gray_per_exposure(blocks, *args, profile=[[0.0, 1.0], [0.02, 1.0], [GAMMA / 2, 1.0]])
-    np.testing.assert_array_equal(hard.value, gray_per_exposure(blocks, *args).value)
+    np.testing.assert_allclose(hard.value, gray_per_exposure(blocks, *args).value, rtol=1e-14, atol=0)
 
 
 def test_spike_exponents_up_to_1e4_agree_in_float64():

@@ -3,7 +3,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from cell.physics import brdf, costs, depth_of_field as dof, radiometry
@@ -57,17 +57,98 @@ def test_irradiance_is_zero_outside_the_cone():
     assert radiometry.cone_irradiance(P_LAMP, GAMMA, 0.3, math.radians(5.99)) > 0.0
 
 
-def test_a_lamp_profile_scales_eq_11_normalized_by_the_cone():
-    """Phi = I(theta)/I(0) P_L / (2 pi (1 - cos(gamma/2)) d^2): the axis keeps the paper's
-    41.84 W/m^2 at 0.40 m, the profile interpolates linearly and ends in 0; the ideal cone is the
-    table ending at gamma/2."""
+def _emitted_power(power_w, cone_angle_rad, profile=None, nodes=32):
+    """The power through the unit sphere about the lamp, by Gauss-Legendre quadrature of the
+    irradiance radiometry.cone_irradiance gives at 1 m (E at 1 m is the intensity in W/sr) over
+    2 pi sin(theta) dtheta, on each of the profile's linear segments (where the integrand is
+    smooth) and 0 beyond its last angle: independent of the closed form."""
+    if profile is None:
+        profile = radiometry.hard_cone_profile(cone_angle_rad)
+    x, w = np.polynomial.legendre.leggauss(nodes)
+    total = 0.0
+    for t0, t1 in zip(profile[:-1, 0], profile[1:, 0]):
+        theta = 0.5 * (t1 - t0) * x + 0.5 * (t1 + t0)
+        e = radiometry.cone_irradiance(power_w, cone_angle_rad, 1.0, theta, profile)
+        total += 0.5 * (t1 - t0) * np.sum(w * e * 2.0 * np.pi * np.sin(theta))
+    return total
+
+
+def test_a_lamp_profile_scales_its_energy_conserving_axis_intensity():
+    """Phi = I(0) I(theta)/I(0) / d^2 with I(0) = P / (2 pi integral p sin): the profile
+    interpolates linearly and ends in 0; its axis is eq. (11)'s 41.84 W/m^2 at 0.40 m scaled by
+    the hard cone's solid angle over the profile's; the ideal cone is the table ending at gamma/2."""
     profile = np.column_stack([np.radians([0.0, 4.0, 6.0, 8.0]), [1.0, 0.9, 0.5, 0.0]])
+    ratio = 2 * np.pi * (1 - np.cos(GAMMA / 2)) / radiometry.profile_solid_angle(profile)
     phi = radiometry.cone_irradiance(P_LAMP, GAMMA, 0.40, np.radians([0.0, 5.0, 6.0, 7.0, 8.5]), profile)
-    np.testing.assert_allclose(phi, 41.84 * np.array([1.0, 0.7, 0.5, 0.25, 0.0]), rtol=1e-4)
+    np.testing.assert_allclose(phi, 41.84 * ratio * np.array([1.0, 0.7, 0.5, 0.25, 0.0]), rtol=1e-4)
+    assert _emitted_power(P_LAMP, GAMMA, profile) == pytest.approx(P_LAMP, rel=1e-12)
     off = np.radians([0.0, 5.99, 6.01])
     np.testing.assert_array_equal(radiometry.cone_irradiance(P_LAMP, GAMMA, 0.3, off),
                                   radiometry.cone_irradiance(P_LAMP, GAMMA, 0.3, off,
                                                              radiometry.hard_cone_profile(GAMMA)))
+
+
+@pytest.mark.parametrize("gamma_deg", [0.5, 1.0, 12.0, 36.0, 90.0, 179.0])
+def test_the_hard_cone_is_eq_11(gamma_deg):
+    """Eq. (11)'s 2 pi (1 - cos(gamma/2)), to rounding: the closed form is written as
+    4 pi sin^2(gamma/4), the same number without 1 - cos's cancellation for narrow cones."""
+    gamma = math.radians(gamma_deg)
+    eq_11 = 2.0 * math.pi * (1.0 - math.cos(0.5 * gamma))
+    stable = 4.0 * math.pi * math.sin(0.25 * gamma) ** 2
+    assert radiometry.profile_solid_angle(radiometry.hard_cone_profile(gamma)) == pytest.approx(stable, rel=1e-15)
+    assert stable == pytest.approx(eq_11, rel=1e-10)       # 1 - cos(gamma/2) rounds to ~1e-11 at 0.5 deg
+    assert radiometry.axis_intensity(P_LAMP, gamma) == pytest.approx(P_LAMP / stable, rel=1e-15)
+    assert radiometry.axis_intensity(P_LAMP, gamma, radiometry.hard_cone_profile(gamma)) == \
+        radiometry.axis_intensity(P_LAMP, gamma)
+
+
+@st.composite
+def profiles(draw):
+    """A lamp profile table: 2-12 angles strictly ascending from 0 to at most 180 deg, 1 on the
+    axis, the rest in [0, 1]."""
+    n = draw(st.integers(2, 12))
+    steps = draw(st.lists(st.floats(1e-3, 1.0), min_size=n - 1, max_size=n - 1))
+    end = draw(st.floats(math.radians(0.2), math.pi))
+    angles = np.concatenate([[0.0], np.cumsum(steps)])
+    angles *= end / angles[-1]
+    angles[-1] = min(angles[-1], math.pi)
+    assume(np.all(np.diff(angles) > 0.0))
+    relative = [1.0] + draw(st.lists(st.floats(0.0, 1.0), min_size=n - 1, max_size=n - 1))
+    return np.column_stack([angles, relative])
+
+
+@settings(max_examples=200, deadline=None)
+@given(profiles(), st.floats(1e-3, 100.0))
+def test_a_profiled_lamp_emits_its_power(profile, power_w):
+    """Energy conservation: the irradiance integrated over a sphere about the lamp is P, whatever
+    the profile (and whatever the cone angle: the profile alone says where the power goes)."""
+    assert _emitted_power(power_w, GAMMA, profile) == pytest.approx(power_w, rel=1e-9)
+
+
+@pytest.mark.parametrize("name, emits", [("hinge", 1.021), ("conrod", 1.021), ("bracket", 1.021)])
+def test_the_examples_profiles_emit_their_power(name, emits):
+    """The examples' lamps emit P, and their profiles fill about 1.02 times the solid angle of the
+    hard cone of their cone_angle_deg (so their axis is about 2 % dimmer than eq. (11) says)."""
+    import yaml
+    from pathlib import Path
+    lamp = yaml.safe_load((Path(__file__).resolve().parent.parent / "tasks" / f"{name}.yaml").read_text())["lamp"]
+    power = lamp["power_w"] if "power_w" in lamp else lamp["power_mw"] * 1e-3
+    gamma = math.radians(lamp["cone_angle_deg"])
+    profile = np.column_stack([np.radians(lamp["profile"]["off_axis_deg"]), lamp["profile"]["relative"]])
+    assert _emitted_power(power, gamma, profile) == pytest.approx(power, rel=1e-9)
+    hard = 2.0 * math.pi * (1.0 - math.cos(0.5 * gamma))
+    assert radiometry.profile_solid_angle(profile) / hard == pytest.approx(emits, abs=0.002)
+
+
+def test_a_1_deg_cone_with_the_hinges_profile_would_emit_147_times_its_power():
+    """The issue's case: normalised by a 1 deg cone (eq. 11) instead of its profile, the hinge's
+    lamp would emit about 147 P; normalised by the profile it emits P."""
+    profile = np.column_stack([np.radians([0.0, 1.0, 2.0, 3.0, 4.0, 4.5, 5.0, 5.5, 6.0, 6.5, 7.0, 7.5, 8.0, 9.0]),
+                               [1.0, 0.997, 0.99, 0.98, 0.955, 0.92, 0.84, 0.69, 0.50, 0.31, 0.16, 0.07, 0.025, 0.0]])
+    one_deg = math.radians(1.0)
+    old = radiometry.profile_solid_angle(profile) / (2.0 * math.pi * (1.0 - math.cos(0.5 * one_deg)))
+    assert old == pytest.approx(147, abs=0.5)
+    assert _emitted_power(P_LAMP, one_deg, profile) == pytest.approx(P_LAMP, rel=1e-12)
 
 
 def test_depth_of_field_worked_values():

@@ -78,6 +78,9 @@ def test_hinge_lamp_sits_in_the_lobe_region(hinge):
 # a soft-edged profile for the 12 deg cone [off_axis_rad, relative]: half at the nominal edge
 SOFT_EDGE = np.column_stack([np.radians([0.0, 2.0, 4.0, 5.0, 6.0, 7.0, 8.0]),
                              [1.0, 0.99, 0.93, 0.80, 0.50, 0.15, 0.0]])
+# its axis intensity over the hard 12 deg cone's: the lamp's power over the profile's solid angle
+SOFT_AXIS = (radiometry.axis_intensity(1.0, np.radians(12.0), SOFT_EDGE)
+             / radiometry.axis_intensity(1.0, np.radians(12.0)))
 
 
 def with_profile(task, profile):
@@ -86,8 +89,9 @@ def with_profile(task, profile):
 
 def test_a_sample_at_the_old_hard_edge_gets_the_profiles_relative_intensity(hinge):
     """The hinge's planned lamp turned off its pivot until the feature centre lies 5.9 deg off the
-    axis: the planner's gray is the hard cone's times the profile there (about half), and samples
-    beyond the hard edge get the profile's spill instead of nothing."""
+    axis: the planner's gray is the hard cone's times the profile there (about half) times the
+    profile's axis intensity over the hard cone's (the same power over another solid angle), and
+    samples beyond the hard edge get the profile's spill instead of nothing."""
     task, plan = hinge
     scene = plan.scene
     pos = plan.shot.lamp_position
@@ -100,7 +104,7 @@ def test_a_sample_at_the_old_hard_edge_gets_the_profiles_relative_intensity(hing
     soft_u, _, _, _ = evaluate.unit_gray(soft, pos[None], aim[None])
     inside, beyond = hard_u[0] > 0.0, off_axis[0] > np.radians(6.0)
     assert inside.sum() > 10 and beyond.sum() > 10 and np.all(hard_u[0, beyond] == 0.0)
-    relative = np.interp(off_axis[0], SOFT_EDGE[:, 0], SOFT_EDGE[:, 1])
+    relative = np.interp(off_axis[0], SOFT_EDGE[:, 0], SOFT_EDGE[:, 1]) * SOFT_AXIS
     np.testing.assert_allclose(soft_u[0, inside], hard_u[0, inside] * relative[inside], rtol=1e-12)
     assert np.all(soft_u[0, beyond] > 0.0)
     center = np.argmin(np.linalg.norm(scene.points - scene.center, axis=1))
@@ -125,7 +129,7 @@ def test_the_lamp_tolerance_moves_see_the_profile(hinge):
     np.testing.assert_allclose(c.moved_gray[:, 0], u * c.shutter[0] / c.kappa[0]**2, rtol=1e-5)
     hard = evaluate.candidates(evaluate.build_problem(with_profile(task, None), plan.scene, plan.maps),
                                pan, tilt, radius)
-    gain = (c.shutter / c.kappa**2) / (hard.shutter / hard.kappa**2)
+    gain = (c.shutter / c.kappa**2) / (hard.shutter / hard.kappa**2) * SOFT_AXIS
     assert np.all(c.moved_gray < hard.moved_gray * gain)       # the profile dims every sample off the axis
 
 

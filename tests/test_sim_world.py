@@ -171,6 +171,9 @@ def test_cone_falloff_softens_the_edge_as_a_blurred_cone(plate):
 # a soft-edged profile for the 12 deg cone [off_axis_rad, relative]: half at the nominal edge
 SOFT_EDGE = np.column_stack([np.radians([0.0, 2.0, 4.0, 5.0, 6.0, 7.0, 8.0]),
                              [1.0, 0.99, 0.93, 0.80, 0.50, 0.15, 0.0]])
+# its axis intensity over the hard 12 deg cone's: the same power spread over its solid angle
+SOFT_AXIS = (radiometry.profile_solid_angle(radiometry.hard_cone_profile(np.radians(12.0)))
+             / radiometry.profile_solid_angle(SOFT_EDGE))
 
 
 def test_without_cone_falloff_the_world_has_the_tasks_lamp_profile(plate):
@@ -180,7 +183,8 @@ def test_without_cone_falloff_the_world_has_the_tasks_lamp_profile(plate):
     theta = np.arccos(geometry.unit(points - OVERHEAD) @ DOWN)
     inside = (points[..., 0] > 0.0) & (hard > 0.0)
     # the kernel's hit points are float32 distances along the ray: theta to ~1e-6 relative
-    np.testing.assert_allclose(model[inside], hard[inside] * np.interp(theta[inside], *SOFT_EDGE.T), rtol=1e-5)
+    np.testing.assert_allclose(model[inside], hard[inside] * SOFT_AXIS * np.interp(theta[inside], *SOFT_EDGE.T),
+                               rtol=1e-5)
     spill = (points[..., 0] > 0.0) & (theta > np.radians(6.2)) & (theta < np.radians(7.8))
     assert spill.sum() > 100 and np.all(hard[spill] == 0.0) and np.all(model[spill] > 0.0)
     assert np.all(model[theta > SOFT_EDGE[-1, 0]] == 0.0)
@@ -198,7 +202,8 @@ def test_cone_falloff_with_a_profile_blurs_the_tasks_profile(plate):
     weights = norm.pdf(x) * (x[1] - x[0])
     blurred = [np.sum(weights * np.interp(np.abs(t + np.radians(x)), *SOFT_EDGE.T, right=0.0))
                for t in theta[inside][::50]]
-    np.testing.assert_allclose(soft[inside][::50] / hard[inside][::50], blurred, rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(soft[inside][::50] / hard[inside][::50], SOFT_AXIS * np.array(blurred),
+                               rtol=1e-5, atol=1e-7)
     beyond = (points[..., 0] > 0.0) & (theta > np.radians(8.2)) & (theta < np.radians(9.0))
     assert beyond.sum() > 100 and np.all(soft[beyond] > 0.0)         # spills past the profile's end
 

@@ -1,4 +1,5 @@
-"""Radiometry of sec. 4: lamp irradiance (eq. 11, scaled by the lamp's angular profile), pixel
+"""Radiometry of sec. 4: lamp irradiance (eq. 11 generalised to the lamp's angular profile, its
+power conserved), pixel
 power (eq. 17), gray value (eq. 10) with its camera constant from a sensor datasheet, and the
 corrected inverse (erratum eq. 18-19). SI units: W, m, s, rad."""
 
@@ -8,11 +9,12 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.constants import Planck, speed_of_light
 
+# the one implementation of the lamp's energy normalisation, shared with the kernels (which may
+# import nothing of cell/): I(0) = P / (2 pi integral p(theta) sin(theta) dtheta)
+from kernels.emission import axis_intensity, hard_cone_profile, profile_solid_angle
 
-def hard_cone_profile(cone_angle_rad: float) -> np.ndarray:
-    """Eq. (11)'s ideal cone as a lamp profile (2, 2) [off_axis_rad, relative]: 1 up to gamma/2
-    and, being the table's last angle, 0 beyond it."""
-    return np.array([[0.0, 1.0], [0.5 * cone_angle_rad, 1.0]])
+__all__ = ["axis_intensity", "hard_cone_profile", "profile_solid_angle", "relative_intensity", "cone_irradiance",
+           "pixel_power", "gray_value", "camera_constant_from_datasheet", "reflectance_from_gray"]
 
 
 def relative_intensity(off_axis_rad: float | np.ndarray, profile: ArrayLike) -> np.ndarray:
@@ -24,15 +26,16 @@ def relative_intensity(off_axis_rad: float | np.ndarray, profile: ArrayLike) -> 
 
 def cone_irradiance(power_w: float, cone_angle_rad: float, distance_m: float | np.ndarray,
                     off_axis_rad: float | np.ndarray = 0.0, profile: np.ndarray | None = None) -> np.ndarray:
-    """Eq. (11) scaled by the lamp's profile: Phi = I(theta)/I(0) P_L / (2 pi (1 - cos(gamma/2)) d^2)
-    [W/m^2]. The normalization stays eq. (11)'s by the cone angle gamma, so Phi on the axis is the
-    paper's; profile (M, 2) as relative_intensity, None: the ideal cone (hard_cone_profile)."""
+    """Phi = I(0) I(theta)/I(0) / d^2 [W/m^2], I(0) = axis_intensity: the lamp's power over the
+    solid angle its profile fills, so it emits P whatever the profile (eq. 11's
+    P_L / (2 pi (1 - cos(gamma/2)) d^2) for the ideal cone). profile (M, 2) as relative_intensity,
+    None: the ideal cone of full opening angle gamma (hard_cone_profile)."""
     distance_m = np.asarray(distance_m, dtype=float)
     if profile is None:
         profile = hard_cone_profile(cone_angle_rad)
     relative = relative_intensity(off_axis_rad, profile)
-    solid_angle = 2.0 * np.pi * (1.0 - np.cos(0.5 * cone_angle_rad))
-    return np.where(relative > 0.0, relative * power_w / (solid_angle * distance_m**2), 0.0)
+    intensity = axis_intensity(power_w, cone_angle_rad, profile)
+    return np.where(relative > 0.0, relative * intensity / distance_m**2, 0.0)
 
 
 def pixel_power(pixel_area_m2: float, irradiance: float | np.ndarray, reflectance: float | np.ndarray,
