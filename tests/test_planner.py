@@ -430,18 +430,21 @@ def test_a_cone_too_narrow_at_any_radius_of_the_rig_says_so(tmp_path):
     assert "only from 0.69 m, the rig reaches 0.6 m" in plan.hint
 
 
-def test_a_profiles_soft_edge_lights_the_patch_beyond_the_nominal_half_angle(tmp_path):
-    """With a profile the lamp lights what its profile reaches (the example's: 0 from 9 deg), so a
-    narrow nominal cone whose profile reaches 9 deg covers the patch from 6 mm / tan(9 deg) =
-    0.038 m on; the ideal cone's coverage ends at half its angle."""
+def test_a_profiles_soft_edge_lights_beyond_the_nominal_half_angle_and_a_cone_contradicting_it_is_refused(tmp_path):
+    """With a profile the lamp lights what its profile reaches (the example's: 0 from 9 deg); the
+    ideal cone's coverage ends at half its angle. A 1 deg cone with that profile used to plan
+    feasible while emitting about 147 times its power (eq. 11 normalised by the 1 deg cone): now
+    the lamp's intensity follows from its profile alone, and the contradicting cone is bad input."""
+    from cell.core.errors import TaskError
     from cell.task.types import Lamp
-    task, plan = variant_plan(tmp_path, {"lamp.cone_angle_deg": 1.0})
+    task = load_task(TASKS / "hinge.yaml")
     assert task.lamp.lit_half_angle_rad == pytest.approx(np.radians(9.0))
     assert Lamp(1.0, np.radians(12.0), task.lamp.rig).lit_half_angle_rad == pytest.approx(np.radians(6.0))
     tail = np.array([[0.0, 1.0], [0.1, 0.5], [0.2, 0.3]])        # ends lit: 0 beyond its last angle
     assert Lamp(1.0, 0.1, task.lamp.rig, tail).lit_half_angle_rad == pytest.approx(0.2)
-    coverage = {r.name: r for r in plan.requirements}["cone_coverage"]
-    assert coverage.met and plan.shot.distance_m < 0.69         # where the ideal 1 deg cone could not
+    with pytest.raises(TaskError, match="found 1 deg, expected 12 deg") as caught:
+        variant_plan(tmp_path, {"lamp.cone_angle_deg": 1.0})
+    assert caught.value.key == "lamp.cone_angle_deg"
 
 
 def test_a_camera_behind_the_part_or_along_its_surface_cannot_see_the_feature(tmp_path):

@@ -503,7 +503,7 @@ def _check_outside(file, mesh, T_cell_part, points):
 def _lamp_profile(file, profile):
     """The lamp's angular profile (M, 2) [off_axis_rad, relative], or None (eq. 11's ideal cone):
     both columns or neither, of equal length, at least two angles strictly ascending from 0, and
-    relative 1 on the axis (the profile scales eq. (11)'s on-axis irradiance)."""
+    relative 1 on the axis (the lamp's power is spread over it: radiometry.axis_intensity)."""
     angles, relative = profile["off_axis_rad"], profile["relative"]
     if angles is None and relative is None:
         return None
@@ -524,6 +524,40 @@ def _lamp_profile(file, profile):
         raise TaskError(file, "lamp.profile.relative[0]", show(relative[0]),
                         "1 (the profile is relative to the axis)")
     return np.column_stack([angles, relative])
+
+
+# how far the cone angle's half may lie from the profile's half-intensity angle: datasheets round
+# an LED optic's beam angle (FWHM) to a degree or two, and a cone off by more is a different lamp
+CONE_HALF_TOLERANCE_RAD = np.radians(1.0)
+CONE_HALF_TOLERANCE_REL = 0.1
+
+
+def half_intensity_angle(profile: np.ndarray) -> float:
+    """The outermost off-axis angle [rad] where a profile (M, 2) falls through half its axis
+    intensity: linear between its angles; a last value still above half falls to 0 at the last
+    angle (a hard edge), so that angle."""
+    angles, relative = profile[:, 0], profile[:, 1]
+    j = int(np.flatnonzero(relative >= 0.5)[-1])
+    if j == len(angles) - 1:
+        return float(angles[j])
+    t = (relative[j] - 0.5) / (relative[j] - relative[j + 1])
+    return float(angles[j] + t * (angles[j + 1] - angles[j]))
+
+
+def _check_cone_angle(file, cone_angle_rad, profile):
+    """The profile, if its half-intensity angle (half_intensity_angle: the beam angle's half, as
+    LED datasheets give it) is the cone's half angle within max(1 deg, 10 % of it). The lamp's
+    intensity follows from its profile alone (energy conserved: radiometry.axis_intensity), so a
+    cone angle that says otherwise is a contradiction in the file, not a lamp: a 1 deg cone with a
+    profile lighting to 9 deg would be planned as the profile lights."""
+    if profile is None:
+        return None
+    half, found = 0.5 * cone_angle_rad, half_intensity_angle(profile)
+    if abs(found - half) > max(CONE_HALF_TOLERANCE_RAD, CONE_HALF_TOLERANCE_REL * half):
+        raise TaskError(file, "lamp.cone_angle_deg", f"{np.degrees(cone_angle_rad):g} deg",
+                        f"{2 * np.degrees(found):.3g} deg, twice the angle where lamp.profile falls to half "
+                        f"its axis intensity ({np.degrees(found):.3g} deg; within 1 deg or 10 % of the half angle)")
+    return profile
 
 
 def load_task(path: str | PathLike[str]) -> Task:
@@ -565,7 +599,7 @@ def load_task(path: str | PathLike[str]) -> Task:
         camera=CameraModel(cam["distance_m"], cam["view_direction"], _sensor(path, cam["sensor"]),
                            Lens(**cam["lens"]), cam["shutter_range_s"], _viewpoint(cam)),
         lamp=Lamp(lamp["power_w"], lamp["cone_angle_rad"], LampRig(**lamp["rig"]),
-                  _lamp_profile(path, lamp["profile"])),
+                  _check_cone_angle(path, lamp["cone_angle_rad"], _lamp_profile(path, lamp["profile"]))),
         cell=CellConfig(cell["backend"], devices),
         sim=SimConfig(sim["seed"], sim["effects"], _truth(path, sim["truth"], lamp["rig"])),
         loop=_loop(path, v["loop"]),

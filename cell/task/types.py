@@ -109,7 +109,7 @@ class LampRig:
 @dataclass(frozen=True)
 class Lamp:
     power_w: float
-    cone_angle_rad: float          # full opening angle gamma (eq. 11's normalization)
+    cone_angle_rad: float          # full opening angle gamma (eq. 11's cone; with a profile its beam angle)
     rig: LampRig
     profile: np.ndarray | None = None# (M, 2) [off_axis_rad, relative]: I(theta)/I(0), linear, 0
                                    # beyond the last angle; None: eq. (11)'s ideal cone
