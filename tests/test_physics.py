@@ -99,13 +99,14 @@ def test_f_number_for_depth_inverts_depth_of_field(depth):
     assert dof.depth_of_field(u, f, kappa, sigma) == pytest.approx(depth, rel=1e-9)
 
 
-def _f_number_for_depth_mp(u, f, sigma, depth):
-    """f_number_for_depth's root x = f^2 (sqrt(u^2 + D^2) - u) / D in 60 digits (mpmath), the
+def _f_number_for_depth_exact(u, f, sigma, depth):
+    """f_number_for_depth's root x = f^2 (sqrt(u^2 + D^2) - u) / D in 60 digits (decimal), the
     cancelling form evaluated where it cannot cancel."""
-    import mpmath
-    with mpmath.workdps(60):
-        u_, f_, s_, d_ = (mpmath.mpf(v) for v in (u, f, sigma, depth))
-        x = f_**2 * (mpmath.sqrt(u_**2 + d_**2) - u_) / d_
+    from decimal import Decimal, localcontext
+    with localcontext() as ctx:
+        ctx.prec = 60
+        u_, f_, s_, d_ = (Decimal(v) for v in (u, f, sigma, depth))
+        x = f_**2 * ((u_**2 + d_**2).sqrt() - u_) / d_
         return float(x / (s_ * (u_ - f_)))
 
 
@@ -114,7 +115,7 @@ def test_f_number_for_depth_matches_high_precision_for_tiny_depths(depth):
     # the old hypot(u, D) - u gave 0 at D = 1e-9 m, where kappa is 2.6e-7
     u, f, sigma = 0.35, 0.025, 5.015e-6
     kappa = dof.f_number_for_depth(u, f, sigma, depth)
-    assert kappa == pytest.approx(_f_number_for_depth_mp(u, f, sigma, depth), rel=1e-14)
+    assert kappa == pytest.approx(_f_number_for_depth_exact(u, f, sigma, depth), rel=1e-14)
     assert kappa > 0.0
 
 
