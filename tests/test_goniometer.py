@@ -214,3 +214,14 @@ def test_a_phase_angle_with_too_few_readings_is_refused_with_the_reason(tmp_path
     assert isinstance(result, GoalNotReached) and result.exit_code == 1
     assert str(result).startswith("fewer than 6 readings at phase 40 deg (0 of 1 poses refused")
     assert written["material"] is None and len(written["readings"]) == 1
+
+
+def test_the_confirmation_line_names_yes_only_when_given():
+    for operator, said, unsaid in [
+            (Operator(yes=True, stdout=io.StringIO()), "(confirmed automatically: --yes)", "simulated"),
+            (Operator(simulated=True, stdout=io.StringIO()), "(simulated: nothing to confirm)", "--yes"),
+            (Operator(yes=True, simulated=True, stdout=io.StringIO()), "(confirmed automatically: --yes)",
+             "simulated")]:
+        operator.confirm("sample", "take the part out")
+        told = operator.stdout.getvalue()
+        assert said in told and unsaid not in told and "press Enter" not in told
