@@ -225,3 +225,18 @@ def test_the_confirmation_line_names_yes_only_when_given():
         operator.confirm("sample", "take the part out")
         told = operator.stdout.getvalue()
         assert said in told and unsaid not in told and "press Enter" not in told
+
+
+@pytest.mark.parametrize("yes, said", [(False, "(simulated: nothing to confirm)"),
+                                       (True, "(confirmed automatically: --yes)")])
+def test_the_simulated_cells_lamp_radius_prompt_names_yes_only_when_given(yes, said, capsys):
+    """`cell run` on the simulated cell: the manual lamp radius is confirmed for the operator, and
+    the line says --yes only when it was given."""
+    devices = backends.open_devices(load_task(HINGE), None, "sim", yes=yes, board=True)   # no scene to render
+    try:
+        devices.lamp.operator.confirm("pan-tilt", "set the lamp radius")
+    finally:
+        devices.safe_stop()
+    out = capsys.readouterr().out
+    assert said in out and "press Enter" not in out
+    assert ("--yes" in out) == yes
