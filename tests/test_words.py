@@ -69,3 +69,9 @@ def test_every_requirement_has_a_label():
     from cell.planning.requirements import REGISTRY
     assert {r.name for r in REGISTRY} <= set(words.LABELS)
     assert all("_" not in label for label in words.LABELS.values())
+
+
+def test_plan_json_keeps_its_requirement_keys_and_values():
+    from cell.planning.plan import requirements_json
+    assert requirements_json([DOF]) == [{"name": "depth_of_field", "value": 1.0, "met": True,
+                                         "detail": "in focus 489.5-510.5 mm ..."}]
