@@ -21,12 +21,12 @@ class SimPanTilt(ServoRig):
     """`limits` {id: (min, max) ticks} as the servos' Min/Max Position Limit (default the full
     turn). Fault injection: on move number `fail_on_move` servo `fail_servo` (default the tilt)
     reports Hardware Error Status `fail_bits` (default 0x04, overheating) and stops. In the sim
-    the operator's manual radius is confirmed unless `yes` is False."""
+    the operator's manual radius is confirmed ("simulated: nothing to confirm") unless `yes` is False."""
 
     def __init__(self, rig: LampRigModel, config: PanTiltConfig, yes: bool = True,
                  operator: Operator | None = None, limits: Mapping[int, tuple[int, int]] | None = None,
                  fail_on_move: int | None = None, fail_servo: int | None = None, fail_bits: int = 0x04) -> None:
-        super().__init__(rig, config, operator or Operator(yes=yes))
+        super().__init__(rig, config, operator or Operator(simulated=yes))
         self.limits = {i: (limits or {}).get(i, FULL_RANGE) for i in self.ids}
         self.present = {i: CENTRE_TICK for i in self.ids}
         self.torque = {i: True for i in self.ids}

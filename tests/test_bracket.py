@@ -178,7 +178,7 @@ def test_cell_plan_prints_the_bracket_and_writes_cell_png_beside_plan_json(brack
     assert cli.main(["plan", str(BRACKET), "--out", str(out)]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].startswith(f"{task.name}: feasible: {len(plan.shots)} shots cover 5 of 5 features "
-                               f"(of {plan.cover['candidate_shots']} candidate shots, planned viewpoints)")
+                               f"(chosen from {plan.cover['candidate_shots']} candidate shots, planned viewpoints)")
     assert sum(line.startswith("  shot ") for line in lines) == len(plan.shots)
     assert sum(line.startswith("  feature ") for line in lines) == 5
     assert (out / "cell.png").stat().st_size > 20_000

@@ -140,3 +140,21 @@ def test_cell_check_reports_how_far_a_curved_patch_bends(capsys):
     sag_mm = float(line.split("within ")[1].split(" mm")[0])
     r, R = 6.0, 30.0
     assert 0.98 * r**2 / (2 * R) <= sag_mm <= r**2 / (2 * R) + r * 0.35 / R + 0.005, line
+
+
+def test_version_prints_the_installed_distributions_version(capsys):
+    from importlib import metadata
+    with pytest.raises(SystemExit) as exit_:
+        main(["--version"])
+    assert exit_.value.code == 0
+    assert capsys.readouterr().out.strip() == f"cell {metadata.version('lightplan-cell')}"
+
+
+def test_help_opens_with_a_sentence_for_a_user(capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["--help"])
+    assert exit_.value.code == 0
+    out = capsys.readouterr().out
+    opening = out.split("\n\n")[1]                     # after the usage line
+    assert opening.startswith("Plan where the lamp goes") and "Error" not in opening and "`" not in opening
+    assert "exit status: 0 done" in out

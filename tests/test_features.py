@@ -250,7 +250,9 @@ def test_a_one_shot_multi_feature_plan_keeps_the_one_shot_keys_and_cell_plan_exi
     assert doc["requirements"] == next(c for c in doc["shots"][0]["covers"] if c["feature"] == own)["requirements"]
     monkeypatch.setattr("cell.cli.plan.plan_features", lambda task, progress, pool: plan)
     assert cli.main(["plan", str(FEATURES), "--out", str(tmp_path / "out")]) == 0
-    assert capsys.readouterr().out.startswith(f"{task.name}: feasible: 1 shot cover 2 of 2 features")
+    out = capsys.readouterr().out
+    assert out.startswith(f"{task.name}: feasible: 1 shot covers 2 of 2 features")
+    assert "max f_i" not in out and "e+" not in out and "tightest requirement: " in out
 
 
 def test_cell_plan_prints_a_line_per_shot_and_feature_and_exits_1_naming_the_uncovered(multi, tmp_path,
@@ -260,10 +262,15 @@ def test_cell_plan_prints_a_line_per_shot_and_feature_and_exits_1_naming_the_unc
     assert cli.main(["plan", str(FEATURES), "--out", str(tmp_path / "out")]) == 1
     captured = capsys.readouterr()
     lines = captured.out.splitlines()
-    assert lines[0].startswith("Aluminium hinge, four features: PARTIAL: 2 shots cover 3 of 4 features")
+    assert lines[0].startswith("Aluminium hinge, four features: PARTIAL: 2 shots cover 3 of 4 features "
+                               "(chosen from 4 candidate shots)")
     assert sum(line.startswith("  shot ") for line in lines) == 2
     assert sum(line.startswith("  feature ") for line in lines) == 4
-    assert "feature end_face: covered by no shot: camera_view binds" in captured.out
+    assert ("feature end_face: no shot covers it: camera view of the feature fails: the camera cannot see "
+            "16 of 16 feature samples" in captured.out)
+    covered = [line for line in lines if line.startswith("  feature ") and "no shot" not in line]
+    assert len(covered) == 3 and all("tightest requirement: " in line for line in covered)
+    assert "max f_i" not in captured.out and "e+" not in captured.out and "camera_view" not in captured.out
     assert "feature 'end_face' is covered by no shot" in captured.err
     assert json.loads((tmp_path / "out" / "plan.json").read_text())["features"][3]["covered_by"] is None
     assert (tmp_path / "out" / "feature-2" / "regions.png").stat().st_size > 10_000

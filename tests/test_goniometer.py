@@ -214,3 +214,29 @@ def test_a_phase_angle_with_too_few_readings_is_refused_with_the_reason(tmp_path
     assert isinstance(result, GoalNotReached) and result.exit_code == 1
     assert str(result).startswith("fewer than 6 readings at phase 40 deg (0 of 1 poses refused")
     assert written["material"] is None and len(written["readings"]) == 1
+
+
+def test_the_confirmation_line_names_yes_only_when_given():
+    for operator, said, unsaid in [
+            (Operator(yes=True, stdout=io.StringIO()), "(confirmed automatically: --yes)", "simulated"),
+            (Operator(simulated=True, stdout=io.StringIO()), "(simulated: nothing to confirm)", "--yes"),
+            (Operator(yes=True, simulated=True, stdout=io.StringIO()), "(confirmed automatically: --yes)",
+             "simulated")]:
+        operator.confirm("sample", "take the part out")
+        told = operator.stdout.getvalue()
+        assert said in told and unsaid not in told and "press Enter" not in told
+
+
+@pytest.mark.parametrize("yes, said", [(False, "(simulated: nothing to confirm)"),
+                                       (True, "(confirmed automatically: --yes)")])
+def test_the_simulated_cells_lamp_radius_prompt_names_yes_only_when_given(yes, said, capsys):
+    """`cell run` on the simulated cell: the manual lamp radius is confirmed for the operator, and
+    the line says --yes only when it was given."""
+    devices = backends.open_devices(load_task(HINGE), None, "sim", yes=yes, board=True)   # no scene to render
+    try:
+        devices.lamp.operator.confirm("pan-tilt", "set the lamp radius")
+    finally:
+        devices.safe_stop()
+    out = capsys.readouterr().out
+    assert said in out and "press Enter" not in out
+    assert ("--yes" in out) == yes

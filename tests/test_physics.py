@@ -180,6 +180,43 @@ def test_f_number_for_depth_inverts_depth_of_field(depth):
     assert dof.depth_of_field(u, f, kappa, sigma) == pytest.approx(depth, rel=1e-9)
 
 
+def _f_number_for_depth_exact(u, f, sigma, depth):
+    """f_number_for_depth's root x = f^2 (sqrt(u^2 + D^2) - u) / D in 60 digits (decimal), the
+    cancelling form evaluated where it cannot cancel."""
+    from decimal import Decimal, localcontext
+    with localcontext() as ctx:
+        ctx.prec = 60
+        u_, f_, s_, d_ = (Decimal(v) for v in (u, f, sigma, depth))
+        x = f_**2 * ((u_**2 + d_**2).sqrt() - u_) / d_
+        return float(x / (s_ * (u_ - f_)))
+
+
+@pytest.mark.parametrize("depth", [1e-9, 1e-12, 1e-6, 0.021])
+def test_f_number_for_depth_matches_high_precision_for_tiny_depths(depth):
+    # the old hypot(u, D) - u gave 0 at D = 1e-9 m, where kappa is 2.6e-7
+    u, f, sigma = 0.35, 0.025, 5.015e-6
+    kappa = dof.f_number_for_depth(u, f, sigma, depth)
+    assert kappa == pytest.approx(_f_number_for_depth_exact(u, f, sigma, depth), rel=1e-14)
+    assert kappa > 0.0
+
+
+def test_f_number_for_depth_at_a_nanometre_is_its_series():
+    # x = f^2 D / (2 u) (1 - D^2 / (4 u^2) + ...): at D = 1e-9 m the first term is exact to 1e-17
+    u, f, sigma, depth = 0.35, 0.025, 5.015e-6, 1e-9
+    series = f**2 * depth / (2 * u) / (sigma * (u - f))
+    assert f**2 * (math.hypot(u, depth) - u) / depth / (sigma * (u - f)) == 0.0   # the old form's
+    assert dof.f_number_for_depth(u, f, sigma, depth) == pytest.approx(series, rel=1e-15)
+
+
+@settings(max_examples=300, deadline=None)
+@given(u=st.floats(0.05, 5.0), f=st.floats(0.004, 0.04), sigma=st.floats(1e-6, 2e-5),
+       depth=st.floats(1e-3, 2.0))
+def test_f_number_for_depth_agrees_with_the_cancelling_form_where_it_is_well_conditioned(u, f, sigma, depth):
+    # D >= 1e-3 m and u <= 5 m: hypot(u, D) - u loses at most log10(2 u^2 / D^2) < 8 of 16 digits
+    old = f**2 * (math.hypot(u, depth) - u) / depth / (sigma * (u - f))
+    assert dof.f_number_for_depth(u, f, sigma, depth) == pytest.approx(old, rel=1e-7)
+
+
 def test_paper_rod_f_number_gives_its_depth():
     # f/6.2 at 0.35 m spans 0.3444..0.3558 m: asking for that span returns ~6.2
     kappa = dof.f_number_for_depth(0.35, 0.025, 5.015e-6, 0.3558 - 0.3444)

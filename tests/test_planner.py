@@ -1,6 +1,7 @@
 """The planner against the issue's targets and against an independent NumPy evaluation of the
 physics (cell.physics, no Warp), plus stability of whole plans on hard geometry."""
 import json
+import re
 from dataclasses import replace
 from pathlib import Path
 
@@ -219,9 +220,14 @@ def test_too_short_shutter_range_is_infeasible_with_a_hint(tmp_path, capsys):
     path = tmp_path / "dark.yaml"
     path.write_text(text.replace("parts/", f"{TASKS}/parts/").replace("materials/", f"{TASKS}/materials/"))
     code = main(["plan", str(path), "--out", str(tmp_path / "out")])
-    err = capsys.readouterr().err
+    out, err = capsys.readouterr()
     assert code == 1
     assert "shutter" in err and "binds" in err
+    # the verdict line says which requirement fails and by how much in its own unit, no raw f_i
+    verdict = out.splitlines()[0]
+    assert re.search(r": INFEASIBLE: (gray band, dark end fails by [0-9.]+ gray levels \(darkest [0-9.]+, the band "
+                     r"starts at 100\.0\)|shutter time fails by [0-9.]+ ms)", verdict), verdict
+    assert "e+" not in out and "binding" not in out and "misses by" not in out
     data = json.loads((tmp_path / "out" / "plan.json").read_text())
     assert data["feasible"] is False and data["binding"] in ("gray_min", "shutter_max")
 
@@ -482,3 +488,17 @@ def test_a_lamp_candidate_standing_on_the_feature_is_unlit_not_nan(tmp_path):
     assert not np.any(np.isnan(c.gray)) and c.gray[0, 0] == 0.0
     assert not any(np.isnan(v).any() for v in values.values())
     assert values["shutter_max"][0] == np.inf
+
+
+def test_the_summary_says_the_tightest_requirement_in_words(hinge):
+    """A feasible plan's lines name the tightest requirement and its numbers in their unit, from
+    the requirement's own comparison; no raw objective value f_i."""
+    from cell.cli.plan import summary
+    task, plan = hinge
+    text = summary(plan)
+    tight = next(r for r in plan.shot.requirements if r.name == plan.binding)
+    assert tight.amount is not None
+    assert "  tightest requirement: " in text and "binding" not in text and "e+" not in text
+    assert f"{tight.value:.4g};" not in text
+    if plan.binding == "depth_of_field":       # the README's: 21.0 mm needed, 21.0 mm available
+        assert re.search(r"tightest requirement: depth of field \([0-9.]+ mm needed, [0-9.]+ mm available\)", text)

@@ -116,8 +116,25 @@ def _bad_out(found, expected):
     return TaskError("command line", "--out", found, expected)
 
 
+DESCRIPTION = ("Plan where the lamp goes and how the camera exposes for a visual inspection, then run, "
+               "measure and calibrate the cell (simulated or real).")
+EPILOG = "exit status: 0 done, 1 goal not reached (e.g. no feasible plan), 2 bad input, 3 device fault"
+
+
+def version() -> str:
+    """The installed distribution's version (importlib.metadata), or 'unknown' when run from a
+    checkout that is not installed."""
+    from importlib import metadata
+    try:
+        return metadata.version("lightplan-cell")
+    except metadata.PackageNotFoundError:
+        return "unknown (not installed)"
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="cell", description=__doc__.splitlines()[0])
+    parser = _Parser(prog="cell", description=DESCRIPTION, epilog=EPILOG)
+    parser.add_argument("--version", action="version", version=f"%(prog)s {version()}",
+                        help="print the version of lightplan-cell and exit")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("check", help="load a task and everything it references, print a summary")

@@ -38,7 +38,7 @@ def camera_constant(args: argparse.Namespace) -> int:
     task = load_task(args.task)
     backend = args.backend or task.cell.backend
     # the simulated cell has no operator at the laser: it confirms for itself
-    operator = Operator(yes=args.yes or backend == "sim", stdout=sys.stderr)
+    operator = Operator(yes=args.yes, simulated=backend == "sim", stdout=sys.stderr)
     operator.require("laser", "aiming, blocking and unblocking the laser")
     laser = routine.Laser(args.laser_power_w, operator)
     create_folder(out)
@@ -71,7 +71,7 @@ def reference_part(args: argparse.Namespace) -> int:
     backend = args.backend or task.cell.backend
     c_model = task.camera.sensor.camera_constant
     # the simulated cell holds the task's part already: it confirms for itself, as for the lamp radius
-    Operator(yes=args.yes or backend == "sim", stdout=sys.stderr).confirm(
+    Operator(yes=args.yes, simulated=backend == "sim", stdout=sys.stderr).confirm(
         "calibration", "place the reference part (the task's part, of the task's material) in the cell; "
                        "the camera constant is measured against its material table")
     create_folder(out)
@@ -102,7 +102,7 @@ def hand_eye(args: argparse.Namespace) -> int:
     backend = args.backend or task.cell.backend
     board = task.board
     # the simulated cell holds the board already: it confirms for itself
-    Operator(yes=args.yes or backend == "sim", stdout=sys.stderr).confirm(
+    Operator(yes=args.yes, simulated=backend == "sim", stdout=sys.stderr).confirm(
         "calibration", f"lay the ChArUco board ({board.squares[0]} x {board.squares[1]} squares of "
                        f"{1e3 * board.square_m:g} mm, {board.dictionary}) face up with its centre at "
                        f"{np.round(board.T_cell_centre[:3, 3], 4).tolist()} m as calibration.board says, and "

@@ -23,7 +23,7 @@ def command(args: argparse.Namespace) -> int:
     task = load_task(args.task)
     backend = args.backend or task.cell.backend
     # the simulated cell holds the sample already: it confirms for itself
-    operator = Operator(yes=args.yes or backend == "sim", stdout=sys.stderr)
+    operator = Operator(yes=args.yes, simulated=backend == "sim", stdout=sys.stderr)
     operator.require("sample", "placing the sample")
     staged = goniometer.sample_task(task)
     create_folder(out)

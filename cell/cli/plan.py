@@ -21,6 +21,7 @@ from cell.core.errors import PlanInfeasible, TaskError
 from cell.task.loader import load_task
 from cell.planning.whole_part import own_plan, plan_features
 from cell.planning.plan import PlannerSettings, gray_stats
+from cell.report import words
 from cell.report.recorder import write_plan
 
 if TYPE_CHECKING:
@@ -33,7 +34,7 @@ def summary(plan: Plan) -> str:
     shot = plan.shot
     pan, tilt, radius = shot.joints
     g = gray_stats(shot.gray)
-    verdict = "feasible" if plan.feasible else f"INFEASIBLE ({plan.binding} misses by {plan.miss:.3g})"
+    verdict = "feasible" if plan.feasible else f"INFEASIBLE: {words.tightest(shot.requirements, plan.binding)}"
     return "\n".join([
         f"{plan.task_name}: {verdict}",
         f"  lamp   {shot.distance_m:.3f} m from the feature, phase angle {np.degrees(shot.phase_angle_rad):.1f} deg"
@@ -41,8 +42,8 @@ def summary(plan: Plan) -> str:
         f"  camera shutter {1e3 * shot.exposure.shutter_s:.2f} ms, f/{shot.exposure.f_number:.1f},"
         f" focus {shot.exposure.focus_m:.3f} m (depth of field {1e3 * shot.exposure.depth_of_field_m:.1f} mm)",
         f"  gray   mean {g['mean']:.1f}, min {g['min']:.1f}, max {g['max']:.1f}",
-        f"  binding {plan.binding} = {max(r.value for r in plan.requirements):.4g};"
-        f" time {plan.timing_s['total']:.2f} s",
+        *([f"  {words.tightest(shot.requirements, plan.binding)}"] if plan.feasible else []),
+        f"  planned in {plan.timing_s['total']:.2f} s",
     ])
 
 
@@ -51,10 +52,10 @@ def features_summary(plan: Plan) -> str:
     n, covered = len(plan.features), sum(f.covered_by is not None for f in plan.features)
     verdict = "feasible" if plan.feasible else "PARTIAL"
     assert plan.cover is not None                      # a multi-feature plan's
-    lines = [f"{plan.task_name}: {verdict}: {len(plan.shots)} shot{'s' * (len(plan.shots) != 1)} cover "
-             f"{covered} of {n} features (of {plan.cover['candidate_shots']} candidate shots"
+    lines = [f"{plan.task_name}: {verdict}: {words.covering(len(plan.shots), covered, n)} (chosen from "
+             f"{words.count(plan.cover['candidate_shots'], 'candidate shot')}"
              + (", planned viewpoints" if "viewpoints" in plan.cover else "") + "); "
-             f"time {plan.timing_s['total']:.2f} s"]
+             f"planned in {plan.timing_s['total']:.2f} s"]
     for k, shot in enumerate(plan.shots):
         pan, tilt, radius = shot.joints
         lines.append(f"  shot {k}: camera at {np.round(shot.camera_position, 3).tolist()} m, lamp pan "
@@ -66,12 +67,12 @@ def features_summary(plan: Plan) -> str:
                          f"UR5e joints {np.round(np.degrees(shot.arm_joints), 1).tolist()} deg")
     for f in plan.features:
         if f.covered_by is None:
-            lines.append(f"  feature {f.name}: covered by no shot: {f.binding} binds: {f.hint}")
+            lines.append(f"  feature {f.name}: no shot covers it: {words.label(f.binding)} fails: {f.hint}")
             continue
         c = next(c for c in plan.shots[f.covered_by].covers if c.feature == f.name)
         g = gray_stats(c.gray)
         lines.append(f"  feature {f.name}: shot {f.covered_by}, gray {g['min']:.1f}-{g['max']:.1f}, "
-                     f"max f_i {c.worst:.3g}")
+                     f"{words.tightest(c.requirements)}")
     return "\n".join(lines)
 
 

@@ -11,10 +11,15 @@ from cell.core.errors import DeviceFault
 
 class Operator:
     """Tells the operator what to set by hand and waits for Enter; `yes` confirms for them
-    (tests, `--yes`). Without `yes` a prompt needs an interactive stdin, else it is a fault."""
+    (tests, `--yes`), and so does `simulated` (the simulated cell has nobody to act: its lines say
+    "(simulated: nothing to confirm)", where --yes's say "(confirmed automatically: --yes)").
+    Without either a prompt needs an interactive stdin, else it is a fault."""
 
-    def __init__(self, yes: bool = False, stdin: TextIO | None = None, stdout: TextIO | None = None) -> None:
-        self.yes, self._stdin, self._stdout = yes, stdin, stdout
+    def __init__(self, yes: bool = False, stdin: TextIO | None = None, stdout: TextIO | None = None,
+                 simulated: bool = False) -> None:
+        self.yes = yes or simulated
+        self.simulated, self.given_yes = simulated, yes
+        self._stdin, self._stdout = stdin, stdout
 
     @property
     def stdin(self) -> TextIO:
@@ -42,7 +47,8 @@ class Operator:
     def confirm(self, device: str, instruction: str) -> None:
         print(f"{device}: {instruction}", file=self.stdout, flush=True)
         if self.yes:
-            print("  (confirmed automatically: --yes)", file=self.stdout, flush=True)
+            print("  (confirmed automatically: --yes)" if self.given_yes else "  (simulated: nothing to confirm)",
+                  file=self.stdout, flush=True)
             return
         self.require(device, f"'{instruction}'")
         print("  press Enter when done", file=self.stdout, flush=True)

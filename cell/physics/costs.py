@@ -4,7 +4,7 @@ erratum of eq. (25): feasibility is max_i f_i <= 1 over the requirement values t
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -47,12 +47,27 @@ def log_sum_exp(x: ArrayLike, axis: int = -1) -> np.ndarray:
 
 
 @dataclass(frozen=True)
+class Amount:
+    """What a requirement compares, in its own unit, for words a person reads: `actual` against
+    `limit`, met when actual <= limit (`at_most`) or actual >= limit (at least); `unit` printed
+    after each number ("mm", "deg", "" for a gray level or an f-number), with `digits` decimals."""
+
+    actual: float
+    limit: float
+    unit: str
+    at_most: bool
+    digits: int = 1
+
+
+@dataclass(frozen=True)
 class RequirementValue:
-    """One requirement's value f_i for a chosen pose (met when <= 1) and a sentence a person can act on."""
+    """One requirement's value f_i for a chosen pose (met when <= 1), a sentence a person can act
+    on, and where the requirement compares a quantity, that Amount (not in plan.json)."""
 
     name: str
     value: float
     detail: str = ""
+    amount: Amount | None = field(default=None, compare=False)
 
     @property
     def met(self) -> bool:

@@ -46,12 +46,18 @@ def depth_of_field(u: float, f: float, kappa: Floats, sigma: float) -> np.ndarra
 def f_number_for_depth(u: float, f: float, sigma: float, depth_m: float) -> float:
     """Smallest kappa whose depth of field at focus u is depth_m.
 
-    With x = kappa sigma (u - f): far - near = 2 u f^2 x / (f^4 - x^2) = D, so
-    x = f^2 (sqrt(u^2 + D^2) - u) / D; kappa -> 0 as D -> 0.
+    With x = kappa sigma (u - f): far - near = 2 u f^2 x / (f^4 - x^2) = D, i.e. the quadratic
+    D x^2 + 2 u f^2 x - D f^4 = 0, whose positive root is x = f^2 (sqrt(u^2 + D^2) - u) / D.
+    That difference cancels for D << u (at D = 1e-9 m it is 0); multiplied by the conjugate,
+    (h - u)(h + u) = h^2 - u^2 = D^2 with h = sqrt(u^2 + D^2), it is the stable form
+
+        x = f^2 D / (sqrt(u^2 + D^2) + u),
+
+    a sum of positive terms, accurate to a few ulp for every D > 0; kappa -> 0 as D -> 0.
     """
     if depth_m <= 0.0:
         return 0.0
-    x = f**2 * (np.hypot(u, depth_m) - u) / depth_m
+    x = f**2 * depth_m / (np.hypot(u, depth_m) + u)
     return float(x / (sigma * (u - f)))
 
 

@@ -34,6 +34,7 @@ class Requirement:
     ln_value: Callable[[Problem, Candidates], np.ndarray]  # (Problem, Candidates) -> (C,) ln f_i
     explain: Callable[[Problem, Candidates, bool], str]    # (Problem, Candidates of one, met) -> sentence
     asked: Callable[[Problem], bool] | None = None         # (Problem) -> whether the task asks for it; None: always
+    amount: Callable[[Problem, Candidates], costs.Amount | None] | None = None  # (Problem, Candidates of one) -> what it compares
 
 
 def _maps(p: Problem) -> Maps:
@@ -318,23 +319,76 @@ def explain_depth_of_field(p: Problem, c: Candidates, met: bool) -> str:
                              f"or a longer shutter) or view the patch less obliquely")
 
 
-REGISTRY = (
-    Requirement("gray_min", gray_min, explain_gray_min),
-    Requirement("gray_max", gray_max, explain_gray_max),
+def _finite(actual: float, limit: float, unit: str, at_most: bool, digits: int = 1) -> costs.Amount | None:
+    """An Amount, or None where a number is not finite (an unlit pose: its sentence says why)."""
+    if not (np.isfinite(actual) and np.isfinite(limit)):
+        return None
+    return costs.Amount(float(actual), float(limit), unit, at_most, digits)
+
+
+def amount_gray_min(p: Problem, c: Candidates) -> costs.Amount | None:
+    return None if _unlit(c) or p.band[0] <= 0 else _finite(c.gray[0].min(), p.band[0], "", False)
+
+
+def amount_gray_max(p: Problem, c: Candidates) -> costs.Amount | None:
+    return _finite(c.gray[0].max(), p.band[1], "", True)
+
+
+def amount_cone_coverage(p: Problem, c: Candidates) -> costs.Amount | None:
+    return _finite(np.degrees(np.max(c.off_axis[0])), np.degrees(p.task.lamp.lit_half_angle_rad), " deg", True)
+
+
+def amount_view_angle(p: Problem, c: Candidates) -> costs.Amount | None:
+    angle = projection.view_angles(p.scene.camera_position, p.scene.points, p.scene.normals).max()
+    return _finite(np.degrees(angle), np.degrees(_wanted(p.task.requirements.view_angle_rad)), " deg", True)
+
+
+def amount_resolution(p: Problem, c: Candidates) -> costs.Amount | None:
+    return _finite(1e6 * footprints(p).max(), 1e6 * _wanted(p.task.requirements.resolution_m), " um", True)
+
+
+def amount_shutter_min(p: Problem, c: Candidates) -> costs.Amount | None:
+    return _finite(1e3 * c.shutter[0], 1e3 * p.task.camera.shutter_range_s[0], " ms", False, 3)
+
+
+def amount_shutter_max(p: Problem, c: Candidates) -> costs.Amount | None:
+    return _finite(1e3 * c.t_need[0], 1e3 * p.task.camera.shutter_range_s[1], " ms", True)
+
+
+def amount_f_number_min(p: Problem, c: Candidates) -> costs.Amount | None:
+    return _finite(c.kappa[0], p.task.camera.lens.f_number_range[0], "", False)
+
+
+def amount_f_number_max(p: Problem, c: Candidates) -> costs.Amount | None:
+    return _finite(c.kappa[0], p.task.camera.lens.f_number_range[1], "", True)
+
+
+def amount_depth_of_field(p: Problem, c: Candidates) -> costs.Amount | None:
+    """The depth of field the lens gives (far - near) against what the samples need; where they
+    fall (near and far limits) is the sentence's, which the words read when the width suffices
+    but the placement does not."""
+    lens = p.task.camera.lens
+    f, sigma, k = lens.focal_length_m, lens.circle_of_confusion_m, c.kappa[0]
+    width = float(dof.far_limit(p.focus_m, f, k, sigma)) - float(dof.near_limit(p.focus_m, f, k, sigma))
+    return costs.Amount(1e3 * width, 1e3 * p.depth_needed_m, " mm", False)
+
+
+REGISTRY = (    Requirement("gray_min", gray_min, explain_gray_min, amount=amount_gray_min),
+    Requirement("gray_max", gray_max, explain_gray_max, amount=amount_gray_max),
     Requirement("reflection_region", reflection_region, explain_reflection_region),
     Requirement("lamp_tolerance", lamp_tolerance, explain_lamp_tolerance),
     Requirement("no_shadow", no_shadow, explain_no_shadow),
-    Requirement("cone_coverage", cone_coverage, explain_cone_coverage),
+    Requirement("cone_coverage", cone_coverage, explain_cone_coverage, amount=amount_cone_coverage),
     Requirement("camera_view", camera_view, explain_camera_view),
     Requirement("view_angle", view_angle, explain_view_angle,
-                lambda p: p.task.requirements.view_angle_rad is not None),
+                lambda p: p.task.requirements.view_angle_rad is not None, amount_view_angle),
     Requirement("resolution", resolution, explain_resolution,
-                lambda p: p.task.requirements.resolution_m is not None),
-    Requirement("shutter_min", shutter_min, explain_too_bright),
-    Requirement("shutter_max", shutter_max, explain_shutter_max),
-    Requirement("f_number_min", f_number_min, explain_f_number_min),
-    Requirement("f_number_max", f_number_max, explain_too_bright),
-    Requirement("depth_of_field", depth_of_field, explain_depth_of_field),
+                lambda p: p.task.requirements.resolution_m is not None, amount_resolution),
+    Requirement("shutter_min", shutter_min, explain_too_bright, amount=amount_shutter_min),
+    Requirement("shutter_max", shutter_max, explain_shutter_max, amount=amount_shutter_max),
+    Requirement("f_number_min", f_number_min, explain_f_number_min, amount=amount_f_number_min),
+    Requirement("f_number_max", f_number_max, explain_too_bright, amount=amount_f_number_max),
+    Requirement("depth_of_field", depth_of_field, explain_depth_of_field, amount=amount_depth_of_field),
 )
 
 # The order in which requirements that no lamp pose meets name the cause of an infeasible plan:
@@ -366,8 +420,13 @@ def judged(problem: Problem, candidate: Candidates,
            ln_values_by_name: dict[str, np.ndarray]) -> tuple[costs.RequirementValue, ...]:
     """costs.RequirementValue of each requirement for one candidate (Candidates of one)."""
     by_name = {r.name: r for r in REGISTRY}
+
+    def amount(r: Requirement) -> costs.Amount | None:
+        return None if r.amount is None else r.amount(problem, candidate)
+
     return tuple(costs.RequirementValue(name, float(costs.value(v[0])),
-                                        by_name[name].explain(problem, candidate, v[0] <= 0.0))
+                                        by_name[name].explain(problem, candidate, v[0] <= 0.0),
+                                        amount(by_name[name]))
                  for name, v in ln_values_by_name.items())
 
 

@@ -30,7 +30,8 @@ def open_devices(task: Task, scene: Scene | None, backend: str, yes: bool = Fals
     if backend == "hw":
         return make_hw_devices(task, yes=yes, scene=scene)
     from sim.cell import make_sim_devices
-    return make_sim_devices(task, scene, yes=True, laser=laser, board=board)
+    # --yes is said as given; without it the simulated cell confirms for itself, and says so
+    return make_sim_devices(task, scene, Operator(yes=yes, simulated=True), laser=laser, board=board)
 
 
 def make_hw_devices(task: Task, yes: bool = False, operator: Operator | None = None,

@@ -22,6 +22,7 @@ from cell.run.context import RunContext
 from cell.devices.interfaces import speaking_for
 from cell.core.errors import GoalNotReached
 from cell.core.geometry import rotation_angle
+from cell.report import words
 from cell.report.recorder import Ending, Recorder
 from cell.report.result import Result
 
@@ -251,8 +252,8 @@ def plan_logged(task: Task, recorder: Recorder) -> Plan:
     recorder.write_plan(plan, task)
     covered = sum(f.covered_by is not None for f in plan.features)
     verdict = "feasible" if plan.feasible else "PARTIAL"
-    recorder.step("plan", f"{verdict}: {loop.count(len(plan.shots), 'shot')} cover {covered} of "
-                          f"{len(plan.features)} features" + ("" if plan.feasible else f"; {plan.message}"),
+    recorder.step("plan", f"{verdict}: {words.covering(len(plan.shots), covered, len(plan.features))}"
+                          + ("" if plan.feasible else f"; {plan.message}"),
                   feasible=plan.feasible, binding=plan.binding, hint=plan.hint, shots=len(plan.shots),
                   features={f.name: f.covered_by for f in plan.features})
     return plan
