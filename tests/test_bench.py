@@ -160,7 +160,9 @@ def test_the_worker_row_compares_1_and_2_workers_and_finds_the_plans_identical(b
     one, two = row["workers"]
     assert (one["workers"], two["workers"]) == (1, 2)
     assert len(row["speedups"]) == 1 and row["speedup"] == pytest.approx(one["time_s"] / two["time_s"])
-    assert len(row["machine_speedups"]) == 1 and 0.5 < row["machine_speedup"] < 2.2      # two cores at most
+    # the machine's own speedup is a timing ratio: its value depends on the load, which a test cannot
+    # assert (cell bench states it beside the plan's); only that it was measured
+    assert len(row["machine_speedups"]) == 1 and math.isfinite(row["machine_speedup"]) and row["machine_speedup"] > 0
     assert two["evaluations_per_s"] == pytest.approx(row["evaluations"] / two["time_s"])
     assert row["serial_s"] == result["features"][-1]["time_s"] and row["startup_s"] > 0
     targets = {t["name"]: t for t in result["targets"]}
