@@ -370,8 +370,7 @@ class LaserCalibration(Result):
                 **self.fitted(), "fit": asdict(self.fit) if self.fit else None,
                 "camera_constant_ratio": self.fit.camera_constant / self.camera_constant_task if self.fit else None,
                 "black_level": self.black_level.to_json() if self.black_level else None,
-                "window": self.window, "frames": [asdict(f) for f in self.frames], "camera_file": self.camera_file,
-                "reason": self.message}
+                "window": self.window, "frames": [asdict(f) for f in self.frames], "camera_file": self.camera_file}
 
 
 def check_camera_file(path: str | Path, force: bool, option: str = "--camera-file") -> Path:

@@ -349,7 +349,7 @@ class Goniometry(Result):
         return {k: self.material[k] for k in keys if k in self.material}
 
     def details(self) -> dict[str, Any]:
-        return {"task": self.task, "reason": self.message, "poses": self.poses,
+        return {"task": self.task, "poses": self.poses,
                 "refused": [{"pose": k, "reason": r} for k, r in self.refused],
                 "failed": [{"pose": k, "reason": r} for k, r in self.failed],
                 "readings": [asdict(r) for r in self.readings], "material": self.material,

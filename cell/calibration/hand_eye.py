@@ -467,7 +467,7 @@ class HandEyeCalibration(Result):
                 "hand_eye": self.hand_eye.to_json() if self.hand_eye else None,
                 "methods": {m: h.to_json() for m, h in (self.methods or {}).items()}, "refinement": self.refinement,
                 "views": [v.to_json() for v in self.views], "refused": list(self.refused),
-                "hand_eye_file": self.hand_eye_file, "reason": self.message}
+                "hand_eye_file": self.hand_eye_file}
 
 
 def run(task: Task, out: str | Path, connect: Callable[[], Devices], hand_eye_file: str | Path, poses: int = 12,

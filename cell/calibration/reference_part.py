@@ -168,7 +168,7 @@ class CalibrationResult(Result):
     def details(self) -> dict[str, Any]:
         return {"task": self.task, "camera_constant_task": self.camera_constant_task, "plan": self.plan,
                 "shots": [s.to_json() for s in self.shots], "fit": asdict(self.fit) if self.fit else None,
-                "camera_constant_ratio": self.camera_constant_ratio, "reason": self.message}
+                "camera_constant_ratio": self.camera_constant_ratio}
 
 
 def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices], shots: int = 6) -> CalibrationResult:

@@ -22,7 +22,6 @@ from cell.planning import certificate, evaluate, regions, requirements
 from cell.core import geometry
 from cell.physics import depth_of_field as dof
 from cell.planning.plan import Exposure, Maps, Plan, PlannerSettings, Refinement, Search, Shot
-from cell.physics.costs import RequirementValue
 
 if TYPE_CHECKING:
     from cell.planning.scene import Scene

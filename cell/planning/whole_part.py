@@ -13,7 +13,6 @@ from dataclasses import replace
 from typing import TYPE_CHECKING, cast
 
 import numpy as np
-from numpy.typing import ArrayLike
 
 from cell.planning import coverage, one_shot, regions
 from cell.planning.set_cover import fewest_shots

@@ -84,4 +84,6 @@ class Result:
                 "fault": self.fault, "counters": self.counters}
 
     def to_json(self) -> dict[str, Any]:
-        return self.details() | self.verdict()
+        """details(), the verdict and `reason` (the message, as result files said it before the
+        verdict was shared)."""
+        return self.details() | self.verdict() | {"reason": self.message}

@@ -49,9 +49,7 @@ def number(x: float, unit: str = "", digits: int = 1) -> str:
 
 
 def count(n: int, thing: str, plural: str | None = None) -> str:
-    """'1 shot', '2 shots', 'no shot'."""
-    if n == 0:
-        return f"no {thing}"
+    """'1 shot', '2 shots', '0 iterations' (none at all is said by the sentence: covering())."""
     return f"{n} {thing if n == 1 else plural or thing + 's'}"
 
 

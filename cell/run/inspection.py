@@ -101,13 +101,13 @@ class ShotRun(Result):
         n = len({it.iteration for it in self.iterations})
         grays = ", ".join(f"{name} gray {its[-1].measured_gray['min']:.0f}-{its[-1].measured_gray['max']:.0f}"
                           for name in self.features if (its := self.of(name)))
-        verdict = f"converged after {loop.count(n, 'iteration')}" if self.success else \
+        verdict = f"converged after {words.count(n, 'iteration')}" if self.success else \
             f"not converged: {self.message}"
         return verdict + (f"; {grays}" if grays else "")
 
     def details(self) -> dict[str, Any]:
         return {"shot": self.shot, "features": list(self.features), "converged": self.success,
-                "reason": self.message, "iterations": [it.to_json() for it in self.iterations],
+                "iterations": [it.to_json() for it in self.iterations],
                 "captures": self.captures, "replans": [r.to_json() for r in self.replans],
                 "refits": [r.to_json() for r in self.refits], "camera_error": self.camera_error}
 
@@ -143,7 +143,7 @@ def run_shot(ctx: RunContext, plan: Plan, s: int, done: list[ShotRun]) -> ShotRu
                 events.add(event)
             error = camera_error(devices, shot.T_cell_cam)
             n = len({it.iteration for it in events.iterations})
-            rec.step("done", f"converged after {loop.count(n, 'iteration')}", converged=True, iterations=n)
+            rec.step("done", f"converged after {words.count(n, 'iteration')}", converged=True, iterations=n)
         except GoalNotReached as err:               # the devices are fine: the next shot runs
             message = str(err)
             rec.step("done", f"not converged: {err}", converged=False, reason=message)
@@ -233,7 +233,7 @@ class InspectionResult(Result):
 
     def details(self) -> dict[str, Any]:
         black = next((r.black.to_json() for r in self.shots if r.black), None)
-        return {"task": self.task, "plan": self.plan, "converged": self.success, "reason": self.message,
+        return {"task": self.task, "plan": self.plan, "converged": self.success,
                 "features": self.feature_results(), "order": list(self.order), "travel_m": self.travel_m,
                 "shots": [{"shot": r.shot, "folder": f"shot-{r.shot}", "features": list(r.features),
                            "converged": r.success, "reason": r.message,
@@ -301,7 +301,7 @@ def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices],
             raise GoalNotReached(f"{len(failed)} of {len(names)} features not in band: " + "; ".join(
                 f"{f['name']} (shot {f['shot']}): {f['reason']}" for f in failed))
         recorder.step("done", f"converged: every feature in band ({len(names)} features, "
-                              f"{loop.count(len(runs), 'shot')})", converged=True)
+                              f"{words.count(len(runs), 'shot')})", converged=True)
     return ending.result
 
 
@@ -319,5 +319,5 @@ def gray_line(feature: dict[str, Any]) -> str:
     """`leaf_a: shot 0, gray 104-119 (mean 112.3), 1 iteration`, of a feature_results() entry."""
     g = feature["measured_gray"] or {}
     gray = f"gray {g['min']:.0f}-{g['max']:.0f} (mean {g['mean']:.1f})" if g else "not measured"
-    return f"{feature['name']}: shot {feature['shot']}, {gray}, {loop.count(feature['iterations'], 'iteration')}"
+    return f"{feature['name']}: shot {feature['shot']}, {gray}, {words.count(feature['iterations'], 'iteration')}"
 

@@ -25,9 +25,10 @@ from cell.run.context import RunContext
 from cell.run.measurement import BlackLevel, Measurement
 from cell.run.refit import Refit
 from cell.devices.interfaces import speaking_for
-from cell.core.errors import GoalNotReached, PlanInfeasible
+from cell.core.errors import GoalNotReached
 from cell.planning.plan import gray_stats
 from cell.report.recorder import Ending, Recorder, file_name
+from cell.report.words import count
 from cell.report.result import Result
 
 if TYPE_CHECKING:
@@ -156,7 +157,7 @@ class RunResult(Result):
 
     def details(self) -> dict[str, Any]:
         return {"task": self.task, "plan": self.plan, "iterations": [it.to_json() for it in self.iterations],
-                "converged": self.success, "captures": self.captures, "reason": self.message,
+                "converged": self.success, "captures": self.captures,
                 "replans": [r.to_json() for r in self.replans], "black_level": self.black_level,
                 "refits": [r.to_json() for r in self.refits]}
 
@@ -480,11 +481,9 @@ def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices], max_it
     from cell.report.pictures import write_convergence
     out, events = Path(out), Events()
 
-    def result(reason, fault):
-        err = ending.error
-        cause = None if err is None else "infeasible" if isinstance(err, PlanInfeasible) else getattr(err, "cause", None)
+    def result(reason: str, fault: dict[str, Any] | None) -> RunResult:     # its cause: the Ending's
         return RunResult(str(task.path), not reason, reason, recorder.plan, tuple(events.iterations),
-                         tuple(events.replans), fault, events.black_json, tuple(events.refits), cause)
+                         tuple(events.replans), fault, events.black_json, tuple(events.refits))
 
     try:
         with Recorder(out) as recorder, Ending(recorder, "not converged", "report.json", result,
@@ -530,8 +529,3 @@ class Events:
     @property
     def black_json(self) -> dict[str, Any] | None:
         return self.black.to_json() if self.black else None
-
-
-def count(n: int, noun: str) -> str:
-    """`1 iteration`, `3 iterations`."""
-    return f"{n} {noun}{'s' * (n != 1)}"
