@@ -78,7 +78,7 @@ def schema_default(spec):
 
 
 def same(a, b):
-    if a is None or b is None or isinstance(a, str) or isinstance(b, str):
+    if a is None or b is None or isinstance(a, (str, dict)) or isinstance(b, (str, dict)):
         return a == b
     return np.shape(a) == np.shape(b) and np.allclose(a, b)
 

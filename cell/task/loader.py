@@ -24,10 +24,11 @@ from cell.core.frames import Frames
 from cell.core.inputs import checked_file
 from cell.physics.material import PARAMETERS, TERMS, Material, Unresolved
 from cell.physics.radiometry import camera_constant_from_datasheet
-from cell.task.schema import (NON_NEGATIVE, POSITIVE, Anything, Choice, Integer, Invalid, Number, Pair,
+from cell.task.schema import (NON_NEGATIVE, POSITIVE, Anything, Choice, Flag, Integer, Invalid, Number, Pair,
                          Section, Sections, Spec, Table, Text, ToSI, Vector, parse, read_yaml, show)
-from cell.task.types import (Calibration, CameraModel, CellConfig, Feature, Goniometer, Lamp, LampRig, Lens,
-                       LoopSettings, Part, Requirements, Sample, SimConfig, Sensor, Task, Truth, Viewpoint)
+from cell.task.types import (LIGHT_TYPES, MOUNTS, Calibration, CameraModel, CellConfig, Channel, Feature,
+                       Goniometer, Lamp, LampRig, Lens, Light, LoopSettings, Part, Requirements, Sample,
+                       SimConfig, Sensor, Task, Truth, Viewpoint)
 
 EFFECTS = ("shadows", "cone_falloff", "vignetting", "defocus", "noise", "black_level", "quantization")
 SURFACE_TOLERANCE_M = 1e-3       # feature center at most this far from the mesh surface
@@ -55,6 +56,24 @@ class Effects(Spec):
             if name in raw[:i]:
                 raise Invalid(name, "each effect at most once", i)
         return tuple(raw)
+
+
+class ChannelScales(Spec):
+    """`sim.truth.channel_power_scale`: {channel: the true power over the model's}, each channel a
+    non-negative integer, each scale a number >= 0 (0: a dead channel)."""
+
+    expected = "a mapping of channel numbers to scales >= 0, e.g. {1: 0.8, 3: 0}"
+    default: dict[int, float] = {}
+
+    def convert(self, raw: Any, to_si: ToSI) -> dict[int, float]:
+        if not isinstance(raw, dict):
+            raise Invalid(raw, self.expected)
+        for channel, scale in raw.items():
+            if isinstance(channel, bool) or not isinstance(channel, int) or channel < 0:
+                raise Invalid(channel, "a channel number (an integer >= 0)")
+            if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0 <= scale < float("inf"):
+                raise Invalid(scale, f"a scale >= 0 for channel {channel}")
+        return {channel: float(scale) for channel, scale in raw.items()}
 
 
 class SensorSection(Section):
@@ -86,6 +105,44 @@ REQUIREMENTS = {
     "depth_of_field_m": Number(**NON_NEGATIVE, default=0.0),
     "resolution_m": Number(**POSITIVE, default=None),
     "view_angle_deg": Number(lambda v: 0 < v <= DEG(90), "an angle in (0, 90] deg", default=None),
+    "drive_tolerance": Number(lambda v: 0 <= v < 1, "a fraction in [0, 1)", default=0.0),
+}
+PROFILE = {
+    "off_axis_deg": Table(lambda v: 0 <= v <= np.pi, "an angle within [0, 180] deg",
+                          default=None, per="off-axis angle"),
+    "relative": Table(lambda v: 0 <= v <= 1, "a number in [0, 1]", default=None,
+                      per="off-axis angle"),
+}
+RIG = {
+    "pivot_m": Vector(),
+    "pan_range_deg": Pair(lambda v: DEG(-360) <= v <= DEG(360), "angles within [-360, 360] deg"),
+    "tilt_range_deg": Pair(lambda v: DEG(-90) <= v <= DEG(90), "angles within [-90, 90] deg"),
+    "radius_range_m": Pair(lambda v: v > 0, "positive lengths"),
+    "radius_axis": Choice("manual", "servo"),
+}
+CHANNEL = {
+    "channel": Integer(0, 255, default=None),
+    "drive_range": Pair(lambda v: 0 <= v <= 1, "drive levels within [0, 1]", default=(0.0, 1.0)),
+    "switched": Flag(default=False),
+}
+LIGHT = {
+    "name": Text(),
+    "type": Choice(*LIGHT_TYPES),
+    "mount": Choice(*MOUNTS),
+    "power_w": Number(**POSITIVE),
+    **CHANNEL,
+    "profile": Section(PROFILE, required=False),
+    "cone_angle_deg": Number(lambda v: 0 < v < DEG(180), "an angle in (0, 180) deg", default=None),
+    "position_m": Vector(default=None),
+    "aim_m": Vector(default=None),
+    "offset_m": Number(lambda v: True, "a length", default=None),
+    "along": Vector(direction=True, default=None),
+    "radius_m": Number(**POSITIVE, default=None),
+    "tilt_deg": Number(lambda v: 0 <= v < DEG(90), "an angle within [0, 90) deg", default=None),
+    "length_m": Number(**POSITIVE, default=None),
+    "size_m": Pair(lambda v: v > 0, "positive lengths [width, height]", default=None, ascending=False),
+    "hole_radius_m": Number(**POSITIVE, default=None),
+    "rig": Section(RIG, required=False, defaults=False),
 }
 
 
@@ -146,20 +203,11 @@ TASK = {
     "lamp": Section({
         "power_w": Number(**POSITIVE),
         "cone_angle_deg": Number(lambda v: 0 < v < DEG(180), "an angle in (0, 180) deg"),
-        "profile": Section({
-            "off_axis_deg": Table(lambda v: 0 <= v <= np.pi, "an angle within [0, 180] deg",
-                                  default=None, per="off-axis angle"),
-            "relative": Table(lambda v: 0 <= v <= 1, "a number in [0, 1]", default=None,
-                              per="off-axis angle"),
-        }, required=False),
-        "rig": Section({
-            "pivot_m": Vector(),
-            "pan_range_deg": Pair(lambda v: DEG(-360) <= v <= DEG(360), "angles within [-360, 360] deg"),
-            "tilt_range_deg": Pair(lambda v: DEG(-90) <= v <= DEG(90), "angles within [-90, 90] deg"),
-            "radius_range_m": Pair(lambda v: v > 0, "positive lengths"),
-            "radius_axis": Choice("manual", "servo"),
-        }),
-    }),
+        "profile": Section(PROFILE, required=False),
+        "rig": Section(RIG),
+        **CHANNEL,
+    }, required=False, defaults=False),
+    "lights": Sections(LIGHT),
     "cell": Section({
         "backend": Choice("sim", "hw", default="sim"),
         **DEVICES,                                       # arm, pan_tilt, camera: cell.task.device_config
@@ -178,6 +226,7 @@ TASK = {
             "camera_offset_m": Vector(default=(0.0, 0.0, 0.0)),
             "camera_rpy_deg": Vector(default=(0.0, 0.0, 0.0)),
             "lamp_radius_error_m": Number(lambda v: True, "a number", default=0.0),
+            "channel_power_scale": ChannelScales(),
         }, required=False),
     }, required=False),
     "calibration": Section({
@@ -401,14 +450,15 @@ def _check_black_level(file, band, black_level):
 def _truth(file, truth, rig):
     """The simulated world's truth: its material file loaded and checked like the task's, and a
     lamp radius error that keeps the lamp beyond the rig's pivot."""
-    if not truth["lamp_radius_error_m"] > -rig["radius_range_m"][0]:
+    if not truth["lamp_radius_error_m"] > -rig.radius_range_m[0]:
         raise TaskError(file, "sim.truth.lamp_radius_error_m", show(truth["lamp_radius_error_m"]),
-                        f"more than -{rig['radius_range_m'][0]:g} m (the true lamp beyond the pivot)")
+                        f"more than -{rig.radius_range_m[0]:g} m (the true lamp beyond the pivot)")
     name = truth["material"]
     material = None if name is None else load_material(
         _relative_file(file, "sim.truth.material", name, "yaml"))
     vectors = {k: tuple(map(float, v)) for k, v in truth.items() if isinstance(v, np.ndarray)}
-    return Truth(**(truth | vectors | {"material": material}))
+    scales = tuple(sorted(truth["channel_power_scale"].items()))
+    return Truth(**(truth | vectors | {"material": material, "channel_power_scale": scales}))
 
 
 def _calibration(file, calibration, material, rig):
@@ -419,7 +469,7 @@ def _calibration(file, calibration, material, rig):
     name = sample["material"]
     sample_material = material if name is None else load_material(
         _relative_file(file, "calibration.sample.material", name, "yaml"))
-    lo, hi = rig["radius_range_m"]
+    lo, hi = rig.radius_range_m
     radius = gonio["lamp_radius_m"]
     if radius is None:
         radius = 0.5 * (lo + hi)
@@ -500,28 +550,29 @@ def _check_outside(file, mesh, T_cell_part, points):
                             "a point outside the part (cell frame)")
 
 
-def _lamp_profile(file, profile):
-    """The lamp's angular profile (M, 2) [off_axis_rad, relative], or None (eq. 11's ideal cone):
-    both columns or neither, of equal length, at least two angles strictly ascending from 0, and
-    relative 1 on the axis (the lamp's power is spread over it: radiometry.axis_intensity)."""
+def _lamp_profile(file, profile, key="lamp.profile"):
+    """A light's angular profile (M, 2) [off_axis_rad, relative] at `key`, or None (the type's
+    default: eq. (11)'s ideal cone for a spot): both columns or neither, of equal length, at least
+    two angles strictly ascending from 0, and relative 1 on the axis (the light's power is spread
+    over it: radiometry.axis_intensity)."""
     angles, relative = profile["off_axis_rad"], profile["relative"]
     if angles is None and relative is None:
         return None
-    for key, column in (("off_axis_deg", angles), ("relative", relative)):
+    for column_key, column in (("off_axis_deg", angles), ("relative", relative)):
         if column is None:
-            raise TaskError(file, f"lamp.profile.{key}", "nothing",
+            raise TaskError(file, f"{key}.{column_key}", "nothing",
                             "a list with one value per off-axis angle (required in a profile)")
     if len(angles) < 2:
-        raise TaskError(file, "lamp.profile.off_axis_deg", show(np.degrees(angles)),
+        raise TaskError(file, f"{key}.off_axis_deg", show(np.degrees(angles)),
                         "at least two off-axis angles, from 0")
     if len(relative) != len(angles):
-        raise TaskError(file, "lamp.profile.relative", f"{len(relative)} values",
+        raise TaskError(file, f"{key}.relative", f"{len(relative)} values",
                         f"{len(angles)}, one per off_axis_deg entry")
     if angles[0] != 0.0 or np.any(np.diff(angles) <= 0):
-        raise TaskError(file, "lamp.profile.off_axis_deg", show(np.round(np.degrees(angles), 6)),
+        raise TaskError(file, f"{key}.off_axis_deg", show(np.round(np.degrees(angles), 6)),
                         "strictly ascending off-axis angles from 0")
     if relative[0] != 1.0:
-        raise TaskError(file, "lamp.profile.relative[0]", show(relative[0]),
+        raise TaskError(file, f"{key}.relative[0]", show(relative[0]),
                         "1 (the profile is relative to the axis)")
     return np.column_stack([angles, relative])
 
@@ -544,7 +595,7 @@ def half_intensity_angle(profile: np.ndarray) -> float:
     return float(angles[j] + t * (angles[j + 1] - angles[j]))
 
 
-def _check_cone_angle(file, cone_angle_rad, profile):
+def _check_cone_angle(file, cone_angle_rad, profile, key="lamp"):
     """The profile, if its half-intensity angle (half_intensity_angle: the beam angle's half, as
     LED datasheets give it) is the cone's half angle within max(1 deg, 10 % of it). The lamp's
     intensity follows from its profile alone (energy conserved: radiometry.axis_intensity), so a
@@ -554,10 +605,164 @@ def _check_cone_angle(file, cone_angle_rad, profile):
         return None
     half, found = 0.5 * cone_angle_rad, half_intensity_angle(profile)
     if abs(found - half) > max(CONE_HALF_TOLERANCE_RAD, CONE_HALF_TOLERANCE_REL * half):
-        raise TaskError(file, "lamp.cone_angle_deg", f"{np.degrees(cone_angle_rad):g} deg",
-                        f"{2 * np.degrees(found):.3g} deg, twice the angle where lamp.profile falls to half "
+        raise TaskError(file, f"{key}.cone_angle_deg", f"{np.degrees(cone_angle_rad):g} deg",
+                        f"{2 * np.degrees(found):.3g} deg, twice the angle where {key}.profile falls to half "
                         f"its axis intensity ({np.degrees(found):.3g} deg; within 1 deg or 10 % of the half angle)")
     return profile
+
+
+# each type's shape keys (SI names): required ones, and those it may have; a key of another type is
+# a mistake in the file (a `tilt_deg` on a bar light does nothing)
+SHAPES: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
+    "spot": ((), ("cone_angle_rad",)),
+    "ring": (("radius_m",), ("tilt_rad",)),
+    "bar": (("length_m",), ("along",)),
+    "area": ((), ("size_m", "radius_m", "along")),
+    "dome": (("radius_m",), ("hole_radius_m",)),
+    "coaxial": ((), ("size_m", "radius_m", "along")),
+}
+MOUNT_KEYS = {"fixed": ("position_m", "aim_m"), "flange": ("offset_m",), "pan_tilt": ("rig",)}
+SHAPE_KEYS = sorted({k for need, may in SHAPES.values() for k in need + may})
+FILE_KEY = {"cone_angle_rad": "cone_angle_deg", "tilt_rad": "tilt_deg"}
+
+
+def _channel(file, key, entry, required):
+    """The Channel of a light's `channel`, `drive_range` and `switched` keys; a light without a
+    channel is on its own supply, always at full drive, and has no drive levels to give."""
+    if entry["channel"] is None:
+        if required:
+            raise TaskError(file, f"{key}.channel", "nothing",
+                            "the light's channel on the lighting controller (an integer, required key)")
+        if entry["drive_range"] != (0.0, 1.0) or entry["switched"]:
+            raise TaskError(file, f"{key}.drive_range" if entry["drive_range"] != (0.0, 1.0) else f"{key}.switched",
+                            "a drive setting", f"a `{key}.channel` first (a light on no channel is always on)")
+        return Channel(None, (1.0, 1.0), False)
+    if not entry["drive_range"][1] > 0:
+        raise TaskError(file, f"{key}.drive_range", show(list(entry["drive_range"])),
+                        "a range reaching above 0 (a channel that can never light is no light)")
+    return Channel(entry["channel"], entry["drive_range"], entry["switched"])
+
+
+def _light(file, key, entry):
+    """A `lights` entry (not on the pan-tilt) -> Light: its type's shape keys only, its mount's
+    pose keys only, an axis from position_m to aim_m (fixed) or the camera's optical axis
+    (flange), `along` perpendicular to it."""
+    kind, mount = entry["type"], entry["mount"]
+    need, may = SHAPES[kind]
+    for k in SHAPE_KEYS:
+        name = FILE_KEY.get(k, k)
+        if k in need and entry[k] is None:
+            raise TaskError(file, f"{key}.{name}", "nothing", f"a value (required for a {kind} light)")
+        if k not in need + may and entry[k] is not None:
+            owners = [t for t, (n, m) in SHAPES.items() if k in n + m]
+            raise TaskError(file, f"{key}.{name}", show(entry[k]),
+                            f"no value: it is a key of {' and '.join(owners)} lights, not of a {kind} light")
+    if kind in ("area", "coaxial") and (entry["size_m"] is None) == (entry["radius_m"] is None):
+        raise TaskError(file, f"{key}.size_m", "both or neither of size_m and radius_m",
+                        f"one of them: a rectangle [width, height] or a disk's radius (a {kind} light)")
+    if kind == "dome" and entry["hole_radius_m"] is not None and not entry["hole_radius_m"] < entry["radius_m"]:
+        raise TaskError(file, f"{key}.hole_radius_m", show(entry["hole_radius_m"]),
+                        f"less than the dome's radius_m {entry['radius_m']:g} m")
+    if kind == "coaxial" and mount != "flange":
+        raise TaskError(file, f"{key}.mount", mount, "flange (a coaxial light shines along the camera's axis)")
+    for m, keys in MOUNT_KEYS.items():
+        for k in keys:
+            if m != mount and entry[k] is not None:
+                raise TaskError(file, f"{key}.{k}", show(entry[k]) if k != "rig" else "a rig",
+                                f"no value: it is a key of {m} lights (this one's mount is {mount})")
+    if mount == "fixed":
+        for k in ("position_m", "aim_m"):
+            if entry[k] is None:
+                raise TaskError(file, f"{key}.{k}", "nothing", "a 3-vector [x, y, z] (required for a fixed light)")
+        position, axis = entry["position_m"], entry["aim_m"] - entry["position_m"]
+        if not np.linalg.norm(axis) > 1e-6:
+            raise TaskError(file, f"{key}.aim_m", show(entry["aim_m"]),
+                            "a point on the light's axis away from its position_m")
+        axis = geometry.unit(axis)
+    else:                                           # flange: the camera frame, z its optical axis
+        offset = 0.0 if entry["offset_m"] is None else entry["offset_m"]
+        position, axis = np.array([0.0, 0.0, offset]), np.array([0.0, 0.0, 1.0])
+    along = geometry.frame_from_normal(axis)[:, 0] if entry["along"] is None else entry["along"]
+    along = along - (along @ axis) * axis
+    if not np.linalg.norm(along) > 1e-6:
+        raise TaskError(file, f"{key}.along", show(entry["along"]),
+                        "a direction not along the light's axis (its length or width lies across the axis)")
+    profile = _lamp_profile(file, entry["profile"], f"{key}.profile")
+    if kind == "spot":
+        if entry["cone_angle_rad"] is None and profile is None:
+            raise TaskError(file, f"{key}.cone_angle_deg", "nothing",
+                            "a spot's cone angle, or its profile (one is required)")
+        if entry["cone_angle_rad"] is not None:
+            profile = _check_cone_angle(file, entry["cone_angle_rad"], profile, key)
+    return Light(entry["name"], kind, mount, entry["power_w"], _channel(file, key, entry, required=True),
+                 position, axis, geometry.unit(along), profile, entry["cone_angle_rad"], entry["radius_m"],
+                 entry["tilt_rad"] or 0.0, entry["length_m"], entry["size_m"], entry["hole_radius_m"], key)
+
+
+def _lamp(file, lamp, entries):
+    """The pan-tilt's spot, from `lamp` or from the one `lights` entry with mount: pan_tilt."""
+    on_rig = [(i, e) for i, e in enumerate(entries) if e["mount"] == "pan_tilt"]
+    if len(on_rig) > 1:
+        raise TaskError(file, f"lights[{on_rig[1][0]}].mount", "pan_tilt, also lights[{}]'s".format(on_rig[0][0]),
+                        "one light on the pan-tilt (it carries one spot)")
+    if on_rig and lamp is not None:
+        raise TaskError(file, f"lights[{on_rig[0][0]}].mount", "pan_tilt beside a `lamp` section",
+                        "one spot on the pan-tilt: `lamp`, or a `lights` entry with mount: pan_tilt")
+    if on_rig:
+        i, e = on_rig[0]
+        key = f"lights[{i}]"
+        if e["type"] != "spot":
+            raise TaskError(file, f"{key}.type", e["type"], "spot (the pan-tilt carries a spot)")
+        if e["rig"] is None:
+            raise TaskError(file, f"{key}.rig", "nothing", "the pan-tilt's rig (required with mount: pan_tilt)")
+        for k in ("position_m", "aim_m", "offset_m", "along", *SHAPE_KEYS[1:]):
+            if k != "cone_angle_rad" and e.get(k) is not None:
+                raise TaskError(file, f"{key}.{FILE_KEY.get(k, k)}", show(e[k]),
+                                "no value (the pan-tilt's spot is placed by its rig)")
+        if e["cone_angle_rad"] is None:
+            raise TaskError(file, f"{key}.cone_angle_deg", "nothing", "the spot's cone angle (required)")
+        lamp = {**e, "profile": e["profile"]}
+        profile_key, name, channel = f"{key}.profile", e["name"], _channel(file, key, e, required=True)
+    elif lamp is not None:
+        key, profile_key, name, channel = "lamp", "lamp.profile", "lamp", _channel(file, "lamp", lamp, required=False)
+    else:
+        raise TaskError(file, "lamp", "nothing", "a spot on the pan-tilt: a `lamp` section, or a `lights` entry "
+                                                 "with mount: pan_tilt (required)")
+    profile = _check_cone_angle(file, lamp["cone_angle_rad"], _lamp_profile(file, lamp["profile"], profile_key), key)
+    return Lamp(lamp["power_w"], lamp["cone_angle_rad"], LampRig(**lamp["rig"]), profile, name, channel)
+
+
+def _lights(file, lamp, entries):
+    """(the pan-tilt's Lamp, the other Lights), names and channels unique among them all."""
+    spot = _lamp(file, lamp, entries)
+    lights = tuple(_light(file, f"lights[{i}]", e) for i, e in enumerate(entries) if e["mount"] != "pan_tilt")
+    keys = {spot.name: "lamp" if lamp is not None else "the pan-tilt's light"}
+    channels = {} if spot.channel.number is None else {spot.channel.number: keys[spot.name]}
+    for light in lights:
+        if light.name in keys:
+            raise TaskError(file, f"{light.key}.name", f"'{light.name}', also {keys[light.name]}'s",
+                            "a name unique among the lights")
+        keys[light.name] = light.key
+        if light.channel.number in channels:
+            raise TaskError(file, f"{light.key}.channel", f"{light.channel.number}, also {channels[light.channel.number]}'s",
+                            "a channel used by one light only (each channel drives its own light)")
+        channels[light.channel.number] = light.key
+    return spot, lights
+
+
+def _light_centres(lights, cameras):
+    """{(key, whose): cell-frame point} of each light's emitting centre, to be checked outside the
+    part: a fixed light's own, a flange light's on each camera's optical axis ({(key, whose):
+    (camera position, the feature centre it looks at)}) at its offset."""
+    out = {}
+    for light in lights:
+        if light.mount == "fixed":
+            out[(f"{light.key}.position_m", "")] = light.position_m
+            continue
+        for (_, whose), (camera, target) in cameras.items():
+            point = camera + light.position_m[2] * geometry.unit(target - camera)
+            out[(f"{light.key}.offset_m", f", where the camera{whose} puts it")] = point
+    return out
 
 
 def load_task(path: str | PathLike[str]) -> Task:
@@ -586,10 +791,14 @@ def load_task(path: str | PathLike[str]) -> Task:
     frames = Frames(T_cell_part=geometry.from_rpy(part["rpy_rad"], part["position_m"]),
                     T_cell_base=geometry.from_rpy(arm["base_rpy_rad"], arm["base_position_m"]),
                     T_flange_cam=hand_eye(path, arm, (data.get("cell") or {}).get("arm")))
-    cameras = {("camera.distance_m", "" if len(features) == 1 else f", the camera of {f.key} ({f.name})"):
-               geometry.apply(frames.T_cell_part, f.center_m + cam["distance_m"] * cam["view_direction"])
-               for f in features}
-    _check_outside(path, mesh, frames.T_cell_part, {("lamp.rig.pivot_m", ""): lamp["rig"]["pivot_m"], **cameras})
+    spot, lights = _lights(path, lamp, v["lights"] or [])
+    aims = {("camera.distance_m", "" if len(features) == 1 else f" of {f.key} ({f.name})"):
+            (geometry.apply(frames.T_cell_part, f.center_m + cam["distance_m"] * cam["view_direction"]),
+             geometry.apply(frames.T_cell_part, f.center_m)) for f in features}
+    cameras = {(key, f", the camera{whose}" if whose else ""): camera for (key, whose), (camera, _) in aims.items()}
+    _check_outside(path, mesh, frames.T_cell_part, {(f"{'lamp' if lamp is not None else 'lights'}.rig.pivot_m", ""):
+                                                    spot.rig.pivot_m, **cameras,
+                                                    **_light_centres(lights, aims if cam["viewpoint"] == "fixed" else {})})
     return Task(
         path=path,
         name=v["name"],
@@ -598,11 +807,11 @@ def load_task(path: str | PathLike[str]) -> Task:
         features=features,
         camera=CameraModel(cam["distance_m"], cam["view_direction"], _sensor(path, cam["sensor"]),
                            Lens(**cam["lens"]), cam["shutter_range_s"], _viewpoint(cam)),
-        lamp=Lamp(lamp["power_w"], lamp["cone_angle_rad"], LampRig(**lamp["rig"]),
-                  _check_cone_angle(path, lamp["cone_angle_rad"], _lamp_profile(path, lamp["profile"]))),
+        lamp=spot,
+        lights=lights,
         cell=CellConfig(cell["backend"], devices),
-        sim=SimConfig(sim["seed"], sim["effects"], _truth(path, sim["truth"], lamp["rig"])),
+        sim=SimConfig(sim["seed"], sim["effects"], _truth(path, sim["truth"], spot.rig)),
         loop=_loop(path, v["loop"]),
-        calibration=_calibration(path, v["calibration"], material, lamp["rig"]),
+        calibration=_calibration(path, v["calibration"], material, spot.rig),
         board=_board(path, v["calibration"]["board"]),
     )

@@ -172,8 +172,9 @@ class Vector(Spec):
         self.direction, self.default = direction, default
         self.expected = "a non-zero 3-vector [x, y, z]" if direction else "a 3-vector [x, y, z]"
 
-    def absent(self, file: str | PathLike[str], path: str) -> np.ndarray:
-        return np.array(super().absent(file, path), float)
+    def absent(self, file: str | PathLike[str], path: str) -> np.ndarray | None:
+        default = super().absent(file, path)
+        return None if default is None else np.array(default, float)
 
     def convert(self, raw: Any, to_si: ToSI) -> np.ndarray:
         v = to_si(_numbers(raw, 3, self.expected))
@@ -185,18 +186,34 @@ class Vector(Spec):
 
 
 class Pair(Spec):
-    """A range [low, high] of numbers passing `ok` (SI); low < high if strict, else low <= high."""
+    """A range [low, high] of numbers passing `ok` (SI); low < high if strict, else low <= high;
+    not `ascending`: two numbers in either order (a width and a height)."""
 
     def __init__(self, ok: Callable[[float], bool], what: str, strict: bool = False,
-                 default: Any = REQUIRED) -> None:
-        self.ok, self.strict, self.default = ok, strict, default
-        self.expected = f"an ascending pair of {what}"
+                 default: Any = REQUIRED, ascending: bool = True) -> None:
+        self.ok, self.strict, self.default, self.ascending = ok, strict, default, ascending
+        self.expected = f"an ascending pair of {what}" if ascending else f"a pair of {what}"
 
     def convert(self, raw: Any, to_si: ToSI) -> tuple[float, float]:
         low, high = to_si(_numbers(raw, 2, self.expected))
-        if not (self.ok(low) and self.ok(high)) or low > high or (self.strict and low == high):
+        ordered = not self.ascending or (low < high if self.strict else low <= high)
+        if not (self.ok(low) and self.ok(high)) or not ordered:
             raise Invalid(raw, self.expected)
         return float(low), float(high)
+
+
+class Flag(Spec):
+    """true or false (YAML's booleans; 0 and 1 are numbers, not flags)."""
+
+    expected = "true or false"
+
+    def __init__(self, default: Any = REQUIRED) -> None:
+        self.default = default
+
+    def convert(self, raw: Any, to_si: ToSI) -> bool:
+        if not isinstance(raw, bool):
+            raise Invalid(raw, self.expected)
+        return raw
 
 
 class Table(Spec):

@@ -30,6 +30,7 @@ class Requirements:
     depth_of_field_m: float = 0.0  # wanted depth of field beyond the feature's own depth range
     resolution_m: float | None = None      # a pixel covers at most this on the feature (None: not asked)
     view_angle_rad: float | None = None    # the camera at most this far from each sample's normal
+    drive_tolerance: float = 0.0           # each light channel's true drive within drive x (1 +- this)
 
 
 @dataclass(frozen=True)
@@ -107,12 +108,27 @@ class LampRig:
 
 
 @dataclass(frozen=True)
+class Channel:
+    """Where a light is driven: its channel on the lighting controller (None: on its own supply,
+    always at full drive), the drive levels it may take (fractions of full) and whether it can
+    only be switched (off, or at the range's top)."""
+
+    number: int | None = None
+    drive_range: tuple[float, float] = (0.0, 1.0)
+    switched: bool = False
+
+
+@dataclass(frozen=True)
 class Lamp:
+    """The spot on the pan-tilt rig (`lamp`, or a `lights` entry with mount: pan_tilt)."""
+
     power_w: float
     cone_angle_rad: float          # full opening angle gamma (eq. 11's cone; with a profile its beam angle)
     rig: LampRig
     profile: np.ndarray | None = None# (M, 2) [off_axis_rad, relative]: I(theta)/I(0), linear, 0
                                    # beyond the last angle; None: eq. (11)'s ideal cone
+    name: str = "lamp"
+    channel: Channel = Channel()
 
     @property
     def lit_half_angle_rad(self) -> float:
@@ -123,6 +139,38 @@ class Lamp:
         angles, relative = self.profile[:, 0], self.profile[:, 1]
         lit = np.flatnonzero(relative > 0)
         return float(angles[min(lit[-1] + 1, len(angles) - 1)])
+
+
+LIGHT_TYPES = ("spot", "ring", "bar", "area", "dome", "coaxial")
+MOUNTS = ("fixed", "pan_tilt", "flange")
+
+
+@dataclass(frozen=True)
+class Light:
+    """A light that stays where it is mounted while the pan-tilt's spot is searched (`lights`,
+    docs/formats.md): fixed in the cell or on the camera's flange. Its pose is its emitting
+    surface's centre and the unit axis it emits along; a flange light's is in the camera frame
+    (z the optical axis), at offset_m along it, so that it moves with the camera. The shape's
+    keys are its type's (cell.planning.lights samples it into emitter points); each point emits
+    by `profile` (I(theta)/I(0), None: a Lambertian emitter, cos theta), their powers summing to
+    power_w."""
+
+    name: str
+    type: str                      # LIGHT_TYPES
+    mount: str                     # fixed | flange
+    power_w: float                 # radiant, all of it (energy conserved over the profile)
+    channel: Channel
+    position_m: np.ndarray         # fixed: cell frame; flange: camera frame (0, 0, offset_m)
+    axis: np.ndarray               # unit, the frame's as position_m
+    along: np.ndarray              # unit, perpendicular to axis: a bar's length, an area's width
+    profile: np.ndarray | None = None      # (M, 2) [off_axis_rad, relative]; None: Lambertian
+    cone_angle_rad: float | None = None    # spot: eq. (11)'s cone when it has no profile
+    radius_m: float | None = None          # ring, dome, a disk area or coaxial source
+    tilt_rad: float = 0.0                  # ring: LEDs tilted toward the axis
+    length_m: float | None = None          # bar
+    size_m: tuple[float, float] | None = None      # area or coaxial rectangle [width, height]
+    hole_radius_m: float | None = None     # dome: the camera's hole at its pole
+    key: str = "lights[0]"                 # where the task file gives it, for errors
 
 
 @dataclass(frozen=True)
@@ -139,6 +187,7 @@ class Truth:
     camera_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)# camera frame (hand-eye error)
     camera_rpy_rad: tuple[float, float, float] = (0.0, 0.0, 0.0)
     lamp_radius_error_m: float = 0.0           # the lamp this much farther from the pivot
+    channel_power_scale: tuple[tuple[int, float], ...] = ()  # (channel, its true power / the model's); 0: dead
 
 
 @dataclass(frozen=True)
@@ -205,6 +254,7 @@ class Task:
     sim: SimConfig
     board: Board                   # the ChArUco board (calibration.board)
     loop: LoopSettings = LoopSettings()
+    lights: tuple[Light, ...] = ()             # the lights besides the pan-tilt's spot
     calibration: Calibration = field(kw_only=True)   # no default: its goniometer's lamp radius is the task's
 
     @property
