@@ -257,7 +257,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         module = importlib.import_module(COMMANDS[args.command])
         return int(module.command(args) or 0)
     except CellError as err:
-        print(f"cell {args.command}: {err}", file=sys.stderr, flush=True)
+        print(f"cell {args.command}: {err.said}", file=sys.stderr, flush=True)
         return err.exit_code
     except KeyboardInterrupt as err:
         terminated = isinstance(err, Terminated)
