@@ -78,6 +78,17 @@ def one_feature(task: Task, command: str) -> Task:
     return task
 
 
+def backend_of(task: Task, given: str | None) -> str:
+    """The backend a command runs on (--backend, else the task's cell.backend), with the task's cell
+    section checked for it now, before any planning or folder: for hw everything the real cell's
+    devices need (cell.task.device_config.for_hw; bad input, exit 2)."""
+    from cell.task.device_config import for_hw
+    backend = given or task.cell.backend
+    if backend == "hw":
+        for_hw(task.cell.devices)
+    return backend
+
+
 def create_folder(folder: Path) -> Path:
     """The folder output_folder checked, created now that the task loaded (checked again: a
     folder that filled up meanwhile is refused as well)."""

@@ -1,6 +1,7 @@
 """`cell check TASK`: load a task and everything it references, lay the feature patch onto the
 surface as the planner does (so a patch over an edge is refused here too), print a summary in the
-units people read, each coordinate with the frame it is in."""
+units people read, each coordinate with the frame it is in. A task whose cell.backend is hw is
+refused here as `cell run` would refuse it (cell.task.device_config.for_hw)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from cell.cli import backend_of
 from cell.task.loader import load_task
 
 if TYPE_CHECKING:
@@ -102,6 +104,7 @@ def command(args: argparse.Namespace) -> int:
     from cell.planning.scene import build_scene          # Warp's BVH: the planner's own patch, no copy
 
     task = load_task(args.task)
+    backend_of(task, None)                      # a task for the real cell names what it connects to
     print(summarize(task))
     for i, f in enumerate(task.features):
         label = "patch" if len(task.features) == 1 else f"patch {f.name}"
