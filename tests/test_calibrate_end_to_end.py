@@ -128,4 +128,4 @@ def test_a_task_off_in_c_material_and_hand_eye_is_calibrated_and_converges_in_it
     done = report(tmp_path / "run")
     assert done["converged"] and len(done["iterations"]) == 1 and done["iterations"][0]["in_band"]
     assert done["black_level"] == {"value": 5.0, "noise_rms": 0.0, "source": "task"}
-    assert not (tmp_path / "run" / "capture-0.png").exists()          # no dark frame of its own
+    assert not (tmp_path / "run" / "dark.png").exists()               # no dark frame of its own

@@ -158,3 +158,51 @@ def test_help_opens_with_a_sentence_for_a_user(capsys):
     opening = out.split("\n\n")[1]                     # after the usage line
     assert opening.startswith("Plan where the lamp goes") and "Error" not in opening and "`" not in opening
     assert "exit status: 0 done" in out
+
+
+# --- the real cell's settings, checked before any work (issue 29, item 2) ---------------------
+
+# each cell-section problem --backend hw refuses: the change to the hinge, the key and what was found
+HW_PROBLEMS = [({"cell.backend": "hw"}, "cell.arm.host", "found nothing, expected the robot's address"),
+               ({"cell.backend": "hw", "cell.arm.host": "127.0.0.1"}, "cell.pan_tilt.port",
+                "found nothing, expected the servos' serial port"),
+               ({"cell.backend": "hw", "cell.arm.host": "127.0.0.1", "cell.pan_tilt.port": "/dev/ttyUSB0",
+                 "cell.lighting": {"driver": "gardasoft"}}, "cell.lighting.host",
+                "found nothing, expected the lighting controller's address")]
+HW_COMMANDS = [["run", "--backend", "hw"], ["measure-brdf", "--backend", "hw"],
+               ["calibrate", "reference-part", "--backend", "hw"]]
+
+
+@pytest.mark.parametrize("changes, key, said", HW_PROBLEMS, ids=lambda v: v if isinstance(v, str) and
+                         v.startswith("cell.") else None)
+def test_cell_check_refuses_what_the_real_cell_would(changes, key, said, tmp_path, capsys):
+    from simcell import variant
+    task = variant(tmp_path, Path(HINGE), changes)
+    assert main(["check", str(task)]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err == f"cell check: {task}: {key}: {said}" + err.split(said, 1)[1]
+    assert err.count("\n") == 1 and "--backend hw" in err
+
+
+@pytest.mark.parametrize("command", HW_COMMANDS, ids=lambda c: " ".join(c[:2]))
+def test_backend_hw_without_the_robots_address_is_refused_before_planning_and_leaves_no_folder(
+        command, tmp_path, monkeypatch, capsys):
+    from simcell import variant
+    from cell.planning import one_shot
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(one_shot, "plan", lambda *a, **k: pytest.fail("planned before the check"))
+    task = variant(tmp_path, Path(HINGE), {})                  # backend sim in the task, hw by --backend
+    assert main([*command, str(task), "--out", str(tmp_path / "run")]) == 2
+    out, err = capsys.readouterr()
+    assert err == (f"cell {command[0]}: {task}: cell.arm.host: found nothing, expected the robot's address "
+                   f"(required for --backend hw; there is no default)\n"), err
+    assert "maps:" not in out + err
+    assert sorted(p.name for p in tmp_path.iterdir()) == [task.name]         # neither run/ nor runs/
+
+
+def test_cell_check_of_a_task_for_the_real_cell_that_names_its_devices_passes(tmp_path, capsys):
+    from simcell import variant
+    task = variant(tmp_path, Path(HINGE), {"cell.backend": "hw", "cell.arm.host": "127.0.0.1",
+                                           "cell.pan_tilt.port": "/dev/ttyUSB0"})
+    assert main(["check", str(task)]) == 0                        # nothing is contacted by a check
+    assert "cell         backend hw" in capsys.readouterr().out

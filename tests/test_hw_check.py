@@ -231,3 +231,14 @@ def test_a_read_only_arm_refuses_to_move_and_has_nothing_to_stop(ur_host):
     finally:
         arm.close()
     assert dashboard(ur_host, "emulator status").startswith("moves 0 runtime_state 1 ")
+
+
+def test_a_camera_that_does_not_open_is_one_line_and_no_opencv_log_reaches_the_terminal(tmp_path):
+    host = free_loopback()                                            # nothing listens there
+    path = variant(tmp_path, "tasks/hinge.yaml", {"cell.arm.host": host, "cell.arm.connect_timeout_s": 1.0,
+                                                  "cell.pan_tilt.port": "/nonexistent/ttyDXL",
+                                                  "cell.camera.source": 97})    # no /dev/video97
+    done, _ = hw_check(path)
+    assert done.returncode == 3, done.stderr
+    assert "cell hw-check: camera" in done.stderr and "97" in done.stderr
+    assert "[ WARN" not in done.stderr + done.stdout and ".cpp" not in done.stderr + done.stdout

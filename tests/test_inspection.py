@@ -257,8 +257,9 @@ def test_a_partial_plan_is_refused_before_anything_moves_naming_the_uncovered_fe
     out = tmp_path / "run"
     assert cli.main(["run", str(PARTIAL), "--out", str(out)]) == 1
     err = capsys.readouterr().err.strip().splitlines()[-1]
-    assert err.startswith("cell run: infeasible: feature 'end_face' is covered by no shot: camera_view binds")
+    assert err.startswith("cell run: infeasible: feature end_face: no shot covers it: camera view of the feature fails")
     run = read(out)
+    assert run.report["message"].startswith("infeasible: feature 'end_face' is covered by no shot: camera_view binds")
     assert not {"move_camera", "move_lamp", "capture"} & {line["step"] for line in run.log}
     assert not run.report["converged"] and run.report["shots"] == []
     end = next(f for f in run.report["features"] if f["name"] == "end_face")

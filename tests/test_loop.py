@@ -27,7 +27,7 @@ from simcell import recording_connect, variant
 
 HINGE, CONROD = "tasks/hinge.yaml", "tasks/conrod.yaml"
 DRIVE = ["move_camera", "move_lamp"]
-DARK = ["set_exposure", "capture", "black_level"]     # the dark frame, capture-0.png
+DARK = ["set_exposure", "capture", "black_level"]     # the dark frame, dark.png
 SHOT = ["set_exposure", "capture", "register", "measure"]
 WIDE_ALBEDO = {"loop.albedo_scale_range": [1e-4, 1e5]}   # any albedo scale taken as plausible
 

@@ -179,5 +179,5 @@ def test_a_spike_wanted_of_a_material_whose_spike_is_unresolved_is_infeasible_an
     task = hinge(tmp_path, MEASURED, reflection="spike")
     assert main(["plan", str(task), "--out", str(tmp_path / "plan")]) == 1
     err = capsys.readouterr().err
-    assert "cell plan: infeasible: reflection_region binds: the spike was not resolved: " in err, err
+    assert "cell plan: infeasible: reflection type fails: the spike was not resolved: " in err, err
     assert "step 6 deg" in err and "re-measure the material with a finer calibration.goniometer.step_deg" in err

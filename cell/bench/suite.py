@@ -30,6 +30,7 @@ from cell.devices import rig
 from cell.planning.plan import PlannerSettings, gray_stats
 from cell.planning.regions import SphereGrid
 from cell.planning.scene import build_scene
+from cell.report import words
 from cell.bench.throughput import benchmark_gray, benchmark_visibility, wall_times
 
 if TYPE_CHECKING:
@@ -113,7 +114,7 @@ def sweep_task(task: Task, names: Iterable[str], reference_settings: PlannerSett
     reference = one_shot.plan(task, reference_settings)
     ref_time = time.perf_counter() - t0
     say(f"{label} reference: {ref_time:.1f} s, {len(reference.planned_scene.points)} samples, "
-        f"{'feasible' if reference.feasible else 'INFEASIBLE (' + reference.binding + ')'}")
+        f"{'feasible' if reference.feasible else 'infeasible: ' + words.reason(reference)}")
     truth = evaluate.build_problem(task, reference.planned_scene, reference.maps)
     rows = []
     for name in names:

@@ -78,6 +78,17 @@ def one_feature(task: Task, command: str) -> Task:
     return task
 
 
+def backend_of(task: Task, given: str | None) -> str:
+    """The backend a command runs on (--backend, else the task's cell.backend), with the task's cell
+    section checked for it now, before any planning or folder: for hw everything the real cell's
+    devices need (cell.task.device_config.for_hw; bad input, exit 2)."""
+    from cell.task.device_config import for_hw
+    backend = given or task.cell.backend
+    if backend == "hw":
+        for_hw(task.cell.devices)
+    return backend
+
+
 def create_folder(folder: Path) -> Path:
     """The folder output_folder checked, created now that the task loaded (checked again: a
     folder that filled up meanwhile is refused as well)."""
@@ -257,7 +268,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         module = importlib.import_module(COMMANDS[args.command])
         return int(module.command(args) or 0)
     except CellError as err:
-        print(f"cell {args.command}: {err}", file=sys.stderr, flush=True)
+        print(f"cell {args.command}: {err.said}", file=sys.stderr, flush=True)
         return err.exit_code
     except KeyboardInterrupt as err:
         terminated = isinstance(err, Terminated)

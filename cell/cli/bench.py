@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 from cell.bench import suite
 from cell.core import jsonio
 from cell.cli import create_folder, output_folder
+from cell.report import words
 from cell.task.loader import load_task
 
 if TYPE_CHECKING:
@@ -29,16 +30,17 @@ def report(result: dict[str, Any]) -> str:
     """The terminal tables: settings, kernels, targets."""
     settings = text_table(
         ["task", "setting", "cands", "samples", "time s", "certify s", "err mean", "err min", "err max", "worst",
-         "lamp mm", "lamp deg", "feasible", "miss", "agrees", "finite", "pareto", "default"],
+         "lamp mm", "lamp deg", "feasible", "tightest", "agrees", "finite", "pareto", "default"],
         [[r["task"], r["name"], r["candidates"], r["samples"], f"{r['time_s']:.3f}",
           f"{r['stages_s'].get('verify', 0.0):.3f}",
           *(f"{r['gray_error'][k]:+.3f}" for k in ("mean", "min", "max")), f"{r['gray_error_max']:.3f}",
           f"{r['lamp_error_mm']:.1f}", f"{r['lamp_error_deg']:.2f}", "yes" if r["feasible"] else "NO",
-          f"{r['miss']:+.4f}", "yes" if r["feasible_agrees"] else "FLIP", "yes" if r["finite"] else "NaN/inf",
+          words.label(r["binding"]), "yes" if r["feasible_agrees"] else "FLIP", "yes" if r["finite"] else "NaN/inf",
           "*" if r["pareto"] else "", "*" if r["default"] else ""] for r in result["settings"]])
     refs = "\n".join(f"reference {r['task']}: {r['time_s']:.1f} s, {r['candidates']} candidates, "
                      f"{r['samples']} samples, grid {r['settings']['grid_step_deg']} deg, "
-                     f"{'feasible' if r['feasible'] else 'INFEASIBLE'}, {r['binding']} binds, miss {r['miss']:+.4f}"
+                     + (f"feasible, tightest requirement: {words.label(r['binding'])}" if r["feasible"] else
+                        f"infeasible: {words.label(r['binding'])} fails")
                      for r in result["references"])
     kernels = text_table(
         ["task", "kernel", "size", "Warp /s", "reference", "ref size", "ref /s", "ratio"],

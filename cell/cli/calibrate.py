@@ -15,7 +15,7 @@ import numpy as np
 
 from cell.run import backends
 from cell.core import jsonio
-from cell.cli import create_folder, one_feature, output_folder
+from cell.cli import backend_of, create_folder, one_feature, output_folder
 from cell.core.errors import TaskError
 from cell.task.loader import load_task
 from cell.devices.operator import Operator
@@ -36,7 +36,7 @@ def camera_constant(args: argparse.Namespace) -> int:
     out = output_folder(args.out, f"{Path(args.task).stem}-calibration")
     camera_file = routine.check_camera_file(args.camera_file or Path(args.task).parent / "camera.yaml", args.force)
     task = load_task(args.task)
-    backend = args.backend or task.cell.backend
+    backend = backend_of(task, args.backend)
     # the simulated cell has no operator at the laser: it confirms for itself
     operator = Operator(yes=args.yes, simulated=backend == "sim", stdout=sys.stderr)
     operator.require("laser", "aiming, blocking and unblocking the laser")
@@ -68,7 +68,7 @@ def reference_part(args: argparse.Namespace) -> int:
         raise TaskError("command line", "--shots", args.shots, f"an integer >= {MIN_SHOTS}")
     out = output_folder(args.out, f"{Path(args.task).stem}-calibration")
     task = one_feature(load_task(args.task), "calibrate")
-    backend = args.backend or task.cell.backend
+    backend = backend_of(task, args.backend)
     c_model = task.camera.sensor.camera_constant
     # the simulated cell holds the task's part already: it confirms for itself, as for the lamp radius
     Operator(yes=args.yes, simulated=backend == "sim", stdout=sys.stderr).confirm(
@@ -99,7 +99,7 @@ def hand_eye(args: argparse.Namespace) -> int:
     hand_eye_file = check_camera_file(args.hand_eye_file or Path(args.task).parent / "hand-eye.yaml", args.force,
                                       option="--hand-eye-file")
     task = load_task(args.task)
-    backend = args.backend or task.cell.backend
+    backend = backend_of(task, args.backend)
     board = task.board
     # the simulated cell holds the board already: it confirms for itself
     Operator(yes=args.yes, simulated=backend == "sim", stdout=sys.stderr).confirm(

@@ -1,6 +1,7 @@
 """`cell check TASK`: load a task and everything it references, lay the feature patch onto the
 surface as the planner does (so a patch over an edge is refused here too), print a summary in the
-units people read."""
+units people read, each coordinate with the frame it is in. A task whose cell.backend is hw is
+refused here as `cell run` would refuse it (cell.task.device_config.for_hw)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from cell.cli import backend_of
 from cell.task.loader import load_task
 
 if TYPE_CHECKING:
@@ -45,7 +47,7 @@ def _clip(text, length):
 def _feature_lines(f, label):
     """The feature's and its requirements' lines."""
     deg, req, radius_mm = 180.0 / np.pi, f.requirements, f.radius_m * 1e3
-    return [f"{label:<12} center {_vector(f.center_m, 1e3, 2)} mm, normal {_vector(f.normal)}, "
+    return [f"{label:<12} center {_vector(f.center_m, 1e3, 2)} mm, normal {_vector(f.normal)} (part frame), "
             f"radius {radius_mm:g} mm (area {np.pi * radius_mm**2:.1f} mm^2), {f.samples} samples",
             f"requirements gray {_span(req.gray_band)}, {req.reflection}, "
             f"margin {req.region_margin_rad * deg:g} deg, lamp tolerance {req.lamp_tolerance_rad * deg:g} deg, "
@@ -71,7 +73,7 @@ def summarize(task: Task) -> str:
         f"material     {material.name}: {_clip(source, 70)}",
         first[1],
         *(line for lines in more for line in lines),
-        (f"camera       {cam.distance_m:g} m along {_vector(cam.view_direction)}, " if cam.viewpoint.mode == "fixed"
+        (f"camera       {cam.distance_m:g} m along {_vector(cam.view_direction)} (part frame), " if cam.viewpoint.mode == "fixed"
          else f"camera       planned on view spheres {_span(cam.viewpoint.standoff_range_m, 1, 'm')} from each "
               f"feature, {np.degrees(cam.viewpoint.step_rad):g} deg apart, ")
         + f"shutter {_span(cam.shutter_range_s, 1e3, 'ms')}",
@@ -102,6 +104,7 @@ def command(args: argparse.Namespace) -> int:
     from cell.planning.scene import build_scene          # Warp's BVH: the planner's own patch, no copy
 
     task = load_task(args.task)
+    backend_of(task, None)                      # a task for the real cell names what it connects to
     print(summarize(task))
     for i, f in enumerate(task.features):
         label = "patch" if len(task.features) == 1 else f"patch {f.name}"

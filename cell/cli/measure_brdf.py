@@ -11,7 +11,7 @@ from pathlib import Path
 
 from cell.run import backends
 from cell.core import jsonio
-from cell.cli import create_folder, output_folder
+from cell.cli import backend_of, create_folder, output_folder
 from cell.task.loader import load_task
 from cell.devices.operator import Operator
 
@@ -21,7 +21,7 @@ def command(args: argparse.Namespace) -> int:
 
     out = output_folder(args.out, f"{Path(args.task).stem}-brdf")
     task = load_task(args.task)
-    backend = args.backend or task.cell.backend
+    backend = backend_of(task, args.backend)
     # the simulated cell holds the sample already: it confirms for itself
     operator = Operator(yes=args.yes, simulated=backend == "sim", stdout=sys.stderr)
     operator.require("sample", "placing the sample")

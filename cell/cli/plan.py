@@ -58,7 +58,7 @@ def features_summary(plan: Plan) -> str:
              f"planned in {plan.timing_s['total']:.2f} s"]
     for k, shot in enumerate(plan.shots):
         pan, tilt, radius = shot.joints
-        lines.append(f"  shot {k}: camera at {np.round(shot.camera_position, 3).tolist()} m, lamp pan "
+        lines.append(f"  shot {k}: camera at {np.round(shot.camera_position, 3).tolist()} m (cell frame), lamp pan "
                      f"{np.degrees(pan):.1f} deg, tilt {np.degrees(tilt):.1f} deg, radius {radius:.3f} m, "
                      f"{1e3 * shot.exposure.shutter_s:.2f} ms, f/{shot.exposure.f_number:.1f}, focus "
                      f"{shot.exposure.focus_m:.3f} m; covers " + ", ".join(c.feature for c in shot.covers))
@@ -67,7 +67,7 @@ def features_summary(plan: Plan) -> str:
                          f"UR5e joints {np.round(np.degrees(shot.arm_joints), 1).tolist()} deg")
     for f in plan.features:
         if f.covered_by is None:
-            lines.append(f"  feature {f.name}: no shot covers it: {words.label(f.binding)} fails: {f.hint}")
+            lines.append(f"  {words.uncovered(f.name, f.binding, f.hint)}")
             continue
         c = next(c for c in plan.shots[f.covered_by].covers if c.feature == f.name)
         g = gray_stats(c.gray)
@@ -107,7 +107,8 @@ def command(args: argparse.Namespace) -> int:
             print(f"  wrote {folder}/plan.json and pictures")
     for result, path in zip(results, args.tasks):
         if not result.feasible:
-            raise PlanInfeasible(f"infeasible: {f'{path}: ' if several else ''}{result.message}")
+            where = f"{path}: " if several else ""
+            raise PlanInfeasible(f"infeasible: {where}{result.message}", f"infeasible: {where}{words.reason(result)}")
     return 0
 
 

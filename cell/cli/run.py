@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from cell.run import backends, loop
-from cell.cli import create_folder, output_folder
+from cell.cli import backend_of, create_folder, output_folder
 from cell.core.errors import TaskError
 from cell.task.loader import load_task
 
@@ -22,7 +22,7 @@ def command(args: argparse.Namespace) -> int:
         raise TaskError("command line", "--max-iterations", args.max_iterations, "an integer >= 1")
     out = output_folder(args.out, Path(args.task).stem)
     task = load_task(args.task)
-    backend = args.backend or task.cell.backend
+    backend = backend_of(task, args.backend)
     create_folder(out)
     if len(task.features) != 1 or task.camera.viewpoint.mode != "fixed":
         return shots(task, out, backend, args)

@@ -1,5 +1,6 @@
 """The vocabulary every stage shares: the error hierarchy (`errors`), poses named by frames and
 the UR pose convention (`geometry`), the cell's named transforms (`frames`), input files read
-within limits (`inputs`), files written whole (`files`) and strict JSON (`jsonio`).
+within limits (`inputs`), files written whole (`files`), strict JSON (`jsonio`) and numbers as a
+person reads them (`numbers`).
 
 Layer 1 of `cell`: imports nothing of `cell`, `kernels` or `sim`."""

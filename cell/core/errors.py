@@ -9,6 +9,13 @@ class CellError(Exception):
     """Base of every error the CLI reports as one line."""
 
     exit_code = 1
+    _said: str | None = None
+
+    @property
+    def said(self) -> str:
+        """The line a person reads on the terminal: the message (str), unless the error was given
+        other words for people than its message, which result files keep (PlanInfeasible)."""
+        return self._said or str(self)
 
 
 class TaskError(CellError):
@@ -34,9 +41,18 @@ def _one_line(text):
 
 
 class PlanInfeasible(CellError):
-    """Physics says no: the goal cannot be reached with the given cell (exit 1)."""
+    """Physics says no: the goal cannot be reached with the given cell (exit 1). `message` names
+    the binding requirement as plan.json does (result files keep it); `said`, where given, is the
+    line in words for the terminal (cell.report.words.reason)."""
 
     exit_code = 1
+
+    def __init__(self, message: str, said: str | None = None) -> None:
+        self._said = said
+        super().__init__(message)
+
+    def __reduce__(self) -> tuple[type[PlanInfeasible], tuple[str, str | None]]:
+        return type(self), (str(self), self._said)
 
 
 class GoalNotReached(CellError):
@@ -45,9 +61,12 @@ class GoalNotReached(CellError):
 
     exit_code = 1
 
-    def __init__(self, message: str, cause: str | None = None) -> None:
-        self.cause = cause
+    def __init__(self, message: str, cause: str | None = None, said: str | None = None) -> None:
+        self.cause, self._said = cause, said
         super().__init__(message)
+
+    def __reduce__(self) -> tuple[type[GoalNotReached], tuple[str, str | None, str | None]]:
+        return type(self), (str(self), self.cause, self._said)
 
 
 class DeviceFault(CellError):

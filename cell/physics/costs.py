@@ -42,7 +42,8 @@ def log_sum_exp(x: ArrayLike, axis: int = -1) -> np.ndarray:
     x = np.asarray(x, dtype=float)
     m = np.max(x, axis=axis, keepdims=True)
     m = np.where(np.isfinite(m), m, 0.0)
-    out = m + np.log(np.sum(np.exp(x - m), axis=axis, keepdims=True))
+    with np.errstate(over="ignore"):       # a pose missing by more than e^709 sums to inf: worst, as it is
+        out = m + np.log(np.sum(np.exp(x - m), axis=axis, keepdims=True))
     return np.squeeze(out, axis=axis)
 
 

@@ -177,8 +177,9 @@ def centring_exposure(unit_gray: np.ndarray, band: tuple[float, float], black_le
     low, high = band
     lit = unit_gray > 0.0
     darkest = np.where(lit, unit_gray, np.inf).min(axis=-1)
-    u_mid = np.where(lit.any(axis=-1), np.sqrt(np.where(lit.any(axis=-1), darkest, 0.0)
-                                               * unit_gray.max(axis=-1)), 0.0)
+    with np.errstate(over="ignore"):       # a lamp of 1e300 W: inf, its t_need 0, "too bright" says it
+        u_mid = np.where(lit.any(axis=-1), np.sqrt(np.where(lit.any(axis=-1), darkest, 0.0)
+                                                   * unit_gray.max(axis=-1)), 0.0)
     target = target_gray((low - black_level, high - black_level))
     t_lo, t_hi = shutter_range
     k_hi = f_number_range[1]

@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from cell.core import geometry
+from cell.core.numbers import number
 from cell.physics import projection
 from cell.planning import regions
 from cell.physics import brdf, costs, depth_of_field as dof
@@ -75,10 +76,10 @@ def explain_gray_min(p: Problem, c: Candidates, met: bool) -> str:
     if _unlit(c):
         return UNLIT
     if c.t_need[0] > t_hi:
-        return (f"gray band needs shutter {1e3 * c.t_need[0]:.1f} ms > max {1e3 * t_hi:.1f} ms at "
+        return (f"gray band needs shutter {number(1e3 * c.t_need[0], ' ms')} > max {1e3 * t_hi:.1f} ms at "
                 f"f/{c.kappa[0]:.1f}; move the lamp closer, open the aperture (less depth of field) "
                 f"or use a brighter lamp")
-    return f"darkest sample gray {c.gray[0].min():.1f} (band {low:g}-{high:g})"
+    return f"darkest sample gray {number(c.gray[0].min())} (band {low:g}-{high:g})"
 
 
 def gray_max(p: Problem, c: Candidates) -> np.ndarray:
@@ -90,12 +91,12 @@ def explain_gray_max(p: Problem, c: Candidates, met: bool) -> str:
     g = c.gray[0]
     t_lo, k_hi = p.task.camera.shutter_range_s[0], p.task.camera.lens.f_number_range[1]
     if not met and c.shutter[0] <= t_lo and c.kappa[0] >= k_hi:
-        return (f"too bright even at f/{k_hi:g} and {1e3 * t_lo:.3g} ms: gray {g.min():.1f}-{g.max():.1f}, band "
-                f"{low:g}-{high:g}; move the lamp farther away or use a weaker lamp")
+        return (f"too bright even at f/{k_hi:g} and {1e3 * t_lo:.3g} ms: gray {number(g.min())}-{number(g.max())}, "
+                f"band {low:g}-{high:g}; move the lamp farther away or use a weaker lamp")
     if not met and g.max() * low > max(g.min(), 1e-12) * high:
-        return (f"feature too uneven: gray {g.min():.1f}-{g.max():.1f} spans more than the band "
+        return (f"feature too uneven: gray {number(g.min())}-{number(g.max())} spans more than the band "
                 f"{low:g}-{high:g}; move the lamp farther away or toward the camera direction")
-    return f"brightest sample gray {g.max():.1f} (band {low:g}-{high:g})"
+    return f"brightest sample gray {number(g.max())} (band {low:g}-{high:g})"
 
 
 def wrong_reflection(p: Problem, c: Candidates) -> np.ndarray:
@@ -251,7 +252,7 @@ def resolution(p: Problem, c: Candidates) -> np.ndarray:
 def explain_resolution(p: Problem, c: Candidates, met: bool) -> str:
     if not np.isfinite(footprints(p).max()):
         return "the camera sees some samples from behind their surface; change the view direction"
-    fact = (f"a pixel covers up to {1e6 * footprints(p).max():.1f} um of the feature (at most "
+    fact = (f"a pixel covers up to {number(1e6 * footprints(p).max(), ' um')} of the feature (at most "
             f"{1e6 * _wanted(p.task.requirements.resolution_m):g} um wanted)")
     return fact if met else f"{fact}; bring the camera closer, view more squarely or use a longer lens"
 
@@ -276,7 +277,7 @@ def explain_shutter_max(p: Problem, c: Candidates, met: bool) -> str:
     t_hi = p.task.camera.shutter_range_s[1]
     if _unlit(c):
         return UNLIT
-    need = f"needs shutter {1e3 * c.t_need[0]:.1f} ms"
+    need = f"needs shutter {number(1e3 * c.t_need[0], ' ms')}"
     return f"{need}, within the max {1e3 * t_hi:.1f} ms" if met else f"{need} > max {1e3 * t_hi:.1f} ms"
 
 
@@ -313,7 +314,8 @@ def explain_depth_of_field(p: Problem, c: Candidates, met: bool) -> str:
     f, sigma, k = lens.focal_length_m, lens.circle_of_confusion_m, c.kappa[0]
     near, far = dof.near_limit(p.focus_m, f, k, sigma), float(dof.far_limit(p.focus_m, f, k, sigma))
     depths = p.scene.sample_depths()
-    fact = (f"in focus {1e3 * near:.1f}-{1e3 * far:.1f} mm at f/{k:.1f}, samples at {1e3 * depths.min():.1f}-"
+    fact = (f"in focus {number(1e3 * near)}-{number(1e3 * far, ' mm')} at f/{k:.1f}, "
+            f"samples at {1e3 * depths.min():.1f}-"
             f"{1e3 * depths.max():.1f} mm, depth of field needs {1e3 * p.depth_needed_m:.1f} mm")
     return fact if met else (f"{fact}; stop the lens down (up to f/{lens.f_number_range[1]:g}, with more light "
                              f"or a longer shutter) or view the patch less obliquely")

@@ -74,7 +74,7 @@ class Viewpoints:
 
     def why_none(self) -> str:
         """A sentence for a feature no pose survives."""
-        stages = ", ".join(f"{self.pruned[s]} by {s}" for s in STAGES if self.pruned[s])
+        stages = ", ".join(f"{self.pruned[s]} by {s.replace('_', ' ')}" for s in STAGES if self.pruned[s])
         return f"no camera pose of the {self.poses} on the view spheres survives ({stages})"
 
 

@@ -62,7 +62,7 @@ def viewpoints_of(task: Task, settings: PlannerSettings, say: Callable[[str], No
     scene = build_scene(task, settings.samples)
     v = plan_viewpoints(task, scene, one_shot.visibility_map(scene, grid), grid)
     say(f"feature {task.feature.name}: {len(v.kept)} of {v.poses} camera poses kept (pruned: "
-        + ", ".join(f"{n} {s}" for s, n in v.pruned.items() if n) + ")")
+        + ", ".join(f"{n} {s.replace('_', ' ')}" for s, n in v.pruned.items() if n) + ")")
     return replace(v, time_s=time.perf_counter() - start)
 
 

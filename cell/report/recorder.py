@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from cell.core import jsonio
-from cell.core.errors import GoalNotReached, PlanInfeasible
+from cell.core.errors import CellError, GoalNotReached, PlanInfeasible
 from cell.devices.session import Session, stop_outcome
 from cell.report.result import Result
 
@@ -149,7 +149,8 @@ class Ending(Generic[R]):
         reason = "" if err is None or kind is None else str(err) or kind.__name__
         self.error = err
         if err is not None and not self.session.fault:     # the goal was not reached: the devices are fine
-            self.recorder.step("done", f"{self.failed}: {err}", **self.failed_data, reason=reason)
+            said = err.said if isinstance(err, CellError) else str(err)    # words; report.json keeps the message
+            self.recorder.step("done", f"{self.failed}: {said}", **self.failed_data, reason=reason)
         self._result = self.make(reason, self.session.fault).ended(self.cause)
         self.recorder.write_json(self.name, self._result.to_json())
         return False

@@ -5,10 +5,14 @@ f_i; counts with their grammar ("1 shot covers 1 of 2 features")."""
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterable
+from typing import TYPE_CHECKING
 
+from cell.core.numbers import LARGE as LARGE, number as number   # said as everywhere a person reads
 from cell.physics.costs import Amount, RequirementValue
+
+if TYPE_CHECKING:
+    from cell.planning.plan import Plan
 
 # plan.json's requirement names, as a person says them
 LABELS = {
@@ -26,26 +30,13 @@ LABELS = {
     "f_number_min": "lens aperture, open end",
     "f_number_max": "lens aperture, closed end",
     "depth_of_field": "depth of field",
+    "viewpoint": "camera viewpoint",
 }
-
-LARGE = 1e6          # numbers beyond are said as "over 1,000,000", never in exponent form
 
 
 def label(name: str) -> str:
     """A requirement's name in words (the name with spaces where it has no label)."""
     return LABELS.get(name, name.replace("_", " "))
-
-
-def number(x: float, unit: str = "", digits: int = 1) -> str:
-    """x with `digits` decimals and its unit; "unlimited" for inf, "over 1,000,000" beyond LARGE:
-    never an exponent."""
-    if math.isnan(x):
-        return "unknown"
-    if math.isinf(x):
-        return "unlimited" if x > 0 else "none"
-    if abs(x) >= LARGE:
-        return f"{'over' if x > 0 else 'below'} {'-' * (x < 0)}{LARGE:,.0f}{unit}"
-    return f"{x:.{digits}f}{unit}"
 
 
 def count(n: int, thing: str, plural: str | None = None) -> str:
@@ -126,3 +117,27 @@ def tightest(requirements: Iterable[RequirementValue], name: str | None = None) 
         return "no requirement judged"
     r = next((v for v in values if v.name == name), None) or max(values, key=lambda v: v.value)
     return f"tightest requirement: {holds(r)}" if r.met else fails(r)
+
+
+def why(r: RequirementValue) -> str:
+    """A missed requirement in one line: fails() and, where its numbers came from the Amount, the
+    requirement's sentence after them (what would fix it)."""
+    said = fails(r)
+    return said if not r.detail or said.endswith(r.detail) else f"{said}; {r.detail}"
+
+
+def uncovered(feature: str, binding: str, hint: str) -> str:
+    """A feature no shot covers: 'feature end_face: no shot covers it: camera view of the feature
+    fails: ...' (its own plan's binding requirement and sentence)."""
+    return f"feature {feature}: no shot covers it: {label(binding)} fails: {hint}"
+
+
+def reason(plan: Plan) -> str:
+    """Why a plan is not feasible, one line for a person: the first feature no shot covers, else
+    the binding requirement with its numbers and what would fix it. (plan.message keeps the
+    machine's names: plan.json, report.json.)"""
+    first = next((f for f in plan.features if f.covered_by is None), None)
+    if first is not None:
+        return uncovered(first.name, first.binding, first.hint)
+    r = next((v for v in plan.requirements if v.name == plan.binding), None)
+    return why(r) if r is not None else f"{label(plan.binding)} fails: {plan.hint}"

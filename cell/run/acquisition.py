@@ -15,6 +15,7 @@ from cell.devices.interfaces import speaking_for
 from cell.core.errors import PlanInfeasible
 from cell.planning.plan import gray_stats
 from cell.run import measurement
+from cell.report import words
 
 if TYPE_CHECKING:
     from cell.devices.interfaces import Devices
@@ -46,7 +47,7 @@ def plan_recorded(task: Task, recorder: Recorder, albedo_scale: float = 1.0, ite
     folder = recorder.write_plan(planned, task, subfolder)
     shot = planned.shot
     g, exposure = gray_stats(shot.gray), shot.exposure
-    verdict = "feasible" if planned.feasible else f"INFEASIBLE, {planned.binding}: {planned.hint}"
+    verdict = "feasible" if planned.feasible else f"infeasible: {words.reason(planned)}"
     recorder.step("plan", f"{verdict}; lamp {shot.distance_m:.3f} m, phase "
                           f"{np.degrees(shot.phase_angle_rad):.1f} deg; {1e3 * exposure.shutter_s:.3f} ms, "
                           f"f/{exposure.f_number:.1f}; predicted gray {g['min']:.1f}-{g['max']:.1f}"
@@ -61,7 +62,7 @@ def plan_recorded(task: Task, recorder: Recorder, albedo_scale: float = 1.0, ite
 def require_feasible(plan: Plan) -> None:
     """Refuse an infeasible plan before anything moves (PlanInfeasible, exit 1)."""
     if not plan.feasible:
-        raise PlanInfeasible(f"infeasible: {plan.message}")
+        raise PlanInfeasible(f"infeasible: {plan.message}", f"infeasible: {words.reason(plan)}")
 
 
 def plan_and_connect(task: Task, recorder: Recorder, session: Session,
@@ -80,8 +81,9 @@ def move_to(devices: Devices, shot: Shot, recorder: Recorder, iteration: int | N
         devices.arm.move_camera(shot.T_cell_cam)
         position = devices.arm.camera_pose()[:3, 3]
     off = float(np.linalg.norm(position - shot.camera_position))
-    recorder.step("move_camera", f"camera at {np.round(position, 4).tolist()} m ({1e3 * off:.2f} mm from "
-                                 f"the plan)", iteration=iteration, position_m=position, error_m=off)
+    recorder.step("move_camera", f"camera at {np.round(position, 4).tolist()} m in the cell frame "
+                                 f"({1e3 * off:.2f} mm from the plan)", iteration=iteration, position_m=position,
+                  error_m=off)
     move_lamp(devices, shot.joints, recorder, iteration)
 
 
@@ -121,10 +123,13 @@ def acquire(devices: Devices, recorder: Recorder, iteration: int, shutter_s: flo
     return Capture(image, pose, shutter_s, float(f_number), float(focus_m), name)
 
 
+DARK_FRAME = "dark"       # the dark frame's file in the run folder (dark.png), named as what it is
+
+
 def find_black_level(task: Task, devices: Devices, recorder: Recorder, f_number: float, focus_m: float,
                      feature_light: Callable[[float], float] | None = None) -> measurement.BlackLevel:
     """The task's camera.sensor.black_level, else a dark frame's (measurement.black_level_of):
-    capture-0.png at the shortest shutter (the rig cannot switch the lamp off) and f_number,
+    dark.png at the shortest shutter (the rig cannot switch the lamp off) and f_number,
     logged with feature_light(shutter) when given: the most light the model lets reach the
     feature in that frame [gray]. Returns the measurement.BlackLevel."""
     b = task.camera.sensor.black_level
@@ -132,7 +137,7 @@ def find_black_level(task: Task, devices: Devices, recorder: Recorder, f_number:
         black = measurement.BlackLevel(float(b), 0.0, "task")
         recorder.step("black_level", f"black level {b:.2f} gray (camera.sensor.black_level)", **black.to_json())
         return black
-    capture = acquire(devices, recorder, 0, task.camera.shutter_range_s[0], f_number, focus_m)
+    capture = acquire(devices, recorder, 0, task.camera.shutter_range_s[0], f_number, focus_m, DARK_FRAME)
     black = measurement.black_level_of(capture.image)
     light = {} if feature_light is None else {"feature_light": feature_light(capture.shutter_s)}
     note = f": the feature's light at most {light['feature_light']:.2g} gray by the model" if light else ""

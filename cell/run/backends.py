@@ -8,13 +8,14 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from cell.devices.interfaces import Camera, Device, Devices, speaking_for
-from cell.core.errors import DeviceFault, TaskError
+from cell.core.errors import DeviceFault
 from cell.devices.operator import Operator
 from cell.devices.session import try_all
+from cell.task.device_config import for_hw, genicam_sdk_missing
 
 if TYPE_CHECKING:
     from cell.planning.scene import Scene
-    from cell.task.device_config import CameraConfig, DevicesConfig
+    from cell.task.device_config import CameraConfig
     from cell.task.types import Task
     from sim.laser import Beam
 
@@ -41,7 +42,7 @@ def make_hw_devices(task: Task, yes: bool = False, operator: Operator | None = N
     servos, camera and, if the task has cell.lighting, the lighting controller in turn and closes
     what was opened if a later one fails. With
     cell.camera.driver simulated the camera renders `scene` (default: the task's, built here)."""
-    config = _addressed(task)
+    config = for_hw(task.cell.devices)
     from cell.devices.hw.dynamixel import DynamixelPanTilt
     from cell.devices.hw.ur import URArm
     open_camera = hw_camera(task, scene=scene)
@@ -63,22 +64,6 @@ def make_hw_devices(task: Task, yes: bool = False, operator: Operator | None = N
         try_all([device.close for device in reversed(opened)])
         raise
     return Devices(*opened)
-
-
-def _addressed(task: Task) -> DevicesConfig:
-    """The task's device settings, once they name the robot and the serial port: no default
-    reaches a network or a bus (bad input otherwise)."""
-    config = task.cell.devices
-    if not config.arm.host:
-        raise TaskError(config.task_file, "cell.arm.host", "nothing",
-                        "the robot's address (required for --backend hw; there is no default)")
-    if not config.pan_tilt.port:
-        raise TaskError(config.task_file, "cell.pan_tilt.port", "nothing",
-                        "the servos' serial port, e.g. /dev/ttyUSB0 (required for --backend hw)")
-    if config.lighting and not config.lighting.host:
-        raise TaskError(config.task_file, "cell.lighting.host", "nothing",
-                        "the lighting controller's address (required for --backend hw; there is no default)")
-    return config
 
 
 @dataclass(frozen=True)
@@ -108,7 +93,7 @@ def check_hw_devices(task: Task) -> list[DeviceCheck]:
     DeviceCheck per device (arm, pan-tilt, camera, and the lighting controller if the task has
     cell.lighting: its firmware and every channel's level read, no `GT1`). The camera's frames
     are compared with camera.sensor, as a run does."""
-    config = _addressed(task)
+    config = for_hw(task.cell.devices)
     from cell.devices.hw.dynamixel import DynamixelPanTilt
     from cell.devices.hw.ur import URArm
     open_camera = hw_camera(task, read_only=True)
@@ -176,9 +161,7 @@ def hw_camera(task: Task, read_only: bool = False, scene: Scene | None = None) -
                                                                arm, lamp, bit_depth)
     try:
         from cell.devices.hw.genicam_camera import GenICamCamera
-    except ImportError as err:
-        raise TaskError(task.path, "cell.camera.driver", f"genicam, but {err.name or err} cannot be "
-                        "imported", "the GenICam SDK installed: "
-                        "pip install 'lightplan-cell[genicam]'") from None
+    except ImportError as err:            # for_hw found the SDK, but it does not import
+        raise genicam_sdk_missing(task.path, err.name or str(err)) from None
     return lambda operator, arm=None, lamp=None: GenICamCamera(config, task.camera.sensor, operator,
                                                                read_only=read_only)

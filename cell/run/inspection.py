@@ -253,7 +253,7 @@ def plan_logged(task: Task, recorder: Recorder) -> Plan:
     covered = sum(f.covered_by is not None for f in plan.features)
     verdict = "feasible" if plan.feasible else "PARTIAL"
     recorder.step("plan", f"{verdict}: {words.covering(len(plan.shots), covered, len(plan.features))}"
-                          + ("" if plan.feasible else f"; {plan.message}"),
+                          + ("" if plan.feasible else f"; {words.reason(plan)}"),
                   feasible=plan.feasible, binding=plan.binding, hint=plan.hint, shots=len(plan.shots),
                   features={f.name: f.covered_by for f in plan.features})
     return plan
@@ -306,11 +306,11 @@ def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices],
 
 
 def describe(plan: Plan, s: int) -> str:
-    """`leaf_a, leaf_b; camera at [...] m, lamp pan ..., 2.265 ms, f/1.4`: plan.shots[s]'s line."""
+    """`leaf_a, leaf_b; camera at [...] m (cell frame), lamp pan ..., 2.265 ms, f/1.4`: plan.shots[s]'s line."""
     shot = plan.shots[s]
     pan, tilt, radius = shot.joints
     camera = np.round(shot.camera_position, 3).tolist()
-    return (", ".join(assigned(plan, s)) + f"; camera at {camera} m, lamp pan {np.degrees(pan):.1f} "
+    return (", ".join(assigned(plan, s)) + f"; camera at {camera} m (cell frame), lamp pan {np.degrees(pan):.1f} "
             f"deg, tilt {np.degrees(tilt):.1f} deg, radius {radius:.3f} m; {1e3 * shot.exposure.shutter_s:.3f} ms, "
             f"f/{shot.exposure.f_number:.1f}")
 

@@ -28,6 +28,7 @@ from cell.devices.interfaces import speaking_for
 from cell.core.errors import GoalNotReached
 from cell.planning.plan import gray_stats
 from cell.report.recorder import Ending, Recorder, file_name
+from cell.report import words
 from cell.report.words import count
 from cell.report.result import Result
 
@@ -435,9 +436,10 @@ def correct_after(ctx: RunContext, aim: Aim, k: int, measured: Sequence[Measured
                               T_cell_cam=ctx.T_cell_cam)
     yield Replan(k, albedo, replanned.to_json())
     if not replanned.feasible:
-        raise GoalNotReached(f"{control.describe_error(c.model_error, c.relation)}; {c.reason}; "
-                             f"re-planned for an albedo x{albedo:.3g}: infeasible, {replanned.binding}: "
-                             f"{replanned.hint}", "infeasible")
+        why = (f"{control.describe_error(c.model_error, c.relation)}; {c.reason}; "
+               f"re-planned for an albedo x{albedo:.3g}")
+        raise GoalNotReached(f"{why}: infeasible, {replanned.binding}: {replanned.hint}", "infeasible",
+                             f"{why}: infeasible: {words.reason(replanned)}")
     return replan_aim(aim, replace(feature, model=Model(replanned, feature.task)), albedo)
 
 
@@ -469,8 +471,9 @@ def refit_and_replan(ctx: RunContext, aim: Aim, k: int, measured: Measured,
     replanned = plan_recorded(task, recorder, 1.0, iteration=k, subfolder=f"refit-{k}", T_cell_cam=ctx.T_cell_cam)
     yield Replan(k, 1.0, replanned.to_json())
     if not replanned.feasible:
-        raise GoalNotReached(f"the material is not the task's ({fitted.summary()}); re-planned for the refitted "
-                             f"material: infeasible, {replanned.binding}: {replanned.hint}", "infeasible")
+        why = f"the material is not the task's ({fitted.summary()}); re-planned for the refitted material"
+        raise GoalNotReached(f"{why}: infeasible, {replanned.binding}: {replanned.hint}", "infeasible",
+                             f"{why}: infeasible: {words.reason(replanned)}")
     return replace(replan_aim(aim, replace(feature, task=task, model=Model(replanned, task)), 1.0), refitted=True)
 
 

@@ -6,6 +6,7 @@ backends are built from. The defaults describe the example cell and reach no net
 
 from __future__ import annotations
 
+import importlib.util
 from dataclasses import dataclass
 from os import PathLike
 from pathlib import Path
@@ -92,6 +93,39 @@ class DevicesConfig:
     camera: CameraConfig
     given: tuple[str, ...]                  # the sections the task set, e.g. ("arm",)
     lighting: LightingConfig | None = None  # the lighting controller, if the task has cell.lighting
+
+
+GENICAM_SDK = ("harvesters", "genicam")    # what cell.devices.hw.genicam_camera imports (the `genicam` extra)
+
+
+def for_hw(config: DevicesConfig) -> DevicesConfig:
+    """The settings, once they name everything --backend hw reaches (bad input otherwise): the
+    robot's address, the servos' serial port, the lighting controller's address if the task has
+    one (no default reaches a network or a bus) and, for a GenICam camera, its SDK installed
+    (looked up, not imported). The one check of the cell section for the real cell: `cell check`
+    of a task whose cell.backend is hw, every command with --backend hw before any planning or
+    folder (cell.cli.backend_of), `cell hw-check` and the backends before they connect."""
+    file = config.task_file
+    if not config.arm.host:
+        raise TaskError(file, "cell.arm.host", "nothing",
+                        "the robot's address (required for --backend hw; there is no default)")
+    if not config.pan_tilt.port:
+        raise TaskError(file, "cell.pan_tilt.port", "nothing",
+                        "the servos' serial port, e.g. /dev/ttyUSB0 (required for --backend hw)")
+    if config.lighting and not config.lighting.host:
+        raise TaskError(file, "cell.lighting.host", "nothing",
+                        "the lighting controller's address (required for --backend hw; there is no default)")
+    if config.camera.driver == "genicam":
+        missing = next((name for name in GENICAM_SDK if importlib.util.find_spec(name) is None), None)
+        if missing:
+            raise genicam_sdk_missing(file, missing)
+    return config
+
+
+def genicam_sdk_missing(file: str | PathLike[str], name: str) -> TaskError:
+    """The refusal of a GenICam camera whose SDK module `name` cannot be imported."""
+    return TaskError(file, "cell.camera.driver", f"genicam, but {name} cannot be imported",
+                     "the GenICam SDK installed: pip install 'lightplan-cell[genicam]'")
 
 
 class _Source(Spec):

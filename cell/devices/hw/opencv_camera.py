@@ -19,6 +19,10 @@ if TYPE_CHECKING:
 
 V4L2_MANUAL_EXPOSURE = 1
 
+# OpenCV's own log lines ("[ WARN:0@0.046] global cap_v4l.cpp:914 ...") stay off the terminal: a
+# camera that does not open is a DeviceFault naming the source, in one line
+cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+
 
 class OpenCVCamera(ManualLensCamera):
     def __init__(self, config: CameraConfig, bit_depth: int, operator: Operator) -> None:
