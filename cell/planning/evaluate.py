@@ -181,14 +181,23 @@ def centring_exposure(unit_gray: np.ndarray, band: tuple[float, float], black_le
         u_mid = np.where(lit.any(axis=-1), np.sqrt(np.where(lit.any(axis=-1), darkest, 0.0)
                                                    * unit_gray.max(axis=-1)), 0.0)
     target = target_gray((low - black_level, high - black_level))
-    t_lo, t_hi = shutter_range
-    k_hi = f_number_range[1]
     with np.errstate(divide="ignore"):
-        t_need = np.where(u_mid > 0, kappa_open**2 * target / np.where(u_mid > 0, u_mid, 1.0), np.inf)
-    kappa = np.where(t_need < t_lo, np.sqrt(t_lo * u_mid / target), kappa_open)
-    kappa = np.clip(kappa, kappa_open, k_hi)
-    shutter = np.clip(t_need, t_lo, t_hi)
-    return shutter, kappa, t_need
+        gain = np.where(u_mid > 0, target / np.where(u_mid > 0, u_mid, 1.0), np.inf)
+    shutter, kappa = exposure_for_gain(gain, kappa_open, shutter_range, f_number_range)
+    return shutter, kappa, kappa_open**2 * gain
+
+
+def exposure_for_gain(gain: ArrayLike, kappa_open: float, shutter_range: tuple[float, float],
+                      f_number_range: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """(shutter [s], f-number) giving the exposure gain x = t / kappa^2 [s] (inf: the longest
+    shutter): t = x kappa_open^2 at kappa_open (the depth of field's widest) within the shutter
+    range; shorter than the shortest, stopped down at it, kappa = sqrt(t_lo / x) up to the lens's max."""
+    gain = np.asarray(gain, float)
+    t_lo, t_hi = shutter_range
+    t_need = kappa_open**2 * gain
+    with np.errstate(divide="ignore"):
+        kappa = np.where(t_need < t_lo, np.sqrt(t_lo / gain), kappa_open)
+    return np.clip(t_need, t_lo, t_hi), np.clip(kappa, kappa_open, f_number_range[1])
 
 
 @dataclass(frozen=True)
