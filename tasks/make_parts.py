@@ -1,5 +1,5 @@
-"""Write the example part meshes (millimetres, part frame): hinge.yaml's, conrod.yaml's and
-bracket.yaml's, and the curved parts of the tests' tasks (tests/tasks/): a sphere cap, a cylinder,
+"""Write the example part meshes (millimetres, part frame): hinge.yaml's, conrod.yaml's,
+bracket.yaml's and ring.yaml's, and the curved parts of the tests' tasks (tests/tasks/): a sphere cap, a cylinder,
 a filleted block.
 
 Regenerate with `python tasks/make_parts.py`. Solids are concatenated, not booleaned: the
@@ -169,7 +169,12 @@ def bracket():
     return trimesh.util.concatenate([box((45.0, 40.0, 6.0), (2.5, 0.0, 3.0)), web, chamfer])
 
 
-PARTS = {"hinge": hinge, "conrod": conrod, "bracket": bracket, "sphere_cap": sphere_cap, "lying_cylinder": lying_cylinder,
+def plate():
+    """A milled plate 80 (x) x 60 (y) x 8 mm on z = 0, its top face z = 8 (ring.yaml's)."""
+    return box((80.0, 60.0, 8.0), (0.0, 0.0, 4.0))
+
+
+PARTS = {"hinge": hinge, "plate": plate, "conrod": conrod, "bracket": bracket, "sphere_cap": sphere_cap, "lying_cylinder": lying_cylinder,
          "filleted_block": filleted_block}
 
 

@@ -3,7 +3,6 @@ expectations: gray recomputed here as G = b + t / kappa^2 sum_k w_k v_kp, a brut
 of drive levels (and over every on/off pattern of switched channels) with each one's best exposure
 in closed form, and worked values by hand."""
 import itertools
-import time
 
 import numpy as np
 import pytest
@@ -201,16 +200,14 @@ def test_a_dynamic_range_of_ten_million_is_solved_to_the_gray():
     assert margin_of(v, 10.0, (50.0, 210.0), d.drive, d.shutter_s, d.f_number)[1] == pytest.approx(80.0, abs=1e-5)
 
 
-def test_forty_channels_over_three_thousand_samples_solve_in_well_under_a_second():
+def test_forty_channels_over_three_thousand_samples_keep_every_sample_in_band():
+    """OMRON's scale: the rows the solver is given grow from the binding few, and every sample is
+    checked at the end (its time is `cell bench`'s to measure, not a test's)."""
     rng = np.random.default_rng(3)
     v = random_channels(rng, 40, 3000) / 10
-    solve_drives(v[:, :10], (60.0, 200.0), 2.0, **CAMERA)     # scipy's first call loads HiGHS
-    start = time.perf_counter()
     d = solve_drives(v, (60.0, 200.0), 2.0, drive_error=0.05, **CAMERA)
-    seconds = time.perf_counter() - start
     assert d.feasible
     assert margin_of(v, 2.0, (60.0, 200.0), d.drive, d.shutter_s, d.f_number, 0.05)[1] == pytest.approx(d.margin_gray)
-    assert seconds < 1.0, f"{seconds:.2f} s"
 
 
 @st.composite

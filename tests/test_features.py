@@ -271,7 +271,7 @@ def test_cell_plan_prints_a_line_per_shot_and_feature_and_exits_1_naming_the_unc
     covered = [line for line in lines if line.startswith("  feature ") and "no shot" not in line]
     assert len(covered) == 3 and all("tightest requirement: " in line for line in covered)
     assert "max f_i" not in captured.out and "e+" not in captured.out and "camera_view" not in captured.out
-    assert "feature 'end_face' is covered by no shot" in captured.err
+    assert "feature end_face: no shot covers it" in captured.err
     assert json.loads((tmp_path / "out" / "plan.json").read_text())["features"][3]["covered_by"] is None
     assert (tmp_path / "out" / "feature-2" / "regions.png").stat().st_size > 10_000
 

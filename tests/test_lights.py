@@ -241,3 +241,75 @@ def test_bad_lights_are_one_clear_error(tmp_path, entries, lamp_keys, key, words
     with pytest.raises(TaskError) as caught:
         load_with(tmp_path, *[{k: v for k, v in e.items() if v is not None} for e in entries], **lamp_keys)
     assert caught.value.key == key and words in str(caught.value), str(caught.value)
+
+
+# --- planning with several lights ---
+
+@pytest.fixture(scope="module")
+def ring_plan():
+    from pathlib import Path
+    from cell.planning import one_shot
+    from cell.task.loader import load_task
+    task = load_task(Path(__file__).resolve().parents[1] / "tasks" / "ring.yaml")
+    return task, one_shot.plan(task)
+
+
+def test_the_ring_task_is_lit_as_dark_field_and_its_gray_is_the_sum_of_the_lights(ring_plan):
+    """Diffuse reflection wanted on milled aluminium: the bright-field ring on the lens, whose
+    light the lobe returns, is off; the low-angle ring is on; the predicted gray is the black level
+    plus each light's share (linearity), recomputed here from the kernel at the plan's drives."""
+    from cell.planning import evaluate
+    task, plan = ring_plan
+    assert plan.feasible, plan.message
+    by_name = {light.name: light for light in plan.shot.lights}
+    assert by_name["bright_field_ring"].drive == 0.0 and by_name["dark_field_ring"].drive > 0.5
+    shares = sum(light.gray for light in plan.shot.lights)
+    np.testing.assert_allclose(plan.shot.gray, evaluate.black_level(task) + shares, rtol=1e-12)
+    problem = evaluate.build_problem(task, plan.planned_scene, plan.maps)
+    ring = lights.contribution(problem.scene.warp_mesh, problem.scene.points, problem.scene.normals,
+                               problem.scene.T_cell_cam, task.lights[1], task.part.material, task.camera.sensor,
+                               problem.band[1])
+    e = plan.shot.exposure
+    np.testing.assert_allclose(by_name["dark_field_ring"].gray,
+                               by_name["dark_field_ring"].drive * e.shutter_s / e.f_number**2 * ring.unit_gray,
+                               rtol=1e-9)
+
+
+def test_plan_json_names_each_light_its_channel_drive_and_pose(ring_plan, tmp_path):
+    task, plan = ring_plan
+    doc = plan.to_json()
+    assert [(x["name"], x["type"], x["channel"]) for x in doc["lights"]] == [
+        ("lamp", "spot", 0), ("bright_field_ring", "ring", 1), ("dark_field_ring", "ring", 2)]
+    assert all(0.0 <= x["drive"] <= 1.0 and len(x["pose"]["position_m"]) == 3 for x in doc["lights"])
+    flange = doc["lights"][1]["pose"]["position_m"]        # 60 mm in front of the camera, below it
+    camera = doc["camera"]["position_m"]
+    assert np.linalg.norm(np.subtract(flange, camera)) == pytest.approx(0.06)
+    assert [c["name"] for c in doc["contributions"]] == ["lamp", "bright_field_ring", "dark_field_ring"]
+
+
+def test_the_drive_tolerance_is_judged(ring_plan):
+    """With every drive 5 % high or low the band still holds (lamp_tolerance judges the moved gray,
+    which includes both drive extremes)."""
+    from cell.planning import evaluate
+    task, plan = ring_plan
+    problem = evaluate.build_problem(task, plan.planned_scene, plan.maps)
+    e = plan.shot.exposure
+    c = evaluate.at_exposure(problem, plan.shot.lamp_position, e.shutter_s, e.f_number, joints=plan.shot.joints,
+                             drive=plan.shot.drive)
+    low, high = problem.band
+    b = evaluate.black_level(task)
+    for scale in (0.95, 1.05):
+        extreme = b + scale * (c.gray[0] - b)
+        assert any(np.allclose(moved[0], extreme) for moved in c.moved_gray)
+        assert extreme.min() >= low and extreme.max() <= high
+
+
+def test_a_one_lamp_task_has_one_light_at_full_drive():
+    from pathlib import Path
+    from cell.planning import one_shot
+    from cell.task.loader import load_task
+    task = load_task(Path(__file__).resolve().parents[1] / "tasks" / "hinge.yaml")
+    plan = one_shot.plan(task)
+    (lamp,) = plan.shot.lights
+    assert (lamp.name, lamp.type, lamp.channel, lamp.drive) == ("lamp", "spot", None, 1.0)
+    np.testing.assert_allclose(lamp.gray + 0.0, plan.shot.gray, rtol=1e-12)

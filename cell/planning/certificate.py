@@ -100,7 +100,8 @@ def verify(problem: evaluate.Problem, shot: Shot) -> tuple[Verification, np.ndar
     scene = replace(scene, points=np.vstack([scene.points, point]), normals=np.vstack([scene.normals, normal]))
     dense = evaluate.build_problem(task, scene, problem.maps, albedo_scale=1.0)
     dense = replace(dense, material=problem.material, focus_m=problem.focus_m, kappa_open=problem.kappa_open)
-    c = evaluate.at_exposure(dense, shot.lamp_position, shot.exposure.shutter_s, shot.exposure.f_number)
+    c = evaluate.at_exposure(dense, shot.lamp_position, shot.exposure.shutter_s, shot.exposure.f_number,
+                             drive=shot.drive)
     ln = {name: v for name, v in requirements.ln_values(dense, c).items() if name in JUDGED}
     judged = tuple(replace(r, detail=f"on the dense patch ({len(scene.points)} points): {r.detail}")
                    for r in requirements.judged(dense, c, ln))

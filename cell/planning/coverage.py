@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from cell.planning import certificate, evaluate, requirements
-from cell.planning.one_shot import build_maps
+from cell.planning.one_shot import build_maps, light_settings
 from cell.planning.plan import Coverage
 
 if TYPE_CHECKING:
@@ -56,11 +56,13 @@ def judge(task: Task, lent: Lent, shot: Shot) -> Coverage:
     maps = build_maps(task, scene, lent.settings, visible=lent.visible, lamps=shot.lamp_position[None])
     problem = evaluate.build_problem(task, scene, maps, focus_m=shot.exposure.focus_m)
     e = shot.exposure
-    c = evaluate.at_exposure(problem, shot.lamp_position, e.shutter_s, e.f_number, joints=shot.joints)
+    c = evaluate.at_exposure(problem, shot.lamp_position, e.shutter_s, e.f_number, joints=shot.joints,
+                             drive=shot.drive)
     values = requirements.judged(problem, c, requirements.ln_values(problem, c))
     gray = np.minimum(c.gray[0], 2.0 ** task.camera.sensor.bit_depth - 1)
+    shares = light_settings(problem, c)
     if not all(r.met for r in values):
-        return Coverage(task.feature.name, False, gray, values)
+        return Coverage(task.feature.name, False, gray, values, lights=shares)
     verification, _ = certificate.verify(problem, shot)
     return Coverage(task.feature.name, verification.holds, gray, certificate.worse_of(values, verification),
-                    verification)
+                    verification, shares)

@@ -18,6 +18,7 @@ from cell.physics import projection
 from cell.devices import rig
 from cell.physics.material import Material
 from cell.physics import brdf, depth_of_field as dof
+from cell.planning.regions import WANTED_TERM
 
 if TYPE_CHECKING:
     from kernels.gray import GrayInputs
@@ -62,15 +63,29 @@ def target_gray(band: tuple[float, float]) -> float:
     return float(np.sqrt(max(low, 0.25 * high) * high))
 
 
+@dataclass(frozen=True)
+class LightsAtScene:
+    """The task's lights besides the spot at a scene (cell.planning.lights.contribution), one row
+    per light in the task's order (K, P): gray per exposure at full drive, unlit, dominant term;
+    and the emitter points each took (K,)."""
+
+    unit_gray: np.ndarray
+    unlit: np.ndarray
+    dominant: np.ndarray
+    points: tuple[int, ...]
+
+
 class KernelInputs:
-    """A Problem's Warp inputs (kernels.gray.GrayInputs), shared with the Problems `replace`
-    makes of it (a search replaces its maps): built for the task, scene and material they were
-    made of, rebuilt where one of those is another object. Pickled empty: Warp handles stay in
-    their process."""
+    """A Problem's Warp inputs (kernels.gray.GrayInputs) and its lights' contributions, shared
+    with the Problems `replace` makes of it (a search replaces its maps): built for the task,
+    scene and material they were made of, rebuilt where one of those is another object. Pickled
+    empty: Warp handles stay in their process."""
 
     def __init__(self) -> None:
         self.made_of: tuple[Task, Scene, Material] | None = None
         self.gray: GrayInputs | None = None
+        self.lights_of: tuple[Task, Scene, Material] | None = None
+        self.lights: LightsAtScene | None = None
 
     def __getstate__(self):
         return {}
@@ -113,6 +128,33 @@ class Problem:
                               profile=task.lamp.profile)
             self.kernels.gray, self.kernels.made_of = gray, (task, scene, material)
         return gray
+
+    @property
+    def lights(self) -> LightsAtScene:
+        """The task's lights besides the spot at this scene (LightsAtScene; K = 0 rows without
+        any), computed once per task, scene and material: they do not move while the spot is searched."""
+        from cell.planning.lights import contribution
+        task, scene, material = self.task, self.scene, self.material
+        made_of, lights = self.kernels.lights_of, self.kernels.lights
+        if made_of is None or lights is None or any(a is not b for a, b in zip(made_of, (task, scene, material))):
+            found = [contribution(scene.warp_mesh, scene.points, scene.normals, scene.T_cell_cam, light, material,
+                                  task.camera.sensor, self.band[1]) for light in task.lights]
+            count = len(scene.points)
+            lights = LightsAtScene(np.array([c.unit_gray for c in found]).reshape(-1, count),
+                                   np.array([c.unlit for c in found], bool).reshape(-1, count),
+                                   np.array([c.dominant for c in found], np.int8).reshape(-1, count),
+                                   tuple(c.points for c in found))
+            self.kernels.lights, self.kernels.lights_of = lights, (task, scene, material)
+        return lights
+
+    def full_drive(self, candidates: int) -> np.ndarray:
+        """(C, 1 + K) every light at the top of its drive range, the spot first, but the other
+        lights that give another reflection than the task's off (wrong_reflection): how the spot
+        is searched with the other lights on."""
+        task = self.task
+        top = np.array([task.lamp.channel.drive_range[1]] + [light.channel.drive_range[1] for light in task.lights])
+        top[1:][wrong_reflection(self, self.lights.unit_gray, self.lights.dominant)] = 0.0
+        return np.tile(top, (candidates, 1))
 
 
 def planning_band(task: Task) -> tuple[float, float]:
@@ -160,6 +202,51 @@ def unit_gray(problem: Problem, positions: ArrayLike,
     return out.value, out.shadowed, out.off_axis, dominant
 
 
+def wrong_reflection(problem: Problem, unit_gray: np.ndarray, dominant: np.ndarray) -> np.ndarray:
+    """(1 + K,) the lights that give another reflection than the task's at some sample they light
+    (dominant term, brdf.judged_term's; none when it asks for `any`): off in the drive program,
+    since a light's share of a sample's gray is linear in its drive but which term dominates the
+    sum is not, and a light whose own term is the wanted one everywhere keeps the sum's so (a
+    light on its own supply cannot be turned off: the caller keeps it on)."""
+    reflection = problem.task.requirements.reflection
+    if reflection == "any":
+        return np.zeros(len(unit_gray), bool)
+    wrong = (unit_gray > 0.0) & (dominant != WANTED_TERM[reflection])
+    return wrong.any(axis=1)
+
+
+def lit_by_all(problem: Problem, spot: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+               drive: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The spot's (gray per exposure, shadowed, off-axis, dominant) (C, P) (unit_gray's) with the
+    other lights added at drive (C, 1 + K), the spot's drive first: the gray is the drives' sum
+    (linear in each light's drive, below saturation); a sample is shadowed where no light with
+    some drive reaches it; its off-axis angle is the spot's where the spot alone reaches it (0
+    where another light does: the spot's cone need not cover it), and its dominant term the one
+    of the light that adds the most there. Without other lights the spot's, scaled by its drive."""
+    u, shadowed, off_axis, dominant = spot
+    drive = np.asarray(drive, float).reshape(len(u), -1)
+    lights = problem.lights
+    spot_on = drive[:, :1] > 0.0
+    if not len(lights.unit_gray):
+        return drive[:, :1] * u, np.logical_or(shadowed, ~spot_on), np.where(spot_on, off_axis, 0.0), dominant
+    shares = np.concatenate([(drive[:, :1] * u)[:, None], drive[:, 1:, None] * lights.unit_gray[None]], axis=1)
+    reached = np.concatenate([(~shadowed & spot_on)[:, None],
+                              (drive[:, 1:, None] > 0.0) & ~lights.unlit[None]], axis=1)    # (C, 1 + K, P)
+    others = reached[:, 1:].any(axis=1)
+    terms = np.concatenate([dominant[:, None], np.broadcast_to(lights.dominant[None], shares[:, 1:].shape)], axis=1)
+    strongest = np.argmax(shares, axis=1)[:, None]
+    return (shares.sum(axis=1), np.logical_not(reached.any(axis=1)), np.where(others | ~spot_on, 0.0, off_axis),
+            np.take_along_axis(terms, strongest, axis=1)[:, 0])
+
+
+def drive_moves(problem: Problem, u: np.ndarray) -> list[np.ndarray]:
+    """The gray per exposure with every drive off by the task's drive tolerance, low and high
+    (each light's share is at least 0, so all low and all high are the extremes at every sample);
+    none when the tolerance is 0."""
+    delta = problem.task.requirements.drive_tolerance
+    return [] if delta <= 0 else [(1.0 - delta) * u, (1.0 + delta) * u]
+
+
 def exposure(problem: Problem, unit_gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """centring_exposure of the Problem's band, black level, camera and depth of field."""
     cam = problem.task.camera
@@ -205,7 +292,8 @@ class Candidates:
     """Lamp poses (C of them) and what the model predicts for each: positions (C, 3), gray
     (C, P) at the chosen exposure, the gray with the lamp moved by its tolerance (M, C, P) at the
     same exposure (M = 0 when not evaluated), shadowed and off-axis angle (C, P), and the
-    exposure: shutter, f-number, shutter needed (C,), and each sample's dominant BRDF term (C, P)."""
+    exposure: shutter, f-number, shutter needed (C,), and each sample's dominant BRDF term (C, P);
+    the lights' drives (C, 1 + K), the spot's first (evaluate.lit_by_all)."""
 
     position: np.ndarray
     gray: np.ndarray
@@ -216,11 +304,19 @@ class Candidates:
     shutter: np.ndarray
     kappa: np.ndarray
     t_need: np.ndarray
+    drive: np.ndarray
 
     def pick(self, k: int) -> Candidates:
         """Candidate k alone, as Candidates of one."""
         return Candidates(**{f.name: getattr(self, f.name)[:, k:k + 1] if f.name == "moved_gray"
                              else getattr(self, f.name)[k:k + 1] for f in fields(self)})
+
+
+def stacked(ones: Sequence[Candidates]) -> Candidates:
+    """Candidates of one each (at_exposure's) as one Candidates, in order; their moved grays
+    must be as many."""
+    return Candidates(**{f.name: np.concatenate([getattr(c, f.name) for c in ones], axis=1 if f.name == "moved_gray"
+                                                else 0) for f in fields(Candidates)})
 
 
 TOLERANCE_RING = 8          # lamp errors of lamp_tolerance in this many directions around the aim
@@ -237,31 +333,39 @@ def tolerance_moves(problem: Problem, tilt: np.ndarray) -> list[tuple[np.ndarray
 
 
 def candidates(problem: Problem, pan: ArrayLike, tilt: ArrayLike, radius: ArrayLike,
-               tolerance: bool = True) -> Candidates:
-    """Candidates for lamp joints (C,) arrays. With `tolerance` the lamp is also moved by
-    lamp_tolerance in TOLERANCE_RING directions (one bulk call for all)."""
+               tolerance: bool = True, drive: ArrayLike | None = None) -> Candidates:
+    """Candidates for lamp joints (C,) arrays, the other lights at `drive` (1 + K,) (the spot's
+    first; default: every light at the top of its range), the exposure centring their sum. With
+    `tolerance` the lamp is also moved by lamp_tolerance in TOLERANCE_RING directions (one bulk
+    call for all) and every drive is off by the drive tolerance (drive_moves)."""
     pivot = problem.task.lamp.rig.pivot_m
     pan, tilt, radius = np.broadcast_arrays(*(np.atleast_1d(np.asarray(x, float)) for x in (pan, tilt, radius)))
     n = len(pan)
     moves = tolerance_moves(problem, tilt) if tolerance else []
-    all_pan = np.concatenate([pan] + [pan + dp for dp, _ in moves])
-    all_tilt = np.concatenate([tilt] + [tilt + dt for _, dt in moves])
-    all_pos = rig.lamp_position(pivot, all_pan, all_tilt, np.tile(radius, len(moves) + 1))
-    all_u, all_shadowed, all_off_axis, all_dominant = unit_gray(problem, all_pos, rig.lamp_aim(pivot, all_pos))
+    all_pos = rig.lamp_position(pivot, np.concatenate([pan] + [pan + dp for dp, _ in moves]),
+                                np.concatenate([tilt] + [tilt + dt for _, dt in moves]),
+                                np.tile(radius, len(moves) + 1))
+    drives = problem.full_drive(n) if drive is None else np.tile(np.asarray(drive, float), (n, 1))
+    all_u, all_shadowed, all_off_axis, all_dominant = lit_by_all(
+        problem, unit_gray(problem, all_pos, rig.lamp_aim(pivot, all_pos)), np.tile(drives, (len(moves) + 1, 1)))
     u = all_u[:n]
     shutter, kappa, t_need = exposure(problem, u)
     gain = (shutter / kappa**2)[:, None]
     b = problem.black_level
-    moved = b + all_u[n:].reshape(len(moves), n, u.shape[1]) * gain
-    return Candidates(all_pos[:n], b + u * gain, moved, all_shadowed[:n], all_off_axis[:n], all_dominant[:n],
-                      shutter, kappa, t_need)
+    moved = all_u[n:].reshape(len(moves), n, u.shape[1])
+    if tolerance:
+        moved = np.concatenate([moved, np.array(drive_moves(problem, u)).reshape(-1, n, u.shape[1])])
+    return Candidates(all_pos[:n], b + u * gain, b + moved * gain, all_shadowed[:n], all_off_axis[:n],
+                      all_dominant[:n], shutter, kappa, t_need, drives)
 
 
 def at_exposure(problem: Problem, position: ArrayLike, shutter_s: float, f_number: float,
-                joints: Sequence[float] | None = None) -> Candidates:
+                joints: Sequence[float] | None = None, drive: ArrayLike | None = None) -> Candidates:
     """Candidates of one lamp at `position` (aiming at the rig's pivot) at a fixed shutter and
-    f-number: a chosen shot, as the certificate checks it. Given its `joints` (pan, tilt,
-    radius), the lamp is also moved by its tolerance around them, at the same exposure."""
+    f-number, the other lights at `drive` (1 + K,) (default: every light at the top of its
+    range): a chosen shot, as the certificate checks it. Given its `joints` (pan, tilt, radius),
+    the lamp is also moved by its tolerance around them, and every drive by the drive tolerance,
+    at the same exposure."""
     pivot = problem.task.lamp.rig.pivot_m
     pos = np.asarray(position, float).reshape(1, 3)
     moves, moved_pos = [], []
@@ -270,10 +374,14 @@ def at_exposure(problem: Problem, position: ArrayLike, shutter_s: float, f_numbe
         moved_pos = [rig.lamp_position(pivot, joints[0] + dp, joints[1] + dt, joints[2]).reshape(1, 3)
                      for dp, dt in moves]
     all_pos = np.vstack([pos, *moved_pos])
-    all_u, all_shadowed, all_off_axis, all_dominant = unit_gray(problem, all_pos, rig.lamp_aim(pivot, all_pos))
+    drives = problem.full_drive(1) if drive is None else np.asarray(drive, float).reshape(1, -1)
+    all_u, all_shadowed, all_off_axis, all_dominant = lit_by_all(
+        problem, unit_gray(problem, all_pos, rig.lamp_aim(pivot, all_pos)), np.tile(drives, (len(all_pos), 1)))
     u, gain = all_u[:1], shutter_s / f_number**2
     t_need = exposure(problem, u)[2]
     b = problem.black_level
-    return Candidates(pos, b + u * gain, b + all_u[1:].reshape(len(moves), 1, u.shape[1]) * gain, all_shadowed[:1],
-                      all_off_axis[:1], all_dominant[:1], np.array([float(shutter_s)]),
-                      np.array([float(f_number)]), t_need)
+    moved = all_u[1:].reshape(len(moves), 1, u.shape[1])
+    if joints is not None:
+        moved = np.concatenate([moved, np.array(drive_moves(problem, u)).reshape(-1, 1, u.shape[1])])
+    return Candidates(pos, b + u * gain, b + moved * gain, all_shadowed[:1], all_off_axis[:1], all_dominant[:1],
+                      np.array([float(shutter_s)]), np.array([float(f_number)]), t_need, drives)

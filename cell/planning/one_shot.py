@@ -18,10 +18,11 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.optimize import minimize
 
-from cell.planning import certificate, evaluate, regions, requirements
+from cell.planning import certificate, drives, evaluate, lights, regions, requirements
 from cell.core import geometry
+from cell.devices import rig
 from cell.physics import depth_of_field as dof
-from cell.planning.plan import Exposure, Maps, Plan, PlannerSettings, Refinement, Search, Shot
+from cell.planning.plan import Exposure, LightSetting, Maps, Plan, PlannerSettings, Refinement, Search, Shot
 
 if TYPE_CHECKING:
     from cell.planning.scene import Scene
@@ -175,7 +176,10 @@ def search(task: Task, settings: PlannerSettings, albedo_scale: float, extra: np
     poses = [np.array([pan[k], tilt[k], radius[k]]) for k in starts]
     refined = [refine(problem, x, lamp_rig) for x in poses] if settings.refine else []
     stack = np.array(poses + [x for x, _ in refined])
-    final = evaluate.candidates(problem, stack[:, 0], stack[:, 1], stack[:, 2])
+    if task.lights:
+        final = evaluate.stacked([lighting(problem, x)[0] for x in stack])
+    else:
+        final = evaluate.candidates(problem, stack[:, 0], stack[:, 1], stack[:, 2])
     final_values = requirements.ln_values(problem, final)
     rank = np.lexsort((requirements.objective(final_values), requirements.missed(final_values)))
     best = int(rank[0])
@@ -188,6 +192,49 @@ def search(task: Task, settings: PlannerSettings, albedo_scale: float, extra: np
                 objective=verdict.objective, hint="" if verdict.feasible else binding.detail, shots=(shot,),
                 maps=maps, settings=settings, scene=scene, search=search, timing_s=timing,
                 notes=notes(problem, shot)), problem
+
+
+def lighting(problem: evaluate.Problem, joints: ArrayLike) -> tuple[evaluate.Candidates, drives.Drives]:
+    """The spot at `joints` (pan, tilt, radius) with the task's other lights: their drive levels,
+    shutter and f-number by the linear program over every light's gray (cell.planning.drives: the
+    band's margin, robust to the drive tolerance), as Candidates of one judged at that exposure,
+    the spot moved by its tolerance and the drives off by theirs; the shutter the band needs is the
+    program's at the widest f-number the depth of field allows."""
+    task = problem.task
+    x = np.asarray(joints, float)
+    pivot = task.lamp.rig.pivot_m
+    position = rig.lamp_position(pivot, x[0], x[1], x[2]).reshape(1, 3)
+    spot, _, _, spot_term = evaluate.unit_gray(problem, position, rig.lamp_aim(pivot, position))
+    channels = [task.lamp.channel] + [light.channel for light in task.lights]
+    ranges = np.array([c.drive_range for c in channels])
+    on_controller = np.array([c.number is not None for c in channels])
+    ranges[on_controller & evaluate.wrong_reflection(problem, np.vstack([spot, problem.lights.unit_gray]),
+                                                     np.vstack([spot_term, problem.lights.dominant]))] = (0.0, 0.0)
+    chosen = drives.solve_drives(np.vstack([spot, problem.lights.unit_gray]), problem.band, problem.black_level,
+                                 problem.kappa_open, task.camera.shutter_range_s, task.camera.lens.f_number_range,
+                                 ranges, [c.switched for c in channels], task.requirements.drive_tolerance)
+    c = evaluate.at_exposure(problem, position[0], chosen.shutter_s, chosen.f_number, joints=tuple(x),
+                             drive=chosen.drive)
+    need = chosen.shutter_s * (problem.kappa_open / chosen.f_number) ** 2
+    return replace(c, t_need=np.array([need])), chosen
+
+
+def light_settings(problem: evaluate.Problem, candidate: evaluate.Candidates) -> tuple[LightSetting, ...]:
+    """The LightSetting of the spot and of each of the task's other lights for one candidate
+    (Candidates of one): drive, cell-frame pose, and the gray it adds at the candidate's exposure."""
+    task, scene = problem.task, problem.scene
+    gain = float(candidate.shutter[0] / candidate.kappa[0] ** 2)
+    drive = candidate.drive[0]
+    pivot = task.lamp.rig.pivot_m
+    aim = rig.lamp_aim(pivot, candidate.position)
+    spot = evaluate.unit_gray(problem, candidate.position, aim)[0][0]
+    out = [LightSetting(task.lamp.name, "spot", "pan_tilt", task.lamp.channel.number, float(drive[0]),
+                        candidate.position[0], aim[0], gain * drive[0] * spot)]
+    for k, light in enumerate(task.lights):
+        centre, axis, _ = lights.pose(light, scene.T_cell_cam)
+        out.append(LightSetting(light.name, light.type, light.mount, light.channel.number, float(drive[1 + k]),
+                                centre, axis, gain * drive[1 + k] * problem.lights.unit_gray[k]))
+    return tuple(out)
 
 
 def notes(problem: evaluate.Problem, shot: Shot) -> tuple[str, ...]:
@@ -220,4 +267,5 @@ def make_shot(problem: evaluate.Problem, joints: np.ndarray, candidate: evaluate
     return Shot(T_cell_cam=scene.T_cell_cam, joints=tuple(float(x) for x in joints), lamp_position=pos,
                 exposure=exposure, gray=np.minimum(candidate.gray[0], full_scale), distance_m=float(np.linalg.norm(pos - scene.center)),
                 phase_angle_rad=float(np.arccos(np.clip(s @ v, -1, 1))),
-                requirements=requirements.judged(problem, candidate, values))
+                requirements=requirements.judged(problem, candidate, values),
+                lights=light_settings(problem, candidate))

@@ -125,11 +125,33 @@ class Coverage:
     gray: np.ndarray
     requirements: tuple[RequirementValue, ...]
     verification: Verification | None = None
+    lights: tuple[LightSetting, ...] = ()      # each light's share of this feature's gray on the shot
 
     @property
     def worst(self) -> float:
         """The largest requirement value (max f_i, met when <= 1)."""
         return max(r.value for r in self.requirements)
+
+
+@dataclass(frozen=True)
+class LightSetting:
+    """One light of a shot: which (name, type, mount, its controller channel or None), its drive
+    level (0..1), its pose in the cell frame (emitting centre, unit axis) and what it adds to the
+    shot's feature: gray per sample at this drive and the shot's exposure (the black level not
+    included)."""
+
+    name: str
+    type: str
+    mount: str
+    channel: int | None
+    drive: float
+    position_m: np.ndarray
+    axis: np.ndarray
+    gray: np.ndarray
+
+    def to_json(self) -> dict[str, Any]:
+        return {"name": self.name, "type": self.type, "mount": self.mount, "channel": self.channel,
+                "drive": self.drive, "pose": {"position_m": self.position_m.tolist(), "axis": self.axis.tolist()}}
 
 
 @dataclass(frozen=True)
@@ -147,6 +169,12 @@ class Shot:
     requirements: tuple[RequirementValue, ...]
     covers: tuple[Coverage, ...] = ()# a multi-feature plan's: the Coverage of each feature it covers
     arm_joints: tuple[float, ...] | None = None# a planned viewpoint's: the UR5e joints reaching T_cell_cam [rad]
+    lights: tuple[LightSetting, ...] = ()      # the spot and the task's other lights, in the task's order
+
+    @property
+    def drive(self) -> np.ndarray | None:
+        """(1 + K,) the lights' drive levels, the spot's first (None: none set, all at full)."""
+        return np.array([light.drive for light in self.lights]) if self.lights else None
 
     @property
     def camera_position(self) -> np.ndarray:
@@ -240,6 +268,8 @@ class Plan:
             "notes": list(self.notes),
             "requirements": requirements_json(shot.requirements),
             "lamp": lamp_json(shot),
+            "lights": [light.to_json() for light in shot.lights],
+            "contributions": contributions_json(shot.lights),
             "camera": camera_json(shot),
             "predicted_gray": gray_stats(shot.gray),
             "verified": self.verification.to_json() if self.verification else None,
@@ -255,7 +285,9 @@ class Plan:
                                      **({} if shot.arm_joints is None else
                                         {"arm_joints_deg": np.degrees(shot.arm_joints).tolist()})},
                           "lamp": lamp_json(shot),
+                          "lights": [light.to_json() for light in shot.lights],
                           "covers": [{"feature": c.feature, "predicted_gray": gray_stats(c.gray),
+                                      "contributions": contributions_json(c.lights),
                                       "requirements": requirements_json(c.requirements),
                                       "verified": c.verification.to_json() if c.verification else None}
                                      for c in shot.covers]} for shot in self.shots],
@@ -265,8 +297,8 @@ class Plan:
                "cover": self.cover}
         if len(self.shots) == 1:                     # a one-shot plan keeps the one-shot keys
             own = self.plans[self.cover["chosen"][0]].to_json()
-            doc.update({k: own[k] for k in ("requirements", "lamp", "camera", "predicted_gray", "verified",
-                                            "search")})
+            doc.update({k: own[k] for k in ("requirements", "lamp", "lights", "contributions", "camera",
+                                            "predicted_gray", "verified", "search")})
         return {**doc, "timing_s": self.timing_s, "settings": asdict(self.settings)}
 
 
@@ -280,6 +312,12 @@ def lamp_json(shot: Shot) -> dict[str, Any]:
             "phase_angle_deg": float(np.degrees(shot.phase_angle_rad)),
             "joints": {"pan_deg": float(np.degrees(pan)), "tilt_deg": float(np.degrees(tilt)),
                        "radius_m": float(radius)}}
+
+
+def contributions_json(lights: Iterable[LightSetting]) -> list[dict[str, Any]]:
+    """Each light's share of a feature's gray, by channel, at the shot's drive and exposure."""
+    return [{"name": light.name, "channel": light.channel, "drive": light.drive, "gray": gray_stats(light.gray)}
+            for light in lights]
 
 
 def camera_json(shot: Shot) -> dict[str, Any]:

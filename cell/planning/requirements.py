@@ -128,15 +128,16 @@ def unresolved_note(p: Problem) -> str:
 
 def reflection_region(p: Problem, c: Candidates) -> np.ndarray:
     """ln of exp(d / margin + 1): 0 at `margin` inside the wanted region (sec. 5.2), judged for
-    the lamp seen from the feature centre; and at each lit sample its dominant term must be the
-    wanted one (ln(0.5 + count) where some are not)."""
+    the lamp seen from the feature centre where it is on; and at each lit sample its dominant term
+    (of the light adding the most there) must be the wanted one (ln(0.5 + count) where some are not)."""
     local = (c.position - p.scene.center) @ p.scene.frame
     az, el = geometry.angles_from_direction(local)
     maps = _maps(p)
     d = maps.grid.sample(maps.distance, az, el)
     margin = max(p.task.requirements.region_margin_rad, 1e-6)
+    region = np.where(c.drive[:, 0] > 0.0, d / margin + 1.0, -np.inf)     # the spot off: where it is does not matter
     others = other_reflection(p, c)
-    return np.where(others > 0, np.maximum(d / margin + 1.0, costs.ln_count_cost(others)), d / margin + 1.0)
+    return np.where(others > 0, np.maximum(region, costs.ln_count_cost(others)), region)
 
 
 def explain_reflection_region(p: Problem, c: Candidates, met: bool) -> str:
