@@ -313,3 +313,12 @@ def test_a_one_lamp_task_has_one_light_at_full_drive():
     (lamp,) = plan.shot.lights
     assert (lamp.name, lamp.type, lamp.channel, lamp.drive) == ("lamp", "spot", None, 1.0)
     np.testing.assert_allclose(lamp.gray + 0.0, plan.shot.gray, rtol=1e-12)
+
+
+def test_the_plan_folder_shows_where_each_light_is_and_what_it_adds(ring_plan, tmp_path):
+    import cv2
+    from cell.report.recorder import write_plan
+    task, plan = ring_plan
+    write_plan(plan, task, tmp_path)
+    image = cv2.imread(str(tmp_path / "lights.png"))
+    assert image is not None and image.shape[0] > 300 and image.std() > 10

@@ -211,6 +211,59 @@ def write_plan_pictures(plan: Plan, task: Task, scene: Scene, out_dir: PathLike)
     return paths
 
 
+LIGHT_COLORS = ("white", "tab:cyan", "tab:green", "tab:pink", "tab:olive", "tab:purple", "tab:brown", "tab:gray")
+
+
+@_one_at_a_time
+def write_lights(path: PathLike, plan: Plan, task: Task) -> None:
+    """lights.png of a one-feature plan with several lights: left, where each light is as seen
+    from the feature centre (its emitter points on the feature frame's map of dominant terms,
+    filled where the light is on); right, what each adds to the feature at its planned drive and
+    the shot's exposure (mean gray, the bar; darkest to brightest sample, the line), with its
+    channel and drive, and the band."""
+    from cell.planning.lights import START_POINTS, emitters
+    m, scene, shot = plan.maps, plan.planned_scene, plan.shot
+    if m is None:
+        raise ValueError("a multi-feature plan has no maps of its own: its features' plans have theirs")
+    fig = Figure(figsize=(13, 4.8))
+    ax1, ax2 = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1.4, 1.0]})
+    extent = (float(np.degrees(m.grid.azimuth[0])), float(np.degrees(m.grid.azimuth[-1])),
+              float(np.degrees(m.grid.elevation[0])), float(np.degrees(m.grid.elevation[-1])))
+    seg = np.where(m.visible, m.dominant, brdf.OCCLUDED).astype(float)
+    ax1.imshow(seg, origin="lower", extent=extent, aspect="auto", vmin=-1.5, vmax=2.5, interpolation="nearest",
+               cmap=ListedColormap(["black", "tab:blue", "tab:orange", "tab:red"]), alpha=0.55)
+    by_name = {light.name: light for light in task.lights}
+    for k, setting in enumerate(shot.lights):
+        light = by_name.get(setting.name)
+        points = (setting.position_m[None] if light is None else
+                  emitters(light, shot.T_cell_cam, START_POINTS[light.type]).position)
+        az, el = _feature_angles(plan, scene, points)
+        color = LIGHT_COLORS[k % len(LIGHT_COLORS)]
+        ax1.plot(az, el, "o", ms=7 if light is None else 4, mec="black", mew=0.6, ls="none",
+                 mfc=color if setting.drive > 0 else "none", label=setting.name)
+    cam = _feature_angles(plan, scene, shot.camera_position)
+    ax1.plot(*cam, marker="s", ms=11, mfc="none", mec="white", mew=2, ls="none", label="camera")
+    ax1.legend(loc="lower right", fontsize=8, framealpha=0.6)
+    _axes(ax1, "where each light is, seen from the feature (filled: on); dominant terms as regions.png")
+    names = [f"{s.name}\n(ch {'-' if s.channel is None else s.channel}, drive {s.drive:.0%})" for s in shot.lights]
+    means = np.array([s.gray.mean() for s in shot.lights])
+    lows = means - np.array([s.gray.min() for s in shot.lights])
+    highs = np.array([s.gray.max() for s in shot.lights]) - means
+    y = np.arange(len(names))
+    ax2.barh(y, means, color=[LIGHT_COLORS[k % len(LIGHT_COLORS)] for k in y], edgecolor="black")
+    ax2.errorbar(means, y, xerr=[lows, highs], fmt="none", ecolor="black", capsize=3)
+    low, high = task.requirements.gray_band
+    for x in (low, high):
+        ax2.axvline(x, color="0.4", ls="--", lw=1)
+    ax2.set_yticks(y, names, fontsize=8)
+    ax2.invert_yaxis()
+    ax2.set_xlabel(f"gray added to the feature (dashed: the band {low:g}-{high:g})")
+    e = shot.exposure
+    ax2.set_title(f"what each channel adds at {1e3 * e.shutter_s:.3g} ms, f/{e.f_number:.1f}", fontsize=10)
+    fig.subplots_adjust(**{**MARGINS, "left": 0.05, "right": 0.99, "wspace": 0.42})
+    fig.savefig(path, dpi=90, pil_kwargs=PNG)
+
+
 SHOT_COLORS = ("tab:blue", "tab:red", "tab:green", "tab:purple", "tab:brown", "tab:olive", "tab:cyan",
                "tab:pink", "tab:orange", "tab:gray")
 FEATURE_COLORS = ("gold", "magenta", "darkorange", "deepskyblue", "limegreen", "sienna", "teal", "pink")
