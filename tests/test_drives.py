@@ -122,7 +122,7 @@ def test_too_uneven_names_the_samples_at_either_end():
     assert not d.feasible and d.cause == "too uneven"
     assert d.margin_gray == pytest.approx(260 / 11 - 60, abs=1e-6)
     assert (d.low_binding, d.high_binding) == ((0,), (1,))
-    assert "samples 0 at the low end and 1 at the high end" in d.message
+    assert "(1 sample at the low end, 1 sample at the high end)" in d.message
 
 
 def test_switched_channels_match_every_on_off_pattern_with_its_best_exposure():
@@ -159,7 +159,7 @@ def test_a_channel_that_lights_nothing_is_left_at_its_lowest_drive_and_named():
     v = np.array([[0.0, 0.0, 0.0], [2e4, 3e4, 2.5e4]])
     d = solve_drives(v, (60.0, 200.0), 0.0, **CAMERA)
     assert d.feasible and d.dark_channels == (0,) and d.drive[0] == 0.0
-    assert "channels 0 light no sample (left at their lowest drive)" in d.message
+    assert "1 channel lights no sample (left at the lowest drive)" in d.message
     d = solve_drives(v, (60.0, 200.0), 0.0, drive_range=[0.2, 1.0], **CAMERA)
     assert d.drive[0] == 0.2
 
@@ -185,7 +185,7 @@ def test_samples_each_unlit_by_one_channel_are_lit_by_the_other():
 def test_an_unlit_sample_in_a_band_from_black_is_in_band_at_margin_zero():
     d = solve_drives([[2e4, 0.0, 3e4]], (0.0, 200.0), 0.0, **CAMERA)
     assert d.feasible and d.margin_gray == 0.0 and d.unlit_samples == (1,)
-    assert "no channel lights samples 1" in d.message
+    assert "1 sample lit by no channel" in d.message
 
 
 def test_a_dynamic_range_of_ten_million_is_solved_to_the_gray():

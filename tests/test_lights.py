@@ -322,3 +322,16 @@ def test_the_plan_folder_shows_where_each_light_is_and_what_it_adds(ring_plan, t
     write_plan(plan, task, tmp_path)
     image = cv2.imread(str(tmp_path / "lights.png"))
     assert image is not None and image.shape[0] > 300 and image.std() > 10
+
+
+def test_an_infeasible_plan_with_lights_says_what_the_drives_cannot_do(ring_plan):
+    """A band too narrow and too high for the patch's spread: the binding requirement's sentence,
+    then the drive program's verdict on the same band."""
+    from dataclasses import replace
+    from cell.planning import one_shot
+    task, _ = ring_plan
+    f = task.feature
+    narrow = replace(task, features=(replace(f, requirements=replace(f.requirements, gray_band=(200.0, 250.0))),))
+    plan = one_shot.plan(narrow)
+    assert not plan.feasible and plan.binding in one_shot.BAND
+    assert "no drive levels put every sample in band 200-250" in plan.hint

@@ -97,20 +97,20 @@ class Drives:
                     f"with every channel at its lowest drive{error.replace('less', 'plus')}, the shortest "
                     f"shutter and the smallest aperture")
         else:
-            text = (f"no drive levels put every sample in band {low:g}-{high:g}: the best misses it by "
-                    f"{-self.margin_gray:.1f} gray, samples {_few(self.low_binding)} at the low end and "
-                    f"{_few(self.high_binding)} at the high end")
+            text = (f"no drive levels put every sample in band {low:g}-{high:g}: the lights cannot make the patch "
+                    f"even enough, the best misses the band by {-self.margin_gray:.1f} gray "
+                    f"({_count(self.low_binding)} at the low end, {_count(self.high_binding)} at the high end)")
         if self.unlit_samples and self.cause != "unlit":
-            text += f"; no channel lights samples {_few(self.unlit_samples)}"
+            text += f"; {_count(self.unlit_samples)} lit by no channel"
         if self.dark_channels and self.cause != "unlit":
-            text += f"; channels {_few(self.dark_channels)} light no sample (left at their lowest drive)"
+            text += (f"; {len(self.dark_channels)} channel{'s' if len(self.dark_channels) > 1 else ''} "
+                     f"light{'' if len(self.dark_channels) > 1 else 's'} no sample (left at the lowest drive)")
         return text
 
 
-def _few(indices: tuple[int, ...], shown: int = 5) -> str:
-    """Indices for a sentence: the first `shown`, and how many more."""
-    text = ", ".join(map(str, indices[:shown])) or "none"
-    return text + (f" and {len(indices) - shown} more" if len(indices) > shown else "")
+def _count(samples: tuple[int, ...]) -> str:
+    """'1 sample', '3 samples': a count for a sentence (which ones are the Drives' fields)."""
+    return f"{len(samples)} sample{'' if len(samples) == 1 else 's'}"
 
 
 def solve_drives(unit_gray: ArrayLike, band: tuple[float, float], black_level: float, kappa_open: float,

@@ -22,6 +22,7 @@ from cell.planning import certificate, drives, evaluate, lights, regions, requir
 from cell.core import geometry
 from cell.devices import rig
 from cell.physics import depth_of_field as dof
+from cell.physics.costs import RequirementValue
 from cell.planning.plan import Exposure, LightSetting, Maps, Plan, PlannerSettings, Refinement, Search, Shot
 
 if TYPE_CHECKING:
@@ -176,8 +177,9 @@ def search(task: Task, settings: PlannerSettings, albedo_scale: float, extra: np
     poses = [np.array([pan[k], tilt[k], radius[k]]) for k in starts]
     refined = [refine(problem, x, lamp_rig) for x in poses] if settings.refine else []
     stack = np.array(poses + [x for x, _ in refined])
-    if task.lights:
-        final = evaluate.stacked([lighting(problem, x)[0] for x in stack])
+    lit = [lighting(problem, x) for x in stack] if task.lights else []
+    if lit:
+        final = evaluate.stacked([c for c, _ in lit])
     else:
         final = evaluate.candidates(problem, stack[:, 0], stack[:, 1], stack[:, 2])
     final_values = requirements.ln_values(problem, final)
@@ -189,9 +191,23 @@ def search(task: Task, settings: PlannerSettings, albedo_scale: float, extra: np
     verdict = requirements.verdict(shot.requirements, requirements.failing_everywhere(global_values))
     binding = next(r for r in shot.requirements if r.name == verdict.binding)
     return Plan(task_name=task.name, feasible=verdict.feasible, binding=verdict.binding, miss=verdict.miss,
-                objective=verdict.objective, hint="" if verdict.feasible else binding.detail, shots=(shot,),
+                objective=verdict.objective, hint="" if verdict.feasible else hint(binding, lit[best][1] if lit else None),
+                shots=(shot,),
                 maps=maps, settings=settings, scene=scene, search=search, timing_s=timing,
                 notes=notes(problem, shot)), problem
+
+
+BAND = ("gray_min", "gray_max", "lamp_tolerance")     # what the drive program's verdict explains
+
+
+def hint(binding: RequirementValue, chosen: drives.Drives | None) -> str:
+    """What would fix an infeasible plan: the binding requirement's sentence, and where the band
+    binds and drive levels were chosen, the program's own verdict (how far the darkest sample
+    stays below the band with every channel at full drive, or the brightest above it at the
+    lowest, or which samples pull the band both ways)."""
+    if chosen is None or binding.name not in BAND or chosen.feasible:
+        return binding.detail
+    return f"{binding.detail}; {chosen.message}"
 
 
 def lighting(problem: evaluate.Problem, joints: ArrayLike) -> tuple[evaluate.Candidates, drives.Drives]:

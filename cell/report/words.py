@@ -5,6 +5,8 @@ f_i; counts with their grammar ("1 shot covers 1 of 2 features")."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 from collections.abc import Iterable
 from typing import TYPE_CHECKING
 
@@ -140,4 +142,6 @@ def reason(plan: Plan) -> str:
     if first is not None:
         return uncovered(first.name, first.binding, first.hint)
     r = next((v for v in plan.requirements if v.name == plan.binding), None)
-    return why(r) if r is not None else f"{label(plan.binding)} fails: {plan.hint}"
+    if r is None:
+        return f"{label(plan.binding)} fails: {plan.hint}"
+    return why(replace(r, detail=plan.hint) if plan.hint.startswith(r.detail) else r)
