@@ -25,6 +25,9 @@ HINGE = Path(__file__).resolve().parent.parent / "tasks" / "hinge.yaml"
 C_TASK = 1.5e16                 # tasks/hinge.yaml camera.sensor.camera_constant
 
 
+HW = {"cell.backend": "hw", "cell.arm.host": "127.0.0.1", "cell.pan_tilt.port": "/dev/null"}
+
+
 def variant(tmp_path, changes):
     return simcell.variant(tmp_path, HINGE, changes)
 
@@ -196,7 +199,7 @@ def test_the_task_backend_is_used_unless_overridden(tmp_path, monkeypatch):
     seen = []
     monkeypatch.setattr(backends, "open_devices", lambda task, scene, backend, yes:
                         seen.append(backend) or make_sim_devices(task, scene))
-    task = variant(tmp_path, {"cell.backend": "hw"})
+    task = variant(tmp_path, HW)        # the real cell named (never reached: open_devices is patched)
     quick = ["--shots", "3", "--out"]
     assert main(["calibrate", "reference-part", str(task), "--yes", *quick, str(tmp_path / "a")]) == 0
     assert main(["calibrate", "reference-part", str(task), "--backend", "sim", *quick, str(tmp_path / "b")]) == 0
@@ -207,7 +210,7 @@ def test_on_the_real_cell_the_operator_confirms_the_reference_part_before_anythi
                                                                                     capsys):
     connected = []
     monkeypatch.setattr(backends, "open_devices", lambda *a, **k: connected.append(a))
-    task = variant(tmp_path, {"cell.backend": "hw"})
+    task = variant(tmp_path, HW)
     assert main(["calibrate", "reference-part", str(task), "--out", str(tmp_path / "c")]) == 3    # stdin: no terminal
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert "place the reference part" in last and "run with --yes" in last and connected == []

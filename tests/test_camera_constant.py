@@ -278,7 +278,7 @@ def test_a_laser_power_that_is_no_power_is_bad_input(value, capsys):
 def test_on_the_real_cell_the_operator_works_the_laser_before_anything(tmp_path, monkeypatch, capsys):
     connected = []
     monkeypatch.setattr(backends, "open_devices", lambda *a, **k: connected.append(a))
-    task = sim_task(tmp_path, **{"cell.backend": "hw"})
+    task = sim_task(tmp_path, **{"cell.backend": "hw", "cell.arm.host": "127.0.0.1", "cell.pan_tilt.port": "/dev/null"})
     argv = ["calibrate", "camera-constant", str(task), "--laser-power-w", str(POWER_W), "--out", str(tmp_path / "r")]
     assert main(argv) == 3                                                  # stdin: no terminal
     last = capsys.readouterr().err.strip().splitlines()[-1]

@@ -244,7 +244,7 @@ def test_the_cli_turns_a_camera_fault_into_exit_3_and_one_line_after_stopping_th
 def test_on_the_real_cell_the_operator_lays_the_board_before_anything(tmp_path, monkeypatch, capsys):
     connected = []
     monkeypatch.setattr(backends, "open_devices", lambda *a, **k: connected.append(a))
-    task = sim_task(tmp_path, **{"cell.backend": "hw"})
+    task = sim_task(tmp_path, **{"cell.backend": "hw", "cell.arm.host": "127.0.0.1", "cell.pan_tilt.port": "/dev/null"})
     assert main(["calibrate", "hand-eye", str(task), "--out", str(tmp_path / "r")]) == 3     # stdin: no terminal
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert "lay the ChArUco board" in last and "run with --yes" in last and connected == []
