@@ -25,7 +25,7 @@ from cell.task.loader import load_task
 from sim.cell import make_sim_devices
 from simcell import recording_connect, variant
 
-HINGE, CONROD = "tasks/hinge.yaml", "tasks/conrod.yaml"
+HINGE, CONROD, RING = "tasks/hinge.yaml", "tasks/conrod.yaml", "tasks/ring.yaml"
 DRIVE = ["move_camera", "move_lamp"]
 DARK = ["set_exposure", "capture", "black_level"]     # the dark frame, dark.png
 SHOT = ["set_exposure", "capture", "register", "measure"]
@@ -345,9 +345,27 @@ def test_a_frame_of_another_size_than_the_sensor_is_a_camera_fault():
         measurement.measure_feature(np.zeros((388, 516)), task, scene.T_cell_cam, scene.points, 255)
 
 
-def test_the_hardware_backend_needs_an_address_before_anything_connects(tmp_path):
-    assert main(["run", HINGE, "--backend", "hw", "--out", str(tmp_path)]) == 2
-    assert "cell.arm.host" in json.loads((tmp_path / "report.json").read_text())["reason"]
+def test_the_hardware_backend_needs_an_address_before_anything_connects(tmp_path, capsys):
+    """Refused before any planning or folder (cell.cli.backend_of)."""
+    assert main(["run", HINGE, "--backend", "hw", "--out", str(tmp_path / "run")]) == 2
+    assert "cell.arm.host" in capsys.readouterr().err and not (tmp_path / "run").exists()
+
+
+def test_lights_on_channels_need_the_lighting_controller_s_address_on_the_hardware_backend(tmp_path, capsys):
+    """A task whose lights are on channels, its arm and servos addressed but no cell.lighting:
+    exit 2 before any work, one line naming cell.lighting.host."""
+    task = variant(tmp_path, RING, {"cell.arm.host": "192.0.2.1", "cell.pan_tilt.port": "/dev/null"})
+    assert main(["run", str(task), "--backend", "hw", "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "cell.lighting.host" in err[0] and "channels 1, 2, 3" in err[0]
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_light_on_a_channel_the_controller_lacks_is_bad_input(tmp_path, capsys):
+    task = variant(tmp_path, RING, {"cell.lighting.channels": 2})
+    assert main(["run", str(task), "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "lamp.channel" in err[0] and "1..2" in err[0]
 
 
 def test_max_iterations_below_1_is_bad_input():
