@@ -237,6 +237,40 @@ def test_saturated_samples_give_a_lower_bound_and_the_rest_an_estimate():
     assert control.model_error(np.array([0.0, 0.0, 0.0]), predicted, 255) == (0.5 / 120.0, "<=")
 
 
+# --- several light channels ----------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def ring(tmp_path_factory):
+    return run(RING, tmp_path_factory.mktemp("ring") / "run")
+
+
+def test_the_ring_task_converges_with_each_channel_at_its_planned_drive(ring):
+    """Before every capture each channel is set to the plan's drive (read back: in the log and in
+    report.json's iterations); the dark frame is taken with every channel off; at the end every
+    channel is off."""
+    assert ring.error is None and ring.report["converged"], ring.report["reason"]
+    planned = {str(light["channel"]): light["drive"] for light in ring.report["plan"]["lights"]}
+    assert set(planned) == {"1", "2", "3"} and planned["2"] == 1.0 and planned["1"] == 0.0
+    sets = [line for line in ring.log if line["step"] == "set_drives"]
+    assert ring.steps == ["plan", *DRIVE, "set_drives", *DARK, *(["set_drives", *SHOT] * (len(sets) - 1)), "done"]
+    assert sets[0]["drives"] == dict.fromkeys(planned, 0.0)
+    for line, iteration in zip(sets[1:], ring.report["iterations"], strict=True):
+        assert line["drives"] == iteration["drives"] == pytest.approx(planned, abs=1e-12)
+    assert ring.devices.lights.levels() == {1: 0.0, 2: 0.0, 3: 0.0}
+
+
+def test_a_lighting_fault_turns_every_channel_off_and_exits_3(tmp_path):
+    """The controller refuses the first capture's third set (over-current): the safe stop turns
+    every channel off, report.json names the lighting controller, the log keeps every step."""
+    cell = run(RING, tmp_path / "run", faults={"lights_fail_on_set": 6})
+    assert isinstance(cell.error, DeviceFault) and cell.error.exit_code == 3 and cell.error.device == "lighting"
+    assert "over current" in str(cell.error) and "motion stopped" in str(cell.error)
+    assert cell.steps == ["plan", *DRIVE, "set_drives", *DARK, "fault"]
+    assert cell.stops == ["arm.stop", "pan-tilt.stop", "camera.close"]
+    assert cell.report["fault"]["device"] == "lighting" and not cell.report["converged"]
+    assert cell.devices.lights.levels() == {1: 0.0, 2: 0.0, 3: 0.0}
+
+
 # --- faults ----------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("name, changes, faults, before", [
