@@ -34,14 +34,15 @@ class RenderResult(NamedTuple):
 @wp.kernel
 def render_kernel(mesh_id: wp.uint64, origin: wp.vec3d, ray_dirs: wp.array(dtype=wp.vec3d),
                   max_dist: wp.float64, shadows: wp.int32, cone: wp.int32, offset_m: wp.float64,
-                  no_sectors: wp.array2d(dtype=wp.float64), lamp: wp.vec3d, lamp_axis: wp.vec3d,
-                  intensity_w_sr: wp.float64,
+                  no_sectors: wp.array2d(dtype=wp.float64), lamps: wp.array(dtype=wp.vec3d),
+                  lamp_axes: wp.array(dtype=wp.vec3d), intensity_w_sr: wp.float64,
                   profile: wp.array2d(dtype=wp.float64),
                   table: wp.array2d(dtype=wp.float64),
                   camera_constant: wp.float64, pixel_area_m2: wp.float64,
                   value: wp.array(dtype=wp.float64), hit: wp.array(dtype=wp.bool),
                   depth: wp.array(dtype=wp.float64), normal: wp.array(dtype=wp.vec3d)):
-    """One thread per pixel ray (its hit point's free cones unknown: every shadow ray cast)."""
+    """One thread per pixel ray (its hit point's free cones unknown: every shadow ray cast), its
+    value summed over the point lamps (each with its own shadow ray)."""
     i = wp.tid()
     d = ray_dirs[i]
     q = wp.mesh_query_ray(mesh_id, wp.vec3(origin), wp.vec3(d), wp.float32(max_dist))
@@ -54,9 +55,12 @@ def render_kernel(mesh_id: wp.uint64, origin: wp.vec3d, ray_dirs: wp.array(dtype
     t = wp.float64(q.t)
     n = wp.vec3d(q.normal)
     at = funcs.surface(origin + t * d, n, origin, offset_m, wp.float64(NO_CONE), -1)
-    sh = funcs.shade_point(mesh_id, shadows, cone, at, no_sectors, lamp, lamp_axis, intensity_w_sr, profile, table,
-                           camera_constant, pixel_area_m2)
-    value[i] = sh.value
+    total = wp.float64(0.0)
+    for j in range(lamps.shape[0]):
+        sh = funcs.shade_point(mesh_id, shadows, cone, at, no_sectors, lamps[j], lamp_axes[j], intensity_w_sr,
+                               profile, table, camera_constant, pixel_area_m2)
+        total += sh.value
+    value[i] = total
     hit[i] = True
     depth[i] = t
     normal[i] = n
@@ -67,7 +71,9 @@ def render(mesh: "WarpMesh", origin: ArrayLike, ray_dirs: ArrayLike, lamp_pos: A
            shadows: bool = True, cone: bool = True, offset_m: float = 1e-5, max_dist: float = 10.0,
            profile: ArrayLike | None = None) -> RenderResult:
     """Shade the first hit of each ray from `origin` (the camera centre) along unit
-    `ray_dirs` (N, 3), lit by one lamp: RenderResult(value, hit, depth, normal).
+    `ray_dirs` (N, 3), lit by one lamp, or by E point lamps (lamp_pos, lamp_axis (E, 3), each
+    emitting power_w: an extended light's emitter points, cell.planning.lights.emitters), their
+    values summed, each with its own shadow ray (soft shadows): RenderResult(value, hit, depth, normal).
 
     The hit point is origin + depth * dir (float64 from the float32 hit distance); its normal
     is the mesh's outward face normal (a back face gives cos te <= 0, so R = 0). The shading
@@ -81,11 +87,12 @@ def render(mesh: "WarpMesh", origin: ArrayLike, ray_dirs: ArrayLike, lamp_pos: A
     normal, normal_wp = output((n, 3), np.float64, wp.vec3d)
     if n == 0:
         return RenderResult(value, hit, depth, normal)
-    axis = np.asarray(lamp_axis, dtype=np.float64)
+    lamps = np.asarray(lamp_pos, dtype=np.float64).reshape(-1, 3)
+    axes = unit_rows(np.broadcast_to(np.asarray(lamp_axis, dtype=np.float64).reshape(-1, 3), lamps.shape), "lamp_axis")
     wp.launch(render_kernel, dim=n, device=device, inputs=[
         mesh.id, wp.vec3d(*np.asarray(origin, dtype=np.float64)), vec3d(dirs, "ray_dirs"),
         float(max_dist), int(bool(shadows)), int(bool(cone)), float(offset_m),
-        wp.empty((0, funcs.SECTORS), dtype=wp.float64, device=device), wp.vec3d(*np.asarray(lamp_pos, dtype=np.float64)), wp.vec3d(*(axis / np.linalg.norm(axis))),
+        wp.empty((0, funcs.SECTORS), dtype=wp.float64, device=device), vec3d(lamps, "lamp_pos"), vec3d(axes, "lamp_axis"),
         axis_intensity(power_w, cone_angle_rad, profile), profile2d(profile, cone_angle_rad), table2d(table),
         float(camera_constant), float(pixel_area_m2),
     ], outputs=[value_wp, hit_wp, depth_wp, normal_wp])

@@ -10,18 +10,21 @@ import numpy as np
 
 from cell.devices.interfaces import Camera
 from cell.core.errors import DeviceFault
-from cell.devices.interfaces import Arm, LampRig
+from cell.devices.interfaces import Arm, LampRig, LightController
 
 
 class SimCamera(Camera):
     """`render(T_cell_cam, lamp_pos, lamp_aim, shutter_s, f_number, focus_m) -> image` is the
     renderer (sim.world.Renderer); focus_m is None until set_focus (the renderer's default).
-    Fault injection: capture number `fail_on_capture` times out (DeviceFault)."""
+    With a lighting controller (`lights`), the renderer is also given `drives`, every channel's
+    level as the controller reads it back at the capture. Fault injection: capture number
+    `fail_on_capture` times out (DeviceFault)."""
 
     def __init__(self, render: Callable[..., np.ndarray], arm: Arm, lamp: LampRig, bit_depth: int = 8,
-                 fail_on_capture: int | None = None, timeout_s: float = 1.0) -> None:
+                 fail_on_capture: int | None = None, timeout_s: float = 1.0,
+                 lights: LightController | None = None) -> None:
         super().__init__(bit_depth)
-        self.render, self.arm, self.lamp = render, arm, lamp
+        self.render, self.arm, self.lamp, self.lights = render, arm, lamp, lights
         self.fail_on_capture, self.timeout_s = fail_on_capture, timeout_s
         self.captures = 0
 
@@ -61,6 +64,7 @@ class SimCamera(Camera):
         if self.shutter_s is None or self.f_number is None:
             raise DeviceFault(self.device, "capture before the shutter time and f-number were set")
         lamp_pos, lamp_aim = self.lamp.lamp_pose()
+        drives = {} if self.lights is None else {"drives": self.lights.levels()}
         image = self.render(self.arm.camera_pose(), lamp_pos, lamp_aim, self.shutter_s, self.f_number,
-                            self.focus_m)
+                            self.focus_m, **drives)
         return np.asarray(image)

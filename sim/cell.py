@@ -1,6 +1,7 @@
-"""The simulated cell: SimArm, SimPanTilt and a SimCamera rendering the task's scene
-(sim.world.Renderer), with the task's `cell.arm` / `cell.pan_tilt` settings (docs/devices.md)
-and optional injected faults."""
+"""The simulated cell: SimArm, SimPanTilt, a SimLightController when the task has lights on
+channels, and a SimCamera rendering the task's scene (sim.world.Renderer) at the controller's
+levels, with the task's `cell.arm` / `cell.pan_tilt` / `cell.lighting` settings
+(docs/devices.md) and optional injected faults."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from sim.arm import SimArm
 from sim.board import BoardView
 from sim.camera import SimCamera
 from sim.laser import LaserSpot
+from sim.lighting import SimLightController
 from sim.pantilt import SimPanTilt
 from sim.world import Renderer
 from cell.devices.operator import Operator
@@ -30,13 +32,15 @@ class SimFaults:
     """Faults to inject (None: none). The arm's move number `arm_fail_on_move` ends in a
     protective stop; on the lamp's move number `lamp_fail_on_move` servo `servo_id` (None: the
     tilt) reports Hardware Error Status `servo_bits` (0x04 overheating) and its torque goes off;
-    capture number `camera_fail_on_capture` times out. All raise DeviceFault."""
+    capture number `camera_fail_on_capture` times out; the lighting controller's set number
+    `lights_fail_on_set` reports over-current. All raise DeviceFault."""
 
     arm_fail_on_move: int | None = None
     lamp_fail_on_move: int | None = None
     servo_id: int | None = None
     servo_bits: int = 0x04
     camera_fail_on_capture: int | None = None
+    lights_fail_on_set: int | None = None
 
 
 def make_sim_devices(task: Task, scene: Scene | None, operator: Operator | None = None, yes: bool = True,
@@ -63,6 +67,11 @@ def make_sim_devices(task: Task, scene: Scene | None, operator: Operator | None 
         render = Renderer(task, scene)
     else:
         raise ValueError("the simulated camera needs a scene to render (or a laser, or the board)")
+    lights = None
+    if task.channels:             # cell.lighting's channel count, else as many as the lights need
+        count = config.lighting.channels if config.lighting else max(task.channels)
+        lights = SimLightController(count, fail_on_set=faults.lights_fail_on_set)
     camera = SimCamera(render, arm, lamp, task.camera.sensor.bit_depth,
-                       fail_on_capture=faults.camera_fail_on_capture)
-    return Devices(arm, lamp, camera)
+                       fail_on_capture=faults.camera_fail_on_capture,
+                       lights=lights if isinstance(render, Renderer) else None)
+    return Devices(arm, lamp, camera, lights)

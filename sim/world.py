@@ -13,6 +13,17 @@ through the lamp's profile). With no effects and a neutral truth a pixel's gray 
 prediction at the point it sees: the task's lamp profile (`lamp.profile`; without one eq. (11)'s
 ideal cone with a hard edge), no cast shadows, float gray, unclipped.
 
+Every light of the task (`lights`) is rendered besides the spot, as the planner sees it: its
+emitter points (cell.planning.lights.emitters) through the same kernel, each with its own shadow
+ray, so that with `shadows` an extended light casts soft shadows. The number of points is the
+planner's own rule (cell.planning.lights.emitter_count: doubled until doubling moves no feature
+sample by INTEGRATION_GRAY gray at the band's top), found once per light at the feature's samples
+seen from the scene's camera pose, so the image integrates each light as finely as the plan
+did. Each light shines at its channel's drive level as the lighting controller reads it back
+(none given: every light at full drive), the spot at its channel's (1 when it has none),
+G = sum_k w_k s_k G_k with s_k the truth's channel_power_scale (0: a dead channel): linear in
+every drive, as the planner assumes (cell.planning.drives). cone_falloff softens the spot's edge only.
+
 Effects, applied in the physical order light -> lens -> sensor -> ADC, whatever the list's order:
   shadows       cast shadows (the kernel's shadow rays); faces turned from the lamp are dark anyway
   cone_falloff  the world's lamp has a softer edge than the model's: the model's profile (the
@@ -30,7 +41,7 @@ Effects, applied in the physical order light -> lens -> sensor -> ADC, whatever 
 
 from __future__ import annotations
 
-from collections.abc import Collection
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
@@ -43,12 +54,12 @@ from cell.core import geometry
 from cell.physics.sensor import levels, saturation_level
 from cell.physics.depth_of_field import blur_diameter
 from cell.physics.projection import intrinsics, pixel_rays
-from cell.planning.scene import build_scene
+from cell.planning import lights
+from cell.planning.scene import Scene, build_scene
 from kernels.render import render
-from cell.planning.scene import Scene
 
 if TYPE_CHECKING:
-    from cell.task.types import Sensor, Task
+    from cell.task.types import Light, Sensor, Task
 
 CONE_EDGE = 1.0 / 6.0       # cone edge blur s as a fraction of the half angle gamma/2
 DEFOCUS_STEP_PX = 0.5       # defocus depth layers: circle of confusion in these steps
@@ -176,6 +187,25 @@ class Renderer:
         self.T_cam_true = geometry.from_rpy(truth.camera_rpy_rad, truth.camera_offset_m)
         self.rng = np.random.default_rng(task.sim.seed)
         self.error_direction_rad = self.rng.uniform(0.0, 2.0 * np.pi)
+        self.power_scale = dict(truth.channel_power_scale)
+        self.points = tuple(self.emitter_count(light) for light in task.lights)
+
+    def emitter_count(self, light: Light) -> int:
+        """How many emitter points render `light`: the planner's rule (lights.emitter_count) at the
+        feature's samples seen from the scene's camera pose, the band's top the highest feature's."""
+        top = max(feature.requirements.gray_band[1] for feature in self.task.features)
+        sensor = self.task.camera.sensor
+        scene = self.world
+        return lights.contribution(scene.warp_mesh, scene.points, scene.normals, self.scene.T_cell_cam, light,
+                                   self.task.part.material, sensor, top).points
+
+    def light_factor(self, channel: int | None, drives: Mapping[int, float] | None) -> float:
+        """A light's share of its full power in the world: its channel's drive level (1 without a
+        channel or without drives given) times the truth's channel_power_scale of that channel."""
+        if channel is None:
+            return 1.0
+        drive = 1.0 if drives is None else drives.get(channel, 0.0)
+        return drive * self.power_scale.get(channel, 1.0)
 
     def lamp_axis(self, lamp_aim: ArrayLike) -> np.ndarray:
         """The lamp's true axis: the commanded aim turned by lamp_direction_error toward a direction
@@ -186,11 +216,14 @@ class Renderer:
         return np.cos(error) * aim + np.sin(error) * (np.cos(psi) * x + np.sin(psi) * y)
 
     def __call__(self, T_cell_cam: np.ndarray, lamp_pos: np.ndarray, lamp_aim: ArrayLike, shutter_s: float,
-                 f_number: float, focus_m: float | None = None) -> np.ndarray:
+                 f_number: float, focus_m: float | None = None,
+                 drives: Mapping[int, float] | None = None) -> np.ndarray:
         """Gray image (H, W): float, or integers with quantization, seen from the camera pose the
         arm reports (T_cell_cam; the true one is T_cell_cam T_cam_true) with the lamp at its
-        read-back pose. focus_m is the lens's focus distance along the optical axis (None: the
-        feature centre's, as planned, sec. 5.4)."""
+        read-back pose and each channel at its drive level (drives {channel: level 0..1}, the
+        controller's read-back; a channel not in it is off; None: every light at full drive).
+        focus_m is the lens's focus distance along the optical axis (None: the feature centre's,
+        as planned, sec. 5.4)."""
         task, effects = self.task, self.effects
         T_cell_cam = T_cell_cam @ self.T_cam_true
         origin, optical_axis = T_cell_cam[:3, 3], T_cell_cam[:3, 2]
@@ -208,7 +241,16 @@ class Renderer:
             lamp_to_point = origin + r.depth[r.hit, None] * dirs[r.hit] - lamp_pos
             cos_off_axis = np.clip(np.einsum("nj,j->n", geometry.unit(lamp_to_point), axis), -1.0, 1.0)
             r.value[r.hit] *= cone_falloff(np.arccos(cos_off_axis), lamp.cone_angle_rad, lamp.profile)
-        gray = (r.value * shutter_s / f_number**2).reshape(self.shape)
+        value = self.light_factor(lamp.channel.number, drives) * r.value
+        for light, n in zip(task.lights, self.points):
+            factor = self.light_factor(light.channel.number, drives)
+            if factor > 0.0:
+                e = lights.emitters(light, T_cell_cam, n)
+                value += factor * render(self.world.warp_mesh, origin, dirs, e.position, e.axis, e.power_w,
+                                         e.cone_angle_rad, self.table, self.camera_constant,
+                                         task.camera.sensor.pixel_area_m2, shadows="shadows" in effects,
+                                         profile=e.profile).value
+        gray = (value * shutter_s / f_number**2).reshape(self.shape)
         cos_field = self.rays_cam[:, 2].reshape(self.shape)
         if "vignetting" in effects:
             gray = gray * cos_field**4

@@ -27,6 +27,7 @@ import pytest
 from cell.devices import servo
 from loopback import dashboard, free_host, start_emulator, stop_emulator
 from sim.dxl_emulator import DxlEmulator
+from sim.gardasoft_emulator import GardasoftEmulator
 from simcell import variant
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -54,15 +55,16 @@ sys.exit(main(sys.argv[1:]))
 
 
 @contextmanager
-def hw_cell(tmp_path, source=HINGE):
+def hw_cell(tmp_path, source=HINGE, more=None):
     """The UR emulator process and the servo bus, and a variant of the task `source` (the hinge)
-    wired to them."""
+    wired to them, with `more` settings ({dotted.key: value})."""
     host = free_host()
     log = tmp_path / "ur_controller.log"
     emulator = start_emulator(host, (), 120, log)
     try:
         with DxlEmulator(ids=(1, 2), speedup=10) as servos:
-            task = variant(tmp_path, source, {**SETTINGS, "cell.arm.host": host, "cell.pan_tilt.port": servos.port})
+            task = variant(tmp_path, source, {**SETTINGS, "cell.arm.host": host, "cell.pan_tilt.port": servos.port,
+                                              **(more or {})})
             yield SimpleNamespace(host=host, emulator=emulator, servos=servos, task=task)
     finally:
         stop_emulator(emulator)
@@ -145,6 +147,30 @@ def test_a_multi_shot_run_on_the_real_sdks_converges_for_every_feature_as_the_si
     assert "moves 2 " in status and "moving False" in status
     for shot in hw.report["shots"]:
         assert shot["camera_error"]["position_m"] < 0.5e-3 and shot["camera_error"]["angle_deg"] < 0.3
+
+
+def test_the_ring_task_drives_the_lighting_controller_emulator_on_the_hw_path(tmp_path):
+    """tasks/ring.yaml on the real adapters, the Gardasoft adapter against its emulator (an RT420):
+    converged; before every capture each channel was set (`RSc,s`) to the plan's drive and read
+    back there, the dark frame with every channel off; at the end every channel is off."""
+    with GardasoftEmulator(channels=4) as lights, hw_cell(tmp_path, ROOT / "tasks/ring.yaml", {
+            "cell.lighting.host": lights.address[0], "cell.lighting.port": lights.address[1],
+            "cell.lighting.channels": 4}) as cell:
+        hw = finish(start(cell.task, tmp_path / "hw"))
+        received = [line.decode().strip() for line in lights.received]
+        final = dict(lights.controller.setting_pct)
+    assert hw.code == 0 and hw.report["converged"], hw.stderr
+    planned = {light["channel"]: light["drive"] for light in hw.report["plan"]["lights"]}
+    sets = [line["drives"] for line in hw.log if line["step"] == "set_drives"]
+    assert sets[0] == {"1": 0.0, "2": 0.0, "3": 0.0}                       # the dark frame
+    for drives, iteration in zip(sets[1:], hw.report["iterations"], strict=True):
+        assert drives == iteration["drives"]
+        assert {int(c): level for c, level in drives.items()} == pytest.approx(planned, abs=0.0005)  # 0.1 % steps
+    for channel, drive in planned.items():          # what the controller was told before the capture
+        told = [line for line in received if line.startswith(f"RS{channel},")]
+        assert float(told[-2].split(",")[1]) == pytest.approx(100 * drive, abs=0.05)
+        assert told[-1] == f"RS{channel},0"                                 # then off at the end
+    assert final == {1: 0.0, 2: 0.0, 3: 0.0, 4: 0.0}
 
 
 def test_cell_hw_check_reads_the_hw_cell_with_its_simulated_camera(tmp_path):

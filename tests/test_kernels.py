@@ -478,6 +478,20 @@ def test_render_matches_the_numpy_renderer(plate_scene, profile):
     np.testing.assert_allclose(warp.value, numpy.value, rtol=1e-4, atol=0)
 
 
+def test_render_of_several_point_lamps_is_the_sum_of_each_one_s_and_the_numpy_renderer_s(plate_scene):
+    """An extended light's emitter points in one launch: each shaded with its own shadow ray
+    (the cube casts a soft shadow), the sum of rendering each alone, and the NumPy reference's."""
+    mesh, origin, dirs, lamp, aim, *rest = plate_scene
+    lamps = lamp + np.array([[0.0, 0.0, 0.0], [0.0, 0.03, 0.0], [-0.02, -0.01, 0.02]])
+    axes = geometry.unit(-lamps)
+    out = render(mesh, origin, dirs, lamps, axes, *rest)
+    alone = [render(mesh, origin, dirs, p, a, *rest).value for p, a in zip(lamps, axes)]
+    np.testing.assert_allclose(out.value, np.sum(alone, axis=0), rtol=1e-12, atol=0)
+    partly = (np.array(alone) > 0).sum(axis=0) == 2
+    assert partly.sum() > 5                               # the penumbra: some points hidden
+    np.testing.assert_allclose(out.value, ref.render(mesh, origin, dirs, lamps, axes, *rest).value, rtol=1e-4, atol=0)
+
+
 def test_render_with_a_profile_equals_the_gray_kernel_with_it(plate_scene):
     mesh, origin, dirs, lamp, aim, *rest = plate_scene
     profile = SOFT * [40.0 / 12.0, 1.0]

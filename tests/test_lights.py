@@ -279,7 +279,7 @@ def test_plan_json_names_each_light_its_channel_drive_and_pose(ring_plan, tmp_pa
     task, plan = ring_plan
     doc = plan.to_json()
     assert [(x["name"], x["type"], x["channel"]) for x in doc["lights"]] == [
-        ("lamp", "spot", 0), ("bright_field_ring", "ring", 1), ("dark_field_ring", "ring", 2)]
+        ("lamp", "spot", 3), ("bright_field_ring", "ring", 1), ("dark_field_ring", "ring", 2)]
     assert all(0.0 <= x["drive"] <= 1.0 and len(x["pose"]["position_m"]) == 3 for x in doc["lights"])
     flange = doc["lights"][1]["pose"]["position_m"]        # 60 mm in front of the camera, below it
     camera = doc["camera"]["position_m"]

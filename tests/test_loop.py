@@ -25,7 +25,7 @@ from cell.task.loader import load_task
 from sim.cell import make_sim_devices
 from simcell import recording_connect, variant
 
-HINGE, CONROD = "tasks/hinge.yaml", "tasks/conrod.yaml"
+HINGE, CONROD, RING = "tasks/hinge.yaml", "tasks/conrod.yaml", "tasks/ring.yaml"
 DRIVE = ["move_camera", "move_lamp"]
 DARK = ["set_exposure", "capture", "black_level"]     # the dark frame, dark.png
 SHOT = ["set_exposure", "capture", "register", "measure"]
@@ -237,6 +237,40 @@ def test_saturated_samples_give_a_lower_bound_and_the_rest_an_estimate():
     assert control.model_error(np.array([0.0, 0.0, 0.0]), predicted, 255) == (0.5 / 120.0, "<=")
 
 
+# --- several light channels ----------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def ring(tmp_path_factory):
+    return run(RING, tmp_path_factory.mktemp("ring") / "run")
+
+
+def test_the_ring_task_converges_with_each_channel_at_its_planned_drive(ring):
+    """Before every capture each channel is set to the plan's drive (read back: in the log and in
+    report.json's iterations); the dark frame is taken with every channel off; at the end every
+    channel is off."""
+    assert ring.error is None and ring.report["converged"], ring.report["reason"]
+    planned = {str(light["channel"]): light["drive"] for light in ring.report["plan"]["lights"]}
+    assert set(planned) == {"1", "2", "3"} and planned["2"] == 1.0 and planned["1"] == 0.0
+    sets = [line for line in ring.log if line["step"] == "set_drives"]
+    assert ring.steps == ["plan", *DRIVE, "set_drives", *DARK, *(["set_drives", *SHOT] * (len(sets) - 1)), "done"]
+    assert sets[0]["drives"] == dict.fromkeys(planned, 0.0)
+    for line, iteration in zip(sets[1:], ring.report["iterations"], strict=True):
+        assert line["drives"] == iteration["drives"] == pytest.approx(planned, abs=1e-12)
+    assert ring.devices.lights.levels() == {1: 0.0, 2: 0.0, 3: 0.0}
+
+
+def test_a_lighting_fault_turns_every_channel_off_and_exits_3(tmp_path):
+    """The controller refuses the first capture's third set (over-current): the safe stop turns
+    every channel off, report.json names the lighting controller, the log keeps every step."""
+    cell = run(RING, tmp_path / "run", faults={"lights_fail_on_set": 6})
+    assert isinstance(cell.error, DeviceFault) and cell.error.exit_code == 3 and cell.error.device == "lighting"
+    assert "over current" in str(cell.error) and "motion stopped" in str(cell.error)
+    assert cell.steps == ["plan", *DRIVE, "set_drives", *DARK, "fault"]
+    assert cell.stops == ["arm.stop", "pan-tilt.stop", "camera.close"]
+    assert cell.report["fault"]["device"] == "lighting" and not cell.report["converged"]
+    assert cell.devices.lights.levels() == {1: 0.0, 2: 0.0, 3: 0.0}
+
+
 # --- faults ----------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("name, changes, faults, before", [
@@ -345,9 +379,27 @@ def test_a_frame_of_another_size_than_the_sensor_is_a_camera_fault():
         measurement.measure_feature(np.zeros((388, 516)), task, scene.T_cell_cam, scene.points, 255)
 
 
-def test_the_hardware_backend_needs_an_address_before_anything_connects(tmp_path):
-    assert main(["run", HINGE, "--backend", "hw", "--out", str(tmp_path)]) == 2
-    assert "cell.arm.host" in json.loads((tmp_path / "report.json").read_text())["reason"]
+def test_the_hardware_backend_needs_an_address_before_anything_connects(tmp_path, capsys):
+    """Refused before any planning or folder (cell.cli.backend_of)."""
+    assert main(["run", HINGE, "--backend", "hw", "--out", str(tmp_path / "run")]) == 2
+    assert "cell.arm.host" in capsys.readouterr().err and not (tmp_path / "run").exists()
+
+
+def test_lights_on_channels_need_the_lighting_controller_s_address_on_the_hardware_backend(tmp_path, capsys):
+    """A task whose lights are on channels, its arm and servos addressed but no cell.lighting:
+    exit 2 before any work, one line naming cell.lighting.host."""
+    task = variant(tmp_path, RING, {"cell.arm.host": "192.0.2.1", "cell.pan_tilt.port": "/dev/null"})
+    assert main(["run", str(task), "--backend", "hw", "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "cell.lighting.host" in err[0] and "channels 1, 2, 3" in err[0]
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_light_on_a_channel_the_controller_lacks_is_bad_input(tmp_path, capsys):
+    task = variant(tmp_path, RING, {"cell.lighting.channels": 2})
+    assert main(["run", str(task), "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "lamp.channel" in err[0] and "1..2" in err[0]
 
 
 def test_max_iterations_below_1_is_bad_input():

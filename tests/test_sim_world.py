@@ -51,7 +51,7 @@ def hinge():
 def plans(hinge):
     """The task files (effects as given) and their plans; a plan does not depend on sim."""
     return {name: (task, plan(task)) for name, task in
-            (("hinge", hinge), ("conrod", load_task(TASKS / "conrod.yaml")))}
+            (("hinge", hinge), ("conrod", load_task(TASKS / "conrod.yaml")), ("ring", load_task(TASKS / "ring.yaml")))}
 
 
 @pytest.fixture(scope="module")
@@ -96,13 +96,21 @@ def plate_points(renderer, scene):
 
 # --- (a) no effects, neutral truth: the planner's prediction -------------------------------------
 
-@pytest.mark.parametrize("name", ["hinge", "conrod"])
+def planned_drives(shot):
+    """{channel: drive} of a shot's lights on the lighting controller."""
+    return {light.channel: light.drive for light in shot.lights if light.channel is not None}
+
+
+@pytest.mark.parametrize("name", ["hinge", "conrod", "ring"])
 def test_without_effects_the_image_shows_the_planned_gray_at_every_sample(plans, name):
+    """The ring task: the spot and both rings at the plan's drives (the bright-field ring off),
+    each ring as the planner's emitter points."""
     task, p = plans[name]
     task, scene = with_sim(task), p.scene
     renderer = Renderer(task, scene)
     aim = lamp_aim(task.lamp.rig.pivot_m, p.shot.lamp_position)
-    image = renderer(scene.T_cell_cam, p.shot.lamp_position, aim, p.shot.exposure.shutter_s, p.shot.exposure.f_number)
+    image = renderer(scene.T_cell_cam, p.shot.lamp_position, aim, p.shot.exposure.shutter_s, p.shot.exposure.f_number,
+                     drives=planned_drives(p.shot))
     assert image.shape == (776, 1032) and image.dtype == np.float64
     uv, _ = project(renderer.K, scene.T_cell_cam, scene.points)
     u, v = np.rint(uv).astype(int).T
@@ -294,6 +302,66 @@ def test_quantization_gives_integers_clipped_at_the_bit_depth(plate):
     np.testing.assert_array_equal(quantized, np.clip(np.rint(plain), 0, 255))
     assert np.sum(quantized == 255) == np.sum(plain >= 254.5) > 100
     assert quantized.min() == 0
+
+
+# --- several lights: linear in every channel's drive --------------------------------------------
+
+def ring_shots(plans, effects, **truth):
+    """shoot(drives) -> the ring task's image at the plan's poses and exposure at the test grid with
+    these channel drives; and the plan."""
+    task, p = plans["ring"]
+    renderer = Renderer(with_sim(task, effects, **truth), p.scene, scale=SCALE)
+    aim = lamp_aim(task.lamp.rig.pivot_m, p.shot.lamp_position)
+    e = p.shot.exposure
+    return lambda drives: renderer(p.scene.T_cell_cam, p.shot.lamp_position, aim, e.shutter_s, e.f_number,
+                                   drives=drives), p
+
+
+def test_a_capture_at_the_planned_drives_is_the_sum_of_the_basis_captures_within_the_noise(plans):
+    """G = b + sum_k w_k G_k (the linearity the drive program relies on, cell.planning.drives):
+    with noise, black level and quantization, the capture with every channel at its planned drive
+    less the dark frame (every channel off) equals the sum of the basis captures (one channel at its
+    planned drive, the others off), each less the dark frame, to the noise: the residual
+    F - sum_k B_k + (K - 1) D over its standard deviation from the sensor model (EMVA 1288's
+    K mu_e + (K sigma_d)^2 + 1/12 per frame) has mean 0 and spread 1."""
+    shoot_at, p = ring_shots(plans, ("shadows", "noise", "black_level", "quantization"))
+    drives = planned_drives(p.shot)
+    assert len(drives) == 3 and sum(d > 0 for d in drives.values()) >= 2
+    off = dict.fromkeys(drives, 0.0)
+    full, dark = shoot_at(drives).astype(float), shoot_at(off).astype(float)
+    basis = [shoot_at(off | {channel: drive}).astype(float) for channel, drive in drives.items()]
+    clean = ring_shots(plans, ())[0]
+    sensor = world.SensorModel.of(plans["ring"][0].camera.sensor)
+    gain, read = sensor.gain_dn_per_e, sensor.dark_noise_e
+
+    def variance(signal):
+        return gain * signal + (gain * read) ** 2 + 1.0 / 12.0
+
+    signals = [clean(off | {channel: drive}) for channel, drive in drives.items()]
+    k = len(basis)
+    expected = variance(sum(signals)) + sum(variance(s) for s in signals) + (k - 1) ** 2 * variance(0.0)
+    residual = full - sum(basis) + (k - 1) * dark
+    lit = (sum(signals) > 20.0) & (full < 250.0)
+    assert lit.sum() > 10_000
+    z = residual[lit] / np.sqrt(expected[lit])
+    assert abs(z.mean()) < 0.05 and z.std() == pytest.approx(1.0, abs=0.05)
+    np.testing.assert_allclose((full - dark)[lit].mean(), sum(b - dark for b in basis)[lit].mean(), rtol=2e-3)
+
+
+def test_a_dead_channel_lights_nothing_and_a_weak_one_its_share(plans):
+    """sim.truth.channel_power_scale: the dark-field ring's channel at 0 (dead) leaves the spot's
+    light alone; at 0.5 its share of the image halves."""
+    task, p = plans["ring"]
+    ring = next(light.channel for light in p.shot.lights if light.name == "dark_field_ring")
+    drives = planned_drives(p.shot)
+    shoot_at = ring_shots(plans, ())[0]
+    alone = shoot_at(drives | {ring: 0.0})
+    model = shoot_at(drives)
+    dead = ring_shots(plans, (), channel_power_scale=((ring, 0.0),))[0](drives)
+    weak = ring_shots(plans, (), channel_power_scale=((ring, 0.5),))[0](drives)
+    np.testing.assert_allclose(dead, alone, rtol=1e-12, atol=0)
+    np.testing.assert_allclose(weak - alone, 0.5 * (model - alone), rtol=1e-9, atol=1e-12)
+    assert (model - alone).max() > 50.0
 
 
 # --- (c) truth ---------------------------------------------------------------------------------

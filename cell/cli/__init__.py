@@ -81,11 +81,13 @@ def one_feature(task: Task, command: str) -> Task:
 def backend_of(task: Task, given: str | None) -> str:
     """The backend a command runs on (--backend, else the task's cell.backend), with the task's cell
     section checked for it now, before any planning or folder: for hw everything the real cell's
-    devices need (cell.task.device_config.for_hw; bad input, exit 2)."""
-    from cell.task.device_config import for_hw
+    devices need (cell.task.device_config.for_hw; bad input, exit 2), on either backend every
+    light's channel one of cell.lighting's (check_channels)."""
+    from cell.task.device_config import check_channels, for_hw
     backend = given or task.cell.backend
     if backend == "hw":
-        for_hw(task.cell.devices)
+        for_hw(task.cell.devices, task.channels)
+    check_channels(task.cell.devices, task.channels)
     return backend
 
 

@@ -266,6 +266,10 @@ class LightController(ABC):
         self._check_channel(channel)
         return self._read_drive(channel)
 
+    def levels(self) -> dict[int, float]:
+        """Every channel's level (0..1), read back from the device: {channel: level}."""
+        return {channel: self.drive(channel) for channel in range(1, self.channels + 1)}
+
     def all_off(self) -> None:
         """Every channel to 0, each tried even if one fails; then the first failure is raised,
         naming the channels left as they were."""
@@ -299,7 +303,7 @@ class LightController(ABC):
     def state(self) -> dict:
         """Every channel's level read back, JSON-ready (`cell hw-check`); sets nothing. `problems`:
         what a run would stop on."""
-        return {"levels": {str(c): self.drive(c) for c in range(1, self.channels + 1)}, "problems": []}
+        return {"levels": {str(c): level for c, level in self.levels().items()}, "problems": []}
 
     def close(self) -> None:
         """Release the connection (after all_off)."""

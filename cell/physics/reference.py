@@ -148,7 +148,8 @@ def render(mesh: TriangleMesh, origin: ArrayLike, ray_dirs: ArrayLike, lamp_pos:
            power_w: float, cone_angle_rad: float, table: ArrayLike, camera_constant: float, pixel_area_m2: float,
            shadows: bool = True, cone: bool = True, offset_m: float = 1e-5, max_dist: float = 10.0,
            profile: np.ndarray | None = None) -> RenderResult:
-    """NumPy version of kernels.render.render (same arguments, same RenderResult)."""
+    """NumPy version of kernels.render.render (same arguments, same RenderResult; E point lamps
+    (E, 3) summed)."""
     origin = np.asarray(origin, dtype=np.float64)
     dirs = geometry.unit(np.asarray(ray_dirs, dtype=np.float64).reshape(-1, 3))
     t, face = ray_first_hit(mesh, np.broadcast_to(origin, dirs.shape), dirs, max_dist)
@@ -158,9 +159,11 @@ def render(mesh: TriangleMesh, origin: ArrayLike, ray_dirs: ArrayLike, lamp_pos:
     normal[hit] = geometry.unit(np.cross(e1[face[hit]], e2[face[hit]]))
     value = np.zeros(len(dirs))
     if hit.any():
+        lamps = np.asarray(lamp_pos, dtype=np.float64).reshape(-1, 3)
+        axes = np.broadcast_to(np.asarray(lamp_axis, dtype=np.float64).reshape(-1, 3), lamps.shape)
         g = gray_per_exposure(mesh if shadows else None, origin + t[hit, None] * dirs[hit],
-                              normal[hit], origin, lamp_pos, lamp_axis, power_w,
+                              normal[hit], origin, lamps, axes, power_w,
                               cone_angle_rad, table, camera_constant, pixel_area_m2,
                               shadows=shadows, cone=cone, offset_m=offset_m, profile=profile)
-        value[hit] = g.value[0]
+        value[hit] = g.value.sum(axis=0)
     return RenderResult(value, hit, t, normal)

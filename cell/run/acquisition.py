@@ -1,18 +1,18 @@
 """Acquisition, shared by the closed loop and the calibration routines: plan, refuse an
-infeasible plan before anything moves and connect the devices; move to a Shot's poses, set an
-exposure and take a frame, find the sensor's black level (the task's, or a dark frame's), each step
-logged as the devices read it back."""
+infeasible plan before anything moves and connect the devices; move to a Shot's poses, set the
+light channels' drives and an exposure and take a frame, find the sensor's black level (the
+task's, or a dark frame's), each step logged as the devices read it back."""
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from cell.physics.sensor import levels
 from cell.devices.interfaces import speaking_for
-from cell.core.errors import PlanInfeasible
+from cell.core.errors import DeviceFault, PlanInfeasible
 from cell.planning.plan import gray_stats
 from cell.run import measurement
 from cell.report import words
@@ -36,6 +36,7 @@ class Capture:
     f_number: float
     focus_m: float
     name: str                    # its file in the run folder
+    drives: dict[int, float] = field(default_factory=dict)   # each light channel's level read back (0..1)
 
 
 def plan_recorded(task: Task, recorder: Recorder, albedo_scale: float = 1.0, iteration: int | None = None,
@@ -100,13 +101,39 @@ def move_lamp(devices: Devices, joints: tuple[float, ...], recorder: Recorder,
     return pan, tilt, radius
 
 
+def planned_drives(shot: Shot) -> dict[int, float]:
+    """{channel: drive level 0..1} of the shot's lights on the lighting controller (Shot.lights;
+    a light on no channel is always on and has none)."""
+    return {light.channel: light.drive for light in shot.lights if light.channel is not None}
+
+
+def set_drives(devices: Devices, drives: Mapping[int, float], recorder: Recorder,
+               iteration: int | None = None) -> dict[int, float]:
+    """Each light channel to its drive level (0..1) on the lighting controller, logged as read
+    back; returns the read-back {channel: level}. Nothing to set, nothing done; channels to set
+    and no controller is a DeviceFault (the loader and cell.task.device_config see to it that a
+    task's channels have one)."""
+    if not drives:
+        return {}
+    lights = devices.lights
+    if lights is None:
+        raise DeviceFault("lighting", f"channels {sorted(drives)} to drive and the cell has no lighting controller")
+    with speaking_for(lights):
+        read = {channel: lights.set_drive(channel, level) for channel, level in sorted(drives.items())}
+    recorder.step("set_drives", ", ".join(f"channel {c} at {100 * level:.1f} %" for c, level in read.items()),
+                  iteration=iteration, drives={str(c): level for c, level in read.items()})
+    return read
+
+
 def acquire(devices: Devices, recorder: Recorder, iteration: int, shutter_s: float, f_number: float,
-            focus_m: float, name: str | None = None) -> Capture:
-    """Set f-number, focus and shutter, take a frame and save it at once (capture-N.png, or
-    name.png, the sim's float gray rounded to the sensor's levels). Returns the Capture. The shutter comes last:
-    a camera drops the frames exposed before it changed (OpenCVCamera), and an operator turning
-    the lens by hand would otherwise be in them."""
+            focus_m: float, name: str | None = None, drives: Mapping[int, float] | None = None) -> Capture:
+    """Set the light channels' drives (set_drives; none given: as they are), f-number, focus and
+    shutter, take a frame and save it at once (capture-N.png, or name.png, the sim's float gray
+    rounded to the sensor's levels). Returns the Capture. The shutter comes last: a camera drops
+    the frames exposed before it changed (OpenCVCamera), and an operator turning the lens by hand
+    would otherwise be in them."""
     camera = devices.camera
+    read = set_drives(devices, drives or {}, recorder, iteration)
     with speaking_for(camera):
         camera.set_aperture(f_number)
         camera.set_focus(focus_m)
@@ -120,24 +147,26 @@ def acquire(devices: Devices, recorder: Recorder, iteration: int, shutter_s: flo
     recorder.step("capture", name, iteration=iteration, capture=name, shape=image.shape, dtype=str(image.dtype))
     with speaking_for(devices.arm):
         pose = devices.arm.camera_pose()
-    return Capture(image, pose, shutter_s, float(f_number), float(focus_m), name)
+    return Capture(image, pose, shutter_s, float(f_number), float(focus_m), name, read)
 
 
 DARK_FRAME = "dark"       # the dark frame's file in the run folder (dark.png), named as what it is
 
 
 def find_black_level(task: Task, devices: Devices, recorder: Recorder, f_number: float, focus_m: float,
-                     feature_light: Callable[[float], float] | None = None) -> measurement.BlackLevel:
+                     feature_light: Callable[[float], float] | None = None,
+                     drives: Mapping[int, float] | None = None) -> measurement.BlackLevel:
     """The task's camera.sensor.black_level, else a dark frame's (measurement.black_level_of):
-    dark.png at the shortest shutter (the rig cannot switch the lamp off) and f_number,
-    logged with feature_light(shutter) when given: the most light the model lets reach the
-    feature in that frame [gray]. Returns the measurement.BlackLevel."""
+    dark.png at the shortest shutter (a light on no channel cannot be switched off) and f_number,
+    the light channels at `drives` (the loop's: all off), logged with feature_light(shutter) when
+    given: the most light the model lets reach the feature in that frame [gray]. Returns the
+    measurement.BlackLevel."""
     b = task.camera.sensor.black_level
     if b is not None:
         black = measurement.BlackLevel(float(b), 0.0, "task")
         recorder.step("black_level", f"black level {b:.2f} gray (camera.sensor.black_level)", **black.to_json())
         return black
-    capture = acquire(devices, recorder, 0, task.camera.shutter_range_s[0], f_number, focus_m, DARK_FRAME)
+    capture = acquire(devices, recorder, 0, task.camera.shutter_range_s[0], f_number, focus_m, DARK_FRAME, drives)
     black = measurement.black_level_of(capture.image)
     light = {} if feature_light is None else {"feature_light": feature_light(capture.shutter_s)}
     note = f": the feature's light at most {light['feature_light']:.2g} gray by the model" if light else ""

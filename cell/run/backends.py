@@ -7,7 +7,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from cell.devices.interfaces import Camera, Device, Devices, speaking_for
+from cell.devices.interfaces import Camera, Device, Devices, LightController, speaking_for
 from cell.core.errors import DeviceFault
 from cell.devices.operator import Operator
 from cell.devices.session import try_all
@@ -19,7 +19,7 @@ if TYPE_CHECKING:
     from cell.task.types import Task
     from sim.laser import Beam
 
-OpenCamera = Callable[..., Camera]      # open(operator, arm=None, lamp=None) -> the task's camera
+OpenCamera = Callable[..., Camera]      # open(operator, arm=None, lamp=None, lights=None) -> the task's camera
 
 
 def open_devices(task: Task, scene: Scene | None, backend: str, yes: bool = False, laser: Beam | None = None,
@@ -42,28 +42,29 @@ def make_hw_devices(task: Task, yes: bool = False, operator: Operator | None = N
     servos, camera and, if the task has cell.lighting, the lighting controller in turn and closes
     what was opened if a later one fails. With
     cell.camera.driver simulated the camera renders `scene` (default: the task's, built here)."""
-    config = for_hw(task.cell.devices)
+    config = for_hw(task.cell.devices, task.channels)
     from cell.devices.hw.dynamixel import DynamixelPanTilt
     from cell.devices.hw.ur import URArm
     open_camera = hw_camera(task, scene=scene)
 
     operator = operator or Operator(yes=yes)
-    opened: list[Any] = []            # arm, pan-tilt, camera and lighting controller: Devices' order
+    opened: list[Any] = []            # arm, pan-tilt, lighting controller, camera
+    lights: LightController | None = None
     try:
         with speaking_for(URArm):
-            opened.append(URArm(config.arm, task.frames))
+            opened.append(arm := URArm(config.arm, task.frames))
         with speaking_for(DynamixelPanTilt):
-            opened.append(DynamixelPanTilt(task.lamp.rig, config.pan_tilt, operator))
-        with speaking_for(Camera):
-            opened.append(open_camera(operator, *opened))
-        if config.lighting:
+            opened.append(lamp := DynamixelPanTilt(task.lamp.rig, config.pan_tilt, operator))
+        if config.lighting:           # before the camera: a simulated one renders its read-back levels
             from cell.devices.hw.gardasoft import GardasoftController
             with speaking_for(GardasoftController):
-                opened.append(GardasoftController(config.lighting))
+                opened.append(lights := GardasoftController(config.lighting))
+        with speaking_for(Camera):
+            opened.append(camera := open_camera(operator, arm, lamp, lights))
     except Exception:
         try_all([device.close for device in reversed(opened)])
         raise
-    return Devices(*opened)
+    return Devices(arm, lamp, camera, lights)
 
 
 @dataclass(frozen=True)
@@ -93,7 +94,7 @@ def check_hw_devices(task: Task) -> list[DeviceCheck]:
     DeviceCheck per device (arm, pan-tilt, camera, and the lighting controller if the task has
     cell.lighting: its firmware and every channel's level read, no `GT1`). The camera's frames
     are compared with camera.sensor, as a run does."""
-    config = for_hw(task.cell.devices)
+    config = for_hw(task.cell.devices, task.channels)
     from cell.devices.hw.dynamixel import DynamixelPanTilt
     from cell.devices.hw.ur import URArm
     open_camera = hw_camera(task, read_only=True)
@@ -143,25 +144,26 @@ def camera_address(config: CameraConfig) -> str:
 
 
 def hw_camera(task: Task, read_only: bool = False, scene: Scene | None = None) -> OpenCamera:
-    """open(operator, arm=None, lamp=None) -> the camera of the task's cell.camera.driver: OpenCV's
-    VideoCapture, a GenICam device, whose SDK (harvesters, the `genicam` extra) is imported only
-    here: not installed is bad input before anything connects, or the simulator rendering `scene`
-    (default: the task's) from `arm`'s and `lamp`'s read-back poses, a dry run of a real arm and
-    lamp rig without a camera. read_only: a GenICam device opened without its set-up, for `cell
+    """open(operator, arm=None, lamp=None, lights=None) -> the camera of the task's
+    cell.camera.driver: OpenCV's VideoCapture, a GenICam device, whose SDK (harvesters, the
+    `genicam` extra) is imported only here: not installed is bad input before anything connects,
+    or the simulator rendering `scene` (default: the task's) from `arm`'s and `lamp`'s read-back
+    poses and the lighting controller's read-back levels, a dry run of a real arm, lamp rig and
+    lighting controller without a camera. read_only: a GenICam device opened without its set-up, for `cell
     hw-check` (OpenCV's and the simulated camera set nothing when they open)."""
     config, bit_depth = task.cell.devices.camera, task.camera.sensor.bit_depth
     if config.driver == "opencv":
         from cell.devices.hw.opencv_camera import OpenCVCamera
-        return lambda operator, arm=None, lamp=None: OpenCVCamera(config, bit_depth, operator)
+        return lambda operator, arm=None, lamp=None, lights=None: OpenCVCamera(config, bit_depth, operator)
     if config.driver == "simulated":
         from cell.planning.scene import build_scene
         from sim.camera import SimCamera
         from sim.world import Renderer
-        return lambda operator, arm=None, lamp=None: SimCamera(Renderer(task, scene or build_scene(task)),
-                                                               arm, lamp, bit_depth)
+        return lambda operator, arm=None, lamp=None, lights=None: SimCamera(
+            Renderer(task, scene or build_scene(task)), arm, lamp, bit_depth, lights=lights)
     try:
         from cell.devices.hw.genicam_camera import GenICamCamera
     except ImportError as err:            # for_hw found the SDK, but it does not import
         raise genicam_sdk_missing(task.path, err.name or str(err)) from None
-    return lambda operator, arm=None, lamp=None: GenICamCamera(config, task.camera.sensor, operator,
-                                                               read_only=read_only)
+    return lambda operator, arm=None, lamp=None, lights=None: GenICamCamera(config, task.camera.sensor, operator,
+                                                                            read_only=read_only)

@@ -10,7 +10,7 @@ and never change is the RunContext."""
 from __future__ import annotations
 
 from collections.abc import Callable, Generator, Iterator, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
@@ -20,7 +20,7 @@ from cell.physics.sensor import saturation_level
 from cell.run import acquisition, control, measurement, refit, registration
 
 from cell.planning import evaluate
-from cell.run.acquisition import Capture, acquire, move_to, plan_and_connect, plan_recorded
+from cell.run.acquisition import Capture, acquire, move_to, plan_and_connect, plan_recorded, planned_drives
 from cell.run.context import RunContext
 from cell.run.measurement import BlackLevel, Measurement
 from cell.run.refit import Refit
@@ -79,11 +79,13 @@ class Iteration:
     registration: dict[str, Any]         # registration.Registration.to_json
     correction: dict[str, Any] | None = None
     feature: str | None = None           # its feature's name, in a shot of several (cell.run.inspection)
+    drives: dict[str, float] = field(default_factory=dict)   # {channel: level 0..1} read back at the capture
 
     def to_json(self) -> dict[str, Any]:
         document = {k: getattr(self, k) for k in self.__dataclass_fields__
-                    if k not in ("correction", "feature")}
+                    if k not in ("correction", "feature", "drives")}
         return ({"feature": self.feature} if self.feature else {}) | document | (
+            {"drives": self.drives} if self.drives else {}) | (
             {"correction": self.correction} if self.correction else {})
 
 
@@ -189,10 +191,16 @@ class Model:
 
 def find_black_level(task: Task, plan: Plan, devices: Devices, recorder: Recorder) -> BlackLevel:
     """acquisition.find_black_level at the planned f-number and focus (a manual lens is not turned
-    twice more), with the most light the plan's model lets reach the feature in the dark frame."""
-    e = plan.shot.exposure
-    return acquisition.find_black_level(task, devices, recorder, e.f_number, e.focus_m, lambda shutter_s: float(
-        np.max(Model(plan, task).predicted(0.0, shutter_s, e.f_number))))
+    twice more) with every light channel off, logged with the most light the plan's model lets
+    reach the feature in the dark frame: the lights on no channel (all of it without channels),
+    their planned gray scaled by the shutter."""
+    shot = plan.shot
+    e, channels = shot.exposure, planned_drives(shot)
+    signal = (sum((light.gray for light in shot.lights if light.channel is None), np.zeros(len(shot.gray)))
+              if channels else Model(plan, task).predicted(0.0, e.shutter_s, e.f_number))
+    return acquisition.find_black_level(task, devices, recorder, e.f_number, e.focus_m,
+                                        lambda shutter_s: float(np.max(signal) * shutter_s / e.shutter_s),
+                                        dict.fromkeys(channels, 0.0))
 
 
 def registration_limit(task: Task, shot: Shot) -> float:
@@ -239,9 +247,10 @@ class LoopFeature:
 @dataclass(frozen=True)
 class Aim:
     """What the next capture is taken with and judged against: the features it measures (one, or
-    a shot's several), the black level, the exposure, the albedo scale of the plan, whether the
-    cell stands at the plan's poses (not after a re-plan) and whether the material was refitted
-    (once in a loop)."""
+    a shot's several), the black level, the exposure, the light channels' drives ({channel: level
+    0..1}, the plan's: set before every capture), the albedo scale of the plan, whether the cell
+    stands at the plan's poses (not after a re-plan) and whether the material was refitted (once
+    in a loop)."""
 
     features: tuple[LoopFeature, ...]
     black: BlackLevel
@@ -250,6 +259,7 @@ class Aim:
     albedo_scale: float = 1.0
     moved: bool = True
     refitted: bool = False
+    drives: dict[int, float] = field(default_factory=dict)
 
     @property
     def shot(self) -> Shot:
@@ -312,7 +322,8 @@ def measure_capture(ctx: RunContext, aim: Aim, feature: LoopFeature, k: int, cap
     annotated = ctx.recorder.write_image(f"capture-{k}-{file_name(name) if name else 'feature'}.png",
                                          annotate_capture(capture.image, m, bit_depth, caption))
     it = Iteration(k, capture.shutter_s, float(f_number), expected, stats, error, relation, in_band,
-                   capture.name, annotated, aim.albedo_scale, found.to_json(), feature=name)
+                   capture.name, annotated, aim.albedo_scale, found.to_json(), feature=name,
+                   drives={str(c): level for c, level in capture.drives.items()})
     ctx.recorder.step("measure", f"{named}gray mean {stats['mean']:.1f}, {m.min:.1f}-{m.max:.1f} over "
                                  f"{stats['pixels']} px "
                                  f"(pixels {stats['pixel_min']:.0f}-{stats['pixel_max']:.0f}, noise "
@@ -339,7 +350,8 @@ def iterate(ctx: RunContext, features: Sequence[LoopFeature]) -> Iterator[Event]
     if not ctx.black:
         yield BlackLevelFound(black)
     exposure = first.model.plan.shot.exposure
-    aim = Aim(tuple(features), black, exposure.shutter_s, exposure.f_number)
+    aim = Aim(tuple(features), black, exposure.shutter_s, exposure.f_number,
+              drives=planned_drives(first.model.plan.shot))
     if len(features) == 1 and black.value != evaluate.black_level(first.task):
         aim = knowing_black_level(aim)
     for k in range(1, ctx.max_iterations + 1):
@@ -369,7 +381,8 @@ def step(ctx: RunContext, aim: Aim, k: int) -> Generator[Event, None, Aim | None
     (correct_after: the next Aim)."""
     if not aim.moved:
         move_to(ctx.devices, aim.shot, ctx.recorder, k)
-    capture = acquire(ctx.devices, ctx.recorder, k, aim.shutter_s, aim.f_number, aim.shot.exposure.focus_m)
+    capture = acquire(ctx.devices, ctx.recorder, k, aim.shutter_s, aim.f_number, aim.shot.exposure.focus_m,
+                      drives=aim.drives)
     measured = [measure_capture(ctx, aim, feature, k, capture) for feature in aim.features]
     yield from (m.iteration for m in measured)
     aim = replace(aim, shutter_s=capture.shutter_s, moved=True)
@@ -444,11 +457,11 @@ def correct_after(ctx: RunContext, aim: Aim, k: int, measured: Sequence[Measured
 
 
 def replan_aim(aim: Aim, feature: LoopFeature, albedo_scale: float) -> Aim:
-    """The Aim at a re-plan of the one feature (its Model the new plan): the plan's exposure, the
-    cell still to move to its poses."""
-    exposure = feature.model.plan.shot.exposure
-    return replace(aim, features=(feature,), shutter_s=exposure.shutter_s, f_number=exposure.f_number,
-                   albedo_scale=albedo_scale, moved=False)
+    """The Aim at a re-plan of the one feature (its Model the new plan): the plan's exposure and
+    drives, the cell still to move to its poses."""
+    shot = feature.model.plan.shot
+    return replace(aim, features=(feature,), shutter_s=shot.exposure.shutter_s, f_number=shot.exposure.f_number,
+                   albedo_scale=albedo_scale, moved=False, drives=planned_drives(shot))
 
 
 def refit_and_replan(ctx: RunContext, aim: Aim, k: int, measured: Measured,

@@ -98,13 +98,15 @@ class DevicesConfig:
 GENICAM_SDK = ("harvesters", "genicam")    # what cell.devices.hw.genicam_camera imports (the `genicam` extra)
 
 
-def for_hw(config: DevicesConfig) -> DevicesConfig:
+def for_hw(config: DevicesConfig, channels: dict[int, str] | None = None) -> DevicesConfig:
     """The settings, once they name everything --backend hw reaches (bad input otherwise): the
     robot's address, the servos' serial port, the lighting controller's address if the task has
-    one (no default reaches a network or a bus) and, for a GenICam camera, its SDK installed
-    (looked up, not imported). The one check of the cell section for the real cell: `cell check`
-    of a task whose cell.backend is hw, every command with --backend hw before any planning or
-    folder (cell.cli.backend_of), `cell hw-check` and the backends before they connect."""
+    one or has lights on channels (`channels`, Task.channels: {channel: its key}; no default
+    reaches a network or a bus), every such channel one of the controller's (check_channels) and,
+    for a GenICam camera, its SDK installed (looked up, not imported). The one check of the cell
+    section for the real cell: `cell check` of a task whose cell.backend is hw, every command with
+    --backend hw before any planning or folder (cell.cli.backend_of), `cell hw-check` and the
+    backends before they connect."""
     file = config.task_file
     if not config.arm.host:
         raise TaskError(file, "cell.arm.host", "nothing",
@@ -112,14 +114,32 @@ def for_hw(config: DevicesConfig) -> DevicesConfig:
     if not config.pan_tilt.port:
         raise TaskError(file, "cell.pan_tilt.port", "nothing",
                         "the servos' serial port, e.g. /dev/ttyUSB0 (required for --backend hw)")
+    if channels and not config.lighting:
+        raise TaskError(file, "cell.lighting.host", "nothing (no cell.lighting section)",
+                        f"the lighting controller's address: the task's lights are on channels "
+                        f"{', '.join(map(str, sorted(channels)))} (required for --backend hw)")
     if config.lighting and not config.lighting.host:
         raise TaskError(file, "cell.lighting.host", "nothing",
                         "the lighting controller's address (required for --backend hw; there is no default)")
+    check_channels(config, channels or {})
     if config.camera.driver == "genicam":
         missing = next((name for name in GENICAM_SDK if importlib.util.find_spec(name) is None), None)
         if missing:
             raise genicam_sdk_missing(file, missing)
     return config
+
+
+def check_channels(config: DevicesConfig, channels: dict[int, str]) -> None:
+    """Every channel a light is on ({channel: its key}) one of the configured controller's,
+    1..cell.lighting.channels (bad input otherwise, naming the light); nothing to check without
+    cell.lighting (the simulated cell's controller has as many channels as the lights need)."""
+    if config.lighting is None:
+        return
+    beyond = sorted(c for c in channels if c > config.lighting.channels)
+    if beyond:
+        raise TaskError(config.task_file, channels[beyond[0]], str(beyond[0]),
+                        f"a channel of the lighting controller, 1..{config.lighting.channels} "
+                        "(cell.lighting.channels)")
 
 
 def genicam_sdk_missing(file: str | PathLike[str], name: str) -> TaskError:

@@ -60,7 +60,7 @@ class Effects(Spec):
 
 class ChannelScales(Spec):
     """`sim.truth.channel_power_scale`: {channel: the true power over the model's}, each channel a
-    non-negative integer, each scale a number >= 0 (0: a dead channel)."""
+    controller channel (an integer >= 1), each scale a number >= 0 (0: a dead channel)."""
 
     expected = "a mapping of channel numbers to scales >= 0, e.g. {1: 0.8, 3: 0}"
     default: dict[int, float] = {}
@@ -69,8 +69,8 @@ class ChannelScales(Spec):
         if not isinstance(raw, dict):
             raise Invalid(raw, self.expected)
         for channel, scale in raw.items():
-            if isinstance(channel, bool) or not isinstance(channel, int) or channel < 0:
-                raise Invalid(channel, "a channel number (an integer >= 0)")
+            if isinstance(channel, bool) or not isinstance(channel, int) or channel < 1:
+                raise Invalid(channel, "a channel number (an integer >= 1)")
             if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0 <= scale < float("inf"):
                 raise Invalid(scale, f"a scale >= 0 for channel {channel}")
         return {channel: float(scale) for channel, scale in raw.items()}
@@ -121,7 +121,7 @@ RIG = {
     "radius_axis": Choice("manual", "servo"),
 }
 CHANNEL = {
-    "channel": Integer(0, 255, default=None),
+    "channel": Integer(1, 255, default=None),        # the controller's numbering (Gardasoft's: from 1)
     "drive_range": Pair(lambda v: 0 <= v <= 1, "drive levels within [0, 1]", default=(0.0, 1.0)),
     "switched": Flag(default=False),
 }
@@ -729,7 +729,7 @@ def _lamp(file, lamp, entries):
         raise TaskError(file, "lamp", "nothing", "a spot on the pan-tilt: a `lamp` section, or a `lights` entry "
                                                  "with mount: pan_tilt (required)")
     profile = _check_cone_angle(file, lamp["cone_angle_rad"], _lamp_profile(file, lamp["profile"], profile_key), key)
-    return Lamp(lamp["power_w"], lamp["cone_angle_rad"], LampRig(**lamp["rig"]), profile, name, channel)
+    return Lamp(lamp["power_w"], lamp["cone_angle_rad"], LampRig(**lamp["rig"]), profile, name, channel, key)
 
 
 def _lights(file, lamp, entries):

@@ -129,6 +129,7 @@ class Lamp:
                                    # beyond the last angle; None: eq. (11)'s ideal cone
     name: str = "lamp"
     channel: Channel = Channel()
+    key: str = "lamp"              # where the task file gives it (`lamp`, or `lights[i]`), for errors
 
     @property
     def lit_half_angle_rad(self) -> float:
@@ -264,6 +265,14 @@ class Task:
             raise ValueError(f"the task has {len(self.features)} features; plan them with "
                              f"cell.planning.whole_part.plan_features, or take one with task.with_feature(i)")
         return self.features[0]
+
+    @property
+    def channels(self) -> dict[int, str]:
+        """The lighting controller's channels the task's lights are on, {channel: the key of the
+        light's channel in the task file}, the spot's first; empty when no light is on a channel."""
+        spot = self.lamp.channel.number
+        return ({} if spot is None else {spot: f"{self.lamp.key}.channel"}) | {
+            light.channel.number: f"{light.key}.channel" for light in self.lights if light.channel.number is not None}
 
     @property
     def requirements(self) -> Requirements:
