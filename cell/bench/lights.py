@@ -10,7 +10,8 @@
 - `channels`, planning the task's feature with N fixed lights, each on its own channel
   (channel_lights: bars, areas and rings on a sphere about the feature, aimed at it), the task's own
   lights replaced: the wall time of one_shot.plan warm (a plan of the same task first, then the
-  median of the repeats), the certificate included, and where it goes (stage_clock): every light's
+  median of the repeats; cpu_s its process time, what it costs on a machine other jobs load),
+  the certificate included, and where it goes (stage_clock): every light's
   contribution at the search's samples and on the certificate's dense patch, the drive program
   (cell.planning.drives.solve_drives, all its calls) and the certificate (its contributions included).
 
@@ -139,7 +140,7 @@ def stage_clock() -> Iterator[dict[str, float]]:
     each of those functions wrapped in a timer for the block, the planner itself unchanged."""
     spent = {"contributions": 0.0, "certificate_contributions": 0.0, "drives": 0.0, "certificate": 0.0}
     inside: list[str] = []
-    wrapped = [(lights, "contribution", "contributions"), (drives, "solve_drives", "drives"),
+    wrapped = [(lights, "contributions", "contributions"), (drives, "solve_drives", "drives"),
                (certificate, "verify", "certificate")]
 
     def timer(fn, key):
@@ -171,14 +172,14 @@ def channel_row(task: Task, n: int, repeats: int) -> tuple[dict[str, Any], Plan]
     runs = []
     for _ in range(max(1, repeats)):
         with stage_clock() as spent:
-            t0 = time.perf_counter()
+            t0, cpu0 = time.perf_counter(), time.process_time()
             plan = one_shot.plan(planned)
-            total = time.perf_counter() - t0
-        runs.append((total, spent, plan))
-    total, spent, plan = sorted(runs, key=lambda r: r[0])[len(runs) // 2]
+            total, cpu = time.perf_counter() - t0, time.process_time() - cpu0
+        runs.append((total, spent, plan, cpu))
+    total, spent, plan, cpu = sorted(runs, key=lambda r: r[0])[len(runs) // 2]
     assert plan.verification is not None or not plan.feasible
     shot = plan.shot
-    row: dict[str, Any] = {"task": task.path.stem, "channels": n, "time_s": total, "times_s": [r[0] for r in runs],
+    row: dict[str, Any] = {"task": task.path.stem, "channels": n, "time_s": total, "times_s": [r[0] for r in runs], "cpu_s": cpu,
            "contributions_s": spent["contributions"], "certificate_contributions_s": spent["certificate_contributions"],
            "drives_s": spent["drives"], "certificate_s": spent["certificate"],
            "samples": len(plan.planned_scene.points),

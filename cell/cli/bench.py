@@ -61,9 +61,9 @@ def report(result: dict[str, Any]) -> str:
           f"{r['startup_s']:.1f}", f"{r['first_s']:.2f}", "yes" if r["identical"] else "NO"]
          for r in result["workers"]])
     channels = text_table(
-        ["task", "channels", "on", "samples", "dense", "time s", "contributions s", "dense contributions s",
+        ["task", "channels", "on", "samples", "dense", "time s", "cpu s", "contributions s", "dense contributions s",
          "drives s", "certificate s", "other s", "feasible"],
-        [[r["task"], r["channels"], r["on"], r["samples"], r["dense_points"], f"{r['time_s']:.2f}",
+        [[r["task"], r["channels"], r["on"], r["samples"], r["dense_points"], f"{r['time_s']:.2f}", f"{r['cpu_s']:.2f}",
           *(f"{r[k]:.2f} ({r[k] / r['time_s']:.0%})" for k in ("contributions_s", "certificate_contributions_s")),
           f"{r['drives_s']:.3f} ({r['drives_s'] / r['time_s']:.0%})",
           *(f"{r[k]:.2f} ({r[k] / r['time_s']:.0%})" for k in ("certificate_s", "other_s")),
