@@ -8,7 +8,7 @@ import warp as wp
 from numpy.typing import ArrayLike
 
 from . import funcs
-from .emission import axis_intensity
+from .emission import axis_intensity, hard_cone_profile, profile_solid_angle
 from ._arrays import output, profile2d, table2d, unit_rows, vec3d
 from .cone import NO_CONE, free_cone_cosines, worth_finding
 from .runtime import ensure_init
@@ -52,18 +52,20 @@ def surface_kernel(points: wp.array(dtype=wp.vec3d), normals: wp.array(dtype=wp.
 def gray_kernel(mesh_id: wp.uint64, shadows: wp.int32, cone: wp.int32,
                 surfaces: wp.array(dtype=funcs.Surface), sector_cos: wp.array2d(dtype=wp.float64),
                 lamp_pos: wp.array(dtype=wp.vec3d),
-                lamp_axis: wp.array(dtype=wp.vec3d), intensity_w_sr: wp.float64,
+                lamp_axis: wp.array(dtype=wp.vec3d), intensity_w_sr: wp.array(dtype=wp.float64),
                 profile: wp.array2d(dtype=wp.float64), table: wp.array2d(dtype=wp.float64),
                 camera_constant: wp.float64, pixel_area_m2: wp.float64,
                 value: wp.array2d(dtype=wp.float64), shadowed: wp.array2d(dtype=wp.bool),
                 off_axis: wp.array2d(dtype=wp.float64), dominant: wp.array2d(dtype=wp.int8)):
-    """One thread per candidate lamp c, over every sample point p (on the CPU a thread is a
-    loop's turn: this way the lamp is read once and no thread index is divided)."""
+    """One thread per candidate lamp c (its axis intensity I(0) its own: the emitter points of
+    several lights in one call), over every sample point p (on the CPU a thread is a loop's turn:
+    this way the lamp is read once and no thread index is divided)."""
     c = wp.tid()
     lamp = lamp_pos[c]
     axis = lamp_axis[c]
+    intensity = intensity_w_sr[c]
     for p in range(surfaces.shape[0]):
-        sh = funcs.shade_point(mesh_id, shadows, cone, surfaces[p], sector_cos, lamp, axis, intensity_w_sr,
+        sh = funcs.shade_point(mesh_id, shadows, cone, surfaces[p], sector_cos, lamp, axis, intensity,
                                profile, table, camera_constant, pixel_area_m2)
         value[c, p] = sh.value
         shadowed[c, p] = sh.shadowed
@@ -83,7 +85,9 @@ class GrayInputs:
     camera_pos (3,); power_w, cone_angle_rad: the lamp (I(0) by kernels.emission.axis_intensity); table (K, 6): Material.table(); shadow
     rays start at point + offset_m * normal; profile (M, 2) [off_axis_rad, relative]: the lamp's
     angular profile (None: eq. (11)'s ideal cone). Call with lamp_pos (C, 3) and lamp_axis
-    (C, 3) (the aims, normalized here) for a GrayResult of (C, P) NumPy arrays.
+    (C, 3) (the aims, normalized here), and optionally power_w (C,), each lamp's own power (the
+    emitter points of several lights of one profile in one call), for a GrayResult of (C, P)
+    NumPy arrays.
 
     The points' free cones (kernels.cone) are found once the lamps evaluated so far make them
     worth it (kernels.cone.worth_finding, each lamp a ray per point): from then on only the rays
@@ -113,8 +117,11 @@ class GrayInputs:
         self.has_free_cones = False
         self._leading = [self._mesh.id if self._mesh is not None else wp.uint64(0), int(use_shadows),
                          int(bool(cone)), self.surfaces, sector_cos_wp]
-        self._trailing = [axis_intensity(power_w, cone_angle_rad, profile), profile2d(profile, cone_angle_rad),
-                          table2d(table), float(camera_constant), float(pixel_area_m2)]
+        self.intensity_w_sr = axis_intensity(power_w, cone_angle_rad, profile)
+        # I(0) is linear in the power: P / Omega_p for each lamp's own P (axis_intensity's division)
+        self._solid_angle_sr = profile_solid_angle(hard_cone_profile(cone_angle_rad) if profile is None else profile)
+        self._trailing = [profile2d(profile, cone_angle_rad), table2d(table), float(camera_constant),
+                          float(pixel_area_m2)]
         self._launches: dict[int, _Batch] = {}       # the kept batches, by lamp count
         self._lock = threading.Lock()
 
@@ -129,10 +136,14 @@ class GrayInputs:
                                                      int(sector_cos is not None)],
                       outputs=[self.surfaces])
 
-    def __call__(self, lamp_pos: ArrayLike, lamp_axis: ArrayLike) -> GrayResult:
+    def __call__(self, lamp_pos: ArrayLike, lamp_axis: ArrayLike, power_w: ArrayLike | None = None) -> GrayResult:
         lamp_pos = np.asarray(lamp_pos, dtype=np.float64).reshape(-1, 3)
         lamp_axis = unit_rows(np.broadcast_to(np.asarray(lamp_axis, dtype=np.float64), lamp_pos.shape),
                               "lamp_axis")
+        if power_w is None:
+            intensity = np.full(len(lamp_pos), self.intensity_w_sr)
+        else:
+            intensity = np.broadcast_to(np.asarray(power_w, dtype=np.float64), len(lamp_pos)) / self._solid_angle_sr
         with self._lock:
             self._lamps_seen += len(lamp_pos)
             if (self._mesh is not None and not self.has_free_cones and self.count
@@ -140,11 +151,11 @@ class GrayInputs:
                 self._set_free_cones(*free_cone_cosines(self._mesh, *self._ray_origins))
                 self.has_free_cones = True
             if len(lamp_pos) * self.count > SMALL:
-                return _Batch(self, len(lamp_pos)).run(lamp_pos, lamp_axis, copy=False)
+                return _Batch(self, len(lamp_pos)).run(lamp_pos, lamp_axis, intensity, copy=False)
             kept = self._launches.get(len(lamp_pos))
             if kept is None:
                 kept = self._launches[len(lamp_pos)] = _Batch(self, len(lamp_pos))
-            return kept.run(lamp_pos, lamp_axis, copy=True)
+            return kept.run(lamp_pos, lamp_axis, intensity, copy=True)
 
 
 class _Batch:
@@ -155,18 +166,20 @@ class _Batch:
         shape = (lamps, inputs.count)
         (self.lamp_pos, pos_wp), (self.lamp_axis, axis_wp) = (output((lamps, 3), np.float64, wp.vec3d)
                                                               for _ in range(2))
+        self.intensity, intensity_wp = output(lamps, np.float64, wp.float64)
         self.outputs = [output(shape, np.float64, wp.float64), output(shape, np.bool_, wp.bool),
                         output(shape, np.float64, wp.float64), output(shape, np.int8, wp.int8)]
         self.launch = None
         if lamps and inputs.count:
             self.launch = wp.launch(gray_kernel, dim=lamps, device=inputs.device, record_cmd=True,
-                                    inputs=inputs._leading + [pos_wp, axis_wp] + inputs._trailing,
+                                    inputs=inputs._leading + [pos_wp, axis_wp, intensity_wp] + inputs._trailing,
                                     outputs=[out_wp for _, out_wp in self.outputs])
-            self._inputs_wp = (pos_wp, axis_wp)         # the launch holds their addresses
+            self._inputs_wp = (pos_wp, axis_wp, intensity_wp)       # the launch holds their addresses
 
-    def run(self, lamp_pos: np.ndarray, lamp_axis: np.ndarray, copy: bool) -> GrayResult:
+    def run(self, lamp_pos: np.ndarray, lamp_axis: np.ndarray, intensity: np.ndarray, copy: bool) -> GrayResult:
         self.lamp_pos[:] = lamp_pos
         self.lamp_axis[:] = lamp_axis
+        self.intensity[:] = intensity
         if self.launch is not None:
             self.launch.launch()
         return GrayResult(*(out.copy() if copy else out for out, _ in self.outputs))

@@ -24,7 +24,7 @@ KERNEL_KEYS = {"name", "size", "warp_per_s", "reference_per_s", "ratio"}
 def bench(tmp_path_factory):
     out = tmp_path_factory.mktemp("bench")
     assert main(["bench", "--quick", "--out", str(out), str(TASKS / "hinge.yaml"), str(TASKS / "conrod.yaml"),
-                 str(PLANNED)]) == 0
+                 str(PLANNED), str(TASKS / "ring.yaml")]) == 0
     return json.loads((out / "bench.json").read_text()), out
 
 
@@ -59,7 +59,7 @@ def test_every_number_is_finite(bench):
     result, _ = bench
     available = [r for r in result["kernels"] if not r["unavailable"]]
     for key, x in leaves(result["settings"] + result["references"] + available + result["features"]
-                         + result["workers"]):
+                         + result["workers"] + result["channels"]):
         if x is None:
             assert key in ("samples", "unavailable")   # PlannerSettings.samples None: the task's
         elif isinstance(x, (int, float)):
@@ -168,3 +168,58 @@ def test_the_worker_row_compares_1_and_2_workers_and_finds_the_plans_identical(b
     targets = {t["name"]: t for t in result["targets"]}
     assert targets["hinge_planned: 2 workers / 1 worker >= 1.8"]["met"] == (row["speedup"] >= 1.8)
     assert targets["hinge_planned: serial and parallel plans identical"]["met"] is True
+
+
+def test_the_contribution_rows_time_every_light_type_against_numpy(bench):
+    """One row per light type on the ring task, emitter points x samples, side by side with the NumPy
+    reference summed over the same points, which it equals to rounding."""
+    result, _ = bench
+    rows = [r for r in result["kernels"] if r["name"].startswith("contribution")]
+    assert [r["light_type"] for r in rows] == ["spot", "ring", "bar", "area", "dome", "coaxial"]
+    for row in rows:
+        assert row["task"] == "ring" and row["size"] == row["emitter_points"] * row["samples"]
+        assert row["emitter_points"] == (1 if row["light_type"] == "spot" else 64)
+        assert row["reference_size"] % row["emitter_points"] == 0 and row["reference_size"] <= 20_000
+        assert row["ratio"] == pytest.approx(row["warp_per_s"] / row["reference_per_s"])
+        assert row["agreement"] < 1e-6
+
+
+def test_the_channel_rows_plan_each_count_and_split_its_time(bench):
+    """--quick plans 1 and 5 fixed channels; the contributions, the drive program and the certificate
+    are parts of the plan's time, the dense patch's contributions part of the certificate's."""
+    result, _ = bench
+    rows = result["channels"]
+    assert [(r["task"], r["channels"]) for r in rows] == [("ring", 1), ("ring", 5)]
+    for row in rows:
+        parts = (row["contributions_s"], row["drives_s"], row["certificate_s"])
+        assert all(x > 0 for x in parts) and 0 < row["certificate_contributions_s"] < row["certificate_s"]
+        assert row["other_s"] == pytest.approx(row["time_s"] - sum(parts)) and row["other_s"] > 0
+        assert 0 <= row["on"] <= row["channels"] and row["dense_points"] > row["samples"] > 0
+        assert row["feasible"] is True
+    assert not any("channels warm plan" in t["name"] for t in result["targets"])      # 40 not planned
+
+
+def test_the_channel_target_is_40_channels_within_2_s():
+    from cell.bench.lights import targets
+    rows = [{"task": "ring", "channels": n, "time_s": t} for n, t in [(5, 0.5), (40, 2.5)]]
+    (target,) = targets(rows)
+    assert target["name"] == "ring: 40 channels warm plan <= 2 s" and target["met"] is False
+    assert targets([{**rows[1], "time_s": 1.9}])[0]["met"] is True
+
+
+def test_channel_lights_surround_the_feature_each_on_its_own_channel():
+    import numpy as np
+
+    from cell.bench.lights import SPHERE_M, channel_lights
+    from cell.planning.scene import build_scene
+    from cell.task.loader import load_task
+    task = load_task(TASKS / "ring.yaml")
+    center = build_scene(task).center
+    made = channel_lights(task, 40)
+    assert [light.channel.number for light in made] == list(range(1, 41))
+    assert {light.type for light in made} == {"bar", "area", "ring"}
+    for light in made:
+        offset = light.position_m - center
+        np.testing.assert_allclose(np.linalg.norm(offset), SPHERE_M)
+        np.testing.assert_allclose(light.axis, -offset / SPHERE_M, atol=1e-12)    # aimed at the centre
+        assert offset[2] > 0.0                                                       # above the plate

@@ -383,6 +383,27 @@ def test_small_calls_reuse_their_launch_but_not_their_results(blocks):
             np.testing.assert_array_equal(getattr(got, field), getattr(want, field))
 
 
+def test_each_lamp_its_own_power_equals_a_call_per_power(blocks):
+    """Lamps of several powers in one call (power_w per lamp: the emitter points of several lights)
+    give, bit for bit, what a call of each power gives, and the reference's values."""
+    rng = np.random.default_rng(4)
+    points = np.column_stack([rng.uniform(-0.045, 0.045, (30, 2)), np.full(30, 0.01)])
+    normals = np.tile([0.0, 0.0, 1.0], (30, 1))
+    lamps, aims = lamps_around(rng, np.array([0.0, 0.0, 0.01]), 12)
+    powers = np.repeat([0.05, 0.2, 1.3], 4)
+    args = (points, normals, np.array([0.0, 0.0, 0.4]))
+    together = GrayInputs(blocks, *args, P_LAMP, GAMMA, METAL, C_CAMERA, A_PIXEL)(lamps, aims, powers)
+    for k in range(3):
+        rows = slice(4 * k, 4 * k + 4)
+        alone = gray_per_exposure(blocks, *args, lamps[rows], aims[rows], powers[4 * k], GAMMA, METAL, C_CAMERA,
+                                  A_PIXEL)
+        for field in ("value", "shadowed", "off_axis", "dominant"):
+            np.testing.assert_array_equal(getattr(together, field)[rows], getattr(alone, field))
+        want = ref.gray_per_exposure(blocks, *args, lamps[rows], aims[rows], powers[4 * k], GAMMA, METAL, C_CAMERA,
+                                     A_PIXEL)
+        np.testing.assert_allclose(together.value[rows], want.value, rtol=1e-9, atol=1e-12 * want.value.max())
+
+
 @settings(max_examples=40, deadline=None)
 @given(lamp_polar=st.one_of(st.floats(0.0, 1.5707), st.sampled_from([0.0, 1.5707963, 1.5707963267]),
                             st.floats(1.6, 3.14)),

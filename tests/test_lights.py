@@ -142,6 +142,19 @@ def test_each_type_agrees_with_the_numpy_reference(scene, made):
     np.testing.assert_array_equal(got.unlit, ~(want.value > 0).any(axis=0))
 
 
+def test_lights_evaluated_together_equal_each_alone(scene):
+    """contributions batches every light's emitter points per doubling into shared kernel calls
+    (each point its own power): each light's contribution and chosen count equal its own, bit for bit."""
+    mesh, points, normals = scene
+    warp_mesh = WarpMesh.from_trimesh(mesh)
+    together = lights.contributions(warp_mesh, points, normals, T_CAM, EVERY_TYPE, METAL, SENSOR, 255.0)
+    for made, got in zip(EVERY_TYPE, together):
+        alone = lights.contributions(warp_mesh, points, normals, T_CAM, [made], METAL, SENSOR, 255.0)[0]
+        assert got.points == alone.points
+        for field in ("unit_gray", "unlit", "dominant"):
+            np.testing.assert_array_equal(getattr(got, field), getattr(alone, field))
+
+
 def test_a_flange_light_moves_with_the_camera():
     """A coaxial source at 5 cm on the camera's axis sits 5 cm in front of the camera whatever its pose."""
     made = EVERY_TYPE[-1]

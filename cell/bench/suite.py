@@ -187,11 +187,12 @@ def targets(settings: Iterable[dict[str, Any]], kernels: Iterable[dict[str, Any]
 
 
 def run(tasks: Iterable[Task], quick: bool, say: Callable[[str], None],
-        feature_tasks: Iterable[Task] = ()) -> dict[str, Any]:
+        feature_tasks: Iterable[Task] = (), light_tasks: Iterable[Task] = ()) -> dict[str, Any]:
     """The benchmark of the loaded one-feature `tasks`: every setting's row against the task's
     reference, the references, the kernel rows; of the multi-feature `feature_tasks` the
-    cell.bench.multi_feature rows; and the targets (bench.json)."""
-    from cell.bench import multi_feature
+    cell.bench.multi_feature rows; of the `light_tasks` (with lights besides the spot) the
+    cell.bench.lights rows; and the targets (bench.json)."""
+    from cell.bench import lights, multi_feature
     repeats = 1 if quick else 3
     result: dict[str, Any] = {"quick": quick, "repeats": repeats, "settings": [], "references": [], "kernels": []}
     for task in tasks:
@@ -202,5 +203,9 @@ def run(tasks: Iterable[Task], quick: bool, say: Callable[[str], None],
     for task in tasks:
         result["kernels"] += kernel_rows(task, quick, repeats, say)
     result |= multi_feature.run(feature_tasks, quick, say)
-    result["targets"] = targets(result["settings"], result["kernels"]) + multi_feature.targets(result["workers"])
+    light_rows = lights.run(light_tasks, quick, say)
+    result["kernels"] += light_rows["kernels"]
+    result["channels"] = light_rows["channels"]
+    result["targets"] = (targets(result["settings"], result["kernels"]) + multi_feature.targets(result["workers"])
+                         + lights.targets(result["channels"]))
     return result

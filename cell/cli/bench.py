@@ -60,10 +60,21 @@ def report(result: dict[str, Any]) -> str:
           f"{r['machine_speedup']:.2f}x",
           f"{r['startup_s']:.1f}", f"{r['first_s']:.2f}", "yes" if r["identical"] else "NO"]
          for r in result["workers"]])
+    channels = text_table(
+        ["task", "channels", "on", "samples", "dense", "time s", "cpu s", "contributions s", "dense contributions s",
+         "drives s", "certificate s", "other s", "feasible"],
+        [[r["task"], r["channels"], r["on"], r["samples"], r["dense_points"], f"{r['time_s']:.2f}", f"{r['cpu_s']:.2f}",
+          *(f"{r[k]:.2f} ({r[k] / r['time_s']:.0%})" for k in ("contributions_s", "certificate_contributions_s")),
+          f"{r['drives_s']:.3f} ({r['drives_s'] / r['time_s']:.0%})",
+          *(f"{r[k]:.2f} ({r[k] / r['time_s']:.0%})" for k in ("certificate_s", "other_s")),
+          "yes" if r["feasible"] else f"NO: {words.label(r['binding'])}"] for r in result["channels"]])
     goals = "\n".join(f"{'met    ' if t['met'] else 'NOT MET'}  {t['name']}: {t['value']:.3g}"
                       for t in result["targets"])
     parts = [settings, refs, "\n".join(summary(result["settings"])), kernels] if result["settings"] else []
+    if not result["settings"] and result["kernels"]:         # the light rows' kernels alone
+        parts.append(kernels)
     parts += [features, workers] if result["workers"] else []
+    parts += [channels] if result["channels"] else []
     return "\n\n".join(parts + [goals])
 
 
@@ -89,22 +100,30 @@ def multi_feature(task: Task) -> bool:
     return len(task.features) > 1 or task.camera.viewpoint.mode != "fixed"
 
 
+def with_lights(task: Task) -> bool:
+    """Whether a one-feature task gets cell.bench.lights' rows (it has lights besides the spot)
+    rather than the settings sweep."""
+    return bool(task.lights) and not multi_feature(task)
+
+
 def command(args: argparse.Namespace) -> int:
     def say(msg):
         print(msg, file=sys.stderr, flush=True)
 
+    from cell.bench.lights import LIGHT_TASKS
     from cell.bench.multi_feature import FEATURE_TASKS
     from cell.report.pictures import write_bench
     out = output_folder(args.out, "bench")
     if args.tasks:
         paths = args.tasks
     else:
-        paths = list(suite.DEFAULT_TASKS) + list(FEATURE_TASKS)
+        paths = list(suite.DEFAULT_TASKS) + list(FEATURE_TASKS) + list(LIGHT_TASKS)
     loaded = [load_task(path) for path in paths]          # all first
-    tasks = [t for t in loaded if not multi_feature(t)]
+    tasks = [t for t in loaded if not multi_feature(t) and not with_lights(t)]
     feature_tasks = [t for t in loaded if multi_feature(t)]
+    light_tasks = [t for t in loaded if with_lights(t)]
     create_folder(out)
-    result = suite.run(tasks, args.quick, say, feature_tasks)
+    result = suite.run(tasks, args.quick, say, feature_tasks, light_tasks)
     text = jsonio.dumps(result, indent=2)
     (out / "bench.json").write_text(text + "\n")
     if result["settings"]:              # bench.png: the one-feature settings sweep

@@ -84,7 +84,7 @@ class KernelInputs:
     def __init__(self) -> None:
         self.made_of: tuple[Task, Scene, Material] | None = None
         self.gray: GrayInputs | None = None
-        self.lights_of: tuple[Task, Scene, Material] | None = None
+        self.lights_of: tuple[Task, Scene, Material, tuple[int, ...]] | None = None
         self.lights: LightsAtScene | None = None
 
     def __getstate__(self):
@@ -100,7 +100,9 @@ class Problem:
     maps, the material as planned (albedo scaled by the loop's measured error), the gray band,
     the sensor's black level b (the task's camera.sensor.black_level, 0 when unknown), the focus,
     the needed depth of field, the widest f-number giving it, and how many samples the camera
-    cannot see."""
+    cannot see; lights_off: the task's lights (indices into task.lights) it is judged with at
+    drive 0, whose contributions it need not compute (a shot's certificate: a light off adds
+    nothing, lit_by_all)."""
 
     task: Task
     scene: Scene
@@ -112,6 +114,7 @@ class Problem:
     depth_needed_m: float
     kappa_open: float
     camera_unseen: int
+    lights_off: tuple[int, ...] = ()
     kernels: KernelInputs = field(default_factory=KernelInputs, compare=False, repr=False)
 
     @property
@@ -132,19 +135,25 @@ class Problem:
     @property
     def lights(self) -> LightsAtScene:
         """The task's lights besides the spot at this scene (LightsAtScene; K = 0 rows without
-        any), computed once per task, scene and material: they do not move while the spot is searched."""
-        from cell.planning.lights import contribution
+        any), computed once per task, scene and material, all together (cell.planning.lights.contributions):
+        they do not move while the spot is searched. A light in lights_off has a row of 0, unlit,
+        its dominant term OCCLUDED and 0 points."""
+        from cell.planning.lights import contributions
         task, scene, material = self.task, self.scene, self.material
         made_of, lights = self.kernels.lights_of, self.kernels.lights
-        if made_of is None or lights is None or any(a is not b for a, b in zip(made_of, (task, scene, material))):
-            found = [contribution(scene.warp_mesh, scene.points, scene.normals, scene.T_cell_cam, light, material,
-                                  task.camera.sensor, self.band[1]) for light in task.lights]
+        if (made_of is None or lights is None or made_of[3] != self.lights_off
+                or any(a is not b for a, b in zip(made_of, (task, scene, material)))):
+            on = [k for k in range(len(task.lights)) if k not in self.lights_off]
+            found = dict(zip(on, contributions(scene.warp_mesh, scene.points, scene.normals, scene.T_cell_cam,
+                                               [task.lights[k] for k in on], material, task.camera.sensor,
+                                               self.band[1])))
             count = len(scene.points)
-            lights = LightsAtScene(np.array([c.unit_gray for c in found]).reshape(-1, count),
-                                   np.array([c.unlit for c in found], bool).reshape(-1, count),
-                                   np.array([c.dominant for c in found], np.int8).reshape(-1, count),
-                                   tuple(c.points for c in found))
-            self.kernels.lights, self.kernels.lights_of = lights, (task, scene, material)
+            lights = LightsAtScene(np.zeros((len(task.lights), count)), np.ones((len(task.lights), count), bool),
+                                   np.full((len(task.lights), count), brdf.OCCLUDED, np.int8),
+                                   tuple(found[k].points if k in found else 0 for k in range(len(task.lights))))
+            for k, c in found.items():
+                lights.unit_gray[k], lights.unlit[k], lights.dominant[k] = c.unit_gray, c.unlit, c.dominant
+            self.kernels.lights, self.kernels.lights_of = lights, (task, scene, material, self.lights_off)
         return lights
 
     def full_drive(self, candidates: int) -> np.ndarray:
@@ -154,6 +163,7 @@ class Problem:
         task = self.task
         top = np.array([task.lamp.channel.drive_range[1]] + [light.channel.drive_range[1] for light in task.lights])
         top[1:][wrong_reflection(self, self.lights.unit_gray, self.lights.dominant)] = 0.0
+        top[1:][list(self.lights_off)] = 0.0
         return np.tile(top, (candidates, 1))
 
 

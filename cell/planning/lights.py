@@ -6,7 +6,7 @@ its points, each with its own shadow ray (the bulk kernel of kernels.gray, a poi
 Extended lights are integrated by a midpoint rule over equal parts of their surface (a ring's
 arc, a bar's length, an area's cells, a dome's zones of equal area), and the number of points is
 doubled until doubling changes no sample's gray by more than INTEGRATION_GRAY gray levels at any
-exposure the plan can choose (emitter_count): below saturation a light's gray at a sample is at
+exposure the plan can choose (contributions): below saturation a light's gray at a sample is at
 most the band's top, so a change of INTEGRATION_GRAY / top of the light's brightest sample is at
 most INTEGRATION_GRAY levels. The change on doubling bounds the coarser count's error whenever
 doubling at least halves the error, which a midpoint rule does on a smooth integrand (it quarters
@@ -15,7 +15,7 @@ it); the finer count's value is kept.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -152,37 +152,94 @@ def contribution(mesh: WarpMesh | None, points: ArrayLike, normals: ArrayLike, T
                  light: Light, material: Material, sensor: Sensor, gray_top: float,
                  count: int | None = None) -> Contribution:
     """One light's Contribution at the samples seen from the camera at T_cell_cam, with count
-    emitter points, or (None) as many as emitter_count finds for gray_top, the band's top."""
+    emitter points, or (None) as many as the module's rule finds for gray_top, the band's top."""
+    return contributions(mesh, points, normals, T_cell_cam, (light,), material, sensor, gray_top, count)[0]
+
+
+BATCH_EVALUATIONS = 1 << 21     # emitter points x samples per kernel call: its outputs about 38 MB
+
+
+def contributions(mesh: WarpMesh | None, points: ArrayLike, normals: ArrayLike, T_cell_cam: ArrayLike,
+                  made: Sequence[Light], material: Material, sensor: Sensor, gray_top: float,
+                  count: int | None = None) -> list[Contribution]:
+    """Each light's Contribution (as `contribution` finds one's), the lights evaluated together: at
+    each doubling the emitter points of every light still doubling go to the kernel in one call per
+    profile (up to BATCH_EVALUATIONS each), each point with its own power, on one kernels.gray
+    input per profile (the samples' surfaces and free cones found once, not once per light)."""
     from kernels.gray import GrayInputs
     T = np.asarray(T_cell_cam, float)
     points = np.asarray(points, float).reshape(-1, 3)
+    inputs: dict[tuple[bytes | None, float], GrayInputs] = {}
 
-    def evaluate(n: int) -> Contribution:
-        e = emitters(light, T, n)
-        inputs = GrayInputs(mesh, points, normals, T[:3, 3], e.power_w, e.cone_angle_rad, material.table(),
-                            sensor.camera_constant, sensor.pixel_area_m2, profile=e.profile)
-        out = inputs(e.position, e.axis)
-        lit = out.value > 0.0
-        strongest = np.argmax(out.value, axis=0) if len(e.position) else np.zeros(len(points), int)
-        dominant = np.take_along_axis(out.dominant, strongest[None], axis=0)[0]
-        return Contribution(out.value.sum(axis=0), np.logical_not(lit.any(axis=0)), dominant, len(e.position))
+    def evaluate(wanted: dict[int, int]) -> dict[int, Contribution]:
+        """{light index: its Contribution at n points} of {light index: n}."""
+        groups: dict[tuple[bytes | None, float], list[tuple[int, Emitters]]] = {}
+        for k, n in wanted.items():
+            e = emitters(made[k], T, n)
+            key = (None if e.profile is None else np.asarray(e.profile, float).tobytes(), e.cone_angle_rad)
+            groups.setdefault(key, []).append((k, e))
+        found = {}
+        for key, members in groups.items():
+            if key not in inputs:
+                e = members[0][1]
+                inputs[key] = GrayInputs(mesh, points, normals, T[:3, 3], e.power_w, e.cone_angle_rad,
+                                         material.table(), sensor.camera_constant, sensor.pixel_area_m2,
+                                         profile=e.profile)
+            for batch in _batches(members, max(1, BATCH_EVALUATIONS // max(1, len(points)))):
+                out = inputs[key](np.vstack([e.position for _, e in batch]), np.vstack([e.axis for _, e in batch]),
+                                  np.concatenate([np.full(len(e.position), e.power_w) for _, e in batch]))
+                start = 0
+                for k, e in batch:
+                    rows = slice(start, start + len(e.position))
+                    found[k] = _summed(out.value[rows], out.dominant[rows], len(points))
+                    start = rows.stop
+        return found
 
-    if count is not None or light.type == "spot":
-        return evaluate(1 if light.type == "spot" else int(count or 1))
-    return emitter_count(evaluate, START_POINTS[light.type], gray_top)
-
-
-def emitter_count(evaluate: Callable[[int], Contribution], start: int, gray_top: float) -> Contribution:
-    """evaluate(n) (a Contribution) at start, 2 start, 4 start, ... points until doubling changes
-    no sample by more than INTEGRATION_GRAY / gray_top of the brightest (the module's rule), or
-    MAX_POINTS is reached; the finer one."""
+    if count is not None:
+        fixed = evaluate({k: 1 if light.type == "spot" else int(count or 1) for k, light in enumerate(made)})
+        return [fixed[k] for k in range(len(made))]
+    start = {k: 1 if light.type == "spot" else START_POINTS[light.type] for k, light in enumerate(made)}
     coarse = evaluate(start)
-    n = start
-    while 2 * n <= MAX_POINTS:
-        n *= 2
+    final = {k: coarse[k] for k, light in enumerate(made) if light.type == "spot"}
+    n = {k: start[k] for k in coarse if k not in final}
+    while n:
+        for k in [k for k in n if 2 * n[k] > MAX_POINTS]:       # as fine as it may get: the finest kept
+            final[k] = coarse[k]
+            del n[k]
+        n = {k: 2 * m for k, m in n.items()}
         fine = evaluate(n)
-        top = float(fine.unit_gray.max(initial=0.0))
-        if np.max(np.abs(fine.unit_gray - coarse.unit_gray), initial=0.0) <= INTEGRATION_GRAY / gray_top * top:
-            return fine
-        coarse = fine
-    return coarse
+        for k in list(n):
+            if converged(coarse[k], fine[k], gray_top):
+                final[k] = fine[k]
+                del n[k]
+            else:
+                coarse[k] = fine[k]
+    return [final[k] for k in range(len(made))]
+
+
+def _batches(members: list[tuple[int, Emitters]], lamps: int) -> list[list[tuple[int, Emitters]]]:
+    """Consecutive lights whose points together stay within `lamps` (a light more alone)."""
+    out: list[list[tuple[int, Emitters]]] = [[]]
+    size = 0
+    for member in members:
+        if out[-1] and size + len(member[1].position) > lamps:
+            out.append([])
+            size = 0
+        out[-1].append(member)
+        size += len(member[1].position)
+    return out
+
+
+def _summed(value: np.ndarray, dominant: np.ndarray, samples: int) -> Contribution:
+    """A light's Contribution from its points' rows (N, P) of the kernel's value and dominant term."""
+    lit = value > 0.0
+    strongest = np.argmax(value, axis=0) if len(value) else np.zeros(samples, int)
+    return Contribution(value.sum(axis=0), np.logical_not(lit.any(axis=0)),
+                        np.take_along_axis(dominant, strongest[None], axis=0)[0], len(value))
+
+
+def converged(coarse: Contribution, fine: Contribution, gray_top: float) -> bool:
+    """The module's rule: doubling the points changed no sample by more than INTEGRATION_GRAY /
+    gray_top of the finer one's brightest."""
+    top = float(fine.unit_gray.max(initial=0.0))
+    return bool(np.max(np.abs(fine.unit_gray - coarse.unit_gray), initial=0.0) <= INTEGRATION_GRAY / gray_top * top)
