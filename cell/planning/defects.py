@@ -15,11 +15,13 @@ a pixel, averaged with the surface around it, is not modelled); a dent by the la
 field of tilts (its parts face every way at once: it has no worst orientation), a coating by its
 one gray. The predicted CNR is the smallest of these over the samples and the orientation range.
 
-Orientations are sampled every ORIENTATION_STEP_RAD (5 deg) over the range (a groove at theta and
+Orientations are sampled every 5 deg over the range (JUDGED; RANKED's 15 deg and a coarser dent
+field while the global search only ranks more than RANKED_ONLY poses; a groove at theta and
 theta + 180 deg is the same): between two neighbours the wall normal moves by at most
-2 sin(beta) sin(2.5 deg), under 9 % of its tilt. For a chosen shot (Candidates of one: the
-refinement, the certificate, coverage) the REFINED_SAMPLES worst samples are judged again every
-FINE_STEP_RAD (0.25 deg), so the worst orientation is found to 0.125 deg.
+2 sin(beta) sin(2.5 deg). Where one wall's contrast changes sign the CNR is V-shaped in theta, so
+every sample whose grid minimum could dip below the worst between grid points (by the step to its
+neighbours) is judged again every FINE_STEP_RAD (0.25 deg) within a grid step, and the best of those
+every 0.0125 deg (_refined): the worst orientation to about 0.01 deg.
 """
 
 from __future__ import annotations
