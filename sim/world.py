@@ -51,7 +51,8 @@ from scipy.ndimage import gaussian_filter
 from scipy.special import erfc, ndtr
 
 from cell.core import geometry
-from cell.physics.sensor import levels, saturation_level
+from cell.physics.sensor import (BLACK_LEVEL, FULL_WELL_E, READ_NOISE_E, dark_noise, levels,  # noqa: F401
+                                 saturation_level, system_gain)
 from cell.physics.depth_of_field import blur_diameter
 from cell.physics.projection import intrinsics, pixel_rays
 from cell.planning import lights
@@ -63,9 +64,7 @@ if TYPE_CHECKING:
 
 CONE_EDGE = 1.0 / 6.0       # cone edge blur s as a fraction of the half angle gamma/2
 DEFOCUS_STEP_PX = 0.5       # defocus depth layers: circle of confusion in these steps
-FULL_WELL_E = 10_000.0      # electrons at full scale: assumed, typical of 4.65 um pixels
-READ_NOISE_E = 10.0         # rms electrons: assumed, typical of machine-vision sensors
-BLACK_LEVEL = 0.02          # of full scale, rounded (5 gray at 8 bits): keeps read noise above 0
+# FULL_WELL_E, READ_NOISE_E, BLACK_LEVEL: cell.physics.sensor's, which the planner's noise reads too
 
 
 def cone_falloff(off_axis_rad: ArrayLike, cone_angle_rad: float, profile: np.ndarray | None = None) -> np.ndarray:
@@ -134,8 +133,8 @@ class SensorModel:
         """The task's sensor: its datasheet keys (camera.sensor) where given, else FULL_WELL_E
         electrons at full scale, READ_NOISE_E and no full well below the ADC's top."""
         full_scale = float(saturation_level(sensor.bit_depth))
-        gain = sensor.system_gain_dn_per_e or full_scale / FULL_WELL_E
-        dark = READ_NOISE_E if sensor.dark_noise_e is None else sensor.dark_noise_e
+        gain = system_gain(sensor.bit_depth, sensor.system_gain_dn_per_e)
+        dark = dark_noise(sensor.dark_noise_e)
         return cls(gain, dark, sensor.saturation_capacity_e or np.inf, float(np.rint(BLACK_LEVEL * full_scale)),
                    sensor.bit_depth)
 

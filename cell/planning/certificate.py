@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike
 
-from cell.planning import evaluate, requirements
+from cell.planning import defects, evaluate, requirements
 from cell.planning.plan import Verification
 from cell.core import geometry
 from cell.physics.costs import RequirementValue
@@ -30,7 +30,7 @@ if TYPE_CHECKING:
 DENSE_MAX = 20_000              # points: a 12 mm patch seen by 93 um pixels needs 13 000
 # the requirements that depend on where the points are; the others are judged by the search
 JUDGED = ("gray_min", "gray_max", "reflection_region", "no_shadow", "cone_coverage", "camera_view", "view_angle",
-          "resolution", "depth_of_field")
+          "resolution", "depth_of_field", "defect_cnr")
 
 
 def worse_of(values: Iterable[RequirementValue], verification: Verification) -> tuple[RequirementValue, ...]:
@@ -116,7 +116,9 @@ def verify(problem: evaluate.Problem, shot: Shot) -> tuple[Verification, np.ndar
     picks = {worst, specular, int(np.argmin(c.gray[0])), int(np.argmax(c.gray[0])), int(np.argmin(depths)),
              int(np.argmax(depths))} | set(np.flatnonzero(c.shadowed[0])[:4].tolist())
     picks |= set(np.flatnonzero(requirements.wrong_reflection(dense, c)[0])[:4].tolist())
+    found = defects.judge(dense, c) if task.feature.defects else ()
+    picks |= {int(np.argmin(np.linalg.norm(scene.points - d.position_m, axis=1))) for d in found}
     result = Verification(all(r.met for r in judged), len(scene.points), float(gray.min()), float(gray.max()),
                           scene.points[worst], float(gray[worst]), scene.points[specular], float(gray[specular]),
-                          judged)
+                          judged, defects=found)
     return result, scene.points[sorted(picks)]

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from cell.planning import certificate, evaluate, requirements
+from cell.planning import certificate, defects, evaluate, requirements
 from cell.planning.one_shot import build_maps, light_settings
 from cell.planning.plan import Coverage
 
@@ -29,7 +29,8 @@ if TYPE_CHECKING:
 def of_plan(task: Task, plan: Plan) -> Coverage:
     """The Coverage of a one-feature task's own plan (its verdict, nothing judged again)."""
     shot = plan.shot
-    return Coverage(task.feature.name, plan.feasible, shot.gray, shot.requirements, plan.verification)
+    return Coverage(task.feature.name, plan.feasible, shot.gray, shot.requirements, plan.verification,
+                    defects=shot.defects)
 
 
 @dataclass(frozen=True)
@@ -61,8 +62,9 @@ def judge(task: Task, lent: Lent, shot: Shot) -> Coverage:
     values = requirements.judged(problem, c, requirements.ln_values(problem, c))
     gray = np.minimum(c.gray[0], 2.0 ** task.camera.sensor.bit_depth - 1)
     shares = light_settings(problem, c)
+    found = defects.judge(problem, c) if task.feature.defects else ()
     if not all(r.met for r in values):
-        return Coverage(task.feature.name, False, gray, values, lights=shares)
+        return Coverage(task.feature.name, False, gray, values, lights=shares, defects=found)
     verification, _ = certificate.verify(problem, shot)
     return Coverage(task.feature.name, verification.holds, gray, certificate.worse_of(values, verification),
-                    verification, shares)
+                    verification, shares, defects.worse_of(found, verification.defects))

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields, replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -86,6 +86,7 @@ class KernelInputs:
         self.gray: GrayInputs | None = None
         self.lights_of: tuple[Task, Scene, Material, tuple[int, ...]] | None = None
         self.lights: LightsAtScene | None = None
+        self.defects: dict[Any, Any] = {}       # cell.planning.defects: a defect's inputs, with what they were made of
 
     def __getstate__(self):
         return {}

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.optimize import minimize
 
-from cell.planning import certificate, drives, evaluate, lights, regions, requirements
+from cell.planning import certificate, defects, drives, evaluate, lights, regions, requirements
 from cell.core import geometry
 from cell.devices import rig
 from cell.physics import depth_of_field as dof
@@ -138,7 +138,8 @@ def plan(task: Task, settings: PlannerSettings = PlannerSettings(), albedo_scale
     verification = replace(verification, rounds=rounds)
     timing["total"] = time.perf_counter() - t0
     judged = certificate.worse_of(result.shot.requirements, verification)
-    result = replace(result, shots=(replace(result.shot, requirements=judged),), verification=verification,
+    shot = replace(result.shot, requirements=judged, defects=defects.worse_of(result.shot.defects, verification.defects))
+    result = replace(result, shots=(shot,), verification=verification,
                      timing_s=timing)
     if verification.holds:
         return result
@@ -284,4 +285,5 @@ def make_shot(problem: evaluate.Problem, joints: np.ndarray, candidate: evaluate
                 exposure=exposure, gray=np.minimum(candidate.gray[0], full_scale), distance_m=float(np.linalg.norm(pos - scene.center)),
                 phase_angle_rad=float(np.arccos(np.clip(s @ v, -1, 1))),
                 requirements=requirements.judged(problem, candidate, values),
-                lights=light_settings(problem, candidate))
+                lights=light_settings(problem, candidate),
+                defects=defects.judge(problem, candidate) if problem.task.feature.defects else ())

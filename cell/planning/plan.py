@@ -82,6 +82,31 @@ class Search:
 
 
 @dataclass(frozen=True)
+class DefectCnr:
+    """One declared defect on one shot (cell.planning.defects): its predicted CNR (the worst over the feature's points and its
+    orientation range) against min_cnr, the scratch's worst orientation [rad] (None for a dent or
+    a coating) and the point where it is worst (cell frame), with the good and the defect's gray there."""
+
+    name: str
+    kind: str
+    min_cnr: float
+    predicted_cnr: float
+    orientation_rad: float | None
+    position_m: np.ndarray
+    gray_good: float
+    gray_defect: float
+
+    @property
+    def met(self) -> bool:
+        return bool(self.predicted_cnr >= self.min_cnr)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"name": self.name, "kind": self.kind, "min_cnr": self.min_cnr, "predicted_cnr": self.predicted_cnr,
+                "met": self.met, "orientation_deg": None if self.orientation_rad is None
+                else float(np.degrees(self.orientation_rad)), "position_m": self.position_m.tolist()}
+
+
+@dataclass(frozen=True)
 class Verification:
     """The dense check of one shot (cell.planning.certificate): `holds` when every point meets
     every requirement the certificate judges (certificate.JUDGED); the points checked, their
@@ -99,6 +124,7 @@ class Verification:
     specular_gray: float
     judged: tuple[RequirementValue, ...]  # each judged requirement's value on the dense patch
     rounds: int = 0                       # searches again with worst points added
+    defects: tuple[DefectCnr, ...] = ()   # each declared defect's CNR on the dense patch
 
     @property
     def failing(self) -> tuple[RequirementValue, ...]:
@@ -126,6 +152,7 @@ class Coverage:
     requirements: tuple[RequirementValue, ...]
     verification: Verification | None = None
     lights: tuple[LightSetting, ...] = ()      # each light's share of this feature's gray on the shot
+    defects: tuple[DefectCnr, ...] = ()        # each declared defect's predicted CNR on the shot
 
     @property
     def worst(self) -> float:
@@ -170,6 +197,7 @@ class Shot:
     covers: tuple[Coverage, ...] = ()# a multi-feature plan's: the Coverage of each feature it covers
     arm_joints: tuple[float, ...] | None = None# a planned viewpoint's: the UR5e joints reaching T_cell_cam [rad]
     lights: tuple[LightSetting, ...] = ()      # the spot and the task's other lights, in the task's order
+    defects: tuple[DefectCnr, ...] = ()        # the feature's declared defects: predicted CNR (cell.planning.defects)
 
     @property
     def drive(self) -> np.ndarray | None:
@@ -272,6 +300,7 @@ class Plan:
             "contributions": contributions_json(shot.lights),
             "camera": camera_json(shot),
             "predicted_gray": gray_stats(shot.gray),
+            **({"defects": [d.to_json() for d in shot.defects]} if shot.defects else {}),
             "verified": self.verification.to_json() if self.verification else None,
             "search": asdict(self.search),
             "timing_s": self.timing_s,
@@ -287,6 +316,7 @@ class Plan:
                           "lamp": lamp_json(shot),
                           "lights": [light.to_json() for light in shot.lights],
                           "covers": [{"feature": c.feature, "predicted_gray": gray_stats(c.gray),
+                                      **({"defects": [d.to_json() for d in c.defects]} if c.defects else {}),
                                       "contributions": contributions_json(c.lights),
                                       "requirements": requirements_json(c.requirements),
                                       "verified": c.verification.to_json() if c.verification else None}

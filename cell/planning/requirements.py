@@ -322,6 +322,44 @@ def explain_depth_of_field(p: Problem, c: Candidates, met: bool) -> str:
                              f"or a longer shutter) or view the patch less obliquely")
 
 
+def _defect_ratios(p: Problem, c: Candidates) -> np.ndarray:
+    """(C, D) ln(min_cnr / predicted CNR) of each of the feature's defects (cell.planning.defects)."""
+    from cell.planning import defects
+    wanted = np.array([d.min_cnr for d in p.task.feature.defects])
+    return np.log(wanted / np.maximum(defects.predicted_cnr(p, c), defects.TINY_CNR))
+
+
+def defect_cnr(p: Problem, c: Candidates) -> np.ndarray:
+    """ln(min_cnr / predicted CNR) of the feature's least visible defect (met when it shows with
+    at least its min_cnr): the predicted CNR the worst over the samples and orientations."""
+    return np.max(_defect_ratios(p, c), axis=-1)
+
+
+def _worst_defect(p: Problem, c: Candidates):
+    from cell.planning import defects
+    judged = defects.judge(p, c)
+    return max(judged, key=lambda d: np.log(d.min_cnr / max(d.predicted_cnr, defects.TINY_CNR)))
+
+
+def explain_defect_cnr(p: Problem, c: Candidates, met: bool) -> str:
+    d = _worst_defect(p, c)
+    where = {"scratch": " at its worst orientation", "dent": "", "coating": ""}[d.kind]
+    fact = f"the {d.kind} '{d.name}' shows with CNR {number(d.predicted_cnr)}{where}"
+    count = len(p.task.feature.defects)
+    if met:
+        return f"{fact} (at least {d.min_cnr:g} wanted)" + (f", the least visible of {count} defects" if count > 1 else "")
+    fact = f"{fact}, {d.min_cnr:g} wanted"
+    fix = {"scratch": "light it from across the scratch or lengthen the exposure",
+           "dent": "light it from lower (grazing light shows a dent's slopes) or lengthen the exposure",
+           "coating": "light it where the two materials' BRDFs differ more or lengthen the exposure"}[d.kind]
+    return f"{fact}; {fix}"
+
+
+def amount_defect_cnr(p: Problem, c: Candidates) -> costs.Amount | None:
+    d = _worst_defect(p, c)
+    return _finite(d.predicted_cnr, d.min_cnr, "", False)
+
+
 def _finite(actual: float, limit: float, unit: str, at_most: bool, digits: int = 1) -> costs.Amount | None:
     """An Amount, or None where a number is not finite (an unlit pose: its sentence says why)."""
     if not (np.isfinite(actual) and np.isfinite(limit)):
@@ -392,13 +430,16 @@ REGISTRY = (    Requirement("gray_min", gray_min, explain_gray_min, amount=amoun
     Requirement("f_number_min", f_number_min, explain_f_number_min, amount=amount_f_number_min),
     Requirement("f_number_max", f_number_max, explain_too_bright, amount=amount_f_number_max),
     Requirement("depth_of_field", depth_of_field, explain_depth_of_field, amount=amount_depth_of_field),
+    Requirement("defect_cnr", defect_cnr, explain_defect_cnr, lambda p: bool(p.task.feature.defects),
+                amount_defect_cnr),
 )
 
 # The order in which requirements that no lamp pose meets name the cause of an infeasible plan:
 # the first is the true cause (an unlit pose misses every exposure by far, but the shadow, the
 # cone or the view is what to fix).
 CAUSES = ("camera_view", "view_angle", "resolution", "no_shadow", "cone_coverage", "reflection_region", "gray_min", "shutter_max",
-          "shutter_min", "f_number_max", "f_number_min", "gray_max", "depth_of_field", "lamp_tolerance")
+          "shutter_min", "f_number_max", "f_number_min", "gray_max", "depth_of_field", "defect_cnr",
+          "lamp_tolerance")
 
 
 def ln_values(problem: Problem, candidates: Candidates) -> dict[str, np.ndarray]:

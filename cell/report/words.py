@@ -32,6 +32,7 @@ LABELS = {
     "f_number_min": "lens aperture, open end",
     "f_number_max": "lens aperture, closed end",
     "depth_of_field": "depth of field",
+    "defect_cnr": "defect contrast over noise",
     "viewpoint": "camera viewpoint",
 }
 
@@ -67,11 +68,12 @@ PHRASES = {
     "f_number_min": "f/{actual}, the lens opens to f/{limit}",
     "f_number_max": "f/{actual}, the lens closes to f/{limit}",
     "depth_of_field": "{limit} needed, {actual} available",
+    "defect_cnr": "CNR {actual}, at least {limit} wanted",
 }
 
 
 # the unit of a miss where the Amount's numbers have none
-BY_UNIT = {"gray_min": " gray levels", "gray_max": " gray levels"}
+BY_UNIT = {"gray_min": " gray levels", "gray_max": " gray levels", "defect_cnr": " in CNR"}
 
 
 def compared(name: str, a: Amount) -> str:

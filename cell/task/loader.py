@@ -26,8 +26,8 @@ from cell.physics.material import PARAMETERS, TERMS, Material, Unresolved
 from cell.physics.radiometry import camera_constant_from_datasheet
 from cell.task.schema import (NON_NEGATIVE, POSITIVE, Anything, Choice, Flag, Integer, Invalid, Number, Pair,
                          Section, Sections, Spec, Table, Text, ToSI, Vector, parse, read_yaml, show)
-from cell.task.types import (LIGHT_TYPES, MOUNTS, Calibration, CameraModel, CellConfig, Channel, Feature,
-                       Goniometer, Lamp, LampRig, Lens, Light, LoopSettings, Part, Requirements, Sample,
+from cell.task.types import (DEFECT_KINDS, LIGHT_TYPES, MOUNTS, Calibration, CameraModel, CellConfig, Channel,
+                       Defect, Feature, Goniometer, Lamp, LampRig, Lens, Light, LoopSettings, Part, Requirements, Sample,
                        SimConfig, Sensor, Task, Truth, Viewpoint)
 
 EFFECTS = ("shadows", "cone_falloff", "vignetting", "defocus", "noise", "black_level", "quantization")
@@ -92,10 +92,22 @@ class SensorSection(Section):
 
 DEG = np.radians
 
+DEFECT = {
+    "name": Text(),
+    "kind": Choice(*DEFECT_KINDS),
+    "min_cnr": Number(**POSITIVE),
+    "width_m": Number(**POSITIVE, default=None),
+    "depth_m": Number(**POSITIVE, default=None),
+    "orientation_deg": Pair(lambda v: DEG(-360) <= v <= DEG(360), "angles within [-360, 360] deg", default=None),
+    "radius_m": Number(**POSITIVE, default=None),
+    "material": Text(default=None),
+    "position_m": Vector(default=None),
+}
 FEATURE = {
     "center_m": Vector(),
     "radius_m": Number(**POSITIVE),
     "samples": Integer(1, MAX_SAMPLES),
+    "defects": Sections(DEFECT),
 }
 REQUIREMENTS = {
     "gray_band": Pair(lambda v: True, "gray levels", strict=True),
@@ -378,7 +390,57 @@ def _feature(file, mesh, f, key, name, requirements):
         found = f"{show(f['center_m'])} m, {distance * 1e3:.1f} mm from the surface"
         raise TaskError(file, f"{key}.center_m", found,
                         "a point within 1 mm of the part's surface (part frame)")
-    return Feature(name, center, normal, f["radius_m"], f["samples"], Requirements(**requirements), key)
+    return Feature(name, center, normal, f["radius_m"], f["samples"], Requirements(**requirements), key,
+                   _defects(file, key, f["defects"] or [], center, f["radius_m"]))
+
+
+# each defect kind's keys (SI names) beside name, kind, min_cnr and position_m: all required, and
+# a key of another kind is a mistake in the file (a `width_m` on a dent does nothing)
+DEFECT_KEYS: dict[str, tuple[str, ...]] = {
+    "scratch": ("width_m", "depth_m"),
+    "dent": ("radius_m", "depth_m"),
+    "coating": ("material", "radius_m"),
+}
+DEFECT_OPTIONAL = {"scratch": ("orientation_rad",)}
+
+
+def _defects(file, key, entries, center, radius):
+    """A feature's `defects` entries -> Defects: names unique on the feature, each kind's keys and
+    only those, a dent no deeper than its radius (a spherical cap is at most a hemisphere), a
+    coating's material file loaded and checked like `part.material`, a position within the
+    feature's radius of its centre."""
+    out, seen = [], {}
+    for i, d in enumerate(entries):
+        at = f"{key}.defects[{i}]"
+        if d["name"] in seen:
+            raise TaskError(file, f"{at}.name", f"'{d['name']}', also the name of {key}.defects[{seen[d['name']]}]",
+                            "a name unique among the feature's defects")
+        seen[d["name"]] = i
+        kind = d["kind"]
+        for k in ("width_m", "depth_m", "orientation_rad", "radius_m", "material"):
+            name = "orientation_deg" if k == "orientation_rad" else k
+            if k in DEFECT_KEYS[kind] and d[k] is None:
+                raise TaskError(file, f"{at}.{name}", "nothing", f"a value (required for a {kind})")
+            if k not in DEFECT_KEYS[kind] + DEFECT_OPTIONAL.get(kind, ()) and d[k] is not None:
+                owners = [t for t, ks in DEFECT_KEYS.items() if k in ks + DEFECT_OPTIONAL.get(t, ())]
+                raise TaskError(file, f"{at}.{name}", show(d[k]),
+                                f"no value: it is a key of a {' and a '.join(owners)}, not of a {kind}")
+        if kind == "dent" and not d["depth_m"] <= d["radius_m"]:
+            raise TaskError(file, f"{at}.depth_m", show(d["depth_m"]),
+                            f"at most the dent's radius_m {d['radius_m']:g} m (a spherical dimple is at most a "
+                            f"hemisphere)")
+        material = None if d["material"] is None else load_material(
+            _relative_file(Path(file), f"{at}.material", d["material"], "yaml"))
+        position = d["position_m"]
+        if position is not None and not np.linalg.norm(position - center) <= radius + SURFACE_TOLERANCE_M:
+            raise TaskError(file, f"{at}.position_m", f"{show(position)} m, "
+                            f"{1e3 * np.linalg.norm(position - center):.1f} mm from the feature's centre",
+                            f"a point of the feature's patch, within its radius_m {radius:g} m of its centre "
+                            f"(part frame)")
+        orientation = (0.0, float(np.pi)) if d["orientation_rad"] is None else d["orientation_rad"]
+        out.append(Defect(d["name"], kind, d["min_cnr"], d["width_m"], d["depth_m"], orientation, d["radius_m"],
+                          material, None if position is None else tuple(map(float, position)), at))
+    return tuple(out)
 
 
 def _feature_entries(file, v):

@@ -33,6 +33,31 @@ class Requirements:
     drive_tolerance: float = 0.0           # each light channel's true drive within drive x (1 +- this)
 
 
+DEFECT_KINDS = ("scratch", "dent", "coating")
+
+
+@dataclass(frozen=True)
+class Defect:
+    """A defect the inspection must see on a feature (`defects`, docs/formats.md), with the
+    contrast-to-noise ratio it must show at least (cell.physics.contrast): a `scratch`, a V-groove
+    of width_m and depth_m in any orientation of orientation_rad (from, to) in the feature's
+    tangent plane from the feature frame's x axis; a `dent`, a spherical dimple of radius_m and
+    depth_m (its sagitta); a `coating`, a patch of radius_m of another material. position_m (part
+    frame, None: the feature's centre) is where the simulator puts it; the planner asks for it
+    at every point of the feature."""
+
+    name: str
+    kind: str                      # DEFECT_KINDS
+    min_cnr: float
+    width_m: float | None = None                   # scratch
+    depth_m: float | None = None                   # scratch, dent
+    orientation_rad: tuple[float, float] = (0.0, float(np.pi))     # scratch
+    radius_m: float | None = None                  # dent, coating
+    material: Material | None = None               # coating
+    position_m: tuple[float, float, float] | None = None   # part frame
+    key: str = "feature.defects[0]"                # where the task file gives it, for errors
+
+
 @dataclass(frozen=True)
 class Feature:
     name: str                      # `feature` for the one-feature form
@@ -42,6 +67,7 @@ class Feature:
     samples: int
     requirements: Requirements     # the task's, with the feature's own keys replacing them
     key: str = "feature"           # where the task file gives it (`features[2]`), for errors
+    defects: tuple[Defect, ...] = ()       # what the inspection must see on it (cell.planning.defects)
 
 
 @dataclass(frozen=True)

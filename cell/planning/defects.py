@@ -1,0 +1,285 @@
+"""A feature's declared defects as the planner judges them: the gray a defect would have at each
+feature sample under the shot's own lights, drives and exposure, against the good surface's, over
+the sensor's noise (cell.physics.contrast), worst over the samples and the scratch's orientations.
+
+At a sample the defect's gray is the shading of the same point with the defect's normal (scratch,
+dent) or material (coating): the bulk kernel (kernels.gray.GrayInputs) with the perturbed normals
+for the spot, each other light's emitter points (cell.planning.lights.contribution, as many as the
+good surface's took) for the rest, summed at the candidate's drives, G = b + t / kappa^2 sum_k
+w_k u_k (eq. 10, 17; the planner's own). The shadow rays leave from the same point, so a cast
+shadow darkens defect and surface alike.
+
+Per orientation a scratch shows by the larger CNR of its two walls (they lie side by side, each a
+half width wide: the groove is seen where either differs from the surface; a groove narrower than
+a pixel, averaged with the surface around it, is not modelled); a dent by the largest over its
+field of tilts (its parts face every way at once: it has no worst orientation), a coating by its
+one gray. The predicted CNR is the smallest of these over the samples and the orientation range.
+
+Orientations are sampled every 5 deg over the range (JUDGED; RANKED's 15 deg and a coarser dent
+field while the global search only ranks more than RANKED_ONLY poses; a groove at theta and
+theta + 180 deg is the same): between two neighbours the wall normal moves by at most
+2 sin(beta) sin(2.5 deg). Where one wall's contrast changes sign the CNR is V-shaped in theta, so
+every sample whose grid minimum could dip below the worst between grid points (by the step to its
+neighbours) is judged again every FINE_STEP_RAD (0.25 deg) within a grid step, and the best of those
+every 0.0125 deg (_refined): the worst orientation to about 0.01 deg.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from cell.devices import rig
+from cell.physics import contrast, sensor as sensor_model
+from cell.planning.plan import DefectCnr
+
+if TYPE_CHECKING:
+    from cell.physics.material import Material
+    from cell.planning.evaluate import Candidates, Problem
+    from cell.task.types import Defect
+
+@dataclass(frozen=True)
+class Resolution:
+    """How finely a defect is sampled: a scratch's orientations step_rad apart, a dent's tilts at
+    rho = a k / rings (k = 1..rings, the last its rim slope) from `azimuths` directions."""
+
+    step_rad: float
+    rings: int
+    azimuths: int
+
+
+JUDGED = Resolution(float(np.radians(5.0)), 4, 24)     # a pose judged (at most RANKED_ONLY candidates)
+RANKED = Resolution(float(np.radians(15.0)), 2, 8)     # the global search's ranking of many poses
+RANKED_ONLY = 16                # more candidates than this are only ranked (the global search)
+ORIENTATION_STEP_RAD = JUDGED.step_rad
+FINE_STEP_RAD = float(np.radians(0.25))
+REFINED_SAMPLES = 64
+CHUNK = 1 << 16                 # normals per kernel input when judged once (a dense patch)
+TINY_CNR = 1e-300               # the ratio's floor: a defect that never shows misses by ln(min_cnr / 1e-300)
+
+
+def orientations(defect: Defect, step_rad: float = ORIENTATION_STEP_RAD) -> np.ndarray:
+    """(O,) a scratch's orientations [rad] at most step_rad apart over its range, both ends
+    included; a range of 180 deg or more is every orientation once (theta and theta + 180 deg are
+    the same groove). One (0) for a dent or a coating."""
+    if defect.kind != "scratch":
+        return np.zeros(1)
+    lo, hi = defect.orientation_rad
+    if hi - lo >= np.pi - 1e-12:
+        n = int(np.ceil(np.pi / step_rad - 1e-9))
+        return lo + np.pi * np.arange(n) / n
+    return np.linspace(lo, hi, max(1, int(np.ceil((hi - lo) / step_rad - 1e-9))) + 1)
+
+
+def normals_of(defect: Defect, normals: np.ndarray, x_axis: np.ndarray, thetas: np.ndarray,
+               resolution: Resolution = JUDGED) -> np.ndarray:
+    """(P, O, W, 3) the defect's normals at each sample: per orientation (O) a scratch's two walls,
+    a dent's field of rings x azimuths tilts (resolution's), a coating's own normal (W = 1)."""
+    n = np.asarray(normals, float).reshape(-1, 3)
+    if defect.kind == "scratch":
+        return contrast.scratch_normals(n, x_axis, thetas, contrast.wall_tilt(_given(defect.width_m),
+                                                                              _given(defect.depth_m)))
+    if defect.kind == "dent":
+        a = _given(defect.radius_m)
+        rings, count = resolution.rings, resolution.azimuths
+        tilts = contrast.dent_tilt(a * np.arange(1, rings + 1) / rings, a, _given(defect.depth_m))
+        azimuths = 2.0 * np.pi * np.arange(count) / count
+        return contrast.dent_normals(n, x_axis, tilts, azimuths)[:, None]
+    return n[:, None, None]
+
+
+def _given(value: float | None) -> float:
+    if value is None:
+        raise ValueError("the defect lacks a key its kind requires (the loader checks this)")
+    return float(value)
+
+
+def material_of(problem: Problem, defect: Defect) -> Material:
+    """A coating's own material (as its file gives it: the loop's albedo scale is the part's);
+    for a scratch or a dent the part's, as planned."""
+    return defect.material if defect.kind == "coating" and defect.material is not None else problem.material
+
+
+class _Inputs:
+    """The kernel's inputs of a defect's normals at some samples: the spot's GrayInputs and the
+    other lights' gray per exposure at full drive (K, N)."""
+
+    def __init__(self, problem: Problem, defect: Defect, points: np.ndarray, normals: np.ndarray,
+                 sample: np.ndarray, shape: tuple[int, ...]) -> None:
+        from kernels.gray import GrayInputs
+        from cell.planning.lights import contribution
+        task, scene = problem.task, problem.scene
+        material = material_of(problem, defect)
+        self.spot = GrayInputs(None, points, normals, scene.camera_position, task.lamp.power_w,
+                               task.lamp.cone_angle_rad, material.table(), task.camera.sensor.camera_constant,
+                               task.camera.sensor.pixel_area_m2, profile=task.lamp.profile)
+        self.sample = sample                    # (N,) the Problem's sample each normal is at
+        self.shape = shape                      # (S, O, W): how the N normals are laid out
+        counts = problem.lights.points
+        self.lights = np.array([contribution(scene.warp_mesh, points, normals, scene.T_cell_cam, light, material,
+                                             task.camera.sensor, problem.band[1], count=counts[k]).unit_gray
+                                for k, light in enumerate(task.lights)]).reshape(len(task.lights), len(points))
+
+    def gray(self, problem: Problem, c: Candidates, cast: np.ndarray) -> np.ndarray:
+        """(C, N) the defect's gray at each candidate's lamp, drives and exposure; cast (C, P): the
+        spot's light blocked by the part at the Problem's samples."""
+        pivot = problem.task.lamp.rig.pivot_m
+        u = c.drive[:, :1] * self.spot(c.position, rig.lamp_aim(pivot, c.position)).value * ~cast[:, self.sample]
+        if len(self.lights):
+            u = u + c.drive[:, 1:] @ self.lights
+        return problem.black_level + (c.shutter / c.kappa**2)[:, None] * u
+
+
+def defect_gray(problem: Problem, c: Candidates, defect: Defect, sample: np.ndarray | None = None,
+                resolution: Resolution = JUDGED, thetas: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """((C, S, O, W) the defect's gray at the samples `sample` (indices; None: all of the
+    Problem's) for each orientation (O: `thetas`, (O,) or one row per sample (S, O), else the
+    resolution's over the range) and wall or tilt (W), the orientations). The kernel inputs of
+    all the samples are kept with the Problem; a large or partial set is evaluated in chunks of
+    CHUNK normals and let go."""
+    scene = problem.scene
+    index = np.arange(len(scene.points)) if sample is None else np.asarray(sample, int)
+    given = thetas is not None
+    thetas = orientations(defect, resolution.step_rad) if thetas is None else np.asarray(thetas, float)
+    cast = cast_shadows(problem, c)
+    keep = sample is None and not given
+    cache_key = (defect.key, resolution)
+    made_of, kept = problem.kernels.defects.get(cache_key, (None, None)) if keep else (None, None)
+    if kept is not None and made_of is not None and all(a is b for a, b in zip(made_of, (problem.task, scene,
+                                                                                          problem.material))):
+        return kept.gray(problem, c, cast).reshape((len(c.shutter),) + kept.shape), thetas
+    x_axis = scene.frame[:, 0]
+    if thetas.ndim == 2:                    # each sample its own orientations
+        normals = np.concatenate([normals_of(defect, scene.normals[i:i + 1], x_axis, row, resolution)
+                                  for i, row in zip(index, thetas)])
+    else:
+        normals = normals_of(defect, scene.normals[index], x_axis, thetas, resolution)
+    shape = normals.shape[:-1]
+    flat = normals.reshape(-1, 3)
+    points = np.broadcast_to(scene.points[index][:, None, None], normals.shape).reshape(-1, 3)
+    of_sample = np.broadcast_to(index[:, None, None], shape).reshape(-1)
+    if keep and len(flat) <= CHUNK:
+        kept = _Inputs(problem, defect, points, flat, of_sample, shape)
+        problem.kernels.defects[cache_key] = ((problem.task, scene, problem.material), kept)
+        return kept.gray(problem, c, cast).reshape((len(c.shutter),) + shape), thetas
+    out = np.concatenate([_Inputs(problem, defect, points[i:i + CHUNK], flat[i:i + CHUNK], of_sample[i:i + CHUNK],
+                                  shape).gray(problem, c, cast) for i in range(0, len(flat), CHUNK)], axis=1)
+    return out.reshape((len(c.shutter),) + shape), thetas
+
+
+def cast_shadows(problem: Problem, c: Candidates) -> np.ndarray:
+    """(C, P) whether the part blocks the spot's light at each sample (shadowed with the sample
+    facing the spot): the defect's point is the sample's, so its shadow ray is too."""
+    scene = problem.scene
+    pivot = problem.task.lamp.rig.pivot_m
+    shadowed = problem.gray_inputs(c.position, rig.lamp_aim(pivot, c.position)).shadowed
+    facing = np.einsum("cpk,pk->cp", c.position[:, None] - scene.points[None], scene.normals) > 0.0
+    return shadowed & facing
+
+
+def noise_figures(problem: Problem) -> tuple[float, float, float]:
+    """(K [gray/e-], sigma_d [e-], full scale [gray]) of the task's sensor: its datasheet keys,
+    else the defaults the simulator assumes too (cell.physics.sensor)."""
+    s = problem.task.camera.sensor
+    return (sensor_model.system_gain(s.bit_depth, s.system_gain_dn_per_e), sensor_model.dark_noise(s.dark_noise_e),
+            float(sensor_model.saturation_level(s.bit_depth)))
+
+
+def cnr_field(problem: Problem, c: Candidates, defect: Defect, sample: np.ndarray | None = None,
+              resolution: Resolution = JUDGED, thetas: np.ndarray | None = None
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """((C, S, O) the defect's CNR per sample and orientation, the best wall or tilt's; (C, S, O)
+    the defect's gray there; the orientations (O,)) (defect_gray's arguments)."""
+    index = np.arange(len(problem.scene.points)) if sample is None else np.asarray(sample, int)
+    gray, thetas = defect_gray(problem, c, defect, None if sample is None else index, resolution, thetas)
+    K, dark, full = noise_figures(problem)
+    good = c.gray[:, index][:, :, None, None]
+    ratio = contrast.cnr(good, gray, problem.black_level, K, dark, full)
+    best = np.argmax(ratio, axis=-1)[..., None]
+    return (np.take_along_axis(ratio, best, axis=-1)[..., 0], np.take_along_axis(gray, best, axis=-1)[..., 0],
+            thetas)
+
+
+def predicted_cnr(problem: Problem, c: Candidates) -> np.ndarray:
+    """(C, D) each defect's predicted CNR at each candidate; a chosen shot's (C = 1) refined
+    (judge)."""
+    defects = problem.task.feature.defects
+    if len(c.shutter) <= RANKED_ONLY:
+        return np.array([[d.predicted_cnr for d in judge(problem, c.pick(k))]
+                         for k in range(len(c.shutter))]).reshape(len(c.shutter), len(defects))
+    out = [cnr_field(problem, c, d, resolution=RANKED)[0].reshape(len(c.shutter), -1).min(axis=-1) for d in defects]
+    return np.array(out).reshape(len(defects), len(c.shutter)).T
+
+
+def judge(problem: Problem, candidate: Candidates) -> tuple[DefectCnr, ...]:
+    """Each defect of the Problem's feature on one candidate (Candidates of one): the worst CNR
+    over the samples every ORIENTATION_STEP_RAD, then at the REFINED_SAMPLES worst samples every
+    FINE_STEP_RAD (a scratch), the smaller kept, with where and at which orientation it is."""
+    key = (candidate.position.tobytes(), candidate.shutter.tobytes(), candidate.kappa.tobytes(),
+           candidate.drive.tobytes(), hash(candidate.gray.tobytes()))
+    memo = problem.kernels.defects.setdefault("judged", {})
+    if key not in memo:
+        if len(memo) > 64:
+            memo.clear()
+        memo[key] = _judged(problem, candidate)
+    return memo[key]
+
+
+def _judged(problem: Problem, candidate: Candidates) -> tuple[DefectCnr, ...]:
+    out = []
+    for d in problem.task.feature.defects:
+        ratio, gray, thetas = cnr_field(problem, candidate, d)
+        s0, o0 = np.unravel_index(int(np.argmin(ratio[0])), ratio[0].shape)
+        best = (float(ratio[0, s0, o0]), int(s0), float(thetas[o0]), float(gray[0, s0, o0]))
+        if d.kind == "scratch" and len(thetas) > 1:
+            best = _refined(problem, candidate, d, ratio[0], thetas, best)
+        value, at, theta, g = best
+        out.append(DefectCnr(d.name, d.kind, d.min_cnr, value, theta if d.kind == "scratch" else None,
+                             np.array(problem.scene.points[at], float), float(candidate.gray[0, at]), g))
+    return tuple(out)
+
+
+def _refined(problem: Problem, candidate: Candidates, d: Defect, ratio: np.ndarray, thetas: np.ndarray,
+             best: tuple[float, int, float, float]) -> tuple[float, int, float, float]:
+    """The worst (CNR, sample, orientation, defect gray) with the coarse grid's minima refined.
+    Between grid orientations a sample's CNR can fall below its smallest grid value by at most the
+    larger step to that value's neighbours (the CNR is V-shaped where a wall's contrast changes
+    sign, else smooth): every sample whose bound so reaches below the best grid value (at most
+    REFINED_SAMPLES, lowest bounds first) is judged every FINE_STEP_RAD within one grid step of its
+    grid minimum, then the best few every FINE_STEP_RAD / 20 within one fine step."""
+    lo, hi = d.orientation_rad
+    wrap = hi - lo >= np.pi - 1e-12
+    o = np.argmin(ratio, axis=-1)
+    rows = np.arange(len(ratio))
+    step_up = np.abs(np.take(ratio, o + 1, axis=-1, mode="wrap" if wrap else "clip")[rows, rows] - ratio[rows, o])
+    step_down = np.abs(np.take(ratio, o - 1, axis=-1, mode="wrap" if wrap else "clip")[rows, rows] - ratio[rows, o])
+    bound = ratio[rows, o] - np.maximum(step_up, step_down)
+    order = np.argsort(bound)
+    worst = order[bound[order] < best[0]][:REFINED_SAMPLES]
+    if not len(worst):
+        return best
+    centre = thetas[o[worst]]
+    grid_step = float(np.max(np.diff(thetas))) if len(thetas) > 1 else FINE_STEP_RAD
+    for span, step in ((grid_step, FINE_STEP_RAD), (FINE_STEP_RAD, FINE_STEP_RAD / 20.0)):
+        around = centre[:, None] + step * np.arange(-round(span / step), round(span / step) + 1)
+        if not wrap:
+            around = np.clip(around, lo, hi)
+        fine, fine_gray, _ = cnr_field(problem, candidate, d, worst, thetas=around)
+        k = np.argmin(fine[0], axis=-1)
+        if fine[0].min() < best[0]:
+            fs, fo = np.unravel_index(int(np.argmin(fine[0])), fine[0].shape)
+            best = (float(fine[0, fs, fo]), int(worst[fs]), float(around[fs, fo]), float(fine_gray[0, fs, fo]))
+        keep = np.argsort(fine[0].min(axis=-1))[:max(1, REFINED_SAMPLES // 4)]
+        worst, centre = worst[keep], around[keep, k[keep]]
+    return best
+
+
+def worse_of(a: tuple[DefectCnr, ...], b: tuple[DefectCnr, ...]) -> tuple[DefectCnr, ...]:
+    """Per defect the lower CNR of two judgements (the search's samples, the dense patch)."""
+    if not b:
+        return a
+    by_name = {d.name: d for d in b}
+    return tuple(by_name[d.name] if d.name in by_name and by_name[d.name].predicted_cnr < d.predicted_cnr else d
+                 for d in a)
