@@ -83,7 +83,7 @@ def test_bad_settings_name_file_key_and_expectation(raw, key, expected):
 
 
 def test_hardware_backend_needs_an_explicit_host_and_port():
-    task = SimpleNamespace(cell=SimpleNamespace(devices=DEFAULTS))
+    task = SimpleNamespace(cell=SimpleNamespace(devices=DEFAULTS), channels={})    # no light on a channel
     with pytest.raises(TaskError, match=r"cell.arm.host: found nothing, expected the robot's address"):
         make_hw_devices(task)
     task.cell.devices = device_settings({"arm": {"host": "127.0.0.1"}}, TASK)
