@@ -98,8 +98,8 @@ def test_a_task_off_in_c_material_and_hand_eye_is_calibrated_and_converges_in_it
     # 1. intrinsics and hand-eye
     code, out = cli(capsys, "calibrate", "hand-eye", uncalibrated, "--out", str(tmp_path / "hand-eye"),
                     "--poses", "10", "--yes", "--json")
-    assert code == 0 and json.loads(out)["hand_eye_file"] == str(tmp_path / "hand-eye.yaml")
-    doc["cell"] = {"backend": "sim", "arm": {"hand_eye": "hand-eye.yaml"}}
+    assert code == 0 and json.loads(out)["hand_eye_file"] == str(tmp_path / "hand-eye" / "hand-eye.yaml")
+    doc["cell"] = {"backend": "sim", "arm": {"hand_eye": "hand-eye/hand-eye.yaml"}}    # in its run folder
     with_hand_eye = world.same_world(tmp_path, "with-hand-eye.yaml", doc)
     T = load_task(with_hand_eye).frames.T_flange_cam
     turn = Rotation.from_matrix(T[:3, :3].T @ world.T_flange_cam[:3, :3]).magnitude()
@@ -109,9 +109,9 @@ def test_a_task_off_in_c_material_and_hand_eye_is_calibrated_and_converges_in_it
     code, out = cli(capsys, "calibrate", "camera-constant", with_hand_eye, "--laser-power-w", LASER_W,
                     "--out", str(tmp_path / "laser"), "--yes", "--json")
     laser = json.loads(out)
-    assert code == 0 and laser["camera_file"] == str(tmp_path / "camera.yaml")
+    assert code == 0 and laser["camera_file"] == str(tmp_path / "laser" / "camera.yaml")
     assert laser["camera_constant"] == pytest.approx(world.c, rel=0.02) and laser["black_level"] == 5.0
-    doc["camera"]["sensor"] = "camera.yaml"
+    doc["camera"]["sensor"] = "laser/camera.yaml"
     with_camera = world.same_world(tmp_path, "with-camera.yaml", doc)
 
     # 3. the material, with the calibrated c and hand-eye

@@ -227,26 +227,39 @@ def test_json_prints_the_fit_and_the_camera_file_is_used_by_a_task(tmp_path, cap
     printed = json.loads(capsys.readouterr().out)
     assert {"camera_constant", "camera_constant_stderr", "r_squared", "frames_used"} <= printed.keys()
     assert printed["camera_constant"] == pytest.approx(0.9 * C_TASK, rel=0.02) and printed["frames_used"] == 8
-    camera = tmp_path / "camera.yaml"
-    assert printed["camera_file"] == str(camera)
+    camera = tmp_path / "a" / "camera.yaml"                   # in the run folder: the task's folder as it was
+    assert printed["camera_file"] == str(camera) and sorted(p.name for p in tmp_path.glob("*.yaml")) == [task.name]
     document = yaml.safe_load(camera.read_text())
     assert document["camera_constant"] == pytest.approx(printed["camera_constant"], rel=1e-5)
     assert document["source"].startswith("cell calibrate camera-constant")
     assert document["black_level"] == printed["black_level"] == 5.0        # sim.world.BLACK_LEVEL of 255, rounded
 
-    user = simcell.variant(tmp_path, task, {"camera.sensor": "camera.yaml"})  # beside the camera file
+    user = simcell.variant(tmp_path, task, {"camera.sensor": "a/camera.yaml"})  # relative to the task file
     assert load_task(user).camera.sensor.camera_constant == document["camera_constant"]
     assert main(["check", str(user)]) == 0
     sensor_line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("sensor"))
     assert f"c = {document['camera_constant']:.5g} +- " in sensor_line and f"from {camera}" in sensor_line
 
-    before = camera.read_text()                   # a second run: refused before any work, then --force
-    assert main([*argv, "--out", str(tmp_path / "b")]) == 2
-    assert capsys.readouterr().err == (f"cell calibrate: command line: --camera-file: found {camera}, a file "
+    # beside the task only when asked; a second run over it refused before any work, then --force
+    beside = tmp_path / "camera.yaml"
+    assert main([*argv, "--out", str(tmp_path / "b"), "--camera-file", str(beside)]) == 0
+    assert json.loads(capsys.readouterr().out)["camera_file"] == str(beside) and not (tmp_path / "b" / "camera.yaml").exists()
+    before = beside.read_text()
+    assert main([*argv, "--out", str(tmp_path / "c"), "--camera-file", str(beside)]) == 2
+    assert capsys.readouterr().err == (f"cell calibrate: command line: --camera-file: found {beside}, a file "
                                        "that exists, expected a new file, or --force to replace it\n")
-    assert camera.read_text() == before and not (tmp_path / "b").exists()
-    assert main([*argv, "--out", str(tmp_path / "c"), "--force"]) == 0
-    assert json.loads(capsys.readouterr().out)["camera_file"] == str(camera) and camera.read_text() != before
+    assert beside.read_text() == before and not (tmp_path / "c").exists()
+    assert main([*argv, "--out", str(tmp_path / "d"), "--camera-file", str(beside), "--force"]) == 0
+    assert json.loads(capsys.readouterr().out)["camera_file"] == str(beside) and beside.read_text() != before
+
+
+def test_without_json_the_line_to_add_to_the_task_is_printed(tmp_path, capsys):
+    task = sim_task(tmp_path)
+    assert main(["calibrate", "camera-constant", str(task), "--laser-power-w", str(POWER_W), "--out",
+                 str(tmp_path / "runs" / "c1")]) == 0
+    out = capsys.readouterr().out
+    assert f"  wrote {tmp_path}/runs/c1/camera.yaml: to use it, write camera: {{sensor: runs/c1/camera.yaml, ...}} " \
+           f"in {task}\n" in out
 
 
 @pytest.mark.parametrize("name, found", [("", "a folder"), ("no/such/camera.yaml", "in no existing folder")])

@@ -136,6 +136,49 @@ def test_exponents_of_an_absent_spike_follow_the_neighbouring_phase_and_stay_abo
     assert fits[1].params[4] == fits[0].params[4] > fits[1].params[2]
 
 
+def in_plane(phase_deg, betas_deg):
+    """Readings of a goniometer stepping the half-angle tilt beta in the plane of incidence."""
+    beta = np.asarray(betas_deg, float)
+    return brdf_fit.Measurements(float(phase_deg), np.abs(beta + phase_deg / 2), np.abs(beta - phase_deg / 2),
+                                 np.ones(len(beta)))
+
+
+@pytest.mark.parametrize("betas, step", [
+    (np.arange(-30, 31, 2.0), 2.0),                         # the mirror pose and a 2 deg step
+    (np.arange(-31, 32, 2.0), 2.0),                         # from 1 deg: the mirror between two poses
+    ([-30, -10, -6, 6, 10, 30], 12.0),                      # the mirror unmeasured: twice the nearest tilt
+    (np.concatenate([[0.0], np.arange(3.0, 40.0, 3.0)]), 3.0),
+])
+def test_the_data_s_step_about_the_mirror_direction(betas, step):
+    for phase in (0.0, 20.0, 60.0):
+        assert np.degrees(brdf_fit.sampling_step([in_plane(phase, betas)])) == pytest.approx(step, abs=1e-9)
+    assert brdf_fit.mirror_tilt(in_plane(20.0, [0.0]))[0] == 0.0               # exactly, not sqrt(rounding)
+    coarse = np.degrees(brdf_fit.sampling_step([in_plane(20.0, np.arange(-30, 31, 2.0)),
+                                                in_plane(40.0, np.arange(-30, 31, 5.0))]))
+    assert coarse == pytest.approx(5.0)                                         # the coarsest phase's
+
+
+def test_a_spike_narrower_than_the_data_s_step_is_unresolved_by_fit_brdf_too(tmp_path, capsys):
+    """The rule of cell measure-brdf: at a 2 deg step M = ln 2 / (2 step^2) = 284, so m2 = 400
+    (the aluminium's) falls between the readings: sigma2 0, m2 = M, standard errors inf."""
+    params = (0.03, 4.0, 6.0, 30.0, 400.0)
+    beta = np.arange(-40, 41, 2.0)
+    m = in_plane(40.0, beta)
+    r = reflectance(np.cos(np.radians(m.theta_i_deg)), np.cos(np.radians(m.theta_e_deg)), np.cos(np.radians(40.0)),
+                    *params)
+    data = write_csv(tmp_path / "d.csv", [dataclasses.replace(m, reflectance=r)])
+    assert cli.main(["fit-brdf", str(data), "--out", str(tmp_path / "m.yaml")]) == 0
+    out, err = capsys.readouterr()
+    doc = yaml.safe_load((tmp_path / "m.yaml").read_text())
+    m_max = np.log(2) / (2 * np.radians(2.0) ** 2)
+    assert doc["unresolved"] == {"terms": {"spike": [40.0]}, "step_deg": 2.0,
+                                 "resolvable_m_max": pytest.approx(m_max, rel=1e-5)}
+    assert doc["sigma2"] == [0.0] and doc["m2"] == [pytest.approx(m_max, rel=1e-5)]
+    assert np.isinf(doc["m2_stderr"][0]) and doc["m1"][0] == pytest.approx(6.0, rel=0.01)
+    assert "spike unresolved at phase 40 deg: the data's step of 2 deg" in err
+    assert load_material(tmp_path / "m.yaml").unresolved.terms == {"spike": (np.radians(40.0),)}
+
+
 @settings(max_examples=30, deadline=None, derandomize=True)
 @given(readings=st.lists(st.floats(0.0, brdf_fit.REFLECTANCE_MAX), min_size=brdf_fit.MIN_ROWS, max_size=brdf_fit.MIN_ROWS),
        phase=st.sampled_from([0.0, 30.0, 80.0]))
@@ -356,9 +399,9 @@ def test_too_many_rows_or_phase_angles_are_refused_before_the_fit(tmp_path, caps
 @pytest.fixture
 def no_fit(monkeypatch):
     """`--out` is checked before the fit: fitting is an error here."""
-    def fit_material(groups):
+    def fit_goniometer(groups, name, source):
         raise AssertionError("fitted before refusing --out")
-    monkeypatch.setattr("cell.cli.fit_brdf.fit_material", fit_material)
+    monkeypatch.setattr("cell.cli.fit_brdf.fit_goniometer", fit_goniometer)
 
 
 @pytest.mark.parametrize("out, says", [

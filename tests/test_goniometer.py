@@ -14,6 +14,7 @@ import yaml
 from cell.run import backends
 
 from cell.calibration import goniometer
+from cell.physics import brdf_fit
 from cell.cli import main
 from cell.core.errors import DeviceFault, GoalNotReached, TaskError
 from cell.task.loader import load_material, load_task
@@ -99,7 +100,8 @@ def test_the_world_s_rho_sigma1_m1_are_recovered_and_the_narrow_spike_is_unresol
     assert material.unresolved.step_rad == np.radians(8.0)
     assert material.unresolved.resolvable_m_max == pytest.approx(m_max, rel=1e-5)
     assert (tmp_path / "run" / "fit.png").stat().st_size > 0 and (tmp_path / "run" / "patch-1.png").exists()
-    assert len(list((tmp_path / "run").glob("capture-*.png"))) == sum(line["step"] == "capture" for line in lines)
+    frames = len(list((tmp_path / "run").glob("capture-*.png"))) + (tmp_path / "run" / "dark.png").exists()
+    assert frames == sum(line["step"] == "capture" for line in lines)       # the dark frame's dark.png
     rows = (tmp_path / "run" / "goniometer.csv").read_text().splitlines()
     assert rows[0] == "theta_i_deg,theta_e_deg,phase_deg,reflectance" and len(rows) == 1 + len(result.readings)
 
@@ -138,7 +140,7 @@ def test_unresolved_terms_are_those_absent_or_narrower_than_the_step():
            "m1_stderr": [0.1] * 3, "sigma2_stderr": [0.5, np.inf, 0.5], "m2_stderr": [1.0, np.inf, 10.0],
            "unidentifiable": {"spike": [40.0]}}
     step = np.radians(6.0)                                  # M = ln 2 / (2 step^2) = 31.6
-    assert goniometer.unresolved_terms(doc, step) == {"spike": [40.0, 60.0]}
+    assert brdf_fit.unresolved_terms(doc, step) == {"spike": [40.0, 60.0]}
     assert doc["sigma2"] == [5.0, 0.0, 0.0] and doc["m2"][0] == 20.0 and doc["m2"][2] == pytest.approx(31.6, abs=0.1)
     assert doc["sigma2_stderr"][0] == 0.5 and np.isinf(doc["sigma2_stderr"][2])
 
@@ -190,6 +192,28 @@ def test_the_cli_prints_the_material_as_json_and_a_fault_exits_3(tmp_path, monke
     assert main(["measure-brdf", str(task), "--out", str(tmp_path / "fault")]) == 3
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert last.startswith("cell measure-brdf: camera: capture timed out") and "motion stopped" in last
+
+
+def test_measure_brdf_and_fit_brdf_write_one_material_of_one_csv_and_say_what_is_unresolved_alike(tmp_path, capsys):
+    """The run's own goniometer.csv fitted by `cell fit-brdf`: the same table, standard errors and
+    unresolved spike (m2 800 at a 10 deg step, M = 11.4) as the material `cell measure-brdf` wrote,
+    only its name and source differ; both print the same line for it."""
+    task = sim_task(tmp_path, {"phase_deg": [40], "step_deg": 10})
+    assert main(["measure-brdf", str(task), "--out", str(tmp_path / "run")]) == 0
+    measured_out = capsys.readouterr().out
+    run = tmp_path / "run"
+    assert main(["fit-brdf", str(run / "goniometer.csv"), "--out", str(tmp_path / "fit.yaml")]) == 0
+    fit_err = capsys.readouterr().err
+    measured = yaml.safe_load((run / "material.yaml").read_text())
+    fitted = yaml.safe_load((tmp_path / "fit.yaml").read_text())
+    assert {k: v for k, v in measured.items() if k not in ("name", "source")} == \
+        {k: v for k, v in fitted.items() if k not in ("name", "source")}
+    m_max = np.log(2) / (2 * np.radians(10) ** 2)
+    assert measured["unresolved"] == {"terms": {"spike": [40.0]}, "step_deg": 10.0,
+                                      "resolvable_m_max": pytest.approx(m_max, rel=1e-5)}
+    said = ("spike unresolved at phase 40 deg: the data's step of 10 deg about the mirror direction sees "
+            "exponents up to 11.38; a finer step measures it (cell measure-brdf: calibration.goniometer.step_deg)")
+    assert f"  {said}\n" in measured_out and f"{said}\n" in fit_err
 
 
 def test_the_goniometer_keys_are_checked_at_load(tmp_path):

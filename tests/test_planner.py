@@ -16,6 +16,7 @@ from cell.core import geometry
 
 from cell.devices import rig
 from cell.cli import main
+from cell.core.errors import PlanInfeasible
 from cell.task.loader import load_task
 from cell.report.recorder import write_plan
 from cell.physics import brdf, depth_of_field as dof, radiometry, reference
@@ -286,7 +287,9 @@ def test_plans_stay_finite_for_any_normal_view_and_rig(rpy, view_polar, view_azi
     rig = replace(task.lamp.rig, tilt_range_rad=(tilt_low, min(tilt_low + np.radians(5.0), np.radians(85.0))))
     task = replace(task, camera=replace(task.camera, view_direction=view),
                    lamp=replace(task.lamp, rig=rig))
-    plan = one_shot.plan(task, replace(COARSE, refine=True))
+    # the camera put where the rule says even where the arm cannot take it (the reach is checked
+    # before a search, tests/test_plausible.py): the search's numbers are what is tested here
+    plan = one_shot.plan(task, replace(COARSE, refine=True), T_cell_cam=build_scene(task).T_cell_cam)
     finite_json(plan)
     assert plan.feasible == all(r.value <= 1.0 for r in plan.requirements)
     if not plan.feasible:
@@ -364,7 +367,7 @@ def test_a_sensor_too_small_to_see_the_feature_fails_the_camera_view_first(tmp_p
 def test_a_lamp_too_weak_for_any_pose_says_so_not_that_the_region_binds(tmp_path):
     """1 uW: every lit pose is too dark at the longest shutter; the search keeps a lit pose and
     the reason is the exposure, not the reflection region."""
-    task, plan = variant_plan(tmp_path, {"lamp.power_mw": 1e-3})
+    task, plan = variant_plan(tmp_path, {"lamp.power_mw": 1e-3, "limits": {"lamp.power_w": [1e-7, 100.0]}})
     assert not plan.feasible and plan.binding in ("gray_min", "shutter_max")
     assert "shutter" in plan.hint
     assert next(r for r in plan.requirements if r.name == "no_shadow").met
@@ -454,8 +457,14 @@ def test_a_profiles_soft_edge_lights_beyond_the_nominal_half_angle_and_a_cone_co
 
 
 def test_a_camera_behind_the_part_or_along_its_surface_cannot_see_the_feature(tmp_path):
+    """Both cameras are out of the arm's reach (under the table, at its height): `cell plan` says
+    that first (tests/test_plausible.py); put there regardless, they do not see the feature."""
+    from simcell import variant
     for view in ([0.0, 0.0, -1.0], [1.0, 0.0, 0.0]):
-        task, plan = variant_plan(tmp_path, {"camera.view_direction": view})
+        task = load_task(variant(tmp_path, TASKS / "hinge.yaml", {"camera.view_direction": view}))
+        with pytest.raises(PlanInfeasible, match="^camera_reach: "):
+            one_shot.plan(task, COARSE)
+        plan = one_shot.plan(task, COARSE, T_cell_cam=build_scene(task).T_cell_cam)
         assert not plan.feasible and plan.binding == "camera_view" and "cannot see" in plan.hint
 
 

@@ -16,6 +16,8 @@ Resolution: near the peak c^m = cos(2 beta)^m ~ exp(-2 m beta^2), whose half wid
 maximum is sqrt(ln 2 / (2 m)); a term narrower than the step falls between the poses, so an
 exponent above M = ln 2 / (2 step^2) cannot be measured: such a term (or one the data do not show)
 is reported unresolved, with sigma 0, m = M (at least that narrow) and infinite standard errors.
+The step is the CSV's own (cell.physics.brdf_fit.fit_goniometer, the fit `cell fit-brdf` makes of
+the same file): step_deg when the mirror pose was measured, coarser where the arm refused it.
 """
 from __future__ import annotations
 
@@ -34,7 +36,7 @@ from cell.run.acquisition import acquire, find_black_level
 from cell.devices.interfaces import speaking_for
 from cell.core.files import write_yaml
 from cell.core.errors import GoalNotReached
-from cell.physics.brdf_fit import MIN_ROWS, SIGNIFICANCE, fit_material, material_document, read_goniometer
+from cell.physics.brdf_fit import MIN_ROWS, SIGNIFICANCE, fit_goniometer, read_goniometer
 from cell.task.loader import load_material
 from cell.physics.brdf import reflectance
 from cell.physics.radiometry import cone_irradiance, gray_per_exposure, reflectance_from_gray
@@ -92,12 +94,6 @@ class Reading:
     reflectance: float
     takes: int
     capture: str
-
-
-def resolvable_exponent(step_rad: float) -> float:
-    """M = ln 2 / (2 step^2): the largest exponent whose peak (half width sqrt(ln 2 / (2 m)) in
-    beta) is at least one step wide."""
-    return float(np.log(2.0) / (2.0 * step_rad**2))
 
 
 def plate_mesh(sample: Sample, centre: np.ndarray) -> trimesh.Trimesh:
@@ -288,26 +284,6 @@ def write_csv(path: Path, readings: list[Reading]) -> Path:
     return path
 
 
-def unresolved_terms(doc: dict[str, Any], step_rad: float) -> dict[str, list[float]]:
-    """Mark in the material document (in place) each phase's lobe or spike the sampling cannot
-    resolve: absent from the data, or an exponent above resolvable_exponent(step); there sigma 0,
-    m = M, standard errors inf. Returns {term: [phase_deg]}."""
-    m_max = resolvable_exponent(step_rad)
-    out: dict[str, list[float]] = {}
-    for term, s, m in (("lobe", "sigma1", "m1"), ("spike", "sigma2", "m2")):
-        absent = doc.get("unidentifiable", {}).get(term, []) if term == "spike" else []
-        for i, phase in enumerate(doc["phase_deg"]):
-            if phase in absent or doc[m][i] > m_max:
-                doc[s][i] = 0.0
-                doc[m][i] = float(f"{m_max if term == 'lobe' else max(m_max, 2.0 * doc['m1'][i]):.6g}")
-                doc[f"{s}_stderr"][i] = doc[f"{m}_stderr"][i] = float("inf")
-                out.setdefault(term, []).append(phase)
-    if out:
-        doc["unresolved"] = {"terms": out, "step_deg": float(f"{np.degrees(step_rad):.6g}"),
-                             "resolvable_m_max": float(f"{m_max:.6g}")}
-    return out
-
-
 @dataclass(frozen=True)
 class Goniometry(Result):
     """What the routine achieved (cell.report.result's verdict: `success`, the material fitted
@@ -396,7 +372,6 @@ def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices], operat
             raise GoalNotReached(f"fewer than {MIN_ROWS} readings at phase {', '.join(short)} deg "
                                  f"({len(refused)} of {total} poses refused, {len(failed)} without a reading): "
                                  "a finer step_deg, or a lamp radius and camera distance the arm can reach", "too_few_readings")
-        fits = fit_material(read_goniometer(csv))
         stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
         source = (f"measured by cell measure-brdf {task.path.name} on {stamp}: the cell as a goniometer, "
                   f"{len(readings)} poses ({len(refused)} refused, {len(failed)} without a reading) in the "
@@ -404,8 +379,8 @@ def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices], operat
                   f"{np.degrees(gonio.max_angle_rad):g} deg; R by eq. (17)-(19) with c "
                   f"{task.camera.sensor.camera_constant:.5g}; fitted per phase angle (cell.physics.brdf_fit, F-test p < "
                   f"{SIGNIFICANCE:g}); run folder {out}")
-        doc = material_document(fits, f"{material.name} (measured)", source)
-        unresolved = unresolved_terms(doc, gonio.step_rad)
+        fitted = fit_goniometer(read_goniometer(csv), f"{material.name} (measured)", source)
+        doc, unresolved = fitted.material, fitted.unresolved
         written = out / "material.yaml"
         write_yaml(written, doc, inline_lists=True)
         write_goniometer_fit(out / "fit.png", readings, load_material(written))   # what tasks will read: checked now

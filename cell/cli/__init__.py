@@ -194,8 +194,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("task", help="a task whose camera it is (its sensor section, sim effects and truth)")
     r.add_argument("--laser-power-w", type=float, required=True, metavar="P",
                    help="the laser's power reaching the sensor, after its neutral-density filters [W]")
-    r.add_argument("--camera-file", metavar="PATH", help="the camera file to write (default camera.yaml "
-                                                         "beside the task), for tasks' camera.sensor")
+    r.add_argument("--camera-file", metavar="PATH", help="the camera file to write, e.g. beside the task "
+                                                         "(default camera.yaml in the run folder)")
     r.add_argument("--force", action="store_true", help="replace an existing camera file")
     r.add_argument("--shots", type=int, default=8, metavar="N",
                    help="shutter times in the sweep, at least 4 (default 8)")
@@ -210,7 +210,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--poses", type=int, default=12, metavar="N",
                    help="viewpoints around the board, at least 10 (default 12)")
     r.add_argument("--hand-eye-file", metavar="PATH", help="the file of the task's cell.arm hand-eye keys to "
-                                                           "write (default hand-eye.yaml beside the task)")
+                                                           "write (default hand-eye.yaml in the run folder)")
     r.add_argument("--force", action="store_true", help="replace an existing hand-eye file")
     r.add_argument("--json", action="store_true", help="print hand_eye_position_m, hand_eye_rpy_deg, "
                                                        "focal_length_px, reprojection_error_px as JSON")

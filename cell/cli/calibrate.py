@@ -1,13 +1,14 @@
 """`cell calibrate ROUTINE TASK ...`, the routines measuring the camera constant c:
 `camera-constant` (a laser of known power at several shutter times, sec. 4.1; writes a camera
-file) and `reference-part` (a shutter sweep on a reference part, c against the task's material:
+file into the run folder, or to --camera-file) and `reference-part` (a shutter sweep on a reference part, c against the task's material:
 a cross-check), and the camera's intrinsics and hand-eye: `hand-eye` (views of a ChArUco board;
-writes a hand-eye file tasks reference). Exit 0 measured, 1 infeasible plan, an untrustworthy series or
+writes a hand-eye file into the run folder, or to --hand-eye-file). Exit 0 measured, 1 infeasible plan, an untrustworthy series or
 too few views of the board, 2 bad input (an unknown routine: cell.cli's parser), 3 device fault."""
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -19,6 +20,11 @@ from cell.cli import backend_of, create_folder, one_feature, output_folder
 from cell.core.errors import TaskError
 from cell.task.loader import load_task
 from cell.devices.operator import Operator
+
+def relative_to_task(written: str | Path, task: str | Path) -> str:
+    """The written file as the task names it: relative to the task file's folder."""
+    return Path(os.path.relpath(Path(written).resolve(), Path(task).resolve().parent)).as_posix()
+
 
 def command(args: argparse.Namespace) -> int:
     routine = {"camera-constant": camera_constant, "reference-part": reference_part, "hand-eye": hand_eye}
@@ -34,7 +40,9 @@ def camera_constant(args: argparse.Namespace) -> int:
         raise TaskError("command line", "--laser-power-w", args.laser_power_w,
                         "the laser's power at the sensor, a positive number of watts")
     out = output_folder(args.out, f"{Path(args.task).stem}-calibration")
-    camera_file = routine.check_camera_file(args.camera_file or Path(args.task).parent / "camera.yaml", args.force)
+    # the run's own folder unless asked: a calibration leaves the task's folder (a checkout) as it was
+    camera_file = (routine.check_camera_file(args.camera_file, args.force) if args.camera_file
+                   else out / "camera.yaml")
     task = load_task(args.task)
     backend = backend_of(task, args.backend)
     # the simulated cell has no operator at the laser: it confirms for itself
@@ -55,8 +63,8 @@ def camera_constant(args: argparse.Namespace) -> int:
           f"{fit.frames_used} frames ({fit.frames_saturated} saturated, {fit.frames_too_dark} too dark left out)")
     print(f"black level {black.value:.2f} gray, noise {black.noise_rms:.2f} rms (the dark "
           "frames at the shortest shutter time)")
-    print(f"  wrote {result.written_camera_file}: a task uses it as camera: {{sensor: "
-          f"{Path(result.written_camera_file).name}, ...}} (relative to the task file)")
+    print(f"  wrote {result.written_camera_file}: to use it, write camera: {{sensor: "
+          f"{relative_to_task(result.written_camera_file, args.task)}, ...}} in {args.task}")
     print(f"  wrote {out}/calibration.json, calibration.png, log.jsonl and {len(result.frames)} captures")
     return 0
 
@@ -96,8 +104,8 @@ def hand_eye(args: argparse.Namespace) -> int:
     if args.poses < routine.MIN_POSES:
         raise TaskError("command line", "--poses", args.poses, f"an integer >= {routine.MIN_POSES}")
     out = output_folder(args.out, f"{Path(args.task).stem}-calibration")
-    hand_eye_file = check_camera_file(args.hand_eye_file or Path(args.task).parent / "hand-eye.yaml", args.force,
-                                      option="--hand-eye-file")
+    hand_eye_file = (check_camera_file(args.hand_eye_file, args.force, option="--hand-eye-file")
+                     if args.hand_eye_file else out / "hand-eye.yaml")
     task = load_task(args.task)
     backend = backend_of(task, args.backend)
     board = task.board
@@ -128,8 +136,8 @@ def hand_eye(args: argparse.Namespace) -> int:
     print(f"camera: focal length {h.focal_length_px:.1f} px ({h.focal_length_px / f_task:.4f} x the task's "
           f"{f_task:.1f} px; calibrateCamera {k.focal_length_px:.1f} px, reprojection error {k.rms_px:.3f} px); "
           f"{views} views ({len(result.refused)} viewpoints refused by the arm)")
-    print(f"  wrote {result.written_hand_eye_file}: a task uses it as cell: {{arm: {{hand_eye: "
-          f"{Path(result.written_hand_eye_file).name}}}}} (relative to the task file)")
+    print(f"  wrote {result.written_hand_eye_file}: to use it, write cell: {{arm: {{hand_eye: "
+          f"{relative_to_task(result.written_hand_eye_file, args.task)}}}}} in {args.task}")
     print(f"  wrote {out}/calibration.json, log.jsonl and {len(result.views)} board-N.png frames with the corners "
           f"drawn")
     return 0

@@ -1,5 +1,6 @@
 """`cell fit-brdf DATA.csv [--out material.yaml] [--name NAME] [--json]`: the fit's table, the
-material file, notes on absent terms."""
+material file, notes on absent and unresolved terms; the fit and its rule for an unresolved term
+are `cell measure-brdf`'s (cell.physics.brdf_fit.fit_goniometer)."""
 
 from __future__ import annotations
 
@@ -11,30 +12,38 @@ import sys
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 
 from cell.core import jsonio
 from cell.core.files import write_yaml
 from cell.core.errors import TaskError
-from cell.physics.brdf_fit import SIGNIFICANCE, TERMS, absent_notes, fit_material, material_document, read_goniometer
+from cell.physics.brdf_fit import (SIGNIFICANCE, TERMS, absent_notes, fit_goniometer, read_goniometer,
+                                   unresolved_notes)
 from cell.physics.material import PARAMETERS
 
 if TYPE_CHECKING:
     from cell.physics.brdf_fit import PhaseFit
 
 
-def summary(fits: Sequence[PhaseFit]) -> str:
-    """A table a person reads: value +- standard error per parameter and phase angle."""
-    def cell(f, i):
-        if i in (2, 4) and TERMS[i // 2 - 1] in f.absent:
+def summary(fits: Sequence[PhaseFit], material: dict[str, Any]) -> str:
+    """A table a person reads: the material written, value +- standard error per parameter and
+    phase angle ('-': the exponent of a term absent or unresolved there)."""
+    unresolved = (material.get("unresolved") or {}).get("terms", {})
+
+    def gone(f, term):
+        return term in f.absent or f.phase_deg in unresolved.get(term, [])
+
+    def cell(f, k, i):
+        p = PARAMETERS[i]
+        if i in (2, 4) and gone(f, TERMS[i // 2 - 1]):
             return "-"
-        return f"{f.params[i]:.4g} +- {f.stderr[i]:.2g}"
+        return f"{material[p][k]:.4g} +- {material[p + '_stderr'][k]:.2g}"
 
     lines = [f"{'phase':>6} {'rows':>5} " + " ".join(f"{p:>18}" for p in PARAMETERS) + f" {'rms':>9}  terms"]
-    for f in fits:
-        terms = ", ".join(("diffuse",) + tuple(t for t in TERMS if t not in f.absent))
-        lines.append(f"{f.phase_deg:6g} {f.rows:5d} " + " ".join(f"{cell(f, i):>18}" for i in range(5))
+    for k, f in enumerate(fits):
+        terms = ", ".join(("diffuse",) + tuple(t for t in TERMS if not gone(f, t)))
+        lines.append(f"{f.phase_deg:6g} {f.rows:5d} " + " ".join(f"{cell(f, k, i):>18}" for i in range(5))
                      + f" {f.rms_residual:9.2g}  {terms}")
     return "\n".join(lines)
 
@@ -80,21 +89,21 @@ def output_file(out: str, data: str | os.PathLike[str]) -> Path:
 def command(args: argparse.Namespace) -> int:
     path = Path(args.data)
     out = output_file(args.out, path) if args.out is not None else None
-    fits = fit_material(read_goniometer(path))
     source = (f"fit of {path} by cell fit-brdf on {datetime.date.today().isoformat()}: eq. (6)-(7) "
               f"per phase angle, relative residuals, a specular term kept if its F-test p < {SIGNIFICANCE:g}")
-    doc = material_document(fits, args.name or path.stem, source)
+    fitted = fit_goniometer(read_goniometer(path), args.name or path.stem, source)
+    fits, doc = fitted.fits, fitted.material
     if out:
         try:
             write_yaml(out, doc, inline_lists=True)
         except OSError as err:
             raise TaskError("command line", "--out", f"{out} ({err.strerror})", "a writable file") from None
-    for note in absent_notes(fits):
+    for note in [*absent_notes(fits), *unresolved_notes(doc)]:
         print(note, file=sys.stderr)
     if args.json:
         print(jsonio.dumps(doc, indent=2))
     else:
-        print(summary(fits))
+        print(summary(fits, doc))
         if args.out:
             print(f"wrote {args.out}")
     return 0

@@ -14,6 +14,7 @@ from cell.core import jsonio
 from cell.cli import backend_of, create_folder, output_folder
 from cell.task.loader import load_task
 from cell.devices.operator import Operator
+from cell.physics.brdf_fit import unresolved_notes
 
 
 def command(args: argparse.Namespace) -> int:
@@ -37,12 +38,8 @@ def command(args: argparse.Namespace) -> int:
     for i, phase in enumerate(doc["phase_deg"]):
         print(f"phase {phase:g} deg: " + ", ".join(
             f"{k} {doc[k][i]:.4g} +- {doc[k + '_stderr'][i]:.2g}" for k in ("rho", "sigma1", "m1", "sigma2", "m2")))
-    unresolved = doc.get("unresolved")
-    if unresolved:
-        for term, phases in unresolved["terms"].items():
-            print(f"  {term} unresolved at phase {', '.join(f'{p:g}' for p in phases)} deg: the step "
-                  f"{unresolved['step_deg']:g} deg sees exponents up to {unresolved['resolvable_m_max']:.4g}; "
-                  "a finer calibration.goniometer.step_deg measures it")
+    for note in unresolved_notes(doc):                  # as cell fit-brdf says them of the same CSV
+        print(f"  {note}")
     print(f"  {len(result.readings)} of {result.poses} poses measured ({len(result.refused)} refused, "
           f"{len(result.failed)} without a reading)")
     print(f"  wrote {result.material_file}: a task uses it as part.material; goniometer.csv, fit.png, "

@@ -10,6 +10,11 @@ too, with the Jacobian including rho as the physics notes require.) Two degenera
 - sigma_k = 0 leaves m_k free: a term is kept only if an F-test against the model without it
   says the data need it (p < SIGNIFICANCE); an absent term gets sigma_k = 0 and infinite standard
   errors, and its phase angle is listed under `unidentifiable`.
+- a term narrower than the data's step about the mirror direction falls between the readings:
+  an exponent above M = ln 2 / (2 s^2) (sampling_step s, resolvable_exponent), or a term the
+  F-test drops, is unresolved (unresolved_terms: sigma 0, m = M, infinite standard errors).
+  `cell fit-brdf` and `cell measure-brdf` both fit by fit_goniometer, so on one CSV they write
+  one material and say what is unresolved in the same words (unresolved_notes).
 Residuals are relative, (R - y) / y: readings span the spike's peak and the diffuse background
 (often 1000:1) and their error grows with the reading; readings under DARK_FRACTION of the phase's
 largest are weighted as if they were that large (dark level). R is linear in rho, so each phase is
@@ -22,6 +27,7 @@ import csv
 import dataclasses
 import io
 from collections.abc import Iterator, Sequence
+from typing import Any
 from dataclasses import dataclass
 from os import PathLike
 from pathlib import Path
@@ -282,6 +288,93 @@ def fit_material(groups: Sequence[Measurements]) -> list[PhaseFit]:
     no_spike = np.array(["spike" in f.absent for f in fits])
     table[no_spike, 4] = np.maximum(table[no_spike, 4], 2.0 * table[no_spike, 2])
     return [dataclasses.replace(f, params=p) for f, p in zip(fits, table)]
+
+
+# --- what the sampling resolves ---
+
+STEP_DIGITS = 6                         # the step in degrees, as the material file writes it
+
+
+def mirror_tilt(m: Measurements) -> np.ndarray:
+    """beta [rad] of each reading, eq. (7)'s mirror cosine c = cos 2 beta: half the angle between
+    the camera and the lamp's mirror direction. sin^2 beta = (1 - c) / 2, with 2 cos ti cos te =
+    cos(ti - te) + cos(ti + te) written as sines, so a mirror pose (ti = te = alpha / 2 in the
+    plane of incidence) is exactly 0, not the sqrt of a rounding error."""
+    ti, te, alpha = m.theta_i_deg, m.theta_e_deg, m.phase_deg
+    half = lambda deg: np.sin(np.radians(0.5 * deg))          # noqa: E731
+    sin2 = half(ti - te) ** 2 + half(ti + te + alpha) * half(ti + te - alpha)
+    return np.arcsin(np.sqrt(np.clip(sin2, 0.0, 1.0)))
+
+
+def sampling_step(groups: Sequence[Measurements]) -> float:
+    """The data's step s about the mirror direction [rad], the coarsest of the phase angles': per
+    phase, the larger of twice the tilt beta of the reading nearest the mirror and the gap from it
+    to the next distinct beta (a goniometer stepping beta by s from 0, or from s / 2, gives s;
+    data that miss the mirror give at least twice their nearest tilt). Rounded as the file writes it."""
+    steps = []
+    for m in groups:
+        beta = np.unique(np.round(mirror_tilt(m), 9))
+        gap = beta[1] - beta[0] if len(beta) > 1 else np.pi / 2
+        steps.append(max(2.0 * beta[0], gap))
+    return float(np.radians(float(f"{np.degrees(max(steps)):.{STEP_DIGITS}g}")))
+
+
+def resolvable_exponent(step_rad: float) -> float:
+    """M = ln 2 / (2 step^2): the largest exponent whose peak (half width sqrt(ln 2 / (2 m)) in
+    beta, c^m ~ exp(-2 m beta^2)) is at least one step wide."""
+    return float(np.log(2.0) / (2.0 * step_rad**2))
+
+
+def unresolved_terms(doc: dict[str, Any], step_rad: float) -> dict[str, list[float]]:
+    """Mark in the material document (in place) each phase's lobe or spike the sampling cannot
+    resolve: a spike absent from the data, or an exponent above resolvable_exponent(step); there
+    sigma 0, m = M (a spike's at least twice m1), standard errors inf, and the `unresolved`
+    section. Returns {term: [phase_deg]}."""
+    m_max = resolvable_exponent(step_rad)
+    out: dict[str, list[float]] = {}
+    for term, s, m in (("lobe", "sigma1", "m1"), ("spike", "sigma2", "m2")):
+        absent = doc.get("unidentifiable", {}).get(term, []) if term == "spike" else []
+        for i, phase in enumerate(doc["phase_deg"]):
+            if phase in absent or doc[m][i] > m_max:
+                doc[s][i] = 0.0
+                doc[m][i] = float(f"{m_max if term == 'lobe' else max(m_max, 2.0 * doc['m1'][i]):.6g}")
+                doc[f"{s}_stderr"][i] = doc[f"{m}_stderr"][i] = float("inf")
+                out.setdefault(term, []).append(phase)
+    if out:
+        doc["unresolved"] = {"terms": out, "step_deg": float(f"{np.degrees(step_rad):.{STEP_DIGITS}g}"),
+                             "resolvable_m_max": float(f"{m_max:.6g}")}
+    return out
+
+
+def unresolved_notes(doc: dict[str, Any]) -> list[str]:
+    """One line per unresolved term, as both commands say it."""
+    section = doc.get("unresolved")
+    if not section:
+        return []
+    return [f"{term} unresolved at phase {', '.join(f'{p:g}' for p in phases)} deg: the data's step of "
+            f"{section['step_deg']:g} deg about the mirror direction sees exponents up to "
+            f"{section['resolvable_m_max']:.4g}; a finer step measures it (cell measure-brdf: "
+            "calibration.goniometer.step_deg)" for term, phases in section["terms"].items()]
+
+
+@dataclass(frozen=True)
+class GoniometerFit:
+    """One fit of goniometer data (fit_goniometer): the per-phase fits, the material document
+    (unresolved terms marked), the data's step [rad] and what is unresolved {term: [phase_deg]}."""
+
+    fits: list[PhaseFit]
+    material: dict[str, Any]
+    step_rad: float
+    unresolved: dict[str, list[float]]
+
+
+def fit_goniometer(groups: Sequence[Measurements], name: str, source: str) -> GoniometerFit:
+    """The material of goniometer data: per phase fits (fit_material), the document, and the
+    terms the data's step cannot resolve marked (unresolved_terms) - the one fit of both commands."""
+    fits = fit_material(groups)
+    doc = material_document(fits, name, source)
+    step = sampling_step(groups)
+    return GoniometerFit(fits, doc, step, unresolved_terms(doc, step))
 
 
 # --- output ---

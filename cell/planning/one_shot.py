@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.optimize import minimize
 
-from cell.planning import certificate, defects, drives, evaluate, lights, regions, requirements
+from cell.planning import certificate, defects, drives, evaluate, lights, regions, requirements, viewpoints
 from cell.core import geometry
 from cell.devices import rig
 from cell.physics import depth_of_field as dof
@@ -154,6 +154,8 @@ def search(task: Task, settings: PlannerSettings, albedo_scale: float, extra: np
     timing = {}
     t0 = time.perf_counter()
     scene = build_scene(task, settings.samples, extra, T_cell_cam)
+    if T_cell_cam is None and task.camera.viewpoint.mode == "fixed":
+        viewpoints.require_reach(task, scene)                       # the arm takes the camera there, or exit 1
     timing["scene"] = time.perf_counter() - t0
 
     t = time.perf_counter()

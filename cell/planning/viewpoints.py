@@ -34,7 +34,7 @@ from cell.core import geometry
 from cell.physics import projection
 from cell.devices import ur5e
 from cell.devices.interfaces import check_arm_motion
-from cell.core.errors import DeviceFault
+from cell.core.errors import DeviceFault, PlanInfeasible
 from cell.planning.scene import look_at
 
 if TYPE_CHECKING:
@@ -115,6 +115,33 @@ def reach(task: Task, T_cell_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray] |
             continue
         return T, q
     return refused
+
+
+def require_reach(task: Task, scene: Scene) -> None:
+    """A fixed camera pose (camera.viewpoint: fixed, the scene's T_cell_cam) as the arm would be sent
+    it, unrolled: inside the workspace box and within the UR5e's reach, else PlanInfeasible (exit
+    1) saying which, before any lamp is searched and anything moves."""
+    frames, arm, T = task.frames, task.cell.devices.arm, scene.T_cell_cam
+    position = np.round(T[:3, 3], 3).tolist()
+    feature = "the feature" if task.feature.key == "feature" else f"{task.feature.key} ({task.feature.name})"
+    where = (f"{task.name}: the camera {task.camera.distance_m:g} m from {feature} (camera.distance_m along "
+             f"camera.view_direction) is at {position} m in the cell frame")
+    fix = "a camera.distance_m and view_direction the arm reaches, or camera.viewpoint: planned"
+    try:
+        check_arm_motion(arm, frames, T, arm.speed_m_s)
+    except DeviceFault as refused:
+        outside = refused.reason.removesuffix(": refused before moving")
+        raise PlanInfeasible(f"camera_reach: {outside}", f"{where}, where the arm cannot take it: {outside} "
+                                                         f"(cell.arm.workspace_min_m/max_m); {fix}") from None
+    try:
+        ur5e.inverse(frames.T_base_flange(frames.T_base_cam(T)), np.zeros(6))
+    except ur5e.Unreachable:
+        base = np.round(frames.T_cell_base[:3, 3], 3).tolist()
+        far = float(np.linalg.norm(frames.T_cell_flange(T)[:3, 3] - frames.T_cell_base[:3, 3]))
+        raise PlanInfeasible(f"camera_reach: camera pose unreachable for the UR5e at {position} m",
+                             f"{where}, beyond the UR5e's reach: its flange would be {far:.3f} m from the arm's "
+                             f"base at {base} m (cell.arm.base_position_m), or at an angle no joint "
+                             f"solution takes; {fix}") from None
 
 
 def viewpoint_values(task: Task, scene: Scene) -> dict[str, float]:

@@ -17,6 +17,7 @@ import trimesh
 from numpy.typing import ArrayLike
 
 from cell.core import geometry
+from cell.task import plausible
 from cell.task.board import DICTIONARIES, Board
 from cell.task.device_config import SECTIONS as DEVICES, devices_config, hand_eye
 from cell.core.errors import TaskError
@@ -154,7 +155,7 @@ LIGHT = {
     "length_m": Number(**POSITIVE, default=None),
     "size_m": Pair(lambda v: v > 0, "positive lengths [width, height]", default=None, ascending=False),
     "hole_radius_m": Number(**POSITIVE, default=None),
-    "rig": Section(RIG, required=False, defaults=False),
+    "rig": Section(plausible.copied(RIG), required=False, defaults=False),
 }
 
 
@@ -176,7 +177,7 @@ TASK = {
         "material": Text(),
     }),
     "feature": Section(FEATURE, required=False, defaults=False),        # one feature, or
-    "features": Sections({"name": Text(), **FEATURE,                    # several
+    "features": Sections({"name": Text(), **plausible.copied(FEATURE),  # several
                           "requirements": Section(_overriding(REQUIREMENTS), required=False)}),
     "requirements": Section(REQUIREMENTS),                              # every feature's defaults
     "camera": Section({
@@ -270,7 +271,9 @@ TASK = {
         "albedo_scale_range": Pair(lambda v: v > 0, "positive scales", default=(0.1, 10.0)),
         "registration_limit_m": Number(lambda v: v > 0, "a positive distance", default=None),
     }, required=False),
+    "limits": plausible.Limits(),                        # wider plausible ranges (cell.task.plausible)
 }
+plausible.attach(TASK)
 
 MATERIAL = {
     "name": Text(),
@@ -369,6 +372,7 @@ def _load_mesh(file, part):
                         "outward-facing triangles (reverse the mesh's winding)")
     if part["mesh_unit"] == "mm":
         mesh.apply_scale(1e-3)
+    plausible.check_mesh(file, part["mesh_unit"], mesh.extents, name)
     return path, mesh
 
 
@@ -828,9 +832,17 @@ def _light_centres(lights, cameras):
 
 
 def load_task(path: str | PathLike[str]) -> Task:
-    """A task file and everything it references -> Task (SI units, mesh in metres)."""
+    """A task file and everything it references -> Task (SI units, mesh in metres), every
+    physical value within its plausible range (cell.task.plausible), as widened by `limits`."""
     path = Path(path)
     data = _read_mapping(path)
+    written = data.get("limits") if isinstance(data, dict) else None
+    limits = {} if written is None else TASK["limits"].read(path, "limits", written, lambda v: v)
+    with plausible.widened(limits):
+        return _load_task(path, data)
+
+
+def _load_task(path: Path, data: Any) -> Task:
     v = parse(path, "", data, TASK)
     part, cam, lamp, cell, sim = v["part"], v["camera"], v["lamp"], v["cell"], v["sim"]
     arm = cell["arm"]

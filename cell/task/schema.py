@@ -98,13 +98,18 @@ class Spec:
 
     expected = "a value"
     default = REQUIRED
+    # (file, path, raw, SI value) -> None or TaskError: the range a cell can have (cell.task.plausible)
+    plausible: Callable[[str | PathLike[str], str, Any, Any], None] | None = None
 
     def read(self, file: str | PathLike[str], path: str, raw: Any, to_si: ToSI) -> Any:
         try:
-            return self.convert(raw, to_si)
+            value = self.convert(raw, to_si)
         except Invalid as bad:
             key = path if bad.index is None else f"{path}[{bad.index}]"
             raise TaskError(file, key, show(bad.found), bad.expected) from None
+        if self.plausible is not None:
+            self.plausible(file, path, raw, value)
+        return value
 
     def convert(self, raw: Any, to_si: ToSI) -> Any:
         """raw checked and in SI units; an Invalid says what is wrong (each kind of key its own)."""

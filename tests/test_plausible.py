@@ -1,0 +1,213 @@
+"""Plausibility at load (issue 29, item 1): a unit slip on any physical key of the examples (a value
+written in m that was meant in mm, and the reverse) is refused with exit 2 naming the key and,
+where a range refuses it, the unit that was meant; the few slips that leave a value a cell may
+have still plan only with the fixed camera's reach checked. A fixed camera the arm cannot take
+is exit 1 before anything moves."""
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from hypothesis import HealthCheck, given, settings, strategies as st
+
+from cell import cli
+from cell.core.errors import PlanInfeasible, TaskError
+from cell.planning.scene import build_scene
+from cell.planning.viewpoints import require_reach
+from cell.task import plausible
+from cell.task.loader import TASK, load_task
+from cell.task.schema import UNITS, _unit
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLES = sorted((ROOT / "tasks").glob("*.yaml"))
+PHYSICAL = ("length", "time", "power")
+
+
+def absolute(raw, folder=ROOT / "tasks"):
+    """The task's mesh and material by absolute paths, so a variant may lie anywhere."""
+    raw["part"] |= {k: str(folder / raw["part"][k]) for k in ("mesh", "material")}
+    return raw
+
+
+def physical_keys(node, path=""):
+    """(dotted path as written, value) of every non-zero number or list of numbers under a key
+    whose unit suffix is a length, time or power."""
+    items = node.items() if isinstance(node, dict) else enumerate(node) if isinstance(node, list) else ()
+    for key, value in items:
+        here = f"{path}[{key}]" if isinstance(key, int) else f"{path}.{key}" if path else str(key)
+        suffix = _unit(str(key))[1] if isinstance(key, str) else None
+        numbers = np.asarray(value, float) if isinstance(value, (int, float, list)) and not isinstance(value, bool) \
+            and all(isinstance(x, (int, float)) for x in np.ravel(value)) else None
+        if suffix and UNITS[suffix][0] in PHYSICAL and numbers is not None and np.any(numbers):
+            yield here, value
+        elif isinstance(value, (dict, list)):
+            yield from physical_keys(value, here)
+
+
+def at(raw, dotted):
+    """(the mapping holding the dotted key, its last part)."""
+    parts = re.findall(r"[^.\[\]]+|\[\d+\]", dotted)
+    node = raw
+    for part in parts[:-1]:
+        node = node[int(part[1:-1])] if part.startswith("[") else node[part]
+    return node, parts[-1]
+
+
+SLIPS = [(task.stem, key, factor) for task in EXAMPLES
+         for key, _ in physical_keys(yaml.safe_load(task.read_text())) for factor in (1e3, 1e-3)]
+SLIPS += [(task.stem, "part.mesh_unit", "m") for task in EXAMPLES]       # their meshes are in mm
+
+# slips that leave a value an inspection may have, so they load and plan (the reach checked): a
+# depth of field 1000x smaller is a smaller wish (21 um), not an impossible one; a position 1000x
+# nearer its frame's origin lies within a few um of it, and each example's part touches its origin
+# (the feature snaps to the surface there, the pivot lies on it): no range tells it from a real one
+LOADS = {(name, key, 1e-3) for name in ("hinge", "conrod", "bracket")
+         for key in ("requirements.depth_of_field_m", "lamp.rig.pivot_m")}
+LOADS |= {("hinge", "feature.center_m", 1e-3), ("conrod", "feature.center_m", 1e-3)}
+LOADS |= {("bracket", f"features[{i}].center_mm", 1e-3) for i in range(5)}
+
+
+def slipped(tmp_path, name, key, factor):
+    raw = absolute(yaml.safe_load((ROOT / "tasks" / f"{name}.yaml").read_text()))
+    node, last = at(raw, key)
+    if key == "part.mesh_unit":
+        node[last] = factor
+    else:
+        node[last] = (np.asarray(node[last], float) * factor).tolist()
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    return path
+
+
+def test_every_example_has_physical_keys_to_slip():
+    assert {name for name, _, _ in SLIPS} == {"hinge", "conrod", "bracket"}
+    assert ("hinge", "lamp.power_mw", 1e3) in SLIPS and ("bracket", "features[3].radius_mm", 1e-3) in SLIPS
+    assert len(SLIPS) >= 60
+
+
+@settings(max_examples=400, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(slip=st.sampled_from(SLIPS))
+def test_a_unit_slip_on_any_physical_key_is_refused_naming_it_or_plans_with_the_reach_checked(tmp_path, slip):
+    name, key, factor = slip
+    path = slipped(tmp_path, name, key, factor)
+    try:
+        task = load_task(path)
+    except TaskError as refused:
+        assert refused.exit_code == 2 and refused.file == str(path)
+        assert refused.key == key or refused.key.startswith(key + "["), (slip, str(refused))
+        if key == "part.mesh_unit":
+            assert "did you mean mesh_unit: mm?" in str(refused)
+        elif "as an inspection cell has" in str(refused.expected):     # a range refused it: the unit meant
+            base, suffix = _unit(key.rpartition(".")[2].split("[")[0])
+            meant = [u for u, (q, _) in UNITS.items() if q == UNITS[suffix][0]
+                     and np.isclose(UNITS[u][1](1.0) * factor, UNITS[suffix][1](1.0))]
+            if meant:                                                   # (no km, no kW: no unit to name)
+                assert f"did you mean {base}_{meant[0]}:" in str(refused), str(refused)
+        return
+    assert slip in LOADS, f"{slip} loaded silently"
+    for i in range(len(task.features)):
+        if task.camera.viewpoint.mode == "fixed":
+            one = task.with_feature(i)
+            try:
+                require_reach(one, build_scene(one))
+            except PlanInfeasible as unreachable:
+                assert str(unreachable).startswith("camera_reach")
+
+
+def test_the_issue_s_slips_say_the_unit_meant(tmp_path, capsys):
+    hinge = (ROOT / "tasks" / "hinge.yaml").read_text()
+    for before, after, says in (
+            ("distance_m: 0.50", "distance_m: 500", "camera.distance_m: found 500, expected 10 mm to 2 m, as an "
+                                                     "inspection cell has; did you mean distance_mm: 500?"),
+            ("shutter_range_ms: [0.01, 20.0]", "shutter_range_s: [0.01, 20.0]",
+             "camera.shutter_range_s: found [0.01, 20.0], expected 1 us to 10 s, as an inspection cell has; "
+             "did you mean shutter_range_ms: [0.01, 20.0]?"),
+            ("power_mw: 230.43", "power_w: 230.43", "lamp.power_w: found 230.43, expected 10 mW to 100 W, as an "
+                                                    "inspection cell has; did you mean power_mw: 230.43?"),
+            ("mesh_unit: mm", "mesh_unit: m", "part.mesh_unit: found m, which makes parts/hinge.stl 70 x 40 x 12 m, "
+                                              "expected the unit of the mesh's coordinates, a part's largest side "
+                                              "1 mm to 2 m; did you mean mesh_unit: mm?")):
+        path = tmp_path / "slip.yaml"
+        text = hinge.replace(before, after).replace("parts/", f"{ROOT}/tasks/parts/").replace(
+            "materials/", f"{ROOT}/tasks/materials/")
+        path.write_text(text)
+        assert cli.main(["check", str(path)]) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and says.replace("parts/hinge.stl", f"{ROOT}/tasks/parts/hinge.stl") in err, err
+
+
+def test_a_mesh_in_m_read_as_mm_points_at_mesh_unit(tmp_path):
+    raw = absolute(yaml.safe_load((ROOT / "tasks" / "hinge.yaml").read_text()))
+    import trimesh
+    mesh = trimesh.load(raw["part"]["mesh"])
+    mesh.apply_scale(1e-3)                                   # the hinge written in metres
+    mesh.export(tmp_path / "hinge_m.stl")
+    raw["part"]["mesh"] = str(tmp_path / "hinge_m.stl")
+    (tmp_path / "t.yaml").write_text(yaml.safe_dump(raw))
+    with pytest.raises(TaskError) as refused:
+        load_task(tmp_path / "t.yaml")
+    assert refused.value.key == "part.mesh_unit" and "did you mean mesh_unit: m?" in str(refused.value)
+
+
+def test_limits_widen_a_range_for_a_cell_beyond_it(tmp_path):
+    raw = absolute(yaml.safe_load((ROOT / "tasks" / "hinge.yaml").read_text()))
+    raw["camera"].pop("shutter_range_ms")
+    raw["camera"]["shutter_range_s"] = [1e-5, 30.0]            # a camera exposing up to half a minute
+    (tmp_path / "t.yaml").write_text(yaml.safe_dump(raw))
+    with pytest.raises(TaskError, match="camera.shutter_range_s: found"):
+        load_task(tmp_path / "t.yaml")
+    raw["limits"] = {"camera.shutter_range_s": [1e-6, 60.0], "part.position_m": 3.0}   # docs/formats.md's
+    (tmp_path / "t.yaml").write_text(yaml.safe_dump(raw))
+    assert load_task(tmp_path / "t.yaml").camera.shutter_range_s == (1e-5, 30.0)
+    raw["limits"] = {"camera.shutter_range_s": [1e-6, 20.0]}                           # still too narrow
+    (tmp_path / "t.yaml").write_text(yaml.safe_dump(raw))
+    with pytest.raises(TaskError, match=r"expected 1 us to 20 s"):
+        load_task(tmp_path / "t.yaml")
+
+
+@pytest.mark.parametrize("limits, key, says", [
+    ({"camera.distance": [0, 1]}, "limits.camera.distance", "did you mean 'camera.distance_m'?"),
+    ({"camera.distance_m": 3}, "limits.camera.distance_m", "an ascending pair [low, high]"),
+    ({"camera.distance_m": [3, 1]}, "limits.camera.distance_m", "an ascending pair [low, high]"),
+    ({"part.position_m": [0, 3]}, "limits.part.position_m", "a positive radius"),
+    ([1, 2], "limits", "a mapping of plausible-range keys"),
+])
+def test_bad_limits_are_one_line_naming_the_key(tmp_path, capsys, limits, key, says):
+    raw = absolute(yaml.safe_load((ROOT / "tasks" / "hinge.yaml").read_text()))
+    raw["limits"] = limits
+    (tmp_path / "t.yaml").write_text(yaml.safe_dump(raw))
+    assert cli.main(["check", str(tmp_path / "t.yaml")]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and f": {key}: found" in err and says in err, err
+
+
+def test_every_range_has_its_key_and_its_words_in_the_schema():
+    """One table: each row's Spec says its range in `expected` (docs/formats.md's accepted column)."""
+    specs = dict(plausible._specs(TASK))
+    for key, row in plausible.RANGES.items():
+        if key != plausible.MESH:
+            assert specs[key].expected.endswith(f"({row.words()})") and specs[key].plausible.key == key
+
+
+def test_a_fixed_camera_the_arm_cannot_take_is_exit_1_before_anything_moves(tmp_path, capsys):
+    raw = absolute(yaml.safe_load((ROOT / "tasks" / "hinge.yaml").read_text()))
+    raw["camera"]["distance_m"] = 0.95            # plausible, inside a wider workspace, out of the UR5e's reach
+    raw["cell"]["arm"] = {"workspace_min_m": [-1.5, -1.5, -1.5], "workspace_max_m": [1.5, 1.5, 1.5]}
+    (tmp_path / "far.yaml").write_text(yaml.safe_dump(raw))
+    assert cli.main(["run", str(tmp_path / "far.yaml"), "--out", str(tmp_path / "run")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "beyond the UR5e's reach: its flange would be 1.080 m from the arm's base" in err, err
+    log = (tmp_path / "run" / "log.jsonl").read_text()
+    assert '"move_camera"' not in log and '"move_lamp"' not in log
+    raw["camera"]["distance_m"] = 0.7             # the default workspace's top is 1 m above the table
+    raw["cell"].pop("arm")
+    raw["camera"]["view_direction"] = [0.0, 0.0, 1.0]
+    raw["part"]["position_m"] = [0.0, 0.0, 0.35]
+    raw["lamp"]["rig"]["pivot_m"] = [0.006, 0.0, 0.354]
+    (tmp_path / "high.yaml").write_text(yaml.safe_dump(raw))
+    assert cli.main(["plan", str(tmp_path / "high.yaml"), "--out", str(tmp_path / "plan")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "is at [0.006, 0.0, 1.054] m in the cell frame, where the arm cannot take it: camera at " \
+           "[0.006, 0.0, 1.054] m is outside the workspace" in err, err
