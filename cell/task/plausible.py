@@ -75,13 +75,22 @@ def _position(radius: float) -> Range:
 # Every plausible range, by the key's dotted SI name (`[]`: each entry of a list). The arm is a
 # UR5e (0.85 m reach) in a cell of a few metres: poses within 2 m of the cell's origin, a camera
 # within 2 m of its feature; cameras expose between 1 us and 10 s; an LED lamp emits 10 mW to
-# 100 W of light; the rest what optics and parts of an inspection have.
+# 100 W of light; a defect is a scratch 1 um to 10 mm wide, 0.1 um to 5 mm deep, a dent or a coating
+# patch 10 um to 100 mm across; the rest what optics and parts of an inspection have.
 RANGES: dict[str, Range] = {
     "part.position_m": _position(2.0),
     "feature.center_m": _position(1.0),
     "feature.radius_m": _size(5e-5, 0.5),
     "features[].center_m": _position(1.0),
     "features[].radius_m": _size(5e-5, 0.5),
+    "feature.defects[].width_m": _size(1e-6, 0.01),
+    "feature.defects[].depth_m": _size(1e-7, 0.005),
+    "feature.defects[].radius_m": _size(1e-5, 0.1),
+    "feature.defects[].position_m": _position(1.0),
+    "features[].defects[].width_m": _size(1e-6, 0.01),
+    "features[].defects[].depth_m": _size(1e-7, 0.005),
+    "features[].defects[].radius_m": _size(1e-5, 0.1),
+    "features[].defects[].position_m": _position(1.0),
     "features[].requirements.depth_of_field_m": _size(0.0, 0.5),
     "features[].requirements.resolution_m": _size(1e-6, 0.01),
     "requirements.depth_of_field_m": _size(0.0, 0.5),
