@@ -2,4 +2,4 @@
 the kernels' throughput against NumPy and trimesh (`throughput`), planning time against features
 and workers (`multi_feature`).
 
-Layer 9: imports the layers below."""
+Layer 10: imports the layers below."""

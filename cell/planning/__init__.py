@@ -5,5 +5,5 @@ search, refinement, `certificate`), planned camera viewpoints (`viewpoints`), a 
 features (`whole_part`: candidate shots, `coverage` of each feature, `set_cover` for the fewest
 shots), where independent jobs run (`parallel`); what it produces is `plan` (Plan, Shot).
 
-Layer 5: imports `cell.core`, `cell.physics`, `cell.task`, `cell.devices` (not `hw`) and
-`kernels`."""
+Layer 6: imports `cell.core`, `cell.physics`, `cell.task`, `cell.devices` (not `hw`),
+`cell.collision` and `kernels`."""
