@@ -18,7 +18,7 @@ the same way, and an SDF over NumPy arrays needs no BVH for the few thousand sam
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 import numpy as np
 import trimesh
@@ -100,11 +100,11 @@ class Mesh:
         vertices = geometry.apply(T_cell_mesh, mesh.vertices)
         return cls(name, vertices, np.asarray(mesh.faces), surface_samples(vertices, mesh.faces))
 
-    @property
+    @cached_property
     def center(self) -> np.ndarray:
         return 0.5 * (self.points.min(axis=0) + self.points.max(axis=0))
 
-    @property
+    @cached_property
     def radius(self) -> float:
         return float(np.linalg.norm(self.points - self.center, axis=1).max() + SAMPLE_BOUND_M)
 
@@ -166,6 +166,19 @@ def segment_distance(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndar
     return float(np.linalg.norm(p1 + s * d1 - (p2 + t * d2)))
 
 
+def segment_to_box(box: Box, a: np.ndarray, b: np.ndarray, rounds: int = 4, n: int = 17) -> float:
+    """A lower bound of min over the segment a-b of box.sdf, within |b - a| / 8192 of it. A convex
+    body's SDF is convex, so along a segment its minimum lies beside the best of n evenly spaced
+    points: each round searches n points between the best one's neighbours of the last."""
+    lo, hi, ab = 0.0, 1.0, b - a
+    for _ in range(rounds):
+        t = np.linspace(lo, hi, n)
+        d = box.sdf(a + t[:, None] * ab)
+        k = int(np.argmin(d))
+        lo, hi = t[max(k - 1, 0)], t[min(k + 1, n - 1)]
+    return float(d[k] - (t[1] - t[0]) * np.linalg.norm(ab))
+
+
 def lower_bound(a: Body, b: Body) -> float:
     """A cheap lower bound of distance(a, b): their bounding spheres' gap."""
     return float(np.linalg.norm(a.center - b.center) - a.radius - b.radius)
@@ -173,14 +186,19 @@ def lower_bound(a: Body, b: Body) -> float:
 
 def distance(a: Body, b: Body) -> float:
     """A lower bound of the distance between two bodies [m], within SAMPLE_BOUND_M of it (exact
-    for two capsules); <= 0 when they overlap. Two meshes are not compared (the part may rest on
+    for two capsules, within a segment's length / 8192 for a capsule and a box); <= 0 when they
+    overlap. Two meshes are not compared (the part may rest on
     its fixture)."""
     if isinstance(a, Capsule) and isinstance(b, Capsule):
         return segment_distance(a.a, a.b, b.a, b.b) - a.radius_m - b.radius_m
+    if isinstance(a, Box) and isinstance(b, Capsule):
+        return segment_to_box(a, b.a, b.b) - b.radius_m
+    if isinstance(a, Capsule) and isinstance(b, Box):
+        return segment_to_box(b, a.a, a.b) - a.radius_m
     if isinstance(a, Mesh) and isinstance(b, Mesh):
         raise ValueError(f"no distance between two meshes ({a.name}, {b.name})")
-    if isinstance(b, Mesh) or (isinstance(a, Capsule) and isinstance(b, Box)):
-        a, b = b, a                        # sample the mesh, else the box; b has an exact SDF
+    if isinstance(b, Mesh):
+        a, b = b, a                        # sample the mesh (or box a); b has an exact SDF
     assert isinstance(a, (Mesh, Box)) and not isinstance(b, Mesh)
     points = a.points if isinstance(a, Mesh) else a.samples()
     bound = float(b.sdf(points).min()) - SAMPLE_BOUND_M

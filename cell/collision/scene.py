@@ -23,7 +23,7 @@ import numpy as np
 import trimesh
 from numpy.typing import ArrayLike
 
-from cell.collision.bodies import Body, Box, Capsule, Mesh, distance, lower_bound, surface_samples
+from cell.collision.bodies import Body, Box, Capsule, Mesh, distance, surface_samples
 from cell.core import geometry
 from cell.devices import ur5e
 
@@ -76,8 +76,8 @@ class Clearance:
     def reason(self) -> str:
         """The refusal's sentence: names both bodies."""
         a, b = self.bodies
-        return (f"collision: {a} and {b} {self.distance_m * 1e3:.1f} mm apart, "
-                f"less than the padding {self.padding_m * 1e3:.0f} mm")
+        apart = "touch or overlap" if self.distance_m <= 0 else f"only {self.distance_m * 1e3:.1f} mm apart"
+        return f"collision: {a} and {b} {apart}, less than the padding {self.padding_m * 1e3:g} mm"
 
 
 @dataclass(frozen=True)
@@ -135,13 +135,17 @@ def clearance(bodies: tuple[Body, ...], padding_m: float) -> Clearance:
     """The smallest distance over the pairs that may not touch (MAY_TOUCH), exactly as
     bodies.distance gives it: pairs in order of their bounding spheres' gap, stopping at the
     first gap no smaller than the best distance found."""
-    pairs = [(lower_bound(a, b), a, b) for a, b in combinations(bodies, 2)
-             if frozenset((a.name, b.name)) not in MAY_TOUCH]
-    pairs.sort(key=lambda p: p[0])
+    pairs = [(i, j) for i, j in combinations(range(len(bodies)), 2)
+             if frozenset((bodies[i].name, bodies[j].name)) not in MAY_TOUCH]
+    centers = np.array([body.center for body in bodies])
+    radii = np.array([body.radius for body in bodies])
+    i, j = np.array(pairs).T
+    gaps = np.linalg.norm(centers[i] - centers[j], axis=1) - radii[i] - radii[j]   # bodies.lower_bound
     best, names = np.inf, ("", "")
-    for bound, a, b in pairs:
-        if bound >= best:
+    for k in np.argsort(gaps, kind="stable"):
+        if gaps[k] >= best:
             break
+        a, b = bodies[i[k]], bodies[j[k]]
         d = distance(a, b)
         if d < best:
             best, names = d, (a.name, b.name)

@@ -16,6 +16,7 @@ from cell.planning import regions
 from cell.physics.costs import RequirementValue
 
 if TYPE_CHECKING:
+    from cell.collision.scene import Clearance
     from cell.planning.scene import Scene
 
 
@@ -147,6 +148,7 @@ class Shot:
     requirements: tuple[RequirementValue, ...]
     covers: tuple[Coverage, ...] = ()# a multi-feature plan's: the Coverage of each feature it covers
     arm_joints: tuple[float, ...] | None = None# a planned viewpoint's: the UR5e joints reaching T_cell_cam [rad]
+    clearance: Clearance | None = None         # the cell's bodies at this shot (cell.collision); None: not checked
 
     @property
     def camera_position(self) -> np.ndarray:
@@ -243,6 +245,7 @@ class Plan:
             "camera": camera_json(shot),
             "predicted_gray": gray_stats(shot.gray),
             "verified": self.verification.to_json() if self.verification else None,
+            **clearance_json(shot),
             "search": asdict(self.search),
             "timing_s": self.timing_s,
             "settings": asdict(self.settings),
@@ -254,7 +257,7 @@ class Plan:
                "shots": [{"camera": {"T_cell_cam": shot.T_cell_cam.tolist(), **camera_json(shot),
                                      **({} if shot.arm_joints is None else
                                         {"arm_joints_deg": np.degrees(shot.arm_joints).tolist()})},
-                          "lamp": lamp_json(shot),
+                          "lamp": lamp_json(shot), **clearance_json(shot),
                           "covers": [{"feature": c.feature, "predicted_gray": gray_stats(c.gray),
                                       "requirements": requirements_json(c.requirements),
                                       "verified": c.verification.to_json() if c.verification else None}
@@ -280,6 +283,14 @@ def lamp_json(shot: Shot) -> dict[str, Any]:
             "phase_angle_deg": float(np.degrees(shot.phase_angle_rad)),
             "joints": {"pan_deg": float(np.degrees(pan)), "tilt_deg": float(np.degrees(tilt)),
                        "radius_m": float(radius)}}
+
+
+def clearance_json(shot: Shot) -> dict[str, Any]:
+    """`clearance_m`, the smallest distance at the shot between two bodies that may not touch,
+    and `clearance_bodies`, which two (none when the shot was not checked)."""
+    if shot.clearance is None:
+        return {}
+    return {"clearance_m": shot.clearance.distance_m, "clearance_bodies": list(shot.clearance.bodies)}
 
 
 def camera_json(shot: Shot) -> dict[str, Any]:
