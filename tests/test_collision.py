@@ -182,3 +182,38 @@ def test_bad_collision_keys_are_one_line_naming_file_and_key_and_exit_2(tmp_path
     assert main(["check", str(path)]) == 2
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and "found" in lines[0] and "expected" in lines[0]
+
+
+# -- moves between two shots (cell.collision.paths) ------------------------------------------------
+
+def wall_task(tmp_path):
+    """The hinge with a wall (the fixture) between two camera poses 0.4 m above the cell's floor at
+    x = -/+0.15 m, y = 0.15 m: the wall 20 mm thick at x = 0, y 0.05-0.25 m, its top at z = 0.42 m."""
+    wall = trimesh.creation.box(extents=(20.0, 200.0, 220.0), transform=geometry.transform(translation=(0, 150, 310)))
+    (tmp_path / "wall.stl").write_bytes(wall.export(file_type="stl"))
+    return load_task(variant(tmp_path, HINGE, {"cell.collision.fixture_mesh": str(tmp_path / "wall.stl")}))
+
+
+def stop(task, x, q_near=np.zeros(6)):
+    """The camera 0.4 m above (x, 0.15 m) looking down, the arm's joints nearest q_near."""
+    from cell.collision.paths import Stop
+    from cell.planning.scene import look_at
+    T = look_at(np.array([x, 0.15, 0.40]), np.array([x, 0.15, 0.0]))
+    q = ur5e.inverse(task.frames.T_base_flange(task.frames.T_base_cam(T)), q_near)
+    return Stop(T, q, (np.radians(180.0), np.radians(45.0), 0.2))     # the lamp at x = -0.14 m, clear
+
+
+def test_a_move_through_a_wall_gets_via_points_over_it_and_each_step_keeps_the_padding(tmp_path):
+    from cell.collision.paths import arm_path, plan_move
+    task = wall_task(tmp_path)
+    scene = CollisionScene.of(task)
+    b = stop(task, 0.15)
+    a = stop(task, -0.15, b.arm_joints)                          # the same configuration, mirrored
+    assert scene.clearance(a.T_cell_cam, a.arm_joints).ok and scene.clearance(b.T_cell_cam, b.arm_joints).ok
+    direct, _, _ = arm_path(scene, a.T_cell_cam, a.arm_joints, b.T_cell_cam, None)
+    assert direct.distance_m <= 0.0 and "fixture" in direct.bodies
+    move = plan_move(scene, task.cell.devices.arm, 0, a, 1, b)
+    assert move.clear and len(move.via) == 2 and move.to_json()["from"] == 0 and move.to_json()["to"] == 1
+    assert all(T[2, 3] > 0.42 + 0.05 for T in move.via)          # the camera's bottom over the wall's top
+    assert move.clearance.distance_m >= task.cell.collision.padding_m
+
