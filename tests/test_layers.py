@@ -8,7 +8,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 
 # bottom to top; a package may import its own modules and those of any package listed before it
-LAYERS = ("core", "physics", "task", "devices", "planning", "report", "run", "calibration", "bench", "cli")
+LAYERS = ("core", "physics", "task", "devices", "collision", "planning", "report", "run", "calibration", "bench", "cli")
 BUILDS_DEVICES = "cell.run.backends"
 SIM_SEES_UP_TO = "planning"
 

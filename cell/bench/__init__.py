@@ -3,4 +3,4 @@ the kernels' throughput against NumPy and trimesh (`throughput`), planning time 
 and workers (`multi_feature`), the lights' contribution kernel per type and planning time against
 the number of channels (`lights`).
 
-Layer 9: imports the layers below."""
+Layer 10: imports the layers below."""

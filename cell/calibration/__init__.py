@@ -2,4 +2,4 @@
 (`camera_constant`) or a reference part (`reference_part`), the material as a goniometer
 (`goniometer`), the focal length and hand-eye transform (`hand_eye`).
 
-Layer 8: imports the layers below (the run's acquisition and measurement)."""
+Layer 9: imports the layers below (the run's acquisition and measurement)."""

@@ -6,5 +6,5 @@ features (`whole_part`: candidate shots, `coverage` of each feature, `set_cover`
 shots), where independent jobs run (`parallel`), several light channels' drive levels, shutter and
 f-number by linear programming (`drives`); what it produces is `plan` (Plan, Shot).
 
-Layer 5: imports `cell.core`, `cell.physics`, `cell.task`, `cell.devices` (not `hw`) and
-`kernels`."""
+Layer 6: imports `cell.core`, `cell.physics`, `cell.task`, `cell.devices` (not `hw`),
+`cell.collision` and `kernels`."""

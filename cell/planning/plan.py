@@ -16,6 +16,7 @@ from cell.planning import regions
 from cell.physics.costs import RequirementValue
 
 if TYPE_CHECKING:
+    from cell.collision.scene import Clearance
     from cell.planning.scene import Scene
 
 
@@ -198,6 +199,7 @@ class Shot:
     arm_joints: tuple[float, ...] | None = None# a planned viewpoint's: the UR5e joints reaching T_cell_cam [rad]
     lights: tuple[LightSetting, ...] = ()      # the spot and the task's other lights, in the task's order
     defects: tuple[DefectCnr, ...] = ()        # the feature's declared defects: predicted CNR (cell.planning.defects)
+    clearance: Clearance | None = None         # the cell's bodies at this shot (cell.collision); None: not checked
 
     @property
     def drive(self) -> np.ndarray | None:
@@ -302,6 +304,7 @@ class Plan:
             "predicted_gray": gray_stats(shot.gray),
             **({"defects": [d.to_json() for d in shot.defects]} if shot.defects else {}),
             "verified": self.verification.to_json() if self.verification else None,
+            **clearance_json(shot),
             "search": asdict(self.search),
             "timing_s": self.timing_s,
             "settings": asdict(self.settings),
@@ -313,7 +316,7 @@ class Plan:
                "shots": [{"camera": {"T_cell_cam": shot.T_cell_cam.tolist(), **camera_json(shot),
                                      **({} if shot.arm_joints is None else
                                         {"arm_joints_deg": np.degrees(shot.arm_joints).tolist()})},
-                          "lamp": lamp_json(shot),
+                          "lamp": lamp_json(shot), **clearance_json(shot),
                           "lights": [light.to_json() for light in shot.lights],
                           "covers": [{"feature": c.feature, "predicted_gray": gray_stats(c.gray),
                                       **({"defects": [d.to_json() for d in c.defects]} if c.defects else {}),
@@ -348,6 +351,14 @@ def contributions_json(lights: Iterable[LightSetting]) -> list[dict[str, Any]]:
     """Each light's share of a feature's gray, by channel, at the shot's drive and exposure."""
     return [{"name": light.name, "channel": light.channel, "drive": light.drive, "gray": gray_stats(light.gray)}
             for light in lights]
+
+
+def clearance_json(shot: Shot) -> dict[str, Any]:
+    """`clearance_m`, the smallest distance at the shot between two bodies that may not touch,
+    and `clearance_bodies`, which two (none when the shot was not checked)."""
+    if shot.clearance is None:
+        return {}
+    return {"clearance_m": shot.clearance.distance_m, "clearance_bodies": list(shot.clearance.bodies)}
 
 
 def camera_json(shot: Shot) -> dict[str, Any]:

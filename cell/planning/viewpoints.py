@@ -12,13 +12,14 @@ until the arm reaches it). Stages, cheapest first, each counted:
   workspace    camera and flange (by the frames' hand-eye) inside cell.arm's workspace box
                (cell.devices.interfaces.check_arm_motion, as every move is checked)
   reach        the UR5e's closed-form inverse kinematics (cell.devices.ur5e) has a solution
+  collision    the arm's links and the camera body at least cell.collision.padding_m from the part,
+               the fixture and each other (cell.collision; the lamp is checked with the shot)
   seen         a direct ray from every sample to C is free and every sample lies in the image
                (evaluate.build_problem's camera_unseen), the view angle and resolution hold at
                every sample, and the depth of field holds at the lens's narrowest f-number
                (cell.planning.requirements' own values)
 The survivors are ranked by their largest view angle (the squarest first, then the nearest)
 and at most views_per_feature are kept, each at least two steps from those kept before.
-The arm's collisions with the part or the table are not checked.
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from cell.physics import projection
 from cell.devices import ur5e
 from cell.devices.interfaces import check_arm_motion
 from cell.core.errors import DeviceFault, PlanInfeasible
+from cell.collision.scene import CollisionScene
 from cell.planning.scene import look_at
 
 if TYPE_CHECKING:
@@ -42,7 +44,7 @@ if TYPE_CHECKING:
     from cell.planning.scene import Scene
     from cell.task.types import Task
 
-STAGES = ("visibility", "view_angle", "resolution", "workspace", "reach", "seen")
+STAGES = ("visibility", "view_angle", "resolution", "workspace", "reach", "collision", "seen")
 ROLLS = np.radians([0.0, 90.0, 180.0, 270.0])
 VIEWPOINT_REQUIREMENTS = ("camera_view", "view_angle", "resolution", "depth_of_field")
 
@@ -98,8 +100,10 @@ def rolled(T: np.ndarray, angle: float) -> np.ndarray:
     return T @ geometry.transform(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]))
 
 
-def reach(task: Task, T_cell_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray] | str:
-    """(T_cell_cam rolled so the arm reaches it, joints) or the stage that refused."""
+def reach(task: Task, T_cell_cam: np.ndarray,
+          bodies: CollisionScene | None = None) -> tuple[np.ndarray, np.ndarray] | str:
+    """(T_cell_cam rolled so the arm reaches it clear of the part and fixture, joints) or the
+    last stage that refused (collision only with `bodies`, the task's collision scene)."""
     frames, arm = task.frames, task.cell.devices.arm
     refused = "workspace"
     for angle in ROLLS:
@@ -111,7 +115,10 @@ def reach(task: Task, T_cell_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray] |
         try:
             q = ur5e.inverse(frames.T_base_flange(frames.T_base_cam(T)), np.zeros(6))
         except ur5e.Unreachable:
-            refused = "reach"
+            refused = "reach" if refused != "collision" else refused
+            continue
+        if bodies is not None and not bodies.clearance(T, q).ok:
+            refused = "collision"
             continue
         return T, q
     return refused
@@ -171,6 +178,7 @@ def plan_viewpoints(task: Task, scene: Scene, visible: np.ndarray, grid: SphereG
     square = seen_dir & (polar <= (np.inf if req.view_angle_rad is None else req.view_angle_rad) + 1e-12)
     pruned["view_angle"] = int(np.sum(seen_dir & ~square)) * len(radii)
     survivors = []
+    bodies = CollisionScene.of(task)
     for k in np.flatnonzero(square):
         d = scene.frame @ dirs[k]
         for r in radii:
@@ -179,7 +187,7 @@ def plan_viewpoints(task: Task, scene: Scene, visible: np.ndarray, grid: SphereG
                     camera, scene.center, scene.normal, sensor.pixel_pitch_m, lens.focal_length_m) > req.resolution_m:
                 pruned["resolution"] += 1
                 continue
-            reached = reach(task, look_at(camera, scene.center))
+            reached = reach(task, look_at(camera, scene.center), bodies)
             if isinstance(reached, str):
                 pruned[reached] += 1
                 continue

@@ -14,6 +14,8 @@ from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
+from cell.collision.scene import CollisionScene
+from cell.devices import ur5e
 from cell.planning import coverage, one_shot, regions
 from cell.planning.set_cover import fewest_shots
 from cell.planning.parallel import SERIAL
@@ -49,9 +51,29 @@ def own_plan(task: Task, settings: PlannerSettings, T_cell_cam: np.ndarray | Non
     if header:
         say(header)
     p = one_shot.plan(task, settings, progress=say, T_cell_cam=T_cell_cam)
-    if arm_joints is None:
+    if arm_joints is not None:
+        p = replace(p, shots=(replace(p.shot, arm_joints=tuple(float(q) for q in arm_joints)),))
+    return cleared(task, p)
+
+
+def cleared(task: Task, p: Plan) -> Plan:
+    """A one-shot plan with its shot's Clearance (cell.collision): the arm at the shot's joints
+    (the fixed camera rule's: the inverse kinematics nearest zero joints; none where the arm does
+    not reach, which the run refuses anyway), the camera body and the lamp. A shot closer than
+    the padding makes the plan infeasible, `collision` binding, the two bodies named."""
+    shot = p.shot
+    joints = shot.arm_joints
+    if joints is None:
+        try:
+            joints = tuple(ur5e.inverse(task.frames.T_base_flange(task.frames.T_base_cam(shot.T_cell_cam)),
+                                        np.zeros(6)))
+        except ur5e.Unreachable:
+            joints = None
+    clearance = CollisionScene.of(task).clearance(shot.T_cell_cam, joints, shot.lamp_position)
+    p = replace(p, shots=(replace(shot, clearance=clearance),))
+    if clearance.ok:
         return p
-    return replace(p, shots=(replace(p.shot, arm_joints=tuple(float(q) for q in arm_joints)),))
+    return replace(p, feasible=False, binding="collision", miss=float("inf"), hint=clearance.reason())
 
 
 def viewpoints_of(task: Task, settings: PlannerSettings, say: Callable[[str], None]) -> Viewpoints:
@@ -164,6 +186,8 @@ def plan_features(task: Task, settings: PlannerSettings = PlannerSettings(),
     judged = [[coverage.of_plan(t, p) if g == f else cast("Coverage", column[f])
                for (g, p), (column, _) in zip(cands, columns)] for f, t in enumerate(tasks)]
     covers = np.array([[c.covered for c in row] for row in judged]).reshape(len(tasks), len(shots))
+    colliding = np.array([s.clearance is not None and not s.clearance.ok for s in shots], bool)
+    covers[:, colliding] = False                # a shot too close to collide covers nothing
     t_judge = time.perf_counter()
     distance = travel(shots) if shots else np.zeros(0)
     cover = fewest_shots(covers, distance)
@@ -201,7 +225,7 @@ def plan_features(task: Task, settings: PlannerSettings = PlannerSettings(),
                     refinements=tuple(r for p in plans for r in p.search.refinements))
     notes = tuple(f"{tasks[f].feature.name}: {n}" for f, p in cands for n in p.notes)
     record = {"candidate_shots": len(shots), "covers": covers.tolist(), "travel_m": distance.tolist(),
-              "chosen": list(cover.chosen)}
+              "chosen": list(cover.chosen), "rejected": {"collision": int(colliding.sum())}}
     if views is not None:
         record |= {"candidate_features": [f for f, _ in cands],
                    "viewpoints": [{"feature": t.feature.name, **v.to_json()} for t, v in zip(tasks, views)]}

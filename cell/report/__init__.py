@@ -2,4 +2,4 @@
 result files, the routines' ending), the verdict every result file carries (`result`) and
 every picture (`pictures`).
 
-Layer 6: imports `cell.core` to `cell.planning`."""
+Layer 7: imports `cell.core` to `cell.planning`."""

@@ -5,4 +5,4 @@ the control law (`control`), the material refitted (`refit`), the closed loop of
 feature or several (`loop`, its steps sharing a `context`), and a run of several shots
 (`inspection`) in the order `route` gives.
 
-Layer 7: imports the layers below, `kernels` and, in `backends` only, `sim`."""
+Layer 8: imports the layers below, `kernels` and, in `backends` only, `sim`."""

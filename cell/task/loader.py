@@ -19,6 +19,7 @@ from numpy.typing import ArrayLike
 from cell.core import geometry
 from cell.task import plausible
 from cell.task.board import DICTIONARIES, Board
+from cell.task.collision import COLLISION, collision_config
 from cell.task.device_config import SECTIONS as DEVICES, devices_config, hand_eye
 from cell.core.errors import TaskError
 from cell.core.frames import Frames
@@ -224,6 +225,7 @@ TASK = {
     "cell": Section({
         "backend": Choice("sim", "hw", default="sim"),
         **DEVICES,                                       # arm, pan_tilt, camera: cell.task.device_config
+        "collision": COLLISION,                          # cell.task.collision
     }, required=False),
     "sim": Section({
         "seed": Integer(0, 2**32 - 1, default=1),
@@ -349,9 +351,10 @@ def _relative_file(file, key, name, kind):
     return checked_file(file.parent / name, kind, file, key, relative_to="the task file")
 
 
-def _load_mesh(file, part):
-    """The part's mesh in metres; missing, unreadable, empty or non-finite meshes are errors."""
-    name, key = part["mesh"], "part.mesh"
+def _load_mesh(file, part, key="part.mesh"):
+    """The part's mesh (or the fixture's: `key`) in metres; missing, unreadable, empty or
+    non-finite meshes are errors."""
+    name = part["mesh"]
     path = _relative_file(file, key, name, "mesh")
     try:
         mesh = trimesh.load(path, force="mesh", process=False)
@@ -883,7 +886,9 @@ def _load_task(path: Path, data: Any) -> Task:
                            Lens(**cam["lens"]), cam["shutter_range_s"], _viewpoint(cam)),
         lamp=spot,
         lights=lights,
-        cell=CellConfig(cell["backend"], devices),
+        cell=CellConfig(cell["backend"], devices, collision_config(
+            path, cell["collision"], part["mesh_unit"],
+            lambda key, name, unit: _load_mesh(path, {"mesh": name, "mesh_unit": unit}, key)[1])),
         sim=SimConfig(sim["seed"], sim["effects"], _truth(path, sim["truth"], spot.rig)),
         loop=_loop(path, v["loop"]),
         calibration=_calibration(path, v["calibration"], material, spot.rig),

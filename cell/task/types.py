@@ -9,6 +9,7 @@ import numpy as np
 import trimesh
 
 from cell.task.board import Board
+from cell.task.collision import CollisionConfig
 from cell.task.device_config import DevicesConfig
 from cell.core.frames import Frames
 from cell.physics.material import Material
@@ -266,6 +267,7 @@ class SimConfig:
 class CellConfig:
     backend: str                   # sim | hw
     devices: DevicesConfig         # cell.arm / cell.pan_tilt / cell.camera, defaults filled in
+    collision: CollisionConfig = CollisionConfig()   # cell.collision, defaults filled in
 
 
 @dataclass(frozen=True)

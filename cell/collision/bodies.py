@@ -1,0 +1,215 @@
+"""The cell's bodies as collision geometry, and a conservative distance between two of them.
+
+A box and a capsule have exact signed distance functions (SDF, negative inside), vectorised over
+points. A mesh (the part, the fixture) is its surface sampled once (`surface_samples`) with every
+surface point within SAMPLE_BOUND_M of a sample. An SDF is 1-Lipschitz, so for a body A sampled
+within h and a body B with an exact SDF,
+
+    d(A, B) >= min_k sdf_B(a_k) - h                                    (sampled lower bound)
+
+and that bound is <= 0 whenever A and B overlap, unless B lies wholly inside A; that case is
+caught by one point of B inside A (`_contained`). So `distance` never reports a clearance larger
+than the true one: it errs by at most h on the safe side, and overlap gives <= 0.
+
+This stands in for FCL (python-fcl has no wheel for this platform): trimesh's primitives are built
+the same way, and an SDF over NumPy arrays needs no BVH for the few thousand samples a part has.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property, lru_cache
+
+import numpy as np
+import trimesh
+from numpy.typing import ArrayLike
+
+from cell.core import geometry
+
+SAMPLE_BOUND_M = 0.002       # every surface point of a sampled body within this of a sample (h)
+BOX_GRID_M = SAMPLE_BOUND_M * np.sqrt(2.0)   # a square grid of pitch s covers within s / sqrt 2
+MESH_EDGE_M = SAMPLE_BOUND_M * np.sqrt(3.0)  # a triangle of edges <= e: every point within e / sqrt 3
+                                             # of a vertex (its circumradius, or half its longest edge)
+
+
+@dataclass(frozen=True)
+class Box:
+    """A box: its centre and axes T_cell_box (4x4), half its size along each axis [m]."""
+
+    name: str
+    T_cell_box: np.ndarray
+    half_m: np.ndarray
+
+    @property
+    def center(self) -> np.ndarray:
+        return self.T_cell_box[:3, 3]
+
+    @property
+    def radius(self) -> float:
+        """Of the sphere about the centre holding the box."""
+        return float(np.linalg.norm(self.half_m))
+
+    def sdf(self, points: ArrayLike) -> np.ndarray:
+        """Signed distance (N,) [m] of points (N, 3): |max(q, 0)| + min(max_i q_i, 0), q = |p| - half."""
+        local = (np.asarray(points, float).reshape(-1, 3) - self.center) @ self.T_cell_box[:3, :3]
+        q = np.abs(local) - self.half_m
+        return np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0)
+
+    def samples(self) -> np.ndarray:
+        """(N, 3) points on its surface, every surface point within SAMPLE_BOUND_M of one."""
+        return geometry.apply(self.T_cell_box, _box_surface(tuple(np.round(self.half_m, 9))))
+
+
+@dataclass(frozen=True)
+class Capsule:
+    """The points within `radius_m` of the segment a-b (cell frame)."""
+
+    name: str
+    a: np.ndarray
+    b: np.ndarray
+    radius_m: float
+
+    @property
+    def center(self) -> np.ndarray:
+        return 0.5 * (self.a + self.b)
+
+    @property
+    def radius(self) -> float:
+        return float(0.5 * np.linalg.norm(self.b - self.a) + self.radius_m)
+
+    def sdf(self, points: ArrayLike) -> np.ndarray:
+        """Signed distance (N,) [m]: the distance to the segment, less the radius."""
+        p = np.asarray(points, float).reshape(-1, 3)
+        ab = self.b - self.a
+        t = np.clip((p - self.a) @ ab / max(ab @ ab, 1e-300), 0.0, 1.0)
+        return np.linalg.norm(p - self.a - t[:, None] * ab, axis=1) - self.radius_m
+
+
+@dataclass(frozen=True)
+class Mesh:
+    """A triangle mesh in the cell frame (the part, the fixture): its vertices and faces for the
+    inside test, and its surface samples (every surface point within SAMPLE_BOUND_M of one)."""
+
+    name: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    points: np.ndarray = field(repr=False)
+
+    @classmethod
+    def of(cls, name: str, mesh: trimesh.Trimesh, T_cell_mesh: np.ndarray) -> Mesh:
+        vertices = geometry.apply(T_cell_mesh, mesh.vertices)
+        return cls(name, vertices, np.asarray(mesh.faces), surface_samples(vertices, mesh.faces))
+
+    @cached_property
+    def center(self) -> np.ndarray:
+        return 0.5 * (self.points.min(axis=0) + self.points.max(axis=0))
+
+    @cached_property
+    def radius(self) -> float:
+        return float(np.linalg.norm(self.points - self.center, axis=1).max() + SAMPLE_BOUND_M)
+
+    def contains(self, point: ArrayLike) -> bool:
+        """The point inside the closed surface (generalised winding number above 1/2)."""
+        return geometry.winding_number(self.vertices, self.faces, point) > 0.5
+
+
+Body = Box | Capsule | Mesh
+
+
+def surface_samples(vertices: ArrayLike, faces: ArrayLike) -> np.ndarray:
+    """(N, 3) vertices of the mesh subdivided until every edge is at most MESH_EDGE_M: every
+    point of the surface lies within MESH_EDGE_M / sqrt 3 = SAMPLE_BOUND_M of one of them."""
+    v, _ = trimesh.remesh.subdivide_to_size(np.asarray(vertices, float), np.asarray(faces), MESH_EDGE_M,
+                                            max_iter=64)
+    return np.asarray(v, float)
+
+
+@lru_cache(maxsize=64)
+def _box_surface(half: tuple[float, float, float]) -> np.ndarray:
+    """Grid points on the six faces of a box centred at 0 (its own frame), pitch <= BOX_GRID_M,
+    each face's edges included."""
+    half_m = np.array(half)
+    faces = []
+    for axis in range(3):
+        u, v = [k for k in range(3) if k != axis]
+        gu = np.linspace(-half_m[u], half_m[u], max(2, int(np.ceil(2 * half_m[u] / BOX_GRID_M)) + 1))
+        gv = np.linspace(-half_m[v], half_m[v], max(2, int(np.ceil(2 * half_m[v] / BOX_GRID_M)) + 1))
+        U, V = np.meshgrid(gu, gv, indexing="ij")
+        for side in (-1.0, 1.0):
+            face = np.empty((U.size, 3))
+            face[:, axis], face[:, u], face[:, v] = side * half_m[axis], U.ravel(), V.ravel()
+            faces.append(face)
+    return np.vstack(faces)
+
+
+def segment_distance(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndarray) -> float:
+    """The distance between segments p1-q1 and p2-q2 (Ericson, Real-Time Collision Detection 5.1.9)."""
+    d1, d2, r = q1 - p1, q2 - p2, p1 - p2
+    a, e, f = d1 @ d1, d2 @ d2, d2 @ r
+    if a <= 1e-18 and e <= 1e-18:
+        return float(np.linalg.norm(r))
+    if a <= 1e-18:
+        s, t = 0.0, float(np.clip(f / e, 0.0, 1.0))
+    else:
+        c = d1 @ r
+        if e <= 1e-18:
+            s, t = float(np.clip(-c / a, 0.0, 1.0)), 0.0
+        else:
+            b = d1 @ d2
+            denom = a * e - b * b
+            s = float(np.clip((b * f - c * e) / denom, 0.0, 1.0)) if denom > 1e-18 else 0.0
+            t = (b * s + f) / e
+            if t < 0.0:
+                s, t = float(np.clip(-c / a, 0.0, 1.0)), 0.0
+            elif t > 1.0:
+                s, t = float(np.clip((b - c) / a, 0.0, 1.0)), 1.0
+    return float(np.linalg.norm(p1 + s * d1 - (p2 + t * d2)))
+
+
+def segment_to_box(box: Box, a: np.ndarray, b: np.ndarray, rounds: int = 4, n: int = 17) -> float:
+    """A lower bound of min over the segment a-b of box.sdf, within |b - a| / 8192 of it. A convex
+    body's SDF is convex, so along a segment its minimum lies beside the best of n evenly spaced
+    points: each round searches n points between the best one's neighbours of the last."""
+    lo, hi, ab = 0.0, 1.0, b - a
+    for _ in range(rounds):
+        t = np.linspace(lo, hi, n)
+        d = box.sdf(a + t[:, None] * ab)
+        k = int(np.argmin(d))
+        lo, hi = t[max(k - 1, 0)], t[min(k + 1, n - 1)]
+    return float(d[k] - (t[1] - t[0]) * np.linalg.norm(ab))
+
+
+def lower_bound(a: Body, b: Body) -> float:
+    """A cheap lower bound of distance(a, b): their bounding spheres' gap."""
+    return float(np.linalg.norm(a.center - b.center) - a.radius - b.radius)
+
+
+def distance(a: Body, b: Body) -> float:
+    """A lower bound of the distance between two bodies [m], within SAMPLE_BOUND_M of it (exact
+    for two capsules, within a segment's length / 8192 for a capsule and a box); <= 0 when they
+    overlap. Two meshes are not compared (the part may rest on
+    its fixture)."""
+    if isinstance(a, Capsule) and isinstance(b, Capsule):
+        return segment_distance(a.a, a.b, b.a, b.b) - a.radius_m - b.radius_m
+    if isinstance(a, Box) and isinstance(b, Capsule):
+        return segment_to_box(a, b.a, b.b) - b.radius_m
+    if isinstance(a, Capsule) and isinstance(b, Box):
+        return segment_to_box(b, a.a, a.b) - a.radius_m
+    if isinstance(a, Mesh) and isinstance(b, Mesh):
+        raise ValueError(f"no distance between two meshes ({a.name}, {b.name})")
+    if isinstance(b, Mesh):
+        a, b = b, a                        # sample the mesh (or box a); b has an exact SDF
+    assert isinstance(a, (Mesh, Box)) and not isinstance(b, Mesh)
+    points = a.points if isinstance(a, Mesh) else a.samples()
+    bound = float(b.sdf(points).min()) - SAMPLE_BOUND_M
+    return min(bound, _contained(b, a))
+
+
+def _contained(inner: Box | Capsule, outer: Body) -> float:
+    """<= 0 when a point of `inner` lies inside `outer` (the case the sampled bound misses: inner
+    wholly inside outer), else +inf."""
+    point = inner.a if isinstance(inner, Capsule) else inner.center
+    if isinstance(outer, Mesh):
+        return -float(np.linalg.norm(outer.points - point, axis=1).min()) if outer.contains(point) else np.inf
+    depth = float(outer.sdf(point)[0])
+    return depth if depth <= 0.0 else np.inf

@@ -1,0 +1,167 @@
+"""The collision scene of a task (`cell.collision` keys, docs/formats.md) and the clearance of
+the cell at one pose of the arm, camera and lamp.
+
+Bodies: the part and the optional fixture (meshes, fixed in the cell), the UR5e's links
+(capsules along its kinematic chain, placed by cell.devices.ur5e.forward), the camera body (a
+box on the flange, centred `offset_m` along the tool axis, its axes the flange's) and the lamp
+body (a box behind the lamp's front at its position, its z axis the lamp's aim). Bodies that may
+touch: neighbours on the arm's chain and the next but one (they share a joint housing), the
+flange's two wrist links and the camera, the robot base and the fixture it may stand on, the
+part and its fixture. The clearance is the smallest distance over every other pair, found by
+branch and bound on bounding spheres (the exact distance of a pair only where it could be the
+smallest), so the result is the minimum, not an estimate of it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+from itertools import combinations
+from typing import TYPE_CHECKING
+
+import numpy as np
+import trimesh
+from numpy.typing import ArrayLike
+
+from cell.collision.bodies import Body, Box, Capsule, Mesh, distance, surface_samples
+from cell.core import geometry
+from cell.devices import ur5e
+
+if TYPE_CHECKING:
+    from cell.core.frames import Frames
+    from cell.task.types import Task
+
+# The UR5e's envelope (UR's published link dimensions, rounded up): its links as capsules between
+# points of the DH chain, the upper arm offset 138 mm and the forearm 7 mm along the joint-2 axis
+# from the DH line (the wrist reaches d4 = 133 mm), radii of the link tubes and joint housings.
+SHOULDER_OFFSET_M, FOREARM_OFFSET_M = 0.138, 0.007
+ARM_LINKS = (("base", 0.076), ("shoulder", 0.062), ("upper_arm", 0.056), ("elbow", 0.050),
+             ("forearm", 0.042), ("wrist_1", 0.046), ("wrist_2", 0.046), ("wrist_3", 0.046))
+CHAIN = tuple(name for name, _ in ARM_LINKS) + ("camera_body",)
+MAY_TOUCH = frozenset({frozenset(CHAIN[i:i + 2]) for i in range(len(CHAIN) - 1)}
+                      | {frozenset((CHAIN[i], CHAIN[i + 2])) for i in range(len(CHAIN) - 2)}
+                      | {frozenset(("base", "fixture")), frozenset(("part", "fixture"))})
+
+
+def arm_links(T_cell_base: np.ndarray, q: ArrayLike) -> tuple[Capsule, ...]:
+    """The UR5e's links (Capsule per ARM_LINKS entry, cell frame) at joints q (6,) [rad]."""
+    T = T_cell_base.copy()
+    origins, axes = [T[:3, 3]], [T[:3, 2]]
+    for i, theta in enumerate(np.asarray(q, float)):
+        T = T @ ur5e.dh(i, theta)
+        origins.append(T[:3, 3])
+        axes.append(T[:3, 2])
+    o, z1 = origins, axes[1]                          # z1: joint 2's axis (2-4 parallel)
+    points = [(o[0], o[1]), (o[1], o[1] + SHOULDER_OFFSET_M * z1),
+              (o[1] + SHOULDER_OFFSET_M * z1, o[2] + SHOULDER_OFFSET_M * z1),
+              (o[2] + SHOULDER_OFFSET_M * z1, o[2] + FOREARM_OFFSET_M * z1),
+              (o[2] + FOREARM_OFFSET_M * z1, o[3] + FOREARM_OFFSET_M * z1),
+              (o[3] + FOREARM_OFFSET_M * z1, o[4]), (o[4], o[5]), (o[5], o[6])]
+    return tuple(Capsule(name, a, b, r) for (name, r), (a, b) in zip(ARM_LINKS, points))
+
+
+@dataclass(frozen=True)
+class Clearance:
+    """The smallest distance [m] between two bodies that may not touch, and which two (names);
+    `ok` when it is at least the padding."""
+
+    distance_m: float
+    bodies: tuple[str, str]
+    padding_m: float
+
+    @property
+    def ok(self) -> bool:
+        return self.distance_m >= self.padding_m
+
+    def reason(self) -> str:
+        """The refusal's sentence: names both bodies."""
+        a, b = self.bodies
+        apart = "touch or overlap" if self.distance_m <= 0 else f"only {self.distance_m * 1e3:.1f} mm apart"
+        return f"collision: {a} and {b} {apart}, less than the padding {self.padding_m * 1e3:g} mm"
+
+
+@dataclass(frozen=True)
+class CollisionScene:
+    """What the clearance of a pose needs from the task: the fixed meshes, the two boxes' sizes
+    and where they sit, the frames, the lamp rig's pivot and the padding."""
+
+    padding_m: float
+    fixed: tuple[Mesh, ...]
+    camera_half_m: np.ndarray
+    camera_offset_m: float
+    lamp_half_m: np.ndarray
+    frames: Frames
+    pivot_m: np.ndarray
+
+    @classmethod
+    def of(cls, task: Task) -> CollisionScene:
+        c = task.cell.collision
+        part = _mesh("part", task.part.mesh, task.frames.T_cell_part)
+        fixed = (part,) if c.fixture is None else (part, _mesh("fixture", c.fixture, np.eye(4)))
+        return cls(c.padding_m, fixed, 0.5 * np.asarray(c.camera_size_m), c.camera_offset_m,
+                   0.5 * np.asarray(c.lamp_size_m), task.frames, task.lamp.rig.pivot_m)
+
+    def camera_body(self, T_cell_flange: np.ndarray) -> Box:
+        T = T_cell_flange @ geometry.transform(translation=(0.0, 0.0, self.camera_offset_m))
+        return Box("camera_body", T, self.camera_half_m)
+
+    def lamp_body(self, lamp_position: ArrayLike) -> Box:
+        """The lamp's box: its front face centred at the lamp's position, its z axis the aim."""
+        p = np.asarray(lamp_position, float)
+        z = geometry.unit(self.pivot_m - p)
+        x = np.cross((0.0, 0.0, 1.0), z)
+        x = geometry.unit(x if np.linalg.norm(x) > 1e-9 else np.array([1.0, 0.0, 0.0]))
+        R = np.column_stack([x, np.cross(z, x), z])
+        return Box("lamp_body", geometry.transform(R, p - self.lamp_half_m[2] * z), self.lamp_half_m)
+
+    def bodies(self, T_cell_cam: np.ndarray, arm_joints: ArrayLike | None = None,
+               lamp_position: ArrayLike | None = None) -> tuple[Body, ...]:
+        """Every body with the camera at T_cell_cam, the arm's links where joints put them (None:
+        no arm, e.g. a pose it does not reach) and the lamp (None: not placed yet)."""
+        moving: list[Body] = [self.camera_body(self.frames.T_cell_flange(T_cell_cam))]
+        if arm_joints is not None:
+            moving += arm_links(self.frames.T_cell_base, arm_joints)
+        if lamp_position is not None:
+            moving.append(self.lamp_body(lamp_position))
+        return (*self.fixed, *moving)
+
+    def clearance(self, T_cell_cam: np.ndarray, arm_joints: ArrayLike | None = None,
+                  lamp_position: ArrayLike | None = None) -> Clearance:
+        """The Clearance of the cell at this pose (see `bodies`)."""
+        return clearance(self.bodies(T_cell_cam, arm_joints, lamp_position), self.padding_m)
+
+
+def clearance(bodies: tuple[Body, ...], padding_m: float) -> Clearance:
+    """The smallest distance over the pairs that may not touch (MAY_TOUCH), exactly as
+    bodies.distance gives it: pairs in order of their bounding spheres' gap, stopping at the
+    first gap no smaller than the best distance found."""
+    pairs = [(i, j) for i, j in combinations(range(len(bodies)), 2)
+             if frozenset((bodies[i].name, bodies[j].name)) not in MAY_TOUCH]
+    centers = np.array([body.center for body in bodies])
+    radii = np.array([body.radius for body in bodies])
+    i, j = np.array(pairs).T
+    gaps = np.linalg.norm(centers[i] - centers[j], axis=1) - radii[i] - radii[j]   # bodies.lower_bound
+    best, names = np.inf, ("", "")
+    for k in np.argsort(gaps, kind="stable"):
+        if gaps[k] >= best:
+            break
+        a, b = bodies[i[k]], bodies[j[k]]
+        d = distance(a, b)
+        if d < best:
+            best, names = d, (a.name, b.name)
+    return Clearance(float(best), names, padding_m)
+
+
+@lru_cache(maxsize=16)
+def _cached_mesh(name: str, vertices: bytes, faces: bytes) -> Mesh:
+    v = np.frombuffer(vertices).reshape(-1, 3)
+    f = np.frombuffer(faces, dtype=np.int64).reshape(-1, 3)
+    return Mesh(name, v, f, surface_samples(v, f))
+
+
+def _mesh(name: str, mesh: trimesh.Trimesh, T_cell_mesh: np.ndarray) -> Mesh:
+    """The mesh in the cell frame with its samples, made once per geometry and pose in a process
+    (each feature's task of a part shares them)."""
+    v = np.ascontiguousarray(geometry.apply(T_cell_mesh, mesh.vertices), float)
+    f = np.ascontiguousarray(mesh.faces, np.int64)
+    return _cached_mesh(name, v.tobytes(), f.tobytes())

@@ -1,0 +1,219 @@
+"""Collision checking (cell.collision): the distance between two bodies against analytic
+distances and a dense brute-force sampling that shares no code with it, overlap and containment
+giving <= 0, the scene's bodies placed by the kinematics, and the task's `cell.collision` keys."""
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial import cKDTree
+
+from cell.cli import main
+from cell.collision.bodies import SAMPLE_BOUND_M, Box, Capsule, Mesh, distance
+from cell.collision.scene import CollisionScene, arm_links
+from cell.core import geometry
+from cell.core.errors import TaskError
+from cell.devices import ur5e
+from cell.task.loader import load_task
+
+from simcell import variant
+
+ROOT = Path(__file__).resolve().parent.parent
+HINGE, BRACKET = ROOT / "tasks" / "hinge.yaml", ROOT / "tasks" / "bracket.yaml"
+h = SAMPLE_BOUND_M
+
+
+def box(name, center, size, rpy=(0.0, 0.0, 0.0)):
+    return Box(name, geometry.from_rpy(np.asarray(rpy, float), center), 0.5 * np.asarray(size, float))
+
+
+def plate(name, size, center):
+    """A closed box mesh (trimesh's primitive), as a part or a table."""
+    return Mesh.of(name, trimesh.creation.box(extents=size), geometry.transform(translation=center))
+
+
+# -- analytic distances: the result lies in [d - h, d] -------------------------------------------
+
+@pytest.mark.parametrize("gap", [0.003, 0.02, 0.1])
+def test_two_boxes_side_by_side_are_their_gap_apart(gap):
+    a = box("a", (0.0, 0.0, 0.0), (0.04, 0.06, 0.1))
+    b = box("b", (0.04 / 2 + gap + 0.01, 0.01, 0.02), (0.02, 0.02, 0.02))
+    assert gap - h - 1e-12 <= distance(a, b) <= gap + 1e-12
+
+
+def test_a_box_turned_45_deg_reaches_with_its_edge():
+    """b turned 45 deg about z: its vertical edge is sqrt(2) s / 2 from its centre toward a."""
+    s, x = 0.02, 0.06
+    a = box("a", (0.0, 0.0, 0.0), (0.04, 0.04, 0.04))
+    b = box("b", (x, 0.0, 0.0), (s, s, s), rpy=(0.0, 0.0, np.pi / 4))
+    expected = x - np.sqrt(2) * s / 2 - 0.02
+    assert expected - h - 1e-12 <= distance(a, b) <= expected + 1e-12
+
+
+@pytest.mark.parametrize("height", [0.005, 0.05])
+def test_a_box_above_a_table_mesh_is_its_height_above(height):
+    table = plate("fixture", (0.4, 0.4, 0.02), (0.0, 0.0, -0.01))          # top face at z = 0
+    camera = box("camera_body", (0.05, -0.03, height + 0.05), (0.06, 0.06, 0.1), rpy=(0.0, 0.0, 0.3))
+    assert height - h - 1e-12 <= distance(camera, table) <= height + 1e-12
+    assert distance(table, camera) == distance(camera, table)
+
+
+def test_capsules_are_their_axes_distance_less_both_radii():
+    """Skew axes: x axis at z = 0 and y axis at z = 0.2, 0.2 apart."""
+    a = Capsule("a", np.array([-1.0, 0.0, 0.0]), np.array([1.0, 0.0, 0.0]), 0.05)
+    b = Capsule("b", np.array([0.0, -1.0, 0.2]), np.array([0.0, 1.0, 0.2]), 0.03)
+    assert distance(a, b) == pytest.approx(0.12, abs=1e-12)
+    c = Capsule("c", np.array([2.0, 0.0, 0.1]), np.array([3.0, 0.0, 0.1]), 0.01)   # end to end
+    assert distance(a, c) == pytest.approx(np.hypot(1.0, 0.1) - 0.06, abs=1e-12)
+
+
+def test_a_capsule_beside_a_box_is_the_gap_to_its_surface():
+    a = box("a", (0.0, 0.0, 0.0), (0.1, 0.1, 0.1))
+    link = Capsule("link", np.array([0.09, -0.2, 0.0]), np.array([0.09, 0.2, 0.0]), 0.02)   # 0.02 off x = 0.05
+    assert 0.02 - h - 1e-12 <= distance(a, link) <= 0.02 + 1e-12
+    assert distance(link, a) == distance(a, link)
+
+
+# -- overlap and containment: never a positive distance ------------------------------------------
+
+def test_overlapping_bodies_give_no_positive_distance():
+    a = box("a", (0.0, 0.0, 0.0), (0.1, 0.1, 0.1))
+    assert distance(a, box("b", (0.09, 0.0, 0.0), (0.1, 0.1, 0.1))) <= 0.0
+    assert distance(a, Capsule("c", np.array([0.0, 0.0, 0.04]), np.array([0.0, 0.0, 0.5]), 0.01)) <= 0.0
+    assert distance(plate("part", (0.1, 0.1, 0.1), (0.0, 0.0, 0.0)), box("b", (0.06, 0.0, 0.0), (0.04, 0.04, 0.04))) <= 0.0
+
+
+def test_a_body_wholly_inside_another_is_caught():
+    """The sampled bound alone misses these (every sample of the outer body is outside the inner)."""
+    big = box("big", (0.0, 0.0, 0.0), (0.3, 0.3, 0.3))
+    assert distance(big, box("small", (0.01, 0.0, 0.0), (0.02, 0.02, 0.02))) < 0.0
+    assert distance(big, Capsule("c", np.array([0.0, 0.0, 0.0]), np.array([0.05, 0.0, 0.0]), 0.01)) < 0.0
+    part = plate("part", (0.3, 0.3, 0.3), (0.0, 0.0, 0.0))
+    assert distance(part, box("small", (0.0, 0.0, 0.0), (0.02, 0.02, 0.02))) < 0.0
+    assert distance(part, Capsule("c", np.array([0.0, 0.0, 0.0]), np.array([0.05, 0.0, 0.0]), 0.01)) < 0.0
+    assert distance(plate("part", (0.02, 0.02, 0.02), (0.0, 0.0, 0.0)), big) < 0.0   # mesh inside the box
+
+
+# -- brute force: dense samples of both surfaces, nearest pairs by a k-d tree --------------------
+
+def dense(body, pitch=0.001):
+    """Points on a body's surface about `pitch` apart, by trimesh's own primitives."""
+    if isinstance(body, Box):
+        m = trimesh.creation.box(extents=2 * body.half_m, transform=body.T_cell_box)
+    elif isinstance(body, Capsule):
+        axis = body.b - body.a
+        T = geometry.transform(geometry.frame_from_normal(geometry.unit(axis)), body.center)
+        m = trimesh.creation.capsule(height=float(np.linalg.norm(axis)), radius=body.radius_m, count=[64, 64])
+        m.apply_transform(T)
+    else:
+        m = trimesh.Trimesh(body.vertices, body.faces)
+    n = int(m.area / pitch ** 2)
+    return trimesh.sample.sample_surface_even(m, n, radius=0.5 * pitch, seed=7)[0]
+
+
+def test_random_poses_agree_with_a_dense_brute_force():
+    """Our distance is at most the brute force's (with its own sampling error, pitch / 2 plus a
+    capsule's facets) and at most h below it."""
+    rng = np.random.default_rng(3)
+    part = Mesh.of("part", trimesh.creation.icosphere(subdivisions=2, radius=0.04), np.eye(4))
+    bodies = []
+    for _ in range(6):
+        d = geometry.unit(rng.normal(size=3))
+        bodies.append(box("camera_body", d * rng.uniform(0.07, 0.11), rng.uniform(0.02, 0.06, 3), rng.uniform(-3, 3, 3)))
+        a = d * rng.uniform(0.07, 0.12)
+        bodies.append(Capsule("link", a, a + rng.uniform(-0.1, 0.1, 3), float(rng.uniform(0.01, 0.04))))
+    tolerance, tree = 0.001 + 0.0005, cKDTree(dense(part))
+    for body in bodies:
+        brute = tree.query(dense(body))[0].min()
+        ours = distance(part, body)
+        assert brute - h - tolerance <= ours <= brute + tolerance, (body, ours, brute)
+
+
+# -- the scene ------------------------------------------------------------------------------------
+
+def test_the_arm_links_end_at_the_flange_of_the_forward_kinematics():
+    q = np.radians([30.0, -70.0, 100.0, -120.0, -90.0, 10.0])
+    T_cell_base = geometry.transform(translation=(0.0, -0.4, 0.0))
+    links = arm_links(T_cell_base, q)
+    assert [c.name for c in links][-1] == "wrist_3" and links[0].a == pytest.approx([0.0, -0.4, 0.0])
+    assert links[-1].b == pytest.approx((T_cell_base @ ur5e.forward(q))[:3, 3])
+    assert all(np.allclose(a.b, b.a) for a, b in zip(links, links[1:]))                # one chain
+
+
+def test_a_camera_in_the_part_and_a_lamp_on_the_camera_are_named():
+    task = load_task(BRACKET)
+    scene = CollisionScene.of(task)
+    T = np.eye(4)
+    T[:3, 3] = (0.0, 0.0, 0.02)                                                       # camera in the part
+    hit = scene.clearance(T)
+    assert not hit.ok and hit.distance_m <= 0.0 and set(hit.bodies) == {"camera_body", "part"}
+    assert "collision" in hit.reason() and "camera_body" in hit.reason() and "part" in hit.reason()
+    T[:3, 3] = (0.0, 0.0, 0.4)                                                        # above, looking up
+    assert scene.clearance(T).ok
+    lamp = scene.frames.T_cell_flange(T)[:3, 3] + (0.0, 0.0, 0.05)                     # lamp on the camera
+    hit = scene.clearance(T, lamp_position=lamp)
+    assert set(hit.bodies) == {"camera_body", "lamp_body"} and hit.distance_m <= 0.0
+
+
+# -- the task's keys ------------------------------------------------------------------------------
+
+def test_the_collision_keys_load_in_si_with_defaults(tmp_path):
+    assert load_task(HINGE).cell.collision.padding_m == 0.01
+    (tmp_path / "table.stl").write_bytes(trimesh.creation.box(extents=(400, 400, 20)).export(file_type="stl"))
+    path = variant(tmp_path, HINGE, {"cell.collision": {
+        "padding_mm": 15, "camera_body": {"size_mm": [50, 50, 120], "offset_mm": 60},
+        "lamp_body": {"size_m": [0.05, 0.05, 0.1]}, "fixture_mesh": str(tmp_path / "table.stl")}})
+    c = load_task(path).cell.collision
+    assert c.padding_m == pytest.approx(0.015) and c.camera_size_m == pytest.approx((0.05, 0.05, 0.12))
+    assert c.camera_offset_m == pytest.approx(0.06) and c.lamp_size_m == pytest.approx((0.05, 0.05, 0.1))
+    assert c.fixture.extents == pytest.approx([0.4, 0.4, 0.02])                        # the part's unit, mm
+
+
+@pytest.mark.parametrize("key, value, expected", [
+    ("padding_m", -0.01, "a number >= 0"),
+    ("camera_body", {"size_m": [0.05, 0.0, 0.1]}, "positive lengths"),
+    ("fixture_mesh", "no-such-table.stl", "cell.collision.fixture_mesh"),
+])
+def test_bad_collision_keys_are_one_line_naming_file_and_key_and_exit_2(tmp_path, capsys, key, value, expected):
+    path = variant(tmp_path, HINGE, {f"cell.collision.{key}": value})
+    with pytest.raises(TaskError) as err:
+        load_task(path)
+    assert str(path) in str(err.value) and f"cell.collision.{key}" in str(err.value) and expected in str(err.value)
+    assert main(["check", str(path)]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and "found" in lines[0] and "expected" in lines[0]
+
+
+# -- moves between two shots (cell.collision.paths) ------------------------------------------------
+
+def wall_task(tmp_path):
+    """The hinge with a wall (the fixture) between two camera poses 0.4 m above the cell's floor at
+    x = -/+0.15 m, y = 0.15 m: the wall 20 mm thick at x = 0, y 0.05-0.25 m, its top at z = 0.42 m."""
+    wall = trimesh.creation.box(extents=(20.0, 200.0, 220.0), transform=geometry.transform(translation=(0, 150, 310)))
+    (tmp_path / "wall.stl").write_bytes(wall.export(file_type="stl"))
+    return load_task(variant(tmp_path, HINGE, {"cell.collision.fixture_mesh": str(tmp_path / "wall.stl")}))
+
+
+def stop(task, x, q_near=np.zeros(6)):
+    """The camera 0.4 m above (x, 0.15 m) looking down, the arm's joints nearest q_near."""
+    from cell.collision.paths import Stop
+    from cell.planning.scene import look_at
+    T = look_at(np.array([x, 0.15, 0.40]), np.array([x, 0.15, 0.0]))
+    q = ur5e.inverse(task.frames.T_base_flange(task.frames.T_base_cam(T)), q_near)
+    return Stop(T, q, (np.radians(180.0), np.radians(45.0), 0.2))     # the lamp at x = -0.14 m, clear
+
+
+def test_a_move_through_a_wall_gets_via_points_over_it_and_each_step_keeps_the_padding(tmp_path):
+    from cell.collision.paths import arm_path, plan_move
+    task = wall_task(tmp_path)
+    scene = CollisionScene.of(task)
+    b = stop(task, 0.15)
+    a = stop(task, -0.15, b.arm_joints)                          # the same configuration, mirrored
+    assert scene.clearance(a.T_cell_cam, a.arm_joints).ok and scene.clearance(b.T_cell_cam, b.arm_joints).ok
+    direct, _, _ = arm_path(scene, a.T_cell_cam, a.arm_joints, b.T_cell_cam, None)
+    assert direct.distance_m <= 0.0 and "fixture" in direct.bodies
+    move = plan_move(scene, task.cell.devices.arm, 0, a, 1, b)
+    assert move.clear and len(move.via) == 2 and move.to_json()["from"] == 0 and move.to_json()["to"] == 1
+    assert all(T[2, 3] > 0.42 + 0.05 for T in move.via)          # the camera's bottom over the wall's top
+    assert move.clearance.distance_m >= task.cell.collision.padding_m
+
