@@ -259,6 +259,46 @@ def test_the_ring_task_converges_with_each_channel_at_its_planned_drive(ring):
     assert ring.devices.lights.levels() == {1: 0.0, 2: 0.0, 3: 0.0}
 
 
+def basis_run(tmp_path, changes):
+    """The ring task on the simulated cell with `changes` to the task (its truth, its channels)."""
+    return run(variant(tmp_path, RING, changes), tmp_path / "run")
+
+
+def test_a_weak_channel_is_measured_by_basis_captures_and_the_drives_re_solved(tmp_path):
+    """The dark-field ring gives 60 % of its model's light: the first capture is out of band, one
+    basis capture per channel on measures each channel's share (the ring's 0.6 of the model's,
+    the spot's 1), the drives are re-solved on them and the next capture is in band."""
+    cell = basis_run(tmp_path, {"sim.truth.channel_power_scale": {2: 0.6}})
+    assert cell.error is None and cell.report["converged"], cell.report["reason"]
+    (basis,) = [line for line in cell.log if line["step"] == "basis"]
+    assert basis["channel_scale"]["2"] == pytest.approx(0.6, rel=0.03)
+    assert basis["channel_scale"]["3"] == pytest.approx(1.0, rel=0.03)
+    first, second = cell.report["iterations"][:2]
+    assert not first["in_band"] and first["correction"]["action"] == "drives" and second["in_band"]
+    assert second["drives"] == pytest.approx({k: float(v) for k, v in first["correction"]["drives"].items()},
+                                             abs=1e-3)
+    assert second["drives"]["3"] > first["drives"]["3"]          # the spot makes up for the weak ring
+    captures = [line["capture"] for line in cell.log if line["step"] == "capture"]
+    assert {"basis-1-channel-2.png", "basis-1-channel-3.png"} <= set(captures)
+
+
+def test_a_dead_channel_is_named_and_the_other_lights_take_over(tmp_path):
+    cell = basis_run(tmp_path, {"sim.truth.channel_power_scale": {2: 0.0}})
+    assert cell.report["converged"], cell.report["reason"]
+    correction = cell.report["iterations"][0]["correction"]
+    assert "channel 2 (dark_field_ring) gives 0% of the light the model predicts" in correction["reason"]
+    assert "dead" in correction["reason"] and correction["channel_scale"]["2"] == pytest.approx(0.0, abs=0.01)
+
+
+def test_a_dead_channel_nothing_can_replace_is_the_run_s_cause(tmp_path):
+    """The spot may give at most 30 % here: without the ring no drives reach the band, and the
+    cause is the channel, not the material."""
+    cell = basis_run(tmp_path, {"sim.truth.channel_power_scale": {2: 0.0}, "lamp.drive_range": [0.0, 0.3]})
+    assert not cell.report["converged"] and cell.report["cause"] == "channel"
+    assert "channel 2 (dark_field_ring)" in cell.report["reason"] and "dead" in cell.report["reason"]
+    assert cell.devices.lights.levels() == {1: 0.0, 2: 0.0, 3: 0.0}
+
+
 def test_a_lighting_fault_turns_every_channel_off_and_exits_3(tmp_path):
     """The controller refuses the first capture's third set (over-current): the safe stop turns
     every channel off, report.json names the lighting controller, the log keeps every step."""

@@ -37,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from simcell import run_loop, variant  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
-TASKS = {"hinge": ROOT / "tasks/hinge.yaml", "conrod": ROOT / "tasks/conrod.yaml"}
+TASKS = {"hinge": ROOT / "tasks/hinge.yaml", "conrod": ROOT / "tasks/conrod.yaml", "ring": ROOT / "tasks/ring.yaml"}
 OTHER_MATERIAL = {"hinge": "gray_cast_iron.yaml", "conrod": "milled_aluminium.yaml"}
 EFFECTS = ["shadows", "cone_falloff", "vignetting", "defocus", "noise", "black_level", "quantization"]
 SIM_BLACK_LEVEL = 5.0            # sim.world.BLACK_LEVEL of 255, rounded: the world's b at 8 bits
@@ -46,7 +46,7 @@ MAX_CAPTURES = 6
 # the loop's causes (cell.run.loop.CAUSES) by what they name
 NAMES = {"registration": "registration", "black pixels": "registration", "lamp aim": "lamp aim",
          "material shape": "material shape", "spread": "material shape", "infeasible": "infeasible",
-         "albedo": "level", "iterations": "not converged"}
+         "albedo": "level", "iterations": "not converged", "channel": "channel"}
 # the causes a run of each kind may end with when it does not converge: from the kind injected
 EXPECTED = {
     "none": set(),
@@ -55,7 +55,9 @@ EXPECTED = {
     "lamp aim": {"lamp aim"},
     "part offset": {"registration"}, "part rotation": {"registration"}, "hand-eye": {"registration"},
     "material shape": {"material shape", "infeasible"},
+    "channel power": {"channel", "infeasible"},
 }
+DARK_FIELD = 1              # ring.yaml's lights[1], the low-angle ring on channel 2
 
 
 def _material(task, name, change):
@@ -110,8 +112,23 @@ class Case:
     materials: tuple = ()
 
 
+def _channel_power(scale):
+    """The ring task's `lights` with the dark-field ring's power times scale (0: no such light):
+    the correct model of a channel whose true power is that."""
+    lights = yaml.safe_load(TASKS["ring"].read_text())["lights"]
+    if scale == 0:
+        return {"lights": lights[:DARK_FIELD] + lights[DARK_FIELD + 1:]}
+    lights[DARK_FIELD]["power_w"] = lights[DARK_FIELD]["power_w"] * scale
+    return {"lights": lights}
+
+
 def _kinds(task):
-    """(kind, magnitude, world keys, correct model's keys, materials) of every mismatch."""
+    """(kind, magnitude, world keys, correct model's keys, materials) of every mismatch; the ring
+    task's are its channels' (the lamp's kinds are the paper's tasks')."""
+    if task == "ring":
+        return [("none", "-", {}, {}, ())] + [
+            ("channel power", f"channel 2 x{s:g}", {"sim.truth.channel_power_scale": {2: s}}, _channel_power(s), ())
+            for s in (0.0, 0.5, 0.7, 1.5)]
     base_constant = float(yaml.safe_load(TASKS[task].read_text())["camera"]["sensor"]["camera_constant"])
     rows = [("none", "-", {}, {}, ())]
     for a in (0.3, 0.5, 2.0, 3.0):
@@ -150,7 +167,7 @@ def _kinds(task):
     return rows
 
 
-def cases(seeds=(1, 2), tasks=("hinge", "conrod"), kinds=None):
+def cases(seeds=(1, 2), tasks=tuple(TASKS), kinds=None):
     """The matrix: every kind x magnitude x task x seed (kinds None: all)."""
     return [Case(kind, magnitude, task, seed, world, model, materials)
             for task in tasks for seed in seeds
@@ -188,6 +205,7 @@ def run_job(task, keys, materials, seed, folder):
         cell = run_loop(variant(folder, TASKS[task], _changes(case, keys, folder)), folder / "run")
     report = cell.report
     probes = sum(len(r["shots"]) - 1 for r in report["refits"])
+    probes += sum(it.get("correction", {}).get("basis_captures", 0) for it in report["iterations"])
     outcome = {"converged": report["converged"], "captures": len(report["iterations"]) + probes,
                "iterations": len(report["iterations"]), "cause": report.get("cause"), "reason": report["reason"],
                "exit": 0 if cell.error is None else cell.error.exit_code, "error": type(cell.error).__name__,
@@ -336,6 +354,8 @@ SAMPLE = {   # (kind, magnitude, task): how it must end, from the kind injected
     ("hand-eye", "2 deg", "hinge"): "registration",
     # a lobe twice as narrow: the band under 1 deg lamp error is infeasible for it (test_refit)
     ("material shape", "m1 x2", "hinge"): "infeasible",
+    # the dark-field ring dead: measured by the basis captures, the spot takes over
+    ("channel power", "channel 2 x0", "ring"): "converged",
 }
 
 

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import numpy as np
 
 from cell.physics.sensor import saturation_level
-from cell.run import acquisition, control, measurement, refit, registration
+from cell.run import acquisition, channels, control, measurement, refit, registration
 
 from cell.planning import evaluate
 from cell.run.acquisition import Capture, acquire, move_to, plan_and_connect, plan_recorded, planned_drives
@@ -53,6 +53,8 @@ CAUSES = {          # report.json's `cause` of a run that ends without the goal 
     "features": "a shot's features each fit the band alone but not together under one exposure",
     "bands": "a shot's features have gray bands with nothing in common",
     "replan": "a shot of several features needs more than an exposure (it is not re-planned)",
+    "channel": "a light channel gives far less light than the model and the other channels do (its LEDs, "
+               "their wiring or the controller's output)",
 }
 
 
@@ -249,8 +251,8 @@ class Aim:
     """What the next capture is taken with and judged against: the features it measures (one, or
     a shot's several), the black level, the exposure, the light channels' drives ({channel: level
     0..1}, the plan's: set before every capture), the albedo scale of the plan, whether the cell
-    stands at the plan's poses (not after a re-plan) and whether the material was refitted (once
-    in a loop)."""
+    stands at the plan's poses (not after a re-plan), whether the material was refitted and the
+    drives re-solved on basis captures (each once in a loop)."""
 
     features: tuple[LoopFeature, ...]
     black: BlackLevel
@@ -260,6 +262,7 @@ class Aim:
     moved: bool = True
     refitted: bool = False
     drives: dict[int, float] = field(default_factory=dict)
+    balanced: bool = False
 
     @property
     def shot(self) -> Shot:
@@ -433,6 +436,8 @@ def correct_after(ctx: RunContext, aim: Aim, k: int, measured: Sequence[Measured
     feature again with the albedo scale times the measured model error (Replan; infeasible:
     GoalNotReached). A shot of several features is not refitted or re-planned
     (control.shared_correction stops instead)."""
+    if len(aim.features) == 1 and aim.features[0].task.lights and aim.drives and not aim.balanced:
+        return (yield from rebalance(ctx, aim, k, measured[0]))
     c = correction(aim, measured)
     if c.action == "stop" and c.cause == "spread" and len(aim.features) == 1 and not aim.refitted:
         return (yield from refit_and_replan(ctx, aim, k, measured[0], c))
@@ -454,6 +459,79 @@ def correct_after(ctx: RunContext, aim: Aim, k: int, measured: Sequence[Measured
         raise GoalNotReached(f"{why}: infeasible, {replanned.binding}: {replanned.hint}", "infeasible",
                              f"{why}: infeasible: {words.reason(replanned)}")
     return replan_aim(aim, replace(feature, model=Model(replanned, feature.task)), albedo)
+
+
+def rebalance(ctx: RunContext, aim: Aim, k: int, measured: Measured) -> Generator[Event, None, Aim]:
+    """After capture k of a feature lit by several lights, out of band: one basis capture per
+    channel on (cell.run.channels: each at its drive, the others off, at capture k's exposure),
+    read where capture k found the feature, and the drives, shutter and f-number re-solved on the
+    measured shares (Corrected, action `drives`; the Model's prediction from then on is the
+    measured shares' at the new drives). A channel far below the others against the model is
+    named; when no drives put the feature in band, a channel fault is the cause (`channel`), else
+    the band is infeasible as measured (`infeasible`)."""
+    (feature,), task, shot = aim.features, aim.features[0].task, aim.shot
+    e, m = shot.exposure, measured.measurement
+    gain = aim.shutter_s / aim.f_number**2
+
+    def capture_with(levels: dict[int, float], name: str) -> np.ndarray:
+        capture = acquire(ctx.devices, ctx.recorder, k, aim.shutter_s, aim.f_number, e.focus_m,
+                          name=f"basis-{k}-{name}", drives=levels)
+        return measurement.surface_at_samples(capture.image, m)
+
+    shares = channels.measure(shot.lights, aim.drives, gain / (e.shutter_s / e.f_number**2), aim.black.value,
+                              capture_with)
+    settings = {c.number: c for c in [task.lamp.channel, *(light.channel for light in task.lights)]
+                if c.number is not None}
+    basis = channels.resolve(shares, gain, evaluate.planning_band(task), aim.black.value,
+                             feature.limits.f_number_range[0], task.camera.shutter_range_s,
+                             task.camera.lens.f_number_range, {n: c.drive_range for n, c in settings.items()},
+                             {n: c.switched for n, c in settings.items()}, task.requirements.drive_tolerance)
+    ctx.recorder.step("basis", basis.describe(), iteration=k, **basis.to_json())
+    fault = basis.fault()
+    if not basis.solved.feasible:
+        cause, reason = (("channel", fault) if fault else
+                         ("infeasible", f"re-solved on the measured light of each channel: {basis.solved.message}"))
+        yield Corrected(k, {"action": "stop", "cause": cause, "reason": reason} | basis.to_json())
+        raise GoalNotReached(reason, cause)
+    solved = basis.solved
+    drives = {c: 0.0 for c in aim.drives} | {s.channel: float(w) for s, w in zip(shares, solved.drive)
+                                             if s.channel is not None}
+    doc = ({"action": "drives", "reason": basis.describe() + (f"; {fault}" if fault else "")} | basis.to_json()
+           | {"drives": {str(c): w for c, w in sorted(drives.items())}})
+    ctx.recorder.step("correct", "drives re-solved on the basis captures: " + ", ".join(
+        f"channel {c} at {100 * w:.1f} %" for c, w in sorted(drives.items())) +
+        f", {1e3 * solved.shutter_s:.3g} ms, f/{solved.f_number:.1f}", iteration=k, **doc)
+    yield Corrected(k, doc)
+    model = measured_model(feature, shares, gain, drives, solved.shutter_s, solved.f_number)
+    return replace(aim, features=(replace(feature, model=model),), drives=drives, shutter_s=solved.shutter_s,
+                   f_number=solved.f_number, balanced=True)
+
+
+def measured_model(feature: LoopFeature, shares: Sequence[channels.Share], gain: float, drives: dict[int, float],
+                   shutter_s: float, f_number: float) -> Model:
+    """The Model of the measured shares at new drives and exposure: its plan's shot predicts each
+    light's share (measured at capture gain t / kappa^2, scaled to its new drive and exposure) and
+    their sum over the task's black level, so that Model.predicted scales it as the plan's."""
+    plan, task = feature.model.plan, feature.task
+    shot = plan.shot
+    new_gain = shutter_s / f_number**2
+    by_channel = {s.channel: s for s in shares}
+    lights = []
+    for light in shot.lights:
+        share = by_channel.get(light.channel)
+        if light.channel is None or share is None:       # off, or always on (the no-channel capture's)
+            drive = 0.0 if light.channel is not None else light.drive
+            fixed = by_channel.get(None)
+            gray = (np.zeros_like(light.gray) if light.channel is not None or fixed is None
+                    else fixed.unit(gain) * new_gain / max(len(fixed.names), 1))
+            lights.append(replace(light, drive=drive, gray=gray))
+        else:
+            lights.append(replace(light, drive=drives[light.channel], gray=share.unit(gain) * drives[light.channel]
+                                  * new_gain))
+    signal = sum((light.gray for light in lights), np.zeros(len(shot.gray)))
+    exposure = replace(shot.exposure, shutter_s=shutter_s, f_number=f_number)
+    new_shot = replace(shot, exposure=exposure, lights=tuple(lights), gray=evaluate.black_level(task) + signal)
+    return Model(replace(plan, shots=(new_shot,)), task)
 
 
 def replan_aim(aim: Aim, feature: LoopFeature, albedo_scale: float) -> Aim:

@@ -52,6 +52,17 @@ def read_samples(image: np.ndarray, task: Task, T_cell_cam: np.ndarray, points: 
     return row, col, inside, gray
 
 
+def surface_at_samples(image: np.ndarray, m: Measurement) -> np.ndarray:
+    """The surface's gray (local_mean over m's feature region) of another frame from the same
+    pose at each of m's sample pixels (NaN where m's sample is off the image): a basis capture
+    read where its summed capture was."""
+    if m.region is None:
+        raise ValueError("a joined Measurement has no region of its own")
+    inside = np.isfinite(m.sample_gray)
+    surface = local_mean(np.asarray(image, float), m.region)
+    return np.where(inside, surface[np.where(inside, m.row, 0), np.where(inside, m.col, 0)], np.nan)
+
+
 def feature_mask(shape: tuple[int, ...], row: np.ndarray, col: np.ndarray) -> np.ndarray:
     """Pixels inside the convex hull of the samples' pixels (the feature's image region)."""
     mask = np.zeros(shape, dtype=np.uint8)
