@@ -321,7 +321,7 @@ def test_hw_check_with_nothing_listening_is_exit_3_naming_the_controller(tmp_pat
 @pytest.mark.parametrize("lighting, line", [
     ({"channels": 3}, "cell.lighting.channels: found 3, expected 2, 4 or 8 (the controller model's channels)"),
     ({"port": 0}, "cell.lighting.port: found 0, expected an integer in 1..65535"),
-    ({"timeout_s": -1}, "cell.lighting.timeout_s: found -1, expected a positive number"),
+    ({"timeout_s": -1}, "cell.lighting.timeout_s: found -1, expected a positive number (plausible: 50 ms to 600 s)"),
     ({"driver": "dmx"}, "cell.lighting.driver: found 'dmx', expected one of gardasoft"),
 ])
 def test_bad_lighting_keys_exit_2_with_one_line(tmp_path, capsys, lighting, line):

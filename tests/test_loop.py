@@ -20,7 +20,7 @@ from cell import cli
 
 from cell.physics import projection
 from cell.cli import main
-from cell.core.errors import CellError, DeviceFault, GoalNotReached
+from cell.core.errors import CellError, DeviceFault, GoalNotReached, PlanInfeasible
 from cell.task.loader import load_task
 from sim.cell import make_sim_devices
 from simcell import recording_connect, variant
@@ -314,7 +314,6 @@ def test_a_lighting_fault_turns_every_channel_off_and_exits_3(tmp_path):
 # --- faults ----------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("name, changes, faults, before", [
-    ("arm unreachable", {"cell.arm.base_position_m": [0.0, -1.2, 0.0]}, None, ["plan"]),
     ("arm protective stop", {}, {"arm_fail_on_move": 1}, ["plan"]),
     ("servo hardware error", {}, {"lamp_fail_on_move": 1}, ["plan", "move_camera"]),
     ("camera timeout, capture 1", {}, {"camera_fail_on_capture": 1}, ["plan", *DRIVE, "set_exposure"]),
@@ -335,8 +334,15 @@ def test_a_fault_stops_all_motion_and_the_log_keeps_every_step_before_it(tmp_pat
     if name == "servo hardware error":
         assert not any(cell.devices.lamp.torque.values())      # the servos' own fault: torque off
         assert "Hardware Error Status" in str(cell.error)
-    if name == "arm unreachable":
-        assert "unreachable" in str(cell.error)
+
+
+def test_a_camera_the_arm_cannot_reach_is_refused_when_planning_before_anything_moves(tmp_path):
+    """The arm's base 1.2 m away: the fixed camera pose is beyond the UR5e's reach, which the
+    planner checks with the kinematics (not a device fault at the first move)."""
+    cell = run(variant(tmp_path, HINGE, {"cell.arm.base_position_m": [0.0, -1.2, 0.0]}), tmp_path / "run")
+    assert isinstance(cell.error, PlanInfeasible) and cell.error.exit_code == 1
+    assert "camera_reach" in str(cell.error) and cell.devices is None
+    assert cell.report["status"] == "infeasible" and "move_camera" not in cell.steps
 
 
 def test_the_cli_turns_a_fault_into_exit_3_and_one_line(tmp_path, monkeypatch, capsys):

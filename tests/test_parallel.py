@@ -17,11 +17,12 @@ from cell import cli
 
 from cell.core import jsonio
 
-from cell.planning import parallel, one_shot
+from cell.planning import parallel
 from cell.core.errors import DeviceFault, PlanInfeasible, TaskError
 from cell.bench.multi_feature import same_plan, without_timing
 from cell.task.loader import load_task
-from cell.planning.whole_part import plan_features
+from cell.planning.plan import PlannerSettings
+from cell.planning.whole_part import own_plan, plan_features
 
 ROOT = Path(__file__).resolve().parent.parent
 HINGE = ROOT / "tasks" / "hinge.yaml"
@@ -55,7 +56,7 @@ def one_line(err):
 def test_serial_workers_2_and_a_cluster_by_address_plan_the_same(scheduler, tmp_path, capsys):
     lines = []
     serial = plan_features(load_task(PLANNED), progress=lines.append)
-    alone = one_shot.plan(load_task(HINGE))
+    alone = own_plan(load_task(HINGE), PlannerSettings(), None, None, "", lambda msg: None)   # cell plan's job
     assert cli.main(["plan", str(PLANNED), "--workers", "2", "--out", str(tmp_path / "local")]) == 0
     local_err = capsys.readouterr().err
     assert cli.main(["plan", str(PLANNED), str(HINGE), "--scheduler", scheduler, "--out", str(tmp_path / "remote")]) == 0
