@@ -108,3 +108,12 @@ def test_cell_html_renders_in_headless_chromium_with_no_console_error(planned, n
     assert "<p>WebGL is not supported" not in dom
     shown = set(re.findall(r'class="legendtext"[^>]*data-unformatted="([^"]*)"', dom))
     assert {"part", *(f"feature {f.name}" for f in task.features)} <= {s.replace("&#39;", "'") for s in shown}
+
+
+def test_a_runs_route_is_drawn_in_its_order_and_said_not_to_be_a_checked_path(planned, tmp_path):
+    task, plan = planned["bracket"]
+    view = write_cell_view(tmp_path / "cell.html", plan, task, order=(2, 0, 1))
+    route = [n for n in view.names if n.startswith("route (")]
+    assert route == ["route (the route's order; straight, not collision-checked)"]
+    html = view.path.read_text()
+    assert all(f"stop {n + 1}: shot {k}" in html for n, k in enumerate((2, 0, 1)))
