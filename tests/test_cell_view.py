@@ -21,9 +21,10 @@ MAX_BYTES = 8_000_000          # plotly.js is ~4.7 MB; the part, thinned, and th
 
 @pytest.fixture(scope="module")
 def planned():
-    """The hinge's and the bracket's tasks with their plans (made once: the bracket's takes seconds)."""
+    """The hinge's, the bracket's and the ring's (two ring lights besides the spot) tasks with their
+    plans, made once: the bracket's takes seconds."""
     out = {}
-    for name in ("hinge", "bracket"):
+    for name in ("hinge", "bracket", "ring"):
         task = load_task(ROOT / "tasks" / f"{name}.yaml")
         out[name] = task, plan_features(task)
     return out
@@ -51,7 +52,7 @@ def test_cell_plan_of_the_hinge_writes_cell_html_beside_cell_png(tmp_path):
     assert html.startswith("<!doctype html>") and "plotly.js" in html
 
 
-@pytest.mark.parametrize("name", ["hinge", "bracket"])
+@pytest.mark.parametrize("name", ["hinge", "bracket", "ring"])
 def test_the_view_names_every_body_at_every_shot_and_loads_nothing_from_the_network(planned, name, tmp_path):
     task, plan = planned[name]
     view = write_cell_view(tmp_path / "cell.html", plan, task)
@@ -65,6 +66,11 @@ def test_the_view_names_every_body_at_every_shot_and_loads_nothing_from_the_netw
     assert view.path.stat().st_size < MAX_BYTES
     if len(plan.shots) > 1:
         assert any(n.startswith("route (") for n in view.names)
+    for k, shot in enumerate(plan.shots):      # a light off at a shot is drawn dim, one on bright
+        for setting in shot.lights[1:]:
+            trace = html.index(f'"name":"shot {k} light {setting.name}"')
+            start = html.rindex('{"hovertemplate"', 0, trace)
+            assert ('"#ffe14d"' if setting.drive > 0 else '"#8c8c8c"') in html[start:trace]
 
 
 def chromium():
