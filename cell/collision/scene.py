@@ -60,6 +60,19 @@ def arm_links(T_cell_base: np.ndarray, q: ArrayLike) -> tuple[Capsule, ...]:
     return tuple(Capsule(name, a, b, r) for (name, r), (a, b) in zip(ARM_LINKS, points))
 
 
+def reaching_joints(frames: Frames, T_cell_cam: np.ndarray,
+                    arm_joints: ArrayLike | None = None) -> tuple[float, ...] | None:
+    """The UR5e's joints [rad] with the camera at T_cell_cam: arm_joints when the planner chose
+    them, else the inverse kinematics nearest zero joints; None where the arm does not reach."""
+    if arm_joints is not None:
+        return tuple(float(q) for q in np.asarray(arm_joints, float))
+    try:
+        q = ur5e.inverse(frames.T_base_flange(frames.T_base_cam(T_cell_cam)), np.zeros(6))
+    except ur5e.Unreachable:
+        return None
+    return tuple(float(x) for x in q)
+
+
 @dataclass(frozen=True)
 class Clearance:
     """The smallest distance [m] between two bodies that may not touch, and which two (names);

@@ -14,8 +14,7 @@ from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
-from cell.collision.scene import CollisionScene
-from cell.devices import ur5e
+from cell.collision.scene import CollisionScene, reaching_joints
 from cell.planning import coverage, one_shot, regions
 from cell.planning.set_cover import fewest_shots
 from cell.planning.parallel import SERIAL
@@ -62,13 +61,7 @@ def cleared(task: Task, p: Plan) -> Plan:
     not reach, which the run refuses anyway), the camera body and the lamp. A shot closer than
     the padding makes the plan infeasible, `collision` binding, the two bodies named."""
     shot = p.shot
-    joints = shot.arm_joints
-    if joints is None:
-        try:
-            joints = tuple(ur5e.inverse(task.frames.T_base_flange(task.frames.T_base_cam(shot.T_cell_cam)),
-                                        np.zeros(6)))
-        except ur5e.Unreachable:
-            joints = None
+    joints = reaching_joints(task.frames, shot.T_cell_cam, shot.arm_joints)
     clearance = CollisionScene.of(task).clearance(shot.T_cell_cam, joints, shot.lamp_position)
     p = replace(p, shots=(replace(shot, clearance=clearance),))
     if clearance.ok:

@@ -29,11 +29,13 @@ R = TypeVar("R", bound=Result)
 
 
 def write_plan(plan: Plan, task: Task, folder: str | os.PathLike[str], cell_picture: bool = True) -> Path:
-    """plan.json, the plan's pictures (lights.png where the task has lights besides the spot) and
-    cell.png (its shots in the cell) into folder (created);
+    """plan.json, the plan's pictures (lights.png where the task has lights besides the spot),
+    cell.png (its shots in the cell) and cell.html (the same in 3D, cell.report.cell_view) into
+    folder (created);
     a multi-feature plan's own plan of each feature i (plan.json, pictures) into folder/feature-i,
     or with planned viewpoints each candidate shot k's plan into folder/candidate-k (cell.png only
     of the plan itself: it shows the chosen shots)."""
+    from cell.report.cell_view import write_cell_view
     from cell.report.pictures import write_cell, write_lights, write_plan_pictures
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -52,6 +54,7 @@ def write_plan(plan: Plan, task: Task, folder: str | os.PathLike[str], cell_pict
             write_lights(folder / "lights.png", plan, task)
     if cell_picture:
         write_cell(folder / "cell.png", plan, task)
+        write_cell_view(folder / "cell.html", plan, task)
     return folder
 
 

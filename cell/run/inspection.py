@@ -23,6 +23,7 @@ from cell.devices.interfaces import speaking_for
 from cell.core.errors import GoalNotReached
 from cell.core.geometry import rotation_angle
 from cell.report import words
+from cell.report.cell_view import write_cell_view
 from cell.report.recorder import Ending, Recorder
 from cell.report.result import Result
 
@@ -288,6 +289,7 @@ def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices],
             require_feasible(plan)
             devices = session.devices = connect(plan.plans[candidate_features(plan).index(0)].planned_scene)
             order, travel = visit_order(plan, devices, recorder)
+            write_cell_view(recorder.folder / "cell.html", plan, task, order)     # the route drawn in its order
             context = RunContext(task, devices, recorder, max_iterations)
             for n, s in enumerate(order):
                 recorder.step("shot", f"shot {n + 1} of {len(order)} (plan's shot {s}): "
