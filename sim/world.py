@@ -16,7 +16,7 @@ ideal cone with a hard edge), no cast shadows, float gray, unclipped.
 Every light of the task (`lights`) is rendered besides the spot, as the planner sees it: its
 emitter points (cell.planning.lights.emitters) through the same kernel, each with its own shadow
 ray, so that with `shadows` an extended light casts soft shadows. The number of points is the
-planner's own rule (cell.planning.lights.emitter_count: doubled until doubling moves no feature
+planner's own rule (cell.planning.lights.emitter_counts: doubled until doubling moves no feature
 sample by INTEGRATION_GRAY gray at the band's top), found once per light at the feature's samples
 seen from the scene's camera pose, so the image integrates each light as finely as the plan
 did. Each light shines at its channel's drive level as the lighting controller reads it back
@@ -60,7 +60,7 @@ from cell.planning.scene import Scene, build_scene
 from kernels.render import render
 
 if TYPE_CHECKING:
-    from cell.task.types import Light, Sensor, Task
+    from cell.task.types import Sensor, Task
 
 CONE_EDGE = 1.0 / 6.0       # cone edge blur s as a fraction of the half angle gamma/2
 DEFOCUS_STEP_PX = 0.5       # defocus depth layers: circle of confusion in these steps
@@ -187,24 +187,12 @@ class Renderer:
         self.rng = np.random.default_rng(task.sim.seed)
         self.error_direction_rad = self.rng.uniform(0.0, 2.0 * np.pi)
         self.power_scale = dict(truth.channel_power_scale)
-        self.points = tuple(self.emitter_count(light) for light in task.lights)
-
-    def emitter_count(self, light: Light) -> int:
-        """How many emitter points render `light`: the planner's rule (lights.emitter_count) at the
-        feature's samples seen from the scene's camera pose, the band's top the highest feature's."""
-        top = max(feature.requirements.gray_band[1] for feature in self.task.features)
-        sensor = self.task.camera.sensor
-        scene = self.world
-        return lights.contribution(scene.warp_mesh, scene.points, scene.normals, self.scene.T_cell_cam, light,
-                                   self.task.part.material, sensor, top).points
+        self.points = lights.emitter_counts(task, self.world, scene.T_cell_cam)
 
     def light_factor(self, channel: int | None, drives: Mapping[int, float] | None) -> float:
         """A light's share of its full power in the world: its channel's drive level (1 without a
         channel or without drives given) times the truth's channel_power_scale of that channel."""
-        if channel is None:
-            return 1.0
-        drive = 1.0 if drives is None else drives.get(channel, 0.0)
-        return drive * self.power_scale.get(channel, 1.0)
+        return lights.drive_level(channel, drives) * (1.0 if channel is None else self.power_scale.get(channel, 1.0))
 
     def lamp_axis(self, lamp_aim: ArrayLike) -> np.ndarray:
         """The lamp's true axis: the commanded aim turned by lamp_direction_error toward a direction
@@ -241,14 +229,10 @@ class Renderer:
             cos_off_axis = np.clip(np.einsum("nj,j->n", geometry.unit(lamp_to_point), axis), -1.0, 1.0)
             r.value[r.hit] *= cone_falloff(np.arccos(cos_off_axis), lamp.cone_angle_rad, lamp.profile)
         value = self.light_factor(lamp.channel.number, drives) * r.value
-        for light, n in zip(task.lights, self.points):
-            factor = self.light_factor(light.channel.number, drives)
-            if factor > 0.0:
-                e = lights.emitters(light, T_cell_cam, n)
-                value += factor * render(self.world.warp_mesh, origin, dirs, e.position, e.axis, e.power_w,
-                                         e.cone_angle_rad, self.table, self.camera_constant,
-                                         task.camera.sensor.pixel_area_m2, shadows="shadows" in effects,
-                                         profile=e.profile).value
+        value += lights.rendered(self.world.warp_mesh, origin, dirs, T_cell_cam, task.lights, self.points,
+                                 [self.light_factor(light.channel.number, drives) for light in task.lights],
+                                 self.table, self.camera_constant, task.camera.sensor.pixel_area_m2,
+                                 shadows="shadows" in effects)
         gray = (value * shutter_s / f_number**2).reshape(self.shape)
         cos_field = self.rays_cam[:, 2].reshape(self.shape)
         if "vignetting" in effects:

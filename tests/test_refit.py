@@ -231,3 +231,21 @@ def test_a_refit_keeps_what_the_goniometer_could_not_resolve_and_writes_no_nan(s
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
     back = load_material(path).unresolved
     assert back.terms["spike"] == pytest.approx(unresolved.terms["spike"]) and back.step_rad == pytest.approx(unresolved.step_rad)
+
+
+def test_the_refit_refuses_a_capture_lit_by_lights_besides_the_spot_before_any_probe():
+    """tasks/ring.yaml's capture at its plan's drives (the low-angle ring at full, the spot at
+    17 %): the refit's model and probes are the spot's alone, so it stops with cause material
+    shape naming the light, before touching a device (none is given); the spot alone on is refitted."""
+    from types import SimpleNamespace
+    task = load_task("tasks/ring.yaml")
+    drives = {1: 0.0, 2: 1.0, 3: 0.167}
+    disagreement = refit.Disagreement(2, None, (0.02, 3.8, 0.3), None, 1.0, (0.0, 0.0), drives)
+    with pytest.raises(GoalNotReached) as stop:
+        refit.probe_and_refit(SimpleNamespace(devices=None, recorder=None), task, None, disagreement)
+    assert stop.value.cause == "material shape"
+    assert str(stop.value) == ("the feature's gray disagrees with the model's shape, but capture 2 was lit by "
+                               "dark_field_ring besides the spot, and the refit models the spot alone: no material "
+                               "is fitted to captures lit by other lights")
+    assert refit.other_lights_on(task, {1: 0.0, 2: 0.0, 3: 1.0}) == []
+    assert refit.other_lights_on(task, None) == ["bright_field_ring", "dark_field_ring"]    # no drives: all full

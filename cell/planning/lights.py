@@ -15,7 +15,7 @@ it); the finer count's value is kept.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -27,7 +27,8 @@ from cell.core import geometry
 if TYPE_CHECKING:
     from kernels.mesh import WarpMesh
     from cell.physics.material import Material
-    from cell.task.types import Light, Sensor
+    from cell.planning.scene import Scene
+    from cell.task.types import Light, Sensor, Task
 
 INTEGRATION_GRAY = 0.1          # gray levels: the largest integration error of a light's gray
 START_POINTS = {"spot": 1, "ring": 16, "bar": 8, "area": 16, "dome": 64, "coaxial": 16}
@@ -243,3 +244,40 @@ def converged(coarse: Contribution, fine: Contribution, gray_top: float) -> bool
     gray_top of the finer one's brightest."""
     top = float(fine.unit_gray.max(initial=0.0))
     return bool(np.max(np.abs(fine.unit_gray - coarse.unit_gray), initial=0.0) <= INTEGRATION_GRAY / gray_top * top)
+
+
+def emitter_counts(task: Task, scene: Scene, T_cell_cam: ArrayLike) -> tuple[int, ...]:
+    """How many emitter points image each of task.lights: the module's rule at the scene's
+    feature samples seen from T_cell_cam, the band's top the highest feature's, so an image
+    integrates each light as finely as the plan did (the simulator's and registration's)."""
+    if not task.lights:
+        return ()
+    top = max(feature.requirements.gray_band[1] for feature in task.features)
+    found = contributions(scene.warp_mesh, scene.points, scene.normals, T_cell_cam, task.lights, task.part.material,
+                          task.camera.sensor, top)
+    return tuple(c.points for c in found)
+
+
+def drive_level(channel: int | None, drives: Mapping[int, float] | None) -> float:
+    """A light's drive level in an image: its channel's in `drives` ({channel: level 0..1}, the
+    controller's read-back; a channel not in them is off), 1 without a channel or without drives."""
+    if channel is None or drives is None:
+        return 1.0
+    return float(drives.get(channel, 0.0))
+
+
+def rendered(mesh: WarpMesh, origin: ArrayLike, ray_dirs: np.ndarray, T_cell_cam: ArrayLike, made: Sequence[Light],
+             counts: Sequence[int], factors: Sequence[float], table: np.ndarray, camera_constant: float,
+             pixel_area_m2: float, shadows: bool) -> np.ndarray:
+    """(N,) sum_k f_k G_k: the value (c A_pixel Phi R / 8 per ray, kernels.render) of each light k
+    as counts[k] emitter points (`emitters`, a flange light carried by T_cell_cam), each with its
+    own shadow ray, times factors[k] (its drive, in the simulator times its channel's true power);
+    a light at factor 0 is not rendered. The simulator's image and registration's model both."""
+    from kernels.render import render
+    value = np.zeros(len(ray_dirs))
+    for light, n, factor in zip(made, counts, factors):
+        if factor > 0.0:
+            e = emitters(light, T_cell_cam, n)
+            value += factor * render(mesh, origin, ray_dirs, e.position, e.axis, e.power_w, e.cone_angle_rad, table,
+                                     camera_constant, pixel_area_m2, shadows=shadows, profile=e.profile).value
+    return value

@@ -286,14 +286,14 @@ class Measured(NamedTuple):
 def locate(ctx: RunContext, feature: LoopFeature, k: int, capture: Capture,
            name: str | None) -> tuple[Registration, tuple[float, float]]:
     """Registration (cell.run.registration) of the feature in capture k at the read-back camera
-    and lamp poses, logged (as `name`'s, when given); returns (Registration, the shift the
+    and lamp poses and light drives, logged (as `name`'s, when given); returns (Registration, the shift the
     measurement takes: the found one when trusted and within registration_limit [px], else none)."""
     devices, task, scene = ctx.devices, feature.task, feature.model.plan.planned_scene
     with speaking_for(devices.lamp):
         lamp_pose = devices.lamp.lamp_pose()
     row, col, inside = measurement.sample_pixels(task, capture.T_cell_cam, scene.points)
     found = registration.locate(capture.image, task, scene, capture.T_cell_cam, lamp_pose, row[inside], col[inside],
-                                saturation_level(devices.camera.bit_depth))
+                                saturation_level(devices.camera.bit_depth), capture.drives or None)
     ctx.recorder.step("register", f"{name}: " * bool(name) + found.describe(), iteration=k,
                       **({"feature": name} if name else {}), **found.to_json())
     limit = registration_limit(task, feature.model.plan.shot)
@@ -554,7 +554,7 @@ def refit_and_replan(ctx: RunContext, aim: Aim, k: int, measured: Measured,
     recorder.step("correct", f"refit the material: {c.reason}", iteration=k, action="refit")
     yield Corrected(k, {"action": "refit", "cause": "spread", "reason": c.reason})
     disagreement = refit.Disagreement(k, m, (aim.shutter_s, aim.f_number, aim.shot.exposure.focus_m), aim.black,
-                                      aim.albedo_scale, it.registration["shift_px"])
+                                      aim.albedo_scale, it.registration["shift_px"], aim.drives or None)
     fitted = refit.probe_and_refit(ctx, feature.task, feature.model.plan.planned_scene, disagreement)
     yield Refitted(k, fitted, refit.keep(fitted, feature.task, recorder, k))
     refit.require_usable(fitted, c.reason)

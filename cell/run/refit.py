@@ -21,7 +21,7 @@ every free one is determined; the fixed ones are reported as unknown, never inve
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -37,6 +37,7 @@ from cell.physics.brdf_fit import standard_errors
 from cell.physics.material import PARAMETERS, BrdfParameters, Material
 from cell.physics.brdf import brdf_terms, reflectance, reflectance_jacobian
 from cell.devices.rig import lamp_aim, lamp_position
+from cell.planning.lights import drive_level
 
 if TYPE_CHECKING:
     from cell.planning.scene import Scene
@@ -310,7 +311,8 @@ def probe_joints(joints: tuple[float, float, float],
 class Disagreement:
     """The capture whose shape disagreed with the model: its iteration k, its Measurement, its
     exposure (shutter_s, f_number, focus_m), the shift (dx, dy) [px] registration found the
-    feature at, and the black level and albedo scale the loop measured it with."""
+    feature at, the black level and albedo scale the loop measured it with, and the light
+    channels' levels it was taken at (None: every light at full)."""
 
     iteration: int
     measurement: Measurement
@@ -318,6 +320,13 @@ class Disagreement:
     black: BlackLevel
     albedo_scale: float
     shift_px: tuple[float, float]
+    drives: Mapping[int, float] | None = None
+
+
+def other_lights_on(task: Task, drives: Mapping[int, float] | None) -> list[str]:
+    """The names of the task's lights besides the spot that shine at these drives
+    (cell.planning.lights.drive_level; a light on no channel always does)."""
+    return [light.name for light in task.lights if drive_level(light.channel.number, drives) > 0.0]
 
 
 def probe_and_refit(ctx: RunContext, task: Task, scene: Scene, disagreement: Disagreement) -> Refit:
@@ -326,8 +335,15 @@ def probe_and_refit(ctx: RunContext, task: Task, scene: Scene, disagreement: Dis
     that its brightest pixel is expected at PROBE_TARGET of the signal range (capture k's measured
     brightness times the model's ratio probe / capture k), then fit() to capture k and the probes,
     their pixels seen where registration found the feature. Logs each probe and the refit;
-    returns the Refit."""
+    returns the Refit. Refuses (GoalNotReached, cause material shape) before any probe when
+    capture k was lit by lights besides the spot: the model fitted is the spot's alone and the
+    probes tilt only it, so their light would be taken for the material's."""
     devices, recorder, k, m = ctx.devices, ctx.recorder, disagreement.iteration, disagreement.measurement
+    others = other_lights_on(task, disagreement.drives)
+    if others:
+        raise GoalNotReached(f"the feature's gray disagrees with the model's shape, but capture {k} was lit by "
+                             f"{', '.join(others)} besides the spot, and the refit models the spot alone: no "
+                             f"material is fitted to captures lit by other lights", "material shape")
     saturation, b, shift_px, region = m.saturation, disagreement.black.value, disagreement.shift_px, m.region
     assert region is not None, "one feature's own Measurement has its region (only a joined one has none)"
     shutter_s, f_number, focus_m = disagreement.exposure

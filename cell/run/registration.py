@@ -1,6 +1,8 @@
 """Registration: where the feature really is in a capture. The model's image
 of the part at the read-back camera and lamp poses (kernels.render, the planner's shading: the
-task's material, lamp and camera constant) is aligned with the capture, and the feature's
+task's material, lamp and camera constant), every light of the task shining at the capture's
+read-back drives as the simulator renders them (cell.planning.lights.rendered), is aligned with
+the capture, and the feature's
 samples move by the shift found, so the measured region follows the feature as it appears.
 
 Two steps. The model's window around the feature at 1/COARSE resolution, matched over the whole
@@ -29,12 +31,14 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, replace
+from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
 
 from cell.physics import projection
+from cell.planning import lights
 from kernels.render import render
 
 if TYPE_CHECKING:
@@ -43,6 +47,7 @@ if TYPE_CHECKING:
 
 Window = tuple[int, int, int, int]          # (u0, v0, width, height) of a part of the image [px]
 LampPose = tuple[np.ndarray, np.ndarray]    # the lamp's position and aim in the cell frame
+Drives = Mapping[int, float] | None         # {channel: level 0..1} read back (None: every light at full)
 
 COARSE = 4                  # the coarse step's pixels per model pixel
 MARGIN_PX = 24              # the window around the feature's samples: the conrod's shank edges
@@ -116,10 +121,12 @@ def beyond_limit(registration: dict[str, Any], limit_m: float) -> str | None:
 
 
 def expected_image(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: LampPose, window: Window,
-                   scale: int = 1) -> np.ndarray:
+                   scale: int = 1, drives: Drives = None, counts: Sequence[int] | None = None) -> np.ndarray:
     """The model's gray per unit exposure (c A Phi R / 8, eq. 10, 11, 17) over a window
     (u0, v0, width, height) of a grid `scale` times coarser than the sensor's, seen from T_cell_cam
-    with the lamp at lamp_pose (position, aim): the planner's shading with shadows."""
+    with the lamp at lamp_pose (position, aim) and every light at its channel's level in drives
+    (lights.drive_level; each as counts[k] emitter points, None: lights.emitter_counts at the
+    scene): the planner's shading with shadows."""
     sensor, lens = task.camera.sensor, task.camera.lens
     grid = replace(sensor, width_px=round(sensor.width_px / scale), height_px=round(sensor.height_px / scale),
                    pixel_pitch_m=sensor.pixel_pitch_m * scale)
@@ -128,10 +135,16 @@ def expected_image(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: 
     K[:2, 2] -= (u0, v0)
     rays = projection.pixel_rays(K, T_cell_cam, width, height)
     position, aim = lamp_pose
-    r = render(scene.warp_mesh, T_cell_cam[:3, 3], rays, position, aim, task.lamp.power_w, task.lamp.cone_angle_rad,
-               task.part.material.table(), sensor.camera_constant, sensor.pixel_area_m2, shadows=True,
-               profile=task.lamp.profile)
-    return r.value.reshape(height, width).astype(np.float32)
+    table, origin = task.part.material.table(), T_cell_cam[:3, 3]
+    value = lights.drive_level(task.lamp.channel.number, drives) * render(
+        scene.warp_mesh, origin, rays, position, aim, task.lamp.power_w, task.lamp.cone_angle_rad, table,
+        sensor.camera_constant, sensor.pixel_area_m2, shadows=True, profile=task.lamp.profile).value
+    if task.lights:
+        counts = lights.emitter_counts(task, scene, scene.T_cell_cam) if counts is None else counts
+        value += lights.rendered(scene.warp_mesh, origin, rays, T_cell_cam, task.lights, counts,
+                                 [lights.drive_level(light.channel.number, drives) for light in task.lights],
+                                 table, sensor.camera_constant, sensor.pixel_area_m2, shadows=True)
+    return value.reshape(height, width).astype(np.float32)
 
 
 def gradient(image: np.ndarray) -> np.ndarray:
@@ -165,7 +178,7 @@ def feature_window(row: np.ndarray, col: np.ndarray, shape: tuple[int, ...], mar
 
 
 def edged_window(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: LampPose, row: np.ndarray,
-                 col: np.ndarray, shape: tuple[int, ...],
+                 col: np.ndarray, shape: tuple[int, ...], drives: Drives = None, counts: Sequence[int] | None = None,
                  ) -> tuple[Window, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(window, smoothed template, eigenvalues, eigenvectors, resolved directions) of the smallest
     window around the feature (margin MARGIN_PX, doubled up to MAX_MARGIN_PX) whose model image
@@ -173,8 +186,8 @@ def edged_window(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: La
     margin = MARGIN_PX
     while True:
         window = feature_window(row, col, shape, margin)
-        template = cv2.GaussianBlur(expected_image(task, scene, T_cell_cam, lamp_pose, window), (0, 0),
-                                    SMOOTH_SIGMA)
+        template = cv2.GaussianBlur(expected_image(task, scene, T_cell_cam, lamp_pose, window, 1, drives, counts),
+                                    (0, 0), SMOOTH_SIGMA)
         contrast = float(np.percentile(template, 99) - np.percentile(template, 1))
         values, vectors = structure(template)
         edge = EDGE_PX * contrast**2 / (2.0 * np.sqrt(np.pi) * SMOOTH_SIGMA)
@@ -185,7 +198,8 @@ def edged_window(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: La
 
 
 def coarse_shift(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: LampPose,
-                 row: np.ndarray, col: np.ndarray) -> tuple[np.ndarray, float]:
+                 row: np.ndarray, col: np.ndarray, drives: Drives = None,
+                 counts: Sequence[int] | None = None) -> tuple[np.ndarray, float]:
     """(the feature centre's shift (dx, dy) [px] to within COARSE px, the image's turn about it
     [deg] to within half a COARSE_TURNS_DEG step): the model's window around it
     (COARSE_MARGIN_PX) at 1/COARSE resolution, turned by each of COARSE_TURNS_DEG about the
@@ -200,7 +214,8 @@ def coarse_shift(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.nda
     size = (round(w / COARSE), round(h / COARSE))
     small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
     u0, v0, width, height = feature_window(row // COARSE, col // COARSE, small.shape, COARSE_MARGIN_PX // COARSE)
-    edges = gradient(high_pass(expected_image(task, scene, T_cell_cam, lamp_pose, (u0, v0, width, height), COARSE)))
+    edges = gradient(high_pass(expected_image(task, scene, T_cell_cam, lamp_pose, (u0, v0, width, height), COARSE,
+                                              drives, counts)))
     centre = (float(np.mean(col) / COARSE - u0), float(np.mean(row) / COARSE - v0))
     target = gradient(high_pass(small))
     best: tuple[float, tuple[int, int] | None, float] = (-np.inf, None, 0.0)
@@ -214,10 +229,11 @@ def coarse_shift(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.nda
 
 
 def locate(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: LampPose,
-           row: np.ndarray, col: np.ndarray, saturation: float = np.inf) -> Registration:
+           row: np.ndarray, col: np.ndarray, saturation: float = np.inf, drives: Drives = None) -> Registration:
     """The Registration of a capture taken from T_cell_cam (read back) with the lamp at
-    lamp_pose, the feature's samples at pixels (row, col) by the model (those inside the image),
-    pixels at `saturation` or above clipped by the sensor."""
+    lamp_pose and the light channels at `drives` (read back; None: every light at full), the
+    feature's samples at pixels (row, col) by the model (those inside the image), pixels at
+    `saturation` or above clipped by the sensor."""
     start = time.perf_counter()
     image = np.asarray(image, np.float32)
     K = projection.intrinsics(task.camera.sensor, task.camera.lens)
@@ -229,9 +245,10 @@ def locate(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, 
         return Registration((float(shift[0]), float(shift[1])), footprint, trusted, resolved, float(correlation), note,
                             time.perf_counter() - start, rotation)
 
-    coarse, turn = coarse_shift(image, task, scene, T_cell_cam, lamp_pose, row, col)
-    (u0, v0, width, height), template, values, vectors, resolved = edged_window(task, scene, T_cell_cam, lamp_pose,
-                                                                                 row, col, image.shape)
+    counts = lights.emitter_counts(task, scene, scene.T_cell_cam)
+    coarse, turn = coarse_shift(image, task, scene, T_cell_cam, lamp_pose, row, col, drives, counts)
+    (u0, v0, width, height), template, values, vectors, resolved = edged_window(
+        task, scene, T_cell_cam, lamp_pose, row, col, image.shape, drives, counts)
     saturated = float(np.mean(image[v0:v0 + height, u0:u0 + width] >= saturation))
     if saturated > SATURATED_FRACTION:
         return result((0.0, 0.0), False, int(resolved.sum()), np.nan,
