@@ -416,13 +416,10 @@ def _defects(file, key, entries, center, radius):
     only those, a dent no deeper than its radius (a spherical cap is at most a hemisphere), a
     coating's material file loaded and checked like `part.material`, a position within the
     feature's radius of its centre."""
-    out, seen = [], {}
+    _unique_names(file, [(f"{key}.defects[{i}]", d["name"]) for i, d in enumerate(entries)], "the feature's defects")
+    out = []
     for i, d in enumerate(entries):
         at = f"{key}.defects[{i}]"
-        if d["name"] in seen:
-            raise TaskError(file, f"{at}.name", f"'{d['name']}', also the name of {key}.defects[{seen[d['name']]}]",
-                            "a name unique among the feature's defects")
-        seen[d["name"]] = i
         kind = d["kind"]
         for k in ("width_m", "depth_m", "orientation_rad", "radius_m", "material"):
             name = "orientation_deg" if k == "orientation_rad" else k
@@ -450,6 +447,15 @@ def _defects(file, key, entries, center, radius):
     return tuple(out)
 
 
+def _unique_names(file, keyed: list[tuple[str, str]], among: str) -> None:
+    """Each (entry's key, its name) a name no earlier entry has, else one TaskError naming both."""
+    seen: dict[str, str] = {}
+    for key, name in keyed:
+        if name in seen:
+            raise TaskError(file, f"{key}.name", f"'{name}', also the name of {seen[name]}", f"a name unique among {among}")
+        seen[name] = key
+
+
 def _feature_entries(file, v):
     """[(key, name, feature values, requirement values)] from `feature:` (named `feature`) or
     `features:`, each feature's requirements the task's with its own keys replacing them (SI)."""
@@ -460,13 +466,10 @@ def _feature_entries(file, v):
     if v["features"] is None:
         raise TaskError(file, "features", "nothing",
                         "a non-empty list of mappings of keys, or one feature as `feature` (required key)")
-    entries, seen = [], {}
+    _unique_names(file, [(f"features[{i}]", f["name"]) for i, f in enumerate(v["features"])], "the features")
+    entries = []
     for i, f in enumerate(v["features"]):
         key = f"features[{i}]"
-        if f["name"] in seen:
-            raise TaskError(file, f"{key}.name", f"'{f['name']}', also the name of features[{seen[f['name']]}]",
-                            "a name unique among the features")
-        seen[f["name"]] = i
         own = f["requirements"]
         entries.append((key, f["name"], f, {k: v["requirements"][k] if own[k] is None else own[k] for k in own}))
     return entries
