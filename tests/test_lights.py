@@ -199,7 +199,7 @@ BAR = {"name": "bar", "type": "bar", "mount": "fixed", "power_w": 0.8, "channel"
 
 
 def load_with(tmp_path, *entries, **lamp_keys):
-    from tests.test_loader import write_task
+    from test_loader import write_task
     from cell.task.loader import load_task
 
     def edit(task, folder):
@@ -220,7 +220,7 @@ def test_lights_load_in_si_with_their_poses(tmp_path):
 
 
 def test_a_pan_tilt_light_is_the_lamp(tmp_path):
-    from tests.test_loader import write_task
+    from test_loader import write_task
     from cell.task.loader import load_task
 
     def edit(task, folder):
