@@ -92,7 +92,7 @@ window.addEventListener("load", () => setTimeout(() => {
 </script>"""
 
 
-@pytest.mark.parametrize("name", ["hinge", "bracket"])
+@pytest.mark.parametrize("name", ["hinge", pytest.param("bracket", marks=pytest.mark.long)])
 def test_cell_html_renders_in_headless_chromium_with_no_console_error(planned, name, tmp_path):
     binary = chromium()
     if binary is None:

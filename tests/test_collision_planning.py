@@ -56,6 +56,7 @@ def bracket():
     return task, plan_features(task)
 
 
+@pytest.mark.long          # 25 s; the default run keeps the refusal with both bodies named
 def test_every_shot_of_the_bracket_keeps_the_padding_by_a_dense_brute_force(bracket):
     task, plan = bracket
     document = plan.to_json()

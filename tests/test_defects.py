@@ -245,6 +245,7 @@ def test_defect_cnr_is_asked_only_with_defects_and_says_what_would_fix_it(tmp_pa
     assert "defect_cnr" not in requirements.ln_values(p0, evaluate.at_exposure(p0, c.position[0], 0.005, 5.6))
 
 
+@pytest.mark.long          # a 20 s plan; the default run judges defects on the small cases above
 def test_the_example_plan_gives_each_defect_s_predicted_cnr(tmp_path):
     out = tmp_path / "plan"
     run = subprocess.run([sys.executable, "-m", "cell", "plan", str(TASKS / "conrod-defects.yaml"), "--out", str(out)],

@@ -354,8 +354,6 @@ SAMPLE = {   # (kind, magnitude, task): how it must end, from the kind injected
     ("hand-eye", "2 deg", "hinge"): "registration",
     # a lobe twice as narrow: the band under 1 deg lamp error is infeasible for it (test_refit)
     ("material shape", "m1 x2", "hinge"): "infeasible",
-    # the dark-field ring dead: measured by the basis captures, the spot takes over
-    ("channel power", "channel 2 x0", "ring"): "converged",
 }
 
 

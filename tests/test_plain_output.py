@@ -17,6 +17,7 @@ from simcell import variant
 
 ROOT = Path(__file__).resolve().parent.parent
 EXAMPLES = sorted((ROOT / "tasks").glob("*.yaml"))
+QUICK = [p for p in EXAMPLES if p.stem in ("hinge", "conrod", "ring")]     # the default run's; the rest: long
 
 # what must never reach a person's terminal
 RAW = [
@@ -61,7 +62,7 @@ def planned(tmp_path_factory):
                 "constant": {"camera.sensor.camera_constant": 1e30},
                 "power": {"lamp.power_mw": 1e300},
                 "exponent": {"part.material": str(tmp / "sharp.yaml")}}
-    paths = [str(p) for p in EXAMPLES]
+    paths = [str(p) for p in QUICK]
     for name, changes in variants.items():
         folder = tmp / name
         folder.mkdir()
@@ -88,8 +89,18 @@ def test_every_line_says_the_plan_in_words(planned):
     text, code, plans = planned
     assert code == 1, text                                  # the variants (but the exponent's) are infeasible
     assert not offending(text), "\n".join(f"{why}: {line}" for line, why in offending(text))
-    assert all(plans[p.stem]["feasible"] for p in EXAMPLES)
+    assert all(plans[p.stem]["feasible"] for p in QUICK)
     assert "cell plan: infeasible: " in text and "tightest requirement: depth of field" in text
+
+
+@pytest.mark.long          # the bracket and the defects' example: 30 s of planning
+def test_the_other_examples_plan_feasible_and_say_so_in_words(tmp_path):
+    rest = [str(p) for p in EXAMPLES if p not in QUICK]
+    done = subprocess.run([sys.executable, "-m", "cell", "plan", *rest, "--out", str(tmp_path / "out")],
+                          capture_output=True, text=True, timeout=900, cwd=tmp_path)
+    text = done.stdout + done.stderr
+    assert done.returncode == 0, text
+    assert not offending(text), "\n".join(f"{why}: {line}" for line, why in offending(text))
 
 
 def test_each_infeasible_variant_names_what_limits_it(planned):

@@ -197,8 +197,8 @@ RING_AT_CORNER = {
     {"sim.truth.part_offset_m": [0.0, 0.002, 0.0]},
     # 2.5 mm toward the plate's edge: the model's region, 8 mm about where the model puts the
     # centre, would reach 0.5 mm past the true edge (black pixels); the found one stays on the plate
-    {"sim.truth.part_offset_m": [0.0, -0.0025, 0.0]},
-    {"sim.truth.camera_offset_m": [0.001, 0.001, 0.0]},
+    pytest.param({"sim.truth.part_offset_m": [0.0, -0.0025, 0.0]}, marks=pytest.mark.long),
+    pytest.param({"sim.truth.camera_offset_m": [0.001, 0.001, 0.0]}, marks=pytest.mark.long),
 ], ids=["fixture-2mm", "fixture-2.5mm-toward-the-edge", "hand-eye-1mm-both-axes"])
 def test_on_a_task_lit_mostly_by_a_low_angle_ring_registration_finds_the_projected_shift(tmp_path, truth):
     """The expected shift is the true feature centre's pixel less the model's
