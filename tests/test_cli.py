@@ -206,3 +206,19 @@ def test_cell_check_of_a_task_for_the_real_cell_that_names_its_devices_passes(tm
                                            "cell.pan_tilt.port": "/dev/ttyUSB0"})
     assert main(["check", str(task)]) == 0                        # nothing is contacted by a check
     assert "cell         backend hw" in capsys.readouterr().out
+
+
+def test_a_reader_that_goes_away_ends_the_command_quietly():
+    """`cell check TASK | head`: the pipe closed before the command writes is exit 141 (SIGPIPE's,
+    as a shell reports it) and no traceback."""
+    import os
+    import subprocess
+    import sys
+    read, write = os.pipe()
+    os.close(read)
+    try:
+        done = subprocess.run([sys.executable, "-m", "cell", "check", "tasks/hinge.yaml"], stdout=write,
+                              stderr=subprocess.PIPE, text=True, timeout=300, cwd=Path(__file__).resolve().parents[1])
+    finally:
+        os.close(write)
+    assert done.returncode == 141 and "Traceback" not in done.stderr and "BrokenPipe" not in done.stderr, done.stderr

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import re
+import os
 import signal
 import sys
 from collections.abc import Sequence
@@ -272,6 +273,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except CellError as err:
         print(f"cell {args.command}: {err.said}", file=sys.stderr, flush=True)
         return err.exit_code
+    except BrokenPipeError:
+        # whoever read our output has gone (`cell check TASK | head`): nothing more to say to it,
+        # and Python's own flush of stdout at exit must not fail again (its docs' recipe)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 128 + signal.SIGPIPE
     except KeyboardInterrupt as err:
         terminated = isinstance(err, Terminated)
         print(f"cell {args.command}: {'terminated (SIGTERM)' if terminated else 'interrupted'}",
