@@ -10,7 +10,7 @@ import yaml
 
 from cell.physics.brdf_fit import COLUMNS, PhaseFit, material_document, read_goniometer
 from cell.task.loader import MATERIAL, TASK, load_material, load_task
-from cell.task.schema import REQUIRED, UNITS, Section, Sections, _unit
+from cell.task.schema import REQUIRED, UNITS, Section, Sections, _unit, schema_keys
 
 ROOT = Path(__file__).resolve().parent.parent
 DOC = ROOT / "docs" / "formats.md"
@@ -39,18 +39,6 @@ def rows(text):
 
 def blocks(text, language):
     return re.findall(rf"```{language}\n(.*?)```", text, re.S)
-
-
-def schema_keys(fields, path=""):
-    """(dotted key, spec) of every key and section of a schema, depth first; the keys of each
-    entry of a list of sections as `features[].center_m`."""
-    for key, spec in fields.items():
-        dotted = f"{path}.{key}" if path else key
-        yield dotted, spec
-        if isinstance(spec, Section):
-            yield from schema_keys(spec.fields, dotted)
-        if isinstance(spec, Sections):
-            yield from schema_keys(spec.fields, f"{dotted}[]")
 
 
 def other_units(key):

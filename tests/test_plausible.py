@@ -17,7 +17,7 @@ from cell.planning.scene import build_scene
 from cell.planning.viewpoints import require_reach
 from cell.task import plausible
 from cell.task.loader import TASK, load_task
-from cell.task.schema import UNITS, _unit
+from cell.task.schema import UNITS, _unit, schema_keys
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = sorted((ROOT / "tasks").glob("*.yaml"))
@@ -198,7 +198,7 @@ def test_bad_limits_are_one_line_naming_the_key(tmp_path, capsys, limits, key, s
 
 def test_every_range_has_its_key_and_its_words_in_the_schema():
     """One table: each row's Spec says its range in `expected` (docs/formats.md's accepted column)."""
-    specs = dict(plausible._specs(TASK))
+    specs = dict(schema_keys(TASK))
     for key, row in plausible.RANGES.items():
         if key != plausible.MESH:
             assert specs[key].expected.endswith(f"({row.words()})") and specs[key].plausible.key == key

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from cell.core.errors import TaskError
-from cell.task.schema import UNITS, Section, Sections, Spec, ToSI, _unit, show
+from cell.task.schema import UNITS, Section, Sections, Spec, ToSI, _unit, schema_keys, show
 
 
 @dataclass(frozen=True)
@@ -183,21 +183,11 @@ class Check:
                         f"(a cell beyond it: `limits: {{{self.key}: {widen}}}` in the task)")
 
 
-def _specs(fields: Mapping[str, Spec], path: str = "") -> Iterator[tuple[str, Spec]]:
-    for key, spec in fields.items():
-        dotted = f"{path}.{key}" if path else key
-        yield dotted, spec
-        if isinstance(spec, Section):
-            yield from _specs(spec.fields, dotted)
-        if isinstance(spec, Sections):
-            yield from _specs(spec.fields, f"{dotted}[]")
-
-
 def attach(schema: Mapping[str, Spec]) -> None:
     """Give each Spec of `schema` that has a row its Check and its range in its `expected` words.
     A Spec shared by two keys must be given one of them (copied first): each row its own."""
     seen = set()
-    for key, spec in _specs(schema):
+    for key, spec in schema_keys(schema):
         if key not in RANGES or key == MESH:
             continue
         if getattr(spec, "plausible", None) is not None or id(spec) in seen:
@@ -205,7 +195,7 @@ def attach(schema: Mapping[str, Spec]) -> None:
         seen.add(id(spec))
         spec.plausible = Check(key)
         spec.expected = f"{spec.expected} ({RANGES[key].words()})"
-    missing = set(RANGES) - {key for key, _ in _specs(schema)} - {MESH}
+    missing = set(RANGES) - {key for key, _ in schema_keys(schema)} - {MESH}
     if missing:
         raise ValueError(f"rows of no key: {sorted(missing)}")
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import difflib
 import re
 import reprlib
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from os import PathLike
 from pathlib import Path
 from typing import Any, TypedDict
@@ -283,6 +283,18 @@ class Sections(Spec):
         if not isinstance(raw, list) or not raw:
             raise TaskError(file, path, show(raw), self.expected)
         return [parse(file, f"{path}[{i}]", item, self.fields) for i, item in enumerate(raw)]
+
+
+def schema_keys(fields: Mapping[str, Spec], path: str = "") -> Iterator[tuple[str, Spec]]:
+    """(dotted key, Spec) of every key and section of a schema, depth first; the keys of each
+    entry of a list of sections as `features[].center_m` (docs/formats.md's rows)."""
+    for key, spec in fields.items():
+        dotted = f"{path}.{key}" if path else key
+        yield dotted, spec
+        if isinstance(spec, Section):
+            yield from schema_keys(spec.fields, dotted)
+        if isinstance(spec, Sections):
+            yield from schema_keys(spec.fields, f"{dotted}[]")
 
 
 class Rule(TypedDict):
