@@ -42,7 +42,7 @@ if TYPE_CHECKING:
 
 CAUSES = {          # report.json's `cause` of a run that ends without the goal (exit 1): the README's table
     "registration": "the feature appears beyond loop.registration_limit_m from where the model puts it "
-                    "(hand-eye or fixture)",
+                    "(hand-eye or fixture), or could not be registered while its gray was otherwise in band",
     "black pixels": "part of the region reads the black level (off the part or shadowed: hand-eye or fixture)",
     "albedo": "the level implies an albedo outside loop.albedo_scale_range",
     "spread": "the shape still disagrees after a refit",
@@ -317,9 +317,10 @@ def measure_capture(ctx: RunContext, aim: Aim, feature: LoopFeature, k: int, cap
     predicted = model.predicted(aim.black.value, capture.shutter_s, f_number)
     error, relation = control.model_error(m.sample_gray, predicted, saturation, aim.black.value)
     band = task.requirements.gray_band
-    in_band = m.in_band(band)
+    in_band = m.in_band(band) and found.trusted        # measured where the feature may not be: never in band
     stats, expected = m.stats(), gray_stats(predicted)
-    verdict = f"{'in' if in_band else 'out of'} band {band[0]:g}-{band[1]:g}"
+    verdict = (f"{'in' if in_band else 'out of'} band {band[0]:g}-{band[1]:g}" if found.trusted else
+               f"not registered: not judged in band {band[0]:g}-{band[1]:g}")
     named = f"{name}: " if name else ""
     caption = f"{k}: {named}gray {m.min:.0f}-{m.max:.0f}, {stats['saturated']} saturated: {verdict}"
     annotated = ctx.recorder.write_image(f"capture-{k}-{file_name(name) if name else 'feature'}.png",
@@ -379,7 +380,9 @@ def step(ctx: RunContext, aim: Aim, k: int) -> Generator[Event, None, Aim | None
     """Capture k, the closed loop's one step: to the plan's poses when not there (after a
     re-plan), expose and capture (acquire), each feature located and measured (measure_capture:
     its Iteration yielded), then the first that applies: a feature found beyond its
-    registration_limit stops (the plan's poses do not hold: nothing to correct); every feature in
+    registration_limit stops (the plan's poses do not hold: nothing to correct), as does one not
+    registered whose gray on the model's region is in band (no correction changes that, and it is
+    never reported in band: registration.not_registered); every feature in
     its band ends the loop (returns None); the last iteration stops; else the correction after it
     (correct_after: the next Aim)."""
     if not aim.moved:
@@ -395,6 +398,13 @@ def step(ctx: RunContext, aim: Aim, k: int) -> Generator[Event, None, Aim | None
         if far:
             name = aim.label(feature)
             reason = f"{name}: {far}" if name else far
+            yield Corrected(k, {"action": "stop", "albedo_scale": aim.albedo_scale, "reason": reason,
+                                "cause": "registration"})
+            raise GoalNotReached(reason, "registration")
+    for feature, m in zip(aim.features, measured):
+        if not m.iteration.registration["trusted"] and m.measurement.in_band(feature.task.requirements.gray_band):
+            name = aim.label(feature)
+            reason = f"{name}: " * bool(name) + registration.not_registered(m.iteration.registration)
             yield Corrected(k, {"action": "stop", "albedo_scale": aim.albedo_scale, "reason": reason,
                                 "cause": "registration"})
             raise GoalNotReached(reason, "registration")

@@ -5,10 +5,15 @@ read-back drives as the simulator renders them (cell.planning.lights.rendered), 
 the capture, and the feature's
 samples move by the shift found, so the measured region follows the feature as it appears.
 
-Two steps. The model's window around the feature at 1/COARSE resolution, matched over the whole
-capture by its edges (coarse_shift: of the image less its blur, high_pass, so that the lamp's
-soft edge does not count), finds any shift that keeps it in the frame (a 2 deg hand-eye
-tilt on the hinge is 188 px), to within a coarse pixel. cv2.findTransformECC (a translation and
+Two steps. The model's whole view at 1/COARSE resolution is rendered, and its window around the
+feature matched over the whole capture by its edges (coarse_shift: of the image less its blur,
+high_pass, so that the lamp's soft edge does not count), finds any shift that keeps it in the
+frame (a 2 deg hand-eye tilt on the hinge is 188 px), to within a coarse pixel. It matches
+only windows of the capture with texture (more variation than the sensor's noise explains: the
+black background beside a small part, flat to the rounding, scored 1.000 with anything), a
+peak must clear what a frame of pure noise reaches against the same template, and the whole
+view moved by the shift must agree with the capture better than unmoved; otherwise it starts
+from the model's place. cv2.findTransformECC (a translation and
 a turn, MOTION_EUCLIDEAN, on intensity) then refines it to a fraction of a pixel in a window
 around the feature, the shift being where the warp moves the feature's centre (a part turned
 about it, whose edges a translation alone matched 11 px off on the hinge's 3 deg yaw, moves
@@ -23,10 +28,11 @@ What the window cannot tell is not moved: the template's structure tensor J = su
 is at least EDGE_PX pixels of edge at the window's contrast (a step of height H gives about
 H^2 / (2 sqrt(pi) sigma) per pixel of edge length, sigma the smoothing) and at least RATIO of
 the other: along the conrod's shank (two parallel edges) only the shift across it is resolved,
-the one along it stays the model's. A capture whose registration cannot be trusted (no direction
-resolved, more than SATURATED_FRACTION of the window saturated, ECC not converging, a correlation
-below MIN_CORRELATION, ECC wandering more than COARSE pixels or TURN_STEP_DEG from the coarse
-estimate) keeps the model's region and says so."""
+the one along it stays the model's. A capture whose feature cannot be registered (no direction
+resolved, more than SATURATED_FRACTION of the window saturated, no texture in the capture where
+the window lands, ECC not converging, a correlation below MIN_CORRELATION, ECC wandering more
+than COARSE pixels or TURN_STEP_DEG from the coarse estimate) keeps the model's region and says
+so in the cell's words (never OpenCV's text); the loop never reports such a shot in band."""
 from __future__ import annotations
 
 import time
@@ -36,14 +42,16 @@ from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
+from numpy.typing import ArrayLike
 
-from cell.physics import projection
+from cell.physics import contrast, projection
+from cell.physics.sensor import dark_noise, system_gain
 from cell.planning import lights
 from kernels.render import render
 
 if TYPE_CHECKING:
     from cell.planning.scene import Scene
-    from cell.task.types import Task
+    from cell.task.types import Sensor, Task
 
 Window = tuple[int, int, int, int]          # (u0, v0, width, height) of a part of the image [px]
 LampPose = tuple[np.ndarray, np.ndarray]    # the lamp's position and aim in the cell frame
@@ -63,6 +71,7 @@ EDGE_PX = 20.0              # a resolved direction: this many pixels of edge at 
 RATIO = 0.01                # ... and at least this fraction of the other direction's eigenvalue
 MIN_CORRELATION = 0.95      # ECC's correlation coefficient of a trusted alignment (0.985-0.9998
                             # on the examples' offsets with every effect on; 0.90 on a saturated hinge)
+TEXTURE = 2.0               # a window with texture varies more than this x what the sensor's noise gives
 SATURATED_FRACTION = 0.2    # more of the window's pixels at saturation: its shape is unknown there
 ECC_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
 
@@ -95,7 +104,7 @@ class Registration:
     def describe(self) -> str:
         """The log's sentence."""
         if not self.trusted:
-            return f"not trusted ({self.note}): the model's region is measured"
+            return f"not registered ({self.note}): the model's region is measured"
         dx, dy = self.shift_px
         return (f"feature found {self.offset_px:.1f} px ({1e3 * self.offset_m:.2f} mm) from where the model puts "
                 f"it (dx {dx:+.1f}, dy {dy:+.1f} px, turned {self.rotation_deg:+.2f} deg; correlation "
@@ -118,6 +127,15 @@ def beyond_limit(registration: dict[str, Any], limit_m: float) -> str | None:
             f"where the model puts it, more than the registration limit {1e3 * limit_m:.1f} mm "
             f"(loop.registration_limit_m, else the lamp's distance x tan lamp_tolerance): check the "
             f"hand-eye calibration or the part's fixture")
+
+
+def not_registered(registration: dict[str, Any]) -> str:
+    """The stop's reason when a capture's feature could not be registered (Registration.to_json,
+    not trusted) though its gray on the model's region is in band: that region may not be the
+    feature, so the shot is not reported in band."""
+    return (f"the feature could not be registered ({registration['note']}): its gray on the model's region "
+            f"is in band, but that region may not be the feature, so the shot is not reported in band; check the "
+            f"lighting of the feature's edges, the hand-eye calibration or the part's fixture")
 
 
 def expected_image(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: LampPose, window: Window,
@@ -197,35 +215,124 @@ def edged_window(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: La
         margin *= 2
 
 
+@dataclass(frozen=True)
+class Coarse:
+    """The coarse step's answer: the feature centre's shift (dx, dy) [px] and the image's turn
+    [deg] it starts ECC from, the best peak among textured windows, the best a frame of pure
+    noise reaches against the same template (the ceiling a match must clear), and why it did not
+    move (empty when it did, or had no reason to)."""
+
+    shift_px: np.ndarray
+    turn_deg: float
+    score: float
+    noise_ceiling: float
+    note: str = ""
+
+
+def noise_rms(gray: ArrayLike, sensor: Sensor) -> np.ndarray:
+    """The sensor's temporal noise and quantisation at a gray [gray rms] (EMVA 1288,
+    cell.physics.contrast.temporal_noise; the black level 0 when the task gives none, which
+    counts a little more shot noise)."""
+    return contrast.temporal_noise(gray, sensor.black_level or 0.0, system_gain(sensor.bit_depth,
+                                   sensor.system_gain_dn_per_e), dark_noise(sensor.dark_noise_e))
+
+
+def edge_noise_gain() -> float:
+    """The rms of gradient(high_pass(n)) per unit rms of white noise n: the magnitude of two
+    uncorrelated Gaussian components of variance s^2 sum(k_x^2) (k_x the impulse response of
+    Sobel x after high_pass) is Rayleigh, whose own rms about its mean is s sqrt((4 - pi) / 2)."""
+    delta = np.zeros((65, 65), np.float32)
+    delta[32, 32] = 1.0
+    k_x = cv2.Sobel(high_pass(delta), cv2.CV_32F, 1, 0, scale=1 / 8)
+    return float(np.sqrt((4.0 - np.pi) / 2.0 * np.sum(np.square(k_x, dtype=np.float64))))
+
+
+def window_sums(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """The sum of image over every (width, height) window, indexed by its top-left pixel as
+    cv2.matchTemplate's score is."""
+    w, h = size
+    total = cv2.integral(image.astype(np.float64))
+    return total[h:, w:] - total[:-h, w:] - total[h:, :-w] + total[:-h, :-w]
+
+
+def textured(small: np.ndarray, target: np.ndarray, size: tuple[int, int], sensor: Sensor) -> np.ndarray:
+    """Per window of `size` (top-left indexed): whether target (the coarse capture's edges) varies
+    over it more than TEXTURE x what the sensor's noise alone gives there (noise_rms at the
+    window's mean gray, averaged down by COARSE^2 pixels, through edge_noise_gain). Normalised
+    correlation divides by that variation, so a window without it (the black background:
+    rounding noise of 3e-7 gray) scores anything, 1.000 included."""
+    n = size[0] * size[1]
+    mean = window_sums(small, size) / n
+    spread = np.sqrt(np.maximum(window_sums(np.square(target), size) / n - (window_sums(target, size) / n) ** 2, 0.0))
+    noise = noise_rms(mean, sensor) / COARSE * edge_noise_gain()
+    return spread > TEXTURE * noise
+
+
+def agreement(target: np.ndarray, view_edges: np.ndarray, shift_px: np.ndarray) -> float:
+    """The correlation coefficient of the coarse capture's edges with the whole view's expected
+    edges moved by shift_px (full-resolution pixels)."""
+    M = np.float32([[1, 0, shift_px[0] / COARSE], [0, 1, shift_px[1] / COARSE]])
+    moved = cv2.warpAffine(view_edges, M, (view_edges.shape[1], view_edges.shape[0]))
+    a, b = target - target.mean(), moved - moved.mean()
+    norm = float(np.sqrt(np.sum(a * a) * np.sum(b * b)))
+    return float(np.sum(a * b) / norm) if norm > 0.0 else 0.0
+
+
 def coarse_shift(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: LampPose,
                  row: np.ndarray, col: np.ndarray, drives: Drives = None,
-                 counts: Sequence[int] | None = None) -> tuple[np.ndarray, float]:
-    """(the feature centre's shift (dx, dy) [px] to within COARSE px, the image's turn about it
-    [deg] to within half a COARSE_TURNS_DEG step): the model's window around it
-    (COARSE_MARGIN_PX) at 1/COARSE resolution, turned by each of COARSE_TURNS_DEG about the
-    feature's centre, matched over the capture averaged down alike, by
-    the normalized correlation coefficient (cv2.matchTemplate, TM_CCOEFF_NORMED: blind to gain and
-    offset) of their gradient magnitudes: the lamp's soft edge and the lobe's shading stay where
-    the lamp is when the part moves, and in intensity they outweighed the hinge's edges (its part
-    2 mm off was matched 67 px away). Not phase correlation: its whitened spectrum, on images flat
-    but for a few edges, put its peak 5 px off on the noiseless conrod and anywhere once the lamp's
-    edge differed."""
+                 counts: Sequence[int] | None = None) -> Coarse:
+    """Coarse: the feature centre's shift to within COARSE px and the image's turn about it to
+    within half a COARSE_TURNS_DEG step. The model's whole view at 1/COARSE resolution is
+    rendered; its window around the feature (COARSE_MARGIN_PX), turned by each of
+    COARSE_TURNS_DEG about the feature's centre, is matched over the capture averaged down alike,
+    by the normalized correlation coefficient (cv2.matchTemplate, TM_CCOEFF_NORMED: blind to gain
+    and offset) of their edges (gradient of high_pass): the lamp's soft edge and the lobe's
+    shading stay where the lamp is when the part moves, and in intensity they outweighed the
+    hinge's edges (its part 2 mm off was matched 67 px away). Not phase correlation: its whitened
+    spectrum, on images flat but for a few edges, put its peak 5 px off on the noiseless conrod.
+
+    What it may match: only windows of the capture with texture (textured); a peak no higher
+    than the best a frame of pure noise reaches against the same turned templates (seeded, so
+    the same each time; the ceiling is scale-free, noise of any rms scores alike) is no match;
+    and a move is taken only when the whole view's edges, moved by it, agree with the capture's
+    better than unmoved (agreement). Otherwise the model's place (no shift; the turn that scores
+    best there when only the whole view refused the move), and why."""
     h, w = image.shape
     size = (round(w / COARSE), round(h / COARSE))
     small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+    view = gradient(high_pass(expected_image(task, scene, T_cell_cam, lamp_pose, (0, 0, *size), COARSE, drives,
+                                             counts)))
     u0, v0, width, height = feature_window(row // COARSE, col // COARSE, small.shape, COARSE_MARGIN_PX // COARSE)
-    edges = gradient(high_pass(expected_image(task, scene, T_cell_cam, lamp_pose, (u0, v0, width, height), COARSE,
-                                              drives, counts)))
+    edges = view[v0:v0 + height, u0:u0 + width]
     centre = (float(np.mean(col) / COARSE - u0), float(np.mean(row) / COARSE - v0))
     target = gradient(high_pass(small))
-    best: tuple[float, tuple[int, int] | None, float] = (-np.inf, None, 0.0)
+    noise = gradient(high_pass(np.random.default_rng(0).standard_normal(small.shape).astype(np.float32)))
+    valid = textured(small, target, (width, height), task.camera.sensor)
+    best: tuple[float, tuple[int, int], float] = (-np.inf, (0, 0), 0.0)
+    in_place: tuple[float, float] = (-np.inf, 0.0)          # the best turn at the model's place
+    ceiling = -np.inf
     for turn in COARSE_TURNS_DEG:               # the turned window's corners have no edge: 0
-        M = cv2.getRotationMatrix2D(centre, turn, 1.0)
-        score = cv2.matchTemplate(target, cv2.warpAffine(edges, M, (width, height)), cv2.TM_CCOEFF_NORMED)
-        _, peak, _, (u, v) = cv2.minMaxLoc(np.nan_to_num(score, nan=-1.0))
-        if peak > best[0]:
-            best = (peak, (u - u0, v - v0), turn)
-    return COARSE * np.array(best[1], float), best[2]
+        turned = cv2.warpAffine(edges, cv2.getRotationMatrix2D(centre, turn, 1.0), (width, height))
+        if not turned.any():
+            continue
+        score = np.nan_to_num(cv2.matchTemplate(target, turned, cv2.TM_CCOEFF_NORMED), nan=-1.0)
+        in_place = max(in_place, (float(score[v0, u0]), turn))
+        score = np.where(valid, score, -1.0)
+        ceiling = max(ceiling, float(np.nanmax(cv2.matchTemplate(noise, turned, cv2.TM_CCOEFF_NORMED))))
+        v, u = np.unravel_index(int(np.argmax(score)), score.shape)
+        if score[v, u] > best[0]:
+            best = (float(score[v, u]), (int(u) - u0, int(v) - v0), turn)
+    score, shift, turn = best[0], COARSE * np.array(best[1], float), best[2]
+    if not np.isfinite(ceiling):
+        return Coarse(np.zeros(2), 0.0, score, ceiling, "the model shows no edge around the feature")
+    if score <= ceiling:
+        return Coarse(np.zeros(2), 0.0, score, ceiling,
+                      f"the capture's edges match the model's nowhere better than pure noise would "
+                      f"({score:.2f}, noise reaches {ceiling:.2f})")
+    if shift.any() and agreement(target, view, shift) <= agreement(target, view, np.zeros(2)):
+        return Coarse(np.zeros(2), in_place[1], score, ceiling,
+                      f"the whole view does not agree with moving the feature {np.hypot(*shift):.0f} px")
+    return Coarse(shift, turn, score, ceiling)
 
 
 def locate(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: LampPose,
@@ -246,7 +353,8 @@ def locate(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, 
                             time.perf_counter() - start, rotation)
 
     counts = lights.emitter_counts(task, scene, scene.T_cell_cam)
-    coarse, turn = coarse_shift(image, task, scene, T_cell_cam, lamp_pose, row, col, drives, counts)
+    found = coarse_shift(image, task, scene, T_cell_cam, lamp_pose, row, col, drives, counts)
+    coarse, turn = found.shift_px, found.turn_deg
     (u0, v0, width, height), template, values, vectors, resolved = edged_window(
         task, scene, T_cell_cam, lamp_pose, row, col, image.shape, drives, counts)
     saturated = float(np.mean(image[v0:v0 + height, u0:u0 + width] >= saturation))
@@ -255,15 +363,23 @@ def locate(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, 
                       f"{100 * saturated:.0f} % of the window around the feature saturated")
     if not resolved.any():
         return result((0.0, 0.0), False, 0, np.nan, "the window around the feature has too little edge to align on")
+    smoothed = cv2.GaussianBlur(image, (0, 0), SMOOTH_SIGMA)
+    a0, b0 = int(u0 + coarse[0]), int(v0 + coarse[1])
+    seen = smoothed[max(b0, 0):b0 + height, max(a0, 0):a0 + width]
+    if seen.size == 0 or float(seen.std()) <= TEXTURE * float(noise_rms(seen.mean(), task.camera.sensor)):
+        return result((0.0, 0.0), False, int(resolved.sum()), np.nan,
+                      "the capture shows no edge where the feature should be"
+                      + (f" ({found.note})" if found.note else ""))
     centre = np.array([np.mean(col) - u0, np.mean(row) - v0])      # the feature's, in the window
     M = cv2.getRotationMatrix2D(tuple(centre), turn, 1.0)           # window -> image: turned about it,
     warp = np.column_stack([M[:, :2], M[:, 2] + (u0, v0) + coarse]).astype(np.float32)   # then shifted
     try:
         correlation, warp = cv2.findTransformECC(  # type: ignore[call-overload]  # OpenCV's stubs: no mask None
-            template, cv2.GaussianBlur(image, (0, 0), SMOOTH_SIGMA), warp, cv2.MOTION_EUCLIDEAN, ECC_CRITERIA, None, 1)
-    except cv2.error as err:
+            template, smoothed, warp, cv2.MOTION_EUCLIDEAN, ECC_CRITERIA, None, 1)
+    except cv2.error:       # its text names OpenCV's source file, not the part: said in the cell's words
         return result((0.0, 0.0), False, int(resolved.sum()), np.nan,
-                      f"ECC did not converge: {str(err).strip().splitlines()[-1]}")
+                      "registration did not converge on the feature's edges"
+                      + (f" ({found.note})" if found.note else ""))
     fine = warp[:, :2] @ centre + warp[:, 2] - centre - (u0, v0)    # where the warp moves it
     rotation = float(np.degrees(np.arctan2(warp[1, 0], warp[0, 0])))
     kept = vectors[:, resolved]                     # project onto the resolved directions
