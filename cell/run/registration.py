@@ -71,6 +71,7 @@ EDGE_PX = 20.0              # a resolved direction: this many pixels of edge at 
 RATIO = 0.01                # ... and at least this fraction of the other direction's eigenvalue
 MIN_CORRELATION = 0.95      # ECC's correlation coefficient of a trusted alignment (0.985-0.9998
                             # on the examples' offsets with every effect on; 0.90 on a saturated hinge)
+SIGNIFICANCE = 3.0          # standard errors of the correlation ECC must gain to move the window
 TEXTURE = 2.0               # a window with texture varies more than this x what the sensor's noise gives
 SATURATED_FRACTION = 0.2    # more of the window's pixels at saturation: its shape is unknown there
 ECC_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
@@ -278,6 +279,14 @@ def agreement(target: np.ndarray, view_edges: np.ndarray, shift_px: np.ndarray) 
     return float(np.sum(a * b) / norm) if norm > 0.0 else 0.0
 
 
+def turned_if_significant(peaks: Mapping[float, tuple[float, Any]], pixels: int) -> float:
+    """The turn whose peak is highest, if it beats the unturned one's by more than noise could
+    (significant), else 0: a window that tells turns apart poorly (a filleted block's) does not
+    start ECC 2 deg off."""
+    turn = max(peaks, key=lambda t: peaks[t][0])
+    return turn if 0.0 not in peaks or significant(peaks[turn][0], peaks[0.0][0], pixels) else 0.0
+
+
 def coarse_shift(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: LampPose,
                  row: np.ndarray, col: np.ndarray, drives: Drives = None,
                  counts: Sequence[int] | None = None) -> Coarse:
@@ -295,7 +304,7 @@ def coarse_shift(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.nda
     than the best a frame of pure noise reaches against the same turned templates (seeded, so
     the same each time; the ceiling is scale-free, noise of any rms scores alike) is no match;
     and a move is taken only when the whole view's edges, moved by it, agree with the capture's
-    better than unmoved (agreement). Otherwise the model's place (no shift; the turn that scores
+    better than unmoved (agreement), by more than noise could (significant). Otherwise the model's place (no shift; the turn that scores
     best there when only the whole view refused the move), and why."""
     h, w = image.shape
     size = (round(w / COARSE), round(h / COARSE))
@@ -308,31 +317,54 @@ def coarse_shift(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.nda
     target = gradient(high_pass(small))
     noise = gradient(high_pass(np.random.default_rng(0).standard_normal(small.shape).astype(np.float32)))
     valid = textured(small, target, (width, height), task.camera.sensor)
-    best: tuple[float, tuple[int, int], float] = (-np.inf, (0, 0), 0.0)
-    in_place: tuple[float, float] = (-np.inf, 0.0)          # the best turn at the model's place
+    best: dict[float, tuple[float, tuple[int, int]]] = {}   # per turn: its peak and where
+    in_place: dict[float, float] = {}                        # per turn: its score at the model's place
     ceiling = -np.inf
     for turn in COARSE_TURNS_DEG:               # the turned window's corners have no edge: 0
         turned = cv2.warpAffine(edges, cv2.getRotationMatrix2D(centre, turn, 1.0), (width, height))
         if not turned.any():
             continue
         score = np.nan_to_num(cv2.matchTemplate(target, turned, cv2.TM_CCOEFF_NORMED), nan=-1.0)
-        in_place = max(in_place, (float(score[v0, u0]), turn))
+        in_place[turn] = float(score[v0, u0])
         score = np.where(valid, score, -1.0)
         ceiling = max(ceiling, float(np.nanmax(cv2.matchTemplate(noise, turned, cv2.TM_CCOEFF_NORMED))))
         v, u = np.unravel_index(int(np.argmax(score)), score.shape)
-        if score[v, u] > best[0]:
-            best = (float(score[v, u]), (int(u) - u0, int(v) - v0), turn)
-    score, shift, turn = best[0], COARSE * np.array(best[1], float), best[2]
+        best[turn] = (float(score[v, u]), (int(u) - u0, int(v) - v0))
     if not np.isfinite(ceiling):
-        return Coarse(np.zeros(2), 0.0, score, ceiling, "the model shows no edge around the feature")
+        return Coarse(np.zeros(2), 0.0, -np.inf, ceiling, "the model shows no edge around the feature")
+    turn = turned_if_significant(best, edges.size)
+    score, shift = best[turn][0], COARSE * np.array(best[turn][1], float)
     if score <= ceiling:
         return Coarse(np.zeros(2), 0.0, score, ceiling,
                       f"the capture's edges match the model's nowhere better than pure noise would "
                       f"({score:.2f}, noise reaches {ceiling:.2f})")
-    if shift.any() and agreement(target, view, shift) <= agreement(target, view, np.zeros(2)):
-        return Coarse(np.zeros(2), in_place[1], score, ceiling,
+    if shift.any() and not significant(agreement(target, view, shift), agreement(target, view, np.zeros(2)),
+                                       target.size):
+        return Coarse(np.zeros(2), turned_if_significant({t: (v, (0, 0)) for t, v in in_place.items()}, edges.size),
+                      score, ceiling,
                       f"the whole view does not agree with moving the feature {np.hypot(*shift):.0f} px")
     return Coarse(shift, turn, score, ceiling)
+
+
+def warped_correlation(template: np.ndarray, image: np.ndarray, warp: np.ndarray) -> float:
+    """The correlation coefficient of the template with the image sampled where warp (template ->
+    image, ECC's convention) puts each template pixel: what findTransformECC maximizes."""
+    h, w = template.shape
+    seen = cv2.warpAffine(image, warp, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    a, b = template - template.mean(), seen - seen.mean()
+    norm = float(np.sqrt(np.sum(a * a, dtype=np.float64) * np.sum(b * b, dtype=np.float64)))
+    return float(np.sum(a * b, dtype=np.float64) / norm) if norm > 0.0 else 0.0
+
+
+def significant(correlation: float, start: float, pixels: int) -> bool:
+    """Whether a move's correlation beats the one without it by more than SIGNIFICANCE standard
+    errors of a correlation coefficient r over N independent pixels, (1 - r^2) / sqrt(N) (N: the
+    pixels over the 4 pi sigma^2 a Gaussian of SMOOTH_SIGMA correlates; Sobel's 3 x 3 correlates
+    about as many): a smaller gain noise could give, and a move for it is no finding (a lamp
+    cone's soft edge the model lacks pulled a dome's ECC window 1.1 px and 1.9 deg for a gain of
+    0.001; a shaft's whole view agreed 0.0008 better with a coarse move along its axis)."""
+    n = pixels / (4.0 * np.pi * SMOOTH_SIGMA**2)
+    return correlation - start > SIGNIFICANCE * (1.0 - start * start) / np.sqrt(n)
 
 
 def locate(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: LampPose,
@@ -373,6 +405,7 @@ def locate(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, 
     centre = np.array([np.mean(col) - u0, np.mean(row) - v0])      # the feature's, in the window
     M = cv2.getRotationMatrix2D(tuple(centre), turn, 1.0)           # window -> image: turned about it,
     warp = np.column_stack([M[:, :2], M[:, 2] + (u0, v0) + coarse]).astype(np.float32)   # then shifted
+    initial = warp.copy()
     try:
         correlation, warp = cv2.findTransformECC(  # type: ignore[call-overload]  # OpenCV's stubs: no mask None
             template, smoothed, warp, cv2.MOTION_EUCLIDEAN, ECC_CRITERIA, None, 1)
@@ -380,6 +413,9 @@ def locate(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, 
         return result((0.0, 0.0), False, int(resolved.sum()), np.nan,
                       "registration did not converge on the feature's edges"
                       + (f" ({found.note})" if found.note else ""))
+    at_start = warped_correlation(template, smoothed, initial)
+    if not significant(correlation, at_start, template.size):
+        warp, correlation = initial, at_start         # ECC's move gains what noise could: not taken
     fine = warp[:, :2] @ centre + warp[:, 2] - centre - (u0, v0)    # where the warp moves it
     rotation = float(np.degrees(np.arctan2(warp[1, 0], warp[0, 0])))
     kept = vectors[:, resolved]                     # project onto the resolved directions
