@@ -1,6 +1,7 @@
 """`cell check TASK`: load a task and everything it references, lay the feature patch onto the
 surface as the planner does (so a patch over an edge is refused here too), print a summary in the
-units people read, each coordinate with the frame it is in. A task whose cell.backend is hw is
+units people read, each coordinate with the frame it is in, and warn of triangles wound against
+their neighbours (cell.task.winding), with where they are. A task whose cell.backend is hw is
 refused here as `cell run` would refuse it (cell.task.device_config.for_hw)."""
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import numpy as np
 
 from cell.cli import backend_of
 from cell.task.loader import load_task
+from cell.task.winding import flipped_faces
 
 if TYPE_CHECKING:
     from cell.planning.scene import Scene
@@ -106,6 +108,10 @@ def command(args: argparse.Namespace) -> int:
     task = load_task(args.task)
     backend_of(task, None)                      # a task for the real cell names what it connects to
     print(summarize(task))
+    flipped = flipped_faces(task.part.mesh)
+    if len(flipped):
+        print(f"warning      the mesh has {len(flipped)} triangles wound against their neighbours (flipped): "
+              f"{flipped.where()}; the planner sees them from behind: fix the mesh's winding")
     for i, f in enumerate(task.features):
         label = "patch" if len(task.features) == 1 else f"patch {f.name}"
         print(patch_line(task, build_scene(task.with_feature(i)), label))

@@ -16,6 +16,7 @@ from typing import Callable
 from typing import TYPE_CHECKING
 
 import numpy as np
+import trimesh
 from numpy.typing import ArrayLike
 
 from cell.core import geometry
@@ -23,10 +24,13 @@ from cell.core.numbers import number
 from cell.physics import projection
 from cell.planning import regions
 from cell.physics import brdf, costs, depth_of_field as dof
+from cell.task import winding
 
 if TYPE_CHECKING:
     from cell.planning.evaluate import Candidates, Problem
     from cell.planning.plan import Maps
+
+ON_SURFACE_M = 1e-5     # a sample this close to a triangle lies on it (Warp's closest points: float32)
 
 
 @dataclass(frozen=True)
@@ -219,8 +223,29 @@ def camera_view(p: Problem, c: Candidates) -> np.ndarray:
 
 def explain_camera_view(p: Problem, c: Candidates, met: bool) -> str:
     n = len(p.scene.points)
-    return (f"the camera sees all {n} feature samples" if met else
-            f"the camera cannot see {p.camera_unseen} of {n} feature samples; change the view direction")
+    if met:
+        return f"the camera sees all {n} feature samples"
+    fact = f"the camera cannot see {p.camera_unseen} of {n} feature samples"
+    on_flipped, flipped = on_flipped_faces(p)
+    if on_flipped:
+        return (f"{fact}: {on_flipped} lie on triangles wound against their neighbours (the mesh's winding is "
+                f"flipped there, {flipped.where()}), so their surface faces away from the camera; "
+                f"fix the mesh's winding")
+    return f"{fact}; change the view direction"
+
+
+def on_flipped_faces(p: Problem) -> tuple[int, winding.Flipped]:
+    """(how many feature samples lie on the part's flipped triangles, cell.task.winding's Flipped of
+    the part mesh): a sample within ON_SURFACE_M of one, in the part frame."""
+    flipped = winding.flipped_faces(p.task.part.mesh)
+    if not len(flipped):
+        return 0, flipped
+    points = geometry.apply(np.linalg.inv(p.task.frames.T_cell_part), p.scene.points)
+    triangles = p.task.part.mesh.triangles[flipped.faces]
+    closest = trimesh.triangles.closest_point(np.repeat(triangles, len(points), axis=0),
+                                              np.tile(points, (len(triangles), 1)))
+    distance = np.linalg.norm(closest - np.tile(points, (len(triangles), 1)), axis=1).reshape(len(triangles), -1)
+    return int(np.sum(distance.min(axis=0) <= ON_SURFACE_M)), flipped
 
 
 def view_angle(p: Problem, c: Candidates) -> np.ndarray:
