@@ -263,8 +263,8 @@ FAR_PARTS = {
 
 def captured(tmp_path, name, effects, truth=None):
     """(task, scene as modelled, lamp pose, the feature's pixels by the model, the simulator's
-    capture): a lamp 0.35 m from the feature (its cone 74 mm wide there), 17 deg off the camera's axis, the exposure putting
-    the brightest percent of the part at 150 gray."""
+    capture): a lamp 0.35 m from the feature (its cone 74 mm wide there), 17 deg off the camera's
+    axis, the exposure putting the brightest percent of the part at 150 gray."""
     path, changes = FAR_PARTS[name]
     task = load_task(variant(tmp_path, path, changes | {"sim.effects": effects} | (truth or {})))
     scene = build_scene(task)
@@ -402,3 +402,24 @@ def test_a_shot_not_registered_is_never_in_band_and_no_library_text_reaches_the_
     for text in (terminal.out, terminal.err, (out / "log.jsonl").read_text(), (out / "report.json").read_text()):
         assert "OpenCV" not in text and "ecc.cpp" not in text
     assert "not registered: not judged in band 110-150" in terminal.err
+
+
+def test_on_a_plate_filling_the_frame_there_is_nothing_to_register_unless_the_capture_shows_an_edge(tmp_path):
+    """tasks/ring.yaml's plate fills the frame: neither the model nor the capture has an edge
+    around the feature, so an offset would change no pixel there; registration says so, trusts the
+    model's region and moves nothing (resolved 0). The same capture with a 30-gray step across the
+    feature (an edge the model has none of) is not registered."""
+    task = load_task(variant(tmp_path, RING, {"sim.effects": ["shadows", "quantization"]}))
+    scene = build_scene(task)
+    row, col, inside = measurement.sample_pixels(task, scene.T_cell_cam, scene.points)
+    lamp_at = scene.center + np.array([0.05, 0.0, 0.18])
+    lamp = (lamp_at, geometry.unit(scene.center - lamp_at))
+    w, h = task.camera.sensor.width_px, task.camera.sensor.height_px
+    model = registration.expected_image(task, scene, scene.T_cell_cam, lamp, (0, 0, w, h))
+    image = Renderer(task, scene)(scene.T_cell_cam, lamp[0], lamp[1], 100.0 / float(model.max()), 1.0)
+    found = registration.locate(image, task, scene, scene.T_cell_cam, lamp, row[inside], col[inside], 255.0)
+    assert found.trusted and found.resolved == 0 and found.shift_px == (0.0, 0.0)
+    assert found.describe().startswith("neither the model nor the capture shows an edge around the feature")
+    stepped = np.asarray(image, float) + 30.0 * (np.arange(w) >= int(np.mean(col[inside])))[None, :]
+    found = registration.locate(stepped, task, scene, scene.T_cell_cam, lamp, row[inside], col[inside], 255.0)
+    assert not found.trusted and found.note == "the capture shows edges around the feature where the model has none"

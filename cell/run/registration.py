@@ -81,7 +81,8 @@ ECC_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
 class Registration:
     """The feature's shift in the capture from where the model puts it, (dx, dy) px (image x
     right, y down; 0 in a direction not resolved and in all when not trusted), the pixel's
-    footprint at the feature [m], whether it is trusted and why (note), the directions resolved,
+    footprint at the feature [m], whether it is trusted and why (note), the directions resolved
+    (none when trusted: neither the model nor the capture has an edge around the feature),
     ECC's correlation and the time it took."""
 
     shift_px: tuple[float, float]
@@ -106,6 +107,8 @@ class Registration:
         """The log's sentence."""
         if not self.trusted:
             return f"not registered ({self.note}): the model's region is measured"
+        if not self.resolved:
+            return f"{self.note}: the model's region is measured"
         dx, dy = self.shift_px
         return (f"feature found {self.offset_px:.1f} px ({1e3 * self.offset_m:.2f} mm) from where the model puts "
                 f"it (dx {dx:+.1f}, dy {dy:+.1f} px, turned {self.rotation_deg:+.2f} deg; correlation "
@@ -221,13 +224,16 @@ class Coarse:
     """The coarse step's answer: the feature centre's shift (dx, dy) [px] and the image's turn
     [deg] it starts ECC from, the best peak among textured windows, the best a frame of pure
     noise reaches against the same template (the ceiling a match must clear), and why it did not
-    move (empty when it did, or had no reason to)."""
+    move (empty when it did, or had no reason to). `flat`: True when neither the model nor the
+    capture shows an edge around the feature (nothing to register, and nothing an offset would
+    change there), False when the capture shows edges the model has none of, None otherwise."""
 
     shift_px: np.ndarray
     turn_deg: float
     score: float
     noise_ceiling: float
     note: str = ""
+    flat: bool | None = None
 
 
 def noise_rms(gray: ArrayLike, sensor: Sensor) -> np.ndarray:
@@ -273,10 +279,14 @@ def agreement(target: np.ndarray, view_edges: np.ndarray, shift_px: np.ndarray) 
     """The correlation coefficient of the coarse capture's edges with the whole view's expected
     edges moved by shift_px (full-resolution pixels)."""
     M = np.float32([[1, 0, shift_px[0] / COARSE], [0, 1, shift_px[1] / COARSE]])
-    moved = cv2.warpAffine(view_edges, M, (view_edges.shape[1], view_edges.shape[0]))
-    a, b = target - target.mean(), moved - moved.mean()
-    norm = float(np.sqrt(np.sum(a * a) * np.sum(b * b)))
-    return float(np.sum(a * b) / norm) if norm > 0.0 else 0.0
+    return correlation_coefficient(target, cv2.warpAffine(view_edges, M, (view_edges.shape[1], view_edges.shape[0])))
+
+
+def correlation_coefficient(a: np.ndarray, b: np.ndarray) -> float:
+    """Pearson's r of two images of one shape over their pixels (0 when either is flat)."""
+    a, b = a - a.mean(dtype=np.float64), b - b.mean(dtype=np.float64)
+    norm = float(np.sqrt(np.sum(a * a, dtype=np.float64) * np.sum(b * b, dtype=np.float64)))
+    return float(np.sum(a * b, dtype=np.float64) / norm) if norm > 0.0 else 0.0
 
 
 def turned_if_significant(peaks: Mapping[float, tuple[float, Any]], pixels: int) -> float:
@@ -304,19 +314,29 @@ def coarse_shift(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.nda
     than the best a frame of pure noise reaches against the same turned templates (seeded, so
     the same each time; the ceiling is scale-free, noise of any rms scores alike) is no match;
     and a move is taken only when the whole view's edges, moved by it, agree with the capture's
-    better than unmoved (agreement), by more than noise could (significant). Otherwise the model's place (no shift; the turn that scores
-    best there when only the whole view refused the move), and why."""
+    better than unmoved (agreement), by more than noise could (significant). Otherwise the
+    model's place (no shift; the turn that scores best there when only the whole view refused
+    the move), and why."""
     h, w = image.shape
     size = (round(w / COARSE), round(h / COARSE))
     small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
-    view = gradient(high_pass(expected_image(task, scene, T_cell_cam, lamp_pose, (0, 0, *size), COARSE, drives,
-                                             counts)))
+    expected = expected_image(task, scene, T_cell_cam, lamp_pose, (0, 0, *size), COARSE, drives, counts)
+    view = gradient(high_pass(expected))
     u0, v0, width, height = feature_window(row // COARSE, col // COARSE, small.shape, COARSE_MARGIN_PX // COARSE)
     edges = view[v0:v0 + height, u0:u0 + width]
     centre = (float(np.mean(col) / COARSE - u0), float(np.mean(row) / COARSE - v0))
     target = gradient(high_pass(small))
     noise = gradient(high_pass(np.random.default_rng(0).standard_normal(small.shape).astype(np.float32)))
     valid = textured(small, target, (width, height), task.camera.sensor)
+    seen, modelled = small[v0:v0 + height, u0:u0 + width], expected[v0:v0 + height, u0:u0 + width]
+    gain = float(np.sum(seen * modelled, dtype=np.float64) / max(np.sum(np.square(modelled, dtype=np.float64)), 1e-300))
+    if gain * float(edges.std()) <= TEXTURE * float(noise_rms(seen.mean(), task.camera.sensor)) / COARSE \
+            * edge_noise_gain():            # the model, in the capture's gray, has no edge there
+        if valid[v0, u0]:
+            return Coarse(np.zeros(2), 0.0, -np.inf, -np.inf,
+                          "the capture shows edges around the feature where the model has none", flat=False)
+        return Coarse(np.zeros(2), 0.0, -np.inf, -np.inf, "neither the model nor the capture shows an edge around "
+                      "the feature: nothing to register, and an offset would change nothing there", flat=True)
     best: dict[float, tuple[float, tuple[int, int]]] = {}   # per turn: its peak and where
     in_place: dict[float, float] = {}                        # per turn: its score at the model's place
     ceiling = -np.inf
@@ -330,8 +350,6 @@ def coarse_shift(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.nda
         ceiling = max(ceiling, float(np.nanmax(cv2.matchTemplate(noise, turned, cv2.TM_CCOEFF_NORMED))))
         v, u = np.unravel_index(int(np.argmax(score)), score.shape)
         best[turn] = (float(score[v, u]), (int(u) - u0, int(v) - v0))
-    if not np.isfinite(ceiling):
-        return Coarse(np.zeros(2), 0.0, -np.inf, ceiling, "the model shows no edge around the feature")
     turn = turned_if_significant(best, edges.size)
     score, shift = best[turn][0], COARSE * np.array(best[turn][1], float)
     if score <= ceiling:
@@ -350,10 +368,8 @@ def warped_correlation(template: np.ndarray, image: np.ndarray, warp: np.ndarray
     """The correlation coefficient of the template with the image sampled where warp (template ->
     image, ECC's convention) puts each template pixel: what findTransformECC maximizes."""
     h, w = template.shape
-    seen = cv2.warpAffine(image, warp, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
-    a, b = template - template.mean(), seen - seen.mean()
-    norm = float(np.sqrt(np.sum(a * a, dtype=np.float64) * np.sum(b * b, dtype=np.float64)))
-    return float(np.sum(a * b, dtype=np.float64) / norm) if norm > 0.0 else 0.0
+    return correlation_coefficient(template, cv2.warpAffine(image, warp, (w, h),
+                                                            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP))
 
 
 def significant(correlation: float, start: float, pixels: int) -> bool:
@@ -386,6 +402,8 @@ def locate(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, 
 
     counts = lights.emitter_counts(task, scene, scene.T_cell_cam)
     found = coarse_shift(image, task, scene, T_cell_cam, lamp_pose, row, col, drives, counts)
+    if found.flat is not None:      # no edge around the feature in the model: registered as is, or not at all
+        return result((0.0, 0.0), found.flat, 0, np.nan, found.note)
     coarse, turn = found.shift_px, found.turn_deg
     (u0, v0, width, height), template, values, vectors, resolved = edged_window(
         task, scene, T_cell_cam, lamp_pose, row, col, image.shape, drives, counts)
