@@ -278,7 +278,7 @@ def textured(small: np.ndarray, target: np.ndarray, size: tuple[int, int], senso
 def agreement(target: np.ndarray, view_edges: np.ndarray, shift_px: np.ndarray) -> float:
     """The correlation coefficient of the coarse capture's edges with the whole view's expected
     edges moved by shift_px (full-resolution pixels)."""
-    M = np.float32([[1, 0, shift_px[0] / COARSE], [0, 1, shift_px[1] / COARSE]])
+    M = np.array([[1, 0, shift_px[0] / COARSE], [0, 1, shift_px[1] / COARSE]], np.float32)
     return correlation_coefficient(target, cv2.warpAffine(view_edges, M, (view_edges.shape[1], view_edges.shape[0])))
 
 
@@ -326,7 +326,7 @@ def coarse_shift(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.nda
     edges = view[v0:v0 + height, u0:u0 + width]
     centre = (float(np.mean(col) / COARSE - u0), float(np.mean(row) / COARSE - v0))
     target = gradient(high_pass(small))
-    noise = gradient(high_pass(np.random.default_rng(0).standard_normal(small.shape).astype(np.float32)))
+    noise = gradient(high_pass(np.asarray(np.random.default_rng(0).standard_normal(small.shape), np.float32)))
     valid = textured(small, target, (width, height), task.camera.sensor)
     seen, modelled = small[v0:v0 + height, u0:u0 + width], expected[v0:v0 + height, u0:u0 + width]
     gain = float(np.sum(seen * modelled, dtype=np.float64) / max(np.sum(np.square(modelled, dtype=np.float64)), 1e-300))
@@ -344,12 +344,12 @@ def coarse_shift(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.nda
         turned = cv2.warpAffine(edges, cv2.getRotationMatrix2D(centre, turn, 1.0), (width, height))
         if not turned.any():
             continue
-        score = np.nan_to_num(cv2.matchTemplate(target, turned, cv2.TM_CCOEFF_NORMED), nan=-1.0)
-        in_place[turn] = float(score[v0, u0])
-        score = np.where(valid, score, -1.0)
+        scores = np.nan_to_num(cv2.matchTemplate(target, turned, cv2.TM_CCOEFF_NORMED), nan=-1.0)
+        in_place[turn] = float(scores[v0, u0])
+        scores = np.where(valid, scores, -1.0)
         ceiling = max(ceiling, float(np.nanmax(cv2.matchTemplate(noise, turned, cv2.TM_CCOEFF_NORMED))))
-        v, u = np.unravel_index(int(np.argmax(score)), score.shape)
-        best[turn] = (float(score[v, u]), (int(u) - u0, int(v) - v0))
+        v, u = np.unravel_index(int(np.argmax(scores)), scores.shape)
+        best[turn] = (float(scores[v, u]), (int(u) - u0, int(v) - v0))
     turn = turned_if_significant(best, edges.size)
     score, shift = best[turn][0], COARSE * np.array(best[turn][1], float)
     if score <= ceiling:
