@@ -393,18 +393,13 @@ def step(ctx: RunContext, aim: Aim, k: int) -> Generator[Event, None, Aim | None
     yield from (m.iteration for m in measured)
     aim = replace(aim, shutter_s=capture.shutter_s, moved=True)
     for feature, m in zip(aim.features, measured):
-        far = registration.beyond_limit(m.iteration.registration, registration_limit(feature.task,
-                                                                                     feature.model.plan.shot))
-        if far:
+        found = m.iteration.registration
+        why = registration.beyond_limit(found, registration_limit(feature.task, feature.model.plan.shot)) or (
+            registration.not_registered(found) if not found["trusted"]
+            and m.measurement.in_band(feature.task.requirements.gray_band) else None)
+        if why:
             name = aim.label(feature)
-            reason = f"{name}: {far}" if name else far
-            yield Corrected(k, {"action": "stop", "albedo_scale": aim.albedo_scale, "reason": reason,
-                                "cause": "registration"})
-            raise GoalNotReached(reason, "registration")
-    for feature, m in zip(aim.features, measured):
-        if not m.iteration.registration["trusted"] and m.measurement.in_band(feature.task.requirements.gray_band):
-            name = aim.label(feature)
-            reason = f"{name}: " * bool(name) + registration.not_registered(m.iteration.registration)
+            reason = f"{name}: {why}" if name else why
             yield Corrected(k, {"action": "stop", "albedo_scale": aim.albedo_scale, "reason": reason,
                                 "cause": "registration"})
             raise GoalNotReached(reason, "registration")

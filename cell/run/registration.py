@@ -432,11 +432,14 @@ def locate(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, 
                       "registration did not converge on the feature's edges"
                       + (f" ({found.note})" if found.note else ""))
     at_start = warped_correlation(template, smoothed, initial)
-    if not significant(correlation, at_start, template.size):
-        warp, correlation = initial, at_start         # ECC's move gains what noise could: not taken
+    kept = vectors[:, resolved]                     # project onto the resolved directions
+    wandered = float(np.max(np.abs(kept.T @ (warp[:, :2] @ centre + warp[:, 2] - centre - (u0, v0) - coarse))))
+    kept_coarse = wandered > COARSE and not found.note
+    if kept_coarse or not significant(correlation, at_start, template.size):
+        warp, correlation = initial, at_start         # ECC's move gains what noise could, or it left a
+                                                      # coarse match that cleared noise and the whole view
     fine = warp[:, :2] @ centre + warp[:, 2] - centre - (u0, v0)    # where the warp moves it
     rotation = float(np.degrees(np.arctan2(warp[1, 0], warp[0, 0])))
-    kept = vectors[:, resolved]                     # project onto the resolved directions
     shift, from_coarse = kept @ (kept.T @ fine), kept.T @ (fine - coarse)
     if correlation < MIN_CORRELATION:
         return result((0.0, 0.0), False, int(resolved.sum()), correlation,
@@ -447,7 +450,10 @@ def locate(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, 
     if abs(rotation + turn) > TURN_STEP_DEG:        # the coarse turn of the window is -rotation's
         return result((0.0, 0.0), False, int(resolved.sum()), correlation,
                       f"ECC turned {rotation:+.1f} deg, the coarse estimate {-turn:+.0f} deg")
-    note = "" if resolved.all() else (
-        f"resolved across the window's edges only (along {np.degrees(np.arctan2(*vectors[::-1, 0])) % 180:.0f} deg "
-        f"in the image it has none: that component is the model's)")
-    return result(shift, True, int(resolved.sum()), correlation, note, rotation)
+    notes = [f"ECC wandered {wandered:.0f} px off the coarse match, which is kept (to within {COARSE // 2} px)"
+             ] * kept_coarse
+    if not resolved.all():
+        notes.append(f"resolved across the window's edges only (along "
+                     f"{np.degrees(np.arctan2(*vectors[::-1, 0])) % 180:.0f} deg in the image it has none: that "
+                     f"component is the model's)")
+    return result(shift, True, int(resolved.sum()), correlation, "; ".join(notes), rotation)
