@@ -31,8 +31,11 @@ the other: along the conrod's shank (two parallel edges) only the shift across i
 the one along it stays the model's. A capture whose feature cannot be registered (no direction
 resolved, more than SATURATED_FRACTION of the window saturated, no texture in the capture where
 the window lands, ECC not converging, a correlation below MIN_CORRELATION, ECC wandering more
-than COARSE pixels or TURN_STEP_DEG from the coarse estimate) keeps the model's region and says
-so in the cell's words (never OpenCV's text); the loop never reports such a shot in band."""
+than COARSE pixels or TURN_STEP_DEG from a coarse start that matched nothing; from a coarse
+match, wandering keeps the match) keeps the model's region and says so in the cell's words (never
+OpenCV's text); the loop never reports such a shot in band. Neither the model nor the capture
+showing an edge around the feature (a plate filling the frame) is nothing to register: the
+model's region, trusted."""
 from __future__ import annotations
 
 import time
