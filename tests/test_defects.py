@@ -257,3 +257,96 @@ def test_the_example_plan_gives_each_defect_s_predicted_cnr(tmp_path):
     assert cnr["met"] == all(d["met"] for d in doc["defects"])
     for d in doc["defects"]:
         assert d["met"] == (d["predicted_cnr"] >= d["min_cnr"]) and d["predicted_cnr"] > 0
+
+
+# --- the capture's measured CNR (cell.run.defects) on the simulated plate ----------------------------
+
+@pytest.fixture(scope="module")
+def coarse_plate():
+    """test_sim_world's Lambertian plate (rho 0.3) seen by a sensor of 258 x 194 pixels of 18.6 um
+    (0.37 mm on the plate), its feature of radius 5 mm at (15, 0, 0) mm; lit from +x at 45 deg;
+    the defects of test_sim_world.PLATE_DEFECTS (a groove 1 mm wide and 0.1 mm deep, a dent of
+    radius 2 mm and depth 0.2 mm, a disk of radius 2 mm of rho 0.6)."""
+    import test_sim_world as world_tests
+    task, _ = world_tests.plate_world(load_task(TASKS / "hinge.yaml"))
+    sensor = replace(task.camera.sensor, width_px=258, height_px=194, pixel_pitch_m=4 * task.camera.sensor.pixel_pitch_m)
+    task = replace(task, camera=replace(task.camera, sensor=sensor))
+    return task, build_scene(task), world_tests
+
+
+def capture(coarse_plate, defect, effects, seed=3, orientation_deg=None):
+    """(image at gray ~92 on the plate, its black level, the plain plate's noiseless gray less the
+    black level at the defect's position) with `defect` on the feature."""
+    from cell.core import geometry
+    from sim.world import Renderer
+    task, scene, w = coarse_plate
+    task = replace(task, features=(replace(task.feature, defects=(defect,)),),
+                   lamp=replace(task.lamp, cone_angle_rad=np.radians(30.0), profile=None))
+    aim = geometry.unit(scene.center - w.SIDE_LAMP)
+    plain = Renderer(w.with_sim(task, ()), scene)(scene.T_cell_cam, w.SIDE_LAMP, aim, 1.0, 4.0)
+    shutter = 100.0 / plain.max()
+    truth = {} if orientation_deg is None else {"defect_orientation_rad": ((defect.name, np.radians(orientation_deg)),)}
+    renderer = Renderer(w.with_sim(task, effects, seed, **truth), scene)
+    image = renderer(scene.T_cell_cam, w.SIDE_LAMP, aim, shutter, 4.0)
+    row, col = w.pixel(renderer, scene, defect.position_m)
+    return task, scene, image, renderer.sensor.black_level, shutter * plain[row, col]
+
+
+def worked_cnr(signal, ratios, black):
+    """The larger CNR of the defect's parts whose gray is the surface's signal times each ratio,
+    by EMVA 1288 with the simulator's K = 255 / 10 000 e-, sigma_d = 10 e-."""
+    K = 255 / FULL_WELL_E
+    return max(float(contrast.cnr(black + signal, black + signal * r, black, K, READ_NOISE_E)) for r in ratios)
+
+
+NOISE = ("noise", "black_level", "quantization")
+
+BETA = np.arctan(2 * 1e-4 / 1e-3)
+
+
+@pytest.mark.parametrize("kind, orientation_deg", [("scratch", 90.0), ("scratch", 30.0), ("dent", None),
+                                                   ("coating", None)])
+def test_the_measured_cnr_is_the_worked_one_within_the_noise_of_its_means(coarse_plate, kind, orientation_deg):
+    """Light at ti = 45 deg from +x, R = rho cos ti: a wall of a groove along theta turns the normal
+    by +-beta about it, its gray is the surface's times cos(beta) -+ sin(beta) sin(theta) (s's x
+    part against the wall's tilt across the groove); the dent's rim, at its rim pixels' mean
+    radius r (the outer 2 footprints), leans by t = asin(r / R): cos t +- sin t toward and from the
+    lamp; the coating doubles rho. The measurement averages n defect and m good pixels, so it
+    scatters by sqrt(1/n + 1/m) / sqrt(2) in CNR units: within 4 of that, and 3 % for the gray's
+    change over the part (the lamp's distance and angle across it, the dent's sector of
+    2 pi / S)."""
+    from cell.run import defects as measured
+    defect = coarse_plate[2].PLATE_DEFECTS[kind]       # 1 mm off the feature's centre
+    task, scene, image, black, signal = capture(coarse_plate, defect, NOISE + ("defects",),
+                                                orientation_deg=orientation_deg)
+    (m,) = measured.measure(image, task, scene, scene.T_cell_cam, (0.0, 0.0), black, {defect.name: 4.0})
+    if kind == "scratch":
+        across = np.sin(np.radians(orientation_deg))
+        ratios = [np.cos(BETA) + sign * np.sin(BETA) * across for sign in (1, -1)]
+        assert abs(np.angle(np.exp(2j * (m.orientation_rad - np.radians(orientation_deg))))) < np.radians(3.0)
+    elif kind == "dent":
+        a, h, fp = 2e-3, 2e-4, 0.37e-3 * (scene.T_cell_cam[2, 3] / 0.5)
+        r0 = a - measured.RIM_PX * fp
+        r = 2 / 3 * (a**3 - r0**3) / (a**2 - r0**2)
+        t = np.arcsin(r / ((a**2 + h**2) / (2 * h)))
+        ratios = [np.cos(t) + np.sin(t), np.cos(t) - np.sin(t)]
+    else:
+        ratios = [2.0]
+    expected = worked_cnr(signal, ratios, black)
+    scatter = np.sqrt(1 / m.pixels + 1 / m.neighbours) / np.sqrt(2)
+    assert m.pixels >= (measured.SECTOR_PIXELS if kind == "dent" else 20) and m.neighbours >= 50
+    assert m.predicted_cnr == 4.0
+    assert m.measured_cnr == pytest.approx(expected, abs=4 * scatter + 0.03 * expected)
+
+
+@pytest.mark.parametrize("kind", ["scratch", "dent", "coating"])
+def test_without_the_defects_effect_the_measured_cnr_is_noise(coarse_plate, kind):
+    """The same plate and defect, the effect off: the defect's parts differ from their neighbours
+    by the noise of their means alone; the best of the scratch's orientations and walls or the
+    dent's sectors stays within 5 times that scatter, far below what the effect shows (above 4)."""
+    from cell.run import defects as measured
+    defect = coarse_plate[2].PLATE_DEFECTS[kind]       # 1 mm off the feature's centre
+    task, scene, image, black, _ = capture(coarse_plate, defect, NOISE)
+    (m,) = measured.measure(image, task, scene, scene.T_cell_cam, (0.0, 0.0), black, {})
+    scatter = np.sqrt(1 / m.pixels + 1 / m.neighbours) / np.sqrt(2)
+    assert m.measured_cnr < 5 * scatter < 1.5

@@ -56,6 +56,10 @@ def plans(hinge):
 
 @pytest.fixture(scope="module")
 def plate(hinge):
+    return plate_world(hinge)
+
+
+def plate_world(hinge):
     """A diffuse (rho 0.3) 160 mm plate, top face z = 0, filling the view (96 x 72 mm) of the
     hinge's camera 0.5 m straight above x = 15 mm, with an 8 mm cube standing on it at x = -15 mm."""
     mesh = trimesh.util.concatenate([box((0.16, 0.16, 0.002), (0.0, 0.0, -0.001)),
