@@ -350,3 +350,21 @@ def test_without_the_defects_effect_the_measured_cnr_is_noise(coarse_plate, kind
     (m,) = measured.measure(image, task, scene, scene.T_cell_cam, (0.0, 0.0), black, {})
     scatter = np.sqrt(1 / m.pixels + 1 / m.neighbours) / np.sqrt(2)
     assert m.measured_cnr < 5 * scatter < 1.5
+
+
+def test_the_truth_s_scratch_orientations_load_in_radians_and_name_only_declared_scratches(tmp_path):
+    doc = yaml.safe_load(task_file(tmp_path, [SCRATCH, DENT]).read_text())
+    doc["sim"] = {"effects": ["defects"], "truth": {"defect_orientation_deg": {"fine": 30}}}
+    path = tmp_path / "truth.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    task = load_task(path)
+    assert "defects" in task.sim.effects
+    assert dict(task.sim.truth.defect_orientation_rad) == {"fine": pytest.approx(np.radians(30.0))}
+    for angles, key, expected in (({"ding": 30}, "sim.truth.defect_orientation_deg.ding", "the name of a scratch"),
+                                  ({"fine": 400}, "sim.truth.defect_orientation_deg", "within [-360, 360] deg"),
+                                  ([30], "sim.truth.defect_orientation_deg", "a mapping of scratch names to angles")):
+        doc["sim"]["truth"]["defect_orientation_deg"] = angles
+        path.write_text(yaml.safe_dump(doc))
+        with pytest.raises(TaskError) as err:
+            load_task(path)
+        assert err.value.key == key and expected in str(err.value)

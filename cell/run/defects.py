@@ -96,8 +96,8 @@ def _pixels(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray,
     h, w = np.shape(image)[:2]
     lo = np.clip(np.floor(np.nanmin(uv, axis=0)) - 2, 0, [w - 1, h - 1]).astype(int)
     hi = np.clip(np.ceil(np.nanmax(uv, axis=0)) + 2, 0, [w - 1, h - 1]).astype(int)
-    u, v = np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1))
-    u, v = u.ravel(), v.ravel()
+    grid_u, grid_v = np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1))
+    u, v = grid_u.ravel(), grid_v.ravel()
     model = np.column_stack([u - shift_px[0], v - shift_px[1], np.ones(len(u))])
     rays = geometry.rotate(T_cell_cam, model @ np.linalg.inv(K).T)
     origin = T_cell_cam[:3, 3]

@@ -82,7 +82,7 @@ class DefectAngles(Spec):
     """`sim.truth.defect_orientation_deg`: {a scratch's name: its orientation in the world}, each
     an angle within [-360, 360] deg (which scratch each name is, _truth checks)."""
 
-    expected = "a mapping of scratch names to angles, e.g. {fine: 30}"
+    expected = "a mapping of scratch names to angles within [-360, 360] deg, e.g. {fine: 30}"
     default: dict[str, float] = {}
 
     def convert(self, raw: Any, to_si: ToSI) -> dict[str, float]:
