@@ -11,9 +11,8 @@ at an offset that contrast.footprint sorts: on the defect, or its good neighbour
 between GUARD_PX and GUARD_PX + BAND_PX pixel footprints beyond its edge (beside a scratch's
 groove, around a disk), within the feature and clear of the other defects. Per part, as the
 planner judges it (cell.planning.defects): a scratch's two walls (the larger CNR), a dent's rim
-(the outer RIM_PX footprints) in the planner's azimuth sectors (the largest: the field's steepest
-tilts; the planner's azimuths, fewer where the rim has under SECTOR_PIXELS pixels per sector),
-a coating's disk. A scratch's orientation is not declared, only its range: it is found
+(its outer RIM_PX footprint: the steepest tilts) at its best azimuth (_rim: its gray a Fourier
+series in the azimuth), a coating's disk. A scratch's orientation is not declared, only its range: it is found
 as the one whose walls show the largest CNR, every pixel footprint at the feature's edge
 (at most MAX_ORIENTATIONS over the range).
 
@@ -39,9 +38,10 @@ if TYPE_CHECKING:
 
 GUARD_PX = 1.5          # neighbours start this many pixel footprints beyond the defect's edge
 BAND_PX = 4.0           # and span this many
-RIM_PX = 2.0            # a dent's rim: its outer pixel footprints
+RIM_PX = 1.0            # a dent's rim: its outer pixel footprint (its contrast grows fastest there)
 MIN_PIXELS = 4          # a part or neighbourhood with fewer is not measured
-SECTOR_PIXELS = 8       # a dent's rim in sectors of about this many pixels (at most the planner's azimuths)
+RIM_ORDER = 6           # a dent's rim gray: a Fourier series in azimuth to this order
+RIM_PIXELS = 4          # with at least this many rim pixels per coefficient
 MAX_ORIENTATIONS = 720
 
 
@@ -197,23 +197,14 @@ def _cnr(d: Defect, px: _Pixels, usable: np.ndarray, theta: float, at: np.ndarra
     part, outside = _outside(d, px.xy, theta, at, radius)
     fp = px.footprint_m
     good = usable & (outside >= GUARD_PX * fp) & (outside <= (GUARD_PX + BAND_PX) * fp)
-    if good.sum() < MIN_PIXELS:
-        return None
     on = usable & (part > 0)
-    if d.kind == "scratch":
-        groups = [on & (part == 1), on & (part == 2)]
-    elif d.kind == "dent":
-        rim = on & (outside >= -RIM_PX * fp)
-        sectors = int(np.clip(rim.sum() // SECTOR_PIXELS, 1, planned.JUDGED.azimuths))
-        offset = px.xy - at
-        psi = np.mod(np.arctan2(offset[:, 1], offset[:, 0]) + np.pi / sectors, 2 * np.pi)   # centred on 2 pi k / S
-        sector = np.floor(psi / (2 * np.pi) * sectors)
-        groups = [rim & (sector == k) for k in range(sectors)]
-    else:
-        groups = [on]
+    if good.sum() < MIN_PIXELS or on.sum() < MIN_PIXELS:
+        return None
     plane = np.linalg.lstsq(np.column_stack([np.ones(int(good.sum())), px.xy[good]]), px.gray[good], rcond=None)[0]
+    if d.kind == "dent":
+        return _rim(px, on & (outside >= -RIM_PX * fp), at, plane, int(good.sum()), noise)
     best = None
-    for group in groups:
+    for group in ([on & (part == 1), on & (part == 2)] if d.kind == "scratch" else [on]):
         if group.sum() >= MIN_PIXELS:
             b = float(np.mean(px.gray[group]))
             g = float(plane @ np.concatenate([[1.0], px.xy[group].mean(axis=0)]))
@@ -221,3 +212,30 @@ def _cnr(d: Defect, px: _Pixels, usable: np.ndarray, theta: float, at: np.ndarra
             if best is None or value > best[0]:
                 best = (value, g, b, int(group.sum()), int(good.sum()))
     return best
+
+
+def _rim(px: _Pixels, rim: np.ndarray, at: np.ndarray, plane: np.ndarray, neighbours: int,
+         noise: tuple[float, float, float, float]) -> tuple[float, float, float, int, int] | None:
+    """A dent's rim: its gray as a Fourier series in the azimuth psi about its centre, to order
+    RIM_ORDER (fewer where the rim has under RIM_PIXELS pixels per coefficient), fitted by least
+    squares; the CNR at its best azimuth (every degree) against the neighbours' plane there. Its
+    pixels: the rim's over the coefficients (what a mean's would be worth)."""
+    n = int(rim.sum())
+    order = min(RIM_ORDER, (n // RIM_PIXELS - 1) // 2)
+    if order < 1:
+        return None
+    offset = px.xy[rim] - at
+    radius = float(np.mean(np.hypot(offset[:, 0], offset[:, 1])))
+
+    def basis(psi: np.ndarray) -> np.ndarray:
+        k = np.arange(1, order + 1)
+        return np.column_stack([np.ones(len(psi)), np.cos(np.outer(psi, k)), np.sin(np.outer(psi, k))])
+
+    coef = np.linalg.lstsq(basis(np.arctan2(offset[:, 1], offset[:, 0])), px.gray[rim], rcond=None)[0]
+    psi = np.radians(np.arange(360.0))
+    gray = basis(psi) @ coef
+    where = at + radius * np.column_stack([np.cos(psi), np.sin(psi)])
+    good = np.column_stack([np.ones(len(psi)), where]) @ plane
+    ratio = contrast.cnr(good, gray, *noise)
+    k = int(np.argmax(ratio))
+    return float(ratio[k]), float(good[k]), float(gray[k]), n // (2 * order + 1), neighbours
