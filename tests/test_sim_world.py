@@ -554,3 +554,23 @@ def test_a_declared_defect_is_rendered_only_with_the_defects_effect_and_as_its_g
     ratio = np.einsum("pk,pk->p", expected_normal(kind, p[inside]), s) / s[:, 2] * (2.0 if kind == "coating" else 1.0)
     np.testing.assert_allclose(on[inside], plain[inside] * ratio, rtol=1e-5)
     assert np.ptp(ratio) > 0.05 or kind == "coating"
+
+
+def test_a_coating_of_twice_the_albedo_doubles_the_gray_under_every_light(plans):
+    """The ring task at its plan's drives (the spot and the lit ring's emitter points each
+    re-shaded on the defect): a coating of the part's material with rho x 2 (R is linear in rho)
+    reads exactly twice the plain capture on its pixels, which cover its disk (pi r^2 over a
+    pixel's footprint squared, within 10 %), and nothing else changes."""
+    task, p = plans["ring"]
+    scene = p.scene
+    coat = Defect("double", "coating", 5.0, radius_m=0.004, material=task.part.material.scaled(2.0))
+    coated = replace(task, features=(replace(task.feature, defects=(coat,)),))
+    aim = lamp_aim(task.lamp.rig.pivot_m, p.shot.lamp_position)
+    args = (scene.T_cell_cam, p.shot.lamp_position, aim, p.shot.exposure.shutter_s, p.shot.exposure.f_number)
+    plain = Renderer(with_sim(coated), scene)(*args, drives=planned_drives(p.shot))
+    on = Renderer(with_sim(coated, ("defects",)), scene)(*args, drives=planned_drives(p.shot))
+    changed = on != plain
+    np.testing.assert_allclose(on[changed], 2.0 * plain[changed], rtol=1e-9)
+    sensor, lens = task.camera.sensor, task.camera.lens
+    footprint = sensor.pixel_pitch_m * np.linalg.norm(scene.center - scene.camera_position) / lens.focal_length_m
+    assert changed.sum() == pytest.approx(np.pi * 0.004**2 / footprint**2, rel=0.1)
