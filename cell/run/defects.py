@@ -12,9 +12,9 @@ between GUARD_PX and GUARD_PX + BAND_PX pixel footprints beyond its edge (beside
 groove, around a disk), within the feature and clear of the other defects. Per part, as the
 planner judges it (cell.planning.defects): a scratch's two walls (the larger CNR), a dent's rim
 (its outer RIM_PX footprint: the steepest tilts) at its best azimuth (_rim: its gray a Fourier
-series in the azimuth), a coating's disk. A scratch's orientation is not declared, only its range: it is found
-as the one whose walls show the largest CNR, every pixel footprint at the feature's edge
-(at most MAX_ORIENTATIONS over the range).
+series in the azimuth), a coating's disk. A scratch's orientation is not declared, only its
+range: it is found as the one whose walls show the largest CNR, every pixel footprint at the
+feature's edge (at most MAX_ORIENTATIONS over the range), then every tenth of that about the best.
 
 A mean over n pixels has sigma / sqrt(n), so the measured CNR scatters about the true one by
 about sqrt(1 / n_defect + 1 / n_good) / sqrt(2) in CNR units (tests/test_defects.py's tolerance).
@@ -116,7 +116,8 @@ def _position_xy(task: Task, scene: Scene, d: Defect) -> np.ndarray:
     part pose: the registration's shift carries the part's true one)."""
     if d.position_m is None:
         return np.zeros(2)
-    return (geometry.apply(task.frames.T_cell_part, np.asarray(d.position_m, float)) - scene.center) @ scene.frame[:, :2]
+    position = geometry.apply(task.frames.T_cell_part, np.asarray(d.position_m, float))
+    return (position - scene.center) @ scene.frame[:, :2]
 
 
 def _outside(d: Defect, xy: np.ndarray, theta: float, at: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
@@ -157,7 +158,9 @@ def measure(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray,
         if best is not None and len(thetas) > 1:          # then every tenth of a step about it
             step = float(thetas[1] - thetas[0])
             lo, hi = d.orientation_rad
-            finer = np.clip(best[5] + step * np.arange(-10, 11) / 10.0, lo, hi)
+            finer = best[5] + step * np.arange(-10, 11) / 10.0
+            if hi - lo < np.pi:                            # else theta and theta + 180 deg are one groove
+                finer = np.clip(finer, lo, hi)
             best = _best(d, px, usable, finer, at[d.name], radius, noise)
         if best is None:
             found[d.name] = MeasuredDefect(d.name, d.kind, d.min_cnr, predicted.get(d.name), None)
