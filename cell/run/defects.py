@@ -13,8 +13,9 @@ groove, around a disk), within the feature and clear of the other defects. Per p
 planner judges it (cell.planning.defects): a scratch's two walls (the larger CNR), a dent's rim
 (its outer RIM_PX footprint: the steepest tilts) at its best azimuth (_rim: its gray a Fourier
 series in the azimuth), a coating's disk. A scratch's orientation is not declared, only its
-range: it is found as the one whose walls show the largest CNR, every pixel footprint at the
-feature's edge (at most MAX_ORIENTATIONS over the range), then every tenth of that about the best.
+range: it is found as the one whose walls show the largest CNR, every COARSE_PX pixel footprints
+at the feature's edge (at most MAX_ORIENTATIONS over the range), then FINE times finer about the
+best.
 
 A mean over n pixels has sigma / sqrt(n), so the measured CNR scatters about the true one by
 about sqrt(1 / n_defect + 1 / n_good) / sqrt(2) in CNR units (tests/test_defects.py's tolerance).
@@ -42,6 +43,8 @@ RIM_PX = 1.0            # a dent's rim: its outer pixel footprint (its contrast 
 MIN_PIXELS = 4          # a part or neighbourhood with fewer is not measured
 RIM_ORDER = 6           # a dent's rim gray: a Fourier series in azimuth to this order
 RIM_PIXELS = 4          # with at least this many rim pixels per coefficient
+COARSE_PX = 4.0         # a scratch's orientations tried this many pixel footprints apart at the feature's edge,
+FINE = 16               # then this many times finer about the best (a quarter footprint)
 MAX_ORIENTATIONS = 720
 
 
@@ -155,10 +158,10 @@ def measure(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray,
                 usable &= ~reach
         thetas = _orientations(d, radius, px.footprint_m) if d.kind == "scratch" else np.zeros(1)
         best = _best(d, px, usable, thetas, at[d.name], radius, noise)
-        if best is not None and len(thetas) > 1:          # then every tenth of a step about it
+        if best is not None and len(thetas) > 1:          # then every FINE-th of a step about it
             step = float(thetas[1] - thetas[0])
             lo, hi = d.orientation_rad
-            finer = best[5] + step * np.arange(-10, 11) / 10.0
+            finer = best[5] + step * np.arange(-FINE, FINE + 1) / FINE
             if hi - lo < np.pi:                            # else theta and theta + 180 deg are one groove
                 finer = np.clip(finer, lo, hi)
             best = _best(d, px, usable, finer, at[d.name], radius, noise)
@@ -185,11 +188,12 @@ def _best(d: Defect, px: _Pixels, usable: np.ndarray, thetas: np.ndarray, at: np
 
 
 def _orientations(d: Defect, radius: float, fp: float) -> np.ndarray:
-    """A scratch's candidate orientations over its range, one pixel footprint apart at the
-    feature's edge (at most MAX_ORIENTATIONS)."""
+    """A scratch's candidate orientations over its range, COARSE_PX pixel footprints apart at the
+    feature's edge (at most MAX_ORIENTATIONS): a groove turned by that still lies on its pixels
+    near its position, so the best of them is next to the true one."""
     lo, hi = d.orientation_rad
     span = min(hi - lo, np.pi)
-    n = int(min(MAX_ORIENTATIONS, max(1, np.ceil(span / (fp / max(radius, fp))))))
+    n = int(min(MAX_ORIENTATIONS, max(1, np.ceil(span / (COARSE_PX * fp / max(radius, fp))))))
     return lo + span * np.arange(n + (hi - lo < np.pi - 1e-12)) / n
 
 
