@@ -412,6 +412,8 @@ def test_each_lamp_its_own_power_equals_a_call_per_power(blocks):
        near_mirror=st.booleans(), m1=st.floats(1.0, 1e3), m2=st.floats(1e3, 1e5), aim_off=st.floats(0.0, 3.1))
 @example(lamp_polar=0.0, camera_polar=6.103515625e-05, azimuths=(0.0, 0.0), near_mirror=True, m1=1.0, m2=1000.0,
          aim_off=0.0)                                  # 6e-8 rad from the mirror: acos's phase angle was 4 % off
+@example(lamp_polar=0.75, camera_polar=0.75, azimuths=(0.0, 0.0), near_mirror=False, m1=1.0, m2=1000.0,
+         aim_off=0.0)                                  # the camera beside the lamp: acos read alpha 1.5e-8, 1e-8 off
 def test_gray_equals_the_brdf_written_with_numpy_power(lamp_polar, camera_polar, azimuths, near_mirror, m1, m2,
                                                        aim_off):
     """The kernel's forms (c^m = exp(m ln c) from one log, the off-axis angle as a chord's
