@@ -19,17 +19,10 @@ from kernels.gray import GrayInputs, gray_per_exposure
 from kernels.mesh import WarpMesh
 from kernels.render import render
 from kernels.visibility import visibility_maps
-from test_kernels import (A_PIXEL, ALUMINIUM, C_CAMERA, GAMMA, METAL, P_LAMP, ROOT, assert_gray_agrees,
-                          assert_visibility_agrees, lamps_around)
+from test_kernels import (A_PIXEL, ALUMINIUM, C_CAMERA, GAMMA, METAL, P_LAMP, assert_gray_agrees,  # hinge: a fixture
+                          assert_visibility_agrees, hinge, lamps_around, near_the_knuckle)
 
 THREADS = 3
-
-
-@pytest.fixture(scope="module")
-def hinge():
-    mesh = trimesh.load(ROOT / "tasks" / "parts" / "hinge.stl")
-    mesh.apply_scale(1e-3)                         # the task file says mm
-    return WarpMesh.from_trimesh(mesh), mesh
 
 
 @pytest.fixture
@@ -88,12 +81,7 @@ def test_the_thread_count_defaults_to_the_cores_this_process_may_use():
 
 def test_split_visibility_maps_and_free_cones_equal_one_launch(hinge, launches):
     mesh, _ = hinge
-    rng = np.random.default_rng(4)
-    points = np.column_stack([rng.uniform(-0.026, -0.005, 10), rng.uniform(-0.015, 0.015, 10),
-                              np.full(10, 0.004)])
-    normals = np.tile([0.0, 0.0, 1.0], (10, 1))
-    frame = geometry.frame_from_normal([0.0, 0.0, 1.0], reference=(1.0, 1.0, 0.0))
-    az, el = np.radians(np.arange(-180.0, 180.0, 6.0)), np.radians(np.arange(3.0, 90.0, 6.0))
+    points, normals, frame, az, el = near_the_knuckle()
     args = (mesh, points, normals, frame, az, el)
     one = on(1, visibility_maps, *args)
     assert launches[-1] == 1
