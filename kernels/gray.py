@@ -94,8 +94,8 @@ class GrayInputs:
     The points' free cones (kernels.cone) are found once the lamps evaluated so far make them
     worth it (kernels.cone.worth_finding, each lamp a ray per point): from then on only the rays
     outside them are cast. The result is the same either way. A call of at most SMALL
-    evaluations replays its recorded launch (one per lamp count) on its own input and output
-    buffers, under a lock, and returns copies."""
+    evaluations replays its recorded launches (one set per lamp count, split as at its first
+    call: kernels.runtime) on its own input and output buffers, under a lock, and returns copies."""
 
     def __init__(self, mesh: "WarpMesh | None", points: ArrayLike, normals: ArrayLike, camera_pos: ArrayLike,
                  power_w: float, cone_angle_rad: float, table: ArrayLike, camera_constant: float,

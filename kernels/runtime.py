@@ -64,8 +64,8 @@ class _native_stderr_silenced:
         return False
 
 
-MIN_SLICE = 1 << 14     # evaluations (ray casts, shaded points) a slice holds at least: a thread's
-                        # hand-over costs some 50 us, these about a millisecond
+MIN_SLICE = 1 << 14     # evaluations (ray casts, shaded points) a slice holds at least: about a
+                        # millisecond, against tens of microseconds to hand a launch to a thread
 
 _threads: int | None = None
 _pool: tuple[int, ThreadPoolExecutor] | None = None       # its thread count, the pool
@@ -106,11 +106,9 @@ def slices(count: int, work_per_item: float = 1.0) -> list[tuple[int, int]]:
 def in_parallel(launches: Sequence[Any]) -> None:
     """Run recorded launches (wp.launch(..., record_cmd=True)) at once, each on a thread of its own
     (the last on the caller's), and return when all are done; one runs where it is called."""
-    if len(launches) == 1:
-        launches[0].launch()
+    if not launches:
         return
-    pool = _executor()
-    running = [pool.submit(launch.launch) for launch in launches[:-1]]
+    running = [_executor().submit(launch.launch) for launch in launches[:-1]]
     launches[-1].launch()
     for done in running:
         done.result()
