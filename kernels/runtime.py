@@ -1,12 +1,23 @@
-"""One place that starts Warp: quietly, once, lazily on first use, on the CPU.
+"""One place that starts Warp: quietly, once, lazily on first use, on the CPU; and the threads a
+big launch is split over.
 
 Compiled kernels are cached on disk by Warp (default ~/.cache/warp/<version>, shared by
 every process of a CI run); we keep that cache. Kernels are module-level objects, so each
 Warp module compiles (or loads from the cache) once per process, on its first launch.
+
+Warp runs a CPU launch on one core, one element after another. It calls the kernel through
+ctypes, which lets go of the GIL, so launches on several Python threads run at once: a big
+launch is cut into contiguous slices of its first dimension (`slices`), one recorded launch each,
+run side by side (`in_parallel`). Each element is computed alone, by the same code on the same
+inputs, so the result is bitwise the one launch's. (Tile kernels could not be split this way:
+Warp's CPU tile storage is one static buffer, not a thread's own; none of ours uses tiles.)
 """
 import os
 import sys
 import threading
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
 
 import warp as wp
 
@@ -51,3 +62,85 @@ class _native_stderr_silenced:
             os.dup2(self.saved, 2)
             os.close(self.saved)
         return False
+
+
+MIN_SLICE = 1 << 14     # evaluations (ray casts, shaded points) a slice holds at least: about a
+                        # millisecond, against tens of microseconds to hand a launch to a thread
+
+_threads: int | None = None
+_pool: tuple[int, ThreadPoolExecutor] | None = None       # its thread count, the pool
+_pool_lock = threading.Lock()
+
+
+def available_cores() -> int:
+    """The cores this process may run on (its affinity: a container's or `taskset`'s share)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:                      # no affinity on this OS
+        return os.cpu_count() or 1
+
+
+def threads() -> int:
+    """How many threads a big launch is split over: set_threads's count, else available_cores()."""
+    return _threads if _threads is not None else available_cores()
+
+
+def set_threads(count: int | None) -> None:
+    """Split big launches over `count` threads from now on in this process (None: available_cores();
+    a Dask worker of several on one machine takes its share, cell.planning.parallel)."""
+    global _threads
+    if count is not None and count < 1:
+        raise ValueError(f"kernel threads must be at least 1, got {count}")
+    _threads = count
+
+
+def slices(count: int, work_per_item: float = 1.0) -> list[tuple[int, int]]:
+    """range(count) as contiguous (start, stop) slices of near-equal length, as many as threads()
+    but none with less than MIN_SLICE evaluations (work_per_item each): one slice when splitting
+    does not pay."""
+    n = max(1, min(threads(), count, int(count * work_per_item // MIN_SLICE)))
+    edges = [count * k // n for k in range(n + 1)]
+    return list(zip(edges[:-1], edges[1:]))
+
+
+def in_parallel(launches: Sequence[Any]) -> None:
+    """Run recorded launches (wp.launch(..., record_cmd=True)) at once, each on a thread of its own
+    (the last on the caller's), and return when all are done; one runs where it is called."""
+    if not launches:
+        return
+    running = [_executor().submit(launch.launch) for launch in launches[:-1]]
+    launches[-1].launch()
+    for done in running:
+        done.result()
+
+
+def launch_sliced(kernel: Any, dim: int | tuple[int, ...], inputs: list[Any], outputs: list[Any],
+                  work_per_item: float = 1.0) -> None:
+    """wp.launch of a kernel whose last input is the first index of its launch's first dimension
+    (`first`: the kernel adds it to that wp.tid()), split over slices() of that dimension, each
+    element of it worth work_per_item evaluations."""
+    dims = (dim,) if isinstance(dim, int) else tuple(dim)
+    in_parallel([wp.launch(kernel, dim=(stop - start, *dims[1:]), inputs=[*inputs, start], outputs=outputs,
+                           device=DEVICE, record_cmd=True)
+                 for start, stop in slices(dims[0], work_per_item)])
+
+
+def _executor() -> ThreadPoolExecutor:
+    """The process's threads for in_parallel: threads() - 1 besides the caller's, made on first use."""
+    global _pool
+    size = max(1, threads() - 1)
+    with _pool_lock:
+        if _pool is None or _pool[0] != size:
+            if _pool is not None:
+                _pool[1].shutdown(wait=False)
+            _pool = size, ThreadPoolExecutor(max_workers=size, thread_name_prefix="warp-slice")
+        return _pool[1]
+
+
+def _forget_pool() -> None:
+    """A forked child has none of its parent's threads: it makes its own pool."""
+    global _pool
+    _pool = None
+
+
+os.register_at_fork(after_in_child=_forget_pool)

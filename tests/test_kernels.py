@@ -243,16 +243,21 @@ def test_visibility_matches_reference_beside_a_wall(blocks):
     np.testing.assert_array_equal(combined_map(warp), warp.all(axis=0))
 
 
-def test_visibility_matches_reference_on_the_hinge_in_a_tilted_frame(hinge):
-    """Samples on the leaf near the knuckle; the feature frame is rotated about the normal."""
-    mesh, _ = hinge
+def near_the_knuckle():
+    """(points, normals, frame, azimuths, elevations): 10 samples on the hinge's leaf near the
+    knuckle, the feature frame rotated about the normal, a 6 deg grid above the leaf."""
     rng = np.random.default_rng(4)
     points = np.column_stack([rng.uniform(-0.026, -0.005, 10), rng.uniform(-0.015, 0.015, 10),
                               np.full(10, 0.004)])
     normals = np.tile([0.0, 0.0, 1.0], (10, 1))
     frame = geometry.frame_from_normal([0.0, 0.0, 1.0], reference=(1.0, 1.0, 0.0))
-    az = np.radians(np.arange(-180.0, 180.0, 6.0))
-    el = np.radians(np.arange(3.0, 90.0, 6.0))
+    return points, normals, frame, np.radians(np.arange(-180.0, 180.0, 6.0)), np.radians(np.arange(3.0, 90.0, 6.0))
+
+
+def test_visibility_matches_reference_on_the_hinge_in_a_tilted_frame(hinge):
+    """Samples on the leaf near the knuckle; the feature frame is rotated about the normal."""
+    mesh, _ = hinge
+    points, normals, frame, az, el = near_the_knuckle()
     warp = visibility_maps(mesh, points, normals, frame, az, el)
     numpy = ref.visibility_maps(mesh, points, normals, frame, az, el)
     assert 0.05 < 1 - warp.mean() < 0.6

@@ -176,3 +176,25 @@ def test_the_local_cluster_hands_a_worker_one_job_at_a_time_without_stealing():
         scheduler = cluster.cluster.scheduler
         assert scheduler.WORKER_SATURATION == 1.0 and "stealing" not in scheduler.extensions
         assert cluster.client.scheduler_info()["workers"] and cluster.cluster.scheduler_address.startswith("tcp://127.0.0.1:")
+
+
+def kernel_threads(say):
+    """A job: the threads its process splits a big kernel launch over."""
+    from kernels.runtime import threads
+    return threads()
+
+
+def test_workers_split_their_kernels_over_their_share_of_the_cores(scheduler):
+    """--workers N: each worker's launches over cores / N threads (its share: N workers' threads do
+    not outnumber the cores), the restricted pool's too; a cluster by address: each worker's own
+    cores; serially: this process's cores."""
+    from kernels.runtime import available_cores
+    cores = available_cores()
+    with parallel.local_cluster(2) as both:
+        share = max(1, cores // 2)
+        assert both.map(kernel_threads, [()] * 4, lambda line: None) == [share] * 4
+        one = both.restricted(sorted(both.client.nthreads())[:1])
+        assert one.map(kernel_threads, [()] * 2, lambda line: None) == [share] * 2
+    with parallel.remote_cluster(scheduler) as cluster:
+        assert cluster.map(kernel_threads, [()] * 2, lambda line: None) == [cores] * 2
+    assert parallel.SERIAL.map(kernel_threads, [()], lambda line: None) == [cores]

@@ -191,8 +191,9 @@ def run(tasks: Iterable[Task], quick: bool, say: Callable[[str], None],
     """The benchmark of the loaded one-feature `tasks`: every setting's row against the task's
     reference, the references, the kernel rows; of the multi-feature `feature_tasks` the
     cell.bench.multi_feature rows; of the `light_tasks` (with lights besides the spot) the
-    cell.bench.lights rows; and the targets (bench.json)."""
-    from cell.bench import lights, multi_feature
+    cell.bench.lights rows; the big launches on 1 and 2 threads (cell.bench.threads); and the
+    targets (bench.json)."""
+    from cell.bench import lights, multi_feature, threads
     repeats = 1 if quick else 3
     result: dict[str, Any] = {"quick": quick, "repeats": repeats, "settings": [], "references": [], "kernels": []}
     for task in tasks:
@@ -202,6 +203,7 @@ def run(tasks: Iterable[Task], quick: bool, say: Callable[[str], None],
         result["references"].append(ref)
     for task in tasks:
         result["kernels"] += kernel_rows(task, quick, repeats, say)
+    result["threads"] = threads.run(list(tasks), quick, say)
     result |= multi_feature.run(feature_tasks, quick, say)
     light_rows = lights.run(light_tasks, quick, say)
     result["kernels"] += light_rows["kernels"]

@@ -27,7 +27,7 @@ def text_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
 
 
 def report(result: dict[str, Any]) -> str:
-    """The terminal tables: settings, kernels, targets."""
+    """The terminal tables: settings, kernels, features, workers, channels, threads, targets."""
     settings = text_table(
         ["task", "setting", "cands", "samples", "time s", "certify s", "err mean", "err min", "err max", "worst",
          "lamp mm", "lamp deg", "feasible", "tightest", "agrees", "finite", "pareto", "default"],
@@ -68,11 +68,18 @@ def report(result: dict[str, Any]) -> str:
           f"{r['drives_s']:.3f} ({r['drives_s'] / r['time_s']:.0%})",
           *(f"{r[k]:.2f} ({r[k] / r['time_s']:.0%})" for k in ("certificate_s", "other_s")),
           "yes" if r["feasible"] else f"NO: {words.label(r['binding'])}"] for r in result["channels"]])
+    threads = text_table(
+        ["task", "launch", "evaluations", "1 thread /s", "2 threads /s", "speedup", "rounds", "machine", "load"],
+        [[r["task"], r["launch"], f"{r['evaluations']:.3g}",
+          *(f"{t['evaluations_per_s']:.3g}" for t in r["threads"]), f"{r['speedup']:.2f}x",
+          f"{min(r['speedups']):.2f}-{max(r['speedups']):.2f} ({len(r['speedups'])})", f"{r['machine_speedup']:.2f}x",
+          "{:.1f}-{:.1f}".format(*r["load"])] for r in result["threads"]])
     goals = "\n".join(f"{'met    ' if t['met'] else 'NOT MET'}  {t['name']}: {t['value']:.3g}"
                       for t in result["targets"])
     parts = [settings, refs, "\n".join(summary(result["settings"])), kernels] if result["settings"] else []
     if not result["settings"] and result["kernels"]:         # the light rows' kernels alone
         parts.append(kernels)
+    parts += [threads] if result["threads"] else []
     parts += [features, workers] if result["workers"] else []
     parts += [channels] if result["channels"] else []
     return "\n\n".join(parts + [goals])
