@@ -136,15 +136,17 @@ def summary_line(s: dict[str, Any]) -> str:
             f"machine's own {s['machine_speedup']:.2f}x on {s['cpus']} cores)")
 
 
-def run(quick: bool, say: Callable[[str], None], sizes: Sequence[int] | None = None) -> dict[str, Any]:
+def run(quick: bool, say: Callable[[str], None], sizes: Sequence[int] | None = None,
+        rounds: int | None = None) -> dict[str, Any]:
     """{"scaling": a row per size, "scaling_summary": the growth exponent and the rounds of 1 and 2
-    workers} of the generated part at `sizes` features (default SIZES, --quick QUICK_SIZES),
-    written into a temporary folder: every size serially first, then on 2 workers."""
+    workers} of the generated part at `sizes` features (default SIZES, --quick QUICK_SIZES) and
+    `rounds` (default ROUNDS, --quick 1), written into a temporary folder: every size serially
+    first, then on 2 workers."""
     from lightplan_tasks import many_features
     sizes = tuple(sizes or (QUICK_SIZES if quick else SIZES))
     growth = GROWTH if set(GROWTH) <= set(sizes) else (sizes[0], sizes[-1])
     side = SIDE_BY_SIDE if SIDE_BY_SIDE in sizes else sizes[-1]
-    rounds = 1 if quick else ROUNDS
+    rounds = rounds or (1 if quick else ROUNDS)
     with tempfile.TemporaryDirectory() as folder:
         tasks = {n: load_task(many_features.write(folder, n)) for n in sizes}
         one_feature = replace(tasks[sizes[0]], features=tasks[sizes[0]].features[:1])
