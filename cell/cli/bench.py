@@ -8,7 +8,7 @@ import sys
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
-from cell.bench import suite
+from cell.bench import scaling, suite
 from cell.core import jsonio
 from cell.cli import create_folder, output_folder
 from cell.report import words
@@ -74,6 +74,14 @@ def report(result: dict[str, Any]) -> str:
           *(f"{t['evaluations_per_s']:.3g}" for t in r["threads"]), f"{r['speedup']:.2f}x",
           f"{min(r['speedups']):.2f}-{max(r['speedups']):.2f} ({len(r['speedups'])})", f"{r['machine_speedup']:.2f}x",
           "{:.1f}-{:.1f}".format(*r["load"])] for r in result["threads"]])
+    many = text_table(
+        ["task", "features", "candidates", "shots", "serial s", "judge s", "judge share", "2 workers s", "speedup",
+         "peak MB serial", "peak MB 2 workers", "load serial", "load 2 workers", "identical"],
+        [[r["task"], r["features"], r["candidates"], r["shots"], f"{r['serial_s']:.1f}", f"{r['judge_s']:.1f}",
+          f"{r['judge_share']:.0%}", f"{r['workers_2_s']:.1f}", f"{r['speedup']:.2f}x",
+          f"{r['peak_memory_serial_b'] / 1e6:.0f}", f"{r['peak_memory_2_workers_b'] / 1e6:.0f}",
+          "{:.1f}-{:.1f}".format(*r["load"]), "{:.1f}-{:.1f}".format(*r["load_2_workers"]),
+          "yes" if r["identical"] else "NO"] for r in result["scaling"]])
     goals = "\n".join(f"{'met    ' if t['met'] else 'NOT MET'}  {t['name']}: {t['value']:.3g}"
                       for t in result["targets"])
     parts = [settings, refs, "\n".join(summary(result["settings"])), kernels] if result["settings"] else []
@@ -82,6 +90,7 @@ def report(result: dict[str, Any]) -> str:
     parts += [threads] if result["threads"] else []
     parts += [features, workers] if result["workers"] else []
     parts += [channels] if result["channels"] else []
+    parts += [many, scaling.summary_line(result["scaling_summary"])] if result["scaling"] else []
     return "\n\n".join(parts + [goals])
 
 
@@ -130,7 +139,7 @@ def command(args: argparse.Namespace) -> int:
     feature_tasks = [t for t in loaded if multi_feature(t)]
     light_tasks = [t for t in loaded if with_lights(t)]
     create_folder(out)
-    result = suite.run(tasks, args.quick, say, feature_tasks, light_tasks)
+    result = suite.run(tasks, args.quick, say, feature_tasks, light_tasks, many=not args.tasks)
     text = jsonio.dumps(result, indent=2)
     (out / "bench.json").write_text(text + "\n")
     if result["settings"]:              # bench.png: the one-feature settings sweep

@@ -183,9 +183,8 @@ def visit_order(plan: Plan, devices: Devices, recorder: Recorder) -> tuple[tuple
     D = route.travel_matrix((camera, lamp), [(s.camera_position, s.lamp_position) for s in plan.shots])
     order = route.shortest_order(D)
     travel = route.length(D, order)
-    exact = "exact" if len(order) <= route.EXACT_MAX else "nearest neighbour"
     recorder.step("route", f"shots in the order {list(order)}: {travel:.3f} m of camera and lamp "
-                           f"travel from the start ({exact})", order=list(order),
+                           f"travel from the start ({route.method(len(order))})", order=list(order),
                   travel_m=travel, start={"camera_m": camera, "lamp_m": lamp})
     return order, travel
 
