@@ -47,15 +47,41 @@ def test_the_shots_order_is_the_shortest_by_brute_force(n, symmetric):
 
 
 @pytest.mark.parametrize("n", range(3, 10))
-def test_lin_kernighan_finds_the_brute_force_optimum_of_small_instances(n):
-    """LKH on the open path (asymmetric, the return to the start free) is exact at these sizes."""
+def test_the_heuristic_finds_the_brute_force_optimum_of_small_instances(n):
     rng = np.random.default_rng(100 + n)
     for symmetric in (True, False):
         D = random_matrix(rng, n, symmetric)
-        order = route.lin_kernighan(D)
+        order = route.heuristic_order(D)
         assert sorted(order) == list(range(n))
-        assert route.length(D, order) == pytest.approx(brute_force(D), rel=1e-5)
+        assert route.length(D, order) == pytest.approx(brute_force(D), rel=1e-9)
 
+
+def neighbours(order):
+    """Every order one 2-opt move (a reversed run) or one Or-opt move (a run of 1-3 moved) away,
+    written out as lists: the definition local_search's matrix arithmetic must agree with."""
+    order = list(order)
+    n = len(order)
+    for a in range(n):
+        for e in range(a + 1, n):
+            yield order[:a] + order[a:e + 1][::-1] + order[e + 1:]
+    for size in (1, 2, 3):
+        for a in range(n - size + 1):
+            run, rest = order[a:a + size], order[:a] + order[a + size:]
+            for at in range(len(rest) + 1):
+                yield rest[:at] + run + rest[at:]
+
+
+@pytest.mark.parametrize("symmetric", [True, False])
+def test_local_search_ends_where_no_single_move_shortens_the_path(symmetric):
+    rng = np.random.default_rng(7)
+    for n in (2, 5, 14, 25):
+        D = random_matrix(rng, n, symmetric)
+        start = tuple(rng.permutation(n))
+        order = route.local_search(D, start)
+        assert sorted(order) == list(range(n))
+        best = route.length(D, order)
+        assert best <= route.length(D, start) + 1e-12
+        assert min(route.length(D, other) for other in neighbours(order)) >= best - 1e-9
 
 def test_the_heuristic_is_within_2_percent_of_held_karps_optimum_up_to_12_shots():
     rng = np.random.default_rng(28)
@@ -101,7 +127,7 @@ def test_the_open_path_does_not_return_to_the_start():
     """Stops on a line beyond the start: the open path walks out once (length of the farthest),
     where a closed tour would also walk back; a start amid them goes to the nearer end first."""
     line = [(np.array([x, 0.0, 0.0]), None) for x in (0.3, 0.1, 0.5, 0.2, 0.4)]
-    for solve in (route.held_karp, route.lin_kernighan):
+    for solve in (route.held_karp, route.heuristic_order):
         D = route.travel_matrix((np.zeros(3), None), line)
         assert route.length(D, solve(D)) == pytest.approx(0.5)
         D = route.travel_matrix((np.array([0.35, 0.0, 0.0]), None), line)

@@ -1,8 +1,11 @@
 """The order in which a run visits its shots: the shortest open path from the start pose through
 every shot once, a leg's travel the camera's distance plus the lamp's (straight lines in the cell
 frame: a stand-in for the arm's and the servos' motion). Exact by Held-Karp's dynamic programme
-over subsets, O(n^2 2^n), up to EXACT_MAX shots; beyond, the better of nearest neighbour and
-LKH-3's Lin-Kernighan search (elkai), so never longer than nearest neighbour."""
+over subsets, O(n^2 2^n), up to EXACT_MAX shots; beyond, 2-opt and Or-opt local search from
+nearest neighbour's order and from random ones, so never longer than nearest neighbour. (LKH-3,
+through elkai, is free for non-commercial use only: not a dependency of a product integrators
+ship; OR-Tools' routing would bring pandas and protobuf and, limited by time, an order that
+depends on the machine's load.)"""
 from __future__ import annotations
 
 import itertools
@@ -13,7 +16,7 @@ import numpy as np
 Positions = tuple[np.ndarray, np.ndarray | None]    # (camera, lamp) in the cell frame [m]; the lamp's may be unknown
 
 EXACT_MAX = 12              # 2^12 subsets x 12^2 in NumPy: about 4 ms (15 shots: 0.1 s; each shot more doubles it)
-LKH_RESOLUTION = 1e-6       # LKH reads integer weights: legs in steps of 1e-6 of the longest leg
+RESTARTS = 8                # random starts of the local search besides nearest neighbour's
 
 
 def leg(a: Positions, b: Positions) -> float:
@@ -38,7 +41,7 @@ def length(D: np.ndarray, order: Sequence[int]) -> float:
 
 def method(n: int) -> str:
     """How shortest_order orders n stops, in a few words for the run's log."""
-    return "exact" if n <= EXACT_MAX else "the shorter of Lin-Kernighan's (LKH-3) and nearest neighbour's"
+    return "exact" if n <= EXACT_MAX else "2-opt and Or-opt local search from nearest neighbour's and random orders"
 
 
 def shortest_order(D: np.ndarray) -> tuple[int, ...]:
@@ -48,9 +51,12 @@ def shortest_order(D: np.ndarray) -> tuple[int, ...]:
 
 
 def heuristic_order(D: np.ndarray) -> tuple[int, ...]:
-    """lin_kernighan's order or nearest_neighbour's, whichever is shorter: never longer than
-    nearest neighbour, whatever LKH finds."""
-    return min((nearest_neighbour(D), lin_kernighan(D)), key=lambda order: length(D, order))
+    """The shortest of local_search's optima from nearest neighbour's order and from RESTARTS
+    random orders (a fixed seed: the same matrix gives the same order): never longer than nearest
+    neighbour, since the search only shortens its start."""
+    rng = np.random.default_rng(0)
+    starts = [nearest_neighbour(D)] + [tuple(rng.permutation(len(D) - 1)) for _ in range(RESTARTS)]
+    return min((local_search(D, order) for order in starts), key=lambda order: length(D, order))
 
 
 def held_karp(D: np.ndarray) -> tuple[int, ...]:
@@ -81,20 +87,48 @@ def held_karp(D: np.ndarray) -> tuple[int, ...]:
     return tuple(reversed(order))
 
 
-def lin_kernighan(D: np.ndarray) -> tuple[int, ...]:
-    """An open path from the start by LKH-3 (elkai): the tour of the asymmetric matrix whose
-    return legs to the start cost nothing is the open path. LKH reads integer weights, so the legs
-    are rounded to LKH_RESOLUTION of the longest; the start is index 0 of the tour."""
-    import elkai
+def local_search(D: np.ndarray, order: Sequence[int]) -> tuple[int, ...]:
+    """`order` improved by 2-opt and Or-opt moves until none shortens the path (a local optimum):
+    each pass takes the best of every 2-opt move (reverse the stops i..j) and every Or-opt move
+    (a run of 1-3 stops moved elsewhere, its direction kept). The open path is closed by an end
+    node whose legs cost nothing, so both ends stay fixed and no move needs a special case; a
+    reversed run's legs are read from the matrix's transpose, so asymmetric travel is exact."""
     n = len(D) - 1
-    if n < 2:                               # LKH wants 3 nodes at least
-        return tuple(range(n))
-    scale = 1.0 / (LKH_RESOLUTION * max(float(D.max()), 1e-12))
-    weights = np.rint(D * scale).astype(np.int64)
-    weights[:, 0] = 0
-    tour = elkai.DistanceMatrix(weights.tolist()).solve_tsp(runs=1)[:-1]    # it closes at the start
-    k = tour.index(0)
-    return tuple(i - 1 for i in tour[k + 1:] + tour[:k])
+    ext = np.zeros((n + 2, n + 2))
+    ext[:n + 1, :n + 1] = D
+    path = np.array([0, *(i + 1 for i in order), n + 1])
+    i, j = np.triu_indices(n + 1, 1)
+    two = (i >= 1) & (j <= n)
+    i, j = i[two], j[two]
+    while n >= 2:
+        legs, back = ext[path[:-1], path[1:]], ext[path[1:], path[:-1]]
+        F, B = np.concatenate([[0.0], np.cumsum(legs)]), np.concatenate([[0.0], np.cumsum(back)])
+        p = path
+        flip = (ext[p[i - 1], p[j]] + ext[p[i], p[j + 1]] - legs[i - 1] - legs[j]
+                + (B[j] - B[i]) - (F[j] - F[i]))
+        best, move = (float(flip.min()), ("2-opt", int(np.argmin(flip)))) if len(flip) else (0.0, None)
+        k = np.arange(n + 1)
+        for length_ in (1, 2, 3):
+            for a in range(1, n - length_ + 2):
+                e = a + length_ - 1
+                gain = legs[a - 1] + legs[e] - ext[p[a - 1], p[e + 1]]
+                where = (k < a - 1) | (k > e)
+                cost = ext[p[k], p[a]] + ext[p[e], p[k + 1]] - legs[k] - gain
+                cost[~where] = np.inf
+                c = int(np.argmin(cost))
+                if cost[c] < best:
+                    best, move = float(cost[c]), ("or-opt", (a, e, c))
+        if move is None or best >= -1e-12 * max(float(F[-1]), 1e-300):
+            break
+        if move[0] == "2-opt":
+            a, e = int(i[move[1]]), int(j[move[1]])
+            path = np.concatenate([p[:a], p[a:e + 1][::-1], p[e + 1:]])
+        else:
+            a, e, c = move[1]
+            run, rest = p[a:e + 1], np.concatenate([p[:a], p[e + 1:]])
+            at = c + 1 if c < a else c + 1 - len(run)       # c's position in rest, the run after it
+            path = np.concatenate([rest[:at], run, rest[at:]])
+    return tuple(int(x) - 1 for x in path[1:-1])
 
 
 def nearest_neighbour(D: np.ndarray) -> tuple[int, ...]:
