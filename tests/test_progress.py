@@ -40,19 +40,28 @@ def test_off_a_terminal_a_stage_of_183_says_its_quarters_and_its_end():
     assert not CONTROL.search(out.getvalue())
 
 
+def test_a_short_stage_says_only_its_end():
+    out = io.StringIO()
+    with Progress(out).stage("shutter sweep", 8) as stage:
+        for _ in stage.each(range(8)):
+            pass
+    assert re.fullmatch(r"shutter sweep: 8 of 8 in \d+\.\d s\n", out.getvalue())
+
+
 def test_a_stage_whose_total_grows_and_a_labelled_progress_close_once():
     out = io.StringIO()
     progress = Progress(out).labelled("hinge: ")
-    stage = progress.stage("lamp searches", 2)
-    stage.advance()
-    stage.grow(2)
-    progress.say("a line that stays")
+    stage = progress.stage("lamp searches", 10)
     stage.advance(3)
+    stage.grow(10)
+    progress.say("a line that stays")
+    stage.advance(17)
     stage.close()
     stage.close()
     lines = out.getvalue().splitlines()
-    assert lines[0] == "hinge: lamp searches: 1 of 2 (50 %)" and lines[1] == "hinge: a line that stays"
-    assert len(lines) == 3 and lines[2].startswith("hinge: lamp searches: 4 of 4 in ")
+    # 3 of 10 is past its first quarter; the step to 20 of 20 is its end, said once
+    assert lines[:2] == ["hinge: lamp searches: 3 of 10 (30 %)", "hinge: a line that stays"]
+    assert len(lines) == 3 and re.fullmatch(r"hinge: lamp searches: 20 of 20 in \d+\.\d s", lines[2])
 
 
 def terminal():

@@ -1,7 +1,7 @@
 """Long work's progress as a person reads it (issue 29, item 7): on a terminal one live bar per
 stage (tqdm), redrawn in place; anywhere else (a log file, CI, a pipe) a plain line at each
-quarter of a stage, so that a run of hundreds of poses leaves five lines, not hundreds, and no
-control characters.
+quarter of a stage (only its end when it has 8 steps or fewer), so that a run of hundreds of
+poses leaves four lines, not hundreds, and no control characters.
 
 `Progress(stream)` decides once, by `stream.isatty()`; `progress.say(line)` is a line that stays
 (printed above the live bars), `with progress.stage("poses", 183) as stage: stage.advance()` a
@@ -21,7 +21,7 @@ from typing import Literal, TextIO, TypeVar
 
 T = TypeVar("T")
 
-QUARTERS = 4        # plain lines per stage: at 25, 50, 75 and 100 %
+QUARTERS = 4        # plain lines per stage: at 25, 50, 75 and 100 % (a stage of 8 steps or fewer: its end)
 
 
 class Progress:
@@ -104,7 +104,7 @@ class Stage:
             self.bar.update(n)
             return
         quarter = QUARTERS * self.done // self.total if self.total else QUARTERS
-        if quarter > self.said and self.done < self.total:
+        if quarter > self.said and self.done < self.total and self.total > 2 * QUARTERS:
             self.said = quarter
             self._line(f"{self.name}: {self.done} of {self.total} ({100 * self.done // self.total} %)")
 
