@@ -82,7 +82,7 @@ class Recorder:
         self.log: TextIO = open(self.folder / "log.jsonl", "a", encoding="utf-8")
         self.plan: dict[str, Any] | None = None     # the run folder's plan.json, once written
         self.parent, self.tags = parent, tags
-        self.out = out or (parent.out if parent is not None else Progress(sys.stderr))
+        self.out: Progress = out or (parent.out if parent is not None else Progress(sys.stderr))
 
     def __enter__(self) -> Recorder:
         return self
