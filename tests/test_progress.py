@@ -127,17 +127,18 @@ def test_measure_brdf_on_a_terminal_shows_the_poses_bar(tmp_path):
     assert "pose 3 of" not in shown                         # the steps are the log's, not lines
 
 
+COMPILED = r"compiling the lighting kernels \(first use after install, ~7 s\) \.\.\. done in \d+\.\d s"
+
+
 def test_a_cached_kernel_load_says_nothing():
-    from kernels.runtime import compile_missing, ensure_init
-    from kernels.visibility import visibility_maps  # noqa: F401 - a kernel module imported, its binary cached
-    ensure_init("kernels.visibility")
-    err = io.StringIO()
-    saved, sys.stderr = sys.stderr, err
-    try:
-        assert compile_missing() == []
-    finally:
-        sys.stderr = saved
-    assert err.getvalue() == ""
+    """Two processes start Warp and load a kernel module: the first may compile (one line), the
+    second finds every kernel in the disk cache and says nothing."""
+    code = "import kernels.visibility; from kernels.runtime import ensure_init; ensure_init('kernels.visibility')"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    said = [subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=600).stderr
+            for _ in range(2)]
+    assert said[0] == "" or re.fullmatch(COMPILED, said[0].strip()), said[0]
+    assert said[1] == ""
 
 
 @pytest.mark.long
@@ -152,6 +153,5 @@ def test_the_first_compile_is_said_once_with_its_time_and_a_cached_load_not(tmp_
                               capture_output=True, text=True, env=env, timeout=600)
         assert done.returncode == 0, done.stderr
         said.append([line for line in done.stderr.splitlines() if "compiling" in line])
-    assert len(said[0]) == 1 and re.fullmatch(r"compiling the lighting kernels \(first use after install, ~7 s\) "
-                                              r"\.\.\. done in \d+\.\d s", said[0][0])
+    assert len(said[0]) == 1 and re.fullmatch(COMPILED, said[0][0])
     assert said[1] == []
