@@ -186,7 +186,7 @@ def free_cone_cosines(mesh: "WarpMesh", origins: ArrayLike, normals: ArrayLike,
     diamond angle about funcs.tangent_u), NO_CONE where there is none (module docstring). A ray
     from the origin along unit s with <n, s> above its sector's (or the overall) cosine meets
     no triangle of `mesh` (a kernels.mesh.WarpMesh). Costs about P x F triangle tests."""
-    device = ensure_init()
+    device = ensure_init(__name__)
     origins = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
     normals = unit_rows(normals, "normals")
     if len(normals) != len(origins):

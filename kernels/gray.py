@@ -101,7 +101,7 @@ class GrayInputs:
                  power_w: float, cone_angle_rad: float, table: ArrayLike, camera_constant: float,
                  pixel_area_m2: float, shadows: bool = True, cone: bool = True, offset_m: float = 1e-5,
                  profile: ArrayLike | None = None) -> None:
-        self.device = ensure_init()
+        self.device = ensure_init(__name__)
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         normals = unit_rows(normals, "normals")
         if len(normals) != len(points):

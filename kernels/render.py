@@ -88,7 +88,7 @@ def render(mesh: "WarpMesh", origin: ArrayLike, ray_dirs: ArrayLike, lamp_pos: A
     shades each hit with its own normal instead of the face's (a defect's, sim.world); the
     returned normal stays the face's.
     """
-    device = ensure_init()
+    device = ensure_init(__name__)
     dirs = unit_rows(ray_dirs, "ray_dirs")
     n = len(dirs)
     (value, value_wp), (hit, hit_wp), (depth, depth_wp) = _ray_outputs(n)
@@ -158,7 +158,7 @@ def render_plane(origin: ArrayLike, ray_dirs: ArrayLike, T_world_plane: np.ndarr
     [0, cols * texel_m), y in [0, rows * texel_m), texel (r, c) the square from (c, r) * texel_m
     (nearest: no filtering, which supersampling the rays does); `outside` beyond it.
     PlaneResult(value, hit, depth)."""
-    device = ensure_init()
+    device = ensure_init(__name__)
     dirs = unit_rows(ray_dirs, "ray_dirs")
     n = len(dirs)
     (value, value_wp), (hit, hit_wp), (depth, depth_wp) = _ray_outputs(n)

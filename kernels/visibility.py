@@ -53,7 +53,7 @@ def visibility_maps(mesh: "WarpMesh", points: ArrayLike, normals: ArrayLike, fra
     tangent plane (<d, n> <= 1e-9) are False: the part hides them itself.
     The feature's combined map is `combined_map(maps)`: visible from every sample.
     """
-    device = ensure_init()
+    device = ensure_init(__name__)
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     normals = unit_rows(normals, "normals")
     azimuth = np.ascontiguousarray(azimuth, dtype=np.float64).ravel()

@@ -181,8 +181,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("bench", help="what accuracy costs in time; kernel throughput")
     p.add_argument("tasks", nargs="*", help="default: the example tasks hinge.yaml and conrod.yaml, installed with "
-                                            "the package, and the multi-feature example (its planning time on 1 and "
-                                            "2 workers)")
+                                            "the package, the multi-feature example bracket.yaml (its planning time "
+                                            "on 1 and 2 workers) and the lights example ring.yaml (per channel)")
     p.add_argument("--quick", action="store_true", help="small sweep (< 1 min) for smoke tests")
     p.add_argument("--out", help="folder for bench.json and bench.png, new or empty (default runs/bench-<time>)")
     p.add_argument("--json", action="store_true", help="print bench.json to stdout")

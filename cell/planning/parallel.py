@@ -83,7 +83,8 @@ class Pool:
 
 
 class Serial(Pool):
-    """Each job in this process when it is submitted, its progress said as it goes."""
+    """Each job in this process, in the order submitted, when its result is asked for (so that a
+    progress bar moves as each job ends), its progress said as it goes."""
 
     def jobs(self, say: Callable[[str], None]) -> SerialJobs:
         return SerialJobs(say)
@@ -93,18 +94,19 @@ class Serial(Pool):
 
 
 class SerialJobs:
-    """submit(key, fn, *args) runs fn(*args, say) at once; iterating yields (key, result) in the
-    order submitted, jobs submitted meanwhile included."""
+    """submit(key, fn, *args) queues fn(*args, say); iterating runs them one by one and yields
+    (key, result) in the order submitted, jobs submitted meanwhile included."""
 
     def __init__(self, say: Callable[[str], None]) -> None:
-        self.say, self.done = say, deque[tuple[Hashable, Any]]()
+        self.say, self.queued = say, deque[tuple[Hashable, Callable[..., Any], tuple[Any, ...]]]()
 
     def submit(self, key: Hashable, fn: Callable[..., Any], *args: Any, first: bool = False) -> None:
-        self.done.append((key, fn(*args, self.say)))
+        self.queued.append((key, fn, args))
 
     def __iter__(self):
-        while self.done:
-            yield self.done.popleft()
+        while self.queued:
+            key, fn, args = self.queued.popleft()
+            yield key, fn(*args, self.say)
 
 
 SERIAL = Serial()

@@ -1,6 +1,7 @@
 """The run folder a person can open and a machine can read: `log.jsonl` (one JSON line per step:
 time, step, message, data; appended, flushed and fsync'd so that a crash loses nothing measured;
-each step also a progress line on stderr), plan.json with the plan's pictures, every capture,
+each step also a line on stderr, or inside a long stage (`Recorder.stage`: measure-brdf's poses) only
+the stage's bar or quarter lines, cell.core.progress), plan.json with the plan's pictures, every capture,
 and the result file (cell.report.result's shape), written however the run ends."""
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ import numpy as np
 
 from cell.core import jsonio
 from cell.core.errors import CellError, GoalNotReached, PlanInfeasible
+from cell.core.progress import Progress, Stage
 from cell.devices.session import Session, stop_outcome
 from cell.report.result import Result
 
@@ -70,14 +72,17 @@ def file_name(text: str) -> str:
 class Recorder:
     """A run folder and its log; `with Recorder(folder) as rec:` closes the log however it ends.
     A sub-run's (`rec.sub("shot-0", shot=0)`) has its own folder and log, and every step it logs
-    is also appended to the parent's log with `tags` (shot=0)."""
+    is also appended to the parent's log with `tags` (shot=0). Its lines go to `out` (stderr's
+    Progress unless given; a sub-run's is its parent's)."""
 
-    def __init__(self, folder: str | os.PathLike[str], parent: Recorder | None = None, **tags: Any) -> None:
+    def __init__(self, folder: str | os.PathLike[str], parent: Recorder | None = None, out: Progress | None = None,
+                 **tags: Any) -> None:
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.log: TextIO = open(self.folder / "log.jsonl", "a", encoding="utf-8")
         self.plan: dict[str, Any] | None = None     # the run folder's plan.json, once written
         self.parent, self.tags = parent, tags
+        self.out: Progress = out or (parent.out if parent is not None else Progress(sys.stderr))
 
     def __enter__(self) -> Recorder:
         return self
@@ -96,7 +101,15 @@ class Recorder:
         line = {"t": datetime.now(timezone.utc).isoformat(timespec="milliseconds"), "step": step,
                 "message": message, **where, **data}
         self._append(line)
-        print(f"{'' if iteration is None else iteration:>2} {step:<12} {message}", file=sys.stderr, flush=True)
+        if self.out.live is None:
+            self.out.say(f"{'' if iteration is None else iteration:>2} {step:<12} {message}")
+        else:                               # in a long stage: the log has it, the bar shows it in passing
+            self.out.live.note(message)
+
+    def stage(self, name: str, total: int) -> Stage:
+        """A long stage of `total` steps (`with rec.stage("poses", 183) as stage: ... stage.advance()`):
+        while it lasts the steps are logged but not printed, its bar or quarter lines stand for them."""
+        return self.out.stage(name, total)
 
     def _append(self, line: dict[str, Any]) -> None:
         """line to the log, flushed and fsync'd, and with the tags to the parent's."""
@@ -108,7 +121,7 @@ class Recorder:
 
     def progress(self, message: str) -> None:
         """A progress line on stderr only (the planner's stages), indented under the steps."""
-        print(f"{'':16}{message}", file=sys.stderr, flush=True)
+        self.out.say(f"{'':16}{message}")
 
     def write_plan(self, plan: Plan, task: Task, subfolder: str = "") -> Path:
         """plan.json and pictures, in the run folder (its plan, `self.plan`) or a subfolder of it

@@ -248,7 +248,7 @@ def plan_logged(task: Task, recorder: Recorder) -> Plan:
     """plan_features (the function `cell plan` uses for several features), plan.json and its
     pictures in the run folder, logged."""
     from cell.planning.whole_part import plan_features
-    plan = plan_features(task, progress=recorder.progress)
+    plan = plan_features(task, progress=recorder.out.labelled(" " * 16))
     recorder.write_plan(plan, task)
     covered = sum(f.covered_by is not None for f in plan.features)
     verdict = "feasible" if plan.feasible else "PARTIAL"
