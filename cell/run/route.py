@@ -106,7 +106,10 @@ def local_search(D: np.ndarray, order: Sequence[int]) -> tuple[int, ...]:
         p = path
         flip = (ext[p[i - 1], p[j]] + ext[p[i], p[j + 1]] - legs[i - 1] - legs[j]
                 + (B[j] - B[i]) - (F[j] - F[i]))
-        best, move = (float(flip.min()), ("2-opt", int(np.argmin(flip)))) if len(flip) else (0.0, None)
+        best, move = 0.0, None                      # move (a, e, c): stops a..e moved after c; c -1: reversed
+        if len(flip):
+            f = int(np.argmin(flip))
+            best, move = float(flip[f]), (int(i[f]), int(j[f]), -1)
         k = np.arange(n + 1)
         for length_ in (1, 2, 3):
             for a in range(1, n - length_ + 2):
@@ -117,14 +120,13 @@ def local_search(D: np.ndarray, order: Sequence[int]) -> tuple[int, ...]:
                 cost[~where] = np.inf
                 c = int(np.argmin(cost))
                 if cost[c] < best:
-                    best, move = float(cost[c]), ("or-opt", (a, e, c))
+                    best, move = float(cost[c]), (a, e, c)
         if move is None or best >= -1e-12 * max(float(F[-1]), 1e-300):
             break
-        if move[0] == "2-opt":
-            a, e = int(i[move[1]]), int(j[move[1]])
+        a, e, c = move
+        if c < 0:
             path = np.concatenate([p[:a], p[a:e + 1][::-1], p[e + 1:]])
         else:
-            a, e, c = move[1]
             run, rest = p[a:e + 1], np.concatenate([p[:a], p[e + 1:]])
             at = c + 1 if c < a else c + 1 - len(run)       # c's position in rest, the run after it
             path = np.concatenate([rest[:at], run, rest[at:]])
