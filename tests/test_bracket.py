@@ -208,3 +208,72 @@ def test_cell_run_of_the_bracket_puts_every_feature_in_band_in_its_shots_capture
         T = np.asarray(plan.shots[result["shot"]].T_cell_cam)
         pixels = image[disk_pixels(task, f, T, image.shape, 0.6)]
         assert len(pixels) > 300 and low <= pixels.min() and pixels.max() <= high
+
+
+def judged_both_ways(tasks, lent, shots, own):
+    """(the coverage matrix of every shot judged in full on every feature, the pairs the prefilter
+    rejected as {(f, s): its requirement values}, the matrix judge_column gives): shot s is
+    feature own[s]'s (its own plan's verdict stands: not judged), or no feature's (-1)."""
+    from cell.planning import coverage, prefilter
+    from cell.planning.whole_part import judge_column
+    full = np.zeros((len(tasks), len(shots)), bool)
+    filtered = np.zeros_like(full)
+    rejected = {}
+    for s, (shot, f) in enumerate(zip(shots, own)):
+        column, _ = judge_column(tasks, f, shot, lent, lambda msg: None)
+        for g, missed in enumerate(prefilter.missed(tasks, lent, shot, f)):
+            if g == f:
+                continue
+            full[g, s] = coverage.judge(tasks[g], lent[g], shot).covered
+            filtered[g, s] = column[g].covered
+            if missed:
+                rejected[g, s] = missed
+    return full, rejected, filtered
+
+
+def test_the_judges_prefilter_rejects_no_pair_the_full_evaluation_accepts(bracket):
+    """Every candidate shot judged in full (coverage.judge) on every other feature, against the
+    judge with its prefilter (judge_column, cell.planning.prefilter): the same coverage matrix;
+    each requirement the prefilter names on a pair it rejects is missed there by the full judge
+    with the same value; and it rejects most pairs (a shot sees few faces at a fitting angle)."""
+    from cell.planning import coverage
+    task, plan = bracket
+    tasks = [task.with_feature(i) for i in range(len(task.features))]
+    own = plan.cover["candidate_features"]
+    lent = [coverage.Lent.of(plan.plans[own.index(f)]) for f in range(len(tasks))]
+    shots = [p.shot for p in plan.plans]
+    full, rejected, filtered = judged_both_ways(tasks, lent, shots, own)
+    assert np.array_equal(filtered, full) and full.any()
+    for (g, s), missed in rejected.items():
+        values = {r.name: r.value for r in coverage.judge(tasks[g], lent[g], shots[s]).requirements}
+        assert all(values[r.name] == r.value > 1.0 for r in missed)
+    assert len(rejected) >= len(shots) * (len(tasks) - 1) // 2
+
+
+def test_on_a_longer_bracket_the_prefilter_keeps_the_full_judges_coverage(bracket, tmp_path):
+    """A generated part: the bracket stretched to 60 mm along y, its five faces' features at
+    y = -10 and +10 mm (ten), judged on the bracket's candidate shots: the coverage matrix with
+    the prefilter is the full judge's, pair by pair, and some of both kinds are there."""
+    import trimesh
+    import yaml
+    from cell.planning import coverage, one_shot, regions
+    from cell.planning.plan import PlannerSettings
+    task, plan = bracket
+    mesh = trimesh.load(ROOT / "tasks" / "parts" / "bracket.stl")
+    mesh.apply_scale([1.0, 1.5, 1.0])
+    mesh.export(tmp_path / "long.stl")
+    doc = yaml.safe_load(BRACKET.read_text())
+    doc["part"] |= {"mesh": str(tmp_path / "long.stl"), "material": str(BRACKET.parent / doc["part"]["material"])}
+    doc["features"] = [{**f, "name": f"{f['name']}_{k}", "center_mm": [f["center_mm"][0], y, f["center_mm"][2]]}
+                       for k, y in enumerate((-10.0, 10.0)) for f in doc["features"]]
+    (tmp_path / "long.yaml").write_text(yaml.safe_dump(doc))
+    long = loader.load_task(tmp_path / "long.yaml")
+    tasks = [long.with_feature(i) for i in range(len(long.features))]
+    settings = PlannerSettings()
+    grid = regions.SphereGrid(np.radians(settings.grid_step_deg))
+    scenes = [build_scene(t) for t in tasks]
+    lent = [coverage.Lent(s, settings, one_shot.visibility_map(s, grid)) for s in scenes]
+    shots = [p.shot for p in plan.plans]
+    full, rejected, filtered = judged_both_ways(tasks, lent, shots, [-1] * len(shots))
+    assert np.array_equal(filtered, full)
+    assert full.sum() >= 5 and len(rejected) >= full.size // 2

@@ -21,6 +21,7 @@ from cell.planning.one_shot import build_maps, light_settings
 from cell.planning.plan import Coverage
 
 if TYPE_CHECKING:
+    from cell.physics.costs import RequirementValue
     from cell.planning.plan import Plan, PlannerSettings, Shot
     from cell.planning.scene import Scene
     from cell.task.types import Task
@@ -48,6 +49,12 @@ class Lent:
         if plan.scene is None or plan.maps is None:
             raise ValueError("a multi-feature plan lends nothing: its features' own plans do")
         return cls(plan.scene, plan.settings, plan.maps.visible)
+
+
+def rejected(task: Task, missed: tuple[RequirementValue, ...]) -> Coverage:
+    """The Coverage of a shot on the one-feature `task` that the prefilter (cell.planning.prefilter)
+    found to miss the requirements `missed`: not covered, nothing predicted (no gray)."""
+    return Coverage(task.feature.name, False, np.zeros(0), missed)
 
 
 def judge(task: Task, lent: Lent, shot: Shot) -> Coverage:

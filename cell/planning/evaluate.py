@@ -122,14 +122,10 @@ class Problem:
     def gray_inputs(self) -> GrayInputs:
         """The kernel's fixed inputs (kernels.gray.GrayInputs), converted once per plan: a search
         evaluates it hundreds of times, on Problems that differ in their maps alone."""
-        from kernels.gray import GrayInputs
         task, scene, material = self.task, self.scene, self.material
         made_of, gray = self.kernels.made_of, self.kernels.gray
         if made_of is None or gray is None or any(a is not b for a, b in zip(made_of, (task, scene, material))):
-            gray = GrayInputs(scene.warp_mesh, scene.points, scene.normals, scene.camera_position,
-                              task.lamp.power_w, task.lamp.cone_angle_rad, material.table(),
-                              task.camera.sensor.camera_constant, task.camera.sensor.pixel_area_m2,
-                              profile=task.lamp.profile)
+            gray = gray_inputs(task, scene, material)
             self.kernels.gray, self.kernels.made_of = gray, (task, scene, material)
         return gray
 
@@ -168,6 +164,16 @@ class Problem:
         return np.tile(top, (candidates, 1))
 
 
+def gray_inputs(task: Task, scene: Scene, material: Material) -> GrayInputs:
+    """The gray kernel's fixed inputs (kernels.gray.GrayInputs) for the scene's samples and
+    camera, the task's lamp and sensor and the material."""
+    from kernels.gray import GrayInputs
+    return GrayInputs(scene.warp_mesh, scene.points, scene.normals, scene.camera_position,
+                      task.lamp.power_w, task.lamp.cone_angle_rad, material.table(),
+                      task.camera.sensor.camera_constant, task.camera.sensor.pixel_area_m2,
+                      profile=task.lamp.profile)
+
+
 def planning_band(task: Task) -> tuple[float, float]:
     """The gray band planned for: the task's, its top kept half a level below the sensor's full
     scale (a pixel there reads saturated, whatever the band says)."""
@@ -190,12 +196,17 @@ def build_problem(task: Task, scene: Scene, maps: Maps | None, albedo_scale: flo
     p = Problem(task, scene, maps, task.part.material.scaled(albedo_scale), planning_band(task),
                 black_level(task), focus, needed, kappa_open, 0)
     hidden = unit_gray(p, scene.camera_position[None], -scene.normal[None])[1][0]
+    return replace(p, camera_unseen=int(np.sum(hidden | ~in_image(task, scene))))
+
+
+def in_image(task: Task, scene: Scene) -> np.ndarray:
+    """(P,) the samples in front of the scene's camera and inside its image (pixel centres
+    -0.5 .. size - 0.5, the pinhole's projection)."""
     sensor = task.camera.sensor
     uv, z = projection.project(projection.intrinsics(sensor, task.camera.lens), scene.T_cell_cam, scene.points)
     with np.errstate(invalid="ignore"):
-        in_image = ((z > 0) & (uv[:, 0] >= -0.5) & (uv[:, 0] <= sensor.width_px - 0.5)
-                    & (uv[:, 1] >= -0.5) & (uv[:, 1] <= sensor.height_px - 0.5))
-    return replace(p, camera_unseen=int(np.sum(hidden | ~in_image)))
+        return ((z > 0) & (uv[:, 0] >= -0.5) & (uv[:, 0] <= sensor.width_px - 0.5)
+                & (uv[:, 1] >= -0.5) & (uv[:, 1] <= sensor.height_px - 0.5))
 
 
 def unit_gray(problem: Problem, positions: ArrayLike,

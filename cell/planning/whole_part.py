@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, cast
 import numpy as np
 
 from cell.collision.scene import CollisionScene, reaching_joints
-from cell.planning import coverage, one_shot, regions
+from cell.planning import coverage, one_shot, prefilter, regions
 from cell.planning.set_cover import fewest_shots
 from cell.planning.parallel import SERIAL
 from cell.planning.plan import FeatureVerdict, Plan, PlannerSettings, Search
@@ -104,9 +104,12 @@ def judge_column(tasks: Sequence[Task], f: int, shot: Shot, lent: Sequence[Lent]
                  say: Callable[[str], None]) -> Column:
     """A job: (the Coverage of feature f's candidate `shot` on every other feature, whose own
     first plan lent its samples and maps (`lent`, coverage.Lent; None at f: its plan's verdict
-    stands), its own time [s])."""
+    stands), its own time [s]). Only the features the prefilter (cell.planning.prefilter) leaves
+    are judged in full: a part's many features are mostly out of one shot's view."""
     start = time.perf_counter()
-    column = [None if g == f else coverage.judge(t, lent[g], shot) for g, t in enumerate(tasks)]
+    missed = prefilter.missed(tasks, lent, shot, f)
+    column = [None if g == f else coverage.rejected(t, missed[g]) if missed[g] else coverage.judge(t, lent[g], shot)
+              for g, t in enumerate(tasks)]
     return column, time.perf_counter() - start
 
 
