@@ -168,8 +168,9 @@ def test_cell_png_of_the_bracket_draws_every_shot_and_feature(bracket, tmp_path)
 
 def test_cell_plan_prints_the_bracket_and_writes_cell_png_beside_plan_json(bracket, tmp_path, capsys, monkeypatch):
     """The plan's lines as the README shows them; cell.png of the chosen shots beside plan.json, each
-    candidate's plan and maps in candidate-k/ without one (the maps' drawing, ~0.3 s a candidate,
-    stubbed: only where they go is checked here)."""
+    candidate's plan in candidate-k/, the maps of the chosen candidates only (of every one with
+    --pictures all), none with a cell.png (the maps' drawing, ~0.3 s a candidate, stubbed: only
+    where they go is checked here)."""
     task, plan = bracket
     maps = []
     monkeypatch.setattr("cell.cli.plan.plan_features", lambda task, progress, pool: plan)
@@ -182,9 +183,14 @@ def test_cell_plan_prints_the_bracket_and_writes_cell_png_beside_plan_json(brack
     assert sum(line.startswith("  shot ") for line in lines) == len(plan.shots)
     assert sum(line.startswith("  feature ") for line in lines) == 5
     assert (out / "cell.png").stat().st_size > 20_000
-    assert maps == [out / f"candidate-{k}" for k in range(plan.cover["candidate_shots"])]
-    assert not any((out / f"candidate-{k}" / "cell.png").exists() for k in range(len(maps)))
+    candidates = range(plan.cover["candidate_shots"])
+    assert all((out / f"candidate-{k}" / "plan.json").is_file() for k in candidates)
+    assert maps == [out / f"candidate-{k}" for k in plan.cover["chosen"]] and len(maps) < len(candidates)
+    assert not any((out / f"candidate-{k}" / "cell.png").exists() for k in candidates)
     assert json.loads((out / "plan.json").read_text())["cover"]["chosen"] == plan.cover["chosen"]
+    maps.clear()
+    assert cli.main(["plan", str(BRACKET), "--out", str(tmp_path / "all"), "--pictures", "all"]) == 0
+    assert maps == [tmp_path / "all" / f"candidate-{k}" for k in candidates]
 
 
 def test_cell_run_of_the_bracket_puts_every_feature_in_band_in_its_shots_capture(bracket, tmp_path, monkeypatch):

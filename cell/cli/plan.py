@@ -1,7 +1,9 @@
-"""`cell plan TASK... [--out DIR] [--json] [--workers N | --scheduler ADDRESS]`: exit 0 feasible
-(every feature of every task covered), 1 infeasible (with the reason: the first uncovered feature
-and its cause), 2 bad input. With --workers or --scheduler the plans' jobs run on Dask
-(cell.planning.parallel); the plans are the serial ones."""
+"""`cell plan TASK... [--out DIR] [--json] [--pictures chosen|all] [--workers N | --scheduler ADDRESS]`:
+exit 0 feasible (every feature of every task covered), 1 infeasible (with the reason: the first
+uncovered feature and its cause), 2 bad input. With --workers or --scheduler the plans' jobs run
+on Dask (cell.planning.parallel); the plans are the serial ones. Every plan.json is written before
+any picture is drawn; of a multi-feature plan's candidate shots only the chosen get pictures,
+unless --pictures all."""
 
 from __future__ import annotations
 
@@ -22,7 +24,7 @@ from cell.task.loader import load_task
 from cell.planning.whole_part import own_plan, plan_features
 from cell.planning.plan import PlannerSettings, gray_stats
 from cell.report import words
-from cell.report.recorder import write_plan
+from cell.report.recorder import draw_plan, write_plan
 
 if TYPE_CHECKING:
     from cell.planning.plan import Plan
@@ -98,6 +100,8 @@ def command(args: argparse.Namespace) -> int:
                 results = [f.result() for f in [threads.submit(plan_one, t, s, pool) for t, s in zip(tasks, say)]]
     for result, task, folder in zip(results, tasks, folders):
         write_plan(result, task, folder)
+    for result, task, folder in zip(results, tasks, folders):      # every plan.json first, then pictures
+        draw_plan(result, task, folder, args.pictures)
     if args.json:
         documents = [result.to_json() for result in results]
         print(jsonio.dumps(documents if several else documents[0], indent=2))
