@@ -9,7 +9,8 @@ on the feature's samples (then the certificate decides). The prefilter computes 
 requirements' values as the judge does, the same functions on the same arrays, and rejects a pair
 only where one of them is missed (costs.value(ln f) > 1, RequirementValue.met's test):
 - camera_view: samples outside the image (evaluate.in_image) or hidden from the camera (the gray
-  kernel's shadow flag for a lamp at the camera, as evaluate.build_problem casts it);
+  kernel's shadow flag for a lamp at the camera, as evaluate.build_problem casts it); the judge
+  counts both together, so a count of either alone is missed there too (at least as much);
 - view_angle and resolution, where the task asks for them (requirements.view_angle_ln,
   resolution_ln), and depth_of_field at the shot's focus and f-number (depth_of_field_ln);
 - no_shadow and cone_coverage at the shot's lamp, the spot alone lighting (a task with other
@@ -82,9 +83,10 @@ def lamp_side(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list[l
                                                                           shot.lamp_position]), aims)
     spot_on = (task.lamp.channel.drive_range[1] if shot.drive is None else shot.drive[0]) > 0.0
     half = task.lamp.lit_half_angle_rad
-    ends = np.cumsum([len(x.scene.points) for x in lent])
+    counts = np.array([len(x.scene.points) for x in lent])
+    ends = np.cumsum(counts)
     found = []
-    for t, start, end in zip(tasks, ends - ends[0], ends):
+    for t, start, end in zip(tasks, ends - counts, ends):
         hidden, shadowed, off_axis = out.shadowed[0, start:end], out.shadowed[1, start:end], out.off_axis[1, start:end]
         n = end - start
         here = [_missed("camera_view", float(costs.ln_count_cost(np.sum(hidden))),
