@@ -73,14 +73,14 @@ def judge_all(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list[C
     return [judge(t, x, shot, shared.rows(k)) for k, (t, x) in enumerate(zip(tasks, lent))]
 
 
-def judge(task: Task, lent: Lent, shot: Shot, gray: Rows | None = None) -> Coverage:
+def judge(task: Task, lent: Lent, shot: Shot, shared: Rows | None = None) -> Coverage:
     """Coverage of `shot` (cell.planning.plan.Shot) on the one-feature `task`, whose own plan lent what
-    does not depend on the camera (Lent); the samples' gray kernel its own or `gray`, its rows of
+    does not depend on the camera (Lent); the samples' gray kernel its own or `shared`, its rows of
     a launch shared with other features (judge_all)."""
     scene = replace(lent.scene, T_cell_cam=shot.T_cell_cam)
     maps = build_maps(task, scene, lent.settings, visible=lent.visible, lamps=shot.lamp_position[None],
                       reflectance=False)
-    problem = evaluate.build_problem(task, scene, maps, focus_m=shot.exposure.focus_m, gray=gray)
+    problem = evaluate.build_problem(task, scene, maps, focus_m=shot.exposure.focus_m, gray=shared)
     e = shot.exposure
     c = evaluate.at_exposure(problem, shot.lamp_position, e.shutter_s, e.f_number, joints=shot.joints,
                              drive=shot.drive)

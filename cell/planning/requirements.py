@@ -321,7 +321,7 @@ def depth_of_field(p: Problem, c: Candidates) -> np.ndarray:
     return depth_of_field_ln(p.task, p.scene, p.focus_m, c.kappa)
 
 
-def depth_of_field_ln(task: Task, scene: Scene, focus_m: float, kappa: ArrayLike) -> np.ndarray:
+def depth_of_field_ln(task: Task, scene: Scene, focus_m: float, kappa: np.ndarray) -> np.ndarray:
     """ln f of depth_of_field at f-numbers kappa, focused at focus_m [m] (a shot's focus and
     f-number alone: the prefilter's too)."""
     lens = task.camera.lens
