@@ -165,6 +165,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="folder for plan.json and the pictures, new or empty (default "
                                  "runs/<task>-plan-<time>); with several tasks, a folder <task> in it for each")
     p.add_argument("--json", action="store_true", help="print plan.json to stdout (several tasks: a list)")
+    p.add_argument("--pictures", choices=("chosen", "all"), default="chosen",
+                   help="pictures of a multi-feature plan's candidate shots: of the chosen ones (default) or all")
     p.add_argument("--workers", metavar="N", help="plan on a Dask LocalCluster of N worker processes "
                                                   "on this machine (127.0.0.1)")
     p.add_argument("--scheduler", metavar="ADDRESS", help="plan on the running Dask cluster of this "

@@ -1,9 +1,11 @@
-"""`cell plan TASK... [--out DIR] [--json] [--workers N | --scheduler ADDRESS]`: exit 0 feasible
-(every feature of every task covered), 1 infeasible (with the reason: the first uncovered feature
-and its cause), 2 bad input. Of several tasks, one refused before its search (a fixed camera the
-arm cannot take) is named with its cause and the others are planned all the same (exit 1). With
---workers or --scheduler the plans' jobs run on Dask (cell.planning.parallel); the plans are the
-serial ones. Progress on stderr (cell.core.progress): bars on a terminal, a few lines elsewhere."""
+"""`cell plan TASK... [--out DIR] [--json] [--pictures chosen|all] [--workers N | --scheduler ADDRESS]`:
+exit 0 feasible (every feature of every task covered), 1 infeasible (with the reason: the first
+uncovered feature and its cause), 2 bad input. Of several tasks, one refused before its search (a
+fixed camera the arm cannot take) is named with its cause and the others are planned all the same
+(exit 1). With --workers or --scheduler the plans' jobs run on Dask (cell.planning.parallel); the
+plans are the serial ones. Every plan.json is written before any picture is drawn; of a
+multi-feature plan's candidate shots only the chosen get pictures, unless --pictures all. Progress
+on stderr (cell.core.progress): bars on a terminal, a few lines elsewhere."""
 
 from __future__ import annotations
 
@@ -25,7 +27,7 @@ from cell.task.loader import load_task
 from cell.planning.whole_part import own_plan, plan_features
 from cell.planning.plan import PlannerSettings, gray_stats
 from cell.report import words
-from cell.report.recorder import write_plan
+from cell.report.recorder import draw_plan, write_plan
 
 if TYPE_CHECKING:
     from cell.planning.plan import Plan
@@ -107,6 +109,9 @@ def command(args: argparse.Namespace) -> int:
             write_plan(result, task, folder)
     if not several and isinstance(results[0], PlanInfeasible):
         raise results[0]
+    for result, task, folder in zip(results, tasks, folders):      # every plan.json first, then pictures
+        if not isinstance(result, PlanInfeasible):
+            draw_plan(result, task, folder, args.pictures)
     if args.json:
         documents = [refused_json(task, result) if isinstance(result, PlanInfeasible) else result.to_json()
                      for task, result in zip(tasks, results)]

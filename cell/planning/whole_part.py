@@ -17,7 +17,7 @@ import numpy as np
 
 from cell.collision.scene import CollisionScene, reaching_joints
 from cell.core.progress import Progress, Stage
-from cell.planning import coverage, one_shot, regions
+from cell.planning import coverage, one_shot, prefilter, regions
 from cell.planning.set_cover import fewest_shots
 from cell.planning.parallel import SERIAL
 from cell.planning.plan import FeatureVerdict, Plan, PlannerSettings, Search
@@ -110,9 +110,15 @@ def judge_column(tasks: Sequence[Task], f: int, shot: Shot, lent: Sequence[Lent]
                  say: Callable[[str], None]) -> Column:
     """A job: (the Coverage of feature f's candidate `shot` on every other feature, whose own
     first plan lent its samples and maps (`lent`, coverage.Lent; None at f: its plan's verdict
-    stands), its own time [s])."""
+    stands), its own time [s]). Only the features the prefilter (cell.planning.prefilter) leaves
+    are judged in full, their samples' gray kernel launched once for all (coverage.judge_all): a
+    part's many features are mostly out of one shot's view."""
     start = time.perf_counter()
-    column = [None if g == f else coverage.judge(t, lent[g], shot) for g, t in enumerate(tasks)]
+    missed = prefilter.missed(tasks, lent, shot, f)
+    left = [g for g in range(len(tasks)) if g != f and not missed[g]]
+    judged = dict(zip(left, coverage.judge_all([tasks[g] for g in left], [lent[g] for g in left], shot)))
+    column = [None if g == f else judged[g] if g in judged else coverage.rejected(t, missed[g])
+              for g, t in enumerate(tasks)]
     return column, time.perf_counter() - start
 
 
