@@ -183,9 +183,8 @@ def visit_order(plan: Plan, devices: Devices, recorder: Recorder) -> tuple[tuple
     D = route.travel_matrix((camera, lamp), [(s.camera_position, s.lamp_position) for s in plan.shots])
     order = route.shortest_order(D)
     travel = route.length(D, order)
-    exact = "exact" if len(order) <= route.EXACT_MAX else "nearest neighbour"
     recorder.step("route", f"shots in the order {list(order)}: {travel:.3f} m of camera and lamp "
-                           f"travel from the start ({exact})", order=list(order),
+                           f"travel from the start ({route.method(len(order))})", order=list(order),
                   travel_m=travel, start={"camera_m": camera, "lamp_m": lamp})
     return order, travel
 
@@ -246,10 +245,10 @@ class InspectionResult(Result):
 
 
 def plan_logged(task: Task, recorder: Recorder) -> Plan:
-    """plan_features (the function `cell plan` uses for several features), plan.json and its
-    pictures in the run folder, logged."""
+    """plan_features (the function `cell plan` uses for several features), plan.json in the run
+    folder (its pictures when the run has ended), logged."""
     from cell.planning.whole_part import plan_features
-    plan = plan_features(task, progress=recorder.progress)
+    plan = plan_features(task, progress=recorder.out.labelled(" " * 16))
     recorder.write_plan(plan, task)
     covered = sum(f.covered_by is not None for f in plan.features)
     verdict = "feasible" if plan.feasible else "PARTIAL"
@@ -289,7 +288,8 @@ def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices],
             require_feasible(plan)
             devices = session.devices = connect(plan.plans[candidate_features(plan).index(0)].planned_scene)
             order, travel = visit_order(plan, devices, recorder)
-            write_cell_view(recorder.folder / "cell.html", plan, task, order)     # the route drawn in its order
+            # the route drawn in its order, over the plan's own cell.html, once the run has ended
+            recorder.later(lambda: write_cell_view(recorder.folder / "cell.html", plan, task, order))
             context = RunContext(task, devices, recorder, max_iterations)
             for n, s in enumerate(order):
                 recorder.step("shot", f"shot {n + 1} of {len(order)} (plan's shot {s}): "
