@@ -6,6 +6,7 @@ the offset; a capture that gives registration nothing to align on keeps the mode
 the ring task the model's image has every light at the capture's drives, as the simulator's."""
 import json
 import re
+
 import cv2
 import numpy as np
 import pytest
