@@ -23,6 +23,7 @@ from cell.planning.whole_part import own_plan, plan_features
 from cell.planning.plan import PlannerSettings, gray_stats
 from cell.report import words
 from cell.report.recorder import write_plan
+from cell.run.moves import with_moves
 
 if TYPE_CHECKING:
     from cell.planning.plan import Plan
@@ -114,10 +115,11 @@ def command(args: argparse.Namespace) -> int:
 
 def plan_one(task: Task, say: Callable[[str], None], pool: parallel.Pool) -> Plan:
     """`cell plan`'s Plan of a task: planner.plan's of one feature at the task's camera rule (one
-    job of `pool`), plan_features' of several or of planned viewpoints."""
+    job of `pool`), plan_features' of several or of planned viewpoints, with its route's checked
+    moves (cell.run.moves)."""
     if len(task.features) == 1 and task.camera.viewpoint.mode == "fixed":
         return pool.map(own_plan, [(task, PlannerSettings(), None, None, "")], say)[0]
-    return plan_features(task, progress=say, pool=pool)
+    return with_moves(task, plan_features(task, progress=say, pool=pool))
 
 
 def worker_count(args: argparse.Namespace) -> int | None:
