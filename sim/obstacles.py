@@ -1,6 +1,6 @@
 """The simulated cell's own collision check: what the simulated arm and pan-tilt would hit as they
 move, independent of the planner's cell.collision (other geometry, other distances): the part
-and the fixture as trimesh's even surface samples in a k-d tree, the camera and lamp housings as
+and the fixture as points on a grid over each triangle (`surface_points`) in a k-d tree, the camera and lamp housings as
 sampled boxes of the task's `cell.collision` sizes, the UR5e's links as the segments between its
 joint origins (cell.devices.ur5e's kinematics, which the real controller shares) with the tube
 radii of UR's drawings. A moving body touches another where a sample of one lies within
@@ -26,8 +26,10 @@ from cell.devices import ur5e
 if TYPE_CHECKING:
     from cell.task.types import Task
 
-CONTACT_M = 0.002           # closer than this: touching (the surface samples' spacing)
-STEP_M = 0.002              # the least step of conservative advancement
+CONTACT_M = 0.004           # closer than this: touching (the surface samples' spacing; the
+                            # planner keeps 10 mm of padding)
+STEP_M = 0.004              # the least step of conservative advancement
+FAR_M = 0.1                 # gaps are looked for up to this far (a k-d tree's search stops there)
 REACH_M = 1.3               # the UR5e's farthest point from any of its axes, a camera on its flange
 # the UR5e's tubes (UR's drawings): base and shoulder 75 mm, upper arm 55, elbow and forearm 45,
 # wrists 45 mm in radius; the upper arm runs 138 mm off the DH line along joint 2's axis
@@ -48,12 +50,37 @@ class Contact:
                 "(cell frame): protective stop, nothing moved beyond the last clear pose")
 
 
+def surface_points(mesh: trimesh.Trimesh, spacing: float = CONTACT_M) -> np.ndarray:
+    """Points on every triangle of the mesh on a barycentric grid of n steps a side, n = its
+    longest edge / spacing rounded up: a triangle's every point lies within `spacing` of one."""
+    out = []
+    tri = mesh.triangles
+    longest = np.max(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2), axis=1)
+    steps = np.maximum(1, np.ceil(longest / spacing)).astype(int)
+    for n in np.unique(steps):
+        i, j = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
+        keep = i + j <= n
+        w = np.column_stack([i[keep], j[keep]]) / n                   # barycentric weights of vertices 1, 2
+        t = tri[steps == n]
+        out.append((t[:, None, 0] + w[None, :, :1] * (t[:, None, 1] - t[:, None, 0])
+                    + w[None, :, 1:] * (t[:, None, 2] - t[:, None, 0])).reshape(-1, 3))
+    return np.vstack(out)
+
+
 def _box_samples(size: np.ndarray) -> np.ndarray:
-    """Points on the surface of a box of `size` centred at 0, spaced at most CONTACT_M."""
-    box = trimesh.creation.box(extents=size)
-    n = int(np.ceil(box.area / CONTACT_M ** 2)) * 2
-    points, _ = trimesh.sample.sample_surface_even(box, n, radius=0.5 * CONTACT_M, seed=3)
-    return np.vstack([points, box.vertices])
+    """Points on the surface of a box of `size` centred at 0: a square grid on each face, its
+    pitch at most CONTACT_M."""
+    half = 0.5 * np.asarray(size, float)
+    faces = []
+    for axis in range(3):
+        u, v = [k for k in range(3) if k != axis]
+        gu, gv = (np.linspace(-half[k], half[k], int(np.ceil(2 * half[k] / CONTACT_M)) + 1) for k in (u, v))
+        U, V = np.meshgrid(gu, gv, indexing="ij")
+        for side in (-1.0, 1.0):
+            face = np.empty((U.size, 3))
+            face[:, axis], face[:, u], face[:, v] = side * half[axis], U.ravel(), V.ravel()
+            faces.append(face)
+    return np.vstack(faces)
 
 
 class Obstacles:
@@ -68,10 +95,9 @@ class Obstacles:
             fixed.append(("fixture", c.fixture))
         points, names = [], []
         for name, mesh in fixed:
-            n = int(np.ceil(mesh.area / CONTACT_M ** 2)) * 2
-            p, _ = trimesh.sample.sample_surface_even(mesh, n, radius=0.5 * CONTACT_M, seed=4)
-            points.append(np.vstack([p, mesh.vertices]))
-            names += [name] * (len(p) + len(mesh.vertices))
+            p = surface_points(mesh)
+            points.append(p)
+            names += [name] * len(p)
         self.fixed = cKDTree(np.vstack(points))
         self.fixed_names = np.array(names)
         self.camera_local = _box_samples(np.asarray(c.camera_size_m)) + (0.0, 0.0, c.camera_offset_m)
@@ -80,6 +106,8 @@ class Obstacles:
         self.pivot = np.asarray(task.lamp.rig.pivot_m, float)
         self.arm_joints: np.ndarray | None = None       # set by the arm as it moves
         self.lamp_position: np.ndarray | None = None    # set by the lamp as it moves
+        self._cache_key: tuple[object, ...] | None = None
+        self._cache_tree: cKDTree | None = None
 
     # -- the bodies at a pose -----------------------------------------------------------------
 
@@ -114,27 +142,54 @@ class Obstacles:
 
     # -- the checks -------------------------------------------------------------------------------
 
-    def gap(self, q: np.ndarray | None, lamp: np.ndarray | None) -> tuple[float, Contact]:
+    def _tree(self, key: tuple[float, ...], points: np.ndarray) -> cKDTree:
+        """A k-d tree of a body that stands still while the other moves, kept while it does."""
+        if self._cache_key != key or self._cache_tree is None:
+            self._cache_key, self._cache_tree = key, cKDTree(points)
+        return self._cache_tree
+
+    def arm_points(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[str]]:
+        """(points, each one's radius, each one's body name) of the arm at joints q: the camera
+        housing's samples (radius 0) and the links' axes."""
+        bodies = [("camera housing", self.camera(q), 0.0), *self.links(q)]
+        points = np.vstack([p for _, p, _ in bodies])
+        radii = np.concatenate([np.full(len(p), r) for _, p, r in bodies])
+        names = [name for name, p, _ in bodies for _ in range(len(p))]
+        return points, radii, names
+
+    def gap(self, q: np.ndarray | None, lamp: np.ndarray | None, lamp_moves: bool = False) -> tuple[float, Contact]:
         """The smallest gap [m] between a moving body (the arm at joints q, the lamp at `lamp`;
-        either None: not checked) and another, and those two (a Contact where it is)."""
-        lamp_points = None if lamp is None else self.lamp(lamp)
-        lamp_tree = None if lamp_points is None else cKDTree(lamp_points)
-        best = (np.inf, Contact("", "", np.zeros(3)))
-        moving: list[tuple[str, np.ndarray, float]] = []
-        if q is not None:
-            moving = [("camera housing", self.camera(q), 0.0), *self.links(q)]
-        if lamp_points is not None:
-            moving.append(("lamp housing", lamp_points, 0.0))
-        for name, points, radius in moving:
-            d, k = self.fixed.query(points)
+        either None: absent) and another, and those two (a Contact where it is); FAR_M when none
+        is nearer. Only the pairs the move changes: the arm's with the fixed bodies and the lamp,
+        or (`lamp_moves`) the lamp's with the fixed bodies and the arm, in a k-d tree of the one
+        standing still."""
+        best = (FAR_M, Contact("", "", np.zeros(3)))
+
+        def nearer(d: np.ndarray, where: np.ndarray, moving, other) -> None:
+            nonlocal best
             i = int(np.argmin(d))
-            if d[i] - radius < best[0]:
-                best = (float(d[i] - radius), Contact(name, str(self.fixed_names[k[i]]), points[i]))
-            if lamp_tree is not None and name != "lamp housing":
-                d, _ = lamp_tree.query(points)
-                i = int(np.argmin(d))
-                if d[i] - radius < best[0]:
-                    best = (float(d[i] - radius), Contact(name, "lamp housing", points[i]))
+            if d[i] < best[0]:
+                best = (float(d[i]), Contact(moving(i), other(i), where[i]))
+
+        lamp_points = None if lamp is None else self.lamp(lamp)
+        if q is not None:
+            points, radii, names = self.arm_points(q)
+            if not lamp_moves:
+                d, k = self.fixed.query(points, distance_upper_bound=radii.max() + FAR_M)
+                nearer(d - radii, points, names.__getitem__, lambda i: str(self.fixed_names[k[i]]))
+            if lamp_points is not None and not lamp_moves:
+                tree = self._tree(("lamp", *np.round(lamp, 12)), lamp_points)
+                d, _ = tree.query(points, distance_upper_bound=radii.max() + FAR_M)
+                nearer(d - radii, points, names.__getitem__, lambda i: "lamp housing")
+            elif lamp_points is not None:
+                tree = self._tree(("arm", *np.round(q, 12)), points)
+                d, k = tree.query(lamp_points, distance_upper_bound=radii.max() + FAR_M)
+                found = np.isfinite(d)
+                d[found] -= radii[k[found]]
+                nearer(d, lamp_points, lambda i: "lamp housing", lambda i: names[k[i]])
+        if lamp_points is not None and (lamp_moves or q is None):
+            d, k = self.fixed.query(lamp_points, distance_upper_bound=FAR_M)
+            nearer(d, lamp_points, lambda i: "lamp housing", lambda i: str(self.fixed_names[k[i]]))
         return best
 
     def arm_move(self, path: list[np.ndarray]) -> Contact | None:
@@ -163,7 +218,7 @@ class Obstacles:
             + abs(b[2] - a[2])
         s = 0.0
         while True:
-            d, contact = self.gap(self.arm_joints, lamp_at((1 - s) * a + s * b))
+            d, contact = self.gap(self.arm_joints, lamp_at((1 - s) * a + s * b), lamp_moves=True)
             if d < CONTACT_M:
                 return contact
             if s >= 1.0:
