@@ -210,7 +210,7 @@ def plan_move(scene: CollisionScene, arm: ArmConfig, start: End, a: Stop, end: E
         steps += n
         if found.ok:
             return _with_lamp(scene, Move(start, end, found, via, steps, joints_end=q), a, b)
-    return Move(start, end, direct, (), steps)
+    return Move(start, end, direct, (), steps, (a.T_cell_cam[:3, 3], b.T_cell_cam[:3, 3]))
 
 
 def _through(scene: CollisionScene, poses: list[np.ndarray], q: np.ndarray,
