@@ -9,12 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial import cKDTree
 
 from cell.cli import main
 from cell.collision.paths import plan_move
 from cell.collision.scene import CollisionScene
 from cell.core import geometry
 from cell.core.errors import DeviceFault
+from cell.devices import ur5e
 from cell.planning.scene import look_at
 from cell.task.loader import load_task
 from sim.arm import SimArm
@@ -101,3 +103,172 @@ def test_the_beam_example_runs_through_its_via_points_and_the_sim_never_stops_it
     for line, T in zip(via, planned):                     # at the planned via points, in turn
         assert np.allclose(line["position_m"], np.asarray(T)[:3, 3], atol=1e-9)
     assert not any(line["step"] == "fault" for line in log)
+
+
+# --- the Done-when check: every planned path, densely sampled against the meshes ------------
+# Shares no path or distance code with cell.collision: the camera's moveL re-interpolated by
+# scipy's Slerp at steps of at most DENSE_M for any point of the arm (joints by the UR5e's inverse
+# kinematics nearest the last), the lamp's joints linearly; each body's surface sampled by trimesh
+# (boxes as trimesh primitives, the links as points along their axes every DENSE_M, less their
+# radii), the nearest pairs by k-d trees. Sampled surfaces lie no nearer than the surfaces: a
+# distance found below the padding is a contact the planner let through.
+
+DENSE_M = 0.002
+FAR_M = 0.05                # distances are searched up to this; farther pairs count as this far
+
+
+def box_points(size):
+    return trimesh.sample.sample_surface_even(trimesh.creation.box(extents=size), 4000, radius=0.6 * DENSE_M,
+                                              seed=7)[0]
+
+
+class Dense:
+    """A task's bodies for the dense check."""
+
+    def __init__(self, task, step=DENSE_M):
+        from cell.collision.scene import MAY_TOUCH
+        c, self.task, self.may_touch, self.step = task.cell.collision, task, MAY_TOUCH, step
+        fixed = [("part", task.part.mesh.copy().apply_transform(task.frames.T_cell_part))]
+        if c.fixture is not None:
+            fixed.append(("fixture", c.fixture))
+        self.fixed = [(name, cKDTree(trimesh.sample.sample_surface_even(
+            m, int(m.area / DENSE_M ** 2), radius=0.5 * DENSE_M, seed=5)[0])) for name, m in fixed]
+        self.camera = box_points(c.camera_size_m) + (0.0, 0.0, c.camera_offset_m)
+        self.lamp_size = np.asarray(c.lamp_size_m, float)
+        self.lamp_local = box_points(c.lamp_size_m)
+
+    def lamp(self, joints):
+        from cell.devices.rig import lamp_position
+        pivot = np.asarray(self.task.lamp.rig.pivot_m, float)
+        p = lamp_position(pivot, *joints)
+        z = (pivot - p) / np.linalg.norm(pivot - p)
+        x = np.cross((0.0, 0.0, 1.0), z)
+        x = x / np.linalg.norm(x) if np.linalg.norm(x) > 1e-9 else np.array([1.0, 0.0, 0.0])
+        return self.lamp_local @ np.column_stack([x, np.cross(z, x), z]).T + p - 0.5 * self.lamp_size[2] * z
+
+    def nearest(self, q, lamp_joints):
+        """(the smallest distance between bodies that may not touch, which two) at joints q and
+        the lamp's joints (None: no lamp)."""
+        from cell.collision.scene import arm_links
+        flange = self.task.frames.T_cell_base @ ur5e.forward(q)
+        bodies = [("camera_body", self.camera @ flange[:3, :3].T + flange[:3, 3], 0.0)]
+        for link in arm_links(self.task.frames.T_cell_base, q):
+            n = int(np.ceil(np.linalg.norm(link.b - link.a) / DENSE_M)) + 1
+            bodies.append((link.name, link.a + np.linspace(0, 1, n)[:, None] * (link.b - link.a), link.radius_m))
+        if lamp_joints is not None:
+            bodies.append(("lamp_body", self.lamp(lamp_joints), 0.0))
+        best = (np.inf, ("", ""))
+        trees = [(name, cKDTree(p), r) for name, p, r in bodies]
+        for i, (a, pa, ra) in enumerate(bodies):
+            others = [(b, t, 0.0) for b, t in self.fixed] + [(b, t, rb) for b, t, rb in trees[i + 1:]]
+            for b, tree, rb in others:
+                if frozenset((a, b)) in self.may_touch:
+                    continue
+                d = min(float(tree.query(pa, distance_upper_bound=FAR_M + ra + rb)[0].min()) - ra - rb, FAR_M)
+                best = min(best, (d, (a, b)))
+        return best
+
+    def path(self, T_a, T_b, q):
+        """The joints along the moveL from T_a (joints q) to T_b, no point of the arm moving more
+        than self.step between two (each joint's sweep times the arm's 1.3 m reach with a camera)."""
+        from scipy.spatial.transform import Rotation, Slerp
+        frames = self.task.frames
+        slerp = Slerp([0.0, 1.0], Rotation.from_matrix([T_a[:3, :3], T_b[:3, :3]]))
+        n = max(2, int(np.linalg.norm(T_b[:3, 3] - T_a[:3, 3]) / self.step))
+        while True:
+            s = np.linspace(0.0, 1.0, n + 1)
+            joints = [np.asarray(q, float)]
+            for k in range(1, n + 1):
+                T = np.eye(4)
+                T[:3, :3], T[:3, 3] = slerp(s[k]).as_matrix(), (1 - s[k]) * T_a[:3, 3] + s[k] * T_b[:3, 3]
+                joints.append(ur5e.inverse(frames.T_base_flange(frames.T_base_cam(T)), joints[-1]))
+            sweep = float(np.abs(np.diff(joints, axis=0)).sum(axis=1).max()) * 1.3
+            if sweep <= self.step:
+                return joints
+            n = int(np.ceil(n * sweep / self.step))
+
+
+def densely_checked(task, plan, moves):
+    """The smallest distance over every move's path (the arm's through its via points, the lamp
+    parked at the last shot's joints; then the lamp's, the arm at the shot), as in cell.run:
+    [(distance, bodies, move)]."""
+    from cell.collision.paths import home_stop
+    dense, found = Dense(task), []
+    home = home_stop(CollisionScene.of(task))
+    q, T, lamp = home.arm_joints, home.T_cell_cam, None
+    for move in moves:
+        shot = plan.shots[move.end]
+        corners = [T, *move.via, shot.T_cell_cam]
+        for T_a, T_b in zip(corners, corners[1:]):
+            joints = dense.path(T_a, T_b, q)
+            found += [(*dense.nearest(j, lamp), move.end) for j in joints]
+            q = joints[-1]
+        start = np.asarray(shot.joints if lamp is None else lamp, float)
+        end = np.asarray(shot.joints, float)
+        sweep = (np.abs(end[:2] - start[:2]).sum() * (max(start[2], end[2]) + 0.15) + abs(end[2] - start[2]))
+        for s in np.linspace(0.0, 1.0, max(2, int(np.ceil(sweep / DENSE_M)) + 1)):
+            found.append((*dense.nearest(q, (1 - s) * start + s * end), move.end))
+        T, lamp = shot.T_cell_cam, shot.joints
+    return found
+
+
+def assert_every_path_keeps_the_padding(task, plan):
+    from cell.run.moves import with_moves
+    planned = with_moves(task, plan)
+    assert planned.moves and all(m.clear for m in planned.moves)
+    found = densely_checked(task, planned, planned.moves)
+    d, bodies, shot = min(found, key=lambda f: f[0])
+    assert d >= task.cell.collision.padding_m, f"{bodies} {d * 1e3:.1f} mm apart on the way to shot {shot}"
+
+
+def test_the_wall_moves_keep_the_padding_along_their_whole_path_by_a_dense_check(tmp_path):
+    """The wall of test_collision between two shots: the planner's via path at every 5 mm a point
+    of the arm travels (the long tests' 2 mm on the examples), 4-5x denser than its own steps."""
+    task = wall_task(tmp_path)
+    b = stop(task, 0.15)
+    a = stop(task, -0.15, b.arm_joints)
+    move = plan_move(CollisionScene.of(task), task.cell.devices.arm, 0, a, 1, b)
+    dense = Dense(task, step=0.005)
+    found, q, corners = [], a.arm_joints, [a.T_cell_cam, *move.via, b.T_cell_cam]
+    for T_a, T_b in zip(corners, corners[1:]):
+        joints = dense.path(T_a, T_b, q)
+        found += [dense.nearest(j, a.lamp_joints) for j in joints]
+        q = joints[-1]
+    assert len(move.via) == 2 and len(found) > 5 * move.steps
+    assert min(found)[0] >= task.cell.collision.padding_m
+
+
+@pytest.mark.long          # 1-3 min: the examples' plans and their paths densely
+@pytest.mark.parametrize("example", ["bracket.yaml", "conrod-beam.yaml"])
+def test_every_example_path_keeps_the_padding_by_a_dense_check(example):
+    from cell.planning.whole_part import plan_features
+    task = load_task(ROOT / "tasks" / example)
+    assert_every_path_keeps_the_padding(task, plan_features(task))
+
+
+@pytest.mark.long          # 1-2 min a part
+@pytest.mark.parametrize("part", ["sphere_cap", "lying_cylinder", "filleted_block"])
+def test_generated_parts_with_random_features_keep_the_padding_on_every_path(tmp_path, part):
+    """A part of tasks/make_parts.py with two random features (centres of triangles facing up,
+    at least 20 mm apart) and a random camera direction within 30 deg of vertical."""
+    from cell.planning.whole_part import plan_features
+    rng = np.random.default_rng(abs(hash(part)) % 2**32)
+    mesh = trimesh.load(ROOT / "tasks" / "parts" / f"{part}.stl")
+    up = np.flatnonzero(mesh.face_normals[:, 2] > 0.95)
+    centres = mesh.triangles_center[up]
+    first = centres[rng.integers(len(centres))]
+    far = centres[np.linalg.norm(centres - first, axis=1) > 20.0]
+    second = far[rng.integers(len(far))]
+    tilt, pan = np.radians(rng.uniform(0, 30)), rng.uniform(0, 2 * np.pi)
+    direction = [np.sin(tilt) * np.cos(pan), np.sin(tilt) * np.sin(pan), np.cos(tilt)]
+    features = [{"name": f"f{k}", "center_mm": np.round(c, 3).tolist(), "radius_mm": 2.0, "samples": 16}
+                for k, c in enumerate((first, second))]
+    path = variant(tmp_path, BEAM, {"part.mesh": str(ROOT / "tasks" / "parts" / f"{part}.stl"),
+                                    "features": features, "camera.view_direction": direction,
+                                    "cell.collision": {}, "requirements.gray_band": [10, 250],
+                                    "requirements.depth_of_field_m": 0.002,
+                                    "lamp.rig.pivot_m": (0.5e-3 * (first + second)).tolist()})
+    task = load_task(path)
+    plan = plan_features(task)
+    assert plan.feasible, plan.message
+    assert_every_path_keeps_the_padding(task, plan)
