@@ -4,6 +4,7 @@
 before anything moves, exit 1, naming both bodies and where; the example's run goes through the
 via points."""
 import json
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -252,7 +253,7 @@ def test_generated_parts_with_random_features_keep_the_padding_on_every_path(tmp
     """A part of tasks/make_parts.py with two random features (centres of triangles facing up,
     at least 20 mm apart) and a random camera direction within 30 deg of vertical."""
     from cell.planning.whole_part import plan_features
-    rng = np.random.default_rng(abs(hash(part)) % 2**32)
+    rng = np.random.default_rng(zlib.crc32(part.encode()))
     mesh = trimesh.load(ROOT / "tasks" / "parts" / f"{part}.stl")
     up = np.flatnonzero(mesh.face_normals[:, 2] > 0.95)
     centres = mesh.triangles_center[up]
@@ -260,7 +261,7 @@ def test_generated_parts_with_random_features_keep_the_padding_on_every_path(tmp
     far = centres[np.linalg.norm(centres - first, axis=1) > 20.0]
     second = far[rng.integers(len(far))]
     tilt, pan = np.radians(rng.uniform(0, 30)), rng.uniform(0, 2 * np.pi)
-    direction = [np.sin(tilt) * np.cos(pan), np.sin(tilt) * np.sin(pan), np.cos(tilt)]
+    direction = [float(np.sin(tilt) * np.cos(pan)), float(np.sin(tilt) * np.sin(pan)), float(np.cos(tilt))]
     features = [{"name": f"f{k}", "center_mm": np.round(c, 3).tolist(), "radius_mm": 2.0, "samples": 16}
                 for k, c in enumerate((first, second))]
     path = variant(tmp_path, BEAM, {"part.mesh": str(ROOT / "tasks" / "parts" / f"{part}.stl"),
