@@ -142,7 +142,7 @@ class Obstacles:
 
     # -- the checks -------------------------------------------------------------------------------
 
-    def _tree(self, key: tuple[float, ...], points: np.ndarray) -> cKDTree:
+    def _tree(self, key: tuple[object, ...], points: np.ndarray) -> cKDTree:
         """A k-d tree of a body that stands still while the other moves, kept while it does."""
         if self._cache_key != key or self._cache_tree is None:
             self._cache_key, self._cache_tree = key, cKDTree(points)
@@ -178,7 +178,7 @@ class Obstacles:
                 d, k = self.fixed.query(points, distance_upper_bound=radii.max() + FAR_M)
                 nearer(d - radii, points, names.__getitem__, lambda i: str(self.fixed_names[k[i]]))
             if lamp_points is not None and not lamp_moves:
-                tree = self._tree(("lamp", *np.round(lamp, 12)), lamp_points)
+                tree = self._tree(("lamp", *np.round(lamp_points[0], 12)), lamp_points)
                 d, _ = tree.query(points, distance_upper_bound=radii.max() + FAR_M)
                 nearer(d - radii, points, names.__getitem__, lambda i: "lamp housing")
             elif lamp_points is not None:

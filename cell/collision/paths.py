@@ -238,6 +238,7 @@ def _with_lamp(scene: CollisionScene, move: Move, a: Stop, b: Stop) -> Move:
     corners = tuple(T[:3, 3] for T in (a.T_cell_cam, *move.via, b.T_cell_cam))
     travel = float(sum(np.linalg.norm(q - p) for p, q in pairwise(corners)))
     least, n = move.clearance, 0
+    assert move.joints_end is not None, "a clear arm move arrives somewhere"
     if b.lamp_joints is not None:
         start = b.lamp_joints if a.lamp_joints is None else a.lamp_joints
         c, n = lamp_path(scene, b.T_cell_cam, move.joints_end, start, b.lamp_joints)

@@ -187,9 +187,14 @@ def visit_order(task: Task, plan: Plan, devices: Devices,
                              f"infeasible: {blocked.reason()}")
     travel = float(sum(m.travel_m for m in moves))
     via = sum(len(m.via) for m in moves)
+    with speaking_for(devices.arm):
+        camera = devices.arm.camera_pose()[:3, 3]
+    with speaking_for(devices.lamp):
+        lamp = devices.lamp.lamp_pose()[0]
     recorder.step("route", f"shots in the order {list(order)}: {travel:.3f} m of camera and lamp travel from "
                            f"the start, every move collision-checked ({words.count(via, 'via point')})",
-                  order=list(order), travel_m=travel, moves=[m.to_json() for m in moves])
+                  order=list(order), travel_m=travel, start={"camera_m": camera, "lamp_m": lamp},
+                  moves=[m.to_json() for m in moves])
     return order, travel, moves
 
 

@@ -29,8 +29,12 @@ HOME_TOLERANCE_M = 1e-3          # a start pose this close to home starts the pl
 def stops(task: Task, plan: Plan) -> list[Stop]:
     """The plan's shots as stops of the arm and the lamp: the joints the planner chose (or the
     inverse kinematics nearest the home joints), the lamp's joints."""
-    return [Stop(shot.T_cell_cam, np.asarray(reaching_joints(task.frames, shot.T_cell_cam, shot.arm_joints)),
-                 tuple(shot.joints)) for shot in plan.shots]
+    out = []
+    for shot in plan.shots:
+        pan, tilt, radius = shot.joints
+        q = reaching_joints(task.frames, shot.T_cell_cam, shot.arm_joints)
+        out.append(Stop(shot.T_cell_cam, np.asarray(q, float), (pan, tilt, radius)))
+    return out
 
 
 def with_moves(task: Task, plan: Plan) -> Plan:
@@ -69,7 +73,8 @@ def run_moves(task: Task, plan: Plan, devices: Devices) -> list[Move]:
     with speaking_for(devices.arm):
         T = devices.arm.camera_pose()
     with speaking_for(devices.lamp):
-        lamp = tuple(float(j) for j in devices.lamp.joints())
+        pan, tilt, radius = devices.lamp.joints()
+    lamp = (float(pan), float(tilt), float(radius))
     scene, arm = CollisionScene.of(task), task.cell.devices.arm
     home = home_stop(scene)
     at_home = (np.linalg.norm(T[:3, 3] - home.T_cell_cam[:3, 3]) <= HOME_TOLERANCE_M
@@ -77,10 +82,10 @@ def run_moves(task: Task, plan: Plan, devices: Devices) -> list[Move]:
     q = home.arm_joints if at_home else reaching_joints(task.frames, T)
     at = Stop(T, np.asarray(ur5e.HOME_JOINTS if q is None else q, float),
               lamp if np.all(np.isfinite(lamp)) else None)
-    targets, moves = stops(task, plan), []
-    for planned in plan.moves:
-        if moves and moves[-1].joints_end is not None and planned.joints_end is not None and \
-                np.allclose(moves[-1].joints_end, plan.moves[len(moves) - 1].joints_end, atol=1e-6):
+    targets, moves = stops(task, plan), list[Move]()
+    for k, planned in enumerate(plan.moves):
+        arrived, foreseen = (moves[-1].joints_end, plan.moves[k - 1].joints_end) if moves else (None, None)
+        if arrived is not None and foreseen is not None and np.allclose(arrived, foreseen, atol=1e-6):
             moves.append(planned)
         else:
             move = plan_move(scene, arm, planned.start if moves or at_home else "start", at,
