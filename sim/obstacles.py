@@ -68,19 +68,8 @@ def surface_points(mesh: trimesh.Trimesh, spacing: float = CONTACT_M) -> np.ndar
 
 
 def _box_samples(size: np.ndarray) -> np.ndarray:
-    """Points on the surface of a box of `size` centred at 0: a square grid on each face, its
-    pitch at most CONTACT_M."""
-    half = 0.5 * np.asarray(size, float)
-    faces = []
-    for axis in range(3):
-        u, v = [k for k in range(3) if k != axis]
-        gu, gv = (np.linspace(-half[k], half[k], int(np.ceil(2 * half[k] / CONTACT_M)) + 1) for k in (u, v))
-        U, V = np.meshgrid(gu, gv, indexing="ij")
-        for side in (-1.0, 1.0):
-            face = np.empty((U.size, 3))
-            face[:, axis], face[:, u], face[:, v] = side * half[axis], U.ravel(), V.ravel()
-            faces.append(face)
-    return np.vstack(faces)
+    """Points on the surface of a box of `size` centred at 0 (trimesh's box, `surface_points`)."""
+    return surface_points(trimesh.creation.box(extents=size))
 
 
 class Obstacles:

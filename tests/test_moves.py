@@ -250,25 +250,30 @@ def test_every_example_path_keeps_the_padding_by_a_dense_check(example):
 @pytest.mark.long          # 1-2 min a part
 @pytest.mark.parametrize("part", ["sphere_cap", "lying_cylinder", "filleted_block"])
 def test_generated_parts_with_random_features_keep_the_padding_on_every_path(tmp_path, part):
-    """A part of tasks/make_parts.py with two random features (centres of triangles facing up,
-    at least 20 mm apart) and a random camera direction within 30 deg of vertical."""
+    """A part of tasks/make_parts.py with two random features (centres of triangles facing up
+    within 37 deg, at least 6 mm from any steeper than 60 deg, 10-35 mm apart), a random camera direction within 30 deg
+    of vertical, the lamp's pivot 10 mm above the part's top between them."""
     from cell.planning.whole_part import plan_features
     rng = np.random.default_rng(zlib.crc32(part.encode()))
     mesh = trimesh.load(ROOT / "tasks" / "parts" / f"{part}.stl")
-    up = np.flatnonzero(mesh.face_normals[:, 2] > 0.95)
+    up, side = mesh.face_normals[:, 2] > 0.8, mesh.face_normals[:, 2] < 0.5
+    edges = cKDTree(np.vstack([mesh.triangles[side].reshape(-1, 3), mesh.triangles_center[side]]))
     centres = mesh.triangles_center[up]
+    centres = centres[edges.query(centres)[0] > 6.0]
     first = centres[rng.integers(len(centres))]
-    far = centres[np.linalg.norm(centres - first, axis=1) > 20.0]
-    second = far[rng.integers(len(far))]
+    apart = np.linalg.norm(centres - first, axis=1)
+    near = centres[(apart > 10.0) & (apart < 35.0)]
+    second = near[rng.integers(len(near))]
     tilt, pan = np.radians(rng.uniform(0, 30)), rng.uniform(0, 2 * np.pi)
     direction = [float(np.sin(tilt) * np.cos(pan)), float(np.sin(tilt) * np.sin(pan)), float(np.cos(tilt))]
     features = [{"name": f"f{k}", "center_mm": np.round(c, 3).tolist(), "radius_mm": 2.0, "samples": 16}
                 for k, c in enumerate((first, second))]
+    pivot = [*(0.5e-3 * (first[:2] + second[:2])).tolist(), 1e-3 * float(mesh.bounds[1, 2] + 10.0)]
     path = variant(tmp_path, BEAM, {"part.mesh": str(ROOT / "tasks" / "parts" / f"{part}.stl"),
                                     "features": features, "camera.view_direction": direction,
                                     "cell.collision": {}, "requirements.gray_band": [10, 250],
                                     "requirements.depth_of_field_m": 0.002,
-                                    "lamp.rig.pivot_m": (0.5e-3 * (first + second)).tolist()})
+                                    "lamp.rig.pivot_m": pivot})
     task = load_task(path)
     plan = plan_features(task)
     assert plan.feasible, plan.message
