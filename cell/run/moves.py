@@ -105,6 +105,7 @@ def follow(devices: Devices, move: Move, recorder: Recorder) -> None:
             devices.arm.move_camera(T)
             position = devices.arm.camera_pose()[:3, 3]
         recorder.step("move_via", f"via point {k} of {len(move.via)} on the way to shot {move.end}: camera at "
-                                  f"{np.round(position, 4).tolist()} m in the cell frame (a collision-checked "
-                                  f"path around {' and '.join(move.clearance.bodies)})",
+                                  f"{np.round(position, 4).tolist()} m in the cell frame (the path collision-checked: "
+                                  f"{' and '.join(move.clearance.bodies)} at least "
+                                  f"{1e3 * move.clearance.distance_m:.1f} mm apart)",
                       via=k, to_shot=move.end, position_m=position)
