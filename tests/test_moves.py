@@ -4,6 +4,7 @@
 before anything moves, exit 1, naming both bodies and where; the example's run goes through the
 via points."""
 import json
+import re
 import zlib
 from pathlib import Path
 
@@ -278,3 +279,18 @@ def test_generated_parts_with_random_features_keep_the_padding_on_every_path(tmp
     plan = plan_features(task)
     assert plan.feasible, plan.message
     assert_every_path_keeps_the_padding(task, plan)
+
+
+def test_a_feature_whose_only_shot_collides_is_refused_naming_both_bodies(tmp_path, capsys):
+    """tests/tasks/features/conrod_beam_blocked.yaml: the shank's camera lands in the beam."""
+    out = tmp_path / "plan"
+    assert main(["plan", str(ROOT / "tests" / "tasks" / "features" / "conrod_beam_blocked.yaml"),
+                 "--out", str(out)]) == 1
+    err = capsys.readouterr().err.splitlines()[-1]
+    plan = json.loads((out / "plan.json").read_text())
+    shank = next(f for f in plan["features"] if f["name"] == "shank")
+    assert shank["covered_by"] is None and shank["binding"] == "collision"
+    a, b = re.search(r"collision: (\w+) and (\w+) ", shank["hint"]).groups()
+    assert "fixture" in (a, b) and {a, b} & {"camera_body", "wrist_1", "wrist_2", "wrist_3"}
+    assert "collision" in err and "shank" in err and f"{a} and {b}" in err
+    assert "moves" not in plan                       # a partial plan: nothing to move along
