@@ -1,6 +1,6 @@
 """Write the example part meshes (millimetres, part frame): hinge.yaml's, conrod.yaml's,
-bracket.yaml's and ring.yaml's, conrod-beam.yaml's fixture (cell frame), and the curved parts of the tests' tasks (tests/tasks/): a sphere cap, a cylinder,
-a filleted block.
+bracket.yaml's and ring.yaml's, and for the tests' tasks (tests/tasks/) the curved parts (a sphere
+cap, a cylinder, a filleted block) and conrod_beam.yaml's fixture (a beam, cell frame).
 
 Regenerate with `python tasks/make_parts.py`. Solids are concatenated, not booleaned: the
 planner only casts rays at them, so overlapping closed shells are fine and no CSG library
@@ -175,7 +175,7 @@ def plate():
 
 
 def beam():
-    """conrod-beam.yaml's fixture (cell frame, mm): a beam 10 mm thick (x in [-11, -1]) and 80 mm
+    """conrod_beam.yaml's fixture (cell frame, mm): a beam 10 mm thick (x in [-11, -1]) and 80 mm
     wide (y in [-40, 40]) hanging over the connecting rod between its two bosses, from z = 250 to
     400 mm: clear of the camera above either boss, across the straight line between them."""
     return box((10.0, 80.0, 150.0), (-6.0, 0.0, 325.0))

@@ -29,7 +29,7 @@ from simcell import variant
 from test_collision import stop, wall_task
 
 ROOT = Path(__file__).resolve().parent.parent
-HINGE, BEAM = ROOT / "tasks" / "hinge.yaml", ROOT / "tasks" / "conrod-beam.yaml"
+HINGE, BEAM = ROOT / "tasks" / "hinge.yaml", ROOT / "tests" / "tasks" / "features" / "conrod_beam.yaml"
 
 
 def sim_arm(task, joints):
@@ -71,7 +71,7 @@ def test_the_simulated_pan_tilt_stops_before_the_lamp_hits_the_camera():
 
 
 def test_a_run_whose_move_no_via_points_clear_is_refused_before_anything_moves(tmp_path, capsys):
-    """conrod-beam.yaml's beam 50 mm taller (to z = 450 mm, clear of the wrist above either shot)
+    """conrod_beam.yaml's beam 50 mm taller (to z = 450 mm, clear of the wrist above either shot)
     and the workspace's top at 0.6 m: a retreat of 0.1 m does not clear the beam, one of 0.2 m
     takes the flange out of the workspace."""
     wall = trimesh.creation.box(extents=(10.0, 80.0, 200.0), transform=geometry.transform(translation=(-6, 0, 350)))
@@ -241,10 +241,10 @@ def test_the_wall_moves_keep_the_padding_along_their_whole_path_by_a_dense_check
 
 
 @pytest.mark.long          # 1-3 min: the examples' plans and their paths densely
-@pytest.mark.parametrize("example", ["bracket.yaml", "conrod-beam.yaml"])
+@pytest.mark.parametrize("example", [ROOT / "tasks" / "bracket.yaml", BEAM], ids=["bracket", "conrod_beam"])
 def test_every_example_path_keeps_the_padding_by_a_dense_check(example):
     from cell.planning.whole_part import plan_features
-    task = load_task(ROOT / "tasks" / example)
+    task = load_task(example)
     assert_every_path_keeps_the_padding(task, plan_features(task))
 
 
