@@ -39,10 +39,12 @@ def render_kernel(mesh_id: wp.uint64, origin: wp.vec3d, ray_dirs: wp.array(dtype
                   profile: wp.array2d(dtype=wp.float64),
                   table: wp.array2d(dtype=wp.float64),
                   camera_constant: wp.float64, pixel_area_m2: wp.float64,
+                  shading_normals: wp.array(dtype=wp.vec3d),
                   value: wp.array(dtype=wp.float64), hit: wp.array(dtype=wp.bool),
                   depth: wp.array(dtype=wp.float64), normal: wp.array(dtype=wp.vec3d)):
     """One thread per pixel ray (its hit point's free cones unknown: every shadow ray cast), its
-    value summed over the point lamps (each with its own shadow ray)."""
+    value summed over the point lamps (each with its own shadow ray); shaded with the face's
+    normal, or with shading_normals[i] when given (one per ray: a surface the mesh does not hold)."""
     i = wp.tid()
     d = ray_dirs[i]
     q = wp.mesh_query_ray(mesh_id, wp.vec3(origin), wp.vec3(d), wp.float32(max_dist))
@@ -54,7 +56,10 @@ def render_kernel(mesh_id: wp.uint64, origin: wp.vec3d, ray_dirs: wp.array(dtype
         return
     t = wp.float64(q.t)
     n = wp.vec3d(q.normal)
-    at = funcs.surface(origin + t * d, n, origin, offset_m, wp.float64(NO_CONE), -1)
+    shade_n = n
+    if shading_normals.shape[0] > 0:
+        shade_n = shading_normals[i]
+    at = funcs.surface(origin + t * d, shade_n, origin, offset_m, wp.float64(NO_CONE), -1)
     total = wp.float64(0.0)
     for j in range(lamps.shape[0]):
         sh = funcs.shade_point(mesh_id, shadows, cone, at, no_sectors, lamps[j], lamp_axes[j], intensity_w_sr,
@@ -69,7 +74,7 @@ def render_kernel(mesh_id: wp.uint64, origin: wp.vec3d, ray_dirs: wp.array(dtype
 def render(mesh: "WarpMesh", origin: ArrayLike, ray_dirs: ArrayLike, lamp_pos: ArrayLike, lamp_axis: ArrayLike,
            power_w: float, cone_angle_rad: float, table: ArrayLike, camera_constant: float, pixel_area_m2: float,
            shadows: bool = True, cone: bool = True, offset_m: float = 1e-5, max_dist: float = 10.0,
-           profile: ArrayLike | None = None) -> RenderResult:
+           profile: ArrayLike | None = None, shading_normals: ArrayLike | None = None) -> RenderResult:
     """Shade the first hit of each ray from `origin` (the camera centre) along unit
     `ray_dirs` (N, 3), lit by one lamp, or by E point lamps (lamp_pos, lamp_axis (E, 3), each
     emitting power_w: an extended light's emitter points, cell.planning.lights.emitters), their
@@ -78,7 +83,9 @@ def render(mesh: "WarpMesh", origin: ArrayLike, ray_dirs: ArrayLike, lamp_pos: A
     The hit point is origin + depth * dir (float64 from the float32 hit distance); its normal
     is the mesh's outward face normal (a back face gives cos te <= 0, so R = 0). The shading
     is kernels.funcs.shade_point, the same as gray_per_exposure at that point and normal, with
-    the lamp's angular profile (M, 2) (None: eq. (11)'s ideal cone).
+    the lamp's angular profile (M, 2) (None: eq. (11)'s ideal cone). shading_normals (N, 3), unit,
+    shades each hit with its own normal instead of the face's (a defect's, sim.world); the
+    returned normal stays the face's.
     """
     device = ensure_init()
     dirs = unit_rows(ray_dirs, "ray_dirs")
@@ -89,12 +96,16 @@ def render(mesh: "WarpMesh", origin: ArrayLike, ray_dirs: ArrayLike, lamp_pos: A
         return RenderResult(value, hit, depth, normal)
     lamps = np.asarray(lamp_pos, dtype=np.float64).reshape(-1, 3)
     axes = unit_rows(np.broadcast_to(np.asarray(lamp_axis, dtype=np.float64).reshape(-1, 3), lamps.shape), "lamp_axis")
+    shading = np.zeros((0, 3)) if shading_normals is None else unit_rows(shading_normals, "shading_normals")
+    if len(shading) not in (0, n):
+        raise ValueError(f"shading_normals must have one row per ray ({n}), got {len(shading)}")
     wp.launch(render_kernel, dim=n, device=device, inputs=[
         mesh.id, wp.vec3d(*np.asarray(origin, dtype=np.float64)), vec3d(dirs, "ray_dirs"),
         float(max_dist), int(bool(shadows)), int(bool(cone)), float(offset_m),
         wp.empty((0, funcs.SECTORS), dtype=wp.float64, device=device), vec3d(lamps, "lamp_pos"), vec3d(axes, "lamp_axis"),
         axis_intensity(power_w, cone_angle_rad, profile), profile2d(profile, cone_angle_rad), table2d(table),
         float(camera_constant), float(pixel_area_m2),
+        vec3d(shading, "shading_normals"),
     ], outputs=[value_wp, hit_wp, depth_wp, normal_wp])
     return RenderResult(value, hit, depth, normal)
 

@@ -37,13 +37,21 @@ Effects, applied in the physical order light -> lens -> sensor -> ADC, whatever 
                 full scale and READ_NOISE_E
   black_level   a constant offset, BLACK_LEVEL of full scale (5 gray at 8 bits)
   quantization  gray rounded to integers, clipped to [0, 2^bits - 1] (uint8, or uint16 above 8 bits)
+  defects       each feature's declared defects (`defects`) on the part, where the task puts them
+                (`position_m`, else the feature's centre; moved with the part's true pose), a
+                scratch at sim.truth.defect_orientation of its name, else its range's first; on
+                cell.physics.contrast.footprint: each pixel whose ray hits the defect is shaded
+                again with the defect's normal (a scratch's wall turned by +-atan(2 h / w), a
+                dent's normal leaning by asin(rho / R)) or its material (a coating). One ray per
+                pixel: a groove narrower than a pixel shows at its walls' full contrast in the
+                pixels whose centre it crosses, as the planner assumes (cell.planning.defects)
 """
 
 from __future__ import annotations
 
 from collections.abc import Collection, Mapping
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -51,16 +59,17 @@ from scipy.ndimage import gaussian_filter
 from scipy.special import erfc, ndtr
 
 from cell.core import geometry
+from cell.physics import contrast
 from cell.physics.sensor import (BLACK_LEVEL, FULL_WELL_E, READ_NOISE_E, dark_noise, levels,  # noqa: F401
                                  saturation_level, system_gain)
 from cell.physics.depth_of_field import blur_diameter
 from cell.physics.projection import intrinsics, pixel_rays
 from cell.planning import lights
 from cell.planning.scene import Scene, build_scene
-from kernels.render import render
+from kernels.render import RenderResult, render
 
 if TYPE_CHECKING:
-    from cell.task.types import Sensor, Task
+    from cell.task.types import Defect, Sensor, Task
 
 CONE_EDGE = 1.0 / 6.0       # cone edge blur s as a fraction of the half angle gamma/2
 DEFOCUS_STEP_PX = 0.5       # defocus depth layers: circle of confusion in these steps
@@ -151,17 +160,86 @@ class SensorModel:
         return gray
 
 
+def part_moved(task: Task, scene: Scene) -> np.ndarray:
+    """4x4, cell frame: how the truth moves the part from its model pose, its part_offset_m (cell
+    frame) after turning by part_rpy about the feature centre (the identity when neutral)."""
+    truth = task.sim.truth
+    about = geometry.transform(translation=scene.center)
+    return (geometry.transform(translation=truth.part_offset_m) @ about @ geometry.from_rpy(truth.part_rpy_rad)
+            @ np.linalg.inv(about))
+
+
 def true_part_scene(task: Task, scene: Scene) -> Scene:
-    """The scene with the part at its true pose: T_cell_part moved by the truth's part_offset_m
-    (cell frame) after turning by part_rpy about the feature centre; `scene` itself when neutral."""
+    """The scene with the part at its true pose (part_moved); `scene` itself when neutral."""
     truth = task.sim.truth
     if not (np.any(truth.part_offset_m) or np.any(truth.part_rpy_rad)):
         return scene
-    about = geometry.transform(translation=scene.center)
-    turn = geometry.from_rpy(truth.part_rpy_rad)
-    T_cell_part = (geometry.transform(translation=truth.part_offset_m) @ about @ turn
-                   @ np.linalg.inv(about) @ task.frames.T_cell_part)
+    T_cell_part = part_moved(task, scene) @ task.frames.T_cell_part
     return build_scene(replace(task, frames=task.frames.with_transform("T_cell_part", T_cell_part)))
+
+
+@dataclass(frozen=True)
+class PlacedDefect:
+    """A declared defect where the world has it (cell frame): its position, the feature frame
+    there (columns x, y, n), the offset (x, y) of its position from the feature's centre, the
+    feature's radius, a scratch's orientation [rad] and a coating's BRDF table."""
+
+    defect: Defect
+    position: np.ndarray
+    frame: np.ndarray
+    from_centre: np.ndarray
+    feature_radius_m: float
+    theta_rad: float
+    table: np.ndarray | None
+
+    def parts(self, points: np.ndarray) -> np.ndarray:
+        """(P,) which part of the defect each cell-frame point is on (contrast.footprint)."""
+        d, offsets = self.defect, (points - self.position) @ self.frame[:, :2]
+        if d.kind == "scratch":
+            chord = contrast.scratch_chord(self.from_centre, self.theta_rad, self.feature_radius_m)
+            return contrast.footprint(offsets, "scratch", self.theta_rad, float(d.width_m or 0.0), chord_m=chord)[0]
+        return contrast.footprint(offsets, d.kind, radius_m=float(d.radius_m or 0.0))[0]
+
+    def normals(self, points: np.ndarray, normals: np.ndarray, parts: np.ndarray) -> np.ndarray:
+        """(P, 3) the surface's normals at points on the defect (a coating keeps them)."""
+        d, x_axis = self.defect, self.frame[:, 0]
+        if d.kind == "scratch":
+            tilt = contrast.wall_tilt(float(d.width_m or 0.0), float(d.depth_m or 0.0))
+            return contrast.wall_normals(normals, x_axis, self.theta_rad, tilt, parts)
+        if d.kind == "dent":
+            offsets = (points - self.position) @ self.frame[:, :2]
+            return contrast.dimple_normals(normals, x_axis, offsets, float(d.radius_m or 0.0), float(d.depth_m or 0.0))
+        return normals
+
+
+def placed_defects(task: Task, scene: Scene) -> tuple[PlacedDefect, ...]:
+    """Every feature's declared defects where the world has them: position_m (else the feature's
+    centre) and the feature frame (geometry.frame_from_normal, as the planner's scene) moved with
+    the part's true pose (part_moved); a scratch at the truth's defect_orientation of its name,
+    else its range's first."""
+    T_model, moved = task.frames.T_cell_part, part_moved(task, scene)
+    T_true = moved @ T_model
+    orientation = dict(task.sim.truth.defect_orientation_rad)
+    out = []
+    for f in task.features:
+        centre = (T_true @ np.append(f.center_m, 1.0))[:3]
+        frame = moved[:3, :3] @ geometry.frame_from_normal(T_model[:3, :3] @ f.normal)
+        for d in f.defects:
+            position = centre if d.position_m is None else (T_true @ np.append(d.position_m, 1.0))[:3]
+            table = d.material.table() if d.kind == "coating" and d.material is not None else None
+            out.append(PlacedDefect(d, position, frame, (position - centre) @ frame[:, :2], f.radius_m,
+                                    orientation.get(d.name, d.orientation_rad[0]), table))
+    return tuple(out)
+
+
+class Lit(NamedTuple):
+    """How a capture is lit: the true camera pose (a flange light rides on it), the lamp's
+    position and true axis, the channels' drives (None: all at full)."""
+
+    T_cell_cam: np.ndarray
+    lamp_pos: np.ndarray
+    lamp_axis: np.ndarray
+    drives: Mapping[int, float] | None
 
 
 class Renderer:
@@ -188,6 +266,7 @@ class Renderer:
         self.error_direction_rad = self.rng.uniform(0.0, 2.0 * np.pi)
         self.power_scale = dict(truth.channel_power_scale)
         self.points = lights.emitter_counts(task, self.world, scene.T_cell_cam)
+        self.defects = placed_defects(task, scene) if "defects" in self.effects else ()
 
     def light_factor(self, channel: int | None, drives: Mapping[int, float] | None) -> float:
         """A light's share of its full power in the world: its channel's drive level (1 without a
@@ -201,6 +280,28 @@ class Renderer:
         x, y = geometry.frame_from_normal(aim)[:, :2].T
         error, psi = self.task.sim.truth.lamp_direction_error_rad, self.error_direction_rad
         return np.cos(error) * aim + np.sin(error) * (np.cos(psi) * x + np.sin(psi) * y)
+
+    def shade(self, origin: np.ndarray, dirs: np.ndarray, lit: Lit, table: np.ndarray,
+              normals: np.ndarray | None = None) -> tuple[np.ndarray, RenderResult]:
+        """(value per ray (N,), the spot's kernels.render.RenderResult): the spot (cone_falloff
+        applied) and every light at its drive, shaded with the world's table, and with `normals`
+        (N, 3) instead of the faces' where given."""
+        T_cell_cam, lamp_pos, axis, drives = lit
+        effects, lamp, sensor = self.effects, self.task.lamp, self.task.camera.sensor
+        soft_cone = "cone_falloff" in effects            # then rendered on-axis, scaled here
+        r = render(self.world.warp_mesh, origin, dirs, lamp_pos, axis, lamp.power_w,
+                   lamp.cone_angle_rad, table, self.camera_constant, sensor.pixel_area_m2,
+                   shadows="shadows" in effects, cone=not soft_cone, profile=lamp.profile, shading_normals=normals)
+        if soft_cone:
+            lamp_to_point = origin + r.depth[r.hit, None] * dirs[r.hit] - lamp_pos
+            cos_off_axis = np.clip(np.einsum("nj,j->n", geometry.unit(lamp_to_point), axis), -1.0, 1.0)
+            r.value[r.hit] *= cone_falloff(np.arccos(cos_off_axis), lamp.cone_angle_rad, lamp.profile)
+        value = self.light_factor(lamp.channel.number, drives) * r.value
+        value += lights.rendered(self.world.warp_mesh, origin, dirs, T_cell_cam, self.task.lights, self.points,
+                                 [self.light_factor(light.channel.number, drives) for light in self.task.lights],
+                                 table, self.camera_constant, sensor.pixel_area_m2,
+                                 shadows="shadows" in effects, shading_normals=normals)
+        return value, r
 
     def __call__(self, T_cell_cam: np.ndarray, lamp_pos: np.ndarray, lamp_aim: ArrayLike, shutter_s: float,
                  f_number: float, focus_m: float | None = None,
@@ -217,22 +318,17 @@ class Renderer:
         lamp_pos = lamp_pos - task.sim.truth.lamp_radius_error_m * geometry.unit(lamp_aim)
         # einsum, not BLAS: OpenBLAS threads left spinning after a matmul slow the Warp kernel 4x
         dirs = np.einsum("ij,nj->ni", T_cell_cam[:3, :3], self.rays_cam)
-        axis = self.lamp_axis(lamp_aim)
-        soft_cone = "cone_falloff" in effects            # then rendered on-axis, scaled here
-        lamp = task.lamp
-        r = render(self.world.warp_mesh, origin, dirs, lamp_pos, axis, lamp.power_w,
-                   lamp.cone_angle_rad, self.table, self.camera_constant,
-                   task.camera.sensor.pixel_area_m2, shadows="shadows" in effects, cone=not soft_cone,
-                   profile=lamp.profile)
-        if soft_cone:
-            lamp_to_point = origin + r.depth[r.hit, None] * dirs[r.hit] - lamp_pos
-            cos_off_axis = np.clip(np.einsum("nj,j->n", geometry.unit(lamp_to_point), axis), -1.0, 1.0)
-            r.value[r.hit] *= cone_falloff(np.arccos(cos_off_axis), lamp.cone_angle_rad, lamp.profile)
-        value = self.light_factor(lamp.channel.number, drives) * r.value
-        value += lights.rendered(self.world.warp_mesh, origin, dirs, T_cell_cam, task.lights, self.points,
-                                 [self.light_factor(light.channel.number, drives) for light in task.lights],
-                                 self.table, self.camera_constant, task.camera.sensor.pixel_area_m2,
-                                 shadows="shadows" in effects)
+        lit = Lit(T_cell_cam, lamp_pos, self.lamp_axis(lamp_aim), drives)
+        value, r = self.shade(origin, dirs, lit, self.table)
+        hit = np.flatnonzero(r.hit)
+        points = origin + r.depth[hit, None] * dirs[hit]
+        for placed in self.defects:
+            parts = placed.parts(points)
+            on = parts > 0
+            if on.any():
+                rays = hit[on]
+                value[rays] = self.shade(origin, dirs[rays], lit, self.table if placed.table is None else placed.table,
+                                         placed.normals(points[on], r.normal[rays], parts[on]))[0]
         gray = (value * shutter_s / f_number**2).reshape(self.shape)
         cos_field = self.rays_cam[:, 2].reshape(self.shape)
         if "vignetting" in effects:

@@ -54,6 +54,8 @@ def documented_default(key, cell):
         return cell
     value = yaml.safe_load(re.search(r"`([^`]*)`", cell).group(1))
     suffix = _unit(key.rpartition(".")[2])[1]
+    if isinstance(value, dict):                 # a mapping of names to values in that unit
+        return {k: UNITS[suffix][1](float(v)) for k, v in value.items()} if suffix else value
     return UNITS[suffix][1](np.asarray(value, float)) if suffix and value is not None else value
 
 

@@ -300,6 +300,15 @@ def test_plan_json_names_each_light_its_channel_drive_and_pose(ring_plan, tmp_pa
     assert [c["name"] for c in doc["contributions"]] == ["lamp", "bright_field_ring", "dark_field_ring"]
 
 
+def test_a_feature_s_own_cover_lists_its_contributions(ring_plan):
+    """In a multi-feature plan a shot's own feature lists each light's share like the features it
+    covers besides: the Coverage of a plan is built from its shot's lights."""
+    from cell.planning import coverage
+    task, plan = ring_plan
+    own = coverage.of_plan(task, plan)
+    assert own.lights == plan.shot.lights and len(own.lights) == 3
+
+
 def test_the_drive_tolerance_is_judged(ring_plan):
     """With every drive 5 % high or low the band still holds (lamp_tolerance judges the moved gray,
     which includes both drive extremes)."""

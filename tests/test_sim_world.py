@@ -18,7 +18,7 @@ from cell.planning.one_shot import plan
 from cell.physics.projection import pixel_rays, project
 from cell.devices.rig import lamp_aim
 from cell.planning.scene import build_scene
-from cell.task.types import SimConfig, Truth
+from cell.task.types import Defect, SimConfig, Truth
 from sim import world
 from sim.cell import make_sim_devices
 from sim.world import Renderer
@@ -56,6 +56,10 @@ def plans(hinge):
 
 @pytest.fixture(scope="module")
 def plate(hinge):
+    return plate_world(hinge)
+
+
+def plate_world(hinge):
     """A diffuse (rho 0.3) 160 mm plate, top face z = 0, filling the view (96 x 72 mm) of the
     hinge's camera 0.5 m straight above x = 15 mm, with an 8 mm cube standing on it at x = -15 mm."""
     mesh = trimesh.util.concatenate([box((0.16, 0.16, 0.002), (0.0, 0.0, -0.001)),
@@ -494,3 +498,79 @@ def test_the_planner_ignores_the_truth(plans, tmp_path):
     for document in (first, second):
         del document["timing_s"]
     assert first == second
+
+
+# --- defects (sim.effects: defects) --------------------------------------------------------------
+
+SIDE_LAMP = np.array([0.115, 0.0, 0.1])       # 45 deg above the feature centre (15, 0, 0) mm, from +x
+COATED = Material("coat", "test", phase_rad=np.array([0.0, np.pi]), rho=0.6 * np.ones(2), sigma1=np.zeros(2),
+                  m1=np.ones(2), sigma2=np.zeros(2), m2=2 * np.ones(2))
+PLATE_DEFECTS = {   # each on the plate's feature, 1 mm off its centre (15, 0, 0) mm
+    "scratch": Defect("groove", "scratch", 5.0, width_m=1e-3, depth_m=1e-4, position_m=(0.016, 0.0, 0.0)),
+    "dent": Defect("ding", "dent", 5.0, depth_m=2e-4, radius_m=2e-3, position_m=(0.016, 0.0, 0.0)),
+    "coating": Defect("bare", "coating", 5.0, radius_m=2e-3, material=COATED, position_m=(0.016, 0.0, 0.0)),
+}
+
+
+def expected_normal(kind, p):
+    """The surface normal at plate points p (P, 3) on each defect, worked by hand: the groove runs
+    along y (the truth's 90 deg), its wall at x < 16 mm turned toward +x by atan(2 h / w), the other
+    toward -x; the dimple's normal leans toward its centre by asin(rho / R), R = (a^2 + h^2) / 2h."""
+    x, y = p[:, 0] - 0.016, p[:, 1]
+    if kind == "scratch":
+        beta = np.arctan(2 * 1e-4 / 1e-3)
+        return np.column_stack([-np.sign(x) * np.sin(beta), 0 * x, np.full_like(x, np.cos(beta))])
+    if kind == "dent":
+        rho, R = np.hypot(x, y), (2e-3**2 + 2e-4**2) / (2 * 2e-4)
+        t = np.arcsin(rho / R)
+        return np.column_stack([-np.sin(t) * x / rho, -np.sin(t) * y / rho, np.cos(t)])
+    return np.tile([0.0, 0.0, 1.0], (len(p), 1))
+
+
+@pytest.mark.parametrize("kind", ["scratch", "dent", "coating"])
+def test_a_declared_defect_is_rendered_only_with_the_defects_effect_and_as_its_geometry_says(plate, kind):
+    """The Lambertian plate (R = rho cos ti): a pixel on the defect reads the surface's gray times
+    (n' s) / (n s) (its normal n' from expected_normal, s toward the lamp) and a coating's times
+    0.6 / 0.3; every other pixel, and every pixel without the effect, is the plain plate's."""
+    task, scene = plate
+    defect = PLATE_DEFECTS[kind]
+    with_defect = (replace(task, features=(replace(task.feature, defects=(defect,)),)), scene)
+    aim = geometry.unit(scene.center - SIDE_LAMP)
+    plain, renderer = shoot(plate, (), SIDE_LAMP, aim, 30.0)
+    off, _ = shoot(with_defect, (), SIDE_LAMP, aim, 30.0, defect_orientation_rad=(("groove", np.pi / 2),))
+    on, _ = shoot(with_defect, ("defects",), SIDE_LAMP, aim, 30.0, defect_orientation_rad=(("groove", np.pi / 2),))
+    assert np.array_equal(off, plain)
+    p = plate_points(renderer, scene).reshape(-1, 3)
+    x, rho = p[:, 0] - 0.016, np.hypot(p[:, 0] - 0.016, p[:, 1])
+    margin = 1e-6                                   # float32 hit distances: skip pixels at an edge
+    if kind == "scratch":
+        inside = (np.abs(x) < 5e-4 - margin) & (np.hypot(p[:, 0] - 0.015, p[:, 1]) < 0.005 - margin)
+        outside = (np.abs(x) > 5e-4 + margin) | (np.hypot(p[:, 0] - 0.015, p[:, 1]) > 0.005 + margin)
+    else:
+        inside, outside = rho < 2e-3 - margin, rho > 2e-3 + margin
+    on, plain = on.reshape(-1), plain.reshape(-1)
+    assert inside.sum() > 20 and np.array_equal(on[outside], plain[outside])
+    s = geometry.unit(SIDE_LAMP - p[inside])
+    ratio = np.einsum("pk,pk->p", expected_normal(kind, p[inside]), s) / s[:, 2] * (2.0 if kind == "coating" else 1.0)
+    np.testing.assert_allclose(on[inside], plain[inside] * ratio, rtol=1e-5)
+    assert np.ptp(ratio) > 0.05 or kind == "coating"
+
+
+def test_a_coating_of_twice_the_albedo_doubles_the_gray_under_every_light(plans):
+    """The ring task at its plan's drives (the spot and the lit ring's emitter points each
+    re-shaded on the defect): a coating of the part's material with rho x 2 (R is linear in rho)
+    reads exactly twice the plain capture on its pixels, which cover its disk (pi r^2 over a
+    pixel's footprint squared, within 10 %), and nothing else changes."""
+    task, p = plans["ring"]
+    scene = p.scene
+    coat = Defect("double", "coating", 5.0, radius_m=0.004, material=task.part.material.scaled(2.0))
+    coated = replace(task, features=(replace(task.feature, defects=(coat,)),))
+    aim = lamp_aim(task.lamp.rig.pivot_m, p.shot.lamp_position)
+    args = (scene.T_cell_cam, p.shot.lamp_position, aim, p.shot.exposure.shutter_s, p.shot.exposure.f_number)
+    plain = Renderer(with_sim(coated), scene)(*args, drives=planned_drives(p.shot))
+    on = Renderer(with_sim(coated, ("defects",)), scene)(*args, drives=planned_drives(p.shot))
+    changed = on != plain
+    np.testing.assert_allclose(on[changed], 2.0 * plain[changed], rtol=1e-9)
+    sensor, lens = task.camera.sensor, task.camera.lens
+    footprint = sensor.pixel_pitch_m * np.linalg.norm(scene.center - scene.camera_position) / lens.focal_length_m
+    assert changed.sum() == pytest.approx(np.pi * 0.004**2 / footprint**2, rel=0.1)

@@ -16,6 +16,12 @@ dark noise and the quantisation's 1/12. CNR = |G_defect - G_good| / sqrt(sigma_g
 sigma_defect^2): the difference of two single pixel readings (a defect pixel against a good one)
 has exactly that standard deviation, so a CNR of k is a k-sigma detection of one pixel against
 one; definitions by the good surface's noise alone would count the defect's own noise as signal.
+
+Where a defect lies (the simulator renders it there, the run measures it there; `footprint`): in
+the feature's tangent plane through the defect's position, offsets (x, y) along the feature
+frame's axes; a scratch along d(theta) = (cos theta, sin theta) is the strip |s| < w / 2 across
+it (s along n x d) on the chord of the feature's disk through its position (a scratch runs
+across the feature); a dent or a coating is the disk of its radius.
 """
 
 from __future__ import annotations
@@ -93,3 +99,64 @@ def cnr(gray_good: ArrayLike, gray_defect: ArrayLike, black_level: float, gain_d
     noise = np.hypot(temporal_noise(good, black_level, gain_dn_per_e, dark_noise_e),
                      temporal_noise(defect, black_level, gain_dn_per_e, dark_noise_e))
     return np.abs(defect - good) / noise
+
+
+def scratch_chord(position_xy: ArrayLike, theta_rad: float, feature_radius_m: float) -> tuple[float, float]:
+    """(t0, t1) [m]: where the line through a scratch's position (x, y) from the feature centre
+    along d(theta) enters and leaves the feature's disk, |position + t d| = r, as distances
+    along d from the position (t0 <= 0 <= t1 for a position within the disk)."""
+    q = np.asarray(position_xy, float)
+    d = np.array([np.cos(theta_rad), np.sin(theta_rad)])
+    b = float(q @ d)
+    root = np.sqrt(max(b * b - float(q @ q) + feature_radius_m**2, 0.0))
+    return -b - root, -b + root
+
+
+def across_along(offsets_xy: ArrayLike, theta_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """(s, t) (P,) each offset's component across a groove along d(theta) (along n x d = (-sin,
+    cos)) and along it [m]."""
+    o = np.asarray(offsets_xy, float).reshape(-1, 2)
+    c, s = np.cos(theta_rad), np.sin(theta_rad)
+    return -s * o[:, 0] + c * o[:, 1], c * o[:, 0] + s * o[:, 1]
+
+
+def footprint(offsets_xy: ArrayLike, kind: str, theta_rad: float = 0.0, width_m: float = 0.0,
+              radius_m: float = 0.0, chord_m: tuple[float, float] = (-np.inf, np.inf)) -> tuple[np.ndarray, np.ndarray]:
+    """(part (P,), outside (P,) [m]) of points at offsets (P, 2) from a defect's position: part 0
+    off the defect; a scratch's wall at s > 0 (1: the normal turned about d by +beta, it faces
+    -s) or at s < 0 (2: by -beta) within its chord (t0, t1) along d; a dent's or a coating's disk
+    (1). `outside`: how far beyond the defect's edge a point lies (|s| - w / 2 beside the
+    scratch's chord, inf beyond its ends; rho - a of a disk; <= 0 on it)."""
+    o = np.asarray(offsets_xy, float).reshape(-1, 2)
+    if kind == "scratch":
+        s, t = across_along(o, theta_rad)
+        outside = np.where((t >= chord_m[0]) & (t <= chord_m[1]), np.abs(s) - 0.5 * width_m, np.inf)
+        part = np.where(outside <= 0.0, np.where(s > 0.0, 1, 2), 0)
+        return part, outside
+    outside = np.hypot(o[:, 0], o[:, 1]) - radius_m
+    return np.where(outside <= 0.0, 1, 0), outside
+
+
+def wall_normals(normals: ArrayLike, x_axis: ArrayLike, theta_rad: float, tilt_rad: float,
+                 part: ArrayLike) -> np.ndarray:
+    """(P, 3) the normal of each point on a scratch's wall `part` (1: turned about d(theta) by
+    +tilt, 2: by -tilt; footprint's), d in each point's tangent plane from x_axis."""
+    n = np.asarray(normals, float).reshape(-1, 3)
+    x, y = tangent_axes(n, x_axis)
+    d = np.cos(theta_rad) * x + np.sin(theta_rad) * y
+    sign = np.where(np.asarray(part) == 1, 1.0, -1.0)
+    return rotate(n, d, sign * tilt_rad)
+
+
+def dimple_normals(normals: ArrayLike, x_axis: ArrayLike, offsets_xy: ArrayLike, radius_m: float,
+                   depth_m: float) -> np.ndarray:
+    """(P, 3) a dent's normal at points at offsets (x, y) (P, 2) from its centre, within its
+    radius: leaning toward the centre by dent_tilt(rho), n' = cos(tilt) n - sin(tilt) u with u the
+    unit offset in each point's tangent plane (dent_normals' field at the points themselves)."""
+    n = np.asarray(normals, float).reshape(-1, 3)
+    o = np.asarray(offsets_xy, float).reshape(-1, 2)
+    x, y = tangent_axes(n, x_axis)
+    rho = np.hypot(o[:, 0], o[:, 1])
+    u = (o[:, :1] * x + o[:, 1:] * y) / np.maximum(rho, 1e-300)[:, None]
+    tilt = dent_tilt(rho, radius_m, depth_m)[:, None]
+    return np.cos(tilt) * n - np.sin(tilt) * u

@@ -30,7 +30,7 @@ def of_plan(task: Task, plan: Plan) -> Coverage:
     """The Coverage of a one-feature task's own plan (its verdict, nothing judged again)."""
     shot = plan.shot
     return Coverage(task.feature.name, plan.feasible, shot.gray, shot.requirements, plan.verification,
-                    defects=shot.defects)
+                    shot.lights, shot.defects)
 
 
 @dataclass(frozen=True)

@@ -38,7 +38,7 @@ from cell.planning.plan import DefectCnr
 if TYPE_CHECKING:
     from cell.physics.material import Material
     from cell.planning.evaluate import Candidates, Problem
-    from cell.task.types import Defect
+    from cell.task.types import Defect, Sensor
 
 @dataclass(frozen=True)
 class Resolution:
@@ -180,9 +180,13 @@ def cast_shadows(problem: Problem, c: Candidates) -> np.ndarray:
 
 
 def noise_figures(problem: Problem) -> tuple[float, float, float]:
-    """(K [gray/e-], sigma_d [e-], full scale [gray]) of the task's sensor: its datasheet keys,
-    else the defaults the simulator assumes too (cell.physics.sensor)."""
-    s = problem.task.camera.sensor
+    """noise_of the Problem's task's sensor."""
+    return noise_of(problem.task.camera.sensor)
+
+
+def noise_of(s: Sensor) -> tuple[float, float, float]:
+    """(K [gray/e-], sigma_d [e-], full scale [gray]) of a sensor: its datasheet keys, else the
+    defaults the simulator assumes too (cell.physics.sensor); the run's measured CNR reads them too."""
     return (sensor_model.system_gain(s.bit_depth, s.system_gain_dn_per_e), sensor_model.dark_noise(s.dark_noise_e),
             float(sensor_model.saturation_level(s.bit_depth)))
 

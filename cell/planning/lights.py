@@ -268,16 +268,18 @@ def drive_level(channel: int | None, drives: Mapping[int, float] | None) -> floa
 
 def rendered(mesh: WarpMesh, origin: ArrayLike, ray_dirs: np.ndarray, T_cell_cam: ArrayLike, made: Sequence[Light],
              counts: Sequence[int], factors: Sequence[float], table: np.ndarray, camera_constant: float,
-             pixel_area_m2: float, shadows: bool) -> np.ndarray:
+             pixel_area_m2: float, shadows: bool, shading_normals: np.ndarray | None = None) -> np.ndarray:
     """(N,) sum_k f_k G_k: the value (c A_pixel Phi R / 8 per ray, kernels.render) of each light k
     as counts[k] emitter points (`emitters`, a flange light carried by T_cell_cam), each with its
     own shadow ray, times factors[k] (its drive, in the simulator times its channel's true power);
-    a light at factor 0 is not rendered. The simulator's image and registration's model both."""
+    a light at factor 0 is not rendered. The simulator's image and registration's model both;
+    shading_normals (N, 3): each hit shaded with its own normal (kernels.render's)."""
     from kernels.render import render
     value = np.zeros(len(ray_dirs))
     for light, n, factor in zip(made, counts, factors):
         if factor > 0.0:
             e = emitters(light, T_cell_cam, n)
             value += factor * render(mesh, origin, ray_dirs, e.position, e.axis, e.power_w, e.cone_angle_rad, table,
-                                     camera_constant, pixel_area_m2, shadows=shadows, profile=e.profile).value
+                                     camera_constant, pixel_area_m2, shadows=shadows, profile=e.profile,
+                                     shading_normals=shading_normals).value
     return value

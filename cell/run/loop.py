@@ -22,6 +22,7 @@ from cell.run import acquisition, channels, control, measurement, refit, registr
 from cell.planning import evaluate
 from cell.run.acquisition import Capture, acquire, move_to, plan_and_connect, plan_recorded, planned_drives
 from cell.run.context import RunContext
+from cell.run.defects import MeasuredDefect, measure as measure_defects
 from cell.run.measurement import BlackLevel, Measurement
 from cell.run.refit import Refit
 from cell.devices.interfaces import speaking_for
@@ -82,12 +83,14 @@ class Iteration:
     correction: dict[str, Any] | None = None
     feature: str | None = None           # its feature's name, in a shot of several (cell.run.inspection)
     drives: dict[str, float] = field(default_factory=dict)   # {channel: level 0..1} read back at the capture
+    defects: tuple[MeasuredDefect, ...] = ()     # the feature's declared defects' CNR in this capture
 
     def to_json(self) -> dict[str, Any]:
         document = {k: getattr(self, k) for k in self.__dataclass_fields__
-                    if k not in ("correction", "feature", "drives")}
+                    if k not in ("correction", "feature", "drives", "defects")}
         return ({"feature": self.feature} if self.feature else {}) | document | (
             {"drives": self.drives} if self.drives else {}) | (
+            {"defects": [d.to_json() for d in self.defects]} if self.defects else {}) | (
             {"correction": self.correction} if self.correction else {})
 
 
@@ -161,10 +164,12 @@ class RunResult(Result):
                 "refits": len(self.refits)}
 
     def details(self) -> dict[str, Any]:
+        last = self.iterations[-1] if self.iterations else None
         return {"task": self.task, "plan": self.plan, "iterations": [it.to_json() for it in self.iterations],
                 "converged": self.success, "captures": self.captures,
                 "replans": [r.to_json() for r in self.replans], "black_level": self.black_level,
-                "refits": [r.to_json() for r in self.refits]}
+                "refits": [r.to_json() for r in self.refits],
+                **({"defects": [d.to_json() for d in last.defects]} if last is not None and last.defects else {})}
 
 
 @dataclass(frozen=True)
@@ -324,15 +329,18 @@ def measure_capture(ctx: RunContext, aim: Aim, feature: LoopFeature, k: int, cap
     caption = f"{k}: {named}gray {m.min:.0f}-{m.max:.0f}, {stats['saturated']} saturated: {verdict}"
     annotated = ctx.recorder.write_image(f"capture-{k}-{file_name(name) if name else 'feature'}.png",
                                          annotate_capture(capture.image, m, bit_depth, caption))
+    seen = measure_defects(capture.image, task, model.plan.planned_scene, capture.T_cell_cam, shift, aim.black.value,
+                           {d.name: d.predicted_cnr for d in model.plan.shot.defects})
     it = Iteration(k, capture.shutter_s, float(f_number), expected, stats, error, relation, in_band,
                    capture.name, annotated, aim.albedo_scale, found.to_json(), feature=name,
-                   drives={str(c): level for c, level in capture.drives.items()})
+                   drives={str(c): level for c, level in capture.drives.items()}, defects=seen)
     ctx.recorder.step("measure", f"{named}gray mean {stats['mean']:.1f}, {m.min:.1f}-{m.max:.1f} over "
                                  f"{stats['pixels']} px "
                                  f"(pixels {stats['pixel_min']:.0f}-{stats['pixel_max']:.0f}, noise "
                                  f"{stats['noise_rms']:.1f} rms, {stats['saturated']} saturated); the model "
                                  f"predicts {expected['mean']:.1f}, {expected['min']:.1f}-{expected['max']:.1f}; "
-                                 f"{control.describe_error(error, relation)}; {verdict}",
+                                 f"{control.describe_error(error, relation)}; {verdict}"
+                                 + "".join(f"; {d.kind} '{d.name}' CNR {d.describe()}" for d in seen),
                       **{key: v for key, v in it.to_json().items() if key not in ("albedo_scale", "registration")})
     return Measured(it, m, predicted)
 

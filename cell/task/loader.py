@@ -32,7 +32,7 @@ from cell.task.types import (DEFECT_KINDS, LIGHT_TYPES, MOUNTS, Calibration, Cam
                        Defect, Feature, Goniometer, Lamp, LampRig, Lens, Light, LoopSettings, Part, Requirements, Sample,
                        SimConfig, Sensor, Task, Truth, Viewpoint)
 
-EFFECTS = ("shadows", "cone_falloff", "vignetting", "defocus", "noise", "black_level", "quantization")
+EFFECTS = ("shadows", "cone_falloff", "vignetting", "defocus", "noise", "black_level", "quantization", "defects")
 SURFACE_TOLERANCE_M = 1e-3       # feature center at most this far from the mesh surface
 MAX_SAMPLES = 4096
 MAX_SENSOR_SIDE_PX = 65_536
@@ -76,6 +76,26 @@ class ChannelScales(Spec):
             if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0 <= scale < float("inf"):
                 raise Invalid(scale, f"a scale >= 0 for channel {channel}")
         return {channel: float(scale) for channel, scale in raw.items()}
+
+
+class DefectAngles(Spec):
+    """`sim.truth.defect_orientation_deg`: {a scratch's name: its orientation in the world}, each
+    an angle within [-360, 360] deg (which scratch each name is, _truth checks)."""
+
+    expected = "a mapping of scratch names to angles within [-360, 360] deg, e.g. {fine: 30}"
+    default: dict[str, float] = {}
+
+    def convert(self, raw: Any, to_si: ToSI) -> dict[str, float]:
+        if not isinstance(raw, dict):
+            raise Invalid(raw, self.expected)
+        out = {}
+        for name, angle in raw.items():
+            if not isinstance(name, str) or not name.strip():
+                raise Invalid(name, "a defect's name")
+            if isinstance(angle, bool) or not isinstance(angle, (int, float)) or not abs(to_si(angle)) <= DEG(360):
+                raise Invalid(angle, f"an angle within [-360, 360] deg for '{name}'")
+            out[name] = float(to_si(angle))
+        return out
 
 
 class SensorSection(Section):
@@ -242,6 +262,7 @@ TASK = {
             "camera_rpy_deg": Vector(default=(0.0, 0.0, 0.0)),
             "lamp_radius_error_m": Number(lambda v: True, "a number", default=0.0),
             "channel_power_scale": ChannelScales(),
+            "defect_orientation_deg": DefectAngles(),
         }, required=False),
     }, required=False),
     "calibration": Section({
@@ -519,18 +540,27 @@ def _check_black_level(file, band, black_level):
                         f"a gray level below the band's top {band[1]:g} (requirements.gray_band)")
 
 
-def _truth(file, truth, rig):
-    """The simulated world's truth: its material file loaded and checked like the task's, and a
-    lamp radius error that keeps the lamp beyond the rig's pivot."""
+def _truth(file, truth, rig, features):
+    """The simulated world's truth: its material file loaded and checked like the task's, a
+    lamp radius error that keeps the lamp beyond the rig's pivot, and orientations of scratches
+    the features declare."""
     if not truth["lamp_radius_error_m"] > -rig.radius_range_m[0]:
         raise TaskError(file, "sim.truth.lamp_radius_error_m", show(truth["lamp_radius_error_m"]),
                         f"more than -{rig.radius_range_m[0]:g} m (the true lamp beyond the pivot)")
+    scratches = sorted({d.name for f in features for d in f.defects if d.kind == "scratch"})
+    for name in truth["defect_orientation_rad"]:
+        if name not in scratches:
+            raise TaskError(file, f"sim.truth.defect_orientation_deg.{name}", "no scratch of that name",
+                            "the name of a scratch in a feature's defects"
+                            + (f" ({', '.join(scratches)})" if scratches else " (the task declares none)"))
     name = truth["material"]
     material = None if name is None else load_material(
         _relative_file(file, "sim.truth.material", name, "yaml"))
     vectors = {k: tuple(map(float, v)) for k, v in truth.items() if isinstance(v, np.ndarray)}
     scales = tuple(sorted(truth["channel_power_scale"].items()))
-    return Truth(**(truth | vectors | {"material": material, "channel_power_scale": scales}))
+    angles = tuple(sorted(truth["defect_orientation_rad"].items()))
+    return Truth(**(truth | vectors | {"material": material, "channel_power_scale": scales,
+                                       "defect_orientation_rad": angles}))
 
 
 def _calibration(file, calibration, material, rig):
@@ -892,7 +922,7 @@ def _load_task(path: Path, data: Any) -> Task:
         cell=CellConfig(cell["backend"], devices, collision_config(
             path, cell["collision"], part["mesh_unit"],
             lambda key, name, unit: _load_mesh(path, {"mesh": name, "mesh_unit": unit}, key)[1])),
-        sim=SimConfig(sim["seed"], sim["effects"], _truth(path, sim["truth"], spot.rig)),
+        sim=SimConfig(sim["seed"], sim["effects"], _truth(path, sim["truth"], spot.rig, features)),
         loop=_loop(path, v["loop"]),
         calibration=_calibration(path, v["calibration"], material, spot.rig),
         board=_board(path, v["calibration"]["board"]),

@@ -216,6 +216,7 @@ class Truth:
     camera_rpy_rad: tuple[float, float, float] = (0.0, 0.0, 0.0)
     lamp_radius_error_m: float = 0.0           # the lamp this much farther from the pivot
     channel_power_scale: tuple[tuple[int, float], ...] = ()  # (channel, its true power / the model's); 0: dead
+    defect_orientation_rad: tuple[tuple[str, float], ...] = ()  # (a scratch's name, its orientation in the world)
 
 
 @dataclass(frozen=True)
