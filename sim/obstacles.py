@@ -14,6 +14,7 @@ two checked poses than the gap at the first, less CONTACT_M); the first pose in 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -198,7 +199,8 @@ class Obstacles:
                 s = min(1.0, s + max(STEP_M, d - CONTACT_M) / max(sweep, 1e-300))
         return None
 
-    def lamp_move(self, a: np.ndarray, b: np.ndarray, lamp_at) -> Contact | None:
+    def lamp_move(self, a: np.ndarray, b: np.ndarray,
+                  lamp_at: Callable[[np.ndarray], np.ndarray]) -> Contact | None:
         """The first contact as the lamp's joints go linearly from a to b (the arm where it is);
         lamp_at(joints) -> its position. The lamp's points move at most
         (|dpan| + |dtilt|) (radius + the housing's diagonal) + |dradius|: conservative advancement
