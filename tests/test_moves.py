@@ -109,13 +109,15 @@ def test_the_beam_example_runs_through_its_via_points_and_the_sim_never_stops_it
 
 # --- the Done-when check: every planned path, densely sampled against the meshes ------------
 # Shares no path or distance code with cell.collision: the camera's moveL re-interpolated by
-# scipy's Slerp at steps of at most DENSE_M for any point of the arm (joints by the UR5e's inverse
+# scipy's Slerp at steps of at most PATH_STEP_M for any point of the arm (joints by the UR5e's inverse
 # kinematics nearest the last), the lamp's joints linearly; each body's surface sampled by trimesh
 # (boxes as trimesh primitives, the links as points along their axes every DENSE_M, less their
 # radii), the nearest pairs by k-d trees. Sampled surfaces lie no nearer than the surfaces: a
 # distance found below the padding is a contact the planner let through.
 
-DENSE_M = 0.002
+DENSE_M = 0.002             # the bodies' surface samples' spacing
+PATH_STEP_M = 0.005         # the most any point of the arm travels between two poses checked (the
+                            # planner's own steps: 20-25 mm where its clearance is 50 mm)
 FAR_M = 0.05                # distances are searched up to this; farther pairs count as this far
 
 
@@ -127,7 +129,7 @@ def box_points(size):
 class Dense:
     """A task's bodies for the dense check."""
 
-    def __init__(self, task, step=DENSE_M):
+    def __init__(self, task, step=PATH_STEP_M):
         from cell.collision.scene import MAY_TOUCH
         c, self.task, self.may_touch, self.step = task.cell.collision, task, MAY_TOUCH, step
         fixed = [("part", task.part.mesh.copy().apply_transform(task.frames.T_cell_part))]
@@ -208,7 +210,7 @@ def densely_checked(task, plan, moves):
         start = np.asarray(shot.joints if lamp is None else lamp, float)
         end = np.asarray(shot.joints, float)
         sweep = (np.abs(end[:2] - start[:2]).sum() * (max(start[2], end[2]) + 0.15) + abs(end[2] - start[2]))
-        for s in np.linspace(0.0, 1.0, max(2, int(np.ceil(sweep / DENSE_M)) + 1)):
+        for s in np.linspace(0.0, 1.0, max(2, int(np.ceil(sweep / dense.step)) + 1)):
             found.append((*dense.nearest(q, (1 - s) * start + s * end), move.end))
         T, lamp = shot.T_cell_cam, shot.joints
     return found
@@ -225,12 +227,12 @@ def assert_every_path_keeps_the_padding(task, plan):
 
 def test_the_wall_moves_keep_the_padding_along_their_whole_path_by_a_dense_check(tmp_path):
     """The wall of test_collision between two shots: the planner's via path at every 5 mm a point
-    of the arm travels (the long tests' 2 mm on the examples), 4-5x denser than its own steps."""
+    of the arm travels, 4-5x denser than its own steps."""
     task = wall_task(tmp_path)
     b = stop(task, 0.15)
     a = stop(task, -0.15, b.arm_joints)
     move = plan_move(CollisionScene.of(task), task.cell.devices.arm, 0, a, 1, b)
-    dense = Dense(task, step=0.005)
+    dense = Dense(task)
     found, q, corners = [], a.arm_joints, [a.T_cell_cam, *move.via, b.T_cell_cam]
     for T_a, T_b in zip(corners, corners[1:]):
         joints = dense.path(T_a, T_b, q)
@@ -240,7 +242,7 @@ def test_the_wall_moves_keep_the_padding_along_their_whole_path_by_a_dense_check
     assert min(found)[0] >= task.cell.collision.padding_m
 
 
-@pytest.mark.long          # 1-3 min: the examples' plans and their paths densely
+@pytest.mark.long          # 1-5 min: the examples' plans and their paths densely
 @pytest.mark.parametrize("example", [ROOT / "tasks" / "bracket.yaml", BEAM], ids=["bracket", "conrod_beam"])
 def test_every_example_path_keeps_the_padding_by_a_dense_check(example):
     from cell.planning.whole_part import plan_features
