@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike
 
 from . import funcs
 from ._arrays import output, unit_rows, vec3d
-from .runtime import ensure_init
+from .runtime import ensure_init, launch_sliced
 
 if TYPE_CHECKING:
     from .mesh import WarpMesh
@@ -144,11 +144,11 @@ def cone_cosine(best: wp.float64, margin: wp.float64) -> wp.float64:
 @wp.kernel
 def free_cone_kernel(origins: wp.array(dtype=wp.vec3d), normals: wp.array(dtype=wp.vec3d),
                      vertices: wp.array(dtype=wp.vec3d), faces: wp.array2d(dtype=wp.int32),
-                     margin: wp.float64, free_cos: wp.array(dtype=wp.float64),
+                     margin: wp.float64, first: wp.int32, free_cos: wp.array(dtype=wp.float64),
                      sector_cos: wp.array2d(dtype=wp.float64)):
-    """One thread per point: every triangle against its cones (sector_cos holds the largest
-    cosines met, then their cones)."""
-    i = wp.tid()
+    """One thread per point, from `first` on (runtime.launch_sliced): every triangle against its
+    cones (sector_cos holds the largest cosines met, then their cones)."""
+    i = wp.tid() + first
     o = origins[i]
     n = normals[i]
     u = funcs.tangent_u(n)
@@ -186,7 +186,7 @@ def free_cone_cosines(mesh: "WarpMesh", origins: ArrayLike, normals: ArrayLike,
     diamond angle about funcs.tangent_u), NO_CONE where there is none (module docstring). A ray
     from the origin along unit s with <n, s> above its sector's (or the overall) cosine meets
     no triangle of `mesh` (a kernels.mesh.WarpMesh). Costs about P x F triangle tests."""
-    device = ensure_init()
+    device = ensure_init(__name__)
     origins = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
     normals = unit_rows(normals, "normals")
     if len(normals) != len(origins):
@@ -194,8 +194,8 @@ def free_cone_cosines(mesh: "WarpMesh", origins: ArrayLike, normals: ArrayLike,
     free_cos, free_cos_wp = output(len(origins), np.float64, wp.float64)
     sector_cos, sector_cos_wp = output((len(origins), funcs.SECTORS), np.float64, wp.float64)
     if len(origins):
-        wp.launch(free_cone_kernel, dim=len(origins), device=device, inputs=[
+        launch_sliced(free_cone_kernel, len(origins), [
             vec3d(origins, "origins"), vec3d(normals, "normals"), vec3d(mesh.vertices, "vertices"),
             wp.array(np.ascontiguousarray(mesh.faces, dtype=np.int32), dtype=wp.int32, device=device),
-            float(margin_rad)], outputs=[free_cos_wp, sector_cos_wp])
+            float(margin_rad)], [free_cos_wp, sector_cos_wp], work_per_item=len(mesh.faces))
     return free_cos, sector_cos

@@ -136,8 +136,15 @@ def dominant_term(terms: wp.vec3d, cos_i: wp.float64, cos_e: wp.float64) -> wp.i
 
 @wp.func
 def phase_cosine(s: wp.vec3d, v: wp.vec3d) -> wp.float64:
-    """cos alpha = <s, v>, clamped to [-1, 1] so acos is defined."""
+    """cos alpha = <s, v>, clamped to [-1, 1]."""
     return wp.clamp(wp.dot(s, v), wp.float64(-1.0), wp.float64(1.0))
+
+
+@wp.func
+def phase_angle(s: wp.vec3d, v: wp.vec3d) -> wp.float64:
+    """alpha = atan2(|s x v|, <s, v>), accurate at every angle: acos(<s, v>) is not near 0, where a
+    rounding of <s, v> to 1 - 1e-16 reads alpha = 1.5e-8 rad (the camera beside the lamp)."""
+    return wp.atan2(wp.length(wp.cross(s, v)), wp.dot(s, v))
 
 
 # --- Radiometry, eq. (10), (11), (17) -----------------------------------------------------
@@ -314,7 +321,7 @@ def shade_point(mesh_id: wp.uint64, shadows: wp.int32, cone: wp.int32, at: Surfa
     out.off_axis = off_axis_angle(lamp_axis, s)
     cos_i = wp.dot(at.normal, s)
     cos_alpha = phase_cosine(s, at.view)
-    p = material_at(table, wp.acos(cos_alpha))
+    p = material_at(table, phase_angle(s, at.view))
     t = brdf_terms(cos_i, at.cos_e, cos_alpha, p)
     out.dominant = dominant_term(t, cos_i, at.cos_e)
     shadowed = cos_i <= wp.float64(0.0)

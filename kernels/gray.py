@@ -11,7 +11,7 @@ from . import funcs
 from .emission import axis_intensity, hard_cone_profile, profile_solid_angle
 from ._arrays import output, profile2d, table2d, unit_rows, vec3d
 from .cone import NO_CONE, free_cone_cosines, worth_finding
-from .runtime import ensure_init
+from .runtime import ensure_init, in_parallel, slices
 
 if TYPE_CHECKING:
     from .mesh import WarpMesh
@@ -54,17 +54,19 @@ def gray_kernel(mesh_id: wp.uint64, shadows: wp.int32, cone: wp.int32,
                 lamp_pos: wp.array(dtype=wp.vec3d),
                 lamp_axis: wp.array(dtype=wp.vec3d), intensity_w_sr: wp.array(dtype=wp.float64),
                 profile: wp.array2d(dtype=wp.float64), table: wp.array2d(dtype=wp.float64),
-                camera_constant: wp.float64, pixel_area_m2: wp.float64,
+                camera_constant: wp.float64, pixel_area_m2: wp.float64, first_lamp: wp.int32,
+                first_point: wp.int32, stop_point: wp.int32,
                 value: wp.array2d(dtype=wp.float64), shadowed: wp.array2d(dtype=wp.bool),
                 off_axis: wp.array2d(dtype=wp.float64), dominant: wp.array2d(dtype=wp.int8)):
-    """One thread per candidate lamp c (its axis intensity I(0) its own: the emitter points of
-    several lights in one call), over every sample point p (on the CPU a thread is a loop's turn:
-    this way the lamp is read once and no thread index is divided)."""
-    c = wp.tid()
+    """One thread per candidate lamp c from first_lamp on (its axis intensity I(0) its own: the
+    emitter points of several lights in one call), over the sample points p in [first_point,
+    stop_point) (on the CPU a thread is a loop's turn: this way the lamp is read once and no
+    thread index is divided; the slices: _Batch)."""
+    c = wp.tid() + first_lamp
     lamp = lamp_pos[c]
     axis = lamp_axis[c]
     intensity = intensity_w_sr[c]
-    for p in range(surfaces.shape[0]):
+    for p in range(first_point, stop_point):
         sh = funcs.shade_point(mesh_id, shadows, cone, surfaces[p], sector_cos, lamp, axis, intensity,
                                profile, table, camera_constant, pixel_area_m2)
         value[c, p] = sh.value
@@ -92,14 +94,14 @@ class GrayInputs:
     The points' free cones (kernels.cone) are found once the lamps evaluated so far make them
     worth it (kernels.cone.worth_finding, each lamp a ray per point): from then on only the rays
     outside them are cast. The result is the same either way. A call of at most SMALL
-    evaluations replays its recorded launch (one per lamp count) on its own input and output
-    buffers, under a lock, and returns copies."""
+    evaluations replays its recorded launches (one set per lamp count, split as at its first
+    call: kernels.runtime) on its own input and output buffers, under a lock, and returns copies."""
 
     def __init__(self, mesh: "WarpMesh | None", points: ArrayLike, normals: ArrayLike, camera_pos: ArrayLike,
                  power_w: float, cone_angle_rad: float, table: ArrayLike, camera_constant: float,
                  pixel_area_m2: float, shadows: bool = True, cone: bool = True, offset_m: float = 1e-5,
                  profile: ArrayLike | None = None) -> None:
-        self.device = ensure_init()
+        self.device = ensure_init(__name__)
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         normals = unit_rows(normals, "normals")
         if len(normals) != len(points):
@@ -159,8 +161,11 @@ class GrayInputs:
 
 
 class _Batch:
-    """Buffers and the recorded launch of one lamp count: run copies the lamps in, launches,
-    and returns the outputs (copies where the batch is kept for the next call)."""
+    """Buffers and the recorded launches of one lamp count: run copies the lamps in, launches,
+    and returns the outputs (copies where the batch is kept for the next call). The lamps x
+    points are cut along the longer of the two into runtime.slices, a launch each, run side by
+    side (runtime.in_parallel): a global search's thousands of lamps, a certificate's few lamps
+    on thousands of points."""
 
     def __init__(self, inputs: GrayInputs, lamps: int) -> None:
         shape = (lamps, inputs.count)
@@ -169,19 +174,23 @@ class _Batch:
         self.intensity, intensity_wp = output(lamps, np.float64, wp.float64)
         self.outputs = [output(shape, np.float64, wp.float64), output(shape, np.bool_, wp.bool),
                         output(shape, np.float64, wp.float64), output(shape, np.int8, wp.int8)]
-        self.launch = None
-        if lamps and inputs.count:
-            self.launch = wp.launch(gray_kernel, dim=lamps, device=inputs.device, record_cmd=True,
-                                    inputs=inputs._leading + [pos_wp, axis_wp, intensity_wp] + inputs._trailing,
-                                    outputs=[out_wp for _, out_wp in self.outputs])
-            self._inputs_wp = (pos_wp, axis_wp, intensity_wp)       # the launch holds their addresses
+        if lamps >= inputs.count:           # (first lamp, stop lamp, first point, stop point) of each
+            ranges = [(a, b, 0, inputs.count) for a, b in slices(lamps, inputs.count)]
+        else:
+            ranges = [(0, lamps, a, b) for a, b in slices(inputs.count, lamps)]
+        self.launches = [wp.launch(gray_kernel, dim=stop_lamp - first_lamp, device=inputs.device, record_cmd=True,
+                                   inputs=inputs._leading + [pos_wp, axis_wp, intensity_wp] + inputs._trailing
+                                   + [first_lamp, first_point, stop_point],
+                                   outputs=[out_wp for _, out_wp in self.outputs])
+                         for first_lamp, stop_lamp, first_point, stop_point in ranges if lamps and inputs.count]
+        self._inputs_wp = (pos_wp, axis_wp, intensity_wp)       # the launches hold their addresses
 
     def run(self, lamp_pos: np.ndarray, lamp_axis: np.ndarray, intensity: np.ndarray, copy: bool) -> GrayResult:
         self.lamp_pos[:] = lamp_pos
         self.lamp_axis[:] = lamp_axis
         self.intensity[:] = intensity
-        if self.launch is not None:
-            self.launch.launch()
+        if self.launches:
+            in_parallel(self.launches)
         return GrayResult(*(out.copy() if copy else out for out, _ in self.outputs))
 
 

@@ -34,7 +34,7 @@ def closest_points(mesh: "WarpMesh", queries: ArrayLike,
                    max_dist: float = 10.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For queries (N, 3) [m]: (closest surface points (N, 3), face index (N,), outward face
     normal (N, 3)); NaN / -1 / 0 where no triangle lies within max_dist. Float32 accuracy."""
-    device = ensure_init()
+    device = ensure_init(__name__)
     queries = np.asarray(queries, dtype=np.float64).reshape(-1, 3)
     n = len(queries)
     point, point_wp = output((n, 3), np.float64, wp.vec3d)

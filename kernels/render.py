@@ -10,7 +10,7 @@ from . import funcs
 from .emission import axis_intensity
 from ._arrays import output, profile2d, table2d, unit_rows, vec3d
 from .cone import NO_CONE
-from .runtime import ensure_init
+from .runtime import ensure_init, launch_sliced
 
 if TYPE_CHECKING:
     from .mesh import WarpMesh
@@ -39,13 +39,14 @@ def render_kernel(mesh_id: wp.uint64, origin: wp.vec3d, ray_dirs: wp.array(dtype
                   profile: wp.array2d(dtype=wp.float64),
                   table: wp.array2d(dtype=wp.float64),
                   camera_constant: wp.float64, pixel_area_m2: wp.float64,
-                  shading_normals: wp.array(dtype=wp.vec3d),
+                  shading_normals: wp.array(dtype=wp.vec3d), first: wp.int32,
                   value: wp.array(dtype=wp.float64), hit: wp.array(dtype=wp.bool),
                   depth: wp.array(dtype=wp.float64), normal: wp.array(dtype=wp.vec3d)):
-    """One thread per pixel ray (its hit point's free cones unknown: every shadow ray cast), its
-    value summed over the point lamps (each with its own shadow ray); shaded with the face's
-    normal, or with shading_normals[i] when given (one per ray: a surface the mesh does not hold)."""
-    i = wp.tid()
+    """One thread per pixel ray, from `first` on (runtime.launch_sliced) (its hit point's free
+    cones unknown: every shadow ray cast), its value summed over the point lamps (each with its
+    own shadow ray); shaded with the face's normal, or with shading_normals[i] when given (one per
+    ray: a surface the mesh does not hold)."""
+    i = wp.tid() + first
     d = ray_dirs[i]
     q = wp.mesh_query_ray(mesh_id, wp.vec3(origin), wp.vec3(d), wp.float32(max_dist))
     if not q.result:
@@ -87,7 +88,7 @@ def render(mesh: "WarpMesh", origin: ArrayLike, ray_dirs: ArrayLike, lamp_pos: A
     shades each hit with its own normal instead of the face's (a defect's, sim.world); the
     returned normal stays the face's.
     """
-    device = ensure_init()
+    device = ensure_init(__name__)
     dirs = unit_rows(ray_dirs, "ray_dirs")
     n = len(dirs)
     (value, value_wp), (hit, hit_wp), (depth, depth_wp) = _ray_outputs(n)
@@ -99,14 +100,14 @@ def render(mesh: "WarpMesh", origin: ArrayLike, ray_dirs: ArrayLike, lamp_pos: A
     shading = np.zeros((0, 3)) if shading_normals is None else unit_rows(shading_normals, "shading_normals")
     if len(shading) not in (0, n):
         raise ValueError(f"shading_normals must have one row per ray ({n}), got {len(shading)}")
-    wp.launch(render_kernel, dim=n, device=device, inputs=[
+    launch_sliced(render_kernel, n, [
         mesh.id, wp.vec3d(*np.asarray(origin, dtype=np.float64)), vec3d(dirs, "ray_dirs"),
         float(max_dist), int(bool(shadows)), int(bool(cone)), float(offset_m),
         wp.empty((0, funcs.SECTORS), dtype=wp.float64, device=device), vec3d(lamps, "lamp_pos"), vec3d(axes, "lamp_axis"),
         axis_intensity(power_w, cone_angle_rad, profile), profile2d(profile, cone_angle_rad), table2d(table),
         float(camera_constant), float(pixel_area_m2),
         vec3d(shading, "shading_normals"),
-    ], outputs=[value_wp, hit_wp, depth_wp, normal_wp])
+    ], [value_wp, hit_wp, depth_wp, normal_wp], work_per_item=1 + len(lamps))
     return RenderResult(value, hit, depth, normal)
 
 
@@ -157,7 +158,7 @@ def render_plane(origin: ArrayLike, ray_dirs: ArrayLike, T_world_plane: np.ndarr
     [0, cols * texel_m), y in [0, rows * texel_m), texel (r, c) the square from (c, r) * texel_m
     (nearest: no filtering, which supersampling the rays does); `outside` beyond it.
     PlaneResult(value, hit, depth)."""
-    device = ensure_init()
+    device = ensure_init(__name__)
     dirs = unit_rows(ray_dirs, "ray_dirs")
     n = len(dirs)
     (value, value_wp), (hit, hit_wp), (depth, depth_wp) = _ray_outputs(n)

@@ -9,7 +9,7 @@ from numpy.typing import ArrayLike
 from . import funcs
 from ._arrays import output, unit_rows, vec3d
 from .cone import NO_CONE, free_cone_cosines, worth_finding
-from .runtime import ensure_init
+from .runtime import ensure_init, launch_sliced
 
 if TYPE_CHECKING:
     from .mesh import WarpMesh
@@ -20,11 +20,13 @@ def visibility_kernel(mesh_id: wp.uint64, points: wp.array(dtype=wp.vec3d),
                       normals: wp.array(dtype=wp.vec3d), frame: wp.mat33d,
                       azimuth: wp.array(dtype=wp.float64), elevation: wp.array(dtype=wp.float64),
                       offset_m: wp.float64, max_dist: wp.float64, free_cos: wp.array(dtype=wp.float64),
-                      sector_cos: wp.array2d(dtype=wp.float64), sectors: wp.int32,
+                      sector_cos: wp.array2d(dtype=wp.float64), sectors: wp.int32, first: wp.int32,
                       visible: wp.array3d(dtype=wp.bool)):
-    """One thread per (point p, elevation e, azimuth a); no ray inside the point's free cones
-    (its sectors' in row p of sector_cos, if `sectors`)."""
-    p, e, a = wp.tid()
+    """One thread per (point p, elevation e, azimuth a), p from `first` on (a slice of the points:
+    runtime.launch_sliced); no ray inside the point's free cones (its sectors' in row p of
+    sector_cos, if `sectors`)."""
+    i, e, a = wp.tid()
+    p = i + first
     d = wp.mul(frame, funcs.direction_from_angles(azimuth[a], elevation[e]))
     n = normals[p]
     cos_n = wp.dot(d, n)
@@ -51,7 +53,7 @@ def visibility_maps(mesh: "WarpMesh", points: ArrayLike, normals: ArrayLike, fra
     tangent plane (<d, n> <= 1e-9) are False: the part hides them itself.
     The feature's combined map is `combined_map(maps)`: visible from every sample.
     """
-    device = ensure_init()
+    device = ensure_init(__name__)
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     normals = unit_rows(normals, "normals")
     azimuth = np.ascontiguousarray(azimuth, dtype=np.float64).ravel()
@@ -68,12 +70,12 @@ def visibility_maps(mesh: "WarpMesh", points: ArrayLike, normals: ArrayLike, fra
     free_cos, sector_cos = np.full(len(points), NO_CONE), np.zeros((0, funcs.SECTORS))
     if free_cones and worth_finding(len(azimuth) * len(elevation), mesh):
         free_cos, sector_cos = free_cone_cosines(mesh, points + offset_m * normals, normals)
-    wp.launch(visibility_kernel, dim=shape, device=device, inputs=[
+    launch_sliced(visibility_kernel, shape, [
         mesh.id, vec3d(points, "points"), vec3d(normals, "normals"), wp.mat33d(*frame.ravel()),
         wp.array(azimuth, dtype=wp.float64, device=device),
         wp.array(elevation, dtype=wp.float64, device=device), float(offset_m), float(max_dist),
         wp.array(free_cos, dtype=wp.float64, device=device), wp.array(sector_cos, dtype=wp.float64, device=device),
-        int(len(sector_cos) > 0)], outputs=[visible_wp])
+        int(len(sector_cos) > 0)], [visible_wp], work_per_item=len(elevation) * len(azimuth))
     return visible
 
 

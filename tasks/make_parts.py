@@ -155,18 +155,18 @@ def filleted_block():
     return extrude(outline, 40.0, 4.0)
 
 
-def bracket():
+def bracket(length=40.0):
     """A cast angle bracket standing on z = 0, its faces at five angles (the outward normal in the
-    xz plane; part frame, mm, y in [-20, 20] throughout):
+    xz plane; part frame, mm, y in [-length / 2, length / 2] throughout, 40 mm for bracket.yaml):
       base plate x in [-20, 25], z in [0, 6]: its top face z = 6 (+z) from the chamfer to x = 25;
       upright web x in [-25, -15], z in [0, 40]: inner face x = -15 (+x) above the chamfer, outer
         face x = -25 (-x) below the bevel;
       a 45 deg bevel on the web's outer top edge, from (-25, 32) to (-17, 40): normal (-1, 0, 1);
       a 45 deg chamfer filling the inner corner, on x + z = 3 from (-3, 6) to (-15, 18): (1, 0, 1).
     The chamfer's prism reaches into the plate and the web, so that no face of it lies on theirs."""
-    web = extrude([(-25.0, 0.0), (-15.0, 0.0), (-15.0, 40.0), (-17.0, 40.0), (-25.0, 32.0)], 40.0, 40.0)
-    chamfer = extrude([(-16.0, 5.0), (-2.0, 5.0), (-16.0, 19.0)], 40.0, 40.0)
-    return trimesh.util.concatenate([box((45.0, 40.0, 6.0), (2.5, 0.0, 3.0)), web, chamfer])
+    web = extrude([(-25.0, 0.0), (-15.0, 0.0), (-15.0, 40.0), (-17.0, 40.0), (-25.0, 32.0)], length, length)
+    chamfer = extrude([(-16.0, 5.0), (-2.0, 5.0), (-16.0, 19.0)], length, length)
+    return trimesh.util.concatenate([box((45.0, length, 6.0), (2.5, 0.0, 3.0)), web, chamfer])
 
 
 def plate():

@@ -59,7 +59,7 @@ def test_every_number_is_finite(bench):
     result, _ = bench
     available = [r for r in result["kernels"] if not r["unavailable"]]
     for key, x in leaves(result["settings"] + result["references"] + available + result["features"]
-                         + result["workers"] + result["channels"]):
+                         + result["workers"] + result["channels"] + result["threads"]):
         if x is None:
             assert key in ("samples", "unavailable")   # PlannerSettings.samples None: the task's
         elif isinstance(x, (int, float)):
@@ -168,6 +168,27 @@ def test_the_worker_row_compares_1_and_2_workers_and_finds_the_plans_identical(b
     targets = {t["name"]: t for t in result["targets"]}
     assert targets["hinge_planned: 2 workers / 1 worker >= 1.8"]["met"] == (row["speedup"] >= 1.8)
     assert targets["hinge_planned: serial and parallel plans identical"]["met"] is True
+
+
+def test_the_thread_rows_time_each_big_launch_on_1_and_2_threads_beside_the_machine(bench):
+    """The hinge's (--quick: the first task's) big launches, each counted from its own sizes: 64
+    samples x the 2 deg map's 91 x 180 cells (poles included), 3672 lamp poses x 64 samples,
+    9 lamps x the dense patch's 13 076 points (the certificate's but its specular point),
+    1032 x 776 pixels."""
+    result, _ = bench
+    rows = result["threads"]
+    assert [(r["task"], r["launch"]) for r in rows] == [
+        ("hinge", name) for name in ("visibility maps", "global search", "certificate", "renderer")]
+    assert [r["evaluations"] for r in rows] == [64 * 91 * 180, 3672 * 64, 9 * 13076, 1032 * 776]
+    for row in rows:
+        one, two = row["threads"]
+        assert (one["threads"], two["threads"]) == (1, 2)
+        assert len(row["speedups"]) == 1 and row["speedup"] == pytest.approx(one["time_s"] / two["time_s"])
+        for t in (one, two):
+            assert t["evaluations_per_s"] == pytest.approx(row["evaluations"] / t["time_s"])
+        # timing ratios and the load depend on the machine: only that they were measured
+        assert len(row["machine_speedups"]) == 1 and row["machine_speedup"] > 0 and len(row["load"]) == 2
+    assert len({r["machine_speedup"] for r in rows}) == 1          # one machine measure for the task's rows
 
 
 def test_the_contribution_rows_time_every_light_type_against_numpy(bench):

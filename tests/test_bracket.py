@@ -168,8 +168,9 @@ def test_cell_png_of_the_bracket_draws_every_shot_and_feature(bracket, tmp_path)
 
 def test_cell_plan_prints_the_bracket_and_writes_cell_png_beside_plan_json(bracket, tmp_path, capsys, monkeypatch):
     """The plan's lines as the README shows them; cell.png of the chosen shots beside plan.json, each
-    candidate's plan and maps in candidate-k/ without one (the maps' drawing, ~0.3 s a candidate,
-    stubbed: only where they go is checked here)."""
+    candidate's plan in candidate-k/, the maps of the chosen candidates only (of every one with
+    --pictures all), none with a cell.png (the maps' drawing, ~0.3 s a candidate, stubbed: only
+    where they go is checked here)."""
     task, plan = bracket
     maps = []
     monkeypatch.setattr("cell.cli.plan.plan_features", lambda task, progress, pool: plan)
@@ -182,9 +183,14 @@ def test_cell_plan_prints_the_bracket_and_writes_cell_png_beside_plan_json(brack
     assert sum(line.startswith("  shot ") for line in lines) == len(plan.shots)
     assert sum(line.startswith("  feature ") for line in lines) == 5
     assert (out / "cell.png").stat().st_size > 20_000
-    assert maps == [out / f"candidate-{k}" for k in range(plan.cover["candidate_shots"])]
-    assert not any((out / f"candidate-{k}" / "cell.png").exists() for k in range(len(maps)))
+    candidates = range(plan.cover["candidate_shots"])
+    assert all((out / f"candidate-{k}" / "plan.json").is_file() for k in candidates)
+    assert maps == [out / f"candidate-{k}" for k in plan.cover["chosen"]] and len(maps) < len(candidates)
+    assert not any((out / f"candidate-{k}" / "cell.png").exists() for k in candidates)
     assert json.loads((out / "plan.json").read_text())["cover"]["chosen"] == plan.cover["chosen"]
+    maps.clear()
+    assert cli.main(["plan", str(BRACKET), "--out", str(tmp_path / "all"), "--pictures", "all"]) == 0
+    assert maps == [tmp_path / "all" / f"candidate-{k}" for k in candidates]
 
 
 def test_cell_run_of_the_bracket_puts_every_feature_in_band_in_its_shots_capture(bracket, tmp_path, monkeypatch):
@@ -208,3 +214,81 @@ def test_cell_run_of_the_bracket_puts_every_feature_in_band_in_its_shots_capture
         T = np.asarray(plan.shots[result["shot"]].T_cell_cam)
         pixels = image[disk_pixels(task, f, T, image.shape, 0.6)]
         assert len(pixels) > 300 and low <= pixels.min() and pixels.max() <= high
+
+
+def judged_both_ways(tasks, lent, shots, own):
+    """(the coverage matrix of every shot judged in full on every feature, alone, the pairs the
+    prefilter rejected as {(f, s): its requirement values}, the matrix judge_column gives, its
+    pairs left judged together: coverage.judge_all): shot s is feature own[s]'s (its own plan's
+    verdict stands: not judged), or no feature's (-1). A pair judged both ways has the same
+    numbers: gray, requirement values, certificate."""
+    from cell.planning import coverage, prefilter
+    from cell.planning.whole_part import judge_column
+    full = np.zeros((len(tasks), len(shots)), bool)
+    filtered = np.zeros_like(full)
+    rejected = {}
+    for s, (shot, f) in enumerate(zip(shots, own)):
+        column, _ = judge_column(tasks, f, shot, lent, lambda msg: None)
+        for g, missed in enumerate(prefilter.missed(tasks, lent, shot, f)):
+            if g == f:
+                continue
+            alone = coverage.judge(tasks[g], lent[g], shot)
+            full[g, s], filtered[g, s] = alone.covered, column[g].covered
+            if missed:
+                rejected[g, s] = missed
+                continue
+            together = column[g]
+            assert np.array_equal(together.gray, alone.gray) and together.requirements == alone.requirements
+            assert (together.verification is None) == (alone.verification is None)
+            assert together.verification is None or together.verification.to_json() == alone.verification.to_json()
+    return full, rejected, filtered
+
+
+def test_the_judges_prefilter_rejects_no_pair_the_full_evaluation_accepts(bracket):
+    """Every candidate shot judged in full (coverage.judge) on every other feature, against the
+    judge with its prefilter (judge_column, cell.planning.prefilter): the same coverage matrix;
+    each requirement the prefilter names on a pair it rejects is missed there by the full judge
+    with the same value; and it rejects most pairs (a shot sees few faces at a fitting angle)."""
+    from cell.planning import coverage
+    task, plan = bracket
+    tasks = [task.with_feature(i) for i in range(len(task.features))]
+    own = plan.cover["candidate_features"]
+    lent = [coverage.Lent.of(plan.plans[own.index(f)]) for f in range(len(tasks))]
+    shots = [p.shot for p in plan.plans]
+    full, rejected, filtered = judged_both_ways(tasks, lent, shots, own)
+    assert np.array_equal(filtered, full) and full.any()
+    for (g, s), missed in rejected.items():       # camera_view: the image's bounds or the occlusion alone
+        values = {r.name: r.value for r in coverage.judge(tasks[g], lent[g], shots[s]).requirements}
+        assert all(values[r.name] == r.value > 1.0 or r.name == "camera_view" and values[r.name] >= r.value > 1.0
+                   for r in missed)
+    assert len(rejected) >= len(shots) * (len(tasks) - 1) // 2
+
+
+def test_on_a_longer_bracket_the_prefilter_keeps_the_full_judges_coverage(bracket, tmp_path):
+    """A generated part: the bracket stretched to 60 mm along y, its five faces' features at
+    y = -10 and +10 mm (ten, of 32 and 24 samples: one launch over samples of both counts),
+    judged on the bracket's candidate shots: the coverage matrix with the prefilter is the full
+    judge's, pair by pair, and some of both kinds are there."""
+    import trimesh
+    import yaml
+    from cell.planning import coverage, one_shot, regions
+    from cell.planning.plan import PlannerSettings
+    task, plan = bracket
+    mesh = trimesh.load(ROOT / "tasks" / "parts" / "bracket.stl")
+    mesh.apply_scale([1.0, 1.5, 1.0])
+    mesh.export(tmp_path / "long.stl")
+    doc = yaml.safe_load(BRACKET.read_text())
+    doc["part"] |= {"mesh": str(tmp_path / "long.stl"), "material": str(BRACKET.parent / doc["part"]["material"])}
+    doc["features"] = [{**f, "name": f"{f['name']}_{k}", "center_mm": [f["center_mm"][0], y, f["center_mm"][2]],
+                        "samples": 32 - 8 * k} for k, y in enumerate((-10.0, 10.0)) for f in doc["features"]]
+    (tmp_path / "long.yaml").write_text(yaml.safe_dump(doc))
+    long = loader.load_task(tmp_path / "long.yaml")
+    tasks = [long.with_feature(i) for i in range(len(long.features))]
+    settings = PlannerSettings()
+    grid = regions.SphereGrid(np.radians(settings.grid_step_deg))
+    scenes = [build_scene(t) for t in tasks]
+    lent = [coverage.Lent(s, settings, one_shot.visibility_map(s, grid)) for s in scenes]
+    shots = [p.shot for p in plan.plans]
+    full, rejected, filtered = judged_both_ways(tasks, lent, shots, [-1] * len(shots))
+    assert np.array_equal(filtered, full)
+    assert full.sum() >= 5 and len(rejected) >= full.size // 2

@@ -222,3 +222,29 @@ def test_a_reader_that_goes_away_ends_the_command_quietly():
     finally:
         os.close(write)
     assert done.returncode == 141 and "Traceback" not in done.stderr and "BrokenPipe" not in done.stderr, done.stderr
+
+
+def test_of_several_tasks_one_whose_camera_the_arm_cannot_take_is_named_and_the_others_are_planned(tmp_path, capsys):
+    """`cell plan A B` with B's fixed camera under the table (beyond the arm): A's plan is written and
+    printed, B named with that cause and no folder, exit 1; --json gives B's verdict."""
+    from simcell import variant
+    under = variant(tmp_path, HINGE, {"camera.view_direction": [0.0, 0.0, -1.0]})
+    assert main(["plan", HINGE, str(under), "--out", str(tmp_path / "plans")]) == 1
+    out, err = capsys.readouterr()
+    assert (tmp_path / "plans" / "hinge" / "plan.json").is_file()
+    assert sorted(p.name for p in (tmp_path / "plans").iterdir()) == ["hinge"]
+    assert "Aluminium hinge, leaf surface: feasible" in out
+    refused = [line for line in out.splitlines() if "INFEASIBLE, not planned" in line]
+    assert len(refused) == 1 and "where the arm cannot take it" in refused[0]
+    last = err.strip().splitlines()[-1]
+    assert last.startswith(f"cell plan: infeasible: {under}: ") and "where the arm cannot take it" in last
+    assert HINGE not in last                                # the feasible task is not named as a failure
+    # --json's entry for it: plan.json's verdict keys
+    from cell.cli.plan import plan_one, refused_json
+    from cell.core.progress import Progress
+    from cell.planning.parallel import SERIAL
+    from cell.task.loader import load_task
+    task = load_task(under)
+    document = refused_json(task, plan_one(task, Progress.silent(), SERIAL))
+    assert document["feasible"] is False and document["binding"] == "camera_reach"
+    assert document["task"] == task.name and "where the arm cannot take it" in document["hint"]

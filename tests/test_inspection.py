@@ -83,35 +83,6 @@ def test_planned_viewpoints_run_with_the_arm_carrying_the_camera_to_each_shots_p
 
 # --- the order of the shots ----------------------------------------------------------------
 
-@pytest.mark.parametrize("n", range(1, 8))
-def test_the_shots_order_is_the_shortest_by_brute_force(n):
-    rng = np.random.default_rng(n)
-    for _ in range(5):
-        poses = [(rng.uniform(-0.5, 0.5, 3), rng.uniform(-0.5, 0.5, 3)) for _ in range(n + 1)]
-        D = route.travel_matrix(poses[0], poses[1:])
-        best = min(route.length(D, p) for p in itertools.permutations(range(n)))
-        order = route.shortest_order(D)
-        assert sorted(order) == list(range(n)) and route.length(D, order) == pytest.approx(best, abs=1e-12)
-
-
-def test_a_leg_is_the_cameras_travel_plus_the_lamps_and_an_unknown_lamp_counts_nothing():
-    a = (np.zeros(3), np.array([0.0, 0.0, 1.0]))
-    b = (np.array([3.0, 4.0, 0.0]), np.array([0.0, 1.0, 1.0]))
-    assert route.leg(a, b) == pytest.approx(5.0 + 1.0)
-    assert route.leg((np.zeros(3), np.full(3, np.nan)), b) == pytest.approx(5.0)
-
-
-def test_beyond_the_exact_limit_the_order_is_nearest_neighbour():
-    rng = np.random.default_rng(0)
-    poses = [(rng.uniform(size=3), rng.uniform(size=3)) for _ in range(route.EXACT_MAX + 3)]
-    D = route.travel_matrix(poses[0], poses[1:])
-    order, here = route.shortest_order(D), 0
-    assert sorted(order) == list(range(len(poses) - 1))
-    for k, i in enumerate(order):           # each step goes to the nearest stop not yet visited
-        assert D[here, i + 1] == min(D[here, j + 1] for j in order[k:])
-        here = i + 1
-
-
 def test_the_run_visits_the_shots_in_the_shortest_order_from_the_start_pose(pair):
     """The plan's checked route (here every move direct): the order shortest from the home pose
     (where the plan cannot know the lamp: its first leg counts the camera's travel alone), the

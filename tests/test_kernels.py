@@ -243,16 +243,21 @@ def test_visibility_matches_reference_beside_a_wall(blocks):
     np.testing.assert_array_equal(combined_map(warp), warp.all(axis=0))
 
 
-def test_visibility_matches_reference_on_the_hinge_in_a_tilted_frame(hinge):
-    """Samples on the leaf near the knuckle; the feature frame is rotated about the normal."""
-    mesh, _ = hinge
+def near_the_knuckle():
+    """(points, normals, frame, azimuths, elevations): 10 samples on the hinge's leaf near the
+    knuckle, the feature frame rotated about the normal, a 6 deg grid above the leaf."""
     rng = np.random.default_rng(4)
     points = np.column_stack([rng.uniform(-0.026, -0.005, 10), rng.uniform(-0.015, 0.015, 10),
                               np.full(10, 0.004)])
     normals = np.tile([0.0, 0.0, 1.0], (10, 1))
     frame = geometry.frame_from_normal([0.0, 0.0, 1.0], reference=(1.0, 1.0, 0.0))
-    az = np.radians(np.arange(-180.0, 180.0, 6.0))
-    el = np.radians(np.arange(3.0, 90.0, 6.0))
+    return points, normals, frame, np.radians(np.arange(-180.0, 180.0, 6.0)), np.radians(np.arange(3.0, 90.0, 6.0))
+
+
+def test_visibility_matches_reference_on_the_hinge_in_a_tilted_frame(hinge):
+    """Samples on the leaf near the knuckle; the feature frame is rotated about the normal."""
+    mesh, _ = hinge
+    points, normals, frame, az, el = near_the_knuckle()
     warp = visibility_maps(mesh, points, normals, frame, az, el)
     numpy = ref.visibility_maps(mesh, points, normals, frame, az, el)
     assert 0.05 < 1 - warp.mean() < 0.6
@@ -412,6 +417,8 @@ def test_each_lamp_its_own_power_equals_a_call_per_power(blocks):
        near_mirror=st.booleans(), m1=st.floats(1.0, 1e3), m2=st.floats(1e3, 1e5), aim_off=st.floats(0.0, 3.1))
 @example(lamp_polar=0.0, camera_polar=6.103515625e-05, azimuths=(0.0, 0.0), near_mirror=True, m1=1.0, m2=1000.0,
          aim_off=0.0)                                  # 6e-8 rad from the mirror: acos's phase angle was 4 % off
+@example(lamp_polar=0.75, camera_polar=0.75, azimuths=(0.0, 0.0), near_mirror=False, m1=1.0, m2=1000.0,
+         aim_off=0.0)                                  # the camera beside the lamp: acos read alpha 1.5e-8, 1e-8 off
 def test_gray_equals_the_brdf_written_with_numpy_power(lamp_polar, camera_polar, azimuths, near_mirror, m1, m2,
                                                        aim_off):
     """The kernel's forms (c^m = exp(m ln c) from one log, the off-axis angle as a chord's

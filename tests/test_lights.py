@@ -339,9 +339,9 @@ def test_a_one_lamp_task_has_one_light_at_full_drive():
 
 def test_the_plan_folder_shows_where_each_light_is_and_what_it_adds(ring_plan, tmp_path):
     import cv2
-    from cell.report.recorder import write_plan
+    from cell.report.recorder import draw_plan, write_plan
     task, plan = ring_plan
-    write_plan(plan, task, tmp_path)
+    draw_plan(plan, task, write_plan(plan, task, tmp_path))
     image = cv2.imread(str(tmp_path / "lights.png"))
     assert image is not None and image.shape[0] > 300 and image.std() > 10
 

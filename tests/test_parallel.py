@@ -3,9 +3,11 @@ the serial ones in every key but timing_s, on a LocalCluster `cell plan` starts 
 module starts and names by its address; errors on a worker are the serial run's one line; a
 scheduler that does not answer is one line and exit 2 within its timeout. Everything on
 127.0.0.1 (LocalCluster's host)."""
+import io
 import json
 import logging
 import pickle
+import re
 import socket
 import time
 from dataclasses import replace
@@ -16,6 +18,7 @@ import pytest
 from cell import cli
 
 from cell.core import jsonio
+from cell.core.progress import Progress
 
 from cell.planning import parallel
 from cell.core.errors import DeviceFault, PlanInfeasible, TaskError
@@ -55,8 +58,8 @@ def one_line(err):
 
 
 def test_serial_workers_2_and_a_cluster_by_address_plan_the_same(scheduler, tmp_path, capsys):
-    lines = []
-    serial = with_moves(load_task(PLANNED), plan_features(load_task(PLANNED), progress=lines.append))  # cell plan's
+    said = io.StringIO()
+    serial = with_moves(load_task(PLANNED), plan_features(load_task(PLANNED), progress=Progress(said)))
     alone = own_plan(load_task(HINGE), PlannerSettings(), None, None, "", lambda msg: None)   # cell plan's job
     assert cli.main(["plan", str(PLANNED), "--workers", "2", "--out", str(tmp_path / "local")]) == 0
     local_err = capsys.readouterr().err
@@ -69,12 +72,18 @@ def test_serial_workers_2_and_a_cluster_by_address_plan_the_same(scheduler, tmp_
     for k, own in enumerate(serial.plans):                  # each candidate's own plan.json too
         assert written(tmp_path / "local" / f"candidate-{k}") == document(own)
         assert written(tmp_path / "remote" / "hinge_planned" / f"candidate-{k}") == document(own)
-    # the workers' progress reached the terminal, each task's lines named when there are several
-    assert sorted(local_err.splitlines()) == sorted(lines)         # as the jobs completed, not in order
+    # the workers' progress reached the terminal, each task's lines named when there are several: the
+    # kept viewpoints and the cover as the serial plan said them (the stages' quarter lines depend on
+    # the order the jobs complete in), each stage's last line
+    kept = [line for line in said.getvalue().splitlines() if "camera poses kept" in line or line.startswith("cover:")]
+    assert kept and sorted(kept) == sorted(line for line in local_err.splitlines()
+                                           if "camera poses kept" in line or line.startswith("cover:"))
+    for stage in ("viewpoints", "lamp searches", "judging"):
+        assert re.search(rf"^{stage}: (\d+) of \1 in ", local_err, re.M), local_err
     # the bench's comparison: blind to timing_s, not to a candidate's own plan
     assert same_plan(serial, replace(serial, timing_s={}, plans=tuple(replace(p, timing_s={}) for p in serial.plans)))
     assert not same_plan(serial, replace(serial, plans=serial.plans[::-1]))
-    assert "hinge_planned: feature end_face, viewpoint 1:" in remote_err and "hinge: global search:" in remote_err
+    assert "hinge_planned: feature end_face: " in remote_err and "hinge: global search:" in remote_err
 
 
 def test_a_bad_task_on_a_worker_is_the_serial_runs_one_line(scheduler, tmp_path, capsys):
@@ -177,3 +186,25 @@ def test_the_local_cluster_hands_a_worker_one_job_at_a_time_without_stealing():
         scheduler = cluster.cluster.scheduler
         assert scheduler.WORKER_SATURATION == 1.0 and "stealing" not in scheduler.extensions
         assert cluster.client.scheduler_info()["workers"] and cluster.cluster.scheduler_address.startswith("tcp://127.0.0.1:")
+
+
+def kernel_threads(say):
+    """A job: the threads its process splits a big kernel launch over."""
+    from kernels.runtime import threads
+    return threads()
+
+
+def test_workers_split_their_kernels_over_their_share_of_the_cores(scheduler):
+    """--workers N: each worker's launches over cores / N threads (its share: N workers' threads do
+    not outnumber the cores), the restricted pool's too; a cluster by address: each worker's own
+    cores; serially: this process's cores."""
+    from kernels.runtime import available_cores
+    cores = available_cores()
+    with parallel.local_cluster(2) as both:
+        share = max(1, cores // 2)
+        assert both.map(kernel_threads, [()] * 4, lambda line: None) == [share] * 4
+        one = both.restricted(sorted(both.client.nthreads())[:1])
+        assert one.map(kernel_threads, [()] * 2, lambda line: None) == [share] * 2
+    with parallel.remote_cluster(scheduler) as cluster:
+        assert cluster.map(kernel_threads, [()] * 2, lambda line: None) == [cores] * 2
+    assert parallel.SERIAL.map(kernel_threads, [()], lambda line: None) == [cores]

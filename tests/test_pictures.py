@@ -1,6 +1,5 @@
-"""Pictures: drawn from several threads at once they come out as if drawn one after the other;
-cell.png draws each shot where its numbers put it; convergence.png shows a refit's probe shots and
-where it took effect."""
+"""Pictures: drawn from several threads at once they come out as if drawn one after the other; a
+run's plan pictures are drawn when the run has ended, never while its devices wait."""
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -29,6 +28,43 @@ def test_bench_plots_drawn_in_threads_equal_one_drawn_alone(tmp_path):
     assert all((tmp_path / f"{k}.png").read_bytes() == alone for k in range(8))
 
 
-"""Pictures: drawn from several threads at once they come out as if drawn one after the other;
-cell.png draws each shot where its numbers put it; convergence.png shows a refit's probe shots and
-where it took effect."""
+
+
+def test_a_runs_plan_pictures_are_drawn_when_it_has_ended_its_plan_json_at_once(tmp_path, monkeypatch):
+    """Recorder.write_plan writes plan.json at once and keeps the pictures for the run's end (its
+    own Recorder's exit, after the result file and the devices' session, which close inside it),
+    a sub-run's re-plan's too, in the order they were planned."""
+    from cell.report.recorder import Recorder
+    task = load_task(ROOT / "tasks" / "hinge.yaml")
+    planned = plan(task)
+    drawn = []
+    monkeypatch.setattr("cell.report.pictures.write_plan_pictures",
+                        lambda plan, task, scene, folder: drawn.append(Path(folder)))
+    run = tmp_path / "run"
+    with Recorder(run) as rec:
+        rec.write_plan(planned, task)
+        with rec.sub("shot-0") as sub:
+            sub.write_plan(planned, task, "replan-1")
+        assert (run / "plan.json").is_file() and (run / "shot-0" / "replan-1" / "plan.json").is_file()
+        assert drawn == [] and not (run / "cell.png").exists()
+    assert drawn == [run, run / "shot-0" / "replan-1"]
+    assert (run / "cell.png").stat().st_size > 20_000 and (run / "shot-0" / "replan-1" / "cell.html").is_file()
+
+
+def test_a_picture_that_fails_as_a_run_ends_in_error_leaves_that_error_to_say(tmp_path, monkeypatch, capsys):
+    from cell.report.recorder import Recorder
+
+    def broken(plan, task, scene, folder):
+        raise RuntimeError("no room on the disk")
+
+    monkeypatch.setattr("cell.report.pictures.write_plan_pictures", broken)
+    task = load_task(ROOT / "tasks" / "hinge.yaml")
+    planned = plan(task)
+    with pytest.raises(ValueError, match="the run's own error"):
+        with Recorder(tmp_path / "run") as rec:
+            rec.write_plan(planned, task)
+            raise ValueError("the run's own error")
+    assert "a picture was not drawn: no room on the disk" in capsys.readouterr().err
+    with pytest.raises(RuntimeError, match="no room on the disk"):      # at a normal end it is the error
+        with Recorder(tmp_path / "again") as rec:
+            rec.write_plan(planned, task)

@@ -103,6 +103,18 @@ def test_the_other_examples_plan_feasible_and_say_so_in_words(tmp_path):
     assert not offending(text), "\n".join(f"{why}: {line}" for line, why in offending(text))
 
 
+@pytest.mark.long          # a closed-loop run of the ring; test_register holds the words of the unaligned capture
+def test_a_closed_loop_run_says_its_steps_in_words(tmp_path):
+    """`cell run` on the ring: its registration cannot align on the evenly lit plate (OpenCV's ECC
+    gives up), which the step says in words, not with OpenCV's own message and source path."""
+    done = subprocess.run([sys.executable, "-m", "cell", "run", str(ROOT / "tasks" / "ring.yaml"), "--out",
+                           str(tmp_path / "run")], capture_output=True, text=True, timeout=900, cwd=tmp_path)
+    text = done.stdout + done.stderr
+    assert done.returncode == 0, text
+    assert " register " in text and "converged" in text
+    assert not offending(text), "\n".join(f"{why}: {line}" for line, why in offending(text))
+
+
 def test_each_infeasible_variant_names_what_limits_it(planned):
     text, _, plans = planned
     assert "camera view of the feature fails: the camera cannot see 64 of 64 feature samples" in text

@@ -18,7 +18,7 @@ from cell.devices import rig
 from cell.cli import main
 from cell.core.errors import PlanInfeasible
 from cell.task.loader import load_task
-from cell.report.recorder import write_plan
+from cell.report.recorder import draw_plan, write_plan
 from cell.physics import brdf, depth_of_field as dof, radiometry, reference
 from cell.planning.scene import build_scene, feature_disk
 
@@ -194,7 +194,7 @@ def test_exposure_respects_lens_shutter_and_depth_of_field(name, request):
 
 def test_plan_json_contract(hinge, tmp_path):
     task, plan = hinge
-    write_plan(plan, task, tmp_path)
+    draw_plan(plan, task, write_plan(plan, task, tmp_path))
     data = json.loads((tmp_path / "plan.json").read_text())
     assert data["feasible"] is True
     assert data["binding"] in {r["name"] for r in data["requirements"]}

@@ -187,12 +187,13 @@ def targets(settings: Iterable[dict[str, Any]], kernels: Iterable[dict[str, Any]
 
 
 def run(tasks: Iterable[Task], quick: bool, say: Callable[[str], None],
-        feature_tasks: Iterable[Task] = (), light_tasks: Iterable[Task] = ()) -> dict[str, Any]:
+        feature_tasks: Iterable[Task] = (), light_tasks: Iterable[Task] = (), many: bool = False) -> dict[str, Any]:
     """The benchmark of the loaded one-feature `tasks`: every setting's row against the task's
     reference, the references, the kernel rows; of the multi-feature `feature_tasks` the
     cell.bench.multi_feature rows; of the `light_tasks` (with lights besides the spot) the
-    cell.bench.lights rows; and the targets (bench.json)."""
-    from cell.bench import lights, multi_feature
+    cell.bench.lights rows; the big launches on 1 and 2 threads (cell.bench.threads); with `many`,
+    the generated many-feature part's (cell.bench.scaling); and the targets (bench.json)."""
+    from cell.bench import lights, multi_feature, scaling, threads
     repeats = 1 if quick else 3
     result: dict[str, Any] = {"quick": quick, "repeats": repeats, "settings": [], "references": [], "kernels": []}
     for task in tasks:
@@ -202,10 +203,12 @@ def run(tasks: Iterable[Task], quick: bool, say: Callable[[str], None],
         result["references"].append(ref)
     for task in tasks:
         result["kernels"] += kernel_rows(task, quick, repeats, say)
+    result["threads"] = threads.run(list(tasks), quick, say)
     result |= multi_feature.run(feature_tasks, quick, say)
     light_rows = lights.run(light_tasks, quick, say)
     result["kernels"] += light_rows["kernels"]
     result["channels"] = light_rows["channels"]
+    result |= scaling.run(quick, say) if many else {"scaling": [], "scaling_summary": None}
     result["targets"] = (targets(result["settings"], result["kernels"]) + multi_feature.targets(result["workers"])
-                         + lights.targets(result["channels"]))
+                         + lights.targets(result["channels"]) + scaling.targets(result["scaling"], result["scaling_summary"]))
     return result

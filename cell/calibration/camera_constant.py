@@ -208,8 +208,9 @@ def dark_frames(devices: Devices, recorder: Recorder, frames: list[Frame], shutt
                 f_number: float, focus_m: float) -> Darks:
     """DARK_FRAMES at each end of the shutter range, beam blocked: Darks."""
     stacks: dict[float, list[np.ndarray]] = {}
-    for wanted in shutter_range_s:
-        for _ in range(DARK_FRAMES):
+    wanted_times = [t for t in shutter_range_s for _ in range(DARK_FRAMES)]
+    with recorder.stage("dark frames", len(wanted_times)) as stage:
+        for wanted in stage.each(wanted_times):
             image, t, name = take(devices, recorder, frames, wanted, f_number, focus_m)
             stacks.setdefault(t, []).append(image)
             frames.append(Frame("dark", t, name))
@@ -279,7 +280,9 @@ def measure_series(devices: Devices, recorder: Recorder, frames: list[Frame], ta
         found = probe(devices, recorder, frames, spot, task, laser.power_w, f_number, focus_m)
         times = shutter_sweep(found.shutter_s, found.peak, spot.room(found.shutter_s),
                               task.camera.shutter_range_s, shots)
-        images = [lit_frame(devices, recorder, frames, spot, "sweep", t, f_number, focus_m) for t in times]
+        with recorder.stage("shutter sweep", len(times)) as stage:
+            images = [lit_frame(devices, recorder, frames, spot, "sweep", t, f_number, focus_m)
+                      for t in stage.each(times)]
     except CellError as err:
         if not isinstance(err, DeviceFault):    # a fault ends at once; a refusal first asks this
             laser.block("block the beam: the series is refused")

@@ -237,43 +237,44 @@ def measure_poses(task: Task, devices: Devices, recorder: Recorder, nominal: Cal
     c, area = sensor.camera_constant, sensor.pixel_area_m2
     wanted = poses(task)
     exposer: Exposer | None = None
-    for k, pose in enumerate(wanted, 1):
-        T, joints, why = refusal(devices, task, pose)
-        where = (f"phase {np.degrees(pose.phase_rad):.1f} deg, ti {np.degrees(pose.theta_i_rad):.1f}, "
-                 f"te {np.degrees(pose.theta_e_rad):.1f} deg")
-        if why:
-            refused.append((k, why))
-            recorder.step("refused", f"pose {k} of {len(wanted)} ({where}) skipped: {why}", pose=k, reason=why)
-            continue
-        with speaking_for(devices.arm):
-            devices.arm.move_camera(T)
-        with speaking_for(devices.lamp):
-            devices.lamp.move(*joints)
-            lamp_pos, _ = devices.lamp.lamp_pose()
-        if exposer is None:                      # the dark frame once the lamp is somewhere (its radius set),
-            k_hi = task.camera.lens.f_number_range[1]   # at the largest f-number: the least light
-            exposer = Exposer(task, devices, recorder, find_black_level(task, devices, recorder, k_hi,
-                                                                        task.camera.distance_m))
-        distance = float(np.linalg.norm(lamp_pos - pivot))
-        phi = float(cone_irradiance(lamp.power_w, lamp.cone_angle_rad, distance, 0.0, lamp.profile))
-        r_guess = float(reflectance(np.cos(pose.theta_i_rad), np.cos(pose.theta_e_rad), np.cos(pose.phase_rad),
-                                    *astuple(nominal(pose.phase_rad))))
-        unit = gray_per_exposure(c, area, phi, max(r_guess, 1e-6))
-        recorder.step("pose", f"pose {k} of {len(wanted)}: {where}; lamp {1e3 * distance:.1f} mm, "
-                              f"Phi {phi:.4g} W/m^2", pose=k, beta_deg=np.degrees(pose.beta_rad),
-                      lamp_distance_m=distance, irradiance_w_m2=phi)
-        taken = exposer.expose(k, TARGET * exposer.range / float(unit), pivot)
-        if isinstance(taken, str):
-            why = taken
-            failed.append((k, why))
-            recorder.step("no_reading", f"pose {k}: {why}", pose=k, reason=why)
-            continue
-        capture, signal, takes, name = taken
-        r = float(reflectance_from_gray(signal, c, capture.shutter_s, capture.f_number, area, phi))
-        readings.append(Reading(k, float(np.degrees(pose.phase_rad)), float(np.degrees(pose.theta_i_rad)),
-                                float(np.degrees(pose.theta_e_rad)), float(np.degrees(pose.beta_rad)), signal,
-                                capture.shutter_s, capture.f_number, phi, r, takes, name))
-        recorder.step("reading", f"pose {k}: R = {r:.5g}", pose=k, reflectance=r)
+    with recorder.stage("poses", len(wanted)) as stage:     # the log has every step, the terminal a bar
+        for k, pose in enumerate(stage.each(wanted), 1):
+            T, joints, why = refusal(devices, task, pose)
+            where = (f"phase {np.degrees(pose.phase_rad):.1f} deg, ti {np.degrees(pose.theta_i_rad):.1f}, "
+                     f"te {np.degrees(pose.theta_e_rad):.1f} deg")
+            if why:
+                refused.append((k, why))
+                recorder.step("refused", f"pose {k} of {len(wanted)} ({where}) skipped: {why}", pose=k, reason=why)
+                continue
+            with speaking_for(devices.arm):
+                devices.arm.move_camera(T)
+            with speaking_for(devices.lamp):
+                devices.lamp.move(*joints)
+                lamp_pos, _ = devices.lamp.lamp_pose()
+            if exposer is None:                      # the dark frame once the lamp is somewhere (its radius set),
+                k_hi = task.camera.lens.f_number_range[1]   # at the largest f-number: the least light
+                exposer = Exposer(task, devices, recorder, find_black_level(task, devices, recorder, k_hi,
+                                                                            task.camera.distance_m))
+            distance = float(np.linalg.norm(lamp_pos - pivot))
+            phi = float(cone_irradiance(lamp.power_w, lamp.cone_angle_rad, distance, 0.0, lamp.profile))
+            r_guess = float(reflectance(np.cos(pose.theta_i_rad), np.cos(pose.theta_e_rad), np.cos(pose.phase_rad),
+                                        *astuple(nominal(pose.phase_rad))))
+            unit = gray_per_exposure(c, area, phi, max(r_guess, 1e-6))
+            recorder.step("pose", f"pose {k} of {len(wanted)}: {where}; lamp {1e3 * distance:.1f} mm, "
+                                  f"Phi {phi:.4g} W/m^2", pose=k, beta_deg=np.degrees(pose.beta_rad),
+                          lamp_distance_m=distance, irradiance_w_m2=phi)
+            taken = exposer.expose(k, TARGET * exposer.range / float(unit), pivot)
+            if isinstance(taken, str):
+                why = taken
+                failed.append((k, why))
+                recorder.step("no_reading", f"pose {k}: {why}", pose=k, reason=why)
+                continue
+            capture, signal, takes, name = taken
+            r = float(reflectance_from_gray(signal, c, capture.shutter_s, capture.f_number, area, phi))
+            readings.append(Reading(k, float(np.degrees(pose.phase_rad)), float(np.degrees(pose.theta_i_rad)),
+                                    float(np.degrees(pose.theta_e_rad)), float(np.degrees(pose.beta_rad)), signal,
+                                    capture.shutter_s, capture.f_number, phi, r, takes, name))
+            recorder.step("reading", f"pose {k}: R = {r:.5g}", pose=k, reflectance=r)
 
 
 def write_csv(path: Path, readings: list[Reading]) -> Path:

@@ -198,30 +198,30 @@ def collect(devices: Devices, recorder: Recorder, task: Task, poses: list[np.nda
     skipped: list[dict[str, Any]] = []
     frames: list[str] = []
     shutter: float | None = None
-    for k, T in enumerate(poses, 1):
-        why = refused(task, T)
-        if why:
-            skipped.append({"pose": k, "reason": why})
-            recorder.step("refused", f"pose {k}/{len(poses)} skipped: {why}", pose=k, reason=why)
-            continue
-        with speaking_for(devices.arm):
-            devices.arm.move_camera(T)
-            T_cell_cam = devices.arm.camera_pose()
-        focus_m = float((board.T_cell_centre[:3, 3] - T_cell_cam[:3, 3]) @ T_cell_cam[:3, 2])
-        recorder.step("move_camera", f"pose {k}/{len(poses)}: camera at {np.round(T_cell_cam[:3, 3], 4).tolist()} m",
-                      pose=k, position_m=T_cell_cam[:3, 3])
-        if shutter is None:
-            shutter = auto_exposure(devices, recorder, task, f_number, focus_m, frames)
-        capture = acquire(devices, recorder, len(frames) + 1, shutter, f_number, focus_m)
-        frames.append(capture.name)
-        image8 = to_8_bit(capture.image, bit_depth)
-        obj, img, corners, ids = detect(board, image8)
-        name = recorder.write_image(f"board-{k}.png", draw_corners(image8, corners, ids))
-        T_cell_flange = task.frames.T_cell_flange(capture.T_cell_cam)
-        views.append(View(k, name, T_cell_flange, obj, img))
-        recorder.step("board", f"pose {k}: {len(obj)} corners" + ("" if views[-1].usable else f", fewer than {MIN_CORNERS}: "
-                                                                                  "left out"), pose=k,
-                      corners=len(obj), picture=name)
+    with recorder.stage("poses", len(poses)) as stage:      # the log has every step, the terminal a bar
+        for k, T in enumerate(stage.each(poses), 1):
+            why = refused(task, T)
+            if why:
+                skipped.append({"pose": k, "reason": why})
+                recorder.step("refused", f"pose {k}/{len(poses)} skipped: {why}", pose=k, reason=why)
+                continue
+            with speaking_for(devices.arm):
+                devices.arm.move_camera(T)
+                T_cell_cam = devices.arm.camera_pose()
+            focus_m = float((board.T_cell_centre[:3, 3] - T_cell_cam[:3, 3]) @ T_cell_cam[:3, 2])
+            recorder.step("move_camera", f"pose {k}/{len(poses)}: camera at "
+                          f"{np.round(T_cell_cam[:3, 3], 4).tolist()} m", pose=k, position_m=T_cell_cam[:3, 3])
+            if shutter is None:
+                shutter = auto_exposure(devices, recorder, task, f_number, focus_m, frames)
+            capture = acquire(devices, recorder, len(frames) + 1, shutter, f_number, focus_m)
+            frames.append(capture.name)
+            image8 = to_8_bit(capture.image, bit_depth)
+            obj, img, corners, ids = detect(board, image8)
+            name = recorder.write_image(f"board-{k}.png", draw_corners(image8, corners, ids))
+            T_cell_flange = task.frames.T_cell_flange(capture.T_cell_cam)
+            views.append(View(k, name, T_cell_flange, obj, img))
+            left_out = "" if views[-1].usable else f", fewer than {MIN_CORNERS}: left out"
+            recorder.step("board", f"pose {k}: {len(obj)} corners{left_out}", pose=k, corners=len(obj), picture=name)
     return views, skipped
 
 

@@ -165,6 +165,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="folder for plan.json and the pictures, new or empty (default "
                                  "runs/<task>-plan-<time>); with several tasks, a folder <task> in it for each")
     p.add_argument("--json", action="store_true", help="print plan.json to stdout (several tasks: a list)")
+    p.add_argument("--pictures", choices=("chosen", "all"), default="chosen",
+                   help="pictures of a multi-feature plan's candidate shots: of the chosen ones (default) or all")
     p.add_argument("--workers", metavar="N", help="plan on a Dask LocalCluster of N worker processes "
                                                   "on this machine (127.0.0.1)")
     p.add_argument("--scheduler", metavar="ADDRESS", help="plan on the running Dask cluster of this "
@@ -181,8 +183,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("bench", help="what accuracy costs in time; kernel throughput")
     p.add_argument("tasks", nargs="*", help="default: the example tasks hinge.yaml and conrod.yaml, installed with "
-                                            "the package, and the multi-feature example (its planning time on 1 and "
-                                            "2 workers)")
+                                            "the package, the multi-feature example bracket.yaml (its planning time "
+                                            "on 1 and 2 workers) and the lights example ring.yaml (per channel)")
     p.add_argument("--quick", action="store_true", help="small sweep (< 1 min) for smoke tests")
     p.add_argument("--out", help="folder for bench.json and bench.png, new or empty (default runs/bench-<time>)")
     p.add_argument("--json", action="store_true", help="print bench.json to stdout")

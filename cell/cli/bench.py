@@ -8,7 +8,7 @@ import sys
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
-from cell.bench import suite
+from cell.bench import scaling, suite
 from cell.core import jsonio
 from cell.cli import create_folder, output_folder
 from cell.report import words
@@ -27,7 +27,7 @@ def text_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
 
 
 def report(result: dict[str, Any]) -> str:
-    """The terminal tables: settings, kernels, targets."""
+    """The terminal tables: settings, kernels, features, workers, channels, threads, targets."""
     settings = text_table(
         ["task", "setting", "cands", "samples", "time s", "certify s", "err mean", "err min", "err max", "worst",
          "lamp mm", "lamp deg", "feasible", "tightest", "agrees", "finite", "pareto", "default"],
@@ -68,13 +68,29 @@ def report(result: dict[str, Any]) -> str:
           f"{r['drives_s']:.3f} ({r['drives_s'] / r['time_s']:.0%})",
           *(f"{r[k]:.2f} ({r[k] / r['time_s']:.0%})" for k in ("certificate_s", "other_s")),
           "yes" if r["feasible"] else f"NO: {words.label(r['binding'])}"] for r in result["channels"]])
+    threads = text_table(
+        ["task", "launch", "evaluations", "1 thread /s", "2 threads /s", "speedup", "rounds", "machine", "load"],
+        [[r["task"], r["launch"], f"{r['evaluations']:.3g}",
+          *(f"{t['evaluations_per_s']:.3g}" for t in r["threads"]), f"{r['speedup']:.2f}x",
+          f"{min(r['speedups']):.2f}-{max(r['speedups']):.2f} ({len(r['speedups'])})", f"{r['machine_speedup']:.2f}x",
+          "{:.1f}-{:.1f}".format(*r["load"])] for r in result["threads"]])
+    many = text_table(
+        ["task", "features", "candidates", "shots", "serial s", "judge s", "judge share", "2 workers s", "speedup",
+         "peak MB serial", "peak MB 2 workers", "load serial", "load 2 workers", "identical"],
+        [[r["task"], r["features"], r["candidates"], r["shots"], f"{r['serial_s']:.1f}", f"{r['judge_s']:.1f}",
+          f"{r['judge_share']:.0%}", f"{r['workers_2_s']:.1f}", f"{r['speedup']:.2f}x",
+          f"{r['peak_memory_serial_b'] / 1e6:.0f}", f"{r['peak_memory_2_workers_b'] / 1e6:.0f}",
+          "{:.1f}-{:.1f}".format(*r["load"]), "{:.1f}-{:.1f}".format(*r["load_2_workers"]),
+          "yes" if r["identical"] else "NO"] for r in result["scaling"]])
     goals = "\n".join(f"{'met    ' if t['met'] else 'NOT MET'}  {t['name']}: {t['value']:.3g}"
                       for t in result["targets"])
     parts = [settings, refs, "\n".join(summary(result["settings"])), kernels] if result["settings"] else []
     if not result["settings"] and result["kernels"]:         # the light rows' kernels alone
         parts.append(kernels)
+    parts += [threads] if result["threads"] else []
     parts += [features, workers] if result["workers"] else []
     parts += [channels] if result["channels"] else []
+    parts += [many, scaling.summary_line(result["scaling_summary"])] if result["scaling"] else []
     return "\n\n".join(parts + [goals])
 
 
@@ -123,7 +139,7 @@ def command(args: argparse.Namespace) -> int:
     feature_tasks = [t for t in loaded if multi_feature(t)]
     light_tasks = [t for t in loaded if with_lights(t)]
     create_folder(out)
-    result = suite.run(tasks, args.quick, say, feature_tasks, light_tasks)
+    result = suite.run(tasks, args.quick, say, feature_tasks, light_tasks, many=not args.tasks)
     text = jsonio.dumps(result, indent=2)
     (out / "bench.json").write_text(text + "\n")
     if result["settings"]:              # bench.png: the one-feature settings sweep

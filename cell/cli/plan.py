@@ -1,13 +1,17 @@
-"""`cell plan TASK... [--out DIR] [--json] [--workers N | --scheduler ADDRESS]`: exit 0 feasible
-(every feature of every task covered), 1 infeasible (with the reason: the first uncovered feature
-and its cause), 2 bad input. With --workers or --scheduler the plans' jobs run on Dask
-(cell.planning.parallel); the plans are the serial ones."""
+"""`cell plan TASK... [--out DIR] [--json] [--pictures chosen|all] [--workers N | --scheduler ADDRESS]`:
+exit 0 feasible (every feature of every task covered), 1 infeasible (with the reason: the first
+uncovered feature and its cause), 2 bad input. Of several tasks, one refused before its search (a
+fixed camera the arm cannot take) is named with its cause and the others are planned all the same
+(exit 1). With --workers or --scheduler the plans' jobs run on Dask (cell.planning.parallel); the
+plans are the serial ones. Every plan.json is written before any picture is drawn; of a
+multi-feature plan's candidate shots only the chosen get pictures, unless --pictures all. Progress
+on stderr (cell.core.progress): bars on a terminal, a few lines elsewhere."""
 
 from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -15,6 +19,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from cell.core import jsonio
+from cell.core.progress import Progress
 from cell.planning import parallel
 from cell.cli import create_folder, output_folder
 from cell.core.errors import PlanInfeasible, TaskError
@@ -22,7 +27,7 @@ from cell.task.loader import load_task
 from cell.planning.whole_part import own_plan, plan_features
 from cell.planning.plan import PlannerSettings, gray_stats
 from cell.report import words
-from cell.report.recorder import write_plan
+from cell.report.recorder import draw_plan, write_plan
 from cell.run.moves import with_moves
 
 if TYPE_CHECKING:
@@ -90,36 +95,67 @@ def command(args: argparse.Namespace) -> int:
     names = distinct([Path(path).stem for path in args.tasks])
     with parallel.pool(workers, args.scheduler) as pool:
         folders = task_folders(args, out, names)
-        say = [(lambda msg, label=f"{name}: " if several else "": print(label + msg, file=sys.stderr, flush=True))
-               for name in names]
+        stderr = Progress(sys.stderr)
+        progress = [stderr.labelled(f"{name}: " if several else "") for name in names]
         if pool is parallel.SERIAL or not several:
-            results = [plan_one(task, s, pool) for task, s in zip(tasks, say)]
+            results = [plan_one(task, p, pool) for task, p in zip(tasks, progress)]
         else:                           # the tasks' jobs side by side on the cluster
             with ThreadPoolExecutor(len(tasks)) as threads:
-                results = [f.result() for f in [threads.submit(plan_one, t, s, pool) for t, s in zip(tasks, say)]]
+                results = [f.result() for f in [threads.submit(plan_one, t, p, pool) for t, p in zip(tasks, progress)]]
     for result, task, folder in zip(results, tasks, folders):
-        write_plan(result, task, folder)
+        if isinstance(result, PlanInfeasible):
+            if several or args.out is None:
+                folder.rmdir()          # made by this command, left empty: refused before any search
+        else:
+            write_plan(result, task, folder)
+    if not several and isinstance(results[0], PlanInfeasible):
+        raise results[0]
+    for result, task, folder in zip(results, tasks, folders):      # every plan.json first, then pictures
+        if not isinstance(result, PlanInfeasible):
+            draw_plan(result, task, folder, args.pictures)
     if args.json:
-        documents = [result.to_json() for result in results]
+        documents = [refused_json(task, result) if isinstance(result, PlanInfeasible) else result.to_json()
+                     for task, result in zip(tasks, results)]
         print(jsonio.dumps(documents if several else documents[0], indent=2))
     else:
-        for result, folder in zip(results, folders):
+        for result, task, folder in zip(results, tasks, folders):
+            if isinstance(result, PlanInfeasible):
+                print(f"{task.name}: INFEASIBLE, not planned: {result.said.removeprefix(task.name + ': ')}")
+                continue
             print(summary(result) if not result.features else features_summary(result))
             print(f"  wrote {folder}/plan.json and pictures")
-    for result, path in zip(results, args.tasks):
-        if not result.feasible:
-            where = f"{path}: " if several else ""
-            raise PlanInfeasible(f"infeasible: {where}{result.message}", f"infeasible: {where}{words.reason(result)}")
+    failed = [(f"{path}: " if several else "", result) for result, path in zip(results, args.tasks)
+              if isinstance(result, PlanInfeasible) or not result.feasible]
+    if failed:                          # every task that failed, each with its true cause
+        raise PlanInfeasible("infeasible: " + "; ".join(f"{where}{why(result)[0]}" for where, result in failed),
+                             "infeasible: " + "; ".join(f"{where}{why(result)[1]}" for where, result in failed))
     return 0
 
 
-def plan_one(task: Task, say: Callable[[str], None], pool: parallel.Pool) -> Plan:
+def why(result: Plan | PlanInfeasible) -> tuple[str, str]:
+    """(the message as plan.json gives it, the same in words) of an infeasible plan or a refusal."""
+    if isinstance(result, PlanInfeasible):
+        return str(result), result.said
+    return result.message, words.reason(result)
+
+
+def plan_one(task: Task, progress: Progress, pool: parallel.Pool) -> Plan | PlanInfeasible:
     """`cell plan`'s Plan of a task: planner.plan's of one feature at the task's camera rule (one
-    job of `pool`), plan_features' of several or of planned viewpoints, with its route's checked
-    moves (cell.run.moves)."""
-    if len(task.features) == 1 and task.camera.viewpoint.mode == "fixed":
-        return pool.map(own_plan, [(task, PlannerSettings(), None, None, "")], say)[0]
-    return with_moves(task, plan_features(task, progress=say, pool=pool))
+    job of `pool`), plan_features' of several or of planned viewpoints with its route's checked
+    moves (cell.run.moves); the PlanInfeasible of a task refused before its search (a fixed camera
+    the arm cannot take), so that the other tasks are planned all the same."""
+    try:
+        if len(task.features) == 1 and task.camera.viewpoint.mode == "fixed":
+            return pool.map(own_plan, [(task, PlannerSettings(), None, None, "")], progress.say)[0]
+        return with_moves(task, plan_features(task, progress=progress, pool=pool))
+    except PlanInfeasible as refused:
+        return refused
+
+
+def refused_json(task: Task, refused: PlanInfeasible) -> dict[str, object]:
+    """--json's entry of a task refused before its search: plan.json's verdict keys, no shot."""
+    binding, _, _ = str(refused).partition(":")
+    return {"task": task.name, "feasible": False, "binding": binding, "hint": refused.said, "message": str(refused)}
 
 
 def worker_count(args: argparse.Namespace) -> int | None:

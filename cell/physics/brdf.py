@@ -92,13 +92,19 @@ def reflectance_jacobian(cos_i: ArrayLike, cos_e: ArrayLike, cos_alpha: ArrayLik
         d_rho, rho * p1, rho * sigma1 * p1 * log_c, rho * p2, rho * sigma2 * p2 * log_c), axis=-1)
 
 
+def phase_angle(s: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """alpha between unit vectors (..., 3) = atan2(|s x v|, <s, v>), accurate at every angle
+    (arccos of <s, v> is not near 0 and pi)."""
+    return np.arctan2(np.linalg.norm(np.cross(s, v), axis=-1), np.sum(s * v, axis=-1))
+
+
 def reflectance_vectors(n: ArrayLike, s: ArrayLike, v: ArrayLike, material: Material) -> np.ndarray:
     """R for unit vectors (..., 3): n normal, s to lamp, v to camera; material params at the phase angle."""
     n, s, v = (np.asarray(a, dtype=float) for a in (n, s, v))
     cos_i = np.sum(n * s, axis=-1)
     cos_e = np.sum(n * v, axis=-1)
     cos_alpha = np.clip(np.sum(s * v, axis=-1), -1.0, 1.0)
-    p = material.at(np.arccos(cos_alpha))
+    p = material.at(phase_angle(s, v))
     return reflectance(cos_i, cos_e, cos_alpha, p.rho, p.sigma1, p.m1, p.sigma2, p.m2)
 
 
@@ -108,7 +114,7 @@ def dominant_term_vectors(n: ArrayLike, s: ArrayLike, v: ArrayLike, material: Ma
     cos_i = np.sum(n * s, axis=-1)
     cos_e = np.sum(n * v, axis=-1)
     cos_alpha = np.clip(np.sum(s * v, axis=-1), -1.0, 1.0)
-    p = material.at(np.arccos(cos_alpha))
+    p = material.at(phase_angle(s, v))
     return dominant_term(cos_i, cos_e, cos_alpha, p.sigma1, p.m1, p.sigma2, p.m2)
 
 
@@ -130,11 +136,10 @@ def unresolved_spike(n: ArrayLike, s: ArrayLike, v: ArrayLike, material: Materia
     n, s, v = (np.asarray(a, dtype=float) for a in (n, s, v))
     if material.unresolved is None:
         return np.zeros(np.broadcast_shapes(n.shape, s.shape, v.shape)[:-1], bool)
-    cos_alpha = np.clip(np.sum(s * v, axis=-1), -1.0, 1.0)
     h = s + v
     cos_h = np.sum(n * h, axis=-1) / np.maximum(np.linalg.norm(h, axis=-1), 1e-300)
     near = cos_h > np.cos(spike_keep_out(material.unresolved))
-    return near & material.unresolved_spike(np.arccos(cos_alpha))
+    return near & material.unresolved_spike(phase_angle(s, v))
 
 
 def judged_term(dominant: ArrayLike, n: ArrayLike, s: ArrayLike, v: ArrayLike, material: Material) -> np.ndarray:

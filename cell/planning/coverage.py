@@ -21,6 +21,10 @@ from cell.planning.one_shot import build_maps, light_settings
 from cell.planning.plan import Coverage
 
 if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from cell.planning.evaluate import Rows
+    from cell.physics.costs import RequirementValue
     from cell.planning.plan import Plan, PlannerSettings, Shot
     from cell.planning.scene import Scene
     from cell.task.types import Task
@@ -50,12 +54,33 @@ class Lent:
         return cls(plan.scene, plan.settings, plan.maps.visible)
 
 
-def judge(task: Task, lent: Lent, shot: Shot) -> Coverage:
+def rejected(task: Task, missed: tuple[RequirementValue, ...]) -> Coverage:
+    """The Coverage of a shot on the one-feature `task` that the prefilter (cell.planning.prefilter)
+    found to miss the requirements `missed`: not covered, nothing predicted (no gray)."""
+    return Coverage(task.feature.name, False, np.zeros(0), missed)
+
+
+def judge_all(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list[Coverage]:
+    """judge of `shot` on each one-feature task of one part (with its Lent), the gray kernel on
+    the samples launched once for all of them (evaluate.SharedLaunches), not once per feature."""
+    if not tasks:
+        return []
+    task = tasks[0]
+    scene = replace(lent[0].scene, T_cell_cam=shot.T_cell_cam, points=np.vstack([x.scene.points for x in lent]),
+                    normals=np.vstack([x.scene.normals for x in lent]))
+    shared = evaluate.SharedLaunches(evaluate.gray_inputs(task, scene, task.part.material.scaled(1.0)),
+                            [len(x.scene.points) for x in lent])
+    return [judge(t, x, shot, shared.rows(k)) for k, (t, x) in enumerate(zip(tasks, lent))]
+
+
+def judge(task: Task, lent: Lent, shot: Shot, shared: Rows | None = None) -> Coverage:
     """Coverage of `shot` (cell.planning.plan.Shot) on the one-feature `task`, whose own plan lent what
-    does not depend on the camera (Lent)."""
+    does not depend on the camera (Lent); the samples' gray kernel its own or `shared`, its rows of
+    a launch shared with other features (judge_all)."""
     scene = replace(lent.scene, T_cell_cam=shot.T_cell_cam)
-    maps = build_maps(task, scene, lent.settings, visible=lent.visible, lamps=shot.lamp_position[None])
-    problem = evaluate.build_problem(task, scene, maps, focus_m=shot.exposure.focus_m)
+    maps = build_maps(task, scene, lent.settings, visible=lent.visible, lamps=shot.lamp_position[None],
+                      reflectance=False)
+    problem = evaluate.build_problem(task, scene, maps, focus_m=shot.exposure.focus_m, gray=shared)
     e = shot.exposure
     c = evaluate.at_exposure(problem, shot.lamp_position, e.shutter_s, e.f_number, joints=shot.joints,
                              drive=shot.drive)

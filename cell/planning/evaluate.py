@@ -21,7 +21,7 @@ from cell.physics import brdf, depth_of_field as dof
 from cell.planning.regions import WANTED_TERM
 
 if TYPE_CHECKING:
-    from kernels.gray import GrayInputs
+    from kernels.gray import GrayInputs, GrayResult
     from cell.planning.plan import Maps
     from cell.planning.scene import Scene
     from cell.task.types import Task
@@ -83,7 +83,7 @@ class KernelInputs:
 
     def __init__(self) -> None:
         self.made_of: tuple[Task, Scene, Material] | None = None
-        self.gray: GrayInputs | None = None
+        self.gray: GrayInputs | Rows | None = None
         self.lights_of: tuple[Task, Scene, Material, tuple[int, ...]] | None = None
         self.lights: LightsAtScene | None = None
         self.defects: dict[Any, Any] = {}       # cell.planning.defects: a defect's inputs, with what they were made of
@@ -119,17 +119,13 @@ class Problem:
     kernels: KernelInputs = field(default_factory=KernelInputs, compare=False, repr=False)
 
     @property
-    def gray_inputs(self) -> GrayInputs:
+    def gray_inputs(self) -> GrayInputs | Rows:
         """The kernel's fixed inputs (kernels.gray.GrayInputs), converted once per plan: a search
         evaluates it hundreds of times, on Problems that differ in their maps alone."""
-        from kernels.gray import GrayInputs
         task, scene, material = self.task, self.scene, self.material
         made_of, gray = self.kernels.made_of, self.kernels.gray
         if made_of is None or gray is None or any(a is not b for a, b in zip(made_of, (task, scene, material))):
-            gray = GrayInputs(scene.warp_mesh, scene.points, scene.normals, scene.camera_position,
-                              task.lamp.power_w, task.lamp.cone_angle_rad, material.table(),
-                              task.camera.sensor.camera_constant, task.camera.sensor.pixel_area_m2,
-                              profile=task.lamp.profile)
+            gray = gray_inputs(task, scene, material)
             self.kernels.gray, self.kernels.made_of = gray, (task, scene, material)
         return gray
 
@@ -168,6 +164,58 @@ class Problem:
         return np.tile(top, (candidates, 1))
 
 
+def gray_inputs(task: Task, scene: Scene, material: Material) -> GrayInputs:
+    """The gray kernel's fixed inputs (kernels.gray.GrayInputs) for the scene's samples and
+    camera, the task's lamp and sensor and the material."""
+    from kernels.gray import GrayInputs
+    return GrayInputs(scene.warp_mesh, scene.points, scene.normals, scene.camera_position,
+                      task.lamp.power_w, task.lamp.cone_angle_rad, material.table(),
+                      task.camera.sensor.camera_constant, task.camera.sensor.pixel_area_m2,
+                      profile=task.lamp.profile)
+
+
+class SharedLaunches:
+    """The gray kernel over the samples of several scenes seen by one camera (kernels.gray.GrayInputs
+    of all their points, `counts` of them each, in order), each scene served its rows as by a
+    GrayInputs of its own: `rows(k)` answers a call with the result of one launch over every
+    scene's samples (made by the first scene that asks for those lamps, kept for the others),
+    sliced to scene k's. The same numbers as its own launch: a thread reads one lamp and one
+    sample alone (kernels.funcs.shade_point), and the free cones found or not change no result
+    (GrayInputs)."""
+
+    def __init__(self, inputs: GrayInputs, counts: list[int]) -> None:
+        self.inputs = inputs
+        ends = np.cumsum(counts, dtype=int)
+        self.bounds = list(zip((ends - np.asarray(counts, dtype=int)).tolist(), ends.tolist()))
+        self._launched: dict[tuple[bytes, bytes, bytes | None], GrayResult] = {}
+
+    def rows(self, k: int) -> Rows:
+        return Rows(self, *self.bounds[k])
+
+    def launch(self, lamp_pos: np.ndarray, lamp_axis: np.ndarray, power_w: ArrayLike | None) -> GrayResult:
+        """The result of one launch over every scene's samples for these lamps (kept by their bytes)."""
+        key = (np.ascontiguousarray(lamp_pos).tobytes(), np.ascontiguousarray(lamp_axis).tobytes(),
+               None if power_w is None else np.asarray(power_w, dtype=np.float64).tobytes())
+        if key not in self._launched:
+            self._launched[key] = self.inputs(lamp_pos, lamp_axis, power_w)
+        return self._launched[key]
+
+
+class Rows:
+    """One scene's rows [start, end) of a SharedLaunches, called as its own GrayInputs."""
+
+    def __init__(self, shared: SharedLaunches, start: int, end: int) -> None:
+        self.shared, self.start, self.end = shared, start, end
+
+    def __call__(self, lamp_pos: ArrayLike, lamp_axis: ArrayLike, power_w: ArrayLike | None = None) -> GrayResult:
+        from kernels.gray import GrayResult
+        lamp_pos = np.asarray(lamp_pos, dtype=np.float64).reshape(-1, 3)
+        lamp_axis = np.broadcast_to(np.asarray(lamp_axis, dtype=np.float64), lamp_pos.shape)
+        out = self.shared.launch(lamp_pos, lamp_axis, power_w)
+        return GrayResult(*(a[:, self.start:self.end].copy() for a in
+                            (out.value, out.shadowed, out.off_axis, out.dominant)))
+
+
 def planning_band(task: Task) -> tuple[float, float]:
     """The gray band planned for: the task's, its top kept half a level below the sensor's full
     scale (a pixel there reads saturated, whatever the band says)."""
@@ -182,20 +230,29 @@ def black_level(task: Task) -> float:
 
 
 def build_problem(task: Task, scene: Scene, maps: Maps | None, albedo_scale: float = 1.0,
-                  focus_m: float | None = None) -> Problem:
+                  focus_m: float | None = None, gray: Rows | None = None) -> Problem:
     """The Problem of a task's scene and maps, the camera focused on the feature centre or at
-    focus_m (a given shot's). A sample the camera sees lies inside the image and is not hidden
-    (a lamp at the camera would light it)."""
+    focus_m (a given shot's), its gray kernel the scene's own or `gray`, its rows of a launch
+    shared with other scenes (SharedLaunches: a shot judged on several features).
+    A sample the camera sees lies inside the image and is not hidden (a lamp at the camera would
+    light it)."""
     focus, needed, kappa_open = depth_of_field_limits(task, scene, focus_m)
     p = Problem(task, scene, maps, task.part.material.scaled(albedo_scale), planning_band(task),
                 black_level(task), focus, needed, kappa_open, 0)
+    if gray is not None:
+        p.kernels.gray, p.kernels.made_of = gray, (task, scene, p.material)
     hidden = unit_gray(p, scene.camera_position[None], -scene.normal[None])[1][0]
+    return replace(p, camera_unseen=int(np.sum(hidden | ~in_image(task, scene))))
+
+
+def in_image(task: Task, scene: Scene) -> np.ndarray:
+    """(P,) the samples in front of the scene's camera and inside its image (pixel centres
+    -0.5 .. size - 0.5, the pinhole's projection)."""
     sensor = task.camera.sensor
     uv, z = projection.project(projection.intrinsics(sensor, task.camera.lens), scene.T_cell_cam, scene.points)
     with np.errstate(invalid="ignore"):
-        in_image = ((z > 0) & (uv[:, 0] >= -0.5) & (uv[:, 0] <= sensor.width_px - 0.5)
-                    & (uv[:, 1] >= -0.5) & (uv[:, 1] <= sensor.height_px - 0.5))
-    return replace(p, camera_unseen=int(np.sum(hidden | ~in_image)))
+        return ((z > 0) & (uv[:, 0] >= -0.5) & (uv[:, 0] <= sensor.width_px - 0.5)
+                & (uv[:, 1] >= -0.5) & (uv[:, 1] <= sensor.height_px - 0.5))
 
 
 def unit_gray(problem: Problem, positions: ArrayLike,

@@ -1,7 +1,9 @@
 """Where planning's independent jobs run: here, one after another (SERIAL), or on a Dask
 distributed cluster (Cluster): a LocalCluster of N worker processes on this machine (`--workers
-N`) or a running cluster by its scheduler's address (`--scheduler ADDRESS`). Warp launches a CPU
-kernel on one core, so a second core helps only through a second process.
+N`) or a running cluster by its scheduler's address (`--scheduler ADDRESS`). A process splits its
+big kernel launches over as many threads as it has cores (kernels.runtime); N workers on this
+machine split theirs over their share of the cores (cores / N, at least 1), so that the workers'
+threads do not outnumber the cores they share, and a worker of another machine over its own.
 
 A planner hands its jobs to `pool.jobs(say)` and reads their results as they complete, handing
 on new jobs as earlier results allow (a feature's lamp searches once its viewpoints are known):
@@ -81,7 +83,8 @@ class Pool:
 
 
 class Serial(Pool):
-    """Each job in this process when it is submitted, its progress said as it goes."""
+    """Each job in this process, in the order submitted, when its result is asked for (so that a
+    progress bar moves as each job ends), its progress said as it goes."""
 
     def jobs(self, say: Callable[[str], None]) -> SerialJobs:
         return SerialJobs(say)
@@ -91,38 +94,44 @@ class Serial(Pool):
 
 
 class SerialJobs:
-    """submit(key, fn, *args) runs fn(*args, say) at once; iterating yields (key, result) in the
-    order submitted, jobs submitted meanwhile included."""
+    """submit(key, fn, *args) queues fn(*args, say); iterating runs them one by one and yields
+    (key, result) in the order submitted, jobs submitted meanwhile included."""
 
     def __init__(self, say: Callable[[str], None]) -> None:
-        self.say, self.done = say, deque[tuple[Hashable, Any]]()
+        self.say, self.queued = say, deque[tuple[Hashable, Callable[..., Any], tuple[Any, ...]]]()
 
     def submit(self, key: Hashable, fn: Callable[..., Any], *args: Any, first: bool = False) -> None:
-        self.done.append((key, fn(*args, self.say)))
+        self.queued.append((key, fn, args))
 
     def __iter__(self):
-        while self.done:
-            yield self.done.popleft()
+        while self.queued:
+            key, fn, args = self.queued.popleft()
+            yield key, fn(*args, self.say)
 
 
 SERIAL = Serial()
 
 
-def _run(fn, args):
-    """A job on a worker: (its result, its progress lines)."""
+def _run(fn, args, kernel_threads):
+    """A job on a worker, its kernel launches split over `kernel_threads` threads (None: the
+    worker's cores): (its result, its progress lines)."""
+    from kernels.runtime import set_threads
+    set_threads(kernel_threads)
     lines = []
     return fn(*args, lines.append), lines
 
 
 class Cluster(Pool):
-    """Jobs as Dask futures on a client's cluster (`only`: on those worker addresses alone)."""
+    """Jobs as Dask futures on a client's cluster (`only`: on those worker addresses alone), each
+    job's kernel launches split over `kernel_threads` threads (None: each worker's cores)."""
 
-    def __init__(self, client: Any, cluster: Any = None, only: list[str] | None = None) -> None:
-        self.client, self.cluster, self.only = client, cluster, only
+    def __init__(self, client: Any, cluster: Any = None, only: list[str] | None = None,
+                 kernel_threads: int | None = None) -> None:
+        self.client, self.cluster, self.only, self.kernel_threads = client, cluster, only, kernel_threads
 
     def restricted(self, addresses: Iterable[str]) -> Cluster:
         """The same cluster, its jobs on `addresses` only (the bench's one worker of two)."""
-        return Cluster(self.client, only=list(addresses))
+        return Cluster(self.client, only=list(addresses), kernel_threads=self.kernel_threads)
 
     def jobs(self, say: Callable[[str], None]) -> ClusterJobs:
         return ClusterJobs(self, say)
@@ -155,7 +164,8 @@ class ClusterJobs:
         group's jobs once it has more than two per worker thread), the task stream each fn."""
         pool = self.pool
         where = {} if pool.only is None else {"workers": pool.only, "allow_other_workers": False}
-        future = pool.client.submit(_run, fn, args, key=f"lightplan-{fn.__name__}-{uuid.uuid4().hex}",
+        future = pool.client.submit(_run, fn, args, pool.kernel_threads,
+                                    key=f"lightplan-{fn.__name__}-{uuid.uuid4().hex}",
                                     priority=(FIRST if first else 0) - next(SUBMITTED), pure=False, **where)
         self.named[future.key] = key
         self.pending.add(future)
@@ -176,16 +186,19 @@ def local_cluster(workers: int) -> Cluster:
     """A LocalCluster of `workers` processes of one thread each, on 127.0.0.1 only (scheduler,
     workers and the scheduler's HTTP server, on free ports), and its Cluster, with LOCAL_CONFIG
     and no memory limit (a plan's jobs hold a few MB; the nannies' monitor would wake every
-    100 ms)."""
+    100 ms); each worker's kernels on its share of this process's cores."""
     import logging
 
     import dask
     from distributed import Client, LocalCluster
+
+    from kernels.runtime import available_cores
     with dask.config.set(LOCAL_CONFIG):
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
                                scheduler_port=0, dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR,
                                memory_limit=0)
-    return Cluster(Client(cluster, set_as_default=False), cluster)
+    return Cluster(Client(cluster, set_as_default=False), cluster,
+                   kernel_threads=max(1, available_cores() // workers))
 
 
 def remote_cluster(address: str, timeout_s: float | None = None) -> Cluster:

@@ -27,6 +27,8 @@ from cell.physics import brdf, costs, depth_of_field as dof
 if TYPE_CHECKING:
     from cell.planning.evaluate import Candidates, Problem
     from cell.planning.plan import Maps
+    from cell.planning.scene import Scene
+    from cell.task.types import Task
 
 
 @dataclass(frozen=True)
@@ -223,31 +225,49 @@ def explain_camera_view(p: Problem, c: Candidates, met: bool) -> str:
             f"the camera cannot see {p.camera_unseen} of {n} feature samples; change the view direction")
 
 
+def largest_view_angle(scene: Scene) -> float:
+    """The largest angle between a sample's normal and its direction to the camera [rad]."""
+    return float(projection.view_angles(scene.camera_position, scene.points, scene.normals).max())
+
+
+def view_angle_ln(task: Task, scene: Scene) -> float:
+    """ln f of view_angle at a scene's camera (the camera's alone: the prefilter's too)."""
+    return float(costs.ln_f_max(largest_view_angle(scene), _wanted(task.requirements.view_angle_rad)))
+
+
 def view_angle(p: Problem, c: Candidates) -> np.ndarray:
     """The largest angle between a sample's normal and its direction to the camera, at most the
     task's view_angle_deg (a camera nearly grazing the surface sees it foreshortened)."""
-    angle = projection.view_angles(p.scene.camera_position, p.scene.points, p.scene.normals).max()
-    return np.broadcast_to(costs.ln_f_max(angle, _wanted(p.task.requirements.view_angle_rad)), c.shutter.shape)
+    return np.broadcast_to(view_angle_ln(p.task, p.scene), c.shutter.shape)
 
 
 def explain_view_angle(p: Problem, c: Candidates, met: bool) -> str:
-    angle = projection.view_angles(p.scene.camera_position, p.scene.points, p.scene.normals).max()
+    angle = largest_view_angle(p.scene)
     fact = (f"the camera sees the samples at most {np.degrees(angle):.1f} deg from their normals "
             f"(at most {np.degrees(_wanted(p.task.requirements.view_angle_rad)):g} deg wanted)")
     return fact if met else f"{fact}; view the feature more squarely (camera.viewpoint: planned)"
 
 
 def footprints(p: Problem) -> np.ndarray:
-    sensor, lens = p.task.camera.sensor, p.task.camera.lens
-    return projection.pixel_footprint(p.scene.camera_position, p.scene.points, p.scene.normals,
+    return footprints_at(p.task, p.scene)
+
+
+def footprints_at(task: Task, scene: Scene) -> np.ndarray:
+    """(P,) each sample's pixel footprint at the scene's camera [m] (projection.pixel_footprint)."""
+    sensor, lens = task.camera.sensor, task.camera.lens
+    return projection.pixel_footprint(scene.camera_position, scene.points, scene.normals,
                                       sensor.pixel_pitch_m, lens.focal_length_m)
+
+
+def resolution_ln(task: Task, scene: Scene) -> float:
+    """ln f of resolution at a scene's camera (the camera's alone: the prefilter's too)."""
+    return float(costs.ln_f_max(footprints_at(task, scene).max(), _wanted(task.requirements.resolution_m)))
 
 
 def resolution(p: Problem, c: Candidates) -> np.ndarray:
     """The largest pixel footprint on the feature (|p - C| pitch / f / cos(view angle), the
     pinhole's), at most the task's resolution_m per pixel."""
-    wanted = _wanted(p.task.requirements.resolution_m)
-    return np.broadcast_to(costs.ln_f_max(footprints(p).max(), wanted), c.shutter.shape)
+    return np.broadcast_to(resolution_ln(p.task, p.scene), c.shutter.shape)
 
 
 def explain_resolution(p: Problem, c: Candidates, met: bool) -> str:
@@ -298,13 +318,19 @@ def f_number_max(p: Problem, c: Candidates) -> np.ndarray:
 def depth_of_field(p: Problem, c: Candidates) -> np.ndarray:
     """Near limit before the nearest sample, far limit beyond the farthest (where they fall, not
     only the width), and at least the task's depth of field."""
-    lens = p.task.camera.lens
+    return depth_of_field_ln(p.task, p.scene, p.focus_m, c.kappa)
+
+
+def depth_of_field_ln(task: Task, scene: Scene, focus_m: float, kappa: np.ndarray) -> np.ndarray:
+    """ln f of depth_of_field at f-numbers kappa, focused at focus_m [m] (a shot's focus and
+    f-number alone: the prefilter's too)."""
+    lens = task.camera.lens
     f, sigma = lens.focal_length_m, lens.circle_of_confusion_m
-    depths = p.scene.sample_depths()
-    near = dof.near_limit(p.focus_m, f, c.kappa, sigma)
-    far = dof.far_limit(p.focus_m, f, c.kappa, sigma)
+    depths = scene.sample_depths()
+    near = dof.near_limit(focus_m, f, kappa, sigma)
+    far = dof.far_limit(focus_m, f, kappa, sigma)
     value = np.maximum(costs.ln_f_max(near, depths.min()), costs.ln_f_min(np.minimum(far, 1e3), depths.max()))
-    wanted = p.task.requirements.depth_of_field_m
+    wanted = task.requirements.depth_of_field_m
     if wanted > 0:
         value = np.maximum(value, costs.ln_f_min(np.minimum(far - near, 1e3), wanted))
     return value
@@ -380,7 +406,7 @@ def amount_cone_coverage(p: Problem, c: Candidates) -> costs.Amount | None:
 
 
 def amount_view_angle(p: Problem, c: Candidates) -> costs.Amount | None:
-    angle = projection.view_angles(p.scene.camera_position, p.scene.points, p.scene.normals).max()
+    angle = largest_view_angle(p.scene)
     return _finite(np.degrees(angle), np.degrees(_wanted(p.task.requirements.view_angle_rad)), " deg", True)
 
 

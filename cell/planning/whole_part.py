@@ -9,13 +9,15 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
+from contextlib import ExitStack
 from dataclasses import replace
 from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
 from cell.collision.scene import CollisionScene, reaching_joints
-from cell.planning import coverage, one_shot, regions
+from cell.core.progress import Progress, Stage
+from cell.planning import coverage, one_shot, prefilter, regions
 from cell.planning.set_cover import fewest_shots
 from cell.planning.parallel import SERIAL
 from cell.planning.plan import FeatureVerdict, Plan, PlannerSettings, Search
@@ -76,9 +78,13 @@ def viewpoints_of(task: Task, settings: PlannerSettings, say: Callable[[str], No
     grid = regions.SphereGrid(np.radians(settings.grid_step_deg))
     scene = build_scene(task, settings.samples)
     v = plan_viewpoints(task, scene, one_shot.visibility_map(scene, grid), grid)
-    say(f"feature {task.feature.name}: {len(v.kept)} of {v.poses} camera poses kept (pruned: "
-        + ", ".join(f"{n} {s.replace('_', ' ')}" for s, n in v.pruned.items() if n) + ")")
     return replace(v, time_s=time.perf_counter() - start)
+
+
+def kept_line(name: str, views: Viewpoints) -> str:
+    """What a feature's viewpoint stage kept and why it pruned the rest, in one line."""
+    return (f"feature {name}: {len(views.kept)} of {views.poses} camera poses kept (pruned: "
+            + ", ".join(f"{n} {s.replace('_', ' ')}" for s, n in views.pruned.items() if n) + ")")
 
 
 def at_viewpoint(task: Task, settings: PlannerSettings, views: Viewpoints, k: int,
@@ -104,13 +110,19 @@ def judge_column(tasks: Sequence[Task], f: int, shot: Shot, lent: Sequence[Lent]
                  say: Callable[[str], None]) -> Column:
     """A job: (the Coverage of feature f's candidate `shot` on every other feature, whose own
     first plan lent its samples and maps (`lent`, coverage.Lent; None at f: its plan's verdict
-    stands), its own time [s])."""
+    stands), its own time [s]). Only the features the prefilter (cell.planning.prefilter) leaves
+    are judged in full, their samples' gray kernel launched once for all (coverage.judge_all): a
+    part's many features are mostly out of one shot's view."""
     start = time.perf_counter()
-    column = [None if g == f else coverage.judge(t, lent[g], shot) for g, t in enumerate(tasks)]
+    missed = prefilter.missed(tasks, lent, shot, f)
+    left = [g for g in range(len(tasks)) if g != f and not missed[g]]
+    judged = dict(zip(left, coverage.judge_all([tasks[g] for g in left], [lent[g] for g in left], shot)))
+    column = [None if g == f else judged[g] if g in judged else coverage.rejected(t, missed[g])
+              for g, t in enumerate(tasks)]
     return column, time.perf_counter() - start
 
 
-def candidate_plans(tasks: Sequence[Task], settings: PlannerSettings, say: Callable[[str], None], pool: Pool = SERIAL
+def candidate_plans(tasks: Sequence[Task], settings: PlannerSettings, progress: Progress, pool: Pool = SERIAL
                     ) -> tuple[list[tuple[int, Plan]], list[Viewpoints] | None, list[Plan], list[Column]]:
     """[(feature index, its Plan)] of every candidate shot, the Viewpoints of each feature (None:
     the fixed camera rule, one candidate per feature), each feature's plan that lends its samples
@@ -120,40 +132,64 @@ def candidate_plans(tasks: Sequence[Task], settings: PlannerSettings, say: Calla
     Every step is a job of `pool` (cell.planning.parallel), handed on as the results it needs complete:
     each feature's viewpoints and first plan ahead of the rest (the judge needs every first
     plan), its other lamp searches once its viewpoints are known, a shot's judging once its plan
-    and every first plan are."""
+    and every first plan are. Progress: a stage each for the viewpoints (when planned), the lamp
+    searches (each with its certificate) and the judging, their totals growing as jobs are handed
+    on; a feature's kept viewpoints a line, a job's own lines only the live bars' detail."""
     fixed = tasks[0].camera.viewpoint.mode == "fixed"
     views: list[Viewpoints | None] = [None] * len(tasks)
     plans: dict[tuple[int, int], Plan] = {}
     columns: dict[tuple[int, int], Column | None] = {}
-    jobs = pool.jobs(say)
+    with ExitStack() as stages:
+        viewing = None if fixed else stages.enter_context(progress.stage("viewpoints", len(tasks)))
+        searching = stages.enter_context(progress.stage("lamp searches", len(tasks)))
+        judging = stages.enter_context(progress.stage("judging", 0))
+        jobs = pool.jobs(searching.note)
 
-    def planned(f, k, plan):
-        """Keep a plan; once every feature's first is in, judge each candidate not yet judged."""
-        plans[f, k] = plan
-        firsts = [plans.get((g, 0)) for g in range(len(tasks))]
-        if any(p is None for p in firsts):
-            return
-        lent = [coverage.Lent.of(p) for p in firsts]
-        for (g, j), p in plans.items():
-            if (g, j) not in columns and (views[g] is None or j < len(views[g].kept)):
-                columns[g, j] = None
-                jobs.submit(("judge", g, j), judge_column, tasks, g, p.shot, lent)
+        def settled():
+            """Close each stage whose jobs are all done and whose total can grow no more."""
+            if fixed or all(v is not None for v in views):
+                if viewing is not None:
+                    viewing.close()
+                if searching.done == searching.total:
+                    searching.close()
+                    if judging.done == judging.total:
+                        judging.close()
 
-    for f, t in enumerate(tasks):
-        if fixed:
-            jobs.submit(("plan", f, 0), own_plan, t, settings, None, None, f"feature {t.feature.name}:", first=True)
-        else:
-            jobs.submit(("views", f, 0), views_and_first_plan, t, settings, first=True)
-    for (kind, f, k), result in jobs:
-        if kind == "views":
-            views[f], first = view, _ = result
-            for j in range(1, len(view.kept)):
-                jobs.submit(("plan", f, j), at_viewpoint, tasks[f], settings, view, j)
-            planned(f, 0, first)
-        elif kind == "plan":
-            planned(f, k, result)
-        else:
-            columns[f, k] = result
+        def planned(f, k, plan):
+            """Keep a plan; once every feature's first is in, judge each candidate not yet judged."""
+            plans[f, k] = plan
+            searching.advance()
+            firsts = [plans.get((g, 0)) for g in range(len(tasks))]
+            if any(p is None for p in firsts):
+                return
+            lent = [coverage.Lent.of(p) for p in firsts]
+            for (g, j), p in plans.items():
+                if (g, j) not in columns and (views[g] is None or j < len(views[g].kept)):
+                    columns[g, j] = None
+                    judging.grow(1)
+                    jobs.submit(("judge", g, j), judge_column, tasks, g, p.shot, lent)
+
+        for f, t in enumerate(tasks):
+            if fixed:
+                jobs.submit(("plan", f, 0), own_plan, t, settings, None, None, f"feature {t.feature.name}:",
+                            first=True)
+            else:
+                jobs.submit(("views", f, 0), views_and_first_plan, t, settings, first=True)
+        for (kind, f, k), result in jobs:
+            if kind == "views":
+                views[f], first = view, _ = result
+                progress.say(kept_line(tasks[f].feature.name, view))
+                cast("Stage", viewing).advance()
+                searching.grow(len(view.kept) - 1)
+                for j in range(1, len(view.kept)):
+                    jobs.submit(("plan", f, j), at_viewpoint, tasks[f], settings, view, j)
+                planned(f, 0, first)
+            elif kind == "plan":
+                planned(f, k, result)
+            else:
+                judging.advance()
+                columns[f, k] = result
+            settled()
     whose = sorted(columns)             # (feature, k) of each candidate, in the serial order
     # every job is done: each feature's viewpoints and each candidate's column are in
     done_views, done_columns = cast("list[Viewpoints]", views), cast(dict[tuple[int, int], Column], columns)
@@ -162,17 +198,17 @@ def candidate_plans(tasks: Sequence[Task], settings: PlannerSettings, say: Calla
 
 
 def plan_features(task: Task, settings: PlannerSettings = PlannerSettings(),
-                  progress: Callable[[str], None] | None = None, pool: Pool = SERIAL) -> Plan:
+                  progress: Progress | None = None, pool: Pool = SERIAL) -> Plan:
     """The Plan of a task's features (one or more): the chosen shots, each with the features it
     covers (Shot.covers), and per feature the shot covering it (Plan.features). Candidate shots:
     each feature's own by the task's camera rule, or (camera.viewpoint: planned) one per kept
     viewpoint of each feature. The plans and the coverage matrix's columns are jobs of `pool`
     (cell.planning.parallel: here, or on a Dask cluster), each result placed by its job's key: the same
-    plan either way."""
-    say = progress or (lambda msg: None)
+    plan either way. progress: its stages' bars or lines and the cover's line (none when None)."""
+    progress = progress or Progress.silent()
     t0 = time.perf_counter()
     tasks = [task.with_feature(i) for i in range(len(task.features))]
-    cands, views, lend, columns = candidate_plans(tasks, settings, say, pool)
+    cands, views, lend, columns = candidate_plans(tasks, settings, progress, pool)
     t_jobs = time.perf_counter()
     shots = [p.shot for _, p in cands]
     # a column is None only at its own feature, whose coverage is its plan's
@@ -199,7 +235,7 @@ def plan_features(task: Task, settings: PlannerSettings = PlannerSettings(),
         verdicts.append(FeatureVerdict(t.feature.name, index[best]))
     chosen = tuple(replace(shots[s], covers=tuple(judged[f][s] for f in range(len(tasks)) if covers[f, s]))
                    for s in cover.chosen)
-    say(f"cover: {len(chosen)} of {len(shots)} shots cover {len(cover.coverable)} of {len(tasks)} features")
+    progress.say(f"cover: {len(chosen)} of {len(shots)} shots cover {len(cover.coverable)} of {len(tasks)} features")
     uncovered = [v for v in verdicts if v.covered_by is None]
     if uncovered:
         v = uncovered[0]

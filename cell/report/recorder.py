@@ -1,6 +1,7 @@
 """The run folder a person can open and a machine can read: `log.jsonl` (one JSON line per step:
 time, step, message, data; appended, flushed and fsync'd so that a crash loses nothing measured;
-each step also a progress line on stderr), plan.json with the plan's pictures, every capture,
+each step also a line on stderr, or inside a long stage (`Recorder.stage`: measure-brdf's poses) only
+the stage's bar or quarter lines, cell.core.progress), plan.json with the plan's pictures, every capture,
 and the result file (cell.report.result's shape), written however the run ends."""
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ import numpy as np
 
 from cell.core import jsonio
 from cell.core.errors import CellError, GoalNotReached, PlanInfeasible
+from cell.core.progress import Progress, Stage
 from cell.devices.session import Session, stop_outcome
 from cell.report.result import Result
 
@@ -28,26 +30,34 @@ if TYPE_CHECKING:
 R = TypeVar("R", bound=Result)
 
 
-def write_plan(plan: Plan, task: Task, folder: str | os.PathLike[str], cell_picture: bool = True) -> Path:
-    """plan.json, the plan's pictures (lights.png where the task has lights besides the spot),
-    cell.png (its shots in the cell) and cell.html (the same in 3D, cell.report.cell_view) into
-    folder (created);
-    a multi-feature plan's own plan of each feature i (plan.json, pictures) into folder/feature-i,
-    or with planned viewpoints each candidate shot k's plan into folder/candidate-k (cell.png only
-    of the plan itself: it shows the chosen shots)."""
-    from cell.report.cell_view import write_cell_view
-    from cell.report.pictures import write_cell, write_lights, write_plan_pictures
+def write_plan(plan: Plan, task: Task, folder: str | os.PathLike[str]) -> Path:
+    """plan.json into folder (created), and a multi-feature plan's own plan of each feature i into
+    folder/feature-i, or with planned viewpoints each candidate shot k's into folder/candidate-k;
+    no pictures (draw_plan draws them, once nothing waits for them). Returns the folder."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     write_json(folder / "plan.json", plan.to_json())
+    for k, own, i, sub in _own_plans(plan, folder):
+        write_plan(own, task.with_feature(i), sub)
+    return folder
+
+
+def draw_plan(plan: Plan, task: Task, folder: str | os.PathLike[str], pictures: str = "chosen",
+              cell_picture: bool = True) -> None:
+    """The pictures of a plan written by write_plan into folder: a one-shot plan's maps
+    (visibility_brdf.png, regions.png, cost.png; lights.png where the task has lights besides the
+    spot), cell.png (its shots in the cell) and cell.html (the same in 3D, cell.report.cell_view);
+    of a multi-feature plan's own plans those of its chosen shots (`pictures` "chosen": what a
+    person reads), or every candidate's ("all"), without cell.png (the plan's own shows the chosen
+    shots)."""
+    from cell.report.cell_view import write_cell_view
+    from cell.report.pictures import write_cell, write_lights, write_plan_pictures
+    folder = Path(folder)
     if plan.plans:
-        if plan.cover is None:           # cell.planning.whole_part gives every multi-feature plan its cover
-            raise ValueError("a multi-feature plan without its set cover's numbers (plan.cover)")
-        planned = plan.cover.get("candidate_features")
-        for k, own in enumerate(plan.plans):
-            i = k if planned is None else planned[k]
-            write_plan(own, task.with_feature(i), folder / (f"feature-{k}" if planned is None else f"candidate-{k}"),
-                       cell_picture=False)
+        chosen = set(plan.cover["chosen"]) if plan.cover is not None else set()
+        for k, own, i, sub in _own_plans(plan, folder):
+            if pictures == "all" or k in chosen:
+                draw_plan(own, task.with_feature(i), sub, pictures, cell_picture=False)
     else:
         write_plan_pictures(plan, task, plan.planned_scene, folder)
         if task.lights:
@@ -55,7 +65,18 @@ def write_plan(plan: Plan, task: Task, folder: str | os.PathLike[str], cell_pict
     if cell_picture:
         write_cell(folder / "cell.png", plan, task)
         write_cell_view(folder / "cell.html", plan, task)
-    return folder
+
+
+def _own_plans(plan: Plan, folder: Path) -> list[tuple[int, Plan, int, Path]]:
+    """(k, candidate k's own plan, its feature's index, its folder) of a multi-feature plan (none
+    of a one-shot plan)."""
+    if not plan.plans:
+        return []
+    if plan.cover is None:           # cell.planning.whole_part gives every multi-feature plan its cover
+        raise ValueError("a multi-feature plan without its set cover's numbers (plan.cover)")
+    planned = plan.cover.get("candidate_features")
+    return [(k, own, k if planned is None else planned[k],
+             folder / (f"feature-{k}" if planned is None else f"candidate-{k}")) for k, own in enumerate(plan.plans)]
 
 
 def write_json(path: str | os.PathLike[str], document: Any) -> None:
@@ -70,21 +91,43 @@ def file_name(text: str) -> str:
 class Recorder:
     """A run folder and its log; `with Recorder(folder) as rec:` closes the log however it ends.
     A sub-run's (`rec.sub("shot-0", shot=0)`) has its own folder and log, and every step it logs
-    is also appended to the parent's log with `tags` (shot=0)."""
+    is also appended to the parent's log with `tags` (shot=0). Its lines go to `out` (stderr's
+    Progress unless given; a sub-run's is its parent's)."""
 
-    def __init__(self, folder: str | os.PathLike[str], parent: Recorder | None = None, **tags: Any) -> None:
+    def __init__(self, folder: str | os.PathLike[str], parent: Recorder | None = None, out: Progress | None = None,
+                 **tags: Any) -> None:
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.log: TextIO = open(self.folder / "log.jsonl", "a", encoding="utf-8")
         self.plan: dict[str, Any] | None = None     # the run folder's plan.json, once written
         self.parent, self.tags = parent, tags
+        self.out: Progress = out or (parent.out if parent is not None else Progress(sys.stderr))
+        # pictures to draw when the run has ended (its devices stopped): a sub-run's are the run's
+        self.pictures: list[Callable[[], object]] = [] if parent is None else parent.pictures
 
     def __enter__(self) -> Recorder:
         return self
 
-    def __exit__(self, *exc: object) -> Literal[False]:
+    def __exit__(self, kind: type[BaseException] | None, err: BaseException | None,
+                 traceback: TracebackType | None) -> Literal[False]:
+        """Close the log; the run's own Recorder then draws the pictures it kept for the end (after
+        its result file and its devices' session, which close inside it). A picture that fails
+        while an error ends the run is said on stderr, not raised over that error."""
         self.log.close()
+        if self.parent is None:
+            while self.pictures:
+                draw = self.pictures.pop(0)
+                try:
+                    draw()
+                except Exception as failed:
+                    if err is None:
+                        raise
+                    print(f"a picture was not drawn: {failed}", file=sys.stderr, flush=True)
         return False
+
+    def later(self, draw: Callable[[], object]) -> None:
+        """Draw a picture when the run has ended, not while its devices wait."""
+        self.pictures.append(draw)
 
     def sub(self, name: str, **tags: Any) -> Recorder:
         """The Recorder of a sub-run in folder/name, its steps also in this log with tags."""
@@ -96,7 +139,15 @@ class Recorder:
         line = {"t": datetime.now(timezone.utc).isoformat(timespec="milliseconds"), "step": step,
                 "message": message, **where, **data}
         self._append(line)
-        print(f"{'' if iteration is None else iteration:>2} {step:<12} {message}", file=sys.stderr, flush=True)
+        if self.out.live is None:
+            self.out.say(f"{'' if iteration is None else iteration:>2} {step:<12} {message}")
+        else:                               # in a long stage: the log has it, the bar shows it in passing
+            self.out.live.note(message)
+
+    def stage(self, name: str, total: int) -> Stage:
+        """A long stage of `total` steps (`with rec.stage("poses", 183) as stage: ... stage.advance()`):
+        while it lasts the steps are logged but not printed, its bar or quarter lines stand for them."""
+        return self.out.stage(name, total)
 
     def _append(self, line: dict[str, Any]) -> None:
         """line to the log, flushed and fsync'd, and with the tags to the parent's."""
@@ -108,14 +159,16 @@ class Recorder:
 
     def progress(self, message: str) -> None:
         """A progress line on stderr only (the planner's stages), indented under the steps."""
-        print(f"{'':16}{message}", file=sys.stderr, flush=True)
+        self.out.say(f"{'':16}{message}")
 
     def write_plan(self, plan: Plan, task: Task, subfolder: str = "") -> Path:
-        """plan.json and pictures, in the run folder (its plan, `self.plan`) or a subfolder of it
-        (a re-plan's); returns that folder."""
+        """plan.json now and its pictures when the run has ended (draw_plan), in the run folder (its
+        plan, `self.plan`) or a subfolder of it (a re-plan's); returns that folder."""
         if not subfolder:
             self.plan = plan.to_json()
-        return write_plan(plan, task, self.folder / subfolder)
+        folder = write_plan(plan, task, self.folder / subfolder)
+        self.later(lambda: draw_plan(plan, task, folder))
+        return folder
 
     def write_image(self, name: str, image: np.ndarray) -> str:
         """An image file in the run folder (PNG: lossless, 8 or 16 bit); returns its name."""

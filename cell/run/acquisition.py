@@ -42,7 +42,7 @@ class Capture:
 def plan_recorded(task: Task, recorder: Recorder, albedo_scale: float = 1.0, iteration: int | None = None,
                   subfolder: str = "", T_cell_cam: np.ndarray | None = None) -> Plan:
     """Plan (the function `cell plan` uses; the camera at T_cell_cam, else by the task's rule),
-    write plan.json and pictures, log it."""
+    write plan.json (its pictures when the run has ended: Recorder.write_plan), log it."""
     from cell.planning.one_shot import plan
     planned = plan(task, albedo_scale=albedo_scale, progress=recorder.progress, T_cell_cam=T_cell_cam)
     folder = recorder.write_plan(planned, task, subfolder)

@@ -254,10 +254,10 @@ class InspectionResult(Result):
 
 
 def plan_logged(task: Task, recorder: Recorder) -> Plan:
-    """plan_features (the function `cell plan` uses for several features), plan.json and its
-    pictures in the run folder, logged."""
+    """plan_features (the function `cell plan` uses for several features), plan.json in the run
+    folder (its pictures when the run has ended), logged."""
     from cell.planning.whole_part import plan_features
-    plan = cell_moves.with_moves(task, plan_features(task, progress=recorder.progress))
+    plan = cell_moves.with_moves(task, plan_features(task, progress=recorder.out.labelled(" " * 16)))
     recorder.write_plan(plan, task)
     covered = sum(f.covered_by is not None for f in plan.features)
     verdict = "feasible" if plan.feasible else "PARTIAL"
@@ -297,7 +297,8 @@ def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices],
             require_feasible(plan)
             devices = session.devices = connect(plan.plans[candidate_features(plan).index(0)].planned_scene)
             order, travel, moves = visit_order(task, plan, devices, recorder)
-            write_cell_view(recorder.folder / "cell.html", plan, task, order)     # the route drawn in its order
+            # the route drawn in its order, over the plan's own cell.html, once the run has ended
+            recorder.later(lambda: write_cell_view(recorder.folder / "cell.html", plan, task, order))
             context = RunContext(task, devices, recorder, max_iterations)
             for n, (s, move) in enumerate(zip(order, moves)):
                 recorder.step("shot", f"shot {n + 1} of {len(order)} (plan's shot {s}): "

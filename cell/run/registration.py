@@ -261,9 +261,9 @@ def locate(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, 
     try:
         correlation, warp = cv2.findTransformECC(  # type: ignore[call-overload]  # OpenCV's stubs: no mask None
             template, cv2.GaussianBlur(image, (0, 0), SMOOTH_SIGMA), warp, cv2.MOTION_EUCLIDEAN, ECC_CRITERIA, None, 1)
-    except cv2.error as err:
-        return result((0.0, 0.0), False, int(resolved.sum()), np.nan,
-                      f"ECC did not converge: {str(err).strip().splitlines()[-1]}")
+    except cv2.error:                   # OpenCV's own text (its source path, "NaN encountered") is no reason
+        return result((0.0, 0.0), False, int(resolved.sum()), np.nan,   # a person can act on
+                      "the fine alignment (ECC) did not converge on this capture")
     fine = warp[:, :2] @ centre + warp[:, 2] - centre - (u0, v0)    # where the warp moves it
     rotation = float(np.degrees(np.arctan2(warp[1, 0], warp[0, 0])))
     kept = vectors[:, resolved]                     # project onto the resolved directions

@@ -1,0 +1,112 @@
+"""Which features a candidate shot can possibly cover, decided cheaply before the full evaluation
+(cell.planning.coverage.judge: the maps for the shot's view, the gray at its exposure, the lamp
+moved by its tolerance, the dense certificate), so that the judge of a part with many features
+evaluates in full only the pairs of a shot and a feature it may cover: a shot sees the few
+features in its view, at a fitting angle, in focus and in its lamp's cone.
+
+Exact by construction: coverage.judge covers a feature only when every requirement it asks is met
+on the feature's samples (then the certificate decides). The prefilter computes some of those
+requirements' values as the judge does, the same functions on the same arrays, and rejects a pair
+only where one of them is missed (costs.value(ln f) > 1, RequirementValue.met's test):
+- camera_view: samples outside the image (evaluate.in_image) or hidden from the camera (the gray
+  kernel's shadow flag for a lamp at the camera, as evaluate.build_problem casts it); the judge
+  counts both together, so a count of either alone is missed there too (at least as much);
+- view_angle and resolution, where the task asks for them (requirements.view_angle_ln,
+  resolution_ln), and depth_of_field at the shot's focus and f-number (depth_of_field_ln);
+- no_shadow and cone_coverage at the shot's lamp, the spot alone lighting (a task with other
+  lights skips these two: another light may reach a sample the spot does not): the kernel's
+  shadow flag and off-axis angle, as evaluate.lit_by_all passes them on without other lights.
+The kernel's flags of a sample depend on the sample, its normal, the mesh and the lamp alone
+(kernels.funcs.shade_point; the camera enters only the view and the BRDF), so one launch over the
+samples of every feature in question gives each sample the flags the judge's own launch gives it.
+A pair passed is judged in full: the coverage matrix is the full judge's exactly.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import replace
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from cell.devices import rig
+from cell.physics import costs
+from cell.physics.costs import RequirementValue
+from cell.planning import evaluate, requirements
+
+if TYPE_CHECKING:
+    from cell.planning.coverage import Lent
+    from cell.planning.plan import Shot
+    from cell.task.types import Task
+
+
+def _missed(name: str, ln: float, detail: str) -> RequirementValue | None:
+    """The RequirementValue of a requirement the judge would find missed (None where it is met)."""
+    value = float(costs.value(ln))
+    return RequirementValue(name, value, f"{detail} (found before the full evaluation)") if value > 1.0 else None
+
+
+def camera_side(task: Task, lent: Lent, shot: Shot) -> list[RequirementValue]:
+    """The requirements of the shot's camera alone (its pose, focus and f-number) missed on the
+    feature of the one-feature `task`, whose own plan lent its samples: view_angle, resolution,
+    depth_of_field, and camera_view as far as the image's bounds decide it."""
+    scene = replace(lent.scene, T_cell_cam=shot.T_cell_cam)
+    asked = task.requirements
+    n = len(scene.points)
+    found = [_missed("camera_view", float(costs.ln_count_cost(np.sum(~evaluate.in_image(task, scene)))),
+                     f"samples outside the image, of {n}")]
+    if asked.view_angle_rad is not None:
+        found.append(_missed("view_angle", requirements.view_angle_ln(task, scene), "the camera sees the samples "
+                             "too obliquely"))
+    if asked.resolution_m is not None:
+        found.append(_missed("resolution", requirements.resolution_ln(task, scene), "a pixel covers too much"))
+    e = shot.exposure
+    ln = requirements.depth_of_field_ln(task, scene, float(e.focus_m), np.array([float(e.f_number)]))[0]
+    found.append(_missed("depth_of_field", float(ln), f"samples out of focus at f/{e.f_number:.1f}"))
+    return [r for r in found if r is not None]
+
+
+def lamp_side(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list[list[RequirementValue]]:
+    """Per feature of `tasks` (one-feature tasks of one part, each with its `lent`) the
+    requirements the kernel's flags find missed: camera_view (a sample hidden from the camera),
+    and without other lights no_shadow and cone_coverage at the shot's lamp. One launch over
+    every feature's samples, with two lamps: one at the camera, the shot's."""
+    if not tasks:
+        return []
+    task = tasks[0]
+    scene = replace(lent[0].scene, T_cell_cam=shot.T_cell_cam, points=np.vstack([x.scene.points for x in lent]),
+                    normals=np.vstack([x.scene.normals for x in lent]))
+    pivot = task.lamp.rig.pivot_m
+    aims = np.vstack([shot.T_cell_cam[:3, 2], rig.lamp_aim(pivot, shot.lamp_position.reshape(1, 3))])
+    out = evaluate.gray_inputs(task, scene, task.part.material)(np.vstack([shot.camera_position,
+                                                                          shot.lamp_position]), aims)
+    spot_on = (task.lamp.channel.drive_range[1] if shot.drive is None else shot.drive[0]) > 0.0
+    half = task.lamp.lit_half_angle_rad
+    counts = np.array([len(x.scene.points) for x in lent])
+    ends = np.cumsum(counts)
+    found = []
+    for t, start, end in zip(tasks, ends - counts, ends):
+        hidden, shadowed, off_axis = out.shadowed[0, start:end], out.shadowed[1, start:end], out.off_axis[1, start:end]
+        n = end - start
+        here = [_missed("camera_view", float(costs.ln_count_cost(np.sum(hidden))),
+                        f"samples hidden from the camera, of {n}")]
+        if not t.lights:
+            here.append(_missed("no_shadow", float(costs.ln_count_cost(np.sum(shadowed | ~spot_on))),
+                                f"samples shadowed from the lamp, of {n}"))
+            here.append(_missed("cone_coverage", float(costs.ln_f_max(np.max(np.where(spot_on, off_axis, 0.0)), half)),
+                                "samples outside the lamp's cone"))
+        found.append([r for r in here if r is not None])
+    return found
+
+
+def missed(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot, skip: int) -> list[tuple[RequirementValue, ...]]:
+    """Per feature of `tasks` (one-feature tasks of one part, each with the samples its own plan
+    lent) the requirements `shot` misses on it for sure (empty: it may cover it, the full judge
+    decides; also at `skip`, the shot's own feature): the camera's first, then one launch of the
+    kernel over the features left."""
+    found = [[] if g == skip else camera_side(t, x, shot) for g, (t, x) in enumerate(zip(tasks, lent))]
+    left = [g for g, f in enumerate(found) if not f and g != skip]
+    for g, more in zip(left, lamp_side([tasks[g] for g in left], [lent[g] for g in left], shot)):
+        found[g] = more
+    return [tuple(f) for f in found]

@@ -1,0 +1,104 @@
+"""The generated many-feature example (tasks/many_features.py) and cell bench's rows of it
+(cell.bench.scaling): the features lie on the faces they are named after, the growth exponent is
+the log-log slope, the peak memory counts the children's, and a short run of the rows."""
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import trimesh
+import yaml
+
+from cell.bench import scaling
+from cell.task.loader import load_task
+from lightplan_tasks import many_features
+
+# the bracket's faces' outward normals (make_parts.bracket's docstring)
+NORMALS = {"base_top": (0, 0, 1), "chamfer": (1, 0, 1), "web_inner": (1, 0, 0), "bevel": (-1, 0, 1),
+           "web_outer": (-1, 0, 0)}
+
+
+def triangles_under(mesh, point, tolerance=1e-6):
+    """Indices of the mesh's triangles that contain `point` (in its plane, barycentric inside)."""
+    a, b, c = (mesh.triangles[:, k] for k in range(3))
+    n = np.cross(b - a, c - a)
+    area2 = np.einsum("ij,ij->i", n, n)
+    inside = [np.einsum("ij,ij->i", np.cross(q - p, point - p), n) >= -tolerance * area2
+              for p, q in ((a, b), (b, c), (c, a))]
+    plane = np.abs(np.einsum("ij,ij->i", point - a, n)) <= tolerance * np.sqrt(area2)
+    return np.flatnonzero(plane & inside[0] & inside[1] & inside[2])
+
+
+def test_the_generated_part_has_each_feature_on_the_face_it_is_named_after(tmp_path):
+    path = many_features.write(tmp_path, 12)
+    task = load_task(path)
+    names = [f.name for f in task.features]
+    assert len(names) == 12 and len(set(names)) == 12
+    assert names[:6] == ["base_top_1", "chamfer_1", "web_inner_1", "bevel_1", "web_outer_1", "base_top_2"]
+    mesh = trimesh.load(tmp_path / "many-12.stl", force="mesh")
+    raw = yaml.safe_load(path.read_text())["features"]
+    centres = np.array([f["center_mm"] for f in raw])
+    for f, centre in zip(raw, centres):
+        normals = mesh.face_normals[triangles_under(mesh, centre)]      # on the surface: in a triangle
+        expected = np.array(NORMALS[f["name"].rsplit("_", 1)[0]], float)
+        assert len(normals) and np.allclose(normals, expected / np.linalg.norm(expected), atol=1e-9)
+    # three segments 14 mm apart, centred on y = 0; the part reaches 13 mm past the outer ones
+    assert sorted({c[1] for c in centres}) == [-14.0, 0.0, 14.0]
+    assert mesh.bounds[:, 1].tolist() == [-27.0, 27.0]
+
+
+def test_the_first_five_features_are_the_brackets_own_moved_along_y(tmp_path):
+    bracket = yaml.safe_load((many_features.HERE / "bracket.yaml").read_text())["features"]
+    ours = yaml.safe_load(many_features.write(tmp_path, 5).read_text())["features"]
+    for a, b in zip(bracket, ours):
+        assert b["name"] == a["name"] + "_1" and b["radius_mm"] == a["radius_mm"] and b["samples"] == a["samples"]
+        assert b["center_mm"][::2] == a["center_mm"][::2] and b["center_mm"][1] == 0.0
+
+
+def test_the_growth_exponent_is_the_log_log_slope():
+    features = [10, 20, 40, 100]
+    for k in (1.0, 1.5, 2.0):
+        times = [0.3 * n**k for n in features]
+        assert scaling.growth_exponent(features, times, (10, 40)) == pytest.approx(k)
+    # a fixed cost on top of linear growth: below 1
+    assert scaling.growth_exponent([10, 40], [5.0 + 10, 5.0 + 40], (10, 40)) == pytest.approx(
+        math.log(45 / 15) / math.log(4))
+
+
+def test_peak_memory_counts_a_child_process_and_its_peak():
+    """A child that holds 300 MB for a moment, then frees it: the peak holds it, the end does not."""
+    code = ("import time; b = bytearray(300_000_000); b[::4096] = b'x' * len(b[::4096]); time.sleep(1.0); del b; "
+            "time.sleep(1.0)")
+    with scaling.PeakMemory() as memory:
+        before = memory.resident()
+        child = subprocess.Popen([sys.executable, "-c", code])
+        child.wait()
+    assert memory.peak - before > 280e6
+    assert memory.resident() - before < 100e6
+
+
+def test_the_targets_are_the_issues_at_40_features():
+    row = {"features": 40, "serial_s": 19.0, "judge_share": 0.25, "peak_memory_2_workers_b": 0.9e9}
+    summary = {"growth_between": [10, 40], "growth_exponent": 1.2, "workers_features": 40, "speedup": 1.7}
+    met = {t["name"]: t["met"] for t in scaling.targets([row], summary)}
+    assert met == {"many-40: warm serial plan <= 20 s": True, "many-40: judge <= 20 % of planning": False,
+                   "many-40: peak memory with 2 workers <= 1 GB": True,
+                   "many: growth exponent 10 -> 40 features <= 1.1": False, "many-40: 2 workers / 1 worker >= 1.6": True}
+    assert scaling.targets([{**row, "features": 10}], summary) == []        # --quick: 40 not planned
+
+
+@pytest.mark.long
+def test_a_short_run_plans_each_size_serially_and_on_2_workers_alike():
+    lines = []
+    result = scaling.run(True, lines.append, sizes=(2, 3))
+    rows, summary = result["scaling"], result["scaling_summary"]
+    assert [(r["features"], r["candidates"]) for r in rows] == [(2, 4), (3, 6)]
+    for row in rows:
+        assert row["feasible"] and row["identical"] and 0 < row["judge_share"] < 1
+        assert row["speedup"] == pytest.approx(row["serial_s"] / row["workers_2_s"])
+        assert row["peak_memory_2_workers_b"] > row["peak_memory_serial_b"] > 50e6     # the workers' too
+    assert summary["growth_exponent"] == pytest.approx(
+        math.log(rows[1]["serial_s"] / rows[0]["serial_s"]) / math.log(3 / 2))
+    assert summary["workers_features"] == 3 and len(summary["speedups"]) == 1
+    assert lines[-1] == scaling.summary_line(summary)
