@@ -1,7 +1,8 @@
 """The simulated cell: SimArm, SimPanTilt, a SimLightController when the task has lights on
 channels, and a SimCamera rendering the task's scene (sim.world.Renderer) at the controller's
 levels, with the task's `cell.arm` / `cell.pan_tilt` / `cell.lighting` settings
-(docs/devices.md) and optional injected faults."""
+(docs/devices.md) and optional injected faults. The arm and the lamp check each move against
+the cell's bodies themselves (sim.obstacles) and stop before a collision."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from sim.board import BoardView
 from sim.camera import SimCamera
 from sim.laser import LaserSpot
 from sim.lighting import SimLightController
+from sim.obstacles import Obstacles
 from sim.pantilt import SimPanTilt
 from sim.world import Renderer
 from cell.devices.operator import Operator
@@ -54,10 +56,11 @@ def make_sim_devices(task: Task, scene: Scene | None, operator: Operator | None 
     (sim.board)."""
     faults = SimFaults(**faults) if isinstance(faults, dict) else faults or SimFaults()
     config = task.cell.devices
-    arm = SimArm(config.arm, task.frames, fail_on_move=faults.arm_fail_on_move)
+    obstacles = Obstacles(task)
+    arm = SimArm(config.arm, task.frames, fail_on_move=faults.arm_fail_on_move, obstacles=obstacles)
     lamp = SimPanTilt(task.lamp.rig, config.pan_tilt, yes=yes, operator=operator,
                       fail_on_move=faults.lamp_fail_on_move, fail_servo=faults.servo_id,
-                      fail_bits=faults.servo_bits)
+                      fail_bits=faults.servo_bits, obstacles=obstacles)
     render: Callable[..., np.ndarray]
     if board:
         render = BoardView(task)

@@ -6,11 +6,15 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from cell.core.errors import DeviceFault
+from cell.devices.rig import lamp_position
 from cell.devices.operator import Operator
 from cell.devices.servo import CENTRE_TICK, ServoRig, describe_hardware_error
 
 if TYPE_CHECKING:
+    from sim.obstacles import Obstacles
     from cell.task.device_config import PanTiltConfig
     from cell.task.types import LampRig as LampRigModel
 
@@ -25,14 +29,32 @@ class SimPanTilt(ServoRig):
 
     def __init__(self, rig: LampRigModel, config: PanTiltConfig, yes: bool = True,
                  operator: Operator | None = None, limits: Mapping[int, tuple[int, int]] | None = None,
-                 fail_on_move: int | None = None, fail_servo: int | None = None, fail_bits: int = 0x04) -> None:
+                 fail_on_move: int | None = None, fail_servo: int | None = None, fail_bits: int = 0x04,
+                 obstacles: Obstacles | None = None) -> None:
         super().__init__(rig, config, operator or Operator(simulated=yes))
+        self.obstacles = obstacles
         self.limits = {i: (limits or {}).get(i, FULL_RANGE) for i in self.ids}
         self.present = {i: CENTRE_TICK for i in self.ids}
         self.torque = {i: True for i in self.ids}
         self.hardware_error = {i: 0 for i in self.ids}
         self.moves = 0
         self._fail = (fail_on_move, config.tilt_id if fail_servo is None else fail_servo, fail_bits)
+
+    def move(self, pan_rad: float, tilt_rad: float, radius_m: float) -> None:
+        """As the rig moves (ServoRig.move); given the cell's `obstacles` (sim.obstacles), the
+        joints' straight path from where they are (the radius from the commanded one while
+        none is known) is checked first: a move that would touch another body is a protective
+        stop (DeviceFault), the lamp where it was."""
+        if self.obstacles is not None and all(self.torque.values()):
+            pan, tilt, radius = self.joints()
+            start = np.array([pan, tilt, radius if np.isfinite(radius) else radius_m])
+            end = np.array([self._in_range(pan_rad, tilt_rad, radius_m), tilt_rad, radius_m])
+            contact = self.obstacles.lamp_move(start, end, lambda j: lamp_position(self.rig.pivot_m, *j))
+            if contact is not None:
+                raise DeviceFault(self.device, f"protective stop: {contact} (the simulated cell's own "
+                                               "collision check)")
+            self.obstacles.lamp_position = lamp_position(self.rig.pivot_m, *end)
+        super().move(pan_rad, tilt_rad, radius_m)
 
     def _check_errors(self):
         for dxl_id, bits in self.hardware_error.items():

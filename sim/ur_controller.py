@@ -55,7 +55,6 @@ TICK_S = 0.002                                                 # e-Series: 500 H
 CONTROLLER_VERSION = (5, 11, 1, 108318)
 POLYSCOPE = "URSoftware 5.11.1.108318 (Mar 22 2021)"
 SERIAL_NUMBER = "20205500000"
-HOME_JOINTS = np.radians([-90.0, -90.0, 90.0, -90.0, -90.0, 0.0])  # as sim.arm: flange down
 JOINT_SPEED_MAX = np.radians([180.0, 180.0, 180.0, 180.0, 180.0, 180.0])  # UR5e, rad/s
 FAULTS = ("protective-stop", "emergency-stop", "silent", "drop")
 # --mute STEP: a controller that goes silent at one step of a client's connection (the connection
@@ -186,7 +185,7 @@ class Line:
 class Arm:
     """The UR5e: joints, the TCP offset (setTcp) and the line it follows, if any."""
 
-    def __init__(self, joints: ArrayLike = HOME_JOINTS) -> None:
+    def __init__(self, joints: ArrayLike = ur5e.HOME_JOINTS) -> None:
         self.q = np.array(joints, float)
         self.qd, self.tcp_speed = np.zeros(6), np.zeros(6)
         self.T_flange_tcp = np.eye(4)

@@ -1,6 +1,6 @@
 """Write the example part meshes (millimetres, part frame): hinge.yaml's, conrod.yaml's,
-bracket.yaml's and ring.yaml's, and the curved parts of the tests' tasks (tests/tasks/): a sphere cap, a cylinder,
-a filleted block.
+bracket.yaml's and ring.yaml's, and for the tests' tasks (tests/tasks/) the curved parts (a sphere
+cap, a cylinder, a filleted block) and conrod_beam.yaml's fixture (a beam, cell frame).
 
 Regenerate with `python tasks/make_parts.py`. Solids are concatenated, not booleaned: the
 planner only casts rays at them, so overlapping closed shells are fine and no CSG library
@@ -174,7 +174,14 @@ def plate():
     return box((80.0, 60.0, 8.0), (0.0, 0.0, 4.0))
 
 
-PARTS = {"hinge": hinge, "plate": plate, "conrod": conrod, "bracket": bracket, "sphere_cap": sphere_cap, "lying_cylinder": lying_cylinder,
+def beam():
+    """conrod_beam.yaml's fixture (cell frame, mm): a beam 10 mm thick (x in [-11, -1]) and 80 mm
+    wide (y in [-40, 40]) hanging over the connecting rod between its two bosses, from z = 250 to
+    400 mm: clear of the camera above either boss, across the straight line between them."""
+    return box((10.0, 80.0, 150.0), (-6.0, 0.0, 325.0))
+
+
+PARTS = {"hinge": hinge, "beam": beam, "plate": plate, "conrod": conrod, "bracket": bracket, "sphere_cap": sphere_cap, "lying_cylinder": lying_cylinder,
          "filleted_block": filleted_block}
 
 

@@ -123,3 +123,35 @@ def test_a_runs_route_is_drawn_in_its_order_and_said_not_to_be_a_checked_path(pl
     assert route == ["route (the route's order; straight, not collision-checked)"]
     html = view.path.read_text()
     assert all(f"stop {n + 1}: shot {k}" in html for n, k in enumerate((2, 0, 1)))
+
+
+def test_a_plans_checked_moves_are_drawn_through_their_via_points_instead_of_straight_lines(planned, tmp_path):
+    """Moves as cell.run.moves gives them (here two of the bracket's shots, the second through
+    two via points above them): each drawn through its corners, named with its clearance."""
+    import base64
+    import json
+    from dataclasses import replace
+
+    import numpy as np
+
+    from cell.collision.paths import HOME, Move
+    from cell.collision.scene import Clearance
+    task, plan = planned["bracket"]
+    a, b = (plan.shots[k].T_cell_cam for k in (0, 1))
+    up = [T.copy() for T in (a, b)]
+    for T in up:
+        T[2, 3] += 0.1
+    moves = (Move(HOME, 0, Clearance(0.05, ("camera_body", "wrist_1"), 0.01), (), 3, (np.zeros(3), a[:3, 3])),
+             Move(0, 1, Clearance(0.02, ("fixture", "camera_body"), 0.01), tuple(up), 9,
+                  tuple(T[:3, 3] for T in (a, *up, b))))
+    view = write_cell_view(tmp_path / "cell.html", replace(plan, moves=moves), task)
+    paths = [n for n in view.names if n.startswith("path ")]
+    assert paths == ["path home to shot 0: collision-checked, clearance 50.0 mm (camera_body and wrist_1), "
+                     "0 via points",
+                     "path shot 0 to shot 1: collision-checked, clearance 20.0 mm (fixture and camera_body), "
+                     "2 via points"]
+    assert not any(n.startswith("route (") for n in view.names)          # no straight stand-in
+    html = view.path.read_text()          # plotly stores the trace's x as base64 float64
+    drawn = re.search(r'"name":"path shot 0 to shot 1[^"]*","x":\{"dtype":"f8","bdata":"([^"]*)"', html)
+    x = np.frombuffer(base64.b64decode(json.loads(f'"{drawn.group(1)}"')), float)
+    assert np.allclose(x, [a[0, 3], up[0][0, 3], up[1][0, 3], b[0, 3]])

@@ -25,6 +25,7 @@ from cell.core.errors import DeviceFault, PlanInfeasible, TaskError
 from cell.bench.multi_feature import same_plan, without_timing
 from cell.task.loader import load_task
 from cell.planning.plan import PlannerSettings
+from cell.run.moves import with_moves
 from cell.planning.whole_part import own_plan, plan_features
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -58,7 +59,7 @@ def one_line(err):
 
 def test_serial_workers_2_and_a_cluster_by_address_plan_the_same(scheduler, tmp_path, capsys):
     said = io.StringIO()
-    serial = plan_features(load_task(PLANNED), progress=Progress(said))
+    serial = with_moves(load_task(PLANNED), plan_features(load_task(PLANNED), progress=Progress(said)))
     alone = own_plan(load_task(HINGE), PlannerSettings(), None, None, "", lambda msg: None)   # cell plan's job
     assert cli.main(["plan", str(PLANNED), "--workers", "2", "--out", str(tmp_path / "local")]) == 0
     local_err = capsys.readouterr().err

@@ -28,6 +28,7 @@ from cell.planning.whole_part import own_plan, plan_features
 from cell.planning.plan import PlannerSettings, gray_stats
 from cell.report import words
 from cell.report.recorder import draw_plan, write_plan
+from cell.run.moves import with_moves
 
 if TYPE_CHECKING:
     from cell.planning.plan import Plan
@@ -140,13 +141,13 @@ def why(result: Plan | PlanInfeasible) -> tuple[str, str]:
 
 def plan_one(task: Task, progress: Progress, pool: parallel.Pool) -> Plan | PlanInfeasible:
     """`cell plan`'s Plan of a task: planner.plan's of one feature at the task's camera rule (one
-    job of `pool`), plan_features' of several or of planned viewpoints; the PlanInfeasible of a
-    task refused before its search (a fixed camera the arm cannot take), so that the other tasks
-    are planned all the same."""
+    job of `pool`), plan_features' of several or of planned viewpoints with its route's checked
+    moves (cell.run.moves); the PlanInfeasible of a task refused before its search (a fixed camera
+    the arm cannot take), so that the other tasks are planned all the same."""
     try:
         if len(task.features) == 1 and task.camera.viewpoint.mode == "fixed":
             return pool.map(own_plan, [(task, PlannerSettings(), None, None, "")], progress.say)[0]
-        return plan_features(task, progress=progress, pool=pool)
+        return with_moves(task, plan_features(task, progress=progress, pool=pool))
     except PlanInfeasible as refused:
         return refused
 

@@ -1,27 +1,33 @@
-"""The moves between two shots checked along their paths, and via points around a collision.
+"""The moves between two stops (the arm's home pose, the shots) checked along their paths, via
+points around a collision, and the order of a route whose moves are all checked.
 
-The arm moves first, the lamp parked at the first shot's pose (cell.run.acquisition.move_to), by
+The arm moves first, the lamp parked at the first stop's pose (cell.run.acquisition.move_to), by
 moveL: the camera's position on a straight line and its orientation by slerp, the joints by the
-inverse kinematics nearest the last step's (as the controller follows a Cartesian path). Then the
-lamp moves in its joints (pan, tilt, radius linear together), the arm at the second shot.
-Steps bound how far any point of a moving body travels between two checked poses below half the
-padding: the camera body by |dp| + |dtheta| rho (rho its farthest point from the camera's
-origin), the arm's links by sum_i |dq_i| R (R the arm's reach with the camera, from any joint
-axis), the lamp body by (|dpan| + |dtilt|) (r + its diagonal) + |dr|. A direct move closer than
-the padding gets via points: back along the camera's axis from the first shot, across at that
+inverse kinematics nearest the last step's (as the controller follows a Cartesian path), ending
+on the branch the second stop was planned on. Then the lamp moves in its joints (pan, tilt,
+radius linear together), the arm at the second stop.
+Steps by conservative advancement: a bound on how far any point of a moving body travels in a
+step (the camera and the arm's links by sum_i |dq_i| r_i, r_i joint i's reach, `joint_reach`;
+the lamp body by (|dpan| + |dtilt|) (r + its diagonal) + |dr|) is kept at most
+max(padding / 2, (d - padding) / 2) after a pose of clearance d: two bodies both moving close by
+at most twice the bound, so between two checked poses the clearance stays above the padding, or
+(near it) the step bounds the swept distance below half the padding. A direct move closer than
+the padding gets via points: back along the camera's axis from the first stop, across at that
 standoff, in along the second's axis; retreats of VIA_RETREATS_M are tried in turn.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from itertools import pairwise
 from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.spatial.transform import Rotation, Slerp
+from scipy.spatial.transform import Rotation
 
-from cell.collision.scene import Clearance, CollisionScene
+from cell.collision.scene import ARM_LINKS, SHOULDER_OFFSET_M, Clearance, CollisionScene
 from cell.core import geometry
 from cell.core.errors import DeviceFault
 from cell.devices import ur5e
@@ -31,107 +37,168 @@ from cell.devices.rig import lamp_position
 if TYPE_CHECKING:
     from cell.task.device_config import ArmConfig
 
-ARM_REACH_M = 0.85                       # the UR5e's reach from its shoulder (datasheet: 850 mm)
+HOME = "home"                            # a move's end that is the arm's home pose, not a shot
 VIA_RETREATS_M = (0.10, 0.20, 0.30)      # back along the camera's axis, tried in turn
 MIN_STEP_M = 0.001                       # a padding of 0 still checks every millimetre
 MAX_STEPS = 5000                         # a longer path is refused, not checked for minutes
 MAX_JOINT_STEP_RAD = 0.2                 # more in one step of a straight path: it meets a singularity
+MIN_STEP_S = 1e-6                        # a step of the path parameter below this: a singularity
+SAME_BRANCH_RAD = 1e-3                   # joints arriving this close to the stop's planned ones
+UNCHECKED_M = 1e6                        # the travel a route solver sees of a move that cannot be made
+
+End = int | str                          # a shot's index in the plan, or HOME
 
 
 @dataclass(frozen=True)
 class Move:
-    """A move from shot `start` to shot `end` (plan indices): the smallest clearance along its
-    path (via points included), and the via camera poses T_cell_cam (empty: direct); `clear`
-    when that clearance is at least the padding."""
+    """A move from `start` to `end` (shot indices, or HOME): the smallest clearance along its
+    path (via points included), the via camera poses T_cell_cam (empty: direct), the camera's
+    corners in the cell frame [m] (start, via points, end: its path is straight between them),
+    its travel (the camera's path plus the lamp's straight line) [m] and the poses checked;
+    `clear` when that clearance is at least the padding."""
 
-    start: int
-    end: int
+    start: End
+    end: End
     clearance: Clearance
     via: tuple[np.ndarray, ...] = ()
-    steps: int = 0                       # poses checked
+    steps: int = 0
+    corners_m: tuple[np.ndarray, ...] = ()
+    travel_m: float = np.inf
+    joints_end: np.ndarray | None = None   # where the arm arrives (None: it does not)
 
     @property
     def clear(self) -> bool:
         return self.clearance.ok
 
     def reason(self) -> str:
-        return f"the move from shot {self.start} to shot {self.end}: {self.clearance.reason()}"
+        return f"the move from {_name(self.start)} to {_name(self.end)}: {self.clearance.reason()}"
 
     def to_json(self) -> dict[str, object]:
         return {"from": self.start, "to": self.end, "clearance_m": self.clearance.distance_m,
                 "clearance_bodies": list(self.clearance.bodies), "via": [T.tolist() for T in self.via],
-                "steps": self.steps}
+                "travel_m": self.travel_m, "steps": self.steps,
+                **({} if self.joints_end is None else {"arm_joints_deg": np.degrees(self.joints_end).tolist()})}
+
+
+def _name(end: End) -> str:
+    return "the home pose" if end == HOME else f"shot {end}"
 
 
 def _least(clearances: list[Clearance], padding_m: float) -> Clearance:
     return min(clearances, key=lambda c: c.distance_m, default=Clearance(np.inf, ("", ""), padding_m))
 
 
+def _allowed(scene: CollisionScene, c: Clearance, movers: float) -> float:
+    """How far a point may move in the next step after a pose of clearance c, `movers` bodies
+    of a pair moving (2: the arm's links among themselves; 1: the lamp against the still rest)."""
+    return max(0.5 * scene.padding_m, MIN_STEP_M, (c.distance_m - scene.padding_m) / movers)
+
+
+def joint_reach(scene: CollisionScene, q: ArrayLike) -> np.ndarray:
+    """(6,) r_i [m] at joints q: how far from joint i's axis the farthest point it moves lies
+    (the chain's joint origins beyond it, the upper arm's offset, the camera body's corners),
+    plus the thickest link's radius."""
+    T = scene.frames.T_cell_base.copy()
+    origins, axes = [], []
+    for i, theta in enumerate(np.asarray(q, float)):
+        origins.append(T[:3, 3])
+        axes.append(T[:3, 2])
+        T = T @ ur5e.dh(i, theta)
+    flange = T
+    corners = np.array(np.meshgrid(*[[-1.0, 1.0]] * 3)).T.reshape(-1, 3) * scene.camera_half_m
+    camera = geometry.apply(flange, corners + (0.0, 0.0, scene.camera_offset_m))
+    chain = np.vstack([origins[1:], [flange[:3, 3]], camera])
+    shoulder = np.vstack([origins[1:3]]) + SHOULDER_OFFSET_M * axes[1]
+    thickest = max(r for _, r in ARM_LINKS)
+    reach = np.empty(6)
+    for i in range(6):
+        points = np.vstack([chain[i:], shoulder[max(i - 1, 0):]]) - origins[i]
+        reach[i] = np.linalg.norm(points - np.outer(points @ axes[i], axes[i]), axis=1).max() + thickest
+    return reach
+
+
 def arm_path(scene: CollisionScene, T_from: np.ndarray, q_from: ArrayLike, T_to: np.ndarray,
              lamp: ArrayLike | None) -> tuple[Clearance, np.ndarray, int]:
-    """(the smallest Clearance along the moveL from T_from (joints q_from) to T_to, the joints it
-    ends at, the poses checked); raises ur5e.Unreachable where the inverse kinematics fail."""
-    step = max(0.5 * scene.padding_m, MIN_STEP_M)
-    corners = np.array(np.meshgrid(*[[-1.0, 1.0]] * 3)).T.reshape(-1, 3) * scene.camera_half_m
-    in_cam = geometry.apply(scene.frames.T_cam_flange @ geometry.transform(
-        translation=(0.0, 0.0, scene.camera_offset_m)), corners)
-    rho = float(np.linalg.norm(in_cam, axis=1).max())
-    reach = ARM_REACH_M + scene.camera_offset_m + float(np.linalg.norm(scene.camera_half_m))
-    turn = geometry.rotation_angle(T_from, T_to)
-    n = max(1, int(np.ceil((np.linalg.norm(T_to[:3, 3] - T_from[:3, 3]) + turn * rho) / step)))
-    slerp = Slerp([0.0, 1.0], Rotation.from_matrix([T_from[:3, :3], T_to[:3, :3]]))
-    q_start = np.asarray(q_from, float)
-    for _ in range(4):                   # refine until the joints' sweep is within the step too
-        s = np.linspace(0.0, 1.0, n + 1)
-        poses = np.repeat(np.eye(4)[None], n + 1, axis=0)
-        poses[:, :3, :3] = slerp(s).as_matrix()
-        poses[:, :3, 3] = (1 - s)[:, None] * T_from[:3, 3] + s[:, None] * T_to[:3, 3]
-        joints = [q_start]
-        for T in poses[1:]:
-            joints.append(ur5e.inverse(scene.frames.T_base_flange(scene.frames.T_base_cam(T)), joints[-1]))
-        jumps = np.abs(np.diff(joints, axis=0))
-        if jumps.max() > MAX_JOINT_STEP_RAD:
-            raise ur5e.Unreachable(f"the straight path turns a joint {np.degrees(jumps.max()):.0f} deg in one "
-                                   "step: a singularity or a change of configuration on the way")
-        sweep = float(jumps.sum(axis=1).max()) * reach
-        if sweep <= step:
-            break
-        n = int(np.ceil(n * sweep / step))
-        if n > MAX_STEPS:
-            raise ur5e.Unreachable(f"a path of more than {MAX_STEPS} steps of {step * 1e3:g} mm")
-    found = [scene.clearance(T, q, lamp) for T, q in zip(poses, joints)]
-    return _least(found, scene.padding_m), joints[-1], len(poses)
+    """(the smallest Clearance along the moveL from T_from (joints q_from) to T_to, or the first
+    below the padding, the joints it ends at, the poses checked); raises ur5e.Unreachable where
+    the inverse kinematics fail or jump (a singularity, a change of configuration). A step's
+    sweep takes each joint's reach at the farther of its two ends, widened by the step allowed
+    (no point moves farther out than that within the step)."""
+    turn = Rotation.from_matrix(T_from[:3, :3].T @ T_to[:3, :3]).as_rotvec()
+    angle = float(np.linalg.norm(turn))
+    K = np.cross(np.eye(3), turn / angle) if angle > 0 else np.zeros((3, 3))
+
+    def pose(s: float) -> np.ndarray:
+        """The moveL's pose at s in [0, 1]: slerp by Rodrigues' formula, the position linear."""
+        T = np.eye(4)
+        T[:3, :3] = T_from[:3, :3] @ (np.eye(3) + np.sin(s * angle) * K + (1 - np.cos(s * angle)) * K @ K)
+        T[:3, 3] = (1 - s) * T_from[:3, 3] + s * T_to[:3, 3]
+        return T
+
+    s, q = 0.0, np.asarray(q_from, float)
+    reach = joint_reach(scene, q)
+    found, at = [scene.clearance(T_from, q, lamp)], [0.0]
+    ds = 1.0
+    while s < 1.0 and found[-1].ok:
+        allowed = _allowed(scene, found[-1], 2.0)
+        while True:
+            s_next = min(1.0, s + ds)
+            q_next = ur5e.inverse(scene.frames.T_base_flange(scene.frames.T_base_cam(pose(s_next))), q)
+            dq = np.abs(q_next - q)
+            reach_next = joint_reach(scene, q_next)
+            sweep = float(dq @ (np.maximum(reach, reach_next) + allowed))
+            if sweep <= allowed and dq.max() <= MAX_JOINT_STEP_RAD:
+                break
+            ds = (s_next - s) * min(0.5, 0.9 * allowed / max(sweep, 1e-300))
+            if ds < MIN_STEP_S:
+                raise ur5e.Unreachable(f"the straight path turns a joint {np.degrees(dq.max()):.0f} deg in a "
+                                       "vanishing step: a singularity or a change of configuration on the way")
+        s, q, reach = s_next, q_next, reach_next
+        found.append(scene.clearance(pose(s), q, lamp))
+        at.append(s)
+        if len(found) > MAX_STEPS:
+            raise ur5e.Unreachable(f"a path of more than {MAX_STEPS} checked poses")
+        ds *= 2.0
+    k = int(np.argmin([c.distance_m for c in found]))
+    where = f"with the camera at {np.round(pose(at[k])[:3, 3], 3).tolist()} m (cell frame)"
+    return replace(found[k], where=where), q, len(found)
 
 
 def lamp_path(scene: CollisionScene, T_cam: np.ndarray, q: ArrayLike, joints_from: ArrayLike,
               joints_to: ArrayLike) -> tuple[Clearance, int]:
-    """The smallest Clearance as the lamp moves in its joints (pan, tilt, radius), the arm still."""
+    """The smallest Clearance (or the first below the padding) as the lamp moves in its joints
+    (pan, tilt, radius), the arm still, and the poses checked."""
     a, b = np.asarray(joints_from, float), np.asarray(joints_to, float)
-    step = max(0.5 * scene.padding_m, MIN_STEP_M)
     arm = max(a[2], b[2]) + 2 * float(np.linalg.norm(scene.lamp_half_m))
-    n = max(1, int(np.ceil(((abs(b[0] - a[0]) + abs(b[1] - a[1])) * arm + abs(b[2] - a[2])) / step)))
-    s = np.linspace(0.0, 1.0, n + 1)[:, None]
-    pan, tilt, radius = ((1 - s) * a + s * b).T
-    positions = lamp_position(scene.pivot_m, pan, tilt, radius)
-    return _least([scene.clearance(T_cam, q, p) for p in positions], scene.padding_m), len(positions)
+    sweep = (abs(b[0] - a[0]) + abs(b[1] - a[1])) * arm + abs(b[2] - a[2])   # a bound over the whole move
+    s, at = 0.0, [lamp_position(scene.pivot_m, *a)]
+    found = [scene.clearance(T_cam, q, at[0])]
+    while s < 1.0 and found[-1].ok:
+        s = min(1.0, s + _allowed(scene, found[-1], 1.0) / max(sweep, 1e-300))
+        at.append(lamp_position(scene.pivot_m, *((1 - s) * a + s * b)))
+        found.append(scene.clearance(T_cam, q, at[-1]))
+    k = int(np.argmin([c.distance_m for c in found]))
+    return replace(found[k], where=f"with the lamp at {np.round(at[k], 3).tolist()} m (cell frame)"), len(found)
 
 
 @dataclass(frozen=True)
 class Stop:
-    """What a move needs of a shot: the camera pose, the arm's joints there, the lamp's joints."""
+    """What a move needs of a stop: the camera pose, the arm's joints there (a move's first
+    stop: where it starts; its second: as planned, the move arrives where the path leads), the
+    lamp's joints (None: not known, e.g. at the home pose before the run reads it)."""
 
     T_cell_cam: np.ndarray
     arm_joints: np.ndarray
-    lamp_joints: tuple[float, float, float]
+    lamp_joints: tuple[float, float, float] | None
 
 
-def plan_move(scene: CollisionScene, arm: ArmConfig, start: int, a: Stop, end: int, b: Stop) -> Move:
+def plan_move(scene: CollisionScene, arm: ArmConfig, start: End, a: Stop, end: End, b: Stop) -> Move:
     """The Move from stop a to stop b: direct if clear, else through the first via points
     (VIA_RETREATS_M) whose path is clear; neither: the direct move, not clear, with its bodies."""
-    lamp_a = lamp_position(scene.pivot_m, *a.lamp_joints)
-    direct, steps = _through(scene, [a.T_cell_cam, b.T_cell_cam], a.arm_joints, lamp_a)
-    if direct is not None and direct.ok:
-        return _with_lamp(scene, Move(start, end, direct, (), steps), b, a.lamp_joints)
+    lamp_a = None if a.lamp_joints is None else lamp_position(scene.pivot_m, *a.lamp_joints)
+    direct, q, steps = _through(scene, [a.T_cell_cam, b.T_cell_cam], a.arm_joints, lamp_a)
+    if direct.ok:
+        return _with_lamp(scene, Move(start, end, direct, (), steps, joints_end=q), a, b)
     for retreat in VIA_RETREATS_M:
         via = (_retreated(a.T_cell_cam, retreat), _retreated(b.T_cell_cam, retreat))
         try:
@@ -139,35 +206,47 @@ def plan_move(scene: CollisionScene, arm: ArmConfig, start: int, a: Stop, end: i
                 check_arm_motion(arm, scene.frames, T, arm.speed_m_s)
         except DeviceFault:
             continue
-        found, n = _through(scene, [a.T_cell_cam, *via, b.T_cell_cam], a.arm_joints, lamp_a)
+        found, q, n = _through(scene, [a.T_cell_cam, *via, b.T_cell_cam], a.arm_joints, lamp_a)
         steps += n
-        if found is not None and found.ok:
-            return _with_lamp(scene, Move(start, end, found, via, steps), b, a.lamp_joints)
-    if direct is None:
-        direct = Clearance(-np.inf, ("arm", "its reach"), scene.padding_m)
-    return Move(start, end, direct, (), steps)
+        if found.ok:
+            return _with_lamp(scene, Move(start, end, found, via, steps, joints_end=q), a, b)
+    return Move(start, end, direct, (), steps, (a.T_cell_cam[:3, 3], b.T_cell_cam[:3, 3]))
 
 
 def _through(scene: CollisionScene, poses: list[np.ndarray], q: np.ndarray,
-             lamp: np.ndarray) -> tuple[Clearance | None, int]:
-    """The smallest Clearance of moveL's through the poses in turn (None: a pose the arm does not
-    reach on the way), and the poses checked."""
+             lamp: np.ndarray | None) -> tuple[Clearance, np.ndarray, int]:
+    """The smallest Clearance of moveL's through the poses in turn (-inf, the arm and its reach
+    named: a pose the arm does not reach on the way), the joints it ends at and the poses
+    checked."""
     found, steps = [], 0
     try:
-        for T_from, T_to in zip(poses, poses[1:]):
+        for T_from, T_to in pairwise(poses):
             c, q, n = arm_path(scene, T_from, q, T_to, lamp)
             found.append(c)
             steps += n
+            if not c.ok:
+                return c, q, steps
     except ur5e.Unreachable:
-        return None, steps
-    return _least(found, scene.padding_m), steps
+        return Clearance(-np.inf, ("arm", "its reach"), scene.padding_m), q, steps
+    return _least(found, scene.padding_m), q, steps
 
 
-def _with_lamp(scene: CollisionScene, move: Move, b: Stop, lamp_from: tuple[float, float, float]) -> Move:
-    """The move with the lamp's own move after the arm's (the arm at stop b) counted in."""
-    c, n = lamp_path(scene, b.T_cell_cam, b.arm_joints, lamp_from, b.lamp_joints)
-    least = _least([move.clearance, c], scene.padding_m)
-    return Move(move.start, move.end, least, move.via, move.steps + n)
+def _with_lamp(scene: CollisionScene, move: Move, a: Stop, b: Stop) -> Move:
+    """The move with the lamp's own move after the arm's (the arm where it arrived at b)
+    counted in, its corners and its travel. A lamp not known at a (the home pose) is checked
+    from b's pose (the run checks it from where it reads it) and counts no travel."""
+    corners = tuple(T[:3, 3] for T in (a.T_cell_cam, *move.via, b.T_cell_cam))
+    travel = float(sum(np.linalg.norm(q - p) for p, q in pairwise(corners)))
+    least, n = move.clearance, 0
+    assert move.joints_end is not None, "a clear arm move arrives somewhere"
+    if b.lamp_joints is not None:
+        start = b.lamp_joints if a.lamp_joints is None else a.lamp_joints
+        c, n = lamp_path(scene, b.T_cell_cam, move.joints_end, start, b.lamp_joints)
+        least = _least([move.clearance, c], scene.padding_m)
+        if a.lamp_joints is not None:
+            travel += float(np.linalg.norm(lamp_position(scene.pivot_m, *b.lamp_joints)
+                                           - lamp_position(scene.pivot_m, *a.lamp_joints)))
+    return replace(move, clearance=least, steps=move.steps + n, corners_m=corners, travel_m=travel)
 
 
 def _retreated(T_cell_cam: np.ndarray, distance_m: float) -> np.ndarray:
@@ -175,3 +254,53 @@ def _retreated(T_cell_cam: np.ndarray, distance_m: float) -> np.ndarray:
     T = T_cell_cam.copy()
     T[:3, 3] -= distance_m * T[:3, 2]
     return T
+
+
+def home_stop(scene: CollisionScene, lamp_joints: tuple[float, float, float] | None = None) -> Stop:
+    """The arm at its home joints (ur5e.HOME_JOINTS): where a run starts."""
+    T_base_cam = scene.frames.T_base_cam_from_flange(ur5e.forward(ur5e.HOME_JOINTS))
+    return Stop(scene.frames.T_cell_cam_from_base(T_base_cam), np.array(ur5e.HOME_JOINTS), lamp_joints)
+
+
+def checked_route(scene: CollisionScene, arm: ArmConfig, stops: Sequence[Stop],
+                  shortest_order: Callable[[np.ndarray], tuple[int, ...]],
+                  rounds: int = 8) -> tuple[tuple[int, ...], list[Move]]:
+    """(the order of stops[1:] (indices from 0) from stops[0], where the arm is (the home pose),
+    and the checked Moves along it, each from where the last arrived). Lazy: a route solver
+    (`shortest_order` of a travel matrix, index 0 the start) orders the stops by straight-line
+    travel, a lower bound of every move's; the moves of that order are checked (plan_move) and
+    their true travel (via points counted; UNCHECKED_M where no path is clear) put in, until
+    an order's moves change no entry (then no other order is shorter), or after `rounds`
+    orders the shortest checked one. A move that is not clear ends its order's list."""
+    n = len(stops)
+    D = np.zeros((n, n))
+    for i, a in enumerate(stops):
+        for j, b in enumerate(stops):
+            D[i, j] = np.linalg.norm(b.T_cell_cam[:3, 3] - a.T_cell_cam[:3, 3])
+            if a.lamp_joints is not None and b.lamp_joints is not None:
+                D[i, j] += np.linalg.norm(lamp_position(scene.pivot_m, *b.lamp_joints)
+                                          - lamp_position(scene.pivot_m, *a.lamp_joints))
+    checked: dict[tuple[int, int, bytes], Move] = {}
+    tried: list[tuple[float, tuple[int, ...], list[Move]]] = []
+    for _ in range(rounds):
+        order = tuple(shortest_order(D))
+        moves, q, changed = [], stops[0].arm_joints, False
+        for i, j in pairwise([0, *(k + 1 for k in order)]):
+            key = (i, j, np.asarray(q, float).tobytes())
+            if key not in checked:
+                checked[key] = plan_move(scene, arm, HOME if i == 0 else i - 1, replace(stops[i], arm_joints=q),
+                                         j - 1, stops[j])
+            move = checked[key]
+            moves.append(move)
+            cost = move.travel_m if move.clear else UNCHECKED_M
+            changed |= cost > D[i, j] + 1e-12
+            D[i, j] = max(D[i, j], cost)
+            if not move.clear or move.joints_end is None:
+                break
+            q = move.joints_end
+        total = sum(m.travel_m if m.clear else UNCHECKED_M for m in moves)
+        tried.append((total + UNCHECKED_M * (len(order) + 1 - len(moves)), order, moves))
+        if not changed:
+            return order, moves
+    _, order, moves = min(tried, key=lambda t: t[0])
+    return order, moves

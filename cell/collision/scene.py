@@ -63,11 +63,12 @@ def arm_links(T_cell_base: np.ndarray, q: ArrayLike) -> tuple[Capsule, ...]:
 def reaching_joints(frames: Frames, T_cell_cam: np.ndarray,
                     arm_joints: ArrayLike | None = None) -> tuple[float, ...] | None:
     """The UR5e's joints [rad] with the camera at T_cell_cam: arm_joints when the planner chose
-    them, else the inverse kinematics nearest zero joints; None where the arm does not reach."""
+    them, else the inverse kinematics nearest the home joints
+    (ur5e.HOME_JOINTS); None where the arm does not reach."""
     if arm_joints is not None:
         return tuple(float(q) for q in np.asarray(arm_joints, float))
     try:
-        q = ur5e.inverse(frames.T_base_flange(frames.T_base_cam(T_cell_cam)), np.zeros(6))
+        q = ur5e.inverse(frames.T_base_flange(frames.T_base_cam(T_cell_cam)), ur5e.HOME_JOINTS)
     except ur5e.Unreachable:
         return None
     return tuple(float(x) for x in q)
@@ -81,16 +82,18 @@ class Clearance:
     distance_m: float
     bodies: tuple[str, str]
     padding_m: float
+    where: str = ""                      # where on a path, e.g. "with the camera at [x, y, z] m"
 
     @property
     def ok(self) -> bool:
         return self.distance_m >= self.padding_m
 
     def reason(self) -> str:
-        """The refusal's sentence: names both bodies."""
+        """The refusal's sentence: names both bodies (and where, on a path)."""
         a, b = self.bodies
         apart = "touch or overlap" if self.distance_m <= 0 else f"only {self.distance_m * 1e3:.1f} mm apart"
-        return f"collision: {a} and {b} {apart}, less than the padding {self.padding_m * 1e3:g} mm"
+        at = f" {self.where}" if self.where else ""
+        return f"collision: {a} and {b} {apart}{at}, less than the padding {self.padding_m * 1e3:g} mm"
 
 
 @dataclass(frozen=True)

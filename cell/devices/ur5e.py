@@ -20,6 +20,10 @@ A = np.array([0.0, -0.425, -0.3922, 0.0, 0.0, 0.0])          # a_i [m]
 ALPHA = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0])
 JOINT_LIMITS = np.array([2 * np.pi, 2 * np.pi, np.pi, 2 * np.pi, 2 * np.pi, 2 * np.pi])  # +- [rad]
 SINGULAR = 1e-9
+# elbow up, wrist down, the flange pointing at the table in front of the base: where the arm
+# starts (the simulated arm and controller power up here) and the configuration the planner seeks,
+# so that the moves between shots stay on one branch of the inverse kinematics
+HOME_JOINTS = np.radians([-90.0, -90.0, 90.0, -90.0, -90.0, 0.0])
 
 
 class Unreachable(ValueError):

@@ -16,6 +16,7 @@ from cell.planning import regions
 from cell.physics.costs import RequirementValue
 
 if TYPE_CHECKING:
+    from cell.collision.paths import Move
     from cell.collision.scene import Clearance
     from cell.planning.scene import Scene
 
@@ -248,6 +249,7 @@ class Plan:
     features: tuple[FeatureVerdict, ...] = ()  # FeatureVerdict of each feature (a multi-feature plan)
     plans: tuple[Plan, ...] = ()               # each feature's own one-shot Plan (a multi-feature plan)
     cover: dict[str, Any] | None = None        # candidate shots, coverage matrix, travel, chosen (plain values)
+    moves: tuple[Move, ...] = ()               # the checked moves of its route from the home pose (cell.run.moves)
 
     @property
     def success(self) -> bool:
@@ -305,6 +307,7 @@ class Plan:
             **({"defects": [d.to_json() for d in shot.defects]} if shot.defects else {}),
             "verified": self.verification.to_json() if self.verification else None,
             **clearance_json(shot),
+            **moves_json(self.moves),
             "search": asdict(self.search),
             "timing_s": self.timing_s,
             "settings": asdict(self.settings),
@@ -327,7 +330,7 @@ class Plan:
                "features": [{"name": f.name, "covered_by": f.covered_by,
                              **({} if f.covered_by is not None else {"binding": f.binding, "hint": f.hint})}
                             for f in self.features],
-               "cover": self.cover}
+               "cover": self.cover, **moves_json(self.moves)}
         if len(self.shots) == 1:                     # a one-shot plan keeps the one-shot keys
             own = self.plans[self.cover["chosen"][0]].to_json()
             doc.update({k: own[k] for k in ("requirements", "lamp", "lights", "contributions", "camera",
@@ -359,6 +362,13 @@ def clearance_json(shot: Shot) -> dict[str, Any]:
     if shot.clearance is None:
         return {}
     return {"clearance_m": shot.clearance.distance_m, "clearance_bodies": list(shot.clearance.bodies)}
+
+
+def moves_json(moves: Iterable[Move]) -> dict[str, Any]:
+    """`moves`, the route's checked moves in their order (cell.collision.paths.Move.to_json;
+    none when they were not planned)."""
+    moves = list(moves)
+    return {"moves": [m.to_json() for m in moves]} if moves else {}
 
 
 def camera_json(shot: Shot) -> dict[str, Any]:

@@ -51,8 +51,8 @@ VIEWPOINT_REQUIREMENTS = ("camera_view", "view_angle", "resolution", "depth_of_f
 
 @dataclass(frozen=True)
 class Viewpoint:
-    """A camera pose the arm reaches: T_cell_cam, the UR5e joints reaching it (nearest zero
-    joints), its standoff [m] and the largest view angle over the samples [rad]."""
+    """A camera pose the arm reaches: T_cell_cam, the UR5e joints reaching it (nearest the
+    home joints, ur5e.HOME_JOINTS: the branch the arm's moves start on), its standoff [m] and the largest view angle over the samples [rad]."""
 
     T_cell_cam: np.ndarray
     arm_joints: np.ndarray
@@ -113,7 +113,7 @@ def reach(task: Task, T_cell_cam: np.ndarray,
         except DeviceFault:
             continue
         try:
-            q = ur5e.inverse(frames.T_base_flange(frames.T_base_cam(T)), np.zeros(6))
+            q = ur5e.inverse(frames.T_base_flange(frames.T_base_cam(T)), ur5e.HOME_JOINTS)
         except ur5e.Unreachable:
             refused = "reach" if refused != "collision" else refused
             continue
@@ -141,7 +141,7 @@ def require_reach(task: Task, scene: Scene) -> None:
         raise PlanInfeasible(f"camera_reach: {outside}", f"{where}, where the arm cannot take it: {outside} "
                                                          f"(cell.arm.workspace_min_m/max_m); {fix}") from None
     try:
-        ur5e.inverse(frames.T_base_flange(frames.T_base_cam(T)), np.zeros(6))
+        ur5e.inverse(frames.T_base_flange(frames.T_base_cam(T)), ur5e.HOME_JOINTS)
     except ur5e.Unreachable:
         base = np.round(frames.T_cell_base[:3, 3], 3).tolist()
         far = float(np.linalg.norm(frames.T_cell_flange(T)[:3, 3] - frames.T_cell_base[:3, 3]))

@@ -59,7 +59,7 @@ def own_plan(task: Task, settings: PlannerSettings, T_cell_cam: np.ndarray | Non
 
 def cleared(task: Task, p: Plan) -> Plan:
     """A one-shot plan with its shot's Clearance (cell.collision): the arm at the shot's joints
-    (the fixed camera rule's: the inverse kinematics nearest zero joints; none where the arm does
+    (the fixed camera rule's: the inverse kinematics nearest the home joints (ur5e.HOME_JOINTS); none where the arm does
     not reach, which the run refuses anyway), the camera body and the lamp. A shot closer than
     the padding makes the plan infeasible, `collision` binding, the two bodies named."""
     shot = p.shot

@@ -3,8 +3,10 @@ scene (cell.collision.scene) at every shot: the part and the fixture, the UR5e's
 capsules, the camera body with its frustum to the focus distance, the lamp's body with its cone
 (the lit half angle, to the rig's pivot), the task's other lights as their emitter points (bright:
 on, dim: off), each feature's patch and normal; each shot's clearance (and the two bodies that set
-it) in its legend entry and hover text; straight segments between consecutive shots' cameras in the
-route's order (a run's) or the plan's, which are NOT collision-checked paths.
+it) in its legend entry and hover text; the camera's paths of the plan's collision-checked moves
+(Plan.moves, cell.run.moves: from the home pose through the shots, straight between a move's
+via points, as moveL takes them), or where a plan has none, straight segments between consecutive
+shots' cameras in the route's order (a run's) or the plan's, which are NOT collision-checked paths.
 
 Drawn with plotly, its JavaScript embedded in the file (include_plotlyjs=True): the page opens
 offline, with no network at view time. The part's mesh is thinned for the file's size
@@ -216,7 +218,17 @@ def write_cell_view(path: PathLike, plan: Plan, task: Task, order: Sequence[int]
                                hovertemplate="the rig's pivot: every lamp's aim<extra></extra>"))
     visit = tuple(range(len(plan.shots))) if order is None else tuple(order)
     whose = "the plan's order" if order is None else "the route's order"
-    if len(visit) > 1:
+    for move in plan.moves:
+        corners = np.array(move.corners_m)
+        via = f"{len(move.via)} via point{'s' * (len(move.via) != 1)}"
+        start = move.start if isinstance(move.start, str) else f"shot {move.start}"
+        text = (f"{start} to shot {move.end}: collision-checked, clearance "
+                f"{move.clearance.distance_m * 1e3:.1f} mm ({' and '.join(move.clearance.bodies)}), {via}")
+        traces.append(go.Scatter3d(
+            x=corners[:, 0], y=corners[:, 1], z=corners[:, 2], mode="lines+markers", name=f"path {text}",
+            line={"color": "black", "width": 4}, marker={"size": 3, "color": "black"},
+            hovertext=[text] * len(corners), hovertemplate="%{hovertext}<extra></extra>"))
+    if len(visit) > 1 and not plan.moves:
         cameras = np.array([plan.shots[k].camera_position for k in visit])
         traces.append(go.Scatter3d(
             x=cameras[:, 0], y=cameras[:, 1], z=cameras[:, 2], mode="lines+markers+text",

@@ -16,11 +16,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from cell.run import loop, measurement, route
+from cell.run import loop, measurement
+from cell.run import moves as cell_moves
 from cell.run.acquisition import require_feasible
 from cell.run.context import RunContext
 from cell.devices.interfaces import speaking_for
-from cell.core.errors import GoalNotReached
+from cell.core.errors import GoalNotReached, PlanInfeasible
 from cell.core.geometry import rotation_angle
 from cell.report import words
 from cell.report.cell_view import write_cell_view
@@ -173,20 +174,28 @@ def camera_error(devices: Devices, T_cell_cam: np.ndarray) -> dict[str, float]:
             "angle_deg": float(np.degrees(rotation_angle(T, T_cell_cam)))}
 
 
-def visit_order(plan: Plan, devices: Devices, recorder: Recorder) -> tuple[tuple[int, ...], float]:
-    """The shots' order (plan.shots indices) by cell.run.route from the devices' read-back start pose,
-    logged with its travel."""
+def visit_order(task: Task, plan: Plan, devices: Devices,
+                recorder: Recorder) -> tuple[tuple[int, ...], float, list[cell_moves.Move]]:
+    """The shots' order (plan.shots indices) of the plan's checked route (cell.run.moves), its
+    moves as the run makes them from the devices' read-back start pose (run_moves), logged with
+    their travel. A move that cannot be made clear: PlanInfeasible (exit 1) before anything moves."""
+    order = cell_moves.order(plan)
+    moves = cell_moves.run_moves(task, plan, devices)
+    blocked = next((m for m in moves if not m.clear), None)
+    if blocked is not None:
+        raise PlanInfeasible(f"infeasible: collision binds: {blocked.reason()}",
+                             f"infeasible: {blocked.reason()}")
+    travel = float(sum(m.travel_m for m in moves))
+    via = sum(len(m.via) for m in moves)
     with speaking_for(devices.arm):
         camera = devices.arm.camera_pose()[:3, 3]
     with speaking_for(devices.lamp):
         lamp = devices.lamp.lamp_pose()[0]
-    D = route.travel_matrix((camera, lamp), [(s.camera_position, s.lamp_position) for s in plan.shots])
-    order = route.shortest_order(D)
-    travel = route.length(D, order)
-    recorder.step("route", f"shots in the order {list(order)}: {travel:.3f} m of camera and lamp "
-                           f"travel from the start ({route.method(len(order))})", order=list(order),
-                  travel_m=travel, start={"camera_m": camera, "lamp_m": lamp})
-    return order, travel
+    recorder.step("route", f"shots in the order {list(order)}: {travel:.3f} m of camera and lamp travel from "
+                           f"the start, every move collision-checked ({words.count(via, 'via point')})",
+                  order=list(order), travel_m=travel, start={"camera_m": camera, "lamp_m": lamp},
+                  moves=[m.to_json() for m in moves])
+    return order, travel, moves
 
 
 @dataclass(frozen=True)
@@ -248,7 +257,7 @@ def plan_logged(task: Task, recorder: Recorder) -> Plan:
     """plan_features (the function `cell plan` uses for several features), plan.json in the run
     folder (its pictures when the run has ended), logged."""
     from cell.planning.whole_part import plan_features
-    plan = plan_features(task, progress=recorder.out.labelled(" " * 16))
+    plan = cell_moves.with_moves(task, plan_features(task, progress=recorder.out.labelled(" " * 16)))
     recorder.write_plan(plan, task)
     covered = sum(f.covered_by is not None for f in plan.features)
     verdict = "feasible" if plan.feasible else "PARTIAL"
@@ -287,13 +296,14 @@ def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices],
             covered_by = tuple(f.covered_by for f in plan.features)
             require_feasible(plan)
             devices = session.devices = connect(plan.plans[candidate_features(plan).index(0)].planned_scene)
-            order, travel = visit_order(plan, devices, recorder)
+            order, travel, moves = visit_order(task, plan, devices, recorder)
             # the route drawn in its order, over the plan's own cell.html, once the run has ended
             recorder.later(lambda: write_cell_view(recorder.folder / "cell.html", plan, task, order))
             context = RunContext(task, devices, recorder, max_iterations)
-            for n, s in enumerate(order):
+            for n, (s, move) in enumerate(zip(order, moves)):
                 recorder.step("shot", f"shot {n + 1} of {len(order)} (plan's shot {s}): "
                                       f"{describe(plan, s)}", shot=s, visit=n + 1, features=assigned(plan, s))
+                cell_moves.follow(devices, move, recorder)
                 done = run_shot(replace(context, black=black), plan, s, runs)
                 black = black or done.black
                 recorder.step("shot_done", f"shot {n + 1} of {len(order)} (plan's shot {s}): {done.summary()}",

@@ -1,0 +1,111 @@
+"""The moves a run makes, checked before anything moves: the route of a plan's shots from the
+arm's home pose with every move collision-checked along its path (cell.collision.paths: via
+points around a collision, the route ordered by cell.run.route on the moves' true travel), and
+the arm and lamp driven through them (`follow`). A feasible plan whose route has a move that
+cannot be made clear becomes infeasible, `collision` binding, naming both bodies and where."""
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from cell.collision.paths import Move, Stop, checked_route, home_stop, plan_move
+from cell.collision.scene import CollisionScene, reaching_joints
+from cell.devices import ur5e
+from cell.devices.interfaces import speaking_for
+from cell.run import route
+
+if TYPE_CHECKING:
+    from cell.devices.interfaces import Devices
+    from cell.planning.plan import Plan
+    from cell.report.recorder import Recorder
+    from cell.task.types import Task
+
+HOME_TOLERANCE_M = 1e-3          # a start pose this close to home starts the plan's first move
+
+
+def stops(task: Task, plan: Plan) -> list[Stop]:
+    """The plan's shots as stops of the arm and the lamp: the joints the planner chose (or the
+    inverse kinematics nearest the home joints), the lamp's joints."""
+    out = []
+    for shot in plan.shots:
+        pan, tilt, radius = shot.joints
+        q = reaching_joints(task.frames, shot.T_cell_cam, shot.arm_joints)
+        out.append(Stop(shot.T_cell_cam, np.asarray(q, float), (pan, tilt, radius)))
+    return out
+
+
+def with_moves(task: Task, plan: Plan) -> Plan:
+    """The plan with its route's checked moves (Plan.moves: from the home pose through every
+    shot, in the order a run visits them), their time in timing_s (`moves`, and in `total`). A
+    move that cannot be made clear makes the plan infeasible, `collision` binding, its reason the
+    hint. A plan already infeasible, or with a shot the arm does not reach, is returned as it is:
+    the run refuses it before anything moves anyway."""
+    if not plan.feasible or any(reaching_joints(task.frames, s.T_cell_cam, s.arm_joints) is None
+                                for s in plan.shots):
+        return plan
+    start = time.perf_counter()
+    scene = CollisionScene.of(task)
+    _, moves = checked_route(scene, task.cell.devices.arm, [home_stop(scene), *stops(task, plan)],
+                             route.shortest_order)
+    took = time.perf_counter() - start
+    timing = {**plan.timing_s, "moves": took, "total": plan.timing_s.get("total", 0.0) + took}
+    planned = replace(plan, moves=tuple(moves), timing_s=timing)
+    blocked = next((m for m in moves if not m.clear), None)
+    if blocked is None:
+        return planned
+    return replace(planned, feasible=False, binding="collision", miss=float("inf"), hint=blocked.reason())
+
+
+def order(plan: Plan) -> tuple[int, ...]:
+    """The shots' order of the plan's checked route (Plan.moves)."""
+    return tuple(int(m.end) for m in plan.moves)
+
+
+def run_moves(task: Task, plan: Plan, devices: Devices) -> list[Move]:
+    """The moves of the plan's route as the run makes them: the first checked again from where
+    the devices read back (the arm's joints: home's when its camera is at home's pose, else the
+    inverse kinematics nearest home; the lamp where it is, which the plan did not know), the
+    rest the plan's unless the first arrives in other joints than the plan's did (then each is
+    checked again from where the last arrives). Every move is checked before anything moves."""
+    with speaking_for(devices.arm):
+        T = devices.arm.camera_pose()
+    with speaking_for(devices.lamp):
+        pan, tilt, radius = devices.lamp.joints()
+    lamp = (float(pan), float(tilt), float(radius))
+    scene, arm = CollisionScene.of(task), task.cell.devices.arm
+    home = home_stop(scene)
+    at_home = (np.linalg.norm(T[:3, 3] - home.T_cell_cam[:3, 3]) <= HOME_TOLERANCE_M
+               and np.allclose(T[:3, :3], home.T_cell_cam[:3, :3], atol=1e-4))
+    q = home.arm_joints if at_home else reaching_joints(task.frames, T)
+    at = Stop(T, np.asarray(ur5e.HOME_JOINTS if q is None else q, float),
+              lamp if np.all(np.isfinite(lamp)) else None)
+    targets, moves = stops(task, plan), list[Move]()
+    for k, planned in enumerate(plan.moves):
+        arrived, foreseen = (moves[-1].joints_end, plan.moves[k - 1].joints_end) if moves else (None, None)
+        if arrived is not None and foreseen is not None and np.allclose(arrived, foreseen, atol=1e-6):
+            moves.append(planned)
+        else:
+            move = plan_move(scene, arm, planned.start if moves or at_home else "start", at,
+                             planned.end, targets[int(planned.end)])
+            moves.append(move)
+        if not moves[-1].clear or moves[-1].joints_end is None:
+            break
+        at = replace(targets[int(planned.end)], arm_joints=moves[-1].joints_end)
+    return moves
+
+
+def follow(devices: Devices, move: Move, recorder: Recorder) -> None:
+    """The arm through the move's via points (each a moveL the planner checked), logged as read
+    back; then acquisition.move_to takes the camera and the lamp to the shot."""
+    for k, T in enumerate(move.via, 1):
+        with speaking_for(devices.arm):
+            devices.arm.move_camera(T)
+            position = devices.arm.camera_pose()[:3, 3]
+        recorder.step("move_via", f"via point {k} of {len(move.via)} on the way to shot {move.end}: camera at "
+                                  f"{np.round(position, 4).tolist()} m in the cell frame (the path collision-checked: "
+                                  f"{' and '.join(move.clearance.bodies)} at least "
+                                  f"{1e3 * move.clearance.distance_m:.1f} mm apart)",
+                      via=k, to_shot=move.end, position_m=position)

@@ -1,0 +1,217 @@
+"""The simulated cell's own collision check: what the simulated arm and pan-tilt would hit as they
+move, independent of the planner's cell.collision (other geometry, other distances): the part
+and the fixture as points on a grid over each triangle (`surface_points`) in a k-d tree, the camera and lamp housings as
+sampled boxes of the task's `cell.collision` sizes, the UR5e's links as the segments between its
+joint origins (cell.devices.ur5e's kinematics, which the real controller shares) with the tube
+radii of UR's drawings. A moving body touches another where a sample of one lies within
+CONTACT_M of the other's (a surface sample's spacing: penetrating surfaces cross within it), or a
+link's axis within its radius plus CONTACT_M. The arm's links among themselves are the
+controller's own business (its self-collision limits), not checked here.
+
+A move is checked by conservative advancement (no point of a moving body travels farther between
+two checked poses than the gap at the first, less CONTACT_M); the first pose in contact stops it
+(`Contact`), nothing moved beyond the last clear one."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
+
+from cell.devices import ur5e
+
+if TYPE_CHECKING:
+    from cell.task.types import Task
+
+CONTACT_M = 0.004           # closer than this: touching (the surface samples' spacing; the
+                            # planner keeps 10 mm of padding)
+STEP_M = 0.004              # the least step of conservative advancement
+FAR_M = 0.1                 # gaps are looked for up to this far (a k-d tree's search stops there)
+REACH_M = 1.3               # the UR5e's farthest point from any of its axes, a camera on its flange
+# the UR5e's tubes (UR's drawings): base and shoulder 75 mm, upper arm 55, elbow and forearm 45,
+# wrists 45 mm in radius; the upper arm runs 138 mm off the DH line along joint 2's axis
+LINK_RADII_M = (0.075, 0.055, 0.045, 0.045, 0.045, 0.045)
+UPPER_ARM_OFFSET_M = 0.138
+
+
+@dataclass(frozen=True)
+class Contact:
+    """Two bodies that would touch, and where (the moving body's point) [m]."""
+
+    moving: str
+    other: str
+    where_m: np.ndarray
+
+    def __str__(self) -> str:
+        return (f"the {self.moving} would hit the {self.other} at {np.round(self.where_m, 3).tolist()} m "
+                "(cell frame): protective stop, nothing moved beyond the last clear pose")
+
+
+def surface_points(mesh: trimesh.Trimesh, spacing: float = CONTACT_M) -> np.ndarray:
+    """Points on every triangle of the mesh on a barycentric grid of n steps a side, n = its
+    longest edge / spacing rounded up: a triangle's every point lies within `spacing` of one."""
+    out = []
+    tri = mesh.triangles
+    longest = np.max(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2), axis=1)
+    steps = np.maximum(1, np.ceil(longest / spacing)).astype(int)
+    for n in np.unique(steps):
+        i, j = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
+        keep = i + j <= n
+        w = np.column_stack([i[keep], j[keep]]) / n                   # barycentric weights of vertices 1, 2
+        t = tri[steps == n]
+        out.append((t[:, None, 0] + w[None, :, :1] * (t[:, None, 1] - t[:, None, 0])
+                    + w[None, :, 1:] * (t[:, None, 2] - t[:, None, 0])).reshape(-1, 3))
+    return np.vstack(out)
+
+
+def _box_samples(size: np.ndarray) -> np.ndarray:
+    """Points on the surface of a box of `size` centred at 0 (trimesh's box, `surface_points`)."""
+    return surface_points(trimesh.creation.box(extents=size))
+
+
+class Obstacles:
+    """The bodies of the simulated cell, where the arm and the lamp are now, and the check of a
+    move of either against the rest."""
+
+    def __init__(self, task: Task) -> None:
+        c = task.cell.collision
+        self.frames = task.frames
+        fixed = [("part", task.part.mesh.copy().apply_transform(task.frames.T_cell_part))]
+        if c.fixture is not None:
+            fixed.append(("fixture", c.fixture))
+        points, names = [], []
+        for name, mesh in fixed:
+            p = surface_points(mesh)
+            points.append(p)
+            names += [name] * len(p)
+        self.fixed = cKDTree(np.vstack(points))
+        self.fixed_names = np.array(names)
+        self.camera_local = _box_samples(np.asarray(c.camera_size_m)) + (0.0, 0.0, c.camera_offset_m)
+        self.lamp_size = np.asarray(c.lamp_size_m, float)
+        self.lamp_local = _box_samples(self.lamp_size)
+        self.pivot = np.asarray(task.lamp.rig.pivot_m, float)
+        self.arm_joints: np.ndarray | None = None       # set by the arm as it moves
+        self.lamp_position: np.ndarray | None = None    # set by the lamp as it moves
+        self._cache_key: tuple[object, ...] | None = None
+        self._cache_tree: cKDTree | None = None
+
+    # -- the bodies at a pose -----------------------------------------------------------------
+
+    def links(self, q: np.ndarray) -> list[tuple[str, np.ndarray, float]]:
+        """(name, points along its axis every CONTACT_M, radius) of each link at joints q."""
+        T = self.frames.T_cell_base.copy()
+        o, z = [T[:3, 3]], [T[:3, 2]]
+        for i, theta in enumerate(q):
+            T = T @ ur5e.dh(i, theta)
+            o.append(T[:3, 3])
+            z.append(T[:3, 2])
+        off = UPPER_ARM_OFFSET_M * z[1]
+        ends = [(o[0], o[1]), (o[1] + off, o[2] + off), (o[2], o[3]), (o[3], o[4]), (o[4], o[5]), (o[5], o[6])]
+        out = []
+        for k, ((a, b), r) in enumerate(zip(ends, LINK_RADII_M)):
+            n = max(2, int(np.ceil(np.linalg.norm(b - a) / CONTACT_M)) + 1)
+            out.append((f"arm link {k + 1}", a + np.linspace(0.0, 1.0, n)[:, None] * (b - a), r))
+        return out
+
+    def camera(self, q: np.ndarray) -> np.ndarray:
+        T = self.frames.T_cell_base @ ur5e.forward(q)
+        return self.camera_local @ T[:3, :3].T + T[:3, 3]
+
+    def lamp(self, position: np.ndarray) -> np.ndarray:
+        """The lamp housing's samples: its front face at `position`, its axis to the pivot."""
+        z = self.pivot - position
+        z /= np.linalg.norm(z)
+        x = np.cross((0.0, 0.0, 1.0), z)
+        x = x / np.linalg.norm(x) if np.linalg.norm(x) > 1e-9 else np.array([1.0, 0.0, 0.0])
+        R = np.column_stack([x, np.cross(z, x), z])
+        return self.lamp_local @ R.T + position - 0.5 * self.lamp_size[2] * z
+
+    # -- the checks -------------------------------------------------------------------------------
+
+    def _tree(self, key: tuple[object, ...], points: np.ndarray) -> cKDTree:
+        """A k-d tree of a body that stands still while the other moves, kept while it does."""
+        if self._cache_key != key or self._cache_tree is None:
+            self._cache_key, self._cache_tree = key, cKDTree(points)
+        return self._cache_tree
+
+    def arm_points(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[str]]:
+        """(points, each one's radius, each one's body name) of the arm at joints q: the camera
+        housing's samples (radius 0) and the links' axes."""
+        bodies = [("camera housing", self.camera(q), 0.0), *self.links(q)]
+        points = np.vstack([p for _, p, _ in bodies])
+        radii = np.concatenate([np.full(len(p), r) for _, p, r in bodies])
+        names = [name for name, p, _ in bodies for _ in range(len(p))]
+        return points, radii, names
+
+    def gap(self, q: np.ndarray | None, lamp: np.ndarray | None, lamp_moves: bool = False) -> tuple[float, Contact]:
+        """The smallest gap [m] between a moving body (the arm at joints q, the lamp at `lamp`;
+        either None: absent) and another, and those two (a Contact where it is); FAR_M when none
+        is nearer. Only the pairs the move changes: the arm's with the fixed bodies and the lamp,
+        or (`lamp_moves`) the lamp's with the fixed bodies and the arm, in a k-d tree of the one
+        standing still."""
+        best = (FAR_M, Contact("", "", np.zeros(3)))
+
+        def nearer(d: np.ndarray, where: np.ndarray, moving, other) -> None:
+            nonlocal best
+            i = int(np.argmin(d))
+            if d[i] < best[0]:
+                best = (float(d[i]), Contact(moving(i), other(i), where[i]))
+
+        lamp_points = None if lamp is None else self.lamp(lamp)
+        if q is not None:
+            points, radii, names = self.arm_points(q)
+            if not lamp_moves:
+                d, k = self.fixed.query(points, distance_upper_bound=radii.max() + FAR_M)
+                nearer(d - radii, points, names.__getitem__, lambda i: str(self.fixed_names[k[i]]))
+            if lamp_points is not None and not lamp_moves:
+                tree = self._tree(("lamp", *np.round(lamp_points[0], 12)), lamp_points)
+                d, _ = tree.query(points, distance_upper_bound=radii.max() + FAR_M)
+                nearer(d - radii, points, names.__getitem__, lambda i: "lamp housing")
+            elif lamp_points is not None:
+                tree = self._tree(("arm", *np.round(q, 12)), points)
+                d, k = tree.query(lamp_points, distance_upper_bound=radii.max() + FAR_M)
+                found = np.isfinite(d)
+                d[found] -= radii[k[found]]
+                nearer(d, lamp_points, lambda i: "lamp housing", lambda i: names[k[i]])
+        if lamp_points is not None and (lamp_moves or q is None):
+            d, k = self.fixed.query(lamp_points, distance_upper_bound=FAR_M)
+            nearer(d, lamp_points, lambda i: "lamp housing", lambda i: str(self.fixed_names[k[i]]))
+        return best
+
+    def arm_move(self, path: list[np.ndarray]) -> Contact | None:
+        """The first contact along the arm's joints `path` (the lamp where it is), linear in the
+        joints between its entries. Steps by conservative advancement: after a pose with gap d no
+        point of the arm (REACH_M from any of its axes at most) travels more than
+        max(STEP_M, d - CONTACT_M) to the next, so no contact falls between two poses checked."""
+        for q0, q1 in zip(path, path[1:]):
+            sweep, s = float(np.abs(q1 - q0).sum()) * REACH_M, 0.0
+            while True:
+                q = (1 - s) * q0 + s * q1
+                d, contact = self.gap(q, self.lamp_position)
+                if d < CONTACT_M:
+                    return contact
+                if s >= 1.0:
+                    break
+                s = min(1.0, s + max(STEP_M, d - CONTACT_M) / max(sweep, 1e-300))
+        return None
+
+    def lamp_move(self, a: np.ndarray, b: np.ndarray,
+                  lamp_at: Callable[[np.ndarray], np.ndarray]) -> Contact | None:
+        """The first contact as the lamp's joints go linearly from a to b (the arm where it is);
+        lamp_at(joints) -> its position. The lamp's points move at most
+        (|dpan| + |dtilt|) (radius + the housing's diagonal) + |dradius|: conservative advancement
+        as arm_move."""
+        sweep = (abs(b[0] - a[0]) + abs(b[1] - a[1])) * (max(a[2], b[2]) + np.linalg.norm(self.lamp_size)) \
+            + abs(b[2] - a[2])
+        s = 0.0
+        while True:
+            d, contact = self.gap(self.arm_joints, lamp_at((1 - s) * a + s * b), lamp_moves=True)
+            if d < CONTACT_M:
+                return contact
+            if s >= 1.0:
+                return None
+            s = min(1.0, s + max(STEP_M, d - CONTACT_M) / max(sweep, 1e-300))
