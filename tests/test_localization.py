@@ -38,7 +38,8 @@ def test_one_view_sees_a_part_offset_and_a_hand_eye_turn_alike():
     limit, tolerance = 0.0039, np.radians(1.0)
     assert localization.significant(error(offset_m=(0.005, 0.0, 0.0)), T, limit, tolerance)
     assert not localization.significant(error(offset_m=(0.003, 0.0, 0.0)), T, limit, tolerance)
-    assert localization.significant(error(part_rpy_deg=(0.0, 0.6, 0.0)), T, limit, tolerance)   # a tilt
+    assert localization.significant(error(part_rpy_deg=(0.0, 2.5, 0.0)), T, limit, tolerance)   # a tilt
+    assert not localization.significant(error(part_rpy_deg=(1.5, 0.0, 0.0)), T, limit, tolerance)
     assert not localization.significant(error(part_rpy_deg=(0.0, 0.0, 5.0)), T, limit, tolerance)  # about the axis
 
 

@@ -63,6 +63,7 @@ PRIOR_OFFSET_M = 0.02       # the priors' spreads: what the fit takes where the 
 PRIOR_TURN_RAD = np.radians(10.0)
 PRIOR_HAND_EYE_RAD = np.radians(5.0)
 PRIOR_ONE_VIEW_RAD = np.radians(0.2)   # one view: its shift is the part's (significant: a second view)
+TILT_LIMIT = 2.0            # significant: a tilt beyond this many lamp tolerances
 MIN_SAMPLES = 200           # fewer edge samples in a view: it tells nothing
 ORBIT_DEG = 30.0            # second_views: the orbit about the feature,
 ORBITS = 8                  # about this many axes across the view,
@@ -376,13 +377,15 @@ def significant(error: PoseError, T_cell_cam: np.ndarray, limit_m: float, lamp_t
     """Whether the pose error is more than the plan tolerates, so that the model must follow it:
     the feature displaced by more than the registration limit (cell.run.loop.registration_limit:
     a fixture error d turns the lamp's direction to the feature by d / r; within it the loop
-    measures where registration finds the feature), or the part tilted by more than half the lamp
-    tolerance (a tilt of the surface by a turns its mirror direction by 2 a). A turn about the
-    view axis changes neither."""
+    measures where registration finds the feature), or the part tilted by more than TILT_LIMIT
+    lamp tolerances (a tilt of the surface by a turns its mirror direction by 2 a; below it the
+    loop's exposure, refit and re-plan have held the band, and one view's tilt is uncertain by
+    half a degree: 0.6 deg on the conrod from a 1 mm hand-eye offset). A turn about the view axis
+    changes neither."""
     view_axis = T_cell_cam[:3, 2]
     turn = Rotation.from_euler("xyz", error.part_rpy_rad).as_rotvec()
     tilt = float(np.linalg.norm(turn - (turn @ view_axis) * view_axis))
-    return displacement_m(error, T_cell_cam) > limit_m or tilt > 0.5 * lamp_tolerance_rad
+    return displacement_m(error, T_cell_cam) > limit_m or tilt > TILT_LIMIT * lamp_tolerance_rad
 
 
 def second_views(T_cell_cam: np.ndarray, center: np.ndarray) -> list[np.ndarray]:
