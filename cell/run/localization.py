@@ -64,6 +64,7 @@ PRIOR_TURN_RAD = np.radians(10.0)
 PRIOR_HAND_EYE_RAD = np.radians(5.0)
 PRIOR_ONE_VIEW_RAD = np.radians(0.2)   # one view: its shift is the part's (significant: a second view)
 TILT_LIMIT = 2.0            # significant: a tilt beyond this many lamp tolerances
+MIN_CONTRAST_GRAY = 10.0    # localize: a capture flatter than this [gray] shows nothing
 MIN_SAMPLES = 200           # fewer edge samples in a view: it tells nothing
 ORBIT_DEG = 30.0            # second_views: the orbit about the feature,
 ORBITS = 8                  # about this many axes across the view,
@@ -250,7 +251,7 @@ def _solve(residuals: Any, theta0: np.ndarray, n_data: int, loss: str,
     J = solved.jac.copy()
     J[:n_data][~inliers] = 0.0
     J[:n_data] /= np.sqrt(max(s2, 1e-12))           # data weighted by 1 / s, the priors by their spread
-    cov = np.linalg.inv(J.T @ J)
+    cov = np.linalg.pinv(J.T @ J)
     rms = float(np.sqrt(np.mean(r[inliers] ** 2))) if inliers.any() else float("nan")
     return solved.x, np.sqrt(np.maximum(np.diag(cov), 0.0)), rms, int(inliers.sum())
 
@@ -331,8 +332,11 @@ def localize(task: Task, scene: Scene, views: Sequence[View]) -> PoseError | Non
     model's images (model_view): each view's whole shift (whole_shift) starts the fit
     (fit_shifts), then the edge fit coarse to fine (fit over SCALES_PX); then once more against
     the model's images where the first fit puts the part and the cameras (refine), so that the
-    light the part moved into is the model's too. None when no view shows edges enough to fit
-    (fewer than MIN_SAMPLES)."""
+    light the part moved into is the model's too. None when a capture is flat (its brightest
+    part less than MIN_CONTRAST_GRAY above its median: nothing lit to see) or no view shows edges
+    enough to fit (fewer than MIN_SAMPLES)."""
+    if any(np.percentile(v.image, 99.5) - np.median(v.image) < MIN_CONTRAST_GRAY for v in views):
+        return None
     models = [model_view(task, scene, v.T_cell_cam, v.lamp_pose, v.drives) for v in views]
     K = projection.intrinsics(task.camera.sensor, task.camera.lens)
     shifts = [whole_shift(m.value, v.image) for m, v in zip(models, views)]
