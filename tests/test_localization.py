@@ -129,3 +129,15 @@ def test_the_loop_follows_the_hinge_moved_8_mm_and_converges(tmp_path):
     assert "localize" in cell.steps and len(cell.report["replans"]) == 1
     (line,) = [line for line in cell.log if line["step"] == "localize"]
     assert line["part_offset_m"] == found["part_offset_m"]
+
+
+def test_a_fit_beyond_any_fixture_or_calibration_is_not_followed():
+    """15 mm, 7 deg across the view and 3 deg of hand-eye bound what a fixture and a calibration
+    can be off; the turns about the view axis, which trade on the conrod, are not judged."""
+    T = geometry.transform(np.diag([1.0, -1.0, -1.0]), (0.0, 0.0, 0.5))
+    assert localization.implausible(error(offset_m=(0.01, 0.0, 0.0), part_rpy_deg=(0.0, 5.0, 0.0),
+                                          hand_eye_rpy_deg=(2.0, 0.0, 0.0)), T) is None
+    assert localization.implausible(error(part_rpy_deg=(0.0, 0.0, 8.0), hand_eye_rpy_deg=(0.0, 0.0, 8.0)), T) is None
+    assert "28.7 mm off" in localization.implausible(error(offset_m=(0.0287, 0.0, 0.0)), T)
+    assert localization.implausible(error(part_rpy_deg=(8.0, 0.0, 0.0)), T) is not None
+    assert localization.implausible(error(hand_eye_rpy_deg=(0.0, 3.5, 0.0)), T) is not None

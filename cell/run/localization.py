@@ -64,6 +64,9 @@ PRIOR_TURN_RAD = np.radians(10.0)
 PRIOR_HAND_EYE_RAD = np.radians(5.0)
 PRIOR_ONE_VIEW_RAD = np.radians(0.2)   # one view: its shift is the part's (significant: a second view)
 TILT_LIMIT = 2.0            # significant: a tilt beyond this many lamp tolerances
+MAX_OFFSET_M = 0.015         # implausible: beyond these the fit matched the wrong edges
+MAX_TURN_RAD = np.radians(7.0)
+MAX_HAND_EYE_RAD = np.radians(3.0)
 MIN_CONTRAST_GRAY = 10.0    # localize: a capture flatter than this [gray] shows nothing
 MIN_SAMPLES = 200           # fewer edge samples in a view: it tells nothing
 ORBIT_DEG = 30.0            # second_views: the orbit about the feature,
@@ -367,6 +370,31 @@ def refine(task: Task, scene: Scene, views: Sequence[View], first: PoseError) ->
                    center=first.center)
 
 
+def tilt_rad(error: PoseError, T_cell_cam: np.ndarray) -> float:
+    """The part's turn across the view from T_cell_cam [rad]: its turn less the part about the
+    view axis (which changes neither the light nor where the feature appears)."""
+    view_axis = T_cell_cam[:3, 2]
+    turn = Rotation.from_euler("xyz", error.part_rpy_rad).as_rotvec()
+    return float(np.linalg.norm(turn - (turn @ view_axis) * view_axis))
+
+
+def implausible(error: PoseError, T_cell_cam: np.ndarray) -> str | None:
+    """Why a fit cannot be the cell's pose error, or None: its part offset beyond MAX_OFFSET_M,
+    its tilt across the view from T_cell_cam beyond MAX_TURN_RAD or the hand-eye's turn across
+    the view beyond MAX_HAND_EYE_RAD (a fixture and a calibration are never that far off: the fit
+    matched the wrong edges). The turns about the view axis are not judged: the part's and the
+    hand-eye's trade against each other where the view has few edges (the conrod's shank)."""
+    offset = float(np.linalg.norm(error.part_offset_m))
+    tilt = tilt_rad(error, T_cell_cam)
+    hand_eye = float(np.linalg.norm(Rotation.from_euler("xyz", error.hand_eye_rpy_rad).as_rotvec()[:2]))
+    if offset > MAX_OFFSET_M or tilt > MAX_TURN_RAD or hand_eye > MAX_HAND_EYE_RAD:
+        return (f"the fit puts the part {1e3 * offset:.1f} mm off and tilted {np.degrees(tilt):.1f} deg and the "
+                f"camera turned {np.degrees(hand_eye):.1f} deg, beyond any fixture ({1e3 * MAX_OFFSET_M:g} mm, "
+                f"{np.degrees(MAX_TURN_RAD):g} deg) or hand-eye calibration ({np.degrees(MAX_HAND_EYE_RAD):g} deg): "
+                f"the part could not be localized in these views")
+    return None
+
+
 def displacement_m(error: PoseError, T_cell_cam: np.ndarray) -> float:
     """How far the feature centre appears from where the model puts it in a view from T_cell_cam,
     across the view [m at the feature]: what one view sees of a part offset and a hand-eye turn
@@ -386,10 +414,7 @@ def significant(error: PoseError, T_cell_cam: np.ndarray, limit_m: float, lamp_t
     loop's exposure, refit and re-plan have held the band, and one view's tilt is uncertain by
     half a degree: 0.6 deg on the conrod from a 1 mm hand-eye offset). A turn about the view axis
     changes neither."""
-    view_axis = T_cell_cam[:3, 2]
-    turn = Rotation.from_euler("xyz", error.part_rpy_rad).as_rotvec()
-    tilt = float(np.linalg.norm(turn - (turn @ view_axis) * view_axis))
-    return displacement_m(error, T_cell_cam) > limit_m or tilt > TILT_LIMIT * lamp_tolerance_rad
+    return displacement_m(error, T_cell_cam) > limit_m or tilt_rad(error, T_cell_cam) > TILT_LIMIT * lamp_tolerance_rad
 
 
 def second_views(T_cell_cam: np.ndarray, center: np.ndarray) -> list[np.ndarray]:

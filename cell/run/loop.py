@@ -439,7 +439,8 @@ def locate_part(ctx: RunContext, aim: Aim, k: int, capture: Capture) -> Generato
     """Localize the part and the camera from capture k (cell.run.localization, against the first
     feature's model): a pose error within what the plan tolerates (localization.significant) is
     reported (Located) and the loop goes on; a larger one is told apart by a second view
-    (second_view), reported, and the model follows it (follow). Returns the Aim."""
+    (second_view), reported, and the model follows it (follow); a fit beyond any fixture or
+    hand-eye error (localization.implausible) stops (GoalNotReached, cause `pose`). Returns the Aim."""
     feature = aim.features[0]
     task, scene, shot = feature.task, feature.model.plan.planned_scene, aim.shot
     with speaking_for(ctx.devices.lamp):
@@ -459,9 +460,13 @@ def locate_part(ctx: RunContext, aim: Aim, k: int, capture: Capture) -> Generato
     second = second_view(ctx, aim, k, scene, lamp_pose, capture)
     if second is not None:
         error = localization.localize(task, scene, [first, second]) or error
+    wrong = localization.implausible(error, capture.T_cell_cam)
     ctx.recorder.step("localize", localization.describe(error, error.views), iteration=k,
-                      followed=True, **error.to_json())
-    yield Located(k, error, True)
+                      followed=wrong is None, **error.to_json())
+    yield Located(k, error, wrong is None)
+    if wrong:
+        yield Corrected(k, {"action": "stop", "cause": "pose", "reason": wrong})
+        raise GoalNotReached(wrong, "pose")
     return (yield from follow(ctx, aim, k, error))
 
 
