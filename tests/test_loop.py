@@ -110,7 +110,7 @@ def test_log_is_one_json_line_per_step_in_order(hinge):
     lines = [json.loads(line) for line in hinge.log]
     assert [line["step"] for line in lines] == ["plan", *DRIVE, *DARK, *SHOT, *LOCALIZE, "done"]
     assert all("t" in line for line in lines)
-    assert lines[-2]["measured_gray"] == hinge.report["iterations"][0]["measured_gray"]
+    assert lines[-3]["measured_gray"] == hinge.report["iterations"][0]["measured_gray"]
 
 
 def test_without_effects_the_first_capture_measures_the_prediction(tmp_path):
