@@ -437,12 +437,18 @@ def step(ctx: RunContext, aim: Aim, k: int) -> Generator[Event, None, Aim | None
 
 def locate_part(ctx: RunContext, aim: Aim, k: int, capture: Capture) -> Generator[Event, None, Aim]:
     """Localize the part and the camera from capture k (cell.run.localization, against the first
-    feature's model): a pose error within what the plan tolerates (localization.significant) is
+    feature's model; a saturated capture, whose edges are clipped, waits for the next): a pose error within what the plan tolerates (localization.significant) is
     reported (Located) and the loop goes on; a larger one is told apart by a second view
     (second_view), reported, and the model follows it (follow); a fit beyond any fixture or
     hand-eye error (localization.implausible) stops (GoalNotReached, cause `pose`). Returns the Aim."""
     feature = aim.features[0]
     task, scene, shot = feature.task, feature.model.plan.planned_scene, aim.shot
+    saturation = saturation_level(ctx.devices.camera.bit_depth)
+    lit = capture.image >= 0.5 * saturation
+    if lit.any() and np.mean(capture.image[lit] >= saturation) > registration.SATURATED_FRACTION:
+        ctx.recorder.step("localize", "the capture is saturated: the part is localized in a capture the "
+                                      "exposure has corrected", iteration=k)
+        return aim
     with speaking_for(ctx.devices.lamp):
         lamp_pose = ctx.devices.lamp.lamp_pose()
     first = localization.View(capture.image, capture.T_cell_cam, lamp_pose, capture.drives or None)
