@@ -29,7 +29,6 @@ HINGE, CONROD, RING = "tasks/hinge.yaml", "tasks/conrod.yaml", "tasks/ring.yaml"
 DRIVE = ["move_camera", "move_lamp"]
 DARK = ["set_exposure", "capture", "black_level"]     # the dark frame, dark.png
 SHOT = ["set_exposure", "capture", "register", "measure"]
-LOCALIZE = ["localize"]      # after the loop's first capture: where the part is (cell.run.localization)
 WIDE_ALBEDO = {"loop.albedo_scale_range": [1e-4, 1e5]}   # any albedo scale taken as plausible
 
 
@@ -108,9 +107,9 @@ def test_report_follows_the_output_contract(hinge):
 
 def test_log_is_one_json_line_per_step_in_order(hinge):
     lines = [json.loads(line) for line in hinge.log]
-    assert [line["step"] for line in lines] == ["plan", *DRIVE, *DARK, *SHOT, *LOCALIZE, "done"]
+    assert [line["step"] for line in lines] == ["plan", *DRIVE, *DARK, *SHOT, "done"]
     assert all("t" in line for line in lines)
-    assert lines[-3]["measured_gray"] == hinge.report["iterations"][0]["measured_gray"]
+    assert lines[-2]["measured_gray"] == hinge.report["iterations"][0]["measured_gray"]
 
 
 def test_without_effects_the_first_capture_measures_the_prediction(tmp_path):
@@ -253,8 +252,7 @@ def test_the_ring_task_converges_with_each_channel_at_its_planned_drive(ring):
     planned = {str(light["channel"]): light["drive"] for light in ring.report["plan"]["lights"]}
     assert set(planned) == {"1", "2", "3"} and planned["2"] == 1.0 and planned["1"] == 0.0
     sets = [line for line in ring.log if line["step"] == "set_drives"]
-    assert ring.steps == ["plan", *DRIVE, "set_drives", *DARK, "set_drives", *SHOT, *LOCALIZE,
-                          *(["set_drives", *SHOT] * (len(sets) - 2)), "done"]
+    assert ring.steps == ["plan", *DRIVE, "set_drives", *DARK, *(["set_drives", *SHOT] * (len(sets) - 1)), "done"]
     assert sets[0]["drives"] == dict.fromkeys(planned, 0.0)
     for line, iteration in zip(sets[1:], ring.report["iterations"], strict=True):
         assert line["drives"] == iteration["drives"] == pytest.approx(planned, abs=1e-12)
@@ -320,7 +318,7 @@ def test_a_lighting_fault_turns_every_channel_off_and_exits_3(tmp_path):
     ("servo hardware error", {}, {"lamp_fail_on_move": 1}, ["plan", "move_camera"]),
     ("camera timeout, capture 1", {}, {"camera_fail_on_capture": 1}, ["plan", *DRIVE, "set_exposure"]),
     ("camera timeout, capture 3", {"sim.truth.albedo_scale": 1.4}, {"camera_fail_on_capture": 3},
-     ["plan", *DRIVE, *DARK, *SHOT, *LOCALIZE, "correct", "set_exposure"]),
+     ["plan", *DRIVE, *DARK, *SHOT, "correct", "set_exposure"]),
 ])
 def test_a_fault_stops_all_motion_and_the_log_keeps_every_step_before_it(tmp_path, name, changes, faults,
                                                                          before):

@@ -402,8 +402,8 @@ def step(ctx: RunContext, aim: Aim, k: int) -> Generator[Event, None, Aim | None
     """Capture k, the closed loop's one step: to the plan's poses when not there (after a
     re-plan), expose and capture (acquire; the arm's hand-eye corrected by the pose error the
     model follows), each feature located and measured (measure_capture: its Iteration yielded);
-    at the loop's first capture the part is localized (locate_part), and when the model follows
-    it the loop captures again where it is; then the first that applies: a feature found beyond its
+    then the first that applies: a feature found beyond its registration limit is localized, once
+    (locate_part), and when the model follows it the loop captures again where it is; else it
     registration_limit stops (the plan's poses do not hold: nothing to correct); every feature in
     its band ends the loop (returns None); the last iteration stops; else the correction after it
     (correct_after: the next Aim)."""
@@ -415,13 +415,13 @@ def step(ctx: RunContext, aim: Aim, k: int) -> Generator[Event, None, Aim | None
     measured = [measure_capture(ctx, aim, feature, k, capture) for feature in aim.features]
     yield from (m.iteration for m in measured)
     aim = replace(aim, shutter_s=capture.shutter_s, moved=True)
-    if not aim.located:
-        aim = yield from locate_part(ctx, aim, k, capture)
-        if not aim.moved:                   # the model followed the part: capture again there
-            return aim
     for feature, m in zip(aim.features, measured):
         far = registration.beyond_limit(m.iteration.registration, registration_limit(feature.task,
                                                                                      feature.model.plan.shot))
+        if far and not aim.located:
+            aim = yield from locate_part(ctx, aim, k, capture)
+            if not aim.moved:               # the model followed the part: capture again there
+                return aim
         if far:
             name = aim.label(feature)
             reason = f"{name}: {far}" if name else far
