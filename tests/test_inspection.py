@@ -323,3 +323,27 @@ def test_features_whose_bands_share_nothing_are_not_corrected_toward_either(pair
                                      measurement.BlackLevel(0.0, 0.0, "task"))
     assert c.action == "stop" and c.cause == "bands"
     assert "leaf_a 60-100, leaf_b 150-250" in c.reason
+
+
+@pytest.mark.long
+def test_a_part_offset_found_in_one_shot_is_applied_to_the_next_before_it_moves(tmp_path):
+    """The hinge pair's part 8 mm x and 6 mm y off its fixture: the first shot localizes it (two
+    views) and carries its features along with the part; the second moves to its pose carried by
+    the estimate without localizing again, and finds its feature where that model puts it."""
+    from simcell import variant
+    path = variant(tmp_path, PAIR, {"sim.truth.part_offset_m": [0.008, 0.006, 0.0]})
+    cli.main(["run", str(path), "--out", str(tmp_path / "run")])
+    run = read(tmp_path / "run")
+    first, second = run.report["order"]
+    found = run.report["localization"]
+    assert found["followed"] and found["part_offset_m"] == pytest.approx([0.008, 0.006, 0.0], abs=1e-3)
+    shots = {s: read(tmp_path / "run" / f"shot-{s}") for s in (first, second)}
+    assert [line["step"] for line in shots[first].log].count("localize") == 1
+    assert "localize" not in [line["step"] for line in shots[second].log]
+    moved = next(line for line in shots[second].log if line["step"] == "move_camera")
+    planned = shot_pose(run, second)[:3, 3]
+    # carried along with the part: by the offset, and the estimate's turn about the first feature
+    # (0.3 deg at 0.5 m: 2.6 mm)
+    assert np.array(moved["position_m"]) == pytest.approx(planned + [0.008, 0.006, 0.0], abs=3e-3)
+    for it in shots[second].report["iterations"]:
+        assert it["registration"]["offset_m"] < 1e-3

@@ -14,7 +14,7 @@ import pytest
 from cell.core import geometry
 
 from cell.physics import projection
-from cell.run import measurement, registration
+from cell.run import localization, measurement, registration
 from cell.cli import main
 from cell.task.loader import load_task
 from cell.planning.scene import build_scene
@@ -64,11 +64,15 @@ def test_a_fixture_offset_on_the_hinge_is_found_by_its_edges_not_the_lamps_light
     assert found["shift_px"] == pytest.approx((-F_PX * 0.002 * np.cos(np.arctan(0.05)) / 0.5, 0.0), abs=1.0)
 
 
-def test_a_2_deg_camera_tilt_on_the_hinge_stops_with_exit_1_naming_the_offset(tmp_path, capsys):
+def test_a_2_deg_camera_tilt_on_the_hinge_not_localized_stops_with_exit_1_naming_the_offset(tmp_path, capsys,
+                                                                                           monkeypatch):
     """A tilt of 2 deg about the camera's x moves the image by f/p tan(2 deg) = 187.7 px, at 0.5 m
     17.5 mm at the feature: beyond the registration limit (the plan's lamp at 0.2256 m, its 1 deg lamp
-    tolerance: 0.2256 tan 1 deg = 3.94 mm), so the run stops after its first capture with the offset,
-    instead of measuring a patch 17 mm away."""
+    tolerance: 0.2256 tan 1 deg = 3.94 mm). When localization cannot tell where the part is (a view
+    without edges to fit: here made so), the run stops after its first capture with the offset,
+    instead of measuring a patch 17 mm away (localized, it converges: tests/test_localization.py,
+    the mismatch sample)."""
+    monkeypatch.setattr(localization, "localize", lambda *args, **kwargs: None)
     task = variant(tmp_path, HINGE, {"sim.truth.camera_rpy_deg": [2.0, 0.0, 0.0], "sim.effects": ALL_BUT_DEFOCUS})
     assert main(["run", str(task), "--out", str(tmp_path / "run")]) == 1
     report = json.loads((tmp_path / "run" / "report.json").read_text())
@@ -88,8 +92,10 @@ def test_a_2_deg_camera_tilt_on_the_hinge_stops_with_exit_1_naming_the_offset(tm
     assert err.strip().endswith(report["reason"])
 
 
-def test_the_limit_is_a_setting(tmp_path):
-    """The same 1 mm hand-eye offset (15.4 px, 1.0 mm) stops under a 0.5 mm limit."""
+def test_the_limit_is_a_setting(tmp_path, monkeypatch):
+    """The same 1 mm hand-eye offset (15.4 px, 1.0 mm) stops under a 0.5 mm limit (not localized:
+    localization finds nothing here)."""
+    monkeypatch.setattr(localization, "localize", lambda *args, **kwargs: None)
     truth = {"sim.truth.camera_offset_m": [0.0, 0.001, 0.0]}
     cell = run_loop(variant(tmp_path, CONROD, truth | {"loop.registration_limit_mm": 0.5}), tmp_path / "run")
     assert cell.error is not None and cell.error.exit_code == 1

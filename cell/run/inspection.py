@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from cell.run import loop, measurement
+from cell.run import localization, loop, measurement
 from cell.run import moves as cell_moves
 from cell.run.acquisition import require_feasible
 from cell.run.context import RunContext
@@ -93,6 +93,13 @@ class ShotRun(Result):
     camera_error: dict[str, float] | None = None    # position_m, angle_deg
     cause: str | None = None
     fault: dict[str, Any] | None = None
+    located: loop.Located | None = None             # the pose error localized in this shot, if any
+
+    @property
+    def pose_error(self) -> localization.PoseError | None:
+        """The pose error the model followed in this shot (None: none, or within what the plan
+        tolerates)."""
+        return self.located.error if self.located and self.located.followed else None
 
     def of(self, name: str) -> list[loop.Iteration]:
         """The Iterations of feature `name`."""
@@ -111,7 +118,8 @@ class ShotRun(Result):
         return {"shot": self.shot, "features": list(self.features), "converged": self.success,
                 "iterations": [it.to_json() for it in self.iterations],
                 "captures": self.captures, "replans": [r.to_json() for r in self.replans],
-                "refits": [r.to_json() for r in self.refits], "camera_error": self.camera_error}
+                "refits": [r.to_json() for r in self.refits], "camera_error": self.camera_error,
+                "localization": self.located.to_json() if self.located else None}
 
     @property
     def counters(self) -> dict[str, int]:
@@ -128,7 +136,9 @@ class ShotRun(Result):
 def run_shot(ctx: RunContext, plan: Plan, s: int, done: list[ShotRun]) -> ShotRun:
     """The closed loop (loop.iterate) at plan.shots[s] on the features it is the shot of, in its
     folder shot-<s>/ (its own log.jsonl, every step also in the run's, and report.json, written
-    however it ends; re-plans keep the shot's camera pose); its ShotRun is appended to `done`
+    however it ends; re-plans keep the shot's camera pose); a pose error an earlier shot found
+    (ctx.pose_error) is applied before it moves: the features' tasks and plans carried along with
+    the part (localization.located_task, moved_plan), the arm's hand-eye corrected; its ShotRun is appended to `done`
     however it ends. A goal not reached ends the shot (its ShotRun says why); a device fault is
     raised on."""
     from cell.report.pictures import write_convergence
@@ -136,27 +146,39 @@ def run_shot(ctx: RunContext, plan: Plan, s: int, done: list[ShotRun]) -> ShotRu
     names = assigned(plan, s)
     index = [f.name for f in plan.features]
     tasks = [ctx.task.with_feature(index.index(n)) for n in names]
-    features = [loop.LoopFeature.planned(t, feature_plan(plan, s, index.index(n))) for t, n in zip(tasks, names)]
+    plans = [feature_plan(plan, s, index.index(n)) for n in names]
+    T_cell_cam, pose = shot.T_cell_cam, ctx.pose_error
+    if pose is not None:                # found in an earlier shot: applied before this one moves
+        tasks = [localization.located_task(t, pose) for t in tasks]
+        plans = [localization.moved_plan(p, pose.T_part) for p in plans]
+        T_cell_cam = pose.T_part @ T_cell_cam
+    features = [loop.LoopFeature.planned(t, p) for t, p in zip(tasks, plans)]
     events, message, error = loop.Events(), "", None
-    devices = ctx.devices
+
+    def camera_now() -> dict[str, float]:
+        """camera_error against the shot's pose, both as the pose error the model follows puts them."""
+        followed = pose or (events.located.error if events.located and events.located.followed else None)
+        T = shot.T_cell_cam if followed is None else followed.T_part @ shot.T_cell_cam
+        return camera_error(localization.corrected(ctx.devices, followed), T)
+
     with ctx.recorder.sub(f"shot-{s}", shot=s) as rec:
         try:
-            for event in loop.iterate(replace(ctx, recorder=rec, T_cell_cam=shot.T_cell_cam), features):
+            for event in loop.iterate(replace(ctx, recorder=rec, T_cell_cam=T_cell_cam), features):
                 events.add(event)
-            error = camera_error(devices, shot.T_cell_cam)
+            error = camera_now()
             n = len({it.iteration for it in events.iterations})
             rec.step("done", f"converged after {words.count(n, 'iteration')}", converged=True, iterations=n)
         except GoalNotReached as err:               # the devices are fine: the next shot runs
             message = str(err)
             rec.step("done", f"not converged: {err}", converged=False, reason=message)
-            error = camera_error(devices, shot.T_cell_cam)
+            error = camera_now()
         except BaseException as err:                # a fault, Ctrl-C, SIGTERM: the session stops all
             message = str(err) or type(err).__name__
             raise
         finally:
             iterations = [it if it.feature else replace(it, feature=names[0]) for it in events.iterations]
             result = ShotRun(s, names, not message, message, tuple(iterations), tuple(events.replans),
-                             tuple(events.refits), events.black, error)
+                             tuple(events.refits), events.black, error, located=events.located)
             done.append(result)
             rec.write_json("report.json", result.to_json())
             if iterations:
@@ -242,6 +264,8 @@ class InspectionResult(Result):
 
     def details(self) -> dict[str, Any]:
         black = next((r.black.to_json() for r in self.shots if r.black), None)
+        located = next((r.located.to_json() for r in self.shots if r.located and r.located.followed),
+                       next((r.located.to_json() for r in self.shots if r.located), None))
         return {"task": self.task, "plan": self.plan, "converged": self.success,
                 "features": self.feature_results(), "order": list(self.order), "travel_m": self.travel_m,
                 "shots": [{"shot": r.shot, "folder": f"shot-{r.shot}", "features": list(r.features),
@@ -250,7 +274,7 @@ class InspectionResult(Result):
                            "camera_error": r.camera_error} for r in self.shots],
                 "iterations": [{"shot": r.shot, **it.to_json()} for r in self.shots for it in r.iterations],
                 "captures": [f"shot-{r.shot}/{c}" for r in self.shots for c in r.captures],
-                "black_level": black}
+                "black_level": black, "localization": located}
 
 
 def plan_logged(task: Task, recorder: Recorder) -> Plan:
@@ -281,6 +305,7 @@ def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices],
     order: tuple[int, ...] = ()
     travel: float | None = None
     black: measurement.BlackLevel | None = None
+    pose: localization.PoseError | None = None
     names = tuple(f.name for f in task.features)
     covered_by: tuple[int | None, ...] = (None,) * len(names)
 
@@ -304,8 +329,8 @@ def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices],
                 recorder.step("shot", f"shot {n + 1} of {len(order)} (plan's shot {s}): "
                                       f"{describe(plan, s)}", shot=s, visit=n + 1, features=assigned(plan, s))
                 cell_moves.follow(devices, move, recorder)
-                done = run_shot(replace(context, black=black), plan, s, runs)
-                black = black or done.black
+                done = run_shot(replace(context, black=black, pose_error=pose), plan, s, runs)
+                black, pose = black or done.black, pose or done.pose_error
                 recorder.step("shot_done", f"shot {n + 1} of {len(order)} (plan's shot {s}): {done.summary()}",
                               shot=s, converged=done.success, reason=done.message)
         failed = [f for f in result("", None).feature_results() if not f["converged"]]

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import numpy as np
 
 from cell.physics.sensor import saturation_level
-from cell.run import acquisition, channels, control, measurement, refit, registration
+from cell.run import acquisition, channels, control, localization, measurement, refit, registration
 
 from cell.planning import evaluate
 from cell.run.acquisition import Capture, acquire, move_to, plan_and_connect, plan_recorded, planned_drives
@@ -56,6 +56,8 @@ CAUSES = {          # report.json's `cause` of a run that ends without the goal 
     "replan": "a shot of several features needs more than an exposure (it is not re-planned)",
     "channel": "a light channel gives far less light than the model and the other channels do (its LEDs, "
                "their wiring or the controller's output)",
+    "pose": "the part (or the camera) is so far from where the model puts it that the cell cannot work there "
+            "(no plan for where it is, or the feature leaves the view)",
 }
 
 
@@ -133,7 +135,22 @@ class Replan:
         return {"iteration": self.iteration, "albedo_scale": self.albedo_scale, "plan": self.plan}
 
 
-Event = Iteration | Corrected | BlackLevelFound | Refitted | Replan     # what iterate yields
+@dataclass(frozen=True)
+class Located:
+    """The part's and the camera's pose error found at capture `iteration` (cell.run.localization)
+    from `views` views, and whether the model followed it (re-planned for where the part is)."""
+
+    iteration: int
+    error: localization.PoseError
+    followed: bool
+
+    def to_json(self) -> dict[str, Any]:
+        """report.json's `localization`: the estimate (PoseError.to_json), the capture it was
+        found at and whether the model followed it."""
+        return self.error.to_json() | {"iteration": self.iteration, "followed": self.followed}
+
+
+Event = Iteration | Corrected | BlackLevelFound | Refitted | Replan | Located     # what iterate yields
 
 
 @dataclass(frozen=True)
@@ -153,6 +170,7 @@ class RunResult(Result):
     black_level: dict[str, Any] | None = None
     refits: tuple[Refitted, ...] = ()
     cause: str | None = None     # CAUSES' key of a run that ended without the goal
+    localization: dict[str, Any] | None = None     # Located.to_json of the pose error found
 
     @property
     def captures(self) -> list[str]:
@@ -168,7 +186,7 @@ class RunResult(Result):
         return {"task": self.task, "plan": self.plan, "iterations": [it.to_json() for it in self.iterations],
                 "converged": self.success, "captures": self.captures,
                 "replans": [r.to_json() for r in self.replans], "black_level": self.black_level,
-                "refits": [r.to_json() for r in self.refits],
+                "refits": [r.to_json() for r in self.refits], "localization": self.localization,
                 **({"defects": [d.to_json() for d in last.defects]} if last is not None and last.defects else {})}
 
 
@@ -257,7 +275,8 @@ class Aim:
     a shot's several), the black level, the exposure, the light channels' drives ({channel: level
     0..1}, the plan's: set before every capture), the albedo scale of the plan, whether the cell
     stands at the plan's poses (not after a re-plan), whether the material was refitted and the
-    drives re-solved on basis captures (each once in a loop)."""
+    drives re-solved on basis captures (each once in a loop), whether the part was localized
+    (once in a loop) and the pose error the model follows (the arm's hand-eye corrected by it)."""
 
     features: tuple[LoopFeature, ...]
     black: BlackLevel
@@ -268,6 +287,8 @@ class Aim:
     refitted: bool = False
     drives: dict[int, float] = field(default_factory=dict)
     balanced: bool = False
+    located: bool = False
+    pose_error: localization.PoseError | None = None
 
     @property
     def shot(self) -> Shot:
@@ -357,13 +378,15 @@ def iterate(ctx: RunContext, features: Sequence[LoopFeature]) -> Iterator[Event]
     signal must meet); a shot of several puts it into every prediction and the first capture's
     correction absorbs it."""
     first = features[0]
-    move_to(ctx.devices, first.model.plan.shot, ctx.recorder, 1)
-    black = ctx.black or find_black_level(first.task, first.model.plan, ctx.devices, ctx.recorder)
+    devices = localization.corrected(ctx.devices, ctx.pose_error)
+    move_to(devices, first.model.plan.shot, ctx.recorder, 1)
+    black = ctx.black or find_black_level(first.task, first.model.plan, devices, ctx.recorder)
     if not ctx.black:
         yield BlackLevelFound(black)
     exposure = first.model.plan.shot.exposure
     aim = Aim(tuple(features), black, exposure.shutter_s, exposure.f_number,
-              drives=planned_drives(first.model.plan.shot))
+              drives=planned_drives(first.model.plan.shot), located=ctx.pose_error is not None,
+              pose_error=ctx.pose_error)
     if len(features) == 1 and black.value != evaluate.black_level(first.task):
         aim = knowing_black_level(aim)
     for k in range(1, ctx.max_iterations + 1):
@@ -386,13 +409,16 @@ def knowing_black_level(aim: Aim) -> Aim:
 
 def step(ctx: RunContext, aim: Aim, k: int) -> Generator[Event, None, Aim | None]:
     """Capture k, the closed loop's one step: to the plan's poses when not there (after a
-    re-plan), expose and capture (acquire), each feature located and measured (measure_capture:
-    its Iteration yielded), then the first that applies: a feature found beyond its
-    registration_limit stops (the plan's poses do not hold: nothing to correct), as does one not
-    registered whose gray on the model's region is in band (no correction changes that, and it is
-    never reported in band: registration.not_registered); every feature in
+    re-plan), expose and capture (acquire; the arm's hand-eye corrected by the pose error the
+    model follows), each feature located and measured (measure_capture: its Iteration yielded);
+    then the first that applies: a feature found beyond its registration limit is localized, once
+    (locate_part), and when the model follows it the loop captures again where it is; else one
+    beyond its registration_limit stops (the plan's poses do not hold: nothing to correct), as does
+    one not registered whose gray on the model's region is in band (no correction changes that, and
+    it is never reported in band: registration.not_registered); every feature in
     its band ends the loop (returns None); the last iteration stops; else the correction after it
     (correct_after: the next Aim)."""
+    ctx = replace(ctx, devices=localization.corrected(ctx.devices, aim.pose_error))
     if not aim.moved:
         move_to(ctx.devices, aim.shot, ctx.recorder, k)
     capture = acquire(ctx.devices, ctx.recorder, k, aim.shutter_s, aim.f_number, aim.shot.exposure.focus_m,
@@ -402,9 +428,13 @@ def step(ctx: RunContext, aim: Aim, k: int) -> Generator[Event, None, Aim | None
     aim = replace(aim, shutter_s=capture.shutter_s, moved=True)
     for feature, m in zip(aim.features, measured):
         found = m.iteration.registration
-        why = registration.beyond_limit(found, registration_limit(feature.task, feature.model.plan.shot)) or (
-            registration.not_registered(found) if not found["trusted"]
-            and m.measurement.in_band(feature.task.requirements.gray_band) else None)
+        far = registration.beyond_limit(found, registration_limit(feature.task, feature.model.plan.shot))
+        if far and not aim.located:
+            aim = yield from locate_part(ctx, aim, k, capture)
+            if not aim.moved:               # the model followed the part: capture again there
+                return aim
+        why = far or (registration.not_registered(found) if not found["trusted"]
+                      and m.measurement.in_band(feature.task.requirements.gray_band) else None)
         if why:
             name = aim.label(feature)
             reason = f"{name}: {why}" if name else why
@@ -416,6 +446,113 @@ def step(ctx: RunContext, aim: Aim, k: int) -> Generator[Event, None, Aim | None
     if k == ctx.max_iterations:
         raise GoalNotReached(not_in_band(aim, measured, k), "iterations")
     return (yield from correct_after(ctx, aim, k, measured))
+
+
+def locate_part(ctx: RunContext, aim: Aim, k: int, capture: Capture) -> Generator[Event, None, Aim]:
+    """Localize the part and the camera from capture k (cell.run.localization, against the first
+    feature's model; a saturated capture, whose edges are clipped, waits for the next): a pose error within what the plan tolerates (localization.significant) is
+    reported (Located) and the loop goes on; a larger one is told apart by a second view
+    (second_view), reported, and the model follows it (follow); a fit beyond any fixture or
+    hand-eye error (localization.implausible) stops (GoalNotReached, cause `pose`). Returns the Aim."""
+    feature = aim.features[0]
+    task, scene, shot = feature.task, feature.model.plan.planned_scene, aim.shot
+    saturation = saturation_level(ctx.devices.camera.bit_depth)
+    lit = capture.image >= 0.5 * saturation
+    if lit.any() and np.mean(capture.image[lit] >= saturation) > registration.SATURATED_FRACTION:
+        ctx.recorder.step("localize", "the capture is saturated: the part is localized in a capture the "
+                                      "exposure has corrected", iteration=k)
+        return aim
+    with speaking_for(ctx.devices.lamp):
+        lamp_pose = ctx.devices.lamp.lamp_pose()
+    first = localization.View(capture.image, capture.T_cell_cam, lamp_pose, capture.drives or None)
+    error = localization.localize(task, scene, [first])
+    if error is None:
+        ctx.recorder.step("localize", "the view shows too little of the part's edges to localize it: the model's "
+                                      "pose is kept", iteration=k)
+        return replace(aim, located=True)
+    limit = registration_limit(task, shot)
+    if not localization.significant(error, capture.T_cell_cam, limit, task.requirements.lamp_tolerance_rad):
+        ctx.recorder.step("localize", localization.describe(error, 1) + ": within what the plan tolerates",
+                          iteration=k, followed=False, **error.to_json())
+        yield Located(k, error, False)
+        return replace(aim, located=True)
+    second = second_view(ctx, aim, k, scene, lamp_pose, capture)
+    if second is not None:
+        error = localization.localize(task, scene, [first, second]) or error
+    wrong = localization.implausible(error, capture.T_cell_cam)
+    ctx.recorder.step("localize", localization.describe(error, error.views), iteration=k,
+                      followed=wrong is None, **error.to_json())
+    yield Located(k, error, wrong is None)
+    if wrong:
+        yield Corrected(k, {"action": "stop", "cause": "pose", "reason": wrong})
+        raise GoalNotReached(wrong, "pose")
+    return (yield from follow(ctx, aim, k, error))
+
+
+def second_view(ctx: RunContext, aim: Aim, k: int, scene: Scene, lamp_pose: registration.LampPose,
+                capture: Capture) -> localization.View | None:
+    """The second view of the part (localization.second_views, the first the arm reaches and the
+    collision check clears with the lamp where it is), exposed for the model's brightest part
+    there (localization.view_exposure) and captured as locate-k.png; None when no pose serves (the
+    one view's estimate stands, and the log says so)."""
+    from cell.collision.scene import CollisionScene, reaching_joints
+    task = aim.features[0].task
+    collision = CollisionScene.of(task)
+    for T in localization.second_views(capture.T_cell_cam, scene.center):
+        if ctx.devices.arm.refusal(T) is not None:
+            continue
+        if not collision.clearance(T, reaching_joints(task.frames, T), lamp_pose[0]).ok:
+            continue
+        with speaking_for(ctx.devices.arm):
+            ctx.devices.arm.move_camera(T)
+            read = ctx.devices.arm.camera_pose()
+        ctx.recorder.step("move_camera", f"camera at {np.round(read[:3, 3], 4).tolist()} m in the cell frame: a "
+                                         f"second view of the part, to tell a part offset from a camera turn",
+                          iteration=k, position_m=read[:3, 3])
+        model = localization.model_view(task, scene, read, lamp_pose, capture.drives or None)
+        shutter = localization.view_exposure(model, saturation_level(ctx.devices.camera.bit_depth), capture.f_number,
+                                             task.camera.shutter_range_s)
+        view = acquire(ctx.devices, ctx.recorder, k, shutter, capture.f_number, capture.focus_m, name=f"locate-{k}",
+                       drives=capture.drives or None)
+        return localization.View(view.image, view.T_cell_cam, lamp_pose, view.drives or None)
+    ctx.recorder.step("localize", "no second view of the part is reachable and clear of collisions: one view "
+                                  "cannot tell a part offset from a camera turn", iteration=k)
+    return None
+
+
+def follow(ctx: RunContext, aim: Aim, k: int, error: localization.PoseError) -> Generator[Event, None, Aim]:
+    """The model follows the pose error found at capture k: the arm's hand-eye corrected, each
+    feature's task with the part where it is (localization.located_task); one feature re-planned
+    there (the camera kept on the part: a planned shot's pose moved with it), several carried
+    along with the part (localization.moved_plan). A re-plan that is infeasible, or a feature
+    that leaves the view, stops (GoalNotReached, cause `pose`)."""
+    features = tuple(replace(f, task=localization.located_task(f.task, error)) for f in aim.features)
+    reason = f"the model follows the part: {localization.describe(error, error.views)}"
+    document = {"action": "locate", "reason": reason, "localization": error.to_json()}
+    if len(features) > 1:
+        features = tuple(replace(f, model=Model(localization.moved_plan(f.model.plan, error.T_part), f.task))
+                         for f in features)
+        ctx.recorder.step("correct", reason, iteration=k, **document)
+        yield Corrected(k, document)
+        return replace(aim, features=features, moved=False, located=True, pose_error=error)
+    (feature,) = features
+    T_cell_cam = None if ctx.T_cell_cam is None else error.T_part @ ctx.T_cell_cam
+    ctx.recorder.step("correct", reason, iteration=k, **document)
+    yield Corrected(k, document)
+    replanned = plan_recorded(feature.task, ctx.recorder, aim.albedo_scale, iteration=k, subfolder=f"located-{k}",
+                              T_cell_cam=T_cell_cam)
+    yield Replan(k, aim.albedo_scale, replanned.to_json())
+    if not replanned.feasible:
+        why = f"{localization.describe(error, error.views)}; re-planned for where the part is"
+        raise GoalNotReached(f"{why}: infeasible, {replanned.binding}: {replanned.hint}", "pose",
+                             f"{why}: infeasible: {words.reason(replanned)}")
+    row, col, inside = measurement.sample_pixels(feature.task, replanned.shot.T_cell_cam,
+                                                 replanned.planned_scene.points)
+    if not np.all(inside):
+        raise GoalNotReached(f"{localization.describe(error, error.views)}: {int(np.sum(~inside))} of the "
+                             f"feature's {len(inside)} samples leave the view where the part is", "pose")
+    located = replace(feature, model=Model(replanned, feature.task))
+    return replace(replan_aim(aim, located, aim.albedo_scale), located=True, pose_error=error)
 
 
 def not_in_band(aim: Aim, measured: Sequence[Measured], k: int) -> str:
@@ -590,7 +727,8 @@ def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices], max_it
 
     def result(reason: str, fault: dict[str, Any] | None) -> RunResult:     # its cause: the Ending's
         return RunResult(str(task.path), not reason, reason, recorder.plan, tuple(events.iterations),
-                         tuple(events.replans), fault, events.black_json, tuple(events.refits))
+                         tuple(events.replans), fault, events.black_json, tuple(events.refits),
+                         localization=events.localization_json)
 
     try:
         with Recorder(out) as recorder, Ending(recorder, "not converged", "report.json", result,
@@ -619,9 +757,12 @@ class Events:
         self.replans: list[Replan] = []
         self.refits: list[Refitted] = []
         self.black: BlackLevel | None = None
+        self.located: Located | None = None
 
     def add(self, event: Event) -> None:
-        if isinstance(event, Corrected):
+        if isinstance(event, Located):
+            self.located = event
+        elif isinstance(event, Corrected):
             self.iterations = [replace(it, correction=event.correction) if it.iteration == event.iteration else it
                                for it in self.iterations]
         elif isinstance(event, BlackLevelFound):
@@ -636,3 +777,8 @@ class Events:
     @property
     def black_json(self) -> dict[str, Any] | None:
         return self.black.to_json() if self.black else None
+
+    @property
+    def localization_json(self) -> dict[str, Any] | None:
+        """report.json's `localization` (Located.to_json), None when the part was not localized."""
+        return self.located.to_json() if self.located else None

@@ -1,0 +1,521 @@
+"""Localization: where the part and the camera really are, from the loop's own captures.
+
+The model's image of the whole view (registration.expected_image: the planner's shading at the
+read-back camera and lamp poses) and the cell-frame point each of its pixels sees (kernels.render's
+depth) are compared with the capture by their edges: both equalized (the logarithm of the gray,
+so the lamp's falloff and the shading add a slowly varying term) and band-passed (a Gaussian of
+sigma less one of BAND_RATIO sigma). The model's strongest edge pixels (EDGE_QUANTILE) are
+samples: a point X on the part and the model's band-passed gray there.
+
+What explains them: the part's pose error E_part in the cell frame (turned by part_rpy about the
+feature centre c, then moved by part_offset, as the simulator's truth keys state it) and the
+camera's hand-eye turn E_he (in the camera frame, T_true = T_read E_he). X appears in view i,
+taken from the read-back pose C_i, at
+
+    u = pi(K, E_he^-1 C_i^-1 E_part X),
+
+and the capture's band-passed gray there (bilinear) times a gain per view must equal the
+model's. The 9 parameters are fitted to every view at once by robust least squares
+(scipy.optimize.least_squares, soft_l1 at LOSS), coarse to fine over SCALES_PX, from the start
+the whole views' shifts give (whole_shift, fit_shifts); the Jacobian is the capture's slope times
+each point's image motion. Standard errors: s^2 (J^T J)^-1 with s^2 the residuals' variance,
+prior residuals (PRIOR_*) keeping it determined where the views tell nothing (the conrod's
+shank along its length).
+
+One view cannot tell a part moved across the view by d from the camera turned by d / Z (Z the
+feature's distance): both move the feature alike, and only the part's apparent tilt tells them
+apart, weakly; with one view the hand-eye turn is held near 0 (PRIOR_ONE_VIEW_RAD). A second
+view does (second_views): orbited about the feature and rolled about its own axis, a part's move
+(fixed in the cell) turns with the view while the hand-eye turn turns with the camera; turned a
+little off the feature, a hand-eye roll moves the feature while a part's turn about it does not."""
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Any
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from cell.core import geometry
+from cell.devices.interfaces import Arm
+from cell.physics import projection
+from cell.run import registration
+
+if TYPE_CHECKING:
+    from cell.devices.interfaces import Devices
+    from cell.planning.plan import Plan
+    from cell.planning.scene import Scene
+    from cell.run.registration import Drives, LampPose
+    from cell.task.types import Task
+
+SCALES_PX = (6.0, 3.0, 1.5)  # the edge fit's scales, coarse to fine (Gaussian sigma)
+BAND_RATIO = 4.0            # band_pass: the blur left out, this many times the scale
+EDGE_QUANTILE = 0.8         # the model's edge samples: its part pixels of the strongest gradient
+MAX_SAMPLES = 4000          # per view and scale
+MAX_NFEV = 30               # least_squares evaluations per scale
+FLOOR = 0.03                # equalized: the gray, of the image's 99th percentile, below which it is flat
+LOSS = 0.5                  # the robust loss's scale (soft_l1), of the images' unit spread
+PRIOR_OFFSET_M = 0.02       # the priors' spreads: what the fit takes where the views tell nothing
+PRIOR_TURN_RAD = np.radians(10.0)
+PRIOR_HAND_EYE_RAD = np.radians(5.0)
+PRIOR_ONE_VIEW_RAD = np.radians(0.2)   # one view: its shift is the part's (significant: a second view)
+TILT_LIMIT = 2.0            # significant: a tilt beyond this many lamp tolerances
+MAX_OFFSET_M = 0.015         # implausible: beyond these the fit matched the wrong edges
+MAX_TURN_RAD = np.radians(7.0)
+MAX_HAND_EYE_RAD = np.radians(3.0)
+MIN_CONTRAST_GRAY = 10.0    # localize: a capture flatter than this [gray] shows nothing
+MIN_SAMPLES = 200           # fewer edge samples in a view: it tells nothing
+ORBIT_DEG = 30.0            # second_views: the orbit about the feature,
+ORBITS = 8                  # about this many axes across the view,
+ROLL_DEG = 90.0             # the roll about the camera's axis
+AIM_OFF_DEG = 1.5           # and the turn off the feature (about 150 px on the examples)
+VIEW_GRAY = 0.6             # the second view's exposure: its brightest part at this of saturation
+
+
+@dataclass(frozen=True)
+class ModelView:
+    """The model's image of one view: gray per unit exposure (H, W), each pixel's cell-frame
+    point (H, W, 3) (NaN where the ray misses the part), from the read-back camera pose."""
+
+    value: np.ndarray
+    points: np.ndarray
+    T_cell_cam: np.ndarray
+
+
+@dataclass(frozen=True)
+class Samples:
+    """One view's edge samples at a scale: model points X (N, 3, cell frame, the model's part pose),
+    the model's band-passed gray there (N,), the capture band-passed alike (H, W), both scaled to
+    unit spread, and the read-back camera pose T_cell_cam."""
+
+    points: np.ndarray
+    gray: np.ndarray
+    image: np.ndarray
+    T_cell_cam: np.ndarray
+
+
+def model_view(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: LampPose,
+               drives: Drives = None) -> ModelView:
+    """The model's image over the whole sensor (registration.expected_image) and the point each
+    pixel sees (kernels.render's depth along the pixel's ray)."""
+    from kernels.render import render
+    sensor = task.camera.sensor
+    width, height = sensor.width_px, sensor.height_px
+    value = registration.expected_image(task, scene, T_cell_cam, lamp_pose, (0, 0, width, height), 1, drives)
+    K = projection.intrinsics(sensor, task.camera.lens)
+    rays = projection.pixel_rays(K, T_cell_cam, width, height)
+    origin = T_cell_cam[:3, 3]
+    hit = render(scene.warp_mesh, origin, rays, origin, rays[0], 1.0, np.pi, task.part.material.table(),
+                 1.0, 1.0, shadows=False)
+    points = np.where(hit.hit[:, None], origin + hit.depth[:, None] * rays, np.nan)
+    return ModelView(value, points.reshape(height, width, 3), np.array(T_cell_cam, float))
+
+
+def equalized(image: np.ndarray) -> np.ndarray:
+    """log(image / its 99th percentile + FLOOR), float32: the lamp's falloff and the material's
+    shading multiply the gray, so in its logarithm they add a slowly varying term, and an edge
+    of the part counts as much in the spot's dim fringe as in its centre (down to FLOOR, where
+    the noise and the black level begin)."""
+    image = np.asarray(image, np.float32)
+    top = float(np.percentile(image, 99.0))
+    return np.log(np.maximum(image, 0.0) / max(top, 1e-12) + FLOOR).astype(np.float32)
+
+
+def band_pass(image: np.ndarray, sigma_px: float) -> np.ndarray:
+    """The equalized image's edges at scale sigma: its Gaussian blur of sigma less that of
+    BAND_RATIO sigma (the lamp's soft edge and the lobe's shading, tens of pixels wide and fixed
+    in the cell while the part moves, are left out), float32."""
+    image = equalized(image)
+    return cv2.GaussianBlur(image, (0, 0), sigma_px) - cv2.GaussianBlur(image, (0, 0), BAND_RATIO * sigma_px)
+
+
+def whole_shift(model: np.ndarray, capture: np.ndarray) -> tuple[float, float]:
+    """The capture's shift from the model's image (dx, dy) [px], to within registration.COARSE px:
+    their equalized edges (registration.gradient of registration.high_pass) at 1/COARSE resolution, the
+    model's part's bounding box matched over the capture by normalized correlation."""
+    step = registration.COARSE
+    size = (round(model.shape[1] / step), round(model.shape[0] / step))
+    small_m = cv2.resize(equalized(model), size, interpolation=cv2.INTER_AREA)
+    small_c = cv2.resize(equalized(capture), size, interpolation=cv2.INTER_AREA)
+    edges_m = registration.gradient(registration.high_pass(small_m))
+    edges_c = registration.gradient(registration.high_pass(small_c))
+    rows, cols = np.nonzero(edges_m > 0.05 * edges_m.max())
+    if rows.size == 0:
+        return 0.0, 0.0
+    v0, v1, u0, u1 = rows.min(), rows.max() + 1, cols.min(), cols.max() + 1
+    template = edges_m[v0:v1, u0:u1]
+    ph, pw = template.shape
+    padded = cv2.copyMakeBorder(edges_c, ph, ph, pw, pw, cv2.BORDER_CONSTANT, value=0)
+    score = cv2.matchTemplate(padded, template, cv2.TM_CCORR_NORMED)
+    _, _, _, (u, v) = cv2.minMaxLoc(np.nan_to_num(score, nan=-1.0))
+    return float(step * (u - pw - u0)), float(step * (v - ph - v0))
+
+
+def edge_samples(view: ModelView, capture: np.ndarray, sigma_px: float) -> Samples:
+    """The view's Samples at scale sigma: the model's part pixels whose band-passed gray changes
+    most (the EDGE_QUANTILE of its gradient), their points and band-passed gray, both images
+    scaled to unit spread over the part."""
+    seen = np.isfinite(view.points[..., 0])
+    model = band_pass(view.value, sigma_px)
+    grad = registration.gradient(model)
+    candidates = seen & (grad > 0)
+    if not candidates.any():
+        return Samples(np.zeros((0, 3)), np.zeros(0), np.zeros((2, 2), np.float32), view.T_cell_cam)
+    threshold = np.quantile(grad[candidates], EDGE_QUANTILE)
+    rows, cols = np.nonzero(candidates & (grad >= threshold))
+    pick = np.linspace(0, len(rows) - 1, min(len(rows), MAX_SAMPLES)).astype(int)
+    rows, cols = rows[pick], cols[pick]
+    points = view.points[rows, cols]
+    gray = model[rows, cols]
+    image = band_pass(capture, sigma_px)
+    return Samples(points, gray / max(float(np.std(gray)), 1e-12), image / max(float(np.std(image[seen])), 1e-12),
+                   view.T_cell_cam)
+
+
+@dataclass(frozen=True)
+class PoseError:
+    """The fitted pose errors: E_part, the part's in the cell frame (turned by part_rpy about the
+    feature centre, then moved by part_offset), and E_he, the camera's hand-eye turn (in the
+    camera frame), each with its standard error; the views and edge points it rests on and the
+    residuals' rms (of the images' unit spread)."""
+
+    part_offset_m: np.ndarray
+    part_rpy_rad: np.ndarray
+    hand_eye_rpy_rad: np.ndarray
+    part_offset_stderr_m: np.ndarray
+    part_rpy_stderr_rad: np.ndarray
+    hand_eye_rpy_stderr_rad: np.ndarray
+    center: np.ndarray                  # the feature centre the part turns about (cell frame)
+    views: int
+    edge_points: int
+    residual: float
+
+    @property
+    def T_part(self) -> np.ndarray:
+        """E_part: the model's part pose to the true one, in the cell frame."""
+        return part_error(self.part_offset_m, self.part_rpy_rad, self.center)
+
+    @property
+    def T_hand_eye(self) -> np.ndarray:
+        """E_he: the read-back camera pose to the true one (T_true = T_read @ E_he)."""
+        return geometry.from_rpy(self.hand_eye_rpy_rad)
+
+    def to_json(self) -> dict[str, Any]:
+        """report.json's `localization` (docs/formats.md)."""
+        return {"part_offset_m": self.part_offset_m.tolist(),
+                "part_offset_m_stderr": self.part_offset_stderr_m.tolist(),
+                "part_rpy_deg": np.degrees(self.part_rpy_rad).tolist(),
+                "part_rpy_deg_stderr": np.degrees(self.part_rpy_stderr_rad).tolist(),
+                "hand_eye_rpy_deg": np.degrees(self.hand_eye_rpy_rad).tolist(),
+                "hand_eye_rpy_deg_stderr": np.degrees(self.hand_eye_rpy_stderr_rad).tolist(),
+                "views": self.views, "edge_points": self.edge_points, "residual": self.residual}
+
+
+def part_error(offset_m: np.ndarray, rpy_rad: np.ndarray, center: np.ndarray) -> np.ndarray:
+    """E_part = move(offset) turn(rpy) about the centre, as sim.world.true_part_scene applies it."""
+    about = geometry.transform(translation=center)
+    return geometry.transform(translation=offset_m) @ about @ geometry.from_rpy(rpy_rad) @ np.linalg.inv(about)
+
+
+def _params(theta: np.ndarray, center: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(E_part, E_he^-1) of the 9 pose parameters."""
+    return part_error(theta[:3], theta[3:6], center), np.linalg.inv(geometry.from_rpy(theta[6:9]))
+
+
+def _project(K: np.ndarray, theta: np.ndarray, center: np.ndarray, T_cell_cam: np.ndarray,
+             points: np.ndarray) -> np.ndarray:
+    """Where model points appear in a view taken from read-back pose T_cell_cam under the pose
+    errors theta: pi(K, E_he^-1 C^-1 E_part X) (module docstring) [px]."""
+    E_part, he_inv = _params(theta, center)
+    uv, _ = projection.project(K, np.linalg.inv(he_inv @ np.linalg.inv(T_cell_cam) @ E_part), points)
+    return uv
+
+
+def _priors(theta: np.ndarray, views: int) -> np.ndarray:
+    """The prior residuals that keep the fit determined where the views tell nothing: each
+    parameter over its spread (PRIOR_*), the hand-eye turn's tighter with one view."""
+    hand_eye = PRIOR_HAND_EYE_RAD if views > 1 else PRIOR_ONE_VIEW_RAD
+    return np.concatenate([theta[:3] / PRIOR_OFFSET_M, theta[3:6] / PRIOR_TURN_RAD, theta[6:9] / hand_eye])
+
+
+def _solve(residuals: Any, theta0: np.ndarray, n_data: int, loss: str,
+           jacobian: Any = "2-point") -> tuple[np.ndarray, np.ndarray, float, int]:
+    """(parameters, standard errors, residual rms, inliers) of least_squares from theta0: the
+    standard errors s^2 (J^T J)^-1 over the inlying data residuals and the priors."""
+    scale = np.concatenate([[1e-3] * 3, [1e-2] * 6, [0.1] * (len(theta0) - 9)])
+    solved = least_squares(residuals, theta0, jac=jacobian, loss=loss, f_scale=LOSS, x_scale=scale, max_nfev=MAX_NFEV)
+    r = solved.fun[:n_data]
+    inliers = np.abs(r) < 3.0 * LOSS if loss != "linear" else np.ones(n_data, bool)
+    s2 = float(np.sum(r[inliers] ** 2) / max(int(inliers.sum()) - len(theta0), 1))
+    J = solved.jac.copy()
+    J[:n_data][~inliers] = 0.0
+    J[:n_data] /= np.sqrt(max(s2, 1e-12))           # data weighted by 1 / s, the priors by their spread
+    cov = np.linalg.pinv(J.T @ J)
+    rms = float(np.sqrt(np.mean(r[inliers] ** 2))) if inliers.any() else float("nan")
+    return solved.x, np.sqrt(np.maximum(np.diag(cov), 0.0)), rms, int(inliers.sum())
+
+
+def fit_shifts(K: np.ndarray, center: np.ndarray, poses: Sequence[np.ndarray],
+               shifts: Sequence[tuple[float, float]]) -> np.ndarray:
+    """The 9 pose parameters that move the feature centre by each view's whole shift (the start
+    of the edge fit, from its coarse pixels)."""
+    centre = np.asarray(center, float)[None]
+
+    def residuals(theta: np.ndarray) -> np.ndarray:
+        out = [(_project(K, theta, centre[0], T, centre) - _project(K, np.zeros(9), centre[0], T, centre)
+                - np.asarray(s))[0] / registration.COARSE for T, s in zip(poses, shifts)]
+        return np.concatenate(out + [_priors(theta, len(poses))])
+
+    return _solve(residuals, np.zeros(9), 2 * len(poses), "linear")[0]
+
+
+def fit(levels: Sequence[Sequence[Samples]], K: np.ndarray, center: np.ndarray, theta0: np.ndarray) -> PoseError:
+    """The PoseError that best explains every view's edges (module docstring): per scale (coarse
+    to fine, levels[s][i] view i's Samples at scale s), robust least squares of the capture's
+    band-passed gray where each model edge point appears (bilinear) against the model's, a gain
+    per view, from theta0 (9 parameters: part offset [m], part rpy [rad], hand-eye rpy [rad])."""
+    theta = np.concatenate([theta0, np.ones(len(levels[0]))])
+    for views in levels:
+        n_data = sum(len(v.points) for v in views)
+        slopes = [(cv2.Sobel(v.image, cv2.CV_32F, 1, 0, scale=1 / 8), cv2.Sobel(v.image, cv2.CV_32F, 0, 1, scale=1 / 8))
+                  for v in views]
+
+        def sample(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+            uv = uv.astype(np.float32)
+            return cv2.remap(image, uv[:, :1], uv[:, 1:], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                             borderValue=0.0).ravel().astype(float)
+
+        def residuals(x: np.ndarray, views: Sequence[Samples] = views) -> np.ndarray:
+            out = [x[9 + i] * sample(view.image, _project(K, x[:9], center, view.T_cell_cam, view.points))
+                   - view.gray for i, view in enumerate(views)]
+            return np.concatenate(out + [_priors(x[:9], len(views))])
+
+        def jacobian(x: np.ndarray, views: Sequence[Samples] = views, slopes: Any = slopes) -> np.ndarray:
+            """d residual / d parameters: the capture's slope at each point times the point's
+            image motion per parameter (central differences of the projection, float64)."""
+            blocks = []
+            for i, (view, (gx, gy)) in enumerate(zip(views, slopes)):
+                uv = _project(K, x[:9], center, view.T_cell_cam, view.points)
+                block = np.zeros((len(uv), len(x)))
+                slope = np.column_stack([sample(gx, uv), sample(gy, uv)])
+                for j, h in enumerate([1e-6] * 3 + [1e-5] * 6):
+                    step = np.zeros(9)
+                    step[j] = h
+                    motion = (_project(K, x[:9] + step, center, view.T_cell_cam, view.points)
+                              - _project(K, x[:9] - step, center, view.T_cell_cam, view.points)) / (2 * h)
+                    block[:, j] = x[9 + i] * np.sum(slope * motion, axis=1)
+                block[:, 9 + i] = sample(view.image, uv)
+                blocks.append(block)
+            prior = np.zeros((9, len(x)))
+            prior[:9, :9] = np.diag(_priors(np.ones(9), len(views)))
+            return np.vstack(blocks + [prior])
+
+        theta, stderr, rms, inliers = _solve(residuals, theta, n_data, "soft_l1", jacobian)
+    return PoseError(theta[:3], theta[3:6], theta[6:9], stderr[:3], stderr[3:6], stderr[6:9],
+                     np.asarray(center, float), len(levels[0]), inliers, rms)
+
+
+@dataclass(frozen=True)
+class View:
+    """A capture localization reads: the image, the read-back camera pose (with the hand-eye the
+    loop believes), the lamp's read-back pose and the light channels' drives."""
+
+    image: np.ndarray
+    T_cell_cam: np.ndarray
+    lamp_pose: LampPose
+    drives: Drives = None
+
+
+def localize(task: Task, scene: Scene, views: Sequence[View]) -> PoseError | None:
+    """The PoseError of the part and the camera that explains the views' captures against the
+    model's images (model_view): each view's whole shift (whole_shift) starts the fit
+    (fit_shifts), then the edge fit coarse to fine (fit over SCALES_PX); then once more against
+    the model's images where the first fit puts the part and the cameras (refine), so that the
+    light the part moved into is the model's too. None when a capture is flat (its brightest
+    part less than MIN_CONTRAST_GRAY above its median: nothing lit to see) or no view shows edges
+    enough to fit (fewer than MIN_SAMPLES)."""
+    if any(np.percentile(v.image, 99.5) - np.median(v.image) < MIN_CONTRAST_GRAY for v in views):
+        return None
+    models = [model_view(task, scene, v.T_cell_cam, v.lamp_pose, v.drives) for v in views]
+    K = projection.intrinsics(task.camera.sensor, task.camera.lens)
+    shifts = [whole_shift(m.value, v.image) for m, v in zip(models, views)]
+    theta0 = fit_shifts(K, scene.center, [m.T_cell_cam for m in models], shifts)
+    levels = [[edge_samples(m, v.image, s) for m, v in zip(models, views)] for s in SCALES_PX]
+    if min(len(s.points) for s in levels[-1]) < MIN_SAMPLES:
+        return None
+    return refine(task, scene, views, fit(levels, K, scene.center, theta0))
+
+
+def refine(task: Task, scene: Scene, views: Sequence[View], first: PoseError) -> PoseError:
+    """The first fit's PoseError corrected by a fit at the finest scale against the model's images
+    with the part moved by it (moved_scene) and each camera turned by its hand-eye turn: the part's
+    moves and turns compose (offsets add about the moved centre, turns multiply), the hand-eye
+    turns too; the standard errors and residual are the second fit's."""
+    moved = moved_scene(scene, first.T_part)
+    E_he = first.T_hand_eye
+    K = projection.intrinsics(task.camera.sensor, task.camera.lens)
+    models = [model_view(task, moved, v.T_cell_cam @ E_he, v.lamp_pose, v.drives) for v in views]
+    levels = [[edge_samples(m, v.image, SCALES_PX[-1]) for m, v in zip(models, views)]]
+    if min(len(s.points) for s in levels[0]) < MIN_SAMPLES:
+        return first
+    second = fit(levels, K, moved.center, np.zeros(9))
+    turn = Rotation.from_euler("xyz", second.part_rpy_rad) * Rotation.from_euler("xyz", first.part_rpy_rad)
+    hand_eye = Rotation.from_euler("xyz", first.hand_eye_rpy_rad) * Rotation.from_euler("xyz", second.hand_eye_rpy_rad)
+    return replace(second, part_offset_m=first.part_offset_m + second.part_offset_m,
+                   part_rpy_rad=turn.as_euler("xyz"), hand_eye_rpy_rad=hand_eye.as_euler("xyz"),
+                   center=first.center)
+
+
+def tilt_rad(error: PoseError, T_cell_cam: np.ndarray) -> float:
+    """The part's turn across the view from T_cell_cam [rad]: its turn less the part about the
+    view axis (which changes neither the light nor where the feature appears)."""
+    view_axis = T_cell_cam[:3, 2]
+    turn = Rotation.from_euler("xyz", error.part_rpy_rad).as_rotvec()
+    return float(np.linalg.norm(turn - (turn @ view_axis) * view_axis))
+
+
+def implausible(error: PoseError, T_cell_cam: np.ndarray) -> str | None:
+    """Why a fit cannot be the cell's pose error, or None: its part offset beyond MAX_OFFSET_M,
+    its tilt across the view from T_cell_cam beyond MAX_TURN_RAD or the hand-eye's turn across
+    the view beyond MAX_HAND_EYE_RAD (a fixture and a calibration are never that far off: the fit
+    matched the wrong edges). The turns about the view axis are not judged: the part's and the
+    hand-eye's trade against each other where the view has few edges (the conrod's shank)."""
+    offset = float(np.linalg.norm(error.part_offset_m))
+    tilt = tilt_rad(error, T_cell_cam)
+    hand_eye = float(np.linalg.norm(Rotation.from_euler("xyz", error.hand_eye_rpy_rad).as_rotvec()[:2]))
+    if offset > MAX_OFFSET_M or tilt > MAX_TURN_RAD or hand_eye > MAX_HAND_EYE_RAD:
+        return (f"the fit puts the part {1e3 * offset:.1f} mm off and tilted {np.degrees(tilt):.1f} deg and the "
+                f"camera turned {np.degrees(hand_eye):.1f} deg, beyond any fixture ({1e3 * MAX_OFFSET_M:g} mm, "
+                f"{np.degrees(MAX_TURN_RAD):g} deg) or hand-eye calibration ({np.degrees(MAX_HAND_EYE_RAD):g} deg): "
+                f"the part could not be localized in these views")
+    return None
+
+
+def displacement_m(error: PoseError, T_cell_cam: np.ndarray) -> float:
+    """How far the feature centre appears from where the model puts it in a view from T_cell_cam,
+    across the view [m at the feature]: what one view sees of a part offset and a hand-eye turn
+    alike."""
+    T_true = T_cell_cam @ error.T_hand_eye
+    moved = geometry.apply(np.linalg.inv(T_true), geometry.apply(error.T_part, error.center))
+    model = geometry.apply(np.linalg.inv(T_cell_cam), error.center)
+    return float(np.linalg.norm(moved[:2] / moved[2] - model[:2] / model[2]) * model[2])
+
+
+def significant(error: PoseError, T_cell_cam: np.ndarray, limit_m: float, lamp_tolerance_rad: float) -> bool:
+    """Whether the pose error is more than the plan tolerates, so that the model must follow it:
+    the feature displaced by more than the registration limit (cell.run.loop.registration_limit:
+    a fixture error d turns the lamp's direction to the feature by d / r; within it the loop
+    measures where registration finds the feature), or the part tilted by more than TILT_LIMIT
+    lamp tolerances (a tilt of the surface by a turns its mirror direction by 2 a; below it the
+    loop's exposure, refit and re-plan have held the band, and one view's tilt is uncertain by
+    half a degree: 0.6 deg on the conrod from a 1 mm hand-eye offset). A turn about the view axis
+    changes neither."""
+    return displacement_m(error, T_cell_cam) > limit_m or tilt_rad(error, T_cell_cam) > TILT_LIMIT * lamp_tolerance_rad
+
+
+def second_views(T_cell_cam: np.ndarray, center: np.ndarray) -> list[np.ndarray]:
+    """Camera poses for a second view, in the order to try: the camera orbited ORBIT_DEG about the
+    feature centre (about each of ORBITS axes across the view), rolled ROLL_DEG about its own
+    axis (a part's move across the view turns with the view, a hand-eye turn with the camera)
+    and turned AIM_OFF_DEG off the feature (a hand-eye roll moves an off-centre feature, a part's
+    turn about it does not)."""
+    about = geometry.transform(translation=center)
+    poses = []
+    for roll in (ROLL_DEG, -ROLL_DEG):
+        for k in range(ORBITS):
+            angle = 2.0 * np.pi * k / ORBITS
+            axis = T_cell_cam[:3, :3] @ np.array([np.cos(angle), np.sin(angle), 0.0])
+            orbit = geometry.transform(Rotation.from_rotvec(np.radians(ORBIT_DEG) * axis).as_matrix())
+            poses.append(about @ orbit @ np.linalg.inv(about) @ T_cell_cam
+                         @ geometry.from_rpy(np.radians([AIM_OFF_DEG, 0.0, roll])))
+    return poses
+
+
+def view_exposure(model: ModelView, saturation: float, f_number: float,
+                  shutter_range_s: tuple[float, float]) -> float:
+    """The shutter [s] that puts the model's brightest part (its 99th percentile) at VIEW_GRAY of
+    saturation at this f-number (G = value t / kappa^2), within the camera's range."""
+    seen = np.isfinite(model.points[..., 0])
+    top = float(np.percentile(model.value[seen], 99.0)) if seen.any() else 0.0
+    if top <= 0:
+        return shutter_range_s[1]
+    return float(np.clip(VIEW_GRAY * saturation * f_number**2 / top, *shutter_range_s))
+
+
+class HandEyeCorrected(Arm):
+    """An arm whose hand-eye the loop has corrected by E_he (PoseError.T_hand_eye): a camera pose
+    T is commanded as T E_he^-1 and read back as T_read E_he, so the camera stands where the loop
+    asks; the device itself, and what the simulated camera renders from, keep the task's hand-eye."""
+
+    def __init__(self, arm: Arm, T_hand_eye: np.ndarray) -> None:
+        super().__init__(arm.config, arm.frames.with_transform("T_flange_cam", arm.frames.T_flange_cam @ T_hand_eye))
+        self.arm, self.T_hand_eye = arm, np.asarray(T_hand_eye, float)
+        self.device = arm.device
+
+    def _move_tcp(self, T_base_cam: np.ndarray, speed_m_s: float) -> None:
+        self.arm._move_tcp(T_base_cam @ np.linalg.inv(self.T_hand_eye), speed_m_s)
+
+    def _unreachable(self, T_base_cam: np.ndarray) -> str | None:
+        return self.arm._unreachable(T_base_cam @ np.linalg.inv(self.T_hand_eye))
+
+    def _tcp_pose(self) -> np.ndarray:
+        return self.arm._tcp_pose() @ self.T_hand_eye
+
+    def stop(self) -> None:
+        self.arm.stop()
+
+    def state(self) -> dict[str, Any]:
+        return self.arm.state() | {"camera_pose": self.camera_pose().tolist()}
+
+    def close(self) -> None:
+        self.arm.close()
+
+
+def corrected(devices: Devices, error: PoseError | None) -> Devices:
+    """The devices with the arm's hand-eye corrected by the pose error's (HandEyeCorrected);
+    the devices themselves without one."""
+    if error is None:
+        return devices
+    return replace(devices, arm=HandEyeCorrected(devices.arm, error.T_hand_eye))
+
+
+def located_task(task: Task, error: PoseError) -> Task:
+    """The task with the part where the pose error puts it (T_cell_part <- E_part T_cell_part)
+    and the hand-eye corrected (T_flange_cam <- T_flange_cam E_he)."""
+    frames = task.frames.with_transform("T_cell_part", error.T_part @ task.frames.T_cell_part)
+    frames = frames.with_transform("T_flange_cam", frames.T_flange_cam @ error.T_hand_eye)
+    return replace(task, frames=frames)
+
+
+def moved_scene(scene: Scene, T: np.ndarray) -> Scene:
+    """The scene with the part, its feature and the camera moved by T (cell frame)."""
+    vertices = np.ascontiguousarray(geometry.apply(T, scene.vertices))
+    key = hashlib.blake2b(vertices.tobytes() + np.asarray(scene.faces).tobytes(), digest_size=16).hexdigest()
+    return replace(scene, vertices=vertices, mesh_key=key, center=geometry.apply(T, scene.center),
+                   normal=geometry.rotate(T, scene.normal), frame=T[:3, :3] @ scene.frame,
+                   points=geometry.apply(T, scene.points), normals=geometry.rotate(T, scene.normals),
+                   T_cell_cam=T @ scene.T_cell_cam)
+
+
+def moved_plan(plan: Plan, T: np.ndarray) -> Plan:
+    """A one-shot plan carried along with the part moved by T: its scene and its camera (the view
+    of the part kept); the lamp stays (the rig turns it about its fixed pivot), the loop corrects
+    the exposure for the light it then gives."""
+    return replace(plan, scene=moved_scene(plan.planned_scene, T),
+                   shots=(replace(plan.shot, T_cell_cam=T @ plan.shot.T_cell_cam),))
+
+
+def describe(error: PoseError, views: int) -> str:
+    """The log's sentence of a pose error found in `views` views."""
+    def vector(values: np.ndarray, stderr: np.ndarray, scale: float, unit: str) -> str:
+        return (f"[{', '.join(f'{scale * v:+.2f}' for v in values)}] {unit} "
+                f"(+- {', '.join(f'{scale * s:.2f}' for s in stderr)})")
+    return (f"the part is off by {vector(error.part_offset_m, error.part_offset_stderr_m, 1e3, 'mm')} in the cell "
+            f"and turned by {vector(error.part_rpy_rad, error.part_rpy_stderr_rad, 180 / np.pi, 'deg')}; the "
+            f"camera's hand-eye turned by "
+            f"{vector(error.hand_eye_rpy_rad, error.hand_eye_rpy_stderr_rad, 180 / np.pi, 'deg')} "
+            f"({views} view{'s' * (views > 1)}, {error.edge_points} edge points, residual {error.residual:.2f})")
