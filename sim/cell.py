@@ -56,7 +56,7 @@ def make_sim_devices(task: Task, scene: Scene | None, operator: Operator | None 
     (sim.board)."""
     faults = SimFaults(**faults) if isinstance(faults, dict) else faults or SimFaults()
     config = task.cell.devices
-    obstacles = Obstacles(task)
+    obstacles = Obstacles(task) if "collisions" in task.sim.effects else None
     arm = SimArm(config.arm, task.frames, fail_on_move=faults.arm_fail_on_move, obstacles=obstacles)
     lamp = SimPanTilt(task.lamp.rig, config.pan_tilt, yes=yes, operator=operator,
                       fail_on_move=faults.lamp_fail_on_move, fail_servo=faults.servo_id,

@@ -296,3 +296,26 @@ def test_a_feature_whose_only_shot_collides_is_refused_naming_both_bodies(tmp_pa
     assert "fixture" in (a, b) and {a, b} & {"camera_body", "wrist_1", "wrist_2", "wrist_3"}
     assert "collision" in err and "shank" in err and f"{a} and {b}" in err
     assert "moves" not in plan                       # a partial plan: nothing to move along
+
+
+def test_the_cell_s_own_check_is_the_collisions_effect_off_unless_listed():
+    """make_sim_devices gives the arm and the pan-tilt the cell's own check only with
+    `collisions` in sim.effects: the hinge's lamp driven into the camera stops with it, and
+    without it the simulated lamp goes there (the effect alone decides)."""
+    from dataclasses import replace
+    from cell.planning.scene import build_scene
+    from sim.cell import make_sim_devices
+    base = load_task(HINGE)
+    scene = build_scene(base)
+    pivot = np.asarray(base.lamp.rig.pivot_m, float)
+    for effects, stops in ((base.sim.effects, False), (base.sim.effects + ("collisions",), True)):
+        devices = make_sim_devices(replace(base, sim=replace(base.sim, effects=effects)), scene)
+        assert (devices.arm.obstacles is not None) is stops
+        devices.arm.move_camera(look_at(pivot + (0.0, 0.0, 0.25), pivot))
+        devices.lamp.move(0.0, np.radians(30.0), 0.25)
+        if stops:
+            with pytest.raises(DeviceFault, match="protective stop"):
+                devices.lamp.move(0.0, np.radians(85.0), 0.25)
+        else:
+            devices.lamp.move(0.0, np.radians(85.0), 0.25)
+            assert np.degrees(devices.lamp.joints()[1]) == pytest.approx(85.0, abs=0.1)

@@ -32,7 +32,8 @@ from cell.task.types import (DEFECT_KINDS, LIGHT_TYPES, MOUNTS, Calibration, Cam
                        Defect, Feature, Goniometer, Lamp, LampRig, Lens, Light, LoopSettings, Part, Requirements, Sample,
                        SimConfig, Sensor, Task, Truth, Viewpoint)
 
-EFFECTS = ("shadows", "cone_falloff", "vignetting", "defocus", "noise", "black_level", "quantization", "defects")
+EFFECTS = ("shadows", "cone_falloff", "vignetting", "defocus", "noise", "black_level", "quantization", "defects",
+           "collisions")
 SURFACE_TOLERANCE_M = 1e-3       # feature center at most this far from the mesh surface
 MAX_SAMPLES = 4096
 MAX_SENSOR_SIDE_PX = 65_536
