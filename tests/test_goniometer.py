@@ -106,6 +106,7 @@ def test_the_world_s_rho_sigma1_m1_are_recovered_and_the_narrow_spike_is_unresol
     assert rows[0] == "theta_i_deg,theta_e_deg,phase_deg,reflectance" and len(rows) == 1 + len(result.readings)
 
 
+@pytest.mark.long
 def test_a_spike_wider_than_the_step_is_measured(tmp_path):
     """m2 = 100 has a half width of sqrt(ln 2 / 200) = 3.4 deg in beta; a 1.5 deg step resolves it."""
     task = sim_task(tmp_path, {"phase_deg": [30], "step_deg": 1.5, "max_angle_deg": 40}, m2=100.0)

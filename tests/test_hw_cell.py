@@ -149,6 +149,7 @@ def test_a_multi_shot_run_on_the_real_sdks_converges_for_every_feature_as_the_si
         assert shot["camera_error"]["position_m"] < 0.5e-3 and shot["camera_error"]["angle_deg"] < 0.3
 
 
+@pytest.mark.long
 def test_the_ring_task_drives_the_lighting_controller_emulator_on_the_hw_path(tmp_path):
     """tasks/ring.yaml on the real adapters, the Gardasoft adapter against its emulator (an RT420):
     converged; before every capture each channel was set (`RSc,s`) to the plan's drive and read

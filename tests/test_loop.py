@@ -135,6 +135,7 @@ def test_a_wrong_model_is_corrected_within_4_iterations(tmp_path, truth):
     assert last["f_number"] == pytest.approx(first["f_number"])
 
 
+@pytest.mark.long
 @settings(max_examples=6, deadline=None, derandomize=True,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(albedo=st.floats(0.5, 2.0), constant=st.floats(0.7, 1.3), aim_error_deg=st.floats(0.0, 1.0),

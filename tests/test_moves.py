@@ -225,6 +225,7 @@ def assert_every_path_keeps_the_padding(task, plan):
     assert d >= task.cell.collision.padding_m, f"{bodies} {d * 1e3:.1f} mm apart on the way to shot {shot}"
 
 
+@pytest.mark.long
 def test_the_wall_moves_keep_the_padding_along_their_whole_path_by_a_dense_check(tmp_path):
     """The wall of test_collision between two shots: the planner's via path at every 5 mm a point
     of the arm travels, 4-5x denser than its own steps."""

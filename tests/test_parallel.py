@@ -57,6 +57,7 @@ def one_line(err):
     return err
 
 
+@pytest.mark.long
 def test_serial_workers_2_and_a_cluster_by_address_plan_the_same(scheduler, tmp_path, capsys):
     said = io.StringIO()
     serial = with_moves(load_task(PLANNED), plan_features(load_task(PLANNED), progress=Progress(said)))

@@ -412,6 +412,7 @@ def test_a_shot_not_registered_is_never_in_band_and_no_library_text_reaches_the_
     assert "not registered: not judged in band 110-150" in terminal.err
 
 
+@pytest.mark.long
 def test_on_a_plate_filling_the_frame_there_is_nothing_to_register_unless_the_capture_shows_an_edge(tmp_path):
     """tasks/ring.yaml's plate fills the frame: neither the model nor the capture has an edge
     around the feature, so an offset would change no pixel there; registration says so, trusts the
