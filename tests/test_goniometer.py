@@ -67,6 +67,7 @@ def measure(task_path, out, faults=None, operator=None):
     return result, cell.stops, json.loads((Path(out) / "measurement.json").read_text())
 
 
+@pytest.mark.long
 def test_the_world_s_rho_sigma1_m1_are_recovered_and_the_narrow_spike_is_unresolved(tmp_path):
     task = sim_task(tmp_path, {"phase_deg": [30, 60], "step_deg": 8, "max_angle_deg": 85})
     result, _, written = measure(task, tmp_path / "run")
