@@ -21,7 +21,7 @@ from scipy.optimize import minimize
 from cell.planning import certificate, defects, drives, evaluate, lights, regions, requirements, viewpoints
 from cell.core import geometry
 from cell.devices import rig
-from cell.physics import depth_of_field as dof
+from cell.physics import brdf, depth_of_field as dof
 from cell.physics.costs import RequirementValue
 from cell.planning.plan import Exposure, LightSetting, Maps, Plan, PlannerSettings, Refinement, Search, Shot
 
@@ -263,7 +263,7 @@ def notes(problem: evaluate.Problem, shot: Shot) -> tuple[str, ...]:
     scene, table = problem.scene, problem.material.phase_rad
     s = geometry.unit(shot.lamp_position - scene.points)
     v = geometry.unit(scene.camera_position - scene.points)
-    phase = np.degrees(np.arccos(np.clip(np.sum(s * v, axis=-1), -1.0, 1.0)))
+    phase = np.degrees(brdf.phase_angle(s, v))
     lo, hi = np.degrees(table[0]), np.degrees(table[-1])
     out = []
     if phase.max() > hi + 1e-9 or phase.min() < lo - 1e-9:
@@ -286,7 +286,7 @@ def make_shot(problem: evaluate.Problem, joints: np.ndarray, candidate: evaluate
     full_scale = 2.0 ** problem.task.camera.sensor.bit_depth - 1
     return Shot(T_cell_cam=scene.T_cell_cam, joints=tuple(float(x) for x in joints), lamp_position=pos,
                 exposure=exposure, gray=np.minimum(candidate.gray[0], full_scale), distance_m=float(np.linalg.norm(pos - scene.center)),
-                phase_angle_rad=float(np.arccos(np.clip(s @ v, -1, 1))),
+                phase_angle_rad=float(brdf.phase_angle(s, v)),
                 requirements=requirements.judged(problem, candidate, values),
                 lights=light_settings(problem, candidate),
                 defects=defects.judge(problem, candidate) if problem.task.feature.defects else ())
