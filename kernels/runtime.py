@@ -27,6 +27,8 @@ from typing import Any
 
 import warp as wp
 
+from kernels.cores import available_cores
+
 DEVICE = "cpu"
 # Warp launches a CPU kernel with a block of 1 thread (warp.config.enable_cpu_blocks off): the
 # variant a launch loads, and so the one whose binary the disk cache must hold
@@ -107,16 +109,9 @@ _pool: tuple[int, ThreadPoolExecutor] | None = None       # its thread count, th
 _pool_lock = threading.Lock()
 
 
-def available_cores() -> int:
-    """The cores this process may run on (its affinity: a container's or `taskset`'s share)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:                      # no affinity on this OS
-        return os.cpu_count() or 1
-
-
 def threads() -> int:
-    """How many threads a big launch is split over: set_threads's count, else available_cores()."""
+    """How many threads a big launch is split over: set_threads's count, else the cores this
+    process may use (kernels.cores.available_cores)."""
     return _threads if _threads is not None else available_cores()
 
 

@@ -6,6 +6,7 @@ them. Slices are forced small here (MIN_SLICE 1) so that small inputs split too,
 uneven slices, more threads than the machine's 2 cores."""
 import dataclasses
 import math
+import os
 
 import numpy as np
 import pytest
@@ -13,7 +14,8 @@ import trimesh
 
 from cell.core import geometry
 from cell.physics import reference as ref
-from kernels import runtime
+from cell import cli
+from kernels import cores, runtime
 from kernels.cone import free_cone_cosines
 from kernels.gray import GrayInputs, gray_per_exposure
 from kernels.mesh import WarpMesh
@@ -71,12 +73,30 @@ def test_slices_cover_the_range_once_and_evenly(monkeypatch):
     assert on(1, runtime.slices, 10_000, 1e6) == [(0, 10_000)]
 
 
-def test_the_thread_count_defaults_to_the_cores_this_process_may_use():
-    import os
+def test_the_thread_count_defaults_to_the_cores_this_process_may_use(monkeypatch):
+    """Its affinity, or fewer where LIGHTPLAN_CORES says so (never more: they are not there)."""
+    affinity = len(os.sched_getaffinity(0))
     runtime.set_threads(None)
-    assert runtime.threads() == len(os.sched_getaffinity(0))
+    monkeypatch.delenv(cores.CORES_VARIABLE, raising=False)
+    assert runtime.threads() == affinity
+    monkeypatch.setenv(cores.CORES_VARIABLE, "1")
+    assert runtime.threads() == 1
+    monkeypatch.setenv(cores.CORES_VARIABLE, str(affinity + 3))
+    assert runtime.threads() == affinity
     with pytest.raises(ValueError, match="at least 1"):
         runtime.set_threads(0)
+
+
+@pytest.mark.parametrize("raw", ["0", "-2", "two", "1.5", ""])
+def test_a_cores_setting_not_a_whole_number_of_at_least_1_is_bad_input(monkeypatch, capsys, raw):
+    monkeypatch.setenv(cores.CORES_VARIABLE, raw)
+    with pytest.raises(ValueError) as err:
+        cores.available_cores()
+    assert str(err.value) == (f"environment: LIGHTPLAN_CORES: found {raw!r}, expected a whole number of cores, "
+                              "at least 1 (or unset: every core this process may run on)")
+    assert cli.main(["check", "tasks/hinge.yaml"]) == 2            # before any work: one line, exit 2
+    out, said = capsys.readouterr()
+    assert out == "" and said == f"cell check: {err.value}\n"
 
 
 def test_split_visibility_maps_and_free_cones_equal_one_launch(hinge, launches):

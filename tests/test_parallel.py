@@ -199,7 +199,7 @@ def test_workers_split_their_kernels_over_their_share_of_the_cores(scheduler):
     """--workers N: each worker's launches over cores / N threads (its share: N workers' threads do
     not outnumber the cores), the restricted pool's too; a cluster by address: each worker's own
     cores; serially: this process's cores."""
-    from kernels.runtime import available_cores
+    from kernels.cores import available_cores
     cores = available_cores()
     with parallel.local_cluster(2) as both:
         share = max(1, cores // 2)

@@ -268,6 +268,12 @@ def _terminate(signum, frame):
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    from kernels.cores import available_cores
+    try:
+        available_cores()                   # LIGHTPLAN_CORES, if set, read before any work
+    except ValueError as err:
+        print(f"cell {args.command}: {err}", file=sys.stderr, flush=True)
+        return 2
     previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         module = importlib.import_module(COMMANDS[args.command])

@@ -192,7 +192,7 @@ def local_cluster(workers: int) -> Cluster:
     import dask
     from distributed import Client, LocalCluster
 
-    from kernels.runtime import available_cores
+    from kernels.cores import available_cores
     with dask.config.set(LOCAL_CONFIG):
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
                                scheduler_port=0, dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR,
