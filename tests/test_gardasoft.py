@@ -26,11 +26,15 @@ from sim.arm import SimArm
 from sim.camera import SimCamera
 from sim.gardasoft_emulator import GardasoftEmulator
 from sim.pantilt import SimPanTilt
+from loopback import refusing_port
 from simcell import device_settings, variant
 from test_hw_check import hw_check, servos, ur_host, video  # noqa: F401 (ur_host, video: fixtures)
 from test_hw_check import task as hw_task
 
-TIMEOUT_S = 0.3
+# the controller's reply timeout: the emulator answers in a millisecond idle, but a thread of a
+# busy machine (the suite on both cores, other test runs) may wait far longer for its turn
+TIMEOUT_S = 2.0
+SILENT_TIMEOUT_S = 0.3      # the one test that waits for the timeout to pass
 
 
 @pytest.fixture
@@ -48,16 +52,9 @@ def controller(emulator, **kwargs):
     return GardasoftController(settings(emulator, **kwargs))
 
 
-def free_port():
-    """A loopback port nothing listens on (bound, then released)."""
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
 def exchange(emulator, line):
     """One raw command line to the emulator and the reply through its `>`."""
-    with socket.create_connection(emulator.address, timeout=2.0) as sock:
+    with socket.create_connection(emulator.address, timeout=10.0) as sock:
         sock.sendall(line)
         reply = b""
         while not reply.endswith(b">"):
@@ -82,7 +79,7 @@ def test_the_emulator_answers_the_manuals_commands_byte_for_byte(emulator):
 
 
 def test_the_emulator_sends_error_events_only_after_gt1(emulator):
-    with socket.create_connection(emulator.address, timeout=2.0) as sock:
+    with socket.create_connection(emulator.address, timeout=10.0) as sock:
         sock.sendall(b"GT1\r")
         assert sock.recv(64) == b">"
         emulator.inject((2, 131))
@@ -99,7 +96,7 @@ def test_the_emulator_runs_as_a_module_and_refuses_a_non_loopback_host():
         ready, _, address = process.stdout.readline().strip().partition(" ")
         host, _, port = address.partition(":")
         assert ready == "READY" and host == "127.0.0.1"
-        with socket.create_connection((host, int(port)), timeout=2.0) as sock:
+        with socket.create_connection((host, int(port)), timeout=10.0) as sock:
             sock.sendall(b"VR\r")
             assert sock.recv(64) == b"RT220-20 (HW02) V031\r\n>"
             sock.sendall(b"ST1\r")
@@ -167,13 +164,13 @@ def test_a_channel_or_level_out_of_range_is_refused_before_anything_is_sent(emul
 # each fault a controller shows -> a DeviceFault naming the controller and its address
 
 def test_no_reply_within_the_timeout_is_a_fault_and_later_commands_are_not_sent(emulator):
-    lights = controller(emulator)
+    lights = controller(emulator, timeout_s=SILENT_TIMEOUT_S)
     emulator.inject("silent")
     name = f"Gardasoft controller at {emulator.address[0]}:{emulator.address[1]}"
     start = time.monotonic()
     with pytest.raises(DeviceFault) as fault:
         lights.set_drive(1, 0.5)
-    assert TIMEOUT_S <= time.monotonic() - start < TIMEOUT_S + 0.5
+    assert SILENT_TIMEOUT_S <= time.monotonic() - start < SILENT_TIMEOUT_S + 10.0    # waited for it; no hang
     assert str(fault.value) == f"lighting: {name}: no reply ending in '>' to RS1,50 within 0.3 s"
     sent = len(emulator.received)
     with pytest.raises(DeviceFault, match=r"no reply .*: ST1 not sent$"):
@@ -214,7 +211,7 @@ def test_a_dropped_connection_is_a_fault_and_all_off_connects_again(emulator):
 
 
 def test_a_refused_connection_is_a_fault_naming_the_address():
-    port = free_port()
+    port = refusing_port()
     config = LightingConfig("gardasoft", "127.0.0.1", port, 4, TIMEOUT_S)
     with pytest.raises(DeviceFault, match=rf"^lighting: Gardasoft controller at 127\.0\.0\.1:{port}: cannot "
                                           r"connect \(ConnectionRefusedError: "):
@@ -261,7 +258,7 @@ def test_a_silent_controller_is_a_failed_stop_naming_the_channels_left_on(emulat
                                           r"127\.0\.0\.1:\d+: no reply ending in '>' to RS1,0 within 0\.3 s; "
                                           r"channels \[1, 2, 3, 4\] not turned off$"):
         with Session(on_fault=faults.append) as session:
-            session.devices = sim_devices(controller(emulator))
+            session.devices = sim_devices(controller(emulator, timeout_s=SILENT_TIMEOUT_S))
             session.devices.lights.set_drive(2, 0.9)
             emulator.inject("silent")
             raise DeviceFault("arm", "protective stop")
@@ -309,7 +306,7 @@ def test_hw_check_reports_the_controller_and_sets_nothing(tmp_path, ur_host, vid
 
 
 def test_hw_check_with_nothing_listening_is_exit_3_naming_the_controller(tmp_path, ur_host, video):
-    port = free_port()
+    port = refusing_port()
     with servos() as bus:
         done, _ = hw_check(lighting_task(tmp_path, ur_host, bus.port, video, {"host": "127.0.0.1", "port": port}))
     assert done.returncode == 3

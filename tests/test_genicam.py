@@ -4,7 +4,6 @@ viky.cti (a 400x400 Mono8 test pattern: white, with a black BouncingBallSize squ
 pixel a frame), for the nodes viky lacks (ExposureTime, Gain, trigger) a fake device
 (tests/genicam_fake.py), and `cell run --backend hw` on viky with the UR and servo emulators."""
 import json
-import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -24,6 +23,7 @@ from cell.task.loader import load_task
 from cell.devices.operator import Operator
 from sim.dxl_emulator import DxlEmulator
 from genicam_fake import Buffer, FakeCamera, FloatNode, NodeMap, harvester_of
+from loopback import free_host
 from simcell import device_settings, variant
 
 TASK = "tasks/hinge.yaml"
@@ -399,25 +399,10 @@ def test_a_buffer_harvesters_cannot_read_is_a_fault(monkeypatch, delivered, reas
 
 # --- the whole hw path: exit 3 naming the camera, before anything moves ----------------------
 
-def free_loopback_host():
-    """A 127.0.0.X whose UR ports (29999, 30003, 30004) are free: other tests and engineers run
-    UR emulators on loopback addresses of their own."""
-    for x in (163, 164, 165, 166, 167):
-        host = f"127.0.0.{x}"
-        try:
-            for port in (29999, 30003, 30004):
-                with socket.socket() as probe:
-                    probe.bind((host, port))
-            return host
-        except OSError:
-            continue
-    pytest.fail("127.0.0.163-167: every address has a UR port taken")
-
-
 def test_cell_run_on_viky_is_exit_3_naming_camera_and_node_before_anything_moves(tmp_path, capsys):
     """The real ur_rtde against the UR emulator, the real dynamixel_sdk against the pty servos,
     the real harvesters against viky.cti: the missing ExposureTime ends the run at connect."""
-    host = free_loopback_host()
+    host = free_host()
     controller = subprocess.Popen([sys.executable, "-m", "sim.ur_controller", "--host", host,
                                    "--max-seconds", "60"], stdout=subprocess.PIPE, text=True)
     try:
