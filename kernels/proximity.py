@@ -45,3 +45,31 @@ def closest_points(mesh: "WarpMesh", queries: ArrayLike,
                   inputs=[mesh.id, vec3d(queries, "queries"), float(max_dist)],
                   outputs=[point_wp, face_wp, normal_wp])
     return point, face, normal
+
+
+class ClosestPoint:
+    """closest_points of one query at a time, its launch recorded once (wp.launch(record_cmd=True))
+    and run again on each new query written into the same array: a search that asks one point
+    after another (the certificate's specular point, some 80 queries) skips the launch's
+    argument packing and array wrapping each time, the same kernel on the same inputs, so the
+    same results bit for bit."""
+
+    def __init__(self, mesh: "WarpMesh", max_dist: float = 10.0) -> None:
+        device = ensure_init(__name__)
+        self.query = np.zeros((1, 3))
+        self.point, point_wp = output((1, 3), np.float64, wp.vec3d)
+        self.face, face_wp = output(1, np.int32, wp.int32)
+        self.normal, normal_wp = output((1, 3), np.float64, wp.vec3d)
+        query_wp = wp.array(self.query, dtype=wp.vec3d, device="cpu", copy=False)
+        # the mesh (its BVH) and the Warp views live as long as the recorded launch that points at them
+        self._kept = (mesh, query_wp, point_wp, face_wp, normal_wp)
+        self._launch = wp.launch(closest_point_kernel, dim=1, device=device,
+                                 inputs=[mesh.id, query_wp, float(max_dist)],
+                                 outputs=[point_wp, face_wp, normal_wp], record_cmd=True)
+
+    def __call__(self, query: ArrayLike) -> tuple[np.ndarray, int, np.ndarray]:
+        """(closest surface point (3,), face index, outward face normal (3,)) of one query (3,),
+        closest_points's values; copies, not the launch's own arrays."""
+        self.query[0] = np.asarray(query, dtype=np.float64).reshape(3)
+        self._launch.launch()
+        return self.point[0].copy(), int(self.face[0]), self.normal[0].copy()

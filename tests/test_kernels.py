@@ -19,7 +19,7 @@ from kernels.cone import NO_CONE, free_cone_cosines
 from kernels.funcs import SECTORS
 from kernels.gray import GrayInputs, gray_per_exposure
 from kernels.mesh import WarpMesh
-from kernels.proximity import closest_points
+from kernels.proximity import ClosestPoint, closest_points
 from kernels.render import render
 from kernels.visibility import combined_map, visibility_maps
 
@@ -539,3 +539,19 @@ def test_closest_points_project_onto_the_hinge_leaf(hinge):
     np.testing.assert_allclose(point[:2], [[0.006, 0.0, 0.004], [0.010, 0.005, 0.004]], atol=1e-7)
     np.testing.assert_allclose(normal[:2], [[0.0, 0.0, 1.0]] * 2, atol=1e-6)
     assert face[2] == -1 and np.isnan(point[2]).all()
+
+
+def test_the_recorded_closest_point_is_closest_points_bit_for_bit(hinge):
+    """One query after another on one recorded launch, against a launch of its own each: the
+    same points, faces and normals exactly, a miss included (NaN, -1, 0)."""
+    mesh, _ = hinge
+    rng = np.random.default_rng(3)
+    guesses = np.vstack([rng.uniform([-0.01, -0.01, 0.0], [0.02, 0.01, 0.008], (40, 3)), [[0.0, 0.0, 0.5]]])
+    closest = ClosestPoint(mesh, max_dist=0.01)
+    point, face, normal = closest_points(mesh, guesses, max_dist=0.01)
+    for k, g in enumerate(guesses):
+        p, f, n = closest(g)
+        assert f == face[k]
+        np.testing.assert_array_equal(p, point[k])
+        np.testing.assert_array_equal(n, normal[k])
+    assert face[-1] == -1 and (face[:-1] >= 0).sum() > 20

@@ -76,3 +76,19 @@ def test_the_distance_at_the_cells_around_a_lamp_is_the_whole_maps_there(seed):
     assert np.isnan(part).sum() == part.size - len(cells)
     assert np.allclose(part.ravel()[cells], brute_force(grid, inside).ravel()[cells], atol=1e-12)
     np.testing.assert_array_equal(grid.sample(part, az, el), grid.sample(signed_distance(grid, inside), az, el))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_few_cells_by_brute_force_equal_the_trees_bit_for_bit(seed):
+    """At a few cells (a judged lamp's) the transform is brute force (regions.nearest_chord), the
+    whole map k-d trees: the same numbers exactly, on the planner's 2 deg grid, cells inside and
+    outside the region both asked."""
+    grid = SphereGrid(np.radians(2.0))
+    rng = np.random.default_rng(seed)
+    inside = grid.directions() @ geometry.unit(rng.normal(size=3)) > np.cos(np.radians(rng.uniform(15, 60)))
+    flat = inside.ravel()
+    cells = np.concatenate([rng.choice(np.flatnonzero(flat), 20, replace=False),
+                            rng.choice(np.flatnonzero(~flat), 20, replace=False)])
+    part = signed_distance(grid, inside, cells).ravel()
+    np.testing.assert_array_equal(part[cells], signed_distance(grid, inside).ravel()[cells])
+    assert np.isnan(np.delete(part, cells)).all()

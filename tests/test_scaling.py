@@ -2,10 +2,13 @@
 (cell.bench.scaling): the features lie on the faces they are named after, the growth exponent is
 the log-log slope, the peak memory counts the children's, and a short run of the rows."""
 import math
+import os
 import subprocess
 import sys
+import time
 
 import numpy as np
+import psutil
 import pytest
 import trimesh
 import yaml
@@ -67,19 +70,44 @@ def test_the_growth_exponent_is_the_log_log_slope():
 
 
 def test_peak_memory_counts_a_child_process_and_its_peak():
-    """A child that holds 300 MB for a moment, then frees it: the peak holds it, the end does not."""
+    """A child that holds 300 MB of its own for a moment, then frees it: both peaks (resident and
+    proportional: private pages count whole in each) hold it, the end does not."""
     code = ("import time; b = bytearray(300_000_000); b[::4096] = b'x' * len(b[::4096]); time.sleep(1.0); del b; "
             "time.sleep(1.0)")
     with scaling.PeakMemory() as memory:
-        before = memory.resident()
+        before, before_proportional = memory.resident(), memory.proportional()
         child = subprocess.Popen([sys.executable, "-c", code])
         child.wait()
     assert memory.peak - before > 280e6
-    assert memory.resident() - before < 100e6
+    assert memory.peak_proportional - before_proportional > 280e6
+    assert memory.resident() - before < 100e6 and memory.proportional() - before_proportional < 100e6
+
+
+def test_the_proportional_size_splits_pages_a_forked_child_shares():
+    """A 200 MB buffer written before a fork and only read after it is shared by parent and child:
+    each process's resident set counts it whole, their proportional sizes split it, so their
+    sum counts it about once (Linux's smaps_rollup)."""
+    if not os.path.exists("/proc/self/smaps_rollup"):
+        pytest.skip("no /proc/PID/smaps_rollup on this system")
+    shared = bytearray(200_000_000)
+    shared[::4096] = b"x" * len(shared[::4096])
+    child = os.fork()
+    if child == 0:                                          # the child only keeps the pages mapped
+        time.sleep(3.0)
+        os._exit(0)
+    try:
+        time.sleep(0.5)
+        me, kid = psutil.Process(), psutil.Process(child)
+        resident = me.memory_info().rss + kid.memory_info().rss
+        proportional = scaling.proportional_size(me) + scaling.proportional_size(kid)
+        assert resident - proportional > 150e6              # the 200 MB counted twice in one, once in the other
+    finally:
+        os.waitpid(child, 0)
 
 
 def test_the_targets_are_the_issues_at_40_features():
-    row = {"features": 40, "serial_s": 19.0, "judge_share": 0.25, "peak_memory_2_workers_b": 0.9e9}
+    row = {"features": 40, "serial_s": 19.0, "judge_share": 0.25, "peak_pss_2_workers_b": 0.9e9,
+           "peak_memory_2_workers_b": 1.3e9}
     summary = {"growth_between": [10, 40], "growth_exponent": 1.2, "workers_features": 40, "speedup": 1.7}
     met = {t["name"]: t["met"] for t in scaling.targets([row], summary)}
     assert met == {"many-40: warm serial plan <= 20 s": True, "many-40: judge <= 20 % of planning": False,
@@ -98,6 +126,7 @@ def test_a_short_run_plans_each_size_serially_and_on_2_workers_alike():
         assert row["feasible"] and row["identical"] and 0 < row["judge_share"] < 1
         assert row["speedup"] == pytest.approx(row["serial_s"] / row["workers_2_s"])
         assert row["peak_memory_2_workers_b"] > row["peak_memory_serial_b"] > 50e6     # the workers' too
+        assert row["peak_pss_2_workers_b"] > row["peak_pss_serial_b"] > 50e6
     assert summary["growth_exponent"] == pytest.approx(
         math.log(rows[1]["serial_s"] / rows[0]["serial_s"]) / math.log(3 / 2))
     assert summary["workers_features"] == 3 and len(summary["speedups"]) == 1

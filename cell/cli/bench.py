@@ -76,10 +76,11 @@ def report(result: dict[str, Any]) -> str:
           "{:.1f}-{:.1f}".format(*r["load"])] for r in result["threads"]])
     many = text_table(
         ["task", "features", "candidates", "shots", "serial s", "judge s", "judge share", "2 workers s", "speedup",
-         "peak MB serial", "peak MB 2 workers", "load serial", "load 2 workers", "identical"],
+         "PSS MB serial", "PSS MB 2 workers", "RSS MB 2 workers", "load serial", "load 2 workers", "identical"],
         [[r["task"], r["features"], r["candidates"], r["shots"], f"{r['serial_s']:.1f}", f"{r['judge_s']:.1f}",
           f"{r['judge_share']:.0%}", f"{r['workers_2_s']:.1f}", f"{r['speedup']:.2f}x",
-          f"{r['peak_memory_serial_b'] / 1e6:.0f}", f"{r['peak_memory_2_workers_b'] / 1e6:.0f}",
+          f"{r['peak_pss_serial_b'] / 1e6:.0f}", f"{r['peak_pss_2_workers_b'] / 1e6:.0f}",
+          f"{r['peak_memory_2_workers_b'] / 1e6:.0f}",
           "{:.1f}-{:.1f}".format(*r["load"]), "{:.1f}-{:.1f}".format(*r["load_2_workers"]),
           "yes" if r["identical"] else "NO"] for r in result["scaling"]])
     goals = "\n".join(f"{'met    ' if t['met'] else 'NOT MET'}  {t['name']}: {t['value']:.3g}"

@@ -65,15 +65,17 @@ def specular_point(scene: Scene, lamp: ArrayLike) -> tuple[np.ndarray, np.ndarra
     (point, outward normal) on the surface."""
     from scipy.optimize import minimize
 
-    from kernels.proximity import closest_points
+    from kernels.proximity import ClosestPoint
     radius = float(np.max(np.linalg.norm(scene.points - scene.center, axis=1)))
     start = scene.points[int(np.argmax(mirror_alignment(scene.points, scene.normals, lamp,
                                                         scene.camera_position)))]
 
+    closest = ClosestPoint(scene.warp_mesh, max_dist=radius)
+
     def on_surface(step):
         guess = start + step[0] * scene.frame[:, 0] + step[1] * scene.frame[:, 1]
-        point, _, normal = closest_points(scene.warp_mesh, guess[None], max_dist=radius)
-        return point, normal
+        point, _, normal = closest(guess)
+        return point[None], normal[None]
 
     def f(step):
         point, normal = on_surface(step)

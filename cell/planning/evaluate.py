@@ -6,7 +6,7 @@ The requirements (cell.planning.requirements) are judged on these values."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields, replace
 from typing import TYPE_CHECKING, Any
 
@@ -87,6 +87,7 @@ class KernelInputs:
         self.lights_of: tuple[Task, Scene, Material, tuple[int, ...]] | None = None
         self.lights: LightsAtScene | None = None
         self.defects: dict[Any, Any] = {}       # cell.planning.defects: a defect's inputs, with what they were made of
+        self.fixed: dict[str, tuple[tuple[Task, Scene], Any]] = {}    # Problem.fixed's values, with what they were made of
 
     def __getstate__(self):
         return {}
@@ -128,6 +129,17 @@ class Problem:
             gray = gray_inputs(task, scene, material)
             self.kernels.gray, self.kernels.made_of = gray, (task, scene, material)
         return gray
+
+    def fixed(self, name: str, compute: Callable[[], Any]) -> Any:
+        """The value `name` of the task's camera and samples alone, no lamp in it (a requirement's
+        view angle or resolution, the samples' depths): compute() once per task and scene,
+        kept for the Problems `replace` makes of this one (a search's refinement evaluates the
+        requirements tens of thousands of times on one camera and one set of samples)."""
+        made_of, value = self.kernels.fixed.get(name, (None, None))
+        if made_of is None or made_of[0] is not self.task or made_of[1] is not self.scene:
+            value = compute()
+            self.kernels.fixed[name] = ((self.task, self.scene), value)
+        return value
 
     @property
     def lights(self) -> LightsAtScene:

@@ -101,11 +101,16 @@ def refine(problem: evaluate.Problem, start: ArrayLike, lamp_rig: LampRig) -> tu
     def clipped(z):
         return np.clip(np.asarray(start) + z * scale, lo, hi)
 
+    seen: dict[bytes, float] = {}       # clipped joints -> objective: steps beyond a range's end land on one pose
+
     def f(z):
         x = clipped(z)
-        c = evaluate.candidates(problem, x[:1], x[1:2], x[2:3])
-        # unlit (inf) capped: Nelder-Mead compares differences, and inf - inf is NaN
-        return float(min(requirements.objective(requirements.ln_values(problem, c))[0], UNLIT_OBJECTIVE))
+        key = x.tobytes()
+        if key not in seen:
+            c = evaluate.candidates(problem, x[:1], x[1:2], x[2:3])
+            # unlit (inf) capped: Nelder-Mead compares differences, and inf - inf is NaN
+            seen[key] = float(min(requirements.objective(requirements.ln_values(problem, c))[0], UNLIT_OBJECTIVE))
+        return seen[key]
 
     simplex = np.vstack([np.zeros(3), np.eye(3)])
     res = minimize(f, np.zeros(3), method="Nelder-Mead",

@@ -14,8 +14,13 @@ only where one of them is missed (costs.value(ln f) > 1, RequirementValue.met's 
 - view_angle and resolution, where the task asks for them (requirements.view_angle_ln,
   resolution_ln), and depth_of_field at the shot's focus and f-number (depth_of_field_ln);
 - no_shadow and cone_coverage at the shot's lamp, the spot alone lighting (a task with other
-  lights skips these two: another light may reach a sample the spot does not): the kernel's
-  shadow flag and off-axis angle, as evaluate.lit_by_all passes them on without other lights.
+  lights skips these, and the two below: another light may reach a sample the spot does not):
+  the kernel's shadow flag and off-axis angle, as evaluate.lit_by_all passes them on without
+  other lights;
+- gray_min and gray_max at the shot's exposure, the spot alone lighting: G = b + (drive u) t /
+  kappa^2 with the kernel's gray per exposure u, the arithmetic of evaluate.at_exposure and
+  lit_by_all in their order, so the same numbers (a pair whose gray misses the band skips the
+  maps, the certificate and all).
 The kernel's flags of a sample depend on the sample, its normal, the mesh and the lamp alone
 (kernels.funcs.shade_point; the camera enters only the view and the BRDF), so one launch over the
 samples of every feature in question gives each sample the flags the judge's own launch gives it.
@@ -69,9 +74,9 @@ def camera_side(task: Task, lent: Lent, shot: Shot) -> list[RequirementValue]:
 
 def lamp_side(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list[list[RequirementValue]]:
     """Per feature of `tasks` (one-feature tasks of one part, each with its `lent`) the
-    requirements the kernel's flags find missed: camera_view (a sample hidden from the camera),
-    and without other lights no_shadow and cone_coverage at the shot's lamp. One launch over
-    every feature's samples, with two lamps: one at the camera, the shot's."""
+    requirements the kernel finds missed: camera_view (a sample hidden from the camera), and
+    without other lights no_shadow, cone_coverage, gray_min and gray_max at the shot's lamp and
+    exposure. One launch over every feature's samples, with two lamps: one at the camera, the shot's."""
     if not tasks:
         return []
     task = tasks[0]
@@ -81,8 +86,10 @@ def lamp_side(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list[l
     aims = np.vstack([shot.T_cell_cam[:3, 2], rig.lamp_aim(pivot, shot.lamp_position.reshape(1, 3))])
     out = evaluate.gray_inputs(task, scene, task.part.material)(np.vstack([shot.camera_position,
                                                                           shot.lamp_position]), aims)
-    spot_on = (task.lamp.channel.drive_range[1] if shot.drive is None else shot.drive[0]) > 0.0
+    spot_drive = np.float64(task.lamp.channel.drive_range[1] if shot.drive is None else shot.drive[0])
+    spot_on = spot_drive > 0.0
     half = task.lamp.lit_half_angle_rad
+    gain = shot.exposure.shutter_s / shot.exposure.f_number ** 2
     counts = np.array([len(x.scene.points) for x in lent])
     ends = np.cumsum(counts)
     found = []
@@ -96,6 +103,12 @@ def lamp_side(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list[l
                                 f"samples shadowed from the lamp, of {n}"))
             here.append(_missed("cone_coverage", float(costs.ln_f_max(np.max(np.where(spot_on, off_axis, 0.0)), half)),
                                 "samples outside the lamp's cone"))
+            gray = evaluate.black_level(t) + (spot_drive * out.value[1, start:end]) * gain
+            low, high = evaluate.planning_band(t)
+            here.append(_missed("gray_min", float(requirements.at_least(np.min(gray), low)),
+                                f"darkest sample gray {np.min(gray):.1f} at the shot's exposure (band {low:g}-{high:g})"))
+            here.append(_missed("gray_max", float(costs.ln_f_max(np.max(gray), high)),
+                                f"brightest sample gray {np.max(gray):.1f} at the shot's exposure (band {low:g}-{high:g})"))
         found.append([r for r in here if r is not None])
     return found
 

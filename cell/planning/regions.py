@@ -4,6 +4,7 @@ the region-of-similar-brightness map and its signed haversine distance transform
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -34,8 +35,7 @@ class SphereGrid:
 
     def directions(self, frame: ArrayLike = np.eye(3)) -> np.ndarray:
         """(E, A, 3) unit directions of every cell, rotated from the feature frame by `frame`."""
-        el, az = np.meshgrid(self.elevation, self.azimuth, indexing="ij")
-        return geometry.direction_from_angles(az, el) @ np.asarray(frame).T
+        return _cell_directions(self.step) @ np.asarray(frame).T
 
     def _corners(self, azimuth, elevation):
         """(e0, a0, a1, ta, te): the cells around (azimuth, elevation) and the weights between."""
@@ -60,9 +60,31 @@ class SphereGrid:
         return np.unique(np.concatenate([np.ravel(e * n_az + a) for e in (e0, e0 + 1) for a in (a0, a1)]))
 
 
+@lru_cache(maxsize=8)
+def _cell_directions(step: float) -> np.ndarray:
+    """(E, A, 3) unit directions of every cell of SphereGrid(step) in the feature frame, computed
+    once per step (read-only): every map of a plan, and of every shot judged, is on one grid."""
+    grid = SphereGrid(step)
+    el, az = np.meshgrid(grid.elevation, grid.azimuth, indexing="ij")
+    out = geometry.direction_from_angles(az, el)
+    out.flags.writeable = False
+    return out
+
+
+def nearest_chord(queries: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """(Q,) the chord from each query (Q, 3) to its nearest target (T, 3), by brute force: for
+    the few cells a judged lamp reads, cheaper than a k-d tree's build over the whole map. Summed
+    as cKDTree sums it, (dx^2 + dy^2) + dz^2, so the same value bit for bit."""
+    d = queries[:, None, :] - targets[None]
+    return np.sqrt(np.min((d[..., 0] ** 2 + d[..., 1] ** 2) + d[..., 2] ** 2, axis=1))
+
+
 def chord_to_angle(chord: float | np.ndarray) -> np.ndarray:
     """Great-circle angle from the chord between unit vectors: 2 asin(chord / 2)."""
     return 2.0 * np.arcsin(np.clip(0.5 * chord, 0.0, 1.0))
+
+
+FEW_CELLS = 64      # cells asked for at most: brute force (nearest_chord), not k-d trees
 
 
 def signed_distance(grid: SphereGrid, inside: ArrayLike, cells: np.ndarray | None = None) -> np.ndarray:
@@ -72,7 +94,8 @@ def signed_distance(grid: SphereGrid, inside: ArrayLike, cells: np.ndarray | Non
     cells around it, not the whole map).
 
     Chord length between unit vectors is monotonic in the great-circle angle, so a k-d tree
-    on the cells' unit vectors finds the haversine-nearest cell exactly, seam and poles included.
+    on the cells' unit vectors finds the haversine-nearest cell exactly, seam and poles included
+    (at a few `cells`: brute force, nearest_chord, the same values).
     An empty (or full) region gives +pi (or -pi) everywhere.
     """
     inside = np.asarray(inside, dtype=bool)
@@ -80,10 +103,16 @@ def signed_distance(grid: SphereGrid, inside: ArrayLike, cells: np.ndarray | Non
         return np.full(inside.shape, np.pi)
     if inside.all():
         return np.full(inside.shape, -np.pi)
-    dirs = grid.directions().reshape(-1, 3)
+    dirs = _cell_directions(grid.step).reshape(-1, 3)
     flat = inside.ravel()
-    wanted = np.ones(flat.shape, bool) if cells is None else np.isin(np.arange(flat.size), cells)
     out = np.full(flat.shape, np.nan)
+    if cells is not None and len(cells) <= FEW_CELLS:
+        cells = np.unique(np.asarray(cells, dtype=int))
+        outside = ~flat[cells]
+        out[cells[~outside]] = -chord_to_angle(nearest_chord(dirs[cells[~outside]], dirs[~flat]))
+        out[cells[outside]] = chord_to_angle(nearest_chord(dirs[cells[outside]], dirs[flat]))
+        return out.reshape(inside.shape)
+    wanted = np.ones(flat.shape, bool) if cells is None else np.isin(np.arange(flat.size), cells)
     chord_out, _ = cKDTree(dirs[~flat]).query(dirs[flat & wanted])
     chord_in, _ = cKDTree(dirs[flat]).query(dirs[~flat & wanted])
     out[flat & wanted] = -chord_to_angle(chord_out)

@@ -176,11 +176,10 @@ def explain_reflection_region(p: Problem, c: Candidates, met: bool) -> str:
 def lamp_tolerance(p: Problem, c: Candidates) -> np.ndarray:
     """The worst band miss with the lamp moved by its tolerance (-inf, f = 0, when not evaluated)."""
     low, high = p.band
-    value = np.full(len(c.shutter), -np.inf)
-    for moved in c.moved_gray:
-        value = np.maximum(value, np.maximum(at_least(moved.min(axis=-1), low),
-                                             costs.ln_f_max(moved.max(axis=-1), high)))
-    return value
+    moved = c.moved_gray                                    # (M, C, P)
+    if not len(moved):
+        return np.full(len(c.shutter), -np.inf)
+    return np.maximum(at_least(moved.min(axis=-1), low), costs.ln_f_max(moved.max(axis=-1), high)).max(axis=0)
 
 
 def explain_lamp_tolerance(p: Problem, c: Candidates, met: bool) -> str:
@@ -263,7 +262,7 @@ def view_angle_ln(task: Task, scene: Scene) -> float:
 def view_angle(p: Problem, c: Candidates) -> np.ndarray:
     """The largest angle between a sample's normal and its direction to the camera, at most the
     task's view_angle_deg (a camera nearly grazing the surface sees it foreshortened)."""
-    return np.broadcast_to(view_angle_ln(p.task, p.scene), c.shutter.shape)
+    return np.broadcast_to(p.fixed("view_angle", lambda: view_angle_ln(p.task, p.scene)), c.shutter.shape)
 
 
 def explain_view_angle(p: Problem, c: Candidates, met: bool) -> str:
@@ -292,7 +291,7 @@ def resolution_ln(task: Task, scene: Scene) -> float:
 def resolution(p: Problem, c: Candidates) -> np.ndarray:
     """The largest pixel footprint on the feature (|p - C| pitch / f / cos(view angle), the
     pinhole's), at most the task's resolution_m per pixel."""
-    return np.broadcast_to(resolution_ln(p.task, p.scene), c.shutter.shape)
+    return np.broadcast_to(p.fixed("resolution", lambda: resolution_ln(p.task, p.scene)), c.shutter.shape)
 
 
 def explain_resolution(p: Problem, c: Candidates, met: bool) -> str:
@@ -343,18 +342,27 @@ def f_number_max(p: Problem, c: Candidates) -> np.ndarray:
 def depth_of_field(p: Problem, c: Candidates) -> np.ndarray:
     """Near limit before the nearest sample, far limit beyond the farthest (where they fall, not
     only the width), and at least the task's depth of field."""
-    return depth_of_field_ln(p.task, p.scene, p.focus_m, c.kappa)
+    nearest, farthest = p.fixed("depth_range", lambda: depth_range(p.scene))
+    return depth_of_field_ln(p.task, p.scene, p.focus_m, c.kappa, nearest, farthest)
 
 
-def depth_of_field_ln(task: Task, scene: Scene, focus_m: float, kappa: np.ndarray) -> np.ndarray:
+def depth_range(scene: Scene) -> tuple[float, float]:
+    """(nearest, farthest) sample depth along the camera's axis [m] (Scene.sample_depths)."""
+    depths = scene.sample_depths()
+    return depths.min(), depths.max()
+
+
+def depth_of_field_ln(task: Task, scene: Scene, focus_m: float, kappa: np.ndarray, nearest: float | None = None,
+                      farthest: float | None = None) -> np.ndarray:
     """ln f of depth_of_field at f-numbers kappa, focused at focus_m [m] (a shot's focus and
-    f-number alone: the prefilter's too)."""
+    f-number alone: the prefilter's too); the samples' depth range given or the scene's."""
     lens = task.camera.lens
     f, sigma = lens.focal_length_m, lens.circle_of_confusion_m
-    depths = scene.sample_depths()
+    if nearest is None or farthest is None:
+        nearest, farthest = depth_range(scene)
     near = dof.near_limit(focus_m, f, kappa, sigma)
     far = dof.far_limit(focus_m, f, kappa, sigma)
-    value = np.maximum(costs.ln_f_max(near, depths.min()), costs.ln_f_min(np.minimum(far, 1e3), depths.max()))
+    value = np.maximum(costs.ln_f_max(near, nearest), costs.ln_f_min(np.minimum(far, 1e3), farthest))
     wanted = task.requirements.depth_of_field_m
     if wanted > 0:
         value = np.maximum(value, costs.ln_f_min(np.minimum(far - near, 1e3), wanted))
