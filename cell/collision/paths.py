@@ -98,13 +98,8 @@ def joint_reach(scene: CollisionScene, q: ArrayLike) -> np.ndarray:
     """(6,) r_i [m] at joints q: how far from joint i's axis the farthest point it moves lies
     (the chain's joint origins beyond it, the upper arm's offset, the camera body's corners),
     plus the thickest link's radius."""
-    T = scene.frames.T_cell_base.copy()
-    origins, axes = [], []
-    for i, theta in enumerate(np.asarray(q, float)):
-        origins.append(T[:3, 3])
-        axes.append(T[:3, 2])
-        T = T @ ur5e.dh(i, theta)
-    flange = T
+    frames = ur5e.chain(scene.frames.T_cell_base, np.asarray(q, float))
+    origins, axes, flange = frames[:6, :3, 3], frames[:6, :3, 2], frames[6]
     corners = np.array(np.meshgrid(*[[-1.0, 1.0]] * 3)).T.reshape(-1, 3) * scene.camera_half_m
     camera = geometry.apply(flange, corners + (0.0, 0.0, scene.camera_offset_m))
     chain = np.vstack([origins[1:], [flange[:3, 3]], camera])

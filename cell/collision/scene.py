@@ -26,6 +26,7 @@ from numpy.typing import ArrayLike
 from cell.collision.bodies import Body, Box, Capsule, Mesh, distance, surface_samples
 from cell.core import geometry
 from cell.devices import ur5e
+from cell.devices.rig import lamp_frame
 
 if TYPE_CHECKING:
     from cell.core.frames import Frames
@@ -45,13 +46,8 @@ MAY_TOUCH = frozenset({frozenset(CHAIN[i:i + 2]) for i in range(len(CHAIN) - 1)}
 
 def arm_links(T_cell_base: np.ndarray, q: ArrayLike) -> tuple[Capsule, ...]:
     """The UR5e's links (Capsule per ARM_LINKS entry, cell frame) at joints q (6,) [rad]."""
-    T = T_cell_base.copy()
-    origins, axes = [T[:3, 3]], [T[:3, 2]]
-    for i, theta in enumerate(np.asarray(q, float)):
-        T = T @ ur5e.dh(i, theta)
-        origins.append(T[:3, 3])
-        axes.append(T[:3, 2])
-    o, z1 = origins, axes[1]                          # z1: joint 2's axis (2-4 parallel)
+    frames = ur5e.chain(T_cell_base, np.asarray(q, float))
+    o, z1 = frames[:, :3, 3], frames[1, :3, 2]        # z1: joint 2's axis (2-4 parallel)
     points = [(o[0], o[1]), (o[1], o[1] + SHOULDER_OFFSET_M * z1),
               (o[1] + SHOULDER_OFFSET_M * z1, o[2] + SHOULDER_OFFSET_M * z1),
               (o[2] + SHOULDER_OFFSET_M * z1, o[2] + FOREARM_OFFSET_M * z1),
@@ -124,11 +120,8 @@ class CollisionScene:
     def lamp_body(self, lamp_position: ArrayLike) -> Box:
         """The lamp's box: its front face centred at the lamp's position, its z axis the aim."""
         p = np.asarray(lamp_position, float)
-        z = geometry.unit(self.pivot_m - p)
-        x = np.cross((0.0, 0.0, 1.0), z)
-        x = geometry.unit(x if np.linalg.norm(x) > 1e-9 else np.array([1.0, 0.0, 0.0]))
-        R = np.column_stack([x, np.cross(z, x), z])
-        return Box("lamp_body", geometry.transform(R, p - self.lamp_half_m[2] * z), self.lamp_half_m)
+        R = lamp_frame(self.pivot_m, p)
+        return Box("lamp_body", geometry.transform(R, p - self.lamp_half_m[2] * R[:, 2]), self.lamp_half_m)
 
     def bodies(self, T_cell_cam: np.ndarray, arm_joints: ArrayLike | None = None,
                lamp_position: ArrayLike | None = None) -> tuple[Body, ...]:
