@@ -95,7 +95,7 @@ class Clearance:
 @dataclass(frozen=True)
 class CollisionScene:
     """What the clearance of a pose needs from the task: the fixed meshes, the two boxes' sizes
-    and where they sit, the frames, the lamp rig's pivot and the padding."""
+    and where they sit, the frames, the lamp rig's pivot and tilt range and the padding."""
 
     padding_m: float
     fixed: tuple[Mesh, ...]
@@ -104,6 +104,7 @@ class CollisionScene:
     lamp_half_m: np.ndarray
     frames: Frames
     pivot_m: np.ndarray
+    tilt_range_rad: tuple[float, float] = (0.0, 0.5 * np.pi)     # the rig's, for the lamp's via points
 
     @classmethod
     def of(cls, task: Task) -> CollisionScene:
@@ -111,7 +112,8 @@ class CollisionScene:
         part = _mesh("part", task.part.mesh, task.frames.T_cell_part)
         fixed = (part,) if c.fixture is None else (part, _mesh("fixture", c.fixture, np.eye(4)))
         return cls(c.padding_m, fixed, 0.5 * np.asarray(c.camera_size_m), c.camera_offset_m,
-                   0.5 * np.asarray(c.lamp_size_m), task.frames, task.lamp.rig.pivot_m)
+                   0.5 * np.asarray(c.lamp_size_m), task.frames, task.lamp.rig.pivot_m,
+                   task.lamp.rig.tilt_range_rad)
 
     def camera_body(self, T_cell_flange: np.ndarray) -> Box:
         T = T_cell_flange @ geometry.transform(translation=(0.0, 0.0, self.camera_offset_m))
