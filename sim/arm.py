@@ -90,6 +90,9 @@ class SimArm(Arm):
             return f"camera pose unreachable for the UR5e: {why}"
         return None
 
+    def _joint_angles(self):
+        return self.joints.copy()
+
     def _tcp_pose(self):
         return self.frames.T_base_cam_from_flange(ur5e.forward(self.joints))
 

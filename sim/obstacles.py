@@ -2,7 +2,8 @@
 move, independent of the planner's cell.collision (other geometry, other distances): the part
 and the fixture as points on a grid over each triangle (`surface_points`) in a k-d tree, the camera and lamp housings as
 sampled boxes of the task's `cell.collision` sizes, the UR5e's links as the segments between its
-joint origins (cell.devices.ur5e's kinematics, which the real controller shares) with the tube
+joint origins (cell.devices.ur5e's chain, which the planner's bodies and the real controller share; the lamp's
+axes cell.devices.rig.lamp_frame's) with the tube
 radii of UR's drawings. A moving body touches another where a sample of one lies within
 CONTACT_M of the other's (a surface sample's spacing: penetrating surfaces cross within it), or a
 link's axis within its radius plus CONTACT_M. The arm's links among themselves are the
@@ -23,6 +24,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from cell.devices import ur5e
+from cell.devices.rig import lamp_frame
 
 if TYPE_CHECKING:
     from cell.task.types import Task
@@ -103,12 +105,8 @@ class Obstacles:
 
     def links(self, q: np.ndarray) -> list[tuple[str, np.ndarray, float]]:
         """(name, points along its axis every CONTACT_M, radius) of each link at joints q."""
-        T = self.frames.T_cell_base.copy()
-        o, z = [T[:3, 3]], [T[:3, 2]]
-        for i, theta in enumerate(q):
-            T = T @ ur5e.dh(i, theta)
-            o.append(T[:3, 3])
-            z.append(T[:3, 2])
+        frames = ur5e.chain(self.frames.T_cell_base, q)
+        o, z = frames[:, :3, 3], frames[:, :3, 2]
         off = UPPER_ARM_OFFSET_M * z[1]
         ends = [(o[0], o[1]), (o[1] + off, o[2] + off), (o[2], o[3]), (o[3], o[4]), (o[4], o[5]), (o[5], o[6])]
         out = []
@@ -123,12 +121,8 @@ class Obstacles:
 
     def lamp(self, position: np.ndarray) -> np.ndarray:
         """The lamp housing's samples: its front face at `position`, its axis to the pivot."""
-        z = self.pivot - position
-        z /= np.linalg.norm(z)
-        x = np.cross((0.0, 0.0, 1.0), z)
-        x = x / np.linalg.norm(x) if np.linalg.norm(x) > 1e-9 else np.array([1.0, 0.0, 0.0])
-        R = np.column_stack([x, np.cross(z, x), z])
-        return self.lamp_local @ R.T + position - 0.5 * self.lamp_size[2] * z
+        R = lamp_frame(self.pivot, position)
+        return self.lamp_local @ R.T + position - 0.5 * self.lamp_size[2] * R[:, 2]
 
     # -- the checks -------------------------------------------------------------------------------
 

@@ -32,6 +32,7 @@ import trimesh
 from cell.physics.sensor import levels, saturation_level
 from cell.core import geometry
 
+from cell.run import motion
 from cell.run.acquisition import acquire, find_black_level
 from cell.devices.interfaces import speaking_for
 from cell.core.files import write_yaml
@@ -242,14 +243,15 @@ def measure_poses(task: Task, devices: Devices, recorder: Recorder, nominal: Cal
             T, joints, why = refusal(devices, task, pose)
             where = (f"phase {np.degrees(pose.phase_rad):.1f} deg, ti {np.degrees(pose.theta_i_rad):.1f}, "
                      f"te {np.degrees(pose.theta_e_rad):.1f} deg")
+            move = None if why else motion.check(task, devices, T, joints, f"pose {k}")
+            if move is not None and not move.clear:
+                why = str(motion.refusal(move))
             if why:
                 refused.append((k, why))
                 recorder.step("refused", f"pose {k} of {len(wanted)} ({where}) skipped: {why}", pose=k, reason=why)
                 continue
-            with speaking_for(devices.arm):
-                devices.arm.move_camera(T)
+            motion.go(task, devices, recorder, T, joints, f"pose {k}", checked=move)
             with speaking_for(devices.lamp):
-                devices.lamp.move(*joints)
                 lamp_pos, _ = devices.lamp.lamp_pose()
             if exposer is None:                      # the dark frame once the lamp is somewhere (its radius set),
                 k_hi = task.camera.lens.f_number_range[1]   # at the largest f-number: the least light

@@ -34,8 +34,9 @@ from scipy.spatial.transform import Rotation
 from cell.physics.sensor import levels, saturation_level
 from cell.core import geometry
 
+from cell.run import motion
 from cell.run.acquisition import acquire
-from cell.devices.interfaces import check_arm_motion, speaking_for
+from cell.devices.interfaces import check_arm_motion
 from cell.core.files import write_yaml
 from cell.core.errors import DeviceFault, GoalNotReached
 from cell.physics.projection import intrinsics
@@ -201,13 +202,14 @@ def collect(devices: Devices, recorder: Recorder, task: Task, poses: list[np.nda
     with recorder.stage("poses", len(poses)) as stage:      # the log has every step, the terminal a bar
         for k, T in enumerate(stage.each(poses), 1):
             why = refused(task, T)
+            move = None if why else motion.check(task, devices, T, to=f"pose {k}")
+            if move is not None and not move.clear:
+                why = str(motion.refusal(move))
             if why:
                 skipped.append({"pose": k, "reason": why})
                 recorder.step("refused", f"pose {k}/{len(poses)} skipped: {why}", pose=k, reason=why)
                 continue
-            with speaking_for(devices.arm):
-                devices.arm.move_camera(T)
-                T_cell_cam = devices.arm.camera_pose()
+            T_cell_cam = motion.move_camera(task, devices, T, recorder, f"pose {k}", checked=move)
             focus_m = float((board.T_cell_centre[:3, 3] - T_cell_cam[:3, 3]) @ T_cell_cam[:3, 2])
             recorder.step("move_camera", f"pose {k}/{len(poses)}: camera at "
                           f"{np.round(T_cell_cam[:3, 3], 4).tolist()} m", pose=k, position_m=T_cell_cam[:3, 3])

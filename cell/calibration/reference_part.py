@@ -18,8 +18,8 @@ from typing import TYPE_CHECKING, Any, Callable, ClassVar, Iterator
 import numpy as np
 
 from cell.physics.sensor import saturation_level
-from cell.run import measurement
-from cell.run.acquisition import acquire, move_to, plan_and_connect
+from cell.run import measurement, motion
+from cell.run.acquisition import acquire, plan_and_connect
 from cell.core.errors import GoalNotReached, PlanInfeasible
 from cell.planning.evaluate import black_level
 from cell.report.pictures import write_calibration
@@ -116,7 +116,7 @@ def sweep(task: Task, plan: Plan, devices: Devices, recorder: Recorder, shots: i
     full_scale = saturation_level(devices.camera.bit_depth)
     signal = shot.gray - black_level(task)               # the plan's G less the black level it knew
     times = shutter_sweep(shot.exposure.shutter_s, signal.max(), full_scale, task.camera.shutter_range_s, shots)
-    move_to(devices, shot, recorder)
+    motion.move_to(task, devices, shot, recorder)
     # the model's pixel power per sample at the planned f-number: G = b + c P t
     power = signal / (task.camera.sensor.camera_constant * shot.exposure.shutter_s)
     for k, wanted in enumerate(times, 1):

@@ -13,7 +13,10 @@ max(padding / 2, (d - padding) / 2) after a pose of clearance d: two bodies both
 at most twice the bound, so between two checked poses the clearance stays above the padding, or
 (near it) the step bounds the swept distance below half the padding. A direct move closer than
 the padding gets via points: back along the camera's axis from the first stop, across at that
-standoff, in along the second's axis; retreats of VIA_RETREATS_M are tried in turn.
+standoff, in along the second's axis; retreats of VIA_RETREATS_M are tried in turn. A lamp move
+closer than the padding gets via joints (`lamp_route`): up or down to another tilt, across in pan
+at it, to the target's tilt, the radius the larger of the two ends'. `plan_transition` is the move
+from where the devices read back to a target of the arm, the lamp or both (cell.run.motion).
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ if TYPE_CHECKING:
 HOME = "home"                            # a move's end that is the arm's home pose, not a shot
 VIA_RETREATS_M = (0.10, 0.20, 0.30)      # back along the camera's axis, tried in turn
 MIN_STEP_M = 0.001                       # a padding of 0 still checks every millimetre
+LAMP_VIA_TILTS = 7                       # tilts across the rig's range tried for the lamp's via joints
 MAX_STEPS = 5000                         # a longer path is refused, not checked for minutes
 MAX_JOINT_STEP_RAD = 0.2                 # more in one step of a straight path: it meets a singularity
 MIN_STEP_S = 1e-6                        # a step of the path parameter below this: a singularity
@@ -52,7 +56,8 @@ End = int | str                          # a shot's index in the plan, or HOME
 @dataclass(frozen=True)
 class Move:
     """A move from `start` to `end` (shot indices, or HOME): the smallest clearance along its
-    path (via points included), the via camera poses T_cell_cam (empty: direct), the camera's
+    path (via points included), the via camera poses T_cell_cam (empty: direct) and the lamp's
+    via joints (pan, tilt, radius; empty: direct), the camera's
     corners in the cell frame [m] (start, via points, end: its path is straight between them),
     its travel (the camera's path plus the lamp's straight line) [m] and the poses checked;
     `clear` when that clearance is at least the padding."""
@@ -65,6 +70,7 @@ class Move:
     corners_m: tuple[np.ndarray, ...] = ()
     travel_m: float = np.inf
     joints_end: np.ndarray | None = None   # where the arm arrives (None: it does not)
+    lamp_via: tuple[tuple[float, float, float], ...] = ()   # the lamp's via joints (empty: direct)
 
     @property
     def clear(self) -> bool:
@@ -77,11 +83,12 @@ class Move:
         return {"from": self.start, "to": self.end, "clearance_m": self.clearance.distance_m,
                 "clearance_bodies": list(self.clearance.bodies), "via": [T.tolist() for T in self.via],
                 "travel_m": self.travel_m, "steps": self.steps,
-                **({} if self.joints_end is None else {"arm_joints_deg": np.degrees(self.joints_end).tolist()})}
+                **({} if self.joints_end is None else {"arm_joints_deg": np.degrees(self.joints_end).tolist()}),
+                **({"lamp_via": [list(j) for j in self.lamp_via]} if self.lamp_via else {})}
 
 
 def _name(end: End) -> str:
-    return "the home pose" if end == HOME else f"shot {end}"
+    return "the home pose" if end == HOME else f"shot {end}" if isinstance(end, int) else str(end)
 
 
 def _least(clearances: list[Clearance], padding_m: float) -> Clearance:
@@ -98,13 +105,8 @@ def joint_reach(scene: CollisionScene, q: ArrayLike) -> np.ndarray:
     """(6,) r_i [m] at joints q: how far from joint i's axis the farthest point it moves lies
     (the chain's joint origins beyond it, the upper arm's offset, the camera body's corners),
     plus the thickest link's radius."""
-    T = scene.frames.T_cell_base.copy()
-    origins, axes = [], []
-    for i, theta in enumerate(np.asarray(q, float)):
-        origins.append(T[:3, 3])
-        axes.append(T[:3, 2])
-        T = T @ ur5e.dh(i, theta)
-    flange = T
+    frames = ur5e.chain(scene.frames.T_cell_base, np.asarray(q, float))
+    origins, axes, flange = frames[:6, :3, 3], frames[:6, :3, 2], frames[6]
     corners = np.array(np.meshgrid(*[[-1.0, 1.0]] * 3)).T.reshape(-1, 3) * scene.camera_half_m
     camera = geometry.apply(flange, corners + (0.0, 0.0, scene.camera_offset_m))
     chain = np.vstack([origins[1:], [flange[:3, 3]], camera])
@@ -181,6 +183,33 @@ def lamp_path(scene: CollisionScene, T_cam: np.ndarray, q: ArrayLike, joints_fro
     return replace(found[k], where=f"with the lamp at {np.round(at[k], 3).tolist()} m (cell frame)"), len(found)
 
 
+def lamp_route(scene: CollisionScene, T_cam: np.ndarray, q: ArrayLike, joints_from: ArrayLike,
+               joints_to: ArrayLike) -> tuple[Clearance, tuple[tuple[float, float, float], ...], int]:
+    """(the smallest Clearance along the lamp's route, its via joints, the poses checked): the
+    direct joint move (lamp_path) if clear; else through via joints at another tilt: the lamp to
+    it at its pan, across in pan at it, down or up to the target's, the radius the larger end's;
+    the rig's tilt range in LAMP_VIA_TILTS steps, the nearest to the two ends' first. Neither:
+    the direct move's Clearance, not clear, no via joints."""
+    a, b = tuple(float(x) for x in joints_from), tuple(float(x) for x in joints_to)
+    direct, steps = lamp_path(scene, T_cam, q, a, b)
+    if direct.ok:
+        return direct, (), steps
+    lo, hi = scene.tilt_range_rad
+    middle, radius = 0.5 * (a[1] + b[1]), max(a[2], b[2])
+    for tilt in sorted(np.linspace(lo, hi, LAMP_VIA_TILTS), key=lambda t: abs(t - middle)):
+        via = ((a[0], float(tilt), radius), (b[0], float(tilt), radius))
+        found = []
+        for j_from, j_to in pairwise((a, *via, b)):
+            c, n = lamp_path(scene, T_cam, q, j_from, j_to)
+            steps += n
+            found.append(c)
+            if not c.ok:
+                break
+        if found[-1].ok and len(found) == 3:
+            return _least(found, scene.padding_m), via, steps
+    return direct, (), steps
+
+
 @dataclass(frozen=True)
 class Stop:
     """What a move needs of a stop: the camera pose, the arm's joints there (a move's first
@@ -213,6 +242,27 @@ def plan_move(scene: CollisionScene, arm: ArmConfig, start: End, a: Stop, end: E
     return Move(start, end, direct, (), steps, (a.T_cell_cam[:3, 3], b.T_cell_cam[:3, 3]))
 
 
+def plan_transition(scene: CollisionScene, arm: ArmConfig, a: Stop, b: Stop, start: End = "start",
+                    end: End = "the target") -> Move:
+    """The Move from where the devices are (a: read back) to b: the arm's path and then the
+    lamp's route (plan_move), or, the camera staying where it is (b at a's pose), the lamp's
+    route alone (lamp_route, the arm still at a's joints); b's lamp joints None: the arm moves,
+    the lamp stays (and is checked where it stands)."""
+    same = (np.allclose(a.T_cell_cam[:3, 3], b.T_cell_cam[:3, 3], atol=1e-9)
+            and np.allclose(a.T_cell_cam[:3, :3], b.T_cell_cam[:3, :3], atol=1e-9))
+    if not same:
+        return plan_move(scene, arm, start, a, end, b)
+    if b.lamp_joints is None or a.lamp_joints is None:
+        lamp = None if a.lamp_joints is None else lamp_position(scene.pivot_m, *a.lamp_joints)
+        return Move(start, end, scene.clearance(a.T_cell_cam, a.arm_joints, lamp), (), 1,
+                    (a.T_cell_cam[:3, 3],), 0.0, np.asarray(a.arm_joints, float))
+    found, lamp_via, steps = lamp_route(scene, a.T_cell_cam, a.arm_joints, a.lamp_joints, b.lamp_joints)
+    at = [lamp_position(scene.pivot_m, *j) for j in (a.lamp_joints, *lamp_via, b.lamp_joints)]
+    return Move(start, end, found, (), steps, (a.T_cell_cam[:3, 3],),
+                float(sum(np.linalg.norm(y - x) for x, y in pairwise(at))), np.asarray(a.arm_joints, float),
+                lamp_via if found.ok else ())
+
+
 def _through(scene: CollisionScene, poses: list[np.ndarray], q: np.ndarray,
              lamp: np.ndarray | None) -> tuple[Clearance, np.ndarray, int]:
     """The smallest Clearance of moveL's through the poses in turn (-inf, the arm and its reach
@@ -241,11 +291,12 @@ def _with_lamp(scene: CollisionScene, move: Move, a: Stop, b: Stop) -> Move:
     assert move.joints_end is not None, "a clear arm move arrives somewhere"
     if b.lamp_joints is not None:
         start = b.lamp_joints if a.lamp_joints is None else a.lamp_joints
-        c, n = lamp_path(scene, b.T_cell_cam, move.joints_end, start, b.lamp_joints)
+        c, lamp_via, n = lamp_route(scene, b.T_cell_cam, move.joints_end, start, b.lamp_joints)
         least = _least([move.clearance, c], scene.padding_m)
+        move = replace(move, lamp_via=lamp_via)
         if a.lamp_joints is not None:
-            travel += float(np.linalg.norm(lamp_position(scene.pivot_m, *b.lamp_joints)
-                                           - lamp_position(scene.pivot_m, *a.lamp_joints)))
+            at = [lamp_position(scene.pivot_m, *j) for j in (a.lamp_joints, *lamp_via, b.lamp_joints)]
+            travel += float(sum(np.linalg.norm(y - x) for x, y in pairwise(at)))
     return replace(move, clearance=least, steps=move.steps + n, corners_m=corners, travel_m=travel)
 
 

@@ -26,6 +26,7 @@ from numpy.typing import ArrayLike
 from cell.collision.bodies import Body, Box, Capsule, Mesh, distance, surface_samples
 from cell.core import geometry
 from cell.devices import ur5e
+from cell.devices.rig import lamp_frame
 
 if TYPE_CHECKING:
     from cell.core.frames import Frames
@@ -45,13 +46,8 @@ MAY_TOUCH = frozenset({frozenset(CHAIN[i:i + 2]) for i in range(len(CHAIN) - 1)}
 
 def arm_links(T_cell_base: np.ndarray, q: ArrayLike) -> tuple[Capsule, ...]:
     """The UR5e's links (Capsule per ARM_LINKS entry, cell frame) at joints q (6,) [rad]."""
-    T = T_cell_base.copy()
-    origins, axes = [T[:3, 3]], [T[:3, 2]]
-    for i, theta in enumerate(np.asarray(q, float)):
-        T = T @ ur5e.dh(i, theta)
-        origins.append(T[:3, 3])
-        axes.append(T[:3, 2])
-    o, z1 = origins, axes[1]                          # z1: joint 2's axis (2-4 parallel)
+    frames = ur5e.chain(T_cell_base, np.asarray(q, float))
+    o, z1 = frames[:, :3, 3], frames[1, :3, 2]        # z1: joint 2's axis (2-4 parallel)
     points = [(o[0], o[1]), (o[1], o[1] + SHOULDER_OFFSET_M * z1),
               (o[1] + SHOULDER_OFFSET_M * z1, o[2] + SHOULDER_OFFSET_M * z1),
               (o[2] + SHOULDER_OFFSET_M * z1, o[2] + FOREARM_OFFSET_M * z1),
@@ -99,7 +95,7 @@ class Clearance:
 @dataclass(frozen=True)
 class CollisionScene:
     """What the clearance of a pose needs from the task: the fixed meshes, the two boxes' sizes
-    and where they sit, the frames, the lamp rig's pivot and the padding."""
+    and where they sit, the frames, the lamp rig's pivot and tilt range and the padding."""
 
     padding_m: float
     fixed: tuple[Mesh, ...]
@@ -108,6 +104,7 @@ class CollisionScene:
     lamp_half_m: np.ndarray
     frames: Frames
     pivot_m: np.ndarray
+    tilt_range_rad: tuple[float, float] = (0.0, 0.5 * np.pi)     # the rig's, for the lamp's via points
 
     @classmethod
     def of(cls, task: Task) -> CollisionScene:
@@ -115,7 +112,8 @@ class CollisionScene:
         part = _mesh("part", task.part.mesh, task.frames.T_cell_part)
         fixed = (part,) if c.fixture is None else (part, _mesh("fixture", c.fixture, np.eye(4)))
         return cls(c.padding_m, fixed, 0.5 * np.asarray(c.camera_size_m), c.camera_offset_m,
-                   0.5 * np.asarray(c.lamp_size_m), task.frames, task.lamp.rig.pivot_m)
+                   0.5 * np.asarray(c.lamp_size_m), task.frames, task.lamp.rig.pivot_m,
+                   task.lamp.rig.tilt_range_rad)
 
     def camera_body(self, T_cell_flange: np.ndarray) -> Box:
         T = T_cell_flange @ geometry.transform(translation=(0.0, 0.0, self.camera_offset_m))
@@ -124,11 +122,8 @@ class CollisionScene:
     def lamp_body(self, lamp_position: ArrayLike) -> Box:
         """The lamp's box: its front face centred at the lamp's position, its z axis the aim."""
         p = np.asarray(lamp_position, float)
-        z = geometry.unit(self.pivot_m - p)
-        x = np.cross((0.0, 0.0, 1.0), z)
-        x = geometry.unit(x if np.linalg.norm(x) > 1e-9 else np.array([1.0, 0.0, 0.0]))
-        R = np.column_stack([x, np.cross(z, x), z])
-        return Box("lamp_body", geometry.transform(R, p - self.lamp_half_m[2] * z), self.lamp_half_m)
+        R = lamp_frame(self.pivot_m, p)
+        return Box("lamp_body", geometry.transform(R, p - self.lamp_half_m[2] * R[:, 2]), self.lamp_half_m)
 
     def bodies(self, T_cell_cam: np.ndarray, arm_joints: ArrayLike | None = None,
                lamp_position: ArrayLike | None = None) -> tuple[Body, ...]:

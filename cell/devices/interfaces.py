@@ -99,6 +99,17 @@ class Arm(ABC):
         """The actual T_cell_cam, read back from the device."""
         return self.frames.T_cell_cam_from_base(self._tcp_pose())
 
+    def joint_angles(self) -> np.ndarray | None:
+        """The arm's six joint angles [rad], read back from the device: which of the inverse
+        kinematics' branches the arm stands on, where a path from here starts (cell.run.motion).
+        None: a backend that cannot tell (the path then starts at the solution nearest home)."""
+        q = self._joint_angles()
+        return None if q is None else np.asarray(q, float)
+
+    def _joint_angles(self):
+        """The joints as the device reports them (None: it does not)."""
+        return None
+
     @abstractmethod
     def _move_tcp(self, T_base_cam, speed_m_s):
         """Move the camera (the TCP) to T_base_cam in the robot's base frame."""
@@ -160,6 +171,12 @@ class LampRig(ABC):
         _check_range(self.device, "tilt", tilt_rad, self.rig.tilt_range_rad, degrees=True)
         _check_range(self.device, "radius", radius_m, self.rig.radius_range_m)
         return pan
+
+    def target(self, pan_rad: float, tilt_rad: float, radius_m: float) -> tuple[float, float, float]:
+        """The joints move(pan, tilt, radius) drives the axes to: the pan as the one in the rig's
+        range (+ 2 pi k); the lamp's route is checked to these (cell.run.motion). DeviceFault for
+        joints outside the ranges, as move."""
+        return float(self._in_range(pan_rad, tilt_rad, radius_m)), float(tilt_rad), float(radius_m)
 
     def refusal(self, pan_rad: float, tilt_rad: float, radius_m: float) -> str | None:
         """Why move would refuse these joints (outside the rig's ranges), or None; moves nothing."""

@@ -21,6 +21,15 @@ def lamp_aim(pivot: ArrayLike, position: ArrayLike) -> np.ndarray:
     return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
 
+def lamp_frame(pivot: ArrayLike, position: ArrayLike) -> np.ndarray:
+    """(3, 3) the lamp's axes in the cell frame at `position`: z its aim at the pivot, x
+    horizontal (z x the cell's z; the cell's x when the lamp is straight above the pivot), y = z x x."""
+    z = lamp_aim(pivot, position)
+    x = np.cross((0.0, 0.0, 1.0), z)
+    x = x / np.linalg.norm(x) if np.linalg.norm(x) > 1e-9 else np.array([1.0, 0.0, 0.0])
+    return np.column_stack([x, np.cross(z, x), z])
+
+
 def lamp_joints(pivot: ArrayLike, position: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(pan, tilt, radius) that put the lamp at `position` (inverse of lamp_position)."""
     d = np.asarray(position, float) - np.asarray(pivot, float)

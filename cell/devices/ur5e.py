@@ -48,6 +48,17 @@ def forward(q: Sequence[float] | np.ndarray) -> np.ndarray:
     return T
 
 
+def chain(T_frame_base: np.ndarray, q: Sequence[float] | np.ndarray) -> np.ndarray:
+    """(7, 4, 4) the DH frames 0..6 in the frame T_frame_base places the base in: frame i's
+    origin and z axis are joint i+1's point and axis (frame 6 the flange), T_i = T_frame_base
+    A_1 ... A_i. The one chain the planner's collision bodies, its sweep bounds and the
+    simulated cell's own check place the links by."""
+    frames = [np.asarray(T_frame_base, float)]
+    for i, theta in enumerate(q):
+        frames.append(frames[-1] @ dh(i, theta))
+    return np.array(frames)
+
+
 def _wrap(angle):
     return (angle + np.pi) % (2 * np.pi) - np.pi
 

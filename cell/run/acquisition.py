@@ -1,7 +1,7 @@
 """Acquisition, shared by the closed loop and the calibration routines: plan, refuse an
-infeasible plan before anything moves and connect the devices; move to a Shot's poses, set the
-light channels' drives and an exposure and take a frame, find the sensor's black level (the
-task's, or a dark frame's), each step logged as the devices read it back."""
+infeasible plan before anything moves and connect the devices; set the light channels' drives
+and an exposure and take a frame, find the sensor's black level (the task's, or a dark
+frame's), each step logged as the devices read it back. The moves are cell.run.motion's."""
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
@@ -74,31 +74,6 @@ def plan_and_connect(task: Task, recorder: Recorder, session: Session,
     require_feasible(planned)
     devices = session.devices = connect(planned.planned_scene)
     return planned, devices
-
-
-def move_to(devices: Devices, shot: Shot, recorder: Recorder, iteration: int | None = None) -> None:
-    """Camera and lamp to the shot's poses, each logged as read back from the device."""
-    with speaking_for(devices.arm):
-        devices.arm.move_camera(shot.T_cell_cam)
-        position = devices.arm.camera_pose()[:3, 3]
-    off = float(np.linalg.norm(position - shot.camera_position))
-    recorder.step("move_camera", f"camera at {np.round(position, 4).tolist()} m in the cell frame "
-                                 f"({1e3 * off:.2f} mm from the plan)", iteration=iteration, position_m=position,
-                  error_m=off)
-    move_lamp(devices, shot.joints, recorder, iteration)
-
-
-def move_lamp(devices: Devices, joints: tuple[float, ...], recorder: Recorder,
-              iteration: int | None = None, why: str = "") -> tuple[float, float, float]:
-    """The lamp to (pan, tilt, radius) [rad, rad, m], logged as read back (after `why`, if
-    given). Returns the read-back joints."""
-    with speaking_for(devices.lamp):
-        devices.lamp.move(*joints)
-        pan, tilt, radius = devices.lamp.joints()
-    recorder.step("move_lamp", f"{why}pan {np.degrees(pan):.2f} deg, tilt {np.degrees(tilt):.2f} deg, "
-                               f"radius {1e3 * radius:.1f} mm", iteration=iteration,
-                  joints={"pan_deg": np.degrees(pan), "tilt_deg": np.degrees(tilt), "radius_m": radius})
-    return pan, tilt, radius
 
 
 def planned_drives(shot: Shot) -> dict[int, float]:

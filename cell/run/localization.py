@@ -462,6 +462,9 @@ class HandEyeCorrected(Arm):
     def _unreachable(self, T_base_cam: np.ndarray) -> str | None:
         return self.arm._unreachable(T_base_cam @ np.linalg.inv(self.T_hand_eye))
 
+    def _joint_angles(self) -> np.ndarray | None:
+        return self.arm._joint_angles()
+
     def _tcp_pose(self) -> np.ndarray:
         return self.arm._tcp_pose() @ self.T_hand_eye
 

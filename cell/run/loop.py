@@ -17,10 +17,10 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import numpy as np
 
 from cell.physics.sensor import saturation_level
-from cell.run import acquisition, channels, control, localization, measurement, refit, registration
+from cell.run import acquisition, channels, control, localization, measurement, motion, refit, registration
 
 from cell.planning import evaluate
-from cell.run.acquisition import Capture, acquire, move_to, plan_and_connect, plan_recorded, planned_drives
+from cell.run.acquisition import Capture, acquire, plan_and_connect, plan_recorded, planned_drives
 from cell.run.context import RunContext
 from cell.run.defects import MeasuredDefect, measure as measure_defects
 from cell.run.measurement import BlackLevel, Measurement
@@ -58,6 +58,7 @@ CAUSES = {          # report.json's `cause` of a run that ends without the goal 
                "their wiring or the controller's output)",
     "pose": "the part (or the camera) is so far from where the model puts it that the cell cannot work there "
             "(no plan for where it is, or the feature leaves the view)",
+    motion.CAUSE: "a move the run must make has no path clear of collisions (both bodies named; nothing moved)",
 }
 
 
@@ -379,7 +380,7 @@ def iterate(ctx: RunContext, features: Sequence[LoopFeature]) -> Iterator[Event]
     correction absorbs it."""
     first = features[0]
     devices = localization.corrected(ctx.devices, ctx.pose_error)
-    move_to(devices, first.model.plan.shot, ctx.recorder, 1)
+    motion.move_to(first.task, devices, first.model.plan.shot, ctx.recorder, 1)
     black = ctx.black or find_black_level(first.task, first.model.plan, devices, ctx.recorder)
     if not ctx.black:
         yield BlackLevelFound(black)
@@ -420,7 +421,7 @@ def step(ctx: RunContext, aim: Aim, k: int) -> Generator[Event, None, Aim | None
     (correct_after: the next Aim)."""
     ctx = replace(ctx, devices=localization.corrected(ctx.devices, aim.pose_error))
     if not aim.moved:
-        move_to(ctx.devices, aim.shot, ctx.recorder, k)
+        motion.move_to(aim.features[0].task, ctx.devices, aim.shot, ctx.recorder, k)
     capture = acquire(ctx.devices, ctx.recorder, k, aim.shutter_s, aim.f_number, aim.shot.exposure.focus_m,
                       drives=aim.drives)
     measured = [measure_capture(ctx, aim, feature, k, capture) for feature in aim.features]
@@ -495,17 +496,12 @@ def second_view(ctx: RunContext, aim: Aim, k: int, scene: Scene, lamp_pose: regi
     collision check clears with the lamp where it is), exposed for the model's brightest part
     there (localization.view_exposure) and captured as locate-k.png; None when no pose serves (the
     one view's estimate stands, and the log says so)."""
-    from cell.collision.scene import CollisionScene, reaching_joints
     task = aim.features[0].task
-    collision = CollisionScene.of(task)
     for T in localization.second_views(capture.T_cell_cam, scene.center):
-        if ctx.devices.arm.refusal(T) is not None:
+        move = None if ctx.devices.arm.refusal(T) else motion.check(task, ctx.devices, T, to="the second view")
+        if move is None or not move.clear:
             continue
-        if not collision.clearance(T, reaching_joints(task.frames, T), lamp_pose[0]).ok:
-            continue
-        with speaking_for(ctx.devices.arm):
-            ctx.devices.arm.move_camera(T)
-            read = ctx.devices.arm.camera_pose()
+        read = motion.move_camera(task, ctx.devices, T, ctx.recorder, "the second view", k, move)
         ctx.recorder.step("move_camera", f"camera at {np.round(read[:3, 3], 4).tolist()} m in the cell frame: a "
                                          f"second view of the part, to tell a part offset from a camera turn",
                           iteration=k, position_m=read[:3, 3])

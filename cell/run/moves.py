@@ -15,7 +15,7 @@ from cell.collision.paths import Move, Stop, checked_route, home_stop, plan_move
 from cell.collision.scene import CollisionScene, reaching_joints
 from cell.devices import ur5e
 from cell.devices.interfaces import speaking_for
-from cell.run import route
+from cell.run import motion, route
 
 if TYPE_CHECKING:
     from cell.devices.interfaces import Devices
@@ -66,12 +66,13 @@ def order(plan: Plan) -> tuple[int, ...]:
 
 def run_moves(task: Task, plan: Plan, devices: Devices) -> list[Move]:
     """The moves of the plan's route as the run makes them: the first checked again from where
-    the devices read back (the arm's joints: home's when its camera is at home's pose, else the
-    inverse kinematics nearest home; the lamp where it is, which the plan did not know), the
+    the devices read back (the arm's joints, Arm.joint_angles; where the arm cannot tell them,
+    home's when its camera is at home's pose, else the inverse kinematics nearest home; the lamp
+    where it is, which the plan did not know), the
     rest the plan's unless the first arrives in other joints than the plan's did (then each is
     checked again from where the last arrives). Every move is checked before anything moves."""
     with speaking_for(devices.arm):
-        T = devices.arm.camera_pose()
+        T, read = devices.arm.camera_pose(), devices.arm.joint_angles()
     with speaking_for(devices.lamp):
         pan, tilt, radius = devices.lamp.joints()
     lamp = (float(pan), float(tilt), float(radius))
@@ -79,7 +80,7 @@ def run_moves(task: Task, plan: Plan, devices: Devices) -> list[Move]:
     home = home_stop(scene)
     at_home = (np.linalg.norm(T[:3, 3] - home.T_cell_cam[:3, 3]) <= HOME_TOLERANCE_M
                and np.allclose(T[:3, :3], home.T_cell_cam[:3, :3], atol=1e-4))
-    q = home.arm_joints if at_home else reaching_joints(task.frames, T)
+    q = read if read is not None else home.arm_joints if at_home else reaching_joints(task.frames, T)
     at = Stop(T, np.asarray(ur5e.HOME_JOINTS if q is None else q, float),
               lamp if np.all(np.isfinite(lamp)) else None)
     targets, moves = stops(task, plan), list[Move]()
@@ -97,13 +98,12 @@ def run_moves(task: Task, plan: Plan, devices: Devices) -> list[Move]:
     return moves
 
 
-def follow(devices: Devices, move: Move, recorder: Recorder) -> None:
-    """The arm through the move's via points (each a moveL the planner checked), logged as read
-    back; then acquisition.move_to takes the camera and the lamp to the shot."""
+def follow(task: Task, devices: Devices, move: Move, recorder: Recorder) -> None:
+    """The arm through the move's via points (each a moveL the planner checked, and
+    cell.run.motion checks again from where the arm reads back), logged as read back; then
+    motion.move_to takes the camera and the lamp to the shot."""
     for k, T in enumerate(move.via, 1):
-        with speaking_for(devices.arm):
-            devices.arm.move_camera(T)
-            position = devices.arm.camera_pose()[:3, 3]
+        position = motion.move_camera(task, devices, T, recorder, f"via point {k} to shot {move.end}")[:3, 3]
         recorder.step("move_via", f"via point {k} of {len(move.via)} on the way to shot {move.end}: camera at "
                                   f"{np.round(position, 4).tolist()} m in the cell frame (the path collision-checked: "
                                   f"{' and '.join(move.clearance.bodies)} at least "

@@ -30,7 +30,8 @@ from scipy import optimize
 from cell.core import geometry
 
 from cell.physics import projection
-from cell.run.acquisition import acquire, move_lamp
+from cell.run import motion
+from cell.run.acquisition import acquire
 from cell.devices.interfaces import speaking_for
 from cell.core.errors import GoalNotReached
 from cell.physics.brdf_fit import standard_errors
@@ -370,7 +371,7 @@ def probe_and_refit(ctx: RunContext, task: Task, scene: Scene, disagreement: Dis
         expected = brightest((position, lamp_aim(task.lamp.rig.pivot_m, position))) * measured / max(planned, 1e-300)
         shutter = float(np.clip(PROBE_TARGET * (saturation - b) / max(expected, 1e-300) * f_number**2,
                                 *task.camera.shutter_range_s))
-        read = move_lamp(devices, joints, recorder, k, why=f"probe {j} of {len(probes)}, tilt "
+        read = motion.move_lamp(task, devices, joints, recorder, k, why=f"probe {j} of {len(probes)}, tilt "
                                                              f"{np.degrees(joints[1] - plan_joints[1]):+.1f} deg: ")
         capture = acquire(devices, recorder, k, shutter, f_number, focus_m, name=f"capture-{k}-probe-{j}")
         image = np.asarray(capture.image, float)

@@ -291,6 +291,13 @@ class URArm(Arm):
             raise self._fault("connection to the controller lost")
         return from_ur_pose(pose)
 
+    def _joint_angles(self):
+        connected, q = self._worker.call([("receive", "isConnected", ()), ("receive", "getActualQ", ())],
+                                         self.config.connect_timeout_s, "getActualQ")
+        if not connected:
+            raise self._fault("connection to the controller lost")
+        return np.asarray(q, float)
+
     def state(self) -> dict[str, Any]:
         """Robot and safety mode by name, the TCP pose ([x, y, z, rx, ry, rz] in m and rad, base
         frame, of the controller's active TCP: a run sets the hand-eye as TCP) and the joints [rad],

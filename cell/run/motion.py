@@ -1,0 +1,142 @@
+"""The one way the cell moves: every move of the arm and of the lamp, in a run and in the
+calibration routines, starts from where the devices read back (the camera's pose and the arm's
+joints, Arm.joint_angles; the lamp's joints, and the ones its axes will go to, LampRig.target),
+is checked along its path as the devices follow it (cell.collision.paths.plan_transition: the
+arm's moveL with via points around a collision, the lamp parked; then the lamp's route, via
+joints around a collision, the arm at the target) and is then driven through its via points.
+A move no clear path serves is refused before anything moves: GoalNotReached with cause
+`collision` (exit 1), naming both bodies and where."""
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from cell.collision.paths import Move, Stop, plan_transition
+from cell.collision.scene import CollisionScene, reaching_joints
+from cell.core.errors import GoalNotReached
+from cell.devices import ur5e
+from cell.devices.interfaces import speaking_for
+
+if TYPE_CHECKING:
+    from cell.devices.interfaces import Devices
+    from cell.planning.plan import Shot
+    from cell.report.recorder import Recorder
+    from cell.task.types import Task
+
+CAUSE = "collision"      # the run's cause of a refused move (cell.run.loop.CAUSES)
+
+
+def check(task: Task, devices: Devices, T_cell_cam: np.ndarray | None = None,
+          lamp_joints: tuple[float, ...] | None = None, to: str = "the target") -> Move:
+    """The Move from where the devices read back to the camera pose T_cell_cam (None: the arm
+    stays) and the lamp's joints (None: the lamp stays), checked along its path; moves nothing.
+    Where the arm cannot tell its joints, the path starts at the inverse kinematics nearest home;
+    a lamp whose (manual) radius is not known yet starts at the target's radius."""
+    with speaking_for(devices.arm):
+        T_now, q = devices.arm.camera_pose(), devices.arm.joint_angles()
+    with speaking_for(devices.lamp):
+        pan, tilt, radius = devices.lamp.joints()
+        target = None if lamp_joints is None else devices.lamp.target(*lamp_joints)
+    if q is None:
+        q = reaching_joints(task.frames, T_now) or ur5e.HOME_JOINTS
+    if not np.isfinite(radius):
+        radius = np.nan if target is None else target[2]
+    lamp_now = (float(pan), float(tilt), float(radius))
+    a = Stop(T_now, np.asarray(q, float), lamp_now if np.all(np.isfinite(lamp_now)) else None)
+    b = Stop(T_now if T_cell_cam is None else np.asarray(T_cell_cam, float), a.arm_joints, target)
+    return plan_transition(CollisionScene.of(task), task.cell.devices.arm, a, b, "where the cell stands", to)
+
+
+def refusal(move: Move) -> GoalNotReached:
+    """The refusal of a move that is not clear: the collision first, then the move, then that
+    nothing moved."""
+    c = move.clearance
+    return GoalNotReached(f"{c.reason()}, on the move from {_end(move.start)} to {_end(move.end)}: "
+                          "refused before anything moved", CAUSE)
+
+
+def _end(end: object) -> str:
+    return f"shot {end}" if isinstance(end, int) else str(end)
+
+
+def go(task: Task, devices: Devices, recorder: Recorder, T_cell_cam: np.ndarray | None = None,
+       lamp_joints: tuple[float, ...] | None = None, to: str = "the target",
+       iteration: int | None = None, checked: Move | None = None,
+       arrived: Callable[[], object] | None = None) -> Move:
+    """Check the move (check; `checked`: the caller's check of it from where the devices stand,
+    nothing moved since) and refuse it (refusal) unless clear; then drive it: the arm
+    through its via points to T_cell_cam, the lamp through its via joints to lamp_joints, each
+    via logged as read back (`move_via`, `move_lamp_via`). The last legs are the caller's to
+    log: `arrived()` is called when the arm is there, before the lamp moves. Returns the Move."""
+    move = checked or check(task, devices, T_cell_cam, lamp_joints, to)
+    if not move.clear:
+        raise refusal(move)
+    apart = (f"{' and '.join(move.clearance.bodies)} at least {1e3 * move.clearance.distance_m:.1f} mm apart"
+             if np.isfinite(move.clearance.distance_m) else "nothing near")
+    for k, T in enumerate(move.via, 1):
+        with speaking_for(devices.arm):
+            devices.arm.move_camera(T)
+            position = devices.arm.camera_pose()[:3, 3]
+        recorder.step("move_via", f"via point {k} of {len(move.via)} on the way to {to}: camera at "
+                                  f"{np.round(position, 4).tolist()} m in the cell frame (the path collision-checked: "
+                                  f"{apart})", iteration=iteration, via=k, to=to, position_m=position)
+    if T_cell_cam is not None:
+        with speaking_for(devices.arm):
+            devices.arm.move_camera(T_cell_cam)
+        if arrived is not None:
+            arrived()
+    for k, joints in enumerate(move.lamp_via, 1):
+        with speaking_for(devices.lamp):
+            devices.lamp.move(*joints)
+            position = devices.lamp.lamp_pose()[0]
+        recorder.step("move_lamp_via", f"lamp via point {k} of {len(move.lamp_via)} on the way to {to}: lamp at "
+                                       f"{np.round(position, 4).tolist()} m in the cell frame (the route "
+                                       f"collision-checked: {apart})", iteration=iteration, via=k, to=to,
+                      position_m=position)
+    if lamp_joints is not None:
+        with speaking_for(devices.lamp):
+            devices.lamp.move(*lamp_joints)
+    return move
+
+
+def move_to(task: Task, devices: Devices, shot: Shot, recorder: Recorder, iteration: int | None = None) -> None:
+    """Camera and lamp to the shot's poses along a checked path (go), each logged as read back
+    from the device."""
+    def arrived() -> None:
+        with speaking_for(devices.arm):
+            position = devices.arm.camera_pose()[:3, 3]
+        off = float(np.linalg.norm(position - shot.camera_position))
+        recorder.step("move_camera", f"camera at {np.round(position, 4).tolist()} m in the cell frame "
+                                     f"({1e3 * off:.2f} mm from the plan)", iteration=iteration, position_m=position,
+                      error_m=off)
+
+    go(task, devices, recorder, shot.T_cell_cam, shot.joints, "the shot's poses", iteration, arrived=arrived)
+    _log_lamp(devices, recorder, iteration, "")
+
+
+def move_camera(task: Task, devices: Devices, T_cell_cam: np.ndarray, recorder: Recorder, to: str,
+                iteration: int | None = None, checked: Move | None = None) -> np.ndarray:
+    """The camera to T_cell_cam along a checked path (go), the lamp where it is; returns the
+    read-back camera pose (the caller logs it)."""
+    go(task, devices, recorder, T_cell_cam, None, to, iteration, checked)
+    with speaking_for(devices.arm):
+        return devices.arm.camera_pose()
+
+
+def move_lamp(task: Task, devices: Devices, joints: tuple[float, ...], recorder: Recorder,
+              iteration: int | None = None, why: str = "") -> tuple[float, float, float]:
+    """The lamp to (pan, tilt, radius) [rad, rad, m] along a checked route (go), the arm where
+    it is, logged as read back (after `why`, if given). Returns the read-back joints."""
+    go(task, devices, recorder, None, joints, why.rstrip(": ") or "the lamp's pose", iteration)
+    return _log_lamp(devices, recorder, iteration, why)
+
+
+def _log_lamp(devices: Devices, recorder: Recorder, iteration: int | None, why: str) -> tuple[float, float, float]:
+    with speaking_for(devices.lamp):
+        pan, tilt, radius = devices.lamp.joints()
+    recorder.step("move_lamp", f"{why}pan {np.degrees(pan):.2f} deg, tilt {np.degrees(tilt):.2f} deg, "
+                               f"radius {1e3 * radius:.1f} mm", iteration=iteration,
+                  joints={"pan_deg": np.degrees(pan), "tilt_deg": np.degrees(tilt), "radius_m": radius})
+    return pan, tilt, radius
