@@ -3,7 +3,8 @@ kind of mismatch (several magnitudes each, several seeds, both example tasks, ev
 
 Each case is judged against a correct model, independently of what the loop says: the same case
 run with the model set equal to the world (the truth moved into the task's keys, the truth key
-cleared). If that run converges, a correct model could solve the case and it counts toward the
+cleared; keys the task loader refuses end it with exit 2, not solvable). If that run converges,
+a correct model could solve the case and it counts toward the
 95 % that must converge within 6 captures; otherwise the run must exit 1 with a cause of the kind
 injected (EXPECTED), and in every case never with another. Two kinds have no task key to hold
 the truth, and are set equal to the world as the cell would be: a hand-eye or lamp-radius error
@@ -33,6 +34,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+
+from cell.core.errors import TaskError
 
 sys.path.insert(0, str(Path(__file__).parent))
 from simcell import run_loop, variant  # noqa: E402
@@ -215,7 +218,14 @@ def run_job(task, keys, materials, seed, folder):
     case = Case("", "", task, seed, {}, {}, materials)
     start = time.perf_counter()
     with open(folder / "output.txt", "w") as output, redirect_stdout(output), redirect_stderr(output):
-        cell = run_loop(variant(folder, TASKS[task], _changes(case, keys, folder)), folder / "run")
+        try:
+            cell = run_loop(variant(folder, TASKS[task], _changes(case, keys, folder)), folder / "run")
+        except TaskError as err:        # the loader refused the task's keys: exit 2, nothing ran
+            outcome = {"converged": False, "captures": 0, "iterations": 0, "cause": None, "reason": str(err),
+                       "exit": err.exit_code, "error": type(err).__name__, "plan": None,
+                       "time_s": time.perf_counter() - start, "folder": str(folder)}
+            (folder / "outcome.json").write_text(json.dumps(outcome))
+            return outcome
     report = cell.report
     probes = sum(len(r["shots"]) - 1 for r in report["refits"])
     probes += sum(it.get("correction", {}).get("basis_captures", 0) for it in report["iterations"])
@@ -370,6 +380,17 @@ SAMPLE = {   # (kind, magnitude, task): how it must end, from the kind injected
     # a lobe twice as narrow: the band under 1 deg lamp error is infeasible for it (test_refit)
     ("material shape", "m1 x2", "hinge"): "infeasible",
 }
+
+
+def test_a_correct_model_the_loader_refuses_is_exit_2_not_solvable(tmp_path):
+    """A correct model's keys the task loader refuses (here a negative camera constant) end that
+    run with exit 2 before anything moves: the case counts as not solvable, the matrix goes on."""
+    case = Case("camera constant", "x-1", "hinge", 1, {}, {"camera.sensor.camera_constant": -1.0})
+    outcome = run_job(case.task, case.model, case.materials, case.seed, tmp_path / "model")
+    assert outcome["exit"] == 2 and not outcome["converged"] and outcome["iterations"] == 0
+    assert "camera_constant" in outcome["reason"]
+    assert finished(tmp_path / "model") == outcome
+    assert Outcome(case, outcome, False, "").named == "exit 2 (TaskError)"
 
 
 def test_a_sample_of_the_matrix_converges_or_names_the_right_cause(tmp_path):

@@ -69,11 +69,16 @@ MAX_TURN_RAD = np.radians(7.0)
 MAX_HAND_EYE_RAD = np.radians(3.0)
 MIN_CONTRAST_GRAY = 10.0    # localize: a capture flatter than this [gray] shows nothing
 MIN_SAMPLES = 200           # fewer edge samples in a view: it tells nothing
-ORBIT_DEG = 30.0            # second_views: the orbit about the feature,
+ORBITS_DEG = (30.0, 50.0)   # second_views: the orbits about the feature,
 ORBITS = 8                  # about this many axes across the view,
 ROLL_DEG = 90.0             # the roll about the camera's axis
 AIM_OFF_DEG = 1.5           # and the turn off the feature (about 150 px on the examples)
+INFORMATION_UNITS = np.array([1e-3] * 3 + [np.radians(0.3)] * 6)   # view_information: the accuracy sought,
+VIEW_SCALE = 4              # the candidates' model images this many times coarser than the sensor
 VIEW_GRAY = 0.6             # the second view's exposure: its brightest part at this of saturation
+SEARCH_TILTS_DEG = (-6.0, -4.0, -2.0, 0.0, 2.0, 4.0, 6.0)   # coarse_starts: the part's tilts across the view,
+SEARCH_ROLLS_DEG = (-6.0, -3.0, 0.0, 3.0, 6.0)              # its turns about the view axis
+SEARCH_SHIFTS = (-1.0, 0.0, 1.0)                            # and its shifts, of registration.COARSE px
 
 
 @dataclass(frozen=True)
@@ -98,15 +103,23 @@ class Samples:
     T_cell_cam: np.ndarray
 
 
+def grid_intrinsics(task: Task, scale: int = 1) -> np.ndarray:
+    """K of the sensor's grid `scale` times coarser (registration.expected_image's grid)."""
+    sensor = task.camera.sensor
+    grid = replace(sensor, width_px=round(sensor.width_px / scale), height_px=round(sensor.height_px / scale),
+                   pixel_pitch_m=sensor.pixel_pitch_m * scale)
+    return projection.intrinsics(grid, task.camera.lens)
+
+
 def model_view(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: LampPose,
-               drives: Drives = None) -> ModelView:
-    """The model's image over the whole sensor (registration.expected_image) and the point each
-    pixel sees (kernels.render's depth along the pixel's ray)."""
+               drives: Drives = None, scale: int = 1) -> ModelView:
+    """The model's image over the whole sensor (registration.expected_image, on a grid `scale`
+    times coarser) and the point each pixel sees (kernels.render's depth along the pixel's ray)."""
     from kernels.render import render
     sensor = task.camera.sensor
-    width, height = sensor.width_px, sensor.height_px
-    value = registration.expected_image(task, scene, T_cell_cam, lamp_pose, (0, 0, width, height), 1, drives)
-    K = projection.intrinsics(sensor, task.camera.lens)
+    width, height = round(sensor.width_px / scale), round(sensor.height_px / scale)
+    value = registration.expected_image(task, scene, T_cell_cam, lamp_pose, (0, 0, width, height), scale, drives)
+    K = grid_intrinsics(task, scale)
     rays = projection.pixel_rays(K, T_cell_cam, width, height)
     origin = T_cell_cam[:3, 3]
     hit = render(scene.warp_mesh, origin, rays, origin, rays[0], 1.0, np.pi, task.part.material.table(),
@@ -193,6 +206,11 @@ class PoseError:
     views: int
     edge_points: int
     residual: float
+
+    @property
+    def theta(self) -> np.ndarray:
+        """The 9 pose parameters (part offset [m], part rpy [rad], hand-eye rpy [rad])."""
+        return np.concatenate([self.part_offset_m, self.part_rpy_rad, self.hand_eye_rpy_rad])
 
     @property
     def T_part(self) -> np.ndarray:
@@ -319,6 +337,55 @@ def fit(levels: Sequence[Sequence[Samples]], K: np.ndarray, center: np.ndarray, 
                      np.asarray(center, float), len(levels[0]), inliers, rms)
 
 
+def cost(levels: Sequence[Samples], K: np.ndarray, center: np.ndarray, theta: np.ndarray) -> float:
+    """The edge fit's robust cost (soft_l1 at LOSS, fit's) of the 9 pose parameters theta over
+    every view's Samples, each view's gain at its least-squares value (<s, m> / <s, s> of the
+    capture's samples s and the model's m, not below 0)."""
+    total = 0.0
+    for view in levels:
+        uv = _project(K, theta, center, view.T_cell_cam, view.points).astype(np.float32)
+        seen = cv2.remap(view.image, uv[:, :1], uv[:, 1:], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                         borderValue=0.0).ravel().astype(float)
+        gain = max(float(seen @ view.gray) / max(float(seen @ seen), 1e-12), 0.0)
+        z = ((gain * seen - view.gray) / LOSS) ** 2
+        total += float(np.sum(2.0 * (np.sqrt(1.0 + z) - 1.0)))
+    return total
+
+
+def coarse_starts(levels: Sequence[Samples], K: np.ndarray, center: np.ndarray, theta0: np.ndarray) -> list[np.ndarray]:
+    """The fit's starts: theta0 (the whole shifts') with the part turned and shifted as the
+    coarsest scale's edges fit best (cost) over a grid, one start per side the part tilts to, so
+    that a tilt of the other sign, which moves the edges almost alike (made up for by a turn about
+    the view axis and a move along it: the hinge 3 deg about y, seen from 50 deg), is a start of
+    its own and not only a minimum the fit passes by. The grid: tilts about the first view's x
+    and y axes (SEARCH_TILTS_DEG) and turns about its axis (SEARCH_ROLLS_DEG) about the feature
+    centre; the best turn of each side (tilted either way about either axis) then shifted across
+    the view (SEARCH_SHIFTS x registration.COARSE px at the feature's distance) as fits best;
+    the starts distinct, best first."""
+    T = levels[0].T_cell_cam
+    axes = T[:3, :3].T                                  # the view's x, y, z in the cell frame (rows)
+    pixel_m = registration.COARSE * float(np.linalg.norm(center - T[:3, 3])) / K[0, 0]
+    start = Rotation.from_euler("xyz", theta0[3:6])
+    best: dict[tuple[int, float], tuple[float, np.ndarray]] = {}
+    for tilt in ((a, b) for a in SEARCH_TILTS_DEG for b in SEARCH_TILTS_DEG):
+        for c in SEARCH_ROLLS_DEG:
+            turn = Rotation.from_rotvec(np.radians(tilt[0]) * axes[0] + np.radians(tilt[1]) * axes[1]
+                                        + np.radians(c) * axes[2])
+            theta = np.concatenate([theta0[:3], (turn * start).as_euler("xyz"), theta0[6:9]])
+            value = cost(levels, K, center, theta)
+            for side in ((axis, np.sign(tilt[axis])) for axis in (0, 1) if tilt[axis]):
+                if side not in best or value < best[side][0]:
+                    best[side] = (value, theta)
+    starts: list[tuple[float, np.ndarray]] = []
+    for _, theta in best.values():
+        moved = [theta[:3] + pixel_m * (du * axes[0] + dv * axes[1]) for du in SEARCH_SHIFTS for dv in SEARCH_SHIFTS]
+        shifted = [np.concatenate([m, theta[3:]]) for m in moved]
+        value, theta = min(((cost(levels, K, center, t), t) for t in shifted), key=lambda t: t[0])
+        if not any(np.array_equal(theta, other) for _, other in starts):
+            starts.append((value, theta))
+    return [theta for _, theta in sorted(starts, key=lambda t: t[0])]
+
+
 @dataclass(frozen=True)
 class View:
     """A capture localization reads: the image, the read-back camera pose (with the hand-eye the
@@ -332,8 +399,9 @@ class View:
 
 def localize(task: Task, scene: Scene, views: Sequence[View]) -> PoseError | None:
     """The PoseError of the part and the camera that explains the views' captures against the
-    model's images (model_view): each view's whole shift (whole_shift) starts the fit
-    (fit_shifts), then the edge fit coarse to fine (fit over SCALES_PX); then once more against
+    model's images (model_view): each view's whole shift (whole_shift, fit_shifts) turned and
+    shifted as a grid's best starts (coarse_starts), each fitted at the coarsest scale, the one
+    of least cost starts the edge fit coarse to fine (fit over SCALES_PX); then once more against
     the model's images where the first fit puts the part and the cameras (refine), so that the
     light the part moved into is the model's too. None when a capture is flat (its brightest
     part less than MIN_CONTRAST_GRAY above its median: nothing lit to see) or no view shows edges
@@ -347,7 +415,9 @@ def localize(task: Task, scene: Scene, views: Sequence[View]) -> PoseError | Non
     levels = [[edge_samples(m, v.image, s) for m, v in zip(models, views)] for s in SCALES_PX]
     if min(len(s.points) for s in levels[-1]) < MIN_SAMPLES:
         return None
-    return refine(task, scene, views, fit(levels, K, scene.center, theta0))
+    coarse = [fit(levels[:1], K, scene.center, start) for start in coarse_starts(levels[0], K, scene.center, theta0)]
+    best = min(coarse, key=lambda e: cost(levels[0], K, scene.center, e.theta))
+    return refine(task, scene, views, fit(levels, K, scene.center, best.theta))
 
 
 def refine(task: Task, scene: Scene, views: Sequence[View], first: PoseError) -> PoseError:
@@ -418,21 +488,76 @@ def significant(error: PoseError, T_cell_cam: np.ndarray, limit_m: float, lamp_t
 
 
 def second_views(T_cell_cam: np.ndarray, center: np.ndarray) -> list[np.ndarray]:
-    """Camera poses for a second view, in the order to try: the camera orbited ORBIT_DEG about the
-    feature centre (about each of ORBITS axes across the view), rolled ROLL_DEG about its own
-    axis (a part's move across the view turns with the view, a hand-eye turn with the camera)
+    """Candidate camera poses for a second view: the camera orbited by each of ORBITS_DEG about
+    the feature centre (about each of ORBITS axes across the view), rolled +-ROLL_DEG about its
+    own axis (a part's move across the view turns with the view, a hand-eye turn with the camera)
     and turned AIM_OFF_DEG off the feature (a hand-eye roll moves an off-centre feature, a part's
-    turn about it does not)."""
+    turn about it does not). The loop takes the most informative it can reach (best_view)."""
     about = geometry.transform(translation=center)
     poses = []
-    for roll in (ROLL_DEG, -ROLL_DEG):
-        for k in range(ORBITS):
-            angle = 2.0 * np.pi * k / ORBITS
-            axis = T_cell_cam[:3, :3] @ np.array([np.cos(angle), np.sin(angle), 0.0])
-            orbit = geometry.transform(Rotation.from_rotvec(np.radians(ORBIT_DEG) * axis).as_matrix())
-            poses.append(about @ orbit @ np.linalg.inv(about) @ T_cell_cam
-                         @ geometry.from_rpy(np.radians([AIM_OFF_DEG, 0.0, roll])))
+    for orbit_deg in ORBITS_DEG:
+        for roll in (ROLL_DEG, -ROLL_DEG):
+            for k in range(ORBITS):
+                angle = 2.0 * np.pi * k / ORBITS
+                axis = T_cell_cam[:3, :3] @ np.array([np.cos(angle), np.sin(angle), 0.0])
+                orbit = geometry.transform(Rotation.from_rotvec(np.radians(orbit_deg) * axis).as_matrix())
+                poses.append(about @ orbit @ np.linalg.inv(about) @ T_cell_cam
+                             @ geometry.from_rpy(np.radians([AIM_OFF_DEG, 0.0, roll])))
     return poses
+
+
+def motion(K: np.ndarray, center: np.ndarray, T_cell_cam: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """d uv / d theta (N, 2, 9) of model points seen from T_cell_cam at theta = 0, per unit of
+    INFORMATION_UNITS (1 mm, 0.3 deg) [px] (central differences of _project)."""
+    out = np.zeros((len(points), 2, 9))
+    for j in range(9):
+        step = np.zeros(9)
+        step[j] = 1e-2 * INFORMATION_UNITS[j]
+        out[:, :, j] = (_project(K, step, center, T_cell_cam, points) - _project(K, -step, center, T_cell_cam, points)) / 2e-2
+    return out
+
+
+def view_information(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: LampPose,
+                     drives: Drives = None) -> np.ndarray:
+    """The 9 x 9 information (J^T J, parameters in INFORMATION_UNITS) a view from T_cell_cam gives
+    the edge fit at its coarsest scale: the model's image there (model_view on a grid VIEW_SCALE
+    times coarser), band-passed at SCALES_PX[0] and scaled to unit spread as fit's samples are,
+    J = the image's slope at each edge sample (EDGE_QUANTILE) times the sample's image motion
+    (motion): what the view's edges, as lit and seen from there, tell of each parameter."""
+    view = model_view(task, scene, T_cell_cam, lamp_pose, drives, VIEW_SCALE)
+    seen = np.isfinite(view.points[..., 0])
+    model = band_pass(view.value, SCALES_PX[0] / VIEW_SCALE)
+    if not seen.any():
+        return np.zeros((9, 9))
+    model = model / max(float(np.std(model[seen])), 1e-12)
+    gx = cv2.Sobel(model, cv2.CV_32F, 1, 0, scale=1 / 8)
+    gy = cv2.Sobel(model, cv2.CV_32F, 0, 1, scale=1 / 8)
+    grad = cv2.magnitude(gx, gy)
+    candidates = seen & (grad > 0)
+    if not candidates.any():
+        return np.zeros((9, 9))
+    rows, cols = np.nonzero(candidates & (grad >= np.quantile(grad[candidates], EDGE_QUANTILE)))
+    slope = np.column_stack([gx[rows, cols], gy[rows, cols]]).astype(float)
+    J = np.einsum("nu,nuj->nj", slope, motion(grid_intrinsics(task, VIEW_SCALE), scene.center, T_cell_cam,
+                                                view.points[rows, cols]))
+    return J.T @ J
+
+
+def best_view(first: np.ndarray, candidates: Sequence[np.ndarray]) -> int | None:
+    """The index of the candidate second view's information (view_information) that, added to the
+    first view's, is best conditioned: the largest least eigenvalue (the combination of the 9
+    parameters the two views tell worst, told best); None without candidates."""
+    if not candidates:
+        return None
+    return int(np.argmax([np.linalg.eigvalsh(first + other)[0] for other in candidates]))
+
+
+def most_informative(task: Task, scene: Scene, first: View, candidates: Sequence[np.ndarray]) -> np.ndarray:
+    """The candidate second view (a camera pose) best_view picks of their view_information, the
+    lamp where the first view had it."""
+    one = view_information(task, scene, first.T_cell_cam, first.lamp_pose, first.drives)
+    infos = [view_information(task, scene, T, first.lamp_pose, first.drives) for T in candidates]
+    return candidates[best_view(one, infos)]
 
 
 def view_exposure(model: ModelView, saturation: float, f_number: float,

@@ -25,6 +25,7 @@ from cell.run.context import RunContext
 from cell.run.defects import MeasuredDefect, measure as measure_defects
 from cell.run.measurement import BlackLevel, Measurement
 from cell.run.refit import Refit
+from cell.collision.scene import CollisionScene, reaching_joints
 from cell.devices.interfaces import speaking_for
 from cell.core.errors import GoalNotReached
 from cell.planning.plan import gray_stats
@@ -412,13 +413,14 @@ def step(ctx: RunContext, aim: Aim, k: int) -> Generator[Event, None, Aim | None
     """Capture k, the closed loop's one step: to the plan's poses when not there (after a
     re-plan), expose and capture (acquire; the arm's hand-eye corrected by the pose error the
     model follows), each feature located and measured (measure_capture: its Iteration yielded);
-    then the first that applies: a feature found beyond its registration limit is localized, once
-    (locate_part), and when the model follows it the loop captures again where it is; else one
-    beyond its registration_limit stops (the plan's poses do not hold: nothing to correct), as does
-    one not registered whose gray on the model's region is in band (no correction changes that, and
-    it is never reported in band: registration.not_registered); every feature in
-    its band ends the loop (returns None); the last iteration stops; else the correction after it
-    (correct_after: the next Aim)."""
+    then the first that applies: a feature found beyond its registration limit, or not registered
+    while its gray on the model's region is in band, is localized, once (locate_part), and when the
+    model follows it the loop captures again where it is; else one beyond its registration_limit
+    stops (the plan's poses do not hold: nothing to correct), as does one not registered whose
+    gray on the model's region is in band (no correction changes that, and it is never reported in
+    band: registration.not_registered); every feature in its band ends the loop (returns None); a
+    correction that would stop at black pixels (the region off the part) localizes first, once; the
+    last iteration stops; else the correction after it (correct_after: the next Aim)."""
     ctx = replace(ctx, devices=localization.corrected(ctx.devices, aim.pose_error))
     if not aim.moved:
         motion.move_to(aim.features[0].task, ctx.devices, aim.shot, ctx.recorder, k)
@@ -430,12 +432,12 @@ def step(ctx: RunContext, aim: Aim, k: int) -> Generator[Event, None, Aim | None
     for feature, m in zip(aim.features, measured):
         found = m.iteration.registration
         far = registration.beyond_limit(found, registration_limit(feature.task, feature.model.plan.shot))
-        if far and not aim.located:
+        unregistered = not found["trusted"] and m.measurement.in_band(feature.task.requirements.gray_band)
+        if (far or unregistered) and not aim.located:
             aim = yield from locate_part(ctx, aim, k, capture)
             if not aim.moved:               # the model followed the part: capture again there
                 return aim
-        why = far or (registration.not_registered(found) if not found["trusted"]
-                      and m.measurement.in_band(feature.task.requirements.gray_band) else None)
+        why = far or (registration.not_registered(found) if unregistered else None)
         if why:
             name = aim.label(feature)
             reason = f"{name}: {why}" if name else why
@@ -444,6 +446,10 @@ def step(ctx: RunContext, aim: Aim, k: int) -> Generator[Event, None, Aim | None
             raise GoalNotReached(reason, "registration")
     if all(m.iteration.in_band for m in measured):
         return None
+    if not aim.located and not rebalancing(aim) and correction(aim, measured).cause == "black pixels":
+        aim = yield from locate_part(ctx, aim, k, capture)      # off the part: where is it?
+        if not aim.moved:
+            return aim
     if k == ctx.max_iterations:
         raise GoalNotReached(not_in_band(aim, measured, k), "iterations")
     return (yield from correct_after(ctx, aim, k, measured))
@@ -492,14 +498,23 @@ def locate_part(ctx: RunContext, aim: Aim, k: int, capture: Capture) -> Generato
 
 def second_view(ctx: RunContext, aim: Aim, k: int, scene: Scene, lamp_pose: registration.LampPose,
                 capture: Capture) -> localization.View | None:
-    """The second view of the part (localization.second_views, the first the arm reaches and the
-    collision check clears with the lamp where it is), exposed for the model's brightest part
-    there (localization.view_exposure) and captured as locate-k.png; None when no pose serves (the
-    one view's estimate stands, and the log says so)."""
+    """The second view of the part: of the candidates (localization.second_views) the arm reaches
+    and the collision check clears at the pose with the lamp where it is, the one whose
+    information with the first view's is best conditioned (localization.most_informative) and
+    whose path there is clear (motion.check; else the next best), exposed for the model's
+    brightest part there (localization.view_exposure) and captured as locate-k.png; None when no
+    pose serves (the one view's estimate stands, and the log says so)."""
     task = aim.features[0].task
-    for T in localization.second_views(capture.T_cell_cam, scene.center):
-        move = None if ctx.devices.arm.refusal(T) else motion.check(task, ctx.devices, T, to="the second view")
-        if move is None or not move.clear:
+    collision = CollisionScene.of(task)
+    clear = [T for T in localization.second_views(capture.T_cell_cam, scene.center)
+             if ctx.devices.arm.refusal(T) is None
+             and collision.clearance(T, reaching_joints(task.frames, T), lamp_pose[0]).ok]
+    first = localization.View(capture.image, capture.T_cell_cam, lamp_pose, capture.drives or None)
+    while clear:
+        T = localization.most_informative(task, scene, first, clear)
+        move = motion.check(task, ctx.devices, T, to="the second view")
+        if not move.clear:
+            clear = [other for other in clear if other is not T]
             continue
         read = motion.move_camera(task, ctx.devices, T, ctx.recorder, "the second view", k, move)
         ctx.recorder.step("move_camera", f"camera at {np.round(read[:3, 3], 4).tolist()} m in the cell frame: a "
@@ -582,7 +597,7 @@ def correct_after(ctx: RunContext, aim: Aim, k: int, measured: Sequence[Measured
     feature again with the albedo scale times the measured model error (Replan; infeasible:
     GoalNotReached). A shot of several features is not refitted or re-planned
     (control.shared_correction stops instead)."""
-    if len(aim.features) == 1 and aim.features[0].task.lights and aim.drives and not aim.balanced:
+    if rebalancing(aim):
         return (yield from rebalance(ctx, aim, k, measured[0]))
     c = correction(aim, measured)
     if c.action == "stop" and c.cause == "spread" and len(aim.features) == 1 and not aim.refitted:
@@ -605,6 +620,12 @@ def correct_after(ctx: RunContext, aim: Aim, k: int, measured: Sequence[Measured
         raise GoalNotReached(f"{why}: infeasible, {replanned.binding}: {replanned.hint}", "infeasible",
                              f"{why}: infeasible: {words.reason(replanned)}")
     return replan_aim(aim, replace(feature, model=Model(replanned, feature.task)), albedo)
+
+
+def rebalancing(aim: Aim) -> bool:
+    """Whether the correction after a capture out of band re-solves the light channels' drives
+    first (rebalance): one feature lit by several lights, not yet balanced."""
+    return len(aim.features) == 1 and bool(aim.features[0].task.lights) and bool(aim.drives) and not aim.balanced
 
 
 def rebalance(ctx: RunContext, aim: Aim, k: int, measured: Measured) -> Generator[Event, None, Aim]:
