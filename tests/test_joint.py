@@ -6,6 +6,7 @@ and the plan takes that one shot, its predicted gray the sum of each light's sha
 import itertools
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -87,9 +88,13 @@ def test_each_patchs_own_drives_leave_the_other_out_of_band_and_joint_drives_cov
     assert any(joint is not None for _, _, joint in columns), "no shot covers both patches jointly"
 
 
-def test_the_plan_takes_one_shot_for_both_patches_at_the_joint_drives(planned):
+@pytest.fixture(scope="module")
+def plan(planned):
+    return plan_features(planned[0])
+
+
+def test_the_plan_takes_one_shot_for_both_patches_at_the_joint_drives(planned, plan):
     task = planned[0]
-    plan = plan_features(task)
     assert plan.feasible and len(plan.shots) == 1
     shot = plan.shots[0]
     assert {c.feature for c in shot.covers} == {"left", "right"}
@@ -101,3 +106,25 @@ def test_the_plan_takes_one_shot_for_both_patches_at_the_joint_drives(planned):
     for c in shot.covers:
         low, high = next(t for t in task.features if t.name == c.feature).requirements.gray_band
         assert low <= c.gray.min() and c.gray.max() <= high
+
+
+def test_cell_png_draws_the_fixed_lights(planned, plan, tmp_path):
+    """The bars' emitter points in their colour on cell.png's view of the cell (its left half,
+    above the legend), and none of it without the lights."""
+    from dataclasses import replace
+
+    from matplotlib.colors import to_rgb
+
+    from cell.report.pictures import FIXED_LIGHT_COLOR, write_cell
+    task = planned[0]
+    gold = np.round(255 * np.array(to_rgb(FIXED_LIGHT_COLOR)))
+
+    def gold_pixels(path):
+        image = cv2.imread(str(path))[..., ::-1].astype(float)
+        cell = image[:int(0.8 * image.shape[0]), :image.shape[1] // 2]
+        return int(np.sum(np.all(np.abs(cell - gold) < 30, axis=-1)))
+
+    write_cell(tmp_path / "with.png", plan, task)
+    write_cell(tmp_path / "without.png", plan, replace(task, lights=()))
+    assert gold_pixels(tmp_path / "without.png") == 0
+    assert gold_pixels(tmp_path / "with.png") > 20
