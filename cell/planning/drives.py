@@ -275,7 +275,7 @@ class _BandRows:
     join, until none is. At the end the solution holds for every sample: it is the full program's
     optimum, at a fraction of its size (an optimum binds at most as many rows as it has columns)."""
 
-    def __init__(self, v: np.ndarray, bounds: tuple[float, float], delta: float, fixed_a: np.ndarray,
+    def __init__(self, v: np.ndarray, bounds: tuple[np.ndarray, np.ndarray], delta: float, fixed_a: np.ndarray,
                  fixed_b: np.ndarray, lb: np.ndarray, ub: np.ndarray, n_integer: int) -> None:
         self.v, self.bounds, self.delta = v, bounds, delta
         self.fixed_a, self.fixed_b, self.lb, self.ub, self.n_integer = fixed_a, fixed_b, lb, ub, n_integer
