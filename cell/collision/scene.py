@@ -184,16 +184,18 @@ class CollisionScene:
 
     def clearance(self, T_cell_cam: np.ndarray, arm_joints: ArrayLike | None = None,
                   lamp_position: ArrayLike | None = None) -> Clearance:
-        """The Clearance of the cell at this pose (see `bodies`)."""
-        return clearance(self.bodies(T_cell_cam, arm_joints, lamp_position), self.padding_m)
+        """The Clearance of the cell at this pose (see `bodies`); two fixed bodies (the part, the
+        fixture, the fixed lights) are not a pair: neither moves, so no pose changes their distance."""
+        return clearance(self.bodies(T_cell_cam, arm_joints, lamp_position), self.padding_m, len(self.fixed))
 
 
-def clearance(bodies: tuple[Body, ...], padding_m: float) -> Clearance:
-    """The smallest distance over the pairs that may not touch (MAY_TOUCH), exactly as
-    bodies.distance gives it: pairs in order of their bounding spheres' gap, stopping at the
-    first gap no smaller than the best distance found."""
+def clearance(bodies: tuple[Body, ...], padding_m: float, fixed: int = 0) -> Clearance:
+    """The smallest distance over the pairs that may not touch (MAY_TOUCH) and are not both among
+    the first `fixed` bodies (those that do not move), exactly as bodies.distance gives it: pairs
+    in order of their bounding spheres' gap, stopping at the first gap no smaller than the best
+    distance found."""
     pairs = [(i, j) for i, j in combinations(range(len(bodies)), 2)
-             if frozenset((bodies[i].name, bodies[j].name)) not in MAY_TOUCH]
+             if frozenset((bodies[i].name, bodies[j].name)) not in MAY_TOUCH and j >= fixed]
     centers = np.array([body.center for body in bodies])
     radii = np.array([body.radius for body in bodies])
     i, j = np.array(pairs).T

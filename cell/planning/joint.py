@@ -15,10 +15,13 @@ says there are none:
 2. the program's drives judged on each feature in full (coverage.judge: every requirement, the
    lamp and drive tolerances, the dense certificate); a feature the program's optimum misses the
    band on, or the judge does not cover, is dropped and the program solved again without it
-   (the own feature never: without it the shot is not this candidate);
-3. the joint drives are kept only where the shot covers every feature it covered at its own
-   drives and at least one more (coverage not lost): the set cover (cell.planning.set_cover)
-   then chooses over the best coverage of each candidate.
+   (the own feature never: without it the shot is not this candidate; one the shot covered at
+   its own drives only when no other is left to drop);
+3. the joint drives are kept only where the shot still covers every feature it covered at its
+   own drives (coverage not lost): then it covers as many or more, and the narrowest margin over
+   them is at least that of its own drives, which are one point of the program (the other
+   features were covered at the shot's f-number, so it is no wider than their depth of field
+   allows). The set cover (cell.planning.set_cover) chooses over each candidate's best coverage.
 
 A task without lights besides the spot has nothing to re-solve (its one lamp's drive is fixed):
 its candidates and plans are as before.
@@ -67,7 +70,7 @@ def resolve(tasks: Sequence[Task], lent: Sequence[Lent], f: int, shot: Shot,
     """The Joint of feature f's candidate `shot`, whose column at its own drives is `column`,
     over the features the prefilter left (a Coverage with a gray), or None: no lights to drive,
     no other feature in question, no drives in band for the own feature with another, or none
-    covering more without losing one (the module's steps)."""
+    without losing a feature it covered (the module's steps)."""
     if not tasks[f].lights:
         return None
     asked = [g for g, c in enumerate(column) if c is not None and len(c.gray)]
@@ -79,7 +82,9 @@ def resolve(tasks: Sequence[Task], lent: Sequence[Lent], f: int, shot: Shot,
         held = [f, *asked]
         chosen = _solve(tasks[f], [held_data[g] for g in held])
         if not chosen.feasible:
-            asked = [g for g in asked if g != _worst(held, [held_data[g] for g in held], chosen)]
+            # drop a feature the shot did not cover first: those it covered it must keep
+            droppable = [g for g in asked if g not in before] or asked
+            asked = [g for g in asked if g != _worst(held, [held_data[g] for g in held], chosen, droppable)]
             continue
         joint = _at_drives(shot, held_data[f].problem, chosen)
         own = coverage.judge(tasks[f], lent[f], joint)
@@ -91,7 +96,7 @@ def resolve(tasks: Sequence[Task], lent: Sequence[Lent], f: int, shot: Shot,
             asked = [g for g in asked if g not in lost]
             continue
         after = [None if g == f else judged.get(g, c) for g, c in enumerate(column)]
-        if not before < covered(after):
+        if not before <= covered(after):
             return None
         joint = replace(joint, gray=own.gray, requirements=own.requirements, lights=own.lights, defects=own.defects)
         return Joint(joint, own, after, tuple(tasks[g].feature.name for g in held), chosen.margin_gray)
@@ -137,9 +142,9 @@ def _solve(task: Task, held: Sequence[_Feature]) -> drives.Drives:
                                max(x.problem.task.requirements.drive_tolerance for x in held))
 
 
-def _worst(features: Sequence[int], held: Sequence[_Feature], chosen: drives.Drives) -> int:
-    """The feature (of `features`, held in that order) whose sample misses the band the most at
-    the program's best drives: the one to drop."""
+def _worst(features: Sequence[int], held: Sequence[_Feature], chosen: drives.Drives, droppable: Sequence[int]) -> int:
+    """The feature of `droppable` (of `features`, held in that order) whose sample misses the
+    band the most at the program's best drives: the one to drop."""
     counts = np.array([x.unit_gray.shape[1] for x in held])
     owner = np.repeat(np.arange(len(held)), counts)
     d = chosen.drive
@@ -151,7 +156,7 @@ def _worst(features: Sequence[int], held: Sequence[_Feature], chosen: drives.Dri
     high = np.concatenate([np.full(c, x.problem.band[1]) for c, x in zip(counts, held)])
     miss = np.maximum(low - (b + (1 - delta) * signal), b + (1 + delta) * signal - high)
     worst = owner[np.argsort(-miss)]
-    return int(features[next(k for k in worst if k != 0)])
+    return int(next(features[k] for k in worst if features[k] in droppable))
 
 
 def _at_drives(shot: Shot, problem: evaluate.Problem, chosen: drives.Drives) -> Shot:

@@ -271,8 +271,7 @@ class Plan:
         gray, requirements and lights of that shot, and a note naming the features, so that the
         plan's keys and a run of it read the drives the cover chose."""
         worst = max(own.requirements, key=lambda r: r.value)
-        note = (f"drive levels solved over the features {', '.join(features)} together, each in its own band "
-                f"(the shot's own drives covered fewer)")
+        note = f"drive levels solved over the features {', '.join(features)} together, each in its own band"
         return replace(self, feasible=own.covered, binding=worst.name, miss=worst.value - 1.0,
                        hint="" if own.covered else worst.detail, verification=own.verification,
                        notes=(*self.notes, note),
