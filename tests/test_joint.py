@@ -128,3 +128,27 @@ def test_cell_png_draws_the_fixed_lights(planned, plan, tmp_path):
     write_cell(tmp_path / "without.png", plan, replace(task, lights=()))
     assert gold_pixels(tmp_path / "without.png") == 0
     assert gold_pixels(tmp_path / "with.png") > 20
+
+
+def test_a_shot_with_lights_is_judged_at_its_own_shutter_on_every_feature(planned):
+    """coverage.judge with lights: the shutter the band needs is the shot's (the drive program's,
+    at the feature's widest f-number), f = exp(t_need / t_max - 1), not the one centring the judged
+    feature alone."""
+    from dataclasses import replace
+
+    from cell.planning import coverage
+    task, tasks, cands, lend, columns = planned
+    t_max = task.camera.shutter_range_s[1]
+    for (f, p), (_, _, joint) in zip(cands, columns):
+        if joint is None:
+            continue
+        shot, e = joint.shot, joint.shot.exposure
+        for g, c in enumerate(joint.column):
+            if c is None:
+                c = joint.own
+            scene = replace(lend[g].planned_scene, T_cell_cam=shot.T_cell_cam)
+            kappa_open = evaluate.build_problem(tasks[g], scene, None, focus_m=e.focus_m).kappa_open
+            need = e.shutter_s * (kappa_open / e.f_number) ** 2
+            value = next(r.value for r in c.requirements if r.name == "shutter_max")
+            assert value == pytest.approx(np.exp(need / t_max - 1.0), rel=1e-9)
+            assert coverage.judge(tasks[g], coverage.Lent.of(lend[g]), shot).covered == c.covered
