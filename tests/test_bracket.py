@@ -228,7 +228,7 @@ def judged_both_ways(tasks, lent, shots, own):
     filtered = np.zeros_like(full)
     rejected = {}
     for s, (shot, f) in enumerate(zip(shots, own)):
-        column, _ = judge_column(tasks, f, shot, lent, lambda msg: None)
+        column, _, _ = judge_column(tasks, f, shot, lent, lambda msg: None)
         for g, missed in enumerate(prefilter.missed(tasks, lent, shot, f)):
             if g == f:
                 continue

@@ -249,3 +249,47 @@ def test_any_problem_gives_finite_drives_within_their_ranges_and_the_margin_it_c
     for drive in (np.where(on_off, 0.0, w_lo), w_hi):
         other = best_exposure_margin((drive @ v)[None], black, band, gains, delta)[0]
         assert d.margin_gray >= other - 2e-6 * (band[1] - band[0])
+
+
+def test_a_band_per_sample_beats_a_brute_force_over_drives_and_exposures():
+    """Two patches with their own bands (a shot lighting two features, cell.planning.joint): the
+    LP's margin is at least a brute force's over a grid of drives times a fine grid of exposures,
+    each sample judged against its own band, and the margin it claims is the recomputed one."""
+    rng = np.random.default_rng(7)
+    v = random_channels(rng, 3, 24, dark=0.0)
+    low = np.r_[np.full(12, 60.0), np.full(12, 120.0)]
+    high = np.r_[np.full(12, 110.0), np.full(12, 200.0)]
+    black = 4.0
+    d = solve_drives(v, (low, high), black, **CAMERA)
+    signal = d.shutter_s / d.f_number**2 * (d.drive @ v)
+    claimed = min(float(np.min(black + signal - low)), float(np.min(high - black - signal)))
+    assert d.margin_gray == pytest.approx(claimed, abs=1e-9)
+    levels = np.linspace(0.0, 1.0, 9)
+    grid = np.array(list(itertools.product(levels, repeat=3)))
+    gains = np.geomspace(*GAINS, 1000)
+    s = (grid @ v)[:, None, :] * gains[None, :, None]                 # (N, X, P)
+    brute = np.minimum(black + s - low, high - black - s).min(axis=-1).max()
+    assert d.margin_gray >= brute - 1e-6
+
+
+def test_one_band_per_sample_equal_to_the_common_band_gives_the_same_drives():
+    rng = np.random.default_rng(3)
+    v = random_channels(rng, 3, 30)
+    one = solve_drives(v, (60.0, 200.0), 4.0, **CAMERA)
+    each = solve_drives(v, (np.full(30, 60.0), np.full(30, 200.0)), 4.0, **CAMERA)
+    assert np.array_equal(one.drive, each.drive) and one.shutter_s == each.shutter_s
+    assert one.margin_gray == each.margin_gray
+
+
+def test_a_channel_adding_under_a_hundredth_of_a_level_is_written_as_exactly_off():
+    """A faint channel (its light at most 1e-4 gray at any exposure the camera has) changes no
+    margin: its drive is exactly 0, not the program's arbitrary level, and the margin is the
+    one recomputed with it off."""
+    v = np.array([np.linspace(2e4, 3e4, 20), np.full(20, 1e-4 / GAINS[1])])
+    d = solve_drives(v, (60.0, 200.0), 4.0, **CAMERA)
+    assert d.drive[1] == 0.0 and d.drive[0] > 0.0
+    assert d.margin_gray == pytest.approx(margin_of(v, 4.0, (60.0, 200.0), d.drive, d.shutter_s, d.f_number)[1],
+                                          abs=1e-9)
+    # a channel that carries the band is kept, however it compares: alone, its drive stays
+    alone = solve_drives(v[1:] * 1e6, (60.0, 200.0), 4.0, **CAMERA)
+    assert alone.drive[0] > 0.0

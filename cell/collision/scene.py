@@ -3,8 +3,9 @@ the cell at one pose of the arm, camera and lamp.
 
 Bodies: the part and the optional fixture (meshes, fixed in the cell), the UR5e's links
 (capsules along its kinematic chain, placed by cell.devices.ur5e.forward), the camera body (a
-box on the flange, centred `offset_m` along the tool axis, its axes the flange's) and the lamp
-body (a box behind the lamp's front at its position, its z axis the lamp's aim). Bodies that may
+box on the flange, centred `offset_m` along the tool axis, its axes the flange's), the lamp
+body (a box behind the lamp's front at its position, its z axis the lamp's aim) and each fixed
+light's housing (light_bodies: a box behind its emitting surface). Bodies that may
 touch: neighbours on the arm's chain and the next but one (they share a joint housing), the
 flange's two wrist links and the camera, the robot base and the fixture it may stand on, the
 part and its fixture. The clearance is the smallest distance over every other pair, found by
@@ -70,6 +71,37 @@ def reaching_joints(frames: Frames, T_cell_cam: np.ndarray,
     return tuple(float(x) for x in q)
 
 
+# a fixed light's housing: its emitting surface's extent plus LIGHT_RIM_M each side, LIGHT_DEPTH_M deep
+# behind it (an LED bar's or ring's body: some 10-30 mm); not in the datasheets the task gives
+LIGHT_RIM_M, LIGHT_DEPTH_M = 0.005, 0.020
+
+
+def light_bodies(task: Task) -> tuple[Box, ...]:
+    """Each fixed light's housing (named as the light) as a Box, its axes the light's `along`,
+    across and axis: half its emitting surface's extent across the axis plus LIGHT_RIM_M (a bar's
+    half length along and none across, a ring's or a disk's radius, an area's half width and
+    height, a spot's none) and LIGHT_DEPTH_M deep behind the emitting centre. A ring's box is
+    solid across its hole (never nearer than the true body: a clearance it gives is a lower
+    bound); a dome, a hollow shell over the part, has no box (its inside is where the part is).
+    A flange light moves with the camera and is inside the camera body's reach (not a body)."""
+    out = []
+    for light in task.lights:
+        if light.mount != "fixed" or light.type == "dome":
+            continue
+        if light.type == "bar":
+            half = (0.5 * float(light.length_m or 0.0), 0.0)
+        elif light.size_m is not None:
+            half = (0.5 * float(light.size_m[0]), 0.5 * float(light.size_m[1]))
+        else:
+            half = (float(light.radius_m or 0.0),) * 2
+        across = np.cross(light.axis, light.along)
+        R = np.column_stack([light.along, across, light.axis])
+        centre = np.asarray(light.position_m, float) - 0.5 * LIGHT_DEPTH_M * light.axis
+        out.append(Box(light.name, geometry.transform(R, centre),
+                       np.array([half[0] + LIGHT_RIM_M, half[1] + LIGHT_RIM_M, 0.5 * LIGHT_DEPTH_M])))
+    return tuple(out)
+
+
 @dataclass(frozen=True)
 class Clearance:
     """The smallest distance [m] between two bodies that may not touch, and which two (names);
@@ -98,7 +130,7 @@ class CollisionScene:
     and where they sit, the frames, the lamp rig's pivot and tilt range and the padding."""
 
     padding_m: float
-    fixed: tuple[Mesh, ...]
+    fixed: tuple[Body, ...]                # the part first, the fixture, each fixed light's housing
     camera_half_m: np.ndarray
     camera_offset_m: float
     lamp_half_m: np.ndarray
@@ -111,9 +143,18 @@ class CollisionScene:
         c = task.cell.collision
         part = _mesh("part", task.part.mesh, task.frames.T_cell_part)
         fixed = (part,) if c.fixture is None else (part, _mesh("fixture", c.fixture, np.eye(4)))
+        fixed = (*fixed, *light_bodies(task))
         return cls(c.padding_m, fixed, 0.5 * np.asarray(c.camera_size_m), c.camera_offset_m,
                    0.5 * np.asarray(c.lamp_size_m), task.frames, task.lamp.rig.pivot_m,
                    task.lamp.rig.tilt_range_rad)
+
+    @property
+    def part(self) -> Mesh:
+        """The part's body (the first of `fixed`)."""
+        part = self.fixed[0]
+        if not isinstance(part, Mesh):
+            raise TypeError("the collision scene's first fixed body is the part's mesh")
+        return part
 
     def camera_body(self, T_cell_flange: np.ndarray) -> Box:
         T = T_cell_flange @ geometry.transform(translation=(0.0, 0.0, self.camera_offset_m))
@@ -138,16 +179,18 @@ class CollisionScene:
 
     def clearance(self, T_cell_cam: np.ndarray, arm_joints: ArrayLike | None = None,
                   lamp_position: ArrayLike | None = None) -> Clearance:
-        """The Clearance of the cell at this pose (see `bodies`)."""
-        return clearance(self.bodies(T_cell_cam, arm_joints, lamp_position), self.padding_m)
+        """The Clearance of the cell at this pose (see `bodies`); two fixed bodies (the part, the
+        fixture, the fixed lights) are not a pair: neither moves, so no pose changes their distance."""
+        return clearance(self.bodies(T_cell_cam, arm_joints, lamp_position), self.padding_m, len(self.fixed))
 
 
-def clearance(bodies: tuple[Body, ...], padding_m: float) -> Clearance:
-    """The smallest distance over the pairs that may not touch (MAY_TOUCH), exactly as
-    bodies.distance gives it: pairs in order of their bounding spheres' gap, stopping at the
-    first gap no smaller than the best distance found."""
+def clearance(bodies: tuple[Body, ...], padding_m: float, fixed: int = 0) -> Clearance:
+    """The smallest distance over the pairs that may not touch (MAY_TOUCH) and are not both among
+    the first `fixed` bodies (those that do not move), exactly as bodies.distance gives it: pairs
+    in order of their bounding spheres' gap, stopping at the first gap no smaller than the best
+    distance found."""
     pairs = [(i, j) for i, j in combinations(range(len(bodies)), 2)
-             if frozenset((bodies[i].name, bodies[j].name)) not in MAY_TOUCH]
+             if frozenset((bodies[i].name, bodies[j].name)) not in MAY_TOUCH and j >= fixed]
     centers = np.array([body.center for body in bodies])
     radii = np.array([body.radius for body in bodies])
     i, j = np.array(pairs).T

@@ -84,6 +84,8 @@ def judge(task: Task, lent: Lent, shot: Shot, shared: Rows | None = None) -> Cov
     e = shot.exposure
     c = evaluate.at_exposure(problem, shot.lamp_position, e.shutter_s, e.f_number, joints=shot.joints,
                              drive=shot.drive)
+    if task.lights:         # the drive program's shutter, as one_shot.lighting judges it: not one centring this feature
+        c = replace(c, t_need=np.array([e.shutter_s * (problem.kappa_open / e.f_number) ** 2]))
     values = requirements.judged(problem, c, requirements.ln_values(problem, c))
     gray = np.minimum(c.gray[0], 2.0 ** task.camera.sensor.bit_depth - 1)
     shares = light_settings(problem, c)

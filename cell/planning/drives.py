@@ -5,16 +5,22 @@ over the channels): G_p = b + x sum_k w_k v_kp, x = t / kappa^2 [s], v_kp >= 0 c
 per exposure at sample p at full drive (kernels.gray's `value`), b the black level [gray]. In the
 products x and u_k = x w_k the band is linear; the margin m [gray] is maximised:
 
-    max m  s.t.  b + (1 - delta) sum_k u_k v_kp >= low + m,   b + (1 + delta) sum_k u_k v_kp <= high - m,
+    max m  s.t.  b + (1 - delta) sum_k u_k v_kp >= low_p + m,   b + (1 + delta) sum_k u_k v_kp <= high_p - m,
                  x w_min_k <= u_k <= x w_max_k,   t_lo / kappa_hi^2 <= x <= t_hi / kappa_open^2,
 
-for every sample p, robust to a relative drive error delta (each channel's true drive in
-w (1 +- delta)); then, with m within MARGIN_SLACK of the best, the shortest exposure (min x). A
+for every sample p (its band [low_p, high_p]: one for all, or each sample its feature's when one
+shot lights several, cell.planning.joint), robust to a relative drive error delta (each channel's
+true drive in w (1 +- delta)); then, with m within MARGIN_SLACK of the best, the shortest exposure (min x). A
 switched channel (off or at w_max_k) is a binary z_k by big-M (scipy.optimize.milp), its pattern
 then fixed and the LP (scipy.optimize.linprog, HiGHS) solved again; both with the samples' rows
 generated as they bind (thousands of samples, an optimum binding a few). Shutter and f-number follow
 from x as in the one-lamp planner (evaluate.exposure_for_gain). Unlike centring_exposure, which
 aims at the band's geometric centre, the LP puts the extremes equally far inside the band's ends.
+
+A channel whose drive adds at most SLACK_GRAY at every sample (the program's slack: its level
+moves no margin, or solver noise of 1e-12) is written as exactly 0, where the margin stays as
+good: a light at drive 0 is off for every other requirement (it casts
+no light a shadow, a dominant term or a picture would count), one at 1e-12 would be on.
 """
 
 from __future__ import annotations
@@ -38,6 +44,9 @@ PATTERN_SLACK = 1e-6
 BINDING_SLACK = 1e-6
 # band widths by which a sample's row left out of the program may be violated before it joins
 VIOLATION = 1e-9
+# gray levels: a channel adding at most this at every sample is off (drive exactly 0); a hundredth
+# of a level, which no 8-bit capture resolves
+SLACK_GRAY = 0.01
 
 Cause = Literal["in band", "unlit", "too dark", "too bright", "too uneven"]
 
@@ -113,27 +122,28 @@ def _count(samples: tuple[int, ...]) -> str:
     return f"{len(samples)} sample{'' if len(samples) == 1 else 's'}"
 
 
-def solve_drives(unit_gray: ArrayLike, band: tuple[float, float], black_level: float, kappa_open: float,
+def solve_drives(unit_gray: ArrayLike, band: tuple[ArrayLike, ArrayLike], black_level: float, kappa_open: float,
                  shutter_range_s: tuple[float, float], f_number_range: tuple[float, float],
                  drive_range: ArrayLike | None = None, switched: ArrayLike | None = None,
                  drive_error: float = 0.0) -> Drives:
     """Drives of channels with gray per exposure `unit_gray` (K, P) [gray / (s / kappa^2)] at full
     drive, within `drive_range` ((K, 2) or (2,) of [w_min, w_max] in [0, 1]; default [0, 1]),
-    `switched` (K,) bool channels off or at w_max only, for the gray band [gray] and black level b,
-    the widest f-number kappa_open the depth of field allows, the shutter and the lens's f-number
-    range, robust to a relative drive error (0 <= delta < 1). The module docstring gives the LP."""
+    `switched` (K,) bool channels off or at w_max only, for the gray band [gray] (low, high: each
+    a number or one per sample (P,)) and black level b, the widest f-number kappa_open the depth of
+    field allows, the shutter and the lens's f-number range, robust to a relative drive error
+    (0 <= delta < 1). The module docstring gives the LP."""
     v = np.asarray(unit_gray, float)
     if v.ndim != 2 or v.shape[1] == 0 or not np.all(np.isfinite(v)) or np.any(v < 0):
         raise ValueError(f"unit_gray must be (K, P >= 1) finite and >= 0, found shape {v.shape}")
-    n_channels = v.shape[0]
-    low, high = map(float, band)
+    n_channels, n_samples = v.shape
+    low, high = (np.broadcast_to(np.asarray(end, float), (n_samples,)) for end in band)
     t_lo, t_hi = map(float, shutter_range_s)
     k_hi = float(f_number_range[1])
-    if not (low < high and 0 < high and 0 < t_lo <= t_hi < np.inf and 0 < kappa_open <= k_hi < np.inf
+    if not (np.all(low < high) and np.all(0 < high) and 0 < t_lo <= t_hi < np.inf and 0 < kappa_open <= k_hi < np.inf
             and 0 <= drive_error < 1):
         raise ValueError(f"need low < high, high > 0, 0 < t_lo <= t_hi, 0 < kappa_open <= kappa_max, 0 <= drive_error < 1: "
-                         f"band {band}, shutter {shutter_range_s}, kappa_open {kappa_open}, f-numbers "
-                         f"{f_number_range}, drive_error {drive_error}")
+                         f"band {low.min():g}-{high.max():g}, shutter {shutter_range_s}, kappa_open {kappa_open}, "
+                         f"f-numbers {f_number_range}, drive_error {drive_error}")
     w_range = np.broadcast_to(np.asarray([0.0, 1.0] if drive_range is None else drive_range, float),
                               (n_channels, 2))
     on_off = np.broadcast_to(np.asarray(False if switched is None else switched, bool), (n_channels,))
@@ -144,8 +154,8 @@ def solve_drives(unit_gray: ArrayLike, band: tuple[float, float], black_level: f
 
     lit = v > 0
     active = lit.any(axis=1)
-    # HiGHS works in scaled units: v over its max, gray in band widths, so x by v_max / width
-    width = high - low
+    # HiGHS works in scaled units: v over its max, gray in (the narrowest) band widths, so x by v_max / width
+    width = float((high - low).min())
     v_max = float(v.max()) if active.any() else 1.0
     scale = v_max / width
     bounds = ((low - black_level) / width, (high - black_level) / width)
@@ -154,17 +164,18 @@ def solve_drives(unit_gray: ArrayLike, band: tuple[float, float], black_level: f
     drive = w_min.copy()
     drive[active] = w_active
     shutter, kappa = (float(a) for a in exposure_for_gain(gain / scale, kappa_open, (t_lo, t_hi), f_number_range))
+    drive = _slack_off(drive, v, shutter / kappa**2, w_min, black_level, low, high, drive_error)
 
     signal = shutter / kappa**2 * (drive @ v)
     gray = black_level + signal
     low_slack = black_level + (1 - drive_error) * signal - low
     high_slack = high - black_level - (1 + drive_error) * signal
     margin = float(min(low_slack.min(), high_slack.min()))
-    darkest_full = black_level + x_hi * (1 - drive_error) * (w_max @ v).min()
-    brightest_least = black_level + x_lo * (1 + drive_error) * (w_min @ v).max()
-    with np.errstate(over="ignore"):         # a low end a hair above 0 reads as inf: nothing to reach
-        dark_fraction = darkest_full / low if low > 0 else np.inf
-    bright_fraction = brightest_least / high
+    darkest_full = black_level + x_hi * (1 - drive_error) * (w_max @ v)
+    brightest_least = black_level + x_lo * (1 + drive_error) * (w_min @ v)
+    with np.errstate(over="ignore", divide="ignore"):   # a low end a hair above 0 reads as inf: nothing to reach
+        dark_fraction = float(np.min(np.where(low > 0, darkest_full / np.where(low > 0, low, 1.0), np.inf)))
+    bright_fraction = float(np.max(brightest_least / high))
     dark, bright = dark_fraction < 1, bright_fraction > 1
     cause: Cause = ("unlit" if not lit.any() else "in band" if margin >= 0 else "too dark" if dark and not bright
                     else "too bright" if bright and not dark else "too uneven")
@@ -175,7 +186,27 @@ def solve_drives(unit_gray: ArrayLike, band: tuple[float, float], black_level: f
                   tuple(int(p) for p in np.flatnonzero(high_slack <= near)),
                   tuple(int(k) for k in np.flatnonzero(~active)),
                   tuple(int(p) for p in np.flatnonzero(~lit.any(axis=0))),
-                  float(dark_fraction), float(bright_fraction), (low, high), float(drive_error), solves, message)
+                  dark_fraction, bright_fraction, (float(low.min()), float(high.max())), float(drive_error),
+                  solves, message)
+
+
+def _slack_off(drive: np.ndarray, v: np.ndarray, gain: float, w_min: np.ndarray, black_level: float,
+               low: np.ndarray, high: np.ndarray, delta: float) -> np.ndarray:
+    """`drive` with every channel that may be off (w_min 0) and adds at most SLACK_GRAY at every
+    sample at exposure gain x (x w_k max_p v_kp) set to exactly 0, where the band's margin stays
+    as good (within BINDING_SLACK band widths, HiGHS's own tolerance's scale): the program's
+    slack, written as off."""
+    def margin(w):
+        signal = gain * (w @ v)
+        return min(float((black_level + (1 - delta) * signal - low).min()),
+                   float((high - black_level - (1 + delta) * signal).min()))
+
+    faint = (w_min == 0) & (drive > 0) & (gain * drive * v.max(axis=1) <= SLACK_GRAY)
+    if not faint.any():
+        return drive
+    off = np.where(faint, 0.0, drive)
+    before, after = margin(drive), margin(off)
+    return off if after >= before - BINDING_SLACK * float((high - low).min()) else drive
 
 
 def _optimum(v, bounds, delta, w_min, w_max, switched, gain_range):
@@ -201,10 +232,11 @@ def _two_stages(v, bounds, delta, w_min, w_max, switched, gain_range):
     x_lo, x_hi = gain_range
     n = k + 2 + s
     # every feasible point's margin is at least m0, that of the least light (x_lo, lowest drives); so
-    # (1 + delta) u_k max_p v_kp <= high - m0 holds at the optimum: a tight bound on u_k and big-M
+    # (1 + delta) u_k v_kp <= high_p - m0 holds at the optimum: a tight bound on u_k and big-M
     signal0 = x_lo * (w_min @ v)
     m0 = min(((1 - delta) * signal0 - low).min(), (high - (1 + delta) * signal0).min())
-    u_cap = (high - m0) / ((1 + delta) * v.max(axis=1))
+    with np.errstate(divide="ignore"):
+        u_cap = np.min(np.where(v > 0, (high - m0) / ((1 + delta) * np.where(v > 0, v, 1.0)), np.inf), axis=1)
     # and x need not exceed what puts some u_k at x w_max_k: a longer exposure with the same u (the
     # same gray) has a switched channel off, or dimmable ones lower, and min x picks the shorter one
     some = w_max > 0
@@ -243,7 +275,7 @@ class _BandRows:
     join, until none is. At the end the solution holds for every sample: it is the full program's
     optimum, at a fraction of its size (an optimum binds at most as many rows as it has columns)."""
 
-    def __init__(self, v: np.ndarray, bounds: tuple[float, float], delta: float, fixed_a: np.ndarray,
+    def __init__(self, v: np.ndarray, bounds: tuple[np.ndarray, np.ndarray], delta: float, fixed_a: np.ndarray,
                  fixed_b: np.ndarray, lb: np.ndarray, ub: np.ndarray, n_integer: int) -> None:
         self.v, self.bounds, self.delta = v, bounds, delta
         self.fixed_a, self.fixed_b, self.lb, self.ub, self.n_integer = fixed_a, fixed_b, lb, ub, n_integer
@@ -265,7 +297,7 @@ class _BandRows:
             band_a[:len(lows), 1:k + 1] = -(1 - delta) * v[:, lows].T
             band_a[len(lows):, 1:k + 1] = (1 + delta) * v[:, highs].T
             band_a[:, k + 1] = 1.0
-            band_b = np.concatenate([np.full(len(lows), -low), np.full(len(highs), high)])
+            band_b = np.concatenate([-low[lows], high[highs]])
             res = _highs(c, np.vstack([band_a, self.fixed_a]), np.concatenate([band_b, self.fixed_b]),
                          lb, self.ub, self.n_integer)
             self.solves += 1

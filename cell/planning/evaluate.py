@@ -67,12 +67,15 @@ def target_gray(band: tuple[float, float]) -> float:
 class LightsAtScene:
     """The task's lights besides the spot at a scene (cell.planning.lights.contribution), one row
     per light in the task's order (K, P): gray per exposure at full drive, unlit, dominant term;
-    and the emitter points each took (K,)."""
+    the emitter points each took (K,); and with a light tolerance, each light's gray per exposure
+    with its aim turned by it in TOLERANCE_RING directions (K, TOLERANCE_RING, P) at the same
+    points (lights.turned; empty (K, 0, P) without one, or for a light at drive 0)."""
 
     unit_gray: np.ndarray
     unlit: np.ndarray
     dominant: np.ndarray
     points: tuple[int, ...]
+    turned: np.ndarray
 
 
 class KernelInputs:
@@ -147,7 +150,7 @@ class Problem:
         any), computed once per task, scene and material, all together (cell.planning.lights.contributions):
         they do not move while the spot is searched. A light in lights_off has a row of 0, unlit,
         its dominant term OCCLUDED and 0 points."""
-        from cell.planning.lights import contributions
+        from cell.planning.lights import contributions, turned
         task, scene, material = self.task, self.scene, self.material
         made_of, lights = self.kernels.lights_of, self.kernels.lights
         if (made_of is None or lights is None or made_of[3] != self.lights_off
@@ -157,11 +160,19 @@ class Problem:
                                                [task.lights[k] for k in on], material, task.camera.sensor,
                                                self.band[1])))
             count = len(scene.points)
+            tolerance = task.requirements.light_tolerance_rad
+            ring = TOLERANCE_RING if tolerance > 0 and found else 0
             lights = LightsAtScene(np.zeros((len(task.lights), count)), np.ones((len(task.lights), count), bool),
                                    np.full((len(task.lights), count), brdf.OCCLUDED, np.int8),
-                                   tuple(found[k].points if k in found else 0 for k in range(len(task.lights))))
+                                   tuple(found[k].points if k in found else 0 for k in range(len(task.lights))),
+                                   np.zeros((len(task.lights), ring, count)))
             for k, c in found.items():
                 lights.unit_gray[k], lights.unlit[k], lights.dominant[k] = c.unit_gray, c.unlit, c.dominant
+                if ring:        # the same emitter points as the nominal aim's: the turn is all that differs
+                    lights.turned[k] = [t.unit_gray for t in contributions(
+                        scene.warp_mesh, scene.points, scene.normals, scene.T_cell_cam,
+                        turned(task.lights[k], tolerance, ring), material, task.camera.sensor, self.band[1],
+                        count=c.points)]
             self.kernels.lights, self.kernels.lights_of = lights, (task, scene, material, self.lights_off)
         return lights
 
@@ -327,6 +338,16 @@ def drive_moves(problem: Problem, u: np.ndarray) -> list[np.ndarray]:
     return [] if delta <= 0 else [(1.0 - delta) * u, (1.0 + delta) * u]
 
 
+def light_moves(problem: Problem, u: np.ndarray, drive: np.ndarray) -> list[np.ndarray]:
+    """The gray per exposure (C, P) with one light's aim turned by the task's light tolerance, for
+    each light and each of TOLERANCE_RING directions (LightsAtScene.turned): u with that light's
+    share at drive (C, 1 + K) replaced by its turned one; none without a tolerance."""
+    lights = problem.lights
+    drive = np.asarray(drive, float).reshape(len(u), -1)
+    return [u + drive[:, 1 + k, None] * (lights.turned[k, m] - lights.unit_gray[k])[None]
+            for k in range(lights.turned.shape[0]) for m in range(lights.turned.shape[1])]
+
+
 def exposure(problem: Problem, unit_gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """centring_exposure of the Problem's band, black level, camera and depth of field."""
     cam = problem.task.camera
@@ -434,7 +455,8 @@ def candidates(problem: Problem, pan: ArrayLike, tilt: ArrayLike, radius: ArrayL
     b = problem.black_level
     moved = all_u[n:].reshape(len(moves), n, u.shape[1])
     if tolerance:
-        moved = np.concatenate([moved, np.array(drive_moves(problem, u)).reshape(-1, n, u.shape[1])])
+        moved = np.concatenate([moved, np.array(drive_moves(problem, u) + light_moves(problem, u, drives))
+                               .reshape(-1, n, u.shape[1])])
     return Candidates(all_pos[:n], b + u * gain, b + moved * gain, all_shadowed[:n], all_off_axis[:n],
                       all_dominant[:n], shutter, kappa, t_need, drives)
 
@@ -462,6 +484,7 @@ def at_exposure(problem: Problem, position: ArrayLike, shutter_s: float, f_numbe
     b = problem.black_level
     moved = all_u[1:].reshape(len(moves), 1, u.shape[1])
     if joints is not None:
-        moved = np.concatenate([moved, np.array(drive_moves(problem, u)).reshape(-1, 1, u.shape[1])])
+        moved = np.concatenate([moved, np.array(drive_moves(problem, u) + light_moves(problem, u, drives))
+                               .reshape(-1, 1, u.shape[1])])
     return Candidates(pos, b + u * gain, b + moved * gain, all_shadowed[:1], all_off_axis[:1], all_dominant[:1],
                       np.array([float(shutter_s)]), np.array([float(f_number)]), t_need, drives)

@@ -63,6 +63,20 @@ def pose(light: Light, T_cell_cam: ArrayLike) -> tuple[np.ndarray, np.ndarray, n
     return geometry.apply(T, light.position_m), geometry.rotate(T, light.axis), geometry.rotate(T, light.along)
 
 
+def turned(light: Light, angle_rad: float, directions: int) -> list[Light]:
+    """The light with its aim turned by angle_rad about its centre in `directions` directions
+    evenly around its axis (its pose error: a fixed light's bracket, a flange light's mount), its
+    `along` kept perpendicular to the turned axis; its emitting surface turns with it."""
+    from dataclasses import replace
+    across = np.cross(light.axis, light.along)
+    out = []
+    for a in 2.0 * np.pi * np.arange(directions) / directions:
+        axis = np.cos(angle_rad) * light.axis + np.sin(angle_rad) * (np.cos(a) * light.along + np.sin(a) * across)
+        along = geometry.unit(light.along - (light.along @ axis) * axis)
+        out.append(replace(light, axis=geometry.unit(axis), along=along))
+    return out
+
+
 def _disk(n: int, radius: float) -> np.ndarray:
     """(n, 2) centres of n equal-area parts of a disk: Vogel's sunflower, r = R sqrt((i + 1/2) / n)."""
     i = np.arange(n)

@@ -6,7 +6,7 @@ plan.json (docs/formats.md) made from it in one place."""
 from __future__ import annotations
 
 from collections.abc import Iterable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -264,6 +264,19 @@ class Plan:
         if uncovered is not None:
             return f"feature '{uncovered.name}' is covered by no shot: {uncovered.binding} binds: {uncovered.hint}"
         return f"{self.binding} binds: {self.hint}"
+
+    def as_chosen(self, shot: Shot, own: Coverage, features: Iterable[str]) -> Plan:
+        """This one-shot plan with its shot replaced by `shot`, its drives solved over `features`
+        (cell.planning.joint), judged on its own feature as `own`: the verdict, certificate,
+        gray, requirements and lights of that shot, and a note naming the features, so that the
+        plan's keys and a run of it read the drives the cover chose."""
+        worst = max(own.requirements, key=lambda r: r.value)
+        note = f"drive levels solved over the features {', '.join(features)} together, each in its own band"
+        return replace(self, feasible=own.covered, binding=worst.name, miss=worst.value - 1.0,
+                       hint="" if own.covered else worst.detail, verification=own.verification,
+                       notes=(*self.notes, note),
+                       shots=(replace(shot, gray=own.gray, requirements=own.requirements, lights=own.lights,
+                                      defects=own.defects, covers=()),))
 
     @property
     def planned_scene(self) -> Scene:

@@ -185,6 +185,8 @@ def lamp_tolerance(p: Problem, c: Candidates) -> np.ndarray:
 def explain_lamp_tolerance(p: Problem, c: Candidates, met: bool) -> str:
     low, high = p.band
     tol = f"lamp errors of {np.degrees(p.task.requirements.lamp_tolerance_rad):.1f} deg"
+    if p.lights.turned.size:
+        tol += f" and errors of {np.degrees(p.task.requirements.light_tolerance_rad):.1f} deg in the other lights' aims"
     return (f"gray stays in band for {tol}" if met else
             f"{tol} move some sample's gray out of the band {low:g}-{high:g}; inspect a smaller "
             f"feature, widen the band or want a reflection whose BRDF changes more slowly")

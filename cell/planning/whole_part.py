@@ -17,7 +17,7 @@ import numpy as np
 
 from cell.collision.scene import CollisionScene, reaching_joints
 from cell.core.progress import Progress, Stage
-from cell.planning import coverage, one_shot, prefilter, regions
+from cell.planning import coverage, joint, one_shot, prefilter, regions
 from cell.planning.set_cover import fewest_shots
 from cell.planning.parallel import SERIAL
 from cell.planning.plan import FeatureVerdict, Plan, PlannerSettings, Search
@@ -26,13 +26,15 @@ from cell.planning.parallel import Pool
 
 if TYPE_CHECKING:
     from cell.planning.coverage import Lent
+    from cell.planning.joint import Joint
     from cell.planning.plan import Coverage, Shot
     from cell.planning.viewpoints import Viewpoints
     from cell.task.types import Task
 
 
-# a candidate shot judged on every feature (None at its own) and the judging's time [s]
-Column = tuple[list["Coverage | None"], float]
+# a candidate shot judged on every feature (None at its own), the judging's time [s] and the shot
+# with drives re-solved over the features it may cover where that covers more (cell.planning.joint)
+Column = tuple[list["Coverage | None"], float, "Joint | None"]
 
 def travel(shots: Sequence[Shot]) -> np.ndarray:
     """(S,) travel of each candidate shot [m]: its camera's distance from the candidates' mean
@@ -110,16 +112,18 @@ def judge_column(tasks: Sequence[Task], f: int, shot: Shot, lent: Sequence[Lent]
                  say: Callable[[str], None]) -> Column:
     """A job: (the Coverage of feature f's candidate `shot` on every other feature, whose own
     first plan lent its samples and maps (`lent`, coverage.Lent; None at f: its plan's verdict
-    stands), its own time [s]). Only the features the prefilter (cell.planning.prefilter) leaves
-    are judged in full, their samples' gray kernel launched once for all (coverage.judge_all): a
-    part's many features are mostly out of one shot's view."""
+    stands), its own time [s], the shot's Joint: its drives re-solved over every feature it may
+    cover where that covers more, else None, cell.planning.joint). Only the features the
+    prefilter (cell.planning.prefilter) leaves are judged in full, their samples' gray kernel
+    launched once for all (coverage.judge_all): a part's many features are mostly out of one
+    shot's view."""
     start = time.perf_counter()
     missed = prefilter.missed(tasks, lent, shot, f)
     left = [g for g in range(len(tasks)) if g != f and not missed[g]]
     judged = dict(zip(left, coverage.judge_all([tasks[g] for g in left], [lent[g] for g in left], shot)))
     column = [None if g == f else judged[g] if g in judged else coverage.rejected(t, missed[g])
               for g, t in enumerate(tasks)]
-    return column, time.perf_counter() - start
+    return column, time.perf_counter() - start, joint.resolve(tasks, lent, f, shot, column)
 
 
 def candidate_plans(tasks: Sequence[Task], settings: PlannerSettings, progress: Progress, pool: Pool = SERIAL
@@ -210,10 +214,13 @@ def plan_features(task: Task, settings: PlannerSettings = PlannerSettings(),
     tasks = [task.with_feature(i) for i in range(len(task.features))]
     cands, views, lend, columns = candidate_plans(tasks, settings, progress, pool)
     t_jobs = time.perf_counter()
+    # a candidate whose drives solved over several features cover more: that shot, its column
+    cands = [(g, p if j is None else p.as_chosen(j.shot, j.own, j.features)) for (g, p), (_, _, j) in zip(cands, columns)]
+    columns = [(c if j is None else j.column, t, j) for c, t, j in columns]
     shots = [p.shot for _, p in cands]
     # a column is None only at its own feature, whose coverage is its plan's
     judged = [[coverage.of_plan(t, p) if g == f else cast("Coverage", column[f])
-               for (g, p), (column, _) in zip(cands, columns)] for f, t in enumerate(tasks)]
+               for (g, p), (column, _, _) in zip(cands, columns)] for f, t in enumerate(tasks)]
     covers = np.array([[c.covered for c in row] for row in judged]).reshape(len(tasks), len(shots))
     colliding = np.array([s.clearance is not None and not s.clearance.ok for s in shots], bool)
     covers[:, colliding] = False                # a shot too close to collide covers nothing
@@ -245,7 +252,7 @@ def plan_features(task: Task, settings: PlannerSettings = PlannerSettings(),
     else:
         worst = max((r for shot in chosen for c in shot.covers for r in c.requirements), key=lambda r: r.value)
         binding, miss, hint = worst.name, worst.value - 1.0, ""
-    timing = {"candidates": t_jobs - t0, "judge": sum(t for _, t in columns), "cover": time.perf_counter() - t_judge,
+    timing = {"candidates": t_jobs - t0, "judge": sum(t for _, t, _ in columns), "cover": time.perf_counter() - t_judge,
               "total": time.perf_counter() - t0}
     if views is not None:                  # of "candidates" (as "judge"): the view spheres, before any lamp
         timing["viewpoints"] = sum(v.time_s for v in views)

@@ -195,7 +195,7 @@ def write_cell_view(path: PathLike, plan: Plan, task: Task, order: Sequence[int]
     else:
         covered = [0 if plan.feasible else None]
         covers = [[task.feature.name] if plan.feasible else []]
-    size = float(np.ptp(scene.fixed[0].vertices, axis=0).max())
+    size = float(np.ptp(scene.part.vertices, axis=0).max())
     for j, (feature, by) in enumerate(zip(task.features, covered)):
         center, normal = geometry.apply(T, feature.center_m), geometry.unit(geometry.rotate(T, feature.normal))
         frame = geometry.frame_from_normal(normal)

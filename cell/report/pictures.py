@@ -427,7 +427,30 @@ def _draw_part(ax, vertices, faces, features, shots, pivot):
     ax.set_title("the part: features, each shot's view axis and lamp direction", fontsize=9)
 
 
-def _legend(fig, shots, names, features, covered, lamp_rig):
+FIXED_LIGHT_COLOR = "goldenrod"
+
+
+def _draw_fixed_lights(ax, task: Task) -> list[str]:
+    """The task's fixed lights on the cell's view: each one's emitter points (cell.planning.lights,
+    its starting count) and a line from its centre along its axis (0.3 of its distance to the
+    rig's pivot); the names drawn. A flange light moves with the camera (drawn in lights.png)."""
+    from cell.planning.lights import START_POINTS, emitters, pose
+    drawn = []
+    pivot = np.asarray(task.lamp.rig.pivot_m, float)
+    for light in task.lights:
+        if light.mount != "fixed":
+            continue
+        points = emitters(light, np.eye(4), START_POINTS[light.type]).position
+        centre, axis, _ = pose(light, np.eye(4))
+        tip = centre + 0.3 * np.linalg.norm(pivot - centre) * axis
+        ax.plot(*points.T, "*", color=FIXED_LIGHT_COLOR, mec="black", mew=0.3, ms=8, zorder=9)
+        ax.plot(*np.array([centre, tip]).T, "-", color=FIXED_LIGHT_COLOR, lw=2.0, zorder=8)
+        ax.text(*centre, f" {light.name}", fontsize=6, zorder=11)
+        drawn.append(light.name)
+    return drawn
+
+
+def _legend(fig, shots, names, features, covered, lamp_rig, fixed=()):
     handles = [Line2D([], [], color=color, lw=2, label=f"shot {k}: " + (", ".join(n) or "covers nothing"))
                for k, ((_, color, _), n) in enumerate(zip(shots, names))]
     handles += [Line2D([], [], color="black", marker="s", mfc="white", label="camera (left: its frustum to the focus)"),
@@ -438,6 +461,9 @@ def _legend(fig, shots, names, features, covered, lamp_rig):
     r0, r1 = lamp_rig.radius_range_m
     handles += [Line2D([], [], color="0.7", lw=0.8, label=f"rig's sphere, radius {r0:.2f} and {r1:.2f} m"),
                 Line2D([], [], color="black", marker="+", ls="none", label="rig's pivot (every lamp's aim)")]
+    if fixed:
+        handles.append(Line2D([], [], color=FIXED_LIGHT_COLOR, marker="*", mec="black", mew=0.3,
+                              label=f"fixed lights ({', '.join(fixed)}): emitter points, axis"))
     fig.legend(handles=handles, loc="lower center", ncol=3, fontsize=7, frameon=False)
 
 
@@ -464,11 +490,12 @@ def write_cell(path: PathLike, plan: Plan, task: Task) -> CellPicture:
     near = fig.add_subplot(1, 2, 2, projection="3d", computed_zorder=False)
     _draw_cell(whole, vertices, faces, shots, lamp_rig)
     _draw_part(near, vertices, faces, features, shots, np.asarray(lamp_rig.pivot_m, float))
+    fixed = _draw_fixed_lights(whole, task)
     for ax in (whole, near):
         ax.view_init(*VIEW)
     verdict = "feasible" if plan.feasible else f"not feasible ({plan.binding})"
     fig.suptitle(f"{plan.task_name}: {len(shots)} shot{'s' * (len(shots) != 1)}, {verdict}", fontsize=10)
-    _legend(fig, shots, names, features, covered, lamp_rig)
+    _legend(fig, shots, names, features, covered, lamp_rig, fixed)
     fig.subplots_adjust(left=0.0, right=1.0, bottom=0.17, top=0.93, wspace=0.0)
     fig.savefig(path, dpi=90, pil_kwargs=PNG)
     height = fig.get_figheight() * fig.dpi

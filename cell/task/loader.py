@@ -141,6 +141,7 @@ REQUIREMENTS = {
     "resolution_m": Number(**POSITIVE, default=None),
     "view_angle_deg": Number(lambda v: 0 < v <= DEG(90), "an angle in (0, 90] deg", default=None),
     "drive_tolerance": Number(lambda v: 0 <= v < 1, "a fraction in [0, 1)", default=0.0),
+    "light_tolerance_deg": Number(**NON_NEGATIVE, default=0.0),
 }
 PROFILE = {
     "off_axis_deg": Table(lambda v: 0 <= v <= np.pi, "an angle within [0, 180] deg",

@@ -32,6 +32,7 @@ class Requirements:
     resolution_m: float | None = None      # a pixel covers at most this on the feature (None: not asked)
     view_angle_rad: float | None = None    # the camera at most this far from each sample's normal
     drive_tolerance: float = 0.0           # each light channel's true drive within drive x (1 +- this)
+    light_tolerance_rad: float = 0.0       # each light's aim (besides the spot) off by up to this: its pose error
 
 
 DEFECT_KINDS = ("scratch", "dent", "coating")
