@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from hypothesis import HealthCheck, given, settings, strategies as st
 
 from cell.core.errors import TaskError
 from cell.devices import rig
@@ -134,49 +135,143 @@ def test_a_dent_tilts_the_normal_by_asin_rho_over_its_curvature_radius():
 def test_a_lambertian_plate_s_scratch_contrast_and_cnr_as_worked_by_hand(tmp_path):
     """R = rho cos ti: at the same point and lamp, a wall's gray is the surface's times
     cos(ti -+ beta) / cos ti; CNR = |dG| / sqrt(sigma_good^2 + sigma_wall^2), sigma^2 = K G + K^2
-    sigma_d^2 + 1/12 with the simulator's K = 255 / 10000, sigma_d = 10 (no black level)."""
+    sigma_d^2 + 1/12 with the simulator's K = 255 / 10000, sigma_d = 10 (no black level). Each
+    wall lies a quarter width beside the groove's line: the one facing the lamp (ti - beta) on
+    the far side, the other toward the lamp; ti and the good gray are each wall's own there."""
     task = load_task(task_file(tmp_path, [SCRATCH], LAMBERTIAN))
     p, c = problem_at(task)
     k = 0
     n, point = p.scene.normals[k], p.scene.points[k]
-    s = c.position[0] - point
-    s /= np.linalg.norm(s)
-    ti = np.arccos(n @ s)
+    to_lamp = c.position[0] - point
     x, y = contrast.tangent_axes(n[None], p.scene.frame[:, 0])
-    across = np.cross(n, s)                            # the groove runs across the plane of incidence
-    theta = np.arctan2(across @ y[0], across @ x[0])
-    cnr, gray, _ = defects.cnr_field(p, c, task.feature.defects[0], np.array([k]), thetas=np.array([theta]))
+    along = np.cross(n, to_lamp)                       # the groove runs across the plane of incidence
+    along /= np.linalg.norm(along)
+    theta = np.arctan2(along @ y[0], along @ x[0])
+    cnr, gray, good_there, _ = defects.cnr_field(p, c, task.feature.defects[0], np.array([k]),
+                                                 thetas=np.array([theta]))
     beta = np.arctan(2 * 3e-6 / 5e-5)
     good = c.gray[0, k]
-    walls = good * np.cos([ti - beta, ti + beta]) / np.cos(ti)
+    assert good_there[0, 0, 0] == pytest.approx(good, rel=1e-4)     # a quarter of 50 um away: the same light
+    walls = []
+    for side, sign in ((1.0, -1.0), (-1.0, 1.0)):      # +w/4 along n x d: ti - beta; -w/4: ti + beta
+        s = c.position[0] - (point + side * 12.5e-6 * np.cross(n, along))
+        ti = np.arccos(n @ s / np.linalg.norm(s))
+        walls.append(np.cos(ti + sign * beta) / np.cos(ti))
     K, dark = 255 / 10_000, 10.0
 
     def sigma(g):
         return np.sqrt(K * g + (K * dark) ** 2 + 1 / 12)
 
-    by_hand = np.abs(walls - good) / np.hypot(sigma(good), sigma(walls))
-    assert gray[0, 0, 0] == pytest.approx(walls[np.argmax(by_hand)], rel=1e-9)
-    assert cnr[0, 0, 0] == pytest.approx(by_hand.max(), rel=1e-9)
+    best = int(np.argmax(np.abs(np.array(walls) - 1.0)))
+    wall = good_there[0, 0, 0] * walls[best]
+    assert gray[0, 0, 0] == pytest.approx(wall, rel=1e-9)
+    by_hand = abs(wall - good_there[0, 0, 0]) / np.hypot(sigma(good_there[0, 0, 0]), sigma(wall))
+    assert cnr[0, 0, 0] == pytest.approx(by_hand, rel=1e-9)
+
+
+def parts_by_hand(d, n, x_axis, thetas, rings, azimuths):
+    """(normals, offsets) (O, W, 3) of a defect's parts at one sample of normal n, built here from
+    the geometry: a groove along d(theta) has its wall turned by +beta about d (Rodrigues by hand)
+    at +w/4 along n x d and the other at -w/4; a dent's ring at rho = a k / rings leans toward
+    the centre by asin(rho / R) at rho u(psi); a coating is the sample's normal at the sample."""
+    x = x_axis - (x_axis @ n) * n
+    x /= np.linalg.norm(x)
+    y = np.cross(n, x)
+    if d.kind == "scratch":
+        beta = np.arctan(2 * d.depth_m / d.width_m)
+        normals, offsets = [], []
+        for theta in thetas:
+            along = np.cos(theta) * x + np.sin(theta) * y
+            across = np.cross(n, along)
+            walls = [np.cos(b) * n + np.sin(b) * np.cross(along, n) for b in (beta, -beta)]
+            normals.append(walls)
+            offsets.append([d.width_m / 4 * across, -d.width_m / 4 * across])
+        return np.array(normals), np.array(offsets)
+    if d.kind == "dent":
+        a, h = d.radius_m, d.depth_m
+        R = (a * a + h * h) / (2 * h)
+        normals, offsets = [], []
+        for k in range(1, rings + 1):
+            rho = a * k / rings
+            for psi in 2 * np.pi * np.arange(azimuths) / azimuths:
+                u = np.cos(psi) * x + np.sin(psi) * y
+                t = np.arcsin(rho / R)
+                normals.append(np.cos(t) * n - np.sin(t) * u)
+                offsets.append(rho * u)
+        return np.array(normals)[None], np.array(offsets)[None]
+    return n[None, None], np.zeros((1, 1, 3))
+
+
+def reference_grays(task, p, c, d, sample, thetas, resolution=defects.JUDGED):
+    """(defect, good) grays (O, W) at one sample by cell.physics.reference (NumPy) at the parts'
+    places (parts_by_hand), the spot alone (the hinge task has no other lights)."""
+    lamp, sensor = task.lamp, task.camera.sensor
+    n, point = p.scene.normals[sample], p.scene.points[sample]
+    normals, offsets = parts_by_hand(d, n, p.scene.frame[:, 0], thetas, resolution.rings, resolution.azimuths)
+    places = (point + offsets).reshape(-1, 3)
+    material = d.material if d.kind == "coating" else p.material
+
+    def gray(normals, table):
+        ref = reference.gray_per_exposure(None, places, normals.reshape(-1, 3), p.scene.camera_position,
+                                          c.position, rig.lamp_aim(lamp.rig.pivot_m, c.position), lamp.power_w,
+                                          lamp.cone_angle_rad, table, sensor.camera_constant,
+                                          sensor.pixel_area_m2, profile=lamp.profile)
+        return (p.black_level + c.shutter[0] / c.kappa[0] ** 2 * ref.value[0]).reshape(offsets.shape[:-1])
+    return gray(normals, material.table()), gray(np.broadcast_to(n, offsets.shape), p.material.table())
 
 
 @pytest.mark.parametrize("entry", [SCRATCH, DENT])
-def test_the_planner_s_defect_gray_is_the_numpy_reference_s(tmp_path, entry):
-    """Every perturbed normal at every sample, the bulk kernel against cell.physics.reference."""
+def test_the_planner_s_defect_gray_is_the_numpy_reference_s_where_each_part_lies(tmp_path, entry):
+    """Every part of the defect at every sample, the bulk kernel against cell.physics.reference
+    at the parts' own places (a wall a quarter width beside the line, a dent's ring at its
+    radius), and the good surface's gray there too."""
     task = load_task(task_file(tmp_path, [entry]))
     p, c = problem_at(task, pan_deg=160.0, tilt_deg=70.0, radius=0.25)
     d = task.feature.defects[0]
-    gray, thetas = defects.defect_gray(p, c, d)
-    normals = defects.normals_of(d, p.scene.normals, p.scene.frame[:, 0], thetas)
-    points = np.broadcast_to(p.scene.points[:, None, None], normals.shape)
-    lamp = task.lamp
-    ref = reference.gray_per_exposure(p.scene.warp_mesh, points.reshape(-1, 3), normals.reshape(-1, 3),
-                                      p.scene.camera_position, c.position, rig.lamp_aim(lamp.rig.pivot_m, c.position),
-                                      lamp.power_w, lamp.cone_angle_rad, p.material.table(),
-                                      task.camera.sensor.camera_constant, task.camera.sensor.pixel_area_m2,
-                                      profile=lamp.profile)
-    expected = p.black_level + c.shutter[0] / c.kappa[0] ** 2 * ref.value.reshape(gray.shape[1:])
-    assert gray[0] == pytest.approx(expected, rel=1e-6, abs=1e-9)
+    gray, good, thetas = defects.defect_gray(p, c, d)
+    for k in range(0, len(p.scene.points), 7):
+        ref_gray, ref_good = reference_grays(task, p, c, d, k, thetas)
+        assert gray[0, k] == pytest.approx(ref_gray, rel=1e-6, abs=1e-9)
+        assert good[0, k] == pytest.approx(ref_good, rel=1e-6, abs=1e-9)
     assert np.ptp(gray) > 1.0                          # the defect does change the gray
+    if d.kind == "dent":                               # its rim lies a radius off: the good gray differs there
+        assert np.ptp(good[0, 0]) > 1e-3 * good[0, 0].mean()
+
+
+@pytest.fixture(scope="module")
+def hinge_problem(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("hinge")
+    task = load_task(task_file(tmp, [SCRATCH, DENT]))
+    return task, problem_at(task)[0]
+
+
+@given(pan=st.floats(-180.0, 180.0), tilt=st.floats(5.0, 89.0), radius=st.floats(0.15, 0.6),
+       shutter=st.floats(1e-4, 0.05), kappa=st.floats(1.4, 16.0), sample=st.integers(0, 10 ** 6),
+       kind=st.sampled_from(["scratch", "dent"]), size=st.floats(0.2, 5.0), depth=st.floats(0.01, 0.3),
+       theta=st.floats(0.0, np.pi))
+@settings(max_examples=40, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+def test_the_planner_s_cnr_is_the_numpy_reference_s_on_random_lamps_defects_and_exposures(
+        hinge_problem, pan, tilt, radius, shutter, kappa, sample, kind, size, depth, theta):
+    """Property: at a random lamp pose (down to grazing, and from behind a part's face), exposure,
+    sample, defect size and orientation, the planner's CNR is the one worked from
+    cell.physics.reference's grays at the parts' places (parts_by_hand) and EMVA 1288's noise,
+    the best part's, within 1 %."""
+    task, p = hinge_problem
+    pivot = task.lamp.rig.pivot_m
+    position = rig.lamp_position(pivot, np.radians(pan), np.radians(tilt), radius)
+    c = evaluate.at_exposure(p, position, shutter, kappa)
+    base = task.feature.defects[0 if kind == "scratch" else 1]
+    d = (replace(base, width_m=size * 1e-4, depth_m=depth * size * 1e-4) if kind == "scratch"
+         else replace(base, radius_m=size * 1e-3, depth_m=depth * 1e-1 * size * 1e-3))
+    k = sample % len(p.scene.points)
+    ratio, _, _, _ = defects.cnr_field(p, c, d, np.array([k]), thetas=np.array([theta]))
+    ref_gray, ref_good = reference_grays(task, p, c, d, k, [theta])
+    K, dark, full = defects.noise_figures(p)
+    lit = ~defects.cast_shadows(p, c)[0, k]
+    expected = contrast.cnr(ref_good * lit + p.black_level * ~lit, ref_gray * lit + p.black_level * ~lit,
+                            p.black_level, K, dark, full).max()
+    assert ratio[0, 0, 0] == pytest.approx(expected, rel=1e-2, abs=1e-9)
 
 
 def test_the_worst_orientation_is_the_brute_force_grid_s(tmp_path):
