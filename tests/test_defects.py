@@ -468,42 +468,16 @@ def test_the_truth_s_scratch_orientations_load_in_radians_and_name_only_declared
 CONROD_EFFECTS = ["shadows", "cone_falloff", "noise", "black_level", "quantization", "defects"]
 
 
-def rim_reference_cnr(task, scene, defect, point, lamp_pos, lamp_aim, shutter, f_number, black, footprint):
-    """The NumPy reference's (cell.physics.reference) CNR of a dent centred at `point`, where its
-    rim pixels are: at r = a - footprint / 2 from the centre in each direction psi (every degree),
-    its normal leaning by asin(r / R); the good surface shaded at that same place."""
-    from cell.physics.sensor import dark_noise, saturation_level, system_gain
-    a, h = defect.radius_m, defect.depth_m
-    r = a - footprint / 2
-    x, y, n = scene.frame.T
-    psi = np.radians(np.arange(360.0))
-    u = np.cos(psi)[:, None] * x + np.sin(psi)[:, None] * y
-    t = contrast.dent_tilt(r, a, h)
-    q = point + r * u
-    lamp, sensor = task.lamp, task.camera.sensor
-
-    def gray(normals):
-        value = reference.gray_per_exposure(scene.warp_mesh, q, normals, scene.camera_position, lamp_pos, lamp_aim,
-                                            lamp.power_w, lamp.cone_angle_rad, task.part.material.table(),
-                                            sensor.camera_constant, sensor.pixel_area_m2, profile=lamp.profile).value
-        return black + shutter / f_number**2 * value[0]
-    K, dark = system_gain(sensor.bit_depth, sensor.system_gain_dn_per_e), dark_noise(sensor.dark_noise_e)
-    return float(np.max(contrast.cnr(gray(np.tile(n, (360, 1))), gray(np.cos(t) * n - np.sin(t) * u), black, K, dark,
-                                     float(saturation_level(sensor.bit_depth)))))
-
-
 @pytest.mark.long          # a 20-70 s plan, its closed loop and six full-size captures
 def test_on_the_simulated_conrod_the_measured_cnr_is_the_predicted_within_20_percent(tmp_path):
     """tasks/conrod-defects.yaml with the defects, noise and the black level simulated, the scratch
     at 44 deg (about the plan's worst): the run converges and report.json gives each defect's
     predicted and measured CNR, each plan's claim (predicted >= min_cnr) measured at least
-    0.8 min_cnr. Then six placements drawn within 4 mm of the feature's centre, each defect alone
-    at a drawn orientation, captured at the run's last settings: a scratch's measured CNR within
-    20 % of the planner's at that point and orientation (cell.planning.defects.cnr_field), a
-    dent's within 20 % of the NumPy reference's where its rim pixels are (rim_reference_cnr; the
-    planner shades the whole dimple at its centre, which a specular lobe, the cast iron's, makes
-    optimistic by up to a fifth: see the report). Without the defects effect neither shows: each
-    measures within 5 times the scatter of its means."""
+    0.8 min_cnr. Then eight placements drawn within 4 mm of the feature's centre, each defect alone
+    at a drawn orientation, captured at the run's last settings: the measured CNR against the
+    planner's at that point and orientation (cell.planning.defects.cnr_field, each part shaded
+    where it lies), a scratch's within 20 %, a dent's within 10 %. Without the defects effect
+    neither shows: each measures within 5 times the scatter of its means."""
     from simcell import run_loop, variant
     from sim.world import Renderer
     from cell.planning.one_shot import build_maps
@@ -526,7 +500,7 @@ def test_on_the_simulated_conrod_the_measured_cnr_is_the_predicted_within_20_per
     plain = build_scene(task)
     rng = np.random.default_rng(25)
     draws = []
-    for k in range(6):
+    for k in range(8):
         r, phi = 4e-3 * np.sqrt(rng.uniform()), rng.uniform(0.0, 2 * np.pi)
         point = plain.center + r * (np.cos(phi) * plain.frame[:, 0] + np.sin(phi) * plain.frame[:, 1])
         draws.append((task.feature.defects[k % 2], point, rng.uniform(0.0, np.pi)))
@@ -534,19 +508,48 @@ def test_on_the_simulated_conrod_the_measured_cnr_is_the_predicted_within_20_per
     problem = evaluate.build_problem(task, scene, build_maps(task, scene, PlannerSettings()))
     c = evaluate.at_exposure(problem, lamp_pos, shutter, f_number)
     first = len(scene.points) - len(draws)
-    footprint = task.camera.sensor.pixel_pitch_m * task.camera.distance_m / task.camera.lens.focal_length_m
+    found = []
     for k, (d, point, theta) in enumerate(draws):
         placed = replace(task, features=(replace(task.feature, defects=(replace(d, position_m=tuple(point)),)),),
                          sim=SimConfig(k + 2, tuple(CONROD_EFFECTS), Truth(defect_orientation_rad=((d.name, theta),))))
         image = Renderer(placed, plain)(plain.T_cell_cam, lamp_pos, lamp_aim, shutter, f_number)
         (m,) = measured.measure(image, placed, plain, plain.T_cell_cam, (0.0, 0.0), black, {})
-        if d.kind == "scratch":
-            expected = defects.cnr_field(problem, c, d, np.array([first + k]), thetas=np.array([theta]))[0][0, 0, 0]
-        else:
-            expected = rim_reference_cnr(task, scene, d, scene.points[first + k], lamp_pos, lamp_aim, shutter,
-                                         f_number, black, footprint)
-        assert m.measured_cnr == pytest.approx(expected, rel=0.2), (d.name, np.degrees(theta), point)
+        expected = defects.cnr_field(problem, c, d, np.array([first + k]), thetas=np.array([theta]))[0][0, 0, 0]
+        found.append((d.kind, m.measured_cnr, expected))
+    print("measured vs planned CNR:", [(kind, round(a, 2), round(b, 2)) for kind, a, b in found])
+    for kind, value, expected in found:
+        assert value == pytest.approx(expected, rel=0.2 if kind == "scratch" else 0.1), (kind, value, expected)
     unseen = replace(task, sim=SimConfig(9, tuple(e for e in CONROD_EFFECTS if e != "defects"), Truth()))
     image = Renderer(unseen, plain)(plain.T_cell_cam, lamp_pos, lamp_aim, shutter, f_number)
     for m in measured.measure(image, unseen, plain, plain.T_cell_cam, (0.0, 0.0), black, {}):
         assert m.measured_cnr < 5 * np.sqrt(1 / m.pixels + 1 / m.neighbours) / np.sqrt(2) < 2.5
+
+
+def test_a_defect_below_its_min_cnr_is_named_with_its_measured_and_planned_cnr():
+    """cell.run.defects.unseen: only a measured CNR below min_cnr fails (one not measured, None,
+    is not judged), each named with its CNR measured and planned, the cause first."""
+    from cell.run.defects import MeasuredDefect, unseen
+    seen = MeasuredDefect("fine", "scratch", 5.0, 6.8, 5.0)
+    faint = MeasuredDefect("ding", "dent", 5.0, 7.2, 3.14)
+    hidden = MeasuredDefect("spot", "coating", 5.0, 6.0, None)
+    assert unseen([seen, hidden]) is None and unseen([]) is None
+    said = unseen([seen, faint, hidden])
+    assert said is not None and said.startswith("the dent 'ding' shows with CNR 3.1 over the sensor's noise, "
+                                                "5 wanted (7.2 planned): the inspection would miss it")
+    assert "fine" not in said and "spot" not in said
+
+
+@pytest.mark.long          # a 20-70 s plan and its closed loop
+def test_a_run_whose_defects_do_not_show_ends_with_cause_contrast(tmp_path):
+    """tasks/conrod-defects.yaml on a world without the defects (noise on, `defects` off): the gray
+    converges in band, but neither defect shows over the noise: exit 1, cause `contrast`, the
+    reason naming each defect's measured CNR first; report.json keeps both CNRs."""
+    from simcell import run_loop, variant
+    effects = [e for e in CONROD_EFFECTS if e != "defects"]
+    cell = run_loop(variant(tmp_path, TASKS / "conrod-defects.yaml", {"sim.effects": effects}), tmp_path / "run")
+    assert cell.error is not None and cell.error.exit_code == 1 and cell.error.cause == "contrast"
+    assert cell.report["cause"] == "contrast" and not cell.report["converged"]
+    assert cell.report["iterations"][-1]["in_band"]
+    assert str(cell.error).startswith("the scratch 'fine' shows with CNR ")
+    for d in cell.report["defects"]:
+        assert d["measured_cnr"] < d["min_cnr"] <= d["predicted_cnr"]

@@ -23,7 +23,7 @@ about sqrt(1 / n_defect + 1 / n_good) / sqrt(2) in CNR units (tests/test_defects
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -86,6 +86,20 @@ class _Pixels:
     gray: np.ndarray
     xy: np.ndarray
     footprint_m: float
+
+
+def unseen(found: Sequence[MeasuredDefect]) -> str | None:
+    """Why a capture whose gray is in band still fails its inspection: the declared defects that
+    measure below their min_cnr, each with its measured and planned CNR (None: every measured
+    defect shows; one too little in view to measure is not judged)."""
+    missed = [d for d in found if d.measured_cnr is not None and d.measured_cnr < d.min_cnr]
+    if not missed:
+        return None
+    said = "; ".join(f"the {d.kind} '{d.name}' shows with CNR {d.measured_cnr:.1f} over the sensor's noise, "
+                     f"{d.min_cnr:g} wanted" + ("" if d.predicted_cnr is None else f" ({d.predicted_cnr:.1f} planned)")
+                     for d in missed)
+    return (f"{said}: the inspection would miss {'it' if len(missed) == 1 else 'them'} though the gray is in "
+            f"band; light from across the defect or expose longer (cell plan says which)")
 
 
 def _pixels(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray,

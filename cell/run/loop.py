@@ -22,7 +22,7 @@ from cell.run import acquisition, channels, control, localization, measurement, 
 from cell.planning import evaluate
 from cell.run.acquisition import Capture, acquire, move_to, plan_and_connect, plan_recorded, planned_drives
 from cell.run.context import RunContext
-from cell.run.defects import MeasuredDefect, measure as measure_defects
+from cell.run.defects import MeasuredDefect, measure as measure_defects, unseen
 from cell.run.measurement import BlackLevel, Measurement
 from cell.run.refit import Refit
 from cell.devices.interfaces import speaking_for
@@ -58,6 +58,7 @@ CAUSES = {          # report.json's `cause` of a run that ends without the goal 
                "their wiring or the controller's output)",
     "pose": "the part (or the camera) is so far from where the model puts it that the cell cannot work there "
             "(no plan for where it is, or the feature leaves the view)",
+    "contrast": "the gray is in band but a declared defect measures below its min_cnr in the last capture",
 }
 
 
@@ -738,6 +739,9 @@ def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices], max_it
                 context = RunContext(task, devices, recorder, max_iterations)
                 for event in iterate(context, [LoopFeature.planned(task, planned)]):
                     events.add(event)
+                missed = unseen(events.iterations[-1].defects) if events.iterations else None
+                if missed:
+                    raise GoalNotReached(missed, "contrast")
             n = len(events.iterations)
             recorder.step("done", f"converged after {count(n, 'iteration')}", converged=True, iterations=n)
     finally:                                    # after report.json: a failing picture loses no report
