@@ -22,7 +22,7 @@ from cell.run import acquisition, channels, control, localization, measurement, 
 from cell.planning import evaluate
 from cell.run.acquisition import Capture, acquire, move_to, plan_and_connect, plan_recorded, planned_drives
 from cell.run.context import RunContext
-from cell.run.defects import MeasuredDefect, measure as measure_defects, unseen
+from cell.run.defects import MeasuredDefect, measure as measure_defects, on_defects, unseen
 from cell.run.measurement import BlackLevel, Measurement
 from cell.run.refit import Refit
 from cell.devices.interfaces import speaking_for
@@ -339,8 +339,11 @@ def measure_capture(ctx: RunContext, aim: Aim, feature: LoopFeature, k: int, cap
     bit_depth = ctx.devices.camera.bit_depth
     saturation = saturation_level(bit_depth)
     found, shift = locate(ctx, feature, k, capture, name)
+    seen = measure_defects(capture.image, task, model.plan.planned_scene, capture.T_cell_cam, shift, aim.black.value,
+                           {d.name: d.predicted_cnr for d in model.plan.shot.defects})
     m = measurement.measure_feature(capture.image, task, capture.T_cell_cam, model.plan.planned_scene.points,
-                                    saturation, shift)
+                                    saturation, shift, on_defects(capture.image, task, model.plan.planned_scene,
+                                                                  capture.T_cell_cam, shift, seen))
     predicted = model.predicted(aim.black.value, capture.shutter_s, f_number)
     error, relation = control.model_error(m.sample_gray, predicted, saturation, aim.black.value)
     band = task.requirements.gray_band
@@ -352,8 +355,6 @@ def measure_capture(ctx: RunContext, aim: Aim, feature: LoopFeature, k: int, cap
     caption = f"{k}: {named}gray {m.min:.0f}-{m.max:.0f}, {stats['saturated']} saturated: {verdict}"
     annotated = ctx.recorder.write_image(f"capture-{k}-{file_name(name) if name else 'feature'}.png",
                                          annotate_capture(capture.image, m, bit_depth, caption))
-    seen = measure_defects(capture.image, task, model.plan.planned_scene, capture.T_cell_cam, shift, aim.black.value,
-                           {d.name: d.predicted_cnr for d in model.plan.shot.defects})
     it = Iteration(k, capture.shutter_s, float(f_number), expected, stats, error, relation, in_band,
                    capture.name, annotated, aim.albedo_scale, found.to_json(), feature=name,
                    drives={str(c): level for c, level in capture.drives.items()}, defects=seen)
