@@ -608,3 +608,26 @@ def test_a_coating_s_pixels_are_left_out_of_the_gray_band_s_region(coarse_plate)
     assert kept.gray.max() == pytest.approx(bare.max(), rel=1e-9)
     assert kept.gray.min() == pytest.approx(bare.min(), rel=1e-9)
     assert np.array_equal(image[kept.region], plain[kept.region])      # only the disk differs
+
+
+def test_a_multi_shot_report_gives_each_feature_s_defects_and_fails_one_unseen():
+    """cell.run.inspection.InspectionResult.feature_results: each feature's last capture's
+    defects as report.json's features[].defects; a feature in band whose defect measures below
+    min_cnr has not converged, the defect named as its reason; one without defects has no key."""
+    from cell.run.defects import MeasuredDefect
+    from cell.run.inspection import InspectionResult, ShotRun
+    from cell.run.loop import Iteration
+
+    def it(feature, defects):
+        return Iteration(1, 0.01, 5.6, {}, {"min": 110.0, "max": 120.0}, 1.0, "", True, "capture-1.png",
+                         "capture-1-x.png", 1.0, {}, feature=feature, defects=defects)
+    seen = MeasuredDefect("fine", "scratch", 5.0, 6.8, 7.5)
+    faint = MeasuredDefect("ding", "dent", 5.0, 5.2, 2.0)
+    shots = (ShotRun(0, ("a", "b"), True, "", (it("a", (seen,)), it("b", ()))),
+             ShotRun(1, ("c",), True, "", (it("c", (faint,)),)))
+    result = InspectionResult("task.yaml", True, "", None, ("a", "b", "c"), (0, 0, 1), (0, 1), 0.1, shots)
+    a, b, c = result.feature_results()
+    assert a["converged"] and a["defects"] == [seen.to_json()] and "defects" not in b and b["converged"]
+    assert c["in_band"] and not c["converged"] and c["defects"][0]["measured_cnr"] == 2.0 and c["cause"] == "contrast"
+    assert "cause" not in a and "cause" not in b
+    assert c["reason"].startswith("the dent 'ding' shows with CNR 2.0 over the sensor's noise, 5 wanted (5.2 planned)")
