@@ -608,6 +608,11 @@ def test_a_coating_s_pixels_are_left_out_of_the_gray_band_s_region(coarse_plate)
     assert kept.gray.max() == pytest.approx(bare.max(), rel=1e-9)
     assert kept.gray.min() == pytest.approx(bare.min(), rel=1e-9)
     assert np.array_equal(image[kept.region], plain[kept.region])      # only the disk differs
+    from cell.report.pictures import annotate_capture
+    magenta = lambda view: np.all(view == (255, 0, 255), axis=-1)
+    drawn = annotate_capture(image, kept, 8, "", mask)
+    assert not magenta(annotate_capture(image, kept, 8, "")).any() and magenta(drawn).any()
+    assert np.all(mask[magenta(drawn)])                                # the mark outlines the defect's pixels
 
 
 def test_a_multi_shot_report_gives_each_feature_s_defects_and_fails_one_unseen():

@@ -341,9 +341,9 @@ def measure_capture(ctx: RunContext, aim: Aim, feature: LoopFeature, k: int, cap
     found, shift = locate(ctx, feature, k, capture, name)
     seen = measure_defects(capture.image, task, model.plan.planned_scene, capture.T_cell_cam, shift, aim.black.value,
                            {d.name: d.predicted_cnr for d in model.plan.shot.defects})
+    marked = on_defects(capture.image, task, model.plan.planned_scene, capture.T_cell_cam, shift, seen)
     m = measurement.measure_feature(capture.image, task, capture.T_cell_cam, model.plan.planned_scene.points,
-                                    saturation, shift, on_defects(capture.image, task, model.plan.planned_scene,
-                                                                  capture.T_cell_cam, shift, seen))
+                                    saturation, shift, marked)
     predicted = model.predicted(aim.black.value, capture.shutter_s, f_number)
     error, relation = control.model_error(m.sample_gray, predicted, saturation, aim.black.value)
     band = task.requirements.gray_band
@@ -354,7 +354,7 @@ def measure_capture(ctx: RunContext, aim: Aim, feature: LoopFeature, k: int, cap
     named = f"{name}: " if name else ""
     caption = f"{k}: {named}gray {m.min:.0f}-{m.max:.0f}, {stats['saturated']} saturated: {verdict}"
     annotated = ctx.recorder.write_image(f"capture-{k}-{file_name(name) if name else 'feature'}.png",
-                                         annotate_capture(capture.image, m, bit_depth, caption))
+                                         annotate_capture(capture.image, m, bit_depth, caption, marked))
     it = Iteration(k, capture.shutter_s, float(f_number), expected, stats, error, relation, in_band,
                    capture.name, annotated, aim.albedo_scale, found.to_json(), feature=name,
                    drives={str(c): level for c, level in capture.drives.items()}, defects=seen)
