@@ -41,6 +41,7 @@ from cell.physics import contrast, sensor as sensor_model
 from cell.planning.plan import DefectCnr
 
 if TYPE_CHECKING:
+    from cell.planning.drives import ContrastRows
     from cell.physics.material import Material
     from cell.planning.evaluate import Candidates, Problem
     from cell.task.types import Defect, Sensor
@@ -347,6 +348,36 @@ def _refined(problem: Problem, candidate: Candidates, d: Defect, ratio: np.ndarr
         keep = np.argsort(fine[0].min(axis=-1))[:max(1, REFINED_SAMPLES // 4)]
         worst, centre = worst[keep], around[keep, k[keep]]
     return best
+
+
+def contrast_rows(problem: Problem, position: np.ndarray, unit_gray: np.ndarray) -> ContrastRows:
+    """The drive program's rows of the feature's defects (cell.planning.drives.ContrastRows) with
+    the spot at `position` (3,) and unit_gray (1 + K, P) each channel's gray per exposure at full
+    drive at the samples (the spot's first): per defect, sample and grid orientation (JUDGED) the
+    part the spot alone shows best (the largest |contrast| over the root of the pixels' signal),
+    its per-channel contrast and signal sum, its sign the spot's. The per-channel grays are
+    defect_gray's at unit drives and exposure (the gray is linear in both)."""
+    from cell.planning.drives import ContrastRows
+    from cell.planning.evaluate import Candidates
+    channels, samples = unit_gray.shape
+    b = problem.black_level
+    ones, none = np.ones(channels), np.zeros((channels, samples))
+    unit = Candidates(np.tile(np.asarray(position, float).reshape(1, 3), (channels, 1)), b + unit_gray,
+                      np.zeros((0, channels, samples)), none.astype(bool), none, none.astype(np.int8), ones, ones,
+                      ones, np.eye(channels))
+    K, dark, _ = noise_figures(problem)
+    difference, total, sign, wanted = [], [], [], []
+    for d in problem.task.feature.defects:
+        gray, good, _ = defect_gray(problem, unit, d)
+        diff = (gray - good).reshape(channels, -1, gray.shape[-1])          # (1 + K, S O, W)
+        both = (gray + good - 2.0 * b).reshape(diff.shape)
+        part = np.argmax(np.abs(diff[0]) / np.sqrt(np.maximum(both[0], 1e-300)), axis=-1)
+        rows = np.arange(diff.shape[1])
+        difference.append(diff[:, rows, part])
+        total.append(both[:, rows, part])
+        sign.append(np.where(diff[0, rows, part] < 0.0, -1.0, 1.0))
+        wanted.append(np.full(len(rows), d.min_cnr))
+    return ContrastRows(np.hstack(difference), np.hstack(total), np.concatenate(sign), np.concatenate(wanted), K, dark)
 
 
 def worse_of(a: tuple[DefectCnr, ...], b: tuple[DefectCnr, ...]) -> tuple[DefectCnr, ...]:
