@@ -636,3 +636,36 @@ def test_a_multi_shot_report_gives_each_feature_s_defects_and_fails_one_unseen()
     assert c["in_band"] and not c["converged"] and c["defects"][0]["measured_cnr"] == 2.0 and c["cause"] == "contrast"
     assert "cause" not in a and "cause" not in b
     assert c["reason"].startswith("the dent 'ding' shows with CNR 2.0 over the sensor's noise, 5 wanted (5.2 planned)")
+
+
+def test_the_drive_program_s_contrast_rows_are_the_planner_s_grays_channel_by_channel(tmp_path):
+    """tasks/ring.yaml (a spot and two rings on their channels) with a dent: the rows' per-channel
+    contrast and signal, weighted by any drives and exposure, are the planner's defect and good
+    grays at those drives (defect_gray: linear in both), at the part the spot alone shows best,
+    with the spot's sign."""
+    raw = yaml.safe_load((TASKS / "ring.yaml").read_text())
+    raw["part"] |= {k: str(TASKS / raw["part"][k]) for k in ("mesh", "material")}
+    raw["feature"]["defects"] = [DENT | {"position_mm": [1.0, 0.5, 8.0]}]
+    path = tmp_path / "ring-dent.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    task = load_task(path)
+    p = evaluate.build_problem(task, build_scene(task), None)
+    pivot = task.lamp.rig.pivot_m
+    position = rig.lamp_position(pivot, np.radians(40.0), np.radians(35.0), 0.3)
+    spot = evaluate.unit_gray(p, position.reshape(1, 3), rig.lamp_aim(pivot, position.reshape(1, 3)))[0]
+    unit = np.vstack([spot, p.lights.unit_gray])
+    rows = defects.contrast_rows(p, position, unit)
+    drive, shutter, kappa = np.array([0.7, 0.2, 0.9]), 0.004, 4.0
+    c = evaluate.at_exposure(p, position, shutter, kappa, drive=drive)
+    gray, good, _ = defects.defect_gray(p, c, task.feature.defects[0])
+    u = shutter / kappa**2 * drive
+    spot_only = defects.defect_gray(p, evaluate.at_exposure(p, position, shutter, kappa,
+                                                            drive=np.array([1.0, 0.0, 0.0])), task.feature.defects[0])
+    d0 = (spot_only[0] - spot_only[1])[0].reshape(len(p.scene.points), -1)
+    t0 = (spot_only[0] + spot_only[1] - 2 * p.black_level)[0].reshape(d0.shape)
+    part = np.argmax(np.abs(d0) / np.sqrt(t0), axis=-1)
+    at = np.arange(len(part))
+    expected = (gray - good)[0].reshape(d0.shape)[at, part]
+    assert u @ rows.difference == pytest.approx(expected, rel=1e-6, abs=1e-9)
+    assert u @ rows.total == pytest.approx((gray + good - 2 * p.black_level)[0].reshape(d0.shape)[at, part], rel=1e-6)
+    assert np.array_equal(rows.sign, np.where(d0[at, part] < 0, -1.0, 1.0)) and np.all(rows.min_cnr == 5.0)
