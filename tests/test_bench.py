@@ -6,6 +6,7 @@ import math
 from dataclasses import asdict
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from cell.bench.suite import QUICK_SWEEP
@@ -244,3 +245,23 @@ def test_channel_lights_surround_the_feature_each_on_its_own_channel():
         np.testing.assert_allclose(np.linalg.norm(offset), SPHERE_M)
         np.testing.assert_allclose(light.axis, -offset / SPHERE_M, atol=1e-12)    # aimed at the centre
         assert offset[2] > 0.0                                                       # above the plate
+
+
+def test_the_contrast_rows_say_what_judging_a_defect_costs_and_how_close_it_comes():
+    """cell.bench.contrast on tasks/hinge-scratch.yaml (--quick): per samples and resolution a row
+    with its time a pose, its ratio to the gray's, its CNR error against the reference; the
+    judged worst (refined) within 1 % of the reference at the reference's samples and never
+    farther than the 5 deg grid's, which is never farther than the 15 deg ranking's; the table
+    prints each row."""
+    from cell.bench import contrast
+    from cell.cli.bench import contrast_table
+    from cell.task.loader import load_task
+    rows = contrast.run([load_task(TASKS / "hinge-scratch.yaml")], True, lambda _: None)["contrast"]
+    assert {(r["samples"], r["resolution"]) for r in rows} == {(n, name) for n in contrast.QUICK_SAMPLES
+                                                               for name in contrast.RESOLUTIONS}
+    assert all(np.isfinite([r["time_s"], r["gray_s"], r["ratio"], r["cnr_error"]]).all() for r in rows)
+    at = {r["resolution"]: r for r in rows if r["samples"] == contrast.QUICK_SAMPLES[-1]}
+    assert at["judged"]["cnr_error"] < 0.01
+    assert at["judged"]["cnr_error"] <= at["grid"]["cnr_error"] <= at["ranked"]["cnr_error"]
+    assert at["ranked"]["orientations"] == 12 and at["grid"]["orientations"] == 36
+    assert len(contrast_table(rows).splitlines()) == len(rows) + 1

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from hypothesis import HealthCheck, given, settings, strategies as st
 
 from cell.core.errors import TaskError
 from cell.devices import rig
@@ -134,49 +135,143 @@ def test_a_dent_tilts_the_normal_by_asin_rho_over_its_curvature_radius():
 def test_a_lambertian_plate_s_scratch_contrast_and_cnr_as_worked_by_hand(tmp_path):
     """R = rho cos ti: at the same point and lamp, a wall's gray is the surface's times
     cos(ti -+ beta) / cos ti; CNR = |dG| / sqrt(sigma_good^2 + sigma_wall^2), sigma^2 = K G + K^2
-    sigma_d^2 + 1/12 with the simulator's K = 255 / 10000, sigma_d = 10 (no black level)."""
+    sigma_d^2 + 1/12 with the simulator's K = 255 / 10000, sigma_d = 10 (no black level). Each
+    wall lies a quarter width beside the groove's line: the one facing the lamp (ti - beta) on
+    the far side, the other toward the lamp; ti and the good gray are each wall's own there."""
     task = load_task(task_file(tmp_path, [SCRATCH], LAMBERTIAN))
     p, c = problem_at(task)
     k = 0
     n, point = p.scene.normals[k], p.scene.points[k]
-    s = c.position[0] - point
-    s /= np.linalg.norm(s)
-    ti = np.arccos(n @ s)
+    to_lamp = c.position[0] - point
     x, y = contrast.tangent_axes(n[None], p.scene.frame[:, 0])
-    across = np.cross(n, s)                            # the groove runs across the plane of incidence
-    theta = np.arctan2(across @ y[0], across @ x[0])
-    cnr, gray, _ = defects.cnr_field(p, c, task.feature.defects[0], np.array([k]), thetas=np.array([theta]))
+    along = np.cross(n, to_lamp)                       # the groove runs across the plane of incidence
+    along /= np.linalg.norm(along)
+    theta = np.arctan2(along @ y[0], along @ x[0])
+    cnr, gray, good_there, _ = defects.cnr_field(p, c, task.feature.defects[0], np.array([k]),
+                                                 thetas=np.array([theta]))
     beta = np.arctan(2 * 3e-6 / 5e-5)
     good = c.gray[0, k]
-    walls = good * np.cos([ti - beta, ti + beta]) / np.cos(ti)
+    assert good_there[0, 0, 0] == pytest.approx(good, rel=1e-4)     # a quarter of 50 um away: the same light
+    walls = []
+    for side, sign in ((1.0, -1.0), (-1.0, 1.0)):      # +w/4 along n x d: ti - beta; -w/4: ti + beta
+        s = c.position[0] - (point + side * 12.5e-6 * np.cross(n, along))
+        ti = np.arccos(n @ s / np.linalg.norm(s))
+        walls.append(np.cos(ti + sign * beta) / np.cos(ti))
     K, dark = 255 / 10_000, 10.0
 
     def sigma(g):
         return np.sqrt(K * g + (K * dark) ** 2 + 1 / 12)
 
-    by_hand = np.abs(walls - good) / np.hypot(sigma(good), sigma(walls))
-    assert gray[0, 0, 0] == pytest.approx(walls[np.argmax(by_hand)], rel=1e-9)
-    assert cnr[0, 0, 0] == pytest.approx(by_hand.max(), rel=1e-9)
+    best = int(np.argmax(np.abs(np.array(walls) - 1.0)))
+    wall = good_there[0, 0, 0] * walls[best]
+    assert gray[0, 0, 0] == pytest.approx(wall, rel=1e-9)
+    by_hand = abs(wall - good_there[0, 0, 0]) / np.hypot(sigma(good_there[0, 0, 0]), sigma(wall))
+    assert cnr[0, 0, 0] == pytest.approx(by_hand, rel=1e-9)
+
+
+def parts_by_hand(d, n, x_axis, thetas, rings, azimuths):
+    """(normals, offsets) (O, W, 3) of a defect's parts at one sample of normal n, built here from
+    the geometry: a groove along d(theta) has its wall turned by +beta about d (Rodrigues by hand)
+    at +w/4 along n x d and the other at -w/4; a dent's ring at rho = a k / rings leans toward
+    the centre by asin(rho / R) at rho u(psi); a coating is the sample's normal at the sample."""
+    x = x_axis - (x_axis @ n) * n
+    x /= np.linalg.norm(x)
+    y = np.cross(n, x)
+    if d.kind == "scratch":
+        beta = np.arctan(2 * d.depth_m / d.width_m)
+        normals, offsets = [], []
+        for theta in thetas:
+            along = np.cos(theta) * x + np.sin(theta) * y
+            across = np.cross(n, along)
+            walls = [np.cos(b) * n + np.sin(b) * np.cross(along, n) for b in (beta, -beta)]
+            normals.append(walls)
+            offsets.append([d.width_m / 4 * across, -d.width_m / 4 * across])
+        return np.array(normals), np.array(offsets)
+    if d.kind == "dent":
+        a, h = d.radius_m, d.depth_m
+        R = (a * a + h * h) / (2 * h)
+        normals, offsets = [], []
+        for k in range(1, rings + 1):
+            rho = a * k / rings
+            for psi in 2 * np.pi * np.arange(azimuths) / azimuths:
+                u = np.cos(psi) * x + np.sin(psi) * y
+                t = np.arcsin(rho / R)
+                normals.append(np.cos(t) * n - np.sin(t) * u)
+                offsets.append(rho * u)
+        return np.array(normals)[None], np.array(offsets)[None]
+    return n[None, None], np.zeros((1, 1, 3))
+
+
+def reference_grays(task, p, c, d, sample, thetas, resolution=defects.JUDGED):
+    """(defect, good) grays (O, W) at one sample by cell.physics.reference (NumPy) at the parts'
+    places (parts_by_hand), the spot alone (the hinge task has no other lights)."""
+    lamp, sensor = task.lamp, task.camera.sensor
+    n, point = p.scene.normals[sample], p.scene.points[sample]
+    normals, offsets = parts_by_hand(d, n, p.scene.frame[:, 0], thetas, resolution.rings, resolution.azimuths)
+    places = (point + offsets).reshape(-1, 3)
+    material = d.material if d.kind == "coating" else p.material
+
+    def gray(normals, table):
+        ref = reference.gray_per_exposure(None, places, normals.reshape(-1, 3), p.scene.camera_position,
+                                          c.position, rig.lamp_aim(lamp.rig.pivot_m, c.position), lamp.power_w,
+                                          lamp.cone_angle_rad, table, sensor.camera_constant,
+                                          sensor.pixel_area_m2, profile=lamp.profile)
+        return (p.black_level + c.shutter[0] / c.kappa[0] ** 2 * ref.value[0]).reshape(offsets.shape[:-1])
+    return gray(normals, material.table()), gray(np.broadcast_to(n, offsets.shape), p.material.table())
 
 
 @pytest.mark.parametrize("entry", [SCRATCH, DENT])
-def test_the_planner_s_defect_gray_is_the_numpy_reference_s(tmp_path, entry):
-    """Every perturbed normal at every sample, the bulk kernel against cell.physics.reference."""
+def test_the_planner_s_defect_gray_is_the_numpy_reference_s_where_each_part_lies(tmp_path, entry):
+    """Every part of the defect at every sample, the bulk kernel against cell.physics.reference
+    at the parts' own places (a wall a quarter width beside the line, a dent's ring at its
+    radius), and the good surface's gray there too."""
     task = load_task(task_file(tmp_path, [entry]))
     p, c = problem_at(task, pan_deg=160.0, tilt_deg=70.0, radius=0.25)
     d = task.feature.defects[0]
-    gray, thetas = defects.defect_gray(p, c, d)
-    normals = defects.normals_of(d, p.scene.normals, p.scene.frame[:, 0], thetas)
-    points = np.broadcast_to(p.scene.points[:, None, None], normals.shape)
-    lamp = task.lamp
-    ref = reference.gray_per_exposure(p.scene.warp_mesh, points.reshape(-1, 3), normals.reshape(-1, 3),
-                                      p.scene.camera_position, c.position, rig.lamp_aim(lamp.rig.pivot_m, c.position),
-                                      lamp.power_w, lamp.cone_angle_rad, p.material.table(),
-                                      task.camera.sensor.camera_constant, task.camera.sensor.pixel_area_m2,
-                                      profile=lamp.profile)
-    expected = p.black_level + c.shutter[0] / c.kappa[0] ** 2 * ref.value.reshape(gray.shape[1:])
-    assert gray[0] == pytest.approx(expected, rel=1e-6, abs=1e-9)
+    gray, good, thetas = defects.defect_gray(p, c, d)
+    for k in range(0, len(p.scene.points), 7):
+        ref_gray, ref_good = reference_grays(task, p, c, d, k, thetas)
+        assert gray[0, k] == pytest.approx(ref_gray, rel=1e-6, abs=1e-9)
+        assert good[0, k] == pytest.approx(ref_good, rel=1e-6, abs=1e-9)
     assert np.ptp(gray) > 1.0                          # the defect does change the gray
+    if d.kind == "dent":                               # its rim lies a radius off: the good gray differs there
+        assert np.ptp(good[0, 0]) > 1e-3 * good[0, 0].mean()
+
+
+@pytest.fixture(scope="module")
+def hinge_problem(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("hinge")
+    task = load_task(task_file(tmp, [SCRATCH, DENT]))
+    return task, problem_at(task)[0]
+
+
+@given(pan=st.floats(-180.0, 180.0), tilt=st.floats(5.0, 89.0), radius=st.floats(0.15, 0.6),
+       shutter=st.floats(1e-4, 0.05), kappa=st.floats(1.4, 16.0), sample=st.integers(0, 10 ** 6),
+       kind=st.sampled_from(["scratch", "dent"]), size=st.floats(0.2, 5.0), depth=st.floats(0.01, 0.3),
+       theta=st.floats(0.0, np.pi))
+@settings(max_examples=40, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+def test_the_planner_s_cnr_is_the_numpy_reference_s_on_random_lamps_defects_and_exposures(
+        hinge_problem, pan, tilt, radius, shutter, kappa, sample, kind, size, depth, theta):
+    """Property: at a random lamp pose (down to grazing, and from behind a part's face), exposure,
+    sample, defect size and orientation, the planner's CNR is the one worked from
+    cell.physics.reference's grays at the parts' places (parts_by_hand) and EMVA 1288's noise,
+    the best part's, within 1 %."""
+    task, p = hinge_problem
+    pivot = task.lamp.rig.pivot_m
+    position = rig.lamp_position(pivot, np.radians(pan), np.radians(tilt), radius)
+    c = evaluate.at_exposure(p, position, shutter, kappa)
+    base = task.feature.defects[0 if kind == "scratch" else 1]
+    d = (replace(base, width_m=size * 1e-4, depth_m=depth * size * 1e-4) if kind == "scratch"
+         else replace(base, radius_m=size * 1e-3, depth_m=depth * 1e-1 * size * 1e-3))
+    k = sample % len(p.scene.points)
+    ratio, _, _, _ = defects.cnr_field(p, c, d, np.array([k]), thetas=np.array([theta]))
+    ref_gray, ref_good = reference_grays(task, p, c, d, k, [theta])
+    K, dark, full = defects.noise_figures(p)
+    lit = ~defects.cast_shadows(p, c)[0, k]
+    expected = contrast.cnr(ref_good * lit + p.black_level * ~lit, ref_gray * lit + p.black_level * ~lit,
+                            p.black_level, K, dark, full).max()
+    assert ratio[0, 0, 0] == pytest.approx(expected, rel=1e-2, abs=1e-9)
 
 
 def test_the_worst_orientation_is_the_brute_force_grid_s(tmp_path):
@@ -373,42 +468,16 @@ def test_the_truth_s_scratch_orientations_load_in_radians_and_name_only_declared
 CONROD_EFFECTS = ["shadows", "cone_falloff", "noise", "black_level", "quantization", "defects"]
 
 
-def rim_reference_cnr(task, scene, defect, point, lamp_pos, lamp_aim, shutter, f_number, black, footprint):
-    """The NumPy reference's (cell.physics.reference) CNR of a dent centred at `point`, where its
-    rim pixels are: at r = a - footprint / 2 from the centre in each direction psi (every degree),
-    its normal leaning by asin(r / R); the good surface shaded at that same place."""
-    from cell.physics.sensor import dark_noise, saturation_level, system_gain
-    a, h = defect.radius_m, defect.depth_m
-    r = a - footprint / 2
-    x, y, n = scene.frame.T
-    psi = np.radians(np.arange(360.0))
-    u = np.cos(psi)[:, None] * x + np.sin(psi)[:, None] * y
-    t = contrast.dent_tilt(r, a, h)
-    q = point + r * u
-    lamp, sensor = task.lamp, task.camera.sensor
-
-    def gray(normals):
-        value = reference.gray_per_exposure(scene.warp_mesh, q, normals, scene.camera_position, lamp_pos, lamp_aim,
-                                            lamp.power_w, lamp.cone_angle_rad, task.part.material.table(),
-                                            sensor.camera_constant, sensor.pixel_area_m2, profile=lamp.profile).value
-        return black + shutter / f_number**2 * value[0]
-    K, dark = system_gain(sensor.bit_depth, sensor.system_gain_dn_per_e), dark_noise(sensor.dark_noise_e)
-    return float(np.max(contrast.cnr(gray(np.tile(n, (360, 1))), gray(np.cos(t) * n - np.sin(t) * u), black, K, dark,
-                                     float(saturation_level(sensor.bit_depth)))))
-
-
 @pytest.mark.long          # a 20-70 s plan, its closed loop and six full-size captures
 def test_on_the_simulated_conrod_the_measured_cnr_is_the_predicted_within_20_percent(tmp_path):
     """tasks/conrod-defects.yaml with the defects, noise and the black level simulated, the scratch
-    at 44 deg (about the plan's worst): the run converges and report.json gives each defect's
+    at 44 deg: the run converges and report.json gives each defect's
     predicted and measured CNR, each plan's claim (predicted >= min_cnr) measured at least
-    0.8 min_cnr. Then six placements drawn within 4 mm of the feature's centre, each defect alone
-    at a drawn orientation, captured at the run's last settings: a scratch's measured CNR within
-    20 % of the planner's at that point and orientation (cell.planning.defects.cnr_field), a
-    dent's within 20 % of the NumPy reference's where its rim pixels are (rim_reference_cnr; the
-    planner shades the whole dimple at its centre, which a specular lobe, the cast iron's, makes
-    optimistic by up to a fifth: see the report). Without the defects effect neither shows: each
-    measures within 5 times the scatter of its means."""
+    0.8 min_cnr. Then eight placements drawn within 4 mm of the feature's centre, each defect alone
+    at a drawn orientation, captured at the run's last settings: the measured CNR against the
+    planner's at that point and orientation (cell.planning.defects.cnr_field, each part shaded
+    where it lies), a scratch's within 20 %, a dent's within 10 %. Without the defects effect
+    neither shows: each measures within 5 times the scatter of its means."""
     from simcell import run_loop, variant
     from sim.world import Renderer
     from cell.planning.one_shot import build_maps
@@ -431,7 +500,7 @@ def test_on_the_simulated_conrod_the_measured_cnr_is_the_predicted_within_20_per
     plain = build_scene(task)
     rng = np.random.default_rng(25)
     draws = []
-    for k in range(6):
+    for k in range(8):
         r, phi = 4e-3 * np.sqrt(rng.uniform()), rng.uniform(0.0, 2 * np.pi)
         point = plain.center + r * (np.cos(phi) * plain.frame[:, 0] + np.sin(phi) * plain.frame[:, 1])
         draws.append((task.feature.defects[k % 2], point, rng.uniform(0.0, np.pi)))
@@ -439,19 +508,164 @@ def test_on_the_simulated_conrod_the_measured_cnr_is_the_predicted_within_20_per
     problem = evaluate.build_problem(task, scene, build_maps(task, scene, PlannerSettings()))
     c = evaluate.at_exposure(problem, lamp_pos, shutter, f_number)
     first = len(scene.points) - len(draws)
-    footprint = task.camera.sensor.pixel_pitch_m * task.camera.distance_m / task.camera.lens.focal_length_m
+    found = []
     for k, (d, point, theta) in enumerate(draws):
         placed = replace(task, features=(replace(task.feature, defects=(replace(d, position_m=tuple(point)),)),),
                          sim=SimConfig(k + 2, tuple(CONROD_EFFECTS), Truth(defect_orientation_rad=((d.name, theta),))))
         image = Renderer(placed, plain)(plain.T_cell_cam, lamp_pos, lamp_aim, shutter, f_number)
         (m,) = measured.measure(image, placed, plain, plain.T_cell_cam, (0.0, 0.0), black, {})
-        if d.kind == "scratch":
-            expected = defects.cnr_field(problem, c, d, np.array([first + k]), thetas=np.array([theta]))[0][0, 0, 0]
-        else:
-            expected = rim_reference_cnr(task, scene, d, scene.points[first + k], lamp_pos, lamp_aim, shutter,
-                                         f_number, black, footprint)
-        assert m.measured_cnr == pytest.approx(expected, rel=0.2), (d.name, np.degrees(theta), point)
+        expected = defects.cnr_field(problem, c, d, np.array([first + k]), thetas=np.array([theta]))[0][0, 0, 0]
+        found.append((d.kind, m.measured_cnr, expected))
+    print("measured vs planned CNR:", [(kind, round(a, 2), round(b, 2)) for kind, a, b in found])
+    for kind, value, expected in found:
+        assert value == pytest.approx(expected, rel=0.2 if kind == "scratch" else 0.1), (kind, value, expected)
     unseen = replace(task, sim=SimConfig(9, tuple(e for e in CONROD_EFFECTS if e != "defects"), Truth()))
     image = Renderer(unseen, plain)(plain.T_cell_cam, lamp_pos, lamp_aim, shutter, f_number)
     for m in measured.measure(image, unseen, plain, plain.T_cell_cam, (0.0, 0.0), black, {}):
         assert m.measured_cnr < 5 * np.sqrt(1 / m.pixels + 1 / m.neighbours) / np.sqrt(2) < 2.5
+
+
+def test_a_defect_below_its_min_cnr_is_named_with_its_measured_and_planned_cnr():
+    """cell.run.defects.unseen: only a measured CNR below min_cnr fails (one not measured, None,
+    is not judged), each named with its CNR measured and planned, the cause first."""
+    from cell.run.defects import MeasuredDefect, unseen
+    seen = MeasuredDefect("fine", "scratch", 5.0, 6.8, 5.0)
+    faint = MeasuredDefect("ding", "dent", 5.0, 7.2, 3.14)
+    hidden = MeasuredDefect("spot", "coating", 5.0, 6.0, None)
+    assert unseen([seen, hidden]) is None and unseen([]) is None
+    said = unseen([seen, faint, hidden])
+    assert said is not None and said.startswith("the dent 'ding' shows with CNR 3.1 over the sensor's noise, "
+                                                "5 wanted (7.2 planned): the inspection would miss it")
+    assert "fine" not in said and "spot" not in said
+
+
+@pytest.mark.long          # a 20-70 s plan and its closed loop
+def test_a_run_whose_defects_do_not_show_ends_with_cause_contrast(tmp_path):
+    """tasks/conrod-defects.yaml on a world without the defects (noise on, `defects` off): the gray
+    converges in band, but neither defect shows over the noise: exit 1, cause `contrast`, the
+    reason naming each defect's measured CNR first; report.json keeps both CNRs."""
+    from simcell import run_loop, variant
+    effects = [e for e in CONROD_EFFECTS if e != "defects"]
+    cell = run_loop(variant(tmp_path, TASKS / "conrod-defects.yaml", {"sim.effects": effects}), tmp_path / "run")
+    assert cell.error is not None and cell.error.exit_code == 1 and cell.error.cause == "contrast"
+    assert cell.report["cause"] == "contrast" and not cell.report["converged"]
+    assert cell.report["iterations"][-1]["in_band"]
+    assert str(cell.error).startswith("the scratch 'fine' shows with CNR ")
+    for d in cell.report["defects"]:
+        assert d["measured_cnr"] < d["min_cnr"] <= d["predicted_cnr"]
+
+
+SEEN = ["shadows", "cone_falloff", "noise", "black_level", "quantization", "defects"]
+
+
+@pytest.mark.long          # a 60-140 s plan and its closed loop
+def test_the_hinge_s_scratch_is_planned_and_measured_over_min_cnr(tmp_path):
+    """tasks/hinge-scratch.yaml with noise and the defect simulated: the run converges, the
+    scratch planned at CNR >= 5 (the worst over the leaf and its orientations) measures at least
+    0.8 min_cnr, and no less than 0.8 of the planned worst where it lies."""
+    from simcell import run_loop, variant
+    cell = run_loop(variant(tmp_path, TASKS / "hinge-scratch.yaml", {"sim.effects": SEEN}), tmp_path / "run")
+    assert cell.error is None and cell.report["converged"]
+    (d,) = cell.report["defects"]
+    print("hinge scratch: planned", d["predicted_cnr"], "measured", d["measured_cnr"])
+    assert d["name"] == "tool-mark" and d["predicted_cnr"] >= d["min_cnr"]
+    assert d["measured_cnr"] >= 0.8 * max(d["min_cnr"], d["predicted_cnr"])
+
+
+@pytest.mark.long          # a 20-70 s plan
+def test_a_dent_too_shallow_for_the_noise_is_refused_with_the_best_cnr_reached(tmp_path):
+    """tasks/conrod-faint.yaml: no pose of the rig shows the 10 um dent with CNR 5: exit 1, the
+    refusal's line (after the search's progress) names the requirement and the best CNR the search reached, which plan.json's
+    defects give too."""
+    out = tmp_path / "plan"
+    run = subprocess.run([sys.executable, "-m", "cell", "plan", str(TASKS / "conrod-faint.yaml"), "--out", str(out)],
+                         capture_output=True, text=True, cwd=ROOT)
+    assert run.returncode == 1, run.stderr
+    (d,) = json.loads((out / "plan.json").read_text())["defects"]
+    assert not d["met"] and 0 < d["predicted_cnr"] < d["min_cnr"]
+    assert run.stderr.strip().splitlines()[-1].startswith(f"cell plan: infeasible: defect contrast over noise fails by "
+                                 f"{d['min_cnr'] - d['predicted_cnr']:.1f} in CNR (CNR {d['predicted_cnr']:.1f}, "
+                                 f"at least 5.0 wanted); the dent 'faint' shows with CNR")
+
+
+def test_a_coating_s_pixels_are_left_out_of_the_gray_band_s_region(coarse_plate):
+    """The plate with its disk of twice the albedo rendered (noise off): measured over the whole
+    feature region the surface's gray spans the coating's double (a spread no exposure narrows);
+    with cell.run.defects.on_defects' pixels left out, it spans what the plate without the
+    coating does (its pixels beside the disk), and no pixel within the disk is judged."""
+    from cell.run import defects as measured
+    from cell.run.measurement import measure_feature
+    defect = coarse_plate[2].PLATE_DEFECTS["coating"]
+    task, scene, image, black, _ = capture(coarse_plate, defect, ("defects",))
+    _, _, plain, _, _ = capture(coarse_plate, defect, ())
+    found = measured.measure(image, task, scene, scene.T_cell_cam, (0.0, 0.0), black, {})
+    mask = measured.on_defects(image, task, scene, scene.T_cell_cam, (0.0, 0.0), found)
+    whole = measure_feature(image, task, scene.T_cell_cam, scene.points, 255.0)
+    kept = measure_feature(image, task, scene.T_cell_cam, scene.points, 255.0, exclude=mask)
+    assert mask.any() and not (kept.region & mask).any()
+    assert whole.max > 1.6 * kept.max
+    bare = plain[kept.region]
+    assert kept.gray.max() == pytest.approx(bare.max(), rel=1e-9)
+    assert kept.gray.min() == pytest.approx(bare.min(), rel=1e-9)
+    assert np.array_equal(image[kept.region], plain[kept.region])      # only the disk differs
+    from cell.report.pictures import annotate_capture
+    magenta = lambda view: np.all(view == (255, 0, 255), axis=-1)
+    drawn = annotate_capture(image, kept, 8, "", mask)
+    assert not magenta(annotate_capture(image, kept, 8, "")).any() and magenta(drawn).any()
+    assert np.all(mask[magenta(drawn)])                                # the mark outlines the defect's pixels
+
+
+def test_a_multi_shot_report_gives_each_feature_s_defects_and_fails_one_unseen():
+    """cell.run.inspection.InspectionResult.feature_results: each feature's last capture's
+    defects as report.json's features[].defects; a feature in band whose defect measures below
+    min_cnr has not converged, the defect named as its reason; one without defects has no key."""
+    from cell.run.defects import MeasuredDefect
+    from cell.run.inspection import InspectionResult, ShotRun
+    from cell.run.loop import Iteration
+
+    def it(feature, defects):
+        return Iteration(1, 0.01, 5.6, {}, {"min": 110.0, "max": 120.0}, 1.0, "", True, "capture-1.png",
+                         "capture-1-x.png", 1.0, {}, feature=feature, defects=defects)
+    seen = MeasuredDefect("fine", "scratch", 5.0, 6.8, 7.5)
+    faint = MeasuredDefect("ding", "dent", 5.0, 5.2, 2.0)
+    shots = (ShotRun(0, ("a", "b"), True, "", (it("a", (seen,)), it("b", ()))),
+             ShotRun(1, ("c",), True, "", (it("c", (faint,)),)))
+    result = InspectionResult("task.yaml", True, "", None, ("a", "b", "c"), (0, 0, 1), (0, 1), 0.1, shots)
+    a, b, c = result.feature_results()
+    assert a["converged"] and a["defects"] == [seen.to_json()] and "defects" not in b and b["converged"]
+    assert c["in_band"] and not c["converged"] and c["defects"][0]["measured_cnr"] == 2.0 and c["cause"] == "contrast"
+    assert "cause" not in a and "cause" not in b
+    assert c["reason"].startswith("the dent 'ding' shows with CNR 2.0 over the sensor's noise, 5 wanted (5.2 planned)")
+
+
+def test_the_drive_program_s_contrast_rows_are_the_planner_s_grays_channel_by_channel(tmp_path):
+    """tasks/ring.yaml (a spot and two rings on their channels) with a dent: the rows' per-channel
+    contrast and signal, weighted by any drives and exposure, are the planner's defect and good
+    grays at those drives (defect_gray: linear in both), at the part the spot alone shows best,
+    with the spot's sign."""
+    raw = yaml.safe_load((TASKS / "ring.yaml").read_text())
+    raw["part"] |= {k: str(TASKS / raw["part"][k]) for k in ("mesh", "material")}
+    raw["feature"]["defects"] = [DENT | {"position_mm": [1.0, 0.5, 8.0]}]
+    path = tmp_path / "ring-dent.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    task = load_task(path)
+    p = evaluate.build_problem(task, build_scene(task), None)
+    pivot = task.lamp.rig.pivot_m
+    position = rig.lamp_position(pivot, np.radians(40.0), np.radians(35.0), 0.3)
+    spot = evaluate.unit_gray(p, position.reshape(1, 3), rig.lamp_aim(pivot, position.reshape(1, 3)))[0]
+    unit = np.vstack([spot, p.lights.unit_gray])
+    rows = defects.contrast_rows(p, position, unit)
+    drive, shutter, kappa = np.array([0.7, 0.2, 0.9]), 0.004, 4.0
+    c = evaluate.at_exposure(p, position, shutter, kappa, drive=drive)
+    gray, good, _ = defects.defect_gray(p, c, task.feature.defects[0])
+    u = shutter / kappa**2 * drive
+    spot_only = defects.defect_gray(p, evaluate.at_exposure(p, position, shutter, kappa,
+                                                            drive=np.array([1.0, 0.0, 0.0])), task.feature.defects[0])
+    d0 = (spot_only[0] - spot_only[1])[0].reshape(len(p.scene.points), -1)
+    t0 = (spot_only[0] + spot_only[1] - 2 * p.black_level)[0].reshape(d0.shape)
+    part = np.argmax(np.abs(d0) / np.sqrt(t0), axis=-1)
+    at = np.arange(len(part))
+    expected = (gray - good)[0].reshape(d0.shape)[at, part]
+    assert u @ rows.difference == pytest.approx(expected, rel=1e-6, abs=1e-9)
+    assert u @ rows.total == pytest.approx((gray + good - 2 * p.black_level)[0].reshape(d0.shape)[at, part], rel=1e-6)
+    assert np.array_equal(rows.sign, np.where(d0[at, part] < 0, -1.0, 1.0)) and np.all(rows.min_cnr == 5.0)

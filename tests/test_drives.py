@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
+from cell.planning import drives
 from cell.planning.drives import solve_drives
 
 
@@ -293,3 +294,56 @@ def test_a_channel_adding_under_a_hundredth_of_a_level_is_written_as_exactly_off
     # a channel that carries the band is kept, however it compares: alone, its drive stays
     alone = solve_drives(v[1:] * 1e6, (60.0, 200.0), 4.0, **CAMERA)
     assert alone.drive[0] > 0.0
+
+
+# --- a declared defect's contrast rows (issue 25) ------------------------------------------------
+
+def contrast_case(min_cnr):
+    """200 samples lit by a bright, uneven spot and an even low-angle light; 30 defect rows whose
+    contrast the low-angle light gives (the spot's barely), EMVA 1288 noise of K = 255/10000, 10 e-."""
+    rng = np.random.default_rng(3)
+    v = np.vstack([20000 * (1 + 0.3 * rng.uniform(size=200)), 8000 * (1 + 0.05 * rng.uniform(size=200))])
+    difference = np.vstack([rng.normal(0, 200, 30), 3000 + rng.normal(0, 300, 30)])
+    total = np.vstack([np.full(30, 40000.0), np.full(30, 16000.0)])
+    rows = drives.ContrastRows(difference, total, np.ones(30), np.full(30, min_cnr), 255 / 10000, 10.0)
+    return v, ((100.0, 200.0), 5.0, 2.0, (1e-5, 0.02), (1.4, 16.0)), rows
+
+
+def exposures(d):
+    return d.shutter_s / d.f_number**2 * d.drive
+
+
+def test_the_contrast_rows_move_the_drives_until_every_defect_row_shows_with_min_cnr():
+    """The band alone leaves the defect at CNR 4.5; with rows for CNR 5 the program dims the spot and
+    exposes longer: every row's CNR (worked from its grays, the EMVA noise exact) reaches 5, the
+    band still met; a task without rows is solved as before."""
+    v, args, rows = contrast_case(5.0)
+    band = drives.solve_drives(v, *args)
+    assert rows.cnr(exposures(band)).min() < 4.6
+    with_rows = drives.solve_drives(v, *args, contrast=rows)
+    u = exposures(with_rows)
+    noise = np.sqrt(2 * ((255 / 10000 * 10.0) ** 2 + 1 / 12) + 255 / 10000 * (u @ rows.total))
+    assert np.min(u @ rows.difference / noise) >= 5.0 * (1 - 1e-9)
+    assert with_rows.feasible and with_rows.margin_gray > 0 and with_rows.drive[0] < band.drive[0]
+    again = drives.solve_drives(v, *args, contrast=None)
+    assert np.array_equal(again.drive, band.drive) and (again.shutter_s, again.f_number) == (band.shutter_s, band.f_number)
+
+
+def test_contrast_rows_no_drives_can_meet_keep_the_band_s_drives_and_say_so():
+    v, args, rows = contrast_case(50.0)
+    band = drives.solve_drives(v, *args)
+    with_rows = drives.solve_drives(v, *args, contrast=rows)
+    assert np.array_equal(with_rows.drive, band.drive) and with_rows.shutter_s == band.shutter_s
+    assert with_rows.solver_message.endswith("the defects' contrast rows infeasible")
+
+
+@given(st.floats(0.0, 1.0), st.floats(0.0, 1.0), st.floats(0.0, 1.0), st.floats(0.0, 1.0), st.floats(0.5, 20.0))
+@settings(max_examples=200, deadline=None, derandomize=True)
+def test_a_contrast_row_s_tangent_cut_is_sufficient(a0, a1, b0, b1, min_cnr):
+    """Wherever an exposure u meets the row's cut tangent at any u0, its true CNR is at least
+    min_cnr (the noise's root is concave: its tangent lies above it)."""
+    _, _, rows = contrast_case(min_cnr)
+    u0, u = 1e-3 * np.array([a0, a1]), 1e-3 * np.array([b0, b1])
+    a, b = rows.cuts(u0, np.array([True, True]), 1.0)
+    met = a @ u <= b
+    assert np.all(rows.cnr(u)[met] >= min_cnr * (1 - 1e-9))

@@ -187,13 +187,15 @@ def targets(settings: Iterable[dict[str, Any]], kernels: Iterable[dict[str, Any]
 
 
 def run(tasks: Iterable[Task], quick: bool, say: Callable[[str], None],
-        feature_tasks: Iterable[Task] = (), light_tasks: Iterable[Task] = (), many: bool = False) -> dict[str, Any]:
+        feature_tasks: Iterable[Task] = (), light_tasks: Iterable[Task] = (), many: bool = False,
+        defect_tasks: Iterable[Task] = ()) -> dict[str, Any]:
     """The benchmark of the loaded one-feature `tasks`: every setting's row against the task's
     reference, the references, the kernel rows; of the multi-feature `feature_tasks` the
     cell.bench.multi_feature rows; of the `light_tasks` (with lights besides the spot) the
-    cell.bench.lights rows; the big launches on 1 and 2 threads (cell.bench.threads); with `many`,
-    the generated many-feature part's (cell.bench.scaling); and the targets (bench.json)."""
-    from cell.bench import lights, multi_feature, scaling, threads
+    cell.bench.lights rows; of the `defect_tasks` the cell.bench.contrast rows; the big launches on
+    1 and 2 threads (cell.bench.threads); with `many`, the generated many-feature part's
+    (cell.bench.scaling); and the targets (bench.json)."""
+    from cell.bench import contrast, lights, multi_feature, scaling, threads
     repeats = 1 if quick else 3
     result: dict[str, Any] = {"quick": quick, "repeats": repeats, "settings": [], "references": [], "kernels": []}
     for task in tasks:
@@ -208,6 +210,7 @@ def run(tasks: Iterable[Task], quick: bool, say: Callable[[str], None],
     light_rows = lights.run(light_tasks, quick, say)
     result["kernels"] += light_rows["kernels"]
     result["channels"] = light_rows["channels"]
+    result |= contrast.run(defect_tasks, quick, say)
     result |= scaling.run(quick, say) if many else {"scaling": [], "scaling_summary": None}
     result["targets"] = (targets(result["settings"], result["kernels"]) + multi_feature.targets(result["workers"])
                          + lights.targets(result["channels"]) + scaling.targets(result["scaling"], result["scaling_summary"]))

@@ -27,7 +27,7 @@ def text_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
 
 
 def report(result: dict[str, Any]) -> str:
-    """The terminal tables: settings, kernels, features, workers, channels, threads, targets."""
+    """The terminal tables: settings, kernels, features, workers, channels, contrast, threads, targets."""
     settings = text_table(
         ["task", "setting", "cands", "samples", "time s", "certify s", "err mean", "err min", "err max", "worst",
          "lamp mm", "lamp deg", "feasible", "tightest", "agrees", "finite", "pareto", "default"],
@@ -91,8 +91,17 @@ def report(result: dict[str, Any]) -> str:
     parts += [threads] if result["threads"] else []
     parts += [features, workers] if result["workers"] else []
     parts += [channels] if result["channels"] else []
+    parts += [contrast_table(result["contrast"])] if result.get("contrast") else []
     parts += [many, scaling.summary_line(result["scaling_summary"])] if result["scaling"] else []
     return "\n\n".join(parts + [goals])
+
+
+def contrast_table(rows: Sequence[dict[str, Any]]) -> str:
+    """cell.bench.contrast's rows: what judging each defect's worst CNR costs a lamp pose, against
+    its gray's cost, and how close it comes to the reference."""
+    return text_table(["task", "defect", "samples", "resolution", "orientations", "time s", "x gray", "CNR error %"],
+                      [[r["task"], r["defect"], r["samples"], r["resolution"], r["orientations"], f"{r['time_s']:.4f}",
+                        f"{r['ratio']:.1f}", f"{100 * r['cnr_error']:.2f}"] for r in rows])
 
 
 def summary(settings: Sequence[dict[str, Any]]) -> list[str]:
@@ -123,10 +132,17 @@ def with_lights(task: Task) -> bool:
     return bool(task.lights) and not multi_feature(task)
 
 
+def with_defects(task: Task) -> bool:
+    """Whether a one-feature task gets cell.bench.contrast's rows (its feature declares defects)
+    rather than the settings sweep (a plan of each setting would take minutes)."""
+    return not multi_feature(task) and not with_lights(task) and bool(task.feature.defects)
+
+
 def command(args: argparse.Namespace) -> int:
     def say(msg):
         print(msg, file=sys.stderr, flush=True)
 
+    from cell.bench.contrast import DEFECT_TASKS
     from cell.bench.lights import LIGHT_TASKS
     from cell.bench.multi_feature import FEATURE_TASKS
     from cell.report.pictures import write_bench
@@ -134,13 +150,14 @@ def command(args: argparse.Namespace) -> int:
     if args.tasks:
         paths = args.tasks
     else:
-        paths = list(suite.DEFAULT_TASKS) + list(FEATURE_TASKS) + list(LIGHT_TASKS)
+        paths = list(suite.DEFAULT_TASKS) + list(FEATURE_TASKS) + list(LIGHT_TASKS) + list(DEFECT_TASKS)
     loaded = [load_task(path) for path in paths]          # all first
-    tasks = [t for t in loaded if not multi_feature(t) and not with_lights(t)]
+    tasks = [t for t in loaded if not multi_feature(t) and not with_lights(t) and not with_defects(t)]
     feature_tasks = [t for t in loaded if multi_feature(t)]
     light_tasks = [t for t in loaded if with_lights(t)]
     create_folder(out)
-    result = suite.run(tasks, args.quick, say, feature_tasks, light_tasks, many=not args.tasks)
+    result = suite.run(tasks, args.quick, say, feature_tasks, light_tasks, many=not args.tasks,
+                       defect_tasks=[t for t in loaded if with_defects(t)])
     text = jsonio.dumps(result, indent=2)
     (out / "bench.json").write_text(text + "\n")
     if result["settings"]:              # bench.png: the one-feature settings sweep

@@ -2,12 +2,17 @@
 feature sample under the shot's own lights, drives and exposure, against the good surface's, over
 the sensor's noise (cell.physics.contrast), worst over the samples and the scratch's orientations.
 
-At a sample the defect's gray is the shading of the same point with the defect's normal (scratch,
-dent) or material (coating): the bulk kernel (kernels.gray.GrayInputs) with the perturbed normals
-for the spot, each other light's emitter points (cell.planning.lights.contribution, as many as the
-good surface's took) for the rest, summed at the candidate's drives, G = b + t / kappa^2 sum_k
-w_k u_k (eq. 10, 17; the planner's own). The shadow rays leave from the same point, so a cast
-shadow darkens defect and surface alike.
+A defect is judged as if it lay at each sample, each of its parts shaded where that part lies
+(offsets_of, in the sample's tangent plane): a scratch's walls a quarter width to either side of
+its line (each wall is half the groove wide), a dent's ring of tilt asin(rho / R) at distance rho
+from its centre in each direction, a coating at the sample itself. There the part's gray is the
+shading with its normal (scratch, dent) or material (coating), and the good surface's gray the
+same point with the surface's normal and material (what the run's measurement compares: the
+part's pixels against its good neighbours' plane at the part's place): the bulk kernel
+(kernels.gray.GrayInputs) for the spot, each other light's emitter points
+(cell.planning.lights.contribution, as many as the good surface's took) for the rest, summed at
+the candidate's drives, G = b + t / kappa^2 sum_k w_k u_k (eq. 10, 17; the planner's own). A
+part's cast shadow is the sample's (a defect is far smaller than a shadow's edge).
 
 Per orientation a scratch shows by the larger CNR of its two walls (they lie side by side, each a
 half width wide: the groove is seen where either differs from the surface; a groove narrower than
@@ -36,6 +41,7 @@ from cell.physics import contrast, sensor as sensor_model
 from cell.planning.plan import DefectCnr
 
 if TYPE_CHECKING:
+    from cell.planning.drives import ContrastRows
     from cell.physics.material import Material
     from cell.planning.evaluate import Candidates, Problem
     from cell.task.types import Defect, Sensor
@@ -90,6 +96,28 @@ def normals_of(defect: Defect, normals: np.ndarray, x_axis: np.ndarray, thetas: 
     return n[:, None, None]
 
 
+def offsets_of(defect: Defect, normals: np.ndarray, x_axis: np.ndarray, thetas: np.ndarray,
+               resolution: Resolution = JUDGED) -> np.ndarray:
+    """(P, O, W, 3) [m] where each of normals_of's parts lies from the sample, in its tangent
+    plane: a scratch's wall turned by +beta (normals_of's first; it faces away from +s, footprint's
+    part 1) at s = +w / 4 along n x d(theta), the other at -w / 4; a dent's ring at rho in
+    direction u (its normal leans toward the centre, -u); a coating at the sample (zeros)."""
+    n = np.asarray(normals, float).reshape(-1, 3)
+    x, y = contrast.tangent_axes(n, x_axis)
+    if defect.kind == "scratch":
+        theta = np.asarray(thetas, float)[None, :, None]
+        across = np.cos(theta) * y[:, None] - np.sin(theta) * x[:, None]            # n x d, (P, O, 3)
+        quarter = 0.25 * _given(defect.width_m)
+        return np.stack([quarter * across, -quarter * across], axis=2)
+    if defect.kind == "dent":
+        a = _given(defect.radius_m)
+        rho = a * np.arange(1, resolution.rings + 1) / resolution.rings
+        psi = 2.0 * np.pi * np.arange(resolution.azimuths) / resolution.azimuths
+        u = np.cos(psi)[None, :, None] * x[:, None] + np.sin(psi)[None, :, None] * y[:, None]    # (P, A, 3)
+        return (rho[None, :, None, None] * u[:, None]).reshape(len(n), 1, -1, 3)
+    return np.zeros((len(n), 1, 1, 3))
+
+
 def _given(value: float | None) -> float:
     if value is None:
         raise ValueError("the defect lacks a key its kind requires (the loader checks this)")
@@ -103,28 +131,28 @@ def material_of(problem: Problem, defect: Defect) -> Material:
 
 
 class _Inputs:
-    """The kernel's inputs of a defect's normals at some samples: the spot's GrayInputs and the
-    other lights' gray per exposure at full drive (K, N)."""
+    """The kernel's inputs of some surface points with their normals and material: the spot's
+    GrayInputs and the other lights' gray per exposure at full drive (K, N); `sample` (N,) the
+    Problem's sample each point belongs to (its cast shadow), `shape` how the N points are laid
+    out ((S, O, W))."""
 
-    def __init__(self, problem: Problem, defect: Defect, points: np.ndarray, normals: np.ndarray,
+    def __init__(self, problem: Problem, material: Material, points: np.ndarray, normals: np.ndarray,
                  sample: np.ndarray, shape: tuple[int, ...]) -> None:
         from kernels.gray import GrayInputs
         from cell.planning.lights import contribution
         task, scene = problem.task, problem.scene
-        material = material_of(problem, defect)
         self.spot = GrayInputs(None, points, normals, scene.camera_position, task.lamp.power_w,
                                task.lamp.cone_angle_rad, material.table(), task.camera.sensor.camera_constant,
                                task.camera.sensor.pixel_area_m2, profile=task.lamp.profile)
-        self.sample = sample                    # (N,) the Problem's sample each normal is at
-        self.shape = shape                      # (S, O, W): how the N normals are laid out
+        self.sample, self.shape = sample, shape
         counts = problem.lights.points
         self.lights = np.array([contribution(scene.warp_mesh, points, normals, scene.T_cell_cam, light, material,
                                              task.camera.sensor, problem.band[1], count=counts[k]).unit_gray
                                 for k, light in enumerate(task.lights)]).reshape(len(task.lights), len(points))
 
     def gray(self, problem: Problem, c: Candidates, cast: np.ndarray) -> np.ndarray:
-        """(C, N) the defect's gray at each candidate's lamp, drives and exposure; cast (C, P): the
-        spot's light blocked by the part at the Problem's samples."""
+        """(C, N) the gray at each candidate's lamp, drives and exposure; cast (C, P): the spot's
+        light blocked by the part at the Problem's samples."""
         pivot = problem.task.lamp.rig.pivot_m
         u = c.drive[:, :1] * self.spot(c.position, rig.lamp_aim(pivot, c.position)).value * ~cast[:, self.sample]
         if len(self.lights):
@@ -132,12 +160,37 @@ class _Inputs:
         return problem.black_level + (c.shutter / c.kappa**2)[:, None] * u
 
 
+class _Parts:
+    """A defect's parts at some samples: the defect's inputs (its normals and material where each
+    part lies) and, where the parts lie off the samples (offsets_of), the good surface's there."""
+
+    def __init__(self, problem: Problem, defect: Defect, index: np.ndarray, normals: np.ndarray,
+                 offsets: np.ndarray) -> None:
+        scene = problem.scene
+        shape = normals.shape[:-1]
+        points = (scene.points[index][:, None, None] + offsets).reshape(-1, 3)
+        of_sample = np.broadcast_to(index[:, None, None], shape).reshape(-1)
+        self.shape = shape
+        self.defect = _Inputs(problem, material_of(problem, defect), points, normals.reshape(-1, 3), of_sample, shape)
+        self.good = None if not np.any(offsets) else _Inputs(
+            problem, problem.material, points,
+            np.broadcast_to(scene.normals[index][:, None, None], normals.shape).reshape(-1, 3), of_sample, shape)
+
+    def grays(self, problem: Problem, c: Candidates, cast: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """((C, N) the defect's gray, (C, N) the good surface's where the parts lie, None: at the
+        samples themselves, the candidates' own gray)."""
+        return (self.defect.gray(problem, c, cast),
+                None if self.good is None else self.good.gray(problem, c, cast))
+
+
 def defect_gray(problem: Problem, c: Candidates, defect: Defect, sample: np.ndarray | None = None,
-                resolution: Resolution = JUDGED, thetas: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                resolution: Resolution = JUDGED, thetas: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """((C, S, O, W) the defect's gray at the samples `sample` (indices; None: all of the
     Problem's) for each orientation (O: `thetas`, (O,) or one row per sample (S, O), else the
-    resolution's over the range) and wall or tilt (W), the orientations). The kernel inputs of
-    all the samples are kept with the Problem; a large or partial set is evaluated in chunks of
+    resolution's over the range) and wall or tilt (W), each part where it lies (offsets_of);
+    (C, S, O, W) the good surface's gray at the same places; the orientations). The kernel inputs
+    of all the samples are kept with the Problem; a large or partial set is evaluated in chunks of
     CHUNK normals and let go."""
     scene = problem.scene
     index = np.arange(len(scene.points)) if sample is None else np.asarray(sample, int)
@@ -147,26 +200,42 @@ def defect_gray(problem: Problem, c: Candidates, defect: Defect, sample: np.ndar
     keep = sample is None and not given
     cache_key = (defect.key, resolution)
     made_of, kept = problem.kernels.defects.get(cache_key, (None, None)) if keep else (None, None)
-    if kept is not None and made_of is not None and all(a is b for a, b in zip(made_of, (problem.task, scene,
-                                                                                          problem.material))):
-        return kept.gray(problem, c, cast).reshape((len(c.shutter),) + kept.shape), thetas
-    x_axis = scene.frame[:, 0]
-    if thetas.ndim == 2:                    # each sample its own orientations
-        normals = np.concatenate([normals_of(defect, scene.normals[i:i + 1], x_axis, row, resolution)
-                                  for i, row in zip(index, thetas)])
-    else:
-        normals = normals_of(defect, scene.normals[index], x_axis, thetas, resolution)
-    shape = normals.shape[:-1]
-    flat = normals.reshape(-1, 3)
-    points = np.broadcast_to(scene.points[index][:, None, None], normals.shape).reshape(-1, 3)
-    of_sample = np.broadcast_to(index[:, None, None], shape).reshape(-1)
-    if keep and len(flat) <= CHUNK:
-        kept = _Inputs(problem, defect, points, flat, of_sample, shape)
-        problem.kernels.defects[cache_key] = ((problem.task, scene, problem.material), kept)
-        return kept.gray(problem, c, cast).reshape((len(c.shutter),) + shape), thetas
-    out = np.concatenate([_Inputs(problem, defect, points[i:i + CHUNK], flat[i:i + CHUNK], of_sample[i:i + CHUNK],
-                                  shape).gray(problem, c, cast) for i in range(0, len(flat), CHUNK)], axis=1)
-    return out.reshape((len(c.shutter),) + shape), thetas
+    made = (problem.task, scene, problem.material)
+    if kept is None or made_of is None or not all(a is b for a, b in zip(made_of, made)):
+        x_axis = scene.frame[:, 0]
+        if thetas.ndim == 2:                    # each sample its own orientations
+            normals = np.concatenate([normals_of(defect, scene.normals[i:i + 1], x_axis, row, resolution)
+                                      for i, row in zip(index, thetas)])
+            offsets = np.concatenate([offsets_of(defect, scene.normals[i:i + 1], x_axis, row, resolution)
+                                      for i, row in zip(index, thetas)])
+        else:
+            normals = normals_of(defect, scene.normals[index], x_axis, thetas, resolution)
+            offsets = np.broadcast_to(offsets_of(defect, scene.normals[index], x_axis, thetas, resolution),
+                                      normals.shape)
+        shape = normals.shape[:-1]
+        if not (keep and np.prod(shape) <= CHUNK):
+            return _chunked(problem, c, defect, cast, index, normals, offsets) + (thetas,)
+        kept = _Parts(problem, defect, index, normals, offsets)
+        problem.kernels.defects[cache_key] = (made, kept)
+    gray, good = kept.grays(problem, c, cast)
+    full = (len(c.shutter),) + kept.shape
+    return (gray.reshape(full), c.gray[:, index][:, :, None, None] + np.zeros(full) if good is None
+            else good.reshape(full), thetas)
+
+
+def _chunked(problem: Problem, c: Candidates, defect: Defect, cast: np.ndarray, index: np.ndarray,
+             normals: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """defect_gray's two grays over samples a few at a time (at most about CHUNK parts each),
+    their kernel inputs let go after each."""
+    per_sample = max(1, CHUNK // max(1, int(np.prod(normals.shape[1:-1]))))
+    gray, good = [], []
+    for i in range(0, len(index), per_sample):
+        part = slice(i, i + per_sample)
+        g, ok = _Parts(problem, defect, index[part], normals[part], offsets[part]).grays(problem, c, cast)
+        shape = (len(c.shutter),) + normals[part].shape[:-1]
+        gray.append(g.reshape(shape))
+        good.append(c.gray[:, index[part]][:, :, None, None] + np.zeros(shape) if ok is None else ok.reshape(shape))
+    return np.concatenate(gray, axis=1), np.concatenate(good, axis=1)
 
 
 def cast_shadows(problem: Problem, c: Candidates) -> np.ndarray:
@@ -193,17 +262,17 @@ def noise_of(s: Sensor) -> tuple[float, float, float]:
 
 def cnr_field(problem: Problem, c: Candidates, defect: Defect, sample: np.ndarray | None = None,
               resolution: Resolution = JUDGED, thetas: np.ndarray | None = None
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """((C, S, O) the defect's CNR per sample and orientation, the best wall or tilt's; (C, S, O)
-    the defect's gray there; the orientations (O,)) (defect_gray's arguments)."""
+    the defect's gray there and the good surface's where that part lies; the orientations (O,))
+    (defect_gray's arguments)."""
     index = np.arange(len(problem.scene.points)) if sample is None else np.asarray(sample, int)
-    gray, thetas = defect_gray(problem, c, defect, None if sample is None else index, resolution, thetas)
+    gray, good, thetas = defect_gray(problem, c, defect, None if sample is None else index, resolution, thetas)
     K, dark, full = noise_figures(problem)
-    good = c.gray[:, index][:, :, None, None]
     ratio = contrast.cnr(good, gray, problem.black_level, K, dark, full)
     best = np.argmax(ratio, axis=-1)[..., None]
     return (np.take_along_axis(ratio, best, axis=-1)[..., 0], np.take_along_axis(gray, best, axis=-1)[..., 0],
-            thetas)
+            np.take_along_axis(good, best, axis=-1)[..., 0], thetas)
 
 
 def predicted_cnr(problem: Problem, c: Candidates) -> np.ndarray:
@@ -234,20 +303,20 @@ def judge(problem: Problem, candidate: Candidates) -> tuple[DefectCnr, ...]:
 def _judged(problem: Problem, candidate: Candidates) -> tuple[DefectCnr, ...]:
     out = []
     for d in problem.task.feature.defects:
-        ratio, gray, thetas = cnr_field(problem, candidate, d)
+        ratio, gray, good, thetas = cnr_field(problem, candidate, d)
         s0, o0 = np.unravel_index(int(np.argmin(ratio[0])), ratio[0].shape)
-        best = (float(ratio[0, s0, o0]), int(s0), float(thetas[o0]), float(gray[0, s0, o0]))
+        best = (float(ratio[0, s0, o0]), int(s0), float(thetas[o0]), float(gray[0, s0, o0]), float(good[0, s0, o0]))
         if d.kind == "scratch" and len(thetas) > 1:
             best = _refined(problem, candidate, d, ratio[0], thetas, best)
-        value, at, theta, g = best
+        value, at, theta, g, ok = best
         out.append(DefectCnr(d.name, d.kind, d.min_cnr, value, theta if d.kind == "scratch" else None,
-                             np.array(problem.scene.points[at], float), float(candidate.gray[0, at]), g))
+                             np.array(problem.scene.points[at], float), ok, g))
     return tuple(out)
 
 
 def _refined(problem: Problem, candidate: Candidates, d: Defect, ratio: np.ndarray, thetas: np.ndarray,
-             best: tuple[float, int, float, float]) -> tuple[float, int, float, float]:
-    """The worst (CNR, sample, orientation, defect gray) with the coarse grid's minima refined.
+             best: tuple[float, int, float, float, float]) -> tuple[float, int, float, float, float]:
+    """The worst (CNR, sample, orientation, defect gray, good gray) with the coarse grid's minima refined.
     Between grid orientations a sample's CNR can fall below its smallest grid value by at most the
     larger step to that value's neighbours (the CNR is V-shaped where a wall's contrast changes
     sign, else smooth): every sample whose bound so reaches below the best grid value (at most
@@ -270,14 +339,45 @@ def _refined(problem: Problem, candidate: Candidates, d: Defect, ratio: np.ndarr
         around = centre[:, None] + step * np.arange(-round(span / step), round(span / step) + 1)
         if not wrap:
             around = np.clip(around, lo, hi)
-        fine, fine_gray, _ = cnr_field(problem, candidate, d, worst, thetas=around)
+        fine, fine_gray, fine_good, _ = cnr_field(problem, candidate, d, worst, thetas=around)
         k = np.argmin(fine[0], axis=-1)
         if fine[0].min() < best[0]:
             fs, fo = np.unravel_index(int(np.argmin(fine[0])), fine[0].shape)
-            best = (float(fine[0, fs, fo]), int(worst[fs]), float(around[fs, fo]), float(fine_gray[0, fs, fo]))
+            best = (float(fine[0, fs, fo]), int(worst[fs]), float(around[fs, fo]), float(fine_gray[0, fs, fo]),
+                    float(fine_good[0, fs, fo]))
         keep = np.argsort(fine[0].min(axis=-1))[:max(1, REFINED_SAMPLES // 4)]
         worst, centre = worst[keep], around[keep, k[keep]]
     return best
+
+
+def contrast_rows(problem: Problem, position: np.ndarray, unit_gray: np.ndarray) -> ContrastRows:
+    """The drive program's rows of the feature's defects (cell.planning.drives.ContrastRows) with
+    the spot at `position` (3,) and unit_gray (1 + K, P) each channel's gray per exposure at full
+    drive at the samples (the spot's first): per defect, sample and grid orientation (JUDGED) the
+    part the spot alone shows best (the largest |contrast| over the root of the pixels' signal),
+    its per-channel contrast and signal sum, its sign the spot's. The per-channel grays are
+    defect_gray's at unit drives and exposure (the gray is linear in both)."""
+    from cell.planning.drives import ContrastRows
+    from cell.planning.evaluate import Candidates
+    channels, samples = unit_gray.shape
+    b = problem.black_level
+    ones, none = np.ones(channels), np.zeros((channels, samples))
+    unit = Candidates(np.tile(np.asarray(position, float).reshape(1, 3), (channels, 1)), b + unit_gray,
+                      np.zeros((0, channels, samples)), none.astype(bool), none, none.astype(np.int8), ones, ones,
+                      ones, np.eye(channels))
+    K, dark, _ = noise_figures(problem)
+    difference, total, sign, wanted = [], [], [], []
+    for d in problem.task.feature.defects:
+        gray, good, _ = defect_gray(problem, unit, d)
+        diff = (gray - good).reshape(channels, -1, gray.shape[-1])          # (1 + K, S O, W)
+        both = (gray + good - 2.0 * b).reshape(diff.shape)
+        part = np.argmax(np.abs(diff[0]) / np.sqrt(np.maximum(both[0], 1e-300)), axis=-1)
+        rows = np.arange(diff.shape[1])
+        difference.append(diff[:, rows, part])
+        total.append(both[:, rows, part])
+        sign.append(np.where(diff[0, rows, part] < 0.0, -1.0, 1.0))
+        wanted.append(np.full(len(rows), d.min_cnr))
+    return ContrastRows(np.hstack(difference), np.hstack(total), np.concatenate(sign), np.concatenate(wanted), K, dark)
 
 
 def worse_of(a: tuple[DefectCnr, ...], b: tuple[DefectCnr, ...]) -> tuple[DefectCnr, ...]:

@@ -21,6 +21,17 @@ A channel whose drive adds at most SLACK_GRAY at every sample (the program's sla
 moves no margin, or solver noise of 1e-12) is written as exactly 0, where the margin stays as
 good: a light at drive 0 is off for every other requirement (it casts
 no light a shadow, a dominant term or a picture would count), one at 1e-12 would be on.
+
+A declared defect joins as rows of its own (ContrastRows): at a sample, orientation and part r its
+contrast s_r sum_k u_k d_kr (d_kr channel k's defect gray less the good one's per exposure, the
+sign s_r the spot alone's) must reach min_cnr times the noise sqrt(a + K sum_k u_k t_kr) (EMVA 1288
+of both pixels: t_kr their signals' sum per exposure, a = 2 (K^2 sigma_d^2 + 1/12)). The square
+root is concave, so its tangent at z0 lies above it: s_r d_r u >= c (q0 + K (t_r u - z0) / (2 q0)),
+q0 = sqrt(a + K z0), is linear and sufficient. The tangents are taken at the band's optimum and
+again at each solution (CUT_ROUNDS), the rows held generated as they bind (the CONTRAST_ROWS of
+least CNR at the band's optimum, then those short at a solution join); a program the rows make
+infeasible keeps the band's drives, the CNR judged after them as before (not robust to the drive
+error: the band's rows are).
 """
 
 from __future__ import annotations
@@ -48,7 +59,41 @@ VIOLATION = 1e-9
 # of a level, which no 8-bit capture resolves
 SLACK_GRAY = 0.01
 
+CUT_ROUNDS = 4         # tangent cuts of the contrast rows' noise: at the band's optimum, then at each solution
+CONTRAST_ROWS = 32     # the rows first held: the least CNR at the band's optimum; then every row short at a solution
+
 Cause = Literal["in band", "unlit", "too dark", "too bright", "too uneven"]
+
+
+@dataclass(frozen=True)
+class ContrastRows:
+    """A declared defect's contrast rows (the module's docstring), R of them: per channel (K, R)
+    the defect's gray less the good surface's (`difference`) and their sum less 2 b (`total`)
+    per exposure at full drive, the sign each contrast keeps (R,), min_cnr (R,), the system gain K
+    [gray/e-] and the dark noise [e-]."""
+
+    difference: np.ndarray
+    total: np.ndarray
+    sign: np.ndarray
+    min_cnr: np.ndarray
+    gain: float
+    dark_e: float
+
+    def cnr(self, u: np.ndarray) -> np.ndarray:
+        """(R,) each row's CNR at exposures u_k = x w_k (K,) [s / kappa^2] (its contrast's sign kept:
+        negative where it turned)."""
+        floor = 2.0 * (self.gain**2 * self.dark_e**2 + 1.0 / 12.0)
+        return self.sign * (u @ self.difference) / np.sqrt(floor + self.gain * np.maximum(u @ self.total, 0.0))
+
+    def cuts(self, u0: np.ndarray, active: np.ndarray, per_column: float) -> tuple[np.ndarray, np.ndarray]:
+        """(A (R, K'), b (R,)): the rows A u' <= b in the program's columns of the active channels
+        (u' = u per_column), tangent to the noise at u0 (K,)."""
+        floor = 2.0 * (self.gain**2 * self.dark_e**2 + 1.0 / 12.0)
+        z0 = np.maximum(u0 @ self.total, 0.0)
+        q0 = np.sqrt(floor + self.gain * z0)
+        slope = self.min_cnr * self.gain / (2.0 * q0)
+        a = -(self.sign * self.difference[active] - slope * self.total[active]).T / per_column
+        return a, -self.min_cnr * (q0 - self.gain * z0 / (2.0 * q0))
 
 
 @dataclass(frozen=True)
@@ -125,13 +170,14 @@ def _count(samples: tuple[int, ...]) -> str:
 def solve_drives(unit_gray: ArrayLike, band: tuple[ArrayLike, ArrayLike], black_level: float, kappa_open: float,
                  shutter_range_s: tuple[float, float], f_number_range: tuple[float, float],
                  drive_range: ArrayLike | None = None, switched: ArrayLike | None = None,
-                 drive_error: float = 0.0) -> Drives:
+                 drive_error: float = 0.0, contrast: ContrastRows | None = None) -> Drives:
     """Drives of channels with gray per exposure `unit_gray` (K, P) [gray / (s / kappa^2)] at full
     drive, within `drive_range` ((K, 2) or (2,) of [w_min, w_max] in [0, 1]; default [0, 1]),
     `switched` (K,) bool channels off or at w_max only, for the gray band [gray] (low, high: each
     a number or one per sample (P,)) and black level b, the widest f-number kappa_open the depth of
     field allows, the shutter and the lens's f-number range, robust to a relative drive error
-    (0 <= delta < 1). The module docstring gives the LP."""
+    (0 <= delta < 1), and a declared defect's `contrast` rows where given. The module docstring
+    gives the LP."""
     v = np.asarray(unit_gray, float)
     if v.ndim != 2 or v.shape[1] == 0 or not np.all(np.isfinite(v)) or np.any(v < 0):
         raise ValueError(f"unit_gray must be (K, P >= 1) finite and >= 0, found shape {v.shape}")
@@ -161,6 +207,11 @@ def solve_drives(unit_gray: ArrayLike, band: tuple[ArrayLike, ArrayLike], black_
     bounds = ((low - black_level) / width, (high - black_level) / width)
     gain, w_active, solves, message = _optimum(v[active] / v_max, bounds, drive_error, w_min[active],
                                                w_max[active], on_off[active], (x_lo * scale, x_hi * scale))
+    if contrast is not None:
+        gain, w_active, more, message = _with_contrast(v[active] / v_max, bounds, drive_error, w_min, w_max, on_off,
+                                                       (x_lo * scale, x_hi * scale), contrast, active, scale,
+                                                       (gain, w_active, message))
+        solves += more
     drive = w_min.copy()
     drive[active] = w_active
     shutter, kappa = (float(a) for a in exposure_for_gain(gain / scale, kappa_open, (t_lo, t_hi), f_number_range))
@@ -209,21 +260,46 @@ def _slack_off(drive: np.ndarray, v: np.ndarray, gain: float, w_min: np.ndarray,
     return off if after >= before - BINDING_SLACK * float((high - low).min()) else drive
 
 
-def _optimum(v, bounds, delta, w_min, w_max, switched, gain_range):
+def _with_contrast(v, bounds, delta, w_min, w_max, switched, gain_range, contrast, active, scale, band_only):
+    """(x, w, solves, message) in scaled units with the contrast rows, tangent at the band's
+    optimum `band_only` (x, w, message) and then at each solution (CUT_ROUNDS); the band's own
+    where the rows make the program infeasible."""
+    x, w, message = band_only
+    solves = 0
+    held = set()
+    for _ in range(CUT_ROUNDS):
+        u = np.zeros(len(active))
+        u[active] = x * w / scale
+        short = contrast.cnr(u) - contrast.min_cnr
+        held |= set(np.argsort(short)[:CONTRAST_ROWS].tolist()) if not held else set(np.flatnonzero(short < 0).tolist())
+        if not held:
+            break
+        chosen = np.array(sorted(held))
+        a, b = contrast.cuts(u, active, scale)
+        try:
+            x, w, more, message = _optimum(v, bounds, delta, w_min[active], w_max[active], switched[active],
+                                           gain_range, (a[chosen], b[chosen]))
+        except RuntimeError:                      # infeasible with the rows: the band's drives stand
+            return band_only[0], band_only[1], solves, band_only[2] + "; the defects' contrast rows infeasible"
+        solves += more
+    return x, w, solves, message
+
+
+def _optimum(v, bounds, delta, w_min, w_max, switched, gain_range, extra=None):
     """(x, w (K,), solves, HiGHS's last message) in scaled units: with switched channels the
     mixed-integer program picks which are on, and the LP is solved again with that pattern fixed,
     since milp's integrality tolerance lets z_k sit a hair off 0 or 1 and big-M leaks M times it."""
     solves = 0
     if switched.any():
-        _, w, solves, _ = _two_stages(v, bounds, delta, w_min, w_max, switched, gain_range)
+        _, w, solves, _ = _two_stages(v, bounds, delta, w_min, w_max, switched, gain_range, extra)
         on = w > 0.5 * w_max
         w_min = np.where(switched & on, w_max, w_min)
         w_max = np.where(switched & ~on, 0.0, w_max)
-    x, w, more, message = _two_stages(v, bounds, delta, w_min, w_max, np.zeros_like(switched), gain_range)
+    x, w, more, message = _two_stages(v, bounds, delta, w_min, w_max, np.zeros_like(switched), gain_range, extra)
     return x, w, solves + more, message
 
 
-def _two_stages(v, bounds, delta, w_min, w_max, switched, gain_range):
+def _two_stages(v, bounds, delta, w_min, w_max, switched, gain_range, extra=None):
     """(x, w, solves, message): the best margin m*, then the shortest exposure with m >= m* -
     MARGIN_SLACK (PATTERN_SLACK with switched channels). Columns [x, u_0 .. u_K-1, m, z_j for the switched], all in scaled units."""
     low, high = bounds
@@ -252,6 +328,10 @@ def _two_stages(v, bounds, delta, w_min, w_max, switched, gain_range):
                  np.hstack([w_max[idx, None], -pick, np.zeros((s, 1)),                   # u_k >= x w_max
                             np.diag(x_hi * w_max[idx])])]                                #   - M (1 - z_k)
         rhs += [np.zeros(s), x_hi * w_max[idx]]
+    if extra is not None:                                       # rows on the u columns alone (ContrastRows.cuts)
+        a_u, b_u = extra
+        rows.append(np.hstack([np.zeros((len(b_u), 1)), a_u, np.zeros((len(b_u), 1 + s))]))
+        rhs.append(b_u)
     lb = np.concatenate([[x_lo], np.zeros(k), [-np.inf], np.zeros(s)])
     ub = np.concatenate([[x_hi], np.minimum(u_cap, x_hi * w_max), [np.inf], np.ones(s)])
     program = _BandRows(v, bounds, delta, np.vstack(rows).reshape(-1, n), np.concatenate(rhs), lb, ub, s)

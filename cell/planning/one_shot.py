@@ -235,9 +235,11 @@ def lighting(problem: evaluate.Problem, joints: ArrayLike) -> tuple[evaluate.Can
     on_controller = np.array([c.number is not None for c in channels])
     ranges[on_controller & evaluate.wrong_reflection(problem, np.vstack([spot, problem.lights.unit_gray]),
                                                      np.vstack([spot_term, problem.lights.dominant]))] = (0.0, 0.0)
-    chosen = drives.solve_drives(np.vstack([spot, problem.lights.unit_gray]), problem.band, problem.black_level,
+    unit_gray = np.vstack([spot, problem.lights.unit_gray])
+    rows = defects.contrast_rows(problem, position[0], unit_gray) if task.feature.defects else None
+    chosen = drives.solve_drives(unit_gray, problem.band, problem.black_level,
                                  problem.kappa_open, task.camera.shutter_range_s, task.camera.lens.f_number_range,
-                                 ranges, [c.switched for c in channels], task.requirements.drive_tolerance)
+                                 ranges, [c.switched for c in channels], task.requirements.drive_tolerance, rows)
     c = evaluate.at_exposure(problem, position[0], chosen.shutter_s, chosen.f_number, joints=tuple(x),
                              drive=chosen.drive)
     need = chosen.shutter_s * (problem.kappa_open / chosen.f_number) ** 2

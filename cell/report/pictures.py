@@ -651,9 +651,11 @@ def write_bench(path: PathLike, settings: Sequence[dict[str, Any]]) -> None:
     fig.savefig(path, dpi=110)
 
 
-def annotate_capture(image: np.ndarray, m: MeasuredRegion, bit_depth: int, caption: str) -> np.ndarray:
+def annotate_capture(image: np.ndarray, m: MeasuredRegion, bit_depth: int, caption: str,
+                     defects: np.ndarray | None = None) -> np.ndarray:
     """8-bit colour copy of a capture (OpenCV): the measured region (measurement.Measurement)
-    outlined (green), its saturated pixels red, the samples' pixels blue, a caption."""
+    outlined (green), its saturated pixels red, the samples' pixels blue, the declared defects'
+    pixels (defects (H, W), cell.run.defects.on_defects) outlined magenta, a caption."""
     if m.region is None:
         raise ValueError("a joined measurement has no region of its own to draw: annotate each feature's")
     scale = 255.0 / saturation_level(bit_depth)
@@ -663,5 +665,8 @@ def annotate_capture(image: np.ndarray, m: MeasuredRegion, bit_depth: int, capti
     cv2.polylines(view, contours, True, (0, 255, 0), 1)
     for r, c in zip(m.row, m.col):
         cv2.circle(view, (int(c), int(r)), 1, (255, 128, 0), -1)
+    if defects is not None and defects.any():
+        marks, _ = cv2.findContours(defects.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+        cv2.polylines(view, marks, True, (255, 0, 255), 1)
     cv2.putText(view, caption, (10, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 255, 255), 1, cv2.LINE_AA)
     return view

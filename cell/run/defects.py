@@ -23,7 +23,7 @@ about sqrt(1 / n_defect + 1 / n_good) / sqrt(2) in CNR units (tests/test_defects
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -86,6 +86,22 @@ class _Pixels:
     gray: np.ndarray
     xy: np.ndarray
     footprint_m: float
+    row: np.ndarray
+    col: np.ndarray
+
+
+def unseen(found: Sequence[MeasuredDefect]) -> str | None:
+    """Why a capture whose gray is in band still fails its inspection: the declared defects that
+    measure below their min_cnr, each with its measured and planned CNR (None: every measured
+    defect shows; one too little in view to measure is not judged)."""
+    missed = [d for d in found if d.measured_cnr is not None and d.measured_cnr < d.min_cnr]
+    if not missed:
+        return None
+    said = "; ".join(f"the {d.kind} '{d.name}' shows with CNR {d.measured_cnr:.1f} over the sensor's noise, "
+                     f"{d.min_cnr:g} wanted" + ("" if d.predicted_cnr is None else f" ({d.predicted_cnr:.1f} planned)")
+                     for d in missed)
+    return (f"{said}: the inspection would miss {'it' if len(missed) == 1 else 'them'} though the gray is in "
+            f"band; light from across the defect or expose longer (cell plan says which)")
 
 
 def _pixels(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray,
@@ -111,7 +127,7 @@ def _pixels(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray,
     xy = ((origin + t[hit, None] * rays[hit]) - centre) @ frame[:, :2]
     distance = float(np.linalg.norm(centre - origin))
     footprint = task.camera.sensor.pixel_pitch_m * distance / task.camera.lens.focal_length_m
-    return _Pixels(np.asarray(image, float)[v[hit], u[hit]], xy, footprint)
+    return _Pixels(np.asarray(image, float)[v[hit], u[hit]], xy, footprint, v[hit], u[hit])
 
 
 def _position_xy(task: Task, scene: Scene, d: Defect) -> np.ndarray:
@@ -174,6 +190,25 @@ def measure(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray,
         found[d.name] = MeasuredDefect(d.name, d.kind, d.min_cnr, predicted.get(d.name), value, good, bad, n, m,
                                        theta if d.kind == "scratch" else None)
     return tuple(found[d.name] for d in feature.defects)
+
+
+def on_defects(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, shift_px: tuple[float, float],
+               found: Sequence[MeasuredDefect]) -> np.ndarray:
+    """(H, W) the capture's pixels on the feature's declared defects or within GUARD_PX pixel
+    footprints of their edges (a scratch along its orientation as found, else its range's first):
+    what the gray band does not judge (a defect is meant to differ from the surface: a coating of
+    twice the albedo would read as a spread the exposure cannot narrow)."""
+    out = np.zeros(np.shape(image)[:2], bool)
+    if not task.feature.defects:
+        return out
+    px = _pixels(image, task, scene, T_cell_cam, shift_px)
+    theta = {m.name: m.orientation_rad for m in found}
+    for d in task.feature.defects:
+        along = theta.get(d.name)
+        reach = _outside(d, px.xy, d.orientation_rad[0] if along is None else along, _position_xy(task, scene, d),
+                         task.feature.radius_m)[1] < GUARD_PX * px.footprint_m
+        out[px.row[reach], px.col[reach]] = True
+    return out
 
 
 def _best(d: Defect, px: _Pixels, usable: np.ndarray, thetas: np.ndarray, at: np.ndarray, radius: float,

@@ -20,6 +20,7 @@ from cell.run import localization, loop, measurement
 from cell.run import moves as cell_moves
 from cell.run.acquisition import require_feasible
 from cell.run.context import RunContext
+from cell.run.defects import unseen
 from cell.devices.interfaces import speaking_for
 from cell.core.errors import GoalNotReached, PlanInfeasible
 from cell.core.geometry import rotation_angle
@@ -245,21 +246,28 @@ class InspectionResult(Result):
                 "captures": sum(len(r.captures) for r in self.shots)}
 
     def feature_results(self) -> list[dict[str, Any]]:
-        """Per feature: name, shot, converged (its shot converged: it ended in band), the last
-        capture's measured_gray, iterations, reason when not converged."""
+        """Per feature: name, shot, converged (its shot converged: it ended in band, and each of
+        its declared defects measured at least its min_cnr, cell.run.defects.unseen), the last
+        capture's measured_gray, iterations, reason when not converged, and with declared defects
+        their CNR in the last capture (`defects`, as a one-feature run's report.json; `cause`
+        `contrast` where one was unseen)."""
         runs: dict[int | None, ShotRun] = {r.shot: r for r in self.shots}
         out = []
         for name, s in zip(self.features, self.covered_by):
             run = runs.get(s)
             its = run.of(name) if run else []
-            converged = bool(run and run.success and its and its[-1].in_band)
-            reason = "" if converged else (run.message if run else "not run: " + (
+            in_band = bool(run and run.success and its and its[-1].in_band)
+            missed = unseen(its[-1].defects) if in_band else None
+            converged = in_band and not missed
+            reason = "" if converged else missed or (run.message if run else "not run: " + (
                 f"the run stopped at a device fault ({self.fault['error']})" if self.fault else
                 self.message or "covered by no shot"))
             out.append({"name": name, "shot": s, "converged": converged,
                         "measured_gray": its[-1].measured_gray if its else None,
                         "in_band": bool(its and its[-1].in_band), "iterations": len(its),
-                        "capture": f"shot-{s}/{its[-1].capture}" if its else None, "reason": reason})
+                        "capture": f"shot-{s}/{its[-1].capture}" if its else None, "reason": reason,
+                        **({"defects": [d.to_json() for d in its[-1].defects]} if its and its[-1].defects else {}),
+                        **({"cause": "contrast"} if missed else {})})
         return out
 
     def details(self) -> dict[str, Any]:
@@ -335,7 +343,8 @@ def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices],
                               shot=s, converged=done.success, reason=done.message)
         failed = [f for f in result("", None).feature_results() if not f["converged"]]
         if failed:
-            raise GoalNotReached(f"{len(failed)} of {len(names)} features not in band: " + "; ".join(
+            what = "not in band" + (" or a defect unseen" if any(f.get("cause") == "contrast" for f in failed) else "")
+            raise GoalNotReached(f"{len(failed)} of {len(names)} features {what}: " + "; ".join(
                 f"{f['name']} (shot {f['shot']}): {f['reason']}" for f in failed))
         recorder.step("done", f"converged: every feature in band ({len(names)} features, "
                               f"{words.count(len(runs), 'shot')})", converged=True)

@@ -22,7 +22,7 @@ from cell.run import acquisition, channels, control, localization, measurement, 
 from cell.planning import evaluate
 from cell.run.acquisition import Capture, acquire, plan_and_connect, plan_recorded, planned_drives
 from cell.run.context import RunContext
-from cell.run.defects import MeasuredDefect, measure as measure_defects
+from cell.run.defects import MeasuredDefect, measure as measure_defects, on_defects, unseen
 from cell.run.measurement import BlackLevel, Measurement
 from cell.run.refit import Refit
 from cell.collision.scene import CollisionScene, reaching_joints
@@ -60,6 +60,7 @@ CAUSES = {          # report.json's `cause` of a run that ends without the goal 
     "pose": "the part (or the camera) is so far from where the model puts it that the cell cannot work there "
             "(no plan for where it is, or the feature leaves the view)",
     motion.CAUSE: "a move the run must make has no path clear of collisions (both bodies named; nothing moved)",
+    "contrast": "the gray is in band but a declared defect measures below its min_cnr in the last capture",
 }
 
 
@@ -340,8 +341,11 @@ def measure_capture(ctx: RunContext, aim: Aim, feature: LoopFeature, k: int, cap
     bit_depth = ctx.devices.camera.bit_depth
     saturation = saturation_level(bit_depth)
     found, shift = locate(ctx, feature, k, capture, name)
+    seen = measure_defects(capture.image, task, model.plan.planned_scene, capture.T_cell_cam, shift, aim.black.value,
+                           {d.name: d.predicted_cnr for d in model.plan.shot.defects})
+    marked = on_defects(capture.image, task, model.plan.planned_scene, capture.T_cell_cam, shift, seen)
     m = measurement.measure_feature(capture.image, task, capture.T_cell_cam, model.plan.planned_scene.points,
-                                    saturation, shift)
+                                    saturation, shift, marked)
     predicted = model.predicted(aim.black.value, capture.shutter_s, f_number)
     error, relation = control.model_error(m.sample_gray, predicted, saturation, aim.black.value)
     band = task.requirements.gray_band
@@ -352,9 +356,7 @@ def measure_capture(ctx: RunContext, aim: Aim, feature: LoopFeature, k: int, cap
     named = f"{name}: " if name else ""
     caption = f"{k}: {named}gray {m.min:.0f}-{m.max:.0f}, {stats['saturated']} saturated: {verdict}"
     annotated = ctx.recorder.write_image(f"capture-{k}-{file_name(name) if name else 'feature'}.png",
-                                         annotate_capture(capture.image, m, bit_depth, caption))
-    seen = measure_defects(capture.image, task, model.plan.planned_scene, capture.T_cell_cam, shift, aim.black.value,
-                           {d.name: d.predicted_cnr for d in model.plan.shot.defects})
+                                         annotate_capture(capture.image, m, bit_depth, caption, marked))
     it = Iteration(k, capture.shutter_s, float(f_number), expected, stats, error, relation, in_band,
                    capture.name, annotated, aim.albedo_scale, found.to_json(), feature=name,
                    drives={str(c): level for c, level in capture.drives.items()}, defects=seen)
@@ -755,6 +757,9 @@ def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices], max_it
                 context = RunContext(task, devices, recorder, max_iterations)
                 for event in iterate(context, [LoopFeature.planned(task, planned)]):
                     events.add(event)
+                missed = unseen(events.iterations[-1].defects) if events.iterations else None
+                if missed:
+                    raise GoalNotReached(missed, "contrast")
             n = len(events.iterations)
             recorder.step("done", f"converged after {count(n, 'iteration')}", converged=True, iterations=n)
     finally:                                    # after report.json: a failing picture loses no report

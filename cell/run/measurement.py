@@ -150,12 +150,15 @@ class Measurement:
 
 
 def measure_feature(image: np.ndarray, task: Task, T_cell_cam: np.ndarray, points: np.ndarray, saturation: float,
-                    shift_px: tuple[float, float] = (0.0, 0.0)) -> Measurement:
+                    shift_px: tuple[float, float] = (0.0, 0.0), exclude: np.ndarray | None = None) -> Measurement:
     """The Measurement of a frame taken from T_cell_cam (read back) of the feature's samples,
-    their pixels moved by shift_px (where registration found the feature)."""
+    their pixels moved by shift_px (where registration found the feature); `exclude` (H, W): pixels
+    left out of its region (a declared defect's: cell.run.defects.on_defects)."""
     row, col, inside, sample_gray = read_samples(image, task, T_cell_cam, points, shift_px)
     image = np.asarray(image, float)
     region = feature_mask(image.shape, row[inside], col[inside])
+    if exclude is not None:
+        region &= ~exclude
     surface = local_mean(image, region)[region]
     return Measurement(row, col, sample_gray, region, image[region], surface, region & (image >= saturation),
                        float(saturation), float(surface.min()), float(surface.max()))
