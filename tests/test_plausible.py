@@ -285,3 +285,39 @@ def test_a_fixed_light_on_the_part_s_surface_is_refused(tmp_path, capsys, positi
     raw["lights"][1]["position_m"] = [0.0, 0.0, 0.0095]              # 1.5 mm above the plate: a light may be there
     (tmp_path / "t.yaml").write_text(yaml.safe_dump(raw))
     assert load_task(tmp_path / "t.yaml").lights[1].position_m[2] == pytest.approx(0.0095)
+
+
+def written_slip(row, last):
+    """A value for the key `last` of `row` as a slip writes it: a plausible one (half the row's top)
+    in the next smaller unit's number under the SI key (mm written as m, ms as s, mW as W), shaped as
+    the key is (a position or a box size a 3-vector, a range a pair)."""
+    value = 0.5 * row.high * 1000
+    if row.low is None:
+        return [value, 0.0, 0.0]
+    if "range" in last:
+        return [value, value]
+    return [value] * 3 if last == "size_m" else value
+
+
+@pytest.mark.parametrize("key", [k for k in plausible.RANGES if "[]" not in k and k not in plausible.MESHES])
+def test_the_same_slip_on_every_other_physical_key_is_refused_naming_it_and_the_unit_meant(tmp_path, key):
+    """Every key of the table outside a list, examples' or not (the cell's devices, the collision
+    bodies, calibration, the simulated truth): written in m, s or W with the number of mm, ms or mW
+    it was meant in, it exits 2 naming the key and the unit meant."""
+    raw = absolute(yaml.safe_load((ROOT / "tasks" / "hinge.yaml").read_text()))
+    head, _, last = key.rpartition(".")
+    node = raw
+    for part in head.split("."):                                       # the section, made where absent
+        if not isinstance(node.get(part), dict):
+            node[part] = {}
+        node = node[part]
+    base, _ = _unit(last)
+    for written in [k for k in node if _unit(k)[0] == base]:           # the key in the example's own unit
+        node.pop(written)
+    node[last] = written_slip(plausible.RANGES[key], last)
+    (tmp_path / "t.yaml").write_text(yaml.safe_dump(raw))
+    with pytest.raises(TaskError) as refused:
+        load_task(tmp_path / "t.yaml")
+    meant = {"length": "mm", "time": "ms", "power": "mw"}[plausible.RANGES[key].quantity]
+    assert refused.value.exit_code == 2 and same_key(refused.value.key, key), str(refused.value)
+    assert f"as an inspection cell has; did you mean {base}_{meant}: " in str(refused.value), str(refused.value)
