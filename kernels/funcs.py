@@ -312,12 +312,14 @@ def shade_point(mesh_id: wp.uint64, shadows: wp.int32, cone: wp.int32, at: Surfa
     Shadowed = attached shadow (<n,s> <= 0) or, with `shadows` and a mesh, the ray from
     point + offset * normal toward the lamp hits the mesh before the lamp (any hit within the
     distance; none is cast inside the point's free cones, where none can hit); its value is 0.
-    Without `cone` the irradiance is the axis's everywhere. The dominant term is
+    A lamp at the point has direction 0 (wp.normalize, as geometry.direction): shadowed; a camera
+    at it (view 0, cos te 0) sees nothing, R = 0. Without `cone` the irradiance is the axis's
+    everywhere. The dominant term is
     the BRDF's alone (cast shadows do not change it)."""
     out = Shading()
     to_lamp = lamp - at.point
     d = wp.length(to_lamp)
-    s = to_lamp / d
+    s = wp.normalize(to_lamp)          # 0 for a lamp at the point: cos_i 0, shadowed (not 0/0)
     out.off_axis = off_axis_angle(lamp_axis, s)
     cos_i = wp.dot(at.normal, s)
     cos_alpha = phase_cosine(s, at.view)

@@ -200,6 +200,24 @@ def test_backend_hw_without_the_robots_address_is_refused_before_planning_and_le
     assert sorted(p.name for p in tmp_path.iterdir()) == [task.name]         # neither run/ nor runs/
 
 
+@pytest.mark.parametrize("changes, key, said", HW_PROBLEMS, ids=lambda v: v if isinstance(v, str) and
+                         v.startswith("cell.") else None)
+def test_cell_check_backend_hw_refuses_what_cell_run_backend_hw_would_with_no_folder(
+        changes, key, said, tmp_path, monkeypatch, capsys):
+    """The task's backend sim, hw given on the command line: check and run say the same line."""
+    from simcell import variant
+    monkeypatch.chdir(tmp_path)
+    task = variant(tmp_path, Path(HINGE), {k: v for k, v in changes.items() if k != "cell.backend"})
+    assert main(["check", str(task)]) == 0                         # for the simulated cell it is complete
+    capsys.readouterr()
+    assert main(["check", str(task), "--backend", "hw"]) == 2
+    out, checked = capsys.readouterr()
+    assert out == "" and checked.startswith(f"cell check: {task}: {key}: {said}") and checked.count("\n") == 1
+    assert main(["run", str(task), "--backend", "hw"]) == 2
+    assert capsys.readouterr().err == checked.replace("cell check:", "cell run:", 1)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [task.name]         # no runs/ folder
+
+
 def test_cell_check_of_a_task_for_the_real_cell_that_names_its_devices_passes(tmp_path, capsys):
     from simcell import variant
     task = variant(tmp_path, Path(HINGE), {"cell.backend": "hw", "cell.arm.host": "127.0.0.1",

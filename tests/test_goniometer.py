@@ -4,6 +4,7 @@ the truth; poses the arm or the rig refuse are skipped with the reason; a spike 
 step is reported unresolved, a wider one measured; --yes answers the prompt; a fault exits 3."""
 import io
 import json
+import re
 from dataclasses import replace
 from pathlib import Path
 
@@ -205,7 +206,7 @@ def test_measure_brdf_and_fit_brdf_write_one_material_of_one_csv_and_say_what_is
     measured_out = capsys.readouterr().out
     run = tmp_path / "run"
     assert main(["fit-brdf", str(run / "goniometer.csv"), "--out", str(tmp_path / "fit.yaml")]) == 0
-    fit_err = capsys.readouterr().err
+    fit_out, fit_err = capsys.readouterr()
     measured = yaml.safe_load((run / "material.yaml").read_text())
     fitted = yaml.safe_load((tmp_path / "fit.yaml").read_text())
     assert {k: v for k, v in measured.items() if k not in ("name", "source")} == \
@@ -216,6 +217,12 @@ def test_measure_brdf_and_fit_brdf_write_one_material_of_one_csv_and_say_what_is
     said = ("spike unresolved at phase 40 deg: the data's step of 10 deg about the mirror direction sees "
             "exponents up to 11.38; a finer step measures it (cell measure-brdf: calibration.goniometer.step_deg)")
     assert f"  {said}\n" in measured_out and f"{said}\n" in fit_err
+    # each estimate shown alike: the unresolved spike's sigma2 0 and m2 in words, never '+- inf'
+    shown = {k: brdf_fit.shown_estimate(measured, k, 0) for k in ("rho", "sigma1", "m1", "sigma2", "m2")}
+    assert shown["sigma2"] == "0 (not resolved)" and shown["m2"] == "- (not resolved)", shown
+    assert re.fullmatch(r"[\d.]+ \+- [\d.e+-]+", shown["rho"]), shown
+    assert all(f"{k} {text}" in measured_out and text in fit_out for k, text in shown.items()), (measured_out, fit_out)
+    assert "inf" not in measured_out + fit_out + fit_err
 
 
 def test_the_goniometer_keys_are_checked_at_load(tmp_path):

@@ -555,3 +555,29 @@ def test_the_recorded_closest_point_is_closest_points_bit_for_bit(hinge):
         np.testing.assert_array_equal(p, point[k])
         np.testing.assert_array_equal(n, normal[k])
     assert face[-1] == -1 and (face[:-1] >= 0).sum() > 20
+
+
+@pytest.mark.parametrize("shadows", [False, True])
+def test_a_lamp_or_camera_at_a_sample_point_gives_the_same_finite_gray_in_kernel_and_reference(blocks, shadows):
+    """Degenerate geometry (issue 29): the direction to a lamp or a camera at the point itself is 0
+    in both (wp.normalize, geometry.direction), not NaN (0/0) in one of them: the lamp at the
+    point shadows it, the camera at it sees nothing, every output finite and equal."""
+    points = np.array([[0.0, 0.0, 0.01], [0.01, 0.02, 0.01], [0.05, 0.0, 0.05]])    # the slab's top, the wall's face
+    normals = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [-1.0, 0.0, 0.0]])
+    camera = points[2]                                                              # the camera at point 2
+    lamps = np.array([points[0], [0.0, 0.1, 0.3], points[1]])                      # lamps 0 and 2 at points 0, 1
+    aims = geometry.unit(np.array([[0.0, 0.0, -1.0], -lamps[1], [0.0, 0.3, -1.0]]))
+    args = (points, normals, camera, lamps, aims, P_LAMP, np.pi / 2, METAL, C_CAMERA, A_PIXEL, shadows)
+    mesh = blocks if shadows else None
+    with np.errstate(divide="raise", invalid="raise"):      # no 0/0 or 1/0 on the way either
+        numpy = ref.gray_per_exposure(mesh, *args)
+    warp = gray_per_exposure(mesh, *args)
+    for got in (warp, numpy):
+        assert all(np.all(np.isfinite(np.asarray(x, float))) for x in (got.value, got.off_axis))
+        assert got.shadowed[0, 0] and got.shadowed[2, 1] and got.value[0, 0] == got.value[2, 1] == 0.0
+        np.testing.assert_array_equal(got.value[:, 2], 0.0)                         # the camera's own point
+        np.testing.assert_array_equal(got.dominant[:, 2], -1)
+        assert got.value[1, 0] > 0.0 and got.value[1, 1] > 0.0                     # the lamp above lights the rest
+    # (a shadow ray to a lamp on the surface ends on it: those may differ as grazing rays do)
+    assert_gray_agrees(blocks, points, normals, lamps, warp, numpy)
+    assert warp.off_axis[0, 0] == numpy.off_axis[0, 0] == pytest.approx(np.pi / 3)   # the chord |a + 0| = 1

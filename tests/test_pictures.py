@@ -68,3 +68,24 @@ def test_a_picture_that_fails_as_a_run_ends_in_error_leaves_that_error_to_say(tm
     with pytest.raises(RuntimeError, match="no room on the disk"):      # at a normal end it is the error
         with Recorder(tmp_path / "again") as rec:
             rec.write_plan(planned, task)
+
+
+@pytest.mark.parametrize("az, el", [(-180.0, 87.0), (179.0, 88.0), (0.0, -30.0), (120.0, 20.0)])
+def test_the_camera_is_marked_whole_and_named_inside_the_map_wherever_it_is_seen(az, el):
+    """The hinge's camera, 3 deg off the normal, is seen at azimuth -180 (the map's corner, issue
+    29): its square is drawn unclipped at the edge and a label inside the map points at it."""
+    from matplotlib.figure import Figure
+    from matplotlib.text import Annotation
+    from cell.report.pictures import _mark_camera
+    fig = Figure(figsize=(8, 4))
+    ax = fig.add_subplot()
+    ax.set_xlim(-180, 180)
+    ax.set_ylim(-90, 90)
+    _mark_camera(ax, (np.array(az), np.array(el)))
+    square = next(line for line in ax.get_lines() if line.get_label() == "camera")
+    assert not square.get_clip_on() and list(square.get_xdata()) == [az] and list(square.get_ydata()) == [el]
+    label = next(a for a in ax.texts if isinstance(a, Annotation))
+    assert label.get_text() == f"camera (elevation {el:.0f} deg)" and label.xy == (az, el)
+    fig.canvas.draw()
+    box, inside = label.get_window_extent(), ax.get_window_extent()
+    assert inside.x0 <= box.x0 and box.x1 <= inside.x1 and inside.y0 <= box.y0 and box.y1 <= inside.y1

@@ -155,3 +155,45 @@ def test_the_first_compile_is_said_once_with_its_time_and_a_cached_load_not(tmp_
         said.append([line for line in done.stderr.splitlines() if "compiling" in line])
     assert len(said[0]) == 1 and re.fullmatch(COMPILED, said[0][0])
     assert said[1] == []
+
+
+@pytest.mark.parametrize("terminal", [False, True])
+def test_cell_bench_shows_a_stage_per_part_its_rows_lines_said_within(monkeypatch, terminal):
+    """suite.run's parts each a stage of the Progress it is given (a step per task; a part with no
+    task, none), the rows' own lines said as they come; the work itself stubbed: what is checked
+    is what a person sees of it."""
+    from types import SimpleNamespace
+    from cell.bench import lights, multi_feature, scaling, suite, threads
+    said = []
+
+    def part(name, out):
+        def work(*args):
+            said.append(name)
+            args[-1](f"{name} row")                       # the part's `say`
+            return out
+        return work
+    monkeypatch.setattr(suite, "sweep_task", part("sweep", ([], {})))
+    monkeypatch.setattr(suite, "kernel_rows", part("kernels", []))
+    monkeypatch.setattr(threads, "run", part("threads", []))
+    monkeypatch.setattr(multi_feature, "run", part("features", {"features": [], "workers": []}))
+    monkeypatch.setattr(lights, "run", part("lights", {"kernels": [], "channels": []}))
+    monkeypatch.setattr(scaling, "run", part("scaling", {"scaling": [], "scaling_summary": None}))
+    monkeypatch.setattr(multi_feature, "targets", lambda rows: [])
+    monkeypatch.setattr(lights, "targets", lambda rows: [])
+    monkeypatch.setattr(scaling, "targets", lambda rows, summary: [])
+    one = [SimpleNamespace(path=Path(f"{n}.yaml")) for n in ("hinge", "conrod")]
+    out = io.StringIO()
+    suite.run(one, True, Progress(out, terminal=terminal), [], [SimpleNamespace(path=Path("ring.yaml"))], many=True)
+    assert said == ["sweep", "sweep", "kernels", "kernels", "threads", "lights", "scaling"]
+    text = out.getvalue()
+    stages = ["settings sweep", "kernel rates", "threads", "lights and channels", "many-feature scaling"]
+    if terminal:                                                       # a bar each, the rows' lines above them
+        assert all(f"{name}:" in text for name in stages) and "multi-feature" not in text
+        assert all(f"{name} row" in text for name in said)
+    else:
+        lines = [line for line in text.splitlines() if " row" not in line]
+        assert [re.sub(r" in [\d.]+ s$", "", line) for line in lines] == [
+            "settings sweep: 2 of 2", "kernel rates: 2 of 2", "threads: 1 of 1", "lights and channels: 1 of 1",
+            "many-feature scaling: 1 of 1"]
+        assert text.index("sweep row") < text.index("settings sweep: 2 of 2") < text.index("kernels row")
+        assert not CONTROL.search(text)

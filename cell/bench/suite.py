@@ -17,7 +17,7 @@ Pareto front, per task: settings no other setting beats on both time_s and gray_
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import asdict, replace
 from importlib.resources import files
 from typing import TYPE_CHECKING, Any
@@ -34,6 +34,7 @@ from cell.report import words
 from cell.bench.throughput import benchmark_gray, benchmark_visibility, wall_times
 
 if TYPE_CHECKING:
+    from cell.core.progress import Progress
     from cell.planning.plan import Plan
     from cell.task.types import Task
 
@@ -186,7 +187,7 @@ def targets(settings: Iterable[dict[str, Any]], kernels: Iterable[dict[str, Any]
     return out
 
 
-def run(tasks: Iterable[Task], quick: bool, say: Callable[[str], None],
+def run(tasks: Iterable[Task], quick: bool, progress: Progress,
         feature_tasks: Iterable[Task] = (), light_tasks: Iterable[Task] = (), many: bool = False,
         defect_tasks: Iterable[Task] = ()) -> dict[str, Any]:
     """The benchmark of the loaded one-feature `tasks`: every setting's row against the task's
@@ -194,24 +195,44 @@ def run(tasks: Iterable[Task], quick: bool, say: Callable[[str], None],
     cell.bench.multi_feature rows; of the `light_tasks` (with lights besides the spot) the
     cell.bench.lights rows; of the `defect_tasks` the cell.bench.contrast rows; the big launches on
     1 and 2 threads (cell.bench.threads); with `many`, the generated many-feature part's
-    (cell.bench.scaling); and the targets (bench.json)."""
+    (cell.bench.scaling); and the targets (bench.json). Each part is a stage of `progress` (a step
+    per task), its rows' lines said as they come."""
     from cell.bench import contrast, lights, multi_feature, scaling, threads
+    tasks, feature_tasks, light_tasks = list(tasks), list(feature_tasks), list(light_tasks)
+    defect_tasks = list(defect_tasks)
+    say = progress.say
     repeats = 1 if quick else 3
-    result: dict[str, Any] = {"quick": quick, "repeats": repeats, "settings": [], "references": [], "kernels": []}
-    for task in tasks:
+    result: dict[str, Any] = {"quick": quick, "repeats": repeats, "settings": [], "references": [], "kernels": [],
+                              "threads": [], "features": [], "workers": [], "channels": [], "contrast": [],
+                              "scaling": [], "scaling_summary": None}
+
+    def stage(name: str, items: list[Any]) -> Iterator[Any]:
+        """The items, each a step of the stage `name` (none: no stage)."""
+        if items:
+            with progress.stage(name, len(items)) as bar:
+                for item in bar.each(items):
+                    bar.note(getattr(getattr(item, "path", None), "stem", ""))
+                    yield item
+
+    for task in stage("settings sweep", tasks):
         rows, ref = sweep_task(task, QUICK_SWEEP if quick else SWEEP,
                                QUICK_REFERENCE if quick else REFERENCE, repeats, say)
         result["settings"] += rows
         result["references"].append(ref)
-    for task in tasks:
+    for task in stage("kernel rates", tasks):
         result["kernels"] += kernel_rows(task, quick, repeats, say)
-    result["threads"] = threads.run(list(tasks), quick, say)
-    result |= multi_feature.run(feature_tasks, quick, say)
-    light_rows = lights.run(light_tasks, quick, say)
-    result["kernels"] += light_rows["kernels"]
-    result["channels"] = light_rows["channels"]
-    result |= contrast.run(defect_tasks, quick, say)
-    result |= scaling.run(quick, say) if many else {"scaling": [], "scaling_summary": None}
+    for _ in stage("threads", [tasks] if tasks else []):
+        result["threads"] = threads.run(tasks, quick, say)
+    for task in stage("multi-feature plans", feature_tasks):
+        for key, rows in multi_feature.run([task], quick, say).items():
+            result[key] += rows
+    for task in stage("lights and channels", light_tasks):
+        for key, rows in lights.run([task], quick, say).items():
+            result[key] += rows
+    for task in stage("defects' contrast", defect_tasks):
+        result["contrast"] += contrast.run([task], quick, say)["contrast"]
+    for _ in stage("many-feature scaling", [many] if many else []):
+        result |= scaling.run(quick, say)
     result["targets"] = (targets(result["settings"], result["kernels"]) + multi_feature.targets(result["workers"])
                          + lights.targets(result["channels"]) + scaling.targets(result["scaling"], result["scaling_summary"]))
     return result

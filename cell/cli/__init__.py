@@ -153,6 +153,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("check", help="load a task and everything it references, print a summary")
     p.add_argument("task")
+    p.add_argument("--backend", choices=("sim", "hw"), help="check for this backend instead of the task's "
+                                                            "cell.backend (hw: what `cell run --backend hw` needs)")
 
     p = sub.add_parser("fit-brdf", help="fit the BRDF of eq. (6)-(7) to goniometer data per phase angle")
     p.add_argument("data", help="CSV with theta_i_deg,theta_e_deg,phase_deg,reflectance")

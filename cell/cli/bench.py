@@ -1,5 +1,5 @@
 """`cell bench [TASK...] [--quick] [--out DIR] [--json]`: tables on stdout (stderr with --json),
-bench.json and bench.png in DIR, progress on stderr."""
+bench.json and bench.png in DIR, progress on stderr (a bar per stage on a terminal: cell.core.progress)."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 from cell.bench import scaling, suite
 from cell.core import jsonio
+from cell.core.progress import Progress
 from cell.cli import create_folder, output_folder
 from cell.report import words
 from cell.task.loader import load_task
@@ -139,9 +140,6 @@ def with_defects(task: Task) -> bool:
 
 
 def command(args: argparse.Namespace) -> int:
-    def say(msg):
-        print(msg, file=sys.stderr, flush=True)
-
     from cell.bench.contrast import DEFECT_TASKS
     from cell.bench.lights import LIGHT_TASKS
     from cell.bench.multi_feature import FEATURE_TASKS
@@ -156,7 +154,7 @@ def command(args: argparse.Namespace) -> int:
     feature_tasks = [t for t in loaded if multi_feature(t)]
     light_tasks = [t for t in loaded if with_lights(t)]
     create_folder(out)
-    result = suite.run(tasks, args.quick, say, feature_tasks, light_tasks, many=not args.tasks,
+    result = suite.run(tasks, args.quick, Progress(sys.stderr), feature_tasks, light_tasks, many=not args.tasks,
                        defect_tasks=[t for t in loaded if with_defects(t)])
     text = jsonio.dumps(result, indent=2)
     (out / "bench.json").write_text(text + "\n")

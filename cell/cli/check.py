@@ -106,7 +106,7 @@ def command(args: argparse.Namespace) -> int:
     from cell.planning.scene import build_scene          # Warp's BVH: the planner's own patch, no copy
 
     task = load_task(args.task)
-    backend_of(task, None)                      # a task for the real cell names what it connects to
+    backend_of(task, args.backend)              # a task for the real cell names what it connects to
     print(summarize(task))
     flipped = flipped_faces(task.part.mesh)
     if len(flipped):

@@ -19,7 +19,7 @@ from cell.core import jsonio
 from cell.core.files import write_yaml
 from cell.core.errors import TaskError
 from cell.physics.brdf_fit import (SIGNIFICANCE, TERMS, absent_notes, fit_goniometer, read_goniometer,
-                                   unresolved_notes)
+                                   shown_estimate, unresolved_notes)
 from cell.physics.material import PARAMETERS
 
 if TYPE_CHECKING:
@@ -27,23 +27,19 @@ if TYPE_CHECKING:
 
 
 def summary(fits: Sequence[PhaseFit], material: dict[str, Any]) -> str:
-    """A table a person reads: the material written, value +- standard error per parameter and
-    phase angle ('-': the exponent of a term absent or unresolved there)."""
+    """A table a person reads: the material written, per parameter and phase angle as
+    cell measure-brdf says it (shown_estimate), and the terms the data hold there."""
     unresolved = (material.get("unresolved") or {}).get("terms", {})
 
     def gone(f, term):
         return term in f.absent or f.phase_deg in unresolved.get(term, [])
 
-    def cell(f, k, i):
-        p = PARAMETERS[i]
-        if i in (2, 4) and gone(f, TERMS[i // 2 - 1]):
-            return "-"
-        return f"{material[p][k]:.4g} +- {material[p + '_stderr'][k]:.2g}"
-
-    lines = [f"{'phase':>6} {'rows':>5} " + " ".join(f"{p:>18}" for p in PARAMETERS) + f" {'rms':>9}  terms"]
+    width = max(18, *(len(shown_estimate(material, p, k)) for p in PARAMETERS for k in range(len(fits))))
+    lines = [f"{'phase':>6} {'rows':>5} " + " ".join(f"{p:>{width}}" for p in PARAMETERS) + f" {'rms':>9}  terms"]
     for k, f in enumerate(fits):
         terms = ", ".join(("diffuse",) + tuple(t for t in TERMS if not gone(f, t)))
-        lines.append(f"{f.phase_deg:6g} {f.rows:5d} " + " ".join(f"{cell(f, k, i):>18}" for i in range(5))
+        lines.append(f"{f.phase_deg:6g} {f.rows:5d} " + " ".join(f"{shown_estimate(material, p, k):>{width}}"
+                                                                  for p in PARAMETERS)
                      + f" {f.rms_residual:9.2g}  {terms}")
     return "\n".join(lines)
 

@@ -14,7 +14,8 @@ from cell.core import jsonio
 from cell.cli import backend_of, create_folder, output_folder
 from cell.task.loader import load_task
 from cell.devices.operator import Operator
-from cell.physics.brdf_fit import unresolved_notes
+from cell.physics.brdf_fit import shown_estimate, unresolved_notes
+from cell.physics.material import PARAMETERS
 
 
 def command(args: argparse.Namespace) -> int:
@@ -37,7 +38,7 @@ def command(args: argparse.Namespace) -> int:
     doc = result.measured_material          # goniometer.run returns only once it is measured
     for i, phase in enumerate(doc["phase_deg"]):
         print(f"phase {phase:g} deg: " + ", ".join(
-            f"{k} {doc[k][i]:.4g} +- {doc[k + '_stderr'][i]:.2g}" for k in ("rho", "sigma1", "m1", "sigma2", "m2")))
+            f"{k} {shown_estimate(doc, k, i)}" for k in PARAMETERS))      # as cell fit-brdf shows them
     for note in unresolved_notes(doc):                  # as cell fit-brdf says them of the same CSV
         print(f"  {note}")
     print(f"  {len(result.readings)} of {result.poses} poses measured ({len(result.refused)} refused, "

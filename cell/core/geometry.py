@@ -56,6 +56,15 @@ def unit(v: ArrayLike, axis: int = -1) -> np.ndarray:
     return v / np.linalg.norm(v, axis=axis, keepdims=True)
 
 
+def direction(v: ArrayLike, axis: int = -1) -> np.ndarray:
+    """v / |v| along axis, and 0 where |v| = 0, as Warp's wp.normalize: the direction from a point
+    to a lamp or a camera at that very point is 0, so <n, s> = 0 there (shadowed, unseen), where
+    unit() gives NaN (0/0)."""
+    v = np.asarray(v, dtype=float)
+    length = np.linalg.norm(v, axis=axis, keepdims=True)
+    return np.divide(v, length, out=np.zeros_like(v), where=length > 0.0)
+
+
 def frame_from_normal(normal: ArrayLike, reference: ArrayLike = (1.0, 0.0, 0.0)) -> np.ndarray:
     """3x3 rotation whose columns are (x, y, z) of a frame with +z = normal; x is the
     reference projected into the tangent plane (any fixed axis when they are parallel)."""

@@ -357,6 +357,24 @@ def unresolved_notes(doc: dict[str, Any]) -> list[str]:
             "calibration.goniometer.step_deg)" for term, phases in section["terms"].items()]
 
 
+def shown_estimate(doc: dict[str, Any], parameter: str, k: int) -> str:
+    """A material document's `parameter` at its k-th phase as both commands print it: `value +-
+    standard error`; the exponent of a term the data cannot resolve (unresolved) or do not hold
+    (unidentifiable) there `- (not resolved)` / `- (no <term> in the data)`, its value meaningless;
+    a value whose standard error is infinite (a term set to 0) `value (not resolved)`, not `+- inf`."""
+    term = {"sigma1": "lobe", "m1": "lobe", "sigma2": "spike", "m2": "spike"}.get(parameter)
+    phase = doc["phase_deg"][k]
+    if parameter in ("m1", "m2"):
+        if phase in (doc.get("unresolved") or {}).get("terms", {}).get(term, []):
+            return "- (not resolved)"
+        if phase in doc.get("unidentifiable", {}).get(term, []):
+            return f"- (no {term} in the data)"
+    value, stderr = doc[parameter][k], doc[f"{parameter}_stderr"][k]
+    if not np.isfinite(stderr):
+        return f"{value:.4g} (not resolved)"
+    return f"{value:.4g} +- {stderr:.2g}"
+
+
 @dataclass(frozen=True)
 class GoniometerFit:
     """One fit of goniometer data (fit_goniometer): the per-phase fits, the material document

@@ -105,13 +105,15 @@ def gray_per_exposure(mesh: TriangleMesh | None, points: ArrayLike, normals: Arr
     axis = geometry.unit(np.broadcast_to(np.asarray(lamp_axis, dtype=np.float64), lamps.shape))
     to_lamp = lamps[:, None, :] - points[None]                      # (C, P, 3)
     d = np.linalg.norm(to_lamp, axis=-1)
-    s = to_lamp / d[..., None]
-    v = geometry.unit(np.asarray(camera_pos, dtype=np.float64) - points)[None]
+    s = geometry.direction(to_lamp)         # 0 for a lamp at the point (shadowed), as the kernel's
+    v = geometry.direction(np.asarray(camera_pos, dtype=np.float64) - points)[None]     # 0: unseen
     material = _material(table)
     reflectance = brdf.reflectance_vectors(n[None], s, v, material)
     dominant = brdf.dominant_term_vectors(n[None], s, v, material).astype(np.int8)
-    off_axis = np.arccos(np.clip(np.sum(axis[:, None, :] * -s, axis=-1), -1.0, 1.0))
-    irradiance = radiometry.cone_irradiance(power_w, cone_angle_rad, d, off_axis if cone else 0.0, profile)
+    # the chord's angle 2 asin(|a + s| / 2) = acos(<a, -s>) for a unit s, as the kernel takes it
+    off_axis = 2.0 * np.arcsin(np.minimum(0.5 * np.linalg.norm(axis[:, None, :] + s, axis=-1), 1.0))
+    lit_at = np.where(d > 0.0, d, np.inf)   # a lamp at the point lights nothing there (no 1/0)
+    irradiance = radiometry.cone_irradiance(power_w, cone_angle_rad, lit_at, off_axis if cone else 0.0, profile)
     shadowed = np.sum(n[None] * s, axis=-1) <= 0.0                  # attached shadow
     if shadows and mesh is not None:
         c, p = np.nonzero(~shadowed)

@@ -131,10 +131,22 @@ def _feature_angles(plan, scene, position):
     return np.degrees(az), np.degrees(el)
 
 
+def _mark_camera(ax, cam):
+    """The camera's square where it is seen from the feature, whole at the map's edge (a camera
+    near the normal has an azimuth of +-180 or any other: the corner), and named beside it, the
+    label and its arrow inside the map."""
+    az, el = (float(np.ravel(x)[0]) for x in cam)
+    ax.plot(az, el, marker="s", ms=11, mfc="none", mec="white", mew=2, ls="none", label="camera", clip_on=False,
+            zorder=5)
+    ax.annotate(f"camera (elevation {el:.0f} deg)", xy=(az, el), xytext=(40 if az < 0 else -40, -28 if el > 0 else 28),
+                textcoords="offset points", ha="left" if az < 0 else "right", va="center", fontsize=8,
+                bbox={"boxstyle": "round", "fc": "white", "alpha": 0.8},
+                arrowprops={"arrowstyle": "->", "color": "black", "lw": 1.2}, zorder=6)
+
+
 def _mark(ax, plan, scene):
-    cam = _feature_angles(plan, scene, plan.shot.camera_position)
     lamp = _feature_angles(plan, scene, plan.shot.lamp_position)
-    ax.plot(*cam, marker="s", ms=11, mfc="none", mec="white", mew=2, ls="none", label="camera")
+    _mark_camera(ax, _feature_angles(plan, scene, plan.shot.camera_position))
     ax.plot(*lamp, marker="o", ms=8, mfc="white", mec="black", ls="none", label="lamp")
     ax.legend(loc="lower right", fontsize=8, framealpha=0.6)
 
@@ -241,8 +253,7 @@ def write_lights(path: PathLike, plan: Plan, task: Task) -> None:
         color = LIGHT_COLORS[k % len(LIGHT_COLORS)]
         ax1.plot(az, el, "o", ms=7 if light is None else 4, mec="black", mew=0.6, ls="none",
                  mfc=color if setting.drive > 0 else "none", label=setting.name)
-    cam = _feature_angles(plan, scene, shot.camera_position)
-    ax1.plot(*cam, marker="s", ms=11, mfc="none", mec="white", mew=2, ls="none", label="camera")
+    _mark_camera(ax1, _feature_angles(plan, scene, shot.camera_position))
     ax1.legend(loc="lower right", fontsize=8, framealpha=0.6)
     _axes(ax1, "where each light is, seen from the feature (filled: on); dominant terms as regions.png")
     names = [f"{s.name}\n(ch {'-' if s.channel is None else s.channel}, drive {s.drive:.0%})" for s in shot.lights]

@@ -398,7 +398,7 @@ def _load_mesh(file, part, key="part.mesh"):
                         "outward-facing triangles (reverse the mesh's winding)")
     if part["mesh_unit"] == "mm":
         mesh.apply_scale(1e-3)
-    plausible.check_mesh(file, part["mesh_unit"], mesh.extents, name)
+    plausible.check_mesh(file, key, part["mesh_unit"], mesh.extents, name)
     return path, mesh
 
 
@@ -642,16 +642,22 @@ def _viewpoint(cam):
                      cam["views_per_feature"])
 
 
-def _check_outside(file, mesh, T_cell_part, points):
+def _check_outside(file, mesh, T_cell_part, points, lights=frozenset()):
     """Each {key: cell-frame point} lies outside the part (winding number below 1/2) or on its
-    surface (within SURFACE_TOLERANCE_M): a lamp pivot or a camera inside the part is a mistake."""
+    surface (within SURFACE_TOLERANCE_M): a lamp pivot or a camera inside the part is a mistake.
+    A fixed light's centre (its key in `lights`) must lie off the surface too: a light at a
+    surface point has no direction to it there (0/0), and one on the part lights nothing around it."""
     T_part_cell = np.linalg.inv(T_cell_part)
     for (key, whose), point in points.items():
         local = geometry.apply(T_part_cell, point)
-        if (geometry.winding_number(mesh.vertices, mesh.faces, local) > 0.5
-                and closest_surface_point(mesh, local)[2] > SURFACE_TOLERANCE_M):
+        distance = closest_surface_point(mesh, local)[2]
+        if geometry.winding_number(mesh.vertices, mesh.faces, local) > 0.5 and distance > SURFACE_TOLERANCE_M:
             raise TaskError(file, key, f"{show(np.round(point, 6))} m, inside the part{whose}",
                             "a point outside the part (cell frame)")
+        if key in lights and distance <= SURFACE_TOLERANCE_M:
+            raise TaskError(file, key, f"{show(np.round(point, 6))} m, {distance * 1e3:.3g} mm from the part's "
+                            f"surface{whose}", f"a light off the part, more than {SURFACE_TOLERANCE_M * 1e3:g} mm "
+                            "from its surface (cell frame)")
 
 
 def _lamp_profile(file, profile, key="lamp.profile"):
@@ -910,7 +916,8 @@ def _load_task(path: Path, data: Any) -> Task:
     cameras = {(key, f", the camera{whose}" if whose else ""): camera for (key, whose), (camera, _) in aims.items()}
     _check_outside(path, mesh, frames.T_cell_part, {(f"{'lamp' if lamp is not None else 'lights'}.rig.pivot_m", ""):
                                                     spot.rig.pivot_m, **cameras,
-                                                    **_light_centres(lights, aims if cam["viewpoint"] == "fixed" else {})})
+                                                    **_light_centres(lights, aims if cam["viewpoint"] == "fixed" else {})},
+                   lights={f"{light.key}.position_m" for light in lights if light.mount == "fixed"})
     return Task(
         path=path,
         name=v["name"],

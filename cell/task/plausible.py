@@ -134,10 +134,15 @@ RANGES: dict[str, Range] = {
     "calibration.board.marker_size_m": _size(5e-4, 0.2),
     "calibration.board.position_m": _position(2.0),
     "loop.registration_limit_m": _size(1e-5, 0.1),
+    "cell.collision.padding_m": _size(0.0, 0.5),
+    "cell.collision.camera_body.size_m": _size(5e-3, 1.0),
+    "cell.collision.camera_body.offset_m": _size(-0.5, 0.5),
+    "cell.collision.lamp_body.size_m": _size(5e-3, 1.0),
 }
-# the part's largest side in the cell's units: `part.mesh_unit` is blamed when it is not
-MESH = "part.mesh"
-RANGES[MESH] = _size(1e-3, 2.0)
+# a mesh's largest side in the cell's units (a part's; a fixture or a table, a few metres): its
+# `_unit` key is blamed when it is not
+MESHES = {"part.mesh": _size(1e-3, 2.0), "cell.collision.fixture_mesh": _size(1e-3, 5.0)}
+RANGES |= MESHES
 
 _LIMITS: ContextVar[Mapping[str, Range]] = ContextVar("plausible_limits", default=RANGES)
 
@@ -188,14 +193,14 @@ def attach(schema: Mapping[str, Spec]) -> None:
     A Spec shared by two keys must be given one of them (copied first): each row its own."""
     seen = set()
     for key, spec in schema_keys(schema):
-        if key not in RANGES or key == MESH:
+        if key not in RANGES or key in MESHES:
             continue
         if getattr(spec, "plausible", None) is not None or id(spec) in seen:
             raise ValueError(f"{key}: its Spec serves another key too; give it a copy")
         seen.add(id(spec))
         spec.plausible = Check(key)
         spec.expected = f"{spec.expected} ({RANGES[key].words()})"
-    missing = set(RANGES) - {key for key, _ in schema_keys(schema)} - {MESH}
+    missing = set(RANGES) - {key for key, _ in schema_keys(schema)} - set(MESHES)
     if missing:
         raise ValueError(f"rows of no key: {sorted(missing)}")
 
@@ -244,16 +249,19 @@ class Limits(Spec):
         raise NotImplementedError            # read() checks the mapping itself
 
 
-def check_mesh(file: str | PathLike[str], unit: str, extents_m: np.ndarray, name: str) -> None:
-    """The part's size in the cell's units, plausible, else `part.mesh_unit` is refused with the
-    other unit when that one is plausible."""
-    row = _LIMITS.get()[MESH]
+def check_mesh(file: str | PathLike[str], key: str, unit: str, extents_m: np.ndarray, name: str) -> None:
+    """The mesh at `key` (`part.mesh`, `cell.collision.fixture_mesh`) plausible in size in the
+    cell's units, else its unit key (`key`_unit) is refused with the other unit when that one is
+    plausible."""
+    row = _LIMITS.get()[key]
     if row.holds(float(np.max(extents_m))):
         return
     other = {"m": ("mm", 1e-3), "mm": ("m", 1e3)}[unit]
     size = " x ".join(f"{e:.4g}" for e in extents_m)
-    hint = f"; did you mean mesh_unit: {other[0]}?" if row.holds(float(np.max(extents_m)) * other[1]) else ""
-    raise TaskError(file, "part.mesh_unit", f"{unit}, which makes {name} {size} m",
-                    f"the unit of the mesh's coordinates, a part's largest side "
+    written = key.rpartition(".")[2] + "_unit"
+    hint = f"; did you mean {written}: {other[0]}?" if row.holds(float(np.max(extents_m)) * other[1]) else ""
+    whose = "a part" if key == "part.mesh" else "a fixture"
+    raise TaskError(file, f"{key}_unit", f"{unit}, which makes {name} {size} m",
+                    f"the unit of the mesh's coordinates, {whose}'s largest side "
                     f"{row.span()}{hint} "
-                    f"(a part beyond it: `limits: {{{MESH}: [low, high]}}` in the task)")
+                    f"(a {whose[2:]} beyond it: `limits: {{{key}: [low, high]}}` in the task)")
