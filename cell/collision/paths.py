@@ -190,7 +190,8 @@ def lamp_route(scene: CollisionScene, T_cam: np.ndarray, q: ArrayLike, joints_fr
     it at its pan, across in pan at it, down or up to the target's, the radius the larger end's;
     the rig's tilt range in LAMP_VIA_TILTS steps, the nearest to the two ends' first. Neither:
     the direct move's Clearance, not clear, no via joints."""
-    a, b = tuple(float(x) for x in joints_from), tuple(float(x) for x in joints_to)
+    a = tuple(float(x) for x in np.asarray(joints_from, float))
+    b = tuple(float(x) for x in np.asarray(joints_to, float))
     direct, steps = lamp_path(scene, T_cam, q, a, b)
     if direct.ok:
         return direct, (), steps

@@ -554,10 +554,13 @@ def best_view(first: np.ndarray, candidates: Sequence[np.ndarray]) -> int | None
 
 def most_informative(task: Task, scene: Scene, first: View, candidates: Sequence[np.ndarray]) -> np.ndarray:
     """The candidate second view (a camera pose) best_view picks of their view_information, the
-    lamp where the first view had it."""
+    lamp where the first view had it; `candidates` must not be empty."""
     one = view_information(task, scene, first.T_cell_cam, first.lamp_pose, first.drives)
     infos = [view_information(task, scene, T, first.lamp_pose, first.drives) for T in candidates]
-    return candidates[best_view(one, infos)]
+    best = best_view(one, infos)
+    if best is None:
+        raise ValueError("most_informative needs at least one candidate second view")
+    return candidates[best]
 
 
 def view_exposure(model: ModelView, saturation: float, f_number: float,

@@ -40,7 +40,7 @@ def check(task: Task, devices: Devices, T_cell_cam: np.ndarray | None = None,
         pan, tilt, radius = devices.lamp.joints()
         target = None if lamp_joints is None else devices.lamp.target(*lamp_joints)
     if q is None:
-        q = reaching_joints(task.frames, T_now) or ur5e.HOME_JOINTS
+        q = np.asarray(reaching_joints(task.frames, T_now) or ur5e.HOME_JOINTS, float)
     if not np.isfinite(radius):
         radius = np.nan if target is None else target[2]
     lamp_now = (float(pan), float(tilt), float(radius))
