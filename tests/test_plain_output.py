@@ -93,9 +93,12 @@ def test_every_line_says_the_plan_in_words(planned):
     assert "cell plan: infeasible: " in text and "tightest requirement: depth of field" in text
 
 
-@pytest.mark.long          # the bracket and the defects' example: 30 s of planning
+REFUSED = {"conrod-faint"}     # refused on purpose (a dent no light shows): tests/test_defects.py
+
+
+@pytest.mark.long          # the bracket and the defects' examples: minutes of planning
 def test_the_other_examples_plan_feasible_and_say_so_in_words(tmp_path):
-    rest = [str(p) for p in EXAMPLES if p not in QUICK]
+    rest = [str(p) for p in EXAMPLES if p not in QUICK and p.stem not in REFUSED]
     done = subprocess.run([sys.executable, "-m", "cell", "plan", *rest, "--out", str(tmp_path / "out")],
                           capture_output=True, text=True, timeout=900, cwd=tmp_path)
     text = done.stdout + done.stderr

@@ -9,7 +9,9 @@ Where the pixels are: each pixel's ray (moved back by the registration's shift) 
 feature's tangent plane through the defect's position (position_m, else the feature's centre)
 at an offset that contrast.footprint sorts: on the defect, or its good neighbours, the pixels
 between GUARD_PX and GUARD_PX + BAND_PX pixel footprints beyond its edge (beside a scratch's
-groove, around a disk), within the feature and clear of the other defects. Per part, as the
+groove, around a disk), within the feature and clear of the other defects; a scratch within
+NEAR_PX footprints of its position along it (where the planner's CNR at that point holds: the
+light changes along a groove the feature's width long). Per part, as the
 planner judges it (cell.planning.defects): a scratch's two walls (the larger CNR), a dent's rim
 (its outer RIM_PX footprint: the steepest tilts) at its best azimuth (_rim: its gray a Fourier
 series in the azimuth), a coating's disk. A scratch's orientation is not declared, only its
@@ -46,6 +48,7 @@ RIM_PIXELS = 4          # with at least this many rim pixels per coefficient
 COARSE_PX = 4.0         # a scratch's orientations tried this many pixel footprints apart at the feature's edge,
 FINE = 16               # then this many times finer about the best (a quarter footprint)
 MAX_ORIENTATIONS = 720
+NEAR_PX = 32.0          # a scratch is measured within this many pixel footprints of its position along it
 
 
 @dataclass(frozen=True)
@@ -139,11 +142,14 @@ def _position_xy(task: Task, scene: Scene, d: Defect) -> np.ndarray:
     return (position - scene.center) @ scene.frame[:, :2]
 
 
-def _outside(d: Defect, xy: np.ndarray, theta: float, at: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
-    """contrast.footprint of the pixels for defect d at `at` (x, y) (a scratch along theta)."""
+def _outside(d: Defect, xy: np.ndarray, theta: float, at: np.ndarray, radius: float,
+             near_m: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+    """contrast.footprint of the pixels for defect d at `at` (x, y) (a scratch along theta, its
+    chord cut to within near_m of its position)."""
     if d.kind == "scratch":
+        t0, t1 = contrast.scratch_chord(at, theta, radius)
         return contrast.footprint(xy - at, "scratch", theta, float(d.width_m or 0.0),
-                                  chord_m=contrast.scratch_chord(at, theta, radius))
+                                  chord_m=(max(t0, -near_m), min(t1, near_m)))
     return contrast.footprint(xy - at, d.kind, radius_m=float(d.radius_m or 0.0))
 
 
@@ -236,7 +242,7 @@ def _cnr(d: Defect, px: _Pixels, usable: np.ndarray, theta: float, at: np.ndarra
          noise: tuple[float, float, float, float]) -> tuple[float, float, float, int, int] | None:
     """(CNR, good gray, defect gray, its pixels, the neighbours) of the defect's best part at
     orientation theta, or None when too few pixels show it or its neighbours."""
-    part, outside = _outside(d, px.xy, theta, at, radius)
+    part, outside = _outside(d, px.xy, theta, at, radius, NEAR_PX * px.footprint_m)
     fp = px.footprint_m
     good = usable & (outside >= GUARD_PX * fp) & (outside <= (GUARD_PX + BAND_PX) * fp)
     on = usable & (part > 0)
