@@ -286,7 +286,10 @@ def test_ur_arm_controller_killed_mid_move_is_a_fault_at_once_and_stop_says_it_c
 
 def test_ur_arm_controller_silent_mid_move_is_a_fault_within_the_connect_timeout(emulators):
     with emulators.own("--fault", "silent", "--fault-after-s", "0.5"):
-        arm = ur.URArm(replace(WATCHED_ARM, connect_timeout_s=0.5), FRAMES)      # silent for 0.5 s: a fault
+        # connected with time to spare (the connection steps answer slowly on a loaded machine), then
+        # judged as a cell whose controller must send its state every 0.5 s: silent for 0.5 s, a fault
+        arm = ur.URArm(replace(WATCHED_ARM, connect_timeout_s=0.5 + BUSY_S), FRAMES)
+        arm.config = replace(arm.config, connect_timeout_s=0.5)
         try:
             watched_move_fails(arm, r"controller silent during moveL \(no state for 0.5 s\)", 0.5 + 0.5 + 0.3)
             with pytest.raises(DeviceFault, match=r"controller silent \(no state for 0.5 s\): stopL not sent"):
