@@ -85,8 +85,7 @@ class Move:
                 "clearance_bodies": list(self.clearance.bodies), "via": [T.tolist() for T in self.via],
                 "travel_m": self.travel_m, "steps": self.steps,
                 **({} if self.joints_end is None else {"arm_joints_deg": np.degrees(self.joints_end).tolist()}),
-                **({"lamp_via": [list(j) for j in self.lamp_via]} if self.lamp_via else {}),
-                **({"lamp_first": True} if self.lamp_first else {})}
+                **({"lamp_via": [list(j) for j in self.lamp_via]} if self.lamp_via else {})}
 
 
 def _name(end: End) -> str:

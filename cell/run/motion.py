@@ -80,15 +80,18 @@ def go(task: Task, devices: Devices, recorder: Recorder, T_cell_cam: np.ndarray 
             lamp_joints = devices.lamp.target(*lamp_joints, near_rad=devices.lamp.joints()[0])
     apart = (f"{' and '.join(move.clearance.bodies)} at least {1e3 * move.clearance.distance_m:.1f} mm apart"
              if np.isfinite(move.clearance.distance_m) else "nothing near")
+
+    def via(step: str, what: str, k: int, n: int, position: np.ndarray) -> None:
+        recorder.step(step, f"{what} via point {k} of {n} on the way to {to}: at {np.round(position, 4).tolist()} m "
+                            f"in the cell frame (collision-checked: {apart})", iteration=iteration, via=k, to=to,
+                      position_m=position)
+
     def arm() -> None:
         for k, T in enumerate(move.via, 1):
             with speaking_for(devices.arm):
                 devices.arm.move_camera(T)
                 position = devices.arm.camera_pose()[:3, 3]
-            recorder.step("move_via", f"via point {k} of {len(move.via)} on the way to {to}: camera at "
-                                      f"{np.round(position, 4).tolist()} m in the cell frame (the path "
-                                      f"collision-checked: {apart})", iteration=iteration, via=k, to=to,
-                          position_m=position)
+            via("move_via", "the camera's", k, len(move.via), position)
         if T_cell_cam is not None:
             with speaking_for(devices.arm):
                 devices.arm.move_camera(T_cell_cam)
@@ -100,10 +103,7 @@ def go(task: Task, devices: Devices, recorder: Recorder, T_cell_cam: np.ndarray 
             with speaking_for(devices.lamp):
                 devices.lamp.move(*joints)
                 position = devices.lamp.lamp_pose()[0]
-            recorder.step("move_lamp_via", f"lamp via point {k} of {len(move.lamp_via)} on the way to {to}: lamp "
-                                           f"at {np.round(position, 4).tolist()} m in the cell frame (the route "
-                                           f"collision-checked: {apart})", iteration=iteration, via=k, to=to,
-                          position_m=position)
+            via("move_lamp_via", "the lamp's", k, len(move.lamp_via), position)
         if lamp_joints is not None:
             with speaking_for(devices.lamp):
                 devices.lamp.move(*lamp_joints)
