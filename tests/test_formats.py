@@ -109,7 +109,7 @@ def test_the_task_examples_load(tmp_path):
     task = load_task(path)
     assert task.name == "Aluminium hinge, leaf surface" and task.lamp.power_w == pytest.approx(0.23043)
     assert task.cell.devices.arm.host == "192.168.1.10" and task.sim.effects == ("shadows", "cone_falloff",
-                                                                                    "quantization")
+                                                                                    "quantization", "collisions")
     start = example.index("feature:")
     path.write_text(example[:start] + several + example[example.index("requirements:"):])
     leaf, screw = load_task(path).features

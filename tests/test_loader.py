@@ -166,7 +166,7 @@ def test_hinge_mesh_is_in_metres_and_material_in_radians():
 def test_conrod_loads():
     task = loader.load_task(CONROD)
     assert task.requirements.reflection == "diffuse"
-    assert task.sim.effects == ("shadows", "cone_falloff", "quantization")
+    assert task.sim.effects == ("shadows", "cone_falloff", "quantization", "collisions")
     np.testing.assert_allclose(task.feature.normal, [0.0, 0.0, 1.0], atol=1e-9)
 
 

@@ -101,7 +101,7 @@ def test_the_region_map_marks_the_cone_unknown_and_no_reflection_wants_it(tmp_pa
 def hinge(folder, material_doc, reflection="lobe"):
     """The hinge task on a 516 x 388 px sensor (twice the pitch), the world m2 800 (its other
     parameters the material's), noise, black level, quantization, shadows and cone falloff, the
-    task's material `material_doc`."""
+    cell's own collision check (every move of the run clears it), the task's material `material_doc`."""
     doc = yaml.safe_load((TASKS / "hinge.yaml").read_text())
     doc["part"]["mesh"] = str(TASKS / doc["part"]["mesh"])
     doc["part"]["material"] = str(write_material(folder / "material.yaml", material_doc))
@@ -109,7 +109,7 @@ def hinge(folder, material_doc, reflection="lobe"):
     doc["requirements"]["reflection"] = reflection
     write_material(folder / "world.yaml", {"name": "the world's metal", "source": "test truth", "phase_deg": [0, 90],
                                            **{k: [v, v] for k, v in WORLD.items()}})
-    doc["sim"] = {"seed": 3, "effects": ["shadows", "cone_falloff", "noise", "black_level", "quantization"],
+    doc["sim"] = {"seed": 3, "effects": ["shadows", "cone_falloff", "noise", "black_level", "quantization", "collisions"],
                   "truth": {"material": "world.yaml"}}
     path = folder / "task.yaml"
     path.write_text(yaml.safe_dump(doc))

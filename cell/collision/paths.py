@@ -71,6 +71,7 @@ class Move:
     travel_m: float = np.inf
     joints_end: np.ndarray | None = None   # where the arm arrives (None: it does not)
     lamp_via: tuple[tuple[float, float, float], ...] = ()   # the lamp's via joints (empty: direct)
+    lamp_first: bool = False               # the lamp moves before the arm (cell.run.motion's moves only)
 
     @property
     def clear(self) -> bool:
@@ -222,14 +223,15 @@ class Stop:
     lamp_joints: tuple[float, float, float] | None
 
 
-def plan_move(scene: CollisionScene, arm: ArmConfig, start: End, a: Stop, end: End, b: Stop) -> Move:
+def plan_move(scene: CollisionScene, arm: ArmConfig, start: End, a: Stop, end: End, b: Stop,
+              retreats: Sequence[float] = VIA_RETREATS_M) -> Move:
     """The Move from stop a to stop b: direct if clear, else through the first via points
-    (VIA_RETREATS_M) whose path is clear; neither: the direct move, not clear, with its bodies."""
+    (`retreats`) whose path is clear; neither: the direct move, not clear, with its bodies."""
     lamp_a = None if a.lamp_joints is None else lamp_position(scene.pivot_m, *a.lamp_joints)
     direct, q, steps = _through(scene, [a.T_cell_cam, b.T_cell_cam], a.arm_joints, lamp_a)
     if direct.ok:
         return _with_lamp(scene, Move(start, end, direct, (), steps, joints_end=q), a, b)
-    for retreat in VIA_RETREATS_M:
+    for retreat in retreats:
         via = (_retreated(a.T_cell_cam, retreat), _retreated(b.T_cell_cam, retreat))
         try:
             for T in via:
@@ -246,13 +248,22 @@ def plan_move(scene: CollisionScene, arm: ArmConfig, start: End, a: Stop, end: E
 def plan_transition(scene: CollisionScene, arm: ArmConfig, a: Stop, b: Stop, start: End = "start",
                     end: End = "the target") -> Move:
     """The Move from where the devices are (a: read back) to b: the arm's path and then the
-    lamp's route (plan_move), or, the camera staying where it is (b at a's pose), the lamp's
-    route alone (lamp_route, the arm still at a's joints); b's lamp joints None: the arm moves,
-    the lamp stays (and is checked where it stands)."""
+    lamp's route (plan_move), or where that is not clear the lamp's route first and then the
+    arm's path (`lamp_first`: the lamp out of the camera's way), each direct before either
+    tries via points; or, the camera staying where it is (b at a's pose), the lamp's route alone
+    (lamp_route, the arm still at a's joints); b's lamp joints None: the arm moves, the lamp
+    stays (and is checked where it stands). None clear: the arm-first move, not clear."""
     same = (np.allclose(a.T_cell_cam[:3, 3], b.T_cell_cam[:3, 3], atol=1e-9)
             and np.allclose(a.T_cell_cam[:3, :3], b.T_cell_cam[:3, :3], atol=1e-9))
     if not same:
-        return plan_move(scene, arm, start, a, end, b)
+        first = plan_move(scene, arm, start, a, end, b, retreats=())
+        both = a.lamp_joints is not None and b.lamp_joints is not None
+        if first.clear or (both and (lamp := _lamp_first(scene, arm, start, a, end, b, ())) is not None):
+            return first if first.clear else lamp
+        move = plan_move(scene, arm, start, a, end, b)
+        if move.clear or not both:
+            return move
+        return _lamp_first(scene, arm, start, a, end, b, VIA_RETREATS_M) or move
     if b.lamp_joints is None or a.lamp_joints is None:
         lamp = None if a.lamp_joints is None else lamp_position(scene.pivot_m, *a.lamp_joints)
         return Move(start, end, scene.clearance(a.T_cell_cam, a.arm_joints, lamp), (), 1,
@@ -262,6 +273,24 @@ def plan_transition(scene: CollisionScene, arm: ArmConfig, a: Stop, b: Stop, sta
     return Move(start, end, found, (), steps, (a.T_cell_cam[:3, 3],),
                 float(sum(np.linalg.norm(y - x) for x, y in pairwise(at))), np.asarray(a.arm_joints, float),
                 lamp_via if found.ok else ())
+
+
+def _lamp_first(scene: CollisionScene, arm: ArmConfig, start: End, a: Stop, end: End, b: Stop,
+                retreats: Sequence[float]) -> Move | None:
+    """The move with the lamp's route first (the arm still at a), then the arm's path (the lamp
+    at b), or None where either is not clear."""
+    assert a.lamp_joints is not None and b.lamp_joints is not None
+    c, lamp_via, n = lamp_route(scene, a.T_cell_cam, a.arm_joints, a.lamp_joints, b.lamp_joints)
+    if not c.ok:
+        return None
+    then = plan_move(scene, arm, start, replace(a, lamp_joints=b.lamp_joints), end, replace(b, lamp_joints=None),
+                     retreats)
+    if not then.clear:
+        return None
+    at = [lamp_position(scene.pivot_m, *j) for j in (a.lamp_joints, *lamp_via, b.lamp_joints)]
+    return replace(then, clearance=_least([c, then.clearance], scene.padding_m), lamp_via=lamp_via,
+                   lamp_first=True, steps=then.steps + n,
+                   travel_m=then.travel_m + float(sum(np.linalg.norm(y - x) for x, y in pairwise(at))))
 
 
 def _through(scene: CollisionScene, poses: list[np.ndarray], q: np.ndarray,

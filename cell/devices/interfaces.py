@@ -172,11 +172,19 @@ class LampRig(ABC):
         _check_range(self.device, "radius", radius_m, self.rig.radius_range_m)
         return pan
 
-    def target(self, pan_rad: float, tilt_rad: float, radius_m: float) -> tuple[float, float, float]:
+    def target(self, pan_rad: float, tilt_rad: float, radius_m: float,
+               near_rad: float | None = None) -> tuple[float, float, float]:
         """The joints move(pan, tilt, radius) drives the axes to: the pan as the one in the rig's
-        range (+ 2 pi k); the lamp's route is checked to these (cell.run.motion). DeviceFault for
-        joints outside the ranges, as move."""
-        return float(self._in_range(pan_rad, tilt_rad, radius_m)), float(tilt_rad), float(radius_m)
+        range (+ 2 pi k), the one nearest `near_rad` where two are (the same lamp position at
+        -180 and 180 deg: commanded as the nearer, the pan does not sweep a turn); the lamp's
+        route is checked to these (cell.run.motion). DeviceFault for joints outside the ranges,
+        as move."""
+        pan = float(self._in_range(pan_rad, tilt_rad, radius_m))
+        if near_rad is not None:
+            lo, hi = self.rig.pan_range_rad
+            options = [p for p in pan + 2 * np.pi * np.array([0.0, -1.0, 1.0]) if lo - 1e-9 <= p <= hi + 1e-9]
+            pan = float(min(options, key=lambda p: abs(p - near_rad)))
+        return pan, float(tilt_rad), float(radius_m)
 
     def refusal(self, pan_rad: float, tilt_rad: float, radius_m: float) -> str | None:
         """Why move would refuse these joints (outside the rig's ranges), or None; moves nothing."""

@@ -3,7 +3,8 @@ calibration routines, starts from where the devices read back (the camera's pose
 joints, Arm.joint_angles; the lamp's joints, and the ones its axes will go to, LampRig.target),
 is checked along its path as the devices follow it (cell.collision.paths.plan_transition: the
 arm's moveL with via points around a collision, the lamp parked; then the lamp's route, via
-joints around a collision, the arm at the target) and is then driven through its via points.
+joints around a collision, the arm at the target; or, where that is not clear, the lamp first)
+and is then driven through its via points.
 A move no clear path serves is refused before anything moves: GoalNotReached with cause
 `collision` (exit 1), naming both bodies and where."""
 from __future__ import annotations
@@ -38,7 +39,7 @@ def check(task: Task, devices: Devices, T_cell_cam: np.ndarray | None = None,
         T_now, q = devices.arm.camera_pose(), devices.arm.joint_angles()
     with speaking_for(devices.lamp):
         pan, tilt, radius = devices.lamp.joints()
-        target = None if lamp_joints is None else devices.lamp.target(*lamp_joints)
+        target = None if lamp_joints is None else devices.lamp.target(*lamp_joints, near_rad=pan)
     if q is None:
         q = np.asarray(reaching_joints(task.frames, T_now) or ur5e.HOME_JOINTS, float)
     if not np.isfinite(radius):
@@ -67,37 +68,48 @@ def go(task: Task, devices: Devices, recorder: Recorder, T_cell_cam: np.ndarray 
        arrived: Callable[[], object] | None = None) -> Move:
     """Check the move (check; `checked`: the caller's check of it from where the devices stand,
     nothing moved since) and refuse it (refusal) unless clear; then drive it: the arm
-    through its via points to T_cell_cam, the lamp through its via joints to lamp_joints, each
-    via logged as read back (`move_via`, `move_lamp_via`). The last legs are the caller's to
+    through its via points to T_cell_cam, the lamp through its via joints to lamp_joints (the
+    lamp first where the move says so: Move.lamp_first), each via logged as read back
+    (`move_via`, `move_lamp_via`). The last legs are the caller's to
     log: `arrived()` is called when the arm is there, before the lamp moves. Returns the Move."""
     move = checked or check(task, devices, T_cell_cam, lamp_joints, to)
     if not move.clear:
         raise refusal(move)
+    if lamp_joints is not None:                 # the pan checked: of -180 and 180 deg, the nearer
+        with speaking_for(devices.lamp):
+            lamp_joints = devices.lamp.target(*lamp_joints, near_rad=devices.lamp.joints()[0])
     apart = (f"{' and '.join(move.clearance.bodies)} at least {1e3 * move.clearance.distance_m:.1f} mm apart"
              if np.isfinite(move.clearance.distance_m) else "nothing near")
-    for k, T in enumerate(move.via, 1):
-        with speaking_for(devices.arm):
-            devices.arm.move_camera(T)
-            position = devices.arm.camera_pose()[:3, 3]
-        recorder.step("move_via", f"via point {k} of {len(move.via)} on the way to {to}: camera at "
-                                  f"{np.round(position, 4).tolist()} m in the cell frame (the path collision-checked: "
-                                  f"{apart})", iteration=iteration, via=k, to=to, position_m=position)
-    if T_cell_cam is not None:
-        with speaking_for(devices.arm):
-            devices.arm.move_camera(T_cell_cam)
-        if arrived is not None:
-            arrived()
-    for k, joints in enumerate(move.lamp_via, 1):
-        with speaking_for(devices.lamp):
-            devices.lamp.move(*joints)
-            position = devices.lamp.lamp_pose()[0]
-        recorder.step("move_lamp_via", f"lamp via point {k} of {len(move.lamp_via)} on the way to {to}: lamp at "
-                                       f"{np.round(position, 4).tolist()} m in the cell frame (the route "
-                                       f"collision-checked: {apart})", iteration=iteration, via=k, to=to,
+
+    def via(step: str, what: str, k: int, n: int, position: np.ndarray) -> None:
+        recorder.step(step, f"{what} via point {k} of {n} on the way to {to}: at {np.round(position, 4).tolist()} m "
+                            f"in the cell frame (collision-checked: {apart})", iteration=iteration, via=k, to=to,
                       position_m=position)
-    if lamp_joints is not None:
-        with speaking_for(devices.lamp):
-            devices.lamp.move(*lamp_joints)
+
+    def arm() -> None:
+        for k, T in enumerate(move.via, 1):
+            with speaking_for(devices.arm):
+                devices.arm.move_camera(T)
+                position = devices.arm.camera_pose()[:3, 3]
+            via("move_via", "the camera's", k, len(move.via), position)
+        if T_cell_cam is not None:
+            with speaking_for(devices.arm):
+                devices.arm.move_camera(T_cell_cam)
+            if arrived is not None:
+                arrived()
+
+    def lamp() -> None:
+        for k, joints in enumerate(move.lamp_via, 1):
+            with speaking_for(devices.lamp):
+                devices.lamp.move(*joints)
+                position = devices.lamp.lamp_pose()[0]
+            via("move_lamp_via", "the lamp's", k, len(move.lamp_via), position)
+        if lamp_joints is not None:
+            with speaking_for(devices.lamp):
+                devices.lamp.move(*lamp_joints)
+
+    for part in ((lamp, arm) if move.lamp_first else (arm, lamp)):
+        part()
     return move
 
 
