@@ -513,7 +513,8 @@ def motion(K: np.ndarray, center: np.ndarray, T_cell_cam: np.ndarray, points: np
     for j in range(9):
         step = np.zeros(9)
         step[j] = 1e-2 * INFORMATION_UNITS[j]
-        out[:, :, j] = (_project(K, step, center, T_cell_cam, points) - _project(K, -step, center, T_cell_cam, points)) / 2e-2
+        out[:, :, j] = (_project(K, step, center, T_cell_cam, points)
+                        - _project(K, -step, center, T_cell_cam, points)) / 2e-2
     return out
 
 

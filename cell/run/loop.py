@@ -421,8 +421,10 @@ def step(ctx: RunContext, aim: Aim, k: int) -> Generator[Event, None, Aim | None
     stops (the plan's poses do not hold: nothing to correct), as does one not registered whose
     gray on the model's region is in band (no correction changes that, and it is never reported in
     band: registration.not_registered); every feature in its band ends the loop (returns None); a
-    correction that would stop at black pixels (the region off the part) localizes first, once; the
-    last iteration stops; else the correction after it (correct_after: the next Aim)."""
+    correction that would stop at black pixels (the region off the part) localizes first, once; one
+    that stops where the model follows a pose error and a feature is not registered stops with
+    cause `pose` (the estimate does not hold: the part is not where it puts it, whatever the gray
+    then says); the last iteration stops; else the correction after it (correct_after: the next Aim)."""
     ctx = replace(ctx, devices=localization.corrected(ctx.devices, aim.pose_error))
     if not aim.moved:
         motion.move_to(aim.features[0].task, ctx.devices, aim.shot, ctx.recorder, k)
@@ -452,6 +454,15 @@ def step(ctx: RunContext, aim: Aim, k: int) -> Generator[Event, None, Aim | None
         aim = yield from locate_part(ctx, aim, k, capture)      # off the part: where is it?
         if not aim.moved:
             return aim
+    if aim.pose_error is not None and not rebalancing(aim) and not all(m.iteration.registration["trusted"]
+                                                                       for m in measured):
+        c = correction(aim, measured)
+        if c.action == "stop":          # the model followed an estimate that does not hold
+            error = aim.pose_error
+            why = (f"where the localization puts the part ({localization.describe(error, error.views)}) the "
+                   f"feature is not found: {c.reason}")
+            yield Corrected(k, {"action": "stop", "cause": "pose", "reason": why})
+            raise GoalNotReached(why, "pose")
     if k == ctx.max_iterations:
         raise GoalNotReached(not_in_band(aim, measured, k), "iterations")
     return (yield from correct_after(ctx, aim, k, measured))
