@@ -59,12 +59,12 @@ sys.exit(main(sys.argv[1:]))
 
 
 @contextmanager
-def hw_cell(tmp_path, source=HINGE, more=None):
-    """The UR emulator process and the servo bus, and a variant of the task `source` (the hinge)
-    wired to them, with `more` settings ({dotted.key: value})."""
+def hw_cell(tmp_path, source=HINGE, more=None, lifetime_s=120):
+    """The UR emulator process (ending itself after lifetime_s) and the servo bus, and a variant
+    of the task `source` (the hinge) wired to them, with `more` settings ({dotted.key: value})."""
     host = free_host()
     log = tmp_path / "ur_controller.log"
-    emulator = start_emulator(host, (), 120, log)
+    emulator = start_emulator(host, (), lifetime_s, log)
     try:
         with DxlEmulator(ids=(1, 2), speedup=10) as servos:
             task = variant(tmp_path, source, {**SETTINGS, "cell.arm.host": host, "cell.pan_tilt.port": servos.port,
@@ -176,6 +176,42 @@ def test_the_ring_task_drives_the_lighting_controller_emulator_on_the_hw_path(tm
         assert float(told[-2].split(",")[1]) == pytest.approx(100 * drive, abs=0.05)
         assert told[-1] == f"RS{channel},0"                                 # then off at the end
     assert final == {1: 0.0, 2: 0.0, 3: 0.0, 4: 0.0}
+
+
+@pytest.mark.long                       # plans 10 candidate shots, then 3 shots of 1-2 captures: minutes
+def test_the_bracket_with_two_bars_converges_on_the_hw_path_with_each_shot_s_drives(tmp_path):
+    """tasks/bracket-bars.yaml (two fixed bars and the spot on an RT420's channels, viewpoints
+    planned) on the real adapters: every feature converges; before every capture of a shot each
+    channel was told (`RSc,s`) and read back at that shot's planned drive, the dark frame with
+    every channel off; the arm moved once per shot, and at the end every channel is off."""
+    with GardasoftEmulator(channels=4) as lights, hw_cell(tmp_path, ROOT / "tasks/bracket-bars.yaml", {
+            "cell.lighting.host": lights.address[0], "cell.lighting.port": lights.address[1],
+            "cell.lighting.channels": 4, "cell.arm.move_timeout_s": 30.0}, lifetime_s=900) as cell:
+        # the moves between planned viewpoints are up to 2.2 m of tool path (9 s at 0.25 m/s)
+        hw = finish(start(cell.task, tmp_path / "hw"), timeout_s=900)
+        received = [line.decode().strip() for line in lights.received]
+        final = dict(lights.controller.setting_pct)
+        status = dashboard(cell.host, "emulator status")
+    assert hw.code == 0, hw.stderr
+    assert "Traceback" not in hw.stderr
+    assert all(f["converged"] for f in hw.report["features"]) and len(hw.report["features"]) == 5
+    shots = hw.report["plan"]["shots"]
+    assert f"moves {len(shots)} " in status and "moving False" in status
+    sets = [line for line in hw.log if line["step"] == "set_drives"]
+    assert sets[0]["drives"] == {"1": 0.0, "2": 0.0, "3": 0.0}                    # the dark frame
+    told = {}                                          # channel -> every level the controller was told
+    for line in received:
+        if line.startswith("RS"):
+            channel, pct = line[2:].split(",")
+            told.setdefault(int(channel), []).append(float(pct))
+    firsts = [it for it in hw.report["iterations"] if it["iteration"] == 1]
+    assert {it["shot"] for it in firsts} == {shot["shot"] for shot in hw.report["shots"]}
+    for it in firsts:                                   # each shot's first capture at its plan's drives
+        planned = {light["channel"]: light["drive"] for light in shots[it["shot"]]["lights"]}
+        assert {int(c): level for c, level in it["drives"].items()} == pytest.approx(planned, abs=0.0005)
+        for channel, drive in planned.items():
+            assert any(abs(pct - 100 * drive) <= 0.05 for pct in told[channel])
+    assert all(levels[-1] == 0.0 for levels in told.values()) and final == {1: 0.0, 2: 0.0, 3: 0.0, 4: 0.0}
 
 
 def test_cell_hw_check_reads_the_hw_cell_with_its_simulated_camera(tmp_path):

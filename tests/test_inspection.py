@@ -347,3 +347,39 @@ def test_a_part_offset_found_in_one_shot_is_applied_to_the_next_before_it_moves(
     assert np.array(moved["position_m"]) == pytest.approx(planned + [0.008, 0.006, 0.0], abs=3e-3)
     for it in shots[second].report["iterations"]:
         assert it["registration"]["offset_m"] < 1e-3
+
+
+@pytest.mark.long                       # one shot, 2 + 2 captures: 35 s at a load of 9
+def test_a_shot_of_two_patches_with_bands_apart_is_rebalanced_on_basis_captures(tmp_path):
+    """tests/tasks/features/plate_bar.yaml (one shot: the left patch asks 60-100, the right
+    150-210, nothing in common) with the right bar giving 70 % of its model's light: the first
+    capture leaves the right patch below its band, one basis capture per channel on measures
+    each channel's share (the bar's 0.7, the spot's 1), the drives are re-solved with each sample
+    in its own patch's band, and the second capture has both patches in their bands, each read
+    here on its own pixels."""
+    from simcell import variant
+    path = variant(tmp_path, ROOT / "tests/tasks/features/plate_bar.yaml",
+                   {"sim.truth.channel_power_scale": {2: 0.7}})
+    assert cli.main(["run", str(path), "--out", str(tmp_path / "run"), "--yes"]) == 0
+    run = read(tmp_path / "run")
+    shot = json.loads((tmp_path / "run" / "shot-0" / "report.json").read_text())
+    first = {it["feature"]: it for it in shot["iterations"] if it["iteration"] == 1}
+    second = {it["feature"]: it for it in shot["iterations"] if it["iteration"] == 2}
+    assert set(first) == set(second) == {"left", "right"}
+    assert first["right"]["measured_gray"]["min"] < 150 and not first["right"]["in_band"]
+    correction = first["left"]["correction"]
+    assert correction == first["right"]["correction"] and correction["action"] == "drives"
+    assert correction["channel_scale"]["2"] == pytest.approx(0.7, rel=0.03)
+    assert correction["channel_scale"]["3"] == pytest.approx(1.0, rel=0.03)
+    (basis,) = [line for line in run.log if line["step"] == "basis"]
+    assert basis["channel_scale"] == correction["channel_scale"]
+    assert second["left"]["drives"] == pytest.approx({k: float(v) for k, v in correction["drives"].items()}, abs=1e-3)
+    task = load_task(path)
+    image = cv2.imread(str(tmp_path / "run" / "shot-0" / second["left"]["capture"]), cv2.IMREAD_UNCHANGED)
+    T = np.array(run.report["plan"]["shots"][0]["camera"]["T_cell_cam"])
+    for f, (low, high) in ((0, (60, 100)), (1, (150, 210))):
+        it = second[task.features[f].name]
+        assert it["in_band"] and low <= it["measured_gray"]["min"] <= it["measured_gray"]["max"] <= high
+        pixels = image[disk_pixels(task, f, T, image.shape, 0.8)]
+        assert len(pixels) > 1000 and low <= pixels.min() and pixels.max() <= high
+    assert all(f["converged"] and f["iterations"] == 2 for f in run.report["features"])

@@ -14,10 +14,11 @@ its wiring, the controller), said as such: its own cause, not the material's.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from cell.planning import drives as program
 from cell.planning.plan import LightSetting
@@ -102,6 +103,16 @@ class Basis:
                          for share, r, kind in self.failing())
 
 
+def joined(lights: Sequence[Sequence[LightSetting]]) -> list[LightSetting]:
+    """The lights of one shot as several features' plans each hold them (the same lights in the
+    same order, each with its gray on that feature's samples) as one list over all their samples,
+    concatenated in the features' order."""
+    first = lights[0]
+    if any([x.name for x in other] != [x.name for x in first] for other in lights[1:]):
+        raise ValueError("the features' plans hold different lights: not one shot's")
+    return [replace(light, gray=np.concatenate([other[i].gray for other in lights])) for i, light in enumerate(first)]
+
+
 def groups(lights: Sequence[LightSetting], drives: dict[int, float]) -> list[tuple[int | None, list[LightSetting]]]:
     """The basis captures to take: one per channel driven above 0, and one for the lights on no
     channel that light the feature (always on: every channel off)."""
@@ -129,17 +140,19 @@ def measure(lights: Sequence[LightSetting], drives: dict[int, float], gain_ratio
     return shares
 
 
-def resolve(shares: Sequence[Share], gain: float, band: tuple[float, float], black: float, kappa_open: float,
+def resolve(shares: Sequence[Share], gain: float, band: tuple[ArrayLike, ArrayLike], black: float, kappa_open: float,
             shutter_range_s: tuple[float, float], f_number_range: tuple[float, float],
             channel_ranges: dict[int, tuple[float, float]], switched: dict[int, bool],
             drive_error: float) -> Basis:
     """The drive program (cell.planning.drives.solve_drives) on the measured shares: each share's
     gray per exposure at full drive u = s / (w t / kappa^2) over the samples every capture saw,
-    its channel's drive range (the lights on no channel fixed at 1)."""
+    its channel's drive range (the lights on no channel fixed at 1); the band (low, high) a number
+    each or one per sample (a shot of several features: each sample its own feature's band)."""
     seen = np.all([np.isfinite(s.measured) for s in shares], axis=0)
+    low, high = (np.broadcast_to(np.asarray(end, float), seen.shape)[seen] for end in band)
     unit = np.array([s.unit(gain)[seen] for s in shares])
     ranges = [(1.0, 1.0) if s.channel is None else channel_ranges[s.channel] for s in shares]
     on_off = [False if s.channel is None else switched[s.channel] for s in shares]
-    solved = program.solve_drives(unit, band, black, kappa_open, shutter_range_s, f_number_range, ranges, on_off,
+    solved = program.solve_drives(unit, (low, high), black, kappa_open, shutter_range_s, f_number_range, ranges, on_off,
                                   drive_error)
     return Basis(tuple(shares), solved)

@@ -23,7 +23,9 @@ observable, so the scale also absorbs an error in c.
 
 Several features in one capture share one exposure (`shared_correction`): each is judged alone,
 then their measurements joined against the bands' intersection; what needs more than an
-exposure stops there, a shot of several features being neither refitted nor re-planned.
+exposure stops there, a shot of several features being neither refitted nor re-planned. (A shot
+lit by lights on the controller has its drives re-solved on basis captures first, each feature's
+samples in its own band: cell.run.loop.rebalance, cell.run.channels.)
 """
 from __future__ import annotations
 

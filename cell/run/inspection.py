@@ -61,7 +61,8 @@ def feature_plan(plan: Plan, s: int, f: int) -> Plan:
     """The one-shot Plan of feature f at plan.shots[s], as the one-feature loop works on it: the
     shot's own candidate plan when it was planned for f; else the plan whose samples coverage
     judged f on (f's first candidate), its camera moved to the shot's, with the gray coverage
-    predicts there (cell.planning.coverage.judge) and its verdict."""
+    predicts there (cell.planning.coverage.judge), each light's share of it (where the task has
+    lights: the basis captures' prediction on f's samples, cell.run.channels) and its verdict."""
     shot, k = plan.shots[s], cover_of(plan)["chosen"][s]
     owners, name = candidate_features(plan), plan.features[f].name
     if owners[k] == f:
@@ -71,7 +72,8 @@ def feature_plan(plan: Plan, s: int, f: int) -> Plan:
     scene = replace(lend.planned_scene, T_cell_cam=shot.T_cell_cam)
     if len(covered.gray) != len(scene.points):
         raise ValueError(f"feature {name}: {len(covered.gray)} predicted grays for {len(scene.points)} samples")
-    own = replace(shot, gray=covered.gray, requirements=covered.requirements, covers=())
+    own = replace(shot, gray=covered.gray, requirements=covered.requirements, covers=(),
+                  lights=covered.lights or shot.lights)
     return replace(lend, feasible=covered.covered, shots=(own,), scene=scene, verification=covered.verification)
 
 

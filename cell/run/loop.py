@@ -279,7 +279,8 @@ class Aim:
     0..1}, the plan's: set before every capture), the albedo scale of the plan, whether the cell
     stands at the plan's poses (not after a re-plan), whether the material was refitted and the
     drives re-solved on basis captures (each once in a loop), whether the part was localized
-    (once in a loop) and the pose error the model follows (the arm's hand-eye corrected by it)."""
+    (once in a loop) and the pose error the model follows (the arm's hand-eye corrected by it),
+    and each channel's light measured over the model's by the basis captures (channel_scale)."""
 
     features: tuple[LoopFeature, ...]
     black: BlackLevel
@@ -292,11 +293,19 @@ class Aim:
     balanced: bool = False
     located: bool = False
     pose_error: localization.PoseError | None = None
+    channel_scale: dict[int, float] = field(default_factory=dict)
 
     @property
     def shot(self) -> Shot:
         """The shot the features' plans share."""
         return self.features[0].model.plan.shot
+
+    def rendered(self, drives: dict[int, float]) -> dict[int, float] | None:
+        """The drive levels the model's images are rendered at (registration) for a capture at
+        read-back `drives`: each channel's times its measured channel_scale, the light that
+        channel really gives (a channel 30 % weaker than modelled changes the feature's shading,
+        not only its level); None without channels (every light on)."""
+        return {c: level * self.channel_scale.get(c, 1.0) for c, level in drives.items()} or None
 
     def label(self, feature: LoopFeature) -> str | None:
         """The feature's name in a capture of several (its log lines and picture named by it);
@@ -312,17 +321,18 @@ class Measured(NamedTuple):
     predicted: np.ndarray
 
 
-def locate(ctx: RunContext, feature: LoopFeature, k: int, capture: Capture,
-           name: str | None) -> tuple[Registration, tuple[float, float]]:
+def locate(ctx: RunContext, feature: LoopFeature, k: int, capture: Capture, name: str | None,
+           drives: dict[int, float] | None) -> tuple[Registration, tuple[float, float]]:
     """Registration (cell.run.registration) of the feature in capture k at the read-back camera
-    and lamp poses and light drives, logged (as `name`'s, when given); returns (Registration, the shift the
-    measurement takes: the found one when trusted and within registration_limit [px], else none)."""
+    and lamp poses and the light drives the model renders (Aim.rendered), logged (as `name`'s,
+    when given); returns (Registration, the shift the measurement takes: the found one when
+    trusted and within registration_limit [px], else none)."""
     devices, task, scene = ctx.devices, feature.task, feature.model.plan.planned_scene
     with speaking_for(devices.lamp):
         lamp_pose = devices.lamp.lamp_pose()
     row, col, inside = measurement.sample_pixels(task, capture.T_cell_cam, scene.points)
     found = registration.locate(capture.image, task, scene, capture.T_cell_cam, lamp_pose, row[inside], col[inside],
-                                saturation_level(devices.camera.bit_depth), capture.drives or None)
+                                saturation_level(devices.camera.bit_depth), drives)
     ctx.recorder.step("register", f"{name}: " * bool(name) + found.describe(), iteration=k,
                       **({"feature": name} if name else {}), **found.to_json())
     limit = registration_limit(task, feature.model.plan.shot)
@@ -340,7 +350,7 @@ def measure_capture(ctx: RunContext, aim: Aim, feature: LoopFeature, k: int, cap
     f_number = capture.f_number
     bit_depth = ctx.devices.camera.bit_depth
     saturation = saturation_level(bit_depth)
-    found, shift = locate(ctx, feature, k, capture, name)
+    found, shift = locate(ctx, feature, k, capture, name, aim.rendered(capture.drives))
     seen = measure_defects(capture.image, task, model.plan.planned_scene, capture.T_cell_cam, shift, aim.black.value,
                            {d.name: d.predicted_cnr for d in model.plan.shot.defects})
     marked = on_defects(capture.image, task, model.plan.planned_scene, capture.T_cell_cam, shift, seen)
@@ -611,7 +621,7 @@ def correct_after(ctx: RunContext, aim: Aim, k: int, measured: Sequence[Measured
     GoalNotReached). A shot of several features is not refitted or re-planned
     (control.shared_correction stops instead)."""
     if rebalancing(aim):
-        return (yield from rebalance(ctx, aim, k, measured[0]))
+        return (yield from rebalance(ctx, aim, k, measured))
     c = correction(aim, measured)
     if c.action == "stop" and c.cause == "spread" and len(aim.features) == 1 and not aim.refitted:
         return (yield from refit_and_replan(ctx, aim, k, measured[0], c))
@@ -637,35 +647,44 @@ def correct_after(ctx: RunContext, aim: Aim, k: int, measured: Sequence[Measured
 
 def rebalancing(aim: Aim) -> bool:
     """Whether the correction after a capture out of band re-solves the light channels' drives
-    first (rebalance): one feature lit by several lights, not yet balanced."""
-    return len(aim.features) == 1 and bool(aim.features[0].task.lights) and bool(aim.drives) and not aim.balanced
+    first (rebalance): a shot lit by several lights on the controller, of one feature or of
+    several, not yet balanced."""
+    return bool(aim.features[0].task.lights) and bool(aim.drives) and not aim.balanced
 
 
-def rebalance(ctx: RunContext, aim: Aim, k: int, measured: Measured) -> Generator[Event, None, Aim]:
-    """After capture k of a feature lit by several lights, out of band: one basis capture per
+def rebalance(ctx: RunContext, aim: Aim, k: int, measured: Sequence[Measured]) -> Generator[Event, None, Aim]:
+    """After capture k of a shot lit by several lights, out of band: one basis capture per
     channel on (cell.run.channels: each at its drive, the others off, at capture k's exposure),
-    read where capture k found the feature, and the drives, shutter and f-number re-solved on the
-    measured shares (Corrected, action `drives`; the Model's prediction from then on is the
-    measured shares' at the new drives). A channel far below the others against the model is
-    named; when no drives put the feature in band, a channel fault is the cause (`channel`), else
-    the band is infeasible as measured (`infeasible`)."""
-    (feature,), task, shot = aim.features, aim.features[0].task, aim.shot
-    e, m = shot.exposure, measured.measurement
+    read where capture k found each feature, and the drives, shutter and f-number re-solved on the
+    measured shares over every feature's samples, each sample against its own feature's band (as
+    the planner's joint program, cell.planning.joint: bands with nothing in common are no
+    obstacle) and f-numbers no wider than every feature's depth of field allows (Corrected,
+    action `drives`; each feature's Model predicts the measured shares at the new drives from then
+    on, and the model's images for registration are rendered with each channel's measured scale,
+    Aim.channel_scale). A channel far below the others against the model is named; when no drives put every
+    feature in band, a channel fault is the cause (`channel`), else the band is infeasible as
+    measured (`infeasible`)."""
+    task, e = aim.features[0].task, aim.shot.exposure
     gain = aim.shutter_s / aim.f_number**2
+    counts = [len(m.predicted) for m in measured]
 
     def capture_with(levels: dict[int, float], name: str) -> np.ndarray:
         capture = acquire(ctx.devices, ctx.recorder, k, aim.shutter_s, aim.f_number, e.focus_m,
                           name=f"basis-{k}-{name}", drives=levels)
-        return measurement.surface_at_samples(capture.image, m)
+        return np.concatenate([measurement.surface_at_samples(capture.image, m.measurement) for m in measured])
 
-    shares = channels.measure(shot.lights, aim.drives, gain / (e.shutter_s / e.f_number**2), aim.black.value,
+    lights = channels.joined([f.model.plan.shot.lights for f in aim.features])
+    shares = channels.measure(lights, aim.drives, gain / (e.shutter_s / e.f_number**2), aim.black.value,
                               capture_with)
+    bands = [evaluate.planning_band(f.task) for f in aim.features]
+    band = tuple(np.repeat([b[end] for b in bands], counts) for end in (0, 1))
     settings = {c.number: c for c in [task.lamp.channel, *(light.channel for light in task.lights)]
                 if c.number is not None}
-    basis = channels.resolve(shares, gain, evaluate.planning_band(task), aim.black.value,
-                             feature.limits.f_number_range[0], task.camera.shutter_range_s,
+    basis = channels.resolve(shares, gain, (band[0], band[1]), aim.black.value,
+                             max(f.limits.f_number_range[0] for f in aim.features), task.camera.shutter_range_s,
                              task.camera.lens.f_number_range, {n: c.drive_range for n, c in settings.items()},
-                             {n: c.switched for n, c in settings.items()}, task.requirements.drive_tolerance)
+                             {n: c.switched for n, c in settings.items()},
+                             max(f.task.requirements.drive_tolerance for f in aim.features))
     ctx.recorder.step("basis", basis.describe(), iteration=k, **basis.to_json())
     fault = basis.fault()
     if not basis.solved.feasible:
@@ -682,16 +701,21 @@ def rebalance(ctx: RunContext, aim: Aim, k: int, measured: Measured) -> Generato
         f"channel {c} at {100 * w:.1f} %" for c, w in sorted(drives.items())) +
         f", {1e3 * solved.shutter_s:.3g} ms, f/{solved.f_number:.1f}", iteration=k, **doc)
     yield Corrected(k, doc)
-    model = measured_model(feature, shares, gain, drives, solved.shutter_s, solved.f_number)
-    return replace(aim, features=(replace(feature, model=model),), drives=drives, shutter_s=solved.shutter_s,
-                   f_number=solved.f_number, balanced=True)
+    ends = np.cumsum([0, *counts])
+    features = tuple(replace(f, model=measured_model(f, shares, gain, drives, solved.shutter_s, solved.f_number,
+                                                     slice(a, b)))
+                     for f, a, b in zip(aim.features, ends[:-1], ends[1:]))
+    scale = {s.channel: s.scale for s in shares if s.channel is not None and np.isfinite(s.scale)}
+    return replace(aim, features=features, drives=drives, shutter_s=solved.shutter_s, f_number=solved.f_number,
+                   balanced=True, channel_scale=scale)
 
 
 def measured_model(feature: LoopFeature, shares: Sequence[channels.Share], gain: float, drives: dict[int, float],
-                   shutter_s: float, f_number: float) -> Model:
+                   shutter_s: float, f_number: float, samples: slice = slice(None)) -> Model:
     """The Model of the measured shares at new drives and exposure: its plan's shot predicts each
-    light's share (measured at capture gain t / kappa^2, scaled to its new drive and exposure) and
-    their sum over the task's black level, so that Model.predicted scales it as the plan's."""
+    light's share (measured at capture gain t / kappa^2 on the feature's `samples` of the shares'
+    samples, scaled to its new drive and exposure) and their sum over the task's black level, so
+    that Model.predicted scales it as the plan's."""
     plan, task = feature.model.plan, feature.task
     shot = plan.shot
     new_gain = shutter_s / f_number**2
@@ -703,11 +727,11 @@ def measured_model(feature: LoopFeature, shares: Sequence[channels.Share], gain:
             drive = 0.0 if light.channel is not None else light.drive
             fixed = by_channel.get(None)
             gray = (np.zeros_like(light.gray) if light.channel is not None or fixed is None
-                    else fixed.unit(gain) * new_gain / max(len(fixed.names), 1))
+                    else fixed.unit(gain)[samples] * new_gain / max(len(fixed.names), 1))
             lights.append(replace(light, drive=drive, gray=gray))
         else:
-            lights.append(replace(light, drive=drives[light.channel], gray=share.unit(gain) * drives[light.channel]
-                                  * new_gain))
+            lights.append(replace(light, drive=drives[light.channel],
+                                  gray=share.unit(gain)[samples] * drives[light.channel] * new_gain))
     signal = sum((light.gray for light in lights), np.zeros(len(shot.gray)))
     exposure = replace(shot.exposure, shutter_s=shutter_s, f_number=f_number)
     new_shot = replace(shot, exposure=exposure, lights=tuple(lights), gray=evaluate.black_level(task) + signal)
