@@ -274,6 +274,48 @@ def test_the_planner_s_cnr_is_the_numpy_reference_s_on_random_lamps_defects_and_
     assert ratio[0, 0, 0] == pytest.approx(expected, rel=1e-2, abs=1e-9)
 
 
+def test_the_region_map_s_signed_cnr_is_the_reference_s_at_each_lamp_direction(hinge_problem):
+    """regions.png's defect panels (one_shot.defect_map, all directions in one bulk evaluation):
+    at lamp directions from grazing to overhead, each defect's value is the CNR worked from
+    cell.physics.reference's grays at its parts' places (parts_by_hand) where it lies, with the
+    lamp there at the shot's distance and exposure (at_exposure, aimed at the pivot): the worst
+    over the scratch's orientations within 1 %, its sign that of G_defect - G_good of the part
+    and orientation showing most (+ bright, - dark); hidden directions NaN; a map with the lamp
+    both low and high shows the defect both bright and dark."""
+    from cell.planning import one_shot
+    task, p = hinge_problem
+    _, c = problem_at(task)
+    signed = one_shot.defect_map(p, c, p.maps)
+    assert signed.shape == (2,) + p.maps.visible.shape
+    assert np.all(np.isnan(signed[:, ~p.maps.visible])) and np.all(np.isfinite(signed[:, p.maps.visible]))
+    centre, distance = p.scene.center, np.linalg.norm(c.position[0] - p.scene.center)
+    el = np.degrees(p.maps.grid.elevation)
+    rng = np.random.default_rng(4)
+    K, dark, full = defects.noise_figures(p)
+    checked = 0
+    for lo, hi in ((2, 20), (20, 45), (45, 70), (70, 90)):
+        rows, cols = np.nonzero(p.maps.visible & ((el >= lo) & (el < hi))[:, None])
+        for k in rng.choice(len(rows), 2, replace=False):
+            e, a = rows[k], cols[k]
+            position = centre + distance * p.maps.grid.directions(p.scene.frame)[e, a]
+            here = evaluate.at_exposure(p, position, c.shutter[0], c.kappa[0])
+            for j, d in enumerate(task.feature.defects):
+                at = defects.place_of(p, d)
+                ref_gray, ref_good = reference_grays(task, p, here, d, at, defects.orientations(d))
+                lit = ~defects.cast_shadows(p, here)[0, at]
+                ref_gray, ref_good = (g * lit + p.black_level * ~lit for g in (ref_gray, ref_good))
+                ratio = contrast.cnr(ref_good, ref_gray, p.black_level, K, dark, full)      # (O, W)
+                o, w = np.unravel_index(np.argmax(ratio), ratio.shape)
+                assert abs(signed[j, e, a]) == pytest.approx(ratio.max(axis=1).min(), rel=1e-2, abs=1e-9)
+                shows = min(ref_gray[o, w], full) - min(ref_good[o, w], full)     # saturated: no contrast
+                if signed[j, e, a] != 0.0:
+                    assert np.sign(signed[j, e, a]) == np.sign(shows)
+                checked += 1
+    assert checked == 16
+    for j in range(2):
+        assert (signed[j] > 1.0).any() and (signed[j] < -1.0).any()
+
+
 def test_the_worst_orientation_is_the_brute_force_grid_s(tmp_path):
     """The predicted CNR (every 5 deg, refined where it could be lower between them) against every
     0.05 deg over 180 deg at every sample, then every 0.0005 deg around its minimum: within 0.5 %,

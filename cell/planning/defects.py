@@ -36,6 +36,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from cell.core import geometry
 from cell.devices import rig
 from cell.physics import contrast, sensor as sensor_model
 from cell.planning.plan import DefectCnr
@@ -378,6 +379,45 @@ def contrast_rows(problem: Problem, position: np.ndarray, unit_gray: np.ndarray)
         sign.append(np.where(diff[0, rows, part] < 0.0, -1.0, 1.0))
         wanted.append(np.full(len(rows), d.min_cnr))
     return ContrastRows(np.hstack(difference), np.hstack(total), np.concatenate(sign), np.concatenate(wanted), K, dark)
+
+
+def place_of(problem: Problem, defect: Defect) -> int:
+    """The Problem's sample nearest where the defect lies: its position_m (part frame), else the
+    feature's centre (where the simulator renders it)."""
+    scene = problem.scene
+    at = scene.center if defect.position_m is None else geometry.apply(problem.task.frames.T_cell_part,
+                                                                        np.asarray(defect.position_m, float))
+    return int(np.argmin(np.linalg.norm(scene.points - at, axis=1)))
+
+
+def direction_map(problem: Problem, candidate: Candidates, directions: np.ndarray) -> np.ndarray:
+    """(D, V) each defect's signed CNR with the spot toward each of `directions` (V, 3) (cell-frame
+    unit vectors from the feature's centre: a map's cells) at the candidate's distance from the
+    centre, aimed at the rig's pivot, at the candidate's (Candidates of one) exposure and drives,
+    where the defect lies (place_of): its CNR (cnr_field's, the best part's) at its worst grid
+    orientation (what the plan certifies), signed as G_defect - G_good at the orientation where it
+    shows best (+: the defect shows bright on the surface, as dark-field light shows a groove's
+    wall; -: dark, as under bright-field light; a scratch at its worst orientation, its walls
+    turned across the light, is a little darker under either). All directions in one bulk
+    evaluation (the defects' kernel inputs at one sample, V candidates)."""
+    from cell.planning.evaluate import Candidates, lit_by_all, unit_gray
+    d = np.asarray(directions, float).reshape(-1, 3)
+    centre, pivot = problem.scene.center, problem.task.lamp.rig.pivot_m
+    positions = centre + float(np.linalg.norm(candidate.position[0] - centre)) * d
+    drive = np.tile(candidate.drive[:1], (len(d), 1))
+    u, shadowed, off_axis, dominant = lit_by_all(problem, unit_gray(problem, positions, rig.lamp_aim(pivot, positions)),
+                                                 drive)
+    gain = candidate.shutter[0] / candidate.kappa[0] ** 2
+    c = Candidates(positions, problem.black_level + gain * u, np.zeros((0,) + u.shape), shadowed, off_axis, dominant,
+                   np.full(len(d), candidate.shutter[0]), np.full(len(d), candidate.kappa[0]),
+                   np.full(len(d), candidate.t_need[0]), drive)
+    out = []
+    for defect in problem.task.feature.defects:
+        ratio, gray, good, _ = cnr_field(problem, c, defect, np.array([place_of(problem, defect)]))
+        best = np.argmax(ratio[:, 0], axis=-1)[:, None]
+        darker = np.take_along_axis(gray[:, 0] - good[:, 0], best, axis=-1)[:, 0] < 0.0
+        out.append(np.where(darker, -1.0, 1.0) * ratio[:, 0].min(axis=-1))
+    return np.array(out).reshape(len(problem.task.feature.defects), len(d))
 
 
 def worse_of(a: tuple[DefectCnr, ...], b: tuple[DefectCnr, ...]) -> tuple[DefectCnr, ...]:

@@ -197,6 +197,8 @@ def search(task: Task, settings: PlannerSettings, albedo_scale: float, extra: np
     timing["refine"] = time.perf_counter() - t
     search = Search(candidates=len(pan), starts=len(poses), refinements=tuple(r for _, r in refined))
     shot = make_shot(problem, stack[best], final.pick(best), {k: v[best:best + 1] for k, v in final_values.items()})
+    if task.feature.defects:
+        maps = replace(maps, defect_cnr=defect_map(problem, final.pick(best), maps))
     verdict = requirements.verdict(shot.requirements, requirements.failing_everywhere(global_values))
     binding = next(r for r in shot.requirements if r.name == verdict.binding)
     return Plan(task_name=task.name, feasible=verdict.feasible, binding=verdict.binding, miss=verdict.miss,
@@ -204,6 +206,14 @@ def search(task: Task, settings: PlannerSettings, albedo_scale: float, extra: np
                 shots=(shot,),
                 maps=maps, settings=settings, scene=scene, search=search, timing_s=timing,
                 notes=notes(problem, shot)), problem
+
+
+def defect_map(problem: evaluate.Problem, candidate: evaluate.Candidates, maps: Maps) -> np.ndarray:
+    """(D, E, A) Maps.defect_cnr: defects.direction_map over the map's visible cells (NaN elsewhere)."""
+    out = np.full((len(problem.task.feature.defects),) + maps.visible.shape, np.nan)
+    out[:, maps.visible] = defects.direction_map(problem, candidate,
+                                                 maps.grid.directions(problem.scene.frame)[maps.visible])
+    return out
 
 
 BAND = ("gray_min", "gray_max", "lamp_tolerance")     # what the drive program's verdict explains

@@ -61,6 +61,10 @@ class Maps:
     candidate_pan: np.ndarray    # (C,) global candidates [rad]
     candidate_tilt: np.ndarray
     candidate_objective: np.ndarray
+    # (D, E, A) each of the feature's defects' signed CNR with the spot in that direction at the
+    # shot's distance, exposure and drives (defects.direction_map; NaN where not visible; D = 0
+    # without defects)
+    defect_cnr: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 0)))
 
 
 @dataclass(frozen=True)

@@ -178,8 +178,9 @@ def write_plan_pictures(plan: Plan, task: Task, scene: Scene, out_dir: PathLike)
     _axes(ax, f"{plan.task_name}: BRDF mapped on the visibility map")
     paths.append(out_dir / "visibility_brdf.png")
 
-    fig2 = Figure(figsize=(9, 4.8))
-    ax = fig2.subplots()
+    shown_defects = task.feature.defects if len(m.defect_cnr) else ()
+    fig2 = Figure(figsize=(9 * (1 + len(shown_defects)), 4.8))
+    ax, *defect_axes = np.atleast_1d(fig2.subplots(1, 1 + len(shown_defects)))
     seg = np.where(m.visible, m.dominant, brdf.OCCLUDED).astype(float)
     cmap = ListedColormap(["black", "tab:blue", "tab:orange", "tab:red"])
     ax.imshow(seg, origin="lower", extent=extent, aspect="auto", cmap=cmap, vmin=-1.5, vmax=2.5,
@@ -190,6 +191,9 @@ def write_plan_pictures(plan: Plan, task: Task, scene: Scene, out_dir: PathLike)
         ax.plot([], [], "s", color=color, label=name)
     _mark(ax, plan, scene)
     _axes(ax, "segmented region map (white line: wanted region)")
+    for axd, defect, signed in zip(defect_axes, shown_defects, m.defect_cnr):
+        _defect_map(fig2, axd, defect, signed, extent, np.degrees(m.grid.azimuth), np.degrees(m.grid.elevation))
+        _mark(axd, plan, scene)
     paths.append(out_dir / "regions.png")
 
     fig3 = Figure(figsize=(13, 4.8))
@@ -215,12 +219,29 @@ def write_plan_pictures(plan: Plan, task: Task, scene: Scene, out_dir: PathLike)
     ax2.legend(loc="lower right", fontsize=8)
     paths.append(out_dir / "cost.png")
 
-    for f in (fig, fig2):
-        f.subplots_adjust(**MARGINS)
+    fig.subplots_adjust(**MARGINS)
+    fig2.subplots_adjust(**({**MARGINS, "left": 0.05, "right": 0.99, "top": 0.88, "wspace": 0.15} if shown_defects else MARGINS))
     fig3.subplots_adjust(**{**MARGINS, "left": 0.06, "wspace": 0.11})
     for f, p in zip((fig, fig2, fig3), paths):
         f.savefig(p, dpi=90, pil_kwargs=PNG)
     return paths
+
+
+def _defect_map(fig, ax, defect, signed, extent, azimuth_deg, elevation_deg):
+    """A defect's panel of regions.png: its signed CNR per lamp direction (Maps.defect_cnr; red:
+    brighter than the surface, as dark-field light shows it; blue: darker, as bright-field light
+    does; the colour's depth the worst CNR over its orientations, up to 3 min_cnr), its min_cnr
+    outlined (black), hidden directions dark gray."""
+    ax.set_facecolor("0.25")
+    top = 3.0 * defect.min_cnr
+    im = ax.imshow(np.ma.masked_invalid(signed), origin="lower", extent=extent, aspect="auto", cmap="RdBu_r",
+                   vmin=-top, vmax=top, interpolation="nearest")
+    fig.colorbar(im, ax=ax, label="CNR: + the defect brighter than the surface, - darker")
+    if np.nanmax(np.abs(signed), initial=0.0) >= defect.min_cnr:
+        ax.contour(azimuth_deg, elevation_deg, np.nan_to_num(np.abs(signed)), levels=[defect.min_cnr],
+                   colors="black", linewidths=1)
+    _axes(ax, f"{defect.kind} '{defect.name}' where it lies: its CNR per lamp direction\n(the shot's distance "
+              f"and exposure; worst over orientations; black line: min_cnr {defect.min_cnr:g})")
 
 
 LIGHT_COLORS = ("white", "tab:cyan", "tab:green", "tab:pink", "tab:olive", "tab:purple", "tab:brown", "tab:gray")
