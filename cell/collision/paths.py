@@ -258,15 +258,18 @@ def plan_transition(scene: CollisionScene, arm: ArmConfig, a: Stop, b: Stop, sta
     if not same:
         first = plan_move(scene, arm, start, a, end, b, retreats=())
         both = a.lamp_joints is not None and b.lamp_joints is not None
-        if first.clear or (both and (lamp := _lamp_first(scene, arm, start, a, end, b, ())) is not None):
-            return first if first.clear else lamp
+        if first.clear:
+            return first
+        lamp_first = _lamp_first(scene, arm, start, a, end, b, ()) if both else None
+        if lamp_first is not None:
+            return lamp_first
         move = plan_move(scene, arm, start, a, end, b)
         if move.clear or not both:
             return move
         return _lamp_first(scene, arm, start, a, end, b, VIA_RETREATS_M) or move
     if b.lamp_joints is None or a.lamp_joints is None:
-        lamp = None if a.lamp_joints is None else lamp_position(scene.pivot_m, *a.lamp_joints)
-        return Move(start, end, scene.clearance(a.T_cell_cam, a.arm_joints, lamp), (), 1,
+        lamp_at = None if a.lamp_joints is None else lamp_position(scene.pivot_m, *a.lamp_joints)
+        return Move(start, end, scene.clearance(a.T_cell_cam, a.arm_joints, lamp_at), (), 1,
                     (a.T_cell_cam[:3, 3],), 0.0, np.asarray(a.arm_joints, float))
     found, lamp_via, steps = lamp_route(scene, a.T_cell_cam, a.arm_joints, a.lamp_joints, b.lamp_joints)
     at = [lamp_position(scene.pivot_m, *j) for j in (a.lamp_joints, *lamp_via, b.lamp_joints)]

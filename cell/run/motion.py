@@ -39,7 +39,8 @@ def check(task: Task, devices: Devices, T_cell_cam: np.ndarray | None = None,
         T_now, q = devices.arm.camera_pose(), devices.arm.joint_angles()
     with speaking_for(devices.lamp):
         pan, tilt, radius = devices.lamp.joints()
-        target = None if lamp_joints is None else devices.lamp.target(*lamp_joints, near_rad=pan)
+        target = (None if lamp_joints is None
+                  else devices.lamp.target(lamp_joints[0], lamp_joints[1], lamp_joints[2], near_rad=pan))
     if q is None:
         q = np.asarray(reaching_joints(task.frames, T_now) or ur5e.HOME_JOINTS, float)
     if not np.isfinite(radius):
@@ -77,7 +78,8 @@ def go(task: Task, devices: Devices, recorder: Recorder, T_cell_cam: np.ndarray 
         raise refusal(move)
     if lamp_joints is not None:                 # the pan checked: of -180 and 180 deg, the nearer
         with speaking_for(devices.lamp):
-            lamp_joints = devices.lamp.target(*lamp_joints, near_rad=devices.lamp.joints()[0])
+            lamp_joints = devices.lamp.target(lamp_joints[0], lamp_joints[1], lamp_joints[2],
+                                             near_rad=devices.lamp.joints()[0])
     apart = (f"{' and '.join(move.clearance.bodies)} at least {1e3 * move.clearance.distance_m:.1f} mm apart"
              if np.isfinite(move.clearance.distance_m) else "nothing near")
 
