@@ -254,8 +254,8 @@ def defect_gray(problem: Problem, c: Candidates, defect: Defect, sample: np.ndar
                                       normals.shape)
         shape = normals.shape[:-1]
         if not (keep and np.prod(shape) <= CHUNK):
-            gray, good = _chunked(problem, c, defect, cast, index, normals, offsets)
-            return (pixel_mean(defect, gray, resolution, fp), pixel_mean(defect, good, resolution, fp), thetas)
+            on, beside = _chunked(problem, c, defect, cast, index, normals, offsets)
+            return (pixel_mean(defect, on, resolution, fp), pixel_mean(defect, beside, resolution, fp), thetas)
         kept = _Parts(problem, defect, index, normals, offsets)
         problem.kernels.defects[cache_key] = (made, kept)
     gray, good = kept.grays(problem, c, cast)
