@@ -4,15 +4,16 @@ the sensor's noise (cell.physics.contrast), worst over the samples and the scrat
 
 A defect is judged as if it lay at each sample, each of its parts shaded where that part lies
 (offsets_of, in the sample's tangent plane): a scratch's walls a quarter width to either side of
-its line (each wall is half the groove wide), a dent's ring of tilt asin(rho / R) at distance rho
-from its centre in each direction, a coating at the sample itself. There the part's gray is the
-shading with its normal (scratch, dent) or material (coating), and the good surface's gray the
-same point with the surface's normal and material (what the run's measurement compares: the
-part's pixels against its good neighbours' plane at the part's place): the bulk kernel
-(kernels.gray.GrayInputs) for the spot, each other light's emitter points
-(cell.planning.lights.contribution, as many as the good surface's took) for the rest, summed at
-the candidate's drives, G = b + t / kappa^2 sum_k w_k u_k (eq. 10, 17; the planner's own). A
-part's cast shadow is the sample's (a defect is far smaller than a shadow's edge).
+its line (each wall is half the groove wide), a dent's ring at distance rho from its centre in
+each direction as the pixel whose footprint ends there sees it (the area mean over the annulus one
+pixel footprint wide inside rho, of tilts asin(r / R): dent_radii, pixel_mean), a coating at the
+sample itself. There the part's gray is the shading with its normal (scratch, dent) or material
+(coating), and the good surface's gray the same point with the surface's normal and material
+(what the run's measurement compares: the part's pixels against its good neighbours' plane at the
+part's place): the bulk kernel (kernels.gray.GrayInputs) for the spot, each other light's emitter
+points (cell.planning.lights.contribution, as many as the good surface's took) for the rest,
+summed at the candidate's drives, G = b + t / kappa^2 sum_k w_k u_k (eq. 10, 17; the planner's
+own). A part's cast shadow is the sample's (a defect is far smaller than a shadow's edge).
 
 Per orientation a scratch shows by the larger CNR of its two walls (they lie side by side, each a
 half width wide: the groove is seen where either differs from the surface; a groove narrower than
@@ -59,6 +60,7 @@ class Resolution:
 
 JUDGED = Resolution(float(np.radians(5.0)), 4, 24)     # a pose judged (at most RANKED_ONLY candidates)
 RANKED = Resolution(float(np.radians(15.0)), 2, 8)     # the global search's ranking of many poses
+FOOTPRINT_POINTS = 2            # Gauss-Legendre nodes across a dent ring's pixel footprint
 RANKED_ONLY = 16                # more candidates than this are only ranked (the global search)
 ORIENTATION_STEP_RAD = JUDGED.step_rad
 FINE_STEP_RAD = float(np.radians(0.25))
@@ -80,29 +82,54 @@ def orientations(defect: Defect, step_rad: float = ORIENTATION_STEP_RAD) -> np.n
     return np.linspace(lo, hi, max(1, int(np.ceil((hi - lo) / step_rad - 1e-9))) + 1)
 
 
+def footprint_of(problem: Problem) -> float:
+    """A pixel's footprint at the feature's centre [m]: |centre - camera| pitch / f (the pinhole's
+    magnification, as cell.run.defects measures in footprints)."""
+    scene, camera = problem.scene, problem.task.camera
+    return float(np.linalg.norm(scene.center - scene.camera_position) * camera.sensor.pixel_pitch_m
+                 / camera.lens.focal_length_m)
+
+
+def dent_radii(radius_m: float, rings: int, footprint_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """((rings, Q) radii [m], (rings, Q) weights summing to 1 per ring): a dent's ring k at
+    rho_k = a k / rings as the pixel whose footprint ends there sees it, the mean over the annulus
+    [max(rho_k - fp, 0), rho_k] of the gray (its area element r dr): FOOTPRINT_POINTS Gauss-Legendre
+    nodes across it, each weighted by its weight times its radius. The run's rim pixels (their
+    centres within the outer footprint, one ray each) average exactly that annulus: a pixel at
+    the rim alone would claim the rim's full slope (dents measured 6-10 % below their plan)."""
+    outer = radius_m * np.arange(1, rings + 1) / rings
+    inner = np.maximum(outer - footprint_m, 0.0)
+    x, w = np.polynomial.legendre.leggauss(FOOTPRINT_POINTS)
+    rho = inner[:, None] + (outer - inner)[:, None] * (0.5 * (x + 1.0))[None]
+    weight = w[None] * rho
+    return rho, weight / weight.sum(axis=1, keepdims=True)
+
+
 def normals_of(defect: Defect, normals: np.ndarray, x_axis: np.ndarray, thetas: np.ndarray,
-               resolution: Resolution = JUDGED) -> np.ndarray:
+               resolution: Resolution = JUDGED, footprint_m: float = 0.0) -> np.ndarray:
     """(P, O, W, 3) the defect's normals at each sample: per orientation (O) a scratch's two walls,
-    a dent's field of rings x azimuths tilts (resolution's), a coating's own normal (W = 1)."""
+    a dent's field of rings x nodes x azimuths tilts (resolution's, dent_radii's nodes across
+    each ring's pixel footprint; pixel_mean averages them), a coating's own normal (W = 1)."""
     n = np.asarray(normals, float).reshape(-1, 3)
     if defect.kind == "scratch":
         return contrast.scratch_normals(n, x_axis, thetas, contrast.wall_tilt(_given(defect.width_m),
                                                                               _given(defect.depth_m)))
     if defect.kind == "dent":
         a = _given(defect.radius_m)
-        rings, count = resolution.rings, resolution.azimuths
-        tilts = contrast.dent_tilt(a * np.arange(1, rings + 1) / rings, a, _given(defect.depth_m))
+        count = resolution.azimuths
+        tilts = contrast.dent_tilt(dent_radii(a, resolution.rings, footprint_m)[0].ravel(), a, _given(defect.depth_m))
         azimuths = 2.0 * np.pi * np.arange(count) / count
         return contrast.dent_normals(n, x_axis, tilts, azimuths)[:, None]
     return n[:, None, None]
 
 
 def offsets_of(defect: Defect, normals: np.ndarray, x_axis: np.ndarray, thetas: np.ndarray,
-               resolution: Resolution = JUDGED) -> np.ndarray:
+               resolution: Resolution = JUDGED, footprint_m: float = 0.0) -> np.ndarray:
     """(P, O, W, 3) [m] where each of normals_of's parts lies from the sample, in its tangent
     plane: a scratch's wall turned by +beta (normals_of's first; it faces away from +s, footprint's
-    part 1) at s = +w / 4 along n x d(theta), the other at -w / 4; a dent's ring at rho in
-    direction u (its normal leans toward the centre, -u); a coating at the sample (zeros)."""
+    part 1) at s = +w / 4 along n x d(theta), the other at -w / 4; a dent's node at rho
+    (dent_radii's) in direction u (its normal leans toward the centre, -u); a coating at the
+    sample (zeros)."""
     n = np.asarray(normals, float).reshape(-1, 3)
     x, y = contrast.tangent_axes(n, x_axis)
     if defect.kind == "scratch":
@@ -111,12 +138,22 @@ def offsets_of(defect: Defect, normals: np.ndarray, x_axis: np.ndarray, thetas: 
         quarter = 0.25 * _given(defect.width_m)
         return np.stack([quarter * across, -quarter * across], axis=2)
     if defect.kind == "dent":
-        a = _given(defect.radius_m)
-        rho = a * np.arange(1, resolution.rings + 1) / resolution.rings
+        rho = dent_radii(_given(defect.radius_m), resolution.rings, footprint_m)[0].ravel()
         psi = 2.0 * np.pi * np.arange(resolution.azimuths) / resolution.azimuths
         u = np.cos(psi)[None, :, None] * x[:, None] + np.sin(psi)[None, :, None] * y[:, None]    # (P, A, 3)
         return (rho[None, :, None, None] * u[:, None]).reshape(len(n), 1, -1, 3)
     return np.zeros((len(n), 1, 1, 3))
+
+
+def pixel_mean(defect: Defect, gray: np.ndarray, resolution: Resolution = JUDGED,
+               footprint_m: float = 0.0) -> np.ndarray:
+    """(..., W) grays of normals_of's parts (..., W') with a dent's nodes across each ring's pixel
+    footprint averaged by dent_radii's weights (W = rings x azimuths); other kinds as they are."""
+    if defect.kind != "dent":
+        return gray
+    weight = dent_radii(_given(defect.radius_m), resolution.rings, footprint_m)[1]
+    nodes = gray.reshape(gray.shape[:-1] + weight.shape + (resolution.azimuths,))
+    return np.einsum("...tqa,tq->...ta", nodes, weight).reshape(gray.shape[:-1] + (-1,))
 
 
 def _given(value: float | None) -> float:
@@ -190,7 +227,8 @@ def defect_gray(problem: Problem, c: Candidates, defect: Defect, sample: np.ndar
     """((C, S, O, W) the defect's gray at the samples `sample` (indices; None: all of the
     Problem's) for each orientation (O: `thetas`, (O,) or one row per sample (S, O), else the
     resolution's over the range) and wall or tilt (W), each part where it lies (offsets_of);
-    (C, S, O, W) the good surface's gray at the same places; the orientations). The kernel inputs
+    (C, S, O, W) the good surface's gray at the same places; the orientations), a dent's rings each
+    the mean over its pixel footprint (pixel_mean). The kernel inputs
     of all the samples are kept with the Problem; a large or partial set is evaluated in chunks of
     CHUNK normals and let go."""
     scene = problem.scene
@@ -202,26 +240,29 @@ def defect_gray(problem: Problem, c: Candidates, defect: Defect, sample: np.ndar
     cache_key = (defect.key, resolution)
     made_of, kept = problem.kernels.defects.get(cache_key, (None, None)) if keep else (None, None)
     made = (problem.task, scene, problem.material)
+    fp = footprint_of(problem)
     if kept is None or made_of is None or not all(a is b for a, b in zip(made_of, made)):
         x_axis = scene.frame[:, 0]
         if thetas.ndim == 2:                    # each sample its own orientations
-            normals = np.concatenate([normals_of(defect, scene.normals[i:i + 1], x_axis, row, resolution)
+            normals = np.concatenate([normals_of(defect, scene.normals[i:i + 1], x_axis, row, resolution, fp)
                                       for i, row in zip(index, thetas)])
-            offsets = np.concatenate([offsets_of(defect, scene.normals[i:i + 1], x_axis, row, resolution)
+            offsets = np.concatenate([offsets_of(defect, scene.normals[i:i + 1], x_axis, row, resolution, fp)
                                       for i, row in zip(index, thetas)])
         else:
-            normals = normals_of(defect, scene.normals[index], x_axis, thetas, resolution)
-            offsets = np.broadcast_to(offsets_of(defect, scene.normals[index], x_axis, thetas, resolution),
+            normals = normals_of(defect, scene.normals[index], x_axis, thetas, resolution, fp)
+            offsets = np.broadcast_to(offsets_of(defect, scene.normals[index], x_axis, thetas, resolution, fp),
                                       normals.shape)
         shape = normals.shape[:-1]
         if not (keep and np.prod(shape) <= CHUNK):
-            return _chunked(problem, c, defect, cast, index, normals, offsets) + (thetas,)
+            on, beside = _chunked(problem, c, defect, cast, index, normals, offsets)
+            return (pixel_mean(defect, on, resolution, fp), pixel_mean(defect, beside, resolution, fp), thetas)
         kept = _Parts(problem, defect, index, normals, offsets)
         problem.kernels.defects[cache_key] = (made, kept)
     gray, good = kept.grays(problem, c, cast)
     full = (len(c.shutter),) + kept.shape
-    return (gray.reshape(full), c.gray[:, index][:, :, None, None] + np.zeros(full) if good is None
-            else good.reshape(full), thetas)
+    return (pixel_mean(defect, gray.reshape(full), resolution, fp),
+            pixel_mean(defect, c.gray[:, index][:, :, None, None] + np.zeros(full) if good is None
+                       else good.reshape(full), resolution, fp), thetas)
 
 
 def _chunked(problem: Problem, c: Candidates, defect: Defect, cast: np.ndarray, index: np.ndarray,

@@ -220,7 +220,8 @@ def write_plan_pictures(plan: Plan, task: Task, scene: Scene, out_dir: PathLike)
     paths.append(out_dir / "cost.png")
 
     fig.subplots_adjust(**MARGINS)
-    fig2.subplots_adjust(**({**MARGINS, "left": 0.05, "right": 0.99, "top": 0.88, "wspace": 0.15} if shown_defects else MARGINS))
+    beside = {"left": 0.05, "right": 0.99, "top": 0.88, "wspace": 0.15}     # the defects' panels, two-line titles
+    fig2.subplots_adjust(**({**MARGINS, **beside} if shown_defects else MARGINS))
     fig3.subplots_adjust(**{**MARGINS, "left": 0.06, "wspace": 0.11})
     for f, p in zip((fig, fig2, fig3), paths):
         f.savefig(p, dpi=90, pil_kwargs=PNG)
