@@ -178,6 +178,37 @@ def test_the_ring_task_drives_the_lighting_controller_emulator_on_the_hw_path(tm
     assert final == {1: 0.0, 2: 0.0, 3: 0.0, 4: 0.0}
 
 
+@pytest.mark.long                       # 2 captures and 2 basis captures: 27 s at a load of 5
+def test_a_weak_channel_is_rebalanced_through_the_lighting_controller_emulator(tmp_path):
+    """tasks/ring.yaml on the hw path with its dark-field ring giving 60 % of its model's light
+    (the simulated camera driver renders the task's truth): the first capture is out of band;
+    for each basis capture the controller was told that channel at its drive and the other off,
+    read back so; the re-solved drives were told before the second capture, which is in band."""
+    with GardasoftEmulator(channels=4) as lights, hw_cell(tmp_path, ROOT / "tasks/ring.yaml", {
+            "cell.lighting.host": lights.address[0], "cell.lighting.port": lights.address[1],
+            "cell.lighting.channels": 4, "sim.truth.channel_power_scale": {2: 0.6}}) as cell:
+        hw = finish(start(cell.task, tmp_path / "hw"))
+        received = [line.decode().strip() for line in lights.received]
+    assert hw.code == 0 and hw.report["converged"], hw.stderr
+    first, second = hw.report["iterations"][:2]
+    assert not first["in_band"] and second["in_band"] and first["correction"]["action"] == "drives"
+    assert first["correction"]["channel_scale"]["2"] == pytest.approx(0.6, rel=0.03)
+    # the log's set_drives (read back from the controller) around each basis capture
+    steps = [(line["step"], line) for line in hw.log]
+    basis = [steps[i - 2][1]["drives"] for i, (step, line) in enumerate(steps)
+             if step == "capture" and line["capture"].startswith("basis-1-")]
+    on = {c: level for c, level in first["drives"].items() if level > 0}
+    assert len(basis) == len(on) == 2
+    for drives in basis:                        # one channel at its drive, every other off
+        (lit,) = [c for c, level in drives.items() if level > 0]
+        assert drives[lit] == pytest.approx(on[lit], abs=0.0005)
+    assert second["drives"] == pytest.approx({c: float(w) for c, w in first["correction"]["drives"].items()},
+                                             abs=0.0005)
+    told = [(int(c), float(pct)) for c, pct in (line[2:].split(",") for line in received if line.startswith("RS"))]
+    for channel, drive in second["drives"].items():      # told the controller, in its 0.1 % steps
+        assert any(c == int(channel) and abs(pct - 100 * drive) <= 0.05 for c, pct in told)
+
+
 @pytest.mark.long                       # two runs (hw, sim) of 10 candidates and 3 shots: 123 s at load 8-11
 def test_the_bracket_with_two_bars_converges_on_the_hw_path_with_each_shot_s_drives(tmp_path):
     """tasks/bracket-bars.yaml (two fixed bars and the spot on an RT420's channels, viewpoints
