@@ -178,23 +178,61 @@ def test_the_ring_task_drives_the_lighting_controller_emulator_on_the_hw_path(tm
     assert final == {1: 0.0, 2: 0.0, 3: 0.0, 4: 0.0}
 
 
-@pytest.mark.long                       # plans 10 candidate shots, then 3 shots of 1-2 captures: minutes
+@pytest.mark.long                       # 2 captures and 2 basis captures: 27 s at a load of 5
+def test_a_weak_channel_is_rebalanced_through_the_lighting_controller_emulator(tmp_path):
+    """tasks/ring.yaml on the hw path with its dark-field ring giving 60 % of its model's light
+    (the simulated camera driver renders the task's truth): the first capture is out of band;
+    for each basis capture the controller was told that channel at its drive and the other off,
+    read back so; the re-solved drives were told before the second capture, which is in band."""
+    with GardasoftEmulator(channels=4) as lights, hw_cell(tmp_path, ROOT / "tasks/ring.yaml", {
+            "cell.lighting.host": lights.address[0], "cell.lighting.port": lights.address[1],
+            "cell.lighting.channels": 4, "sim.truth.channel_power_scale": {2: 0.6}}) as cell:
+        hw = finish(start(cell.task, tmp_path / "hw"))
+        received = [line.decode().strip() for line in lights.received]
+    assert hw.code == 0 and hw.report["converged"], hw.stderr
+    first, second = hw.report["iterations"][:2]
+    assert not first["in_band"] and second["in_band"] and first["correction"]["action"] == "drives"
+    assert first["correction"]["channel_scale"]["2"] == pytest.approx(0.6, rel=0.03)
+    # the log's set_drives (read back from the controller) around each basis capture
+    steps = [(line["step"], line) for line in hw.log]
+    basis = [steps[i - 2][1]["drives"] for i, (step, line) in enumerate(steps)
+             if step == "capture" and line["capture"].startswith("basis-1-")]
+    on = {c: level for c, level in first["drives"].items() if level > 0}
+    assert len(basis) == len(on) == 2
+    for drives in basis:                        # one channel at its drive, every other off
+        (lit,) = [c for c, level in drives.items() if level > 0]
+        assert drives[lit] == pytest.approx(on[lit], abs=0.0005)
+    assert second["drives"] == pytest.approx({c: float(w) for c, w in first["correction"]["drives"].items()},
+                                             abs=0.0005)
+    told = [(int(c), float(pct)) for c, pct in (line[2:].split(",") for line in received if line.startswith("RS"))]
+    for channel, drive in second["drives"].items():      # told the controller, in its 0.1 % steps
+        assert any(c == int(channel) and abs(pct - 100 * drive) <= 0.05 for c, pct in told)
+
+
+@pytest.mark.long                       # two runs (hw, sim) of 10 candidates and 3 shots: 123 s at load 8-11
 def test_the_bracket_with_two_bars_converges_on_the_hw_path_with_each_shot_s_drives(tmp_path):
     """tasks/bracket-bars.yaml (two fixed bars and the spot on an RT420's channels, viewpoints
-    planned) on the real adapters: every feature converges; before every capture of a shot each
-    channel was told (`RSc,s`) and read back at that shot's planned drive, the dark frame with
-    every channel off; the arm moved once per shot, and at the end every channel is off."""
+    planned) on the real adapters and on the simulated cell: every feature converges on both
+    after as many iterations, at the same gray; on the hw path, before every capture of a shot
+    each channel was told (`RSc,s`) and read back at that shot's planned drive, the dark frame
+    with every channel off; the arm moved once per shot, and at the end every channel is off."""
     with GardasoftEmulator(channels=4) as lights, hw_cell(tmp_path, ROOT / "tasks/bracket-bars.yaml", {
             "cell.lighting.host": lights.address[0], "cell.lighting.port": lights.address[1],
             "cell.lighting.channels": 4, "cell.arm.move_timeout_s": 30.0}, lifetime_s=900) as cell:
         # the moves between planned viewpoints are up to 2.2 m of tool path (9 s at 0.25 m/s)
-        hw = finish(start(cell.task, tmp_path / "hw"), timeout_s=900)
+        hw_run, sim_run = start(cell.task, tmp_path / "hw"), start(cell.task, tmp_path / "sim", backend="sim")
+        hw, sim = finish(hw_run, timeout_s=900), finish(sim_run, timeout_s=900)
         received = [line.decode().strip() for line in lights.received]
         final = dict(lights.controller.setting_pct)
         status = dashboard(cell.host, "emulator status")
-    assert hw.code == 0, hw.stderr
+    assert hw.code == 0 and sim.code == 0, hw.stderr + sim.stderr
     assert "Traceback" not in hw.stderr
-    assert all(f["converged"] for f in hw.report["features"]) and len(hw.report["features"]) == 5
+    assert len(hw.report["features"]) == len(sim.report["features"]) == 5
+    assert hw.report["order"] == sim.report["order"]
+    for h, s in zip(hw.report["features"], sim.report["features"]):
+        assert h["converged"] and s["converged"] and h["iterations"] == s["iterations"]
+        for key in ("mean", "min", "max"):
+            assert h["measured_gray"][key] == pytest.approx(s["measured_gray"][key], abs=0.5)
     shots = hw.report["plan"]["shots"]
     assert f"moves {len(shots)} " in status and "moving False" in status
     sets = [line for line in hw.log if line["step"] == "set_drives"]

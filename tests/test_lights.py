@@ -357,3 +357,29 @@ def test_an_infeasible_plan_with_lights_says_what_the_drives_cannot_do(ring_plan
     plan = one_shot.plan(narrow)
     assert not plan.feasible and plan.binding in one_shot.BAND
     assert "no drive levels put every sample in band 200-250" in plan.hint
+
+
+def test_a_one_lamp_task_plans_as_before_but_for_the_profile_s_energy():
+    """Issue 24: a one-lamp task plans as before the lights came, the exposure changed only by
+    the energy-conserving profile. Eq. (11)'s normalisation by the hard cone gave the axis
+    I(0) = P / Omega_cone; the profile's is P / Omega_profile, so the former plan is this planner's
+    with the power times Omega_profile / Omega_cone (1.021 on the hinge). Both plans: the same
+    verdict, the lamp within 5 mm, the exposure (the same f-number) changed by at most that
+    factor (the hinge's lamp radius takes it: 1.7 mm nearer, the shutter within 0.1 %)."""
+    from dataclasses import replace
+    from pathlib import Path
+
+    from cell.physics import radiometry
+    from cell.planning import one_shot
+    from cell.task.loader import load_task
+    task = load_task(Path(__file__).resolve().parents[1] / "tasks" / "hinge.yaml")
+    lamp = task.lamp
+    factor = radiometry.profile_solid_angle(lamp.profile) / (2.0 * np.pi * (1.0 - np.cos(0.5 * lamp.cone_angle_rad)))
+    assert factor == pytest.approx(1.021, abs=0.002)
+    now = one_shot.plan(task)
+    before = one_shot.plan(replace(task, lamp=replace(lamp, power_w=lamp.power_w * factor)))
+    assert now.feasible == before.feasible and now.binding == before.binding
+    assert np.linalg.norm(now.shot.lamp_position - before.shot.lamp_position) <= 0.005
+    assert now.shot.exposure.f_number == pytest.approx(before.shot.exposure.f_number, rel=1e-9)
+    ratio = now.shot.exposure.shutter_s / before.shot.exposure.shutter_s
+    assert 1.0 / factor - 1e-3 <= ratio <= factor + 1e-3
