@@ -12,13 +12,15 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import replace
+from functools import partial
 from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
 from scipy.optimize import minimize
 
-from cell.planning import certificate, defects, drives, evaluate, lights, regions, requirements, viewpoints
+from cell.planning import (certificate, defects, drives, evaluate, lights, lockstep, regions, requirements,
+                           viewpoints)
 from cell.core import geometry
 from cell.devices import rig
 from cell.physics import brdf, depth_of_field as dof
@@ -91,9 +93,11 @@ CERTIFY_ROUNDS = 3          # searches again with the certificate's worst points
 UNLIT_OBJECTIVE = 1e300     # the objective of a pose no exposure can make work (it is inf), finite
 
 
-def refine(problem: evaluate.Problem, start: ArrayLike, lamp_rig: LampRig) -> tuple[np.ndarray, Refinement]:
-    """Nelder-Mead over (pan, tilt, radius) in grid-step units, clipped to the rig's ranges:
-    (joints, Refinement with the solver's own verdict and evaluation count)."""
+def refine(start: ArrayLike, lamp_rig: LampRig, objective: Callable[[np.ndarray], float]
+           ) -> tuple[np.ndarray, Refinement]:
+    """Nelder-Mead over (pan, tilt, radius) in grid-step units from `start`, clipped to the rig's
+    ranges, minimising objective(joints) (pose_objectives' of one pose): (joints, Refinement with
+    the solver's own verdict and evaluation count)."""
     lo = np.array([lamp_rig.pan_range_rad[0], lamp_rig.tilt_range_rad[0], lamp_rig.radius_range_m[0]])
     hi = np.array([lamp_rig.pan_range_rad[1], lamp_rig.tilt_range_rad[1], lamp_rig.radius_range_m[1]])
     scale = np.array([np.radians(5.0), np.radians(5.0), 0.05])
@@ -107,15 +111,32 @@ def refine(problem: evaluate.Problem, start: ArrayLike, lamp_rig: LampRig) -> tu
         x = clipped(z)
         key = x.tobytes()
         if key not in seen:
-            c = evaluate.candidates(problem, x[:1], x[1:2], x[2:3])
-            # unlit (inf) capped: Nelder-Mead compares differences, and inf - inf is NaN
-            seen[key] = float(min(requirements.objective(requirements.ln_values(problem, c))[0], UNLIT_OBJECTIVE))
+            seen[key] = objective(x)
         return seen[key]
 
     simplex = np.vstack([np.zeros(3), np.eye(3)])
     res = minimize(f, np.zeros(3), method="Nelder-Mead",
                    options={"initial_simplex": simplex, "xatol": 0.02, "fatol": 1e-4, "maxfev": 90})
     return clipped(res.x), Refinement(bool(res.success), int(res.nfev), str(res.message), float(res.fun))
+
+
+def pose_objectives(problem: evaluate.Problem, joints: ArrayLike) -> np.ndarray:
+    """(K,) the objective (eq. 22) of K lamp poses (K, 3) (pan, tilt, radius), the lamp moved by
+    its tolerance; an unlit pose's (inf) capped at UNLIT_OBJECTIVE: Nelder-Mead compares
+    differences, and inf - inf is NaN. A pose's value reads its own row alone (the kernel's thread
+    per lamp and sample, NumPy's reductions per row): the same however many are evaluated at once."""
+    x = np.asarray(joints, float).reshape(-1, 3)
+    c = evaluate.candidates(problem, x[:, 0], x[:, 1], x[:, 2])
+    return np.minimum(requirements.objective(requirements.ln_values(problem, c)), UNLIT_OBJECTIVE)
+
+
+def refine_all(problem: evaluate.Problem, starts: list[np.ndarray],
+               lamp_rig: LampRig) -> list[tuple[np.ndarray, Refinement]]:
+    """refine from every start, the starts in lockstep (cell.planning.lockstep): each step's
+    objective evaluations of all starts in one evaluate.candidates call (one kernel launch, one
+    pass of the requirements), the same results as one start at a time."""
+    return lockstep.run([partial(refine, x, lamp_rig) for x in starts],
+                        lambda points: pose_objectives(problem, np.array(points)))
 
 
 def plan(task: Task, settings: PlannerSettings = PlannerSettings(), albedo_scale: float = 1.0,
@@ -184,7 +205,7 @@ def search(task: Task, settings: PlannerSettings, albedo_scale: float, extra: np
     t = time.perf_counter()
     starts = pick_starts(pan, tilt, obj, settings.starts, np.radians(2 * settings.pan_step_deg))
     poses = [np.array([pan[k], tilt[k], radius[k]]) for k in starts]
-    refined = [refine(problem, x, lamp_rig) for x in poses] if settings.refine else []
+    refined = refine_all(problem, poses, lamp_rig) if settings.refine else []
     stack = np.array(poses + [x for x, _ in refined])
     lit = [lighting(problem, x) for x in stack] if task.lights else []
     if lit:

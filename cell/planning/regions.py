@@ -87,6 +87,26 @@ def chord_to_angle(chord: float | np.ndarray) -> np.ndarray:
 FEW_CELLS = 64      # cells asked for at most: brute force (nearest_chord), not k-d trees
 
 
+POLE_ROWS = 3       # rows at either pole that on_edge keeps whole: there the grid's neighbours are not its 8
+
+
+def on_edge(inside: np.ndarray) -> np.ndarray:
+    """(E, A) the cells of a map (E, A) with a cell of the other kind among their eight grid
+    neighbours (azimuth wrapping across the seam), and every cell of the POLE_ROWS rows at either
+    pole. The nearest cell of the other kind from any cell is among them: on the geodesic from a
+    cell q to its nearest cell p of the other kind, the point just past p's Voronoi cell (of all
+    cells) lies in a neighbour r's (Delaunay: off the poles, one of the eight), no farther from r
+    than from p, so r is no farther from q than p (triangle inequality) and, were it of p's kind,
+    as near; stepping on along the geodesic ends at a cell of p's kind next to one of the other."""
+    rows = np.pad(inside, ((1, 1), (0, 0)), mode="edge")
+    edge = np.zeros(inside.shape, bool)
+    for de in (-1, 0, 1):
+        for da in (-1, 0, 1):
+            edge |= np.roll(rows[1 + de:1 + de + len(inside)], da, axis=1) != inside
+    edge[:POLE_ROWS] = edge[-POLE_ROWS:] = True
+    return edge
+
+
 def signed_distance(grid: SphereGrid, inside: ArrayLike, cells: np.ndarray | None = None) -> np.ndarray:
     """Exact signed spherical distance transform of a boolean map (E, A) [rad]:
     -(distance to the nearest outside cell) inside, +(distance to the nearest inside cell) outside;
@@ -95,7 +115,8 @@ def signed_distance(grid: SphereGrid, inside: ArrayLike, cells: np.ndarray | Non
 
     Chord length between unit vectors is monotonic in the great-circle angle, so a k-d tree
     on the cells' unit vectors finds the haversine-nearest cell exactly, seam and poles included
-    (at a few `cells`: brute force, nearest_chord, the same values).
+    (at a few `cells`: brute force, nearest_chord, the same values); the trees hold only the
+    cells on_edge, among which the nearest one of the other kind always is.
     An empty (or full) region gives +pi (or -pi) everywhere.
     """
     inside = np.asarray(inside, dtype=bool)
@@ -113,8 +134,9 @@ def signed_distance(grid: SphereGrid, inside: ArrayLike, cells: np.ndarray | Non
         out[cells[outside]] = chord_to_angle(nearest_chord(dirs[cells[outside]], dirs[flat]))
         return out.reshape(inside.shape)
     wanted = np.ones(flat.shape, bool) if cells is None else np.isin(np.arange(flat.size), cells)
-    chord_out, _ = cKDTree(dirs[~flat]).query(dirs[flat & wanted])
-    chord_in, _ = cKDTree(dirs[flat]).query(dirs[~flat & wanted])
+    edge = on_edge(inside).ravel()
+    chord_out, _ = cKDTree(dirs[~flat & edge]).query(dirs[flat & wanted])
+    chord_in, _ = cKDTree(dirs[flat & edge]).query(dirs[~flat & wanted])
     out[flat & wanted] = -chord_to_angle(chord_out)
     out[~flat & wanted] = chord_to_angle(chord_in)
     return out.reshape(inside.shape)
