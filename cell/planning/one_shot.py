@@ -232,7 +232,8 @@ def hint(binding: RequirementValue, chosen: drives.Drives | None) -> str:
 def lighting(problem: evaluate.Problem, joints: ArrayLike) -> tuple[evaluate.Candidates, drives.Drives]:
     """The spot at `joints` (pan, tilt, radius) with the task's other lights: their drive levels,
     shutter and f-number by the linear program over every light's gray (cell.planning.drives: the
-    band's margin, robust to the drive tolerance), as Candidates of one judged at that exposure,
+    band's margin, robust to the drive tolerance; with `gray_band: any` raised to the sensor's top,
+    drives.raised), as Candidates of one judged at that exposure,
     the spot moved by its tolerance and the drives off by theirs; the shutter the band needs is the
     program's at the widest f-number the depth of field allows."""
     task = problem.task
@@ -252,8 +253,25 @@ def lighting(problem: evaluate.Problem, joints: ArrayLike) -> tuple[evaluate.Can
                                  ranges, [c.switched for c in channels], task.requirements.drive_tolerance, rows)
     c = evaluate.at_exposure(problem, position[0], chosen.shutter_s, chosen.f_number, joints=tuple(x),
                              drive=chosen.drive)
+    if task.requirements.gray_any:
+        chosen = drives.raised(chosen, unit_gray, problem.black_level, problem.kappa_open,
+                               task.camera.shutter_range_s, task.camera.lens.f_number_range, ranges,
+                               _top_signal(problem, c))
+        c = evaluate.at_exposure(problem, position[0], chosen.shutter_s, chosen.f_number, joints=tuple(x),
+                                 drive=chosen.drive)
     need = chosen.shutter_s * (problem.kappa_open / chosen.f_number) ** 2
     return replace(c, t_need=np.array([need])), chosen
+
+
+def _top_signal(problem: evaluate.Problem, c: evaluate.Candidates) -> float:
+    """The brightest sample's signal (gray less b) at the nominal drives that `gray_band: any`'s
+    exposure may reach: the band's top less b (the sensor's range, cell.task.loader.any_band),
+    shrunk by how much brighter the lamp's tolerance moves and the drive and light errors make
+    the brightest sample (c's moved grays), so that none of them saturates."""
+    b = problem.black_level
+    nominal = float(np.max(c.gray[0]) - b)
+    worst = float(np.max(c.moved_gray - b, initial=nominal))
+    return (problem.band[1] - b) * nominal / worst if worst > 0 else 0.0
 
 
 def light_settings(problem: evaluate.Problem, candidate: evaluate.Candidates) -> tuple[LightSetting, ...]:

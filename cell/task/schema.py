@@ -207,6 +207,19 @@ class Pair(Spec):
         return float(low), float(high)
 
 
+class Band(Pair):
+    """A gray band: an ascending pair of gray levels (low < high), or the text `any` (kept as "any"):
+    only a declared defect's contrast matters (the loader then takes the sensor's range,
+    cell.task.loader.any_band)."""
+
+    def __init__(self, default: Any = REQUIRED) -> None:
+        super().__init__(lambda v: True, "gray levels", strict=True, default=default)
+        self.expected = f"{self.expected}, or any"
+
+    def convert(self, raw: Any, to_si: ToSI) -> tuple[float, float] | str:
+        return "any" if raw == "any" else super().convert(raw, to_si)
+
+
 class Flag(Spec):
     """true or false (YAML's booleans; 0 and 1 are numbers, not flags)."""
 

@@ -1,0 +1,110 @@
+"""`gray_band: any` (issue 25): a feature with declared defects where only their contrast
+matters. The loader takes the sensor's range for the band (cell.task.loader.any_band) and refuses
+`any` on a feature without defects; the exposure rises to that range's top, where no smaller
+exposure of the same lights shows the defect better."""
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from cell.core.errors import TaskError
+from cell.planning import defects, evaluate, one_shot
+from cell.task.loader import load_task
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from test_defects import SCRATCH, problem_at, task_file  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+TASKS = ROOT / "tasks"
+
+
+def any_task(tmp_path, defects_yaml=(SCRATCH,), sensor=None, name="task.yaml"):
+    """The hinge task with these defects, `gray_band: any` and these camera.sensor keys."""
+    path = task_file(tmp_path, list(defects_yaml), name=name)
+    doc = yaml.safe_load(path.read_text())
+    doc["requirements"]["gray_band"] = "any"
+    if not defects_yaml:
+        del doc["feature"]["defects"]
+    doc["camera"]["sensor"].update(sensor or {})
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def test_any_loads_as_the_sensor_s_range_from_its_datasheet_keys(tmp_path):
+    task = load_task(any_task(tmp_path, sensor={"system_gain_dn_per_e": 0.05, "dark_noise_e": 6.0,
+                                                "black_level": 4.0}))
+    req = task.requirements
+    assert req.gray_any and req.gray_band == pytest.approx((4.0 + 3 * 0.05 * 6.0, 2**8 - 2))
+    plain = load_task(task_file(tmp_path, [SCRATCH], name="plain.yaml")).requirements
+    assert not plain.gray_any and plain.gray_band == (100.0, 125.0)
+
+
+def test_any_without_defects_is_refused_naming_the_key_in_one_line(tmp_path):
+    path = any_task(tmp_path, defects_yaml=())
+    with pytest.raises(TaskError) as err:
+        load_task(path)
+    assert err.value.key == "requirements.gray_band" and "needs the feature's `defects`" in str(err.value)
+    run = subprocess.run([sys.executable, "-m", "cell", "check", str(path)], capture_output=True, text=True, cwd=ROOT)
+    assert run.returncode == 2 and "requirements.gray_band: found any" in run.stderr
+    assert len(run.stderr.strip().splitlines()) == 1 and "Traceback" not in run.stderr
+
+
+def test_a_feature_s_own_any_without_defects_names_that_feature_s_key(tmp_path):
+    path = task_file(tmp_path, [SCRATCH])
+    doc = yaml.safe_load(path.read_text())
+    feature = doc.pop("feature")
+    bare = {k: v for k, v in feature.items() if k != "defects"}
+    doc["features"] = [{"name": "leaf", **feature}, {"name": "bare", **bare, "requirements": {"gray_band": "any"}}]
+    path.write_text(yaml.safe_dump(doc))
+    with pytest.raises(TaskError) as err:
+        load_task(path)
+    assert err.value.key == "features[1].requirements.gray_band"
+
+
+def test_another_text_is_refused_as_neither_a_band_nor_any(tmp_path):
+    path = any_task(tmp_path)
+    path.write_text(path.read_text().replace("gray_band: any", "gray_band: all"))
+    with pytest.raises(TaskError) as err:
+        load_task(path)
+    assert err.value.key == "requirements.gray_band" and "an ascending pair of gray levels, or any" in str(err.value)
+
+
+POSES = [(30.0, 50.0, 0.15), (90.0, 60.0, 0.15), (180.0, 40.0, 0.15), (0.0, 30.0, 0.3)]
+
+
+@pytest.fixture(scope="module")
+def problems(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("any")
+    band = load_task(task_file(folder, [SCRATCH], name="band.yaml"))
+    anything = load_task(any_task(folder, name="any.yaml"))
+    return problem_at(band)[0], problem_at(anything)[0]
+
+
+@pytest.mark.parametrize("pan, tilt, radius", POSES)
+def test_at_a_lamp_pose_any_shows_the_defect_at_least_as_well_as_the_band(problems, pan, tilt, radius):
+    """The band's exposures are among those `any` allows (its band lies inside the sensor's
+    range): `any`'s worst CNR is at least the band's, and no shorter exposure of the same light
+    beats it (the brute-force scan of one channel's exposures: CNR grows with the exposure)."""
+    band, anything = problems
+    joints = (np.radians(pan), np.radians(tilt), radius)
+    c_band, _ = one_shot.lighting(band, joints)
+    c_any, d_any = one_shot.lighting(anything, joints)
+    (cnr_band,), (cnr_any,) = ([j.predicted_cnr for j in defects.judge(p, c)]
+                               for p, c in ((band, c_band), (anything, c_any)))
+    assert cnr_any >= cnr_band * (1 - 1e-9)
+    low, high = anything.band
+    assert d_any.feasible and c_any.gray.min() >= low and max(c_any.gray.max(), c_any.moved_gray.max()) <= high + 1e-6
+    x = float(c_any.shutter[0] / c_any.kappa[0] ** 2)
+    t_hi = anything.task.camera.shutter_range_s[1]
+    at_top = max(c_any.gray.max(), c_any.moved_gray.max()) >= high - 0.01
+    assert at_top or x >= t_hi / anything.kappa_open**2 * (1 - 1e-9)          # the top, or the longest exposure
+    kappa = float(c_any.kappa[0])
+    for f in (0.3, 0.6, 0.9, 0.99):
+        c = evaluate.at_exposure(anything, c_any.position[0], f * x * kappa**2, kappa, joints=joints,
+                                 drive=c_any.drive[0])
+        (cnr,) = [j.predicted_cnr for j in defects.judge(anything, c)]
+        assert cnr <= cnr_any * (1 + 1e-9)
+
