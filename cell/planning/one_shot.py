@@ -91,6 +91,18 @@ CERTIFY_ROUNDS = 3          # searches again with the certificate's worst points
 UNLIT_OBJECTIVE = 1e300     # the objective of a pose no exposure can make work (it is inf), finite
 
 
+def score(problem: evaluate.Problem, values: dict[str, np.ndarray]) -> np.ndarray:
+    """The search's objective (lower is better): requirements.objective, eq. (22)'s smooth max of
+    the ln f_i; with `gray_band: any`, where every requirement is met (each ln f_i <= 0), the worst
+    defect's ln(min_cnr / CNR) instead (<= 0, below every pose that misses one, whose smooth max
+    exceeds its largest ln f_i > 0): among the poses that meet every requirement the plan takes
+    the largest worst CNR."""
+    objective = requirements.objective(values)
+    if not problem.task.requirements.gray_any:
+        return objective
+    return np.where(requirements.missed(values), objective, values["defect_cnr"])
+
+
 def refine(problem: evaluate.Problem, start: ArrayLike, lamp_rig: LampRig) -> tuple[np.ndarray, Refinement]:
     """Nelder-Mead over (pan, tilt, radius) in grid-step units, clipped to the rig's ranges:
     (joints, Refinement with the solver's own verdict and evaluation count)."""
@@ -109,7 +121,7 @@ def refine(problem: evaluate.Problem, start: ArrayLike, lamp_rig: LampRig) -> tu
         if key not in seen:
             c = evaluate.candidates(problem, x[:1], x[1:2], x[2:3])
             # unlit (inf) capped: Nelder-Mead compares differences, and inf - inf is NaN
-            seen[key] = float(min(requirements.objective(requirements.ln_values(problem, c))[0], UNLIT_OBJECTIVE))
+            seen[key] = float(min(score(problem, requirements.ln_values(problem, c))[0], UNLIT_OBJECTIVE))
         return seen[key]
 
     simplex = np.vstack([np.zeros(3), np.eye(3)])
@@ -175,7 +187,7 @@ def search(task: Task, settings: PlannerSettings, albedo_scale: float, extra: np
     lamp_rig = task.lamp.rig
     pan, tilt, radius = candidate_grid(lamp_rig, settings)
     global_values = requirements.ln_values(problem, evaluate.candidates(problem, pan, tilt, radius, tolerance=False))
-    obj = requirements.objective(global_values)
+    obj = score(problem, global_values)
     maps = replace(maps, candidate_pan=pan, candidate_tilt=tilt, candidate_objective=obj)
     problem = replace(problem, maps=maps)
     timing["global_search"] = time.perf_counter() - t
@@ -192,7 +204,7 @@ def search(task: Task, settings: PlannerSettings, albedo_scale: float, extra: np
     else:
         final = evaluate.candidates(problem, stack[:, 0], stack[:, 1], stack[:, 2])
     final_values = requirements.ln_values(problem, final)
-    rank = np.lexsort((requirements.objective(final_values), requirements.missed(final_values)))
+    rank = np.lexsort((score(problem, final_values), requirements.missed(final_values)))
     best = int(rank[0])
     timing["refine"] = time.perf_counter() - t
     search = Search(candidates=len(pan), starts=len(poses), refinements=tuple(r for _, r in refined))
@@ -205,7 +217,7 @@ def search(task: Task, settings: PlannerSettings, albedo_scale: float, extra: np
                 objective=verdict.objective, hint="" if verdict.feasible else hint(binding, lit[best][1] if lit else None),
                 shots=(shot,),
                 maps=maps, settings=settings, scene=scene, search=search, timing_s=timing,
-                notes=notes(problem, shot)), problem
+                notes=notes(problem, shot), gray_any=task.requirements.gray_any), problem
 
 
 def defect_map(problem: evaluate.Problem, candidate: evaluate.Candidates, maps: Maps) -> np.ndarray:

@@ -190,6 +190,7 @@ class RunResult(Result):
                 "converged": self.success, "captures": self.captures,
                 "replans": [r.to_json() for r in self.replans], "black_level": self.black_level,
                 "refits": [r.to_json() for r in self.refits], "localization": self.localization,
+                **({"gray_band": "any"} if (self.plan or {}).get("gray_band") == "any" else {}),
                 **({"defects": [d.to_json() for d in last.defects]} if last is not None and last.defects else {})}
 
 
