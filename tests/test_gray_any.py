@@ -145,3 +145,17 @@ def test_a_simulated_run_with_any_converges_with_the_defect_over_min_cnr(tmp_pat
     (d,) = cell.report["defects"]
     print("hinge scratch with any: planned", d["predicted_cnr"], "measured", d["measured_cnr"])
     assert d["measured_cnr"] >= d["min_cnr"]
+
+
+@pytest.mark.long          # a 15-50 s plan and its closed loop
+def test_a_run_with_any_whose_defect_does_not_show_stops_with_cause_contrast(tmp_path):
+    """The same with `any` on a world without the defect (noise on, `defects` off): the good
+    surface is in the sensor's range, but the scratch measures noise: exit 1, cause `contrast`."""
+    from simcell import run_loop, variant
+    effects = [e for e in SEEN if e != "defects"]
+    path = variant(tmp_path, TASKS / "hinge-scratch.yaml", {"requirements.gray_band": "any", "sim.effects": effects})
+    cell = run_loop(path, tmp_path / "run")
+    assert cell.error is not None and cell.error.exit_code == 1 and cell.error.cause == "contrast"
+    assert cell.report["iterations"][-1]["in_band"] and cell.report["gray_band"] == "any"
+    (d,) = cell.report["defects"]
+    assert d["measured_cnr"] < d["min_cnr"] <= d["predicted_cnr"]
