@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
+from cell.cli import check
 from cell.core.errors import TaskError
 from cell.planning import defects, evaluate, one_shot
 from cell.task.loader import load_task
@@ -38,6 +39,7 @@ def test_any_loads_as_the_sensor_s_range_from_its_datasheet_keys(tmp_path):
                                                 "black_level": 4.0}))
     req = task.requirements
     assert req.gray_any and req.gray_band == pytest.approx((4.0 + 3 * 0.05 * 6.0, 2**8 - 2))
+    assert "requirements gray any (4.9..254, the sensor range)" in check.summarize(task)
     plain = load_task(task_file(tmp_path, [SCRATCH], name="plain.yaml")).requirements
     assert not plain.gray_any and plain.gray_band == (100.0, 125.0)
 
