@@ -161,3 +161,23 @@ def test_a_run_with_any_whose_defect_does_not_show_stops_with_cause_contrast(tmp
     assert cell.report["iterations"][-1]["in_band"] and cell.report["gray_band"] == "any"
     (d,) = cell.report["defects"]
     assert d["measured_cnr"] < d["min_cnr"] <= d["predicted_cnr"]
+
+
+def test_raised_drives_scale_every_exposure_by_one_factor_up_to_the_first_limit():
+    """drives.raised on two channels: u = x w grows by one factor, the largest that keeps the
+    brightest signal at top_signal, x at t_hi / kappa_open^2 and each drive at w_max (worked by
+    hand here), and a defect's CNR at the new u is at least the old one's (it grows with the factor)."""
+    from cell.planning import drives
+    v = np.array([[100.0, 50.0, 10.0], [20.0, 40.0, 80.0]]) * 1e3          # gray per (s / kappa^2) at full drive
+    d = drives.solve_drives(v, (20.0, 200.0), 0.0, 2.0, (1e-5, 0.02), (2.0, 16.0))
+    x = d.shutter_s / d.f_number**2
+    u = x * d.drive
+    for top, expect in ((250.0, 250.0 / (u @ v).max()),
+                        (1e6, min(0.02 / 4.0 / x * np.min(1.0 / d.drive[d.drive > 0]), 1e6 / (u @ v).max()))):
+        r = drives.raised(d, v, 0.0, 2.0, (1e-5, 0.02), (2.0, 16.0), np.array([[0.0, 1.0], [0.0, 1.0]]), top)
+        u_new = r.shutter_s / r.f_number**2 * r.drive
+        assert u_new == pytest.approx(u * expect, rel=1e-9)
+        assert np.all(r.drive <= 1.0 + 1e-12) and r.shutter_s <= 0.02 * (1 + 1e-12)
+        rows = drives.ContrastRows(difference=np.array([[30.0], [-5.0]]) * 1e3, total=(v[:, :1] * 2),
+                                   sign=np.array([1.0]), min_cnr=np.array([5.0]), gain=0.0255, dark_e=10.0)
+        assert rows.cnr(u_new)[0] >= rows.cnr(u)[0]
