@@ -1,5 +1,6 @@
 """`cell bench`'s rows for what the contrast requirement costs (issue 25, item 6), on a task
-with `defects:` (default: tasks/hinge-scratch.yaml):
+with `defects:` (default: tasks/hinge-scratch.yaml and tasks/conrod-defects.yaml, whose dent
+gives a dent's rows beside the scratches'):
 
 - `contrast`, per defect, feature samples and resolution: the time to judge every defect's
   worst CNR (cell.planning.defects) at POSES lamp poses around the feature (a ring at 45 deg
@@ -31,7 +32,8 @@ from cell.planning.scene import build_scene
 if TYPE_CHECKING:
     from cell.task.types import Task
 
-DEFECT_TASKS = (files("lightplan_tasks") / "hinge-scratch.yaml",)    # a task with defects, installed
+# tasks with defects, installed: the hinge's scratch; the conrod's scratch and dent (a dent's rows)
+DEFECT_TASKS = (files("lightplan_tasks") / "hinge-scratch.yaml", files("lightplan_tasks") / "conrod-defects.yaml")
 POSES = 8
 QUICK_POSES = 2
 SAMPLES = (16, 64, 256)

@@ -51,7 +51,8 @@ def _feature_lines(f, label):
     deg, req, radius_mm = 180.0 / np.pi, f.requirements, f.radius_m * 1e3
     return [f"{label:<12} center {_vector(f.center_m, 1e3, 2)} mm, normal {_vector(f.normal)} (part frame), "
             f"radius {radius_mm:g} mm (area {np.pi * radius_mm**2:.1f} mm^2), {f.samples} samples",
-            f"requirements gray {_span(req.gray_band)}, {req.reflection}, "
+            f"requirements gray {'any (' + _span(req.gray_band) + ', the sensor range)' if req.gray_any else _span(req.gray_band)}, "
+            f"{req.reflection}, "
             f"margin {req.region_margin_rad * deg:g} deg, lamp tolerance {req.lamp_tolerance_rad * deg:g} deg, "
             f"depth of field {req.depth_of_field_m * 1e3:g} mm"]
 

@@ -216,7 +216,49 @@ def solve_drives(unit_gray: ArrayLike, band: tuple[ArrayLike, ArrayLike], black_
     drive[active] = w_active
     shutter, kappa = (float(a) for a in exposure_for_gain(gain / scale, kappa_open, (t_lo, t_hi), f_number_range))
     drive = _slack_off(drive, v, shutter / kappa**2, w_min, black_level, low, high, drive_error)
+    return _judged(v, drive, shutter, kappa, black_level, low, high, w_min, w_max, (x_lo, x_hi), drive_error,
+                   solves, message)
 
+
+def raised(d: Drives, unit_gray: ArrayLike, black_level: float, kappa_open: float,
+           shutter_range_s: tuple[float, float], f_number_range: tuple[float, float], drive_range: ArrayLike,
+           top_signal: float) -> Drives:
+    """The Drives `d` with every exposure u_k = x w_k raised by one common factor lambda >= 1, the
+    largest that keeps the brightest sample's signal (its gray less b, at the nominal drives) at
+    most `top_signal` [gray], the exposure gain x at most t_hi / kappa_open^2 and each drive at most
+    its w_max (x first, then the drives): `gray_band: any`'s exposure. A defect's CNR grows with
+    lambda (contrast lambda D, noise sqrt(a + lambda K T): CNR(lambda) = lambda D / sqrt(a +
+    lambda K T), increasing), so every CNR of the drives' mix is the largest the ceiling allows:
+    with one channel, the largest any exposure gives."""
+    v = np.asarray(unit_gray, float)
+    n_channels, n_samples = v.shape
+    w_range = np.broadcast_to(np.asarray(drive_range, float), (n_channels, 2))
+    t_lo, t_hi = map(float, shutter_range_s)
+    x_lo, x_hi = t_lo / float(f_number_range[1])**2, t_hi / kappa_open**2
+    x = d.shutter_s / d.f_number**2
+    u = x * d.drive
+    brightest = float(np.max(u @ v))
+    if brightest <= 0 or top_signal <= 0:
+        return d
+    on = d.drive > 0
+    room = np.min(w_range[on, 1] / d.drive[on], initial=np.inf) * x_hi / x
+    factor = max(1.0, min(top_signal / brightest, room))
+    x_new = min(x * factor, x_hi)
+    drive = np.minimum(u * factor / x_new, w_range[:, 1])
+    shutter, kappa = (float(a) for a in exposure_for_gain(x_new, kappa_open, (t_lo, t_hi), f_number_range))
+    low, high = (np.broadcast_to(np.asarray(end, float), (n_samples,)) for end in d.band)
+    return _judged(v, drive, shutter, kappa, black_level, low, high, w_range[:, 0], w_range[:, 1], (x_lo, x_hi),
+                   d.drive_error, d.solves, d.solver_message + f"; raised x{factor:.3g} to the top (gray_band any)")
+
+
+def _judged(v, drive, shutter, kappa, black_level, low, high, w_min, w_max, gain_range, drive_error, solves,
+            message) -> Drives:
+    """The Drives of these drive levels and exposure: the predicted gray, the margin, the cause and
+    what the extremes reach (Drives' fields)."""
+    x_lo, x_hi = gain_range
+    lit = v > 0
+    active = lit.any(axis=1)
+    width = float((high - low).min())
     signal = shutter / kappa**2 * (drive @ v)
     gray = black_level + signal
     low_slack = black_level + (1 - drive_error) * signal - low

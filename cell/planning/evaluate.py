@@ -348,9 +348,14 @@ def light_moves(problem: Problem, u: np.ndarray, drive: np.ndarray) -> list[np.n
             for k in range(lights.turned.shape[0]) for m in range(lights.turned.shape[1])]
 
 
-def exposure(problem: Problem, unit_gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """centring_exposure of the Problem's band, black level, camera and depth of field."""
+def exposure(problem: Problem, unit_gray: np.ndarray,
+             moved: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """centring_exposure of the Problem's band, black level, camera and depth of field; with
+    `gray_band: any`, top_exposure (`moved`: the tolerance moves' gray per exposure, (M, C, P))."""
     cam = problem.task.camera
+    if problem.task.requirements.gray_any:
+        return top_exposure(unit_gray, np.zeros((0,) + unit_gray.shape) if moved is None else moved, problem.band,
+                            problem.black_level, problem.kappa_open, cam.shutter_range_s, cam.lens.f_number_range)
     return centring_exposure(unit_gray, problem.band, problem.black_level, problem.kappa_open,
                              cam.shutter_range_s, cam.lens.f_number_range)
 
@@ -373,6 +378,26 @@ def centring_exposure(unit_gray: np.ndarray, band: tuple[float, float], black_le
         gain = np.where(u_mid > 0, target / np.where(u_mid > 0, u_mid, 1.0), np.inf)
     shutter, kappa = exposure_for_gain(gain, kappa_open, shutter_range, f_number_range)
     return shutter, kappa, kappa_open**2 * gain
+
+
+def top_exposure(unit_gray: np.ndarray, moved: np.ndarray, band: tuple[float, float], black_level: float,
+                 kappa_open: float, shutter_range: tuple[float, float],
+                 f_number_range: tuple[float, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`gray_band: any`'s (shutter, f-number, shutter needed at kappa_open) for gray per exposure
+    (C, P) and its tolerance moves' (M, C, P): the brightest sample, moved or not, at the band's
+    top (x = (high - b) / max u: a defect's CNR grows with the exposure, cell.planning.drives.raised);
+    the shutter needed is the one putting the darkest lit sample at the band's low end (what
+    `any` asks: not black), inf where no sample is lit."""
+    low, high = band
+    lit = unit_gray > 0.0
+    brightest = np.max(np.concatenate([unit_gray[None], moved]), axis=(0, 2))
+    darkest = np.where(lit, unit_gray, np.inf).min(axis=-1)
+    with np.errstate(divide="ignore", over="ignore"):
+        gain = np.where(brightest > 0, (high - black_level) / np.where(brightest > 0, brightest, 1.0), np.inf)
+        need = np.where(lit.any(axis=-1), max(low - black_level, 0.0) / np.where(lit.any(axis=-1), darkest, 1.0),
+                        np.inf)
+    shutter, kappa = exposure_for_gain(gain, kappa_open, shutter_range, f_number_range)
+    return shutter, kappa, kappa_open**2 * need
 
 
 def exposure_for_gain(gain: ArrayLike, kappa_open: float, shutter_range: tuple[float, float],
@@ -450,13 +475,13 @@ def candidates(problem: Problem, pan: ArrayLike, tilt: ArrayLike, radius: ArrayL
     all_u, all_shadowed, all_off_axis, all_dominant = lit_by_all(
         problem, unit_gray(problem, all_pos, rig.lamp_aim(pivot, all_pos)), np.tile(drives, (len(moves) + 1, 1)))
     u = all_u[:n]
-    shutter, kappa, t_need = exposure(problem, u)
-    gain = (shutter / kappa**2)[:, None]
     b = problem.black_level
     moved = all_u[n:].reshape(len(moves), n, u.shape[1])
     if tolerance:
         moved = np.concatenate([moved, np.array(drive_moves(problem, u) + light_moves(problem, u, drives))
                                .reshape(-1, n, u.shape[1])])
+    shutter, kappa, t_need = exposure(problem, u, moved)
+    gain = (shutter / kappa**2)[:, None]
     return Candidates(all_pos[:n], b + u * gain, b + moved * gain, all_shadowed[:n], all_off_axis[:n],
                       all_dominant[:n], shutter, kappa, t_need, drives)
 

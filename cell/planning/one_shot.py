@@ -93,6 +93,18 @@ CERTIFY_ROUNDS = 3          # searches again with the certificate's worst points
 UNLIT_OBJECTIVE = 1e300     # the objective of a pose no exposure can make work (it is inf), finite
 
 
+def score(problem: evaluate.Problem, values: dict[str, np.ndarray]) -> np.ndarray:
+    """The search's objective (lower is better): requirements.objective, eq. (22)'s smooth max of
+    the ln f_i; with `gray_band: any`, where every requirement is met (each ln f_i <= 0), the worst
+    defect's ln(min_cnr / CNR) instead (<= 0, below every pose that misses one, whose smooth max
+    exceeds its largest ln f_i > 0): among the poses that meet every requirement the plan takes
+    the largest worst CNR."""
+    objective = requirements.objective(values)
+    if not problem.task.requirements.gray_any:
+        return objective
+    return np.where(requirements.missed(values), objective, values["defect_cnr"])
+
+
 def refine(start: ArrayLike, lamp_rig: LampRig, objective: Callable[[np.ndarray], float]
            ) -> tuple[np.ndarray, Refinement]:
     """Nelder-Mead over (pan, tilt, radius) in grid-step units from `start`, clipped to the rig's
@@ -121,13 +133,13 @@ def refine(start: ArrayLike, lamp_rig: LampRig, objective: Callable[[np.ndarray]
 
 
 def pose_objectives(problem: evaluate.Problem, joints: ArrayLike) -> np.ndarray:
-    """(K,) the objective (eq. 22) of K lamp poses (K, 3) (pan, tilt, radius), the lamp moved by
-    its tolerance; an unlit pose's (inf) capped at UNLIT_OBJECTIVE: Nelder-Mead compares
+    """(K,) the search's objective (score: eq. 22, or the worst CNR with `gray_band: any`) of K
+    lamp poses (K, 3) (pan, tilt, radius), the lamp moved by its tolerance; an unlit pose's (inf) capped at UNLIT_OBJECTIVE: Nelder-Mead compares
     differences, and inf - inf is NaN. A pose's value reads its own row alone (the kernel's thread
     per lamp and sample, NumPy's reductions per row): the same however many are evaluated at once."""
     x = np.asarray(joints, float).reshape(-1, 3)
     c = evaluate.candidates(problem, x[:, 0], x[:, 1], x[:, 2])
-    return np.minimum(requirements.objective(requirements.ln_values(problem, c)), UNLIT_OBJECTIVE)
+    return np.minimum(score(problem, requirements.ln_values(problem, c)), UNLIT_OBJECTIVE)
 
 
 def refine_all(problem: evaluate.Problem, starts: list[np.ndarray],
@@ -196,7 +208,7 @@ def search(task: Task, settings: PlannerSettings, albedo_scale: float, extra: np
     lamp_rig = task.lamp.rig
     pan, tilt, radius = candidate_grid(lamp_rig, settings)
     global_values = requirements.ln_values(problem, evaluate.candidates(problem, pan, tilt, radius, tolerance=False))
-    obj = requirements.objective(global_values)
+    obj = score(problem, global_values)
     maps = replace(maps, candidate_pan=pan, candidate_tilt=tilt, candidate_objective=obj)
     problem = replace(problem, maps=maps)
     timing["global_search"] = time.perf_counter() - t
@@ -213,7 +225,7 @@ def search(task: Task, settings: PlannerSettings, albedo_scale: float, extra: np
     else:
         final = evaluate.candidates(problem, stack[:, 0], stack[:, 1], stack[:, 2])
     final_values = requirements.ln_values(problem, final)
-    rank = np.lexsort((requirements.objective(final_values), requirements.missed(final_values)))
+    rank = np.lexsort((score(problem, final_values), requirements.missed(final_values)))
     best = int(rank[0])
     timing["refine"] = time.perf_counter() - t
     search = Search(candidates=len(pan), starts=len(poses), refinements=tuple(r for _, r in refined))
@@ -226,7 +238,7 @@ def search(task: Task, settings: PlannerSettings, albedo_scale: float, extra: np
                 objective=verdict.objective, hint="" if verdict.feasible else hint(binding, lit[best][1] if lit else None),
                 shots=(shot,),
                 maps=maps, settings=settings, scene=scene, search=search, timing_s=timing,
-                notes=notes(problem, shot)), problem
+                notes=notes(problem, shot), gray_any=task.requirements.gray_any), problem
 
 
 def defect_map(problem: evaluate.Problem, candidate: evaluate.Candidates, maps: Maps) -> np.ndarray:
@@ -253,7 +265,8 @@ def hint(binding: RequirementValue, chosen: drives.Drives | None) -> str:
 def lighting(problem: evaluate.Problem, joints: ArrayLike) -> tuple[evaluate.Candidates, drives.Drives]:
     """The spot at `joints` (pan, tilt, radius) with the task's other lights: their drive levels,
     shutter and f-number by the linear program over every light's gray (cell.planning.drives: the
-    band's margin, robust to the drive tolerance), as Candidates of one judged at that exposure,
+    band's margin, robust to the drive tolerance; with `gray_band: any` raised to the sensor's top,
+    drives.raised), as Candidates of one judged at that exposure,
     the spot moved by its tolerance and the drives off by theirs; the shutter the band needs is the
     program's at the widest f-number the depth of field allows."""
     task = problem.task
@@ -273,8 +286,25 @@ def lighting(problem: evaluate.Problem, joints: ArrayLike) -> tuple[evaluate.Can
                                  ranges, [c.switched for c in channels], task.requirements.drive_tolerance, rows)
     c = evaluate.at_exposure(problem, position[0], chosen.shutter_s, chosen.f_number, joints=tuple(x),
                              drive=chosen.drive)
+    if task.requirements.gray_any:
+        chosen = drives.raised(chosen, unit_gray, problem.black_level, problem.kappa_open,
+                               task.camera.shutter_range_s, task.camera.lens.f_number_range, ranges,
+                               _top_signal(problem, c))
+        c = evaluate.at_exposure(problem, position[0], chosen.shutter_s, chosen.f_number, joints=tuple(x),
+                                 drive=chosen.drive)
     need = chosen.shutter_s * (problem.kappa_open / chosen.f_number) ** 2
     return replace(c, t_need=np.array([need])), chosen
+
+
+def _top_signal(problem: evaluate.Problem, c: evaluate.Candidates) -> float:
+    """The brightest sample's signal (gray less b) at the nominal drives that `gray_band: any`'s
+    exposure may reach: the band's top less b (the sensor's range, cell.task.loader.any_band),
+    shrunk by how much brighter the lamp's tolerance moves and the drive and light errors make
+    the brightest sample (c's moved grays), so that none of them saturates."""
+    b = problem.black_level
+    nominal = float(np.max(c.gray[0]) - b)
+    worst = float(np.max(c.moved_gray - b, initial=nominal))
+    return (problem.band[1] - b) * nominal / worst if worst > 0 else 0.0
 
 
 def light_settings(problem: evaluate.Problem, candidate: evaluate.Candidates) -> tuple[LightSetting, ...]:

@@ -254,6 +254,7 @@ class Plan:
     plans: tuple[Plan, ...] = ()               # each feature's own one-shot Plan (a multi-feature plan)
     cover: dict[str, Any] | None = None        # candidate shots, coverage matrix, travel, chosen (plain values)
     moves: tuple[Move, ...] = ()               # the checked moves of its route from the home pose (cell.run.moves)
+    gray_any: bool = False                     # `gray_band: any`: plan.json's `gray_band` says "any"
 
     @property
     def success(self) -> bool:
@@ -321,6 +322,7 @@ class Plan:
             "contributions": contributions_json(shot.lights),
             "camera": camera_json(shot),
             "predicted_gray": gray_stats(shot.gray),
+            **({"gray_band": "any"} if self.gray_any else {}),
             **({"defects": [d.to_json() for d in shot.defects]} if shot.defects else {}),
             "verified": self.verification.to_json() if self.verification else None,
             **clearance_json(shot),

@@ -190,6 +190,7 @@ class RunResult(Result):
                 "converged": self.success, "captures": self.captures,
                 "replans": [r.to_json() for r in self.replans], "black_level": self.black_level,
                 "refits": [r.to_json() for r in self.refits], "localization": self.localization,
+                **({"gray_band": "any"} if (self.plan or {}).get("gray_band") == "any" else {}),
                 **({"defects": [d.to_json() for d in last.defects]} if last is not None and last.defects else {})}
 
 
@@ -209,8 +210,16 @@ class Model:
 
     def exposure(self, black_level: float, lens_range: tuple[float, float]) -> tuple[float, float]:
         """(shutter, f-number) the planner's closed form sets for the plan's lamp pose with black
-        level b (evaluate.centring_exposure on the plan's signal per unit exposure)."""
+        level b (evaluate.centring_exposure on the plan's signal per unit exposure); with
+        `gray_band: any`, the plan's exposure gain x = t / kappa^2 by (high - b) / (high - b0) (b0
+        the black level planned with): its brightest signal shrinks with the room left below the
+        band's top, its headroom for the tolerances kept."""
         e, camera = self.plan.shot.exposure, self.task.camera
+        if self.task.requirements.gray_any:
+            high, planned = evaluate.planning_band(self.task)[1], evaluate.black_level(self.task)
+            gain = e.shutter_s / e.f_number**2 * (high - black_level) / (high - planned)
+            shutter, kappa = evaluate.exposure_for_gain(gain, lens_range[0], camera.shutter_range_s, lens_range)
+            return float(shutter), float(kappa)
         unit = (self.plan.shot.gray - evaluate.black_level(self.task)) * e.f_number**2 / e.shutter_s
         shutter, kappa, _ = evaluate.centring_exposure(unit[None], evaluate.planning_band(self.task), black_level,
                                                        lens_range[0], camera.shutter_range_s, lens_range)

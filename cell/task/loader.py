@@ -25,8 +25,9 @@ from cell.core.errors import TaskError
 from cell.core.frames import Frames
 from cell.core.inputs import checked_file
 from cell.physics.material import PARAMETERS, TERMS, Material, Unresolved
+from cell.physics import sensor as sensor_model
 from cell.physics.radiometry import camera_constant_from_datasheet
-from cell.task.schema import (NON_NEGATIVE, POSITIVE, Anything, Choice, Flag, Integer, Invalid, Number, Pair,
+from cell.task.schema import (NON_NEGATIVE, POSITIVE, Anything, Band, Choice, Flag, Integer, Invalid, Number, Pair,
                          Section, Sections, Spec, Table, Text, ToSI, Vector, parse, read_yaml, show)
 from cell.task.types import (DEFECT_KINDS, LIGHT_TYPES, MOUNTS, Calibration, CameraModel, CellConfig, Channel,
                        Defect, Feature, Goniometer, Lamp, LampRig, Lens, Light, LoopSettings, Part, Requirements, Sample,
@@ -133,7 +134,7 @@ FEATURE = {
     "defects": Sections(DEFECT),
 }
 REQUIREMENTS = {
-    "gray_band": Pair(lambda v: True, "gray levels", strict=True),
+    "gray_band": Band(),
     "reflection": Choice("diffuse", "lobe", "spike", "any"),
     "region_margin_deg": Number(**NON_NEGATIVE),
     "lamp_tolerance_deg": Number(**NON_NEGATIVE),
@@ -498,7 +499,37 @@ def _feature_entries(file, v):
     return entries
 
 
+def any_band(sensor: dict[str, Any]) -> tuple[float, float]:
+    """The band `gray_band: any` stands for, the sensor's range: low = b + 3 K sigma_d, three
+    times the dark noise (EMVA 1288: K the system gain [gray/e-], sigma_d the dark noise [e-],
+    cell.physics.sensor's defaults where the camera gives none) above the black level b (0 while
+    unknown), so the good surface is not black; high = 2^bit_depth - 2, one level below the
+    saturation level 2^bit_depth - 1 (a pixel reading that may be brighter), so it is not saturated."""
+    bits = sensor["bit_depth"]
+    noise = sensor_model.system_gain(bits, sensor["system_gain_dn_per_e"]) * sensor_model.dark_noise(sensor["dark_noise_e"])
+    black = sensor["black_level"] or 0.0
+    return float(black + 3.0 * noise), float(sensor_model.saturation_level(bits) - 1)
+
+
+def _resolve_any(file, entries, written, sensor):
+    """The entries with each `gray_band: any` replaced by any_band (Requirements.gray_any set);
+    `any` on a feature without `defects` asks nothing of it: refused, naming the key it was written at."""
+    out = []
+    for key, name, f, req in entries:
+        any_band_here = req["gray_band"] == "any"
+        if any_band_here and not f["defects"]:
+            own = key != "feature" and written(f) == "any"
+            raise TaskError(file, f"{key}.requirements.gray_band" if own else "requirements.gray_band", "any",
+                            f"an ascending pair of gray levels: `any` (only contrast matters) needs the feature's "
+                            f"`defects` ({key} declares none)")
+        out.append((key, name, f, req | {"gray_band": any_band(sensor) if any_band_here else req["gray_band"],
+                                         "gray_any": any_band_here}))
+    return out
+
+
 def _check_gray_band(file, key, band, bit_depth):
+    if band == "any":
+        return
     top = 2**bit_depth - 1
     for i, gray in enumerate(band):
         if not 0 <= gray <= top:
@@ -537,7 +568,7 @@ def _sensor(task_file, sensor):
 
 def _check_black_level(file, band, black_level):
     """A known black level below the band's top: the band must be reachable by light."""
-    if black_level is not None and not black_level < band[1]:
+    if band != "any" and black_level is not None and not black_level < band[1]:
         raise TaskError(file, "camera.sensor.black_level", show(black_level),
                         f"a gray level below the band's top {band[1]:g} (requirements.gray_band)")
 
@@ -900,6 +931,7 @@ def _load_task(path: Path, data: Any) -> Task:
     for key, _, f, _ in entries:
         if key != "feature" and f["requirements"]["gray_band"] is not None:
             _check_black_level(path, f["requirements"]["gray_band"], black)
+    entries = _resolve_any(path, entries, lambda f: f["requirements"]["gray_band"], cam["sensor"])
     devices = devices_config(path, cell, written=data.get("cell"),
                              bit_depth=cam["sensor"]["bit_depth"])
     _check_camera(path, cam)

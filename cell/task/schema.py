@@ -207,6 +207,25 @@ class Pair(Spec):
         return float(low), float(high)
 
 
+class Band(Spec):
+    """A gray band: an ascending pair of gray levels (low < high), or the text `any` (kept as "any"):
+    only a declared defect's contrast matters (the loader then takes the sensor's range,
+    cell.task.loader.any_band)."""
+
+    def __init__(self, default: Any = REQUIRED) -> None:
+        self.pair = Pair(lambda v: True, "gray levels", strict=True)
+        self.default = default
+        self.expected = f"{self.pair.expected}, or any"
+
+    def convert(self, raw: Any, to_si: ToSI) -> tuple[float, float] | str:
+        if raw == "any":
+            return "any"
+        try:
+            return self.pair.convert(raw, to_si)
+        except Invalid as bad:
+            raise Invalid(bad.found, self.expected, bad.index) from None
+
+
 class Flag(Spec):
     """true or false (YAML's booleans; 0 and 1 are numbers, not flags)."""
 

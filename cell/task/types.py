@@ -33,6 +33,8 @@ class Requirements:
     view_angle_rad: float | None = None    # the camera at most this far from each sample's normal
     drive_tolerance: float = 0.0           # each light channel's true drive within drive x (1 +- this)
     light_tolerance_rad: float = 0.0       # each light's aim (besides the spot) off by up to this: its pose error
+    gray_any: bool = False                 # `gray_band: any`: only the defects' contrast matters, gray_band the
+                                           # sensor's range (cell.task.loader.any_band)
 
 
 DEFECT_KINDS = ("scratch", "dent", "coating")
