@@ -2,13 +2,14 @@
 hand-eye turn, estimated from captures of the simulated cell against its truth keys
 (sim.truth.part_offset_m, part_rpy_deg, camera_rpy_deg), and the closed loop that follows them.
 The expectations are the truth keys themselves and closed forms of the pinhole camera."""
+import cv2
 import numpy as np
 import pytest
 
 from cell.core import geometry
 from cell.devices.rig import lamp_aim
 from cell.planning.one_shot import plan
-from cell.run import localization
+from cell.run import localization, registration
 from cell.task.loader import load_task
 from sim.arm import SimArm
 from sim.world import Renderer
@@ -234,3 +235,18 @@ def test_the_hinge_10_mm_off_tilted_with_its_camera_turned_is_registered_where_i
     assert found["hand_eye_rpy_deg"][:2] == pytest.approx(truth["camera_rpy_deg"][:2], abs=0.3)
     last = cell.report["iterations"][-1]["registration"]
     assert last["trusted"] and last["correlation"] < 0.95 and last["offset_px"] < 1.0
+
+
+def test_the_whole_shift_of_a_turned_bar_across_the_view_is_its_centres():
+    """A bar across the whole view (the conrod's shank), turned 4 deg about the feature's pixel and
+    moved by (-52, -88) px in the capture: whole_shift finds the move of that pixel to within
+    registration.COARSE px (the turned template; unturned, only the bar's one end matched)."""
+    v, u = np.mgrid[:400, :600].astype(np.float32)
+    model = np.where(np.abs(v - 200.0) < 40.0, 100.0, 2.0).astype(np.float32)
+    model[(np.abs(v - 200.0) < 40.0) & (np.abs(u - 300.0) < 10.0)] = 60.0      # a mark on the bar
+    about, shift = (300.0, 200.0), (-52.0, -88.0)
+    M = cv2.getRotationMatrix2D(about, 4.0, 1.0)
+    M[:, 2] += shift
+    capture = cv2.warpAffine(model, M, (600, 400), borderValue=2.0)
+    capture += np.random.default_rng(1).normal(0.0, 0.5, capture.shape).astype(np.float32)
+    assert localization.whole_shift(model, capture, about) == pytest.approx(shift, abs=registration.COARSE)
