@@ -151,7 +151,9 @@ def whole_shift(model: np.ndarray, capture: np.ndarray, about: tuple[float, floa
     model's image to the capture, to within registration.COARSE px: their equalized edges
     (registration.gradient of registration.high_pass) at 1/COARSE resolution, the model's turned
     about that point by each of registration.COARSE_TURNS_DEG, its part's bounding box matched over
-    the capture by normalized correlation, the best turn's peak. The turns: a long straight edge
+    the capture by normalized correlation, the best turn's peak if it beats the unturned one's by
+more than noise could (registration.turned_if_significant), else the unturned one's (turned
+hinges' windows scored alike, and a turned start put one 1 mm low). The turns: a long straight edge
     turned a few degrees (the conrod's shank, yawed 5 deg, across the whole view) matches no
     unturned template but at its one end (the shank's edge 480 px off, against -123 px found
     with the turn)."""
@@ -162,7 +164,7 @@ def whole_shift(model: np.ndarray, capture: np.ndarray, about: tuple[float, floa
     edges_m = registration.gradient(registration.high_pass(small_m))
     edges_c = registration.gradient(registration.high_pass(small_c))
     centre = (about[0] / step, about[1] / step)
-    best = (-np.inf, 0.0, 0.0)
+    peaks: dict[float, tuple[float, Any]] = {}        # per turn: its peak and the shift there
     for turn in registration.COARSE_TURNS_DEG:
         turned = cv2.warpAffine(edges_m, cv2.getRotationMatrix2D(centre, turn, 1.0), size)
         rows, cols = np.nonzero(turned > 0.05 * turned.max()) if turned.any() else ((), ())
@@ -174,9 +176,11 @@ def whole_shift(model: np.ndarray, capture: np.ndarray, about: tuple[float, floa
         padded = cv2.copyMakeBorder(edges_c, ph, ph, pw, pw, cv2.BORDER_CONSTANT, value=0)
         score = cv2.matchTemplate(padded, template, cv2.TM_CCORR_NORMED)
         _, peak, _, (u, v) = cv2.minMaxLoc(np.nan_to_num(score, nan=-1.0))
-        if peak > best[0]:
-            best = (peak, float(step * (u - pw - u0)), float(step * (v - ph - v0)))
-    return best[1], best[2]
+        peaks[turn] = (peak, (float(step * (u - pw - u0)), float(step * (v - ph - v0))))
+    if not peaks:
+        return 0.0, 0.0
+    shift: tuple[float, float] = peaks[registration.turned_if_significant(peaks, edges_m.size)][1]
+    return shift
 
 
 def edge_samples(view: ModelView, capture: np.ndarray, sigma_px: float) -> Samples:
