@@ -432,3 +432,55 @@ def test_on_a_plate_filling_the_frame_there_is_nothing_to_register_unless_the_ca
     stepped = np.asarray(image, float) + 30.0 * (np.arange(w) >= int(np.mean(col[inside])))[None, :]
     found = registration.locate(stepped, task, scene, scene.T_cell_cam, lamp, row[inside], col[inside], 255.0)
     assert not found.trusted and found.note == "the capture shows edges around the feature where the model has none"
+
+
+def test_the_edges_noise_rms_is_what_smoothed_white_noise_leaves():
+    """Brute force: white noise of rms 1, smoothed as the capture is before ECC and its shading
+    removed, has the rms edge_noise_rms says (to the sampling error of 512 x 512 pixels)."""
+    noise = np.random.default_rng(3).standard_normal((512, 512)).astype(np.float32)
+    edges = registration.shading_removed(cv2.GaussianBlur(noise, (0, 0), registration.SMOOTH_SIGMA))
+    assert float(edges[64:-64, 64:-64].std()) == pytest.approx(registration.edge_noise_rms(), rel=0.03)
+
+
+def _edged_window(seed, noise, shift_px=0.0, lobe=0.0):
+    """(template, capture, noise rms): a 200 px window with a disk's edge (the template: the
+    model's noiseless gray, smoothed), the capture its gain x 2 moved by shift_px across x, plus
+    `lobe` x a slowly varying shading the model lacks (a Gaussian lobe of sigma 60 px), plus white
+    noise of rms `noise`, smoothed as registration smooths it."""
+    v, u = np.mgrid[:200, :200].astype(np.float32)
+
+    def disk(du):
+        return 40.0 + 60.0 * (np.hypot(u - 80.0 - du, v - 110.0) < 50.0)
+    template = cv2.GaussianBlur(disk(0.0).astype(np.float32), (0, 0), registration.SMOOTH_SIGMA)
+    shading = lobe * np.exp(-((u - 200.0) ** 2 + (v - 40.0) ** 2) / (2 * 60.0**2))
+    raw = 2.0 * disk(shift_px) + shading + noise * np.random.default_rng(seed).standard_normal(u.shape)
+    return template, cv2.GaussianBlur(raw.astype(np.float32), (0, 0), registration.SMOOTH_SIGMA), noise
+
+
+def test_the_edges_ceiling_is_the_correlation_the_noise_leaves_a_right_alignment():
+    """The ceiling against an independent expectation: the mean correlation of the template's
+    edges with those of noiseless-gain captures plus fresh noise (Monte Carlo over 8 seeds); a
+    shading lobe the model lacks lowers ECC's own correlation below MIN_CORRELATION but not the
+    edges', so a right alignment is trusted, one 2 px off is not, and neither is one whose edges
+    drown in noise (ceiling below MIN_CORRELATION)."""
+    noise = 8.0
+    trials = []
+    for seed in range(8):
+        template, capture, _ = _edged_window(seed, noise)
+        trials.append(registration.correlation_coefficient(registration.shading_removed(template),
+                                                           registration.shading_removed(capture)))
+    template, capture, _ = _edged_window(11, noise, lobe=150.0)
+    edges, ceiling = registration.edge_correlation(template, capture, noise)
+    assert ceiling == pytest.approx(float(np.mean(trials)), abs=0.003)
+    assert edges == pytest.approx(ceiling, abs=0.01)
+    raw = registration.correlation_coefficient(template, capture)
+    assert raw < registration.MIN_CORRELATION
+    assert registration.correlates_as_aligned(raw, edges, ceiling)
+    template, off, _ = _edged_window(11, noise, shift_px=2.0, lobe=150.0)
+    assert not registration.correlates_as_aligned(registration.correlation_coefficient(template, off),
+                                                  *registration.edge_correlation(template, off, noise))
+    template, drowned, _ = _edged_window(11, 120.0, lobe=150.0)
+    edges, ceiling = registration.edge_correlation(template, drowned, 120.0)
+    assert ceiling < registration.MIN_CORRELATION
+    assert not registration.correlates_as_aligned(registration.correlation_coefficient(template, drowned),
+                                                  edges, ceiling)

@@ -17,7 +17,7 @@ taken from the read-back pose C_i, at
 and the capture's band-passed gray there (bilinear) times a gain per view must equal the
 model's. The 9 parameters are fitted to every view at once by robust least squares
 (scipy.optimize.least_squares, soft_l1 at LOSS), coarse to fine over SCALES_PX, from the start
-the whole views' shifts give (whole_shift, fit_shifts); the Jacobian is the capture's slope times
+the whole views' shifts give (whole_shift, turned: fit_shifts); the Jacobian is the capture's slope times
 each point's image motion. Standard errors: s^2 (J^T J)^-1 with s^2 the residuals' variance,
 prior residuals (PRIOR_*) keeping it determined where the views tell nothing (the conrod's
 shank along its length).
@@ -146,26 +146,41 @@ def band_pass(image: np.ndarray, sigma_px: float) -> np.ndarray:
     return cv2.GaussianBlur(image, (0, 0), sigma_px) - cv2.GaussianBlur(image, (0, 0), BAND_RATIO * sigma_px)
 
 
-def whole_shift(model: np.ndarray, capture: np.ndarray) -> tuple[float, float]:
-    """The capture's shift from the model's image (dx, dy) [px], to within registration.COARSE px:
-    their equalized edges (registration.gradient of registration.high_pass) at 1/COARSE resolution, the
-    model's part's bounding box matched over the capture by normalized correlation."""
+def whole_shift(model: np.ndarray, capture: np.ndarray, about: tuple[float, float]) -> tuple[float, float]:
+    """The shift (dx, dy) [px] of the image point `about` (the feature centre's pixel) from the
+    model's image to the capture, to within registration.COARSE px: their equalized edges
+    (registration.gradient of registration.high_pass) at 1/COARSE resolution, the model's turned
+    about that point by each of registration.COARSE_TURNS_DEG, its part's bounding box matched over
+    the capture by normalized correlation, the best turn's peak if it beats the unturned one's by
+more than noise could (registration.turned_if_significant), else the unturned one's (turned
+hinges' windows scored alike, and a turned start put one 1 mm low). The turns: a long straight edge
+    turned a few degrees (the conrod's shank, yawed 5 deg, across the whole view) matches no
+    unturned template but at its one end (the shank's edge 480 px off, against -123 px found
+    with the turn)."""
     step = registration.COARSE
     size = (round(model.shape[1] / step), round(model.shape[0] / step))
     small_m = cv2.resize(equalized(model), size, interpolation=cv2.INTER_AREA)
     small_c = cv2.resize(equalized(capture), size, interpolation=cv2.INTER_AREA)
     edges_m = registration.gradient(registration.high_pass(small_m))
     edges_c = registration.gradient(registration.high_pass(small_c))
-    rows, cols = np.nonzero(edges_m > 0.05 * edges_m.max())
-    if rows.size == 0:
+    centre = (about[0] / step, about[1] / step)
+    peaks: dict[float, tuple[float, Any]] = {}        # per turn: its peak and the shift there
+    for turn in registration.COARSE_TURNS_DEG:
+        turned = cv2.warpAffine(edges_m, cv2.getRotationMatrix2D(centre, turn, 1.0), size)
+        rows, cols = np.nonzero(turned > 0.05 * turned.max()) if turned.any() else ((), ())
+        if len(rows) == 0:
+            continue
+        v0, v1, u0, u1 = min(rows), max(rows) + 1, min(cols), max(cols) + 1
+        template = turned[v0:v1, u0:u1]
+        ph, pw = template.shape
+        padded = cv2.copyMakeBorder(edges_c, ph, ph, pw, pw, cv2.BORDER_CONSTANT, value=0)
+        score = cv2.matchTemplate(padded, template, cv2.TM_CCORR_NORMED)
+        _, peak, _, (u, v) = cv2.minMaxLoc(np.nan_to_num(score, nan=-1.0))
+        peaks[turn] = (peak, (float(step * (u - pw - u0)), float(step * (v - ph - v0))))
+    if not peaks:
         return 0.0, 0.0
-    v0, v1, u0, u1 = rows.min(), rows.max() + 1, cols.min(), cols.max() + 1
-    template = edges_m[v0:v1, u0:u1]
-    ph, pw = template.shape
-    padded = cv2.copyMakeBorder(edges_c, ph, ph, pw, pw, cv2.BORDER_CONSTANT, value=0)
-    score = cv2.matchTemplate(padded, template, cv2.TM_CCORR_NORMED)
-    _, _, _, (u, v) = cv2.minMaxLoc(np.nan_to_num(score, nan=-1.0))
-    return float(step * (u - pw - u0)), float(step * (v - ph - v0))
+    shift: tuple[float, float] = peaks[registration.turned_if_significant(peaks, edges_m.size)][1]
+    return shift
 
 
 def edge_samples(view: ModelView, capture: np.ndarray, sigma_px: float) -> Samples:
@@ -410,7 +425,8 @@ def localize(task: Task, scene: Scene, views: Sequence[View]) -> PoseError | Non
         return None
     models = [model_view(task, scene, v.T_cell_cam, v.lamp_pose, v.drives) for v in views]
     K = projection.intrinsics(task.camera.sensor, task.camera.lens)
-    shifts = [whole_shift(m.value, v.image) for m, v in zip(models, views)]
+    shifts = [whole_shift(m.value, v.image, tuple(projection.project(K, m.T_cell_cam, scene.center[None])[0][0]))
+              for m, v in zip(models, views)]
     theta0 = fit_shifts(K, scene.center, [m.T_cell_cam for m in models], shifts)
     levels = [[edge_samples(m, v.image, s) for m, v in zip(models, views)] for s in SCALES_PX]
     if min(len(s.points) for s in levels[-1]) < MIN_SAMPLES:
