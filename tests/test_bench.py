@@ -13,6 +13,8 @@ from cell.bench.suite import QUICK_SWEEP
 from cell.cli.bench import summary
 from cell.cli import main
 from cell.planning.one_shot import PlannerSettings
+from cell.planning.whole_part import plan_features
+from cell.task.loader import load_task
 
 TASKS = Path(__file__).resolve().parent.parent / "tasks"
 PLANNED = Path(__file__).resolve().parent / "tasks" / "features" / "hinge_planned.yaml"   # the multi-feature rows
@@ -265,3 +267,28 @@ def test_the_contrast_rows_say_what_judging_a_defect_costs_and_how_close_it_come
     assert at["judged"]["cnr_error"] <= at["grid"]["cnr_error"] <= at["ranked"]["cnr_error"]
     assert at["ranked"]["orientations"] == 12 and at["grid"]["orientations"] == 36
     assert len(contrast_table(rows).splitlines()) == len(rows) + 1
+
+
+def test_the_collision_row_times_planning_with_and_without_the_checks(bench):
+    """Issue 26: one row per multi-feature task, its ratio the quotient of the measured medians
+    (each the median of its rounds' times), its target in bench.json's targets."""
+    result, _ = bench
+    (row,) = result["collisions"]
+    assert row["task"] == "hinge_planned" and len(row["times_with_s"]) == len(row["times_without_s"]) >= 1
+    assert row["with_collisions_s"] == pytest.approx(float(np.median(row["times_with_s"])))
+    assert row["without_collisions_s"] == pytest.approx(float(np.median(row["times_without_s"])))
+    assert row["ratio"] == pytest.approx(row["with_collisions_s"] / row["without_collisions_s"])
+    assert row["load"] >= 0.0
+    targets = {t["name"]: t for t in result["targets"]}
+    target = targets["hinge_planned planning with collision checks / without <= 1.3"]
+    assert target["value"] == row["ratio"] and target["met"] == (row["ratio"] <= 1.3)
+
+
+def test_without_collisions_the_planner_skips_the_collision_scene():
+    """PlannerSettings(collisions=False) (the bench's switch): no shot gets a clearance; with the
+    default every candidate shot has one."""
+    task = load_task(PLANNED)
+    with_checks = plan_features(task)
+    without = plan_features(task, PlannerSettings(collisions=False))
+    assert all(p.shot.clearance is not None for p in with_checks.plans)
+    assert all(p.shot.clearance is None for p in without.plans)

@@ -14,7 +14,11 @@ machine's own speedup (machine_speedup): the rate at which a core counts while t
 counts too, against alone. Two virtual cores of a shared host lose 5-15 % of it to each other,
 so that ceiling is what the plan's speedup is to be read against. On a machine other jobs load,
 2 processes take a larger share of its cores than 1: the speedup is a quiet machine's only when
-nothing else runs."""
+nothing else runs.
+
+The collision row (issue 26): the task planned with its collision checks (every shot's clearance,
+the viewpoints' collision pruning) and without (PlannerSettings(collisions=False)), side by side
+in ABBA rounds, the ratio of the median times with the machine's load (/proc/loadavg) beside it."""
 
 from __future__ import annotations
 
@@ -24,9 +28,12 @@ from dataclasses import replace
 from importlib.resources import files
 from typing import TYPE_CHECKING, Any
 
+import os
+
 import numpy as np
 
 from cell.planning import parallel
+from cell.planning.plan import PlannerSettings
 from cell.planning.whole_part import plan_features
 
 if TYPE_CHECKING:
@@ -37,6 +44,7 @@ FEATURE_TASKS = (files("lightplan_tasks") / "bracket.yaml",)    # the multi-feat
 SPEEDUP_TARGET = 1.8            # 2 workers over 1 (the issue's done-when)
 ROUNDS = 7                      # of 1 and 2 workers each (--quick: 1)
 SPIN_S = 0.5                    # a spin job's time (machine_speedup)
+COLLISION_TARGET = 1.3          # planning with collision checks / without (issue 26's done-when)
 
 
 def evaluations(plan: Plan) -> int:
@@ -156,20 +164,44 @@ def worker_row(task: Task, serial: Plan, serial_s: float, rounds: int,
     return row
 
 
+def collision_row(task: Task, rounds: int, say: Callable[[str], None]) -> dict[str, Any]:
+    """The task's serial plan timed with the collision checks and without
+    (PlannerSettings.collisions), `rounds` ABBA rounds; ratio = median with / median without."""
+    times: tuple[list[float], list[float]] = ([], [])
+    settings = (PlannerSettings(), PlannerSettings(collisions=False))
+    for r in range(rounds):
+        for k in (0, 1) if r % 2 == 0 else (1, 0):
+            t0 = time.perf_counter()
+            plan_features(task, settings[k])
+            times[k].append(time.perf_counter() - t0)
+    with_s, without_s = float(np.median(times[0])), float(np.median(times[1]))
+    load = os.getloadavg()[0]
+    row = {"task": task.path.stem, "features": len(task.features), "with_collisions_s": with_s,
+           "without_collisions_s": without_s, "times_with_s": times[0], "times_without_s": times[1],
+           "ratio": with_s / without_s, "load": load}
+    say(f"{row['task']} collision checks: {with_s:.2f} s with, {without_s:.2f} s without: "
+        f"{row['ratio']:.2f}x (median of {rounds} rounds, load {load:.2f})")
+    return row
+
+
 def run(tasks: Iterable[Task], quick: bool, say: Callable[[str], None]) -> dict[str, list[dict[str, Any]]]:
-    """{"features": rows, "workers": rows} of the multi-feature `tasks`."""
+    """{"features": rows, "workers": rows, "collisions": rows} of the multi-feature `tasks`."""
     repeats = 1 if quick else 3
-    out: dict[str, list[dict[str, Any]]] = {"features": [], "workers": []}
+    out: dict[str, list[dict[str, Any]]] = {"features": [], "workers": [], "collisions": []}
     for task in tasks:
         rows, serial, serial_s = feature_rows(task, quick, repeats, say)
         out["features"] += rows
         out["workers"].append(worker_row(task, serial, serial_s, 1 if quick else ROUNDS, say))
+        out["collisions"].append(collision_row(task, 1 if quick else 3, say))
     return out
 
 
-def targets(workers: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
-    """The issue's done-when: 2 workers at least SPEEDUP_TARGET x 1 worker; the plans identical."""
-    out = []
+def targets(workers: Iterable[dict[str, Any]], collisions: Iterable[dict[str, Any]] = ()) -> list[dict[str, Any]]:
+    """The issues' done-when: 2 workers at least SPEEDUP_TARGET x 1 worker; the plans identical;
+    planning with collision checks at most COLLISION_TARGET x without."""
+    out = [{"name": f"{row['task']} planning with collision checks / without <= {COLLISION_TARGET:g}",
+            "value": row["ratio"], "limit": COLLISION_TARGET, "met": row["ratio"] <= COLLISION_TARGET}
+           for row in collisions]
     for row in workers:
         out.append({"name": f"{row['task']}: 2 workers / 1 worker >= {SPEEDUP_TARGET:g}",
                     "value": row["speedup"], "limit": SPEEDUP_TARGET, "met": row["speedup"] >= SPEEDUP_TARGET})

@@ -203,8 +203,8 @@ def run(tasks: Iterable[Task], quick: bool, progress: Progress,
     say = progress.say
     repeats = 1 if quick else 3
     result: dict[str, Any] = {"quick": quick, "repeats": repeats, "settings": [], "references": [], "kernels": [],
-                              "threads": [], "features": [], "workers": [], "channels": [], "contrast": [],
-                              "scaling": [], "scaling_summary": None}
+                              "threads": [], "features": [], "workers": [], "collisions": [], "channels": [],
+                              "contrast": [], "scaling": [], "scaling_summary": None}
 
     def stage(name: str, items: list[Any]) -> Iterator[Any]:
         """The items, each a step of the stage `name` (none: no stage)."""
@@ -233,6 +233,7 @@ def run(tasks: Iterable[Task], quick: bool, progress: Progress,
         result["contrast"] += contrast.run([task], quick, say)["contrast"]
     for _ in stage("many-feature scaling", [many] if many else []):
         result |= scaling.run(quick, say)
-    result["targets"] = (targets(result["settings"], result["kernels"]) + multi_feature.targets(result["workers"])
+    result["targets"] = (targets(result["settings"], result["kernels"])
+                         + multi_feature.targets(result["workers"], result["collisions"])
                          + lights.targets(result["channels"]) + scaling.targets(result["scaling"], result["scaling_summary"]))
     return result

@@ -61,6 +61,10 @@ def report(result: dict[str, Any]) -> str:
           f"{r['machine_speedup']:.2f}x",
           f"{r['startup_s']:.1f}", f"{r['first_s']:.2f}", "yes" if r["identical"] else "NO"]
          for r in result["workers"]])
+    collisions = text_table(
+        ["task", "features", "with collisions s", "without s", "ratio", "rounds", "load"],
+        [[r["task"], r["features"], f"{r['with_collisions_s']:.2f}", f"{r['without_collisions_s']:.2f}",
+          f"{r['ratio']:.2f}x", len(r["times_with_s"]), f"{r['load']:.2f}"] for r in result.get("collisions", [])])
     channels = text_table(
         ["task", "channels", "on", "samples", "dense", "time s", "cpu s", "contributions s", "dense contributions s",
          "drives s", "certificate s", "other s", "feasible"],
@@ -91,6 +95,7 @@ def report(result: dict[str, Any]) -> str:
         parts.append(kernels)
     parts += [threads] if result["threads"] else []
     parts += [features, workers] if result["workers"] else []
+    parts += [collisions] if result.get("collisions") else []
     parts += [channels] if result["channels"] else []
     parts += [contrast_table(result["contrast"])] if result.get("contrast") else []
     parts += [many, scaling.summary_line(result["scaling_summary"])] if result["scaling"] else []

@@ -32,6 +32,9 @@ class PlannerSettings:
     samples: int | None = None      # feature samples (None: the task's)
     refine: bool = True             # Nelder-Mead from the best starts
     starts: int = 4
+    # False skips the collision scene (no shot's clearance, no collision pruning of viewpoints):
+    # only `cell bench` sets it, to time planning with the checks against without (issue 26)
+    collisions: bool = True
 
     def __post_init__(self) -> None:
         cells = 180.0 / self.grid_step_deg

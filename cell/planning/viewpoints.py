@@ -162,8 +162,10 @@ def viewpoint_values(task: Task, scene: Scene) -> dict[str, float]:
             if r.name in VIEWPOINT_REQUIREMENTS and (r.asked is None or r.asked(problem))}
 
 
-def plan_viewpoints(task: Task, scene: Scene, visible: np.ndarray, grid: SphereGrid) -> Viewpoints:
-    """Viewpoints of the one-feature task whose samples and visibility map (grid's) are given."""
+def plan_viewpoints(task: Task, scene: Scene, visible: np.ndarray, grid: SphereGrid,
+                    collisions: bool = True) -> Viewpoints:
+    """Viewpoints of the one-feature task whose samples and visibility map (grid's) are given;
+    collisions False: no pose pruned for its clearance (PlannerSettings.collisions, `cell bench` only)."""
     vp, req = task.camera.viewpoint, task.requirements
     sensor, lens = task.camera.sensor, task.camera.lens
     if vp.standoff_range_m is None:
@@ -178,7 +180,7 @@ def plan_viewpoints(task: Task, scene: Scene, visible: np.ndarray, grid: SphereG
     square = seen_dir & (polar <= (np.inf if req.view_angle_rad is None else req.view_angle_rad) + 1e-12)
     pruned["view_angle"] = int(np.sum(seen_dir & ~square)) * len(radii)
     survivors = []
-    bodies = CollisionScene.of(task)
+    bodies = CollisionScene.of(task) if collisions else None
     for k in np.flatnonzero(square):
         d = scene.frame @ dirs[k]
         for r in radii:

@@ -56,7 +56,7 @@ def own_plan(task: Task, settings: PlannerSettings, T_cell_cam: np.ndarray | Non
     p = one_shot.plan(task, settings, progress=say, T_cell_cam=T_cell_cam)
     if arm_joints is not None:
         p = replace(p, shots=(replace(p.shot, arm_joints=tuple(float(q) for q in arm_joints)),))
-    return cleared(task, p)
+    return cleared(task, p) if settings.collisions else p
 
 
 def cleared(task: Task, p: Plan) -> Plan:
@@ -79,7 +79,7 @@ def viewpoints_of(task: Task, settings: PlannerSettings, say: Callable[[str], No
     start = time.perf_counter()
     grid = regions.SphereGrid(np.radians(settings.grid_step_deg))
     scene = build_scene(task, settings.samples)
-    v = plan_viewpoints(task, scene, one_shot.visibility_map(scene, grid), grid)
+    v = plan_viewpoints(task, scene, one_shot.visibility_map(scene, grid), grid, settings.collisions)
     return replace(v, time_s=time.perf_counter() - start)
 
 
