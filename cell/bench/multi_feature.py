@@ -16,8 +16,9 @@ so that ceiling is what the plan's speedup is to be read against. On a machine o
 2 processes take a larger share of its cores than 1: the speedup is a quiet machine's only when
 nothing else runs.
 
-The collision row (issue 26): the task planned with its collision checks (every shot's clearance,
-the viewpoints' collision pruning) and without (PlannerSettings(collisions=False)), side by side
+The collision row (issue 26): the task planned as `cell plan` plans it, with its collision checks
+(every shot's clearance, the viewpoints' collision pruning, the route's moves checked:
+cell.run.moves.with_moves) and without (PlannerSettings(collisions=False), no moves), side by side
 in ABBA rounds, the ratio of the median times with the machine's load (/proc/loadavg) beside it."""
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ import numpy as np
 from cell.planning import parallel
 from cell.planning.plan import PlannerSettings
 from cell.planning.whole_part import plan_features
+from cell.run.moves import with_moves
 
 if TYPE_CHECKING:
     from cell.planning.plan import Plan
@@ -165,14 +167,17 @@ def worker_row(task: Task, serial: Plan, serial_s: float, rounds: int,
 
 
 def collision_row(task: Task, rounds: int, say: Callable[[str], None]) -> dict[str, Any]:
-    """The task's serial plan timed with the collision checks and without
-    (PlannerSettings.collisions), `rounds` ABBA rounds; ratio = median with / median without."""
+    """The task's serial plan timed with the collision checks (and its route's moves checked)
+    and without (PlannerSettings.collisions, no moves), `rounds` ABBA rounds; ratio = median with
+    / median without."""
     times: tuple[list[float], list[float]] = ([], [])
     settings = (PlannerSettings(), PlannerSettings(collisions=False))
     for r in range(rounds):
         for k in (0, 1) if r % 2 == 0 else (1, 0):
             t0 = time.perf_counter()
-            plan_features(task, settings[k])
+            plan = plan_features(task, settings[k])
+            if settings[k].collisions:
+                with_moves(task, plan)
             times[k].append(time.perf_counter() - t0)
     with_s, without_s = float(np.median(times[0])), float(np.median(times[1]))
     load = os.getloadavg()[0]
