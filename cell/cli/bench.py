@@ -64,7 +64,7 @@ def report(result: dict[str, Any]) -> str:
     collisions = text_table(
         ["task", "features", "with collisions s", "without s", "ratio", "rounds", "load"],
         [[r["task"], r["features"], f"{r['with_collisions_s']:.2f}", f"{r['without_collisions_s']:.2f}",
-          f"{r['ratio']:.2f}x", len(r["times_with_s"]), f"{r['load']:.2f}"] for r in result.get("collisions", [])])
+          f"{r['ratio']:.2f}x", str(len(r["times_with_s"])), f"{r['load']:.2f}"] for r in result.get("collisions", [])])
     channels = text_table(
         ["task", "channels", "on", "samples", "dense", "time s", "cpu s", "contributions s", "dense contributions s",
          "drives s", "certificate s", "other s", "feasible"],
