@@ -178,7 +178,7 @@ def test_cell_bench_shows_a_stage_per_part_its_rows_lines_said_within(monkeypatc
     monkeypatch.setattr(multi_feature, "run", part("features", {"features": [], "workers": []}))
     monkeypatch.setattr(lights, "run", part("lights", {"kernels": [], "channels": []}))
     monkeypatch.setattr(scaling, "run", part("scaling", {"scaling": [], "scaling_summary": None}))
-    monkeypatch.setattr(multi_feature, "targets", lambda rows: [])
+    monkeypatch.setattr(multi_feature, "targets", lambda rows, collisions=(): [])
     monkeypatch.setattr(lights, "targets", lambda rows: [])
     monkeypatch.setattr(scaling, "targets", lambda rows, summary: [])
     one = [SimpleNamespace(path=Path(f"{n}.yaml")) for n in ("hinge", "conrod")]
