@@ -158,7 +158,7 @@ def test_a_second_view_chosen_by_information_tells_a_part_offset_from_a_camera_t
     """Closed form of the pinhole: the part moved by d across the view (its x) and the camera
     turned by d / Z about its y (Z the feature's depth) leave the feature where it was: in one
     view's information that combination weighs under 1 % of the move alone. With the second view
-    most_informative picks of second_views (orbited 30 or 50 deg, rolled 90), it weighs as much
+    by_information puts first of second_views (orbited 30 or 50 deg, rolled 90), it weighs as much
     as a quarter of the move, and that view's least eigenvalue is the best of all candidates'."""
     task, scene, lamp = planned_view(tmp_path, HINGE)
     T = scene.T_cell_cam
@@ -176,7 +176,7 @@ def test_a_second_view_chosen_by_information_tells_a_part_offset_from_a_camera_t
     assert trade @ two @ trade > 0.25 * (move @ two @ move)
     assert np.linalg.eigvalsh(two)[0] == max(np.linalg.eigvalsh(one + i)[0] for i in infos)
     first = localization.View(np.zeros((2, 2)), T, lamp)
-    assert localization.most_informative(task, scene, first, candidates) is candidates[best]
+    assert localization.by_information(task, scene, first, candidates)[0] is candidates[best]
 
 
 @pytest.mark.long
@@ -186,7 +186,7 @@ def test_the_hinge_tilted_3_deg_with_its_camera_turned_is_not_taken_for_the_othe
     starts on either side of each tilt find the truth within 1 mm and 0.3 deg."""
     truth = {"part_offset_m": [0.005, -0.005, 0.0], "part_rpy_deg": [0.0, 3.0, 0.0], "camera_rpy_deg": [1.0, 0.0, 0.0]}
     task, scene, (first,) = captures(tmp_path, HINGE, truth, 1)
-    T = localization.most_informative(task, scene, first, localization.second_views(first.T_cell_cam, scene.center))
+    T = localization.by_information(task, scene, first, localization.second_views(first.T_cell_cam, scene.center))[0]
     world = Renderer(task, scene)
     planned = plan(task)
     shutter = localization.view_exposure(localization.model_view(task, scene, T, first.lamp_pose), 255.0,

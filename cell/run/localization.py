@@ -508,7 +508,7 @@ def second_views(T_cell_cam: np.ndarray, center: np.ndarray) -> list[np.ndarray]
     the feature centre (about each of ORBITS axes across the view), rolled +-ROLL_DEG about its
     own axis (a part's move across the view turns with the view, a hand-eye turn with the camera)
     and turned AIM_OFF_DEG off the feature (a hand-eye roll moves an off-centre feature, a part's
-    turn about it does not). The loop takes the most informative it can reach (best_view)."""
+    turn about it does not). The loop takes the most informative it can reach (by_information)."""
     about = geometry.transform(translation=center)
     poses = []
     for orbit_deg in ORBITS_DEG:
@@ -560,24 +560,27 @@ def view_information(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose
     return J.T @ J
 
 
+def view_order(first: np.ndarray, candidates: Sequence[np.ndarray]) -> list[int]:
+    """The indices of the candidate second views' information (view_information), best first:
+    the one that, added to the first view's, is best conditioned, the largest least eigenvalue
+    (the combination of the 9 parameters the two views tell worst, told best); ties in order."""
+    least = np.array([np.linalg.eigvalsh(first + other)[0] for other in candidates])
+    return [int(i) for i in np.argsort(-least, kind="stable")]
+
+
 def best_view(first: np.ndarray, candidates: Sequence[np.ndarray]) -> int | None:
-    """The index of the candidate second view's information (view_information) that, added to the
-    first view's, is best conditioned: the largest least eigenvalue (the combination of the 9
-    parameters the two views tell worst, told best); None without candidates."""
-    if not candidates:
-        return None
-    return int(np.argmax([np.linalg.eigvalsh(first + other)[0] for other in candidates]))
+    """The index of the best candidate second view (view_order's first); None without candidates."""
+    order = view_order(first, candidates)
+    return order[0] if order else None
 
 
-def most_informative(task: Task, scene: Scene, first: View, candidates: Sequence[np.ndarray]) -> np.ndarray:
-    """The candidate second view (a camera pose) best_view picks of their view_information, the
-    lamp where the first view had it; `candidates` must not be empty."""
+def by_information(task: Task, scene: Scene, first: View, candidates: Sequence[np.ndarray]) -> list[np.ndarray]:
+    """The candidate second views (camera poses) in view_order of their view_information, the
+    lamp where the first view had it: the most informative first, each view's information
+    computed once."""
     one = view_information(task, scene, first.T_cell_cam, first.lamp_pose, first.drives)
     infos = [view_information(task, scene, T, first.lamp_pose, first.drives) for T in candidates]
-    best = best_view(one, infos)
-    if best is None:
-        raise ValueError("most_informative needs at least one candidate second view")
-    return candidates[best]
+    return [candidates[i] for i in view_order(one, infos)]
 
 
 def view_exposure(model: ModelView, saturation: float, f_number: float,

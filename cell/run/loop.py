@@ -532,7 +532,7 @@ def second_view(ctx: RunContext, aim: Aim, k: int, scene: Scene, lamp_pose: regi
                 capture: Capture) -> localization.View | None:
     """The second view of the part: of the candidates (localization.second_views) the arm reaches
     and the collision check clears at the pose with the lamp where it is, the one whose
-    information with the first view's is best conditioned (localization.most_informative) and
+    information with the first view's is best conditioned (localization.by_information) and
     whose path there is clear (motion.check; else the next best), exposed for the model's
     brightest part there (localization.view_exposure) and captured as locate-k.png; None when no
     pose serves (the one view's estimate stands, and the log says so)."""
@@ -542,11 +542,9 @@ def second_view(ctx: RunContext, aim: Aim, k: int, scene: Scene, lamp_pose: regi
              if ctx.devices.arm.refusal(T) is None
              and collision.clearance(T, reaching_joints(task.frames, T), lamp_pose[0]).ok]
     first = localization.View(capture.image, capture.T_cell_cam, lamp_pose, capture.drives or None)
-    while clear:
-        T = localization.most_informative(task, scene, first, clear)
+    for T in localization.by_information(task, scene, first, clear) if clear else ():
         move = motion.check(task, ctx.devices, T, to="the second view")
         if not move.clear:
-            clear = [other for other in clear if other is not T]
             continue
         read = motion.move_camera(task, ctx.devices, T, ctx.recorder, "the second view", k, move)
         ctx.recorder.step("move_camera", f"camera at {np.round(read[:3, 3], 4).tolist()} m in the cell frame: a "
