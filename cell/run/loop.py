@@ -469,22 +469,24 @@ def step(ctx: RunContext, aim: Aim, k: int) -> Generator[Event, None, Aim | None
             raise GoalNotReached(reason, "registration")
     if all(m.iteration.in_band for m in measured):
         return None
-    if not aim.located and not rebalancing(aim) and correction(aim, measured).cause == "black pixels":
+    # the control law's verdict, once (locate_part below changes no input of it: it returns where
+    # the model follows the part); None where the channels are re-balanced first
+    c = None if rebalancing(aim) else correction(aim, measured)
+    if c is not None and not aim.located and c.cause == "black pixels":
         aim = yield from locate_part(ctx, aim, k, capture)      # off the part: where is it?
         if not aim.moved:
             return aim
-    if aim.pose_error is not None and not rebalancing(aim) and not all(m.iteration.registration["trusted"]
-                                                                       for m in measured):
-        c = correction(aim, measured)
-        if c.action == "stop":          # the model followed an estimate that does not hold
-            error = aim.pose_error
-            why = (f"where the localization puts the part ({localization.describe(error, error.views)}) the "
-                   f"feature is not found: {c.reason}")
-            yield Corrected(k, {"action": "stop", "cause": "pose", "reason": why})
-            raise GoalNotReached(why, "pose")
+    error = aim.pose_error
+    if (c is not None and c.action == "stop" and error is not None
+            and not all(m.iteration.registration["trusted"] for m in measured)):
+        # the model followed an estimate that does not hold
+        why = (f"where the localization puts the part ({localization.describe(error, error.views)}) the "
+               f"feature is not found: {c.reason}")
+        yield Corrected(k, {"action": "stop", "cause": "pose", "reason": why})
+        raise GoalNotReached(why, "pose")
     if k == ctx.max_iterations:
         raise GoalNotReached(not_in_band(aim, measured, k), "iterations")
-    return (yield from correct_after(ctx, aim, k, measured))
+    return (yield from correct_after(ctx, aim, k, measured, c))
 
 
 def locate_part(ctx: RunContext, aim: Aim, k: int, capture: Capture) -> Generator[Event, None, Aim]:
@@ -620,16 +622,17 @@ def correction(aim: Aim, measured: Sequence[Measured]) -> control.Correction:
                                      aim.shutter_s, aim.f_number, aim.black)
 
 
-def correct_after(ctx: RunContext, aim: Aim, k: int, measured: Sequence[Measured]) -> Generator[Event, None, Aim]:
-    """Act on capture k's correction (Corrected, logged but for a stop): a shape that disagrees
+def correct_after(ctx: RunContext, aim: Aim, k: int, measured: Sequence[Measured],
+                  c: control.Correction | None) -> Generator[Event, None, Aim]:
+    """Act on capture k's correction `c` (correction(aim, measured); None where the channels are
+    re-balanced first: rebalance) (Corrected, logged but for a stop): a shape that disagrees
     with one feature's model refits the material and re-plans, once (refit_and_replan); a stop
     raises GoalNotReached with its cause; an exposure sets the next one; a re-plan plans one
     feature again with the albedo scale times the measured model error (Replan; infeasible:
     GoalNotReached). A shot of several features is not refitted or re-planned
     (control.shared_correction stops instead)."""
-    if rebalancing(aim):
+    if c is None:
         return (yield from rebalance(ctx, aim, k, measured))
-    c = correction(aim, measured)
     if c.action == "stop" and c.cause == "spread" and len(aim.features) == 1 and not aim.refitted:
         return (yield from refit_and_replan(ctx, aim, k, measured[0], c))
     if c.action == "stop":                  # its cause in report.json; the done step says why
@@ -684,10 +687,10 @@ def rebalance(ctx: RunContext, aim: Aim, k: int, measured: Sequence[Measured]) -
     shares = channels.measure(lights, aim.drives, gain / (e.shutter_s / e.f_number**2), aim.black.value,
                               capture_with)
     bands = [evaluate.planning_band(f.task) for f in aim.features]
-    band = tuple(np.repeat([b[end] for b in bands], counts) for end in (0, 1))
+    low, high = (np.repeat([b[end] for b in bands], counts) for end in (0, 1))     # each sample its feature's
     settings = {c.number: c for c in [task.lamp.channel, *(light.channel for light in task.lights)]
                 if c.number is not None}
-    basis = channels.resolve(shares, gain, (band[0], band[1]), aim.black.value,
+    basis = channels.resolve(shares, gain, (low, high), aim.black.value,
                              max(f.limits.f_number_range[0] for f in aim.features), task.camera.shutter_range_s,
                              task.camera.lens.f_number_range, {n: c.drive_range for n, c in settings.items()},
                              {n: c.switched for n, c in settings.items()},
