@@ -133,10 +133,9 @@ def _solve(task: Task, held: Sequence[_Feature]) -> drives.Drives:
     ranges = np.array([c.drive_range for c in channels], float)
     on_controller = np.array([c.number is not None for c in channels])
     ranges[on_controller & np.any([x.wrong for x in held], axis=0)] = (0.0, 0.0)
-    low = np.concatenate([np.full(x.unit_gray.shape[1], x.problem.band[0]) for x in held])
-    high = np.concatenate([np.full(x.unit_gray.shape[1], x.problem.band[1]) for x in held])
+    unit_gray, low, high = _stacked(held)
     camera = task.camera
-    return drives.solve_drives(np.hstack([x.unit_gray for x in held]), (low, high), held[0].problem.black_level,
+    return drives.solve_drives(unit_gray, (low, high), held[0].problem.black_level,
                                max(x.problem.kappa_open for x in held), camera.shutter_range_s,
                                camera.lens.f_number_range, ranges, [c.switched for c in channels],
                                max(x.problem.task.requirements.drive_tolerance for x in held))
@@ -145,18 +144,23 @@ def _solve(task: Task, held: Sequence[_Feature]) -> drives.Drives:
 def _worst(features: Sequence[int], held: Sequence[_Feature], chosen: drives.Drives, droppable: Sequence[int]) -> int:
     """The feature of `droppable` (of `features`, held in that order) whose sample misses the
     band the most at the program's best drives: the one to drop."""
-    counts = np.array([x.unit_gray.shape[1] for x in held])
-    owner = np.repeat(np.arange(len(held)), counts)
-    d = chosen.drive
+    owner = np.repeat(np.arange(len(held)), [x.unit_gray.shape[1] for x in held])
     gain = chosen.shutter_s / chosen.f_number**2
     delta = max(x.problem.task.requirements.drive_tolerance for x in held)
-    signal = gain * (d @ np.hstack([x.unit_gray for x in held]))
+    unit_gray, low, high = _stacked(held)
+    signal = gain * (chosen.drive @ unit_gray)
     b = held[0].problem.black_level
-    low = np.concatenate([np.full(c, x.problem.band[0]) for c, x in zip(counts, held)])
-    high = np.concatenate([np.full(c, x.problem.band[1]) for c, x in zip(counts, held)])
     miss = np.maximum(low - (b + (1 - delta) * signal), b + (1 + delta) * signal - high)
     worst = owner[np.argsort(-miss)]
     return int(next(features[k] for k in worst if features[k] in droppable))
+
+
+def _stacked(held: Sequence[_Feature]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The held features' samples side by side: each light's gray per exposure (1 + K, P) and
+    each sample's own feature's band, low and high (P,)."""
+    low = np.concatenate([np.full(x.unit_gray.shape[1], x.problem.band[0]) for x in held])
+    high = np.concatenate([np.full(x.unit_gray.shape[1], x.problem.band[1]) for x in held])
+    return np.hstack([x.unit_gray for x in held]), low, high
 
 
 def _at_drives(shot: Shot, problem: evaluate.Problem, chosen: drives.Drives) -> Shot:
