@@ -79,18 +79,22 @@ class ContrastRows:
     gain: float
     dark_e: float
 
+    @property
+    def noise_floor(self) -> float:
+        """a = 2 (K^2 sigma_d^2 + 1/12) [gray^2]: both pixels' dark and quantization noise."""
+        return 2.0 * (self.gain**2 * self.dark_e**2 + 1.0 / 12.0)
+
     def cnr(self, u: np.ndarray) -> np.ndarray:
         """(R,) each row's CNR at exposures u_k = x w_k (K,) [s / kappa^2] (its contrast's sign kept:
         negative where it turned)."""
-        floor = 2.0 * (self.gain**2 * self.dark_e**2 + 1.0 / 12.0)
-        return self.sign * (u @ self.difference) / np.sqrt(floor + self.gain * np.maximum(u @ self.total, 0.0))
+        noise = np.sqrt(self.noise_floor + self.gain * np.maximum(u @ self.total, 0.0))
+        return self.sign * (u @ self.difference) / noise
 
     def cuts(self, u0: np.ndarray, active: np.ndarray, per_column: float) -> tuple[np.ndarray, np.ndarray]:
         """(A (R, K'), b (R,)): the rows A u' <= b in the program's columns of the active channels
         (u' = u per_column), tangent to the noise at u0 (K,)."""
-        floor = 2.0 * (self.gain**2 * self.dark_e**2 + 1.0 / 12.0)
         z0 = np.maximum(u0 @ self.total, 0.0)
-        q0 = np.sqrt(floor + self.gain * z0)
+        q0 = np.sqrt(self.noise_floor + self.gain * z0)
         slope = self.min_cnr * self.gain / (2.0 * q0)
         a = -(self.sign * self.difference[active] - slope * self.total[active]).T / per_column
         return a, -self.min_cnr * (q0 - self.gain * z0 / (2.0 * q0))
@@ -167,6 +171,12 @@ def _count(samples: tuple[int, ...]) -> str:
     return f"{len(samples)} sample{'' if len(samples) == 1 else 's'}"
 
 
+def _per_sample(band: tuple[ArrayLike, ArrayLike], n_samples: int) -> tuple[np.ndarray, np.ndarray]:
+    """The band's low and high ends (each a number or one per sample) as one per sample (P,)."""
+    low, high = (np.broadcast_to(np.asarray(end, float), (n_samples,)) for end in band)
+    return low, high
+
+
 def solve_drives(unit_gray: ArrayLike, band: tuple[ArrayLike, ArrayLike], black_level: float, kappa_open: float,
                  shutter_range_s: tuple[float, float], f_number_range: tuple[float, float],
                  drive_range: ArrayLike | None = None, switched: ArrayLike | None = None,
@@ -182,7 +192,7 @@ def solve_drives(unit_gray: ArrayLike, band: tuple[ArrayLike, ArrayLike], black_
     if v.ndim != 2 or v.shape[1] == 0 or not np.all(np.isfinite(v)) or np.any(v < 0):
         raise ValueError(f"unit_gray must be (K, P >= 1) finite and >= 0, found shape {v.shape}")
     n_channels, n_samples = v.shape
-    low, high = (np.broadcast_to(np.asarray(end, float), (n_samples,)) for end in band)
+    low, high = _per_sample(band, n_samples)
     t_lo, t_hi = map(float, shutter_range_s)
     k_hi = float(f_number_range[1])
     if not (np.all(low < high) and np.all(0 < high) and 0 < t_lo <= t_hi < np.inf and 0 < kappa_open <= k_hi < np.inf
@@ -246,7 +256,7 @@ def raised(d: Drives, unit_gray: ArrayLike, black_level: float, kappa_open: floa
     x_new = min(x * factor, x_hi)
     drive = np.minimum(u * factor / x_new, w_range[:, 1])
     shutter, kappa = (float(a) for a in exposure_for_gain(x_new, kappa_open, (t_lo, t_hi), f_number_range))
-    low, high = (np.broadcast_to(np.asarray(end, float), (n_samples,)) for end in d.band)
+    low, high = _per_sample(d.band, n_samples)
     return _judged(v, drive, shutter, kappa, black_level, low, high, w_range[:, 0], w_range[:, 1], (x_lo, x_hi),
                    d.drive_error, d.solves, d.solver_message + f"; raised x{factor:.3g} to the top (gray_band any)")
 
