@@ -261,8 +261,7 @@ def defect_gray(problem: Problem, c: Candidates, defect: Defect, sample: np.ndar
     gray, good = kept.grays(problem, c, cast)
     full = (len(c.shutter),) + kept.shape
     return (pixel_mean(defect, gray.reshape(full), resolution, fp),
-            pixel_mean(defect, c.gray[:, index][:, :, None, None] + np.zeros(full) if good is None
-                       else good.reshape(full), resolution, fp), thetas)
+            pixel_mean(defect, _good_gray(c, index, good, full), resolution, fp), thetas)
 
 
 def _chunked(problem: Problem, c: Candidates, defect: Defect, cast: np.ndarray, index: np.ndarray,
@@ -276,8 +275,14 @@ def _chunked(problem: Problem, c: Candidates, defect: Defect, cast: np.ndarray, 
         g, ok = _Parts(problem, defect, index[part], normals[part], offsets[part]).grays(problem, c, cast)
         shape = (len(c.shutter),) + normals[part].shape[:-1]
         gray.append(g.reshape(shape))
-        good.append(c.gray[:, index[part]][:, :, None, None] + np.zeros(shape) if ok is None else ok.reshape(shape))
+        good.append(_good_gray(c, index[part], ok, shape))
     return np.concatenate(gray, axis=1), np.concatenate(good, axis=1)
+
+
+def _good_gray(c: Candidates, index: np.ndarray, good: np.ndarray | None, shape: tuple[int, ...]) -> np.ndarray:
+    """The good surface's gray beside a defect's parts, shaped (C, S, O, W): `good` (_Parts.grays)
+    where the parts lie off the samples, else the candidates' own gray at the samples."""
+    return c.gray[:, index][:, :, None, None] + np.zeros(shape) if good is None else good.reshape(shape)
 
 
 def cast_shadows(problem: Problem, c: Candidates) -> np.ndarray:

@@ -39,8 +39,7 @@ def check(task: Task, devices: Devices, T_cell_cam: np.ndarray | None = None,
         T_now, q = devices.arm.camera_pose(), devices.arm.joint_angles()
     with speaking_for(devices.lamp):
         pan, tilt, radius = devices.lamp.joints()
-        target = (None if lamp_joints is None
-                  else devices.lamp.target(lamp_joints[0], lamp_joints[1], lamp_joints[2], near_rad=pan))
+    target = _lamp_target(devices, lamp_joints)
     if q is None:
         q = np.asarray(reaching_joints(task.frames, T_now) or ur5e.HOME_JOINTS, float)
     if not np.isfinite(radius):
@@ -49,6 +48,15 @@ def check(task: Task, devices: Devices, T_cell_cam: np.ndarray | None = None,
     a = Stop(T_now, np.asarray(q, float), lamp_now if np.all(np.isfinite(lamp_now)) else None)
     b = Stop(T_now if T_cell_cam is None else np.asarray(T_cell_cam, float), a.arm_joints, target)
     return plan_transition(CollisionScene.of(task), task.cell.devices.arm, a, b, "where the cell stands", to)
+
+
+def _lamp_target(devices: Devices, lamp_joints: tuple[float, ...] | None) -> tuple[float, float, float] | None:
+    """The joints the lamp's axes go to for (pan, tilt, radius) from where it stands (the pan
+    as the nearer of -180 and 180 deg: LampRig.target); None: the lamp stays."""
+    if lamp_joints is None:
+        return None
+    with speaking_for(devices.lamp):
+        return devices.lamp.target(lamp_joints[0], lamp_joints[1], lamp_joints[2], near_rad=devices.lamp.joints()[0])
 
 
 def refusal(move: Move) -> GoalNotReached:
@@ -76,10 +84,7 @@ def go(task: Task, devices: Devices, recorder: Recorder, T_cell_cam: np.ndarray 
     move = checked or check(task, devices, T_cell_cam, lamp_joints, to)
     if not move.clear:
         raise refusal(move)
-    if lamp_joints is not None:                 # the pan checked: of -180 and 180 deg, the nearer
-        with speaking_for(devices.lamp):
-            lamp_joints = devices.lamp.target(lamp_joints[0], lamp_joints[1], lamp_joints[2],
-                                             near_rad=devices.lamp.joints()[0])
+    lamp_joints = _lamp_target(devices, lamp_joints)     # the joints check() checked
     apart = (f"{' and '.join(move.clearance.bodies)} at least {1e3 * move.clearance.distance_m:.1f} mm apart"
              if np.isfinite(move.clearance.distance_m) else "nothing near")
 
