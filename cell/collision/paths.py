@@ -99,10 +99,10 @@ def _least(clearances: list[Clearance], padding_m: float) -> Clearance:
     return min(clearances, key=lambda c: c.distance_m, default=Clearance(np.inf, ("", ""), padding_m))
 
 
-def _allowed(scene: CollisionScene, c: Clearance, movers: float) -> float:
-    """How far a point may move in the next step after a pose of clearance c, `movers` bodies
-    of a pair moving (2: the arm's links among themselves; 1: the lamp against the still rest)."""
-    return max(0.5 * scene.padding_m, MIN_STEP_M, (c.distance_m - scene.padding_m) / movers)
+def _allowed(scene: CollisionScene, c: Clearance) -> float:
+    """How far a point of one moving body may move in the next step after a pose where its
+    pairs' clearance is c (the lamp against the still rest)."""
+    return max(0.5 * scene.padding_m, MIN_STEP_M, c.distance_m - scene.padding_m)
 
 
 def body_reach(scene: CollisionScene, bodies: tuple[Body, ...], q: ArrayLike) -> np.ndarray:
@@ -222,16 +222,22 @@ def _worst(pairs: Pairs, reach: np.ndarray, joints: np.ndarray, dq: np.ndarray, 
 def lamp_path(scene: CollisionScene, T_cam: np.ndarray, q: ArrayLike, joints_from: ArrayLike,
               joints_to: ArrayLike) -> tuple[Clearance, int]:
     """The smallest Clearance (or the first below the padding) as the lamp moves in its joints
-    (pan, tilt, radius), the arm still, and the poses checked."""
+    (pan, tilt, radius), the arm still, and the poses checked. Each step by the lamp's pairs'
+    clearance (_allowed): no other pair's distance changes."""
     a, b = np.asarray(joints_from, float), np.asarray(joints_to, float)
     arm = max(a[2], b[2]) + 2 * float(np.linalg.norm(scene.lamp_half_m))
     sweep = (abs(b[0] - a[0]) + abs(b[1] - a[1])) * arm + abs(b[2] - a[2])   # a bound over the whole move
-    s, at = 0.0, [lamp_position(scene.pivot_m, *a)]
-    found = [scene.clearance(T_cam, q, at[0])]
-    while s < 1.0 and found[-1].ok:
-        s = min(1.0, s + _allowed(scene, found[-1], 1.0) / max(sweep, 1e-300))
+    s, at, found = 0.0, [lamp_position(scene.pivot_m, *a)], []
+    while True:
+        bodies = scene.bodies(T_cam, q, at[-1])
+        pairs = Pairs.of(bodies, len(scene.fixed))
+        found.append(pairs.least(scene.padding_m))
+        if s >= 1.0 or not found[-1].ok:
+            break
+        lamp = len(bodies) - 1                                  # scene.bodies puts the lamp last
+        mine = pairs.least(scene.padding_m, (pairs.i == lamp) | (pairs.j == lamp))
+        s = min(1.0, s + _allowed(scene, mine) / max(sweep, 1e-300))
         at.append(lamp_position(scene.pivot_m, *((1 - s) * a + s * b)))
-        found.append(scene.clearance(T_cam, q, at[-1]))
     k = int(np.argmin([c.distance_m for c in found]))
     return replace(found[k], where=f"with the lamp at {np.round(at[k], 3).tolist()} m (cell frame)"), len(found)
 

@@ -226,11 +226,14 @@ class Pairs:
             self.bound[k] = max(self.gap[k], self.distances[k])
         return float(self.distances[k])
 
-    def least(self, padding_m: float) -> Clearance:
-        """The Clearance: pairs in order of their gap, stopping at the first gap no smaller than
-        the least distance found (no pair after it can be nearer)."""
+    def least(self, padding_m: float, among: np.ndarray | None = None) -> Clearance:
+        """The Clearance over all pairs (or those `among` selects): pairs in order of their gap,
+        stopping at the first gap no smaller than the least distance found (no pair after it can
+        be nearer)."""
         best, names = np.inf, ("", "")
         for k in np.argsort(self.gap, kind="stable"):
+            if among is not None and not among[k]:
+                continue
             if self.gap[k] >= best:
                 break
             d = self.exact(int(k))
