@@ -6,12 +6,15 @@ moveL: the camera's position on a straight line and its orientation by slerp, th
 inverse kinematics nearest the last step's (as the controller follows a Cartesian path), ending
 on the branch the second stop was planned on. Then the lamp moves in its joints (pan, tilt,
 radius linear together), the arm at the second stop.
-Steps by conservative advancement: a bound on how far any point of a moving body travels in a
-step (the camera and the arm's links by sum_i |dq_i| r_i, r_i joint i's reach, `joint_reach`;
-the lamp body by (|dpan| + |dtilt|) (r + its diagonal) + |dr|) is kept at most
-max(padding / 2, (d - padding) / 2) after a pose of clearance d: two bodies both moving close by
-at most twice the bound, so between two checked poses the clearance stays above the padding, or
-(near it) the step bounds the swept distance below half the padding. A direct move closer than
+Steps by conservative advancement, pair by pair: a bound on how far one body of a pair travels
+relative to the other in a step (on the arm, the body further down the chain seen from the
+other's link: sum_i |dq_i| r_i over the joints between them, r_i its reach about joint i's axis,
+`body_reach`; the lamp body against the still rest by (|dpan| + |dtilt|) (r + its diagonal) +
+|dr|) is kept at most max(padding / 2, L - padding) after a pose where the pair is at least L
+apart: between two checked poses every pair stays at least the padding apart, or (near it) the
+step bounds its swept distance below half the padding. A pair far apart (a bounding-sphere gap
+well above the padding) or that the step's joints do not move between (the camera and the
+wrist as the base turns) does not shorten the step. A direct move closer than
 the padding gets via points: back along the camera's axis from the first stop, across at that
 standoff, in along the second's axis; retreats of VIA_RETREATS_M are tried in turn. A lamp move
 closer than the padding gets via joints (`lamp_route`): up or down to another tilt, across in pan
