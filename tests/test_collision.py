@@ -217,3 +217,116 @@ def test_a_move_through_a_wall_gets_via_points_over_it_and_each_step_keeps_the_p
     assert all(T[2, 3] > 0.42 + 0.05 for T in move.via)          # the camera's bottom over the wall's top
     assert move.clearance.distance_m >= task.cell.collision.padding_m
 
+
+
+# -- the paths' steps per pair: which joints move a body, how far its points travel -----------------
+
+def bodies_at(scene, q):
+    """The scene's bodies with the arm at joints q (the camera where the flange puts it)."""
+    T_base_cam = scene.frames.T_base_cam_from_flange(ur5e.forward(q))
+    return scene.bodies(scene.frames.T_cell_cam_from_base(T_base_cam), q)
+
+
+def material_points(body, frame, rng, n=200):
+    """Points of the body (its surface, or its box's inside) in `frame`'s coordinates: where they
+    sit in the link that carries them, so that they move as the link moves. A capsule's: n
+    directions of a Fibonacci sphere about 11 points of its axis, both ends among them."""
+    from cell.collision.bodies import Capsule
+    if isinstance(body, Capsule):
+        k = np.arange(n) + 0.5
+        z, phi = 1.0 - 2.0 * k / n, np.pi * (1.0 + 5.0 ** 0.5) * k
+        u = np.column_stack([np.sqrt(1.0 - z * z) * np.cos(phi), np.sqrt(1.0 - z * z) * np.sin(phi), z])
+        axis = body.a + np.linspace(0.0, 1.0, 11)[:, None] * (body.b - body.a)
+        points = (axis[:, None, :] + body.radius_m * u[None]).reshape(-1, 3)
+    else:
+        corners = np.array(np.meshgrid(*[[-1.0, 1.0]] * 3)).T.reshape(-1, 3)
+        points = geometry.apply(body.T_cell_box, np.vstack([corners, rng.uniform(-1, 1, (n, 3))]) * body.half_m)
+    return geometry.apply(np.linalg.inv(frame), points)
+
+
+def test_each_body_moves_with_the_joints_up_to_its_link_and_no_others():
+    from cell.collision.scene import LINK
+    rng = np.random.default_rng(5)
+    scene = CollisionScene.of(load_task(BRACKET))
+    for _ in range(5):
+        q = rng.uniform(-np.pi, np.pi, 6)
+        before = {b.name: b for b in bodies_at(scene, q) if b.name in LINK}
+        for joint in range(6):
+            moved = q + np.eye(6)[joint] * 0.3
+            after = {b.name: b for b in bodies_at(scene, moved) if b.name in LINK}
+            for name, link in LINK.items():
+                a, b = before[name], after[name]
+                same = (np.allclose(a.a, b.a, atol=1e-12) and np.allclose(a.b, b.b, atol=1e-12)
+                        if hasattr(a, "a") else np.allclose(a.T_cell_box, b.T_cell_box, atol=1e-12))
+                assert same == (joint >= link), (name, joint)
+
+
+def test_a_pairs_distance_does_not_change_with_the_joints_nearer_the_base_than_both():
+    from cell.collision.scene import LINK, MAY_TOUCH
+    rng = np.random.default_rng(6)
+    scene = CollisionScene.of(load_task(BRACKET))
+    q = np.radians([-80.0, -100.0, 80.0, -60.0, -90.0, 20.0])
+    bodies = {b.name: b for b in bodies_at(scene, q) if b.name in LINK}
+    for _ in range(3):
+        moved = q.copy()
+        for name_a, name_b in [(a, b) for a in LINK for b in LINK if a < b and frozenset((a, b)) not in MAY_TOUCH]:
+            lo = min(LINK[name_a], LINK[name_b])
+            moved[:lo] = q[:lo] + rng.uniform(-1.0, 1.0, lo)
+            turned = {b.name: b for b in bodies_at(scene, moved) if b.name in LINK}
+            assert distance(turned[name_a], turned[name_b]) == pytest.approx(
+                distance(bodies[name_a], bodies[name_b]), abs=1e-9), (name_a, name_b)
+            moved = q.copy()
+
+
+def test_body_reach_is_the_farthest_point_of_each_body_from_each_axis_that_moves_it():
+    from cell.collision.paths import body_reach
+    from cell.collision.scene import LINK
+    rng = np.random.default_rng(7)
+    scene = CollisionScene.of(load_task(BRACKET))
+    q = rng.uniform(-np.pi, np.pi, 6)
+    bodies = bodies_at(scene, q)
+    reach = body_reach(scene, bodies, q)
+    frames = ur5e.chain(scene.frames.T_cell_base, q)
+    for b, body in enumerate(bodies):
+        link = LINK.get(body.name, 0)
+        assert np.all(reach[b, link:] == 0.0)
+        if link == 0:
+            continue
+        points = geometry.apply(frames[link], material_points(body, frames[link], rng, 2000))
+        for i in range(link):
+            o, z = frames[i, :3, 3], frames[i, :3, 2]
+            rel = points - o
+            far = np.linalg.norm(rel - np.outer(rel @ z, z), axis=1).max()
+            assert far - 1e-12 <= reach[b, i] <= far + 1e-4, (body.name, i)   # sampled: within 0.1 mm below
+
+
+def test_a_step_moves_each_pairs_body_no_farther_than_its_sweep_bound():
+    """Dense joint-linear motion over a step: each point of the body further down the chain,
+    seen from the frame of the other's link, travels at most sum over the joints between of
+    |dq_i| (r_i + X), r_i body_reach's larger at the two ends, X the widening the bound allows
+    (X = B / (1 - sum |dq_i|), B the bound unwidened)."""
+    from cell.collision.paths import body_reach
+    from cell.collision.scene import LINK
+    rng = np.random.default_rng(8)
+    scene = CollisionScene.of(load_task(BRACKET))
+    for trial in range(6):
+        q0 = rng.uniform(-np.pi, np.pi, 6)
+        one = trial % 2 == 1                              # a step of one joint: the bound is nearly met
+        q1 = q0 + (np.eye(6)[rng.integers(6)] * 0.1 if one else rng.uniform(-0.1, 0.1, 6))
+        b0, b1 = bodies_at(scene, q0), bodies_at(scene, q1)
+        reach = np.maximum(body_reach(scene, b0, q0), body_reach(scene, b1, q1))
+        frames0 = ur5e.chain(scene.frames.T_cell_base, q0)
+        path = [ur5e.chain(scene.frames.T_cell_base, (1 - t) * q0 + t * q1) for t in np.linspace(0, 1, 101)]
+        for b, body in enumerate(b0):
+            hi = LINK.get(body.name, 0)
+            if hi == 0:
+                continue
+            local = material_points(body, frames0[hi], rng)
+            for lo in range(hi):
+                seen = [geometry.apply(np.linalg.inv(F[lo]) @ F[hi], local) for F in path]
+                travel = max(np.linalg.norm(p - seen[0], axis=1).max() for p in seen)
+                dq = np.abs(q1 - q0)[lo:hi]
+                bound = dq @ reach[b, lo:hi]
+                assert travel <= dq @ (reach[b, lo:hi] + bound / (1 - dq.sum())) + 1e-12, (body.name, lo)
+                if one:                                   # the farthest point's arc: r dq, its chord nearly
+                    assert travel >= 0.95 * bound, (body.name, lo)

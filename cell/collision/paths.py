@@ -6,12 +6,15 @@ moveL: the camera's position on a straight line and its orientation by slerp, th
 inverse kinematics nearest the last step's (as the controller follows a Cartesian path), ending
 on the branch the second stop was planned on. Then the lamp moves in its joints (pan, tilt,
 radius linear together), the arm at the second stop.
-Steps by conservative advancement: a bound on how far any point of a moving body travels in a
-step (the camera and the arm's links by sum_i |dq_i| r_i, r_i joint i's reach, `joint_reach`;
-the lamp body by (|dpan| + |dtilt|) (r + its diagonal) + |dr|) is kept at most
-max(padding / 2, (d - padding) / 2) after a pose of clearance d: two bodies both moving close by
-at most twice the bound, so between two checked poses the clearance stays above the padding, or
-(near it) the step bounds the swept distance below half the padding. A direct move closer than
+Steps by conservative advancement, pair by pair: a bound on how far one body of a pair travels
+relative to the other in a step (on the arm, the body further down the chain seen from the
+other's link: sum_i |dq_i| r_i over the joints between them, r_i its reach about joint i's axis,
+`body_reach`; the lamp body against the still rest by (|dpan| + |dtilt|) (r + its diagonal) +
+|dr|) is kept at most max(padding / 2, L - padding) after a pose where the pair is at least L
+apart: between two checked poses every pair stays at least the padding apart, or (near it) the
+step bounds its swept distance below half the padding. A pair far apart (a bounding-sphere gap
+well above the padding) or that the step's joints do not move between (the camera and the
+wrist as the base turns) does not shorten the step. A direct move closer than
 the padding gets via points: back along the camera's axis from the first stop, across at that
 standoff, in along the second's axis; retreats of VIA_RETREATS_M are tried in turn. A lamp move
 closer than the padding gets via joints (`lamp_route`): up or down to another tilt, across in pan
@@ -23,6 +26,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from functools import lru_cache
 from itertools import pairwise
 from typing import TYPE_CHECKING
 
@@ -30,7 +34,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
-from cell.collision.scene import ARM_LINKS, SHOULDER_OFFSET_M, Clearance, CollisionScene
+from cell.collision.bodies import Body, Capsule, Mesh
+from cell.collision.scene import LINK, Clearance, CollisionScene, Pairs
 from cell.core import geometry
 from cell.core.errors import DeviceFault
 from cell.devices import ur5e
@@ -48,6 +53,7 @@ MAX_STEPS = 5000                         # a longer path is refused, not checked
 MAX_JOINT_STEP_RAD = 0.2                 # more in one step of a straight path: it meets a singularity
 MIN_STEP_S = 1e-6                        # a step of the path parameter below this: a singularity
 SAME_BRANCH_RAD = 1e-3                   # joints arriving this close to the stop's planned ones
+CORNERS = np.array(np.meshgrid(*[[-1.0, 1.0]] * 3)).T.reshape(-1, 3)   # a box's, in half sizes
 UNCHECKED_M = 1e6                        # the travel a route solver sees of a move that cannot be made
 
 End = int | str                          # a shot's index in the plan, or HOME
@@ -96,37 +102,63 @@ def _least(clearances: list[Clearance], padding_m: float) -> Clearance:
     return min(clearances, key=lambda c: c.distance_m, default=Clearance(np.inf, ("", ""), padding_m))
 
 
-def _allowed(scene: CollisionScene, c: Clearance, movers: float) -> float:
-    """How far a point may move in the next step after a pose of clearance c, `movers` bodies
-    of a pair moving (2: the arm's links among themselves; 1: the lamp against the still rest)."""
-    return max(0.5 * scene.padding_m, MIN_STEP_M, (c.distance_m - scene.padding_m) / movers)
+def _allowed(scene: CollisionScene, c: Clearance) -> float:
+    """How far a point of one moving body may move in the next step after a pose where its
+    pairs' clearance is c (the lamp against the still rest)."""
+    return max(0.5 * scene.padding_m, MIN_STEP_M, c.distance_m - scene.padding_m)
 
 
-def joint_reach(scene: CollisionScene, q: ArrayLike) -> np.ndarray:
-    """(6,) r_i [m] at joints q: how far from joint i's axis the farthest point it moves lies
-    (the chain's joint origins beyond it, the upper arm's offset, the camera body's corners),
-    plus the thickest link's radius."""
+def body_reach(scene: CollisionScene, bodies: tuple[Body, ...], q: ArrayLike) -> np.ndarray:
+    """(bodies, 6) r_bi [m] at joints q: how far from joint i's axis the farthest point of body b
+    lies, for the joints that move it (i < LINK of its name; 0 for the others and for bodies no
+    joint moves): a capsule's farther end plus its radius (the distance from a line is convex
+    along a segment, so an end is the farthest), a box's farthest corner."""
     frames = ur5e.chain(scene.frames.T_cell_base, np.asarray(q, float))
-    origins, axes, flange = frames[:6, :3, 3], frames[:6, :3, 2], frames[6]
-    corners = np.array(np.meshgrid(*[[-1.0, 1.0]] * 3)).T.reshape(-1, 3) * scene.camera_half_m
-    camera = geometry.apply(flange, corners + (0.0, 0.0, scene.camera_offset_m))
-    chain = np.vstack([origins[1:], [flange[:3, 3]], camera])
-    shoulder = np.vstack([origins[1:3]]) + SHOULDER_OFFSET_M * axes[1]
-    thickest = max(r for _, r in ARM_LINKS)
-    reach = np.empty(6)
-    for i in range(6):
-        points = np.vstack([chain[i:], shoulder[max(i - 1, 0):]]) - origins[i]
-        reach[i] = np.linalg.norm(points - np.outer(points @ axes[i], axes[i]), axis=1).max() + thickest
+    origins, axes = frames[:6, :3, 3], frames[:6, :3, 2]
+    reach = np.zeros((len(bodies), 6))
+    for b, body in enumerate(bodies):
+        link = LINK.get(body.name, 0)
+        if link == 0 or isinstance(body, Mesh):
+            continue
+        if isinstance(body, Capsule):
+            points, thick = np.array([body.a, body.b]), body.radius_m
+        else:
+            points, thick = geometry.apply(body.T_cell_box, CORNERS * body.half_m), 0.0
+        rel = points[None] - origins[:link, None]                         # (link, points, 3)
+        across = rel - np.einsum("ipk,ik->ip", rel, axes[:link])[..., None] * axes[:link, None]
+        reach[b, :link] = np.linalg.norm(across, axis=2).max(axis=1) + thick
     return reach
+
+
+@lru_cache(maxsize=64)
+def _moved_by(names: tuple[str, ...], i: bytes, j: bytes) -> tuple[np.ndarray, np.ndarray]:
+    """(the pairs' mover: the body of each pair further down the chain, (pairs, 6) the joints
+    that move it relative to the other: those between the two bodies' LINKs). Joints nearer the
+    base move both together and change no distance between them."""
+    a, b = np.frombuffer(i, int), np.frombuffer(j, int)
+    link = np.array([LINK.get(name, 0) for name in names])
+    mover = np.where(link[a] >= link[b], a, b)
+    lo, hi = np.minimum(link[a], link[b]), np.maximum(link[a], link[b])
+    joints = (np.arange(6) >= lo[:, None]) & (np.arange(6) < hi[:, None])
+    mover.setflags(write=False)
+    joints.setflags(write=False)
+    return mover, joints
 
 
 def arm_path(scene: CollisionScene, T_from: np.ndarray, q_from: ArrayLike, T_to: np.ndarray,
              lamp: ArrayLike | None) -> tuple[Clearance, np.ndarray, int]:
     """(the smallest Clearance along the moveL from T_from (joints q_from) to T_to, or the first
     below the padding, the joints it ends at, the poses checked); raises ur5e.Unreachable where
-    the inverse kinematics fail or jump (a singularity, a change of configuration). A step's
-    sweep takes each joint's reach at the farther of its two ends, widened by the step allowed
-    (no point moves farther out than that within the step)."""
+    the inverse kinematics fail or jump (a singularity, a change of configuration).
+    Steps per pair of bodies: in the frame of the pair's body nearer the base, its other body
+    moves by the joints between them (`_moved_by`), its points at most
+    sweep = sum_i |dq_i| (r_i + allowed) (r_i its reach about joint i's axis, body_reach, at the
+    farther of the step's two ends, widened by the step allowed: no point moves farther out
+    than that within the step), kept at most allowed = max(padding / 2, L - padding) after a
+    pose where L is a lower bound of the pair's distance (Pairs.bound: the bounding spheres' gap,
+    or the distance where that gap allows too short a step): between two checked poses the
+    pair stays at least the padding apart, or (near it) the step bounds its swept distance
+    below half the padding."""
     turn = Rotation.from_matrix(T_from[:3, :3].T @ T_to[:3, :3]).as_rotvec()
     angle = float(np.linalg.norm(turn))
     K = np.cross(np.eye(3), turn / angle) if angle > 0 else np.zeros((3, 3))
@@ -139,25 +171,30 @@ def arm_path(scene: CollisionScene, T_from: np.ndarray, q_from: ArrayLike, T_to:
         return T
 
     s, q = 0.0, np.asarray(q_from, float)
-    reach = joint_reach(scene, q)
-    found, at = [scene.clearance(T_from, q, lamp)], [0.0]
+    bodies = scene.bodies(T_from, q, lamp)
+    pairs, reach = Pairs.of(bodies, len(scene.fixed)), body_reach(scene, bodies, q)
+    mover, joints = _moved_by(tuple(body.name for body in bodies), pairs.i.tobytes(), pairs.j.tobytes())
+    least = max(0.5 * scene.padding_m, MIN_STEP_M)
+    found, at = [pairs.least(scene.padding_m)], [0.0]
     ds = 1.0
     while s < 1.0 and found[-1].ok:
-        allowed = _allowed(scene, found[-1], 2.0)
         while True:
             s_next = min(1.0, s + ds)
             q_next = ur5e.inverse(scene.frames.T_base_flange(scene.frames.T_base_cam(pose(s_next))), q)
             dq = np.abs(q_next - q)
-            reach_next = joint_reach(scene, q_next)
-            sweep = float(dq @ (np.maximum(reach, reach_next) + allowed))
-            if sweep <= allowed and dq.max() <= MAX_JOINT_STEP_RAD:
+            bodies_next = scene.bodies(pose(s_next), q_next, lamp)
+            reach_next = body_reach(scene, bodies_next, q_next)
+            r = np.maximum(reach, reach_next)[mover]
+            ratio = _worst(pairs, r, joints, dq, least, scene.padding_m)
+            if ratio <= 1.0 and dq.max() <= MAX_JOINT_STEP_RAD:
                 break
-            ds = (s_next - s) * min(0.5, 0.9 * allowed / max(sweep, 1e-300))
+            ds = (s_next - s) * min(0.5, 0.9 / max(ratio, 1e-300))
             if ds < MIN_STEP_S:
                 raise ur5e.Unreachable(f"the straight path turns a joint {np.degrees(dq.max()):.0f} deg in a "
                                        "vanishing step: a singularity or a change of configuration on the way")
         s, q, reach = s_next, q_next, reach_next
-        found.append(scene.clearance(pose(s), q, lamp))
+        pairs = Pairs.of(bodies_next, len(scene.fixed))
+        found.append(pairs.least(scene.padding_m))
         at.append(s)
         if len(found) > MAX_STEPS:
             raise ur5e.Unreachable(f"a path of more than {MAX_STEPS} checked poses")
@@ -167,19 +204,43 @@ def arm_path(scene: CollisionScene, T_from: np.ndarray, q_from: ArrayLike, T_to:
     return replace(found[k], where=where), q, len(found)
 
 
+def _worst(pairs: Pairs, reach: np.ndarray, joints: np.ndarray, dq: np.ndarray, least: float,
+           padding_m: float) -> float:
+    """The largest sweep / allowed over the pairs (arm_path) for joint steps dq; a pair over 1 on
+    its spheres' gap gets its distance (Pairs.exact) first."""
+    def ratios() -> np.ndarray:
+        allowed = np.maximum(least, pairs.bound - padding_m)
+        sweep = np.einsum("pi,pi,i->p", reach + allowed[:, None], joints, dq)
+        return sweep / allowed
+
+    found = ratios()
+    over = np.flatnonzero((found > 1.0) & np.isnan(pairs.distances))
+    for k in over:
+        pairs.exact(int(k))
+    if len(over):
+        found = ratios()
+    return float(found.max(initial=0.0))
+
+
 def lamp_path(scene: CollisionScene, T_cam: np.ndarray, q: ArrayLike, joints_from: ArrayLike,
               joints_to: ArrayLike) -> tuple[Clearance, int]:
     """The smallest Clearance (or the first below the padding) as the lamp moves in its joints
-    (pan, tilt, radius), the arm still, and the poses checked."""
+    (pan, tilt, radius), the arm still, and the poses checked. Each step by the lamp's pairs'
+    clearance (_allowed): no other pair's distance changes."""
     a, b = np.asarray(joints_from, float), np.asarray(joints_to, float)
     arm = max(a[2], b[2]) + 2 * float(np.linalg.norm(scene.lamp_half_m))
     sweep = (abs(b[0] - a[0]) + abs(b[1] - a[1])) * arm + abs(b[2] - a[2])   # a bound over the whole move
-    s, at = 0.0, [lamp_position(scene.pivot_m, *a)]
-    found = [scene.clearance(T_cam, q, at[0])]
-    while s < 1.0 and found[-1].ok:
-        s = min(1.0, s + _allowed(scene, found[-1], 1.0) / max(sweep, 1e-300))
+    s, at, found = 0.0, [lamp_position(scene.pivot_m, *a)], []
+    while True:
+        bodies = scene.bodies(T_cam, q, at[-1])
+        pairs = Pairs.of(bodies, len(scene.fixed))
+        found.append(pairs.least(scene.padding_m))
+        if s >= 1.0 or not found[-1].ok:
+            break
+        lamp = len(bodies) - 1                                  # scene.bodies puts the lamp last
+        mine = pairs.least(scene.padding_m, (pairs.i == lamp) | (pairs.j == lamp))
+        s = min(1.0, s + _allowed(scene, mine) / max(sweep, 1e-300))
         at.append(lamp_position(scene.pivot_m, *((1 - s) * a + s * b)))
-        found.append(scene.clearance(T_cam, q, at[-1]))
     k = int(np.argmin([c.distance_m for c in found]))
     return replace(found[k], where=f"with the lamp at {np.round(at[k], 3).tolist()} m (cell frame)"), len(found)
 

@@ -10,7 +10,8 @@ touch: neighbours on the arm's chain and the next but one (they share a joint ho
 flange's two wrist links and the camera, the robot base and the fixture it may stand on, the
 part and its fixture. The clearance is the smallest distance over every other pair, found by
 branch and bound on bounding spheres (the exact distance of a pair only where it could be the
-smallest), so the result is the minimum, not an estimate of it.
+smallest), so the result is the minimum, not an estimate of it. `Pairs` keeps each pair's lower
+bound (the spheres' gap, or its distance once computed) for the paths' steps (cell.collision.paths).
 """
 
 from __future__ import annotations
@@ -43,6 +44,11 @@ CHAIN = tuple(name for name, _ in ARM_LINKS) + ("camera_body",)
 MAY_TOUCH = frozenset({frozenset(CHAIN[i:i + 2]) for i in range(len(CHAIN) - 1)}
                       | {frozenset((CHAIN[i], CHAIN[i + 2])) for i in range(len(CHAIN) - 2)}
                       | {frozenset(("base", "fixture")), frozenset(("part", "fixture"))})
+# The last joint (1-6) that moves each body of the chain (arm_links' points: o1 = o0 + d1 z0 never moves,
+# o4 = o3 + d4 z3 moves with joint 3, o5 = o4 + d5 z4 with 4, o6 = o5 + d6 z5 with 5, the camera body
+# with the flange, 6); the fixed bodies and the lamp: 0, no joint of the arm moves them.
+LINK = {"base": 0, "shoulder": 1, "upper_arm": 2, "elbow": 2, "forearm": 3, "wrist_1": 3, "wrist_2": 4,
+        "wrist_3": 5, "camera_body": 6}
 
 
 def arm_links(T_cell_base: np.ndarray, q: ArrayLike) -> tuple[Capsule, ...]:
@@ -186,24 +192,66 @@ class CollisionScene:
 
 def clearance(bodies: tuple[Body, ...], padding_m: float, fixed: int = 0) -> Clearance:
     """The smallest distance over the pairs that may not touch (MAY_TOUCH) and are not both among
-    the first `fixed` bodies (those that do not move), exactly as bodies.distance gives it: pairs
-    in order of their bounding spheres' gap, stopping at the first gap no smaller than the best
-    distance found."""
-    pairs = [(i, j) for i, j in combinations(range(len(bodies)), 2)
-             if frozenset((bodies[i].name, bodies[j].name)) not in MAY_TOUCH and j >= fixed]
-    centers = np.array([body.center for body in bodies])
-    radii = np.array([body.radius for body in bodies])
-    i, j = np.array(pairs).T
-    gaps = np.linalg.norm(centers[i] - centers[j], axis=1) - radii[i] - radii[j]   # bodies.lower_bound
-    best, names = np.inf, ("", "")
-    for k in np.argsort(gaps, kind="stable"):
-        if gaps[k] >= best:
-            break
-        a, b = bodies[i[k]], bodies[j[k]]
-        d = distance(a, b)
-        if d < best:
-            best, names = d, (a.name, b.name)
-    return Clearance(float(best), names, padding_m)
+    the first `fixed` bodies (those that do not move), exactly as bodies.distance gives it
+    (Pairs.least)."""
+    return Pairs.of(bodies, fixed).least(padding_m)
+
+
+@dataclass
+class Pairs:
+    """The pairs of one pose's bodies that may not touch and are not both fixed (body indices i,
+    j), their bounding spheres' gaps (bodies.lower_bound) and `bound`, a lower bound of each
+    pair's distance: its gap, raised to bodies.distance where `exact` has computed that (both
+    lower bounds of the true distance, so their larger one is too)."""
+
+    bodies: tuple[Body, ...]
+    i: np.ndarray
+    j: np.ndarray
+    gap: np.ndarray
+    bound: np.ndarray
+    distances: np.ndarray                # each pair's bodies.distance where computed, NaN elsewhere
+
+    @classmethod
+    def of(cls, bodies: tuple[Body, ...], fixed: int = 0) -> Pairs:
+        i, j = _pair_indices(tuple(body.name for body in bodies), fixed)
+        centers = np.array([body.center for body in bodies])
+        radii = np.array([body.radius for body in bodies])
+        gap = np.linalg.norm(centers[i] - centers[j], axis=1) - radii[i] - radii[j]   # bodies.lower_bound
+        return cls(bodies, i, j, gap, gap.copy(), np.full(len(gap), np.nan))
+
+    def exact(self, k: int) -> float:
+        """Pair k's distance (bodies.distance), computed once; its bound raised to it."""
+        if np.isnan(self.distances[k]):
+            self.distances[k] = distance(self.bodies[self.i[k]], self.bodies[self.j[k]])
+            self.bound[k] = max(self.gap[k], self.distances[k])
+        return float(self.distances[k])
+
+    def least(self, padding_m: float, among: np.ndarray | None = None) -> Clearance:
+        """The Clearance over all pairs (or those `among` selects): pairs in order of their gap,
+        stopping at the first gap no smaller than the least distance found (no pair after it can
+        be nearer)."""
+        best, names = np.inf, ("", "")
+        for k in np.argsort(self.gap, kind="stable"):
+            if among is not None and not among[k]:
+                continue
+            if self.gap[k] >= best:
+                break
+            d = self.exact(int(k))
+            if d < best:
+                best, names = d, (self.bodies[self.i[k]].name, self.bodies[self.j[k]].name)
+        return Clearance(float(best), names, padding_m)
+
+
+@lru_cache(maxsize=64)
+def _pair_indices(names: tuple[str, ...], fixed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(i, j) of the pairs of bodies so named that may not touch (MAY_TOUCH) and are not both
+    among the first `fixed`."""
+    pairs = [(i, j) for i, j in combinations(range(len(names)), 2)
+             if frozenset((names[i], names[j])) not in MAY_TOUCH and j >= fixed]
+    i, j = np.array(pairs, int).reshape(-1, 2).T.copy()
+    i.setflags(write=False)
+    j.setflags(write=False)
+    return i, j
 
 
 @lru_cache(maxsize=16)
