@@ -100,9 +100,9 @@ def verify(problem: evaluate.Problem, shot: Shot) -> tuple[Verification, np.ndar
     scene = build_scene(task, dense_samples(task, problem.scene), T_cell_cam=problem.scene.T_cell_cam)
     point, normal = specular_point(scene, shot.lamp_position)
     scene = replace(scene, points=np.vstack([scene.points, point]), normals=np.vstack([scene.normals, normal]))
-    dense = evaluate.build_problem(task, scene, problem.maps, albedo_scale=1.0)
+    dense = evaluate.build_problem(task, scene, problem.maps, focus_m=problem.focus_m, material=problem.material)
     off = () if shot.drive is None else tuple(int(k) for k in np.flatnonzero(shot.drive[1:] <= 0.0))
-    dense = replace(dense, material=problem.material, focus_m=problem.focus_m, kappa_open=problem.kappa_open,
+    dense = replace(dense, kappa_open=problem.kappa_open,
                     lights_off=off)         # the lights at drive 0 add nothing: not computed on the dense patch
     c = evaluate.at_exposure(dense, shot.lamp_position, shot.exposure.shutter_s, shot.exposure.f_number,
                              drive=shot.drive)

@@ -253,18 +253,21 @@ def black_level(task: Task) -> float:
 
 
 def build_problem(task: Task, scene: Scene, maps: Maps | None, albedo_scale: float = 1.0,
-                  focus_m: float | None = None, gray: Rows | None = None) -> Problem:
+                  focus_m: float | None = None, gray: Rows | None = None,
+                  material: Material | None = None) -> Problem:
     """The Problem of a task's scene and maps, the camera focused on the feature centre or at
-    focus_m (a given shot's), its gray kernel the scene's own or `gray`, its rows of a launch
-    shared with other scenes (SharedLaunches: a shot judged on several features).
+    focus_m (a given shot's), the material the task's scaled by albedo_scale or `material` (a
+    search's, which its certificate keeps), its gray kernel the scene's own or `gray`, its rows
+    of a launch shared with other scenes (SharedLaunches: a shot judged on several features).
     A sample the camera sees lies inside the image and is not hidden (a lamp at the camera would
-    light it)."""
+    light it; its aim, the camera's axis, changes no shadow, and is one for every scene the
+    camera sees: their launches are shared)."""
     focus, needed, kappa_open = depth_of_field_limits(task, scene, focus_m)
-    p = Problem(task, scene, maps, task.part.material.scaled(albedo_scale), planning_band(task),
-                black_level(task), focus, needed, kappa_open, 0)
+    p = Problem(task, scene, maps, task.part.material.scaled(albedo_scale) if material is None else material,
+                planning_band(task), black_level(task), focus, needed, kappa_open, 0)
     if gray is not None:
         p.kernels.gray, p.kernels.made_of = gray, (task, scene, p.material)
-    hidden = unit_gray(p, scene.camera_position[None], -scene.normal[None])[1][0]
+    hidden = unit_gray(p, scene.camera_position[None], scene.T_cell_cam[None, :3, 2])[1][0]
     return replace(p, camera_unseen=int(np.sum(hidden | ~in_image(task, scene))))
 
 
