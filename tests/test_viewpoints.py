@@ -181,3 +181,28 @@ def test_a_planned_viewpoint_needs_a_standoff_range(tmp_path, capsys):
     assert cli.main(["check", str(path)]) == 2
     err = capsys.readouterr().err
     assert "camera.standoff_range_m: found nothing" in err and len(err.strip().splitlines()) == 1
+
+
+def test_the_visibility_map_found_once_is_the_one_each_search_would_cast(planned):
+    """A feature's visibility map does not depend on the camera: the viewpoints' map of its own
+    samples, with only the certificate's worst points (here the leaf's samples moved onto the
+    end face, which see less) cast and combined, is the map of casting all of them; and the lamp
+    search at a kept viewpoint plans the same shot with the map given as without."""
+    task, _ = planned
+    one = task.with_feature(0)
+    grid = regions.SphereGrid(np.radians(PlannerSettings().grid_step_deg))
+    own = build_scene(one)
+    end = build_scene(task.with_feature(1))
+    widened = build_scene(one, extra=end.points[:4])
+    first = one_shot.visibility_map(own, grid)
+    cast = one_shot.visibility_map(widened, grid)
+    assert (cast != first).any()                        # the extra points change the map
+    np.testing.assert_array_equal(one_shot.visibility_map(widened, grid, first, len(own.points)), cast)
+    assert one_shot.visibility_map(own, grid, first, len(own.points)) is first
+
+    views = plan_viewpoints(one, own, first, grid)
+    vp = views.kept[0]
+    given = one_shot.plan(one, T_cell_cam=vp.T_cell_cam, visible=views.visible)
+    alone = one_shot.plan(one, T_cell_cam=vp.T_cell_cam)
+    np.testing.assert_array_equal(given.maps.visible, alone.maps.visible)
+    assert given.shot.joints == alone.shot.joints and given.shot.requirements == alone.shot.requirements

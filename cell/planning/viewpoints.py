@@ -63,12 +63,15 @@ class Viewpoint:
 @dataclass(frozen=True)
 class Viewpoints:
     """The kept viewpoints of one feature, best first, the poses tried, those each stage pruned
-    and those that passed every stage (kept or not: the bound)."""
+    and those that passed every stage (kept or not: the bound), and the visibility map (E, A) of
+    the feature's samples they were pruned by: it does not depend on the camera, so the lamp
+    search at each kept viewpoint takes it (one_shot.plan's `visible`) instead of casting it again."""
 
     kept: tuple[Viewpoint, ...]
     poses: int
     pruned: dict[str, int]
     passed: int
+    visible: np.ndarray
     time_s: float = 0.0          # the viewpoints' own time (cell.planning.whole_part records it)
 
     def to_json(self) -> dict[str, int | dict[str, int]]:
@@ -208,4 +211,4 @@ def plan_viewpoints(task: Task, scene: Scene, visible: np.ndarray, grid: SphereG
             kept.append(v)
         if len(kept) == vp.per_feature:
             break
-    return Viewpoints(tuple(kept), len(dirs) * len(radii), pruned, len(survivors))
+    return Viewpoints(tuple(kept), len(dirs) * len(radii), pruned, len(survivors), visible)
