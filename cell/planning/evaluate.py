@@ -253,19 +253,31 @@ def black_level(task: Task) -> float:
 
 
 def build_problem(task: Task, scene: Scene, maps: Maps | None, albedo_scale: float = 1.0,
-                  focus_m: float | None = None, gray: Rows | None = None) -> Problem:
+                  focus_m: float | None = None, gray: Rows | None = None, hidden: np.ndarray | None = None) -> Problem:
     """The Problem of a task's scene and maps, the camera focused on the feature centre or at
     focus_m (a given shot's), its gray kernel the scene's own or `gray`, its rows of a launch
     shared with other scenes (SharedLaunches: a shot judged on several features).
     A sample the camera sees lies inside the image and is not hidden (a lamp at the camera would
-    light it)."""
+    light it): `hidden` (P,) where found before (hidden_from), else by the kernel here."""
     focus, needed, kappa_open = depth_of_field_limits(task, scene, focus_m)
     p = Problem(task, scene, maps, task.part.material.scaled(albedo_scale), planning_band(task),
                 black_level(task), focus, needed, kappa_open, 0)
     if gray is not None:
         p.kernels.gray, p.kernels.made_of = gray, (task, scene, p.material)
-    hidden = unit_gray(p, scene.camera_position[None], -scene.normal[None])[1][0]
+    if hidden is None:
+        hidden = unit_gray(p, scene.camera_position[None], -scene.normal[None])[1][0]
     return replace(p, camera_unseen=int(np.sum(hidden | ~in_image(task, scene))))
+
+
+def hidden_from(task: Task, scene: Scene, cameras: ArrayLike) -> np.ndarray:
+    """(N, P) the scene's samples hidden from each of N camera positions (N, 3) [m]: the gray
+    kernel's shadow flag for a lamp there (build_problem's), which reads the sample, its normal,
+    the mesh and the position alone (kernels.funcs.shade_point), so one launch serves many cameras."""
+    cameras = np.asarray(cameras, dtype=np.float64).reshape(-1, 3)
+    if not len(cameras):
+        return np.zeros((0, len(scene.points)), bool)
+    aims = np.broadcast_to(-scene.normal, cameras.shape)
+    return gray_inputs(task, scene, task.part.material)(cameras, aims).shadowed
 
 
 def in_image(task: Task, scene: Scene) -> np.ndarray:
