@@ -258,14 +258,16 @@ def build_problem(task: Task, scene: Scene, maps: Maps | None, albedo_scale: flo
     focus_m (a given shot's), its gray kernel the scene's own or `gray`, its rows of a launch
     shared with other scenes (SharedLaunches: a shot judged on several features).
     A sample the camera sees lies inside the image and is not hidden (a lamp at the camera would
-    light it): `hidden` (P,) where found before (hidden_from), else by the kernel here."""
+    light it): `hidden` (P,) where found before (hidden_from), else by the kernel here, the lamp
+    aimed along the camera's axis (the shadow flag reads no aim): the scenes of one shot judged on
+    several features ask their SharedLaunches for one launch, not one each."""
     focus, needed, kappa_open = depth_of_field_limits(task, scene, focus_m)
     p = Problem(task, scene, maps, task.part.material.scaled(albedo_scale), planning_band(task),
                 black_level(task), focus, needed, kappa_open, 0)
     if gray is not None:
         p.kernels.gray, p.kernels.made_of = gray, (task, scene, p.material)
     if hidden is None:
-        hidden = unit_gray(p, scene.camera_position[None], -scene.normal[None])[1][0]
+        hidden = unit_gray(p, scene.camera_position[None], scene.T_cell_cam[None, :3, 2])[1][0]
     return replace(p, camera_unseen=int(np.sum(hidden | ~in_image(task, scene))))
 
 
