@@ -5,6 +5,7 @@ of the true patch, the view angle and pixel footprint recomputed from its points
 forward kinematics of the inverse solution reproducing the flange pose."""
 import json
 from pathlib import Path
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -14,15 +15,15 @@ from cell import cli
 
 from cell.task import loader
 
-from cell.planning import one_shot, regions
+from cell.planning import evaluate, one_shot, regions
 
 from cell.devices import ur5e
 from cell.devices.interfaces import check_arm_motion
 from cell.planning.whole_part import plan_features
 from cell.planning.plan import PlannerSettings
-from cell.planning.scene import build_scene
+from cell.planning.scene import build_scene, look_at
 from cell.planning.viewpoints import STAGES, plan_viewpoints, sphere_directions
-from dense import acceptance_failures, patch_surface, shade
+from dense import _blocked, acceptance_failures, cell_mesh, patch_surface, shade
 from test_loader import put, write_task
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -105,7 +106,6 @@ def test_every_pose_is_pruned_by_one_stage_or_passes_and_the_kept_are_bounded(pl
 
 
 def test_the_fixed_rule_cannot_cover_the_end_face(planned, tmp_path):
-    from dataclasses import replace
     task, _ = planned
     fixed = replace(task, camera=replace(task.camera, viewpoint=replace(task.camera.viewpoint, mode="fixed")))
     plan = plan_features(fixed)
@@ -145,7 +145,6 @@ def test_a_pose_the_arm_cannot_reach_is_pruned(planned):
     """The UR5e spans at most a2 + a3 + d5 + d6 ~ 1.02 m from its shoulder: with the view spheres
     at 1.5-2 m (the workspace box widened and the resolution not asked, so neither prunes) no pose
     survives, each refused by the inverse kinematics."""
-    from dataclasses import replace
     task, _ = planned
     arm = replace(task.cell.devices.arm, workspace_min_m=np.full(3, -5.0), workspace_max_m=np.full(3, 5.0))
     leaf = task.features[0]
@@ -181,3 +180,51 @@ def test_a_planned_viewpoint_needs_a_standoff_range(tmp_path, capsys):
     assert cli.main(["check", str(path)]) == 2
     err = capsys.readouterr().err
     assert "camera.standoff_range_m: found nothing" in err and len(err.strip().splitlines()) == 1
+
+
+def test_the_visibility_map_found_once_is_the_one_each_search_would_cast(planned):
+    """A feature's visibility map does not depend on the camera: the viewpoints' map of its own
+    samples, with only the certificate's worst points (here the leaf's samples moved onto the
+    end face, which see less) cast and combined, is the map of casting all of them; and the lamp
+    search at a kept viewpoint plans the same shot with the map given as without."""
+    task, _ = planned
+    one = task.with_feature(0)
+    grid = regions.SphereGrid(np.radians(PlannerSettings().grid_step_deg))
+    own = build_scene(one)
+    end = build_scene(task.with_feature(1))
+    widened = build_scene(one, extra=end.points[:4])
+    first = one_shot.visibility_map(own, grid)
+    cast = one_shot.visibility_map(widened, grid)
+    assert (cast != first).any()                        # the extra points change the map
+    np.testing.assert_array_equal(one_shot.visibility_map(widened, grid, first, len(own.points)), cast)
+    assert one_shot.visibility_map(own, grid, first, len(own.points)) is first
+
+    views = plan_viewpoints(one, own, first, grid)
+    vp = views.kept[0]
+    given = one_shot.plan(one, T_cell_cam=vp.T_cell_cam, visible=views.visible)
+    alone = one_shot.plan(one, T_cell_cam=vp.T_cell_cam)
+    np.testing.assert_array_equal(given.maps.visible, alone.maps.visible)
+    assert given.shot.joints == alone.shot.joints and given.shot.requirements == alone.shot.requirements
+
+
+def test_samples_hidden_from_many_cameras_in_one_launch_are_each_cameras_own(planned):
+    """evaluate.hidden_from: 200 cameras scattered 5 cm about the leaf (some see all of it, some
+    none, some part, the knuckle between) in one launch give each camera's hidden samples as a
+    brute-force ray cast finds them (behind the facet or the ray to the camera blocked, tests/dense.py)
+    and as the Problem of that camera alone counts them."""
+    task, _ = planned
+    one = task.with_feature(0)
+    scene = build_scene(one)
+    cameras = scene.center + np.random.default_rng(0).normal(size=(200, 3)) * 0.05
+    hidden = evaluate.hidden_from(one, scene, cameras)
+    counts = hidden.sum(axis=1)
+    assert (counts == 0).any() and (counts == len(scene.points)).any()
+    assert ((counts > 0) & (counts < len(scene.points))).sum() >= 5
+    mesh = cell_mesh(one)
+    for camera, row in zip(cameras, hidden):
+        behind = np.sum((camera - scene.points) * scene.normals, axis=1) <= 0.0
+        np.testing.assert_array_equal(row, behind | _blocked(mesh, scene.points, scene.normals, camera))
+    for camera, row in zip(cameras[::20], hidden[::20]):
+        at = replace(scene, T_cell_cam=look_at(camera, scene.center))
+        assert (evaluate.build_problem(one, at, None, hidden=row).camera_unseen
+                == evaluate.build_problem(one, at, None).camera_unseen)

@@ -54,6 +54,16 @@ class Lent:
         return cls(plan.scene, plan.settings, plan.maps.visible)
 
 
+def stacked(lent: Sequence[Lent], T_cell_cam: np.ndarray) -> tuple[Scene, list[tuple[int, int]]]:
+    """The samples of several features of one part (their own plans' `lent`) in one scene, seen
+    by a camera at T_cell_cam, and each feature's rows [start, end) in it."""
+    counts = np.array([len(x.scene.points) for x in lent])
+    ends = np.cumsum(counts)
+    scene = replace(lent[0].scene, T_cell_cam=T_cell_cam, points=np.vstack([x.scene.points for x in lent]),
+                    normals=np.vstack([x.scene.normals for x in lent]))
+    return scene, list(zip((ends - counts).tolist(), ends.tolist()))
+
+
 def rejected(task: Task, missed: tuple[RequirementValue, ...]) -> Coverage:
     """The Coverage of a shot on the one-feature `task` that the prefilter (cell.planning.prefilter)
     found to miss the requirements `missed`: not covered, nothing predicted (no gray)."""
@@ -66,10 +76,9 @@ def judge_all(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list[C
     if not tasks:
         return []
     task = tasks[0]
-    scene = replace(lent[0].scene, T_cell_cam=shot.T_cell_cam, points=np.vstack([x.scene.points for x in lent]),
-                    normals=np.vstack([x.scene.normals for x in lent]))
+    scene, bounds = stacked(lent, shot.T_cell_cam)
     shared = evaluate.SharedLaunches(evaluate.gray_inputs(task, scene, task.part.material.scaled(1.0)),
-                            [len(x.scene.points) for x in lent])
+                                     [end - start for start, end in bounds])
     return [judge(t, x, shot, shared.rows(k)) for k, (t, x) in enumerate(zip(tasks, lent))]
 
 

@@ -254,21 +254,34 @@ def black_level(task: Task) -> float:
 
 def build_problem(task: Task, scene: Scene, maps: Maps | None, albedo_scale: float = 1.0,
                   focus_m: float | None = None, gray: Rows | None = None,
-                  material: Material | None = None) -> Problem:
+                  material: Material | None = None, hidden: np.ndarray | None = None) -> Problem:
     """The Problem of a task's scene and maps, the camera focused on the feature centre or at
     focus_m (a given shot's), the material the task's scaled by albedo_scale or `material` (a
     search's, which its certificate keeps), its gray kernel the scene's own or `gray`, its rows
     of a launch shared with other scenes (SharedLaunches: a shot judged on several features).
     A sample the camera sees lies inside the image and is not hidden (a lamp at the camera would
-    light it; its aim, the camera's axis, changes no shadow, and is one for every scene the
-    camera sees: their launches are shared)."""
+    light it): `hidden` (P,) where found before (hidden_from), else by the kernel here, the lamp
+    aimed along the camera's axis (the shadow flag reads no aim): the scenes of one shot judged on
+    several features ask their SharedLaunches for one launch, not one each."""
     focus, needed, kappa_open = depth_of_field_limits(task, scene, focus_m)
     p = Problem(task, scene, maps, task.part.material.scaled(albedo_scale) if material is None else material,
                 planning_band(task), black_level(task), focus, needed, kappa_open, 0)
     if gray is not None:
         p.kernels.gray, p.kernels.made_of = gray, (task, scene, p.material)
-    hidden = unit_gray(p, scene.camera_position[None], scene.T_cell_cam[None, :3, 2])[1][0]
+    if hidden is None:
+        hidden = unit_gray(p, scene.camera_position[None], scene.T_cell_cam[None, :3, 2])[1][0]
     return replace(p, camera_unseen=int(np.sum(hidden | ~in_image(task, scene))))
+
+
+def hidden_from(task: Task, scene: Scene, cameras: ArrayLike) -> np.ndarray:
+    """(N, P) the scene's samples hidden from each of N camera positions (N, 3) [m]: the gray
+    kernel's shadow flag for a lamp there (build_problem's), which reads the sample, its normal,
+    the mesh and the position alone (kernels.funcs.shade_point), so one launch serves many cameras."""
+    cameras = np.asarray(cameras, dtype=np.float64).reshape(-1, 3)
+    if not len(cameras):
+        return np.zeros((0, len(scene.points)), bool)
+    aims = np.broadcast_to(-scene.normal, cameras.shape)
+    return gray_inputs(task, scene, task.part.material)(cameras, aims).shadowed
 
 
 def in_image(task: Task, scene: Scene) -> np.ndarray:

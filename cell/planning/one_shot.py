@@ -32,11 +32,20 @@ if TYPE_CHECKING:
     from cell.task.types import LampRig, Task
 
 
-def visibility_map(scene: Scene, grid: regions.SphereGrid) -> np.ndarray:
-    """(E, A) directions of the feature frame every sample sees (Warp ray casting, sec. 2.2)."""
+def visibility_map(scene: Scene, grid: regions.SphereGrid, first: np.ndarray | None = None,
+                   count: int = 0) -> np.ndarray:
+    """(E, A) directions of the feature frame every sample sees (Warp ray casting, sec. 2.2).
+    `first`: the map of the scene's first `count` samples, found before (a feature's own samples,
+    the certificate's worst points added after them): only the rest are cast and the two maps
+    combined, the same map (a direction every sample sees; each sample's rays its own)."""
     from kernels.visibility import combined_map, visibility_maps
-    return combined_map(visibility_maps(scene.warp_mesh, scene.points, scene.normals, scene.frame,
-                                        grid.azimuth, grid.elevation))
+    if first is None:
+        count = 0
+    elif count == len(scene.points):
+        return first
+    found = combined_map(visibility_maps(scene.warp_mesh, scene.points[count:], scene.normals[count:], scene.frame,
+                                         grid.azimuth, grid.elevation))
+    return found if first is None else first & found
 
 
 def build_maps(task: Task, scene: Scene, settings: PlannerSettings, visible: np.ndarray | None = None,
@@ -152,9 +161,12 @@ def refine_all(problem: evaluate.Problem, starts: list[np.ndarray],
 
 
 def plan(task: Task, settings: PlannerSettings = PlannerSettings(), albedo_scale: float = 1.0,
-         progress: Callable[[str], None] | None = None, T_cell_cam: np.ndarray | None = None) -> Plan:
+         progress: Callable[[str], None] | None = None, T_cell_cam: np.ndarray | None = None,
+         visible: np.ndarray | None = None) -> Plan:
     """Plan a task (the CLI, the closed loop and the benchmark all call this), its camera at
-    T_cell_cam (a planned viewpoint's) or by the task's camera rule: search, then
+    T_cell_cam (a planned viewpoint's) or by the task's camera rule, `visible` the visibility map
+    of the feature's own samples (settings' count, on its grid) where it was found before (it
+    does not depend on the camera: a feature's viewpoints share it): search, then
     certify the chosen shot on the dense patch (cell.planning.certificate); where the certificate fails,
     its worst points join the samples and the search runs again, at most CERTIFY_ROUNDS times.
     The plan is feasible when its samples and its certificate say so."""
@@ -162,7 +174,7 @@ def plan(task: Task, settings: PlannerSettings = PlannerSettings(), albedo_scale
     t0 = time.perf_counter()
     extra = np.zeros((0, 3))
     for rounds in range(CERTIFY_ROUNDS + 1):
-        result, problem = search(task, settings, albedo_scale, extra, say, T_cell_cam)
+        result, problem = search(task, settings, albedo_scale, extra, say, T_cell_cam, visible)
         if not result.feasible:
             return replace(result, timing_s={**result.timing_s, "total": time.perf_counter() - t0})
         t = time.perf_counter()
@@ -187,8 +199,10 @@ def plan(task: Task, settings: PlannerSettings = PlannerSettings(), albedo_scale
 
 
 def search(task: Task, settings: PlannerSettings, albedo_scale: float, extra: np.ndarray,
-           say: Callable[[str], None], T_cell_cam: np.ndarray | None = None) -> tuple[Plan, evaluate.Problem]:
-    """(Plan of the search over the rig on the task's samples plus `extra` points, its Problem)."""
+           say: Callable[[str], None], T_cell_cam: np.ndarray | None = None,
+           visible: np.ndarray | None = None) -> tuple[Plan, evaluate.Problem]:
+    """(Plan of the search over the rig on the task's samples plus `extra` points, its Problem;
+    `visible`: the own samples' visibility map, found before, only the extra points' cast)."""
     from cell.planning.scene import build_scene
     timing = {}
     t0 = time.perf_counter()
@@ -198,7 +212,10 @@ def search(task: Task, settings: PlannerSettings, albedo_scale: float, extra: np
     timing["scene"] = time.perf_counter() - t0
 
     t = time.perf_counter()
-    maps = build_maps(task, scene, settings)
+    if visible is not None:
+        grid = regions.SphereGrid(np.radians(settings.grid_step_deg))
+        visible = visibility_map(scene, grid, visible, len(scene.points) - len(extra))
+    maps = build_maps(task, scene, settings, visible=visible)
     timing["maps"] = time.perf_counter() - t
     say(f"maps: {maps.visible.mean():.0%} of directions visible, {maps.wanted.mean():.1%} give "
         f"{task.requirements.reflection} reflection")

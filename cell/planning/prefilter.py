@@ -30,15 +30,14 @@ A pair passed is judged in full: the coverage matrix is the full judge's exactly
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from cell.devices import rig
-from cell.physics import costs
+from cell.physics import costs, projection
 from cell.physics.costs import RequirementValue
-from cell.planning import evaluate, requirements
+from cell.planning import coverage, evaluate, requirements
 
 if TYPE_CHECKING:
     from cell.planning.coverage import Lent
@@ -52,24 +51,36 @@ def _missed(name: str, ln: float, detail: str) -> RequirementValue | None:
     return RequirementValue(name, value, f"{detail} (found before the full evaluation)") if value > 1.0 else None
 
 
-def camera_side(task: Task, lent: Lent, shot: Shot) -> list[RequirementValue]:
-    """The requirements of the shot's camera alone (its pose, focus and f-number) missed on the
-    feature of the one-feature `task`, whose own plan lent its samples: view_angle, resolution,
-    depth_of_field, and camera_view as far as the image's bounds decide it."""
-    scene = replace(lent.scene, T_cell_cam=shot.T_cell_cam)
-    asked = task.requirements
-    n = len(scene.points)
-    found = [_missed("camera_view", float(costs.ln_count_cost(np.sum(~evaluate.in_image(task, scene)))),
-                     f"samples outside the image, of {n}")]
-    if asked.view_angle_rad is not None:
-        found.append(_missed("view_angle", requirements.view_angle_ln(task, scene), "the camera sees the samples "
-                             "too obliquely"))
-    if asked.resolution_m is not None:
-        found.append(_missed("resolution", requirements.resolution_ln(task, scene), "a pixel covers too much"))
+def camera_side(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list[list[RequirementValue]]:
+    """Per feature of `tasks` (one-feature tasks of one part, each with the samples its own plan
+    lent) the requirements of the shot's camera alone (its pose, focus and f-number) missed on
+    it: view_angle, resolution, depth_of_field, and camera_view as far as the image's bounds
+    decide it. Each sample's numbers are computed over every feature's samples at once (a
+    sample's row its own), each feature's extremes over its rows."""
+    if not tasks:
+        return []
+    scene, bounds = coverage.stacked(lent, shot.T_cell_cam)
+    outside = ~evaluate.in_image(tasks[0], scene)           # the part's camera: every feature's
+    angles = projection.view_angles(scene.camera_position, scene.points, scene.normals)
+    footprints = requirements.footprints_at(tasks[0], scene)
+    depths = scene.sample_depths()
     e = shot.exposure
-    ln = requirements.depth_of_field_ln(task, scene, float(e.focus_m), np.array([float(e.f_number)]))[0]
-    found.append(_missed("depth_of_field", float(ln), f"samples out of focus at f/{e.f_number:.1f}"))
-    return [r for r in found if r is not None]
+    found = []
+    for task, (start, end) in zip(tasks, bounds):
+        asked = task.requirements
+        here = [_missed("camera_view", float(costs.ln_count_cost(np.sum(outside[start:end]))),
+                        f"samples outside the image, of {end - start}")]
+        if asked.view_angle_rad is not None:
+            here.append(_missed("view_angle", requirements.view_angle_ln(task, scene, float(angles[start:end].max())),
+                                "the camera sees the samples too obliquely"))
+        if asked.resolution_m is not None:
+            here.append(_missed("resolution", requirements.resolution_ln(task, scene, footprints[start:end].max()),
+                                "a pixel covers too much"))
+        ln = requirements.depth_of_field_ln(task, scene, float(e.focus_m), np.array([float(e.f_number)]),
+                                            depths[start:end].min(), depths[start:end].max())[0]
+        here.append(_missed("depth_of_field", float(ln), f"samples out of focus at f/{e.f_number:.1f}"))
+        found.append([r for r in here if r is not None])
+    return found
 
 
 def lamp_side(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list[list[RequirementValue]]:
@@ -80,8 +91,7 @@ def lamp_side(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list[l
     if not tasks:
         return []
     task = tasks[0]
-    scene = replace(lent[0].scene, T_cell_cam=shot.T_cell_cam, points=np.vstack([x.scene.points for x in lent]),
-                    normals=np.vstack([x.scene.normals for x in lent]))
+    scene, bounds = coverage.stacked(lent, shot.T_cell_cam)
     pivot = task.lamp.rig.pivot_m
     aims = np.vstack([shot.T_cell_cam[:3, 2], rig.lamp_aim(pivot, shot.lamp_position.reshape(1, 3))])
     out = evaluate.gray_inputs(task, scene, task.part.material)(np.vstack([shot.camera_position,
@@ -90,10 +100,8 @@ def lamp_side(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list[l
     spot_on = spot_drive > 0.0
     half = task.lamp.lit_half_angle_rad
     gain = shot.exposure.shutter_s / shot.exposure.f_number ** 2
-    counts = np.array([len(x.scene.points) for x in lent])
-    ends = np.cumsum(counts)
     found = []
-    for t, start, end in zip(tasks, ends - counts, ends):
+    for t, (start, end) in zip(tasks, bounds):
         hidden, shadowed, off_axis = out.shadowed[0, start:end], out.shadowed[1, start:end], out.off_axis[1, start:end]
         n = end - start
         here = [_missed("camera_view", float(costs.ln_count_cost(np.sum(hidden))),
@@ -118,8 +126,11 @@ def missed(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot, skip: int) -
     lent) the requirements `shot` misses on it for sure (empty: it may cover it, the full judge
     decides; also at `skip`, the shot's own feature): the camera's first, then one launch of the
     kernel over the features left."""
-    found = [[] if g == skip else camera_side(t, x, shot) for g, (t, x) in enumerate(zip(tasks, lent))]
-    left = [g for g, f in enumerate(found) if not f and g != skip]
+    others = [g for g in range(len(tasks)) if g != skip]
+    found: list[list[RequirementValue]] = [[] for _ in tasks]
+    for g, here in zip(others, camera_side([tasks[g] for g in others], [lent[g] for g in others], shot)):
+        found[g] = here
+    left = [g for g in others if not found[g]]
     for g, more in zip(left, lamp_side([tasks[g] for g in left], [lent[g] for g in left], shot)):
         found[g] = more
     return [tuple(f) for f in found]

@@ -256,9 +256,11 @@ def largest_view_angle(scene: Scene) -> float:
     return float(projection.view_angles(scene.camera_position, scene.points, scene.normals).max())
 
 
-def view_angle_ln(task: Task, scene: Scene) -> float:
-    """ln f of view_angle at a scene's camera (the camera's alone: the prefilter's too)."""
-    return float(costs.ln_f_max(largest_view_angle(scene), _wanted(task.requirements.view_angle_rad)))
+def view_angle_ln(task: Task, scene: Scene, largest: float | None = None) -> float:
+    """ln f of view_angle at a scene's camera (the camera's alone: the prefilter's too), the
+    largest view angle [rad] given (the prefilter's, of many features' samples at once) or the scene's."""
+    angle = largest_view_angle(scene) if largest is None else largest
+    return float(costs.ln_f_max(angle, _wanted(task.requirements.view_angle_rad)))
 
 
 def view_angle(p: Problem, c: Candidates) -> np.ndarray:
@@ -285,9 +287,11 @@ def footprints_at(task: Task, scene: Scene) -> np.ndarray:
                                       sensor.pixel_pitch_m, lens.focal_length_m)
 
 
-def resolution_ln(task: Task, scene: Scene) -> float:
-    """ln f of resolution at a scene's camera (the camera's alone: the prefilter's too)."""
-    return float(costs.ln_f_max(footprints_at(task, scene).max(), _wanted(task.requirements.resolution_m)))
+def resolution_ln(task: Task, scene: Scene, largest: float | None = None) -> float:
+    """ln f of resolution at a scene's camera (the camera's alone: the prefilter's too), the
+    largest pixel footprint [m] given (the prefilter's) or the scene's."""
+    footprint = footprints_at(task, scene).max() if largest is None else largest
+    return float(costs.ln_f_max(footprint, _wanted(task.requirements.resolution_m)))
 
 
 def resolution(p: Problem, c: Candidates) -> np.ndarray:

@@ -63,12 +63,15 @@ class Viewpoint:
 @dataclass(frozen=True)
 class Viewpoints:
     """The kept viewpoints of one feature, best first, the poses tried, those each stage pruned
-    and those that passed every stage (kept or not: the bound)."""
+    and those that passed every stage (kept or not: the bound), and the visibility map (E, A) of
+    the feature's samples they were pruned by: it does not depend on the camera, so the lamp
+    search at each kept viewpoint takes it (one_shot.plan's `visible`) instead of casting it again."""
 
     kept: tuple[Viewpoint, ...]
     poses: int
     pruned: dict[str, int]
     passed: int
+    visible: np.ndarray
     time_s: float = 0.0          # the viewpoints' own time (cell.planning.whole_part records it)
 
     def to_json(self) -> dict[str, int | dict[str, int]]:
@@ -151,10 +154,11 @@ def require_reach(task: Task, scene: Scene) -> None:
                              f"solution takes; {fix}") from None
 
 
-def viewpoint_values(task: Task, scene: Scene) -> dict[str, float]:
+def viewpoint_values(task: Task, scene: Scene, hidden: np.ndarray | None = None) -> dict[str, float]:
     """{name: ln f_i} of the viewpoint requirements the task asks for at the scene's camera (the
-    depth of field at the lens's narrowest f-number: whether any f-number gives it)."""
-    problem = evaluate.build_problem(task, scene, None)
+    depth of field at the lens's narrowest f-number: whether any f-number gives it); `hidden` the
+    samples hidden from the camera where found before (evaluate.hidden_from)."""
+    problem = evaluate.build_problem(task, scene, None, hidden=hidden)
     # the viewpoint requirements read only the f-number and the shutter's shape of the Candidates
     lens_only = cast(evaluate.Candidates, SimpleNamespace(kappa=np.array([task.camera.lens.f_number_range[1]]),
                                                           shutter=np.zeros(1)))
@@ -179,7 +183,7 @@ def plan_viewpoints(task: Task, scene: Scene, visible: np.ndarray, grid: SphereG
     pruned["visibility"] = int(np.sum(~seen_dir)) * len(radii)
     square = seen_dir & (polar <= (np.inf if req.view_angle_rad is None else req.view_angle_rad) + 1e-12)
     pruned["view_angle"] = int(np.sum(seen_dir & ~square)) * len(radii)
-    survivors = []
+    reached: list[tuple[float, np.ndarray, np.ndarray]] = []         # (standoff, T_cell_cam, joints)
     bodies = CollisionScene.of(task) if collisions else None
     for k in np.flatnonzero(square):
         d = scene.frame @ dirs[k]
@@ -189,17 +193,20 @@ def plan_viewpoints(task: Task, scene: Scene, visible: np.ndarray, grid: SphereG
                     camera, scene.center, scene.normal, sensor.pixel_pitch_m, lens.focal_length_m) > req.resolution_m:
                 pruned["resolution"] += 1
                 continue
-            reached = reach(task, look_at(camera, scene.center), bodies)
-            if isinstance(reached, str):
-                pruned[reached] += 1
+            got = reach(task, look_at(camera, scene.center), bodies)
+            if isinstance(got, str):
+                pruned[got] += 1
                 continue
-            T, q = reached
-            values = viewpoint_values(task, replace(scene, T_cell_cam=T))
-            if any(v > 0.0 for v in values.values()):
-                pruned["seen"] += 1
-                continue
-            angle = projection.view_angles(T[:3, 3], scene.points, scene.normals).max()
-            survivors.append(Viewpoint(T, q, float(r), float(angle)))
+            reached.append((float(r), *got))
+    survivors = []
+    hidden = evaluate.hidden_from(task, scene, [T[:3, 3] for _, T, _ in reached])     # one launch for all
+    for (r, T, q), hid in zip(reached, hidden):
+        values = viewpoint_values(task, replace(scene, T_cell_cam=T), hid)
+        if any(v > 0.0 for v in values.values()):
+            pruned["seen"] += 1
+            continue
+        angle = projection.view_angles(T[:3, 3], scene.points, scene.normals).max()
+        survivors.append(Viewpoint(T, q, r, float(angle)))
     survivors.sort(key=lambda v: (round(v.view_angle_rad, 9), v.standoff_m))
     kept: list[Viewpoint] = []
     for v in survivors:
@@ -208,4 +215,4 @@ def plan_viewpoints(task: Task, scene: Scene, visible: np.ndarray, grid: SphereG
             kept.append(v)
         if len(kept) == vp.per_feature:
             break
-    return Viewpoints(tuple(kept), len(dirs) * len(radii), pruned, len(survivors))
+    return Viewpoints(tuple(kept), len(dirs) * len(radii), pruned, len(survivors), visible)

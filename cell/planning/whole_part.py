@@ -48,12 +48,13 @@ def travel(shots: Sequence[Shot]) -> np.ndarray:
 
 
 def own_plan(task: Task, settings: PlannerSettings, T_cell_cam: np.ndarray | None, arm_joints: np.ndarray | None,
-             header: str, say: Callable[[str], None]) -> Plan:
+             header: str, say: Callable[[str], None], visible: np.ndarray | None = None) -> Plan:
     """A job: the one-shot plan of a one-feature task, its camera at T_cell_cam (a planned
-    viewpoint's, reached by `arm_joints`) or by the task's rule (None)."""
+    viewpoint's, reached by `arm_joints`, and `visible` its samples' visibility map, found by
+    the viewpoints) or by the task's rule (None)."""
     if header:
         say(header)
-    p = one_shot.plan(task, settings, progress=say, T_cell_cam=T_cell_cam)
+    p = one_shot.plan(task, settings, progress=say, T_cell_cam=T_cell_cam, visible=visible)
     if arm_joints is not None:
         p = replace(p, shots=(replace(p.shot, arm_joints=tuple(float(q) for q in arm_joints)),))
     return cleared(task, p) if settings.collisions else p
@@ -94,7 +95,7 @@ def at_viewpoint(task: Task, settings: PlannerSettings, views: Viewpoints, k: in
     """A job: the one-shot plan of a one-feature task at its k-th kept viewpoint."""
     vp = views.kept[k]
     return own_plan(task, settings, vp.T_cell_cam, vp.arm_joints, f"feature {task.feature.name}, viewpoint {k}: "
-                    f"camera at {np.round(vp.T_cell_cam[:3, 3], 3).tolist()} m", say)
+                    f"camera at {np.round(vp.T_cell_cam[:3, 3], 3).tolist()} m", say, views.visible)
 
 
 def views_and_first_plan(task: Task, settings: PlannerSettings,
