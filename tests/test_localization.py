@@ -343,14 +343,9 @@ def test_a_re_plan_after_localization_whose_move_collides_stops_with_pose_not_co
     from cell.report.recorder import Recorder
     from cell.run.context import RunContext
     from cell.run.loop import refused_where_located
-    from test_collision import stop, wall_task
-    from test_motion import sim_devices
-    wall_task(tmp_path)
-    task = load_task(variant(tmp_path, HINGE, {"cell.collision.fixture_mesh": str(tmp_path / "wall.stl"),
-                                               "cell.arm.workspace_max_m": [0.6, 0.6, 0.5]}))
-    b = stop(task, 0.15)
-    a = stop(task, -0.15, b.arm_joints)
-    devices = sim_devices(task, a.arm_joints, a.lamp_joints)
+    from test_collision import stop
+    from test_motion import walled_in
+    task, a, b, devices = walled_in(tmp_path)
     shot = SimpleNamespace(T_cell_cam=b.T_cell_cam, joints=b.lamp_joints)
     with Recorder(tmp_path / "run") as recorder, pytest.raises(GoalNotReached) as refused:
         refused_where_located(RunContext(task, devices, recorder, 6), task, shot, error(offset_m=(0.01, 0.0, 0.0)))
