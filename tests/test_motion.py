@@ -77,15 +77,21 @@ def test_the_path_starts_where_the_arm_reads_back_not_where_a_caller_thinks_it_i
     assert np.allclose(across.corners_m[0], b.T_cell_cam[:3, 3])  # it starts where the arm stands
 
 
-def test_a_move_no_path_clears_is_refused_with_both_bodies_and_nothing_moves(tmp_path):
+def walled_in(tmp_path):
     """The wall, and the workspace's top at 0.5 m: the flange stands at 0.45 m at either end, and
-    every via point (a retreat of at least 0.1 m up the camera's axis) takes it out of the box."""
+    every via point (a retreat of at least 0.1 m up the camera's axis) takes it out of the box.
+    (task, the stop on the near side, the one on the far side, the devices at the near one)."""
     wall_task(tmp_path)
     task = load_task(variant(tmp_path, HINGE, {"cell.collision.fixture_mesh": str(tmp_path / "wall.stl"),
                                                "cell.arm.workspace_max_m": [0.6, 0.6, 0.5]}))
     b = stop(task, 0.15)
     a = stop(task, -0.15, b.arm_joints)
-    devices = sim_devices(task, a.arm_joints, a.lamp_joints)
+    return task, a, b, sim_devices(task, a.arm_joints, a.lamp_joints)
+
+
+def test_a_move_no_path_clears_is_refused_with_both_bodies_and_nothing_moves(tmp_path):
+    """walled_in: no path from one side of the wall to the other."""
+    task, a, b, devices = walled_in(tmp_path)
     before = devices.arm.joints.copy()
     with Recorder(tmp_path / "run") as recorder, pytest.raises(GoalNotReached) as refused:
         motion.go(task, devices, recorder, b.T_cell_cam, b.lamp_joints, to="shot 1")

@@ -79,6 +79,9 @@ VIEW_GRAY = 0.6             # the second view's exposure: its brightest part at 
 SEARCH_TILTS_DEG = (-6.0, -4.0, -2.0, 0.0, 2.0, 4.0, 6.0)   # coarse_starts: the part's tilts across the view,
 SEARCH_ROLLS_DEG = (-6.0, -3.0, 0.0, 3.0, 6.0)              # its turns about the view axis
 SEARCH_SHIFTS = (-1.0, 0.0, 1.0)                            # and its shifts, of registration.COARSE px
+STEP_UNITS = 0.5            # rendered_information: its differences half an INFORMATION_UNITS either way
+MAX_EXTRA_VIEWS = 2         # the loop's views beyond the second where the part's position stays open
+ALONG_COS = np.cos(np.radians(30.0))   # along: a direction within this of a part axis is named by it
 
 
 @dataclass(frozen=True)
@@ -670,3 +673,137 @@ def describe(error: PoseError, views: int) -> str:
             f"camera's hand-eye turned by "
             f"{vector(error.hand_eye_rpy_rad, error.hand_eye_rpy_stderr_rad, 180 / np.pi, 'deg')} "
             f"({views} view{'s' * (views > 1)}, {error.edge_points} edge points, residual {error.residual:.2f})")
+
+
+@dataclass(frozen=True)
+class Told:
+    """What one view tells of the 9 pose parameters where an estimate puts the part and camera
+    (rendered_information): the information per pixel J^T J / N (9 x 9, parameters in
+    INFORMATION_UNITS) and the rms residual of its capture against the image rendered there
+    (of the unit spread; None for a view not yet captured)."""
+
+    information: np.ndarray
+    residual: float | None
+
+
+def rendered_information(task: Task, scene: Scene, error: PoseError,
+                         poses: Sequence[tuple[np.ndarray, LampPose, Drives]],
+                         images: Sequence[np.ndarray] = ()) -> list[Told]:
+    """Told of views from read-back camera poses (T_cell_cam, lamp pose, drives), the first
+    len(images) of them captured: the model's image (VIEW_SCALE times coarser) with the part and
+    the camera where the estimate puts them and STEP_UNITS either way of each parameter,
+    band-passed at SCALES_PX[0] and scaled to unit spread over the part as the fit's are;
+    J = the central differences over every part pixel. Rendered, not the edges' motion
+    (view_information): the light stays in the cell when the part moves, and a part that looks
+    alike after a move (a straight shank moved along itself, its lit spot fixed) tells nothing of
+    it. The residual: the capture on the same grid, band-passed alike, times its least-squares
+    gain less the estimate's image, rms over the part pixels."""
+    theta, sigma = error.theta, SCALES_PX[0] / VIEW_SCALE
+    steps = [np.zeros(9)] + [sign * STEP_UNITS * INFORMATION_UNITS[j] * np.eye(9)[j]
+                             for j in range(9) for sign in (1.0, -1.0)]
+    bands: list[list[np.ndarray]] = [[] for _ in poses]
+    seen: list[np.ndarray] = []
+    moved = scene
+    for n, step in enumerate(steps):         # each moved part's mesh built once for every view
+        E_part, he_inv = _params(theta + step, error.center)
+        if n == 0 or np.any(step[:6]):
+            moved = moved_scene(scene, E_part)
+        for i, (T, lamp_pose, drives) in enumerate(poses):
+            T_true = T @ np.linalg.inv(he_inv)
+            if n == 0:
+                view = model_view(task, moved, T_true, lamp_pose, drives, VIEW_SCALE)
+                seen.append(np.isfinite(view.points[..., 0]))
+                value = view.value
+            else:
+                height, width = seen[i].shape
+                value = registration.expected_image(task, moved, T_true, lamp_pose, (0, 0, width, height),
+                                                    VIEW_SCALE, drives)
+            bands[i].append(band_pass(value, sigma))
+    told = []
+    for i, band in enumerate(bands):
+        part = seen[i]
+        if not part.any():
+            told.append(Told(np.zeros((9, 9)), None if i >= len(images) else float("inf")))
+            continue
+        spread = max(float(np.std(band[0][part])), 1e-12)
+        J = np.column_stack([(band[1 + 2 * j] - band[2 + 2 * j])[part] / (2.0 * STEP_UNITS * spread)
+                             for j in range(9)]).astype(float)
+        residual = None
+        if i < len(images):
+            small = cv2.resize(np.asarray(images[i], np.float32), part.shape[::-1], interpolation=cv2.INTER_AREA)
+            captured = band_pass(small, sigma)[part].astype(float)
+            captured /= max(float(np.std(captured)), 1e-12)
+            model = band[0][part] / spread
+            gain = max(float(captured @ model) / max(float(captured @ captured), 1e-12), 0.0)
+            residual = float(np.sqrt(np.mean((gain * captured - model) ** 2)))
+        told.append(Told(J.T @ J / int(part.sum()), residual))
+    return told
+
+
+@dataclass(frozen=True)
+class Resolution:
+    """How far the views leave the part's position open where an estimate puts it: along
+    `direction` (cell frame, unit) it is told worst, to within uncertainty_m; `along` names that
+    direction by the part's axes; the views' residuals (Told)."""
+
+    direction: np.ndarray
+    uncertainty_m: float
+    along: str
+    residuals: tuple[float, ...]
+
+    def unresolved(self, limit_m: float) -> str | None:
+        """The stop's sentence where the part's position is open by more than limit_m (the
+        registration limit: what the plan tolerates), else None."""
+        if self.uncertainty_m <= limit_m:
+            return None
+        views = len(self.residuals)
+        return (f"the part's position {self.along} cannot be told from these {views} view{'s' * (views > 1)}: "
+                f"moving it {1e3 * self.uncertainty_m:.1f} mm that way changes the model's images no more than "
+                f"they differ from the captures (residual {', '.join(f'{r:.2f}' for r in self.residuals)} of the "
+                f"edges' spread), more than the {1e3 * limit_m:.1f} mm the plan tolerates (the registration limit)")
+
+    def to_json(self) -> dict[str, Any]:
+        return {"weakest_direction": self.direction.tolist(), "weakest_uncertainty_m": self.uncertainty_m,
+                "weakest_along": self.along}
+
+
+def resolution(task: Task, scene: Scene, told: Sequence[Told], views: int) -> Resolution:
+    """The part's position where it is told worst: the information of every view, each over its
+    residual squared (the model's differences from the capture, its shading and lobe, do not
+    average out over a view's pixels, so a view counts once: a move is told where its image
+    changes by more than the residual), plus the fit's priors (_priors); the covariance's
+    part-offset block (every other parameter free), its largest eigenvalue and vector. A view
+    without a residual takes the worst of the others'."""
+    worst = max((t.residual for t in told if t.residual is not None), default=1.0)
+    residuals = [worst if t.residual is None else t.residual for t in told]
+    information = sum((t.information / max(r, 1e-6) ** 2 for t, r in zip(told, residuals)), np.zeros((9, 9)))
+    information = information + np.diag(_priors(INFORMATION_UNITS, views) ** 2)
+    units = np.diag(INFORMATION_UNITS)
+    offset = (units @ np.linalg.inv(information) @ units)[:3, :3]
+    values, vectors = np.linalg.eigh(offset)
+    direction = vectors[:, -1] * (1.0 if vectors[np.argmax(np.abs(vectors[:, -1])), -1] > 0 else -1.0)
+    return Resolution(direction, float(np.sqrt(max(values[-1], 0.0))), along(task, scene, direction),
+                      tuple(t.residual for t in told if t.residual is not None))
+
+
+def along(task: Task, scene: Scene, direction: np.ndarray) -> str:
+    """A cell-frame direction in a process engineer's words: the part's axis (T_cell_part) it is
+    nearest, by the part's extent along it (length, width, height), where within 30 deg, and its
+    cell-frame vector."""
+    R = task.frames.T_cell_part[:3, :3]
+    extents = np.ptp(scene.vertices @ R, axis=0)
+    local = R.T @ direction
+    axis = int(np.argmax(np.abs(local)))
+    vector = f"[{', '.join(f'{v:+.2f}' for v in direction)}] in the cell"
+    if abs(local[axis]) < ALONG_COS:
+        return f"along {vector}"
+    name = ("height", "width", "length")[int(np.argsort(np.argsort(extents))[axis])]
+    return f"along its {name} (the part's {'xyz'[axis]}: {vector})"
+
+
+def by_resolution(task: Task, scene: Scene, told: Sequence[Told], candidates: Sequence[Told]) -> list[int]:
+    """The indices of candidate further views (their Told, not captured) by the uncertainty of the
+    part's position (resolution) with each added to the views', least first; ties in order."""
+    views = len(told) + 1
+    open_m = [resolution(task, scene, [*told, c], views).uncertainty_m for c in candidates]
+    return [int(i) for i in np.argsort(open_m, kind="stable")]

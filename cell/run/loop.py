@@ -141,16 +141,20 @@ class Replan:
 @dataclass(frozen=True)
 class Located:
     """The part's and the camera's pose error found at capture `iteration` (cell.run.localization)
-    from `views` views, and whether the model followed it (re-planned for where the part is)."""
+    from `views` views, whether the model followed it (re-planned for where the part is) and how
+    well the views tell the part's position there (None: not judged, the error within what the plan
+    tolerates or implausible)."""
 
     iteration: int
     error: localization.PoseError
     followed: bool
+    resolution: localization.Resolution | None = None
 
     def to_json(self) -> dict[str, Any]:
         """report.json's `localization`: the estimate (PoseError.to_json), the capture it was
-        found at and whether the model followed it."""
-        return self.error.to_json() | {"iteration": self.iteration, "followed": self.followed}
+        found at, whether the model followed it and its weakest direction (Resolution.to_json)."""
+        return self.error.to_json() | {"iteration": self.iteration, "followed": self.followed} | (
+            self.resolution.to_json() if self.resolution else {})
 
 
 Event = Iteration | Corrected | BlackLevelFound | Refitted | Replan | Located     # what iterate yields
@@ -491,10 +495,13 @@ def step(ctx: RunContext, aim: Aim, k: int) -> Generator[Event, None, Aim | None
 
 def locate_part(ctx: RunContext, aim: Aim, k: int, capture: Capture) -> Generator[Event, None, Aim]:
     """Localize the part and the camera from capture k (cell.run.localization, against the first
-    feature's model; a saturated capture, whose edges are clipped, waits for the next): a pose error within what the plan tolerates (localization.significant) is
-    reported (Located) and the loop goes on; a larger one is told apart by a second view
-    (second_view), reported, and the model follows it (follow); a fit beyond any fixture or
-    hand-eye error (localization.implausible) stops (GoalNotReached, cause `pose`). Returns the Aim."""
+    feature's model; a saturated capture, whose edges are clipped, waits for the next): a pose error
+    within what the plan tolerates (localization.significant) is reported (Located) and the loop
+    goes on; a larger one is told apart by a second view (second_view) and, where the part's
+    position stays open by more than the registration limit, by further views (resolve: the
+    weakest-direction guard), reported, and the model follows it (follow); a fit beyond any fixture
+    or hand-eye error (localization.implausible), or a position still open, stops (GoalNotReached,
+    cause `pose`, the open direction named). Returns the Aim."""
     feature = aim.features[0]
     task, scene, shot = feature.task, feature.model.plan.planned_scene, aim.shot
     saturation = saturation_level(ctx.devices.camera.bit_depth)
@@ -517,58 +524,122 @@ def locate_part(ctx: RunContext, aim: Aim, k: int, capture: Capture) -> Generato
                           iteration=k, followed=False, **error.to_json())
         yield Located(k, error, False)
         return replace(aim, located=True)
-    second = second_view(ctx, aim, k, scene, lamp_pose, capture)
+    candidates = clear_views(ctx, task, scene, lamp_pose, capture)
+    views = [first]
+    second = second_view(ctx, aim, k, scene, lamp_pose, capture, candidates)
     if second is not None:
-        error = localization.localize(task, scene, [first, second]) or error
-    wrong = localization.implausible(error, capture.T_cell_cam)
-    ctx.recorder.step("localize", localization.describe(error, error.views), iteration=k,
-                      followed=wrong is None, **error.to_json())
-    yield Located(k, error, wrong is None)
+        views.append(second)
+        error = localization.localize(task, scene, views) or error
+    error, resolved = resolve(ctx, task, k, scene, capture, views, error, limit, candidates)
+    wrong = localization.implausible(error, capture.T_cell_cam) or (resolved.unresolved(limit) if resolved else None)
+    ctx.recorder.step("localize", localization.describe(error, error.views)
+                      + (f"; its position {resolved.along} is told to within {1e3 * resolved.uncertainty_m:.1f} mm"
+                         if resolved else ""), iteration=k, followed=not wrong, **error.to_json(),
+                      **(resolved.to_json() if resolved else {}))
+    yield Located(k, error, not wrong, resolved)
     if wrong:
         yield Corrected(k, {"action": "stop", "cause": "pose", "reason": wrong})
         raise GoalNotReached(wrong, "pose")
     return (yield from follow(ctx, aim, k, error))
 
 
-def second_view(ctx: RunContext, aim: Aim, k: int, scene: Scene, lamp_pose: registration.LampPose,
-                capture: Capture) -> localization.View | None:
-    """The second view of the part: of the candidates (localization.second_views) the arm reaches
-    and the collision check clears at the pose with the lamp where it is, the one whose
-    information with the first view's is best conditioned (localization.by_information) and
-    whose path there is clear (motion.check; else the next best), exposed for the model's
-    brightest part there (localization.view_exposure) and captured as locate-k.png; None when no
-    pose serves (the one view's estimate stands, and the log says so)."""
-    task = aim.features[0].task
+def clear_views(ctx: RunContext, task: Task, scene: Scene, lamp_pose: registration.LampPose,
+                capture: Capture) -> list[np.ndarray]:
+    """The camera poses of the further views (localization.second_views about capture's) that the
+    arm reaches and the collision check clears at the pose with the lamp where it is."""
     collision = CollisionScene.of(task)
-    clear = [T for T in localization.second_views(capture.T_cell_cam, scene.center)
-             if ctx.devices.arm.refusal(T) is None
-             and collision.clearance(T, reaching_joints(task.frames, T), lamp_pose[0]).ok]
+    return [T for T in localization.second_views(capture.T_cell_cam, scene.center)
+            if ctx.devices.arm.refusal(T) is None
+            and collision.clearance(T, reaching_joints(task.frames, T), lamp_pose[0]).ok]
+
+
+def second_view(ctx: RunContext, aim: Aim, k: int, scene: Scene, lamp_pose: registration.LampPose,
+                capture: Capture, candidates: Sequence[np.ndarray]) -> localization.View | None:
+    """The second view of the part: of the candidates (clear_views), the one whose information with
+    the first view's is best conditioned (localization.by_information) and whose path there is
+    clear (take_view), captured as locate-k.png; None when no pose serves (the one view's
+    estimate stands, and the log says so)."""
+    task = aim.features[0].task
     first = localization.View(capture.image, capture.T_cell_cam, lamp_pose, capture.drives or None)
-    for T in localization.by_information(task, scene, first, clear) if clear else ():
-        move = motion.check(task, ctx.devices, T, to="the second view")
+    ordered = localization.by_information(task, scene, first, candidates) if candidates else []
+    view = take_view(ctx, task, k, scene, capture, lamp_pose, ordered, f"locate-{k}", "the second view",
+                     "a second view of the part, to tell a part offset from a camera turn")
+    if view is None:
+        ctx.recorder.step("localize", "no second view of the part is reachable and clear of collisions: one view "
+                                      "cannot tell a part offset from a camera turn", iteration=k)
+    return view
+
+
+def take_view(ctx: RunContext, task: Task, k: int, scene: Scene, capture: Capture, lamp_pose: registration.LampPose,
+              ordered: Sequence[np.ndarray], name: str, to: str, why: str) -> localization.View | None:
+    """The first of the ordered camera poses whose path there is clear (motion.check; `to` names
+    it), moved to (motion.move_camera; logged with `why`), exposed for the model's brightest part
+    there (localization.view_exposure) at capture's f-number, focus and drives and captured as
+    `name`.png, the lamp where it is; None when no path is clear."""
+    drives = capture.drives or None
+    for T in ordered:
+        move = motion.check(task, ctx.devices, T, to=to)
         if not move.clear:
             continue
-        read = motion.move_camera(task, ctx.devices, T, ctx.recorder, "the second view", k, move)
-        ctx.recorder.step("move_camera", f"camera at {np.round(read[:3, 3], 4).tolist()} m in the cell frame: a "
-                                         f"second view of the part, to tell a part offset from a camera turn",
+        read = motion.move_camera(task, ctx.devices, T, ctx.recorder, to, k, move)
+        ctx.recorder.step("move_camera", f"camera at {np.round(read[:3, 3], 4).tolist()} m in the cell frame: {why}",
                           iteration=k, position_m=read[:3, 3])
-        model = localization.model_view(task, scene, read, lamp_pose, capture.drives or None)
+        model = localization.model_view(task, scene, read, lamp_pose, drives)
         shutter = localization.view_exposure(model, saturation_level(ctx.devices.camera.bit_depth), capture.f_number,
                                              task.camera.shutter_range_s)
-        view = acquire(ctx.devices, ctx.recorder, k, shutter, capture.f_number, capture.focus_m, name=f"locate-{k}",
-                       drives=capture.drives or None)
+        view = acquire(ctx.devices, ctx.recorder, k, shutter, capture.f_number, capture.focus_m, name=name,
+                       drives=drives)
         return localization.View(view.image, view.T_cell_cam, lamp_pose, view.drives or None)
-    ctx.recorder.step("localize", "no second view of the part is reachable and clear of collisions: one view "
-                                  "cannot tell a part offset from a camera turn", iteration=k)
     return None
+
+
+def resolve(ctx: RunContext, task: Task, k: int, scene: Scene, capture: Capture, views: list[localization.View],
+            error: localization.PoseError, limit_m: float, candidates: Sequence[np.ndarray]
+            ) -> tuple[localization.PoseError, localization.Resolution | None]:
+    """The weakest-direction guard: how well the views (capture's first; appended to) tell the
+    part's position where the estimate puts it (localization.resolution of their
+    rendered_information); where it stays open by more than limit_m along some direction, a
+    further view, the candidate not yet taken that tells it best (localization.by_resolution;
+    take_view), and the part localized in every view again; at most localization.MAX_EXTRA_VIEWS.
+    A fit with a further view that is implausible (localization.implausible: it matched the wrong
+    edges there) is logged and the estimate before it kept. Returns the estimate and its
+    Resolution (None where the first estimate is implausible: nothing to resolve)."""
+    if localization.implausible(error, capture.T_cell_cam):
+        return error, None
+    lamp_pose = views[0].lamp_pose
+    while True:
+        told = localization.rendered_information(task, scene, error, [(v.T_cell_cam, v.lamp_pose, v.drives)
+                                                                      for v in views], [v.image for v in views])
+        resolved = localization.resolution(task, scene, told, len(told))
+        open_by = resolved.unresolved(limit_m)
+        left = [T for T in candidates if min(np.linalg.norm(T[:3, 3] - v.T_cell_cam[:3, 3]) for v in views) > 0.005]
+        if open_by is None or len(views) >= 2 + localization.MAX_EXTRA_VIEWS or not left:
+            return error, resolved
+        ctx.recorder.step("localize", f"{localization.describe(error, error.views)}: {open_by}: a further view",
+                          iteration=k, **error.to_json(), **resolved.to_json())
+        infos = localization.rendered_information(task, scene, error, [(T, lamp_pose, views[0].drives) for T in left])
+        ordered = [left[i] for i in localization.by_resolution(task, scene, told, infos)]
+        view = take_view(ctx, task, k, scene, capture, lamp_pose, ordered, f"locate-{k}-{len(views) + 1}",
+                         "a further view", f"a further view of the part, to tell its position {resolved.along}")
+        if view is None:
+            return error, resolved
+        further = localization.localize(task, scene, [*views, view]) or error
+        wrong = localization.implausible(further, capture.T_cell_cam)
+        if wrong:
+            ctx.recorder.step("localize", f"with the further view {wrong}: the estimate of {count(len(views), 'view')} "
+                                          "is kept", iteration=k, **further.to_json())
+            return error, resolved
+        views.append(view)
+        error = further
 
 
 def follow(ctx: RunContext, aim: Aim, k: int, error: localization.PoseError) -> Generator[Event, None, Aim]:
     """The model follows the pose error found at capture k: the arm's hand-eye corrected, each
     feature's task with the part where it is (localization.located_task); one feature re-planned
     there (the camera kept on the part: a planned shot's pose moved with it), several carried
-    along with the part (localization.moved_plan). A re-plan that is infeasible, or a feature
-    that leaves the view, stops (GoalNotReached, cause `pose`)."""
+    along with the part (localization.moved_plan). A re-plan that is infeasible, a feature that
+    leaves the view, or a move there the collision check refuses (refused_where_located), stops
+    (GoalNotReached, cause `pose`)."""
     features = tuple(replace(f, task=localization.located_task(f.task, error)) for f in aim.features)
     reason = f"the model follows the part: {localization.describe(error, error.views)}"
     document = {"action": "locate", "reason": reason, "localization": error.to_json()}
@@ -577,6 +648,7 @@ def follow(ctx: RunContext, aim: Aim, k: int, error: localization.PoseError) -> 
                          for f in features)
         ctx.recorder.step("correct", reason, iteration=k, **document)
         yield Corrected(k, document)
+        refused_where_located(ctx, features[0].task, features[0].model.plan.shot, error)
         return replace(aim, features=features, moved=False, located=True, pose_error=error)
     (feature,) = features
     T_cell_cam = None if ctx.T_cell_cam is None else error.T_part @ ctx.T_cell_cam
@@ -594,8 +666,22 @@ def follow(ctx: RunContext, aim: Aim, k: int, error: localization.PoseError) -> 
     if not np.all(inside):
         raise GoalNotReached(f"{localization.describe(error, error.views)}: {int(np.sum(~inside))} of the "
                              f"feature's {len(inside)} samples leave the view where the part is", "pose")
+    refused_where_located(ctx, feature.task, replanned.shot, error)
     located = replace(feature, model=Model(replanned, feature.task))
     return replace(replan_aim(aim, located, aim.albedo_scale), located=True, pose_error=error)
+
+
+def refused_where_located(ctx: RunContext, task: Task, shot: Shot, error: localization.PoseError) -> None:
+    """Check the move to the shot planned for where the localization puts the part (the task's
+    part there, the arm's hand-eye corrected: motion.check from where the devices stand); a move
+    the collision check refuses stops with cause `pose` (GoalNotReached), not `collision`: the
+    true cause is the part being elsewhere than the model had it, so the pose found and the
+    collision are named, nothing moved."""
+    move = motion.check(task, localization.corrected(ctx.devices, error), shot.T_cell_cam, shot.joints,
+                        "the shot's poses")
+    if not move.clear:
+        raise GoalNotReached(f"{localization.describe(error, error.views)}; re-planned for where the part is, "
+                             f"the move there is refused: {motion.refusal(move)}", "pose")
 
 
 def not_in_band(aim: Aim, measured: Sequence[Measured], k: int) -> str:
