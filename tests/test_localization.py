@@ -53,6 +53,38 @@ def test_the_part_error_is_the_simulators():
                                   .from_euler("xyz", np.radians([3.0, -2.0, 5.0])).as_rotvec())))
 
 
+def test_a_pose_error_found_at_one_feature_is_stated_as_the_simulator_turns_the_part_about_another():
+    """The bracket's case: the part 5, -5 mm off and turned 3 deg about y about its first feature's
+    centre (base_top, as the simulator's truth keys turn it), localized at the bevel 33 mm beside
+    and 30 mm above: stated about base_top, the keys the simulator (sim.world.part_moved) moves
+    the part by are the same motion; the offset's standard errors follow the turn's through the
+    arm between the centres, as a Monte Carlo of the estimate's covariance spreads them."""
+    from types import SimpleNamespace
+    from sim.world import part_moved
+    base_top, bevel = np.array([0.012, 0.0, 0.006]), np.array([-0.021, 0.0, 0.036])
+    truth = SimpleNamespace(part_offset_m=(0.005, -0.005, 0.0), part_rpy_rad=tuple(np.radians([0.0, 3.0, 0.0])))
+    E = part_moved(SimpleNamespace(sim=SimpleNamespace(truth=truth)), SimpleNamespace(center=base_top))
+    rpy = np.radians([0.0, 3.0, 0.0])
+    at_bevel = error(offset_m=geometry.apply(E, bevel) - bevel, part_rpy_deg=[0.0, 3.0, 0.0], center=bevel)
+    assert at_bevel.T_part == pytest.approx(E, abs=1e-12)
+    assert 1e3 * (at_bevel.part_offset_m - truth.part_offset_m) == pytest.approx([1.62, 0.0, 1.69], abs=0.01)
+    stated = at_bevel.about(base_top)
+    assert stated.part_offset_m == pytest.approx(truth.part_offset_m, abs=1e-12)
+    assert stated.part_rpy_rad == pytest.approx(rpy, abs=1e-12)
+    assert stated.T_part == pytest.approx(E, abs=1e-12)
+    rng = np.random.default_rng(3)
+    spread = rng.normal(size=(9, 9))
+    cov = spread @ spread.T * 1e-7
+    found = localization.PoseError(*np.split(at_bevel.theta, 3), *np.split(np.sqrt(np.diag(cov)), 3), bevel, 2, 0,
+                                   0.0, cov)
+    drawn = rng.multivariate_normal(found.theta, cov, 4000)
+    moved = np.array([localization.PoseError(*np.split(t, 3), *[np.zeros(3)] * 3, bevel, 2, 0, 0.0).about(base_top)
+                      .part_offset_m for t in drawn])
+    assert found.about(base_top).part_offset_stderr_m == pytest.approx(np.std(moved, axis=0), rel=0.05)
+    sampled = np.cov(moved.T)
+    assert found.about(base_top).covariance[:3, :3] == pytest.approx(sampled, abs=0.05 * sampled.diagonal().max())
+
+
 def test_a_corrected_hand_eye_puts_the_true_camera_where_the_loop_asks(tmp_path):
     """The world's camera is the arm's read-back pose times the truth's hand-eye error; an arm
     corrected by that error moves so that the true camera lands on the commanded pose and reads

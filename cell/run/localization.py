@@ -18,9 +18,10 @@ and the capture's band-passed gray there (bilinear) times a gain per view must e
 model's. The 9 parameters are fitted to every view at once by robust least squares
 (scipy.optimize.least_squares, soft_l1 at LOSS), coarse to fine over SCALES_PX, from the start
 the whole views' shifts give (whole_shift, turned: fit_shifts); the Jacobian is the capture's slope times
-each point's image motion. Standard errors: s^2 (J^T J)^-1 with s^2 the residuals' variance,
-prior residuals (PRIOR_*) keeping it determined where the views tell nothing (the conrod's
-shank along its length).
+each point's image motion. Standard errors: the full covariance's, the sandwich of the
+information J^T J / s^2 (s^2 the residuals' variance) and the scores of TILE_PX tiles of edge
+samples (_solve), prior residuals (PRIOR_*) keeping it determined where the views tell nothing
+(the conrod's shank along its length).
 
 One view cannot tell a part moved across the view by d from the camera turned by d / Z (Z the
 feature's distance): both move the feature alike, and only the part's apparent tilt tells them
@@ -53,6 +54,7 @@ if TYPE_CHECKING:
     from cell.task.types import Task
 
 SCALES_PX = (6.0, 3.0, 1.5)  # the edge fit's scales, coarse to fine (Gaussian sigma)
+TILE_PX = 48                # the standard errors' groups of edge samples that err together (_solve)
 BAND_RATIO = 4.0            # band_pass: the blur left out, this many times the scale
 EDGE_QUANTILE = 0.8         # the model's edge samples: its part pixels of the strongest gradient
 MAX_SAMPLES = 4000          # per view and scale
@@ -224,6 +226,7 @@ class PoseError:
     views: int
     edge_points: int
     residual: float
+    covariance: np.ndarray | None = None  # 9 x 9, of theta (the standard errors its diagonal's roots)
 
     @property
     def theta(self) -> np.ndarray:
@@ -239,6 +242,32 @@ class PoseError:
     def T_hand_eye(self) -> np.ndarray:
         """E_he: the read-back camera pose to the true one (T_true = T_read @ E_he)."""
         return geometry.from_rpy(self.hand_eye_rpy_rad)
+
+    def about(self, center: np.ndarray) -> PoseError:
+        """The same pose error stated about another centre c (cell frame): E_part unchanged, its
+        turn too, its offset E_part c - c = offset + (R(rpy) - 1)(c - centre); the covariance
+        through that offset's derivative in the turn, d/d rpy R(rpy)(c - centre) (central
+        differences), the turns' and the hand-eye's as they were."""
+        center = np.asarray(center, float)
+        arm = center - self.center
+
+        def offset(rpy: np.ndarray) -> np.ndarray:
+            return self.part_offset_m + Rotation.from_euler("xyz", rpy).apply(arm) - arm
+
+        A = np.eye(9)
+        for j in range(3):
+            step = np.zeros(3)
+            step[j] = 1e-6
+            A[:3, 3 + j] = (offset(self.part_rpy_rad + step) - offset(self.part_rpy_rad - step)) / 2e-6
+        cov = self.covariance if self.covariance is not None else np.diag(np.square(self.theta_stderr))
+        stated = A @ cov @ A.T
+        return replace(self, part_offset_m=offset(self.part_rpy_rad), center=center, covariance=stated,
+                       part_offset_stderr_m=np.sqrt(np.maximum(np.diag(stated)[:3], 0.0)))
+
+    @property
+    def theta_stderr(self) -> np.ndarray:
+        """The 9 standard errors, in theta's order."""
+        return np.concatenate([self.part_offset_stderr_m, self.part_rpy_stderr_rad, self.hand_eye_rpy_stderr_rad])
 
     def to_json(self) -> dict[str, Any]:
         """report.json's `localization` (docs/formats.md)."""
@@ -278,21 +307,36 @@ def _priors(theta: np.ndarray, views: int) -> np.ndarray:
     return np.concatenate([theta[:3] / PRIOR_OFFSET_M, theta[3:6] / PRIOR_TURN_RAD, theta[6:9] / hand_eye])
 
 
-def _solve(residuals: Any, theta0: np.ndarray, n_data: int, loss: str,
-           jacobian: Any = "2-point") -> tuple[np.ndarray, np.ndarray, float, int]:
-    """(parameters, standard errors, residual rms, inliers) of least_squares from theta0: the
-    standard errors s^2 (J^T J)^-1 over the inlying data residuals and the priors."""
+def _solve(residuals: Any, theta0: np.ndarray, n_data: int, loss: str, jacobian: Any = "2-point",
+           groups: Any = None) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """(parameters, covariance, residual rms, inliers) of least_squares from theta0. The
+    covariance over the inlying data residuals and the priors: s^2 (J^T J)^-1 with s^2 the
+    residuals' variance, or, given groups(x) -> (n_data,) labels of residuals that may err
+    together (edge samples in one image tile: neighbours share the band-pass and the model's
+    shading error there), the clustered sandwich H^-1 (sum_c g_c g_c^T G / (G - 1) + P) H^-1, with
+    H = J_d^T J_d / s^2 + P the information, g_c = J_c^T r_c / s^2 each group's score and P the
+    priors' information: where the residuals of a group are correlated, or a group's shading is
+    off, its samples count as the few independent ones they are."""
     scale = np.concatenate([[1e-3] * 3, [1e-2] * 6, [0.1] * (len(theta0) - 9)])
     solved = least_squares(residuals, theta0, jac=jacobian, loss=loss, f_scale=LOSS, x_scale=scale, max_nfev=MAX_NFEV)
     r = solved.fun[:n_data]
     inliers = np.abs(r) < 3.0 * LOSS if loss != "linear" else np.ones(n_data, bool)
-    s2 = float(np.sum(r[inliers] ** 2) / max(int(inliers.sum()) - len(theta0), 1))
+    s2 = max(float(np.sum(r[inliers] ** 2) / max(int(inliers.sum()) - len(theta0), 1)), 1e-12)
     J = solved.jac.copy()
     J[:n_data][~inliers] = 0.0
-    J[:n_data] /= np.sqrt(max(s2, 1e-12))           # data weighted by 1 / s, the priors by their spread
-    cov = np.linalg.pinv(J.T @ J)
+    data, prior = J[:n_data] / np.sqrt(s2), J[n_data:]       # data weighted by 1 / s, the priors by their spread
+    information = np.linalg.pinv(data.T @ data + prior.T @ prior)
+    cov = information
+    if groups is not None:
+        labels = np.asarray(groups(solved.x))[inliers]
+        _, index = np.unique(labels, return_inverse=True)
+        scores = np.zeros((index.max() + 1 if len(index) else 0, len(theta0)))
+        np.add.at(scores, index, data[inliers] * (r[inliers, None] / np.sqrt(s2)))
+        count = len(scores)
+        meat = scores.T @ scores * count / max(count - 1, 1) + prior.T @ prior
+        cov = information @ meat @ information
     rms = float(np.sqrt(np.mean(r[inliers] ** 2))) if inliers.any() else float("nan")
-    return solved.x, np.sqrt(np.maximum(np.diag(cov), 0.0)), rms, int(inliers.sum())
+    return solved.x, cov, rms, int(inliers.sum())
 
 
 def fit_shifts(K: np.ndarray, center: np.ndarray, poses: Sequence[np.ndarray],
@@ -309,6 +353,13 @@ def fit_shifts(K: np.ndarray, center: np.ndarray, poses: Sequence[np.ndarray],
     return _solve(residuals, np.zeros(9), 2 * len(poses), "linear")[0]
 
 
+def sampled(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """The image at points uv (N, 2) [px], bilinear, 0 outside (float64)."""
+    uv = uv.astype(np.float32)
+    return cv2.remap(image, uv[:, :1], uv[:, 1:], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                     borderValue=0.0).ravel().astype(float)
+
+
 def fit(levels: Sequence[Sequence[Samples]], K: np.ndarray, center: np.ndarray, theta0: np.ndarray) -> PoseError:
     """The PoseError that best explains every view's edges (module docstring): per scale (coarse
     to fine, levels[s][i] view i's Samples at scale s), robust least squares of the capture's
@@ -320,13 +371,8 @@ def fit(levels: Sequence[Sequence[Samples]], K: np.ndarray, center: np.ndarray, 
         slopes = [(cv2.Sobel(v.image, cv2.CV_32F, 1, 0, scale=1 / 8), cv2.Sobel(v.image, cv2.CV_32F, 0, 1, scale=1 / 8))
                   for v in views]
 
-        def sample(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
-            uv = uv.astype(np.float32)
-            return cv2.remap(image, uv[:, :1], uv[:, 1:], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                             borderValue=0.0).ravel().astype(float)
-
         def residuals(x: np.ndarray, views: Sequence[Samples] = views) -> np.ndarray:
-            out = [x[9 + i] * sample(view.image, _project(K, x[:9], center, view.T_cell_cam, view.points))
+            out = [x[9 + i] * sampled(view.image, _project(K, x[:9], center, view.T_cell_cam, view.points))
                    - view.gray for i, view in enumerate(views)]
             return np.concatenate(out + [_priors(x[:9], len(views))])
 
@@ -337,22 +383,30 @@ def fit(levels: Sequence[Sequence[Samples]], K: np.ndarray, center: np.ndarray, 
             for i, (view, (gx, gy)) in enumerate(zip(views, slopes)):
                 uv = _project(K, x[:9], center, view.T_cell_cam, view.points)
                 block = np.zeros((len(uv), len(x)))
-                slope = np.column_stack([sample(gx, uv), sample(gy, uv)])
+                slope = np.column_stack([sampled(gx, uv), sampled(gy, uv)])
                 for j, h in enumerate([1e-6] * 3 + [1e-5] * 6):
                     step = np.zeros(9)
                     step[j] = h
                     motion = (_project(K, x[:9] + step, center, view.T_cell_cam, view.points)
                               - _project(K, x[:9] - step, center, view.T_cell_cam, view.points)) / (2 * h)
                     block[:, j] = x[9 + i] * np.sum(slope * motion, axis=1)
-                block[:, 9 + i] = sample(view.image, uv)
+                block[:, 9 + i] = sampled(view.image, uv)
                 blocks.append(block)
             prior = np.zeros((9, len(x)))
             prior[:9, :9] = np.diag(_priors(np.ones(9), len(views)))
             return np.vstack(blocks + [prior])
 
-        theta, stderr, rms, inliers = _solve(residuals, theta, n_data, "soft_l1", jacobian)
+        def groups(x: np.ndarray, views: Sequence[Samples] = views) -> np.ndarray:
+            """Each sample's tile: its view and its pixel's TILE_PX square where x puts it."""
+            tiles = [np.floor(_project(K, x[:9], center, view.T_cell_cam, view.points) / TILE_PX)
+                     for view in views]
+            return np.concatenate([(i * 1_000_000 + t[:, 1] * 1000 + t[:, 0]).astype(np.int64)
+                                   for i, t in enumerate(tiles)])
+
+        theta, cov, rms, inliers = _solve(residuals, theta, n_data, "soft_l1", jacobian, groups)
+    stderr = np.sqrt(np.maximum(np.diag(cov)[:9], 0.0))
     return PoseError(theta[:3], theta[3:6], theta[6:9], stderr[:3], stderr[3:6], stderr[6:9],
-                     np.asarray(center, float), len(levels[0]), inliers, rms)
+                     np.asarray(center, float), len(levels[0]), inliers, rms, cov[:9, :9])
 
 
 def cost(levels: Sequence[Samples], K: np.ndarray, center: np.ndarray, theta: np.ndarray) -> float:
@@ -361,9 +415,7 @@ def cost(levels: Sequence[Samples], K: np.ndarray, center: np.ndarray, theta: np
     capture's samples s and the model's m, not below 0)."""
     total = 0.0
     for view in levels:
-        uv = _project(K, theta, center, view.T_cell_cam, view.points).astype(np.float32)
-        seen = cv2.remap(view.image, uv[:, :1], uv[:, 1:], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                         borderValue=0.0).ravel().astype(float)
+        seen = sampled(view.image, _project(K, theta, center, view.T_cell_cam, view.points))
         gain = max(float(seen @ view.gray) / max(float(seen @ seen), 1e-12), 0.0)
         z = ((gain * seen - view.gray) / LOSS) ** 2
         total += float(np.sum(2.0 * (np.sqrt(1.0 + z) - 1.0)))
@@ -440,16 +492,20 @@ def localize(task: Task, scene: Scene, views: Sequence[View]) -> PoseError | Non
 
 
 def refine(task: Task, scene: Scene, views: Sequence[View], first: PoseError) -> PoseError:
-    """The first fit's PoseError corrected by a fit at the finest scale against the model's images
-    with the part moved by it (moved_scene) and each camera turned by its hand-eye turn: the part's
-    moves and turns compose (offsets add about the moved centre, turns multiply), the hand-eye
-    turns too; the standard errors and residual are the second fit's."""
+    """The first fit's PoseError corrected by a fit coarse to fine (SCALES_PX) against the model's
+    images with the part moved by it (moved_scene) and each camera turned by its hand-eye turn: the
+    part's moves and turns compose (offsets add about the moved centre, turns multiply), the
+    hand-eye turns too; the standard errors and residual are the second fit's. Coarse to fine, not
+    at the finest scale alone: the edges' 1.5 px band leaves a local minimum wherever a turn moves
+    them more than that (the conrod 0.8 deg off about y sat in one, between two barriers along the
+    line to the truth; the highlight's rims shift with the turn), the coarse scales' wider basins
+    reach the truth's."""
     moved = moved_scene(scene, first.T_part)
     E_he = first.T_hand_eye
     K = projection.intrinsics(task.camera.sensor, task.camera.lens)
     models = [model_view(task, moved, v.T_cell_cam @ E_he, v.lamp_pose, v.drives) for v in views]
-    levels = [[edge_samples(m, v.image, SCALES_PX[-1]) for m, v in zip(models, views)]]
-    if min(len(s.points) for s in levels[0]) < MIN_SAMPLES:
+    levels = [[edge_samples(m, v.image, s) for m, v in zip(models, views)] for s in SCALES_PX]
+    if min(len(s.points) for s in levels[-1]) < MIN_SAMPLES:
         return first
     second = fit(levels, K, moved.center, np.zeros(9))
     turn = Rotation.from_euler("xyz", second.part_rpy_rad) * Rotation.from_euler("xyz", first.part_rpy_rad)
