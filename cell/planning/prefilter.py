@@ -30,7 +30,6 @@ A pair passed is judged in full: the coverage matrix is the full judge's exactly
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -38,12 +37,11 @@ import numpy as np
 from cell.devices import rig
 from cell.physics import costs, projection
 from cell.physics.costs import RequirementValue
-from cell.planning import evaluate, requirements
+from cell.planning import coverage, evaluate, requirements
 
 if TYPE_CHECKING:
     from cell.planning.coverage import Lent
     from cell.planning.plan import Shot
-    from cell.planning.scene import Scene
     from cell.task.types import Task
 
 
@@ -51,16 +49,6 @@ def _missed(name: str, ln: float, detail: str) -> RequirementValue | None:
     """The RequirementValue of a requirement the judge would find missed (None where it is met)."""
     value = float(costs.value(ln))
     return RequirementValue(name, value, f"{detail} (found before the full evaluation)") if value > 1.0 else None
-
-
-def stacked(lent: Sequence[Lent], T_cell_cam: np.ndarray) -> tuple[Scene, list[tuple[int, int]]]:
-    """The samples of several features of one part (their own plans' `lent`) in one scene, seen
-    by a camera at T_cell_cam, and each feature's rows [start, end) in it."""
-    counts = np.array([len(x.scene.points) for x in lent])
-    ends = np.cumsum(counts)
-    scene = replace(lent[0].scene, T_cell_cam=T_cell_cam, points=np.vstack([x.scene.points for x in lent]),
-                    normals=np.vstack([x.scene.normals for x in lent]))
-    return scene, list(zip((ends - counts).tolist(), ends.tolist()))
 
 
 def camera_side(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list[list[RequirementValue]]:
@@ -71,7 +59,7 @@ def camera_side(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list
     sample's row its own), each feature's extremes over its rows."""
     if not tasks:
         return []
-    scene, bounds = stacked(lent, shot.T_cell_cam)
+    scene, bounds = coverage.stacked(lent, shot.T_cell_cam)
     outside = ~evaluate.in_image(tasks[0], scene)           # the part's camera: every feature's
     angles = projection.view_angles(scene.camera_position, scene.points, scene.normals)
     footprints = requirements.footprints_at(tasks[0], scene)
@@ -103,7 +91,7 @@ def lamp_side(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list[l
     if not tasks:
         return []
     task = tasks[0]
-    scene, bounds = stacked(lent, shot.T_cell_cam)
+    scene, bounds = coverage.stacked(lent, shot.T_cell_cam)
     pivot = task.lamp.rig.pivot_m
     aims = np.vstack([shot.T_cell_cam[:3, 2], rig.lamp_aim(pivot, shot.lamp_position.reshape(1, 3))])
     out = evaluate.gray_inputs(task, scene, task.part.material)(np.vstack([shot.camera_position,
