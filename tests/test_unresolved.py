@@ -98,6 +98,24 @@ def test_the_region_map_marks_the_cone_unknown_and_no_reflection_wants_it(tmp_pa
         assert regions.wanted_region(plain, visible, reflection)[cone].all()
 
 
+def test_the_region_map_of_the_visible_cells_alone_is_the_whole_maps_there(tmp_path):
+    """dominant_term_map's `where` (build_maps passes the visibility map): in those cells the
+    terms of the whole map, UNKNOWN cone and all, OCCLUDED elsewhere; the wanted region the same."""
+    measured = load_material(write_material(tmp_path / "m.yaml", MEASURED))
+    grid, frame, normal = regions.SphereGrid(np.radians(2.0)), np.eye(3), np.array([0.0, 0.0, 1.0])
+    view = np.array([np.sin(np.radians(3.0)), 0.0, np.cos(np.radians(3.0))])
+    whole = regions.dominant_term_map(grid, frame, normal, view, measured)
+    s = grid.directions(frame)
+    visible = (s[..., 0] < 0.3) & (s[..., 2] > 0.1)         # a hemisphere less a wall on one side
+    part = regions.dominant_term_map(grid, frame, normal, view, measured, where=visible)
+    assert (whole[visible] == brdf.UNKNOWN).any() and len(np.unique(whole[visible])) >= 3
+    np.testing.assert_array_equal(part[visible], whole[visible])
+    assert (part[~visible] == brdf.OCCLUDED).all() and part.dtype == whole.dtype
+    for reflection in ("lobe", "any", "diffuse"):
+        np.testing.assert_array_equal(regions.wanted_region(part, visible, reflection),
+                                      regions.wanted_region(whole, visible, reflection))
+
+
 def hinge(folder, material_doc, reflection="lobe"):
     """The hinge task on a 516 x 388 px sensor (twice the pitch), the world m2 800 (its other
     parameters the material's), noise, black level, quantization, shadows and cone falloff, the

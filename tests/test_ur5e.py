@@ -66,6 +66,23 @@ def test_inverse_picks_the_solution_nearest_the_current_joints(q, step, j):
     assert np.max(np.abs(solution - q_near)) <= np.max(np.abs(q - q_near)) + 1e-9
 
 
+@settings(max_examples=60, deadline=None)
+@given(joints, joints)
+def test_inverse_takes_the_smallest_largest_step_of_every_solution_and_turn(q, q_near):
+    """Brute force: every closed-form solution with each joint turned by -2 pi, 0 or +2 pi (3^6
+    turns) within the limits; none has a smaller largest step from q_near than inverse's answer."""
+    import itertools
+    assume(regular(q))
+    T = ur5e.forward(q)
+    solution = ur5e.inverse(T, q_near)
+    turns = 2 * np.pi * np.array(list(itertools.product((-1.0, 0.0, 1.0), repeat=6)))
+    every = (ur5e.inverse_all(T, q6_free=q_near[5])[:, None, :] + turns[None]).reshape(-1, 6)
+    every = every[np.all(np.abs(every) <= ur5e.JOINT_LIMITS, axis=1)]
+    assert np.max(np.abs(solution - q_near)) == np.min(np.max(np.abs(every - q_near), axis=1))
+    assert np.all(np.abs(solution) <= ur5e.JOINT_LIMITS)
+    assert ur5e.forward(solution) == pytest.approx(T, abs=1e-9)
+
+
 def test_a_small_step_from_home_stays_on_the_same_branch():
     home = np.radians([-90.0, -90.0, 90.0, -90.0, -90.0, 0.0])
     q = home + np.radians([3.0, -2.0, 4.0, 1.0, -2.0, 5.0])

@@ -100,18 +100,20 @@ def inverse_all(T_base_flange: np.ndarray, q6_free: float = 0.0) -> np.ndarray:
 
 
 def _nearest_within_limits(q, q_near):
-    """Each joint as q + 2 pi k (k in -1, 0, 1) nearest to q_near within the joint limits;
-    q itself is in [-pi, pi), inside every limit, so a choice always exists."""
-    options = q[:, None] + 2 * np.pi * np.array([-1.0, 0.0, 1.0])
+    """Each joint of each solution q (k, 6) as q + 2 pi j (j in -1, 0, 1) nearest to q_near
+    within the joint limits; q itself is in [-pi, pi), inside every limit, so a choice always
+    exists (the first of equally near ones)."""
+    options = q[..., None] + 2 * np.pi * np.array([-1.0, 0.0, 1.0])
     options = np.where(np.abs(options) <= JOINT_LIMITS[:, None], options, np.inf)
-    return options[np.arange(6), np.argmin(np.abs(options - q_near[:, None]), axis=1)]
+    pick = np.argmin(np.abs(options - q_near[:, None]), axis=-1)
+    return np.take_along_axis(options, pick[..., None], axis=-1)[..., 0]
 
 
 def inverse(T_base_flange: np.ndarray, q_near: ArrayLike) -> np.ndarray:
-    """The solution nearest the current joints q_near (smallest largest joint step), within
-    the joint limits (+-2 pi, elbow +-pi). Raises Unreachable with the reason."""
+    """The solution nearest the current joints q_near (smallest largest joint step; the first
+    of equally near ones), within the joint limits (+-2 pi, elbow +-pi). Raises Unreachable
+    with the reason."""
     q_near = np.asarray(q_near, float)
-    candidates = [_nearest_within_limits(s, q_near)
-                  for s in inverse_all(T_base_flange, q6_free=q_near[5])]
-    return min(candidates, key=lambda q: np.max(np.abs(q - q_near)))
+    candidates = _nearest_within_limits(inverse_all(T_base_flange, q6_free=q_near[5]), q_near)
+    return candidates[int(np.argmin(np.max(np.abs(candidates - q_near), axis=1)))]
 

@@ -50,7 +50,7 @@ def visibility_map(scene: Scene, grid: regions.SphereGrid, first: np.ndarray | N
 
 def build_maps(task: Task, scene: Scene, settings: PlannerSettings, visible: np.ndarray | None = None,
                lamps: ArrayLike | None = None, reflectance: bool = True) -> Maps:
-    """Visibility (all samples), BRDF, dominant-term and region distance maps (sec. 2.2, 5.2).
+    """Visibility (all samples), BRDF, dominant-term (where visible) and region distance maps (sec. 2.2, 5.2).
     The visibility map (given: a plan's own, judging another camera pose on its samples) does not
     depend on the camera; the others do (the view direction is in the BRDF). Given `lamps`
     (cell-frame positions: a shot judged), the region distance only where they read it; without
@@ -60,7 +60,7 @@ def build_maps(task: Task, scene: Scene, settings: PlannerSettings, visible: np.
         visible = visibility_map(scene, grid)
     view = geometry.unit(scene.camera_position - scene.center)
     material = task.part.material
-    dominant = regions.dominant_term_map(grid, scene.frame, scene.normal, view, material)
+    dominant = regions.dominant_term_map(grid, scene.frame, scene.normal, view, material, where=visible)
     brdf_map = regions.reflectance_map(grid, scene.frame, scene.normal, view, material) if reflectance else np.zeros(0)
     wanted = regions.wanted_region(dominant, visible, task.requirements.reflection)
     cells = None

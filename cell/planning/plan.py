@@ -58,7 +58,7 @@ class Maps:
     grid: regions.SphereGrid
     visible: np.ndarray          # (E, A) every sample sees this direction
     reflectance: np.ndarray      # (E, A) R at the feature centre for a lamp there
-    dominant: np.ndarray         # (E, A) dominant term, brdf.OCCLUDED behind
+    dominant: np.ndarray         # (E, A) dominant term where visible, brdf.OCCLUDED elsewhere
     wanted: np.ndarray           # (E, A) wanted reflection and visible
     distance: np.ndarray         # (E, A) signed haversine distance to the wanted region [rad]
     candidate_pan: np.ndarray    # (C,) global candidates [rad]

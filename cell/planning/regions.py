@@ -143,12 +143,20 @@ def signed_distance(grid: SphereGrid, inside: ArrayLike, cells: np.ndarray | Non
 
 
 def dominant_term_map(grid: SphereGrid, frame: np.ndarray, normal: np.ndarray, view: np.ndarray,
-                      material: Material) -> np.ndarray:
+                      material: Material, where: np.ndarray | None = None) -> np.ndarray:
     """Sec. 5.2: dominant BRDF term (brdf.DIFFUSE/LOBE/SPIKE, OCCLUDED behind, UNKNOWN where a
     spike the goniometer did not resolve may lie: brdf.judged_term) for a lamp in each grid
-    direction, seen by a camera in direction `view` from a surface with `normal`."""
+    direction, seen by a camera in direction `view` from a surface with `normal`; only in the
+    cells `where` (E, A) if given (OCCLUDED elsewhere: the visible cells, all a map reads), each
+    cell's term its own."""
     s = grid.directions(frame)
-    return brdf.judged_term(brdf.dominant_term_vectors(normal, s, view, material), normal, s, view, material)
+    cells = s if where is None else s[where]
+    terms = brdf.judged_term(brdf.dominant_term_vectors(normal, cells, view, material), normal, cells, view, material)
+    if where is None:
+        return terms
+    out = np.full(where.shape, brdf.OCCLUDED, dtype=terms.dtype)
+    out[where] = terms
+    return out
 
 
 def reflectance_map(grid: SphereGrid, frame: np.ndarray, normal: np.ndarray, view: np.ndarray,
