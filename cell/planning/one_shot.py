@@ -35,7 +35,7 @@ if TYPE_CHECKING:
 def visibility_map(scene: Scene, grid: regions.SphereGrid) -> np.ndarray:
     """(E, A) directions of the feature frame every sample sees (Warp ray casting, sec. 2.2)."""
     from kernels.visibility import combined_map, visibility_maps
-    return combined_map(visibility_maps(scene.warp_mesh, scene.points, scene.normals, scene.frame,
+    return combined_map(visibility_maps(scene.shadow_mesh, scene.points, scene.normals, scene.frame,
                                         grid.azimuth, grid.elevation))
 
 
