@@ -39,17 +39,18 @@ def render_kernel(mesh_id: wp.uint64, origin: wp.vec3d, ray_dirs: wp.array(dtype
                   profile: wp.array2d(dtype=wp.float64),
                   table: wp.array2d(dtype=wp.float64),
                   camera_constant: wp.float64, pixel_area_m2: wp.float64,
-                  shading_normals: wp.array(dtype=wp.vec3d), first: wp.int32,
+                  shading_normals: wp.array(dtype=wp.vec3d), part_faces: wp.int32, first: wp.int32,
                   value: wp.array(dtype=wp.float64), hit: wp.array(dtype=wp.bool),
                   depth: wp.array(dtype=wp.float64), normal: wp.array(dtype=wp.vec3d)):
     """One thread per pixel ray, from `first` on (runtime.launch_sliced) (its hit point's free
     cones unknown: every shadow ray cast), its value summed over the point lamps (each with its
     own shadow ray); shaded with the face's normal, or with shading_normals[i] when given (one per
-    ray: a surface the mesh does not hold)."""
+    ray: a surface the mesh does not hold). A ray whose first face is from part_faces on (an
+    occluder's) sees nothing: a miss."""
     i = wp.tid() + first
     d = ray_dirs[i]
     q = wp.mesh_query_ray(mesh_id, wp.vec3(origin), wp.vec3(d), wp.float32(max_dist))
-    if not q.result:
+    if not q.result or q.face >= part_faces:
         value[i] = wp.float64(0.0)
         hit[i] = False
         depth[i] = wp.float64(wp.inf)
@@ -75,7 +76,8 @@ def render_kernel(mesh_id: wp.uint64, origin: wp.vec3d, ray_dirs: wp.array(dtype
 def render(mesh: "WarpMesh", origin: ArrayLike, ray_dirs: ArrayLike, lamp_pos: ArrayLike, lamp_axis: ArrayLike,
            power_w: float, cone_angle_rad: float, table: ArrayLike, camera_constant: float, pixel_area_m2: float,
            shadows: bool = True, cone: bool = True, offset_m: float = 1e-5, max_dist: float = 10.0,
-           profile: ArrayLike | None = None, shading_normals: ArrayLike | None = None) -> RenderResult:
+           profile: ArrayLike | None = None, shading_normals: ArrayLike | None = None,
+           part_faces: int | None = None) -> RenderResult:
     """Shade the first hit of each ray from `origin` (the camera centre) along unit
     `ray_dirs` (N, 3), lit by one lamp, or by E point lamps (lamp_pos, lamp_axis (E, 3), each
     emitting power_w: an extended light's emitter points, cell.planning.lights.emitters), their
@@ -86,7 +88,9 @@ def render(mesh: "WarpMesh", origin: ArrayLike, ray_dirs: ArrayLike, lamp_pos: A
     is kernels.funcs.shade_point, the same as gray_per_exposure at that point and normal, with
     the lamp's angular profile (M, 2) (None: eq. (11)'s ideal cone). shading_normals (N, 3), unit,
     shades each hit with its own normal instead of the face's (a defect's, sim.world); the
-    returned normal stays the face's.
+    returned normal stays the face's. The mesh's faces from part_faces on (None: none) are
+    occluders (the fixed lights' housings, after the part's: cell.planning.scene.Scene.shadow_mesh):
+    they block shadow rays, and a pixel ray meeting one first sees nothing (dark, as a miss).
     """
     device = ensure_init(__name__)
     dirs = unit_rows(ray_dirs, "ray_dirs")
@@ -106,7 +110,7 @@ def render(mesh: "WarpMesh", origin: ArrayLike, ray_dirs: ArrayLike, lamp_pos: A
         wp.empty((0, funcs.SECTORS), dtype=wp.float64, device=device), vec3d(lamps, "lamp_pos"), vec3d(axes, "lamp_axis"),
         axis_intensity(power_w, cone_angle_rad, profile), profile2d(profile, cone_angle_rad), table2d(table),
         float(camera_constant), float(pixel_area_m2),
-        vec3d(shading, "shading_normals"),
+        vec3d(shading, "shading_normals"), len(mesh.faces) if part_faces is None else int(part_faces),
     ], [value_wp, hit_wp, depth_wp, normal_wp], work_per_item=1 + len(lamps))
     return RenderResult(value, hit, depth, normal)
 

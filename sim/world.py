@@ -289,18 +289,20 @@ class Renderer:
         T_cell_cam, lamp_pos, axis, drives = lit
         effects, lamp, sensor = self.effects, self.task.lamp, self.task.camera.sensor
         soft_cone = "cone_falloff" in effects            # then rendered on-axis, scaled here
-        r = render(self.world.warp_mesh, origin, dirs, lamp_pos, axis, lamp.power_w,
+        mesh, part_faces = self.world.shadow_mesh, len(self.world.faces)      # the lights' housings after the part
+        r = render(mesh, origin, dirs, lamp_pos, axis, lamp.power_w,
                    lamp.cone_angle_rad, table, self.camera_constant, sensor.pixel_area_m2,
-                   shadows="shadows" in effects, cone=not soft_cone, profile=lamp.profile, shading_normals=normals)
+                   shadows="shadows" in effects, cone=not soft_cone, profile=lamp.profile, shading_normals=normals,
+                   part_faces=part_faces)
         if soft_cone:
             lamp_to_point = origin + r.depth[r.hit, None] * dirs[r.hit] - lamp_pos
             cos_off_axis = np.clip(np.einsum("nj,j->n", geometry.unit(lamp_to_point), axis), -1.0, 1.0)
             r.value[r.hit] *= cone_falloff(np.arccos(cos_off_axis), lamp.cone_angle_rad, lamp.profile)
         value = self.light_factor(lamp.channel.number, drives) * r.value
-        value += lights.rendered(self.world.warp_mesh, origin, dirs, T_cell_cam, self.task.lights, self.points,
+        value += lights.rendered(mesh, origin, dirs, T_cell_cam, self.task.lights, self.points,
                                  [self.light_factor(light.channel.number, drives) for light in self.task.lights],
                                  table, self.camera_constant, sensor.pixel_area_m2,
-                                 shadows="shadows" in effects, shading_normals=normals)
+                                 shadows="shadows" in effects, shading_normals=normals, part_faces=part_faces)
         return value, r
 
     def __call__(self, T_cell_cam: np.ndarray, lamp_pos: np.ndarray, lamp_aim: ArrayLike, shutter_s: float,

@@ -6,10 +6,11 @@ from pathlib import Path
 
 import numpy as np
 
-from cell.collision.scene import LIGHT_DEPTH_M, CollisionScene, light_bodies
+from cell.collision.scene import CollisionScene, light_bodies
 from cell.core import geometry
 from cell.planning.lights import emitters
 from cell.task import loader
+from cell.task.types import HOUSING_DEPTH_M
 
 TASKS = Path(__file__).parent / "tasks" / "features"
 RING = Path(__file__).parent.parent / "tasks" / "ring.yaml"
@@ -24,7 +25,7 @@ def test_each_fixed_lights_housing_holds_its_emitter_points_on_its_front_face():
         assert np.allclose(box.sdf(points), 0.0, atol=1e-9)           # on the surface
         assert np.all(box.sdf(points - 1e-3 * light.axis) < 0)          # just behind: inside the housing
         assert np.all(box.sdf(points + 1e-3 * light.axis) > 0)          # just in front: outside
-        assert np.isclose(box.sdf(light.position_m - LIGHT_DEPTH_M * light.axis - 1e-3 * light.axis), 1e-3)
+        assert np.isclose(box.sdf(light.position_m - HOUSING_DEPTH_M * light.axis - 1e-3 * light.axis), 1e-3)
     scene = CollisionScene.of(task)
     assert [b.name for b in scene.fixed] == ["part", "bar_left", "bar_right"]
 

@@ -29,10 +29,11 @@ from cell.collision.bodies import Body, Box, Capsule, Mesh, distance, surface_sa
 from cell.core import geometry
 from cell.devices import ur5e
 from cell.devices.rig import lamp_frame
+from cell.task.types import HOUSING_RIM_M
 
 if TYPE_CHECKING:
     from cell.core.frames import Frames
-    from cell.task.types import Task
+    from cell.task.types import Light, Task
 
 # The UR5e's envelope (UR's published link dimensions, rounded up): its links as capsules between
 # points of the DH chain, the upper arm offset 138 mm and the forearm 7 mm along the joint-2 axis
@@ -77,35 +78,32 @@ def reaching_joints(frames: Frames, T_cell_cam: np.ndarray,
     return tuple(float(x) for x in q)
 
 
-# a fixed light's housing: its emitting surface's extent plus LIGHT_RIM_M each side, LIGHT_DEPTH_M deep
-# behind it (an LED bar's or ring's body: some 10-30 mm); not in the datasheets the task gives
-LIGHT_RIM_M, LIGHT_DEPTH_M = 0.005, 0.020
-
-
 def light_bodies(task: Task) -> tuple[Box, ...]:
-    """Each fixed light's housing (named as the light) as a Box, its axes the light's `along`,
-    across and axis: half its emitting surface's extent across the axis plus LIGHT_RIM_M (a bar's
-    half length along and none across, a ring's or a disk's radius, an area's half width and
-    height, a spot's none) and LIGHT_DEPTH_M deep behind the emitting centre. A ring's box is
-    solid across its hole (never nearer than the true body: a clearance it gives is a lower
-    bound); a dome, a hollow shell over the part, has no box (its inside is where the part is).
-    A flange light moves with the camera and is inside the camera body's reach (not a body)."""
-    out = []
-    for light in task.lights:
-        if light.mount != "fixed" or light.type == "dome":
-            continue
-        if light.type == "bar":
-            half = (0.5 * float(light.length_m or 0.0), 0.0)
-        elif light.size_m is not None:
-            half = (0.5 * float(light.size_m[0]), 0.5 * float(light.size_m[1]))
-        else:
-            half = (float(light.radius_m or 0.0),) * 2
-        across = np.cross(light.axis, light.along)
-        R = np.column_stack([light.along, across, light.axis])
-        centre = np.asarray(light.position_m, float) - 0.5 * LIGHT_DEPTH_M * light.axis
-        out.append(Box(light.name, geometry.transform(R, centre),
-                       np.array([half[0] + LIGHT_RIM_M, half[1] + LIGHT_RIM_M, 0.5 * LIGHT_DEPTH_M])))
-    return tuple(out)
+    """Each fixed light's housing (named as the light) as a Box (light_box)."""
+    return tuple(light_box(light) for light in task.lights if light.mount == "fixed" and light.type != "dome")
+
+
+def light_box(light: Light, setback_m: float = 0.0) -> Box:
+    """A fixed light's housing box, its axes the light's `along`, across and axis: half its
+    emitting surface's extent across the axis plus HOUSING_RIM_M (a bar's half length along and
+    none across, a disk's radius, an area's half width and height, a spot's none; a ring's outer
+    radius), from setback_m to the housing's depth (Light.housing) behind the emitting centre. A
+    ring's box is solid across its hole (never nearer than the true body: a clearance it gives is
+    a lower bound); a dome, a hollow shell over the part, has none (its inside is where the part
+    is). A flange light moves with the camera and is inside the camera body's reach (not a body)."""
+    housing = light.housing()
+    if light.type == "bar":
+        half = (0.5 * float(light.length_m or 0.0) + HOUSING_RIM_M, HOUSING_RIM_M)
+    elif light.type == "ring":
+        half = (housing.outer_radius_m,) * 2
+    elif light.size_m is not None:
+        half = (0.5 * float(light.size_m[0]) + HOUSING_RIM_M, 0.5 * float(light.size_m[1]) + HOUSING_RIM_M)
+    else:
+        half = (float(light.radius_m or 0.0) + HOUSING_RIM_M,) * 2
+    across = np.cross(light.axis, light.along)
+    R = np.column_stack([light.along, across, light.axis])
+    centre = np.asarray(light.position_m, float) - 0.5 * (housing.depth_m + setback_m) * light.axis
+    return Box(light.name, geometry.transform(R, centre), np.array([*half, 0.5 * (housing.depth_m - setback_m)]))
 
 
 @dataclass(frozen=True)

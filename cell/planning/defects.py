@@ -184,7 +184,7 @@ class _Inputs:
                                task.camera.sensor.pixel_area_m2, profile=task.lamp.profile)
         self.sample, self.shape = sample, shape
         counts = problem.lights.points
-        self.lights = np.array([contribution(scene.warp_mesh, points, normals, scene.T_cell_cam, light, material,
+        self.lights = np.array([contribution(scene.shadow_mesh, points, normals, scene.T_cell_cam, light, material,
                                              task.camera.sensor, problem.band[1], count=counts[k]).unit_gray
                                 for k, light in enumerate(task.lights)]).reshape(len(task.lights), len(points))
 

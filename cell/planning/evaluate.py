@@ -156,7 +156,7 @@ class Problem:
         if (made_of is None or lights is None or made_of[3] != self.lights_off
                 or any(a is not b for a, b in zip(made_of, (task, scene, material)))):
             on = [k for k in range(len(task.lights)) if k not in self.lights_off]
-            found = dict(zip(on, contributions(scene.warp_mesh, scene.points, scene.normals, scene.T_cell_cam,
+            found = dict(zip(on, contributions(scene.shadow_mesh, scene.points, scene.normals, scene.T_cell_cam,
                                                [task.lights[k] for k in on], material, task.camera.sensor,
                                                self.band[1])))
             count = len(scene.points)
@@ -170,7 +170,7 @@ class Problem:
                 lights.unit_gray[k], lights.unlit[k], lights.dominant[k] = c.unit_gray, c.unlit, c.dominant
                 if ring:        # the same emitter points as the nominal aim's: the turn is all that differs
                     lights.turned[k] = [t.unit_gray for t in contributions(
-                        scene.warp_mesh, scene.points, scene.normals, scene.T_cell_cam,
+                        scene.casting(but=task.lights[k].name), scene.points, scene.normals, scene.T_cell_cam,
                         turned(task.lights[k], tolerance, ring), material, task.camera.sensor, self.band[1],
                         count=c.points)]
             self.kernels.lights, self.kernels.lights_of = lights, (task, scene, material, self.lights_off)
@@ -191,7 +191,7 @@ def gray_inputs(task: Task, scene: Scene, material: Material) -> GrayInputs:
     """The gray kernel's fixed inputs (kernels.gray.GrayInputs) for the scene's samples and
     camera, the task's lamp and sensor and the material."""
     from kernels.gray import GrayInputs
-    return GrayInputs(scene.warp_mesh, scene.points, scene.normals, scene.camera_position,
+    return GrayInputs(scene.shadow_mesh, scene.points, scene.normals, scene.camera_position,
                       task.lamp.power_w, task.lamp.cone_angle_rad, material.table(),
                       task.camera.sensor.camera_constant, task.camera.sensor.pixel_area_m2,
                       profile=task.lamp.profile)

@@ -267,7 +267,7 @@ def emitter_counts(task: Task, scene: Scene, T_cell_cam: ArrayLike) -> tuple[int
     if not task.lights:
         return ()
     top = max(feature.requirements.gray_band[1] for feature in task.features)
-    found = contributions(scene.warp_mesh, scene.points, scene.normals, T_cell_cam, task.lights, task.part.material,
+    found = contributions(scene.shadow_mesh, scene.points, scene.normals, T_cell_cam, task.lights, task.part.material,
                           task.camera.sensor, top)
     return tuple(c.points for c in found)
 
@@ -282,12 +282,14 @@ def drive_level(channel: int | None, drives: Mapping[int, float] | None) -> floa
 
 def rendered(mesh: WarpMesh, origin: ArrayLike, ray_dirs: np.ndarray, T_cell_cam: ArrayLike, made: Sequence[Light],
              counts: Sequence[int], factors: Sequence[float], table: np.ndarray, camera_constant: float,
-             pixel_area_m2: float, shadows: bool, shading_normals: np.ndarray | None = None) -> np.ndarray:
+             pixel_area_m2: float, shadows: bool, shading_normals: np.ndarray | None = None,
+             part_faces: int | None = None) -> np.ndarray:
     """(N,) sum_k f_k G_k: the value (c A_pixel Phi R / 8 per ray, kernels.render) of each light k
     as counts[k] emitter points (`emitters`, a flange light carried by T_cell_cam), each with its
     own shadow ray, times factors[k] (its drive, in the simulator times its channel's true power);
     a light at factor 0 is not rendered. The simulator's image and registration's model both;
-    shading_normals (N, 3): each hit shaded with its own normal (kernels.render's)."""
+    shading_normals (N, 3): each hit shaded with its own normal, part_faces: the mesh's faces
+    from there on occluders (kernels.render's)."""
     from kernels.render import render
     value = np.zeros(len(ray_dirs))
     for light, n, factor in zip(made, counts, factors):
@@ -295,5 +297,5 @@ def rendered(mesh: WarpMesh, origin: ArrayLike, ray_dirs: np.ndarray, T_cell_cam
             e = emitters(light, T_cell_cam, n)
             value += factor * render(mesh, origin, ray_dirs, e.position, e.axis, e.power_w, e.cone_angle_rad, table,
                                      camera_constant, pixel_area_m2, shadows=shadows, profile=e.profile,
-                                     shading_normals=shading_normals).value
+                                     shading_normals=shading_normals, part_faces=part_faces).value
     return value

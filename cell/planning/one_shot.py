@@ -43,7 +43,7 @@ def visibility_map(scene: Scene, grid: regions.SphereGrid, first: np.ndarray | N
         count = 0
     elif count == len(scene.points):
         return first
-    found = combined_map(visibility_maps(scene.warp_mesh, scene.points[count:], scene.normals[count:], scene.frame,
+    found = combined_map(visibility_maps(scene.shadow_mesh, scene.points[count:], scene.normals[count:], scene.frame,
                                          grid.azimuth, grid.elevation))
     return found if first is None else first & found
 

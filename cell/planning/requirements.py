@@ -22,7 +22,7 @@ from numpy.typing import ArrayLike
 from cell.core import geometry
 from cell.core.numbers import number
 from cell.physics import projection
-from cell.planning import regions
+from cell.planning import occluders, regions
 from cell.physics import brdf, costs, depth_of_field as dof
 from cell.task import winding
 
@@ -197,8 +197,18 @@ def no_shadow(p: Problem, c: Candidates) -> np.ndarray:
 
 
 def explain_no_shadow(p: Problem, c: Candidates, met: bool) -> str:
-    return (f"{int(c.shadowed[0].sum())} of {len(p.scene.points)} feature samples are shadowed from "
+    fact = (f"{int(c.shadowed[0].sum())} of {len(p.scene.points)} feature samples are shadowed from "
             f"the lamp ({_maps(p).visible.mean():.0%} of directions see every sample)")
+    lights = _blocking(p.scene, c.shadowed[0], c.position[0])
+    return f"{fact}; the housing of {lights} stands in the lamp's beam" if lights else fact
+
+
+def _blocking(scene: Scene, which: np.ndarray, to: np.ndarray) -> str:
+    """The fixed lights whose housings cross the rays from the samples `which` (P,) to the point
+    `to`, with how many each ('' when none): named where one blocks (occluders.blockers)."""
+    if not scene.housings or not np.any(which):
+        return ""
+    return occluders.named(scene.housings, occluders.blockers(scene.housings, scene.points[which], to))
 
 
 def cone_coverage(p: Problem, c: Candidates) -> np.ndarray:
@@ -234,6 +244,9 @@ def explain_camera_view(p: Problem, c: Candidates, met: bool) -> str:
         return (f"{fact}: {on_flipped} lie on triangles wound against their neighbours (the mesh's winding is "
                 f"flipped there, {flipped.where()}), so their surface faces away from the camera; "
                 f"fix the mesh's winding")
+    lights = _blocking(p.scene, np.ones(n, bool), p.scene.camera_position)
+    if lights:
+        return f"{fact}: the housing of {lights} stands between them and the camera; move the camera or the light"
     return f"{fact}; change the view direction"
 
 

@@ -3,6 +3,10 @@
 Shared by the planner, the simulated camera and the closed loop so they all see one scene. A
 Scene is plain arrays (it pickles: a plan made in a worker process carries it back); the Warp
 BVH of its mesh is the process's own (kernels.mesh.shared_mesh, keyed by the geometry's digest).
+Rays that light or see the part (shadow rays, the camera's view, the visibility maps, a
+rendered pixel) are cast against its shadow mesh: the part and the fixed lights' housings
+(cell.planning.occluders), the part's faces first; what needs the part alone (its samples, the
+certificate's closest points) uses the part's mesh.
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ from numpy.typing import ArrayLike
 
 from cell.core import geometry
 from cell.core.errors import TaskError
+from cell.planning.occluders import Housing, housings
 from kernels.mesh import shared_mesh
 from kernels.proximity import closest_points
 
@@ -65,6 +70,7 @@ class Scene:
     points: np.ndarray           # (P, 3) feature samples on the surface
     normals: np.ndarray          # (P, 3) surface normals at the samples
     T_cell_cam: np.ndarray       # the camera pose the planner assumes
+    housings: tuple[Housing, ...] = ()     # the fixed lights' housings, cell frame (they do not move)
 
     def __post_init__(self) -> None:
         """Its arrays read-only, however it was made (built, replaced by the certificate)."""
@@ -83,6 +89,26 @@ class Scene:
     def warp_mesh(self) -> WarpMesh:
         """This process's Warp BVH of the mesh (built on first use)."""
         return shared_mesh(self.mesh_key, self.vertices, self.faces)
+
+    @property
+    def shadow_mesh(self) -> WarpMesh:
+        """This process's Warp BVH of the part and the housings, the part's faces first (its
+        len(faces) are the part's: kernels.render's part_faces); the part's own without housings."""
+        return self.casting()
+
+    def casting(self, but: str | None = None) -> WarpMesh:
+        """The shadow mesh without the housing of the light named `but`: a light turned by its
+        pose error (evaluate's light tolerance) turns its housing with it, which never shadows its
+        own emitter points, so its light is cast against the part and the others' housings."""
+        kept = [h for h in self.housings if h.name != but]
+        if not kept:
+            return self.warp_mesh
+        offsets = np.cumsum([len(self.vertices)] + [len(h.vertices) for h in kept])
+        faces = np.vstack([self.faces] + [h.faces + o for h, o in zip(kept, offsets)])
+        vertices = np.vstack([self.vertices] + [h.vertices for h in kept])
+        key = hashlib.blake2b(self.mesh_key.encode() + vertices[len(self.vertices):].tobytes()
+                              + faces[len(self.faces):].tobytes(), digest_size=16).hexdigest()
+        return shared_mesh(key, vertices, faces)
 
     def sample_depths(self) -> np.ndarray:
         """Distances camera -> samples along the optical axis [m]."""
@@ -143,7 +169,7 @@ def build_scene(task: Task, samples: int | None = None, extra: np.ndarray | None
         cam = center + task.camera.distance_m * geometry.unit(geometry.rotate(T, task.camera.view_direction))
         T_cell_cam = look_at(cam, center)
     return Scene(vertices=vertices, faces=faces, mesh_key=key, center=center, normal=normal, frame=frame,
-                 points=points, normals=normals, T_cell_cam=np.array(T_cell_cam, float))
+                 points=points, normals=normals, T_cell_cam=np.array(T_cell_cam, float), housings=housings(task))
 
 
 def _read_only(values):

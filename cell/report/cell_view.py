@@ -2,7 +2,8 @@
 scene (cell.collision.scene) at every shot: the part and the fixture, the UR5e's links as their
 capsules, the camera body with its frustum to the focus distance, the lamp's body with its cone
 (the lit half angle, to the rig's pivot), the task's other lights as their emitter points (bright:
-on, dim: off), each feature's patch and normal; each shot's clearance (and the two bodies that set
+on, dim: off) and each fixed light's housing as it blocks light and view (cell.planning.occluders;
+a ring's collision box, solid across its hole, faint beside it), each feature's patch and normal; each shot's clearance (and the two bodies that set
 it) in its legend entry and hover text; the camera's paths of the plan's collision-checked moves
 (Plan.moves, cell.run.moves: from the home pose through the shots, straight between a move's
 via points, as moveL takes them), or where a plan has none, straight segments between consecutive
@@ -27,6 +28,7 @@ from cell.collision.bodies import Body, Box, Capsule, Mesh
 from cell.collision.scene import CollisionScene, reaching_joints
 from cell.core import geometry
 from cell.physics import projection
+from cell.planning import occluders
 from cell.report.pictures import FEATURE_COLORS, display_mesh
 
 if TYPE_CHECKING:
@@ -186,9 +188,18 @@ def write_cell_view(path: PathLike, plan: Plan, task: Task, order: Sequence[int]
     scene = CollisionScene.of(task)
     T = task.frames.T_cell_part
     traces: list[Any] = []
+    housings = {h.name: h for h in occluders.housings(task)}
+    rings = {light.name for light in task.lights if light.type == "ring"}
     for body in scene.fixed:
-        traces.append(_body(body, body.name, "#c8ccd4" if body.name == "part" else "#9aa0a8", body.name,
-                            body.name, legend=True, opacity=1.0 if body.name == "part" else 0.6))
+        if body.name in rings:              # its collision body differs from its housing: solid across the hole
+            traces.append(_body(body, f"{body.name} collision box", "#9aa0a8", f"{body.name}: its collision body, "
+                                "a box solid across its hole", body.name, legend=True, opacity=0.15))
+        elif body.name not in housings:     # the part, the fixture (a bar's box is its housing, drawn below)
+            traces.append(_body(body, body.name, "#c8ccd4" if body.name == "part" else "#9aa0a8", body.name,
+                                body.name, legend=True, opacity=1.0 if body.name == "part" else 0.6))
+    for h in housings.values():
+        traces.append(_mesh3d(h.vertices, h.faces, h.name, "#9aa0a8", f"{h.name}: its housing, which blocks the "
+                              "camera's view and the lights' rays as the part does", 0.6, h.name))
     if plan.features:
         covered = [f.covered_by for f in plan.features]
         covers = [[c.feature for c in shot.covers] for shot in plan.shots]

@@ -464,15 +464,20 @@ FIXED_LIGHT_COLOR = "goldenrod"
 
 
 def _draw_fixed_lights(ax, task: Task) -> list[str]:
-    """The task's fixed lights on the cell's view: each one's emitter points (cell.planning.lights,
-    its starting count) and a line from its centre along its axis (0.3 of its distance to the
-    rig's pivot); the names drawn. A flange light moves with the camera (drawn in lights.png)."""
+    """The task's fixed lights on the cell's view: each one's housing as it blocks light and view
+    (cell.planning.occluders, translucent), its emitter points (cell.planning.lights, its starting
+    count) and a line from its centre along its axis (0.3 of its distance to the rig's pivot); the
+    names drawn. A flange light moves with the camera (drawn in lights.png)."""
     from cell.planning.lights import START_POINTS, emitters, pose
+    from cell.planning.occluders import housing
     drawn = []
     pivot = np.asarray(task.lamp.rig.pivot_m, float)
     for light in task.lights:
         if light.mount != "fixed":
             continue
+        h = housing(light)
+        ax.add_collection3d(Poly3DCollection(h.vertices[h.faces], facecolors=to_rgba("0.55", 0.35),
+                                             edgecolors="none", zorder=2))
         points = emitters(light, np.eye(4), START_POINTS[light.type]).position
         centre, axis, _ = pose(light, np.eye(4))
         tip = centre + 0.3 * np.linalg.norm(pivot - centre) * axis
@@ -496,7 +501,7 @@ def _legend(fig, shots, names, features, covered, lamp_rig, fixed=()):
                 Line2D([], [], color="black", marker="+", ls="none", label="rig's pivot (every lamp's aim)")]
     if fixed:
         handles.append(Line2D([], [], color=FIXED_LIGHT_COLOR, marker="*", mec="black", mew=0.3,
-                              label=f"fixed lights ({', '.join(fixed)}): emitter points, axis"))
+                              label=f"fixed lights ({', '.join(fixed)}): emitter points, axis, housing (grey)"))
     fig.legend(handles=handles, loc="lower center", ncol=3, fontsize=7, frameon=False)
 
 

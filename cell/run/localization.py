@@ -127,8 +127,8 @@ def model_view(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: Lamp
     K = grid_intrinsics(task, scale)
     rays = projection.pixel_rays(K, T_cell_cam, width, height)
     origin = T_cell_cam[:3, 3]
-    hit = render(scene.warp_mesh, origin, rays, origin, rays[0], 1.0, np.pi, task.part.material.table(),
-                 1.0, 1.0, shadows=False)
+    hit = render(scene.shadow_mesh, origin, rays, origin, rays[0], 1.0, np.pi, task.part.material.table(),
+                 1.0, 1.0, shadows=False, part_faces=len(scene.faces))
     points = np.where(hit.hit[:, None], origin + hit.depth[:, None] * rays, np.nan)
     return ModelView(value, points.reshape(height, width, 3), np.array(T_cell_cam, float))
 

@@ -104,9 +104,9 @@ def pixel_geometry(task: Task, scene: Scene, T_cell_cam: np.ndarray, region: np.
     local = np.column_stack([cols - dx, rows - dy, np.ones(rows.size)]) @ np.linalg.inv(K).T
     dirs = geometry.unit(geometry.rotate(T_cell_cam, local))
     origin = T_cell_cam[:3, 3]
-    r = render(scene.warp_mesh, origin, dirs, lamp_pos, lamp_aim, task.lamp.power_w, task.lamp.cone_angle_rad,
+    r = render(scene.shadow_mesh, origin, dirs, lamp_pos, lamp_aim, task.lamp.power_w, task.lamp.cone_angle_rad,
                UNIT_DIFFUSE, task.camera.sensor.camera_constant, task.camera.sensor.pixel_area_m2,
-               profile=task.lamp.profile)
+               profile=task.lamp.profile, part_faces=len(scene.faces))
     point = origin + np.where(r.hit, r.depth, 0.0)[:, None] * dirs
     s, v = geometry.unit(lamp_pos - point), geometry.unit(origin - point)
     cos_i, cos_e = np.einsum("nj,nj->n", r.normal, s), np.einsum("nj,nj->n", r.normal, v)

@@ -165,13 +165,15 @@ def expected_image(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: 
     position, aim = lamp_pose
     table, origin = task.part.material.table(), T_cell_cam[:3, 3]
     value = lights.drive_level(task.lamp.channel.number, drives) * render(
-        scene.warp_mesh, origin, rays, position, aim, task.lamp.power_w, task.lamp.cone_angle_rad, table,
-        sensor.camera_constant, sensor.pixel_area_m2, shadows=True, profile=task.lamp.profile).value
+        scene.shadow_mesh, origin, rays, position, aim, task.lamp.power_w, task.lamp.cone_angle_rad, table,
+        sensor.camera_constant, sensor.pixel_area_m2, shadows=True, profile=task.lamp.profile,
+        part_faces=len(scene.faces)).value
     if task.lights:
         counts = lights.emitter_counts(task, scene, scene.T_cell_cam) if counts is None else counts
-        value += lights.rendered(scene.warp_mesh, origin, rays, T_cell_cam, task.lights, counts,
+        value += lights.rendered(scene.shadow_mesh, origin, rays, T_cell_cam, task.lights, counts,
                                  [lights.drive_level(light.channel.number, drives) for light in task.lights],
-                                 table, sensor.camera_constant, sensor.pixel_area_m2, shadows=True)
+                                 table, sensor.camera_constant, sensor.pixel_area_m2, shadows=True,
+                                 part_faces=len(scene.faces))
     return value.reshape(height, width).astype(np.float32)
 
 

@@ -179,6 +179,9 @@ LIGHT = {
     "length_m": Number(**POSITIVE, default=None),
     "size_m": Pair(lambda v: v > 0, "positive lengths [width, height]", default=None, ascending=False),
     "hole_radius_m": Number(**POSITIVE, default=None),
+    "housing_depth_m": Number(**POSITIVE, default=None),
+    "aperture_radius_m": Number(**POSITIVE, default=None),
+    "outer_radius_m": Number(**POSITIVE, default=None),
     "rig": Section(plausible.copied(RIG), required=False, defaults=False),
 }
 
@@ -756,13 +759,15 @@ def _check_cone_angle(file, cone_angle_rad, profile, key="lamp"):
 # a mistake in the file (a `tilt_deg` on a bar light does nothing)
 SHAPES: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "spot": ((), ("cone_angle_rad",)),
-    "ring": (("radius_m",), ("tilt_rad",)),
+    "ring": (("radius_m",), ("tilt_rad", "aperture_radius_m", "outer_radius_m")),
     "bar": (("length_m",), ("along",)),
     "area": ((), ("size_m", "radius_m", "along")),
     "dome": (("radius_m",), ("hole_radius_m",)),
     "coaxial": ((), ("size_m", "radius_m", "along")),
 }
-MOUNT_KEYS = {"fixed": ("position_m", "aim_m"), "flange": ("offset_m",), "pan_tilt": ("rig",)}
+# a fixed light's housing (the shadow geometry, cell.planning.occluders; the collision body): fixed only
+HOUSING_KEYS = ("housing_depth_m", "aperture_radius_m", "outer_radius_m")
+MOUNT_KEYS = {"fixed": ("position_m", "aim_m", *HOUSING_KEYS), "flange": ("offset_m",), "pan_tilt": ("rig",)}
 SHAPE_KEYS = sorted({k for need, may in SHAPES.values() for k in need + may})
 FILE_KEY = {"cone_angle_rad": "cone_angle_deg", "tilt_rad": "tilt_deg"}
 
@@ -804,6 +809,11 @@ def _light(file, key, entry):
     if kind == "dome" and entry["hole_radius_m"] is not None and not entry["hole_radius_m"] < entry["radius_m"]:
         raise TaskError(file, f"{key}.hole_radius_m", show(entry["hole_radius_m"]),
                         f"less than the dome's radius_m {entry['radius_m']:g} m")
+    if kind == "ring":
+        for k, side, what in (("aperture_radius_m", -1, "less than"), ("outer_radius_m", 1, "more than")):
+            if entry[k] is not None and not side * (entry[k] - entry["radius_m"]) > 0:
+                raise TaskError(file, f"{key}.{k}", show(entry[k]), f"{what} the ring's radius_m {entry['radius_m']:g} m "
+                                "(its LEDs' circle lies on the housing, between its hole and its outer edge)")
     if kind == "coaxial" and mount != "flange":
         raise TaskError(file, f"{key}.mount", mount, "flange (a coaxial light shines along the camera's axis)")
     for m, keys in MOUNT_KEYS.items():
@@ -837,7 +847,8 @@ def _light(file, key, entry):
             profile = _check_cone_angle(file, entry["cone_angle_rad"], profile, key)
     return Light(entry["name"], kind, mount, entry["power_w"], _channel(file, key, entry, required=True),
                  position, axis, geometry.unit(along), profile, entry["cone_angle_rad"], entry["radius_m"],
-                 entry["tilt_rad"] or 0.0, entry["length_m"], entry["size_m"], entry["hole_radius_m"], key)
+                 entry["tilt_rad"] or 0.0, entry["length_m"], entry["size_m"], entry["hole_radius_m"], key,
+                 **{k: entry[k] for k in HOUSING_KEYS})
 
 
 def _lamp(file, lamp, entries):
@@ -856,7 +867,7 @@ def _lamp(file, lamp, entries):
             raise TaskError(file, f"{key}.type", e["type"], "spot (the pan-tilt carries a spot)")
         if e["rig"] is None:
             raise TaskError(file, f"{key}.rig", "nothing", "the pan-tilt's rig (required with mount: pan_tilt)")
-        for k in ("position_m", "aim_m", "offset_m", "along", *SHAPE_KEYS[1:]):
+        for k in ("position_m", "aim_m", "offset_m", "along", "housing_depth_m", *SHAPE_KEYS[1:]):
             if k != "cone_angle_rad" and e.get(k) is not None:
                 raise TaskError(file, f"{key}.{FILE_KEY.get(k, k)}", show(e[k]),
                                 "no value (the pan-tilt's spot is placed by its rig)")

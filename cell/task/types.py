@@ -202,6 +202,35 @@ class Light:
     size_m: tuple[float, float] | None = None      # area or coaxial rectangle [width, height]
     hole_radius_m: float | None = None     # dome: the camera's hole at its pole
     key: str = "lights[0]"                 # where the task file gives it, for errors
+    housing_depth_m: float | None = None   # fixed: its housing this deep behind the emitting surface
+    aperture_radius_m: float | None = None     # fixed ring: its housing's hole (the camera looks through)
+    outer_radius_m: float | None = None        # fixed ring: its housing's outer edge
+
+    def housing(self) -> HousingSize:
+        """A fixed light's housing (`lights[]` housing keys, docs/formats.md), the defaults filled
+        in: HOUSING_DEPTH_M deep, a ring's annulus HOUSING_RIM_M either side of its LEDs' circle
+        (the hole at least half the radius)."""
+        radius = float(self.radius_m or 0.0)
+        aperture = self.aperture_radius_m if self.aperture_radius_m is not None else max(
+            radius - HOUSING_RIM_M, 0.5 * radius)
+        outer = self.outer_radius_m if self.outer_radius_m is not None else radius + HOUSING_RIM_M
+        depth = self.housing_depth_m if self.housing_depth_m is not None else HOUSING_DEPTH_M
+        return HousingSize(float(depth), float(aperture), float(outer))
+
+
+# a fixed light's housing where the task gives no size: its emitting surface's extent plus HOUSING_RIM_M
+# each side, HOUSING_DEPTH_M deep behind it (an LED bar's or ring's body: some 10-30 mm; datasheets vary)
+HOUSING_RIM_M, HOUSING_DEPTH_M = 0.005, 0.020
+
+
+@dataclass(frozen=True)
+class HousingSize:
+    """A fixed light's housing behind its emitting surface [m]: its depth, and a ring's annulus
+    (aperture_radius_m, the hole the camera looks through, to outer_radius_m)."""
+
+    depth_m: float
+    aperture_radius_m: float
+    outer_radius_m: float
 
 
 @dataclass(frozen=True)
