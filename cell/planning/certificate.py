@@ -10,7 +10,7 @@ then adds the worst points to its samples and searches again (cell.planning.one_
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
@@ -95,12 +95,34 @@ def specular_point(scene: Scene, lamp: ArrayLike) -> tuple[np.ndarray, np.ndarra
 def verify(problem: evaluate.Problem, shot: Shot) -> tuple[Verification, np.ndarray]:
     """(Verification of the shot on the dense patch, its worst points to add to the search's
     samples). problem: the search's Problem (its maps and albedo scale are kept)."""
+    return verify_all([problem], shot)[0]
+
+
+def verify_all(problems: Sequence[evaluate.Problem], shot: Shot) -> list[tuple[Verification, np.ndarray]]:
+    """verify of `shot` on each Problem, of one part's features seen by the shot's camera (their
+    mesh, lamp, camera and material as planned the same), together: the gray kernel on every
+    dense patch (with its specular point) launched once for all (evaluate.SharedLaunches), each
+    patch's values as its own launch's."""
     from cell.planning.scene import build_scene
+    if not problems:
+        return []
+    scenes = [build_scene(p.task, dense_samples(p.task, p.scene), T_cell_cam=p.scene.T_cell_cam) for p in problems]
+    found = [specular_point(s, shot.lamp_position) for s in scenes]
+    scenes = [replace(s, points=np.vstack([s.points, point]), normals=np.vstack([s.normals, normal]))
+              for s, (point, normal) in zip(scenes, found)]
+    joined = replace(scenes[0], points=np.vstack([s.points for s in scenes]),
+                     normals=np.vstack([s.normals for s in scenes]))
+    shared = evaluate.SharedLaunches(evaluate.gray_inputs(problems[0].task, joined, problems[0].material),
+                                     [len(s.points) for s in scenes])
+    return [dense_verdict(p, s, shot, shared.rows(k)) for k, (p, s) in enumerate(zip(problems, scenes))]
+
+
+def dense_verdict(problem: evaluate.Problem, scene: Scene, shot: Shot,
+                  rows: evaluate.Rows) -> tuple[Verification, np.ndarray]:
+    """verify's result on the dense `scene` (its specular point last), its gray kernel's `rows`."""
     task = problem.task
-    scene = build_scene(task, dense_samples(task, problem.scene), T_cell_cam=problem.scene.T_cell_cam)
-    point, normal = specular_point(scene, shot.lamp_position)
-    scene = replace(scene, points=np.vstack([scene.points, point]), normals=np.vstack([scene.normals, normal]))
-    dense = evaluate.build_problem(task, scene, problem.maps, focus_m=problem.focus_m, material=problem.material)
+    dense = evaluate.build_problem(task, scene, problem.maps, focus_m=problem.focus_m, material=problem.material,
+                                   gray=rows)
     off = () if shot.drive is None else tuple(int(k) for k in np.flatnonzero(shot.drive[1:] <= 0.0))
     dense = replace(dense, kappa_open=problem.kappa_open,
                     lights_off=off)         # the lights at drive 0 add nothing: not computed on the dense patch

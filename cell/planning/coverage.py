@@ -12,7 +12,7 @@ focus and exposure), so it agrees with plan()'s verdict.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
@@ -25,7 +25,7 @@ if TYPE_CHECKING:
 
     from cell.planning.evaluate import Rows
     from cell.physics.costs import RequirementValue
-    from cell.planning.plan import Plan, PlannerSettings, Shot
+    from cell.planning.plan import DefectCnr, LightSetting, Plan, PlannerSettings, Shot, Verification
     from cell.planning.scene import Scene
     from cell.task.types import Task
 
@@ -72,20 +72,42 @@ def rejected(task: Task, missed: tuple[RequirementValue, ...]) -> Coverage:
 
 def judge_all(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list[Coverage]:
     """judge of `shot` on each one-feature task of one part (with its Lent), the gray kernel on
-    the samples launched once for all of them (evaluate.SharedLaunches), not once per feature."""
+    the samples launched once for all of them (evaluate.SharedLaunches), not once per feature, and
+    the certificates of those whose samples meet every requirement verified together
+    (certificate.verify_all: their dense patches' launches shared too)."""
     if not tasks:
         return []
     task = tasks[0]
     scene, bounds = stacked(lent, shot.T_cell_cam)
     shared = evaluate.SharedLaunches(evaluate.gray_inputs(task, scene, task.part.material.scaled(1.0)),
                                      [end - start for start, end in bounds])
-    return [judge(t, x, shot, shared.rows(k)) for k, (t, x) in enumerate(zip(tasks, lent))]
+    sampled = [on_samples(t, x, shot, shared.rows(k)) for k, (t, x) in enumerate(zip(tasks, lent))]
+    met = [k for k, s in enumerate(sampled) if all(r.met for r in s.values)]
+    verified = dict(zip(met, certificate.verify_all([sampled[k].problem for k in met], shot)))
+    return [covered(t, s, verified[k][0] if k in verified else None) for k, (t, s) in enumerate(zip(tasks, sampled))]
 
 
-def judge(task: Task, lent: Lent, shot: Shot, shared: Rows | None = None) -> Coverage:
+def judge(task: Task, lent: Lent, shot: Shot) -> Coverage:
     """Coverage of `shot` (cell.planning.plan.Shot) on the one-feature `task`, whose own plan lent what
-    does not depend on the camera (Lent); the samples' gray kernel its own or `shared`, its rows of
-    a launch shared with other features (judge_all)."""
+    does not depend on the camera (Lent): every requirement on its samples, then, where they
+    all hold, the certificate on its dense patch."""
+    return judge_all([task], [lent], shot)[0]
+
+
+class Sampled(NamedTuple):
+    """A shot judged on a feature's samples (on_samples): its Problem, requirement values, the
+    samples' gray, each light's share and the defects found."""
+
+    problem: evaluate.Problem
+    values: tuple[RequirementValue, ...]
+    gray: np.ndarray
+    shares: tuple[LightSetting, ...]
+    found: tuple[DefectCnr, ...]
+
+
+def on_samples(task: Task, lent: Lent, shot: Shot, shared: Rows) -> Sampled:
+    """`shot` judged on the samples of the one-feature `task` (with its Lent), their gray kernel
+    `shared`, its rows of a launch shared with other features (judge_all)."""
     scene = replace(lent.scene, T_cell_cam=shot.T_cell_cam)
     maps = build_maps(task, scene, lent.settings, visible=lent.visible, lamps=shot.lamp_position[None],
                       reflectance=False)
@@ -97,10 +119,14 @@ def judge(task: Task, lent: Lent, shot: Shot, shared: Rows | None = None) -> Cov
         c = replace(c, t_need=np.array([e.shutter_s * (problem.kappa_open / e.f_number) ** 2]))
     values = requirements.judged(problem, c, requirements.ln_values(problem, c))
     gray = np.minimum(c.gray[0], 2.0 ** task.camera.sensor.bit_depth - 1)
-    shares = light_settings(problem, c)
     found = defects.judge(problem, c) if task.feature.defects else ()
-    if not all(r.met for r in values):
-        return Coverage(task.feature.name, False, gray, values, lights=shares, defects=found)
-    verification, _ = certificate.verify(problem, shot)
-    return Coverage(task.feature.name, verification.holds, gray, certificate.worse_of(values, verification),
-                    verification, shares, defects.worse_of(found, verification.defects))
+    return Sampled(problem, values, gray, light_settings(problem, c), found)
+
+
+def covered(task: Task, s: Sampled, verification: Verification | None) -> Coverage:
+    """The Coverage of a shot judged on the samples (`s`) and, where they meet every requirement,
+    on the dense patch (`verification`)."""
+    if verification is None:
+        return Coverage(task.feature.name, False, s.gray, s.values, lights=s.shares, defects=s.found)
+    return Coverage(task.feature.name, verification.holds, s.gray, certificate.worse_of(s.values, verification),
+                    verification, s.shares, defects.worse_of(s.found, verification.defects))

@@ -276,21 +276,28 @@ def view_angle_ln(task: Task, scene: Scene, largest: float | None = None) -> flo
     return float(costs.ln_f_max(angle, _wanted(task.requirements.view_angle_rad)))
 
 
+def problem_view_angle(p: Problem) -> float:
+    """largest_view_angle of the Problem's scene, once per Problem (Problem.fixed)."""
+    return p.fixed("largest_view_angle", lambda: largest_view_angle(p.scene))
+
+
 def view_angle(p: Problem, c: Candidates) -> np.ndarray:
     """The largest angle between a sample's normal and its direction to the camera, at most the
     task's view_angle_deg (a camera nearly grazing the surface sees it foreshortened)."""
-    return np.broadcast_to(p.fixed("view_angle", lambda: view_angle_ln(p.task, p.scene)), c.shutter.shape)
+    return np.broadcast_to(p.fixed("view_angle", lambda: view_angle_ln(p.task, p.scene, problem_view_angle(p))),
+                           c.shutter.shape)
 
 
 def explain_view_angle(p: Problem, c: Candidates, met: bool) -> str:
-    angle = largest_view_angle(p.scene)
+    angle = problem_view_angle(p)
     fact = (f"the camera sees the samples at most {np.degrees(angle):.1f} deg from their normals "
             f"(at most {np.degrees(_wanted(p.task.requirements.view_angle_rad)):g} deg wanted)")
     return fact if met else f"{fact}; view the feature more squarely (camera.viewpoint: planned)"
 
 
 def footprints(p: Problem) -> np.ndarray:
-    return footprints_at(p.task, p.scene)
+    """footprints_at of the Problem's task and scene, once per Problem (Problem.fixed)."""
+    return p.fixed("footprints", lambda: footprints_at(p.task, p.scene))
 
 
 def footprints_at(task: Task, scene: Scene) -> np.ndarray:
@@ -310,7 +317,8 @@ def resolution_ln(task: Task, scene: Scene, largest: float | None = None) -> flo
 def resolution(p: Problem, c: Candidates) -> np.ndarray:
     """The largest pixel footprint on the feature (|p - C| pitch / f / cos(view angle), the
     pinhole's), at most the task's resolution_m per pixel."""
-    return np.broadcast_to(p.fixed("resolution", lambda: resolution_ln(p.task, p.scene)), c.shutter.shape)
+    return np.broadcast_to(p.fixed("resolution", lambda: resolution_ln(p.task, p.scene, float(footprints(p).max()))),
+                           c.shutter.shape)
 
 
 def explain_resolution(p: Problem, c: Candidates, met: bool) -> str:
@@ -458,7 +466,7 @@ def amount_cone_coverage(p: Problem, c: Candidates) -> costs.Amount | None:
 
 
 def amount_view_angle(p: Problem, c: Candidates) -> costs.Amount | None:
-    angle = largest_view_angle(p.scene)
+    angle = problem_view_angle(p)
     return _finite(np.degrees(angle), np.degrees(_wanted(p.task.requirements.view_angle_rad)), " deg", True)
 
 
