@@ -9,8 +9,8 @@ radius linear together), the arm at the second stop.
 Steps by conservative advancement, pair by pair: a bound on how far one body of a pair travels
 relative to the other in a step (on the arm, the body further down the chain seen from the
 other's link: sum_i |dq_i| r_i over the joints between them, r_i its reach about joint i's axis,
-`body_reach`; the lamp body against the still rest by (|dpan| + |dtilt|) (r + its diagonal) +
-|dr|) is kept at most max(padding / 2, L - padding) after a pose where the pair is at least L
+`body_reach`; the camera body against the still bodies also by its moveL's own travel; the lamp
+body against the still rest by (|dpan| + |dtilt|) (r + its diagonal) + |dr|) is kept at most max(padding / 2, L - padding) after a pose where the pair is at least L
 apart: between two checked poses every pair stays at least the padding apart, or (near it) the
 step bounds its swept distance below half the padding. A pair far apart (a bounding-sphere gap
 well above the padding) or that the step's joints do not move between (the camera and the
