@@ -9,8 +9,8 @@ radius linear together), the arm at the second stop.
 Steps by conservative advancement, pair by pair: a bound on how far one body of a pair travels
 relative to the other in a step (on the arm, the body further down the chain seen from the
 other's link: sum_i |dq_i| r_i over the joints between them, r_i its reach about joint i's axis,
-`body_reach`; the lamp body against the still rest by (|dpan| + |dtilt|) (r + its diagonal) +
-|dr|) is kept at most max(padding / 2, L - padding) after a pose where the pair is at least L
+`body_reach`; the camera body against the still bodies also by its moveL's own travel; the lamp
+body against the still rest by (|dpan| + |dtilt|) (r + its diagonal) + |dr|) is kept at most max(padding / 2, L - padding) after a pose where the pair is at least L
 apart: between two checked poses every pair stays at least the padding apart, or (near it) the
 step bounds its swept distance below half the padding. A pair far apart (a bounding-sphere gap
 well above the padding) or that the step's joints do not move between (the camera and the
@@ -131,18 +131,20 @@ def body_reach(scene: CollisionScene, bodies: tuple[Body, ...], q: ArrayLike) ->
 
 
 @lru_cache(maxsize=64)
-def _moved_by(names: tuple[str, ...], i: bytes, j: bytes) -> tuple[np.ndarray, np.ndarray]:
+def _moved_by(names: tuple[str, ...], i: bytes, j: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(the pairs' mover: the body of each pair further down the chain, (pairs, 6) the joints
-    that move it relative to the other: those between the two bodies' LINKs). Joints nearer the
-    base move both together and change no distance between them."""
+    that move it relative to the other: those between the two bodies' LINKs, the pairs of the
+    camera body and a body no joint moves). Joints nearer the base move both together and
+    change no distance between them."""
     a, b = np.frombuffer(i, int), np.frombuffer(j, int)
     link = np.array([LINK.get(name, 0) for name in names])
     mover = np.where(link[a] >= link[b], a, b)
     lo, hi = np.minimum(link[a], link[b]), np.maximum(link[a], link[b])
     joints = (np.arange(6) >= lo[:, None]) & (np.arange(6) < hi[:, None])
-    mover.setflags(write=False)
-    joints.setflags(write=False)
-    return mover, joints
+    camera = (hi == LINK["camera_body"]) & (lo == 0)
+    for out in (mover, joints, camera):
+        out.setflags(write=False)
+    return mover, joints, camera
 
 
 def arm_path(scene: CollisionScene, T_from: np.ndarray, q_from: ArrayLike, T_to: np.ndarray,
@@ -158,7 +160,10 @@ def arm_path(scene: CollisionScene, T_from: np.ndarray, q_from: ArrayLike, T_to:
     pose where L is a lower bound of the pair's distance (Pairs.bound: the bounding spheres' gap,
     or the distance where that gap allows too short a step): between two checked poses the
     pair stays at least the padding apart, or (near it) the step bounds its swept distance
-    below half the padding."""
+    below half the padding. The camera body against a body no joint moves: the lesser of that
+    and its own path's bound, ds (|p_to - p_from| + angle rho) (the moveL's position linear in s,
+    its orientation turning angle ds about one axis, rho the body's farthest corner from the
+    camera's origin)."""
     turn = Rotation.from_matrix(T_from[:3, :3].T @ T_to[:3, :3]).as_rotvec()
     angle = float(np.linalg.norm(turn))
     K = np.cross(np.eye(3), turn / angle) if angle > 0 else np.zeros((3, 3))
@@ -173,7 +178,10 @@ def arm_path(scene: CollisionScene, T_from: np.ndarray, q_from: ArrayLike, T_to:
     s, q = 0.0, np.asarray(q_from, float)
     bodies = scene.bodies(T_from, q, lamp)
     pairs, reach = Pairs.of(bodies, len(scene.fixed)), body_reach(scene, bodies, q)
-    mover, joints = _moved_by(tuple(body.name for body in bodies), pairs.i.tobytes(), pairs.j.tobytes())
+    mover, joints, camera = _moved_by(tuple(body.name for body in bodies), pairs.i.tobytes(), pairs.j.tobytes())
+    box = scene.camera_body(scene.frames.T_cell_flange(T_from))
+    rho = float(np.linalg.norm(geometry.apply(box.T_cell_box, CORNERS * box.half_m) - T_from[:3, 3], axis=1).max())
+    rate = float(np.linalg.norm(T_to[:3, 3] - T_from[:3, 3])) + angle * rho      # the camera body's travel per unit s
     least = max(0.5 * scene.padding_m, MIN_STEP_M)
     found, at = [pairs.least(scene.padding_m)], [0.0]
     ds = 1.0
@@ -185,10 +193,11 @@ def arm_path(scene: CollisionScene, T_from: np.ndarray, q_from: ArrayLike, T_to:
             bodies_next = scene.bodies(pose(s_next), q_next, lamp)
             reach_next = body_reach(scene, bodies_next, q_next)
             r = np.maximum(reach, reach_next)[mover]
-            ratio = _worst(pairs, r, joints, dq, least, scene.padding_m)
+            ratio = _worst(pairs, r, joints, dq, np.where(camera, rate * (s_next - s), np.inf), least,
+                           scene.padding_m)
             if ratio <= 1.0 and dq.max() <= MAX_JOINT_STEP_RAD:
                 break
-            ds = (s_next - s) * min(0.5, 0.9 / max(ratio, 1e-300))
+            ds = (s_next - s) * 0.9 * min(1.0 / max(ratio, 1e-300), MAX_JOINT_STEP_RAD / max(dq.max(), 1e-300))
             if ds < MIN_STEP_S:
                 raise ur5e.Unreachable(f"the straight path turns a joint {np.degrees(dq.max()):.0f} deg in a "
                                        "vanishing step: a singularity or a change of configuration on the way")
@@ -204,14 +213,15 @@ def arm_path(scene: CollisionScene, T_from: np.ndarray, q_from: ArrayLike, T_to:
     return replace(found[k], where=where), q, len(found)
 
 
-def _worst(pairs: Pairs, reach: np.ndarray, joints: np.ndarray, dq: np.ndarray, least: float,
-           padding_m: float) -> float:
-    """The largest sweep / allowed over the pairs (arm_path) for joint steps dq; a pair over 1 on
-    its spheres' gap gets its distance (Pairs.exact) first."""
+def _worst(pairs: Pairs, reach: np.ndarray, joints: np.ndarray, dq: np.ndarray, path: np.ndarray,
+           least: float, padding_m: float) -> float:
+    """The largest sweep / allowed over the pairs (arm_path) for joint steps dq, each pair's
+    sweep at most `path` (the camera body's own path bound; inf for the others); a pair over 1
+    on its spheres' gap gets its distance (Pairs.exact) first."""
     def ratios() -> np.ndarray:
         allowed = np.maximum(least, pairs.bound - padding_m)
         sweep = np.einsum("pi,pi,i->p", reach + allowed[:, None], joints, dq)
-        return sweep / allowed
+        return np.minimum(sweep, path) / allowed
 
     found = ratios()
     over = np.flatnonzero((found > 1.0) & np.isnan(pairs.distances))
