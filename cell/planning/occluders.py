@@ -56,16 +56,16 @@ def housings(task: Task) -> tuple[Housing, ...]:
 
 def housing(light: Light) -> Housing:
     """A fixed light's Housing (the module's shapes)."""
-    if light.type == "ring":
-        h = light.housing()
-        mesh = _revolved(_annulus_profile(h.aperture_radius_m, h.outer_radius_m, h.depth_m), h.outer_radius_m)
-    elif light.type == "dome":
-        mesh = _revolved(_shell_profile(float(light.radius_m or 0.0), light.hole_radius_m, light.housing().depth_m),
-                         float(light.radius_m or 0.0) + light.housing().depth_m)
-    else:
+    if light.type not in ("ring", "dome"):
         box = light_box(light, EMITTER_PROUD_M)
         mesh = trimesh.creation.box(extents=2.0 * box.half_m, transform=box.T_cell_box)
         return Housing(light.name, np.ascontiguousarray(mesh.vertices, float), np.ascontiguousarray(mesh.faces, np.int64))
+    h, radius = light.housing(), float(light.radius_m or 0.0)
+    if light.type == "ring":
+        profile, extent = _annulus_profile(h.aperture_radius_m, h.outer_radius_m, h.depth_m), h.outer_radius_m
+    else:
+        profile, extent = _shell_profile(radius, light.hole_radius_m, h.depth_m), radius + h.depth_m
+    mesh = trimesh.creation.revolve(profile, sections=sections(extent))      # about z, the light's axis
     T = geometry.transform(np.column_stack([light.along, np.cross(light.axis, light.along), light.axis]),
                            light.position_m)
     return Housing(light.name, np.ascontiguousarray(geometry.apply(T, mesh.vertices), float),
@@ -80,22 +80,18 @@ def sections(radius_m: float, chord_m: float = CHORD_M) -> int:
     return max(MIN_SECTIONS, int(np.ceil(np.pi / np.arccos(1.0 - chord_m / radius_m))))
 
 
-def _revolved(profile: np.ndarray, radius_m: float) -> trimesh.Trimesh:
-    """The closed profile (N, 2) [radius, z] (counter-clockwise) turned about z, the light's axis."""
-    return trimesh.creation.revolve(profile, sections=sections(radius_m))
-
-
 def _annulus_profile(inner_m: float, outer_m: float, depth_m: float) -> np.ndarray:
-    """A ring housing's cross-section in the light's frame (z along its axis, the LEDs at z = 0)."""
+    """A ring housing's closed cross-section [radius, z], counter-clockwise (trimesh.creation.revolve's
+    outward faces), in the light's frame (z along its axis, the LEDs at z = 0)."""
     front, back = -EMITTER_PROUD_M, -depth_m
     return np.array([[inner_m, back], [outer_m, back], [outer_m, front], [inner_m, front], [inner_m, back]])
 
 
 def _shell_profile(radius_m: float, hole_m: float | None, depth_m: float) -> np.ndarray:
-    """A dome housing's cross-section in the light's frame (z along its axis, its pole at 0, its
-    sphere's centre at z = radius_m): the shell between radius_m + EMITTER_PROUD_M and radius_m +
-    depth_m from that centre, from the hole's cylinder (none: from the pole) down to the rim, the
-    plane z = radius_m through the centre."""
+    """A dome housing's closed cross-section [radius, z], counter-clockwise, in the light's frame
+    (z along its axis, its pole at 0, its sphere's centre at z = radius_m): the shell between
+    radius_m + EMITTER_PROUD_M and radius_m + depth_m from that centre, from the hole's cylinder
+    (none: from the pole) down to the rim, the plane z = radius_m through the centre."""
     inner, outer = radius_m + EMITTER_PROUD_M, radius_m + depth_m
     steps = max(4, sections(outer) // 4)                     # a quarter circle's corners
 
