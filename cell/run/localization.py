@@ -28,7 +28,14 @@ feature's distance): both move the feature alike, and only the part's apparent t
 apart, weakly; with one view the hand-eye turn is held near 0 (PRIOR_ONE_VIEW_RAD). A second
 view does (second_views): orbited about the feature and rolled about its own axis, a part's move
 (fixed in the cell) turns with the view while the hand-eye turn turns with the camera; turned a
-little off the feature, a hand-eye roll moves the feature while a part's turn about it does not."""
+little off the feature, a hand-eye roll moves the feature while a part's turn about it does not.
+
+The fit's standard errors say what its edges determine if they moved with the part; the light
+stays in the cell, and a straight shank moved along itself looks the same. How far the views
+leave the part's position open (resolution) is judged on the model's images rendered at the
+estimate and moved either way of each parameter (rendered_information), each view over its
+residual; the loop takes further views (by_resolution) where that exceeds the registration
+limit, and names the direction (along) where it stays open."""
 from __future__ import annotations
 
 import hashlib
