@@ -119,3 +119,21 @@ def test_the_edge_cells_alone_give_the_transform_over_all_cells_bit_for_bit(seed
     edge = on_edge(inside)
     assert 0 < edge.sum() < edge.size / 2
     np.testing.assert_array_equal(signed_distance(grid, inside), nearest_over_all_cells(grid, inside))
+
+
+def test_the_queries_split_over_two_threads_give_the_same_transform():
+    """signed_distance's k-d tree queries on the kernels' threads (kernels.runtime.threads): on
+    2 threads the numbers of trees over every cell queried on one, exactly."""
+    from kernels import runtime
+    grid = SphereGrid(np.radians(2.0))
+    directions = grid.directions()
+    rng = np.random.default_rng(7)
+    inside = np.zeros(directions.shape[:2], bool)
+    for _ in range(3):
+        inside ^= directions @ geometry.unit(rng.normal(size=3)) > np.cos(np.radians(rng.uniform(10, 80)))
+    runtime.set_threads(2)
+    try:
+        split = signed_distance(grid, inside)
+    finally:
+        runtime.set_threads(None)
+    np.testing.assert_array_equal(split, nearest_over_all_cells(grid, inside))

@@ -13,6 +13,7 @@ from scipy.spatial import cKDTree
 
 from cell.core import geometry
 from cell.physics import brdf
+from kernels.runtime import threads
 
 if TYPE_CHECKING:
     from cell.physics.material import Material
@@ -135,8 +136,9 @@ def signed_distance(grid: SphereGrid, inside: ArrayLike, cells: np.ndarray | Non
         return out.reshape(inside.shape)
     wanted = np.ones(flat.shape, bool) if cells is None else np.isin(np.arange(flat.size), cells)
     edge = on_edge(inside).ravel()
-    chord_out, _ = cKDTree(dirs[~flat & edge]).query(dirs[flat & wanted])
-    chord_in, _ = cKDTree(dirs[flat & edge]).query(dirs[~flat & wanted])
+    workers = threads()             # the queries split over the kernels' threads: each query its own
+    chord_out, _ = cKDTree(dirs[~flat & edge]).query(dirs[flat & wanted], workers=workers)
+    chord_in, _ = cKDTree(dirs[flat & edge]).query(dirs[~flat & wanted], workers=workers)
     out[flat & wanted] = -chord_to_angle(chord_out)
     out[~flat & wanted] = chord_to_angle(chord_in)
     return out.reshape(inside.shape)
