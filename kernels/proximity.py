@@ -10,24 +10,33 @@ from ._arrays import output, vec3d
 from .runtime import ensure_init
 
 if TYPE_CHECKING:
+    from collections.abc import Sequence
+
     from .mesh import WarpMesh
 
 
 @wp.kernel
-def closest_point_kernel(mesh_id: wp.uint64, queries: wp.array(dtype=wp.vec3d), max_dist: wp.float32,
-                         point: wp.array(dtype=wp.vec3d), face: wp.array(dtype=wp.int32),
-                         normal: wp.array(dtype=wp.vec3d)):
-    """One thread per query point."""
+def closest_point_kernel(meshes: wp.array(dtype=wp.uint64), queries: wp.array(dtype=wp.vec3d),
+                         max_dist: wp.array(dtype=wp.float32), point: wp.array(dtype=wp.vec3d),
+                         face: wp.array(dtype=wp.int32), normal: wp.array(dtype=wp.vec3d)):
+    """One thread per query point, each on its own mesh within its own max_dist."""
     i = wp.tid()
-    q = wp.mesh_query_point_no_sign(mesh_id, wp.vec3(queries[i]), max_dist)
+    q = wp.mesh_query_point_no_sign(meshes[i], wp.vec3(queries[i]), max_dist[i])
     if q.result:
-        point[i] = wp.vec3d(wp.mesh_eval_position(mesh_id, q.face, q.u, q.v))
+        point[i] = wp.vec3d(wp.mesh_eval_position(meshes[i], q.face, q.u, q.v))
         face[i] = q.face
-        normal[i] = wp.vec3d(wp.mesh_eval_face_normal(mesh_id, q.face))
+        normal[i] = wp.vec3d(wp.mesh_eval_face_normal(meshes[i], q.face))
     else:
         point[i] = wp.vec3d(wp.float64(wp.nan), wp.float64(wp.nan), wp.float64(wp.nan))
         face[i] = -1
         normal[i] = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+
+
+def _per_query(meshes: "Sequence[WarpMesh]", max_dists: ArrayLike) -> tuple[wp.array, wp.array]:
+    """The kernel's per-query mesh ids and max_dist (float32, as Warp took a float32 argument)."""
+    ids = np.array([m.id for m in meshes], dtype=np.uint64)
+    dists = np.broadcast_to(np.asarray(max_dists, dtype=np.float32), ids.shape).copy()
+    return wp.array(ids, dtype=wp.uint64, device="cpu"), wp.array(dists, dtype=wp.float32, device="cpu")
 
 
 def closest_points(mesh: "WarpMesh", queries: ArrayLike,
@@ -41,35 +50,37 @@ def closest_points(mesh: "WarpMesh", queries: ArrayLike,
     face, face_wp = output(n, np.int32, wp.int32)
     normal, normal_wp = output((n, 3), np.float64, wp.vec3d)
     if n:
-        wp.launch(closest_point_kernel, dim=n, device=device,
-                  inputs=[mesh.id, vec3d(queries, "queries"), float(max_dist)],
+        ids, dists = _per_query([mesh] * n, max_dist)
+        wp.launch(closest_point_kernel, dim=n, device=device, inputs=[ids, vec3d(queries, "queries"), dists],
                   outputs=[point_wp, face_wp, normal_wp])
     return point, face, normal
 
 
 class ClosestPoint:
-    """closest_points of one query at a time, its launch recorded once (wp.launch(record_cmd=True))
-    and run again on each new query written into the same array: a search that asks one point
-    after another (the certificate's specular point, some 80 queries) skips the launch's
-    argument packing and array wrapping each time, the same kernel on the same inputs, so the
-    same results bit for bit."""
+    """closest_points of K queries at a time, query k on meshes[k] within max_dists[k], its launch
+    recorded once (wp.launch(record_cmd=True)) and run again on each new set of queries written
+    into the same array: searches that ask one point after another (the certificates' specular
+    points, some 80 queries each, several in lockstep) skip the launch's argument packing and
+    array wrapping each time, the same kernel on the same inputs, so the same results bit for
+    bit as closest_points's."""
 
-    def __init__(self, mesh: "WarpMesh", max_dist: float = 10.0) -> None:
+    def __init__(self, meshes: "Sequence[WarpMesh]", max_dists: ArrayLike) -> None:
         device = ensure_init(__name__)
-        self.query = np.zeros((1, 3))
-        self.point, point_wp = output((1, 3), np.float64, wp.vec3d)
-        self.face, face_wp = output(1, np.int32, wp.int32)
-        self.normal, normal_wp = output((1, 3), np.float64, wp.vec3d)
+        k = len(meshes)
+        self.query = np.zeros((k, 3))
+        self.point, point_wp = output((k, 3), np.float64, wp.vec3d)
+        self.face, face_wp = output(k, np.int32, wp.int32)
+        self.normal, normal_wp = output((k, 3), np.float64, wp.vec3d)
         query_wp = wp.array(self.query, dtype=wp.vec3d, device="cpu", copy=False)
-        # the mesh (its BVH) and the Warp views live as long as the recorded launch that points at them
-        self._kept = (mesh, query_wp, point_wp, face_wp, normal_wp)
-        self._launch = wp.launch(closest_point_kernel, dim=1, device=device,
-                                 inputs=[mesh.id, query_wp, float(max_dist)],
+        ids, dists = _per_query(meshes, max_dists)
+        # the meshes (their BVHs) and the Warp views live as long as the recorded launch that points at them
+        self._kept = (tuple(meshes), ids, dists, query_wp, point_wp, face_wp, normal_wp)
+        self._launch = wp.launch(closest_point_kernel, dim=k, device=device, inputs=[ids, query_wp, dists],
                                  outputs=[point_wp, face_wp, normal_wp], record_cmd=True)
 
-    def __call__(self, query: ArrayLike) -> tuple[np.ndarray, int, np.ndarray]:
-        """(closest surface point (3,), face index, outward face normal (3,)) of one query (3,),
-        closest_points's values; copies, not the launch's own arrays."""
-        self.query[0] = np.asarray(query, dtype=np.float64).reshape(3)
+    def __call__(self, queries: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(closest surface points (K, 3), face indices (K,), outward face normals (K, 3)) of
+        queries (K, 3), closest_points's values; copies, not the launch's own arrays."""
+        self.query[:] = np.asarray(queries, dtype=np.float64).reshape(self.query.shape)
         self._launch.launch()
-        return self.point[0].copy(), int(self.face[0]), self.normal[0].copy()
+        return self.point.copy(), self.face.copy(), self.normal.copy()

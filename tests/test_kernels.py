@@ -541,20 +541,24 @@ def test_closest_points_project_onto_the_hinge_leaf(hinge):
     assert face[2] == -1 and np.isnan(point[2]).all()
 
 
-def test_the_recorded_closest_point_is_closest_points_bit_for_bit(hinge):
-    """One query after another on one recorded launch, against a launch of its own each: the
-    same points, faces and normals exactly, a miss included (NaN, -1, 0)."""
+def test_the_recorded_closest_point_is_closest_points_bit_for_bit(hinge, blocks):
+    """Queries on two meshes, each within its own max_dist, one set after another on one recorded
+    launch, against a launch of their own each: the same points, faces and normals exactly,
+    misses included (NaN, -1, 0)."""
     mesh, _ = hinge
     rng = np.random.default_rng(3)
     guesses = np.vstack([rng.uniform([-0.01, -0.01, 0.0], [0.02, 0.01, 0.008], (40, 3)), [[0.0, 0.0, 0.5]]])
-    closest = ClosestPoint(mesh, max_dist=0.01)
     point, face, normal = closest_points(mesh, guesses, max_dist=0.01)
-    for k, g in enumerate(guesses):
-        p, f, n = closest(g)
-        assert f == face[k]
-        np.testing.assert_array_equal(p, point[k])
-        np.testing.assert_array_equal(n, normal[k])
+    on_blocks = rng.uniform([-0.05, -0.05, 0.0], [0.07, 0.05, 0.1], (41, 3))
+    point_b, face_b, normal_b = closest_points(blocks, on_blocks, max_dist=0.02)
+    closest = ClosestPoint([mesh, blocks], [0.01, 0.02])
+    for k in range(len(guesses)):
+        p, f, n = closest(np.vstack([guesses[k], on_blocks[k]]))
+        assert f.tolist() == [face[k], face_b[k]]
+        np.testing.assert_array_equal(p, [point[k], point_b[k]])
+        np.testing.assert_array_equal(n, [normal[k], normal_b[k]])
     assert face[-1] == -1 and (face[:-1] >= 0).sum() > 20
+    assert (face_b == -1).sum() > 3 and (face_b >= 0).sum() > 20
 
 
 @pytest.mark.parametrize("shadows", [False, True])

@@ -10,14 +10,14 @@ then adds the worst points to its samples and searches again (cell.planning.one_
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Generator, Iterable, Sequence
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from cell.planning import defects, evaluate, requirements
+from cell.planning import defects, evaluate, lockstep, nelder_mead, requirements
 from cell.planning.plan import Verification
 from cell.core import geometry
 from cell.physics.costs import RequirementValue
@@ -58,38 +58,49 @@ def mirror_alignment(points: np.ndarray, normals: np.ndarray, lamp: ArrayLike, c
     return np.sum(mirror * v, axis=-1)
 
 
-def specular_point(scene: Scene, lamp: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
-    """The patch's specular point, where <v, r> is largest: the best of the dense points, refined
-    by Nelder-Mead over a step in the feature's tangent plane projected onto the surface (a
-    highlight between the dense points, on a curved patch, is found to within float32). Returns
-    (point, outward normal) on the surface."""
-    from scipy.optimize import minimize
-
+def specular_points(scenes: Sequence[Scene], lamp: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+    """Each scene's patch's specular point, where <v, r> is largest: the best of its dense points,
+    refined by Nelder-Mead (scipy's, cell.planning.nelder_mead) over a step in the feature's
+    tangent plane projected onto the surface (a highlight between the dense points, on a curved
+    patch, is found to within float32); the step back to that best dense point where the search
+    ends no better. Returns (points (K, 3), outward normals (K, 3)) on the surface. The K
+    searches run in lockstep (cell.planning.lockstep.drive): each round's projections of all of
+    them in one ClosestPoint launch and their <v, r> in one pass, each value from its own row
+    alone, so each search ends where it would alone."""
     from kernels.proximity import ClosestPoint
-    radius = float(np.max(np.linalg.norm(scene.points - scene.center, axis=1)))
-    start = scene.points[int(np.argmax(mirror_alignment(scene.points, scene.normals, lamp,
-                                                        scene.camera_position)))]
+    radius = [float(np.max(np.linalg.norm(s.points - s.center, axis=1))) for s in scenes]
+    starts = np.array([s.points[int(np.argmax(mirror_alignment(s.points, s.normals, lamp, s.camera_position)))]
+                       for s in scenes]).reshape(-1, 3)
+    along_x = np.array([s.frame[:, 0] for s in scenes]).reshape(-1, 3)
+    along_y = np.array([s.frame[:, 1] for s in scenes]).reshape(-1, 3)
+    cameras = np.array([s.camera_position for s in scenes]).reshape(-1, 3)
+    closest = ClosestPoint([s.warp_mesh for s in scenes], radius)
+    queries = starts.copy()
 
-    closest = ClosestPoint(scene.warp_mesh, max_dist=radius)
+    def place(k: int, step: np.ndarray) -> None:
+        """Search k's query: its start moved by `step` in the feature's tangent plane."""
+        queries[k] = starts[k] + step[0] * along_x[k] + step[1] * along_y[k]
 
-    def on_surface(step):
-        guess = start + step[0] * scene.frame[:, 0] + step[1] * scene.frame[:, 1]
-        point, _, normal = closest(guess)
-        return point[None], normal[None]
+    def values(asked: list[tuple[int, np.ndarray]]) -> list[float]:
+        """-<v, r> at each asked (search, step)'s point on the surface; 2 off its patch (or no surface)."""
+        for k, step in asked:
+            place(k, step)
+        point, _, normal = closest(queries)
+        rows = [k for k, _ in asked]
+        on = [k for k in rows if np.linalg.norm(point[k] - scenes[k].center) <= radius[k]]
+        alignment = dict(zip(on, mirror_alignment(point[on], normal[on], lamp, cameras[on]))) if on else {}
+        return [-float(alignment[k]) if k in alignment else 2.0 for k in rows]
 
-    def f(step):
-        point, normal = on_surface(step)
-        if not np.linalg.norm(point[0] - scene.center) <= radius:     # off the patch (or no surface)
-            return 2.0
-        return -float(mirror_alignment(point, normal, lamp, scene.camera_position)[0])
+    def search(k: int) -> Generator[np.ndarray, float, np.ndarray]:
+        d = 0.02 * radius[k]
+        x, fun, _ = yield from nelder_mead.minimize([[0.0, 0.0], [d, 0.0], [0.0, d]], 1e-7, 1e-12, 80)
+        at_start = yield np.zeros(2)
+        return x if fun <= at_start else np.zeros(2)
 
-    d = 0.02 * radius
-    res = minimize(f, np.zeros(2), method="Nelder-Mead",
-                   options={"initial_simplex": [[0.0, 0.0], [d, 0.0], [0.0, d]], "xatol": 1e-7,
-                            "fatol": 1e-12, "maxfev": 80})
-    best = res.x if res.fun <= f(np.zeros(2)) else np.zeros(2)
-    point, normal = on_surface(best)
-    return point[0], normal[0]
+    for k, step in enumerate(lockstep.drive([search(k) for k in range(len(scenes))], values)):
+        place(k, step)
+    point, _, normal = closest(queries)
+    return point, normal
 
 
 def verify(problem: evaluate.Problem, shot: Shot) -> tuple[Verification, np.ndarray]:
@@ -100,16 +111,16 @@ def verify(problem: evaluate.Problem, shot: Shot) -> tuple[Verification, np.ndar
 
 def verify_all(problems: Sequence[evaluate.Problem], shot: Shot) -> list[tuple[Verification, np.ndarray]]:
     """verify of `shot` on each Problem, of one part's features seen by the shot's camera (their
-    mesh, lamp, camera and material as planned the same), together: the gray kernel on every
-    dense patch (with its specular point) launched once for all (evaluate.SharedLaunches), each
-    patch's values as its own launch's."""
+    mesh, lamp, camera and material as planned the same), together: their specular points'
+    searches in lockstep (specular_points) and the gray kernel on every dense patch launched
+    once for all (evaluate.SharedLaunches), each patch's values as its own launch's."""
     from cell.planning.scene import build_scene
     if not problems:
         return []
     scenes = [build_scene(p.task, dense_samples(p.task, p.scene), T_cell_cam=p.scene.T_cell_cam) for p in problems]
-    found = [specular_point(s, shot.lamp_position) for s in scenes]
+    points, normals = specular_points(scenes, shot.lamp_position)
     scenes = [replace(s, points=np.vstack([s.points, point]), normals=np.vstack([s.normals, normal]))
-              for s, (point, normal) in zip(scenes, found)]
+              for s, point, normal in zip(scenes, points, normals)]
     joined = replace(scenes[0], points=np.vstack([s.points for s in scenes]),
                      normals=np.vstack([s.normals for s in scenes]))
     shared = evaluate.SharedLaunches(evaluate.gray_inputs(problems[0].task, joined, problems[0].material),
@@ -135,7 +146,7 @@ def dense_verdict(problem: evaluate.Problem, scene: Scene, shot: Shot,
     low, high = dense.band
     miss = np.maximum(low - c.gray[0], c.gray[0] - high)
     depths = scene.sample_depths()
-    specular = len(scene.points) - 1                # the extra point: specular_point
+    specular = len(scene.points) - 1                # the extra point: specular_points's
     worst = int(np.argmax(miss))
     picks = {worst, specular, int(np.argmin(c.gray[0])), int(np.argmax(c.gray[0])), int(np.argmin(depths)),
              int(np.argmax(depths))} | set(np.flatnonzero(c.shadowed[0])[:4].tolist())

@@ -3,15 +3,21 @@ Nelder-Mead does) run in lockstep: each in a thread of its own, every objective 
 each solver still running has asked for one, and one batched call answers them all. A search's
 refinement starts thus share one kernel launch per step instead of one each. Each solver sees
 the values it would have seen alone when the batch's value of a point does not depend on the
-other points in it (a candidate's row reads its own lamp alone)."""
+other points in it (a candidate's row reads its own lamp alone).
+
+Where each evaluation is cheap (the certificates' specular points: a closest-point query and a
+few vector operations), handing the GIL from thread to thread at every point costs more than the
+launches it saves: `drive` runs searches written as generators (cell.planning.nelder_mead) in
+lockstep in the caller's thread instead."""
 
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Generator, Iterable, Sequence
 from typing import Any, Generic, TypeVar
 
 Result = TypeVar("Result")
+Point = TypeVar("Point")
 Objective = Callable[[Any], float]
 
 
@@ -92,3 +98,29 @@ def run(solvers: Sequence[Callable[[Objective], Result]],
         if r.error is not None:
             raise r.error
     return [r.result for r in runs]     # type: ignore[misc]  # every run ended without error: set
+
+
+def drive(searches: Sequence[Generator[Point, float, Result]],
+          batch: Callable[[list[tuple[int, Point]]], Iterable[float]]) -> list[Result]:
+    """Each search's return value, the searches (generators that yield a point and are sent its
+    value) in lockstep in this thread: each round, the points every unfinished search asks
+    answered by one batch([(search's index, point), ...]) call, a value each, in order. Each
+    search sees the values it would have seen alone when a point's value does not depend on the
+    others in its batch."""
+    results: list[Result | None] = [None] * len(searches)
+    asked: dict[int, Point] = {}
+
+    def advance(k: int, value: float | None) -> None:
+        try:
+            asked[k] = next(searches[k]) if value is None else searches[k].send(value)
+        except StopIteration as stop:
+            results[k] = stop.value
+            asked.pop(k, None)
+
+    for k in range(len(searches)):
+        advance(k, None)
+    while asked:
+        order = sorted(asked)
+        for k, value in zip(order, list(batch([(k, asked[k]) for k in order]))):
+            advance(k, float(value))
+    return results      # type: ignore[return-value]  # every search returned: set
