@@ -310,3 +310,23 @@ def test_bad_housing_keys_are_one_clear_error(tmp_path, entry, key, words):
     with pytest.raises(TaskError) as caught:
         with_lights(tmp_path, {k: v for k, v in entry.items() if v is not None})
     assert caught.value.key == key and words in str(caught.value), str(caught.value)
+
+
+def test_planned_viewpoints_a_bar_hides_are_pruned_and_others_kept():
+    """bracket-bars' web_outer: every view the planner keeps sees all its samples past both bars
+    (the NumPy box), and the views it kept without the bars that a bar hides are gone."""
+    from cell.planning.plan import PlannerSettings
+    from cell.planning.whole_part import viewpoints_of
+    task = load_task(ROOT / "tasks" / "bracket-bars.yaml").with_feature(4)
+    assert task.feature.name == "web_outer"
+    scene = build_scene(task)
+
+    def hidden_by(camera):
+        return [bar.name for bar in task.lights if np.any(reference(inside_bar, bar, scene.points, camera[None]) == 1)]
+    with_bars = viewpoints_of(task, PlannerSettings(), lambda _: None)
+    without = viewpoints_of(replace(task, lights=()), PlannerSettings(), lambda _: None)
+    assert with_bars.kept and all(not hidden_by(v.T_cell_cam[:3, 3]) for v in with_bars.kept)
+    hidden = [v for v in without.kept if hidden_by(v.T_cell_cam[:3, 3])]
+    assert hidden, "the bars hide none of the views kept without them: the test shows nothing"
+    kept = [v.T_cell_cam[:3, 3] for v in with_bars.kept]
+    assert not any(np.allclose(v.T_cell_cam[:3, 3], c) for v in hidden for c in kept)
