@@ -330,3 +330,26 @@ def test_a_step_moves_each_pairs_body_no_farther_than_its_sweep_bound():
                 assert travel <= dq @ (reach[b, lo:hi] + bound / (1 - dq.sum())) + 1e-12, (body.name, lo)
                 if one:                                   # the farthest point's arc: r dq, its chord nearly
                     assert travel >= 0.95 * bound, (body.name, lo)
+
+
+def test_clear_answers_as_the_least_distance_does_but_trusts_bounding_spheres_the_padding_apart():
+    """Pairs.clear against Pairs.least at random arm poses and paddings: the same answer, but
+    where the sampled distance errs below the padding for a pair whose spheres alone prove it
+    farther (then clear says yes, least no)."""
+    from cell.collision.scene import Pairs
+    rng = np.random.default_rng(9)
+    scene = CollisionScene.of(load_task(BRACKET))
+    answers = set()
+    for _ in range(60):
+        q = rng.uniform(-np.pi, np.pi, 6)
+        bodies = bodies_at(scene, q)
+        for padding in (0.0, 0.01, 0.05, 0.2):
+            least = Pairs.of(bodies, len(scene.fixed)).least(padding)
+            pairs = Pairs.of(bodies, len(scene.fixed))
+            clear = pairs.clear(padding)
+            if clear != least.ok:
+                k = [n for n in range(len(pairs.gap)) if {bodies[pairs.i[n]].name, bodies[pairs.j[n]].name}
+                     == set(least.bodies)][0]
+                assert clear and pairs.gap[k] >= padding and least.distance_m >= padding - h
+            answers.add(clear)
+    assert answers == {True, False}

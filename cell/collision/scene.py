@@ -187,6 +187,12 @@ class CollisionScene:
         fixture, the fixed lights) are not a pair: neither moves, so no pose changes their distance."""
         return clearance(self.bodies(T_cell_cam, arm_joints, lamp_position), self.padding_m, len(self.fixed))
 
+    def clear(self, T_cell_cam: np.ndarray, arm_joints: ArrayLike | None = None,
+              lamp_position: ArrayLike | None = None) -> bool:
+        """Whether every pair at this pose (see `clearance`) is at least the padding apart
+        (Pairs.clear: the question without the least distance's value)."""
+        return Pairs.of(self.bodies(T_cell_cam, arm_joints, lamp_position), len(self.fixed)).clear(self.padding_m)
+
 
 def clearance(bodies: tuple[Body, ...], padding_m: float, fixed: int = 0) -> Clearance:
     """The smallest distance over the pairs that may not touch (MAY_TOUCH) and are not both among
@@ -238,6 +244,18 @@ class Pairs:
             if d < best:
                 best, names = d, (self.bodies[self.i[k]].name, self.bodies[self.j[k]].name)
         return Clearance(float(best), names, padding_m)
+
+
+    def clear(self, padding_m: float) -> bool:
+        """Every pair at least padding_m apart: the pairs whose gap is below it in order of gap,
+        stopping at the first whose distance is below it; a pair whose bounding spheres are the
+        padding apart is (its true distance is no less), so none after them needs its distance."""
+        for k in np.argsort(self.gap, kind="stable"):
+            if self.gap[k] >= padding_m:
+                return True
+            if self.exact(int(k)) < padding_m:
+                return False
+        return True
 
 
 @lru_cache(maxsize=64)

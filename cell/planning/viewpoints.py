@@ -120,7 +120,7 @@ def reach(task: Task, T_cell_cam: np.ndarray,
         except ur5e.Unreachable:
             refused = "reach" if refused != "collision" else refused
             continue
-        if bodies is not None and not bodies.clearance(T, q).ok:
+        if bodies is not None and not bodies.clear(T, q):
             refused = "collision"
             continue
         return T, q
