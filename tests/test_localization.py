@@ -321,7 +321,8 @@ def test_the_weakest_direction_is_where_the_views_tell_least_over_their_residual
     per pixel, residual r_v) leave the part's offset along axis j open by
     1 mm / sqrt(sum_v i_vj / r_v^2 + (1 mm / PRIOR_OFFSET_M)^2); the worst axis is the one told
     least. A view's information counts over its residual squared, one not captured takes the
-    worst residual of the others, and a view added never opens the position further."""
+    worst residual of the others, and a view added never opens the position further. It is open
+    where COVERAGE uncertainties exceed the limit."""
     task, scene, _ = planned_view(tmp_path, CONROD)
     strong = [100.0, 100.0, 100.0] + [50.0] * 6
     first, second = told([0.0, 4.0, 9.0] + [50.0] * 6, 0.2), told([2.0, 400.0, 1.0] + [50.0] * 6, 0.5)
@@ -336,7 +337,9 @@ def test_the_weakest_direction_is_where_the_views_tell_least_over_their_residual
     unseen = localization.resolution(task, scene, [first, told(strong, None)], 2)
     assert unseen.uncertainty_m == pytest.approx(1e-3 / np.sqrt(100.0 / 0.04 + prior), rel=1e-9)
     assert "length (the part's x" in alone.along and "20.0 mm" in alone.unresolved(0.0039)
-    assert found.unresolved(found.uncertainty_m) is None
+    coverage = localization.COVERAGE
+    assert found.unresolved(coverage * found.uncertainty_m) is None
+    assert found.unresolved(0.99 * coverage * found.uncertainty_m) is not None
 
 
 def test_a_direction_is_named_by_the_part_s_axes(tmp_path):
