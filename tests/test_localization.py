@@ -304,11 +304,12 @@ def test_the_conrod_8_mm_off_yawed_with_its_camera_turned_along_the_shank_is_loc
     about y (seed 1): the camera's turn moves the image along the shank, where the first view has
     no edge; the whole view's shift, matched unturned, started the fit 480 px off and it landed
     10-25 mm off (stopped, cause `pose`). With the turned match it starts across the shank where
-    registration finds it, and the two views put the part within 1 mm and its yaw and the
-    hand-eye within 0.3 deg of the truth keys; its tilt about y comes out 0.8-0.9 deg (the shank
-    has little to tell it by: within 1 deg). Followed, re-planned, it converges."""
+    registration finds it, and the two views put the part within 1 mm (0.66 mm in x) and its yaw
+    and the hand-eye within 0.3 deg of the truth keys; its tilt about y comes out 0.51 deg off
+    (0.8-0.9 before the second fit ran coarse to fine; the model's missing defocus and lamp
+    falloff, docs/closed-loop.md: within 0.7 deg). Followed, re-planned, it converges."""
     truth = {"part_offset_m": [0.0, 0.008, 0.0], "part_rpy_deg": [0.0, 0.0, 5.0], "camera_rpy_deg": [0.0, 2.0, 0.0]}
-    converged_located(tmp_path, CONROD, truth, tilt_deg=1.0)
+    converged_located(tmp_path, CONROD, truth, tilt_deg=0.7)
 
 
 def told(diagonal, residual):
