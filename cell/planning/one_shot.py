@@ -10,17 +10,15 @@ cell.planning.requirements). The result is a cell.planning.plan.Plan of plain va
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Generator
 from dataclasses import replace
-from functools import partial
 from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.optimize import minimize
 
-from cell.planning import (certificate, defects, drives, evaluate, lights, lockstep, regions, requirements,
-                           viewpoints)
+from cell.planning import (certificate, defects, drives, evaluate, lights, lockstep, nelder_mead, regions,
+                           requirements, viewpoints)
 from cell.core import geometry
 from cell.devices import rig
 from cell.physics import brdf, depth_of_field as dof
@@ -114,11 +112,18 @@ def score(problem: evaluate.Problem, values: dict[str, np.ndarray]) -> np.ndarra
     return np.where(requirements.missed(values), objective, values["defect_cnr"])
 
 
-def refine(start: ArrayLike, lamp_rig: LampRig, objective: Callable[[np.ndarray], float]
-           ) -> tuple[np.ndarray, Refinement]:
-    """Nelder-Mead over (pan, tilt, radius) in grid-step units from `start`, clipped to the rig's
-    ranges, minimising objective(joints) (pose_objectives' of one pose): (joints, Refinement with
-    the solver's own verdict and evaluation count)."""
+REFINE_EVALUATIONS = 90
+# scipy's words for the solver's verdict (its Nelder-Mead's messages), which plan.json's refinements keep
+CONVERGED = "Optimization terminated successfully."
+OUT_OF_EVALUATIONS = "Maximum number of function evaluations has been exceeded."
+
+
+def refinement(start: ArrayLike, lamp_rig: LampRig) -> Generator[np.ndarray, float, tuple[np.ndarray, Refinement]]:
+    """Nelder-Mead (cell.planning.nelder_mead: scipy's, step for step) over (pan, tilt, radius)
+    in grid-step units from `start`, clipped to the rig's ranges, as a generator: yields the
+    joints whose objective (pose_objectives' of one pose) it needs, each clipped pose once (steps
+    beyond a range's end land on one pose), and returns (joints, Refinement with the solver's
+    verdict and evaluation count)."""
     lo = np.array([lamp_rig.pan_range_rad[0], lamp_rig.tilt_range_rad[0], lamp_rig.radius_range_m[0]])
     hi = np.array([lamp_rig.pan_range_rad[1], lamp_rig.tilt_range_rad[1], lamp_rig.radius_range_m[1]])
     scale = np.array([np.radians(5.0), np.radians(5.0), 0.05])
@@ -126,19 +131,20 @@ def refine(start: ArrayLike, lamp_rig: LampRig, objective: Callable[[np.ndarray]
     def clipped(z):
         return np.clip(np.asarray(start) + z * scale, lo, hi)
 
-    seen: dict[bytes, float] = {}       # clipped joints -> objective: steps beyond a range's end land on one pose
-
-    def f(z):
-        x = clipped(z)
-        key = x.tobytes()
-        if key not in seen:
-            seen[key] = objective(x)
-        return seen[key]
-
-    simplex = np.vstack([np.zeros(3), np.eye(3)])
-    res = minimize(f, np.zeros(3), method="Nelder-Mead",
-                   options={"initial_simplex": simplex, "xatol": 0.02, "fatol": 1e-4, "maxfev": 90})
-    return clipped(res.x), Refinement(bool(res.success), int(res.nfev), str(res.message), float(res.fun))
+    seen: dict[bytes, float] = {}       # clipped joints -> objective
+    search = nelder_mead.minimize(np.vstack([np.zeros(3), np.eye(3)]), 0.02, 1e-4, REFINE_EVALUATIONS)
+    try:
+        z = next(search)
+        while True:
+            x = clipped(z)
+            key = x.tobytes()
+            if key not in seen:
+                seen[key] = yield x
+            z = search.send(seen[key])
+    except StopIteration as stop:
+        z, fun, nfev = stop.value
+    converged = nfev < REFINE_EVALUATIONS
+    return clipped(z), Refinement(converged, nfev, CONVERGED if converged else OUT_OF_EVALUATIONS, float(fun))
 
 
 def pose_objectives(problem: evaluate.Problem, joints: ArrayLike) -> np.ndarray:
@@ -153,11 +159,11 @@ def pose_objectives(problem: evaluate.Problem, joints: ArrayLike) -> np.ndarray:
 
 def refine_all(problem: evaluate.Problem, starts: list[np.ndarray],
                lamp_rig: LampRig) -> list[tuple[np.ndarray, Refinement]]:
-    """refine from every start, the starts in lockstep (cell.planning.lockstep): each step's
-    objective evaluations of all starts in one evaluate.candidates call (one kernel launch, one
-    pass of the requirements), the same results as one start at a time."""
-    return lockstep.run([partial(refine, x, lamp_rig) for x in starts],
-                        lambda points: pose_objectives(problem, np.array(points)))
+    """The refinement from every start, the starts in lockstep (cell.planning.lockstep.drive):
+    each round's objective evaluations of all starts in one evaluate.candidates call (one kernel
+    launch, one pass of the requirements), the same results as one start at a time."""
+    return lockstep.drive([refinement(x, lamp_rig) for x in starts],
+                          lambda asked: pose_objectives(problem, np.array([x for _, x in asked])))
 
 
 def plan(task: Task, settings: PlannerSettings = PlannerSettings(), albedo_scale: float = 1.0,
