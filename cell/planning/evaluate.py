@@ -91,6 +91,7 @@ class KernelInputs:
         self.lights: LightsAtScene | None = None
         self.defects: dict[Any, Any] = {}       # cell.planning.defects: a defect's inputs, with what they were made of
         self.fixed: dict[str, tuple[tuple[Task, Scene], Any]] = {}    # Problem.fixed's values, with what they were made of
+        self.top: tuple[Task, LightsAtScene, np.ndarray] | None = None  # Problem.full_drive's row, with what it was made of
 
     def __getstate__(self):
         return {}
@@ -179,12 +180,17 @@ class Problem:
     def full_drive(self, candidates: int) -> np.ndarray:
         """(C, 1 + K) every light at the top of its drive range, the spot first, but the other
         lights that give another reflection than the task's off (wrong_reflection): how the spot
-        is searched with the other lights on."""
-        task = self.task
-        top = np.array([task.lamp.channel.drive_range[1]] + [light.channel.drive_range[1] for light in task.lights])
-        top[1:][wrong_reflection(self, self.lights.unit_gray, self.lights.dominant)] = 0.0
-        top[1:][list(self.lights_off)] = 0.0
-        return np.tile(top, (candidates, 1))
+        is searched with the other lights on. The row once per task and lights (a search's
+        refinement asks it at every evaluation)."""
+        task, lights = self.task, self.lights
+        kept = self.kernels.top
+        if kept is None or kept[0] is not task or kept[1] is not lights:
+            top = np.array([task.lamp.channel.drive_range[1]] + [light.channel.drive_range[1] for light in task.lights])
+            top[1:][wrong_reflection(self, lights.unit_gray, lights.dominant)] = 0.0
+            top[1:][list(self.lights_off)] = 0.0
+            top.flags.writeable = False
+            self.kernels.top = kept = (task, lights, top)
+        return np.tile(kept[2], (candidates, 1))
 
 
 def gray_inputs(task: Task, scene: Scene, material: Material) -> GrayInputs:
@@ -462,16 +468,19 @@ def stacked(ones: Sequence[Candidates]) -> Candidates:
 
 
 TOLERANCE_RING = 8          # lamp errors of lamp_tolerance in this many directions around the aim
+# (cos psi, sin psi) of the ring's directions psi = 2 pi k / TOLERANCE_RING, once
+_RING = tuple((np.cos(a), np.sin(a)) for a in 2.0 * np.pi * np.arange(TOLERANCE_RING) / TOLERANCE_RING)
 
 
 def tolerance_moves(problem: Problem, tilt: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     """(d_pan, d_tilt) moving the lamp direction by lamp_tolerance in TOLERANCE_RING directions
-    (a ring: an error of that size in any direction, not only along the two axes)."""
+    psi (a ring: an error of that size in any direction, not only along the two axes):
+    (tol cos psi / cos tilt, tol sin psi), cos tilt at least 1e-3."""
     tol = problem.task.requirements.lamp_tolerance_rad
     if tol <= 0:
         return []
-    psi = 2.0 * np.pi * np.arange(TOLERANCE_RING) / TOLERANCE_RING
-    return [(tol * np.cos(a) / np.maximum(np.cos(tilt), 1e-3), tol * np.sin(a)) for a in psi]
+    across = np.maximum(np.cos(tilt), 1e-3)
+    return [(tol * cos / across, tol * sin) for cos, sin in _RING]
 
 
 def candidates(problem: Problem, pan: ArrayLike, tilt: ArrayLike, radius: ArrayLike,

@@ -27,24 +27,33 @@ class SphereGrid:
     step: float
 
     @property
+    def azimuth_count(self) -> int:
+        return int(round(2 * np.pi / self.step))
+
+    @property
+    def elevation_count(self) -> int:
+        return int(round(np.pi / self.step)) + 1
+
+    @property
     def azimuth(self) -> np.ndarray:
-        return -np.pi + self.step * np.arange(int(round(2 * np.pi / self.step)))
+        return -np.pi + self.step * np.arange(self.azimuth_count)
 
     @property
     def elevation(self) -> np.ndarray:
-        return -0.5 * np.pi + self.step * np.arange(int(round(np.pi / self.step)) + 1)
+        return -0.5 * np.pi + self.step * np.arange(self.elevation_count)
 
     def directions(self, frame: ArrayLike = np.eye(3)) -> np.ndarray:
         """(E, A, 3) unit directions of every cell, rotated from the feature frame by `frame`."""
         return _cell_directions(self.step) @ np.asarray(frame).T
 
     def _corners(self, azimuth, elevation):
-        """(e0, a0, a1, ta, te): the cells around (azimuth, elevation) and the weights between."""
+        """(e0, a0, a1, ta, te): the cells around (azimuth, elevation) and the weights between
+        (the grid's sizes by count: sampled at every objective evaluation of a search)."""
+        n_az, n_el = self.azimuth_count, self.elevation_count
         a = (np.asarray(azimuth) + np.pi) / self.step
-        e = np.clip((np.asarray(elevation) + 0.5 * np.pi) / self.step, 0, len(self.elevation) - 1)
-        n_az = len(self.azimuth)
+        e = np.clip((np.asarray(elevation) + 0.5 * np.pi) / self.step, 0, n_el - 1)
         a0 = np.floor(a).astype(int)
-        e0 = np.minimum(np.floor(e).astype(int), len(self.elevation) - 2)
+        e0 = np.minimum(np.floor(e).astype(int), n_el - 2)
         return e0, a0 % n_az, (a0 + 1) % n_az, a - a0, e - e0
 
     def sample(self, values: np.ndarray, azimuth: ArrayLike, elevation: ArrayLike) -> np.ndarray:
@@ -57,7 +66,7 @@ class SphereGrid:
     def cells_around(self, azimuth: ArrayLike, elevation: ArrayLike) -> np.ndarray:
         """Flat indices into an (E, A) map of the cells `sample` reads at these directions."""
         e0, a0, a1, _, _ = self._corners(azimuth, elevation)
-        n_az = len(self.azimuth)
+        n_az = self.azimuth_count
         return np.unique(np.concatenate([np.ravel(e * n_az + a) for e in (e0, e0 + 1) for a in (a0, a1)]))
 
 
