@@ -58,7 +58,8 @@ CAUSES = {          # report.json's `cause` of a run that ends without the goal 
     "channel": "a light channel gives far less light than the model and the other channels do (its LEDs, "
                "their wiring or the controller's output)",
     "pose": "the part (or the camera) is so far from where the model puts it that the cell cannot work there "
-            "(no plan for where it is, or the feature leaves the view)",
+            "(no plan for where it is, the feature leaves the view, the move to the shot planned there collides, "
+            "or the views cannot tell the part's position along some direction to within the registration limit)",
     motion.CAUSE: "a move the run must make has no path clear of collisions (both bodies named; nothing moved)",
     "contrast": "the gray is in band but a declared defect measures below its min_cnr in the last capture",
 }
