@@ -58,7 +58,8 @@ CAUSES = {          # report.json's `cause` of a run that ends without the goal 
     "channel": "a light channel gives far less light than the model and the other channels do (its LEDs, "
                "their wiring or the controller's output)",
     "pose": "the part (or the camera) is so far from where the model puts it that the cell cannot work there "
-            "(no plan for where it is, or the feature leaves the view)",
+            "(no plan for where it is, the feature leaves the view, the move to the shot planned there collides, "
+            "or the views cannot tell the part's position along some direction to within the registration limit)",
     motion.CAUSE: "a move the run must make has no path clear of collisions (both bodies named; nothing moved)",
     "contrast": "the gray is in band but a declared defect measures below its min_cnr in the last capture",
 }
@@ -598,39 +599,47 @@ def resolve(ctx: RunContext, task: Task, k: int, scene: Scene, capture: Capture,
             ) -> tuple[localization.PoseError, localization.Resolution | None]:
     """The weakest-direction guard: how well the views (capture's first; appended to) tell the
     part's position where the estimate puts it (localization.resolution of their
-    rendered_information); where it stays open by more than limit_m along some direction, a
-    further view, the candidate not yet taken that tells it best (localization.by_resolution;
-    take_view), and the part localized in every view again; at most localization.MAX_EXTRA_VIEWS.
-    A fit with a further view that is implausible (localization.implausible: it matched the wrong
-    edges there) is logged and the estimate before it kept. Returns the estimate and its
-    Resolution (None where the first estimate is implausible: nothing to resolve)."""
+    rendered_information); where it stays open beyond limit_m along some direction
+    (Resolution.unresolved), a further view, the candidate not yet tried that tells it best
+    (localization.by_resolution; take_view), and the part localized in every view again; at most
+    localization.MAX_EXTRA_VIEWS. A further view with which the fit is implausible
+    (localization.implausible: it matched the wrong edges there) is logged and left out, the
+    estimate before it kept. Returns the estimate and its Resolution (None where the first
+    estimate is implausible: nothing to resolve)."""
     if localization.implausible(error, capture.T_cell_cam):
         return error, None
-    lamp_pose = views[0].lamp_pose
-    while True:
+    lamp_pose, tried = views[0].lamp_pose, [v.T_cell_cam for v in views]
+
+    def judged(error: localization.PoseError) -> tuple[list[localization.Told], localization.Resolution]:
         told = localization.rendered_information(task, scene, error, [(v.T_cell_cam, v.lamp_pose, v.drives)
                                                                       for v in views], [v.image for v in views])
-        resolved = localization.resolution(task, scene, told, len(told))
+        return told, localization.resolution(task, scene, told, len(told))
+
+    told, resolved = judged(error)
+    for _ in range(localization.MAX_EXTRA_VIEWS):
         open_by = resolved.unresolved(limit_m)
-        left = [T for T in candidates if min(np.linalg.norm(T[:3, 3] - v.T_cell_cam[:3, 3]) for v in views) > 0.005]
-        if open_by is None or len(views) >= 2 + localization.MAX_EXTRA_VIEWS or not left:
-            return error, resolved
+        left = [T for T in candidates if min(np.linalg.norm(T[:3, 3] - P[:3, 3]) for P in tried) > 0.005]
+        if open_by is None or not left:
+            break
         ctx.recorder.step("localize", f"{localization.describe(error, error.views)}: {open_by}: a further view",
                           iteration=k, **error.to_json(), **resolved.to_json())
         infos = localization.rendered_information(task, scene, error, [(T, lamp_pose, views[0].drives) for T in left])
         ordered = [left[i] for i in localization.by_resolution(task, scene, told, infos)]
-        view = take_view(ctx, task, k, scene, capture, lamp_pose, ordered, f"locate-{k}-{len(views) + 1}",
+        view = take_view(ctx, task, k, scene, capture, lamp_pose, ordered, f"locate-{k}-{len(tried) + 1}",
                          "a further view", f"a further view of the part, to tell its position {resolved.along}")
         if view is None:
-            return error, resolved
+            break
+        tried.append(view.T_cell_cam)
         further = localization.localize(task, scene, [*views, view]) or error
         wrong = localization.implausible(further, capture.T_cell_cam)
         if wrong:
-            ctx.recorder.step("localize", f"with the further view {wrong}: the estimate of {count(len(views), 'view')} "
-                                          "is kept", iteration=k, **further.to_json())
-            return error, resolved
+            ctx.recorder.step("localize", f"with the further view {wrong}: that view is left out, the estimate of "
+                                          f"{count(len(views), 'view')} kept", iteration=k, **further.to_json())
+            continue
         views.append(view)
         error = further
+        told, resolved = judged(error)
+    return error, resolved
 
 
 def follow(ctx: RunContext, aim: Aim, k: int, error: localization.PoseError) -> Generator[Event, None, Aim]:
