@@ -3,11 +3,21 @@ own ray casting, and the spot lamp's housing hiding feature samples from the cam
 
 from __future__ import annotations
 
+from dataclasses import replace
+from pathlib import Path
+from types import SimpleNamespace
+
 import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
 from cell.collision.rays import segments_cross_boxes
+from cell.core import geometry
+from cell.devices import rig
+from cell.planning import evaluate, requirements
+from cell.planning.one_shot import plan
+from cell.planning.scene import build_scene
+from cell.task.loader import load_task
 
 
 def brute_force(T_cell_box, half_m, origins, targets):
@@ -61,3 +71,52 @@ def test_boxes_and_segments_broadcast_and_grazing_or_parallel_segments_do_not_cr
                                                                          [True, False, False, False]]
     # one target for every origin
     assert segments_cross_boxes(origins[:1], np.zeros(3), T, half).tolist() == [[True], [False]]
+
+
+RING = Path(__file__).resolve().parent.parent / "tasks" / "ring.yaml"
+
+
+def lamp_box_by_hand(task, lamp):
+    """The lamp's box as docs/formats.md describes lamp_body: its front face centred at the lamp,
+    its z axis the aim at the rig's pivot, its x horizontal."""
+    z = geometry.unit(task.lamp.rig.pivot_m - lamp)
+    x = geometry.unit(np.cross((0.0, 0.0, 1.0), z))
+    half = 0.5 * np.asarray(task.cell.collision.lamp_size_m)
+    return geometry.transform(np.column_stack([x, np.cross(z, x), z]), lamp - half[2] * z), half
+
+
+def test_the_lamp_housing_hides_the_samples_whose_line_of_sight_it_crosses_as_trimesh_finds():
+    task = load_task(RING)
+    scene = build_scene(task)
+    problem = evaluate.build_problem(task, scene, None)
+    assert problem.camera_seen.all()
+    camera, centre = scene.camera_position, scene.center
+    rng = np.random.default_rng(5)
+    # lamps about the camera's line of sight to the feature (some hide part of it), and elsewhere on the rig
+    along = centre + rng.uniform(0.3, 0.7, (40, 1)) * (camera - centre) + rng.normal(0.0, 0.03, (40, 3))
+    pan, tilt = rng.uniform(-np.pi, np.pi, 20), rng.uniform(*task.lamp.rig.tilt_range_rad, 20)
+    elsewhere = rig.lamp_position(task.lamp.rig.pivot_m, pan, tilt, 0.3)
+    lamps = np.vstack([along, elsewhere])
+    hides = requirements.lamp_hides(problem, lamps)
+    expected = np.array([brute_force(*lamp_box_by_hand(task, lamp), np.broadcast_to(camera, scene.points.shape),
+                                     scene.points) for lamp in lamps])
+    assert np.array_equal(hides, expected)
+    partly = (expected.any(axis=1) & ~expected.all(axis=1)).sum()
+    assert expected[:40].all(axis=1).sum() > 5 and partly > 3 and not expected[40:].any()
+    # the requirement counts them as unseen, per lamp pose, and names the lamp
+    candidates = SimpleNamespace(position=lamps, shutter=np.zeros(len(lamps)))
+    assert np.allclose(requirements.camera_view(problem, candidates), np.log(0.5 + expected.sum(axis=1)))
+    k = int(np.argmax(expected.sum(axis=1)))
+    sentence = requirements.explain_camera_view(problem, SimpleNamespace(position=lamps[k:k + 1]), False)
+    assert f"cannot see {expected[k].sum()} of {len(scene.points)}" in sentence and "lamp_body" in sentence
+
+
+def test_a_rig_that_puts_the_lamp_on_the_cameras_line_of_sight_is_refused_naming_the_lamp():
+    task = load_task(RING)
+    # every pose of this rig holds the lamp within 16 mm of the axis the camera looks down, 0.15 m
+    # above the feature: its 50 mm housing sits across every line of sight
+    low = replace(task.lamp.rig, tilt_range_rad=(np.radians(84.0), np.radians(85.0)), radius_range_m=(0.15, 0.15))
+    task = replace(task, lamp=replace(task.lamp, rig=low))
+    p = plan(task)
+    assert not p.feasible and p.binding == "camera_view"
+    assert "lamp_body" in p.hint and "move the lamp" in p.hint

@@ -104,8 +104,10 @@ class Problem:
     """Everything a shot's evaluation needs, fixed before the search: the task, the scene, the
     maps, the material as planned (albedo scaled by the loop's measured error), the gray band,
     the sensor's black level b (the task's camera.sensor.black_level, 0 when unknown), the focus,
-    the needed depth of field, the widest f-number giving it, and how many samples the camera
-    cannot see; lights_off: the task's lights (indices into task.lights) it is judged with at
+    the needed depth of field, the widest f-number giving it, how many samples the camera
+    cannot see (the part or a fixed light's housing hides them, or they lie outside the image)
+    and which it sees (camera_seen: the spot lamp's housing may hide some of those at a lamp
+    pose, requirements.camera_view); lights_off: the task's lights (indices into task.lights) it is judged with at
     drive 0, whose contributions it need not compute (a shot's certificate: a light off adds
     nothing, lit_by_all)."""
 
@@ -121,6 +123,7 @@ class Problem:
     camera_unseen: int
     lights_off: tuple[int, ...] = ()
     kernels: KernelInputs = field(default_factory=KernelInputs, compare=False, repr=False)
+    camera_seen: np.ndarray | None = field(default=None, compare=False, repr=False)  # (P,) the samples counted seen
 
     @property
     def gray_inputs(self) -> GrayInputs | Rows:
@@ -270,7 +273,8 @@ def build_problem(task: Task, scene: Scene, maps: Maps | None, albedo_scale: flo
         p.kernels.gray, p.kernels.made_of = gray, (task, scene, p.material)
     if hidden is None:
         hidden = unit_gray(p, scene.camera_position[None], scene.T_cell_cam[None, :3, 2])[1][0]
-    return replace(p, camera_unseen=int(np.sum(hidden | ~in_image(task, scene))))
+    unseen = hidden | ~in_image(task, scene)
+    return replace(p, camera_unseen=int(np.sum(unseen)), camera_seen=~unseen)
 
 
 def hidden_from(task: Task, scene: Scene, cameras: ArrayLike) -> np.ndarray:

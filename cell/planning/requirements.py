@@ -19,6 +19,8 @@ import numpy as np
 import trimesh
 from numpy.typing import ArrayLike
 
+from cell.collision.rays import segments_cross_boxes
+from cell.collision.scene import lamp_boxes
 from cell.core import geometry
 from cell.core.numbers import number
 from cell.physics import projection
@@ -230,15 +232,38 @@ def explain_cone_coverage(p: Problem, c: Candidates, met: bool) -> str:
     return "the lamp's cone does not cover the whole feature; move the lamp farther away"
 
 
+def lamp_hides(p: Problem, positions: np.ndarray) -> np.ndarray:
+    """(C, P) the samples the camera sees (Problem.camera_seen) that the spot lamp's housing
+    hides with the lamp at each position (C, 3): the line of sight camera -> sample crosses the
+    lamp's box (collision.scene.lamp_boxes: cell.collision's lamp_size_m; rays.segments_cross_boxes);
+    a position not finite is a lamp not placed (a viewpoint judged before any lamp), hiding none."""
+    positions = np.asarray(positions, float).reshape(-1, 3)
+    out = np.zeros((len(positions), len(p.scene.points)), bool)
+    seen, placed = p.camera_seen, np.isfinite(positions).all(axis=1)
+    if seen is None or not seen.any() or not placed.any():
+        return out
+    half = 0.5 * np.asarray(p.task.cell.collision.lamp_size_m, float)
+    boxes = lamp_boxes(p.task.lamp.rig.pivot_m, half, positions[placed])
+    out[np.ix_(placed, seen)] = segments_cross_boxes(p.scene.camera_position, p.scene.points[seen], boxes, half)
+    return out
+
+
 def camera_view(p: Problem, c: Candidates) -> np.ndarray:
-    return np.broadcast_to(costs.ln_count_cost(p.camera_unseen), c.shutter.shape)
+    """Every sample seen: none hidden by the part or a fixed light's housing or outside the image
+    (Problem.camera_unseen), none hidden by the spot lamp's housing at the candidate's pose."""
+    unseen = p.camera_unseen + lamp_hides(p, c.position).sum(axis=-1)
+    return np.broadcast_to(costs.ln_count_cost(unseen), c.shutter.shape)
 
 
-def explain_camera_view(p: Problem, c: Candidates, met: bool) -> str:
+def explain_camera_view(p: Problem, c: Candidates | None, met: bool) -> str:
     n = len(p.scene.points)
     if met:
         return f"the camera sees all {n} feature samples"
-    fact = f"the camera cannot see {p.camera_unseen} of {n} feature samples"
+    by_lamp = 0 if c is None else int(lamp_hides(p, c.position[:1]).sum())
+    fact = f"the camera cannot see {p.camera_unseen + by_lamp} of {n} feature samples"
+    if by_lamp:
+        return (f"{fact}: the spot lamp's housing (lamp_body) stands between {by_lamp} of them and the camera; "
+                f"move the lamp out of the camera's view")
     on_flipped, flipped = on_flipped_faces(p)
     if on_flipped:
         return (f"{fact}: {on_flipped} lie on triangles wound against their neighbours (the mesh's winding is "
