@@ -236,16 +236,33 @@ def lamp_hides(p: Problem, positions: np.ndarray) -> np.ndarray:
     """(C, P) the samples the camera sees (Problem.camera_seen) that the spot lamp's housing
     hides with the lamp at each position (C, 3): the line of sight camera -> sample crosses the
     lamp's box (collision.scene.lamp_boxes: cell.collision's lamp_size_m; rays.segments_cross_boxes);
-    a position not finite is a lamp not placed (a viewpoint judged before any lamp), hiding none."""
+    a position not finite is a lamp not placed (a viewpoint judged before any lamp), hiding none.
+    Only lamps near the lines of sight are tested: each line lies within rho (the samples'
+    sphere about their middle m) of the segment camera -> m, and the box, which reaches from the
+    lamp's front back 2 h_z along the aim, within |(h_x, h_y, 2 h_z)| of the lamp, so a lamp
+    farther than both from that segment hides none."""
     positions = np.asarray(positions, float).reshape(-1, 3)
     out = np.zeros((len(positions), len(p.scene.points)), bool)
-    seen, placed = p.camera_seen, np.isfinite(positions).all(axis=1)
-    if seen is None or not seen.any() or not placed.any():
+    seen = p.camera_seen
+    if seen is None or not seen.any():
         return out
     half = 0.5 * np.asarray(p.task.cell.collision.lamp_size_m, float)
-    boxes = lamp_boxes(p.task.lamp.rig.pivot_m, half, positions[placed])
-    out[np.ix_(placed, seen)] = segments_cross_boxes(p.scene.camera_position, p.scene.points[seen], boxes, half)
+    camera = p.scene.camera_position
+    middle, rho = p.fixed("samples_sphere", lambda: _sphere_of(p.scene.points))
+    axis = middle - camera
+    with np.errstate(invalid="ignore"):        # a lamp not placed (NaN) is not near
+        along = np.clip((positions - camera) @ axis / max(axis @ axis, 1e-300), 0.0, 1.0)
+        near = np.linalg.norm(positions - camera - along[:, None] * axis, axis=1) <= rho + np.linalg.norm(half * (1, 1, 2))
+    if near.any():
+        boxes = lamp_boxes(p.task.lamp.rig.pivot_m, half, positions[near])
+        out[np.ix_(near, seen)] = segments_cross_boxes(camera, p.scene.points[seen], boxes, half)
     return out
+
+
+def _sphere_of(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """The points' bounding-box middle and their largest distance from it."""
+    middle = 0.5 * (points.min(axis=0) + points.max(axis=0))
+    return middle, float(np.linalg.norm(points - middle, axis=1).max())
 
 
 def camera_view(p: Problem, c: Candidates) -> np.ndarray:
