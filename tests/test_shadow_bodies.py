@@ -9,9 +9,10 @@ from types import SimpleNamespace
 
 import numpy as np
 import trimesh
+from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
 
-from cell.collision.rays import segments_cross_boxes
+from cell.collision.rays import segments_cross_boxes, segments_near_segments
 from cell.core import geometry
 from cell.devices import rig
 from cell.planning import evaluate, requirements
@@ -120,3 +121,66 @@ def test_a_rig_that_puts_the_lamp_on_the_cameras_line_of_sight_is_refused_naming
     p = plan(task)
     assert not p.feasible and p.binding == "camera_view"
     assert "lamp_body" in p.hint and "move the lamp" in p.hint
+
+
+def least_distance(p, q, a, b):
+    """The least distance between segments p-q and a-b: |p + s (q - p) - a - t (b - a)|^2 is
+    convex in (s, t), so scipy's bounded minimiser over [0, 1]^2 finds its minimum."""
+    def squared(x):
+        gap = p + x[0] * (q - p) - a - x[1] * (b - a)
+        return gap @ gap, 2.0 * np.array([gap @ (q - p), -gap @ (b - a)])
+    found = minimize(squared, (0.5, 0.5), jac=True, bounds=((0.0, 1.0), (0.0, 1.0)), method="L-BFGS-B",
+                     options={"ftol": 1e-15, "gtol": 1e-12})
+    return np.sqrt(found.fun)
+
+
+def test_segments_near_a_capsule_agree_with_a_minimiser_of_the_segments_distance():
+    rng = np.random.default_rng(27)
+    a, b = rng.uniform(-0.3, 0.3, (2, 6, 3))
+    radius = rng.uniform(0.02, 0.15, 6)
+    origins, targets = rng.uniform(-0.5, 0.5, (2, 80, 3))
+    near = segments_near_segments(origins, targets, a, b, radius)
+    d = np.array([[least_distance(origins[n], targets[n], a[k], b[k]) for n in range(80)] for k in range(6)])
+    sure = np.abs(d - radius[:, None]) > 1e-6
+    assert sure.sum() > 470 and np.array_equal(near[sure], (d < radius[:, None])[sure])
+    assert 30 < near.sum() < 450
+
+
+def crosses_by_points(bodies, origins, targets, step=2e-4):
+    """(N,) whether points every `step` along each segment fall inside one of the bodies (their
+    signed distance functions, cell.collision.bodies), and (N,) whether the segment passes at
+    least 2 steps clear of them all (sure either way when one of the two holds)."""
+    t = np.linspace(0.0, 1.0, int(np.ceil(np.linalg.norm(targets - origins, axis=1).max() / step)) + 1)
+    points = origins[:, None] + t[None, :, None] * (targets - origins)[:, None]
+    least = np.min([body.sdf(points.reshape(-1, 3)).reshape(len(origins), -1).min(axis=1) for body in bodies], axis=0)
+    return least < 0.0, least > 2 * step
+
+
+def test_the_camera_body_and_the_arm_shadow_the_spot_where_its_rays_cross_them():
+    from cell.collision.scene import CollisionScene, reaching_joints
+    task = load_task(RING)
+    scene = build_scene(task)
+    problem = evaluate.build_problem(task, scene, None)
+    assert problem.camera_unseen == 0                          # the view is the kernel's: no body hides it
+    cs = CollisionScene.of(task)
+    q = reaching_joints(task.frames, scene.T_cell_cam)
+    bodies = cs.bodies(scene.T_cell_cam, q)[len(cs.fixed):]    # the camera body and the arm's links
+    rng = np.random.default_rng(8)
+    # lamps above the camera (its body and the wrist in the way), beside it, and around the rig
+    above = scene.camera_position + np.array([0.0, 0.0, 0.12]) + rng.normal(0.0, 0.03, (6, 3))
+    pan, tilt = rng.uniform(-np.pi, np.pi, 10), rng.uniform(*task.lamp.rig.tilt_range_rad, 10)
+    lamps = np.vstack([above, rig.lamp_position(task.lamp.rig.pivot_m, pan, tilt, rng.uniform(0.2, 0.5, 10))])
+    u, shadowed, _, _ = evaluate.unit_gray(problem, lamps, rig.lamp_aim(task.lamp.rig.pivot_m, lamps))
+    blocked = evaluate.spot_blocked(problem, lamps)
+    for k, lamp in enumerate(lamps):
+        inside, clear = crosses_by_points(bodies, scene.points, np.broadcast_to(lamp, scene.points.shape))
+        assert np.all(blocked[k][inside]) and not np.any(blocked[k][clear])
+    assert blocked[:6].sum() > 100 and np.all(u[blocked] == 0.0) and np.all(shadowed[blocked])
+    # the part's own flags stand where no body is in the way
+    kernel = problem.gray_inputs(lamps, rig.lamp_aim(task.lamp.rig.pivot_m, lamps))
+    assert np.array_equal(shadowed[~blocked], kernel.shadowed[~blocked]) and np.array_equal(u[~blocked], kernel.value[~blocked])
+    # the sentence names them where they shadow the chosen lamp
+    k = int(np.argmax(blocked.sum(axis=1)))
+    one = SimpleNamespace(shadowed=shadowed[k:k + 1], position=lamps[k:k + 1])
+    assert f"camera body or the arm stands in the lamp's beam at {blocked[k].sum()}" in requirements.explain_no_shadow(
+        replace(problem, maps=SimpleNamespace(visible=np.ones(1))), one, False)

@@ -106,6 +106,12 @@ def light_box(light: Light, setback_m: float = 0.0) -> Box:
     return Box(light.name, geometry.transform(R, centre), np.array([*half, 0.5 * (housing.depth_m - setback_m)]))
 
 
+def camera_body(T_cell_flange: np.ndarray, half_m: ArrayLike, offset_m: float) -> Box:
+    """The camera's box: its axes the flange's, its centre offset_m along the tool axis."""
+    T = T_cell_flange @ geometry.transform(translation=(0.0, 0.0, offset_m))
+    return Box("camera_body", T, np.asarray(half_m, float))
+
+
 def lamp_boxes(pivot_m: ArrayLike, lamp_half_m: ArrayLike, lamp_position: ArrayLike) -> np.ndarray:
     """(..., 4, 4) T_cell_box of the lamp's box at each position (..., 3): its front face centred
     at the lamp's position, its axes the lamp's (rig.lamp_frame: z the aim at the pivot), so its
@@ -172,8 +178,7 @@ class CollisionScene:
         return part
 
     def camera_body(self, T_cell_flange: np.ndarray) -> Box:
-        T = T_cell_flange @ geometry.transform(translation=(0.0, 0.0, self.camera_offset_m))
-        return Box("camera_body", T, self.camera_half_m)
+        return camera_body(T_cell_flange, self.camera_half_m, self.camera_offset_m)
 
     def lamp_body(self, lamp_position: ArrayLike) -> Box:
         """The lamp's box (lamp_boxes)."""

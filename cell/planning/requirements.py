@@ -24,7 +24,7 @@ from cell.collision.scene import lamp_boxes
 from cell.core import geometry
 from cell.core.numbers import number
 from cell.physics import projection
-from cell.planning import occluders, regions
+from cell.planning import evaluate, occluders, regions
 from cell.physics import brdf, costs, depth_of_field as dof
 from cell.task import winding
 
@@ -202,7 +202,10 @@ def explain_no_shadow(p: Problem, c: Candidates, met: bool) -> str:
     fact = (f"{int(c.shadowed[0].sum())} of {len(p.scene.points)} feature samples are shadowed from "
             f"the lamp ({_maps(p).visible.mean():.0%} of directions see every sample)")
     lights = _blocking(p.scene, c.shadowed[0], c.position[0])
-    return f"{fact}; the housing of {lights} stands in the lamp's beam" if lights else fact
+    if lights:
+        return f"{fact}; the housing of {lights} stands in the lamp's beam"
+    arm = int(evaluate.spot_blocked(p, c.position[:1]).sum())
+    return f"{fact}; the camera body or the arm stands in the lamp's beam at {arm} of them" if arm else fact
 
 
 def _blocking(scene: Scene, which: np.ndarray, to: np.ndarray) -> str:
@@ -248,7 +251,7 @@ def lamp_hides(p: Problem, positions: np.ndarray) -> np.ndarray:
         return out
     half = 0.5 * np.asarray(p.task.cell.collision.lamp_size_m, float)
     camera = p.scene.camera_position
-    middle, rho = p.fixed("samples_sphere", lambda: _sphere_of(p.scene.points))
+    middle, rho = p.fixed("samples_sphere", lambda: geometry.bounding_sphere(p.scene.points))
     axis = middle - camera
     with np.errstate(invalid="ignore"):        # a lamp not placed (NaN) is not near
         along = np.clip((positions - camera) @ axis / max(axis @ axis, 1e-300), 0.0, 1.0)
@@ -257,12 +260,6 @@ def lamp_hides(p: Problem, positions: np.ndarray) -> np.ndarray:
         boxes = lamp_boxes(p.task.lamp.rig.pivot_m, half, positions[near])
         out[np.ix_(near, seen)] = segments_cross_boxes(camera, p.scene.points[seen], boxes, half)
     return out
-
-
-def _sphere_of(points: np.ndarray) -> tuple[np.ndarray, float]:
-    """The points' bounding-box middle and their largest distance from it."""
-    middle = 0.5 * (points.min(axis=0) + points.max(axis=0))
-    return middle, float(np.linalg.norm(points - middle, axis=1).max())
 
 
 def camera_view(p: Problem, c: Candidates) -> np.ndarray:
