@@ -106,6 +106,23 @@ def light_box(light: Light, setback_m: float = 0.0) -> Box:
     return Box(light.name, geometry.transform(R, centre), np.array([*half, 0.5 * (housing.depth_m - setback_m)]))
 
 
+def camera_body(T_cell_flange: np.ndarray, half_m: ArrayLike, offset_m: float) -> Box:
+    """The camera's box: its axes the flange's, its centre offset_m along the tool axis."""
+    T = T_cell_flange @ geometry.transform(translation=(0.0, 0.0, offset_m))
+    return Box("camera_body", T, np.asarray(half_m, float))
+
+
+def lamp_boxes(pivot_m: ArrayLike, lamp_half_m: ArrayLike, lamp_position: ArrayLike) -> np.ndarray:
+    """(..., 4, 4) T_cell_box of the lamp's box at each position (..., 3): its front face centred
+    at the lamp's position, its axes the lamp's (rig.lamp_frame: z the aim at the pivot), so its
+    centre lamp_half_m[2] behind the position along the aim."""
+    p = np.asarray(lamp_position, float)
+    R = lamp_frame(pivot_m, p)
+    T = np.zeros((*p.shape[:-1], 4, 4))
+    T[..., :3, :3], T[..., :3, 3], T[..., 3, 3] = R, p - float(np.asarray(lamp_half_m)[2]) * R[..., 2], 1.0
+    return T
+
+
 @dataclass(frozen=True)
 class Clearance:
     """The smallest distance [m] between two bodies that may not touch, and which two (names);
@@ -161,14 +178,11 @@ class CollisionScene:
         return part
 
     def camera_body(self, T_cell_flange: np.ndarray) -> Box:
-        T = T_cell_flange @ geometry.transform(translation=(0.0, 0.0, self.camera_offset_m))
-        return Box("camera_body", T, self.camera_half_m)
+        return camera_body(T_cell_flange, self.camera_half_m, self.camera_offset_m)
 
     def lamp_body(self, lamp_position: ArrayLike) -> Box:
-        """The lamp's box: its front face centred at the lamp's position, its z axis the aim."""
-        p = np.asarray(lamp_position, float)
-        R = lamp_frame(self.pivot_m, p)
-        return Box("lamp_body", geometry.transform(R, p - self.lamp_half_m[2] * R[:, 2]), self.lamp_half_m)
+        """The lamp's box (lamp_boxes)."""
+        return Box("lamp_body", lamp_boxes(self.pivot_m, self.lamp_half_m, lamp_position), self.lamp_half_m)
 
     def bodies(self, T_cell_cam: np.ndarray, arm_joints: ArrayLike | None = None,
                lamp_position: ArrayLike | None = None) -> tuple[Body, ...]:

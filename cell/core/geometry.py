@@ -111,3 +111,11 @@ def winding_number(vertices: ArrayLike, faces: ArrayLike, point: ArrayLike) -> f
     den = (la * lb * lc + np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", b, c) * la
            + np.einsum("ij,ij->i", c, a) * lb)
     return float(np.sum(np.arctan2(det, den)) / (2.0 * np.pi))
+
+
+def bounding_sphere(points: ArrayLike) -> tuple[np.ndarray, float]:
+    """A sphere holding the points (N, 3): its centre, the middle of their bounding box, and its
+    radius, their largest distance from it [m]."""
+    points = np.asarray(points, float).reshape(-1, 3)
+    middle = 0.5 * (points.min(axis=0) + points.max(axis=0))
+    return middle, float(np.linalg.norm(points - middle, axis=1).max())

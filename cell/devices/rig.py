@@ -22,12 +22,14 @@ def lamp_aim(pivot: ArrayLike, position: ArrayLike) -> np.ndarray:
 
 
 def lamp_frame(pivot: ArrayLike, position: ArrayLike) -> np.ndarray:
-    """(3, 3) the lamp's axes in the cell frame at `position`: z its aim at the pivot, x
-    horizontal (z x the cell's z; the cell's x when the lamp is straight above the pivot), y = z x x."""
+    """(..., 3, 3) the lamp's axes in the cell frame at `position` (..., 3): z its aim at the pivot,
+    x horizontal (z x the cell's z; the cell's x when the lamp is straight above the pivot), y = z x x."""
     z = lamp_aim(pivot, position)
     x = np.cross((0.0, 0.0, 1.0), z)
-    x = x / np.linalg.norm(x) if np.linalg.norm(x) > 1e-9 else np.array([1.0, 0.0, 0.0])
-    return np.column_stack([x, np.cross(z, x), z])
+    norm = np.linalg.norm(x, axis=-1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        x = np.where(norm > 1e-9, x / norm, (1.0, 0.0, 0.0))
+    return np.stack([x, np.cross(z, x), z], axis=-1)
 
 
 def lamp_joints(pivot: ArrayLike, position: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

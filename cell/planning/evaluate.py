@@ -105,8 +105,10 @@ class Problem:
     """Everything a shot's evaluation needs, fixed before the search: the task, the scene, the
     maps, the material as planned (albedo scaled by the loop's measured error), the gray band,
     the sensor's black level b (the task's camera.sensor.black_level, 0 when unknown), the focus,
-    the needed depth of field, the widest f-number giving it, and how many samples the camera
-    cannot see; lights_off: the task's lights (indices into task.lights) it is judged with at
+    the needed depth of field, the widest f-number giving it, how many samples the camera
+    cannot see (the part or a fixed light's housing hides them, or they lie outside the image)
+    and which it sees (camera_seen: the spot lamp's housing may hide some of those at a lamp
+    pose, requirements.camera_view); lights_off: the task's lights (indices into task.lights) it is judged with at
     drive 0, whose contributions it need not compute (a shot's certificate: a light off adds
     nothing, lit_by_all)."""
 
@@ -122,6 +124,7 @@ class Problem:
     camera_unseen: int
     lights_off: tuple[int, ...] = ()
     kernels: KernelInputs = field(default_factory=KernelInputs, compare=False, repr=False)
+    camera_seen: np.ndarray | None = field(default=None, compare=False, repr=False)  # (P,) the samples counted seen
 
     @property
     def gray_inputs(self) -> GrayInputs | Rows:
@@ -274,9 +277,10 @@ def build_problem(task: Task, scene: Scene, maps: Maps | None, albedo_scale: flo
                 planning_band(task), black_level(task), focus, needed, kappa_open, 0)
     if gray is not None:
         p.kernels.gray, p.kernels.made_of = gray, (task, scene, p.material)
-    if hidden is None:
-        hidden = unit_gray(p, scene.camera_position[None], scene.T_cell_cam[None, :3, 2])[1][0]
-    return replace(p, camera_unseen=int(np.sum(hidden | ~in_image(task, scene))))
+    if hidden is None:      # the kernel's flag alone: the arm and camera body shadow the spot, not the view
+        hidden = p.gray_inputs(scene.camera_position[None], scene.T_cell_cam[None, :3, 2]).shadowed[0]
+    unseen = hidden | ~in_image(task, scene)
+    return replace(p, camera_unseen=int(np.sum(unseen)), camera_seen=~unseen)
 
 
 def hidden_from(task: Task, scene: Scene, cameras: ArrayLike) -> np.ndarray:
@@ -306,13 +310,76 @@ def unit_gray(problem: Problem, positions: ArrayLike,
     (C, P), as brdf.judged_term judges the kernel's) of lamps at `positions` aiming along `aims`,
     from the Warp kernel, the irradiance by the lamp's profile (eq. 11's ideal cone without one)."""
     out = problem.gray_inputs(positions, aims)
+    blocked = spot_blocked(problem, positions)
+    value, shadowed = np.where(blocked, 0.0, out.value), out.shadowed | blocked
     if problem.material.unresolved is None:               # nothing to judge: the kernel's term
-        return out.value, out.shadowed, out.off_axis, out.dominant
+        return value, shadowed, out.off_axis, out.dominant
     scene = problem.scene
     s = geometry.unit(np.asarray(positions, float).reshape(-1, 1, 3) - scene.points[None])
     v = geometry.unit(scene.camera_position - scene.points)[None]
     dominant = brdf.judged_term(out.dominant, scene.normals[None], s, v, problem.material)
-    return out.value, out.shadowed, out.off_axis, dominant
+    return value, shadowed, out.off_axis, dominant
+
+
+@dataclass(frozen=True)
+class ArmAtShot:
+    """The bodies the camera's pose places, which stand still while the spot is searched: the
+    camera body (a box, T_cell_box and half sizes) and the UR5e's links (capsules: axes a-b,
+    radii) at the joints that reach the pose (none where the arm does not reach it); each
+    body's bounding sphere (centres, radii), the camera body's first."""
+
+    T_cell_box: np.ndarray        # (4, 4)
+    half_m: np.ndarray            # (3,)
+    a: np.ndarray                 # (K, 3)
+    b: np.ndarray                 # (K, 3)
+    radius_m: np.ndarray          # (K,)
+    centers: np.ndarray           # (1 + K, 3)
+    radii: np.ndarray             # (1 + K,)
+
+
+def arm_at_shot(task: Task, scene: Scene) -> ArmAtShot:
+    """The camera body and the arm's links at the scene's camera pose (cell.collision.scene:
+    camera_body, arm_links, reaching_joints: the joints nearest home, as the shot's clearance)."""
+    from cell.collision.bodies import Box, Capsule
+    from cell.collision.scene import arm_links, camera_body, reaching_joints
+    c, frames = task.cell.collision, task.frames
+    box = camera_body(frames.T_cell_flange(scene.T_cell_cam), 0.5 * np.asarray(c.camera_size_m, float),
+                      c.camera_offset_m)
+    q = reaching_joints(frames, scene.T_cell_cam)
+    links = () if q is None else arm_links(frames.T_cell_base, q)
+    bodies: tuple[Box | Capsule, ...] = (box, *links)
+    return ArmAtShot(box.T_cell_box, box.half_m, np.array([k.a for k in links]).reshape(-1, 3),
+                     np.array([k.b for k in links]).reshape(-1, 3), np.array([k.radius_m for k in links]),
+                     np.array([body.center for body in bodies]), np.array([body.radius for body in bodies]))
+
+
+def spot_blocked(problem: Problem, positions: ArrayLike) -> np.ndarray:
+    """(C, P) whether the ray from each sample to the spot at each position (C, 3) crosses the
+    camera body or a link of the arm (ArmAtShot; cell.collision.rays): a shadow as the part's,
+    no spot light there. Only a body near the rays is tested: the ray sample -> lamp lies within
+    rho (the samples' sphere about their middle m) of m -> lamp, so a body whose bounding sphere
+    is farther than rho from that segment blocks none."""
+    from cell.collision.rays import segments_cross_boxes, segments_near_segments
+    scene = problem.scene
+    positions = np.asarray(positions, float).reshape(-1, 3)
+    out = np.zeros((len(positions), len(scene.points)), bool)
+    arm = problem.fixed("arm_at_shot", lambda: arm_at_shot(problem.task, scene))
+    middle, rho = problem.fixed("samples_sphere", lambda: geometry.bounding_sphere(scene.points))
+    to_lamp = positions - middle                                                   # (C, 3)
+    along = np.clip(np.einsum("kcj,cj->kc", arm.centers[:, None] - middle, to_lamp)
+                    / np.maximum(np.einsum("cj,cj->c", to_lamp, to_lamp), 1e-300), 0.0, 1.0)
+    gap = np.linalg.norm(arm.centers[:, None] - middle - along[..., None] * to_lamp, axis=-1)   # (1 + K, C)
+    near = gap <= rho + arm.radii[:, None]
+    for k in np.flatnonzero(near.any(axis=1)):
+        lamps = np.flatnonzero(near[k])
+        origins = np.broadcast_to(scene.points, (len(lamps), *scene.points.shape)).reshape(-1, 3)
+        targets = np.repeat(positions[lamps], len(scene.points), axis=0)
+        if k == 0:
+            hit = segments_cross_boxes(origins, targets, arm.T_cell_box[None], arm.half_m)[0]
+        else:
+            hit = segments_near_segments(origins, targets, arm.a[k - 1], arm.b[k - 1], arm.radius_m[k - 1])[0]
+        out[lamps] |= hit.reshape(len(lamps), -1)
+    return out
 
 
 def wrong_reflection(problem: Problem, unit_gray: np.ndarray, dominant: np.ndarray) -> np.ndarray:

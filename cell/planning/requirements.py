@@ -19,10 +19,12 @@ import numpy as np
 import trimesh
 from numpy.typing import ArrayLike
 
+from cell.collision.rays import segments_cross_boxes
+from cell.collision.scene import lamp_boxes
 from cell.core import geometry
 from cell.core.numbers import number
 from cell.physics import projection
-from cell.planning import occluders, regions
+from cell.planning import evaluate, occluders, regions
 from cell.physics import brdf, costs, depth_of_field as dof
 from cell.task import winding
 
@@ -200,7 +202,10 @@ def explain_no_shadow(p: Problem, c: Candidates, met: bool) -> str:
     fact = (f"{int(c.shadowed[0].sum())} of {len(p.scene.points)} feature samples are shadowed from "
             f"the lamp ({_maps(p).visible.mean():.0%} of directions see every sample)")
     lights = _blocking(p.scene, c.shadowed[0], c.position[0])
-    return f"{fact}; the housing of {lights} stands in the lamp's beam" if lights else fact
+    if lights:
+        return f"{fact}; the housing of {lights} stands in the lamp's beam"
+    arm = int(evaluate.spot_blocked(p, c.position[:1]).sum())
+    return f"{fact}; the camera body or the arm stands in the lamp's beam at {arm} of them" if arm else fact
 
 
 def _blocking(scene: Scene, which: np.ndarray, to: np.ndarray) -> str:
@@ -230,15 +235,49 @@ def explain_cone_coverage(p: Problem, c: Candidates, met: bool) -> str:
     return "the lamp's cone does not cover the whole feature; move the lamp farther away"
 
 
+def lamp_hides(p: Problem, positions: np.ndarray) -> np.ndarray:
+    """(C, P) the samples the camera sees (Problem.camera_seen) that the spot lamp's housing
+    hides with the lamp at each position (C, 3): the line of sight camera -> sample crosses the
+    lamp's box (collision.scene.lamp_boxes: cell.collision's lamp_size_m; rays.segments_cross_boxes);
+    a position not finite is a lamp not placed (a viewpoint judged before any lamp), hiding none.
+    Only lamps near the lines of sight are tested: each line lies within rho (the samples'
+    sphere about their middle m) of the segment camera -> m, and the box, which reaches from the
+    lamp's front back 2 h_z along the aim, within |(h_x, h_y, 2 h_z)| of the lamp, so a lamp
+    farther than both from that segment hides none."""
+    positions = np.asarray(positions, float).reshape(-1, 3)
+    out = np.zeros((len(positions), len(p.scene.points)), bool)
+    seen = p.camera_seen
+    if seen is None or not seen.any():
+        return out
+    half = 0.5 * np.asarray(p.task.cell.collision.lamp_size_m, float)
+    camera = p.scene.camera_position
+    middle, rho = p.fixed("samples_sphere", lambda: geometry.bounding_sphere(p.scene.points))
+    axis = middle - camera
+    with np.errstate(invalid="ignore"):        # a lamp not placed (NaN) is not near
+        along = np.clip((positions - camera) @ axis / max(axis @ axis, 1e-300), 0.0, 1.0)
+        near = np.linalg.norm(positions - camera - along[:, None] * axis, axis=1) <= rho + np.linalg.norm(half * (1, 1, 2))
+    if near.any():
+        boxes = lamp_boxes(p.task.lamp.rig.pivot_m, half, positions[near])
+        out[np.ix_(near, seen)] = segments_cross_boxes(camera, p.scene.points[seen], boxes, half)
+    return out
+
+
 def camera_view(p: Problem, c: Candidates) -> np.ndarray:
-    return np.broadcast_to(costs.ln_count_cost(p.camera_unseen), c.shutter.shape)
+    """Every sample seen: none hidden by the part or a fixed light's housing or outside the image
+    (Problem.camera_unseen), none hidden by the spot lamp's housing at the candidate's pose."""
+    unseen = p.camera_unseen + lamp_hides(p, c.position).sum(axis=-1)
+    return np.broadcast_to(costs.ln_count_cost(unseen), c.shutter.shape)
 
 
-def explain_camera_view(p: Problem, c: Candidates, met: bool) -> str:
+def explain_camera_view(p: Problem, c: Candidates | None, met: bool) -> str:
     n = len(p.scene.points)
     if met:
         return f"the camera sees all {n} feature samples"
-    fact = f"the camera cannot see {p.camera_unseen} of {n} feature samples"
+    by_lamp = 0 if c is None else int(lamp_hides(p, c.position[:1]).sum())
+    fact = f"the camera cannot see {p.camera_unseen + by_lamp} of {n} feature samples"
+    if by_lamp:
+        return (f"{fact}: the spot lamp's housing (lamp_body) stands between {by_lamp} of them and the camera; "
+                f"move the lamp out of the camera's view")
     on_flipped, flipped = on_flipped_faces(p)
     if on_flipped:
         return (f"{fact}: {on_flipped} lie on triangles wound against their neighbours (the mesh's winding is "

@@ -159,9 +159,10 @@ def viewpoint_values(task: Task, scene: Scene, hidden: np.ndarray | None = None)
     depth of field at the lens's narrowest f-number: whether any f-number gives it); `hidden` the
     samples hidden from the camera where found before (evaluate.hidden_from)."""
     problem = evaluate.build_problem(task, scene, None, hidden=hidden)
-    # the viewpoint requirements read only the f-number and the shutter's shape of the Candidates
+    # the viewpoint requirements read only the f-number, the shutter's shape and the lamp's position
+    # of the Candidates, the lamp not placed yet (NaN: its housing hides nothing, requirements.lamp_hides)
     lens_only = cast(evaluate.Candidates, SimpleNamespace(kappa=np.array([task.camera.lens.f_number_range[1]]),
-                                                          shutter=np.zeros(1)))
+                                                          shutter=np.zeros(1), position=np.full((1, 3), np.nan)))
     return {r.name: float(np.max(r.ln_value(problem, lens_only))) for r in requirements.REGISTRY
             if r.name in VIEWPOINT_REQUIREMENTS and (r.asked is None or r.asked(problem))}
 

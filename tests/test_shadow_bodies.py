@@ -1,0 +1,186 @@
+"""The moving bodies as shadow geometry (cell.collision.rays): the slab test against trimesh's
+own ray casting, and the spot lamp's housing hiding feature samples from the camera."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import trimesh
+from scipy.optimize import minimize
+from scipy.spatial.transform import Rotation
+
+from cell.collision.rays import segments_cross_boxes, segments_near_segments
+from cell.core import geometry
+from cell.devices import rig
+from cell.planning import evaluate, requirements
+from cell.planning.one_shot import plan
+from cell.planning.scene import build_scene
+from cell.task.loader import load_task
+
+
+def brute_force(T_cell_box, half_m, origins, targets):
+    """(N,) whether each segment crosses the box mesh: an end inside it (behind every face's
+    plane: the mesh is convex) or a face's plane met by the segment's line (trimesh's
+    intersections.planes_lines, as its ray casting does) within the segment, at a point inside
+    that triangle (trimesh's barycentric coordinates)."""
+    box = trimesh.creation.box(extents=2.0 * half_m, transform=T_cell_box)
+    d = targets - origins
+    length = np.linalg.norm(d, axis=1)
+
+    def inside(p):
+        return np.all(np.einsum("fj,nfj->nf", box.face_normals, p[:, None] - box.triangles[None, :, 0]) < 0, axis=1)
+    crossed = inside(origins) | inside(targets)
+    for triangle, normal in zip(box.triangles, box.face_normals):
+        n = len(origins)
+        at, valid = trimesh.intersections.planes_lines(np.tile(triangle[0], (n, 1)), np.tile(normal, (n, 1)),
+                                                       origins, d / length[:, None])
+        rays = np.flatnonzero(valid)
+        along = np.einsum("nj,nj->n", at - origins[rays], d[rays]) / length[rays]
+        bary = trimesh.triangles.points_to_barycentric(np.tile(triangle, (len(rays), 1, 1)), at)
+        hit = (along > 0) & (along < length[rays]) & np.all(bary >= 0, axis=1)
+        crossed[rays[hit]] = True
+    return crossed
+
+
+def test_the_slab_test_agrees_with_trimesh_ray_casting_on_random_boxes_and_segments():
+    rng = np.random.default_rng(26)
+    agree = crossings = 0
+    for _ in range(20):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.random(random_state=rng).as_matrix()
+        T[:3, 3] = rng.uniform(-0.2, 0.2, 3)
+        half = rng.uniform(0.02, 0.3, 3)
+        origins, targets = rng.uniform(-0.6, 0.6, (2, 300, 3))
+        fast = segments_cross_boxes(origins, targets, T[None], half)[0]
+        slow = brute_force(T, half, origins, targets)
+        agree += np.sum(fast == slow)
+        crossings += slow.sum()
+    assert agree == 20 * 300 and 500 < crossings < 5500          # both outcomes well represented
+
+
+def test_boxes_and_segments_broadcast_and_grazing_or_parallel_segments_do_not_cross():
+    T = np.stack([np.eye(4)] * 2)
+    T[1, :3, 3] = (5.0, 0.0, 0.0)
+    half = np.array([1.0, 1.0, 1.0])
+    # along x through both boxes; one along the face y = 1 (grazing); parallel to z inside; one short of the box
+    origins = np.array([[-2.0, 0.0, 0.0], [-2.0, 1.0, 0.0], [0.5, 0.5, -3.0], [-3.0, 0.0, 0.0]])
+    targets = np.array([[7.0, 0.0, 0.0], [7.0, 1.0, 0.0], [0.5, 0.5, 3.0], [-1.5, 0.0, 0.0]])
+    assert segments_cross_boxes(origins, targets, T, half).tolist() == [[True, False, True, False],
+                                                                         [True, False, False, False]]
+    # one target for every origin
+    assert segments_cross_boxes(origins[:1], np.zeros(3), T, half).tolist() == [[True], [False]]
+
+
+RING = Path(__file__).resolve().parent.parent / "tasks" / "ring.yaml"
+
+
+def lamp_box_by_hand(task, lamp):
+    """The lamp's box as docs/formats.md describes lamp_body: its front face centred at the lamp,
+    its z axis the aim at the rig's pivot, its x horizontal."""
+    z = geometry.unit(task.lamp.rig.pivot_m - lamp)
+    x = geometry.unit(np.cross((0.0, 0.0, 1.0), z))
+    half = 0.5 * np.asarray(task.cell.collision.lamp_size_m)
+    return geometry.transform(np.column_stack([x, np.cross(z, x), z]), lamp - half[2] * z), half
+
+
+def test_the_lamp_housing_hides_the_samples_whose_line_of_sight_it_crosses_as_trimesh_finds():
+    task = load_task(RING)
+    scene = build_scene(task)
+    problem = evaluate.build_problem(task, scene, None)
+    assert problem.camera_seen.all()
+    camera, centre = scene.camera_position, scene.center
+    rng = np.random.default_rng(5)
+    # lamps about the camera's line of sight to the feature (some hide part of it), and elsewhere on the rig
+    along = centre + rng.uniform(0.3, 0.7, (40, 1)) * (camera - centre) + rng.normal(0.0, 0.03, (40, 3))
+    pan, tilt = rng.uniform(-np.pi, np.pi, 20), rng.uniform(*task.lamp.rig.tilt_range_rad, 20)
+    elsewhere = rig.lamp_position(task.lamp.rig.pivot_m, pan, tilt, 0.3)
+    lamps = np.vstack([along, elsewhere])
+    hides = requirements.lamp_hides(problem, lamps)
+    expected = np.array([brute_force(*lamp_box_by_hand(task, lamp), np.broadcast_to(camera, scene.points.shape),
+                                     scene.points) for lamp in lamps])
+    assert np.array_equal(hides, expected)
+    partly = (expected.any(axis=1) & ~expected.all(axis=1)).sum()
+    assert expected[:40].all(axis=1).sum() > 5 and partly > 3 and not expected[40:].any()
+    # the requirement counts them as unseen, per lamp pose, and names the lamp
+    candidates = SimpleNamespace(position=lamps, shutter=np.zeros(len(lamps)))
+    assert np.allclose(requirements.camera_view(problem, candidates), np.log(0.5 + expected.sum(axis=1)))
+    k = int(np.argmax(expected.sum(axis=1)))
+    sentence = requirements.explain_camera_view(problem, SimpleNamespace(position=lamps[k:k + 1]), False)
+    assert f"cannot see {expected[k].sum()} of {len(scene.points)}" in sentence and "lamp_body" in sentence
+
+
+def test_a_rig_that_puts_the_lamp_on_the_cameras_line_of_sight_is_refused_naming_the_lamp():
+    task = load_task(RING)
+    # every pose of this rig holds the lamp within 16 mm of the axis the camera looks down, 0.15 m
+    # above the feature: its 50 mm housing sits across every line of sight
+    low = replace(task.lamp.rig, tilt_range_rad=(np.radians(84.0), np.radians(85.0)), radius_range_m=(0.15, 0.15))
+    task = replace(task, lamp=replace(task.lamp, rig=low))
+    p = plan(task)
+    assert not p.feasible and p.binding == "camera_view"
+    assert "lamp_body" in p.hint and "move the lamp" in p.hint
+
+
+def least_distance(p, q, a, b):
+    """The least distance between segments p-q and a-b: |p + s (q - p) - a - t (b - a)|^2 is
+    convex in (s, t), so scipy's bounded minimiser over [0, 1]^2 finds its minimum."""
+    def squared(x):
+        gap = p + x[0] * (q - p) - a - x[1] * (b - a)
+        return gap @ gap, 2.0 * np.array([gap @ (q - p), -gap @ (b - a)])
+    found = minimize(squared, (0.5, 0.5), jac=True, bounds=((0.0, 1.0), (0.0, 1.0)), method="L-BFGS-B",
+                     options={"ftol": 1e-15, "gtol": 1e-12})
+    return np.sqrt(found.fun)
+
+
+def test_segments_near_a_capsule_agree_with_a_minimiser_of_the_segments_distance():
+    rng = np.random.default_rng(27)
+    a, b = rng.uniform(-0.3, 0.3, (2, 6, 3))
+    radius = rng.uniform(0.02, 0.15, 6)
+    origins, targets = rng.uniform(-0.5, 0.5, (2, 80, 3))
+    near = segments_near_segments(origins, targets, a, b, radius)
+    d = np.array([[least_distance(origins[n], targets[n], a[k], b[k]) for n in range(80)] for k in range(6)])
+    sure = np.abs(d - radius[:, None]) > 1e-6
+    assert sure.sum() > 470 and np.array_equal(near[sure], (d < radius[:, None])[sure])
+    assert 30 < near.sum() < 450
+
+
+def crosses_by_points(bodies, origins, targets, step=2e-4):
+    """(N,) whether points every `step` along each segment fall inside one of the bodies (their
+    signed distance functions, cell.collision.bodies), and (N,) whether the segment passes at
+    least 2 steps clear of them all (sure either way when one of the two holds)."""
+    t = np.linspace(0.0, 1.0, int(np.ceil(np.linalg.norm(targets - origins, axis=1).max() / step)) + 1)
+    points = origins[:, None] + t[None, :, None] * (targets - origins)[:, None]
+    least = np.min([body.sdf(points.reshape(-1, 3)).reshape(len(origins), -1).min(axis=1) for body in bodies], axis=0)
+    return least < 0.0, least > 2 * step
+
+
+def test_the_camera_body_and_the_arm_shadow_the_spot_where_its_rays_cross_them():
+    from cell.collision.scene import CollisionScene, reaching_joints
+    task = load_task(RING)
+    scene = build_scene(task)
+    problem = evaluate.build_problem(task, scene, None)
+    assert problem.camera_unseen == 0                          # the view is the kernel's: no body hides it
+    cs = CollisionScene.of(task)
+    q = reaching_joints(task.frames, scene.T_cell_cam)
+    bodies = cs.bodies(scene.T_cell_cam, q)[len(cs.fixed):]    # the camera body and the arm's links
+    rng = np.random.default_rng(8)
+    # lamps above the camera (its body and the wrist in the way), beside it, and around the rig
+    above = scene.camera_position + np.array([0.0, 0.0, 0.12]) + rng.normal(0.0, 0.03, (6, 3))
+    pan, tilt = rng.uniform(-np.pi, np.pi, 10), rng.uniform(*task.lamp.rig.tilt_range_rad, 10)
+    lamps = np.vstack([above, rig.lamp_position(task.lamp.rig.pivot_m, pan, tilt, rng.uniform(0.2, 0.5, 10))])
+    u, shadowed, _, _ = evaluate.unit_gray(problem, lamps, rig.lamp_aim(task.lamp.rig.pivot_m, lamps))
+    blocked = evaluate.spot_blocked(problem, lamps)
+    for k, lamp in enumerate(lamps):
+        inside, clear = crosses_by_points(bodies, scene.points, np.broadcast_to(lamp, scene.points.shape))
+        assert np.all(blocked[k][inside]) and not np.any(blocked[k][clear])
+    assert blocked[:6].sum() > 100 and np.all(u[blocked] == 0.0) and np.all(shadowed[blocked])
+    # the part's own flags stand where no body is in the way
+    kernel = problem.gray_inputs(lamps, rig.lamp_aim(task.lamp.rig.pivot_m, lamps))
+    assert np.array_equal(shadowed[~blocked], kernel.shadowed[~blocked]) and np.array_equal(u[~blocked], kernel.value[~blocked])
+    # the sentence names them where they shadow the chosen lamp
+    k = int(np.argmax(blocked.sum(axis=1)))
+    one = SimpleNamespace(shadowed=shadowed[k:k + 1], position=lamps[k:k + 1])
+    assert f"camera body or the arm stands in the lamp's beam at {blocked[k].sum()}" in requirements.explain_no_shadow(
+        replace(problem, maps=SimpleNamespace(visible=np.ones(1))), one, False)
