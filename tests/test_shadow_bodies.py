@@ -9,6 +9,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import trimesh
+import pytest
 from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
 
@@ -184,3 +185,17 @@ def test_the_camera_body_and_the_arm_shadow_the_spot_where_its_rays_cross_them()
     one = SimpleNamespace(shadowed=shadowed[k:k + 1], position=lamps[k:k + 1])
     assert f"camera body or the arm stands in the lamp's beam at {blocked[k].sum()}" in requirements.explain_no_shadow(
         replace(problem, maps=SimpleNamespace(visible=np.ones(1))), one, False)
+
+
+def test_a_point_s_distance_to_a_segment_is_the_least_over_the_segment_s_points():
+    """Brute force: the least distance over 20001 points along each segment, within its spacing."""
+    from cell.collision.rays import points_to_segments
+    rng = np.random.default_rng(7)
+    points, a, b = rng.normal(size=(3, 50, 3))
+    found = points_to_segments(points, a, b)
+    s = np.linspace(0.0, 1.0, 20001)
+    along = a[:, None] + s[None, :, None] * (b - a)[:, None]
+    brute = np.linalg.norm(points[:, None] - along, axis=-1).min(axis=1)
+    assert found == pytest.approx(brute, abs=np.linalg.norm(b - a, axis=1).max() / 20000)
+    assert np.all(found <= brute + 1e-12)
+    assert np.isnan(points_to_segments(np.full(3, np.nan), a[0], b[0]))

@@ -57,3 +57,15 @@ def segments_near_segments(origins: ArrayLike, targets: ArrayLike, a: ArrayLike,
     t = np.clip(t, 0.0, 1.0)
     gap = r + s[..., None] * d1[None] - t[..., None] * d2[:, None]
     return np.einsum("knj,knj->kn", gap, gap) < np.asarray(radius_m, float).reshape(-1, 1) ** 2
+
+
+def points_to_segments(points: ArrayLike, a: ArrayLike, b: ArrayLike) -> np.ndarray:
+    """The distance from each point to the segment a -> b, broadcast over points, a and b (..., 3)
+    [m]: |p - a - s (b - a)|, s = <p - a, b - a> / |b - a|^2 clipped to [0, 1]; a point or segment
+    not finite gives NaN (compares false)."""
+    p, a, b = (np.asarray(x, float) for x in (points, a, b))
+    d = b - a
+    with np.errstate(invalid="ignore"):
+        s = np.clip(np.einsum("...j,...j->...", p - a, d) / np.maximum(np.einsum("...j,...j->...", d, d), 1e-300),
+                    0.0, 1.0)
+        return np.linalg.norm(p - a - s[..., None] * d, axis=-1)

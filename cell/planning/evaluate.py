@@ -359,17 +359,13 @@ def spot_blocked(problem: Problem, positions: ArrayLike) -> np.ndarray:
     no spot light there. Only a body near the rays is tested: the ray sample -> lamp lies within
     rho (the samples' sphere about their middle m) of m -> lamp, so a body whose bounding sphere
     is farther than rho from that segment blocks none."""
-    from cell.collision.rays import segments_cross_boxes, segments_near_segments
+    from cell.collision.rays import points_to_segments, segments_cross_boxes, segments_near_segments
     scene = problem.scene
     positions = np.asarray(positions, float).reshape(-1, 3)
     out = np.zeros((len(positions), len(scene.points)), bool)
     arm = problem.fixed("arm_at_shot", lambda: arm_at_shot(problem.task, scene))
     middle, rho = problem.fixed("samples_sphere", lambda: geometry.bounding_sphere(scene.points))
-    to_lamp = positions - middle                                                   # (C, 3)
-    along = np.clip(np.einsum("kcj,cj->kc", arm.centers[:, None] - middle, to_lamp)
-                    / np.maximum(np.einsum("cj,cj->c", to_lamp, to_lamp), 1e-300), 0.0, 1.0)
-    gap = np.linalg.norm(arm.centers[:, None] - middle - along[..., None] * to_lamp, axis=-1)   # (1 + K, C)
-    near = gap <= rho + arm.radii[:, None]
+    near = points_to_segments(arm.centers[:, None], middle, positions) <= rho + arm.radii[:, None]   # (1 + K, C)
     for k in np.flatnonzero(near.any(axis=1)):
         lamps = np.flatnonzero(near[k])
         origins = np.broadcast_to(scene.points, (len(lamps), *scene.points.shape)).reshape(-1, 3)

@@ -19,7 +19,7 @@ import numpy as np
 import trimesh
 from numpy.typing import ArrayLike
 
-from cell.collision.rays import segments_cross_boxes
+from cell.collision.rays import points_to_segments, segments_cross_boxes
 from cell.collision.scene import lamp_boxes
 from cell.core import geometry
 from cell.core.numbers import number
@@ -252,10 +252,8 @@ def lamp_hides(p: Problem, positions: np.ndarray) -> np.ndarray:
     half = 0.5 * np.asarray(p.task.cell.collision.lamp_size_m, float)
     camera = p.scene.camera_position
     middle, rho = p.fixed("samples_sphere", lambda: geometry.bounding_sphere(p.scene.points))
-    axis = middle - camera
     with np.errstate(invalid="ignore"):        # a lamp not placed (NaN) is not near
-        along = np.clip((positions - camera) @ axis / max(axis @ axis, 1e-300), 0.0, 1.0)
-        near = np.linalg.norm(positions - camera - along[:, None] * axis, axis=1) <= rho + np.linalg.norm(half * (1, 1, 2))
+        near = points_to_segments(positions, camera, middle) <= rho + np.linalg.norm(half * (1, 1, 2))
     if near.any():
         boxes = lamp_boxes(p.task.lamp.rig.pivot_m, half, positions[near])
         out[np.ix_(near, seen)] = segments_cross_boxes(camera, p.scene.points[seen], boxes, half)
