@@ -32,9 +32,9 @@ def closest_point_kernel(meshes: wp.array(dtype=wp.uint64), queries: wp.array(dt
         normal[i] = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
 
 
-def _per_query(meshes: "Sequence[WarpMesh]", max_dists: ArrayLike) -> tuple[wp.array, wp.array]:
+def _per_query(ids: ArrayLike, max_dists: ArrayLike) -> tuple[wp.array, wp.array]:
     """The kernel's per-query mesh ids and max_dist (float32, as Warp took a float32 argument)."""
-    ids = np.array([m.id for m in meshes], dtype=np.uint64)
+    ids = np.asarray(ids, dtype=np.uint64)
     dists = np.broadcast_to(np.asarray(max_dists, dtype=np.float32), ids.shape).copy()
     return wp.array(ids, dtype=wp.uint64, device="cpu"), wp.array(dists, dtype=wp.float32, device="cpu")
 
@@ -50,7 +50,7 @@ def closest_points(mesh: "WarpMesh", queries: ArrayLike,
     face, face_wp = output(n, np.int32, wp.int32)
     normal, normal_wp = output((n, 3), np.float64, wp.vec3d)
     if n:
-        ids, dists = _per_query([mesh] * n, max_dist)
+        ids, dists = _per_query(np.full(n, mesh.id, dtype=np.uint64), max_dist)   # one mesh: its id once
         wp.launch(closest_point_kernel, dim=n, device=device, inputs=[ids, vec3d(queries, "queries"), dists],
                   outputs=[point_wp, face_wp, normal_wp])
     return point, face, normal
@@ -72,7 +72,7 @@ class ClosestPoint:
         self.face, face_wp = output(k, np.int32, wp.int32)
         self.normal, normal_wp = output((k, 3), np.float64, wp.vec3d)
         query_wp = wp.array(self.query, dtype=wp.vec3d, device="cpu", copy=False)
-        ids, dists = _per_query(meshes, max_dists)
+        ids, dists = _per_query([m.id for m in meshes], max_dists)
         # the meshes (their BVHs) and the Warp views live as long as the recorded launch that points at them
         self._kept = (tuple(meshes), ids, dists, query_wp, point_wp, face_wp, normal_wp)
         self._launch = wp.launch(closest_point_kernel, dim=k, device=device, inputs=[ids, query_wp, dists],
