@@ -1,6 +1,8 @@
 """The generated many-feature example (tasks/many_features.py) and cell bench's rows of it
-(cell.bench.scaling): the features lie on the faces they are named after, the growth exponent is
-the log-log slope, the peak memory counts the children's, and a short run of the rows."""
+(cell.bench.scaling, each plan measured alone by cell.bench.alone): the features lie on the faces
+they are named after, the growth exponent is the log-log slope, the peak memory counts a process
+tree's and not the sampler's, the digest tells plans apart by their content but not their timing,
+and a short run of the rows."""
 import math
 import os
 import subprocess
@@ -13,7 +15,7 @@ import pytest
 import trimesh
 import yaml
 
-from cell.bench import scaling
+from cell.bench import alone, scaling
 from cell.task.loader import load_task
 from lightplan_tasks import many_features
 
@@ -69,18 +71,53 @@ def test_the_growth_exponent_is_the_log_log_slope():
         math.log(45 / 15) / math.log(4))
 
 
+HOLD = ("import time; b = bytearray(300_000_000); b[::4096] = b'x' * len(b[::4096]); time.sleep(1.0); del b; "
+        "time.sleep(1.0)")
+
+
 def test_peak_memory_counts_a_child_process_and_its_peak():
     """A child that holds 300 MB of its own for a moment, then frees it: both peaks (resident and
     proportional: private pages count whole in each) hold it, the end does not."""
-    code = ("import time; b = bytearray(300_000_000); b[::4096] = b'x' * len(b[::4096]); time.sleep(1.0); del b; "
-            "time.sleep(1.0)")
-    with scaling.PeakMemory() as memory:
+    with alone.PeakMemory() as memory:
         before, before_proportional = memory.resident(), memory.proportional()
-        child = subprocess.Popen([sys.executable, "-c", code])
+        child = subprocess.Popen([sys.executable, "-c", HOLD])
         child.wait()
     assert memory.peak - before > 280e6
     assert memory.peak_proportional - before_proportional > 280e6
     assert memory.resident() - before < 100e6 and memory.proportional() - before_proportional < 100e6
+
+
+def test_peak_memory_of_another_process_counts_its_grandchild_and_not_the_sampler():
+    """Sampled from here, the tree of a child whose own child holds 300 MB for a moment: the
+    peaks hold the 300 MB; 300 MB this process holds meanwhile count in neither."""
+    mine = bytearray(300_000_000)
+    mine[::4096] = b"x" * len(mine[::4096])
+    parent = subprocess.Popen([sys.executable, "-c", f"import subprocess, sys; subprocess.run([sys.executable, "
+                               f"'-c', {HOLD!r}])"])
+    with alone.PeakMemory(parent.pid) as memory:
+        parent.wait()
+    assert 280e6 < memory.peak_proportional < 500e6 and 280e6 < memory.peak < 600e6
+    assert len(mine) == 300_000_000
+
+
+def test_the_digest_is_of_the_content_not_the_timing():
+    """Two plan.json documents alike but for timing_s (at any depth) and key order: one digest;
+    one number changed by a bit of its last place, or a key's value, or the documents' order: another."""
+    plan = {"feasible": True, "shots": [{"camera_m": [0.1, 0.2, 0.30000000000000004], "timing_s": {"search": 1.0}}],
+            "timing_s": {"total": 3.0, "judge": 0.5}}
+    own = {"lamp_deg": [12.5, -3.25], "timing_s": {"total": 1.0}}
+    same = {"timing_s": {"judge": 9.0, "total": 99.0}, "feasible": True,
+            "shots": [{"timing_s": {"search": 7.0}, "camera_m": [0.1, 0.2, 0.30000000000000004]}]}
+    assert alone.digest([plan, own]) == alone.digest([same, {**own, "timing_s": {"total": 2.0}}])
+    nudged = {**plan, "shots": [{**plan["shots"][0], "camera_m": [0.1, 0.2, math.nextafter(0.30000000000000004, 1)]}]}
+    changed = [alone.digest([nudged, own]), alone.digest([{**plan, "feasible": False}, own]), alone.digest([own, plan]),
+               alone.digest([plan, {**own, "lamp_deg": np.array([12.5, -3.25000001])}])]
+    assert len({alone.digest([plan, own]), *changed}) == 5
+
+
+def test_a_child_that_ends_without_its_result_is_an_error_naming_it(tmp_path):
+    with pytest.raises(RuntimeError, match="cell.bench.alone ended with 1 before its result"):
+        alone.measure(tmp_path / "missing.yaml", 0)
 
 
 def test_the_proportional_size_splits_pages_a_forked_child_shares():
@@ -99,7 +136,7 @@ def test_the_proportional_size_splits_pages_a_forked_child_shares():
         time.sleep(0.5)
         me, kid = psutil.Process(), psutil.Process(child)
         resident = me.memory_info().rss + kid.memory_info().rss
-        proportional = scaling.proportional_size(me) + scaling.proportional_size(kid)
+        proportional = alone.proportional_size(me) + alone.proportional_size(kid)
         assert resident - proportional > 150e6              # the 200 MB counted twice in one, once in the other
     finally:
         os.waitpid(child, 0)
@@ -127,7 +164,28 @@ def test_a_short_run_plans_each_size_serially_and_on_2_workers_alike():
         assert row["speedup"] == pytest.approx(row["serial_s"] / row["workers_2_s"])
         assert row["peak_memory_2_workers_b"] > row["peak_memory_serial_b"] > 50e6     # the workers' too
         assert row["peak_pss_2_workers_b"] > row["peak_pss_serial_b"] > 50e6
+        assert 0 < row["serial_cpu_s"] and 0 < row["workers_2_cpu_s"]
     assert summary["growth_exponent"] == pytest.approx(
         math.log(rows[1]["serial_s"] / rows[0]["serial_s"]) / math.log(3 / 2))
     assert summary["workers_features"] == 3 and len(summary["speedups"]) == 1
     assert lines[-1] == scaling.summary_line(summary)
+
+
+@pytest.mark.long
+def test_a_plan_measured_alone_is_the_plan_made_here(tmp_path):
+    """The child's plan of a 2-feature part has the digest of the same plan made in this process,
+    its judge share is its own timing_s's judge / total, and its times are within its wall time."""
+    from dataclasses import replace
+
+    from cell.planning.whole_part import plan_features
+    path = many_features.write(tmp_path, 2)
+    measured = alone.measure(path, 0)
+    task = load_task(path)
+    plan_features(replace(task, features=task.features[:1]))
+    here = plan_features(task)
+    assert measured["digest"] == alone.plan_digest(here)
+    assert (measured["features"], measured["candidates"], measured["shots"]) == (2, 4, len(here.shots))
+    timing = measured["timing_s"]
+    assert measured["judge_share"] == timing["judge"] / timing["total"] and 0 < measured["judge_share"] < 1
+    assert timing["total"] <= measured["wall_s"] and measured["peak_pss_b"] > 50e6
+    assert measured["peak_rss_b"] >= measured["peak_pss_b"]

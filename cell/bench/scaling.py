@@ -1,127 +1,43 @@
 """`cell bench`'s many-feature rows (issue 28): the generated long bracket
 (lightplan_tasks.many_features: the bracket's five faces repeated every 14 mm) at SIZES features,
-each planned warm serially and on 2 worker processes of one LocalCluster: the times, the judge's
-share of the serial plan (timing_s: judge / total), the peak memory of all the processes (this one
-and its children: the cluster's nanny and workers; proportional and resident, below), whether the two plans are the same, and the
-machine's load (1-minute average) before and after. Then the growth exponent of the serial time
-between GROWTH[0] and GROWTH[1] features (the log-log slope: 1 is linear, 2 the square) and, at
-SIDE_BY_SIDE features, 1 worker against 2 in rounds side by side (cell.bench.multi_feature's).
-
-Peak memory: the sum over this process and its children of the resident set sizes, sampled every
-MEMORY_PERIOD_S while a plan runs (psutil, which Dask's distributed depends on): pages that
-processes share (libraries) count in each, so that sum is an upper bound; and of the
-proportional set sizes (Linux's /proc/PID/smaps_rollup `Pss`: a shared page split among the
-processes mapping it, so the sum is what the processes take together), every PSS_EVERY-th sample
-(reading it costs some milliseconds a process). The issue's 1 GB is judged on the proportional sum."""
+each planned warm serially and on 2 worker processes of a LocalCluster, each plan alone in a fresh
+process of its own (cell.bench.alone: it warms up with a one-feature plan, then plans the size):
+the times, the judge's share of the serial plan (timing_s: judge / total), the peak memory of that
+plan's processes (the plan's process and, with workers, its cluster's nannies and workers; not
+this one, which holds no plan: proportional and resident, as alone.PeakMemory counts them),
+whether the two plans are the same (the digests of their plan.json content without timing_s),
+and the machine's load (1-minute average) as the plan starts and ends. Then the growth exponent
+of the serial time between GROWTH[0] and GROWTH[1] features (the log-log slope: 1 is linear, 2 the
+square) and, at SIDE_BY_SIDE features, 1 worker against 2 in rounds side by side on a LocalCluster
+of this process (cell.bench.multi_feature's)."""
 
 from __future__ import annotations
 
 import math
 import os
 import tempfile
-import threading
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import replace
-from typing import TYPE_CHECKING, Any
+from pathlib import Path
+from typing import Any
 
 import numpy as np
-import psutil
 
-from cell.bench import multi_feature
+from cell.bench import alone, multi_feature
 from cell.planning import parallel
 from cell.planning.whole_part import plan_features
 from cell.task.loader import load_task
-
-if TYPE_CHECKING:
-    from cell.planning.plan import Plan
-    from cell.task.types import Task
 
 SIZES = (10, 20, 40, 100)           # features of the generated part (--quick: QUICK_SIZES)
 QUICK_SIZES = (5, 10)
 GROWTH = (10, 40)                   # the growth exponent's two sizes (--quick: the first and last)
 SIDE_BY_SIDE = 40                   # the size of the rounds of 1 and 2 workers (--quick: the last)
 ROUNDS = 3                          # of 1 and 2 workers each (--quick: 1)
-MEMORY_PERIOD_S = 0.05
-PSS_EVERY = 10                      # samples: the proportional sizes every 0.5 s
 SERIAL_TARGET_S = 20.0              # the issue's done-when, at 40 features
 GROWTH_TARGET = 1.1
 JUDGE_SHARE_TARGET = 0.20
 SPEEDUP_TARGET = 1.6
 MEMORY_TARGET_B = 1e9
-
-
-class PeakMemory:
-    """The largest sums [bytes] of this process's and its children's (recursive) memory, sampled by
-    a thread while the `with` block runs: `peak` of the resident set sizes (every `period` s),
-    `peak_proportional` of the proportional set sizes (every PSS_EVERY-th sample)."""
-
-    def __init__(self, period: float = MEMORY_PERIOD_S) -> None:
-        self.period, self.peak, self.peak_proportional = period, 0, 0
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._sample, daemon=True)
-
-    @staticmethod
-    def _processes() -> list[psutil.Process]:
-        me = psutil.Process()
-        return [me, *me.children(recursive=True)]
-
-    def resident(self) -> int:
-        """The sum of resident set sizes now [bytes]; a child that ends while being read counts 0."""
-        total = 0
-        for process in self._processes():
-            try:
-                total += process.memory_info().rss
-            except psutil.NoSuchProcess:
-                pass
-        return total
-
-    def proportional(self) -> int:
-        """The sum of proportional set sizes now [bytes] (smaps_rollup's Pss; a process whose
-        rollup cannot be read, off Linux or ended, counts its resident set, or 0)."""
-        total = 0
-        for process in self._processes():
-            total += proportional_size(process)
-        return total
-
-    def _sample(self) -> None:
-        count = 0
-        while True:
-            self.peak = max(self.peak, self.resident())
-            if count % PSS_EVERY == 0:
-                self.peak_proportional = max(self.peak_proportional, self.proportional())
-            count += 1
-            if self._stop.wait(self.period):
-                return
-
-    def __enter__(self) -> PeakMemory:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join()
-        self.peak = max(self.peak, self.resident())
-        self.peak_proportional = max(self.peak_proportional, self.proportional())
-
-
-def proportional_size(process: psutil.Process) -> int:
-    """A process's proportional set size [bytes] from /proc/PID/smaps_rollup (one line to read,
-    where psutil's memory_full_info parses every mapping's smaps); its resident set where the
-    rollup is missing (not Linux, or older than 4.14), 0 once it has ended."""
-    try:
-        with open(f"/proc/{process.pid}/smaps_rollup") as rollup:
-            for line in rollup:
-                if line.startswith("Pss:"):
-                    return int(line.split()[1]) * 1024
-    except FileNotFoundError:
-        pass
-    except (ProcessLookupError, PermissionError):
-        return 0
-    try:
-        return process.memory_info().rss
-    except psutil.NoSuchProcess:
-        return 0
 
 
 def growth_exponent(features: Sequence[int], times: Sequence[float], between: tuple[int, int]) -> float:
@@ -131,44 +47,32 @@ def growth_exponent(features: Sequence[int], times: Sequence[float], between: tu
     return math.log(by[n2] / by[n1]) / math.log(n2 / n1)
 
 
-def timed(task: Task, pool: parallel.Pool) -> tuple[Plan, float, PeakMemory]:
-    """(plan_features of the task on `pool`, its wall time [s], the peak memory of all processes)."""
-    with PeakMemory() as memory:
-        t0 = time.perf_counter()
-        plan = plan_features(task, pool=pool)
-        time_s = time.perf_counter() - t0
-    return plan, time_s, memory
-
-
-def serial_row(task: Task, say: Callable[[str], None]) -> tuple[dict[str, Any], Plan]:
-    """One size's serial row (no worker process alive: the memory is this process's) and its plan."""
-    load_before = os.getloadavg()[0]
-    plan, time_s, peak = timed(task, parallel.SERIAL)
-    assert plan.cover is not None                      # a multi-feature plan's
-    row = {"task": "many", "features": len(task.features), "candidates": plan.cover["candidate_shots"],
-           "shots": len(plan.shots), "feasible": plan.feasible, "serial_s": time_s, "judge_s": plan.timing_s["judge"],
-           "judge_share": plan.timing_s["judge"] / plan.timing_s["total"], "peak_memory_serial_b": peak.peak,
-           "peak_pss_serial_b": peak.peak_proportional, "load": [load_before, os.getloadavg()[0]]}
+def serial_row(path: Path, say: Callable[[str], None]) -> dict[str, Any]:
+    """One size's serial row: the task at `path` planned alone in a process of its own
+    (alone.measure), its peak memory that process's."""
+    m = alone.measure(path, 0)
+    row = {"task": "many", "features": m["features"], "candidates": m["candidates"], "shots": m["shots"],
+           "feasible": m["feasible"], "serial_s": m["wall_s"], "serial_cpu_s": m["cpu_s"],
+           "judge_s": m["timing_s"]["judge"], "judge_share": m["judge_share"], "peak_memory_serial_b": m["peak_rss_b"],
+           "peak_pss_serial_b": m["peak_pss_b"], "load": m["load"], "digest": m["digest"]}
     say(f"many {row['features']} features: {row['candidates']} candidate shots, {row['shots']} shots; serial "
-        f"{time_s:.1f} s (judge {row['judge_share']:.0%}), peak memory {peak.peak_proportional / 1e6:.0f} MB "
-        f"proportional ({peak.peak / 1e6:.0f} MB resident); load "
-        f"{load_before:.1f} -> {row['load'][1]:.1f}")
-    return row, plan
+        f"{row['serial_s']:.1f} s (judge {row['judge_share']:.0%}), peak memory {m['peak_pss_b'] / 1e6:.0f} MB "
+        f"proportional ({m['peak_rss_b'] / 1e6:.0f} MB resident); load {m['load'][0]:.1f} -> {m['load'][1]:.1f}")
+    return row
 
 
-def workers_row(row: dict[str, Any], task: Task, serial: Plan, two: parallel.Pool,
-                say: Callable[[str], None]) -> dict[str, Any]:
-    """`row` with the same size planned on the 2 workers of `two`: time, speedup over serial, the
-    peak memory of all processes, the load, whether the plan is the serial one."""
-    load_before = os.getloadavg()[0]
-    plan, time_s, peak = timed(task, two)
-    out = {**row, "workers_2_s": time_s, "speedup": row["serial_s"] / time_s, "peak_memory_2_workers_b": peak.peak,
-           "peak_pss_2_workers_b": peak.peak_proportional, "load_2_workers": [load_before, os.getloadavg()[0]],
-           "identical": multi_feature.same_plan(serial, plan)}
-    say(f"many {row['features']} features on 2 workers: {time_s:.1f} s ({out['speedup']:.2f}x serial), peak memory "
-        f"{peak.peak_proportional / 1e6:.0f} MB proportional ({peak.peak / 1e6:.0f} MB resident) in all processes; "
-        f"load {load_before:.1f} -> {out['load_2_workers'][1]:.1f}; plan "
-        "identical to the serial one: " + ("yes" if out["identical"] else "NO"))
+def workers_row(row: dict[str, Any], path: Path, say: Callable[[str], None]) -> dict[str, Any]:
+    """`row` with the same size planned alone on 2 workers (alone.measure: a process of its own
+    and its LocalCluster's nannies and workers): time, speedup over serial, the peak memory of
+    those processes, the load, whether the plan is the serial one (their digests equal)."""
+    m = alone.measure(path, 2)
+    out = {**row, "workers_2_s": m["wall_s"], "workers_2_cpu_s": m["cpu_s"], "speedup": row["serial_s"] / m["wall_s"],
+           "peak_memory_2_workers_b": m["peak_rss_b"], "peak_pss_2_workers_b": m["peak_pss_b"],
+           "load_2_workers": m["load"], "identical": m["digest"] == row["digest"]}
+    say(f"many {row['features']} features on 2 workers: {m['wall_s']:.1f} s ({out['speedup']:.2f}x serial), peak "
+        f"memory {m['peak_pss_b'] / 1e6:.0f} MB proportional ({m['peak_rss_b'] / 1e6:.0f} MB resident) in all "
+        f"processes; load {m['load'][0]:.1f} -> {m['load'][1]:.1f}; plan identical to the serial one: "
+        + ("yes" if out["identical"] else "NO"))
     return out
 
 
@@ -185,22 +89,22 @@ def run(quick: bool, say: Callable[[str], None], sizes: Sequence[int] | None = N
     """{"scaling": a row per size, "scaling_summary": the growth exponent and the rounds of 1 and 2
     workers} of the generated part at `sizes` features (default SIZES, --quick QUICK_SIZES) and
     `rounds` (default ROUNDS, --quick 1), written into a temporary folder: every size serially
-    first, then on 2 workers."""
+    first, then on 2 workers, each plan alone in a process of its own (cell.bench.alone); then the
+    rounds of 1 and 2 workers of one LocalCluster of this process's."""
     from lightplan_tasks import many_features
     sizes = tuple(sizes or (QUICK_SIZES if quick else SIZES))
     growth = GROWTH if set(GROWTH) <= set(sizes) else (sizes[0], sizes[-1])
     side = SIDE_BY_SIDE if SIDE_BY_SIDE in sizes else sizes[-1]
     rounds = rounds or (1 if quick else ROUNDS)
     with tempfile.TemporaryDirectory() as folder:
-        tasks = {n: load_task(many_features.write(folder, n)) for n in sizes}
-        one_feature = replace(tasks[sizes[0]], features=tasks[sizes[0]].features[:1])
-        plan_features(one_feature)                         # warm: this process's first plan loads Warp's kernels
-        serial = {n: serial_row(tasks[n], say) for n in sizes}
+        paths = {n: many_features.write(folder, n) for n in sizes}
+        serial = {n: serial_row(paths[n], say) for n in sizes}
+        rows = [workers_row(serial[n], paths[n], say) for n in sizes]
+        task = load_task(paths[side])
         with parallel.local_cluster(2) as two:
-            plan_features(one_feature, pool=two)           # and the workers' first
-            rows = [workers_row(serial[n][0], tasks[n], serial[n][1], two, say) for n in sizes]
+            plan_features(replace(task, features=task.features[:1]), pool=two)    # the workers' first plan
             one = two.restricted(sorted(two.client.nthreads())[:1])
-            _, (one_times, two_times), ratios = multi_feature.side_by_side(tasks[side], one, two, rounds)
+            _, (one_times, two_times), ratios = multi_feature.side_by_side(task, one, two, rounds)
             machine = multi_feature.machine_speedup(one, two, rounds)
     summary = {"growth_between": list(growth),
                "growth_exponent": growth_exponent([r["features"] for r in rows], [r["serial_s"] for r in rows], growth),
