@@ -100,6 +100,27 @@ def test_peak_memory_of_another_process_counts_its_grandchild_and_not_the_sample
     assert len(mine) == 300_000_000
 
 
+def test_the_proportional_sizes_are_read_while_memory_grows_not_while_it_stays():
+    """A child that grows by 20 MB every 0.1 s 20 times, then stays: its proportional sizes are
+    read about every PSS_PERIOD_S while it grows, once more within PSS_PERIOD_S after (its top), and
+    not again while it stays, but at the end."""
+    code = ("import time\nblocks = []\nfor _ in range(20):\n    b = bytearray(20_000_000); b[::4096] = b'x' * len(b[::4096]); "
+            "blocks.append(b); time.sleep(0.1)\nprint('grown', flush=True)\ntime.sleep(3.0)")
+    child = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    with alone.PeakMemory(child.pid) as memory:
+        t0 = time.monotonic()
+        assert child.stdout.readline() == "grown\n"
+        growing_s = time.monotonic() - t0
+        time.sleep(alone.PSS_PERIOD_S + 0.2)
+        grown = memory.proportional_reads
+        time.sleep(1.5)
+        stayed = memory.proportional_reads
+    child.wait()
+    assert 2 <= grown <= growing_s / alone.PSS_PERIOD_S + 3
+    assert stayed == grown and memory.proportional_reads == grown + 1         # the end's
+    assert 400e6 < memory.peak_proportional <= memory.peak < 500e6
+
+
 def test_the_digest_is_of_the_content_not_the_timing():
     """Two plan.json documents alike but for timing_s (at any depth) and key order: one digest;
     one number changed by a bit of its last place, or a key's value, or the documents' order: another."""
