@@ -17,7 +17,7 @@ def vec3d(a: ArrayLike, name: str) -> wp.array:
 def unit_rows(a: ArrayLike, name: str) -> np.ndarray:
     """Rows of (N, 3) scaled to unit length (float64)."""
     a = np.asarray(a, dtype=np.float64).reshape(-1, 3)
-    norm = np.linalg.norm(a, axis=1, keepdims=True)
+    norm = np.sqrt(np.add.reduce(a * a, axis=1, keepdims=True))     # np.linalg.norm's arithmetic, not its dispatch
     if np.any(norm == 0.0):
         raise ValueError(f"{name} has a zero-length row")
     return a / norm

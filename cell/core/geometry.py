@@ -50,10 +50,18 @@ def rotate(T: np.ndarray, vectors: ArrayLike) -> np.ndarray:
     return np.asarray(vectors, dtype=float) @ T[:3, :3].T
 
 
+def norm(v: ArrayLike, axis: int = -1, keepdims: bool = False) -> np.ndarray:
+    """|v| along axis: sqrt(sum v^2), np.linalg.norm's own arithmetic for a vector norm along an
+    axis (the same bits) without its dispatch, which costs more than the sum on a few vectors
+    (a search's objective asks it at every evaluation)."""
+    v = np.asarray(v, dtype=float)
+    return np.sqrt(np.add.reduce(v * v, axis=axis, keepdims=keepdims))
+
+
 def unit(v: ArrayLike, axis: int = -1) -> np.ndarray:
     """v / |v| along axis."""
     v = np.asarray(v, dtype=float)
-    return v / np.linalg.norm(v, axis=axis, keepdims=True)
+    return v / norm(v, axis=axis, keepdims=True)
 
 
 def direction(v: ArrayLike, axis: int = -1) -> np.ndarray:
@@ -61,7 +69,7 @@ def direction(v: ArrayLike, axis: int = -1) -> np.ndarray:
     to a lamp or a camera at that very point is 0, so <n, s> = 0 there (shadowed, unseen), where
     unit() gives NaN (0/0)."""
     v = np.asarray(v, dtype=float)
-    length = np.linalg.norm(v, axis=axis, keepdims=True)
+    length = norm(v, axis=axis, keepdims=True)
     return np.divide(v, length, out=np.zeros_like(v), where=length > 0.0)
 
 
@@ -88,7 +96,7 @@ def angles_from_direction(d: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     d = unit(d)
     az = np.arctan2(d[..., 1], d[..., 0])
     az = np.where(az >= np.pi, az - 2 * np.pi, az)
-    return az, np.arcsin(np.clip(d[..., 2], -1.0, 1.0))
+    return az, np.arcsin(np.minimum(np.maximum(d[..., 2], -1.0), 1.0))      # np.clip's values, not its checks
 
 
 def haversine_distance(az1: float | np.ndarray, el1: float | np.ndarray, az2: float | np.ndarray,

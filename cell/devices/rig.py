@@ -6,6 +6,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
+from cell.core import geometry
+
 
 def lamp_position(pivot: ArrayLike, pan: ArrayLike, tilt: ArrayLike, radius: ArrayLike) -> np.ndarray:
     """p = pivot + r (cos t cos p, cos t sin p, sin t); broadcasts over pan/tilt/radius arrays."""
@@ -17,8 +19,7 @@ def lamp_position(pivot: ArrayLike, pan: ArrayLike, tilt: ArrayLike, radius: Arr
 
 def lamp_aim(pivot: ArrayLike, position: ArrayLike) -> np.ndarray:
     """Unit aim direction of a lamp at `position` pointing at the pivot."""
-    d = np.asarray(pivot, float) - np.asarray(position, float)
-    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+    return geometry.unit(np.asarray(pivot, float) - np.asarray(position, float))
 
 
 def lamp_frame(pivot: ArrayLike, position: ArrayLike) -> np.ndarray:

@@ -132,7 +132,8 @@ class Problem:
         evaluates it hundreds of times, on Problems that differ in their maps alone."""
         task, scene, material = self.task, self.scene, self.material
         made_of, gray = self.kernels.made_of, self.kernels.gray
-        if made_of is None or gray is None or any(a is not b for a, b in zip(made_of, (task, scene, material))):
+        if (made_of is None or gray is None or made_of[0] is not task or made_of[1] is not scene
+                or made_of[2] is not material):
             gray = gray_inputs(task, scene, material)
             self.kernels.gray, self.kernels.made_of = gray, (task, scene, material)
         return gray
@@ -158,7 +159,7 @@ class Problem:
         task, scene, material = self.task, self.scene, self.material
         made_of, lights = self.kernels.lights_of, self.kernels.lights
         if (made_of is None or lights is None or made_of[3] != self.lights_off
-                or any(a is not b for a, b in zip(made_of, (task, scene, material)))):
+                or made_of[0] is not task or made_of[1] is not scene or made_of[2] is not material):
             on = [k for k in range(len(task.lights)) if k not in self.lights_off]
             found = dict(zip(on, contributions(scene.shadow_mesh, scene.points, scene.normals, scene.T_cell_cam,
                                                [task.lights[k] for k in on], material, task.camera.sensor,
@@ -455,12 +456,11 @@ def centring_exposure(unit_gray: np.ndarray, band: tuple[float, float], black_le
     low, high = band
     lit = unit_gray > 0.0
     darkest = np.where(lit, unit_gray, np.inf).min(axis=-1)
+    any_lit = lit.any(axis=-1)
     with np.errstate(over="ignore"):       # a lamp of 1e300 W: inf, its t_need 0, "too bright" says it
-        u_mid = np.where(lit.any(axis=-1), np.sqrt(np.where(lit.any(axis=-1), darkest, 0.0)
-                                                   * unit_gray.max(axis=-1)), 0.0)
+        u_mid = np.where(any_lit, np.sqrt(np.where(any_lit, darkest, 0.0) * unit_gray.max(axis=-1)), 0.0)
     target = target_gray((low - black_level, high - black_level))
-    with np.errstate(divide="ignore"):
-        gain = np.where(u_mid > 0, target / np.where(u_mid > 0, u_mid, 1.0), np.inf)
+    gain = np.divide(target, u_mid, out=np.full_like(u_mid, np.inf), where=u_mid > 0)
     shutter, kappa = exposure_for_gain(gain, kappa_open, shutter_range, f_number_range)
     return shutter, kappa, kappa_open**2 * gain
 
@@ -495,7 +495,8 @@ def exposure_for_gain(gain: ArrayLike, kappa_open: float, shutter_range: tuple[f
     t_need = kappa_open**2 * gain
     with np.errstate(divide="ignore"):
         kappa = np.where(t_need < t_lo, np.sqrt(t_lo / gain), kappa_open)
-    return np.clip(t_need, t_lo, t_hi), np.clip(kappa, kappa_open, f_number_range[1])
+    # np.clip's bounds as two ufuncs (the same values; np.clip's own checks cost more on a few poses)
+    return np.minimum(np.maximum(t_need, t_lo), t_hi), np.minimum(np.maximum(kappa, kappa_open), f_number_range[1])
 
 
 @dataclass(frozen=True)
@@ -531,19 +532,20 @@ def stacked(ones: Sequence[Candidates]) -> Candidates:
 
 
 TOLERANCE_RING = 8          # lamp errors of lamp_tolerance in this many directions around the aim
-# (cos psi, sin psi) of the ring's directions psi = 2 pi k / TOLERANCE_RING, once
-_RING = tuple((np.cos(a), np.sin(a)) for a in 2.0 * np.pi * np.arange(TOLERANCE_RING) / TOLERANCE_RING)
+# (TOLERANCE_RING, 2) (cos psi, sin psi) of the ring's directions psi = 2 pi k / TOLERANCE_RING, once
+_RING = np.array([(np.cos(a), np.sin(a)) for a in 2.0 * np.pi * np.arange(TOLERANCE_RING) / TOLERANCE_RING])
 
 
-def tolerance_moves(problem: Problem, tilt: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(d_pan, d_tilt) moving the lamp direction by lamp_tolerance in TOLERANCE_RING directions
-    psi (a ring: an error of that size in any direction, not only along the two axes):
-    (tol cos psi / cos tilt, tol sin psi), cos tilt at least 1e-3."""
+def tolerance_moves(problem: Problem, tilt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(d_pan, d_tilt), each (M, C), moving the lamp direction at each of C tilts by
+    lamp_tolerance in M = TOLERANCE_RING directions psi (a ring: an error of that size in any
+    direction, not only along the two axes): (tol cos psi / cos tilt, tol sin psi), cos tilt at
+    least 1e-3; M = 0 without a tolerance."""
     tol = problem.task.requirements.lamp_tolerance_rad
     if tol <= 0:
-        return []
+        return np.zeros((0, len(tilt))), np.zeros((0, len(tilt)))
     across = np.maximum(np.cos(tilt), 1e-3)
-    return [(tol * cos / across, tol * sin) for cos, sin in _RING]
+    return (tol * _RING[:, :1]) / across, np.broadcast_to(tol * _RING[:, 1:], (TOLERANCE_RING, len(tilt)))
 
 
 def candidates(problem: Problem, pan: ArrayLike, tilt: ArrayLike, radius: ArrayLike,
@@ -555,19 +557,19 @@ def candidates(problem: Problem, pan: ArrayLike, tilt: ArrayLike, radius: ArrayL
     pivot = problem.task.lamp.rig.pivot_m
     pan, tilt, radius = np.broadcast_arrays(*(np.atleast_1d(np.asarray(x, float)) for x in (pan, tilt, radius)))
     n = len(pan)
-    moves = tolerance_moves(problem, tilt) if tolerance else []
-    all_pos = rig.lamp_position(pivot, np.concatenate([pan] + [pan + dp for dp, _ in moves]),
-                                np.concatenate([tilt] + [tilt + dt for _, dt in moves]),
-                                np.tile(radius, len(moves) + 1))
+    d_pan, d_tilt = tolerance_moves(problem, tilt) if tolerance else (np.zeros((0, n)), np.zeros((0, n)))
+    m = len(d_pan)
+    all_pos = rig.lamp_position(pivot, np.concatenate([pan, (pan + d_pan).ravel()]),
+                                np.concatenate([tilt, (tilt + d_tilt).ravel()]), np.tile(radius, m + 1))
     drives = problem.full_drive(n) if drive is None else np.tile(np.asarray(drive, float), (n, 1))
     all_u, all_shadowed, all_off_axis, all_dominant = lit_by_all(
-        problem, unit_gray(problem, all_pos, rig.lamp_aim(pivot, all_pos)), np.tile(drives, (len(moves) + 1, 1)))
+        problem, unit_gray(problem, all_pos, rig.lamp_aim(pivot, all_pos)), np.tile(drives, (m + 1, 1)))
     u = all_u[:n]
     b = problem.black_level
-    moved = all_u[n:].reshape(len(moves), n, u.shape[1])
-    if tolerance:
-        moved = np.concatenate([moved, np.array(drive_moves(problem, u) + light_moves(problem, u, drives))
-                               .reshape(-1, n, u.shape[1])])
+    moved = all_u[n:].reshape(m, n, u.shape[1])
+    extra = drive_moves(problem, u) + light_moves(problem, u, drives) if tolerance else []
+    if extra:
+        moved = np.concatenate([moved, np.array(extra).reshape(-1, n, u.shape[1])])
     shutter, kappa, t_need = exposure(problem, u, moved)
     gain = (shutter / kappa**2)[:, None]
     return Candidates(all_pos[:n], b + u * gain, b + moved * gain, all_shadowed[:n], all_off_axis[:n],
@@ -583,11 +585,11 @@ def at_exposure(problem: Problem, position: ArrayLike, shutter_s: float, f_numbe
     at the same exposure."""
     pivot = problem.task.lamp.rig.pivot_m
     pos = np.asarray(position, float).reshape(1, 3)
-    moves, moved_pos = [], []
+    moved_pos = []
     if joints is not None:
-        moves = tolerance_moves(problem, np.array([joints[1]]))
+        d_pan, d_tilt = tolerance_moves(problem, np.array([joints[1]]))
         moved_pos = [rig.lamp_position(pivot, joints[0] + dp, joints[1] + dt, joints[2]).reshape(1, 3)
-                     for dp, dt in moves]
+                     for dp, dt in zip(d_pan, d_tilt)]
     all_pos = np.vstack([pos, *moved_pos])
     drives = problem.full_drive(1) if drive is None else np.asarray(drive, float).reshape(1, -1)
     all_u, all_shadowed, all_off_axis, all_dominant = lit_by_all(
@@ -595,7 +597,7 @@ def at_exposure(problem: Problem, position: ArrayLike, shutter_s: float, f_numbe
     u, gain = all_u[:1], shutter_s / f_number**2
     t_need = exposure(problem, u)[2]
     b = problem.black_level
-    moved = all_u[1:].reshape(len(moves), 1, u.shape[1])
+    moved = all_u[1:].reshape(len(moved_pos), 1, u.shape[1])
     if joints is not None:
         moved = np.concatenate([moved, np.array(drive_moves(problem, u) + light_moves(problem, u, drives))
                                .reshape(-1, 1, u.shape[1])])
