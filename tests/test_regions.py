@@ -4,7 +4,12 @@ import pytest
 from scipy.spatial import cKDTree
 
 from cell.core import geometry
-from cell.planning.regions import SphereGrid, chord_to_angle, on_edge, signed_distance
+from cell.planning.regions import RegionDistance, SphereGrid, chord_to_angle, on_edge
+
+
+def signed_distance(grid, inside):
+    """The whole transform (what a picture reads)."""
+    return RegionDistance(grid, inside).full()
 
 
 def brute_force(grid, inside):
@@ -65,34 +70,55 @@ def test_interpolation_wraps_the_seam():
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_the_distance_at_the_cells_around_a_lamp_is_the_whole_maps_there(seed):
-    """A judged shot computes the transform only at the cells `sample` reads around its lamp:
-    there it equals brute force (and the whole map), and sampling gives the same value."""
+    """A judged shot reads the transform only at the cells `sample` reads around its lamp: only
+    those are found, there it equals brute force (and the whole map), and sampling gives the
+    same value as sampling the whole map."""
     grid = SphereGrid(np.radians(10.0))
     rng = np.random.default_rng(seed)
     inside = grid.directions() @ geometry.unit(rng.normal(size=3)) > np.cos(np.radians(40))
     az, el = rng.uniform(-np.pi, np.pi, 3), rng.uniform(-1.5, 1.5, 3)
     cells = grid.cells_around(az, el)
     assert 4 <= len(cells) <= 12
-    part = signed_distance(grid, inside, cells)
-    assert np.isnan(part).sum() == part.size - len(cells)
-    assert np.allclose(part.ravel()[cells], brute_force(grid, inside).ravel()[cells], atol=1e-12)
-    np.testing.assert_array_equal(grid.sample(part, az, el), grid.sample(signed_distance(grid, inside), az, el))
+    lazy = RegionDistance(grid, inside)
+    got = lazy.sample(az, el)
+    found = ~np.isnan(lazy._values)
+    assert np.array_equal(np.flatnonzero(found), cells)
+    assert np.allclose(lazy._values[cells], brute_force(grid, inside).ravel()[cells], atol=1e-12)
+    np.testing.assert_array_equal(got, grid.sample(signed_distance(grid, inside), az, el))
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_a_few_cells_by_brute_force_equal_the_trees_bit_for_bit(seed):
-    """At a few cells (a judged lamp's) the transform is brute force (regions.nearest_chord), the
-    whole map k-d trees: the same numbers exactly, on the planner's 2 deg grid, cells inside and
-    outside the region both asked."""
+def test_cells_found_batch_by_batch_equal_the_whole_map_bit_for_bit(seed):
+    """A search asks the transform a few cells at a time (its lamps' as it goes), in batches
+    small and large, cells inside and outside the region, some asked again: each cell's value the
+    whole map's exactly, on the planner's 2 deg grid, at the seam and the poles too."""
     grid = SphereGrid(np.radians(2.0))
     rng = np.random.default_rng(seed)
     inside = grid.directions() @ geometry.unit(rng.normal(size=3)) > np.cos(np.radians(rng.uniform(15, 60)))
-    flat = inside.ravel()
-    cells = np.concatenate([rng.choice(np.flatnonzero(flat), 20, replace=False),
-                            rng.choice(np.flatnonzero(~flat), 20, replace=False)])
-    part = signed_distance(grid, inside, cells).ravel()
-    np.testing.assert_array_equal(part[cells], signed_distance(grid, inside).ravel()[cells])
-    assert np.isnan(np.delete(part, cells)).all()
+    whole = signed_distance(grid, inside)
+    lazy = RegionDistance(grid, inside)
+    for count in (1, 7, 40, 3000, 40):
+        az = rng.uniform(-np.pi, np.pi, count)
+        el = rng.uniform(-0.5 * np.pi, 0.5 * np.pi, count)
+        az[:1], el[-1:] = np.pi - 1e-3, 0.5 * np.pi - 1e-3        # beside the seam and a pole
+        np.testing.assert_array_equal(lazy.sample(az, el), grid.sample(whole, az, el))
+    cells = rng.choice(inside.size, 500, replace=False)
+    np.testing.assert_array_equal(lazy.at(cells), whole.ravel()[cells])
+    np.testing.assert_array_equal(lazy.full(), whole)
+
+
+def test_a_pickled_distance_keeps_its_cells_and_finds_the_rest():
+    """A plan made in a worker process comes back pickled: the cells found so far travel with it
+    (not its trees), and the rest are found after as before."""
+    import pickle
+    grid = SphereGrid(np.radians(5.0))
+    inside = grid.directions() @ geometry.unit([1.0, 0.2, 0.3]) > np.cos(np.radians(35))
+    lazy = RegionDistance(grid, inside)
+    lazy.sample(np.array([0.1, 2.0]), np.array([0.2, -0.4]))
+    back = pickle.loads(pickle.dumps(lazy))
+    assert back._trees is None
+    np.testing.assert_array_equal(back._values, lazy._values)
+    np.testing.assert_array_equal(back.full(), signed_distance(grid, inside))
 
 
 def nearest_over_all_cells(grid, inside):
@@ -106,7 +132,7 @@ def nearest_over_all_cells(grid, inside):
 
 @pytest.mark.parametrize("seed", range(6))
 def test_the_edge_cells_alone_give_the_transform_over_all_cells_bit_for_bit(seed):
-    """signed_distance searches only the cells on_edge: the same numbers exactly as trees over
+    """RegionDistance searches only the cells on_edge: the same numbers exactly as trees over
     every cell, on regions of several caps (holes, regions over a pole, across the seam) and
     scattered single cells."""
     rng = np.random.default_rng(seed)
@@ -122,7 +148,7 @@ def test_the_edge_cells_alone_give_the_transform_over_all_cells_bit_for_bit(seed
 
 
 def test_the_queries_split_over_two_threads_give_the_same_transform():
-    """signed_distance's k-d tree queries on the kernels' threads (kernels.runtime.threads): on
+    """RegionDistance's k-d tree queries on the kernels' threads (kernels.runtime.threads): on
     2 threads the numbers of trees over every cell queried on one, exactly."""
     from kernels import runtime
     grid = SphereGrid(np.radians(2.0))

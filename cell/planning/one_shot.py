@@ -47,12 +47,12 @@ def visibility_map(scene: Scene, grid: regions.SphereGrid, first: np.ndarray | N
 
 
 def build_maps(task: Task, scene: Scene, settings: PlannerSettings, visible: np.ndarray | None = None,
-               lamps: ArrayLike | None = None, reflectance: bool = True) -> Maps:
+               reflectance: bool = True) -> Maps:
     """Visibility (all samples), BRDF, dominant-term (where visible) and region distance maps (sec. 2.2, 5.2).
     The visibility map (given: a plan's own, judging another camera pose on its samples) does not
-    depend on the camera; the others do (the view direction is in the BRDF). Given `lamps`
-    (cell-frame positions: a shot judged), the region distance only where they read it; without
-    `reflectance` (a shot judged: only the pictures read the BRDF map) that map is empty."""
+    depend on the camera; the others do (the view direction is in the BRDF). The region distance
+    is found where it is read (regions.RegionDistance); without `reflectance` (a shot judged:
+    only the pictures read the BRDF map) that map is empty."""
     grid = regions.SphereGrid(np.radians(settings.grid_step_deg))
     if visible is None:
         visible = visibility_map(scene, grid)
@@ -61,12 +61,8 @@ def build_maps(task: Task, scene: Scene, settings: PlannerSettings, visible: np.
     dominant = regions.dominant_term_map(grid, scene.frame, scene.normal, view, material, where=visible)
     brdf_map = regions.reflectance_map(grid, scene.frame, scene.normal, view, material) if reflectance else np.zeros(0)
     wanted = regions.wanted_region(dominant, visible, task.requirements.reflection)
-    cells = None
-    if lamps is not None:
-        cells = grid.cells_around(*geometry.angles_from_direction((np.asarray(lamps) - scene.center) @ scene.frame))
-    distance = regions.signed_distance(grid, wanted, cells)
     empty = np.zeros(0)
-    return Maps(grid, visible, brdf_map, dominant, wanted, distance, empty, empty, empty)
+    return Maps(grid, visible, brdf_map, dominant, wanted, regions.RegionDistance(grid, wanted), empty, empty, empty)
 
 
 def candidate_grid(lamp_rig: LampRig, settings: PlannerSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -60,7 +60,7 @@ class Maps:
     reflectance: np.ndarray      # (E, A) R at the feature centre for a lamp there
     dominant: np.ndarray         # (E, A) dominant term where visible, brdf.OCCLUDED elsewhere
     wanted: np.ndarray           # (E, A) wanted reflection and visible
-    distance: np.ndarray         # (E, A) signed haversine distance to the wanted region [rad]
+    distance: regions.RegionDistance    # signed haversine distance to the wanted region [rad], found where read
     candidate_pan: np.ndarray    # (C,) global candidates [rad]
     candidate_tilt: np.ndarray
     candidate_objective: np.ndarray

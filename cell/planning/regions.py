@@ -81,20 +81,9 @@ def _cell_directions(step: float) -> np.ndarray:
     return out
 
 
-def nearest_chord(queries: np.ndarray, targets: np.ndarray) -> np.ndarray:
-    """(Q,) the chord from each query (Q, 3) to its nearest target (T, 3), by brute force: for
-    the few cells a judged lamp reads, cheaper than a k-d tree's build over the whole map. Summed
-    as cKDTree sums it, (dx^2 + dy^2) + dz^2, so the same value bit for bit."""
-    d = queries[:, None, :] - targets[None]
-    return np.sqrt(np.min((d[..., 0] ** 2 + d[..., 1] ** 2) + d[..., 2] ** 2, axis=1))
-
-
 def chord_to_angle(chord: float | np.ndarray) -> np.ndarray:
     """Great-circle angle from the chord between unit vectors: 2 asin(chord / 2)."""
     return 2.0 * np.arcsin(np.clip(0.5 * chord, 0.0, 1.0))
-
-
-FEW_CELLS = 64      # cells asked for at most: brute force (nearest_chord), not k-d trees
 
 
 POLE_ROWS = 3       # rows at either pole that on_edge keeps whole: there the grid's neighbours are not its 8
@@ -117,40 +106,59 @@ def on_edge(inside: np.ndarray) -> np.ndarray:
     return edge
 
 
-def signed_distance(grid: SphereGrid, inside: ArrayLike, cells: np.ndarray | None = None) -> np.ndarray:
-    """Exact signed spherical distance transform of a boolean map (E, A) [rad]:
-    -(distance to the nearest outside cell) inside, +(distance to the nearest inside cell) outside;
-    only at the flat indices `cells` if given (NaN elsewhere: one lamp's value needs the four
-    cells around it, not the whole map).
+SPLIT_QUERIES = 2048    # cells asked at once from which the k-d tree queries split over the kernels' threads
+
+
+class RegionDistance:
+    """Exact signed spherical distance transform of a boolean map (E, A) [rad] (eq. 2-3):
+    -(distance to the nearest outside cell) inside, +(distance to the nearest inside cell)
+    outside, computed only where it is read and kept: a search reads it at the cells around its
+    lamps (sample: a few thousand of the map's cells), a judged shot at one lamp's four, a
+    picture everywhere (full). Each cell's value is its own, however it was asked.
 
     Chord length between unit vectors is monotonic in the great-circle angle, so a k-d tree
-    on the cells' unit vectors finds the haversine-nearest cell exactly, seam and poles included
-    (at a few `cells`: brute force, nearest_chord, the same values); the trees hold only the
-    cells on_edge, among which the nearest one of the other kind always is.
-    An empty (or full) region gives +pi (or -pi) everywhere.
-    """
-    inside = np.asarray(inside, dtype=bool)
-    if not inside.any():
-        return np.full(inside.shape, np.pi)
-    if inside.all():
-        return np.full(inside.shape, -np.pi)
-    dirs = _cell_directions(grid.step).reshape(-1, 3)
-    flat = inside.ravel()
-    out = np.full(flat.shape, np.nan)
-    if cells is not None and len(cells) <= FEW_CELLS:
-        cells = np.unique(np.asarray(cells, dtype=int))
-        outside = ~flat[cells]
-        out[cells[~outside]] = -chord_to_angle(nearest_chord(dirs[cells[~outside]], dirs[~flat]))
-        out[cells[outside]] = chord_to_angle(nearest_chord(dirs[cells[outside]], dirs[flat]))
-        return out.reshape(inside.shape)
-    wanted = np.ones(flat.shape, bool) if cells is None else np.isin(np.arange(flat.size), cells)
-    edge = on_edge(inside).ravel()
-    workers = threads()             # the queries split over the kernels' threads: each query its own
-    chord_out, _ = cKDTree(dirs[~flat & edge]).query(dirs[flat & wanted], workers=workers)
-    chord_in, _ = cKDTree(dirs[flat & edge]).query(dirs[~flat & wanted], workers=workers)
-    out[flat & wanted] = -chord_to_angle(chord_out)
-    out[~flat & wanted] = chord_to_angle(chord_in)
-    return out.reshape(inside.shape)
+    on the cells' unit vectors finds the haversine-nearest cell exactly, seam and poles included;
+    the trees hold only the cells on_edge, among which the nearest one of the other kind always
+    is. An empty (or full) region gives +pi (or -pi) everywhere."""
+
+    def __init__(self, grid: SphereGrid, inside: ArrayLike) -> None:
+        self.grid = grid
+        self.inside = np.array(inside, dtype=bool)
+        self.inside.flags.writeable = False
+        uniform = np.pi if not self.inside.any() else -np.pi if self.inside.all() else np.nan
+        self._values = np.full(self.inside.size, uniform)        # NaN: not asked yet
+        self._trees: tuple[cKDTree, cKDTree] | None = None
+
+    def __getstate__(self) -> dict:
+        """Pickled (a plan from a worker process) with the values found so far, not the trees."""
+        return {**self.__dict__, "_trees": None}
+
+    def at(self, cells: ArrayLike) -> np.ndarray:
+        """The transform at the flat indices `cells` of the (E, A) map."""
+        cells = np.asarray(cells, dtype=int)
+        unknown = np.isnan(self._values[cells])
+        if unknown.any():
+            missing = np.unique(cells[unknown])
+            flat = self.inside.ravel()
+            dirs = _cell_directions(self.grid.step).reshape(-1, 3)
+            if self._trees is None:
+                edge = on_edge(self.inside).ravel()
+                self._trees = cKDTree(dirs[~flat & edge]), cKDTree(dirs[flat & edge])
+            to_outside, to_inside = self._trees
+            workers = threads() if len(missing) >= SPLIT_QUERIES else 1    # each query its own
+            inner, outer = missing[flat[missing]], missing[~flat[missing]]
+            self._values[inner] = -chord_to_angle(to_outside.query(dirs[inner], workers=workers)[0])
+            self._values[outer] = chord_to_angle(to_inside.query(dirs[outer], workers=workers)[0])
+        return self._values[cells]
+
+    def sample(self, azimuth: ArrayLike, elevation: ArrayLike) -> np.ndarray:
+        """SphereGrid.sample of the transform at (azimuth, elevation): the cells it reads found first."""
+        self.at(self.grid.cells_around(azimuth, elevation))
+        return self.grid.sample(self._values.reshape(self.inside.shape), azimuth, elevation)
+
+    def full(self) -> np.ndarray:
+        """(E, A) the transform at every cell."""
+        return self.at(np.arange(self.inside.size)).reshape(self.inside.shape)
 
 
 def dominant_term_map(grid: SphereGrid, frame: np.ndarray, normal: np.ndarray, view: np.ndarray,

@@ -141,7 +141,7 @@ def reflection_region(p: Problem, c: Candidates) -> np.ndarray:
     local = (c.position - p.scene.center) @ p.scene.frame
     az, el = geometry.angles_from_direction(local)
     maps = _maps(p)
-    d = maps.grid.sample(maps.distance, az, el)
+    d = maps.distance.sample(az, el)
     margin = max(p.task.requirements.region_margin_rad, 1e-6)
     region = np.where(c.drive[:, 0] > 0.0, d / margin + 1.0, -np.inf)     # the spot off: where it is does not matter
     others = other_reflection(p, c)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -47,16 +48,20 @@ def look_at(position: ArrayLike, target: ArrayLike, up: ArrayLike = (0.0, 0.0, 1
     return geometry.transform(np.column_stack([x, y, z]), position)
 
 
+@lru_cache(maxsize=64)
 def feature_disk(n: int, radius: float) -> np.ndarray:
     """n points over a disk, shape (n, 2): round(sqrt(pi n)) evenly on its rim, the rest spread
     over the inside (Vogel's sunflower). The rim is sampled on purpose: gray varies smoothly over
-    a patch, so its extremes, which decide "every point in band", lie mostly on the edge."""
+    a patch, so its extremes, which decide "every point in band", lie mostly on the edge.
+    Made once per (n, radius) and read-only (a part's scenes ask the same disks again)."""
     rim = int(round(np.sqrt(np.pi * n))) if n >= 8 else 0      # fewer: the sunflower alone
     a = 2.0 * np.pi * np.arange(rim) / rim
     i = np.arange(n - rim)
     r = radius * np.sqrt((i + 0.5) / (n - rim + (rim > 0)))    # inside the rim when there is one
-    return np.vstack([np.column_stack([radius * np.cos(a), radius * np.sin(a)]),
-                      np.column_stack([r * np.cos(i * GOLDEN_ANGLE), r * np.sin(i * GOLDEN_ANGLE)])])
+    out = np.vstack([np.column_stack([radius * np.cos(a), radius * np.sin(a)]),
+                     np.column_stack([r * np.cos(i * GOLDEN_ANGLE), r * np.sin(i * GOLDEN_ANGLE)])])
+    out.flags.writeable = False
+    return out
 
 
 @dataclass(frozen=True)
@@ -126,17 +131,13 @@ def build_scene(task: Task, samples: int | None = None, extra: np.ndarray | None
     radius rho must land at 3D distance rho: projected onto a curved surface it falls short (a
     cylinder's R atan(rho / R)), so its guess is pushed out radially until it lands there."""
     T = task.frames.T_cell_part
-    mesh = task.part.mesh.copy()
-    mesh.apply_transform(T)
+    vertices, faces, key, face_normals = placed_mesh(task)
     center = geometry.apply(T, task.feature.center_m)
     normal = geometry.unit(geometry.rotate(T, task.feature.normal))
     frame = geometry.frame_from_normal(normal)
     n = samples or task.feature.samples
     disk = feature_disk(n, task.feature.radius_m)
     guesses = center + disk[:, :1] * frame[:, 0] + disk[:, 1:] * frame[:, 1]
-    vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
-    faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
-    key = hashlib.blake2b(vertices.tobytes() + faces.tobytes(), digest_size=16).hexdigest()
     bvh = shared_mesh(key, vertices, faces)
     reach = 4 * task.feature.radius_m + 0.01
     wanted = np.hypot(disk[:, 0], disk[:, 1])
@@ -164,12 +165,39 @@ def build_scene(task: Task, samples: int | None = None, extra: np.ndarray | None
         raise TaskError(task.path, f"{task.feature.key}.radius_m", f"{task.feature.radius_m:g} m, a patch "
                         f"{int(np.sum(hit < 0))} of whose {len(hit)} samples find no surface within "
                         f"{1e3 * reach:.0f} mm", "a patch on the part's surface")
-    normals = mesh.face_normals[hit]
+    normals = face_normals[hit]
     if T_cell_cam is None:
         cam = center + task.camera.distance_m * geometry.unit(geometry.rotate(T, task.camera.view_direction))
         T_cell_cam = look_at(cam, center)
     return Scene(vertices=vertices, faces=faces, mesh_key=key, center=center, normal=normal, frame=frame,
                  points=points, normals=normals, T_cell_cam=np.array(T_cell_cam, float), housings=housings(task))
+
+
+_PLACED: dict[tuple[bytes, bytes, bytes], tuple[np.ndarray, np.ndarray, str, np.ndarray]] = {}
+_PLACED_MAX = 8
+
+
+def placed_mesh(task: Task) -> tuple[np.ndarray, np.ndarray, str, np.ndarray]:
+    """(vertices (V, 3), faces (F, 3), the digest naming them, face normals (F, 3)) of the task's
+    part mesh in the cell frame (T_cell_part), read-only: made once per geometry and pose in a
+    process (a part's scenes, some 500 at 40 features, share them; the few most recent kept)."""
+    mesh, T = task.part.mesh, task.frames.T_cell_part
+    known = (np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes(),
+             np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes(),
+             np.ascontiguousarray(T, dtype=np.float64).tobytes())
+    placed = _PLACED.pop(known, None)
+    if placed is None:
+        moved = mesh.copy()
+        moved.apply_transform(T)
+        vertices = np.ascontiguousarray(moved.vertices, dtype=np.float64)
+        faces = np.ascontiguousarray(moved.faces, dtype=np.int64)
+        key = hashlib.blake2b(vertices.tobytes() + faces.tobytes(), digest_size=16).hexdigest()
+        placed = vertices, faces, key, np.array(moved.face_normals)
+        _read_only(placed)
+    _PLACED[known] = placed
+    while len(_PLACED) > _PLACED_MAX:
+        _PLACED.pop(next(iter(_PLACED)))
+    return placed
 
 
 def _read_only(values):
