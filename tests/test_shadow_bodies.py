@@ -187,15 +187,81 @@ def test_the_camera_body_and_the_arm_shadow_the_spot_where_its_rays_cross_them()
         replace(problem, maps=SimpleNamespace(visible=np.ones(1))), one, False)
 
 
-def test_a_point_s_distance_to_a_segment_is_the_least_over_the_segment_s_points():
-    """Brute force: the least distance over 20001 points along each segment, within its spacing."""
-    from cell.collision.rays import points_to_segments
-    rng = np.random.default_rng(7)
-    points, a, b = rng.normal(size=(3, 50, 3))
-    found = points_to_segments(points, a, b)
-    s = np.linspace(0.0, 1.0, 20001)
-    along = a[:, None] + s[None, :, None] * (b - a)[:, None]
-    brute = np.linalg.norm(points[:, None] - along, axis=-1).min(axis=1)
-    assert found == pytest.approx(brute, abs=np.linalg.norm(b - a, axis=1).max() / 20000)
-    assert np.all(found <= brute + 1e-12)
-    assert np.isnan(points_to_segments(np.full(3, np.nan), a[0], b[0]))
+def test_a_box_s_capsule_holds_the_box():
+    from cell.collision.rays import box_capsules
+    rng = np.random.default_rng(31)
+    T = np.stack([np.eye(4)] * 12)
+    T[:, :3, :3] = Rotation.random(12, random_state=rng).as_matrix()
+    T[:, :3, 3] = rng.uniform(-0.3, 0.3, (12, 3))
+    half = rng.uniform(0.01, 0.2, (12, 3))
+    a, b, radius = box_capsules(T, half)
+    corners = np.array(np.meshgrid(*[(-1.0, 1.0)] * 3, indexing="ij")).reshape(3, -1).T
+    for k in range(12):
+        inside = np.vstack([rng.uniform(-1.0, 1.0, (500, 3)), corners]) * half[k]     # the box's own frame
+        points = geometry.apply(T[k], inside)
+        s = np.clip((points - a[k]) @ (b[k] - a[k]) / np.sum((b[k] - a[k]) ** 2), 0.0, 1.0)
+        gap = np.linalg.norm(points - a[k] - s[:, None] * (b[k] - a[k]), axis=1)
+        assert gap.max() <= radius[k] * (1 + 1e-12)
+        # no wider than the box: the corners lie on its surface (the axis is the box's longest)
+        assert gap.max() == pytest.approx(radius[k]) and np.linalg.norm(b[k] - a[k]) == pytest.approx(2 * half[k].max())
+
+
+def distance_to_segments(point, origin, ends):
+    """(C,) the least distance from a point to each segment origin -> end, by 4001 points along it."""
+    t = np.linspace(0.0, 1.0, 4001)
+    along = origin + t[None, :, None] * (ends - origin)[:, None]
+    return np.linalg.norm(along - point, axis=-1).min(axis=1)
+
+
+def test_balls_seen_from_a_point_keep_every_segment_that_meets_them():
+    from cell.collision.rays import BallsSeen
+    rng = np.random.default_rng(32)
+    origin = rng.normal(size=3) * 0.1
+    centres, radii = rng.uniform(-0.4, 0.4, (6, 3)), rng.uniform(0.05, 0.15, 6)
+    centres[0], radii[0] = origin + 0.01, 0.05                        # one ball about the origin
+    ends = rng.uniform(-0.6, 0.6, (300, 3))
+    met = BallsSeen.of(origin, centres, radii).met_by(ends)
+    meets = np.array([distance_to_segments(c, origin, ends) <= r - 1e-3 for c, r in zip(centres, radii)])
+    assert not np.any(meets & ~met)                                   # never skips a segment that meets
+    assert met[0].all() and meets[1:].sum() > 20 and (met[1:] & ~meets[1:]).sum() < meets[1:].sum()  # and filters
+    assert not BallsSeen.of(origin, centres, radii).met_by(np.full(3, np.nan)).any()
+
+
+def test_the_sight_cone_keeps_every_ball_a_line_of_sight_meets():
+    from cell.collision.rays import SightCone
+    rng = np.random.default_rng(33)
+    apex, middle, rho = np.array([0.0, 0.0, 0.4]), np.array([0.01, -0.02, 0.0]), 0.03
+    direction = rng.normal(size=(4000, 3))
+    samples = middle + rho * rng.uniform(0, 1, (4000, 1)) ** (1 / 3) * direction / np.linalg.norm(direction, axis=1)[:, None]
+    centres = np.vstack([apex + rng.uniform(0.0, 1.2, (150, 1)) * (middle - apex) + rng.normal(0.0, 0.05, (150, 3)),
+                         rng.uniform(-0.5, 0.5, (150, 3))])
+    radius = 0.04
+    meets = np.array([distance_to_segments(c, apex, samples[::10]).min() <= radius - 2e-3 for c in centres])
+    found = SightCone.of(apex, middle, rho).meets(centres, radius)
+    assert not np.any(meets & ~found) and meets.sum() > 30 and (found & ~meets).sum() < 0.5 * meets.sum()
+    assert SightCone.of(middle, middle, rho).meets(centres, radius).all()          # the apex inside: every ball
+
+
+def test_the_prefilters_skip_no_crossing_of_the_arm_the_camera_body_or_the_lamp():
+    """spot_blocked and lamp_hides equal the exact tests of every body against every ray, their
+    prefilters left out, for lamps about the bodies, the lines of sight and the rig."""
+    from cell.collision.rays import segments_near_segments
+    from cell.collision.scene import lamp_boxes
+    task = load_task(RING)
+    scene = build_scene(task)
+    problem = evaluate.build_problem(task, scene, None)
+    arm = evaluate.arm_at_shot(task, scene)
+    rng = np.random.default_rng(34)
+    camera, centre, P = scene.camera_position, scene.center, len(scene.points)
+    pan, tilt = rng.uniform(-np.pi, np.pi, 60), rng.uniform(*task.lamp.rig.tilt_range_rad, 60)
+    lamps = np.vstack([centre + rng.uniform(0.2, 1.2, (60, 1)) * (camera - centre) + rng.normal(0.0, 0.04, (60, 3)),
+                       arm.a + rng.uniform(0, 1, (len(arm.a), 1)) * (arm.b - arm.a) + rng.normal(0.0, 0.06, arm.a.shape),
+                       rig.lamp_position(task.lamp.rig.pivot_m, pan, tilt, rng.uniform(0.15, 0.6, 60))])
+    origins = np.broadcast_to(scene.points, (len(lamps), P, 3)).reshape(-1, 3)
+    targets = np.repeat(lamps, P, axis=0)
+    exact = (segments_cross_boxes(origins, targets, arm.T_cell_box[None], arm.half_m)[0]
+             | segments_near_segments(origins, targets, arm.a, arm.b, arm.radius_m).any(axis=0)).reshape(len(lamps), P)
+    assert np.array_equal(evaluate.spot_blocked(problem, lamps), exact) and 10 < exact.any(axis=1).sum() < len(lamps) - 10
+    half = 0.5 * np.asarray(task.cell.collision.lamp_size_m)
+    hidden = segments_cross_boxes(camera, scene.points, lamp_boxes(task.lamp.rig.pivot_m, half, lamps), half)
+    assert np.array_equal(requirements.lamp_hides(problem, lamps), hidden) and 10 < hidden.any(axis=1).sum() < len(lamps) - 10

@@ -7,12 +7,21 @@ o' = R^T (o - c), d' = R^T d, each axis's slab |o'_i + t d'_i| < h_i holds for t
 none where |o'_i| >= h_i); the segment crosses the box where the three intervals and (0, 1)
 overlap: max(t_near) < min(t_far) (Kay and Kajiya's slabs; Ericson, Real-Time Collision
 Detection 5.3.3). A segment touching a face only (grazing) does not cross.
+
+Prefilters, cheap and never skipping a crossing: balls holding the bodies against the cone of
+directions a bundle of segments spans (BallsSeen, SightCone), then capsules holding them
+(box_capsules) against one segment standing for the bundle (segments_near_segments at a
+widened radius).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from numpy.typing import ArrayLike
+
+NEAR_MARGIN_M = 1e-6      # a prefilter's radius widened well past floating-point rounding [m]
 
 
 def segments_cross_boxes(origins: ArrayLike, targets: ArrayLike, T_cell_box: ArrayLike,
@@ -59,13 +68,80 @@ def segments_near_segments(origins: ArrayLike, targets: ArrayLike, a: ArrayLike,
     return np.einsum("knj,knj->kn", gap, gap) < np.asarray(radius_m, float).reshape(-1, 1) ** 2
 
 
-def points_to_segments(points: ArrayLike, a: ArrayLike, b: ArrayLike) -> np.ndarray:
-    """The distance from each point to the segment a -> b, broadcast over points, a and b (..., 3)
-    [m]: |p - a - s (b - a)|, s = <p - a, b - a> / |b - a|^2 clipped to [0, 1]; a point or segment
-    not finite gives NaN (compares false)."""
-    p, a, b = (np.asarray(x, float) for x in (points, a, b))
-    d = b - a
-    with np.errstate(invalid="ignore"):
-        s = np.clip(np.einsum("...j,...j->...", p - a, d) / np.maximum(np.einsum("...j,...j->...", d, d), 1e-300),
-                    0.0, 1.0)
-        return np.linalg.norm(p - a - s[..., None] * d, axis=-1)
+def box_capsules(T_cell_box: ArrayLike, half_m: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(a, b (B, 3), radius (B,)) a capsule holding each box (poses T_cell_box (B, 4, 4), half
+    sizes half_m (B, 3) or one (3,) [m]): its axis the box's longest, through the centre from face
+    to face, its radius the other two half sizes' hypotenuse. A point of the box, |x_i| <= h_i in
+    its frame, lies along that axis within the segment's extent and sqrt(h_j^2 + h_k^2) across it."""
+    T = np.asarray(T_cell_box, float).reshape(-1, 4, 4)
+    half = np.broadcast_to(np.asarray(half_m, float), (len(T), 3))
+    axis = np.argmax(half, axis=1)
+    rows = np.arange(len(T))
+    along = T[rows, :3, axis] * half[rows, axis][:, None]
+    across = np.sqrt(np.sum(half**2, axis=1) - half[rows, axis] ** 2)
+    return T[:, :3, 3] - along, T[:, :3, 3] + along, across
+
+
+@dataclass(frozen=True)
+class BallsSeen:
+    """Balls as seen from a point o: a segment from o meets ball k (centre c_k, radius r_k, at
+    d_k = |c_k - o| > r_k) only if its direction lies within asin(r_k / d_k) of c_k - o (the
+    ball lies in the cone from o tangent to it) and it reaches d_k - r_k; with o inside a ball,
+    every segment may."""
+
+    origin: np.ndarray          # (3,)
+    unit: np.ndarray            # (K, 3) towards each centre (0 where o is inside the ball)
+    cos2: np.ndarray            # (K,) cos^2 of each ball's angular radius (0 where o is inside)
+    reach2: np.ndarray          # (K,) (d_k - r_k)^2, 0 where o is inside
+
+    @classmethod
+    def of(cls, origin: ArrayLike, centres: ArrayLike, radii: ArrayLike) -> BallsSeen:
+        o = np.asarray(origin, float).reshape(3)
+        v = np.asarray(centres, float).reshape(-1, 3) - o
+        r = np.asarray(radii, float).reshape(-1)
+        d = np.sqrt(np.sum(v * v, axis=1))
+        outside = d > r
+        with np.errstate(divide="ignore", invalid="ignore"):
+            unit = np.where(outside[:, None], v / d[:, None], 0.0)
+            cos2 = np.where(outside, 1.0 - (r / d) ** 2, 0.0)
+        return cls(o, unit, cos2, np.where(outside, d - r, 0.0) ** 2)
+
+    def met_by(self, ends: ArrayLike) -> np.ndarray:
+        """(K, C) whether the segment from the origin to each end (C, 3) may meet ball k (not
+        finite: not)."""
+        v = np.asarray(ends, float).reshape(-1, 3) - self.origin
+        along = self.unit @ v.T                                   # (K, C) |v| cos(angle)
+        vv = np.sum(v * v, axis=1)
+        return (along >= 0.0) & (along * along >= self.cos2[:, None] * vv) & (vv >= self.reach2[:, None])
+
+
+@dataclass(frozen=True)
+class SightCone:
+    """The segments from an apex (the camera) to points within rho of a middle m: the cone from
+    the apex tangent to that sphere (axis w, half angle alpha, sin alpha = rho / |m - apex|),
+    reaching |m - apex| + rho along w. A ball (centre x, radius R) meets it only if
+    b cos alpha - a sin alpha <= R, a = <x - apex, w>, b = |x - apex - a w| (x's signed distance
+    from the plane tangent to the cone along its side facing x, the cone behind that plane) and
+    -R <= a <= |m - apex| + rho + R; with the apex inside the sphere, any ball may."""
+
+    apex: np.ndarray            # (3,)
+    axis: np.ndarray            # (3,) unit
+    length: float               # |m - apex| + rho
+    sin: float
+    cos: float
+
+    @classmethod
+    def of(cls, apex: ArrayLike, middle: ArrayLike, rho: float) -> SightCone:
+        apex = np.asarray(apex, float).reshape(3)
+        v = np.asarray(middle, float).reshape(3) - apex
+        d = float(np.sqrt(v @ v))
+        if d <= rho:
+            return cls(apex, np.zeros(3), np.inf, 1.0, 0.0)          # every direction: the test always holds
+        return cls(apex, v / d, d + rho, rho / d, float(np.sqrt(1.0 - (rho / d) ** 2)))
+
+    def meets(self, centres: ArrayLike, radius: float) -> np.ndarray:
+        """(C,) whether a ball of `radius` about each centre (C, 3) may meet the cone (not finite: not)."""
+        v = np.asarray(centres, float).reshape(-1, 3) - self.apex
+        a = v @ self.axis
+        b = np.sqrt(np.maximum(np.sum(v * v, axis=1) - a * a, 0.0))
+        return (b * self.cos - a * self.sin <= radius) & (a >= -radius) & (a <= self.length + radius)

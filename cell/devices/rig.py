@@ -26,11 +26,13 @@ def lamp_frame(pivot: ArrayLike, position: ArrayLike) -> np.ndarray:
     """(..., 3, 3) the lamp's axes in the cell frame at `position` (..., 3): z its aim at the pivot,
     x horizontal (z x the cell's z; the cell's x when the lamp is straight above the pivot), y = z x x."""
     z = lamp_aim(pivot, position)
-    x = np.cross((0.0, 0.0, 1.0), z)
-    norm = np.linalg.norm(x, axis=-1, keepdims=True)
+    x = np.stack([-z[..., 1], z[..., 0], np.zeros_like(z[..., 0])], axis=-1)       # (0, 0, 1) x z
+    norm = np.sqrt(x[..., :1] ** 2 + x[..., 1:2] ** 2)
     with np.errstate(invalid="ignore", divide="ignore"):
         x = np.where(norm > 1e-9, x / norm, (1.0, 0.0, 0.0))
-    return np.stack([x, np.cross(z, x), z], axis=-1)
+    y = np.stack([z[..., 1] * x[..., 2] - z[..., 2] * x[..., 1], z[..., 2] * x[..., 0] - z[..., 0] * x[..., 2],
+                  z[..., 0] * x[..., 1] - z[..., 1] * x[..., 0]], axis=-1)          # z x x
+    return np.stack([x, y, z], axis=-1)
 
 
 def lamp_joints(pivot: ArrayLike, position: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -21,6 +21,7 @@ from cell.physics import brdf, depth_of_field as dof
 from cell.planning.regions import WANTED_TERM
 
 if TYPE_CHECKING:
+    from cell.collision.rays import BallsSeen
     from kernels.gray import GrayInputs, GrayResult
     from cell.planning.plan import Maps
     from cell.planning.scene import Scene
@@ -326,55 +327,86 @@ def unit_gray(problem: Problem, positions: ArrayLike,
 class ArmAtShot:
     """The bodies the camera's pose places, which stand still while the spot is searched: the
     camera body (a box, T_cell_box and half sizes) and the UR5e's links (capsules: axes a-b,
-    radii) at the joints that reach the pose (none where the arm does not reach it); each
-    body's bounding sphere (centres, radii), the camera body's first."""
+    radii) at the joints that reach the pose (none where the arm does not reach it); for the
+    prefilters a capsule holding each body (around_a, around_b, around_radius_m: the camera
+    body's first, rays.box_capsules, then the links themselves) and balls along each holding it
+    widened by rho as seen from m (seen; a long link is held by several, each at most twice the
+    capsule's width), m and rho the samples' sphere (middle, rho)."""
 
     T_cell_box: np.ndarray        # (4, 4)
     half_m: np.ndarray            # (3,)
     a: np.ndarray                 # (K, 3)
     b: np.ndarray                 # (K, 3)
     radius_m: np.ndarray          # (K,)
-    centers: np.ndarray           # (1 + K, 3)
-    radii: np.ndarray             # (1 + K,)
+    around_a: np.ndarray          # (1 + K, 3)
+    around_b: np.ndarray          # (1 + K, 3)
+    around_radius_m: np.ndarray   # (1 + K,)
+    middle: np.ndarray            # (3,)
+    rho: float
+    seen: BallsSeen               # the balls holding the capsules widened by rho, body by body
+    first_ball: np.ndarray        # (1 + K,) each body's first ball in seen
 
 
 def arm_at_shot(task: Task, scene: Scene) -> ArmAtShot:
     """The camera body and the arm's links at the scene's camera pose (cell.collision.scene:
     camera_body, arm_links, reaching_joints: the joints nearest home, as the shot's clearance)."""
-    from cell.collision.bodies import Box, Capsule
+    from cell.collision.rays import NEAR_MARGIN_M, BallsSeen, box_capsules
     from cell.collision.scene import arm_links, camera_body, reaching_joints
     c, frames = task.cell.collision, task.frames
     box = camera_body(frames.T_cell_flange(scene.T_cell_cam), 0.5 * np.asarray(c.camera_size_m, float),
                       c.camera_offset_m)
     q = reaching_joints(frames, scene.T_cell_cam)
     links = () if q is None else arm_links(frames.T_cell_base, q)
-    bodies: tuple[Box | Capsule, ...] = (box, *links)
-    return ArmAtShot(box.T_cell_box, box.half_m, np.array([k.a for k in links]).reshape(-1, 3),
-                     np.array([k.b for k in links]).reshape(-1, 3), np.array([k.radius_m for k in links]),
-                     np.array([body.center for body in bodies]), np.array([body.radius for body in bodies]))
+    a, b, radius = (np.array([k.a for k in links]).reshape(-1, 3), np.array([k.b for k in links]).reshape(-1, 3),
+                    np.array([k.radius_m for k in links]))
+    box_a, box_b, box_radius = box_capsules(box.T_cell_box, box.half_m)
+    around_a, around_b, around_radius = np.vstack([box_a, a]), np.vstack([box_b, b]), np.concatenate([box_radius, radius])
+    middle, rho = geometry.bounding_sphere(scene.points)
+    # each capsule widened by rho held by balls along its axis, n_k of them, each at most twice as wide as the capsule
+    widened = around_radius + rho + NEAR_MARGIN_M
+    length = np.linalg.norm(around_b - around_a, axis=1)
+    pieces = np.maximum(1, np.ceil(length / (2.0 * widened))).astype(int)
+    body = np.repeat(np.arange(len(pieces)), pieces)
+    at = (np.arange(len(body)) - np.repeat(np.cumsum(pieces) - pieces, pieces) + 0.5) / pieces[body]
+    centres = around_a[body] + at[:, None] * (around_b - around_a)[body]
+    seen = BallsSeen.of(middle, centres, 0.5 * length[body] / pieces[body] + widened[body])
+    return ArmAtShot(box.T_cell_box, box.half_m, a, b, radius, around_a, around_b, around_radius, middle, rho,
+                     seen, np.cumsum(pieces) - pieces)
 
 
 def spot_blocked(problem: Problem, positions: ArrayLike) -> np.ndarray:
     """(C, P) whether the ray from each sample to the spot at each position (C, 3) crosses the
     camera body or a link of the arm (ArmAtShot; cell.collision.rays): a shadow as the part's,
-    no spot light there. Only a body near the rays is tested: the ray sample -> lamp lies within
-    rho (the samples' sphere about their middle m) of m -> lamp, so a body whose bounding sphere
-    is farther than rho from that segment blocks none."""
-    from cell.collision.rays import points_to_segments, segments_cross_boxes, segments_near_segments
+    no spot light there. Only the bodies near the rays are tested, the links in one call: the
+    ray sample s -> lamp L at s + t (L - s) lies (1 - t) |s - m| <= rho from m + t (L - m)
+    (rho the samples' sphere about their middle m), so a body whose capsule (ArmAtShot.around_*)
+    is farther than rho from the segment m -> L blocks none of the lamp's rays; nor one whose
+    ball holding that capsule, widened by rho, the segment m -> L cannot meet (ArmAtShot.seen,
+    tested first: a few operations for every lamp and body)."""
+    from cell.collision.rays import NEAR_MARGIN_M, segments_cross_boxes, segments_near_segments
     scene = problem.scene
     positions = np.asarray(positions, float).reshape(-1, 3)
-    out = np.zeros((len(positions), len(scene.points)), bool)
+    count = len(scene.points)
+    out = np.zeros((len(positions), count), bool)
     arm = problem.fixed("arm_at_shot", lambda: arm_at_shot(problem.task, scene))
-    middle, rho = problem.fixed("samples_sphere", lambda: geometry.bounding_sphere(scene.points))
-    near = points_to_segments(arm.centers[:, None], middle, positions) <= rho + arm.radii[:, None]   # (1 + K, C)
-    for k in np.flatnonzero(near.any(axis=1)):
-        lamps = np.flatnonzero(near[k])
-        origins = np.broadcast_to(scene.points, (len(lamps), *scene.points.shape)).reshape(-1, 3)
-        targets = np.repeat(positions[lamps], len(scene.points), axis=0)
-        if k == 0:
-            hit = segments_cross_boxes(origins, targets, arm.T_cell_box[None], arm.half_m)[0]
-        else:
-            hit = segments_near_segments(origins, targets, arm.a[k - 1], arm.b[k - 1], arm.radius_m[k - 1])[0]
+    near = np.logical_or.reduceat(arm.seen.met_by(positions), arm.first_ball, axis=0)   # (1 + K, C)
+    if not near.any():
+        return out
+    bodies, lamps = np.flatnonzero(near.any(axis=1)), np.flatnonzero(near.any(axis=0))
+    near[np.ix_(bodies, lamps)] &= segments_near_segments(
+        arm.middle, positions[lamps], arm.around_a[bodies], arm.around_b[bodies],
+        arm.around_radius_m[bodies] + arm.rho + NEAR_MARGIN_M)
+
+    def rays(lamps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return (np.broadcast_to(scene.points, (len(lamps), count, 3)).reshape(-1, 3),
+                np.repeat(positions[lamps], count, axis=0))
+    if near[0].any():
+        lamps = np.flatnonzero(near[0])
+        out[lamps] = segments_cross_boxes(*rays(lamps), arm.T_cell_box[None], arm.half_m)[0].reshape(len(lamps), -1)
+    links = np.flatnonzero(near[1:].any(axis=1))
+    if len(links):
+        lamps = np.flatnonzero(near[1:][links].any(axis=0))
+        hit = segments_near_segments(*rays(lamps), arm.a[links], arm.b[links], arm.radius_m[links]).any(axis=0)
         out[lamps] |= hit.reshape(len(lamps), -1)
     return out
 

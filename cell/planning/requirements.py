@@ -19,10 +19,11 @@ import numpy as np
 import trimesh
 from numpy.typing import ArrayLike
 
-from cell.collision.rays import points_to_segments, segments_cross_boxes
+from cell.collision.rays import NEAR_MARGIN_M, SightCone, segments_cross_boxes
 from cell.collision.scene import lamp_boxes
 from cell.core import geometry
 from cell.core.numbers import number
+from cell.devices import rig
 from cell.physics import projection
 from cell.planning import evaluate, occluders, regions
 from cell.physics import brdf, costs, depth_of_field as dof
@@ -242,23 +243,24 @@ def lamp_hides(p: Problem, positions: np.ndarray) -> np.ndarray:
     hides with the lamp at each position (C, 3): the line of sight camera -> sample crosses the
     lamp's box (collision.scene.lamp_boxes: cell.collision's lamp_size_m; rays.segments_cross_boxes);
     a position not finite is a lamp not placed (a viewpoint judged before any lamp), hiding none.
-    Only lamps near the lines of sight are tested: each line lies within rho (the samples'
-    sphere about their middle m) of the segment camera -> m, and the box, which reaches from the
-    lamp's front back 2 h_z along the aim, within |(h_x, h_y, 2 h_z)| of the lamp, so a lamp
-    farther than both from that segment hides none."""
+    Only lamps that may meet the lines of sight are tested: those lie in the cone from the camera
+    tangent to the samples' sphere (rays.SightCone), and the box in the ball about its centre,
+    h_z behind the lamp along the aim, of radius |h|."""
     positions = np.asarray(positions, float).reshape(-1, 3)
     out = np.zeros((len(positions), len(p.scene.points)), bool)
     seen = p.camera_seen
     if seen is None or not seen.any():
         return out
     half = 0.5 * np.asarray(p.task.cell.collision.lamp_size_m, float)
-    camera = p.scene.camera_position
-    middle, rho = p.fixed("samples_sphere", lambda: geometry.bounding_sphere(p.scene.points))
+    pivot = p.task.lamp.rig.pivot_m
+    cone = p.fixed("sight_cone", lambda: SightCone.of(p.scene.camera_position,
+                                                      *geometry.bounding_sphere(p.scene.points)))
     with np.errstate(invalid="ignore"):        # a lamp not placed (NaN) is not near
-        near = points_to_segments(positions, camera, middle) <= rho + np.linalg.norm(half * (1, 1, 2))
+        near = cone.meets(positions - half[2] * rig.lamp_aim(pivot, positions),
+                          float(np.linalg.norm(half)) + NEAR_MARGIN_M)
     if near.any():
-        boxes = lamp_boxes(p.task.lamp.rig.pivot_m, half, positions[near])
-        out[np.ix_(near, seen)] = segments_cross_boxes(camera, p.scene.points[seen], boxes, half)
+        boxes = lamp_boxes(pivot, half, positions[near])
+        out[np.ix_(near, seen)] = segments_cross_boxes(p.scene.camera_position, p.scene.points[seen], boxes, half)
     return out
 
 
