@@ -55,7 +55,7 @@ def norm(v: ArrayLike, axis: int = -1, keepdims: bool = False) -> np.ndarray:
     axis (the same bits) without its dispatch, which costs more than the sum on a few vectors
     (a search's objective asks it at every evaluation)."""
     v = np.asarray(v, dtype=float)
-    return np.sqrt(np.add.reduce(v * v, axis=axis, keepdims=keepdims))
+    return np.sqrt((v * v).sum(axis=axis, keepdims=keepdims))
 
 
 def unit(v: ArrayLike, axis: int = -1) -> np.ndarray:
