@@ -52,8 +52,8 @@ def rotate(T: np.ndarray, vectors: ArrayLike) -> np.ndarray:
 
 def norm(v: ArrayLike, axis: int = -1, keepdims: bool = False) -> np.ndarray:
     """|v| along axis: sqrt(sum v^2), np.linalg.norm's own arithmetic for a vector norm along an
-    axis (the same bits) without its dispatch, which costs more than the sum on a few vectors
-    (a search's objective asks it at every evaluation)."""
+    axis (add.reduce of v * v: the same bits) without its dispatch, which costs more than the
+    sum on a few vectors (a search's objective asks it at every evaluation)."""
     v = np.asarray(v, dtype=float)
     return np.sqrt((v * v).sum(axis=axis, keepdims=keepdims))
 

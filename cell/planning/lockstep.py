@@ -1,7 +1,7 @@
 """Several sequential searches run in lockstep in one thread: each written as a generator that
-yields the point whose value it needs and is sent that value (cell.planning.nelder_mead: scipy's
-Nelder-Mead step for step), every round the points of all the searches still running answered by
-one batched call. A search's refinement starts (one kernel launch and one pass of the
+yields the point whose value it needs, or a batch of points, and is sent that value, or theirs
+(cell.planning.nelder_mead: scipy's Nelder-Mead step for step), every round what all the searches
+still running ask answered by one batched call. A search's refinement starts (one kernel launch and one pass of the
 requirements over all their poses a round) and the certificates' specular points (one
 closest-point launch over all a round) thus share their evaluations. Each search sees the values
 it would have seen alone when a point's value does not depend on the other points in its batch
@@ -19,19 +19,20 @@ from typing import TypeVar
 
 Result = TypeVar("Result")
 Point = TypeVar("Point")
+Value = TypeVar("Value")
 
 
-def drive(searches: Sequence[Generator[Point, float, Result]],
-          batch: Callable[[list[tuple[int, Point]]], Iterable[float]]) -> list[Result]:
-    """Each search's return value, the searches (generators that yield a point and are sent its
-    value) in lockstep in this thread: each round, the points every unfinished search asks
-    answered by one batch([(search's index, point), ...]) call, a value each, in order. Each
-    search sees the values it would have seen alone when a point's value does not depend on the
-    others in its batch."""
+def drive(searches: Sequence[Generator[Point, Value, Result]],
+          batch: Callable[[list[tuple[int, Point]]], Iterable[Value]]) -> list[Result]:
+    """Each search's return value, the searches (generators that yield a point, or a batch of
+    points, and are sent its value, or theirs) in lockstep in this thread: each round, what every
+    unfinished search asks answered by one batch([(search's index, what it asks), ...]) call, an
+    answer each, in order. Each search sees the values it would have seen alone when a point's
+    value does not depend on the others in its batch."""
     results: list[Result | None] = [None] * len(searches)
     asked: dict[int, Point] = {}
 
-    def advance(k: int, value: float | None) -> None:
+    def advance(k: int, value: Value | None) -> None:
         try:
             asked[k] = next(searches[k]) if value is None else searches[k].send(value)
         except StopIteration as stop:
@@ -43,5 +44,5 @@ def drive(searches: Sequence[Generator[Point, float, Result]],
     while asked:
         order = sorted(asked)
         for k, value in zip(order, list(batch([(k, asked[k]) for k in order]))):
-            advance(k, float(value))
+            advance(k, value)
     return results      # type: ignore[return-value]  # every search returned: set

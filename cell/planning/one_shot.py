@@ -114,12 +114,15 @@ CONVERGED = "Optimization terminated successfully."
 OUT_OF_EVALUATIONS = "Maximum number of function evaluations has been exceeded."
 
 
-def refinement(start: ArrayLike, lamp_rig: LampRig) -> Generator[np.ndarray, float, tuple[np.ndarray, Refinement]]:
+def refinement(start: ArrayLike, lamp_rig: LampRig) -> Generator[np.ndarray, np.ndarray,
+                                                                  tuple[np.ndarray, Refinement]]:
     """Nelder-Mead (cell.planning.nelder_mead: scipy's, step for step) over (pan, tilt, radius)
-    in grid-step units from `start`, clipped to the rig's ranges, as a generator: yields the
-    joints whose objective (pose_objectives' of one pose) it needs, each clipped pose once (steps
-    beyond a range's end land on one pose), and returns (joints, Refinement with the solver's
-    verdict and evaluation count)."""
+    in grid-step units from `start`, clipped to the rig's ranges, as a generator: yields (K, 3)
+    joints whose objectives (pose_objectives') it needs and is sent their K values, each clipped
+    pose once (steps beyond a range's end land on one pose); each step's points are asked
+    together, those it may need ahead of its choice (nelder_mead.batches), so a step costs one
+    round of the lockstep, not one or two. Returns (joints, Refinement with the solver's verdict
+    and evaluation count)."""
     lo = np.array([lamp_rig.pan_range_rad[0], lamp_rig.tilt_range_rad[0], lamp_rig.radius_range_m[0]])
     hi = np.array([lamp_rig.pan_range_rad[1], lamp_rig.tilt_range_rad[1], lamp_rig.radius_range_m[1]])
     scale = np.array([np.radians(5.0), np.radians(5.0), 0.05])
@@ -128,15 +131,16 @@ def refinement(start: ArrayLike, lamp_rig: LampRig) -> Generator[np.ndarray, flo
         return np.clip(np.asarray(start) + z * scale, lo, hi)
 
     seen: dict[bytes, float] = {}       # clipped joints -> objective
-    search = nelder_mead.minimize(np.vstack([np.zeros(3), np.eye(3)]), 0.02, 1e-4, REFINE_EVALUATIONS)
+    search = nelder_mead.batches(np.vstack([np.zeros(3), np.eye(3)]), 0.02, 1e-4, REFINE_EVALUATIONS)
     try:
-        z = next(search)
+        steps = next(search)
         while True:
-            x = clipped(z)
-            key = x.tobytes()
-            if key not in seen:
-                seen[key] = yield x
-            z = search.send(seen[key])
+            poses = [clipped(z) for z in steps]
+            new = {x.tobytes(): x for x in poses if x.tobytes() not in seen}
+            if new:
+                values = yield np.array(list(new.values()))
+                seen.update(zip(new, (float(v) for v in values)))
+            steps = search.send([seen[x.tobytes()] for x in poses])
     except StopIteration as stop:
         z, fun, nfev = stop.value
     converged = nfev < REFINE_EVALUATIONS
@@ -158,8 +162,11 @@ def refine_all(problem: evaluate.Problem, starts: list[np.ndarray],
     """The refinement from every start, the starts in lockstep (cell.planning.lockstep.drive):
     each round's objective evaluations of all starts in one evaluate.candidates call (one kernel
     launch, one pass of the requirements), the same results as one start at a time."""
-    return lockstep.drive([refinement(x, lamp_rig) for x in starts],
-                          lambda asked: pose_objectives(problem, np.array([x for _, x in asked])))
+    def batch(asked: list[tuple[int, np.ndarray]]) -> list[np.ndarray]:
+        values = pose_objectives(problem, np.vstack([x for _, x in asked]))
+        return np.split(values, np.cumsum([len(x) for _, x in asked])[:-1])
+
+    return lockstep.drive([refinement(x, lamp_rig) for x in starts], batch)
 
 
 def plan(task: Task, settings: PlannerSettings = PlannerSettings(), albedo_scale: float = 1.0,
