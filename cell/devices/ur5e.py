@@ -78,11 +78,11 @@ def inverse_all(T_base_flange: np.ndarray, q6_free: float = 0.0) -> np.ndarray:
     for q1 in (psi + phi, psi + np.pi - phi):
         z1 = np.array([np.sin(q1), -np.cos(q1), 0.0])  # joint 2 axis; p5 . z1 = d4 by construction
         c5 = np.clip((p @ z1 - D[3]) / D[5], -1.0, 1.0)
+        T16 = np.linalg.inv(dh(0, q1)) @ T              # frame 6 in frame 1: both q5 branches share it
         for q5 in (np.arccos(c5), -np.arccos(c5)):
             s5 = np.sin(q5)
             q6 = q6_free if abs(s5) < SINGULAR else np.arctan2(-(y6 @ z1) / s5, (x6 @ z1) / s5)
-            T14 = (np.linalg.inv(dh(0, q1)) @ T @ np.linalg.inv(dh(5, q6))
-                   @ np.linalg.inv(dh(4, q5)))
+            T14 = T16 @ np.linalg.inv(dh(5, q6)) @ np.linalg.inv(dh(4, q5))
             x, y = T14[0, 3], T14[1, 3]                 # frame 4 origin, planar arm of a2, a3
             c3 = (x * x + y * y - A[1] ** 2 - A[2] ** 2) / (2 * A[1] * A[2])
             if abs(c3) > 1.0 + 1e-12:

@@ -109,7 +109,7 @@ def on_samples(task: Task, lent: Lent, shot: Shot, shared: Rows) -> Sampled:
     """`shot` judged on the samples of the one-feature `task` (with its Lent), their gray kernel
     `shared`, its rows of a launch shared with other features (judge_all)."""
     scene = replace(lent.scene, T_cell_cam=shot.T_cell_cam)
-    maps = build_maps(task, scene, lent.settings, visible=lent.visible, reflectance=False)
+    maps = build_maps(task, scene, lent.settings, visible=lent.visible)
     problem = evaluate.build_problem(task, scene, maps, focus_m=shot.exposure.focus_m, gray=shared)
     e = shot.exposure
     c = evaluate.at_exposure(problem, shot.lamp_position, e.shutter_s, e.f_number, joints=shot.joints,

@@ -46,23 +46,20 @@ def visibility_map(scene: Scene, grid: regions.SphereGrid, first: np.ndarray | N
     return found if first is None else first & found
 
 
-def build_maps(task: Task, scene: Scene, settings: PlannerSettings, visible: np.ndarray | None = None,
-               reflectance: bool = True) -> Maps:
-    """Visibility (all samples), BRDF, dominant-term (where visible) and region distance maps (sec. 2.2, 5.2).
+def build_maps(task: Task, scene: Scene, settings: PlannerSettings, visible: np.ndarray | None = None) -> Maps:
+    """Visibility (all samples), dominant-term (where visible) and region distance maps (sec. 2.2, 5.2).
     The visibility map (given: a plan's own, judging another camera pose on its samples) does not
     depend on the camera; the others do (the view direction is in the BRDF). The region distance
-    is found where it is read (regions.RegionDistance); without `reflectance` (a shot judged:
-    only the pictures read the BRDF map) that map is empty."""
+    is found where it is read (regions.RegionDistance); the BRDF map only a picture reads
+    (cell.report.pictures draws it)."""
     grid = regions.SphereGrid(np.radians(settings.grid_step_deg))
     if visible is None:
         visible = visibility_map(scene, grid)
     view = geometry.unit(scene.camera_position - scene.center)
-    material = task.part.material
-    dominant = regions.dominant_term_map(grid, scene.frame, scene.normal, view, material, where=visible)
-    brdf_map = regions.reflectance_map(grid, scene.frame, scene.normal, view, material) if reflectance else np.zeros(0)
+    dominant = regions.dominant_term_map(grid, scene.frame, scene.normal, view, task.part.material, where=visible)
     wanted = regions.wanted_region(dominant, visible, task.requirements.reflection)
     empty = np.zeros(0)
-    return Maps(grid, visible, brdf_map, dominant, wanted, regions.RegionDistance(grid, wanted), empty, empty, empty)
+    return Maps(grid, visible, dominant, wanted, regions.RegionDistance(grid, wanted), empty, empty, empty)
 
 
 def candidate_grid(lamp_rig: LampRig, settings: PlannerSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

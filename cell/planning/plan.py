@@ -57,7 +57,6 @@ class Maps:
 
     grid: regions.SphereGrid
     visible: np.ndarray          # (E, A) every sample sees this direction
-    reflectance: np.ndarray      # (E, A) R at the feature centre for a lamp there
     dominant: np.ndarray         # (E, A) dominant term where visible, brdf.OCCLUDED elsewhere
     wanted: np.ndarray           # (E, A) wanted reflection and visible
     distance: regions.RegionDistance    # signed haversine distance to the wanted region [rad], found where read

@@ -147,14 +147,24 @@ class RegionDistance:
             to_outside, to_inside = self._trees
             workers = threads() if len(missing) >= SPLIT_QUERIES else 1    # each query its own
             inner, outer = missing[flat[missing]], missing[~flat[missing]]
-            self._values[inner] = -chord_to_angle(to_outside.query(dirs[inner], workers=workers)[0])
-            self._values[outer] = chord_to_angle(to_inside.query(dirs[outer], workers=workers)[0])
+            if len(inner):
+                self._values[inner] = -chord_to_angle(to_outside.query(dirs[inner], workers=workers)[0])
+            if len(outer):
+                self._values[outer] = chord_to_angle(to_inside.query(dirs[outer], workers=workers)[0])
         return self._values[cells]
 
     def sample(self, azimuth: ArrayLike, elevation: ArrayLike) -> np.ndarray:
-        """SphereGrid.sample of the transform at (azimuth, elevation): the cells it reads found first."""
-        self.at(self.grid.cells_around(azimuth, elevation))
-        return self.grid.sample(self._values.reshape(self.inside.shape), azimuth, elevation)
+        """SphereGrid.sample of the transform at (azimuth, elevation). A value reading a cell not
+        found yet is NaN (NaN times any weight is NaN): the cells around those directions are
+        found, and they are sampled again (a search's refinement mostly reads cells found before)."""
+        values = self._values.reshape(self.inside.shape)
+        out = self.grid.sample(values, azimuth, elevation)
+        unknown = np.isnan(out)
+        if unknown.any():
+            azimuth, elevation = np.broadcast_arrays(azimuth, elevation)
+            self.at(self.grid.cells_around(azimuth[unknown], elevation[unknown]))
+            out[unknown] = self.grid.sample(values, azimuth[unknown], elevation[unknown])
+        return out
 
     def full(self) -> np.ndarray:
         """(E, A) the transform at every cell."""

@@ -30,6 +30,7 @@ from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 
 from cell.physics.sensor import levels, saturation_level
 from cell.core import geometry
+from cell.planning import regions
 
 
 from cell.physics import projection
@@ -170,7 +171,10 @@ def write_plan_pictures(plan: Plan, task: Task, scene: Scene, out_dir: PathLike)
 
     fig = Figure(figsize=(9, 4.8))
     ax = fig.subplots()
-    shown = np.ma.masked_where(~m.visible | (m.reflectance <= 0), np.log10(np.maximum(m.reflectance, 1e-12)))
+    # R at the feature centre for a lamp in each direction (the paper's 'BRDF mapped on the visibility map')
+    brdf_map = regions.reflectance_map(m.grid, scene.frame, scene.normal,
+                                       geometry.unit(scene.camera_position - scene.center), task.part.material)
+    shown = np.ma.masked_where(~m.visible | (brdf_map <= 0), np.log10(np.maximum(brdf_map, 1e-12)))
     ax.set_facecolor("0.25")
     im = ax.imshow(shown, origin="lower", extent=extent, aspect="auto", cmap="inferno")
     fig.colorbar(im, ax=ax, label="log10 R (occluded: dark gray)")
