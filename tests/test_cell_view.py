@@ -32,12 +32,11 @@ def planned():
 
 def expected_names(task, plan):
     """Every body, feature and light the view must name: the part (and fixture), each feature,
-    each fixed light's housing (a ring's collision box too), and at each shot the arm's links, the
+    each fixed light's housing (its collision body: a ring's drawn once), and at each shot the arm's links, the
     camera body, its frustum, the lamp's body and cone and the task's other lights; the route when
     there are several shots."""
     names = {"part", *(f"feature {f.name}" for f in task.features)}
     names |= {light.name for light in task.lights if light.mount == "fixed"}
-    names |= {f"{light.name} collision box" for light in task.lights if light.mount == "fixed" and light.type == "ring"}
     if task.cell.collision.fixture is not None:
         names.add("fixture")
     for k, shot in enumerate(plan.shots):

@@ -17,6 +17,7 @@ the same way, and an SDF over NumPy arrays needs no BVH for the few thousand sam
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
 
@@ -30,6 +31,7 @@ SAMPLE_BOUND_M = 0.002       # every surface point of a sampled body within this
 BOX_GRID_M = SAMPLE_BOUND_M * np.sqrt(2.0)   # a square grid of pitch s covers within s / sqrt 2
 MESH_EDGE_M = SAMPLE_BOUND_M * np.sqrt(3.0)  # a triangle of edges <= e: every point within e / sqrt 3
                                              # of a vertex (its circumradius, or half its longest edge)
+SEGMENT_TOLERANCE_M = 1e-5   # segment_min's least value within this of the true one
 
 
 @dataclass(frozen=True)
@@ -113,7 +115,103 @@ class Mesh:
         return geometry.winding_number(self.vertices, self.faces, point) > 0.5
 
 
-Body = Box | Capsule | Mesh
+@dataclass(frozen=True)
+class Annulus:
+    """A ring light's housing: the solid of revolution about the z axis of T_cell_body whose
+    cross-section is the rectangle r in [inner_m, outer_m] (from the axis), z in z_m (its own
+    frame). Its SDF is the rectangle's in the (r, z) half-plane (Box's formula in 2D): exact,
+    as a point's nearest point of a solid of revolution lies in the point's own meridian plane."""
+
+    name: str
+    T_cell_body: np.ndarray
+    inner_m: float
+    outer_m: float
+    z_m: tuple[float, float]
+
+    @property
+    def center(self) -> np.ndarray:
+        return geometry.apply(self.T_cell_body, np.array([0.0, 0.0, 0.5 * sum(self.z_m)]))
+
+    @property
+    def radius(self) -> float:
+        return float(np.hypot(self.outer_m, 0.5 * (self.z_m[1] - self.z_m[0])))
+
+    @property
+    def point(self) -> np.ndarray:
+        """A point of the body (for the containment test)."""
+        return geometry.apply(self.T_cell_body, np.array([self.inner_m, 0.0, self.z_m[0]]))
+
+    def sdf(self, points: ArrayLike) -> np.ndarray:
+        """Signed distance (N,) [m]: |max(q, 0)| + min(max_i q_i, 0), q = |(r, z) - middle| - half."""
+        r, z = _meridian(self.T_cell_body, points)
+        q = np.column_stack([np.abs(r - 0.5 * (self.inner_m + self.outer_m)) - 0.5 * (self.outer_m - self.inner_m),
+                             np.abs(z - 0.5 * sum(self.z_m)) - 0.5 * (self.z_m[1] - self.z_m[0])])
+        return np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0)
+
+
+@dataclass(frozen=True)
+class Shell:
+    """A dome light's housing: the spherical shell from inner_m to outer_m about the point
+    centre_m along the z axis of T_cell_body (its pole on that axis at 0), on the pole's side of
+    the plane through that centre (its rim), outside the cylinder of hole_m about the axis (the
+    camera's hole; 0: none). Its SDF is the cross-section's in the (r, w = z - centre_m)
+    half-plane: +-the distance to its boundary, two arcs (rho = inner_m, outer_m, polar angle from
+    asin(hole / rho) to 90 deg), the rim's segment (w = 0) and the hole's (r = hole_m); exact as
+    Annulus's."""
+
+    name: str
+    T_cell_body: np.ndarray
+    centre_m: float
+    inner_m: float
+    outer_m: float
+    hole_m: float = 0.0
+
+    @property
+    def center(self) -> np.ndarray:
+        return geometry.apply(self.T_cell_body, np.array([0.0, 0.0, self.centre_m]))
+
+    @property
+    def radius(self) -> float:
+        return float(self.outer_m)
+
+    @property
+    def point(self) -> np.ndarray:
+        """A point of the body (on its rim)."""
+        return geometry.apply(self.T_cell_body, np.array([self.inner_m, 0.0, self.centre_m]))
+
+    def polar_start(self, rho: float) -> float:
+        """The polar angle [rad] (from the axis at the pole) where the hole's cylinder meets the
+        sphere of radius rho."""
+        return float(np.arcsin(min(self.hole_m / rho, 1.0)))
+
+    def sdf(self, points: ArrayLike) -> np.ndarray:
+        """Signed distance (N,) [m] (the class's boundary pieces)."""
+        r, z = _meridian(self.T_cell_body, points)
+        w = z - self.centre_m
+        rho, polar = np.hypot(r, w), np.arctan2(r, -w)
+        near = []
+        for arc in (self.inner_m, self.outer_m):
+            start = self.polar_start(arc)
+            ends = np.array([[arc * np.sin(start), -arc * np.cos(start)], [arc, 0.0]])
+            to_end = np.min(np.hypot(r[:, None] - ends[:, 0], w[:, None] - ends[:, 1]), axis=1)
+            near.append(np.where((polar >= start) & (polar <= 0.5 * np.pi), np.abs(rho - arc), to_end))
+        near.append(np.hypot(r - np.clip(r, self.inner_m, self.outer_m), w))            # the rim
+        if self.hole_m > 0.0:
+            top, bottom = (-np.sqrt(max(arc**2 - self.hole_m**2, 0.0)) for arc in (self.inner_m, self.outer_m))
+            near.append(np.hypot(r - self.hole_m, w - np.clip(w, bottom, top)))
+        inside = (rho >= self.inner_m) & (rho <= self.outer_m) & (w <= 0.0) & (r >= self.hole_m)
+        return np.where(inside, -1.0, 1.0) * np.min(near, axis=0)
+
+
+Body = Box | Capsule | Mesh | Annulus | Shell
+Revolved = Annulus | Shell
+
+
+def _meridian(T_cell_body: np.ndarray, points: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+    """(r, z) (N,) each of points (N, 3) in the body's frame: the distance from its z axis and
+    the height along it."""
+    local = (np.asarray(points, float).reshape(-1, 3) - T_cell_body[:3, 3]) @ T_cell_body[:3, :3]
+    return np.hypot(local[:, 0], local[:, 1]), local[:, 2]
 
 
 def surface_samples(vertices: ArrayLike, faces: ArrayLike) -> np.ndarray:
@@ -179,6 +277,29 @@ def segment_to_box(box: Box, a: np.ndarray, b: np.ndarray, rounds: int = 4, n: i
     return float(d[k] - (t[1] - t[0]) * np.linalg.norm(ab))
 
 
+def segment_min(sdf: Callable[[np.ndarray], np.ndarray], a: np.ndarray, b: np.ndarray,
+                tolerance_m: float = SEGMENT_TOLERANCE_M) -> float:
+    """A lower bound of min over the segment a-b of a 1-Lipschitz sdf (any body's, convex or not),
+    within tolerance_m of it, by branch and bound: on a piece of length L whose ends have values
+    f0, f1 no value is below (f0 + f1 - L) / 2; pieces whose bound could beat the least value
+    found by more than the tolerance are halved, the rest dropped."""
+    t = np.linspace(0.0, 1.0, 17)
+    f = sdf(a + t[:, None] * (b - a))
+    lo, hi, f_lo, f_hi = t[:-1], t[1:], f[:-1], f[1:]
+    best, length = float(f.min()), float(np.linalg.norm(b - a))
+    while True:
+        bound = 0.5 * (f_lo + f_hi - (hi - lo) * length)
+        keep = bound < best - tolerance_m
+        if not keep.any():
+            return float(min(best, bound.min())) if len(bound) else best
+        lo, hi, f_lo, f_hi = lo[keep], hi[keep], f_lo[keep], f_hi[keep]
+        mid = 0.5 * (lo + hi)
+        f_mid = sdf(a + mid[:, None] * (b - a))
+        best = min(best, float(f_mid.min()))
+        lo, hi = np.concatenate([lo, mid]), np.concatenate([mid, hi])
+        f_lo, f_hi = np.concatenate([f_lo, f_mid]), np.concatenate([f_mid, f_hi])
+
+
 def lower_bound(a: Body, b: Body) -> float:
     """A cheap lower bound of distance(a, b): their bounding spheres' gap."""
     return float(np.linalg.norm(a.center - b.center) - a.radius - b.radius)
@@ -186,29 +307,33 @@ def lower_bound(a: Body, b: Body) -> float:
 
 def distance(a: Body, b: Body) -> float:
     """A lower bound of the distance between two bodies [m], within SAMPLE_BOUND_M of it (exact
-    for two capsules, within a segment's length / 8192 for a capsule and a box); <= 0 when they
-    overlap. Two meshes are not compared (the part may rest on
-    its fixture)."""
+    for two capsules, within a segment's length / 8192 for a capsule and a box, within
+    SEGMENT_TOLERANCE_M for a capsule and a ring's or dome's housing); <= 0 when they overlap.
+    Two meshes, or two lights' housings, are not compared (the part may rest on its fixture;
+    neither moves)."""
     if isinstance(a, Capsule) and isinstance(b, Capsule):
         return segment_distance(a.a, a.b, b.a, b.b) - a.radius_m - b.radius_m
     if isinstance(a, Box) and isinstance(b, Capsule):
         return segment_to_box(a, b.a, b.b) - b.radius_m
     if isinstance(a, Capsule) and isinstance(b, Box):
         return segment_to_box(b, a.a, a.b) - a.radius_m
-    if isinstance(a, Mesh) and isinstance(b, Mesh):
-        raise ValueError(f"no distance between two meshes ({a.name}, {b.name})")
-    if isinstance(b, Mesh):
-        a, b = b, a                        # sample the mesh (or box a); b has an exact SDF
-    assert isinstance(a, (Mesh, Box)) and not isinstance(b, Mesh)
+    if isinstance(a, Capsule) and isinstance(b, (Annulus, Shell)):
+        a, b = b, a
+    if isinstance(a, (Annulus, Shell)) and isinstance(b, Capsule):
+        return segment_min(a.sdf, b.a, b.b) - b.radius_m
+    if isinstance(b, Mesh) or (isinstance(b, Box) and isinstance(a, (Annulus, Shell))):
+        a, b = b, a                        # sample the mesh (or the box); b has an exact SDF
+    if not isinstance(a, (Mesh, Box)) or isinstance(b, Mesh):
+        raise ValueError(f"no distance between two fixed bodies ({a.name}, {b.name})")
     points = a.points if isinstance(a, Mesh) else a.samples()
     bound = float(b.sdf(points).min()) - SAMPLE_BOUND_M
     return min(bound, _contained(b, a))
 
 
-def _contained(inner: Box | Capsule, outer: Body) -> float:
+def _contained(inner: Box | Capsule | Annulus | Shell, outer: Body) -> float:
     """<= 0 when a point of `inner` lies inside `outer` (the case the sampled bound misses: inner
     wholly inside outer), else +inf."""
-    point = inner.a if isinstance(inner, Capsule) else inner.center
+    point = inner.a if isinstance(inner, Capsule) else inner.center if isinstance(inner, Box) else inner.point
     if isinstance(outer, Mesh):
         return -float(np.linalg.norm(outer.points - point, axis=1).min()) if outer.contains(point) else np.inf
     depth = float(outer.sdf(point)[0])

@@ -34,7 +34,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
-from cell.collision.bodies import Body, Capsule, Mesh
+from cell.collision.bodies import Body, Box, Capsule
 from cell.collision.scene import LINK, Clearance, CollisionScene, Pairs
 from cell.core import geometry
 from cell.core.errors import DeviceFault
@@ -118,12 +118,12 @@ def body_reach(scene: CollisionScene, bodies: tuple[Body, ...], q: ArrayLike) ->
     reach = np.zeros((len(bodies), 6))
     for b, body in enumerate(bodies):
         link = LINK.get(body.name, 0)
-        if link == 0 or isinstance(body, Mesh):
-            continue
-        if isinstance(body, Capsule):
+        if isinstance(body, Capsule) and link:
             points, thick = np.array([body.a, body.b]), body.radius_m
-        else:
+        elif isinstance(body, Box) and link:
             points, thick = geometry.apply(body.T_cell_box, CORNERS * body.half_m), 0.0
+        else:                                   # the part, the fixture, the lights, the lamp
+            continue
         rel = points[None] - origins[:link, None]                         # (link, points, 3)
         across = rel - np.einsum("ipk,ik->ip", rel, axes[:link])[..., None] * axes[:link, None]
         reach[b, :link] = np.linalg.norm(across, axis=2).max(axis=1) + thick

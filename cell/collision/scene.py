@@ -5,7 +5,8 @@ Bodies: the part and the optional fixture (meshes, fixed in the cell), the UR5e'
 (capsules along its kinematic chain, placed by cell.devices.ur5e.forward), the camera body (a
 box on the flange, centred `offset_m` along the tool axis, its axes the flange's), the lamp
 body (a box behind the lamp's front at its position, its z axis the lamp's aim) and each fixed
-light's housing (light_bodies: a box behind its emitting surface). Bodies that may
+light's housing (light_body: a ring's annulus round its hole, a dome's shell open at its hole,
+any other light's box, each behind its emitting surface). Bodies that may
 touch: neighbours on the arm's chain and the next but one (they share a joint housing), the
 flange's two wrist links and the camera, the robot base and the fixture it may stand on, the
 part and its fixture. The clearance is the smallest distance over every other pair, found by
@@ -25,7 +26,7 @@ import numpy as np
 import trimesh
 from numpy.typing import ArrayLike
 
-from cell.collision.bodies import Body, Box, Capsule, Mesh, distance, surface_samples
+from cell.collision.bodies import Annulus, Body, Box, Capsule, Mesh, Shell, distance, surface_samples
 from cell.core import geometry
 from cell.devices import ur5e
 from cell.devices.rig import lamp_frame
@@ -78,32 +79,39 @@ def reaching_joints(frames: Frames, T_cell_cam: np.ndarray,
     return tuple(float(x) for x in q)
 
 
-def light_bodies(task: Task) -> tuple[Box, ...]:
-    """Each fixed light's housing (named as the light) as a Box (light_box)."""
-    return tuple(light_box(light) for light in task.lights if light.mount == "fixed" and light.type != "dome")
+def light_bodies(task: Task) -> tuple[Box | Annulus | Shell, ...]:
+    """Each fixed light's housing (named as the light) as its collision body (light_body)."""
+    return tuple(light_body(light) for light in task.lights if light.mount == "fixed")
 
 
-def light_box(light: Light, setback_m: float = 0.0) -> Box:
-    """A fixed light's housing box, its axes the light's `along`, across and axis: half its
-    emitting surface's extent across the axis plus HOUSING_RIM_M (a bar's half length along and
-    none across, a disk's radius, an area's half width and height, a spot's none; a ring's outer
-    radius), from setback_m to the housing's depth (Light.housing) behind the emitting centre. A
-    ring's box is solid across its hole (never nearer than the true body: a clearance it gives is
-    a lower bound); a dome, a hollow shell over the part, has none (its inside is where the part
-    is). A flange light moves with the camera and is inside the camera body's reach (not a body)."""
+def light_body(light: Light, setback_m: float = 0.0) -> Box | Annulus | Shell:
+    """A fixed light's housing (Light.housing gives its sizes), from setback_m to its depth behind
+    the emitting surface, in the light's frame (its `along`, across and axis, the emitting centre
+    at 0): a ring's Annulus from aperture_radius_m (the hole the camera looks through) to
+    outer_radius_m; a dome's Shell outside its emitting hemisphere (radius_m, its centre radius_m
+    along the axis), open at its camera hole (hole_radius_m) and at its rim; any other light's
+    Box: half its emitting surface's extent across the axis plus HOUSING_RIM_M (a bar's half
+    length along and none across, a disk's radius, an area's half width and height, a spot's
+    none). The shadows' housings (cell.planning.occluders) are these shapes. A flange light moves
+    with the camera and is inside the camera body's reach (not a body)."""
     housing = light.housing()
+    T = geometry.transform(np.column_stack([light.along, np.cross(light.axis, light.along), light.axis]),
+                           light.position_m)
+    if light.type == "ring":
+        return Annulus(light.name, T, housing.aperture_radius_m, housing.outer_radius_m,
+                       (-housing.depth_m, -setback_m))
+    if light.type == "dome":
+        radius = float(light.radius_m or 0.0)
+        return Shell(light.name, T, radius, radius + setback_m, radius + housing.depth_m,
+                     float(light.hole_radius_m or 0.0))
     if light.type == "bar":
         half = (0.5 * float(light.length_m or 0.0) + HOUSING_RIM_M, HOUSING_RIM_M)
-    elif light.type == "ring":
-        half = (housing.outer_radius_m,) * 2
     elif light.size_m is not None:
         half = (0.5 * float(light.size_m[0]) + HOUSING_RIM_M, 0.5 * float(light.size_m[1]) + HOUSING_RIM_M)
     else:
         half = (float(light.radius_m or 0.0) + HOUSING_RIM_M,) * 2
-    across = np.cross(light.axis, light.along)
-    R = np.column_stack([light.along, across, light.axis])
     centre = np.asarray(light.position_m, float) - 0.5 * (housing.depth_m + setback_m) * light.axis
-    return Box(light.name, geometry.transform(R, centre), np.array([*half, 0.5 * (housing.depth_m - setback_m)]))
+    return Box(light.name, geometry.transform(T[:3, :3], centre), np.array([*half, 0.5 * (housing.depth_m - setback_m)]))
 
 
 def camera_body(T_cell_flange: np.ndarray, half_m: ArrayLike, offset_m: float) -> Box:

@@ -3,11 +3,11 @@ and the simulated camera's rays meet as they meet the part, so a housing blocks 
 the spot's beam and every light's emitter rays (kernels.gray, kernels.render, kernels.visibility
 cast against the part and these together: Scene.shadow_mesh).
 
-Each light's housing by its type (Light.housing gives the sizes, docs/formats.md):
+Each light's housing is its collision body (cell.collision.scene.light_body), by its type
+(Light.housing gives the sizes, docs/formats.md):
   ring            an annulus about the axis, from aperture_radius_m (the hole the camera looks
                   through) to outer_radius_m;
-  bar, area, spot the box of its collision body (cell.collision.scene.light_box: the emitting
-                  extent plus a rim);
+  bar, area, spot a box, the emitting extent plus a rim;
   dome            a spherical shell outside its emitting hemisphere, open at the camera's hole (a
                   cylinder of hole_radius_m about the axis) and at its rim.
 Each lies wholly behind its emitting surface (a plane; a dome's sphere), from EMITTER_PROUD_M to
@@ -25,7 +25,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import trimesh
 
-from cell.collision.scene import light_box
+from cell.collision.bodies import Annulus, Box, Shell
+from cell.collision.scene import light_body
 from cell.core import geometry
 
 if TYPE_CHECKING:
@@ -55,20 +56,16 @@ def housings(task: Task) -> tuple[Housing, ...]:
 
 
 def housing(light: Light) -> Housing:
-    """A fixed light's Housing (the module's shapes)."""
-    if light.type not in ("ring", "dome"):
-        box = light_box(light, EMITTER_PROUD_M)
-        mesh = trimesh.creation.box(extents=2.0 * box.half_m, transform=box.T_cell_box)
+    """A fixed light's Housing: its collision body (cell.collision.scene.light_body) set back
+    EMITTER_PROUD_M from its emitting surface, a box as trimesh's, a ring's annulus and a dome's
+    shell revolved from their cross-sections about the light's axis."""
+    body = light_body(light, EMITTER_PROUD_M)
+    if isinstance(body, Box):
+        mesh = trimesh.creation.box(extents=2.0 * body.half_m, transform=body.T_cell_box)
         return Housing(light.name, np.ascontiguousarray(mesh.vertices, float), np.ascontiguousarray(mesh.faces, np.int64))
-    h, radius = light.housing(), float(light.radius_m or 0.0)
-    if light.type == "ring":
-        profile, extent = _annulus_profile(h.aperture_radius_m, h.outer_radius_m, h.depth_m), h.outer_radius_m
-    else:
-        profile, extent = _shell_profile(radius, light.hole_radius_m, h.depth_m), radius + h.depth_m
-    mesh = trimesh.creation.revolve(profile, sections=sections(extent))      # about z, the light's axis
-    T = geometry.transform(np.column_stack([light.along, np.cross(light.axis, light.along), light.axis]),
-                           light.position_m)
-    return Housing(light.name, np.ascontiguousarray(geometry.apply(T, mesh.vertices), float),
+    profile = _annulus_profile(body) if isinstance(body, Annulus) else _shell_profile(body)
+    mesh = trimesh.creation.revolve(profile, sections=sections(body.outer_m))      # about z, the light's axis
+    return Housing(light.name, np.ascontiguousarray(geometry.apply(body.T_cell_body, mesh.vertices), float),
                    np.ascontiguousarray(mesh.faces, np.int64))
 
 
@@ -80,27 +77,24 @@ def sections(radius_m: float, chord_m: float = CHORD_M) -> int:
     return max(MIN_SECTIONS, int(np.ceil(np.pi / np.arccos(1.0 - chord_m / radius_m))))
 
 
-def _annulus_profile(inner_m: float, outer_m: float, depth_m: float) -> np.ndarray:
+def _annulus_profile(ring: Annulus) -> np.ndarray:
     """A ring housing's closed cross-section [radius, z], counter-clockwise (trimesh.creation.revolve's
     outward faces), in the light's frame (z along its axis, the LEDs at z = 0)."""
-    front, back = -EMITTER_PROUD_M, -depth_m
-    return np.array([[inner_m, back], [outer_m, back], [outer_m, front], [inner_m, front], [inner_m, back]])
+    (back, front), inner, outer = ring.z_m, ring.inner_m, ring.outer_m
+    return np.array([[inner, back], [outer, back], [outer, front], [inner, front], [inner, back]])
 
 
-def _shell_profile(radius_m: float, hole_m: float | None, depth_m: float) -> np.ndarray:
+def _shell_profile(dome: Shell) -> np.ndarray:
     """A dome housing's closed cross-section [radius, z], counter-clockwise, in the light's frame
-    (z along its axis, its pole at 0, its sphere's centre at z = radius_m): the shell between
-    radius_m + EMITTER_PROUD_M and radius_m + depth_m from that centre, from the hole's cylinder
-    (none: from the pole) down to the rim, the plane z = radius_m through the centre."""
-    inner, outer = radius_m + EMITTER_PROUD_M, radius_m + depth_m
-    steps = max(4, sections(outer) // 4)                     # a quarter circle's corners
+    (z along its axis, its pole at 0, its sphere's centre at z = dome.centre_m): the two arcs
+    from the hole's cylinder (none: from the pole) down to the rim, the plane through the centre."""
+    steps = max(4, sections(dome.outer_m) // 4)                     # a quarter circle's corners
 
-    def arc(r, start):
-        polar = np.linspace(start, 0.5 * np.pi, steps + 1)
-        return np.column_stack([r * np.sin(polar), radius_m - r * np.cos(polar)])
-    inner_arc = arc(inner, 0.0 if hole_m is None else np.arcsin(min(hole_m / inner, 1.0)))
-    outer_arc = arc(outer, 0.0 if hole_m is None else np.arcsin(min(hole_m / outer, 1.0)))
-    return np.vstack([outer_arc, inner_arc[::-1], outer_arc[:1]])
+    def arc(r):
+        polar = np.linspace(dome.polar_start(r), 0.5 * np.pi, steps + 1)
+        return np.column_stack([r * np.sin(polar), dome.centre_m - r * np.cos(polar)])
+    outer_arc = arc(dome.outer_m)
+    return np.vstack([outer_arc, arc(dome.inner_m)[::-1], outer_arc[:1]])
 
 
 def blockers(found: tuple[Housing, ...], origins: np.ndarray, targets: np.ndarray) -> np.ndarray:

@@ -2,8 +2,8 @@
 scene (cell.collision.scene) at every shot: the part and the fixture, the UR5e's links as their
 capsules, the camera body with its frustum to the focus distance, the lamp's body with its cone
 (the lit half angle, to the rig's pivot), the task's other lights as their emitter points (bright:
-on, dim: off) and each fixed light's housing as it blocks light and view (cell.planning.occluders;
-a ring's collision box, solid across its hole, faint beside it), each feature's patch and normal; each shot's clearance (and the two bodies that set
+on, dim: off) and each fixed light's housing, the body it collides with and blocks light and view with
+(cell.planning.occluders), each feature's patch and normal; each shot's clearance (and the two bodies that set
 it) in its legend entry and hover text; the camera's paths of the plan's collision-checked moves
 (Plan.moves, cell.run.moves: from the home pose through the shots, straight between a move's
 via points, as moveL takes them), or where a plan has none, straight segments between consecutive
@@ -119,6 +119,7 @@ def _body(body: Body, name: str, color: str, hover: str, group: str, legend: boo
     elif isinstance(body, Capsule):
         v, f = capsule_mesh(body)
     else:
+        assert isinstance(body, Mesh), f"{body.name}: a light's body is drawn as its housing"
         v, f = display_mesh(body.vertices, body.faces, MAX_PART_FACES)
     return _mesh3d(v, f, name, color, hover, opacity, group, legend)
 
@@ -189,17 +190,13 @@ def write_cell_view(path: PathLike, plan: Plan, task: Task, order: Sequence[int]
     T = task.frames.T_cell_part
     traces: list[Any] = []
     housings = {h.name: h for h in occluders.housings(task)}
-    rings = {light.name for light in task.lights if light.type == "ring"}
     for body in scene.fixed:
-        if body.name in rings:              # its collision body differs from its housing: solid across the hole
-            traces.append(_body(body, f"{body.name} collision box", "#9aa0a8", f"{body.name}: its collision body, "
-                                "a box solid across its hole", body.name, legend=True, opacity=0.15))
-        elif body.name not in housings:     # the part, the fixture (a bar's box is its housing, drawn below)
+        if isinstance(body, Mesh):          # the part, the fixture (a light's body is its housing, drawn below)
             traces.append(_body(body, body.name, "#c8ccd4" if body.name == "part" else "#9aa0a8", body.name,
                                 body.name, legend=True, opacity=1.0 if body.name == "part" else 0.6))
     for h in housings.values():
-        traces.append(_mesh3d(h.vertices, h.faces, h.name, "#9aa0a8", f"{h.name}: its housing, which blocks the "
-                              "camera's view and the lights' rays as the part does", 0.6, h.name))
+        traces.append(_mesh3d(h.vertices, h.faces, h.name, "#9aa0a8", f"{h.name}: its housing, a collision body "
+                              "that blocks the camera's view and the lights' rays as the part does", 0.6, h.name))
     if plan.features:
         covered = [f.covered_by for f in plan.features]
         covers = [[c.feature for c in shot.covers] for shot in plan.shots]
