@@ -51,6 +51,7 @@ from scipy.spatial.transform import Rotation
 from cell.core import geometry
 from cell.devices.interfaces import Arm
 from cell.physics import projection
+from cell.planning.evaluate import black_level
 from cell.run import registration
 
 if TYPE_CHECKING:
@@ -141,11 +142,21 @@ def model_view(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: Lamp
     return ModelView(value, points.reshape(height, width, 3), np.array(T_cell_cam, float))
 
 
+def signal(task: Task, image: np.ndarray) -> np.ndarray:
+    """A capture's signal, float32: its gray less the sensor's black level b (G = b + c P t; the
+    task's camera.sensor.black_level, the loop's measured one), which the model's image (c P per
+    unit exposure) does not hold. Left in, b adds to the shading's product and bends the
+    logarithm's edges (equalized) where the part is dim: the conrod's tilt came out 1.0 deg off
+    with the black level alone (0.3 without it)."""
+    return (np.asarray(image, float) - black_level(task)).astype(np.float32)
+
+
 def equalized(image: np.ndarray) -> np.ndarray:
-    """log(image / its 99th percentile + FLOOR), float32: the lamp's falloff and the material's
-    shading multiply the gray, so in its logarithm they add a slowly varying term, and an edge
-    of the part counts as much in the spot's dim fringe as in its centre (down to FLOOR, where
-    the noise and the black level begin)."""
+    """log(image / its 99th percentile + FLOOR), float32, of a signal (the model's image, or a
+    capture less its black level: signal): the lamp's falloff and the material's shading
+    multiply the gray, so in its logarithm they add a slowly varying term, and an edge of the
+    part counts as much in the spot's dim fringe as in its centre (down to FLOOR, where the
+    noise begins)."""
     image = np.asarray(image, np.float32)
     top = float(np.percentile(image, 99.0))
     return np.log(np.maximum(image, 0.0) / max(top, 1e-12) + FLOOR).astype(np.float32)
@@ -487,11 +498,12 @@ def localize(task: Task, scene: Scene, views: Sequence[View]) -> PoseError | Non
     if any(np.percentile(v.image, 99.5) - np.median(v.image) < MIN_CONTRAST_GRAY for v in views):
         return None
     models = [model_view(task, scene, v.T_cell_cam, v.lamp_pose, v.drives) for v in views]
+    images = [signal(task, v.image) for v in views]
     K = projection.intrinsics(task.camera.sensor, task.camera.lens)
-    shifts = [whole_shift(m.value, v.image, tuple(projection.project(K, m.T_cell_cam, scene.center[None])[0][0]))
-              for m, v in zip(models, views)]
+    shifts = [whole_shift(m.value, image, tuple(projection.project(K, m.T_cell_cam, scene.center[None])[0][0]))
+              for m, image in zip(models, images)]
     theta0 = fit_shifts(K, scene.center, [m.T_cell_cam for m in models], shifts)
-    levels = [[edge_samples(m, v.image, s) for m, v in zip(models, views)] for s in SCALES_PX]
+    levels = [[edge_samples(m, image, s) for m, image in zip(models, images)] for s in SCALES_PX]
     if min(len(s.points) for s in levels[-1]) < MIN_SAMPLES:
         return None
     coarse = [fit(levels[:1], K, scene.center, start) for start in coarse_starts(levels[0], K, scene.center, theta0)]
@@ -512,7 +524,7 @@ def refine(task: Task, scene: Scene, views: Sequence[View], first: PoseError) ->
     E_he = first.T_hand_eye
     K = projection.intrinsics(task.camera.sensor, task.camera.lens)
     models = [model_view(task, moved, v.T_cell_cam @ E_he, v.lamp_pose, v.drives) for v in views]
-    levels = [[edge_samples(m, v.image, s) for m, v in zip(models, views)] for s in SCALES_PX]
+    levels = [[edge_samples(m, signal(task, v.image), s) for m, v in zip(models, views)] for s in SCALES_PX]
     if min(len(s.points) for s in levels[-1]) < MIN_SAMPLES:
         return first
     second = fit(levels, K, moved.center, np.zeros(9))
@@ -760,7 +772,7 @@ def rendered_information(task: Task, scene: Scene, error: PoseError,
     J = the central differences over every part pixel. Rendered, not the edges' motion
     (view_information): the light stays in the cell when the part moves, and a part that looks
     alike after a move (a straight shank moved along itself, its lit spot fixed) tells nothing of
-    it. The residual: the capture on the same grid, band-passed alike, times its least-squares
+    it. The residual: the capture's signal on the same grid, band-passed alike, times its least-squares
     gain less the estimate's image, rms over the part pixels."""
     theta, sigma = error.theta, SCALES_PX[0] / VIEW_SCALE
     steps = [np.zeros(9)] + [sign * STEP_UNITS * INFORMATION_UNITS[j] * np.eye(9)[j]
@@ -794,7 +806,7 @@ def rendered_information(task: Task, scene: Scene, error: PoseError,
                              for j in range(9)]).astype(float)
         residual = None
         if i < len(images):
-            small = cv2.resize(np.asarray(images[i], np.float32), part.shape[::-1], interpolation=cv2.INTER_AREA)
+            small = cv2.resize(signal(task, images[i]), part.shape[::-1], interpolation=cv2.INTER_AREA)
             captured = band_pass(small, sigma)[part].astype(float)
             captured /= max(float(np.std(captured)), 1e-12)
             model = band[0][part] / spread

@@ -429,10 +429,13 @@ def knowing_black_level(aim: Aim) -> Aim:
     it, and the plan's lamp pose gets the exposure the planner's closed form sets for it."""
     (feature,) = aim.features
     shutter, f_number = feature.model.exposure(aim.black.value, feature.limits.f_number_range)
-    task = feature.task
-    sensor = replace(task.camera.sensor, black_level=aim.black.value)
-    task = replace(task, camera=replace(task.camera, sensor=sensor))
-    return replace(aim, features=(replace(feature, task=task),), shutter_s=shutter, f_number=f_number)
+    return replace(aim, features=(replace(feature, task=with_black_level(feature.task, aim.black.value)),),
+                   shutter_s=shutter, f_number=f_number)
+
+
+def with_black_level(task: Task, black_level: float) -> Task:
+    """The task with its camera's sensor at the black level measured (camera.sensor.black_level)."""
+    return replace(task, camera=replace(task.camera, sensor=replace(task.camera.sensor, black_level=black_level)))
 
 
 def step(ctx: RunContext, aim: Aim, k: int) -> Generator[Event, None, Aim | None]:
@@ -496,7 +499,8 @@ def step(ctx: RunContext, aim: Aim, k: int) -> Generator[Event, None, Aim | None
 
 def locate_part(ctx: RunContext, aim: Aim, k: int, capture: Capture) -> Generator[Event, None, Aim]:
     """Localize the part and the camera from capture k (cell.run.localization, against the first
-    feature's model; a saturated capture, whose edges are clipped, waits for the next): a pose error
+    feature's model and its signal above the black level measured; a saturated capture, whose edges
+    are clipped, waits for the next): a pose error
     within what the plan tolerates (localization.significant) is reported (Located) and the loop
     goes on; a larger one is told apart by a second view (second_view) and, where the part's
     position stays open by more than the registration limit, by further views (resolve: the
@@ -504,7 +508,7 @@ def locate_part(ctx: RunContext, aim: Aim, k: int, capture: Capture) -> Generato
     or hand-eye error (localization.implausible), or a position still open, stops (GoalNotReached,
     cause `pose`, the open direction named). Returns the Aim."""
     feature = aim.features[0]
-    task, scene, shot = feature.task, feature.model.plan.planned_scene, aim.shot
+    task, scene, shot = with_black_level(feature.task, aim.black.value), feature.model.plan.planned_scene, aim.shot
     saturation = saturation_level(ctx.devices.camera.bit_depth)
     lit = capture.image >= 0.5 * saturation
     if lit.any() and np.mean(capture.image[lit] >= saturation) > registration.SATURATED_FRACTION:
