@@ -195,7 +195,7 @@ class Problem:
             top[1:][list(self.lights_off)] = 0.0
             top.flags.writeable = False
             self.kernels.top = kept = (task, lights, top)
-        return np.tile(kept[2], (candidates, 1))
+        return np.repeat(kept[2][None], candidates, axis=0)     # np.tile's rows, without its checks
 
 
 def gray_inputs(task: Task, scene: Scene, material: Material) -> GrayInputs:
@@ -461,6 +461,8 @@ def light_moves(problem: Problem, u: np.ndarray, drive: np.ndarray) -> list[np.n
     each light and each of TOLERANCE_RING directions (LightsAtScene.turned): u with that light's
     share at drive (C, 1 + K) replaced by its turned one; none without a tolerance."""
     lights = problem.lights
+    if not lights.turned.size:
+        return []
     drive = np.asarray(drive, float).reshape(len(u), -1)
     return [u + drive[:, 1 + k, None] * (lights.turned[k, m] - lights.unit_gray[k])[None]
             for k in range(lights.turned.shape[0]) for m in range(lights.turned.shape[1])]
@@ -587,15 +589,17 @@ def candidates(problem: Problem, pan: ArrayLike, tilt: ArrayLike, radius: ArrayL
     `tolerance` the lamp is also moved by lamp_tolerance in TOLERANCE_RING directions (one bulk
     call for all) and every drive is off by the drive tolerance (drive_moves)."""
     pivot = problem.task.lamp.rig.pivot_m
-    pan, tilt, radius = np.broadcast_arrays(*(np.atleast_1d(np.asarray(x, float)) for x in (pan, tilt, radius)))
+    pan, tilt, radius = (np.atleast_1d(np.asarray(x, float)) for x in (pan, tilt, radius))
+    if not pan.shape == tilt.shape == radius.shape:
+        pan, tilt, radius = np.broadcast_arrays(pan, tilt, radius)
     n = len(pan)
     d_pan, d_tilt = tolerance_moves(problem, tilt) if tolerance else (np.zeros((0, n)), np.zeros((0, n)))
     m = len(d_pan)
     all_pos = rig.lamp_position(pivot, np.concatenate([pan, (pan + d_pan).ravel()]),
-                                np.concatenate([tilt, (tilt + d_tilt).ravel()]), np.tile(radius, m + 1))
+                                np.concatenate([tilt, (tilt + d_tilt).ravel()]), np.concatenate([radius] * (m + 1)))
     drives = problem.full_drive(n) if drive is None else np.tile(np.asarray(drive, float), (n, 1))
     all_u, all_shadowed, all_off_axis, all_dominant = lit_by_all(
-        problem, unit_gray(problem, all_pos, rig.lamp_aim(pivot, all_pos)), np.tile(drives, (m + 1, 1)))
+        problem, unit_gray(problem, all_pos, rig.lamp_aim(pivot, all_pos)), np.concatenate([drives] * (m + 1)))
     u = all_u[:n]
     b = problem.black_level
     moved = all_u[n:].reshape(m, n, u.shape[1])

@@ -124,8 +124,8 @@ def refinement(start: ArrayLike, lamp_rig: LampRig) -> Generator[np.ndarray, np.
     hi = np.array([lamp_rig.pan_range_rad[1], lamp_rig.tilt_range_rad[1], lamp_rig.radius_range_m[1]])
     scale = np.array([np.radians(5.0), np.radians(5.0), 0.05])
 
-    def clipped(z):
-        return np.clip(np.asarray(start) + z * scale, lo, hi)
+    def clipped(z):         # np.clip's values, without its checks
+        return np.minimum(np.maximum(np.asarray(start) + z * scale, lo), hi)
 
     seen: dict[bytes, float] = {}       # clipped joints -> objective
     search = nelder_mead.batches(np.vstack([np.zeros(3), np.eye(3)]), 0.02, 1e-4, REFINE_EVALUATIONS)
