@@ -265,3 +265,78 @@ def test_the_prefilters_skip_no_crossing_of_the_arm_the_camera_body_or_the_lamp(
     half = 0.5 * np.asarray(task.cell.collision.lamp_size_m)
     hidden = segments_cross_boxes(camera, scene.points, lamp_boxes(task.lamp.rig.pivot_m, half, lamps), half)
     assert np.array_equal(requirements.lamp_hides(problem, lamps), hidden) and 10 < hidden.any(axis=1).sum() < len(lamps) - 10
+
+
+def links_by_hand(task, lamp):
+    """The pan-tilt's links as docs/planning.md describes them: the arm, a 10 mm radius tube from
+    the lamp box's back out along the radius to the tilt servo's centre; the servo a 34 x 46.5 x
+    28.5 mm box (x horizontal, y, z along the aim) whose front face is a lamp box's depth beyond
+    the rig's largest radius."""
+    (T, half) = lamp_box_by_hand(task, lamp)
+    z = T[:3, 2]
+    pivot = task.lamp.rig.pivot_m
+    servo_half = np.array([0.034, 0.0465, 0.0285]) / 2
+    servo = pivot - (task.lamp.rig.radius_range_m[1] + 2 * half[2] + servo_half[2]) * z
+    T_servo = T.copy()
+    T_servo[:3, 3] = servo
+    return lamp - 2 * half[2] * z, servo, 0.010, T_servo, servo_half
+
+
+def test_the_pan_tilt_links_hide_the_samples_whose_line_of_sight_they_cross_as_trimesh_finds():
+    task = load_task(RING)
+    # the rig's pivot 0.12 m beside the feature: an arm can cross the camera's lines of sight where its lamp does not
+    task = replace(task, lamp=replace(task.lamp, rig=replace(task.lamp.rig, pivot_m=task.lamp.rig.pivot_m + (0.12, 0.0, 0.0))))
+    scene = build_scene(task)
+    problem = evaluate.build_problem(task, scene, None)
+    camera, centre, pivot = scene.camera_position, scene.center, task.lamp.rig.pivot_m
+    rng = np.random.default_rng(35)
+    # lamps whose arm runs out through the camera's line of sight to the feature, 0.1-0.3 m below
+    # where it crosses, and lamps elsewhere on the rig
+    crossing = centre + rng.uniform(0.4, 0.9, (30, 1)) * (camera - centre) + rng.normal(0.0, 0.005, (30, 3))
+    out = crossing - pivot
+    radius = np.linalg.norm(out, axis=1)[:, None] - rng.uniform(0.1, 0.3, (30, 1))
+    lamps = np.vstack([pivot + np.clip(radius, *task.lamp.rig.radius_range_m) * out / np.linalg.norm(out, axis=1)[:, None],
+                       rig.lamp_position(pivot, rng.uniform(-np.pi, np.pi, 20), rng.uniform(0.1, 0.5, 20), 0.3)])
+    housing, links = requirements.rig_hides(problem, lamps)
+    P = len(scene.points)
+    sight = np.broadcast_to(camera, scene.points.shape)
+    t = np.linspace(0.0, 1.0, 3001)
+    along = camera + t[None, :, None] * (scene.points - camera)[:, None]              # (P, 3001, 3)
+    for k, lamp in enumerate(lamps):
+        assert np.array_equal(housing[k], brute_force(*lamp_box_by_hand(task, lamp), sight, scene.points))
+        a, b, radius, T_servo, servo_half = links_by_hand(task, lamp)
+        s = np.clip(np.einsum("pnj,j->pn", along - a, b - a) / ((b - a) @ (b - a)), 0.0, 1.0)
+        gap = np.linalg.norm(along - a - s[..., None] * (b - a), axis=-1).min(axis=1)   # the arm's axis, densely
+        step = np.linalg.norm(scene.points - camera, axis=1).max() / 3000
+        servo = brute_force(T_servo, servo_half, sight, scene.points)
+        sure = servo | (gap < radius - step) | (gap > radius + step)
+        assert np.array_equal(links[k][sure], (servo | (gap < radius))[sure]) and sure.sum() > 0.8 * P
+    assert links[:30].any(axis=1).sum() > 10 and not links[30:].any() and (links & ~housing).any()
+    # the requirement counts them as unseen; the sentence names the links
+    k = int(np.argmax((links & ~housing).sum(axis=1)))
+    candidates = SimpleNamespace(position=lamps, shutter=np.zeros(len(lamps)))
+    assert np.allclose(requirements.camera_view(problem, candidates), np.log(0.5 + (housing | links).sum(axis=1)))
+    sentence = requirements.explain_camera_view(problem, SimpleNamespace(position=lamps[k:k + 1]), False)
+    assert f"cannot see {(housing | links)[k].sum()} of {P}" in sentence and "pan-tilt's links behind the lamp" in sentence
+
+
+def test_the_pan_tilt_links_lie_behind_the_lamp_out_of_its_beam():
+    """Every point of the arm and the servo lies behind the plane of the lamp's front across its
+    aim, where no ray to a sample the lamp lights (under 90 deg off its aim) goes."""
+    from cell.collision.bodies import Box, Capsule
+    from cell.collision.scene import rig_links
+    task = load_task(RING)
+    pivot, half = task.lamp.rig.pivot_m, 0.5 * np.asarray(task.cell.collision.lamp_size_m)
+    rng = np.random.default_rng(36)
+    lamps = rig.lamp_position(pivot, rng.uniform(-np.pi, np.pi, 40), rng.uniform(*task.lamp.rig.tilt_range_rad, 40),
+                              rng.uniform(*task.lamp.rig.radius_range_m, 40))
+    held = rig_links(pivot, half, task.lamp.rig.radius_range_m[1], lamps)
+    for k, lamp in enumerate(lamps):
+        aim = rig.lamp_aim(pivot, lamp)
+        arm = Capsule("arm", held.a[k], held.b[k], held.radius_m)
+        servo = Box("servo", held.T_cell_servo[k], held.servo_half_m)
+        direction = rng.normal(size=(4000, 3))
+        points = lamp + rng.uniform(0.0, 0.8, (4000, 1)) * direction / np.linalg.norm(direction, axis=1)[:, None]
+        ahead = points[(points - lamp) @ aim >= 0.0]                 # the half-space the beam's rays run in
+        assert arm.sdf(ahead).min() > 0.05 and servo.sdf(ahead).min() > 0.05
+        assert np.isclose(np.linalg.norm(held.b[k] - pivot), task.lamp.rig.radius_range_m[1] + 2 * half[2] + 0.01425)

@@ -139,9 +139,11 @@ class SightCone:
             return cls(apex, np.zeros(3), np.inf, 1.0, 0.0)          # every direction: the test always holds
         return cls(apex, v / d, d + rho, rho / d, float(np.sqrt(1.0 - (rho / d) ** 2)))
 
-    def meets(self, centres: ArrayLike, radius: float) -> np.ndarray:
-        """(C,) whether a ball of `radius` about each centre (C, 3) may meet the cone (not finite: not)."""
+    def meets(self, centres: ArrayLike, radius: ArrayLike) -> np.ndarray:
+        """(C,) whether a ball of `radius` (one, or (C,)) about each centre (C, 3) may meet the cone
+        (not finite: not)."""
         v = np.asarray(centres, float).reshape(-1, 3) - self.apex
+        r = np.asarray(radius, float)
         a = v @ self.axis
         b = np.sqrt(np.maximum(np.sum(v * v, axis=1) - a * a, 0.0))
-        return (b * self.cos - a * self.sin <= radius) & (a >= -radius) & (a <= self.length + radius)
+        return (b * self.cos - a * self.sin <= r) & (a >= -r) & (a <= self.length + r)

@@ -131,6 +131,43 @@ def lamp_boxes(pivot_m: ArrayLike, lamp_half_m: ArrayLike, lamp_position: ArrayL
     return T
 
 
+# The pan-tilt's links behind the lamp, which hold it on its radius: the arm from the lamp housing's
+# back out along the radius to the rig's largest radius (a 20 mm tube), and the tilt servo at its end,
+# a Dynamixel X-series 430 (hardware notes; ROBOTIS e-Manual: 28.5 x 46.5 x 34 mm, W x H x D), its
+# 34 mm across the aim and horizontal, 46.5 mm across it, 28.5 mm along it.
+RIG_ARM_RADIUS_M = 0.010
+TILT_SERVO_SIZE_M = (0.034, 0.0465, 0.0285)
+
+
+@dataclass(frozen=True)
+class RigLinks:
+    """The pan-tilt's links at C lamp positions: the arm (capsules a-b, one radius) and the tilt
+    servo (boxes: poses, one half size)."""
+
+    a: np.ndarray                 # (C, 3) the lamp housing's back
+    b: np.ndarray                 # (C, 3) the servo's centre
+    radius_m: float
+    T_cell_servo: np.ndarray      # (C, 4, 4)
+    servo_half_m: np.ndarray      # (3,)
+
+
+def rig_links(pivot_m: ArrayLike, lamp_half_m: ArrayLike, radius_max_m: float, lamp_position: ArrayLike) -> RigLinks:
+    """The pan-tilt's links with the lamp at each position (C, 3), all behind the lamp along its
+    aim z (rig.lamp_frame): the arm from the lamp box's back (2 h_z behind its front) out to the
+    servo, whose front face is 2 h_z beyond the rig's largest radius (the back of a lamp there), its
+    axes the lamp's (the arm reaches into the servo, so it never has length 0)."""
+    p = np.asarray(lamp_position, float).reshape(-1, 3)
+    pivot = np.asarray(pivot_m, float)
+    depth = 2.0 * float(np.asarray(lamp_half_m)[2])
+    servo_half = 0.5 * np.asarray(TILT_SERVO_SIZE_M)
+    R = lamp_frame(pivot, p)
+    aim = R[..., 2]
+    servo = pivot - (radius_max_m + depth + servo_half[2]) * aim
+    T = np.zeros((len(p), 4, 4))
+    T[:, :3, :3], T[:, :3, 3], T[:, 3, 3] = R, servo, 1.0
+    return RigLinks(p - depth * aim, servo, RIG_ARM_RADIUS_M, T, servo_half)
+
+
 @dataclass(frozen=True)
 class Clearance:
     """The smallest distance [m] between two bodies that may not touch, and which two (names);

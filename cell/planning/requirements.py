@@ -19,8 +19,8 @@ import numpy as np
 import trimesh
 from numpy.typing import ArrayLike
 
-from cell.collision.rays import NEAR_MARGIN_M, SightCone, segments_cross_boxes
-from cell.collision.scene import lamp_boxes
+from cell.collision.rays import NEAR_MARGIN_M, SightCone, segments_cross_boxes, segments_near_segments
+from cell.collision.scene import RIG_ARM_RADIUS_M, TILT_SERVO_SIZE_M, lamp_boxes, rig_links
 from cell.core import geometry
 from cell.core.numbers import number
 from cell.devices import rig
@@ -239,34 +239,68 @@ def explain_cone_coverage(p: Problem, c: Candidates, met: bool) -> str:
 
 
 def lamp_hides(p: Problem, positions: np.ndarray) -> np.ndarray:
-    """(C, P) the samples the camera sees (Problem.camera_seen) that the spot lamp's housing
-    hides with the lamp at each position (C, 3): the line of sight camera -> sample crosses the
-    lamp's box (collision.scene.lamp_boxes: cell.collision's lamp_size_m; rays.segments_cross_boxes);
-    a position not finite is a lamp not placed (a viewpoint judged before any lamp), hiding none.
-    Only lamps that may meet the lines of sight are tested: those lie in the cone from the camera
-    tangent to the samples' sphere (rays.SightCone), and the box in the ball about its centre,
-    h_z behind the lamp along the aim, of radius |h|."""
+    """(C, P) the samples the camera sees that the spot lamp's housing or the pan-tilt's links
+    hide with the lamp at each position (C, 3) (rig_hides)."""
+    housing, links = rig_hides(p, positions)
+    return housing | links
+
+
+def rig_hides(p: Problem, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """((C, P), (C, P)) the samples the camera sees (Problem.camera_seen) that the spot lamp's
+    housing, and that the pan-tilt's links, hide with the lamp at each position (C, 3): the line
+    of sight camera -> sample crosses the lamp's box (collision.scene.lamp_boxes: cell.collision's
+    lamp_size_m) or the tilt servo's box (rays.segments_cross_boxes, both in one call) or passes
+    within the arm's radius of its axis (collision.scene.rig_links; rays.segments_near_segments,
+    every lamp's arm in one call). A position not finite is a lamp not placed (a viewpoint judged
+    before any lamp), hiding none. Only lamps that may meet the lines of sight are tested: those
+    lie in the cone from the camera tangent to the samples' sphere (rays.SightCone); the box in
+    the ball about its centre, h_z behind the lamp along the aim, of radius |h|; the links within
+    W (the arm's radius, the servo's half diagonal across the aim, the larger) of the axis from
+    the lamp's back out to the servo's, in n balls along it (n for the rig's longest such axis).
+    The links lie behind the lamp, beyond its housing's back face, so they never block its own
+    beam (spot_blocked leaves them out): each ray of the spot runs from its front towards a sample
+    in front of it (within its cone, under 90 deg off its aim)."""
     positions = np.asarray(positions, float).reshape(-1, 3)
-    out = np.zeros((len(positions), len(p.scene.points)), bool)
+    housing = np.zeros((len(positions), len(p.scene.points)), bool)
+    links = np.zeros_like(housing)
     seen = p.camera_seen
     if seen is None or not seen.any():
-        return out
+        return housing, links
     half = 0.5 * np.asarray(p.task.cell.collision.lamp_size_m, float)
-    pivot = p.task.lamp.rig.pivot_m
+    pivot, (shortest, longest) = p.task.lamp.rig.pivot_m, p.task.lamp.rig.radius_range_m
     cone = p.fixed("sight_cone", lambda: SightCone.of(p.scene.camera_position,
                                                       *geometry.bounding_sphere(p.scene.points)))
+    servo_half = 0.5 * np.asarray(TILT_SERVO_SIZE_M)
+    width = max(RIG_ARM_RADIUS_M, float(np.hypot(servo_half[0], servo_half[1])))
+    end = longest + 2.0 * half[2] + 2.0 * servo_half[2]               # the servo's back from the pivot
+    n = max(1, int(np.ceil((end - 2.0 * half[2] - shortest) / (2.0 * width))))
     with np.errstate(invalid="ignore"):        # a lamp not placed (NaN) is not near
-        near = cone.meets(positions - half[2] * rig.lamp_aim(pivot, positions),
-                          float(np.linalg.norm(half)) + NEAR_MARGIN_M)
-    if near.any():
-        boxes = lamp_boxes(pivot, half, positions[near])
-        out[np.ix_(near, seen)] = segments_cross_boxes(p.scene.camera_position, p.scene.points[seen], boxes, half)
-    return out
+        aim = rig.lamp_aim(pivot, positions)
+        near_housing = cone.meets(positions - half[2] * aim, float(np.linalg.norm(half)) + NEAR_MARGIN_M)
+        back = np.linalg.norm(positions - pivot, axis=1) + 2.0 * half[2]
+        along = back[:, None] + (np.arange(n) + 0.5) / n * (end - back)[:, None]       # (C, n) from the pivot
+        centres = pivot - along[..., None] * aim[:, None]
+        near_links = cone.meets(centres.reshape(-1, 3), np.repeat(0.5 * (end - back) / n + width + NEAR_MARGIN_M, n)
+                                ).reshape(-1, n).any(axis=1)
+    if near_housing.any() or near_links.any():
+        points = p.scene.points[seen]
+        held = rig_links(pivot, half, longest, positions[near_links])
+        count = int(near_housing.sum())
+        crossed = segments_cross_boxes(
+            p.scene.camera_position, points, np.concatenate([lamp_boxes(pivot, half, positions[near_housing]),
+                                                             held.T_cell_servo]),
+            np.vstack([np.broadcast_to(half, (count, 3)), np.broadcast_to(held.servo_half_m, (len(held.a), 3))]))
+        housing[np.ix_(near_housing, seen)] = crossed[:count]
+        if len(held.a):
+            links[np.ix_(near_links, seen)] = crossed[count:] | segments_near_segments(
+                p.scene.camera_position, points, held.a, held.b, held.radius_m)
+    return housing, links
 
 
 def camera_view(p: Problem, c: Candidates) -> np.ndarray:
     """Every sample seen: none hidden by the part or a fixed light's housing or outside the image
-    (Problem.camera_unseen), none hidden by the spot lamp's housing at the candidate's pose."""
+    (Problem.camera_unseen), none hidden by the spot lamp's housing or the pan-tilt's links at
+    the candidate's pose (lamp_hides)."""
     unseen = p.camera_unseen + lamp_hides(p, c.position).sum(axis=-1)
     return np.broadcast_to(costs.ln_count_cost(unseen), c.shutter.shape)
 
@@ -275,10 +309,14 @@ def explain_camera_view(p: Problem, c: Candidates | None, met: bool) -> str:
     n = len(p.scene.points)
     if met:
         return f"the camera sees all {n} feature samples"
-    by_lamp = 0 if c is None else int(lamp_hides(p, c.position[:1]).sum())
+    housing, links = (np.zeros((1, n), bool),) * 2 if c is None else rig_hides(p, c.position[:1])
+    by_lamp = int(np.sum(housing | links))
     fact = f"the camera cannot see {p.camera_unseen + by_lamp} of {n} feature samples"
     if by_lamp:
-        return (f"{fact}: the spot lamp's housing (lamp_body) stands between {by_lamp} of them and the camera; "
+        names = (("the spot lamp's housing (lamp_body)", housing),
+                 ("the pan-tilt's links behind the lamp (its arm and tilt servo)", links))
+        which = " and ".join(name for name, hides in names if hides.any())
+        return (f"{fact}: {which} {'stand' if links.any() else 'stands'} between {by_lamp} of them and the camera; "
                 f"move the lamp out of the camera's view")
     on_flipped, flipped = on_flipped_faces(p)
     if on_flipped:
