@@ -16,12 +16,15 @@ from cell.collision.scene import CollisionScene, light_bodies, light_body, reach
 from cell.core import geometry
 from cell.core.errors import DeviceFault
 from cell.planning.lights import emitters
+from cell.planning.scene import look_at
 from cell.planning.whole_part import plan_features
 from cell.run.moves import with_moves
 from cell.task import loader
 from cell.task.types import HOUSING_DEPTH_M, Channel, Light
 from sim.arm import SimArm
 from sim.obstacles import CONTACT_M, Obstacles, light_housing, surface_points
+
+from simcell import variant
 
 TASKS = Path(__file__).parent / "tasks" / "features"
 RING = Path(__file__).parent.parent / "tasks" / "ring.yaml"
@@ -305,3 +308,29 @@ def test_the_simulated_arm_takes_the_planned_way_down_through_the_rings_hole(rin
     for T in (*move.via, plan.shots[0].T_cell_cam):
         arm.move_camera(T)
     assert np.allclose(arm.camera_pose(), plan.shots[0].T_cell_cam, atol=1e-9)
+
+
+def test_a_dome_over_the_part_is_a_body_the_camera_looks_in_through_its_hole(tmp_path):
+    """ring.yaml with a dome (radius 100 mm, its centre at the plate's top, a 15 mm camera hole at
+    its pole 108 mm up) instead of its rings: the camera 300 mm over the feature clears the dome by
+    its box's lower corners to the hole's outer edge (closed form); lowered to 120 mm its box
+    meets the shell round the hole, refused naming the dome; the simulator's check finds it too."""
+    dome = {"name": "dome", "type": "dome", "mount": "fixed", "position_m": [0.0, 0.0, 0.108],
+            "aim_m": [0.0, 0.0, 0.0], "radius_mm": 100, "hole_radius_mm": 15, "power_w": 2.0, "channel": 1}
+    task = loader.load_task(variant(tmp_path, RING, {"lights": [dome]}))
+    scene = CollisionScene.of(task)
+    assert [b.name for b in scene.fixed] == ["part", "dome"] and isinstance(scene.fixed[1], Shell)
+    top = np.array([0.0, 0.0, 0.008])
+    for height, clear in ((0.300, True), (0.120, False)):
+        T = look_at(top + (0.0, 0.0, height), top)
+        c = scene.clearance(T)
+        assert c.ok == clear and (clear or "dome" in c.bodies)
+        camera = scene.camera_body(task.frames.T_cell_flange(T))
+        bottom = camera.center[2] - camera.half_m[2]               # its lower face, level
+        edge = 0.008 + np.sqrt(0.12**2 - 0.015**2)     # the hole's outer edge, the shell's top: under the box
+        got = distance(camera, scene.fixed[1])
+        if clear:
+            assert bottom - edge - SAMPLE_BOUND_M - 1e-9 <= got <= bottom - edge + 1e-9
+        arm = SimArm(task.cell.devices.arm, task.frames, joints=reaching_joints(task.frames, T), obstacles=Obstacles(task))
+        gap, contact = arm.obstacles.gap(arm.joints, None)
+        assert (gap >= CONTACT_M) == clear and (clear or contact.other == "dome")
