@@ -1,6 +1,7 @@
 """The simulated cell's own collision check: what the simulated arm and pan-tilt would hit as they
-move, independent of the planner's cell.collision (other geometry, other distances): the part
-and the fixture as points on a grid over each triangle (`surface_points`) in a k-d tree, the camera and lamp housings as
+move, independent of the planner's cell.collision (other geometry, other distances): the part,
+the fixture and each fixed light's housing (`light_housing`: a ring's annulus, a dome's shell open
+at its hole, a bar's box) as points on a grid over each triangle (`surface_points`) in a k-d tree, the camera and lamp housings as
 sampled boxes of the task's `cell.collision` sizes, the UR5e's links as the segments between its
 joint origins (cell.devices.ur5e's chain, which the planner's bodies and the real controller share; the lamp's
 axes cell.devices.rig.lamp_frame's) with the tube
@@ -26,8 +27,10 @@ from scipy.spatial import cKDTree
 from cell.devices import ur5e
 from cell.devices.rig import lamp_frame
 
+from cell.task.types import HOUSING_RIM_M
+
 if TYPE_CHECKING:
-    from cell.task.types import Task
+    from cell.task.types import Light, Task
 
 CONTACT_M = 0.004           # closer than this: touching (the surface samples' spacing; the
                             # planner keeps 10 mm of padding)
@@ -38,6 +41,7 @@ REACH_M = 1.3               # the UR5e's farthest point from any of its axes, a 
 # wrists 45 mm in radius; the upper arm runs 138 mm off the DH line along joint 2's axis
 LINK_RADII_M = (0.075, 0.055, 0.045, 0.045, 0.045, 0.045)
 UPPER_ARM_OFFSET_M = 0.138
+CIRCLE_SECTIONS = 256       # a ring's or dome's circles as polygons: within 0.01 mm of a 130 mm circle
 
 
 @dataclass(frozen=True)
@@ -70,6 +74,40 @@ def surface_points(mesh: trimesh.Trimesh, spacing: float = CONTACT_M) -> np.ndar
     return np.vstack(out)
 
 
+def light_housing(light: Light) -> trimesh.Trimesh:
+    """A fixed light's housing (Light.housing's sizes) as a closed mesh in the cell frame, behind
+    its emitting surface in the light's frame (x its `along`, z its axis, its emitting centre at
+    0): a ring's annulus (trimesh's) from aperture_radius_m to outer_radius_m; a dome's shell,
+    the band between its sphere (radius_m about the point radius_m along z) and one housing_depth_m
+    larger, from the camera's hole (hole_radius_m) to the rim (z = radius_m), revolved about z;
+    any other light's box of its emitting extent plus HOUSING_RIM_M across, housing_depth_m deep."""
+    h = light.housing()
+    if light.type == "ring":
+        mesh = trimesh.creation.annulus(r_min=h.aperture_radius_m, r_max=h.outer_radius_m, height=h.depth_m,
+                                        sections=CIRCLE_SECTIONS)
+        mesh.apply_translation((0.0, 0.0, -0.5 * h.depth_m))
+    elif light.type == "dome":
+        r, hole = float(light.radius_m or 0.0), float(light.hole_radius_m or 0.0)
+        arcs = []
+        for rho in (r + h.depth_m, r):
+            polar = np.linspace(np.arcsin(min(hole / rho, 1.0)), 0.5 * np.pi, CIRCLE_SECTIONS // 4)
+            arcs.append(np.column_stack([rho * np.sin(polar), r - rho * np.cos(polar)]))
+        mesh = trimesh.creation.revolve(np.vstack([arcs[0], arcs[1][::-1], arcs[0][:1]]), sections=CIRCLE_SECTIONS)
+    else:
+        if light.type == "bar":
+            across = (float(light.length_m or 0.0), 0.0)
+        elif light.size_m is not None:
+            across = (float(light.size_m[0]), float(light.size_m[1]))
+        else:
+            across = (2.0 * float(light.radius_m or 0.0),) * 2
+        mesh = trimesh.creation.box(extents=(across[0] + 2 * HOUSING_RIM_M, across[1] + 2 * HOUSING_RIM_M, h.depth_m))
+        mesh.apply_translation((0.0, 0.0, -0.5 * h.depth_m))
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack([light.along, np.cross(light.axis, light.along), light.axis])
+    T[:3, 3] = light.position_m
+    return mesh.apply_transform(T)
+
+
 def _box_samples(size: np.ndarray) -> np.ndarray:
     """Points on the surface of a box of `size` centred at 0 (trimesh's box, `surface_points`)."""
     return surface_points(trimesh.creation.box(extents=size))
@@ -85,6 +123,7 @@ class Obstacles:
         fixed = [("part", task.part.mesh.copy().apply_transform(task.frames.T_cell_part))]
         if c.fixture is not None:
             fixed.append(("fixture", c.fixture))
+        fixed += [(light.name, light_housing(light)) for light in task.lights if light.mount == "fixed"]
         points, names = [], []
         for name, mesh in fixed:
             p = surface_points(mesh)

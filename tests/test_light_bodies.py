@@ -1,7 +1,9 @@
 """Fixed lights as obstacles for the collision check (cell.collision.scene.light_bodies): each
-fixed light's housing is a box whose front face holds its emitter points (cell.planning.lights,
-an independent construction of the same light), and a camera put into a bar's housing is
-refused naming the bar."""
+fixed light's housing is a body whose front face holds its emitter points (cell.planning.lights,
+an independent construction of the same light), a camera put into a bar's housing is refused
+naming the bar; a ring's body is the annulus round its hole and a dome's the shell open at its
+hole (closed forms, a dense brute force written out here); the simulator's own check has the
+same shapes, lets a camera through a ring's hole and stops one driven into its housing."""
 from pathlib import Path
 
 import numpy as np
@@ -10,11 +12,19 @@ import pytest
 from scipy.spatial import cKDTree
 
 from cell.collision.bodies import SAMPLE_BOUND_M, Annulus, Box, Capsule, Shell, distance
-from cell.collision.scene import CollisionScene, light_bodies
+from cell.collision.scene import CollisionScene, light_bodies, light_body, reaching_joints
 from cell.core import geometry
+from cell.core.errors import DeviceFault
 from cell.planning.lights import emitters
+from cell.planning.scene import look_at
+from cell.planning.whole_part import plan_features
+from cell.run.moves import with_moves
 from cell.task import loader
-from cell.task.types import HOUSING_DEPTH_M
+from cell.task.types import HOUSING_DEPTH_M, Channel, Light
+from sim.arm import SimArm
+from sim.obstacles import CONTACT_M, Obstacles, light_housing, surface_points
+
+from simcell import variant
 
 TASKS = Path(__file__).parent / "tasks" / "features"
 RING = Path(__file__).parent.parent / "tasks" / "ring.yaml"
@@ -231,3 +241,96 @@ def test_the_housings_distance_agrees_with_a_dense_brute_force(make, dense):
         else:
             brute = nearest_within(tree, along, got + link.radius_m + 2 * pitch).min() - link.radius_m
             assert got <= brute + 1e-12 and np.isfinite(brute)
+
+
+# -- the simulator's own check knows the lights' housings, the same shapes ------------------------
+
+RING_LENS = TASKS / "ring_lens.yaml"
+
+
+def test_the_simulators_housings_are_the_planners_shapes():
+    """sim.obstacles.light_housing (trimesh's annulus, its own revolved shell, a box) against the
+    planner's bodies: every point the simulator samples on a housing lies on the planner's body's
+    surface (within the polygons' 0.01 mm), and its volume is the shape's closed form."""
+    ring, dome = fixed_light("ring", radius_m=0.065, aperture_radius_m=0.055, outer_radius_m=0.075), \
+        fixed_light("dome", radius_m=R, hole_radius_m=HOLE, housing_depth_m=SHELL)
+    bar = loader.load_task(TASKS / "plate_bar.yaml").lights[0]
+    ri, ro, d = 0.055, 0.075, HOUSING_DEPTH_M
+    volumes = {"ring": np.pi * (ro**2 - ri**2) * d, "bar": (bar.length_m + 0.01) * 0.01 * d,
+               "dome": 2 * np.pi / 3 * ((R + SHELL) ** 3 - R**3 - ((R + SHELL) ** 3 - ((R + SHELL) ** 2 - HOLE**2) ** 1.5)
+                                        + (R**3 - (R**2 - HOLE**2) ** 1.5))}
+    for light in (ring, dome, bar):
+        mesh = light_housing(light)
+        assert np.abs(light_body(light).sdf(surface_points(mesh))).max() < 1e-5, light.type
+        assert mesh.volume == pytest.approx(volumes[light.type], rel=1e-3), light.type
+
+
+def fixed_light(kind, **keys):
+    down = np.array([0.0, 0.0, -1.0])
+    return Light(kind, kind, "fixed", 0.5, Channel(7), np.array([0.0, 0.0, 0.2]), down, np.array([1.0, 0.0, 0.0]), **keys)
+
+
+@pytest.fixture(scope="module")
+def ring_lens():
+    """ring_lens.yaml and its plan."""
+    task = loader.load_task(RING_LENS)
+    return task, plan_features(task)
+
+
+def test_a_camera_through_a_rings_hole_plans_and_the_simulators_check_stops_it_going_into_the_housing(ring_lens):
+    """ring_lens.yaml: the camera body reaches through the lens ring's 55 mm hole, 12.6 mm from
+    its rim (corner 42.4 mm off the axis): the plan is feasible with that clearance (less the
+    box's 2 mm sampling bound); the simulated arm at the shot finds the ring that far by its own
+    check, and a move 40 mm to the side, into the housing, stops naming the ring."""
+    task, plan = ring_lens
+    shot, true = plan.shots[0], 0.055 - np.hypot(0.03, 0.03)
+    assert plan.feasible and shot.clearance.bodies == ("lens_ring", "camera_body")
+    assert true - SAMPLE_BOUND_M - 1e-9 <= shot.clearance.distance_m <= true + 1e-9
+    arm = SimArm(task.cell.devices.arm, task.frames, joints=reaching_joints(task.frames, shot.T_cell_cam),
+                 obstacles=Obstacles(task))
+    gap, contact = arm.obstacles.gap(arm.joints, None)
+    assert contact.other == "lens_ring" and true - 1e-4 <= gap <= true + CONTACT_M
+    with pytest.raises(DeviceFault) as fault:
+        arm.move_camera(shot.T_cell_cam @ geometry.transform(translation=(0.04, 0.0, 0.0)))
+    assert "protective stop" in fault.value.reason and "lens_ring" in fault.value.reason
+
+
+@pytest.mark.long          # 10-30 s: the simulated arm's own check steps finely near the ring
+def test_the_simulated_arm_takes_the_planned_way_down_through_the_rings_hole(ring_lens):
+    """The run's move from the home pose: over the ring and down its axis (two via points), which
+    the simulator's own check lets through."""
+    task, plan = ring_lens
+    move = with_moves(task, plan).moves[0]
+    assert move.clear and len(move.via) == 2
+    ring = next(light for light in task.lights if light.name == "lens_ring")
+    assert np.allclose(move.via[-1][:2, 3], ring.position_m[:2], atol=1e-9)     # the last via point on its axis
+    arm = SimArm(task.cell.devices.arm, task.frames, obstacles=Obstacles(task))
+    for T in (*move.via, plan.shots[0].T_cell_cam):
+        arm.move_camera(T)
+    assert np.allclose(arm.camera_pose(), plan.shots[0].T_cell_cam, atol=1e-9)
+
+
+def test_a_dome_over_the_part_is_a_body_the_camera_looks_in_through_its_hole(tmp_path):
+    """ring.yaml with a dome (radius 100 mm, its centre at the plate's top, a 15 mm camera hole at
+    its pole 108 mm up) instead of its rings: the camera 300 mm over the feature clears the dome by
+    its box's lower corners to the hole's outer edge (closed form); lowered to 120 mm its box
+    meets the shell round the hole, refused naming the dome; the simulator's check finds it too."""
+    dome = {"name": "dome", "type": "dome", "mount": "fixed", "position_m": [0.0, 0.0, 0.108],
+            "aim_m": [0.0, 0.0, 0.0], "radius_mm": 100, "hole_radius_mm": 15, "power_w": 2.0, "channel": 1}
+    task = loader.load_task(variant(tmp_path, RING, {"lights": [dome]}))
+    scene = CollisionScene.of(task)
+    assert [b.name for b in scene.fixed] == ["part", "dome"] and isinstance(scene.fixed[1], Shell)
+    top = np.array([0.0, 0.0, 0.008])
+    for height, clear in ((0.300, True), (0.120, False)):
+        T = look_at(top + (0.0, 0.0, height), top)
+        c = scene.clearance(T)
+        assert c.ok == clear and (clear or "dome" in c.bodies)
+        camera = scene.camera_body(task.frames.T_cell_flange(T))
+        bottom = camera.center[2] - camera.half_m[2]               # its lower face, level
+        edge = 0.008 + np.sqrt(0.12**2 - 0.015**2)     # the hole's outer edge, the shell's top: under the box
+        got = distance(camera, scene.fixed[1])
+        if clear:
+            assert bottom - edge - SAMPLE_BOUND_M - 1e-9 <= got <= bottom - edge + 1e-9
+        arm = SimArm(task.cell.devices.arm, task.frames, joints=reaching_joints(task.frames, T), obstacles=Obstacles(task))
+        gap, contact = arm.obstacles.gap(arm.joints, None)
+        assert (gap >= CONTACT_M) == clear and (clear or contact.other == "dome")
