@@ -229,7 +229,7 @@ def test_a_bar_between_the_spot_and_the_feature_shadows_it_in_the_planner(left_p
     from cell.planning.one_shot import build_maps
     from cell.planning.plan import PlannerSettings
     from cell.planning.requirements import explain_no_shadow
-    problem = replace(problem, maps=build_maps(task, scene, PlannerSettings(), reflectance=False))
+    problem = replace(problem, maps=build_maps(task, scene, PlannerSettings()))
     spot_alone = evaluate.at_exposure(problem, lamp, 5e-3, 4.0, drive=[1.0, 0.0, 0.0])
     assert f"bar_left ({len(scene.points)} samples)" in explain_no_shadow(problem, spot_alone, False)
 
