@@ -123,7 +123,7 @@ def test_the_lamp_tolerance_moves_see_the_profile(hinge):
     c = evaluate.candidates(soft, pan, tilt, radius)
     pivot, scene, sensor = task.lamp.rig.pivot_m, plan.scene, task.camera.sensor
     moved = np.array([rig.lamp_position(pivot, pan + dp, tilt + dt, radius).reshape(3)
-                      for dp, dt in evaluate.tolerance_moves(soft, np.array([tilt]))])
+                      for dp, dt in zip(*evaluate.tolerance_moves(soft, np.array([tilt])))])
     u = reference.gray_per_exposure(None, scene.points, scene.normals, scene.camera_position, moved,
                                     rig.lamp_aim(pivot, moved), task.lamp.power_w,
                                     task.lamp.cone_angle_rad, soft.material.table(), sensor.camera_constant,
