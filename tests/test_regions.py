@@ -4,7 +4,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from cell.core import geometry
-from cell.planning.regions import RegionDistance, SphereGrid, chord_to_angle, on_edge
+from cell.planning.regions import NEARBY, RegionDistance, SphereGrid, chord_to_angle, on_edge
 
 
 def signed_distance(grid, inside):
@@ -82,9 +82,41 @@ def test_the_distance_at_the_cells_around_a_lamp_is_the_whole_maps_there(seed):
     lazy = RegionDistance(grid, inside)
     got = lazy.sample(az, el)
     found = ~np.isnan(lazy._values)
-    assert np.array_equal(np.flatnonzero(found), cells)
+    nearby = grid.cells_around(az, el, NEARBY)         # a few lamps: the cells around them too
+    assert np.array_equal(np.flatnonzero(found), nearby) and np.isin(cells, nearby).all()
+    assert found.sum() < found.size / 4
     assert np.allclose(lazy._values[cells], brute_force(grid, inside).ravel()[cells], atol=1e-12)
     np.testing.assert_array_equal(got, grid.sample(signed_distance(grid, inside), az, el))
+
+
+@pytest.mark.parametrize("margin", [0, 1, 2])
+def test_cells_around_are_the_cells_sample_reads_and_their_neighbours(margin):
+    """cells_around: at margin 0 exactly the cells SphereGrid.sample reads (a map NaN elsewhere
+    samples finite, and NaN with any one of them taken away), at the seam and beside a pole too;
+    at a margin, those and every cell up to `margin` rows and columns from them, no other."""
+    grid = SphereGrid(np.radians(2.0))
+    rng = np.random.default_rng(margin)
+    az = np.concatenate([rng.uniform(-np.pi, np.pi, 5), [np.pi - 1e-3, -np.pi, 0.3]])
+    el = np.concatenate([rng.uniform(-1.5, 1.5, 5), [0.1, 0.5 * np.pi - 1e-3, -0.5 * np.pi]])
+    n_el, n_az = len(grid.elevation), len(grid.azimuth)
+    for a, e in zip(az, el):
+        read = grid.cells_around(a, e)
+        values = np.full(n_el * n_az, np.nan)
+        values[read] = 1.0
+        assert np.isfinite(grid.sample(values.reshape(n_el, n_az), a, e))
+        for k in read:
+            values[k] = np.nan
+            assert np.isnan(grid.sample(values.reshape(n_el, n_az), a, e))
+            values[k] = 1.0
+        around = grid.cells_around(a, e, margin)
+        rows, columns = np.divmod(around, n_az)
+        r0, c0 = np.divmod(read, n_az)
+        row_gap = np.abs(rows[:, None] - r0[None]).min(axis=1)
+        column_gap = np.abs((columns[:, None] - c0[None] + n_az // 2) % n_az - n_az // 2).min(axis=1)
+        assert np.isin(read, around).all() and row_gap.max() <= margin and column_gap.max() <= margin
+        every = {(r, c) for r in range(n_el) for c in range(n_az)
+                 if np.abs(r - r0).min() <= margin and np.abs((c - c0 + n_az // 2) % n_az - n_az // 2).min() <= margin}
+        assert len(around) == len(every)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
