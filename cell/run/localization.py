@@ -35,7 +35,10 @@ stays in the cell, and a straight shank moved along itself looks the same. How f
 leave the part's position open (resolution) is judged on the model's images rendered at the
 estimate and moved either way of each parameter (rendered_information), each view over its
 residual; the loop takes further views (by_resolution) where that exceeds the registration
-limit, and names the direction (along) where it stays open."""
+limit, among them views with the lamp low along the open direction (lamps_along: the light's
+edges that move with the part, shadows of what stands up there), starts the fit there from the
+earlier estimate moved along it as the rendered images fit best (along_start), and names the
+direction (along) where it stays open."""
 from __future__ import annotations
 
 import hashlib
@@ -93,6 +96,11 @@ STEP_UNITS = 0.5            # rendered_information: its differences half an INFO
 MAX_EXTRA_VIEWS = 2         # the loop's views beyond the second where the part's position stays open
 ALONG_COS = np.cos(np.radians(30.0))   # along: a direction within this of a part axis is named by it
 COVERAGE = 2.0              # Resolution.unresolved: the registration limit holds with this many uncertainties
+LAMP_TILTS_DEG = (15.0, 25.0)   # lamps_along: the lamp's elevations for a further view along a weak direction
+HORIZONTAL = 0.5            # lamps_along: a weak direction less across the cell's xy plane than this has no pan
+ALONG_STEP_M = 1e-3         # along_start: its steps along the weak direction
+PAN_MARGIN_RAD = np.radians(1.0)   # lamps_along: its pans this far inside the rig's range (a servo rig's pan at
+                                   # exactly 180 deg is tick 4096, one beyond its position limit)
 
 
 @dataclass(frozen=True)
@@ -486,10 +494,13 @@ class View:
     drives: Drives = None
 
 
-def localize(task: Task, scene: Scene, views: Sequence[View]) -> PoseError | None:
+def localize(task: Task, scene: Scene, views: Sequence[View],
+             along: tuple[PoseError, np.ndarray] | None = None) -> PoseError | None:
     """The PoseError of the part and the camera that explains the views' captures against the
     model's images (model_view): each view's whole shift (whole_shift, fit_shifts) turned and
-    shifted as a grid's best starts (coarse_starts), each fitted at the coarsest scale, the one
+    shifted as a grid's best starts (coarse_starts), and given an earlier estimate and the
+    direction its views left open (`along`: Resolution.direction), that estimate moved along it as
+    fits best (along_start), each fitted at the coarsest scale, the one
     of least cost starts the edge fit coarse to fine (fit over SCALES_PX); then once more against
     the model's images where the first fit puts the part and the cameras (refine), so that the
     light the part moved into is the model's too. None when a capture is flat (its brightest
@@ -497,6 +508,11 @@ def localize(task: Task, scene: Scene, views: Sequence[View]) -> PoseError | Non
     enough to fit (fewer than MIN_SAMPLES)."""
     if any(np.percentile(v.image, 99.5) - np.median(v.image) < MIN_CONTRAST_GRAY for v in views):
         return None
+    if along is not None:
+        start = along_start(task, scene, views, *along)
+        there = localize(task, moved_scene(scene, start.T_part),
+                         [replace(v, T_cell_cam=v.T_cell_cam @ start.T_hand_eye) for v in views])
+        return None if there is None else composed(start, there)
     models = [model_view(task, scene, v.T_cell_cam, v.lamp_pose, v.drives) for v in views]
     images = [signal(task, v.image) for v in views]
     K = projection.intrinsics(task.camera.sensor, task.camera.lens)
@@ -509,6 +525,66 @@ def localize(task: Task, scene: Scene, views: Sequence[View]) -> PoseError | Non
     coarse = [fit(levels[:1], K, scene.center, start) for start in coarse_starts(levels[0], K, scene.center, theta0)]
     best = min(coarse, key=lambda e: cost(levels[0], K, scene.center, e.theta))
     return refine(task, scene, views, fit(levels, K, scene.center, best.theta))
+
+
+def along_start(task: Task, scene: Scene, views: Sequence[View], error: PoseError,
+                direction: np.ndarray) -> PoseError:
+    """An earlier estimate moved along a direction its views left open (cell frame, unit) to where
+    the model's images rendered with the part there fit the captures best: the sum over the views
+    of the squared rendered_residual (the model's image on the grid VIEW_SCALE times coarser, the
+    part and the cameras where the estimate moved by s puts them), over s in steps of
+    ALONG_STEP_M up to MAX_OFFSET_M either way, then in quarter steps about the best. Rendered,
+    not the edges' cost: what the light draws stays in the cell when the part moves (the end of
+    the spot on the conrod's shank), and the edge fit, which moves every edge with the part, is
+    held by those near where it starts (the conrod 10 mm off along its shank was fitted 9.3 mm
+    short from four views; its edges' cost fell toward the model's pose in the views that tell
+    nothing along it)."""
+    direction = np.asarray(direction, float)
+
+    def residual(step: float) -> float:
+        moved = replace(error, part_offset_m=error.part_offset_m + step * direction)
+        scene_there = moved_scene(scene, moved.T_part)
+        total = 0.0
+        for v in views:
+            model = model_view(task, scene_there, v.T_cell_cam @ moved.T_hand_eye, v.lamp_pose, v.drives,
+                               VIEW_SCALE)
+            part = np.isfinite(model.points[..., 0])
+            if part.any():
+                rendered = band_pass(model.value, SCALES_PX[0] / VIEW_SCALE)
+                total += rendered_residual(signal(task, v.image), rendered, part) ** 2
+        return total
+
+    steps = np.arange(-MAX_OFFSET_M, MAX_OFFSET_M + 0.5 * ALONG_STEP_M, ALONG_STEP_M)
+    best = min(steps, key=residual)
+    best = min(best + 0.25 * ALONG_STEP_M * np.arange(-3, 4), key=residual)
+    return replace(error, part_offset_m=error.part_offset_m + best * direction)
+
+
+def lamps_along(task: Task, direction: np.ndarray, radius_m: float) -> list[tuple[float, float, float]]:
+    """The lamp's joints (pan, tilt, radius) [rad, rad, m] for further views that tell the part's
+    position along a weak direction (cell frame): panned to either side along it (PAN_MARGIN_RAD
+    inside the rig's pan range), at each of LAMP_TILTS_DEG the rig's tilt range allows, at the (manual) radius the lamp stands at. The rig
+    turns the lamp about its pivot, so the spot stays there; low, the spot stretches along the
+    direction by 1 / sin(tilt), and what stands up there (the conrod's bosses, 6 and 8 mm above
+    its shank) casts shadows across the part whose edges move with it. The planned lamp, high
+    above, lights the conrod's shank only (its spot ends 15 mm short of either boss), which looks
+    the same moved along itself; lit from 15 deg along it, the big boss's shadow ends 16 mm from
+    the feature. None where the direction is nearly vertical (less than HORIZONTAL across the
+    cell's xy plane: no pan follows it)."""
+    flat = np.asarray(direction, float)[:2]
+    if np.linalg.norm(flat) < HORIZONTAL:
+        return []
+    rig, toward = task.lamp.rig, float(np.arctan2(flat[1], flat[0]))
+    joints = []
+    for side in (0.0, np.pi):
+        pans = [p for p in (toward + side + turn for turn in (-2.0 * np.pi, 0.0, 2.0 * np.pi))
+                if rig.pan_range_rad[0] <= p <= rig.pan_range_rad[1]]
+        if not pans:
+            continue
+        pan = float(np.clip(pans[0], rig.pan_range_rad[0] + PAN_MARGIN_RAD, rig.pan_range_rad[1] - PAN_MARGIN_RAD))
+        joints += [(pan, float(tilt), float(radius_m)) for tilt in np.radians(LAMP_TILTS_DEG)
+                   if rig.tilt_range_rad[0] <= tilt <= rig.tilt_range_rad[1]]
+    return joints
 
 
 def refine(task: Task, scene: Scene, views: Sequence[View], first: PoseError) -> PoseError:
@@ -527,7 +603,14 @@ def refine(task: Task, scene: Scene, views: Sequence[View], first: PoseError) ->
     levels = [[edge_samples(m, signal(task, v.image), s) for m, v in zip(models, views)] for s in SCALES_PX]
     if min(len(s.points) for s in levels[-1]) < MIN_SAMPLES:
         return first
-    second = fit(levels, K, moved.center, np.zeros(9))
+    return composed(first, fit(levels, K, moved.center, np.zeros(9)))
+
+
+def composed(first: PoseError, second: PoseError) -> PoseError:
+    """A PoseError found against the model moved by `first` (second: about the moved centre,
+    the cameras turned by first's hand-eye) composed with it: the part's moves and turns compose
+    (offsets add about the moved centre, turns multiply), the hand-eye turns too; the standard
+    errors, views and residual are second's."""
     turn = Rotation.from_euler("xyz", second.part_rpy_rad) * Rotation.from_euler("xyz", first.part_rpy_rad)
     hand_eye = Rotation.from_euler("xyz", first.hand_eye_rpy_rad) * Rotation.from_euler("xyz", second.hand_eye_rpy_rad)
     return replace(second, part_offset_m=first.part_offset_m + second.part_offset_m,
@@ -804,16 +887,22 @@ def rendered_information(task: Task, scene: Scene, error: PoseError,
         spread = max(float(np.std(band[0][part])), 1e-12)
         J = np.column_stack([(band[1 + 2 * j] - band[2 + 2 * j])[part] / (2.0 * STEP_UNITS * spread)
                              for j in range(9)]).astype(float)
-        residual = None
-        if i < len(images):
-            small = cv2.resize(signal(task, images[i]), part.shape[::-1], interpolation=cv2.INTER_AREA)
-            captured = band_pass(small, sigma)[part].astype(float)
-            captured /= max(float(np.std(captured)), 1e-12)
-            model = band[0][part] / spread
-            gain = max(float(captured @ model) / max(float(captured @ captured), 1e-12), 0.0)
-            residual = float(np.sqrt(np.mean((gain * captured - model) ** 2)))
+        residual = rendered_residual(signal(task, images[i]), band[0], part) if i < len(images) else None
         told.append(Told(J.T @ J / int(part.sum()), residual))
     return told
+
+
+def rendered_residual(image: np.ndarray, model: np.ndarray, part: np.ndarray) -> float:
+    """The rms residual of a capture against the model's image band-passed on the grid
+    VIEW_SCALE times coarser (`model`, rendered_information's), over the model's part pixels:
+    the capture on that grid, band-passed alike, both scaled to unit spread there, the capture
+    times its least-squares gain less the model."""
+    small = cv2.resize(np.asarray(image, np.float32), part.shape[::-1], interpolation=cv2.INTER_AREA)
+    captured = band_pass(small, SCALES_PX[0] / VIEW_SCALE)[part].astype(float)
+    captured /= max(float(np.std(captured)), 1e-12)
+    rendered = model[part] / max(float(np.std(model[part])), 1e-12)
+    gain = max(float(captured @ rendered) / max(float(captured @ captured), 1e-12), 0.0)
+    return float(np.sqrt(np.mean((gain * captured - rendered) ** 2)))
 
 
 @dataclass(frozen=True)

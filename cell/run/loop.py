@@ -26,6 +26,7 @@ from cell.run.defects import MeasuredDefect, measure as measure_defects, on_defe
 from cell.run.measurement import BlackLevel, Measurement
 from cell.run.refit import Refit
 from cell.collision.scene import CollisionScene, reaching_joints
+from cell.devices.rig import lamp_aim, lamp_position
 from cell.devices.interfaces import speaking_for
 from cell.core.errors import GoalNotReached
 from cell.planning.plan import gray_stats
@@ -552,10 +553,14 @@ def clear_views(ctx: RunContext, task: Task, scene: Scene, lamp_pose: registrati
                 capture: Capture) -> list[np.ndarray]:
     """The camera poses of the further views (localization.second_views about capture's) that the
     arm reaches and the collision check clears at the pose with the lamp where it is."""
-    collision = CollisionScene.of(task)
-    return [T for T in localization.second_views(capture.T_cell_cam, scene.center)
-            if ctx.devices.arm.refusal(T) is None
-            and collision.clearance(T, reaching_joints(task.frames, T), lamp_pose[0]).ok]
+    return [T for T in localization.second_views(capture.T_cell_cam, scene.center) if clear(ctx, task, T, lamp_pose[0])]
+
+
+def clear(ctx: RunContext, task: Task, T_cell_cam: np.ndarray, lamp_position_m: np.ndarray) -> bool:
+    """Whether the arm reaches the camera pose and the collision check clears the cell there with
+    the lamp at that position."""
+    return (ctx.devices.arm.refusal(T_cell_cam) is None and CollisionScene.of(task).clearance(
+        T_cell_cam, reaching_joints(task.frames, T_cell_cam), lamp_position_m).ok)
 
 
 def second_view(ctx: RunContext, aim: Aim, k: int, scene: Scene, lamp_pose: registration.LampPose,
@@ -567,7 +572,7 @@ def second_view(ctx: RunContext, aim: Aim, k: int, scene: Scene, lamp_pose: regi
     task = aim.features[0].task
     first = localization.View(capture.image, capture.T_cell_cam, lamp_pose, capture.drives or None)
     ordered = localization.by_information(task, scene, first, candidates) if candidates else []
-    view = take_view(ctx, task, k, scene, capture, lamp_pose, ordered, f"locate-{k}", "the second view",
+    view = take_view(ctx, task, k, scene, capture, [(T, None) for T in ordered], f"locate-{k}", "the second view",
                      "a second view of the part, to tell a part offset from a camera turn")
     if view is None:
         ctx.recorder.step("localize", "no second view of the part is reachable and clear of collisions: one view "
@@ -575,20 +580,24 @@ def second_view(ctx: RunContext, aim: Aim, k: int, scene: Scene, lamp_pose: regi
     return view
 
 
-def take_view(ctx: RunContext, task: Task, k: int, scene: Scene, capture: Capture, lamp_pose: registration.LampPose,
-              ordered: Sequence[np.ndarray], name: str, to: str, why: str) -> localization.View | None:
-    """The first of the ordered camera poses whose path there is clear (motion.check; `to` names
-    it), moved to (motion.move_camera; logged with `why`), exposed for the model's brightest part
-    there (localization.view_exposure) at capture's f-number, focus and drives and captured as
-    `name`.png, the lamp where it is; None when no path is clear."""
+def take_view(ctx: RunContext, task: Task, k: int, scene: Scene, capture: Capture,
+              ordered: Sequence[tuple[np.ndarray, tuple[float, float, float] | None]], name: str, to: str,
+              why: str) -> localization.View | None:
+    """The first of the ordered (camera pose, lamp joints or None: the lamp where it is) whose
+    path there is clear (motion.check; `to` names it), moved to (motion.move_camera; logged with
+    `why`), exposed for the model's brightest part there (localization.view_exposure) at capture's
+    f-number, focus and drives and captured as `name`.png, with the lamp's read-back pose; None
+    when no path is clear."""
     drives = capture.drives or None
-    for T in ordered:
-        move = motion.check(task, ctx.devices, T, to=to)
+    for T, joints in ordered:
+        move = motion.check(task, ctx.devices, T, joints, to=to)
         if not move.clear:
             continue
-        read = motion.move_camera(task, ctx.devices, T, ctx.recorder, to, k, move)
+        read = motion.move_camera(task, ctx.devices, T, ctx.recorder, to, k, move, joints)
         ctx.recorder.step("move_camera", f"camera at {np.round(read[:3, 3], 4).tolist()} m in the cell frame: {why}",
                           iteration=k, position_m=read[:3, 3])
+        with speaking_for(ctx.devices.lamp):
+            lamp_pose = ctx.devices.lamp.lamp_pose()
         model = localization.model_view(task, scene, read, lamp_pose, drives)
         shutter = localization.view_exposure(model, saturation_level(ctx.devices.camera.bit_depth), capture.f_number,
                                              task.camera.shutter_range_s)
@@ -605,36 +614,56 @@ def resolve(ctx: RunContext, task: Task, k: int, scene: Scene, capture: Capture,
     part's position where the estimate puts it (localization.resolution of their
     rendered_information); where it stays open beyond limit_m along some direction
     (Resolution.unresolved), a further view, the candidate not yet tried that tells it best
-    (localization.by_resolution; take_view), and the part localized in every view again; at most
-    localization.MAX_EXTRA_VIEWS. A further view with which the fit is implausible
-    (localization.implausible: it matched the wrong edges there) is logged and left out, the
-    estimate before it kept. Returns the estimate and its Resolution (None where the first
-    estimate is implausible: nothing to resolve)."""
+    (localization.by_resolution; take_view): the camera poses (candidates) with the lamp where it
+    is, and the first two views' camera poses with the lamp low along that direction
+    (localization.lamps_along: what stands up along it casts shadows across the part), each
+    cleared at its pose as clear_views does; the part localized in every view again from the
+    estimate moved along that direction as the rendered images fit best (localization.localize's
+    `along`); at most localization.MAX_EXTRA_VIEWS. A further view with which the fit is
+    implausible (localization.implausible: it matched the wrong edges there) is logged and left
+    out, the estimate before it kept. The lamp goes back to the plan's pose with the next shot's
+    move. Returns the estimate and its Resolution (None where the first estimate is implausible:
+    nothing to resolve)."""
     if localization.implausible(error, capture.T_cell_cam):
         return error, None
-    lamp_pose, tried = views[0].lamp_pose, [v.T_cell_cam for v in views]
+    lamp_pose, pivot = views[0].lamp_pose, task.lamp.rig.pivot_m
+    radius = float(np.linalg.norm(np.asarray(lamp_pose[0]) - pivot))
+    tried = [(v.T_cell_cam[:3, 3], np.asarray(v.lamp_pose[0])) for v in views]
 
     def judged(error: localization.PoseError) -> tuple[list[localization.Told], localization.Resolution]:
         told = localization.rendered_information(task, scene, error, [(v.T_cell_cam, v.lamp_pose, v.drives)
                                                                       for v in views], [v.image for v in views])
         return told, localization.resolution(task, scene, told, len(told))
 
+    def lit(joints: tuple[float, float, float] | None) -> registration.LampPose:
+        if joints is None:
+            return lamp_pose
+        position = lamp_position(pivot, *joints)
+        return position, lamp_aim(pivot, position)
+
+    def new(T: np.ndarray, joints: tuple[float, float, float] | None) -> bool:
+        return bool(min(np.linalg.norm(T[:3, 3] - c) + np.linalg.norm(lit(joints)[0] - l) for c, l in tried) > 0.005)
+
     told, resolved = judged(error)
     for _ in range(localization.MAX_EXTRA_VIEWS):
         open_by = resolved.unresolved(limit_m)
-        left = [T for T in candidates if min(np.linalg.norm(T[:3, 3] - P[:3, 3]) for P in tried) > 0.005]
+        lamps = [(v.T_cell_cam, joints) for v in views[:2]
+                 for joints in localization.lamps_along(task, resolved.direction, radius)
+                 if clear(ctx, task, v.T_cell_cam, lit(joints)[0])]
+        left = [(T, joints) for T, joints in [*((T, None) for T in candidates), *lamps] if new(T, joints)]
         if open_by is None or not left:
             break
         ctx.recorder.step("localize", f"{localization.describe(error, error.views)}: {open_by}: a further view",
                           iteration=k, **error.to_json(), **resolved.to_json())
-        infos = localization.rendered_information(task, scene, error, [(T, lamp_pose, views[0].drives) for T in left])
+        infos = localization.rendered_information(task, scene, error, [(T, lit(joints), views[0].drives)
+                                                                       for T, joints in left])
         ordered = [left[i] for i in localization.by_resolution(task, scene, told, infos)]
-        view = take_view(ctx, task, k, scene, capture, lamp_pose, ordered, f"locate-{k}-{len(tried) + 1}",
-                         "a further view", f"a further view of the part, to tell its position {resolved.along}")
+        view = take_view(ctx, task, k, scene, capture, ordered, f"locate-{k}-{len(tried) + 1}", "a further view",
+                         f"a further view of the part, to tell its position {resolved.along}")
         if view is None:
             break
-        tried.append(view.T_cell_cam)
-        further = localization.localize(task, scene, [*views, view]) or error
+        tried.append((view.T_cell_cam[:3, 3], np.asarray(view.lamp_pose[0])))
+        further = localization.localize(task, scene, [*views, view], (error, resolved.direction)) or error
         wrong = localization.implausible(further, capture.T_cell_cam)
         if wrong:
             ctx.recorder.step("localize", f"with the further view {wrong}: that view is left out, the estimate of "

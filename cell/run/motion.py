@@ -136,10 +136,13 @@ def move_to(task: Task, devices: Devices, shot: Shot, recorder: Recorder, iterat
 
 
 def move_camera(task: Task, devices: Devices, T_cell_cam: np.ndarray, recorder: Recorder, to: str,
-                iteration: int | None = None, checked: Move | None = None) -> np.ndarray:
-    """The camera to T_cell_cam along a checked path (go), the lamp where it is; returns the
-    read-back camera pose (the caller logs it)."""
-    go(task, devices, recorder, T_cell_cam, None, to, iteration, checked)
+                iteration: int | None = None, checked: Move | None = None,
+                lamp_joints: tuple[float, ...] | None = None) -> np.ndarray:
+    """The camera to T_cell_cam along a checked path (go), the lamp where it is or to lamp_joints
+    (then logged as read back); returns the read-back camera pose (the caller logs it)."""
+    go(task, devices, recorder, T_cell_cam, lamp_joints, to, iteration, checked)
+    if lamp_joints is not None:
+        _log_lamp(devices, recorder, iteration, f"{to}: ")
     with speaking_for(devices.arm):
         return devices.arm.camera_pose()
 
