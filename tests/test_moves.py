@@ -22,7 +22,7 @@ from cell.devices import ur5e
 from cell.planning.scene import look_at
 from cell.task.loader import load_task
 from sim.arm import SimArm
-from sim.obstacles import Obstacles
+from sim.obstacles import Obstacles, light_housing
 from sim.pantilt import SimPanTilt
 
 from simcell import variant
@@ -30,6 +30,7 @@ from test_collision import stop, wall_task
 
 ROOT = Path(__file__).resolve().parent.parent
 HINGE, BEAM = ROOT / "tasks" / "hinge.yaml", ROOT / "tests" / "tasks" / "features" / "conrod_beam.yaml"
+RING_LENS = ROOT / "tests" / "tasks" / "features" / "ring_lens.yaml"     # the camera down through a ring's hole
 
 
 def sim_arm(task, joints):
@@ -111,7 +112,8 @@ def test_the_beam_example_runs_through_its_via_points_and_the_sim_never_stops_it
 # Shares no path or distance code with cell.collision: the camera's moveL re-interpolated by
 # scipy's Slerp at steps of at most PATH_STEP_M for any point of the arm (joints by the UR5e's inverse
 # kinematics nearest the last), the lamp's joints linearly; each body's surface sampled by trimesh
-# (boxes as trimesh primitives, the links as points along their axes every DENSE_M, less their
+# (boxes as trimesh primitives, the fixed lights' housings as the simulator's own meshes,
+# sim.obstacles.light_housing, the links as points along their axes every DENSE_M, less their
 # radii), the nearest pairs by k-d trees. Sampled surfaces lie no nearer than the surfaces: a
 # distance found below the padding is a contact the planner let through.
 
@@ -135,6 +137,7 @@ class Dense:
         fixed = [("part", task.part.mesh.copy().apply_transform(task.frames.T_cell_part))]
         if c.fixture is not None:
             fixed.append(("fixture", c.fixture))
+        fixed += [(light.name, light_housing(light)) for light in task.lights if light.mount == "fixed"]
         self.fixed = [(name, cKDTree(trimesh.sample.sample_surface_even(
             m, int(m.area / DENSE_M ** 2), radius=0.5 * DENSE_M, seed=5)[0])) for name, m in fixed]
         self.camera = box_points(c.camera_size_m) + (0.0, 0.0, c.camera_offset_m)
@@ -244,7 +247,8 @@ def test_the_wall_moves_keep_the_padding_along_their_whole_path_by_a_dense_check
 
 
 @pytest.mark.long          # 1-5 min: the examples' plans and their paths densely
-@pytest.mark.parametrize("example", [ROOT / "tasks" / "bracket.yaml", BEAM], ids=["bracket", "conrod_beam"])
+@pytest.mark.parametrize("example", [ROOT / "tasks" / "bracket.yaml", BEAM, RING_LENS],
+                         ids=["bracket", "conrod_beam", "ring_lens"])
 def test_every_example_path_keeps_the_padding_by_a_dense_check(example):
     from cell.planning.whole_part import plan_features
     task = load_task(example)
