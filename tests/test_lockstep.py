@@ -147,9 +147,10 @@ def test_searches_driven_together_end_where_each_ends_alone():
 
 
 def test_nelder_mead_asking_ahead_is_scipys_in_fewer_rounds():
-    """nelder_mead.batches with `ahead` (each step's possible points asked together, a shrink's
-    together): scipy's x, f(x) and evaluation count bit for bit, every point scipy evaluates among
-    those asked, converging and out of evaluations (some mid-shrink), in fewer rounds than points."""
+    """nelder_mead.batches with `ahead` (each step's reflection and inside contraction asked
+    together, a shrink's moved vertices together): scipy's x, f(x) and evaluation count bit for
+    bit, every point scipy evaluates among those asked, converging and out of evaluations (some
+    mid-shrink), in fewer rounds than points (0.67 of them here; 1 without `ahead`)."""
     rng = np.random.default_rng(8)
     rounds = evaluations = 0
     ends = set()
@@ -179,4 +180,4 @@ def test_nelder_mead_asking_ahead_is_scipys_in_fewer_rounds():
         assert set(by_scipy) <= asked
         evaluations += nfev
         ends.add(nfev >= maxfev)
-    assert ends == {True, False} and rounds < 0.7 * evaluations
+    assert ends == {True, False} and rounds < 0.75 * evaluations

@@ -50,12 +50,15 @@ def minimize(initial_simplex: ArrayLike, xatol: float, fatol: float, maxfev: int
 def batches(initial_simplex: ArrayLike, xatol: float, fatol: float, maxfev: int, ahead: bool = True) -> Batches:
     """minimize's search asking its points in batches: yields (K, N) points and is sent their K
     values. Without `ahead` each batch is the one point scipy evaluates next. With `ahead`, the
-    initial simplex's points come together, and each step first asks every point the step may
-    need, which the centroid and the worst vertex fix before any is evaluated (reflection,
-    expansion, outside and inside contraction), and a shrink its N moved vertices together; the
-    step then takes the values scipy's step reads, in its order, and counts only those against
-    maxfev: the same search, result and count, in one round a step instead of one or two, for
-    an objective whose value at a point is its own whatever else is evaluated with it."""
+    initial simplex's points come together, each step first asks its reflection and its inside
+    contraction together (the centroid and the worst vertex fix both before either is evaluated;
+    the inside contraction is the step's most frequent second point: 802 of the 1407 steps of a
+    3-feature part's refinements, against 259 expansions, 94 outside contractions and 252
+    reflections kept alone), and a shrink its N moved vertices together; the step then takes
+    the values scipy's step reads, in its order, and counts only those against maxfev: the same
+    search, result and count, in fewer rounds (each asked point costs its own evaluation, so
+    the expansion and the outside contraction, rarer, are asked when needed), for an objective
+    whose value at a point is its own whatever else is evaluated with it."""
     sim = np.asarray(np.atleast_2d(initial_simplex).copy(), dtype=float)
     n = sim.shape[1]
     calls = 0
@@ -95,9 +98,7 @@ def batches(initial_simplex: ArrayLike, xatol: float, fatol: float, maxfev: int,
             xr = (1 + RHO) * xbar - RHO * sim[-1]
             if ahead:
                 known.clear()
-                yield from ask(np.array([xr, (1 + RHO * CHI) * xbar - RHO * CHI * sim[-1],
-                                         (1 + PSI * RHO) * xbar - PSI * RHO * sim[-1],
-                                         (1 - PSI) * xbar + PSI * sim[-1]]))
+                yield from ask(np.array([xr, (1 - PSI) * xbar + PSI * sim[-1]]))
             fxr = yield from evaluate(xr)
             if fxr < fsim[0]:
                 xe = (1 + RHO * CHI) * xbar - RHO * CHI * sim[-1]
