@@ -268,7 +268,7 @@ def rig_hides(p: Problem, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray
     if seen is None or not seen.any():
         return housing, links
     half = 0.5 * np.asarray(p.task.cell.collision.lamp_size_m, float)
-    pivot, (shortest, longest) = p.task.lamp.rig.pivot_m, p.task.lamp.rig.radius_range_m
+    pivot, longest = p.task.lamp.rig.pivot_m, p.task.lamp.rig.radius_range_m[1]
     cone = p.fixed("sight_cone", lambda: SightCone.of(p.scene.camera_position,
                                                       *geometry.bounding_sphere(p.scene.points)))
     servo_half = 0.5 * np.asarray(TILT_SERVO_SIZE_M)
@@ -298,39 +298,6 @@ def rig_hides(p: Problem, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray
         crossed = segments_cross_boxes(
             p.scene.camera_position, points,
             np.concatenate([lamp_boxes(pivot, half, positions[k][at_housing], R[at_housing]), held.T_cell_servo]),
-            np.vstack([np.broadcast_to(half, (count, 3)), np.broadcast_to(held.servo_half_m, (len(held.a), 3))]))
-        housing[np.ix_(near_housing, seen)] = crossed[:count]
-        if len(held.a):
-            links[np.ix_(near_links, seen)] = crossed[count:] | segments_near_segments(
-                p.scene.camera_position, points, held.a, held.b, held.radius_m)
-    return housing, links
-    half = 0.5 * np.asarray(p.task.cell.collision.lamp_size_m, float)
-    pivot, (shortest, longest) = p.task.lamp.rig.pivot_m, p.task.lamp.rig.radius_range_m
-    cone = p.fixed("sight_cone", lambda: SightCone.of(p.scene.camera_position,
-                                                      *geometry.bounding_sphere(p.scene.points)))
-    servo_half = 0.5 * np.asarray(TILT_SERVO_SIZE_M)
-    width = max(RIG_ARM_RADIUS_M, float(np.hypot(servo_half[0], servo_half[1])))
-    end = longest + 2.0 * half[2] + 2.0 * servo_half[2]               # the servo's back from the pivot
-    n = max(1, int(np.ceil((end - 2.0 * half[2] - shortest) / (2.0 * width))))
-    with np.errstate(invalid="ignore"):        # a lamp not placed (NaN) is not near
-        aim = rig.lamp_aim(pivot, positions)
-        near_housing = cone.meets(positions - half[2] * aim, float(np.linalg.norm(half)) + NEAR_MARGIN_M)
-        back = np.linalg.norm(positions - pivot, axis=1) + 2.0 * half[2]
-        along = back[:, None] + (np.arange(n) + 0.5) / n * (end - back)[:, None]       # (C, n) from the pivot
-        centres = pivot - along[..., None] * aim[:, None]
-        near_links = cone.meets(centres.reshape(-1, 3), np.repeat(0.5 * (end - back) / n + width + NEAR_MARGIN_M, n)
-                                ).reshape(-1, n).any(axis=1)
-        if near_links.any():       # then the axis itself within the width of the segment camera -> m widened by rho
-            k = np.flatnonzero(near_links)
-            near_links[k] = segments_near_segments(cone.apex, cone.middle, pivot - back[k, None] * aim[k],
-                                                   pivot - end * aim[k], width + cone.rho + NEAR_MARGIN_M)[:, 0]
-    if near_housing.any() or near_links.any():
-        points = p.scene.points[seen]
-        held = rig_links(pivot, half, longest, positions[near_links])
-        count = int(near_housing.sum())
-        crossed = segments_cross_boxes(
-            p.scene.camera_position, points, np.concatenate([lamp_boxes(pivot, half, positions[near_housing]),
-                                                             held.T_cell_servo]),
             np.vstack([np.broadcast_to(half, (count, 3)), np.broadcast_to(held.servo_half_m, (len(held.a), 3))]))
         housing[np.ix_(near_housing, seen)] = crossed[:count]
         if len(held.a):
