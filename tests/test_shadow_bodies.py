@@ -242,28 +242,39 @@ def test_the_sight_cone_keeps_every_ball_a_line_of_sight_meets():
     assert SightCone.of(middle, middle, rho).meets(centres, radius).all()          # the apex inside: every ball
 
 
-def test_the_prefilters_skip_no_crossing_of_the_arm_the_camera_body_or_the_lamp():
+@pytest.mark.parametrize("pivot_aside_m", [0.0, 0.12])
+def test_the_prefilters_skip_no_crossing_of_the_arm_the_camera_body_the_lamp_or_its_links(pivot_aside_m):
     """spot_blocked and lamp_hides equal the exact tests of every body against every ray, their
-    prefilters left out, for lamps about the bodies, the lines of sight and the rig."""
+    prefilters left out, for lamps about the bodies, the lines of sight and the rig (its pivot at
+    the feature, and beside it, where the pan-tilt's links hide samples the housing does not)."""
     from cell.collision.rays import segments_near_segments
-    from cell.collision.scene import lamp_boxes
+    from cell.collision.scene import lamp_boxes, rig_links
     task = load_task(RING)
+    task = replace(task, lamp=replace(task.lamp, rig=replace(task.lamp.rig,
+                                                             pivot_m=task.lamp.rig.pivot_m + (pivot_aside_m, 0.0, 0.0))))
     scene = build_scene(task)
     problem = evaluate.build_problem(task, scene, None)
     arm = evaluate.arm_at_shot(task, scene)
     rng = np.random.default_rng(34)
     camera, centre, P = scene.camera_position, scene.center, len(scene.points)
     pan, tilt = rng.uniform(-np.pi, np.pi, 60), rng.uniform(*task.lamp.rig.tilt_range_rad, 60)
+    # lamps whose pan-tilt arm runs out through the lines of sight 0.1-0.3 m beyond them
+    out = centre + rng.uniform(0.4, 0.9, (30, 1)) * (camera - centre) + rng.normal(0.0, 0.01, (30, 3)) - task.lamp.rig.pivot_m
+    radius = np.clip(np.linalg.norm(out, axis=1)[:, None] - rng.uniform(0.1, 0.3, (30, 1)), *task.lamp.rig.radius_range_m)
     lamps = np.vstack([centre + rng.uniform(0.2, 1.2, (60, 1)) * (camera - centre) + rng.normal(0.0, 0.04, (60, 3)),
                        arm.a + rng.uniform(0, 1, (len(arm.a), 1)) * (arm.b - arm.a) + rng.normal(0.0, 0.06, arm.a.shape),
-                       rig.lamp_position(task.lamp.rig.pivot_m, pan, tilt, rng.uniform(0.15, 0.6, 60))])
+                       rig.lamp_position(task.lamp.rig.pivot_m, pan, tilt, rng.uniform(0.15, 0.6, 60)),
+                       task.lamp.rig.pivot_m + radius * out / np.linalg.norm(out, axis=1)[:, None]])
     origins = np.broadcast_to(scene.points, (len(lamps), P, 3)).reshape(-1, 3)
     targets = np.repeat(lamps, P, axis=0)
     exact = (segments_cross_boxes(origins, targets, arm.T_cell_box[None], arm.half_m)[0]
              | segments_near_segments(origins, targets, arm.a, arm.b, arm.radius_m).any(axis=0)).reshape(len(lamps), P)
     assert np.array_equal(evaluate.spot_blocked(problem, lamps), exact) and 10 < exact.any(axis=1).sum() < len(lamps) - 10
     half = 0.5 * np.asarray(task.cell.collision.lamp_size_m)
-    hidden = segments_cross_boxes(camera, scene.points, lamp_boxes(task.lamp.rig.pivot_m, half, lamps), half)
+    links = rig_links(task.lamp.rig.pivot_m, half, task.lamp.rig.radius_range_m[1], lamps)
+    hidden = (segments_cross_boxes(camera, scene.points, lamp_boxes(task.lamp.rig.pivot_m, half, lamps), half)
+              | segments_cross_boxes(camera, scene.points, links.T_cell_servo, links.servo_half_m)
+              | segments_near_segments(camera, scene.points, links.a, links.b, links.radius_m))
     assert np.array_equal(requirements.lamp_hides(problem, lamps), hidden) and 10 < hidden.any(axis=1).sum() < len(lamps) - 10
 
 

@@ -125,6 +125,8 @@ class SightCone:
     -R <= a <= |m - apex| + rho + R; with the apex inside the sphere, any ball may."""
 
     apex: np.ndarray            # (3,)
+    middle: np.ndarray          # (3,)
+    rho: float
     axis: np.ndarray            # (3,) unit
     length: float               # |m - apex| + rho
     sin: float
@@ -132,12 +134,12 @@ class SightCone:
 
     @classmethod
     def of(cls, apex: ArrayLike, middle: ArrayLike, rho: float) -> SightCone:
-        apex = np.asarray(apex, float).reshape(3)
-        v = np.asarray(middle, float).reshape(3) - apex
+        apex, middle = np.asarray(apex, float).reshape(3), np.asarray(middle, float).reshape(3)
+        v = middle - apex
         d = float(np.sqrt(v @ v))
         if d <= rho:
-            return cls(apex, np.zeros(3), np.inf, 1.0, 0.0)          # every direction: the test always holds
-        return cls(apex, v / d, d + rho, rho / d, float(np.sqrt(1.0 - (rho / d) ** 2)))
+            return cls(apex, middle, rho, np.zeros(3), np.inf, 1.0, 0.0)     # every direction: the test always holds
+        return cls(apex, middle, rho, v / d, d + rho, rho / d, float(np.sqrt(1.0 - (rho / d) ** 2)))
 
     def meets(self, centres: ArrayLike, radius: ArrayLike) -> np.ndarray:
         """(C,) whether a ball of `radius` (one, or (C,)) about each centre (C, 3) may meet the cone

@@ -120,12 +120,13 @@ def camera_body(T_cell_flange: np.ndarray, half_m: ArrayLike, offset_m: float) -
     return Box("camera_body", T, np.asarray(half_m, float))
 
 
-def lamp_boxes(pivot_m: ArrayLike, lamp_half_m: ArrayLike, lamp_position: ArrayLike) -> np.ndarray:
+def lamp_boxes(pivot_m: ArrayLike, lamp_half_m: ArrayLike, lamp_position: ArrayLike,
+               R: np.ndarray | None = None) -> np.ndarray:
     """(..., 4, 4) T_cell_box of the lamp's box at each position (..., 3): its front face centred
-    at the lamp's position, its axes the lamp's (rig.lamp_frame: z the aim at the pivot), so its
-    centre lamp_half_m[2] behind the position along the aim."""
+    at the lamp's position, its axes the lamp's (rig.lamp_frame, or R where given: z the aim at the
+    pivot), so its centre lamp_half_m[2] behind the position along the aim."""
     p = np.asarray(lamp_position, float)
-    R = lamp_frame(pivot_m, p)
+    R = lamp_frame(pivot_m, p) if R is None else R
     T = np.zeros((*p.shape[:-1], 4, 4))
     T[..., :3, :3], T[..., :3, 3], T[..., 3, 3] = R, p - float(np.asarray(lamp_half_m)[2]) * R[..., 2], 1.0
     return T
@@ -151,16 +152,17 @@ class RigLinks:
     servo_half_m: np.ndarray      # (3,)
 
 
-def rig_links(pivot_m: ArrayLike, lamp_half_m: ArrayLike, radius_max_m: float, lamp_position: ArrayLike) -> RigLinks:
+def rig_links(pivot_m: ArrayLike, lamp_half_m: ArrayLike, radius_max_m: float, lamp_position: ArrayLike,
+              R: np.ndarray | None = None) -> RigLinks:
     """The pan-tilt's links with the lamp at each position (C, 3), all behind the lamp along its
-    aim z (rig.lamp_frame): the arm from the lamp box's back (2 h_z behind its front) out to the
-    servo, whose front face is 2 h_z beyond the rig's largest radius (the back of a lamp there), its
-    axes the lamp's (the arm reaches into the servo, so it never has length 0)."""
+    aim z (rig.lamp_frame, or R where given): the arm from the lamp box's back (2 h_z behind its
+    front) out to the servo, whose front face is 2 h_z beyond the rig's largest radius (the back of
+    a lamp there), its axes the lamp's (the arm reaches into the servo, so it never has length 0)."""
     p = np.asarray(lamp_position, float).reshape(-1, 3)
     pivot = np.asarray(pivot_m, float)
     depth = 2.0 * float(np.asarray(lamp_half_m)[2])
     servo_half = 0.5 * np.asarray(TILT_SERVO_SIZE_M)
-    R = lamp_frame(pivot, p)
+    R = lamp_frame(pivot, p) if R is None else R
     aim = R[..., 2]
     servo = pivot - (radius_max_m + depth + servo_half[2]) * aim
     T = np.zeros((len(p), 4, 4))

@@ -253,10 +253,13 @@ def rig_hides(p: Problem, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray
     within the arm's radius of its axis (collision.scene.rig_links; rays.segments_near_segments,
     every lamp's arm in one call). A position not finite is a lamp not placed (a viewpoint judged
     before any lamp), hiding none. Only lamps that may meet the lines of sight are tested: those
-    lie in the cone from the camera tangent to the samples' sphere (rays.SightCone); the box in
-    the ball about its centre, h_z behind the lamp along the aim, of radius |h|; the links within
-    W (the arm's radius, the servo's half diagonal across the aim, the larger) of the axis from
-    the lamp's back out to the servo's, in n balls along it (n for the rig's longest such axis).
+    lie in the cone from the camera tangent to the samples' sphere (rays.SightCone), and the
+    housing and the links together within W' (the widest across the aim) of the lamp's axis from
+    its front to the servo's back, held by n balls along it (n for the rig's longest such axis);
+    then the box by the ball about its centre, h_z behind the lamp along the aim, of radius |h|;
+    the links by their axis from the lamp's back to the servo's within W (the arm's radius, the
+    servo's half diagonal across the aim, the larger) + rho of the segment camera -> m (the line
+    camera c -> sample s at c + t (s - c) lies t |s - m| <= rho from c + t (m - c)).
     The links lie behind the lamp, beyond its housing's back face, so they never block its own
     beam (spot_blocked leaves them out): each ray of the spot runs from its front towards a sample
     in front of it (within its cone, under 90 deg off its aim)."""
@@ -267,28 +270,36 @@ def rig_hides(p: Problem, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray
     if seen is None or not seen.any():
         return housing, links
     half = 0.5 * np.asarray(p.task.cell.collision.lamp_size_m, float)
-    pivot, (shortest, longest) = p.task.lamp.rig.pivot_m, p.task.lamp.rig.radius_range_m
+    pivot, longest = p.task.lamp.rig.pivot_m, p.task.lamp.rig.radius_range_m[1]
     cone = p.fixed("sight_cone", lambda: SightCone.of(p.scene.camera_position,
                                                       *geometry.bounding_sphere(p.scene.points)))
     servo_half = 0.5 * np.asarray(TILT_SERVO_SIZE_M)
     width = max(RIG_ARM_RADIUS_M, float(np.hypot(servo_half[0], servo_half[1])))
     end = longest + 2.0 * half[2] + 2.0 * servo_half[2]               # the servo's back from the pivot
-    n = max(1, int(np.ceil((end - 2.0 * half[2] - shortest) / (2.0 * width))))
+    whole = max(width, float(np.hypot(half[0], half[1])))             # the housing's and links' width
     with np.errstate(invalid="ignore"):        # a lamp not placed (NaN) is not near
         aim = rig.lamp_aim(pivot, positions)
-        near_housing = cone.meets(positions - half[2] * aim, float(np.linalg.norm(half)) + NEAR_MARGIN_M)
-        back = np.linalg.norm(positions - pivot, axis=1) + 2.0 * half[2]
-        along = back[:, None] + (np.arange(n) + 0.5) / n * (end - back)[:, None]       # (C, n) from the pivot
-        centres = pivot - along[..., None] * aim[:, None]
-        near_links = cone.meets(centres.reshape(-1, 3), np.repeat(0.5 * (end - back) / n + width + NEAR_MARGIN_M, n)
-                                ).reshape(-1, n).any(axis=1)
+        radius = np.linalg.norm(positions - pivot, axis=1)
+        # first the housing and the links together: the lamp's axis from its front to the servo's back
+        near = segments_near_segments(cone.apex, cone.middle, positions, pivot - end * aim,
+                                      whole + cone.rho + NEAR_MARGIN_M)[:, 0]
+    if not near.any():
+        return housing, links
+    k = np.flatnonzero(near)
+    near_housing = np.zeros(len(positions), bool)
+    near_housing[k] = cone.meets(positions[k] - half[2] * aim[k], float(np.linalg.norm(half)) + NEAR_MARGIN_M)
+    near_links = np.zeros(len(positions), bool)     # the links' axis within their width of the segment camera -> m widened by rho
+    near_links[k] = segments_near_segments(cone.apex, cone.middle, pivot - (radius[k] + 2.0 * half[2])[:, None] * aim[k],
+                                           pivot - end * aim[k], width + cone.rho + NEAR_MARGIN_M)[:, 0]
     if near_housing.any() or near_links.any():
         points = p.scene.points[seen]
-        held = rig_links(pivot, half, longest, positions[near_links])
-        count = int(near_housing.sum())
+        R = rig.lamp_frame(pivot, positions[k])
+        at_housing, at_links = near_housing[k], near_links[k]
+        held = rig_links(pivot, half, longest, positions[k][at_links], R[at_links])
+        count = int(at_housing.sum())
         crossed = segments_cross_boxes(
-            p.scene.camera_position, points, np.concatenate([lamp_boxes(pivot, half, positions[near_housing]),
-                                                             held.T_cell_servo]),
+            p.scene.camera_position, points,
+            np.concatenate([lamp_boxes(pivot, half, positions[k][at_housing], R[at_housing]), held.T_cell_servo]),
             np.vstack([np.broadcast_to(half, (count, 3)), np.broadcast_to(held.servo_half_m, (len(held.a), 3))]))
         housing[np.ix_(near_housing, seen)] = crossed[:count]
         if len(held.a):
