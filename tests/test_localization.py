@@ -334,12 +334,12 @@ def test_the_conrod_8_mm_off_yawed_with_its_camera_turned_along_the_shank_is_loc
     about y (seed 1): the camera's turn moves the image along the shank, where the first view has
     no edge; the whole view's shift, matched unturned, started the fit 480 px off and it landed
     10-25 mm off (stopped, cause `pose`). With the turned match it starts across the shank where
-    registration finds it, and the two views put the part within 1 mm (0.66 mm in x) and its yaw
-    and the hand-eye within 0.3 deg of the truth keys; its tilt about y comes out 0.51 deg off
-    (0.8-0.9 before the second fit ran coarse to fine; the model's missing defocus and lamp
-    falloff, docs/closed-loop.md: within 0.7 deg). Followed, re-planned, it converges."""
+    registration finds it, and the two views put the part within 1 mm and its yaw and the
+    hand-eye within 0.3 deg of the truth keys (its tilt about y came out 0.51-0.58 deg off while
+    the capture's black level was left in the logarithm; 0.30 deg with it subtracted, so within
+    0.35 deg here: docs/closed-loop.md). Followed, re-planned, it converges."""
     truth = {"part_offset_m": [0.0, 0.008, 0.0], "part_rpy_deg": [0.0, 0.0, 5.0], "camera_rpy_deg": [0.0, 2.0, 0.0]}
-    converged_located(tmp_path, CONROD, truth, tilt_deg=0.7)
+    converged_located(tmp_path, CONROD, truth, tilt_deg=0.35)
 
 
 def told(diagonal, residual):
@@ -551,3 +551,23 @@ def test_the_lamp_low_along_the_shank_tells_where_the_part_is_along_it(tmp_path)
                                      np.array([1.0, 0.0, 0.0]))
     assert moved.part_offset_m == pytest.approx([0.01, 0.0, 0.0], abs=1e-3)
     assert moved.part_rpy_rad == pytest.approx(np.zeros(3)) and moved.hand_eye_rpy_rad == pytest.approx(np.zeros(3))
+
+
+@pytest.mark.long
+@pytest.mark.parametrize("seed", [1, 2])
+def test_the_conrod_s_turns_are_within_0_3_deg_and_their_standard_errors(tmp_path, seed):
+    """The conrod 8 mm across its shank, yawed 5 deg, its camera turned 2 deg about y, from the
+    first and the most informative second view, every effect on: its tilt about y came out
+    0.58 deg off while the black level was left in the logarithm, 5-16 of its standard errors.
+    Now each of the part's turns is within 0.3 deg of the truth keys and within 3 of its standard
+    errors (which hold the two finest scales' difference in quadrature: the world's softer lamp
+    edge, vignetting and defocus, which the model's image lacks, bias every seed alike), its
+    offset within 1 mm. Not asserted, as it does not hold: the offset's and the hand-eye's
+    standard errors covering theirs (seed 2: x, y and the hand-eye's tilts 4-5 of them out)."""
+    truth = {"part_offset_m": [0.0, 0.008, 0.0], "part_rpy_deg": [0.0, 0.0, 5.0], "camera_rpy_deg": [0.0, 2.0, 0.0]}
+    task, scene, (first,) = captures(tmp_path, CONROD, truth, 1, seed)
+    found = localization.localize(task, scene, [first, best_second_view(task, scene, first)])
+    turn = found.part_rpy_rad - np.radians(truth["part_rpy_deg"])
+    assert np.all(np.degrees(np.abs(turn)) <= 0.3), np.degrees(turn)
+    assert np.all(np.abs(turn) <= 3.0 * found.part_rpy_stderr_rad), (turn / found.part_rpy_stderr_rad)
+    assert found.part_offset_m == pytest.approx(truth["part_offset_m"], abs=1e-3)
