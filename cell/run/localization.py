@@ -559,18 +559,19 @@ def along_start(task: Task, scene: Scene, views: Sequence[View], error: PoseErro
     short from four views; its edges' cost fell toward the model's pose in the views that tell
     nothing along it)."""
     direction = np.asarray(direction, float)
+    images = [signal(task, v.image) for v in views]
 
     def residual(step: float) -> float:
         moved = replace(error, part_offset_m=error.part_offset_m + step * direction)
         scene_there = moved_scene(scene, moved.T_part)
         total = 0.0
-        for v in views:
+        for v, image in zip(views, images):
             model = model_view(task, scene_there, v.T_cell_cam @ moved.T_hand_eye, v.lamp_pose, v.drives,
                                VIEW_SCALE)
             part = np.isfinite(model.points[..., 0])
             if part.any():
                 rendered = band_pass(model.value, SCALES_PX[0] / VIEW_SCALE)
-                total += rendered_residual(signal(task, v.image), rendered, part) ** 2
+                total += rendered_residual(image, rendered, part) ** 2
         return total
 
     steps = np.arange(-MAX_OFFSET_M, MAX_OFFSET_M + 0.5 * ALONG_STEP_M, ALONG_STEP_M)
