@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from cell.collision.bodies import SAMPLE_BOUND_M, Annulus, Box, Capsule, Shell, distance
+from cell.collision.bodies import BOX_TOLERANCE_M, SAMPLE_BOUND_M, Annulus, Box, Capsule, Shell, distance
 from cell.collision.scene import CollisionScene, light_bodies, light_body, reaching_joints
 from cell.core import geometry
 from cell.core.errors import DeviceFault
@@ -109,7 +109,7 @@ def test_a_camera_box_through_a_rings_hole_is_its_corner_to_the_rim(centre_t, ga
     corner = np.hypot(*half[:2])
     expected = np.hypot(INNER - corner, gap_along)
     got = distance(axis_box(half, centre_t), ring_body())
-    assert expected - h - 1e-12 <= got <= expected + 1e-12
+    assert expected - BOX_TOLERANCE_M - 1e-12 <= got <= expected + 1e-12
     assert distance(ring_body(), axis_box(half, centre_t)) == got
     # the old body, a box solid across the hole, overlapped it
     assert distance(axis_box(half, centre_t), Box("old", T_LIGHT @ geometry.transform(translation=(0, 0, -0.5 * DEPTH)),
@@ -207,8 +207,8 @@ def nearest_within(tree, points, bound):
 @pytest.mark.parametrize("make, dense", [(ring_body, dense_ring), (dome_body, dense_dome)])
 def test_the_housings_distance_agrees_with_a_dense_brute_force(make, dense):
     """Random points (SDF), boxes and capsules near the housing: the distance within the dense
-    samples' spacing of the nearest sample's, the sign the solid's; a box's distance at most h
-    below the brute force's, a capsule's exact to the brute force's spacing; never above it."""
+    samples' spacing of the nearest sample's, the sign the solid's; a box's and a capsule's
+    distance never above the brute force's (tests/test_box_housing.py: a box's within its tolerance)."""
     pitch, body = 5e-4, make()
     samples = dense(pitch)
     tree = cKDTree(samples)
@@ -279,13 +279,13 @@ def ring_lens():
 
 def test_a_camera_through_a_rings_hole_plans_and_the_simulators_check_stops_it_going_into_the_housing(ring_lens):
     """ring_lens.yaml: the camera body reaches through the lens ring's 55 mm hole, 12.6 mm from
-    its rim (corner 42.4 mm off the axis): the plan is feasible with that clearance (less the
-    box's 2 mm sampling bound); the simulated arm at the shot finds the ring that far by its own
+    its rim (corner 42.4 mm off the axis): the plan is feasible with that clearance (within the
+    box's BOX_TOLERANCE_M); the simulated arm at the shot finds the ring that far by its own
     check, and a move 40 mm to the side, into the housing, stops naming the ring."""
     task, plan = ring_lens
     shot, true = plan.shots[0], 0.055 - np.hypot(0.03, 0.03)
     assert plan.feasible and shot.clearance.bodies == ("lens_ring", "camera_body")
-    assert true - SAMPLE_BOUND_M - 1e-9 <= shot.clearance.distance_m <= true + 1e-9
+    assert true - BOX_TOLERANCE_M - 1e-9 <= shot.clearance.distance_m <= true + 1e-9
     arm = SimArm(task.cell.devices.arm, task.frames, joints=reaching_joints(task.frames, shot.T_cell_cam),
                  obstacles=Obstacles(task))
     gap, contact = arm.obstacles.gap(arm.joints, None)
@@ -330,7 +330,7 @@ def test_a_dome_over_the_part_is_a_body_the_camera_looks_in_through_its_hole(tmp
         edge = 0.008 + np.sqrt(0.12**2 - 0.015**2)     # the hole's outer edge, the shell's top: under the box
         got = distance(camera, scene.fixed[1])
         if clear:
-            assert bottom - edge - SAMPLE_BOUND_M - 1e-9 <= got <= bottom - edge + 1e-9
+            assert bottom - edge - BOX_TOLERANCE_M - 1e-9 <= got <= bottom - edge + 1e-9
         arm = SimArm(task.cell.devices.arm, task.frames, joints=reaching_joints(task.frames, T), obstacles=Obstacles(task))
         gap, contact = arm.obstacles.gap(arm.joints, None)
         assert (gap >= CONTACT_M) == clear and (clear or contact.other == "dome")

@@ -9,7 +9,8 @@ within h and a body B with an exact SDF,
 
 and that bound is <= 0 whenever A and B overlap, unless B lies wholly inside A; that case is
 caught by one point of B inside A (`_contained`). So `distance` never reports a clearance larger
-than the true one: it errs by at most h on the safe side, and overlap gives <= 0.
+than the true one: it errs by at most h on the safe side, and overlap gives <= 0. A box against a
+ring's or a dome's housing is searched instead (`box_to_revolved`), within BOX_TOLERANCE_M.
 
 This stands in for FCL (python-fcl has no wheel for this platform): trimesh's primitives are built
 the same way, and an SDF over NumPy arrays needs no BVH for the few thousand samples a part has.
@@ -32,6 +33,7 @@ BOX_GRID_M = SAMPLE_BOUND_M * np.sqrt(2.0)   # a square grid of pitch s covers w
 MESH_EDGE_M = SAMPLE_BOUND_M * np.sqrt(3.0)  # a triangle of edges <= e: every point within e / sqrt 3
                                              # of a vertex (its circumradius, or half its longest edge)
 SEGMENT_TOLERANCE_M = 1e-5   # segment_min's least value within this of the true one
+BOX_TOLERANCE_M = 1e-4       # box_to_revolved's bound within this of the true distance
 
 
 @dataclass(frozen=True)
@@ -148,6 +150,16 @@ class Annulus:
                              np.abs(z - 0.5 * sum(self.z_m)) - 0.5 * (self.z_m[1] - self.z_m[0])])
         return np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0)
 
+    def hull_gap(self, corners: np.ndarray) -> np.ndarray:
+        """A lower bound (N,) [m] of the distance from each flat convex patch, its corners
+        (N, K, 3), to the body: the larger of its gaps to two sets holding the body, the slab
+        z in z_m (the height is linear on the patch: its range is the corners') and the
+        outside of the hole's cylinder, inner_m - max r (r is convex: its largest at a corner)."""
+        r, z = _meridian(self.T_cell_body, corners.reshape(-1, 3))
+        r, z = r.reshape(corners.shape[:2]), z.reshape(corners.shape[:2])
+        slab = np.maximum(z.min(axis=1) - self.z_m[1], self.z_m[0] - z.max(axis=1))
+        return np.maximum(np.maximum(slab, self.inner_m - r.max(axis=1)), 0.0)
+
 
 @dataclass(frozen=True)
 class Shell:
@@ -201,6 +213,17 @@ class Shell:
             near.append(np.hypot(r - self.hole_m, w - np.clip(w, bottom, top)))
         inside = (rho >= self.inner_m) & (rho <= self.outer_m) & (w <= 0.0) & (r >= self.hole_m)
         return np.where(inside, -1.0, 1.0) * np.min(near, axis=0)
+
+    def hull_gap(self, corners: np.ndarray) -> np.ndarray:
+        """A lower bound (N,) [m] of the distance from each flat convex patch, its corners
+        (N, K, 3), to the body: the largest of its gaps to three sets holding the body, the rim's
+        half-space w <= 0 (w is linear on the patch: its least at a corner), the outside of the
+        inner sphere, inner_m - max rho, and of the hole's cylinder, hole_m - max r (rho and r
+        are convex: their largest at a corner)."""
+        r, z = _meridian(self.T_cell_body, corners.reshape(-1, 3))
+        r, w = r.reshape(corners.shape[:2]), z.reshape(corners.shape[:2]) - self.centre_m
+        gap = np.maximum(w.min(axis=1), self.inner_m - np.hypot(r, w).max(axis=1))
+        return np.maximum(np.maximum(gap, self.hole_m - r.max(axis=1)), 0.0)
 
 
 Body = Box | Capsule | Mesh | Annulus | Shell
@@ -300,6 +323,55 @@ def segment_min(sdf: Callable[[np.ndarray], np.ndarray], a: np.ndarray, b: np.nd
         f_lo, f_hi = np.concatenate([f_lo, f_mid]), np.concatenate([f_mid, f_hi])
 
 
+_STEPS = np.arange(3.0)                                   # a patch's 3 x 3 grid of halves
+_NEW_I, _NEW_J = np.array([1, 0, 1, 2, 1]), np.array([0, 1, 1, 1, 2])    # its points not a corner
+_CHILD_I = np.array([[0, 1, 0, 1], [0, 1, 0, 1], [1, 2, 1, 2], [1, 2, 1, 2]])   # its quarters' corners
+_CHILD_J = np.array([[0, 0, 1, 1], [1, 1, 2, 2], [0, 0, 1, 1], [1, 1, 2, 2]])   # (00, 10, 01, 11 each)
+
+
+def box_to_revolved(box: Box, body: Annulus | Shell, tolerance_m: float = BOX_TOLERANCE_M) -> float:
+    """A lower bound of the least distance from the box's surface to the body, within tolerance_m
+    of it (<= 0 where they meet), by branch and bound over patches of the box's faces. The
+    distance d to any closed set makes d^2 - |x|^2 concave (an infimum of affine functions of x),
+    so on a patch whose corners c_k have d_k, about a centre at rho from each,
+
+        d(x)^2 >= sum_k l_k d_k^2 - sum_k l_k |c_k - x|^2 >= min_k d_k^2 - rho^2       (x = sum_k l_k c_k)
+
+    and the body's hull_gap bounds it too (flat contacts, as a face over a ring's top, which the
+    first bound meets only as rho -> 0). The least value found at a corner bounds it from above;
+    patches whose bound could beat it by more than the tolerance are quartered, the rest dropped."""
+    T, half = box.T_cell_box, box.half_m
+    origin, eu, ev = [], [], []
+    for axis in range(3):
+        u, v = [k for k in range(3) if k != axis]
+        for side in (-1.0, 1.0):
+            origin.append(T[:3, 3] + side * half[axis] * T[:3, axis] - half[u] * T[:3, u] - half[v] * T[:3, v])
+            eu.append(2.0 * half[u] * T[:3, u])
+            ev.append(2.0 * half[v] * T[:3, v])
+    o, eu_, ev_ = np.array(origin), np.array(eu), np.array(ev)
+    corners = np.stack([o, o + eu_, o + ev_, o + eu_ + ev_], axis=1)               # (N, 4, 3): 00, 10, 01, 11
+    f = body.sdf(corners.reshape(-1, 3)).reshape(-1, 4)
+    best, floor = float(f.min()), np.inf
+    while best > 0.0:
+        rho2 = 0.25 * (np.einsum("ij,ij->i", eu_, eu_) + np.einsum("ij,ij->i", ev_, ev_))
+        bound = np.maximum(np.sqrt(np.maximum(f.min(axis=1) ** 2 - rho2, 0.0)), body.hull_gap(corners))
+        keep = bound < best - tolerance_m
+        if not keep.all():
+            floor = min(floor, float(bound[~keep].min()))
+        if not keep.any():
+            return min(best, floor)
+        o, eu_, ev_, f = o[keep], 0.5 * eu_[keep], 0.5 * ev_[keep], f[keep]
+        grid = o[:, None, None, :] + _STEPS[:, None, None] * eu_[:, None, None, :] \
+            + _STEPS[None, :, None] * ev_[:, None, None, :]                             # (N, 3, 3, 3): o + i eu + j ev
+        g = np.empty((len(o), 3, 3))
+        g[:, ::2, ::2] = f.reshape(-1, 2, 2).transpose(0, 2, 1)                       # the parents' corners, [i, j]
+        g[:, _NEW_I, _NEW_J] = body.sdf(grid[:, _NEW_I, _NEW_J].reshape(-1, 3)).reshape(-1, 5)
+        best = min(best, float(g[:, _NEW_I, _NEW_J].min()))
+        o, eu_, ev_ = grid[:, :2, :2].reshape(-1, 3), np.repeat(eu_, 4, axis=0), np.repeat(ev_, 4, axis=0)
+        f, corners = g[:, _CHILD_I, _CHILD_J].reshape(-1, 4), grid[:, _CHILD_I, _CHILD_J].reshape(-1, 4, 3)
+    return best
+
+
 def lower_bound(a: Body, b: Body) -> float:
     """A cheap lower bound of distance(a, b): their bounding spheres' gap."""
     return float(np.linalg.norm(a.center - b.center) - a.radius - b.radius)
@@ -308,7 +380,8 @@ def lower_bound(a: Body, b: Body) -> float:
 def distance(a: Body, b: Body) -> float:
     """A lower bound of the distance between two bodies [m], within SAMPLE_BOUND_M of it (exact
     for two capsules, within a segment's length / 8192 for a capsule and a box, within
-    SEGMENT_TOLERANCE_M for a capsule and a ring's or dome's housing); <= 0 when they overlap.
+    SEGMENT_TOLERANCE_M for a capsule and a ring's or dome's housing, within BOX_TOLERANCE_M for
+    a box and one); <= 0 when they overlap.
     Two meshes, or two lights' housings, are not compared (the part may rest on its fixture;
     neither moves)."""
     if isinstance(a, Capsule) and isinstance(b, Capsule):
@@ -321,8 +394,12 @@ def distance(a: Body, b: Body) -> float:
         a, b = b, a
     if isinstance(a, (Annulus, Shell)) and isinstance(b, Capsule):
         return segment_min(a.sdf, b.a, b.b) - b.radius_m
-    if isinstance(b, Mesh) or (isinstance(b, Box) and isinstance(a, (Annulus, Shell))):
-        a, b = b, a                        # sample the mesh (or the box); b has an exact SDF
+    if isinstance(a, Box) and isinstance(b, (Annulus, Shell)):
+        a, b = b, a
+    if isinstance(a, (Annulus, Shell)) and isinstance(b, Box):
+        return min(box_to_revolved(b, a), _contained(a, b))
+    if isinstance(b, Mesh):
+        a, b = b, a                        # sample the mesh; b has an exact SDF
     if not isinstance(a, (Mesh, Box)) or isinstance(b, Mesh):
         raise ValueError(f"no distance between two fixed bodies ({a.name}, {b.name})")
     points = a.points if isinstance(a, Mesh) else a.samples()
