@@ -82,6 +82,21 @@ def box_capsules(T_cell_box: ArrayLike, half_m: ArrayLike) -> tuple[np.ndarray, 
     return T[:, :3, 3] - along, T[:, :3, 3] + along, across
 
 
+def capsule_balls(a: ArrayLike, b: ArrayLike, radius_m: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(centres (M, 3), radii (M,), first (K,)) balls holding capsules k (axes a-b (K, 3), radii
+    radius_m (K,)), n_k = max(1, ceil(|b - a| / 2 r_k)) along each, the first of capsule k at
+    index first[k]: piece j of the axis, of length l = |b - a| / n_k, about its middle x_j; a
+    point within r_k of the piece lies within l / 2 + r_k (at most twice r_k) of x_j."""
+    a, b = np.asarray(a, float).reshape(-1, 3), np.asarray(b, float).reshape(-1, 3)
+    radius = np.broadcast_to(np.asarray(radius_m, float), (len(a),))
+    length = np.sqrt(np.sum((b - a) ** 2, axis=1))
+    pieces = np.maximum(1, np.ceil(length / (2.0 * radius))).astype(int)
+    body = np.repeat(np.arange(len(pieces)), pieces)
+    first = np.cumsum(pieces) - pieces
+    at = (np.arange(len(body)) - np.repeat(first, pieces) + 0.5) / pieces[body]
+    return a[body] + at[:, None] * (b - a)[body], 0.5 * length[body] / pieces[body] + radius[body], first
+
+
 @dataclass(frozen=True)
 class BallsSeen:
     """Balls as seen from a point o: a segment from o meets ball k (centre c_k, radius r_k, at

@@ -347,10 +347,17 @@ class ArmAtShot:
     first_ball: np.ndarray        # (1 + K,) each body's first ball in seen
 
 
-def arm_at_shot(task: Task, scene: Scene) -> ArmAtShot:
+def samples_sphere(problem: Problem) -> tuple[np.ndarray, float]:
+    """The sphere holding the problem's samples (geometry.bounding_sphere: middle, radius), once
+    per task and scene (the blockers' prefilters read it: spot_blocked, requirements.rig_hides)."""
+    return problem.fixed("samples_sphere", lambda: geometry.bounding_sphere(problem.scene.points))
+
+
+def arm_at_shot(task: Task, scene: Scene, sphere: tuple[np.ndarray, float] | None = None) -> ArmAtShot:
     """The camera body and the arm's links at the scene's camera pose (cell.collision.scene:
-    camera_body, arm_links, reaching_joints: the joints nearest home, as the shot's clearance)."""
-    from cell.collision.rays import NEAR_MARGIN_M, BallsSeen, box_capsules
+    camera_body, arm_links, reaching_joints: the joints nearest home, as the shot's clearance);
+    sphere the samples' (geometry.bounding_sphere's) where known."""
+    from cell.collision.rays import NEAR_MARGIN_M, BallsSeen, box_capsules, capsule_balls
     from cell.collision.scene import arm_links, camera_body, reaching_joints
     c, frames = task.cell.collision, task.frames
     box = camera_body(frames.T_cell_flange(scene.T_cell_cam), 0.5 * np.asarray(c.camera_size_m, float),
@@ -361,17 +368,11 @@ def arm_at_shot(task: Task, scene: Scene) -> ArmAtShot:
                     np.array([k.radius_m for k in links]))
     box_a, box_b, box_radius = box_capsules(box.T_cell_box, box.half_m)
     around_a, around_b, around_radius = np.vstack([box_a, a]), np.vstack([box_b, b]), np.concatenate([box_radius, radius])
-    middle, rho = geometry.bounding_sphere(scene.points)
-    # each capsule widened by rho held by balls along its axis, n_k of them, each at most twice as wide as the capsule
-    widened = around_radius + rho + NEAR_MARGIN_M
-    length = np.linalg.norm(around_b - around_a, axis=1)
-    pieces = np.maximum(1, np.ceil(length / (2.0 * widened))).astype(int)
-    body = np.repeat(np.arange(len(pieces)), pieces)
-    at = (np.arange(len(body)) - np.repeat(np.cumsum(pieces) - pieces, pieces) + 0.5) / pieces[body]
-    centres = around_a[body] + at[:, None] * (around_b - around_a)[body]
-    seen = BallsSeen.of(middle, centres, 0.5 * length[body] / pieces[body] + widened[body])
+    middle, rho = geometry.bounding_sphere(scene.points) if sphere is None else sphere
+    # each capsule widened by rho held by balls along its axis, each at most twice as wide as the capsule
+    centres, radii, first = capsule_balls(around_a, around_b, around_radius + rho + NEAR_MARGIN_M)
     return ArmAtShot(box.T_cell_box, box.half_m, a, b, radius, around_a, around_b, around_radius, middle, rho,
-                     seen, np.cumsum(pieces) - pieces)
+                     BallsSeen.of(middle, centres, radii), first)
 
 
 def spot_blocked(problem: Problem, positions: ArrayLike) -> np.ndarray:
@@ -388,7 +389,7 @@ def spot_blocked(problem: Problem, positions: ArrayLike) -> np.ndarray:
     positions = np.asarray(positions, float).reshape(-1, 3)
     count = len(scene.points)
     out = np.zeros((len(positions), count), bool)
-    arm = problem.fixed("arm_at_shot", lambda: arm_at_shot(problem.task, scene))
+    arm = problem.fixed("arm_at_shot", lambda: arm_at_shot(problem.task, scene, samples_sphere(problem)))
     near = np.logical_or.reduceat(arm.seen.met_by(positions), arm.first_ball, axis=0)   # (1 + K, C)
     if not near.any():
         return out

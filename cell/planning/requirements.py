@@ -245,6 +245,30 @@ def lamp_hides(p: Problem, positions: np.ndarray) -> np.ndarray:
     return housing | links
 
 
+@dataclass(frozen=True)
+class RigSight:
+    """What rig_hides reads of a problem while the lamp moves: the cone from the camera tangent to their sphere (rays.SightCone), the lamp's half
+    sizes (half), the links' width across the aim (width: the arm's radius, the servo's half
+    diagonal across the aim, the larger), the housing's and links' together (whole), the servo's
+    back from the pivot (end)."""
+
+    cone: SightCone
+    half: np.ndarray
+    width: float
+    whole: float
+    end: float
+
+    @classmethod
+    def of(cls, p: Problem) -> RigSight:
+        half = 0.5 * np.asarray(p.task.cell.collision.lamp_size_m, float)
+        longest = p.task.lamp.rig.radius_range_m[1]
+        cone = SightCone.of(p.scene.camera_position, *evaluate.samples_sphere(p))
+        servo_half = 0.5 * np.asarray(TILT_SERVO_SIZE_M)
+        width = max(RIG_ARM_RADIUS_M, float(np.hypot(servo_half[0], servo_half[1])))
+        whole = max(width, float(np.hypot(half[0], half[1])))
+        return cls(cone, half, width, whole, longest + 2.0 * half[2] + 2.0 * servo_half[2])
+
+
 def rig_hides(p: Problem, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """((C, P), (C, P)) the samples the camera sees (Problem.camera_seen) that the spot lamp's
     housing, and that the pan-tilt's links, hide with the lamp at each position (C, 3): the line
@@ -255,11 +279,11 @@ def rig_hides(p: Problem, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray
     before any lamp), hiding none. Only lamps that may meet the lines of sight are tested: those
     lie in the cone from the camera tangent to the samples' sphere (rays.SightCone), and the
     housing and the links together within W' (the widest across the aim) of the lamp's axis from
-    its front to the servo's back, held by n balls along it (n for the rig's longest such axis);
-    then the box by the ball about its centre, h_z behind the lamp along the aim, of radius |h|;
-    the links by their axis from the lamp's back to the servo's within W (the arm's radius, the
-    servo's half diagonal across the aim, the larger) + rho of the segment camera -> m (the line
-    camera c -> sample s at c + t (s - c) lies t |s - m| <= rho from c + t (m - c)).
+    its front to the servo's back (RigSight); then the box by the ball about its centre,
+    h_z behind the lamp along the aim, of radius |h|; the links by their axis from the lamp's back
+    to the servo's within W (the arm's radius, the servo's half diagonal across the aim, the
+    larger) + rho of the segment camera -> m (the line camera c -> sample s at c + t (s - c) lies
+    t |s - m| <= rho from c + t (m - c)).
     The links lie behind the lamp, beyond its housing's back face, so they never block its own
     beam (spot_blocked leaves them out): each ray of the spot runs from its front towards a sample
     in front of it (within its cone, under 90 deg off its aim)."""
@@ -269,28 +293,23 @@ def rig_hides(p: Problem, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray
     seen = p.camera_seen
     if seen is None or not seen.any():
         return housing, links
-    half = 0.5 * np.asarray(p.task.cell.collision.lamp_size_m, float)
+    sight: RigSight = p.fixed("rig_sight", lambda: RigSight.of(p))
     pivot, longest = p.task.lamp.rig.pivot_m, p.task.lamp.rig.radius_range_m[1]
-    cone = p.fixed("sight_cone", lambda: SightCone.of(p.scene.camera_position,
-                                                      *geometry.bounding_sphere(p.scene.points)))
-    servo_half = 0.5 * np.asarray(TILT_SERVO_SIZE_M)
-    width = max(RIG_ARM_RADIUS_M, float(np.hypot(servo_half[0], servo_half[1])))
-    end = longest + 2.0 * half[2] + 2.0 * servo_half[2]               # the servo's back from the pivot
-    whole = max(width, float(np.hypot(half[0], half[1])))             # the housing's and links' width
+    half, cone = sight.half, sight.cone
     with np.errstate(invalid="ignore"):        # a lamp not placed (NaN) is not near
         aim = rig.lamp_aim(pivot, positions)
         radius = np.linalg.norm(positions - pivot, axis=1)
-        # first the housing and the links together: the lamp's axis from its front to the servo's back
-        near = segments_near_segments(cone.apex, cone.middle, positions, pivot - end * aim,
-                                      whole + cone.rho + NEAR_MARGIN_M)[:, 0]
+        # the housing and the links together: the lamp's axis from its front to the servo's back
+        near = segments_near_segments(cone.apex, cone.middle, positions, pivot - sight.end * aim,
+                                      sight.whole + cone.rho + NEAR_MARGIN_M)[:, 0]
     if not near.any():
         return housing, links
-    k = np.flatnonzero(near)
+    k, aim, radius = np.flatnonzero(near), aim[near], radius[near]
     near_housing = np.zeros(len(positions), bool)
-    near_housing[k] = cone.meets(positions[k] - half[2] * aim[k], float(np.linalg.norm(half)) + NEAR_MARGIN_M)
+    near_housing[k] = cone.meets(positions[k] - half[2] * aim, float(np.linalg.norm(half)) + NEAR_MARGIN_M)
     near_links = np.zeros(len(positions), bool)     # the links' axis within their width of the segment camera -> m widened by rho
-    near_links[k] = segments_near_segments(cone.apex, cone.middle, pivot - (radius[k] + 2.0 * half[2])[:, None] * aim[k],
-                                           pivot - end * aim[k], width + cone.rho + NEAR_MARGIN_M)[:, 0]
+    near_links[k] = segments_near_segments(cone.apex, cone.middle, pivot - (radius + 2.0 * half[2])[:, None] * aim,
+                                           pivot - sight.end * aim, sight.width + cone.rho + NEAR_MARGIN_M)[:, 0]
     if near_housing.any() or near_links.any():
         points = p.scene.points[seen]
         R = rig.lamp_frame(pivot, positions[k])
