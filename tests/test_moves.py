@@ -31,6 +31,7 @@ from test_collision import stop, wall_task
 ROOT = Path(__file__).resolve().parent.parent
 HINGE, BEAM = ROOT / "tasks" / "hinge.yaml", ROOT / "tests" / "tasks" / "features" / "conrod_beam.yaml"
 RING_LENS = ROOT / "tests" / "tasks" / "features" / "ring_lens.yaml"     # the camera down through a ring's hole
+PLATE_DOME = ROOT / "tests" / "tasks" / "features" / "plate_dome.yaml"   # the camera in through a dome's hole
 
 
 def sim_arm(task, joints):
@@ -247,8 +248,8 @@ def test_the_wall_moves_keep_the_padding_along_their_whole_path_by_a_dense_check
 
 
 @pytest.mark.long          # 1-5 min: the examples' plans and their paths densely
-@pytest.mark.parametrize("example", [ROOT / "tasks" / "bracket.yaml", BEAM, RING_LENS],
-                         ids=["bracket", "conrod_beam", "ring_lens"])
+@pytest.mark.parametrize("example", [ROOT / "tasks" / "bracket.yaml", BEAM, RING_LENS, PLATE_DOME],
+                         ids=["bracket", "conrod_beam", "ring_lens", "plate_dome"])
 def test_every_example_path_keeps_the_padding_by_a_dense_check(example):
     from cell.planning.whole_part import plan_features
     task = load_task(example)

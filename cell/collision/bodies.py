@@ -331,15 +331,17 @@ _CHILD_J = np.array([[0, 0, 1, 1], [1, 1, 2, 2], [0, 0, 1, 1], [1, 1, 2, 2]])   
 
 def box_to_revolved(box: Box, body: Annulus | Shell, tolerance_m: float = BOX_TOLERANCE_M) -> float:
     """A lower bound of the least distance from the box's surface to the body, within tolerance_m
-    of it (<= 0 where they meet), by branch and bound over patches of the box's faces. The
-    distance d to any closed set makes d^2 - |x|^2 concave (an infimum of affine functions of x),
-    so on a patch whose corners c_k have d_k, about a centre at rho from each,
+    of it (<= 0 where they meet; the bodies' distance when apart, as a point of the box nearest the
+    body lies on its surface), by branch and bound over patches of the box's faces. The distance d
+    to any closed set makes d^2 - |x|^2 concave (an infimum of affine functions of x), so on a patch
+    whose corners c_k are d_k from the body and rho from the patch's centre,
 
         d(x)^2 >= sum_k l_k d_k^2 - sum_k l_k |c_k - x|^2 >= min_k d_k^2 - rho^2       (x = sum_k l_k c_k)
 
-    and the body's hull_gap bounds it too (flat contacts, as a face over a ring's top, which the
-    first bound meets only as rho -> 0). The least value found at a corner bounds it from above;
-    patches whose bound could beat it by more than the tolerance are quartered, the rest dropped."""
+    and the body's hull_gap bounds it too (exact for a flat contact, as a face over a ring's front,
+    which the first bound meets only as rho -> 0). The least d found at a corner is an upper bound;
+    a patch whose bound is below it by more than the tolerance is quartered, any other dropped,
+    and the answer is the least of that value and the dropped patches' bounds."""
     T, half = box.T_cell_box, box.half_m
     origin, eu, ev = [], [], []
     for axis in range(3):
