@@ -51,49 +51,27 @@ def crossing(task):
     return a, b
 
 
-def test_the_lamp_moves_first_where_the_camera_s_path_would_hit_it_and_the_log_says_so(tmp_path):
-    """A to B: the camera first would run into the lamp standing low (the simulator's own check
-    stops it); the lamp first, then the camera, goes through, and the log says that order."""
+@pytest.mark.parametrize("lamp_first", [True, False], ids=["A to B: the lamp first", "B to A: the camera first"])
+def test_the_order_of_the_camera_s_and_the_lamp_s_moves_is_the_one_the_simulator_lets_through(tmp_path, lamp_first):
+    """crossing's A to B: the camera first would run into the lamp standing low (the
+    simulator's own check stops it); the lamp first, then the camera, goes through, and a
+    `move_order` step says so. B to A: the lamp first would swing into the camera standing low
+    (the simulator stops it); the camera first, then the lamp, goes through: the default order,
+    no `move_order` step."""
     task = load_task(HINGE)
-    (T_a, q_a, lamp_a), (T_b, _, lamp_b) = crossing(task)
-    blocked = sim_devices(task, q_a, lamp_a)
-    with pytest.raises(DeviceFault, match="camera housing would hit the lamp housing"):
-        blocked.arm.move_camera(T_b)
-    devices = sim_devices(task, q_a, lamp_a)
+    (T_from, q_from, lamp_from), (T_to, _, lamp_to) = crossing(task)[::1 if lamp_first else -1]
+    hit = sim_devices(task, q_from, lamp_from)
+    with pytest.raises(DeviceFault, match="camera housing would hit the lamp" if lamp_first else
+                       "lamp housing would hit the camera"):
+        hit.arm.move_camera(T_to) if lamp_first else hit.lamp.move(*lamp_to)
+    devices = sim_devices(task, q_from, lamp_from)
     with Recorder(tmp_path / "run") as recorder:
-        move = motion.go(task, devices, recorder, T_b, lamp_b, to="the shot's poses")
-    assert move.clear and move.lamp_first
-    assert devices.arm.camera_pose() == pytest.approx(T_b, abs=1e-9)
-    assert lamp_at(task, devices.lamp.joints()) == pytest.approx(lamp_at(task, lamp_b), abs=1e-3)
-    (order,) = [s for s in steps(tmp_path / "run") if s["step"] == "move_order"]
-    assert order["lamp_first"] and order["message"].startswith("the lamp first, then the camera")
-
-
-def test_the_camera_moves_first_where_the_lamp_s_path_would_hit_it(tmp_path):
-    """B to A: the lamp first would swing into the camera standing low (the simulator stops it);
-    the camera first, then the lamp, goes through: the default order, no `move_order` step."""
-    task = load_task(HINGE)
-    (T_a, _, lamp_a), (T_b, q_b, lamp_b) = crossing(task)
-    blocked = sim_devices(task, q_b, lamp_b)
-    with pytest.raises(DeviceFault, match="lamp housing would hit the camera housing"):
-        blocked.lamp.move(*lamp_a)
-    devices = sim_devices(task, q_b, lamp_b)
-    with Recorder(tmp_path / "run") as recorder:
-        move = motion.go(task, devices, recorder, T_a, lamp_a, to="the shot's poses")
-    assert move.clear and not move.lamp_first
-    assert devices.arm.camera_pose() == pytest.approx(T_a, abs=1e-9)
-    assert lamp_at(task, devices.lamp.joints()) == pytest.approx(lamp_at(task, lamp_a), abs=1e-3)
-    assert "move_order" not in {s["step"] for s in steps(tmp_path / "run")}
-
-
-def housings_apart(task, located, shot):
-    """The least distance [m] between the simulator's camera housing, the arm's flange where the
-    located hand-eye puts the true camera at the shot's pose, and its lamp housing at the shot's
-    joints (sim.obstacles' sampled boxes, every pair of samples)."""
-    world = Obstacles(task)
-    q = np.asarray(reaching_joints(located.frames, shot.T_cell_cam), float)
-    lamp = world.lamp(lamp_position(task.lamp.rig.pivot_m, *shot.joints))
-    return float(cdist(world.camera(q), lamp).min())
+        move = motion.go(task, devices, recorder, T_to, lamp_to, to="the shot's poses")
+    assert move.clear and move.lamp_first == lamp_first
+    assert devices.arm.camera_pose() == pytest.approx(T_to, abs=1e-9)
+    assert lamp_at(task, devices.lamp.joints()) == pytest.approx(lamp_at(task, lamp_to), abs=1e-3)
+    orders = [s["message"] for s in steps(tmp_path / "run") if s["step"] == "move_order"]
+    assert len(orders) == lamp_first and all(o.startswith("the lamp first, then the camera") for o in orders)
 
 
 @pytest.fixture(scope="module")
