@@ -36,6 +36,7 @@ from cell.report.words import count
 from cell.report.result import Result
 
 if TYPE_CHECKING:
+    from cell.collision.paths import Move
     from cell.devices.interfaces import Devices
     from cell.planning.plan import Plan, Shot
     from cell.planning.scene import Scene
@@ -679,9 +680,11 @@ def follow(ctx: RunContext, aim: Aim, k: int, error: localization.PoseError) -> 
     """The model follows the pose error found at capture k: the arm's hand-eye corrected, each
     feature's task with the part where it is (localization.located_task); one feature re-planned
     there (the camera kept on the part: a planned shot's pose moved with it), several carried
-    along with the part (localization.moved_plan). A re-plan that is infeasible, a feature that
-    leaves the view, or a move there the collision check refuses (refused_where_located), stops
-    (GoalNotReached, cause `pose`)."""
+    along with the part (localization.moved_plan). A re-plan that is infeasible or a feature that
+    leaves the view stops (GoalNotReached, cause `pose`). The re-plan's search does not know the
+    cell's bodies: where the move to its shot is refused (its lamp pose under the padding from the
+    camera body where the corrected hand-eye puts it, or no path clear), the loop's plan carried
+    along with the part serves (lamp_kept); its move refused too, the run stops (cause `pose`)."""
     features = tuple(replace(f, task=localization.located_task(f.task, error)) for f in aim.features)
     reason = f"the model follows the part: {localization.describe(error, error.views)}"
     document = {"action": "locate", "reason": reason, "localization": error.to_json()}
@@ -708,19 +711,58 @@ def follow(ctx: RunContext, aim: Aim, k: int, error: localization.PoseError) -> 
     if not np.all(inside):
         raise GoalNotReached(f"{localization.describe(error, error.views)}: {int(np.sum(~inside))} of the "
                              f"feature's {len(inside)} samples leave the view where the part is", "pose")
-    refused_where_located(ctx, feature.task, replanned.shot, error)
-    located = replace(feature, model=Model(replanned, feature.task))
-    return replace(replan_aim(aim, located, aim.albedo_scale), located=True, pose_error=error)
+    move = where_located(ctx, feature.task, replanned.shot, error)
+    if move.clear:
+        located = replace(feature, model=Model(replanned, feature.task))
+        return replace(replan_aim(aim, located, aim.albedo_scale), located=True, pose_error=error)
+    kept = lamp_kept(ctx, feature, error, move)
+    ctx.recorder.step("correct", kept.why, iteration=k, action="locate", lamp_kept=kept.why)
+    yield Corrected(k, document | {"lamp_kept": kept.why})
+    located = replace(feature, model=Model(kept.plan, feature.task))
+    return replace(replan_aim(aim, located, aim.albedo_scale), shutter_s=aim.shutter_s, f_number=aim.f_number,
+                   located=True, pose_error=error)
+
+
+class Kept(NamedTuple):
+    """The plan carried along with the part (lamp_kept) and why the re-plan's was not taken."""
+
+    plan: Plan
+    why: str
+
+
+def lamp_kept(ctx: RunContext, feature: LoopFeature, error: localization.PoseError, refused: Move) -> Kept:
+    """Where the move to the shot re-planned for where the part is was `refused`: the plan the
+    loop works with carried along with the part (localization.moved_plan: the camera's view of the
+    part kept, the lamp at its planned joints, turned about its fixed pivot, so it lights the part
+    from nearly where it did; capture k's exposure, which the loop corrects for the light it then
+    gives), its move checked (where_located). Refused too: GoalNotReached, cause `pose`, naming
+    the pose found and both refusals; nothing moved."""
+    carried = localization.moved_plan(feature.model.plan, error.T_part)
+    move = where_located(ctx, feature.task, carried.shot, error)
+    said = f"{localization.describe(error, error.views)}; re-planned for where the part is, the move there is refused"
+    if not move.clear:
+        raise GoalNotReached(f"{said}: {motion.refusal(refused)}; with the lamp kept at the plan's pose: "
+                             f"{motion.refusal(move)}", "pose")
+    return Kept(carried, f"the move to the shot re-planned there is refused ({refused.clearance.reason()}): the "
+                         "plan's lamp pose kept, the camera moved with the part (its move clear: "
+                         f"{' and '.join(move.clearance.bodies)} at least {1e3 * move.clearance.distance_m:.1f} mm "
+                         "apart)")
+
+
+def where_located(ctx: RunContext, task: Task, shot: Shot, error: localization.PoseError) -> Move:
+    """The move to the shot planned for where the localization puts the part (the task's part
+    there, the arm's hand-eye corrected), checked from where the devices stand (motion.check:
+    either order of the camera and the lamp, via points); moves nothing."""
+    return motion.check(task, localization.corrected(ctx.devices, error), shot.T_cell_cam, shot.joints,
+                        "the shot's poses")
 
 
 def refused_where_located(ctx: RunContext, task: Task, shot: Shot, error: localization.PoseError) -> None:
-    """Check the move to the shot planned for where the localization puts the part (the task's
-    part there, the arm's hand-eye corrected: motion.check from where the devices stand); a move
-    the collision check refuses stops with cause `pose` (GoalNotReached), not `collision`: the
-    true cause is the part being elsewhere than the model had it, so the pose found and the
-    collision are named, nothing moved."""
-    move = motion.check(task, localization.corrected(ctx.devices, error), shot.T_cell_cam, shot.joints,
-                        "the shot's poses")
+    """Check the move to the shot planned for where the localization puts the part
+    (where_located); a move the collision check refuses stops with cause `pose`
+    (GoalNotReached), not `collision`: the true cause is the part being elsewhere than the model
+    had it, so the pose found and the collision are named, nothing moved."""
+    move = where_located(ctx, task, shot, error)
     if not move.clear:
         raise GoalNotReached(f"{localization.describe(error, error.views)}; re-planned for where the part is, "
                              f"the move there is refused: {motion.refusal(move)}", "pose")

@@ -78,8 +78,8 @@ def go(task: Task, devices: Devices, recorder: Recorder, T_cell_cam: np.ndarray 
     """Check the move (check; `checked`: the caller's check of it from where the devices stand,
     nothing moved since) and refuse it (refusal) unless clear; then drive it: the arm
     through its via points to T_cell_cam, the lamp through its via joints to lamp_joints (the
-    lamp first where the move says so: Move.lamp_first), each via logged as read back
-    (`move_via`, `move_lamp_via`). The last legs are the caller's to
+    lamp first where the move says so, Move.lamp_first, logged as `move_order`), each via logged
+    as read back (`move_via`, `move_lamp_via`). The last legs are the caller's to
     log: `arrived()` is called when the arm is there, before the lamp moves. Returns the Move."""
     move = checked or check(task, devices, T_cell_cam, lamp_joints, to)
     if not move.clear:
@@ -115,6 +115,10 @@ def go(task: Task, devices: Devices, recorder: Recorder, T_cell_cam: np.ndarray 
             with speaking_for(devices.lamp):
                 devices.lamp.move(*lamp_joints)
 
+    if move.lamp_first:
+        recorder.step("move_order", f"the lamp first, then the camera, on the way to {to}: the camera's path with "
+                                    "the lamp where it stands is not clear, the lamp's then the camera's is "
+                                    f"(collision-checked: {apart})", iteration=iteration, to=to, lamp_first=True)
     for part in ((lamp, arm) if move.lamp_first else (arm, lamp)):
         part()
     return move
