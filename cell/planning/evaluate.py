@@ -311,16 +311,44 @@ def unit_gray(problem: Problem, positions: ArrayLike,
     """(gray per exposure u (C, P), shadowed (C, P), off-axis angle (C, P), dominant BRDF term
     (C, P), as brdf.judged_term judges the kernel's) of lamps at `positions` aiming along `aims`,
     from the Warp kernel, the irradiance by the lamp's profile (eq. 11's ideal cone without one)."""
+    value, shadowed, off_axis, dominant = spot_rays(problem, positions, aims)
+    return value, shadowed, off_axis, judged(problem, positions, dominant)
+
+
+def spot_rays(problem: Problem, positions: ArrayLike,
+              aims: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """unit_gray's (u, shadowed, off-axis, dominant) (C, P) with the kernel's dominant term, not
+    yet judged (judged): the Warp kernel's values, the camera body's and the arm's shadows
+    (spot_blocked) taken out."""
     out = problem.gray_inputs(positions, aims)
     blocked = spot_blocked(problem, positions)
-    value, shadowed = np.where(blocked, 0.0, out.value), out.shadowed | blocked
+    return np.where(blocked, 0.0, out.value), out.shadowed | blocked, out.off_axis, out.dominant
+
+
+def judged(problem: Problem, positions: ArrayLike, dominant: np.ndarray) -> np.ndarray:
+    """(C, P) the kernel's dominant term of lamps at `positions` (C, 3) as brdf.judged_term judges
+    it (UNKNOWN where an unresolved spike may dominate); the kernel's where the material has no
+    unresolved spike. Each row reads its own lamp alone."""
     if problem.material.unresolved is None:               # nothing to judge: the kernel's term
-        return value, shadowed, out.off_axis, out.dominant
+        return dominant
     scene = problem.scene
     s = geometry.unit(np.asarray(positions, float).reshape(-1, 1, 3) - scene.points[None])
     v = geometry.unit(scene.camera_position - scene.points)[None]
-    dominant = brdf.judged_term(out.dominant, scene.normals[None], s, v, problem.material)
-    return value, shadowed, out.off_axis, dominant
+    return brdf.judged_term(dominant, scene.normals[None], s, v, problem.material)
+
+
+def nominal_and_moved(problem: Problem, positions: np.ndarray, drive: np.ndarray,
+                      n: int) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
+    """lit_by_all of unit_gray for lamps at `positions` (C, 3) aimed at the rig's pivot, the other
+    lights at `drive` (C, 1 + K), in one kernel launch: the first n lamps (the nominal poses) in
+    full, (u, shadowed, off-axis, dominant) (n, P), and the rest (the poses the tolerance moves
+    them to, whose gray alone is read) their gray per exposure (C - n, P) (lit_gray): the same
+    rows as lit_by_all of unit_gray over all, without judging the moved lamps' terms."""
+    value, shadowed, off_axis, dominant = spot_rays(problem, positions,
+                                                    rig.lamp_aim(problem.task.lamp.rig.pivot_m, positions))
+    nominal = lit_by_all(problem, (value[:n], shadowed[:n], off_axis[:n], judged(problem, positions[:n], dominant[:n])),
+                         drive[:n])
+    return nominal, lit_gray(problem, value[n:], drive[n:])
 
 
 @dataclass(frozen=True)
@@ -439,7 +467,7 @@ def lit_by_all(problem: Problem, spot: tuple[np.ndarray, np.ndarray, np.ndarray,
     spot_on = drive[:, :1] > 0.0
     if not len(lights.unit_gray):
         return drive[:, :1] * u, np.logical_or(shadowed, ~spot_on), np.where(spot_on, off_axis, 0.0), dominant
-    shares = np.concatenate([(drive[:, :1] * u)[:, None], drive[:, 1:, None] * lights.unit_gray[None]], axis=1)
+    shares = _shares(lights, u, drive)
     reached = np.concatenate([(~shadowed & spot_on)[:, None],
                               (drive[:, 1:, None] > 0.0) & ~lights.unlit[None]], axis=1)    # (C, 1 + K, P)
     others = reached[:, 1:].any(axis=1)
@@ -447,6 +475,20 @@ def lit_by_all(problem: Problem, spot: tuple[np.ndarray, np.ndarray, np.ndarray,
     strongest = np.argmax(shares, axis=1)[:, None]
     return (shares.sum(axis=1), np.logical_not(reached.any(axis=1)), np.where(others | ~spot_on, 0.0, off_axis),
             np.take_along_axis(terms, strongest, axis=1)[:, 0])
+
+
+def _shares(lights: LightsAtScene, u: np.ndarray, drive: np.ndarray) -> np.ndarray:
+    """(C, 1 + K, P) each light's gray per exposure at its drive (C, 1 + K), the spot's (u) first."""
+    return np.concatenate([(drive[:, :1] * u)[:, None], drive[:, 1:, None] * lights.unit_gray[None]], axis=1)
+
+
+def lit_gray(problem: Problem, u: np.ndarray, drive: np.ndarray) -> np.ndarray:
+    """lit_by_all's gray per exposure alone (C, P): the spot's u (C, P) and the other lights at
+    drive (C, 1 + K), summed in lit_by_all's order (the same bits, row by row)."""
+    lights = problem.lights
+    if not len(lights.unit_gray):
+        return drive[:, :1] * u
+    return _shares(lights, u, drive).sum(axis=1)
 
 
 def drive_moves(problem: Problem, u: np.ndarray) -> list[np.ndarray]:
@@ -599,18 +641,16 @@ def candidates(problem: Problem, pan: ArrayLike, tilt: ArrayLike, radius: ArrayL
     all_pos = rig.lamp_position(pivot, np.concatenate([pan, (pan + d_pan).ravel()]),
                                 np.concatenate([tilt, (tilt + d_tilt).ravel()]), np.concatenate([radius] * (m + 1)))
     drives = problem.full_drive(n) if drive is None else np.tile(np.asarray(drive, float), (n, 1))
-    all_u, all_shadowed, all_off_axis, all_dominant = lit_by_all(
-        problem, unit_gray(problem, all_pos, rig.lamp_aim(pivot, all_pos)), np.concatenate([drives] * (m + 1)))
-    u = all_u[:n]
+    (u, shadowed, off_axis, dominant), moved = nominal_and_moved(problem, all_pos, np.concatenate([drives] * (m + 1)), n)
     b = problem.black_level
-    moved = all_u[n:].reshape(m, n, u.shape[1])
+    moved = moved.reshape(m, n, u.shape[1])
     extra = drive_moves(problem, u) + light_moves(problem, u, drives) if tolerance else []
     if extra:
         moved = np.concatenate([moved, np.array(extra).reshape(-1, n, u.shape[1])])
     shutter, kappa, t_need = exposure(problem, u, moved)
     gain = (shutter / kappa**2)[:, None]
-    return Candidates(all_pos[:n], b + u * gain, b + moved * gain, all_shadowed[:n], all_off_axis[:n],
-                      all_dominant[:n], shutter, kappa, t_need, drives)
+    return Candidates(all_pos[:n], b + u * gain, b + moved * gain, shadowed, off_axis, dominant, shutter, kappa,
+                      t_need, drives)
 
 
 def at_exposure(problem: Problem, position: ArrayLike, shutter_s: float, f_number: float,
@@ -629,14 +669,13 @@ def at_exposure(problem: Problem, position: ArrayLike, shutter_s: float, f_numbe
                      for dp, dt in zip(d_pan, d_tilt)]
     all_pos = np.vstack([pos, *moved_pos])
     drives = problem.full_drive(1) if drive is None else np.asarray(drive, float).reshape(1, -1)
-    all_u, all_shadowed, all_off_axis, all_dominant = lit_by_all(
-        problem, unit_gray(problem, all_pos, rig.lamp_aim(pivot, all_pos)), np.tile(drives, (len(all_pos), 1)))
-    u, gain = all_u[:1], shutter_s / f_number**2
+    (u, shadowed, off_axis, dominant), moved = nominal_and_moved(problem, all_pos, np.tile(drives, (len(all_pos), 1)), 1)
+    gain = shutter_s / f_number**2
     t_need = exposure(problem, u)[2]
     b = problem.black_level
-    moved = all_u[1:].reshape(len(moved_pos), 1, u.shape[1])
+    moved = moved.reshape(len(moved_pos), 1, u.shape[1])
     if joints is not None:
         moved = np.concatenate([moved, np.array(drive_moves(problem, u) + light_moves(problem, u, drives))
                                .reshape(-1, 1, u.shape[1])])
-    return Candidates(pos, b + u * gain, b + moved * gain, all_shadowed[:1], all_off_axis[:1], all_dominant[:1],
+    return Candidates(pos, b + u * gain, b + moved * gain, shadowed, off_axis, dominant,
                       np.array([float(shutter_s)]), np.array([float(f_number)]), t_need, drives)

@@ -58,80 +58,85 @@ def batches(initial_simplex: ArrayLike, xatol: float, fatol: float, maxfev: int,
     the values scipy's step reads, in its order, and counts only those against maxfev: the same
     search, result and count, in fewer rounds (each asked point costs its own evaluation, so
     the expansion and the outside contraction, rarer, are asked when needed), for an objective
-    whose value at a point is its own whatever else is evaluated with it."""
-    sim = np.asarray(np.atleast_2d(initial_simplex).copy(), dtype=float)
-    n = sim.shape[1]
+    whose value at a point is its own whatever else is evaluated with it.
+
+    The vertices are lists of Python floats, their arithmetic scipy's element by element (IEEE
+    double either way: a NumPy call on a 3-vector costs more than its sums) but
+    the centroid's sum NumPy's own (np.add.reduce starts from +0.0: rows of -0.0 sum to +0.0,
+    where adding them in turn gives -0.0), the simplex ordered by np.argsort of the
+    values (its order among equal values is NumPy's, which Python's sort need not share)."""
+    sim = [[float(v) for v in row] for row in np.atleast_2d(np.asarray(initial_simplex, dtype=float))]
+    n = len(sim[0])
     calls = 0
-    known: dict[bytes, float] = {}      # values asked ahead, by their point's bytes, each taken once
 
-    def ask(points: np.ndarray) -> Generator[np.ndarray, Sequence[float], None]:
-        if len(points):
-            values = yield points.copy()
-            known.update(zip((p.tobytes() for p in points), (float(v) for v in values)))
+    def ask(points: list[list[float]]) -> Generator[np.ndarray, Sequence[float], list[float]]:
+        if not points:
+            return []
+        values = yield np.array(points, dtype=float)
+        return [float(v) for v in values]
 
-    def evaluate(x: np.ndarray) -> Generator[np.ndarray, Sequence[float], float]:
+    def evaluate(x: list[float], asked: float | None) -> Generator[np.ndarray, Sequence[float], float]:
+        """One evaluation counted against maxfev: its value asked ahead, or asked now."""
         nonlocal calls
         if calls >= maxfev:
             raise _Exhausted
         calls += 1
-        if x.tobytes() not in known:
-            yield from ask(x[None])
-        return known.pop(x.tobytes())
+        if asked is not None:
+            return asked
+        return (yield from ask([x]))[0]
 
-    fsim = np.full((n + 1,), np.inf, dtype=float)
-    if ahead:
-        yield from ask(sim[:maxfev])
+    def ordered(fsim: list[float]) -> tuple[list[list[float]], list[float]]:
+        order = np.argsort(np.array(fsim)).tolist()
+        return [sim[k] for k in order], [fsim[k] for k in order]
+
+    fsim = [np.inf] * (n + 1)
+    first = (yield from ask(sim[:maxfev])) if ahead else []
     try:
         for k in range(n + 1):
-            fsim[k] = yield from evaluate(sim[k])
+            fsim[k] = yield from evaluate(sim[k], first[k] if k < len(first) else None)
     except _Exhausted:
         pass
     for _ in range(2):                  # scipy sorts twice before its loop
-        ind = np.argsort(fsim)
-        sim, fsim = np.take(sim, ind, 0), np.take(fsim, ind, 0)
+        sim, fsim = ordered(fsim)
     while calls < maxfev:
         try:
-            if (np.max(np.ravel(np.abs(sim[1:] - sim[0]))) <= xatol
-                    and np.max(np.abs(fsim[0] - fsim[1:])) <= fatol):
+            best, worst = sim[0], sim[-1]
+            if (all(abs(a - b) <= xatol for row in sim[1:] for a, b in zip(row, best))      # np.max(...) <= xatol,
+                    and all(abs(fsim[0] - f) <= fatol for f in fsim[1:])):                  # NaN failing it as there
                 break
-            xbar = np.add.reduce(sim[:-1], 0) / n
-            xr = (1 + RHO) * xbar - RHO * sim[-1]
-            if ahead:
-                known.clear()
-                yield from ask(np.array([xr, (1 - PSI) * xbar + PSI * sim[-1]]))
-            fxr = yield from evaluate(xr)
+            xbar = (np.add.reduce(np.array(sim[:-1]), 0) / n).tolist()     # scipy's sum: NumPy's order
+            xr = [(1 + RHO) * a - RHO * w for a, w in zip(xbar, worst)]
+            xcc = [(1 - PSI) * a + PSI * w for a, w in zip(xbar, worst)]
+            fxr_ahead, fxcc_ahead = (yield from ask([xr, xcc])) if ahead else (None, None)
+            fxr = yield from evaluate(xr, fxr_ahead)
             if fxr < fsim[0]:
-                xe = (1 + RHO * CHI) * xbar - RHO * CHI * sim[-1]
-                fxe = yield from evaluate(xe)
+                xe = [(1 + RHO * CHI) * a - RHO * CHI * w for a, w in zip(xbar, worst)]
+                fxe = yield from evaluate(xe, None)
                 sim[-1], fsim[-1] = (xe, fxe) if fxe < fxr else (xr, fxr)
             elif fxr < fsim[-2]:
                 sim[-1], fsim[-1] = xr, fxr
             else:
                 shrink = False
                 if fxr < fsim[-1]:
-                    xc = (1 + PSI * RHO) * xbar - PSI * RHO * sim[-1]
-                    fxc = yield from evaluate(xc)
+                    xc = [(1 + PSI * RHO) * a - PSI * RHO * w for a, w in zip(xbar, worst)]
+                    fxc = yield from evaluate(xc, None)
                     if fxc <= fxr:
                         sim[-1], fsim[-1] = xc, fxc
                     else:
                         shrink = True
                 else:
-                    xcc = (1 - PSI) * xbar + PSI * sim[-1]
-                    fxcc = yield from evaluate(xcc)
+                    fxcc = yield from evaluate(xcc, fxcc_ahead)
                     if fxcc < fsim[-1]:
                         sim[-1], fsim[-1] = xcc, fxcc
                     else:
                         shrink = True
                 if shrink:
-                    if ahead:
-                        known.clear()
-                        yield from ask(np.array([sim[0] + SIGMA * (sim[j] - sim[0])
-                                                 for j in range(1, n + 1)][:maxfev - calls]).reshape(-1, n))
+                    moved = [[b + SIGMA * (a - b) for a, b in zip(sim[j], best)] for j in range(1, n + 1)]
+                    shrunk = (yield from ask(moved[:maxfev - calls])) if ahead else []
                     for j in range(1, n + 1):
-                        sim[j] = sim[0] + SIGMA * (sim[j] - sim[0])
-                        fsim[j] = yield from evaluate(sim[j])
+                        sim[j] = moved[j - 1]
+                        fsim[j] = yield from evaluate(sim[j], shrunk[j - 1] if j - 1 < len(shrunk) else None)
         except _Exhausted:
             pass
-        ind = np.argsort(fsim)
-        sim, fsim = np.take(sim, ind, 0), np.take(fsim, ind, 0)
-    return sim[0], float(np.min(fsim)), calls
+        sim, fsim = ordered(fsim)
+    return np.array(sim[0]), float(np.min(fsim)), calls

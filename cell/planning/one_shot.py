@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Generator
+from itertools import accumulate
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
@@ -124,20 +125,23 @@ def refinement(start: ArrayLike, lamp_rig: LampRig) -> Generator[np.ndarray, np.
     hi = np.array([lamp_rig.pan_range_rad[1], lamp_rig.tilt_range_rad[1], lamp_rig.radius_range_m[1]])
     scale = np.array([np.radians(5.0), np.radians(5.0), 0.05])
 
-    def clipped(z):         # np.clip's values, without its checks
-        return np.minimum(np.maximum(np.asarray(start) + z * scale, lo), hi)
+    origin = np.asarray(start, float)
+
+    def clipped(z):         # np.clip's values, without its checks; (K, 3) steps at once, row by row the same
+        return np.minimum(np.maximum(origin + z * scale, lo), hi)
 
     seen: dict[bytes, float] = {}       # clipped joints -> objective
     search = nelder_mead.batches(np.vstack([np.zeros(3), np.eye(3)]), 0.02, 1e-4, REFINE_EVALUATIONS)
     try:
         steps = next(search)
         while True:
-            poses = [clipped(z) for z in steps]
-            new = {x.tobytes(): x for x in poses if x.tobytes() not in seen}
+            poses = clipped(steps)
+            keys = [x.tobytes() for x in poses]
+            new = {key: x for key, x in zip(keys, poses) if key not in seen}
             if new:
                 values = yield np.array(list(new.values()))
                 seen.update(zip(new, (float(v) for v in values)))
-            steps = search.send([seen[x.tobytes()] for x in poses])
+            steps = search.send([seen[key] for key in keys])
     except StopIteration as stop:
         z, fun, nfev = stop.value
     converged = nfev < REFINE_EVALUATIONS
@@ -160,8 +164,9 @@ def refine_all(problem: evaluate.Problem, starts: list[np.ndarray],
     each round's objective evaluations of all starts in one evaluate.candidates call (one kernel
     launch, one pass of the requirements), the same results as one start at a time."""
     def batch(asked: list[tuple[int, np.ndarray]]) -> list[np.ndarray]:
-        values = pose_objectives(problem, np.vstack([x for _, x in asked]))
-        return np.split(values, np.cumsum([len(x) for _, x in asked])[:-1])
+        values = pose_objectives(problem, np.concatenate([x for _, x in asked]))
+        ends = list(accumulate(len(x) for _, x in asked))
+        return [values[a:b] for a, b in zip([0] + ends, ends)]     # np.split's pieces, without its checks
 
     return lockstep.drive([refinement(x, lamp_rig) for x in starts], batch)
 
