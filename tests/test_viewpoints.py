@@ -313,3 +313,31 @@ def test_look_at_rows_are_each_ones_own_pose_bit_for_bit():
     assert np.allclose(np.swapaxes(R, 1, 2) @ R, np.eye(3), atol=1e-12) and np.allclose(np.linalg.det(R), 1.0)
     aim = (targets - cameras) / np.linalg.norm(targets - cameras, axis=1)[:, None]
     assert np.allclose(R[:, :, 2], aim, atol=1e-12) and np.array_equal(many[:, :3, 3], cameras)
+
+
+def test_a_poses_viewpoint_values_come_cheapest_first_each_the_requirements_own(planned):
+    """viewpoint_values yields, cheapest first and only as asked, each viewpoint requirement's
+    own ln value (the registry's, computed here directly on the same Problem's inputs): a pose
+    pruned at the first that fails is pruned by any() over them all."""
+    from cell.planning import requirements
+    from cell.planning.viewpoints import VIEWPOINT_REQUIREMENTS, viewpoint_values
+    task, _ = planned
+    one = task.with_feature(0)
+    scene = build_scene(one)
+    tried = view_sphere_poses(one, scene, 40, 8)
+    poses = [T for T, got in zip(tried, reach_all(one, tried)) if not isinstance(got, str)][:6]
+    assert poses
+    lens_only = SimpleNamespace(kappa=np.array([one.camera.lens.f_number_range[1]]), shutter=np.zeros(1),
+                                position=np.full((1, 3), np.nan))
+    for T in poses:
+        at = replace(scene, T_cell_cam=T)
+        values = list(viewpoint_values(one, at))
+        names = [n for n, _ in values]
+        assert names == sorted(names, key=VIEWPOINT_REQUIREMENTS.index)
+        assert {"depth_of_field", "camera_view"} <= set(names)
+        problem = evaluate.build_problem(one, at, None)
+        for name, value in values:
+            r = next(r for r in requirements.REGISTRY if r.name == name)
+            assert value == float(np.max(r.ln_value(problem, lens_only)))
+    lazy = viewpoint_values(one, replace(scene, T_cell_cam=poses[0]))
+    assert next(lazy)[0] == "depth_of_field"

@@ -24,6 +24,7 @@ and at most views_per_feature are kept, each at least two steps from those kept 
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from types import SimpleNamespace
 from typing import TYPE_CHECKING, cast
@@ -46,7 +47,7 @@ if TYPE_CHECKING:
 
 STAGES = ("visibility", "view_angle", "resolution", "workspace", "reach", "collision", "seen")
 ROLLS = np.radians([0.0, 90.0, 180.0, 270.0])
-VIEWPOINT_REQUIREMENTS = ("camera_view", "view_angle", "resolution", "depth_of_field")
+VIEWPOINT_REQUIREMENTS = ("depth_of_field", "view_angle", "resolution", "camera_view")   # the cheapest first
 
 
 @dataclass(frozen=True)
@@ -165,17 +166,21 @@ def require_reach(task: Task, scene: Scene) -> None:
                              f"solution takes; {fix}") from None
 
 
-def viewpoint_values(task: Task, scene: Scene, hidden: np.ndarray | None = None) -> dict[str, float]:
-    """{name: ln f_i} of the viewpoint requirements the task asks for at the scene's camera (the
-    depth of field at the lens's narrowest f-number: whether any f-number gives it); `hidden` the
-    samples hidden from the camera where found before (evaluate.hidden_from)."""
+def viewpoint_values(task: Task, scene: Scene, hidden: np.ndarray | None = None) -> Iterator[tuple[str, float]]:
+    """(name, ln f_i) of each viewpoint requirement the task asks for at the scene's camera (the
+    depth of field at the lens's narrowest f-number: whether any f-number gives it), the cheapest
+    first, each found when asked for: a pose is pruned at the first that fails, the dearer ones
+    (camera_view: the lamp's housing and links) left unasked; `hidden` the samples hidden from the
+    camera where found before (evaluate.hidden_from)."""
     problem = evaluate.build_problem(task, scene, None, hidden=hidden)
     # the viewpoint requirements read only the f-number, the shutter's shape and the lamp's position
     # of the Candidates, the lamp not placed yet (NaN: its housing hides nothing, requirements.lamp_hides)
     lens_only = cast(evaluate.Candidates, SimpleNamespace(kappa=np.array([task.camera.lens.f_number_range[1]]),
                                                           shutter=np.zeros(1), position=np.full((1, 3), np.nan)))
-    return {r.name: float(np.max(r.ln_value(problem, lens_only))) for r in requirements.REGISTRY
-            if r.name in VIEWPOINT_REQUIREMENTS and (r.asked is None or r.asked(problem))}
+    by_name = {r.name: r for r in requirements.REGISTRY}
+    for r in (by_name[name] for name in VIEWPOINT_REQUIREMENTS):
+        if r.asked is None or r.asked(problem):
+            yield r.name, float(np.max(r.ln_value(problem, lens_only)))
 
 
 def plan_viewpoints(task: Task, scene: Scene, visible: np.ndarray, grid: SphereGrid,
@@ -214,8 +219,7 @@ def plan_viewpoints(task: Task, scene: Scene, visible: np.ndarray, grid: SphereG
     survivors = []
     hidden = evaluate.hidden_from(task, scene, [T[:3, 3] for _, T, _ in reached])     # one launch for all
     for (r, T, q), hid in zip(reached, hidden):
-        values = viewpoint_values(task, replace(scene, T_cell_cam=T), hid)
-        if any(v > 0.0 for v in values.values()):
+        if any(v > 0.0 for _, v in viewpoint_values(task, replace(scene, T_cell_cam=T), hid)):
             pruned["seen"] += 1
             continue
         angle = projection.view_angles(T[:3, 3], scene.points, scene.normals).max()
