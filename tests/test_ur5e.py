@@ -113,3 +113,38 @@ def test_pose_on_the_base_axis_says_shoulder_cylinder():
     T = geometry.transform(translation=(0.0, 0.0, 0.5))
     with pytest.raises(ur5e.Unreachable, match="shoulder cylinder"):
         ur5e.inverse_all(T)
+
+
+def test_dh_of_an_array_is_each_angles_own_matrix_bit_for_bit():
+    theta = np.random.default_rng(3).uniform(-4, 4, (7, 3))
+    for i in range(6):
+        many = ur5e.dh(i, theta)
+        assert many.shape == (7, 3, 4, 4)
+        assert all(np.array_equal(many[a, b], ur5e.dh(i, float(theta[a, b]))) for a in range(7) for b in range(3))
+
+
+def test_many_poses_solved_at_once_get_each_ones_own_joints_and_refusals():
+    """nearest's poses together: each the very joints inverse gives it alone (the planner's plans
+    must not depend on how many poses were asked with it), the forward map reproducing the pose,
+    and exactly the poses inverse refuses (beyond reach, in the shoulder cylinder) unreached."""
+    rng = np.random.default_rng(7)
+    poses = []
+    for k in range(400):
+        q = rng.uniform(-np.pi, np.pi, 6)
+        q[4] = 0.0 if k % 9 == 0 else q[4]                 # wrist singular: q6 takes q_near's
+        T = ur5e.forward(q)
+        T[:3, 3] *= 1.8 if k % 5 == 0 else 1.0             # some beyond reach
+        T[:2, 3] = (0.05, 0.0) if k % 31 == 0 else T[:2, 3]  # some on the base axis
+        poses.append(T)
+    poses = np.array(poses)
+    q_near = rng.uniform(-1, 1, 6)
+    q, reached = ur5e.nearest(poses, q_near)
+    assert 0 < reached.sum() < len(poses)
+    for T, qk, ok in zip(poses, q, reached):
+        if not ok:
+            with pytest.raises(ur5e.Unreachable):
+                ur5e.inverse(T, q_near)
+            assert np.all(np.isnan(qk))
+            continue
+        assert np.array_equal(ur5e.inverse(T, q_near), qk)
+        assert ur5e.forward(qk) == pytest.approx(T, abs=1e-6)      # 1e-9 away from the singularities

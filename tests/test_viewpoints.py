@@ -18,11 +18,13 @@ from cell.task import loader
 from cell.planning import evaluate, one_shot, regions
 
 from cell.devices import ur5e
-from cell.devices.interfaces import check_arm_motion
+from cell.collision.scene import CollisionScene
+from cell.core.errors import DeviceFault
+from cell.devices.interfaces import arm_accepts, check_arm_motion
 from cell.planning.whole_part import plan_features
 from cell.planning.plan import PlannerSettings
 from cell.planning.scene import build_scene, look_at
-from cell.planning.viewpoints import STAGES, plan_viewpoints, sphere_directions
+from cell.planning.viewpoints import ROLLS, STAGES, plan_viewpoints, reach_all, roll, sphere_directions
 from dense import _blocked, acceptance_failures, cell_mesh, patch_surface, shade
 from test_loader import put, write_task
 
@@ -228,3 +230,114 @@ def test_samples_hidden_from_many_cameras_in_one_launch_are_each_cameras_own(pla
         at = replace(scene, T_cell_cam=look_at(camera, scene.center))
         assert (evaluate.build_problem(one, at, None, hidden=row).camera_unseen
                 == evaluate.build_problem(one, at, None).camera_unseen)
+
+
+def slow_reach(task, T, bodies):
+    """reach_all's answer for one pose the slow way: each roll in turn through the arm's own
+    check, the inverse kinematics alone and the clearance."""
+    arm, frames, refused = task.cell.devices.arm, task.frames, "workspace"
+    for angle in ROLLS:
+        R = T @ roll(angle)
+        try:
+            check_arm_motion(arm, frames, R, arm.speed_m_s)
+        except DeviceFault:
+            continue
+        try:
+            q = ur5e.inverse(frames.T_base_flange(frames.T_base_cam(R)), ur5e.HOME_JOINTS)
+        except ur5e.Unreachable:
+            refused = "reach" if refused != "collision" else refused
+            continue
+        if not bodies.clear(R, q):
+            refused = "collision"
+            continue
+        return R, q
+    return refused
+
+
+def view_sphere_poses(task, scene, count, seed):
+    """`count` camera poses looking at the feature from random points of a shell 0.05-0.9 m
+    around it (some too near: collision; some far: outside the box or beyond reach)."""
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(count, 3))
+    d[:, 2] = np.abs(d[:, 2])
+    cameras = scene.center + d / np.linalg.norm(d, axis=1)[:, None] * rng.uniform(0.05, 0.9, (count, 1))
+    return look_at(cameras, np.broadcast_to(scene.center, cameras.shape))
+
+
+def test_poses_reached_together_are_each_ones_own_roll_joints_and_refusal(planned):
+    """reach_all of many poses: for each, the roll, joints (bit for bit) or refusing stage the
+    pose gets alone through check_arm_motion, ur5e.inverse and the clearance, roll by roll."""
+    task, _ = planned
+    one = task.with_feature(0)
+    scene, bodies = build_scene(one), CollisionScene.of(one)
+    poses = view_sphere_poses(one, scene, 160, 5)
+    got = reach_all(one, poses, bodies)
+    stages = set()
+    for T, answer in zip(poses, got):
+        slow = slow_reach(one, T, bodies)
+        if isinstance(slow, str):
+            assert answer == slow
+            stages.add(slow)
+        else:
+            assert np.array_equal(answer[0], slow[0]) and np.array_equal(answer[1], slow[1])
+            stages.add("reached")
+    assert {"workspace", "reached"} <= stages, stages
+
+
+def test_the_arm_accepts_at_once_the_poses_its_check_passes_one_by_one(planned):
+    task, _ = planned
+    arm, frames = task.cell.devices.arm, task.frames
+    poses = view_sphere_poses(task.with_feature(0), build_scene(task.with_feature(0)), 200, 6)
+    poses[::17, :3, :3] *= 1.01                                          # not rigid
+    poses[1::17, :3, 0] *= -1                                            # a mirror
+    poses[2::17, 0, 3] = np.nan
+    accepted = arm_accepts(arm, frames, poses)
+
+    def passes(T):
+        try:
+            check_arm_motion(arm, frames, T, arm.speed_m_s)
+        except DeviceFault:
+            return False
+        return True
+    assert accepted.tolist() == [passes(T) for T in poses]
+    assert 0 < accepted.sum() < len(poses)
+
+
+def test_look_at_rows_are_each_ones_own_pose_bit_for_bit():
+    rng = np.random.default_rng(4)
+    cameras, targets = rng.normal(size=(300, 3)), rng.normal(size=(300, 3))
+    targets[::5] = cameras[::5] - [0.0, 0.0, 1.0]                      # straight down: the other up
+    many = look_at(cameras, targets)
+    assert all(np.array_equal(T, look_at(c, t)) for T, c, t in zip(many, cameras, targets))
+    R = many[:, :3, :3]
+    assert np.allclose(np.swapaxes(R, 1, 2) @ R, np.eye(3), atol=1e-12) and np.allclose(np.linalg.det(R), 1.0)
+    aim = (targets - cameras) / np.linalg.norm(targets - cameras, axis=1)[:, None]
+    assert np.allclose(R[:, :, 2], aim, atol=1e-12) and np.array_equal(many[:, :3, 3], cameras)
+
+
+def test_a_poses_viewpoint_values_come_cheapest_first_each_the_requirements_own(planned):
+    """viewpoint_values yields, cheapest first and only as asked, each viewpoint requirement's
+    own ln value (the registry's, computed here directly on the same Problem's inputs): a pose
+    pruned at the first that fails is pruned by any() over them all."""
+    from cell.planning import requirements
+    from cell.planning.viewpoints import VIEWPOINT_REQUIREMENTS, viewpoint_values
+    task, _ = planned
+    one = task.with_feature(0)
+    scene = build_scene(one)
+    tried = view_sphere_poses(one, scene, 40, 8)
+    poses = [T for T, got in zip(tried, reach_all(one, tried)) if not isinstance(got, str)][:6]
+    assert poses
+    lens_only = SimpleNamespace(kappa=np.array([one.camera.lens.f_number_range[1]]), shutter=np.zeros(1),
+                                position=np.full((1, 3), np.nan))
+    for T in poses:
+        at = replace(scene, T_cell_cam=T)
+        values = list(viewpoint_values(one, at))
+        names = [n for n, _ in values]
+        assert names == sorted(names, key=VIEWPOINT_REQUIREMENTS.index)
+        assert {"depth_of_field", "camera_view"} <= set(names)
+        problem = evaluate.build_problem(one, at, None)
+        for name, value in values:
+            r = next(r for r in requirements.REGISTRY if r.name == name)
+            assert value == float(np.max(r.ln_value(problem, lens_only)))
+    lazy = viewpoint_values(one, replace(scene, T_cell_cam=poses[0]))
+    assert next(lazy)[0] == "depth_of_field"

@@ -28,7 +28,8 @@ if TYPE_CHECKING:
     from cell.task.device_config import ArmConfig
     from cell.task.types import LampRig as LampRigModel
 
-__all__ = ["Arm", "LampRig", "Camera", "LightController", "Devices", "check_arm_motion", "speaking_for"]
+__all__ = ["Arm", "LampRig", "Camera", "LightController", "Devices", "check_arm_motion", "arm_accepts",
+           "speaking_for"]
 
 # what device libraries raise: serial.SerialException and socket errors are OSErrors (an unplugged
 # USB adapter, OSError 19 from a camera), ur_rtde raises RuntimeError
@@ -52,7 +53,7 @@ def check_arm_motion(config: ArmConfig, frames: Frames, T_cell_cam: ArrayLike, s
     before anything moves."""
     T = np.asarray(T_cell_cam, float)
     R = T[:3, :3] if T.shape == (4, 4) else np.zeros((3, 3))
-    if not (np.allclose(R.T @ R, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0):
+    if not _rigid(R[None])[0]:
         raise DeviceFault("arm", "camera pose is not a rigid transform: refused before moving")
     if not 0 < speed_m_s <= config.speed_m_s:
         raise DeviceFault("arm", f"speed {speed_m_s} m/s outside (0, {config.speed_m_s}] m/s: "
@@ -60,9 +61,31 @@ def check_arm_motion(config: ArmConfig, frames: Frames, T_cell_cam: ArrayLike, s
     flange = frames.T_cell_flange(T)
     lo, hi = config.workspace_min_m, config.workspace_max_m
     for name, p in (("camera", T[:3, 3]), ("flange", flange[:3, 3])):
-        if np.any(p < lo) or np.any(p > hi):
+        if not _inside(config, p[None])[0]:
             raise DeviceFault("arm", f"{name} at {np.round(p, 3).tolist()} m is outside the workspace "
                                      f"{lo.tolist()}..{hi.tolist()} m: refused before moving")
+
+
+def arm_accepts(config: ArmConfig, frames: Frames, T_cell_cams: ArrayLike) -> np.ndarray:
+    """(N,) whether check_arm_motion lets each of N camera poses (N, 4, 4) pass at the arm's own
+    speed: its tests (rigid, camera and flange inside the workspace box) on all at once (a
+    feature's view spheres ask thousands, cell.planning.viewpoints)."""
+    T = np.asarray(T_cell_cams, float).reshape(-1, 4, 4)
+    flange = frames.T_cell_flange(T)
+    return _rigid(T[:, :3, :3]) & _inside(config, T[:, :3, 3]) & _inside(config, flange[:, :3, 3])
+
+
+def _rigid(R: np.ndarray) -> np.ndarray:
+    """(N,) of rotations (N, 3, 3): R^T R = I within np.allclose's tolerances (atol 1e-6) and
+    det R > 0 (no mirror); NaN is not rigid."""
+    gram = np.swapaxes(R, -1, -2) @ R
+    close = np.abs(gram - np.eye(3)) <= 1e-6 + 1e-5 * np.eye(3)
+    return np.all(close, axis=(-2, -1)) & (np.linalg.det(R) > 0)
+
+
+def _inside(config: ArmConfig, p: np.ndarray) -> np.ndarray:
+    """(N,) of points (N, 3): inside the workspace box, its faces included."""
+    return ~(np.any(p < config.workspace_min_m, axis=-1) | np.any(p > config.workspace_max_m, axis=-1))
 
 
 class Arm(ABC):

@@ -38,14 +38,20 @@ PATCH_PUSH_MAX = 3.0        # a guess goes at most this many times its distance 
 
 def look_at(position: ArrayLike, target: ArrayLike, up: ArrayLike = (0.0, 0.0, 1.0)) -> np.ndarray:
     """T_cell_cam for a camera at `position` looking at `target` (OpenCV axes: z forward,
-    x right, y down in the image)."""
-    z = geometry.unit(np.asarray(target, float) - np.asarray(position, float))
-    up = np.asarray(up, dtype=float)
-    if abs(np.dot(up, z)) > 0.99:
-        up = np.array([0.0, 1.0, 0.0])
+    x right, y down in the image): (4, 4), or (N, 4, 4) for rows of positions and targets
+    (N, 3), each the very one it gets alone (the planner's view spheres place thousands)."""
+    position = np.asarray(position, dtype=float)
+    z = geometry.unit(np.asarray(target, dtype=float) - position)
+    up = np.broadcast_to(np.asarray(up, dtype=float), z.shape)
+    along = (up[..., None, :] @ z[..., :, None])[..., 0, 0]        # each a 1-D np.dot's arithmetic
+    up = np.where((np.abs(along) > 0.99)[..., None], np.array([0.0, 1.0, 0.0]), up)
     x = geometry.unit(np.cross(z, up))
     y = np.cross(z, x)
-    return geometry.transform(np.column_stack([x, y, z]), position)
+    T = np.zeros(z.shape[:-1] + (4, 4))
+    T[..., :3, :3] = np.stack([x, y, z], axis=-1)
+    T[..., :3, 3] = position
+    T[..., 3, 3] = 1.0
+    return T
 
 
 @lru_cache(maxsize=64)

@@ -24,6 +24,7 @@ and at most views_per_feature are kept, each at least two steps from those kept 
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from types import SimpleNamespace
 from typing import TYPE_CHECKING, cast
@@ -34,7 +35,7 @@ from cell.planning import evaluate, requirements
 from cell.core import geometry
 from cell.physics import projection
 from cell.devices import ur5e
-from cell.devices.interfaces import check_arm_motion
+from cell.devices.interfaces import arm_accepts, check_arm_motion
 from cell.core.errors import DeviceFault, PlanInfeasible
 from cell.collision.scene import CollisionScene
 from cell.planning.scene import look_at
@@ -46,7 +47,7 @@ if TYPE_CHECKING:
 
 STAGES = ("visibility", "view_angle", "resolution", "workspace", "reach", "collision", "seen")
 ROLLS = np.radians([0.0, 90.0, 180.0, 270.0])
-VIEWPOINT_REQUIREMENTS = ("camera_view", "view_angle", "resolution", "depth_of_field")
+VIEWPOINT_REQUIREMENTS = ("depth_of_field", "view_angle", "resolution", "camera_view")   # the cheapest first
 
 
 @dataclass(frozen=True)
@@ -97,34 +98,45 @@ def sphere_directions(step: float) -> tuple[np.ndarray, np.ndarray]:
     return np.vstack(dirs), np.concatenate(polar)
 
 
-def rolled(T: np.ndarray, angle: float) -> np.ndarray:
-    """T_cell_cam turned by `angle` about its own optical axis (z)."""
+def roll(angle: float) -> np.ndarray:
+    """The turn by `angle` about the z axis: T_cell_cam @ roll(angle) is the camera turned about
+    its own optical axis."""
     c, s = np.cos(angle), np.sin(angle)
-    return T @ geometry.transform(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]))
+    return geometry.transform(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]))
 
 
-def reach(task: Task, T_cell_cam: np.ndarray,
-          bodies: CollisionScene | None = None) -> tuple[np.ndarray, np.ndarray] | str:
-    """(T_cell_cam rolled so the arm reaches it clear of the part and fixture, joints) or the
-    last stage that refused (collision only with `bodies`, the task's collision scene)."""
+def reach_all(task: Task, T_cell_cams: np.ndarray,
+              bodies: CollisionScene | None = None) -> list[tuple[np.ndarray, np.ndarray] | str]:
+    """For each camera pose (N, 4, 4): (the pose rolled (ROLLS, in turn) so the arm reaches it clear
+    of the part and fixture, its joints) or the last stage that refused (collision only with
+    `bodies`, the task's collision scene). Every roll's workspace check (arm_accepts) and inverse
+    kinematics (ur5e.nearest, nearest the home joints) at once, each the very one a pose gets
+    alone; the clearance, the dearest, in turn, only until a roll passes."""
     frames, arm = task.frames, task.cell.devices.arm
-    refused = "workspace"
-    for angle in ROLLS:
-        T = rolled(T_cell_cam, angle)
-        try:
-            check_arm_motion(arm, frames, T, arm.speed_m_s)
-        except DeviceFault:
-            continue
-        try:
-            q = ur5e.inverse(frames.T_base_flange(frames.T_base_cam(T)), ur5e.HOME_JOINTS)
-        except ur5e.Unreachable:
-            refused = "reach" if refused != "collision" else refused
-            continue
-        if bodies is not None and not bodies.clear(T, q):
-            refused = "collision"
-            continue
-        return T, q
-    return refused
+    T = np.asarray(T_cell_cams, float).reshape(-1, 1, 4, 4) @ np.array([roll(a) for a in ROLLS])  # (N, rolls)
+    flat = T.reshape(-1, 4, 4)
+    inside = arm_accepts(arm, frames, flat)
+    q = np.full((len(flat), 6), np.nan)
+    reached = np.zeros(len(flat), bool)
+    q[inside], reached[inside] = ur5e.nearest(frames.T_base_flange(frames.T_base_cam(flat[inside])),
+                                              ur5e.HOME_JOINTS)
+    out: list[tuple[np.ndarray, np.ndarray] | str] = []
+    for n in range(len(T)):
+        refused = "workspace"
+        for k in range(n * len(ROLLS), (n + 1) * len(ROLLS)):
+            if not inside[k]:
+                continue
+            if not reached[k]:
+                refused = "reach" if refused != "collision" else refused
+                continue
+            if bodies is not None and not bodies.clear(flat[k], q[k]):
+                refused = "collision"
+                continue
+            out.append((flat[k].copy(), q[k].copy()))
+            break
+        else:
+            out.append(refused)
+    return out
 
 
 def require_reach(task: Task, scene: Scene) -> None:
@@ -154,17 +166,21 @@ def require_reach(task: Task, scene: Scene) -> None:
                              f"solution takes; {fix}") from None
 
 
-def viewpoint_values(task: Task, scene: Scene, hidden: np.ndarray | None = None) -> dict[str, float]:
-    """{name: ln f_i} of the viewpoint requirements the task asks for at the scene's camera (the
-    depth of field at the lens's narrowest f-number: whether any f-number gives it); `hidden` the
-    samples hidden from the camera where found before (evaluate.hidden_from)."""
+def viewpoint_values(task: Task, scene: Scene, hidden: np.ndarray | None = None) -> Iterator[tuple[str, float]]:
+    """(name, ln f_i) of each viewpoint requirement the task asks for at the scene's camera (the
+    depth of field at the lens's narrowest f-number: whether any f-number gives it), the cheapest
+    first, each found when asked for: a pose is pruned at the first that fails, the dearer ones
+    (camera_view: the lamp's housing and links) left unasked; `hidden` the samples hidden from the
+    camera where found before (evaluate.hidden_from)."""
     problem = evaluate.build_problem(task, scene, None, hidden=hidden)
     # the viewpoint requirements read only the f-number, the shutter's shape and the lamp's position
     # of the Candidates, the lamp not placed yet (NaN: its housing hides nothing, requirements.lamp_hides)
     lens_only = cast(evaluate.Candidates, SimpleNamespace(kappa=np.array([task.camera.lens.f_number_range[1]]),
                                                           shutter=np.zeros(1), position=np.full((1, 3), np.nan)))
-    return {r.name: float(np.max(r.ln_value(problem, lens_only))) for r in requirements.REGISTRY
-            if r.name in VIEWPOINT_REQUIREMENTS and (r.asked is None or r.asked(problem))}
+    by_name = {r.name: r for r in requirements.REGISTRY}
+    for r in (by_name[name] for name in VIEWPOINT_REQUIREMENTS):
+        if r.asked is None or r.asked(problem):
+            yield r.name, float(np.max(r.ln_value(problem, lens_only)))
 
 
 def plan_viewpoints(task: Task, scene: Scene, visible: np.ndarray, grid: SphereGrid,
@@ -184,26 +200,26 @@ def plan_viewpoints(task: Task, scene: Scene, visible: np.ndarray, grid: SphereG
     pruned["visibility"] = int(np.sum(~seen_dir)) * len(radii)
     square = seen_dir & (polar <= (np.inf if req.view_angle_rad is None else req.view_angle_rad) + 1e-12)
     pruned["view_angle"] = int(np.sum(seen_dir & ~square)) * len(radii)
+    d = (scene.frame @ dirs[square][:, :, None])[:, None, :, 0]       # each a (3, 3) @ (3,)'s arithmetic
+    cameras = (scene.center + radii[:, None] * d).reshape(-1, 3)        # (direction, radius) in turn
+    standoffs = np.broadcast_to(radii, (len(d), len(radii))).reshape(-1)
+    fine = np.ones(len(cameras), bool)
+    if req.resolution_m is not None:
+        fine = ~(projection.pixel_footprint(cameras, scene.center, scene.normal, sensor.pixel_pitch_m,
+                                            lens.focal_length_m) > req.resolution_m)
+    pruned["resolution"] = int(np.sum(~fine))
+    got = reach_all(task, look_at(cameras[fine], np.broadcast_to(scene.center, cameras[fine].shape)),
+                    CollisionScene.of(task) if collisions else None)
     reached: list[tuple[float, np.ndarray, np.ndarray]] = []         # (standoff, T_cell_cam, joints)
-    bodies = CollisionScene.of(task) if collisions else None
-    for k in np.flatnonzero(square):
-        d = scene.frame @ dirs[k]
-        for r in radii:
-            camera = scene.center + r * d
-            if req.resolution_m is not None and projection.pixel_footprint(
-                    camera, scene.center, scene.normal, sensor.pixel_pitch_m, lens.focal_length_m) > req.resolution_m:
-                pruned["resolution"] += 1
-                continue
-            got = reach(task, look_at(camera, scene.center), bodies)
-            if isinstance(got, str):
-                pruned[got] += 1
-                continue
-            reached.append((float(r), *got))
+    for r, pose in zip(standoffs[fine], got):
+        if isinstance(pose, str):
+            pruned[pose] += 1
+        else:
+            reached.append((float(r), *pose))
     survivors = []
     hidden = evaluate.hidden_from(task, scene, [T[:3, 3] for _, T, _ in reached])     # one launch for all
     for (r, T, q), hid in zip(reached, hidden):
-        values = viewpoint_values(task, replace(scene, T_cell_cam=T), hid)
-        if any(v > 0.0 for v in values.values()):
+        if any(v > 0.0 for _, v in viewpoint_values(task, replace(scene, T_cell_cam=T), hid)):
             pruned["seen"] += 1
             continue
         angle = projection.view_angles(T[:3, 3], scene.points, scene.normals).max()
