@@ -74,6 +74,16 @@ def test_the_order_of_the_camera_s_and_the_lamp_s_moves_is_the_one_the_simulator
     assert len(orders) == lamp_first and all(o.startswith("the lamp first, then the camera") for o in orders)
 
 
+def housings_apart(task, located, shot):
+    """The least distance [m] between the simulator's camera housing, the arm's flange where the
+    located hand-eye puts the true camera at the shot's pose, and its lamp housing at the shot's
+    joints (sim.obstacles' sampled boxes, every pair of samples)."""
+    world = Obstacles(task)
+    q = np.asarray(reaching_joints(located.frames, shot.T_cell_cam), float)
+    lamp = world.lamp(lamp_position(task.lamp.rig.pivot_m, *shot.joints))
+    return float(cdist(world.camera(q), lamp).min())
+
+
 @pytest.fixture(scope="module")
 def conrod_plan():
     """The conrod's task and its plan (planned once for the module)."""
