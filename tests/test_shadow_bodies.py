@@ -147,6 +147,53 @@ def test_segments_near_a_capsule_agree_with_a_minimiser_of_the_segments_distance
     assert 30 < near.sum() < 450
 
 
+def test_spokes_near_a_segment_agree_with_a_minimiser_of_the_segments_distance():
+    """SpokesNear (pieces of rays from one point against one segment, the closest points' squared
+    distance expanded) against scipy's bounded minimiser: random spokes, spokes parallel to the
+    segment, spokes of length 0 (start = end), a segment of length 0, spokes through the origin's
+    own point (start 0), grazing ones (the radius 1e-9 off their distance either way)."""
+    from cell.collision.rays import SpokesNear
+    rng = np.random.default_rng(28)
+    for trial in range(12):
+        origin, p = rng.uniform(-0.3, 0.3, (2, 3))
+        q = p if trial == 11 else p + rng.uniform(-0.4, 0.4, 3)
+        unit = rng.normal(size=(40, 3))
+        if trial < 11:
+            unit[:6] = (q - p) + (0.0 if trial % 2 else rng.normal(0.0, 1e-9, (6, 3)))   # parallel
+        unit /= np.linalg.norm(unit, axis=1)[:, None]
+        start = rng.uniform(0.0, 0.3, 40)
+        end = 0.45
+        start[6:9], start[9] = end, 0.0                                                   # of length 0; from o
+        d = np.array([least_distance(origin + s * u, origin + end * u, p, q) for s, u in zip(start, unit)])
+        spokes = SpokesNear.of(origin, p, q)
+        for radius in (0.05, 0.15, 0.3):
+            near = spokes.near(unit, start, end, radius)
+            sure = np.abs(d - radius) > 1e-6
+            assert sure.sum() > 30 and np.array_equal(near[sure], (d < radius)[sure]), (trial, radius)
+        # grazing: the radius a hair beyond each spoke's distance finds it, a hair short does not
+        assert np.all([spokes.near(unit[k:k + 1], start[k], end, d[k] + 1e-6)[0] for k in range(40)])
+        assert not np.any([spokes.near(unit[k:k + 1], start[k], end, d[k] - 1e-6)[0] for k in range(40)])
+        assert not spokes.near(np.full((1, 3), np.nan), 0.1, end, 1.0).any()
+
+
+def test_a_capsule_s_balls_hold_the_capsule():
+    from cell.collision.rays import capsule_balls
+    rng = np.random.default_rng(29)
+    a = rng.uniform(-0.3, 0.3, (5, 3))
+    b = a + rng.uniform(-0.5, 0.5, (5, 3)) * np.array([[1.0], [1.0], [1.0], [0.01], [0.0]])   # short, and of length 0
+    radius = rng.uniform(0.01, 0.05, 5)
+    centres, radii, first = capsule_balls(a, b, radius)
+    assert np.array_equal(first, np.searchsorted(np.arange(len(centres)), first)) and first[0] == 0
+    assert np.all(radii <= 2.0 * np.repeat(radius, np.diff(np.append(first, len(centres)))) + 1e-12)
+    for k in range(5):
+        direction = rng.normal(size=(3000, 3))
+        points = (a[k] + rng.uniform(0, 1, (3000, 1)) * (b[k] - a[k])
+                  + radius[k] * rng.uniform(0, 1, (3000, 1)) * direction / np.linalg.norm(direction, axis=1)[:, None])
+        mine = slice(first[k], first[k + 1] if k + 1 < 5 else len(centres))
+        held = np.linalg.norm(points[:, None] - centres[None, mine], axis=-1) <= radii[None, mine] * (1 + 1e-12)
+        assert held.any(axis=1).all()
+
+
 def crosses_by_points(bodies, origins, targets, step=2e-4):
     """(N,) whether points every `step` along each segment fall inside one of the bodies (their
     signed distance functions, cell.collision.bodies), and (N,) whether the segment passes at
@@ -185,6 +232,29 @@ def test_the_camera_body_and_the_arm_shadow_the_spot_where_its_rays_cross_them()
     one = SimpleNamespace(shadowed=shadowed[k:k + 1], position=lamps[k:k + 1])
     assert f"camera body or the arm stands in the lamp's beam at {blocked[k].sum()}" in requirements.explain_no_shadow(
         replace(problem, maps=SimpleNamespace(visible=np.ones(1))), one, False)
+
+
+def test_the_bodies_at_a_pose_are_the_collision_scene_s_made_once_per_pose_and_frames():
+    """evaluate.bodies_at_pose: the camera body and the arm's links as the collision scene places
+    them at the shot, kept per camera pose and frames object (the judge asks a shot's pose again for
+    each feature), read-only, made anew for other frames."""
+    from cell.collision.scene import CollisionScene, reaching_joints
+    task = load_task(RING)
+    scene = build_scene(task)
+    cs = CollisionScene.of(task)
+    body, *links = cs.bodies(scene.T_cell_cam, reaching_joints(task.frames, scene.T_cell_cam))[len(cs.fixed):]
+    kept = evaluate.bodies_at_pose(task, scene.T_cell_cam)
+    T_cell_box, half_m, a, b, radius = kept[:5]
+    assert np.allclose(T_cell_box, body.T_cell_box) and np.allclose(half_m, body.half_m)
+    assert np.allclose(a, [k.a for k in links]) and np.allclose(b, [k.b for k in links])
+    assert np.allclose(radius, [k.radius_m for k in links])
+    assert evaluate.bodies_at_pose(task, scene.T_cell_cam.copy()) is kept and not any(x.flags.writeable for x in kept)
+    other = replace(task, frames=replace(task.frames))
+    again = evaluate.bodies_at_pose(other, scene.T_cell_cam)
+    assert again is not kept and all(np.array_equal(x, y) for x, y in zip(again, kept))
+    moved = scene.T_cell_cam.copy()
+    moved[:3, 3] += (0.01, 0.0, 0.0)
+    assert not np.allclose(evaluate.bodies_at_pose(task, moved)[0], T_cell_box)
 
 
 def test_a_box_s_capsule_holds_the_box():
@@ -265,17 +335,56 @@ def test_the_prefilters_skip_no_crossing_of_the_arm_the_camera_body_the_lamp_or_
                        arm.a + rng.uniform(0, 1, (len(arm.a), 1)) * (arm.b - arm.a) + rng.normal(0.0, 0.06, arm.a.shape),
                        rig.lamp_position(task.lamp.rig.pivot_m, pan, tilt, rng.uniform(0.15, 0.6, 60)),
                        task.lamp.rig.pivot_m + radius * out / np.linalg.norm(out, axis=1)[:, None]])
+    spot, hidden = exact_blockers(problem, lamps)
+    assert np.array_equal(evaluate.spot_blocked(problem, lamps), spot) and 10 < spot.any(axis=1).sum() < len(lamps) - 10
+    assert np.array_equal(requirements.lamp_hides(problem, lamps), hidden) and 10 < hidden.any(axis=1).sum() < len(lamps) - 10
+
+
+def exact_blockers(problem, lamps):
+    """(spot_blocked, lamp_hides) as the exact tests of every body against every ray find them,
+    no prefilter: the camera body and the arm's links across the rays sample -> lamp, the lamp's
+    housing, the tilt servo and the arm across the lines of sight camera -> sample it sees."""
+    from cell.collision.scene import lamp_boxes, rig_links
+    task, scene = problem.task, problem.scene
+    arm = evaluate.arm_at_shot(task, scene)
+    P, camera = len(scene.points), scene.camera_position
     origins = np.broadcast_to(scene.points, (len(lamps), P, 3)).reshape(-1, 3)
     targets = np.repeat(lamps, P, axis=0)
-    exact = (segments_cross_boxes(origins, targets, arm.T_cell_box[None], arm.half_m)[0]
-             | segments_near_segments(origins, targets, arm.a, arm.b, arm.radius_m).any(axis=0)).reshape(len(lamps), P)
-    assert np.array_equal(evaluate.spot_blocked(problem, lamps), exact) and 10 < exact.any(axis=1).sum() < len(lamps) - 10
+    spot = (segments_cross_boxes(origins, targets, arm.T_cell_box[None], arm.half_m)[0]
+            | segments_near_segments(origins, targets, arm.a, arm.b, arm.radius_m).any(axis=0)).reshape(len(lamps), P)
     half = 0.5 * np.asarray(task.cell.collision.lamp_size_m)
     links = rig_links(task.lamp.rig.pivot_m, half, task.lamp.rig.radius_range_m[1], lamps)
     hidden = (segments_cross_boxes(camera, scene.points, lamp_boxes(task.lamp.rig.pivot_m, half, lamps), half)
               | segments_cross_boxes(camera, scene.points, links.T_cell_servo, links.servo_half_m)
               | segments_near_segments(camera, scene.points, links.a, links.b, links.radius_m))
-    assert np.array_equal(requirements.lamp_hides(problem, lamps), hidden) and 10 < hidden.any(axis=1).sum() < len(lamps) - 10
+    seen = np.zeros(P, bool) if problem.camera_seen is None else problem.camera_seen
+    return spot, hidden & seen
+
+
+@pytest.mark.long
+def test_the_prefilters_skip_no_crossing_on_the_calls_of_a_plan(monkeypatch):
+    """Every call spot_blocked and lamp_hides answer while the bracket is planned (its searches,
+    certificates and explanations) equals the exact tests without prefilters."""
+    calls = []
+    for module, name in ((evaluate, "spot_blocked"), (requirements, "lamp_hides")):
+        def recorded(problem, positions, _f=getattr(module, name), _name=name):
+            out = _f(problem, positions)
+            calls.append((_name, problem, np.array(positions, float).reshape(-1, 3), out))
+            return out
+        monkeypatch.setattr(module, name, recorded)
+    from cell.planning.whole_part import plan_features
+    plan_features(load_task(RING.parent / "bracket.yaml"))
+    monkeypatch.undo()
+    names = [name for name, *_ in calls]
+    assert names.count("spot_blocked") > 100 and names.count("lamp_hides") > 100
+    rng = np.random.default_rng(37)
+    hiding = 0
+    for k in rng.permutation(len(calls))[:400]:
+        name, problem, positions, out = calls[k]
+        spot, hidden = exact_blockers(problem, positions)
+        assert np.array_equal(out, spot if name == "spot_blocked" else hidden), (name, k)
+        hiding += int(out.any())
+    assert hiding > 0
 
 
 def links_by_hand(task, lamp):

@@ -131,6 +131,54 @@ class BallsSeen:
 
 
 @dataclass(frozen=True)
+class SpokesNear:
+    """Pieces of rays from a point o (spokes: o + s u, start <= s <= end, |u| = 1) against one
+    segment p + t d (0 <= t <= 1), the segment's products fixed: w = o - p, |w|^2, <d, w>,
+    |d|^2, so a spoke costs its <u, w> and <u, d> (one product for all) and a few operations on
+    (C,) arrays. The closest points as Ericson's clamped solution (Real-Time Collision Detection
+    5.1.9, as segments_near_segments) on the piece o + start u + sigma L u (L = end - start) and
+    the segment: a = L^2, b = L <u, d>, c = L (<u, w> + start), e = |d|^2, f = <d, w> + start
+    <u, d>, and the squared distance |r + sigma L u - t d|^2 = |r|^2 + sigma^2 a + t^2 e +
+    2 sigma c - 2 t f - 2 sigma t b, |r|^2 = |w|^2 + 2 start <u, w> + start^2 (r = w + start u),
+    expanded: its rounding (~1e-16 of |r|^2) far below a prefilter's margin (NEAR_MARGIN_M). A
+    spoke or the segment of length 0 is its point (sigma = 0, t = 0)."""
+
+    uv: np.ndarray              # (3, 2) the columns w, d
+    ww: float                   # |w|^2
+    dw: float                   # <d, w>
+    dd: float                   # |d|^2
+
+    @classmethod
+    def of(cls, origin: ArrayLike, p: ArrayLike, q: ArrayLike) -> SpokesNear:
+        w = np.asarray(origin, float).reshape(3) - np.asarray(p, float).reshape(3)
+        d = np.asarray(q, float).reshape(3) - np.asarray(p, float).reshape(3)
+        return cls(np.stack([w, d], axis=1), float(w @ w), float(d @ w), float(d @ d))
+
+    def near(self, unit: np.ndarray, start: ArrayLike, end: ArrayLike, radius_m: float) -> np.ndarray:
+        """(C,) whether the spoke along each unit direction (C, 3) from start to end [m] from o
+        (each one, or (C,)) passes within radius_m of the segment (not finite: not)."""
+        uw, ud = (unit @ self.uv).T
+        start = np.asarray(start, float)
+        length = end - start
+        a, b, c = length * length, length * ud, length * (uw + start)
+        e, f = self.dd, self.dw + start * ud
+        with np.errstate(divide="ignore", invalid="ignore"):
+            if e > 0.0:
+                denom = a * e - b * b
+                sigma = np.where(denom > 1e-18 * a * e, np.minimum(np.maximum((b * f - c * e) / denom, 0.0), 1.0), 0.0)
+                t = (b * sigma + f) / e
+                sigma = np.where(t < 0.0, np.minimum(np.maximum(-c / a, 0.0), 1.0),
+                                 np.where(t > 1.0, np.minimum(np.maximum((b - c) / a, 0.0), 1.0), sigma))
+                t = np.minimum(np.maximum(t, 0.0), 1.0)
+            else:
+                sigma, t = np.minimum(np.maximum(-c / a, 0.0), 1.0), 0.0
+            sigma = np.where(a > 0.0, sigma, 0.0)
+        gap2 = (self.ww + start * (2.0 * uw + start) + sigma * (sigma * a + 2.0 * c) + t * (t * e - 2.0 * f)
+                - 2.0 * sigma * t * b)
+        return gap2 < radius_m * radius_m
+
+
+@dataclass(frozen=True)
 class SightCone:
     """The segments from an apex (the camera) to points within rho of a middle m: the cone from
     the apex tangent to that sphere (axis w, half angle alpha, sin alpha = rho / |m - apex|),

@@ -19,7 +19,7 @@ import numpy as np
 import trimesh
 from numpy.typing import ArrayLike
 
-from cell.collision.rays import NEAR_MARGIN_M, SightCone, segments_cross_boxes, segments_near_segments
+from cell.collision.rays import NEAR_MARGIN_M, SightCone, SpokesNear, segments_cross_boxes, segments_near_segments
 from cell.collision.scene import RIG_ARM_RADIUS_M, TILT_SERVO_SIZE_M, lamp_boxes, rig_links
 from cell.core import geometry
 from cell.core.numbers import number
@@ -250,13 +250,15 @@ class RigSight:
     """What rig_hides reads of a problem while the lamp moves: the cone from the camera tangent to their sphere (rays.SightCone), the lamp's half
     sizes (half), the links' width across the aim (width: the arm's radius, the servo's half
     diagonal across the aim, the larger), the housing's and links' together (whole), the servo's
-    back from the pivot (end)."""
+    back from the pivot (end), and the segment camera -> m as seen from the pivot, which the lamp's
+    axis runs straight away from (spokes: rays.SpokesNear)."""
 
     cone: SightCone
     half: np.ndarray
     width: float
     whole: float
     end: float
+    spokes: SpokesNear
 
     @classmethod
     def of(cls, p: Problem) -> RigSight:
@@ -266,7 +268,8 @@ class RigSight:
         servo_half = 0.5 * np.asarray(TILT_SERVO_SIZE_M)
         width = max(RIG_ARM_RADIUS_M, float(np.hypot(servo_half[0], servo_half[1])))
         whole = max(width, float(np.hypot(half[0], half[1])))
-        return cls(cone, half, width, whole, longest + 2.0 * half[2] + 2.0 * servo_half[2])
+        return cls(cone, half, width, whole, longest + 2.0 * half[2] + 2.0 * servo_half[2],
+                   SpokesNear.of(p.task.lamp.rig.pivot_m, cone.apex, cone.middle))
 
 
 def rig_hides(p: Problem, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -279,7 +282,7 @@ def rig_hides(p: Problem, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray
     before any lamp), hiding none. Only lamps that may meet the lines of sight are tested: those
     lie in the cone from the camera tangent to the samples' sphere (rays.SightCone), and the
     housing and the links together within W' (the widest across the aim) of the lamp's axis from
-    its front to the servo's back (RigSight); then the box by the ball about its centre,
+    its front to the servo's back, straight out from the pivot (RigSight.spokes); then the box by the ball about its centre,
     h_z behind the lamp along the aim, of radius |h|; the links by their axis from the lamp's back
     to the servo's within W (the arm's radius, the servo's half diagonal across the aim, the
     larger) + rho of the segment camera -> m (the line camera c -> sample s at c + t (s - c) lies
@@ -296,20 +299,19 @@ def rig_hides(p: Problem, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray
     sight: RigSight = p.fixed("rig_sight", lambda: RigSight.of(p))
     pivot, longest = p.task.lamp.rig.pivot_m, p.task.lamp.rig.radius_range_m[1]
     half, cone = sight.half, sight.cone
-    with np.errstate(invalid="ignore"):        # a lamp not placed (NaN) is not near
-        aim = rig.lamp_aim(pivot, positions)
-        radius = np.linalg.norm(positions - pivot, axis=1)
+    out = positions - pivot
+    with np.errstate(invalid="ignore", divide="ignore"):        # a lamp not placed (NaN) is not near
+        radius = np.sqrt(np.sum(out * out, axis=1))
+        out /= radius[:, None]
         # the housing and the links together: the lamp's axis from its front to the servo's back
-        near = segments_near_segments(cone.apex, cone.middle, positions, pivot - sight.end * aim,
-                                      sight.whole + cone.rho + NEAR_MARGIN_M)[:, 0]
+        near = sight.spokes.near(out, radius, sight.end, sight.whole + cone.rho + NEAR_MARGIN_M)
     if not near.any():
         return housing, links
-    k, aim, radius = np.flatnonzero(near), aim[near], radius[near]
+    k, out, radius = np.flatnonzero(near), out[near], radius[near]
     near_housing = np.zeros(len(positions), bool)
-    near_housing[k] = cone.meets(positions[k] - half[2] * aim, float(np.linalg.norm(half)) + NEAR_MARGIN_M)
+    near_housing[k] = cone.meets(pivot + (radius + half[2])[:, None] * out, float(np.linalg.norm(half)) + NEAR_MARGIN_M)
     near_links = np.zeros(len(positions), bool)     # the links' axis within their width of the segment camera -> m widened by rho
-    near_links[k] = segments_near_segments(cone.apex, cone.middle, pivot - (radius + 2.0 * half[2])[:, None] * aim,
-                                           pivot - sight.end * aim, sight.width + cone.rho + NEAR_MARGIN_M)[:, 0]
+    near_links[k] = sight.spokes.near(out, radius + 2.0 * half[2], sight.end, sight.width + cone.rho + NEAR_MARGIN_M)
     if near_housing.any() or near_links.any():
         points = p.scene.points[seen]
         R = rig.lamp_frame(pivot, positions[k])
