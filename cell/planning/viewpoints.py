@@ -10,14 +10,17 @@ until the arm reaches it). Stages, cheapest first, each counted:
   view_angle   theta within requirements.view_angle_deg (at the centre; exact per sample below)
   resolution   r pitch / f / cos(theta) within requirements.resolution_m (at the centre)
   workspace    camera and flange (by the frames' hand-eye) inside cell.arm's workspace box
-               (cell.devices.interfaces.check_arm_motion, as every move is checked)
+               (cell.devices.interfaces.check_arm_motion's tests, as every move is checked:
+               arm_accepts, every roll of every pose at once)
   reach        the UR5e's closed-form inverse kinematics (cell.devices.ur5e) has a solution
+               (ur5e.nearest, every roll the box accepts at once)
   collision    the arm's links and the camera body at least cell.collision.padding_m from the part,
-               the fixture and each other (cell.collision; the lamp is checked with the shot)
+               the fixture and each other (cell.collision; the lamp is checked with the shot),
+               asked roll by roll until one passes
   seen         a direct ray from every sample to C is free and every sample lies in the image
                (evaluate.build_problem's camera_unseen), the view angle and resolution hold at
                every sample, and the depth of field holds at the lens's narrowest f-number
-               (cell.planning.requirements' own values)
+               (cell.planning.requirements' own values, the cheapest first until one fails)
 The survivors are ranked by their largest view angle (the squarest first, then the nearest)
 and at most views_per_feature are kept, each at least two steps from those kept before.
 """
