@@ -147,10 +147,10 @@ def test_searches_driven_together_end_where_each_ends_alone():
 
 
 def test_nelder_mead_asking_ahead_is_scipys_in_fewer_rounds():
-    """nelder_mead.batches with `ahead` (each step's reflection and inside contraction asked
+    """nelder_mead.batches with `ahead` (each step's reflection, inside contraction and expansion asked
     together, a shrink's moved vertices together): scipy's x, f(x) and evaluation count bit for
     bit, every point scipy evaluates among those asked, converging and out of evaluations (some
-    mid-shrink), in fewer rounds than points (0.67 of them here; 1 without `ahead`)."""
+    mid-shrink), in fewer rounds than points (0.55 of them here; 1 without `ahead`)."""
     rng = np.random.default_rng(8)
     rounds = evaluations = 0
     ends = set()
@@ -180,7 +180,7 @@ def test_nelder_mead_asking_ahead_is_scipys_in_fewer_rounds():
         assert set(by_scipy) <= asked
         evaluations += nfev
         ends.add(nfev >= maxfev)
-    assert ends == {True, False} and rounds < 0.75 * evaluations
+    assert ends == {True, False} and rounds < 0.6 * evaluations
 
 
 def rosenbrock_nd(points, dim):
