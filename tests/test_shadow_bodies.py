@@ -234,27 +234,27 @@ def test_the_camera_body_and_the_arm_shadow_the_spot_where_its_rays_cross_them()
         replace(problem, maps=SimpleNamespace(visible=np.ones(1))), one, False)
 
 
-def test_the_bodies_at_a_pose_are_the_collision_scene_s_made_once_per_pose_and_frames():
-    """evaluate.bodies_at_pose: the camera body and the arm's links as the collision scene places
-    them at the shot, kept per camera pose and frames object (the judge asks a shot's pose again for
-    each feature), read-only, made anew for other frames."""
+def test_the_bodies_at_a_pose_are_the_collision_scene_s_made_once_per_pose():
+    """evaluate.arm_at_camera: the camera body and the arm's links as the collision scene places
+    them at the shot, kept per camera pose and what places them (the judge asks a shot's pose again
+    for each feature), read-only; equal frames give equal bodies."""
     from cell.collision.scene import CollisionScene, reaching_joints
     task = load_task(RING)
     scene = build_scene(task)
     cs = CollisionScene.of(task)
     body, *links = cs.bodies(scene.T_cell_cam, reaching_joints(task.frames, scene.T_cell_cam))[len(cs.fixed):]
-    kept = evaluate.bodies_at_pose(task, scene.T_cell_cam)
+    kept = evaluate.arm_at_camera(task, scene.T_cell_cam)
     T_cell_box, half_m, a, b, radius = kept[:5]
     assert np.allclose(T_cell_box, body.T_cell_box) and np.allclose(half_m, body.half_m)
     assert np.allclose(a, [k.a for k in links]) and np.allclose(b, [k.b for k in links])
     assert np.allclose(radius, [k.radius_m for k in links])
-    assert evaluate.bodies_at_pose(task, scene.T_cell_cam.copy()) is kept and not any(x.flags.writeable for x in kept)
+    assert evaluate.arm_at_camera(task, scene.T_cell_cam.copy()) is kept and not any(x.flags.writeable for x in kept)
     other = replace(task, frames=replace(task.frames))
-    again = evaluate.bodies_at_pose(other, scene.T_cell_cam)
-    assert again is not kept and all(np.array_equal(x, y) for x, y in zip(again, kept))
+    again = evaluate.arm_at_camera(other, scene.T_cell_cam)
+    assert all(np.array_equal(x, y) for x, y in zip(again, kept))
     moved = scene.T_cell_cam.copy()
     moved[:3, 3] += (0.01, 0.0, 0.0)
-    assert not np.allclose(evaluate.bodies_at_pose(task, moved)[0], T_cell_box)
+    assert not np.allclose(evaluate.arm_at_camera(task, moved)[0], T_cell_box)
 
 
 def test_a_box_s_capsule_holds_the_box():

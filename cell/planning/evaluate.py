@@ -381,46 +381,47 @@ def samples_sphere(problem: Problem) -> tuple[np.ndarray, float]:
     return problem.fixed("samples_sphere", lambda: geometry.bounding_sphere(problem.scene.points))
 
 
-# The bodies at a camera pose (bodies_at_pose), kept per pose, frames and collision settings: the
-# judge asks each candidate shot's pose again for every feature (80 poses in 782 problems of the
-# 40-feature part), and the arm's inverse kinematics is most of their cost.
-_AT_POSE: dict[tuple[int, int, bytes], tuple[Any, Any, tuple[np.ndarray, ...]]] = {}
-AT_POSE_KEPT = 256
+# arm_at_camera's bodies of the last few camera poses, by what makes them (arm_at_camera's key)
+_AT_CAMERA: dict[bytes, tuple[np.ndarray, ...]] = {}
+_AT_CAMERA_MAX = 4
 
 
-def bodies_at_pose(task: Task, T_cell_cam: np.ndarray) -> tuple[np.ndarray, ...]:
-    """(T_cell_box, half_m, a, b, radius_m, around_a, around_b, around_radius_m), read-only, of
-    ArmAtShot at the camera pose T_cell_cam: made once per pose, task.frames and
-    task.cell.collision (those very objects) in a process, the last AT_POSE_KEPT poses kept."""
+def arm_at_camera(task: Task, T_cell_cam: np.ndarray) -> tuple[np.ndarray, ...]:
+    """(T_cell_box, half_m, a, b, radius_m, around_a, around_b, around_radius_m) of ArmAtShot:
+    the bodies the camera's pose alone places (the camera body, the links at the joints nearest
+    home), read-only, made once per camera pose, robot base, hand-eye and camera body in a
+    process (a shot judged on other features, cell.planning.coverage, asks them for each
+    feature's samples and dense patch: some 7 Problems on one camera pose)."""
     from cell.collision.rays import box_capsules
     from cell.collision.scene import arm_links, camera_body, reaching_joints
     c, frames = task.cell.collision, task.frames
-    key = (id(frames), id(c), np.asarray(T_cell_cam, float).tobytes())
-    kept = _AT_POSE.get(key)
-    if kept is not None and kept[0] is frames and kept[1] is c:
-        return kept[2]
+    key = np.concatenate([np.ravel(x) for x in (T_cell_cam, frames.T_cell_base, frames.T_flange_cam,
+                                                c.camera_size_m, [c.camera_offset_m])]).astype(np.float64).tobytes()
+    known = _AT_CAMERA.get(key)
+    if known is not None:
+        return known
     box = camera_body(frames.T_cell_flange(T_cell_cam), 0.5 * np.asarray(c.camera_size_m, float), c.camera_offset_m)
     q = reaching_joints(frames, T_cell_cam)
     links = () if q is None else arm_links(frames.T_cell_base, q)
     a, b, radius = (np.array([k.a for k in links]).reshape(-1, 3), np.array([k.b for k in links]).reshape(-1, 3),
                     np.array([k.radius_m for k in links]))
     box_a, box_b, box_radius = box_capsules(box.T_cell_box, box.half_m)
-    value = (np.array(box.T_cell_box, float), np.array(box.half_m, float), a, b, radius, np.vstack([box_a, a]),
-             np.vstack([box_b, b]), np.concatenate([box_radius, radius]))
-    for array in value:
-        array.setflags(write=False)
-    if len(_AT_POSE) >= AT_POSE_KEPT:
-        _AT_POSE.clear()
-    _AT_POSE[key] = (frames, c, value)
-    return value
+    made = (box.T_cell_box, box.half_m, a, b, radius, np.vstack([box_a, a]), np.vstack([box_b, b]),
+            np.concatenate([box_radius, radius]))
+    for array in made:
+        array.flags.writeable = False
+    _AT_CAMERA[key] = made
+    while len(_AT_CAMERA) > _AT_CAMERA_MAX:
+        _AT_CAMERA.pop(next(iter(_AT_CAMERA)))
+    return made
 
 
 def arm_at_shot(task: Task, scene: Scene, sphere: tuple[np.ndarray, float] | None = None) -> ArmAtShot:
     """The camera body and the arm's links at the scene's camera pose (cell.collision.scene:
     camera_body, arm_links, reaching_joints: the joints nearest home, as the shot's clearance;
-    bodies_at_pose); sphere the samples' (geometry.bounding_sphere's) where known."""
+    arm_at_camera's); sphere the samples' (geometry.bounding_sphere's) where known."""
     from cell.collision.rays import NEAR_MARGIN_M, BallsSeen, capsule_balls
-    T_cell_box, half_m, a, b, radius, around_a, around_b, around_radius = bodies_at_pose(task, scene.T_cell_cam)
+    T_cell_box, half_m, a, b, radius, around_a, around_b, around_radius = arm_at_camera(task, scene.T_cell_cam)
     middle, rho = geometry.bounding_sphere(scene.points) if sphere is None else sphere
     # each capsule widened by rho held by balls along its axis, each at most twice as wide as the capsule
     centres, radii, first = capsule_balls(around_a, around_b, around_radius + rho + NEAR_MARGIN_M)

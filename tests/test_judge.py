@@ -1,0 +1,80 @@
+"""The judge's shared work (a candidate shot judged on every feature it may cover): what one
+camera pose places, made once and served to every Problem on that pose, equals what each
+Problem made alone; the judged coverage the same as before."""
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from cell.collision.rays import box_capsules
+from cell.collision.scene import arm_links, camera_body, reaching_joints
+from cell.core import geometry
+from cell.planning import evaluate
+from cell.planning.scene import build_scene, look_at
+from cell.task.loader import load_task
+
+TASKS = Path(__file__).resolve().parent.parent / "tasks"
+
+
+def arm_made_alone(task, T_cell_cam):
+    """The camera body and the arm's links at T_cell_cam as arm_at_shot made them before the
+    camera's part was kept (the same functions, called afresh)."""
+    c, frames = task.cell.collision, task.frames
+    box = camera_body(frames.T_cell_flange(T_cell_cam), 0.5 * np.asarray(c.camera_size_m, float), c.camera_offset_m)
+    q = reaching_joints(frames, T_cell_cam)
+    links = () if q is None else arm_links(frames.T_cell_base, q)
+    a = np.array([k.a for k in links]).reshape(-1, 3)
+    b = np.array([k.b for k in links]).reshape(-1, 3)
+    radius = np.array([k.radius_m for k in links])
+    box_a, box_b, box_radius = box_capsules(box.T_cell_box, box.half_m)
+    return (box.T_cell_box, box.half_m, a, b, radius, np.vstack([box_a, a]), np.vstack([box_b, b]),
+            np.concatenate([box_radius, radius]))
+
+
+def poses(scene, rng, count):
+    """Camera poses looking at the feature from random directions above it, 0.15-0.6 m away
+    (some beyond the arm's reach), and one far out of reach."""
+    directions = geometry.unit(rng.normal(0.0, 1.0, (count, 3)) + 2.0 * scene.normal)
+    distances = rng.uniform(0.15, 0.6, count)
+    out = [look_at(scene.center + d * u, scene.center) for d, u in zip(distances, directions)]
+    return out + [look_at(scene.center + 5.0 * scene.normal, scene.center)]
+
+
+def test_the_arm_at_a_camera_pose_made_once_equals_the_arm_made_for_each_problem():
+    """arm_at_camera's bodies, asked again for many poses in turn and back (kept and evicted),
+    for another robot base and hand-eye on the same pose, bit for bit those made afresh; arm_at_shot's
+    balls about each scene's own samples."""
+    task = load_task(TASKS / "bracket.yaml")
+    rng = np.random.default_rng(28)
+    scene = build_scene(task.with_feature(0))
+    T = poses(scene, rng, 12)
+    moved = replace(task, frames=replace(task.frames, T_cell_base=task.frames.T_cell_base
+                                          @ geometry.transform(translation=(0.05, -0.03, 0.0))))
+    moved = moved.with_feature(0)
+    reached = 0
+    for k in [*range(len(T)), 3, 0, 12, 1, 1]:
+        for t in (task, moved):
+            kept, alone = evaluate.arm_at_camera(t, T[k]), arm_made_alone(t, T[k])
+            assert len(kept) == len(alone) == 8
+            for x, y in zip(kept, alone):
+                assert x.shape == y.shape and np.array_equal(x, y)
+                assert not x.flags.writeable
+            reached += len(kept[2]) > 0
+    assert 0 < reached < 2 * 17             # poses the arm reaches and one it does not (no links)
+    assert not np.array_equal(evaluate.arm_at_camera(task, T[0])[2], evaluate.arm_at_camera(moved, T[0])[2])
+    for g in range(len(task.features)):      # arm_at_shot: the camera's bodies, the balls about the scene's samples
+        s = build_scene(task.with_feature(g), T_cell_cam=T[0])
+        arm = evaluate.arm_at_shot(task, s)
+        middle, rho = geometry.bounding_sphere(s.points)
+        assert np.array_equal(arm.middle, middle) and arm.rho == rho
+        assert all(np.array_equal(x, y) for x, y in zip(
+            (arm.T_cell_box, arm.half_m, arm.a, arm.b, arm.radius_m, arm.around_a, arm.around_b, arm.around_radius_m),
+            arm_made_alone(task, T[0])))
+
+
+def test_no_more_camera_poses_are_kept_than_the_limit():
+    task = load_task(TASKS / "bracket.yaml")
+    scene = build_scene(task.with_feature(0))
+    for T in poses(scene, np.random.default_rng(5), 3 * evaluate._AT_CAMERA_MAX):
+        evaluate.arm_at_camera(task, T)
+    assert len(evaluate._AT_CAMERA) == evaluate._AT_CAMERA_MAX
