@@ -160,7 +160,7 @@ def nearest(T_base_flange: ArrayLike, q_near: ArrayLike) -> tuple[np.ndarray, np
     candidates = _nearest_within_limits(b.q, q_near)
     steps = np.where(b.ok, np.max(np.abs(candidates - q_near), axis=-1), np.inf)
     q = np.take_along_axis(candidates, np.argmin(steps, axis=1)[:, None, None], axis=1)[:, 0]
-    reached = b.ok.any(axis=1)
+    reached = np.asarray(b.ok.any(axis=1))
     q[~reached] = np.nan
     return q, reached
 
