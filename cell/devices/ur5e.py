@@ -166,22 +166,8 @@ def nearest(T_base_flange: ArrayLike, q_near: ArrayLike) -> tuple[np.ndarray, np
 
 
 def inverse(T_base_flange: np.ndarray, q_near: ArrayLike) -> np.ndarray:
-    """The solution nearest the current joints q_near (nearest). Raises Unreachable with the
-    reason. The last SOLVED_KEPT answers are kept by their pose and q_near (a shot's joints are
-    asked again by each feature it is judged on)."""
-    T, q_near = np.asarray(T_base_flange, float), np.asarray(q_near, float)
-    known = T.tobytes() + q_near.tobytes()
-    q = _SOLVED.pop(known, None)
-    if q is None:
-        solved, reached = nearest(T, q_near)
-        if not reached[0]:
-            raise Unreachable(branches(T).why(0))
-        q = solved[0]
-    _SOLVED[known] = q
-    while len(_SOLVED) > SOLVED_KEPT:
-        _SOLVED.pop(next(iter(_SOLVED)))
-    return q.copy()
-
-
-SOLVED_KEPT = 64
-_SOLVED: dict[bytes, np.ndarray] = {}
+    """The solution nearest the current joints q_near (nearest). Raises Unreachable with the reason."""
+    q, reached = nearest(T_base_flange, q_near)
+    if not reached[0]:
+        raise Unreachable(branches(T_base_flange).why(0))
+    return q[0]
