@@ -68,10 +68,16 @@ def test_the_dome_hung_higher_is_refused_naming_it(tmp_path, capsys):
     raw["lights"][0]["position_m"][2] += 0.15
     path = variant(tmp_path, DOME, {"lights": raw["lights"]})
     assert main(["plan", str(path), "--out", str(tmp_path / "plan")]) == 1
-    err = capsys.readouterr().err.strip().splitlines()[-1]
+    out, err = capsys.readouterr()
+    err = err.strip().splitlines()[-1]
     plan = json.loads((tmp_path / "plan" / "plan.json").read_text())
-    assert not plan["feasible"]
+    assert not plan["feasible"] and plan["binding"] == "collision"
+    assert all(r["met"] for r in plan["requirements"]) and plan["verified"]["holds"]     # the optics held
     assert "collision" in err and "dome and wrist" in err, err
+    # the headline: the collision with both bodies first, then that the optics held
+    headline = out.splitlines()[0]
+    assert headline.startswith(f"{plan['task']}: INFEASIBLE: collision: dome and wrist_2 "), headline
+    assert "the lighting, exposure and view meet every requirement" in headline and "tightest" not in headline
 
 
 @pytest.mark.long          # 1-5 min: the run, the simulated arm's own check stepping finely near the dome

@@ -294,13 +294,17 @@ def test_a_feature_whose_only_shot_collides_is_refused_naming_both_bodies(tmp_pa
     out = tmp_path / "plan"
     assert main(["plan", str(ROOT / "tests" / "tasks" / "features" / "conrod_beam_blocked.yaml"),
                  "--out", str(out)]) == 1
-    err = capsys.readouterr().err.splitlines()[-1]
+    said, err = capsys.readouterr()
+    err = err.splitlines()[-1]
     plan = json.loads((out / "plan.json").read_text())
     shank = next(f for f in plan["features"] if f["name"] == "shank")
     assert shank["covered_by"] is None and shank["binding"] == "collision"
     a, b = re.search(r"collision: (\w+) and (\w+) ", shank["hint"]).groups()
     assert "fixture" in (a, b) and {a, b} & {"camera_body", "wrist_1", "wrist_2", "wrist_3"}
     assert "collision" in err and "shank" in err and f"{a} and {b}" in err
+    headline = said.splitlines()[0]           # its cause follows the count: the collision, not "collision fails"
+    assert f"PARTIAL: 1 shot covers 1 of 2 features (chosen from 2 candidate shots); feature shank: no shot " \
+           f"covers it: collision: {a} and {b} " in headline, headline
     assert "moves" not in plan                       # a partial plan: nothing to move along
 
 

@@ -10,6 +10,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+import trimesh
 
 from cell import cli
 
@@ -19,6 +20,7 @@ from cell.planning import evaluate, one_shot, regions
 
 from cell.devices import ur5e
 from cell.collision.scene import CollisionScene
+from cell.core import geometry
 from cell.core.errors import DeviceFault
 from cell.devices.interfaces import arm_accepts, check_arm_motion
 from cell.planning.whole_part import plan_features
@@ -160,6 +162,29 @@ def test_a_pose_the_arm_cannot_reach_is_pruned(planned):
     assert views.kept == () and views.pruned["reach"] > 0, views.to_json()
     assert views.pruned["workspace"] == views.pruned["resolution"] == views.pruned["seen"] == 0
     assert "by reach" in views.why_none()
+
+
+def test_where_every_pose_that_sees_the_feature_collides_the_arm_is_the_cause_with_both_bodies(planned):
+    """A slab 0.8 m square, 0.2-0.3 m over the table, as the fixture: every camera pose that sees
+    leaf_a at the view angle and pixel size asked puts the camera or the arm into it (or beyond
+    reach); the sentence says so first, the bodies of one such pose named."""
+    task, _ = planned
+    slab = trimesh.creation.box(extents=(0.8, 0.8, 0.1), transform=geometry.transform(translation=(0, 0, 0.25)))
+    blocked = replace(task, cell=replace(task.cell, collision=replace(task.cell.collision, fixture=slab)),
+                      features=task.features[:1])
+    grid = regions.SphereGrid(np.radians(PlannerSettings().grid_step_deg))
+    scene = build_scene(blocked)
+    views = plan_viewpoints(blocked, scene, one_shot.visibility_map(scene, grid), grid)
+    pruned = views.pruned
+    assert views.kept == () and pruned["collision"] > 0 and pruned["seen"] == 0, views.to_json()
+    seeing = views.poses - pruned["visibility"] - pruned["view_angle"] - pruned["resolution"]
+    assert seeing == pruned["workspace"] + pruned["reach"] + pruned["collision"]
+    said = views.why_none()
+    assert said.startswith(f"every camera pose on the view spheres that sees the feature ({seeing} of "
+                           f"{views.poses}) is refused by the arm ("), said
+    assert views.collided is not None and not views.collided.ok and "fixture" in views.collided.bodies
+    assert f"{pruned['collision']} by collision: e.g. {views.collided.reason()}" in said
+    assert views.to_json() == {"poses": views.poses, "pruned": pruned, "passed": 0, "kept": 0}
 
 
 def test_the_plan_json_reports_the_planned_cameras_and_cell_plan_prints_them(planned, tmp_path, capsys, monkeypatch):

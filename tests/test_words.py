@@ -1,6 +1,7 @@
 """cell.report.words: results in a process engineer's words, never a raw objective value f_i nor
 an exponent, counts with their grammar."""
 import math
+from types import SimpleNamespace
 
 import pytest
 from hypothesis import given, strategies as st
@@ -75,3 +76,16 @@ def test_plan_json_keeps_its_requirement_keys_and_values():
     from cell.planning.plan import requirements_json
     assert requirements_json([DOF]) == [{"name": "depth_of_field", "value": 1.0, "met": True,
                                          "detail": "in focus 489.5-510.5 mm ..."}]
+
+
+def test_a_collision_is_said_as_its_hint_says_it_never_as_a_failing_requirement():
+    """A `collision` binding (the optics held: whole_part.cleared) reads as the bodies first; any
+    other binding keeps its requirement's label."""
+    hit = "collision: fixture and wrist_3 touch or overlap, less than the padding 10 mm"
+    assert words.uncovered("shank", "collision", hit) == f"feature shank: no shot covers it: {hit}"
+    assert words.uncovered("end_face", "camera_view", "the camera cannot see 16 of 16 feature samples") == \
+        "feature end_face: no shot covers it: camera view of the feature fails: the camera cannot see 16 of 16 " \
+        "feature samples"
+    plan = SimpleNamespace(features=(), binding="collision", hint=hit, requirements=[DOF])
+    assert words.reason(plan) == f"{hit}; {words.OPTICS_MET}"
+    assert words.OPTICS_MET == "the lighting, exposure and view meet every requirement"

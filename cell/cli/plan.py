@@ -40,7 +40,7 @@ def summary(plan: Plan) -> str:
     shot = plan.shot
     pan, tilt, radius = shot.joints
     g = gray_stats(shot.gray)
-    verdict = "feasible" if plan.feasible else f"INFEASIBLE: {words.tightest(shot.requirements, plan.binding)}"
+    verdict = "feasible" if plan.feasible else f"INFEASIBLE: {words.reason(plan)}"
     return "\n".join([
         f"{plan.task_name}: {verdict}",
         f"  lamp   {shot.distance_m:.3f} m from the feature, phase angle {np.degrees(shot.phase_angle_rad):.1f} deg"
@@ -54,14 +54,17 @@ def summary(plan: Plan) -> str:
 
 
 def features_summary(plan: Plan) -> str:
-    """One line per shot and one per feature (the shot covering it, or why none does)."""
+    """A headline (the verdict, the count covered and, of a plan not feasible, its true cause:
+    words.reason), then one line per shot and one per feature (the shot covering it, or why none
+    does). PARTIAL: a feature no shot covers; INFEASIBLE: every feature covered, a move refused."""
     n, covered = len(plan.features), sum(f.covered_by is not None for f in plan.features)
-    verdict = "feasible" if plan.feasible else "PARTIAL"
+    verdict = "feasible" if plan.feasible else "PARTIAL" if covered < n else "INFEASIBLE"
     assert plan.cover is not None                      # a multi-feature plan's
     lines = [f"{plan.task_name}: {verdict}: {words.covering(len(plan.shots), covered, n)} (chosen from "
              f"{words.count(plan.cover['candidate_shots'], 'candidate shot')}"
              + (", planned viewpoints" if "viewpoints" in plan.cover else "") + "); "
-             f"planned in {plan.timing_s['total']:.2f} s"]
+             + ("" if plan.feasible else f"{words.reason(plan)}; ")
+             + f"planned in {plan.timing_s['total']:.2f} s"]
     for k, shot in enumerate(plan.shots):
         pan, tilt, radius = shot.joints
         lines.append(f"  shot {k}: camera at {np.round(shot.camera_position, 3).tolist()} m (cell frame), lamp pan "

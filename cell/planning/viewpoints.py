@@ -40,7 +40,7 @@ from cell.physics import projection
 from cell.devices import ur5e
 from cell.devices.interfaces import arm_accepts, check_arm_motion
 from cell.core.errors import DeviceFault, PlanInfeasible
-from cell.collision.scene import CollisionScene
+from cell.collision.scene import Clearance, CollisionScene
 from cell.planning.scene import look_at
 
 if TYPE_CHECKING:
@@ -77,14 +77,27 @@ class Viewpoints:
     passed: int
     visible: np.ndarray
     time_s: float = 0.0          # the viewpoints' own time (cell.planning.whole_part records it)
+    # where no pose survives: the Clearance of the first pose refused by collision, its bodies named
+    collided: Clearance | None = None
 
     def to_json(self) -> dict[str, int | dict[str, int]]:
         return {"poses": self.poses, "pruned": dict(self.pruned), "passed": self.passed, "kept": len(self.kept)}
 
     def why_none(self) -> str:
-        """A sentence for a feature no pose survives."""
-        stages = ", ".join(f"{self.pruned[s]} by {s.replace('_', ' ')}" for s in STAGES if self.pruned[s])
-        return f"no camera pose of the {self.poses} on the view spheres survives ({stages})"
+        """A sentence for a feature no pose survives, its true cause first: where every pose that
+        sees the feature at the view angle and pixel size asked was refused by the arm (workspace,
+        reach, collision) and none by its optics (seen), the arm; a collision's example bodies
+        (`collided`) after its count."""
+        def by(stages: tuple[str, ...]) -> str:
+            return ", ".join(f"{self.pruned[s]} by {s.replace('_', ' ')}"
+                             + (f": e.g. {self.collided.reason()}" if s == "collision" and self.collided else "")
+                             for s in stages if self.pruned[s])
+        arm = ("workspace", "reach", "collision")
+        seeing = self.poses - sum(self.pruned[s] for s in STAGES[:STAGES.index(arm[0])])
+        if seeing and not self.pruned["seen"]:
+            return (f"every camera pose on the view spheres that sees the feature ({seeing} of {self.poses}) "
+                    f"is refused by the arm ({by(arm)})")
+        return f"no camera pose of the {self.poses} on the view spheres survives ({by(STAGES)})"
 
 
 def sphere_directions(step: float) -> tuple[np.ndarray, np.ndarray]:
@@ -211,8 +224,8 @@ def plan_viewpoints(task: Task, scene: Scene, visible: np.ndarray, grid: SphereG
         fine = ~(projection.pixel_footprint(cameras, scene.center, scene.normal, sensor.pixel_pitch_m,
                                             lens.focal_length_m) > req.resolution_m)
     pruned["resolution"] = int(np.sum(~fine))
-    got = reach_all(task, look_at(cameras[fine], np.broadcast_to(scene.center, cameras[fine].shape)),
-                    CollisionScene.of(task) if collisions else None)
+    bodies = CollisionScene.of(task) if collisions else None
+    got = reach_all(task, look_at(cameras[fine], np.broadcast_to(scene.center, cameras[fine].shape)), bodies)
     reached: list[tuple[float, np.ndarray, np.ndarray]] = []         # (standoff, T_cell_cam, joints)
     for r, pose in zip(standoffs[fine], got):
         if isinstance(pose, str):
@@ -235,4 +248,9 @@ def plan_viewpoints(task: Task, scene: Scene, visible: np.ndarray, grid: SphereG
             kept.append(v)
         if len(kept) == vp.per_feature:
             break
-    return Viewpoints(tuple(kept), len(dirs) * len(radii), pruned, len(survivors), visible)
+    collided = next((n for n, pose in enumerate(got) if pose == "collision"), None)
+    if kept or bodies is None or collided is None:
+        return Viewpoints(tuple(kept), len(dirs) * len(radii), pruned, len(survivors), visible)
+    unchecked = reach_all(task, look_at(cameras[fine][collided][None], scene.center[None]))[0]   # its first roll reached
+    assert not isinstance(unchecked, str)          # a pose refused by collision: some roll is reached
+    return Viewpoints((), len(dirs) * len(radii), pruned, 0, visible, collided=bodies.clearance(*unchecked))

@@ -64,14 +64,36 @@ def cleared(task: Task, p: Plan) -> Plan:
     """A one-shot plan with its shot's Clearance (cell.collision): the arm at the shot's joints
     (the fixed camera rule's: the inverse kinematics nearest the home joints (ur5e.HOME_JOINTS); none where the arm does
     not reach, which the run refuses anyway), the camera body and the lamp. A shot closer than
-    the padding makes the plan infeasible, `collision` binding, the two bodies named."""
+    the padding makes the plan infeasible, the two bodies named: `collision` binding where the
+    optics held (so a `collision` binding says the lighting and the camera met every requirement
+    and the bodies alone refuse the shot); where the optics failed first, their binding stays the
+    cause and the collision follows in the hint."""
     shot = p.shot
     joints = reaching_joints(task.frames, shot.T_cell_cam, shot.arm_joints)
     clearance = CollisionScene.of(task).clearance(shot.T_cell_cam, joints, shot.lamp_position)
     p = replace(p, shots=(replace(shot, clearance=clearance),))
     if clearance.ok:
         return p
+    if not p.feasible:
+        return replace(p, hint=f"{p.hint}; the shot also collides: {clearance.reason()}")
     return replace(p, feasible=False, binding="collision", miss=float("inf"), hint=clearance.reason())
+
+
+def uncovered_verdict(name: str, candidates: Sequence[Plan], judged: Sequence[Coverage], own: Sequence[bool],
+                      lent: Plan) -> FeatureVerdict:
+    """The FeatureVerdict of a feature no shot covers, its true cause first: where candidate shots
+    light and see it as required (their coverage of it, or its own plan's `collision` binding:
+    cleared()) and each of them collides, `collision` with the first such shot's bodies (its own
+    first); else the requirement that binds in its own first plan (`lent`) and its hint."""
+    optical = [(not mine, p.shot.clearance) for p, c, mine in zip(candidates, judged, own)
+               if c.covered or mine and p.binding == "collision"]
+    refused = [clearance for _, clearance in sorted(optical, key=lambda o: o[0])      # its own shot first
+               if clearance is not None and not clearance.ok]
+    if not refused:
+        return FeatureVerdict(name, None, lent.binding, lent.hint)
+    every = ("the one candidate shot that lights and sees it as required collides" if len(refused) == 1 else
+             f"each of the {len(refused)} candidate shots that light and see it as required collides")
+    return FeatureVerdict(name, None, "collision", f"{refused[0].reason()}; {every}")
 
 
 def viewpoints_of(task: Task, settings: PlannerSettings, say: Callable[[str], None]) -> Viewpoints:
@@ -236,7 +258,8 @@ def plan_features(task: Task, settings: PlannerSettings = PlannerSettings(),
             if views is not None and not views[f].kept:
                 verdicts.append(FeatureVerdict(t.feature.name, None, "viewpoint", views[f].why_none()))
             else:
-                verdicts.append(FeatureVerdict(t.feature.name, None, lend[f].binding, lend[f].hint))
+                verdicts.append(uncovered_verdict(t.feature.name, [p for _, p in cands], [c[f] for c in judged],
+                                                  [g == f for g, _ in cands], lend[f]))
             continue
         own = [s for s in by if cands[s][0] == f]                           # its own shot if chosen
         best = own[0] if own else min(by, key=lambda s: judged[f][s].worst)

@@ -130,19 +130,30 @@ def why(r: RequirementValue) -> str:
     return said if not r.detail or said.endswith(r.detail) else f"{said}; {r.detail}"
 
 
+# what a `collision` binding says besides the bodies: the optics held (cell.planning.whole_part.cleared,
+# cell.run.moves.with_moves), so moving a body is what fixes it
+OPTICS_MET = "the lighting, exposure and view meet every requirement"
+
+
 def uncovered(feature: str, binding: str, hint: str) -> str:
     """A feature no shot covers: 'feature end_face: no shot covers it: camera view of the feature
-    fails: ...' (its own plan's binding requirement and sentence)."""
+    fails: ...' (its own plan's binding requirement and sentence); a collision as its hint says it,
+    'feature shank: no shot covers it: collision: fixture and wrist_3 touch or overlap, ...'."""
+    if binding == "collision":
+        return f"feature {feature}: no shot covers it: {hint}"
     return f"feature {feature}: no shot covers it: {label(binding)} fails: {hint}"
 
 
 def reason(plan: Plan) -> str:
-    """Why a plan is not feasible, one line for a person: the first feature no shot covers, else
-    the binding requirement with its numbers and what would fix it. (plan.message keeps the
-    machine's names: plan.json, report.json.)"""
+    """Why a plan is not feasible, one line for a person, its true cause first: the first feature
+    no shot covers, else a collision with both bodies (at the shot or on a move: the hint) where
+    the optics held, else the binding requirement with its numbers and what would fix it.
+    (plan.message keeps the machine's names: plan.json, report.json.)"""
     first = next((f for f in plan.features if f.covered_by is None), None)
     if first is not None:
         return uncovered(first.name, first.binding, first.hint)
+    if plan.binding == "collision":
+        return f"{plan.hint}; {OPTICS_MET}"
     r = next((v for v in plan.requirements if v.name == plan.binding), None)
     if r is None:
         return f"{label(plan.binding)} fails: {plan.hint}"
