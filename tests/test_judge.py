@@ -78,3 +78,41 @@ def test_no_more_camera_poses_are_kept_than_the_limit():
     for T in poses(scene, np.random.default_rng(5), 3 * evaluate._AT_CAMERA_MAX):
         evaluate.arm_at_camera(task, T)
     assert len(evaluate._AT_CAMERA) == evaluate._AT_CAMERA_MAX
+
+
+def test_the_prefilter_counts_the_samples_the_lamp_hides_as_the_judge_does():
+    """A bracket shot (a global search for its first feature) with its lamp moved onto the camera's
+    lines of sight to the other features: the prefilter (one lamp_hides over every feature's
+    samples) rejects a pair for camera_view only where the full judge (coverage.judge) misses it,
+    with the judge's own value, and judge_column's coverage is the full judge's; the lamp's
+    housing hides samples of some features the part and the image's bounds leave seen."""
+    from cell.planning import coverage, one_shot, prefilter, regions, requirements
+    from cell.planning.whole_part import judge_column
+    task = load_task(TASKS / "bracket.yaml")
+    tasks = [task.with_feature(g) for g in range(len(task.features))]
+    settings = replace(one_shot.PlannerSettings(), refine=False)
+    plan, _ = one_shot.search(tasks[0], settings, 1.0, np.zeros((0, 3)), lambda message: None)
+    grid = regions.SphereGrid(np.radians(settings.grid_step_deg))
+    scenes = [build_scene(t) for t in tasks]
+    lent = [coverage.Lent(s, settings, one_shot.visibility_map(s, grid)) for s in scenes]
+    camera = plan.shot.camera_position
+    lamps = [plan.shot.lamp_position] + [s.center + t * (camera - s.center) for s in scenes[1:] for t in (0.3, 0.5, 0.7)]
+    by_lamp = 0
+    for lamp in lamps:
+        shot = replace(plan.shot, lamp_position=np.asarray(lamp, float))
+        missed = prefilter.missed(tasks, lent, shot, 0)
+        column, _, _ = judge_column(tasks, 0, shot, lent, lambda message: None)
+        for g in range(1, len(tasks)):
+            alone = coverage.judge(tasks[g], lent[g], shot)
+            assert column[g].covered == alone.covered
+            values = {r.name: r.value for r in alone.requirements}
+            named = {r.name: r.value for r in missed[g]}
+            scene = replace(lent[g].scene, T_cell_cam=shot.T_cell_cam)
+            # samples outside the image: the camera's side alone counts them, the judge those and the hidden ones
+            inside = evaluate.in_image(tasks[g], scene).all()
+            assert all(values[name] == value > 1.0 or name == "camera_view" and not inside and values[name] >= value > 1.0
+                       for name, value in named.items())
+            if "camera_view" in named and inside:
+                problem = evaluate.build_problem(tasks[g], scene, None)
+                by_lamp += problem.camera_unseen == 0 and requirements.lamp_hides(problem, lamp[None]).any()
+    assert by_lamp >= 2

@@ -8,9 +8,11 @@ Exact by construction: coverage.judge covers a feature only when every requireme
 on the feature's samples (then the certificate decides). The prefilter computes some of those
 requirements' values as the judge does, the same functions on the same arrays, and rejects a pair
 only where one of them is missed (costs.value(ln f) > 1, RequirementValue.met's test):
-- camera_view: samples outside the image (evaluate.in_image) or hidden from the camera (the gray
-  kernel's shadow flag for a lamp at the camera, as evaluate.build_problem casts it); the judge
-  counts both together, so a count of either alone is missed there too (at least as much);
+- camera_view: samples outside the image (evaluate.in_image), then those hidden from the camera
+  (the gray kernel's shadow flag for a lamp at the camera, as evaluate.build_problem casts it) and
+  those the spot lamp's housing or the pan-tilt's links hide at the shot's lamp
+  (requirements.lamp_hides): the judge counts all together, so a count of the first alone is
+  missed there too (at least as much), and the count of all three is the judge's own;
 - view_angle and resolution, where the task asks for them (requirements.view_angle_ln,
   resolution_ln), and depth_of_field at the shot's focus and f-number (depth_of_field_ln);
 - no_shadow and cone_coverage at the shot's lamp, the spot alone lighting (a task with other
@@ -24,13 +26,15 @@ only where one of them is missed (costs.value(ln f) > 1, RequirementValue.met's 
 The kernel's flags of a sample depend on the sample, its normal, the mesh and the lamp alone
 (kernels.funcs.shade_point; the camera enters only the view and the BRDF), so one launch over the
 samples of every feature in question gives each sample the flags the judge's own launch gives it.
+lamp_hides tests each sample's line of sight alone (its prefilters only skip lamps and bodies that
+can meet none of the lines), so one call over every feature's samples gives each sample its own.
 A pair passed is judged in full: the coverage matrix is the full judge's exactly.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
@@ -85,9 +89,11 @@ def camera_side(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list
 
 def lamp_side(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list[list[RequirementValue]]:
     """Per feature of `tasks` (one-feature tasks of one part, each with its `lent`) the
-    requirements the kernel finds missed: camera_view (a sample hidden from the camera), and
-    without other lights no_shadow, cone_coverage, gray_min and gray_max at the shot's lamp and
-    exposure. One launch over every feature's samples, with two lamps: one at the camera, the shot's."""
+    requirements the kernel finds missed: camera_view (a sample outside the image or hidden from
+    the camera, by the part, a fixed light's housing, the lamp's housing or its links: the judge's
+    count), and without other lights no_shadow, cone_coverage, gray_min and gray_max at the shot's
+    lamp and exposure. One launch over every feature's samples, with two lamps: one at the camera,
+    the shot's; one lamp_hides over them all."""
     if not tasks:
         return []
     task = tasks[0]
@@ -96,16 +102,20 @@ def lamp_side(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list[l
     aims = np.vstack([shot.T_cell_cam[:3, 2], rig.lamp_aim(pivot, shot.lamp_position.reshape(1, 3))])
     out = evaluate.gray_inputs(task, scene, task.part.material)(np.vstack([shot.camera_position,
                                                                           shot.lamp_position]), aims)
+    problem = evaluate.build_problem(task, scene, None, focus_m=shot.exposure.focus_m, hidden=out.shadowed[0])
+    seen = cast(np.ndarray, problem.camera_seen)
+    unseen = ~seen | requirements.lamp_hides(problem, shot.lamp_position.reshape(1, 3))[0]
     spot_drive = np.float64(task.lamp.channel.drive_range[1] if shot.drive is None else shot.drive[0])
     spot_on = spot_drive > 0.0
     half = task.lamp.lit_half_angle_rad
     gain = shot.exposure.shutter_s / shot.exposure.f_number ** 2
     found = []
     for t, (start, end) in zip(tasks, bounds):
-        hidden, shadowed, off_axis = out.shadowed[0, start:end], out.shadowed[1, start:end], out.off_axis[1, start:end]
+        shadowed, off_axis = out.shadowed[1, start:end], out.off_axis[1, start:end]
         n = end - start
-        here = [_missed("camera_view", float(costs.ln_count_cost(np.sum(hidden))),
-                        f"samples hidden from the camera, of {n}")]
+        here = [_missed("camera_view", float(costs.ln_count_cost(np.sum(unseen[start:end]))),
+                        f"samples the camera cannot see (outside the image, hidden by the part, a light's housing, "
+                        f"the lamp's or its links), of {n}")]
         if not t.lights:
             here.append(_missed("no_shadow", float(costs.ln_count_cost(np.sum(shadowed | ~spot_on))),
                                 f"samples shadowed from the lamp, of {n}"))
