@@ -209,7 +209,8 @@ class Dense:
 
 def densely_checked(task, plan, moves):
     """The smallest distance over every move's path as cell.run makes it: the arm's through its
-    via points, the lamp where it stands (or, parked, first taken to its parking joints); then
+    via points, the lamp where it stands (none from home, where the plan does not know it; or,
+    parked, first taken to its parking joints); then
     the lamp's joints linearly through its via joints to where it arrives (the shot's, or its pan
     a turn away), the arm at the shot; the lamp first where the move says so:
     [(distance, bodies, move)]."""
@@ -231,7 +232,8 @@ def densely_checked(task, plan, moves):
     for move in moves:
         shot = plan.shots[move.end]
         arrives = np.asarray(shot.joints if move.lamp_end is None else move.lamp_end, float)
-        lamp = np.asarray(shot.joints if lamp is None else lamp, float)
+        known = lamp is not None           # from home the lamp is not known: the arm's path without it, as
+        lamp = np.asarray(shot.joints if lamp is None else lamp, float)   # planned (the run checks it itself)
         if move.lamp_first:
             lamp = lamp_legs(q, lamp, [*move.lamp_via, arrives])
         elif move.lamp_park is not None:
@@ -239,7 +241,7 @@ def densely_checked(task, plan, moves):
         corners = [T, *move.via, shot.T_cell_cam]
         for T_a, T_b in zip(corners, corners[1:]):
             joints = dense.path(T_a, T_b, q)
-            found += [(*dense.nearest(j, lamp), move.end) for j in joints]
+            found += [(*dense.nearest(j, lamp if known else None), move.end) for j in joints]
             q = joints[-1]
         if not move.lamp_first:
             lamp = lamp_legs(q, lamp, [*move.lamp_via, arrives])
