@@ -33,16 +33,14 @@ def planned():
 def expected_names(task, plan):
     """Every body, feature and light the view must name: the part (and fixture), each feature,
     each fixed light's housing (its collision body: a ring's drawn once), and at each shot the arm's links, the
-    camera body, its frustum, the lamp's body and cone, the pan-tilt's links (its arm, the tilt
-    servo) and the task's other lights; the route when
+    camera body, its frustum, the lamp's body and cone and the task's other lights; the route when
     there are several shots."""
     names = {"part", *(f"feature {f.name}" for f in task.features)}
     names |= {light.name for light in task.lights if light.mount == "fixed"}
     if task.cell.collision.fixture is not None:
         names.add("fixture")
     for k, shot in enumerate(plan.shots):
-        names |= {f"shot {k} {body}" for body in ("camera_body", "frustum", "lamp_body", "lamp cone", "rig_arm",
-                                                  "tilt_servo")}
+        names |= {f"shot {k} {body}" for body in ("camera_body", "frustum", "lamp_body", "lamp cone")}
         names |= {f"shot {k} {link}" for link, _ in ARM_LINKS}
         names |= {f"shot {k} light {light.name}" for light in task.lights}
     return names

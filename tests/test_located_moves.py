@@ -44,12 +44,11 @@ def lamp_at(task, joints):
 def crossing(task):
     """Two stops of the hinge's cell (camera pose, its joints, lamp joints): A, the camera 0.35 m
     from the pivot up and aside, the lamp low at pan 0; B, the camera low at pan 0 where that
-    lamp stands, the lamp at pan 150 deg, 45 deg up (at 180 deg the rig's arm passes within the
-    padding of the UR's upper arm on the way back to A, and no order of the moves is clear)."""
+    lamp stands, the lamp at pan 180 deg, 45 deg up."""
     pivot = np.asarray(task.lamp.rig.pivot_m, float)
     T_a, T_b = look_at(pivot + (-0.1, 0.15, 0.3), pivot), look_at(pivot + (0.2, 0.0, 0.17), pivot)
     a = (T_a, np.asarray(reaching_joints(task.frames, T_a), float), (0.0, np.radians(30.0), 0.2))
-    b = (T_b, np.asarray(reaching_joints(task.frames, T_b), float), (np.radians(150.0), np.radians(45.0), 0.2))
+    b = (T_b, np.asarray(reaching_joints(task.frames, T_b), float), (np.pi, np.radians(45.0), 0.2))
     return a, b
 
 

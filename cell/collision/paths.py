@@ -10,18 +10,15 @@ Steps by conservative advancement, pair by pair: a bound on how far one body of 
 relative to the other in a step (on the arm, the body further down the chain seen from the
 other's link: sum_i |dq_i| r_i over the joints between them, r_i its reach about joint i's axis,
 `body_reach`; the camera body against the still bodies also by its moveL's own travel; the lamp
-and each of its links against the still rest by (|dpan| + |dtilt|) rho + |dr|, rho its farthest
-point from the pivot) is kept at most max(padding / 2, L - padding) after a pose where the pair
-is at least L apart: between two checked poses every pair stays at least the padding apart, or
-(near it) the step bounds its swept distance below half the padding. A pair far apart (a bounding-sphere gap
+body against the still rest by (|dpan| + |dtilt|) (r + its diagonal) + |dr|) is kept at most max(padding / 2, L - padding) after a pose where the pair is at least L
+apart: between two checked poses every pair stays at least the padding apart, or (near it) the
+step bounds its swept distance below half the padding. A pair far apart (a bounding-sphere gap
 well above the padding) or that the step's joints do not move between (the camera and the
 wrist as the base turns) does not shorten the step. A direct move closer than
 the padding gets via points: back along the camera's axis from the first stop, across at that
 standoff, in along the second's axis; retreats of VIA_RETREATS_M are tried in turn. A lamp move
-closer than the padding goes the other way round in pan where the rig's pan range allows (the
-target's pan a turn away: the same pose, `Move.lamp_end`), or gets via joints (`lamp_route`): up
-or down to another tilt, across in pan at it, to the target's tilt, the radius the larger of the
-two ends'. `plan_transition` is the move
+closer than the padding gets via joints (`lamp_route`): up or down to another tilt, across in pan
+at it, to the target's tilt, the radius the larger of the two ends'. `plan_transition` is the move
 from where the devices read back to a target of the arm, the lamp or both (cell.run.motion).
 """
 
@@ -38,7 +35,7 @@ from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
 from cell.collision.bodies import Body, Box, Capsule
-from cell.collision.scene import LAMP_BODIES, LINK, Clearance, CollisionScene, Pairs
+from cell.collision.scene import LINK, Clearance, CollisionScene, Pairs
 from cell.core import geometry
 from cell.core.errors import DeviceFault
 from cell.devices import ur5e
@@ -52,7 +49,6 @@ HOME = "home"                            # a move's end that is the arm's home p
 VIA_RETREATS_M = (0.10, 0.20, 0.30)      # back along the camera's axis, tried in turn
 MIN_STEP_M = 0.001                       # a padding of 0 still checks every millimetre
 LAMP_VIA_TILTS = 7                       # tilts across the rig's range tried for the lamp's via joints
-PARK_PANS = 9                            # pans across the rig's range tried for the lamp's parking pose
 MAX_STEPS = 5000                         # a longer path is refused, not checked for minutes
 MAX_JOINT_STEP_RAD = 0.2                 # more in one step of a straight path: it meets a singularity
 MIN_STEP_S = 1e-6                        # a step of the path parameter below this: a singularity
@@ -82,9 +78,6 @@ class Move:
     joints_end: np.ndarray | None = None   # where the arm arrives (None: it does not)
     lamp_via: tuple[tuple[float, float, float], ...] = ()   # the lamp's via joints (empty: direct)
     lamp_first: bool = False               # the lamp moves before the arm (cell.run.motion's moves only)
-    lamp_end: tuple[float, float, float] | None = None   # where the lamp arrives, if not at the stop's joints:
-                                                          # its pan a turn from them (lamp_route)
-    lamp_park: tuple[float, float, float] | None = None  # where the lamp waits while the arm moves (_parked)
 
     @property
     def clear(self) -> bool:
@@ -98,10 +91,7 @@ class Move:
                 "clearance_bodies": list(self.clearance.bodies), "via": [T.tolist() for T in self.via],
                 "travel_m": self.travel_m, "steps": self.steps,
                 **({} if self.joints_end is None else {"arm_joints_deg": np.degrees(self.joints_end).tolist()}),
-                **({"lamp_via": [list(j) for j in self.lamp_via]} if self.lamp_via else {}),
-                **({} if self.lamp_end is None else {"lamp_end": list(self.lamp_end)}),
-                **({} if self.lamp_park is None else {"lamp_park": list(self.lamp_park)}),
-                **({"lamp_first": True} if self.lamp_first else {})}
+                **({"lamp_via": [list(j) for j in self.lamp_via]} if self.lamp_via else {})}
 
 
 def _name(end: End) -> str:
@@ -245,13 +235,11 @@ def _worst(pairs: Pairs, reach: np.ndarray, joints: np.ndarray, dq: np.ndarray, 
 def lamp_path(scene: CollisionScene, T_cam: np.ndarray, q: ArrayLike, joints_from: ArrayLike,
               joints_to: ArrayLike) -> tuple[Clearance, int]:
     """The smallest Clearance (or the first below the padding) as the lamp moves in its joints
-    (pan, tilt, radius), the arm still, and the poses checked. Each step by the least over the
-    lamp and its links (CollisionScene.lamp_bodies) of its pairs' clearance (_allowed) over its
-    travel in the whole move, (|dpan| + |dtilt|) rho + |dradius| (rho its farthest point from the
-    pivot, CollisionScene.lamp_reach): no other pair's distance changes."""
+    (pan, tilt, radius), the arm still, and the poses checked. Each step by the lamp's pairs'
+    clearance (_allowed): no other pair's distance changes."""
     a, b = np.asarray(joints_from, float), np.asarray(joints_to, float)
-    reach = scene.lamp_reach(max(a[2], b[2]))
-    turn, out = abs(b[0] - a[0]) + abs(b[1] - a[1]), abs(b[2] - a[2])    # a bound over the whole move
+    arm = max(a[2], b[2]) + 2 * float(np.linalg.norm(scene.lamp_half_m))
+    sweep = (abs(b[0] - a[0]) + abs(b[1] - a[1])) * arm + abs(b[2] - a[2])   # a bound over the whole move
     s, at, found = 0.0, [lamp_position(scene.pivot_m, *a)], []
     while True:
         bodies = scene.bodies(T_cam, q, at[-1])
@@ -259,65 +247,40 @@ def lamp_path(scene: CollisionScene, T_cam: np.ndarray, q: ArrayLike, joints_fro
         found.append(pairs.least(scene.padding_m))
         if s >= 1.0 or not found[-1].ok:
             break
-        lamp = [k for k, body in enumerate(bodies) if body.name in LAMP_BODIES]
-        step = min(_allowed(scene, pairs.least(scene.padding_m, (pairs.i == k) | (pairs.j == k)))
-                   / max(turn * reach[LAMP_BODIES.index(bodies[k].name)] + out, 1e-300) for k in lamp)
-        s = min(1.0, s + step)
+        lamp = len(bodies) - 1                                  # scene.bodies puts the lamp last
+        mine = pairs.least(scene.padding_m, (pairs.i == lamp) | (pairs.j == lamp))
+        s = min(1.0, s + _allowed(scene, mine) / max(sweep, 1e-300))
         at.append(lamp_position(scene.pivot_m, *((1 - s) * a + s * b)))
     k = int(np.argmin([c.distance_m for c in found]))
     return replace(found[k], where=f"with the lamp at {np.round(at[k], 3).tolist()} m (cell frame)"), len(found)
 
 
-Joints = tuple[float, float, float]      # the lamp's pan, tilt [rad] and radius [m]
-
-
 def lamp_route(scene: CollisionScene, T_cam: np.ndarray, q: ArrayLike, joints_from: ArrayLike,
-               joints_to: ArrayLike) -> tuple[Clearance, tuple[Joints, ...], Joints, int]:
-    """(the smallest Clearance along the lamp's route, its via joints, where it arrives, the
-    poses checked): the direct joint move (lamp_path) if clear, else the direct move the other way
-    round in pan (to the target's pan + or - a turn, where the rig's pan range holds it: the
-    same lamp pose, the pan sweeping the other side, e.g. clear of the robot's base); else through
-    via joints at another tilt, to the target and then to its pan a turn away: the lamp to
-    the via tilt at its pan, across in pan at it, down or up to the target's, the radius the
-    larger end's; the rig's tilt range in LAMP_VIA_TILTS steps, the nearest to the two ends'
-    first. None clear: the direct move's Clearance, not clear, no via joints, the target."""
-    a, b = _joints(joints_from), _joints(joints_to)
-    lo_pan, hi_pan = scene.pan_range_rad
-    ends = [b, *((b[0] + turn, b[1], b[2]) for turn in (-2 * np.pi, 2 * np.pi)
-                 if lo_pan - 1e-9 <= b[0] + turn <= hi_pan + 1e-9)]
-    steps, first = 0, None
-    for end in ends:
-        direct, n = lamp_path(scene, T_cam, q, a, end)
-        steps += n
-        if direct.ok:
-            return direct, (), end, steps
-        first = first or direct
+               joints_to: ArrayLike) -> tuple[Clearance, tuple[tuple[float, float, float], ...], int]:
+    """(the smallest Clearance along the lamp's route, its via joints, the poses checked): the
+    direct joint move (lamp_path) if clear; else through via joints at another tilt: the lamp to
+    it at its pan, across in pan at it, down or up to the target's, the radius the larger end's;
+    the rig's tilt range in LAMP_VIA_TILTS steps, the nearest to the two ends' first. Neither:
+    the direct move's Clearance, not clear, no via joints."""
+    a = tuple(float(x) for x in np.asarray(joints_from, float))
+    b = tuple(float(x) for x in np.asarray(joints_to, float))
+    direct, steps = lamp_path(scene, T_cam, q, a, b)
+    if direct.ok:
+        return direct, (), steps
     lo, hi = scene.tilt_range_rad
     middle, radius = 0.5 * (a[1] + b[1]), max(a[2], b[2])
-    for end in ends:
-        for tilt in sorted(np.linspace(lo, hi, LAMP_VIA_TILTS), key=lambda t: abs(t - middle)):
-            via = ((a[0], float(tilt), radius), (end[0], float(tilt), radius))
-            found = []
-            for j_from, j_to in pairwise((a, *via, end)):
-                c, n = lamp_path(scene, T_cam, q, j_from, j_to)
-                steps += n
-                found.append(c)
-                if not c.ok:
-                    break
-            if found[-1].ok and len(found) == 3:
-                return _least(found, scene.padding_m), via, end, steps
-    assert first is not None
-    return first, (), b, steps
-
-
-def _joints(joints: ArrayLike) -> Joints:
-    pan, tilt, radius = (float(x) for x in np.asarray(joints, float))
-    return pan, tilt, radius
-
-
-def _turned(end: Joints, stop: tuple[float, float, float] | None) -> Joints | None:
-    """The lamp's arrival joints where lamp_route took it other than to the stop's (Move.lamp_end)."""
-    return None if stop is None or np.allclose(end, stop, rtol=0.0, atol=1e-12) else end
+    for tilt in sorted(np.linspace(lo, hi, LAMP_VIA_TILTS), key=lambda t: abs(t - middle)):
+        via = ((a[0], float(tilt), radius), (b[0], float(tilt), radius))
+        found = []
+        for j_from, j_to in pairwise((a, *via, b)):
+            c, n = lamp_path(scene, T_cam, q, j_from, j_to)
+            steps += n
+            found.append(c)
+            if not c.ok:
+                break
+        if found[-1].ok and len(found) == 3:
+            return _least(found, scene.padding_m), via, steps
+    return direct, (), steps
 
 
 @dataclass(frozen=True)
@@ -358,10 +321,9 @@ def plan_transition(scene: CollisionScene, arm: ArmConfig, a: Stop, b: Stop, sta
     """The Move from where the devices are (a: read back) to b: the arm's path and then the
     lamp's route (plan_move), or where that is not clear the lamp's route first and then the
     arm's path (`lamp_first`: the lamp out of the camera's way), each direct before either
-    tries via points, or else with the lamp parked out of the arm's way (_parked); or, the
-    camera staying where it is (b at a's pose), the lamp's route alone (lamp_route, the arm
-    still at a's joints); b's lamp joints None: the arm moves, the lamp stays (and is checked
-    where it stands). None clear: the arm-first move, not clear."""
+    tries via points; or, the camera staying where it is (b at a's pose), the lamp's route alone
+    (lamp_route, the arm still at a's joints); b's lamp joints None: the arm moves, the lamp
+    stays (and is checked where it stands). None clear: the arm-first move, not clear."""
     same = (np.allclose(a.T_cell_cam[:3, 3], b.T_cell_cam[:3, 3], atol=1e-9)
             and np.allclose(a.T_cell_cam[:3, :3], b.T_cell_cam[:3, :3], atol=1e-9))
     if not same:
@@ -375,17 +337,16 @@ def plan_transition(scene: CollisionScene, arm: ArmConfig, a: Stop, b: Stop, sta
         move = plan_move(scene, arm, start, a, end, b)
         if move.clear or not both:
             return move
-        return (_lamp_first(scene, arm, start, a, end, b, VIA_RETREATS_M) or _parked(scene, arm, start, a, end, b)
-                or move)
+        return _lamp_first(scene, arm, start, a, end, b, VIA_RETREATS_M) or move
     if b.lamp_joints is None or a.lamp_joints is None:
         lamp_at = None if a.lamp_joints is None else lamp_position(scene.pivot_m, *a.lamp_joints)
         return Move(start, end, scene.clearance(a.T_cell_cam, a.arm_joints, lamp_at), (), 1,
                     (a.T_cell_cam[:3, 3],), 0.0, np.asarray(a.arm_joints, float))
-    found, lamp_via, lamp_end, steps = lamp_route(scene, a.T_cell_cam, a.arm_joints, a.lamp_joints, b.lamp_joints)
-    at = [lamp_position(scene.pivot_m, *j) for j in (a.lamp_joints, *lamp_via, lamp_end)]
+    found, lamp_via, steps = lamp_route(scene, a.T_cell_cam, a.arm_joints, a.lamp_joints, b.lamp_joints)
+    at = [lamp_position(scene.pivot_m, *j) for j in (a.lamp_joints, *lamp_via, b.lamp_joints)]
     return Move(start, end, found, (), steps, (a.T_cell_cam[:3, 3],),
                 float(sum(np.linalg.norm(y - x) for x, y in pairwise(at))), np.asarray(a.arm_joints, float),
-                lamp_via if found.ok else (), lamp_end=_turned(lamp_end, b.lamp_joints))
+                lamp_via if found.ok else ())
 
 
 def _lamp_first(scene: CollisionScene, arm: ArmConfig, start: End, a: Stop, end: End, b: Stop,
@@ -393,46 +354,17 @@ def _lamp_first(scene: CollisionScene, arm: ArmConfig, start: End, a: Stop, end:
     """The move with the lamp's route first (the arm still at a), then the arm's path (the lamp
     at b), or None where either is not clear."""
     assert a.lamp_joints is not None and b.lamp_joints is not None
-    c, lamp_via, lamp_end, n = lamp_route(scene, a.T_cell_cam, a.arm_joints, a.lamp_joints, b.lamp_joints)
+    c, lamp_via, n = lamp_route(scene, a.T_cell_cam, a.arm_joints, a.lamp_joints, b.lamp_joints)
     if not c.ok:
         return None
-    then = plan_move(scene, arm, start, replace(a, lamp_joints=lamp_end), end, replace(b, lamp_joints=None),
+    then = plan_move(scene, arm, start, replace(a, lamp_joints=b.lamp_joints), end, replace(b, lamp_joints=None),
                      retreats)
     if not then.clear:
         return None
-    at = [lamp_position(scene.pivot_m, *j) for j in (a.lamp_joints, *lamp_via, lamp_end)]
+    at = [lamp_position(scene.pivot_m, *j) for j in (a.lamp_joints, *lamp_via, b.lamp_joints)]
     return replace(then, clearance=_least([c, then.clearance], scene.padding_m), lamp_via=lamp_via,
-                   lamp_first=True, steps=then.steps + n, lamp_end=_turned(lamp_end, b.lamp_joints),
+                   lamp_first=True, steps=then.steps + n,
                    travel_m=then.travel_m + float(sum(np.linalg.norm(y - x) for x, y in pairwise(at))))
-
-
-def _parked(scene: CollisionScene, arm: ArmConfig, start: End, a: Stop, end: End, b: Stop) -> Move | None:
-    """The move with the lamp parked while the arm moves: the lamp's route (the arm at a) to a
-    parking pose, the arm's direct path (the lamp parked there), the lamp's route on to b (the arm
-    where it arrived); or None where no parking pose clears all three. Parking poses: the rig's
-    pan range in PARK_PANS steps at its lowest tilt and its middle one, a's radius, the nearest to
-    a's joints first (a lamp panned away from the arm takes the pan-tilt's links with it)."""
-    assert a.lamp_joints is not None and b.lamp_joints is not None
-    now = a.lamp_joints
-    lo, hi = scene.tilt_range_rad
-    pans = np.linspace(*scene.pan_range_rad, PARK_PANS)
-    parks = sorted(((float(pan), float(tilt), now[2]) for pan in pans for tilt in (lo, 0.5 * (lo + hi))),
-                   key=lambda j: abs(j[0] - now[0]) + abs(j[1] - now[1]))
-    for park in parks:
-        out, out_via, parked, n_out = lamp_route(scene, a.T_cell_cam, a.arm_joints, now, park)
-        if not out.ok or out_via:
-            continue
-        move = plan_move(scene, arm, start, replace(a, lamp_joints=parked), end, replace(b, lamp_joints=None), ())
-        if not move.clear or move.joints_end is None:
-            continue
-        c, lamp_via, lamp_end, n = lamp_route(scene, b.T_cell_cam, move.joints_end, parked, b.lamp_joints)
-        if not c.ok:
-            continue
-        at = [lamp_position(scene.pivot_m, *j) for j in (a.lamp_joints, parked, *lamp_via, lamp_end)]
-        return replace(move, clearance=_least([out, move.clearance, c], scene.padding_m), lamp_via=lamp_via,
-                       lamp_park=parked, lamp_end=_turned(lamp_end, b.lamp_joints), steps=move.steps + n_out + n,
-                       travel_m=move.travel_m + float(sum(np.linalg.norm(y - x) for x, y in pairwise(at))))
-    return None
 
 
 def _through(scene: CollisionScene, poses: list[np.ndarray], q: np.ndarray,
@@ -463,11 +395,11 @@ def _with_lamp(scene: CollisionScene, move: Move, a: Stop, b: Stop) -> Move:
     assert move.joints_end is not None, "a clear arm move arrives somewhere"
     if b.lamp_joints is not None:
         start = b.lamp_joints if a.lamp_joints is None else a.lamp_joints
-        c, lamp_via, lamp_end, n = lamp_route(scene, b.T_cell_cam, move.joints_end, start, b.lamp_joints)
+        c, lamp_via, n = lamp_route(scene, b.T_cell_cam, move.joints_end, start, b.lamp_joints)
         least = _least([move.clearance, c], scene.padding_m)
-        move = replace(move, lamp_via=lamp_via, lamp_end=_turned(lamp_end, b.lamp_joints))
+        move = replace(move, lamp_via=lamp_via)
         if a.lamp_joints is not None:
-            at = [lamp_position(scene.pivot_m, *j) for j in (a.lamp_joints, *lamp_via, lamp_end)]
+            at = [lamp_position(scene.pivot_m, *j) for j in (a.lamp_joints, *lamp_via, b.lamp_joints)]
             travel += float(sum(np.linalg.norm(y - x) for x, y in pairwise(at)))
     return replace(move, clearance=least, steps=move.steps + n, corners_m=corners, travel_m=travel)
 
@@ -491,8 +423,7 @@ def checked_route(scene: CollisionScene, arm: ArmConfig, stops: Sequence[Stop],
     """(the order of stops[1:] (indices from 0) from stops[0], where the arm is (the home pose),
     and the checked Moves along it, each from where the last arrived). Lazy: a route solver
     (`shortest_order` of a travel matrix, index 0 the start) orders the stops by straight-line
-    travel, a lower bound of every move's; the moves of that order are checked (plan_transition,
-    as the run makes them: arm first, else lamp first, else the lamp parked) and
+    travel, a lower bound of every move's; the moves of that order are checked (plan_move) and
     their true travel (via points counted; UNCHECKED_M where no path is clear) put in, until
     an order's moves change no entry (then no other order is shorter), or after `rounds`
     orders the shortest checked one. A move that is not clear ends its order's list."""
@@ -504,16 +435,16 @@ def checked_route(scene: CollisionScene, arm: ArmConfig, stops: Sequence[Stop],
             if a.lamp_joints is not None and b.lamp_joints is not None:
                 D[i, j] += np.linalg.norm(lamp_position(scene.pivot_m, *b.lamp_joints)
                                           - lamp_position(scene.pivot_m, *a.lamp_joints))
-    checked: dict[tuple[int, int, bytes, bytes], Move] = {}
+    checked: dict[tuple[int, int, bytes], Move] = {}
     tried: list[tuple[float, tuple[int, ...], list[Move]]] = []
     for _ in range(rounds):
         order = tuple(shortest_order(D))
-        moves, q, lamp, changed = [], stops[0].arm_joints, stops[0].lamp_joints, False
+        moves, q, changed = [], stops[0].arm_joints, False
         for i, j in pairwise([0, *(k + 1 for k in order)]):
-            key = (i, j, np.asarray(q, float).tobytes(), np.asarray(lamp, float).tobytes())
+            key = (i, j, np.asarray(q, float).tobytes())
             if key not in checked:
-                checked[key] = plan_transition(scene, arm, replace(stops[i], arm_joints=q, lamp_joints=lamp), stops[j],
-                                               HOME if i == 0 else i - 1, j - 1)
+                checked[key] = plan_move(scene, arm, HOME if i == 0 else i - 1, replace(stops[i], arm_joints=q),
+                                         j - 1, stops[j])
             move = checked[key]
             moves.append(move)
             cost = move.travel_m if move.clear else UNCHECKED_M
@@ -521,7 +452,7 @@ def checked_route(scene: CollisionScene, arm: ArmConfig, stops: Sequence[Stop],
             D[i, j] = max(D[i, j], cost)
             if not move.clear or move.joints_end is None:
                 break
-            q, lamp = move.joints_end, move.lamp_end or stops[j].lamp_joints
+            q = move.joints_end
         total = sum(m.travel_m if m.clear else UNCHECKED_M for m in moves)
         tried.append((total + UNCHECKED_M * (len(order) + 1 - len(moves)), order, moves))
         if not changed:

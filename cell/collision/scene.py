@@ -4,14 +4,12 @@ the cell at one pose of the arm, camera and lamp.
 Bodies: the part and the optional fixture (meshes, fixed in the cell), the UR5e's links
 (capsules along its kinematic chain, placed by cell.devices.ur5e.forward), the camera body (a
 box on the flange, centred `offset_m` along the tool axis, its axes the flange's), the lamp
-body (a box behind the lamp's front at its position, its z axis the lamp's aim), the pan-tilt's
-links that hold it (rig_links: the arm's tube from the lamp's back to the tilt servo, the servo's
-box) and each fixed light's housing (light_body: a ring's annulus round its hole, a dome's shell open at its hole,
+body (a box behind the lamp's front at its position, its z axis the lamp's aim) and each fixed
+light's housing (light_body: a ring's annulus round its hole, a dome's shell open at its hole,
 any other light's box, each behind its emitting surface). Bodies that may
 touch: neighbours on the arm's chain and the next but one (they share a joint housing), the
-flange's two wrist links and the camera, the lamp and its two links (the arm enters both boxes,
-the servo meets the lamp's back at the largest radius), the robot base and the fixture it may
-stand on, the part and its fixture. The clearance is the smallest distance over every other pair, found by
+flange's two wrist links and the camera, the robot base and the fixture it may stand on, the
+part and its fixture. The clearance is the smallest distance over every other pair, found by
 branch and bound on bounding spheres (the exact distance of a pair only where it could be the
 smallest), so the result is the minimum, not an estimate of it. `Pairs` keeps each pair's lower
 bound (the spheres' gap, or its distance once computed) for the paths' steps (cell.collision.paths).
@@ -31,7 +29,7 @@ from numpy.typing import ArrayLike
 from cell.collision.bodies import Annulus, Body, Box, Capsule, Mesh, Shell, distance, surface_samples
 from cell.core import geometry
 from cell.devices import ur5e
-from cell.devices.rig import RIG_ARM_RADIUS_M, TILT_SERVO_SIZE_M, lamp_frame
+from cell.devices.rig import lamp_frame
 from cell.task.types import HOUSING_RIM_M
 
 if TYPE_CHECKING:
@@ -45,11 +43,8 @@ SHOULDER_OFFSET_M, FOREARM_OFFSET_M = 0.138, 0.007
 ARM_LINKS = (("base", 0.076), ("shoulder", 0.062), ("upper_arm", 0.056), ("elbow", 0.050),
              ("forearm", 0.042), ("wrist_1", 0.046), ("wrist_2", 0.046), ("wrist_3", 0.046))
 CHAIN = tuple(name for name, _ in ARM_LINKS) + ("camera_body",)
-# The lamp and the pan-tilt's links holding it (rig_links), in the order CollisionScene.bodies puts them, last.
-LAMP_BODIES = ("lamp_body", "rig_arm", "tilt_servo")
 MAY_TOUCH = frozenset({frozenset(CHAIN[i:i + 2]) for i in range(len(CHAIN) - 1)}
                       | {frozenset((CHAIN[i], CHAIN[i + 2])) for i in range(len(CHAIN) - 2)}
-                      | {frozenset(pair) for pair in combinations(LAMP_BODIES, 2)}
                       | {frozenset(("base", "fixture")), frozenset(("part", "fixture"))})
 # The last joint (1-6) that moves each body of the chain (arm_links' points: o1 = o0 + d1 z0 never moves,
 # o4 = o3 + d4 z3 moves with joint 3, o5 = o4 + d5 z4 with 4, o6 = o5 + d6 z5 with 5, the camera body
@@ -137,6 +132,14 @@ def lamp_boxes(pivot_m: ArrayLike, lamp_half_m: ArrayLike, lamp_position: ArrayL
     return T
 
 
+# The pan-tilt's links behind the lamp, which hold it on its radius: the arm from the lamp housing's
+# back out along the radius to the rig's largest radius (a 20 mm tube), and the tilt servo at its end,
+# a Dynamixel X-series 430 (hardware notes; ROBOTIS e-Manual: 28.5 x 46.5 x 34 mm, W x H x D), its
+# 34 mm across the aim and horizontal, 46.5 mm across it, 28.5 mm along it.
+RIG_ARM_RADIUS_M = 0.010
+TILT_SERVO_SIZE_M = (0.034, 0.0465, 0.0285)
+
+
 @dataclass(frozen=True)
 class RigLinks:
     """The pan-tilt's links at C lamp positions: the arm (capsules a-b, one radius) and the tilt
@@ -192,8 +195,7 @@ class Clearance:
 @dataclass(frozen=True)
 class CollisionScene:
     """What the clearance of a pose needs from the task: the fixed meshes, the two boxes' sizes
-    and where they sit, the frames, the lamp rig's pivot, largest radius, tilt and pan ranges and
-    the padding."""
+    and where they sit, the frames, the lamp rig's pivot and tilt range and the padding."""
 
     padding_m: float
     fixed: tuple[Body, ...]                # the part first, the fixture, each fixed light's housing
@@ -202,9 +204,7 @@ class CollisionScene:
     lamp_half_m: np.ndarray
     frames: Frames
     pivot_m: np.ndarray
-    rig_radius_max_m: float                # the rig's largest radius, where its tilt servo stands (rig_links)
     tilt_range_rad: tuple[float, float] = (0.0, 0.5 * np.pi)     # the rig's, for the lamp's via points
-    pan_range_rad: tuple[float, float] = (-np.pi, np.pi)         # the rig's, for its pan the other way round
 
     @classmethod
     def of(cls, task: Task) -> CollisionScene:
@@ -214,7 +214,7 @@ class CollisionScene:
         fixed = (*fixed, *light_bodies(task))
         return cls(c.padding_m, fixed, 0.5 * np.asarray(c.camera_size_m), c.camera_offset_m,
                    0.5 * np.asarray(c.lamp_size_m), task.frames, task.lamp.rig.pivot_m,
-                   float(task.lamp.rig.radius_range_m[1]), task.lamp.rig.tilt_range_rad, task.lamp.rig.pan_range_rad)
+                   task.lamp.rig.tilt_range_rad)
 
     @property
     def part(self) -> Mesh:
@@ -227,37 +227,19 @@ class CollisionScene:
     def camera_body(self, T_cell_flange: np.ndarray) -> Box:
         return camera_body(T_cell_flange, self.camera_half_m, self.camera_offset_m)
 
-    def lamp_bodies(self, lamp_position: ArrayLike) -> tuple[Box, Capsule, Box]:
-        """The lamp's box (lamp_boxes) and the pan-tilt's links holding it (rig_links: the arm's
-        capsule, the tilt servo's box), named as LAMP_BODIES."""
-        p = np.asarray(lamp_position, float)
-        R = lamp_frame(self.pivot_m, p)
-        links = rig_links(self.pivot_m, self.lamp_half_m, self.rig_radius_max_m, p, R[None])
-        return (Box(LAMP_BODIES[0], lamp_boxes(self.pivot_m, self.lamp_half_m, p, R), self.lamp_half_m),
-                Capsule(LAMP_BODIES[1], links.a[0], links.b[0], links.radius_m),
-                Box(LAMP_BODIES[2], links.T_cell_servo[0], links.servo_half_m))
-
-    def lamp_reach(self, radius_m: float) -> np.ndarray:
-        """(3,) the farthest point [m] of each of lamp_bodies from the pivot with the lamp at
-        radius_m: the box's back corners within radius_m + 2 |h|, the arm's far end (the servo's
-        centre, c = the rig's largest radius + 2 h_z + the servo's half depth) plus its radius,
-        the servo's corners within c + its half diagonal; a turn of the rig by (dpan, dtilt)
-        moves a point at rho from the pivot by at most (|dpan| + |dtilt|) rho."""
-        servo_half = 0.5 * np.asarray(TILT_SERVO_SIZE_M)
-        servo = self.rig_radius_max_m + 2.0 * float(self.lamp_half_m[2]) + float(servo_half[2])
-        return np.array([radius_m + 2.0 * float(np.linalg.norm(self.lamp_half_m)), servo + RIG_ARM_RADIUS_M,
-                         servo + float(np.linalg.norm(servo_half))])
+    def lamp_body(self, lamp_position: ArrayLike) -> Box:
+        """The lamp's box (lamp_boxes)."""
+        return Box("lamp_body", lamp_boxes(self.pivot_m, self.lamp_half_m, lamp_position), self.lamp_half_m)
 
     def bodies(self, T_cell_cam: np.ndarray, arm_joints: ArrayLike | None = None,
                lamp_position: ArrayLike | None = None) -> tuple[Body, ...]:
         """Every body with the camera at T_cell_cam, the arm's links where joints put them (None:
-        no arm, e.g. a pose it does not reach) and the lamp with its links, last (lamp_bodies;
-        None: not placed yet)."""
+        no arm, e.g. a pose it does not reach) and the lamp (None: not placed yet)."""
         moving: list[Body] = [self.camera_body(self.frames.T_cell_flange(T_cell_cam))]
         if arm_joints is not None:
             moving += arm_links(self.frames.T_cell_base, arm_joints)
         if lamp_position is not None:
-            moving += self.lamp_bodies(lamp_position)
+            moving.append(self.lamp_body(lamp_position))
         return (*self.fixed, *moving)
 
     def clearance(self, T_cell_cam: np.ndarray, arm_joints: ArrayLike | None = None,

@@ -78,15 +78,13 @@ def go(task: Task, devices: Devices, recorder: Recorder, T_cell_cam: np.ndarray 
     """Check the move (check; `checked`: the caller's check of it from where the devices stand,
     nothing moved since) and refuse it (refusal) unless clear; then drive it: the arm
     through its via points to T_cell_cam, the lamp through its via joints to lamp_joints (the
-    lamp first where the move says so: Move.lamp_first, logged as `move_order`; the lamp to its
-    parking pose first where it waits while the arm moves: Move.lamp_park), each via logged as
-    read back (`move_via`, `move_lamp_via`, `move_lamp_park`). The last legs are the caller's to
+    lamp first where the move says so, Move.lamp_first, logged as `move_order`), each via logged
+    as read back (`move_via`, `move_lamp_via`). The last legs are the caller's to
     log: `arrived()` is called when the arm is there, before the lamp moves. Returns the Move."""
     move = checked or check(task, devices, T_cell_cam, lamp_joints, to)
     if not move.clear:
         raise refusal(move)
-    # the joints check() checked: its route's end (the pan a turn away, the other way round) or the target
-    lamp_joints = move.lamp_end or _lamp_target(devices, lamp_joints)
+    lamp_joints = _lamp_target(devices, lamp_joints)     # the joints check() checked
     apart = (f"{' and '.join(move.clearance.bodies)} at least {1e3 * move.clearance.distance_m:.1f} mm apart"
              if np.isfinite(move.clearance.distance_m) else "nothing near")
 
@@ -107,13 +105,6 @@ def go(task: Task, devices: Devices, recorder: Recorder, T_cell_cam: np.ndarray 
             if arrived is not None:
                 arrived()
 
-    def park() -> None:
-        if move.lamp_park is not None:
-            with speaking_for(devices.lamp):
-                devices.lamp.move(*move.lamp_park)
-                position = devices.lamp.lamp_pose()[0]
-            via("move_lamp_park", "the lamp's parking (out of the arm's way)", 1, 1, position)
-
     def lamp() -> None:
         for k, joints in enumerate(move.lamp_via, 1):
             with speaking_for(devices.lamp):
@@ -128,7 +119,7 @@ def go(task: Task, devices: Devices, recorder: Recorder, T_cell_cam: np.ndarray 
         recorder.step("move_order", f"the lamp first, then the camera, on the way to {to}: the camera's path with "
                                     "the lamp where it stands is not clear, the lamp's then the camera's is "
                                     f"(collision-checked: {apart})", iteration=iteration, to=to, lamp_first=True)
-    for part in ((lamp, arm) if move.lamp_first else (park, arm, lamp)):
+    for part in ((lamp, arm) if move.lamp_first else (arm, lamp)):
         part()
     return move
 

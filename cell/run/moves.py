@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from cell.collision.paths import Move, Stop, checked_route, home_stop, plan_transition
+from cell.collision.paths import Move, Stop, checked_route, home_stop, plan_move
 from cell.collision.scene import CollisionScene, reaching_joints
 from cell.devices import ur5e
 from cell.devices.interfaces import speaking_for
@@ -89,13 +89,12 @@ def run_moves(task: Task, plan: Plan, devices: Devices) -> list[Move]:
         if arrived is not None and foreseen is not None and np.allclose(arrived, foreseen, atol=1e-6):
             moves.append(planned)
         else:
-            move = plan_transition(scene, arm, at, targets[int(planned.end)],
-                                   planned.start if moves or at_home else "start", planned.end)
+            move = plan_move(scene, arm, planned.start if moves or at_home else "start", at,
+                             planned.end, targets[int(planned.end)])
             moves.append(move)
         if not moves[-1].clear or moves[-1].joints_end is None:
             break
-        at = replace(targets[int(planned.end)], arm_joints=moves[-1].joints_end,
-                     lamp_joints=moves[-1].lamp_end or targets[int(planned.end)].lamp_joints)
+        at = replace(targets[int(planned.end)], arm_joints=moves[-1].joints_end)
     return moves
 
 
