@@ -80,6 +80,22 @@ def test_the_dome_hung_higher_is_refused_naming_it(tmp_path, capsys):
     assert "the lighting, exposure and view meet every requirement" in headline and "tightest" not in headline
 
 
+def test_the_dome_hung_higher_is_refused_by_cell_run_before_anything_moves_naming_the_shots_bodies(tmp_path, capsys):
+    """`cell run` checks the planned shot's bodies as `cell plan` does: the wrist in the dome's hole
+    is the cause, not the first contact on the move there (the camera body passing the shell)."""
+    raw = yaml.safe_load(DOME.read_text())
+    raw["lights"][0]["position_m"][2] += 0.15
+    path = variant(tmp_path, DOME, {"lights": raw["lights"]})
+    out = tmp_path / "run"
+    assert main(["run", str(path), "--out", str(out)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith("cell run: infeasible: collision: dome and wrist_2 touch or overlap"), err
+    plan = json.loads((out / "plan.json").read_text())
+    assert plan["binding"] == "collision" and plan["clearance_bodies"] == ["dome", "wrist_2"]
+    steps = [json.loads(line)["step"] for line in (out / "log.jsonl").read_text().splitlines()]
+    assert not {"move_camera", "move_lamp", "move_via", "capture"} & set(steps)
+
+
 @pytest.mark.long          # 1-5 min: the run, the simulated arm's own check stepping finely near the dome
 def test_the_run_converges_through_via_points_down_the_domes_axis(tmp_path):
     """From the home pose over the dome, onto its axis above the hole, down to the shot; the

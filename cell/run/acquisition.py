@@ -40,11 +40,16 @@ class Capture:
 
 
 def plan_recorded(task: Task, recorder: Recorder, albedo_scale: float = 1.0, iteration: int | None = None,
-                  subfolder: str = "", T_cell_cam: np.ndarray | None = None) -> Plan:
+                  subfolder: str = "", T_cell_cam: np.ndarray | None = None, clear: bool = False) -> Plan:
     """Plan (the function `cell plan` uses; the camera at T_cell_cam, else by the task's rule),
-    write plan.json (its pictures when the run has ended: Recorder.write_plan), log it."""
+    with `clear` the shot's clearance checked as `cell plan` checks it (whole_part.cleared: a shot
+    closer than the padding is infeasible, its bodies named, before any move is planned), write
+    plan.json (its pictures when the run has ended: Recorder.write_plan), log it."""
     from cell.planning.one_shot import plan
+    from cell.planning.whole_part import cleared
     planned = plan(task, albedo_scale=albedo_scale, progress=recorder.progress, T_cell_cam=T_cell_cam)
+    if clear:
+        planned = cleared(task, planned)
     folder = recorder.write_plan(planned, task, subfolder)
     shot = planned.shot
     g, exposure = gray_stats(shot.gray), shot.exposure
@@ -68,9 +73,11 @@ def require_feasible(plan: Plan) -> None:
 
 def plan_and_connect(task: Task, recorder: Recorder, session: Session,
                      connect: Callable[[Scene], Devices]) -> tuple[Plan, Devices]:
-    """Plan (plan_recorded), refuse an infeasible plan before anything moves, then connect(scene)
-    the cell's devices into the session. Returns the plan and the devices."""
-    planned = plan_recorded(task, recorder)
+    """Plan (plan_recorded, the shot's clearance checked as `cell plan` checks it: a shot whose
+    bodies collide is refused with them named, the true cause, not the first contact on the move
+    there), refuse an infeasible plan before anything moves, then connect(scene) the cell's
+    devices into the session. Returns the plan and the devices."""
+    planned = plan_recorded(task, recorder, clear=True)
     require_feasible(planned)
     devices = session.devices = connect(planned.planned_scene)
     return planned, devices
