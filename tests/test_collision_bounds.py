@@ -178,3 +178,33 @@ def test_clear_answers_as_every_pairs_distance_does_at_random_and_grazing_paddin
             assert clear == reference_clear(bodies, fixed, float(padding)), (q, padding)
             answers.add(clear)
     assert answers == {True, False}
+
+
+def test_segment_to_box_spaces_its_points_as_numpy_linspace_bit_for_bit():
+    """segment_to_box writes np.linspace's arithmetic out (start + k (stop - start) / (n - 1), the
+    last point the stop); its answer against the same search with np.linspace itself."""
+    rng = np.random.default_rng(17)
+    steps = np.arange(17.0)
+    for _ in range(20000):
+        lo, hi = np.sort(rng.uniform(0.0, 1.0, 2))
+        lo, hi = (0.0 if rng.uniform() < 0.2 else float(lo)), (1.0 if rng.uniform() < 0.2 else float(hi))
+        t = steps * ((hi - lo) / 16) + lo
+        t[-1] = hi
+        assert np.array_equal(t, np.linspace(lo, hi, 17))
+
+    def by_linspace(box, a, b):
+        lo, hi, ab = 0.0, 1.0, b - a
+        for _ in range(4):
+            t = np.linspace(lo, hi, 17)
+            d = np.linalg.norm(np.maximum(np.abs((a + t[:, None] * ab - box.center) @ box.T_cell_box[:3, :3])
+                                          - box.half_m, 0.0), axis=1) + np.minimum(
+                (np.abs((a + t[:, None] * ab - box.center) @ box.T_cell_box[:3, :3]) - box.half_m).max(axis=1), 0.0)
+            k = int(np.argmin(d))
+            lo, hi = t[max(k - 1, 0)], t[min(k + 1, 16)]
+        return float(d[k] - (t[1] - t[0]) * np.linalg.norm(ab))
+
+    for _ in range(200):
+        box = Box("camera_body", geometry.from_rpy(rng.uniform(-3, 3, 3), rng.uniform(-0.1, 0.1, 3)),
+                  0.5 * rng.uniform(0.005, 0.12, 3))
+        for link in capsules_about(box, rng, 5):
+            assert segment_to_box(box, link.a, link.b) == by_linspace(box, link.a, link.b)

@@ -323,7 +323,8 @@ Revolved = Annulus | Shell
 def rectangle_sdf(q: np.ndarray) -> np.ndarray:
     """A box's or a rectangle's signed distance (...,) from q (..., D) = |x| - half, x in its own
     frame: |max(q, 0)| + min(max_i q_i, 0); it grows with each q_i."""
-    return np.linalg.norm(np.maximum(q, 0.0), axis=-1) + np.minimum(q.max(axis=-1), 0.0)
+    out = np.maximum(q, 0.0)
+    return np.sqrt(np.add.reduce(out * out, axis=-1)) + np.minimum(q.max(axis=-1), 0.0)   # np.linalg.norm's sum
 
 
 def _meridian(T_cell_body: np.ndarray, points: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
@@ -397,12 +398,13 @@ def segment_to_box(box: Box, a: np.ndarray, b: np.ndarray, rounds: int = BOX_SEA
     """A lower bound of min over the segment a-b of box.sdf, within |b - a| / 8192 of it. A convex
     body's SDF is convex, so along a segment its minimum lies beside the best of n evenly spaced
     points: each round searches n points between the best one's neighbours of the last."""
-    lo, hi, ab = 0.0, 1.0, b - a
+    lo, hi, ab, steps = 0.0, 1.0, b - a, np.arange(float(n))
     for _ in range(rounds):
-        t = np.linspace(lo, hi, n)
+        t = steps * ((hi - lo) / (n - 1)) + lo            # np.linspace(lo, hi, n), its very arithmetic
+        t[-1] = hi
         d = box.sdf(a + t[:, None] * ab)
-        k = int(np.argmin(d))
-        lo, hi = t[max(k - 1, 0)], t[min(k + 1, n - 1)]
+        k = int(d.argmin())
+        lo, hi = float(t[max(k - 1, 0)]), float(t[min(k + 1, n - 1)])
     return float(d[k] - (t[1] - t[0]) * _length(ab))
 
 
