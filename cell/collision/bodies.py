@@ -11,6 +11,9 @@ and that bound is <= 0 whenever A and B overlap, unless B lies wholly inside A; 
 caught by one point of B inside A (`_contained`). So `distance` never reports a clearance larger
 than the true one: it errs by at most h on the safe side, and overlap gives <= 0. A box against a
 ring's or a dome's housing is searched instead (`box_to_revolved`), within BOX_TOLERANCE_M.
+A mesh's samples are grouped in cells (`SampleCells`) so that the least over them is found
+where it can lie, the same value; `bracket` gives cheap bounds of a pair's distance, enough for
+the yes/no of a clearance against the padding (scene.Pairs.clear) when they lie on one side of it.
 
 This stands in for FCL (python-fcl has no wheel for this platform): trimesh's primitives are built
 the same way, and an SDF over NumPy arrays needs no BVH for the few thousand samples a part has.
@@ -18,6 +21,7 @@ the same way, and an SDF over NumPy arrays needs no BVH for the few thousand sam
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
@@ -34,6 +38,10 @@ MESH_EDGE_M = SAMPLE_BOUND_M * np.sqrt(3.0)  # a triangle of edges <= e: every p
                                              # of a vertex (its circumradius, or half its longest edge)
 SEGMENT_TOLERANCE_M = 1e-5   # segment_min's least value within this of the true one
 BOX_TOLERANCE_M = 1e-4       # box_to_revolved's bound within this of the true distance
+CELL_M = 3 * SAMPLE_BOUND_M  # a mesh's samples grouped in cubes of this side (SampleCells) and
+COARSE_CELLS = 4             # in cubes of this many of those on a side
+ROUNDING_M = 1e-9            # far above the rounding of the cheap bounds (~1e-15 m)
+BOX_SEARCH_ROUNDS = 4        # segment_to_box's rounds of 17 points: its answer within |b - a| / 8192
 
 
 @dataclass(frozen=True)
@@ -48,16 +56,18 @@ class Box:
     def center(self) -> np.ndarray:
         return self.T_cell_box[:3, 3]
 
-    @property
+    @cached_property
     def radius(self) -> float:
         """Of the sphere about the centre holding the box."""
         return float(np.linalg.norm(self.half_m))
 
+    def local(self, points: ArrayLike) -> np.ndarray:
+        """(N, 3) the points (N, 3) in the box's frame."""
+        return (np.asarray(points, float).reshape(-1, 3) - self.center) @ self.T_cell_box[:3, :3]
+
     def sdf(self, points: ArrayLike) -> np.ndarray:
-        """Signed distance (N,) [m] of points (N, 3): |max(q, 0)| + min(max_i q_i, 0), q = |p| - half."""
-        local = (np.asarray(points, float).reshape(-1, 3) - self.center) @ self.T_cell_box[:3, :3]
-        q = np.abs(local) - self.half_m
-        return np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0)
+        """Signed distance (N,) [m] of points (N, 3) (rectangle_sdf of q = |p| - half, p local)."""
+        return rectangle_sdf(np.abs(self.local(points)) - self.half_m)
 
     def samples(self) -> np.ndarray:
         """(N, 3) points on its surface, every surface point within SAMPLE_BOUND_M of one."""
@@ -73,13 +83,17 @@ class Capsule:
     b: np.ndarray
     radius_m: float
 
-    @property
+    @cached_property
     def center(self) -> np.ndarray:
         return 0.5 * (self.a + self.b)
 
-    @property
+    @cached_property
+    def length(self) -> float:
+        return _length(self.b - self.a)
+
+    @cached_property
     def radius(self) -> float:
-        return float(0.5 * np.linalg.norm(self.b - self.a) + self.radius_m)
+        return float(0.5 * self.length + self.radius_m)
 
     def sdf(self, points: ArrayLike) -> np.ndarray:
         """Signed distance (N,) [m]: the distance to the segment, less the radius."""
@@ -112,9 +126,86 @@ class Mesh:
     def radius(self) -> float:
         return float(np.linalg.norm(self.points - self.center, axis=1).max() + SAMPLE_BOUND_M)
 
+    @cached_property
+    def cells(self) -> SampleCells:
+        return SampleCells.of(self.points)
+
+    @cached_property
+    def aabb(self) -> tuple[np.ndarray, np.ndarray]:
+        """(least, largest) corner of the box holding its vertices, so the closed surface."""
+        return self.vertices.min(axis=0), self.vertices.max(axis=0)
+
     def contains(self, point: ArrayLike) -> bool:
-        """The point inside the closed surface (generalised winding number above 1/2)."""
+        """The point inside the closed surface (generalised winding number above 1/2); a point
+        outside the box holding it sees the surface within a half-space, under less than 2 pi
+        (winding number below 1/2), so it is not asked."""
+        p = np.asarray(point, float)
+        if np.any(p < self.aabb[0]) or np.any(p > self.aabb[1]):
+            return False
         return geometry.winding_number(self.vertices, self.faces, point) > 0.5
+
+
+@dataclass(frozen=True)
+class SampleCells:
+    """A mesh's samples grouped in two levels of cubes: fine cells of side CELL_M, coarse ones of
+    side COARSE_CELLS * CELL_M. Fine cell c holds points[start[c]:start[c + 1]], all within
+    radius[c] of centre[c]; coarse cell C holds the fine cells coarse_start[C]:coarse_start[C + 1]
+    and their samples, all within coarse_radius[C] of coarse_centre[C]. For a 1-Lipschitz sdf
+    a cell's least value over its samples lies in [sdf(centre) - radius, sdf(centre) + radius],
+    so the least over all samples lies in [min lower, min upper] over the coarse cells (`bounds`)
+    and is found in the fine cells whose lower bound is at most the least upper bound known, in
+    coarse cells that pass the same test (`least`)."""
+
+    points: np.ndarray          # (N, 3) the samples, cell by cell
+    start: np.ndarray           # (C + 1,) the fine cells' first samples
+    centre: np.ndarray          # (C, 3)
+    radius: np.ndarray          # (C,)
+    coarse_start: np.ndarray    # (K + 1,) the coarse cells' first fine cells
+    coarse_centre: np.ndarray   # (K, 3)
+    coarse_radius: np.ndarray   # (K,)
+
+    @classmethod
+    def of(cls, points: np.ndarray) -> SampleCells:
+        fine = np.floor((points - points.min(axis=0)) / CELL_M).astype(np.int64)
+        coarse = fine // COARSE_CELLS
+        order = np.lexsort((*fine.T[::-1], *coarse.T[::-1]))          # by coarse cell, then fine
+        points, fine, coarse = points[order], fine[order], coarse[order]
+        new_fine = np.concatenate([[True], np.any(fine[1:] != fine[:-1], axis=1)])
+        new_coarse = np.concatenate([[True], np.any(coarse[1:] != coarse[:-1], axis=1)])
+        start, first = (np.append(np.flatnonzero(new), len(points)) for new in (new_fine, new_coarse))
+        centre, radius = _spheres(points, start)
+        coarse_centre, coarse_radius = _spheres(points, first)
+        coarse_start = np.searchsorted(start, first)
+        return cls(points, start, centre, radius, coarse_start, coarse_centre, coarse_radius)
+
+    def bounds(self, sdf: Callable[[np.ndarray], np.ndarray]) -> tuple[float, float]:
+        """(a lower, an upper bound) of the least sdf over the samples, from the fine cells."""
+        at = sdf(self.centre)
+        return float((at - self.radius).min()), float((at + self.radius).min())
+
+    def least(self, sdf: Callable[[np.ndarray], np.ndarray]) -> float:
+        """The least sdf over the samples: the very value sdf(points).min() (each sample's value
+        is the same computed alone or among all), evaluated only in the cells that may hold it."""
+        at = sdf(self.coarse_centre)
+        upper = float((at + self.coarse_radius).min())
+        cells = _ranges(self.coarse_start, np.flatnonzero(at - self.coarse_radius <= upper + ROUNDING_M))
+        at = sdf(self.centre[cells])
+        upper = min(upper, float((at + self.radius[cells]).min()))
+        return float(sdf(self.points[_ranges(self.start, cells[at - self.radius[cells] <= upper + ROUNDING_M])]).min())
+
+
+def _spheres(points: np.ndarray, start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(centres (G, 3), radii (G,)) spheres holding each group of points[start[g]:start[g + 1]]:
+    the middle of its bounding box and its farthest point from it."""
+    centre = 0.5 * (np.minimum.reduceat(points, start[:-1], axis=0) + np.maximum.reduceat(points, start[:-1], axis=0))
+    far = np.linalg.norm(points - np.repeat(centre, np.diff(start), axis=0), axis=1)
+    return centre, np.maximum.reduceat(far, start[:-1])
+
+
+def _ranges(start: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    """The indices start[g]:start[g + 1] of each of the groups, one after the other."""
+    count = start[groups + 1] - start[groups]
+    return np.repeat(start[groups] - np.cumsum(count) + count, count) + np.arange(count.sum())
 
 
 @dataclass(frozen=True)
@@ -146,9 +237,8 @@ class Annulus:
     def sdf(self, points: ArrayLike) -> np.ndarray:
         """Signed distance (N,) [m]: |max(q, 0)| + min(max_i q_i, 0), q = |(r, z) - middle| - half."""
         r, z = _meridian(self.T_cell_body, points)
-        q = np.column_stack([np.abs(r - 0.5 * (self.inner_m + self.outer_m)) - 0.5 * (self.outer_m - self.inner_m),
-                             np.abs(z - 0.5 * sum(self.z_m)) - 0.5 * (self.z_m[1] - self.z_m[0])])
-        return np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0)
+        return rectangle_sdf(np.column_stack([np.abs(r - 0.5 * (self.inner_m + self.outer_m)) - 0.5 * (self.outer_m - self.inner_m),
+                                              np.abs(z - 0.5 * sum(self.z_m)) - 0.5 * (self.z_m[1] - self.z_m[0])]))
 
     def hull_gap(self, corners: np.ndarray) -> np.ndarray:
         """A lower bound (N,) [m] of the distance from each flat convex patch, its corners
@@ -230,6 +320,13 @@ Body = Box | Capsule | Mesh | Annulus | Shell
 Revolved = Annulus | Shell
 
 
+def rectangle_sdf(q: np.ndarray) -> np.ndarray:
+    """A box's or a rectangle's signed distance (...,) from q (..., D) = |x| - half, x in its own
+    frame: |max(q, 0)| + min(max_i q_i, 0); it grows with each q_i."""
+    out = np.maximum(q, 0.0)
+    return np.sqrt(np.add.reduce(out * out, axis=-1)) + np.minimum(q.max(axis=-1), 0.0)   # np.linalg.norm's sum
+
+
 def _meridian(T_cell_body: np.ndarray, points: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """(r, z) (N,) each of points (N, 3) in the body's frame: the distance from its z axis and
     the height along it."""
@@ -266,38 +363,49 @@ def _box_surface(half: tuple[float, float, float]) -> np.ndarray:
 def segment_distance(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndarray) -> float:
     """The distance between segments p1-q1 and p2-q2 (Ericson, Real-Time Collision Detection 5.1.9)."""
     d1, d2, r = q1 - p1, q2 - p2, p1 - p2
-    a, e, f = d1 @ d1, d2 @ d2, d2 @ r
+    a, e, f = float(d1 @ d1), float(d2 @ d2), float(d2 @ r)
     if a <= 1e-18 and e <= 1e-18:
-        return float(np.linalg.norm(r))
+        return _length(r)
     if a <= 1e-18:
-        s, t = 0.0, float(np.clip(f / e, 0.0, 1.0))
+        s, t = 0.0, _unit(f / e)
     else:
-        c = d1 @ r
+        c = float(d1 @ r)
         if e <= 1e-18:
-            s, t = float(np.clip(-c / a, 0.0, 1.0)), 0.0
+            s, t = _unit(-c / a), 0.0
         else:
-            b = d1 @ d2
+            b = float(d1 @ d2)
             denom = a * e - b * b
-            s = float(np.clip((b * f - c * e) / denom, 0.0, 1.0)) if denom > 1e-18 else 0.0
+            s = _unit((b * f - c * e) / denom) if denom > 1e-18 else 0.0
             t = (b * s + f) / e
             if t < 0.0:
-                s, t = float(np.clip(-c / a, 0.0, 1.0)), 0.0
+                s, t = _unit(-c / a), 0.0
             elif t > 1.0:
-                s, t = float(np.clip((b - c) / a, 0.0, 1.0)), 1.0
-    return float(np.linalg.norm(p1 + s * d1 - (p2 + t * d2)))
+                s, t = _unit((b - c) / a), 1.0
+    return _length(p1 + s * d1 - (p2 + t * d2))
 
 
-def segment_to_box(box: Box, a: np.ndarray, b: np.ndarray, rounds: int = 4, n: int = 17) -> float:
+def _unit(x: float) -> float:
+    """x clipped to [0, 1]."""
+    return min(max(x, 0.0), 1.0)
+
+
+def _length(v: np.ndarray) -> float:
+    """|v| of a vector (3,): np.linalg.norm's very sum, sqrt(v . v), without its checks."""
+    return math.sqrt(v.dot(v))
+
+
+def segment_to_box(box: Box, a: np.ndarray, b: np.ndarray, rounds: int = BOX_SEARCH_ROUNDS, n: int = 17) -> float:
     """A lower bound of min over the segment a-b of box.sdf, within |b - a| / 8192 of it. A convex
     body's SDF is convex, so along a segment its minimum lies beside the best of n evenly spaced
     points: each round searches n points between the best one's neighbours of the last."""
-    lo, hi, ab = 0.0, 1.0, b - a
+    lo, hi, ab, steps = 0.0, 1.0, b - a, np.arange(float(n))
     for _ in range(rounds):
-        t = np.linspace(lo, hi, n)
+        t = steps * ((hi - lo) / (n - 1)) + lo            # np.linspace(lo, hi, n), its very arithmetic
+        t[-1] = hi
         d = box.sdf(a + t[:, None] * ab)
-        k = int(np.argmin(d))
-        lo, hi = t[max(k - 1, 0)], t[min(k + 1, n - 1)]
-    return float(d[k] - (t[1] - t[0]) * np.linalg.norm(ab))
+        k = int(d.argmin())
+        lo, hi = float(t[max(k - 1, 0)]), float(t[min(k + 1, n - 1)])
+    return float(d[k] - (t[1] - t[0]) * _length(ab))
 
 
 def segment_min(sdf: Callable[[np.ndarray], np.ndarray], a: np.ndarray, b: np.ndarray,
@@ -404,9 +512,33 @@ def distance(a: Body, b: Body) -> float:
         a, b = b, a                        # sample the mesh; b has an exact SDF
     if not isinstance(a, (Mesh, Box)) or isinstance(b, Mesh):
         raise ValueError(f"no distance between two fixed bodies ({a.name}, {b.name})")
-    points = a.points if isinstance(a, Mesh) else a.samples()
-    bound = float(b.sdf(points).min()) - SAMPLE_BOUND_M
-    return min(bound, _contained(b, a))
+    least = a.cells.least(b.sdf) if isinstance(a, Mesh) else float(b.sdf(a.samples()).min())
+    return min(least - SAMPLE_BOUND_M, _contained(b, a))
+
+
+def bracket(a: Body, b: Body) -> tuple[float, float]:
+    """(a lower, an upper bound) of distance(a, b) [m], cheaper than it, up to rounding (~1e-15 m):
+    a capsule and a box, the least of the box's SDF along the segment is at least Box.sdf's
+    formula at q_i = min over the segment of |x_i| - h_i (it grows with each q_i; x_i is linear
+    along it), less segment_to_box's last spacing times |b - a| (its answer is no lower), and at
+    most its value at the segment's ends and middle (segment_to_box's answer is no higher); a
+    mesh, its sample cells' bounds (SampleCells.bounds). Other pairs: none (-inf, +inf)."""
+    if isinstance(a, Capsule) and isinstance(b, Box):
+        a, b = b, a
+    if isinstance(a, Box) and isinstance(b, Capsule):
+        local = a.local(np.stack([b.a, b.center, b.b]))
+        crossed = (local[0] <= 0.0) != (local[2] <= 0.0)          # the segment crosses x_i = 0
+        q = np.where(crossed, 0.0, np.minimum(np.abs(local[0]), np.abs(local[2]))) - a.half_m
+        spacing = 8.0 ** (1 - BOX_SEARCH_ROUNDS) / 16.0          # segment_to_box's last, at most
+        return (float(rectangle_sdf(q)) - spacing * b.length - b.radius_m,
+                float(rectangle_sdf(np.abs(local) - a.half_m).min()) - b.radius_m)
+    if isinstance(b, Mesh):
+        a, b = b, a
+    if isinstance(a, Mesh) and isinstance(b, (Box, Capsule)):
+        lower, upper = a.cells.bounds(b.sdf)
+        inside = _contained(b, a)
+        return min(lower - SAMPLE_BOUND_M, inside), min(upper - SAMPLE_BOUND_M, inside)
+    return -np.inf, np.inf
 
 
 def _contained(inner: Box | Capsule | Annulus | Shell, outer: Body) -> float:

@@ -26,7 +26,8 @@ import numpy as np
 import trimesh
 from numpy.typing import ArrayLike
 
-from cell.collision.bodies import Annulus, Body, Box, Capsule, Mesh, Shell, distance, surface_samples
+from cell.collision.bodies import (ROUNDING_M, Annulus, Body, Box, Capsule, Mesh, Shell, bracket, distance,
+                                  surface_samples)
 from cell.core import geometry
 from cell.devices import ur5e
 from cell.devices.rig import lamp_frame
@@ -308,13 +309,18 @@ class Pairs:
 
 
     def clear(self, padding_m: float) -> bool:
-        """Every pair at least padding_m apart: the pairs whose gap is below it in order of gap,
-        stopping at the first whose distance is below it; a pair whose bounding spheres are the
-        padding apart is (its true distance is no less), so none after them needs its distance."""
+        """Every pair at least padding_m apart (each bodies.distance, the answer the same): the
+        pairs whose gap is below it in order of gap, stopping at the first whose distance is
+        below it; a pair whose bounding spheres are the padding apart is (its true distance is no
+        less), so none after them needs its distance, nor does a pair whose cheaper bounds
+        (bodies.bracket) lie on one side of the padding by more than their rounding."""
         for k in np.argsort(self.gap, kind="stable"):
             if self.gap[k] >= padding_m:
                 return True
-            if self.exact(int(k)) < padding_m:
+            lower, upper = bracket(self.bodies[self.i[k]], self.bodies[self.j[k]])
+            if lower >= padding_m + ROUNDING_M:
+                continue
+            if upper < padding_m - ROUNDING_M or self.exact(int(k)) < padding_m:
                 return False
         return True
 
