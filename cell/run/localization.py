@@ -5,7 +5,8 @@ read-back camera and lamp poses) and the cell-frame point each of its pixels see
 depth) are compared with the capture by their edges: both equalized (the logarithm of the gray,
 so the lamp's falloff and the shading add a slowly varying term) and band-passed (a Gaussian of
 sigma less one of BAND_RATIO sigma). The model's strongest edge pixels (EDGE_QUANTILE) are
-samples: a point X on the part and the model's band-passed gray there.
+samples: a point X on the part and the model's band-passed gray there; not the edges a cast
+shadow draws (edge_samples), which do not move with the part as X does.
 
 What explains them: the part's pose error E_part in the cell frame (turned by part_rpy about the
 feature centre c, then moved by part_offset, as the simulator's truth keys state it) and the
