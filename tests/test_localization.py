@@ -573,12 +573,12 @@ def test_the_conrod_s_turns_are_within_0_3_deg_and_their_standard_errors(tmp_pat
     assert found.part_offset_m == pytest.approx(truth["part_offset_m"], abs=1e-3)
 
 
-def test_the_edges_the_light_draws_are_not_sampled():
+def test_the_edges_a_shadow_casts_are_not_sampled():
     """A part (a bright square on the part's pixels) with a step in its shading (a ridge, in the
-    image with and without what the light draws alike) and a shadow across its other half (only
-    in the image with it): edge_samples takes points along the step and along the part's outline,
-    none along the shadow's edge (the fit would move it with the part; it stays where the light
-    puts it); without the plain image it takes the shadow's edge too."""
+    image with and without shadows alike) and a shadow across its other half (only in the image
+    with shadows): edge_samples takes points along the step and along the part's outline, none
+    along the shadow's edge (the fit would move it with the part; it stays where the light puts
+    it); without the unshadowed image it takes the shadow's edge too."""
     v, u = np.mgrid[:200, :300].astype(float)
     on_part = (np.abs(u - 150.0) < 100.0) & (np.abs(v - 100.0) < 80.0)
     points = np.where(on_part[..., None], np.dstack([u, v, np.zeros_like(u)]) * 1e-4, np.nan)
