@@ -571,28 +571,3 @@ def test_the_conrod_s_turns_are_within_0_3_deg_and_their_standard_errors(tmp_pat
     assert np.all(np.degrees(np.abs(turn)) <= 0.3), np.degrees(turn)
     assert np.all(np.abs(turn) <= 3.0 * found.part_rpy_stderr_rad), (turn / found.part_rpy_stderr_rad)
     assert found.part_offset_m == pytest.approx(truth["part_offset_m"], abs=1e-3)
-
-
-def test_the_edges_a_shadow_casts_are_not_sampled():
-    """A part (a bright square on the part's pixels) with a step in its shading (a ridge, in the
-    image with and without shadows alike) and a shadow across its other half (only in the image
-    with shadows): edge_samples takes points along the step and along the part's outline, none
-    along the shadow's edge (the fit would move it with the part; it stays where the light puts
-    it); without the unshadowed image it takes the shadow's edge too."""
-    v, u = np.mgrid[:200, :300].astype(float)
-    on_part = (np.abs(u - 150.0) < 100.0) & (np.abs(v - 100.0) < 80.0)
-    points = np.where(on_part[..., None], np.dstack([u, v, np.zeros_like(u)]) * 1e-4, np.nan)
-    plain = np.where(on_part, np.where(u < 150.0, 50.0, 100.0), 0.0).astype(np.float32)      # the ridge at u = 150
-    shadowed = np.where(on_part & (v > 130.0), 0.2 * plain, plain).astype(np.float32)          # a shadow below v = 130
-    capture = shadowed + 5.0
-
-    def near_shadow_edge(samples):        # along v = 130, away from the ridge and the outline
-        rows, cols = np.round(samples.points[:, 1] * 1e4), np.round(samples.points[:, 0] * 1e4)
-        return int(np.sum((np.abs(rows - 130.0) < 6.0) & (np.abs(cols - 150.0) > 12.0) & (np.abs(cols - 150.0) < 90.0)))
-
-    told = localization.ModelView(shadowed, points, np.eye(4), plain)
-    kept = localization.edge_samples(told, capture, 1.5)
-    every = localization.edge_samples(localization.ModelView(shadowed, points, np.eye(4)), capture, 1.5)
-    assert near_shadow_edge(every) > 50 and near_shadow_edge(kept) == 0
-    ridge = np.abs(np.round(kept.points[:, 0] * 1e4) - 150.0) < 4.0
-    assert ridge.sum() > 50

@@ -5,8 +5,7 @@ read-back camera and lamp poses) and the cell-frame point each of its pixels see
 depth) are compared with the capture by their edges: both equalized (the logarithm of the gray,
 so the lamp's falloff and the shading add a slowly varying term) and band-passed (a Gaussian of
 sigma less one of BAND_RATIO sigma). The model's strongest edge pixels (EDGE_QUANTILE) are
-samples: a point X on the part and the model's band-passed gray there; not the edges a cast
-shadow draws (edge_samples), which do not move with the part as X does.
+samples: a point X on the part and the model's band-passed gray there.
 
 What explains them: the part's pose error E_part in the cell frame (turned by part_rpy about the
 feature centre c, then moved by part_offset, as the simulator's truth keys state it) and the
@@ -84,7 +83,6 @@ MAX_TURN_RAD = np.radians(7.0)
 MAX_HAND_EYE_RAD = np.radians(3.0)
 MIN_CONTRAST_GRAY = 10.0    # localize: a capture flatter than this [gray] shows nothing
 MIN_SAMPLES = 200           # fewer edge samples in a view: it tells nothing
-CAST_EDGE = 0.5             # edge_samples: an edge whose gradient without cast shadows is below this of its own is cast
 ORBITS_DEG = (30.0, 50.0)   # second_views: the orbits about the feature,
 ORBITS = 8                  # about this many axes across the view,
 ROLL_DEG = 90.0             # the roll about the camera's axis
@@ -109,13 +107,11 @@ PAN_MARGIN_RAD = np.radians(1.0)   # lamps_along: its pans this far inside the r
 @dataclass(frozen=True)
 class ModelView:
     """The model's image of one view: gray per unit exposure (H, W), each pixel's cell-frame
-    point (H, W, 3) (NaN where the ray misses the part), from the read-back camera pose; and,
-    where asked, the same image without cast shadows (`unshadowed`: edge_samples' cast edges)."""
+    point (H, W, 3) (NaN where the ray misses the part), from the read-back camera pose."""
 
     value: np.ndarray
     points: np.ndarray
     T_cell_cam: np.ndarray
-    unshadowed: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -139,10 +135,9 @@ def grid_intrinsics(task: Task, scale: int = 1) -> np.ndarray:
 
 
 def model_view(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: LampPose,
-               drives: Drives = None, scale: int = 1, unshadowed: bool = False) -> ModelView:
+               drives: Drives = None, scale: int = 1) -> ModelView:
     """The model's image over the whole sensor (registration.expected_image, on a grid `scale`
-    times coarser) and the point each pixel sees (kernels.render's depth along the pixel's ray);
-    with `unshadowed`, the image without cast shadows too."""
+    times coarser) and the point each pixel sees (kernels.render's depth along the pixel's ray)."""
     from kernels.render import render
     sensor = task.camera.sensor
     width, height = round(sensor.width_px / scale), round(sensor.height_px / scale)
@@ -153,9 +148,7 @@ def model_view(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: Lamp
     hit = render(scene.shadow_mesh, origin, rays, origin, rays[0], 1.0, np.pi, task.part.material.table(),
                  1.0, 1.0, shadows=False, part_faces=len(scene.faces))
     points = np.where(hit.hit[:, None], origin + hit.depth[:, None] * rays, np.nan)
-    plain = registration.expected_image(task, scene, T_cell_cam, lamp_pose, (0, 0, width, height), scale, drives,
-                                        shadows=False) if unshadowed else None
-    return ModelView(value, points.reshape(height, width, 3), np.array(T_cell_cam, float), plain)
+    return ModelView(value, points.reshape(height, width, 3), np.array(T_cell_cam, float))
 
 
 def signal(task: Task, image: np.ndarray) -> np.ndarray:
@@ -226,22 +219,11 @@ hinges' windows scored alike, and a turned start put one 1 mm low). The turns: a
 def edge_samples(view: ModelView, capture: np.ndarray, sigma_px: float) -> Samples:
     """The view's Samples at scale sigma: the model's part pixels whose band-passed gray changes
     most (the EDGE_QUANTILE of its gradient), their points and band-passed gray, both images
-    scaled to unit spread over the part. Given the view's image without cast shadows
-    (ModelView.unshadowed), not the cast edges: pixels whose gradient there is less than
-    CAST_EDGE of the shadowed image's (an edge a shadow draws). The fit moves each sample with
-    the part, and a shadow's edge moves otherwise: it stays where the light and what casts it put
-    it, and under a low lamp a tilt moves it far (the conrod's big boss's shadow along its shank,
-    lit from 15 deg: tilted 3 deg about its width, the shadow's length changes by a fifth). With
-    them, the conrod 5, -5 mm off, 3 deg about y, camera 1 deg about x, from its four views
-    (two with the lamp low along the shank) came out tilted 1.25 deg short, and the fit iterated
-    against the model's images there stayed (1.28, 1.24, 1.24, 1.20 deg): the world's shadows
-    alone 1.62 deg, no effect but them 0.04."""
+    scaled to unit spread over the part."""
     seen = np.isfinite(view.points[..., 0])
     model = band_pass(view.value, sigma_px)
     grad = registration.gradient(model)
     candidates = seen & (grad > 0)
-    if view.unshadowed is not None:
-        candidates &= registration.gradient(band_pass(view.unshadowed, sigma_px)) >= CAST_EDGE * grad
     if not candidates.any():
         return Samples(np.zeros((0, 3)), np.zeros(0), np.zeros((2, 2), np.float32), view.T_cell_cam)
     threshold = np.quantile(grad[candidates], EDGE_QUANTILE)
@@ -550,7 +532,7 @@ def localize(task: Task, scene: Scene, views: Sequence[View],
         there = localize(task, moved_scene(scene, start.T_part),
                          [replace(v, T_cell_cam=v.T_cell_cam @ start.T_hand_eye) for v in views])
         return None if there is None else composed(start, there)
-    models = [model_view(task, scene, v.T_cell_cam, v.lamp_pose, v.drives, unshadowed=True) for v in views]
+    models = [model_view(task, scene, v.T_cell_cam, v.lamp_pose, v.drives) for v in views]
     images = [signal(task, v.image) for v in views]
     K = projection.intrinsics(task.camera.sensor, task.camera.lens)
     shifts = [whole_shift(m.value, image, tuple(projection.project(K, m.T_cell_cam, scene.center[None])[0][0]))
@@ -637,7 +619,7 @@ def refine(task: Task, scene: Scene, views: Sequence[View], first: PoseError) ->
     moved = moved_scene(scene, first.T_part)
     E_he = first.T_hand_eye
     K = projection.intrinsics(task.camera.sensor, task.camera.lens)
-    models = [model_view(task, moved, v.T_cell_cam @ E_he, v.lamp_pose, v.drives, unshadowed=True) for v in views]
+    models = [model_view(task, moved, v.T_cell_cam @ E_he, v.lamp_pose, v.drives) for v in views]
     levels = [[edge_samples(m, signal(task, v.image), s) for m, v in zip(models, views)] for s in SCALES_PX]
     if min(len(s.points) for s in levels[-1]) < MIN_SAMPLES:
         return first
