@@ -42,13 +42,16 @@ class SimPanTilt(ServoRig):
 
     def move(self, pan_rad: float, tilt_rad: float, radius_m: float) -> None:
         """As the rig moves (ServoRig.move); given the cell's `obstacles` (sim.obstacles), the
-        joints' straight path from where they are (the radius from the commanded one while
-        none is known) is checked first: a move that would touch another body is a protective
-        stop (DeviceFault), the lamp where it was."""
+        joints' path as the servos' ticks go straight from the present ticks to the goal ticks
+        (the radius from the commanded one while none is known) is checked first: a move that
+        would touch another body is a protective stop (DeviceFault), the lamp where it was."""
         if self.obstacles is not None and all(self.torque.values()):
-            pan, tilt, radius = self.joints()
-            start = np.array([pan, tilt, radius if np.isfinite(radius) else radius_m])
-            end = np.array([self._in_range(pan_rad, tilt_rad, radius_m), tilt_rad, radius_m])
+            goals = self.goal_ticks(self._in_range(pan_rad, tilt_rad, radius_m), tilt_rad,
+                                    None if self.manual_radius else radius_m)
+            (pan0, tilt0, r0), (pan1, tilt1, r1) = self.joints_from_ticks(self.present), self.joints_from_ticks(goals)
+            r0 = self._confirmed_radius if r0 is None else r0
+            start = np.array([pan0, tilt0, r0 if np.isfinite(r0) else radius_m])
+            end = np.array([pan1, tilt1, radius_m if r1 is None else r1])
             contact = self.obstacles.lamp_move(start, end, lambda j: lamp_position(self.rig.pivot_m, *j))
             if contact is not None:
                 raise DeviceFault(self.device, f"protective stop: {contact} (the simulated cell's own "

@@ -29,11 +29,14 @@ HINGE = Path(__file__).resolve().parent.parent / "tasks" / "hinge.yaml"
 
 def sim_devices(task, arm_joints, lamp_joints):
     """The simulated arm and pan-tilt sharing the cell's own collision check, the arm at
-    arm_joints and the lamp at lamp_joints (no camera: nothing is captured)."""
+    arm_joints and the lamp at lamp_joints, placed there (no camera: nothing is captured). The
+    lamp is placed, not driven: its servo's way there from the centre tick (e.g. to 180 deg
+    through -90 deg) is no move under test."""
     obstacles = Obstacles(task)
     arm = SimArm(task.cell.devices.arm, task.frames, joints=arm_joints, obstacles=obstacles)
-    lamp = SimPanTilt(task.lamp.rig, task.cell.devices.pan_tilt, obstacles=obstacles)
+    lamp = SimPanTilt(task.lamp.rig, task.cell.devices.pan_tilt)
     lamp.move(*lamp_joints)
+    lamp.obstacles, obstacles.lamp_position = obstacles, lamp_position(task.lamp.rig.pivot_m, *lamp.joints())
     lamp.moves = 0
     return Devices(arm, lamp, camera=None)
 

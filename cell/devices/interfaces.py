@@ -195,18 +195,12 @@ class LampRig(ABC):
         _check_range(self.device, "radius", radius_m, self.rig.radius_range_m)
         return pan
 
-    def target(self, pan_rad: float, tilt_rad: float, radius_m: float,
-               near_rad: float | None = None) -> tuple[float, float, float]:
+    def target(self, pan_rad: float, tilt_rad: float, radius_m: float) -> tuple[float, float, float]:
         """The joints move(pan, tilt, radius) drives the axes to: the pan as the one in the rig's
-        range (+ 2 pi k), the one nearest `near_rad` where two are (the same lamp position at
-        -180 and 180 deg: commanded as the nearer, the pan does not sweep a turn); the lamp's
-        route is checked to these (cell.run.motion). DeviceFault for joints outside the ranges,
-        as move."""
-        pan = float(self._in_range(pan_rad, tilt_rad, radius_m))
-        if near_rad is not None:
-            lo, hi = self.rig.pan_range_rad
-            options = [p for p in pan + 2 * np.pi * np.array([0.0, -1.0, 1.0]) if lo - 1e-9 <= p <= hi + 1e-9]
-            pan = float(min(options, key=lambda p: abs(p - near_rad)))
+        range (+ 2 pi k) as the axis holds it (`held`: a servo's goal wraps into one turn, +180 deg
+        to -180 deg), so the lamp's route checked to these (cell.run.motion) is the one driven.
+        DeviceFault for joints outside the ranges, as move."""
+        pan = self.held(float(self._in_range(pan_rad, tilt_rad, radius_m)))
         return pan, float(tilt_rad), float(radius_m)
 
     def refusal(self, pan_rad: float, tilt_rad: float, radius_m: float) -> str | None:
@@ -226,6 +220,10 @@ class LampRig(ABC):
         """(position, aim) of the lamp in the cell frame from the read-back joints."""
         position = lamp_position(self.rig.pivot_m, *self.joints())
         return position, lamp_aim(self.rig.pivot_m, position)
+
+    @abstractmethod
+    def held(self, pan_rad: float) -> float:
+        """The pan the axis drives to and reads back for a commanded pan, not quantized."""
 
     @abstractmethod
     def _move_axes(self, pan_rad, tilt_rad, radius_m):

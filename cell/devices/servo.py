@@ -58,6 +58,20 @@ def describe_hardware_error(bits: int) -> str:
     return f"0x{bits:02X} ({', '.join(names)})"
 
 
+def pan_turns(pan_rad: float, pan_offset_rad: float) -> int:
+    """The whole turns k the pan servo's goal drops (goal_ticks): position mode holds one turn,
+    ticks 0..4095, so the pan relative to pan_offset is wrapped into [-180, 180) deg as its tick,
+    k = floor((round((pan - offset) N / 2 pi) + 2048) / N), N = 4096; +180 deg is tick 0 = -180 deg."""
+    k = round((pan_rad - pan_offset_rad) * TICKS_PER_TURN / (2 * np.pi))
+    return (k + CENTRE_TICK) // TICKS_PER_TURN
+
+
+def held_pan(pan_rad: float, pan_offset_rad: float) -> float:
+    """The pan the servo drives to for a commanded pan, not quantized: pan - 2 pi k (pan_turns),
+    so a path checked from one held pan to another is the one the servo's ticks take."""
+    return float(pan_rad - 2 * np.pi * pan_turns(pan_rad, pan_offset_rad))
+
+
 def profile_velocity(speed_rad_s: float) -> int:
     """Profile Velocity (112) value for a joint speed; at least 1, as 0 means unlimited."""
     return max(1, round(speed_rad_s * 60 / (2 * np.pi) / PROFILE_VELOCITY_RPM))
@@ -74,9 +88,10 @@ class ServoRig(LampRig):
         self.limits: dict[int, tuple[int, int]] = {}      # id -> (min tick, max tick), read from the servo
 
     def goal_ticks(self, pan: float, tilt: float, radius: float | None) -> dict[int, int]:
-        """{id: tick} for the joints; pan wraps (it turns about z), tilt and radius do not."""
+        """{id: tick} for the joints; pan wraps into one turn (pan_turns: it turns about z), tilt
+        and radius do not."""
         c = self.config
-        pan_rel = (pan - c.pan_offset_rad + np.pi) % (2 * np.pi) - np.pi
+        pan_rel = pan - c.pan_offset_rad - 2 * np.pi * pan_turns(pan, c.pan_offset_rad)
         goals = {c.pan_id: CENTRE_TICK + round(pan_rel * TICKS_PER_TURN / (2 * np.pi)),
                  c.tilt_id: CENTRE_TICK + round((tilt - c.tilt_offset_rad) * TICKS_PER_TURN / (2 * np.pi))}
         if radius is not None:
@@ -85,7 +100,8 @@ class ServoRig(LampRig):
         return goals
 
     def joints_from_ticks(self, ticks: dict[int, int]) -> tuple[float, float, float | None]:
-        """(pan, tilt, radius or None) from {id: tick}: the quantized joints the servos hold."""
+        """(pan, tilt, radius or None) from {id: tick}: the quantized joints the servos hold, the
+        pan within [-180, 180) deg of pan_offset as its ticks turn (held_pan), linear in them."""
         c = self.config
         pan = (ticks[c.pan_id] - CENTRE_TICK) * 2 * np.pi / TICKS_PER_TURN + c.pan_offset_rad
         tilt = (ticks[c.tilt_id] - CENTRE_TICK) * 2 * np.pi / TICKS_PER_TURN + c.tilt_offset_rad
@@ -93,7 +109,10 @@ class ServoRig(LampRig):
         if c.radius_id in ticks:
             (r0, r1), (t0, t1) = self.rig.radius_range_m, c.radius_ticks
             radius = r0 + (ticks[c.radius_id] - t0) / (t1 - t0) * (r1 - r0)
-        return (pan + np.pi) % (2 * np.pi) - np.pi, tilt, radius
+        return pan, tilt, radius
+
+    def held(self, pan_rad: float) -> float:
+        return held_pan(pan_rad, self.config.pan_offset_rad)
 
     def _move_axes(self, pan, tilt, radius):
         goals = self.goal_ticks(pan, tilt, radius)

@@ -51,12 +51,12 @@ def check(task: Task, devices: Devices, T_cell_cam: np.ndarray | None = None,
 
 
 def _lamp_target(devices: Devices, lamp_joints: tuple[float, ...] | None) -> tuple[float, float, float] | None:
-    """The joints the lamp's axes go to for (pan, tilt, radius) from where it stands (the pan
-    as the nearer of -180 and 180 deg: LampRig.target); None: the lamp stays."""
+    """The joints the lamp's axes go to for (pan, tilt, radius) (the pan as the servo holds it:
+    LampRig.target); None: the lamp stays."""
     if lamp_joints is None:
         return None
     with speaking_for(devices.lamp):
-        return devices.lamp.target(lamp_joints[0], lamp_joints[1], lamp_joints[2], near_rad=devices.lamp.joints()[0])
+        return devices.lamp.target(lamp_joints[0], lamp_joints[1], lamp_joints[2])
 
 
 def refusal(move: Move) -> GoalNotReached:

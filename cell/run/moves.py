@@ -15,6 +15,7 @@ from cell.collision.paths import Move, Stop, checked_route, home_stop, plan_move
 from cell.collision.scene import CollisionScene, reaching_joints
 from cell.devices import ur5e
 from cell.devices.interfaces import speaking_for
+from cell.devices.servo import held_pan
 from cell.run import motion, route
 
 if TYPE_CHECKING:
@@ -28,10 +29,12 @@ HOME_TOLERANCE_M = 1e-3          # a start pose this close to home starts the pl
 
 def stops(task: Task, plan: Plan) -> list[Stop]:
     """The plan's shots as stops of the arm and the lamp: the joints the planner chose (or the
-    inverse kinematics nearest the home joints), the lamp's joints."""
+    inverse kinematics nearest the home joints), the lamp's joints with the pan the servo holds
+    (held_pan: +180 deg is driven to -180 deg), so the lamp's moves are checked as driven."""
     out = []
     for shot in plan.shots:
         pan, tilt, radius = shot.joints
+        pan = held_pan(pan, task.cell.devices.pan_tilt.pan_offset_rad)
         q = reaching_joints(task.frames, shot.T_cell_cam, shot.arm_joints)
         out.append(Stop(shot.T_cell_cam, np.asarray(q, float), (pan, tilt, radius)))
     return out
