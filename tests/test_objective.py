@@ -86,7 +86,7 @@ def problems(request, tmp_path_factory):
     did not resolve (its terms judged), and one with the spot alone (hinge)."""
     from cell.planning.scene import build_scene
     from cell.task.loader import load_material, load_task
-    from tests.test_unresolved import MEASURED, write_material
+    from test_unresolved import MEASURED, write_material
     task = load_task(TASKS / f"{request.param.split()[0]}.yaml")
     scene = build_scene(task, 32)
     material = None
