@@ -739,14 +739,12 @@ def lamp_kept(ctx: RunContext, feature: LoopFeature, error: localization.PoseErr
     the pose found and both refusals; nothing moved."""
     carried = localization.moved_plan(feature.model.plan, error.T_part)
     move = where_located(ctx, feature.task, carried.shot, error)
-    said = f"{localization.describe(error, error.views)}; re-planned for where the part is, the move there is refused"
     if not move.clear:
-        raise GoalNotReached(f"{said}: {motion.refusal(refused)}; with the lamp kept at the plan's pose: "
-                             f"{motion.refusal(move)}", "pose")
+        raise GoalNotReached(f"{refused_there(error)}: {motion.refusal(refused)}; with the lamp kept at the plan's "
+                             f"pose: {motion.refusal(move)}", "pose")
     return Kept(carried, f"the move to the shot re-planned there is refused ({refused.clearance.reason()}): the "
                          "plan's lamp pose kept, the camera moved with the part (its move clear: "
-                         f"{' and '.join(move.clearance.bodies)} at least {1e3 * move.clearance.distance_m:.1f} mm "
-                         "apart)")
+                         f"{motion.how_apart(move)})")
 
 
 def where_located(ctx: RunContext, task: Task, shot: Shot, error: localization.PoseError) -> Move:
@@ -764,8 +762,13 @@ def refused_where_located(ctx: RunContext, task: Task, shot: Shot, error: locali
     had it, so the pose found and the collision are named, nothing moved."""
     move = where_located(ctx, task, shot, error)
     if not move.clear:
-        raise GoalNotReached(f"{localization.describe(error, error.views)}; re-planned for where the part is, "
-                             f"the move there is refused: {motion.refusal(move)}", "pose")
+        raise GoalNotReached(f"{refused_there(error)}: {motion.refusal(move)}", "pose")
+
+
+def refused_there(error: localization.PoseError) -> str:
+    """The first words of a stop where the move to the shot re-planned for the part's pose is
+    refused: the pose found, then what was refused."""
+    return f"{localization.describe(error, error.views)}; re-planned for where the part is, the move there is refused"
 
 
 def not_in_band(aim: Aim, measured: Sequence[Measured], k: int) -> str:

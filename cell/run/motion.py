@@ -59,6 +59,14 @@ def _lamp_target(devices: Devices, lamp_joints: tuple[float, ...] | None) -> tup
         return devices.lamp.target(lamp_joints[0], lamp_joints[1], lamp_joints[2])
 
 
+def how_apart(move: Move) -> str:
+    """The clear move's nearest bodies in words: 'camera_body and lamp_body at least 31.4 mm
+    apart', or 'nothing near' where no pair has a finite distance."""
+    if not np.isfinite(move.clearance.distance_m):
+        return "nothing near"
+    return f"{' and '.join(move.clearance.bodies)} at least {1e3 * move.clearance.distance_m:.1f} mm apart"
+
+
 def refusal(move: Move) -> GoalNotReached:
     """The refusal of a move that is not clear: the collision first, then the move, then that
     nothing moved."""
@@ -85,8 +93,7 @@ def go(task: Task, devices: Devices, recorder: Recorder, T_cell_cam: np.ndarray 
     if not move.clear:
         raise refusal(move)
     lamp_joints = _lamp_target(devices, lamp_joints)     # the joints check() checked
-    apart = (f"{' and '.join(move.clearance.bodies)} at least {1e3 * move.clearance.distance_m:.1f} mm apart"
-             if np.isfinite(move.clearance.distance_m) else "nothing near")
+    apart = how_apart(move)
 
     def via(step: str, what: str, k: int, n: int, position: np.ndarray) -> None:
         recorder.step(step, f"{what} via point {k} of {n} on the way to {to}: at {np.round(position, 4).tolist()} m "
