@@ -396,7 +396,7 @@ def _two_stages(v, bounds, delta, w_min, w_max, switched, gain_range, extra=None
     message = res.message
     if not res.success:       # HiGHS's tolerances, a floor this close to its own optimum: that optimum stands
         res, message = best, f"{best.message}; the shortest exposure's: {res.message} (the best margin's kept)"
-    x = res.x[0]
+    x = max(res.x[0], x_lo)   # HiGHS may return a hair below the bound (its feasibility tolerance), even 0
     return x, np.clip(res.x[1:k + 1] / x, w_min, w_max), program.solves, message
 
 
