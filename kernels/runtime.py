@@ -50,7 +50,7 @@ def ensure_init(module: str | None = None) -> str:
         if not _ready:
             wp.config.quiet = True              # Warp <= 1.9
             wp.config.log_level = getattr(wp, "LOG_WARNING", 30)   # newer: hides greeting and load times
-            with _native_stderr_silenced():     # libwarp prints "no CUDA driver" from C++
+            with native_output_silenced(2):     # libwarp prints "no CUDA driver" from C++
                 wp.init()
             _ready = True
         if module is not None and module not in _checked:
@@ -79,16 +79,20 @@ def compile_missing() -> list[str]:
     return [m.name for m in missing]
 
 
-class _native_stderr_silenced:
-    """Redirect file descriptor 2 to /dev/null for the duration (init errors still raise)."""
+class native_output_silenced:
+    """Redirect file descriptor `fd` (2: stderr, 1: stdout) to /dev/null for the duration, for
+    native libraries that print from C/C++ whatever their options say (errors still raise)."""
+
+    def __init__(self, fd: int = 2) -> None:
+        self.fd = fd
 
     def __enter__(self):
         self.saved = None
         try:
-            sys.stderr.flush()
-            self.saved = os.dup(2)
+            (sys.stdout if self.fd == 1 else sys.stderr).flush()
+            self.saved = os.dup(self.fd)
             devnull = os.open(os.devnull, os.O_WRONLY)
-            os.dup2(devnull, 2)
+            os.dup2(devnull, self.fd)
             os.close(devnull)
         except (OSError, ValueError, AttributeError):
             self.saved = None
@@ -96,7 +100,7 @@ class _native_stderr_silenced:
 
     def __exit__(self, *exc):
         if self.saved is not None:
-            os.dup2(self.saved, 2)
+            os.dup2(self.saved, self.fd)
             os.close(self.saved)
         return False
 

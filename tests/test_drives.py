@@ -3,6 +3,7 @@ expectations: gray recomputed here as G = b + t / kappa^2 sum_k w_k v_kp, a brut
 of drive levels (and over every on/off pattern of switched channels) with each one's best exposure
 in closed form, and worked values by hand."""
 import itertools
+import os
 
 import numpy as np
 import pytest
@@ -347,3 +348,22 @@ def test_a_contrast_row_s_tangent_cut_is_sufficient(a0, a1, b0, b1, min_cnr):
     a, b = rows.cuts(u0, np.array([True, True]), 1.0)
     met = a @ u <= b
     assert np.all(rows.cnr(u)[met] >= min_cnr * (1 - 1e-9))
+
+
+def test_what_highs_s_mip_prints_from_native_code_never_reaches_the_terminal(monkeypatch, capfd):
+    """HiGHS's MIP writes a debug line to file descriptor 1 at times (whatever its display option
+    says): a MIP that writes there as HiGHS does leaves nothing on stdout, which works after it."""
+    real = drives.milp
+
+    def printing_milp(*args, **kwargs):
+        os.write(1, b"HighsMipSolverData::transformNewIntegerFeasibleSolution tmpSolver.run();\n")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(drives, "milp", printing_milp)
+    rng = np.random.default_rng(3)
+    v = random_channels(rng, 3, 12, dark=0.0)
+    d = solve_drives(v, (80.0, 160.0), 5.0, drive_range=np.array([[0.1, 1.0]] * 3), switched=np.array([True, False, True]),
+                     **CAMERA)
+    assert np.all(np.isfinite(d.drive))
+    os.write(1, b"after\n")
+    assert capfd.readouterr().out == "after\n"

@@ -44,6 +44,7 @@ from numpy.typing import ArrayLike
 from scipy.optimize import Bounds, LinearConstraint, OptimizeResult, linprog, milp
 
 from cell.planning.evaluate import exposure_for_gain
+from kernels.runtime import native_output_silenced
 
 # band widths of margin given up for a shorter exposure: the solver's noise, not a trade; a
 # switched pattern is chosen to milp's feasibility tolerance (a floor closer to its optimum than
@@ -453,6 +454,7 @@ def _highs(c, a, b, lb, ub, n_integer):
     there are any, linprog otherwise."""
     if n_integer:
         integrality = np.concatenate([np.zeros(len(c) - n_integer), np.ones(n_integer)])
-        return milp(c, integrality=integrality, bounds=Bounds(lb, ub),
-                    constraints=LinearConstraint(a, -np.inf, b), options={"mip_rel_gap": 0.0})
+        with native_output_silenced(1):  # HiGHS's MIP prints a debug line from C++ at times, whatever disp says
+            return milp(c, integrality=integrality, bounds=Bounds(lb, ub),
+                        constraints=LinearConstraint(a, -np.inf, b), options={"mip_rel_gap": 0.0})
     return linprog(c, A_ub=a, b_ub=b, bounds=np.column_stack([lb, ub]), method="highs")
