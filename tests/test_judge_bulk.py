@@ -117,3 +117,30 @@ def test_a_problems_view_angles_serve_the_view_angle_and_the_resolution_as_each_
         assert requirements.problem_view_angle(p) == requirements.largest_view_angle(scene)
         angles = requirements.problem_view_angles(p)
         assert np.array_equal(requirements.footprints_at(t, scene, angles), requirements.footprints_at(t, scene))
+
+
+def test_a_shared_launchs_shadow_flags_are_each_scenes_own():
+    """SharedLaunches over the bracket's features seen by one camera: each scene's rows of the
+    shadow flags of a lamp at the camera (build_problem's hidden samples) equal those of its own
+    GrayInputs, alone and in a gray call, and its Problem counts the same samples unseen."""
+    task = load_task(TASKS / "bracket.yaml")
+    tasks = [task.with_feature(g) for g in range(len(task.features))]
+    scenes = [build_scene(t) for t in tasks]
+    middle = np.mean([s.center for s in scenes], axis=0)
+    unseen = 0
+    for k, T in enumerate([s.T_cell_cam for s in scenes] + [look_at(middle + (0.1, -0.2, 0.25), middle)]):
+        seen = [replace(s, T_cell_cam=T) for s in scenes]
+        joined = replace(seen[0], points=np.vstack([s.points for s in seen]), normals=np.vstack([s.normals for s in seen]))
+        shared = evaluate.SharedLaunches(evaluate.gray_inputs(tasks[0], joined, task.part.material),
+                                         [len(s.points) for s in seen])
+        camera = T[:3, 3][None]
+        for g, (t, s) in enumerate(zip(tasks, seen)):
+            own = evaluate.gray_inputs(t, s, task.part.material)
+            flags = shared.rows(g).shadowed(camera)
+            assert np.array_equal(flags, own.shadowed(camera)) and np.array_equal(flags, own(camera, T[None, :3, 2]).shadowed)
+            together = evaluate.build_problem(t, s, None, gray=shared.rows(g))
+            alone = evaluate.build_problem(t, s, None)
+            assert together.camera_unseen == alone.camera_unseen
+            assert np.array_equal(together.camera_seen, alone.camera_seen)
+            unseen += int(flags.sum())
+    assert unseen > 0
