@@ -300,6 +300,29 @@ def needs_ray(free_cos: wp.float64, sector_cos: wp.array2d(dtype=wp.float64), se
 
 
 @wp.func
+def lamp_shadowed(mesh_id: wp.uint64, shadows: wp.int32, at: Surface, sector_cos: wp.array2d(dtype=wp.float64),
+                  s: wp.vec3d, d: wp.float64, cos_i: wp.float64) -> wp.bool:
+    """Whether a lamp at distance d in the unit direction s (<n, s> = cos_i) from a Surface is
+    shadowed there: attached shadow (cos_i <= 0) or, with `shadows`, a triangle on the ray from
+    the point's ray origin toward it (none cast inside its free cones, where none can hit)."""
+    shadowed = cos_i <= wp.float64(0.0)
+    if not shadowed and shadows != 0:
+        if needs_ray(at.free_cos, sector_cos, at.sector_row, at.u, at.w, s, cos_i):
+            shadowed = ray_blocked(mesh_id, at.ray_origin, s, d)
+    return shadowed
+
+
+@wp.func
+def shadowed_from(mesh_id: wp.uint64, shadows: wp.int32, at: Surface, sector_cos: wp.array2d(dtype=wp.float64),
+                  lamp: wp.vec3d) -> wp.bool:
+    """shade_point's shadow flag of a lamp at `lamp` alone, its arithmetic (no BRDF, no
+    irradiance): what a lamp at the camera tells of a point, whether the camera sees it."""
+    to_lamp = lamp - at.point
+    s = wp.normalize(to_lamp)
+    return lamp_shadowed(mesh_id, shadows, at, sector_cos, s, wp.length(to_lamp), wp.dot(at.normal, s))
+
+
+@wp.func
 def shade_point(mesh_id: wp.uint64, shadows: wp.int32, cone: wp.int32, at: Surface,
                 sector_cos: wp.array2d(dtype=wp.float64), lamp: wp.vec3d, lamp_axis: wp.vec3d,
                 intensity_w_sr: wp.float64, profile: wp.array2d(dtype=wp.float64),
@@ -326,10 +349,7 @@ def shade_point(mesh_id: wp.uint64, shadows: wp.int32, cone: wp.int32, at: Surfa
     p = material_at(table, phase_angle(s, at.view))
     t = brdf_terms(cos_i, at.cos_e, cos_alpha, p)
     out.dominant = dominant_term(t, cos_i, at.cos_e)
-    shadowed = cos_i <= wp.float64(0.0)
-    if not shadowed and shadows != 0:
-        if needs_ray(at.free_cos, sector_cos, at.sector_row, at.u, at.w, s, cos_i):
-            shadowed = ray_blocked(mesh_id, at.ray_origin, s, d)
+    shadowed = lamp_shadowed(mesh_id, shadows, at, sector_cos, s, d, cos_i)
     out.shadowed = shadowed
     out.value = wp.float64(0.0)
     if not shadowed:

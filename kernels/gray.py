@@ -75,6 +75,15 @@ def gray_kernel(mesh_id: wp.uint64, shadows: wp.int32, cone: wp.int32,
         dominant[c, p] = wp.int8(sh.dominant)
 
 
+@wp.kernel
+def shadow_kernel(mesh_id: wp.uint64, shadows: wp.int32, surfaces: wp.array(dtype=funcs.Surface),
+                  sector_cos: wp.array2d(dtype=wp.float64), lamp_pos: wp.array(dtype=wp.vec3d),
+                  shadowed: wp.array2d(dtype=wp.bool)):
+    """One thread per (lamp, point): gray_kernel's shadow flag alone (funcs.shadowed_from)."""
+    c, p = wp.tid()
+    shadowed[c, p] = funcs.shadowed_from(mesh_id, shadows, surfaces[p], sector_cos, lamp_pos[c])
+
+
 SMALL = 1 << 16         # evaluations: a call this small reuses its launch (a search makes hundreds)
 
 
@@ -127,6 +136,28 @@ class GrayInputs:
         self._launches: dict[int, _Batch] = {}       # the kept batches, by lamp count
         self._lock = threading.Lock()
 
+    def shadowed(self, lamp_pos: ArrayLike) -> np.ndarray:
+        """(C, P) a call's GrayResult.shadowed for lamps at lamp_pos (C, 3), the same flags
+        (funcs.shadowed_from: shade_point's test, which reads no aim, power or BRDF), without
+        the shading: whether a camera there sees each point (one launch, not recorded; its lamps
+        count toward the free cones as a call's)."""
+        lamp_pos = np.asarray(lamp_pos, dtype=np.float64).reshape(-1, 3)
+        out, out_wp = output((len(lamp_pos), self.count), np.bool_, wp.bool)
+        if len(lamp_pos) and self.count:
+            with self._lock:
+                self._lamps(len(lamp_pos))
+                wp.launch(shadow_kernel, dim=(len(lamp_pos), self.count), device=self.device,
+                          inputs=self._leading[:2] + [self.surfaces, self._leading[4], vec3d(lamp_pos, "lamp_pos")],
+                          outputs=[out_wp])
+        return out
+
+    def _lamps(self, count: int) -> None:
+        """Count `count` lamps more evaluated, and find the points' free cones once they are worth it."""
+        self._lamps_seen += count
+        if self._mesh is not None and not self.has_free_cones and self.count and worth_finding(self._lamps_seen, self._mesh):
+            self._set_free_cones(*free_cone_cosines(self._mesh, *self._ray_origins))
+            self.has_free_cones = True
+
     def _set_free_cones(self, free_cos, sector_cos):
         """The surfaces with these cones (sector_cos None: none by sector), in place: the
         recorded launches read them."""
@@ -147,11 +178,7 @@ class GrayInputs:
         else:
             intensity = np.broadcast_to(np.asarray(power_w, dtype=np.float64), len(lamp_pos)) / self._solid_angle_sr
         with self._lock:
-            self._lamps_seen += len(lamp_pos)
-            if (self._mesh is not None and not self.has_free_cones and self.count
-                    and worth_finding(self._lamps_seen, self._mesh)):
-                self._set_free_cones(*free_cone_cosines(self._mesh, *self._ray_origins))
-                self.has_free_cones = True
+            self._lamps(len(lamp_pos))
             if len(lamp_pos) * self.count > SMALL:
                 return _Batch(self, len(lamp_pos)).run(lamp_pos, lamp_axis, intensity, copy=False)
             kept = self._launches.get(len(lamp_pos))

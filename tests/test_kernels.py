@@ -585,3 +585,30 @@ def test_a_lamp_or_camera_at_a_sample_point_gives_the_same_finite_gray_in_kernel
     # (a shadow ray to a lamp on the surface ends on it: those may differ as grazing rays do)
     assert_gray_agrees(blocks, points, normals, lamps, warp, numpy)
     assert warp.off_axis[0, 0] == numpy.off_axis[0, 0] == pytest.approx(np.pi / 3)   # the chord |a + 0| = 1
+
+
+def test_the_shadow_flags_alone_are_the_gray_calls_own(hinge):
+    """GrayInputs.shadowed (the shadow test alone, no shading) equals a gray call's shadowed for
+    the same lamps, bit for bit: lamps all about the hinge (some behind the points' surfaces, one
+    at a point), before and after the free cones are found, and without cast shadows."""
+    mesh, _ = hinge
+    rng = np.random.default_rng(11)
+    points = np.column_stack([rng.uniform(-0.026, -0.005, 40), rng.uniform(-0.015, 0.015, 40), np.full(40, 0.004)])
+    normals = geometry.unit(np.tile([0.0, 0.0, 1.0], (40, 1)) + rng.normal(0.0, 0.2, (40, 3)))
+    lamps, aims = lamps_around(rng, np.array([-0.015, 0.0, 0.004]), 2 * len(mesh.faces), min_elevation=-0.5)
+    lamps[0] = points[3]                        # a lamp at a point: shadowed there
+    args = (points, normals, np.array([-0.01, 0.02, 0.3]), P_LAMP, GAMMA, METAL, C_CAMERA, A_PIXEL)
+    flags = []
+    for inputs in (GrayInputs(mesh, *args), GrayInputs(None, *args)):
+        before = inputs.shadowed(lamps[:3])
+        assert not inputs.has_free_cones
+        first, rest = inputs(lamps[:3], aims[:3]), inputs(lamps[3:], aims[3:])
+        assert inputs.has_free_cones == (inputs._mesh is not None)
+        after = inputs.shadowed(lamps)
+        np.testing.assert_array_equal(before, first.shadowed)
+        np.testing.assert_array_equal(after, np.vstack([first.shadowed, rest.shadowed]))
+        assert 0.05 < after.mean() < 0.8 and after[0, 3]
+        flags.append(after)
+    cast, attached = flags
+    assert (cast & ~attached).sum() > 20 and not (attached & ~cast).any()    # the hinge casts shadows besides
+    assert inputs.shadowed(np.zeros((0, 3))).shape == (0, 40)

@@ -16,12 +16,12 @@ EXP_LIMIT = 700.0   # exp(700) ~ 1e304: reported requirement values stay finite 
 # still ranks poses that miss by e^1000 or by e^100000; only the reported f_i is capped.
 
 
-def ln_f_max(x: ArrayLike, x_max: float) -> np.ndarray:
+def ln_f_max(x: ArrayLike, x_max: float | np.ndarray) -> np.ndarray:
     """ln of eq. (1)'s f_max = exp(x / x_max - 1): <= 0 iff x <= x_max (x_max > 0)."""
     return np.asarray(x, dtype=float) / x_max - 1.0
 
 
-def ln_f_min(x: ArrayLike, x_min: float) -> np.ndarray:
+def ln_f_min(x: ArrayLike, x_min: float | np.ndarray) -> np.ndarray:
     """ln of eq. (1)'s f_min = exp(1 - x / x_min): <= 0 iff x >= x_min (x_min > 0)."""
     return 1.0 - np.asarray(x, dtype=float) / x_min
 

@@ -68,12 +68,14 @@ def view_angles(camera: ArrayLike, points: ArrayLike, normals: ArrayLike) -> np.
 
 
 def pixel_footprint(camera: ArrayLike, points: ArrayLike, normals: ArrayLike, pixel_pitch_m: float,
-                    focal_length_m: float) -> np.ndarray:
+                    focal_length_m: float, angles: np.ndarray | None = None) -> np.ndarray:
     """(N,) the length one pixel covers on the surface at each point [m]: |p - C| pitch / f across
     the ray (the pinhole's magnification), stretched by 1 / cos(view angle) along the slant (the
-    longer side of the pixel's footprint); inf where the camera is behind the surface."""
+    longer side of the pixel's footprint); inf where the camera is behind the surface. `angles`:
+    view_angles of these camera, points and normals where the caller has them (the view angle
+    requirement reads them too), else computed here."""
     distance = np.linalg.norm(np.asarray(points, float) - np.asarray(camera, float), axis=-1)
-    cos = np.cos(view_angles(camera, points, normals))
+    cos = np.cos(view_angles(camera, points, normals) if angles is None else angles)
     with np.errstate(divide="ignore"):
         return np.where(cos > 0, distance * pixel_pitch_m / focal_length_m / np.maximum(cos, 0.0), np.inf)
 

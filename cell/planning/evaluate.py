@@ -222,6 +222,7 @@ class SharedLaunches:
         ends = np.cumsum(counts, dtype=int)
         self.bounds = list(zip((ends - np.asarray(counts, dtype=int)).tolist(), ends.tolist()))
         self._launched: dict[tuple[bytes, bytes, bytes | None], GrayResult] = {}
+        self._shadowed: dict[bytes, np.ndarray] = {}
 
     def rows(self, k: int) -> Rows:
         return Rows(self, *self.bounds[k])
@@ -233,6 +234,13 @@ class SharedLaunches:
         if key not in self._launched:
             self._launched[key] = self.inputs(lamp_pos, lamp_axis, power_w)
         return self._launched[key]
+
+    def shadowed(self, lamp_pos: np.ndarray) -> np.ndarray:
+        """GrayInputs.shadowed over every scene's samples for these lamps (kept by their bytes)."""
+        key = np.ascontiguousarray(lamp_pos).tobytes()
+        if key not in self._shadowed:
+            self._shadowed[key] = self.inputs.shadowed(lamp_pos)
+        return self._shadowed[key]
 
 
 class Rows:
@@ -248,6 +256,10 @@ class Rows:
         out = self.shared.launch(lamp_pos, lamp_axis, power_w)
         return GrayResult(*(a[:, self.start:self.end].copy() for a in
                             (out.value, out.shadowed, out.off_axis, out.dominant)))
+
+    def shadowed(self, lamp_pos: ArrayLike) -> np.ndarray:
+        """This scene's rows of the shared GrayInputs.shadowed (C, P)."""
+        return self.shared.shadowed(np.asarray(lamp_pos, dtype=np.float64).reshape(-1, 3))[:, self.start:self.end].copy()
 
 
 def planning_band(task: Task) -> tuple[float, float]:
@@ -271,29 +283,29 @@ def build_problem(task: Task, scene: Scene, maps: Maps | None, albedo_scale: flo
     search's, which its certificate keeps), its gray kernel the scene's own or `gray`, its rows
     of a launch shared with other scenes (SharedLaunches: a shot judged on several features).
     A sample the camera sees lies inside the image and is not hidden (a lamp at the camera would
-    light it): `hidden` (P,) where found before (hidden_from), else by the kernel here, the lamp
-    aimed along the camera's axis (the shadow flag reads no aim): the scenes of one shot judged on
-    several features ask their SharedLaunches for one launch, not one each."""
+    light it): `hidden` (P,) where found before (hidden_from), else by the kernel's shadow flag
+    alone here (GrayInputs.shadowed, no shading): the scenes of one shot judged on several
+    features ask their SharedLaunches for one launch, not one each."""
     focus, needed, kappa_open = depth_of_field_limits(task, scene, focus_m)
     p = Problem(task, scene, maps, task.part.material.scaled(albedo_scale) if material is None else material,
                 planning_band(task), black_level(task), focus, needed, kappa_open, 0)
     if gray is not None:
         p.kernels.gray, p.kernels.made_of = gray, (task, scene, p.material)
     if hidden is None:      # the kernel's flag alone: the arm and camera body shadow the spot, not the view
-        hidden = p.gray_inputs(scene.camera_position[None], scene.T_cell_cam[None, :3, 2]).shadowed[0]
+        hidden = p.gray_inputs.shadowed(scene.camera_position[None])[0]
     unseen = hidden | ~in_image(task, scene)
     return replace(p, camera_unseen=int(np.sum(unseen)), camera_seen=~unseen)
 
 
 def hidden_from(task: Task, scene: Scene, cameras: ArrayLike) -> np.ndarray:
     """(N, P) the scene's samples hidden from each of N camera positions (N, 3) [m]: the gray
-    kernel's shadow flag for a lamp there (build_problem's), which reads the sample, its normal,
-    the mesh and the position alone (kernels.funcs.shade_point), so one launch serves many cameras."""
+    kernel's shadow flag for a lamp there (build_problem's, GrayInputs.shadowed: no shading),
+    which reads the sample, its normal, the mesh and the position alone (kernels.funcs.shadowed_from),
+    so one launch serves many cameras."""
     cameras = np.asarray(cameras, dtype=np.float64).reshape(-1, 3)
     if not len(cameras):
         return np.zeros((0, len(scene.points)), bool)
-    aims = np.broadcast_to(-scene.normal, cameras.shape)
-    return gray_inputs(task, scene, task.part.material)(cameras, aims).shadowed
+    return gray_inputs(task, scene, task.part.material).shadowed(cameras)
 
 
 def in_image(task: Task, scene: Scene) -> np.ndarray:

@@ -60,29 +60,37 @@ def camera_side(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list
     lent) the requirements of the shot's camera alone (its pose, focus and f-number) missed on
     it: view_angle, resolution, depth_of_field, and camera_view as far as the image's bounds
     decide it. Each sample's numbers are computed over every feature's samples at once (a
-    sample's row its own), each feature's extremes over its rows."""
+    sample's row its own), each feature's extremes and counts over its rows by one reduceat
+    each, and depth_of_field over every feature asking the same depth at once (depth_of_field_ln
+    reads a feature's nearest and farthest depth alone, element by element)."""
     if not tasks:
         return []
     scene, bounds = coverage.stacked(lent, shot.T_cell_cam)
-    outside = ~evaluate.in_image(tasks[0], scene)           # the part's camera: every feature's
+    starts = [start for start, _ in bounds]
+    outside = np.add.reduceat((~evaluate.in_image(tasks[0], scene)).astype(np.intp), starts)  # the part's camera
     angles = projection.view_angles(scene.camera_position, scene.points, scene.normals)
-    footprints = requirements.footprints_at(tasks[0], scene)
+    largest_angle = np.maximum.reduceat(angles, starts)
+    largest_footprint = np.maximum.reduceat(requirements.footprints_at(tasks[0], scene, angles), starts)
     depths = scene.sample_depths()
+    nearest, farthest = np.minimum.reduceat(depths, starts), np.maximum.reduceat(depths, starts)
     e = shot.exposure
+    focus, kappa = float(e.focus_m), np.array([float(e.f_number)])
+    depth_ln = np.empty(len(tasks))
+    wanted = np.array([t.requirements.depth_of_field_m for t in tasks])
+    for depth in np.unique(wanted):
+        same = np.flatnonzero(wanted == depth)
+        depth_ln[same] = requirements.depth_of_field_ln(tasks[same[0]], scene, focus, kappa, nearest[same], farthest[same])
     found = []
-    for task, (start, end) in zip(tasks, bounds):
+    for k, (task, (start, end)) in enumerate(zip(tasks, bounds)):
         asked = task.requirements
-        here = [_missed("camera_view", float(costs.ln_count_cost(np.sum(outside[start:end]))),
-                        f"samples outside the image, of {end - start}")]
+        here = [_missed("camera_view", float(costs.ln_count_cost(outside[k])), f"samples outside the image, of {end - start}")]
         if asked.view_angle_rad is not None:
-            here.append(_missed("view_angle", requirements.view_angle_ln(task, scene, float(angles[start:end].max())),
+            here.append(_missed("view_angle", requirements.view_angle_ln(task, scene, float(largest_angle[k])),
                                 "the camera sees the samples too obliquely"))
         if asked.resolution_m is not None:
-            here.append(_missed("resolution", requirements.resolution_ln(task, scene, footprints[start:end].max()),
+            here.append(_missed("resolution", requirements.resolution_ln(task, scene, largest_footprint[k]),
                                 "a pixel covers too much"))
-        ln = requirements.depth_of_field_ln(task, scene, float(e.focus_m), np.array([float(e.f_number)]),
-                                            depths[start:end].min(), depths[start:end].max())[0]
-        here.append(_missed("depth_of_field", float(ln), f"samples out of focus at f/{e.f_number:.1f}"))
+        here.append(_missed("depth_of_field", float(depth_ln[k]), f"samples out of focus at f/{e.f_number:.1f}"))
         found.append([r for r in here if r is not None])
     return found
 

@@ -387,9 +387,16 @@ def view_angle_ln(task: Task, scene: Scene, largest: float | None = None) -> flo
     return float(costs.ln_f_max(angle, _wanted(task.requirements.view_angle_rad)))
 
 
+def problem_view_angles(p: Problem) -> np.ndarray:
+    """(P,) each sample's view angle at the Problem's camera (projection.view_angles), once per
+    Problem (Problem.fixed): the view angle and the pixel footprints (resolution) both read them."""
+    scene = p.scene
+    return p.fixed("view_angles", lambda: projection.view_angles(scene.camera_position, scene.points, scene.normals))
+
+
 def problem_view_angle(p: Problem) -> float:
     """largest_view_angle of the Problem's scene, once per Problem (Problem.fixed)."""
-    return p.fixed("largest_view_angle", lambda: largest_view_angle(p.scene))
+    return p.fixed("largest_view_angle", lambda: float(problem_view_angles(p).max()))
 
 
 def view_angle(p: Problem, c: Candidates) -> np.ndarray:
@@ -408,14 +415,15 @@ def explain_view_angle(p: Problem, c: Candidates, met: bool) -> str:
 
 def footprints(p: Problem) -> np.ndarray:
     """footprints_at of the Problem's task and scene, once per Problem (Problem.fixed)."""
-    return p.fixed("footprints", lambda: footprints_at(p.task, p.scene))
+    return p.fixed("footprints", lambda: footprints_at(p.task, p.scene, problem_view_angles(p)))
 
 
-def footprints_at(task: Task, scene: Scene) -> np.ndarray:
-    """(P,) each sample's pixel footprint at the scene's camera [m] (projection.pixel_footprint)."""
+def footprints_at(task: Task, scene: Scene, angles: np.ndarray | None = None) -> np.ndarray:
+    """(P,) each sample's pixel footprint at the scene's camera [m] (projection.pixel_footprint),
+    the samples' view angles given where known."""
     sensor, lens = task.camera.sensor, task.camera.lens
     return projection.pixel_footprint(scene.camera_position, scene.points, scene.normals,
-                                      sensor.pixel_pitch_m, lens.focal_length_m)
+                                      sensor.pixel_pitch_m, lens.focal_length_m, angles)
 
 
 def resolution_ln(task: Task, scene: Scene, largest: float | None = None) -> float:
@@ -490,10 +498,11 @@ def depth_range(scene: Scene) -> tuple[float, float]:
     return depths.min(), depths.max()
 
 
-def depth_of_field_ln(task: Task, scene: Scene, focus_m: float, kappa: np.ndarray, nearest: float | None = None,
-                      farthest: float | None = None) -> np.ndarray:
+def depth_of_field_ln(task: Task, scene: Scene, focus_m: float, kappa: np.ndarray,
+                      nearest: float | np.ndarray | None = None, farthest: float | np.ndarray | None = None) -> np.ndarray:
     """ln f of depth_of_field at f-numbers kappa, focused at focus_m [m] (a shot's focus and
-    f-number alone: the prefilter's too); the samples' depth range given or the scene's."""
+    f-number alone: the prefilter's too); the samples' depth range given or the scene's (given
+    as arrays: several features' ranges at one f-number, each value from its own range alone)."""
     lens = task.camera.lens
     f, sigma = lens.focal_length_m, lens.circle_of_confusion_m
     if nearest is None or farthest is None:
