@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import yaml
 
-from cell.run import loop
+from cell.run import inspection, loop
 
 from cell.physics import projection
 from cell.task.device_config import SECTIONS, devices_config
@@ -62,12 +62,16 @@ def recording_connect(task, cell, faults=None):
 
 
 def run_loop(task_path, out):
-    """loop.run of a task file on the simulated cell: a namespace of its devices, the stops they
-    received, the error it ended with (None), report.json, the log's lines and their steps."""
+    """loop.run of a task file on the simulated cell (a whole part's, inspection.run, shot by shot,
+    as `cell run` runs it): a namespace of its devices, the stops they received, the error it
+    ended with (None), report.json, the log's lines and their steps."""
     task = load_task(task_path)
     cell = SimpleNamespace(devices=None, stops=[], error=None)
     try:
-        loop.run(task, out, recording_connect(task, cell))
+        if task.whole_part:     # the simulated cell renders the first feature's scene, as cell run's
+            inspection.run(task, out, recording_connect(task.with_feature(0), cell))
+        else:
+            loop.run(task, out, recording_connect(task, cell))
     except CellError as err:
         cell.error = err
     cell.report = json.loads((Path(out) / "report.json").read_text())

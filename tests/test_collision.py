@@ -218,6 +218,22 @@ def test_a_move_through_a_wall_gets_via_points_over_it_and_each_step_keeps_the_p
     assert move.clearance.distance_m >= task.cell.collision.padding_m
 
 
+def test_a_move_beyond_the_arms_reach_is_refused_saying_why_not_as_a_collision(tmp_path):
+    """A moveL whose end the UR5e does not reach (1.2 m from its base, which spans 0.82 m): the
+    refusal gives the inverse kinematics' own words (ur5e.Unreachable), not two bodies touching."""
+    from cell.collision.paths import Stop, plan_move
+    from cell.planning.scene import look_at
+    task = wall_task(tmp_path)
+    start = stop(task, -0.15, stop(task, 0.15).arm_joints)          # clear, as the test above's
+    a = Stop(start.T_cell_cam, start.arm_joints, None)
+    far = look_at(np.array([0.6, 0.6, 0.4]), np.array([0.6, 0.6, 0.0]))
+    with pytest.raises(ur5e.Unreachable) as beyond:
+        ur5e.inverse(task.frames.T_base_flange(task.frames.T_base_cam(far)), a.arm_joints)
+    move = plan_move(CollisionScene.of(task), task.cell.devices.arm, 0, a, 1, Stop(far, a.arm_joints, None), ())
+    said = move.clearance.reason()
+    assert not move.clear and move.clearance.distance_m == -np.inf
+    assert said == f"the arm cannot follow the straight path ({beyond.value})" and "touch or overlap" not in said
+
 
 # -- the paths' steps per pair: which joints move a body, how far its points travel -----------------
 

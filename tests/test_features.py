@@ -77,6 +77,17 @@ def test_a_multi_feature_task_refuses_to_pick_one_and_gives_each_as_a_task(tmp_p
     np.testing.assert_array_equal(copy.features[1].center_m, task.features[1].center_m)
 
 
+def test_a_task_is_a_whole_part_with_several_features_or_a_planned_viewpoint(tmp_path):
+    """Task.whole_part (cell run goes shot by shot, cell bench gives the many-feature rows): two
+    features at the fixed camera rule, or one whose viewpoint is planned; not the hinge's one
+    feature at the fixed rule."""
+    assert not loader.load_task(ROOT / "tasks" / "hinge.yaml").whole_part
+    pair = load(tmp_path, features(LEAF_A, LEAF_B))
+    assert pair.camera.viewpoint.mode == "fixed" and pair.whole_part and not pair.with_feature(0).whole_part
+    bracket = loader.load_task(ROOT / "tasks" / "bracket.yaml")
+    assert bracket.camera.viewpoint.mode == "planned" and bracket.with_feature(0).whole_part
+
+
 BAD = [
     pytest.param(features(LEAF_A, keep_feature=True), "feature, features", "found both", id="both"),
     pytest.param(lambda task, folder: task.pop("feature") and None, "features", "found nothing", id="neither"),

@@ -303,6 +303,10 @@ def test_a_shot_that_does_not_converge_leaves_the_others_to_run_and_the_run_exit
     by = {f["name"]: f for f in run.report["features"]}
     # leaf_a alone read in band, but its shot did not converge: not converged, with the shot's reason
     assert by["leaf_a"]["in_band"] and not by["leaf_a"]["converged"] and "leaf_b" in by["leaf_a"]["reason"]
+    # the iterations ran out in each shot: each shot's cause, and the run's (its first feature's shot's)
+    for shot in run.report["shots"]:
+        assert json.loads((tmp_path / "run" / shot["folder"] / "report.json").read_text())["cause"] == "iterations"
+    assert run.report["cause"] == "iterations" and run.report["status"] == "not_converged"
 
 
 def test_the_rotation_angle_between_two_poses():

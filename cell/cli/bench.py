@@ -126,22 +126,16 @@ def summary(settings: Sequence[dict[str, Any]]) -> list[str]:
     return lines
 
 
-def multi_feature(task: Task) -> bool:
-    """Whether the task gets cell.bench.multi_feature's rows (several features or a planned viewpoint)
-    rather than the settings sweep and kernel rows of one shot."""
-    return len(task.features) > 1 or task.camera.viewpoint.mode != "fixed"
-
-
 def with_lights(task: Task) -> bool:
     """Whether a one-feature task gets cell.bench.lights' rows (it has lights besides the spot)
     rather than the settings sweep."""
-    return bool(task.lights) and not multi_feature(task)
+    return bool(task.lights) and not task.whole_part
 
 
 def with_defects(task: Task) -> bool:
     """Whether a one-feature task gets cell.bench.contrast's rows (its feature declares defects)
     rather than the settings sweep (a plan of each setting would take minutes)."""
-    return not multi_feature(task) and not with_lights(task) and bool(task.feature.defects)
+    return not task.whole_part and not with_lights(task) and bool(task.feature.defects)
 
 
 def command(args: argparse.Namespace) -> int:
@@ -155,8 +149,8 @@ def command(args: argparse.Namespace) -> int:
     else:
         paths = list(suite.DEFAULT_TASKS) + list(FEATURE_TASKS) + list(LIGHT_TASKS) + list(DEFECT_TASKS)
     loaded = [load_task(path) for path in paths]          # all first
-    tasks = [t for t in loaded if not multi_feature(t) and not with_lights(t) and not with_defects(t)]
-    feature_tasks = [t for t in loaded if multi_feature(t)]
+    tasks = [t for t in loaded if not t.whole_part and not with_lights(t) and not with_defects(t)]
+    feature_tasks = [t for t in loaded if t.whole_part]
     light_tasks = [t for t in loaded if with_lights(t)]
     create_folder(out)
     result = suite.run(tasks, args.quick, Progress(sys.stderr), feature_tasks, light_tasks, many=not args.tasks,

@@ -24,7 +24,7 @@ def command(args: argparse.Namespace) -> int:
     task = load_task(args.task)
     backend = backend_of(task, args.backend)
     create_folder(out)
-    if len(task.features) != 1 or task.camera.viewpoint.mode != "fixed":
+    if task.whole_part:
         return shots(task, out, backend, args)
     result = loop.run(task, out, lambda scene: backends.open_devices(task, scene, backend, args.yes),
                       args.max_iterations)

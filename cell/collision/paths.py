@@ -370,8 +370,8 @@ def _lamp_first(scene: CollisionScene, arm: ArmConfig, start: End, a: Stop, end:
 def _through(scene: CollisionScene, poses: list[np.ndarray], q: np.ndarray,
              lamp: np.ndarray | None) -> tuple[Clearance, np.ndarray, int]:
     """The smallest Clearance of moveL's through the poses in turn (-inf, the arm and its reach
-    named: a pose the arm does not reach on the way), the joints it ends at and the poses
-    checked."""
+    named, where: why, ur5e.Unreachable's words: a pose the arm does not reach on the way), the
+    joints it ends at and the poses checked."""
     found, steps = [], 0
     try:
         for T_from, T_to in pairwise(poses):
@@ -380,8 +380,8 @@ def _through(scene: CollisionScene, poses: list[np.ndarray], q: np.ndarray,
             steps += n
             if not c.ok:
                 return c, q, steps
-    except ur5e.Unreachable:
-        return Clearance(-np.inf, ("arm", "its reach"), scene.padding_m), q, steps
+    except ur5e.Unreachable as err:
+        return Clearance(-np.inf, ("arm", "its reach"), scene.padding_m, str(err)), q, steps
     return _least(found, scene.padding_m), q, steps
 
 

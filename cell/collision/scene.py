@@ -186,7 +186,10 @@ class Clearance:
         return self.distance_m >= self.padding_m
 
     def reason(self) -> str:
-        """The refusal's sentence: names both bodies (and where, on a path)."""
+        """The refusal's sentence: names both bodies (and where, on a path); a path the arm cannot
+        follow (distance -inf, cell.collision.paths) says why instead, no body touching."""
+        if self.distance_m == -np.inf:
+            return f"the arm cannot follow the straight path ({self.where})"
         a, b = self.bodies
         apart = "touch or overlap" if self.distance_m <= 0 else f"only {self.distance_m * 1e3:.1f} mm apart"
         at = f" {self.where}" if self.where else ""

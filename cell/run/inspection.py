@@ -156,7 +156,7 @@ def run_shot(ctx: RunContext, plan: Plan, s: int, done: list[ShotRun]) -> ShotRu
         plans = [localization.moved_plan(p, pose.T_part) for p in plans]
         T_cell_cam = pose.T_part @ T_cell_cam
     features = [loop.LoopFeature.planned(t, p) for t, p in zip(tasks, plans)]
-    events, message, error = loop.Events(), "", None
+    events, message, error, cause = loop.Events(), "", None, None
 
     def camera_now() -> dict[str, float]:
         """camera_error against the shot's pose, both as the pose error the model follows puts them."""
@@ -172,7 +172,7 @@ def run_shot(ctx: RunContext, plan: Plan, s: int, done: list[ShotRun]) -> ShotRu
             n = len({it.iteration for it in events.iterations})
             rec.step("done", f"converged after {words.count(n, 'iteration')}", converged=True, iterations=n)
         except GoalNotReached as err:               # the devices are fine: the next shot runs
-            message = str(err)
+            message, cause = str(err), err.cause
             rec.step("done", f"not converged: {err}", converged=False, reason=message)
             error = camera_now()
         except BaseException as err:                # a fault, Ctrl-C, SIGTERM: the session stops all
@@ -181,7 +181,7 @@ def run_shot(ctx: RunContext, plan: Plan, s: int, done: list[ShotRun]) -> ShotRu
         finally:
             iterations = [it if it.feature else replace(it, feature=names[0]) for it in events.iterations]
             result = ShotRun(s, names, not message, message, tuple(iterations), tuple(events.replans),
-                             tuple(events.refits), events.black, error, located=stated(events.located, ctx.task))
+                             tuple(events.refits), events.black, error, cause, located=stated(events.located, ctx.task))
             done.append(result)
             rec.write_json("report.json", result.to_json())
             if iterations:
@@ -319,8 +319,9 @@ def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices],
     moves (PlanInfeasible naming the first feature no shot covers, exit 1), connect(scene) ->
     Devices (scene: the first feature's, whose mesh the simulated cell renders), order the shots
     (visit_order) and run each (run_shot). out/report.json (InspectionResult.to_json) is written
-    however the run ends. Raises GoalNotReached naming every feature not in band (exit 1), or
-    DeviceFault (exit 3) after the safe stop. Returns the InspectionResult."""
+    however the run ends. Raises GoalNotReached naming every feature not in band (exit 1; its
+    cause, report.json's, the first such feature's: `contrast` for a defect unseen, else its
+    shot's), or DeviceFault (exit 3) after the safe stop. Returns the InspectionResult."""
     out = Path(out)
     runs: list[ShotRun] = []
     order: tuple[int, ...] = ()
@@ -357,8 +358,10 @@ def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices],
         failed = [f for f in result("", None).feature_results() if not f["converged"]]
         if failed:
             what = "not in band" + (" or a defect unseen" if any(f.get("cause") == "contrast" for f in failed) else "")
+            causes = {r.shot: r.cause for r in runs}
             raise GoalNotReached(f"{len(failed)} of {len(names)} features {what}: " + "; ".join(
-                f"{f['name']} (shot {f['shot']}): {f['reason']}" for f in failed))
+                f"{f['name']} (shot {f['shot']}): {f['reason']}" for f in failed),
+                next((c for f in failed if (c := f.get("cause") or causes.get(f["shot"]))), None))
         recorder.step("done", f"converged: every feature in band ({len(names)} features, "
                               f"{words.count(len(runs), 'shot')})", converged=True)
     return ending.result

@@ -328,6 +328,12 @@ class Task:
         return self.features[0]
 
     @property
+    def whole_part(self) -> bool:
+        """Whether the task is planned and run as a whole part, shot by shot (several features or
+        a planned viewpoint: cell.planning.whole_part, cell.run.inspection), not as one shot."""
+        return len(self.features) != 1 or self.camera.viewpoint.mode != "fixed"
+
+    @property
     def channels(self) -> dict[int, str]:
         """The lighting controller's channels the task's lights are on, {channel: the key of the
         light's channel in the task file}, the spot's first; empty when no light is on a channel."""
