@@ -164,6 +164,27 @@ def test_feature_samples_cover_the_rim_and_stay_inside_the_patch():
 
 
 @pytest.mark.parametrize("name", ["hinge", "conrod"])
+def test_a_feature_patch_is_projected_once_and_is_the_projection_made_afresh(name, request, monkeypatch):
+    """A scene asked again with the same samples takes the patch made before (scene.feature_patch,
+    read-only), equal bit for bit to one projected with the cache emptied; the extra points follow
+    it, and another count of samples is another patch."""
+    from cell.planning import scene as scene_module
+    task, plan = request.getfixturevalue(name)
+    monkeypatch.setattr(scene_module, "_PATCHES", {})
+    first = build_scene(task, 300)
+    again = build_scene(task, 300, extra=plan.scene.points[:3], T_cell_cam=plan.scene.T_cell_cam)
+    assert len(scene_module._PATCHES) == 1 and not first.points.flags.writeable
+    np.testing.assert_array_equal(again.points[:300], first.points)
+    np.testing.assert_array_equal(again.normals[:300], first.normals)
+    scene_module._PATCHES.clear()
+    fresh = build_scene(task, 300)
+    assert fresh.points is not first.points
+    np.testing.assert_array_equal(fresh.points, first.points)
+    np.testing.assert_array_equal(fresh.normals, first.normals)
+    assert len(build_scene(task, 301).points) == 301 and len(scene_module._PATCHES) == 2
+
+
+@pytest.mark.parametrize("name", ["hinge", "conrod"])
 def test_every_point_of_the_feature_is_in_band_not_only_the_samples(name, request):
     """The plan's lamp and exposure, evaluated on 8x finer samples of the same patch: every
     point stays in the band, within 1 gray level of the predicted extremes."""

@@ -75,6 +75,31 @@ def test_boxes_and_segments_broadcast_and_grazing_or_parallel_segments_do_not_cr
     assert segments_cross_boxes(origins[:1], np.zeros(3), T, half).tolist() == [[True], [False]]
 
 
+def test_one_origin_gives_the_bits_of_the_origin_repeated_for_every_target():
+    """A line of sight's one origin (the camera) is placed in the boxes' frames and offset from the
+    capsules once: the same answer, bit for bit, as the origin repeated per target; the sums the
+    tests read (rays.dot, rays.in_frames) are the dot product and R^T x to rounding."""
+    from cell.collision.rays import dot, in_frames
+    rng = np.random.default_rng(28)
+    T = np.stack([np.eye(4)] * 5)
+    T[:, :3, :3] = Rotation.random(5, random_state=rng).as_matrix()
+    T[:, :3, 3] = rng.uniform(-0.2, 0.2, (5, 3))
+    half = rng.uniform(0.02, 0.2, (5, 3))
+    origin, targets = rng.uniform(-0.5, 0.5, 3), rng.uniform(-0.5, 0.5, (400, 3))
+    a, b = rng.uniform(-0.3, 0.3, (2, 6, 3))
+    radius = rng.uniform(0.02, 0.15, 6)
+    repeated = np.broadcast_to(origin, targets.shape)
+    crossed = segments_cross_boxes(origin, targets, T, half)
+    assert np.array_equal(crossed, segments_cross_boxes(repeated, targets, T, half)) and 50 < crossed.sum() < 1900
+    assert np.array_equal(segments_cross_boxes(targets, origin, T, half), segments_cross_boxes(targets, repeated, T, half))
+    near = segments_near_segments(origin, targets, a, b, radius)
+    assert np.array_equal(near, segments_near_segments(repeated, targets, a, b, radius)) and 50 < near.sum() < 2300
+    x, y = rng.normal(size=(2, 7, 3))
+    np.testing.assert_allclose(dot(x, y), np.sum(x * y, axis=1), rtol=1e-12, atol=1e-15)
+    by_hand = np.array([[R.T @ v for v in x] for R in T[:, :3, :3]])
+    np.testing.assert_allclose(in_frames(T[:, :3, :3], x), by_hand, rtol=1e-12, atol=1e-15)
+
+
 RING = Path(__file__).resolve().parent.parent / "tasks" / "ring.yaml"
 
 

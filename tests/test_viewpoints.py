@@ -340,10 +340,11 @@ def test_look_at_rows_are_each_ones_own_pose_bit_for_bit():
     assert np.allclose(R[:, :, 2], aim, atol=1e-12) and np.array_equal(many[:, :3, 3], cameras)
 
 
-def test_a_poses_viewpoint_values_come_cheapest_first_each_the_requirements_own(planned):
+def test_a_poses_viewpoint_values_come_cheapest_first_each_the_requirements_own(planned, monkeypatch):
     """viewpoint_values yields, cheapest first and only as asked, each viewpoint requirement's
     own ln value (the registry's, computed here directly on the same Problem's inputs): a pose
-    pruned at the first that fails is pruned by any() over them all."""
+    pruned at the first that fails is pruned by any() over them all; the first, the depth of
+    field, before any Problem is built."""
     from cell.planning import requirements
     from cell.planning.viewpoints import VIEWPOINT_REQUIREMENTS, viewpoint_values
     task, _ = planned
@@ -365,4 +366,6 @@ def test_a_poses_viewpoint_values_come_cheapest_first_each_the_requirements_own(
             r = next(r for r in requirements.REGISTRY if r.name == name)
             assert value == float(np.max(r.ln_value(problem, lens_only)))
     lazy = viewpoint_values(one, replace(scene, T_cell_cam=poses[0]))
-    assert next(lazy)[0] == "depth_of_field"
+    built = []
+    monkeypatch.setattr(evaluate, "build_problem", lambda *args, **kwargs: built.append(args))
+    assert next(lazy)[0] == "depth_of_field" and not built

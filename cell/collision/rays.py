@@ -24,17 +24,32 @@ from numpy.typing import ArrayLike
 NEAR_MARGIN_M = 1e-6      # a prefilter's radius widened well past floating-point rounding [m]
 
 
+def dot(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """(...) the dot products of x and y (..., 3), broadcast, summed as x0 y0 + x2 y2 + x1 y1 (the
+    order of np.einsum's two-lane loop on this machine, so its bits): a few elementwise operations,
+    where np.einsum's setup costs tens of microseconds a call on the planner's small arrays."""
+    return x[..., 0] * y[..., 0] + x[..., 2] * y[..., 2] + x[..., 1] * y[..., 1]
+
+
+def in_frames(R: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """(B, N, 3) the vectors x (B, N, 3) or (N, 3) in the frames R (B, 3, 3) (columns the axes):
+    R_b^T x, summed as x_0 R_0i + x_1 R_1i + x_2 R_2i (np.einsum("bji,bnj->bni")'s order, its bits)."""
+    x = np.broadcast_to(x, (len(R), *x.shape[-2:]))
+    return (x[..., 0, None] * R[:, None, 0] + x[..., 1, None] * R[:, None, 1]) + x[..., 2, None] * R[:, None, 2]
+
+
 def segments_cross_boxes(origins: ArrayLike, targets: ArrayLike, T_cell_box: ArrayLike,
                          half_m: ArrayLike) -> np.ndarray:
     """(B, N) whether the segment from each origin to its target crosses box b: origins and
     targets (N, 3) or one (3,) (broadcast), boxes' poses T_cell_box (B, 4, 4) and half sizes
-    half_m (B, 3) or one (3,) [m]."""
+    half_m (B, 3) or one (3,) [m]. One origin (the camera's lines of sight) is placed in each
+    box's frame once, not once per target."""
     T = np.asarray(T_cell_box, float).reshape(-1, 4, 4)
     half = np.broadcast_to(np.asarray(half_m, float), (len(T), 3))[:, None]             # (B, 1, 3)
-    o, q = np.broadcast_arrays(np.asarray(origins, float).reshape(-1, 3), np.asarray(targets, float).reshape(-1, 3))
+    o, q = np.asarray(origins, float).reshape(-1, 3), np.asarray(targets, float).reshape(-1, 3)
     R, c = T[:, :3, :3], T[:, :3, 3]
-    local = np.einsum("bji,bnj->bni", R, o[None] - c[:, None])                          # (B, N, 3)
-    d = np.einsum("bji,nj->bni", R, q - o)
+    local = in_frames(R, o[None] - c[:, None])                                          # (B, N or 1, 3)
+    d = in_frames(R, q - o)                                                             # (B, N, 3)
     inside = np.abs(local) < half
     with np.errstate(divide="ignore", invalid="ignore"):
         t1, t2 = (-half - local) / d, (half - local) / d
@@ -51,13 +66,14 @@ def segments_near_segments(origins: ArrayLike, targets: ArrayLike, a: ArrayLike,
     """(K, N) whether the segment from each origin to its target (N, 3, or one (3,)) passes
     within radius_m (K,) of segment k from a to b (K, 3): crosses capsule k. The segments'
     closest points by Ericson's clamped solution (Real-Time Collision Detection 5.1.9, as
-    bodies.segment_distance), vectorised; the capsules' axes of nonzero length."""
+    bodies.segment_distance), vectorised; the capsules' axes of nonzero length. One origin's
+    offsets from the capsules are found once, not once per target."""
     a, b = np.asarray(a, float).reshape(-1, 3), np.asarray(b, float).reshape(-1, 3)
-    p, q = np.broadcast_arrays(np.asarray(origins, float).reshape(-1, 3), np.asarray(targets, float).reshape(-1, 3))
+    p, q = np.asarray(origins, float).reshape(-1, 3), np.asarray(targets, float).reshape(-1, 3)
     d1, d2 = q - p, b - a                                               # (N, 3), (K, 3)
-    r = p[None] - a[:, None]                                            # (K, N, 3)
-    A, E = np.einsum("nj,nj->n", d1, d1)[None], np.einsum("kj,kj->k", d2, d2)[:, None]
-    B, C, F = np.einsum("nj,kj->kn", d1, d2), np.einsum("nj,knj->kn", d1, r), np.einsum("kj,knj->kn", d2, r)
+    r = p[None] - a[:, None]                                            # (K, N or 1, 3)
+    A, E = dot(d1, d1)[None], dot(d2, d2)[:, None]
+    B, C, F = dot(d1[None], d2[:, None]), dot(d1[None], r), dot(d2[:, None], r)
     denom = A * E - B * B
     with np.errstate(divide="ignore", invalid="ignore"):
         s = np.where(denom > 1e-18 * A * E, np.clip((B * F - C * E) / denom, 0.0, 1.0), 0.0)
@@ -65,7 +81,7 @@ def segments_near_segments(origins: ArrayLike, targets: ArrayLike, a: ArrayLike,
         s = np.where(t < 0.0, np.clip(-C / A, 0.0, 1.0), np.where(t > 1.0, np.clip((B - C) / A, 0.0, 1.0), s))
     t = np.clip(t, 0.0, 1.0)
     gap = r + s[..., None] * d1[None] - t[..., None] * d2[:, None]
-    return np.einsum("knj,knj->kn", gap, gap) < np.asarray(radius_m, float).reshape(-1, 1) ** 2
+    return dot(gap, gap) < np.asarray(radius_m, float).reshape(-1, 1) ** 2
 
 
 def box_capsules(T_cell_box: ArrayLike, half_m: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -36,7 +36,7 @@ def depth_of_field_limits(task: Task, scene: Scene, focus_m: float | None = None
     fall: a patch seen at a slant is not centred on the focus."""
     lens = task.camera.lens
     f, sigma = lens.focal_length_m, lens.circle_of_confusion_m
-    focus = float(np.linalg.norm(scene.camera_position - scene.center)) if focus_m is None else float(focus_m)
+    focus = centre_focus(scene) if focus_m is None else float(focus_m)
     depths = scene.sample_depths()
     nearest, farthest = float(depths.min()), float(depths.max())
     wanted = task.requirements.depth_of_field_m
@@ -55,6 +55,11 @@ def depth_of_field_limits(task: Task, scene: Scene, focus_m: float | None = None
             lo, hi = (lo, mid) if holds(mid) else (mid, hi)
         kappa = hi
     return focus, max(wanted, farthest - nearest), float(np.clip(kappa, k_lo, k_hi))
+
+
+def centre_focus(scene: Scene) -> float:
+    """The focus [m] of the scene's camera focused on the feature centre: their distance."""
+    return float(np.linalg.norm(scene.camera_position - scene.center))
 
 
 def target_gray(band: tuple[float, float]) -> float:

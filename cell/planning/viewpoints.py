@@ -50,7 +50,8 @@ if TYPE_CHECKING:
 
 STAGES = ("visibility", "view_angle", "resolution", "workspace", "reach", "collision", "seen")
 ROLLS = np.radians([0.0, 90.0, 180.0, 270.0])
-VIEWPOINT_REQUIREMENTS = ("depth_of_field", "view_angle", "resolution", "camera_view")   # the cheapest first
+VIEWPOINT_REQUIREMENTS = ("depth_of_field", "view_angle", "resolution", "camera_view")   # the cheapest first (the
+# depth of field without a Problem: viewpoint_values)
 
 
 @dataclass(frozen=True)
@@ -187,14 +188,19 @@ def viewpoint_values(task: Task, scene: Scene, hidden: np.ndarray | None = None)
     depth of field at the lens's narrowest f-number: whether any f-number gives it), the cheapest
     first, each found when asked for: a pose is pruned at the first that fails, the dearer ones
     (camera_view: the lamp's housing and links) left unasked; `hidden` the samples hidden from the
-    camera where found before (evaluate.hidden_from)."""
+    camera where found before (evaluate.hidden_from). The depth of field, the first, reads the
+    focus on the centre and the samples' depths alone (requirements.depth_of_field_ln, the
+    Problem's own value), so a pose it prunes (about half the reached) builds no Problem."""
+    kappa = np.array([task.camera.lens.f_number_range[1]])
+    yield "depth_of_field", float(np.max(requirements.depth_of_field_ln(task, scene, evaluate.centre_focus(scene),
+                                                                        kappa)))
     problem = evaluate.build_problem(task, scene, None, hidden=hidden)
     # the viewpoint requirements read only the f-number, the shutter's shape and the lamp's position
     # of the Candidates, the lamp not placed yet (NaN: its housing hides nothing, requirements.lamp_hides)
-    lens_only = cast(evaluate.Candidates, SimpleNamespace(kappa=np.array([task.camera.lens.f_number_range[1]]),
-                                                          shutter=np.zeros(1), position=np.full((1, 3), np.nan)))
+    lens_only = cast(evaluate.Candidates, SimpleNamespace(kappa=kappa, shutter=np.zeros(1),
+                                                          position=np.full((1, 3), np.nan)))
     by_name = {r.name: r for r in requirements.REGISTRY}
-    for r in (by_name[name] for name in VIEWPOINT_REQUIREMENTS):
+    for r in (by_name[name] for name in VIEWPOINT_REQUIREMENTS[1:]):
         if r.asked is None or r.asked(problem):
             yield r.name, float(np.max(r.ln_value(problem, lens_only)))
 
