@@ -24,6 +24,12 @@ samples (_solve), prior residuals (PRIOR_*) keeping it determined where the view
 (the conrod's shank along its length), plus the model's error: the two finest scales' estimates'
 difference, in quadrature (model_error).
 
+Not every edge moves with the part: a shadow's rim lies where the line from the lamp (fixed in the
+cell) through its caster meets the receiving face. The edge samples a cast shadow draws (drawn:
+the model's image without cast shadows has little of the edge there; cast_shadows finds each
+rim's caster by a ray from the lamp) appear where the moved caster's shadow falls on the moved
+face (shadow_points, _appear); the others where their point does.
+
 One view cannot tell a part moved across the view by d from the camera turned by d / Z (Z the
 feature's distance): both move the feature alike, and only the part's apparent tilt tells them
 apart, weakly; with one view the hand-eye turn is held near 0 (PRIOR_ONE_VIEW_RAD). A second
@@ -49,6 +55,7 @@ from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
+from scipy.ndimage import distance_transform_edt
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
@@ -83,6 +90,11 @@ MAX_TURN_RAD = np.radians(7.0)
 MAX_HAND_EYE_RAD = np.radians(3.0)
 MIN_CONTRAST_GRAY = 10.0    # localize: a capture flatter than this [gray] shows nothing
 MIN_SAMPLES = 200           # fewer edge samples in a view: it tells nothing
+SHADOWED = 0.5              # cast_shadows: a part pixel below this of its gray without cast shadows is in one
+CAST_GAP_M = 1e-4           # cast_shadows: the part meets the lamp's ray this far before the rim: it casts
+CAST_EDGE = 0.5             # drawn: an edge whose gradient without cast shadows is below this of its own is cast
+REACH = 3.0                 # drawn: a cast edge sample's shadow rim within this many scales (sigma)
+GRAZING_RAD = np.radians(5.0)   # drawn: light more nearly along the rim's face than this: its rim is left rigid
 ORBITS_DEG = (30.0, 50.0)   # second_views: the orbits about the feature,
 ORBITS = 8                  # about this many axes across the view,
 ROLL_DEG = 90.0             # the roll about the camera's axis
@@ -105,25 +117,58 @@ PAN_MARGIN_RAD = np.radians(1.0)   # lamps_along: its pans this far inside the r
 
 
 @dataclass(frozen=True)
+class Shadows:
+    """What the lamp's cast shadows draw in a view of the model (cast_shadows): the image without
+    them (H, W), and for each pixel of a shadow's rim (in the shadow, beside a lit pixel of the
+    part) the point of the part that casts it and the rim's face normal (H, W, 3; cell frame, NaN
+    off the rims), each pixel's distance [px] to the nearest rim pixel and that pixel's flat
+    index, and the lamp's position (cell frame)."""
+
+    plain: np.ndarray
+    casters: np.ndarray
+    normals: np.ndarray
+    distance: np.ndarray
+    nearest: np.ndarray
+    lamp_m: np.ndarray
+
+
+@dataclass(frozen=True)
 class ModelView:
     """The model's image of one view: gray per unit exposure (H, W), each pixel's cell-frame
-    point (H, W, 3) (NaN where the ray misses the part), from the read-back camera pose."""
+    point (H, W, 3) (NaN where the ray misses the part), from the read-back camera pose; and,
+    where asked, what the lamp's cast shadows draw in it (Shadows)."""
 
     value: np.ndarray
     points: np.ndarray
     T_cell_cam: np.ndarray
+    shadows: Shadows | None = None
+
+
+@dataclass(frozen=True)
+class Drawn:
+    """The edge samples a cast shadow draws (Samples.drawn): which of them (N,) and, for each of
+    those (M,), the point of the part that casts the shadow's rim nearest it, that rim pixel's
+    point and face normal (M, 3; cell frame, the model's part pose), and the lamp's position."""
+
+    which: np.ndarray
+    casters: np.ndarray
+    rims: np.ndarray
+    normals: np.ndarray
+    lamp_m: np.ndarray
 
 
 @dataclass(frozen=True)
 class Samples:
     """One view's edge samples at a scale: model points X (N, 3, cell frame, the model's part pose),
     the model's band-passed gray there (N,), the capture band-passed alike (H, W), both scaled to
-    unit spread, and the read-back camera pose T_cell_cam."""
+    unit spread, the read-back camera pose T_cell_cam, and those of the samples a cast shadow
+    draws (Drawn; None: every sample an edge of the part)."""
 
     points: np.ndarray
     gray: np.ndarray
     image: np.ndarray
     T_cell_cam: np.ndarray
+    drawn: Drawn | None = None
 
 
 def grid_intrinsics(task: Task, scale: int = 1) -> np.ndarray:
@@ -135,9 +180,10 @@ def grid_intrinsics(task: Task, scale: int = 1) -> np.ndarray:
 
 
 def model_view(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: LampPose,
-               drives: Drives = None, scale: int = 1) -> ModelView:
+               drives: Drives = None, scale: int = 1, drawn: bool = False) -> ModelView:
     """The model's image over the whole sensor (registration.expected_image, on a grid `scale`
-    times coarser) and the point each pixel sees (kernels.render's depth along the pixel's ray)."""
+    times coarser) and the point each pixel sees (kernels.render's depth along the pixel's ray);
+    with `drawn`, what the lamp's cast shadows draw in it (cast_shadows)."""
     from kernels.render import render
     sensor = task.camera.sensor
     width, height = round(sensor.width_px / scale), round(sensor.height_px / scale)
@@ -147,8 +193,46 @@ def model_view(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: Lamp
     origin = T_cell_cam[:3, 3]
     hit = render(scene.shadow_mesh, origin, rays, origin, rays[0], 1.0, np.pi, task.part.material.table(),
                  1.0, 1.0, shadows=False, part_faces=len(scene.faces))
-    points = np.where(hit.hit[:, None], origin + hit.depth[:, None] * rays, np.nan)
-    return ModelView(value, points.reshape(height, width, 3), np.array(T_cell_cam, float))
+    points = np.where(hit.hit[:, None], origin + hit.depth[:, None] * rays, np.nan).reshape(height, width, 3)
+    shadows = None
+    if drawn:
+        plain = registration.expected_image(task, scene, T_cell_cam, lamp_pose, (0, 0, width, height), scale, drives,
+                                            shadows=False)
+        shadows = cast_shadows(task, scene, value, plain, points, hit.normal.reshape(height, width, 3), lamp_pose)
+    return ModelView(value, points, np.array(T_cell_cam, float), shadows)
+
+
+def cast_shadows(task: Task, scene: Scene, value: np.ndarray, plain: np.ndarray, points: np.ndarray,
+                 normals: np.ndarray, lamp_pose: LampPose) -> Shadows:
+    """The Shadows of a model's image (value) and the same without cast shadows (plain), its
+    pixels' points and face normals (H, W, 3): a part pixel is in a shadow where its gray is less
+    than SHADOWED of the plain image's, on its rim where a neighbour (8) of the part is not; the
+    part's point casting it is where the ray from the lamp to the rim's point first meets the part
+    (kernels.render from the lamp, the part's own mesh: a housing, fixed in the cell, casts none
+    here), more than CAST_GAP_M before it."""
+    from kernels.render import render
+    part = np.isfinite(points[..., 0])
+    shaded = part & (value < SHADOWED * plain)
+    lit = (part & ~shaded).astype(np.uint8)
+    rows, cols = np.nonzero(shaded & (cv2.dilate(lit, np.ones((3, 3), np.uint8)) > 0))
+    casters = np.full(points.shape, np.nan)
+    lamp = np.asarray(lamp_pose[0], float)
+    if len(rows):
+        rim = points[rows, cols]
+        to_rim = rim - lamp
+        length = np.linalg.norm(to_rim, axis=1)
+        rays = to_rim / length[:, None]
+        hit = render(scene.warp_mesh, lamp, rays, lamp, lamp_pose[1], 1.0, np.pi, task.part.material.table(),
+                     1.0, 1.0, shadows=False)
+        cast = hit.hit & (hit.depth < length - CAST_GAP_M)
+        casters[rows[cast], cols[cast]] = lamp + hit.depth[cast, None] * rays[cast]
+    on_rim = np.isfinite(casters[..., 0])
+    if on_rim.any():
+        distance, (near_rows, near_cols) = distance_transform_edt(~on_rim, return_indices=True)
+        nearest = near_rows * on_rim.shape[1] + near_cols
+    else:
+        distance, nearest = np.full(on_rim.shape, np.inf), np.zeros(on_rim.shape, int)
+    return Shadows(plain, casters, np.where(on_rim[..., None], normals, np.nan), distance, nearest, lamp)
 
 
 def signal(task: Task, image: np.ndarray) -> np.ndarray:
@@ -219,7 +303,7 @@ hinges' windows scored alike, and a turned start put one 1 mm low). The turns: a
 def edge_samples(view: ModelView, capture: np.ndarray, sigma_px: float) -> Samples:
     """The view's Samples at scale sigma: the model's part pixels whose band-passed gray changes
     most (the EDGE_QUANTILE of its gradient), their points and band-passed gray, both images
-    scaled to unit spread over the part."""
+    scaled to unit spread over the part; with the view's Shadows, those a shadow draws (drawn)."""
     seen = np.isfinite(view.points[..., 0])
     model = band_pass(view.value, sigma_px)
     grad = registration.gradient(model)
@@ -233,8 +317,27 @@ def edge_samples(view: ModelView, capture: np.ndarray, sigma_px: float) -> Sampl
     points = view.points[rows, cols]
     gray = model[rows, cols]
     image = band_pass(capture, sigma_px)
+    cast = None if view.shadows is None else drawn(view.shadows, view.points, grad, rows, cols, sigma_px)
     return Samples(points, gray / max(float(np.std(gray)), 1e-12), image / max(float(np.std(image[seen])), 1e-12),
-                   view.T_cell_cam)
+                   view.T_cell_cam, cast)
+
+
+def drawn(shadows: Shadows, points: np.ndarray, grad: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+          sigma_px: float) -> Drawn | None:
+    """Of the edge samples at pixels (rows, cols) of a view (its Shadows, its pixels' points
+    (H, W, 3), its band-passed gradient grad), those a cast shadow draws (None: none): the
+    band-passed gradient of the image without cast shadows less than CAST_EDGE of grad there, a
+    shadow's rim within REACH sigma, the lamp's light not grazing the rim's face (more than
+    GRAZING_RAD to it); each with the rim pixel nearest it."""
+    plain = registration.gradient(band_pass(shadows.plain, sigma_px))[rows, cols]
+    which = (plain < CAST_EDGE * grad[rows, cols]) & (shadows.distance[rows, cols] <= REACH * sigma_px)
+    near = shadows.nearest[rows, cols][which]
+    casters, normals = shadows.casters.reshape(-1, 3)[near], shadows.normals.reshape(-1, 3)[near]
+    steep = np.abs(np.einsum("nj,nj->n", geometry.unit(casters - shadows.lamp_m), normals)) > np.sin(GRAZING_RAD)
+    which[which] = steep
+    if not which.any():
+        return None
+    return Drawn(which, casters[steep], points.reshape(-1, 3)[near[steep]], normals[steep], shadows.lamp_m)
 
 
 @dataclass(frozen=True)
@@ -328,6 +431,36 @@ def _project(K: np.ndarray, theta: np.ndarray, center: np.ndarray, T_cell_cam: n
     return uv
 
 
+def shadow_points(E_part: np.ndarray, drawn: Drawn) -> np.ndarray:
+    """Where the rims of the cast shadows that drawn samples show lie with the part moved by
+    E_part, the lamp fixed in the cell (M, 3; cell frame): the ray from the lamp L through the
+    moved caster E Q meets the moved rim's face (through E B, normal R n) at
+    L + t (E Q - L), t = (R n . (E B - L)) / (R n . (E Q - L)); at E = 1, B itself (Q lies on the
+    ray from L to B). The part's edges move as E does; a shadow's rim as its caster and its
+    receiver move against the fixed lamp (under a lamp 15 deg low, the conrod tilted 3 deg about
+    its width lengthens its big boss's shadow along the shank by a fifth)."""
+    L = drawn.lamp_m
+    to_caster = geometry.apply(E_part, drawn.casters) - L
+    normal = geometry.rotate(E_part, drawn.normals)
+    t = (np.einsum("nj,nj->n", normal, geometry.apply(E_part, drawn.rims) - L)
+         / np.einsum("nj,nj->n", normal, to_caster))
+    return L + t[:, None] * to_caster
+
+
+def _appear(K: np.ndarray, theta: np.ndarray, center: np.ndarray, samples: Samples) -> np.ndarray:
+    """Where a view's edge samples appear under the pose errors theta [px]: an edge of the part
+    where its point does (_project), an edge a cast shadow draws moved as its rim moves
+    (shadow_points), seen from the true camera C E_he."""
+    uv = _project(K, theta, center, samples.T_cell_cam, samples.points)
+    drawn = samples.drawn
+    if drawn is None:
+        return uv
+    E_part, he_inv = _params(theta, center)
+    moved = samples.points[drawn.which] + shadow_points(E_part, drawn) - drawn.rims
+    uv[drawn.which] = projection.project(K, samples.T_cell_cam @ np.linalg.inv(he_inv), moved)[0]
+    return uv
+
+
 def _priors(theta: np.ndarray, views: int) -> np.ndarray:
     """The prior residuals that keep the fit determined where the views tell nothing: each
     parameter over its spread (PRIOR_*), the hand-eye turn's tighter with one view."""
@@ -403,23 +536,23 @@ def fit(levels: Sequence[Sequence[Samples]], K: np.ndarray, center: np.ndarray, 
                   for v in views]
 
         def residuals(x: np.ndarray, views: Sequence[Samples] = views) -> np.ndarray:
-            out = [x[9 + i] * sampled(view.image, _project(K, x[:9], center, view.T_cell_cam, view.points))
+            out = [x[9 + i] * sampled(view.image, _appear(K, x[:9], center, view))
                    - view.gray for i, view in enumerate(views)]
             return np.concatenate(out + [_priors(x[:9], len(views))])
 
         def jacobian(x: np.ndarray, views: Sequence[Samples] = views, slopes: Any = slopes) -> np.ndarray:
             """d residual / d parameters: the capture's slope at each point times the point's
-            image motion per parameter (central differences of the projection, float64)."""
+            image motion per parameter (central differences of _appear, float64)."""
             blocks = []
             for i, (view, (gx, gy)) in enumerate(zip(views, slopes)):
-                uv = _project(K, x[:9], center, view.T_cell_cam, view.points)
+                uv = _appear(K, x[:9], center, view)
                 block = np.zeros((len(uv), len(x)))
                 slope = np.column_stack([sampled(gx, uv), sampled(gy, uv)])
                 for j, h in enumerate([1e-6] * 3 + [1e-5] * 6):
                     step = np.zeros(9)
                     step[j] = h
-                    motion = (_project(K, x[:9] + step, center, view.T_cell_cam, view.points)
-                              - _project(K, x[:9] - step, center, view.T_cell_cam, view.points)) / (2 * h)
+                    motion = (_appear(K, x[:9] + step, center, view)
+                              - _appear(K, x[:9] - step, center, view)) / (2 * h)
                     block[:, j] = x[9 + i] * np.sum(slope * motion, axis=1)
                 block[:, 9 + i] = sampled(view.image, uv)
                 blocks.append(block)
@@ -429,7 +562,7 @@ def fit(levels: Sequence[Sequence[Samples]], K: np.ndarray, center: np.ndarray, 
 
         def groups(x: np.ndarray, views: Sequence[Samples] = views) -> np.ndarray:
             """Each sample's tile: its view and its pixel's TILE_PX square where x puts it."""
-            tiles = [np.floor(_project(K, x[:9], center, view.T_cell_cam, view.points) / TILE_PX)
+            tiles = [np.floor(_appear(K, x[:9], center, view) / TILE_PX)
                      for view in views]
             return np.concatenate([(i * 1_000_000 + t[:, 1] * 1000 + t[:, 0]).astype(np.int64)
                                    for i, t in enumerate(tiles)])
@@ -461,7 +594,7 @@ def cost(levels: Sequence[Samples], K: np.ndarray, center: np.ndarray, theta: np
     capture's samples s and the model's m, not below 0)."""
     total = 0.0
     for view in levels:
-        seen = sampled(view.image, _project(K, theta, center, view.T_cell_cam, view.points))
+        seen = sampled(view.image, _appear(K, theta, center, view))
         gain = max(float(seen @ view.gray) / max(float(seen @ seen), 1e-12), 0.0)
         z = ((gain * seen - view.gray) / LOSS) ** 2
         total += float(np.sum(2.0 * (np.sqrt(1.0 + z) - 1.0)))
@@ -532,7 +665,7 @@ def localize(task: Task, scene: Scene, views: Sequence[View],
         there = localize(task, moved_scene(scene, start.T_part),
                          [replace(v, T_cell_cam=v.T_cell_cam @ start.T_hand_eye) for v in views])
         return None if there is None else composed(start, there)
-    models = [model_view(task, scene, v.T_cell_cam, v.lamp_pose, v.drives) for v in views]
+    models = [model_view(task, scene, v.T_cell_cam, v.lamp_pose, v.drives, drawn=True) for v in views]
     images = [signal(task, v.image) for v in views]
     K = projection.intrinsics(task.camera.sensor, task.camera.lens)
     shifts = [whole_shift(m.value, image, tuple(projection.project(K, m.T_cell_cam, scene.center[None])[0][0]))
@@ -619,7 +752,7 @@ def refine(task: Task, scene: Scene, views: Sequence[View], first: PoseError) ->
     moved = moved_scene(scene, first.T_part)
     E_he = first.T_hand_eye
     K = projection.intrinsics(task.camera.sensor, task.camera.lens)
-    models = [model_view(task, moved, v.T_cell_cam @ E_he, v.lamp_pose, v.drives) for v in views]
+    models = [model_view(task, moved, v.T_cell_cam @ E_he, v.lamp_pose, v.drives, drawn=True) for v in views]
     levels = [[edge_samples(m, signal(task, v.image), s) for m, v in zip(models, views)] for s in SCALES_PX]
     if min(len(s.points) for s in levels[-1]) < MIN_SAMPLES:
         return first

@@ -149,12 +149,13 @@ def not_registered(registration: dict[str, Any]) -> str:
 
 
 def expected_image(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: LampPose, window: Window,
-                   scale: int = 1, drives: Drives = None, counts: Sequence[int] | None = None) -> np.ndarray:
+                   scale: int = 1, drives: Drives = None, counts: Sequence[int] | None = None,
+                   shadows: bool = True) -> np.ndarray:
     """The model's gray per unit exposure (c A Phi R / 8, eq. 10, 11, 17) over a window
     (u0, v0, width, height) of a grid `scale` times coarser than the sensor's, seen from T_cell_cam
     with the lamp at lamp_pose (position, aim) and every light at its channel's level in drives
     (lights.drive_level; each as counts[k] emitter points, None: lights.emitter_counts at the
-    scene): the planner's shading with shadows."""
+    scene): the planner's shading with cast shadows (without: `shadows` False)."""
     sensor, lens = task.camera.sensor, task.camera.lens
     grid = replace(sensor, width_px=round(sensor.width_px / scale), height_px=round(sensor.height_px / scale),
                    pixel_pitch_m=sensor.pixel_pitch_m * scale)
@@ -166,13 +167,13 @@ def expected_image(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: 
     table, origin = task.part.material.table(), T_cell_cam[:3, 3]
     value = lights.drive_level(task.lamp.channel.number, drives) * render(
         scene.shadow_mesh, origin, rays, position, aim, task.lamp.power_w, task.lamp.cone_angle_rad, table,
-        sensor.camera_constant, sensor.pixel_area_m2, shadows=True, profile=task.lamp.profile,
+        sensor.camera_constant, sensor.pixel_area_m2, shadows=shadows, profile=task.lamp.profile,
         part_faces=len(scene.faces)).value
     if task.lights:
         counts = lights.emitter_counts(task, scene, scene.T_cell_cam) if counts is None else counts
         value += lights.rendered(scene.shadow_mesh, origin, rays, T_cell_cam, task.lights, counts,
                                  [lights.drive_level(light.channel.number, drives) for light in task.lights],
-                                 table, sensor.camera_constant, sensor.pixel_area_m2, shadows=True,
+                                 table, sensor.camera_constant, sensor.pixel_area_m2, shadows=shadows,
                                  part_faces=len(scene.faces))
     return value.reshape(height, width).astype(np.float32)
 
