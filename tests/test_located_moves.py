@@ -277,22 +277,24 @@ def test_the_re_plan_for_where_the_part_is_takes_the_best_lamp_pose_clear_of_the
     assert Obstacles(located).gap(arm, lamp_at(located, lamp), lamp_moves=True)[0] >= padding
 
 
-def test_where_no_lamp_pose_keeps_the_padding_nor_the_plan_s_the_loop_stops_pose_naming_both(tmp_path, conrod_plan):
-    """The same re-plan with a padding of 0.2 m, which no lamp pose on the conrod's rig keeps from
-    the camera: the re-plan's shot meets every requirement and collides (`collision`, its bodies
-    named), the plan's lamp kept is refused too: the run stops, cause `pose`, the pose found and
+def test_where_no_clear_lamp_pose_meets_the_requirements_nor_the_plan_s_the_loop_stops_pose_naming_both(
+        tmp_path, conrod_plan):
+    """The same re-plan with a lamp housing 0.8 m across (its front face 0.8 x 0.8 m): the lamp
+    poses that keep it 10 mm from every other body all miss a requirement, so the re-plan is the
+    search's without the bodies, whose shot meets them and collides (`collision`, the lamp's body
+    named); the plan's lamp kept is refused too: the run stops, cause `pose`, the pose found and
     both refusals named, nothing moved."""
     conrod = with_black_level(conrod_plan[0], RUN_BLACK)
-    wide = replace(conrod, cell=replace(conrod.cell, collision=replace(conrod.cell.collision, padding_m=0.2)))
+    wide = replace(conrod, cell=replace(conrod.cell, collision=replace(conrod.cell.collision,
+                                                                       lamp_size_m=(0.8, 0.8, 0.05))))
     events, stop, _, devices = followed(tmp_path, conrod_plan, wide)
     assert isinstance(stop, GoalNotReached) and stop.cause == "pose"
-    replan = [e for e in events if type(e).__name__ == "Replan"]
-    assert len(replan) == 1 and replan[0].plan["binding"] == "collision"
+    replan = [e.plan for e in events if type(e).__name__ == "Replan"]
+    assert len(replan) == 1 and replan[0]["binding"] == "collision" and "lamp_body" in replan[0]["hint"]
     said = str(stop)
     assert said.startswith("the part is off by")
     assert "re-planned for where the part is, no lamp pose clear of the cell's bodies meets every requirement" in said
-    assert "with the lamp kept at the plan's pose: collision: " in said
-    assert said.count("less than the padding 200 mm") == 2
+    assert "with the lamp kept at the plan's pose: collision: " in said and said.count("lamp_body") == 2
     assert devices.arm.moves == 0 and devices.lamp.moves == 0
 
 

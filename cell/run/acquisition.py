@@ -56,6 +56,8 @@ def plan_recorded(task: Task, recorder: Recorder, albedo_scale: float = 1.0, ite
     planned = plan(task, albedo_scale=albedo_scale, progress=recorder.progress, T_cell_cam=T_cell_cam,
                    clear_lamp=clear_lamp)
     if clear_lamp and not planned.feasible:
+        recorder.progress(f"no lamp pose clear of the cell's bodies meets every requirement ({planned.binding}): "
+                          "the search without them")
         planned = plan(task, albedo_scale=albedo_scale, progress=recorder.progress, T_cell_cam=T_cell_cam)
     if clear or clear_lamp:
         planned = cleared(task, planned)
