@@ -1,10 +1,12 @@
 """The moves of the closed loop after localization (issue 27): from where a further view left the
 camera and the lamp back to the shot planned for where the part is. The order of the camera's and
 the lamp's moves (cell.run.motion: the camera first, or the lamp first where the camera's path
-with the lamp where it stands is not clear, logged) and a re-planned shot whose lamp stands
-under the padding from the camera body (cell.run.loop.lamp_kept: the plan carried along with the
-part). The independent judge is the simulated cell's own collision check (sim.obstacles: other
-geometry, other distances), which stops a move that would hit and lets the chosen one through."""
+with the lamp where it stands is not clear, logged), the re-plan for where the part is, which
+takes the best lamp pose clear of the cell's bodies (cell.run.loop.follow, one_shot.plan's
+clear_lamp), and its last resort where that shot cannot be taken (cell.run.loop.lamp_kept: the
+plan carried along with the part). The independent judges are the simulated cell's own
+collision check (sim.obstacles: other geometry, other distances), which stops a move that would
+hit and lets the chosen one through, and the exact distance of its housings' boxes (box_gap)."""
 import json
 from dataclasses import replace
 from pathlib import Path
@@ -12,17 +14,21 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from scipy.optimize import minimize
 from scipy.spatial.distance import cdist
 
 from cell.collision.scene import reaching_joints
 from cell.core.errors import DeviceFault, GoalNotReached
-from cell.devices.rig import lamp_position
+from cell.devices import ur5e
+from cell.devices.rig import lamp_frame, lamp_position
 from cell.planning.one_shot import plan
 from cell.planning.scene import look_at
+from cell.planning.whole_part import cleared
 from cell.report.recorder import Recorder
 from cell.run import localization, motion
 from cell.run.context import RunContext
-from cell.run.loop import LoopFeature, lamp_kept, where_located
+from cell.run.loop import Aim, Corrected, LoopFeature, follow, lamp_kept, where_located, with_black_level
+from cell.run.measurement import BlackLevel
 from cell.task.loader import load_task
 from sim.obstacles import Obstacles
 from simcell import run_loop, variant
@@ -105,18 +111,20 @@ def conrod_further_view(conrod_plan):
     return task, planned, error, localization.located_task(task, error), devices
 
 
-REPLANNED_LAMP = (np.radians(63.95), np.radians(72.51), 0.22655)      # the run's re-plan (located-1/plan.json)
+# the run's re-plan by a search that did not know the cell's bodies (located-1/plan.json before
+# the re-plans searched among the clear lamp poses)
+REPLANNED_LAMP = (np.radians(63.95), np.radians(72.51), 0.22655)
 
 
-def test_a_re_planned_shot_whose_lamp_stands_under_the_padding_keeps_the_plan_s_lamp(tmp_path, conrod_plan):
+def test_a_re_planned_shot_whose_move_is_refused_keeps_the_plan_s_lamp(tmp_path, conrod_plan):
     """The mismatch matrix's conrod, its camera turned 2 deg about x: localized with a further
-    view (the lamp low), the re-plan for where the part is put the lamp at pan 64 deg, 72.5 deg up,
-    0.2265 m, under the 10 mm padding from the camera body where the corrected hand-eye puts it,
-    so no order of the moves reaches it (the run stopped `pose`). The simulator's own housings
-    agree that that shot is under the padding. The loop takes the plan carried along with the
-    part (the lamp at the plan's joints, the camera at the plan's view of the part): its shot
-    keeps the padding by the simulator's housings too, and its move from where the further view
-    left the cell goes through the simulator's own check."""
+    view (the lamp low), a re-planned shot whose move is refused (the lamp at pan 64 deg, 72.5 deg
+    up, 0.2265 m, where a search without the cell's bodies put it: under the 10 mm padding from
+    the camera body where the corrected hand-eye puts it, so no order of the moves reaches it).
+    The simulator's own housings agree that that shot is under the padding. The loop's last
+    resort: the plan carried along with the part (the lamp at the plan's joints, the camera at
+    the plan's view of the part): its shot keeps the padding by the simulator's housings too, and
+    its move from where the further view left the cell goes through the simulator's own check."""
     task, planned, error, located, devices = conrod_further_view(conrod_plan)
     padding = task.cell.collision.padding_m
     replanned = SimpleNamespace(T_cell_cam=error.T_part @ planned.shot.T_cell_cam, joints=REPLANNED_LAMP)
@@ -125,7 +133,8 @@ def test_a_re_planned_shot_whose_lamp_stands_under_the_padding_keeps_the_plan_s_
         ctx = RunContext(located, devices, recorder, 6)
         refused = where_located(ctx, located, replanned, error)
         assert not refused.clear and set(refused.clearance.bodies) == {"camera_body", "lamp_body"}
-        kept = lamp_kept(ctx, LoopFeature.planned(located, planned), error, refused)
+        kept = lamp_kept(ctx, LoopFeature.planned(located, planned), error,
+                         f"the move there is refused: {motion.refusal(refused)}")
         shot = kept.plan.shot
         assert shot.joints == planned.shot.joints
         assert shot.T_cell_cam == pytest.approx(error.T_part @ planned.shot.T_cell_cam, abs=1e-12)
@@ -148,7 +157,8 @@ def test_where_the_plan_carried_along_is_refused_too_the_run_stops_pose_naming_b
     with Recorder(tmp_path / "run") as recorder, pytest.raises(GoalNotReached) as stop:
         ctx = RunContext(located, devices, recorder, 6)
         refused = where_located(ctx, located, replanned, error)
-        lamp_kept(ctx, replace(feature, model=replace(feature.model, plan=lamp_there)), error, refused)
+        lamp_kept(ctx, replace(feature, model=replace(feature.model, plan=lamp_there)), error,
+                  f"the move there is refused: {motion.refusal(refused)}")
     assert stop.value.cause == "pose"
     said = str(stop.value)
     assert said.startswith("the part is off by") and "with the lamp kept at the plan's pose: collision: " in said
@@ -160,7 +170,8 @@ def test_where_the_plan_carried_along_is_refused_too_the_run_stops_pose_naming_b
 def test_the_conrod_with_its_camera_turned_2_deg_converges_from_its_further_view(tmp_path):
     """The mismatch matrix's case end to end (conrod, sim.truth.camera_rpy_deg [2, 0, 0], seed 1,
     every effect; about 5 minutes): localized from a further view with the lamp low, the shot
-    re-planned there under the padding, the plan's lamp kept; the run converges within the
+    re-planned there with its lamp clear of the cell's bodies (a search without them put it
+    under the padding from the camera body), no lamp kept; the run converges within the
     matrix's 6 captures, the hand-eye's turn found within 0.3 deg and the part within 1 mm of
     where it is (the truth: not moved)."""
     keys = {"sim.effects": ["shadows", "cone_falloff", "vignetting", "defocus", "noise", "black_level", "quantization"],
@@ -173,4 +184,141 @@ def test_the_conrod_with_its_camera_turned_2_deg_converges_from_its_further_view
     found = cell.report["localization"]
     assert found["followed"] and found["hand_eye_rpy_deg"] == pytest.approx([2.0, 0.0, 0.0], abs=0.3)
     assert found["part_offset_m"] == pytest.approx([0.0, 0.0, 0.0], abs=1e-3)
-    assert any(line["step"] == "correct" and "lamp_kept" in line for line in cell.log)
+    assert not any(line["step"] == "correct" and "lamp_kept" in line for line in cell.log)
+    (located,) = [r["plan"] for r in cell.report["replans"] if r["iteration"] == found["iteration"]]
+    assert located["feasible"] and located["clearance_m"] >= 0.01
+
+
+def box_gap(a, b):
+    """The exact distance [m] between two solid boxes, each (centre (3,), rotation (3, 3), half
+    sizes (3,)): the least |x - y| over x = c_a + R_a (h_a u), y = c_b + R_b (h_b v), u and v in
+    [-1, 1]^3, a convex problem that L-BFGS-B solves to its global minimum (0 where they overlap)."""
+    (ca, Ra, ha), (cb, Rb, hb) = a, b
+
+    def squared(z):
+        d = ca + Ra @ (ha * z[:3]) - cb - Rb @ (hb * z[3:])
+        return d @ d, np.concatenate([2 * ha * (Ra.T @ d), -2 * hb * (Rb.T @ d)])
+    best = minimize(squared, np.zeros(6), jac=True, method="L-BFGS-B", bounds=[(-1, 1)] * 6,
+                    options={"ftol": 1e-15, "gtol": 1e-12})
+    return float(np.sqrt(max(best.fun, 0.0)))
+
+
+def sim_housings(task, arm_joints, lamp_joints):
+    """The simulator's camera and lamp housings (sim.obstacles.Obstacles' boxes of the task's
+    `cell.collision` sizes: the camera's centred offset_m along the flange's z at the arm's
+    joints, the lamp's front face at its position, its z the aim at the pivot) as box_gap's
+    (centre, rotation, half sizes)."""
+    c = task.cell.collision
+    flange = task.frames.T_cell_base @ ur5e.forward(np.asarray(arm_joints, float))
+    camera = (flange[:3, :3] @ [0.0, 0.0, c.camera_offset_m] + flange[:3, 3], flange[:3, :3],
+              0.5 * np.asarray(c.camera_size_m, float))
+    position = lamp_at(task, lamp_joints)
+    R = lamp_frame(np.asarray(task.lamp.rig.pivot_m, float), position)
+    half = 0.5 * np.asarray(c.lamp_size_m, float)
+    return camera, (position - half[2] * R[:, 2], R, half)
+
+
+# the run's estimate where it re-planned (conrod, sim.truth.camera_rpy_deg [2, 0, 0], seed 1, every
+# effect; 3 views) and the black level its dark frame found, which every re-plan knows
+RUN_ESTIMATE = localization.PoseError(np.array([-0.56, -0.52, 0.28]) * 1e-3, np.radians([-0.09, 0.05, -0.02]),
+                                      np.radians([1.91, -0.09, 0.02]), *np.zeros((4, 3)), 3, 0, 0.0)
+RUN_BLACK = 5.0
+
+
+def followed(tmp_path, conrod_plan, task=None):
+    """loop.follow on the conrod's RUN_ESTIMATE after its further view (conrod_further_view's
+    cell; `task`: the conrod's as the loop knows it, by default with RUN_BLACK): (its events, the
+    Aim it returns or the GoalNotReached it raised, the located task, the devices)."""
+    conrod, planned, _, _, devices = conrod_further_view(conrod_plan)
+    task = task or with_black_level(conrod, RUN_BLACK)
+    feature = LoopFeature.planned(task, planned)
+    aim = Aim((feature,), BlackLevel(RUN_BLACK, 0.0, "task"), planned.shot.exposure.shutter_s,
+              planned.shot.exposure.f_number)
+    events = []
+    with Recorder(tmp_path / "run") as recorder:
+        steps = follow(RunContext(task, devices, recorder, 6), aim, 1, RUN_ESTIMATE)
+        try:
+            while True:
+                events.append(next(steps))
+        except StopIteration as end:
+            result = end.value
+        except GoalNotReached as stop:
+            result = stop
+    return events, result, localization.located_task(task, RUN_ESTIMATE), devices
+
+
+def test_the_re_plan_for_where_the_part_is_takes_the_best_lamp_pose_clear_of_the_cell(tmp_path, conrod_plan):
+    """The conrod's run above, re-planned for where it localized the part and the camera: the
+    best lamp pose of a search that does not know the cell's bodies stands under the 10 mm
+    padding from the camera body where the corrected hand-eye puts it (by the planner's check, a
+    lower bound of the distance: 8.0 mm; the simulator's housings' exact distance is 9.95 mm);
+    loop.follow's re-plan takes the best pose clear of them instead,
+    feasible, its clearance at least the padding, no lamp kept. The simulator's own check lets
+    the move there through, and its housings where the arm and the lamp then stand keep the
+    padding (their boxes' exact distance, and the lamp's sampled gap to every other body)."""
+    events, aim, located, devices = followed(tmp_path, conrod_plan)
+    padding = located.cell.collision.padding_m
+    blind = cleared(located, plan(located))
+    assert blind.binding == "collision" and set(blind.shot.clearance.bodies) == {"camera_body", "lamp_body"}
+
+    assert isinstance(aim, Aim) and aim.located
+    replanned = aim.shot
+    assert aim.features[0].model.plan.feasible and replanned.clearance.distance_m >= padding
+    assert not any(isinstance(e, Corrected) and "lamp_kept" in e.correction for e in events)
+    assert any("lamp poses of the global search refused" in note for note in aim.features[0].model.plan.notes)
+    assert replanned.joints != pytest.approx(blind.shot.joints, abs=1e-6)
+
+    corrected = localization.corrected(devices, RUN_ESTIMATE)
+    with Recorder(tmp_path / "move") as recorder:
+        motion.go(located, corrected, recorder, replanned.T_cell_cam, replanned.joints, to="the shot's poses")
+    arm, lamp = devices.arm.joint_angles(), devices.lamp.joints()
+    assert corrected.arm.camera_pose() == pytest.approx(replanned.T_cell_cam, abs=1e-9)
+    assert box_gap(*sim_housings(located, arm, lamp)) >= padding
+    assert Obstacles(located).gap(arm, lamp_at(located, lamp), lamp_moves=True)[0] >= padding
+
+
+def test_where_no_clear_lamp_pose_meets_the_requirements_nor_the_plan_s_the_loop_stops_pose_naming_both(
+        tmp_path, conrod_plan):
+    """The same re-plan with a lamp housing 0.8 m across (its front face 0.8 x 0.8 m): the lamp
+    poses that keep it 10 mm from every other body all miss a requirement, so the re-plan is the
+    search's without the bodies, whose shot meets them and collides (`collision`, the lamp's body
+    named); the plan's lamp kept is refused too: the run stops, cause `pose`, the pose found and
+    both refusals named, nothing moved."""
+    conrod = with_black_level(conrod_plan[0], RUN_BLACK)
+    wide = replace(conrod, cell=replace(conrod.cell, collision=replace(conrod.cell.collision,
+                                                                       lamp_size_m=(0.8, 0.8, 0.05))))
+    events, stop, _, devices = followed(tmp_path, conrod_plan, wide)
+    assert isinstance(stop, GoalNotReached) and stop.cause == "pose"
+    replan = [e.plan for e in events if type(e).__name__ == "Replan"]
+    assert len(replan) == 1 and replan[0]["binding"] == "collision" and "lamp_body" in replan[0]["hint"]
+    said = str(stop)
+    assert said.startswith("the part is off by")
+    assert "re-planned for where the part is, no lamp pose clear of the cell's bodies meets every requirement" in said
+    assert "with the lamp kept at the plan's pose: collision: " in said and said.count("lamp_body") == 2
+    assert devices.arm.moves == 0 and devices.lamp.moves == 0
+
+
+def test_the_lamp_s_clearance_at_a_re_plan_s_camera_is_every_pair_of_the_lamp_s_kept_apart(conrod_plan):
+    """CollisionScene.lamp_clear, the re-plan's question of each lamp pose, at RUN_ESTIMATE's
+    camera on a grid of lamp poses about the one a search without the cell's bodies takes (both
+    answers occur): the same as every pair of the lamp's box with another body (bodies.distance
+    of each, no pruning) at least the padding apart; where it says clear, the simulator's lamp
+    and camera housings' exact distance (box_gap) keeps the padding too."""
+    from itertools import product
+
+    from cell.collision.bodies import distance
+    from cell.collision.scene import CollisionScene
+    located = localization.located_task(with_black_level(conrod_plan[0], RUN_BLACK), RUN_ESTIMATE)
+    padding, pivot = located.cell.collision.padding_m, located.lamp.rig.pivot_m
+    T = RUN_ESTIMATE.T_part @ conrod_plan[1].shot.T_cell_cam
+    q = reaching_joints(located.frames, T)
+    scene = CollisionScene.of(located)
+    joints = [(np.radians(p), np.radians(t), r) for p, t, r in product(range(50, 80, 3), range(64, 80, 2), (0.2, 0.23))]
+    clear = scene.lamp_clear(T, q, [lamp_position(pivot, *j) for j in joints])
+    others = scene.bodies(T, q)
+    for j, ok in zip(joints, clear):
+        lamp = scene.lamp_body(lamp_position(pivot, *j))
+        assert ok == all(distance(lamp, other) >= padding for other in others)
+        if ok:
+            assert box_gap(*sim_housings(located, q, j)) >= padding
+    assert clear.any() and not clear.all()

@@ -258,6 +258,25 @@ class CollisionScene:
         (Pairs.clear: the question without the least distance's value)."""
         return Pairs.of(self.bodies(T_cell_cam, arm_joints, lamp_position), len(self.fixed)).clear(self.padding_m)
 
+    def lamp_clear(self, T_cell_cam: np.ndarray, arm_joints: ArrayLike | None,
+                   lamp_positions: ArrayLike) -> np.ndarray:
+        """(K,) whether the lamp at each of K positions (K, 3) keeps the padding from every body
+        it may not touch, the camera at T_cell_cam and the arm at arm_joints: only the lamp's
+        pairs (Pairs.clear with every other body counted as fixed), so a pose of the arm that
+        itself collides leaves the lamp's answer alone (`clearance` names that). A lamp whose
+        box's bounding sphere is the padding from every other body's is clear without a pair's
+        distance (the spheres' gap is a lower bound of it, as in Pairs), all K in one array."""
+        others = self.bodies(T_cell_cam, arm_joints)
+        boxes = lamp_boxes(self.pivot_m, self.lamp_half_m, np.asarray(lamp_positions, float).reshape(-1, 3))
+        centers = np.array([body.center for body in others])
+        radii = np.array([body.radius for body in others]) + float(np.linalg.norm(self.lamp_half_m))
+        gap = np.linalg.norm(boxes[:, None, :3, 3] - centers, axis=2) - radii
+        clear = np.all(gap >= self.padding_m, axis=1)
+        for k in np.flatnonzero(~clear):
+            lamp = Box("lamp_body", boxes[k], self.lamp_half_m)
+            clear[k] = Pairs.of((*others, lamp), len(others)).clear(self.padding_m)
+        return clear
+
 
 def clearance(bodies: tuple[Body, ...], padding_m: float, fixed: int = 0) -> Clearance:
     """The smallest distance over the pairs that may not touch (MAY_TOUCH) and are not both among

@@ -30,6 +30,8 @@ if TYPE_CHECKING:
     from cell.planning.scene import Scene
     from cell.task.types import LampRig, Task
 
+Allowed = Callable[[np.ndarray], np.ndarray]     # (K, 3) lamp joints -> (K,) where the lamp may stand (clear_of_cell)
+
 
 def visibility_map(scene: Scene, grid: regions.SphereGrid, first: np.ndarray | None = None,
                    count: int = 0) -> np.ndarray:
@@ -158,13 +160,17 @@ def pose_objectives(problem: evaluate.Problem, joints: ArrayLike) -> np.ndarray:
     return np.minimum(score(problem, requirements.ln_values(problem, c)), UNLIT_OBJECTIVE)
 
 
-def refine_all(problem: evaluate.Problem, starts: list[np.ndarray],
-               lamp_rig: LampRig) -> list[tuple[np.ndarray, Refinement]]:
+def refine_all(problem: evaluate.Problem, starts: list[np.ndarray], lamp_rig: LampRig,
+               allowed: Allowed | None = None) -> list[tuple[np.ndarray, Refinement]]:
     """The refinement from every start, the starts in lockstep (cell.planning.lockstep.drive):
     each round's objective evaluations of all starts in one evaluate.candidates call (one kernel
-    launch, one pass of the requirements), the same results as one start at a time."""
+    launch, one pass of the requirements), the same results as one start at a time. A pose not
+    `allowed` (clear_of_cell) counts as unlit (UNLIT_OBJECTIVE): the simplex moves away from it."""
     def batch(asked: list[tuple[int, np.ndarray]]) -> list[np.ndarray]:
-        values = pose_objectives(problem, np.concatenate([x for _, x in asked]))
+        joints = np.concatenate([x for _, x in asked])
+        values = pose_objectives(problem, joints)
+        if allowed is not None:
+            values = np.where(allowed(joints), values, UNLIT_OBJECTIVE)
         ends = list(accumulate(len(x) for _, x in asked))
         return [values[a:b] for a, b in zip([0] + ends, ends)]     # np.split's pieces, without its checks
 
@@ -173,19 +179,21 @@ def refine_all(problem: evaluate.Problem, starts: list[np.ndarray],
 
 def plan(task: Task, settings: PlannerSettings = PlannerSettings(), albedo_scale: float = 1.0,
          progress: Callable[[str], None] | None = None, T_cell_cam: np.ndarray | None = None,
-         visible: np.ndarray | None = None) -> Plan:
+         visible: np.ndarray | None = None, clear_lamp: bool = False) -> Plan:
     """Plan a task (the CLI, the closed loop and the benchmark all call this), its camera at
     T_cell_cam (a planned viewpoint's) or by the task's camera rule, `visible` the visibility map
     of the feature's own samples (settings' count, on its grid) where it was found before (it
     does not depend on the camera: a feature's viewpoints share it): search, then
     certify the chosen shot on the dense patch (cell.planning.certificate); where the certificate fails,
     its worst points join the samples and the search runs again, at most CERTIFY_ROUNDS times.
-    The plan is feasible when its samples and its certificate say so."""
+    The plan is feasible when its samples and its certificate say so. With `clear_lamp` (the
+    closed loop's re-plans) the search takes the best lamp pose clear of the cell's bodies
+    (search, clear_of_cell); the shot's clearance itself is judged after (whole_part.cleared)."""
     say = progress or (lambda msg: None)
     t0 = time.perf_counter()
     extra = np.zeros((0, 3))
     for rounds in range(CERTIFY_ROUNDS + 1):
-        result, problem = search(task, settings, albedo_scale, extra, say, T_cell_cam, visible)
+        result, problem = search(task, settings, albedo_scale, extra, say, T_cell_cam, visible, clear_lamp)
         if not result.feasible:
             return replace(result, timing_s={**result.timing_s, "total": time.perf_counter() - t0})
         t = time.perf_counter()
@@ -211,9 +219,14 @@ def plan(task: Task, settings: PlannerSettings = PlannerSettings(), albedo_scale
 
 def search(task: Task, settings: PlannerSettings, albedo_scale: float, extra: np.ndarray,
            say: Callable[[str], None], T_cell_cam: np.ndarray | None = None,
-           visible: np.ndarray | None = None) -> tuple[Plan, evaluate.Problem]:
+           visible: np.ndarray | None = None, clear_lamp: bool = False) -> tuple[Plan, evaluate.Problem]:
     """(Plan of the search over the rig on the task's samples plus `extra` points, its Problem;
-    `visible`: the own samples' visibility map, found before, only the extra points' cast)."""
+    `visible`: the own samples' visibility map, found before, only the extra points' cast).
+    With `clear_lamp`, only the lamp poses clear of the cell's bodies (clear_of_cell) start a
+    refinement, the refinements keep away from the others, and the pose chosen is the best of
+    those meeting every requirement that is clear, else the best meeting them (which
+    whole_part.cleared then refuses, its bodies named: the bodies alone refuse it), else the best
+    clear one; a note in the plan counts the grid's poses so refused."""
     from cell.planning.scene import build_scene
     timing = {}
     t0 = time.perf_counter()
@@ -237,15 +250,18 @@ def search(task: Task, settings: PlannerSettings, albedo_scale: float, extra: np
     pan, tilt, radius = candidate_grid(lamp_rig, settings)
     global_values = requirements.ln_values(problem, evaluate.candidates(problem, pan, tilt, radius, tolerance=False))
     obj = score(problem, global_values)
+    allowed = clear_of_cell(task, scene) if clear_lamp else None
+    grid_clear = np.ones(len(pan), bool) if allowed is None else allowed(np.column_stack([pan, tilt, radius]))
     maps = replace(maps, candidate_pan=pan, candidate_tilt=tilt, candidate_objective=obj)
     problem = replace(problem, maps=maps)
     timing["global_search"] = time.perf_counter() - t
     say(f"global search: {len(pan)} lamp poses x {len(scene.points)} samples")
 
     t = time.perf_counter()
-    starts = pick_starts(pan, tilt, obj, settings.starts, np.radians(2 * settings.pan_step_deg))
+    first = obj if allowed is None else np.argsort(np.lexsort((obj, ~grid_clear)))    # the clear poses first
+    starts = pick_starts(pan, tilt, first, settings.starts, np.radians(2 * settings.pan_step_deg))
     poses = [np.array([pan[k], tilt[k], radius[k]]) for k in starts]
-    refined = refine_all(problem, poses, lamp_rig) if settings.refine else []
+    refined = refine_all(problem, poses, lamp_rig, allowed) if settings.refine else []
     stack = np.array(poses + [x for x, _ in refined])
     lit = [lighting(problem, x) for x in stack] if task.lights else []
     if lit:
@@ -253,7 +269,9 @@ def search(task: Task, settings: PlannerSettings, albedo_scale: float, extra: np
     else:
         final = evaluate.candidates(problem, stack[:, 0], stack[:, 1], stack[:, 2])
     final_values = requirements.ln_values(problem, final)
-    rank = np.lexsort((score(problem, final_values), requirements.missed(final_values)))
+    missed = requirements.missed(final_values)
+    blocked = np.zeros(len(stack), bool) if allowed is None else ~allowed(stack)
+    rank = np.lexsort((score(problem, final_values), blocked, missed))
     best = int(rank[0])
     timing["refine"] = time.perf_counter() - t
     search = Search(candidates=len(pan), starts=len(poses), refinements=tuple(r for _, r in refined))
@@ -266,7 +284,33 @@ def search(task: Task, settings: PlannerSettings, albedo_scale: float, extra: np
                 objective=verdict.objective, hint="" if verdict.feasible else hint(binding, lit[best][1] if lit else None),
                 shots=(shot,),
                 maps=maps, settings=settings, scene=scene, search=search, timing_s=timing,
-                notes=notes(problem, shot), gray_any=task.requirements.gray_any), problem
+                notes=notes(problem, shot) + refused_note(grid_clear, task),
+                gray_any=task.requirements.gray_any), problem
+
+
+def clear_of_cell(task: Task, scene: Scene) -> Allowed:
+    """Whether the lamp at (K, 3) joints (pan, tilt, radius) keeps the padding from the cell's
+    other bodies with the camera at the scene's pose and the arm at the joints whole_part.cleared
+    judges the shot at (collision.scene.reaching_joints: the inverse kinematics nearest home),
+    by collision.scene.CollisionScene.lamp_clear."""
+    from cell.collision.scene import CollisionScene, reaching_joints
+    bodies, T = CollisionScene.of(task), scene.T_cell_cam
+    arm, pivot = reaching_joints(task.frames, T), task.lamp.rig.pivot_m
+
+    def allowed(joints: np.ndarray) -> np.ndarray:
+        x = np.asarray(joints, float).reshape(-1, 3)
+        return bodies.lamp_clear(T, arm, rig.lamp_position(pivot, x[:, 0], x[:, 1], x[:, 2]))
+    return allowed
+
+
+def refused_note(grid_clear: np.ndarray, task: Task) -> tuple[str, ...]:
+    """The note of a search among the lamp poses clear of the cell (clear_of_cell): how many of
+    the global grid's it refused; none where it refused none."""
+    refused = int(np.sum(~grid_clear))
+    if not refused:
+        return ()
+    return (f"{refused} of the {len(grid_clear)} lamp poses of the global search refused: the lamp there closer "
+            f"than the padding {1e3 * task.cell.collision.padding_m:g} mm to another body of the cell",)
 
 
 def defect_map(problem: evaluate.Problem, candidate: evaluate.Candidates, maps: Maps) -> np.ndarray:

@@ -681,10 +681,12 @@ def follow(ctx: RunContext, aim: Aim, k: int, error: localization.PoseError) -> 
     feature's task with the part where it is (localization.located_task); one feature re-planned
     there (the camera kept on the part: a planned shot's pose moved with it), several carried
     along with the part (localization.moved_plan). A re-plan that is infeasible or a feature that
-    leaves the view stops (GoalNotReached, cause `pose`). The re-plan's search does not know the
-    cell's bodies: where the move to its shot is refused (its lamp pose under the padding from the
-    camera body where the corrected hand-eye puts it, or no path clear), the loop's plan carried
-    along with the part serves (lamp_kept); its move refused too, the run stops (cause `pose`)."""
+    leaves the view stops (GoalNotReached, cause `pose`). The re-plan searches the lamp among the
+    poses clear of the cell's bodies where the corrected hand-eye puts the camera
+    (plan_recorded's clear_lamp). As a last resort, where none of them meets every requirement
+    (the re-plan's `collision` binding: the best pose that meets them is under the padding) or
+    the move to the re-planned shot is refused (no path clear), the loop's plan carried along with
+    the part serves (lamp_kept); its move refused too, the run stops (cause `pose`)."""
     features = tuple(replace(f, task=localization.located_task(f.task, error)) for f in aim.features)
     reason = f"the model follows the part: {localization.describe(error, error.views)}"
     document = {"action": "locate", "reason": reason, "localization": error.to_json()}
@@ -700,9 +702,9 @@ def follow(ctx: RunContext, aim: Aim, k: int, error: localization.PoseError) -> 
     ctx.recorder.step("correct", reason, iteration=k, **document)
     yield Corrected(k, document)
     replanned = plan_recorded(feature.task, ctx.recorder, aim.albedo_scale, iteration=k, subfolder=f"located-{k}",
-                              T_cell_cam=T_cell_cam)
+                              T_cell_cam=T_cell_cam, clear_lamp=True)
     yield Replan(k, aim.albedo_scale, replanned.to_json())
-    if not replanned.feasible:
+    if not replanned.feasible and replanned.binding != "collision":
         why = f"{localization.describe(error, error.views)}; re-planned for where the part is"
         raise GoalNotReached(f"{why}: infeasible, {replanned.binding}: {replanned.hint}", "pose",
                              f"{why}: infeasible: {words.reason(replanned)}")
@@ -711,11 +713,16 @@ def follow(ctx: RunContext, aim: Aim, k: int, error: localization.PoseError) -> 
     if not np.all(inside):
         raise GoalNotReached(f"{localization.describe(error, error.views)}: {int(np.sum(~inside))} of the "
                              f"feature's {len(inside)} samples leave the view where the part is", "pose")
-    move = where_located(ctx, feature.task, replanned.shot, error)
-    if move.clear:
-        located = replace(feature, model=Model(replanned, feature.task))
-        return replace(replan_aim(aim, located, aim.albedo_scale), located=True, pose_error=error)
-    kept = lamp_kept(ctx, feature, error, move)
+    if replanned.feasible:
+        move = where_located(ctx, feature.task, replanned.shot, error)
+        if move.clear:
+            located = replace(feature, model=Model(replanned, feature.task))
+            return replace(replan_aim(aim, located, aim.albedo_scale), located=True, pose_error=error)
+        refused = f"the move there is refused: {motion.refusal(move)}"
+    else:
+        refused = ("no lamp pose clear of the cell's bodies meets every requirement (the best that does: "
+                   f"{replanned.hint})")
+    kept = lamp_kept(ctx, feature, error, refused)
     ctx.recorder.step("correct", kept.why, iteration=k, action="locate", lamp_kept=kept.why)
     yield Corrected(k, document | {"lamp_kept": kept.why})
     located = replace(feature, model=Model(kept.plan, feature.task))
@@ -730,21 +737,21 @@ class Kept(NamedTuple):
     why: str
 
 
-def lamp_kept(ctx: RunContext, feature: LoopFeature, error: localization.PoseError, refused: Move) -> Kept:
-    """Where the move to the shot re-planned for where the part is was `refused`: the plan the
-    loop works with carried along with the part (localization.moved_plan: the camera's view of the
-    part kept, the lamp at its planned joints, turned about its fixed pivot, so it lights the part
-    from nearly where it did; capture k's exposure, which the loop corrects for the light it then
-    gives), its move checked (where_located). Refused too: GoalNotReached, cause `pose`, naming
-    the pose found and both refusals; nothing moved."""
+def lamp_kept(ctx: RunContext, feature: LoopFeature, error: localization.PoseError, refused: str) -> Kept:
+    """Where the shot re-planned for where the part is cannot be taken (`refused`, in words: no
+    lamp pose clear of the cell's bodies meets every requirement, or the move there is refused):
+    the plan the loop works with carried along with the part (localization.moved_plan: the
+    camera's view of the part kept, the lamp at its planned joints, turned about its fixed pivot,
+    so it lights the part from nearly where it did; capture k's exposure, which the loop corrects
+    for the light it then gives), its move checked (where_located). Refused too: GoalNotReached,
+    cause `pose`, naming the pose found and both refusals; nothing moved."""
     carried = localization.moved_plan(feature.model.plan, error.T_part)
     move = where_located(ctx, feature.task, carried.shot, error)
     if not move.clear:
-        raise GoalNotReached(f"{refused_there(error)}: {motion.refusal(refused)}; with the lamp kept at the plan's "
-                             f"pose: {motion.refusal(move)}", "pose")
-    return Kept(carried, f"the move to the shot re-planned there is refused ({refused.clearance.reason()}): the "
-                         "plan's lamp pose kept, the camera moved with the part (its move clear: "
-                         f"{motion.how_apart(move)})")
+        raise GoalNotReached(f"{there(error, refused)}; with the lamp kept at the plan's pose: "
+                             f"{motion.refusal(move)}", "pose")
+    return Kept(carried, f"re-planned for where the part is, {refused}: the plan's lamp pose kept as the last "
+                         f"resort, the camera moved with the part (its move clear: {motion.how_apart(move)})")
 
 
 def where_located(ctx: RunContext, task: Task, shot: Shot, error: localization.PoseError) -> Move:
@@ -762,13 +769,13 @@ def refused_where_located(ctx: RunContext, task: Task, shot: Shot, error: locali
     had it, so the pose found and the collision are named, nothing moved."""
     move = where_located(ctx, task, shot, error)
     if not move.clear:
-        raise GoalNotReached(f"{refused_there(error)}: {motion.refusal(move)}", "pose")
+        raise GoalNotReached(there(error, f"the move there is refused: {motion.refusal(move)}"), "pose")
 
 
-def refused_there(error: localization.PoseError) -> str:
-    """The first words of a stop where the move to the shot re-planned for the part's pose is
-    refused: the pose found, then what was refused."""
-    return f"{localization.describe(error, error.views)}; re-planned for where the part is, the move there is refused"
+def there(error: localization.PoseError, refused: str) -> str:
+    """A stop where the shot planned for the part's pose cannot be taken: the pose found, then
+    what was `refused` there."""
+    return f"{localization.describe(error, error.views)}; re-planned for where the part is, {refused}"
 
 
 def not_in_band(aim: Aim, measured: Sequence[Measured], k: int) -> str:
@@ -801,9 +808,10 @@ def correct_after(ctx: RunContext, aim: Aim, k: int, measured: Sequence[Measured
     re-balanced first: rebalance) (Corrected, logged but for a stop): a shape that disagrees
     with one feature's model refits the material and re-plans, once (refit_and_replan); a stop
     raises GoalNotReached with its cause; an exposure sets the next one; a re-plan plans one
-    feature again with the albedo scale times the measured model error (Replan; infeasible:
-    GoalNotReached). A shot of several features is not refitted or re-planned
-    (control.shared_correction stops instead)."""
+    feature again with the albedo scale times the measured model error, its lamp among the poses
+    clear of the cell's bodies (plan_recorded's clear_lamp; Replan; infeasible, a collision the
+    cause where only colliding poses meet every requirement: GoalNotReached). A shot of several
+    features is not refitted or re-planned (control.shared_correction stops instead)."""
     if c is None:
         return (yield from rebalance(ctx, aim, k, measured))
     if c.action == "stop" and c.cause == "spread" and len(aim.features) == 1 and not aim.refitted:
@@ -818,7 +826,7 @@ def correct_after(ctx: RunContext, aim: Aim, k: int, measured: Sequence[Measured
         return replace(aim, shutter_s=c.shutter_s, f_number=c.f_number)
     (feature,) = aim.features
     replanned = plan_recorded(feature.task, ctx.recorder, albedo, iteration=k, subfolder=f"replan-{k}",
-                              T_cell_cam=ctx.T_cell_cam)
+                              T_cell_cam=ctx.T_cell_cam, clear_lamp=True)
     yield Replan(k, albedo, replanned.to_json())
     if not replanned.feasible:
         why = (f"{control.describe_error(c.model_error, c.relation)}; {c.reason}; "
@@ -933,7 +941,8 @@ def refit_and_replan(ctx: RunContext, aim: Aim, k: int, measured: Measured,
                      c: control.Correction) -> Generator[Event, None, Aim]:
     """After capture k whose shape disagreed with the feature's model (Correction c, cause
     spread): probe, refit the material (cell.run.refit; Corrected, Refitted) and re-plan with it
-    (Replan; the camera at ctx.T_cell_cam, else by the task's rule). Returns the Aim of the
+    (Replan; the camera at ctx.T_cell_cam, else by the task's rule; the lamp among the poses clear
+    of the cell's bodies, plan_recorded's clear_lamp). Returns the Aim of the
     refitted material's plan; GoalNotReached when the refit cannot be used or its plan is
     infeasible."""
     (feature,), recorder = aim.features, ctx.recorder
@@ -946,7 +955,8 @@ def refit_and_replan(ctx: RunContext, aim: Aim, k: int, measured: Measured,
     yield Refitted(k, fitted, refit.keep(fitted, feature.task, recorder, k))
     refit.require_usable(fitted, c.reason)
     task = refit.task_with(feature.task, fitted)
-    replanned = plan_recorded(task, recorder, 1.0, iteration=k, subfolder=f"refit-{k}", T_cell_cam=ctx.T_cell_cam)
+    replanned = plan_recorded(task, recorder, 1.0, iteration=k, subfolder=f"refit-{k}", T_cell_cam=ctx.T_cell_cam,
+                              clear_lamp=True)
     yield Replan(k, 1.0, replanned.to_json())
     if not replanned.feasible:
         why = f"the material is not the task's ({fitted.summary()}); re-planned for the refitted material"
