@@ -373,19 +373,22 @@ def test_free_cones_change_no_gray_and_no_visibility(hinge, monkeypatch):
 
 
 def test_small_calls_reuse_their_launch_but_not_their_results(blocks):
-    """Calls of one lamp count replay one recorded launch: each result is its own array."""
+    """Small calls replay one recorded launch, over as many lamps as each has (more, fewer, as
+    many as before): each result is its own array, equal to a call of its own."""
     rng = np.random.default_rng(3)
     points = np.column_stack([rng.uniform(-0.045, 0.045, (20, 2)), np.full(20, 0.01)])
     normals = np.tile([0.0, 0.0, 1.0], (20, 1))
-    lamps, aims = lamps_around(rng, np.array([0.0, 0.0, 0.01]), 18)
+    lamps, aims = lamps_around(rng, np.array([0.0, 0.0, 0.01]), 40)
     args = (points, normals, np.array([0.0, 0.0, 0.4]), P_LAMP, GAMMA, METAL, C_CAMERA, A_PIXEL)
     g = GrayInputs(blocks, *args)
-    a, b = g(lamps[:9], aims[:9]), g(lamps[9:], aims[9:])
-    assert len(g._launches) == 1 and not np.array_equal(a.value, b.value)
-    for got, lamp, aim in ((a, lamps[:9], aims[:9]), (b, lamps[9:], aims[9:])):
-        want = gray_per_exposure(blocks, *args[:3], lamp, aim, *args[3:])
+    cuts = [(0, 9), (9, 18), (18, 23), (23, 35), (35, 36), (31, 40)]
+    got = [g(lamps[a:b], aims[a:b]) for a, b in cuts]
+    assert not g._launches and len(g._single.lamp_pos) == 12 and not np.array_equal(got[0].value, got[1].value)
+    for result, (a, b) in zip(got, cuts):
+        want = gray_per_exposure(blocks, *args[:3], lamps[a:b], aims[a:b], *args[3:])
         for field in ("value", "shadowed", "off_axis", "dominant"):
-            np.testing.assert_array_equal(getattr(got, field), getattr(want, field))
+            assert getattr(result, field).shape == (b - a, 20)
+            np.testing.assert_array_equal(getattr(result, field), getattr(want, field))
 
 
 def test_each_lamp_its_own_power_equals_a_call_per_power(blocks):
