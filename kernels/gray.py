@@ -127,7 +127,8 @@ class GrayInputs:
         self._solid_angle_sr = profile_solid_angle(hard_cone_profile(cone_angle_rad) if profile is None else profile)
         self._trailing = [profile2d(profile, cone_angle_rad), table2d(table), float(camera_constant),
                           float(pixel_area_m2)]
-        self._launches: dict[int, _Batch] = {}       # the kept batches split into slices, by lamp count
+        # the kept batches split into slices, by lamp count (None: one launch, the single batch's)
+        self._launches: dict[int, _Batch | None] = {}
         self._single: _Batch | None = None           # the kept batch of one launch, for up to its lamps
         self._lock = threading.Lock()
 
@@ -159,13 +160,14 @@ class GrayInputs:
             lamps = len(lamp_pos)
             if lamps * self.count > SMALL:
                 return _Batch(self, lamps).run(lamp_pos, lamp_axis, intensity, copy=False)
-            if lamps and self.count and len(_ranges(lamps, self.count)) == 1:
+            if lamps not in self._launches:
+                one = lamps > 0 and self.count > 0 and len(_ranges(lamps, self.count)) == 1
+                self._launches[lamps] = None if one else _Batch(self, lamps)
+            kept = self._launches[lamps]
+            if kept is None:
                 if self._single is None or len(self._single.lamp_pos) < lamps:
                     self._single = _Batch(self, lamps)
-                return self._single.run(lamp_pos, lamp_axis, intensity, copy=True)
-            kept = self._launches.get(lamps)
-            if kept is None:
-                kept = self._launches[lamps] = _Batch(self, lamps)
+                kept = self._single
             return kept.run(lamp_pos, lamp_axis, intensity, copy=True)
 
 
