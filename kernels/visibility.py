@@ -16,30 +16,42 @@ if TYPE_CHECKING:
 
 
 @wp.kernel
+def directions_kernel(frame: wp.mat33d, azimuth: wp.array(dtype=wp.float64), elevation: wp.array(dtype=wp.float64),
+                      directions: wp.array2d(dtype=wp.vec3d)):
+    """One thread per (elevation e, azimuth a): the direction (azimuth a, elevation e) of the
+    feature frame in the mesh's frame, which every point's rays share."""
+    e, a = wp.tid()
+    directions[e, a] = wp.mul(frame, funcs.direction_from_angles(azimuth[a], elevation[e]))
+
+
+@wp.kernel
 def visibility_kernel(mesh_id: wp.uint64, points: wp.array(dtype=wp.vec3d),
-                      normals: wp.array(dtype=wp.vec3d), frame: wp.mat33d,
-                      azimuth: wp.array(dtype=wp.float64), elevation: wp.array(dtype=wp.float64),
+                      normals: wp.array(dtype=wp.vec3d), directions: wp.array2d(dtype=wp.vec3d),
                       offset_m: wp.float64, max_dist: wp.float64, free_cos: wp.array(dtype=wp.float64),
                       sector_cos: wp.array2d(dtype=wp.float64), sectors: wp.int32, first: wp.int32,
                       visible: wp.array3d(dtype=wp.bool)):
-    """One thread per (point p, elevation e, azimuth a), p from `first` on (a slice of the points:
+    """One thread per (point p, elevation e), over every azimuth a (what depends on the point
+    alone found once for the row), p from `first` on (a slice of the points:
     runtime.launch_sliced); no ray inside the point's free cones (its sectors' in row p of
     sector_cos, if `sectors`)."""
-    i, e, a = wp.tid()
+    i, e = wp.tid()
     p = i + first
-    d = wp.mul(frame, funcs.direction_from_angles(azimuth[a], elevation[e]))
     n = normals[p]
-    cos_n = wp.dot(d, n)
-    ok = False
-    if cos_n > funcs.TANGENT_EPS:
-        row = -1
-        if sectors != 0:
-            row = p
-        u = funcs.tangent_u(n)
-        ok = True
-        if funcs.needs_ray(free_cos[p], sector_cos, row, u, wp.cross(n, u), d, cos_n):
-            ok = not funcs.ray_blocked(mesh_id, points[p] + offset_m * n, d, max_dist)
-    visible[p, e, a] = ok
+    row = -1
+    if sectors != 0:
+        row = p
+    u = funcs.tangent_u(n)
+    w = wp.cross(n, u)
+    origin = points[p] + offset_m * n
+    for a in range(directions.shape[1]):
+        d = directions[e, a]
+        cos_n = wp.dot(d, n)
+        ok = False
+        if cos_n > funcs.TANGENT_EPS:
+            ok = True
+            if funcs.needs_ray(free_cos[p], sector_cos, row, u, w, d, cos_n):
+                ok = not funcs.ray_blocked(mesh_id, origin, d, max_dist)
+        visible[p, e, a] = ok
 
 
 def visibility_maps(mesh: "WarpMesh", points: ArrayLike, normals: ArrayLike, frame: ArrayLike, azimuth: ArrayLike,
@@ -70,10 +82,12 @@ def visibility_maps(mesh: "WarpMesh", points: ArrayLike, normals: ArrayLike, fra
     free_cos, sector_cos = np.full(len(points), NO_CONE), np.zeros((0, funcs.SECTORS))
     if free_cones and worth_finding(len(azimuth) * len(elevation), mesh):
         free_cos, sector_cos = free_cone_cosines(mesh, points + offset_m * normals, normals)
-    launch_sliced(visibility_kernel, shape, [
-        mesh.id, vec3d(points, "points"), vec3d(normals, "normals"), wp.mat33d(*frame.ravel()),
-        wp.array(azimuth, dtype=wp.float64, device=device),
-        wp.array(elevation, dtype=wp.float64, device=device), float(offset_m), float(max_dist),
+    directions = wp.empty(shape[1:], dtype=wp.vec3d, device=device)
+    wp.launch(directions_kernel, dim=shape[1:], device=device,
+              inputs=[wp.mat33d(*frame.ravel()), wp.array(azimuth, dtype=wp.float64, device=device),
+                      wp.array(elevation, dtype=wp.float64, device=device)], outputs=[directions])
+    launch_sliced(visibility_kernel, shape[:2], [
+        mesh.id, vec3d(points, "points"), vec3d(normals, "normals"), directions, float(offset_m), float(max_dist),
         wp.array(free_cos, dtype=wp.float64, device=device), wp.array(sector_cos, dtype=wp.float64, device=device),
         int(len(sector_cos) > 0)], [visible_wp], work_per_item=len(elevation) * len(azimuth))
     return visible
