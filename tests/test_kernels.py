@@ -21,7 +21,7 @@ from kernels.gray import GrayInputs, gray_per_exposure
 from kernels.mesh import WarpMesh
 from kernels.proximity import ClosestPoint, closest_points
 from kernels.render import render
-from kernels.visibility import combined_map, visibility_maps
+from kernels.visibility import combined_map, visibility_maps, visible_from_all
 
 ROOT = Path(__file__).resolve().parents[1]
 C_CAMERA = 1.5e16
@@ -262,6 +262,31 @@ def test_visibility_matches_reference_on_the_hinge_in_a_tilted_frame(hinge):
     numpy = ref.visibility_maps(mesh, points, normals, frame, az, el)
     assert 0.05 < 1 - warp.mean() < 0.6
     assert_visibility_agrees(mesh, points, normals, frame, az, el, warp, numpy)
+
+
+@pytest.mark.parametrize("free_cones", [True, False])
+def test_the_directions_every_sample_sees_are_their_maps_combined(hinge, blocks, free_cones):
+    """visible_from_all (each direction's samples in turn until one does not see it) is
+    combined_map of the samples' own maps, cell for cell: beside the hinge's knuckle in a tilted
+    frame (the reference's maps too), beside the wall with samples on the slab and on the
+    wall's side; every direction with no samples, none with no directions."""
+    mesh, _ = hinge
+    points, normals, frame, az, el = near_the_knuckle()
+    combined = visible_from_all(mesh, points, normals, frame, az, el, free_cones=free_cones)
+    np.testing.assert_array_equal(combined, combined_map(visibility_maps(mesh, points, normals, frame, az, el)))
+    assert combined.shape == (len(el), len(az)) and 0.05 < combined.mean() < 0.95
+    reference = ref.visibility_maps(mesh, points, normals, frame, az, el).all(axis=0)
+    assert np.count_nonzero(combined != reference) <= 2
+    rng = np.random.default_rng(6)
+    points = np.vstack([np.column_stack([rng.uniform(-0.045, 0.045, (8, 2)), np.full(8, 0.01)]),
+                        [[0.03, 0.0, 0.02], [0.03, 0.01, 0.03]]])
+    normals = np.vstack([np.tile([0.0, 0.0, 1.0], (8, 1)), np.tile([-1.0, 0.0, 0.0], (2, 1))])
+    az, el = np.radians(np.arange(-180.0, 180.0, 4.0)), np.radians(np.arange(-90.0, 90.1, 4.0))
+    combined = visible_from_all(blocks, points, normals, np.eye(3), az, el, free_cones=free_cones)
+    np.testing.assert_array_equal(combined, combined_map(visibility_maps(blocks, points, normals, np.eye(3), az, el)))
+    assert combined.any() and not combined.all()
+    assert visible_from_all(blocks, np.zeros((0, 3)), np.zeros((0, 3)), np.eye(3), az, el).all()
+    assert visible_from_all(blocks, points, normals, np.eye(3), az, el[:0]).shape == (0, len(az))
 
 
 def assert_visibility_agrees(mesh, points, normals, frame, az, el, warp, numpy, offset_m=1e-5):
