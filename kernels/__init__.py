@@ -5,6 +5,7 @@ Pure arrays in, NumPy out; nothing here knows of task files or devices. Warp sta
 
     kernels.mesh.WarpMesh(vertices, faces)                 BVH of a triangle mesh [m]
     kernels.visibility.visibility_maps(...)  -> bool (P, E, A)
+    kernels.visibility.visible_from_all(...) -> bool (E, A), every point's maps combined
     kernels.gray.gray_per_exposure(...)      -> GrayResult (value, shadowed, off_axis, dominant)
     kernels.gray.GrayInputs(...)(lamps, aims) the same, its fixed inputs converted once
     kernels.cone.free_cone_cosines(...)      -> the cones about each normal no triangle enters

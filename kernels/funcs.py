@@ -338,17 +338,22 @@ def shade_point(mesh_id: wp.uint64, shadows: wp.int32, cone: wp.int32, at: Surfa
     A lamp at the point has direction 0 (wp.normalize, as geometry.direction): shadowed; a camera
     at it (view 0, cos te 0) sees nothing, R = 0. Without `cone` the irradiance is the axis's
     everywhere. The dominant term is
-    the BRDF's alone (cast shadows do not change it)."""
+    the BRDF's alone (cast shadows do not change it). A lamp behind the tangent plane
+    (cos ti <= 0) gives 0 and OCCLUDED whatever the BRDF: its phase angle (an atan2) and the
+    material there are found only for a lamp in front."""
     out = Shading()
     to_lamp = lamp - at.point
     d = wp.length(to_lamp)
     s = wp.normalize(to_lamp)          # 0 for a lamp at the point: cos_i 0, shadowed (not 0/0)
     out.off_axis = off_axis_angle(lamp_axis, s)
     cos_i = wp.dot(at.normal, s)
-    cos_alpha = phase_cosine(s, at.view)
-    p = material_at(table, phase_angle(s, at.view))
-    t = brdf_terms(cos_i, at.cos_e, cos_alpha, p)
-    out.dominant = dominant_term(t, cos_i, at.cos_e)
+    out.dominant = OCCLUDED
+    p = BrdfParameters()
+    t = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    if cos_i > wp.float64(0.0):         # behind the lamp (attached shadow): 0 and OCCLUDED whatever the BRDF
+        p = material_at(table, phase_angle(s, at.view))
+        t = brdf_terms(cos_i, at.cos_e, phase_cosine(s, at.view), p)
+        out.dominant = dominant_term(t, cos_i, at.cos_e)
     shadowed = lamp_shadowed(mesh_id, shadows, at, sector_cos, s, d, cos_i)
     out.shadowed = shadowed
     out.value = wp.float64(0.0)

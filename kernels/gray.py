@@ -104,7 +104,10 @@ class GrayInputs:
     worth it (kernels.cone.worth_finding, each lamp a ray per point): from then on only the rays
     outside them are cast. The result is the same either way. A call of at most SMALL
     evaluations replays its recorded launches (one set per lamp count, split as at its first
-    call: kernels.runtime) on its own input and output buffers, under a lock, and returns copies."""
+    call: kernels.runtime) on its own input and output buffers, under a lock, and returns copies;
+    one that is a single launch (runtime.slices: too small to split) replays the one launch kept
+    for them all, over as many lamps as it has (Launch.set_dim; its buffers as long as the most
+    lamps asked so far): a refinement's rounds ask a few lamps, a different number each round."""
 
     def __init__(self, mesh: "WarpMesh | None", points: ArrayLike, normals: ArrayLike, camera_pos: ArrayLike,
                  power_w: float, cone_angle_rad: float, table: ArrayLike, camera_constant: float,
@@ -133,7 +136,9 @@ class GrayInputs:
         self._solid_angle_sr = profile_solid_angle(hard_cone_profile(cone_angle_rad) if profile is None else profile)
         self._trailing = [profile2d(profile, cone_angle_rad), table2d(table), float(camera_constant),
                           float(pixel_area_m2)]
-        self._launches: dict[int, _Batch] = {}       # the kept batches, by lamp count
+        # the kept batches split into slices, by lamp count (None: one launch, the single batch's)
+        self._launches: dict[int, _Batch | None] = {}
+        self._single: _Batch | None = None           # the kept batch of one launch, for up to its lamps
         self._lock = threading.Lock()
 
     def shadowed(self, lamp_pos: ArrayLike) -> np.ndarray:
@@ -179,20 +184,36 @@ class GrayInputs:
             intensity = np.broadcast_to(np.asarray(power_w, dtype=np.float64), len(lamp_pos)) / self._solid_angle_sr
         with self._lock:
             self._lamps(len(lamp_pos))
-            if len(lamp_pos) * self.count > SMALL:
-                return _Batch(self, len(lamp_pos)).run(lamp_pos, lamp_axis, intensity, copy=False)
-            kept = self._launches.get(len(lamp_pos))
+            lamps = len(lamp_pos)
+            if lamps * self.count > SMALL:
+                return _Batch(self, lamps).run(lamp_pos, lamp_axis, intensity, copy=False)
+            if lamps not in self._launches:
+                one = lamps > 0 and self.count > 0 and len(_ranges(lamps, self.count)) == 1
+                self._launches[lamps] = None if one else _Batch(self, lamps)
+            kept = self._launches[lamps]
             if kept is None:
-                kept = self._launches[len(lamp_pos)] = _Batch(self, len(lamp_pos))
+                if self._single is None or len(self._single.lamp_pos) < lamps:
+                    self._single = _Batch(self, lamps)
+                kept = self._single
             return kept.run(lamp_pos, lamp_axis, intensity, copy=True)
+
+
+def _ranges(lamps: int, points: int) -> list[tuple[int, int, int, int]]:
+    """(first lamp, stop lamp, first point, stop point) of each launch of lamps x points: cut
+    along the longer of the two into runtime.slices."""
+    if lamps >= points:
+        return [(a, b, 0, points) for a, b in slices(lamps, points)]
+    return [(0, lamps, a, b) for a, b in slices(points, lamps)]
 
 
 class _Batch:
     """Buffers and the recorded launches of one lamp count: run copies the lamps in, launches,
     and returns the outputs (copies where the batch is kept for the next call). The lamps x
-    points are cut along the longer of the two into runtime.slices, a launch each, run side by
-    side (runtime.in_parallel): a global search's thousands of lamps, a certificate's few lamps
-    on thousands of points."""
+    points are cut along the longer of the two into runtime.slices (_ranges), a launch each, run
+    side by side (runtime.in_parallel): a global search's thousands of lamps, a certificate's few
+    lamps on thousands of points. A batch of one launch runs on fewer lamps than it holds as
+    well: its launch set to their count (each thread a lamp of its own, over every point, as in
+    a batch of their count), the rows beyond left as they were and not returned."""
 
     def __init__(self, inputs: GrayInputs, lamps: int) -> None:
         shape = (lamps, inputs.count)
@@ -201,24 +222,29 @@ class _Batch:
         self.intensity, intensity_wp = output(lamps, np.float64, wp.float64)
         self.outputs = [output(shape, np.float64, wp.float64), output(shape, np.bool_, wp.bool),
                         output(shape, np.float64, wp.float64), output(shape, np.int8, wp.int8)]
-        if lamps >= inputs.count:           # (first lamp, stop lamp, first point, stop point) of each
-            ranges = [(a, b, 0, inputs.count) for a, b in slices(lamps, inputs.count)]
-        else:
-            ranges = [(0, lamps, a, b) for a, b in slices(inputs.count, lamps)]
         self.launches = [wp.launch(gray_kernel, dim=stop_lamp - first_lamp, device=inputs.device, record_cmd=True,
                                    inputs=inputs._leading + [pos_wp, axis_wp, intensity_wp] + inputs._trailing
                                    + [first_lamp, first_point, stop_point],
                                    outputs=[out_wp for _, out_wp in self.outputs])
-                         for first_lamp, stop_lamp, first_point, stop_point in ranges if lamps and inputs.count]
+                         for first_lamp, stop_lamp, first_point, stop_point in _ranges(lamps, inputs.count)
+                         if lamps and inputs.count]
         self._inputs_wp = (pos_wp, axis_wp, intensity_wp)       # the launches hold their addresses
+        self._dim = lamps                   # the lamps a single launch runs over now
 
     def run(self, lamp_pos: np.ndarray, lamp_axis: np.ndarray, intensity: np.ndarray, copy: bool) -> GrayResult:
-        self.lamp_pos[:] = lamp_pos
-        self.lamp_axis[:] = lamp_axis
-        self.intensity[:] = intensity
+        """The outputs of the first len(lamp_pos) lamps (all of them unless the batch is one launch)."""
+        lamps = len(lamp_pos)
+        self.lamp_pos[:lamps] = lamp_pos
+        self.lamp_axis[:lamps] = lamp_axis
+        self.intensity[:lamps] = intensity
+        if lamps != self._dim:
+            self.launches[0].set_dim(lamps)
+            self._dim = lamps
         if self.launches:
             in_parallel(self.launches)
-        return GrayResult(*(out.copy() if copy else out for out, _ in self.outputs))
+        if lamps == len(self.lamp_pos):
+            return GrayResult(*(out.copy() if copy else out for out, _ in self.outputs))
+        return GrayResult(*(out[:lamps].copy() for out, _ in self.outputs))
 
 
 def gray_per_exposure(mesh: "WarpMesh | None", points: ArrayLike, normals: ArrayLike, camera_pos: ArrayLike,

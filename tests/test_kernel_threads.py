@@ -20,7 +20,7 @@ from kernels.cone import free_cone_cosines
 from kernels.gray import GrayInputs, gray_per_exposure
 from kernels.mesh import WarpMesh
 from kernels.render import render
-from kernels.visibility import visibility_maps
+from kernels.visibility import visibility_maps, visible_from_all
 from test_kernels import (A_PIXEL, ALUMINIUM, C_CAMERA, GAMMA, METAL, P_LAMP, assert_gray_agrees,  # hinge: a fixture
                           assert_visibility_agrees, hinge, lamps_around, near_the_knuckle)
 
@@ -109,6 +109,9 @@ def test_split_visibility_maps_and_free_cones_equal_one_launch(hinge, launches):
     assert launches[-1] == THREADS
     np.testing.assert_array_equal(split, one)
     assert 0.05 < 1 - split.mean() < 0.6
+    for threads in (1, THREADS):                     # the combined map's launch split over the directions' rows
+        np.testing.assert_array_equal(on(threads, visible_from_all, *args), one.all(axis=0))
+        assert launches[-1] == threads
     assert_visibility_agrees(mesh, points, normals, frame, az, el, split, ref.visibility_maps(*args))
     origins = points + 1e-5 * normals                # the shadow rays' start, as the kernels use them
     cones = on(1, free_cone_cosines, mesh, origins, normals), on(THREADS, free_cone_cosines, mesh, origins, normals)

@@ -21,7 +21,7 @@ from kernels.gray import GrayInputs, gray_per_exposure
 from kernels.mesh import WarpMesh
 from kernels.proximity import ClosestPoint, closest_points
 from kernels.render import render
-from kernels.visibility import combined_map, visibility_maps
+from kernels.visibility import combined_map, visibility_maps, visible_from_all
 
 ROOT = Path(__file__).resolve().parents[1]
 C_CAMERA = 1.5e16
@@ -264,6 +264,31 @@ def test_visibility_matches_reference_on_the_hinge_in_a_tilted_frame(hinge):
     assert_visibility_agrees(mesh, points, normals, frame, az, el, warp, numpy)
 
 
+@pytest.mark.parametrize("free_cones", [True, False])
+def test_the_directions_every_sample_sees_are_their_maps_combined(hinge, blocks, free_cones):
+    """visible_from_all (each direction's samples in turn until one does not see it) is
+    combined_map of the samples' own maps, cell for cell: beside the hinge's knuckle in a tilted
+    frame (the reference's maps too), beside the wall with samples on the slab and on the
+    wall's side; every direction with no samples, none with no directions."""
+    mesh, _ = hinge
+    points, normals, frame, az, el = near_the_knuckle()
+    combined = visible_from_all(mesh, points, normals, frame, az, el, free_cones=free_cones)
+    np.testing.assert_array_equal(combined, combined_map(visibility_maps(mesh, points, normals, frame, az, el)))
+    assert combined.shape == (len(el), len(az)) and 0.05 < combined.mean() < 0.95
+    reference = ref.visibility_maps(mesh, points, normals, frame, az, el).all(axis=0)
+    assert np.count_nonzero(combined != reference) <= 2
+    rng = np.random.default_rng(6)
+    points = np.vstack([np.column_stack([rng.uniform(-0.045, 0.045, (8, 2)), np.full(8, 0.01)]),
+                        [[0.03, 0.0, 0.02], [0.03, 0.01, 0.03]]])
+    normals = np.vstack([np.tile([0.0, 0.0, 1.0], (8, 1)), np.tile([-1.0, 0.0, 0.0], (2, 1))])
+    az, el = np.radians(np.arange(-180.0, 180.0, 4.0)), np.radians(np.arange(-90.0, 90.1, 4.0))
+    combined = visible_from_all(blocks, points, normals, np.eye(3), az, el, free_cones=free_cones)
+    np.testing.assert_array_equal(combined, combined_map(visibility_maps(blocks, points, normals, np.eye(3), az, el)))
+    assert combined.any() and not combined.all()
+    assert visible_from_all(blocks, np.zeros((0, 3)), np.zeros((0, 3)), np.eye(3), az, el).all()
+    assert visible_from_all(blocks, points, normals, np.eye(3), az, el[:0]).shape == (0, len(az))
+
+
 def assert_visibility_agrees(mesh, points, normals, frame, az, el, warp, numpy, offset_m=1e-5):
     p, e, a = np.nonzero(warp != numpy)
     assert len(p) <= max(2, 2e-3 * warp.size), f"{len(p)} of {warp.size} cells differ"
@@ -373,19 +398,23 @@ def test_free_cones_change_no_gray_and_no_visibility(hinge, monkeypatch):
 
 
 def test_small_calls_reuse_their_launch_but_not_their_results(blocks):
-    """Calls of one lamp count replay one recorded launch: each result is its own array."""
+    """Small calls replay one recorded launch, over as many lamps as each has (more, fewer, as
+    many as before): each result is its own array, equal to a call of its own."""
     rng = np.random.default_rng(3)
     points = np.column_stack([rng.uniform(-0.045, 0.045, (20, 2)), np.full(20, 0.01)])
     normals = np.tile([0.0, 0.0, 1.0], (20, 1))
-    lamps, aims = lamps_around(rng, np.array([0.0, 0.0, 0.01]), 18)
+    lamps, aims = lamps_around(rng, np.array([0.0, 0.0, 0.01]), 40)
     args = (points, normals, np.array([0.0, 0.0, 0.4]), P_LAMP, GAMMA, METAL, C_CAMERA, A_PIXEL)
     g = GrayInputs(blocks, *args)
-    a, b = g(lamps[:9], aims[:9]), g(lamps[9:], aims[9:])
-    assert len(g._launches) == 1 and not np.array_equal(a.value, b.value)
-    for got, lamp, aim in ((a, lamps[:9], aims[:9]), (b, lamps[9:], aims[9:])):
-        want = gray_per_exposure(blocks, *args[:3], lamp, aim, *args[3:])
+    cuts = [(0, 9), (9, 18), (18, 23), (23, 35), (35, 36), (31, 40)]
+    got = [g(lamps[a:b], aims[a:b]) for a, b in cuts]
+    assert set(g._launches.values()) == {None} and len(g._single.lamp_pos) == 12
+    assert not np.array_equal(got[0].value, got[1].value)
+    for result, (a, b) in zip(got, cuts):
+        want = gray_per_exposure(blocks, *args[:3], lamps[a:b], aims[a:b], *args[3:])
         for field in ("value", "shadowed", "off_axis", "dominant"):
-            np.testing.assert_array_equal(getattr(got, field), getattr(want, field))
+            assert getattr(result, field).shape == (b - a, 20)
+            np.testing.assert_array_equal(getattr(result, field), getattr(want, field))
 
 
 def test_each_lamp_its_own_power_equals_a_call_per_power(blocks):

@@ -39,13 +39,13 @@ def visibility_map(scene: Scene, grid: regions.SphereGrid, first: np.ndarray | N
     `first`: the map of the scene's first `count` samples, found before (a feature's own samples,
     the certificate's worst points added after them): only the rest are cast and the two maps
     combined, the same map (a direction every sample sees; each sample's rays its own)."""
-    from kernels.visibility import combined_map, visibility_maps
+    from kernels.visibility import visible_from_all
     if first is None:
         count = 0
     elif count == len(scene.points):
         return first
-    found = combined_map(visibility_maps(scene.shadow_mesh, scene.points[count:], scene.normals[count:], scene.frame,
-                                         grid.azimuth, grid.elevation))
+    found = visible_from_all(scene.shadow_mesh, scene.points[count:], scene.normals[count:], scene.frame,
+                             grid.azimuth, grid.elevation)
     return found if first is None else first & found
 
 

@@ -28,11 +28,11 @@ class SphereGrid:
 
     @property
     def azimuth_count(self) -> int:
-        return int(round(2 * np.pi / self.step))
+        return _counts(self.step)[0]
 
     @property
     def elevation_count(self) -> int:
-        return int(round(np.pi / self.step)) + 1
+        return _counts(self.step)[1]
 
     @property
     def azimuth(self) -> np.ndarray:
@@ -49,9 +49,10 @@ class SphereGrid:
     def _corners(self, azimuth, elevation):
         """(e0, a0, a1, ta, te): the cells around (azimuth, elevation) and the weights between
         (the grid's sizes by count: sampled at every objective evaluation of a search)."""
-        n_az, n_el = self.azimuth_count, self.elevation_count
+        n_az, n_el = _counts(self.step)
         a = (np.asarray(azimuth) + np.pi) / self.step
-        e = np.clip((np.asarray(elevation) + 0.5 * np.pi) / self.step, 0, n_el - 1)
+        # np.clip's values as two ufuncs, without its checks (the row is never -0.0: -pi/2 + pi/2 is +0.0)
+        e = np.minimum(np.maximum((np.asarray(elevation) + 0.5 * np.pi) / self.step, 0), n_el - 1)
         a0 = np.floor(a).astype(int)
         e0 = np.minimum(np.floor(e).astype(int), n_el - 2)
         return e0, a0 % n_az, (a0 + 1) % n_az, a - a0, e - e0
@@ -72,6 +73,12 @@ class SphereGrid:
         rows = np.clip(np.ravel(e0)[:, None] + steps, 0, self.elevation_count - 1)
         columns = (np.ravel(a0)[:, None] + steps) % self.azimuth_count
         return np.unique((rows[:, :, None] * self.azimuth_count + columns[:, None, :]).ravel())
+
+
+@lru_cache(maxsize=8)
+def _counts(step: float) -> tuple[int, int]:
+    """(azimuth cells 2 pi / step, elevation rows pi / step + 1) of SphereGrid(step), once per step."""
+    return int(round(2 * np.pi / step)), int(round(np.pi / step)) + 1
 
 
 @lru_cache(maxsize=8)
