@@ -110,8 +110,8 @@ def test_a_move_no_path_clears_is_refused_with_both_bodies_and_nothing_moves(tmp
 
 def test_a_lamp_move_that_would_sweep_through_the_camera_goes_around_it(tmp_path):
     """The camera 0.19 m from the pivot at 39 deg of elevation; the lamp at 0.2 m and 35 deg
-    panned from -60 to 60 deg passes through it, its rig's arm through the UR5e's forearm (the
-    sim stops that); motion's route goes
+    panned from -60 to 60 deg passes through it or its tilt servo through the arm (the sim stops
+    that); motion's route goes
     through via joints at another tilt, which the sim lets through."""
     task = load_task(HINGE)
     pivot = np.asarray(task.lamp.rig.pivot_m, float)
