@@ -5,7 +5,10 @@ at its hole, a bar's box) as points on a grid over each triangle (`surface_point
 sampled boxes of the task's `cell.collision` sizes, the UR5e's links as the segments between its
 joint origins (cell.devices.ur5e's chain, which the planner's bodies and the real controller share; the lamp's
 axes cell.devices.rig.lamp_frame's) with the tube
-radii of UR's drawings. A moving body touches another where a sample of one lies within
+radii of UR's drawings, the pan-tilt's links behind the lamp (`rig_links`: the tilt servo as a
+sampled box, its front at the lamp housing's back or at the task's `cell.collision.rig_reach_m`
+from the pivot, and then the rig's arm as its axis with its tube's radius from the housing's back
+to the servo; the sizes of cell.devices.rig). A moving body touches another where a sample of one lies within
 CONTACT_M of the other's (a surface sample's spacing: penetrating surfaces cross within it), or a
 link's axis within its radius plus CONTACT_M. The arm's links among themselves are the
 controller's own business (its self-collision limits), not checked here.
@@ -25,7 +28,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from cell.devices import ur5e
-from cell.devices.rig import lamp_frame
+from cell.devices.rig import RIG_ARM_RADIUS_M, TILT_SERVO_SIZE_M, lamp_frame
 
 from cell.task.types import HOUSING_RIM_M
 
@@ -108,6 +111,14 @@ def light_housing(light: Light) -> trimesh.Trimesh:
     return mesh.apply_transform(T)
 
 
+def _stacked(bodies: list[tuple[str, np.ndarray, float]]) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """(points, each one's radius, each one's body name) of bodies given as (name, points, radius)."""
+    points = np.vstack([p for _, p, _ in bodies])
+    radii = np.concatenate([np.full(len(p), r) for _, p, r in bodies])
+    names = [name for name, p, _ in bodies for _ in range(len(p))]
+    return points, radii, names
+
+
 def _box_samples(size: np.ndarray) -> np.ndarray:
     """Points on the surface of a box of `size` centred at 0 (trimesh's box, `surface_points`)."""
     return surface_points(trimesh.creation.box(extents=size))
@@ -134,7 +145,9 @@ class Obstacles:
         self.camera_local = _box_samples(np.asarray(c.camera_size_m)) + (0.0, 0.0, c.camera_offset_m)
         self.lamp_size = np.asarray(c.lamp_size_m, float)
         self.lamp_local = _box_samples(self.lamp_size)
+        self.servo_local = _box_samples(np.asarray(TILT_SERVO_SIZE_M))
         self.pivot = np.asarray(task.lamp.rig.pivot_m, float)
+        self.reach = c.rig_reach_m                      # the tilt servo's front from the pivot (None: at the lamp)
         self.arm_joints: np.ndarray | None = None       # set by the arm as it moves
         self.lamp_position: np.ndarray | None = None    # set by the lamp as it moves
         self._cache_key: tuple[object, ...] | None = None
@@ -163,6 +176,25 @@ class Obstacles:
         R = lamp_frame(self.pivot, position)
         return self.lamp_local @ R.T + position - 0.5 * self.lamp_size[2] * R[:, 2]
 
+    def rig_links(self, position: np.ndarray) -> list[tuple[str, np.ndarray, float]]:
+        """(name, points, radius) of the pan-tilt's links holding the lamp at `position`: the tilt
+        servo's box samples, its axes the lamp's, its front face on the lamp's axis at the housing's
+        back or, with the rig's reach declared, that far from the pivot; then the rig's arm, its
+        axis every CONTACT_M from the housing's back to the servo's front."""
+        R = lamp_frame(self.pivot, position)
+        back = position - self.lamp_size[2] * R[:, 2]
+        front = back if self.reach is None else self.pivot - self.reach * R[:, 2]
+        servo = [("tilt servo", self.servo_local @ R.T + front - 0.5 * TILT_SERVO_SIZE_M[2] * R[:, 2], 0.0)]
+        if self.reach is None:
+            return servo
+        n = max(2, int(np.ceil(np.linalg.norm(front - back) / CONTACT_M)) + 1)
+        return [*servo, ("rig arm", back + np.linspace(0.0, 1.0, n)[:, None] * (front - back), RIG_ARM_RADIUS_M)]
+
+    def lamp_points(self, position: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[str]]:
+        """(points, each one's radius, each one's body name) of the lamp at `position`: its
+        housing's samples (radius 0) and its rig's links."""
+        return _stacked([("lamp housing", self.lamp(position), 0.0), *self.rig_links(position)])
+
     # -- the checks -------------------------------------------------------------------------------
 
     def _tree(self, key: tuple[object, ...], points: np.ndarray) -> cKDTree:
@@ -174,11 +206,7 @@ class Obstacles:
     def arm_points(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[str]]:
         """(points, each one's radius, each one's body name) of the arm at joints q: the camera
         housing's samples (radius 0) and the links' axes."""
-        bodies = [("camera housing", self.camera(q), 0.0), *self.links(q)]
-        points = np.vstack([p for _, p, _ in bodies])
-        radii = np.concatenate([np.full(len(p), r) for _, p, r in bodies])
-        names = [name for name, p, _ in bodies for _ in range(len(p))]
-        return points, radii, names
+        return _stacked([("camera housing", self.camera(q), 0.0), *self.links(q)])
 
     def gap(self, q: np.ndarray | None, lamp: np.ndarray | None, lamp_moves: bool = False) -> tuple[float, Contact]:
         """The smallest gap [m] between a moving body (the arm at joints q, the lamp at `lamp`;
@@ -188,31 +216,34 @@ class Obstacles:
         standing still."""
         best = (FAR_M, Contact("", "", np.zeros(3)))
 
-        def nearer(d: np.ndarray, where: np.ndarray, moving, other) -> None:
+        def nearer(points: np.ndarray, radii: np.ndarray, names: list[str], tree: cKDTree,
+                   tree_radii: np.ndarray, tree_names: Callable[[int], str]) -> None:
+            """The moving body's points against another's tree: the gaps less both radii."""
             nonlocal best
+            d, k = tree.query(points, distance_upper_bound=radii.max() + tree_radii.max() + FAR_M)
+            found = np.isfinite(d)
+            d[found] -= radii[found] + tree_radii[k[found]]
             i = int(np.argmin(d))
             if d[i] < best[0]:
-                best = (float(d[i]), Contact(moving(i), other(i), where[i]))
+                best = (float(d[i]), Contact(names[i], tree_names(int(k[i])), points[i]))
 
-        lamp_points = None if lamp is None else self.lamp(lamp)
+        def fixed_names(k: int) -> str:
+            return str(self.fixed_names[k])
+
+        fixed_radii = np.zeros(len(self.fixed_names))
+        lamp_bodies = None if lamp is None else self.lamp_points(lamp)
         if q is not None:
-            points, radii, names = self.arm_points(q)
+            arm = self.arm_points(q)
             if not lamp_moves:
-                d, k = self.fixed.query(points, distance_upper_bound=radii.max() + FAR_M)
-                nearer(d - radii, points, names.__getitem__, lambda i: str(self.fixed_names[k[i]]))
-            if lamp_points is not None and not lamp_moves:
-                tree = self._tree(("lamp", *np.round(lamp_points[0], 12)), lamp_points)
-                d, _ = tree.query(points, distance_upper_bound=radii.max() + FAR_M)
-                nearer(d - radii, points, names.__getitem__, lambda i: "lamp housing")
-            elif lamp_points is not None:
-                tree = self._tree(("arm", *np.round(q, 12)), points)
-                d, k = tree.query(lamp_points, distance_upper_bound=radii.max() + FAR_M)
-                found = np.isfinite(d)
-                d[found] -= radii[k[found]]
-                nearer(d, lamp_points, lambda i: "lamp housing", lambda i: names[k[i]])
-        if lamp_points is not None and (lamp_moves or q is None):
-            d, k = self.fixed.query(lamp_points, distance_upper_bound=FAR_M)
-            nearer(d, lamp_points, lambda i: "lamp housing", lambda i: str(self.fixed_names[k[i]]))
+                nearer(*arm, self.fixed, fixed_radii, fixed_names)
+            if lamp_bodies is not None and not lamp_moves:
+                tree = self._tree(("lamp", *np.round(lamp_bodies[0][0], 12)), lamp_bodies[0])
+                nearer(*arm, tree, lamp_bodies[1], lamp_bodies[2].__getitem__)
+            elif lamp_bodies is not None:
+                tree = self._tree(("arm", *np.round(q, 12)), arm[0])
+                nearer(*lamp_bodies, tree, arm[1], arm[2].__getitem__)
+        if lamp_bodies is not None and (lamp_moves or q is None):
+            nearer(*lamp_bodies, self.fixed, fixed_radii, fixed_names)
         return best
 
     def arm_move(self, path: list[np.ndarray]) -> Contact | None:
@@ -235,11 +266,13 @@ class Obstacles:
     def lamp_move(self, a: np.ndarray, b: np.ndarray,
                   lamp_at: Callable[[np.ndarray], np.ndarray]) -> Contact | None:
         """The first contact as the lamp's joints go linearly from a to b (the arm where it is);
-        lamp_at(joints) -> its position. The lamp's points move at most
-        (|dpan| + |dtilt|) (radius + the housing's diagonal) + |dradius|: conservative advancement
-        as arm_move."""
-        sweep = (abs(b[0] - a[0]) + abs(b[1] - a[1])) * (max(a[2], b[2]) + np.linalg.norm(self.lamp_size)) \
-            + abs(b[2] - a[2])
+        lamp_at(joints) -> its position. The points of the lamp and its rig's links move at most
+        (|dpan| + |dtilt|) rho + |dradius|, rho the farthest of them from the pivot (at the larger
+        radius, where none lies nearer: the housing moves out, the servo with it or standing at
+        the rig's reach): conservative advancement as arm_move."""
+        points, radii, _ = self.lamp_points(lamp_at(np.array([a[0], a[1], max(a[2], b[2])])))
+        rho = float((np.linalg.norm(points - self.pivot, axis=1) + radii).max())
+        sweep = (abs(b[0] - a[0]) + abs(b[1] - a[1])) * rho + abs(b[2] - a[2])
         s = 0.0
         while True:
             d, contact = self.gap(self.arm_joints, lamp_at((1 - s) * a + s * b), lamp_moves=True)

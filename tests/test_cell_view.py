@@ -5,6 +5,7 @@ Debian's headless Chromium with no error on the page's console."""
 import re
 import shutil
 import subprocess
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -33,14 +34,17 @@ def planned():
 def expected_names(task, plan):
     """Every body, feature and light the view must name: the part (and fixture), each feature,
     each fixed light's housing (its collision body: a ring's drawn once), and at each shot the arm's links, the
-    camera body, its frustum, the lamp's body and cone and the task's other lights; the route when
-    there are several shots."""
+    camera body, its frustum, the lamp's body and cone, the pan-tilt's links (the tilt servo; its
+    arm where cell.collision.rig_reach_m declares the rig's reach) and the task's other lights;
+    the route when there are several shots."""
     names = {"part", *(f"feature {f.name}" for f in task.features)}
     names |= {light.name for light in task.lights if light.mount == "fixed"}
     if task.cell.collision.fixture is not None:
         names.add("fixture")
     for k, shot in enumerate(plan.shots):
-        names |= {f"shot {k} {body}" for body in ("camera_body", "frustum", "lamp_body", "lamp cone")}
+        names |= {f"shot {k} {body}" for body in ("camera_body", "frustum", "lamp_body", "lamp cone", "tilt_servo")}
+        if task.cell.collision.rig_reach_m is not None:
+            names.add(f"shot {k} rig_arm")
         names |= {f"shot {k} {link}" for link, _ in ARM_LINKS}
         names |= {f"shot {k} light {light.name}" for light in task.lights}
     return names
@@ -73,6 +77,19 @@ def test_the_view_names_every_body_at_every_shot_and_loads_nothing_from_the_netw
             trace = html.index(f'"name":"shot {k} light {setting.name}"')
             start = html.rindex('{"hovertemplate"', 0, trace)
             assert ('"#ffe14d"' if setting.drive > 0 else '"#8c8c8c"') in html[start:trace]
+
+
+def test_a_declared_rig_reach_draws_the_pan_tilt_s_arm_at_every_shot(planned, tmp_path):
+    """The hinge's plan drawn for its task with cell.collision.rig_reach_m: the servo stands at
+    the reach and the rig's arm joins it to the lamp, named at every shot in the lamp's colour."""
+    task, plan = planned["hinge"]
+    long = replace(task, cell=replace(task.cell, collision=replace(task.cell.collision, rig_reach_m=0.69)))
+    view = write_cell_view(tmp_path / "cell.html", plan, long)
+    assert not expected_names(long, plan) - set(view.names)
+    html = view.path.read_text()
+    for k in range(len(plan.shots)):
+        trace = html.index(f'"name":"shot {k} rig_arm"')
+        assert '"#ffcc33"' in html[html.rindex('{"hovertemplate"', 0, trace):trace]
 
 
 def chromium():

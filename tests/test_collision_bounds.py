@@ -169,7 +169,7 @@ def test_clear_answers_as_every_pairs_distance_does_at_random_and_grazing_paddin
         q = rng.uniform(-np.pi, np.pi, 6)
         bodies = (*scene.fixed, *arm_links(scene.frames.T_cell_base, q))
         T = geometry.from_rpy(rng.uniform(-3, 3, 3), scene.part.center + geometry.unit(rng.normal(size=3)) * 0.1)
-        bodies = (*bodies, scene.camera_body(T), scene.lamp_body(scene.part.center + rng.normal(size=3) * 0.15))
+        bodies = (*bodies, scene.camera_body(T), *scene.lamp_bodies(scene.part.center + rng.normal(size=3) * 0.15))
         pairs = Pairs.of(bodies, fixed)
         k = int(rng.integers(len(pairs.gap)))
         d = distance(bodies[pairs.i[k]], bodies[pairs.j[k]])

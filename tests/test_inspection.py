@@ -301,8 +301,9 @@ def test_a_shot_that_does_not_converge_leaves_the_others_to_run_and_the_run_exit
                           "after 1 iteration")
     assert "knuckle (shot 1): not in band 60-250 after 1 iteration" in err
     by = {f["name"]: f for f in run.report["features"]}
-    # leaf_a alone read in band, but its shot did not converge: not converged, with the shot's reason
-    assert by["leaf_a"]["in_band"] and not by["leaf_a"]["converged"] and "leaf_b" in by["leaf_a"]["reason"]
+    # leaf_b alone read in band (61-64 at half the albedo; leaf_a 55-59), but its shot did not
+    # converge: not converged, with the shot's reason
+    assert by["leaf_b"]["in_band"] and not by["leaf_b"]["converged"] and "leaf_a" in by["leaf_b"]["reason"]
     # the iterations ran out in each shot: each shot's cause, and the run's (its first feature's shot's)
     for shot in run.report["shots"]:
         assert json.loads((tmp_path / "run" / shot["folder"] / "report.json").read_text())["cause"] == "iterations"

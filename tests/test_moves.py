@@ -19,6 +19,7 @@ from cell.collision.scene import CollisionScene
 from cell.core import geometry
 from cell.core.errors import DeviceFault
 from cell.devices import ur5e
+from cell.devices.rig import RIG_ARM_RADIUS_M, TILT_SERVO_SIZE_M
 from cell.planning.scene import look_at
 from cell.task.loader import load_task
 from sim.arm import SimArm
@@ -115,7 +116,10 @@ def test_the_beam_example_runs_through_its_via_points_and_the_sim_never_stops_it
 # kinematics nearest the last), the lamp's joints linearly; each body's surface sampled by trimesh
 # (boxes as trimesh primitives, the fixed lights' housings as the simulator's own meshes,
 # sim.obstacles.light_housing, the links as points along their axes every DENSE_M, less their
-# radii), the nearest pairs by k-d trees. Sampled surfaces lie no nearer than the surfaces: a
+# radii; the pan-tilt's links as docs/formats.md places them: the tilt servo's box behind the
+# lamp, its front face at the lamp's back or at cell.collision.rig_reach_m from the pivot, and with
+# that key the rig's tube from the lamp's back to the servo's front), the nearest pairs by k-d
+# trees. Sampled surfaces lie no nearer than the surfaces: a
 # distance found below the padding is a contact the planner let through.
 
 DENSE_M = 0.002             # the bodies' surface samples' spacing
@@ -144,15 +148,27 @@ class Dense:
         self.camera = box_points(c.camera_size_m) + (0.0, 0.0, c.camera_offset_m)
         self.lamp_size = np.asarray(c.lamp_size_m, float)
         self.lamp_local = box_points(c.lamp_size_m)
+        self.servo_size = np.asarray(TILT_SERVO_SIZE_M, float)
+        self.servo_local = box_points(self.servo_size)
 
     def lamp(self, joints):
+        """[(name, points, radius)] of the lamp's box and the pan-tilt's links at the lamp's joints."""
         from cell.devices.rig import lamp_position
         pivot = np.asarray(self.task.lamp.rig.pivot_m, float)
         p = lamp_position(pivot, *joints)
         z = (pivot - p) / np.linalg.norm(pivot - p)
         x = np.cross((0.0, 0.0, 1.0), z)
         x = x / np.linalg.norm(x) if np.linalg.norm(x) > 1e-9 else np.array([1.0, 0.0, 0.0])
-        return self.lamp_local @ np.column_stack([x, np.cross(z, x), z]).T + p - 0.5 * self.lamp_size[2] * z
+        R = np.column_stack([x, np.cross(z, x), z])
+        back = p - self.lamp_size[2] * z
+        reach = self.task.cell.collision.rig_reach_m
+        front = back if reach is None else pivot - reach * z
+        bodies = [("lamp_body", self.lamp_local @ R.T + back + 0.5 * self.lamp_size[2] * z, 0.0),
+                  ("tilt_servo", self.servo_local @ R.T + front - 0.5 * self.servo_size[2] * z, 0.0)]
+        if reach is None:
+            return bodies
+        n = int(np.ceil(np.linalg.norm(front - back) / DENSE_M)) + 1
+        return [*bodies, ("rig_arm", back + np.linspace(0, 1, n)[:, None] * (front - back), RIG_ARM_RADIUS_M)]
 
     def nearest(self, q, lamp_joints):
         """(the smallest distance between bodies that may not touch, which two) at joints q and
@@ -164,7 +180,7 @@ class Dense:
             n = int(np.ceil(np.linalg.norm(link.b - link.a) / DENSE_M)) + 1
             bodies.append((link.name, link.a + np.linspace(0, 1, n)[:, None] * (link.b - link.a), link.radius_m))
         if lamp_joints is not None:
-            bodies.append(("lamp_body", self.lamp(lamp_joints), 0.0))
+            bodies += self.lamp(lamp_joints)
         best = (np.inf, ("", ""))
         trees = [(name, cKDTree(p), r) for name, p, r in bodies]
         for i, (a, pa, ra) in enumerate(bodies):
@@ -197,26 +213,44 @@ class Dense:
 
 
 def densely_checked(task, plan, moves):
-    """The smallest distance over every move's path (the arm's through its via points, the lamp
-    parked at the last shot's joints; then the lamp's, the arm at the shot), as in cell.run:
+    """The smallest distance over every move's path as cell.run makes it: the arm's through its
+    via points, the lamp where it stands (none from home, where the plan does not know it); then
+    the lamp's joints linearly through its via joints to the shot's, its pan as the servo holds it
+    (servo.held_pan), the arm at the shot; the lamp first where the move says so:
     [(distance, bodies, move)]."""
     from cell.collision.paths import home_stop
+    from cell.devices.servo import held_pan
     dense, found = Dense(task), []
     home = home_stop(CollisionScene.of(task))
     q, T, lamp = home.arm_joints, home.T_cell_cam, None
+    # the lamp and its links lie within this of the pivot
+    reach = max(task.lamp.rig.radius_range_m[1], task.cell.collision.rig_reach_m or 0.0) + 0.15
+
+    def lamp_legs(q, start, legs):
+        for end in legs:
+            end = np.asarray(end, float)
+            sweep = np.abs(end[:2] - start[:2]).sum() * reach + abs(end[2] - start[2])
+            for s in np.linspace(0.0, 1.0, max(2, int(np.ceil(sweep / dense.step)) + 1)):
+                found.append((*dense.nearest(q, (1 - s) * start + s * end), move.end))
+            start = end
+        return start
+
     for move in moves:
         shot = plan.shots[move.end]
+        pan, tilt, radius = shot.joints
+        arrives = np.array([held_pan(pan, task.cell.devices.pan_tilt.pan_offset_rad), tilt, radius])
+        known = lamp is not None           # from home the lamp is not known: the arm's path without it, as
+        lamp = arrives if lamp is None else lamp   # planned (the run checks it itself)
+        if move.lamp_first:
+            lamp = lamp_legs(q, lamp, [*move.lamp_via, arrives])
         corners = [T, *move.via, shot.T_cell_cam]
         for T_a, T_b in zip(corners, corners[1:]):
             joints = dense.path(T_a, T_b, q)
-            found += [(*dense.nearest(j, lamp), move.end) for j in joints]
+            found += [(*dense.nearest(j, lamp if known else None), move.end) for j in joints]
             q = joints[-1]
-        start = np.asarray(shot.joints if lamp is None else lamp, float)
-        end = np.asarray(shot.joints, float)
-        sweep = (np.abs(end[:2] - start[:2]).sum() * (max(start[2], end[2]) + 0.15) + abs(end[2] - start[2]))
-        for s in np.linspace(0.0, 1.0, max(2, int(np.ceil(sweep / dense.step)) + 1)):
-            found.append((*dense.nearest(q, (1 - s) * start + s * end), move.end))
-        T, lamp = shot.T_cell_cam, shot.joints
+        if not move.lamp_first:
+            lamp = lamp_legs(q, lamp, [*move.lamp_via, arrives])
+        T = shot.T_cell_cam
     return found
 
 

@@ -337,14 +337,18 @@ def test_the_sight_cone_keeps_every_ball_a_line_of_sight_meets():
     assert SightCone.of(middle, middle, rho).meets(centres, radius).all()          # the apex inside: every ball
 
 
-@pytest.mark.parametrize("pivot_aside_m", [0.0, 0.12])
-def test_the_prefilters_skip_no_crossing_of_the_arm_the_camera_body_the_lamp_or_its_links(pivot_aside_m):
+def with_reach(task, reach_m):
+    """The task with cell.collision.rig_reach_m set (None: the servo at the lamp's back)."""
+    return replace(task, cell=replace(task.cell, collision=replace(task.cell.collision, rig_reach_m=reach_m)))
+
+
+@pytest.mark.parametrize("pivot_aside_m, reach_m", [(0.0, None), (0.12, None), (0.12, 0.69)])
+def test_the_prefilters_skip_no_crossing_of_the_arm_the_camera_body_the_lamp_or_its_links(pivot_aside_m, reach_m):
     """spot_blocked and lamp_hides equal the exact tests of every body against every ray, their
     prefilters left out, for lamps about the bodies, the lines of sight and the rig (its pivot at
-    the feature, and beside it, where the pan-tilt's links hide samples the housing does not)."""
-    from cell.collision.rays import segments_near_segments
-    from cell.collision.scene import lamp_boxes, rig_links
-    task = load_task(RING)
+    the feature, and beside it, where the pan-tilt's links hide samples the housing does not; the
+    servo at the lamp's back, and at a declared reach with the rig's arm out to it)."""
+    task = with_reach(load_task(RING), reach_m)
     task = replace(task, lamp=replace(task.lamp, rig=replace(task.lamp.rig,
                                                              pivot_m=task.lamp.rig.pivot_m + (pivot_aside_m, 0.0, 0.0))))
     scene = build_scene(task)
@@ -378,10 +382,11 @@ def exact_blockers(problem, lamps):
     spot = (segments_cross_boxes(origins, targets, arm.T_cell_box[None], arm.half_m)[0]
             | segments_near_segments(origins, targets, arm.a, arm.b, arm.radius_m).any(axis=0)).reshape(len(lamps), P)
     half = 0.5 * np.asarray(task.cell.collision.lamp_size_m)
-    links = rig_links(task.lamp.rig.pivot_m, half, task.lamp.rig.radius_range_m[1], lamps)
+    links = rig_links(task.lamp.rig.pivot_m, half, task.cell.collision.rig_reach_m, lamps)
     hidden = (segments_cross_boxes(camera, scene.points, lamp_boxes(task.lamp.rig.pivot_m, half, lamps), half)
-              | segments_cross_boxes(camera, scene.points, links.T_cell_servo, links.servo_half_m)
-              | segments_near_segments(camera, scene.points, links.a, links.b, links.radius_m))
+              | segments_cross_boxes(camera, scene.points, links.T_cell_servo, links.servo_half_m))
+    if links.arm:
+        hidden |= segments_near_segments(camera, scene.points, links.a, links.b, links.radius_m)
     seen = np.zeros(P, bool) if problem.camera_seen is None else problem.camera_seen
     return spot, hidden & seen
 
@@ -413,33 +418,39 @@ def test_the_prefilters_skip_no_crossing_on_the_calls_of_a_plan(monkeypatch):
 
 
 def links_by_hand(task, lamp):
-    """The pan-tilt's links as docs/planning.md describes them: the arm, a 10 mm radius tube from
-    the lamp box's back out along the radius to the tilt servo's centre; the servo a 34 x 46.5 x
-    28.5 mm box (x horizontal, y, z along the aim) whose front face is a lamp box's depth beyond
-    the rig's largest radius."""
+    """The pan-tilt's links as docs/formats.md (cell.collision.rig_reach_m) describes them: the
+    tilt servo a 34 x 46.5 x 28.5 mm box (x horizontal, y, z along the aim) whose front face is at
+    the lamp box's back, or rig_reach_m from the pivot where the task declares it; the arm a 10 mm
+    radius tube from the lamp box's back to the servo's front face (None where no reach is
+    declared)."""
     (T, half) = lamp_box_by_hand(task, lamp)
     z = T[:3, 2]
     pivot = task.lamp.rig.pivot_m
+    back = lamp - 2 * half[2] * z
+    reach = task.cell.collision.rig_reach_m
+    front = back if reach is None else pivot - reach * z
     servo_half = np.array([0.034, 0.0465, 0.0285]) / 2
-    servo = pivot - (task.lamp.rig.radius_range_m[1] + 2 * half[2] + servo_half[2]) * z
     T_servo = T.copy()
-    T_servo[:3, 3] = servo
-    return lamp - 2 * half[2] * z, servo, 0.010, T_servo, servo_half
+    T_servo[:3, 3] = front - servo_half[2] * z
+    return None if reach is None else (back, front, 0.010), T_servo, servo_half
 
 
-def test_the_pan_tilt_links_hide_the_samples_whose_line_of_sight_they_cross_as_trimesh_finds():
-    task = load_task(RING)
+@pytest.mark.parametrize("reach_m", [None, 0.69])
+def test_the_pan_tilt_links_hide_the_samples_whose_line_of_sight_they_cross_as_trimesh_finds(reach_m):
+    task = with_reach(load_task(RING), reach_m)
     # the rig's pivot 0.12 m beside the feature: an arm can cross the camera's lines of sight where its lamp does not
     task = replace(task, lamp=replace(task.lamp, rig=replace(task.lamp.rig, pivot_m=task.lamp.rig.pivot_m + (0.12, 0.0, 0.0))))
     scene = build_scene(task)
     problem = evaluate.build_problem(task, scene, None)
     camera, centre, pivot = scene.camera_position, scene.center, task.lamp.rig.pivot_m
     rng = np.random.default_rng(35)
-    # lamps whose arm runs out through the camera's line of sight to the feature, 0.1-0.3 m below
-    # where it crosses, and lamps elsewhere on the rig
+    # lamps whose links run out through the camera's line of sight to the feature (the arm 0.1-0.3 m
+    # beyond the lamp; the servo at the lamp's back, its 28.5 mm depth across it), and lamps
+    # elsewhere on the rig
     crossing = centre + rng.uniform(0.4, 0.9, (30, 1)) * (camera - centre) + rng.normal(0.0, 0.005, (30, 3))
     out = crossing - pivot
-    radius = np.linalg.norm(out, axis=1)[:, None] - rng.uniform(0.1, 0.3, (30, 1))
+    behind = rng.uniform(0.1, 0.3, (30, 1)) if reach_m is not None else 0.08 + rng.uniform(0.0, 0.0285, (30, 1))
+    radius = np.linalg.norm(out, axis=1)[:, None] - behind
     lamps = np.vstack([pivot + np.clip(radius, *task.lamp.rig.radius_range_m) * out / np.linalg.norm(out, axis=1)[:, None],
                        rig.lamp_position(pivot, rng.uniform(-np.pi, np.pi, 20), rng.uniform(0.1, 0.5, 20), 0.3)])
     housing, links = requirements.rig_hides(problem, lamps)
@@ -449,14 +460,21 @@ def test_the_pan_tilt_links_hide_the_samples_whose_line_of_sight_they_cross_as_t
     along = camera + t[None, :, None] * (scene.points - camera)[:, None]              # (P, 3001, 3)
     for k, lamp in enumerate(lamps):
         assert np.array_equal(housing[k], brute_force(*lamp_box_by_hand(task, lamp), sight, scene.points))
-        a, b, radius, T_servo, servo_half = links_by_hand(task, lamp)
+        arm, T_servo, servo_half = links_by_hand(task, lamp)
+        servo = brute_force(T_servo, servo_half, sight, scene.points)
+        if arm is None:
+            assert np.array_equal(links[k], servo)
+            continue
+        a, b, radius = arm
         s = np.clip(np.einsum("pnj,j->pn", along - a, b - a) / ((b - a) @ (b - a)), 0.0, 1.0)
         gap = np.linalg.norm(along - a - s[..., None] * (b - a), axis=-1).min(axis=1)   # the arm's axis, densely
         step = np.linalg.norm(scene.points - camera, axis=1).max() / 3000
-        servo = brute_force(T_servo, servo_half, sight, scene.points)
         sure = servo | (gap < radius - step) | (gap > radius + step)
         assert np.array_equal(links[k][sure], (servo | (gap < radius))[sure]) and sure.sum() > 0.8 * P
-    assert links[:30].any(axis=1).sum() > 10 and not links[30:].any() and (links & ~housing).any()
+    assert links[:30].any(axis=1).sum() > 10 and not links[30:].any()
+    if reach_m is None:          # the servo right behind the housing, narrower: in its shadow on these lines
+        return
+    assert (links & ~housing).any()
     # the requirement counts them as unseen; the sentence names the links
     k = int(np.argmax((links & ~housing).sum(axis=1)))
     candidates = SimpleNamespace(position=lamps, shutter=np.zeros(len(lamps)))
@@ -465,17 +483,18 @@ def test_the_pan_tilt_links_hide_the_samples_whose_line_of_sight_they_cross_as_t
     assert f"cannot see {(housing | links)[k].sum()} of {P}" in sentence and "pan-tilt's links behind the lamp" in sentence
 
 
-def test_the_pan_tilt_links_lie_behind_the_lamp_out_of_its_beam():
+@pytest.mark.parametrize("reach_m", [None, 0.69])
+def test_the_pan_tilt_links_lie_behind_the_lamp_out_of_its_beam(reach_m):
     """Every point of the arm and the servo lies behind the plane of the lamp's front across its
     aim, where no ray to a sample the lamp lights (under 90 deg off its aim) goes."""
     from cell.collision.bodies import Box, Capsule
     from cell.collision.scene import rig_links
-    task = load_task(RING)
+    task = with_reach(load_task(RING), reach_m)
     pivot, half = task.lamp.rig.pivot_m, 0.5 * np.asarray(task.cell.collision.lamp_size_m)
     rng = np.random.default_rng(36)
     lamps = rig.lamp_position(pivot, rng.uniform(-np.pi, np.pi, 40), rng.uniform(*task.lamp.rig.tilt_range_rad, 40),
                               rng.uniform(*task.lamp.rig.radius_range_m, 40))
-    held = rig_links(pivot, half, task.lamp.rig.radius_range_m[1], lamps)
+    held = rig_links(pivot, half, reach_m, lamps)
     for k, lamp in enumerate(lamps):
         aim = rig.lamp_aim(pivot, lamp)
         arm = Capsule("arm", held.a[k], held.b[k], held.radius_m)
@@ -484,4 +503,6 @@ def test_the_pan_tilt_links_lie_behind_the_lamp_out_of_its_beam():
         points = lamp + rng.uniform(0.0, 0.8, (4000, 1)) * direction / np.linalg.norm(direction, axis=1)[:, None]
         ahead = points[(points - lamp) @ aim >= 0.0]                 # the half-space the beam's rays run in
         assert arm.sdf(ahead).min() > 0.05 and servo.sdf(ahead).min() > 0.05
-        assert np.isclose(np.linalg.norm(held.b[k] - pivot), task.lamp.rig.radius_range_m[1] + 2 * half[2] + 0.01425)
+        front = np.linalg.norm(lamp - pivot) + 2 * half[2] if reach_m is None else reach_m
+        assert np.isclose(np.linalg.norm(held.b[k] - pivot), front) and held.arm is (reach_m is not None)
+        assert np.isclose(np.linalg.norm(servo.center - pivot), front + 0.01425)

@@ -10,9 +10,11 @@ Steps by conservative advancement, pair by pair: a bound on how far one body of 
 relative to the other in a step (on the arm, the body further down the chain seen from the
 other's link: sum_i |dq_i| r_i over the joints between them, r_i its reach about joint i's axis,
 `body_reach`; the camera body against the still bodies also by its moveL's own travel; the lamp
-body against the still rest by (|dpan| + |dtilt|) (r + its diagonal) + |dr|) is kept at most max(padding / 2, L - padding) after a pose where the pair is at least L
-apart: between two checked poses every pair stays at least the padding apart, or (near it) the
-step bounds its swept distance below half the padding. A pair far apart (a bounding-sphere gap
+and each of the pan-tilt's links holding it against the still rest by (|dpan| + |dtilt|) rho +
+|dr|, rho its farthest point from the pivot) is kept at most max(padding / 2, L - padding) after
+a pose where the pair is at least L apart: between two checked poses every pair stays at least
+the padding apart, or (near it) the step bounds its swept distance below half the padding. A
+pair far apart (a bounding-sphere gap
 well above the padding) or that the step's joints do not move between (the camera and the
 wrist as the base turns) does not shorten the step. A direct move closer than
 the padding gets via points: back along the camera's axis from the first stop, across at that
@@ -35,7 +37,7 @@ from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
 from cell.collision.bodies import Body, Box, Capsule
-from cell.collision.scene import LINK, Clearance, CollisionScene, Pairs
+from cell.collision.scene import LAMP_BODIES, LINK, Clearance, CollisionScene, Pairs
 from cell.core import geometry
 from cell.core.errors import DeviceFault
 from cell.devices import ur5e
@@ -91,7 +93,8 @@ class Move:
                 "clearance_bodies": list(self.clearance.bodies), "via": [T.tolist() for T in self.via],
                 "travel_m": self.travel_m, "steps": self.steps,
                 **({} if self.joints_end is None else {"arm_joints_deg": np.degrees(self.joints_end).tolist()}),
-                **({"lamp_via": [list(j) for j in self.lamp_via]} if self.lamp_via else {})}
+                **({"lamp_via": [list(j) for j in self.lamp_via]} if self.lamp_via else {}),
+                **({"lamp_first": True} if self.lamp_first else {})}
 
 
 def _name(end: End) -> str:
@@ -235,11 +238,14 @@ def _worst(pairs: Pairs, reach: np.ndarray, joints: np.ndarray, dq: np.ndarray, 
 def lamp_path(scene: CollisionScene, T_cam: np.ndarray, q: ArrayLike, joints_from: ArrayLike,
               joints_to: ArrayLike) -> tuple[Clearance, int]:
     """The smallest Clearance (or the first below the padding) as the lamp moves in its joints
-    (pan, tilt, radius), the arm still, and the poses checked. Each step by the lamp's pairs'
-    clearance (_allowed): no other pair's distance changes."""
+    (pan, tilt, radius), the arm still, and the poses checked. Each step by the least over the
+    lamp and the links holding it (CollisionScene.lamp_bodies) of its pairs' clearance (_allowed)
+    over its travel in the whole move, (|dpan| + |dtilt|) rho + |dradius| (rho its farthest point
+    from the pivot, CollisionScene.lamp_reach; a change of radius moves each of its points at most
+    that far along the aim): no other pair's distance changes."""
     a, b = np.asarray(joints_from, float), np.asarray(joints_to, float)
-    arm = max(a[2], b[2]) + 2 * float(np.linalg.norm(scene.lamp_half_m))
-    sweep = (abs(b[0] - a[0]) + abs(b[1] - a[1])) * arm + abs(b[2] - a[2])   # a bound over the whole move
+    reach = scene.lamp_reach(max(a[2], b[2]))
+    turn, out = abs(b[0] - a[0]) + abs(b[1] - a[1]), abs(b[2] - a[2])    # a bound over the whole move
     s, at, found = 0.0, [lamp_position(scene.pivot_m, *a)], []
     while True:
         bodies = scene.bodies(T_cam, q, at[-1])
@@ -247,9 +253,10 @@ def lamp_path(scene: CollisionScene, T_cam: np.ndarray, q: ArrayLike, joints_fro
         found.append(pairs.least(scene.padding_m))
         if s >= 1.0 or not found[-1].ok:
             break
-        lamp = len(bodies) - 1                                  # scene.bodies puts the lamp last
-        mine = pairs.least(scene.padding_m, (pairs.i == lamp) | (pairs.j == lamp))
-        s = min(1.0, s + _allowed(scene, mine) / max(sweep, 1e-300))
+        step = min(_allowed(scene, pairs.least(scene.padding_m, (pairs.i == k) | (pairs.j == k)))
+                   / max(turn * reach[LAMP_BODIES.index(body.name)] + out, 1e-300)
+                   for k, body in enumerate(bodies) if body.name in LAMP_BODIES)
+        s = min(1.0, s + step)
         at.append(lamp_position(scene.pivot_m, *((1 - s) * a + s * b)))
     k = int(np.argmin([c.distance_m for c in found]))
     return replace(found[k], where=f"with the lamp at {np.round(at[k], 3).tolist()} m (cell frame)"), len(found)
@@ -423,7 +430,8 @@ def checked_route(scene: CollisionScene, arm: ArmConfig, stops: Sequence[Stop],
     """(the order of stops[1:] (indices from 0) from stops[0], where the arm is (the home pose),
     and the checked Moves along it, each from where the last arrived). Lazy: a route solver
     (`shortest_order` of a travel matrix, index 0 the start) orders the stops by straight-line
-    travel, a lower bound of every move's; the moves of that order are checked (plan_move) and
+    travel, a lower bound of every move's; the moves of that order are checked (plan_transition,
+    as the run makes them: the arm first, else the lamp first) and
     their true travel (via points counted; UNCHECKED_M where no path is clear) put in, until
     an order's moves change no entry (then no other order is shorter), or after `rounds`
     orders the shortest checked one. A move that is not clear ends its order's list."""
@@ -435,16 +443,16 @@ def checked_route(scene: CollisionScene, arm: ArmConfig, stops: Sequence[Stop],
             if a.lamp_joints is not None and b.lamp_joints is not None:
                 D[i, j] += np.linalg.norm(lamp_position(scene.pivot_m, *b.lamp_joints)
                                           - lamp_position(scene.pivot_m, *a.lamp_joints))
-    checked: dict[tuple[int, int, bytes], Move] = {}
+    checked: dict[tuple[int, int, bytes, bytes], Move] = {}
     tried: list[tuple[float, tuple[int, ...], list[Move]]] = []
     for _ in range(rounds):
         order = tuple(shortest_order(D))
-        moves, q, changed = [], stops[0].arm_joints, False
+        moves, q, lamp, changed = [], stops[0].arm_joints, stops[0].lamp_joints, False
         for i, j in pairwise([0, *(k + 1 for k in order)]):
-            key = (i, j, np.asarray(q, float).tobytes())
+            key = (i, j, np.asarray(q, float).tobytes(), np.asarray(lamp, float).tobytes())
             if key not in checked:
-                checked[key] = plan_move(scene, arm, HOME if i == 0 else i - 1, replace(stops[i], arm_joints=q),
-                                         j - 1, stops[j])
+                checked[key] = plan_transition(scene, arm, replace(stops[i], arm_joints=q, lamp_joints=lamp), stops[j],
+                                               HOME if i == 0 else i - 1, j - 1)
             move = checked[key]
             moves.append(move)
             cost = move.travel_m if move.clear else UNCHECKED_M
@@ -452,7 +460,7 @@ def checked_route(scene: CollisionScene, arm: ArmConfig, stops: Sequence[Stop],
             D[i, j] = max(D[i, j], cost)
             if not move.clear or move.joints_end is None:
                 break
-            q = move.joints_end
+            q, lamp = move.joints_end, stops[j].lamp_joints
         total = sum(m.travel_m if m.clear else UNCHECKED_M for m in moves)
         tried.append((total + UNCHECKED_M * (len(order) + 1 - len(moves)), order, moves))
         if not changed:

@@ -4,12 +4,15 @@ the cell at one pose of the arm, camera and lamp.
 Bodies: the part and the optional fixture (meshes, fixed in the cell), the UR5e's links
 (capsules along its kinematic chain, placed by cell.devices.ur5e.forward), the camera body (a
 box on the flange, centred `offset_m` along the tool axis, its axes the flange's), the lamp
-body (a box behind the lamp's front at its position, its z axis the lamp's aim) and each fixed
-light's housing (light_body: a ring's annulus round its hole, a dome's shell open at its hole,
-any other light's box, each behind its emitting surface). Bodies that may
+body (a box behind the lamp's front at its position, its z axis the lamp's aim), the pan-tilt's
+links that hold it (rig_links: the tilt servo's box behind the lamp, and where the task declares
+the rig's reach the arm's tube from the lamp's back to the servo) and each fixed light's housing
+(light_body: a ring's annulus round its hole, a dome's shell open at its hole, any other light's
+box, each behind its emitting surface). Bodies that may
 touch: neighbours on the arm's chain and the next but one (they share a joint housing), the
-flange's two wrist links and the camera, the robot base and the fixture it may stand on, the
-part and its fixture. The clearance is the smallest distance over every other pair, found by
+flange's two wrist links and the camera, the lamp and its links (each meets the next along the
+lamp's axis), the robot base and the fixture it may stand on, the part and its fixture. The
+clearance is the smallest distance over every other pair, found by
 branch and bound on bounding spheres (the exact distance of a pair only where it could be the
 smallest), so the result is the minimum, not an estimate of it. `Pairs` keeps each pair's lower
 bound (the spheres' gap, or its distance once computed) for the paths' steps (cell.collision.paths).
@@ -30,7 +33,7 @@ from cell.collision.bodies import (ROUNDING_M, Annulus, Body, Box, Capsule, Mesh
                                   surface_samples)
 from cell.core import geometry
 from cell.devices import ur5e
-from cell.devices.rig import lamp_frame
+from cell.devices.rig import RIG_ARM_RADIUS_M, TILT_SERVO_SIZE_M, lamp_frame
 from cell.task.types import HOUSING_RIM_M
 
 if TYPE_CHECKING:
@@ -44,8 +47,12 @@ SHOULDER_OFFSET_M, FOREARM_OFFSET_M = 0.138, 0.007
 ARM_LINKS = (("base", 0.076), ("shoulder", 0.062), ("upper_arm", 0.056), ("elbow", 0.050),
              ("forearm", 0.042), ("wrist_1", 0.046), ("wrist_2", 0.046), ("wrist_3", 0.046))
 CHAIN = tuple(name for name, _ in ARM_LINKS) + ("camera_body",)
+# The lamp and the pan-tilt's links holding it (rig_links), in the order CollisionScene.bodies puts them,
+# last; the arm only where the task declares the rig's reach (cell.collision.rig_reach_m).
+LAMP_BODIES = ("lamp_body", "tilt_servo", "rig_arm")
 MAY_TOUCH = frozenset({frozenset(CHAIN[i:i + 2]) for i in range(len(CHAIN) - 1)}
                       | {frozenset((CHAIN[i], CHAIN[i + 2])) for i in range(len(CHAIN) - 2)}
+                      | {frozenset(pair) for pair in combinations(LAMP_BODIES, 2)}
                       | {frozenset(("base", "fixture")), frozenset(("part", "fixture"))})
 # The last joint (1-6) that moves each body of the chain (arm_links' points: o1 = o0 + d1 z0 never moves,
 # o4 = o3 + d4 z3 moves with joint 3, o5 = o4 + d5 z4 with 4, o6 = o5 + d6 z5 with 5, the camera body
@@ -133,42 +140,46 @@ def lamp_boxes(pivot_m: ArrayLike, lamp_half_m: ArrayLike, lamp_position: ArrayL
     return T
 
 
-# The pan-tilt's links behind the lamp, which hold it on its radius: the arm from the lamp housing's
-# back out along the radius to the rig's largest radius (a 20 mm tube), and the tilt servo at its end,
-# a Dynamixel X-series 430 (hardware notes; ROBOTIS e-Manual: 28.5 x 46.5 x 34 mm, W x H x D), its
-# 34 mm across the aim and horizontal, 46.5 mm across it, 28.5 mm along it.
-RIG_ARM_RADIUS_M = 0.010
-TILT_SERVO_SIZE_M = (0.034, 0.0465, 0.0285)
+def servo_front_m(radius_m: ArrayLike, lamp_depth_m: float, rig_reach_m: float | None) -> np.ndarray:
+    """The tilt servo's front face's distance [m] from the pivot, on the lamp's axis behind it,
+    with the lamp at radius_m: the rig's declared reach (cell.collision.rig_reach_m), or where
+    none is declared the lamp housing's back, radius_m + its depth (a compact head riding with the
+    lamp)."""
+    radius = np.asarray(radius_m, float)
+    return radius + lamp_depth_m if rig_reach_m is None else np.full(radius.shape, float(rig_reach_m))
 
 
 @dataclass(frozen=True)
 class RigLinks:
-    """The pan-tilt's links at C lamp positions: the arm (capsules a-b, one radius) and the tilt
-    servo (boxes: poses, one half size)."""
+    """The pan-tilt's links at C lamp positions: the arm (capsules a-b, one radius; a body only
+    where `arm`: the rig's reach declared) and the tilt servo (boxes: poses, one half size)."""
 
     a: np.ndarray                 # (C, 3) the lamp housing's back
-    b: np.ndarray                 # (C, 3) the servo's centre
+    b: np.ndarray                 # (C, 3) the servo's front face (a, where no reach is declared)
     radius_m: float
     T_cell_servo: np.ndarray      # (C, 4, 4)
     servo_half_m: np.ndarray      # (3,)
+    arm: bool                     # whether the arm is a body
 
 
-def rig_links(pivot_m: ArrayLike, lamp_half_m: ArrayLike, radius_max_m: float, lamp_position: ArrayLike,
+def rig_links(pivot_m: ArrayLike, lamp_half_m: ArrayLike, rig_reach_m: float | None, lamp_position: ArrayLike,
               R: np.ndarray | None = None) -> RigLinks:
     """The pan-tilt's links with the lamp at each position (C, 3), all behind the lamp along its
-    aim z (rig.lamp_frame, or R where given): the arm from the lamp box's back (2 h_z behind its
-    front) out to the servo, whose front face is 2 h_z beyond the rig's largest radius (the back of
-    a lamp there), its axes the lamp's (the arm reaches into the servo, so it never has length 0)."""
+    aim z (rig.lamp_frame, or R where given): the tilt servo, its axes the lamp's, its front face
+    at servo_front_m from the pivot (the rig's declared reach, or the lamp box's back 2 h_z behind
+    its front), and the arm from the lamp box's back out to that face (RIG_ARM_RADIUS_M; no
+    length and no body where no reach is declared)."""
     p = np.asarray(lamp_position, float).reshape(-1, 3)
     pivot = np.asarray(pivot_m, float)
     depth = 2.0 * float(np.asarray(lamp_half_m)[2])
     servo_half = 0.5 * np.asarray(TILT_SERVO_SIZE_M)
     R = lamp_frame(pivot, p) if R is None else R
     aim = R[..., 2]
-    servo = pivot - (radius_max_m + depth + servo_half[2]) * aim
+    front = servo_front_m(np.linalg.norm(p - pivot, axis=1), depth, rig_reach_m)
     T = np.zeros((len(p), 4, 4))
-    T[:, :3, :3], T[:, :3, 3], T[:, 3, 3] = R, servo, 1.0
-    return RigLinks(p - depth * aim, servo, RIG_ARM_RADIUS_M, T, servo_half)
+    T[:, :3, :3], T[:, :3, 3], T[:, 3, 3] = R, pivot - (front + servo_half[2])[:, None] * aim, 1.0
+    return RigLinks(p - depth * aim, pivot - front[:, None] * aim, RIG_ARM_RADIUS_M, T, servo_half,
+                    rig_reach_m is not None)
 
 
 @dataclass(frozen=True)
@@ -199,7 +210,8 @@ class Clearance:
 @dataclass(frozen=True)
 class CollisionScene:
     """What the clearance of a pose needs from the task: the fixed meshes, the two boxes' sizes
-    and where they sit, the frames, the lamp rig's pivot and tilt range and the padding."""
+    and where they sit, the frames, the lamp rig's pivot, declared reach and tilt range and the
+    padding."""
 
     padding_m: float
     fixed: tuple[Body, ...]                # the part first, the fixture, each fixed light's housing
@@ -208,6 +220,7 @@ class CollisionScene:
     lamp_half_m: np.ndarray
     frames: Frames
     pivot_m: np.ndarray
+    rig_reach_m: float | None              # the tilt servo's front from the pivot (rig_links; None: at the lamp)
     tilt_range_rad: tuple[float, float] = (0.0, 0.5 * np.pi)     # the rig's, for the lamp's via points
 
     @classmethod
@@ -218,7 +231,7 @@ class CollisionScene:
         fixed = (*fixed, *light_bodies(task))
         return cls(c.padding_m, fixed, 0.5 * np.asarray(c.camera_size_m), c.camera_offset_m,
                    0.5 * np.asarray(c.lamp_size_m), task.frames, task.lamp.rig.pivot_m,
-                   task.lamp.rig.tilt_range_rad)
+                   c.rig_reach_m, task.lamp.rig.tilt_range_rad)
 
     @property
     def part(self) -> Mesh:
@@ -231,19 +244,38 @@ class CollisionScene:
     def camera_body(self, T_cell_flange: np.ndarray) -> Box:
         return camera_body(T_cell_flange, self.camera_half_m, self.camera_offset_m)
 
-    def lamp_body(self, lamp_position: ArrayLike) -> Box:
-        """The lamp's box (lamp_boxes)."""
-        return Box("lamp_body", lamp_boxes(self.pivot_m, self.lamp_half_m, lamp_position), self.lamp_half_m)
+    def lamp_bodies(self, lamp_position: ArrayLike) -> tuple[Body, ...]:
+        """The lamp's box (lamp_boxes) and the pan-tilt's links holding it (rig_links: the tilt
+        servo's box, the arm's capsule where the rig's reach is declared), named as LAMP_BODIES."""
+        p = np.asarray(lamp_position, float)
+        R = lamp_frame(self.pivot_m, p)
+        links = rig_links(self.pivot_m, self.lamp_half_m, self.rig_reach_m, p, R[None])
+        lamp = Box(LAMP_BODIES[0], lamp_boxes(self.pivot_m, self.lamp_half_m, p, R), self.lamp_half_m)
+        servo = Box(LAMP_BODIES[1], links.T_cell_servo[0], links.servo_half_m)
+        return (lamp, servo, Capsule(LAMP_BODIES[2], links.a[0], links.b[0], links.radius_m)) if links.arm \
+            else (lamp, servo)
+
+    def lamp_reach(self, radius_m: float) -> np.ndarray:
+        """(3,) the farthest point [m] from the pivot of each of LAMP_BODIES with the lamp at
+        radius_m or nearer: the box's back corners within radius_m + 2 |h|; with the servo's front
+        face at f (servo_front_m), its corners within f + its half depth + its half diagonal, the
+        arm (which ends at that face) within f + its radius. A turn of the rig by (dpan, dtilt)
+        moves a point at rho from the pivot by at most (|dpan| + |dtilt|) rho."""
+        servo_half = 0.5 * np.asarray(TILT_SERVO_SIZE_M)
+        front = float(servo_front_m(radius_m, 2.0 * float(self.lamp_half_m[2]), self.rig_reach_m))
+        return np.array([radius_m + 2.0 * float(np.linalg.norm(self.lamp_half_m)),
+                         front + float(servo_half[2] + np.linalg.norm(servo_half)), front + RIG_ARM_RADIUS_M])
 
     def bodies(self, T_cell_cam: np.ndarray, arm_joints: ArrayLike | None = None,
                lamp_position: ArrayLike | None = None) -> tuple[Body, ...]:
         """Every body with the camera at T_cell_cam, the arm's links where joints put them (None:
-        no arm, e.g. a pose it does not reach) and the lamp (None: not placed yet)."""
+        no arm, e.g. a pose it does not reach) and the lamp with its links, last (lamp_bodies;
+        None: not placed yet)."""
         moving: list[Body] = [self.camera_body(self.frames.T_cell_flange(T_cell_cam))]
         if arm_joints is not None:
             moving += arm_links(self.frames.T_cell_base, arm_joints)
         if lamp_position is not None:
-            moving.append(self.lamp_body(lamp_position))
+            moving += self.lamp_bodies(lamp_position)
         return (*self.fixed, *moving)
 
     def clearance(self, T_cell_cam: np.ndarray, arm_joints: ArrayLike | None = None,
@@ -265,16 +297,24 @@ class CollisionScene:
         pairs (Pairs.clear with every other body counted as fixed), so a pose of the arm that
         itself collides leaves the lamp's answer alone (`clearance` names that). A lamp whose
         box's bounding sphere is the padding from every other body's is clear without a pair's
-        distance (the spheres' gap is a lower bound of it, as in Pairs), all K in one array."""
+        distance (the spheres' gap is a lower bound of it, as in Pairs), all K in one array; the
+        same for the pan-tilt's links that hold it (lamp_bodies: the tilt servo, the arm)."""
         others = self.bodies(T_cell_cam, arm_joints)
-        boxes = lamp_boxes(self.pivot_m, self.lamp_half_m, np.asarray(lamp_positions, float).reshape(-1, 3))
+        p = np.asarray(lamp_positions, float).reshape(-1, 3)
+        R = lamp_frame(self.pivot_m, p)
+        links = rig_links(self.pivot_m, self.lamp_half_m, self.rig_reach_m, p, R)
+        spheres = [(lamp_boxes(self.pivot_m, self.lamp_half_m, p, R)[:, :3, 3], float(np.linalg.norm(self.lamp_half_m))),
+                   (links.T_cell_servo[:, :3, 3], float(np.linalg.norm(links.servo_half_m)))]
+        if links.arm:
+            spheres.append((0.5 * (links.a + links.b), 0.5 * np.linalg.norm(links.b - links.a, axis=1) + links.radius_m))
         centers = np.array([body.center for body in others])
-        radii = np.array([body.radius for body in others]) + float(np.linalg.norm(self.lamp_half_m))
-        gap = np.linalg.norm(boxes[:, None, :3, 3] - centers, axis=2) - radii
-        clear = np.all(gap >= self.padding_m, axis=1)
+        radii = np.array([body.radius for body in others])
+        clear = np.ones(len(p), bool)
+        for centre, radius in spheres:
+            gap = np.linalg.norm(centre[:, None] - centers, axis=2) - radii - np.reshape(radius, (-1, 1))
+            clear &= np.all(gap >= self.padding_m, axis=1)
         for k in np.flatnonzero(~clear):
-            lamp = Box("lamp_body", boxes[k], self.lamp_half_m)
-            clear[k] = Pairs.of((*others, lamp), len(others)).clear(self.padding_m)
+            clear[k] = Pairs.of((*others, *self.lamp_bodies(p[k])), len(others)).clear(self.padding_m)
         return clear
 
 

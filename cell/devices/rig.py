@@ -8,6 +8,17 @@ from numpy.typing import ArrayLike
 
 from cell.core import geometry
 
+# The pan-tilt's links behind the lamp, which hold it on its radius (hardware notes; the planner's
+# bodies, cell.collision.scene.rig_links, and the simulator's, sim.obstacles, are each built from
+# these): the tilt servo, a Dynamixel X-series 430 (ROBOTIS e-Manual: 28.5 x 46.5 x 34 mm,
+# W x H x D), its axes the lamp's: 34 mm across the aim and horizontal, 46.5 mm across it, 28.5 mm
+# along it, its front face on the lamp's axis behind it, at the lamp housing's back (a compact head
+# riding with the lamp) or, where the task declares the rig's reach (cell.collision.rig_reach_m),
+# that far from the pivot, standing still as the radius changes; then the arm, a tube of this
+# radius along the lamp's axis from the housing's back to the servo's front face.
+RIG_ARM_RADIUS_M = 0.010
+TILT_SERVO_SIZE_M = (0.034, 0.0465, 0.0285)
+
 
 def lamp_position(pivot: ArrayLike, pan: ArrayLike, tilt: ArrayLike, radius: ArrayLike) -> np.ndarray:
     """p = pivot + r (cos t cos p, cos t sin p, sin t); broadcasts over pan/tilt/radius arrays."""

@@ -20,7 +20,8 @@ import trimesh
 from numpy.typing import ArrayLike
 
 from cell.collision.rays import NEAR_MARGIN_M, SightCone, SpokesNear, segments_cross_boxes, segments_near_segments
-from cell.collision.scene import RIG_ARM_RADIUS_M, TILT_SERVO_SIZE_M, lamp_boxes, rig_links
+from cell.collision.scene import lamp_boxes, rig_links, servo_front_m
+from cell.devices.rig import RIG_ARM_RADIUS_M, TILT_SERVO_SIZE_M
 from cell.core import geometry
 from cell.core.numbers import number
 from cell.devices import rig
@@ -249,36 +250,41 @@ def lamp_hides(p: Problem, positions: np.ndarray) -> np.ndarray:
 class RigSight:
     """What rig_hides reads of a problem while the lamp moves: the cone from the camera tangent to their sphere (rays.SightCone), the lamp's half
     sizes (half), the links' width across the aim (width: the arm's radius, the servo's half
-    diagonal across the aim, the larger), the housing's and links' together (whole), the servo's
-    back from the pivot (end), and the segment camera -> m as seen from the pivot, which the lamp's
-    axis runs straight away from (spokes: rays.SpokesNear)."""
+    diagonal across the aim, the larger), the housing's and links' together (whole), the rig's
+    declared reach (reach: cell.collision.rig_reach_m, the servo's front from the pivot; None: at
+    the lamp's back), and the segment camera -> m as seen from the pivot, which the lamp's axis
+    runs straight away from (spokes: rays.SpokesNear)."""
 
     cone: SightCone
     half: np.ndarray
     width: float
     whole: float
-    end: float
+    reach: float | None
     spokes: SpokesNear
 
     @classmethod
     def of(cls, p: Problem) -> RigSight:
         half = 0.5 * np.asarray(p.task.cell.collision.lamp_size_m, float)
-        longest = p.task.lamp.rig.radius_range_m[1]
         cone = SightCone.of(p.scene.camera_position, *evaluate.samples_sphere(p))
         servo_half = 0.5 * np.asarray(TILT_SERVO_SIZE_M)
         width = max(RIG_ARM_RADIUS_M, float(np.hypot(servo_half[0], servo_half[1])))
         whole = max(width, float(np.hypot(half[0], half[1])))
-        return cls(cone, half, width, whole, longest + 2.0 * half[2] + 2.0 * servo_half[2],
+        return cls(cone, half, width, whole, p.task.cell.collision.rig_reach_m,
                    SpokesNear.of(p.task.lamp.rig.pivot_m, cone.apex, cone.middle))
+
+    def end(self, radius: np.ndarray) -> np.ndarray:
+        """(C,) the servo's back from the pivot with the lamp at each radius (C,): its front
+        (collision.scene.servo_front_m) plus its depth."""
+        return servo_front_m(radius, 2.0 * float(self.half[2]), self.reach) + TILT_SERVO_SIZE_M[2]
 
 
 def rig_hides(p: Problem, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """((C, P), (C, P)) the samples the camera sees (Problem.camera_seen) that the spot lamp's
     housing, and that the pan-tilt's links, hide with the lamp at each position (C, 3): the line
     of sight camera -> sample crosses the lamp's box (collision.scene.lamp_boxes: cell.collision's
-    lamp_size_m) or the tilt servo's box (rays.segments_cross_boxes, both in one call) or passes
-    within the arm's radius of its axis (collision.scene.rig_links; rays.segments_near_segments,
-    every lamp's arm in one call). A position not finite is a lamp not placed (a viewpoint judged
+    lamp_size_m) or the tilt servo's box (rays.segments_cross_boxes, both in one call) or, where
+    the rig's reach is declared, passes within the arm's radius of its axis
+    (collision.scene.rig_links; rays.segments_near_segments, every lamp's arm in one call). A position not finite is a lamp not placed (a viewpoint judged
     before any lamp), hiding none. Only lamps that may meet the lines of sight are tested: those
     lie in the cone from the camera tangent to the samples' sphere (rays.SightCone), and the
     housing and the links together within W' (the widest across the aim) of the lamp's axis from
@@ -297,26 +303,27 @@ def rig_hides(p: Problem, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray
     if seen is None or not seen.any():
         return housing, links
     sight: RigSight = p.fixed("rig_sight", lambda: RigSight.of(p))
-    pivot, longest = p.task.lamp.rig.pivot_m, p.task.lamp.rig.radius_range_m[1]
+    pivot = p.task.lamp.rig.pivot_m
     half, cone = sight.half, sight.cone
     out = positions - pivot
     with np.errstate(invalid="ignore", divide="ignore"):        # a lamp not placed (NaN) is not near
         radius = np.sqrt(np.sum(out * out, axis=1))
         out /= radius[:, None]
         # the housing and the links together: the lamp's axis from its front to the servo's back
-        near = sight.spokes.near(out, radius, sight.end, sight.whole + cone.rho + NEAR_MARGIN_M)
+        near = sight.spokes.near(out, radius, sight.end(radius), sight.whole + cone.rho + NEAR_MARGIN_M)
     if not near.any():
         return housing, links
     k, out, radius = np.flatnonzero(near), out[near], radius[near]
     near_housing = np.zeros(len(positions), bool)
     near_housing[k] = cone.meets(pivot + (radius + half[2])[:, None] * out, float(np.linalg.norm(half)) + NEAR_MARGIN_M)
     near_links = np.zeros(len(positions), bool)     # the links' axis within their width of the segment camera -> m widened by rho
-    near_links[k] = sight.spokes.near(out, radius + 2.0 * half[2], sight.end, sight.width + cone.rho + NEAR_MARGIN_M)
+    near_links[k] = sight.spokes.near(out, radius + 2.0 * half[2], sight.end(radius),
+                                      sight.width + cone.rho + NEAR_MARGIN_M)
     if near_housing.any() or near_links.any():
         points = p.scene.points[seen]
         R = rig.lamp_frame(pivot, positions[k])
         at_housing, at_links = near_housing[k], near_links[k]
-        held = rig_links(pivot, half, longest, positions[k][at_links], R[at_links])
+        held = rig_links(pivot, half, sight.reach, positions[k][at_links], R[at_links])
         count = int(at_housing.sum())
         crossed = segments_cross_boxes(
             p.scene.camera_position, points,
@@ -324,8 +331,8 @@ def rig_hides(p: Problem, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray
             np.vstack([np.broadcast_to(half, (count, 3)), np.broadcast_to(held.servo_half_m, (len(held.a), 3))]))
         housing[np.ix_(near_housing, seen)] = crossed[:count]
         if len(held.a):
-            links[np.ix_(near_links, seen)] = crossed[count:] | segments_near_segments(
-                p.scene.camera_position, points, held.a, held.b, held.radius_m)
+            links[np.ix_(near_links, seen)] = crossed[count:] | (segments_near_segments(
+                p.scene.camera_position, points, held.a, held.b, held.radius_m) if held.arm else False)
     return housing, links
 
 

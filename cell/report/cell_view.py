@@ -1,7 +1,8 @@
 """cell.html: the cell of a plan in 3D, to turn and zoom in a browser. Every body of the collision
 scene (cell.collision.scene) at every shot: the part and the fixture, the UR5e's links as their
 capsules, the camera body with its frustum to the focus distance, the lamp's body with its cone
-(the lit half angle, to the rig's pivot), the task's other lights as their emitter points (bright:
+(the lit half angle, to the rig's pivot) and the pan-tilt's links holding it (the tilt servo's
+box, its arm's capsule where the rig's reach is declared), the task's other lights as their emitter points (bright:
 on, dim: off) and each fixed light's housing, the body it collides with and blocks light and view with
 (cell.planning.occluders), each feature's patch and normal; each shot's clearance (and the two bodies that set
 it) in its legend entry and hover text; the camera's paths of the plan's collision-checked moves
@@ -25,7 +26,7 @@ import numpy as np
 import plotly.graph_objects as go
 
 from cell.collision.bodies import Body, Box, Capsule, Mesh
-from cell.collision.scene import CollisionScene, reaching_joints
+from cell.collision.scene import LAMP_BODIES, CollisionScene, reaching_joints
 from cell.core import geometry
 from cell.physics import projection
 from cell.planning import occluders
@@ -40,6 +41,8 @@ PathLike = str | os.PathLike[str]
 MAX_PART_FACES = 20_000      # the part's mesh thinned beyond this: ~1 MB of JSON, beside plotly.js's ~5 MB
 SHOT_COLORS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#8c564b", "#bcbd22", "#17becf",
                "#e377c2", "#ff7f0e", "#7f7f7f")     # matplotlib's tab10, as cell.png's shots
+ROLES = {"camera_body": "camera body", "lamp_body": "lamp body", "rig_arm": "the pan-tilt's arm holding the lamp",
+         "tilt_servo": "the pan-tilt's tilt servo"}     # a moving body's words in its hover text (else an arm link)
 BOX_FACES = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
                       [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
 
@@ -141,8 +144,8 @@ def _shot_traces(k: int, shot: Shot, plan: Plan, task: Task, scene: CollisionSce
     bodies = scene.bodies(shot.T_cell_cam, joints, shot.lamp_position)[len(scene.fixed):]
     traces: list[Any] = []
     for body in bodies:
-        role = {"camera_body": "camera body", "lamp_body": "lamp body"}.get(body.name, f"arm {body.name}")
-        traces.append(_body(body, f"shot {k} {body.name}", color if body.name != "lamp_body" else "#ffcc33",
+        role = ROLES.get(body.name, f"arm {body.name}")
+        traces.append(_body(body, f"shot {k} {body.name}", "#ffcc33" if body.name in LAMP_BODIES else color,
                             f"shot {k}: {role}<br>{title}", group, legend=not traces,
                             opacity=0.55 if isinstance(body, Capsule) else 0.9))
     traces[0].legendgrouptitle = {"text": title}     # the group's legend: the shot, its features, clearance

@@ -350,7 +350,7 @@ def run(task: Task, out: str | Path, connect: Callable[[Scene], Devices],
             for n, (s, move) in enumerate(zip(order, moves)):
                 recorder.step("shot", f"shot {n + 1} of {len(order)} (plan's shot {s}): "
                                       f"{describe(plan, s)}", shot=s, visit=n + 1, features=assigned(plan, s))
-                cell_moves.follow(task, devices, move, recorder)
+                cell_moves.follow(task, devices, move, recorder, plan.shots[s].joints)
                 done = run_shot(replace(context, black=black, pose_error=pose), plan, s, runs)
                 black, pose = black or done.black, pose or done.pose_error
                 recorder.step("shot_done", f"shot {n + 1} of {len(order)} (plan's shot {s}): {done.summary()}",

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from cell.collision.paths import Move, Stop, checked_route, home_stop, plan_move
+from cell.collision.paths import Move, Stop, checked_route, home_stop, plan_transition
 from cell.collision.scene import CollisionScene, reaching_joints
 from cell.devices import ur5e
 from cell.devices.interfaces import speaking_for
@@ -92,8 +92,8 @@ def run_moves(task: Task, plan: Plan, devices: Devices) -> list[Move]:
         if arrived is not None and foreseen is not None and np.allclose(arrived, foreseen, atol=1e-6):
             moves.append(planned)
         else:
-            move = plan_move(scene, arm, planned.start if moves or at_home else "start", at,
-                             planned.end, targets[int(planned.end)])
+            move = plan_transition(scene, arm, at, targets[int(planned.end)],
+                                   planned.start if moves or at_home else "start", planned.end)
             moves.append(move)
         if not moves[-1].clear or moves[-1].joints_end is None:
             break
@@ -101,10 +101,15 @@ def run_moves(task: Task, plan: Plan, devices: Devices) -> list[Move]:
     return moves
 
 
-def follow(task: Task, devices: Devices, move: Move, recorder: Recorder) -> None:
+def follow(task: Task, devices: Devices, move: Move, recorder: Recorder,
+           lamp_joints: tuple[float, ...] | None = None) -> None:
     """The arm through the move's via points (each a moveL the planner checked, and
-    cell.run.motion checks again from where the arm reads back), logged as read back; then
-    motion.move_to takes the camera and the lamp to the shot."""
+    cell.run.motion checks again from where the arm reads back), logged as read back, the lamp
+    first to the shot's lamp_joints where the planner moved it first (Move.lamp_first: the via
+    points were checked with it there); then motion.move_to takes the camera and the lamp to the
+    shot."""
+    if move.via and move.lamp_first and lamp_joints is not None:
+        motion.go(task, devices, recorder, None, lamp_joints, f"shot {move.end}'s lamp pose, before the via points")
     for k, T in enumerate(move.via, 1):
         position = motion.move_camera(task, devices, T, recorder, f"via point {k} to shot {move.end}")[:3, 3]
         recorder.step("move_via", f"via point {k} of {len(move.via)} on the way to shot {move.end}: camera at "

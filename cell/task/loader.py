@@ -973,7 +973,8 @@ def _load_task(path: Path, data: Any) -> Task:
         lights=lights,
         cell=CellConfig(cell["backend"], devices, collision_config(
             path, cell["collision"], part["mesh_unit"],
-            lambda key, name, unit: _load_mesh(path, {"mesh": name, "mesh_unit": unit}, key)[1])),
+            lambda key, name, unit: _load_mesh(path, {"mesh": name, "mesh_unit": unit}, key)[1],
+            spot.rig.radius_range_m[1])),
         sim=SimConfig(sim["seed"], sim["effects"], _truth(path, sim["truth"], spot.rig, features)),
         loop=_loop(path, v["loop"]),
         calibration=_calibration(path, v["calibration"], material, spot.rig),

@@ -141,6 +141,7 @@ RANGES: dict[str, Range] = {
     "cell.collision.camera_body.size_m": _size(5e-3, 1.0),
     "cell.collision.camera_body.offset_m": _size(-0.5, 0.5),
     "cell.collision.lamp_body.size_m": _size(5e-3, 1.0),
+    "cell.collision.rig_reach_m": _size(0.02, 3.0),
 }
 # a mesh's largest side in the cell's units (a part's; a fixture or a table, a few metres): its
 # `_unit` key is blamed when it is not
