@@ -16,9 +16,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from cell.run import localization, loop, measurement
+from cell.run import localization, loop, measurement, motion
 from cell.run import moves as cell_moves
 from cell.run.acquisition import require_feasible
+from cell.planning.whole_part import assigned, candidate_features, feature_plan
 from cell.run.context import RunContext
 from cell.run.defects import unseen
 from cell.devices.interfaces import speaking_for
@@ -34,47 +35,6 @@ if TYPE_CHECKING:
     from cell.planning.plan import Plan
     from cell.planning.scene import Scene
     from cell.task.types import Task
-
-
-def cover_of(plan: Plan) -> dict[str, Any]:
-    """The set cover's numbers of a multi-feature plan (cell.planning.whole_part; a one-feature
-    plan has none)."""
-    if plan.cover is None:
-        raise ValueError("a one-feature plan has no cover: it is its own shot")
-    return plan.cover
-
-
-def candidate_features(plan: Plan) -> list[int]:
-    """The feature whose own candidate each of plan.plans is (cell.planning.whole_part: one per feature
-    with the fixed camera rule, one per kept viewpoint of each feature when planned)."""
-    return cover_of(plan).get("candidate_features") or list(range(len(plan.plans)))
-
-
-def assigned(plan: Plan, s: int) -> tuple[str, ...]:
-    """The names of the features plan.shots[s] is the shot of (Plan.features' covered_by), in the
-    task's order: each feature is measured once, in its own shot, though another may cover it too.
-    A fewest-shots cover gives every chosen shot at least one (else it would not be needed)."""
-    return tuple(f.name for f in plan.features if f.covered_by == s)
-
-
-def feature_plan(plan: Plan, s: int, f: int) -> Plan:
-    """The one-shot Plan of feature f at plan.shots[s], as the one-feature loop works on it: the
-    shot's own candidate plan when it was planned for f; else the plan whose samples coverage
-    judged f on (f's first candidate), its camera moved to the shot's, with the gray coverage
-    predicts there (cell.planning.coverage.judge), each light's share of it (where the task has
-    lights: the basis captures' prediction on f's samples, cell.run.channels) and its verdict."""
-    shot, k = plan.shots[s], cover_of(plan)["chosen"][s]
-    owners, name = candidate_features(plan), plan.features[f].name
-    if owners[k] == f:
-        return plan.plans[k]
-    covered = next(c for c in shot.covers if c.feature == name)
-    lend = plan.plans[owners.index(f)]
-    scene = replace(lend.planned_scene, T_cell_cam=shot.T_cell_cam)
-    if len(covered.gray) != len(scene.points):
-        raise ValueError(f"feature {name}: {len(covered.gray)} predicted grays for {len(scene.points)} samples")
-    own = replace(shot, gray=covered.gray, requirements=covered.requirements, covers=(),
-                  lights=covered.lights or shot.lights)
-    return replace(lend, feasible=covered.covered, shots=(own,), scene=scene, verification=covered.verification)
 
 
 @dataclass(frozen=True)
@@ -141,8 +101,9 @@ def run_shot(ctx: RunContext, plan: Plan, s: int, done: list[ShotRun]) -> ShotRu
     folder shot-<s>/ (its own log.jsonl, every step also in the run's, and report.json, written
     however it ends; re-plans keep the shot's camera pose); a pose error an earlier shot found
     (ctx.pose_error) is applied before it moves: the features' tasks and plans carried along with
-    the part (localization.located_task, moved_plan), the arm's hand-eye corrected; its ShotRun is appended to `done`
-    however it ends. A goal not reached ends the shot (its ShotRun says why); a device fault is
+    the part (localization.located_task, moved_plan), the arm's hand-eye corrected (its move then
+    refused: cause `pose`, the pose named first, not `collision`); its ShotRun is appended to
+    `done` however it ends. A goal not reached ends the shot (its ShotRun says why); a device fault is
     raised on."""
     from cell.report.pictures import write_convergence
     shot = plan.shots[s]
@@ -173,6 +134,8 @@ def run_shot(ctx: RunContext, plan: Plan, s: int, done: list[ShotRun]) -> ShotRu
             rec.step("done", f"converged after {words.count(n, 'iteration')}", converged=True, iterations=n)
         except GoalNotReached as err:               # the devices are fine: the next shot runs
             message, cause = str(err), err.cause
+            if pose is not None and cause == motion.CAUSE:  # the true cause: the part is not where planned
+                message, cause = f"{localization.describe(pose, pose.views)}; carried there, {message}", "pose"
             rec.step("done", f"not converged: {err}", converged=False, reason=message)
             error = camera_now()
         except BaseException as err:                # a fault, Ctrl-C, SIGTERM: the session stops all

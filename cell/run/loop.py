@@ -695,7 +695,13 @@ def follow(ctx: RunContext, aim: Aim, k: int, error: localization.PoseError) -> 
                          for f in features)
         ctx.recorder.step("correct", reason, iteration=k, **document)
         yield Corrected(k, document)
-        refused_where_located(ctx, features[0].task, features[0].model.plan.shot, error)
+        move = where_located(ctx, features[0].task, features[0].model.plan.shot, error)
+        if not move.clear:
+            features = viewpoint_replanned(ctx, features, error, f"the carried shot's move is refused: "
+                                                                 f"{motion.refusal(move)}")
+            why = f"{reason}; {count(len(features), 'feature')} re-planned at a new viewpoint"
+            ctx.recorder.step("correct", why, iteration=k, action="locate", viewpoint=True)
+            yield Corrected(k, document | {"viewpoint": why})
         return replace(aim, features=features, moved=False, located=True, pose_error=error)
     (feature,) = features
     T_cell_cam = None if ctx.T_cell_cam is None else error.T_part @ ctx.T_cell_cam
@@ -762,14 +768,28 @@ def where_located(ctx: RunContext, task: Task, shot: Shot, error: localization.P
                         "the shot's poses")
 
 
-def refused_where_located(ctx: RunContext, task: Task, shot: Shot, error: localization.PoseError) -> None:
-    """Check the move to the shot planned for where the localization puts the part
-    (where_located); a move the collision check refuses stops with cause `pose`
-    (GoalNotReached), not `collision`: the true cause is the part being elsewhere than the model
-    had it, so the pose found and the collision are named, nothing moved."""
-    move = where_located(ctx, task, shot, error)
+def viewpoint_replanned(ctx: RunContext, features: Sequence[LoopFeature], error: localization.PoseError,
+                        refused: str) -> tuple[LoopFeature, ...]:
+    """The shot of several features (their tasks already where the part is) re-planned for the
+    located part where the shot carried along with it cannot be taken (`refused`: its camera
+    pose out of the arm's reach or its move not clear): the whole-part planner
+    (whole_part.plan_features: viewpoints over the sphere, reach and collisions pruned, the
+    fewest shots) on the task of those features alone, its one shot if one covers them all, each
+    feature's plan there (whole_part.feature_plan), its move checked (where_located). No one shot
+    serves or its move is refused: GoalNotReached, cause `pose`, the carried shot's refusal named
+    first; nothing moved."""
+    from cell.planning.whole_part import feature_plan, plan_features
+    task = replace(features[0].task, features=tuple(f.task.feature for f in features))
+    plan = plan_features(task)
+    if not plan.feasible or len(plan.shots) != 1:
+        served = (f"{words.reason(plan)}" if not plan.feasible
+                  else f"no one viewpoint covers them: {count(len(plan.shots), 'shot')} would")
+        raise GoalNotReached(there(error, f"{refused}; the shot's viewpoint re-planned: {served}"), "pose")
+    located = tuple(replace(f, model=Model(feature_plan(plan, 0, i), f.task)) for i, f in enumerate(features))
+    move = where_located(ctx, located[0].task, located[0].model.plan.shot, error)
     if not move.clear:
-        raise GoalNotReached(there(error, f"the move there is refused: {motion.refusal(move)}"), "pose")
+        raise GoalNotReached(there(error, f"{refused}; at the re-planned viewpoint: {motion.refusal(move)}"), "pose")
+    return located
 
 
 def there(error: localization.PoseError, refused: str) -> str:
