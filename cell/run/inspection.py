@@ -9,7 +9,7 @@ A shot that does not converge leaves the devices fine: the other shots still run
 exits 1 at the end naming each feature not in band; a device fault stops everything (exit 3)."""
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -102,8 +102,9 @@ def run_shot(ctx: RunContext, plan: Plan, s: int, done: list[ShotRun]) -> ShotRu
     however it ends; re-plans keep the shot's camera pose); a pose error an earlier shot found
     (ctx.pose_error) is applied before it moves: the features' tasks and plans carried along with
     the part (localization.located_task, moved_plan), the arm's hand-eye corrected (its move then
-    refused: cause `pose`, the pose named first, not `collision`); its ShotRun is appended to
-    `done` however it ends. A goal not reached ends the shot (its ShotRun says why); a device fault is
+    refused: cause `pose`, the pose named first, not `collision`); features the loop re-planned
+    into several shots for where the part is (loop.Split) visited in turn (split_views); its
+    ShotRun is appended to `done` however it ends. A goal not reached ends the shot (its ShotRun says why); a device fault is
     raised on."""
     from cell.report.pictures import write_convergence
     shot = plan.shots[s]
@@ -118,17 +119,23 @@ def run_shot(ctx: RunContext, plan: Plan, s: int, done: list[ShotRun]) -> ShotRu
         T_cell_cam = pose.T_part @ T_cell_cam
     features = [loop.LoopFeature.planned(t, p) for t, p in zip(tasks, plans)]
     events, message, error, cause = loop.Events(), "", None, None
+    planned = [shot.T_cell_cam if pose is None else T_cell_cam]     # the pose of the shot (or view) visited last
 
     def camera_now() -> dict[str, float]:
-        """camera_error against the shot's pose, both as the pose error the model follows puts them."""
+        """camera_error against the pose visited last, both as the pose error the model follows puts them."""
         followed = pose or (events.located.error if events.located and events.located.followed else None)
-        T = shot.T_cell_cam if followed is None else followed.T_part @ shot.T_cell_cam
+        T = planned[-1] if followed is None or len(planned) > 1 else followed.T_part @ shot.T_cell_cam
         return camera_error(localization.corrected(ctx.devices, followed), T)
 
     with ctx.recorder.sub(f"shot-{s}", shot=s) as rec:
         try:
-            for event in loop.iterate(replace(ctx, recorder=rec, T_cell_cam=T_cell_cam), features):
-                events.add(event)
+            try:
+                for event in loop.iterate(replace(ctx, recorder=rec, T_cell_cam=T_cell_cam), features):
+                    events.add(event)
+            except loop.Split as split:     # its features re-planned for where the part is: several views
+                for event in split_views(replace(ctx, recorder=rec, black=ctx.black or events.black), split, events,
+                                         planned):
+                    events.add(event)
             error = camera_now()
             n = len({it.iteration for it in events.iterations})
             rec.step("done", f"converged after {words.count(n, 'iteration')}", converged=True, iterations=n)
@@ -151,6 +158,26 @@ def run_shot(ctx: RunContext, plan: Plan, s: int, done: list[ShotRun]) -> ShotRu
                 write_convergence(rec.folder / "convergence.png", [it.to_json() for it in iterations],
                                   tasks[0].requirements.gray_band, [r.to_json() for r in events.refits])
     return result
+
+
+def split_views(ctx: RunContext, split: loop.Split, events: loop.Events,
+                planned: list[np.ndarray]) -> Iterator[loop.Event]:
+    """The closed loop (loop.iterate) at each shot of split.plan in turn, on the features it is
+    the shot of (assigned, whole_part.feature_plan; their tasks where split.error puts the part,
+    the arm's hand-eye corrected by it), its captures numbered on from the shot's last; each
+    view's pose appended to `planned`, logged. A goal not reached in one ends the shot."""
+    index = [f.name for f in split.plan.features]
+    ctx = replace(ctx, pose_error=split.error)
+    for j, view in enumerate(split.plan.shots):
+        names = assigned(split.plan, j)
+        features = [loop.LoopFeature.planned(split.task.with_feature(index.index(n)),
+                                             feature_plan(split.plan, j, index.index(n))) for n in names]
+        ctx.recorder.step("correct", f"{split}: view {j + 1} of {len(split.plan.shots)}, {', '.join(names)}, camera at "
+                                     f"{np.round(view.T_cell_cam[:3, 3], 4).tolist()} m", action="locate",
+                          view=j + 1, features=list(names))
+        planned.append(view.T_cell_cam)
+        first = 1 + max((it.iteration for it in events.iterations), default=0)
+        yield from loop.iterate(replace(ctx, T_cell_cam=view.T_cell_cam), features, first)
 
 
 def stated(located: loop.Located | None, task: Task) -> loop.Located | None:
