@@ -406,30 +406,31 @@ def test_a_straight_shank_tells_nothing_of_a_move_along_itself(tmp_path):
     assert motion[0, 0] > 0.0
 
 
-def test_a_re_plan_after_localization_whose_move_collides_stops_with_pose_not_collision(tmp_path):
+def test_a_re_plan_after_localization_whose_move_collides_is_refused_naming_the_pose_first(tmp_path):
     """The move to the shot planned where the localization puts the part runs into the wall
-    (test_motion's: no path clears it): the run's true cause is the part being elsewhere, so the
-    stop is `pose`, naming the pose found and the collision, and nothing moves."""
+    (test_motion's: no path clears it): where_located refuses it, moving nothing, and the stop's
+    words (there) name the pose found first, then the collision; a clear stop passes."""
     from types import SimpleNamespace
-    from cell.core.errors import GoalNotReached
     from cell.report.recorder import Recorder
+    from cell.run import motion
     from cell.run.context import RunContext
-    from cell.run.loop import refused_where_located
+    from cell.run.loop import there, where_located
     from test_collision import stop
     from test_motion import walled_in
     task, a, b, devices = walled_in(tmp_path)
     shot = SimpleNamespace(T_cell_cam=b.T_cell_cam, joints=b.lamp_joints)
-    with Recorder(tmp_path / "run") as recorder, pytest.raises(GoalNotReached) as refused:
-        refused_where_located(RunContext(task, devices, recorder, 6), task, shot, error(offset_m=(0.01, 0.0, 0.0)))
-    said = str(refused.value)
-    assert refused.value.cause == "pose"
+    found = error(offset_m=(0.01, 0.0, 0.0))
+    with Recorder(tmp_path / "run") as recorder:
+        move = where_located(RunContext(task, devices, recorder, 6), task, shot, found)
+    assert not move.clear
+    said = there(found, f"the move there is refused: {motion.refusal(move)}")
     assert said.startswith("the part is off by [+10.00, +0.00, +0.00] mm") and "collision: " in said
     assert "fixture and " in said and "before anything moved" in said
     assert devices.arm.moves == 0 and devices.lamp.moves == 0
     clear = stop(task, -0.15, b.arm_joints)
     with Recorder(tmp_path / "run2") as recorder:
-        refused_where_located(RunContext(task, devices, recorder, 6), task,
-                              SimpleNamespace(T_cell_cam=clear.T_cell_cam, joints=clear.lamp_joints), error())
+        assert where_located(RunContext(task, devices, recorder, 6), task,
+                             SimpleNamespace(T_cell_cam=clear.T_cell_cam, joints=clear.lamp_joints), error()).clear
 
 
 @pytest.mark.long

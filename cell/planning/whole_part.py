@@ -11,7 +11,7 @@ import time
 from collections.abc import Callable, Sequence
 from contextlib import ExitStack
 from dataclasses import replace
-from typing import TYPE_CHECKING, cast
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -292,3 +292,44 @@ def plan_features(task: Task, settings: PlannerSettings = PlannerSettings(),
     return Plan(task_name=task.name, feasible=not uncovered, binding=binding, miss=miss, objective=cover.objective,
                 hint=hint, shots=chosen, maps=None, settings=settings, scene=None, search=search,
                 timing_s=timing, notes=notes, features=tuple(verdicts), plans=plans, cover=record)
+
+
+def cover_of(plan: Plan) -> dict[str, Any]:
+    """The set cover's numbers of a multi-feature plan (cell.planning.whole_part; a one-feature
+    plan has none)."""
+    if plan.cover is None:
+        raise ValueError("a one-feature plan has no cover: it is its own shot")
+    return plan.cover
+
+
+def candidate_features(plan: Plan) -> list[int]:
+    """The feature whose own candidate each of plan.plans is (cell.planning.whole_part: one per feature
+    with the fixed camera rule, one per kept viewpoint of each feature when planned)."""
+    return cover_of(plan).get("candidate_features") or list(range(len(plan.plans)))
+
+
+def assigned(plan: Plan, s: int) -> tuple[str, ...]:
+    """The names of the features plan.shots[s] is the shot of (Plan.features' covered_by), in the
+    task's order: each feature is measured once, in its own shot, though another may cover it too.
+    A fewest-shots cover gives every chosen shot at least one (else it would not be needed)."""
+    return tuple(f.name for f in plan.features if f.covered_by == s)
+
+
+def feature_plan(plan: Plan, s: int, f: int) -> Plan:
+    """The one-shot Plan of feature f at plan.shots[s], as the one-feature loop works on it: the
+    shot's own candidate plan when it was planned for f; else the plan whose samples coverage
+    judged f on (f's first candidate), its camera moved to the shot's, with the gray coverage
+    predicts there (cell.planning.coverage.judge), each light's share of it (where the task has
+    lights: the basis captures' prediction on f's samples, cell.run.channels) and its verdict."""
+    shot, k = plan.shots[s], cover_of(plan)["chosen"][s]
+    owners, name = candidate_features(plan), plan.features[f].name
+    if owners[k] == f:
+        return plan.plans[k]
+    covered = next(c for c in shot.covers if c.feature == name)
+    lend = plan.plans[owners.index(f)]
+    scene = replace(lend.planned_scene, T_cell_cam=shot.T_cell_cam)
+    if len(covered.gray) != len(scene.points):
+        raise ValueError(f"feature {name}: {len(covered.gray)} predicted grays for {len(scene.points)} samples")
+    own = replace(shot, gray=covered.gray, requirements=covered.requirements, covers=(),
+                  lights=covered.lights or shot.lights)
+    return replace(lend, feasible=covered.covered, shots=(own,), scene=scene, verification=covered.verification)

@@ -9,16 +9,17 @@ A shot that does not converge leaves the devices fine: the other shots still run
 exits 1 at the end naming each feature not in band; a device fault stops everything (exit 3)."""
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from cell.run import localization, loop, measurement
+from cell.run import localization, loop, measurement, motion
 from cell.run import moves as cell_moves
 from cell.run.acquisition import require_feasible
+from cell.planning.whole_part import assigned, candidate_features, feature_plan
 from cell.run.context import RunContext
 from cell.run.defects import unseen
 from cell.devices.interfaces import speaking_for
@@ -34,47 +35,6 @@ if TYPE_CHECKING:
     from cell.planning.plan import Plan
     from cell.planning.scene import Scene
     from cell.task.types import Task
-
-
-def cover_of(plan: Plan) -> dict[str, Any]:
-    """The set cover's numbers of a multi-feature plan (cell.planning.whole_part; a one-feature
-    plan has none)."""
-    if plan.cover is None:
-        raise ValueError("a one-feature plan has no cover: it is its own shot")
-    return plan.cover
-
-
-def candidate_features(plan: Plan) -> list[int]:
-    """The feature whose own candidate each of plan.plans is (cell.planning.whole_part: one per feature
-    with the fixed camera rule, one per kept viewpoint of each feature when planned)."""
-    return cover_of(plan).get("candidate_features") or list(range(len(plan.plans)))
-
-
-def assigned(plan: Plan, s: int) -> tuple[str, ...]:
-    """The names of the features plan.shots[s] is the shot of (Plan.features' covered_by), in the
-    task's order: each feature is measured once, in its own shot, though another may cover it too.
-    A fewest-shots cover gives every chosen shot at least one (else it would not be needed)."""
-    return tuple(f.name for f in plan.features if f.covered_by == s)
-
-
-def feature_plan(plan: Plan, s: int, f: int) -> Plan:
-    """The one-shot Plan of feature f at plan.shots[s], as the one-feature loop works on it: the
-    shot's own candidate plan when it was planned for f; else the plan whose samples coverage
-    judged f on (f's first candidate), its camera moved to the shot's, with the gray coverage
-    predicts there (cell.planning.coverage.judge), each light's share of it (where the task has
-    lights: the basis captures' prediction on f's samples, cell.run.channels) and its verdict."""
-    shot, k = plan.shots[s], cover_of(plan)["chosen"][s]
-    owners, name = candidate_features(plan), plan.features[f].name
-    if owners[k] == f:
-        return plan.plans[k]
-    covered = next(c for c in shot.covers if c.feature == name)
-    lend = plan.plans[owners.index(f)]
-    scene = replace(lend.planned_scene, T_cell_cam=shot.T_cell_cam)
-    if len(covered.gray) != len(scene.points):
-        raise ValueError(f"feature {name}: {len(covered.gray)} predicted grays for {len(scene.points)} samples")
-    own = replace(shot, gray=covered.gray, requirements=covered.requirements, covers=(),
-                  lights=covered.lights or shot.lights)
-    return replace(lend, feasible=covered.covered, shots=(own,), scene=scene, verification=covered.verification)
 
 
 @dataclass(frozen=True)
@@ -141,8 +101,10 @@ def run_shot(ctx: RunContext, plan: Plan, s: int, done: list[ShotRun]) -> ShotRu
     folder shot-<s>/ (its own log.jsonl, every step also in the run's, and report.json, written
     however it ends; re-plans keep the shot's camera pose); a pose error an earlier shot found
     (ctx.pose_error) is applied before it moves: the features' tasks and plans carried along with
-    the part (localization.located_task, moved_plan), the arm's hand-eye corrected; its ShotRun is appended to `done`
-    however it ends. A goal not reached ends the shot (its ShotRun says why); a device fault is
+    the part (localization.located_task, moved_plan), the arm's hand-eye corrected (its move then
+    refused: cause `pose`, the pose named first, not `collision`); features the loop re-planned
+    into several shots for where the part is (loop.Split) visited in turn (split_views); its
+    ShotRun is appended to `done` however it ends. A goal not reached ends the shot (its ShotRun says why); a device fault is
     raised on."""
     from cell.report.pictures import write_convergence
     shot = plan.shots[s]
@@ -157,22 +119,30 @@ def run_shot(ctx: RunContext, plan: Plan, s: int, done: list[ShotRun]) -> ShotRu
         T_cell_cam = pose.T_part @ T_cell_cam
     features = [loop.LoopFeature.planned(t, p) for t, p in zip(tasks, plans)]
     events, message, error, cause = loop.Events(), "", None, None
+    planned = [shot.T_cell_cam if pose is None else T_cell_cam]     # the pose of the shot (or view) visited last
 
     def camera_now() -> dict[str, float]:
-        """camera_error against the shot's pose, both as the pose error the model follows puts them."""
+        """camera_error against the pose visited last, both as the pose error the model follows puts them."""
         followed = pose or (events.located.error if events.located and events.located.followed else None)
-        T = shot.T_cell_cam if followed is None else followed.T_part @ shot.T_cell_cam
+        T = planned[-1] if followed is None or len(planned) > 1 else followed.T_part @ shot.T_cell_cam
         return camera_error(localization.corrected(ctx.devices, followed), T)
 
     with ctx.recorder.sub(f"shot-{s}", shot=s) as rec:
         try:
-            for event in loop.iterate(replace(ctx, recorder=rec, T_cell_cam=T_cell_cam), features):
-                events.add(event)
+            try:
+                for event in loop.iterate(replace(ctx, recorder=rec, T_cell_cam=T_cell_cam), features):
+                    events.add(event)
+            except loop.Split as split:     # its features re-planned for where the part is: several views
+                for event in split_views(replace(ctx, recorder=rec, black=ctx.black or events.black), split, events,
+                                         planned):
+                    events.add(event)
             error = camera_now()
             n = len({it.iteration for it in events.iterations})
             rec.step("done", f"converged after {words.count(n, 'iteration')}", converged=True, iterations=n)
         except GoalNotReached as err:               # the devices are fine: the next shot runs
             message, cause = str(err), err.cause
+            if pose is not None and cause == motion.CAUSE:  # the true cause: the part is not where planned
+                message, cause = f"{localization.describe(pose, pose.views)}; carried there, {message}", "pose"
             rec.step("done", f"not converged: {err}", converged=False, reason=message)
             error = camera_now()
         except BaseException as err:                # a fault, Ctrl-C, SIGTERM: the session stops all
@@ -188,6 +158,26 @@ def run_shot(ctx: RunContext, plan: Plan, s: int, done: list[ShotRun]) -> ShotRu
                 write_convergence(rec.folder / "convergence.png", [it.to_json() for it in iterations],
                                   tasks[0].requirements.gray_band, [r.to_json() for r in events.refits])
     return result
+
+
+def split_views(ctx: RunContext, split: loop.Split, events: loop.Events,
+                planned: list[np.ndarray]) -> Iterator[loop.Event]:
+    """The closed loop (loop.iterate) at each shot of split.plan in turn, on the features it is
+    the shot of (assigned, whole_part.feature_plan; their tasks where split.error puts the part,
+    the arm's hand-eye corrected by it), its captures numbered on from the shot's last; each
+    view's pose appended to `planned`, logged. A goal not reached in one ends the shot."""
+    index = [f.name for f in split.plan.features]
+    ctx = replace(ctx, pose_error=split.error)
+    for j, view in enumerate(split.plan.shots):
+        names = assigned(split.plan, j)
+        features = [loop.LoopFeature.planned(split.task.with_feature(index.index(n)),
+                                             feature_plan(split.plan, j, index.index(n))) for n in names]
+        ctx.recorder.step("correct", f"{split}: view {j + 1} of {len(split.plan.shots)}, {', '.join(names)}, camera at "
+                                     f"{np.round(view.T_cell_cam[:3, 3], 4).tolist()} m", action="locate",
+                          view=j + 1, features=list(names))
+        planned.append(view.T_cell_cam)
+        first = 1 + max((it.iteration for it in events.iterations), default=0)
+        yield from loop.iterate(replace(ctx, T_cell_cam=view.T_cell_cam), features, first)
 
 
 def stated(located: loop.Located | None, task: Task) -> loop.Located | None:

@@ -397,8 +397,9 @@ def measure_capture(ctx: RunContext, aim: Aim, feature: LoopFeature, k: int, cap
     return Measured(it, m, predicted)
 
 
-def iterate(ctx: RunContext, features: Sequence[LoopFeature]) -> Iterator[Event]:
-    """The closed loop of one shot, of one feature or of several measured in each capture: move
+def iterate(ctx: RunContext, features: Sequence[LoopFeature], first_capture: int = 1) -> Iterator[Event]:
+    """The closed loop of one shot, of one feature or of several measured in each capture
+    (captures numbered from first_capture, ctx.max_iterations of them at most): move
     to the shot's poses, take ctx.black or find the black level (find_black_level,
     BlackLevelFound), then step until every feature is in its band, yielding each Iteration as soon
     as it is measured, then its Corrected and a Replan or Refitted as they happen; raises
@@ -409,7 +410,7 @@ def iterate(ctx: RunContext, features: Sequence[LoopFeature]) -> Iterator[Event]
     correction absorbs it."""
     first = features[0]
     devices = localization.corrected(ctx.devices, ctx.pose_error)
-    motion.move_to(first.task, devices, first.model.plan.shot, ctx.recorder, 1)
+    motion.move_to(first.task, devices, first.model.plan.shot, ctx.recorder, first_capture)
     black = ctx.black or find_black_level(first.task, first.model.plan, devices, ctx.recorder)
     if not ctx.black:
         yield BlackLevelFound(black)
@@ -419,7 +420,7 @@ def iterate(ctx: RunContext, features: Sequence[LoopFeature]) -> Iterator[Event]
               pose_error=ctx.pose_error)
     if len(features) == 1 and black.value != evaluate.black_level(first.task):
         aim = knowing_black_level(aim)
-    for k in range(1, ctx.max_iterations + 1):
+    for k in range(first_capture, first_capture + ctx.max_iterations):
         after = yield from step(ctx, aim, k)
         if after is None:
             return
@@ -680,7 +681,9 @@ def follow(ctx: RunContext, aim: Aim, k: int, error: localization.PoseError) -> 
     """The model follows the pose error found at capture k: the arm's hand-eye corrected, each
     feature's task with the part where it is (localization.located_task); one feature re-planned
     there (the camera kept on the part: a planned shot's pose moved with it), several carried
-    along with the part (localization.moved_plan). A re-plan that is infeasible or a feature that
+    along with the part (localization.moved_plan; that shot's move refused, its viewpoint
+    re-planned for where the part is: viewpoint_replanned, which raises Split where the features
+    need several shots). A re-plan that is infeasible or a feature that
     leaves the view stops (GoalNotReached, cause `pose`). The re-plan searches the lamp among the
     poses clear of the cell's bodies where the corrected hand-eye puts the camera
     (plan_recorded's clear_lamp). As a last resort, where none of them meets every requirement
@@ -695,7 +698,13 @@ def follow(ctx: RunContext, aim: Aim, k: int, error: localization.PoseError) -> 
                          for f in features)
         ctx.recorder.step("correct", reason, iteration=k, **document)
         yield Corrected(k, document)
-        refused_where_located(ctx, features[0].task, features[0].model.plan.shot, error)
+        move = where_located(ctx, features[0].task, features[0].model.plan.shot, error)
+        if not move.clear:
+            features = viewpoint_replanned(ctx, features, error, f"the carried shot's move is refused: "
+                                                                 f"{motion.refusal(move)}")
+            why = f"{reason}; {count(len(features), 'feature')} re-planned at a new viewpoint"
+            ctx.recorder.step("correct", why, iteration=k, action="locate", viewpoint=True)
+            yield Corrected(k, document | {"viewpoint": why})
         return replace(aim, features=features, moved=False, located=True, pose_error=error)
     (feature,) = features
     T_cell_cam = None if ctx.T_cell_cam is None else error.T_part @ ctx.T_cell_cam
@@ -762,14 +771,38 @@ def where_located(ctx: RunContext, task: Task, shot: Shot, error: localization.P
                         "the shot's poses")
 
 
-def refused_where_located(ctx: RunContext, task: Task, shot: Shot, error: localization.PoseError) -> None:
-    """Check the move to the shot planned for where the localization puts the part
-    (where_located); a move the collision check refuses stops with cause `pose`
-    (GoalNotReached), not `collision`: the true cause is the part being elsewhere than the model
-    had it, so the pose found and the collision are named, nothing moved."""
-    move = where_located(ctx, task, shot, error)
+def viewpoint_replanned(ctx: RunContext, features: Sequence[LoopFeature], error: localization.PoseError,
+                        refused: str) -> tuple[LoopFeature, ...]:
+    """The shot of several features (their tasks already where the part is) re-planned for the
+    located part where the shot carried along with it cannot be taken (`refused`: its camera
+    pose out of the arm's reach or its move not clear): the whole-part planner
+    (whole_part.plan_features: viewpoints over the sphere, reach and collisions pruned, the
+    fewest shots) on the task of those features alone, its one shot if one covers them all, each
+    feature's plan there (whole_part.feature_plan), its move checked (where_located); several
+    shots: Split (the caller runs each). Infeasible there or the one shot's move refused:
+    GoalNotReached, cause `pose`, the carried shot's refusal named first; nothing moved."""
+    from cell.planning.whole_part import feature_plan, plan_features
+    task = replace(features[0].task, features=tuple(f.task.feature for f in features))
+    plan = plan_features(task)
+    if not plan.feasible:
+        raise GoalNotReached(there(error, f"{refused}; the shot's viewpoint re-planned: {words.reason(plan)}"), "pose")
+    if len(plan.shots) > 1:
+        raise Split(task, plan, error)
+    located = tuple(replace(f, model=Model(feature_plan(plan, 0, i), f.task)) for i, f in enumerate(features))
+    move = where_located(ctx, located[0].task, located[0].model.plan.shot, error)
     if not move.clear:
-        raise GoalNotReached(there(error, f"the move there is refused: {motion.refusal(move)}"), "pose")
+        raise GoalNotReached(there(error, f"{refused}; at the re-planned viewpoint: {motion.refusal(move)}"), "pose")
+    return located
+
+
+class Split(Exception):
+    """A shot of several features that, re-planned for where the part is (viewpoint_replanned),
+    needs several shots: `plan` (whole_part.plan_features') of `task` (those features, the part
+    where `error` puts it); whoever runs the shot (inspection.run_shot) visits each of them."""
+
+    def __init__(self, task: Task, plan: Plan, error: localization.PoseError) -> None:
+        super().__init__(f"the shot's features re-planned for where the part is need {len(plan.shots)} shots")
+        self.task, self.plan, self.error = task, plan, error
 
 
 def there(error: localization.PoseError, refused: str) -> str:
