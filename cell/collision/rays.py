@@ -56,8 +56,10 @@ def segments_cross_boxes(origins: ArrayLike, targets: ArrayLike, T_cell_box: Arr
     parallel = d == 0.0
     near = np.where(parallel, np.where(inside, -np.inf, np.inf), np.minimum(t1, t2))
     far = np.where(parallel, np.where(inside, np.inf, -np.inf), np.maximum(t1, t2))
-    t_near = np.maximum(near.max(axis=-1), 0.0)
-    t_far = np.minimum(far.min(axis=-1), 1.0)
+    # the three slabs' bounds in turn: max(axis=-1)'s and min(axis=-1)'s values, without their
+    # reduction over an axis of 3 (some 30 times the cost on (B, N, 3))
+    t_near = np.maximum(np.maximum(np.maximum(near[..., 0], near[..., 1]), near[..., 2]), 0.0)
+    t_far = np.minimum(np.minimum(np.minimum(far[..., 0], far[..., 1]), far[..., 2]), 1.0)
     return t_near < t_far
 
 

@@ -63,8 +63,8 @@ def pixel_rays(K: np.ndarray, T_cell_cam: np.ndarray, width: int, height: int) -
 def view_angles(camera: ArrayLike, points: ArrayLike, normals: ArrayLike) -> np.ndarray:
     """(N,) angle between each surface normal and the direction to the camera [rad] (0: seen
     head-on, pi / 2: grazing)."""
-    v = geometry.unit(np.asarray(camera, float) - np.asarray(points, float))
-    return np.arccos(np.clip(np.sum(v * np.asarray(normals, float), axis=-1), -1.0, 1.0))
+    v = geometry.unit(geometry.by_component(np.subtract, camera, points))
+    return np.arccos(np.clip(geometry.dot3(v, np.asarray(normals, float)), -1.0, 1.0))
 
 
 def pixel_footprint(camera: ArrayLike, points: ArrayLike, normals: ArrayLike, pixel_pitch_m: float,
@@ -74,7 +74,7 @@ def pixel_footprint(camera: ArrayLike, points: ArrayLike, normals: ArrayLike, pi
     longer side of the pixel's footprint); inf where the camera is behind the surface. `angles`:
     view_angles of these camera, points and normals where the caller has them (the view angle
     requirement reads them too), else computed here."""
-    distance = np.linalg.norm(np.asarray(points, float) - np.asarray(camera, float), axis=-1)
+    distance = geometry.norm(geometry.by_component(np.subtract, points, camera))
     cos = np.cos(view_angles(camera, points, normals) if angles is None else angles)
     with np.errstate(divide="ignore"):
         return np.where(cos > 0, distance * pixel_pitch_m / focal_length_m / np.maximum(cos, 0.0), np.inf)

@@ -123,7 +123,7 @@ class Scene:
 
     def sample_depths(self) -> np.ndarray:
         """Distances camera -> samples along the optical axis [m]."""
-        return (self.points - self.camera_position) @ self.T_cell_cam[:3, 2]
+        return geometry.by_component(np.subtract, self.points, self.camera_position) @ self.T_cell_cam[:3, 2]
 
 
 def build_scene(task: Task, samples: int | None = None, extra: np.ndarray | None = None,
