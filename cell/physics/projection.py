@@ -46,8 +46,11 @@ def project(K: np.ndarray, T_cell_cam: np.ndarray, points: ArrayLike) -> tuple[n
     cell-frame points; points behind the camera get NaN pixels."""
     local = geometry.apply(np.linalg.inv(T_cell_cam), np.asarray(points, dtype=float).reshape(-1, 3))
     z = local[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uv = (local @ K.T)[:, :2] / z[:, None]
+    image = local @ K.T
+    uv = np.empty((len(z), 2))
+    with np.errstate(divide="ignore", invalid="ignore"):       # a column at a time: geometry.by_component's why
+        np.divide(image[:, 0], z, out=uv[:, 0])
+        np.divide(image[:, 1], z, out=uv[:, 1])
     uv[z <= 0] = np.nan
     return uv, z
 

@@ -87,6 +87,10 @@ class Scene:
         """Its arrays read-only, however it was made (built, replaced by the certificate)."""
         _read_only(self.__dict__.values())
 
+    def __getstate__(self):
+        """Its fields (not the depths it keeps: sample_depths)."""
+        return {k: v for k, v in self.__dict__.items() if k != "_depths"}
+
     def __setstate__(self, state):
         """Unpickled (a plan from a worker process): its arrays read-only again, as built."""
         self.__dict__.update(state)
@@ -122,8 +126,14 @@ class Scene:
         return shared_mesh(key, vertices, faces)
 
     def sample_depths(self) -> np.ndarray:
-        """Distances camera -> samples along the optical axis [m]."""
-        return geometry.by_component(np.subtract, self.points, self.camera_position) @ self.T_cell_cam[:3, 2]
+        """Distances camera -> samples along the optical axis [m], read-only, computed once (a
+        certificate's focus, depth of field, its sentence and its picks each read them)."""
+        depths = self.__dict__.get("_depths")
+        if depths is None:
+            depths = geometry.by_component(np.subtract, self.points, self.camera_position) @ self.T_cell_cam[:3, 2]
+            depths.flags.writeable = False
+            object.__setattr__(self, "_depths", depths)
+        return depths
 
 
 def build_scene(task: Task, samples: int | None = None, extra: np.ndarray | None = None,
