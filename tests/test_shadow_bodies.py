@@ -365,8 +365,15 @@ def test_the_prefilters_skip_no_crossing_of_the_arm_the_camera_body_the_lamp_or_
                        rig.lamp_position(task.lamp.rig.pivot_m, pan, tilt, rng.uniform(0.15, 0.6, 60)),
                        task.lamp.rig.pivot_m + radius * out / np.linalg.norm(out, axis=1)[:, None]])
     spot, hidden = exact_blockers(problem, lamps)
-    assert np.array_equal(evaluate.spot_blocked(problem, lamps), spot) and 10 < spot.any(axis=1).sum() < len(lamps) - 10
+    kept = evaluate.spot_blocked(problem, lamps)
+    assert np.array_equal(kept, spot) and 10 < spot.any(axis=1).sum() < len(lamps) - 10
     assert np.array_equal(requirements.lamp_hides(problem, lamps), hidden) and 10 < hidden.any(axis=1).sum() < len(lamps) - 10
+    # the last lamps asked are kept: their first rows answered from them (read-only), others found
+    for first in (1, 7, len(lamps)):
+        again = evaluate.spot_blocked(problem, lamps[:first])
+        assert np.array_equal(again, spot[:first]) and np.shares_memory(again, kept) and not again.flags.writeable
+    other = evaluate.spot_blocked(problem, lamps[3:9])
+    assert np.array_equal(other, spot[3:9]) and not np.shares_memory(other, kept)
 
 
 def exact_blockers(problem, lamps):

@@ -98,6 +98,7 @@ class KernelInputs:
         self.defects: dict[Any, Any] = {}       # cell.planning.defects: a defect's inputs, with what they were made of
         self.fixed: dict[str, tuple[tuple[Task, Scene], Any]] = {}    # Problem.fixed's values, with what they were made of
         self.top: tuple[Task, LightsAtScene, np.ndarray] | None = None  # Problem.full_drive's row, with what it was made of
+        self.blocked: tuple[Task, Scene, bytes, np.ndarray] | None = None  # spot_blocked's last lamps and rows
 
     def __getstate__(self):
         return {}
@@ -454,10 +455,27 @@ def spot_blocked(problem: Problem, positions: ArrayLike) -> np.ndarray:
     (rho the samples' sphere about their middle m), so a body whose capsule (ArmAtShot.around_*)
     is farther than rho from the segment m -> L blocks none of the lamp's rays; nor one whose
     ball holding that capsule, widened by rho, the segment m -> L cannot meet (ArmAtShot.seen,
-    tested first: a few operations for every lamp and body)."""
-    from cell.collision.rays import NEAR_MARGIN_M, segments_cross_boxes, segments_near_segments
+    tested first: a few operations for every lamp and body). Read-only; the last lamps asked are
+    kept with their rows (KernelInputs.blocked), and lamps that are their first rows answered from
+    them: a lamp's rows are its own alone, and a chosen shot's sentences (requirements.
+    explain_no_shadow) and its lights' shares (one_shot.light_settings) ask its lamp's row again,
+    the first of the poses its Candidates were made of (at_exposure)."""
     scene = problem.scene
     positions = np.asarray(positions, float).reshape(-1, 3)
+    key = positions.tobytes()
+    kept = problem.kernels.blocked
+    if kept is not None and kept[0] is problem.task and kept[1] is scene and kept[2].startswith(key):
+        return kept[3][:len(positions)]
+    out = _blocked(problem, positions)
+    out.flags.writeable = False
+    problem.kernels.blocked = (problem.task, scene, key, out)
+    return out
+
+
+def _blocked(problem: Problem, positions: np.ndarray) -> np.ndarray:
+    """spot_blocked's rows of lamps at `positions` (C, 3), found."""
+    from cell.collision.rays import NEAR_MARGIN_M, segments_cross_boxes, segments_near_segments
+    scene = problem.scene
     count = len(scene.points)
     out = np.zeros((len(positions), count), bool)
     arm = problem.fixed("arm_at_shot", lambda: arm_at_shot(problem.task, scene, samples_sphere(problem)))
