@@ -97,7 +97,42 @@ def test_one_origin_gives_the_bits_of_the_origin_repeated_for_every_target():
     x, y = rng.normal(size=(2, 7, 3))
     np.testing.assert_allclose(dot(x, y), np.sum(x * y, axis=1), rtol=1e-12, atol=1e-15)
     by_hand = np.array([[R.T @ v for v in x] for R in T[:, :3, :3]])
-    np.testing.assert_allclose(in_frames(T[:, :3, :3], x), by_hand, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(np.stack(in_frames(T[:, :3, :3], list(x.T)), axis=-1), by_hand, rtol=1e-12, atol=1e-15)
+
+
+def slabs_at_once(origins, targets, T_cell_box, half_m):
+    """The slab test on (B, N, 3) arrays at once, as segments_cross_boxes computed it before it
+    took a component at a time: R^T x by np.einsum, the bounds by max / min over the last axis."""
+    T = np.asarray(T_cell_box, float).reshape(-1, 4, 4)
+    half = np.broadcast_to(np.asarray(half_m, float), (len(T), 3))[:, None]
+    o, q = np.asarray(origins, float).reshape(-1, 3), np.asarray(targets, float).reshape(-1, 3)
+    R, c = T[:, :3, :3], T[:, :3, 3]
+    local = np.einsum("bji,bnj->bni", R, np.broadcast_to(o[None] - c[:, None], (len(T), len(o), 3)))
+    d = np.einsum("bji,bnj->bni", R, np.broadcast_to(q - o, (len(T), max(len(o), len(q)), 3)))
+    inside = np.abs(local) < half
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (-half - local) / d, (half - local) / d
+    near = np.where(d == 0.0, np.where(inside, -np.inf, np.inf), np.minimum(t1, t2))
+    far = np.where(d == 0.0, np.where(inside, np.inf, -np.inf), np.maximum(t1, t2))
+    return np.maximum(near.max(axis=-1), 0.0) < np.minimum(far.min(axis=-1), 1.0)
+
+
+def test_the_slab_test_a_component_at_a_time_answers_as_on_whole_arrays():
+    """segments_cross_boxes against the slab test on (B, N, 3) arrays at once: turned and
+    axis-aligned boxes, segments parallel to their faces (inside and outside a slab), ends on a
+    face, one origin for every target and one target for every origin."""
+    rng = np.random.default_rng(41)
+    T = np.stack([np.eye(4)] * 6)
+    T[:4, :3, :3] = Rotation.random(4, random_state=rng).as_matrix()
+    T[:, :3, 3] = rng.uniform(-0.2, 0.2, (6, 3))
+    half = rng.uniform(0.02, 0.3, (6, 3))
+    origins, targets = rng.uniform(-0.6, 0.6, (2, 2000, 3))
+    targets[:500, 1:] = origins[:500, 1:]                       # along x: parallel to the upright boxes' faces
+    targets[500:700, 2] = origins[500:700, 2] = T[4, 2, 3] + half[4, 2]    # in the plane of a face
+    crossed = segments_cross_boxes(origins, targets, T, half)
+    assert np.array_equal(crossed, slabs_at_once(origins, targets, T, half)) and 500 < crossed.sum() < 11000
+    for origin, target in ((origins[0], targets), (origins, targets[0])):
+        assert np.array_equal(segments_cross_boxes(origin, target, T, half), slabs_at_once(origin, target, T, half))
 
 
 RING = Path(__file__).resolve().parent.parent / "tasks" / "ring.yaml"

@@ -31,11 +31,13 @@ def dot(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return x[..., 0] * y[..., 0] + x[..., 2] * y[..., 2] + x[..., 1] * y[..., 1]
 
 
-def in_frames(R: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """(B, N, 3) the vectors x (B, N, 3) or (N, 3) in the frames R (B, 3, 3) (columns the axes):
-    R_b^T x, summed as x_0 R_0i + x_1 R_1i + x_2 R_2i (np.einsum("bji,bnj->bni")'s order, its bits)."""
-    x = np.broadcast_to(x, (len(R), *x.shape[-2:]))
-    return (x[..., 0, None] * R[:, None, 0] + x[..., 1, None] * R[:, None, 1]) + x[..., 2, None] * R[:, None, 2]
+def in_frames(R: np.ndarray, x: list[np.ndarray]) -> list[np.ndarray]:
+    """The components (3 arrays (B, N)) of the vectors x, given as their components (3 arrays
+    (N,) or (B, N), broadcast), in the frames R (B, 3, 3) (columns the axes): R_b^T x, component
+    i summed as x_0 R_0i + x_1 R_1i + x_2 R_2i (np.einsum("bji,bnj->bni")'s order, its bits). A
+    component at a time: a (B, N, 3) array made of (B, 1, 3) rows runs NumPy's inner loop over 3
+    numbers (geometry.by_component)."""
+    return [(x[0] * R[:, 0, i, None] + x[1] * R[:, 1, i, None]) + x[2] * R[:, 2, i, None] for i in range(3)]
 
 
 def segments_cross_boxes(origins: ArrayLike, targets: ArrayLike, T_cell_box: ArrayLike,
@@ -45,21 +47,26 @@ def segments_cross_boxes(origins: ArrayLike, targets: ArrayLike, T_cell_box: Arr
     half_m (B, 3) or one (3,) [m]. One origin (the camera's lines of sight) is placed in each
     box's frame once, not once per target."""
     T = np.asarray(T_cell_box, float).reshape(-1, 4, 4)
-    half = np.broadcast_to(np.asarray(half_m, float), (len(T), 3))[:, None]             # (B, 1, 3)
+    half = np.broadcast_to(np.asarray(half_m, float), (len(T), 3))                      # (B, 3)
     o, q = np.asarray(origins, float).reshape(-1, 3), np.asarray(targets, float).reshape(-1, 3)
     R, c = T[:, :3, :3], T[:, :3, 3]
-    local = in_frames(R, o[None] - c[:, None])                                          # (B, N or 1, 3)
-    d = in_frames(R, q - o)                                                             # (B, N, 3)
-    inside = np.abs(local) < half
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t1, t2 = (-half - local) / d, (half - local) / d
-    parallel = d == 0.0
-    near = np.where(parallel, np.where(inside, -np.inf, np.inf), np.minimum(t1, t2))
-    far = np.where(parallel, np.where(inside, np.inf, -np.inf), np.maximum(t1, t2))
-    # the three slabs' bounds in turn: max(axis=-1)'s and min(axis=-1)'s values, without their
-    # reduction over an axis of 3 (some 30 times the cost on (B, N, 3))
-    t_near = np.maximum(np.maximum(np.maximum(near[..., 0], near[..., 1]), near[..., 2]), 0.0)
-    t_far = np.minimum(np.minimum(np.minimum(far[..., 0], far[..., 1]), far[..., 2]), 1.0)
+    # each axis's slab a component at a time (in_frames), the three in turn: the values of the
+    # (B, N, 3) arrays' max(axis=-1) and min(axis=-1), without their reductions over an axis of 3
+    local = in_frames(R, [o[None, :, k] - c[:, k, None] for k in range(3)])             # (B, N or 1) each
+    d = in_frames(R, [q[:, k] - o[:, k] for k in range(3)])                              # (B, N) each
+
+    def slab(k: int) -> tuple[np.ndarray, np.ndarray]:
+        """(t_near, t_far) of axis k's slab (B, N)."""
+        h = half[:, k, None]
+        inside = np.abs(local[k]) < h
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1, t2 = (-h - local[k]) / d[k], (h - local[k]) / d[k]
+        parallel = d[k] == 0.0
+        return (np.where(parallel, np.where(inside, -np.inf, np.inf), np.minimum(t1, t2)),
+                np.where(parallel, np.where(inside, np.inf, -np.inf), np.maximum(t1, t2)))
+    x, y, z = slab(0), slab(1), slab(2)
+    t_near = np.maximum(np.maximum(np.maximum(x[0], y[0]), z[0]), 0.0)
+    t_far = np.minimum(np.minimum(np.minimum(x[1], y[1]), z[1]), 1.0)
     return t_near < t_far
 
 
