@@ -50,6 +50,14 @@ def rotate(T: np.ndarray, vectors: ArrayLike) -> np.ndarray:
     return np.asarray(vectors, dtype=float) @ T[:3, :3].T
 
 
+# (..., 3) arrays of at least this many numbers are combined a component at a time (by_component):
+# below some 1 200 vectors numpy's one broadcast operation costs less than three
+BY_COMPONENT_SIZE = 3600
+# the norms of at least this many numbers' 3-vectors are summed by dot3: below some 64 vectors
+# numpy's reduction costs less than dot3's five operations
+DOT3_SIZE = 192
+
+
 def dot3(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """(...) the dot products of 3-vectors x and y (..., 3), broadcast: (x0 y0 + x1 y1) + x2 y2,
     np.sum(x * y, axis=-1)'s own arithmetic (add.reduce adds a short axis's terms in turn: the
@@ -64,14 +72,10 @@ def norm(v: ArrayLike, axis: int = -1, keepdims: bool = False) -> np.ndarray:
     sum on a few vectors (a search's objective asks it at every evaluation); 3-vectors along the
     last axis by dot3 (the same bits again)."""
     v = np.asarray(v, dtype=float)
-    if v.ndim and v.shape[-1] == 3 and axis in (-1, v.ndim - 1):
+    if v.size >= DOT3_SIZE and v.shape[-1] == 3 and axis in (-1, v.ndim - 1):
         length = np.sqrt(dot3(v, v))
         return length[..., None] if keepdims else length
     return np.sqrt((v * v).sum(axis=axis, keepdims=keepdims))
-
-
-# (..., 3) results of at least this many numbers are made a component at a time (by_component)
-BY_COMPONENT_SIZE = 96
 
 
 def by_component(op: np.ufunc, a: ArrayLike, b: ArrayLike) -> np.ndarray:
@@ -79,10 +83,12 @@ def by_component(op: np.ufunc, a: ArrayLike, b: ArrayLike) -> np.ndarray:
     (..., 1), broadcast: numpy's own values, a component at a time where they are many. An (N, 3)
     array less one point, or over (N, 1) lengths, runs numpy's inner loop over 3 numbers, N
     times: some 5 times the cost of three (N,) operations (157 against 33 us at 9 500 points);
-    on a few vectors the one operation is cheaper."""
+    on fewer than BY_COMPONENT_SIZE numbers the one operation is cheaper."""
     a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    if max(a.size, b.size) < BY_COMPONENT_SIZE or a.shape[-1:] != (3,) or b.ndim == 0:
+        return op(a, b)
     shape = np.broadcast_shapes(a.shape, b.shape)
-    if int(np.prod(shape)) < BY_COMPONENT_SIZE or shape[-1:] != (3,) or a.shape[-1:] != (3,):
+    if shape[-1:] != (3,):
         return op(a, b)
     out = np.empty(shape)
     for k in range(3):
@@ -93,8 +99,9 @@ def by_component(op: np.ufunc, a: ArrayLike, b: ArrayLike) -> np.ndarray:
 def unit(v: ArrayLike, axis: int = -1) -> np.ndarray:
     """v / |v| along axis."""
     v = np.asarray(v, dtype=float)
-    return by_component(np.divide, v, norm(v, axis=axis, keepdims=True)) if axis in (-1, v.ndim - 1) \
-        else v / norm(v, axis=axis, keepdims=True)
+    length = norm(v, axis=axis, keepdims=True)
+    return by_component(np.divide, v, length) if v.size >= BY_COMPONENT_SIZE and axis in (-1, v.ndim - 1) \
+        else v / length
 
 
 def direction(v: ArrayLike, axis: int = -1) -> np.ndarray:
