@@ -95,7 +95,7 @@ def test_one_origin_gives_the_bits_of_the_origin_repeated_for_every_target():
     near = segments_near_segments(origin, targets, a, b, radius)
     assert np.array_equal(near, segments_near_segments(repeated, targets, a, b, radius)) and 50 < near.sum() < 2300
     x, y = rng.normal(size=(2, 7, 3))
-    np.testing.assert_allclose(dot(x, y), np.sum(x * y, axis=1), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(dot(list(x.T), list(y.T)), np.sum(x * y, axis=1), rtol=1e-12, atol=1e-15)
     by_hand = np.array([[R.T @ v for v in x] for R in T[:, :3, :3]])
     np.testing.assert_allclose(np.stack(in_frames(T[:, :3, :3], list(x.T)), axis=-1), by_hand, rtol=1e-12, atol=1e-15)
 
@@ -133,6 +133,45 @@ def test_the_slab_test_a_component_at_a_time_answers_as_on_whole_arrays():
     assert np.array_equal(crossed, slabs_at_once(origins, targets, T, half)) and 500 < crossed.sum() < 11000
     for origin, target in ((origins[0], targets), (origins, targets[0])):
         assert np.array_equal(segments_cross_boxes(origin, target, T, half), slabs_at_once(origin, target, T, half))
+
+
+def near_at_once(origins, targets, a, b, radius_m):
+    """segments_near_segments on (K, N, 3) arrays at once, as it computed them before it took a
+    component at a time: the dot products summed x0 y0 + x2 y2 + x1 y1."""
+    def dot(x, y):
+        return x[..., 0] * y[..., 0] + x[..., 2] * y[..., 2] + x[..., 1] * y[..., 1]
+    a, b = np.asarray(a, float).reshape(-1, 3), np.asarray(b, float).reshape(-1, 3)
+    p, q = np.asarray(origins, float).reshape(-1, 3), np.asarray(targets, float).reshape(-1, 3)
+    d1, d2 = q - p, b - a
+    r = p[None] - a[:, None]
+    A, E = dot(d1, d1)[None], dot(d2, d2)[:, None]
+    B, C, F = dot(d1[None], d2[:, None]), dot(d1[None], r), dot(d2[:, None], r)
+    denom = A * E - B * B
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.where(denom > 1e-18 * A * E, np.clip((B * F - C * E) / denom, 0.0, 1.0), 0.0)
+        t = (B * s + F) / E
+        s = np.where(t < 0.0, np.clip(-C / A, 0.0, 1.0), np.where(t > 1.0, np.clip((B - C) / A, 0.0, 1.0), s))
+    t = np.clip(t, 0.0, 1.0)
+    gap = r + s[..., None] * d1[None] - t[..., None] * d2[:, None]
+    return dot(gap, gap) < np.asarray(radius_m, float).reshape(-1, 1) ** 2
+
+
+def test_segments_near_segments_a_component_at_a_time_answers_as_on_whole_arrays():
+    """segments_near_segments against the same test on (K, N, 3) arrays at once: random capsules
+    and segments, segments parallel to an axis, zero-length segments, one origin for every target
+    and one target for every origin."""
+    rng = np.random.default_rng(43)
+    a, b = rng.uniform(-0.3, 0.3, (2, 7, 3))
+    b[0] = a[0] + (0.2, 0.0, 0.0)
+    radius = rng.uniform(0.02, 0.15, 7)
+    origins, targets = rng.uniform(-0.5, 0.5, (2, 3000, 3))
+    targets[:300] = origins[:300] + (0.4, 0.0, 0.0)             # parallel to capsule 0's axis
+    targets[300:350] = origins[300:350]                         # points
+    near = segments_near_segments(origins, targets, a, b, radius)
+    assert np.array_equal(near, near_at_once(origins, targets, a, b, radius)) and 500 < near.sum() < 18000
+    for origin, target in ((origins[0], targets), (origins, targets[0])):
+        assert np.array_equal(segments_near_segments(origin, target, a, b, radius),
+                              near_at_once(origin, target, a, b, radius))
 
 
 RING = Path(__file__).resolve().parent.parent / "tasks" / "ring.yaml"

@@ -16,6 +16,7 @@ widened radius).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,11 +25,13 @@ from numpy.typing import ArrayLike
 NEAR_MARGIN_M = 1e-6      # a prefilter's radius widened well past floating-point rounding [m]
 
 
-def dot(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """(...) the dot products of x and y (..., 3), broadcast, summed as x0 y0 + x2 y2 + x1 y1 (the
-    order of np.einsum's two-lane loop on this machine, so its bits): a few elementwise operations,
-    where np.einsum's setup costs tens of microseconds a call on the planner's small arrays."""
-    return x[..., 0] * y[..., 0] + x[..., 2] * y[..., 2] + x[..., 1] * y[..., 1]
+def dot(x: Sequence[np.ndarray], y: Sequence[np.ndarray]) -> np.ndarray:
+    """(...) the dot products of vectors x and y given as their components (3 arrays each),
+    broadcast, summed as x0 y0 + x2 y2 + x1 y1 (the order of np.einsum's two-lane loop on this
+    machine, so its bits): a few elementwise operations, where np.einsum's setup costs tens of
+    microseconds a call on the planner's small arrays, and on components, where (..., 3) arrays
+    made of broadcast rows run NumPy's inner loop over 3 numbers (geometry.by_component)."""
+    return x[0] * y[0] + x[2] * y[2] + x[1] * y[1]
 
 
 def in_frames(R: np.ndarray, x: list[np.ndarray]) -> list[np.ndarray]:
@@ -79,17 +82,19 @@ def segments_near_segments(origins: ArrayLike, targets: ArrayLike, a: ArrayLike,
     offsets from the capsules are found once, not once per target."""
     a, b = np.asarray(a, float).reshape(-1, 3), np.asarray(b, float).reshape(-1, 3)
     p, q = np.asarray(origins, float).reshape(-1, 3), np.asarray(targets, float).reshape(-1, 3)
-    d1, d2 = q - p, b - a                                               # (N, 3), (K, 3)
-    r = p[None] - a[:, None]                                            # (K, N or 1, 3)
-    A, E = dot(d1, d1)[None], dot(d2, d2)[:, None]
-    B, C, F = dot(d1[None], d2[:, None]), dot(d1[None], r), dot(d2[:, None], r)
+    # a component at a time (dot): d1 (1, N), d2 (K, 1), r = p - a (K, N or 1)
+    d1 = [(q[:, k] - p[:, k])[None] for k in range(3)]
+    d2 = [(b[:, k] - a[:, k])[:, None] for k in range(3)]
+    r = [p[None, :, k] - a[:, k, None] for k in range(3)]
+    A, E = dot(d1, d1), dot(d2, d2)
+    B, C, F = dot(d1, d2), dot(d1, r), dot(d2, r)
     denom = A * E - B * B
     with np.errstate(divide="ignore", invalid="ignore"):
         s = np.where(denom > 1e-18 * A * E, np.clip((B * F - C * E) / denom, 0.0, 1.0), 0.0)
         t = (B * s + F) / E
         s = np.where(t < 0.0, np.clip(-C / A, 0.0, 1.0), np.where(t > 1.0, np.clip((B - C) / A, 0.0, 1.0), s))
     t = np.clip(t, 0.0, 1.0)
-    gap = r + s[..., None] * d1[None] - t[..., None] * d2[:, None]
+    gap = [r[k] + s * d1[k] - t * d2[k] for k in range(3)]
     return dot(gap, gap) < np.asarray(radius_m, float).reshape(-1, 1) ** 2
 
 
