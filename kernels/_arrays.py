@@ -17,7 +17,9 @@ def vec3d(a: ArrayLike, name: str) -> wp.array:
 def unit_rows(a: ArrayLike, name: str) -> np.ndarray:
     """Rows of (N, 3) scaled to unit length (float64)."""
     a = np.asarray(a, dtype=np.float64).reshape(-1, 3)
-    norm = np.sqrt(np.add.reduce(a * a, axis=1, keepdims=True))     # np.linalg.norm's arithmetic, not its dispatch
+    # np.linalg.norm's arithmetic (add.reduce adds a row's three squares in turn), as elementwise
+    # operations: NumPy's reduction over an axis of 3 costs some 6 times as much on many rows
+    norm = np.sqrt((a[:, 0] * a[:, 0] + a[:, 1] * a[:, 1]) + a[:, 2] * a[:, 2])[:, None]
     if np.any(norm == 0.0):
         raise ValueError(f"{name} has a zero-length row")
     return a / norm

@@ -641,3 +641,15 @@ def test_the_shadow_flags_alone_are_the_gray_calls_own(hinge):
     cast, attached = flags
     assert (cast & ~attached).sum() > 20 and not (attached & ~cast).any()    # the hinge casts shadows besides
     assert inputs.shadowed(np.zeros((0, 3))).shape == (0, 40)
+
+
+def test_unit_rows_are_numpys_bit_for_bit_and_refuse_a_zero_row():
+    """kernels._arrays.unit_rows against a / np.linalg.norm(a, axis=1): over many decades, one
+    row and many; a zero-length row is refused naming the array."""
+    from kernels._arrays import unit_rows
+    rng = np.random.default_rng(5)
+    for n in (1, 7, 9500):
+        a = rng.normal(size=(n, 3)) * 10.0 ** rng.integers(-60, 60, size=(n, 3))
+        assert np.array_equal(unit_rows(a, "normals"), a / np.linalg.norm(a, axis=1, keepdims=True))
+    with pytest.raises(ValueError, match="normals has a zero-length row"):
+        unit_rows(np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 0.0]]), "normals")
