@@ -22,6 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
+from cell.core import geometry
+
 NEAR_MARGIN_M = 1e-6      # a prefilter's radius widened well past floating-point rounding [m]
 
 
@@ -154,9 +156,9 @@ class BallsSeen:
     def met_by(self, ends: ArrayLike) -> np.ndarray:
         """(K, C) whether the segment from the origin to each end (C, 3) may meet ball k (not
         finite: not)."""
-        v = np.asarray(ends, float).reshape(-1, 3) - self.origin
+        v = geometry.by_component(np.subtract, np.asarray(ends, float).reshape(-1, 3), self.origin)
         along = self.unit @ v.T                                   # (K, C) |v| cos(angle)
-        vv = np.sum(v * v, axis=1)
+        vv = geometry.dot3(v, v)                                  # np.sum(v * v, axis=1)'s bits
         return (along >= 0.0) & (along * along >= self.cos2[:, None] * vv) & (vv >= self.reach2[:, None])
 
 
