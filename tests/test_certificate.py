@@ -154,18 +154,10 @@ def test_on_patch_decides_as_the_3_vectors_norm():
     assert not certificate.on_patch([np.nan] * 3, center.tolist(), radius)
 
 
-def test_row_sum_and_mirror_alignment_are_numpys_sums_bit_for_bit():
-    """row_sum is np.sum(axis=-1) exactly (signed zeros, infinities and NaN included), and
-    mirror_alignment on it equals the form with np.sum and geometry.unit on a dense patch's worth of points."""
+def test_mirror_alignment_is_the_form_with_numpys_sums_bit_for_bit():
+    """mirror_alignment (geometry.row_sum's sums) equals the form with np.sum and geometry.unit on
+    a dense patch's worth of points."""
     rng = np.random.default_rng(3)
-    rows = rng.normal(size=(20000, 3)) * 10.0 ** rng.integers(-12, 12, size=(20000, 3))
-    rows[:6] = [[-0.0, -0.0, -0.0], [-0.0, 0.0, -0.0], [1.0, -1.0, -0.0], [np.inf, 1.0, 2.0], [np.inf, -np.inf, 0.0],
-                [np.nan, 1.0, 0.0]]
-    with np.errstate(invalid="ignore"):
-        expected = np.sum(rows, axis=-1)
-        found = certificate.row_sum(rows)
-    assert np.array_equal(found, expected, equal_nan=True)
-    assert np.array_equal(np.signbit(found[:3]), np.signbit(expected[:3]))
     points = rng.normal(size=(20000, 3)) * 0.01
     normals = geometry.unit(rng.normal(size=(20000, 3)))
     lamp, camera = np.array([0.05, -0.2, 0.3]), np.array([0.0, 0.1, 0.5])

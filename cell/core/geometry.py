@@ -58,6 +58,13 @@ def norm(v: ArrayLike, axis: int = -1, keepdims: bool = False) -> np.ndarray:
     return np.sqrt((v * v).sum(axis=axis, keepdims=keepdims))
 
 
+def row_sum(a: np.ndarray) -> np.ndarray:
+    """np.sum(a, axis=-1) of vectors (..., 3), bit for bit: ((a0 + a1) + a2) + 0.0, np.add.reduce's
+    order (from +0.0: a row of -0.0 sums to +0.0), as three columns' adds instead of a reduction
+    whose inner loop runs once a row (a third of the time on thousands of rows)."""
+    return a[..., 0] + a[..., 1] + a[..., 2] + 0.0
+
+
 def unit(v: ArrayLike, axis: int = -1) -> np.ndarray:
     """v / |v| along axis."""
     v = np.asarray(v, dtype=float)

@@ -13,6 +13,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike
 
+from cell.core.geometry import row_sum
+
 if TYPE_CHECKING:
     from cell.physics.material import Material, Unresolved
 
@@ -94,16 +96,17 @@ def reflectance_jacobian(cos_i: ArrayLike, cos_e: ArrayLike, cos_alpha: ArrayLik
 
 def phase_angle(s: np.ndarray, v: np.ndarray) -> np.ndarray:
     """alpha between unit vectors (..., 3) = atan2(|s x v|, <s, v>), accurate at every angle
-    (arccos of <s, v> is not near 0 and pi)."""
-    return np.arctan2(np.linalg.norm(np.cross(s, v), axis=-1), np.sum(s * v, axis=-1))
+    (arccos of <s, v> is not near 0 and pi); the sums np.linalg.norm's and np.sum's bits (row_sum)."""
+    cross = np.cross(s, v)
+    return np.arctan2(np.sqrt(row_sum(cross * cross)), row_sum(s * v))
 
 
 def reflectance_vectors(n: ArrayLike, s: ArrayLike, v: ArrayLike, material: Material) -> np.ndarray:
     """R for unit vectors (..., 3): n normal, s to lamp, v to camera; material params at the phase angle."""
     n, s, v = (np.asarray(a, dtype=float) for a in (n, s, v))
-    cos_i = np.sum(n * s, axis=-1)
-    cos_e = np.sum(n * v, axis=-1)
-    cos_alpha = np.clip(np.sum(s * v, axis=-1), -1.0, 1.0)
+    cos_i = row_sum(n * s)                  # np.sum(n * s, axis=-1)'s bits
+    cos_e = row_sum(n * v)
+    cos_alpha = np.clip(row_sum(s * v), -1.0, 1.0)
     p = material.at(phase_angle(s, v))
     return reflectance(cos_i, cos_e, cos_alpha, p.rho, p.sigma1, p.m1, p.sigma2, p.m2)
 
@@ -111,9 +114,9 @@ def reflectance_vectors(n: ArrayLike, s: ArrayLike, v: ArrayLike, material: Mate
 def dominant_term_vectors(n: ArrayLike, s: ArrayLike, v: ArrayLike, material: Material) -> np.ndarray:
     """dominant_term() for unit vectors, with the material at the phase angle."""
     n, s, v = (np.asarray(a, dtype=float) for a in (n, s, v))
-    cos_i = np.sum(n * s, axis=-1)
-    cos_e = np.sum(n * v, axis=-1)
-    cos_alpha = np.clip(np.sum(s * v, axis=-1), -1.0, 1.0)
+    cos_i = row_sum(n * s)                  # np.sum(n * s, axis=-1)'s bits
+    cos_e = row_sum(n * v)
+    cos_alpha = np.clip(row_sum(s * v), -1.0, 1.0)
     p = material.at(phase_angle(s, v))
     return dominant_term(cos_i, cos_e, cos_alpha, p.sigma1, p.m1, p.sigma2, p.m2)
 

@@ -21,6 +21,7 @@ from numpy.typing import ArrayLike
 
 from cell.planning import defects, evaluate, lockstep, nelder_mead, requirements
 from cell.planning.plan import Verification
+from cell.core import geometry
 from cell.physics.costs import RequirementValue
 
 if TYPE_CHECKING:
@@ -55,20 +56,13 @@ def dense_samples(task: Task, scene: Scene) -> int:
 def mirror_alignment(points: np.ndarray, normals: np.ndarray, lamp: ArrayLike, camera: ArrayLike) -> np.ndarray:
     """<v, r> at each point, r the lamp direction s mirrored about the normal (2 <n,s> n - s):
     1 where the mirror direction points at the camera, the spike's peak (eq. 6-7). Each sum over
-    x, y, z by row_sum (a dense patch's 10 000 points in a third of np.sum's time, the same bits)."""
+    x, y, z by geometry.row_sum (a dense patch's 10 000 points in a third of np.sum's time, the same bits)."""
     s = np.asarray(lamp, float) - points
-    s = s / np.sqrt(row_sum(s * s))[..., None]
+    s = s / np.sqrt(geometry.row_sum(s * s))[..., None]
     v = np.asarray(camera, float) - points
-    v = v / np.sqrt(row_sum(v * v))[..., None]
-    mirror = 2.0 * row_sum(normals * s)[..., None] * normals - s
-    return row_sum(mirror * v)
-
-
-def row_sum(a: np.ndarray) -> np.ndarray:
-    """np.sum(a, axis=-1) of rows (..., 3), bit for bit: ((a0 + a1) + a2) + 0.0, np.add.reduce's
-    order (from +0.0: a row of -0.0 sums to +0.0), as three columns' adds instead of a reduction
-    whose inner loop runs once a row."""
-    return a[..., 0] + a[..., 1] + a[..., 2] + 0.0
+    v = v / np.sqrt(geometry.row_sum(v * v))[..., None]
+    mirror = 2.0 * geometry.row_sum(normals * s)[..., None] * normals - s
+    return geometry.row_sum(mirror * v)
 
 
 def specular_points(scenes: Sequence[Scene], lamp: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
@@ -85,7 +79,7 @@ def specular_points(scenes: Sequence[Scene], lamp: ArrayLike) -> tuple[np.ndarra
     each search ends where it would alone."""
     from kernels.proximity import ClosestPoint
     # each patch's largest |point - center| (np.linalg.norm's along rows: the root of row_sum)
-    radius = [math.sqrt(float(np.max(row_sum(d * d)))) for d in (s.points - s.center for s in scenes)]
+    radius = [math.sqrt(float(np.max(geometry.row_sum(d * d)))) for d in (s.points - s.center for s in scenes)]
     starts = np.array([s.points[int(np.argmax(mirror_alignment(s.points, s.normals, lamp, s.camera_position)))]
                        for s in scenes]).reshape(-1, 3)
     along_x = np.array([s.frame[:, 0] for s in scenes]).reshape(-1, 3)
@@ -144,7 +138,7 @@ def on_patch(point: list[float], center: list[float], radius: float) -> bool:
 
 def alignment_at(point: list[float], normal: list[float], lamp: list[float], camera: list[float]) -> float:
     """mirror_alignment at one point, in Python floats: the same IEEE operations in the same
-    order, each sum of three ((a + b) + c) + 0.0 as row_sum's, so the same
+    order, each sum of three ((a + b) + c) + 0.0 as geometry.row_sum's, so the same
     bits (tests/test_certificate.py holds them equal); NumPy's own (NaN) where the lamp or the
     camera is at the point."""
     s = [a - p for a, p in zip(lamp, point)]
