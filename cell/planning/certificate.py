@@ -129,11 +129,11 @@ def on_patch(point: list[float], center: list[float], radius: float) -> bool:
     BLAS dot product, whose rounding a sum of squares need not share): the sum of squares'
     root where that is clearly on or off (more than ON_PATCH_MARGIN of the radius from it, far
     beyond an ulp's difference), np.linalg.norm's own near the rim (and for NaN: off)."""
-    d = [p - c for p, c in zip(point, center)]
-    distance = math.sqrt((d[0] * d[0] + d[1] * d[1]) + d[2] * d[2])
+    dx, dy, dz = point[0] - center[0], point[1] - center[1], point[2] - center[2]
+    distance = math.sqrt((dx * dx + dy * dy) + dz * dz)
     if abs(distance - radius) > ON_PATCH_MARGIN * radius:
         return distance <= radius
-    return bool(np.linalg.norm(np.array(d)) <= radius)
+    return bool(np.linalg.norm(np.array([dx, dy, dz])) <= radius)
 
 
 def alignment_at(point: list[float], normal: list[float], lamp: list[float], camera: list[float]) -> float:
@@ -141,17 +141,17 @@ def alignment_at(point: list[float], normal: list[float], lamp: list[float], cam
     order, each sum of three ((a + b) + c) + 0.0 as geometry.row_sum's, so the same
     bits (tests/test_certificate.py holds them equal); NumPy's own (NaN) where the lamp or the
     camera is at the point."""
-    s = [a - p for a, p in zip(lamp, point)]
-    v = [c - p for c, p in zip(camera, point)]
-    s_length = math.sqrt(((s[0] * s[0] + s[1] * s[1]) + s[2] * s[2]) + 0.0)
-    v_length = math.sqrt(((v[0] * v[0] + v[1] * v[1]) + v[2] * v[2]) + 0.0)
+    (px, py, pz), (nx, ny, nz) = point, normal
+    sx, sy, sz = lamp[0] - px, lamp[1] - py, lamp[2] - pz
+    vx, vy, vz = camera[0] - px, camera[1] - py, camera[2] - pz
+    s_length = math.sqrt(((sx * sx + sy * sy) + sz * sz) + 0.0)
+    v_length = math.sqrt(((vx * vx + vy * vy) + vz * vz) + 0.0)
     if not (s_length > 0.0 and v_length > 0.0):
         return float(mirror_alignment(np.array([point]), np.array([normal]), lamp, camera)[0])
-    s = [c / s_length for c in s]
-    v = [c / v_length for c in v]
-    twice = 2.0 * (((normal[0] * s[0] + normal[1] * s[1]) + normal[2] * s[2]) + 0.0)
-    mirror = [twice * n - c for n, c in zip(normal, s)]
-    return ((mirror[0] * v[0] + mirror[1] * v[1]) + mirror[2] * v[2]) + 0.0
+    sx, sy, sz = sx / s_length, sy / s_length, sz / s_length
+    vx, vy, vz = vx / v_length, vy / v_length, vz / v_length
+    twice = 2.0 * (((nx * sx + ny * sy) + nz * sz) + 0.0)
+    return (((twice * nx - sx) * vx + (twice * ny - sy) * vy) + (twice * nz - sz) * vz) + 0.0
 
 
 def verify(problem: evaluate.Problem, shot: Shot) -> tuple[Verification, np.ndarray]:
