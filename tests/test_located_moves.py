@@ -442,15 +442,15 @@ class CaptureStops:
         raise DeviceFault("camera", "the test stops at the first capture")
 
 
-def later_shot(tmp_path, bracket, found):
-    """inspection.run_shot of the bracket's shot of the bevel and web_outer with the pose error
+def later_shot(tmp_path, bracket, found, names=("bevel", "web_outer")):
+    """inspection.run_shot of the bracket's shot of the features `names` with the pose error
     `found` from an earlier shot (the black level the task's), the simulated arm and lamp where
-    that shot was planned, a CaptureStops camera: (its ShotRun or the GoalNotReached it ended
-    with, the DeviceFault it raised or None, its log's steps, the devices)."""
+    that shot was planned, a CaptureStops camera: (its ShotRun, the DeviceFault it raised or
+    None, its log's steps, the devices)."""
     task, plan = bracket
-    (s,) = [s for s in range(len(plan.shots)) if set(assigned(plan, s)) == {"bevel", "web_outer"}]
-    _, devices, _ = bracket_carried(tmp_path, bracket, (0.0, 0.0, 0.0))
-    devices = replace(devices, camera=CaptureStops(task.camera.sensor.bit_depth))
+    (s,) = [s for s in range(len(plan.shots)) if set(assigned(plan, s)) == set(names)]
+    devices = replace(sim_devices(task, plan.shots[s].arm_joints, plan.shots[s].joints),
+                      camera=CaptureStops(task.camera.sensor.bit_depth))
     black = BlackLevel(evaluate.black_level(task), 0.0, "task")
     done: list = []
     fault = None
@@ -462,38 +462,45 @@ def later_shot(tmp_path, bracket, found):
     return done[0], fault, steps(tmp_path / "run"), devices
 
 
-@pytest.mark.parametrize("offset_x", [-0.03, -0.01], ids=["30 mm: one viewpoint", "10 mm: a view each"])
-def test_a_later_shot_whose_carried_move_is_refused_is_re_planned_where_the_part_is(tmp_path, bracket, offset_x):
-    """The bracket 30 or 10 mm along -x, found in an earlier shot (inspection.run_shot applies it
-    before the shot moves): the shot of the bevel and web_outer carried along with the part is out
-    of the UR5e's reach (its closed-form inverse has no joints for it), so its viewpoint is
-    re-planned for where the part is, as a shot localized in itself is (loop.carried_viewpoint: at
-    30 mm one viewpoint serves both, at 10 mm each needs its own, loop.Split, the first visited).
-    The arm and the lamp go there and the camera is set for its first capture: the camera pose
-    the UR5e's forward kinematics gives for the joints the simulated arm reads back (its own
-    collision check let the move through), the lamp where its read-back joints put it and the
-    exposure the camera was set to serve the view's features (assert_serves: the true patch, the
-    part where it is, in band, lit, seen, in focus and inside the image)."""
+@pytest.mark.parametrize("names, offset, replanned, seen", [
+    (("bevel", "web_outer"), (-0.03, 0.0, 0.0), "2 features re-planned at a new viewpoint", ["bevel", "web_outer"]),
+    (("bevel", "web_outer"), (-0.01, 0.0, 0.0), "the shot's features re-planned for where the part is need 2 shots",
+     ["bevel"]),
+    (("base_top",), (0.0, 0.0, 0.3), "1 feature re-planned at a new viewpoint", ["base_top"])],
+    ids=["30 mm along -x: one viewpoint", "10 mm along -x: a view each", "300 mm up: one feature's"])
+def test_a_later_shot_whose_carried_move_is_refused_is_re_planned_where_the_part_is(tmp_path, bracket, names, offset,
+                                                                                    replanned, seen):
+    """The bracket found off by an earlier shot (inspection.run_shot applies the pose before the
+    shot moves): 30 or 10 mm along -x, the shot of the bevel and web_outer carried along with the
+    part is out of the UR5e's reach (its closed-form inverse has no joints for it), and so is
+    base_top's with the part 300 mm up; its viewpoint is re-planned for where the part is, as a
+    shot localized in itself is (loop.carried_viewpoint: at 30 mm one viewpoint serves the bevel
+    and web_outer, at 10 mm each needs its own, loop.Split, the bevel's visited first). The arm
+    and the lamp go there and the camera is set for its first capture: the camera pose the UR5e's
+    forward kinematics gives for the joints the simulated arm reads back (its own collision check
+    let the move through), the lamp where its read-back joints put it and the exposure the camera
+    was set to serve the view's features (assert_serves: the true patch, the part where it is, in
+    band, lit, seen, in focus and inside the image)."""
     task, plan = bracket
-    found = localization_error(offset_m=(offset_x, 0.0, 0.0))
-    (s,) = [s for s in range(len(plan.shots)) if set(assigned(plan, s)) == {"bevel", "web_outer"}]
+    found = localization_error(offset_m=offset)
+    (s,) = [s for s in range(len(plan.shots)) if set(assigned(plan, s)) == set(names)]
     assert reaching_joints(task.frames, found.T_part @ plan.shots[s].T_cell_cam) is None
-    result, fault, log, devices = later_shot(tmp_path, bracket, found)
+    result, fault, log, devices = later_shot(tmp_path, bracket, found, names)
     assert fault is not None and "the test stops at the first capture" in str(fault) and not result.success
     (why,) = [line for line in log if line["step"] == "correct" and line.get("viewpoint")]
-    assert why["message"].startswith(f"the part is off by [{1e3 * offset_x:+.2f}, +0.00, +0.00] mm")
+    assert why["message"].startswith("the part is off by [" + ", ".join(f"{1e3 * v:+.2f}" for v in offset) + "] mm")
     assert "the carried shot's move is refused" in why["message"] and "mm from the shoulder" in why["message"]
-    assert why["message"].endswith("need 2 shots" if offset_x == -0.01 else "2 features re-planned at a new viewpoint")
+    assert why["message"].endswith(replanned)
     views = [line for line in log if line["step"] == "correct" and "view" in line]
-    names = views[0]["features"] if views else ["bevel", "web_outer"]
-    assert len(views) == (offset_x == -0.01) and len(names) == 1 + (offset_x == -0.03)
+    assert [v["features"] for v in views[:1]] == ([seen] if "need 2 shots" in replanned else [])
     frames, camera = task.frames, devices.camera.settings
-    shot = SimpleNamespace(T_cell_cam=frames.T_cell_base @ ur5e.forward(devices.arm.joint_angles()) @ frames.T_flange_cam,
-                           lamp_position=lamp_at(task, devices.lamp.joints()), exposure=SimpleNamespace(**camera))
+    T_cell_cam = frames.T_cell_base @ ur5e.forward(devices.arm.joint_angles()) @ frames.T_flange_cam
+    shot = SimpleNamespace(T_cell_cam=T_cell_cam, lamp_position=lamp_at(task, devices.lamp.joints()),
+                           exposure=SimpleNamespace(**camera))
     assert np.linalg.norm(shot.T_cell_cam[:3, 3] - (found.T_part @ plan.shots[s].T_cell_cam)[:3, 3]) > 0.01
     located = localization.located_task(task, found)
     index = [f.name for f in task.features]
-    for name in names:
+    for name in seen:
         assert_serves(located.with_feature(index.index(name)), shot)
 
 
