@@ -829,7 +829,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--host", default="127.0.0.1", help="loopback address to listen on")
     parser.add_argument("--max-seconds", type=float, default=600.0, help="end after this long")
     parser.add_argument("--fault", choices=FAULTS, help="inject this fault during a move")
-    parser.add_argument("--fault-on-move", type=int, default=1, help="the moveL it fires in (1 = first)")
+    parser.add_argument("--fault-on-move", type=int, default=1, help="the move (moveL or moveJ) it fires in (1 = first)")
     parser.add_argument("--fault-after-s", type=float, default=0.0, help="seconds after that move starts")
     parser.add_argument("--mute", choices=MUTE_STEPS, help="answer nothing from this step of a connection on")
     parser.add_argument("--verbose", action="store_true", help="log recipes and commands on stderr")

@@ -479,7 +479,7 @@ def test_a_joint_move_at_joint_speed_moves_the_camera_no_faster_than_the_arm_s_s
         ds_dt = v / np.abs(q1 - q0).max()                   # the leading joint at v
         speed = np.linalg.norm(np.diff(tcp, axis=0), axis=1) / np.diff(s) * ds_dt
         fastest = max(fastest, float(speed.max()) / config.speed_m_s)
-    assert 0.2 < fastest <= 1.0
+    assert 0.5 < fastest <= 1.0
 
 
 @pytest.mark.long          # 30-60 s: plans the bracket and runs its three shots

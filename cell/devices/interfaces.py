@@ -33,6 +33,7 @@ __all__ = ["Arm", "LampRig", "Camera", "LightController", "Devices", "check_arm_
            "arm_accepts", "joint_speed", "speaking_for"]
 
 ENVELOPE_STEP_M = 0.001         # a joint move's camera and flange within this of the workspace's faces
+SPEED_SAMPLE_RAD = 0.01         # joint_speed's samples: every joint together turns at most this between two
 
 # what device libraries raise: serial.SerialException and socket errors are OSErrors (an unplugged
 # USB adapter, OSError 19 from a camera), ur_rtde raises RuntimeError
@@ -104,13 +105,27 @@ def check_joint_motion(config: ArmConfig, frames: Frames, q_from: ArrayLike, q_t
 
 def joint_speed(config: ArmConfig, frames: Frames, q_from: ArrayLike, q_to: ArrayLike) -> tuple[float, float]:
     """(the leading joint's speed [rad/s], its acceleration [rad/s^2]) of a moveJ from q_from to
-    q_to that moves the camera's origin (the TCP) no faster than the arm's speed_m_s and
-    acceleration_m_s2 limit its moveL: the joints scaled to the leading one (moveJ's), the TCP's
-    speed is at most v sum_i (|dq_i| / max |dq|) rho_i, rho_i <= ur5e.LINKS_M plus the hand-eye's
-    offset (no point of the flange lies farther from a joint's axis)."""
-    dq = np.abs(np.asarray(q_to, float) - np.asarray(q_from, float))
-    rho = ur5e.LINKS_M + float(np.linalg.norm(frames.T_flange_cam[:3, 3]))
-    scale = float(dq.max()) / max(float(dq.sum()) * rho, 1e-300)
+    q_to that moves the camera's origin (the TCP) no faster than the arm's speed_m_s, a moveL's
+    limit. Along q(s) = q_from + s dq the TCP moves |dp/ds| <= B(s) = sum_k |dq_k| rho_k(s), rho_k
+    its distance from joint k's axis; rho_k changes no faster than the TCP moves relative to that
+    axis, so |dB/ds| <= sum |dq| B and B between samples h apart is at most the nearer sample's
+    times exp(sum |dq| h) (Gronwall). The leading joint at v moves s at v / max |dq|, so
+    v = speed_m_s max |dq| / max B. The acceleration is scaled alike (the path's tangential part)."""
+    a, dq = np.asarray(q_from, float), np.asarray(q_to, float) - np.asarray(q_from, float)
+    total = float(np.abs(dq).sum())
+    if total == 0.0:
+        return config.speed_m_s, config.acceleration_m_s2
+    n = max(1, int(np.ceil(total / SPEED_SAMPLE_RAD)))
+    q = a + np.linspace(0.0, 1.0, n + 1)[:, None] * dq
+    T = np.broadcast_to(np.eye(4), (n + 1, 4, 4))
+    axes = []
+    for k in range(6):
+        axes.append((T[:, :3, 3], T[:, :3, 2]))      # joint k's axis: frame k's origin and z
+        T = T @ ur5e.dh(k, q[:, k])
+    tcp = (T @ frames.T_flange_cam)[:, :3, 3]
+    rho = np.stack([np.linalg.norm(np.cross(tcp - o, z), axis=1) for o, z in axes], axis=1)   # (n + 1, 6)
+    bound = float((rho @ np.abs(dq)).max()) * np.exp(total / n)
+    scale = float(np.abs(dq).max()) / max(bound, 1e-300)
     return config.speed_m_s * scale, config.acceleration_m_s2 * scale
 
 

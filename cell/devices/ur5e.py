@@ -21,7 +21,6 @@ A = np.array([0.0, -0.425, -0.3922, 0.0, 0.0, 0.0])          # a_i [m]
 ALPHA = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0])
 JOINT_LIMITS = np.array([2 * np.pi, 2 * np.pi, np.pi, 2 * np.pi, 2 * np.pi, 2 * np.pi])  # +- [rad]
 SINGULAR = 1e-9
-LINKS_M = float(np.abs(A).sum() + D[1:].sum())   # no point of the flange lies farther from a joint's axis
 # elbow up, wrist down, the flange pointing at the table in front of the base: where the arm
 # starts (the simulated arm and controller power up here) and the configuration the planner seeks,
 # so that the moves between shots stay on one branch of the inverse kinematics
