@@ -293,7 +293,7 @@ def test_the_wall_moves_keep_the_padding_along_their_whole_path_by_a_dense_check
     assert min(found)[0] >= task.cell.collision.padding_m
 
 
-@pytest.mark.long          # 1-5 min: the examples' plans and their paths densely
+@pytest.mark.long          # 1-7 min: the examples' plans and their paths densely
 @pytest.mark.parametrize("example", [ROOT / "tasks" / "bracket.yaml", BEAM, RING_LENS, PLATE_DOME, "yawed"],
                          ids=["bracket", "conrod_beam", "ring_lens", "plate_dome", "bracket_yawed_5_deg"])
 def test_every_example_path_keeps_the_padding_by_a_dense_check(example, tmp_path):

@@ -56,6 +56,7 @@ MAX_JOINT_STEP_RAD = 0.2                 # more in one step of a straight path: 
 MIN_STEP_S = 1e-6                        # a step of the path parameter below this: a singularity
 SAME_BRANCH_RAD = 1e-3                   # joints arriving this close to the stop's planned ones
 CORNERS = np.array(np.meshgrid(*[[-1.0, 1.0]] * 3)).T.reshape(-1, 3)   # a box's, in half sizes
+JOINT_ARC_RAD = 0.05                     # a moveJ's corners: the camera every this much of the leading joint's turn
 UNCHECKED_M = 1e6                        # the travel a route solver sees of a move that cannot be made
 
 End = int | str                          # a shot's index in the plan, or HOME
@@ -66,10 +67,10 @@ class Move:
     """A move from `start` to `end` (shot indices, or HOME): the smallest clearance along its
     path (via points included), the via camera poses T_cell_cam (empty: direct) and the lamp's
     via joints (pan, tilt, radius; empty: direct), the camera's
-    corners in the cell frame [m] (start, via points, end: its path is straight between them,
-    but along a leg the arm makes by moveJ, `joint_legs`, its joints linear to the leg's end's,
-    `via_joints` or `joints_end`), its travel (the camera's straight lines plus the lamp's) [m]
-    and the poses checked; `clear` when that clearance is at least the padding."""
+    corners in the cell frame [m] (start, via points, end: its path is straight between them;
+    along a leg the arm makes by moveJ, `joint_legs`, its joints linear to the leg's end's,
+    `via_joints` or `joints_end`, points along the camera's arc), its travel (the camera's path
+    plus the lamp's straight line) [m] and the poses checked; `clear` when that clearance is at least the padding."""
 
     start: End
     end: End
@@ -201,14 +202,12 @@ def joint_path(scene: CollisionScene, q_from: ArrayLike, q_to: ArrayLike,
     arm_path's (conservative advancement per pair of bodies, sweep = sum_i |dq_i| (r_i + allowed)),
     with no bound of the camera's own path: it follows no line."""
     a, b = np.asarray(q_from, float), np.asarray(q_to, float)
-    frames = scene.frames
 
     def at(s: float, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         q = a + s * (b - a)
-        return frames.T_cell_cam_from_base(frames.T_base_cam_from_flange(ur5e.forward(q))), q
+        return _camera(scene, q), q
 
-    T_from, _ = at(0.0, a)
-    return _advance(scene, T_from, a, lamp, at, np.inf, "the joint move")
+    return _advance(scene, _camera(scene, a), a, lamp, at, np.inf, "the joint move")
 
 
 def joint_leg(scene: CollisionScene, arm: ArmConfig, q_from: ArrayLike, q_to: ArrayLike,
@@ -490,12 +489,16 @@ def _through(scene: CollisionScene, arm: ArmConfig, poses: list[np.ndarray], q: 
 
 def _with_lamp(scene: CollisionScene, move: Move, a: Stop, b: Stop) -> Move:
     """The move with the lamp's own move after the arm's (the arm where it arrived at b)
-    counted in, its corners and its travel. A lamp not known at a (the home pose) is checked
+    counted in, its corners (along a moveJ leg the camera every JOINT_ARC_RAD of its leading
+    joint's turn) and its travel. A lamp not known at a (the home pose) is checked
     from b's pose (the run checks it from where it reads it) and counts no travel."""
-    corners = tuple(T[:3, 3] for T in (a.T_cell_cam, *move.via, b.T_cell_cam))
+    assert move.joints_end is not None, "a clear arm move arrives somewhere"
+    joints = (a.arm_joints, *move.via_joints, move.joints_end)
+    corners = (a.T_cell_cam[:3, 3], *(p for k, T in enumerate((*move.via, b.T_cell_cam))
+                                      for p in (_arc(scene, joints[k], joints[k + 1]) if k in move.joint_legs
+                                                else (T[:3, 3],))))
     travel = float(sum(np.linalg.norm(q - p) for p, q in pairwise(corners)))
     least, n = move.clearance, 0
-    assert move.joints_end is not None, "a clear arm move arrives somewhere"
     if b.lamp_joints is not None:
         start = b.lamp_joints if a.lamp_joints is None else a.lamp_joints
         c, lamp_via, n = lamp_route(scene, b.T_cell_cam, move.joints_end, start, b.lamp_joints)
@@ -505,6 +508,18 @@ def _with_lamp(scene: CollisionScene, move: Move, a: Stop, b: Stop) -> Move:
             at = [lamp_position(scene.pivot_m, *j) for j in (a.lamp_joints, *lamp_via, b.lamp_joints)]
             travel += float(sum(np.linalg.norm(y - x) for x, y in pairwise(at)))
     return replace(move, clearance=least, steps=move.steps + n, corners_m=corners, travel_m=travel)
+
+
+def _arc(scene: CollisionScene, q_from: np.ndarray, q_to: np.ndarray) -> list[np.ndarray]:
+    """The camera's positions along the moveJ from q_from to q_to, every JOINT_ARC_RAD of the
+    leading joint's turn, q_from's left out."""
+    n = max(1, int(np.ceil(float(np.abs(q_to - q_from).max()) / JOINT_ARC_RAD)))
+    return [_camera(scene, q_from + s * (q_to - q_from))[:3, 3] for s in np.linspace(0.0, 1.0, n + 1)[1:]]
+
+
+def _camera(scene: CollisionScene, q: np.ndarray) -> np.ndarray:
+    """T_cell_cam with the arm at joints q (the forward kinematics)."""
+    return scene.frames.T_cell_cam_from_base(scene.frames.T_base_cam_from_flange(ur5e.forward(q)))
 
 
 def _retreated(T_cell_cam: np.ndarray, distance_m: float) -> np.ndarray:
