@@ -214,9 +214,14 @@ class Dense:
 
     def joint_path(self, q_a, q_b):
         """The joints along the moveJ from q_a to q_b (linear), no point of the arm moving more
-        than self.step between two (the joints' sweep times the arm's 1.3 m reach)."""
+        than self.step between two: each joint's turn times the farthest any point beyond it lies
+        from its axis (the DH table's lengths beyond joint k, |a_k| + sum over j > k of |a_j| +
+        |d_j|, plus the camera's farthest sample from the flange)."""
         q_a, q_b = np.asarray(q_a, float), np.asarray(q_b, float)
-        n = max(1, int(np.ceil(np.abs(q_b - q_a).sum() * 1.3 / self.step)))
+        tool = float(np.linalg.norm(self.camera, axis=1).max())
+        beyond = [abs(ur5e.A[k]) + sum(abs(ur5e.A[j]) + abs(ur5e.D[j]) for j in range(k + 1, 6)) + tool
+                  for k in range(6)]
+        n = max(1, int(np.ceil(np.abs(q_b - q_a) @ np.array(beyond) / self.step)))
         return [(1 - s) * q_a + s * q_b for s in np.linspace(0.0, 1.0, n + 1)]
 
 

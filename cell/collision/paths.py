@@ -20,8 +20,11 @@ wrist as the base turns) does not shorten the step. A direct move closer than
 the padding gets via points: back along the camera's axis from the first stop, across at that
 standoff, in along the second's axis; retreats of VIA_RETREATS_M are tried in turn. A lamp move
 closer than the padding gets via joints (`lamp_route`): up or down to another tilt, across in pan
-at it, to the target's tilt, the radius the larger of the two ends'. `plan_transition` is the move
-from where the devices read back to a target of the arm, the lamp or both (cell.run.motion).
+at it, to the target's tilt, the radius the larger of the two ends'. Where no moveL is clear
+(a straight path through a singularity or a change of the arm's configuration), the arm moves by
+moveJ (`joint_path`: the joints linear to the second stop's, stepped as a moveL's by the joints'
+sweep), directly or across between the via points. `plan_transition` is the move from where the
+devices read back to a target of the arm, the lamp or both (cell.run.motion).
 """
 
 from __future__ import annotations
@@ -70,7 +73,8 @@ class Move:
     corners in the cell frame [m] (start, via points, end: its path is straight between them;
     along a leg the arm makes by moveJ, `joint_legs`, its joints linear to the leg's end's,
     `via_joints` or `joints_end`, points along the camera's arc), its travel (the camera's path
-    plus the lamp's straight line) [m] and the poses checked; `clear` when that clearance is at least the padding."""
+    plus the lamp's straight line) [m] and the poses checked; `clear` when that clearance is at
+    least the padding."""
 
     start: End
     end: End
@@ -82,7 +86,7 @@ class Move:
     joints_end: np.ndarray | None = None   # where the arm arrives (None: it does not)
     lamp_via: tuple[tuple[float, float, float], ...] = ()   # the lamp's via joints (empty: direct)
     lamp_first: bool = False               # the lamp moves before the arm (cell.run.motion's moves only)
-    joint_legs: tuple[int, ...] = ()       # the legs the arm makes by moveJ (0: the start's to the first via or the end)
+    joint_legs: tuple[int, ...] = ()       # the legs made by moveJ (0: from the start to the first via or the end)
     via_joints: tuple[np.ndarray, ...] = ()   # the arm's joints at each via point, where a leg is a moveJ
 
     @property
@@ -100,7 +104,8 @@ class Move:
                 **({"lamp_via": [list(j) for j in self.lamp_via]} if self.lamp_via else {}),
                 **({"lamp_first": True} if self.lamp_first else {}),
                 **({"joint_legs": list(self.joint_legs),
-                    "via_arm_joints_deg": [np.degrees(q).tolist() for q in self.via_joints]} if self.joint_legs else {})}
+                    "via_arm_joints_deg": [np.degrees(q).tolist() for q in self.via_joints]}
+                   if self.joint_legs else {})}
 
 
 def _name(end: End) -> str:
