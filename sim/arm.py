@@ -26,13 +26,13 @@ JUMP_RAD = 0.5                         # a joint turning more in one tracking st
 
 
 class SimArm(Arm):
-    """Moves instantly along a moveL: the flange's position on a straight line, its orientation
-    by slerp, the joints tracked by the IK solution nearest the last (every TRACK_M and
-    TRACK_RAD); where the tracking jumps (a singularity) the move is a joint move to the solution
-    nearest the current joints. Given the cell's `obstacles` (sim.obstacles, its own collision
-    check), a move that would touch another body stops before it, a protective stop
-    (DeviceFault), the arm where it was. Fault injection: move number `fail_on_move` ends in a
-    protective stop (DeviceFault)."""
+    """Moves instantly along a moveL or a moveJ (move_joints: the joints linear). Along a moveL
+    the flange's position on a straight line, its orientation by slerp, the joints tracked by the
+    IK solution nearest the last (every TRACK_M and TRACK_RAD); where the tracking jumps (a
+    singularity) the move is a joint move to the solution nearest the current joints. Given the
+    cell's `obstacles` (sim.obstacles, its own collision check), a move that would touch another
+    body stops before it, a protective stop (DeviceFault), the arm where it was. Fault
+    injection: move number `fail_on_move` ends in a protective stop (DeviceFault)."""
 
     def __init__(self, config: ArmConfig, frames: Frames, joints: ArrayLike = HOME_JOINTS,
                  fail_on_move: int | None = None, obstacles: Obstacles | None = None) -> None:
@@ -59,6 +59,20 @@ class SimArm(Arm):
                                                "collision check)")
             self.obstacles.arm_joints = path[-1]
         self.joints = path[-1]
+
+    def _move_joints(self, q, speed_rad_s, acceleration_rad_s2):
+        """moveJ: the joints linear to q, checked by the cell's own collision check as a moveL's
+        joint path (a protective stop before a contact, the arm where it was)."""
+        self.moves += 1
+        if self.moves == self.fail_on_move:
+            raise DeviceFault(self.device, f"protective stop during move {self.moves} (injected)")
+        if self.obstacles is not None:
+            contact = self.obstacles.arm_move([self.joints, q])
+            if contact is not None:
+                raise DeviceFault(self.device, f"protective stop: {contact} (the simulated cell's own "
+                                               "collision check)")
+            self.obstacles.arm_joints = q
+        self.joints = np.array(q, float)
 
     def _path(self, T_end: np.ndarray) -> list[np.ndarray]:
         """The joints along the moveL from the current flange pose to T_end (base frame)."""

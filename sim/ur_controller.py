@@ -14,13 +14,14 @@ itself after --max-seconds. One process, one thread, a 500 Hz tick, standard-lib
   controller's input registers.
 - The control script ur_rtde uploads on 30003 (`def rtde_control():`) is recognised, and its
   register protocol is interpreted instead of its URScript (ur_rtde's scripts/rtde_control.script):
-  the command in input_int_register_0, arguments in input_double_register_0.., the async flag in
-  input_int_register_1; output_int_register_0 is 1 (ready) or 2 (done), output_int_register_1 a
-  query's answer, output_int_register_2 the async progress word.
+  the command in input_int_register_0 (moveL 3, moveJ 1, stopJ 34), arguments in input_double_register_0..,
+  the async flag in input_int_register_1; output_int_register_0 is 1 (ready) or 2 (done),
+  output_int_register_1 a query's answer, output_int_register_2 the async progress word.
 - The arm: UR5e kinematics (cell/devices/ur5e.py). moveL follows the straight TCP line at the commanded
   speed with a trapezoidal profile of the commanded acceleration (a rotation counts as 1 m per
   rad, as movel's speed is rad/s for a pure rotation), the joints from the inverse nearest the
-  current ones, every tick.
+  current ones, every tick; moveJ turns every joint linearly, the leading one with that profile
+  at the commanded speed and acceleration [rad/s, rad/s^2].
 - Faults, from the command line or the dashboard (`emulator fault KIND [on move N after S]`):
   protective-stop, emergency-stop (the arm halts, the script stops, the safety bits rise), silent
   (the controller answers nothing more and streams nothing, connections stay open), drop (every
@@ -79,7 +80,8 @@ ROBOT_EMERGENCY_STOPPED_BIT, EMERGENCY_STOPPED_BIT, STOPPED_DUE_TO_SAFETY_BIT = 
 JOINT_RUNNING_MODE = 253
 
 # the control script's command codes (ur_rtde RTDE::RobotCommand::Type) and register values
-MOVEL, SET_TCP, PROTECTIVE_STOP, STOPL, IS_POSE_WITHIN_SAFETY_LIMITS, IS_STEADY = 3, 29, 31, 33, 36, 47
+MOVEJ, MOVEL, SET_TCP, PROTECTIVE_STOP, STOPL, STOPJ = 1, 3, 29, 31, 33, 34
+IS_POSE_WITHIN_SAFETY_LIMITS, IS_STEADY = 36, 47
 STOP_SCRIPT = 255
 REALTIME_COMMANDS = {6, 9, 10, 11, 24, 25, 26, 27, 38, 58}   # the script answers them "ready", not "done"
 READY_FOR_COMMAND, DONE_WITH_COMMAND = 1, 2
@@ -129,16 +131,13 @@ def message(kind: int, payload: bytes = b"") -> bytes:
     return struct.pack(">HB", len(payload) + 3, kind) + payload
 
 
-class Line:
-    """A moveL: the straight TCP line from T0 to T1 (base frame), its length L in metres (+ 1 m
-    per rad of rotation), a trapezoidal profile of the commanded speed and acceleration started
-    at t0; `brake` replaces the profile by a stop at a deceleration from wherever it is."""
+class Profile:
+    """A path of `length` followed with a trapezoidal profile of the commanded speed and
+    acceleration started at t0; `brake` replaces the profile by a stop at a deceleration from
+    wherever it is."""
 
-    def __init__(self, T0: np.ndarray, T1: np.ndarray, speed: float, acceleration: float, t0: float) -> None:
-        self.T0, self.T1, self.t0 = T0, T1, t0
-        self.dp = T1[:3, 3] - T0[:3, 3]
-        self.w = Rotation.from_matrix(T0[:3, :3].T @ T1[:3, :3]).as_rotvec()
-        self.length = float(max(np.linalg.norm(self.dp), np.linalg.norm(self.w)))
+    def __init__(self, length: float, speed: float, acceleration: float, t0: float) -> None:
+        self.length, self.t0 = length, t0
         v, a = speed, acceleration
         t_ramp = v / a
         if v * t_ramp >= self.length:                  # triangular: never reaches the speed
@@ -168,6 +167,17 @@ class Line:
         else:
             self.phases, self.end = [], s
 
+
+class Line(Profile):
+    """A moveL: the straight TCP line from T0 to T1 (base frame), its length in metres (+ 1 m per
+    rad of rotation)."""
+
+    def __init__(self, T0: np.ndarray, T1: np.ndarray, speed: float, acceleration: float, t0: float) -> None:
+        self.T0, self.T1 = T0, T1
+        self.dp = T1[:3, 3] - T0[:3, 3]
+        self.w = Rotation.from_matrix(T0[:3, :3].T @ T1[:3, :3]).as_rotvec()
+        super().__init__(float(max(np.linalg.norm(self.dp), np.linalg.norm(self.w))), speed, acceleration, t0)
+
     def velocity(self, ds_dt: float) -> np.ndarray:
         """The TCP's [vx, vy, vz, wx, wy, wz] (base frame) at path speed ds/dt."""
         if self.length == 0:
@@ -182,14 +192,26 @@ class Line:
         return T
 
 
+class Joints(Profile):
+    """A moveJ: every joint linear from q0 to q1, the leading joint's angle [rad] the path's
+    length (the others scaled to it: all start and stop together)."""
+
+    def __init__(self, q0: np.ndarray, q1: np.ndarray, speed: float, acceleration: float, t0: float) -> None:
+        self.q0, self.dq = q0, q1 - q0
+        super().__init__(float(np.abs(self.dq).max()), speed, acceleration, t0)
+
+    def joints(self, s: float) -> np.ndarray:
+        return self.q0 + self.dq * (s / self.length if self.length > 0 else 1.0)
+
+
 class Arm:
-    """The UR5e: joints, the TCP offset (setTcp) and the line it follows, if any."""
+    """The UR5e: joints, the TCP offset (setTcp) and the line or joint move it follows, if any."""
 
     def __init__(self, joints: ArrayLike = ur5e.HOME_JOINTS) -> None:
         self.q = np.array(joints, float)
         self.qd, self.tcp_speed = np.zeros(6), np.zeros(6)
         self.T_flange_tcp = np.eye(4)
-        self.line: Line | None = None
+        self.line: Line | Joints | None = None
         self.t = time.monotonic()                # of the last step
         self._pose: tuple[bytes, np.ndarray] | None = None   # (key, wire pose): the stream's every tick
 
@@ -213,6 +235,9 @@ class Arm:
     def move_line(self, pose: ArrayLike, speed: float, acceleration: float, now: float) -> None:
         self.line = Line(self.tcp(), from_ur_pose(pose), speed, acceleration, now)
 
+    def move_joints(self, q: ArrayLike, speed: float, acceleration: float, now: float) -> None:
+        self.line = Joints(self.q.copy(), np.asarray(q, float), speed, acceleration, now)
+
     def halt(self) -> None:
         self.line, self.qd, self.tcp_speed = None, np.zeros(6), np.zeros(6)
 
@@ -223,6 +248,16 @@ class Arm:
             self.qd, self.tcp_speed = np.zeros(6), np.zeros(6)
             return None
         s, ds_dt, finished = self.line.state(now)
+        if isinstance(self.line, Joints):
+            q = self.line.joints(s)
+            T0, T1 = self.tcp(), ur5e.forward(q) @ self.T_flange_tcp
+            turn = Rotation.from_matrix(T1[:3, :3] @ T0[:3, :3].T).as_rotvec()
+            self.qd = (q - self.q) / max(dt, 1e-6)
+            self.tcp_speed = np.concatenate([T1[:3, 3] - T0[:3, 3], turn]) / max(dt, 1e-6)
+            self.q = q
+            if finished:
+                self.line = None
+            return None
         T_base_flange = self.line.pose(s) @ np.linalg.inv(self.T_flange_tcp)
         try:
             q = ur5e.inverse(T_base_flange, self.q)
@@ -306,13 +341,14 @@ class ControlScript:
     def process(self, c: Controller, command: int, now: float) -> None:
         c.trace(f"command {command} async {self.read_int(c, 1)} "
                 f"doubles {[round(self.read_double(c, i), 6) for i in range(8)]}")
-        if command == MOVEL:
-            pose = self.read_pose(c)
+        if command in (MOVEL, MOVEJ):
+            target = self.read_pose(c)               # a pose, or moveJ's six joints [rad]
             speed, acceleration = self.read_double(c, 6), self.read_double(c, 7)
+            name = "movel" if command == MOVEL else "movej"
             if not (speed > 0 and acceleration > 0):
-                return c.script_error(f"movel: speed {speed} and acceleration {acceleration} must be > 0")
+                return c.script_error(f"{name}: speed {speed} and acceleration {acceleration} must be > 0")
             self.stop_async_move(c)
-            c.arm.move_line(pose, speed, acceleration, now)
+            (c.arm.move_line if command == MOVEL else c.arm.move_joints)(target, speed, acceleration, now)
             c.move_started(now)
             if self.read_int(c, 1) == 1:
                 self.async_move = True
@@ -320,7 +356,7 @@ class ControlScript:
             else:
                 self.blocked = "move"
                 return
-        elif command == STOPL:
+        elif command in (STOPL, STOPJ):
             deceleration, asynchronous = self.read_double(c, 0), self.read_int(c, 1)
             if self.async_stop:                    # restart a running async stop with these values
                 self.async_stop = False
@@ -794,7 +830,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--host", default="127.0.0.1", help="loopback address to listen on")
     parser.add_argument("--max-seconds", type=float, default=600.0, help="end after this long")
     parser.add_argument("--fault", choices=FAULTS, help="inject this fault during a move")
-    parser.add_argument("--fault-on-move", type=int, default=1, help="the moveL it fires in (1 = first)")
+    parser.add_argument("--fault-on-move", type=int, default=1, help="the move (moveL or moveJ) it fires in (1 = first)")
     parser.add_argument("--fault-after-s", type=float, default=0.0, help="seconds after that move starts")
     parser.add_argument("--mute", choices=MUTE_STEPS, help="answer nothing from this step of a connection on")
     parser.add_argument("--verbose", action="store_true", help="log recipes and commands on stderr")

@@ -6,12 +6,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.optimize import minimize
 
+from cell.core import geometry
 from cell.planning import certificate, one_shot
 from cell.planning.scene import build_scene
 from cell.task.loader import load_task
+from kernels.proximity import closest_points
 
 TASKS = Path(__file__).resolve().parent.parent / "tasks"
+TEST_TASKS = Path(__file__).resolve().parent / "tasks"
 
 
 def equal(a, b):
@@ -69,3 +73,94 @@ def test_specular_points_searched_together_equal_each_searched_alone(problems_at
             best_dense = certificate.mirror_alignment(s.points, s.normals, lamp, s.camera_position).max()
             found = certificate.mirror_alignment(points[k:k + 1], normals[k:k + 1], lamp, s.camera_position)[0]
             assert found >= best_dense - 1e-6         # the start re-projected onto the surface (float32)
+
+
+def specular_point_alone(scene, lamp):
+    """A patch's specular point the slow way: scipy's Nelder-Mead from the best dense point, each
+    step projected by its own closest_points call and judged by mirror_alignment in NumPy (off
+    the patch by its 3-vector's np.linalg.norm), the step back to the start where it ends no better."""
+    radius = float(np.max(np.linalg.norm(scene.points - scene.center, axis=1)))
+    alignment = certificate.mirror_alignment(scene.points, scene.normals, lamp, scene.camera_position)
+    start = scene.points[int(np.argmax(alignment))]
+
+    def at(step):
+        query = start + step[0] * scene.frame[:, 0] + step[1] * scene.frame[:, 1]
+        point, _, normal = closest_points(scene.warp_mesh, query[None], max_dist=radius)
+        if not np.linalg.norm(point[0] - scene.center) <= radius:
+            return point[0], normal[0], 2.0
+        return point[0], normal[0], -float(certificate.mirror_alignment(point, normal, lamp, scene.camera_position)[0])
+
+    d = 0.02 * radius
+    found = minimize(lambda x: at(x)[2], np.zeros(2), method="Nelder-Mead",
+                     options={"initial_simplex": [[0.0, 0.0], [d, 0.0], [0.0, d]], "xatol": 1e-7, "fatol": 1e-12,
+                              "maxfev": 80})
+    point, normal, _ = at(found.x if found.fun <= at(np.zeros(2))[2] else np.zeros(2))
+    return point, normal
+
+
+@pytest.fixture(scope="module")
+def dense_scenes(problems_at_one_camera):
+    """The bracket's dense patches at one camera (flat faces) and the aluminium dome's (curved)."""
+    _, problems = problems_at_one_camera
+    scenes = [build_scene(p.task, certificate.dense_samples(p.task, p.scene), T_cell_cam=p.scene.T_cell_cam)
+              for p in problems]
+    dome = load_task(TEST_TASKS / "sphere_aluminium_narrow.yaml")
+    return scenes + [build_scene(dome, certificate.dense_samples(dome, build_scene(dome)))]
+
+
+def test_specular_points_equal_scipys_search_one_point_at_a_time(dense_scenes):
+    """specular_points (searches asking ahead in lockstep, <v, r> in Python floats) finds, for
+    lamps all round, the very point and normal the one-point-at-a-time scipy search finds."""
+    for scenes in (dense_scenes[:-1], dense_scenes[-1:]):
+        centre = np.mean([s.center for s in scenes], axis=0)
+        for angle in np.radians([0.0, 70.0, 140.0, 210.0, 280.0]):
+            lamp = centre + 0.2 * np.array([np.cos(angle), np.sin(angle), 1.0])
+            points, normals = certificate.specular_points(scenes, lamp)
+            for k, s in enumerate(scenes):
+                point, normal = specular_point_alone(s, lamp)
+                assert np.array_equal(point, points[k]) and np.array_equal(normal, normals[k])
+
+
+def test_alignment_at_one_point_equals_mirror_alignments():
+    """alignment_at (Python floats) is mirror_alignment (NumPy) bit for bit, at points from
+    millimetres to metres from the lamp and camera, signed zeros and a lamp at the point included."""
+    rng = np.random.default_rng(28)
+    points = rng.normal(size=(3000, 3)) * rng.choice([1e-3, 0.1, 1.0], size=(3000, 1))
+    normals = rng.normal(size=(3000, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    normals[:10] = [0.0, -0.0, 1.0]
+    lamp, camera = np.array([0.1, -0.2, 0.3]), rng.normal(size=(3000, 3))
+    points[0] = lamp
+    with np.errstate(invalid="ignore"):
+        expected = certificate.mirror_alignment(points, normals, lamp, camera)
+        found = [certificate.alignment_at(p, n, lamp.tolist(), c) for p, n, c in
+                 zip(points.tolist(), normals.tolist(), camera.tolist())]
+    assert np.isnan(expected[0]) and np.array_equal(np.array(found), expected, equal_nan=True)
+    assert all(certificate.mirror_alignment(points[k:k + 1], normals[k:k + 1], lamp, camera[k])[0] == expected[k]
+               for k in range(1, 200))          # a row alone as in a batch
+
+
+def test_on_patch_decides_as_the_3_vectors_norm():
+    """on_patch is np.linalg.norm(point - center) <= radius, points at the rim to the last ulp included."""
+    rng = np.random.default_rng(7)
+    center, radius = rng.normal(size=3), 0.006
+    directions = rng.normal(size=(4000, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    distances = radius * (1.0 + rng.choice([-1, 1], 4000) * rng.choice([0.0, 1e-16, 3e-16, 1e-12, 1e-3], 4000))
+    points = center + directions * distances[:, None]
+    found = [certificate.on_patch(p, center.tolist(), radius) for p in points.tolist()]
+    assert found == [bool(np.linalg.norm(p - center) <= radius) for p in points]
+    assert 0 < sum(found) < len(found)
+    assert not certificate.on_patch([np.nan] * 3, center.tolist(), radius)
+
+
+def test_mirror_alignment_is_the_form_with_numpys_sums_bit_for_bit():
+    """mirror_alignment (geometry.row_sum's sums) equals the form with np.sum and geometry.unit on
+    a dense patch's worth of points."""
+    rng = np.random.default_rng(3)
+    points = rng.normal(size=(20000, 3)) * 0.01
+    normals = geometry.unit(rng.normal(size=(20000, 3)))
+    lamp, camera = np.array([0.05, -0.2, 0.3]), np.array([0.0, 0.1, 0.5])
+    s, v = geometry.unit(lamp - points), geometry.unit(camera - points)
+    mirror = 2.0 * np.sum(normals * s, axis=-1, keepdims=True) * normals - s
+    assert np.array_equal(certificate.mirror_alignment(points, normals, lamp, camera), np.sum(mirror * v, axis=-1))

@@ -1,4 +1,4 @@
-"""cell.core.geometry's vector arithmetic (norm, unit, dot3, by_component, bounding_sphere) against NumPy's, bit for bit."""
+"""cell.core.geometry's vector arithmetic (norm, unit, dot3, row_sum, by_component, bounding_sphere) against NumPy's, bit for bit."""
 import numpy as np
 import pytest
 
@@ -34,12 +34,18 @@ def test_dot3_norm_and_unit_on_many_vectors_are_numpys_bit_for_bit(shape):
     arrays and on strided views (every other row, a transposed stack's rows)."""
     rng = np.random.default_rng(2)
     x, y = spread(rng, shape), spread(rng, shape)
+    if len(shape) == 2:         # rows whose products are all -0.0 (np.sum gives +0.0), or meet inf
+        x[:3] = [[-0.0, -0.0, -0.0], [1.0, -0.0, 0.0], [np.inf, 1.0, 0.0]]
+        y[:3] = [[1.0, 2.0, 3.0], [-0.0, 1.0, -2.0], [1.0, -np.inf, 1.0]]
     views = [(x, y)] + ([(x[::2], y[::2]), (np.ascontiguousarray(np.moveaxis(x, -1, 0)).T, y.T.T)]
                         if len(shape) == 2 else [])
     for a, b in views:
-        assert np.array_equal(geometry.dot3(a, b), np.sum(a * b, axis=-1))
-        assert np.array_equal(geometry.norm(a), np.linalg.norm(a, axis=-1))
-        assert np.array_equal(geometry.unit(a), a / np.linalg.norm(a, axis=-1, keepdims=True), equal_nan=True)
+        with np.errstate(invalid="ignore"):
+            found, expected = geometry.dot3(a, b), np.sum(a * b, axis=-1)
+            assert np.array_equal(found, expected, equal_nan=True)
+            assert np.array_equal(np.signbit(found), np.signbit(expected))
+            assert np.array_equal(geometry.norm(a), np.linalg.norm(a, axis=-1))
+            assert np.array_equal(geometry.unit(a), a / np.linalg.norm(a, axis=-1, keepdims=True), equal_nan=True)
 
 
 def test_by_component_is_numpys_broadcast_bit_for_bit():
@@ -66,3 +72,18 @@ def test_bounding_sphere_is_the_bounding_box_middle_and_the_largest_distance():
         assert np.array_equal(middle, expected)
         assert radius == np.linalg.norm(points - expected, axis=1).max()
         assert np.all(np.linalg.norm(points - middle, axis=1) <= radius)
+
+
+@pytest.mark.parametrize("shape", [(20000, 3), (4, 5, 3), (3,)])
+def test_row_sum_is_numpys_sum_bit_for_bit(shape):
+    """row_sum is np.sum(axis=-1) exactly, from 1e-12 to 1e12, signed zeros, infinities and NaN included."""
+    rng = np.random.default_rng(5)
+    rows = (rng.normal(size=shape) * 10.0 ** rng.integers(-12, 12, size=shape)).reshape(-1, 3)
+    special = [[-0.0, -0.0, -0.0], [-0.0, 0.0, -0.0], [1.0, -1.0, -0.0], [np.inf, 1.0, 2.0], [np.inf, -np.inf, 0.0],
+               [np.nan, 1.0, 0.0]]
+    rows[:min(len(rows), 6)] = special[:len(rows)]
+    rows = rows.reshape(shape)
+    with np.errstate(invalid="ignore"):
+        expected, found = np.sum(rows, axis=-1), geometry.row_sum(rows)
+    assert np.array_equal(found, expected, equal_nan=True)
+    assert np.array_equal(np.signbit(found), np.signbit(expected))

@@ -121,6 +121,35 @@ def test_the_generator_nelder_mead_is_scipys_bit_for_bit():
     assert ends == {True, False}
 
 
+def test_the_centroid_of_negative_zeros_is_scipys_to_the_sign():
+    """Simplices whose vertices share -0.0 coordinates: every point asked equal to scipy's, the
+    sign of each zero included (the centroid sums from +0.0 as np.add.reduce does)."""
+    for simplex in ([[-0.0, -0.0], [-0.0, 0.25], [0.25, -0.0]], [[-0.0, 0.1], [-0.0, -0.0], [0.3, -0.0]],
+                    [[-0.0, -0.0, 0.2], [-0.0, 0.3, -0.0], [0.1, -0.0, -0.0], [-0.0, -0.0, -0.0]],
+                    [[-0.0, -0.0, -0.0], [0.3, -0.0, -0.0], [-0.0, 0.3, -0.0], [0.2, 0.2, -0.0]]):   # z all -0.0
+        asked_by_scipy = []
+
+        def f(x):
+            asked_by_scipy.append(np.array(x))
+            return float(np.sum((np.asarray(x) - 0.05) ** 2))
+
+        minimize(f, np.zeros(len(simplex[0])), method="Nelder-Mead",
+                 options={"initial_simplex": simplex, "xatol": 1e-7, "fatol": 1e-12, "maxfev": 40})
+        search = nelder_mead.minimize(simplex, 1e-7, 1e-12, 40)
+        asked = []
+        try:
+            point = next(search)
+            while True:
+                asked.append(point)
+                point = search.send(float(np.sum((point - 0.05) ** 2)))
+        except StopIteration:
+            pass
+        assert len(asked) == len(asked_by_scipy)
+        assert all(np.array_equal(a, b) and np.array_equal(np.signbit(a), np.signbit(b))
+                   for a, b in zip(asked, asked_by_scipy))
+        assert any(np.signbit(a).any() for a in asked)      # negative zeros asked, not only given
+
+
 def test_searches_driven_together_end_where_each_ends_alone():
     """lockstep.drive: every round one batch of the points of the searches still running, the
     batches shrinking as searches end; each search's result its own alone."""

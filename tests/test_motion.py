@@ -131,3 +131,60 @@ def test_a_lamp_move_that_would_sweep_through_the_camera_goes_around_it(tmp_path
     lamp_via = [s for s in steps(tmp_path / "run") if s["step"] == "move_lamp_via"]
     at = [lamp_position(pivot, *j) for j in move.lamp_via]
     assert [np.allclose(s["position_m"], p, atol=2e-3) for s, p in zip(lamp_via, at)] == [True, True]
+
+
+def across_the_base(task):
+    """Two camera poses 0.35 m above the cell's floor looking down, 0.3 m either side of the
+    arm's base axis (x = 0, y = -0.4 m): the straight path between them takes the wrist centre
+    through the shoulder's singular cylinder, the far one's joints nearest the near one's are
+    another configuration (the shoulder turned 65 deg further over)."""
+    from cell.collision.paths import Stop
+    from cell.devices import ur5e
+
+    def at(x, q_near):
+        T = look_at(np.array([x, -0.4, 0.35]), np.array([x, -0.4, -0.05]))
+        return Stop(T, ur5e.inverse(task.frames.T_base_flange(task.frames.T_base_cam(T)), q_near), (0.0, 0.5, 0.2))
+
+    a = at(-0.3, ur5e.HOME_JOINTS)
+    return a, at(0.3, a.arm_joints)
+
+
+def test_a_move_whose_straight_path_crosses_a_singularity_is_a_joint_move_the_sim_lets_through(tmp_path):
+    from cell.collision.paths import arm_path
+    from cell.collision.scene import CollisionScene
+    from cell.devices import ur5e
+    task = load_task(HINGE)
+    a, b = across_the_base(task)
+    with pytest.raises(ur5e.Unreachable, match="shoulder cylinder"):
+        arm_path(CollisionScene.of(task), a.T_cell_cam, a.arm_joints, b.T_cell_cam, None)
+    devices = sim_devices(task, a.arm_joints, a.lamp_joints)
+    with Recorder(tmp_path / "run") as recorder:
+        move = motion.go(task, devices, recorder, b.T_cell_cam, to="shot 1")
+    assert move.clear and move.joint_legs == (0,) and move.via == ()
+    assert np.allclose(devices.arm.joints, move.joints_end) and np.allclose(move.joints_end, b.arm_joints)
+    assert np.allclose(devices.arm.camera_pose(), b.T_cell_cam, atol=1e-9)
+    assert devices.arm.moves == 1                                 # one moveJ, the sim's check passed it
+    assert move.to_json()["joint_legs"] == [0]
+
+
+def test_a_joint_move_through_the_wall_is_refused_before_anything_moves_and_a_clear_one_is_driven(tmp_path):
+    """motion.move_joints (a route's moveJ leg): from the near side of the wall to two of the far
+    pose's configurations, one whose joint path sweeps the forearm through the wall (the sim's own
+    check finds that contact), one clear of it (test_moves's dense check)."""
+    from cell.devices import ur5e
+    task = wall_task(tmp_path)
+    b = stop(task, 0.15)
+    a = stop(task, -0.15, b.arm_joints)
+    devices = sim_devices(task, a.arm_joints, a.lamp_joints)
+    solutions = ur5e.inverse_all(task.frames.T_base_flange(task.frames.T_base_cam(b.T_cell_cam)))
+    blocked, clear = solutions[1], solutions[3]
+    assert Obstacles(task).arm_move([a.arm_joints, blocked]) is not None
+    with Recorder(tmp_path / "run") as recorder:
+        with pytest.raises(GoalNotReached) as refused:
+            motion.move_joints(task, devices, blocked, recorder, "shot 1")
+        assert refused.value.cause == "collision" and "fixture and wrist_3" in str(refused.value)
+        assert "before anything moved" in str(refused.value) and devices.arm.moves == 0
+        T = motion.move_joints(task, devices, clear, recorder, "shot 1")
+    assert np.allclose(devices.arm.joints, clear) and np.allclose(T, b.T_cell_cam, atol=1e-9)
+    [logged] = [s for s in steps(tmp_path / "run") if s["step"] == "move_joints"]
+    assert np.allclose(logged["joints_deg"], np.degrees(clear)) and "collision-checked" in logged["message"]

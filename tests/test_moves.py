@@ -212,11 +212,25 @@ class Dense:
             n = int(np.ceil(n * sweep / self.step))
 
 
+    def joint_path(self, q_a, q_b):
+        """The joints along the moveJ from q_a to q_b (linear), no point of the arm moving more
+        than self.step between two: each joint's turn times the farthest any point beyond it lies
+        from its axis (the DH table's lengths beyond joint k, |a_k| + sum over j > k of |a_j| +
+        |d_j|, plus the camera's farthest sample from the flange)."""
+        q_a, q_b = np.asarray(q_a, float), np.asarray(q_b, float)
+        tool = float(np.linalg.norm(self.camera, axis=1).max())
+        beyond = [abs(ur5e.A[k]) + sum(abs(ur5e.A[j]) + abs(ur5e.D[j]) for j in range(k + 1, 6)) + tool
+                  for k in range(6)]
+        n = max(1, int(np.ceil(np.abs(q_b - q_a) @ np.array(beyond) / self.step)))
+        return [(1 - s) * q_a + s * q_b for s in np.linspace(0.0, 1.0, n + 1)]
+
+
 def densely_checked(task, plan, moves):
     """The smallest distance over every move's path as cell.run makes it: the arm's through its
     via points, the lamp where it stands (none from home, where the plan does not know it); then
     the lamp's joints linearly through its via joints to the shot's, its pan as the servo holds it
-    (servo.held_pan), the arm at the shot; the lamp first where the move says so:
+    (servo.held_pan), the arm at the shot; the lamp first where the move says so; a leg the move
+    makes by moveJ with the joints linear:
     [(distance, bodies, move)]."""
     from cell.collision.paths import home_stop
     from cell.devices.servo import held_pan
@@ -244,8 +258,11 @@ def densely_checked(task, plan, moves):
         if move.lamp_first:
             lamp = lamp_legs(q, lamp, [*move.lamp_via, arrives])
         corners = [T, *move.via, shot.T_cell_cam]
-        for T_a, T_b in zip(corners, corners[1:]):
-            joints = dense.path(T_a, T_b, q)
+        for k, (T_a, T_b) in enumerate(zip(corners, corners[1:])):
+            if k in move.joint_legs:                  # a moveJ: the joints linear to the leg's end's
+                joints = dense.joint_path(q, move.via_joints[k] if k < len(move.via) else move.joints_end)
+            else:
+                joints = dense.path(T_a, T_b, q)
             found += [(*dense.nearest(j, lamp if known else None), move.end) for j in joints]
             q = joints[-1]
         if not move.lamp_first:
@@ -281,12 +298,13 @@ def test_the_wall_moves_keep_the_padding_along_their_whole_path_by_a_dense_check
     assert min(found)[0] >= task.cell.collision.padding_m
 
 
-@pytest.mark.long          # 1-5 min: the examples' plans and their paths densely
-@pytest.mark.parametrize("example", [ROOT / "tasks" / "bracket.yaml", BEAM, RING_LENS, PLATE_DOME],
-                         ids=["bracket", "conrod_beam", "ring_lens", "plate_dome"])
-def test_every_example_path_keeps_the_padding_by_a_dense_check(example):
+@pytest.mark.long          # 1-7 min: the examples' plans and their paths densely
+@pytest.mark.parametrize("example", [ROOT / "tasks" / "bracket.yaml", BEAM, RING_LENS, PLATE_DOME, "yawed"],
+                         ids=["bracket", "conrod_beam", "ring_lens", "plate_dome", "bracket_yawed_5_deg"])
+def test_every_example_path_keeps_the_padding_by_a_dense_check(example, tmp_path):
+    """The examples, and the bracket yawed 5 deg (its route has moveJs: bracket_yawed)."""
     from cell.planning.whole_part import plan_features
-    task = load_task(example)
+    task = load_task(bracket_yawed(tmp_path) if example == "yawed" else example)
     assert_every_path_keeps_the_padding(task, plan_features(task))
 
 
@@ -364,3 +382,131 @@ def test_the_cell_s_own_check_is_the_collisions_effect_off_unless_listed():
         else:
             devices.lamp.move(0.0, np.radians(85.0), 0.25)
             assert np.degrees(devices.lamp.joints()[1]) == pytest.approx(85.0, abs=0.1)
+
+
+# --- moves through a change of the arm's configuration: moveJ, checked along its path ---------
+
+BRACKET = ROOT / "tasks" / "bracket.yaml"
+
+
+def bracket_yawed(tmp_path):
+    """tasks/bracket.yaml turned 5 deg about z about its first feature's centre (the mismatch
+    matrix's correct model of that row, test_mismatch._part_pose): its route needs moves through
+    a change of the arm's configuration (a joint turns 165 deg on the moveL from shot 2 to 1)."""
+    from test_mismatch import _part_pose
+    return variant(tmp_path, BRACKET, _part_pose("bracket", rpy_deg=(0.0, 0.0, 5.0)))
+
+
+@pytest.mark.long          # 15 s CPU: the sim's check of 7 paths, the dense check of one
+def test_a_joint_move_the_planner_refuses_hits_in_the_simulated_cell_and_one_it_accepts_keeps_the_padding(tmp_path):
+    """The wall of test_collision between two camera poses: from the first's joints by moveJ
+    (the joints linear) to each of the 8 inverse kinematics solutions of the second. Each one
+    joint_path refuses, the simulated cell's own check (sim.obstacles, the joints linear) stops
+    with a contact; along each it accepts the dense check (trimesh's samples, every 20 mm any
+    point of the arm travels) finds at least the padding, the least within 2 mm of the
+    planner's (test_motion drives the accepted one through the sim)."""
+    from cell.collision.paths import joint_path
+    task = wall_task(tmp_path)
+    scene, padding = CollisionScene.of(task), task.cell.collision.padding_m
+    b = stop(task, 0.15)
+    a = stop(task, -0.15, b.arm_joints)
+    dense = Dense(task, step=0.02)
+    verdicts = []
+    for q in ur5e.inverse_all(task.frames.T_base_flange(task.frames.T_base_cam(b.T_cell_cam))):
+        found, end, steps = joint_path(scene, a.arm_joints, q, None)
+        verdicts.append(found.ok)
+        if found.ok:
+            assert np.allclose(end, q)
+            nearest = min(dense.nearest(j, None)[0] for j in dense.joint_path(a.arm_joints, q))
+            assert nearest >= padding and found.distance_m == pytest.approx(nearest, abs=2e-3)
+        else:
+            assert Obstacles(task).arm_move([a.arm_joints, q]) is not None, np.degrees(q).round(1)
+            assert found.distance_m < padding and "with the camera at" in found.reason()
+    assert any(verdicts) and not all(verdicts)
+
+
+def forward(q):
+    """(N, 4, 4) T_base_flange of N joint vectors (N, 6): the DH table's product, all at once."""
+    T = np.eye(4)
+    for i in range(6):
+        T = T @ ur5e.dh(i, q[:, i])
+    return T
+
+
+def test_a_joint_move_whose_camera_or_flange_leaves_the_workspace_on_the_way_is_refused():
+    """check_joint_motion against the forward kinematics sampled densely (every 0.5 mm a point
+    of the arm travels): random joint moves of the hinge's arm with both ends inside the
+    workspace box and within the joint limits; each whose camera or flange passes more than 1 mm
+    outside on the way is refused, each that stays more than 1 mm inside is not."""
+    from cell.devices.interfaces import check_joint_motion
+    task = load_task(HINGE)
+    config, frames = task.cell.devices.arm, task.frames
+    lo, hi = config.workspace_min_m, config.workspace_max_m
+    rng = np.random.default_rng(3)
+
+    def inset(q):
+        """(N,) the least distance inside the box of the camera's and the flange's origins (< 0: out)."""
+        flange = frames.T_cell_base @ forward(q)
+        points = np.stack([(flange @ frames.T_flange_cam)[..., :3, 3], flange[..., :3, 3]], axis=1)
+        return np.minimum(points - lo, hi - points).min(axis=(1, 2))
+
+    judged = {True: 0, False: 0}
+    while min(judged.values()) < 8:
+        q0 = ur5e.HOME_JOINTS + rng.uniform(-1.0, 1.0, 6)
+        q1 = ur5e.HOME_JOINTS + rng.uniform(-2.0, 2.0, 6)
+        if np.any(np.abs(q1) > ur5e.JOINT_LIMITS) or min(inset(np.array([q0, q1]))) < 0.0:
+            continue
+        n = int(np.ceil(np.abs(q1 - q0).sum() * 1.3 / 5e-4))
+        least = inset(q0 + np.linspace(0.0, 1.0, n + 1)[:, None] * (q1 - q0)).min()
+        if abs(least) <= 1e-3:
+            continue
+        if least < 0:
+            with pytest.raises(DeviceFault, match="outside the workspace"):
+                check_joint_motion(config, frames, q0, q1)
+        else:
+            check_joint_motion(config, frames, q0, q1)
+        judged[bool(least > 0)] += 1
+
+
+def test_a_joint_move_at_joint_speed_moves_the_camera_no_faster_than_the_arm_s_speed():
+    """joint_speed's leading joint's speed: the camera's origin (the TCP) along random moveJs,
+    its speed by finite differences of the forward kinematics, never above the arm's speed_m_s."""
+    from cell.devices.interfaces import joint_speed
+    task = load_task(HINGE)
+    config, frames = task.cell.devices.arm, task.frames
+    rng = np.random.default_rng(5)
+    fastest = 0.0
+    for _ in range(20):
+        q0, q1 = ur5e.HOME_JOINTS + rng.uniform(-2.0, 2.0, (2, 6))
+        v, _ = joint_speed(config, frames, q0, q1)
+        s = np.linspace(0.0, 1.0, 20001)
+        tcp = (forward(q0 + s[:, None] * (q1 - q0)) @ frames.T_flange_cam)[:, :3, 3]
+        ds_dt = v / np.abs(q1 - q0).max()                   # the leading joint at v
+        speed = np.linalg.norm(np.diff(tcp, axis=0), axis=1) / np.diff(s) * ds_dt
+        fastest = max(fastest, float(speed.max()) / config.speed_m_s)
+    assert 0.5 < fastest <= 1.0
+
+
+@pytest.mark.long          # 30-60 s: plans the bracket and runs its three shots
+def test_the_bracket_yawed_5_deg_plans_its_route_with_joint_moves_and_runs_it_on_the_simulator(tmp_path):
+    """The mismatch matrix's correct model of the bracket yawed 5 deg: its route's moves between
+    shots whose moveL crosses a change of configuration are moveJs (plan.json's joint_legs), and
+    `cell run` on the simulated cell (its own collision check on) drives them to the planned
+    joints and converges."""
+    task = bracket_yawed(tmp_path)
+    out = tmp_path / "run"
+    assert main(["run", str(task), "--out", str(out)]) == 0
+    plan = json.loads((out / "plan.json").read_text())
+    joint = [m for m in plan["moves"] if m.get("joint_legs")]
+    assert joint and all(m["clearance_m"] >= plan_padding(task) for m in plan["moves"])
+    log = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    driven = [line for line in log if line["step"] == "move_joints"]
+    assert len(driven) == sum(len(m["joint_legs"]) for m in joint)
+    for line, move in zip(driven, joint):                  # each to the joints the plan's route planned
+        assert line["to"] == f"shot {move['to']}" and np.allclose(line["joints_deg"], move["arm_joints_deg"])
+    assert not any(line["step"] == "fault" for line in log)
+    assert json.loads((out / "report.json").read_text())["converged"]
+
+
+def plan_padding(task_path):
+    return load_task(task_path).cell.collision.padding_m

@@ -1,5 +1,6 @@
 """The physics core against the worked values of the physics notes and stability properties."""
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -255,6 +256,26 @@ def test_dominant_term_regions():
     assert term(28.9) == brdf.LOBE
     assert term(70.0) == brdf.DIFFUSE
     assert int(brdf.dominant_term(-0.1, 1.0, 0.0, s1, m1, s2, m2)) == brdf.OCCLUDED
+
+
+def test_vector_forms_are_the_forms_with_numpys_sums_bit_for_bit():
+    """phase_angle, reflectance_vectors and dominant_term_vectors (geometry.row_sum's sums) equal
+    the forms with np.linalg.norm and np.sum, for lamps all over the sphere and a fixed camera."""
+    from cell.core import geometry
+    from cell.task.loader import load_material
+    material = load_material(Path(__file__).resolve().parent.parent / "tasks/materials/milled_aluminium.yaml")
+    rng = np.random.default_rng(11)
+    s = geometry.unit(rng.normal(size=(20000, 3)))
+    n, v = geometry.unit(np.array([0.1, -0.2, 1.0])), geometry.unit(np.array([0.3, 0.1, 1.0]))
+    alpha = np.arctan2(np.linalg.norm(np.cross(s, v), axis=-1), np.sum(s * v, axis=-1))
+    assert np.array_equal(brdf.phase_angle(s, v), alpha)
+    p = material.at(alpha)
+    cos_i, cos_e, cos_alpha = np.sum(n * s, axis=-1), np.sum(n * v, axis=-1), np.clip(np.sum(s * v, axis=-1), -1.0, 1.0)
+    assert np.array_equal(brdf.reflectance_vectors(n, s, v, material),
+                          brdf.reflectance(cos_i, cos_e, cos_alpha, p.rho, p.sigma1, p.m1, p.sigma2, p.m2))
+    terms = brdf.dominant_term(cos_i, cos_e, cos_alpha, p.sigma1, p.m1, p.sigma2, p.m2)
+    assert np.array_equal(brdf.dominant_term_vectors(n, s, v, material), terms)
+    assert {brdf.DIFFUSE, brdf.LOBE, brdf.SPIKE, brdf.OCCLUDED} <= set(terms.tolist())
 
 
 def test_stable_power_matches_exact_values():

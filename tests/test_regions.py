@@ -195,3 +195,14 @@ def test_the_queries_split_over_two_threads_give_the_same_transform():
     finally:
         runtime.set_threads(None)
     np.testing.assert_array_equal(split, nearest_over_all_cells(grid, inside))
+
+
+def test_directions_rotated_once_per_frame_are_the_products():
+    """SphereGrid.directions(frame) is the feature-frame directions times frame.T exactly, read-only
+    and made once per frame (asked again: the same array)."""
+    grid = SphereGrid(np.radians(2.0))
+    frame = geometry.frame_from_normal(geometry.unit([0.3, -0.5, 0.8]))
+    found = grid.directions(frame)
+    assert np.array_equal(found, grid.directions(np.eye(3)) @ frame.T)
+    assert not found.flags.writeable and grid.directions(frame.copy()) is found
+    assert np.allclose(np.linalg.norm(found, axis=-1), 1.0)

@@ -3,6 +3,7 @@ run as its own process: moveL at the commanded speed, async moveL and stopL, set
 protective and emergency stops; cell.devices.hw.ur.URArm moving the camera and reading it back, and its
 watch on the controller: a killed, silent or dropped controller mid-move is a DeviceFault at once
 (not after ur_rtde's 300 s), as are a protective stop and a move past move_timeout_s."""
+import re
 import sys
 import threading
 import time
@@ -272,6 +273,29 @@ def test_one_emulator_per_host_and_it_ends_itself(emulators):
         with pytest.raises(SystemExit, match=f"{HOST}:29999 .*address already in use"):
             ur_controller.Server(HOST, ur_controller.Controller())
         assert process.wait(timeout=5 + BUSY_S) == 0 and time.monotonic() - began < 2.0 + BUSY_S      # --max-seconds
+
+
+def test_ur_arm_moves_the_joints_by_movej_stops_it_by_stopj_and_a_protective_stop_names_it(emulators):
+    """URArm.move_joints through the real client's moveJ (a change of the arm's configuration):
+    the joints read back at the target (the emulator turns them linearly), the camera where the
+    forward kinematics put it; stop() after it sends stopJ and after a moveL stopL (the
+    emulator's log of the commands: moveJ 1, stopJ 34, moveL 3, stopL 33); a protective stop
+    mid-moveJ is a fault naming the moveJ."""
+    with emulators.own("--verbose") as process, ur_arm(LOOPBACK_ARM) as arm:
+        home = arm.joint_angles()
+        q = home + np.radians([15.0, -10.0, 10.0, 0.0, 20.0, 30.0])
+        arm.move_joints(q)
+        assert arm.joint_angles() == pytest.approx(q, abs=1e-4)
+        expected = FRAMES.T_cell_cam_from_base(FRAMES.T_base_cam_from_flange(ur5e.forward(q)))
+        assert arm.camera_pose() == pytest.approx(expected, abs=1e-4)
+        arm.stop()
+        arm.move_camera(HINGE_CAMERA)
+        arm.stop()
+        commands = re.findall(r"command (\d+) ", process.log.read_text())
+        assert [c for c in commands if c in {"1", "3", "33", "34"}] == ["1", "34", "3", "33"]
+        assert dashboard("emulator fault protective-stop on move 3 after 0.2").startswith("fault")
+        with pytest.raises(DeviceFault, match=r"moveJ did not complete \(protective stop\)"):
+            arm.move_joints(home)
 
 
 def test_ur_arm_controller_killed_mid_move_is_a_fault_at_once_and_stop_says_it_could_not_stop(emulators):

@@ -20,8 +20,11 @@ wrist as the base turns) does not shorten the step. A direct move closer than
 the padding gets via points: back along the camera's axis from the first stop, across at that
 standoff, in along the second's axis; retreats of VIA_RETREATS_M are tried in turn. A lamp move
 closer than the padding gets via joints (`lamp_route`): up or down to another tilt, across in pan
-at it, to the target's tilt, the radius the larger of the two ends'. `plan_transition` is the move
-from where the devices read back to a target of the arm, the lamp or both (cell.run.motion).
+at it, to the target's tilt, the radius the larger of the two ends'. Where no moveL is clear
+(a straight path through a singularity or a change of the arm's configuration), the arm moves by
+moveJ (`joint_path`: the joints linear to the second stop's, stepped as a moveL's by the joints'
+sweep), directly or across between the via points. `plan_transition` is the move from where the
+devices read back to a target of the arm, the lamp or both (cell.run.motion).
 """
 
 from __future__ import annotations
@@ -37,11 +40,11 @@ from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
 from cell.collision.bodies import Body, Box, Capsule
-from cell.collision.scene import LAMP_BODIES, LINK, Clearance, CollisionScene, Pairs
+from cell.collision.scene import JOINT_MOVE, LAMP_BODIES, LINK, Clearance, CollisionScene, Pairs
 from cell.core import geometry
 from cell.core.errors import DeviceFault
 from cell.devices import ur5e
-from cell.devices.interfaces import check_arm_motion
+from cell.devices.interfaces import check_arm_motion, check_joint_motion
 from cell.devices.rig import lamp_position
 
 if TYPE_CHECKING:
@@ -56,6 +59,7 @@ MAX_JOINT_STEP_RAD = 0.2                 # more in one step of a straight path: 
 MIN_STEP_S = 1e-6                        # a step of the path parameter below this: a singularity
 SAME_BRANCH_RAD = 1e-3                   # joints arriving this close to the stop's planned ones
 CORNERS = np.array(np.meshgrid(*[[-1.0, 1.0]] * 3)).T.reshape(-1, 3)   # a box's, in half sizes
+JOINT_ARC_RAD = 0.05                     # a moveJ's corners: the camera every this much of the leading joint's turn
 UNCHECKED_M = 1e6                        # the travel a route solver sees of a move that cannot be made
 
 End = int | str                          # a shot's index in the plan, or HOME
@@ -66,9 +70,11 @@ class Move:
     """A move from `start` to `end` (shot indices, or HOME): the smallest clearance along its
     path (via points included), the via camera poses T_cell_cam (empty: direct) and the lamp's
     via joints (pan, tilt, radius; empty: direct), the camera's
-    corners in the cell frame [m] (start, via points, end: its path is straight between them),
-    its travel (the camera's path plus the lamp's straight line) [m] and the poses checked;
-    `clear` when that clearance is at least the padding."""
+    corners in the cell frame [m] (start, via points, end: its path is straight between them;
+    along a leg the arm makes by moveJ, `joint_legs`, its joints linear to the leg's end's,
+    `via_joints` or `joints_end`, points along the camera's arc), its travel (the camera's path
+    plus the lamp's straight line) [m] and the poses checked; `clear` when that clearance is at
+    least the padding."""
 
     start: End
     end: End
@@ -80,6 +86,8 @@ class Move:
     joints_end: np.ndarray | None = None   # where the arm arrives (None: it does not)
     lamp_via: tuple[tuple[float, float, float], ...] = ()   # the lamp's via joints (empty: direct)
     lamp_first: bool = False               # the lamp moves before the arm (cell.run.motion's moves only)
+    joint_legs: tuple[int, ...] = ()       # the legs made by moveJ (0: from the start to the first via or the end)
+    via_joints: tuple[np.ndarray, ...] = ()   # the arm's joints at each via point, where a leg is a moveJ
 
     @property
     def clear(self) -> bool:
@@ -94,7 +102,10 @@ class Move:
                 "travel_m": self.travel_m, "steps": self.steps,
                 **({} if self.joints_end is None else {"arm_joints_deg": np.degrees(self.joints_end).tolist()}),
                 **({"lamp_via": [list(j) for j in self.lamp_via]} if self.lamp_via else {}),
-                **({"lamp_first": True} if self.lamp_first else {})}
+                **({"lamp_first": True} if self.lamp_first else {}),
+                **({"joint_legs": list(self.joint_legs),
+                    "via_arm_joints_deg": [np.degrees(q).tolist() for q in self.via_joints]}
+                   if self.joint_legs else {})}
 
 
 def _name(end: End) -> str:
@@ -178,22 +189,66 @@ def arm_path(scene: CollisionScene, T_from: np.ndarray, q_from: ArrayLike, T_to:
         T[:3, 3] = (1 - s) * T_from[:3, 3] + s * T_to[:3, 3]
         return T
 
-    s, q = 0.0, np.asarray(q_from, float)
-    bodies = scene.bodies(T_from, q, lamp)
-    pairs, reach = Pairs.of(bodies, len(scene.fixed)), body_reach(scene, bodies, q)
-    mover, joints, camera = _moved_by(tuple(body.name for body in bodies), pairs.i.tobytes(), pairs.j.tobytes())
+    def at(s: float, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return pose(s), ur5e.inverse(scene.frames.T_base_flange(scene.frames.T_base_cam(pose(s))), q)
+
     box = scene.camera_body(scene.frames.T_cell_flange(T_from))
     rho = float(np.linalg.norm(geometry.apply(box.T_cell_box, CORNERS * box.half_m) - T_from[:3, 3], axis=1).max())
     rate = float(np.linalg.norm(T_to[:3, 3] - T_from[:3, 3])) + angle * rho      # the camera body's travel per unit s
+    return _advance(scene, T_from, np.asarray(q_from, float), lamp, at, rate, "the straight path")
+
+
+def joint_path(scene: CollisionScene, q_from: ArrayLike, q_to: ArrayLike,
+               lamp: ArrayLike | None) -> tuple[Clearance, np.ndarray, int]:
+    """(the smallest Clearance along the moveJ from joints q_from to q_to, or the first below the
+    padding, the joints it ends at (q_to), the poses checked): the joints linear in s,
+    q(s) = q_from + s (q_to - q_from), as a UR controller's moveJ interpolates them (every joint
+    starts and stops together), the camera where the forward kinematics put it. Steps as
+    arm_path's (conservative advancement per pair of bodies, sweep = sum_i |dq_i| (r_i + allowed)),
+    with no bound of the camera's own path: it follows no line."""
+    a, b = np.asarray(q_from, float), np.asarray(q_to, float)
+
+    def at(s: float, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        q = a + s * (b - a)
+        return _camera(scene, q), q
+
+    return _advance(scene, _camera(scene, a), a, lamp, at, np.inf, "the joint move")
+
+
+def joint_leg(scene: CollisionScene, arm: ArmConfig, q_from: ArrayLike, q_to: ArrayLike,
+              lamp: ArrayLike | None) -> tuple[Clearance, np.ndarray, int]:
+    """joint_path's (Clearance, joints at the end, poses checked) of the moveJ from q_from to
+    q_to, its envelope first (check_joint_motion): where the arm cannot make it, Clearance -inf
+    with the arm and JOINT_MOVE named and why, the joints where they were, none checked."""
+    try:
+        check_joint_motion(arm, scene.frames, q_from, q_to)
+        return joint_path(scene, q_from, q_to, lamp)
+    except (ur5e.Unreachable, DeviceFault) as err:
+        why = err.reason if isinstance(err, DeviceFault) else str(err)
+        return Clearance(-np.inf, ("arm", JOINT_MOVE), scene.padding_m, why), np.asarray(q_from, float), 0
+
+
+def _advance(scene: CollisionScene, T_from: np.ndarray, q_from: np.ndarray, lamp: ArrayLike | None,
+             at: Callable[[float, np.ndarray], tuple[np.ndarray, np.ndarray]], rate: float,
+             path: str) -> tuple[Clearance, np.ndarray, int]:
+    """The conservative advancement of arm_path and joint_path along a path whose pose and
+    joints at s in [0, 1] are at(s, the last step's joints); `rate` bounds the camera body's
+    travel per unit s against the bodies no joint moves (inf: no bound but the joints'). Returns
+    (the smallest Clearance, or the first below the padding, where the camera was; the joints at
+    its end; the poses checked)."""
+    s, q = 0.0, q_from
+    bodies = scene.bodies(T_from, q, lamp)
+    pairs, reach = Pairs.of(bodies, len(scene.fixed)), body_reach(scene, bodies, q)
+    mover, joints, camera = _moved_by(tuple(body.name for body in bodies), pairs.i.tobytes(), pairs.j.tobytes())
     least = max(0.5 * scene.padding_m, MIN_STEP_M)
-    found, at = [pairs.least(scene.padding_m)], [0.0]
+    found, where = [pairs.least(scene.padding_m)], [T_from[:3, 3]]
     ds = 1.0
     while s < 1.0 and found[-1].ok:
         while True:
             s_next = min(1.0, s + ds)
-            q_next = ur5e.inverse(scene.frames.T_base_flange(scene.frames.T_base_cam(pose(s_next))), q)
+            T_next, q_next = at(s_next, q)
             dq = np.abs(q_next - q)
-            bodies_next = scene.bodies(pose(s_next), q_next, lamp)
+            bodies_next = scene.bodies(T_next, q_next, lamp)
             reach_next = body_reach(scene, bodies_next, q_next)
             r = np.maximum(reach, reach_next)[mover]
             ratio = _worst(pairs, r, joints, dq, np.where(camera, rate * (s_next - s), np.inf), least,
@@ -202,18 +257,17 @@ def arm_path(scene: CollisionScene, T_from: np.ndarray, q_from: ArrayLike, T_to:
                 break
             ds = (s_next - s) * 0.9 * min(1.0 / max(ratio, 1e-300), MAX_JOINT_STEP_RAD / max(dq.max(), 1e-300))
             if ds < MIN_STEP_S:
-                raise ur5e.Unreachable(f"the straight path turns a joint {np.degrees(dq.max()):.0f} deg in a "
+                raise ur5e.Unreachable(f"{path} turns a joint {np.degrees(dq.max()):.0f} deg in a "
                                        "vanishing step: a singularity or a change of configuration on the way")
         s, q, reach = s_next, q_next, reach_next
         pairs = Pairs.of(bodies_next, len(scene.fixed))
         found.append(pairs.least(scene.padding_m))
-        at.append(s)
+        where.append(T_next[:3, 3])
         if len(found) > MAX_STEPS:
             raise ur5e.Unreachable(f"a path of more than {MAX_STEPS} checked poses")
         ds *= 2.0
     k = int(np.argmin([c.distance_m for c in found]))
-    where = f"with the camera at {np.round(pose(at[k])[:3, 3], 3).tolist()} m (cell frame)"
-    return replace(found[k], where=where), q, len(found)
+    return replace(found[k], where=f"with the camera at {np.round(where[k], 3).tolist()} m (cell frame)"), q, len(found)
 
 
 def _worst(pairs: Pairs, reach: np.ndarray, joints: np.ndarray, dq: np.ndarray, path: np.ndarray,
@@ -302,25 +356,46 @@ class Stop:
 
 
 def plan_move(scene: CollisionScene, arm: ArmConfig, start: End, a: Stop, end: End, b: Stop,
-              retreats: Sequence[float] = VIA_RETREATS_M) -> Move:
+              retreats: Sequence[float] = VIA_RETREATS_M, joint: bool = False) -> Move:
     """The Move from stop a to stop b: direct if clear, else through the first via points
-    (`retreats`) whose path is clear; neither: the direct move, not clear, with its bodies."""
+    (`retreats`) whose path is clear; neither: the direct move, not clear, with its bodies.
+    By moveL, or with `joint` by moveJ where the arm changes configuration: the direct move a
+    moveJ to b's joints (the solution of b's pose nearest b.arm_joints), the via points' crossing
+    a moveJ to the retreated pose's solution nearest those, their retreat and approach moveLs."""
     lamp_a = None if a.lamp_joints is None else lamp_position(scene.pivot_m, *a.lamp_joints)
-    direct, q, steps = _through(scene, [a.T_cell_cam, b.T_cell_cam], a.arm_joints, lamp_a)
+    q_b = None
+    if joint:
+        try:
+            q_b = _joints_at(scene, b.T_cell_cam, b.arm_joints)
+        except ur5e.Unreachable as err:
+            return Move(start, end, Clearance(-np.inf, ("arm", "its reach"), scene.padding_m, str(err)), (), 0,
+                        (a.T_cell_cam[:3, 3], b.T_cell_cam[:3, 3]))
+    direct, q, steps, _ = _through(scene, arm, [a.T_cell_cam, b.T_cell_cam], a.arm_joints, lamp_a,
+                                   None if q_b is None else [q_b])
     if direct.ok:
-        return _with_lamp(scene, Move(start, end, direct, (), steps, joints_end=q), a, b)
+        return _with_lamp(scene, Move(start, end, direct, (), steps, joints_end=q,
+                                      joint_legs=() if q_b is None else (0,)), a, b)
     for retreat in retreats:
         via = (_retreated(a.T_cell_cam, retreat), _retreated(b.T_cell_cam, retreat))
         try:
             for T in via:
                 check_arm_motion(arm, scene.frames, T, arm.speed_m_s)
-        except DeviceFault:
+            targets = None if q_b is None else [None, _joints_at(scene, via[1], q_b), None]
+        except (DeviceFault, ur5e.Unreachable):
             continue
-        found, q, n = _through(scene, [a.T_cell_cam, *via, b.T_cell_cam], a.arm_joints, lamp_a)
+        found, q, n, reached = _through(scene, arm, [a.T_cell_cam, *via, b.T_cell_cam], a.arm_joints, lamp_a, targets)
         steps += n
         if found.ok:
-            return _with_lamp(scene, Move(start, end, found, via, steps, joints_end=q), a, b)
+            legs, at = ((), ()) if q_b is None else ((1,), tuple(reached[:2]))
+            return _with_lamp(scene, Move(start, end, found, via, steps, joints_end=q, joint_legs=legs,
+                                          via_joints=at), a, b)
     return Move(start, end, direct, (), steps, (a.T_cell_cam[:3, 3], b.T_cell_cam[:3, 3]))
+
+
+def _joints_at(scene: CollisionScene, T_cell_cam: np.ndarray, q_near: ArrayLike) -> np.ndarray:
+    """The arm's joints with the camera at T_cell_cam nearest q_near (ur5e.inverse; raises
+    ur5e.Unreachable)."""
+    return ur5e.inverse(scene.frames.T_base_flange(scene.frames.T_base_cam(T_cell_cam)), q_near)
 
 
 def plan_transition(scene: CollisionScene, arm: ArmConfig, a: Stop, b: Stop, start: End = "start",
@@ -328,23 +403,22 @@ def plan_transition(scene: CollisionScene, arm: ArmConfig, a: Stop, b: Stop, sta
     """The Move from where the devices are (a: read back) to b: the arm's path and then the
     lamp's route (plan_move), or where that is not clear the lamp's route first and then the
     arm's path (`lamp_first`: the lamp out of the camera's way), each direct before either
-    tries via points; or, the camera staying where it is (b at a's pose), the lamp's route alone
-    (lamp_route, the arm still at a's joints); b's lamp joints None: the arm moves, the lamp
-    stays (and is checked where it stands). None clear: the arm-first move, not clear."""
+    tries via points; all by moveL, and where none of those is clear, the same by moveJ
+    (plan_move's `joint`: a change of the arm's configuration no straight path makes); or, the
+    camera staying where it is (b at a's pose), the lamp's route alone (lamp_route, the arm
+    still at a's joints); b's lamp joints None: the arm moves, the lamp stays (and is checked
+    where it stands). None clear: the arm-first moveL, not clear, or the arm-first moveJ's
+    collision where the arm cannot follow the straight path."""
     same = (np.allclose(a.T_cell_cam[:3, 3], b.T_cell_cam[:3, 3], atol=1e-9)
             and np.allclose(a.T_cell_cam[:3, :3], b.T_cell_cam[:3, :3], atol=1e-9))
     if not same:
-        first = plan_move(scene, arm, start, a, end, b, retreats=())
-        both = a.lamp_joints is not None and b.lamp_joints is not None
-        if first.clear:
-            return first
-        lamp_first = _lamp_first(scene, arm, start, a, end, b, ()) if both else None
-        if lamp_first is not None:
-            return lamp_first
-        move = plan_move(scene, arm, start, a, end, b)
-        if move.clear or not both:
-            return move
-        return _lamp_first(scene, arm, start, a, end, b, VIA_RETREATS_M) or move
+        line = _arm_transition(scene, arm, start, a, end, b, joint=False)
+        if line.clear:
+            return line
+        joint = _arm_transition(scene, arm, start, a, end, b, joint=True)
+        if joint.clear or (line.clearance.distance_m == -np.inf and joint.clearance.distance_m > -np.inf):
+            return joint
+        return line
     if b.lamp_joints is None or a.lamp_joints is None:
         lamp_at = None if a.lamp_joints is None else lamp_position(scene.pivot_m, *a.lamp_joints)
         return Move(start, end, scene.clearance(a.T_cell_cam, a.arm_joints, lamp_at), (), 1,
@@ -356,8 +430,26 @@ def plan_transition(scene: CollisionScene, arm: ArmConfig, a: Stop, b: Stop, sta
                 lamp_via if found.ok else ())
 
 
+def _arm_transition(scene: CollisionScene, arm: ArmConfig, start: End, a: Stop, end: End, b: Stop,
+                    joint: bool) -> Move:
+    """plan_transition's moves of the arm (by moveJ with `joint`): the arm first, direct; the
+    lamp first, direct; the arm first through via points; the lamp first through via points;
+    the first clear, else the arm-first move, not clear."""
+    first = plan_move(scene, arm, start, a, end, b, retreats=(), joint=joint)
+    both = a.lamp_joints is not None and b.lamp_joints is not None
+    if first.clear:
+        return first
+    lamp_first = _lamp_first(scene, arm, start, a, end, b, (), joint) if both else None
+    if lamp_first is not None:
+        return lamp_first
+    move = plan_move(scene, arm, start, a, end, b, joint=joint)
+    if move.clear or not both:
+        return move
+    return _lamp_first(scene, arm, start, a, end, b, VIA_RETREATS_M, joint) or move
+
+
 def _lamp_first(scene: CollisionScene, arm: ArmConfig, start: End, a: Stop, end: End, b: Stop,
-                retreats: Sequence[float]) -> Move | None:
+                retreats: Sequence[float], joint: bool = False) -> Move | None:
     """The move with the lamp's route first (the arm still at a), then the arm's path (the lamp
     at b), or None where either is not clear."""
     assert a.lamp_joints is not None and b.lamp_joints is not None
@@ -365,7 +457,7 @@ def _lamp_first(scene: CollisionScene, arm: ArmConfig, start: End, a: Stop, end:
     if not c.ok:
         return None
     then = plan_move(scene, arm, start, replace(a, lamp_joints=b.lamp_joints), end, replace(b, lamp_joints=None),
-                     retreats)
+                     retreats, joint)
     if not then.clear:
         return None
     at = [lamp_position(scene.pivot_m, *j) for j in (a.lamp_joints, *lamp_via, b.lamp_joints)]
@@ -374,32 +466,44 @@ def _lamp_first(scene: CollisionScene, arm: ArmConfig, start: End, a: Stop, end:
                    travel_m=then.travel_m + float(sum(np.linalg.norm(y - x) for x, y in pairwise(at))))
 
 
-def _through(scene: CollisionScene, poses: list[np.ndarray], q: np.ndarray,
-             lamp: np.ndarray | None) -> tuple[Clearance, np.ndarray, int]:
-    """The smallest Clearance of moveL's through the poses in turn (-inf, the arm and its reach
-    named, where: why, ur5e.Unreachable's words: a pose the arm does not reach on the way), the
-    joints it ends at and the poses checked."""
-    found, steps = [], 0
-    try:
-        for T_from, T_to in pairwise(poses):
-            c, q, n = arm_path(scene, T_from, q, T_to, lamp)
-            found.append(c)
-            steps += n
-            if not c.ok:
-                return c, q, steps
-    except ur5e.Unreachable as err:
-        return Clearance(-np.inf, ("arm", "its reach"), scene.padding_m, str(err)), q, steps
-    return _least(found, scene.padding_m), q, steps
+def _through(scene: CollisionScene, arm: ArmConfig, poses: list[np.ndarray], q: np.ndarray,
+             lamp: np.ndarray | None, targets: Sequence[np.ndarray | None] | None = None
+             ) -> tuple[Clearance, np.ndarray, int, list[np.ndarray]]:
+    """The smallest Clearance of the legs through the poses in turn, each a moveL (arm_path) or,
+    where targets[k] gives joints, a moveJ to them (joint_path, its envelope by
+    check_joint_motion); -inf, the arm named, where the arm cannot make a leg (where: why,
+    ur5e.Unreachable's or the envelope's words). Also the joints it ends at, the poses checked and
+    the joints at each pose after the first."""
+    found, steps, reached = list[Clearance](), 0, list[np.ndarray]()
+    for k, (T_from, T_to) in enumerate(pairwise(poses)):
+        target = None if targets is None else targets[k]
+        if target is not None:
+            c, q, n = joint_leg(scene, arm, q, target, lamp)
+        else:
+            try:
+                c, q, n = arm_path(scene, T_from, q, T_to, lamp)
+            except ur5e.Unreachable as err:
+                return Clearance(-np.inf, ("arm", "its reach"), scene.padding_m, str(err)), q, steps, reached
+        found.append(c)
+        reached.append(q)
+        steps += n
+        if not c.ok:
+            return c, q, steps, reached
+    return _least(found, scene.padding_m), q, steps, reached
 
 
 def _with_lamp(scene: CollisionScene, move: Move, a: Stop, b: Stop) -> Move:
     """The move with the lamp's own move after the arm's (the arm where it arrived at b)
-    counted in, its corners and its travel. A lamp not known at a (the home pose) is checked
+    counted in, its corners (along a moveJ leg the camera every JOINT_ARC_RAD of its leading
+    joint's turn) and its travel. A lamp not known at a (the home pose) is checked
     from b's pose (the run checks it from where it reads it) and counts no travel."""
-    corners = tuple(T[:3, 3] for T in (a.T_cell_cam, *move.via, b.T_cell_cam))
+    assert move.joints_end is not None, "a clear arm move arrives somewhere"
+    joints = (a.arm_joints, *move.via_joints, move.joints_end)
+    corners = (a.T_cell_cam[:3, 3], *(p for k, T in enumerate((*move.via, b.T_cell_cam))
+                                      for p in (_arc(scene, joints[k], joints[k + 1]) if k in move.joint_legs
+                                                else (T[:3, 3],))))
     travel = float(sum(np.linalg.norm(q - p) for p, q in pairwise(corners)))
     least, n = move.clearance, 0
-    assert move.joints_end is not None, "a clear arm move arrives somewhere"
     if b.lamp_joints is not None:
         start = b.lamp_joints if a.lamp_joints is None else a.lamp_joints
         c, lamp_via, n = lamp_route(scene, b.T_cell_cam, move.joints_end, start, b.lamp_joints)
@@ -409,6 +513,18 @@ def _with_lamp(scene: CollisionScene, move: Move, a: Stop, b: Stop) -> Move:
             at = [lamp_position(scene.pivot_m, *j) for j in (a.lamp_joints, *lamp_via, b.lamp_joints)]
             travel += float(sum(np.linalg.norm(y - x) for x, y in pairwise(at)))
     return replace(move, clearance=least, steps=move.steps + n, corners_m=corners, travel_m=travel)
+
+
+def _arc(scene: CollisionScene, q_from: np.ndarray, q_to: np.ndarray) -> list[np.ndarray]:
+    """The camera's positions along the moveJ from q_from to q_to, every JOINT_ARC_RAD of the
+    leading joint's turn, q_from's left out."""
+    n = max(1, int(np.ceil(float(np.abs(q_to - q_from).max()) / JOINT_ARC_RAD)))
+    return [_camera(scene, q_from + s * (q_to - q_from))[:3, 3] for s in np.linspace(0.0, 1.0, n + 1)[1:]]
+
+
+def _camera(scene: CollisionScene, q: np.ndarray) -> np.ndarray:
+    """T_cell_cam with the arm at joints q (the forward kinematics)."""
+    return scene.frames.T_cell_cam_from_base(scene.frames.T_base_cam_from_flange(ur5e.forward(q)))
 
 
 def _retreated(T_cell_cam: np.ndarray, distance_m: float) -> np.ndarray:

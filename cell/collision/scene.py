@@ -49,6 +49,7 @@ ARM_LINKS = (("base", 0.076), ("shoulder", 0.062), ("upper_arm", 0.056), ("elbow
 CHAIN = tuple(name for name, _ in ARM_LINKS) + ("camera_body",)
 # The lamp and the pan-tilt's links holding it (rig_links), in the order CollisionScene.bodies puts them,
 # last; the arm only where the task declares the rig's reach (cell.collision.rig_reach_m).
+JOINT_MOVE = "its joint move"            # the second of a Clearance's bodies where the arm cannot make a moveJ
 LAMP_BODIES = ("lamp_body", "tilt_servo", "rig_arm")
 MAY_TOUCH = frozenset({frozenset(CHAIN[i:i + 2]) for i in range(len(CHAIN) - 1)}
                       | {frozenset((CHAIN[i], CHAIN[i + 2])) for i in range(len(CHAIN) - 2)}
@@ -200,7 +201,8 @@ class Clearance:
         """The refusal's sentence: names both bodies (and where, on a path); a path the arm cannot
         follow (distance -inf, cell.collision.paths) says why instead, no body touching."""
         if self.distance_m == -np.inf:
-            return f"the arm cannot follow the straight path ({self.where})"
+            path = "the joint move" if self.bodies[1] == JOINT_MOVE else "the straight path"
+            return f"the arm cannot follow {path} ({self.where})"
         a, b = self.bodies
         apart = "touch or overlap" if self.distance_m <= 0 else f"only {self.distance_m * 1e3:.1f} mm apart"
         at = f" {self.where}" if self.where else ""

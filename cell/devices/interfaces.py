@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from cell.core.errors import DeviceFault
+from cell.devices import ur5e
 from cell.devices.rig import lamp_aim, lamp_position
 from cell.devices.session import try_all
 
@@ -28,8 +29,11 @@ if TYPE_CHECKING:
     from cell.task.device_config import ArmConfig
     from cell.task.types import LampRig as LampRigModel
 
-__all__ = ["Arm", "LampRig", "Camera", "LightController", "Devices", "check_arm_motion", "arm_accepts",
-           "speaking_for"]
+__all__ = ["Arm", "LampRig", "Camera", "LightController", "Devices", "check_arm_motion", "check_joint_motion",
+           "arm_accepts", "joint_speed", "speaking_for"]
+
+ENVELOPE_STEP_M = 0.001         # a joint move's camera and flange within this of the workspace's faces
+SPEED_SAMPLE_RAD = 0.01         # joint_speed's samples: every joint together turns at most this between two
 
 # what device libraries raise: serial.SerialException and socket errors are OSErrors (an unplugged
 # USB adapter, OSError 19 from a camera), ur_rtde raises RuntimeError
@@ -64,6 +68,65 @@ def check_arm_motion(config: ArmConfig, frames: Frames, T_cell_cam: ArrayLike, s
         if not _inside(config, p[None])[0]:
             raise DeviceFault("arm", f"{name} at {np.round(p, 3).tolist()} m is outside the workspace "
                                      f"{lo.tolist()}..{hi.tolist()} m: refused before moving")
+
+
+def check_joint_motion(config: ArmConfig, frames: Frames, q_from: ArrayLike, q_to: ArrayLike) -> None:
+    """Refuse (DeviceFault) a joint move (moveJ: every joint linear from q_from to q_to) whose
+    target leaves the joint limits (ur5e.JOINT_LIMITS) or along which the camera's origin or the
+    flange's leaves the workspace box, before anything moves. The path's poses are walked by
+    conservative advancement: a point d inside the box, rho_i from joint i's axis, moves at most
+    sum_i |dq_i| (rho_i + step) in a step that moves it at most `step` (its distance from an axis
+    grows no faster than it moves), and each step keeps that at most max(d, ENVELOPE_STEP_M): the
+    points stay inside, within ENVELOPE_STEP_M of the faces where they pass that close."""
+    a, b = np.asarray(q_from, float), np.asarray(q_to, float)
+    if b.shape != (6,) or not np.all(np.isfinite(b)) or np.any(np.abs(b) > ur5e.JOINT_LIMITS):
+        raise DeviceFault("arm", f"joints {np.round(np.degrees(b), 1).tolist()} deg outside the UR5e's joint limits: "
+                                 "refused before moving")
+    lo, hi = config.workspace_min_m, config.workspace_max_m
+    s = 0.0
+    while True:
+        q = a + s * (b - a)
+        frames_q = ur5e.chain(frames.T_cell_base, q)
+        flange = frames_q[6]
+        points = np.array([(flange @ frames.T_flange_cam)[:3, 3], flange[:3, 3]])    # camera, flange
+        for name, p in zip(("camera", "flange"), points):
+            if not _inside(config, p[None])[0]:
+                raise DeviceFault("arm", f"the joint move takes the {name} to {np.round(p, 3).tolist()} m, outside "
+                                         f"the workspace {lo.tolist()}..{hi.tolist()} m: refused before moving")
+        if s >= 1.0:
+            return
+        inset = np.maximum(np.minimum(points - lo, hi - points).min(axis=1), ENVELOPE_STEP_M)   # (2,)
+        rel = points[:, None] - frames_q[None, :6, :3, 3]                                      # (2, 6, 3)
+        axes = frames_q[None, :6, :3, 2]
+        rho = np.linalg.norm(rel - np.sum(rel * axes, axis=-1, keepdims=True) * axes, axis=-1)  # (2, 6)
+        sweep = np.sum(np.abs(b - a) * (rho + inset[:, None]), axis=1)                          # per unit s
+        s = min(1.0, s + float(np.min(inset / np.maximum(sweep, 1e-300))))
+
+
+def joint_speed(config: ArmConfig, frames: Frames, q_from: ArrayLike, q_to: ArrayLike) -> tuple[float, float]:
+    """(the leading joint's speed [rad/s], its acceleration [rad/s^2]) of a moveJ from q_from to
+    q_to that moves the camera's origin (the TCP) no faster than the arm's speed_m_s, a moveL's
+    limit. Along q(s) = q_from + s dq the TCP moves |dp/ds| <= B(s) = sum_k |dq_k| rho_k(s), rho_k
+    its distance from joint k's axis; rho_k changes no faster than the TCP moves relative to that
+    axis, so |dB/ds| <= sum |dq| B and B between samples h apart is at most the nearer sample's
+    times exp(sum |dq| h) (Gronwall). The leading joint at v moves s at v / max |dq|, so
+    v = speed_m_s max |dq| / max B. The acceleration is scaled alike (the path's tangential part)."""
+    a, dq = np.asarray(q_from, float), np.asarray(q_to, float) - np.asarray(q_from, float)
+    total = float(np.abs(dq).sum())
+    if total == 0.0:
+        return config.speed_m_s, config.acceleration_m_s2
+    n = max(1, int(np.ceil(total / SPEED_SAMPLE_RAD)))
+    q = a + np.linspace(0.0, 1.0, n + 1)[:, None] * dq
+    T = np.broadcast_to(np.eye(4), (n + 1, 4, 4))
+    axes = []
+    for k in range(6):
+        axes.append((T[:, :3, 3], T[:, :3, 2]))      # joint k's axis: frame k's origin and z
+        T = T @ ur5e.dh(k, q[:, k])
+    tcp = (T @ frames.T_flange_cam)[:, :3, 3]
+    rho = np.stack([np.linalg.norm(np.cross(tcp - o, z), axis=1) for o, z in axes], axis=1)   # (n + 1, 6)
+    bound = float((rho @ np.abs(dq)).max()) * np.exp(total / n)
+    scale = float(np.abs(dq).max()) / max(bound, 1e-300)
+    return config.speed_m_s * scale, config.acceleration_m_s2 * scale
 
 
 def arm_accepts(config: ArmConfig, frames: Frames, T_cell_cams: ArrayLike) -> np.ndarray:
@@ -103,6 +166,22 @@ class Arm(ABC):
         speed = self.config.speed_m_s if speed_m_s is None else speed_m_s
         check_arm_motion(self.config, self.frames, T_cell_cam, speed)
         self._move_tcp(self.frames.T_base_cam(T_cell_cam), speed)
+
+    def move_joints(self, q: ArrayLike) -> None:
+        """moveJ: every joint linear to q [rad] (all starting and stopping together), the TCP no
+        faster than a moveL at the arm's speed (joint_speed); returns when there, raises
+        DeviceFault where check_joint_motion refuses it (before moving), where the arm cannot
+        tell its joints (no path from them can be checked) or on a device error."""
+        q_now = self.joint_angles()
+        if q_now is None:
+            raise DeviceFault(self.device, "a joint move needs the arm's joints read back, which this arm does not "
+                                           "report: refused before moving")
+        check_joint_motion(self.config, self.frames, q_now, q)
+        self._move_joints(np.asarray(q, float), *joint_speed(self.config, self.frames, q_now, q))
+
+    def _move_joints(self, q, speed_rad_s, acceleration_rad_s2):
+        """Move the joints to q (moveJ) at the leading joint's speed and acceleration."""
+        raise DeviceFault(self.device, "this arm makes no joint move (moveJ): refused before moving")
 
     def refusal(self, T_cell_cam: np.ndarray, speed_m_s: float | None = None) -> str | None:
         """Why move_camera would refuse this pose (the envelope's check, then the backend's reach),

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike
 
-from cell.core import geometry
+from cell.core.geometry import row_sum
 
 if TYPE_CHECKING:
     from cell.physics.material import Material, Unresolved
@@ -96,16 +96,17 @@ def reflectance_jacobian(cos_i: ArrayLike, cos_e: ArrayLike, cos_alpha: ArrayLik
 
 def phase_angle(s: np.ndarray, v: np.ndarray) -> np.ndarray:
     """alpha between unit vectors (..., 3) = atan2(|s x v|, <s, v>), accurate at every angle
-    (arccos of <s, v> is not near 0 and pi)."""
-    return np.arctan2(geometry.norm(np.cross(s, v)), geometry.dot3(s, v))
+    (arccos of <s, v> is not near 0 and pi); the sums np.linalg.norm's and np.sum's bits (row_sum)."""
+    cross = np.cross(s, v)
+    return np.arctan2(np.sqrt(row_sum(cross * cross)), row_sum(s * v))
 
 
 def reflectance_vectors(n: ArrayLike, s: ArrayLike, v: ArrayLike, material: Material) -> np.ndarray:
     """R for unit vectors (..., 3): n normal, s to lamp, v to camera; material params at the phase angle."""
     n, s, v = (np.asarray(a, dtype=float) for a in (n, s, v))
-    cos_i = geometry.dot3(n, s)
-    cos_e = geometry.dot3(n, v)
-    cos_alpha = np.clip(geometry.dot3(s, v), -1.0, 1.0)
+    cos_i = row_sum(n * s)                  # np.sum(n * s, axis=-1)'s bits
+    cos_e = row_sum(n * v)
+    cos_alpha = np.clip(row_sum(s * v), -1.0, 1.0)
     p = material.at(phase_angle(s, v))
     return reflectance(cos_i, cos_e, cos_alpha, p.rho, p.sigma1, p.m1, p.sigma2, p.m2)
 
@@ -113,9 +114,9 @@ def reflectance_vectors(n: ArrayLike, s: ArrayLike, v: ArrayLike, material: Mate
 def dominant_term_vectors(n: ArrayLike, s: ArrayLike, v: ArrayLike, material: Material) -> np.ndarray:
     """dominant_term() for unit vectors, with the material at the phase angle."""
     n, s, v = (np.asarray(a, dtype=float) for a in (n, s, v))
-    cos_i = geometry.dot3(n, s)
-    cos_e = geometry.dot3(n, v)
-    cos_alpha = np.clip(geometry.dot3(s, v), -1.0, 1.0)
+    cos_i = row_sum(n * s)                  # np.sum(n * s, axis=-1)'s bits
+    cos_e = row_sum(n * v)
+    cos_alpha = np.clip(row_sum(s * v), -1.0, 1.0)
     p = material.at(phase_angle(s, v))
     return dominant_term(cos_i, cos_e, cos_alpha, p.sigma1, p.m1, p.sigma2, p.m2)
 
@@ -139,7 +140,7 @@ def unresolved_spike(n: ArrayLike, s: ArrayLike, v: ArrayLike, material: Materia
     if material.unresolved is None:
         return np.zeros(np.broadcast_shapes(n.shape, s.shape, v.shape)[:-1], bool)
     h = s + v
-    cos_h = geometry.dot3(n, h) / np.maximum(geometry.norm(h), 1e-300)
+    cos_h = row_sum(n * h) / np.maximum(np.sqrt(row_sum(h * h)), 1e-300)     # np.sum's, np.linalg.norm's bits
     near = cos_h > np.cos(spike_keep_out(material.unresolved))
     return near & material.unresolved_spike(phase_angle(s, v))
 

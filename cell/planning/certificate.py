@@ -10,8 +10,10 @@ then adds the worst points to its samples and searches again (cell.planning.one_
 
 from __future__ import annotations
 
+import math
 from collections.abc import Generator, Iterable, Sequence
 from dataclasses import replace
+from itertools import islice
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -31,6 +33,8 @@ DENSE_MAX = 20_000              # points: a 12 mm patch seen by 93 um pixels nee
 # the requirements that depend on where the points are; the others are judged by the search
 JUDGED = ("gray_min", "gray_max", "reflection_region", "no_shadow", "cone_coverage", "camera_view", "view_angle",
           "resolution", "depth_of_field", "defect_cnr")
+SLOTS = 3                       # queries a specular search asks at most in a round (nelder_mead.batches in 2-D)
+ON_PATCH_MARGIN = 1e-9          # of the radius: the band about the rim on_patch decides by np.linalg.norm
 
 
 def worse_of(values: Iterable[RequirementValue], verification: Verification) -> tuple[RequirementValue, ...]:
@@ -51,11 +55,14 @@ def dense_samples(task: Task, scene: Scene) -> int:
 
 def mirror_alignment(points: np.ndarray, normals: np.ndarray, lamp: ArrayLike, camera: ArrayLike) -> np.ndarray:
     """<v, r> at each point, r the lamp direction s mirrored about the normal (2 <n,s> n - s):
-    1 where the mirror direction points at the camera, the spike's peak (eq. 6-7)."""
-    s = geometry.unit(np.asarray(lamp, float) - points)
-    v = geometry.unit(np.asarray(camera, float) - points)
-    mirror = 2.0 * np.sum(normals * s, axis=-1, keepdims=True) * normals - s
-    return np.sum(mirror * v, axis=-1)
+    1 where the mirror direction points at the camera, the spike's peak (eq. 6-7). Each sum over
+    x, y, z by geometry.row_sum (a dense patch's 10 000 points in a third of np.sum's time, the same bits)."""
+    s = np.asarray(lamp, float) - points
+    s = s / np.sqrt(geometry.row_sum(s * s))[..., None]
+    v = np.asarray(camera, float) - points
+    v = v / np.sqrt(geometry.row_sum(v * v))[..., None]
+    mirror = 2.0 * geometry.row_sum(normals * s)[..., None] * normals - s
+    return geometry.row_sum(mirror * v)
 
 
 def specular_points(scenes: Sequence[Scene], lamp: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
@@ -64,43 +71,87 @@ def specular_points(scenes: Sequence[Scene], lamp: ArrayLike) -> tuple[np.ndarra
     tangent plane projected onto the surface (a highlight between the dense points, on a curved
     patch, is found to within float32); the step back to that best dense point where the search
     ends no better. Returns (points (K, 3), outward normals (K, 3)) on the surface. The K
-    searches run in lockstep (cell.planning.lockstep.drive): each round's projections of all of
-    them in one ClosestPoint launch and their <v, r> in one pass, each value from its own row
-    alone, so each search ends where it would alone."""
+    searches run in lockstep (cell.planning.lockstep.drive), each asking ahead
+    (nelder_mead.batches: a step's reflection, inside contraction and expansion in one round,
+    half the rounds of one point a round): each round's projections of all of them in one
+    ClosestPoint launch (SLOTS queries a search), each point's <v, r> from its own row alone
+    (alignment_at: a round's few points cost less in Python floats than in NumPy calls), so
+    each search ends where it would alone."""
     from kernels.proximity import ClosestPoint
-    radius = [float(np.max(np.linalg.norm(s.points - s.center, axis=1))) for s in scenes]
+    # each patch's largest |point - center| (np.linalg.norm's along rows: the root of row_sum)
+    radius = [math.sqrt(float(np.max(geometry.row_sum(d * d)))) for d in (s.points - s.center for s in scenes)]
     starts = np.array([s.points[int(np.argmax(mirror_alignment(s.points, s.normals, lamp, s.camera_position)))]
                        for s in scenes]).reshape(-1, 3)
     along_x = np.array([s.frame[:, 0] for s in scenes]).reshape(-1, 3)
     along_y = np.array([s.frame[:, 1] for s in scenes]).reshape(-1, 3)
-    cameras = np.array([s.camera_position for s in scenes]).reshape(-1, 3)
-    closest = ClosestPoint([s.warp_mesh for s in scenes], radius)
-    queries = starts.copy()
+    closest = ClosestPoint([s.warp_mesh for s in scenes for _ in range(SLOTS)], np.repeat(radius, SLOTS))
+    queries = np.repeat(starts, SLOTS, axis=0)
+    lamp_at = np.asarray(lamp, float).tolist()
+    frames = [(start, x, y, s.center.tolist(), s.camera_position.tolist())
+              for start, x, y, s in zip(starts.tolist(), along_x.tolist(), along_y.tolist(), scenes)]
 
-    def place(k: int, step: np.ndarray) -> None:
-        """Search k's query: its start moved by `step` in the feature's tangent plane."""
-        queries[k] = starts[k] + step[0] * along_x[k] + step[1] * along_y[k]
-
-    def values(asked: list[tuple[int, np.ndarray]]) -> list[float]:
-        """-<v, r> at each asked (search, step)'s point on the surface; 2 off its patch (or no surface)."""
-        for k, step in asked:
-            place(k, step)
+    def values(asked: list[tuple[int, np.ndarray]]) -> list[list[float]]:
+        """-<v, r> at each asked (search, steps (m, 2))'s points on the surface, each step taken
+        in the feature's tangent plane from its start (start + a x + b y, NumPy's order); 2 off
+        its patch (or no surface)."""
+        rows, placed = [], []
+        for k, steps in asked:
+            (sx, sy, sz), (xx, xy, xz), (yx, yy, yz) = frames[k][:3]
+            for j, (a, b) in enumerate(steps.tolist()):
+                rows.append(SLOTS * k + j)
+                placed.append((sx + a * xx + b * yx, sy + a * xy + b * yy, sz + a * xz + b * yz))
+        queries[rows] = placed
         point, _, normal = closest(queries)
-        rows = [k for k, _ in asked]
-        on = [k for k in rows if np.linalg.norm(point[k] - scenes[k].center) <= radius[k]]
-        alignment = dict(zip(on, mirror_alignment(point[on], normal[on], lamp, cameras[on]))) if on else {}
-        return [-float(alignment[k]) if k in alignment else 2.0 for k in rows]
+        found = iter(zip(point[rows].tolist(), normal[rows].tolist()))
+        return [[-alignment_at(p, n, lamp_at, frames[k][4]) if on_patch(p, frames[k][3], radius[k]) else 2.0
+                 for p, n in islice(found, len(steps))] for k, steps in asked]
 
-    def search(k: int) -> Generator[np.ndarray, float, np.ndarray]:
+    def search(k: int) -> Generator[np.ndarray, list[float], np.ndarray]:
         d = 0.02 * radius[k]
-        x, fun, _ = yield from nelder_mead.minimize([[0.0, 0.0], [d, 0.0], [0.0, d]], 1e-7, 1e-12, 80)
-        at_start = yield np.zeros(2)
+        steps = nelder_mead.batches([[0.0, 0.0], [d, 0.0], [0.0, d]], 1e-7, 1e-12, 80)
+        answers = yield next(steps)
+        at_start = answers[0]               # the initial simplex's first vertex: the start itself
+        try:
+            while True:
+                answers = yield steps.send(answers)
+        except StopIteration as stop:
+            x, fun, _ = stop.value
         return x if fun <= at_start else np.zeros(2)
 
-    for k, step in enumerate(lockstep.drive([search(k) for k in range(len(scenes))], values)):
-        place(k, step)
+    step = np.array(lockstep.drive([search(k) for k in range(len(scenes))], values)).reshape(-1, 2)
+    queries[::SLOTS] = starts + step[:, :1] * along_x + step[:, 1:] * along_y
     point, _, normal = closest(queries)
-    return point, normal
+    return point[::SLOTS], normal[::SLOTS]
+
+
+def on_patch(point: list[float], center: list[float], radius: float) -> bool:
+    """|point - center| <= radius as the 3-vector's np.linalg.norm decides it (the root of a
+    BLAS dot product, whose rounding a sum of squares need not share): the sum of squares'
+    root where that is clearly on or off (more than ON_PATCH_MARGIN of the radius from it, far
+    beyond an ulp's difference), np.linalg.norm's own near the rim (and for NaN: off)."""
+    dx, dy, dz = point[0] - center[0], point[1] - center[1], point[2] - center[2]
+    distance = math.sqrt((dx * dx + dy * dy) + dz * dz)
+    if abs(distance - radius) > ON_PATCH_MARGIN * radius:
+        return distance <= radius
+    return bool(np.linalg.norm(np.array([dx, dy, dz])) <= radius)
+
+
+def alignment_at(point: list[float], normal: list[float], lamp: list[float], camera: list[float]) -> float:
+    """mirror_alignment at one point, in Python floats: the same IEEE operations in the same
+    order, each sum of three ((a + b) + c) + 0.0 as geometry.row_sum's, so the same
+    bits (tests/test_certificate.py holds them equal); NumPy's own (NaN) where the lamp or the
+    camera is at the point."""
+    (px, py, pz), (nx, ny, nz) = point, normal
+    sx, sy, sz = lamp[0] - px, lamp[1] - py, lamp[2] - pz
+    vx, vy, vz = camera[0] - px, camera[1] - py, camera[2] - pz
+    s_length = math.sqrt(((sx * sx + sy * sy) + sz * sz) + 0.0)
+    v_length = math.sqrt(((vx * vx + vy * vy) + vz * vz) + 0.0)
+    if not (s_length > 0.0 and v_length > 0.0):
+        return float(mirror_alignment(np.array([point]), np.array([normal]), lamp, camera)[0])
+    sx, sy, sz = sx / s_length, sy / s_length, sz / s_length
+    vx, vy, vz = vx / v_length, vy / v_length, vz / v_length
+    twice = 2.0 * (((nx * sx + ny * sy) + nz * sz) + 0.0)
+    return (((twice * nx - sx) * vx + (twice * ny - sy) * vy) + (twice * nz - sz) * vz) + 0.0
 
 
 def verify(problem: evaluate.Problem, shot: Shot) -> tuple[Verification, np.ndarray]:

@@ -65,10 +65,11 @@ def batches(initial_simplex: ArrayLike, xatol: float, fatol: float, maxfev: int,
     rarer, is asked when needed.
 
     The vertices are lists of Python floats, their arithmetic scipy's element by element (IEEE
-    double either way: a NumPy call on a 3-vector costs more than its sums) but
-    the centroid's sum NumPy's own (np.add.reduce starts from +0.0: rows of -0.0 sum to +0.0,
-    where adding them in turn gives -0.0), the simplex ordered by np.argsort of the
-    values (its order among equal values is NumPy's, which Python's sort need not share)."""
+    double either way: a NumPy call on a 3-vector costs more than its sums), the centroid's sum
+    in NumPy's order (np.add.reduce over the rows starts from +0.0 and adds them in turn: rows
+    of -0.0 sum to +0.0, where adding them without the +0.0 gives -0.0), the simplex ordered by
+    np.argsort of the values (its order among equal values is NumPy's, which Python's sort need
+    not share)."""
     sim = [[float(v) for v in row] for row in np.atleast_2d(np.asarray(initial_simplex, dtype=float))]
     n = len(sim[0])
     calls = 0
@@ -108,7 +109,10 @@ def batches(initial_simplex: ArrayLike, xatol: float, fatol: float, maxfev: int,
             if (all(abs(a - b) <= xatol for row in sim[1:] for a, b in zip(row, best))      # np.max(...) <= xatol,
                     and all(abs(fsim[0] - f) <= fatol for f in fsim[1:])):                  # NaN failing it as there
                 break
-            xbar = (np.add.reduce(np.array(sim[:-1]), 0) / n).tolist()     # scipy's sum: NumPy's order
+            total = [0.0] * n                       # scipy's np.add.reduce(sim[:-1], 0): from +0.0, a row at a time
+            for row in sim[:-1]:
+                total = [t + x for t, x in zip(total, row)]
+            xbar = [t / n for t in total]
             xr = [(1 + RHO) * a - RHO * w for a, w in zip(xbar, worst)]
             xcc = [(1 - PSI) * a + PSI * w for a, w in zip(xbar, worst)]
             xe = [(1 + RHO * CHI) * a - RHO * CHI * w for a, w in zip(xbar, worst)]

@@ -43,8 +43,9 @@ class SphereGrid:
         return -0.5 * np.pi + self.step * np.arange(self.elevation_count)
 
     def directions(self, frame: ArrayLike = np.eye(3)) -> np.ndarray:
-        """(E, A, 3) unit directions of every cell, rotated from the feature frame by `frame`."""
-        return _cell_directions(self.step) @ np.asarray(frame).T
+        """(E, A, 3) unit directions of every cell, rotated from the feature frame by `frame`
+        (read-only: made once per frame, _rotated_directions)."""
+        return _rotated_directions(self.step, np.ascontiguousarray(frame, dtype=float).tobytes())
 
     def _corners(self, azimuth, elevation):
         """(e0, a0, a1, ta, te): the cells around (azimuth, elevation) and the weights between
@@ -88,6 +89,16 @@ def _cell_directions(step: float) -> np.ndarray:
     grid = SphereGrid(step)
     el, az = np.meshgrid(grid.elevation, grid.azimuth, indexing="ij")
     out = geometry.direction_from_angles(az, el)
+    out.flags.writeable = False
+    return out
+
+
+@lru_cache(maxsize=8)
+def _rotated_directions(step: float, frame: bytes) -> np.ndarray:
+    """SphereGrid(step).directions of the frame (3x3, C order, its bytes), read-only, the 8 most
+    recent kept: a part's features lie on a few faces, so its maps (some 370 dominant-term maps
+    of the 40-feature part, its 5 frames) ask the same few rotations again and again."""
+    out = _cell_directions(step) @ np.frombuffer(frame).reshape(3, 3).T
     out.flags.writeable = False
     return out
 

@@ -231,7 +231,8 @@ def write_cell_view(path: PathLike, plan: Plan, task: Task, order: Sequence[int]
     whose = "the plan's order" if order is None else "the route's order"
     for move in plan.moves:
         corners = np.array(move.corners_m)
-        via = f"{len(move.via)} via point{'s' * (len(move.via) != 1)}"
+        via = f"{len(move.via)} via point{'s' * (len(move.via) != 1)}" + (
+            f", {len(move.joint_legs)} leg{'s' * (len(move.joint_legs) != 1)} by moveJ" if move.joint_legs else "")
         start = move.start if isinstance(move.start, str) else f"shot {move.start}"
         text = (f"{start} to shot {move.end}: collision-checked, clearance "
                 f"{move.clearance.distance_m * 1e3:.1f} mm ({' and '.join(move.clearance.bodies)}), {via}")

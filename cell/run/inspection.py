@@ -101,11 +101,14 @@ def run_shot(ctx: RunContext, plan: Plan, s: int, done: list[ShotRun]) -> ShotRu
     folder shot-<s>/ (its own log.jsonl, every step also in the run's, and report.json, written
     however it ends; re-plans keep the shot's camera pose); a pose error an earlier shot found
     (ctx.pose_error) is applied before it moves: the features' tasks and plans carried along with
-    the part (localization.located_task, moved_plan), the arm's hand-eye corrected (its move then
-    refused: cause `pose`, the pose named first, not `collision`); features the loop re-planned
-    into several shots for where the part is (loop.Split) visited in turn (split_views); its
-    ShotRun is appended to `done` however it ends. A goal not reached ends the shot (its ShotRun says why); a device fault is
-    raised on."""
+    the part (localization.located_task, moved_plan), the arm's hand-eye corrected; the move to
+    that carried shot refused (out of reach, no path clear), its viewpoint re-planned for where the
+    part is, as a shot localized in itself is (loop.carried_viewpoint; no viewpoint serves: cause
+    `pose`, the refusal and the re-plan named; a move refused later: cause `pose`, the pose named
+    first, not `collision`); features the loop re-planned into several shots for where the part is
+    (loop.Split) visited in turn (split_views), the shot's captures shared by them; its ShotRun
+    is appended to `done` however it ends. A goal not reached ends the shot (its ShotRun says
+    why); a device fault is raised on."""
     from cell.report.pictures import write_convergence
     shot = plan.shots[s]
     names = assigned(plan, s)
@@ -130,6 +133,13 @@ def run_shot(ctx: RunContext, plan: Plan, s: int, done: list[ShotRun]) -> ShotRu
     with ctx.recorder.sub(f"shot-{s}", shot=s) as rec:
         try:
             try:
+                if pose is not None:        # its carried move refused: its viewpoint re-planned there
+                    located, replanned = loop.carried_viewpoint(replace(ctx, recorder=rec), features, pose)
+                    if replanned:
+                        features, T_cell_cam = list(located), located[0].model.plan.shot.T_cell_cam
+                        planned.append(T_cell_cam)
+                        rec.step("correct", f"{localization.describe(pose, pose.views)}: {replanned}",
+                                 action="locate", viewpoint=True)
                 for event in loop.iterate(replace(ctx, recorder=rec, T_cell_cam=T_cell_cam), features):
                     events.add(event)
             except loop.Split as split:     # its features re-planned for where the part is: several views
@@ -164,10 +174,13 @@ def split_views(ctx: RunContext, split: loop.Split, events: loop.Events,
                 planned: list[np.ndarray]) -> Iterator[loop.Event]:
     """The closed loop (loop.iterate) at each shot of split.plan in turn, on the features it is
     the shot of (assigned, whole_part.feature_plan; their tasks where split.error puts the part,
-    the arm's hand-eye corrected by it), its captures numbered on from the shot's last; each
-    view's pose appended to `planned`, logged. A goal not reached in one ends the shot."""
+    the arm's hand-eye corrected by it), its captures numbered on from the shot's last; the
+    split logged with the carried shot's refusal, each view's pose appended to `planned`, logged.
+    A goal not reached in one ends the shot."""
     index = [f.name for f in split.plan.features]
     ctx = replace(ctx, pose_error=split.error)
+    ctx.recorder.step("correct", f"{localization.describe(split.error, split.error.views)}: {split.refused}; {split}",
+                      action="locate", viewpoint=True)
     for j, view in enumerate(split.plan.shots):
         names = assigned(split.plan, j)
         features = [loop.LoopFeature.planned(split.task.with_feature(index.index(n)),

@@ -399,8 +399,9 @@ def measure_capture(ctx: RunContext, aim: Aim, feature: LoopFeature, k: int, cap
 
 def iterate(ctx: RunContext, features: Sequence[LoopFeature], first_capture: int = 1) -> Iterator[Event]:
     """The closed loop of one shot, of one feature or of several measured in each capture
-    (captures numbered from first_capture, ctx.max_iterations of them at most): move
-    to the shot's poses, take ctx.black or find the black level (find_black_level,
+    (captures numbered from first_capture up to ctx.max_iterations: the views a shot is split
+    into share its captures, inspection.split_views; none left, GoalNotReached cause `iterations`
+    before anything moves): move to the shot's poses, take ctx.black or find the black level (find_black_level,
     BlackLevelFound), then step until every feature is in its band, yielding each Iteration as soon
     as it is measured, then its Corrected and a Replan or Refitted as they happen; raises
     GoalNotReached saying why when no correction is possible or the iterations run out. A black
@@ -409,6 +410,9 @@ def iterate(ctx: RunContext, features: Sequence[LoopFeature], first_capture: int
     signal must meet); a shot of several puts it into every prediction and the first capture's
     correction absorbs it."""
     first = features[0]
+    if first_capture > ctx.max_iterations:
+        raise GoalNotReached(f"{', '.join(f.name for f in features)} not captured: none of the shot's "
+                             f"{count(ctx.max_iterations, 'capture')} is left for their view", "iterations")
     devices = localization.corrected(ctx.devices, ctx.pose_error)
     motion.move_to(first.task, devices, first.model.plan.shot, ctx.recorder, first_capture)
     black = ctx.black or find_black_level(first.task, first.model.plan, devices, ctx.recorder)
@@ -420,7 +424,7 @@ def iterate(ctx: RunContext, features: Sequence[LoopFeature], first_capture: int
               pose_error=ctx.pose_error)
     if len(features) == 1 and black.value != evaluate.black_level(first.task):
         aim = knowing_black_level(aim)
-    for k in range(first_capture, first_capture + ctx.max_iterations):
+    for k in range(first_capture, ctx.max_iterations + 1):
         after = yield from step(ctx, aim, k)
         if after is None:
             return
@@ -682,7 +686,7 @@ def follow(ctx: RunContext, aim: Aim, k: int, error: localization.PoseError) -> 
     feature's task with the part where it is (localization.located_task); one feature re-planned
     there (the camera kept on the part: a planned shot's pose moved with it), several carried
     along with the part (localization.moved_plan; that shot's move refused, its viewpoint
-    re-planned for where the part is: viewpoint_replanned, which raises Split where the features
+    re-planned for where the part is: carried_viewpoint, which raises Split where the features
     need several shots). A re-plan that is infeasible or a feature that
     leaves the view stops (GoalNotReached, cause `pose`). The re-plan searches the lamp among the
     poses clear of the cell's bodies where the corrected hand-eye puts the camera
@@ -698,11 +702,9 @@ def follow(ctx: RunContext, aim: Aim, k: int, error: localization.PoseError) -> 
                          for f in features)
         ctx.recorder.step("correct", reason, iteration=k, **document)
         yield Corrected(k, document)
-        move = where_located(ctx, features[0].task, features[0].model.plan.shot, error)
-        if not move.clear:
-            features = viewpoint_replanned(ctx, features, error, f"the carried shot's move is refused: "
-                                                                 f"{motion.refusal(move)}")
-            why = f"{reason}; {count(len(features), 'feature')} re-planned at a new viewpoint"
+        features, viewpoint = carried_viewpoint(ctx, features, error)
+        if viewpoint:
+            why = f"{reason}; {viewpoint}"
             ctx.recorder.step("correct", why, iteration=k, action="locate", viewpoint=True)
             yield Corrected(k, document | {"viewpoint": why})
         return replace(aim, features=features, moved=False, located=True, pose_error=error)
@@ -771,9 +773,25 @@ def where_located(ctx: RunContext, task: Task, shot: Shot, error: localization.P
                         "the shot's poses")
 
 
+def carried_viewpoint(ctx: RunContext, features: Sequence[LoopFeature], error: localization.PoseError
+                      ) -> tuple[tuple[LoopFeature, ...], str | None]:
+    """A shot's features, their tasks and plans carried along with the part where `error` puts it
+    (localization.located_task, moved_plan), as the loop takes them there: as they are where the
+    move to their shot is clear (where_located; None), else re-planned at a viewpoint for the
+    located part (viewpoint_replanned: Split where they need several shots, GoalNotReached
+    cause `pose` where no viewpoint serves) with why, in words."""
+    move = where_located(ctx, features[0].task, features[0].model.plan.shot, error)
+    if move.clear:
+        return tuple(features), None
+    refused = f"the carried shot's move is refused: {motion.refusal(move)}"
+    located = viewpoint_replanned(ctx, features, error, refused)
+    return located, f"{refused}; {count(len(located), 'feature')} re-planned at a new viewpoint"
+
+
 def viewpoint_replanned(ctx: RunContext, features: Sequence[LoopFeature], error: localization.PoseError,
                         refused: str) -> tuple[LoopFeature, ...]:
-    """The shot of several features (their tasks already where the part is) re-planned for the
+    """A shot's features (one or several, their tasks already where the part is: a shot localized
+    in itself, or a later one, inspection.run_shot) re-planned for the
     located part where the shot carried along with it cannot be taken (`refused`: its camera
     pose out of the arm's reach or its move not clear): the whole-part planner
     (whole_part.plan_features: viewpoints over the sphere, reach and collisions pruned, the
@@ -787,7 +805,7 @@ def viewpoint_replanned(ctx: RunContext, features: Sequence[LoopFeature], error:
     if not plan.feasible:
         raise GoalNotReached(there(error, f"{refused}; the shot's viewpoint re-planned: {words.reason(plan)}"), "pose")
     if len(plan.shots) > 1:
-        raise Split(task, plan, error)
+        raise Split(task, plan, error, refused)
     located = tuple(replace(f, model=Model(feature_plan(plan, 0, i), f.task)) for i, f in enumerate(features))
     move = where_located(ctx, located[0].task, located[0].model.plan.shot, error)
     if not move.clear:
@@ -796,13 +814,14 @@ def viewpoint_replanned(ctx: RunContext, features: Sequence[LoopFeature], error:
 
 
 class Split(Exception):
-    """A shot of several features that, re-planned for where the part is (viewpoint_replanned),
-    needs several shots: `plan` (whole_part.plan_features') of `task` (those features, the part
-    where `error` puts it); whoever runs the shot (inspection.run_shot) visits each of them."""
+    """A shot of several features that, re-planned for where the part is (viewpoint_replanned)
+    since the shot carried there was `refused` (in words), needs several shots: `plan`
+    (whole_part.plan_features') of `task` (those features, the part where `error` puts it);
+    whoever runs the shot (inspection.run_shot) visits each of them."""
 
-    def __init__(self, task: Task, plan: Plan, error: localization.PoseError) -> None:
+    def __init__(self, task: Task, plan: Plan, error: localization.PoseError, refused: str) -> None:
         super().__init__(f"the shot's features re-planned for where the part is need {len(plan.shots)} shots")
-        self.task, self.plan, self.error = task, plan, error
+        self.task, self.plan, self.error, self.refused = task, plan, error, refused
 
 
 def there(error: localization.PoseError, refused: str) -> str:

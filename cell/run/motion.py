@@ -3,7 +3,8 @@ calibration routines, starts from where the devices read back (the camera's pose
 joints, Arm.joint_angles; the lamp's joints, and the ones its axes will go to, LampRig.target),
 is checked along its path as the devices follow it (cell.collision.paths.plan_transition: the
 arm's moveL with via points around a collision, the lamp parked; then the lamp's route, via
-joints around a collision, the arm at the target; or, where that is not clear, the lamp first)
+joints around a collision, the arm at the target; or, where that is not clear, the lamp first;
+where no moveL is clear, the same with a moveJ through the change of the arm's configuration)
 and is then driven through its via points.
 A move no clear path serves is refused before anything moves: GoalNotReached with cause
 `collision` (exit 1), naming both bodies and where."""
@@ -14,7 +15,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from cell.collision.paths import Move, Stop, plan_transition
+from cell.collision.paths import Move, Stop, joint_leg, plan_transition
 from cell.collision.scene import CollisionScene, reaching_joints
 from cell.core.errors import GoalNotReached
 from cell.devices import ur5e
@@ -88,7 +89,9 @@ def go(task: Task, devices: Devices, recorder: Recorder, T_cell_cam: np.ndarray 
     through its via points to T_cell_cam, the lamp through its via joints to lamp_joints (the
     lamp first where the move says so, Move.lamp_first, logged as `move_order`), each via logged
     as read back (`move_via`, `move_lamp_via`). The last legs are the caller's to
-    log: `arrived()` is called when the arm is there, before the lamp moves. Returns the Move."""
+    log: `arrived()` is called when the arm is there, before the lamp moves. A leg the move makes
+    by moveJ (Move.joint_legs: a change of the arm's configuration) goes to the joints the check
+    planned. Returns the Move."""
     move = checked or check(task, devices, T_cell_cam, lamp_joints, to)
     if not move.clear:
         raise refusal(move)
@@ -103,14 +106,24 @@ def go(task: Task, devices: Devices, recorder: Recorder, T_cell_cam: np.ndarray 
     def arm() -> None:
         for k, T in enumerate(move.via, 1):
             with speaking_for(devices.arm):
-                devices.arm.move_camera(T)
+                leg(k - 1, T)
                 position = devices.arm.camera_pose()[:3, 3]
             via("move_via", "the camera's", k, len(move.via), position)
         if T_cell_cam is not None:
             with speaking_for(devices.arm):
-                devices.arm.move_camera(T_cell_cam)
+                leg(len(move.via), T_cell_cam)
             if arrived is not None:
                 arrived()
+
+    def leg(k: int, T: np.ndarray) -> None:
+        """The arm's leg k to the camera pose T: a moveJ to the joints the check planned there
+        where the move makes it one (Move.joint_legs), else a moveL."""
+        if k in move.joint_legs:
+            q = move.via_joints[k] if k < len(move.via) else move.joints_end
+            assert q is not None, "a clear move arrives somewhere"
+            devices.arm.move_joints(q)
+        else:
+            devices.arm.move_camera(T)
 
     def lamp() -> None:
         for k, joints in enumerate(move.lamp_via, 1):
@@ -144,6 +157,33 @@ def move_to(task: Task, devices: Devices, shot: Shot, recorder: Recorder, iterat
 
     go(task, devices, recorder, shot.T_cell_cam, shot.joints, "the shot's poses", iteration, arrived=arrived)
     _log_lamp(devices, recorder, iteration, "")
+
+
+def move_joints(task: Task, devices: Devices, q: np.ndarray, recorder: Recorder, to: str) -> np.ndarray:
+    """The arm by moveJ to the joints q (a route's leg through a change of configuration,
+    cell.run.moves.follow), the path checked from where the arm reads back (joint_path, the lamp
+    where it stands) and refused (refusal) unless clear; logged as `move_joints`. Returns the
+    read-back camera pose."""
+    with speaking_for(devices.arm):
+        q_now = devices.arm.joint_angles()
+    with speaking_for(devices.lamp):
+        lamp = devices.lamp.lamp_pose()[0]
+    if q_now is None:
+        raise GoalNotReached(f"the joint move to {to} needs the arm's joints read back, which it does not report: "
+                             "refused before anything moved", CAUSE)
+    found, _, steps = joint_leg(CollisionScene.of(task), task.cell.devices.arm, q_now, q,
+                                lamp if np.all(np.isfinite(lamp)) else None)
+    move = Move("where the cell stands", to, found, steps=steps, joints_end=np.asarray(q, float), joint_legs=(0,))
+    if not move.clear:
+        raise refusal(move)
+    with speaking_for(devices.arm):
+        devices.arm.move_joints(q)
+        T = devices.arm.camera_pose()
+    recorder.step("move_joints", f"the arm's joints to {np.round(np.degrees(q), 1).tolist()} deg on the way to {to} "
+                                 f"(a joint move: its configuration changes; collision-checked: {how_apart(move)}), "
+                                 f"the camera at {np.round(T[:3, 3], 4).tolist()} m in the cell frame",
+                  to=to, joints_deg=np.degrees(q), position_m=T[:3, 3])
+    return T
 
 
 def move_camera(task: Task, devices: Devices, T_cell_cam: np.ndarray, recorder: Recorder, to: str,

@@ -104,16 +104,24 @@ def run_moves(task: Task, plan: Plan, devices: Devices) -> list[Move]:
 def follow(task: Task, devices: Devices, move: Move, recorder: Recorder,
            lamp_joints: tuple[float, ...] | None = None) -> None:
     """The arm through the move's via points (each a moveL the planner checked, and
-    cell.run.motion checks again from where the arm reads back), logged as read back, the lamp
-    first to the shot's lamp_joints where the planner moved it first (Move.lamp_first: the via
-    points were checked with it there); then motion.move_to takes the camera and the lamp to the
-    shot."""
-    if move.via and move.lamp_first and lamp_joints is not None:
+    cell.run.motion checks again from where the arm reads back; a leg the planner made a moveJ,
+    Move.joint_legs, to the joints it planned there, motion.move_joints), logged as read back,
+    the lamp first to the shot's lamp_joints where the planner moved it first (Move.lamp_first:
+    the path was checked with it there); a last leg that is a moveJ too, to the shot's planned
+    joints (a moveL's recheck could not follow the change of configuration). Then
+    motion.move_to takes the camera and the lamp to the shot."""
+    if (move.via or move.joint_legs) and move.lamp_first and lamp_joints is not None:
         motion.go(task, devices, recorder, None, lamp_joints, f"shot {move.end}'s lamp pose, before the via points")
     for k, T in enumerate(move.via, 1):
-        position = motion.move_camera(task, devices, T, recorder, f"via point {k} to shot {move.end}")[:3, 3]
+        to = f"via point {k} to shot {move.end}"
+        if k - 1 in move.joint_legs:
+            position = motion.move_joints(task, devices, move.via_joints[k - 1], recorder, to)[:3, 3]
+        else:
+            position = motion.move_camera(task, devices, T, recorder, to)[:3, 3]
         recorder.step("move_via", f"via point {k} of {len(move.via)} on the way to shot {move.end}: camera at "
                                   f"{np.round(position, 4).tolist()} m in the cell frame (the path collision-checked: "
                                   f"{' and '.join(move.clearance.bodies)} at least "
                                   f"{1e3 * move.clearance.distance_m:.1f} mm apart)",
                       via=k, to_shot=move.end, position_m=position)
+    if len(move.via) in move.joint_legs and move.joints_end is not None:
+        motion.move_joints(task, devices, move.joints_end, recorder, f"shot {move.end}")

@@ -12,7 +12,7 @@ of the connection cannot hang the run either.
 
 Once connected, a command to a controller that has died or gone silent waits up to 300 s for its
 "done" (and the getters return the last state forever; checked against sim/ur_controller.py). So
-every command is sent only to a controller whose state is still arriving, and moveL is sent
+every command is sent only to a controller whose state is still arriving, and moveL (moveJ) is sent
 asynchronously and watched here on the receive side against `move_timeout_s`, one batched round
 trip to the worker per poll.
 """
@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from cell.devices import ur5e
 from cell.devices.interfaces import Arm
 from cell.core.errors import DeviceFault
 from cell.core.geometry import from_ur_pose, rotation_angle, to_ur_pose
@@ -40,6 +41,7 @@ PORTS = (30004, 29999, 30003)            # RTDE, dashboard, script: fixed by UR 
 RTDE_REQUEST_PROTOCOL_VERSION = 86        # 'V' (RTDE guide); payload: uint16 version
 RTDE_PROTOCOL_VERSION = 2
 STOP_DECELERATION_M_S2 = 1.0
+STOP_DECELERATION_RAD_S2 = 1.0            # stopJ's, after a moveJ: its leading joint turns at most speed_m_s / 1 m
 PLAYING = 2                               # runtime_state: the control script runs
 ARRIVED_M, ARRIVED_RAD = 0.5e-3, 5e-3     # TCP vs target when a move has arrived ...
 STEADY_M_S = 1e-3                         # ... and stands still
@@ -143,8 +145,9 @@ def dashboard(host: str, timeout_s: float) -> dict[str, Any]:
 
 
 class URArm(Arm):
-    """moveL of the camera frame: the frames' hand-eye is set as the TCP, so poses on the wire are
-    T_base_cam; read back with getActualTCPPose. A controller whose state stops arriving for
+    """moveL of the camera frame (the frames' hand-eye is set as the TCP, so poses on the wire are
+    T_base_cam; read back with getActualTCPPose), and moveJ of the joints where a move changes the
+    arm's configuration (Arm.move_joints). A controller whose state stops arriving for
     connect_timeout_s, a lost connection, a protective or emergency stop, a stopped control
     script, a move not done within move_timeout_s and a ur_rtde call that does not return in
     time are each a DeviceFault. `self._receive.<getter>()` and `self._control.<command>()` call
@@ -164,7 +167,8 @@ class URArm(Arm):
         # stopL brakes from up to speed_m_s before it answers
         stop_s = timeout_s + config.speed_m_s / STOP_DECELERATION_M_S2
         self._receive = Remote(self._worker, "receive", timeout_s)
-        control = Remote(self._worker, "control", timeout_s, {"stopL": stop_s})
+        control = Remote(self._worker, "control", timeout_s, {"stopL": stop_s, "stopJ": stop_s})
+        self._joint_move = False          # the last move a moveJ: stop() sends stopJ
         self._control = None if read_only else control
         try:
             self._worker.call([("receive", "__init__", (host,))], timeout_s,
@@ -247,28 +251,49 @@ class URArm(Arm):
                 raise self._fault(f"pose {pose} unreachable or outside the robot's safety limits: "
                                   "refused before moving")
             self._alive("moveL")
+            self._joint_move = False
             if not self._control.moveL(pose, speed_m_s, a, True):
                 raise self._fault("moveL refused" + self._watched().why_stopped())
         except RuntimeError as err:
             raise self._fault(str(err)) from None
         self._watch(T_base_cam, time.monotonic() + timeout_s)
 
-    def _watch(self, T_target, deadline):
+    def _move_joints(self, q, speed_rad_s, acceleration_rad_s2):
+        """moveJ, asynchronous and watched as moveL is (the TCP at the target joints' pose),
+        refused before moving where its trapezoid (the leading joint's) exceeds move_timeout_s."""
+        if self._control is None:
+            raise self._fault("opened read-only (cell hw-check): moveJ refused")
+        timeout_s = self.config.move_timeout_s
+        turn = float(np.abs(np.asarray(q, float) - np.asarray(self._receive.getActualQ(), float)).max())
+        takes_s = turn / speed_rad_s + speed_rad_s / acceleration_rad_s2
+        if takes_s > timeout_s:
+            raise self._fault(f"moveJ of {np.degrees(turn):.1f} deg at {np.degrees(speed_rad_s):.1f} deg/s takes "
+                              f"{takes_s:.1f} s, over move_timeout_s {timeout_s} s: refused before moving")
+        try:
+            self._alive("moveJ")
+            self._joint_move = True
+            if not self._control.moveJ([float(x) for x in q], speed_rad_s, acceleration_rad_s2, True):
+                raise self._fault("moveJ refused" + self._watched().why_stopped())
+        except RuntimeError as err:
+            raise self._fault(str(err)) from None
+        self._watch(self.frames.T_base_cam_from_flange(ur5e.forward(q)), time.monotonic() + timeout_s, "moveJ")
+
+    def _watch(self, T_target, deadline, command="moveL"):
         """Poll the receive side until the TCP stands at T_target; DeviceFault on the way."""
         timeout_s = self.config.connect_timeout_s
         seen, seen_at = None, time.monotonic()
         while True:
             state, now = self._watched(), time.monotonic()
             if not state.connected:
-                raise self._fault("connection to the controller lost during moveL: stopL not sent")
+                raise self._fault(f"connection to the controller lost during {command}: {self._stop_name} not sent")
             if state.timestamp != seen:
                 seen, seen_at = state.timestamp, now
             elif now - seen_at > timeout_s:
-                raise self._fault(f"controller silent during moveL (no state for {timeout_s} s): "
-                                  "stopL not sent")
+                raise self._fault(f"controller silent during {command} (no state for {timeout_s} s): "
+                                  f"{self._stop_name} not sent")
             why = state.why_stopped()
             if why:
-                raise self._fault("moveL did not complete" + why)
+                raise self._fault(f"{command} did not complete" + why)
             T = from_ur_pose(state.tcp_pose)
             error_m = np.linalg.norm(T[:3, 3] - T_target[:3, 3])
             if (error_m < ARRIVED_M and rotation_angle(T, T_target) < ARRIVED_RAD
@@ -280,7 +305,7 @@ class URArm(Arm):
                     stopped = "stopped"
                 except DeviceFault as fault:
                     stopped = fault.reason.removeprefix(f"UR at {self.config.host}: ")
-                raise self._fault(f"moveL not done within move_timeout_s {self.config.move_timeout_s} s "
+                raise self._fault(f"{command} not done within move_timeout_s {self.config.move_timeout_s} s "
                                   f"({error_m * 1e3:.1f} mm from the target): {stopped}")
             time.sleep(POLL_S)
 
@@ -326,16 +351,24 @@ class URArm(Arm):
         return {**state, "problems": problems}
 
     def stop(self) -> None:
-        """stopL, sent only to a controller that still answers (to any other it would wait 300 s
+        """stopL (stopJ after a moveJ), sent only to a controller that still answers (to any other it would wait 300 s
         for the done): then the stop could not be commanded, and that is a DeviceFault. A
         read-only arm commanded nothing: nothing to stop."""
         if self._control is None:
             return
-        self._alive("stopL")
+        self._alive(self._stop_name)
         try:
-            self._control.stopL(STOP_DECELERATION_M_S2)
+            if self._joint_move:
+                self._control.stopJ(STOP_DECELERATION_RAD_S2)
+            else:
+                self._control.stopL(STOP_DECELERATION_M_S2)
         except RuntimeError as err:
-            raise self._fault(f"stopL failed: {err}") from None
+            raise self._fault(f"{self._stop_name} failed: {err}") from None
+
+    @property
+    def _stop_name(self) -> str:
+        """The stop the last move needs: stopJ after a moveJ, else stopL."""
+        return "stopJ" if self._joint_move else "stopL"
 
     def close(self) -> None:
         """stopScript and disconnect both interfaces (within 2 connect timeouts + 1 s) when the
