@@ -179,6 +179,33 @@ def test_a_saturated_capture_is_not_aligned(conrod_view):
     assert "saturated" not in unclipped.note
 
 
+@pytest.mark.parametrize("where", ["edge-on-its-border", "image-corner"])
+def test_the_template_is_smoothed_as_the_capture_is_with_its_surroundings(conrod_view, where):
+    """Brute force: the model's whole frame smoothed, then cut to the window, is smoothed_template
+    of that window; for a window whose top row is the first past the shank's edge (what the model
+    renders above it, smoothed into the capture, is not its mirror image) and one at the image's
+    corner (where the capture's smoothing mirrors the image's border as the template's does).
+    Smoothed alone, the window's border row differs by a sizeable share of the edge's step."""
+    task, scene, lamp, row, col = conrod_view
+    w, h = task.camera.sensor.width_px, task.camera.sensor.height_px
+    whole = registration.expected_image(task, scene, scene.T_cell_cam, lamp, (0, 0, w, h))
+    u = int(np.mean(col))
+    if where == "edge-on-its-border":
+        step = np.abs(np.diff(whole[:, u]))
+        v = int(np.argmax(step)) + 1            # the first row past the shank's edge
+        window = (u - 60, v, 120, 80)
+    else:
+        window = (0, 0, 90, 70)
+    u0, v0, width, height = window
+    expected = cv2.GaussianBlur(whole, (0, 0), registration.SMOOTH_SIGMA)[v0:v0 + height, u0:u0 + width]
+    template = registration.smoothed_template(task, scene, scene.T_cell_cam, lamp, window, whole.shape)
+    assert template == pytest.approx(expected, abs=1e-5 * float(whole.max()))
+    if where == "edge-on-its-border":
+        alone = cv2.GaussianBlur(registration.expected_image(task, scene, scene.T_cell_cam, lamp, window), (0, 0),
+                                 registration.SMOOTH_SIGMA)
+        assert float(np.max(np.abs(alone - expected))) > 0.1 * float(step.max())
+
+
 def test_the_model_own_image_shifted_by_hand_is_found_to_a_fraction_of_a_pixel(conrod_view):
     """The model's expected image itself moved by (-7, +12) px (np.roll of whole pixels) and given
     a gain and an offset (what ECC is blind to) is found at (0, +12): the shank runs along the
