@@ -15,7 +15,7 @@ peak must clear what a frame of pure noise reaches against the same template, an
 view moved by the shift must agree with the capture better than unmoved; otherwise it starts
 from the model's place. cv2.findTransformECC (a translation and
 a turn, MOTION_EUCLIDEAN, on intensity) then refines it to a fraction of a pixel in a window
-around the feature (the model's smoothed with its surroundings, as the capture is: smoothed_template), the shift being where the warp moves the feature's centre (a part turned
+around the feature, the shift being where the warp moves the feature's centre (a part turned
 about it, whose edges a translation alone matched 11 px off on the hinge's 3 deg yaw, moves
 nothing; the turn is reported, the region is not turned: a disk about its centre stays one): ECC
 maximizes the correlation coefficient, which is blind to a gain and an offset of the gray, so a
@@ -71,7 +71,6 @@ TURN_STEP_DEG = 2.0         # their step: ECC's turn farther from the coarse one
 HIGH_PASS_SIGMA = 3.0       # coarse px (12 px): the coarse step matches the edges of the image
                             # less this blur of it (high_pass)
 SMOOTH_SIGMA = 1.0          # px, Gaussian before ECC and the structure tensor
-SMOOTH_REACH_PX = (round(8 * SMOOTH_SIGMA + 1) | 1) // 2   # its kernel's half-width (OpenCV's for a float image)
 EDGE_PX = 20.0              # a resolved direction: this many pixels of edge at the window's contrast
 RATIO = 0.01                # ... and at least this fraction of the other direction's eigenvalue
 MIN_CORRELATION = 0.95      # a trusted alignment's correlation: this share of what the noise allows
@@ -210,24 +209,6 @@ def feature_window(row: np.ndarray, col: np.ndarray, shape: tuple[int, ...], mar
     return u0, v0, u1 - u0, v1 - v0
 
 
-def smoothed_template(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: LampPose, window: Window,
-                      shape: tuple[int, ...], drives: Drives = None, counts: Sequence[int] | None = None) -> np.ndarray:
-    """The model's image over a window, smoothed by SMOOTH_SIGMA as the capture is: the window
-    rendered with its surroundings (SMOOTH_REACH_PX each side, inside the image of `shape`),
-    smoothed, then cut. Smoothed alone, its borders would mirror what lies inside where the
-    capture's smoothing sees its neighbours: an edge on a window's last column (the bracket's
-    web_inner, whose window ends where the web meets the bright chamfer face) was half an edge in
-    the template and a whole one in the capture, which pulled ECC 0.23 px off on the model's
-    own image and took the correlation of a right alignment to 0.945 (0.987 smoothed with its
-    surroundings)."""
-    u0, v0, width, height = window
-    a0, b0 = max(u0 - SMOOTH_REACH_PX, 0), max(v0 - SMOOTH_REACH_PX, 0)
-    a1, b1 = min(u0 + width + SMOOTH_REACH_PX, shape[1]), min(v0 + height + SMOOTH_REACH_PX, shape[0])
-    around = expected_image(task, scene, T_cell_cam, lamp_pose, (a0, b0, a1 - a0, b1 - b0), 1, drives, counts)
-    smoothed = cv2.GaussianBlur(around, (0, 0), SMOOTH_SIGMA)
-    return np.ascontiguousarray(smoothed[v0 - b0:v0 - b0 + height, u0 - a0:u0 - a0 + width])
-
-
 def edged_window(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: LampPose, row: np.ndarray,
                  col: np.ndarray, shape: tuple[int, ...], drives: Drives = None, counts: Sequence[int] | None = None,
                  ) -> tuple[Window, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -237,7 +218,8 @@ def edged_window(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: La
     margin = MARGIN_PX
     while True:
         window = feature_window(row, col, shape, margin)
-        template = smoothed_template(task, scene, T_cell_cam, lamp_pose, window, shape, drives, counts)
+        template = cv2.GaussianBlur(expected_image(task, scene, T_cell_cam, lamp_pose, window, 1, drives, counts),
+                                    (0, 0), SMOOTH_SIGMA)
         contrast = float(np.percentile(template, 99) - np.percentile(template, 1))
         values, vectors = structure(template)
         edge = EDGE_PX * contrast**2 / (2.0 * np.sqrt(np.pi) * SMOOTH_SIGMA)
