@@ -42,7 +42,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, replace
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import cv2
 import numpy as np
@@ -73,8 +73,9 @@ HIGH_PASS_SIGMA = 3.0       # coarse px (12 px): the coarse step matches the edg
 SMOOTH_SIGMA = 1.0          # px, Gaussian before ECC and the structure tensor
 EDGE_PX = 20.0              # a resolved direction: this many pixels of edge at the window's contrast
 RATIO = 0.01                # ... and at least this fraction of the other direction's eigenvalue
-MIN_CORRELATION = 0.95      # ECC's correlation coefficient of a trusted alignment (0.985-0.9998
-                            # on the examples' offsets with every effect on; 0.90 on a saturated hinge)
+MIN_CORRELATION = 0.95      # a trusted alignment's correlation: this share of what the noise allows
+                            # (0.985-0.9998 on the examples' offsets with every effect on; 0.90 on a
+                            # saturated hinge), and that ceiling at least this
 SHADING_SIGMA_PX = 12.0     # correlates_as_aligned: the window's edges are it less its blur of this (the
                             # lamp's soft edge and the lobe's shading, tens of pixels wide, left out)
 SIGNIFICANCE = 3.0          # standard errors of the correlation ECC must gain to move the window
@@ -402,47 +403,68 @@ def shading_removed(image: np.ndarray) -> np.ndarray:
     return image - cv2.GaussianBlur(image, (0, 0), SHADING_SIGMA_PX)
 
 
-def edge_noise_rms() -> float:
-    """The rms of shading_removed(smoothed n) per unit rms of white noise n: sqrt(sum k^2), k the
-    impulse response of the Gaussian of SMOOTH_SIGMA (the capture's smoothing before ECC) and then
-    shading_removed."""
+def smoothed_noise_rms(edges: bool = False) -> float:
+    """The rms of smoothed white noise n (and shading_removed, with edges) per unit rms of n:
+    sqrt(sum k^2), k the impulse response of the Gaussian of SMOOTH_SIGMA (the capture's smoothing
+    before ECC), then shading_removed with edges."""
     size = 8 * int(SHADING_SIGMA_PX) + 1
     delta = np.zeros((size, size), np.float32)
     delta[size // 2, size // 2] = 1.0
-    k = shading_removed(cv2.GaussianBlur(delta, (0, 0), SMOOTH_SIGMA))
+    k = cv2.GaussianBlur(delta, (0, 0), SMOOTH_SIGMA)
+    k = shading_removed(k) if edges else k
     return float(np.sqrt(np.sum(np.square(k, dtype=np.float64))))
 
 
-def edge_correlation(template: np.ndarray, seen: np.ndarray, noise: float) -> tuple[float, float]:
-    """(r, ceiling): the correlation coefficient of the template's edges with those of the capture
-    where ECC's warp puts them (seen, smoothed alike; shading_removed both), and the most a right
-    alignment reaches through the sensor's noise. The capture is C = g T + S + n (T the template,
-    S a slowly varying shading the model has wrong, n the noise of rms `noise`); its edges H C =
-    g H T + H n (H S about 0), whose correlation with H T is
+class Correlation(NamedTuple):
+    """A correlation coefficient r of the template with the capture where ECC's warp puts it, and
+    the ceiling: the most a right alignment's reaches through the sensor's noise."""
 
-        ceiling = g s / sqrt(g^2 s^2 + sigma^2),   s = std(H T),  sigma = noise edge_noise_rms(),
+    r: float
+    ceiling: float
 
-    g the least-squares gain <H T, H C> / <H T, H T> (n is independent of T)."""
-    a, b = shading_removed(template), shading_removed(seen)
-    a = a - a.mean(dtype=np.float64)
+
+def with_ceiling(r: float, template: np.ndarray, seen: np.ndarray, sigma: float) -> Correlation:
+    """r with its ceiling for a template and the capture (seen) filtered alike, sigma the rms the
+    filter leaves of the sensor's noise. The capture is C = g T + n (n independent of T), whose
+    correlation with T is
+
+        ceiling = g s / sqrt(g^2 s^2 + sigma^2),   s = std(T),
+
+    g the least-squares gain <T, C> / <T, T> (means removed)."""
+    a = template - template.mean(dtype=np.float64)
     power = float(np.sum(a * a, dtype=np.float64))
     if power <= 0.0:
-        return 0.0, 0.0
-    signal = abs(float(np.sum(a * b, dtype=np.float64)) / power) * float(np.sqrt(power / a.size))
-    sigma = noise * edge_noise_rms()
-    ceiling = signal / float(np.hypot(signal, sigma)) if signal > 0.0 else 0.0
-    return correlation_coefficient(a, b), ceiling
+        return Correlation(r, 0.0)
+    signal = abs(float(np.sum(a * seen, dtype=np.float64)) / power) * float(np.sqrt(power / a.size))
+    return Correlation(r, signal / float(np.hypot(signal, sigma)) if signal > 0.0 else 0.0)
 
 
-def correlates_as_aligned(correlation: float, edges: float, ceiling: float) -> bool:
-    """Whether ECC's alignment correlates as a right one does: its correlation coefficient at least
-    MIN_CORRELATION, or, where the window's slowly varying shading (the model's lamp lobe and soft
-    edge, which the loop's exposure and re-plan correct) costs more than that (the hinge 10 mm off at
-    its re-planned poses: 0.937 with the correct model, every edge in place), its edges' (edges,
-    edge_correlation) at least MIN_CORRELATION of the ceiling the noise allows, that ceiling
-    itself at least MIN_CORRELATION (edges that stand clear of the noise: there 0.991-0.994 of
-    0.997, and 1 px off costs 0.03, 2 px 0.13)."""
-    return correlation >= MIN_CORRELATION or (ceiling >= MIN_CORRELATION and edges >= MIN_CORRELATION * ceiling)
+def intensity_correlation(correlation: float, template: np.ndarray, seen: np.ndarray, noise: float) -> Correlation:
+    """ECC's correlation of the template with the capture where its warp puts them (seen, smoothed
+    alike) and its ceiling through the sensor's noise of rms `noise` (with_ceiling)."""
+    return with_ceiling(correlation, template, seen, noise * smoothed_noise_rms())
+
+
+def edge_correlation(template: np.ndarray, seen: np.ndarray, noise: float) -> Correlation:
+    """The correlation of the template's edges with those of the capture where ECC's warp puts
+    them (seen, smoothed alike; shading_removed both) and its ceiling through the sensor's noise of
+    rms `noise`: the capture C = g T + S + n, S a slowly varying shading the model has wrong, has
+    edges H C = g H T + H n (H S about 0), so with_ceiling of H T and H C."""
+    a, b = shading_removed(template), shading_removed(seen)
+    return with_ceiling(correlation_coefficient(a, b), a, b, noise * smoothed_noise_rms(edges=True))
+
+
+def correlates_as_aligned(intensity: Correlation, edges: Correlation) -> bool:
+    """Whether ECC's alignment correlates as a right one does, judged against what the noise
+    allows: its correlation at least MIN_CORRELATION of its ceiling, or, where the window's slowly
+    varying shading (the model's lamp lobe and soft edge, which the loop's exposure and re-plan
+    correct) costs more than that (the hinge 10 mm off at its re-planned poses: 0.937 with the
+    correct model, every edge in place), its edges' (edge_correlation) at least MIN_CORRELATION of
+    theirs; either ceiling itself at least MIN_CORRELATION (a window whose texture stands clear of
+    the noise: there the edges' 0.991-0.994 of 0.997, and 1 px off costs 0.03, 2 px 0.13). The
+    noise scales a correlation by its ceiling, to first order, so the share is what the alignment
+    would score on a noiseless capture: a right one near 1, whatever the noise."""
+    return any(c.ceiling >= MIN_CORRELATION and c.r >= MIN_CORRELATION * c.ceiling for c in (intensity, edges))
 
 
 def locate(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: LampPose,
@@ -504,19 +526,20 @@ def locate(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, 
     rotation = float(np.degrees(np.arctan2(warp[1, 0], warp[0, 0])))
     shift, from_coarse = kept @ (kept.T @ fine), kept.T @ (fine - coarse)
     seen_at = warped(smoothed, warp, template.shape)
-    edges, ceiling = edge_correlation(template, seen_at, float(noise_rms(seen_at.mean(), task.camera.sensor)))
-    if not correlates_as_aligned(correlation, edges, ceiling):
-        return result((0.0, 0.0), False, int(resolved.sum()), correlation,
-                      f"correlation {correlation:.3f}, its edges' {edges:.3f} of the {ceiling:.3f} the noise allows, "
-                      f"below {MIN_CORRELATION}")
+    noise = float(noise_rms(seen_at.mean(), task.camera.sensor))
+    intensity = intensity_correlation(correlation, template, seen_at, noise)
+    edges = edge_correlation(template, seen_at, noise)
+    judged = (f"correlation {correlation:.3f} of the {intensity.ceiling:.3f} the noise allows, its edges' "
+              f"{edges.r:.3f} of the {edges.ceiling:.3f}")
+    if not correlates_as_aligned(intensity, edges):
+        return result((0.0, 0.0), False, int(resolved.sum()), correlation, f"{judged}: a share below {MIN_CORRELATION}")
     if np.max(np.abs(from_coarse)) > COARSE:
         return result((0.0, 0.0), False, int(resolved.sum()), correlation,
                       f"ECC ended {np.max(np.abs(from_coarse)):.1f} px from the coarse estimate")
     if abs(rotation + turn) > TURN_STEP_DEG:        # the coarse turn of the window is -rotation's
         return result((0.0, 0.0), False, int(resolved.sum()), correlation,
                       f"ECC turned {rotation:+.1f} deg, the coarse estimate {-turn:+.0f} deg")
-    notes = [f"the shading takes it below {MIN_CORRELATION}; the edges' {edges:.3f} of the {ceiling:.3f} the noise "
-             f"allows"] * (correlation < MIN_CORRELATION)
+    notes = [judged] * (correlation < MIN_CORRELATION)
     notes += [f"ECC wandered {wandered:.0f} px off the coarse match, which is kept (to within {COARSE // 2} px)"
              ] * kept_coarse
     if not resolved.all():
