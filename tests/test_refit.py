@@ -249,3 +249,25 @@ def test_the_refit_refuses_a_capture_lit_by_lights_besides_the_spot_before_any_p
                                "is fitted to captures lit by other lights")
     assert refit.other_lights_on(task, {1: 0.0, 2: 0.0, 3: 1.0}) == []
     assert refit.other_lights_on(task, None) == ["bright_field_ring", "dark_field_ring"]    # no drives: all full
+
+
+def test_a_probe_the_cell_cannot_take_is_left_out_and_the_lamp_aim_still_named(tmp_path):
+    """The conrod's plan keeps the lamp clear of the camera, its probe tilted 5 deg towards it does
+    not (the collision check at that pose, independently of the run): with the lamp 4 deg off its
+    aim the loop refits from the capture and the one probe that is clear, and names the lamp's aim
+    (before, the refused probe's move ended the run with `collision`)."""
+    from cell.collision.scene import CollisionScene, reaching_joints
+    task = load_task(CONROD)
+    planned = plan(task)
+    T, bodies = planned.scene.T_cell_cam, CollisionScene.of(task)
+    low, high = refit.probe_joints(planned.shot.joints, task.lamp.rig.tilt_range_rad)
+    clearance = [bodies.clearance(T, reaching_joints(task.frames, T), lamp_position(task.lamp.rig.pivot_m, *j))
+                 for j in (low, high)]
+    assert clearance[0].ok and not clearance[1].ok and "camera_body" in clearance[1].bodies
+    cell = run_loop(variant(tmp_path, CONROD, {"sim.truth.lamp_direction_error_deg": 4.0}), tmp_path / "run")
+    assert isinstance(cell.error, GoalNotReached) and cell.report["cause"] == "lamp aim", cell.report["reason"]
+    (fitted,) = cell.report["refits"]
+    assert fitted["captures"] == ["capture-1.png", "capture-1-probe-1.png"] and not fitted["explains"]
+    assert fitted["shots"][1]["tilt_deg"] == pytest.approx(np.degrees(low[1]), abs=0.1)
+    left_out = [x["message"] for x in cell.log if x["step"] == "probe" and "left out" in x["message"]]
+    assert len(left_out) == 1 and "+5.0 deg" in left_out[0] and "camera_body" in left_out[0]

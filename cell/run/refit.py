@@ -28,6 +28,7 @@ import numpy as np
 from scipy import optimize
 
 from cell.core import geometry
+from cell.collision.scene import CollisionScene, reaching_joints
 
 from cell.physics import projection
 from cell.run import motion
@@ -308,6 +309,25 @@ def probe_joints(joints: tuple[float, float, float],
     return [(pan, float(t), radius) for t in tilts if abs(t - tilt) > 0.2 * PROBE_TILT]
 
 
+def clear_probes(task: Task, T_cell_cam: np.ndarray, arm_joints: np.ndarray | None,
+                 probes: Sequence[tuple[float, float, float]]
+                 ) -> tuple[list[tuple[float, float, float]], list[tuple[tuple[float, float, float], str]]]:
+    """The probes whose lamp pose the collision check clears with the camera at T_cell_cam and the
+    arm at arm_joints (CollisionScene.clearance; None: where
+    the inverse kinematics puts it, reaching_joints), and for each one left out the refusal's reason: a
+    probe tilted towards the camera can bring the lamp within the padding of the camera's body
+    where the plan's own tilt keeps it; the refit goes on with the probes that are clear."""
+    bodies, arm = CollisionScene.of(task), reaching_joints(task.frames, T_cell_cam, arm_joints)
+    kept, refused = [], []
+    for joints in probes:
+        c = bodies.clearance(T_cell_cam, arm, lamp_position(task.lamp.rig.pivot_m, *joints))
+        if c.ok:
+            kept.append(joints)
+        else:
+            refused.append((joints, c.reason()))
+    return kept, refused
+
+
 @dataclass(frozen=True)
 class Disagreement:
     """The capture whose shape disagreed with the model: its iteration k, its Measurement, its
@@ -365,7 +385,12 @@ def probe_and_refit(ctx: RunContext, task: Task, scene: Scene, disagreement: Dis
     measured = (float(np.max(m.gray)) - b) / (shutter_s / f_number**2)
     planned = brightest(plan_lamp)
     observations = [disagreed]
-    probes = probe_joints(plan_joints, task.lamp.rig.tilt_range_rad)
+    with speaking_for(devices.arm):
+        arm_joints = devices.arm.joint_angles()
+    probes, refused = clear_probes(task, T_cell_cam, arm_joints, probe_joints(plan_joints, task.lamp.rig.tilt_range_rad))
+    for joints, reason in refused:
+        recorder.step("probe", f"the probe at tilt {np.degrees(joints[1] - plan_joints[1]):+.1f} deg left out: {reason}",
+                      iteration=k)
     for j, joints in enumerate(probes, 1):
         position = lamp_position(task.lamp.rig.pivot_m, *joints)
         expected = brightest((position, lamp_aim(task.lamp.rig.pivot_m, position))) * measured / max(planned, 1e-300)
