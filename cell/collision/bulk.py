@@ -16,7 +16,7 @@ docstring), so a lower bound of d less h and an upper bound of d bound it. Per p
   below (bodies._contained);
 - capsule and capsule: the distance from one's middle to the other's segment, less half its
   length for the lower bound (bodies.distance is exact there);
-- any other pair: `gap` (the fixed body's sphere to the moving one's), less h, and no upper bound.
+- any other pair: the bounding spheres' gap, less h, and no upper bound.
 """
 
 from __future__ import annotations
@@ -75,21 +75,49 @@ class Capsules:
 Moving = Boxes | Capsules
 
 
-def gap(fixed: Body, moving: Moving) -> np.ndarray:
-    """(K,) a lower bound of the true distance, cheaper than `bounds`: from the fixed body to the
-    sphere holding the moving one (its centre's distance from a box or a capsule, from the box
-    holding a mesh's vertices, else from the fixed body's sphere, less the moving one's radius)."""
-    c = moving.center
-    if isinstance(fixed, Box):
-        to_fixed = rectangle_sdf(np.abs((c - fixed.center) @ fixed.T_cell_box[:3, :3]) - fixed.half_m)
-    elif isinstance(fixed, Capsule):
-        to_fixed = _point_segment(c, fixed.a, fixed.b) - fixed.radius_m
-    elif isinstance(fixed, Mesh):
-        least, largest = fixed.aabb
-        to_fixed = np.linalg.norm(np.maximum(np.maximum(least - c, c - largest), 0.0), axis=1)
-    else:
-        to_fixed = np.linalg.norm(c - fixed.center, axis=1) - fixed.radius
-    return to_fixed - moving.radius
+@dataclass(frozen=True)
+class Fixed:
+    """Bodies that stay while the moving one takes its K poses (the part, the fixture, the
+    lights, the camera and the arm where they stand), grouped by kind for `gaps`."""
+
+    bodies: tuple[Body, ...]
+    kinds: tuple[np.ndarray, ...]           # the indices of the boxes, the capsules, the meshes, the others
+    box_T: np.ndarray                       # (B, 4, 4)
+    box_half: np.ndarray                    # (B, 3)
+    capsule_ends: np.ndarray                # (C, 2, 3): a, b
+    capsule_radius: np.ndarray              # (C,)
+    mesh_box: np.ndarray                    # (M, 2, 3): the least and largest corner holding each mesh
+    sphere: np.ndarray                      # (O, 4): the others' bounding spheres, centre and radius
+
+    @classmethod
+    def of(cls, bodies: tuple[Body, ...]) -> Fixed:
+        kinds = tuple(np.array([k for k, body in enumerate(bodies) if test(body)], int) for test in (
+            lambda b: isinstance(b, Box), lambda b: isinstance(b, Capsule), lambda b: isinstance(b, Mesh),
+            lambda b: not isinstance(b, (Box, Capsule, Mesh))))
+        boxes, capsules, meshes, others = ([bodies[k] for k in kind] for kind in kinds)
+        return cls(bodies, kinds, np.array([b.T_cell_box for b in boxes]).reshape(-1, 4, 4),
+                   np.array([b.half_m for b in boxes]).reshape(-1, 3),
+                   np.array([(c.a, c.b) for c in capsules]).reshape(-1, 2, 3),
+                   np.array([c.radius_m for c in capsules]),
+                   np.array([m.aabb for m in meshes]).reshape(-1, 2, 3),
+                   np.array([(*o.center, o.radius) for o in others]).reshape(-1, 4))
+
+    def gaps(self, moving: Moving) -> np.ndarray:
+        """(K, N) a lower bound of the true distance of each of the N bodies and the moving one at
+        each pose, cheaper than `bounds`: from the body to the sphere holding the moving one (its
+        centre's distance from a box or a capsule, from the box holding a mesh, else from the
+        body's sphere, less the moving one's radius)."""
+        c = moving.center
+        out = np.empty((len(c), len(self.bodies)))
+        box, capsule, mesh, other = self.kinds
+        local = np.einsum("kbj,bji->kbi", c[:, None] - self.box_T[None, :, :3, 3], self.box_T[:, :3, :3])
+        out[:, box] = rectangle_sdf(np.abs(local) - self.box_half)
+        out[:, capsule] = (_point_segment(c[:, None], self.capsule_ends[:, 0], self.capsule_ends[:, 1])
+                           - self.capsule_radius)
+        out[:, mesh] = np.linalg.norm(np.maximum(np.maximum(self.mesh_box[:, 0] - c[:, None],
+                                                            c[:, None] - self.mesh_box[:, 1]), 0.0), axis=2)
+        out[:, other] = np.linalg.norm(c[:, None] - self.sphere[:, :3], axis=2) - self.sphere[:, 3]
+        return out - np.reshape(moving.radius, (-1, 1))
 
 
 def bounds(fixed: Body, moving: Moving, padding_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -107,7 +135,8 @@ def bounds(fixed: Body, moving: Moving, padding_m: float) -> tuple[np.ndarray, n
     if isinstance(fixed, Capsule) and isinstance(moving, Capsules):
         to_middle = _point_segment(fixed.center[None], moving.a, moving.b) - fixed.radius_m - moving.radius_m
         return to_middle - 0.5 * fixed.length, to_middle
-    return gap(fixed, moving) - SAMPLE_BOUND_M, np.full(len(moving.center), np.inf)
+    spheres = np.linalg.norm(moving.center - fixed.center, axis=1) - moving.radius - fixed.radius
+    return spheres - SAMPLE_BOUND_M, np.full(len(spheres), np.inf)
 
 
 def _box_box(fixed: Box, moving: Boxes) -> tuple[np.ndarray, np.ndarray]:

@@ -304,11 +304,12 @@ class CollisionScene:
         counted as fixed), so a pose of the arm that itself collides leaves the lamp's answer
         alone (`clearance` names that). Each pair of a lamp's body (lamp_bodies: its box, the
         pan-tilt's links) and another is bounded at all K positions at once (cell.collision.bulk:
-        `bounds` where its cheaper `gap` does not keep the padding): a position whose every pair's
+        `bounds` where the cheaper Fixed.gaps do not keep the padding): a position whose every pair's
         lower bound keeps the padding is clear, one with a pair's upper bound under it is not,
         and only the others are asked pair by pair (Pairs.clear), so the answer is every pair's
         bodies.distance against the padding."""
         others = self.bodies(T_cell_cam, arm_joints)
+        fixed = bulk.Fixed.of(others)
 
         def clear(lamp_positions: ArrayLike) -> np.ndarray:
             p = np.asarray(lamp_positions, float).reshape(-1, 3)
@@ -321,11 +322,11 @@ class CollisionScene:
                 moving.append(bulk.Capsules(LAMP_BODIES[2], links.a, links.b, links.radius_m))
             lower, upper = np.full(len(p), np.inf), np.full(len(p), np.inf)
             for body in moving:
-                for other in others:
-                    near = np.flatnonzero(bulk.gap(other, body) - SAMPLE_BOUND_M < self.padding_m + ROUNDING_M)
-                    if len(near):
-                        low, up = bulk.bounds(other, body.take(near), self.padding_m)
-                        lower[near], upper[near] = np.minimum(lower[near], low), np.minimum(upper[near], up)
+                near = fixed.gaps(body) - SAMPLE_BOUND_M < self.padding_m + ROUNDING_M        # (K, N)
+                for n in np.flatnonzero(near.any(axis=0)):
+                    at = np.flatnonzero(near[:, n])
+                    low, up = bulk.bounds(others[n], body.take(at), self.padding_m)
+                    lower[at], upper[at] = np.minimum(lower[at], low), np.minimum(upper[at], up)
             out = lower >= self.padding_m + ROUNDING_M
             for k in np.flatnonzero(~out & (upper >= self.padding_m - ROUNDING_M)):
                 out[k] = Pairs.of((*others, *self.lamp_bodies(p[k])), len(others)).clear(self.padding_m)

@@ -226,7 +226,7 @@ def plan(task: Task, settings: PlannerSettings = PlannerSettings(), albedo_scale
     infeasible and a pose was refused, the search without the bodies gives the verdict: its
     shot, where it meets every requirement, is then refused by the shot's clearance check
     (whole_part.cleared: `collision`, the bodies alone refuse it), else its requirement is the
-    cause. The shot's clearance itself is judged after (whole_part.cleared)."""
+    cause."""
     say = progress or (lambda msg: None)
     t0 = time.perf_counter()
     clear = ClearOfCell(task, arm_joints) if settings.collisions else None
@@ -355,7 +355,7 @@ class ClearOfCell:
     viewpoint's) or at the inverse kinematics nearest home (collision.scene.reaching_joints), as
     whole_part.cleared judges the shot. The bodies are placed once per camera pose (a plan's
     certificate rounds share it), each pose is asked once, and the poses refused are counted
-    (`refused`: the plan's note, and whether its search without the bodies is needed)."""
+    (`refused`: the plan's note, and whether its search without the bodies is asked)."""
 
     def __init__(self, task: Task, arm_joints: ArrayLike | None = None) -> None:
         self.task, self.arm_joints = task, arm_joints
