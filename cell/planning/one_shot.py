@@ -235,8 +235,7 @@ def plan(task: Task, settings: PlannerSettings = PlannerSettings(), albedo_scale
         if result.feasible:
             result = replace(result, notes=result.notes + (clear.note(),))
         else:
-            say(f"no lamp pose clear of the cell's bodies meets every requirement ({result.binding}): "
-                "the search without them")
+            say("no lamp pose clear of the cell's bodies meets every requirement: the search without them")
             result = certified(task, settings, albedo_scale, say, T_cell_cam, visible, None)
     if arm_joints is not None:
         result = replace(result, shots=(replace(result.shot, arm_joints=tuple(float(q) for q in np.asarray(arm_joints))),))
