@@ -20,6 +20,7 @@ bound (the spheres' gap, or its distance once computed) for the paths' steps (ce
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 from itertools import combinations
@@ -29,8 +30,9 @@ import numpy as np
 import trimesh
 from numpy.typing import ArrayLike
 
-from cell.collision.bodies import (ROUNDING_M, Annulus, Body, Box, Capsule, Mesh, Shell, bracket, distance,
-                                  surface_samples)
+from cell.collision import bulk
+from cell.collision.bodies import (ROUNDING_M, SAMPLE_BOUND_M, Annulus, Body, Box, Capsule, Mesh, Shell, bracket,
+                                  distance, surface_samples)
 from cell.core import geometry
 from cell.devices import ur5e
 from cell.devices.rig import RIG_ARM_RADIUS_M, TILT_SERVO_SIZE_M, lamp_frame
@@ -295,28 +297,42 @@ class CollisionScene:
     def lamp_clear(self, T_cell_cam: np.ndarray, arm_joints: ArrayLike | None,
                    lamp_positions: ArrayLike) -> np.ndarray:
         """(K,) whether the lamp at each of K positions (K, 3) keeps the padding from every body
-        it may not touch, the camera at T_cell_cam and the arm at arm_joints: only the lamp's
-        pairs (Pairs.clear with every other body counted as fixed), so a pose of the arm that
-        itself collides leaves the lamp's answer alone (`clearance` names that). A lamp whose
-        box's bounding sphere is the padding from every other body's is clear without a pair's
-        distance (the spheres' gap is a lower bound of it, as in Pairs), all K in one array; the
-        same for the pan-tilt's links that hold it (lamp_bodies: the tilt servo, the arm)."""
+        it may not touch, the camera at T_cell_cam and the arm at arm_joints (lamp_check)."""
+        return self.lamp_check(T_cell_cam, arm_joints)(lamp_positions)
+
+    def lamp_check(self, T_cell_cam: np.ndarray, arm_joints: ArrayLike | None) -> Callable[[ArrayLike], np.ndarray]:
+        """lamp_clear with the camera at T_cell_cam and the arm at arm_joints, those bodies placed
+        once: a function of the lamp's positions (K, 3). Only the lamp's pairs (every other body
+        counted as fixed), so a pose of the arm that itself collides leaves the lamp's answer
+        alone (`clearance` names that). Each pair of a lamp's body (lamp_bodies: its box, the
+        pan-tilt's links) and another is bounded at all K positions at once (cell.collision.bulk:
+        `bounds` where the cheaper Fixed.gaps do not keep the padding): a position whose every pair's
+        lower bound keeps the padding is clear, one with a pair's upper bound under it is not,
+        and only the others are asked pair by pair (Pairs.clear), so the answer is every pair's
+        bodies.distance against the padding."""
         others = self.bodies(T_cell_cam, arm_joints)
-        p = np.asarray(lamp_positions, float).reshape(-1, 3)
-        R = lamp_frame(self.pivot_m, p)
-        links = rig_links(self.pivot_m, self.lamp_half_m, self.rig_reach_m, p, R)
-        spheres = [(lamp_boxes(self.pivot_m, self.lamp_half_m, p, R)[:, :3, 3], float(np.linalg.norm(self.lamp_half_m))),
-                   (links.T_cell_servo[:, :3, 3], float(np.linalg.norm(links.servo_half_m)))]
-        if links.arm:
-            spheres.append((0.5 * (links.a + links.b), 0.5 * np.linalg.norm(links.b - links.a, axis=1) + links.radius_m))
-        centers = np.array([body.center for body in others])
-        radii = np.array([body.radius for body in others])
-        clear = np.ones(len(p), bool)
-        for centre, radius in spheres:
-            gap = np.linalg.norm(centre[:, None] - centers, axis=2) - radii - np.reshape(radius, (-1, 1))
-            clear &= np.all(gap >= self.padding_m, axis=1)
-        for k in np.flatnonzero(~clear):
-            clear[k] = Pairs.of((*others, *self.lamp_bodies(p[k])), len(others)).clear(self.padding_m)
+        fixed = bulk.Fixed.of(others)
+
+        def clear(lamp_positions: ArrayLike) -> np.ndarray:
+            p = np.asarray(lamp_positions, float).reshape(-1, 3)
+            R = lamp_frame(self.pivot_m, p)
+            links = rig_links(self.pivot_m, self.lamp_half_m, self.rig_reach_m, p, R)
+            moving: list[bulk.Moving] = [
+                bulk.Boxes(LAMP_BODIES[0], lamp_boxes(self.pivot_m, self.lamp_half_m, p, R), self.lamp_half_m),
+                bulk.Boxes(LAMP_BODIES[1], links.T_cell_servo, links.servo_half_m)]
+            if links.arm:
+                moving.append(bulk.Capsules(LAMP_BODIES[2], links.a, links.b, links.radius_m))
+            lower, upper = np.full(len(p), np.inf), np.full(len(p), np.inf)
+            for body in moving:
+                near = fixed.gaps(body) - SAMPLE_BOUND_M < self.padding_m + ROUNDING_M        # (K, N)
+                for n in np.flatnonzero(near.any(axis=0)):
+                    at = np.flatnonzero(near[:, n])
+                    low, up = bulk.bounds(others[n], body.take(at), self.padding_m)
+                    lower[at], upper[at] = np.minimum(lower[at], low), np.minimum(upper[at], up)
+            out = lower >= self.padding_m + ROUNDING_M
+            for k in np.flatnonzero(~out & (upper >= self.padding_m - ROUNDING_M)):
+                out[k] = Pairs.of((*others, *self.lamp_bodies(p[k])), len(others)).clear(self.padding_m)
+            return out
         return clear
 
 

@@ -10,7 +10,7 @@ cell.planning.requirements). The result is a cell.planning.plan.Plan of plain va
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Generator
+from collections.abc import Callable, Generator, Iterator
 from itertools import accumulate
 from dataclasses import replace
 from typing import TYPE_CHECKING
@@ -30,7 +30,7 @@ if TYPE_CHECKING:
     from cell.planning.scene import Scene
     from cell.task.types import LampRig, Task
 
-Allowed = Callable[[np.ndarray], np.ndarray]     # (K, 3) lamp joints -> (K,) where the lamp may stand (clear_of_cell)
+Allowed = Callable[[np.ndarray], np.ndarray]     # (K, 3) lamp joints -> (K,) where the lamp may stand (ClearOfCell)
 
 
 def visibility_map(scene: Scene, grid: regions.SphereGrid, first: np.ndarray | None = None,
@@ -79,17 +79,39 @@ def candidate_grid(lamp_rig: LampRig, settings: PlannerSettings) -> tuple[np.nda
 
 
 def pick_starts(pan: np.ndarray, tilt: np.ndarray, objective_values: np.ndarray, count: int,
-                min_separation: float) -> list[int]:
-    """Best candidates that are at least `min_separation` apart on the sphere (diverse starts)."""
+                min_separation: float, clear: Callable[[np.ndarray], np.ndarray] | None = None) -> list[int]:
+    """Best candidates that are at least `min_separation` apart on the sphere (diverse starts);
+    with `clear` (grid indices -> whether the lamp there keeps clear of the cell's bodies) those
+    it passes first (clear_first)."""
     order = np.argsort(objective_values)
     chosen: list[int] = []
     dirs = geometry.direction_from_angles(pan, tilt)
-    for k in order:
+    for k in order if clear is None else clear_first(order, clear):
         if all(np.arccos(np.clip(dirs[k] @ dirs[j], -1, 1)) >= min_separation for j in chosen):
             chosen.append(k)
         if len(chosen) == count:
             break
     return chosen
+
+
+CLEAR_BATCH = 32            # clear_first's first batch of candidates asked at once (then twice as many)
+
+
+def clear_first(order: np.ndarray, clear: Callable[[np.ndarray], np.ndarray]) -> Iterator[int]:
+    """The candidates of `order` that `clear` passes, in that order, then the others in it: each
+    asked as the iteration reaches it, in batches growing twofold (the starts are a few of the
+    best, so mostly only the first batch is asked)."""
+    refused: list[int] = []
+    start, size = 0, CLEAR_BATCH
+    while start < len(order):
+        batch = order[start:start + size]
+        for k, ok in zip(batch.tolist(), clear(batch).tolist()):
+            if ok:
+                yield k
+            else:
+                refused.append(k)
+        start, size = start + size, 2 * size
+    yield from refused
 
 
 CERTIFY_ROUNDS = 3          # searches again with the certificate's worst points added
@@ -150,6 +172,20 @@ def refinement(start: ArrayLike, lamp_rig: LampRig) -> Generator[np.ndarray, np.
     return clipped(z), Refinement(converged, nfev, CONVERGED if converged else OUT_OF_EVALUATIONS, float(fun))
 
 
+def evaluated(problem: evaluate.Problem, joints: list[np.ndarray]
+              ) -> tuple[np.ndarray, evaluate.Candidates, dict[str, np.ndarray], list[tuple[evaluate.Candidates, drives.Drives]]]:
+    """The search's final candidates: (joints stacked (K, 3), their Candidates with the lamp moved
+    by its tolerance, their requirement values, and with the task's other lights each one's
+    lighting: the drives solved for it)."""
+    stack = np.array(joints)
+    lit = [lighting(problem, x) for x in stack] if problem.task.lights else []
+    if lit:
+        final = evaluate.stacked([c for c, _ in lit])
+    else:
+        final = evaluate.candidates(problem, stack[:, 0], stack[:, 1], stack[:, 2])
+    return stack, final, requirements.ln_values(problem, final), lit
+
+
 def pose_objectives(problem: evaluate.Problem, joints: ArrayLike) -> np.ndarray:
     """(K,) the search's objective (score: eq. 22, or the worst CNR with `gray_band: any`) of K
     lamp poses (K, 3) (pan, tilt, radius), the lamp moved by its tolerance; an unlit pose's (inf) capped at UNLIT_OBJECTIVE: Nelder-Mead compares
@@ -165,7 +201,7 @@ def refine_all(problem: evaluate.Problem, starts: list[np.ndarray], lamp_rig: La
     """The refinement from every start, the starts in lockstep (cell.planning.lockstep.drive):
     each round's objective evaluations of all starts in one evaluate.candidates call (one kernel
     launch, one pass of the requirements), the same results as one start at a time. A pose not
-    `allowed` (clear_of_cell) counts as unlit (UNLIT_OBJECTIVE): the simplex moves away from it."""
+    `allowed` (ClearOfCell) counts as unlit (UNLIT_OBJECTIVE): the simplex moves away from it."""
     def batch(asked: list[tuple[int, np.ndarray]]) -> list[np.ndarray]:
         joints = np.concatenate([x for _, x in asked])
         values = pose_objectives(problem, joints)
@@ -179,23 +215,44 @@ def refine_all(problem: evaluate.Problem, starts: list[np.ndarray], lamp_rig: La
 
 def plan(task: Task, settings: PlannerSettings = PlannerSettings(), albedo_scale: float = 1.0,
          progress: Callable[[str], None] | None = None, T_cell_cam: np.ndarray | None = None,
-         visible: np.ndarray | None = None, clear_lamp: bool = False) -> Plan:
+         visible: np.ndarray | None = None, arm_joints: ArrayLike | None = None) -> Plan:
     """Plan a task (the CLI, the closed loop and the benchmark all call this), its camera at
-    T_cell_cam (a planned viewpoint's) or by the task's camera rule, `visible` the visibility map
-    of the feature's own samples (settings' count, on its grid) where it was found before (it
-    does not depend on the camera: a feature's viewpoints share it): search, then
-    certify the chosen shot on the dense patch (cell.planning.certificate); where the certificate fails,
-    its worst points join the samples and the search runs again, at most CERTIFY_ROUNDS times.
-    The plan is feasible when its samples and its certificate say so. With `clear_lamp` (the
-    closed loop's re-plans) the search takes the best lamp pose clear of the cell's bodies
-    (search, clear_of_cell); the shot's clearance itself is judged after (whole_part.cleared)."""
+    T_cell_cam (a planned viewpoint's, the arm's joints reaching it `arm_joints`, the shot's) or
+    by the task's camera rule, `visible` the visibility map of the feature's own samples
+    (settings' count, on its grid) where it was found before (it does not depend on the camera:
+    a feature's viewpoints share it): search, then certify the chosen shot (certified). With
+    settings.collisions (the default) the search takes the best lamp pose clear of the cell's
+    bodies (search, ClearOfCell), a note counting the poses it refused; where that plan is
+    infeasible and a pose was refused, the search without the bodies gives the verdict: its
+    shot, where it meets every requirement, is then refused by the shot's clearance check
+    (whole_part.cleared: `collision`, the bodies alone refuse it), else its requirement is the
+    cause."""
     say = progress or (lambda msg: None)
     t0 = time.perf_counter()
+    clear = ClearOfCell(task, arm_joints) if settings.collisions else None
+    result = certified(task, settings, albedo_scale, say, T_cell_cam, visible, clear)
+    if clear is not None and clear.refused:
+        if result.feasible:
+            result = replace(result, notes=result.notes + (clear.note(),))
+        else:
+            say("no lamp pose clear of the cell's bodies meets every requirement: the search without them")
+            result = certified(task, settings, albedo_scale, say, T_cell_cam, visible, None)
+    if arm_joints is not None:
+        result = replace(result, shots=(replace(result.shot, arm_joints=tuple(float(q) for q in np.asarray(arm_joints))),))
+    return replace(result, timing_s={**result.timing_s, "total": time.perf_counter() - t0})
+
+
+def certified(task: Task, settings: PlannerSettings, albedo_scale: float, say: Callable[[str], None],
+              T_cell_cam: np.ndarray | None, visible: np.ndarray | None, clear: ClearOfCell | None) -> Plan:
+    """The search (its lamp among the poses `clear` passes), then the chosen shot certified on the
+    dense patch (cell.planning.certificate); where the certificate fails, its worst points join
+    the samples and the search runs again, at most CERTIFY_ROUNDS times. The plan is feasible
+    when its samples and its certificate say so."""
     extra = np.zeros((0, 3))
     for rounds in range(CERTIFY_ROUNDS + 1):
-        result, problem = search(task, settings, albedo_scale, extra, say, T_cell_cam, visible, clear_lamp)
+        result, problem = search(task, settings, albedo_scale, extra, say, T_cell_cam, visible, clear)
         if not result.feasible:
-            return replace(result, timing_s={**result.timing_s, "total": time.perf_counter() - t0})
+            return result
         t = time.perf_counter()
         verification, worst = certificate.verify(problem, result.shot)
         timing = {**result.timing_s, "verify": time.perf_counter() - t}
@@ -206,7 +263,6 @@ def plan(task: Task, settings: PlannerSettings = PlannerSettings(), albedo_scale
             break
         extra = np.vstack([extra, worst])
     verification = replace(verification, rounds=rounds)
-    timing["total"] = time.perf_counter() - t0
     judged = certificate.worse_of(result.shot.requirements, verification)
     shot = replace(result.shot, requirements=judged, defects=defects.worse_of(result.shot.defects, verification.defects))
     result = replace(result, shots=(shot,), verification=verification,
@@ -219,14 +275,19 @@ def plan(task: Task, settings: PlannerSettings = PlannerSettings(), albedo_scale
 
 def search(task: Task, settings: PlannerSettings, albedo_scale: float, extra: np.ndarray,
            say: Callable[[str], None], T_cell_cam: np.ndarray | None = None,
-           visible: np.ndarray | None = None, clear_lamp: bool = False) -> tuple[Plan, evaluate.Problem]:
+           visible: np.ndarray | None = None, clear: ClearOfCell | None = None) -> tuple[Plan, evaluate.Problem]:
     """(Plan of the search over the rig on the task's samples plus `extra` points, its Problem;
     `visible`: the own samples' visibility map, found before, only the extra points' cast).
-    With `clear_lamp`, only the lamp poses clear of the cell's bodies (clear_of_cell) start a
-    refinement, the refinements keep away from the others, and the pose chosen is the best of
-    those meeting every requirement that is clear, else the best meeting them (which
-    whole_part.cleared then refuses, its bodies named: the bodies alone refuse it), else the best
-    clear one; a note in the plan counts the grid's poses so refused."""
+    With `clear` (ClearOfCell), the starts are the best grid poses it passes (pick_starts, asked
+    only as far as the starts need); each refinement runs free (the lamp stands only at the pose
+    chosen, never on a refinement's way) and the pose chosen is the best of the starts and the
+    refinements' ends meeting every requirement that is clear, so where a refinement ends on a
+    refused pose the next best clear one is taken. Where no clear one meets every requirement,
+    the refinements that ended on a refused pose run again from their starts with the refused
+    poses counted as unlit (refine_all's `allowed`: the simplex moves away from them); then the
+    best clear pose meeting them, else the best meeting them (which whole_part.cleared refuses,
+    its bodies named: the bodies alone refuse it), else the best clear one. Where it refuses no
+    pose asked, the search is the one without the bodies, bit for bit."""
     from cell.planning.scene import build_scene
     timing = {}
     t0 = time.perf_counter()
@@ -250,27 +311,25 @@ def search(task: Task, settings: PlannerSettings, albedo_scale: float, extra: np
     pan, tilt, radius = candidate_grid(lamp_rig, settings)
     global_values = requirements.ln_values(problem, evaluate.candidates(problem, pan, tilt, radius, tolerance=False))
     obj = score(problem, global_values)
-    allowed = clear_of_cell(task, scene) if clear_lamp else None
-    grid_clear = np.ones(len(pan), bool) if allowed is None else allowed(np.column_stack([pan, tilt, radius]))
+    allowed = None if clear is None else clear.at(scene)
     maps = replace(maps, candidate_pan=pan, candidate_tilt=tilt, candidate_objective=obj)
     problem = replace(problem, maps=maps)
     timing["global_search"] = time.perf_counter() - t
     say(f"global search: {len(pan)} lamp poses x {len(scene.points)} samples")
 
     t = time.perf_counter()
-    first = obj if allowed is None else np.argsort(np.lexsort((obj, ~grid_clear)))    # the clear poses first
-    starts = pick_starts(pan, tilt, first, settings.starts, np.radians(2 * settings.pan_step_deg))
+    grid_clear = None if allowed is None else (lambda k: allowed(np.column_stack([pan[k], tilt[k], radius[k]])))
+    starts = pick_starts(pan, tilt, obj, settings.starts, np.radians(2 * settings.pan_step_deg), grid_clear)
     poses = [np.array([pan[k], tilt[k], radius[k]]) for k in starts]
-    refined = refine_all(problem, poses, lamp_rig, allowed) if settings.refine else []
-    stack = np.array(poses + [x for x, _ in refined])
-    lit = [lighting(problem, x) for x in stack] if task.lights else []
-    if lit:
-        final = evaluate.stacked([c for c, _ in lit])
-    else:
-        final = evaluate.candidates(problem, stack[:, 0], stack[:, 1], stack[:, 2])
-    final_values = requirements.ln_values(problem, final)
+    refined = refine_all(problem, poses, lamp_rig) if settings.refine else []
+    stack, final, final_values, lit = evaluated(problem, poses + [x for x, _ in refined])
     missed = requirements.missed(final_values)
     blocked = np.zeros(len(stack), bool) if allowed is None else ~allowed(stack)
+    again = [poses[i] for i, ended in enumerate(blocked[len(poses):]) if ended]
+    if allowed is not None and again and np.all(missed | blocked):      # no clear pose meets every requirement
+        refined += refine_all(problem, again, lamp_rig, allowed)
+        stack, final, final_values, lit = evaluated(problem, poses + [x for x, _ in refined])
+        missed, blocked = requirements.missed(final_values), ~allowed(stack)
     rank = np.lexsort((score(problem, final_values), blocked, missed))
     best = int(rank[0])
     timing["refine"] = time.perf_counter() - t
@@ -284,33 +343,54 @@ def search(task: Task, settings: PlannerSettings, albedo_scale: float, extra: np
                 objective=verdict.objective, hint="" if verdict.feasible else hint(binding, lit[best][1] if lit else None),
                 shots=(shot,),
                 maps=maps, settings=settings, scene=scene, search=search, timing_s=timing,
-                notes=notes(problem, shot) + refused_note(grid_clear, task),
+                notes=notes(problem, shot),
                 gray_any=task.requirements.gray_any), problem
 
 
-def clear_of_cell(task: Task, scene: Scene) -> Allowed:
-    """Whether the lamp at (K, 3) joints (pan, tilt, radius) keeps the padding from the cell's
-    other bodies with the camera at the scene's pose and the arm at the joints whole_part.cleared
-    judges the shot at (collision.scene.reaching_joints: the inverse kinematics nearest home),
-    by collision.scene.CollisionScene.lamp_clear."""
-    from cell.collision.scene import CollisionScene, reaching_joints
-    bodies, T = CollisionScene.of(task), scene.T_cell_cam
-    arm, pivot = reaching_joints(task.frames, T), task.lamp.rig.pivot_m
+class ClearOfCell:
+    """Where the lamp may stand in a task's cell: whether the lamp at (K, 3) joints (pan, tilt,
+    radius) keeps the padding from the cell's other bodies (collision.scene.CollisionScene.
+    lamp_check) with the camera at a search's scene's pose and the arm at `arm_joints` (a planned
+    viewpoint's) or at the inverse kinematics nearest home (collision.scene.reaching_joints), as
+    whole_part.cleared judges the shot. The bodies are placed once per camera pose (a plan's
+    certificate rounds share it), each pose is asked once, and the poses refused are counted
+    (`refused`: the plan's note, and whether its search without the bodies is asked)."""
 
-    def allowed(joints: np.ndarray) -> np.ndarray:
-        x = np.asarray(joints, float).reshape(-1, 3)
-        return bodies.lamp_clear(T, arm, rig.lamp_position(pivot, x[:, 0], x[:, 1], x[:, 2]))
-    return allowed
+    def __init__(self, task: Task, arm_joints: ArrayLike | None = None) -> None:
+        self.task, self.arm_joints = task, arm_joints
+        self.camera: bytes | None = None                              # the pose the bodies are placed at
+        self.check: Callable[[ArrayLike], np.ndarray] | None = None   # CollisionScene.lamp_check there
+        self.known: dict[bytes, bool] = {}                            # each joints asked: clear
 
+    @property
+    def refused(self) -> int:
+        return sum(not ok for ok in self.known.values())
 
-def refused_note(grid_clear: np.ndarray, task: Task) -> tuple[str, ...]:
-    """The note of a search among the lamp poses clear of the cell (clear_of_cell): how many of
-    the global grid's it refused; none where it refused none."""
-    refused = int(np.sum(~grid_clear))
-    if not refused:
-        return ()
-    return (f"{refused} of the {len(grid_clear)} lamp poses of the global search refused: the lamp there closer "
-            f"than the padding {1e3 * task.cell.collision.padding_m:g} mm to another body of the cell",)
+    def at(self, scene: Scene) -> Allowed:
+        """The Allowed of the lamp's joints with the camera at scene.T_cell_cam."""
+        from cell.collision.scene import CollisionScene, reaching_joints
+        key = scene.T_cell_cam.tobytes()
+        if self.check is None or key != self.camera:
+            arm = reaching_joints(self.task.frames, scene.T_cell_cam, self.arm_joints)
+            self.camera, self.known = key, {}
+            self.check = CollisionScene.of(self.task).lamp_check(scene.T_cell_cam, arm)
+        pivot, check = self.task.lamp.rig.pivot_m, self.check
+
+        def allowed(joints: np.ndarray) -> np.ndarray:
+            x = np.asarray(joints, float).reshape(-1, 3)
+            keys = [row.tobytes() for row in x]
+            new = {key: row for key, row in zip(keys, x) if key not in self.known}
+            if new:
+                rows = np.array(list(new.values()))
+                self.known.update(zip(new, check(rig.lamp_position(pivot, rows[:, 0], rows[:, 1],
+                                                                         rows[:, 2])).tolist()))
+            return np.array([self.known[key] for key in keys], bool)
+        return allowed
+
+    def note(self) -> str:
+        """The plan's note of the lamp poses its search refused."""
+        return (f"{self.refused} lamp poses the search tried refused: the lamp there closer than the padding "
+                f"{1e3 * self.task.cell.collision.padding_m:g} mm to another body of the cell")
 
 
 def defect_map(problem: evaluate.Problem, candidate: evaluate.Candidates, maps: Maps) -> np.ndarray:

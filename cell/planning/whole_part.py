@@ -51,12 +51,12 @@ def own_plan(task: Task, settings: PlannerSettings, T_cell_cam: np.ndarray | Non
              header: str, say: Callable[[str], None], visible: np.ndarray | None = None) -> Plan:
     """A job: the one-shot plan of a one-feature task, its camera at T_cell_cam (a planned
     viewpoint's, reached by `arm_joints`, and `visible` its samples' visibility map, found by
-    the viewpoints) or by the task's rule (None)."""
+    the viewpoints) or by the task's rule (None); with settings.collisions its lamp searched
+    among the poses clear of the cell's bodies (one_shot.plan) and its shot's clearance judged
+    (cleared)."""
     if header:
         say(header)
-    p = one_shot.plan(task, settings, progress=say, T_cell_cam=T_cell_cam, visible=visible)
-    if arm_joints is not None:
-        p = replace(p, shots=(replace(p.shot, arm_joints=tuple(float(q) for q in arm_joints)),))
+    p = one_shot.plan(task, settings, progress=say, T_cell_cam=T_cell_cam, visible=visible, arm_joints=arm_joints)
     return cleared(task, p) if settings.collisions else p
 
 

@@ -40,26 +40,17 @@ class Capture:
 
 
 def plan_recorded(task: Task, recorder: Recorder, albedo_scale: float = 1.0, iteration: int | None = None,
-                  subfolder: str = "", T_cell_cam: np.ndarray | None = None, clear: bool = False,
-                  clear_lamp: bool = False) -> Plan:
-    """Plan (the function `cell plan` uses; the camera at T_cell_cam, else by the task's rule),
-    with `clear` the shot's clearance checked as `cell plan` checks it (whole_part.cleared: a shot
-    closer than the padding is infeasible, its bodies named, before any move is planned), write
-    plan.json (its pictures when the run has ended: Recorder.write_plan), log it. With
-    `clear_lamp` (the loop's re-plans; its clearance checked as with `clear`) the lamp is searched
-    among the poses clear of the cell's bodies (one_shot.plan's clear_lamp); where none of them
-    meets every requirement, the search without the bodies gives the verdict: its shot, where it
-    meets them, then refused by the clearance check (`collision`, its bodies named: the bodies
-    alone refuse the re-plan), else its requirement the cause."""
+                  subfolder: str = "", T_cell_cam: np.ndarray | None = None, clear: bool = False) -> Plan:
+    """Plan (the function `cell plan` uses, its lamp among the poses clear of the cell's bodies:
+    one_shot.plan; the camera at T_cell_cam, else by the task's rule), with `clear` the shot's
+    clearance checked as `cell plan` checks it (whole_part.cleared: a shot closer than the
+    padding is infeasible, its bodies named, before any move is planned: where only poses under
+    the padding meet every requirement, `collision`), write plan.json (its pictures when the run
+    has ended: Recorder.write_plan), log it."""
     from cell.planning.one_shot import plan
     from cell.planning.whole_part import cleared
-    planned = plan(task, albedo_scale=albedo_scale, progress=recorder.progress, T_cell_cam=T_cell_cam,
-                   clear_lamp=clear_lamp)
-    if clear_lamp and not planned.feasible:
-        recorder.progress(f"no lamp pose clear of the cell's bodies meets every requirement ({planned.binding}): "
-                          "the search without them")
-        planned = plan(task, albedo_scale=albedo_scale, progress=recorder.progress, T_cell_cam=T_cell_cam)
-    if clear or clear_lamp:
+    planned = plan(task, albedo_scale=albedo_scale, progress=recorder.progress, T_cell_cam=T_cell_cam)
+    if clear:
         planned = cleared(task, planned)
     folder = recorder.write_plan(planned, task, subfolder)
     shot = planned.shot

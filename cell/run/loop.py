@@ -690,7 +690,7 @@ def follow(ctx: RunContext, aim: Aim, k: int, error: localization.PoseError) -> 
     need several shots). A re-plan that is infeasible or a feature that
     leaves the view stops (GoalNotReached, cause `pose`). The re-plan searches the lamp among the
     poses clear of the cell's bodies where the corrected hand-eye puts the camera
-    (plan_recorded's clear_lamp). As a last resort, where none of them meets every requirement
+    (one_shot.plan's). As a last resort, where none of them meets every requirement
     (the re-plan's `collision` binding: the best pose that meets them is under the padding) or
     the move to the re-planned shot is refused (no path clear), the loop's plan carried along with
     the part serves (lamp_kept); its move refused too, the run stops (cause `pose`)."""
@@ -713,7 +713,7 @@ def follow(ctx: RunContext, aim: Aim, k: int, error: localization.PoseError) -> 
     ctx.recorder.step("correct", reason, iteration=k, **document)
     yield Corrected(k, document)
     replanned = plan_recorded(feature.task, ctx.recorder, aim.albedo_scale, iteration=k, subfolder=f"located-{k}",
-                              T_cell_cam=T_cell_cam, clear_lamp=True)
+                              T_cell_cam=T_cell_cam, clear=True)
     yield Replan(k, aim.albedo_scale, replanned.to_json())
     if not replanned.feasible and replanned.binding != "collision":
         why = f"{localization.describe(error, error.views)}; re-planned for where the part is"
@@ -861,7 +861,7 @@ def correct_after(ctx: RunContext, aim: Aim, k: int, measured: Sequence[Measured
     with one feature's model refits the material and re-plans, once (refit_and_replan); a stop
     raises GoalNotReached with its cause; an exposure sets the next one; a re-plan plans one
     feature again with the albedo scale times the measured model error, its lamp among the poses
-    clear of the cell's bodies (plan_recorded's clear_lamp; Replan; infeasible, a collision the
+    clear of the cell's bodies (one_shot.plan's; Replan; infeasible, a collision the
     cause where only colliding poses meet every requirement: GoalNotReached). A shot of several
     features is not refitted or re-planned (control.shared_correction stops instead)."""
     if c is None:
@@ -878,7 +878,7 @@ def correct_after(ctx: RunContext, aim: Aim, k: int, measured: Sequence[Measured
         return replace(aim, shutter_s=c.shutter_s, f_number=c.f_number)
     (feature,) = aim.features
     replanned = plan_recorded(feature.task, ctx.recorder, albedo, iteration=k, subfolder=f"replan-{k}",
-                              T_cell_cam=ctx.T_cell_cam, clear_lamp=True)
+                              T_cell_cam=ctx.T_cell_cam, clear=True)
     yield Replan(k, albedo, replanned.to_json())
     if not replanned.feasible:
         why = (f"{control.describe_error(c.model_error, c.relation)}; {c.reason}; "
@@ -994,7 +994,7 @@ def refit_and_replan(ctx: RunContext, aim: Aim, k: int, measured: Measured,
     """After capture k whose shape disagreed with the feature's model (Correction c, cause
     spread): probe, refit the material (cell.run.refit; Corrected, Refitted) and re-plan with it
     (Replan; the camera at ctx.T_cell_cam, else by the task's rule; the lamp among the poses clear
-    of the cell's bodies, plan_recorded's clear_lamp). Returns the Aim of the
+    of the cell's bodies, one_shot.plan's). Returns the Aim of the
     refitted material's plan; GoalNotReached when the refit cannot be used or its plan is
     infeasible."""
     (feature,), recorder = aim.features, ctx.recorder
@@ -1008,7 +1008,7 @@ def refit_and_replan(ctx: RunContext, aim: Aim, k: int, measured: Measured,
     refit.require_usable(fitted, c.reason)
     task = refit.task_with(feature.task, fitted)
     replanned = plan_recorded(task, recorder, 1.0, iteration=k, subfolder=f"refit-{k}", T_cell_cam=ctx.T_cell_cam,
-                              clear_lamp=True)
+                              clear=True)
     yield Replan(k, 1.0, replanned.to_json())
     if not replanned.feasible:
         why = f"the material is not the task's ({fitted.summary()}); re-planned for the refitted material"
