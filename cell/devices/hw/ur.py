@@ -241,10 +241,7 @@ class URArm(Arm):
         length = max(np.linalg.norm(T_base_cam[:3, 3] - T_now[:3, 3]), rotation_angle(T_now, T_base_cam))
         # moveL's trapezoid; a rotation counted as 1 m per rad (movel's speed is rad/s when only
         # the orientation changes)
-        takes_s = length / speed_m_s + speed_m_s / a
-        if takes_s > timeout_s:
-            raise self._fault(f"moveL of {length:.3f} m at {speed_m_s} m/s takes {takes_s:.1f} s, over "
-                              f"move_timeout_s {timeout_s} s: refused before moving")
+        self._within_timeout(f"moveL of {length:.3f} m at {speed_m_s} m/s", length, speed_m_s, a)
         try:
             self._alive("isPoseWithinSafetyLimits")
             if not self._control.isPoseWithinSafetyLimits(pose):
@@ -265,10 +262,8 @@ class URArm(Arm):
             raise self._fault("opened read-only (cell hw-check): moveJ refused")
         timeout_s = self.config.move_timeout_s
         turn = float(np.abs(np.asarray(q, float) - np.asarray(self._receive.getActualQ(), float)).max())
-        takes_s = turn / speed_rad_s + speed_rad_s / acceleration_rad_s2
-        if takes_s > timeout_s:
-            raise self._fault(f"moveJ of {np.degrees(turn):.1f} deg at {np.degrees(speed_rad_s):.1f} deg/s takes "
-                              f"{takes_s:.1f} s, over move_timeout_s {timeout_s} s: refused before moving")
+        self._within_timeout(f"moveJ of {np.degrees(turn):.1f} deg at {np.degrees(speed_rad_s):.1f} deg/s", turn,
+                             speed_rad_s, acceleration_rad_s2)
         try:
             self._alive("moveJ")
             self._joint_move = True
@@ -277,6 +272,14 @@ class URArm(Arm):
         except RuntimeError as err:
             raise self._fault(str(err)) from None
         self._watch(self.frames.T_base_cam_from_flange(ur5e.forward(q)), time.monotonic() + timeout_s, "moveJ")
+
+    def _within_timeout(self, move, distance, speed, acceleration):
+        """Refuse `move` (in words) before moving where its trapezoid, distance / speed + speed /
+        acceleration (the leading joint's for a moveJ), exceeds move_timeout_s."""
+        takes_s = distance / speed + speed / acceleration
+        if takes_s > self.config.move_timeout_s:
+            raise self._fault(f"{move} takes {takes_s:.1f} s, over move_timeout_s {self.config.move_timeout_s} s: "
+                              "refused before moving")
 
     def _watch(self, T_target, deadline, command="moveL"):
         """Poll the receive side until the TCP stands at T_target; DeviceFault on the way."""
