@@ -32,7 +32,9 @@ class SimArm(Arm):
     singularity) the move is a joint move to the solution nearest the current joints. Given the
     cell's `obstacles` (sim.obstacles, its own collision check), a move that would touch another
     body stops before it, a protective stop (DeviceFault), the arm where it was. Fault
-    injection: move number `fail_on_move` ends in a protective stop (DeviceFault)."""
+    injection: move number `fail_on_move` ends in a protective stop (DeviceFault). A command
+    longer than cell.arm.move_timeout_s is refused before moving, as the real arm's, where the
+    cell file states one (move_timeout_s)."""
 
     def __init__(self, config: ArmConfig, frames: Frames, joints: ArrayLike = HOME_JOINTS,
                  fail_on_move: int | None = None, obstacles: Obstacles | None = None) -> None:
@@ -43,6 +45,12 @@ class SimArm(Arm):
         self.obstacles = obstacles
         if obstacles is not None:
             obstacles.arm_joints = self.joints
+
+    @property
+    def move_timeout_s(self) -> float | None:
+        """The cell file's cell.arm.move_timeout_s where it states one (the simulated controller
+        has no watchdog of its own), else None: no limit."""
+        return self.config.move_timeout_s if self.config.move_timeout_given else None
 
     def _move_tcp(self, T_base_cam, speed_m_s):
         self.moves += 1

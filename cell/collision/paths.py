@@ -37,14 +37,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.spatial.transform import Rotation
 
 from cell.collision.bodies import Body, Box, Capsule
 from cell.collision.scene import JOINT_MOVE, LAMP_BODIES, LINK, Clearance, CollisionScene, Pairs
 from cell.core import geometry
 from cell.core.errors import DeviceFault
 from cell.devices import ur5e
-from cell.devices.interfaces import check_arm_motion, check_joint_motion
+from cell.devices.interfaces import check_arm_motion, check_joint_motion, joint_commands, line_commands
 from cell.devices.rig import lamp_position
 
 if TYPE_CHECKING:
@@ -73,8 +72,8 @@ class Move:
     corners in the cell frame [m] (start, via points, end: its path is straight between them;
     along a leg the arm makes by moveJ, `joint_legs`, its joints linear to the leg's end's,
     `via_joints` or `joints_end`, points along the camera's arc), its travel (the camera's path
-    plus the lamp's straight line) [m] and the poses checked; `clear` when that clearance is at
-    least the padding."""
+    plus the lamp's straight line) [m], the poses checked and the time the arm's commands take
+    (`duration_s`, arm_duration_s); `clear` when that clearance is at least the padding."""
 
     start: End
     end: End
@@ -88,6 +87,7 @@ class Move:
     lamp_first: bool = False               # the lamp moves before the arm (cell.run.motion's moves only)
     joint_legs: tuple[int, ...] = ()       # the legs made by moveJ (0: from the start to the first via or the end)
     via_joints: tuple[np.ndarray, ...] = ()   # the arm's joints at each via point, where a leg is a moveJ
+    duration_s: float = np.inf             # the arm's commands along it (inf: not made)
 
     @property
     def clear(self) -> bool:
@@ -100,6 +100,7 @@ class Move:
         return {"from": self.start, "to": self.end, "clearance_m": self.clearance.distance_m,
                 "clearance_bodies": list(self.clearance.bodies), "via": [T.tolist() for T in self.via],
                 "travel_m": self.travel_m, "steps": self.steps,
+                **({"duration_s": self.duration_s} if np.isfinite(self.duration_s) else {}),
                 **({} if self.joints_end is None else {"arm_joints_deg": np.degrees(self.joints_end).tolist()}),
                 **({"lamp_via": [list(j) for j in self.lamp_via]} if self.lamp_via else {}),
                 **({"lamp_first": True} if self.lamp_first else {}),
@@ -175,19 +176,10 @@ def arm_path(scene: CollisionScene, T_from: np.ndarray, q_from: ArrayLike, T_to:
     or the distance where that gap allows too short a step): between two checked poses the
     pair stays at least the padding apart, or (near it) the step bounds its swept distance
     below half the padding. The camera body against a body no joint moves: the lesser of that
-    and its own path's bound, ds (|p_to - p_from| + angle rho) (the moveL's position linear in s,
-    its orientation turning angle ds about one axis, rho the body's farthest corner from the
-    camera's origin)."""
-    turn = Rotation.from_matrix(T_from[:3, :3].T @ T_to[:3, :3]).as_rotvec()
-    angle = float(np.linalg.norm(turn))
-    K = np.cross(np.eye(3), turn / angle) if angle > 0 else np.zeros((3, 3))
-
-    def pose(s: float) -> np.ndarray:
-        """The moveL's pose at s in [0, 1]: slerp by Rodrigues' formula, the position linear."""
-        T = np.eye(4)
-        T[:3, :3] = T_from[:3, :3] @ (np.eye(3) + np.sin(s * angle) * K + (1 - np.cos(s * angle)) * K @ K)
-        T[:3, 3] = (1 - s) * T_from[:3, 3] + s * T_to[:3, 3]
-        return T
+    and its own path's bound, ds (|p_to - p_from| + angle rho) (geometry.line_path: the moveL's
+    position linear in s, its orientation turning angle ds about one axis, rho the body's farthest
+    corner from the camera's origin)."""
+    pose, angle = geometry.line_path(T_from, T_to)
 
     def at(s: float, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return pose(s), ur5e.inverse(scene.frames.T_base_flange(scene.frames.T_base_cam(pose(s))), q)
@@ -373,8 +365,8 @@ def plan_move(scene: CollisionScene, arm: ArmConfig, start: End, a: Stop, end: E
     direct, q, steps, _ = _through(scene, arm, [a.T_cell_cam, b.T_cell_cam], a.arm_joints, lamp_a,
                                    None if q_b is None else [q_b])
     if direct.ok:
-        return _with_lamp(scene, Move(start, end, direct, (), steps, joints_end=q,
-                                      joint_legs=() if q_b is None else (0,)), a, b)
+        return _with_lamp(scene, arm, Move(start, end, direct, (), steps, joints_end=q,
+                                           joint_legs=() if q_b is None else (0,)), a, b)
     for retreat in retreats:
         via = (_retreated(a.T_cell_cam, retreat), _retreated(b.T_cell_cam, retreat))
         try:
@@ -387,8 +379,8 @@ def plan_move(scene: CollisionScene, arm: ArmConfig, start: End, a: Stop, end: E
         steps += n
         if found.ok:
             legs, at = ((), ()) if q_b is None else ((1,), tuple(reached[:2]))
-            return _with_lamp(scene, Move(start, end, found, via, steps, joints_end=q, joint_legs=legs,
-                                          via_joints=at), a, b)
+            return _with_lamp(scene, arm, Move(start, end, found, via, steps, joints_end=q, joint_legs=legs,
+                                               via_joints=at), a, b)
     return Move(start, end, direct, (), steps, (a.T_cell_cam[:3, 3], b.T_cell_cam[:3, 3]))
 
 
@@ -422,12 +414,12 @@ def plan_transition(scene: CollisionScene, arm: ArmConfig, a: Stop, b: Stop, sta
     if b.lamp_joints is None or a.lamp_joints is None:
         lamp_at = None if a.lamp_joints is None else lamp_position(scene.pivot_m, *a.lamp_joints)
         return Move(start, end, scene.clearance(a.T_cell_cam, a.arm_joints, lamp_at), (), 1,
-                    (a.T_cell_cam[:3, 3],), 0.0, np.asarray(a.arm_joints, float))
+                    (a.T_cell_cam[:3, 3],), 0.0, np.asarray(a.arm_joints, float), duration_s=0.0)
     found, lamp_via, steps = lamp_route(scene, a.T_cell_cam, a.arm_joints, a.lamp_joints, b.lamp_joints)
     at = [lamp_position(scene.pivot_m, *j) for j in (a.lamp_joints, *lamp_via, b.lamp_joints)]
     return Move(start, end, found, (), steps, (a.T_cell_cam[:3, 3],),
                 float(sum(np.linalg.norm(y - x) for x, y in pairwise(at))), np.asarray(a.arm_joints, float),
-                lamp_via if found.ok else ())
+                lamp_via if found.ok else (), duration_s=0.0)
 
 
 def _arm_transition(scene: CollisionScene, arm: ArmConfig, start: End, a: Stop, end: End, b: Stop,
@@ -492,11 +484,12 @@ def _through(scene: CollisionScene, arm: ArmConfig, poses: list[np.ndarray], q: 
     return _least(found, scene.padding_m), q, steps, reached
 
 
-def _with_lamp(scene: CollisionScene, move: Move, a: Stop, b: Stop) -> Move:
+def _with_lamp(scene: CollisionScene, arm: ArmConfig, move: Move, a: Stop, b: Stop) -> Move:
     """The move with the lamp's own move after the arm's (the arm where it arrived at b)
     counted in, its corners (along a moveJ leg the camera every JOINT_ARC_RAD of its leading
-    joint's turn) and its travel. A lamp not known at a (the home pose) is checked
-    from b's pose (the run checks it from where it reads it) and counts no travel."""
+    joint's turn), its travel and the arm's time (arm_duration_s). A lamp not known at a (the
+    home pose) is checked from b's pose (the run checks it from where it reads it) and counts no
+    travel."""
     assert move.joints_end is not None, "a clear arm move arrives somewhere"
     joints = (a.arm_joints, *move.via_joints, move.joints_end)
     corners = (a.T_cell_cam[:3, 3], *(p for k, T in enumerate((*move.via, b.T_cell_cam))
@@ -512,7 +505,22 @@ def _with_lamp(scene: CollisionScene, move: Move, a: Stop, b: Stop) -> Move:
         if a.lamp_joints is not None:
             at = [lamp_position(scene.pivot_m, *j) for j in (a.lamp_joints, *lamp_via, b.lamp_joints)]
             travel += float(sum(np.linalg.norm(y - x) for x, y in pairwise(at)))
-    return replace(move, clearance=least, steps=move.steps + n, corners_m=corners, travel_m=travel)
+    return replace(move, clearance=least, steps=move.steps + n, corners_m=corners, travel_m=travel,
+                   duration_s=arm_duration_s(scene, arm, move, a, b))
+
+
+def arm_duration_s(scene: CollisionScene, arm: ArmConfig, move: Move, a: Stop, b: Stop) -> float:
+    """The time [s] the arm's commands take along the clear move from stop a to stop b: each leg
+    (to a via pose, to b) a moveL (line_commands) or, in Move.joint_legs, a moveJ to the joints
+    planned there (joint_commands), at the arm's speed_m_s and acceleration_m_s2, a leg longer
+    than its move_timeout_s made in several commands along the same path (as the run makes it,
+    cell.run.motion)."""
+    assert move.joints_end is not None, "a clear arm move arrives somewhere"
+    poses, joints = (a.T_cell_cam, *move.via, b.T_cell_cam), (a.arm_joints, *move.via_joints, move.joints_end)
+    timeout = arm.move_timeout_s
+    return float(sum(t for k in range(len(poses) - 1)
+                     for _, t in (joint_commands(arm, scene.frames, joints[k], joints[k + 1], timeout)
+                                  if k in move.joint_legs else line_commands(arm, poses[k], poses[k + 1], timeout))))
 
 
 def _arc(scene: CollisionScene, q_from: np.ndarray, q_to: np.ndarray) -> list[np.ndarray]:

@@ -3,6 +3,8 @@ of the physics notes (azimuth/elevation with elevation as latitude)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
@@ -37,6 +39,25 @@ def rotation_angle(T_a: ArrayLike, T_b: ArrayLike) -> float:
     """The angle of the rotation between two poses' orientations [rad]: arccos((tr(R_a^T R_b) - 1) / 2)."""
     cos = (np.trace(np.asarray(T_a)[:3, :3].T @ np.asarray(T_b)[:3, :3]) - 1.0) / 2.0
     return float(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def line_path(T_from: np.ndarray, T_to: np.ndarray) -> tuple[Callable[[float], np.ndarray], float]:
+    """(the pose at s in [0, 1] of the straight move from T_from to T_to, as a UR controller's
+    moveL makes it: the position linear, the orientation turning about one axis by slerp,
+    R_from (I + sin(s a) K + (1 - cos(s a)) K^2) (Rodrigues' formula, K the cross-product matrix
+    of the unit axis, a the angle); that angle [rad]). A piece of it, s from s_a to s_b, is the
+    straight move between its ends: the same line and the same turn."""
+    turn = Rotation.from_matrix(T_from[:3, :3].T @ T_to[:3, :3]).as_rotvec()
+    angle = float(np.linalg.norm(turn))
+    K = np.cross(np.eye(3), turn / angle) if angle > 0 else np.zeros((3, 3))
+
+    def pose(s: float) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = T_from[:3, :3] @ (np.eye(3) + np.sin(s * angle) * K + (1 - np.cos(s * angle)) * K @ K)
+        T[:3, 3] = (1 - s) * T_from[:3, 3] + s * T_to[:3, 3]
+        return T
+
+    return pose, angle
 
 
 def apply(T: np.ndarray, points: ArrayLike) -> np.ndarray:

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from cell.core import geometry
 from cell.core.errors import DeviceFault
 from cell.devices import ur5e
 from cell.devices.rig import lamp_aim, lamp_position
@@ -30,10 +31,14 @@ if TYPE_CHECKING:
     from cell.task.types import LampRig as LampRigModel
 
 __all__ = ["Arm", "LampRig", "Camera", "LightController", "Devices", "check_arm_motion", "check_joint_motion",
-           "arm_accepts", "joint_speed", "speaking_for"]
+           "arm_accepts", "joint_speed", "trapezoid_s", "line_length", "line_commands", "joint_commands",
+           "speaking_for"]
 
 ENVELOPE_STEP_M = 0.001         # a joint move's camera and flange within this of the workspace's faces
 SPEED_SAMPLE_RAD = 0.01         # joint_speed's samples: every joint together turns at most this between two
+# a command of a split move cruises at most this share of what move_timeout_s leaves after its
+# ramps: the run splits from the joints and pose it reads back, a hair from the plan's
+CRUISE_SHARE = 0.99
 
 # what device libraries raise: serial.SerialException and socket errors are OSErrors (an unplugged
 # USB adapter, OSError 19 from a camera), ur_rtde raises RuntimeError
@@ -129,6 +134,80 @@ def joint_speed(config: ArmConfig, frames: Frames, q_from: ArrayLike, q_to: Arra
     return config.speed_m_s * scale, config.acceleration_m_s2 * scale
 
 
+def trapezoid_s(distance: float, speed: float, acceleration: float) -> float:
+    """How long a move of `distance` takes at `speed` and `acceleration` (a moveL's metres at
+    m/s and m/s^2, a moveJ's leading joint in rad, rad/s, rad/s^2), the trapezoid law
+    distance / speed + speed / acceleration: up to speed, cruise, down to rest. Exact where it
+    reaches speed (distance >= speed^2 / acceleration); below, the triangle's
+    2 sqrt(distance / acceleration), which this bounds from above."""
+    return distance / speed + speed / acceleration
+
+
+def line_length(T_from: ArrayLike, T_to: ArrayLike) -> float:
+    """A moveL's length as the controller times it [m]: the larger of the position's travel and
+    the orientation's turn, a turn counted as 1 m per rad (moveL's speed is rad/s where only the
+    orientation changes). Frame-free: the same in the cell and the robot's base frame."""
+    a, b = np.asarray(T_from, float), np.asarray(T_to, float)
+    return max(float(np.linalg.norm(b[:3, 3] - a[:3, 3])), geometry.rotation_angle(a, b))
+
+
+def line_commands(config: ArmConfig, T_from: np.ndarray, T_to: np.ndarray,
+                  timeout_s: float | None) -> list[tuple[np.ndarray, float]]:
+    """The moveLs (camera pose T_cell_cam, seconds) that make the straight move from T_from to
+    T_to at the arm's speed_m_s and acceleration_m_s2, each within timeout_s (None: no limit):
+    one where its trapezoid_s, D, is within; else the fewest n equal pieces of the same path
+    (geometry.line_path: the same line, the same turn) whose time (D - r) / n + r (r = speed /
+    acceleration, the ramps every command takes) keeps the cruise within CRUISE_SHARE of
+    timeout_s - r (commands), n = ceil((D - r) / (CRUISE_SHARE (timeout_s - r)))."""
+    v, a = config.speed_m_s, config.acceleration_m_s2
+    whole = trapezoid_s(line_length(T_from, T_to), v, a)
+    n = commands(whole, v / a, timeout_s)
+    pose, _ = geometry.line_path(T_from, T_to)
+    return [(pose(k / n) if k < n else np.asarray(T_to, float), (whole - v / a) / n + v / a) for k in range(1, n + 1)]
+
+
+def joint_commands(config: ArmConfig, frames: Frames, q_from: ArrayLike, q_to: ArrayLike,
+                   timeout_s: float | None) -> list[tuple[np.ndarray, float]]:
+    """The moveJs (joints, seconds) that make the joint move from q_from to q_to (every joint
+    linear), each within timeout_s (None: no limit): one where its time is within (trapezoid_s
+    of the leading joint's turn at joint_speed's speed and acceleration); else equal pieces of
+    the same line of joints, each timed at its own joint_speed (the camera's speed bound taken
+    over the piece alone: its leading joint may turn faster than the whole's), from the whole's
+    count (commands) up one at a time until each cruises within CRUISE_SHARE of timeout_s - r
+    (r = speed_m_s / acceleration_m_s2: joint_speed scales both alike, so every piece's ramps)."""
+    a, b = np.asarray(q_from, float), np.asarray(q_to, float)
+
+    def timed(n: int) -> list[tuple[np.ndarray, float]]:
+        ends = [a + k / n * (b - a) for k in range(n)] + [b]
+        return [(q1, trapezoid_s(float(np.abs(q1 - q0).max()), *joint_speed(config, frames, q0, q1)))
+                for q0, q1 in zip(ends, ends[1:])]
+
+    whole = timed(1)
+    ramp = config.speed_m_s / config.acceleration_m_s2
+    n = commands(whole[0][1], ramp, timeout_s)
+    if n == 1:
+        return whole
+    assert timeout_s is not None, "commands splits only under a limit"
+    while True:
+        pieces = timed(n)
+        if all(t <= ramp + CRUISE_SHARE * (timeout_s - ramp) for _, t in pieces):
+            return pieces
+        n += 1
+
+
+def commands(whole_s: float, ramp_s: float, timeout_s: float | None) -> int:
+    """How many equal pieces a move of whole_s (trapezoid_s; ramp_s of it its ramps) is made in
+    so that each command is within timeout_s: 1 where the whole is (or no limit, None), else
+    ceil((whole_s - ramp_s) / (CRUISE_SHARE (timeout_s - ramp_s))). DeviceFault where the ramps
+    alone take timeout_s (cell.task.device_config refuses such a cell file)."""
+    if timeout_s is None or whole_s <= timeout_s:
+        return 1
+    if ramp_s >= timeout_s:
+        raise DeviceFault("arm", f"every move's ramps take {ramp_s:.2f} s (speed_m_s / acceleration_m_s2), over "
+                                 f"move_timeout_s {timeout_s} s: refused before moving")
+    return int(np.ceil((whole_s - ramp_s) / (CRUISE_SHARE * (timeout_s - ramp_s))))
+
+
 def arm_accepts(config: ArmConfig, frames: Frames, T_cell_cams: ArrayLike) -> np.ndarray:
     """(N,) whether check_arm_motion lets each of N camera poses (N, 4, 4) pass at the arm's own
     speed: its tests (rigid, camera and flange inside the workspace box) on all at once (a
@@ -161,23 +240,47 @@ class Arm(ABC):
         self.config, self.frames = config, frames
 
     def move_camera(self, T_cell_cam: np.ndarray, speed_m_s: float | None = None) -> None:
-        """Move so the camera frame is at T_cell_cam; returns when there, raises DeviceFault on
-        limits, unreachable poses or a device error."""
+        """Move so the camera frame is at T_cell_cam (one moveL); returns when there, raises
+        DeviceFault on limits, a move longer than move_timeout_s (_within_timeout, the length
+        from the pose read back), unreachable poses or a device error."""
         speed = self.config.speed_m_s if speed_m_s is None else speed_m_s
         check_arm_motion(self.config, self.frames, T_cell_cam, speed)
+        if self.move_timeout_s is not None:
+            length = line_length(self.camera_pose(), T_cell_cam)
+            self._within_timeout(f"moveL of {length:.3f} m at {speed} m/s", length, speed, self.config.acceleration_m_s2)
         self._move_tcp(self.frames.T_base_cam(T_cell_cam), speed)
 
     def move_joints(self, q: ArrayLike) -> None:
         """moveJ: every joint linear to q [rad] (all starting and stopping together), the TCP no
         faster than a moveL at the arm's speed (joint_speed); returns when there, raises
-        DeviceFault where check_joint_motion refuses it (before moving), where the arm cannot
+        DeviceFault where check_joint_motion refuses it or it takes longer than move_timeout_s
+        (_within_timeout; both before moving), where the arm cannot
         tell its joints (no path from them can be checked) or on a device error."""
         q_now = self.joint_angles()
         if q_now is None:
             raise DeviceFault(self.device, "a joint move needs the arm's joints read back, which this arm does not "
                                            "report: refused before moving")
         check_joint_motion(self.config, self.frames, q_now, q)
-        self._move_joints(np.asarray(q, float), *joint_speed(self.config, self.frames, q_now, q))
+        speed, acceleration = joint_speed(self.config, self.frames, q_now, q)
+        turn = float(np.abs(np.asarray(q, float) - q_now).max())
+        self._within_timeout(f"moveJ of {np.degrees(turn):.1f} deg at {np.degrees(speed):.1f} deg/s", turn, speed,
+                             acceleration)
+        self._move_joints(np.asarray(q, float), speed, acceleration)
+
+    @property
+    def move_timeout_s(self) -> float | None:
+        """The longest one command may take (cell.arm.move_timeout_s: the controller's watchdog
+        stops a move not done by then), None: no limit."""
+        return self.config.move_timeout_s
+
+    def _within_timeout(self, move: str, distance: float, speed: float, acceleration: float) -> None:
+        """Refuse `move` (in words) before moving where its trapezoid_s (the leading joint's for
+        a moveJ) exceeds move_timeout_s: the run splits a longer move (line_commands,
+        joint_commands), so this is the last guard, on every backend that keeps a limit."""
+        limit, takes_s = self.move_timeout_s, trapezoid_s(distance, speed, acceleration)
+        if limit is not None and takes_s > limit:
+            raise DeviceFault(self.device, f"{move} takes {takes_s:.1f} s, over move_timeout_s {limit} s: "
+                                           "refused before moving")
 
     def _move_joints(self, q, speed_rad_s, acceleration_rad_s2):
         """Move the joints to q (moveJ) at the leading joint's speed and acceleration."""

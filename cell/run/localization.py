@@ -922,6 +922,13 @@ class HandEyeCorrected(Arm):
     def _move_tcp(self, T_base_cam: np.ndarray, speed_m_s: float) -> None:
         self.arm._move_tcp(T_base_cam @ np.linalg.inv(self.T_hand_eye), speed_m_s)
 
+    def _move_joints(self, q: np.ndarray, speed_rad_s: float, acceleration_rad_s2: float) -> None:
+        self.arm._move_joints(q, speed_rad_s, acceleration_rad_s2)
+
+    @property
+    def move_timeout_s(self) -> float | None:
+        return self.arm.move_timeout_s
+
     def _unreachable(self, T_base_cam: np.ndarray) -> str | None:
         return self.arm._unreachable(T_base_cam @ np.linalg.inv(self.T_hand_eye))
 

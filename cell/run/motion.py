@@ -19,7 +19,7 @@ from cell.collision.paths import Move, Stop, joint_leg, plan_transition
 from cell.collision.scene import CollisionScene, reaching_joints
 from cell.core.errors import GoalNotReached
 from cell.devices import ur5e
-from cell.devices.interfaces import speaking_for
+from cell.devices.interfaces import joint_commands, line_commands, speaking_for
 
 if TYPE_CHECKING:
     from cell.devices.interfaces import Devices
@@ -117,13 +117,13 @@ def go(task: Task, devices: Devices, recorder: Recorder, T_cell_cam: np.ndarray 
 
     def leg(k: int, T: np.ndarray) -> None:
         """The arm's leg k to the camera pose T: a moveJ to the joints the check planned there
-        where the move makes it one (Move.joint_legs), else a moveL."""
+        where the move makes it one (Move.joint_legs), else a moveL (drive_arm)."""
         if k in move.joint_legs:
             q = move.via_joints[k] if k < len(move.via) else move.joints_end
             assert q is not None, "a clear move arrives somewhere"
-            devices.arm.move_joints(q)
+            drive_arm(devices, recorder, to, q=q, iteration=iteration)
         else:
-            devices.arm.move_camera(T)
+            drive_arm(devices, recorder, to, T, iteration=iteration)
 
     def lamp() -> None:
         for k, joints in enumerate(move.lamp_via, 1):
@@ -142,6 +142,33 @@ def go(task: Task, devices: Devices, recorder: Recorder, T_cell_cam: np.ndarray 
     for part in ((lamp, arm) if move.lamp_first else (arm, lamp)):
         part()
     return move
+
+
+def drive_arm(devices: Devices, recorder: Recorder, to: str, T_cell_cam: np.ndarray | None = None,
+              q: np.ndarray | None = None, iteration: int | None = None) -> None:
+    """The arm to the camera pose T_cell_cam by moveL, or to the joints q by moveJ, from where it
+    reads back, in the commands that keep each within its move_timeout_s (line_commands,
+    joint_commands: pieces of the same path, so the path checked is the path driven, each
+    stopping at its end); a move made in several logged (`move_split`). The caller speaks for the
+    arm (speaking_for); an arm that cannot tell its joints gets the moveJ whole (it refuses it)."""
+    arm = devices.arm
+    if q is None:
+        commands = line_commands(arm.config, arm.camera_pose(), np.asarray(T_cell_cam, float), arm.move_timeout_s)
+    elif (q_now := arm.joint_angles()) is None:
+        arm.move_joints(q)
+        return
+    else:
+        commands = joint_commands(arm.config, arm.frames, q_now, q, arm.move_timeout_s)
+    if len(commands) > 1:
+        kind, total = "straight move" if q is None else "joint move", sum(t for _, t in commands)
+        recorder.step("move_split", f"the {kind} to {to} in {len(commands)} commands along the same path, each "
+                                    f"within the arm's move_timeout_s {arm.move_timeout_s} s ({total:.1f} s in all)",
+                      iteration=iteration, to=to, commands=len(commands), duration_s=total)
+    for target, _ in commands:
+        if q is None:
+            arm.move_camera(target)
+        else:
+            arm.move_joints(target)
 
 
 def move_to(task: Task, devices: Devices, shot: Shot, recorder: Recorder, iteration: int | None = None) -> None:
@@ -177,7 +204,7 @@ def move_joints(task: Task, devices: Devices, q: np.ndarray, recorder: Recorder,
     if not move.clear:
         raise refusal(move)
     with speaking_for(devices.arm):
-        devices.arm.move_joints(q)
+        drive_arm(devices, recorder, to, q=q)
         T = devices.arm.camera_pose()
     recorder.step("move_joints", f"the arm's joints to {np.round(np.degrees(q), 1).tolist()} deg on the way to {to} "
                                  f"(a joint move: its configuration changes; collision-checked: {how_apart(move)}), "

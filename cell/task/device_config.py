@@ -45,6 +45,7 @@ class ArmConfig:
     acceleration_m_s2: float
     move_timeout_s: float                   # a move not done by then is a fault
     hand_eye_file: Path | None = None       # where T_flange_cam came from (cell.arm.hand_eye), or the task
+    move_timeout_given: bool = False        # the task states move_timeout_s (the simulated arm keeps it then)
 
 
 @dataclass(frozen=True)
@@ -293,10 +294,17 @@ def devices_config(file: str | PathLike[str], cell: dict[str, Any], written: dic
     ids = [p["pan_id"], p["tilt_id"], p["radius_id"]]
     if len(set(ids)) != 3:
         raise TaskError(file, "cell.pan_tilt.tilt_id", show(ids), "distinct pan, tilt and radius ids")
+    ramps_s = a["speed_m_s"] / a["acceleration_m_s2"]
+    if a["move_timeout_s"] <= ramps_s:
+        raise TaskError(file, "cell.arm.move_timeout_s", show(a["move_timeout_s"]),
+                        f"more than the {ramps_s:.3g} s every move of the arm takes to speed up and brake "
+                        "(speed_m_s / acceleration_m_s2)")
     arm = ArmConfig(
         host=a["host"], connect_timeout_s=a["connect_timeout_s"], workspace_min_m=a["workspace_min_m"], workspace_max_m=a["workspace_max_m"],
         speed_m_s=a["speed_m_s"], acceleration_m_s2=a["acceleration_m_s2"],
-        move_timeout_s=a["move_timeout_s"], hand_eye_file=a["hand_eye"] and a["hand_eye"]["file"])
+        move_timeout_s=a["move_timeout_s"], hand_eye_file=a["hand_eye"] and a["hand_eye"]["file"],
+        move_timeout_given=any(_unit(str(key))[0] == "move_timeout" and value is not None
+                               for key, value in ((written or {}).get("arm") or {}).items()))
     pan_tilt = PanTiltConfig(
         port=p["port"], baud=p["baud"], pan_id=p["pan_id"], tilt_id=p["tilt_id"],
         radius_id=p["radius_id"], pan_offset_rad=p["pan_offset_rad"],

@@ -237,11 +237,6 @@ class URArm(Arm):
             raise self._fault("opened read-only (cell hw-check): moveL refused")
         pose = list(to_ur_pose(T_base_cam))
         a, timeout_s = self.config.acceleration_m_s2, self.config.move_timeout_s
-        T_now = from_ur_pose(self._receive.getActualTCPPose())
-        length = max(np.linalg.norm(T_base_cam[:3, 3] - T_now[:3, 3]), rotation_angle(T_now, T_base_cam))
-        # moveL's trapezoid; a rotation counted as 1 m per rad (movel's speed is rad/s when only
-        # the orientation changes)
-        self._within_timeout(f"moveL of {length:.3f} m at {speed_m_s} m/s", length, speed_m_s, a)
         try:
             self._alive("isPoseWithinSafetyLimits")
             if not self._control.isPoseWithinSafetyLimits(pose):
@@ -256,14 +251,10 @@ class URArm(Arm):
         self._watch(T_base_cam, time.monotonic() + timeout_s)
 
     def _move_joints(self, q, speed_rad_s, acceleration_rad_s2):
-        """moveJ, asynchronous and watched as moveL is (the TCP at the target joints' pose),
-        refused before moving where its trapezoid (the leading joint's) exceeds move_timeout_s."""
+        """moveJ, asynchronous and watched as moveL is (the TCP at the target joints' pose)."""
         if self._control is None:
             raise self._fault("opened read-only (cell hw-check): moveJ refused")
         timeout_s = self.config.move_timeout_s
-        turn = float(np.abs(np.asarray(q, float) - np.asarray(self._receive.getActualQ(), float)).max())
-        self._within_timeout(f"moveJ of {np.degrees(turn):.1f} deg at {np.degrees(speed_rad_s):.1f} deg/s", turn,
-                             speed_rad_s, acceleration_rad_s2)
         try:
             self._alive("moveJ")
             self._joint_move = True
@@ -272,14 +263,6 @@ class URArm(Arm):
         except RuntimeError as err:
             raise self._fault(str(err)) from None
         self._watch(self.frames.T_base_cam_from_flange(ur5e.forward(q)), time.monotonic() + timeout_s, "moveJ")
-
-    def _within_timeout(self, move, distance, speed, acceleration):
-        """Refuse `move` (in words) before moving where its trapezoid, distance / speed + speed /
-        acceleration (the leading joint's for a moveJ), exceeds move_timeout_s."""
-        takes_s = distance / speed + speed / acceleration
-        if takes_s > self.config.move_timeout_s:
-            raise self._fault(f"{move} takes {takes_s:.1f} s, over move_timeout_s {self.config.move_timeout_s} s: "
-                              "refused before moving")
 
     def _watch(self, T_target, deadline, command="moveL"):
         """Poll the receive side until the TCP stands at T_target; DeviceFault on the way."""
