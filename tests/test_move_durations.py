@@ -164,3 +164,23 @@ def test_a_run_under_a_short_stated_timeout_cuts_its_moves_and_the_simulator_ref
     assert main(["run", str(task), "--out", str(tmp_path / "whole")]) == 3
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert "over move_timeout_s 1.0 s: refused before moving" in last
+
+
+@pytest.mark.long          # 30-60 s: plans the yawed bracket and runs its three shots
+def test_the_yawed_bracket_s_joint_moves_over_the_default_timeout_are_cut_and_the_run_converges(tmp_path):
+    """The bracket turned 5 deg about z (test_moves.bracket_yawed) on the simulated cell stating
+    the UR's default move_timeout_s 30 s: its route's two moveJs through a change of the arm's
+    configuration take over 30 s as one command (plan.json's duration_s counts them cut: above
+    30 s, below 60), each is made in commands the simulated arm takes within 30 s (it refuses a
+    longer one), logged with the plan's time, and the run converges."""
+    from test_moves import bracket_yawed
+    task = variant(tmp_path, bracket_yawed(tmp_path), {"cell.arm.move_timeout_s": 30.0})
+    out = tmp_path / "run"
+    assert main(["run", str(task), "--out", str(out)]) == 0
+    plan = json.loads((out / "plan.json").read_text())
+    long_moves = [m for m in plan["moves"] if m["duration_s"] > 30.0]
+    assert long_moves and all(m.get("joint_legs") == [0] and m["duration_s"] < 60.0 for m in long_moves)
+    cut = [s for s in steps(out) if s["step"] == "move_split"]
+    assert [s["to"] for s in cut] == [f"shot {m['to']}" for m in long_moves]
+    for line, move in zip(cut, long_moves):
+        assert line["commands"] == 2 and line["duration_s"] == pytest.approx(move["duration_s"], rel=1e-6)
