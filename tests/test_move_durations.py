@@ -29,6 +29,7 @@ from cell.task.loader import load_task
 from sim.arm import SimArm
 
 from simcell import device_settings, variant
+from test_bracket import bracket  # noqa: F401  (the fixture: the bracket and its plan)
 
 ROOT = Path(__file__).resolve().parent.parent
 HINGE = ROOT / "tasks" / "hinge.yaml"
@@ -184,3 +185,54 @@ def test_the_yawed_bracket_s_joint_moves_over_the_default_timeout_are_cut_and_th
     assert [s["to"] for s in cut] == [f"shot {m['to']}" for m in long_moves]
     for line, move in zip(cut, long_moves):
         assert line["commands"] == 2 and line["duration_s"] == pytest.approx(move["duration_s"], rel=1e-6)
+
+
+def split_shot(tmp_path, bracket, monkeypatch, view_2=None):
+    """The bracket found 10 mm along -x by an earlier shot: its shot of the bevel and web_outer,
+    carried out of reach, re-planned into two views (loop.Split; test_located_moves), run by
+    inspection.run_shot up to its first capture (later_shot); `view_2(task, shot) -> T_cell_cam`
+    moves the second view's camera first. (ShotRun, its fault, its log's steps, the devices)."""
+    from cell.planning import whole_part
+    from test_located_moves import later_shot
+    from test_localization import error
+    planner = whole_part.plan_features
+
+    def planned(task, *args, **kwargs):
+        plan = planner(task, *args, **kwargs)
+        if view_2 is None or len(plan.shots) != 2:
+            return plan
+        second = replace(plan.shots[1], T_cell_cam=view_2(task, plan.shots[1]))
+        return replace(plan, shots=(plan.shots[0], second))
+
+    monkeypatch.setattr(whole_part, "plan_features", planned)
+    return later_shot(tmp_path, bracket, error(offset_m=(-0.01, 0.0, 0.0)))
+
+
+def test_a_split_shot_checks_every_view_s_move_before_the_first_moves(tmp_path, bracket, monkeypatch):
+    """The two views' moves (from where the cell stands to view 1, on to view 2) are checked and
+    logged (`views`, each move's duration_s) before the first move of the shot; untouched, the
+    arm then moves to view 1 and the shot goes on to its first capture. With the second view's
+    camera put 5 mm in front of the bevel's centre (its body through the part), the shot stops at
+    that check, cause `pose`, the first contact of the camera's body on the move from view 1 to
+    view 2 named, and nothing moved (the simulated arm's and lamp's own move counts)."""
+    result, fault, log, devices = split_shot(tmp_path / "clear", bracket, monkeypatch)
+    [views] = [line for line in log if line["step"] == "views"]
+    assert len(views["moves"]) == 2 and all(m["duration_s"] > 0 for m in views["moves"])
+    assert [m["to"] for m in views["moves"]] == ["view 1 of 2", "view 2 of 2"]
+    first_move = next(k for k, line in enumerate(log) if line["step"].startswith("move_"))
+    assert log.index(views) < first_move and devices.arm.moves >= 1
+    assert fault is not None and "the test stops at the first capture" in str(fault)
+
+    def into_the_part(task, shot):
+        T = shot.T_cell_cam.copy()
+        centre = task.frames.T_cell_part @ np.append(task.features[0].center_m, 1.0)
+        T[:3, 3] = centre[:3] - 0.005 * T[:3, 2]                # 5 mm in front of the bevel's centre
+        return T
+
+    result, fault, log, devices = split_shot(tmp_path / "blocked", bracket, monkeypatch, into_the_part)
+    assert fault is None and not result.success and result.cause == "pose"
+    assert result.message.startswith("the part is off by [-10.00, +0.00, +0.00] mm")
+    assert "on the move from view 1 of 2 to view 2 of 2: refused before anything moved" in result.message
+    assert "; carried there, collision: camera_body and " in result.message
+    assert devices.arm.moves == 0 and devices.lamp.moves == 0
+    assert not any(line["step"] == "views" for line in log)

@@ -176,11 +176,21 @@ def split_views(ctx: RunContext, split: loop.Split, events: loop.Events,
     the shot of (assigned, whole_part.feature_plan; their tasks where split.error puts the part,
     the arm's hand-eye corrected by it), its captures numbered on from the shot's last; the
     split logged with the carried shot's refusal, each view's pose appended to `planned`, logged.
-    A goal not reached in one ends the shot."""
+    Every view's move is checked before the first moves (moves.view_moves: reach, collisions,
+    the arm's time, logged as `views`): one not clear stops the shot (GoalNotReached, cause
+    `collision`, motion.refusal), nothing moved. A goal not reached in one ends the shot."""
     index = [f.name for f in split.plan.features]
     ctx = replace(ctx, pose_error=split.error)
     ctx.recorder.step("correct", f"{localization.describe(split.error, split.error.views)}: {split.refused}; {split}",
                       action="locate", viewpoint=True)
+    moves = cell_moves.view_moves(split.task, split.plan, localization.corrected(ctx.devices, split.error))
+    blocked = next((m for m in moves if not m.clear), None)
+    if blocked is not None:
+        raise motion.refusal(blocked)
+    took = sum(m.duration_s for m in moves)
+    ctx.recorder.step("views", f"the {len(moves)} views' moves checked before the first moves: {took:.1f} s of the "
+                               f"arm's moves, every one collision-checked ({'; '.join(map(motion.how_apart, moves))})",
+                      moves=[m.to_json() for m in moves])
     for j, view in enumerate(split.plan.shots):
         names = assigned(split.plan, j)
         features = [loop.LoopFeature.planned(split.task.with_feature(index.index(n)),

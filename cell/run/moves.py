@@ -1,7 +1,8 @@
 """The moves a run makes, checked before anything moves: the route of a plan's shots from the
 arm's home pose with every move collision-checked along its path (cell.collision.paths: via
-points around a collision, the route ordered by cell.run.route on the moves' true travel), and
-the arm and lamp driven through them (`follow`). A feasible plan whose route has a move that
+points around a collision, the route ordered by cell.run.route on the moves' true travel, each
+move's time, Move.duration_s), the views a shot is split into likewise (`view_moves`), and the
+arm and lamp driven through them (`follow`). A feasible plan whose route has a move that
 cannot be made clear becomes infeasible, `collision` binding, naming both bodies and where."""
 from __future__ import annotations
 
@@ -69,23 +70,11 @@ def order(plan: Plan) -> tuple[int, ...]:
 
 def run_moves(task: Task, plan: Plan, devices: Devices) -> list[Move]:
     """The moves of the plan's route as the run makes them: the first checked again from where
-    the devices read back (the arm's joints, Arm.joint_angles; where the arm cannot tell them,
-    home's when its camera is at home's pose, else the inverse kinematics nearest home; the lamp
-    where it is, which the plan did not know), the
-    rest the plan's unless the first arrives in other joints than the plan's did (then each is
-    checked again from where the last arrives). Every move is checked before anything moves."""
-    with speaking_for(devices.arm):
-        T, read = devices.arm.camera_pose(), devices.arm.joint_angles()
-    with speaking_for(devices.lamp):
-        pan, tilt, radius = devices.lamp.joints()
-    lamp = (float(pan), float(tilt), float(radius))
+    the devices read back (read_back), the rest the plan's unless the first arrives in other
+    joints than the plan's did (then each is checked again from where the last arrives). Every
+    move is checked before anything moves."""
     scene, arm = CollisionScene.of(task), task.cell.devices.arm
-    home = home_stop(scene)
-    at_home = (np.linalg.norm(T[:3, 3] - home.T_cell_cam[:3, 3]) <= HOME_TOLERANCE_M
-               and np.allclose(T[:3, :3], home.T_cell_cam[:3, :3], atol=1e-4))
-    q = read if read is not None else home.arm_joints if at_home else reaching_joints(task.frames, T)
-    at = Stop(T, np.asarray(ur5e.HOME_JOINTS if q is None else q, float),
-              lamp if np.all(np.isfinite(lamp)) else None)
+    at, at_home = read_back(task, devices, scene)
     targets, moves = stops(task, plan), list[Move]()
     for k, planned in enumerate(plan.moves):
         arrived, foreseen = (moves[-1].joints_end, plan.moves[k - 1].joints_end) if moves else (None, None)
@@ -99,6 +88,42 @@ def run_moves(task: Task, plan: Plan, devices: Devices) -> list[Move]:
             break
         at = replace(targets[int(planned.end)], arm_joints=moves[-1].joints_end)
     return moves
+
+
+def view_moves(task: Task, plan: Plan, devices: Devices) -> list[Move]:
+    """The moves from where the devices read back (read_back) through plan.shots in their order
+    (the views a shot is split into, cell.run.inspection.split_views), each checked from where
+    the last arrives (plan_transition: the arm's reach, collisions along the path, the time its
+    commands take, Move.duration_s), the start and end named `view j of n`; a move not clear
+    ends the list. Moves nothing: the run checks every view's move before the first moves."""
+    scene, arm, n = CollisionScene.of(task), task.cell.devices.arm, len(plan.shots)
+    at, _ = read_back(task, devices, scene)
+    moves = list[Move]()
+    for j, target in enumerate(stops(task, plan)):
+        moves.append(plan_transition(scene, arm, at, target, f"view {j} of {n}" if j else "where the cell stands",
+                                     f"view {j + 1} of {n}"))
+        if not moves[-1].clear or moves[-1].joints_end is None:
+            break
+        at = replace(target, arm_joints=moves[-1].joints_end)
+    return moves
+
+
+def read_back(task: Task, devices: Devices, scene: CollisionScene) -> tuple[Stop, bool]:
+    """(where the devices stand as a Stop: the camera's pose and the arm's joints read back
+    (Arm.joint_angles; where the arm cannot tell them, home's when its camera is at home's pose,
+    else the inverse kinematics nearest home), the lamp's joints (None where its radius is not
+    known); whether the camera is at home's pose)."""
+    with speaking_for(devices.arm):
+        T, read = devices.arm.camera_pose(), devices.arm.joint_angles()
+    with speaking_for(devices.lamp):
+        pan, tilt, radius = devices.lamp.joints()
+    lamp = (float(pan), float(tilt), float(radius))
+    home = home_stop(scene)
+    at_home = bool(np.linalg.norm(T[:3, 3] - home.T_cell_cam[:3, 3]) <= HOME_TOLERANCE_M
+                   and np.allclose(T[:3, :3], home.T_cell_cam[:3, :3], atol=1e-4))
+    q = read if read is not None else home.arm_joints if at_home else reaching_joints(task.frames, T)
+    return Stop(T, np.asarray(ur5e.HOME_JOINTS if q is None else q, float),
+                lamp if np.all(np.isfinite(lamp)) else None), at_home
 
 
 def follow(task: Task, devices: Devices, move: Move, recorder: Recorder,
