@@ -25,7 +25,9 @@ class SimPanTilt(ServoRig):
     """`limits` {id: (min, max) ticks} as the servos' Min/Max Position Limit (default the full
     turn). Fault injection: on move number `fail_on_move` servo `fail_servo` (default the tilt)
     reports Hardware Error Status `fail_bits` (default 0x04, overheating) and stops. In the sim
-    the operator's manual radius is confirmed ("simulated: nothing to confirm") unless `yes` is False."""
+    the operator's manual radius is confirmed ("simulated: nothing to confirm") unless `yes` is False.
+    A move longer than cell.pan_tilt.move_timeout_s is refused before moving, as the real
+    servos', where the cell file states one (move_timeout_s)."""
 
     def __init__(self, rig: LampRigModel, config: PanTiltConfig, yes: bool = True,
                  operator: Operator | None = None, limits: Mapping[int, tuple[int, int]] | None = None,
@@ -58,6 +60,11 @@ class SimPanTilt(ServoRig):
                                                "collision check)")
             self.obstacles.lamp_position = lamp_position(self.rig.pivot_m, *end)
         super().move(pan_rad, tilt_rad, radius_m)
+
+    @property
+    def move_timeout_s(self) -> float | None:
+        """The cell file's cell.pan_tilt.move_timeout_s where it states one, else None: no limit."""
+        return self.config.move_timeout_s if self.config.move_timeout_given else None
 
     def _check_errors(self):
         for dxl_id, bits in self.hardware_error.items():

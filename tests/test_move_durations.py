@@ -236,3 +236,34 @@ def test_a_split_shot_checks_every_view_s_move_before_the_first_moves(tmp_path, 
     assert "; carried there, collision: camera_body and " in result.message
     assert devices.arm.moves == 0 and devices.lamp.moves == 0
     assert not any(line["step"] == "views" for line in log)
+
+
+def test_the_lamp_s_move_is_timed_as_its_servos_turn_and_a_longer_one_is_cut(tmp_path):
+    """The bracket's route from shot 2 to shot 0 pans the lamp from -180 to 122.8 deg: the pan
+    servo turns 3446 of its 4096 ticks a turn (position mode holds one turn: through 0) at the
+    Profile Velocity for 30 deg/s, round(5 rpm / 0.229) = 22 units = 5.038 rpm, 343.9 ticks/s:
+    10.02 s, over the default move_timeout_s 5 s. The simulated rig stating that timeout refuses
+    it before moving; motion's drive_lamp makes it in ceil(10.02 / (0.99 x 5)) = 3 moves along
+    the same line of joints, which the rig takes, logged as one `move_split`."""
+    from sim.pantilt import SimPanTilt
+    task = load_task(HINGE)
+    config = device_settings({"pan_tilt": {"speed_deg_s": 30.0, "move_timeout_s": 5.0}}).pan_tilt
+    lamp = SimPanTilt(task.lamp.rig, config)
+    tilt = 2048 + round(5.0 / 360 * 4096)
+    lamp.present = {config.pan_id: 0, config.tilt_id: tilt}                # pan -180 deg, tilt 5 deg
+    start, end = (-np.pi, np.radians(5.0), 0.15), (np.radians(122.83), np.radians(5.0), 0.15)
+    ticks = 2048 + round(122.83 / 360 * 4096)
+    rate = round(5.0 / 0.229) * 0.229 * 4096 / 60
+    assert ticks == 3446 and lamp.move_s(start, end) == pytest.approx(ticks / rate, rel=1e-12)
+    assert ticks / rate == pytest.approx(10.02, abs=0.005)
+    with pytest.raises(DeviceFault, match=r"takes 10.0 s at 30 deg/s, over move_timeout_s 5.0 s: refused before "
+                                          r"moving"):
+        lamp.move(*end)
+    assert lamp.present[config.pan_id] == 0 and lamp.moves == 0
+    unstated = SimPanTilt(task.lamp.rig, device_settings({"pan_tilt": {"speed_deg_s": 30.0}}).pan_tilt)
+    assert unstated.move_timeout_s is None
+    with Recorder(tmp_path / "run") as recorder:
+        motion.drive_lamp(Devices(None, lamp, None), recorder, "shot 0", end)
+    assert lamp.moves == 3 and lamp.present[config.pan_id] == ticks and lamp.present[config.tilt_id] == tilt
+    [split] = [s for s in steps(tmp_path / "run") if s["step"] == "move_split"]
+    assert split["commands"] == 3 and split["duration_s"] == pytest.approx(ticks / rate)

@@ -407,6 +407,15 @@ class LampRig(ABC):
     def held(self, pan_rad: float) -> float:
         """The pan the axis drives to and reads back for a commanded pan, not quantized."""
 
+    @property
+    @abstractmethod
+    def move_timeout_s(self) -> float | None:
+        """The longest one move of the axes may take (None: no limit)."""
+
+    @abstractmethod
+    def move_s(self, start: tuple[float, float, float], end: tuple[float, float, float]) -> float:
+        """How long the axes take from joints `start` to `end` (pan, tilt, radius) [s]."""
+
     @abstractmethod
     def _move_axes(self, pan_rad, tilt_rad, radius_m):
         """Drive the axes (radius_m is None when the operator sets it) and wait until there."""

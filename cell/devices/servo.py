@@ -77,6 +77,12 @@ def profile_velocity(speed_rad_s: float) -> int:
     return max(1, round(speed_rad_s * 60 / (2 * np.pi) / PROFILE_VELOCITY_RPM))
 
 
+def ticks_per_s(speed_rad_s: float) -> float:
+    """How fast a servo turns [ticks/s] at the Profile Velocity set for a joint speed
+    (profile_velocity, in units of PROFILE_VELOCITY_RPM)."""
+    return profile_velocity(speed_rad_s) * PROFILE_VELOCITY_RPM * TICKS_PER_TURN / 60
+
+
 class ServoRig(LampRig):
     """A LampRig on position-controlled servos: pan and tilt (and the radius when
     radius_axis is servo) as ticks, checked against each servo's position limits."""
@@ -114,6 +120,23 @@ class ServoRig(LampRig):
     def held(self, pan_rad: float) -> float:
         return held_pan(pan_rad, self.config.pan_offset_rad)
 
+    @property
+    def move_timeout_s(self) -> float | None:
+        """cell.pan_tilt.move_timeout_s: servos not at their goals by then are a fault."""
+        return self.config.move_timeout_s
+
+    def move_s(self, start: tuple[float, float, float], end: tuple[float, float, float]) -> float:
+        """The servos' time from joints `start` to `end`: ticks_s of their goal ticks (the
+        radius's only where a servo sets it)."""
+        radius = (None, None) if self.manual_radius else (start[2], end[2])
+        return self.ticks_s(self.goal_ticks(start[0], start[1], radius[0]), self.goal_ticks(end[0], end[1], radius[1]))
+
+    def ticks_s(self, start: dict[int, int], goals: dict[int, int]) -> float:
+        """How long the servos take from ticks `start` to `goals` [s]: the farthest one's ticks at
+        ticks_per_s (every servo at the Profile Velocity set; Profile Acceleration left at the
+        X-series' 0, a step in velocity, so no ramps)."""
+        return max(abs(goals[i] - start[i]) for i in goals) / ticks_per_s(self.config.speed_rad_s)
+
     def _move_axes(self, pan, tilt, radius):
         goals = self.goal_ticks(pan, tilt, radius)
         for dxl_id, tick in goals.items():
@@ -121,6 +144,11 @@ class ServoRig(LampRig):
             if not lo <= tick <= hi:
                 raise DeviceFault(self.device, f"servo {dxl_id}: goal tick {tick} outside its position "
                                                f"limits [{lo}, {hi}]: refused before moving")
+        limit = self.move_timeout_s
+        if limit is not None and (takes_s := self.ticks_s(self._present_ticks(), goals)) > limit:
+            raise DeviceFault(self.device, f"the servos' move to {goals} ticks takes {takes_s:.1f} s at "
+                                           f"{np.degrees(self.config.speed_rad_s):.0f} deg/s, over move_timeout_s "
+                                           f"{limit} s: refused before moving")
         self._drive(goals)
 
     def _read_axes(self):

@@ -19,7 +19,7 @@ from cell.collision.paths import Move, Stop, joint_leg, plan_transition
 from cell.collision.scene import CollisionScene, reaching_joints
 from cell.core.errors import GoalNotReached
 from cell.devices import ur5e
-from cell.devices.interfaces import joint_commands, line_commands, speaking_for
+from cell.devices.interfaces import commands, joint_commands, line_commands, speaking_for
 
 if TYPE_CHECKING:
     from cell.devices.interfaces import Devices
@@ -128,12 +128,12 @@ def go(task: Task, devices: Devices, recorder: Recorder, T_cell_cam: np.ndarray 
     def lamp() -> None:
         for k, joints in enumerate(move.lamp_via, 1):
             with speaking_for(devices.lamp):
-                devices.lamp.move(*joints)
+                drive_lamp(devices, recorder, f"the lamp's via point {k} on the way to {to}", joints, iteration)
                 position = devices.lamp.lamp_pose()[0]
             via("move_lamp_via", "the lamp's", k, len(move.lamp_via), position)
         if lamp_joints is not None:
             with speaking_for(devices.lamp):
-                devices.lamp.move(*lamp_joints)
+                drive_lamp(devices, recorder, to, lamp_joints, iteration)
 
     if move.lamp_first:
         recorder.step("move_order", f"the lamp first, then the camera, on the way to {to}: the camera's path with "
@@ -169,6 +169,30 @@ def drive_arm(devices: Devices, recorder: Recorder, to: str, T_cell_cam: np.ndar
             arm.move_camera(target)
         else:
             arm.move_joints(target)
+
+
+def drive_lamp(devices: Devices, recorder: Recorder, to: str, joints: tuple[float, ...],
+               iteration: int | None = None) -> None:
+    """The lamp to `joints` (pan, tilt, radius, as the axes hold them: LampRig.target) from where
+    it reads back, in the fewest equal pieces of the same line of joints that keep each move
+    within its move_timeout_s (LampRig.move_s; interfaces.commands, no ramps), a split logged
+    (`move_split`). A radius the operator sets (manual) stays where it is until the last piece
+    (the target's where it is not known yet), so it is asked for once. The caller speaks for
+    the lamp (speaking_for)."""
+    lamp = devices.lamp
+    end = np.array(joints[:3], float)
+    start = np.array(lamp.joints(), float)
+    start[2] = start[2] if np.isfinite(start[2]) else end[2]
+    whole = lamp.move_s((start[0], start[1], start[2]), (end[0], end[1], end[2]))
+    n = commands(whole, 0.0, lamp.move_timeout_s)
+    if n > 1:
+        recorder.step("move_split", f"the lamp's move to {to} in {n} moves along the same line of its joints, each "
+                                    f"within its move_timeout_s {lamp.move_timeout_s} s ({whole:.1f} s in all)",
+                      iteration=iteration, to=to, commands=n, duration_s=whole)
+    for k in range(1, n):
+        along = start + k / n * (end - start)
+        lamp.move(along[0], along[1], start[2] if lamp.manual_radius else along[2])
+    lamp.move(*end)
 
 
 def move_to(task: Task, devices: Devices, shot: Shot, recorder: Recorder, iteration: int | None = None) -> None:

@@ -61,6 +61,7 @@ class PanTiltConfig:
     speed_rad_s: float
     move_timeout_s: float
     tolerance_ticks: int
+    move_timeout_given: bool = False        # the task states move_timeout_s (the simulated rig keeps it then)
 
 
 @dataclass(frozen=True)
@@ -303,17 +304,22 @@ def devices_config(file: str | PathLike[str], cell: dict[str, Any], written: dic
         host=a["host"], connect_timeout_s=a["connect_timeout_s"], workspace_min_m=a["workspace_min_m"], workspace_max_m=a["workspace_max_m"],
         speed_m_s=a["speed_m_s"], acceleration_m_s2=a["acceleration_m_s2"],
         move_timeout_s=a["move_timeout_s"], hand_eye_file=a["hand_eye"] and a["hand_eye"]["file"],
-        move_timeout_given=any(_unit(str(key))[0] == "move_timeout" and value is not None
-                               for key, value in ((written or {}).get("arm") or {}).items()))
+        move_timeout_given=stated(written, "arm", "move_timeout"))
     pan_tilt = PanTiltConfig(
         port=p["port"], baud=p["baud"], pan_id=p["pan_id"], tilt_id=p["tilt_id"],
         radius_id=p["radius_id"], pan_offset_rad=p["pan_offset_rad"],
         tilt_offset_rad=p["tilt_offset_rad"], radius_ticks=(int(p["radius_ticks"][0]), int(p["radius_ticks"][1])),
         speed_rad_s=np.radians(p["speed_deg_s"]), move_timeout_s=p["move_timeout_s"],
-        tolerance_ticks=p["tolerance_ticks"])
+        tolerance_ticks=p["tolerance_ticks"], move_timeout_given=stated(written, "pan_tilt", "move_timeout"))
     camera = _camera_config(file, c, (written or {}).get("camera") or {}, bit_depth)
     lighting = LightingConfig(**cell["lighting"]) if "lighting" in given else None
     return DevicesConfig(Path(file), arm, pan_tilt, camera, tuple(given), lighting)
+
+
+def stated(written: dict[str, Any] | None, section: str, base: str) -> bool:
+    """Whether the cell section as written states cell.<section>.<base>_<unit> in any unit."""
+    return any(_unit(str(key))[0] == base and value is not None
+               for key, value in ((written or {}).get(section) or {}).items())
 
 
 def hand_eye(file: str | PathLike[str], arm: dict[str, Any], written: dict[str, Any] | None) -> np.ndarray:
