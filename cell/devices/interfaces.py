@@ -198,8 +198,9 @@ def joint_commands(config: ArmConfig, frames: Frames, q_from: ArrayLike, q_to: A
 def commands(whole_s: float, ramp_s: float, timeout_s: float | None) -> int:
     """How many equal pieces a move of whole_s (trapezoid_s; ramp_s of it its ramps) is made in
     so that each command is within timeout_s: 1 where the whole is (or no limit, None), else
-    ceil((whole_s - ramp_s) / (CRUISE_SHARE (timeout_s - ramp_s))). DeviceFault where the ramps
-    alone take timeout_s (cell.task.device_config refuses such a cell file)."""
+    ceil((whole_s - ramp_s) / (CRUISE_SHARE (timeout_s - ramp_s))). DeviceFault where the arm's
+    ramps alone take timeout_s (cell.task.device_config refuses such a cell file; the lamp's
+    moves have no ramps)."""
     if timeout_s is None or whole_s <= timeout_s:
         return 1
     if ramp_s >= timeout_s:
@@ -247,7 +248,8 @@ class Arm(ABC):
         check_arm_motion(self.config, self.frames, T_cell_cam, speed)
         if self.move_timeout_s is not None:
             length = line_length(self.camera_pose(), T_cell_cam)
-            self._within_timeout(f"moveL of {length:.3f} m at {speed} m/s", length, speed, self.config.acceleration_m_s2)
+            self._within_timeout(f"moveL of {length:.3f} m at {speed} m/s", length, speed,
+                                 self.config.acceleration_m_s2)
         self._move_tcp(self.frames.T_base_cam(T_cell_cam), speed)
 
     def move_joints(self, q: ArrayLike) -> None:

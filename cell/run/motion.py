@@ -153,18 +153,18 @@ def drive_arm(devices: Devices, recorder: Recorder, to: str, T_cell_cam: np.ndar
     arm (speaking_for); an arm that cannot tell its joints gets the moveJ whole (it refuses it)."""
     arm = devices.arm
     if q is None:
-        commands = line_commands(arm.config, arm.camera_pose(), np.asarray(T_cell_cam, float), arm.move_timeout_s)
+        pieces = line_commands(arm.config, arm.camera_pose(), np.asarray(T_cell_cam, float), arm.move_timeout_s)
     elif (q_now := arm.joint_angles()) is None:
         arm.move_joints(q)
         return
     else:
-        commands = joint_commands(arm.config, arm.frames, q_now, q, arm.move_timeout_s)
-    if len(commands) > 1:
-        kind, total = "straight move" if q is None else "joint move", sum(t for _, t in commands)
-        recorder.step("move_split", f"the {kind} to {to} in {len(commands)} commands along the same path, each "
+        pieces = joint_commands(arm.config, arm.frames, q_now, q, arm.move_timeout_s)
+    if len(pieces) > 1:
+        kind, total = "straight move" if q is None else "joint move", sum(t for _, t in pieces)
+        recorder.step("move_split", f"the {kind} to {to} in {len(pieces)} commands along the same path, each "
                                     f"within the arm's move_timeout_s {arm.move_timeout_s} s ({total:.1f} s in all)",
-                      iteration=iteration, to=to, commands=len(commands), duration_s=total)
-    for target, _ in commands:
+                      iteration=iteration, to=to, commands=len(pieces), duration_s=total)
+    for target, _ in pieces:
         if q is None:
             arm.move_camera(target)
         else:
