@@ -3,6 +3,7 @@ run as its own process: moveL at the commanded speed, async moveL and stopL, set
 protective and emergency stops; cell.devices.hw.ur.URArm moving the camera and reading it back, and its
 watch on the controller: a killed, silent or dropped controller mid-move is a DeviceFault at once
 (not after ur_rtde's 300 s), as are a protective stop and a move past move_timeout_s."""
+import json
 import re
 import sys
 import threading
@@ -228,6 +229,29 @@ def test_ur_arm_moves_the_camera_reads_it_back_and_watches_the_move_against_its_
                                               r"target\): stopped"):
             arm.move_camera(near)
         assert 1.0 < time.monotonic() - began < 1.5 + BUSY_S
+
+
+def test_a_move_longer_than_the_timeout_is_made_in_commands_the_ur_arm_takes(controller, tmp_path):
+    """Under move_timeout_s 1.0 s at 0.1 m/s and 0.5 m/s^2 the UR arm refuses a 0.15 m moveL as
+    one command (1.7 s; test above, and the move from the emulator's home to the hinge's camera,
+    1.8 s): cell.run.motion.drive_arm makes each in moveLs along the same line within it, the
+    0.15 m one in ceil(1.5 / (0.99 x 0.8)) = 2 of 0.75 + 0.2 s, which the emulated controller
+    runs and the arm's watcher sees done within the timeout; the camera arrives."""
+    from cell.devices.interfaces import Devices
+    from cell.report.recorder import Recorder
+    from cell.run import motion
+    far = HINGE_CAMERA.copy()
+    far[:3, 3] += [0.15, 0.0, 0.0]
+    with ur_arm(replace(LOOPBACK_ARM, speed_m_s=0.1, acceleration_m_s2=0.5, move_timeout_s=1.0)) as arm:
+        with Recorder(tmp_path / "run") as recorder:
+            motion.drive_arm(Devices(arm, None, None), recorder, "the hinge's camera", HINGE_CAMERA)
+            assert arm.camera_pose() == pytest.approx(HINGE_CAMERA, abs=1e-4)
+            motion.drive_arm(Devices(arm, None, None), recorder, "the target", far)
+        assert arm.camera_pose() == pytest.approx(far, abs=1e-4)
+    lines = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    first, second = [line for line in lines if line["step"] == "move_split"]
+    assert first["commands"] >= 2 and second["commands"] == 2
+    assert second["duration_s"] == pytest.approx(2 * (0.75 + 0.2), abs=2e-3)    # read back within 0.1 mm
 
 
 def test_ur_arm_protective_stop_mid_move_is_a_fault(controller):
