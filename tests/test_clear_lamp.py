@@ -154,7 +154,8 @@ def test_the_search_without_the_bodies_takes_what_the_search_with_them_found_the
     direction refused, then the search without the bodies taking what that one found (plan's
     fallback): the same plan as the search without the bodies alone (plan.json but its timing);
     its global search not made again and refine_all asked only the starts the first did not
-    refine (those it refused)."""
+    refine (those it refused); asked once more, the same plan with nothing searched, refined or
+    verified again."""
     task = load_task(ROOT / "tasks" / "hinge.yaml")
     settings, say = PlannerSettings(), lambda m: None
     alone = one_shot.certified(task, settings, 1.0, say, None, None, None)
@@ -170,3 +171,9 @@ def test_the_search_without_the_bodies_takes_what_the_search_with_them_found_the
     assert grids >= 1 and len(searched) < taken.verification.rounds + 1
     assert 0 < sum(asked) < settings.starts * (taken.verification.rounds + 1)
     assert with_bodies.shot.joints != alone.shot.joints
+    verify, checked = one_shot.certificate.verify, []
+    monkeypatch.setattr(one_shot.certificate, "verify", lambda *a: checked.append(1) or verify(*a))
+    asked.clear(), searched.clear()
+    again = one_shot.certified(task, settings, 1.0, say, None, None, None, known)   # all of it found before
+    assert {**again.to_json(), "timing_s": None} == {**alone.to_json(), "timing_s": None}
+    assert not asked and not searched and not checked

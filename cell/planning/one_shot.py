@@ -9,6 +9,7 @@ cell.planning.requirements). The result is a cell.planning.plan.Plan of plain va
 
 from __future__ import annotations
 
+import pickle
 import time
 from collections.abc import Callable, Generator, Iterator
 from itertools import accumulate
@@ -24,7 +25,8 @@ from cell.core import geometry
 from cell.devices import rig
 from cell.physics import brdf, depth_of_field as dof
 from cell.physics.costs import RequirementValue
-from cell.planning.plan import Exposure, LightSetting, Maps, Plan, PlannerSettings, Refinement, Search, Shot
+from cell.planning.plan import (Exposure, LightSetting, Maps, Plan, PlannerSettings, Refinement, Search, Shot,
+                                Verification)
 
 if TYPE_CHECKING:
     from cell.planning.scene import Scene
@@ -257,7 +259,7 @@ def certified(task: Task, settings: PlannerSettings, albedo_scale: float, say: C
         if not result.feasible:
             return result
         t = time.perf_counter()
-        verification, worst = certificate.verify(problem, result.shot)
+        verification, worst = verified(problem, result.shot, extra, known)
         timing = {**result.timing_s, "verify": time.perf_counter() - t}
         say(f"certificate: {verification.points} points, gray {verification.gray_min:.1f}-"
             f"{verification.gray_max:.1f}: " + ("holds" if verification.holds else
@@ -395,21 +397,36 @@ def refined_from(problem: evaluate.Problem, starts: list[np.ndarray], lamp_rig: 
     refined, key = known
     keys = [(key, np.ascontiguousarray(x, dtype=float).tobytes()) for x in starts]
     new = [k for k, x in enumerate(starts) if keys[k] not in refined]
-    refined.update(zip([keys[k] for k in new], refine_all(problem, [starts[k] for k in new], lamp_rig)))
+    if new:
+        refined.update(zip([keys[k] for k in new], refine_all(problem, [starts[k] for k in new], lamp_rig)))
     return [refined[k] for k in keys]
+
+
+def verified(problem: evaluate.Problem, shot: Shot, extra: np.ndarray,
+             known: Searched | None) -> tuple[Verification, np.ndarray]:
+    """certificate.verify of `shot` on the Problem of the search with these `extra` points, taken
+    from `known` (Searched) where the same shot (its pickle's bytes) was verified on it before."""
+    if known is None:
+        return certificate.verify(problem, shot)
+    key = (np.ascontiguousarray(extra, dtype=float).tobytes(), pickle.dumps(shot))
+    if key not in known.verified:
+        known.verified[key] = certificate.verify(problem, shot)
+    return known.verified[key]
 
 
 class Searched:
     """What a plan's searches found that the cell's bodies do not change, kept for its search
     without them (plan: where no clear lamp pose meets every requirement): each global search
-    (global_search) by the extra points it searched with, and each free refinement by that and
-    its start. The search without the bodies starts at mostly the same grid poses and its
-    certificate rounds often add the same points: what it would find again is taken instead, the
-    same numbers (the same functions on the same inputs), found once."""
+    (global_search) by the extra points it searched with, each free refinement by that and its
+    start, and each certificate (verified) by that and the shot. The search without the bodies
+    starts at mostly the same grid poses, often ends at the same shot and so adds the same points
+    in its certificate rounds: what it would find again is taken instead, the same numbers (the
+    same functions on the same inputs), found once."""
 
     def __init__(self) -> None:
         self.grids: dict[bytes, GlobalSearch] = {}
         self.refined: Refined = {}
+        self.verified: dict[tuple[bytes, bytes], tuple[Verification, np.ndarray]] = {}
 
 
 class ClearOfCell:
