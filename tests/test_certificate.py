@@ -164,3 +164,13 @@ def test_mirror_alignment_is_the_form_with_numpys_sums_bit_for_bit():
     s, v = geometry.unit(lamp - points), geometry.unit(camera - points)
     mirror = 2.0 * np.sum(normals * s, axis=-1, keepdims=True) * normals - s
     assert np.array_equal(certificate.mirror_alignment(points, normals, lamp, camera), np.sum(mirror * v, axis=-1))
+
+
+def test_a_patchs_row_norms_are_numpys_norms_bit_for_bit():
+    """scene._row_norms (the dense patch's landing distances) equals np.linalg.norm along rows,
+    for offsets of every size a patch has and rows of zeros and of one component."""
+    from cell.planning.scene import _row_norms
+    rng = np.random.default_rng(7)
+    d = rng.normal(size=(20000, 3)) * 10.0 ** rng.uniform(-9, 1, (20000, 1))
+    d[:3] = [[0.0, 0.0, 0.0], [-0.0, 3e-3, 0.0], [1e-300, -2e-300, 0.0]]
+    assert np.array_equal(_row_norms(d), np.linalg.norm(d, axis=1))

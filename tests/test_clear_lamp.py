@@ -147,3 +147,33 @@ def test_the_conrod_correct_models_plan_feasible_with_the_padding_kept(tmp_path,
     arm = reaching_joints(task.frames, shot.T_cell_cam, shot.arm_joints)
     assert box_gap(*sim_housings(task, arm, shot.joints)) >= padding
     assert any("lamp poses the search tried refused" in note for note in planned.notes)
+
+
+def test_the_search_without_the_bodies_takes_what_the_search_with_them_found_the_same_plan(monkeypatch):
+    """one_shot.Searched: the hinge's certified search with the poses within 6 deg of its best
+    direction refused, then the search without the bodies taking what that one found (plan's
+    fallback): the same plan as the search without the bodies alone (plan.json but its timing);
+    its global search not made again and refine_all asked only the starts the first did not
+    refine (those it refused); asked once more, the same plan with nothing searched, refined or
+    verified again."""
+    task = load_task(ROOT / "tasks" / "hinge.yaml")
+    settings, say = PlannerSettings(), lambda m: None
+    alone = one_shot.certified(task, settings, 1.0, say, None, None, None)
+    pan, tilt, _ = alone.shot.joints
+    known = one_shot.Searched()
+    with_bodies = one_shot.certified(task, settings, 1.0, say, None, None, Refusing((pan, tilt), 6.0), known)
+    grids, refine_all, global_search = len(known.grids), one_shot.refine_all, one_shot.global_search
+    asked, searched = [], []
+    monkeypatch.setattr(one_shot, "refine_all", lambda p, starts, *a: asked.append(len(starts)) or refine_all(p, starts, *a))
+    monkeypatch.setattr(one_shot, "global_search", lambda *a: searched.append(1) or global_search(*a))
+    taken = one_shot.certified(task, settings, 1.0, say, None, None, None, known)
+    assert {**taken.to_json(), "timing_s": None} == {**alone.to_json(), "timing_s": None}
+    assert grids >= 1 and len(searched) < taken.verification.rounds + 1
+    assert 0 < sum(asked) < settings.starts * (taken.verification.rounds + 1)
+    assert with_bodies.shot.joints != alone.shot.joints
+    verify, checked = one_shot.certificate.verify, []
+    monkeypatch.setattr(one_shot.certificate, "verify", lambda *a: checked.append(1) or verify(*a))
+    asked.clear(), searched.clear()
+    again = one_shot.certified(task, settings, 1.0, say, None, None, None, known)   # all of it found before
+    assert {**again.to_json(), "timing_s": None} == {**alone.to_json(), "timing_s": None}
+    assert not asked and not searched and not checked

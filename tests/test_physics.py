@@ -278,6 +278,45 @@ def test_vector_forms_are_the_forms_with_numpys_sums_bit_for_bit():
     assert {brdf.DIFFUSE, brdf.LOBE, brdf.SPIKE, brdf.OCCLUDED} <= set(terms.tolist())
 
 
+def test_dominant_term_is_numpys_argmax_over_the_stacked_terms():
+    """dominant_term's two comparisons pick the term np.argmax picks over the three stacked (the
+    first of equal ones, a NaN first), OCCLUDED behind: random angles and parameters, and every
+    combination of ties, infinities and NaN among the three terms."""
+    import itertools
+    from unittest import mock
+
+    def argmax_form(*a):
+        terms = np.stack(np.broadcast_arrays(*brdf.brdf_terms(*a)))
+        front = (np.asarray(a[0]) > 0.0) & (np.asarray(a[1]) > 0.0)
+        return np.where(front, np.argmax(terms, axis=0), brdf.OCCLUDED)
+
+    rng = np.random.default_rng(28)
+    n = 100000
+    cosines = rng.uniform(-0.2, 1.0, n), rng.uniform(-0.2, 1.0, n), rng.uniform(-1.0, 1.0, n)
+    for params in [(rng.uniform(0, 2, n), rng.uniform(1, 1e4, n), rng.uniform(0, 5, n), rng.uniform(1, 1e5, n)),
+                   (0.3, 20.0, 1.5, 3000.0)]:
+        got, want = brdf.dominant_term(*cosines, *params), argmax_form(*cosines, *params)
+        assert got.dtype == want.dtype and np.array_equal(got, want)
+        assert set(got.tolist()) == {brdf.OCCLUDED, brdf.DIFFUSE, brdf.LOBE, brdf.SPIKE}
+    values = (0.0, 0.5, 1.0, np.inf, np.nan)
+    terms = tuple(np.array(list(itertools.product(values, repeat=3))).T)
+    with mock.patch.object(brdf, "brdf_terms", lambda *a: terms):
+        got = brdf.dominant_term(np.ones(len(terms[0])), 1.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    assert np.array_equal(got, np.argmax(np.stack(terms), axis=0))
+
+
+def test_stable_powers_are_each_stable_power():
+    """The lobe's and the spike's powers of one base with ln b taken once equal each power alone."""
+    rng = np.random.default_rng(5)
+    base = np.concatenate([rng.uniform(-0.5, 1.5, 1000), [0.0, 1.0, 1.0 - 1e-12, -0.0]])
+    m1, m2 = rng.uniform(1, 1e4, base.shape), 3000.0
+    b = np.minimum(base, 1.0)
+    alone = [np.where(b > 0.0, np.exp(np.asarray(m) * np.log(np.where(b > 0.0, b, 1.0))), 0.0) for m in (m1, m2)]
+    together = brdf.stable_powers(base, m1, m2)
+    assert all(np.array_equal(x, y) for x, y in zip(together, alone))
+    assert np.array_equal(brdf.stable_power(base, m1), alone[0])
+
+
 def test_stable_power_matches_exact_values():
     c = 1.0 - 1e-6
     assert brdf.stable_power(c, 1e4) == pytest.approx(math.exp(1e4 * math.log1p(-1e-6)), rel=1e-12)

@@ -30,12 +30,16 @@ def stable_power(base: ArrayLike, exponent: ArrayLike) -> np.ndarray:
     Computed as exp(m ln b) with b clamped to 1 and b <= 0 masked, so nothing under- or
     overflows to NaN or inf (ln b is exact for b near 1: b - 1 is exact there).
     """
-    base = np.asarray(base, dtype=float)
-    exponent = np.asarray(exponent, dtype=float)
-    b = np.minimum(base, 1.0)
+    return stable_powers(base, exponent)[0]
+
+
+def stable_powers(base: ArrayLike, *exponents: ArrayLike) -> tuple[np.ndarray, ...]:
+    """stable_power(base, m) for each exponent m, ln b taken once for them all (the lobe's and
+    the spike's powers of one mirror cosine): the same operations on the same numbers each."""
+    b = np.minimum(np.asarray(base, dtype=float), 1.0)
     positive = b > 0.0
     log_b = np.log(np.where(positive, b, 1.0))
-    return np.where(positive, np.exp(exponent * log_b), 0.0)
+    return tuple(np.where(positive, np.exp(np.asarray(m, dtype=float) * log_b), 0.0) for m in exponents)
 
 
 def mirror_cosine(cos_i: ArrayLike, cos_e: ArrayLike, cos_alpha: ArrayLike) -> np.ndarray:
@@ -51,9 +55,10 @@ def brdf_terms(cos_i: ArrayLike, cos_e: ArrayLike, cos_alpha: ArrayLike, sigma1:
     cos_e = np.asarray(cos_e, dtype=float)
     front = (cos_i > 0.0) & (cos_e > 0.0)
     c = mirror_cosine(cos_i, cos_e, cos_alpha)
+    power1, power2 = stable_powers(c, m1, m2)
     diffuse = np.where(front, cos_i, 0.0)
-    lobe = np.where(front, sigma1 * stable_power(c, m1), 0.0)
-    spike = np.where(front, sigma2 * stable_power(c, m2), 0.0)
+    lobe = np.where(front, sigma1 * power1, 0.0)
+    spike = np.where(front, sigma2 * power2, 0.0)
     return diffuse, lobe, spike
 
 
@@ -67,10 +72,17 @@ def reflectance(cos_i: ArrayLike, cos_e: ArrayLike, cos_alpha: ArrayLike, rho: f
 
 def dominant_term(cos_i: ArrayLike, cos_e: ArrayLike, cos_alpha: ArrayLike, sigma1: float | np.ndarray,
                   m1: float | np.ndarray, sigma2: float | np.ndarray, m2: float | np.ndarray) -> np.ndarray:
-    """Sec. 5.2: index of the largest term (DIFFUSE, LOBE, SPIKE); OCCLUDED where R is clamped to 0."""
-    terms = np.stack(np.broadcast_arrays(*brdf_terms(cos_i, cos_e, cos_alpha, sigma1, m1, sigma2, m2)))
+    """Sec. 5.2: index of the largest term (DIFFUSE, LOBE, SPIKE); OCCLUDED where R is clamped to 0.
+    The largest as np.argmax over the three finds it (the first of equal ones; a NaN counts as
+    the largest), by two comparisons instead of a stacked copy (a map asks thousands of cells)."""
+    diffuse, lobe, spike = brdf_terms(cos_i, cos_e, cos_alpha, sigma1, m1, sigma2, m2)
+    diffuse, lobe, spike = np.broadcast_arrays(diffuse, lobe, spike)
+    lobe_wins = (lobe > diffuse) | (np.isnan(lobe) & ~np.isnan(diffuse))
+    top = np.where(lobe_wins, lobe, diffuse)
+    spike_wins = (spike > top) | (np.isnan(spike) & ~np.isnan(top))
+    best = np.where(spike_wins, SPIKE, np.where(lobe_wins, LOBE, DIFFUSE))
     front = (np.asarray(cos_i) > 0.0) & (np.asarray(cos_e) > 0.0)
-    return np.where(front, np.argmax(terms, axis=0), OCCLUDED)
+    return np.where(front, best, OCCLUDED)
 
 
 def reflectance_jacobian(cos_i: ArrayLike, cos_e: ArrayLike, cos_alpha: ArrayLike, rho: float | np.ndarray,

@@ -9,11 +9,12 @@ cell.planning.requirements). The result is a cell.planning.plan.Plan of plain va
 
 from __future__ import annotations
 
+import pickle
 import time
 from collections.abc import Callable, Generator, Iterator
 from itertools import accumulate
 from dataclasses import replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple, cast
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -24,7 +25,8 @@ from cell.core import geometry
 from cell.devices import rig
 from cell.physics import brdf, depth_of_field as dof
 from cell.physics.costs import RequirementValue
-from cell.planning.plan import Exposure, LightSetting, Maps, Plan, PlannerSettings, Refinement, Search, Shot
+from cell.planning.plan import (Exposure, LightSetting, Maps, Plan, PlannerSettings, Refinement, Search, Shot,
+                                Verification)
 
 if TYPE_CHECKING:
     from cell.planning.scene import Scene
@@ -230,31 +232,34 @@ def plan(task: Task, settings: PlannerSettings = PlannerSettings(), albedo_scale
     say = progress or (lambda msg: None)
     t0 = time.perf_counter()
     clear = ClearOfCell(task, arm_joints) if settings.collisions else None
-    result = certified(task, settings, albedo_scale, say, T_cell_cam, visible, clear)
+    known = Searched() if clear is not None else None
+    result = certified(task, settings, albedo_scale, say, T_cell_cam, visible, clear, known)
     if clear is not None and clear.refused:
         if result.feasible:
             result = replace(result, notes=result.notes + (clear.note(),))
         else:
             say("no lamp pose clear of the cell's bodies meets every requirement: the search without them")
-            result = certified(task, settings, albedo_scale, say, T_cell_cam, visible, None)
+            result = certified(task, settings, albedo_scale, say, T_cell_cam, visible, None, known)
     if arm_joints is not None:
         result = replace(result, shots=(replace(result.shot, arm_joints=tuple(float(q) for q in np.asarray(arm_joints))),))
     return replace(result, timing_s={**result.timing_s, "total": time.perf_counter() - t0})
 
 
 def certified(task: Task, settings: PlannerSettings, albedo_scale: float, say: Callable[[str], None],
-              T_cell_cam: np.ndarray | None, visible: np.ndarray | None, clear: ClearOfCell | None) -> Plan:
-    """The search (its lamp among the poses `clear` passes), then the chosen shot certified on the
+              T_cell_cam: np.ndarray | None, visible: np.ndarray | None, clear: ClearOfCell | None,
+              known: Searched | None = None) -> Plan:
+    """The search (its lamp among the poses `clear` passes; `known`: what the plan's searches found
+    before, Searched), then the chosen shot certified on the
     dense patch (cell.planning.certificate); where the certificate fails, its worst points join
     the samples and the search runs again, at most CERTIFY_ROUNDS times. The plan is feasible
     when its samples and its certificate say so."""
     extra = np.zeros((0, 3))
     for rounds in range(CERTIFY_ROUNDS + 1):
-        result, problem = search(task, settings, albedo_scale, extra, say, T_cell_cam, visible, clear)
+        result, problem = search(task, settings, albedo_scale, extra, say, T_cell_cam, visible, clear, known)
         if not result.feasible:
             return result
         t = time.perf_counter()
-        verification, worst = certificate.verify(problem, result.shot)
+        verification, worst = verified(problem, result.shot, extra, known)
         timing = {**result.timing_s, "verify": time.perf_counter() - t}
         say(f"certificate: {verification.points} points, gray {verification.gray_min:.1f}-"
             f"{verification.gray_max:.1f}: " + ("holds" if verification.holds else
@@ -275,7 +280,8 @@ def certified(task: Task, settings: PlannerSettings, albedo_scale: float, say: C
 
 def search(task: Task, settings: PlannerSettings, albedo_scale: float, extra: np.ndarray,
            say: Callable[[str], None], T_cell_cam: np.ndarray | None = None,
-           visible: np.ndarray | None = None, clear: ClearOfCell | None = None) -> tuple[Plan, evaluate.Problem]:
+           visible: np.ndarray | None = None, clear: ClearOfCell | None = None,
+           known: Searched | None = None) -> tuple[Plan, evaluate.Problem]:
     """(Plan of the search over the rig on the task's samples plus `extra` points, its Problem;
     `visible`: the own samples' visibility map, found before, only the extra points' cast).
     With `clear` (ClearOfCell), the starts are the best grid poses it passes (pick_starts, asked
@@ -287,41 +293,30 @@ def search(task: Task, settings: PlannerSettings, albedo_scale: float, extra: np
     poses counted as unlit (refine_all's `allowed`: the simplex moves away from them); then the
     best clear pose meeting them, else the best meeting them (which whole_part.cleared refuses,
     its bodies named: the bodies alone refuse it), else the best clear one. Where it refuses no
-    pose asked, the search is the one without the bodies, bit for bit."""
-    from cell.planning.scene import build_scene
-    timing = {}
-    t0 = time.perf_counter()
-    scene = build_scene(task, settings.samples, extra, T_cell_cam)
-    if T_cell_cam is None and task.camera.viewpoint.mode == "fixed":
-        viewpoints.require_reach(task, scene)                       # the arm takes the camera there, or exit 1
-    timing["scene"] = time.perf_counter() - t0
-
-    t = time.perf_counter()
-    if visible is not None:
-        grid = regions.SphereGrid(np.radians(settings.grid_step_deg))
-        visible = visibility_map(scene, grid, visible, len(scene.points) - len(extra))
-    maps = build_maps(task, scene, settings, visible=visible)
-    timing["maps"] = time.perf_counter() - t
+    pose asked, the search is the one without the bodies, bit for bit. `known` (Searched): what
+    the plan's searches found before with these extra points, taken, not found again."""
+    timing: dict[str, float] = {}
+    key = np.ascontiguousarray(extra, dtype=float).tobytes()
+    found = None if known is None else known.grids.get(key)
+    if found is None:
+        found = global_search(task, settings, albedo_scale, extra, T_cell_cam, visible, timing)
+        if known is not None:
+            known.grids[key] = found
+    scene, problem, (pan, tilt, radius), global_values = found
+    maps = cast(Maps, problem.maps)
+    obj = maps.candidate_objective
     say(f"maps: {maps.visible.mean():.0%} of directions visible, {maps.wanted.mean():.1%} give "
         f"{task.requirements.reflection} reflection")
-
-    t = time.perf_counter()
-    problem = evaluate.build_problem(task, scene, maps, albedo_scale)
-    lamp_rig = task.lamp.rig
-    pan, tilt, radius = candidate_grid(lamp_rig, settings)
-    global_values = requirements.ln_values(problem, evaluate.candidates(problem, pan, tilt, radius, tolerance=False))
-    obj = score(problem, global_values)
-    allowed = None if clear is None else clear.at(scene)
-    maps = replace(maps, candidate_pan=pan, candidate_tilt=tilt, candidate_objective=obj)
-    problem = replace(problem, maps=maps)
-    timing["global_search"] = time.perf_counter() - t
     say(f"global search: {len(pan)} lamp poses x {len(scene.points)} samples")
+    allowed = None if clear is None else clear.at(scene)
+    lamp_rig = task.lamp.rig
 
     t = time.perf_counter()
     grid_clear = None if allowed is None else (lambda k: allowed(np.column_stack([pan[k], tilt[k], radius[k]])))
     starts = pick_starts(pan, tilt, obj, settings.starts, np.radians(2 * settings.pan_step_deg), grid_clear)
     poses = [np.array([pan[k], tilt[k], radius[k]]) for k in starts]
-    refined = refine_all(problem, poses, lamp_rig) if settings.refine else []
+    refined = refined_from(problem, poses, lamp_rig, None if known is None else (known.refined, key)) \
+        if settings.refine else []
     stack, final, final_values, lit = evaluated(problem, poses + [x for x, _ in refined])
     missed = requirements.missed(final_values)
     blocked = np.zeros(len(stack), bool) if allowed is None else ~allowed(stack)
@@ -345,6 +340,93 @@ def search(task: Task, settings: PlannerSettings, albedo_scale: float, extra: np
                 maps=maps, settings=settings, scene=scene, search=search, timing_s=timing,
                 notes=notes(problem, shot),
                 gray_any=task.requirements.gray_any), problem
+
+
+class GlobalSearch(NamedTuple):
+    """A search's samples and maps, its Problem (the maps with the global candidates and their
+    objective), the candidates (pan, tilt, radius) and their requirement values (global_search)."""
+
+    scene: Scene
+    problem: evaluate.Problem
+    candidates: tuple[np.ndarray, np.ndarray, np.ndarray]
+    values: dict[str, np.ndarray]
+
+
+def global_search(task: Task, settings: PlannerSettings, albedo_scale: float, extra: np.ndarray,
+                  T_cell_cam: np.ndarray | None, visible: np.ndarray | None, timing: dict[str, float]) -> GlobalSearch:
+    """search's first stages, which the cell's bodies do not enter: the scene of the task's samples
+    plus `extra` points (the camera at T_cell_cam or by the task's rule), the maps (`visible`: the
+    own samples' visibility map, found before, only the extra points' cast), the Problem and
+    every grid candidate's requirement values and objective (the global search, sec. 5.3); each
+    stage's time in `timing`."""
+    from cell.planning.scene import build_scene
+    t0 = time.perf_counter()
+    scene = build_scene(task, settings.samples, extra, T_cell_cam)
+    if T_cell_cam is None and task.camera.viewpoint.mode == "fixed":
+        viewpoints.require_reach(task, scene)                       # the arm takes the camera there, or exit 1
+    timing["scene"] = time.perf_counter() - t0
+
+    t = time.perf_counter()
+    if visible is not None:
+        grid = regions.SphereGrid(np.radians(settings.grid_step_deg))
+        visible = visibility_map(scene, grid, visible, len(scene.points) - len(extra))
+    maps = build_maps(task, scene, settings, visible=visible)
+    timing["maps"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    problem = evaluate.build_problem(task, scene, maps, albedo_scale)
+    pan, tilt, radius = candidate_grid(task.lamp.rig, settings)
+    values = requirements.ln_values(problem, evaluate.candidates(problem, pan, tilt, radius, tolerance=False))
+    maps = replace(maps, candidate_pan=pan, candidate_tilt=tilt, candidate_objective=score(problem, values))
+    problem = replace(problem, maps=maps)
+    timing["global_search"] = time.perf_counter() - t
+    return GlobalSearch(scene, problem, (pan, tilt, radius), values)
+
+
+Refined = dict[tuple[bytes, bytes], tuple[np.ndarray, Refinement]]
+
+
+def refined_from(problem: evaluate.Problem, starts: list[np.ndarray], lamp_rig: LampRig,
+                 known: tuple[Refined, bytes] | None) -> list[tuple[np.ndarray, Refinement]]:
+    """refine_all from every start (free: no pose refused), those refined before on the same
+    search's Problem taken from `known` ((the refinements by search and start, that search's
+    key)): a start's refinement is its own alone (refine_all: the same as one start at a
+    time), so the others run in lockstep without them."""
+    if known is None:
+        return refine_all(problem, starts, lamp_rig)
+    refined, key = known
+    keys = [(key, np.ascontiguousarray(x, dtype=float).tobytes()) for x in starts]
+    new = [k for k, x in enumerate(starts) if keys[k] not in refined]
+    if new:
+        refined.update(zip([keys[k] for k in new], refine_all(problem, [starts[k] for k in new], lamp_rig)))
+    return [refined[k] for k in keys]
+
+
+def verified(problem: evaluate.Problem, shot: Shot, extra: np.ndarray,
+             known: Searched | None) -> tuple[Verification, np.ndarray]:
+    """certificate.verify of `shot` on the Problem of the search with these `extra` points, taken
+    from `known` (Searched) where the same shot (its pickle's bytes) was verified on it before."""
+    if known is None:
+        return certificate.verify(problem, shot)
+    key = (np.ascontiguousarray(extra, dtype=float).tobytes(), pickle.dumps(shot))
+    if key not in known.verified:
+        known.verified[key] = certificate.verify(problem, shot)
+    return known.verified[key]
+
+
+class Searched:
+    """What a plan's searches found that the cell's bodies do not change, kept for its search
+    without them (plan: where no clear lamp pose meets every requirement): each global search
+    (global_search) by the extra points it searched with, each free refinement by that and its
+    start, and each certificate (verified) by that and the shot. The search without the bodies
+    starts at mostly the same grid poses, often ends at the same shot and so adds the same points
+    in its certificate rounds: what it would find again is taken instead, the same numbers (the
+    same functions on the same inputs), found once."""
+
+    def __init__(self) -> None:
+        self.grids: dict[bytes, GlobalSearch] = {}
+        self.refined: Refined = {}
+        self.verified: dict[tuple[bytes, bytes], tuple[Verification, np.ndarray]] = {}
 
 
 class ClearOfCell:

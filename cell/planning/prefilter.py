@@ -61,8 +61,10 @@ def camera_side(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list
     it: view_angle, resolution, depth_of_field, and camera_view as far as the image's bounds
     decide it. Each sample's numbers are computed over every feature's samples at once (a
     sample's row its own), each feature's extremes and counts over its rows by one reduceat
-    each, and depth_of_field over every feature asking the same depth at once (depth_of_field_ln
-    reads a feature's nearest and farthest depth alone, element by element)."""
+    each, depth_of_field over every feature asking the same depth at once (depth_of_field_ln
+    reads a feature's nearest and farthest depth alone, element by element), and the four
+    requirements' values of every feature at once: only a missed one makes its RequirementValue
+    (a part's features are many, each shot's pairs with them as many)."""
     if not tasks:
         return []
     scene, bounds = coverage.stacked(lent, shot.T_cell_cam)
@@ -80,19 +82,29 @@ def camera_side(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list
     for depth in np.unique(wanted):
         same = np.flatnonzero(wanted == depth)
         depth_ln[same] = requirements.depth_of_field_ln(tasks[same[0]], scene, focus, kappa, nearest[same], farthest[same])
-    found = []
-    for k, (task, (start, end)) in enumerate(zip(tasks, bounds)):
-        asked = task.requirements
-        here = [_missed("camera_view", float(costs.ln_count_cost(outside[k])), f"samples outside the image, of {end - start}")]
-        if asked.view_angle_rad is not None:
-            here.append(_missed("view_angle", requirements.view_angle_ln(task, scene, float(largest_angle[k])),
-                                "the camera sees the samples too obliquely"))
-        if asked.resolution_m is not None:
-            here.append(_missed("resolution", requirements.resolution_ln(task, scene, largest_footprint[k]),
-                                "a pixel covers too much"))
-        here.append(_missed("depth_of_field", float(depth_ln[k]), f"samples out of focus at f/{e.f_number:.1f}"))
-        found.append([r for r in here if r is not None])
+    # the four requirements' ln f (rows) of every feature (columns) and their values f as _missed
+    # finds them: costs.ln_count_cost's, requirements.view_angle_ln's and resolution_ln's arithmetic
+    view_limit = np.array([np.nan if t.requirements.view_angle_rad is None else t.requirements.view_angle_rad
+                           for t in tasks])
+    pixel_limit = np.array([np.nan if t.requirements.resolution_m is None else t.requirements.resolution_m
+                            for t in tasks])
+    ln = np.vstack([costs.ln_count_cost(outside), costs.ln_f_max(largest_angle, view_limit),
+                    costs.ln_f_max(largest_footprint, pixel_limit), depth_ln])
+    value = costs.value(ln)
+    missed = value > 1.0
+    missed[1] &= ~np.isnan(view_limit)          # asked only where the task gives the limit
+    missed[2] &= ~np.isnan(pixel_limit)
+    found: list[list[RequirementValue]] = [[] for _ in tasks]
+    for k in np.flatnonzero(missed.any(axis=0)).tolist():
+        start, end = bounds[k]
+        details = (f"samples outside the image, of {end - start}", "the camera sees the samples too obliquely",
+                   "a pixel covers too much", f"samples out of focus at f/{e.f_number:.1f}")
+        found[k] = [RequirementValue(name, float(value[r, k]), f"{detail} (found before the full evaluation)")
+                    for r, (name, detail) in enumerate(zip(CAMERA_SIDE, details)) if missed[r, k]]
     return found
+
+
+CAMERA_SIDE = ("camera_view", "view_angle", "resolution", "depth_of_field")     # camera_side's, in its order
 
 
 def lamp_side(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list[list[RequirementValue]]:
