@@ -1,6 +1,6 @@
 """Big launches split over threads (kernels.runtime.slices, in_parallel) give bitwise the one
 launch's result, on every split kernel: visibility, free cones, the bulk gray (cut along its lamps
-and along its points) and the renderer. The expectation is the one-thread launch, and, at the
+and along its points), its shadow flags alone, the closest points and the renderer. The expectation is the one-thread launch, and, at the
 split, the NumPy references (cell.physics.reference) as tests/test_kernels holds the one launch to
 them. Slices are forced small here (MIN_SLICE 1) so that small inputs split too, over 3 threads:
 uneven slices, more threads than the machine's 2 cores."""
@@ -19,6 +19,7 @@ from kernels import cores, runtime
 from kernels.cone import free_cone_cosines
 from kernels.gray import GrayInputs, gray_per_exposure
 from kernels.mesh import WarpMesh
+from kernels.proximity import closest_points
 from kernels.render import render
 from kernels.visibility import visibility_maps, visible_from_all
 from test_kernels import (A_PIXEL, ALUMINIUM, C_CAMERA, GAMMA, METAL, P_LAMP, assert_gray_agrees,  # hinge: a fixture
@@ -136,6 +137,34 @@ def test_split_gray_equals_one_launch_and_the_reference(hinge, launches, lamps, 
     assert_bitwise(one, split)
     assert (split.value > 0).mean() > 0.05 and split.shadowed.any()
     assert_gray_agrees(mesh, points, normals, lamp_pos, split, ref.gray_per_exposure(*args))
+
+
+def test_split_shadow_flags_equal_one_launch_and_the_gray_kernels(hinge, launches):
+    """GrayInputs.shadowed (a camera's rays to a dense patch, cut along the points) on 1 and 3
+    threads: the same flags, and the gray kernel's own (shadowed is its test alone)."""
+    mesh, tm = hinge
+    points, face = trimesh.sample.sample_surface(tm, 500, seed=8)
+    inputs = (mesh, points, tm.face_normals[face], np.array([0.0, 0.0, 0.5]), P_LAMP, GAMMA, METAL, C_CAMERA,
+              A_PIXEL)
+    lamp_pos, aims = lamps_around(np.random.default_rng(6), np.array([0.0, 0.0, 0.004]), 3)
+    one = on(1, GrayInputs(*inputs).shadowed, lamp_pos)
+    split = on(THREADS, GrayInputs(*inputs).shadowed, lamp_pos)
+    assert launches == [1, THREADS]
+    np.testing.assert_array_equal(split, one)
+    np.testing.assert_array_equal(split, on(1, GrayInputs(*inputs), lamp_pos, aims).shadowed)
+    assert 0.05 < split.mean() < 0.95
+
+
+def test_split_closest_points_equal_one_launch(hinge, launches):
+    """Guesses about the hinge, some with no surface within reach (NaN, -1, 0): each query's
+    answer the one launch's, bit for bit; tests/test_kernels holds that launch to the surface."""
+    mesh, _ = hinge
+    guesses = np.random.default_rng(9).uniform([-0.03, -0.02, -0.005], [0.03, 0.02, 0.02], (400, 3))
+    one = on(1, closest_points, mesh, guesses, max_dist=0.004)
+    split = on(THREADS, closest_points, mesh, guesses, max_dist=0.004)
+    assert launches == [1, THREADS]
+    assert_bitwise(one, split)
+    assert 20 < (split[1] == -1).sum() < 380
 
 
 def test_a_kept_small_launch_split_equals_one_launch(hinge, launches):
