@@ -21,9 +21,9 @@ import pkgutil
 import sys
 import threading
 import time
-from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
-from typing import Any
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Any, TypeVar
 
 import warp as wp
 
@@ -111,6 +111,8 @@ MIN_SLICE = 1 << 14     # evaluations (ray casts, shaded points) a slice holds a
 _threads: int | None = None
 _pool: tuple[int, ThreadPoolExecutor] | None = None       # its thread count, the pool
 _pool_lock = threading.Lock()
+_background: ThreadPoolExecutor | None = None
+T = TypeVar("T")
 
 
 def threads() -> int:
@@ -171,10 +173,22 @@ def _executor() -> ThreadPoolExecutor:
         return _pool[1]
 
 
+def in_background(fn: Callable[..., T], *args: Any) -> "Future[T]":
+    """fn(*args) on a thread of its own beside the caller's, one call after another in the order
+    asked; its result (or exception) in the Future. For work mostly of launches (Warp lets go of
+    the GIL in them) that the caller's Python need not wait for: its launches run while the caller
+    works on. Not the slices' pool (in_parallel): a slice never waits behind it."""
+    global _background
+    with _pool_lock:
+        if _background is None:
+            _background = ThreadPoolExecutor(max_workers=1, thread_name_prefix="warp-background")
+        return _background.submit(fn, *args)
+
+
 def _forget_pool() -> None:
     """A forked child has none of its parent's threads: it makes its own pool."""
-    global _pool
-    _pool = None
+    global _pool, _background
+    _pool = _background = None
 
 
 os.register_at_fork(after_in_child=_forget_pool)

@@ -100,6 +100,18 @@ def test_a_cores_setting_not_a_whole_number_of_at_least_1_is_bad_input(monkeypat
     assert out == "" and said == f"cell check: {err.value}\n"
 
 
+def test_background_work_runs_on_a_thread_of_its_own_in_order_with_its_exceptions():
+    import threading
+    ran = []
+    first = runtime.in_background(lambda: ran.append(threading.current_thread().name) or len(ran))
+    failed = runtime.in_background(math.sqrt, -1.0)
+    last = runtime.in_background(lambda: ran.append(threading.current_thread().name) or len(ran))
+    assert (first.result(), last.result()) == (1, 2)
+    assert ran[0] == ran[1] != threading.current_thread().name
+    with pytest.raises(ValueError, match="math domain error"):
+        failed.result()
+
+
 def test_split_visibility_maps_and_free_cones_equal_one_launch(hinge, launches):
     mesh, _ = hinge
     points, normals, frame, az, el = near_the_knuckle()
