@@ -177,8 +177,16 @@ def in_background(fn: Callable[..., T], *args: Any) -> "Future[T]":
     """fn(*args) on a thread of its own beside the caller's, one call after another in the order
     asked; its result (or exception) in the Future. For work mostly of launches (Warp lets go of
     the GIL in them) that the caller's Python need not wait for: its launches run while the caller
-    works on. Not the slices' pool (in_parallel): a slice never waits behind it."""
+    works on. Not the slices' pool (in_parallel): a slice never waits behind it. With one thread
+    (threads(): a Dask worker's share of one core) fn runs here, now."""
     global _background
+    if threads() == 1:
+        done: Future[T] = Future()
+        try:
+            done.set_result(fn(*args))
+        except Exception as error:
+            done.set_exception(error)
+        return done
     with _pool_lock:
         if _background is None:
             _background = ThreadPoolExecutor(max_workers=1, thread_name_prefix="warp-background")

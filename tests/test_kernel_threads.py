@@ -100,14 +100,20 @@ def test_a_cores_setting_not_a_whole_number_of_at_least_1_is_bad_input(monkeypat
     assert out == "" and said == f"cell check: {err.value}\n"
 
 
-def test_background_work_runs_on_a_thread_of_its_own_in_order_with_its_exceptions():
+@pytest.mark.parametrize("threads", [1, 2])
+def test_background_work_runs_on_a_thread_of_its_own_in_order_with_its_exceptions(threads):
+    """On one thread (a worker's share of one core) it runs on the caller's, at once."""
     import threading
     ran = []
-    first = runtime.in_background(lambda: ran.append(threading.current_thread().name) or len(ran))
-    failed = runtime.in_background(math.sqrt, -1.0)
-    last = runtime.in_background(lambda: ran.append(threading.current_thread().name) or len(ran))
+    runtime.set_threads(threads)
+    try:
+        first = runtime.in_background(lambda: ran.append(threading.current_thread().name) or len(ran))
+        failed = runtime.in_background(math.sqrt, -1.0)
+        last = runtime.in_background(lambda: ran.append(threading.current_thread().name) or len(ran))
+    finally:
+        runtime.set_threads(None)
     assert (first.result(), last.result()) == (1, 2)
-    assert ran[0] == ran[1] != threading.current_thread().name
+    assert ran[0] == ran[1] and (ran[0] == threading.current_thread().name) == (threads == 1)
     with pytest.raises(ValueError, match="math domain error"):
         failed.result()
 
