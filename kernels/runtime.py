@@ -112,6 +112,7 @@ _threads: int | None = None
 _pool: tuple[int, ThreadPoolExecutor] | None = None       # its thread count, the pool
 _pool_lock = threading.Lock()
 _background: ThreadPoolExecutor | None = None
+_beside = threading.local()     # caller: True on in_background's thread
 T = TypeVar("T")
 
 
@@ -133,7 +134,9 @@ def set_threads(count: int | None) -> None:
 def slices(count: int, work_per_item: float = 1.0) -> list[tuple[int, int]]:
     """range(count) as contiguous (start, stop) slices of near-equal length, as many as threads()
     but none with less than MIN_SLICE evaluations (work_per_item each): one slice when splitting
-    does not pay."""
+    does not pay, and on in_background's thread."""
+    if getattr(_beside, "caller", False):       # in_background's thread: the caller holds the other core
+        return [(0, count)]
     n = max(1, min(threads(), count, int(count * work_per_item // MIN_SLICE)))
     edges = [count * k // n for k in range(n + 1)]
     return list(zip(edges[:-1], edges[1:]))
@@ -177,8 +180,9 @@ def in_background(fn: Callable[..., T], *args: Any) -> "Future[T]":
     """fn(*args) on a thread of its own beside the caller's, one call after another in the order
     asked; its result (or exception) in the Future. For work mostly of launches (Warp lets go of
     the GIL in them) that the caller's Python need not wait for: its launches run while the caller
-    works on. Not the slices' pool (in_parallel): a slice never waits behind it. With one thread
-    (threads(): a Dask worker's share of one core) fn runs here, now."""
+    works on. Not the slices' pool (in_parallel): a slice never waits behind it; and its own
+    launches are whole (slices: one), the caller's thread running on the other core. With one
+    thread (threads(): a Dask worker's share of one core) fn runs here, now."""
     global _background
     if threads() == 1:
         done: Future[T] = Future()
@@ -189,8 +193,13 @@ def in_background(fn: Callable[..., T], *args: Any) -> "Future[T]":
         return done
     with _pool_lock:
         if _background is None:
-            _background = ThreadPoolExecutor(max_workers=1, thread_name_prefix="warp-background")
+            _background = ThreadPoolExecutor(max_workers=1, thread_name_prefix="warp-background",
+                                             initializer=_mark_beside)
         return _background.submit(fn, *args)
+
+
+def _mark_beside() -> None:
+    _beside.caller = True
 
 
 def _forget_pool() -> None:

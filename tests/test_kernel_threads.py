@@ -114,6 +114,8 @@ def test_background_work_runs_on_a_thread_of_its_own_in_order_with_its_exception
         runtime.set_threads(None)
     assert (first.result(), last.result()) == (1, 2)
     assert ran[0] == ran[1] and (ran[0] == threading.current_thread().name) == (threads == 1)
+    # its launches whole beside the caller's thread
+    assert runtime.in_background(runtime.slices, 10 ** 6, 1.0).result() == [(0, 10 ** 6)]
     with pytest.raises(ValueError, match="math domain error"):
         failed.result()
 
