@@ -14,6 +14,8 @@ launch is cut into contiguous slices of its first dimension (`slices`), one reco
 run side by side (`in_parallel`). Each element is computed alone, by the same code on the same
 inputs, so the result is bitwise the one launch's. (Tile kernels could not be split this way:
 Warp's CPU tile storage is one static buffer, not a thread's own; none of ours uses tiles.)
+Work of launches the caller need not wait for runs beside it on a thread of its own
+(`in_background`: the judge's dense patches while it judges the next feature's samples).
 """
 import importlib
 import os
