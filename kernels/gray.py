@@ -11,7 +11,7 @@ from . import funcs
 from .emission import axis_intensity, hard_cone_profile, profile_solid_angle
 from ._arrays import output, profile2d, table2d, unit_rows, vec3d
 from .cone import NO_CONE, free_cone_cosines, worth_finding
-from .runtime import ensure_init, in_parallel, slices
+from .runtime import ensure_init, in_parallel, launch_sliced, slices
 
 if TYPE_CHECKING:
     from .mesh import WarpMesh
@@ -77,14 +77,21 @@ def gray_kernel(mesh_id: wp.uint64, shadows: wp.int32, cone: wp.int32,
 
 @wp.kernel
 def shadow_kernel(mesh_id: wp.uint64, shadows: wp.int32, surfaces: wp.array(dtype=funcs.Surface),
-                  sector_cos: wp.array2d(dtype=wp.float64), lamp_pos: wp.array(dtype=wp.vec3d),
+                  sector_cos: wp.array2d(dtype=wp.float64), lamp_pos: wp.array(dtype=wp.vec3d), first: wp.int32,
                   shadowed: wp.array2d(dtype=wp.bool)):
-    """One thread per (lamp, point): gray_kernel's shadow flag alone (funcs.shadowed_from)."""
-    c, p = wp.tid()
+    """One thread per (point from `first` on, lamp) (runtime.launch_sliced: a camera's rays to
+    a dense patch's points cut along the points): gray_kernel's shadow flag alone
+    (funcs.shadowed_from)."""
+    p, c = wp.tid()
+    p = p + first
     shadowed[c, p] = funcs.shadowed_from(mesh_id, shadows, surfaces[p], sector_cos, lamp_pos[c])
 
 
 SMALL = 1 << 16         # evaluations: a call this small reuses its launch (a search makes hundreds)
+# what a (lamp, point) costs in runtime.slices's evaluations (MIN_SLICE of them about a millisecond,
+# some 60 ns each), measured on one thread on the 40-feature part (lightplan_tasks.many_features):
+SHADE_WORK = 4.0        # gray_kernel: a shadow ray and the shading, some 270 ns
+RAY_WORK = 2.0          # shadow_kernel: the shadow ray alone, some 130 ns
 
 
 class GrayInputs:
@@ -144,16 +151,16 @@ class GrayInputs:
     def shadowed(self, lamp_pos: ArrayLike) -> np.ndarray:
         """(C, P) a call's GrayResult.shadowed for lamps at lamp_pos (C, 3), the same flags
         (funcs.shadowed_from: shade_point's test, which reads no aim, power or BRDF), without
-        the shading: whether a camera there sees each point (one launch, not recorded; its lamps
-        count toward the free cones as a call's)."""
+        the shading: whether a camera there sees each point (a launch split along the points,
+        runtime.launch_sliced, not recorded; its lamps count toward the free cones as a call's)."""
         lamp_pos = np.asarray(lamp_pos, dtype=np.float64).reshape(-1, 3)
         out, out_wp = output((len(lamp_pos), self.count), np.bool_, wp.bool)
         if len(lamp_pos) and self.count:
             with self._lock:
                 self._lamps(len(lamp_pos))
-                wp.launch(shadow_kernel, dim=(len(lamp_pos), self.count), device=self.device,
-                          inputs=self._leading[:2] + [self.surfaces, self._leading[4], vec3d(lamp_pos, "lamp_pos")],
-                          outputs=[out_wp])
+                launch_sliced(shadow_kernel, (self.count, len(lamp_pos)),
+                              self._leading[:2] + [self.surfaces, self._leading[4], vec3d(lamp_pos, "lamp_pos")],
+                              [out_wp], work_per_item=RAY_WORK * len(lamp_pos))
         return out
 
     def _lamps(self, count: int) -> None:
@@ -200,10 +207,10 @@ class GrayInputs:
 
 def _ranges(lamps: int, points: int) -> list[tuple[int, int, int, int]]:
     """(first lamp, stop lamp, first point, stop point) of each launch of lamps x points: cut
-    along the longer of the two into runtime.slices."""
+    along the longer of the two into runtime.slices, each (lamp, point) SHADE_WORK evaluations."""
     if lamps >= points:
-        return [(a, b, 0, points) for a, b in slices(lamps, points)]
-    return [(0, lamps, a, b) for a, b in slices(points, lamps)]
+        return [(a, b, 0, points) for a, b in slices(lamps, SHADE_WORK * points)]
+    return [(0, lamps, a, b) for a, b in slices(points, SHADE_WORK * lamps)]
 
 
 class _Batch:

@@ -1,4 +1,5 @@
 """A triangle mesh as a Warp BVH (wp.Mesh), for the ray-casting kernels."""
+import threading
 from typing import Any
 
 import numpy as np
@@ -46,6 +47,7 @@ class WarpMesh:
 
 _SHARED: dict[str, WarpMesh] = {}   # this process's meshes: key -> WarpMesh, newest last
 _SHARED_MAX = 8
+_SHARED_LOCK = threading.Lock()     # the judge lays dense patches on runtime.in_background's thread
 
 
 def shared_mesh(key: str, vertices: ArrayLike, faces: ArrayLike) -> WarpMesh:
@@ -53,10 +55,12 @@ def shared_mesh(key: str, vertices: ArrayLike, faces: ArrayLike) -> WarpMesh:
 
     Warp handles cannot be pickled or sent to another process, so plans and scenes carry plain
     arrays and a `key` naming their geometry (a digest); each process builds its own BVH once.
-    The few most recent meshes are kept (a bench or a test suite plans many scenes of one part).
+    The few most recent meshes are kept (a bench or a test suite plans many scenes of one part),
+    under a lock: threads of one process ask at once (runtime.in_background).
     """
-    mesh = _SHARED.pop(key, None) or WarpMesh(vertices, faces)
-    _SHARED[key] = mesh
-    while len(_SHARED) > _SHARED_MAX:
-        _SHARED.pop(next(iter(_SHARED)))
-    return mesh
+    with _SHARED_LOCK:
+        mesh = _SHARED.pop(key, None) or WarpMesh(vertices, faces)
+        _SHARED[key] = mesh
+        while len(_SHARED) > _SHARED_MAX:
+            _SHARED.pop(next(iter(_SHARED)))
+        return mesh

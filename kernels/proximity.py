@@ -7,7 +7,7 @@ import warp as wp
 from numpy.typing import ArrayLike
 
 from ._arrays import output, vec3d
-from .runtime import ensure_init
+from .runtime import ensure_init, launch_sliced
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -17,10 +17,11 @@ if TYPE_CHECKING:
 
 @wp.kernel
 def closest_point_kernel(meshes: wp.array(dtype=wp.uint64), queries: wp.array(dtype=wp.vec3d),
-                         max_dist: wp.array(dtype=wp.float32), point: wp.array(dtype=wp.vec3d),
+                         max_dist: wp.array(dtype=wp.float32), first: wp.int32, point: wp.array(dtype=wp.vec3d),
                          face: wp.array(dtype=wp.int32), normal: wp.array(dtype=wp.vec3d)):
-    """One thread per query point, each on its own mesh within its own max_dist."""
-    i = wp.tid()
+    """One thread per query point from `first` on (runtime.launch_sliced), each on its own mesh
+    within its own max_dist."""
+    i = wp.tid() + first
     q = wp.mesh_query_point_no_sign(meshes[i], wp.vec3(queries[i]), max_dist[i])
     if q.result:
         point[i] = wp.vec3d(wp.mesh_eval_position(meshes[i], q.face, q.u, q.v))
@@ -39,11 +40,17 @@ def _per_query(ids: ArrayLike, max_dists: ArrayLike) -> tuple[wp.array, wp.array
     return wp.array(ids, dtype=wp.uint64, device="cpu"), wp.array(dists, dtype=wp.float32, device="cpu")
 
 
+QUERY_WORK = 5.0       # runtime.slices's evaluations (some 60 ns each) a closest-point query costs: some
+                       # 300 ns on one thread on the 40-feature part (lightplan_tasks.many_features)
+
+
 def closest_points(mesh: "WarpMesh", queries: ArrayLike,
                    max_dist: float = 10.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For queries (N, 3) [m]: (closest surface points (N, 3), face index (N,), outward face
-    normal (N, 3)); NaN / -1 / 0 where no triangle lies within max_dist. Float32 accuracy."""
-    device = ensure_init(__name__)
+    normal (N, 3)); NaN / -1 / 0 where no triangle lies within max_dist. Float32 accuracy. The
+    launch is split over threads (runtime.launch_sliced; a dense patch's 10 000 queries): each
+    query is answered alone, so the same bits."""
+    ensure_init(__name__)
     queries = np.asarray(queries, dtype=np.float64).reshape(-1, 3)
     n = len(queries)
     point, point_wp = output((n, 3), np.float64, wp.vec3d)
@@ -51,8 +58,8 @@ def closest_points(mesh: "WarpMesh", queries: ArrayLike,
     normal, normal_wp = output((n, 3), np.float64, wp.vec3d)
     if n:
         ids, dists = _per_query(np.full(n, mesh.id, dtype=np.uint64), max_dist)   # one mesh: its id once
-        wp.launch(closest_point_kernel, dim=n, device=device, inputs=[ids, vec3d(queries, "queries"), dists],
-                  outputs=[point_wp, face_wp, normal_wp])
+        launch_sliced(closest_point_kernel, n, [ids, vec3d(queries, "queries"), dists], [point_wp, face_wp, normal_wp],
+                      work_per_item=QUERY_WORK)
     return point, face, normal
 
 
@@ -75,7 +82,7 @@ class ClosestPoint:
         ids, dists = _per_query([m.id for m in meshes], max_dists)
         # the meshes (their BVHs) and the Warp views live as long as the recorded launch that points at them
         self._kept = (tuple(meshes), ids, dists, query_wp, point_wp, face_wp, normal_wp)
-        self._launch = wp.launch(closest_point_kernel, dim=k, device=device, inputs=[ids, query_wp, dists],
+        self._launch = wp.launch(closest_point_kernel, dim=k, device=device, inputs=[ids, query_wp, dists, 0],
                                  outputs=[point_wp, face_wp, normal_wp], record_cmd=True)
 
     def __call__(self, queries: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -14,6 +14,8 @@ launch is cut into contiguous slices of its first dimension (`slices`), one reco
 run side by side (`in_parallel`). Each element is computed alone, by the same code on the same
 inputs, so the result is bitwise the one launch's. (Tile kernels could not be split this way:
 Warp's CPU tile storage is one static buffer, not a thread's own; none of ours uses tiles.)
+Work of launches the caller need not wait for runs beside it on a thread of its own
+(`in_background`: the judge's dense patches while it judges the next feature's samples).
 """
 import importlib
 import os
@@ -21,9 +23,9 @@ import pkgutil
 import sys
 import threading
 import time
-from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
-from typing import Any
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Any, TypeVar
 
 import warp as wp
 
@@ -111,6 +113,9 @@ MIN_SLICE = 1 << 14     # evaluations (ray casts, shaded points) a slice holds a
 _threads: int | None = None
 _pool: tuple[int, ThreadPoolExecutor] | None = None       # its thread count, the pool
 _pool_lock = threading.Lock()
+_background: ThreadPoolExecutor | None = None
+_beside = threading.local()     # caller: True on in_background's thread
+T = TypeVar("T")
 
 
 def threads() -> int:
@@ -131,7 +136,9 @@ def set_threads(count: int | None) -> None:
 def slices(count: int, work_per_item: float = 1.0) -> list[tuple[int, int]]:
     """range(count) as contiguous (start, stop) slices of near-equal length, as many as threads()
     but none with less than MIN_SLICE evaluations (work_per_item each): one slice when splitting
-    does not pay."""
+    does not pay, and on in_background's thread."""
+    if getattr(_beside, "caller", False):       # in_background's thread: the caller holds the other core
+        return [(0, count)]
     n = max(1, min(threads(), count, int(count * work_per_item // MIN_SLICE)))
     edges = [count * k // n for k in range(n + 1)]
     return list(zip(edges[:-1], edges[1:]))
@@ -171,10 +178,36 @@ def _executor() -> ThreadPoolExecutor:
         return _pool[1]
 
 
+def in_background(fn: Callable[..., T], *args: Any) -> "Future[T]":
+    """fn(*args) on a thread of its own beside the caller's, one call after another in the order
+    asked; its result (or exception) in the Future. For work mostly of launches (Warp lets go of
+    the GIL in them) that the caller's Python need not wait for: its launches run while the caller
+    works on. Not the slices' pool (in_parallel): a slice never waits behind it; and its own
+    launches are whole (slices: one), the caller's thread running on the other core. With one
+    thread (threads(): a Dask worker's share of one core) fn runs here, now."""
+    global _background
+    if threads() == 1:
+        done: Future[T] = Future()
+        try:
+            done.set_result(fn(*args))
+        except Exception as error:
+            done.set_exception(error)
+        return done
+    with _pool_lock:
+        if _background is None:
+            _background = ThreadPoolExecutor(max_workers=1, thread_name_prefix="warp-background",
+                                             initializer=_mark_beside)
+        return _background.submit(fn, *args)
+
+
+def _mark_beside() -> None:
+    _beside.caller = True
+
+
 def _forget_pool() -> None:
     """A forked child has none of its parent's threads: it makes its own pool."""
-    global _pool
-    _pool = None
+    global _pool, _background
+    _pool = _background = None
 
 
 os.register_at_fork(after_in_child=_forget_pool)

@@ -12,6 +12,7 @@ from cell.core import geometry
 from cell.planning import certificate, one_shot
 from cell.planning.scene import build_scene
 from cell.task.loader import load_task
+from kernels import runtime
 from kernels.proximity import closest_points
 
 TASKS = Path(__file__).resolve().parent.parent / "tasks"
@@ -53,6 +54,18 @@ def test_certificates_verified_together_equal_each_verified_alone(problems_at_on
     assert len(set(counts)) > 1                        # patches of different sizes: the shared rows are sliced
     assert len({v.holds for v, _ in alone}) == 2       # the shot holds on some features, not on others
     assert certificate.verify_all([], shot) == []
+
+
+def test_dense_patches_laid_in_the_background_give_the_same_certificates(problems_at_one_camera):
+    """certificate.verify_all given each dense patch made on the background thread (as
+    coverage.judge_all has them made) equals it making them itself, bit for bit."""
+    shot, problems = problems_at_one_camera
+    made = [runtime.in_background(certificate.dense_scene, p.task, p.scene) for p in problems]
+    for (v1, worst1), (v2, worst2) in zip(certificate.verify_all(problems, shot, made),
+                                          certificate.verify_all(problems, shot), strict=True):
+        assert equal(v1, v2) and equal(worst1, worst2)
+    assert all(equal(d.result().points, certificate.dense_scene(p.task, p.scene).points)
+               for d, p in zip(made, problems))
 
 
 def test_specular_points_searched_together_equal_each_searched_alone(problems_at_one_camera):

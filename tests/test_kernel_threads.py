@@ -1,6 +1,6 @@
 """Big launches split over threads (kernels.runtime.slices, in_parallel) give bitwise the one
 launch's result, on every split kernel: visibility, free cones, the bulk gray (cut along its lamps
-and along its points) and the renderer. The expectation is the one-thread launch, and, at the
+and along its points), its shadow flags alone, the closest points and the renderer. The expectation is the one-thread launch, and, at the
 split, the NumPy references (cell.physics.reference) as tests/test_kernels holds the one launch to
 them. Slices are forced small here (MIN_SLICE 1) so that small inputs split too, over 3 threads:
 uneven slices, more threads than the machine's 2 cores."""
@@ -19,6 +19,7 @@ from kernels import cores, runtime
 from kernels.cone import free_cone_cosines
 from kernels.gray import GrayInputs, gray_per_exposure
 from kernels.mesh import WarpMesh
+from kernels.proximity import closest_points
 from kernels.render import render
 from kernels.visibility import visibility_maps, visible_from_all
 from test_kernels import (A_PIXEL, ALUMINIUM, C_CAMERA, GAMMA, METAL, P_LAMP, assert_gray_agrees,  # hinge: a fixture
@@ -99,6 +100,26 @@ def test_a_cores_setting_not_a_whole_number_of_at_least_1_is_bad_input(monkeypat
     assert out == "" and said == f"cell check: {err.value}\n"
 
 
+@pytest.mark.parametrize("threads", [1, 2])
+def test_background_work_runs_on_a_thread_of_its_own_in_order_with_its_exceptions(threads):
+    """On one thread (a worker's share of one core) it runs on the caller's, at once."""
+    import threading
+    ran = []
+    runtime.set_threads(threads)
+    try:
+        first = runtime.in_background(lambda: ran.append(threading.current_thread().name) or len(ran))
+        failed = runtime.in_background(math.sqrt, -1.0)
+        last = runtime.in_background(lambda: ran.append(threading.current_thread().name) or len(ran))
+    finally:
+        runtime.set_threads(None)
+    assert (first.result(), last.result()) == (1, 2)
+    assert ran[0] == ran[1] and (ran[0] == threading.current_thread().name) == (threads == 1)
+    # its launches whole beside the caller's thread
+    assert runtime.in_background(runtime.slices, 10 ** 6, 1.0).result() == [(0, 10 ** 6)]
+    with pytest.raises(ValueError, match="math domain error"):
+        failed.result()
+
+
 def test_split_visibility_maps_and_free_cones_equal_one_launch(hinge, launches):
     mesh, _ = hinge
     points, normals, frame, az, el = near_the_knuckle()
@@ -136,6 +157,34 @@ def test_split_gray_equals_one_launch_and_the_reference(hinge, launches, lamps, 
     assert_bitwise(one, split)
     assert (split.value > 0).mean() > 0.05 and split.shadowed.any()
     assert_gray_agrees(mesh, points, normals, lamp_pos, split, ref.gray_per_exposure(*args))
+
+
+def test_split_shadow_flags_equal_one_launch_and_the_gray_kernels(hinge, launches):
+    """GrayInputs.shadowed (a camera's rays to a dense patch, cut along the points) on 1 and 3
+    threads: the same flags, and the gray kernel's own (shadowed is its test alone)."""
+    mesh, tm = hinge
+    points, face = trimesh.sample.sample_surface(tm, 500, seed=8)
+    inputs = (mesh, points, tm.face_normals[face], np.array([0.0, 0.0, 0.5]), P_LAMP, GAMMA, METAL, C_CAMERA,
+              A_PIXEL)
+    lamp_pos, aims = lamps_around(np.random.default_rng(6), np.array([0.0, 0.0, 0.004]), 3)
+    one = on(1, GrayInputs(*inputs).shadowed, lamp_pos)
+    split = on(THREADS, GrayInputs(*inputs).shadowed, lamp_pos)
+    assert launches == [1, THREADS]
+    np.testing.assert_array_equal(split, one)
+    np.testing.assert_array_equal(split, on(1, GrayInputs(*inputs), lamp_pos, aims).shadowed)
+    assert 0.05 < split.mean() < 0.95
+
+
+def test_split_closest_points_equal_one_launch(hinge, launches):
+    """Guesses about the hinge, some with no surface within reach (NaN, -1, 0): each query's
+    answer the one launch's, bit for bit; tests/test_kernels holds that launch to the surface."""
+    mesh, _ = hinge
+    guesses = np.random.default_rng(9).uniform([-0.03, -0.02, -0.005], [0.03, 0.02, 0.02], (400, 3))
+    one = on(1, closest_points, mesh, guesses, max_dist=0.004)
+    split = on(THREADS, closest_points, mesh, guesses, max_dist=0.004)
+    assert launches == [1, THREADS]
+    assert_bitwise(one, split)
+    assert 20 < (split[1] == -1).sum() < 380
 
 
 def test_a_kept_small_launch_split_equals_one_launch(hinge, launches):

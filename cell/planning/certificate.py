@@ -25,6 +25,8 @@ from cell.core import geometry
 from cell.physics.costs import RequirementValue
 
 if TYPE_CHECKING:
+    from concurrent.futures import Future
+
     from cell.planning.plan import Shot
     from cell.planning.scene import Scene
     from cell.task.types import Task
@@ -51,6 +53,13 @@ def dense_samples(task: Task, scene: Scene) -> int:
     footprint = focus * task.camera.sensor.pixel_pitch_m / task.camera.lens.focal_length_m
     count = np.pi * task.feature.radius_m**2 / footprint**2
     return int(np.clip(count, len(scene.points), DENSE_MAX))
+
+
+def dense_scene(task: Task, scene: Scene) -> Scene:
+    """The dense patch (dense_samples of them) of the one-feature task's feature, seen by `scene`'s
+    camera: what verify judges a search's Problem (task, scene) on."""
+    from cell.planning.scene import build_scene
+    return build_scene(task, dense_samples(task, scene), T_cell_cam=scene.T_cell_cam)
 
 
 def mirror_alignment(points: np.ndarray, normals: np.ndarray, lamp: ArrayLike, camera: ArrayLike) -> np.ndarray:
@@ -160,15 +169,18 @@ def verify(problem: evaluate.Problem, shot: Shot) -> tuple[Verification, np.ndar
     return verify_all([problem], shot)[0]
 
 
-def verify_all(problems: Sequence[evaluate.Problem], shot: Shot) -> list[tuple[Verification, np.ndarray]]:
+def verify_all(problems: Sequence[evaluate.Problem], shot: Shot,
+               dense: Sequence[Future[Scene]] | None = None) -> list[tuple[Verification, np.ndarray]]:
     """verify of `shot` on each Problem, of one part's features seen by the shot's camera (their
     mesh, lamp, camera and material as planned the same), together: their specular points'
     searches in lockstep (specular_points) and the gray kernel on every dense patch launched
-    once for all (evaluate.SharedLaunches), each patch's values as its own launch's."""
-    from cell.planning.scene import build_scene
+    once for all (evaluate.SharedLaunches), each patch's values as its own launch's. `dense`:
+    each Problem's dense_scene being made (kernels.runtime.in_background: cell.planning.coverage
+    has them made while it judges the other features' samples), else made here."""
     if not problems:
         return []
-    scenes = [build_scene(p.task, dense_samples(p.task, p.scene), T_cell_cam=p.scene.T_cell_cam) for p in problems]
+    scenes = ([d.result() for d in dense] if dense is not None else
+              [dense_scene(p.task, p.scene) for p in problems])
     points, normals = specular_points(scenes, shot.lamp_position)
     scenes = [replace(s, points=np.vstack([s.points, point]), normals=np.vstack([s.normals, normal]))
               for s, point, normal in zip(scenes, points, normals)]

@@ -19,6 +19,7 @@ import numpy as np
 from cell.planning import certificate, defects, evaluate, requirements
 from cell.planning.one_shot import build_maps, light_settings
 from cell.planning.plan import Coverage
+from kernels.runtime import in_background
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -74,16 +75,22 @@ def judge_all(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list[C
     """judge of `shot` on each one-feature task of one part (with its Lent), the gray kernel on
     the samples launched once for all of them (evaluate.SharedLaunches), not once per feature, and
     the certificates of those whose samples meet every requirement verified together
-    (certificate.verify_all: their dense patches' launches shared too)."""
+    (certificate.verify_all: their dense patches' launches shared too), each dense patch laid on
+    the surface on a thread of its own (kernels.runtime.in_background: mostly the closest points'
+    launch) while the next feature's samples are judged."""
     if not tasks:
         return []
     task = tasks[0]
     scene, bounds = stacked(lent, shot.T_cell_cam)
     shared = evaluate.SharedLaunches(evaluate.gray_inputs(task, scene, task.part.material.scaled(1.0)),
                                      [end - start for start, end in bounds])
-    sampled = [on_samples(t, x, shot, shared.rows(k)) for k, (t, x) in enumerate(zip(tasks, lent))]
-    met = [k for k, s in enumerate(sampled) if all(r.met for r in s.values)]
-    verified = dict(zip(met, certificate.verify_all([sampled[k].problem for k in met], shot)))
+    sampled, dense = [], {}
+    for k, (t, x) in enumerate(zip(tasks, lent)):
+        sampled.append(on_samples(t, x, shot, shared.rows(k)))
+        if all(r.met for r in sampled[k].values):     # its dense patch laid while the next one is judged
+            dense[k] = in_background(certificate.dense_scene, t, sampled[k].problem.scene)
+    met = list(dense)
+    verified = dict(zip(met, certificate.verify_all([sampled[k].problem for k in met], shot, list(dense.values()))))
     return [covered(t, s, verified[k][0] if k in verified else None) for k, (t, s) in enumerate(zip(tasks, sampled))]
 
 
