@@ -594,8 +594,9 @@ def test_a_part_offset_is_found_or_refused_never_trusted_at_the_models_place(tmp
     """The part 0.5-2.8 mm off (5-30 px), alone or with the lamp 3 deg off its aim: its geometric
     edges correlate as aligned where the part truly appears (the projection of the true offset;
     with the lamp's error 0.94-0.95 of their ceiling there, the simulator's edges on whole pixels
-    moved back by a fraction of one) and not at the model's place; registration finds the true shift (to a pixel) or refuses (the
-    lamp's error as well: its soft edge pulls the match off), never trusting a wrong place."""
+    moved back by a fraction of one) and not at the model's place; registration finds the true
+    shift (to a pixel) or refuses (with the lamp's error: its soft edge pulls the match off, and
+    the geometric edges there correlate 0.48-0.68 of their ceiling), never trusting a wrong place."""
     task, scene, lamp, row, col, image = _hinge_lit(tmp_path, {"sim.truth.part_offset_m": offset_m,
                                                                "sim.truth.lamp_direction_error_deg": error_deg})
     K = projection.intrinsics(task.camera.sensor, task.camera.lens)

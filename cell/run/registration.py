@@ -46,8 +46,9 @@ So where both fall short, the part's geometric edges decide (geometric_edges: it
 steps and creases, from kernels.render's hit, depth and normal, which move with the part whatever
 the light does): their contrast relative to the shading (geometric_correlation, blind to a light
 that multiplies the gray by a slowly varying factor) at least MIN_CORRELATION of its ceiling
-trusts the alignment (0.98-0.99 there; 1 px off 0.81-0.84, 2 px 0.43-0.49), moved only along the directions
-those edges resolve, and the loop corrects the light; otherwise the feature is not registered."""
+trusts the alignment (0.98-0.99 there; 1 px off 0.81-0.84, 2 px 0.43-0.49), moved only along the
+directions those edges resolve, and the loop corrects the light; otherwise the feature is not
+registered."""
 from __future__ import annotations
 
 import time
@@ -93,7 +94,7 @@ GEOMETRY_TURN_DEG = 20.0    # geometric_edges: a normal break, neighbouring pixe
 DEPTH_STEP_PX = 10.0        # ... a depth break, neighbours' depths apart by more than this many pixel footprints
                             # (a continuous surface up to 84 deg from the view: less)
 GEOMETRY_REACH_PX = 3       # ... and the pixels this near one (the smoothed edge's reach)
-RELATIVE_FLOOR = 0.05       # relative_edges: the shading divided by at least this share of its 99th percentile
+RELATIVE_FLOOR = 0.05       # shading: the edges divided by it, it by at least this share of its 99th percentile
 SIGNIFICANCE = 3.0          # standard errors of the correlation ECC must gain to move the window
 TEXTURE = 2.0               # a window with texture varies more than this x what the sensor's noise gives
 SATURATED_FRACTION = 0.2    # more of the window's pixels at saturation: its shape is unknown there
@@ -519,7 +520,7 @@ def geometric_correlation(template: np.ndarray, seen: np.ndarray, mask: np.ndarr
     has wrong multiplies the signal by a slowly varying S, C = g S T + n, whose edges relative to
     its shading, shading_removed(C) / shading(C) = shading_removed(T) / shading(T) + n', are the
     model's whatever S is (a lamp turned off its aim moved its soft edge across the hinge's
-    window: intensity 0.43 of 0.998, edges 0.78 of 0.955; these 0.98). n' has the rms of the
+    window: intensity 0.43 of 0.998, edges 0.78 of 0.955; these 0.98 of 0.999). n' has the rms of the
     noise through the smoothing and shading_removed over the shading, per pixel; with_ceiling
     takes the rms of that over the mask."""
     if not mask.any():
