@@ -31,12 +31,24 @@ the other: along the conrod's shank (two parallel edges) only the shift across i
 the one along it stays the model's. A capture whose feature cannot be registered (no direction
 resolved, more than SATURATED_FRACTION of the window saturated, no texture in the capture where
 the window lands, ECC not converging, a correlation below what a right alignment
-reaches (correlates_as_aligned), ECC wandering more
+reaches (correlates_as_aligned) with the part's geometric edges not where it puts them (below),
+ECC wandering more
 than COARSE pixels or TURN_STEP_DEG from a coarse start that matched nothing; from a coarse
 match, wandering keeps the match) keeps the model's region and says so in the cell's words (never
 OpenCV's text); the loop never reports such a shot in band. Neither the model nor the capture
 showing an edge around the feature (a plate filling the frame) is nothing to register: the
-model's region, trusted."""
+model's region, trusted.
+
+A light the model has wrong changes the capture's shading, not where the part is: the hinge's lamp
+turned 2-3 deg off its aim moves its soft edge across the feature's window, and ECC's correlation
+fell to 0.78-0.43 of its ceiling, the edges' to 0.94-0.82, with the part where the model puts it.
+So where both fall short, the part's geometric edges decide (geometric_edges: its silhouette, depth
+steps and creases, from kernels.render's hit, depth and normal, which move with the part whatever
+the light does): their contrast relative to the shading (geometric_correlation, blind to a light
+that multiplies the gray by a slowly varying factor) at least MIN_CORRELATION of its ceiling
+trusts the alignment (0.98-0.99 there; 1 px off 0.81-0.84, 2 px 0.43-0.49), moved only along the
+directions those edges resolve, and the loop corrects the light; otherwise the feature is not
+registered."""
 from __future__ import annotations
 
 import time
@@ -78,6 +90,11 @@ MIN_CORRELATION = 0.95      # a trusted alignment's correlation: this share of w
                             # saturated hinge), and that ceiling at least this
 SHADING_SIGMA_PX = 12.0     # correlates_as_aligned: the window's edges are it less its blur of this (the
                             # lamp's soft edge and the lobe's shading, tens of pixels wide, left out)
+GEOMETRY_TURN_DEG = 20.0    # geometric_edges: a normal break, neighbouring pixels' faces turned more than this
+DEPTH_STEP_PX = 10.0        # ... a depth break, neighbours' depths apart by more than this many pixel footprints
+                            # (a continuous surface up to 84 deg from the view: less)
+GEOMETRY_REACH_PX = 3       # ... and the pixels this near one (the smoothed edge's reach)
+RELATIVE_FLOOR = 0.05       # shading: the edges divided by it, it by at least this share of its 99th percentile
 SIGNIFICANCE = 3.0          # standard errors of the correlation ECC must gain to move the window
 TEXTURE = 2.0               # a window with texture varies more than this x what the sensor's noise gives
 SATURATED_FRACTION = 0.2    # more of the window's pixels at saturation: its shape is unknown there
@@ -193,11 +210,14 @@ def high_pass(image: np.ndarray) -> np.ndarray:
     return image - cv2.GaussianBlur(image, (0, 0), HIGH_PASS_SIGMA)
 
 
-def structure(template: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def structure(template: np.ndarray, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(eigenvalues ascending, eigenvectors as columns) of the structure tensor of a template
-    (smoothed by SMOOTH_SIGMA), its gradient in gray per pixel."""
+    (smoothed by SMOOTH_SIGMA), its gradient in gray per pixel, summed over the mask's pixels
+    (None: all)."""
     gx = cv2.Sobel(template, cv2.CV_64F, 1, 0, scale=1 / 8)
     gy = cv2.Sobel(template, cv2.CV_64F, 0, 1, scale=1 / 8)
+    if mask is not None:
+        gx, gy = gx[mask], gy[mask]
     J = np.array([[np.sum(gx * gx), np.sum(gx * gy)], [np.sum(gx * gy), np.sum(gy * gy)]])
     return np.linalg.eigh(J)
 
@@ -454,6 +474,70 @@ def edge_correlation(template: np.ndarray, seen: np.ndarray, noise: float) -> Co
     return with_ceiling(correlation_coefficient(a, b), a, b, noise * smoothed_noise_rms(edges=True))
 
 
+def geometric_edges(task: Task, scene: Scene, T_cell_cam: np.ndarray, window: Window) -> np.ndarray:
+    """The pixels of a window (u0, v0, width, height) within GEOMETRY_REACH_PX of an edge of the
+    part's geometry, which moves with the part whatever the light does: neighbours (4) of which one
+    sees the part and the other not (its silhouette), whose depths differ by more than
+    DEPTH_STEP_PX pixel footprints (depth / f_px each: a step) or whose faces turn by more than
+    GEOMETRY_TURN_DEG (a crease); kernels.render's hit, depth and normal along each pixel's ray,
+    the part's own mesh."""
+    u0, v0, width, height = window
+    K = projection.intrinsics(task.camera.sensor, task.camera.lens)
+    step = DEPTH_STEP_PX / float(K[0, 0])
+    K[:2, 2] -= (u0, v0)
+    rays = projection.pixel_rays(K, T_cell_cam, width, height)
+    origin = T_cell_cam[:3, 3]
+    hit = render(scene.warp_mesh, origin, rays, origin, rays[0], 1.0, np.pi, task.part.material.table(), 1.0, 1.0,
+                 shadows=False)
+    seen = hit.hit.reshape(height, width)
+    depth = np.where(seen, hit.depth.reshape(height, width), 0.0)
+    normal = hit.normal.reshape(height, width, 3)
+    edge = np.zeros((height, width), bool)
+    crease = np.cos(np.radians(GEOMETRY_TURN_DEG))
+    for a, b in (((slice(None), slice(None, -1)), (slice(None), slice(1, None))),      # across columns
+                 ((slice(None, -1), slice(None)), (slice(1, None), slice(None)))):     # across rows
+        stepped = np.abs(depth[a] - depth[b]) > step * np.minimum(depth[a], depth[b])
+        turned = np.sum(normal[a] * normal[b], axis=-1) < crease
+        broken = (seen[a] != seen[b]) | (seen[a] & seen[b] & (stepped | turned))
+        edge[a] |= broken
+        edge[b] |= broken
+    size = 2 * GEOMETRY_REACH_PX + 1
+    return cv2.dilate(edge.astype(np.uint8), np.ones((size, size), np.uint8)) > 0
+
+
+def shading(image: np.ndarray) -> np.ndarray:
+    """The image's slowly varying part, its Gaussian blur of SHADING_SIGMA_PX, at least
+    RELATIVE_FLOOR of its 99th percentile (where the light fades out, the noise takes over)."""
+    blur = cv2.GaussianBlur(image, (0, 0), SHADING_SIGMA_PX)
+    return np.maximum(blur, RELATIVE_FLOOR * max(float(np.percentile(blur, 99)), 1e-30))
+
+
+def geometric_correlation(template: np.ndarray, seen: np.ndarray, mask: np.ndarray, noise: np.ndarray,
+                          black: float) -> Correlation:
+    """The correlation of the template's edges relative to its shading with the capture's (seen,
+    where ECC's warp puts it, smoothed alike, less the black level) over the mask (geometric_edges)
+    and its ceiling through the sensor's noise (rms `noise` per pixel of seen): a light the model
+    has wrong multiplies the signal by a slowly varying S, C = g S T + n, whose edges relative to
+    its shading, shading_removed(C) / shading(C) = shading_removed(T) / shading(T) + n', are the
+    model's whatever S is (a lamp turned off its aim moved its soft edge across the hinge's
+    window: intensity 0.43 of 0.998, edges 0.78 of 0.955; these 0.98 of 0.999). n' has the rms of the
+    noise through the smoothing and shading_removed over the shading, per pixel; with_ceiling
+    takes the rms of that over the mask."""
+    if not mask.any():
+        return Correlation(0.0, 0.0)
+    signal = seen - black
+    a = (shading_removed(template) / shading(template))[mask]
+    b = (shading_removed(signal) / shading(signal))[mask]
+    sigma = float(np.sqrt(np.mean(np.square(noise / shading(signal))[mask]))) * smoothed_noise_rms(edges=True)
+    return with_ceiling(correlation_coefficient(a, b), a, b, sigma)
+
+
+def as_aligned(c: Correlation) -> bool:
+    """A correlation at least MIN_CORRELATION of its ceiling, that ceiling itself at least
+    MIN_CORRELATION (correlates_as_aligned)."""
+    return c.ceiling >= MIN_CORRELATION and c.r >= MIN_CORRELATION * c.ceiling
+
+
 def correlates_as_aligned(intensity: Correlation, edges: Correlation) -> bool:
     """Whether ECC's alignment correlates as a right one does, judged against what the noise
     allows: its correlation at least MIN_CORRELATION of its ceiling, or, where the window's slowly
@@ -464,7 +548,7 @@ def correlates_as_aligned(intensity: Correlation, edges: Correlation) -> bool:
     the noise: there the edges' 0.991-0.994 of 0.997, and 1 px off costs 0.03, 2 px 0.13). The
     noise scales a correlation by its ceiling, to first order, so the share is what the alignment
     would score on a noiseless capture: a right one near 1, whatever the noise."""
-    return any(c.ceiling >= MIN_CORRELATION and c.r >= MIN_CORRELATION * c.ceiling for c in (intensity, edges))
+    return as_aligned(intensity) or as_aligned(edges)
 
 
 def locate(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: LampPose,
@@ -524,22 +608,35 @@ def locate(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, 
                                                       # coarse match that cleared noise and the whole view
     fine = warp[:, :2] @ centre + warp[:, 2] - centre - (u0, v0)    # where the warp moves it
     rotation = float(np.degrees(np.arctan2(warp[1, 0], warp[0, 0])))
-    shift, from_coarse = kept @ (kept.T @ fine), kept.T @ (fine - coarse)
     seen_at = warped(smoothed, warp, template.shape)
     noise = float(noise_rms(seen_at.mean(), task.camera.sensor))
     intensity = intensity_correlation(correlation, template, seen_at, noise)
     edges = edge_correlation(template, seen_at, noise)
     judged = (f"correlation {correlation:.3f} of the {intensity.ceiling:.3f} the noise allows, its edges' "
               f"{edges.r:.3f} of the {edges.ceiling:.3f}")
-    if not correlates_as_aligned(intensity, edges):
-        return result((0.0, 0.0), False, int(resolved.sum()), correlation, f"{judged}: a share below {MIN_CORRELATION}")
+    by_geometry = not correlates_as_aligned(intensity, edges)
+    if by_geometry:             # the shading differs from the model's: do the part's own edges agree?
+        mask = geometric_edges(task, scene, T_cell_cam, (u0, v0, width, height))
+        shape = geometric_correlation(template, seen_at, mask, noise_rms(seen_at, task.camera.sensor),
+                                      task.camera.sensor.black_level or 0.0)
+        judged += f", its geometric edges' {shape.r:.3f} of the {shape.ceiling:.3f}"
+        if not as_aligned(shape):
+            return result((0.0, 0.0), False, int(resolved.sum()), correlation,
+                          f"{judged}: a share below {MIN_CORRELATION}")
+        told, along = structure(template, mask)         # move only where those edges tell
+        if np.sum(told >= RATIO * told[-1]) < resolved.sum():
+            resolved, vectors = told >= RATIO * told[-1], along
+            kept = vectors[:, resolved]
+    shift, from_coarse = kept @ (kept.T @ fine), kept.T @ (fine - coarse)
     if np.max(np.abs(from_coarse)) > COARSE:
         return result((0.0, 0.0), False, int(resolved.sum()), correlation,
                       f"ECC ended {np.max(np.abs(from_coarse)):.1f} px from the coarse estimate")
     if abs(rotation + turn) > TURN_STEP_DEG:        # the coarse turn of the window is -rotation's
         return result((0.0, 0.0), False, int(resolved.sum()), correlation,
                       f"ECC turned {rotation:+.1f} deg, the coarse estimate {-turn:+.0f} deg")
-    notes = [judged] * (correlation < MIN_CORRELATION)
+    notes = [judged + (": the shading differs from the model's (the light, which the loop corrects), the part's "
+                       "geometric edges are where the alignment puts them") * by_geometry
+             ] * (correlation < MIN_CORRELATION or by_geometry)
     notes += [f"ECC wandered {wandered:.0f} px off the coarse match, which is kept (to within {COARSE // 2} px)"
              ] * kept_coarse
     if not resolved.all():
