@@ -45,7 +45,11 @@ residual; the loop takes further views (by_resolution) where that exceeds the re
 limit, among them views with the lamp low along the open direction (lamps_along: the light's
 edges that move with the part, shadows of what stands up there), starts the fit there from the
 earlier estimate moved along it as the rendered images fit best (along_start), and names the
-direction (along) where it stays open."""
+direction (along) where it stays open. A part long along that direction may still be tilted along
+it unseen (the first views see that tilt by perspective alone, a lamp-low view's shadow rim ties
+it to the offset along the direction): the loop then takes a view from its side (sideways),
+keeps the better of the fits from the model's pose and along it (better), and widens the fit's
+covariance by what the views tell over their residual (rendered_covariance, PoseError.widened)."""
 from __future__ import annotations
 
 import hashlib
