@@ -45,11 +45,7 @@ residual; the loop takes further views (by_resolution) where that exceeds the re
 limit, among them views with the lamp low along the open direction (lamps_along: the light's
 edges that move with the part, shadows of what stands up there), starts the fit there from the
 earlier estimate moved along it as the rendered images fit best (along_start), and names the
-direction (along) where it stays open. A part long along that direction may still be tilted along
-it unseen (the first views see that tilt by perspective alone, a lamp-low view's shadow rim ties
-it to the offset along the direction): the loop then takes a view from its side (sideways),
-keeps the better of the fits from the model's pose and along it (better), and widens the fit's
-covariance by what the views tell over their residual (rendered_covariance, PoseError.widened)."""
+direction (along) where it stays open."""
 from __future__ import annotations
 
 import hashlib
@@ -111,7 +107,6 @@ SEARCH_ROLLS_DEG = (-6.0, -3.0, 0.0, 3.0, 6.0)              # its turns about th
 SEARCH_SHIFTS = (-1.0, 0.0, 1.0)                            # and its shifts, of registration.COARSE px
 STEP_UNITS = 0.5            # rendered_information: its differences half an INFORMATION_UNITS either way
 MAX_EXTRA_VIEWS = 2         # the loop's views beyond the second where the part's position stays open
-SIDEWAYS = np.sin(np.radians(20.0))    # sideways: a view this far to the side of an open direction, at least
 ALONG_COS = np.cos(np.radians(30.0))   # along: a direction within this of a part axis is named by it
 COVERAGE = 2.0              # Resolution.unresolved: the registration limit holds with this many uncertainties
 LAMP_TILTS_DEG = (15.0, 25.0)   # lamps_along: the lamp's elevations for a further view along a weak direction
@@ -399,15 +394,6 @@ class PoseError:
         stated = A @ cov @ A.T
         return replace(self, part_offset_m=offset(self.part_rpy_rad), center=center, covariance=stated,
                        part_offset_stderr_m=np.sqrt(np.maximum(np.diag(stated)[:3], 0.0)))
-
-    def widened(self, covariance: np.ndarray) -> PoseError:
-        """The same estimate, another covariance (9 x 9, theta's units) added to its own (errors
-        of two sources, in quadrature): its standard errors the sum's diagonal's roots."""
-        own = self.covariance if self.covariance is not None else np.diag(np.square(self.theta_stderr))
-        total = own + np.asarray(covariance, float)
-        stderr = np.sqrt(np.maximum(np.diag(total), 0.0))
-        return replace(self, part_offset_stderr_m=stderr[:3], part_rpy_stderr_rad=stderr[3:6],
-                       hand_eye_rpy_stderr_rad=stderr[6:9], covariance=total)
 
     @property
     def theta_stderr(self) -> np.ndarray:
@@ -1083,14 +1069,12 @@ def rendered_residual(image: np.ndarray, model: np.ndarray, part: np.ndarray) ->
 class Resolution:
     """How far the views leave the part's position open where an estimate puts it: along
     `direction` (cell frame, unit) it is told worst, to within uncertainty_m; `along` names that
-    direction by the part's axes; the views' residuals (Told) and the covariance of all nine
-    parameters by what the views tell (rendered_covariance)."""
+    direction by the part's axes; the views' residuals (Told)."""
 
     direction: np.ndarray
     uncertainty_m: float
     along: str
     residuals: tuple[float, ...]
-    covariance: np.ndarray      # 9 x 9, of theta (rendered_covariance)
 
     def unresolved(self, limit_m: float) -> str | None:
         """The stop's sentence where the part's position may be off by more than limit_m (the
@@ -1112,29 +1096,23 @@ class Resolution:
                 "weakest_along": self.along}
 
 
-def rendered_covariance(told: Sequence[Told], views: int) -> np.ndarray:
-    """The covariance (9 x 9, theta's units) of the pose parameters by what the views tell where
-    an estimate puts the part (rendered_information): the information of every view, each over
-    its residual squared (the model's differences from the capture, its shading and lobe, do not
+def resolution(task: Task, scene: Scene, told: Sequence[Told], views: int) -> Resolution:
+    """The part's position where it is told worst: the information of every view, each over its
+    residual squared (the model's differences from the capture, its shading and lobe, do not
     average out over a view's pixels, so a view counts once: a move is told where its image
-    changes by more than the residual), plus the fit's priors (_priors), inverted. A view without
-    a residual takes the worst of the others'."""
+    changes by more than the residual), plus the fit's priors (_priors); the covariance's
+    part-offset block (every other parameter free), its largest eigenvalue and vector. A view
+    without a residual takes the worst of the others'."""
     worst = max((t.residual for t in told if t.residual is not None), default=1.0)
     residuals = [worst if t.residual is None else t.residual for t in told]
     information = sum((t.information / max(r, 1e-6) ** 2 for t, r in zip(told, residuals)), np.zeros((9, 9)))
     information = information + np.diag(_priors(INFORMATION_UNITS, views) ** 2)
     units = np.diag(INFORMATION_UNITS)
-    return units @ np.linalg.inv(information) @ units
-
-
-def resolution(task: Task, scene: Scene, told: Sequence[Told], views: int) -> Resolution:
-    """The part's position where it is told worst: rendered_covariance's part-offset block (every
-    other parameter free), its largest eigenvalue and vector."""
-    covariance = rendered_covariance(told, views)
-    values, vectors = np.linalg.eigh(covariance[:3, :3])
+    offset = (units @ np.linalg.inv(information) @ units)[:3, :3]
+    values, vectors = np.linalg.eigh(offset)
     direction = vectors[:, -1] * (1.0 if vectors[np.argmax(np.abs(vectors[:, -1])), -1] > 0 else -1.0)
     return Resolution(direction, float(np.sqrt(max(values[-1], 0.0))), along(task, scene, direction),
-                      tuple(t.residual for t in told if t.residual is not None), covariance)
+                      tuple(t.residual for t in told if t.residual is not None))
 
 
 def along(task: Task, scene: Scene, direction: np.ndarray) -> str:
@@ -1158,32 +1136,3 @@ def by_resolution(task: Task, scene: Scene, told: Sequence[Told], candidates: Se
     views = len(told) + 1
     open_m = [resolution(task, scene, [*told, c], views).uncertainty_m for c in candidates]
     return [int(i) for i in np.argsort(open_m, kind="stable")]
-
-
-def sideways(poses: Sequence[np.ndarray], T_first: np.ndarray, center: np.ndarray, direction: np.ndarray,
-             lamp_m: np.ndarray) -> list[int]:
-    """The indices of camera poses (cell frame) by how far they look at the feature from the side
-    of a direction the views left open (cell frame, unit), most first: the component of each one's
-    unit vector from the feature centre c along d x b, b the first view's (T_first) unit vector
-    from c, d the direction; those less than SIDEWAYS to the side left out, and those on the lamp's
-    side (lamp_m, cell frame): from there the way back to the shot passes the lamp (the conrod's
-    re-planned shot refused, its camera 8.3 mm from the lamp's body). A part long along d (the
-    conrod's shank) tilted about d x b moves its points along the first view's axis only, which
-    that view sees by perspective alone and a view orbited about d x b (the second view the edges'
-    information picks, along the shank) hardly better: the long edges lie in planes through d that
-    pass near that camera. Seen from the side, 50 deg about d, the same tilt turns them in the
-    image (the conrod 5 mm across its shank: its tilt about y 1.24 deg off from the first, the
-    second and a lamp-low view, 0.05 deg with this one added)."""
-    c = np.asarray(center, float)
-    b = geometry.unit(T_first[:3, 3] - c)
-    across = geometry.unit(np.cross(np.asarray(direction, float), b))
-    lamp_side = float(np.sign(geometry.unit(np.asarray(lamp_m, float) - c) @ across))
-    side = np.array([float(geometry.unit(T[:3, 3] - c) @ across) for T in poses])
-    away = -side * lamp_side if lamp_side else np.abs(side)
-    return [int(i) for i in np.argsort(-away, kind="stable") if away[i] >= SIDEWAYS]
-
-
-def better(first: PoseError, other: PoseError) -> PoseError:
-    """Of two fits of the same views from different starts, the one whose last fit (refine's,
-    against the model's images where its first fit put the part) leaves the smaller residual."""
-    return other if other.residual < first.residual else first
