@@ -177,10 +177,8 @@ def expected_image(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: 
     sensor, lens = task.camera.sensor, task.camera.lens
     grid = replace(sensor, width_px=round(sensor.width_px / scale), height_px=round(sensor.height_px / scale),
                    pixel_pitch_m=sensor.pixel_pitch_m * scale)
-    u0, v0, width, height = window
-    K = projection.intrinsics(grid, lens)
-    K[:2, 2] -= (u0, v0)
-    rays = projection.pixel_rays(K, T_cell_cam, width, height)
+    width, height = window[2:]
+    rays = window_rays(projection.intrinsics(grid, lens), T_cell_cam, window)
     position, aim = lamp_pose
     table, origin = task.part.material.table(), T_cell_cam[:3, 3]
     value = lights.drive_level(task.lamp.channel.number, drives) * render(
@@ -194,6 +192,15 @@ def expected_image(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: 
                                  table, sensor.camera_constant, sensor.pixel_area_m2, shadows=shadows,
                                  part_faces=len(scene.faces))
     return value.reshape(height, width).astype(np.float32)
+
+
+def window_rays(K: np.ndarray, T_cell_cam: np.ndarray, window: Window) -> np.ndarray:
+    """Each pixel's ray (cell frame, row by row) of a window (u0, v0, width, height) of the image
+    whose intrinsics are K: the principal point moved to the window's corner."""
+    u0, v0, width, height = window
+    K = K.copy()
+    K[:2, 2] -= (u0, v0)
+    return projection.pixel_rays(K, T_cell_cam, width, height)
 
 
 def gradient(image: np.ndarray) -> np.ndarray:
@@ -481,11 +488,10 @@ def geometric_edges(task: Task, scene: Scene, T_cell_cam: np.ndarray, window: Wi
     DEPTH_STEP_PX pixel footprints (depth / f_px each: a step) or whose faces turn by more than
     GEOMETRY_TURN_DEG (a crease); kernels.render's hit, depth and normal along each pixel's ray,
     the part's own mesh."""
-    u0, v0, width, height = window
+    width, height = window[2:]
     K = projection.intrinsics(task.camera.sensor, task.camera.lens)
     step = DEPTH_STEP_PX / float(K[0, 0])
-    K[:2, 2] -= (u0, v0)
-    rays = projection.pixel_rays(K, T_cell_cam, width, height)
+    rays = window_rays(K, T_cell_cam, window)
     origin = T_cell_cam[:3, 3]
     hit = render(scene.warp_mesh, origin, rays, origin, rays[0], 1.0, np.pi, task.part.material.table(), 1.0, 1.0,
                  shadows=False)
