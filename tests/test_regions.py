@@ -4,7 +4,8 @@ import pytest
 from scipy.spatial import cKDTree
 
 from cell.core import geometry
-from cell.planning.regions import NEARBY, RegionDistance, SphereGrid, chord_to_angle, on_edge
+from cell.planning.regions import (FEW_CELLS, NEARBY, POLE_ROWS, RegionDistance, SphereGrid, chord_to_angle,
+                                  nearest_chord, on_edge)
 
 
 def signed_distance(grid, inside):
@@ -70,9 +71,10 @@ def test_interpolation_wraps_the_seam():
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_the_distance_at_the_cells_around_a_lamp_is_the_whole_maps_there(seed):
-    """A judged shot reads the transform only at the cells `sample` reads around its lamp: only
-    those are found, there it equals brute force (and the whole map), and sampling gives the
-    same value as sampling the whole map."""
+    """A judged shot reads the transform only at the cells `sample` reads around its lamp: on a
+    fresh map only those are found (by brute force, no tree built), there it equals brute force
+    (and the whole map), and sampling gives the same value as sampling the whole map; once the
+    trees are built, a few lamps find the cells around them too."""
     grid = SphereGrid(np.radians(10.0))
     rng = np.random.default_rng(seed)
     inside = grid.directions() @ geometry.unit(rng.normal(size=3)) > np.cos(np.radians(40))
@@ -82,11 +84,59 @@ def test_the_distance_at_the_cells_around_a_lamp_is_the_whole_maps_there(seed):
     lazy = RegionDistance(grid, inside)
     got = lazy.sample(az, el)
     found = ~np.isnan(lazy._values)
-    nearby = grid.cells_around(az, el, NEARBY)         # a few lamps: the cells around them too
-    assert np.array_equal(np.flatnonzero(found), nearby) and np.isin(cells, nearby).all()
-    assert found.sum() < found.size / 4
+    assert np.array_equal(np.flatnonzero(found), cells) and lazy._trees is None
     assert np.allclose(lazy._values[cells], brute_force(grid, inside).ravel()[cells], atol=1e-12)
     np.testing.assert_array_equal(got, grid.sample(signed_distance(grid, inside), az, el))
+    lazy.at(np.arange(FEW_CELLS + 1))                   # more than a few: the trees
+    assert lazy._trees is not None
+    az2, el2 = az + 0.7, -el
+    lazy.sample(az2, el2)
+    nearby = grid.cells_around(az2, el2, NEARBY)        # a few lamps: the cells around them too
+    assert np.isin(nearby, np.flatnonzero(~np.isnan(lazy._values))).all()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_few_cells_by_brute_force_are_the_trees_numbers_bit_for_bit(seed):
+    """Before its trees are built, RegionDistance finds a few cells by brute force over the edge
+    cells (nearest_chord, summed as cKDTree sums): on the planner's 2 deg grid, cells inside and
+    outside, at the seam and the poles, the same numbers exactly as the trees give."""
+    grid = SphereGrid(np.radians(2.0))
+    rng = np.random.default_rng(seed)
+    directions = grid.directions()
+    inside = np.zeros(directions.shape[:2], bool)
+    for _ in range(rng.integers(1, 4)):
+        inside ^= directions @ geometry.unit(rng.normal(size=3)) > np.cos(np.radians(rng.uniform(10, 80)))
+    whole = signed_distance(grid, inside).ravel()
+    n_az = len(grid.azimuth)
+    for _ in range(40):
+        cells = rng.choice(inside.size, rng.integers(2, FEW_CELLS + 1), replace=False)
+        cells[:2] = [rng.integers(n_az), inside.size - 1 - rng.integers(2 * n_az)]    # a pole's rows, the seam
+        lazy = RegionDistance(grid, inside)
+        np.testing.assert_array_equal(lazy.at(cells), whole[cells])
+        assert lazy._trees is None
+    queries, targets = rng.normal(size=(30, 3)), rng.normal(size=(500, 3))
+    np.testing.assert_array_equal(nearest_chord(queries, targets), cKDTree(targets).query(queries)[0])
+
+
+def rolled_edge(inside):
+    """on_edge by np.roll of the map padded at the poles: each of the eight neighbours compared."""
+    rows = np.pad(inside, ((1, 1), (0, 0)), mode="edge")
+    edge = np.zeros(inside.shape, bool)
+    for de in (-1, 0, 1):
+        for da in (-1, 0, 1):
+            edge |= np.roll(rows[1 + de:1 + de + len(inside)], da, axis=1) != inside
+    edge[:POLE_ROWS] = edge[-POLE_ROWS:] = True
+    return edge
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_on_edge_compares_each_cell_with_its_eight_neighbours(seed):
+    """on_edge (shifted views of the map wrapped at the seam, a row repeated beyond each pole)
+    is the comparison with each rolled neighbour, on random maps and single cells at the seam."""
+    rng = np.random.default_rng(seed)
+    inside = rng.random((91, 180)) < [0.01, 0.3, 0.5, 0.97][seed]
+    inside[40, 0] = inside[50, -1] = seed % 2 == 0
+    np.testing.assert_array_equal(on_edge(inside), rolled_edge(inside))
 
 
 @pytest.mark.parametrize("margin", [0, 1, 2])

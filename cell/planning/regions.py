@@ -119,11 +119,16 @@ def on_edge(inside: np.ndarray) -> np.ndarray:
     cells) lies in a neighbour r's (Delaunay: off the poles, one of the eight), no farther from r
     than from p, so r is no farther from q than p (triangle inequality) and, were it of p's kind,
     as near; stepping on along the geodesic ends at a cell of p's kind next to one of the other."""
-    rows = np.pad(inside, ((1, 1), (0, 0)), mode="edge")
+    count_el, count_az = inside.shape
+    # the map with a row repeated beyond each pole and a column wrapped beyond each side of the seam
+    around = np.empty((count_el + 2, count_az + 2), bool)
+    around[1:-1, 1:-1] = inside
+    around[0, 1:-1], around[-1, 1:-1] = inside[0], inside[-1]
+    around[:, 0], around[:, -1] = around[:, -2], around[:, 1]
     edge = np.zeros(inside.shape, bool)
-    for de in (-1, 0, 1):
-        for da in (-1, 0, 1):
-            edge |= np.roll(rows[1 + de:1 + de + len(inside)], da, axis=1) != inside
+    for de in (0, 1, 2):
+        for da in (0, 1, 2):
+            edge |= around[de:de + count_el, da:da + count_az] != inside
     edge[:POLE_ROWS] = edge[-POLE_ROWS:] = True
     return edge
 
@@ -134,6 +139,17 @@ def on_edge(inside: np.ndarray) -> np.ndarray:
 FEW_LAMPS = 16
 NEARBY = 2
 SPLIT_QUERIES = 2048    # cells asked at once from which the k-d tree queries split over the kernels' threads
+# cells asked at most, before any k-d tree is built, found by brute force over the edge cells
+# (nearest_chord, ~10 us a cell on the 2 deg map) instead (the trees' build ~0.25 ms): a judged
+# shot's one lamp reads four
+FEW_CELLS = 16
+
+
+def nearest_chord(queries: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """(Q,) the chord from each query (Q, 3) to its nearest target (T, 3), by brute force, summed
+    as cKDTree sums it for p = 2, ((0 + dx^2) + dy^2) + dz^2, and its root: the same value bit for bit."""
+    d = queries[:, None, :] - targets[None]
+    return np.sqrt(np.min((d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]) + d[..., 2] * d[..., 2], axis=1))
 
 
 class RegionDistance:
@@ -146,7 +162,10 @@ class RegionDistance:
     Chord length between unit vectors is monotonic in the great-circle angle, so a k-d tree
     on the cells' unit vectors finds the haversine-nearest cell exactly, seam and poles included;
     the trees hold only the cells on_edge, among which the nearest one of the other kind always
-    is. An empty (or full) region gives +pi (or -pi) everywhere."""
+    is. Until they are built (the first read of more than FEW_CELLS cells builds them) a few
+    cells are found by brute force over those edge cells (nearest_chord: the trees' numbers),
+    and only the cells read (no NEARBY ones): a judged shot reads its lamp's four once. An
+    empty (or full) region gives +pi (or -pi) everywhere."""
 
     def __init__(self, grid: SphereGrid, inside: ArrayLike) -> None:
         self.grid = grid
@@ -154,11 +173,12 @@ class RegionDistance:
         self.inside.flags.writeable = False
         uniform = np.pi if not self.inside.any() else -np.pi if self.inside.all() else np.nan
         self._values = np.full(self.inside.size, uniform)        # NaN: not asked yet
+        self._edges: tuple[np.ndarray, np.ndarray] | None = None  # the edge cells' directions: outside, inside
         self._trees: tuple[cKDTree, cKDTree] | None = None
 
     def __getstate__(self) -> dict:
         """Pickled (a plan from a worker process) with the values found so far, not the trees."""
-        return {**self.__dict__, "_trees": None}
+        return {**self.__dict__, "_edges": None, "_trees": None}
 
     def at(self, cells: ArrayLike) -> np.ndarray:
         """The transform at the flat indices `cells` of the (E, A) map."""
@@ -168,12 +188,20 @@ class RegionDistance:
             missing = np.unique(cells[unknown])
             flat = self.inside.ravel()
             dirs = _cell_directions(self.grid.step).reshape(-1, 3)
-            if self._trees is None:
+            if self._edges is None:
                 edge = on_edge(self.inside).ravel()
-                self._trees = cKDTree(dirs[~flat & edge]), cKDTree(dirs[flat & edge])
+                self._edges = dirs[~flat & edge], dirs[flat & edge]
+            inner, outer = missing[flat[missing]], missing[~flat[missing]]
+            if self._trees is None and len(missing) <= FEW_CELLS:
+                if len(inner):
+                    self._values[inner] = -chord_to_angle(nearest_chord(dirs[inner], self._edges[0]))
+                if len(outer):
+                    self._values[outer] = chord_to_angle(nearest_chord(dirs[outer], self._edges[1]))
+                return self._values[cells]
+            if self._trees is None:
+                self._trees = cKDTree(self._edges[0]), cKDTree(self._edges[1])
             to_outside, to_inside = self._trees
             workers = threads() if len(missing) >= SPLIT_QUERIES else 1    # each query its own
-            inner, outer = missing[flat[missing]], missing[~flat[missing]]
             if len(inner):
                 self._values[inner] = -chord_to_angle(to_outside.query(dirs[inner], workers=workers)[0])
             if len(outer):
@@ -189,7 +217,7 @@ class RegionDistance:
         unknown = np.isnan(out)
         if unknown.any():
             azimuth, elevation = np.broadcast_arrays(azimuth, elevation)
-            few = np.count_nonzero(unknown) <= FEW_LAMPS
+            few = np.count_nonzero(unknown) <= FEW_LAMPS and self._trees is not None
             self.at(self.grid.cells_around(azimuth[unknown], elevation[unknown], NEARBY if few else 0))
             out[unknown] = self.grid.sample(values, azimuth[unknown], elevation[unknown])
         return out
