@@ -19,7 +19,7 @@ import numpy as np
 from cell.planning import certificate, defects, evaluate, requirements
 from cell.planning.one_shot import build_maps, light_settings
 from cell.planning.plan import Coverage
-from kernels.runtime import in_background
+from kernels.runtime import in_background, threads
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -75,22 +75,26 @@ def judge_all(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list[C
     """judge of `shot` on each one-feature task of one part (with its Lent), the gray kernel on
     the samples launched once for all of them (evaluate.SharedLaunches), not once per feature, and
     the certificates of those whose samples meet every requirement verified together
-    (certificate.verify_all: their dense patches' launches shared too), each dense patch laid on
-    the surface on a thread of its own (kernels.runtime.in_background: mostly the closest points'
-    launch) while the next feature's samples are judged."""
+    (certificate.verify_all: their dense patches' launches shared too). Where the process has a
+    thread beside the caller's (kernels.runtime.in_background), every feature's dense patch is
+    laid on the surface there from the start (mostly the closest points' launch) while the
+    samples are judged: nearly every pair the prefilter (cell.planning.prefilter) leaves meets
+    them, and a patch asked for last would be waited for whole; on one thread only the patches
+    of the features met are made, each when verified."""
     if not tasks:
         return []
     task = tasks[0]
     scene, bounds = stacked(lent, shot.T_cell_cam)
     shared = evaluate.SharedLaunches(evaluate.gray_inputs(task, scene, task.part.material.scaled(1.0)),
                                      [end - start for start, end in bounds])
-    sampled, dense = [], {}
-    for k, (t, x) in enumerate(zip(tasks, lent)):
-        sampled.append(on_samples(t, x, shot, shared.rows(k)))
-        if all(r.met for r in sampled[k].values):     # its dense patch laid while the next one is judged
-            dense[k] = in_background(certificate.dense_scene, t, sampled[k].problem.scene)
-    met = list(dense)
-    verified = dict(zip(met, certificate.verify_all([sampled[k].problem for k in met], shot, list(dense.values()))))
+    scenes = [replace(x.scene, T_cell_cam=shot.T_cell_cam) for x in lent]
+    early = threads() > 1
+    dense = [in_background(certificate.dense_scene, t, s) if early else None for t, s in zip(tasks, scenes)]
+    sampled = [on_samples(t, x, s, shot, shared.rows(k)) for k, (t, x, s) in enumerate(zip(tasks, lent, scenes))]
+    met = [k for k, s in enumerate(sampled) if all(r.met for r in s.values)]
+    patches = [d if d is not None else in_background(certificate.dense_scene, tasks[k], scenes[k])
+               for k, d in ((k, dense[k]) for k in met)]
+    verified = dict(zip(met, certificate.verify_all([sampled[k].problem for k in met], shot, patches)))
     return [covered(t, s, verified[k][0] if k in verified else None) for k, (t, s) in enumerate(zip(tasks, sampled))]
 
 
@@ -112,10 +116,10 @@ class Sampled(NamedTuple):
     found: tuple[DefectCnr, ...]
 
 
-def on_samples(task: Task, lent: Lent, shot: Shot, shared: Rows) -> Sampled:
-    """`shot` judged on the samples of the one-feature `task` (with its Lent), their gray kernel
-    `shared`, its rows of a launch shared with other features (judge_all)."""
-    scene = replace(lent.scene, T_cell_cam=shot.T_cell_cam)
+def on_samples(task: Task, lent: Lent, scene: Scene, shot: Shot, shared: Rows) -> Sampled:
+    """`shot` judged on the samples of the one-feature `task` (with its Lent), seen from the shot's
+    camera (`scene`: the Lent's samples, its T_cell_cam the shot's), their gray kernel `shared`,
+    its rows of a launch shared with other features (judge_all)."""
     maps = build_maps(task, scene, lent.settings, visible=lent.visible)
     problem = evaluate.build_problem(task, scene, maps, focus_m=shot.exposure.focus_m, gray=shared)
     e = shot.exposure
