@@ -276,6 +276,14 @@ def test_vector_forms_are_the_forms_with_numpys_sums_bit_for_bit():
     terms = brdf.dominant_term(cos_i, cos_e, cos_alpha, p.sigma1, p.m1, p.sigma2, p.m2)
     assert np.array_equal(brdf.dominant_term_vectors(n, s, v, material), terms)
     assert {brdf.DIFFUSE, brdf.LOBE, brdf.SPIKE, brdf.OCCLUDED} <= set(terms.tolist())
+    # row by row (the certificate's samples against their own camera directions), and one pair alone
+    views = geometry.unit(rng.normal(size=(20000, 3)))
+    alphas = np.arctan2(np.linalg.norm(np.cross(s, views), axis=-1), np.sum(s * views, axis=-1))
+    assert np.array_equal(brdf.phase_angle(s, views), alphas)
+    assert np.array_equal(brdf.phase_angle(s[:, None], views[None, :3]),
+                          np.arctan2(np.linalg.norm(np.cross(s[:, None], views[None, :3]), axis=-1),
+                                     np.sum(s[:, None] * views[None, :3], axis=-1)))
+    assert brdf.phase_angle(s[7], v) == alpha[7] and np.ndim(brdf.phase_angle(s[7], v)) == 0
 
 
 def test_dominant_term_is_numpys_argmax_over_the_stacked_terms():

@@ -114,6 +114,15 @@ def test_the_region_map_of_the_visible_cells_alone_is_the_whole_maps_there(tmp_p
     for reflection in ("lobe", "any", "diffuse"):
         np.testing.assert_array_equal(regions.wanted_region(part, visible, reflection),
                                       regions.wanted_region(whole, visible, reflection))
+    # the visible cells' directions are kept per frame and cells: asked again, and for other cells
+    # or another frame of the same cells, each map is its own whole map's there
+    np.testing.assert_array_equal(regions.dominant_term_map(grid, frame, normal, view, measured, where=visible), part)
+    fewer = visible & (s[..., 1] > 0.0)
+    np.testing.assert_array_equal(regions.dominant_term_map(grid, frame, normal, view, measured, where=fewer)[fewer],
+                                  whole[fewer])
+    turned = frame[[1, 2, 0]]
+    np.testing.assert_array_equal(regions.dominant_term_map(grid, turned, normal, view, measured, where=visible)[visible],
+                                  regions.dominant_term_map(grid, turned, normal, view, measured)[visible])
 
 
 def hinge(folder, material_doc, reflection="lobe"):

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike
 
-from cell.core.geometry import row_sum
+from cell.core.geometry import dot3, row_sum
 
 if TYPE_CHECKING:
     from cell.physics.material import Material, Unresolved
@@ -109,28 +109,37 @@ def reflectance_jacobian(cos_i: ArrayLike, cos_e: ArrayLike, cos_alpha: ArrayLik
 def phase_angle(s: np.ndarray, v: np.ndarray) -> np.ndarray:
     """alpha between unit vectors (..., 3) = atan2(|s x v|, <s, v>), accurate at every angle
     (arccos of <s, v> is not near 0 and pi); the sums np.linalg.norm's and np.sum's bits (row_sum)."""
-    cross = np.cross(s, v)
-    return np.arctan2(np.sqrt(row_sum(cross * cross)), row_sum(s * v))
+    s, v = np.asarray(s, dtype=float), np.asarray(v, dtype=float)
+    return _phase_angle(s, v, dot3(s, v))
+
+
+def _phase_angle(s: np.ndarray, v: np.ndarray, s_dot_v: np.ndarray) -> np.ndarray:
+    """phase_angle given <s, v> (dot3's): np.cross's components a component at a time (its
+    products and differences, (a1 b2) - (a2 b1) ..., in its order) and |s x v|^2 summed as
+    row_sum sums, without (..., 3) arrays (a dominant-term map's thousands of cells against one
+    view direction run NumPy's inner loop over 3 numbers once a cell)."""
+    (s0, s1, s2), (v0, v1, v2) = (s[..., 0], s[..., 1], s[..., 2]), (v[..., 0], v[..., 1], v[..., 2])
+    c0, c1, c2 = s1 * v2 - s2 * v1, s2 * v0 - s0 * v2, s0 * v1 - s1 * v0
+    return np.arctan2(np.sqrt(c0 * c0 + c1 * c1 + c2 * c2 + 0.0), s_dot_v)
 
 
 def reflectance_vectors(n: ArrayLike, s: ArrayLike, v: ArrayLike, material: Material) -> np.ndarray:
     """R for unit vectors (..., 3): n normal, s to lamp, v to camera; material params at the phase angle."""
     n, s, v = (np.asarray(a, dtype=float) for a in (n, s, v))
-    cos_i = row_sum(n * s)                  # np.sum(n * s, axis=-1)'s bits
-    cos_e = row_sum(n * v)
-    cos_alpha = np.clip(row_sum(s * v), -1.0, 1.0)
-    p = material.at(phase_angle(s, v))
-    return reflectance(cos_i, cos_e, cos_alpha, p.rho, p.sigma1, p.m1, p.sigma2, p.m2)
+    cos_i = dot3(n, s)                      # np.sum(n * s, axis=-1)'s bits
+    cos_e = dot3(n, v)
+    s_dot_v = dot3(s, v)
+    p = material.at(_phase_angle(s, v, s_dot_v))
+    return reflectance(cos_i, cos_e, np.clip(s_dot_v, -1.0, 1.0), p.rho, p.sigma1, p.m1, p.sigma2, p.m2)
 
 
 def dominant_term_vectors(n: ArrayLike, s: ArrayLike, v: ArrayLike, material: Material) -> np.ndarray:
-    """dominant_term() for unit vectors, with the material at the phase angle."""
+    """dominant_term() for unit vectors, with the material at the phase angle (the sums by dot3:
+    np.sum(n * s, axis=-1)'s bits)."""
     n, s, v = (np.asarray(a, dtype=float) for a in (n, s, v))
-    cos_i = row_sum(n * s)                  # np.sum(n * s, axis=-1)'s bits
-    cos_e = row_sum(n * v)
-    cos_alpha = np.clip(row_sum(s * v), -1.0, 1.0)
-    p = material.at(phase_angle(s, v))
-    return dominant_term(cos_i, cos_e, cos_alpha, p.sigma1, p.m1, p.sigma2, p.m2)
+    s_dot_v = dot3(s, v)
+    p = material.at(_phase_angle(s, v, s_dot_v))
+    return dominant_term(dot3(n, s), dot3(n, v), np.clip(s_dot_v, -1.0, 1.0), p.sigma1, p.m1, p.sigma2, p.m2)
 
 
 def spike_keep_out(unresolved: Unresolved) -> float:

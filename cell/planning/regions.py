@@ -234,14 +234,32 @@ def dominant_term_map(grid: SphereGrid, frame: np.ndarray, normal: np.ndarray, v
     direction, seen by a camera in direction `view` from a surface with `normal`; only in the
     cells `where` (E, A) if given (OCCLUDED elsewhere: the visible cells, all a map reads), each
     cell's term its own."""
-    s = grid.directions(frame)
-    cells = s if where is None else s[where]
+    cells = grid.directions(frame) if where is None else _where_directions(grid.step, frame, where)
     terms = brdf.judged_term(brdf.dominant_term_vectors(normal, cells, view, material), normal, cells, view, material)
     if where is None:
         return terms
     out = np.full(where.shape, brdf.OCCLUDED, dtype=terms.dtype)
     out[where] = terms
     return out
+
+
+_WHERE: dict[tuple[float, bytes, bytes], np.ndarray] = {}
+_WHERE_MAX = 64
+
+
+def _where_directions(step: float, frame: np.ndarray, where: np.ndarray) -> np.ndarray:
+    """(N, 3) SphereGrid(step).directions(frame)[where], read-only, made once per step, frame and
+    cells in a process (the 64 most recent kept): a feature's visibility map does not depend on
+    the camera, so the judge's dominant-term maps of one feature at each shot ask its cells again."""
+    known = (step, np.ascontiguousarray(frame, dtype=float).tobytes(), np.packbits(where).tobytes())
+    cells = _WHERE.pop(known, None)
+    if cells is None:
+        cells = SphereGrid(step).directions(frame)[where]
+        cells.flags.writeable = False
+    _WHERE[known] = cells
+    while len(_WHERE) > _WHERE_MAX:
+        _WHERE.pop(next(iter(_WHERE)))
+    return cells
 
 
 def reflectance_map(grid: SphereGrid, frame: np.ndarray, normal: np.ndarray, view: np.ndarray,
