@@ -64,14 +64,21 @@ def dense_scene(task: Task, scene: Scene) -> Scene:
 
 def mirror_alignment(points: np.ndarray, normals: np.ndarray, lamp: ArrayLike, camera: ArrayLike) -> np.ndarray:
     """<v, r> at each point, r the lamp direction s mirrored about the normal (2 <n,s> n - s):
-    1 where the mirror direction points at the camera, the spike's peak (eq. 6-7). Each sum over
-    x, y, z by geometry.row_sum (a dense patch's 10 000 points in a third of np.sum's time, the same bits)."""
-    s = np.asarray(lamp, float) - points
-    s = s / np.sqrt(geometry.row_sum(s * s))[..., None]
-    v = np.asarray(camera, float) - points
-    v = v / np.sqrt(geometry.row_sum(v * v))[..., None]
-    mirror = 2.0 * geometry.row_sum(normals * s)[..., None] * normals - s
-    return geometry.row_sum(mirror * v)
+    1 where the mirror direction points at the camera, the spike's peak (eq. 6-7). A component
+    at a time (NumPy's operations on (N, 3) arrays against one lamp or camera, in their order:
+    the same bits), each sum over x, y, z ((a + b) + c) + 0.0 as geometry.row_sum's: a dense
+    patch's 10 000 points without (N, 3) arrays, whose inner loop runs over 3 numbers a point."""
+    points, normals = np.asarray(points, float), np.asarray(normals, float)
+    lamp, camera = np.asarray(lamp, float), np.asarray(camera, float)
+    (px, py, pz), (nx, ny, nz) = (points[..., k] for k in range(3)), (normals[..., k] for k in range(3))
+    sx, sy, sz = lamp[..., 0] - px, lamp[..., 1] - py, lamp[..., 2] - pz
+    vx, vy, vz = camera[..., 0] - px, camera[..., 1] - py, camera[..., 2] - pz
+    s_length = np.sqrt(sx * sx + sy * sy + sz * sz + 0.0)
+    v_length = np.sqrt(vx * vx + vy * vy + vz * vz + 0.0)
+    sx, sy, sz = sx / s_length, sy / s_length, sz / s_length
+    vx, vy, vz = vx / v_length, vy / v_length, vz / v_length
+    twice = 2.0 * (nx * sx + ny * sy + nz * sz + 0.0)
+    return (twice * nx - sx) * vx + (twice * ny - sy) * vy + (twice * nz - sz) * vz + 0.0
 
 
 def specular_points(scenes: Sequence[Scene], lamp: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
@@ -87,8 +94,9 @@ def specular_points(scenes: Sequence[Scene], lamp: ArrayLike) -> tuple[np.ndarra
     (alignment_at: a round's few points cost less in Python floats than in NumPy calls), so
     each search ends where it would alone."""
     from kernels.proximity import ClosestPoint
-    # each patch's largest |point - center| (np.linalg.norm's along rows: the root of row_sum)
-    radius = [math.sqrt(float(np.max(geometry.row_sum(d * d)))) for d in (s.points - s.center for s in scenes)]
+    # each patch's largest |point - center| (np.linalg.norm's along rows: the root of dot3, row_sum's bits)
+    radius = [math.sqrt(float(np.max(geometry.dot3(d, d)))) for d in
+              (geometry.by_component(np.subtract, s.points, s.center) for s in scenes)]
     starts = np.array([s.points[int(np.argmax(mirror_alignment(s.points, s.normals, lamp, s.camera_position)))]
                        for s in scenes]).reshape(-1, 3)
     along_x = np.array([s.frame[:, 0] for s in scenes]).reshape(-1, 3)
