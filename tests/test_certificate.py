@@ -187,3 +187,24 @@ def test_a_patchs_row_norms_are_numpys_norms_bit_for_bit():
     d = rng.normal(size=(20000, 3)) * 10.0 ** rng.uniform(-9, 1, (20000, 1))
     d[:3] = [[0.0, 0.0, 0.0], [-0.0, 3e-3, 0.0], [1e-300, -2e-300, 0.0]]
     assert np.array_equal(_row_norms(d), np.linalg.norm(d, axis=1))
+
+
+def test_judge_all_on_one_thread_equals_it_with_the_patches_laid_beside(problems_at_one_camera):
+    """coverage.judge_all with a thread beside asks every dense patch there from the start
+    (runtime.in_background); on one thread it lays only the met features' patches, each when
+    verified: the same coverage of one shot on the bracket's other features, bit for bit."""
+    from cell.planning import coverage
+    shot, problems = problems_at_one_camera
+    settings = replace(one_shot.PlannerSettings(), refine=False)
+    tasks = [p.task for p in problems[1:]]
+    lent = [coverage.Lent.of(one_shot.search(t, settings, 1.0, np.zeros((0, 3)), lambda message: None)[0])
+            for t in tasks]
+    judged = []
+    for threads in (1, 2):
+        runtime.set_threads(threads)
+        try:
+            judged.append(coverage.judge_all(tasks, lent, shot))
+        finally:
+            runtime.set_threads(None)
+    assert any(c.verification is not None for c in judged[0]) and any(not c.covered for c in judged[0])
+    assert equal(judged[0], judged[1])
