@@ -19,10 +19,14 @@ def unit_rows(a: ArrayLike, name: str) -> np.ndarray:
     a = np.asarray(a, dtype=np.float64).reshape(-1, 3)
     # np.linalg.norm's arithmetic (add.reduce adds a row's three squares in turn), as elementwise
     # operations: NumPy's reduction over an axis of 3 costs some 6 times as much on many rows
-    norm = np.sqrt((a[:, 0] * a[:, 0] + a[:, 1] * a[:, 1]) + a[:, 2] * a[:, 2])[:, None]
+    norm = np.sqrt((a[:, 0] * a[:, 0] + a[:, 1] * a[:, 1]) + a[:, 2] * a[:, 2])
     if np.any(norm == 0.0):
         raise ValueError(f"{name} has a zero-length row")
-    return a / norm
+    # a / norm[:, None]'s quotients a column at a time: over (N, 1) lengths NumPy's inner loop runs over 3 numbers a row
+    out = np.empty_like(a)
+    for k in range(3):
+        np.divide(a[:, k], norm, out=out[:, k])
+    return out
 
 
 def with_slopes(t: np.ndarray) -> wp.array:

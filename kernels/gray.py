@@ -130,7 +130,7 @@ class GrayInputs:
         self._mesh = mesh if use_shadows else None      # keeps the BVH alive as long as its id is used
         self._surface_inputs = [vec3d(points, "points"), vec3d(normals, "normals"),
                                 wp.vec3d(*np.asarray(camera_pos, dtype=np.float64)), float(offset_m)]
-        self._ray_origins = (points + float(offset_m) * normals, normals)
+        self._shadow_rays = (points, normals, float(offset_m))   # the free cones' ray origins, made if found
         self.surfaces = wp.empty(self.count, dtype=funcs.Surface, device=self.device)
         self._sector_cos, sector_cos_wp = output((max(1, self.count), funcs.SECTORS), np.float64, wp.float64)
         self._set_free_cones(np.full(self.count, NO_CONE), None)
@@ -167,7 +167,8 @@ class GrayInputs:
         """Count `count` lamps more evaluated, and find the points' free cones once they are worth it."""
         self._lamps_seen += count
         if self._mesh is not None and not self.has_free_cones and self.count and worth_finding(self._lamps_seen, self._mesh):
-            self._set_free_cones(*free_cone_cosines(self._mesh, *self._ray_origins))
+            points, normals, offset_m = self._shadow_rays
+            self._set_free_cones(*free_cone_cosines(self._mesh, points + offset_m * normals, normals))
             self.has_free_cones = True
 
     def _set_free_cones(self, free_cos, sector_cos):
