@@ -59,6 +59,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, replace
+from functools import cache
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any, NamedTuple
 
@@ -670,12 +671,15 @@ def locate(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, 
     kept = vectors[:, resolved]                     # project onto the resolved directions
     wandered = float(np.max(np.abs(kept.T @ (warp[:, :2] @ centre + warp[:, 2] - centre - (u0, v0) - coarse))))
     kept_coarse = wandered > COARSE and not found.note
-    mask = geometric_edges(task, scene, T_cell_cam, (u0, v0, width, height))
     black = task.camera.sensor.black_level or 0.0
+
+    @cache
+    def mask() -> np.ndarray:                          # geometric_edges, rendered when first asked for
+        return geometric_edges(task, scene, T_cell_cam, (u0, v0, width, height))
 
     def geometry_at(w: np.ndarray) -> Correlation:     # the part's geometric edges where warp w puts them
         seen = warped(smoothed, w, template.shape)
-        return geometric_correlation(template, seen, mask, noise_rms(seen, task.camera.sensor), black)
+        return geometric_correlation(template, seen, mask(), noise_rms(seen, task.camera.sensor), black)
     if kept_coarse or not significant(correlation, at_start, template.size) \
             or geometry_at(warp).r < geometry_at(initial).r:
         warp, correlation = initial, at_start         # ECC's move gains what noise could, or it left a
@@ -696,7 +700,7 @@ def locate(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, 
         if not as_aligned(shape):
             return result((0.0, 0.0), False, int(resolved.sum()), correlation,
                           f"{judged}: a share below {MIN_CORRELATION}", ceiling=intensity.ceiling)
-        told, along = structure(template, mask)         # move only where those edges tell
+        told, along = structure(template, mask())       # move only where those edges tell
         if np.sum(told >= RATIO * told[-1]) < resolved.sum():
             resolved, vectors = told >= RATIO * told[-1], along
             kept = vectors[:, resolved]
