@@ -93,8 +93,9 @@ HIGH_PASS_SIGMA = 3.0       # coarse px (12 px): the coarse step matches the edg
 SMOOTH_SIGMA = 1.0          # px, Gaussian before ECC and the structure tensor
 SMOOTH_PAD_PX = 4           # px: its reach (OpenCV's kernel for a float image: 4 sigma each side)
 EDGE_CLEAR_PX = 16          # px: the window grown beyond the first margin that resolves a direction
-                            # (edged_window; on the bracket 10 mm along y, whose true shift across
-                            # its edges is 0: 8 px left web_outer's correlation 0.988 of its ceiling, 16 0.993)
+                            # where an edge runs along its border (edged_window; on the bracket 10 mm along
+                            # y, no true shift across its edges: 8 px left web_outer 0.4 px off, 0.988 of
+                            # its ceiling; 16 px 0.2 px, 0.993)
 EDGE_PX = 20.0              # a resolved direction: this many pixels of edge at the window's contrast
 RATIO = 0.01                # ... and at least this fraction of the other direction's eigenvalue
 MIN_CORRELATION = 0.95      # a trusted alignment's correlation: this share of what the noise allows
@@ -298,8 +299,10 @@ def window_structure(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose
 
 def edge_on_border(template: np.ndarray) -> bool:
     """Whether an edge runs along a side of the template: its gradient across that side, squared
-    and summed over the SMOOTH_PAD_PX + 1 columns (rows) along it, at least edge_threshold (on the
-    bracket's windows 41-874 where an edge lies there, 0-10 where none does)."""
+    and summed over the SMOOTH_PAD_PX + 1 columns (rows) along it, at least edge_threshold (in
+    pixels of edge at the window's contrast, EDGE_PX: the bracket's windows 41-874 where an edge
+    lies there, 0-10 where none does; the far dome's 7, not grown, whose window grown took in more
+    of the lamp cone's hard edge, which the model has and the world lacks, and was refused)."""
     band = SMOOTH_PAD_PX + 1
     gx, gy = sobel(template)
     across = (gx[:, :band], gx[:, -band:], gy[:band], gy[-band:])
@@ -680,6 +683,7 @@ def locate(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, 
     def geometry_at(w: np.ndarray) -> Correlation:     # the part's geometric edges where warp w puts them
         seen = warped(smoothed, w, template.shape)
         return geometric_correlation(template, seen, mask(), noise_rms(seen, task.camera.sensor), black)
+
     if kept_coarse or not significant(correlation, at_start, template.size) \
             or geometry_at(warp).r < geometry_at(initial).r:
         warp, correlation = initial, at_start         # ECC's move gains what noise could, or it left a
