@@ -21,7 +21,13 @@ nothing; the turn is reported, the region is not turned: a disk about its centre
 maximizes the correlation coefficient, which is blind to a gain and an offset of the gray, so a
 wrong albedo, camera constant or black level (what the loop corrects after) does not pull it.
 Intensity rather than gradient magnitudes there: on the examples' offsets the gradients
-correlated less (0.95-0.98 against 0.99-1.0) for the same shift.
+correlated less (0.95-0.98 against 0.99-1.0) for the same shift. ECC's move is taken when it gains
+more than noise could (significant) and does not take the part's geometric edges (below) away
+from where the model puts them: a noiseless capture's light the model lacks (the lamp's soft cone
+edge) gains significance for a 0.07 px move that lowers them. The template is the model's image
+smoothed as the capture is, with its neighbours (smoothed_template), over the smallest window
+that resolves a direction (below), grown where an edge runs along its border (edged_window: the
+side beyond it is the edge's other half, which ECC weighs by the little of it inside).
 
 What the window cannot tell is not moved: the template's structure tensor J = sum grad T grad T^T
 (its gray per pixel, on the model's noiseless image) resolves a direction when its eigenvalue
@@ -53,6 +59,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, replace
+from functools import cache
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any, NamedTuple
 
@@ -72,6 +79,7 @@ if TYPE_CHECKING:
 Window = tuple[int, int, int, int]          # (u0, v0, width, height) of a part of the image [px]
 LampPose = tuple[np.ndarray, np.ndarray]    # the lamp's position and aim in the cell frame
 Drives = Mapping[int, float] | None         # {channel: level 0..1} read back (None: every light at full)
+Edged = tuple[Window, np.ndarray, np.ndarray, np.ndarray, np.ndarray]    # edged_window's answer
 
 COARSE = 4                  # the coarse step's pixels per model pixel
 MARGIN_PX = 24              # the window around the feature's samples: the conrod's shank edges
@@ -83,6 +91,11 @@ TURN_STEP_DEG = 2.0         # their step: ECC's turn farther from the coarse one
 HIGH_PASS_SIGMA = 3.0       # coarse px (12 px): the coarse step matches the edges of the image
                             # less this blur of it (high_pass)
 SMOOTH_SIGMA = 1.0          # px, Gaussian before ECC and the structure tensor
+SMOOTH_PAD_PX = 4           # px: its reach (OpenCV's kernel for a float image: 4 sigma each side)
+EDGE_CLEAR_PX = 16          # px: the window grown beyond the first margin that resolves a direction
+                            # where an edge runs along its border (edged_window; on the bracket 10 mm along
+                            # y, no true shift across its edges: 8 px left web_outer 0.4 px off, 0.988 of
+                            # its ceiling; 16 px 0.2 px, 0.993)
 EDGE_PX = 20.0              # a resolved direction: this many pixels of edge at the window's contrast
 RATIO = 0.01                # ... and at least this fraction of the other direction's eigenvalue
 MIN_CORRELATION = 0.95      # a trusted alignment's correlation: this share of what the noise allows
@@ -107,7 +120,8 @@ class Registration:
     right, y down; 0 in a direction not resolved and in all when not trusted), the pixel's
     footprint at the feature [m], whether it is trusted and why (note), the directions resolved
     (none when trusted: neither the model nor the capture has an edge around the feature),
-    ECC's correlation and the time it took."""
+    ECC's correlation, its ceiling (what a right alignment's reaches through the sensor's noise:
+    intensity_correlation; nan where ECC did not run) and the time it took."""
 
     shift_px: tuple[float, float]
     footprint_m: float
@@ -117,6 +131,7 @@ class Registration:
     note: str
     time_s: float
     rotation_deg: float = 0.0    # the image's turn about the optical axis, ECC's (not applied)
+    ceiling: float = np.nan
 
     @property
     def offset_px(self) -> float:
@@ -143,7 +158,7 @@ class Registration:
         return {"shift_px": list(self.shift_px), "offset_px": self.offset_px, "offset_m": self.offset_m,
                 "footprint_m": self.footprint_m, "trusted": self.trusted, "resolved": self.resolved,
                 "correlation": self.correlation, "note": self.note, "time_s": self.time_s,
-                "rotation_deg": self.rotation_deg}
+                "rotation_deg": self.rotation_deg, "ceiling": self.ceiling}
 
 
 def beyond_limit(registration: dict[str, Any], limit_m: float) -> str | None:
@@ -203,11 +218,15 @@ def window_rays(K: np.ndarray, T_cell_cam: np.ndarray, window: Window) -> np.nda
     return projection.pixel_rays(K, T_cell_cam, width, height)
 
 
+def sobel(image: np.ndarray, depth: int = cv2.CV_64F) -> tuple[np.ndarray, np.ndarray]:
+    """(d image / dx, d image / dy) [gray / px] (Sobel's 3 x 3, divided by its weight 8), of OpenCV
+    depth `depth`."""
+    return cv2.Sobel(image, depth, 1, 0, scale=1 / 8), cv2.Sobel(image, depth, 0, 1, scale=1 / 8)
+
+
 def gradient(image: np.ndarray) -> np.ndarray:
-    """|grad image| [gray / px] (Sobel)."""
-    gx = cv2.Sobel(image, cv2.CV_32F, 1, 0, scale=1 / 8)
-    gy = cv2.Sobel(image, cv2.CV_32F, 0, 1, scale=1 / 8)
-    return cv2.magnitude(gx, gy)
+    """|grad image| [gray / px] (sobel)."""
+    return cv2.magnitude(*sobel(image, cv2.CV_32F))
 
 
 def high_pass(image: np.ndarray) -> np.ndarray:
@@ -221,8 +240,7 @@ def structure(template: np.ndarray, mask: np.ndarray | None = None) -> tuple[np.
     """(eigenvalues ascending, eigenvectors as columns) of the structure tensor of a template
     (smoothed by SMOOTH_SIGMA), its gradient in gray per pixel, summed over the mask's pixels
     (None: all)."""
-    gx = cv2.Sobel(template, cv2.CV_64F, 1, 0, scale=1 / 8)
-    gy = cv2.Sobel(template, cv2.CV_64F, 0, 1, scale=1 / 8)
+    gx, gy = sobel(template)
     if mask is not None:
         gx, gy = gx[mask], gy[mask]
     J = np.array([[np.sum(gx * gx), np.sum(gx * gy)], [np.sum(gx * gy), np.sum(gy * gy)]])
@@ -238,22 +256,69 @@ def feature_window(row: np.ndarray, col: np.ndarray, shape: tuple[int, ...], mar
 
 def edged_window(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: LampPose, row: np.ndarray,
                  col: np.ndarray, shape: tuple[int, ...], drives: Drives = None, counts: Sequence[int] | None = None,
-                 ) -> tuple[Window, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(window, smoothed template, eigenvalues, eigenvectors, resolved directions) of the smallest
-    window around the feature (margin MARGIN_PX, doubled up to MAX_MARGIN_PX) whose model image
-    resolves a direction (module docstring)."""
+                 ) -> Edged:
+    """(window, smoothed template, eigenvalues, eigenvectors, resolved directions) of the window
+    around the feature whose model image resolves a direction: the smallest margin (MARGIN_PX,
+    doubled up to MAX_MARGIN_PX) that does, EDGE_CLEAR_PX more where an edge runs along its border
+    (edge_on_border). The first margin to resolve a direction is often the first whose window
+    reaches an edge, which then lies on its border with the side beyond it left out, and ECC
+    weighs it by the little of that side inside: web_inner's window ended on the chamfer's edge
+    (correlation 0.945 of the 0.990 the noise allows with the model right; 0.9995 grown), and on
+    the bracket 10 mm along y (no true shift across its edges) web_outer's and the chamfer's, whose
+    shading the model has wrong there, moved 4.3 and 2.2 px (0.2 and 0.8 grown)."""
     margin = MARGIN_PX
     while True:
-        window = feature_window(row, col, shape, margin)
-        template = cv2.GaussianBlur(expected_image(task, scene, T_cell_cam, lamp_pose, window, 1, drives, counts),
-                                    (0, 0), SMOOTH_SIGMA)
-        contrast = float(np.percentile(template, 99) - np.percentile(template, 1))
-        values, vectors = structure(template)
-        edge = EDGE_PX * contrast**2 / (2.0 * np.sqrt(np.pi) * SMOOTH_SIGMA)
-        resolved = (values >= edge) & (values >= RATIO * values[-1])
-        if resolved.any() or margin >= MAX_MARGIN_PX:
-            return window, template, values, vectors, resolved
+        found = window_structure(task, scene, T_cell_cam, lamp_pose, row, col, shape, margin, drives, counts)
+        if found[4].any() or margin >= MAX_MARGIN_PX:
+            if not edge_on_border(found[1]):
+                return found
+            return window_structure(task, scene, T_cell_cam, lamp_pose, row, col, shape, margin + EDGE_CLEAR_PX,
+                                    drives, counts)
         margin *= 2
+
+
+def edge_threshold(template: np.ndarray) -> float:
+    """EDGE_PX pixels of edge at the template's contrast (its 99th less its 1st percentile H), in
+    the structure tensor's units: a step of height H, smoothed by SMOOTH_SIGMA, gives
+    H^2 / (2 sqrt(pi) SMOOTH_SIGMA) per pixel of its length."""
+    contrast = float(np.percentile(template, 99) - np.percentile(template, 1))
+    return EDGE_PX * contrast**2 / (2.0 * np.sqrt(np.pi) * SMOOTH_SIGMA)
+
+
+def window_structure(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: LampPose, row: np.ndarray,
+                     col: np.ndarray, shape: tuple[int, ...], margin: int, drives: Drives = None,
+                     counts: Sequence[int] | None = None) -> Edged:
+    """(window, smoothed template, eigenvalues, eigenvectors, resolved directions) of the window
+    around the feature with `margin` (feature_window): its template (smoothed_template), its
+    structure tensor and the directions it resolves (at least edge_threshold and RATIO of the other)."""
+    window = feature_window(row, col, shape, margin)
+    template = smoothed_template(task, scene, T_cell_cam, lamp_pose, window, drives, counts)
+    values, vectors = structure(template)
+    return window, template, values, vectors, (values >= edge_threshold(template)) & (values >= RATIO * values[-1])
+
+
+def edge_on_border(template: np.ndarray) -> bool:
+    """Whether an edge runs along a side of the template: its gradient across that side, squared
+    and summed over the SMOOTH_PAD_PX + 1 columns (rows) along it, at least edge_threshold (in
+    pixels of edge at the window's contrast, EDGE_PX: the bracket's windows 41-874 where an edge
+    lies there, 0-10 where none does; the far dome's 7, not grown, whose window grown took in more
+    of the lamp cone's hard edge, which the model has and the world lacks, and was refused)."""
+    band = SMOOTH_PAD_PX + 1
+    gx, gy = sobel(template)
+    across = (gx[:, :band], gx[:, -band:], gy[:band], gy[-band:])
+    return bool(max(float(np.sum(np.square(g))) for g in across) >= edge_threshold(template))
+
+
+def smoothed_template(task: Task, scene: Scene, T_cell_cam: np.ndarray, lamp_pose: LampPose, window: Window,
+                      drives: Drives = None, counts: Sequence[int] | None = None) -> np.ndarray:
+    """The model's image over a window (expected_image) smoothed by SMOOTH_SIGMA as the capture is,
+    with its neighbours: rendered SMOOTH_PAD_PX beyond the window, blurred, then cut to it (blurred
+    alone, its border would be reflected where the capture has what lies beyond)."""
+    u0, v0, width, height = window
+    pad = SMOOTH_PAD_PX
+    wide = expected_image(task, scene, T_cell_cam, lamp_pose, (u0 - pad, v0 - pad, width + 2 * pad, height + 2 * pad),
+                          1, drives, counts)
+    return np.ascontiguousarray(cv2.GaussianBlur(wide, (0, 0), SMOOTH_SIGMA)[pad:pad + height, pad:pad + width])
 
 
 @dataclass(frozen=True)
@@ -570,9 +635,9 @@ def locate(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, 
     footprint = float(depth / K[0, 0])
 
     def result(shift: Any, trusted: bool, resolved: int, correlation: float, note: str,
-               rotation: float = 0.0) -> Registration:
+               rotation: float = 0.0, ceiling: float = np.nan) -> Registration:
         return Registration((float(shift[0]), float(shift[1])), footprint, trusted, resolved, float(correlation), note,
-                            time.perf_counter() - start, rotation)
+                            time.perf_counter() - start, rotation, float(ceiling))
 
     counts = lights.emitter_counts(task, scene, scene.T_cell_cam)
     found = coarse_shift(image, task, scene, T_cell_cam, lamp_pose, row, col, drives, counts)
@@ -609,9 +674,21 @@ def locate(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, 
     kept = vectors[:, resolved]                     # project onto the resolved directions
     wandered = float(np.max(np.abs(kept.T @ (warp[:, :2] @ centre + warp[:, 2] - centre - (u0, v0) - coarse))))
     kept_coarse = wandered > COARSE and not found.note
-    if kept_coarse or not significant(correlation, at_start, template.size):
+    black = task.camera.sensor.black_level or 0.0
+
+    @cache
+    def mask() -> np.ndarray:                          # geometric_edges, rendered when first asked for
+        return geometric_edges(task, scene, T_cell_cam, (u0, v0, width, height))
+
+    def geometry_at(w: np.ndarray) -> Correlation:     # the part's geometric edges where warp w puts them
+        seen = warped(smoothed, w, template.shape)
+        return geometric_correlation(template, seen, mask(), noise_rms(seen, task.camera.sensor), black)
+
+    if kept_coarse or not significant(correlation, at_start, template.size) \
+            or geometry_at(warp).r < geometry_at(initial).r:
         warp, correlation = initial, at_start         # ECC's move gains what noise could, or it left a
-                                                      # coarse match that cleared noise and the whole view
+                                                      # coarse match that cleared noise and the whole view,
+                                                      # or it took the part's own edges away from the model's
     fine = warp[:, :2] @ centre + warp[:, 2] - centre - (u0, v0)    # where the warp moves it
     rotation = float(np.degrees(np.arctan2(warp[1, 0], warp[0, 0])))
     seen_at = warped(smoothed, warp, template.shape)
@@ -622,24 +699,23 @@ def locate(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, 
               f"{edges.r:.3f} of the {edges.ceiling:.3f}")
     by_geometry = not correlates_as_aligned(intensity, edges)
     if by_geometry:             # the shading differs from the model's: do the part's own edges agree?
-        mask = geometric_edges(task, scene, T_cell_cam, (u0, v0, width, height))
-        shape = geometric_correlation(template, seen_at, mask, noise_rms(seen_at, task.camera.sensor),
-                                      task.camera.sensor.black_level or 0.0)
+        shape = geometry_at(warp)
         judged += f", its geometric edges' {shape.r:.3f} of the {shape.ceiling:.3f}"
         if not as_aligned(shape):
             return result((0.0, 0.0), False, int(resolved.sum()), correlation,
-                          f"{judged}: a share below {MIN_CORRELATION}")
-        told, along = structure(template, mask)         # move only where those edges tell
+                          f"{judged}: a share below {MIN_CORRELATION}", ceiling=intensity.ceiling)
+        told, along = structure(template, mask())       # move only where those edges tell
         if np.sum(told >= RATIO * told[-1]) < resolved.sum():
             resolved, vectors = told >= RATIO * told[-1], along
             kept = vectors[:, resolved]
     shift, from_coarse = kept @ (kept.T @ fine), kept.T @ (fine - coarse)
     if np.max(np.abs(from_coarse)) > COARSE:
-        return result((0.0, 0.0), False, int(resolved.sum()), correlation,
-                      f"ECC ended {np.max(np.abs(from_coarse)):.1f} px from the coarse estimate")
+        return result((0.0, 0.0), False, int(resolved.sum()), correlation, f"ECC ended "
+                      f"{np.max(np.abs(from_coarse)):.1f} px from the coarse estimate", ceiling=intensity.ceiling)
     if abs(rotation + turn) > TURN_STEP_DEG:        # the coarse turn of the window is -rotation's
         return result((0.0, 0.0), False, int(resolved.sum()), correlation,
-                      f"ECC turned {rotation:+.1f} deg, the coarse estimate {-turn:+.0f} deg")
+                      f"ECC turned {rotation:+.1f} deg, the coarse estimate {-turn:+.0f} deg",
+                      ceiling=intensity.ceiling)
     notes = [judged + (": the shading differs from the model's (the light, which the loop corrects), the part's "
                        "geometric edges are where the alignment puts them") * by_geometry
              ] * (correlation < MIN_CORRELATION or by_geometry)
@@ -649,4 +725,4 @@ def locate(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, 
         notes.append(f"resolved across the window's edges only (along "
                      f"{np.degrees(np.arctan2(*vectors[::-1, 0])) % 180:.0f} deg in the image it has none: that "
                      f"component is the model's)")
-    return result(shift, True, int(resolved.sum()), correlation, "; ".join(notes), rotation)
+    return result(shift, True, int(resolved.sum()), correlation, "; ".join(notes), rotation, intensity.ceiling)
