@@ -26,7 +26,7 @@ from cell.run.defects import MeasuredDefect, measure as measure_defects, on_defe
 from cell.run.measurement import BlackLevel, Measurement
 from cell.run.refit import Refit
 from cell.collision.scene import CollisionScene, reaching_joints
-from cell.devices.rig import lamp_aim, lamp_position
+from cell.devices.rig import lamp_aim, lamp_joints, lamp_position
 from cell.devices.interfaces import speaking_for
 from cell.core.errors import GoalNotReached
 from cell.planning.plan import gray_stats
@@ -628,8 +628,10 @@ def resolve(ctx: RunContext, task: Task, k: int, scene: Scene, capture: Capture,
     `along`); at most localization.MAX_EXTRA_VIEWS. A further view with which the fit is
     implausible (localization.implausible: it matched the wrong edges there) is logged and left
     out, the estimate before it kept. The lamp goes back to the plan's pose with the next shot's
-    move. Returns the estimate and its Resolution (None where the first estimate is implausible:
-    nothing to resolve)."""
+    move. Returns the estimate, its covariance widened by what the views tell over their residual
+    (PoseError.widened by Resolution.covariance: the edge fit's own covers its noise, not a tilt the
+    views leave open that the fit holds where the model's image was rendered), and its Resolution
+    (None where the first estimate is implausible: nothing to resolve)."""
     if localization.implausible(error, capture.T_cell_cam):
         return error, None
     lamp_pose, pivot = views[0].lamp_pose, task.lamp.rig.pivot_m
@@ -651,6 +653,7 @@ def resolve(ctx: RunContext, task: Task, k: int, scene: Scene, capture: Capture,
         return bool(min(np.linalg.norm(T[:3, 3] - c) + np.linalg.norm(lit(joints)[0] - l) for c, l in tried) > 0.005)
 
     told, resolved = judged(error)
+    opened = None                       # the direction the guard found open, if it took a further view
     for _ in range(localization.MAX_EXTRA_VIEWS):
         open_by = resolved.unresolved(limit_m)
         lamps = [(v.T_cell_cam, joints) for v in views[:2]
@@ -659,6 +662,7 @@ def resolve(ctx: RunContext, task: Task, k: int, scene: Scene, capture: Capture,
         left = [(T, joints) for T, joints in [*((T, None) for T in candidates), *lamps] if new(T, joints)]
         if open_by is None or not left:
             break
+        opened = resolved
         ctx.recorder.step("localize", f"{localization.describe(error, error.views)}: {open_by}: a further view",
                           iteration=k, **error.to_json(), **resolved.to_json())
         infos = localization.rendered_information(task, scene, error, [(T, lit(joints), views[0].drives)
@@ -678,7 +682,20 @@ def resolve(ctx: RunContext, task: Task, k: int, scene: Scene, capture: Capture,
         views.append(view)
         error = further
         told, resolved = judged(error)
-    return error, resolved
+    if opened is not None:             # a view from the side of it, the lamp back where the first view had it
+        pan, tilt, length = (float(j) for j in lamp_joints(pivot, lamp_pose[0]))
+        home = (pan, tilt, length)
+        side = [(T, home) for T in (candidates[i] for i in localization.sideways(
+            candidates, views[0].T_cell_cam, scene.center, opened.direction, lamp_pose[0])) if new(T, home)]
+        seen = take_view(ctx, task, k, scene, capture, side, f"locate-{k}-{len(tried) + 1}", "a view from the side",
+                         f"a view of the part from the side, to tell its tilt {opened.along}")
+        fitted = None if seen is None else localization.localize(task, scene, [*views, seen])
+        if seen is not None and fitted is not None and not localization.implausible(fitted, capture.T_cell_cam):
+            along = localization.localize(task, scene, [*views, seen], (error, opened.direction))
+            views.append(seen)
+            error = fitted if along is None else localization.better(fitted, along)
+            told, resolved = judged(error)
+    return error.widened(resolved.covariance), resolved
 
 
 def follow(ctx: RunContext, aim: Aim, k: int, error: localization.PoseError) -> Generator[Event, None, Aim]:
