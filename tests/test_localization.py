@@ -750,11 +750,17 @@ def test_the_conrod_5_mm_off_tilted_3_deg_with_its_camera_turned_is_localized_wi
     shadow along it. With every edge moved with the part the estimate came out tilted 1.25 deg
     short (the world's shadows alone 1.62 deg; none 0.04); with the shadows' rims moved as the
     fixed lamp draws them, it is within 1 mm and 0.3 deg of the truth keys (its yaw, which trades
-    with the hand-eye's roll, too), and the run converges."""
+    with the hand-eye's roll, too), and the run converges. Then a view from the side: from there
+    the move to the re-planned shot is refused (the camera body 9.8 mm from the forearm), so the
+    arm goes back to where the part was found first, the way checked before the side view was
+    taken."""
     truth = {"part_offset_m": [0.005, -0.005, 0.0], "part_rpy_deg": [0.0, 3.0, 0.0], "camera_rpy_deg": [1.0, 0.0, 0.0]}
     keys = {"sim.effects": EVERY_EFFECT, "sim.seed": 1} | {f"sim.truth.{k}": v for k, v in truth.items()}
     cell = run_loop(variant(tmp_path, CONROD, keys), tmp_path / "run")
     assert cell.error is None and cell.report["converged"], cell.report["reason"]
+    moves = [line["message"] for line in cell.log if line["step"] == "move_camera"]
+    side = next(i for i, m in enumerate(moves) if "from the side" in m)
+    assert "back where the part was found, the move on from the side view refused" in moves[side + 1]
     found = cell.report["localization"]
     assert found["followed"] and found["views"] >= 3
     assert found["part_offset_m"] == pytest.approx(truth["part_offset_m"], abs=1e-3)
