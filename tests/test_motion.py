@@ -80,6 +80,29 @@ def test_the_path_starts_where_the_arm_reads_back_not_where_a_caller_thinks_it_i
     assert np.allclose(across.corners_m[0], b.T_cell_cam[:3, 3])  # it starts where the arm stands
 
 
+def test_a_round_trip_is_checked_both_ways_before_it_leaves_and_comes_back_by_the_way_checked(tmp_path):
+    """From the near side of the wall to the far side and back: the way back, checked from where
+    the way there arrives (check_back) before anything moves, goes over the wall too, from the
+    far stop to the near one; driven (go_back, checked again from where the arm reads back), the
+    arm passes the same via points and stands where it started, at the joints it read there."""
+    task = wall_task(tmp_path)
+    b = stop(task, 0.15)
+    a = stop(task, -0.15, b.arm_joints)
+    devices = sim_devices(task, a.arm_joints, a.lamp_joints)
+    start = motion.standing(task, devices)
+    there = motion.check(task, devices, b.T_cell_cam, to="the far side")
+    back = motion.check_back(task, devices, there, b.T_cell_cam, None, start, "the far side", "the near side")
+    assert there.clear and back.clear and len(back.via) == 2
+    assert all(T[2, 3] > 0.42 for T in back.via)                  # over the wall's top
+    assert np.allclose(back.corners_m[0], b.T_cell_cam[:3, 3]) and np.allclose(back.corners_m[-1], a.T_cell_cam[:3, 3])
+    with Recorder(tmp_path / "run") as recorder:
+        motion.go(task, devices, recorder, b.T_cell_cam, to="the far side", checked=there)
+        read = motion.go_back(task, devices, start, recorder, "the near side")
+    assert np.allclose(read, a.T_cell_cam, atol=1e-9) and np.allclose(devices.arm.joints, a.arm_joints, atol=1e-9)
+    via = [s["position_m"] for s in steps(tmp_path / "run") if s["step"] == "move_via" and s["to"] == "the near side"]
+    assert np.allclose(via, [T[:3, 3] for T in back.via], atol=1e-6)
+
+
 def walled_in(tmp_path):
     """The wall, and the workspace's top at 0.5 m: the flange stands at 0.45 m at either end, and
     every via point (a retreat of at least 0.1 m up the camera's axis) takes it out of the box.

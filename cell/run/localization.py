@@ -45,7 +45,11 @@ residual; the loop takes further views (by_resolution) where that exceeds the re
 limit, among them views with the lamp low along the open direction (lamps_along: the light's
 edges that move with the part, shadows of what stands up there), starts the fit there from the
 earlier estimate moved along it as the rendered images fit best (along_start), and names the
-direction (along) where it stays open."""
+direction (along) where it stays open. A part long along that direction may still be tilted along
+it unseen (the first views see that tilt by perspective alone, a lamp-low view's shadow rim ties
+it to the offset along the direction): the loop then takes a view from its side (sideways),
+keeps the better of the fits from the model's pose and along it (better), and widens the fit's
+covariance by what the views tell over their residual (rendered_covariance, PoseError.widened)."""
 from __future__ import annotations
 
 import hashlib
@@ -107,6 +111,7 @@ SEARCH_ROLLS_DEG = (-6.0, -3.0, 0.0, 3.0, 6.0)              # its turns about th
 SEARCH_SHIFTS = (-1.0, 0.0, 1.0)                            # and its shifts, of registration.COARSE px
 STEP_UNITS = 0.5            # rendered_information: its differences half an INFORMATION_UNITS either way
 MAX_EXTRA_VIEWS = 2         # the loop's views beyond the second where the part's position stays open
+SIDEWAYS = np.sin(np.radians(20.0))    # sideways: a view this far to the side of an open direction, at least
 ALONG_COS = np.cos(np.radians(30.0))   # along: a direction within this of a part axis is named by it
 COVERAGE = 2.0              # Resolution.unresolved: the registration limit holds with this many uncertainties
 LAMP_TILTS_DEG = (15.0, 25.0)   # lamps_along: the lamp's elevations for a further view along a weak direction
@@ -395,6 +400,15 @@ class PoseError:
         return replace(self, part_offset_m=offset(self.part_rpy_rad), center=center, covariance=stated,
                        part_offset_stderr_m=np.sqrt(np.maximum(np.diag(stated)[:3], 0.0)))
 
+    def widened(self, covariance: np.ndarray) -> PoseError:
+        """The same estimate, another covariance (9 x 9, theta's units) added to its own (errors
+        of two sources, in quadrature): its standard errors the sum's diagonal's roots."""
+        own = self.covariance if self.covariance is not None else np.diag(np.square(self.theta_stderr))
+        total = own + np.asarray(covariance, float)
+        stderr = np.sqrt(np.maximum(np.diag(total), 0.0))
+        return replace(self, part_offset_stderr_m=stderr[:3], part_rpy_stderr_rad=stderr[3:6],
+                       hand_eye_rpy_stderr_rad=stderr[6:9], covariance=total)
+
     @property
     def theta_stderr(self) -> np.ndarray:
         """The 9 standard errors, in theta's order."""
@@ -477,11 +491,14 @@ def _solve(residuals: Any, theta0: np.ndarray, n_data: int, loss: str, jacobian:
     shading error there), the clustered sandwich H^-1 (sum_c g_c g_c^T G / (G - 1) + P) H^-1, with
     H = J_d^T J_d / s^2 + P the information, g_c = J_c^T r_c / s^2 each group's score and P the
     priors' information: where the residuals of a group are correlated, or a group's shading is
-    off, its samples count as the few independent ones they are."""
+    off, its samples count as the few independent ones they are. A label NaN marks a residual
+    that does not count (an edge sample with no image where x puts it: fit's), left out of s^2,
+    the inliers and the rms as if it were not there."""
     scale = np.concatenate([[1e-3] * 3, [1e-2] * 6, [0.1] * (len(theta0) - 9)])
     solved = least_squares(residuals, theta0, jac=jacobian, loss=loss, f_scale=LOSS, x_scale=scale, max_nfev=MAX_NFEV)
     r = solved.fun[:n_data]
-    inliers = np.abs(r) < 3.0 * LOSS if loss != "linear" else np.ones(n_data, bool)
+    labels = np.asarray(groups(solved.x), float) if groups is not None else np.zeros(n_data)
+    inliers = (np.abs(r) < 3.0 * LOSS if loss != "linear" else np.ones(n_data, bool)) & np.isfinite(labels)
     s2 = max(float(np.sum(r[inliers] ** 2) / max(int(inliers.sum()) - len(theta0), 1)), 1e-12)
     J = solved.jac.copy()
     J[:n_data][~inliers] = 0.0
@@ -489,8 +506,7 @@ def _solve(residuals: Any, theta0: np.ndarray, n_data: int, loss: str, jacobian:
     information = np.linalg.pinv(data.T @ data + prior.T @ prior)
     cov = information
     if groups is not None:
-        labels = np.asarray(groups(solved.x))[inliers]
-        _, index = np.unique(labels, return_inverse=True)
+        _, index = np.unique(labels[inliers], return_inverse=True)
         scores = np.zeros((index.max() + 1 if len(index) else 0, len(theta0)))
         np.add.at(scores, index, data[inliers] * (r[inliers, None] / np.sqrt(s2)))
         count = len(scores)
@@ -536,13 +552,17 @@ def fit(levels: Sequence[Sequence[Samples]], K: np.ndarray, center: np.ndarray, 
                   for v in views]
 
         def residuals(x: np.ndarray, views: Sequence[Samples] = views) -> np.ndarray:
-            out = [x[9 + i] * sampled(view.image, _appear(K, x[:9], center, view))
-                   - view.gray for i, view in enumerate(views)]
+            out = []
+            for i, view in enumerate(views):
+                uv = _appear(K, x[:9], center, view)
+                out.append(np.where(np.isfinite(uv).all(axis=1), x[9 + i] * sampled(view.image, uv) - view.gray, 0.0))
             return np.concatenate(out + [_priors(x[:9], len(views))])
 
         def jacobian(x: np.ndarray, views: Sequence[Samples] = views, slopes: Any = slopes) -> np.ndarray:
             """d residual / d parameters: the capture's slope at each point times the point's
-            image motion per parameter (central differences of _appear, float64)."""
+            image motion per parameter (central differences of _appear, float64); 0 where the
+            point or its motion has no image (a shadow's rim that the moved caster throws behind
+            the camera: the conrod's boss turned 11 deg on a coarse start), as its residual is."""
             blocks = []
             for i, (view, (gx, gy)) in enumerate(zip(views, slopes)):
                 uv = _appear(K, x[:9], center, view)
@@ -555,17 +575,17 @@ def fit(levels: Sequence[Sequence[Samples]], K: np.ndarray, center: np.ndarray, 
                               - _appear(K, x[:9] - step, center, view)) / (2 * h)
                     block[:, j] = x[9 + i] * np.sum(slope * motion, axis=1)
                 block[:, 9 + i] = sampled(view.image, uv)
+                block[~np.isfinite(block).all(axis=1) | ~np.isfinite(uv).all(axis=1)] = 0.0
                 blocks.append(block)
             prior = np.zeros((9, len(x)))
             prior[:9, :9] = np.diag(_priors(np.ones(9), len(views)))
             return np.vstack(blocks + [prior])
 
         def groups(x: np.ndarray, views: Sequence[Samples] = views) -> np.ndarray:
-            """Each sample's tile: its view and its pixel's TILE_PX square where x puts it."""
-            tiles = [np.floor(_appear(K, x[:9], center, view) / TILE_PX)
-                     for view in views]
-            return np.concatenate([(i * 1_000_000 + t[:, 1] * 1000 + t[:, 0]).astype(np.int64)
-                                   for i, t in enumerate(tiles)])
+            """Each sample's tile: its view and its pixel's TILE_PX square where x puts it; NaN
+            where it has no image there (it does not count: _solve)."""
+            tiles = [np.floor(_appear(K, x[:9], center, view) / TILE_PX) for view in views]
+            return np.concatenate([i * 1_000_000 + t[:, 1] * 1000 + t[:, 0] for i, t in enumerate(tiles)])
 
         scales.append(theta[:9].copy())
         theta, cov, rms, inliers = _solve(residuals, theta, n_data, "soft_l1", jacobian, groups)
@@ -1069,12 +1089,14 @@ def rendered_residual(image: np.ndarray, model: np.ndarray, part: np.ndarray) ->
 class Resolution:
     """How far the views leave the part's position open where an estimate puts it: along
     `direction` (cell frame, unit) it is told worst, to within uncertainty_m; `along` names that
-    direction by the part's axes; the views' residuals (Told)."""
+    direction by the part's axes; the views' residuals (Told) and the covariance of all nine
+    parameters by what the views tell (rendered_covariance)."""
 
     direction: np.ndarray
     uncertainty_m: float
     along: str
     residuals: tuple[float, ...]
+    covariance: np.ndarray      # 9 x 9, of theta (rendered_covariance)
 
     def unresolved(self, limit_m: float) -> str | None:
         """The stop's sentence where the part's position may be off by more than limit_m (the
@@ -1096,23 +1118,29 @@ class Resolution:
                 "weakest_along": self.along}
 
 
-def resolution(task: Task, scene: Scene, told: Sequence[Told], views: int) -> Resolution:
-    """The part's position where it is told worst: the information of every view, each over its
-    residual squared (the model's differences from the capture, its shading and lobe, do not
+def rendered_covariance(told: Sequence[Told], views: int) -> np.ndarray:
+    """The covariance (9 x 9, theta's units) of the pose parameters by what the views tell where
+    an estimate puts the part (rendered_information): the information of every view, each over
+    its residual squared (the model's differences from the capture, its shading and lobe, do not
     average out over a view's pixels, so a view counts once: a move is told where its image
-    changes by more than the residual), plus the fit's priors (_priors); the covariance's
-    part-offset block (every other parameter free), its largest eigenvalue and vector. A view
-    without a residual takes the worst of the others'."""
+    changes by more than the residual), plus the fit's priors (_priors), inverted. A view without
+    a residual takes the worst of the others'."""
     worst = max((t.residual for t in told if t.residual is not None), default=1.0)
     residuals = [worst if t.residual is None else t.residual for t in told]
     information = sum((t.information / max(r, 1e-6) ** 2 for t, r in zip(told, residuals)), np.zeros((9, 9)))
     information = information + np.diag(_priors(INFORMATION_UNITS, views) ** 2)
     units = np.diag(INFORMATION_UNITS)
-    offset = (units @ np.linalg.inv(information) @ units)[:3, :3]
-    values, vectors = np.linalg.eigh(offset)
+    return units @ np.linalg.inv(information) @ units
+
+
+def resolution(task: Task, scene: Scene, told: Sequence[Told], views: int) -> Resolution:
+    """The part's position where it is told worst: rendered_covariance's part-offset block (every
+    other parameter free), its largest eigenvalue and vector."""
+    covariance = rendered_covariance(told, views)
+    values, vectors = np.linalg.eigh(covariance[:3, :3])
     direction = vectors[:, -1] * (1.0 if vectors[np.argmax(np.abs(vectors[:, -1])), -1] > 0 else -1.0)
     return Resolution(direction, float(np.sqrt(max(values[-1], 0.0))), along(task, scene, direction),
-                      tuple(t.residual for t in told if t.residual is not None))
+                      tuple(t.residual for t in told if t.residual is not None), covariance)
 
 
 def along(task: Task, scene: Scene, direction: np.ndarray) -> str:
@@ -1136,3 +1164,32 @@ def by_resolution(task: Task, scene: Scene, told: Sequence[Told], candidates: Se
     views = len(told) + 1
     open_m = [resolution(task, scene, [*told, c], views).uncertainty_m for c in candidates]
     return [int(i) for i in np.argsort(open_m, kind="stable")]
+
+
+def sideways(poses: Sequence[np.ndarray], T_first: np.ndarray, center: np.ndarray, direction: np.ndarray,
+             lamp_m: np.ndarray) -> list[int]:
+    """The indices of camera poses (cell frame) by how far they look at the feature from the side
+    of a direction the views left open (cell frame, unit), most first: the component of each one's
+    unit vector from the feature centre c along d x b, b the first view's (T_first) unit vector
+    from c, d the direction; those less than SIDEWAYS to the side left out, and those on the lamp's
+    side (lamp_m, cell frame): from there the way back to the shot passes the lamp (the conrod's
+    re-planned shot refused, its camera 8.3 mm from the lamp's body). A part long along d (the
+    conrod's shank) tilted about d x b moves its points along the first view's axis only, which
+    that view sees by perspective alone and a view orbited about d x b (the second view the edges'
+    information picks, along the shank) hardly better: the long edges lie in planes through d that
+    pass near that camera. Seen from the side, 50 deg about d, the same tilt turns them in the
+    image (the conrod 5 mm across its shank: its tilt about y 1.24 deg off from the first, the
+    second and a lamp-low view, 0.05 deg with this one added)."""
+    c = np.asarray(center, float)
+    b = geometry.unit(T_first[:3, 3] - c)
+    across = geometry.unit(np.cross(np.asarray(direction, float), b))
+    lamp_side = float(np.sign(geometry.unit(np.asarray(lamp_m, float) - c) @ across))
+    side = np.array([float(geometry.unit(T[:3, 3] - c) @ across) for T in poses])
+    away = -side * lamp_side if lamp_side else np.abs(side)
+    return [int(i) for i in np.argsort(-away, kind="stable") if away[i] >= SIDEWAYS]
+
+
+def better(first: PoseError, other: PoseError) -> PoseError:
+    """Of two fits of the same views from different starts, the one whose last fit (refine's,
+    against the model's images where its first fit put the part) leaves the smaller residual."""
+    return other if other.residual < first.residual else first

@@ -26,7 +26,7 @@ from cell.run.defects import MeasuredDefect, measure as measure_defects, on_defe
 from cell.run.measurement import BlackLevel, Measurement
 from cell.run.refit import Refit
 from cell.collision.scene import CollisionScene, reaching_joints
-from cell.devices.rig import lamp_aim, lamp_position
+from cell.devices.rig import lamp_aim, lamp_joints, lamp_position
 from cell.devices.interfaces import speaking_for
 from cell.core.errors import GoalNotReached
 from cell.planning.plan import gray_stats
@@ -36,7 +36,7 @@ from cell.report.words import count
 from cell.report.result import Result
 
 if TYPE_CHECKING:
-    from cell.collision.paths import Move
+    from cell.collision.paths import Move, Stop
     from cell.devices.interfaces import Devices
     from cell.planning.plan import Plan, Shot
     from cell.planning.scene import Scene
@@ -537,12 +537,13 @@ def locate_part(ctx: RunContext, aim: Aim, k: int, capture: Capture) -> Generato
         yield Located(k, error, False)
         return replace(aim, located=True)
     candidates = clear_views(ctx, task, scene, lamp_pose, capture)
+    found_at = motion.standing(task, ctx.devices)
     views = [first]
     second = second_view(ctx, aim, k, scene, lamp_pose, capture, candidates)
     if second is not None:
         views.append(second)
         error = localization.localize(task, scene, views) or error
-    error, resolved = resolve(ctx, task, k, scene, capture, views, error, limit, candidates)
+    error, resolved, back = resolve(ctx, task, k, scene, capture, views, error, limit, candidates, found_at)
     wrong = localization.implausible(error, capture.T_cell_cam) or (resolved.unresolved(limit) if resolved else None)
     ctx.recorder.step("localize", localization.describe(error, error.views)
                       + (f"; its position {resolved.along} is told to within {1e3 * resolved.uncertainty_m:.1f} mm"
@@ -552,7 +553,7 @@ def locate_part(ctx: RunContext, aim: Aim, k: int, capture: Capture) -> Generato
     if wrong:
         yield Corrected(k, {"action": "stop", "cause": "pose", "reason": wrong})
         raise GoalNotReached(wrong, "pose")
-    return (yield from follow(ctx, aim, k, error))
+    return (yield from follow(ctx, aim, k, error, back))
 
 
 def clear_views(ctx: RunContext, task: Task, scene: Scene, lamp_pose: registration.LampPose,
@@ -588,16 +589,18 @@ def second_view(ctx: RunContext, aim: Aim, k: int, scene: Scene, lamp_pose: regi
 
 def take_view(ctx: RunContext, task: Task, k: int, scene: Scene, capture: Capture,
               ordered: Sequence[tuple[np.ndarray, tuple[float, float, float] | None]], name: str, to: str,
-              why: str) -> localization.View | None:
+              why: str, back: Stop | None = None) -> localization.View | None:
     """The first of the ordered (camera pose, lamp joints or None: the lamp where it is) whose
-    path there is clear (motion.check; `to` names it), moved to (motion.move_camera; logged with
+    path there is clear (motion.check; `to` names it) and, given `back` (a Stop read before), the
+    path from there back to it too (motion.check_back), moved to (motion.move_camera; logged with
     `why`), exposed for the model's brightest part there (localization.view_exposure) at capture's
     f-number, focus and drives and captured as `name`.png, with the lamp's read-back pose; None
     when no path is clear."""
     drives = capture.drives or None
     for T, joints in ordered:
         move = motion.check(task, ctx.devices, T, joints, to=to)
-        if not move.clear:
+        if not move.clear or (back is not None and not motion.check_back(
+                task, ctx.devices, move, T, joints, back, to, "the pose the part was found at").clear):
             continue
         read = motion.move_camera(task, ctx.devices, T, ctx.recorder, to, k, move, joints)
         ctx.recorder.step("move_camera", f"camera at {np.round(read[:3, 3], 4).tolist()} m in the cell frame: {why}",
@@ -614,8 +617,8 @@ def take_view(ctx: RunContext, task: Task, k: int, scene: Scene, capture: Captur
 
 
 def resolve(ctx: RunContext, task: Task, k: int, scene: Scene, capture: Capture, views: list[localization.View],
-            error: localization.PoseError, limit_m: float, candidates: Sequence[np.ndarray]
-            ) -> tuple[localization.PoseError, localization.Resolution | None]:
+            error: localization.PoseError, limit_m: float, candidates: Sequence[np.ndarray], found_at: Stop
+            ) -> tuple[localization.PoseError, localization.Resolution | None, Stop | None]:
     """The weakest-direction guard: how well the views (capture's first; appended to) tell the
     part's position where the estimate puts it (localization.resolution of their
     rendered_information); where it stays open beyond limit_m along some direction
@@ -628,10 +631,18 @@ def resolve(ctx: RunContext, task: Task, k: int, scene: Scene, capture: Capture,
     `along`); at most localization.MAX_EXTRA_VIEWS. A further view with which the fit is
     implausible (localization.implausible: it matched the wrong edges there) is logged and left
     out, the estimate before it kept. The lamp goes back to the plan's pose with the next shot's
-    move. Returns the estimate and its Resolution (None where the first estimate is implausible:
-    nothing to resolve)."""
+    move. Where the guard took a further view, one more from the side of the direction it found
+    open (localization.sideways), the lamp back at the first view's pose, among the candidates
+    whose move there and whose way back to `found_at` (where the devices stood at capture k,
+    motion.check_back) are clear: the move on to where the loop goes next is known only after the
+    fit (follow goes back first where it is refused); none clear, the side view is skipped and
+    the log says so. Returns the estimate, its covariance widened by what the views tell over
+    their residual (PoseError.widened by Resolution.covariance: the edge fit's own covers its
+    noise, not a tilt the views leave open that the fit holds where the model's image was
+    rendered), its Resolution (None where the first estimate is implausible: nothing to resolve)
+    and `found_at` where the arm stands at the side view (None: it does not)."""
     if localization.implausible(error, capture.T_cell_cam):
-        return error, None
+        return error, None, None
     lamp_pose, pivot = views[0].lamp_pose, task.lamp.rig.pivot_m
     radius = float(np.linalg.norm(np.asarray(lamp_pose[0]) - pivot))
     tried = [(v.T_cell_cam[:3, 3], np.asarray(v.lamp_pose[0])) for v in views]
@@ -651,6 +662,7 @@ def resolve(ctx: RunContext, task: Task, k: int, scene: Scene, capture: Capture,
         return bool(min(np.linalg.norm(T[:3, 3] - c) + np.linalg.norm(lit(joints)[0] - l) for c, l in tried) > 0.005)
 
     told, resolved = judged(error)
+    opened = None                       # the direction the guard found open, if it took a further view
     for _ in range(localization.MAX_EXTRA_VIEWS):
         open_by = resolved.unresolved(limit_m)
         lamps = [(v.T_cell_cam, joints) for v in views[:2]
@@ -659,6 +671,7 @@ def resolve(ctx: RunContext, task: Task, k: int, scene: Scene, capture: Capture,
         left = [(T, joints) for T, joints in [*((T, None) for T in candidates), *lamps] if new(T, joints)]
         if open_by is None or not left:
             break
+        opened = resolved
         ctx.recorder.step("localize", f"{localization.describe(error, error.views)}: {open_by}: a further view",
                           iteration=k, **error.to_json(), **resolved.to_json())
         infos = localization.rendered_information(task, scene, error, [(T, lit(joints), views[0].drives)
@@ -678,10 +691,30 @@ def resolve(ctx: RunContext, task: Task, k: int, scene: Scene, capture: Capture,
         views.append(view)
         error = further
         told, resolved = judged(error)
-    return error, resolved
+    if opened is not None:             # a view from the side of it, the lamp back where the first view had it
+        pan, tilt, length = (float(j) for j in lamp_joints(pivot, lamp_pose[0]))
+        home = (pan, tilt, length)
+        side = [(T, home) for T in (candidates[i] for i in localization.sideways(
+            candidates, views[0].T_cell_cam, scene.center, opened.direction, lamp_pose[0])) if new(T, home)]
+        seen = take_view(ctx, task, k, scene, capture, side, f"locate-{k}-{len(tried) + 1}", "a view from the side",
+                         f"a view of the part from the side, to tell its tilt {opened.along}", found_at)
+        if seen is None:
+            ctx.recorder.step("localize", f"no view from the side of the part {opened.along} is reachable with "
+                                          "its move there and its way back to the pose the part was found at clear: "
+                                          "the side view is skipped, the estimate's standard errors widened by what "
+                                          "the views tell", iteration=k)
+        fitted = None if seen is None else localization.localize(task, scene, [*views, seen])
+        if seen is not None and fitted is not None and not localization.implausible(fitted, capture.T_cell_cam):
+            along = localization.localize(task, scene, [*views, seen], (error, opened.direction))
+            views.append(seen)
+            error = fitted if along is None else localization.better(fitted, along)
+            told, resolved = judged(error)
+        return error.widened(resolved.covariance), resolved, None if seen is None else found_at
+    return error.widened(resolved.covariance), resolved, None
 
 
-def follow(ctx: RunContext, aim: Aim, k: int, error: localization.PoseError) -> Generator[Event, None, Aim]:
+def follow(ctx: RunContext, aim: Aim, k: int, error: localization.PoseError, back: Stop | None = None
+           ) -> Generator[Event, None, Aim]:
     """The model follows the pose error found at capture k: the arm's hand-eye corrected, each
     feature's task with the part where it is (localization.located_task); one feature re-planned
     there (the camera kept on the part: a planned shot's pose moved with it), several carried
@@ -693,7 +726,9 @@ def follow(ctx: RunContext, aim: Aim, k: int, error: localization.PoseError) -> 
     (one_shot.plan's). As a last resort, where none of them meets every requirement
     (the re-plan's `collision` binding: the best pose that meets them is under the padding) or
     the move to the re-planned shot is refused (no path clear), the loop's plan carried along with
-    the part serves (lamp_kept); its move refused too, the run stops (cause `pose`)."""
+    the part serves (lamp_kept); its move refused too, the run stops (cause `pose`). Where the arm
+    stands at the side view (`back`: where it stood at capture k, the way there checked before
+    it left), every move on is checked from there and, refused, from `back` (went_back)."""
     features = tuple(replace(f, task=localization.located_task(f.task, error)) for f in aim.features)
     reason = f"the model follows the part: {localization.describe(error, error.views)}"
     document = {"action": "locate", "reason": reason, "localization": error.to_json()}
@@ -702,6 +737,7 @@ def follow(ctx: RunContext, aim: Aim, k: int, error: localization.PoseError) -> 
                          for f in features)
         ctx.recorder.step("correct", reason, iteration=k, **document)
         yield Corrected(k, document)
+        went_back(ctx, features[0].task, features[0].model.plan.shot, error, back, k)
         features, viewpoint = carried_viewpoint(ctx, features, error)
         if viewpoint:
             why = f"{reason}; {viewpoint}"
@@ -724,6 +760,8 @@ def follow(ctx: RunContext, aim: Aim, k: int, error: localization.PoseError) -> 
     if not np.all(inside):
         raise GoalNotReached(f"{localization.describe(error, error.views)}: {int(np.sum(~inside))} of the "
                              f"feature's {len(inside)} samples leave the view where the part is", "pose")
+    went_back(ctx, feature.task, (replanned if replanned.feasible else
+                                  localization.moved_plan(feature.model.plan, error.T_part)).shot, error, back, k)
     if replanned.feasible:
         move = where_located(ctx, feature.task, replanned.shot, error)
         if move.clear:
@@ -739,6 +777,25 @@ def follow(ctx: RunContext, aim: Aim, k: int, error: localization.PoseError) -> 
     located = replace(feature, model=Model(kept.plan, feature.task))
     return replace(replan_aim(aim, located, aim.albedo_scale), shutter_s=aim.shutter_s, f_number=aim.f_number,
                    located=True, pose_error=error)
+
+
+def went_back(ctx: RunContext, task: Task, shot: Shot, error: localization.PoseError, back: Stop | None,
+              k: int) -> None:
+    """Where the arm stands at the view from the side (`back` given: where it stood at capture k,
+    the way back there checked before the side view was taken) and the move from there to the
+    shot planned for where the part is (where_located) is refused, the arm goes back first
+    (motion.go_back, checked again from where it reads back; the lamp stays, at the first
+    view's pose), logged with the refusal; the loop's checks then start there. Otherwise nothing
+    moves."""
+    if back is None:
+        return
+    move = where_located(ctx, task, shot, error)
+    if move.clear:
+        return
+    read = motion.go_back(task, ctx.devices, back, ctx.recorder, "the pose the part was found at", k)
+    ctx.recorder.step("move_camera", f"camera at {np.round(read[:3, 3], 4).tolist()} m in the cell frame: back where "
+                                     f"the part was found, the move on from the side view refused "
+                                     f"({motion.refusal(move)})", iteration=k, position_m=read[:3, 3])
 
 
 class Kept(NamedTuple):

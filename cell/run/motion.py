@@ -11,6 +11,7 @@ A move no clear path serves is refused before anything moves: GoalNotReached wit
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -36,19 +37,50 @@ def check(task: Task, devices: Devices, T_cell_cam: np.ndarray | None = None,
     stays) and the lamp's joints (None: the lamp stays), checked along its path; moves nothing.
     Where the arm cannot tell its joints, the path starts at the inverse kinematics nearest home;
     a lamp whose (manual) radius is not known yet starts at the target's radius."""
+    target = _lamp_target(devices, lamp_joints)
+    a = standing(task, devices, np.nan if target is None else target[2])
+    b = Stop(a.T_cell_cam if T_cell_cam is None else np.asarray(T_cell_cam, float), a.arm_joints, target)
+    return plan_transition(CollisionScene.of(task), task.cell.devices.arm, a, b, "where the cell stands", to)
+
+
+def standing(task: Task, devices: Devices, radius_m: float = np.nan) -> Stop:
+    """Where the devices stand, read back, as a Stop: the camera's pose, the arm's joints (where
+    the arm cannot tell them, the inverse kinematics nearest home), the lamp's joints (None where
+    its manual radius is not known yet and radius_m does not stand in for it)."""
     with speaking_for(devices.arm):
         T_now, q = devices.arm.camera_pose(), devices.arm.joint_angles()
     with speaking_for(devices.lamp):
         pan, tilt, radius = devices.lamp.joints()
-    target = _lamp_target(devices, lamp_joints)
     if q is None:
         q = np.asarray(reaching_joints(task.frames, T_now) or ur5e.HOME_JOINTS, float)
-    if not np.isfinite(radius):
-        radius = np.nan if target is None else target[2]
-    lamp_now = (float(pan), float(tilt), float(radius))
-    a = Stop(T_now, np.asarray(q, float), lamp_now if np.all(np.isfinite(lamp_now)) else None)
-    b = Stop(T_now if T_cell_cam is None else np.asarray(T_cell_cam, float), a.arm_joints, target)
-    return plan_transition(CollisionScene.of(task), task.cell.devices.arm, a, b, "where the cell stands", to)
+    lamp_now = (float(pan), float(tilt), float(radius if np.isfinite(radius) else radius_m))
+    return Stop(T_now, np.asarray(q, float), lamp_now if np.all(np.isfinite(lamp_now)) else None)
+
+
+def check_back(task: Task, devices: Devices, there: Move, T_cell_cam: np.ndarray,
+               lamp_joints: tuple[float, ...] | None, back: Stop, to: str, back_to: str) -> Move:
+    """The Move back from where `there` (check's to T_cell_cam and lamp_joints, `to`) arrives to
+    the camera pose and arm joints of `back` (a Stop read before, `back_to`), the lamp staying
+    where `there` leaves it, checked along its path; moves nothing. A round trip is taken only
+    with both ways clear: where the arm goes next is not known before it arrives."""
+    target = _lamp_target(devices, lamp_joints)
+    lamp = target if target is not None else standing(task, devices).lamp_joints
+    a = Stop(np.asarray(T_cell_cam, float), np.asarray(there.joints_end, float), lamp)
+    return plan_transition(CollisionScene.of(task), task.cell.devices.arm, a, replace(back, lamp_joints=None),
+                           to, back_to)
+
+
+def go_back(task: Task, devices: Devices, back: Stop, recorder: Recorder, to: str,
+            iteration: int | None = None) -> np.ndarray:
+    """The camera back to the Stop `back` (its pose, by the arm's joints there: check_back's
+    target, not the inverse kinematics nearest where the arm stands, which may take another
+    path), the lamp staying: checked from where the devices read back, refused unless clear
+    (go). Returns the read-back camera pose (the caller logs it)."""
+    move = plan_transition(CollisionScene.of(task), task.cell.devices.arm, standing(task, devices),
+                           replace(back, lamp_joints=None), "where the cell stands", to)
+    go(task, devices, recorder, back.T_cell_cam, None, to, iteration, checked=move)
+    with speaking_for(devices.arm):
+        return devices.arm.camera_pose()
 
 
 def _lamp_target(devices: Devices, lamp_joints: tuple[float, ...] | None) -> tuple[float, float, float] | None:
