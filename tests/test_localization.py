@@ -341,13 +341,14 @@ def converged_located(tmp_path, task_path, truth, tilt_deg=0.3):
 def test_the_hinge_10_mm_off_tilted_with_its_camera_turned_is_registered_where_it_is_and_converges(tmp_path):
     """The mismatch matrix's hinge 10 mm off in x, tilted 2 deg about x, its camera turned -1, 1 deg
     (seed 1): localized within 1 mm and 0.3 deg of the truth keys, re-planned; at the re-planned
-    poses ECC's correlation is 0.937 (the model's lamp lobe brighter than the world's soft-edged
-    spot; the correct model's too), below MIN_CORRELATION, which stopped it with cause
-    `registration`. The window's edges correlate 0.98 of the 0.997 the noise allows: registered
-    where the model puts it, it converges."""
+    poses the model's lamp lobe is brighter than the world's soft-edged spot (the correct model's
+    too): ECC's correlation was 0.937 with a template blurred over the window alone, below
+    MIN_CORRELATION, which stopped it with cause `registration`; with the template smoothed with
+    its neighbours it is 0.953 of the 0.997 the noise allows, and the window is not moved: it is
+    registered where the model puts it (within 1 px), and converges."""
     truth = {"part_offset_m": [0.01, 0.0, 0.0], "part_rpy_deg": [2.0, 0.0, 0.0], "camera_rpy_deg": [-1.0, 1.0, 0.0]}
     last = converged_located(tmp_path, HINGE, truth)["iterations"][-1]["registration"]
-    assert last["trusted"] and last["correlation"] < 0.95 and last["offset_px"] < 1.0
+    assert last["trusted"] and last["offset_px"] < 1.0
 
 
 def test_the_whole_shift_of_a_turned_bar_across_the_view_is_its_centres():
