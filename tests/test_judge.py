@@ -80,6 +80,37 @@ def test_no_more_camera_poses_are_kept_than_the_limit():
     assert len(evaluate._AT_CAMERA) == evaluate._AT_CAMERA_MAX
 
 
+def test_a_lamps_tolerance_moves_made_once_equal_those_made_for_each_problem():
+    """moved_positions, asked for many lamps in turn and back (kept and evicted) and for another
+    tolerance on the same joints, bit for bit each move's rig.lamp_position made afresh (as
+    at_exposure placed them before), read-only, none without a tolerance; no more kept than the limit."""
+    from cell.devices import rig
+    task = load_task(TASKS / "bracket.yaml").with_feature(0)
+
+    def tolerance(rad):
+        feature = replace(task.feature, requirements=replace(task.requirements, lamp_tolerance_rad=rad))
+        return replace(task, features=(feature,))
+    wider, none = tolerance(2.0 * task.requirements.lamp_tolerance_rad), tolerance(0.0)
+    scene = build_scene(task)
+    problems = [evaluate.build_problem(t, scene, None) for t in (task, wider, none)]
+    rng = np.random.default_rng(28)
+    joints = [tuple(x) for x in np.column_stack([rng.uniform(-3.0, 3.0, 9), rng.uniform(-0.3, 1.4, 9),
+                                                 rng.uniform(0.2, 0.6, 9)]).tolist()]
+    pivot = task.lamp.rig.pivot_m
+    for k in [*range(len(joints)), 2, 0, 8, 8]:
+        for p in problems:
+            d_pan, d_tilt = evaluate.tolerance_moves(p, np.array([joints[k][1]]))
+            alone = [rig.lamp_position(pivot, joints[k][0] + dp, joints[k][1] + dt, joints[k][2]).reshape(1, 3)
+                     for dp, dt in zip(d_pan, d_tilt)]
+            kept = evaluate.moved_positions(p, joints[k])
+            assert kept.shape == (len(alone), 3) and not kept.flags.writeable
+            assert np.array_equal(kept, np.vstack([np.zeros((0, 3)), *alone]))
+            assert len(kept) == (0 if p.task is none else evaluate.TOLERANCE_RING)
+    assert not np.array_equal(evaluate.moved_positions(problems[0], joints[0]),
+                              evaluate.moved_positions(problems[1], joints[0]))
+    assert len(evaluate._MOVED) == evaluate._MOVED_MAX
+
+
 def test_the_prefilter_counts_the_samples_the_lamp_hides_as_the_judge_does():
     """A bracket shot (a global search for its first feature) with its lamp moved onto the camera's
     lines of sight to the other features: the prefilter (one lamp_hides over every feature's

@@ -714,6 +714,32 @@ def candidates(problem: Problem, pan: ArrayLike, tilt: ArrayLike, radius: ArrayL
                       t_need, drives)
 
 
+# moved_positions' rows of the last few lamps, by their pivot, joints and tolerance
+_MOVED: dict[bytes, np.ndarray] = {}
+_MOVED_MAX = 4
+
+
+def moved_positions(problem: Problem, joints: Sequence[float]) -> np.ndarray:
+    """(M, 3) the lamp at `joints` (pan, tilt, radius) moved by its tolerance (tolerance_moves:
+    each move's position by rig.lamp_position alone, M = 0 without a tolerance), read-only, once
+    per pivot, joints and tolerance in a process: a shot judged on several features asks them
+    for each feature's samples (cell.planning.coverage), eight positions of the same few numbers."""
+    pivot = np.asarray(problem.task.lamp.rig.pivot_m, float)
+    key = np.concatenate([pivot.ravel(), np.asarray(joints, float).ravel(),
+                          [problem.task.requirements.lamp_tolerance_rad]]).astype(np.float64).tobytes()
+    known = _MOVED.get(key)
+    if known is not None:
+        return known
+    d_pan, d_tilt = tolerance_moves(problem, np.array([joints[1]]))
+    made = np.array([rig.lamp_position(pivot, joints[0] + dp, joints[1] + dt, joints[2])
+                     for dp, dt in zip(d_pan, d_tilt)]).reshape(-1, 3)
+    made.flags.writeable = False
+    _MOVED[key] = made
+    while len(_MOVED) > _MOVED_MAX:
+        _MOVED.pop(next(iter(_MOVED)))
+    return made
+
+
 def at_exposure(problem: Problem, position: ArrayLike, shutter_s: float, f_number: float,
                 joints: Sequence[float] | None = None, drive: ArrayLike | None = None) -> Candidates:
     """Candidates of one lamp at `position` (aiming at the rig's pivot) at a fixed shutter and
@@ -721,14 +747,9 @@ def at_exposure(problem: Problem, position: ArrayLike, shutter_s: float, f_numbe
     range): a chosen shot, as the certificate checks it. Given its `joints` (pan, tilt, radius),
     the lamp is also moved by its tolerance around them, and every drive by the drive tolerance,
     at the same exposure."""
-    pivot = problem.task.lamp.rig.pivot_m
     pos = np.asarray(position, float).reshape(1, 3)
-    moved_pos = []
-    if joints is not None:
-        d_pan, d_tilt = tolerance_moves(problem, np.array([joints[1]]))
-        moved_pos = [rig.lamp_position(pivot, joints[0] + dp, joints[1] + dt, joints[2]).reshape(1, 3)
-                     for dp, dt in zip(d_pan, d_tilt)]
-    all_pos = np.vstack([pos, *moved_pos])
+    moved_pos = np.zeros((0, 3)) if joints is None else moved_positions(problem, joints)
+    all_pos = np.vstack([pos, moved_pos])
     drives = problem.full_drive(1) if drive is None else np.asarray(drive, float).reshape(1, -1)
     (u, shadowed, off_axis, dominant), moved = nominal_and_moved(problem, all_pos, np.tile(drives, (len(all_pos), 1)), 1)
     gain = shutter_s / f_number**2
