@@ -147,3 +147,54 @@ def test_the_prefilter_counts_the_samples_the_lamp_hides_as_the_judge_does():
                 problem = evaluate.build_problem(tasks[g], scene, None)
                 by_lamp += problem.camera_unseen == 0 and requirements.lamp_hides(problem, lamp[None]).any()
     assert by_lamp >= 2
+
+
+def test_a_shots_samples_of_several_features_at_once_give_each_what_its_own_problem_finds():
+    """The bracket's first-feature shot, its lamp also moved onto the camera's lines of sight to
+    the other features and next to the camera: each feature's samples judged with their rows of
+    one Problem over every feature's (coverage.on_samples, what_whole_gives: the samples the camera
+    sees, view angles, footprints, the lamp's hides, the camera body's and the arm's shadows)
+    give the very values, sentences, gray, shadows and exposure of the feature's own Problem
+    made alone as before (its own gray kernel, every value found from its own samples); some
+    samples hidden by the lamp and some shadowed by the camera body or the arm among them."""
+    from cell.planning import coverage, one_shot, regions, requirements
+    task = load_task(TASKS / "bracket.yaml")
+    tasks = [task.with_feature(g) for g in range(len(task.features))]
+    settings = replace(one_shot.PlannerSettings(), refine=False)
+    plan, _ = one_shot.search(tasks[0], settings, 1.0, np.zeros((0, 3)), lambda message: None)
+    grid = regions.SphereGrid(np.radians(settings.grid_step_deg))
+    lent = [coverage.Lent(s, settings, one_shot.visibility_map(s, grid)) for s in (build_scene(t) for t in tasks)]
+    camera = plan.shot.camera_position
+    lamps = [plan.shot.lamp_position] + [x.scene.center + t * (camera - x.scene.center)
+                                         for x in lent[1:] for t in (0.3, 0.5, 0.7, 0.9)]
+    hidden = shadowed = 0
+    for lamp in lamps:
+        shot = replace(plan.shot, lamp_position=np.asarray(lamp, float))
+        e = shot.exposure
+        scene, bounds = coverage.stacked(lent, shot.T_cell_cam)
+        shared = evaluate.SharedLaunches(evaluate.gray_inputs(task, scene, task.part.material.scaled(1.0)),
+                                         [end - start for start, end in bounds])
+        whole = evaluate.build_problem(tasks[0], scene, None, focus_m=e.focus_m,
+                                       gray=evaluate.Rows(shared, 0, len(scene.points)))
+        for k, (t, x) in enumerate(zip(tasks, lent)):
+            seen_by = replace(x.scene, T_cell_cam=shot.T_cell_cam)
+            got = coverage.on_samples(t, x, seen_by, shot, shared.rows(k), whole)
+            alone = evaluate.build_problem(t, seen_by, one_shot.build_maps(t, seen_by, settings, visible=x.visible),
+                                           focus_m=e.focus_m)
+            c = evaluate.at_exposure(alone, shot.lamp_position, e.shutter_s, e.f_number, joints=shot.joints,
+                                     drive=shot.drive)
+            assert got.values == requirements.judged(alone, c, requirements.ln_values(alone, c))
+            assert [r.amount for r in got.values] == [r.amount for r in requirements.judged(alone, c, requirements.ln_values(alone, c))]
+            assert np.array_equal(got.problem.camera_seen, alone.camera_seen)
+            assert got.problem.camera_unseen == alone.camera_unseen
+            lamps_at = np.vstack([shot.lamp_position[None], evaluate.moved_positions(alone, shot.joints)])
+            for mine, own in ((evaluate.spot_blocked(got.problem, lamps_at), evaluate.spot_blocked(alone, lamps_at)),
+                              (requirements.lamp_hides(got.problem, shot.lamp_position[None]),
+                               requirements.lamp_hides(alone, shot.lamp_position[None])),
+                              (requirements.problem_view_angles(got.problem), requirements.problem_view_angles(alone)),
+                              (requirements.footprints(got.problem), requirements.footprints(alone))):
+                assert mine.shape == own.shape and np.array_equal(mine, own)
+            assert np.array_equal(got.gray, np.minimum(c.gray[0], 2.0 ** t.camera.sensor.bit_depth - 1))
+            hidden += int(requirements.lamp_hides(alone, shot.lamp_position[None]).sum())
+            shadowed += int(evaluate.spot_blocked(alone, lamps_at).sum())
+    assert hidden > 0 and shadowed > 0

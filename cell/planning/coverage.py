@@ -12,7 +12,7 @@ focus and exposure), so it agrees with plan()'s verdict.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING, NamedTuple, cast
 
 import numpy as np
 
@@ -87,10 +87,12 @@ def judge_all(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list[C
     scene, bounds = stacked(lent, shot.T_cell_cam)
     shared = evaluate.SharedLaunches(evaluate.gray_inputs(task, scene, task.part.material.scaled(1.0)),
                                      [end - start for start, end in bounds])
+    whole = evaluate.build_problem(task, scene, None, focus_m=shot.exposure.focus_m,
+                                   gray=evaluate.Rows(shared, 0, len(scene.points)))
     scenes = [replace(x.scene, T_cell_cam=shot.T_cell_cam) for x in lent]
     early = threads() > 1
     dense = [in_background(certificate.dense_scene, t, s) if early else None for t, s in zip(tasks, scenes)]
-    sampled = [on_samples(t, x, s, shot, shared.rows(k)) for k, (t, x, s) in enumerate(zip(tasks, lent, scenes))]
+    sampled = [on_samples(t, x, s, shot, shared.rows(k), whole) for k, (t, x, s) in enumerate(zip(tasks, lent, scenes))]
     met = [k for k, s in enumerate(sampled) if all(r.met for r in s.values)]
     patches = [d if d is not None else in_background(certificate.dense_scene, tasks[k], scenes[k])
                for k, d in ((k, dense[k]) for k in met)]
@@ -116,12 +118,15 @@ class Sampled(NamedTuple):
     found: tuple[DefectCnr, ...]
 
 
-def on_samples(task: Task, lent: Lent, scene: Scene, shot: Shot, shared: Rows) -> Sampled:
+def on_samples(task: Task, lent: Lent, scene: Scene, shot: Shot, shared: Rows, whole: evaluate.Problem) -> Sampled:
     """`shot` judged on the samples of the one-feature `task` (with its Lent), seen from the shot's
     camera (`scene`: the Lent's samples, its T_cell_cam the shot's), their gray kernel `shared`,
-    its rows of a launch shared with other features (judge_all)."""
+    its rows of a launch shared with other features, whose samples `whole` holds (judge_all:
+    what_whole_gives)."""
     maps = build_maps(task, scene, lent.settings, visible=lent.visible)
-    problem = evaluate.build_problem(task, scene, maps, focus_m=shot.exposure.focus_m, gray=shared)
+    problem = evaluate.build_problem(task, scene, maps, focus_m=shot.exposure.focus_m, gray=shared,
+                                     seen=cast(np.ndarray, whole.camera_seen)[shared.start:shared.end])
+    what_whole_gives(problem, whole, shared, shot)
     e = shot.exposure
     c = evaluate.at_exposure(problem, shot.lamp_position, e.shutter_s, e.f_number, joints=shot.joints,
                              drive=shot.drive)
@@ -131,6 +136,26 @@ def on_samples(task: Task, lent: Lent, scene: Scene, shot: Shot, shared: Rows) -
     gray = np.minimum(c.gray[0], 2.0 ** task.camera.sensor.bit_depth - 1)
     found = defects.judge(problem, c) if task.feature.defects else ()
     return Sampled(problem, values, gray, light_settings(problem, c), found)
+
+
+def what_whole_gives(problem: evaluate.Problem, whole: evaluate.Problem, rows: Rows, shot: Shot) -> None:
+    """Give `problem` (a feature's samples, their `rows` of `whole`'s: a Problem of the samples
+    of every feature the shot is judged on, in one array) its rows of what `whole` finds for all
+    at once, each sample's row its own: the view angles and pixel footprints
+    (requirements.problem_view_angles, footprints), the camera body's and the arm's shadows of
+    the shot's lamp and the poses its tolerance moves it to (evaluate.spot_blocked: at_exposure's
+    lamps) and the samples the lamp's housing and links hide from the camera
+    (requirements.lamp_hides: camera_view's); their prefilters only skip bodies and lamps that
+    can meet none of the rays (the samples' sphere, here of every feature's), so each row is the
+    one the feature's own Problem finds (whose camera_seen is its rows of whole's as well:
+    evaluate.build_problem's `seen`). One call each for the shot, not one per feature."""
+    a, b = rows.start, rows.end
+    problem.given("view_angles", requirements.problem_view_angles(whole)[a:b])
+    problem.given("footprints", requirements.footprints(whole)[a:b])
+    lamp = np.asarray(shot.lamp_position, float).reshape(1, 3)
+    lamps = lamp if shot.joints is None else np.vstack([lamp, evaluate.moved_positions(problem, shot.joints)])
+    problem.keep_at_lamps("blocked", lamps, evaluate.spot_blocked(whole, lamps)[:, a:b])
+    problem.keep_at_lamps("hides", lamp, requirements.lamp_hides(whole, lamp)[:, a:b])
 
 
 def covered(task: Task, s: Sampled, verification: Verification | None) -> Coverage:

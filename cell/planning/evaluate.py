@@ -98,7 +98,7 @@ class KernelInputs:
         self.defects: dict[Any, Any] = {}       # cell.planning.defects: a defect's inputs, with what they were made of
         self.fixed: dict[str, tuple[tuple[Task, Scene], Any]] = {}    # Problem.fixed's values, with what they were made of
         self.top: tuple[Task, LightsAtScene, np.ndarray] | None = None  # Problem.full_drive's row, with what it was made of
-        self.blocked: tuple[Task, Scene, bytes, np.ndarray] | None = None  # spot_blocked's last lamps and rows
+        self.at_lamps: dict[str, tuple[Task, Scene, bytes, np.ndarray]] = {}  # Problem.at_lamps' last lamps and rows
 
     def __getstate__(self):
         return {}
@@ -155,6 +155,31 @@ class Problem:
             value = compute()
             self.kernels.fixed[name] = ((self.task, self.scene), value)
         return value
+
+    def given(self, name: str, value: Any) -> None:
+        """Keep `value` as fixed's `name` for this task and scene, found elsewhere: its rows of
+        the same computation over a shot's samples of several features at once (cell.planning.
+        coverage.judge_all; each sample's row its own)."""
+        self.kernels.fixed[name] = ((self.task, self.scene), value)
+
+    def at_lamps(self, name: str, positions: np.ndarray, compute: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+        """(C, P) rows `name` of lamps at `positions` (C, 3), a lamp's row its own alone
+        (spot_blocked's, requirements.lamp_hides'), read-only: compute(positions) where the last
+        lamps asked (or given, keep_at_lamps) do not begin with these, else their first rows (a
+        chosen shot's sentences and its lights' shares ask its lamp's row again, the first of the
+        poses its Candidates were made of, at_exposure)."""
+        key = positions.tobytes()
+        kept = self.kernels.at_lamps.get(name)
+        if kept is not None and kept[0] is self.task and kept[1] is self.scene and kept[2].startswith(key):
+            return kept[3][:len(positions)]
+        out = compute(positions)
+        self.keep_at_lamps(name, positions, out)
+        return out
+
+    def keep_at_lamps(self, name: str, positions: np.ndarray, rows: np.ndarray) -> None:
+        """Keep `rows` (C, P) as at_lamps' `name` of lamps at `positions` (C, 3), read-only."""
+        rows.flags.writeable = False
+        self.kernels.at_lamps[name] = (self.task, self.scene, positions.tobytes(), rows)
 
     @property
     def lights(self) -> LightsAtScene:
@@ -283,7 +308,8 @@ def black_level(task: Task) -> float:
 
 def build_problem(task: Task, scene: Scene, maps: Maps | None, albedo_scale: float = 1.0,
                   focus_m: float | None = None, gray: Rows | None = None,
-                  material: Material | None = None, hidden: np.ndarray | None = None) -> Problem:
+                  material: Material | None = None, hidden: np.ndarray | None = None,
+                  seen: np.ndarray | None = None) -> Problem:
     """The Problem of a task's scene and maps, the camera focused on the feature centre or at
     focus_m (a given shot's), the material the task's scaled by albedo_scale or `material` (a
     search's, which its certificate keeps), its gray kernel the scene's own or `gray`, its rows
@@ -291,15 +317,20 @@ def build_problem(task: Task, scene: Scene, maps: Maps | None, albedo_scale: flo
     A sample the camera sees lies inside the image and is not hidden (a lamp at the camera would
     light it): `hidden` (P,) where found before (hidden_from), else by the kernel's shadow flag
     alone here (GrayInputs.shadowed, no shading): the scenes of one shot judged on several
-    features ask their SharedLaunches for one launch, not one each."""
+    features ask their SharedLaunches for one launch, not one each. `seen` (P,): the samples the
+    camera sees, found before (a shot's samples of several features at once, their rows of one
+    Problem's camera_seen: cell.planning.coverage.judge_all)."""
     focus, needed, kappa_open = depth_of_field_limits(task, scene, focus_m)
     p = Problem(task, scene, maps, task.part.material.scaled(albedo_scale) if material is None else material,
                 planning_band(task), black_level(task), focus, needed, kappa_open, 0)
     if gray is not None:
         p.kernels.gray, p.kernels.made_of = gray, (task, scene, p.material)
-    if hidden is None:      # the kernel's flag alone: the arm and camera body shadow the spot, not the view
-        hidden = p.gray_inputs.shadowed(scene.camera_position[None])[0]
-    unseen = hidden | ~in_image(task, scene)
+    if seen is not None:
+        unseen = ~seen
+    else:
+        if hidden is None:      # the kernel's flag alone: the arm and camera body shadow the spot, not the view
+            hidden = p.gray_inputs.shadowed(scene.camera_position[None])[0]
+        unseen = hidden | ~in_image(task, scene)
     return replace(p, camera_unseen=int(np.sum(unseen)), camera_seen=~unseen)
 
 
@@ -455,21 +486,11 @@ def spot_blocked(problem: Problem, positions: ArrayLike) -> np.ndarray:
     (rho the samples' sphere about their middle m), so a body whose capsule (ArmAtShot.around_*)
     is farther than rho from the segment m -> L blocks none of the lamp's rays; nor one whose
     ball holding that capsule, widened by rho, the segment m -> L cannot meet (ArmAtShot.seen,
-    tested first: a few operations for every lamp and body). Read-only; the last lamps asked are
-    kept with their rows (KernelInputs.blocked), and lamps that are their first rows answered from
-    them: a lamp's rows are its own alone, and a chosen shot's sentences (requirements.
-    explain_no_shadow) and its lights' shares (one_shot.light_settings) ask its lamp's row again,
-    the first of the poses its Candidates were made of (at_exposure)."""
-    scene = problem.scene
-    positions = np.asarray(positions, float).reshape(-1, 3)
-    key = positions.tobytes()
-    kept = problem.kernels.blocked
-    if kept is not None and kept[0] is problem.task and kept[1] is scene and kept[2].startswith(key):
-        return kept[3][:len(positions)]
-    out = _blocked(problem, positions)
-    out.flags.writeable = False
-    problem.kernels.blocked = (problem.task, scene, key, out)
-    return out
+    tested first: a few operations for every lamp and body). Read-only, the last lamps' rows kept
+    (Problem.at_lamps: requirements.explain_no_shadow and one_shot.light_settings ask a chosen
+    shot's lamp again)."""
+    return problem.at_lamps("blocked", np.asarray(positions, float).reshape(-1, 3),
+                            lambda at: _blocked(problem, at))
 
 
 def _blocked(problem: Problem, positions: np.ndarray) -> np.ndarray:

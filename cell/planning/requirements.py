@@ -241,9 +241,12 @@ def explain_cone_coverage(p: Problem, c: Candidates, met: bool) -> str:
 
 def lamp_hides(p: Problem, positions: np.ndarray) -> np.ndarray:
     """(C, P) the samples the camera sees that the spot lamp's housing or the pan-tilt's links
-    hide with the lamp at each position (C, 3) (rig_hides)."""
-    housing, links = rig_hides(p, positions)
-    return housing | links
+    hide with the lamp at each position (C, 3) (rig_hides), read-only, the last lamps' rows kept
+    (Problem.at_lamps)."""
+    def hides(at: np.ndarray) -> np.ndarray:
+        housing, links = rig_hides(p, at)
+        return housing | links
+    return p.at_lamps("hides", np.asarray(positions, float).reshape(-1, 3), hides)
 
 
 @dataclass(frozen=True)
