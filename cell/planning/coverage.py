@@ -73,7 +73,8 @@ def rejected(task: Task, missed: tuple[RequirementValue, ...]) -> Coverage:
 
 def judge_all(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list[Coverage]:
     """judge of `shot` on each one-feature task of one part (with its Lent), the gray kernel on
-    the samples launched once for all of them (evaluate.SharedLaunches), not once per feature, and
+    the samples launched once for all of them (evaluate.SharedLaunches), not once per feature,
+    what one Problem over all their samples finds given to each feature's (what_whole_gives), and
     the certificates of those whose samples meet every requirement verified together
     (certificate.verify_all: their dense patches' launches shared too). Where the process has a
     thread beside the caller's (kernels.runtime.in_background), every feature's dense patch is
@@ -84,14 +85,14 @@ def judge_all(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list[C
     if not tasks:
         return []
     task = tasks[0]
+    scenes = [replace(x.scene, T_cell_cam=shot.T_cell_cam) for x in lent]
+    early = threads() > 1
+    dense = [in_background(certificate.dense_scene, t, s) if early else None for t, s in zip(tasks, scenes)]
     scene, bounds = stacked(lent, shot.T_cell_cam)
     shared = evaluate.SharedLaunches(evaluate.gray_inputs(task, scene, task.part.material.scaled(1.0)),
                                      [end - start for start, end in bounds])
     whole = evaluate.build_problem(task, scene, None, focus_m=shot.exposure.focus_m,
                                    gray=evaluate.Rows(shared, 0, len(scene.points)))
-    scenes = [replace(x.scene, T_cell_cam=shot.T_cell_cam) for x in lent]
-    early = threads() > 1
-    dense = [in_background(certificate.dense_scene, t, s) if early else None for t, s in zip(tasks, scenes)]
     sampled = [on_samples(t, x, s, shot, shared.rows(k), whole) for k, (t, x, s) in enumerate(zip(tasks, lent, scenes))]
     met = [k for k, s in enumerate(sampled) if all(r.met for r in s.values)]
     patches = [d if d is not None else in_background(certificate.dense_scene, tasks[k], scenes[k])
