@@ -31,7 +31,7 @@ import tempfile
 import time
 from contextlib import redirect_stderr, redirect_stdout
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from multiprocessing import get_context
 from pathlib import Path
 
@@ -461,6 +461,24 @@ def test_a_sample_of_the_matrix_converges_or_names_the_right_cause(tmp_path):
         if o.case.kind == "none":            # no mismatch: the first capture is in band
             assert o.solvable and o.run["iterations"] == 1, text
     assert not next(o for o in outcomes if o.case.kind == "material shape").solvable, text
+
+
+def test_a_lamp_and_pose_case_is_judged_where_its_correct_model_puts_the_part(tmp_path):
+    """The conrod 5 mm off across its shank, its lamp on its aim (0 deg): the `lamp and pose`
+    judge renders its correct model's own world at that model's plan, where the feature's
+    noiseless max/min lies within the band's (the plan holds it under 1 deg of lamp error).
+    Judged as the lamp kind alone is (the world's truth keys, the feature where the task puts it),
+    the region lies 5 mm off on the 14 mm shank, partly on the background: not solvable."""
+    case = next(c for c in cases(seeds=(1,), tasks=("conrod",), kinds=("lamp and pose",))
+                if c.magnitude == "1 deg, [0, 5, 0] mm")
+    case = replace(case, world=case.world | {LAMP_AIM: 0.0})
+    model_run = run_job(case.task, case.model, case.materials, case.seed, tmp_path / "model")
+    (tmp_path / "world").mkdir()
+    world_run = {"folder": str(tmp_path / "world"), "plan": model_run["plan"]}
+    solvable, why = aim_solvable(case, world_run, model_run)
+    assert solvable, why
+    solvable, why = aim_solvable(case, world_run)
+    assert not solvable, why
 
 
 @pytest.mark.mismatch_matrix
