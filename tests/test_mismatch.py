@@ -15,7 +15,9 @@ the error (the part's pose together with a hand-eye error, kind `pose`: the part
 hand-eye's left out); a lamp mounted off its aim cannot be modelled (the planner's lamp axis passes through
 the rig's pivot, and pan and tilt turn the lamp about it), so its case is solvable when the true
 world at the model's planned poses, noiseless, holds the feature's shading within the band's
-ratio (max/min of the signal), which any exposure then centres (aim_solvable).
+ratio (max/min of the signal), which any exposure then centres (aim_solvable). A lamp aimed off
+together with a pose error (kind `lamp and pose`) is judged so too, at the plan of the correct
+model of the pose (the part's keys moved) in the world with the part where that model puts it.
 
     pytest -q tests/test_mismatch.py                      # the bounded sample (SAMPLE)
     pytest -m mismatch_matrix tests/test_mismatch.py      # the whole matrix
@@ -29,7 +31,7 @@ import tempfile
 import time
 from contextlib import redirect_stderr, redirect_stdout
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from multiprocessing import get_context
 from pathlib import Path
 
@@ -64,7 +66,9 @@ EXPECTED = {
     "hand-eye": {"registration", "pose"}, "pose": {"registration", "pose"},
     "material shape": {"material shape", "infeasible"},
     "channel power": {"channel", "infeasible"},
+    "lamp and pose": {"lamp aim", "registration", "pose"},
 }
+LAMP_AIM = "sim.truth.lamp_direction_error_deg"
 DARK_FIELD = 1              # ring.yaml's lights[1], the low-angle ring on channel 2
 
 
@@ -109,8 +113,9 @@ def _part_pose(task, offset_m=(0.0, 0.0, 0.0), rpy_deg=(0.0, 0.0, 0.0)):
 @dataclass(frozen=True)
 class Case:
     """One run: the kind and magnitude injected, the task and seed, the world's keys and the
-    correct model's (None: judged by aim_solvable); `materials` maps a key's placeholder
-    {name} to a material file's text."""
+    correct model's (None: judged by aim_solvable; with the lamp's aim error in the world, judged
+    by aim_solvable at the correct model's plan); `materials` maps a key's placeholder {name} to a
+    material file's text."""
 
     kind: str
     magnitude: str
@@ -201,7 +206,21 @@ def _kinds(task):
                                 (OTHER_MATERIAL[task], OTHER_MATERIAL[task], _same)):
         rows.append(("material shape", label, {"sim.truth.material": "{m}"}, {"part.material": "{m}"},
                      (("m", _material(task, name, change)),)))
-    return rows
+    return rows + _lamp_and_pose(task)
+
+
+def _lamp_and_pose(task):
+    """The rows of a lamp aimed off together with a pose error (kind `lamp and pose`): the lamp 1
+    and 2 deg off its aim with the part 5 mm off in y (the part offset row's), and with the part
+    turned 3 deg about y and the camera 1 deg about x (the first pose row's turns). The correct
+    model's keys move the part as the pose kinds do (the hand-eye's left out); the lamp's aim has
+    no key, so aim_solvable judges the case with the part where the correct model puts it."""
+    poses = (((0.0, 0.005, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), "[0, 5, 0] mm"),
+             ((0.0, 0.0, 0.0), (0.0, 3.0, 0.0), (1.0, 0.0, 0.0), "rpy [0.0, 3.0, 0.0], camera [1.0, 0.0, 0.0] deg"))
+    return [("lamp and pose", f"{e:g} deg, {label}",
+             {LAMP_AIM: e, "sim.truth.part_offset_m": list(offset), "sim.truth.part_rpy_deg": list(rpy),
+              "sim.truth.camera_rpy_deg": list(camera)}, _part_pose(task, offset, rpy), ())
+            for e in (1.0, 2.0) for offset, rpy, camera, label in poses]
 
 
 def cases(seeds=(1, 2), tasks=tuple(TASKS), kinds=None):
@@ -271,10 +290,12 @@ def within(run):
     return run["captures"] <= MAX_CAPTURES * run.get("shots", 1)
 
 
-def aim_solvable(case, world_run):
+def aim_solvable(case, world_run, model_run=None):
     """Whether the lamp-aim case's world, at the model's planned camera and lamp poses (the world
     run's plan), noiseless (shadows, cone falloff, vignetting, defocus), holds the feature's
-    signal within the band's max/min (module docstring). Returns (solvable, why)."""
+    signal within the band's max/min (module docstring). With the correct model's run (a lamp aimed
+    off with a pose error): its plan, and the world as its keys state it (the part where it truly
+    is, the hand-eye corrected) with the lamp's aim error. Returns (solvable, why)."""
     from cell.task.loader import load_task
     from cell.run.measurement import measure_feature
     from cell.devices.rig import lamp_aim
@@ -282,9 +303,10 @@ def aim_solvable(case, world_run):
     from sim.world import Renderer
     folder = Path(world_run["folder"]) / "oracle"
     folder.mkdir(exist_ok=True)
-    keys = _changes(case, case.world, folder) | {"sim.effects": ["shadows", "cone_falloff", "vignetting", "defocus"]}
+    world = case.world if model_run is None else case.model | {LAMP_AIM: case.world[LAMP_AIM]}
+    keys = _changes(case, world, folder) | {"sim.effects": ["shadows", "cone_falloff", "vignetting", "defocus"]}
     task = load_task(variant(folder, TASKS[case.task], keys))
-    plan = world_run["plan"]
+    plan = (model_run or world_run)["plan"]
     if not plan or not plan["feasible"]:
         return False, "the model's plan is infeasible"
     scene = build_scene(task)
@@ -357,6 +379,8 @@ def matrix(selected, jobs=1, root=None, available=False):
     for case, world, model in pairs:
         if model is None:
             solvable, why = aim_solvable(case, runs[world])
+        elif LAMP_AIM in case.world:
+            solvable, why = aim_solvable(case, runs[world], runs[model])
         else:
             truth = runs[model]
             solvable = truth["converged"] and within(truth)
@@ -437,6 +461,24 @@ def test_a_sample_of_the_matrix_converges_or_names_the_right_cause(tmp_path):
         if o.case.kind == "none":            # no mismatch: the first capture is in band
             assert o.solvable and o.run["iterations"] == 1, text
     assert not next(o for o in outcomes if o.case.kind == "material shape").solvable, text
+
+
+def test_a_lamp_and_pose_case_is_judged_where_its_correct_model_puts_the_part(tmp_path):
+    """The conrod 5 mm off across its shank, its lamp on its aim (0 deg): the `lamp and pose`
+    judge renders its correct model's own world at that model's plan, where the feature's
+    noiseless max/min lies within the band's (the plan holds it under 1 deg of lamp error).
+    Judged as the lamp kind alone is (the world's truth keys, the feature where the task puts it),
+    the region lies 5 mm off on the 14 mm shank, partly on the background: not solvable."""
+    case = next(c for c in cases(seeds=(1,), tasks=("conrod",), kinds=("lamp and pose",))
+                if c.magnitude == "1 deg, [0, 5, 0] mm")
+    case = replace(case, world=case.world | {LAMP_AIM: 0.0})
+    model_run = run_job(case.task, case.model, case.materials, case.seed, tmp_path / "model")
+    (tmp_path / "world").mkdir()
+    world_run = {"folder": str(tmp_path / "world"), "plan": model_run["plan"]}
+    solvable, why = aim_solvable(case, world_run, model_run)
+    assert solvable, why
+    solvable, why = aim_solvable(case, world_run)
+    assert not solvable, why
 
 
 @pytest.mark.mismatch_matrix

@@ -680,9 +680,14 @@ def locate(image: np.ndarray, task: Task, scene: Scene, T_cell_cam: np.ndarray, 
     def mask() -> np.ndarray:                          # geometric_edges, rendered when first asked for
         return geometric_edges(task, scene, T_cell_cam, (u0, v0, width, height))
 
-    def geometry_at(w: np.ndarray) -> Correlation:     # the part's geometric edges where warp w puts them
-        seen = warped(smoothed, w, template.shape)
-        return geometric_correlation(template, seen, mask(), noise_rms(seen, task.camera.sensor), black)
+    geometry: dict[bytes, Correlation] = {}
+
+    def geometry_at(w: np.ndarray) -> Correlation:     # the part's geometric edges where warp w puts them,
+        key = w.tobytes()                              # each warp's once: ECC's guard asks for the warp
+        if key not in geometry:                        # by_geometry judges, when ECC's move is kept or not
+            seen = warped(smoothed, w, template.shape)
+            geometry[key] = geometric_correlation(template, seen, mask(), noise_rms(seen, task.camera.sensor), black)
+        return geometry[key]
 
     if kept_coarse or not significant(correlation, at_start, template.size) \
             or geometry_at(warp).r < geometry_at(initial).r:
