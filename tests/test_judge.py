@@ -75,9 +75,9 @@ def test_the_arm_at_a_camera_pose_made_once_equals_the_arm_made_for_each_problem
 def test_no_more_camera_poses_are_kept_than_the_limit():
     task = load_task(TASKS / "bracket.yaml")
     scene = build_scene(task.with_feature(0))
-    for T in poses(scene, np.random.default_rng(5), 3 * evaluate._AT_CAMERA_MAX):
+    for T in poses(scene, np.random.default_rng(5), 3 * evaluate._AT_CAMERA.most):
         evaluate.arm_at_camera(task, T)
-    assert len(evaluate._AT_CAMERA) == evaluate._AT_CAMERA_MAX
+    assert len(evaluate._AT_CAMERA) == evaluate._AT_CAMERA.most
 
 
 def test_a_lamps_tolerance_moves_made_once_equal_those_made_for_each_problem():
@@ -108,7 +108,7 @@ def test_a_lamps_tolerance_moves_made_once_equal_those_made_for_each_problem():
             assert len(kept) == (0 if p.task is none else evaluate.TOLERANCE_RING)
     assert not np.array_equal(evaluate.moved_positions(problems[0], joints[0]),
                               evaluate.moved_positions(problems[1], joints[0]))
-    assert len(evaluate._MOVED) == evaluate._MOVED_MAX
+    assert len(evaluate._MOVED) == evaluate._MOVED.most
 
 
 def test_the_prefilter_counts_the_samples_the_lamp_hides_as_the_judge_does():

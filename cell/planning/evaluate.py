@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from cell.core import geometry
+from cell.core.recent import Recent
 from cell.physics import projection
 from cell.devices import rig
 from cell.physics.material import Material
@@ -431,8 +432,7 @@ def samples_sphere(problem: Problem) -> tuple[np.ndarray, float]:
 
 
 # arm_at_camera's bodies of the last few camera poses, by what makes them (arm_at_camera's key)
-_AT_CAMERA: dict[bytes, tuple[np.ndarray, ...]] = {}
-_AT_CAMERA_MAX = 4
+_AT_CAMERA: Recent[tuple[np.ndarray, ...]] = Recent(4)
 
 
 def arm_at_camera(task: Task, T_cell_cam: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -446,23 +446,20 @@ def arm_at_camera(task: Task, T_cell_cam: np.ndarray) -> tuple[np.ndarray, ...]:
     c, frames = task.cell.collision, task.frames
     key = np.concatenate([np.ravel(x) for x in (T_cell_cam, frames.T_cell_base, frames.T_flange_cam,
                                                 c.camera_size_m, [c.camera_offset_m])]).astype(np.float64).tobytes()
-    known = _AT_CAMERA.get(key)
-    if known is not None:
-        return known
-    box = camera_body(frames.T_cell_flange(T_cell_cam), 0.5 * np.asarray(c.camera_size_m, float), c.camera_offset_m)
-    q = reaching_joints(frames, T_cell_cam)
-    links = () if q is None else arm_links(frames.T_cell_base, q)
-    a, b, radius = (np.array([k.a for k in links]).reshape(-1, 3), np.array([k.b for k in links]).reshape(-1, 3),
-                    np.array([k.radius_m for k in links]))
-    box_a, box_b, box_radius = box_capsules(box.T_cell_box, box.half_m)
-    made = (box.T_cell_box, box.half_m, a, b, radius, np.vstack([box_a, a]), np.vstack([box_b, b]),
-            np.concatenate([box_radius, radius]))
-    for array in made:
-        array.flags.writeable = False
-    _AT_CAMERA[key] = made
-    while len(_AT_CAMERA) > _AT_CAMERA_MAX:
-        _AT_CAMERA.pop(next(iter(_AT_CAMERA)))
-    return made
+
+    def made() -> tuple[np.ndarray, ...]:
+        box = camera_body(frames.T_cell_flange(T_cell_cam), 0.5 * np.asarray(c.camera_size_m, float), c.camera_offset_m)
+        q = reaching_joints(frames, T_cell_cam)
+        links = () if q is None else arm_links(frames.T_cell_base, q)
+        a, b, radius = (np.array([k.a for k in links]).reshape(-1, 3), np.array([k.b for k in links]).reshape(-1, 3),
+                        np.array([k.radius_m for k in links]))
+        box_a, box_b, box_radius = box_capsules(box.T_cell_box, box.half_m)
+        bodies = (box.T_cell_box, box.half_m, a, b, radius, np.vstack([box_a, a]), np.vstack([box_b, b]),
+                  np.concatenate([box_radius, radius]))
+        for array in bodies:
+            array.flags.writeable = False
+        return bodies
+    return _AT_CAMERA.get(key, made)
 
 
 def arm_at_shot(task: Task, scene: Scene, sphere: tuple[np.ndarray, float] | None = None) -> ArmAtShot:
@@ -736,8 +733,7 @@ def candidates(problem: Problem, pan: ArrayLike, tilt: ArrayLike, radius: ArrayL
 
 
 # moved_positions' rows of the last few lamps, by their pivot, joints and tolerance
-_MOVED: dict[bytes, np.ndarray] = {}
-_MOVED_MAX = 4
+_MOVED: Recent[np.ndarray] = Recent(4)
 
 
 def moved_positions(problem: Problem, joints: Sequence[float]) -> np.ndarray:
@@ -748,17 +744,14 @@ def moved_positions(problem: Problem, joints: Sequence[float]) -> np.ndarray:
     pivot = np.asarray(problem.task.lamp.rig.pivot_m, float)
     key = np.concatenate([pivot.ravel(), np.asarray(joints, float).ravel(),
                           [problem.task.requirements.lamp_tolerance_rad]]).astype(np.float64).tobytes()
-    known = _MOVED.get(key)
-    if known is not None:
-        return known
-    d_pan, d_tilt = tolerance_moves(problem, np.array([joints[1]]))
-    made = np.array([rig.lamp_position(pivot, joints[0] + dp, joints[1] + dt, joints[2])
-                     for dp, dt in zip(d_pan, d_tilt)]).reshape(-1, 3)
-    made.flags.writeable = False
-    _MOVED[key] = made
-    while len(_MOVED) > _MOVED_MAX:
-        _MOVED.pop(next(iter(_MOVED)))
-    return made
+
+    def made() -> np.ndarray:
+        d_pan, d_tilt = tolerance_moves(problem, np.array([joints[1]]))
+        moved = np.array([rig.lamp_position(pivot, joints[0] + dp, joints[1] + dt, joints[2])
+                          for dp, dt in zip(d_pan, d_tilt)]).reshape(-1, 3)
+        moved.flags.writeable = False
+        return moved
+    return _MOVED.get(key, made)
 
 
 def at_exposure(problem: Problem, position: ArrayLike, shutter_s: float, f_number: float,

@@ -12,6 +12,7 @@ from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
 from cell.core import geometry
+from cell.core.recent import Recent
 from cell.physics import brdf
 from kernels.runtime import threads
 
@@ -243,8 +244,7 @@ def dominant_term_map(grid: SphereGrid, frame: np.ndarray, normal: np.ndarray, v
     return out
 
 
-_WHERE: dict[tuple[float, bytes, bytes], np.ndarray] = {}
-_WHERE_MAX = 64
+_WHERE: Recent[np.ndarray] = Recent(64)
 
 
 def _where_directions(step: float, frame: np.ndarray, where: np.ndarray) -> np.ndarray:
@@ -252,14 +252,12 @@ def _where_directions(step: float, frame: np.ndarray, where: np.ndarray) -> np.n
     cells in a process (the 64 most recent kept): a feature's visibility map does not depend on
     the camera, so the judge's dominant-term maps of one feature at each shot ask its cells again."""
     known = (step, np.ascontiguousarray(frame, dtype=float).tobytes(), np.packbits(where).tobytes())
-    cells = _WHERE.pop(known, None)
-    if cells is None:
+
+    def made() -> np.ndarray:
         cells = SphereGrid(step).directions(frame)[where]
         cells.flags.writeable = False
-    _WHERE[known] = cells
-    while len(_WHERE) > _WHERE_MAX:
-        _WHERE.pop(next(iter(_WHERE)))
-    return cells
+        return cells
+    return _WHERE.get(known, made)
 
 
 def reflectance_map(grid: SphereGrid, frame: np.ndarray, normal: np.ndarray, view: np.ndarray,

@@ -21,6 +21,7 @@ from numpy.typing import ArrayLike
 
 from cell.core import geometry
 from cell.core.errors import TaskError
+from cell.core.recent import Recent
 from cell.planning.occluders import Housing, housings
 from kernels.mesh import shared_mesh
 from kernels.proximity import closest_points
@@ -168,8 +169,7 @@ def build_scene(task: Task, samples: int | None = None, extra: np.ndarray | None
                  points=points, normals=normals, T_cell_cam=np.array(T_cell_cam, float), housings=housings(task))
 
 
-_PATCHES: dict[tuple[str, bytes, bytes, int, float], tuple[np.ndarray, np.ndarray]] = {}
-_PATCHES_MAX = 128
+_PATCHES: Recent[tuple[np.ndarray, np.ndarray]] = Recent(128)
 
 
 def feature_patch(task: Task, mesh: tuple[np.ndarray, np.ndarray, str], center: np.ndarray, frame: np.ndarray,
@@ -180,14 +180,12 @@ def feature_patch(task: Task, mesh: tuple[np.ndarray, np.ndarray, str], center: 
     feature's dense patch again at each shot as far from it as one before (n, dense_samples,
     follows the camera's distance): some 200 of the 504 scenes at 40 features."""
     known = (mesh[2], center.tobytes(), frame.tobytes(), n, float(task.feature.radius_m))
-    patch = _PATCHES.pop(known, None)
-    if patch is None:
+
+    def made() -> tuple[np.ndarray, np.ndarray]:
         patch = _projected(task, mesh, center, frame, n)
         _read_only(patch)
-    _PATCHES[known] = patch
-    while len(_PATCHES) > _PATCHES_MAX:
-        _PATCHES.pop(next(iter(_PATCHES)))
-    return patch
+        return patch
+    return _PATCHES.get(known, made)
 
 
 def _projected(task: Task, mesh: tuple[np.ndarray, np.ndarray, str], center: np.ndarray, frame: np.ndarray,
@@ -224,8 +222,7 @@ def _row_norms(d: np.ndarray) -> np.ndarray:
     return np.sqrt(geometry.row_sum(d * d))
 
 
-_PLACED: dict[tuple[bytes, bytes, bytes], tuple[np.ndarray, np.ndarray, str, np.ndarray]] = {}
-_PLACED_MAX = 8
+_PLACED: Recent[tuple[np.ndarray, np.ndarray, str, np.ndarray]] = Recent(8)
 
 
 def placed_mesh(task: Task) -> tuple[np.ndarray, np.ndarray, str, np.ndarray]:
@@ -236,8 +233,8 @@ def placed_mesh(task: Task) -> tuple[np.ndarray, np.ndarray, str, np.ndarray]:
     known = (np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes(),
              np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes(),
              np.ascontiguousarray(T, dtype=np.float64).tobytes())
-    placed = _PLACED.pop(known, None)
-    if placed is None:
+
+    def made() -> tuple[np.ndarray, np.ndarray, str, np.ndarray]:
         moved = mesh.copy()
         moved.apply_transform(T)
         vertices = np.ascontiguousarray(moved.vertices, dtype=np.float64)
@@ -245,10 +242,8 @@ def placed_mesh(task: Task) -> tuple[np.ndarray, np.ndarray, str, np.ndarray]:
         key = hashlib.blake2b(vertices.tobytes() + faces.tobytes(), digest_size=16).hexdigest()
         placed = vertices, faces, key, np.array(moved.face_normals)
         _read_only(placed)
-    _PLACED[known] = placed
-    while len(_PLACED) > _PLACED_MAX:
-        _PLACED.pop(next(iter(_PLACED)))
-    return placed
+        return placed
+    return _PLACED.get(known, made)
 
 
 def _read_only(values):
