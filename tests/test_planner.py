@@ -185,6 +185,61 @@ def test_a_feature_patch_is_projected_once_and_is_the_projection_made_afresh(nam
     assert len(build_scene(task, 301).points) == 301 and len(scene_module._PATCHES) == 2
 
 
+def projected_as_whole_arrays(task, n):
+    """scene._projected's patch made with NumPy's operations on whole (N, 3) arrays (the disk's
+    (N, 1) columns times the frame's 3-vectors, the points less the centre), as it was made
+    before it took them a component at a time."""
+    from cell.planning import scene as scene_module
+    from kernels.proximity import closest_points
+    vertices, faces, key, _ = scene_module.placed_mesh(task)
+    T = task.frames.T_cell_part
+    center = geometry.apply(T, task.feature.center_m)
+    frame = geometry.frame_from_normal(geometry.unit(geometry.rotate(T, task.feature.normal)))
+    radius = task.feature.radius_m
+    disk = feature_disk(n, radius)
+    guesses = center + disk[:, :1] * frame[:, 0] + disk[:, 1:] * frame[:, 1]
+    bvh = scene_module.shared_mesh(key, vertices, faces)
+    wanted = np.hypot(disk[:, 0], disk[:, 1])
+    away = wanted > 1e-3 * radius
+    pushes = 0
+    for _ in range(scene_module.PATCH_ITERATIONS):
+        points, hit, _ = closest_points(bvh, guesses, max_dist=4 * radius + 0.01)
+        landed = np.linalg.norm(points - center, axis=1)
+        push = away & (hit >= 0) & (landed > 0)
+        if not np.any(np.abs(landed[push] - wanted[push]) > scene_module.PATCH_TOLERANCE * radius):
+            break
+        offset = (guesses[push] - center) * (wanted[push] / landed[push])[:, None]
+        reach_out = np.linalg.norm(offset, axis=1) / (scene_module.PATCH_PUSH_MAX * wanted[push])
+        guesses[push] = center + offset / np.maximum(reach_out, 1.0)[:, None]
+        pushes += 1
+    return points, hit, pushes
+
+
+@pytest.mark.parametrize("path", [TASKS / "hinge.yaml", *sorted((Path(__file__).parent / "tasks").glob("*.yaml"))],
+                         ids=lambda p: p.stem)
+def test_a_feature_patch_made_a_component_at_a_time_is_the_whole_arrays_patch(path):
+    """scene._projected's pushes a component at a time give the very points and faces of NumPy's
+    whole-array arithmetic, on the hinge's flat leaf (no push) and on the curved parts (a dome,
+    a shaft, a fillet: pushed out), at a dense patch's count of points; its guesses (on_plane)
+    the very bits of the whole arrays' (the closest points' float32 queries would hide a last
+    bit)."""
+    from cell.planning import scene as scene_module
+    task = load_task(path)
+    T = task.frames.T_cell_part
+    center, frame = geometry.apply(T, task.feature.center_m), geometry.frame_from_normal(geometry.rotate(T, task.feature.normal))
+    for n in (300, 5000):
+        disk = feature_disk(n, task.feature.radius_m)
+        assert np.array_equal(scene_module.on_plane(center, frame, disk),
+                              center + disk[:, :1] * frame[:, 0] + disk[:, 1:] * frame[:, 1])
+        points, hit, pushes = projected_as_whole_arrays(task, n)
+        vertices, faces, key, _ = scene_module.placed_mesh(task)
+        frame = geometry.frame_from_normal(geometry.unit(geometry.rotate(task.frames.T_cell_part, task.feature.normal)))
+        mine = scene_module._projected(task, (vertices, faces, key), geometry.apply(task.frames.T_cell_part,
+                                                                                    task.feature.center_m), frame, n)
+        assert np.array_equal(mine[0], points) and np.array_equal(mine[1], hit)
+        assert (pushes > 0) == (path.stem != "hinge")
+
+
 @pytest.mark.parametrize("name", ["hinge", "conrod"])
 def test_every_point_of_the_feature_is_in_band_not_only_the_samples(name, request):
     """The plan's lamp and exposure, evaluated on 8x finer samples of the same patch: every

@@ -192,20 +192,22 @@ def _projected(task: Task, mesh: tuple[np.ndarray, np.ndarray, str], center: np.
                n: int) -> tuple[np.ndarray, np.ndarray]:
     """feature_patch's points and faces, made: the disk's guesses pushed out until they land at their distance."""
     disk = feature_disk(n, task.feature.radius_m)
-    guesses = center + disk[:, :1] * frame[:, 0] + disk[:, 1:] * frame[:, 1]
+    guesses = on_plane(center, frame, disk)
     bvh = shared_mesh(mesh[2], mesh[0], mesh[1])
     reach = 4 * task.feature.radius_m + 0.01
     wanted = np.hypot(disk[:, 0], disk[:, 1])
     away = wanted > 1e-3 * task.feature.radius_m
     for _ in range(PATCH_ITERATIONS):
         points, hit, _ = closest_points(bvh, guesses, max_dist=reach)
-        landed = _row_norms(points - center)
+        landed = _row_norms(geometry.by_component(np.subtract, points, center))
         push = away & (hit >= 0) & (landed > 0)
         if not np.any(np.abs(landed[push] - wanted[push]) > PATCH_TOLERANCE * task.feature.radius_m):
             break
-        offset = (guesses[push] - center) * (wanted[push] / landed[push])[:, None]
+        offset = geometry.by_component(np.multiply, geometry.by_component(np.subtract, guesses[push], center),
+                                       (wanted[push] / landed[push])[:, None])
         reach_out = _row_norms(offset) / (PATCH_PUSH_MAX * wanted[push])     # an edge: no
-        guesses[push] = center + offset / np.maximum(reach_out, 1.0)[:, None]         # surface out there
+        guesses[push] = geometry.by_component(np.add, center, geometry.by_component(      # surface out there
+            np.divide, offset, np.maximum(reach_out, 1.0)[:, None]))
     # `landed` is of the last query's points: where they land (the loop's break or its last round)
     short = away & (hit >= 0) & (np.abs(landed - wanted) > PATCH_LEAVES * task.feature.radius_m)
     if np.any(short):
@@ -214,6 +216,17 @@ def _projected(task: Task, mesh: tuple[np.ndarray, np.ndarray, str], center: np.
                         f" {int(short.sum())} of {n} samples cannot lie on the surface at their distance "
                         f"(it runs over an edge of the part)", "a patch on one continuous surface")
     return points, hit
+
+
+def on_plane(center: np.ndarray, frame: np.ndarray, disk: np.ndarray) -> np.ndarray:
+    """(N, 3) the disk's points (N, 2) in the plane through `center` spanned by the frame's first
+    two columns: center + x frame_x + y frame_y, a component at a time (NumPy's operations on the
+    disk's (N, 1) columns times the 3-vectors, in their order: the same bits, without an inner
+    loop over 3 numbers a point, a quarter of the time on a dense patch's 10 000)."""
+    out = np.empty((len(disk), 3))
+    for k in range(3):
+        out[:, k] = (center[k] + disk[:, 0] * frame[k, 0]) + disk[:, 1] * frame[k, 1]
+    return out
 
 
 def _row_norms(d: np.ndarray) -> np.ndarray:
