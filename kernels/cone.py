@@ -15,6 +15,7 @@ through passes every triangle by at least that angle (a ray the float32 BVH coul
 by rounding is cast, not skipped). Sectors are kept only where the narrowest cone is wider than
 2 MARGIN_RAD, so that the directions they judge have a well-defined azimuth.
 """
+import hashlib
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -199,3 +200,124 @@ def free_cone_cosines(mesh: "WarpMesh", origins: ArrayLike, normals: ArrayLike,
             wp.array(np.ascontiguousarray(mesh.faces, dtype=np.int32), dtype=wp.int32, device=device),
             float(margin_rad)], [free_cos_wp, sector_cos_wp], work_per_item=len(mesh.faces))
     return free_cos, sector_cos
+
+
+PIECES = 16             # pieces each edge is cut into for cylinder_cone_cosine's bound
+CYLINDER_SLACK_M = 1e-4  # a common cone is found for its cylinder this much wider (and 1 % of it lower), so
+                         # that the next patch of one feature (another count of points) lies inside it
+KEPT_CYLINDERS = 64      # cylinders whose cones are kept per mesh and normal (a part's features on one plane)
+_KEPT: dict[tuple[bytes, bytes], list[tuple[np.ndarray, float, float, float, float]]] = {}
+
+
+def common_cone_cosine(mesh: "WarpMesh", axis_point: ArrayLike, normal: ArrayLike, radius_m: float, low_m: float,
+                       margin_rad: float = MARGIN_RAD) -> float:
+    """cylinder_cone_cosine of the cylinder (axis_point, normal, radius_m, low_m), or of one kept
+    from before that holds it (its axis along the same normal, the other's tangential offset
+    plus radius_m within its radius, low_m no lower, its margin no smaller: a cone common to
+    every origin of that one is common to these): a feature's dense patch, asked again at each
+    shot with another count of points, lies in the same cylinder. A cylinder not held by one
+    kept is found CYLINDER_SLACK_M wider (and a hundredth of that lower) and kept, the
+    KEPT_CYLINDERS most recent of each mesh and normal (of at most 8 meshes)."""
+    n = np.asarray(normal, dtype=np.float64)
+    c = np.asarray(axis_point, dtype=np.float64)
+    key = (hashlib.blake2b(mesh.vertices.tobytes() + mesh.faces.tobytes(), digest_size=16).digest(), n.tobytes())
+    kept = _KEPT.pop(key, [])
+    _KEPT[key] = kept
+    for k, (at, radius, low, margin, cosine) in enumerate(kept):
+        d = c - at
+        off = d - float(d @ n) * n
+        if float(np.sqrt(off @ off)) + radius_m <= radius and low_m >= low and margin_rad <= margin:
+            kept.append(kept.pop(k))
+            return cosine
+    radius, low = radius_m + CYLINDER_SLACK_M, low_m - 0.01 * CYLINDER_SLACK_M
+    cosine = cylinder_cone_cosine(mesh, c, n, radius, low, margin_rad)
+    kept.append((c.copy(), radius, low, margin_rad, cosine))
+    del kept[:-KEPT_CYLINDERS]
+    meshes = {m for m, _ in _KEPT}
+    if len(meshes) > 8:
+        oldest = next(iter(_KEPT))[0]
+        for gone in [k for k in _KEPT if k[0] == oldest]:
+            del _KEPT[gone]
+    return cosine
+
+
+def cylinder_cone_cosine(mesh: "WarpMesh", axis_point: ArrayLike, normal: ArrayLike, radius_m: float, low_m: float,
+                         margin_rad: float = MARGIN_RAD) -> float:
+    """cos(beta - margin) of a free cone about the unit `normal` common to every origin o within
+    radius_m of the axis axis_point + t normal and with <o, normal> >= low_m (a flat patch's shadow-ray
+    origins: their common cone, where finding each point's (free_cone_cosines) costs more than
+    the few rays a certificate casts from it), NO_CONE where there is none. beta bounds from below
+    the angle between the normal and the direction from any such o to any point x of the mesh:
+    of a triangle only its part above o's plane can be met, so only its part with <x, n> >=
+    low_m counts (clipped); where that part's projection along the normal comes within radius_m
+    of the axis (some o meets it along the normal, or nearly) there is no cone; else, for each o,
+    the angle to it is least on its boundary (the module docstring), and on a piece of a clipped
+    edge (each cut into PIECES) at least atan2(d - radius_m, h): h the piece's greatest height
+    above low_m (o lies no lower), d its projection's least distance from the axis (o's at most
+    radius_m). The cut across the triangle lies at low_m: nothing on it is above any o. Float64
+    on the float32 geometry the rays see, less margin_rad as free_cone_cosines."""
+    n = np.asarray(normal, dtype=np.float64)
+    c = np.asarray(axis_point, dtype=np.float64)
+    v = mesh.vertices[mesh.faces]                                  # (F, 3 corners, 3)
+    h = v @ n - low_m                                              # (F, 3) heights above low_m
+    v, h = v[h.max(axis=1) > 0.0], h[h.max(axis=1) > 0.0]
+    if not len(v):
+        return float(np.cos(np.pi / 2 - margin_rad))
+    a, b = v, np.roll(v, -1, axis=1)                                # each triangle's edges a -> b
+    ha, hb = h, np.roll(h, -1, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):          # an edge that does not cross: its `at` unread
+        t = ha / (ha - hb)                                          # where an edge crosses low_m
+        at = a + t[..., None] * (b - a)
+    crossing = (ha >= 0.0) != (hb >= 0.0)
+    a2 = np.where((ha < 0.0)[..., None], at, a)                    # the edges clipped to h >= 0
+    b2 = np.where((hb < 0.0)[..., None], at, b)
+    ha2, hb2 = np.maximum(ha, 0.0), np.maximum(hb, 0.0)
+    kept = (ha >= 0.0) | (hb >= 0.0)
+    # the cut (h = 0) joins the two crossing points of a triangle cut by low_m
+    first = np.argmax(crossing, axis=1)
+    last = 2 - np.argmax(crossing[:, ::-1], axis=1)
+    rows = np.arange(len(v))
+    cut = crossing.sum(axis=1) == 2
+    ends = np.concatenate([np.stack([a2, b2], axis=2)[kept],                             # (S, 2, 3)
+                           np.stack([at[rows, first], at[rows, last]], axis=1)[cut]])
+    heights = np.concatenate([np.stack([ha2, hb2], axis=2)[kept], np.zeros((int(cut.sum()), 2))])
+    u = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    w = np.cross(n, u)
+    flat = np.stack([(ends - c) @ u, (ends - c) @ w], axis=-1)      # (S, 2 ends, 2) about the axis
+    if _segment_distance(flat[:, 0], flat[:, 1]).min() <= radius_m or _axis_meets(v, h, c, n, low_m):
+        return float(NO_CONE)
+    steps = np.linspace(0.0, 1.0, PIECES + 1)
+    along = flat[:, :1] + steps[None, :, None] * (flat[:, 1:] - flat[:, :1])            # (S, PIECES + 1, 2)
+    up = heights[:, :1] + steps[None, :] * (heights[:, 1:] - heights[:, :1])            # (S, PIECES + 1)
+    d = _segment_distance(along[:, :-1].reshape(-1, 2), along[:, 1:].reshape(-1, 2)) - radius_m
+    top = np.maximum(up[:, :-1], up[:, 1:]).ravel()
+    beta = float(np.min(np.arctan2(d, top))) - margin_rad
+    return float(np.cos(beta)) if beta > 0.0 else float(NO_CONE)
+
+
+def _segment_distance(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """(S,) the least distance from the origin to each segment p -> q (S, 2)."""
+    d = q - p
+    length2 = np.sum(d * d, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.clip(np.where(length2 > 0.0, -np.sum(p * d, axis=1) / length2, 0.0), 0.0, 1.0)
+    x = p + t[:, None] * d
+    return np.sqrt(np.sum(x * x, axis=1))
+
+
+def _axis_meets(v: np.ndarray, h: np.ndarray, c: np.ndarray, n: np.ndarray, low_m: float) -> bool:
+    """Whether the line c + t n meets some triangle v (F, 3, 3) at a point above low_m (its
+    projection holds the axis: the boundary's distances alone would not tell)."""
+    e1, e2 = v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]
+    p = np.cross(n, e2)
+    det = np.sum(e1 * p, axis=1)
+    ok = np.abs(det) > 0.0                                          # parallel to the axis: its edges tell
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = c - v[:, 0]
+        b1 = np.sum(s * p, axis=1) / det
+        q = np.cross(s, e1)
+        b2 = (q @ n) / det
+        t = np.sum(e2 * q, axis=1) / det
+        inside = ok & (b1 >= 0.0) & (b2 >= 0.0) & (b1 + b2 <= 1.0)
+        return bool(np.any(inside & ((c + t[:, None] * n) @ n - low_m >= 0.0)))

@@ -1,6 +1,7 @@
 """Gray value per exposure for every (candidate lamp, sample point): the planner's bulk job."""
 import threading
 from dataclasses import dataclass
+from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -10,7 +11,7 @@ from numpy.typing import ArrayLike
 from . import funcs
 from .emission import axis_intensity, hard_cone_profile, profile_solid_angle
 from ._arrays import output, profile2d, table2d, unit_rows, vec3d
-from .cone import NO_CONE, free_cone_cosines, worth_finding
+from .cone import MARGIN_RAD, NO_CONE, common_cone_cosine, free_cone_cosines, worth_finding
 from .runtime import ensure_init, in_parallel, launch_sliced, slices
 
 if TYPE_CHECKING:
@@ -87,6 +88,9 @@ def shadow_kernel(mesh_id: wp.uint64, shadows: wp.int32, surfaces: wp.array(dtyp
     shadowed[c, p] = funcs.shadowed_from(mesh_id, shadows, surfaces[p], sector_cos, lamp_pos[c])
 
 
+FLAT_SLACK_M = 1e-6      # a flat patch's cylinder of ray origins widened and lowered by this: float32's rounding
+                        # of a coordinate up to some 10 m (what the BVH's rays start from) stays inside
+FLAT_SPREAD_RAD = 1e-4  # a patch's normals this far apart at most count as one plane's (a curved patch's do not)
 SMALL = 1 << 16         # evaluations: a call this small reuses its launch (a search makes hundreds)
 # what a (lamp, point) costs in runtime.slices's evaluations (MIN_SLICE of them about a millisecond,
 # some 60 ns each), measured on one thread on the 40-feature part (lightplan_tasks.many_features):
@@ -119,7 +123,7 @@ class GrayInputs:
     def __init__(self, mesh: "WarpMesh | None", points: ArrayLike, normals: ArrayLike, camera_pos: ArrayLike,
                  power_w: float, cone_angle_rad: float, table: ArrayLike, camera_constant: float,
                  pixel_area_m2: float, shadows: bool = True, cone: bool = True, offset_m: float = 1e-5,
-                 profile: ArrayLike | None = None) -> None:
+                 profile: ArrayLike | None = None, flat: Sequence[tuple[int, int]] = ()) -> None:
         self.device = ensure_init(__name__)
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         normals = unit_rows(normals, "normals")
@@ -133,7 +137,7 @@ class GrayInputs:
         self._shadow_rays = (points, normals, float(offset_m))   # the free cones' ray origins, made if found
         self.surfaces = wp.empty(self.count, dtype=funcs.Surface, device=self.device)
         self._sector_cos, sector_cos_wp = output((max(1, self.count), funcs.SECTORS), np.float64, wp.float64)
-        self._set_free_cones(np.full(self.count, NO_CONE), None)
+        self._set_free_cones(self._flat_cones(flat), None)
         self._lamps_seen = 0
         self.has_free_cones = False
         self._leading = [self._mesh.id if self._mesh is not None else wp.uint64(0), int(use_shadows),
@@ -161,6 +165,35 @@ class GrayInputs:
                 launch_sliced(shadow_kernel, (self.count, len(lamp_pos)),
                               self._leading[:2] + [self.surfaces, self._leading[4], vec3d(lamp_pos, "lamp_pos")],
                               [out_wp], work_per_item=RAY_WORK * len(lamp_pos))
+        return out
+
+    def _flat_cones(self, flat: Sequence[tuple[int, int]]) -> np.ndarray:
+        """(P,) each point's free cone cosine known before any lamp: of the rows [start, end) of
+        each of `flat` whose normals lie within FLAT_SPREAD_RAD of the first's (a flat patch, and
+        a point found on it apart), the cone about that normal common to their ray origins
+        (kernels.cone.common_cone_cosine about their middle, within their farthest distance
+        from the axis and above the lowest, each widened by FLAT_SLACK_M so that their float32
+        roundings lie inside too), narrowed by the normals' largest angle from it (a point's
+        own normal judges a ray); NO_CONE elsewhere."""
+        out = np.full(self.count, NO_CONE)
+        points, normals, offset_m = self._shadow_rays
+        for start, end in flat:
+            if end <= start or self._mesh is None:
+                continue
+            n = normals[start]
+            # a column at a time: (N, 3) arrays against one 3-vector run an inner loop over 3 numbers a point
+            apart = np.sqrt(sum((normals[start:end, k] - n[k]) ** 2 for k in range(3)))   # chords: at most the angles
+            spread = 2.0 * float(np.arcsin(min(1.0, 0.5 * float(apart.max()))))
+            if spread > FLAT_SPREAD_RAD:
+                continue
+            o = [points[start:end, k] + offset_m * normals[start:end, k] for k in range(3)]
+            middle = np.array([0.5 * (x.min() + x.max()) for x in o])
+            d = [x - m for x, m in zip(o, middle)]
+            along = d[0] * n[0] + d[1] * n[1] + d[2] * n[2]
+            across = sum((x - along * m) ** 2 for x, m in zip(d, n))
+            out[start:end] = common_cone_cosine(self._mesh, middle, n, float(np.sqrt(across.max())) + FLAT_SLACK_M,
+                                                  float(along.min() + middle @ n) - FLAT_SLACK_M,
+                                                  MARGIN_RAD + 2.0 * spread)
         return out
 
     def _lamps(self, count: int) -> None:

@@ -397,6 +397,65 @@ def test_free_cones_change_no_gray_and_no_visibility(hinge, monkeypatch):
     np.testing.assert_array_equal(maps, visibility_maps(mesh, points, normals, np.eye(3), az, el))
 
 
+def in_cylinder(rng, count, axis_point, radius, low):
+    """Random origins above z = low within `radius` of the vertical axis through axis_point."""
+    r, a = radius * np.sqrt(rng.uniform(0.0, 1.0, count)), rng.uniform(-np.pi, np.pi, count)
+    return np.column_stack([axis_point[0] + r * np.cos(a), axis_point[1] + r * np.sin(a),
+                            low + rng.uniform(0.0, 0.002, count)])
+
+
+def test_a_cylinders_common_cone_lets_no_ray_hit_and_is_no_wider_than_its_points_own(blocks):
+    """cone.cylinder_cone_cosine on the slab beside the wall: rays from random origins in the
+    cylinder (5 mm about (20, 0) mm, from 10 um above the slab up) in random directions inside
+    its cone meet nothing (the brute-force reference); the cone is no wider than the free cone
+    of the cylinder's origin nearest the wall's top edge (free_cone_cosines), and within a
+    degree of it; beside nothing but the slab it is the open sky (90 deg less the margin); a
+    cylinder reaching the wall, or under the slab, has none."""
+    rng = np.random.default_rng(29)
+    axis_point, radius, low = np.array([0.02, 0.0, 0.0]), 0.005, 0.01 + 1e-5
+    cosine = cone.cylinder_cone_cosine(blocks, axis_point, [0.0, 0.0, 1.0], radius, low)
+    beta = math.acos(cosine)
+    nearest = np.array([[0.02 + radius, 0.0, low]])
+    own = free_cone_cosines(blocks, nearest, [[0.0, 0.0, 1.0]])[0][0]
+    assert cosine >= own and math.acos(own) - beta < math.radians(1.0) and 0.3 < beta < 1.2
+    origins = in_cylinder(rng, 4000, axis_point, radius, low)
+    directions = geometry.direction_from_angles(rng.uniform(-np.pi, np.pi, 4000),
+                                                np.pi / 2 - beta * rng.uniform(0.0, 1.0, 4000))
+    assert not ref.ray_hits_any(blocks, origins, directions, 10.0).any()
+    outside = geometry.direction_from_angles(np.zeros(50), np.pi / 2 - math.acos(own) - 0.02 - np.zeros(50))
+    assert ref.ray_hits_any(blocks, np.repeat(nearest, 50, axis=0), outside, 10.0).all()   # the wall is there
+    slab = WarpMesh.from_trimesh(box((0.10, 0.10, 0.02), (0.0, 0.0, 0.0)))
+    assert cone.cylinder_cone_cosine(slab, axis_point, [0.0, 0.0, 1.0], radius, low) == pytest.approx(
+        math.sin(cone.MARGIN_RAD), abs=1e-15)
+    assert cone.cylinder_cone_cosine(blocks, axis_point, [0.0, 0.0, 1.0], 0.031, low) == NO_CONE
+    assert cone.cylinder_cone_cosine(blocks, axis_point, [0.0, 0.0, 1.0], radius, -0.02) == NO_CONE
+
+
+def test_flat_patches_common_cones_change_no_gray_and_no_shadow(blocks):
+    """GrayInputs told which rows are flat patches (`flat`: a certificate's dense patches) casts
+    fewer rays and gives the gray, shadows, off-axis angles, dominant terms and the shadow flags
+    of a lamp at the camera of one not told, bit for bit; a patch whose normals differ (curved)
+    gets no cone, one beside the wall a narrower one than one in the open."""
+    rng = np.random.default_rng(31)
+    near, far = (np.column_stack([c + rng.uniform(-0.004, 0.004, (600, 2)), np.full(600, 0.01)])
+                 for c in ([0.02, 0.0], [-0.03, 0.02]))
+    tilted = geometry.unit(np.column_stack([rng.uniform(-0.1, 0.1, (100, 2)), np.ones(100)]))
+    points = np.vstack([near, far, far[:100]])
+    normals = np.vstack([np.tile([0.0, 0.0, 1.0], (1200, 1)), tilted])
+    lamps, aims = lamps_around(rng, np.array([0.0, 0.0, 0.01]), 12)
+    args = (blocks, points, normals, np.array([-0.02, 0.01, 0.3]), P_LAMP, GAMMA, METAL, C_CAMERA, A_PIXEL)
+    told = GrayInputs(*args, flat=[(0, 600), (600, 1200), (1200, 1300)])
+    cosines = told._flat_cones([(0, 600), (600, 1200), (1200, 1300)])
+    assert cosines[0] > cosines[600] > 0.0 and cosines[1200] == NO_CONE
+    alone = GrayInputs(*args)
+    for mine, own in ((told(lamps, aims), alone(lamps, aims)), (told(lamps[:1], aims[:1]), alone(lamps[:1], aims[:1]))):
+        for field in ("value", "shadowed", "off_axis", "dominant"):
+            np.testing.assert_array_equal(getattr(mine, field), getattr(own, field))
+    camera = np.array([[-0.02, 0.01, 0.3], [0.05, 0.0, 0.05]])
+    np.testing.assert_array_equal(told.shadowed(camera), alone.shadowed(camera))
+    assert 0.02 < alone(lamps, aims).shadowed.mean() < 0.9 and alone.shadowed(camera)[1].any()
+
+
 def test_small_calls_reuse_their_launch_but_not_their_results(blocks):
     """Small calls replay one recorded launch, over as many lamps as each has (more, fewer, as
     many as before): each result is its own array, equal to a call of its own."""

@@ -194,8 +194,10 @@ def verify_all(problems: Sequence[evaluate.Problem], shot: Shot,
               for s, point, normal in zip(scenes, points, normals)]
     joined = replace(scenes[0], points=np.vstack([s.points for s in scenes]),
                      normals=np.vstack([s.normals for s in scenes]))
-    shared = evaluate.SharedLaunches(evaluate.gray_inputs(problems[0].task, joined, problems[0].material),
-                                     [len(s.points) for s in scenes])
+    counts = [len(s.points) for s in scenes]
+    ends = np.cumsum(counts).tolist()
+    shared = evaluate.SharedLaunches(evaluate.gray_inputs(problems[0].task, joined, problems[0].material,
+                                                          flat=list(zip([0] + ends[:-1], ends))), counts)
     return [dense_verdict(p, s, shot, shared.rows(k)) for k, (p, s) in enumerate(zip(problems, scenes))]
 
 

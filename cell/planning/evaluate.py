@@ -230,14 +230,16 @@ class Problem:
         return np.repeat(kept[2][None], candidates, axis=0)     # np.tile's rows, without its checks
 
 
-def gray_inputs(task: Task, scene: Scene, material: Material) -> GrayInputs:
+def gray_inputs(task: Task, scene: Scene, material: Material, flat: Sequence[tuple[int, int]] = ()) -> GrayInputs:
     """The gray kernel's fixed inputs (kernels.gray.GrayInputs) for the scene's samples and
-    camera, the task's lamp and sensor and the material."""
+    camera, the task's lamp and sensor and the material; `flat`: the rows [start, end) of each
+    patch among the samples whose rays may share a free cone (GrayInputs' `flat`: a
+    certificate's dense patches, cell.planning.certificate.verify_all)."""
     from kernels.gray import GrayInputs
     return GrayInputs(scene.shadow_mesh, scene.points, scene.normals, scene.camera_position,
                       task.lamp.power_w, task.lamp.cone_angle_rad, material.table(),
                       task.camera.sensor.camera_constant, task.camera.sensor.pixel_area_m2,
-                      profile=task.lamp.profile)
+                      profile=task.lamp.profile, flat=flat)
 
 
 class SharedLaunches:
