@@ -148,9 +148,11 @@ FEW_CELLS = 16
 
 def nearest_chord(queries: np.ndarray, targets: np.ndarray) -> np.ndarray:
     """(Q,) the chord from each query (Q, 3) to its nearest target (T, 3), by brute force, summed
-    as cKDTree sums it for p = 2, ((0 + dx^2) + dy^2) + dz^2, and its root: the same value bit for bit."""
-    d = queries[:, None, :] - targets[None]
-    return np.sqrt(np.min((d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]) + d[..., 2] * d[..., 2], axis=1))
+    as cKDTree sums it for p = 2, ((0 + dx^2) + dy^2) + dz^2, and its root: the same value bit for
+    bit. A component at a time ((Q, 1) against (T,): no (Q, T, 3) array, whose last axis of 3
+    NumPy's inner loops would run over)."""
+    dx, dy, dz = (queries[:, k:k + 1] - targets[:, k] for k in range(3))
+    return np.sqrt(np.min((dx * dx + dy * dy) + dz * dz, axis=1))
 
 
 class RegionDistance:
@@ -174,12 +176,13 @@ class RegionDistance:
         self.inside.flags.writeable = False
         uniform = np.pi if not self.inside.any() else -np.pi if self.inside.all() else np.nan
         self._values = np.full(self.inside.size, uniform)        # NaN: not asked yet
-        self._edges: tuple[np.ndarray, np.ndarray] | None = None  # the edge cells' directions: outside, inside
+        self._edge: np.ndarray | None = None                      # (E * A,) the cells on_edge
+        self._edges: list[np.ndarray | None] = [None, None]       # the edge cells' directions: outside, inside
         self._trees: tuple[cKDTree, cKDTree] | None = None
 
     def __getstate__(self) -> dict:
         """Pickled (a plan from a worker process) with the values found so far, not the trees."""
-        return {**self.__dict__, "_edges": None, "_trees": None}
+        return {**self.__dict__, "_edge": None, "_edges": [None, None], "_trees": None}
 
     def at(self, cells: ArrayLike) -> np.ndarray:
         """The transform at the flat indices `cells` of the (E, A) map."""
@@ -189,18 +192,15 @@ class RegionDistance:
             missing = np.unique(cells[unknown])
             flat = self.inside.ravel()
             dirs = _cell_directions(self.grid.step).reshape(-1, 3)
-            if self._edges is None:
-                edge = on_edge(self.inside).ravel()
-                self._edges = dirs[~flat & edge], dirs[flat & edge]
             inner, outer = missing[flat[missing]], missing[~flat[missing]]
             if self._trees is None and len(missing) <= FEW_CELLS:
                 if len(inner):
-                    self._values[inner] = -chord_to_angle(nearest_chord(dirs[inner], self._edges[0]))
+                    self._values[inner] = -chord_to_angle(nearest_chord(dirs[inner], self._edge_cells(False)))
                 if len(outer):
-                    self._values[outer] = chord_to_angle(nearest_chord(dirs[outer], self._edges[1]))
+                    self._values[outer] = chord_to_angle(nearest_chord(dirs[outer], self._edge_cells(True)))
                 return self._values[cells]
             if self._trees is None:
-                self._trees = cKDTree(self._edges[0]), cKDTree(self._edges[1])
+                self._trees = cKDTree(self._edge_cells(False)), cKDTree(self._edge_cells(True))
             to_outside, to_inside = self._trees
             workers = threads() if len(missing) >= SPLIT_QUERIES else 1    # each query its own
             if len(inner):
@@ -208,6 +208,18 @@ class RegionDistance:
             if len(outer):
                 self._values[outer] = chord_to_angle(to_inside.query(dirs[outer], workers=workers)[0])
         return self._values[cells]
+
+    def _edge_cells(self, inside: bool) -> np.ndarray:
+        """The directions of the edge cells (on_edge) inside the region, or outside it, found when
+        first asked (a judged lamp's few cells inside it ask only for those outside)."""
+        kept = self._edges[int(inside)]
+        if kept is None:
+            if self._edge is None:
+                self._edge = on_edge(self.inside).ravel()
+            flat = self.inside.ravel()
+            kept = _cell_directions(self.grid.step).reshape(-1, 3)[(flat if inside else ~flat) & self._edge]
+            self._edges[int(inside)] = kept
+        return kept
 
     def sample(self, azimuth: ArrayLike, elevation: ArrayLike) -> np.ndarray:
         """SphereGrid.sample of the transform at (azimuth, elevation). A value reading a cell not
