@@ -16,6 +16,7 @@ by rounding is cast, not skipped). Sectors are kept only where the narrowest con
 2 MARGIN_RAD, so that the directions they judge have a well-defined azimuth.
 """
 import hashlib
+import math
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -206,7 +207,7 @@ PIECES = 16             # pieces each edge is cut into for cylinder_cone_cosine'
 CYLINDER_SLACK_M = 1e-4  # a common cone is found for its cylinder this much wider (and 1 % of it lower), so
                          # that the next patch of one feature (another count of points) lies inside it
 KEPT_CYLINDERS = 64      # cylinders whose cones are kept per mesh and normal (a part's features on one plane)
-_KEPT: dict[tuple[bytes, bytes], list[tuple[np.ndarray, float, float, float, float]]] = {}
+_KEPT: dict[tuple[bytes, bytes], list[tuple[tuple[float, float, float], float, float, float, float]]] = {}
 
 
 def common_cone_cosine(mesh: "WarpMesh", axis_point: ArrayLike, normal: ArrayLike, radius_m: float, low_m: float,
@@ -220,18 +221,24 @@ def common_cone_cosine(mesh: "WarpMesh", axis_point: ArrayLike, normal: ArrayLik
     KEPT_CYLINDERS most recent of each mesh and normal (of at most 8 meshes)."""
     n = np.asarray(normal, dtype=np.float64)
     c = np.asarray(axis_point, dtype=np.float64)
-    key = (hashlib.blake2b(mesh.vertices.tobytes() + mesh.faces.tobytes(), digest_size=16).digest(), n.tobytes())
+    digest = mesh.__dict__.get("_digest")          # a WarpMesh is never changed: its digest once
+    if digest is None:
+        digest = mesh.__dict__["_digest"] = hashlib.blake2b(mesh.vertices.tobytes() + mesh.faces.tobytes(),
+                                                            digest_size=16).digest()
+    key = (digest, n.tobytes())
     kept = _KEPT.pop(key, [])
     _KEPT[key] = kept
+    (nx, ny, nz), (cx, cy, cz) = n.tolist(), c.tolist()
     for k, (at, radius, low, margin, cosine) in enumerate(kept):
-        d = c - at
-        off = d - float(d @ n) * n
-        if float(np.sqrt(off @ off)) + radius_m <= radius and low_m >= low and margin_rad <= margin:
+        dx, dy, dz = cx - at[0], cy - at[1], cz - at[2]
+        along = dx * nx + dy * ny + dz * nz
+        off = math.sqrt(max((dx * dx + dy * dy + dz * dz) - along * along, 0.0))     # its part across n
+        if off + radius_m <= radius and low_m >= low and margin_rad <= margin:
             kept.append(kept.pop(k))
             return cosine
     radius, low = radius_m + CYLINDER_SLACK_M, low_m - 0.01 * CYLINDER_SLACK_M
     cosine = cylinder_cone_cosine(mesh, c, n, radius, low, margin_rad)
-    kept.append((c.copy(), radius, low, margin_rad, cosine))
+    kept.append(((cx, cy, cz), radius, low, margin_rad, cosine))
     del kept[:-KEPT_CYLINDERS]
     meshes = {m for m, _ in _KEPT}
     if len(meshes) > 8:

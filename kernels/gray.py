@@ -182,18 +182,20 @@ class GrayInputs:
                 continue
             n = normals[start]
             # a column at a time: (N, 3) arrays against one 3-vector run an inner loop over 3 numbers a point
-            apart = np.sqrt(sum((normals[start:end, k] - n[k]) ** 2 for k in range(3)))   # chords: at most the angles
-            spread = 2.0 * float(np.arcsin(min(1.0, 0.5 * float(apart.max()))))
+            other = np.flatnonzero((normals[start:end, 0] != n[0]) | (normals[start:end, 1] != n[1])
+                                   | (normals[start:end, 2] != n[2])) + start
+            apart = np.sqrt(np.sum((normals[other] - n) ** 2, axis=1, initial=0.0))    # chords: at most the angles
+            spread = 2.0 * float(np.arcsin(min(1.0, 0.5 * float(apart.max(initial=0.0)))))
             if spread > FLAT_SPREAD_RAD:
                 continue
             o = [points[start:end, k] + offset_m * normals[start:end, k] for k in range(3)]
             middle = np.array([0.5 * (x.min() + x.max()) for x in o])
             d = [x - m for x, m in zip(o, middle)]
             along = d[0] * n[0] + d[1] * n[1] + d[2] * n[2]
-            across = sum((x - along * m) ** 2 for x, m in zip(d, n))
-            out[start:end] = common_cone_cosine(self._mesh, middle, n, float(np.sqrt(across.max())) + FLAT_SLACK_M,
-                                                  float(along.min() + middle @ n) - FLAT_SLACK_M,
-                                                  MARGIN_RAD + 2.0 * spread)
+            across = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]) - along * along     # |d|^2 less its part along n
+            out[start:end] = common_cone_cosine(self._mesh, middle, n,
+                                                float(np.sqrt(max(float(across.max()), 0.0))) + FLAT_SLACK_M,
+                                                float(along.min() + middle @ n) - FLAT_SLACK_M, MARGIN_RAD + 2.0 * spread)
         return out
 
     def _lamps(self, count: int) -> None:
