@@ -6,7 +6,7 @@ import numpy as np
 import warp as wp
 from numpy.typing import ArrayLike
 
-from ._arrays import output, vec3d
+from ._arrays import output
 from .runtime import ensure_init, launch_sliced
 
 if TYPE_CHECKING:
@@ -33,6 +33,24 @@ def closest_point_kernel(meshes: wp.array(dtype=wp.uint64), queries: wp.array(dt
         normal[i] = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
 
 
+@wp.kernel
+def closest_point_one_mesh_kernel(mesh: wp.uint64, queries: wp.array(dtype=wp.vec3d), max_dist: wp.float32,
+                                  first: wp.int32, point: wp.array(dtype=wp.vec3d), face: wp.array(dtype=wp.int32),
+                                  normal: wp.array(dtype=wp.vec3d)):
+    """closest_point_kernel's query on one mesh within one max_dist (closest_points: a patch's
+    thousands of queries, without an array of the same id and distance for each)."""
+    i = wp.tid() + first
+    q = wp.mesh_query_point_no_sign(mesh, wp.vec3(queries[i]), max_dist)
+    if q.result:
+        point[i] = wp.vec3d(wp.mesh_eval_position(mesh, q.face, q.u, q.v))
+        face[i] = q.face
+        normal[i] = wp.vec3d(wp.mesh_eval_face_normal(mesh, q.face))
+    else:
+        point[i] = wp.vec3d(wp.float64(wp.nan), wp.float64(wp.nan), wp.float64(wp.nan))
+        face[i] = -1
+        normal[i] = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+
+
 def _per_query(ids: ArrayLike, max_dists: ArrayLike) -> tuple[wp.array, wp.array]:
     """The kernel's per-query mesh ids and max_dist (float32, as Warp took a float32 argument)."""
     ids = np.asarray(ids, dtype=np.uint64)
@@ -51,15 +69,15 @@ def closest_points(mesh: "WarpMesh", queries: ArrayLike,
     launch is split over threads (runtime.launch_sliced; a dense patch's 10 000 queries): each
     query is answered alone, so the same bits."""
     ensure_init(__name__)
-    queries = np.asarray(queries, dtype=np.float64).reshape(-1, 3)
+    queries = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, 3)
     n = len(queries)
     point, point_wp = output((n, 3), np.float64, wp.vec3d)
     face, face_wp = output(n, np.int32, wp.int32)
     normal, normal_wp = output((n, 3), np.float64, wp.vec3d)
-    if n:
-        ids, dists = _per_query(np.full(n, mesh.id, dtype=np.uint64), max_dist)   # one mesh: its id once
-        launch_sliced(closest_point_kernel, n, [ids, vec3d(queries, "queries"), dists], [point_wp, face_wp, normal_wp],
-                      work_per_item=QUERY_WORK)
+    if n:       # the queries read where they lie (the launch returns before they can change)
+        launch_sliced(closest_point_one_mesh_kernel, n,
+                      [mesh.id, wp.array(queries, dtype=wp.vec3d, device="cpu", copy=False), np.float32(max_dist)],
+                      [point_wp, face_wp, normal_wp], work_per_item=QUERY_WORK)
     return point, face, normal
 
 
