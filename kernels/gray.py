@@ -118,7 +118,10 @@ class GrayInputs:
     call: kernels.runtime) on its own input and output buffers, under a lock, and returns copies;
     one that is a single launch (runtime.slices: too small to split) replays the one launch kept
     for them all, over as many lamps as it has (Launch.set_dim; its buffers as long as the most
-    lamps asked so far): a refinement's rounds ask a few lamps, a different number each round."""
+    lamps asked so far): a refinement's rounds ask a few lamps, a different number each round.
+    `flat`: the rows [start, end) of each flat patch among the points (a certificate's dense
+    patches), whose rays share one free cone from the start (_flat_cones: each point's own
+    costs more than the few lamps a certificate asks)."""
 
     def __init__(self, mesh: "WarpMesh | None", points: ArrayLike, normals: ArrayLike, camera_pos: ArrayLike,
                  power_w: float, cone_angle_rad: float, table: ArrayLike, camera_constant: float,

@@ -15,32 +15,12 @@ if TYPE_CHECKING:
     from .mesh import WarpMesh
 
 
-@wp.kernel
-def closest_point_kernel(meshes: wp.array(dtype=wp.uint64), queries: wp.array(dtype=wp.vec3d),
-                         max_dist: wp.array(dtype=wp.float32), first: wp.int32, point: wp.array(dtype=wp.vec3d),
-                         face: wp.array(dtype=wp.int32), normal: wp.array(dtype=wp.vec3d)):
-    """One thread per query point from `first` on (runtime.launch_sliced), each on its own mesh
-    within its own max_dist."""
-    i = wp.tid() + first
-    q = wp.mesh_query_point_no_sign(meshes[i], wp.vec3(queries[i]), max_dist[i])
-    if q.result:
-        point[i] = wp.vec3d(wp.mesh_eval_position(meshes[i], q.face, q.u, q.v))
-        face[i] = q.face
-        normal[i] = wp.vec3d(wp.mesh_eval_face_normal(meshes[i], q.face))
-    else:
-        point[i] = wp.vec3d(wp.float64(wp.nan), wp.float64(wp.nan), wp.float64(wp.nan))
-        face[i] = -1
-        normal[i] = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
-
-
-@wp.kernel
-def closest_point_one_mesh_kernel(mesh: wp.uint64, queries: wp.array(dtype=wp.vec3d), max_dist: wp.float32,
-                                  first: wp.int32, point: wp.array(dtype=wp.vec3d), face: wp.array(dtype=wp.int32),
-                                  normal: wp.array(dtype=wp.vec3d)):
-    """closest_point_kernel's query on one mesh within one max_dist (closest_points: a patch's
-    thousands of queries, without an array of the same id and distance for each)."""
-    i = wp.tid() + first
-    q = wp.mesh_query_point_no_sign(mesh, wp.vec3(queries[i]), max_dist)
+@wp.func
+def answer(mesh: wp.uint64, query: wp.vec3d, max_dist: wp.float32, i: int, point: wp.array(dtype=wp.vec3d),
+           face: wp.array(dtype=wp.int32), normal: wp.array(dtype=wp.vec3d)):
+    """Query i's closest point on the mesh within max_dist (float32 BVH query), its face and
+    outward face normal, into row i; NaN, -1 and 0 where none lies within it."""
+    q = wp.mesh_query_point_no_sign(mesh, wp.vec3(query), max_dist)
     if q.result:
         point[i] = wp.vec3d(wp.mesh_eval_position(mesh, q.face, q.u, q.v))
         face[i] = q.face
@@ -49,6 +29,26 @@ def closest_point_one_mesh_kernel(mesh: wp.uint64, queries: wp.array(dtype=wp.ve
         point[i] = wp.vec3d(wp.float64(wp.nan), wp.float64(wp.nan), wp.float64(wp.nan))
         face[i] = -1
         normal[i] = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+
+
+@wp.kernel
+def closest_point_kernel(meshes: wp.array(dtype=wp.uint64), queries: wp.array(dtype=wp.vec3d),
+                         max_dist: wp.array(dtype=wp.float32), first: wp.int32, point: wp.array(dtype=wp.vec3d),
+                         face: wp.array(dtype=wp.int32), normal: wp.array(dtype=wp.vec3d)):
+    """One thread per query point from `first` on (runtime.launch_sliced), each on its own mesh
+    within its own max_dist."""
+    i = wp.tid() + first
+    answer(meshes[i], queries[i], max_dist[i], i, point, face, normal)
+
+
+@wp.kernel
+def closest_point_one_mesh_kernel(mesh: wp.uint64, queries: wp.array(dtype=wp.vec3d), max_dist: wp.float32,
+                                  first: wp.int32, point: wp.array(dtype=wp.vec3d), face: wp.array(dtype=wp.int32),
+                                  normal: wp.array(dtype=wp.vec3d)):
+    """closest_point_kernel on one mesh within one max_dist (closest_points: a patch's thousands
+    of queries, without an array of the same id and distance for each)."""
+    i = wp.tid() + first
+    answer(mesh, queries[i], max_dist, i, point, face, normal)
 
 
 def _per_query(ids: ArrayLike, max_dists: ArrayLike) -> tuple[wp.array, wp.array]:
