@@ -48,8 +48,12 @@ earlier estimate moved along it as the rendered images fit best (along_start), a
 direction (along) where it stays open. A part long along that direction may still be tilted along
 it unseen (the first views see that tilt by perspective alone, a lamp-low view's shadow rim ties
 it to the offset along the direction): the loop then takes a view from its side (sideways),
-keeps the better of the fits from the model's pose and along it (better), and widens the fit's
-covariance by what the views tell over their residual (rendered_covariance, PoseError.widened)."""
+keeps the better of the fits from the model's pose and along it (better), refined at the fine
+scales (side_refit), and widens the fit's covariance by what the views tell over their residual
+(rendered_covariance, PoseError.widened). Two views may tell the position and leave the tilt
+open: where the fit's own tilt across the first view is told worse than the plan tolerates
+(untold_tilt), the loop takes a view from the side that tilt moves the part's points along the
+first view's axis, and refines the first views' estimate at the fine scales (side_refit)."""
 from __future__ import annotations
 
 import hashlib
@@ -1155,8 +1159,8 @@ def untold_tilt(error: PoseError, T_first: np.ndarray, lamp_tolerance_rad: float
     the feature appears), its largest eigenvalue s^2 and axis a (across b). The edge fit's own,
     not the views' (rendered_covariance): it holds the two finest scales' difference
     (model_error), which a tilt the edges do not fix moves (the conrod 8 mm across its shank,
-    yawed 5 deg, its camera turned 2 deg, from two views: 0.92 deg, the estimate 0.30-0.35 deg off
-    about y; the hinge's pose rows 0.07-0.11 deg), while the views' counts each view's whole
+    yawed 5 deg, its camera turned 2 deg, from two views: 0.81-0.92 deg, the estimate 0.30-0.35 deg off
+    about y; the hinge's pose rows 0.06-0.11 deg), while the views' counts each view's whole
     residual as one move and does not tell the two apart. Told worse: s beyond TILT_TOLD lamp
     tolerances (a surface tilted by t turns its mirror direction by 2 t, and the plan holds the
     band under the lamp tolerance). The direction d = b x a: a tilt about a moves a point X by
