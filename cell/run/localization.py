@@ -48,8 +48,12 @@ earlier estimate moved along it as the rendered images fit best (along_start), a
 direction (along) where it stays open. A part long along that direction may still be tilted along
 it unseen (the first views see that tilt by perspective alone, a lamp-low view's shadow rim ties
 it to the offset along the direction): the loop then takes a view from its side (sideways),
-keeps the better of the fits from the model's pose and along it (better), and widens the fit's
-covariance by what the views tell over their residual (rendered_covariance, PoseError.widened)."""
+keeps the better of the fits from the model's pose and along it (better), refined at the fine
+scales (side_refit), and widens the fit's covariance by what the views tell over their residual
+(rendered_covariance, PoseError.widened). Two views may tell the position and leave the tilt
+open: where the fit's own tilt across the first view is told worse than the plan tolerates
+(untold_tilt), the loop takes a view from the side that tilt moves the part's points along the
+first view's axis, and refines the first views' estimate at the fine scales (side_refit)."""
 from __future__ import annotations
 
 import hashlib
@@ -114,6 +118,8 @@ MAX_EXTRA_VIEWS = 2         # the loop's views beyond the second where the part'
 SIDEWAYS = np.sin(np.radians(20.0))    # sideways: a view this far to the side of an open direction, at least
 ALONG_COS = np.cos(np.radians(30.0))   # along: a direction within this of a part axis is named by it
 COVERAGE = 2.0              # Resolution.unresolved: the registration limit holds with this many uncertainties
+TILT_TOLD = 0.5             # untold_tilt: the tilt the plan tolerates, of the lamp tolerance (the mirror turns 2x)
+FINE_SCALES_PX = SCALES_PX[1:]   # side_refit: the edge fit's scales without the coarsest
 LAMP_TILTS_DEG = (15.0, 25.0)   # lamps_along: the lamp's elevations for a further view along a weak direction
 HORIZONTAL = 0.5            # lamps_along: a weak direction less across the cell's xy plane than this has no pan
 ALONG_STEP_M = 1e-3         # along_start: its steps along the weak direction
@@ -760,8 +766,9 @@ def lamps_along(task: Task, direction: np.ndarray, radius_m: float) -> list[tupl
     return joints
 
 
-def refine(task: Task, scene: Scene, views: Sequence[View], first: PoseError) -> PoseError:
-    """The first fit's PoseError corrected by a fit coarse to fine (SCALES_PX) against the model's
+def refine(task: Task, scene: Scene, views: Sequence[View], first: PoseError,
+           scales: Sequence[float] = SCALES_PX) -> PoseError:
+    """The first fit's PoseError corrected by a fit coarse to fine (scales: SCALES_PX) against the model's
     images with the part moved by it (moved_scene) and each camera turned by its hand-eye turn: the
     part's moves and turns compose (offsets add about the moved centre, turns multiply), the
     hand-eye turns too; the standard errors and residual are the second fit's. Coarse to fine, not
@@ -773,7 +780,7 @@ def refine(task: Task, scene: Scene, views: Sequence[View], first: PoseError) ->
     E_he = first.T_hand_eye
     K = projection.intrinsics(task.camera.sensor, task.camera.lens)
     models = [model_view(task, moved, v.T_cell_cam @ E_he, v.lamp_pose, v.drives, drawn=True) for v in views]
-    levels = [[edge_samples(m, signal(task, v.image), s) for m, v in zip(models, views)] for s in SCALES_PX]
+    levels = [[edge_samples(m, signal(task, v.image), s) for m, v in zip(models, views)] for s in scales]
     if min(len(s.points) for s in levels[-1]) < MIN_SAMPLES:
         return first
     return composed(first, fit(levels, K, moved.center, np.zeros(9)))
@@ -1143,6 +1150,34 @@ def resolution(task: Task, scene: Scene, told: Sequence[Told], views: int) -> Re
                       tuple(t.residual for t in told if t.residual is not None), covariance)
 
 
+def untold_tilt(error: PoseError, T_first: np.ndarray, lamp_tolerance_rad: float) -> tuple[np.ndarray, float] | None:
+    """Where the part's tilt across the first view (T_first) is told worse than the plan
+    tolerates, the direction d (cell frame, unit) to give sideways for a view that tells it, and
+    the tilt's standard error [rad]; else None. The tilt: the edge fit's covariance's turn block
+    (small turns: rpy as a rotation vector) less its part about b, the unit vector from the feature
+    centre c to the first camera (a turn about the view axis changes neither the light nor where
+    the feature appears), its largest eigenvalue s^2 and axis a (across b). The edge fit's own,
+    not the views' (rendered_covariance): it holds the two finest scales' difference
+    (model_error), which a tilt the edges do not fix moves (the conrod 8 mm across its shank,
+    yawed 5 deg, its camera turned 2 deg, from two views: 0.81-0.92 deg, the estimate 0.30-0.35 deg off
+    about y; the hinge's pose rows 0.06-0.11 deg), while the views' counts each view's whole
+    residual as one move and does not tell the two apart. Told worse: s beyond TILT_TOLD lamp
+    tolerances (a surface tilted by t turns its mirror direction by 2 t, and the plan holds the
+    band under the lamp tolerance). The direction d = b x a: a tilt about a moves a point X by
+    a x (X - c), along b where X - c lies along b x a (a x (b x a) = b, a across b), which the
+    first view sees by perspective alone; sideways orbits the view to the side of d, along d x b,
+    and (b x a) x b = a: the camera looks from the tilt's own axis, where those points spread
+    across the image and their motion along b turns them in it."""
+    cov = error.covariance if error.covariance is not None else np.diag(np.square(error.theta_stderr))
+    b = geometry.unit(T_first[:3, 3] - error.center)
+    across = np.eye(3) - np.outer(b, b)
+    values, vectors = np.linalg.eigh(across @ cov[3:6, 3:6] @ across)
+    stderr = float(np.sqrt(max(values[-1], 0.0)))
+    if stderr <= TILT_TOLD * lamp_tolerance_rad:
+        return None
+    return geometry.unit(np.cross(b, vectors[:, -1])), stderr
+
+
 def along(task: Task, scene: Scene, direction: np.ndarray) -> str:
     """A cell-frame direction in a process engineer's words: the part's axis (T_cell_part) it is
     nearest, by the part's extent along it (length, width, height), where within 30 deg, and its
@@ -1193,3 +1228,20 @@ def better(first: PoseError, other: PoseError) -> PoseError:
     """Of two fits of the same views from different starts, the one whose last fit (refine's,
     against the model's images where its first fit put the part) leaves the smaller residual."""
     return other if other.residual < first.residual else first
+
+
+def side_refit(task: Task, scene: Scene, views: Sequence[View], earlier: PoseError) -> PoseError:
+    """The estimate of the views with the side view last, from `earlier` (the views before it
+    told the part's position to within the registration limit, or every view's fit from the
+    model's pose and along the open direction, the better): refine at FINE_SCALES_PX, against the
+    model rendered where `earlier` puts the part, not the coarsest scale nor a fit from the
+    model's pose (the better fit's own last pass was rendered where its coarse fit put the part:
+    the conrod 10 mm along its shank, its roll 0.30 -> 0.26 deg). The side view tells the tilt; the fine
+    edges keep the position the earlier views told, where it lies in a flat valley of theirs (a
+    straight shank along itself), while the coarsest scale's wide band, and with it a fit from
+    scratch, slides along that valley (the conrod 8 mm across its shank, yawed 5 deg, with the
+    side view: from scratch 1.23 mm off along the shank, and one 6 px pass from there 1.60 mm;
+    from the two views' estimate, 0.61 mm off, at 3 and 1.5 px 0.77 mm, its tilt 0.30 -> 0.07
+    deg). The earlier estimate lies within the fine scales' basin across the valley: the views
+    before told it (the conrod's offset across the shank to 0.24 mm)."""
+    return refine(task, scene, views, earlier, FINE_SCALES_PX)

@@ -635,11 +635,17 @@ def resolve(ctx: RunContext, task: Task, k: int, scene: Scene, capture: Capture,
     implausible (localization.implausible: it matched the wrong edges there) is logged and left
     out, the estimate before it kept. The lamp goes back to the plan's pose with the next shot's
     move. Where the guard took a further view, one more from the side of the direction it found
-    open (localization.sideways), the lamp back at the first view's pose, among the candidates
-    whose move there and whose way back to `found_at` (where the devices stood at capture k,
-    motion.check_back) are clear: the move on to where the loop goes next is known only after the
-    fit (follow goes back first where it is refused); none clear, the side view is skipped and
-    the log says so. Returns the estimate, its covariance widened by what the views tell over
+    open (localization.sideways), every view fitted again from the model's pose and along that
+    direction, the better (localization.better) refined at the fine scales (localization.side_refit:
+    against the model rendered where that fit put the part, the position the views told kept);
+    where it took none but the fit's own tilt across the first view is told worse than the plan
+    tolerates (localization.untold_tilt), one from the side of the direction that tilt moves the
+    part's points along the first view's axis, the first views' estimate refined at the fine
+    scales (side_refit: they told the position). The side view: the lamp back at the first view's pose, among the
+    candidates whose move there and whose way back to `found_at` (where the devices stood at
+    capture k, motion.check_back) are clear: the move on to where the loop goes next is known only
+    after the fit (follow goes back first where it is refused); none clear, the side view is
+    skipped and the log says so. Returns the estimate, its covariance widened by what the views tell over
     their residual (PoseError.widened by Resolution.covariance: the edge fit's own covers its
     noise, not a tilt the views leave open that the fit holds where the model's image was
     rendered), its Resolution (None where the first estimate is implausible: nothing to resolve)
@@ -694,23 +700,36 @@ def resolve(ctx: RunContext, task: Task, k: int, scene: Scene, capture: Capture,
         views.append(view)
         error = further
         told, resolved = judged(error)
-    if opened is not None:             # a view from the side of it, the lamp back where the first view had it
+    untold = None if opened is not None else localization.untold_tilt(error, views[0].T_cell_cam,
+                                                                        task.requirements.lamp_tolerance_rad)
+    side_of = None if opened is None else (opened.direction, opened.along)   # the view from the side's direction
+    if untold is not None:
+        side_of = untold[0], localization.along(task, scene, untold[0])
+        tolerated = np.degrees(localization.TILT_TOLD * task.requirements.lamp_tolerance_rad)
+        ctx.recorder.step("localize", f"{localization.describe(error, error.views)}: its tilt {side_of[1]} is told "
+                                      f"to within {np.degrees(untold[1]):.2f} deg, more than the {tolerated:.2f} deg "
+                                      "the plan tolerates: a view from the side", iteration=k, **error.to_json())
+    if side_of is not None:            # a view from the side, the lamp back where the first view had it
+        direction, named = side_of
         pan, tilt, length = (float(j) for j in lamp_joints(pivot, lamp_pose[0]))
         home = (pan, tilt, length)
         side = [(T, home) for T in (candidates[i] for i in localization.sideways(
-            candidates, views[0].T_cell_cam, scene.center, opened.direction, lamp_pose[0])) if new(T, home)]
+            candidates, views[0].T_cell_cam, scene.center, direction, lamp_pose[0])) if new(T, home)]
         seen = take_view(ctx, task, k, scene, capture, side, f"locate-{k}-{len(tried) + 1}", "a view from the side",
-                         f"a view of the part from the side, to tell its tilt {opened.along}", found_at)
+                         f"a view of the part from the side, to tell its tilt {named}", found_at)
         if seen is None:
-            ctx.recorder.step("localize", f"no view from the side of the part {opened.along} is reachable with "
+            ctx.recorder.step("localize", f"no view from the side of the part {named} is reachable with "
                                           "its move there and its way back to the pose the part was found at clear: "
                                           "the side view is skipped, the estimate's standard errors widened by what "
                                           "the views tell", iteration=k)
-        fitted = None if seen is None else localization.localize(task, scene, [*views, seen])
+        fitted = (None if seen is None else localization.localize(task, scene, [*views, seen]) if opened is not None
+                  else localization.side_refit(task, scene, [*views, seen], error))
         if seen is not None and fitted is not None and not localization.implausible(fitted, capture.T_cell_cam):
-            along = localization.localize(task, scene, [*views, seen], (error, opened.direction))
+            along = None if opened is None else localization.localize(task, scene, [*views, seen],
+                                                                       (error, opened.direction))
             views.append(seen)
-            error = fitted if along is None else localization.better(fitted, along)
+            error = fitted if along is None else localization.side_refit(task, scene, views,
+                                                                         localization.better(fitted, along))
             told, resolved = judged(error)
         return error.widened(resolved.covariance), resolved, None if seen is None else found_at
     return error.widened(resolved.covariance), resolved, None
