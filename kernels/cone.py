@@ -15,7 +15,6 @@ through passes every triangle by at least that angle (a ray the float32 BVH coul
 by rounding is cast, not skipped). Sectors are kept only where the narrowest cone is wider than
 2 MARGIN_RAD, so that the directions they judge have a well-defined azimuth.
 """
-import hashlib
 import math
 from typing import TYPE_CHECKING
 
@@ -221,11 +220,7 @@ def common_cone_cosine(mesh: "WarpMesh", axis_point: ArrayLike, normal: ArrayLik
     KEPT_CYLINDERS most recent of each mesh and normal (of at most 8 meshes)."""
     n = np.asarray(normal, dtype=np.float64)
     c = np.asarray(axis_point, dtype=np.float64)
-    digest = mesh.__dict__.get("_digest")          # a WarpMesh is never changed: its digest once
-    if digest is None:
-        digest = mesh.__dict__["_digest"] = hashlib.blake2b(mesh.vertices.tobytes() + mesh.faces.tobytes(),
-                                                            digest_size=16).digest()
-    key = (digest, n.tobytes())
+    key = (mesh.digest, n.tobytes())
     kept = _KEPT.pop(key, [])
     _KEPT[key] = kept
     (nx, ny, nz), (cx, cy, cz) = n.tolist(), c.tolist()

@@ -1,5 +1,7 @@
 """A triangle mesh as a Warp BVH (wp.Mesh), for the ray-casting kernels."""
+import hashlib
 import threading
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -40,6 +42,13 @@ class WarpMesh:
     def id(self) -> Any:
         """The wp.uint64 handle kernels take."""
         return self.mesh.id
+
+    @cached_property
+    def digest(self) -> bytes:
+        """A digest of the geometry the kernels see (its vertices and faces), found once: a
+        WarpMesh is never changed (rebuild rather than mutate), so it names this geometry in a
+        cache's key (kernels.cone.common_cone_cosine)."""
+        return hashlib.blake2b(self.vertices.tobytes() + self.faces.tobytes(), digest_size=16).digest()
 
     def __repr__(self):
         return f"WarpMesh({len(self.vertices)} vertices, {len(self.faces)} faces)"
