@@ -14,6 +14,15 @@ def vec3d(a: ArrayLike, name: str) -> wp.array:
     return wp.array(a, dtype=wp.vec3d, device="cpu")
 
 
+def vec3d_view(a: np.ndarray, name: str) -> wp.array:
+    """(N, 3) C-contiguous float64 -> wp.array(vec3d) over the same memory (vec3d's values, no
+    copy, no allocation: on a thread beside another each Warp call hands the GIL over); the
+    caller keeps `a` alive, and unchanged, while the view is read."""
+    if a.dtype != np.float64 or a.ndim != 2 or a.shape[1] != 3 or not a.flags.c_contiguous:
+        raise ValueError(f"{name} must be a C-contiguous float64 array of shape (N, 3), got {a.dtype} {a.shape}")
+    return wp.array(a, dtype=wp.vec3d, device="cpu", copy=False)
+
+
 def unit_rows(a: ArrayLike, name: str) -> np.ndarray:
     """Rows of (N, 3) scaled to unit length (float64)."""
     a = np.asarray(a, dtype=np.float64).reshape(-1, 3)

@@ -10,7 +10,7 @@ from numpy.typing import ArrayLike
 
 from . import funcs
 from .emission import axis_intensity, hard_cone_profile, profile_solid_angle
-from ._arrays import output, profile2d, table2d, unit_rows, vec3d
+from ._arrays import output, profile2d, table2d, unit_rows, vec3d, vec3d_view
 from .cone import MARGIN_RAD, NO_CONE, common_cone_cosine, free_cone_cosines, worth_finding
 from .runtime import ensure_init, in_parallel, launch_sliced, slices
 
@@ -128,14 +128,15 @@ class GrayInputs:
                  pixel_area_m2: float, shadows: bool = True, cone: bool = True, offset_m: float = 1e-5,
                  profile: ArrayLike | None = None, flat: Sequence[tuple[int, int]] = ()) -> None:
         self.device = ensure_init(__name__)
-        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        normals = unit_rows(normals, "normals")
+        points = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
+        normals = np.ascontiguousarray(unit_rows(normals, "normals"))
         if len(normals) != len(points):
             raise ValueError(f"{len(points)} points but {len(normals)} normals")
         self.count = len(points)
         use_shadows = bool(shadows) and mesh is not None
         self._mesh = mesh if use_shadows else None      # keeps the BVH alive as long as its id is used
-        self._surface_inputs = [vec3d(points, "points"), vec3d(normals, "normals"),
+        # views of points and normals, which _shadow_rays keeps (and nothing writes)
+        self._surface_inputs = [vec3d_view(points, "points"), vec3d_view(normals, "normals"),
                                 wp.vec3d(*np.asarray(camera_pos, dtype=np.float64)), float(offset_m)]
         self._shadow_rays = (points, normals, float(offset_m))   # the free cones' ray origins, made if found
         self.surfaces = wp.empty(self.count, dtype=funcs.Surface, device=self.device)
@@ -145,11 +146,10 @@ class GrayInputs:
         self.has_free_cones = False
         self._leading = [self._mesh.id if self._mesh is not None else wp.uint64(0), int(use_shadows),
                          int(bool(cone)), self.surfaces, sector_cos_wp]
-        self.intensity_w_sr = axis_intensity(power_w, cone_angle_rad, profile)
         # I(0) is linear in the power: P / Omega_p for each lamp's own P (axis_intensity's division)
-        self._solid_angle_sr = profile_solid_angle(hard_cone_profile(cone_angle_rad) if profile is None else profile)
-        self._trailing = [profile2d(profile, cone_angle_rad), table2d(table), float(camera_constant),
-                          float(pixel_area_m2)]
+        self.intensity_w_sr, self._solid_angle_sr, profile_wp, table_wp = lamp_and_material(
+            power_w, cone_angle_rad, profile, table)
+        self._trailing = [profile_wp, table_wp, float(camera_constant), float(pixel_area_m2)]
         # the kept batches split into slices, by lamp count (None: one launch, the single batch's)
         self._launches: dict[int, _Batch | None] = {}
         self._single: _Batch | None = None           # the kept batch of one launch, for up to its lamps
@@ -215,8 +215,9 @@ class GrayInputs:
         if sector_cos is not None:
             self._sector_cos[:] = sector_cos
         if self.count:
+            free_cos = np.ascontiguousarray(free_cos, dtype=np.float64)     # read by the launch, in place
             wp.launch(surface_kernel, dim=self.count, device=self.device,
-                      inputs=self._surface_inputs + [wp.array(free_cos, dtype=wp.float64, device=self.device),
+                      inputs=self._surface_inputs + [wp.array(free_cos, dtype=wp.float64, device=self.device, copy=False),
                                                      int(sector_cos is not None)],
                       outputs=[self.surfaces])
 
@@ -242,6 +243,32 @@ class GrayInputs:
                     self._single = _Batch(self, lamps)
                 kept = self._single
             return kept.run(lamp_pos, lamp_axis, intensity, copy=True)
+
+
+KEPT_CONSTANTS = 8      # lamps and material tables whose kernel arrays are kept (a plan has one or two)
+_CONSTANTS: dict[bytes, tuple[float, float, wp.array, wp.array]] = {}
+_CONSTANTS_LOCK = threading.Lock()      # GrayInputs may be made on several threads of a process
+
+
+def lamp_and_material(power_w: float, cone_angle_rad: float, profile: ArrayLike | None,
+                      table: ArrayLike) -> tuple[float, float, wp.array, wp.array]:
+    """(I(0) [W/sr] (axis_intensity), the profile's solid angle Omega_p [sr] (profile_solid_angle),
+    profile2d's and table2d's arrays) of a lamp and a material table, made once per their values
+    in a process (the KEPT_CONSTANTS most recent): every GrayInputs of one task asks the same
+    (some 740 at 40 features), and the kernels only read the arrays."""
+    shape = np.ascontiguousarray(hard_cone_profile(cone_angle_rad) if profile is None else profile, dtype=np.float64)
+    rows = np.ascontiguousarray(table, dtype=np.float64)
+    key = b"".join([np.array([power_w, cone_angle_rad, profile is None, *shape.shape, *rows.shape], np.float64).tobytes(),
+                    shape.tobytes(), rows.tobytes()])
+    with _CONSTANTS_LOCK:
+        kept = _CONSTANTS.pop(key, None)
+        if kept is None:
+            kept = (axis_intensity(power_w, cone_angle_rad, profile), profile_solid_angle(shape),
+                    profile2d(profile, cone_angle_rad), table2d(rows))
+        _CONSTANTS[key] = kept
+        while len(_CONSTANTS) > KEPT_CONSTANTS:
+            del _CONSTANTS[next(iter(_CONSTANTS))]
+    return kept
 
 
 def _ranges(lamps: int, points: int) -> list[tuple[int, int, int, int]]:

@@ -554,6 +554,57 @@ def test_bad_tables_and_shapes_are_refused():
             gray_per_exposure(None, *args, METAL, C_CAMERA, A_PIXEL, profile=profile)
 
 
+def test_a_vec3d_view_reads_the_arrays_own_memory_with_vec3ds_values():
+    """_arrays.vec3d_view: the values vec3d copies, over the array's own memory (read-only ones
+    too); anything but C-contiguous float64 (N, 3) refused."""
+    from kernels import _arrays
+    a = np.random.default_rng(3).normal(size=(50, 3))
+    a.flags.writeable = False
+    view = _arrays.vec3d_view(a, "points")
+    assert view.ptr == a.ctypes.data and np.array_equal(view.numpy(), _arrays.vec3d(a, "points").numpy())
+    for bad in (a[::2], a.T.copy(), a.astype(np.float32), a[:, :2].copy()):
+        with pytest.raises(ValueError, match="C-contiguous float64"):
+            _arrays.vec3d_view(bad, "points")
+
+
+def test_gray_inputs_of_arrays_in_any_layout_equal_those_of_contiguous_copies(blocks):
+    """GrayInputs views its points and normals (_arrays.vec3d_view) once made C-contiguous: a
+    column-major or strided points and normals array gives the contiguous copies' gray bit for bit."""
+    rng = np.random.default_rng(5)
+    points = np.asfortranarray(np.column_stack([rng.uniform(-0.05, 0.05, (40, 2)), np.full(40, 0.01)]))
+    normals = np.asfortranarray(np.tile([0.0, 0.0, 2.0], (80, 1)))[::2]
+    lamps = np.array([[0.1, 0.05, 0.3], [-0.2, 0.1, 0.2]])
+    args = (np.array([0.0, 0.0, 0.5]), P_LAMP, GAMMA, METAL, C_CAMERA, A_PIXEL)
+    assert not points.flags.c_contiguous and not normals.flags.c_contiguous
+    for shadow_mesh in (None, blocks):
+        a = GrayInputs(shadow_mesh, points, normals, *args)(lamps, -lamps)
+        b = GrayInputs(shadow_mesh, np.ascontiguousarray(points), np.ascontiguousarray(normals), *args)(lamps, -lamps)
+        assert all(np.array_equal(getattr(a, k), getattr(b, k)) for k in ("value", "shadowed", "off_axis", "dominant"))
+        assert np.any(a.value > 0)
+
+
+def test_a_lamps_and_materials_kernel_arrays_are_made_once_and_equal_those_made_anew():
+    """gray.lamp_and_material: I(0), the profile's solid angle and the kernels' profile and table
+    arrays equal those made for each GrayInputs (emission.axis_intensity, profile_solid_angle,
+    _arrays.profile2d, table2d), the same objects for equal values, others for others; a bad
+    table still refused, and not kept."""
+    from kernels import _arrays, emission
+    for profile in (None, SOFT):
+        for table in (METAL, ALUMINIUM):
+            kept = gray.lamp_and_material(P_LAMP, GAMMA, profile, table)
+            assert kept[0] == emission.axis_intensity(P_LAMP, GAMMA, profile)
+            assert kept[1] == emission.profile_solid_angle(emission.hard_cone_profile(GAMMA) if profile is None else profile)
+            assert np.array_equal(kept[2].numpy(), _arrays.profile2d(profile, GAMMA).numpy())
+            assert np.array_equal(kept[3].numpy(), _arrays.table2d(table).numpy())
+            again = gray.lamp_and_material(P_LAMP, GAMMA, None if profile is None else profile.copy(), table.copy())
+            assert all(a is b for a, b in zip(kept[2:], again[2:])) and kept[:2] == again[:2]
+    assert gray.lamp_and_material(2 * P_LAMP, GAMMA, None, METAL)[0] == 2 * gray.lamp_and_material(P_LAMP, GAMMA, None, METAL)[0]
+    assert gray.lamp_and_material(P_LAMP, GAMMA, None, METAL)[2] is not gray.lamp_and_material(P_LAMP, GAMMA, SOFT, METAL)[2]
+    for _ in range(2):
+        with pytest.raises(ValueError, match="ascending"):
+            gray.lamp_and_material(P_LAMP, GAMMA, None, METAL[::-1])
+
+
 @pytest.fixture(scope="module")
 def plate_scene():
     """A 200 mm square plate (z = 0, normal +z) with a 20 mm cube on it, camera 0.5 m above."""

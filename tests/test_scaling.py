@@ -69,6 +69,7 @@ def test_the_growth_exponent_is_the_log_log_slope():
     # a fixed cost on top of linear growth: below 1
     assert scaling.growth_exponent([10, 40], [5.0 + 10, 5.0 + 40], (10, 40)) == pytest.approx(
         math.log(45 / 15) / math.log(4))
+    assert math.isnan(scaling.growth_exponent([40], [11.3], (40, 40)))     # one size: no slope (not 0 / 0)
 
 
 HOLD = ("import time; b = bytearray(300_000_000); b[::4096] = b'x' * len(b[::4096]); time.sleep(1.0); del b; "

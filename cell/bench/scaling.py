@@ -42,8 +42,10 @@ MEMORY_TARGET_B = 1e9
 
 def growth_exponent(features: Sequence[int], times: Sequence[float], between: tuple[int, int]) -> float:
     """The exponent k of time ~ features^k between the two sizes `between`: the log-log slope
-    ln(t2 / t1) / ln(n2 / n1)."""
+    ln(t2 / t1) / ln(n2 / n1); NaN where they are one size (a bench of one size has no growth)."""
     (n1, n2), by = between, dict(zip(features, times))
+    if n1 == n2:
+        return math.nan
     return math.log(by[n2] / by[n1]) / math.log(n2 / n1)
 
 
