@@ -69,6 +69,7 @@ from scipy.spatial.transform import Rotation
 
 from cell.core import geometry
 from cell.devices.interfaces import Arm
+from cell.devices.rig import lamp_frame
 from cell.physics import projection
 from cell.planning.evaluate import black_level
 from cell.run import registration
@@ -123,6 +124,10 @@ FINE_SCALES_PX = SCALES_PX[1:]   # side_refit: the edge fit's scales without the
 LAMP_TILTS_DEG = (15.0, 25.0)   # lamps_along: the lamp's elevations for a further view along a weak direction
 HORIZONTAL = 0.5            # lamps_along: a weak direction less across the cell's xy plane than this has no pan
 ALONG_STEP_M = 1e-3         # along_start: its steps along the weak direction
+AIM_GRID_DEG = (-3.0, -2.0, -1.0, 0.0, 1.0, 2.0, 3.0)   # lamp_turn: the lamp's turns about its x and y,
+AIM_FINE_DEG = 0.25         # then about the best in these steps, two either way
+SAME_LAMP_M = 1e-3          # lamp_turn: views whose lamp stands within this and aims within SAME_LAMP_RAD
+SAME_LAMP_RAD = np.radians(0.2)    # of the first's share its pose (a servo tick is 0.09 deg)
 PAN_MARGIN_RAD = np.radians(1.0)   # lamps_along: its pans this far inside the rig's range (a servo rig's pan at
                                    # exactly 180 deg is tick 4096, one beyond its position limit)
 
@@ -764,6 +769,87 @@ def lamps_along(task: Task, direction: np.ndarray, radius_m: float) -> list[tupl
         joints += [(pan, float(tilt), float(radius_m)) for tilt in np.radians(LAMP_TILTS_DEG)
                    if rig.tilt_range_rad[0] <= tilt <= rig.tilt_range_rad[1]]
     return joints
+
+
+@dataclass(frozen=True)
+class LampTurn:
+    """The lamp's aim error lamp_turn found: the lamp pose (position, read-back aim; cell frame)
+    of the views it was found in, the true axis (unit, cell frame), and the edge fit's cost per
+    edge sample (cost) at the estimate under that axis and under the read-back aim."""
+
+    lamp_pose: LampPose
+    axis: np.ndarray
+    cost: float
+    unturned_cost: float
+
+    @property
+    def angle_rad(self) -> float:
+        """The angle between the true axis and the read-back aim [rad]."""
+        return float(np.arccos(np.clip(geometry.unit(self.lamp_pose[1]) @ self.axis, -1.0, 1.0)))
+
+    def applied(self, view: View) -> View:
+        """The view with its lamp's aim the true axis where its lamp pose is the one the turn was
+        found at (same_lamp: a mount's error, the same there at every camera pose); another lamp
+        pose (the rig turned, a lamp-low view) as it was."""
+        if not same_lamp(view.lamp_pose, self.lamp_pose):
+            return view
+        return replace(view, lamp_pose=(view.lamp_pose[0], self.axis))
+
+    def to_json(self) -> dict[str, Any]:
+        """report.json's `localization` keys of the lamp's aim (docs/formats.md)."""
+        return {"lamp_aim_deg": float(np.degrees(self.angle_rad)), "lamp_axis": self.axis.tolist()}
+
+
+def same_lamp(a: LampPose, b: LampPose) -> bool:
+    """Whether two read-back lamp poses are one: positions within SAME_LAMP_M, aims within
+    SAME_LAMP_RAD."""
+    aims = float(np.clip(geometry.unit(a[1]) @ geometry.unit(b[1]), -1.0, 1.0))
+    return bool(np.linalg.norm(np.asarray(a[0]) - np.asarray(b[0])) <= SAME_LAMP_M and np.arccos(aims) <= SAME_LAMP_RAD)
+
+
+def lamp_turn(task: Task, scene: Scene, views: Sequence[View], error: PoseError) -> LampTurn:
+    """The lamp's aim error: the turn of its axis that, at the estimate (the part moved by
+    `error`, each camera turned by its hand-eye), lets the model's images explain the captures'
+    edges best, searched jointly over the views that share the first view's lamp pose (same_lamp:
+    a lamp mounted off its aim errs alike at every camera pose while the rig stands still). The
+    turns: about the lamp's horizontal x and its y (rig.lamp_frame, both across the aim) over
+    AIM_GRID_DEG, then AIM_FINE_DEG steps about the best, two either way; each scored by the
+    edge fit's cost per edge sample at the coarsest scale (edge_samples of the model rendered
+    under the turned lamp, cost at theta = 0). Why: the lamp's profile fades the light along the
+    part, and the edge fit weighs each edge by the model's rendered contrast there; a spot lit off
+    its aim moves that fade, which the fit, moving every edge with the part, reads as the part
+    moved (the conrod's shank, lit by the spot alone: the lamp 2 deg off read as 12.7 mm along
+    it). Rendered at the estimate, the part's light is the cell's, so the fade tells the lamp's
+    turn (the conrod: 2 deg found within 0.25 deg), which the part, moved along a shank that looks
+    alike, does not."""
+    shared = [v for v in views if same_lamp(v.lamp_pose, views[0].lamp_pose)]
+    position, aim = np.asarray(views[0].lamp_pose[0], float), geometry.unit(views[0].lamp_pose[1])
+    frame = lamp_frame(task.lamp.rig.pivot_m, position)
+    x, y = frame[:, 0], frame[:, 1]
+    moved = moved_scene(scene, error.T_part)
+    K = projection.intrinsics(task.camera.sensor, task.camera.lens)
+    sensor = task.camera.sensor
+    models = [model_view(task, moved, v.T_cell_cam @ error.T_hand_eye, v.lamp_pose, v.drives) for v in shared]
+    images = [signal(task, v.image) for v in shared]
+
+    def axis(turn: tuple[float, float]) -> np.ndarray:
+        return Rotation.from_rotvec(np.radians(turn[0]) * x + np.radians(turn[1]) * y).apply(aim)
+
+    def score(turn: tuple[float, float]) -> float:
+        lamp = (position, axis(turn))
+        levels = [edge_samples(replace(m, value=registration.expected_image(
+            task, moved, m.T_cell_cam, lamp, (0, 0, sensor.width_px, sensor.height_px), 1, v.drives)), image,
+            SCALES_PX[0]) for m, v, image in zip(models, shared, images)]
+        return cost(levels, K, moved.center, np.zeros(9)) / max(sum(len(s.points) for s in levels), 1)
+
+    scores = {(a, b): score((a, b)) for a in AIM_GRID_DEG for b in AIM_GRID_DEG}
+    best = min(scores, key=lambda t: scores[t])
+    steps = AIM_FINE_DEG * np.arange(-2, 3)
+    for turn in ((best[0] + da, best[1] + db) for da in steps for db in steps):
+        if turn not in scores:
+            scores[turn] = score(turn)
+    best = min(scores, key=lambda t: scores[t])
+    return LampTurn((position, aim), axis(best), scores[best], scores[(0.0, 0.0)])
 
 
 def refine(task: Task, scene: Scene, views: Sequence[View], first: PoseError,
