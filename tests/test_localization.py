@@ -196,7 +196,7 @@ def test_the_loop_follows_a_2_deg_hand_eye_turn_on_the_hinge_and_converges(tmp_p
     assert found["part_offset_m"] == pytest.approx([0.0, 0.0, 0.0], abs=1e-3)
     assert all(len(found[f"{k}_stderr"]) == 3 for k in ("part_offset_m", "part_rpy_deg", "hand_eye_rpy_deg"))
     assert "localize" in cell.steps and len(cell.report["replans"]) == 1
-    (line,) = [line for line in cell.log if line["step"] == "localize"]
+    (line,) = [line for line in cell.log if line["step"] == "localize" and "hand_eye_rpy_deg" in line]
     assert line["hand_eye_rpy_deg"] == found["hand_eye_rpy_deg"]
 
 
@@ -315,7 +315,7 @@ def test_a_capture_off_the_part_is_localized_not_stopped_at_its_black_pixels(tmp
     assert cell.error is None and cell.report["converged"], cell.report["reason"]
     assert not cell.report["iterations"][0]["registration"]["trusted"]
     found = cell.report["localization"]
-    assert found["followed"] and found["views"] == views
+    assert found["followed"] and found["views"] == 2
     assert found["part_offset_m"] == pytest.approx(truth["part_offset_m"], abs=1e-3)
     assert found["part_rpy_deg"] == pytest.approx(truth["part_rpy_deg"], abs=0.3)
     assert found["hand_eye_rpy_deg"][:2] == pytest.approx(truth["camera_rpy_deg"][:2], abs=0.3)
@@ -328,7 +328,8 @@ def test_a_spread_read_on_an_unregistered_region_is_localized_before_it_stops(tm
     (the light the model lacks and the part elsewhere), and the model's region, not the feature,
     reads a spread (max/min) of 1.80, which stopped the loop with `lamp aim` before it localized;
     at the correct model's plan the feature's is 1.20, within the band's 1.25 (aim_solvable). Now the stop on an unregistered region
-    localizes first (two views), and the loop converges where the part is, the estimate within
+    localizes first (two views, the lamp's aim found beyond its 1 deg tolerance, so a third from
+    the side: docs/closed-loop.md), and the loop converges where the part is, the estimate within
     1 mm and 0.3 deg of the truth keys."""
     truth = {"part_rpy_deg": [0.0, 3.0, 0.0], "camera_rpy_deg": [1.0, 0.0, 0.0], "lamp_direction_error_deg": 2.0}
     keys = {"sim.effects": EVERY_EFFECT, "sim.seed": 2} | {f"sim.truth.{k}": v for k, v in truth.items()}
@@ -337,7 +338,9 @@ def test_a_spread_read_on_an_unregistered_region_is_localized_before_it_stops(tm
     first = cell.report["iterations"][0]
     assert not first["registration"]["trusted"] and not first["in_band"]
     found = cell.report["localization"]
-    assert found["followed"] and found["views"] == 2 and found["iteration"] == 1
+    assert found["followed"] and found["views"] == 3 and found["iteration"] == 1
+    turns = [line["lamp_aim_deg"] for line in cell.log if line["step"] == "localize" and "lamp_aim_deg" in line]
+    assert max(turns) > np.degrees(load_task(HINGE).requirements.lamp_tolerance_rad), turns
     # about the feature's centre, as the simulator turns the part: no offset
     assert found["part_offset_m"] == pytest.approx([0.0, 0.0, 0.0], abs=1e-3)
     assert found["part_rpy_deg"] == pytest.approx(truth["part_rpy_deg"], abs=0.3)
@@ -689,7 +692,7 @@ def test_the_bracket_localized_at_its_bevel_reports_the_pose_as_the_simulator_tu
     report = json.loads((tmp_path / "run" / "report.json").read_text())
     assert report["converged"], report["reason"]
     found = report["localization"]
-    assert found["followed"] and found["views"] == views
+    assert found["followed"] and found["views"] == 2
     assert found["part_offset_m"] == pytest.approx(truth["part_offset_m"], abs=1e-3)
     assert found["part_rpy_deg"] == pytest.approx(truth["part_rpy_deg"], abs=0.3)
     assert found["hand_eye_rpy_deg"][:2] == pytest.approx(truth["camera_rpy_deg"][:2], abs=0.3)
