@@ -10,6 +10,7 @@ from numpy.typing import ArrayLike
 
 from . import funcs
 from .emission import axis_intensity, hard_cone_profile, profile_solid_angle
+from ._recent import Kept
 from ._arrays import output, profile2d, table2d, unit_rows, vec3d, vec3d_view
 from .cone import MARGIN_RAD, NO_CONE, common_cone_cosine, free_cone_cosines, worth_finding
 from .runtime import ensure_init, in_parallel, launch_sliced, slices
@@ -246,8 +247,8 @@ class GrayInputs:
 
 
 KEPT_CONSTANTS = 8      # lamps and material tables whose kernel arrays are kept (a plan has one or two)
-_CONSTANTS: dict[bytes, tuple[float, float, wp.array, wp.array]] = {}
-_CONSTANTS_LOCK = threading.Lock()      # GrayInputs may be made on several threads of a process
+_CONSTANTS: Kept[tuple[float, float, wp.array, wp.array]] = Kept(KEPT_CONSTANTS)   # GrayInputs are made on
+                                                                                      # several threads of a process
 
 
 def lamp_and_material(power_w: float, cone_angle_rad: float, profile: ArrayLike | None,
@@ -260,15 +261,8 @@ def lamp_and_material(power_w: float, cone_angle_rad: float, profile: ArrayLike 
     rows = np.ascontiguousarray(table, dtype=np.float64)
     key = b"".join([np.array([power_w, cone_angle_rad, profile is None, *shape.shape, *rows.shape], np.float64).tobytes(),
                     shape.tobytes(), rows.tobytes()])
-    with _CONSTANTS_LOCK:
-        kept = _CONSTANTS.pop(key, None)
-        if kept is None:
-            kept = (axis_intensity(power_w, cone_angle_rad, profile), profile_solid_angle(shape),
-                    profile2d(profile, cone_angle_rad), table2d(rows))
-        _CONSTANTS[key] = kept
-        while len(_CONSTANTS) > KEPT_CONSTANTS:
-            del _CONSTANTS[next(iter(_CONSTANTS))]
-    return kept
+    return _CONSTANTS.get(key, lambda: (axis_intensity(power_w, cone_angle_rad, profile), profile_solid_angle(shape),
+                                        profile2d(profile, cone_angle_rad), table2d(rows)))
 
 
 def _ranges(lamps: int, points: int) -> list[tuple[int, int, int, int]]:

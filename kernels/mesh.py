@@ -1,6 +1,5 @@
 """A triangle mesh as a Warp BVH (wp.Mesh), for the ray-casting kernels."""
 import hashlib
-import threading
 from functools import cached_property
 from typing import Any
 
@@ -8,6 +7,7 @@ import numpy as np
 import warp as wp
 from numpy.typing import ArrayLike
 
+from ._recent import Kept
 from .runtime import ensure_init
 
 
@@ -54,9 +54,8 @@ class WarpMesh:
         return f"WarpMesh({len(self.vertices)} vertices, {len(self.faces)} faces)"
 
 
-_SHARED: dict[str, WarpMesh] = {}   # this process's meshes: key -> WarpMesh, newest last
-_SHARED_MAX = 8
-_SHARED_LOCK = threading.Lock()     # the judge lays dense patches on runtime.in_background's thread
+_SHARED: Kept[WarpMesh] = Kept(8)   # this process's meshes by key (the judge lays dense patches on
+                                    # runtime.in_background's thread: asked from two threads)
 
 
 def shared_mesh(key: str, vertices: ArrayLike, faces: ArrayLike) -> WarpMesh:
@@ -67,9 +66,4 @@ def shared_mesh(key: str, vertices: ArrayLike, faces: ArrayLike) -> WarpMesh:
     The few most recent meshes are kept (a bench or a test suite plans many scenes of one part),
     under a lock: threads of one process ask at once (runtime.in_background).
     """
-    with _SHARED_LOCK:
-        mesh = _SHARED.pop(key, None) or WarpMesh(vertices, faces)
-        _SHARED[key] = mesh
-        while len(_SHARED) > _SHARED_MAX:
-            _SHARED.pop(next(iter(_SHARED)))
-        return mesh
+    return _SHARED.get(key, lambda: WarpMesh(vertices, faces))
