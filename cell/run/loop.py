@@ -674,7 +674,7 @@ def resolve(ctx: RunContext, task: Task, k: int, scene: Scene, capture: Capture,
     direction, the better (localization.better) refined at the fine scales (localization.side_refit:
     against the model rendered where that fit put the part, the position the views told kept);
     where it took none but the fit's own tilt across the first view is told worse than the plan
-    tolerates (localization.untold_tilt), one from the side of the direction that tilt moves the
+    tolerates (localization.untold_tilt; side_direction), one from the side of the direction that tilt moves the
     part's points along the first view's axis, the first views' estimate refined at the fine
     scales (side_refit: they told the position). The side view: the lamp back at the first view's pose, among the
     candidates whose move there and whose way back to `found_at` (where the devices stood at
@@ -744,19 +744,7 @@ def resolve(ctx: RunContext, task: Task, k: int, scene: Scene, capture: Capture,
         views.append(view)
         error = further
         told, resolved = judged(error)
-    # under a lamp's turn (aim_error) the part's tilt is taken as untold whatever the fit's own error says: a
-    # tilt along the part and the lamp turned along it both move the light along it, traded in two views
-    tolerance = 0.0 if turn is not None else task.requirements.lamp_tolerance_rad
-    untold = None if opened is not None else localization.untold_tilt(error, views[0].T_cell_cam, tolerance)
-    side_of = None if opened is None else (opened.direction, opened.along)   # the view from the side's direction
-    if untold is not None:
-        side_of = untold[0], localization.along(task, scene, untold[0])
-        tolerated = np.degrees(localization.TILT_TOLD * tolerance)
-        why = (f"its tilt {side_of[1]} and the lamp's turn both move the light along the part" if turn is not None
-               else f"its tilt {side_of[1]} is told to within {np.degrees(untold[1]):.2f} deg, more than the "
-                    f"{tolerated:.2f} deg the plan tolerates")
-        ctx.recorder.step("localize", f"{localization.describe(error, error.views)}: {why}: a view from the side",
-                          iteration=k, **error.to_json())
+    side_of = side_direction(ctx, task, scene, k, error, views[0], opened, turn)
     if side_of is not None:            # a view from the side, the lamp back where the first view had it
         direction, named = side_of
         pan, tilt, length = (float(j) for j in lamp_joints(pivot, lamp_pose[0]))
@@ -783,6 +771,32 @@ def resolve(ctx: RunContext, task: Task, k: int, scene: Scene, capture: Capture,
             told, resolved = judged(error)
         return error.widened(resolved.covariance), resolved, None if seen is None else found_at
     return error.widened(resolved.covariance), resolved, None
+
+
+def side_direction(ctx: RunContext, task: Task, scene: Scene, k: int, error: localization.PoseError,
+                   first: localization.View, opened: localization.Resolution | None,
+                   turn: localization.LampTurn | None) -> tuple[np.ndarray, str] | None:
+    """Whether resolve takes a view from the side of the part, and along which direction (with
+    its words): along the direction the guard found open where it took a further view (`opened`);
+    otherwise along the direction the fit's own tilt across the first view moves the part's points
+    along its axis (localization.untold_tilt), where that tilt is told worse than
+    TILT_TOLD x the plan's lamp tolerance, or whatever it is told under a lamp's turn found (`turn`:
+    a tilt along the part and the lamp turned along it both move the light along it, traded in
+    two views), the reason logged; None: no side view."""
+    if opened is not None:
+        return opened.direction, opened.along
+    tolerance = 0.0 if turn is not None else task.requirements.lamp_tolerance_rad
+    untold = localization.untold_tilt(error, first.T_cell_cam, tolerance)
+    if untold is None:
+        return None
+    named = localization.along(task, scene, untold[0])
+    tolerated = np.degrees(localization.TILT_TOLD * tolerance)
+    why = (f"its tilt {named} and the lamp's turn both move the light along the part" if turn is not None
+           else f"its tilt {named} is told to within {np.degrees(untold[1]):.2f} deg, more than the "
+                f"{tolerated:.2f} deg the plan tolerates")
+    ctx.recorder.step("localize", f"{localization.describe(error, error.views)}: {why}: a view from the side",
+                      iteration=k, **error.to_json())
+    return untold[0], named
 
 
 def follow(ctx: RunContext, aim: Aim, k: int, error: localization.PoseError, back: Stop | None = None
