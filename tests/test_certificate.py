@@ -88,22 +88,6 @@ def test_specular_points_searched_together_equal_each_searched_alone(problems_at
             assert found >= best_dense - 1e-6         # the start re-projected onto the surface (float32)
 
 
-def test_a_patchs_search_start_is_its_best_dense_point_within_its_radius(dense_scenes):
-    """certificate.search_start (verify_all finds it for each patch as it comes): the patch's
-    largest np.linalg.norm from its centre and its first dense point of largest <v, r>, exactly;
-    specular_points given them finds what it finds by itself, bit for bit."""
-    centre = np.mean([s.center for s in dense_scenes], axis=0)
-    for angle in np.radians([30.0, 150.0, 270.0]):
-        lamp = centre + 0.2 * np.array([np.cos(angle), np.sin(angle), 1.0])
-        starts = [certificate.search_start(s, lamp) for s in dense_scenes]
-        for s, (radius, start) in zip(dense_scenes, starts):
-            assert radius == float(np.max(np.linalg.norm(s.points - s.center, axis=1)))
-            alignment = certificate.mirror_alignment(s.points, s.normals, lamp, s.camera_position)
-            assert np.array_equal(start, s.points[np.flatnonzero(alignment == alignment.max())[0]])
-        given = certificate.specular_points(dense_scenes, lamp, starts)
-        assert all(np.array_equal(a, b) for a, b in zip(given, certificate.specular_points(dense_scenes, lamp)))
-
-
 def specular_point_alone(scene, lamp):
     """A patch's specular point the slow way: scipy's Nelder-Mead from the best dense point, each
     step projected by its own closest_points call and judged by mirror_alignment in NumPy (off

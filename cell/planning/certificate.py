@@ -81,17 +81,7 @@ def mirror_alignment(points: np.ndarray, normals: np.ndarray, lamp: ArrayLike, c
     return (twice * nx - sx) * vx + (twice * ny - sy) * vy + (twice * nz - sz) * vz + 0.0
 
 
-def search_start(scene: Scene, lamp: ArrayLike) -> tuple[float, np.ndarray]:
-    """(the patch's largest |point - center| (np.linalg.norm's along rows: the root of dot3,
-    row_sum's bits), its dense point of largest <v, r> (mirror_alignment's first maximum)): where
-    specular_points's search on the scene's patch starts, and the radius it keeps to."""
-    d = geometry.by_component(np.subtract, scene.points, scene.center)
-    alignment = mirror_alignment(scene.points, scene.normals, lamp, scene.camera_position)
-    return math.sqrt(float(np.max(geometry.dot3(d, d)))), scene.points[int(np.argmax(alignment))]
-
-
-def specular_points(scenes: Sequence[Scene], lamp: ArrayLike,
-                    starts: Sequence[tuple[float, np.ndarray]] | None = None) -> tuple[np.ndarray, np.ndarray]:
+def specular_points(scenes: Sequence[Scene], lamp: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """Each scene's patch's specular point, where <v, r> is largest: the best of its dense points,
     refined by Nelder-Mead (scipy's, cell.planning.nelder_mead) over a step in the feature's
     tangent plane projected onto the surface (a highlight between the dense points, on a curved
@@ -102,19 +92,20 @@ def specular_points(scenes: Sequence[Scene], lamp: ArrayLike,
     half the rounds of one point a round): each round's projections of all of them in one
     ClosestPoint launch (SLOTS queries a search), each point's <v, r> from its own row alone
     (alignment_at: a round's few points cost less in Python floats than in NumPy calls), so
-    each search ends where it would alone. `starts`: each scene's search_start, where found before
-    (verify_all: each patch's as it comes)."""
+    each search ends where it would alone."""
     from kernels.proximity import ClosestPoint
-    known = [search_start(s, lamp) for s in scenes] if starts is None else starts
-    radius = [r for r, _ in known]
-    begin = np.array([start for _, start in known]).reshape(-1, 3)
+    # each patch's largest |point - center| (np.linalg.norm's along rows: the root of dot3, row_sum's bits)
+    radius = [math.sqrt(float(np.max(geometry.dot3(d, d)))) for d in
+              (geometry.by_component(np.subtract, s.points, s.center) for s in scenes)]
+    starts = np.array([s.points[int(np.argmax(mirror_alignment(s.points, s.normals, lamp, s.camera_position)))]
+                       for s in scenes]).reshape(-1, 3)
     along_x = np.array([s.frame[:, 0] for s in scenes]).reshape(-1, 3)
     along_y = np.array([s.frame[:, 1] for s in scenes]).reshape(-1, 3)
     closest = ClosestPoint([s.warp_mesh for s in scenes for _ in range(SLOTS)], np.repeat(radius, SLOTS))
-    queries = np.repeat(begin, SLOTS, axis=0)
+    queries = np.repeat(starts, SLOTS, axis=0)
     lamp_at = np.asarray(lamp, float).tolist()
     frames = [(start, x, y, s.center.tolist(), s.camera_position.tolist())
-              for start, x, y, s in zip(begin.tolist(), along_x.tolist(), along_y.tolist(), scenes)]
+              for start, x, y, s in zip(starts.tolist(), along_x.tolist(), along_y.tolist(), scenes)]
 
     def values(asked: list[tuple[int, np.ndarray]]) -> list[list[float]]:
         """-<v, r> at each asked (search, steps (m, 2))'s points on the surface, each step taken
@@ -145,7 +136,7 @@ def specular_points(scenes: Sequence[Scene], lamp: ArrayLike,
         return x if fun <= at_start else np.zeros(2)
 
     step = np.array(lockstep.drive([search(k) for k in range(len(scenes))], values)).reshape(-1, 2)
-    queries[::SLOTS] = begin + step[:, :1] * along_x + step[:, 1:] * along_y
+    queries[::SLOTS] = starts + step[:, :1] * along_x + step[:, 1:] * along_y
     point, _, normal = closest(queries)
     return point[::SLOTS], normal[::SLOTS]
 
@@ -193,15 +184,12 @@ def verify_all(problems: Sequence[evaluate.Problem], shot: Shot,
     searches in lockstep (specular_points) and the gray kernel on every dense patch launched
     once for all (evaluate.SharedLaunches), each patch's values as its own launch's. `dense`:
     each Problem's dense_scene being made (kernels.runtime.in_background: cell.planning.coverage
-    has them made while it judges the other features' samples), else made here; each one's
-    search_start is found as it comes, while those after it are still being made."""
+    has them made while it judges the other features' samples), else made here."""
     if not problems:
         return []
-    scenes, starts = [], []
-    for k, p in enumerate(problems):
-        scenes.append(dense[k].result() if dense is not None else dense_scene(p.task, p.scene))
-        starts.append(search_start(scenes[-1], shot.lamp_position))
-    points, normals = specular_points(scenes, shot.lamp_position, starts)
+    scenes = ([d.result() for d in dense] if dense is not None else
+              [dense_scene(p.task, p.scene) for p in problems])
+    points, normals = specular_points(scenes, shot.lamp_position)
     scenes = [replace(s, points=np.vstack([s.points, point]), normals=np.vstack([s.normals, normal]))
               for s, point, normal in zip(scenes, points, normals)]
     joined = replace(scenes[0], points=np.vstack([s.points for s in scenes]),
