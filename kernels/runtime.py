@@ -146,19 +146,13 @@ def slices(count: int, work_per_item: float = 1.0) -> list[tuple[int, int]]:
 
 def in_parallel(launches: Sequence[Any]) -> None:
     """Run recorded launches (wp.launch(..., record_cmd=True)) at once, each on a thread of its own
-    (the last on the caller's), and return when all are done; one runs where it is called. A
-    launch its thread has not begun when the caller's is done (no core came free for it: the
-    judge's thread beside, another process) runs on the caller's thread instead of being waited
-    for (Future.cancel: it is then never run there): the same launch, so the same result."""
+    (the last on the caller's), and return when all are done; one runs where it is called."""
     if not launches:
         return
     running = [_executor().submit(launch.launch) for launch in launches[:-1]]
     launches[-1].launch()
-    for launch, done in zip(launches, running):
-        if done.cancel():
-            launch.launch()
-        else:
-            done.result()
+    for done in running:
+        done.result()
 
 
 def launch_sliced(kernel: Any, dim: int | tuple[int, ...], inputs: list[Any], outputs: list[Any],

@@ -175,34 +175,6 @@ def test_split_shadow_flags_equal_one_launch_and_the_gray_kernels(hinge, launche
     assert 0.05 < split.mean() < 0.95
 
 
-def test_a_slice_no_thread_has_begun_runs_on_the_callers_thread(hinge, launches):
-    """in_parallel with every slice thread held busy: the slices they have not begun run on the
-    caller's thread, which returns before the threads are free, with the one launch's gray bit
-    for bit; the threads, freed, never run them (the held jobs alone ran there)."""
-    import threading
-    mesh, tm = hinge
-    points, face = trimesh.sample.sample_surface(tm, 500, seed=9)
-    lamp_pos, aims = lamps_around(np.random.default_rng(12), np.array([0.0, 0.0, 0.004]), 4)
-    args = (mesh, points, tm.face_normals[face], np.array([0.0, 0.0, 0.5]), lamp_pos, aims, P_LAMP, GAMMA,
-            METAL, C_CAMERA, A_PIXEL)
-    one = on(1, gray_per_exposure, *args)
-    runtime.set_threads(THREADS)
-    free, ran = threading.Event(), []
-    try:
-        held = [runtime._executor().submit(lambda: free.wait(10) and ran.append(1)) for _ in range(THREADS - 1)]
-        split = gray_per_exposure(*args)
-        assert not any(h.done() for h in held)            # the caller did not wait for them
-    finally:
-        free.set()
-        runtime.set_threads(None)
-    for h in held:
-        h.result()
-    assert len(ran) == THREADS - 1
-    assert launches == [1, THREADS]
-    assert_bitwise(one, split)
-    assert (split.value > 0).mean() > 0.05
-
-
 def test_split_closest_points_equal_one_launch(hinge, launches):
     """Guesses about the hinge, some with no surface within reach (NaN, -1, 0): each query's
     answer the one launch's, bit for bit; tests/test_kernels holds that launch to the surface."""
