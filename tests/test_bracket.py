@@ -5,6 +5,8 @@ feature with the shot covering it is checked independently: tests/dense.py's Num
 the true patch (in band, lit, seen, in focus), the image bounds, view angle and pixel footprint
 recomputed at those points by the pinhole, and the UR5e's forward kinematics reaching the pose."""
 import json
+import time
+from dataclasses import replace
 from itertools import combinations
 from pathlib import Path
 from types import SimpleNamespace
@@ -262,6 +264,31 @@ def test_the_judges_prefilter_rejects_no_pair_the_full_evaluation_accepts(bracke
         assert all(values[r.name] == r.value > 1.0 or r.name == "camera_view" and values[r.name] >= r.value > 1.0
                    for r in missed)
     assert len(rejected) >= len(shots) * (len(tasks) - 1) // 2
+
+
+def test_a_column_begun_ahead_is_judged_as_one_begun_by_itself(bracket):
+    """A serial plan begins each column (the prefilter, its dense patches laid on the thread
+    beside: whole_part.begin_column) while it judges the one before: every column begun first,
+    then each judged with its beginning, has the coverage of the column judged from scratch,
+    pair by pair (gray, requirement values, certificate), and its time counts its beginning's."""
+    from cell.planning import coverage
+    from cell.planning.whole_part import begin_column, judge_column
+    task, plan = bracket
+    tasks = [task.with_feature(i) for i in range(len(task.features))]
+    own = plan.cover["candidate_features"]
+    lent = [coverage.Lent.of(plan.plans[own.index(f)]) for f in range(len(tasks))]
+    begun = [begin_column(tasks, f, p.shot, lent) for f, p in zip(own, plan.plans)]
+    assert any(b.left for b in begun) and all(b.spent_s > 0 for b in begun)
+    for b, f, p in zip(begun, own, plan.plans):
+        start = time.perf_counter()
+        ahead, spent, _ = judge_column(tasks, f, p.shot, lent, lambda msg: None, begun=replace(b, spent_s=1e3))
+        assert 1e3 < spent < 1e3 + time.perf_counter() - start
+        alone, _, _ = judge_column(tasks, f, p.shot, lent, lambda msg: None)
+        for x, y in zip(ahead, alone):
+            assert (x is None) == (y is None)
+            if x is not None:
+                assert x.covered == y.covered and np.array_equal(x.gray, y.gray) and x.requirements == y.requirements
+                assert x.verification is None or x.verification.to_json() == y.verification.to_json()
 
 
 def test_on_a_longer_bracket_the_prefilter_keeps_the_full_judges_coverage(bracket, tmp_path):

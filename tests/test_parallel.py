@@ -182,6 +182,30 @@ def test_a_job_first_runs_ahead_and_jobs_submitted_while_reading_are_read_too(sc
     assert ran_in_order(parallel.SERIAL) == ["blocker", "late", "later", "early", "afterwards"]
 
 
+def test_serial_jobs_begin_the_next_job_ahead_and_hand_each_its_beginning():
+    """SERIAL: a job with `ahead` is begun before the job before it runs (or just before its own
+    run where the job before had no beginning to come after), once, and gets what its ahead
+    returned as `begun`; a job without runs as given."""
+    events = []
+
+    def begin(label):
+        events.append(f"begin {label}")
+        return f"{label}'s start"
+
+    def job(label, say, begun=None):
+        events.append(f"run {label} with {begun}")
+        return label
+
+    jobs = parallel.SERIAL.jobs(lambda line: None)
+    jobs.submit("a", job, "a", ahead=begin)
+    jobs.submit("b", job, "b", ahead=begin)
+    jobs.submit("c", job, "c")
+    jobs.submit("d", job, "d", ahead=begin)
+    assert [key for key, _ in jobs] == ["a", "b", "c", "d"]
+    assert events == ["begin a", "begin b", "run a with a's start", "run b with b's start", "begin d",
+                      "run c with None", "run d with d's start"]
+
+
 def test_the_local_cluster_hands_a_worker_one_job_at_a_time_without_stealing():
     with parallel.local_cluster(1) as cluster:
         scheduler = cluster.cluster.scheduler

@@ -23,6 +23,7 @@ from kernels.runtime import in_background, threads
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
+    from concurrent.futures import Future
 
     from cell.planning.evaluate import Rows
     from cell.physics.costs import RequirementValue
@@ -71,23 +72,34 @@ def rejected(task: Task, missed: tuple[RequirementValue, ...]) -> Coverage:
     return Coverage(task.feature.name, False, np.zeros(0), missed)
 
 
-def judge_all(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list[Coverage]:
+def laid(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list[Future[Scene] | None]:
+    """Each one-feature task's dense patch (certificate.dense_scene) seen by `shot`'s camera,
+    being laid on the thread beside the caller's (kernels.runtime.in_background), where the
+    process has one (else None each: judge_all makes the patches of the features met, each when
+    verified)."""
+    if threads() == 1:
+        return [None] * len(tasks)
+    return [in_background(certificate.dense_scene, t, replace(x.scene, T_cell_cam=shot.T_cell_cam))
+            for t, x in zip(tasks, lent)]
+
+
+def judge_all(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot,
+              dense: Sequence[Future[Scene] | None] | None = None) -> list[Coverage]:
     """judge of `shot` on each one-feature task of one part (with its Lent), the gray kernel on
     the samples launched once for all of them (evaluate.SharedLaunches), not once per feature,
     what one Problem over all their samples finds given to each feature's (what_whole_gives), and
     the certificates of those whose samples meet every requirement verified together
-    (certificate.verify_all: their dense patches' launches shared too). Where the process has a
-    thread beside the caller's (kernels.runtime.in_background), every feature's dense patch is
-    laid on the surface there from the start (mostly the closest points' launch) while the
-    samples are judged: nearly every pair the prefilter (cell.planning.prefilter) leaves meets
-    them, and a patch asked for last would be waited for whole; on one thread only the patches
-    of the features met are made, each when verified."""
+    (certificate.verify_all: their dense patches' launches shared too). `dense`: each feature's
+    dense patch being laid (laid's, begun before: cell.planning.whole_part lays a column's
+    while it judges the column before), else laid here from the start (laid) while the samples
+    are judged: nearly every pair the prefilter (cell.planning.prefilter) leaves meets them,
+    and a patch asked for last would be waited for whole; on one thread only the patches of the
+    features met are made, each when verified."""
     if not tasks:
         return []
     task = tasks[0]
     scenes = [replace(x.scene, T_cell_cam=shot.T_cell_cam) for x in lent]
-    early = threads() > 1
-    dense = [in_background(certificate.dense_scene, t, s) if early else None for t, s in zip(tasks, scenes)]
+    dense = laid(tasks, lent, shot) if dense is None else dense
     scene, bounds = stacked(lent, shot.T_cell_cam)
     shared = evaluate.SharedLaunches(evaluate.gray_inputs(task, scene, task.part.material.scaled(1.0)),
                                      [end - start for start, end in bounds])

@@ -47,10 +47,15 @@ LIBRARIES = ("numpy", "scipy", "warp-lang", "trimesh")     # whose versions a wo
 
 
 class Jobs(Protocol):
-    """A set of jobs (a Pool's): submit(key, fn, *args, first=False) runs fn(*args, say) as a job;
-    iterating yields (key, result) as they complete, jobs submitted meanwhile included."""
+    """A set of jobs (a Pool's): submit(key, fn, *args, first=False, ahead=None) runs fn(*args,
+    say) as a job; iterating yields (key, result) as they complete, jobs submitted meanwhile
+    included. `ahead(*args)`: the part of the job a process may begin while it runs the job
+    before (work of launches, laid on the thread beside: kernels.runtime.in_background); where a
+    pool calls it (SERIAL), the job is called fn(*args, say, begun=what ahead returned), else as
+    without (a cluster's jobs run in other processes: each does its whole)."""
 
-    def submit(self, key: Hashable, fn: Callable[..., Any], *args: Any, first: bool = False) -> None: ...
+    def submit(self, key: Hashable, fn: Callable[..., Any], *args: Any, first: bool = False,
+               ahead: Callable[..., Any] | None = None) -> None: ...
 
     def __iter__(self) -> Iterator[tuple[Any, Any]]: ...
 
@@ -94,19 +99,33 @@ class Serial(Pool):
 
 
 class SerialJobs:
-    """submit(key, fn, *args) queues fn(*args, say); iterating runs them one by one and yields
-    (key, result) in the order submitted, jobs submitted meanwhile included."""
+    """submit(key, fn, *args, ahead=None) queues fn(*args, say); iterating runs them one by one
+    and yields (key, result) in the order submitted, jobs submitted meanwhile included. A job
+    with `ahead` is begun (ahead(*args)) before the job before it runs, if that one was begun
+    too or has none, else just before its own run: what it lays beside comes after what the job
+    before it lays."""
 
     def __init__(self, say: Callable[[str], None]) -> None:
-        self.say, self.queued = say, deque[tuple[Hashable, Callable[..., Any], tuple[Any, ...]]]()
+        self.say = say
+        self.queued = deque[tuple[Hashable, Callable[..., Any], tuple[Any, ...], Callable[..., Any] | None]]()
+        self.begun: dict[Hashable, Any] = {}
 
-    def submit(self, key: Hashable, fn: Callable[..., Any], *args: Any, first: bool = False) -> None:
-        self.queued.append((key, fn, args))
+    def submit(self, key: Hashable, fn: Callable[..., Any], *args: Any, first: bool = False,
+               ahead: Callable[..., Any] | None = None) -> None:
+        self.queued.append((key, fn, args, ahead))
 
     def __iter__(self):
         while self.queued:
-            key, fn, args = self.queued.popleft()
-            yield key, fn(*args, self.say)
+            key, fn, args, ahead = self.queued.popleft()
+            if ahead is not None and key not in self.begun:
+                self.begun[key] = ahead(*args)
+            if self.queued and self.queued[0][3] is not None:
+                after, _, after_args, begin = self.queued[0]
+                self.begun[after] = begin(*after_args)
+            if ahead is None:
+                yield key, fn(*args, self.say)
+            else:
+                yield key, fn(*args, self.say, begun=self.begun.pop(key))
 
 
 SERIAL = Serial()
@@ -147,7 +166,7 @@ SUBMITTED = itertools.count()   # the order of every job submitted here, whateve
 
 
 class ClusterJobs:
-    """submit(key, fn, *args, first=False) a job to the cluster; iterating yields (key, result)
+    """submit(key, fn, *args, first=False, ahead=None) a job to the cluster; iterating yields (key, result)
     as each completes (its lines said then), jobs submitted meanwhile included; the first error
     raised (a CellError as it was raised on the worker), the jobs not done cancelled."""
 
@@ -157,11 +176,13 @@ class ClusterJobs:
         self.named: dict[str, Hashable] = {}
         self.pending = as_completed(loop=pool.client.loop)
 
-    def submit(self, key: Hashable, fn: Callable[..., Any], *args: Any, first: bool = False) -> None:
+    def submit(self, key: Hashable, fn: Callable[..., Any], *args: Any, first: bool = False,
+               ahead: Callable[..., Any] | None = None) -> None:
         """A job ahead of every job submitted after it, and `first` ahead of every job not first
         (Dask's own order is arbitrary among jobs submitted within its fifo_timeout of each
         other). Keyed lightplan-<fn>-<id>: the scheduler sees one task group (Dask queues a
-        group's jobs once it has more than two per worker thread), the task stream each fn."""
+        group's jobs once it has more than two per worker thread), the task stream each fn.
+        `ahead` is not called: the job runs whole on a worker."""
         pool = self.pool
         where = {} if pool.only is None else {"workers": pool.only, "allow_other_workers": False}
         future = pool.client.submit(_run, fn, args, pool.kernel_threads,

@@ -10,7 +10,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from contextlib import ExitStack
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
@@ -25,9 +25,13 @@ from cell.planning.scene import build_scene
 from cell.planning.parallel import Pool
 
 if TYPE_CHECKING:
+    from concurrent.futures import Future
+
+    from cell.physics.costs import RequirementValue
     from cell.planning.coverage import Lent
     from cell.planning.joint import Joint
     from cell.planning.plan import Coverage, Shot
+    from cell.planning.scene import Scene
     from cell.planning.viewpoints import Viewpoints
     from cell.task.types import Task
 
@@ -131,20 +135,49 @@ def views_and_first_plan(task: Task, settings: PlannerSettings,
     return views, at_viewpoint(task, settings, views, 0, say)
 
 
-def judge_column(tasks: Sequence[Task], f: int, shot: Shot, lent: Sequence[Lent],
-                 say: Callable[[str], None]) -> Column:
-    """A job: (the Coverage of feature f's candidate `shot` on every other feature, whose own
-    first plan lent its samples and maps (`lent`, coverage.Lent; None at f: its plan's verdict
-    stands), its own time [s], the shot's Joint: its drives re-solved over every feature it may
-    cover where that covers more, else None, cell.planning.joint). Only the features the
-    prefilter (cell.planning.prefilter) leaves are judged in full, their samples' gray kernel
-    launched once for all (coverage.judge_all): a part's many features are mostly out of one
-    shot's view."""
+@dataclass(frozen=True)
+class ColumnStart:
+    """What of a column's judging (judge_column) is begun before the rest: the requirements the
+    shot misses for sure on each feature (cell.planning.prefilter.missed: empty where the full
+    judge decides), the features left to judge in full, their dense patches being laid
+    (coverage.laid) and the time [s] it took the caller."""
+
+    missed: list[tuple[RequirementValue, ...]]
+    left: list[int]
+    dense: list[Future[Scene] | None]
+    spent_s: float
+
+
+def begin_column(tasks: Sequence[Task], f: int, shot: Shot, lent: Sequence[Lent]) -> ColumnStart:
+    """judge_column's beginning (ColumnStart): the prefilter, and the dense patches of the
+    features it leaves laid on the thread beside (coverage.laid). A serial pool begins the next
+    column with it while it judges this one (parallel.SerialJobs' `ahead`): that column's
+    patches are laid while this one's samples are judged, not waited for at its certificates."""
     start = time.perf_counter()
     missed = prefilter.missed(tasks, lent, shot, f)
     left = [g for g in range(len(tasks)) if g != f and not missed[g]]
-    judged = dict(zip(left, coverage.judge_all([tasks[g] for g in left], [lent[g] for g in left], shot)))
-    column = [None if g == f else judged[g] if g in judged else coverage.rejected(t, missed[g])
+    dense = coverage.laid([tasks[g] for g in left], [lent[g] for g in left], shot)
+    return ColumnStart(missed, left, dense, time.perf_counter() - start)
+
+
+def judge_column(tasks: Sequence[Task], f: int, shot: Shot, lent: Sequence[Lent],
+                 say: Callable[[str], None], begun: ColumnStart | None = None) -> Column:
+    """A job: (the Coverage of feature f's candidate `shot` on every other feature, whose own
+    first plan lent its samples and maps (`lent`, coverage.Lent; None at f: its plan's verdict
+    stands), its own time [s] (its beginning's included, `begun` where begun before:
+    begin_column), the shot's Joint: its drives re-solved over every feature it may cover where
+    that covers more, else None, cell.planning.joint). Only the features the prefilter
+    (cell.planning.prefilter) leaves are judged in full, their samples' gray kernel launched once
+    for all (coverage.judge_all): a part's many features are mostly out of one shot's view."""
+    start = time.perf_counter()
+    if begun is None:
+        begun = begin_column(tasks, f, shot, lent)
+    else:
+        start -= begun.spent_s
+    left = begun.left
+    judged = dict(zip(left, coverage.judge_all([tasks[g] for g in left], [lent[g] for g in left], shot,
+                                               begun.dense)))
+    column = [None if g == f else judged[g] if g in judged else coverage.rejected(t, begun.missed[g])
               for g, t in enumerate(tasks)]
     return column, time.perf_counter() - start, joint.resolve(tasks, lent, f, shot, column)
 
@@ -194,7 +227,7 @@ def candidate_plans(tasks: Sequence[Task], settings: PlannerSettings, progress: 
                 if (g, j) not in columns and (views[g] is None or j < len(views[g].kept)):
                     columns[g, j] = None
                     judging.grow(1)
-                    jobs.submit(("judge", g, j), judge_column, tasks, g, p.shot, lent)
+                    jobs.submit(("judge", g, j), judge_column, tasks, g, p.shot, lent, ahead=begin_column)
 
         for f, t in enumerate(tasks):
             if fixed:
