@@ -113,7 +113,7 @@ MIN_SLICE = 1 << 14     # evaluations (ray casts, shaded points) a slice holds a
 _threads: int | None = None
 _pool: tuple[int, ThreadPoolExecutor] | None = None       # its thread count, the pool
 _pool_lock = threading.Lock()
-_background: ThreadPoolExecutor | None = None
+_background: dict[int, ThreadPoolExecutor] = {}     # in_background's threads, by lane
 _beside = threading.local()     # caller: True on in_background's thread
 T = TypeVar("T")
 
@@ -178,14 +178,14 @@ def _executor() -> ThreadPoolExecutor:
         return _pool[1]
 
 
-def in_background(fn: Callable[..., T], *args: Any) -> "Future[T]":
+def in_background(fn: Callable[..., T], *args: Any, lane: int = 0) -> "Future[T]":
     """fn(*args) on a thread of its own beside the caller's, one call after another in the order
     asked; its result (or exception) in the Future. For work mostly of launches (Warp lets go of
     the GIL in them) that the caller's Python need not wait for: its launches run while the caller
     works on. Not the slices' pool (in_parallel): a slice never waits behind it; and its own
-    launches are whole (slices: one), the caller's thread running on the other core. With one
+    launches are whole (slices: one), the caller's thread running on the other core. `lane`: a
+    thread for each, so that work asked in one never waits behind another's queue. With one
     thread (threads(): a Dask worker's share of one core) fn runs here, now."""
-    global _background
     if threads() == 1:
         done: Future[T] = Future()
         try:
@@ -194,10 +194,10 @@ def in_background(fn: Callable[..., T], *args: Any) -> "Future[T]":
             done.set_exception(error)
         return done
     with _pool_lock:
-        if _background is None:
-            _background = ThreadPoolExecutor(max_workers=1, thread_name_prefix="warp-background",
-                                             initializer=_mark_beside)
-        return _background.submit(fn, *args)
+        if lane not in _background:
+            _background[lane] = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"warp-background-{lane}",
+                                                   initializer=_mark_beside)
+        return _background[lane].submit(fn, *args)
 
 
 def _mark_beside() -> None:
@@ -207,7 +207,7 @@ def _mark_beside() -> None:
 def _forget_pool() -> None:
     """A forked child has none of its parent's threads: it makes its own pool."""
     global _pool, _background
-    _pool = _background = None
+    _pool, _background = None, {}
 
 
 os.register_at_fork(after_in_child=_forget_pool)

@@ -68,6 +68,36 @@ def test_dense_patches_laid_in_the_background_give_the_same_certificates(problem
                for d, p in zip(made, problems))
 
 
+def test_the_launches_lit_begins_are_each_patchs_own_and_not_launched_again(problems_at_one_camera):
+    """certificate.lit begins the gray kernel at the shot's lamp and the camera's shadow flags
+    over every dense patch on a thread beside: each patch's rows are its own launch's (a
+    GrayInputs of that patch alone), and asking for them launches nothing more."""
+    from cell.devices import rig
+    from cell.planning import evaluate
+    shot, problems = problems_at_one_camera
+    task, material = problems[0].task, problems[0].material
+    runtime.set_threads(2)
+    try:
+        patches, shared = certificate.lit(task, material, shot, [certificate.dense_scene(p.task, p.scene)
+                                                                 for p in problems])
+    finally:
+        runtime.set_threads(None)
+
+    class Refuses:
+        def __call__(self, *args):
+            raise AssertionError("launched again")
+
+        shadowed = __call__
+    shared.inputs = Refuses()
+    lamp = np.asarray(shot.lamp_position, float).reshape(1, 3)
+    aim = rig.lamp_aim(task.lamp.rig.pivot_m, lamp)
+    for k, patch in enumerate(patches):
+        own = evaluate.gray_inputs(task, patch, material)
+        rows = shared.rows(k)
+        assert equal(rows(lamp, aim).value, own(lamp, aim).value)
+        assert equal(rows.shadowed(patch.camera_position[None]), own.shadowed(patch.camera_position[None]))
+
+
 def test_specular_points_searched_together_equal_each_searched_alone(problems_at_one_camera):
     """The dense patches of every feature, their specular points for lamps all round: searched
     together (one launch a round) and alone, the same points and normals exactly; each on its

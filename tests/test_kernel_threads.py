@@ -120,6 +120,23 @@ def test_background_work_runs_on_a_thread_of_its_own_in_order_with_its_exception
         failed.result()
 
 
+def test_a_background_lane_never_waits_behind_another():
+    """Work asked in lane 1 runs while lane 0's thread is busy (each lane a thread of its own,
+    its launches whole as lane 0's)."""
+    import threading
+    free = threading.Event()
+    runtime.set_threads(2)
+    try:
+        held = runtime.in_background(free.wait, 10.0)          # lane 0 busy until lane 1 frees it
+        freed = runtime.in_background(lambda: free.set() or threading.current_thread().name, lane=1)
+        name = freed.result(timeout=10.0)
+        assert held.result(timeout=10.0) is True
+        assert runtime.in_background(runtime.slices, 10 ** 6, 1.0, lane=1).result() == [(0, 10 ** 6)]
+    finally:
+        runtime.set_threads(None)
+    assert name != threading.current_thread().name
+
+
 def test_split_visibility_maps_and_free_cones_equal_one_launch(hinge, launches):
     mesh, _ = hinge
     points, normals, frame, az, el = near_the_knuckle()

@@ -21,12 +21,14 @@ from numpy.typing import ArrayLike
 
 from cell.planning import defects, evaluate, lockstep, nelder_mead, requirements
 from cell.planning.plan import Verification
+from cell.devices import rig
 from cell.core import geometry
 from cell.physics.costs import RequirementValue
 
 if TYPE_CHECKING:
     from concurrent.futures import Future
 
+    from cell.physics.material import Material
     from cell.planning.plan import Shot
     from cell.planning.scene import Scene
     from cell.task.types import Task
@@ -180,25 +182,44 @@ def verify(problem: evaluate.Problem, shot: Shot) -> tuple[Verification, np.ndar
 def verify_all(problems: Sequence[evaluate.Problem], shot: Shot,
                dense: Sequence[Future[Scene]] | None = None) -> list[tuple[Verification, np.ndarray]]:
     """verify of `shot` on each Problem, of one part's features seen by the shot's camera (their
-    mesh, lamp, camera and material as planned the same), together: their specular points'
-    searches in lockstep (specular_points) and the gray kernel on every dense patch launched
-    once for all (evaluate.SharedLaunches), each patch's values as its own launch's. `dense`:
-    each Problem's dense_scene being made (kernels.runtime.in_background: cell.planning.coverage
-    has them made while it judges the other features' samples), else made here."""
+    mesh, lamp, camera and material as planned the same), together (lit: their specular points
+    and the gray kernel on every dense patch launched once for all). `dense`: each Problem's
+    dense_scene being made (kernels.runtime.in_background), else made here."""
     if not problems:
         return []
     scenes = ([d.result() for d in dense] if dense is not None else
               [dense_scene(p.task, p.scene) for p in problems])
+    patches, shared = lit(problems[0].task, problems[0].material, shot, scenes)
+    return verdicts(problems, shot, patches, shared)
+
+
+def lit(task: Task, material: Material, shot: Shot,
+        scenes: Sequence[Scene]) -> tuple[list[Scene], evaluate.SharedLaunches]:
+    """The dense patches `scenes` of one part's features seen by the shot's camera, each with
+    its specular point last (specular_points: their searches in lockstep), and the gray kernel
+    over all of them (evaluate.SharedLaunches: each patch's values as its own launch's), its
+    launch at the shot's lamp and the camera's shadow flags begun on a thread beside
+    (SharedLaunches.begin): the caller may judge the samples meanwhile."""
     points, normals = specular_points(scenes, shot.lamp_position)
-    scenes = [replace(s, points=np.vstack([s.points, point]), normals=np.vstack([s.normals, normal]))
-              for s, point, normal in zip(scenes, points, normals)]
-    joined = replace(scenes[0], points=np.vstack([s.points for s in scenes]),
-                     normals=np.vstack([s.normals for s in scenes]))
-    counts = [len(s.points) for s in scenes]
+    patches = [replace(s, points=np.vstack([s.points, point]), normals=np.vstack([s.normals, normal]))
+               for s, point, normal in zip(scenes, points, normals)]
+    joined = replace(patches[0], points=np.vstack([s.points for s in patches]),
+                     normals=np.vstack([s.normals for s in patches]))
+    counts = [len(s.points) for s in patches]
     ends = np.cumsum(counts).tolist()
-    shared = evaluate.SharedLaunches(evaluate.gray_inputs(problems[0].task, joined, problems[0].material,
+    shared = evaluate.SharedLaunches(evaluate.gray_inputs(task, joined, material,
                                                           flat=list(zip([0] + ends[:-1], ends))), counts)
-    return [dense_verdict(p, s, shot, shared.rows(k)) for k, (p, s) in enumerate(zip(problems, scenes))]
+    lamp = np.asarray(shot.lamp_position, float).reshape(1, 3)
+    shared.begin(lamp, rig.lamp_aim(task.lamp.rig.pivot_m, lamp), joined.camera_position)
+    return patches, shared
+
+
+def verdicts(problems: Sequence[evaluate.Problem], shot: Shot, patches: Sequence[Scene],
+             shared: evaluate.SharedLaunches, which: Sequence[int] | None = None) -> list[tuple[Verification, np.ndarray]]:
+    """dense_verdict of each Problem on its patch (lit's; `which`: their indices among lit's,
+    default in order)."""
+    which = range(len(problems)) if which is None else which
+    return [dense_verdict(p, patches[k], shot, shared.rows(k)) for p, k in zip(problems, which)]
 
 
 def dense_verdict(problem: evaluate.Problem, scene: Scene, shot: Shot,

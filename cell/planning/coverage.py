@@ -89,17 +89,21 @@ def judge_all(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot,
     the samples launched once for all of them (evaluate.SharedLaunches), not once per feature,
     what one Problem over all their samples finds given to each feature's (what_whole_gives), and
     the certificates of those whose samples meet every requirement verified together
-    (certificate.verify_all: their dense patches' launches shared too). `dense`: each feature's
-    dense patch being laid (laid's, begun before: cell.planning.whole_part lays a column's
-    while it judges the column before), else laid here from the start (laid) while the samples
-    are judged: nearly every pair the prefilter (cell.planning.prefilter) leaves meets them,
-    and a patch asked for last would be waited for whole; on one thread only the patches of the
+    (certificate.lit and verdicts: their dense patches' launches shared too). `dense`: each
+    feature's dense patch being laid (laid's, begun before: cell.planning.whole_part lays a
+    column's while it judges the column before), else laid here (laid). Where they are laid
+    beside (a process of two threads or more), the certificates' specular points are found
+    first and their launches begun on another thread beside (certificate.lit) while the samples
+    are judged: nearly every pair the prefilter (cell.planning.prefilter) leaves meets them, and
+    a launch asked for last would be waited for whole. On one thread only the patches of the
     features met are made, each when verified."""
     if not tasks:
         return []
     task = tasks[0]
     scenes = [replace(x.scene, T_cell_cam=shot.T_cell_cam) for x in lent]
-    dense = laid(tasks, lent, shot) if dense is None else dense
+    laying = [d for d in (laid(tasks, lent, shot) if dense is None else dense) if d is not None]
+    if len(laying) == len(tasks):
+        patches, launches = certificate.lit(task, task.part.material.scaled(1.0), shot, [d.result() for d in laying])
     scene, bounds = stacked(lent, shot.T_cell_cam)
     shared = evaluate.SharedLaunches(evaluate.gray_inputs(task, scene, task.part.material.scaled(1.0)),
                                      [end - start for start, end in bounds])
@@ -107,9 +111,13 @@ def judge_all(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot,
                                    gray=evaluate.Rows(shared, 0, len(scene.points)))
     sampled = [on_samples(t, x, s, shot, shared.rows(k), whole) for k, (t, x, s) in enumerate(zip(tasks, lent, scenes))]
     met = [k for k, s in enumerate(sampled) if all(r.met for r in s.values)]
-    patches = [d if d is not None else in_background(certificate.dense_scene, tasks[k], scenes[k])
-               for k, d in ((k, dense[k]) for k in met)]
-    verified = dict(zip(met, certificate.verify_all([sampled[k].problem for k in met], shot, patches)))
+    problems = [sampled[k].problem for k in met]
+    if len(laying) == len(tasks):
+        found = certificate.verdicts(problems, shot, patches, launches, met)
+    else:
+        found = certificate.verify_all(problems, shot, [in_background(certificate.dense_scene, tasks[k], scenes[k])
+                                                        for k in met])
+    verified = dict(zip(met, found))
     return [covered(t, s, verified[k][0] if k in verified else None) for k, (t, s) in enumerate(zip(tasks, sampled))]
 
 

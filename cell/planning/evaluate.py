@@ -7,6 +7,7 @@ The requirements (cell.planning.requirements) are judged on these values."""
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future
 from dataclasses import dataclass, field, fields, replace
 from typing import TYPE_CHECKING, Any
 
@@ -255,26 +256,50 @@ class SharedLaunches:
         self.inputs = inputs
         ends = np.cumsum(counts, dtype=int)
         self.bounds = list(zip((ends - np.asarray(counts, dtype=int)).tolist(), ends.tolist()))
-        self._launched: dict[tuple[bytes, bytes, bytes | None], GrayResult] = {}
-        self._shadowed: dict[bytes, np.ndarray] = {}
+        self._launched: dict[tuple[bytes, bytes, bytes | None], GrayResult | Future[GrayResult]] = {}
+        self._shadowed: dict[bytes, np.ndarray | Future[np.ndarray]] = {}
 
     def rows(self, k: int) -> Rows:
         return Rows(self, *self.bounds[k])
 
+    def begin(self, lamp_pos: ArrayLike, lamp_axis: ArrayLike, camera: ArrayLike) -> None:
+        """shadowed(camera) and launch(lamp_pos, lamp_axis, None) begun on a thread beside the
+        caller's (kernels.runtime.in_background, a lane of their own: never behind the dense
+        patches being laid), in that order (a dense Problem asks what its camera sees first),
+        each kept for the scenes that ask for it: a certificate's launches run while the caller
+        judges the samples (cell.planning.coverage.judge_all)."""
+        from kernels.runtime import in_background
+        lamp_pos, lamp_axis = Rows.lamps(lamp_pos, lamp_axis)
+        seen = np.asarray(camera, dtype=np.float64).reshape(-1, 3)
+        self._shadowed[seen.tobytes()] = in_background(self.inputs.shadowed, seen, lane=1)
+        self._launched[_launch_key(lamp_pos, lamp_axis, None)] = in_background(self.inputs, lamp_pos, lamp_axis,
+                                                                               None, lane=1)
+
     def launch(self, lamp_pos: np.ndarray, lamp_axis: np.ndarray, power_w: ArrayLike | None) -> GrayResult:
         """The result of one launch over every scene's samples for these lamps (kept by their bytes)."""
-        key = (np.ascontiguousarray(lamp_pos).tobytes(), np.ascontiguousarray(lamp_axis).tobytes(),
-               None if power_w is None else np.asarray(power_w, dtype=np.float64).tobytes())
-        if key not in self._launched:
-            self._launched[key] = self.inputs(lamp_pos, lamp_axis, power_w)
-        return self._launched[key]
+        key = _launch_key(lamp_pos, lamp_axis, power_w)
+        kept = self._launched.get(key)
+        if kept is None:
+            kept = self._launched[key] = self.inputs(lamp_pos, lamp_axis, power_w)
+        elif isinstance(kept, Future):
+            kept = self._launched[key] = kept.result()
+        return kept
 
     def shadowed(self, lamp_pos: np.ndarray) -> np.ndarray:
         """GrayInputs.shadowed over every scene's samples for these lamps (kept by their bytes)."""
         key = np.ascontiguousarray(lamp_pos).tobytes()
-        if key not in self._shadowed:
-            self._shadowed[key] = self.inputs.shadowed(lamp_pos)
-        return self._shadowed[key]
+        kept = self._shadowed.get(key)
+        if kept is None:
+            kept = self._shadowed[key] = self.inputs.shadowed(lamp_pos)
+        elif isinstance(kept, Future):
+            kept = self._shadowed[key] = kept.result()
+        return kept
+
+
+def _launch_key(lamp_pos: np.ndarray, lamp_axis: np.ndarray, power_w: ArrayLike | None) -> tuple[bytes, bytes, bytes | None]:
+    """SharedLaunches' key of a launch: its lamps' and powers' bytes."""
+    return (np.ascontiguousarray(lamp_pos).tobytes(), np.ascontiguousarray(lamp_axis).tobytes(),
+            None if power_w is None else np.asarray(power_w, dtype=np.float64).tobytes())
 
 
 class Rows:
@@ -283,10 +308,15 @@ class Rows:
     def __init__(self, shared: SharedLaunches, start: int, end: int) -> None:
         self.shared, self.start, self.end = shared, start, end
 
+    @staticmethod
+    def lamps(lamp_pos: ArrayLike, lamp_axis: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+        """(lamp_pos (C, 3), lamp_axis (C, 3)) as a call reads them (float64)."""
+        lamp_pos = np.asarray(lamp_pos, dtype=np.float64).reshape(-1, 3)
+        return lamp_pos, np.broadcast_to(np.asarray(lamp_axis, dtype=np.float64), lamp_pos.shape)
+
     def __call__(self, lamp_pos: ArrayLike, lamp_axis: ArrayLike, power_w: ArrayLike | None = None) -> GrayResult:
         from kernels.gray import GrayResult
-        lamp_pos = np.asarray(lamp_pos, dtype=np.float64).reshape(-1, 3)
-        lamp_axis = np.broadcast_to(np.asarray(lamp_axis, dtype=np.float64), lamp_pos.shape)
+        lamp_pos, lamp_axis = Rows.lamps(lamp_pos, lamp_axis)
         out = self.shared.launch(lamp_pos, lamp_axis, power_w)
         return GrayResult(*(a[:, self.start:self.end].copy() for a in
                             (out.value, out.shadowed, out.off_axis, out.dominant)))
