@@ -164,6 +164,22 @@ def test_the_proportional_size_splits_pages_a_forked_child_shares():
         os.waitpid(child, 0)
 
 
+def test_a_serial_row_is_the_median_of_its_rounds_and_flags_plans_that_differ():
+    def measured(wall, judge, digest="d", load=(1.0, 1.5)):
+        return {"features": 40, "candidates": 80, "shots": 9, "feasible": True, "wall_s": wall, "cpu_s": wall + 1,
+                "timing_s": {"judge": judge, "total": wall}, "judge_share": judge / wall, "peak_rss_b": 5e8 + wall,
+                "peak_pss_b": 4e8 + wall, "load": list(load), "digest": digest}
+    rounds = [measured(12.0, 3.0, load=(0.5, 0.7)), measured(10.0, 1.5), measured(11.0, 2.0, load=(0.9, 1.2))]
+    lines = []
+    row = scaling.serial_row(rounds, lines.append)
+    assert (row["serial_s"], row["serial_cpu_s"], row["judge_s"]) == (11.0, 12.0, 2.0)
+    assert row["judge_share"] == pytest.approx(2.0 / 11.0)          # the median share: 0.15, 0.18, 0.25
+    assert row["serial_rounds_s"] == [12.0, 10.0, 11.0] and row["load"] == [0.5, 1.2]
+    assert row["peak_memory_serial_b"] == 5e8 + 12.0 and row["digest"] == "d" and "DIFFER" not in lines[0]
+    differing = scaling.serial_row(rounds[:2] + [measured(11.0, 2.0, digest="e")], lines.append)
+    assert differing["digest"] is None and "the rounds' plans DIFFER" in lines[1]
+
+
 def test_the_targets_are_the_issues_at_40_features():
     row = {"features": 40, "serial_s": 19.0, "judge_share": 0.25, "peak_pss_2_workers_b": 0.9e9,
            "peak_memory_2_workers_b": 1.3e9}

@@ -1,8 +1,8 @@
 """`cell bench`'s many-feature rows (issue 28): the generated long bracket
 (lightplan_tasks.many_features: the bracket's five faces repeated every 14 mm) at SIZES features,
-each planned warm serially and on 2 worker processes of a LocalCluster, each plan alone in a fresh
-process of its own (cell.bench.alone: it warms up with a one-feature plan, then plans the size):
-the times, the judge's share of the serial plan (timing_s: judge / total), the peak memory of that
+each planned warm serially (ROUNDS times, the sizes in turn: the medians) and on 2 worker
+processes of a LocalCluster, each plan alone in a fresh process of its own (cell.bench.alone: it
+warms up with a one-feature plan, then plans the size): the times, the judge's share of the serial plan (timing_s: judge / total), the peak memory of that
 plan's processes (the plan's process and, with workers, its cluster's nannies and workers; not
 this one, which holds no plan: proportional and resident, as alone.PeakMemory counts them),
 whether the two plans are the same (the digests of their plan.json content without timing_s),
@@ -32,7 +32,7 @@ SIZES = (10, 20, 40, 100)           # features of the generated part (--quick: Q
 QUICK_SIZES = (5, 10)
 GROWTH = (10, 40)                   # the growth exponent's two sizes (--quick: the first and last)
 SIDE_BY_SIDE = 40                   # the size of the rounds of 1 and 2 workers (--quick: the last)
-ROUNDS = 3                          # of 1 and 2 workers each (--quick: 1)
+ROUNDS = 3                          # serial plans of each size, and of 1 and 2 workers each (--quick: 1)
 SERIAL_TARGET_S = 20.0              # the issue's done-when, at 40 features
 GROWTH_TARGET = 1.1
 JUDGE_SHARE_TARGET = 0.20
@@ -49,17 +49,32 @@ def growth_exponent(features: Sequence[int], times: Sequence[float], between: tu
     return math.log(by[n2] / by[n1]) / math.log(n2 / n1)
 
 
-def serial_row(path: Path, say: Callable[[str], None]) -> dict[str, Any]:
-    """One size's serial row: the task at `path` planned alone in a process of its own
-    (alone.measure), its peak memory that process's."""
-    m = alone.measure(path, 0)
+def serial_row(measured: Sequence[dict[str, Any]], say: Callable[[str], None]) -> dict[str, Any]:
+    """One size's serial row from its rounds (alone.measure's of the task, each alone in a
+    process of its own): the median of their wall, CPU and judge times and of their judge
+    shares (one plan's share moves with the machine by more than a change to the judge), each
+    round's wall and share beside, the largest peak memory, the load from the first round's
+    start to the last round's end, and the digest where every round's plan is the same (else
+    None: a plan that changes with the run is a fault)."""
+    m = measured[0]
+    digests = {r["digest"] for r in measured}
     row = {"task": "many", "features": m["features"], "candidates": m["candidates"], "shots": m["shots"],
-           "feasible": m["feasible"], "serial_s": m["wall_s"], "serial_cpu_s": m["cpu_s"],
-           "judge_s": m["timing_s"]["judge"], "judge_share": m["judge_share"], "peak_memory_serial_b": m["peak_rss_b"],
-           "peak_pss_serial_b": m["peak_pss_b"], "load": m["load"], "digest": m["digest"]}
+           "feasible": all(r["feasible"] for r in measured),
+           "serial_s": float(np.median([r["wall_s"] for r in measured])),
+           "serial_cpu_s": float(np.median([r["cpu_s"] for r in measured])),
+           "judge_s": float(np.median([r["timing_s"]["judge"] for r in measured])),
+           "judge_share": float(np.median([r["judge_share"] for r in measured])),
+           "serial_rounds_s": [r["wall_s"] for r in measured], "judge_shares": [r["judge_share"] for r in measured],
+           "peak_memory_serial_b": max(r["peak_rss_b"] for r in measured),
+           "peak_pss_serial_b": max(r["peak_pss_b"] for r in measured),
+           "load": [measured[0]["load"][0], measured[-1]["load"][1]],
+           "digest": m["digest"] if len(digests) == 1 else None}
+    shares = row["judge_shares"]
     say(f"many {row['features']} features: {row['candidates']} candidate shots, {row['shots']} shots; serial "
-        f"{row['serial_s']:.1f} s (judge {row['judge_share']:.0%}), peak memory {m['peak_pss_b'] / 1e6:.0f} MB "
-        f"proportional ({m['peak_rss_b'] / 1e6:.0f} MB resident); load {m['load'][0]:.1f} -> {m['load'][1]:.1f}")
+        f"{row['serial_s']:.1f} s (judge {row['judge_share']:.0%}; {len(measured)} rounds, judge {min(shares):.0%}-"
+        f"{max(shares):.0%}), peak memory {row['peak_pss_serial_b'] / 1e6:.0f} MB proportional "
+        f"({row['peak_memory_serial_b'] / 1e6:.0f} MB resident); load {row['load'][0]:.1f} -> {row['load'][1]:.1f}"
+        + ("" if row["digest"] else "; the rounds' plans DIFFER"))
     return row
 
 
@@ -70,7 +85,7 @@ def workers_row(row: dict[str, Any], path: Path, say: Callable[[str], None]) -> 
     m = alone.measure(path, 2)
     out = {**row, "workers_2_s": m["wall_s"], "workers_2_cpu_s": m["cpu_s"], "speedup": row["serial_s"] / m["wall_s"],
            "peak_memory_2_workers_b": m["peak_rss_b"], "peak_pss_2_workers_b": m["peak_pss_b"],
-           "load_2_workers": m["load"], "identical": m["digest"] == row["digest"]}
+           "load_2_workers": m["load"], "identical": row["digest"] is not None and m["digest"] == row["digest"]}
     say(f"many {row['features']} features on 2 workers: {m['wall_s']:.1f} s ({out['speedup']:.2f}x serial), peak "
         f"memory {m['peak_pss_b'] / 1e6:.0f} MB proportional ({m['peak_rss_b'] / 1e6:.0f} MB resident) in all "
         f"processes; load {m['load'][0]:.1f} -> {m['load'][1]:.1f}; plan identical to the serial one: "
@@ -91,7 +106,7 @@ def run(quick: bool, say: Callable[[str], None], sizes: Sequence[int] | None = N
     """{"scaling": a row per size, "scaling_summary": the growth exponent and the rounds of 1 and 2
     workers} of the generated part at `sizes` features (default SIZES, --quick QUICK_SIZES) and
     `rounds` (default ROUNDS, --quick 1), written into a temporary folder: every size serially
-    first, then on 2 workers, each plan alone in a process of its own (cell.bench.alone); then the
+    first, `rounds` times, then on 2 workers, each plan alone in a process of its own (cell.bench.alone); then the
     rounds of 1 and 2 workers of one LocalCluster of this process's."""
     from lightplan_tasks import many_features
     sizes = tuple(sizes or (QUICK_SIZES if quick else SIZES))
@@ -100,7 +115,11 @@ def run(quick: bool, say: Callable[[str], None], sizes: Sequence[int] | None = N
     rounds = rounds or (1 if quick else ROUNDS)
     with tempfile.TemporaryDirectory() as folder:
         paths = {n: many_features.write(folder, n) for n in sizes}
-        serial = {n: serial_row(paths[n], say) for n in sizes}
+        measured: dict[int, list[dict[str, Any]]] = {n: [] for n in sizes}
+        for _ in range(rounds):         # the sizes in turn, round after round: a drift of the machine's speed
+            for n in sizes:             # falls on every size alike
+                measured[n].append(alone.measure(paths[n], 0))
+        serial = {n: serial_row(measured[n], say) for n in sizes}
         rows = [workers_row(serial[n], paths[n], say) for n in sizes]
         task = load_task(paths[side])
         with parallel.local_cluster(2) as two:
