@@ -101,9 +101,9 @@ class Serial(Pool):
 class SerialJobs:
     """submit(key, fn, *args, ahead=None) queues fn(*args, say); iterating runs them one by one
     and yields (key, result) in the order submitted, jobs submitted meanwhile included. A job
-    with `ahead` is begun (ahead(*args)) before the job before it runs, if that one was begun
-    too or has none, else just before its own run: what it lays beside comes after what the job
-    before it lays."""
+    with `ahead` is begun (ahead(*args)) just before the job before it runs, after that one's own
+    beginning (what it lays beside comes after what that job lays), or, where it was not queued
+    yet then, just before its own run."""
 
     def __init__(self, say: Callable[[str], None]) -> None:
         self.say = say
