@@ -10,7 +10,7 @@ from numpy.typing import ArrayLike
 
 from . import funcs
 from .emission import axis_intensity, hard_cone_profile, profile_solid_angle
-from ._recent import Kept
+from .recent import Kept
 from ._arrays import output, profile2d, table2d, unit_rows, vec3d, vec3d_view
 from .cone import MARGIN_RAD, NO_CONE, common_cone_cosine, free_cone_cosines, worth_finding
 from .runtime import ensure_init, in_parallel, launch_sliced, slices

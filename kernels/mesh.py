@@ -7,7 +7,7 @@ import numpy as np
 import warp as wp
 from numpy.typing import ArrayLike
 
-from ._recent import Kept
+from .recent import Kept
 from .runtime import ensure_init
 
 

@@ -13,7 +13,7 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 from cell.planning import evaluate, one_shot, requirements
 
 from cell.core import geometry
-from cell.core.recent import Recent
+from kernels.recent import Kept
 
 from cell.devices import rig
 from cell.cli import main
@@ -171,7 +171,7 @@ def test_a_feature_patch_is_projected_once_and_is_the_projection_made_afresh(nam
     it, and another count of samples is another patch."""
     from cell.planning import scene as scene_module
     task, plan = request.getfixturevalue(name)
-    monkeypatch.setattr(scene_module, "_PATCHES", Recent(scene_module._PATCHES.most))
+    monkeypatch.setattr(scene_module, "_PATCHES", Kept(scene_module._PATCHES.most))
     first = build_scene(task, 300)
     again = build_scene(task, 300, extra=plan.scene.points[:3], T_cell_cam=plan.scene.T_cell_cam)
     assert len(scene_module._PATCHES) == 1 and not first.points.flags.writeable

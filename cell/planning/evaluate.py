@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from cell.core import geometry
-from cell.core.recent import Recent
+from kernels.recent import Kept
 from cell.physics import projection
 from cell.devices import rig
 from cell.physics.material import Material
@@ -464,7 +464,7 @@ def samples_sphere(problem: Problem) -> tuple[np.ndarray, float]:
 
 
 # arm_at_camera's bodies of the last few camera poses, by what makes them (arm_at_camera's key)
-_AT_CAMERA: Recent[tuple[np.ndarray, ...]] = Recent(4)
+_AT_CAMERA: Kept[tuple[np.ndarray, ...]] = Kept(4)
 
 
 def arm_at_camera(task: Task, T_cell_cam: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -765,7 +765,7 @@ def candidates(problem: Problem, pan: ArrayLike, tilt: ArrayLike, radius: ArrayL
 
 
 # moved_positions' rows of the last few lamps, by their pivot, joints and tolerance
-_MOVED: Recent[np.ndarray] = Recent(4)
+_MOVED: Kept[np.ndarray] = Kept(4)
 
 
 def moved_positions(problem: Problem, joints: Sequence[float]) -> np.ndarray:

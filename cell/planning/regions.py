@@ -12,7 +12,7 @@ from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
 from cell.core import geometry
-from cell.core.recent import Recent
+from kernels.recent import Kept
 from cell.physics import brdf
 from kernels.runtime import threads
 
@@ -256,7 +256,7 @@ def dominant_term_map(grid: SphereGrid, frame: np.ndarray, normal: np.ndarray, v
     return out
 
 
-_WHERE: Recent[np.ndarray] = Recent(64)
+_WHERE: Kept[np.ndarray] = Kept(64)
 
 
 def _where_directions(step: float, frame: np.ndarray, where: np.ndarray) -> np.ndarray:

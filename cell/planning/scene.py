@@ -21,7 +21,7 @@ from numpy.typing import ArrayLike
 
 from cell.core import geometry
 from cell.core.errors import TaskError
-from cell.core.recent import Recent
+from kernels.recent import Kept
 from cell.planning.occluders import Housing, housings
 from kernels.mesh import shared_mesh
 from kernels.proximity import closest_points
@@ -169,7 +169,7 @@ def build_scene(task: Task, samples: int | None = None, extra: np.ndarray | None
                  points=points, normals=normals, T_cell_cam=np.array(T_cell_cam, float), housings=housings(task))
 
 
-_PATCHES: Recent[tuple[np.ndarray, np.ndarray]] = Recent(128)
+_PATCHES: Kept[tuple[np.ndarray, np.ndarray]] = Kept(128)
 
 
 def feature_patch(task: Task, mesh: tuple[np.ndarray, np.ndarray, str], center: np.ndarray, frame: np.ndarray,
@@ -235,7 +235,7 @@ def _row_norms(d: np.ndarray) -> np.ndarray:
     return np.sqrt(geometry.row_sum(d * d))
 
 
-_PLACED: Recent[tuple[np.ndarray, np.ndarray, str, np.ndarray]] = Recent(8)
+_PLACED: Kept[tuple[np.ndarray, np.ndarray, str, np.ndarray]] = Kept(8)
 
 
 def placed_mesh(task: Task) -> tuple[np.ndarray, np.ndarray, str, np.ndarray]:

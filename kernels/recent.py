@@ -1,6 +1,9 @@
-"""Values kept by key in a process, the few most recently asked, each made under a lock: the
-kernels' Warp objects built from the same arrays again and again (a part's BVH, a lamp's and a
-material's kernel arrays), asked from several threads of one process (runtime.in_background)."""
+"""Values kept by key in a process, the few most recently asked, each made under a lock: work
+built from the same arrays again and again (a part's BVH, a lamp's and a material's kernel
+arrays; the planner's memos: a feature's patch, a placed mesh, a camera pose's bodies), whose
+keys are the bytes of what makes them, so functools.lru_cache (hashable arguments) cannot hold
+them, asked from several threads of one process (runtime.in_background: a judged column's patches
+are laid while the plan before it runs)."""
 import threading
 from typing import Callable, Generic, Hashable, TypeVar
 
@@ -24,3 +27,10 @@ class Kept(Generic[V]):
             while len(self._kept) > self.most:
                 self._kept.pop(next(iter(self._kept)))
             return value
+
+    def __len__(self) -> int:
+        return len(self._kept)
+
+    def clear(self) -> None:
+        with self._lock:
+            self._kept.clear()
