@@ -69,17 +69,19 @@ def test_dense_patches_laid_in_the_background_give_the_same_certificates(problem
 
 
 def test_the_launches_lit_begins_are_each_patchs_own_and_not_launched_again(problems_at_one_camera):
-    """certificate.lit begins the gray kernel at the shot's lamp and the camera's shadow flags
-    over every dense patch on a thread beside: each patch's rows are its own launch's (a
-    GrayInputs of that patch alone), and asking for them launches nothing more."""
+    """certificate.lit beside begins the gray kernel at the shot's lamp and the camera's shadow
+    flags over every dense patch on a thread beside: each patch's rows are its own launch's (a
+    GrayInputs of that patch alone), and asking for them launches nothing more; without, it
+    begins nothing (verify_all: its launches split when asked)."""
     from cell.devices import rig
     from cell.planning import evaluate
     shot, problems = problems_at_one_camera
     task, material = problems[0].task, problems[0].material
+    scenes = [certificate.dense_scene(p.task, p.scene) for p in problems]
+    assert not certificate.lit(task, material, shot, scenes)[1]._launched      # verify_all's: launched when asked
     runtime.set_threads(2)
     try:
-        patches, shared = certificate.lit(task, material, shot, [certificate.dense_scene(p.task, p.scene)
-                                                                 for p in problems])
+        patches, shared = certificate.lit(task, material, shot, scenes, beside=True)
     finally:
         runtime.set_threads(None)
 

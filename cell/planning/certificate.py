@@ -193,13 +193,14 @@ def verify_all(problems: Sequence[evaluate.Problem], shot: Shot,
     return verdicts(problems, shot, patches, shared)
 
 
-def lit(task: Task, material: Material, shot: Shot,
-        scenes: Sequence[Scene]) -> tuple[list[Scene], evaluate.SharedLaunches]:
+def lit(task: Task, material: Material, shot: Shot, scenes: Sequence[Scene],
+        beside: bool = False) -> tuple[list[Scene], evaluate.SharedLaunches]:
     """The dense patches `scenes` of one part's features seen by the shot's camera, each with
     its specular point last (specular_points: their searches in lockstep), and the gray kernel
-    over all of them (evaluate.SharedLaunches: each patch's values as its own launch's), its
-    launch at the shot's lamp and the camera's shadow flags begun on a thread beside
-    (SharedLaunches.begin): the caller may judge the samples meanwhile."""
+    over all of them (evaluate.SharedLaunches: each patch's values as its own launch's). With
+    `beside`, its launch at the shot's lamp and the camera's shadow flags are begun on a thread
+    beside (SharedLaunches.begin), for a caller that judges the samples meanwhile; else each is
+    launched when asked, split over the process's threads (verify_all: nothing to do meanwhile)."""
     points, normals = specular_points(scenes, shot.lamp_position)
     patches = [replace(s, points=np.vstack([s.points, point]), normals=np.vstack([s.normals, normal]))
                for s, point, normal in zip(scenes, points, normals)]
@@ -209,8 +210,9 @@ def lit(task: Task, material: Material, shot: Shot,
     ends = np.cumsum(counts).tolist()
     shared = evaluate.SharedLaunches(evaluate.gray_inputs(task, joined, material,
                                                           flat=list(zip([0] + ends[:-1], ends))), counts)
-    lamp = np.asarray(shot.lamp_position, float).reshape(1, 3)
-    shared.begin(lamp, rig.lamp_aim(task.lamp.rig.pivot_m, lamp), joined.camera_position)
+    if beside:
+        lamp = np.asarray(shot.lamp_position, float).reshape(1, 3)
+        shared.begin(lamp, rig.lamp_aim(task.lamp.rig.pivot_m, lamp), joined.camera_position)
     return patches, shared
 
 

@@ -102,8 +102,10 @@ def judge_all(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot,
     task = tasks[0]
     scenes = [replace(x.scene, T_cell_cam=shot.T_cell_cam) for x in lent]
     laying = [d for d in (laid(tasks, lent, shot) if dense is None else dense) if d is not None]
-    if len(laying) == len(tasks):
-        patches, launches = certificate.lit(task, task.part.material.scaled(1.0), shot, [d.result() for d in laying])
+    beside = len(laying) == len(tasks)
+    if beside:
+        patches, launches = certificate.lit(task, task.part.material.scaled(1.0), shot, [d.result() for d in laying],
+                                            beside=True)
     scene, bounds = stacked(lent, shot.T_cell_cam)
     shared = evaluate.SharedLaunches(evaluate.gray_inputs(task, scene, task.part.material.scaled(1.0)),
                                      [end - start for start, end in bounds])
@@ -112,7 +114,7 @@ def judge_all(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot,
     sampled = [on_samples(t, x, s, shot, shared.rows(k), whole) for k, (t, x, s) in enumerate(zip(tasks, lent, scenes))]
     met = [k for k, s in enumerate(sampled) if all(r.met for r in s.values)]
     problems = [sampled[k].problem for k in met]
-    if len(laying) == len(tasks):
+    if beside:
         found = certificate.verdicts(problems, shot, patches, launches, met)
     else:
         found = certificate.verify_all(problems, shot, [in_background(certificate.dense_scene, tasks[k], scenes[k])
