@@ -1,6 +1,7 @@
 """The certificates of several features verified together (certificate.verify_all: their
 specular points' searches in lockstep, one shared gray launch over every dense patch) against
 each verified alone (certificate.verify), bit for bit."""
+import itertools
 from dataclasses import fields, replace
 from pathlib import Path
 
@@ -164,6 +165,55 @@ def test_specular_points_equal_scipys_search_one_point_at_a_time(dense_scenes):
             for k, s in enumerate(scenes):
                 point, normal = specular_point_alone(s, lamp)
                 assert np.array_equal(point, points[k]) and np.array_equal(normal, normals[k])
+
+
+def test_the_launchs_searches_equal_scipys_for_lamps_anywhere_even_at_a_patch_point(dense_scenes):
+    """The specular searches of kernels.specular (all patches in one launch) against the scipy
+    search one point at a time, for lamps near and far, above and below the patches, and a lamp
+    at a patch's best point (its <v, r> NaN there: np.argmax's NaN first, scipy's NaN ordering)."""
+    rng = np.random.default_rng(11)
+    scenes = dense_scenes
+    centre = np.mean([s.center for s in scenes], axis=0)
+    lamps = [centre + rng.normal(size=3) * scale for scale in (0.01, 0.05, 0.3, 2.0) for _ in range(4)]
+    s0 = scenes[0]
+    lamps.append(s0.points[int(np.argmax(certificate.mirror_alignment(s0.points, s0.normals, lamps[0],
+                                                                      s0.camera_position)))])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for lamp in lamps:
+            points, normals = certificate.specular_points(scenes, lamp)
+            for k, s in enumerate(scenes):
+                point, normal = specular_point_alone(s, lamp)
+                assert np.array_equal(point, points[k], equal_nan=True) and np.array_equal(normal, normals[k])
+
+
+def test_a_search_that_meets_the_rim_band_is_searched_again_as_scipy_searches(dense_scenes, monkeypatch):
+    """Where a point of a search falls within on_patch's band about the rim (np.linalg.norm's
+    rounding decides there), the launch says so and the patch is searched in Python: with the
+    band as wide as the patch every search meets it, and the points are still scipy's."""
+    from kernels.specular import specular_search
+    scenes, lamp = dense_scenes[:3], np.mean([s.center for s in dense_scenes[:3]], axis=0) + [0.05, 0.1, 0.2]
+    args = ([s.warp_mesh for s in scenes], [s.points for s in scenes], [s.normals for s in scenes],
+            [s.center for s in scenes], [s.frame[:, 0] for s in scenes], [s.frame[:, 1] for s in scenes],
+            [s.camera_position for s in scenes], lamp)
+    options = (certificate.SIMPLEX_STEP, certificate.XATOL, certificate.FATOL, certificate.MAXFEV)
+    assert specular_search(*args, certificate.ON_PATCH_MARGIN, *options)[2].all()
+    assert not specular_search(*args, 1.0, *options)[2].any()
+    monkeypatch.setattr(certificate, "ON_PATCH_MARGIN", 1.0)
+    points, normals = certificate.specular_points(scenes, lamp)
+    for k, s in enumerate(scenes):
+        point, normal = specular_point_alone(s, lamp)
+        assert np.array_equal(point, points[k]) and np.array_equal(normal, normals[k])
+    assert [len(x) for x in specular_search([], [], [], [], [], [], [], lamp, 1e-9, *options)] == [0, 0, 0]
+
+
+def test_numpys_argsort_orders_three_values_as_the_searchs_kernel_does():
+    """kernels.specular orders the simplex's three values ascending, NaN last, equal values in
+    their order (a stable sort): np.argsort's order, which scipy's search reads, for every
+    pattern of ties, signed zeros, infinities and NaN."""
+    values = [1.0, 2.0, np.nan, -0.0, 0.0, np.inf, -np.inf]
+    for triple in itertools.product(values, repeat=3):
+        stable = sorted(range(3), key=lambda k: (np.isnan(triple[k]), 0.0 if np.isnan(triple[k]) else triple[k]))
+        assert np.argsort(np.array(triple)).tolist() == stable
 
 
 def test_alignment_at_one_point_equals_mirror_alignments():

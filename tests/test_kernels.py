@@ -19,7 +19,7 @@ from kernels.cone import NO_CONE, free_cone_cosines
 from kernels.funcs import SECTORS
 from kernels.gray import GrayInputs, gray_per_exposure
 from kernels.mesh import WarpMesh
-from kernels.proximity import ClosestPoint, closest_points
+from kernels.proximity import closest_points
 from kernels.render import render
 from kernels.visibility import combined_map, visibility_maps, visible_from_all
 
@@ -678,26 +678,6 @@ def test_closest_points_project_onto_the_hinge_leaf(hinge):
     np.testing.assert_allclose(point[:2], [[0.006, 0.0, 0.004], [0.010, 0.005, 0.004]], atol=1e-7)
     np.testing.assert_allclose(normal[:2], [[0.0, 0.0, 1.0]] * 2, atol=1e-6)
     assert face[2] == -1 and np.isnan(point[2]).all()
-
-
-def test_the_recorded_closest_point_is_closest_points_bit_for_bit(hinge, blocks):
-    """Queries on two meshes, each within its own max_dist, one set after another on one recorded
-    launch, against a launch of their own each: the same points, faces and normals exactly,
-    misses included (NaN, -1, 0)."""
-    mesh, _ = hinge
-    rng = np.random.default_rng(3)
-    guesses = np.vstack([rng.uniform([-0.01, -0.01, 0.0], [0.02, 0.01, 0.008], (40, 3)), [[0.0, 0.0, 0.5]]])
-    point, face, normal = closest_points(mesh, guesses, max_dist=0.01)
-    on_blocks = rng.uniform([-0.05, -0.05, 0.0], [0.07, 0.05, 0.1], (41, 3))
-    point_b, face_b, normal_b = closest_points(blocks, on_blocks, max_dist=0.02)
-    closest = ClosestPoint([mesh, blocks], [0.01, 0.02])
-    for k in range(len(guesses)):
-        p, f, n = closest(np.vstack([guesses[k], on_blocks[k]]))
-        assert f.tolist() == [face[k], face_b[k]]
-        np.testing.assert_array_equal(p, [point[k], point_b[k]])
-        np.testing.assert_array_equal(n, [normal[k], normal_b[k]])
-    assert face[-1] == -1 and (face[:-1] >= 0).sum() > 20
-    assert (face_b == -1).sum() > 3 and (face_b >= 0).sum() > 20
 
 
 @pytest.mark.parametrize("shadows", [False, True])

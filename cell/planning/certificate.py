@@ -11,15 +11,14 @@ then adds the worst points to its samples and searches again (cell.planning.one_
 from __future__ import annotations
 
 import math
-from collections.abc import Generator, Iterable, Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import replace
-from itertools import islice
 from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from cell.planning import defects, evaluate, lockstep, nelder_mead, requirements
+from cell.planning import defects, evaluate, requirements
 from cell.planning.plan import Verification
 from cell.devices import rig
 from cell.core import geometry
@@ -37,7 +36,8 @@ DENSE_MAX = 20_000              # points: a 12 mm patch seen by 93 um pixels nee
 # the requirements that depend on where the points are; the others are judged by the search
 JUDGED = ("gray_min", "gray_max", "reflection_region", "no_shadow", "cone_coverage", "camera_view", "view_angle",
           "resolution", "depth_of_field", "defect_cnr")
-SLOTS = 3                       # queries a specular search asks at most in a round (nelder_mead.batches in 2-D)
+SIMPLEX_STEP = 0.02             # of the patch's radius: the specular search's first simplex's side
+XATOL, FATOL, MAXFEV = 1e-7, 1e-12, 80          # the specular search's ends (scipy's Nelder-Mead options) [m, 1, 1]
 ON_PATCH_MARGIN = 1e-9          # of the radius: the band about the rim on_patch decides by np.linalg.norm
 
 
@@ -85,62 +85,48 @@ def mirror_alignment(points: np.ndarray, normals: np.ndarray, lamp: ArrayLike, c
 
 def specular_points(scenes: Sequence[Scene], lamp: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """Each scene's patch's specular point, where <v, r> is largest: the best of its dense points,
-    refined by Nelder-Mead (scipy's, cell.planning.nelder_mead) over a step in the feature's
-    tangent plane projected onto the surface (a highlight between the dense points, on a curved
-    patch, is found to within float32); the step back to that best dense point where the search
-    ends no better. Returns (points (K, 3), outward normals (K, 3)) on the surface. The K
-    searches run in lockstep (cell.planning.lockstep.drive), each asking ahead
-    (nelder_mead.batches: a step's reflection, inside contraction and expansion in one round,
-    half the rounds of one point a round): each round's projections of all of them in one
-    ClosestPoint launch (SLOTS queries a search), each point's <v, r> from its own row alone
-    (alignment_at: a round's few points cost less in Python floats than in NumPy calls), so
-    each search ends where it would alone."""
-    from kernels.proximity import ClosestPoint
-    # each patch's largest |point - center| (np.linalg.norm's along rows: the root of dot3, row_sum's bits)
-    radius = [math.sqrt(float(np.max(geometry.dot3(d, d)))) for d in
-              (geometry.by_component(np.subtract, s.points, s.center) for s in scenes)]
-    starts = np.array([s.points[int(np.argmax(mirror_alignment(s.points, s.normals, lamp, s.camera_position)))]
-                       for s in scenes]).reshape(-1, 3)
-    along_x = np.array([s.frame[:, 0] for s in scenes]).reshape(-1, 3)
-    along_y = np.array([s.frame[:, 1] for s in scenes]).reshape(-1, 3)
-    closest = ClosestPoint([s.warp_mesh for s in scenes for _ in range(SLOTS)], np.repeat(radius, SLOTS))
-    queries = np.repeat(starts, SLOTS, axis=0)
-    lamp_at = np.asarray(lamp, float).tolist()
-    frames = [(start, x, y, s.center.tolist(), s.camera_position.tolist())
-              for start, x, y, s in zip(starts.tolist(), along_x.tolist(), along_y.tolist(), scenes)]
+    refined by Nelder-Mead (scipy's) over a step in the feature's tangent plane projected onto
+    the surface (a highlight between the dense points, on a curved patch, is found to within
+    float32); the step back to that best dense point where the search ends no better. Returns
+    (points (K, 3), outward normals (K, 3)) on the surface. The K searches run in one launch, a
+    thread each (kernels.specular: scipy's arithmetic and this module's <v, r> and on_patch, the
+    same bits); a search whose point fell in on_patch's band at the rim, where np.linalg.norm's
+    rounding decides, is searched again here (specular_point_alone)."""
+    from kernels.specular import specular_search
+    points, normals, decided = specular_search(
+        [s.warp_mesh for s in scenes], [s.points for s in scenes], [s.normals for s in scenes],
+        [s.center for s in scenes], [s.frame[:, 0] for s in scenes], [s.frame[:, 1] for s in scenes],
+        [s.camera_position for s in scenes], lamp, ON_PATCH_MARGIN, SIMPLEX_STEP, XATOL, FATOL, MAXFEV)
+    for k in np.flatnonzero(~decided).tolist():
+        points[k], normals[k] = specular_point_alone(scenes[k], lamp)
+    return points, normals
 
-    def values(asked: list[tuple[int, np.ndarray]]) -> list[list[float]]:
-        """-<v, r> at each asked (search, steps (m, 2))'s points on the surface, each step taken
-        in the feature's tangent plane from its start (start + a x + b y, NumPy's order); 2 off
-        its patch (or no surface)."""
-        rows, placed = [], []
-        for k, steps in asked:
-            (sx, sy, sz), (xx, xy, xz), (yx, yy, yz) = frames[k][:3]
-            for j, (a, b) in enumerate(steps.tolist()):
-                rows.append(SLOTS * k + j)
-                placed.append((sx + a * xx + b * yx, sy + a * xy + b * yy, sz + a * xz + b * yz))
-        queries[rows] = placed
-        point, _, normal = closest(queries)
-        found = iter(zip(point[rows].tolist(), normal[rows].tolist()))
-        return [[-alignment_at(p, n, lamp_at, frames[k][4]) if on_patch(p, frames[k][3], radius[k]) else 2.0
-                 for p, n in islice(found, len(steps))] for k, steps in asked]
 
-    def search(k: int) -> Generator[np.ndarray, list[float], np.ndarray]:
-        d = 0.02 * radius[k]
-        steps = nelder_mead.batches([[0.0, 0.0], [d, 0.0], [0.0, d]], 1e-7, 1e-12, 80)
-        answers = yield next(steps)
-        at_start = answers[0]               # the initial simplex's first vertex: the start itself
-        try:
-            while True:
-                answers = yield steps.send(answers)
-        except StopIteration as stop:
-            x, fun, _ = stop.value
-        return x if fun <= at_start else np.zeros(2)
+def specular_point_alone(scene: Scene, lamp: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+    """specular_points of one patch, searched in Python: scipy's Nelder-Mead over the step, each
+    point projected by its own closest_points query and judged by alignment_at, off the patch by
+    on_patch (np.linalg.norm's decision at the rim)."""
+    from scipy.optimize import minimize
 
-    step = np.array(lockstep.drive([search(k) for k in range(len(scenes))], values)).reshape(-1, 2)
-    queries[::SLOTS] = starts + step[:, :1] * along_x + step[:, 1:] * along_y
-    point, _, normal = closest(queries)
-    return point[::SLOTS], normal[::SLOTS]
+    from kernels.proximity import closest_points
+    offsets = geometry.by_component(np.subtract, scene.points, scene.center)
+    radius = math.sqrt(float(np.max(geometry.dot3(offsets, offsets))))
+    start = scene.points[int(np.argmax(mirror_alignment(scene.points, scene.normals, lamp, scene.camera_position)))]
+    lamp_at, camera, center = np.asarray(lamp, float).tolist(), scene.camera_position.tolist(), scene.center.tolist()
+
+    def at(step: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        query = start + step[0] * scene.frame[:, 0] + step[1] * scene.frame[:, 1]
+        point, _, normal = closest_points(scene.warp_mesh, query[None], max_dist=radius)
+        if not on_patch(point[0].tolist(), center, radius):
+            return point[0], normal[0], 2.0
+        return point[0], normal[0], -alignment_at(point[0].tolist(), normal[0].tolist(), lamp_at, camera)
+
+    d = SIMPLEX_STEP * radius
+    found = minimize(lambda step: at(step)[2], np.zeros(2), method="Nelder-Mead",
+                     options={"initial_simplex": [[0.0, 0.0], [d, 0.0], [0.0, d]], "xatol": XATOL, "fatol": FATOL,
+                              "maxfev": MAXFEV})
+    point, normal, _ = at(found.x if found.fun <= at(np.zeros(2))[2] else np.zeros(2))
+    return point, normal
 
 
 def on_patch(point: list[float], center: list[float], radius: float) -> bool:
@@ -196,7 +182,7 @@ def verify_all(problems: Sequence[evaluate.Problem], shot: Shot,
 def lit(task: Task, material: Material, shot: Shot, scenes: Sequence[Scene],
         beside: bool = False) -> tuple[list[Scene], evaluate.SharedLaunches]:
     """The dense patches `scenes` of one part's features seen by the shot's camera, each with
-    its specular point last (specular_points: their searches in lockstep), and the gray kernel
+    its specular point last (specular_points: their searches in one launch), and the gray kernel
     over all of them (evaluate.SharedLaunches: each patch's values as its own launch's). With
     `beside`, its launch at the shot's lamp and the camera's shadow flags are begun on a thread
     beside (SharedLaunches.begin), for a caller that judges the samples meanwhile; else each is

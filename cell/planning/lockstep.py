@@ -1,16 +1,15 @@
 """Several sequential searches run in lockstep in one thread: each written as a generator that
 yields the point whose value it needs, or a batch of points, and is sent that value, or theirs
 (cell.planning.nelder_mead: scipy's Nelder-Mead step for step), every round what all the searches
-still running ask answered by one batched call. A search's refinement starts (one kernel launch and one pass of the
-requirements over all their poses a round) and the certificates' specular points (one
-closest-point launch over all a round) thus share their evaluations. Each search sees the values
+still running ask answered by one batched call. A search's refinement starts thus share their
+evaluations (one kernel launch and one pass of the requirements over all their poses a round).
+Each search sees the values
 it would have seen alone when a point's value does not depend on the other points in its batch
 (a candidate's row reads its own lamp alone).
 
-One thread, not one per search: an evaluation of a few poses costs about a millisecond of Python
-and a specular point's some 80 us, and handing the GIL from thread to thread at every point
-costs a good part of that (120 specular searches in groups of 4 took longer in threads than one
-at a time)."""
+One thread, not one per search: an evaluation of a few poses costs about a millisecond of Python,
+and handing the GIL from thread to thread at every point costs a good part of that (120
+searches of some 80 us a point in groups of 4 took longer in threads than one at a time)."""
 
 from __future__ import annotations
 

@@ -1,0 +1,261 @@
+"""The certificates' specular points (cell.planning.certificate.specular_points) searched in one
+launch, a thread a patch: scipy's Nelder-Mead (scipy.optimize.minimize(method="Nelder-Mead"),
+without bounds, not adaptive, from the initial simplex (0, 0), (d, 0), (0, d), with xatol,
+fatol and maxfev) over a step (a, b) in the feature's tangent plane from a start point, each
+step projected onto the surface (the closest point within the patch's radius, kernels.proximity's
+query) and judged by -<v, r> there (mirror_alignment's eq. 6-7), 2 off the patch.
+
+Every operation is IEEE double on its own, in the order of the Python and NumPy it replaces
+(cell.planning.certificate's alignment_at, on_patch, the step's `start + a x + b y`, scipy's
+reflection, expansion, contractions and shrink, its centroid summed from +0.0): Warp emits each
+operation of a kernel as its own statement, which the compiler does not fuse into a
+multiply-add (the module's `fuse_fp` fuses only a C++ expression's own), so the same bits; and
+the simplex ordered as np.argsort orders three values (ascending, NaN last, equal values in
+their order). Where a point lies so near the patch's rim that the sum of squares' root cannot
+decide it as np.linalg.norm does (certificate.on_patch's band), the search stops and says so
+(`undecided`): its caller searches that patch in Python.
+
+A search costs some 80 closest-point queries and a hundred of arithmetic: the launch answers a
+judged shot's few patches in a fraction of a millisecond, where a round of the searches in
+Python (a query launch and their steps' arithmetic) cost about 100 us and a search 25 rounds.
+"""
+from typing import TYPE_CHECKING
+
+import numpy as np
+import warp as wp
+from numpy.typing import ArrayLike
+
+from ._arrays import output, vec3d
+from .proximity import closest_on
+from .runtime import ensure_init
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from .mesh import WarpMesh
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.func
+def projected(mesh: wp.uint64, max_dist: wp.float32, start: wp.vec3d, along_x: wp.vec3d, along_y: wp.vec3d,
+              a: wp.float64, b: wp.float64):
+    """(point, face, outward normal) of the step (a, b): kernels.proximity's closest point to
+    start + a x + b y (each component (s + a x) + b y) within max_dist."""
+    return closest_on(mesh, wp.vec3d(start[0] + a * along_x[0] + b * along_y[0],
+                                     start[1] + a * along_x[1] + b * along_y[1],
+                                     start[2] + a * along_x[2] + b * along_y[2]), max_dist)
+
+
+@wp.func
+def alignment(point: wp.vec3d, normal: wp.vec3d, lamp: wp.vec3d, camera: wp.vec3d) -> wp.float64:
+    """<v, r> at the point (certificate.alignment_at's operations in its order; IEEE's NaN or
+    infinity where the lamp or the camera is at the point, as NumPy's)."""
+    zero = wp.float64(0.0)
+    sx = lamp[0] - point[0]
+    sy = lamp[1] - point[1]
+    sz = lamp[2] - point[2]
+    vx = camera[0] - point[0]
+    vy = camera[1] - point[1]
+    vz = camera[2] - point[2]
+    s_length = wp.sqrt(((sx * sx + sy * sy) + sz * sz) + zero)
+    v_length = wp.sqrt(((vx * vx + vy * vy) + vz * vz) + zero)
+    sx = sx / s_length
+    sy = sy / s_length
+    sz = sz / s_length
+    vx = vx / v_length
+    vy = vy / v_length
+    vz = vz / v_length
+    twice = wp.float64(2.0) * (((normal[0] * sx + normal[1] * sy) + normal[2] * sz) + zero)
+    return (((twice * normal[0] - sx) * vx + (twice * normal[1] - sy) * vy) + (twice * normal[2] - sz) * vz) + zero
+
+
+@wp.func
+def value(mesh: wp.uint64, max_dist: wp.float32, start: wp.vec3d, along_x: wp.vec3d, along_y: wp.vec3d,
+          center: wp.vec3d, radius: wp.float64, rim: wp.float64, lamp: wp.vec3d, camera: wp.vec3d,
+          step: wp.vec2d):
+    """(-<v, r> at the step's point, 2 off the patch (or no surface within reach); whether on_patch's root decided it:
+    False within `rim` of the radius, where np.linalg.norm's rounding decides)."""
+    point, face, normal = projected(mesh, max_dist, start, along_x, along_y, step[0], step[1])
+    dx = point[0] - center[0]
+    dy = point[1] - center[1]
+    dz = point[2] - center[2]
+    distance = wp.sqrt((dx * dx + dy * dy) + dz * dz)
+    if wp.isnan(distance):
+        return wp.float64(2.0), True
+    if wp.abs(distance - radius) <= rim:
+        return wp.float64(0.0), False
+    if distance <= radius:
+        return -alignment(point, normal, lamp, camera), True
+    return wp.float64(2.0), True
+
+
+@wp.func
+def before(a: wp.float64, b: wp.float64) -> bool:
+    """a sorts before b as np.argsort sorts: ascending, NaN last."""
+    return a < b or (wp.isnan(b) and not wp.isnan(a))
+
+
+@wp.func
+def swapped(x: wp.vec2d, y: wp.vec2d, fx: wp.float64, fy: wp.float64):
+    """Two vertices and their values, exchanged."""
+    return y, x, fy, fx
+
+
+@wp.kernel
+def specular_search_kernel(meshes: wp.array(dtype=wp.uint64), points: wp.array(dtype=wp.vec3d),
+                           normals: wp.array(dtype=wp.vec3d), bounds: wp.array(dtype=wp.int32),
+                           center: wp.array(dtype=wp.vec3d), along_x: wp.array(dtype=wp.vec3d),
+                           along_y: wp.array(dtype=wp.vec3d), camera: wp.array(dtype=wp.vec3d), lamp: wp.vec3d,
+                           rim_fraction: wp.float64, step_fraction: wp.float64, xatol: wp.float64,
+                           fatol: wp.float64, maxfev: wp.int32, point: wp.array(dtype=wp.vec3d),
+                           normal: wp.array(dtype=wp.vec3d), decided: wp.array(dtype=wp.int32)):
+    """Search k over patch k's dense points (rows bounds[k] to bounds[k + 1]): its radius the
+    largest |point - centre| (the root of the largest ((dx dx + dy dy) + dz dz) + 0.0), its start
+    the first point of the largest <v, r> (np.argmax's, a NaN first), then Nelder-Mead from the
+    simplex (0, 0), (d, 0), (0, d), d = step_fraction x radius; its best step where its value is
+    no worse than the start's, else (0, 0), projected onto the surface (point, normal). decided[k]
+    0 where a point fell within rim_fraction x radius of the rim (the rest then means nothing)."""
+    k = wp.tid()
+    mesh = meshes[k]
+    c = center[k]
+    ax = along_x[k]
+    ay = along_y[k]
+    eye = camera[k]
+    zero = wp.float64(0.0)
+    farthest = wp.float64(-wp.inf)
+    best = wp.float64(wp.nan)
+    first = bounds[k]
+    s = points[first]
+    for i in range(first, bounds[k + 1]):
+        p = points[i]
+        dx = p[0] - c[0]
+        dy = p[1] - c[1]
+        dz = p[2] - c[2]
+        squared = ((dx * dx + dy * dy) + dz * dz) + zero
+        if wp.isnan(squared) or squared > farthest:
+            if not wp.isnan(farthest):
+                farthest = squared
+        aligned = alignment(p, normals[i], lamp, eye)
+        if i == first or (not wp.isnan(best) and (wp.isnan(aligned) or aligned > best)):
+            best = aligned
+            s = p
+    r = wp.sqrt(farthest)
+    reach = wp.float32(r)
+    band = rim_fraction * r
+    zero = wp.float64(0.0)
+    half = wp.float64(0.5)
+    x0 = wp.vec2d(zero, zero)
+    x1 = wp.vec2d(step_fraction * r, zero)
+    x2 = wp.vec2d(zero, step_fraction * r)
+    f0, ok0 = value(mesh, reach, s, ax, ay, c, r, band, lamp, eye, x0)
+    f1, ok1 = value(mesh, reach, s, ax, ay, c, r, band, lamp, eye, x1)
+    f2, ok2 = value(mesh, reach, s, ax, ay, c, r, band, lamp, eye, x2)
+    ok = ok0 and ok1 and ok2
+    at_start = f0
+    calls = int(3)
+    sorts = int(2)                       # scipy sorts twice before its loop, then once after each step
+    while ok and sorts > 0:
+        if before(f1, f0):
+            x0, x1, f0, f1 = swapped(x0, x1, f0, f1)
+        if before(f2, f1):
+            x1, x2, f1, f2 = swapped(x1, x2, f1, f2)
+            if before(f1, f0):
+                x0, x1, f0, f1 = swapped(x0, x1, f0, f1)
+        sorts -= 1
+        if sorts == 0 and calls < maxfev:
+            if (wp.abs(x1[0] - x0[0]) <= xatol and wp.abs(x1[1] - x0[1]) <= xatol and wp.abs(x2[0] - x0[0]) <= xatol
+                    and wp.abs(x2[1] - x0[1]) <= xatol and wp.abs(f0 - f1) <= fatol and wp.abs(f0 - f2) <= fatol):
+                break
+            # a step: the centroid of the best two summed from +0.0, then scipy's trial points
+            xbar = wp.vec2d(((zero + x0[0]) + x1[0]) / wp.float64(2.0), ((zero + x0[1]) + x1[1]) / wp.float64(2.0))
+            xr = wp.vec2d(wp.float64(2.0) * xbar[0] - x2[0], wp.float64(2.0) * xbar[1] - x2[1])
+            fxr, ok = value(mesh, reach, s, ax, ay, c, r, band, lamp, eye, xr)
+            calls += 1
+            if not ok:
+                break
+            if fxr < f0:
+                if calls < maxfev:
+                    xe = wp.vec2d(wp.float64(3.0) * xbar[0] - wp.float64(2.0) * x2[0],
+                                  wp.float64(3.0) * xbar[1] - wp.float64(2.0) * x2[1])
+                    fxe, ok = value(mesh, reach, s, ax, ay, c, r, band, lamp, eye, xe)
+                    calls += 1
+                    if fxe < fxr:
+                        x2 = xe
+                        f2 = fxe
+                    else:
+                        x2 = xr
+                        f2 = fxr
+            elif fxr < f1:
+                x2 = xr
+                f2 = fxr
+            else:
+                shrink = bool(False)
+                if calls < maxfev:
+                    if fxr < f2:
+                        xc = wp.vec2d(wp.float64(1.5) * xbar[0] - half * x2[0], wp.float64(1.5) * xbar[1] - half * x2[1])
+                        fxc, ok = value(mesh, reach, s, ax, ay, c, r, band, lamp, eye, xc)
+                        calls += 1
+                        if fxc <= fxr:
+                            x2 = xc
+                            f2 = fxc
+                        else:
+                            shrink = True
+                    else:
+                        xcc = wp.vec2d(half * xbar[0] + half * x2[0], half * xbar[1] + half * x2[1])
+                        fxcc, ok = value(mesh, reach, s, ax, ay, c, r, band, lamp, eye, xcc)
+                        calls += 1
+                        if fxcc < f2:
+                            x2 = xcc
+                            f2 = fxcc
+                        else:
+                            shrink = True
+                if shrink and ok:       # each vertex moved halfway to the best, then judged, while evaluations last
+                    x1 = wp.vec2d(x0[0] + half * (x1[0] - x0[0]), x0[1] + half * (x1[1] - x0[1]))
+                    if calls < maxfev:
+                        f1, ok = value(mesh, reach, s, ax, ay, c, r, band, lamp, eye, x1)
+                        calls += 1
+                        if ok:
+                            x2 = wp.vec2d(x0[0] + half * (x2[0] - x0[0]), x0[1] + half * (x2[1] - x0[1]))
+                            if calls < maxfev:
+                                f2, ok = value(mesh, reach, s, ax, ay, c, r, band, lamp, eye, x2)
+                                calls += 1
+            sorts = 1
+    decided[k] = wp.where(ok, 1, 0)
+    lowest = wp.min(wp.min(f0, f1), f2)
+    if wp.isnan(f0) or wp.isnan(f1) or wp.isnan(f2):
+        lowest = f0 + f1 + f2                           # np.min's NaN
+    step = x0
+    if not lowest <= at_start:
+        step = wp.vec2d(zero, zero)
+    p, face, n = projected(mesh, reach, s, ax, ay, step[0], step[1])
+    point[k] = p
+    normal[k] = n
+
+
+def specular_search(meshes: "Sequence[WarpMesh]", points: "Sequence[np.ndarray]", normals: "Sequence[np.ndarray]",
+                    centers: ArrayLike, along_x: ArrayLike, along_y: ArrayLike, cameras: ArrayLike, lamp: ArrayLike,
+                    rim_fraction: float, step_fraction: float, xatol: float, fatol: float,
+                    maxfev: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """K searches (one a patch: its mesh, dense points and normals (N_k, 3), centre, tangent axes
+    and camera (K, 3); one lamp) in one launch, a thread each: (points (K, 3), outward normals
+    (K, 3), decided (K,) bool: False where the search met the rim's band and must be searched
+    again in Python)."""
+    device = ensure_init(__name__)
+    k = len(meshes)
+    point, point_wp = output((k, 3), np.float64, wp.vec3d)
+    normal, normal_wp = output((k, 3), np.float64, wp.vec3d)
+    decided, decided_wp = output(k, np.int32, wp.int32)
+    if k:
+        if min(len(p) for p in points) == 0:
+            raise ValueError("a specular search needs a patch of at least one point")
+        bounds = np.concatenate([[0], np.cumsum([len(p) for p in points])]).astype(np.int32)
+        wp.launch(specular_search_kernel, dim=k, device=device,
+                  inputs=[wp.array(np.array([m.id for m in meshes], dtype=np.uint64), dtype=wp.uint64, device=device),
+                          vec3d(np.vstack(points), "points"), vec3d(np.vstack(normals), "normals"),
+                          wp.array(bounds, dtype=wp.int32, device=device), vec3d(centers, "centers"),
+                          vec3d(along_x, "along_x"), vec3d(along_y, "along_y"), vec3d(cameras, "cameras"),
+                          wp.vec3d(*np.asarray(lamp, dtype=np.float64).reshape(3).tolist()),
+                          float(rim_fraction), float(step_fraction), float(xatol), float(fatol), int(maxfev)],
+                  outputs=[point_wp, normal_wp, decided_wp])
+    return point, normal, decided.astype(bool)
