@@ -1,23 +1,26 @@
 """The certificates' specular points (cell.planning.certificate.specular_points) searched in one
-launch, a thread a patch: scipy's Nelder-Mead (scipy.optimize.minimize(method="Nelder-Mead"),
-without bounds, not adaptive, from the initial simplex (0, 0), (d, 0), (0, d), with xatol,
-fatol and maxfev) over a step (a, b) in the feature's tangent plane from a start point, each
-step projected onto the surface (the closest point within the patch's radius, kernels.proximity's
-query) and judged by -<v, r> there (mirror_alignment's eq. 6-7), 2 off the patch.
+launch, a thread a patch. Each thread finds its patch's radius (the largest |point - centre|)
+and start (the dense point of the largest <v, r>, mirror_alignment's eq. 6-7, np.argmax's
+first), then runs scipy's Nelder-Mead (scipy.optimize.minimize(method="Nelder-Mead"), without
+bounds, not adaptive, from the initial simplex (0, 0), (d, 0), (0, d), with xatol, fatol and
+maxfev) over a step (a, b) in the feature's tangent plane from the start, each step projected
+onto the surface (kernels.proximity.closest_on within the patch's radius) and judged by -<v, r>
+there, 2 off the patch.
 
 Every operation is IEEE double on its own, in the order of the Python and NumPy it replaces
-(cell.planning.certificate's alignment_at, on_patch, the step's `start + a x + b y`, scipy's
-reflection, expansion, contractions and shrink, its centroid summed from +0.0): Warp emits each
-operation of a kernel as its own statement, which the compiler does not fuse into a
-multiply-add (the module's `fuse_fp` fuses only a C++ expression's own), so the same bits; and
-the simplex ordered as np.argsort orders three values (ascending, NaN last, equal values in
-their order). Where a point lies so near the patch's rim that the sum of squares' root cannot
-decide it as np.linalg.norm does (certificate.on_patch's band), the search stops and says so
-(`undecided`): its caller searches that patch in Python.
+(cell.planning.certificate's alignment_at and mirror_alignment, on_patch, the radius's sum of
+squares, the step's `start + a x + b y`, scipy's reflection, expansion, contractions and
+shrink, its centroid summed from +0.0): Warp emits each operation of a kernel as a statement of
+its own, which the compiler does not fuse into a multiply-add (its `fuse_fp` fuses only within
+one C++ expression), so the same bits; the simplex is ordered as np.argsort orders three values
+(ascending, NaN last, equal values in their order: tests/test_certificate.py holds NumPy to it).
+Where a point lies so near the patch's rim that the sum of squares' root cannot decide it as
+np.linalg.norm does (certificate.on_patch's band), the search stops and says so (`decided`
+False): its caller searches that patch in Python.
 
-A search costs some 80 closest-point queries and a hundred of arithmetic: the launch answers a
-judged shot's few patches in a fraction of a millisecond, where a round of the searches in
-Python (a query launch and their steps' arithmetic) cost about 100 us and a search 25 rounds.
+A patch of 10 000 points costs some 0.3 ms: the start's scan about two thirds, the search's 80
+closest-point queries and its arithmetic the rest; in Python the search alone cost some 25
+rounds of 100 us (a query launch and the steps' arithmetic in Python floats).
 """
 from typing import TYPE_CHECKING
 
@@ -25,7 +28,7 @@ import numpy as np
 import warp as wp
 from numpy.typing import ArrayLike
 
-from ._arrays import output, vec3d
+from ._arrays import output, vec3d_view
 from .proximity import closest_on
 from .runtime import ensure_init
 
@@ -105,12 +108,12 @@ def swapped(x: wp.vec2d, y: wp.vec2d, fx: wp.float64, fy: wp.float64):
 @wp.kernel
 def specular_search_kernel(meshes: wp.array(dtype=wp.uint64), points: wp.array(dtype=wp.vec3d),
                            normals: wp.array(dtype=wp.vec3d), bounds: wp.array(dtype=wp.int32),
-                           center: wp.array(dtype=wp.vec3d), along_x: wp.array(dtype=wp.vec3d),
-                           along_y: wp.array(dtype=wp.vec3d), camera: wp.array(dtype=wp.vec3d), lamp: wp.vec3d,
+                           frames: wp.array(dtype=wp.vec3d), lamp: wp.vec3d,
                            rim_fraction: wp.float64, step_fraction: wp.float64, xatol: wp.float64,
                            fatol: wp.float64, maxfev: wp.int32, point: wp.array(dtype=wp.vec3d),
                            normal: wp.array(dtype=wp.vec3d), decided: wp.array(dtype=wp.int32)):
-    """Search k over patch k's dense points (rows bounds[k] to bounds[k + 1]): its radius the
+    """Search k over patch k's dense points (rows bounds[k] to bounds[k + 1]), its centre,
+    tangent axes x and y and camera frames[4 k] to frames[4 k + 3]: its radius the
     largest |point - centre| (the root of the largest ((dx dx + dy dy) + dz dz) + 0.0), its start
     the first point of the largest <v, r> (np.argmax's, a NaN first), then Nelder-Mead from the
     simplex (0, 0), (d, 0), (0, d), d = step_fraction x radius; its best step where its value is
@@ -118,10 +121,10 @@ def specular_search_kernel(meshes: wp.array(dtype=wp.uint64), points: wp.array(d
     0 where a point fell within rim_fraction x radius of the rim (the rest then means nothing)."""
     k = wp.tid()
     mesh = meshes[k]
-    c = center[k]
-    ax = along_x[k]
-    ay = along_y[k]
-    eye = camera[k]
+    c = frames[4 * k]
+    ax = frames[4 * k + 1]
+    ay = frames[4 * k + 2]
+    eye = frames[4 * k + 3]
     zero = wp.float64(0.0)
     farthest = wp.float64(-wp.inf)
     best = wp.float64(wp.nan)
@@ -250,11 +253,13 @@ def specular_search(meshes: "Sequence[WarpMesh]", points: "Sequence[np.ndarray]"
         if min(len(p) for p in points) == 0:
             raise ValueError("a specular search needs a patch of at least one point")
         bounds = np.concatenate([[0], np.cumsum([len(p) for p in points])]).astype(np.int32)
-        wp.launch(specular_search_kernel, dim=k, device=device,
+        frames = np.stack([np.asarray(v, dtype=np.float64).reshape(k, 3) for v in (centers, along_x, along_y, cameras)],
+                          axis=1).reshape(4 * k, 3)
+        joined = np.vstack(points).astype(np.float64), np.vstack(normals).astype(np.float64)
+        wp.launch(specular_search_kernel, dim=k, device=device,   # the views' arrays live through the launch
                   inputs=[wp.array(np.array([m.id for m in meshes], dtype=np.uint64), dtype=wp.uint64, device=device),
-                          vec3d(np.vstack(points), "points"), vec3d(np.vstack(normals), "normals"),
-                          wp.array(bounds, dtype=wp.int32, device=device), vec3d(centers, "centers"),
-                          vec3d(along_x, "along_x"), vec3d(along_y, "along_y"), vec3d(cameras, "cameras"),
+                          vec3d_view(joined[0], "points"), vec3d_view(joined[1], "normals"),
+                          wp.array(bounds, dtype=wp.int32, device=device, copy=False), vec3d_view(frames, "frames"),
                           wp.vec3d(*np.asarray(lamp, dtype=np.float64).reshape(3).tolist()),
                           float(rim_fraction), float(step_fraction), float(xatol), float(fatol), int(maxfev)],
                   outputs=[point_wp, normal_wp, decided_wp])
