@@ -73,24 +73,59 @@ def alignment(point: wp.vec3d, normal: wp.vec3d, lamp: wp.vec3d, camera: wp.vec3
     return (((twice * normal[0] - sx) * vx + (twice * normal[1] - sy) * vy) + (twice * normal[2] - sz) * vz) + zero
 
 
+@wp.struct
+class Patch:
+    """What a search's evaluations read: the mesh and the query's reach (float32, as
+    kernels.proximity takes it), the start and tangent axes of the steps, the patch's centre,
+    radius and rim band, the lamp and the camera."""
+
+    mesh: wp.uint64
+    reach: wp.float32
+    start: wp.vec3d
+    along_x: wp.vec3d
+    along_y: wp.vec3d
+    center: wp.vec3d
+    radius: wp.float64
+    rim: wp.float64
+    lamp: wp.vec3d
+    camera: wp.vec3d
+
+
 @wp.func
-def value(mesh: wp.uint64, max_dist: wp.float32, start: wp.vec3d, along_x: wp.vec3d, along_y: wp.vec3d,
-          center: wp.vec3d, radius: wp.float64, rim: wp.float64, lamp: wp.vec3d, camera: wp.vec3d,
-          step: wp.vec2d):
-    """(-<v, r> at the step's point, 2 off the patch (or no surface within reach); whether on_patch's root decided it:
-    False within `rim` of the radius, where np.linalg.norm's rounding decides)."""
-    point, face, normal = projected(mesh, max_dist, start, along_x, along_y, step[0], step[1])
-    dx = point[0] - center[0]
-    dy = point[1] - center[1]
-    dz = point[2] - center[2]
+def value(patch: Patch, step: wp.vec2d):
+    """(-<v, r> at the step's point, 2 off the patch (or no surface within reach); whether
+    on_patch's root decided it: False within the rim band of the radius, where np.linalg.norm's
+    rounding decides)."""
+    point, face, normal = projected(patch.mesh, patch.reach, patch.start, patch.along_x, patch.along_y, step[0],
+                                    step[1])
+    dx = point[0] - patch.center[0]
+    dy = point[1] - patch.center[1]
+    dz = point[2] - patch.center[2]
     distance = wp.sqrt((dx * dx + dy * dy) + dz * dz)
     if wp.isnan(distance):
         return wp.float64(2.0), True
-    if wp.abs(distance - radius) <= rim:
+    if wp.abs(distance - patch.radius) <= patch.rim:
         return wp.float64(0.0), False
-    if distance <= radius:
-        return -alignment(point, normal, lamp, camera), True
+    if distance <= patch.radius:
+        return -alignment(point, normal, patch.lamp, patch.camera), True
     return wp.float64(2.0), True
+
+
+@wp.func
+def trial(patch: Patch, centroid: wp.vec2d, worst: wp.vec2d, p: wp.float64, q: wp.float64):
+    """(x, its value, decided) of scipy's trial point p centroid - q worst, a component at a
+    time: the reflection (2, 1), expansion (3, 2), outside (1.5, 0.5) and inside (0.5, -0.5)
+    contractions (1 w is w, and a - (-0.5 w) is a + 0.5 w, bit for bit)."""
+    x = wp.vec2d(p * centroid[0] - q * worst[0], p * centroid[1] - q * worst[1])
+    f, ok = value(patch, x)
+    return x, f, ok
+
+
+@wp.func
+def halfway(best: wp.vec2d, x: wp.vec2d) -> wp.vec2d:
+    """scipy's shrink of a vertex: best + 0.5 (x - best), a component at a time."""
+    half = wp.float64(0.5)
+    return wp.vec2d(best[0] + half * (x[0] - best[0]), best[1] + half * (x[1] - best[1]))
 
 
 @wp.func
@@ -120,10 +155,7 @@ def specular_search_kernel(meshes: wp.array(dtype=wp.uint64), points: wp.array(d
     no worse than the start's, else (0, 0), projected onto the surface (point, normal). decided[k]
     0 where a point fell within rim_fraction x radius of the rim (the rest then means nothing)."""
     k = wp.tid()
-    mesh = meshes[k]
     c = frames[4 * k]
-    ax = frames[4 * k + 1]
-    ay = frames[4 * k + 2]
     eye = frames[4 * k + 3]
     zero = wp.float64(0.0)
     farthest = wp.float64(-wp.inf)
@@ -143,17 +175,23 @@ def specular_search_kernel(meshes: wp.array(dtype=wp.uint64), points: wp.array(d
         if i == first or (not wp.isnan(best) and (wp.isnan(aligned) or aligned > best)):
             best = aligned
             s = p
-    r = wp.sqrt(farthest)
-    reach = wp.float32(r)
-    band = rim_fraction * r
-    zero = wp.float64(0.0)
-    half = wp.float64(0.5)
+    patch = Patch()
+    patch.mesh = meshes[k]
+    patch.radius = wp.sqrt(farthest)
+    patch.reach = wp.float32(patch.radius)
+    patch.rim = rim_fraction * patch.radius
+    patch.start = s
+    patch.along_x = frames[4 * k + 1]
+    patch.along_y = frames[4 * k + 2]
+    patch.center = c
+    patch.lamp = lamp
+    patch.camera = eye
     x0 = wp.vec2d(zero, zero)
-    x1 = wp.vec2d(step_fraction * r, zero)
-    x2 = wp.vec2d(zero, step_fraction * r)
-    f0, ok0 = value(mesh, reach, s, ax, ay, c, r, band, lamp, eye, x0)
-    f1, ok1 = value(mesh, reach, s, ax, ay, c, r, band, lamp, eye, x1)
-    f2, ok2 = value(mesh, reach, s, ax, ay, c, r, band, lamp, eye, x2)
+    x1 = wp.vec2d(step_fraction * patch.radius, zero)
+    x2 = wp.vec2d(zero, step_fraction * patch.radius)
+    f0, ok0 = value(patch, x0)
+    f1, ok1 = value(patch, x1)
+    f2, ok2 = value(patch, x2)
     ok = ok0 and ok1 and ok2
     at_start = f0
     calls = int(3)
@@ -170,59 +208,50 @@ def specular_search_kernel(meshes: wp.array(dtype=wp.uint64), points: wp.array(d
             if (wp.abs(x1[0] - x0[0]) <= xatol and wp.abs(x1[1] - x0[1]) <= xatol and wp.abs(x2[0] - x0[0]) <= xatol
                     and wp.abs(x2[1] - x0[1]) <= xatol and wp.abs(f0 - f1) <= fatol and wp.abs(f0 - f2) <= fatol):
                 break
-            # a step: the centroid of the best two summed from +0.0, then scipy's trial points
+            # a step: the centroid of the best two summed from +0.0, then scipy's trial points in its order,
+            # each while evaluations last (one past maxfev ends the step where it stands)
             xbar = wp.vec2d(((zero + x0[0]) + x1[0]) / wp.float64(2.0), ((zero + x0[1]) + x1[1]) / wp.float64(2.0))
-            xr = wp.vec2d(wp.float64(2.0) * xbar[0] - x2[0], wp.float64(2.0) * xbar[1] - x2[1])
-            fxr, ok = value(mesh, reach, s, ax, ay, c, r, band, lamp, eye, xr)
+            xr, fxr, ok = trial(patch, xbar, x2, wp.float64(2.0), wp.float64(1.0))
             calls += 1
+            shrink = bool(False)
             if not ok:
                 break
             if fxr < f0:
                 if calls < maxfev:
-                    xe = wp.vec2d(wp.float64(3.0) * xbar[0] - wp.float64(2.0) * x2[0],
-                                  wp.float64(3.0) * xbar[1] - wp.float64(2.0) * x2[1])
-                    fxe, ok = value(mesh, reach, s, ax, ay, c, r, band, lamp, eye, xe)
+                    xe, fxe, ok = trial(patch, xbar, x2, wp.float64(3.0), wp.float64(2.0))
                     calls += 1
-                    if fxe < fxr:
-                        x2 = xe
-                        f2 = fxe
-                    else:
-                        x2 = xr
-                        f2 = fxr
+                    if not fxe < fxr:       # NaN too: the reflection kept
+                        xe = xr
+                        fxe = fxr
+                    x2 = xe
+                    f2 = fxe
             elif fxr < f1:
                 x2 = xr
                 f2 = fxr
-            else:
-                shrink = bool(False)
+            elif calls < maxfev:
+                outside = fxr < f2
+                to_centroid = wp.float64(0.5)
+                to_worst = wp.float64(-0.5)
+                if outside:
+                    to_centroid = wp.float64(1.5)
+                    to_worst = wp.float64(0.5)
+                xc, fxc, ok = trial(patch, xbar, x2, to_centroid, to_worst)
+                calls += 1
+                if (outside and fxc <= fxr) or (not outside and fxc < f2):
+                    x2 = xc
+                    f2 = fxc
+                else:
+                    shrink = True
+            if shrink and ok:       # each vertex moved halfway to the best, then judged, while evaluations last
+                x1 = halfway(x0, x1)
                 if calls < maxfev:
-                    if fxr < f2:
-                        xc = wp.vec2d(wp.float64(1.5) * xbar[0] - half * x2[0], wp.float64(1.5) * xbar[1] - half * x2[1])
-                        fxc, ok = value(mesh, reach, s, ax, ay, c, r, band, lamp, eye, xc)
-                        calls += 1
-                        if fxc <= fxr:
-                            x2 = xc
-                            f2 = fxc
-                        else:
-                            shrink = True
-                    else:
-                        xcc = wp.vec2d(half * xbar[0] + half * x2[0], half * xbar[1] + half * x2[1])
-                        fxcc, ok = value(mesh, reach, s, ax, ay, c, r, band, lamp, eye, xcc)
-                        calls += 1
-                        if fxcc < f2:
-                            x2 = xcc
-                            f2 = fxcc
-                        else:
-                            shrink = True
-                if shrink and ok:       # each vertex moved halfway to the best, then judged, while evaluations last
-                    x1 = wp.vec2d(x0[0] + half * (x1[0] - x0[0]), x0[1] + half * (x1[1] - x0[1]))
-                    if calls < maxfev:
-                        f1, ok = value(mesh, reach, s, ax, ay, c, r, band, lamp, eye, x1)
-                        calls += 1
-                        if ok:
-                            x2 = wp.vec2d(x0[0] + half * (x2[0] - x0[0]), x0[1] + half * (x2[1] - x0[1]))
-                            if calls < maxfev:
-                                f2, ok = value(mesh, reach, s, ax, ay, c, r, band, lamp, eye, x2)
-                                calls += 1
+                    f1, ok = value(patch, x1)
+                    calls += 1
+                    if ok:
+                        x2 = halfway(x0, x2)
+                        if calls < maxfev:
+                            f2, ok = value(patch, x2)
+                            calls += 1
             sorts = 1
     decided[k] = wp.where(ok, 1, 0)
     lowest = wp.min(wp.min(f0, f1), f2)
@@ -231,7 +260,7 @@ def specular_search_kernel(meshes: wp.array(dtype=wp.uint64), points: wp.array(d
     step = x0
     if not lowest <= at_start:
         step = wp.vec2d(zero, zero)
-    p, face, n = projected(mesh, reach, s, ax, ay, step[0], step[1])
+    p, face, n = projected(patch.mesh, patch.reach, patch.start, patch.along_x, patch.along_y, step[0], step[1])
     point[k] = p
     normal[k] = n
 

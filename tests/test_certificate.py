@@ -121,7 +121,7 @@ def test_specular_points_searched_together_equal_each_searched_alone(problems_at
             assert found >= best_dense - 1e-6         # the start re-projected onto the surface (float32)
 
 
-def specular_point_alone(scene, lamp):
+def specular_point_alone(scene, lamp, maxfev=80):
     """A patch's specular point the slow way: scipy's Nelder-Mead from the best dense point, each
     step projected by its own closest_points call and judged by mirror_alignment in NumPy (off
     the patch by its 3-vector's np.linalg.norm), the step back to the start where it ends no better."""
@@ -139,7 +139,7 @@ def specular_point_alone(scene, lamp):
     d = 0.02 * radius
     found = minimize(lambda x: at(x)[2], np.zeros(2), method="Nelder-Mead",
                      options={"initial_simplex": [[0.0, 0.0], [d, 0.0], [0.0, d]], "xatol": 1e-7, "fatol": 1e-12,
-                              "maxfev": 80})
+                              "maxfev": maxfev})
     point, normal, _ = at(found.x if found.fun <= at(np.zeros(2))[2] else np.zeros(2))
     return point, normal
 
@@ -184,6 +184,29 @@ def test_the_launchs_searches_equal_scipys_for_lamps_anywhere_even_at_a_patch_po
             for k, s in enumerate(scenes):
                 point, normal = specular_point_alone(s, lamp)
                 assert np.array_equal(point, points[k], equal_nan=True) and np.array_equal(normal, normals[k])
+
+
+def test_a_search_cut_short_by_its_evaluations_ends_where_scipys_does(dense_scenes, monkeypatch):
+    """maxfev from 3 up: the launch's searches end where scipy's do when an evaluation past maxfev
+    ends a step in its reflection, expansion, contraction or shrink (a vertex moved, its value
+    kept), whichever step that is: the bracket's flat patches for lamps above, the dome's for
+    lamps all round it, near and far (some below its rim, where the search runs into the rim's
+    off-patch values and shrinks)."""
+    rng = np.random.default_rng(5)
+    flat, dome = dense_scenes[:-1], dense_scenes[-1:]
+    centre = np.mean([s.center for s in flat], axis=0)
+    cases = [(flat, centre + 0.2 * np.array([np.cos(a), np.sin(a), 1.0])) for a in np.radians([0.0, 140.0, 280.0])]
+    for _ in range(24):
+        direction = rng.normal(size=3)
+        cases.append((dome, dome[0].center + direction / np.linalg.norm(direction) * rng.choice([0.02, 0.1, 0.5])))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for maxfev in range(3, 41):
+            monkeypatch.setattr(certificate, "MAXFEV", maxfev)
+            for scenes, lamp in cases:
+                points, normals = certificate.specular_points(scenes, lamp)
+                for k, s in enumerate(scenes):
+                    point, normal = specular_point_alone(s, lamp, maxfev)
+                    assert np.array_equal(point, points[k], equal_nan=True) and np.array_equal(normal, normals[k])
 
 
 def test_a_search_that_meets_the_rim_band_is_searched_again_as_scipy_searches(dense_scenes, monkeypatch):
