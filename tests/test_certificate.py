@@ -1,5 +1,5 @@
 """The certificates of several features verified together (certificate.verify_all: their
-specular points' searches in lockstep, one shared gray launch over every dense patch) against
+specular points' searches in one launch, one shared gray launch over every dense patch) against
 each verified alone (certificate.verify), bit for bit."""
 import itertools
 from dataclasses import fields, replace
@@ -103,7 +103,7 @@ def test_the_launches_lit_begins_are_each_patchs_own_and_not_launched_again(prob
 
 def test_specular_points_searched_together_equal_each_searched_alone(problems_at_one_camera):
     """The dense patches of every feature, their specular points for lamps all round: searched
-    together (one launch a round) and alone, the same points and normals exactly; each on its
+    together (one launch) and alone, the same points and normals exactly; each on its
     own patch (within its radius of the centre) and at least as well aligned as its best dense point."""
     shot, problems = problems_at_one_camera
     scenes = [build_scene(p.task, certificate.dense_samples(p.task, p.scene), T_cell_cam=p.scene.T_cell_cam)
@@ -155,7 +155,7 @@ def dense_scenes(problems_at_one_camera):
 
 
 def test_specular_points_equal_scipys_search_one_point_at_a_time(dense_scenes):
-    """specular_points (searches asking ahead in lockstep, <v, r> in Python floats) finds, for
+    """specular_points (the searches in one Warp launch, kernels.specular) finds, for
     lamps all round, the very point and normal the one-point-at-a-time scipy search finds."""
     for scenes in (dense_scenes[:-1], dense_scenes[-1:]):
         centre = np.mean([s.center for s in scenes], axis=0)

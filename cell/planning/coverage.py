@@ -72,19 +72,19 @@ def rejected(task: Task, missed: tuple[RequirementValue, ...]) -> Coverage:
     return Coverage(task.feature.name, False, np.zeros(0), missed)
 
 
-def laid(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list[Future[Scene] | None]:
+def laid(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot) -> list[Future[Scene]] | None:
     """Each one-feature task's dense patch (certificate.dense_scene) seen by `shot`'s camera,
     being laid on the thread beside the caller's (kernels.runtime.in_background), where the
-    process has one (else None each: judge_all makes the patches of the features met, each when
+    process has one (else None: judge_all makes the patches of the features met, each when
     verified)."""
     if threads() == 1:
-        return [None] * len(tasks)
+        return None
     return [in_background(certificate.dense_scene, t, replace(x.scene, T_cell_cam=shot.T_cell_cam))
             for t, x in zip(tasks, lent)]
 
 
 def judge_all(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot,
-              dense: Sequence[Future[Scene] | None] | None = None) -> list[Coverage]:
+              dense: Sequence[Future[Scene]] | None = None) -> list[Coverage]:
     """judge of `shot` on each one-feature task of one part (with its Lent), the gray kernel on
     the samples launched once for all of them (evaluate.SharedLaunches), not once per feature,
     what one Problem over all their samples finds given to each feature's (what_whole_gives), and
@@ -101,9 +101,8 @@ def judge_all(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot,
         return []
     task = tasks[0]
     scenes = [replace(x.scene, T_cell_cam=shot.T_cell_cam) for x in lent]
-    laying = [d for d in (laid(tasks, lent, shot) if dense is None else dense) if d is not None]
-    beside = len(laying) == len(tasks)
-    if beside:
+    laying = laid(tasks, lent, shot) if dense is None else dense
+    if laying is not None:
         patches, launches = certificate.lit(task, task.part.material.scaled(1.0), shot, [d.result() for d in laying],
                                             beside=True)
     scene, bounds = stacked(lent, shot.T_cell_cam)
@@ -114,7 +113,7 @@ def judge_all(tasks: Sequence[Task], lent: Sequence[Lent], shot: Shot,
     sampled = [on_samples(t, x, s, shot, shared.rows(k), whole) for k, (t, x, s) in enumerate(zip(tasks, lent, scenes))]
     met = [k for k, s in enumerate(sampled) if all(r.met for r in s.values)]
     problems = [sampled[k].problem for k in met]
-    if beside:
+    if laying is not None:
         found = certificate.verdicts(problems, shot, patches, launches, met)
     else:
         found = certificate.verify_all(problems, shot, [in_background(certificate.dense_scene, tasks[k], scenes[k])

@@ -3,9 +3,8 @@ yields the point whose value it needs, or a batch of points, and is sent that va
 (cell.planning.nelder_mead: scipy's Nelder-Mead step for step), every round what all the searches
 still running ask answered by one batched call. A search's refinement starts thus share their
 evaluations (one kernel launch and one pass of the requirements over all their poses a round).
-Each search sees the values
-it would have seen alone when a point's value does not depend on the other points in its batch
-(a candidate's row reads its own lamp alone).
+Each search sees the values it would have seen alone when a point's value does not depend on the
+other points in its batch (a candidate's row reads its own lamp alone).
 
 One thread, not one per search: an evaluation of a few poses costs about a millisecond of Python,
 and handing the GIL from thread to thread at every point costs a good part of that (120

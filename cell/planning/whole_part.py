@@ -140,11 +140,11 @@ class ColumnStart:
     """What of a column's judging (judge_column) is begun before the rest: the requirements the
     shot misses for sure on each feature (cell.planning.prefilter.missed: empty where the full
     judge decides), the features left to judge in full, their dense patches being laid
-    (coverage.laid) and the time [s] it took the caller."""
+    (coverage.laid; None on one thread) and the time [s] it took the caller."""
 
     missed: list[tuple[RequirementValue, ...]]
     left: list[int]
-    dense: list[Future[Scene] | None]
+    dense: list[Future[Scene]] | None
     spent_s: float
 
 
